@@ -1,0 +1,41 @@
+"""Scene description (layer 4): frozen, validated dataclasses loaded from TOML, and the models built from them."""
+
+from refsim.scene.loader import (
+    SceneError,
+    builtin_scenes,
+    load_scene,
+    parse_override,
+    scene_from_dict,
+    scene_to_json,
+)
+from refsim.scene.spec import (
+    CuttingSpec,
+    InsertionSpec,
+    MeshSpec,
+    NeedleSpec,
+    OutputSpec,
+    Scene,
+    SolverSpec,
+    TimeSpec,
+    TissueSpec,
+    TrajectorySpec,
+)
+
+__all__ = [
+    "CuttingSpec",
+    "InsertionSpec",
+    "MeshSpec",
+    "NeedleSpec",
+    "OutputSpec",
+    "Scene",
+    "SceneError",
+    "SolverSpec",
+    "TimeSpec",
+    "TissueSpec",
+    "TrajectorySpec",
+    "builtin_scenes",
+    "load_scene",
+    "parse_override",
+    "scene_from_dict",
+    "scene_to_json",
+]
