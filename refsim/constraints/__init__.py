@@ -1,0 +1,49 @@
+"""Constraint builders (layer 3): rows of H, gaps and kinds for penetration, insertion and cutting."""
+
+from refsim.constraints.insertion import InsertionPath, grow_path, insertion_block, points_beyond_tip
+from refsim.constraints.needle_geometry import BeamNeedleGeometry, NeedleGeometry, RigidNeedleGeometry, needle_rows
+from refsim.constraints.penetration import SurfaceContact, find_surface_contact, penetration_block
+from refsim.constraints.rows import (
+    BILATERAL,
+    CUT_BORDER,
+    CUT_SLIDE,
+    FRICTION,
+    INSERTION,
+    KIND_NAMES,
+    PENETRATION,
+    SOURCE_NAMES,
+    UNILATERAL,
+    RowBlock,
+    concatenate,
+    empty_block,
+    orthonormal_basis,
+    point_rows,
+)
+
+__all__ = [
+    "BILATERAL",
+    "CUT_BORDER",
+    "CUT_SLIDE",
+    "FRICTION",
+    "INSERTION",
+    "KIND_NAMES",
+    "PENETRATION",
+    "SOURCE_NAMES",
+    "UNILATERAL",
+    "BeamNeedleGeometry",
+    "InsertionPath",
+    "NeedleGeometry",
+    "RigidNeedleGeometry",
+    "RowBlock",
+    "SurfaceContact",
+    "concatenate",
+    "empty_block",
+    "find_surface_contact",
+    "grow_path",
+    "insertion_block",
+    "needle_rows",
+    "orthonormal_basis",
+    "penetration_block",
+    "points_beyond_tip",
+    "point_rows",
+]

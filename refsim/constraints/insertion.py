@@ -1,0 +1,161 @@
+"""Insertion constraints (paper, section 3 and Figure 1b): points along the path taken by the tip.
+
+Each point is a material point of the tissue, anchored by the barycentric coordinates of its tet (found in the
+deformed state when the point is created, then fixed), and is coupled to the needle at its projection on the
+centreline: two bilateral rows in the plane normal to the needle (φ_i) and one shaft friction row along it
+(ψ_i), whose Coulomb bound is μ_i times the norm of the two bilateral forces (stick inside, slip at the bound).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from refsim.constraints.needle_geometry import NeedleGeometry, needle_rows
+from refsim.constraints.rows import BILATERAL, FRICTION, INSERTION, RowBlock, orthonormal_basis, point_rows
+
+__all__ = ["InsertionPath", "insertion_block", "grow_path", "points_beyond_tip"]
+
+
+@dataclass(frozen=True)
+class InsertionPath:
+    """The insertion points, in creation order (the first is the puncture point).
+
+    Attributes
+    ----------
+    tets : Tet of each point, shape (p,).
+    barycentric : Barycentric coordinates in that tet, shape (p, 4).
+    created_step : Step at which each point was created, shape (p,).
+    """
+
+    tets: np.ndarray
+    barycentric: np.ndarray
+    created_step: np.ndarray
+
+    @classmethod
+    def empty(cls) -> InsertionPath:
+        return cls(np.zeros(0, dtype=np.int64), np.zeros((0, 4)), np.zeros(0, dtype=np.int64))
+
+    @property
+    def point_count(self) -> int:
+        return int(self.tets.shape[0])
+
+    def positions(self, tissue_positions: np.ndarray, mesh_tets: np.ndarray) -> np.ndarray:
+        """Point positions [m] in a tissue configuration, shape (p, 3)."""
+        return np.einsum("pk,pkj->pj", self.barycentric, tissue_positions[mesh_tets[self.tets]])
+
+    def appended(self, tets: np.ndarray, barycentric: np.ndarray, step: int) -> InsertionPath:
+        """A path with points added at its end."""
+        return InsertionPath(
+            np.concatenate([self.tets, np.asarray(tets, dtype=np.int64)]),
+            np.concatenate([self.barycentric, np.asarray(barycentric, dtype=float).reshape(-1, 4)]),
+            np.concatenate([self.created_step, np.full(len(tets), step, dtype=np.int64)]),
+        )
+
+    def subset(self, keep: np.ndarray) -> InsertionPath:
+        """A path with only the points where ``keep`` (bool (p,) or indices) selects."""
+        return InsertionPath(self.tets[keep], self.barycentric[keep], self.created_step[keep])
+
+
+def insertion_block(
+    path: InsertionPath,
+    *,
+    mesh_tets: np.ndarray,
+    tissue_free: np.ndarray,
+    tissue_previous: np.ndarray,
+    needle_free: NeedleGeometry,
+    needle_previous: NeedleGeometry,
+    friction_coefficient: float,
+    tissue_dof_count: int,
+) -> RowBlock:
+    """Rows of the insertion points: per point two bilateral rows and, when μ_i > 0, one shaft friction row.
+
+    The needle point of each tissue point is its projection on the needle at the start of the step (a material
+    point of the needle for this step); the friction row measures the relative axial displacement over the step.
+    """
+    point_count = path.point_count
+    tissue_point_free = path.positions(tissue_free, mesh_tets)
+    tissue_point_previous = path.positions(tissue_previous, mesh_tets)
+    arc_lengths, _ = needle_previous.project(tissue_point_previous)
+    needle_point_free = needle_free.points(arc_lengths)
+    tangents = needle_free.tangents(arc_lengths)
+    first, second = orthonormal_basis(tangents)
+    offset = needle_point_free - tissue_point_free
+    with_friction = friction_coefficient > 0.0
+    per_point = 3 if with_friction else 2
+    directions = np.empty((point_count, per_point, 3))
+    directions[:, 0], directions[:, 1] = first, second
+    gaps = np.empty((point_count, per_point))
+    gaps[:, 0] = np.einsum("ij,ij->i", first, offset)
+    gaps[:, 1] = np.einsum("ij,ij->i", second, offset)
+    kinds = np.full((point_count, per_point), BILATERAL, dtype=np.int8)
+    if with_friction:
+        directions[:, 2] = tangents
+        slip = (needle_point_free - needle_previous.points(arc_lengths)) - (tissue_point_free - tissue_point_previous)
+        gaps[:, 2] = np.einsum("ij,ij->i", tangents, slip)
+        kinds[:, 2] = FRICTION
+    directions = directions.reshape(-1, 3)
+    row_count = point_count * per_point
+    nodes = np.repeat(mesh_tets[path.tets], per_point, axis=0)
+    weights = np.repeat(path.barycentric, per_point, axis=0)
+    base = np.arange(point_count) * per_point
+    return RowBlock(
+        tissue_jacobian=point_rows(nodes, weights, directions, tissue_dof_count),
+        needle_jacobian=needle_rows(needle_free, np.repeat(arc_lengths, per_point), directions),
+        free_gap=gaps.ravel(),
+        kind=kinds.ravel(),
+        source=np.full(row_count, INSERTION, dtype=np.int8),
+        points=np.repeat(tissue_point_free, per_point, axis=0),
+        directions=directions,
+        shaft_rows=(base + 2) if with_friction else np.zeros(0, dtype=np.int64),
+        shaft_pairs=np.stack([base, base + 1], axis=1) if with_friction else np.zeros((0, 2), dtype=np.int64),
+        shaft_friction_coefficient=np.full(point_count if with_friction else 0, friction_coefficient),
+    )
+
+
+def grow_path(
+    path: InsertionPath,
+    *,
+    tip: np.ndarray,
+    tissue_positions: np.ndarray,
+    mesh_tets: np.ndarray,
+    locator,
+    spacing: float,
+    step: int,
+) -> tuple[InsertionPath, int]:
+    """Add points behind the tip so that no two consecutive points are farther apart than ``spacing``.
+
+    When the tip is farther than d_i = ``spacing`` from every existing point, points are placed on the segment
+    from the last point to the tip every d_i (several in one step when the tip moved more than d_i), located in
+    the current deformed tissue. Points that fall outside the tissue are not added.
+
+    Returns
+    -------
+    (path, added) : The new path and the number of points added.
+    """
+    if path.point_count == 0:
+        return path, 0
+    positions = path.positions(tissue_positions, mesh_tets)
+    if np.min(np.linalg.norm(positions - tip, axis=1)) <= spacing:
+        return path, 0
+    last = positions[-1]
+    segment = tip - last
+    length = float(np.linalg.norm(segment))
+    count = int(np.floor(length / spacing))
+    if count == 0:
+        return path, 0
+    new_points = last + np.outer(np.arange(1, count + 1) * spacing / length, segment)
+    tets, barycentric = locator.locate(new_points)
+    inside = tets >= 0
+    return path.appended(tets[inside], barycentric[inside], step), int(np.count_nonzero(inside))
+
+
+def points_beyond_tip(path: InsertionPath, points: np.ndarray, needle: NeedleGeometry) -> np.ndarray:
+    """Which points lie beyond the tip along the needle (after a withdrawal), bool shape (p,)."""
+    if path.point_count == 0:
+        return np.zeros(0, dtype=bool)
+    tip_s = np.array([needle.length])
+    tip = needle.points(tip_s)[0]
+    tangent = needle.tangents(tip_s)[0]
+    return (points - tip) @ tangent > 0.0

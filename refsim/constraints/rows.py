@@ -1,0 +1,176 @@
+"""Constraint rows: one row of H per body for each atomic constraint, with its gap and its kind.
+
+A block of rows (:class:`RowBlock`) comes from one builder (penetration, insertion, cutting); blocks are
+concatenated into the rows of a step (:func:`concatenate`), which give the solver's
+:class:`~refsim.solvers.ConstraintProblem` once the compliance W = Σ_b H_b A_b⁻¹ H_bᵀ is known.
+
+Sign convention: a row along the unit direction n measures δ = nᵀ(x_needle − x_tissue) [m]; its multiplier λ [N]
+pushes the needle along +n and the tissue along −n. Unilateral rows keep δ ≥ 0 (n points from the tissue towards
+the needle); friction rows measure the relative tangential displacement over the step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+__all__ = [
+    "BILATERAL",
+    "UNILATERAL",
+    "FRICTION",
+    "KIND_NAMES",
+    "SOURCE_NAMES",
+    "PENETRATION",
+    "INSERTION",
+    "CUT_SLIDE",
+    "CUT_BORDER",
+    "RowBlock",
+    "concatenate",
+    "empty_block",
+    "orthonormal_basis",
+    "point_rows",
+]
+
+BILATERAL, UNILATERAL, FRICTION = 0, 1, 2
+KIND_NAMES = ("bilateral", "unilateral", "friction")
+PENETRATION, INSERTION, CUT_SLIDE, CUT_BORDER = 0, 1, 2, 3
+SOURCE_NAMES = ("penetration", "insertion", "cut_slide", "cut_border")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RowBlock:
+    """Rows of one builder.
+
+    Attributes
+    ----------
+    tissue_jacobian : H_tissue, shape (row_count, 3·tissue_node_count).
+    needle_jacobian : H_needle, shape (row_count, 6·needle_node_count), or None for a rigid (kinematic) needle.
+    free_gap : δ_free [m], shape (row_count,).
+    kind : BILATERAL, UNILATERAL or FRICTION per row, shape (row_count,).
+    source : PENETRATION, INSERTION, CUT_SLIDE or CUT_BORDER per row, shape (row_count,).
+    points : Tissue-side point of each row [m], shape (row_count, 3).
+    directions : Unit direction n of each row, shape (row_count, 3).
+    contacts : Row indices (normal, tangent 1, tangent 2) of Coulomb contacts, shape (k, 3).
+    contact_friction : Friction coefficient of each contact, shape (k,).
+    shaft_rows : Row indices of shaft friction rows, shape (m,).
+    shaft_pairs : The two bilateral rows whose force bounds each shaft row, shape (m, 2).
+    shaft_friction_coefficient : shape (m,).
+    """
+
+    tissue_jacobian: sp.csr_matrix
+    needle_jacobian: sp.csr_matrix | None
+    free_gap: np.ndarray
+    kind: np.ndarray
+    source: np.ndarray
+    points: np.ndarray
+    directions: np.ndarray
+    contacts: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))
+    contact_friction: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    shaft_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    shaft_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+    shaft_friction_coefficient: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def row_count(self) -> int:
+        """Number of rows."""
+        return int(self.free_gap.shape[0])
+
+    def index_sets(self) -> dict[str, np.ndarray]:
+        """Row index sets by solver kind: bilateral and unilateral rows outside contacts, contacts, shaft rows."""
+        in_contact = np.zeros(self.row_count, dtype=bool)
+        in_contact[self.contacts.ravel()] = True
+        in_shaft = np.zeros(self.row_count, dtype=bool)
+        in_shaft[self.shaft_rows] = True
+        rows = np.arange(self.row_count)
+        return {
+            "bilateral": rows[(self.kind == BILATERAL) & ~in_contact],
+            "unilateral": rows[(self.kind == UNILATERAL) & ~in_contact],
+            "contacts": self.contacts,
+            "shaft_rows": self.shaft_rows,
+        }
+
+
+def empty_block(tissue_dof_count: int, needle_dof_count: int | None) -> RowBlock:
+    """A block without rows."""
+    needle = None if needle_dof_count is None else sp.csr_matrix((0, needle_dof_count))
+    return RowBlock(
+        tissue_jacobian=sp.csr_matrix((0, tissue_dof_count)),
+        needle_jacobian=needle,
+        free_gap=np.zeros(0),
+        kind=np.zeros(0, dtype=np.int8),
+        source=np.zeros(0, dtype=np.int8),
+        points=np.zeros((0, 3)),
+        directions=np.zeros((0, 3)),
+    )
+
+
+def concatenate(blocks: list[RowBlock]) -> RowBlock:
+    """Stack blocks, offsetting their contact and shaft row indices."""
+    blocks = [b for b in blocks if b is not None]
+    if len(blocks) == 1:
+        return blocks[0]
+    offsets = np.concatenate([[0], np.cumsum([b.row_count for b in blocks])])
+    rigid = blocks[0].needle_jacobian is None
+    return RowBlock(
+        tissue_jacobian=sp.vstack([b.tissue_jacobian for b in blocks], format="csr"),
+        needle_jacobian=None if rigid else sp.vstack([b.needle_jacobian for b in blocks], format="csr"),
+        free_gap=np.concatenate([b.free_gap for b in blocks]),
+        kind=np.concatenate([b.kind for b in blocks]),
+        source=np.concatenate([b.source for b in blocks]),
+        points=np.concatenate([b.points for b in blocks]),
+        directions=np.concatenate([b.directions for b in blocks]),
+        contacts=np.concatenate([b.contacts + o for b, o in zip(blocks, offsets)]).astype(np.int64),
+        contact_friction=np.concatenate([b.contact_friction for b in blocks]),
+        shaft_rows=np.concatenate([b.shaft_rows + o for b, o in zip(blocks, offsets)]).astype(np.int64),
+        shaft_pairs=np.concatenate([b.shaft_pairs + o for b, o in zip(blocks, offsets)]).astype(np.int64),
+        shaft_friction_coefficient=np.concatenate([b.shaft_friction_coefficient for b in blocks]),
+    )
+
+
+def orthonormal_basis(tangents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors orthogonal to each tangent and to each other, continuous in the tangent.
+
+    Parameters
+    ----------
+    tangents : Unit vectors, shape (k, 3).
+
+    Returns
+    -------
+    (first, second) : shape (k, 3) each; (first, second, tangent) is right-handed.
+    """
+    tangents = np.asarray(tangents, dtype=float).reshape(-1, 3)
+    # The helper axis is the world axis least aligned with the tangent.
+    helper = np.eye(3)[np.argmin(np.abs(tangents), axis=1)]
+    first = np.cross(helper, tangents)
+    first /= np.linalg.norm(first, axis=1, keepdims=True)
+    second = np.cross(tangents, first)
+    return first, second
+
+
+def point_rows(
+    node_indices: np.ndarray, weights: np.ndarray, directions: np.ndarray, dof_count: int, *, sign: float = -1.0
+) -> sp.csr_matrix:
+    """Rows of H for points interpolated from mesh nodes, projected on directions.
+
+    Row i is ``sign · Σ_k weights[i, k] · directions[i]ᵀ`` on the three DoFs of node ``node_indices[i, k]``.
+
+    Parameters
+    ----------
+    node_indices : Nodes of each point (tet or face), shape (row_count, p).
+    weights : Barycentric weights, shape (row_count, p).
+    directions : Row directions, shape (row_count, 3).
+    dof_count : 3 · node_count.
+    sign : −1 for the tissue side of the convention δ = nᵀ(x_needle − x_tissue).
+    """
+    node_indices = np.asarray(node_indices, dtype=np.int64)
+    row_count, per_point = node_indices.shape
+    values = sign * weights[:, :, None] * directions[:, None, :]  # (r, p, 3)
+    columns = 3 * node_indices[:, :, None] + np.arange(3)  # (r, p, 3)
+    rows = np.broadcast_to(np.arange(row_count)[:, None, None], columns.shape)
+    matrix = sp.csr_matrix(
+        (values.ravel(), (rows.ravel(), columns.ravel())), shape=(row_count, dof_count)
+    )
+    matrix.sum_duplicates()
+    return matrix

@@ -1,0 +1,17 @@
+"""The time step loop (layer 5)."""
+
+from refsim.simulation.needle_body import FlexibleNeedle, NeedleState, RigidNeedle
+from refsim.simulation.records import STAGES, Event, StepRecord
+from refsim.simulation.simulation import Simulation, SimulationError, SimulationState
+
+__all__ = [
+    "STAGES",
+    "Event",
+    "FlexibleNeedle",
+    "NeedleState",
+    "RigidNeedle",
+    "Simulation",
+    "SimulationError",
+    "SimulationState",
+    "StepRecord",
+]

@@ -1,0 +1,148 @@
+"""The needle as a body of the time step: rigid (kinematic) or flexible (co-rotational beams).
+
+A rigid needle follows its base exactly: its pose at the end of the step is the trajectory's, it adds nothing to
+the compliance and has no free-motion solve. A flexible needle is a beam model whose base node's six DoFs are
+prescribed by the trajectory; the rest moves by one Newton step of implicit Euler.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from refsim.constraints import BeamNeedleGeometry, RigidNeedleGeometry, orthonormal_basis
+from refsim.fem.integration import ImplicitEulerSystem
+from refsim.geometry import rotation_matrix
+
+__all__ = ["NeedleState", "RigidNeedle", "FlexibleNeedle", "rotation_between"]
+
+
+@dataclass(frozen=True)
+class NeedleState:
+    """Needle configuration.
+
+    Attributes
+    ----------
+    positions : Node positions [m], shape (node_count, 3).
+    frames : Node frames (columns: axis, then two section axes), shape (node_count, 3, 3).
+    velocities : Node velocities, linear [m/s] then angular [rad/s], shape (node_count, 6).
+    base_position : Base position [m], shape (3,).
+    direction : Needle direction at the base, unit, shape (3,).
+    """
+
+    positions: np.ndarray
+    frames: np.ndarray
+    velocities: np.ndarray
+    base_position: np.ndarray
+    direction: np.ndarray
+
+
+def rotation_between(start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """Rotation vector [rad] of the smallest rotation taking unit vector ``start`` to ``end``, shape (3,)."""
+    axis = np.cross(start, end)
+    sine = np.linalg.norm(axis)
+    cosine = float(np.clip(start @ end, -1.0, 1.0))
+    if sine < 1e-15:
+        if cosine > 0.0:
+            return np.zeros(3)
+        perpendicular, _ = orthonormal_basis(start[None, :])
+        return np.pi * perpendicular[0]
+    return axis / sine * np.arctan2(sine, cosine)
+
+
+def _rest_frames(direction: np.ndarray, node_count: int) -> np.ndarray:
+    first, second = orthonormal_basis(direction[None, :])
+    frame = np.stack([direction, first[0], second[0]], axis=1)
+    return np.broadcast_to(frame, (node_count, 3, 3)).copy()
+
+
+class RigidNeedle:
+    """A rigid needle moved by its base: nodes on a straight line, no DoFs in the constraint problem."""
+
+    rigid = True
+    dof_count = None
+
+    def __init__(self, length: float, element_count: int) -> None:
+        self.length = float(length)
+        self.arc_lengths = np.linspace(0.0, self.length, element_count + 1)
+
+    def state_at(self, base: np.ndarray, direction: np.ndarray, velocities: np.ndarray | None = None) -> NeedleState:
+        """The needle posed at ``base`` along ``direction``."""
+        positions = base + self.arc_lengths[:, None] * direction
+        frames = _rest_frames(direction, self.arc_lengths.size)
+        if velocities is None:
+            velocities = np.zeros((self.arc_lengths.size, 6))
+        return NeedleState(positions, frames, velocities, np.asarray(base, float), np.asarray(direction, float))
+
+    def geometry(self, state: NeedleState) -> RigidNeedleGeometry:
+        return RigidNeedleGeometry(state.base_position, state.direction, self.length)
+
+    def free_motion(self, state: NeedleState, base: np.ndarray, direction: np.ndarray, dt: float):
+        """The pose at the end of the step (kinematic); no system to solve."""
+        moved = self.state_at(base, direction)
+        velocities = np.zeros_like(state.velocities)
+        velocities[:, :3] = (moved.positions - state.positions) / dt
+        return NeedleState(moved.positions, moved.frames, velocities, moved.base_position, moved.direction), None
+
+    def correct(self, previous: NeedleState, free: NeedleState, system, responses, multipliers, dt) -> NeedleState:
+        return free
+
+
+class FlexibleNeedle:
+    """A flexible needle: co-rotational Timoshenko beams, base node driven by the trajectory."""
+
+    rigid = False
+
+    def __init__(self, model, *, rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0) -> None:
+        self.model = model
+        self.length = float(model.length)
+        self.rayleigh_mass = rayleigh_mass
+        self.rayleigh_stiffness = rayleigh_stiffness
+        self.dof_count = 6 * model.node_count
+        self._mass = model.mass_matrix()
+
+    def state_at(self, base: np.ndarray, direction: np.ndarray, velocities: np.ndarray | None = None) -> NeedleState:
+        positions, frames = self.model.rest_state()
+        # Pose the rest needle rigidly at (base, direction).
+        rest_direction = positions[-1] - positions[0]
+        rest_direction /= np.linalg.norm(rest_direction)
+        rotation = rotation_matrix(rotation_between(rest_direction, direction)[None, :])[0]
+        positions = base + (positions - positions[0]) @ rotation.T
+        frames = rotation @ frames
+        if velocities is None:
+            velocities = np.zeros((positions.shape[0], 6))
+        return NeedleState(positions, frames, velocities, np.asarray(base, float), np.asarray(direction, float))
+
+    def geometry(self, state: NeedleState) -> BeamNeedleGeometry:
+        return BeamNeedleGeometry(self.model, state.positions, state.frames)
+
+    def free_motion(self, state: NeedleState, base: np.ndarray, direction: np.ndarray, dt: float):
+        """One Newton step of implicit Euler with the base's six DoFs prescribed by the trajectory."""
+        model = self.model
+        forces = -model.internal_forces(state.positions, state.frames)
+        stiffness = model.tangent_stiffness(state.positions, state.frames)
+        base_dofs = np.asarray(model.base_dofs)
+        system = ImplicitEulerSystem.build(
+            self._mass,
+            stiffness,
+            dt,
+            rayleigh_mass=self.rayleigh_mass,
+            rayleigh_stiffness=self.rayleigh_stiffness,
+            constrained_dofs=base_dofs,
+        )
+        prescribed = np.concatenate([base - state.positions[0], rotation_between(state.direction, direction)])
+        order = np.argsort(base_dofs)  # constrained_dofs are sorted inside the system
+        delta = system.free_displacement(forces, state.velocities.ravel(), prescribed[order])
+        positions, frames = model.apply_increment(state.positions, state.frames, delta)
+        free = NeedleState(positions, frames, delta.reshape(-1, 6) / dt, np.asarray(base, float), direction)
+        return free, system
+
+    def correct(self, previous: NeedleState, free: NeedleState, system, responses, multipliers, dt) -> NeedleState:
+        """x = x_free + A⁻¹ Hᵀ λ, velocities from the whole step's increment."""
+        if responses is None or multipliers.size == 0:
+            return free
+        delta = responses @ multipliers
+        positions, frames = self.model.apply_increment(free.positions, free.frames, delta)
+        velocities = free.velocities + delta.reshape(-1, 6) / dt
+        return NeedleState(positions, frames, velocities, free.base_position, free.direction)

@@ -1,0 +1,344 @@
+"""The time step loop (DESIGN.md, "One time step"): motion, free motion, detection, compliance, solve,
+correction, events, record.
+
+The scene and the models are static; a step takes a :class:`SimulationState` and returns a new one with the
+:class:`~refsim.simulation.records.StepRecord` of what it did. Nothing the scene does not declare is computed: a
+rigid needle has no beam solve, μ = 0 gives no friction rows, a scene without cutting never builds a cut.
+"""
+
+from __future__ import annotations
+
+import logging
+import time as clock
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from refsim.constraints import (
+    InsertionPath,
+    PENETRATION,
+    RowBlock,
+    UNILATERAL,
+    concatenate,
+    empty_block,
+    find_surface_contact,
+    grow_path,
+    insertion_block,
+    penetration_block,
+    points_beyond_tip,
+)
+from refsim.fem.tissue import TissueState
+from refsim.geometry import SurfaceProjector, TetLocator
+from refsim.scene import Scene
+from refsim.scene.build import SceneModels, build_models
+from refsim.simulation.needle_body import FlexibleNeedle, NeedleState, RigidNeedle
+from refsim.simulation.records import STAGES, Event, StepRecord
+from refsim.solvers import ConstraintProblem, solve_exact, solve_gauss_seidel
+
+__all__ = ["Simulation", "SimulationState", "SimulationError"]
+
+logger = logging.getLogger(__name__)
+
+APPROACH, INSERTION_PHASE, CUTTING_PHASE = "approach", "insertion", "cutting"
+
+
+class SimulationError(RuntimeError):
+    """The simulation reached a state it cannot continue from (non-finite values, a blown-up energy); the
+    message names the step and what was detected."""
+
+
+@dataclass(frozen=True)
+class SimulationState:
+    """Everything that changes during a run.
+
+    Attributes
+    ----------
+    step : Steps done.
+    time : Simulated time [s].
+    phase : "approach" (tip outside), "insertion" or "cutting".
+    tissue : Tissue positions [m] and velocities [m/s], each (n, 3).
+    needle : Needle configuration.
+    path : Insertion points (material points of the tissue).
+    cut : The cut surface (None until the tissue is cut).
+    """
+
+    step: int
+    time: float
+    phase: str
+    tissue: TissueState
+    needle: NeedleState
+    path: InsertionPath
+    cut: object | None = None
+    extras: dict = field(default_factory=dict)
+
+
+class _StageTimer:
+    def __init__(self) -> None:
+        self.seconds = dict.fromkeys(STAGES, 0.0)
+        self._last = clock.perf_counter()
+
+    def lap(self, stage: str) -> None:
+        now = clock.perf_counter()
+        self.seconds[stage] += now - self._last
+        self._last = now
+
+
+class Simulation:
+    """A scene's simulation: build once, then step.
+
+    Parameters
+    ----------
+    scene : The validated scene.
+    models : Prebuilt models (built from the scene by default).
+    """
+
+    def __init__(self, scene: Scene, models: SceneModels | None = None) -> None:
+        self.scene = scene
+        self.models = models if models is not None else build_models(scene)
+        self.tets = np.asarray(self.models.mesh.tets)
+        self.faces = np.asarray(self.models.mesh.boundary_faces)
+        self.tissue = self.models.tissue
+        if scene.needle.rigid:
+            self.needle = RigidNeedle(scene.needle.length, scene.needle.element_count)
+        else:
+            self.needle = FlexibleNeedle(
+                self.models.needle,
+                rayleigh_mass=scene.needle.rayleigh_mass,
+                rayleigh_stiffness=scene.needle.rayleigh_stiffness,
+            )
+        self.dt = scene.time.dt
+
+    # ------------------------------------------------------------------ state
+
+    def initial_state(self) -> SimulationState:
+        """Tissue at rest, needle at the trajectory's first pose, tip outside."""
+        base, direction = self.models.trajectory.pose(0.0)
+        return SimulationState(
+            step=0,
+            time=0.0,
+            phase=APPROACH,
+            tissue=self.tissue.rest_state(),
+            needle=self.needle.state_at(base, direction),
+            path=InsertionPath.empty(),
+        )
+
+    # ------------------------------------------------------------------ step
+
+    def step(self, state: SimulationState, *, record_tissue: bool = False) -> tuple[SimulationState, StepRecord]:
+        """Advance one time step; return the new state and the record of the step."""
+        scene, dt = self.scene, self.dt
+        timer = _StageTimer()
+        time = state.time + dt
+        step = state.step + 1
+        base, direction = self.models.trajectory.pose(time)
+        timer.lap("motion")
+
+        tissue_free, _, tissue_system = self.tissue.free_motion(state.tissue, dt)
+        needle_free, needle_system = self.needle.free_motion(state.needle, base, direction, dt)
+        timer.lap("free_motion")
+
+        needle_free_geometry = self.needle.geometry(needle_free)
+        needle_previous_geometry = self.needle.geometry(state.needle)
+        rows, contact = self._detect(state, tissue_free, needle_free_geometry, needle_previous_geometry)
+        timer.lap("detection")
+
+        problem, tissue_responses, needle_responses = self._problem(rows, tissue_system, needle_system)
+        timer.lap("compliance")
+
+        multipliers, report = self._solve(problem)
+        timer.lap("solve")
+
+        tissue_positions = tissue_free
+        if tissue_responses is not None:
+            tissue_positions = tissue_free + (tissue_responses @ multipliers).reshape(-1, 3)
+        tissue_state = TissueState(
+            positions=tissue_positions, velocities=(tissue_positions - state.tissue.positions) / dt
+        )
+        needle_state = self.needle.correct(state.needle, needle_free, needle_system, needle_responses, multipliers, dt)
+        self._check_finite(step, tissue_state, needle_state, multipliers)
+        timer.lap("correction")
+
+        new_state = replace(state, step=step, time=time, tissue=tissue_state, needle=needle_state)
+        new_state, events = self._events(new_state, rows, multipliers, contact)
+        timer.lap("events")
+
+        needle_force = (rows.directions * multipliers[:, None]).sum(axis=0) if rows.row_count else np.zeros(3)
+        record = StepRecord(
+            step=step,
+            time=time,
+            phase=new_state.phase,
+            events=tuple(events),
+            base_position=needle_state.base_position,
+            needle_positions=needle_state.positions,
+            needle_frames=needle_state.frames,
+            tissue_positions=tissue_positions if record_tissue else None,
+            row_kind=rows.kind,
+            row_source=rows.source,
+            row_points=rows.points,
+            row_directions=rows.directions,
+            row_forces=multipliers,
+            needle_force=needle_force,
+            insertion_point_count=new_state.path.point_count,
+            solver=report,
+            stage_seconds=timer.seconds,
+            problem=problem if scene.output.record_problems else None,
+        )
+        return new_state, record
+
+    def run(
+        self,
+        *,
+        steps: int | None = None,
+        on_step: Callable[[SimulationState, StepRecord], None] | None = None,
+        state: SimulationState | None = None,
+    ) -> SimulationState:
+        """Run ``steps`` steps (the scene's duration by default), calling ``on_step`` after each."""
+        state = self.initial_state() if state is None else state
+        total = self.scene.time.step_count if steps is None else steps
+        every = self.scene.output.tissue_every
+        for index in range(1, total + 1):
+            record_tissue = index % every == 0 or index == total
+            state, record = self.step(state, record_tissue=record_tissue)
+            if on_step is not None:
+                on_step(state, record)
+        return state
+
+    # ------------------------------------------------------------------ stages
+
+    def _detect(self, state, tissue_free, needle_free, needle_previous) -> tuple[RowBlock, object]:
+        spec = self.scene.insertion
+        dof_count = 3 * self.tissue.node_count
+        blocks = []
+        contact = None
+        if state.phase == APPROACH:
+            projector = SurfaceProjector(tissue_free, self.faces)
+            contact = find_surface_contact(projector, self.faces, needle_free.tip)
+            if contact.gap < spec.contact_distance:
+                blocks.append(
+                    penetration_block(
+                        contact=contact,
+                        tissue_free=tissue_free,
+                        tissue_previous=state.tissue.positions,
+                        needle_free=needle_free,
+                        needle_previous=needle_previous,
+                        friction_coefficient=spec.surface_friction_coefficient,
+                        tissue_dof_count=dof_count,
+                    )
+                )
+        elif state.path.point_count:
+            blocks.append(
+                insertion_block(
+                    state.path,
+                    mesh_tets=self.tets,
+                    tissue_free=tissue_free,
+                    tissue_previous=state.tissue.positions,
+                    needle_free=needle_free,
+                    needle_previous=needle_previous,
+                    friction_coefficient=spec.shaft_friction_coefficient,
+                    tissue_dof_count=dof_count,
+                )
+            )
+        if not blocks:
+            return empty_block(dof_count, self.needle.dof_count), contact
+        return concatenate(blocks), contact
+
+    def _problem(self, rows: RowBlock, tissue_system, needle_system):
+        if rows.row_count == 0:
+            return None, None, None
+        compliance, tissue_responses = tissue_system.compliance(rows.tissue_jacobian)
+        needle_responses = None
+        if rows.needle_jacobian is not None:
+            needle_compliance, needle_responses = needle_system.compliance(rows.needle_jacobian)
+            compliance = compliance + needle_compliance
+        sets = rows.index_sets()
+        problem = ConstraintProblem(
+            compliance=compliance,
+            free_gap=rows.free_gap,
+            bilateral=sets["bilateral"],
+            unilateral=sets["unilateral"],
+            contacts=sets["contacts"],
+            contact_friction=rows.contact_friction,
+            shaft_friction=sets["shaft_rows"],
+            shaft_pairs=rows.shaft_pairs,
+            shaft_friction_coefficient=rows.shaft_friction_coefficient,
+        )
+        return problem, tissue_responses, needle_responses
+
+    def _solve(self, problem):
+        if problem is None:
+            return np.zeros(0), None
+        spec = self.scene.solver
+        if spec.method == "exact":
+            return solve_exact(problem, tolerance=spec.tolerance, backend=spec.backend)
+        return solve_gauss_seidel(problem, tolerance=spec.tolerance, max_iterations=spec.max_iterations)
+
+    def _check_finite(self, step, tissue_state, needle_state, multipliers) -> None:
+        for name, array in (
+            ("tissue positions", tissue_state.positions),
+            ("needle positions", needle_state.positions),
+            ("constraint forces", multipliers),
+        ):
+            if not np.all(np.isfinite(array)):
+                raise SimulationError(f"step {step}: non-finite {name} detected; the run stops here")
+
+    def _events(self, state: SimulationState, rows: RowBlock, multipliers, contact):
+        spec = self.scene.insertion
+        events: list[Event] = []
+        needle = self.needle.geometry(state.needle)
+        positions = state.tissue.positions
+        if state.phase == APPROACH and rows.row_count:
+            normal_rows = np.flatnonzero((rows.source == PENETRATION) & (rows.kind == UNILATERAL))
+            normal_force = float(multipliers[normal_rows].sum())
+            if normal_force >= spec.puncture_force:
+                entry = contact.barycentric @ positions[contact.nodes]
+                tets, barycentric = self._locate(positions, entry[None, :], inward=contact.normal)
+                if tets[0] >= 0:
+                    path = InsertionPath.empty().appended(tets, barycentric, state.step)
+                    state = replace(state, phase=INSERTION_PHASE, path=path)
+                    events.append(Event("puncture", normal_force))
+        if state.phase == INSERTION_PHASE:
+            locator = _LazyLocator(positions, self.tets)
+            path, added = grow_path(
+                state.path,
+                tip=needle.tip,
+                tissue_positions=positions,
+                mesh_tets=self.tets,
+                locator=locator,
+                spacing=spec.spacing,
+                step=state.step,
+            )
+            beyond = points_beyond_tip(path, path.positions(positions, self.tets), needle)
+            if np.any(beyond):
+                path = path.subset(~beyond)
+                events.append(Event("retraction"))
+            state = replace(state, path=path)
+            if path.point_count == 0:
+                state = replace(state, phase=APPROACH)
+                events.append(Event("withdrawal"))
+        return state, events
+
+    def _locate(self, positions, points, *, inward):
+        """Tet and barycentric coordinates of points on or just under the surface."""
+        locator = TetLocator(positions, self.tets)
+        tets, barycentric = locator.locate(points)
+        if np.any(tets < 0):
+            # A point exactly on the surface may be reported outside by round-off: step inside by 1e-9 of the
+            # mesh size, far below any physical length of the scene.
+            size = float(np.ptp(positions, axis=0).max())
+            retry = tets < 0
+            nudged, nudged_bary = locator.locate(points[retry] - 1e-9 * size * inward)
+            tets[retry], barycentric[retry] = nudged, nudged_bary
+        return tets, barycentric
+
+
+class _LazyLocator:
+    """Builds the tet locator on first use (most steps add no insertion point)."""
+
+    def __init__(self, positions, tets) -> None:
+        self._positions, self._tets, self._locator = positions, tets, None
+
+    def locate(self, points):
+        if self._locator is None:
+            self._locator = TetLocator(self._positions, self._tets)
+        return self._locator.locate(points)
