@@ -297,7 +297,8 @@ class Simulation:
                     path = InsertionPath.empty().appended(tets, barycentric, state.step)
                     state = replace(state, phase=INSERTION_PHASE, path=path)
                     events.append(Event("puncture", normal_force))
-        if state.phase == INSERTION_PHASE:
+        if state.phase == INSERTION_PHASE and not events:
+            # (Not in the step that punctures: the entry point is then at the tip, on either side by round-off.)
             locator = _LazyLocator(positions, self.tets)
             path, added = grow_path(
                 state.path,

@@ -1,0 +1,107 @@
+"""Aggregates of a run's step records: the end-of-run summary and the paper's Table 1 for our code."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from refsim.simulation.records import STAGES, StepRecord
+
+__all__ = ["PhaseStatistics", "RunSummary"]
+
+
+@dataclass
+class PhaseStatistics:
+    """Per-phase sums of one run (the paper's Table 1: rows, solving time and share, total per step)."""
+
+    steps: int = 0
+    rows: int = 0
+    iterations: int = 0
+    solves: int = 0
+    stage_seconds: dict = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
+
+    @property
+    def mean_rows(self) -> float:
+        return self.rows / self.steps if self.steps else float("nan")
+
+    @property
+    def mean_iterations(self) -> float:
+        return self.iterations / self.solves if self.solves else float("nan")
+
+    @property
+    def ms_per_step(self) -> float:
+        return 1e3 * sum(self.stage_seconds.values()) / self.steps if self.steps else float("nan")
+
+    @property
+    def solve_ms_per_step(self) -> float:
+        return 1e3 * self.stage_seconds["solve"] / self.steps if self.steps else float("nan")
+
+
+@dataclass
+class RunSummary:
+    """Running aggregate of step records; feed it with :meth:`add`."""
+
+    events: list = field(default_factory=list)
+    phases: dict = field(default_factory=dict)
+    peak_force: float = 0.0
+    peak_force_step: int = 0
+    steps: int = 0
+    unconverged: int = 0
+    max_residual: float = 0.0
+
+    def add(self, record: StepRecord) -> None:
+        self.steps += 1
+        for event in record.events:
+            self.events.append((record.step, record.time, event.name, event.force))
+        stats = self.phases.setdefault(record.phase, PhaseStatistics())
+        stats.steps += 1
+        stats.rows += int(record.row_forces.size)
+        if record.solver is not None:
+            stats.solves += 1
+            stats.iterations += int(record.solver.iterations)
+            if not record.solver.converged:
+                self.unconverged += 1
+            if np.isfinite(record.solver.residual):
+                self.max_residual = max(self.max_residual, float(record.solver.residual))
+        for stage, seconds in record.stage_seconds.items():
+            stats.stage_seconds[stage] += seconds
+        force = float(np.linalg.norm(record.needle_force))
+        if force > self.peak_force:
+            self.peak_force, self.peak_force_step = force, record.step
+
+    @property
+    def seconds(self) -> float:
+        return sum(sum(p.stage_seconds.values()) for p in self.phases.values())
+
+    def format(self) -> str:
+        """Events, peak force, solver health and speed, as text."""
+        lines = ["events:"]
+        lines += [f"  step {s:5d}  t = {t:.4f} s  {name}" + (f"  force {f:.4g} N" if np.isfinite(f) else "")
+                  for s, t, name, f in self.events] or ["  none"]
+        lines.append(f"peak force on the needle: {self.peak_force:.4g} N at step {self.peak_force_step}")
+        lines.append(
+            f"constraint solves not converged: {self.unconverged}; largest natural residual {self.max_residual:.2e}"
+        )
+        rate = self.steps / self.seconds if self.seconds > 0 else float("nan")
+        lines.append(f"{self.steps} steps in {self.seconds:.2f} s: {rate:.1f} steps/s")
+        return "\n".join(lines)
+
+    def format_table(self) -> str:
+        """The paper's Table 1 for this run: per phase, rows, solving ms and share, total ms per step."""
+        header = f"{'phase':<10} {'steps':>6} {'rows':>7} {'GS/solver it.':>13} {'solve ms':>9} {'share':>6} {'total ms':>9}"
+        lines = [header, "-" * len(header)]
+        for phase, stats in self.phases.items():
+            share = stats.solve_ms_per_step / stats.ms_per_step if stats.steps else float("nan")
+            lines.append(
+                f"{phase:<10} {stats.steps:>6d} {stats.mean_rows:>7.1f} {stats.mean_iterations:>13.2f} "
+                f"{stats.solve_ms_per_step:>9.2f} {100 * share:>5.1f}% {stats.ms_per_step:>9.2f}"
+            )
+        stage_totals = dict.fromkeys(STAGES, 0.0)
+        for stats in self.phases.values():
+            for stage, seconds in stats.stage_seconds.items():
+                stage_totals[stage] += seconds
+        if self.steps:
+            lines.append("ms per step by stage: " + ", ".join(
+                f"{stage} {1e3 * seconds / self.steps:.2f}" for stage, seconds in stage_totals.items()))
+        return "\n".join(lines)

@@ -1,0 +1,141 @@
+"""Constraint rows: Jacobians against the gap functions they linearise, bases, offsets and the path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from refsim.constraints import (
+    BILATERAL,
+    FRICTION,
+    InsertionPath,
+    RigidNeedleGeometry,
+    concatenate,
+    grow_path,
+    insertion_block,
+    orthonormal_basis,
+    point_rows,
+    points_beyond_tip,
+)
+from refsim.geometry import TetLocator
+from refsim.mesh import box_mesh
+
+
+@pytest.mark.parametrize(
+    "tangent",
+    [[0, 0, 1], [0, 0, -1], [1, 0, 0], [1, 1e-12, 0], [1, 1, 1], [0.3, -0.2, 0.9], [1, 1, 0]],
+)
+def test_orthonormal_basis(tangent):
+    t = np.asarray(tangent, float)[None, :]
+    t /= np.linalg.norm(t)
+    first, second = orthonormal_basis(t)
+    frame = np.stack([first[0], second[0], t[0]], axis=1)
+    np.testing.assert_allclose(frame.T @ frame, np.eye(3), atol=1e-15)
+    assert np.linalg.det(frame) == pytest.approx(1.0, abs=1e-14)
+
+
+def test_point_rows_linearise_the_gap_exactly():
+    # δ(x) = nᵀ(p − Σ_k w_k x_k) is affine in x, so H Δx = δ(x + Δx) − δ(x) to round-off.
+    rng = np.random.default_rng(1)
+    node_count = 20
+    positions = rng.normal(size=(node_count, 3))
+    nodes = rng.integers(0, node_count, size=(7, 4))
+    weights = rng.dirichlet(np.ones(4), size=7)
+    directions = rng.normal(size=(7, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    anchor = rng.normal(size=(7, 3))
+
+    def gap(x):
+        return np.einsum("ij,ij->i", directions, anchor - np.einsum("ik,ikj->ij", weights, x[nodes]))
+
+    jacobian = point_rows(nodes, weights, directions, 3 * node_count)
+    step = 1e-3 * rng.normal(size=(node_count, 3))
+    np.testing.assert_allclose(jacobian @ step.ravel(), gap(positions + step) - gap(positions), atol=1e-14)
+
+
+def test_concatenate_offsets_contacts_and_shaft_rows():
+    mesh = box_mesh(size=(0.02, 0.02, 0.02), cells=(2, 2, 2))
+    locator = TetLocator(mesh.rest_positions, mesh.tets)
+    points = np.array([[0.011, 0.012, 0.015], [0.011, 0.012, 0.01]])
+    tets, bary = locator.locate(points)
+    path = InsertionPath.empty().appended(tets, bary, 1)
+    needle = RigidNeedleGeometry(np.array([0.011, 0.012, 0.05]), np.array([0.0, 0.0, -1.0]), 0.045)
+    block = insertion_block(
+        path,
+        mesh_tets=mesh.tets,
+        tissue_free=mesh.rest_positions,
+        tissue_previous=mesh.rest_positions,
+        needle_free=needle,
+        needle_previous=needle,
+        friction_coefficient=0.2,
+        tissue_dof_count=3 * mesh.node_count,
+    )
+    both = concatenate([block, block])
+    assert both.row_count == 12
+    np.testing.assert_array_equal(both.shaft_rows, [2, 5, 8, 11])
+    np.testing.assert_array_equal(both.shaft_pairs[2:], [[6, 7], [9, 10]])
+    sets = both.index_sets()
+    assert set(sets["bilateral"]) == {0, 1, 3, 4, 6, 7, 9, 10}
+
+
+def test_insertion_gaps_measure_the_lateral_offset_and_the_axial_slip():
+    mesh = box_mesh(size=(0.02, 0.02, 0.02), cells=(2, 2, 2))
+    locator = TetLocator(mesh.rest_positions, mesh.tets)
+    points = np.array([[0.011, 0.012, 0.015], [0.011, 0.012, 0.01], [0.011, 0.012, 0.005]])
+    tets, bary = locator.locate(points)
+    path = InsertionPath.empty().appended(tets, bary, 1)
+    direction = np.array([0.0, 0.0, -1.0])
+    previous = RigidNeedleGeometry(np.array([0.011, 0.012, 0.05]), direction, 0.048)
+    shift = np.array([1e-4, -2e-4, -3e-4])  # lateral (x, y) and axial (along −z, i.e. +3e-4 along the needle)
+    free = RigidNeedleGeometry(previous.base + shift, direction, 0.048)
+    block = insertion_block(
+        path,
+        mesh_tets=mesh.tets,
+        tissue_free=mesh.rest_positions,
+        tissue_previous=mesh.rest_positions,
+        needle_free=free,
+        needle_previous=previous,
+        friction_coefficient=0.3,
+        tissue_dof_count=3 * mesh.node_count,
+    )
+    kinds = block.kind.reshape(3, 3)
+    assert np.all(kinds[:, :2] == BILATERAL) and np.all(kinds[:, 2] == FRICTION)
+    gaps = block.free_gap.reshape(3, 3)
+    directions = block.directions.reshape(3, 3, 3)
+    # The two bilateral gaps are the lateral offset in the plane normal to the needle.
+    lateral = np.einsum("pkj,j->pk", directions[:, :2], shift)
+    np.testing.assert_allclose(gaps[:, :2], lateral, atol=1e-15)
+    # The friction gap is the axial slip over the step: the needle moved 3e-4 m along its direction.
+    np.testing.assert_allclose(gaps[:, 2], 3e-4, atol=1e-15)
+    np.testing.assert_allclose(block.shaft_friction_coefficient, 0.3)
+
+
+@pytest.mark.parametrize("moves_per_step", [0.4, 1.0, 3.0])
+def test_path_has_no_gaps_whatever_the_tip_speed(moves_per_step):
+    # Issue 4: no two consecutive points farther apart than d_i, even when the tip moves 3 d_i per step.
+    mesh = box_mesh(size=(0.02, 0.02, 0.02), cells=(3, 3, 3))
+    spacing = 1e-3
+    start = np.array([0.0101, 0.0093, 0.02])
+    locator = TetLocator(mesh.rest_positions, mesh.tets)
+    tets, bary = locator.locate(start[None, :] - [0, 0, 1e-9])
+    path = InsertionPath.empty().appended(tets, bary, 0)
+    depth = 0.0
+    for step in range(1, int(0.015 / (moves_per_step * spacing)) + 1):
+        depth = step * moves_per_step * spacing
+        tip = start - np.array([0.0, 0.0, depth])
+        path, _ = grow_path(
+            path, tip=tip, tissue_positions=mesh.rest_positions, mesh_tets=mesh.tets, locator=locator,
+            spacing=spacing, step=step,
+        )
+    positions = path.positions(mesh.rest_positions, mesh.tets)
+    gaps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    assert np.all(gaps <= spacing * (1 + 1e-9))
+    # Points every d_i from the entry to within d_i of the tip: depth/d_i (+1 for the entry point), ±1.
+    assert abs(path.point_count - (depth // spacing + 1)) <= 1
+
+
+def test_points_beyond_tip_after_withdrawal():
+    needle = RigidNeedleGeometry(np.array([0.0, 0.0, 0.1]), np.array([0.0, 0.0, -1.0]), 0.05)  # tip at z = 0.05
+    points = np.array([[0.0, 0.0, 0.06], [0.0, 0.0, 0.05 + 1e-12], [0.0, 0.0, 0.05 - 1e-12], [0.001, 0.0, 0.04]])
+    path = InsertionPath.empty().appended(np.zeros(4, int), np.full((4, 4), 0.25), 0)
+    np.testing.assert_array_equal(points_beyond_tip(path, points, needle), [False, False, True, True])
