@@ -16,6 +16,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from refsim.constraints import (
+    BILATERAL,
+    INSERTION,
     InsertionPath,
     PENETRATION,
     RowBlock,
@@ -28,6 +30,7 @@ from refsim.constraints import (
     penetration_block,
     points_beyond_tip,
 )
+from refsim.constraints.cut import cut_block, cut_criterion, resample_polyline, sweep_points
 from refsim.fem.tissue import TissueState
 from refsim.geometry import SurfaceProjector, TetLocator
 from refsim.scene import Scene
@@ -140,7 +143,7 @@ class Simulation:
 
         needle_free_geometry = self.needle.geometry(needle_free)
         needle_previous_geometry = self.needle.geometry(state.needle)
-        rows, contact = self._detect(state, tissue_free, needle_free_geometry, needle_previous_geometry)
+        rows, context = self._detect(state, tissue_free, needle_free_geometry, needle_previous_geometry)
         timer.lap("detection")
 
         problem, tissue_responses, needle_responses = self._problem(rows, tissue_system, needle_system)
@@ -160,7 +163,7 @@ class Simulation:
         timer.lap("correction")
 
         new_state = replace(state, step=step, time=time, tissue=tissue_state, needle=needle_state)
-        new_state, events = self._events(new_state, rows, multipliers, contact)
+        new_state, events = self._events(new_state, rows, multipliers, context)
         timer.lap("events")
 
         needle_force = (rows.directions * multipliers[:, None]).sum(axis=0) if rows.row_count else np.zeros(3)
@@ -183,6 +186,9 @@ class Simulation:
             solver=report,
             stage_seconds=timer.seconds,
             problem=problem if scene.output.record_problems else None,
+            cut_point_count=0 if new_state.cut is None else new_state.cut.point_count,
+            cut_triangle_count=0 if new_state.cut is None else new_state.cut.triangle_count,
+            triangulation_seconds=_triangulation_seconds(state.cut, new_state.cut),
         )
         return new_state, record
 
@@ -206,14 +212,15 @@ class Simulation:
 
     # ------------------------------------------------------------------ stages
 
-    def _detect(self, state, tissue_free, needle_free, needle_previous) -> tuple[RowBlock, object]:
+    def _detect(self, state, tissue_free, needle_free, needle_previous) -> tuple[RowBlock, dict]:
         spec = self.scene.insertion
         dof_count = 3 * self.tissue.node_count
         blocks = []
-        contact = None
+        context: dict = {}
         if state.phase == APPROACH:
             projector = SurfaceProjector(tissue_free, self.faces)
             contact = find_surface_contact(projector, self.faces, needle_free.tip)
+            context["contact"] = contact
             if contact.gap < spec.contact_distance:
                 blocks.append(
                     penetration_block(
@@ -239,9 +246,26 @@ class Simulation:
                     tissue_dof_count=dof_count,
                 )
             )
+        if state.phase == CUTTING_PHASE:
+            entry = state.path.positions(state.tissue.positions, self.tets)[:1]
+            entry_arc_length = float(needle_previous.project(entry)[0][0])
+            offset = sum(block.row_count for block in blocks)
+            block, info = cut_block(
+                state.cut,
+                mesh_tets=self.tets,
+                tissue_free=tissue_free,
+                needle_free=needle_free,
+                entry_arc_length=entry_arc_length,
+                spacing=self.scene.cutting.point_spacing,
+                tissue_dof_count=dof_count,
+            )
+            if block is not None:
+                blocks.append(block)
+            context["border_points"] = info.border_point
+            context["border_rows"] = offset + info.rows
         if not blocks:
-            return empty_block(dof_count, self.needle.dof_count), contact
-        return concatenate(blocks), contact
+            return empty_block(dof_count, self.needle.dof_count), context
+        return concatenate(blocks), context
 
     def _problem(self, rows: RowBlock, tissue_system, needle_system):
         if rows.row_count == 0:
@@ -282,7 +306,7 @@ class Simulation:
             if not np.all(np.isfinite(array)):
                 raise SimulationError(f"step {step}: non-finite {name} detected; the run stops here")
 
-    def _events(self, state: SimulationState, rows: RowBlock, multipliers, contact):
+    def _events(self, state: SimulationState, rows: RowBlock, multipliers, context):
         spec = self.scene.insertion
         events: list[Event] = []
         needle = self.needle.geometry(state.needle)
@@ -291,6 +315,7 @@ class Simulation:
             normal_rows = np.flatnonzero((rows.source == PENETRATION) & (rows.kind == UNILATERAL))
             normal_force = float(multipliers[normal_rows].sum())
             if normal_force >= spec.puncture_force:
+                contact = context["contact"]
                 entry = contact.barycentric @ positions[contact.nodes]
                 tets, barycentric = self._locate(positions, entry[None, :], inward=contact.normal)
                 if tets[0] >= 0:
@@ -299,25 +324,96 @@ class Simulation:
                     events.append(Event("puncture", normal_force))
         if state.phase == INSERTION_PHASE and not events:
             # (Not in the step that punctures: the entry point is then at the tip, on either side by round-off.)
-            locator = _LazyLocator(positions, self.tets)
-            path, added = grow_path(
-                state.path,
-                tip=needle.tip,
-                tissue_positions=positions,
-                mesh_tets=self.tets,
-                locator=locator,
-                spacing=spec.spacing,
-                step=state.step,
-            )
-            beyond = points_beyond_tip(path, path.positions(positions, self.tets), needle)
-            if np.any(beyond):
-                path = path.subset(~beyond)
-                events.append(Event("retraction"))
-            state = replace(state, path=path)
-            if path.point_count == 0:
-                state = replace(state, phase=APPROACH)
-                events.append(Event("withdrawal"))
+            state, more = self._insertion_events(state, rows, multipliers, needle)
+            events.extend(more)
+        elif state.phase == CUTTING_PHASE:
+            state, more = self._tearing_events(state, rows, multipliers, context)
+            events.extend(more)
         return state, events
+
+    def _insertion_events(self, state, rows, multipliers, needle):
+        spec = self.scene.insertion
+        events: list[Event] = []
+        positions = state.tissue.positions
+        cutting = self.scene.cutting
+        if cutting.enabled and rows.row_count:
+            lateral = (rows.source == INSERTION) & (rows.kind == BILATERAL)
+            force_on_needle = (rows.directions[lateral] * multipliers[lateral, None]).sum(axis=0)
+            if cut_criterion(force_on_needle, state.path.point_count, cutting.cutting_force):
+                mean_force = float(np.linalg.norm(force_on_needle)) / state.path.point_count
+                state = self._start_cut(state, -force_on_needle / np.linalg.norm(force_on_needle))
+                events.append(Event("cut_start", mean_force))
+                return state, events
+        locator = _LazyLocator(positions, self.tets)
+        path, _ = grow_path(
+            state.path,
+            tip=needle.tip,
+            tissue_positions=positions,
+            mesh_tets=self.tets,
+            locator=locator,
+            spacing=spec.spacing,
+            step=state.step,
+        )
+        beyond = points_beyond_tip(path, path.positions(positions, self.tets), needle)
+        if np.any(beyond):
+            path = path.subset(~beyond)
+            events.append(Event("retraction"))
+        state = replace(state, path=path)
+        if path.point_count == 0:
+            state = replace(state, phase=APPROACH)
+            events.append(Event("withdrawal"))
+        return state, events
+
+    def _start_cut(self, state, direction):
+        """The first cut surface: the path swept along the cut direction (module `refsim.constraints.cut`)."""
+        from refsim.cutting import CutSurface, TriangulationParameters
+
+        cutting = self.scene.cutting
+        positions = state.tissue.positions
+        path_points = resample_polyline(state.path.positions(positions, self.tets), cutting.point_spacing)
+        cloud = sweep_points(path_points, direction, cutting.extent, cutting.point_spacing)
+        parameters = TriangulationParameters.from_degrees(
+            min_angle=cutting.min_angle, max_angle=cutting.max_angle, max_surface_angle=cutting.max_normal_angle
+        )
+        cut = self._grow_cut(CutSurface.empty(parameters), cloud, positions, state.step)
+        return replace(state, phase=CUTTING_PHASE, cut=cut, path=state.path.subset(np.array([0])))
+
+    def _grow_cut(self, cut, points, positions, step):
+        """Add deformed-state points to the cut, kept in rest coordinates (equation 4); drop those outside the
+        tissue and those within d_c/2 of an existing point."""
+        cutting = self.scene.cutting
+        if cut.point_count:
+            existing = cut.deformed_points(positions, self.tets)
+            distance = np.linalg.norm(points[:, None, :] - existing[None, :, :], axis=2).min(axis=1)
+            points = points[distance > 0.5 * cutting.point_spacing]
+        if len(points) == 0:
+            return cut
+        tets, barycentric = TetLocator(positions, self.tets).locate(points)
+        inside = tets >= 0
+        if not np.any(inside):
+            return cut
+        rest = np.einsum("pk,pkj->pj", barycentric[inside], self.models.mesh.rest_positions[self.tets[tets[inside]]])
+        return cut.with_points(rest, tets[inside], barycentric[inside], step)
+
+    def _tearing_events(self, state, rows_block, multipliers, context):
+        """Extend the cut from every border point whose contact force reached f_t."""
+        cutting = self.scene.cutting
+        rows = context.get("border_rows", np.zeros(0, dtype=np.int64))
+        if rows.size == 0:
+            return state, []
+        forces = multipliers[rows]
+        tearing = forces >= cutting.tearing_force
+        if not np.any(tearing):
+            return state, []
+        positions = state.tissue.positions
+        cut = state.cut
+        surface = cut.deformed_points(positions, self.tets)
+        border = context["border_points"][tearing]
+        outward = -rows_block.directions[rows[tearing]]  # against the contact's normal
+        new_points = sweep_points(surface[border], outward, cutting.extent, cutting.point_spacing, first=1)
+        grown = self._grow_cut(cut, new_points, positions, state.step)
+        events = [Event("tear", float(f)) for f in forces[tearing]]
+        return replace(state, cut=grown), events
 
     def _locate(self, positions, points, *, inward):
         """Tet and barycentric coordinates of points on or just under the surface."""
@@ -343,3 +439,10 @@ class _LazyLocator:
         if self._locator is None:
             self._locator = TetLocator(self._positions, self._tets)
         return self._locator.locate(points)
+
+
+def _triangulation_seconds(before, after) -> float:
+    """Seconds of the triangulation done in this step (0 when the cut did not grow)."""
+    if after is None or after is before or after.last_triangulation is None:
+        return 0.0
+    return float(after.last_triangulation.seconds)
