@@ -16,8 +16,8 @@ class HookeMaterial:
     Attributes
     ----------
     youngs_modulus : Young's modulus E [Pa], finite and > 0.
-    poisson_ratio : Poisson's ratio ν [-], in (−1, 0.5) (0.5, incompressible, has no finite first Lamé parameter).
-    density : Mass density ρ [kg/m³], finite and > 0.
+    poisson_ratio : Poisson's ratio ν [-], in (−1, 0.5) (0.5, incompressible, has no finite first Lamé
+    parameter). density : Mass density ρ [kg/m³], finite and > 0.
     """
 
     youngs_modulus: float

@@ -27,15 +27,29 @@ class InsertionPath:
     tets : Tet of each point, shape (p,).
     barycentric : Barycentric coordinates in that tet, shape (p, 4).
     created_step : Step at which each point was created, shape (p,).
+    multipliers : The point's multipliers at its last solve [N], (lateral 1, lateral 2, axial), shape (p, 3); the
+        warm start of the next solve.
     """
 
     tets: np.ndarray
     barycentric: np.ndarray
     created_step: np.ndarray
+    multipliers: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.multipliers is None:
+            object.__setattr__(self, "multipliers", np.zeros((self.tets.shape[0], 3)))
 
     @classmethod
     def empty(cls) -> InsertionPath:
         return cls(np.zeros(0, dtype=np.int64), np.zeros((0, 4)), np.zeros(0, dtype=np.int64))
+
+    def with_multipliers(self, multipliers: np.ndarray) -> InsertionPath:
+        """The same points with their last multipliers [N], shape (p, k), k ≤ 3 (missing columns are zero)."""
+        stored = np.zeros((self.point_count, 3))
+        multipliers = np.asarray(multipliers, dtype=float).reshape(self.point_count, -1)
+        stored[:, : multipliers.shape[1]] = multipliers
+        return InsertionPath(self.tets, self.barycentric, self.created_step, stored)
 
     @property
     def point_count(self) -> int:
@@ -51,11 +65,14 @@ class InsertionPath:
             np.concatenate([self.tets, np.asarray(tets, dtype=np.int64)]),
             np.concatenate([self.barycentric, np.asarray(barycentric, dtype=float).reshape(-1, 4)]),
             np.concatenate([self.created_step, np.full(len(tets), step, dtype=np.int64)]),
+            np.concatenate([self.multipliers, np.zeros((len(tets), 3))]),
         )
 
     def subset(self, keep: np.ndarray) -> InsertionPath:
         """A path with only the points where ``keep`` (bool (p,) or indices) selects."""
-        return InsertionPath(self.tets[keep], self.barycentric[keep], self.created_step[keep])
+        return InsertionPath(
+            self.tets[keep], self.barycentric[keep], self.created_step[keep], self.multipliers[keep]
+        )
 
 
 def insertion_block(

@@ -1,9 +1,10 @@
 """Barycentric coordinates of points in tetrahedra, from signed sub-volumes.
 
-The coordinate of vertex i is the signed volume of the tetrahedron with vertex i replaced by the point, divided
-by the sum of the four such volumes. Computed this way a point equal to a vertex gets exactly (0, .., 1, .., 0)
-(three sub-volumes have a repeated point and are exactly zero), and a point on a face whose plane is exactly
-representable (axis-aligned faces, the diagonal faces of the box generator) gets an exact zero.
+The coordinate of vertex i is the signed volume of the tetrahedron with vertex i replaced by the point,
+divided by the sum of the four such volumes. Computed this way, with edge vectors from the point, a point
+equal to a vertex gets exactly (0, .., 1, .., 0) (three sub-volumes have a zero edge and are exactly zero),
+and a point on a face whose plane is exactly representable (axis-aligned faces, the diagonal faces of the box
+generator) gets an exact zero.
 """
 
 from __future__ import annotations
@@ -12,8 +13,9 @@ import numpy as np
 
 __all__ = ["signed_volumes", "tet_barycentric"]
 
-# Replacing vertex i by the point: the sub-tetrahedron keeps the other three vertices in their order.
-_REPLACED = np.array([[4, 1, 2, 3], [0, 4, 2, 3], [0, 1, 4, 3], [0, 1, 2, 4]])
+# Sub-tetrahedron i replaces vertex i by the point (index 4), reordered by an even permutation so the point
+# comes first: its edges then start at the point, and a point equal to a vertex gives an exactly zero edge.
+_REPLACED = np.array([[4, 1, 2, 3], [4, 0, 3, 2], [4, 0, 1, 3], [4, 0, 2, 1]])
 
 
 def signed_volumes(tet_vertices: np.ndarray) -> np.ndarray:

@@ -159,7 +159,7 @@ def _ericson_barycentric(points: np.ndarray, triangles: np.ndarray) -> np.ndarra
 
 
 def _degenerate_barycentric(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates of the closest points on degenerate triangles: the closest of the three edges."""
+    """Barycentric coordinates of the closest points on degenerate triangles: the closest of their edges."""
     count = points.shape[0]
     starts = triangles[:, [0, 1, 2]].reshape(-1, 3)
     ends = triangles[:, [1, 2, 0]].reshape(-1, 3)

@@ -149,7 +149,7 @@ class Simulation:
         problem, tissue_responses, needle_responses = self._problem(rows, tissue_system, needle_system)
         timer.lap("compliance")
 
-        multipliers, report = self._solve(problem)
+        multipliers, report = self._solve(problem, self._warm_start(state, rows))
         timer.lap("solve")
 
         tissue_positions = tissue_free
@@ -162,7 +162,14 @@ class Simulation:
         self._check_finite(step, tissue_state, needle_state, multipliers)
         timer.lap("correction")
 
-        new_state = replace(state, step=step, time=time, tissue=tissue_state, needle=needle_state)
+        new_state = replace(
+            state,
+            step=step,
+            time=time,
+            tissue=tissue_state,
+            needle=needle_state,
+            path=self._store_multipliers(state.path, rows, multipliers),
+        )
         new_state, events = self._events(new_state, rows, multipliers, context)
         timer.lap("events")
 
@@ -289,13 +296,34 @@ class Simulation:
         )
         return problem, tissue_responses, needle_responses
 
-    def _solve(self, problem):
+    def _solve(self, problem, warm_start):
         if problem is None:
             return np.zeros(0), None
         spec = self.scene.solver
         if spec.method == "exact":
             return solve_exact(problem, tolerance=spec.tolerance, backend=spec.backend)
-        return solve_gauss_seidel(problem, tolerance=spec.tolerance, max_iterations=spec.max_iterations)
+        return solve_gauss_seidel(
+            problem, tolerance=spec.tolerance, max_iterations=spec.max_iterations, warm_start=warm_start
+        )
+
+    @staticmethod
+    def _insertion_rows(rows: RowBlock) -> np.ndarray:
+        return np.flatnonzero(rows.source == INSERTION)
+
+    def _warm_start(self, state: SimulationState, rows: RowBlock) -> np.ndarray:
+        """Last step's multipliers of the insertion points (they persist from step to step), zero elsewhere."""
+        warm = np.zeros(rows.row_count)
+        insertion = self._insertion_rows(rows)
+        if insertion.size and state.path.point_count:
+            per_point = insertion.size // state.path.point_count
+            warm[insertion] = state.path.multipliers[:, :per_point].ravel()
+        return warm
+
+    def _store_multipliers(self, path: InsertionPath, rows: RowBlock, multipliers: np.ndarray) -> InsertionPath:
+        insertion = self._insertion_rows(rows)
+        if insertion.size == 0 or path.point_count == 0:
+            return path
+        return path.with_multipliers(multipliers[insertion].reshape(path.point_count, -1))
 
     def _check_finite(self, step, tissue_state, needle_state, multipliers) -> None:
         for name, array in (

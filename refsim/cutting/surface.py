@@ -1,0 +1,412 @@
+"""The cut surface: a point cloud kept in rest coordinates, its triangles, its image in the deformed tissue.
+
+After Perrusi et al. 2021, section 4: each point of the cut is located in a tetrahedron of the tissue mesh and
+stored through its barycentric coordinates there (the paper's equation 4,
+p_r = Σ_k α_k q̄_k^(l)); the rest-state points are triangulated once, incrementally, and the same coordinates
+map the surface into the deformed tissue every step. The tissue mesh never changes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+import time
+from typing import NamedTuple
+
+import numpy as np
+
+from refsim.cutting.triangulation import TriangulationParameters, estimate_normals, triangulate_incremental
+
+__all__ = ["CutSurface", "ClosestCutPoints", "TriangulationReport"]
+
+logger = logging.getLogger(__name__)
+
+# Barycentric coordinates of a new point must sum to one within this tolerance (dimensionless).
+_BARYCENTRIC_SUM_TOLERANCE = 1e-6
+# A projection is inside a triangle when its smallest barycentric coordinate is >= −_INSIDE_TOLERANCE, and a
+# clamped closest point lies on an edge or vertex when its coordinate there is <= _INSIDE_TOLERANCE.
+_INSIDE_TOLERANCE = 1e-9
+
+
+class ClosestCutPoints(NamedTuple):
+    """Closest points on the (deformed) cut surface, one per query point; unpacks as a 4-tuple."""
+
+    triangle: np.ndarray
+    """Index of the triangle holding the closest point, shape (q,)."""
+    closest: np.ndarray
+    """Closest points [m], shape (q, 3)."""
+    barycentric: np.ndarray
+    """Barycentric coordinates of the closest points in their triangle, >= 0, summing to one, shape (q, 3)."""
+    inside: np.ndarray
+    """Whether the query projects inside the surface, shape (q,) bool: its orthogonal projection on the
+    plane of its triangle falls in the triangle (within 1e-9 in barycentric coordinates), or its closest point
+    lies on an edge shared by two triangles or on a vertex that is not on the border. False when the closest
+    point was clamped to the border."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class TriangulationReport:
+    """What one triangulation (one `CutSurface.with_points` call with new points) did."""
+
+    step: int
+    """Time step of the new points."""
+    new_point_count: int
+    """Points added."""
+    new_triangle_count: int
+    """Triangles added."""
+    normal_seconds: float
+    """Wall time of the normal estimation [s]."""
+    triangulation_seconds: float
+    """Wall time of the incremental triangulation [s]."""
+
+    @property
+    def seconds(self) -> float:
+        """Total wall time [s]."""
+        return self.normal_seconds + self.triangulation_seconds
+
+
+def _readonly(array: np.ndarray) -> np.ndarray:
+    array = np.array(array, copy=True)
+    array.flags.writeable = False
+    return array
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True, eq=False)
+class CutSurface:
+    """The cut surface in rest coordinates: an immutable value; `with_points` returns a grown copy.
+
+    Start with `CutSurface.empty(parameters)`; the simulation state holds the current surface. Arrays are
+    read-only.
+    """
+
+    rest_points: np.ndarray
+    """Points of the cut in rest coordinates [m], shape (point_count, 3)."""
+    tet_indices: np.ndarray
+    """Tissue tetrahedron holding each point, shape (point_count,), int64."""
+    barycentric: np.ndarray
+    """Barycentric coordinates of each point in its tetrahedron, shape (point_count, 4)."""
+    created_step: np.ndarray
+    """Time step at which each point was added, shape (point_count,), int64."""
+    triangles: np.ndarray
+    """Point indices of the triangles, shape (triangle_count, 3), int64, oriented: (b − a) × (c − a) is on the
+    side of the point normals."""
+    triangle_created_step: np.ndarray
+    """Time step at which each triangle was added, shape (triangle_count,), int64."""
+    normals: np.ndarray
+    """Unit point normals in the rest state, consistently oriented, shape (point_count, 3); re-estimated on
+    the whole cloud at each addition (triangles never change)."""
+    parameters: TriangulationParameters = dataclasses.field(default_factory=TriangulationParameters)
+    """Triangulation parameters used for every addition."""
+    last_triangulation: TriangulationReport | None = None
+    """Report of the latest addition that triangulated, None before the first."""
+
+    def __post_init__(self) -> None:
+        fields = {
+            "rest_points": (np.float64, (-1, 3)),
+            "tet_indices": (np.int64, (-1,)),
+            "barycentric": (np.float64, (-1, 4)),
+            "created_step": (np.int64, (-1,)),
+            "triangles": (np.int64, (-1, 3)),
+            "triangle_created_step": (np.int64, (-1,)),
+            "normals": (np.float64, (-1, 3)),
+        }
+        for name, (dtype, shape) in fields.items():
+            value = np.asarray(getattr(self, name), dtype=dtype)
+            if value.ndim != len(shape) or value.shape[1:] != shape[1:]:
+                raise ValueError(f"CutSurface.{name} must have shape {shape} (−1: any), got {value.shape}")
+            object.__setattr__(self, name, _readonly(value))
+        points = self.rest_points.shape[0]
+        for name in ("tet_indices", "barycentric", "created_step", "normals"):
+            if getattr(self, name).shape[0] != points:
+                raise ValueError(
+                    f"CutSurface.{name} has {getattr(self, name).shape[0]} rows, expected {points}"
+                )
+        if self.triangle_created_step.shape[0] != self.triangles.shape[0]:
+            raise ValueError("CutSurface.triangle_created_step must have one entry per triangle")
+        if self.triangles.size and (self.triangles.min() < 0 or self.triangles.max() >= points):
+            raise ValueError(f"CutSurface.triangles must index the {points} points")
+
+    # -- construction --------------------------------------------------------------------------------
+
+    @classmethod
+    def empty(cls, parameters: TriangulationParameters | None = None) -> CutSurface:
+        """A surface with no points, triangulating with ``parameters`` (defaults when None)."""
+        return cls(
+            rest_points=np.zeros((0, 3)),
+            tet_indices=np.zeros(0, dtype=np.int64),
+            barycentric=np.zeros((0, 4)),
+            created_step=np.zeros(0, dtype=np.int64),
+            triangles=np.zeros((0, 3), dtype=np.int64),
+            triangle_created_step=np.zeros(0, dtype=np.int64),
+            normals=np.zeros((0, 3)),
+            parameters=parameters or TriangulationParameters(),
+        )
+
+    def with_points(
+        self,
+        rest_points: np.ndarray,
+        tet_indices: np.ndarray,
+        barycentric: np.ndarray,
+        step: int,
+        *,
+        normals: np.ndarray | None = None,
+    ) -> CutSurface:
+        """A new surface with points added and triangles added around them only.
+
+        Parameters
+        ----------
+        rest_points : New points in rest coordinates [m] (equation 4 with the rest node positions),
+            shape (k, 3).
+        tet_indices : Tissue tetrahedron of each new point, shape (k,).
+        barycentric : Barycentric coordinates of each new point in its tetrahedron, summing to one,
+            shape (k, 4).
+        step : Time step of the addition, >= the step of every existing point.
+        normals : Optional unit normals of the new points in the rest state (e.g. the cut plane's normal),
+            shape (k, 3); when given, the existing normals are kept and none is estimated. When None, the
+            normals of the whole cloud are estimated by a local plane fit (``parameters.normal_estimation``).
+
+        Returns
+        -------
+        The grown surface; ``self`` unchanged when ``k == 0`` (no triangulation without new points). Existing
+        points and triangles keep their indices and values; new points are appended, and so are new triangles,
+        each having at least one new point as a vertex.
+        """
+        rest_points, tet_indices, barycentric, step, normals = self._check_new_points(
+            rest_points, tet_indices, barycentric, step, normals
+        )
+        added = rest_points.shape[0]
+        if added == 0:
+            return self
+        points = np.concatenate([self.rest_points, rest_points])
+        started = time.perf_counter()
+        if normals is None:
+            all_normals = estimate_normals(points, self.triangles, self.parameters)
+        else:
+            all_normals = np.concatenate([self.normals, normals])
+        normal_seconds = time.perf_counter() - started
+        started = time.perf_counter()
+        new_triangles = triangulate_incremental(
+            points, all_normals, self.triangles, self.point_count, self.parameters
+        )
+        triangulation_seconds = time.perf_counter() - started
+        report = TriangulationReport(
+            step=step,
+            new_point_count=added,
+            new_triangle_count=int(new_triangles.shape[0]),
+            normal_seconds=normal_seconds,
+            triangulation_seconds=triangulation_seconds,
+        )
+        logger.debug("cut surface: %s", report)
+        return CutSurface(
+            rest_points=points,
+            tet_indices=np.concatenate([self.tet_indices, tet_indices]),
+            barycentric=np.concatenate([self.barycentric, barycentric]),
+            created_step=np.concatenate([self.created_step, np.full(added, step, dtype=np.int64)]),
+            triangles=np.concatenate([self.triangles, new_triangles]),
+            triangle_created_step=np.concatenate(
+                [self.triangle_created_step, np.full(new_triangles.shape[0], step, dtype=np.int64)]
+            ),
+            normals=all_normals,
+            parameters=self.parameters,
+            last_triangulation=report,
+        )
+
+    def _check_new_points(self, rest_points, tet_indices, barycentric, step, normals) -> tuple:
+        rest_points = np.asarray(rest_points, dtype=float)
+        if rest_points.ndim != 2 or rest_points.shape[1] != 3:
+            raise ValueError(f"rest_points must have shape (k, 3), got {rest_points.shape}")
+        added = rest_points.shape[0]
+        tet_indices = np.asarray(tet_indices)
+        barycentric = np.asarray(barycentric, dtype=float)
+        if tet_indices.shape != (added,) or not (
+            tet_indices.size == 0 or np.issubdtype(tet_indices.dtype, np.integer)
+        ):
+            raise ValueError(f"tet_indices must be integers of shape ({added},), got {tet_indices.shape}")
+        if barycentric.shape != (added, 4):
+            raise ValueError(f"barycentric must have shape ({added}, 4), got {barycentric.shape}")
+        if not (np.all(np.isfinite(rest_points)) and np.all(np.isfinite(barycentric))):
+            raise ValueError("rest_points and barycentric must be finite")
+        if added and tet_indices.min() < 0:
+            raise ValueError(f"tet_indices must be >= 0, got {int(tet_indices.min())}")
+        sums = barycentric.sum(axis=1)
+        bad = np.flatnonzero(np.abs(sums - 1.0) > _BARYCENTRIC_SUM_TOLERANCE)
+        if bad.size:
+            raise ValueError(
+                f"barycentric coordinates of new point {int(bad[0])} sum to {sums[bad[0]]!r}, not 1 "
+                f"(tolerance {_BARYCENTRIC_SUM_TOLERANCE})"
+            )
+        if not isinstance(step, int | np.integer) or step < 0:
+            raise ValueError(f"step must be an integer >= 0, got {step!r}")
+        if self.point_count and step < int(self.created_step.max()):
+            raise ValueError(
+                f"step = {step} is before the latest addition (step {int(self.created_step.max())})"
+            )
+        if normals is not None:
+            normals = np.asarray(normals, dtype=float)
+            lengths = np.linalg.norm(normals, axis=1) if normals.ndim == 2 else None
+            if normals.shape != (added, 3) or not np.all(np.isfinite(normals)) or np.any(lengths == 0.0):
+                raise ValueError(
+                    f"normals must be finite, non-zero, of shape ({added}, 3), got {normals.shape}"
+                )
+            normals = normals / lengths[:, None]
+        return rest_points, tet_indices.astype(np.int64), barycentric, int(step), normals
+
+    # -- sizes and topology --------------------------------------------------------------------------
+
+    @property
+    def point_count(self) -> int:
+        """Number of points."""
+        return int(self.rest_points.shape[0])
+
+    @property
+    def triangle_count(self) -> int:
+        """Number of triangles."""
+        return int(self.triangles.shape[0])
+
+    @functools.cached_property
+    def _edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Directed edges of all triangles (3t, 2), their undirected keys (3t,), and each key's use count."""
+        directed = self.triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+        low, high = directed.min(axis=1), directed.max(axis=1)
+        keys = low * max(self.point_count, 1) + high
+        _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+        return directed, keys, counts[inverse]
+
+    def border_edges(self) -> np.ndarray:
+        """Edges used by exactly one triangle, as (start, end) in their triangle's winding, shape (e, 2).
+
+        Sorted by (smaller index, larger index).
+        """
+        directed, keys, uses = self._edges
+        single = np.flatnonzero(uses == 1)
+        return directed[single[np.argsort(keys[single], kind="stable")]]
+
+    def border_points(self) -> np.ndarray:
+        """Sorted indices of the points on border edges, shape (b,) (points in no triangle excluded)."""
+        return np.unique(self.border_edges())
+
+    # -- deformed state ------------------------------------------------------------------------------
+
+    def deformed_points(self, positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
+        """Points of the cut in the deformed tissue, by their barycentric coordinates (equation 4).
+
+        Parameters
+        ----------
+        positions : Current tissue node positions [m], shape (node_count, 3).
+        tets : Node indices of the tissue tetrahedra, shape (tet_count, 4).
+
+        Returns
+        -------
+        Deformed cut points [m], shape (point_count, 3).
+        """
+        positions = np.asarray(positions, dtype=float)
+        tets = np.asarray(tets)
+        if positions.ndim != 2 or positions.shape[1] != 3:
+            raise ValueError(f"positions must have shape (node_count, 3), got {positions.shape}")
+        if tets.ndim != 2 or tets.shape[1] != 4:
+            raise ValueError(f"tets must have shape (tet_count, 4), got {tets.shape}")
+        if self.point_count == 0:
+            return np.zeros((0, 3))
+        if int(self.tet_indices.max()) >= tets.shape[0]:
+            raise ValueError(
+                f"cut points refer to tet {int(self.tet_indices.max())}; the mesh has {tets.shape[0]} tets"
+            )
+        nodes = tets[self.tet_indices]
+        if nodes.min() < 0 or nodes.max() >= positions.shape[0]:
+            raise ValueError(f"tets of the cut points index nodes outside [0, {positions.shape[0]})")
+        return np.einsum("pk,pki->pi", self.barycentric, positions[nodes])
+
+    def triangle_normals(self, points: np.ndarray) -> np.ndarray:
+        """Unit normals (b − a) × (c − a) of the triangles on given point positions (rest or deformed).
+
+        Parameters
+        ----------
+        points : Cut points [m], shape (point_count, 3), e.g. from `deformed_points`.
+
+        Returns
+        -------
+        Unit normals, shape (triangle_count, 3); zero for degenerate triangles.
+        """
+        from refsim.geometry.closest import triangle_normals
+
+        return triangle_normals(self._check_surface_points(points)[self.triangles])
+
+    def _check_surface_points(self, points: np.ndarray) -> np.ndarray:
+        points = np.asarray(points, dtype=float)
+        if points.shape != (self.point_count, 3):
+            raise ValueError(f"cut points must have shape ({self.point_count}, 3), got {points.shape}")
+        return points
+
+    def closest_points(self, points: np.ndarray, deformed_points: np.ndarray) -> ClosestCutPoints:
+        """Closest points on the cut surface, and whether each query projects inside it.
+
+        Parameters
+        ----------
+        points : Query points [m], shape (q, 3) (e.g. needle samples).
+        deformed_points : Cut points where the surface is [m], shape (point_count, 3) (from `deformed_points`,
+            or `rest_points`).
+
+        Returns
+        -------
+        Triangle index, closest point, barycentric coordinates and inside flag of each query
+        (see `ClosestCutPoints`). Exact: a KD-tree over triangle centroids bounds the search.
+
+        Raises
+        ------
+        ValueError
+            If the surface has no triangle yet, or on bad shapes.
+        """
+        from refsim.geometry.search import SurfaceProjector
+
+        deformed_points = self._check_surface_points(deformed_points)
+        if self.triangle_count == 0:
+            raise ValueError(
+                "the cut surface has no triangle yet: check triangle_count before closest_points"
+            )
+        found = SurfaceProjector(deformed_points, self.triangles).closest(points)
+        queries = np.asarray(points, dtype=float)
+        corners = deformed_points[self.triangles[found.face_index]]  # (q, 3, 3)
+        projected = _plane_barycentric(queries, corners)
+        inside = np.all(projected >= -_INSIDE_TOLERANCE, axis=1)
+        # Clamped to an edge shared by two triangles, or to a vertex off the border: still inside the surface.
+        on_feature = found.barycentric <= _INSIDE_TOLERANCE
+        zeros = on_feature.sum(axis=1)
+        local = self.triangles[found.face_index]
+        on_edge = ~inside & (zeros == 1)
+        if np.any(on_edge):
+            opposite = np.argmax(on_feature[on_edge], axis=1)
+            rows = local[on_edge]
+            start = rows[np.arange(rows.shape[0]), (opposite + 1) % 3]
+            end = rows[np.arange(rows.shape[0]), (opposite + 2) % 3]
+            inside[on_edge] = self._edge_uses(start, end) >= 2
+        on_vertex = ~inside & (zeros == 2)
+        if np.any(on_vertex):
+            vertex = local[on_vertex][
+                np.arange(int(on_vertex.sum())), np.argmax(~on_feature[on_vertex], axis=1)
+            ]
+            inside[on_vertex] = ~np.isin(vertex, self.border_points())
+        return ClosestCutPoints(found.face_index, found.closest, found.barycentric, inside)
+
+    def _edge_uses(self, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+        """Number of triangles using each undirected edge (start, end), shape (e,)."""
+        _, keys, uses = self._edges
+        order = np.argsort(keys, kind="stable")
+        query = np.minimum(start, end) * max(self.point_count, 1) + np.maximum(start, end)
+        position = np.clip(np.searchsorted(keys[order], query), 0, keys.size - 1)
+        found = keys[order][position] == query
+        return np.where(found, uses[order][position], 0)
+
+
+def _plane_barycentric(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates of the orthogonal projections of points on their triangles' planes, (q, 3)."""
+    a = corners[:, 0]
+    v0, v1, v2 = corners[:, 1] - a, corners[:, 2] - a, points - a
+    d00, d01, d11 = (np.einsum("qi,qi->q", x, y) for x, y in ((v0, v0), (v0, v1), (v1, v1)))
+    d20, d21 = np.einsum("qi,qi->q", v2, v0), np.einsum("qi,qi->q", v2, v1)
+    denominator = d00 * d11 - d01 * d01
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = (d11 * d20 - d01 * d21) / denominator
+        w = (d00 * d21 - d01 * d20) / denominator
+    result = np.stack([1.0 - v - w, v, w], axis=1)
+    return np.where(np.isfinite(result), result, -np.inf)

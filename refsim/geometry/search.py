@@ -1,0 +1,310 @@
+"""Spatial search on tetrahedral meshes and triangle surfaces: point location and closest surface points.
+
+Both searches use KD-trees (scipy's cKDTree) on element centroids, one tree per class of bounding radius
+(radii within a factor two), so a graded mesh does not make every query look at the largest elements' reach.
+An element's bounding radius is the largest distance from its centroid to its vertices; since the distance to
+the centroid is convex, every point of the element lies within that radius. Candidate pairs (query, element)
+come from ball queries, are pruned by the element's own radius, and are evaluated in one vectorised call; the
+best candidate of each query is picked with a lexicographic sort. There is no Python loop over queries or
+elements, only over radius classes and over chunks of queries (to bound memory).
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import NamedTuple
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from refsim.geometry.barycentric import tet_barycentric
+from refsim.geometry.closest import closest_points_on_triangles, triangle_normals
+
+__all__ = ["ClosestSurfacePoints", "SurfaceProjector", "TetLocator", "tet_boundary_faces"]
+
+# Queries are processed in chunks of this many points to bound the size of the candidate arrays.
+_CHUNK = 4096
+# Relative slack on bounding radii, far above the round-off of centroid distances (~1e-16).
+_RADIUS_SLACK = 1e-9
+# Faces of a tetrahedron (v0, v1, v2, v3) in the order opposite v0, v1, v2, v3, and the opposite node.
+_TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+
+
+def _check_points(points: np.ndarray) -> np.ndarray:
+    points = np.asarray(points, dtype=float)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape (q, 3), got {points.shape}")
+    if not np.all(np.isfinite(points)):
+        raise ValueError("points must be finite")
+    return points
+
+
+def _check_elements(positions: np.ndarray, elements: np.ndarray, corners: int, name: str) -> tuple:
+    positions = np.asarray(positions, dtype=float)
+    elements = np.asarray(elements)
+    if positions.ndim != 2 or positions.shape[1] != 3:
+        raise ValueError(f"positions must have shape (n, 3), got {positions.shape}")
+    if elements.ndim != 2 or elements.shape[1] != corners or elements.shape[0] == 0:
+        raise ValueError(f"{name} must have shape (count >= 1, {corners}), got {elements.shape}")
+    if not np.issubdtype(elements.dtype, np.integer):
+        raise ValueError(f"{name} must be integer indices, got dtype {elements.dtype}")
+    if elements.min() < 0 or elements.max() >= positions.shape[0]:
+        raise ValueError(
+            f"{name} index out of range: values in [{elements.min()}, {elements.max()}], "
+            f"valid range [0, {positions.shape[0] - 1}]"
+        )
+    if not np.all(np.isfinite(positions)):
+        raise ValueError("positions must be finite")
+    return positions, elements.astype(np.int64)
+
+
+def tet_boundary_faces(tets: np.ndarray, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Faces used by exactly one tetrahedron, oriented away from that tetrahedron's fourth node.
+
+    Parameters
+    ----------
+    tets : Node indices of the tetrahedra, shape (m, 4).
+    positions : Node positions [m], shape (n, 3); used only to orient the faces.
+
+    Returns
+    -------
+    faces : Boundary triangles, shape (f, 3), with ``(b − a) × (c − a)`` pointing out of the owning
+        tetrahedron; sorted by their sorted node triple.
+    face_tets : Index of the tetrahedron owning each face, shape (f,).
+    """
+    tets = np.asarray(tets, dtype=np.int64)
+    positions = np.asarray(positions, dtype=float)
+    all_faces = tets[:, _TET_FACES].reshape(-1, 3)  # (4m, 3)
+    opposite = tets.reshape(-1)  # the node opposite face k of tet t is tets[t, k]
+    keys = np.sort(all_faces, axis=1)
+    _, first, counts = np.unique(keys, axis=0, return_index=True, return_counts=True)
+    single = first[counts == 1]
+    faces = all_faces[single]
+    a, b, c = (positions[faces[:, k]] for k in range(3))
+    outward = np.einsum("ij,ij->i", np.cross(b - a, c - a), positions[opposite[single]] - a) <= 0.0
+    faces[~outward] = faces[~outward][:, [0, 2, 1]]
+    return faces, single // 4
+
+
+class _RadiusClasses:
+    """KD-trees on element centroids, one per class of bounding radius (radii within a factor two)."""
+
+    def __init__(self, centroids: np.ndarray, radii: np.ndarray):
+        self.radii = radii
+        largest = max(float(radii.max()), np.finfo(float).tiny)
+        level = np.floor(np.log2(np.maximum(radii, largest * 2.0**-30) / largest)).astype(int)
+        self.classes = []
+        for value in np.unique(level):
+            members = np.flatnonzero(level == value)
+            self.classes.append((cKDTree(centroids[members]), members, float(radii[members].max())))
+
+    def pairs(self, points: np.ndarray, reach: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        """Pairs (query, element) with centroid distance <= class radius + reach, as two index arrays."""
+        queries, elements = [], []
+        for tree, members, radius in self.classes:
+            lists = tree.query_ball_point(
+                points, (radius + reach) * (1.0 + _RADIUS_SLACK), return_sorted=False
+            )
+            counts = np.fromiter(map(len, lists), dtype=np.intp, count=len(lists))
+            flat = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.intp, count=int(counts.sum()))
+            queries.append(np.repeat(np.arange(points.shape[0]), counts))
+            elements.append(members[flat])
+        return np.concatenate(queries), np.concatenate(elements)
+
+
+def _first_per_query(queries: np.ndarray, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Given pair indices sorted by query then preference, the first pair of each query and its query."""
+    sorted_queries = queries[order]
+    first = np.ones(sorted_queries.shape[0], dtype=bool)
+    first[1:] = sorted_queries[1:] != sorted_queries[:-1]
+    return sorted_queries[first], order[first]
+
+
+class TetLocator:
+    """Locate points in a tetrahedral mesh: containing tetrahedron and barycentric coordinates.
+
+    Parameters
+    ----------
+    positions : Node positions [m], shape (node_count, 3); rest or deformed.
+    tets : Node indices of the tetrahedra, shape (tet_count, 4); non-degenerate, any orientation.
+
+    Notes
+    -----
+    A point is in tetrahedron t when all its barycentric coordinates in t are >= −tolerance. A point on a
+    face, edge or vertex shared by several tetrahedra is given, deterministically, to the one whose smallest
+    coordinate is largest, ties going to the lowest tetrahedron index.
+    """
+
+    def __init__(self, positions: np.ndarray, tets: np.ndarray):
+        self.positions, self.tets = _check_elements(positions, tets, 4, "tets")
+        self.tet_vertices = self.positions[self.tets]  # (m, 4, 3)
+        self.centroids = self.tet_vertices.mean(axis=1)
+        radii = np.linalg.norm(self.tet_vertices - self.centroids[:, None, :], axis=2).max(axis=1)
+        self._index = _RadiusClasses(self.centroids, radii)
+        self._surface: tuple[SurfaceProjector, np.ndarray] | None = None
+
+    def locate(self, points: np.ndarray, *, tolerance: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
+        """Containing tetrahedron and barycentric coordinates of each point.
+
+        Parameters
+        ----------
+        points : Query points [m], shape (q, 3).
+        tolerance : Smallest barycentric coordinate accepted is −tolerance (dimensionless, >= 0).
+
+        Returns
+        -------
+        tet_index : Index of the containing tetrahedron, −1 for points outside the mesh, shape (q,).
+        barycentric : Barycentric coordinates in that tetrahedron, NaN for points outside, shape (q, 4).
+        """
+        if not (np.isfinite(tolerance) and tolerance >= 0.0):
+            raise ValueError(f"tolerance must be finite and >= 0, got {tolerance}")
+        points = _check_points(points)
+        tet_index = np.full(points.shape[0], -1, dtype=np.int64)
+        barycentric = np.full((points.shape[0], 4), np.nan)
+        for start in range(0, points.shape[0], _CHUNK):
+            chunk = slice(start, start + _CHUNK)
+            found, indices, coordinates = self._locate_chunk(points[chunk], tolerance)
+            tet_index[chunk][found] = indices
+            barycentric[chunk][found] = coordinates
+        return tet_index, barycentric
+
+    def _locate_chunk(self, points: np.ndarray, tolerance: float) -> tuple:
+        # Barycentric coordinates >= −tol imply a centroid distance <= (1 + 6 tol) × bounding radius.
+        reach_factor = 1.0 + 6.0 * tolerance + _RADIUS_SLACK
+        queries, tets = self._index.pairs(points, 6.0 * tolerance * self._index.radii.max())
+        distance = np.linalg.norm(points[queries] - self.centroids[tets], axis=1)
+        keep = distance <= self._index.radii[tets] * reach_factor
+        queries, tets = queries[keep], tets[keep]
+        coordinates = tet_barycentric(points[queries], self.tet_vertices[tets])
+        smallest = coordinates.min(axis=1)
+        inside = smallest >= -tolerance
+        queries, tets, coordinates, smallest = (
+            queries[inside],
+            tets[inside],
+            coordinates[inside],
+            smallest[inside],
+        )
+        order = np.lexsort((tets, -smallest, queries))
+        found, best = _first_per_query(queries, order)
+        return found, tets[best], coordinates[best]
+
+    def locate_nearest(
+        self, points: np.ndarray, *, tolerance: float = 1e-12
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Like `locate`, but points outside the mesh are clamped to the closest point of the mesh.
+
+        Parameters
+        ----------
+        points : Query points [m], shape (q, 3).
+        tolerance : As in `locate`.
+
+        Returns
+        -------
+        tet_index : Containing tetrahedron, or for points outside the tetrahedron owning the closest boundary
+            face, shape (q,); never −1.
+        barycentric : Barycentric coordinates, shape (q, 4); for points outside those of the closest point of
+            the boundary (all >= 0, one exactly 0).
+        distance : Distance from each point to the mesh [m], 0 for points located inside, shape (q,).
+        """
+        tet_index, barycentric = self.locate(points, tolerance=tolerance)
+        distance = np.zeros(tet_index.shape[0])
+        outside = tet_index < 0
+        if np.any(outside):
+            if self._surface is None:
+                faces, face_tets = tet_boundary_faces(self.tets, self.positions)
+                self._surface = (SurfaceProjector(self.positions, faces), face_tets)
+            projector, face_tets = self._surface
+            nearest = projector.closest(np.asarray(points, dtype=float)[outside])
+            owners = face_tets[nearest.face_index]
+            face_nodes = projector.faces[nearest.face_index]  # (k, 3) node indices
+            slots = np.argmax(self.tets[owners][:, None, :] == face_nodes[:, :, None], axis=2)  # (k, 3)
+            clamped = np.zeros((owners.shape[0], 4))
+            np.put_along_axis(clamped, slots, nearest.barycentric, axis=1)
+            tet_index[outside], barycentric[outside], distance[outside] = owners, clamped, nearest.distance
+        return tet_index, barycentric, distance
+
+
+class ClosestSurfacePoints(NamedTuple):
+    """Closest points on a triangle surface, one per query point."""
+
+    face_index: np.ndarray
+    """Index of the face holding the closest point, shape (q,)."""
+    closest: np.ndarray
+    """Closest points [m], shape (q, 3)."""
+    barycentric: np.ndarray
+    """Barycentric coordinates of the closest points in their face, shape (q, 3), >= 0, summing to one."""
+    distance: np.ndarray
+    """Distance from each query point to the surface [m], shape (q,)."""
+    normal: np.ndarray
+    """Unit normal of the face, (b − a) × (c − a) normalised (outward for outward-oriented faces),
+    shape (q, 3); zero for degenerate faces."""
+
+
+class SurfaceProjector:
+    """Exact closest points on a triangle surface, with a spatial index on the faces.
+
+    Parameters
+    ----------
+    positions : Node positions [m], shape (node_count, 3).
+    faces : Node indices of the triangles, shape (face_count, 3); outward-oriented for outward normals.
+
+    Notes
+    -----
+    For each query the nearest face centroids give an upper bound U on the distance to the surface; only faces
+    whose centroid is within U plus their bounding radius can hold the closest point, and those are evaluated
+    exactly (Ericson's method). Ties in distance go to the lowest face index.
+    """
+
+    def __init__(self, positions: np.ndarray, faces: np.ndarray):
+        self.positions, self.faces = _check_elements(positions, faces, 3, "faces")
+        self.triangles = self.positions[self.faces]  # (f, 3, 3)
+        self.centroids = self.triangles.mean(axis=1)
+        self.normals = triangle_normals(self.triangles)
+        radii = np.linalg.norm(self.triangles - self.centroids[:, None, :], axis=2).max(axis=1)
+        self._tree = cKDTree(self.centroids)
+        self._index = _RadiusClasses(self.centroids, radii)
+
+    def closest(self, points: np.ndarray) -> ClosestSurfacePoints:
+        """Closest point on the surface to each query point.
+
+        Parameters
+        ----------
+        points : Query points [m], shape (q, 3).
+
+        Returns
+        -------
+        The face, closest point, barycentric coordinates, distance and face normal of each query point.
+        """
+        points = _check_points(points)
+        count = points.shape[0]
+        face_index = np.zeros(count, dtype=np.int64)
+        barycentric = np.zeros((count, 3))
+        for start in range(0, count, _CHUNK):
+            chunk = slice(start, start + _CHUNK)
+            face_index[chunk], barycentric[chunk] = self._closest_chunk(points[chunk])
+        closest = np.einsum("qk,qki->qi", barycentric, self.triangles[face_index])
+        distance = np.linalg.norm(points - closest, axis=1)
+        return ClosestSurfacePoints(face_index, closest, barycentric, distance, self.normals[face_index])
+
+    def _closest_chunk(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        count = points.shape[0]
+        neighbours = min(4, self.faces.shape[0])
+        _, nearest = self._tree.query(points, k=neighbours)
+        nearest = nearest.reshape(count, neighbours)
+        candidates, _ = closest_points_on_triangles(
+            np.repeat(points, neighbours, axis=0), self.triangles[nearest.reshape(-1)]
+        )
+        bound = np.linalg.norm(candidates - np.repeat(points, neighbours, axis=0), axis=1)
+        bound = bound.reshape(count, neighbours).min(axis=1)  # upper bound on the distance to the surface
+        queries, faces = self._index.pairs(points, bound)
+        lower = np.linalg.norm(points[queries] - self.centroids[faces], axis=1) - self._index.radii[faces]
+        keep = lower <= bound[queries] * (1.0 + _RADIUS_SLACK) + _RADIUS_SLACK * self._index.radii[faces]
+        queries, faces = queries[keep], faces[keep]
+        closest, coordinates = closest_points_on_triangles(points[queries], self.triangles[faces])
+        distance2 = np.sum((closest - points[queries]) ** 2, axis=1)
+        order = np.lexsort((faces, distance2, queries))
+        found, best = _first_per_query(queries, order)
+        face_index = np.zeros(count, dtype=np.int64)
+        barycentric = np.zeros((count, 3))
+        face_index[found], barycentric[found] = faces[best], coordinates[best]
+        return face_index, barycentric

@@ -1,0 +1,251 @@
+"""Spatial search: point location in tetrahedra and closest points on surfaces, against brute force."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from scipy.spatial import Delaunay
+
+from refsim.geometry import (
+    SurfaceProjector,
+    TetLocator,
+    closest_points_on_triangles,
+    tet_barycentric,
+    tet_boundary_faces,
+)
+from refsim.mesh import box_mesh
+
+OFFSETS = [-1e-12, 0.0, 1e-12]
+
+
+@pytest.fixture(scope="module")
+def box():
+    """The unit cube, 4 × 3 × 2 cells, and its locator."""
+    mesh = box_mesh(size=(1.0, 1.0, 1.0), cells=(4, 3, 2))
+    return mesh, TetLocator(mesh.rest_positions, mesh.tets)
+
+
+@pytest.fixture(scope="module")
+def graded():
+    """A Delaunay mesh of points clustered near the origin: element sizes span several radius classes."""
+    rng = np.random.default_rng(7)
+    points = rng.uniform(size=(400, 3)) ** 3
+    delaunay = Delaunay(points)
+    return delaunay, TetLocator(delaunay.points, delaunay.simplices)
+
+
+def _brute_force_locate(points, positions, tets, tolerance):
+    """Every (point, tet) pair evaluated; the rule of TetLocator: max of the smallest coordinate, then lowest
+    tet index, among tets with all coordinates >= −tolerance."""
+    count, tet_count = points.shape[0], tets.shape[0]
+    coordinates = tet_barycentric(
+        np.repeat(points, tet_count, axis=0), np.tile(positions[tets], (count, 1, 1))
+    ).reshape(count, tet_count, 4)
+    smallest = coordinates.min(axis=2)
+    smallest = np.where(smallest >= -tolerance, smallest, -np.inf)
+    best = np.argmax(smallest, axis=1)  # first maximum: lowest index among ties
+    found = np.isfinite(smallest[np.arange(count), best])
+    return np.where(found, best, -1)
+
+
+def _brute_force_surface_distance(points, positions, faces):
+    count, face_count = points.shape[0], faces.shape[0]
+    repeated = np.repeat(points, face_count, axis=0)
+    closest, _ = closest_points_on_triangles(repeated, np.tile(positions[faces], (count, 1, 1)))
+    return np.linalg.norm(closest - repeated, axis=1).reshape(count, face_count).min(axis=1)
+
+
+def test_locate_matches_brute_force_on_box(box):
+    mesh, locator = box
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-0.1, 1.1, size=(300, 3))
+    tet_index, barycentric = locator.locate(points)
+    np.testing.assert_array_equal(
+        tet_index, _brute_force_locate(points, mesh.rest_positions, mesh.tets, 1e-12)
+    )
+    inside = np.all((points >= 0) & (points <= 1), axis=1)
+    np.testing.assert_array_equal(tet_index >= 0, inside)
+    assert np.all(np.isnan(barycentric[~inside]))
+    found = tet_index >= 0
+    rebuilt = np.einsum("qk,qki->qi", barycentric[found], mesh.rest_positions[mesh.tets[tet_index[found]]])
+    np.testing.assert_allclose(rebuilt, points[found], atol=1e-15)
+
+
+def test_locate_matches_brute_force_and_delaunay_on_graded_mesh(graded):
+    delaunay, locator = graded
+    rng = np.random.default_rng(1)
+    points = np.concatenate([rng.uniform(size=(120, 3)) ** 3, rng.uniform(-0.2, 1.2, size=(60, 3))])
+    tet_index, barycentric = locator.locate(points)
+    np.testing.assert_array_equal(
+        tet_index, _brute_force_locate(points, delaunay.points, delaunay.simplices, 1e-12)
+    )
+    # Independent reference for points clearly inside one tet: scipy's Delaunay.find_simplex.
+    clear = (tet_index >= 0) & (np.nan_to_num(barycentric, nan=-1.0).min(axis=1) > 1e-9)
+    clear |= tet_index < 0
+    np.testing.assert_array_equal(tet_index[clear], delaunay.find_simplex(points[clear]))
+    assert len(locator._index.classes) > 2  # the mesh really is graded
+
+
+@pytest.mark.parametrize("tolerance", [0.0, 1e-12])
+def test_locate_nodes_edges_and_faces(box, tolerance):
+    mesh, locator = box
+    positions, tets = mesh.rest_positions, mesh.tets
+    edge_points = 0.5 * (positions[tets[:, 0]] + positions[tets[:, 3]])  # the cells' main diagonals
+    face_points = positions[tets[:, 1:]].mean(axis=1)
+    points = np.concatenate([positions, edge_points, face_points])
+    tet_index, barycentric = locator.locate(points, tolerance=tolerance)
+    assert np.all(tet_index >= 0)
+    assert barycentric.min() >= -1e-15
+    rebuilt = np.einsum("qk,qki->qi", barycentric, positions[tets[tet_index]])
+    np.testing.assert_allclose(rebuilt, points, atol=1e-15)
+    np.testing.assert_array_equal(tet_index, _brute_force_locate(points, positions, tets, tolerance))
+    # A node gets the coordinate 1 exactly at itself.
+    np.testing.assert_array_equal(barycentric[: mesh.node_count].max(axis=1), 1.0)
+    # Determinism: the same points in another order get the same tets.
+    order = np.random.default_rng(2).permutation(points.shape[0])
+    again, _ = locator.locate(points[order], tolerance=tolerance)
+    np.testing.assert_array_equal(again, tet_index[order])
+
+
+@pytest.mark.parametrize("offset", OFFSETS)
+def test_locate_across_shared_interior_faces(box, offset):
+    mesh, locator = box
+    positions, tets = mesh.rest_positions, mesh.tets
+    # Interior faces: those used twice. Put a point on each, moved by offset along the normal pointing into
+    # the tet that lists the face first.
+    local = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+    faces = tets[:, local].reshape(-1, 3)
+    keys = np.sort(faces, axis=1)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    shared = np.flatnonzero(counts[inverse] == 2)
+    owner = shared // 4
+    opposite = tets.reshape(-1)[shared]
+    a, b, c = (positions[faces[shared, k]] for k in range(3))
+    normal = np.cross(b - a, c - a)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    normal *= np.sign(np.einsum("ij,ij->i", normal, positions[opposite] - a))[:, None]  # into the owner
+    points = (a + b + c) / 3.0 + offset * normal
+    tet_index, barycentric = locator.locate(points)
+    assert np.all(tet_index >= 0)
+    if offset > 0:
+        np.testing.assert_array_equal(tet_index, owner)
+    elif offset < 0:
+        assert not np.any(tet_index == owner)
+    assert barycentric.min() >= -1e-12
+
+
+@pytest.mark.parametrize("offset", OFFSETS)
+def test_locate_at_the_boundary(box, offset):
+    mesh, locator = box
+    positions = mesh.rest_positions
+    faces = mesh.boundary_faces
+    normal = np.cross(
+        positions[faces[:, 1]] - positions[faces[:, 0]], positions[faces[:, 2]] - positions[faces[:, 0]]
+    )
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    points = positions[faces].mean(axis=1) + offset * normal  # outward for offset > 0
+    # 1e-12 [m] on a 0.25 m cell is a coordinate of about −4e-12, beyond the default tolerance of 1e-12.
+    tet_index, _ = locator.locate(points)
+    assert np.all(tet_index >= 0) if offset <= 0 else np.all(tet_index == -1)
+    tet_index, _ = locator.locate(points, tolerance=0.0)
+    assert np.all(tet_index >= 0) if offset <= 0 else np.all(tet_index == -1)
+
+
+def test_locate_nearest_clamps_outside_points(box):
+    mesh, locator = box
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-0.5, 1.5, size=(200, 3))
+    tet_index, barycentric, distance = locator.locate_nearest(points)
+    assert np.all(tet_index >= 0)
+    clamped = np.clip(points, 0.0, 1.0)  # the closest point of the unit cube
+    np.testing.assert_allclose(distance, np.linalg.norm(points - clamped, axis=1), atol=1e-15)
+    rebuilt = np.einsum("qk,qki->qi", barycentric, mesh.rest_positions[mesh.tets[tet_index]])
+    np.testing.assert_allclose(rebuilt, clamped, atol=1e-15)
+    outside = distance > 0
+    assert outside.any() and barycentric[outside].min() >= 0.0
+    np.testing.assert_allclose(barycentric.sum(axis=1), 1.0, atol=1e-15)
+
+
+def test_locate_rejects_bad_input(box):
+    _, locator = box
+    with pytest.raises(ValueError, match="tolerance"):
+        locator.locate(np.zeros((1, 3)), tolerance=-1.0)
+    with pytest.raises(ValueError, match="points"):
+        locator.locate(np.zeros((1, 2)))
+    with pytest.raises(ValueError, match="out of range"):
+        TetLocator(np.zeros((3, 3)), np.array([[0, 1, 2, 3]]))
+
+
+def test_tet_boundary_faces_single_tet_points_outward():
+    positions = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    for tets in (np.array([[0, 1, 2, 3]]), np.array([[0, 2, 1, 3]])):  # either orientation
+        faces, owners = tet_boundary_faces(tets, positions)
+        assert faces.shape == (4, 3) and np.all(owners == 0)
+        corners = positions[faces]
+        normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        outward = corners.mean(axis=1) - positions.mean(axis=0)
+        assert np.all(np.einsum("ij,ij->i", normal, outward) > 0)
+
+
+def test_projector_matches_brute_force(graded):
+    delaunay, _ = graded
+    faces, _ = tet_boundary_faces(delaunay.simplices, delaunay.points)
+    projector = SurfaceProjector(delaunay.points, faces)
+    rng = np.random.default_rng(4)
+    points = np.concatenate([rng.uniform(-0.3, 1.3, size=(150, 3)), rng.normal(scale=20.0, size=(20, 3))])
+    result = projector.closest(points)
+    np.testing.assert_allclose(
+        result.distance, _brute_force_surface_distance(points, delaunay.points, faces), rtol=1e-14, atol=1e-16
+    )
+    triangles = delaunay.points[faces[result.face_index]]
+    np.testing.assert_allclose(
+        np.einsum("qk,qki->qi", result.barycentric, triangles), result.closest, atol=1e-15
+    )
+    assert result.barycentric.min() >= 0.0
+    np.testing.assert_allclose(np.linalg.norm(result.normal, axis=1), 1.0, atol=1e-14)
+
+
+@pytest.mark.parametrize("offset", OFFSETS)
+def test_projector_on_box_vertices_edges_faces(box, offset):
+    mesh, _ = box
+    positions, faces = mesh.rest_positions, mesh.boundary_faces
+    projector = SurfaceProjector(positions, faces)
+    nodes = positions[mesh.boundary_nodes]
+    edges = 0.5 * (positions[faces[:, 0]] + positions[faces[:, 1]])
+    centroids = positions[faces].mean(axis=1)
+    surface_points = np.concatenate([nodes, edges, centroids])
+    # Move each point along the outward normal of the cube face it lies on (exact off the cube's edges).
+    cube_normal = np.where(np.isclose(surface_points, 1.0), 1.0, 0.0) - np.where(
+        np.isclose(surface_points, 0.0), 1.0, 0.0
+    )
+    on_one_face = np.abs(cube_normal).sum(axis=1) == 1
+    points = surface_points + offset * cube_normal
+    result = projector.closest(points)
+    expected = np.linalg.norm(points - np.clip(points, 0.0, 1.0), axis=1)
+    inside_distance = np.minimum(points, 1.0 - points).min(axis=1)
+    expected = np.where(np.all((points >= 0) & (points <= 1), axis=1), inside_distance, expected)
+    # Coordinates are O(1): centroids and offsets carry a few ulp(1) = 2.2e-16 of round-off.
+    roundoff = 4 * np.finfo(float).eps
+    np.testing.assert_allclose(result.distance, expected, atol=roundoff)
+    np.testing.assert_allclose(result.distance[on_one_face], abs(offset), atol=roundoff)
+    np.testing.assert_allclose(result.closest[on_one_face], surface_points[on_one_face], atol=roundoff)
+    # Outward normals: the face normal is the cube face's normal.
+    np.testing.assert_allclose(result.normal[on_one_face], cube_normal[on_one_face], atol=1e-15)
+
+
+@settings(max_examples=25, deadline=None, database=None)
+@given(arrays(np.float64, (8, 3), elements=st.floats(-3.0, 3.0)), st.integers(0, 2**32 - 1))
+def test_property_projector_and_locator_against_brute_force(points, seed):
+    rng = np.random.default_rng(seed)
+    cloud = rng.normal(size=(30, 3))
+    delaunay = Delaunay(cloud)
+    faces, _ = tet_boundary_faces(delaunay.simplices, delaunay.points)
+    result = SurfaceProjector(delaunay.points, faces).closest(points)
+    np.testing.assert_allclose(
+        result.distance, _brute_force_surface_distance(points, delaunay.points, faces), rtol=1e-13, atol=1e-15
+    )
+    tet_index, _ = TetLocator(delaunay.points, delaunay.simplices).locate(points)
+    np.testing.assert_array_equal(
+        tet_index, _brute_force_locate(points, delaunay.points, delaunay.simplices, 1e-12)
+    )
