@@ -7,15 +7,24 @@
   p + k d_c ĉ, k = 0 … round(d_t/d_c). Each point is located in its tet in the deformed state and kept in rest
   coordinates through its barycentric coordinates (equation 4).
 - Sliding rows (φ_c): every needle sample (every d_c along the inserted length) whose projection falls inside
-  the cut surface gets one bilateral row along the surface normal at its closest point.
+  the cut surface gets one bilateral row along the surface normal at its closest point. The surface starts on
+  the needle (its back border is the path), so "inside" admits samples within d_c/4 of the surface in its own
+  plane; otherwise the needle, sitting on that border, would get no row at all.
 - Border rows (χ_c): every border point of the surface gets one unilateral row against its closest point on the
   needle, along the surface's inward direction at that point (in the surface, normal to the needle), so the
-  needle stays inside the border; per needle edge only the closest border point is kept. The needle edges are
+  needle stays inside the border; per needle edge only the closest border point along its row direction (the
+  smallest gap) is kept, so that the front of the cut, not the back border the needle leaves, holds the
+  needle. The needle edges are
   those of the sampled centreline (samples every d_c), not the beam elements: with the paper's 2 cm beam
   elements and a 17 mm insertion, one row per beam element would let most of the shaft cross the border.
-  Border points at the ends of the strip, whose inward direction runs along the needle, get no row.
-- Tearing: when a border row's force reaches f_t, the surface grows from that border point by d_t against the
-  row's direction (outwards), every d_c.
+  Border points at the ends of the strip, whose inward direction runs along the needle, get no row, nor do
+  points of the back border (inward direction along the cut direction ĉ): only the front holds the needle.
+- At most one sliding row and one border row per tissue tet (the smallest gap): rows in one tet constrain the
+  same four nodes, whose motion is affine; more rows only make W rank-deficient and, with a kinematic (rigid)
+  needle, inconsistent, which drives the multipliers to infinity.
+- Tearing: when a border row's force reaches f_t, the surface is extended by d_t against that row's direction
+  (−n_c), every d_c, from every front border point along the inserted length, so the front advances as a
+  whole. Growing a single point would make a spike the angle criteria cannot triangulate.
 """
 
 from __future__ import annotations
@@ -35,6 +44,8 @@ __all__ = [
     "cut_block",
     "border_inward_directions",
     "CutRowInfo",
+    "front_border_points",
+    "one_per_group",
 ]
 
 # Border points whose inward direction has less than this component normal to the needle are ends of the
@@ -100,6 +111,24 @@ def border_inward_directions(triangles: np.ndarray, points: np.ndarray, border_p
     return np.divide(out, norms, out=np.zeros_like(out), where=norms > 1e-12)
 
 
+def one_per_group(groups: np.ndarray, scores: np.ndarray) -> np.ndarray:
+    """Indices of the smallest score in each group (ties: the first), sorted, shape (g,)."""
+    if groups.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    order = np.lexsort((np.arange(groups.size), scores, groups))
+    first = np.concatenate([[True], groups[order][1:] != groups[order][:-1]])
+    return np.sort(order[first])
+
+
+def front_border_points(cut, surface: np.ndarray, cut_direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Border points on the front of the cut (inward direction against ĉ by more than 60°) and their inward
+    directions, shapes (b,) and (b, 3)."""
+    border = cut.border_points()
+    inward = border_inward_directions(cut.triangles, surface, border)
+    front = inward @ cut_direction <= -_MIN_NORMAL_COMPONENT
+    return border[front], inward[front]
+
+
 @dataclass(frozen=True)
 class CutRowInfo:
     """Which border point each border row belongs to (for tearing), shape (b,), and the rows' index in the block."""
@@ -124,6 +153,7 @@ def cut_block(
     needle_free: NeedleGeometry,
     entry_arc_length: float,
     spacing: float,
+    cut_direction: np.ndarray,
     tissue_dof_count: int,
 ) -> tuple[RowBlock | None, CutRowInfo]:
     """Sliding (bilateral) and border (unilateral) rows of the cut surface.
@@ -136,6 +166,7 @@ def cut_block(
     needle_free : The needle after free motion.
     entry_arc_length : Arc length [m] of the needle at the entry point; the inserted part is [entry, length].
     spacing : d_c [m], the needle sampling.
+    cut_direction : ĉ, the unit direction the cut runs (deformed state), shape (3,).
     tissue_dof_count : 3 · tissue node count.
     """
     empty = CutRowInfo(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
@@ -150,29 +181,31 @@ def cut_block(
 
     # Sliding rows: needle samples whose projection falls inside the surface.
     found = cut.closest_points(needle_points, surface)
-    inside = np.flatnonzero(found.inside)
-    normals = cut.triangle_normals(surface)[found.triangle[inside]]
+    all_normals = cut.triangle_normals(surface)[found.triangle]
+    offset = needle_points - found.closest
+    in_plane = offset - np.einsum("ij,ij->i", offset, all_normals)[:, None] * all_normals
+    inside = np.flatnonzero(found.inside | (np.linalg.norm(in_plane, axis=1) <= 0.25 * spacing))
+    nearest_vertex = cut.triangles[found.triangle[inside], np.argmax(found.barycentric[inside], axis=1)]
+    slide_gap_all = np.abs(np.einsum("ij,ij->i", all_normals[inside], offset[inside]))
+    inside = inside[one_per_group(cut.tet_indices[nearest_vertex], slide_gap_all)]
+    normals = all_normals[inside]
     slide_gaps = np.einsum("ij,ij->i", normals, needle_points[inside] - found.closest[inside])
     slide_nodes, slide_weights = _surface_point_nodes(cut, mesh_tets, found.triangle[inside], found.barycentric[inside])
 
     # Border rows: each border point against its closest needle point, the closest per needle edge kept.
-    border = cut.border_points()
-    inward = border_inward_directions(cut.triangles, surface, border)
+    border, inward = front_border_points(cut, surface, cut_direction)
     arc, closest = needle_free.project(surface[border])
     tangents = needle_free.tangents(arc)
     direction = inward - np.einsum("ij,ij->i", inward, tangents)[:, None] * tangents
     norms = np.linalg.norm(direction, axis=1)
     usable = (norms >= _MIN_NORMAL_COMPONENT) & (arc >= start) & (arc <= length)
     direction[usable] /= norms[usable, None]
-    distance = np.linalg.norm(closest - surface[border], axis=1)
+    gaps = np.einsum("ij,ij->i", direction, closest - surface[border])
     edge = np.minimum(np.searchsorted(samples, arc, side="right") - 1, count - 1)
     candidates = np.flatnonzero(usable)
-    if candidates.size:
-        order = candidates[np.lexsort((distance[candidates], edge[candidates]))]
-        keep = order[np.concatenate([[True], edge[order][1:] != edge[order][:-1]])]
-    else:
-        keep = candidates
-    border_gaps = np.einsum("ij,ij->i", direction[keep], closest[keep] - surface[border[keep]])
+    keep = candidates[one_per_group(edge[candidates], gaps[candidates])]
+    keep = keep[one_per_group(cut.tet_indices[border[keep]], gaps[keep])]
+    border_gaps = gaps[keep]
     border_nodes = mesh_tets[cut.tet_indices[border[keep]]]
     border_weights = cut.barycentric[border[keep]]
 

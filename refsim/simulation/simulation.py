@@ -30,7 +30,7 @@ from refsim.constraints import (
     penetration_block,
     points_beyond_tip,
 )
-from refsim.constraints.cut import cut_block, cut_criterion, resample_polyline, sweep_points
+from refsim.constraints.cut import cut_block, cut_criterion, front_border_points, resample_polyline, sweep_points
 from refsim.fem.tissue import TissueState
 from refsim.geometry import SurfaceProjector, TetLocator
 from refsim.scene import Scene
@@ -264,6 +264,7 @@ class Simulation:
                 needle_free=needle_free,
                 entry_arc_length=entry_arc_length,
                 spacing=self.scene.cutting.point_spacing,
+                cut_direction=state.extras["cut_direction"],
                 tissue_dof_count=dof_count,
             )
             if block is not None:
@@ -404,7 +405,8 @@ class Simulation:
             min_angle=cutting.min_angle, max_angle=cutting.max_angle, max_surface_angle=cutting.max_normal_angle
         )
         cut = self._grow_cut(CutSurface.empty(parameters), cloud, positions, state.step)
-        return replace(state, phase=CUTTING_PHASE, cut=cut, path=state.path.subset(np.array([0])))
+        extras = {**state.extras, "cut_direction": np.asarray(direction, dtype=float)}
+        return replace(state, phase=CUTTING_PHASE, cut=cut, path=state.path.subset(np.array([0])), extras=extras)
 
     def _grow_cut(self, cut, points, positions, step):
         """Add deformed-state points to the cut, kept in rest coordinates (equation 4); drop those outside the
@@ -423,25 +425,52 @@ class Simulation:
         rest = np.einsum("pk,pkj->pj", barycentric[inside], self.models.mesh.rest_positions[self.tets[tets[inside]]])
         return cut.with_points(rest, tets[inside], barycentric[inside], step)
 
+    def _grow_cut_rest(self, cut, rest_points, step):
+        """Add rest-state points to the cut (those inside the tissue and farther than d_c/2 from every point)."""
+        spacing = self.scene.cutting.point_spacing
+        if cut.point_count and len(rest_points):
+            distance = np.linalg.norm(rest_points[:, None, :] - cut.rest_points[None, :, :], axis=2).min(axis=1)
+            rest_points = rest_points[distance > 0.5 * spacing]
+        if len(rest_points) == 0:
+            return cut
+        tets, barycentric = self._rest_locator().locate(rest_points)
+        inside = tets >= 0
+        if not np.any(inside):
+            return cut
+        return cut.with_points(rest_points[inside], tets[inside], barycentric[inside], step)
+
+    def _rest_locator(self):
+        if getattr(self, "_rest_locator_cache", None) is None:
+            self._rest_locator_cache = TetLocator(self.models.mesh.rest_positions, self.tets)
+        return self._rest_locator_cache
+
     def _tearing_events(self, state, rows_block, multipliers, context):
-        """Extend the cut from every border point whose contact force reached f_t."""
+        """Extend the cut when a border contact force reaches f_t (module `refsim.constraints.cut`)."""
         cutting = self.scene.cutting
         rows = context.get("border_rows", np.zeros(0, dtype=np.int64))
         if rows.size == 0:
             return state, []
         forces = multipliers[rows]
-        tearing = forces >= cutting.tearing_force
-        if not np.any(tearing):
+        strongest = int(np.argmax(forces))
+        if forces[strongest] < cutting.tearing_force:
             return state, []
         positions = state.tissue.positions
         cut = state.cut
         surface = cut.deformed_points(positions, self.tets)
-        border = context["border_points"][tearing]
-        outward = -rows_block.directions[rows[tearing]]  # against the contact's normal
-        new_points = sweep_points(surface[border], outward, cutting.extent, cutting.point_spacing, first=1)
-        grown = self._grow_cut(cut, new_points, positions, state.step)
-        events = [Event("tear", float(f)) for f in forces[tearing]]
-        return replace(state, cut=grown), events
+        outward = -rows_block.directions[rows[strongest]]  # against the contact's normal −n_c (deformed state)
+        front, _ = front_border_points(cut, surface, state.extras["cut_direction"])
+        needle = self.needle.geometry(state.needle)
+        entry = state.path.positions(positions, self.tets)[:1]
+        arc, _ = needle.project(surface[front])
+        front = front[arc >= needle.project(entry)[0][0] - cutting.point_spacing]  # along the inserted length
+        # Grow in rest coordinates, where the triangulation lives: the outward direction pulled back through each
+        # front point's tet (F⁻¹ u), so that new points keep the rest-state spacing d_c.
+        gradients = self.tissue.deformation_gradients(positions)[cut.tet_indices[front]]
+        rest_outward = np.linalg.solve(gradients, np.broadcast_to(outward, (front.size, 3))[..., None])[..., 0]
+        rest_outward /= np.linalg.norm(rest_outward, axis=1, keepdims=True)
+        new_points = sweep_points(cut.rest_points[front], rest_outward, cutting.extent, cutting.point_spacing, first=1)
+        grown = self._grow_cut_rest(cut, new_points, state.step)
+        return replace(state, cut=grown), [Event("tear", float(forces[strongest]))]
 
     def _locate(self, positions, points, *, inward):
         """Tet and barycentric coordinates of points on or just under the surface."""

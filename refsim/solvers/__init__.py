@@ -1,0 +1,32 @@
+"""Constraint problems and their solvers (layer 0): Gauss–Seidel and an exact reference.
+
+Knows nothing of needles or tissue: it takes a compliance W, a free gap δ_free and the rows of each kind.
+"""
+
+from refsim.solvers.exact import available_backends, solve_exact
+from refsim.solvers.gauss_seidel import solve_gauss_seidel
+from refsim.solvers.problem import KIND_NAMES, ConstraintProblem
+from refsim.solvers.readers import read_fclib, read_problem, read_siconos
+from refsim.solvers.report import SolverReport
+from refsim.solvers.residual import (
+    natural_map_error,
+    natural_residual,
+    natural_residual_by_kind,
+    project_friction_cone,
+)
+
+__all__ = [
+    "KIND_NAMES",
+    "ConstraintProblem",
+    "SolverReport",
+    "available_backends",
+    "natural_map_error",
+    "natural_residual",
+    "natural_residual_by_kind",
+    "project_friction_cone",
+    "read_fclib",
+    "read_problem",
+    "read_siconos",
+    "solve_exact",
+    "solve_gauss_seidel",
+]

@@ -1,0 +1,442 @@
+"""The exact reference solver: QP and cone solves, a fixed point on the friction bounds, a Newton polish.
+
+1. Scaling. λ = τ D z with D a diagonal of 1/√W_ii (one common factor per contact, so that the Coulomb cone
+   is unchanged) and τ = ‖D δ_free‖, so that the scaled compliance has a unit diagonal and z is of order one.
+2. Frictionless part. min ½ zᵀ(D W D)z + (D δ_free / τ)ᵀz with z ≥ 0 on unilateral rows, fixed bounds on box
+   rows and z free on bilateral rows: a convex QP whose KKT conditions are exactly the laws of these rows.
+   It is solved through qpsolvers with the chosen backend (Clarabel by default, OSQP with tight tolerances and
+   polishing, or any installed backend by name).
+3. Friction by a fixed point on the bounds. Shaft rows get the box |λ_s| ≤ μ ‖(λ_b1, λ_b2)‖ with the pair
+   forces of the previous iterate. Contacts get the second-order cone ‖λ_t‖ ≤ μ λ_n through Clarabel's own
+   interface (qpsolvers has no cones), with the De Saxcé modification of the free gap
+   δ_free,n + μ ‖δ_t‖ from the previous iterate; the KKT conditions of that cone QP are then the Coulomb law
+   (Acary, Cadoux, Lemaréchal and Brogliato 2011). Iterate until the bounds stop changing.
+4. Polish. From the active set identified by the natural map (which rows have δ = 0, which sit at a bound,
+   which contacts stick, slip or separate), solve the linear system of that set with the original W by least
+   squares (W may be singular), linearising the slip direction and the shaft bound at the current point;
+   accept a step only if the natural residual drops; repeat while it does.
+
+The residual reported is always recomputed by :func:`refsim.solvers.natural_residual` on the problem as given;
+a backend's own "solved" is not believed. On failure the best multipliers found are returned with the reason.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sparse
+
+from refsim.solvers.problem import KIND_NAMES, ConstraintProblem
+from refsim.solvers.report import SolverReport
+from refsim.solvers.residual import natural_map_error, natural_residual
+
+__all__ = ["available_backends", "solve_exact"]
+
+logger = logging.getLogger(__name__)
+
+#: Tight settings for the backends we know; any other qpsolvers backend runs with its defaults.
+_BACKEND_OPTIONS = {
+    "clarabel": {"tol_gap_abs": 1e-12, "tol_gap_rel": 1e-12, "tol_feas": 1e-12, "tol_ktratio": 1e-10,
+                 "max_iter": 500},
+    "osqp": {"eps_abs": 1e-10, "eps_rel": 1e-10, "polish": True, "max_iter": 200_000,
+             "polish_refine_iter": 10},
+}
+
+
+#: The fixed point tries the Newton polish from an iterate whose residual is below this, every few iterations.
+_POLISH_FROM = 1e-3
+_POLISH_EVERY = 5
+
+
+def available_backends() -> list[str]:
+    """Names of the QP backends qpsolvers can use on this machine."""
+    import qpsolvers
+
+    return sorted(qpsolvers.available_solvers)
+
+
+@dataclass(frozen=True)
+class _Scaling:
+    """λ = factor * z, factor = τ d (per row)."""
+
+    factor: np.ndarray
+    hessian: np.ndarray  # D W_sym D / τ⁰ (unit diagonal where W_ii > 0)
+    gap_scale: np.ndarray  # D / τ: scaled linear term = gap_scale * δ_free'
+    weight: np.ndarray  # ρ = 1 / W_ii (contact mean) [N/m], the natural-map weights of the Newton polish
+
+
+def _scaling(problem: ConstraintProblem, symmetric: np.ndarray) -> _Scaling:
+    diagonal = np.diag(symmetric).copy()
+    largest = float(np.abs(diagonal).max()) if diagonal.size else 1.0
+    floor = 1e-14 * max(largest, np.finfo(float).tiny)
+    safe = np.where(diagonal > floor, diagonal, max(largest, 1.0) if largest > 0 else 1.0)
+    if len(problem.contacts):
+        contact_mean = safe[problem.contacts].mean(axis=1)
+        safe[problem.contacts] = contact_mean[:, None]
+    row_scale = 1.0 / np.sqrt(safe)
+    hessian = symmetric * row_scale[:, None] * row_scale[None, :]
+    tau = float(np.linalg.norm(row_scale * problem.free_gap))
+    tau = tau if tau > 0.0 else 1.0
+    return _Scaling(factor=tau * row_scale, hessian=hessian, gap_scale=row_scale / tau, weight=1.0 / safe)
+
+
+def _bounds(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper bounds [N] of every row for the current shaft pair forces (±inf when none)."""
+    lower = np.full(problem.row_count, -np.inf)
+    upper = np.full(problem.row_count, np.inf)
+    lower[problem.unilateral] = 0.0
+    lower[problem.box_rows] = problem.box_lower
+    upper[problem.box_rows] = problem.box_upper
+    if len(problem.shaft_friction):
+        bound = problem.shaft_friction_coefficient * np.linalg.norm(multipliers[problem.shaft_pairs], axis=1)
+        lower[problem.shaft_friction] = -bound
+        upper[problem.shaft_friction] = bound
+    return lower, upper
+
+
+def _inequalities(lower: np.ndarray, upper: np.ndarray) -> tuple[sparse.csc_matrix, np.ndarray]:
+    """G z ≤ h for the finite bounds lower ≤ z ≤ upper."""
+    n = lower.size
+    low = np.flatnonzero(np.isfinite(lower))
+    up = np.flatnonzero(np.isfinite(upper))
+    rows = np.arange(low.size + up.size)
+    cols = np.concatenate([low, up])
+    vals = np.concatenate([-np.ones(low.size), np.ones(up.size)])
+    matrix = sparse.csc_matrix((vals, (rows, cols)), shape=(rows.size, n))
+    return matrix, np.concatenate([-lower[low], upper[up]])
+
+
+def _solve_qp(hessian, linear, lower, upper, backend, options) -> tuple[np.ndarray | None, str]:
+    """Box-constrained convex QP through qpsolvers; returns (z or None, status)."""
+    import qpsolvers
+
+    inequality, bound = _inequalities(lower, upper)
+    matrix = sparse.csc_matrix(hessian)
+    kwargs = {"G": inequality, "h": bound} if bound.size else {}
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            solution = qpsolvers.solve_problem(qpsolvers.Problem(matrix, linear, **kwargs), solver=backend,
+                                               **options)
+    except Exception as error:  # a backend failing in any way is a status to report, not a crash
+        return None, f"{backend} raised {type(error).__name__}: {error}"
+    if solution.x is None or not np.all(np.isfinite(solution.x)):
+        return None, f"{backend} returned no solution"
+    return np.asarray(solution.x, dtype=float), ("found" if solution.found else f"{backend} not found")
+
+
+def _solve_cone(problem, hessian, linear, lower, upper, options) -> tuple[np.ndarray | None, str]:
+    """Cone QP through clarabel.DefaultSolver: box rows, nonnegative rows and Coulomb cones (scaled)."""
+    import clarabel
+
+    n = problem.row_count
+    contacts = problem.contacts
+    mu = problem.contact_friction
+    # bounds apply to every row outside the contacts (unilateral, box, shaft rows)
+    outside = np.ones(n, dtype=bool)
+    outside[contacts.reshape(-1)] = False
+    inequality, bound = _inequalities(np.where(outside, lower, -np.inf), np.where(outside, upper, np.inf))
+    frictionless = mu == 0.0
+    zero_rows = contacts[frictionless][:, 1:].reshape(-1)
+    sticky_normals = contacts[frictionless][:, 0]
+    cone_contacts = contacts[~frictionless]
+    cone_mu = mu[~frictionless]
+    blocks, rhs, cones = [], [], []
+    if zero_rows.size:
+        blocks.append(sparse.csc_matrix((np.ones(zero_rows.size), (np.arange(zero_rows.size), zero_rows)),
+                                        shape=(zero_rows.size, n)))
+        rhs.append(np.zeros(zero_rows.size))
+        cones.append(clarabel.ZeroConeT(zero_rows.size))
+    nonnegative = bound.size + sticky_normals.size
+    if nonnegative:
+        blocks.append(inequality)
+        rhs.append(bound)
+        blocks.append(sparse.csc_matrix((-np.ones(sticky_normals.size),
+                                         (np.arange(sticky_normals.size), sticky_normals)),
+                                        shape=(sticky_normals.size, n)))
+        rhs.append(np.zeros(sticky_normals.size))
+        cones.append(clarabel.NonnegativeConeT(nonnegative))
+    if cone_contacts.size:
+        k = cone_contacts.shape[0]
+        rows = np.arange(3 * k)
+        vals = -np.column_stack([cone_mu, np.ones(k), np.ones(k)]).reshape(-1)
+        blocks.append(sparse.csc_matrix((vals, (rows, cone_contacts.reshape(-1))), shape=(3 * k, n)))
+        rhs.append(np.zeros(3 * k))
+        cones.extend(clarabel.SecondOrderConeT(3) for _ in range(k))
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    for key, value in options.items():
+        setattr(settings, key, value)
+    constraint = sparse.vstack(blocks).tocsc() if blocks else sparse.csc_matrix((0, n))
+    try:
+        solver = clarabel.DefaultSolver(sparse.triu(sparse.csc_matrix(hessian)).tocsc(), linear, constraint,
+                                        np.concatenate(rhs) if rhs else np.zeros(0), cones, settings)
+        solution = solver.solve()
+    except Exception as error:  # reported, not raised
+        return None, f"clarabel raised {type(error).__name__}: {error}"
+    x = np.asarray(solution.x, dtype=float)
+    if x.size != n or not np.all(np.isfinite(x)):
+        return None, f"clarabel status {solution.status} without a finite solution"
+    return x, str(solution.status)
+
+
+def _cone_projection_jacobian(points: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    """Jacobian of the projection onto K = {‖x_t‖ ≤ μ x_n} at ``points`` (k, 3); shape (k, 3, 3)."""
+    normal = points[:, 0]
+    tangent = points[:, 1:]
+    norm = np.linalg.norm(tangent, axis=1)
+    inside = norm <= mu * normal
+    polar = ~inside & (mu * norm <= -normal)
+    boundary = ~inside & ~polar
+    jacobian = np.zeros((len(points), 3, 3))
+    jacobian[inside] = np.eye(3)
+    if boundary.any():
+        m = mu[boundary]
+        t = np.maximum(norm[boundary], 1e-300)
+        direction = tangent[boundary] / t[:, None]
+        ray = np.column_stack([np.ones(m.size), m[:, None] * direction])  # (1, μ ŵ)
+        height = (normal[boundary] + m * t) / (1.0 + m * m)
+        # d/dz_n: ray / (1 + μ²); d/dz_t: μ ray ŵᵀ / (1 + μ²) + height (0, μ (I − ŵŵᵀ) / t)
+        block = np.zeros((m.size, 3, 3))
+        block[:, :, 0] = ray / (1.0 + m * m)[:, None]
+        block[:, :, 1:] = (m / (1.0 + m * m))[:, None, None] * ray[:, :, None] * direction[:, None, :]
+        projector = np.eye(2)[None] - direction[:, :, None] * direction[:, None, :]
+        block[:, 1:, 1:] += (height * m / t)[:, None, None] * projector
+        jacobian[boundary] = block
+    return jacobian
+
+
+def _newton_step(problem: ConstraintProblem, multipliers: np.ndarray,
+                 weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Semismooth Newton direction for the natural map F(λ) = λ − Π(λ − ρ δ̂(λ)); returns (F, direction).
+
+    A generalised Jacobian J = I − D_Π (I − ρ ∂δ̂/∂λ) − ∂Π/∂b ∂b/∂λ, D_Π the Jacobian of the projection of each
+    row or contact, ∂b/∂λ the derivative of the shaft bounds; the step solves J Δ = −F by least squares (J is
+    singular when W is). With D_Π ∈ {0, 1} on rows without friction this is the active-set solve. The weights
+    ρ ≈ 1/W_ii (equal within a contact) balance forces and gaps; they do not change the zeros of F.
+    """
+    n = problem.row_count
+    error, gap = natural_map_error(problem, multipliers, weight)
+    weighted = weight * gap
+    gap_jacobian = problem.compliance.copy()
+    projection = np.zeros((n, n))
+    rows = problem.bilateral
+    projection[rows, rows] = 1.0
+    rows = problem.unilateral
+    projection[rows, rows] = (multipliers[rows] - weighted[rows] > 0.0).astype(float)
+    rows = problem.box_rows
+    z = multipliers[rows] - weighted[rows]
+    projection[rows, rows] = ((z > problem.box_lower) & (z < problem.box_upper)).astype(float)
+    bound_term = np.zeros((n, n))
+    if len(problem.shaft_friction):
+        rows = problem.shaft_friction
+        pair = multipliers[problem.shaft_pairs]
+        pair_norm = np.linalg.norm(pair, axis=1)
+        bound = problem.shaft_friction_coefficient * pair_norm
+        z = multipliers[rows] - weighted[rows]
+        inside = np.abs(z) < bound
+        projection[rows, rows] = inside.astype(float)
+        slope = np.where((~inside & (pair_norm > 0.0))[:, None],
+                         (np.sign(z) * problem.shaft_friction_coefficient)[:, None] * pair
+                         / np.maximum(pair_norm, 1e-300)[:, None], 0.0)
+        bound_term[rows[:, None], problem.shaft_pairs] += slope
+    if len(problem.contacts):
+        contacts = problem.contacts
+        mu = problem.contact_friction
+        local_gap = gap[contacts]
+        slip = np.linalg.norm(local_gap[:, 1:], axis=1)
+        modified = local_gap.copy()
+        modified[:, 0] += mu * slip
+        slip_direction = local_gap[:, 1:] / np.maximum(slip, 1e-300)[:, None]
+        normal_rows = contacts[:, 0]
+        gap_jacobian[normal_rows] += (mu[:, None, None] * slip_direction[:, :, None]
+                                      * problem.compliance[contacts[:, 1:]]).sum(axis=1)
+        modified *= weight[contacts]
+        blocks = _cone_projection_jacobian(multipliers[contacts] - modified, mu)
+        projection[contacts[:, :, None], contacts[:, None, :]] = blocks
+    jacobian = np.eye(n) - projection + projection @ (weight[:, None] * gap_jacobian) - bound_term
+    # QR with column pivoting (LAPACK gelsy): rank-revealing like the SVD, several times faster
+    direction = scipy.linalg.lstsq(jacobian, -error, cond=1e-14, lapack_driver="gelsy",
+                                   check_finite=False)[0]
+    return error, direction
+
+
+def _polish(problem, multipliers, residual, tolerance, weight, max_steps=50):
+    """Semismooth Newton with a backtracking line search on ‖F‖²; returns (λ, residual, steps accepted)."""
+    accepted = 0
+    best, best_residual = multipliers, residual
+    for _ in range(max_steps):
+        if best_residual <= 1e-3 * tolerance:
+            break
+        error, direction = _newton_step(problem, multipliers, weight)
+        merit = float(error @ error)
+        if not np.all(np.isfinite(direction)):
+            break
+        step = 1.0
+        while step > 1e-6:
+            candidate = multipliers + step * direction
+            candidate_error, _ = natural_map_error(problem, candidate, weight)
+            if candidate_error @ candidate_error <= (1.0 - 1e-4 * step) * merit:
+                break
+            step *= 0.5
+        else:
+            break
+        multipliers = candidate
+        accepted += 1
+        candidate_residual = natural_residual(problem, candidate)
+        if candidate_residual < best_residual:
+            best, best_residual = candidate, candidate_residual
+    return best, best_residual, accepted
+
+
+def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend: str = "clarabel",
+                max_iterations: int = 100, symmetry_tolerance: float = 1e-8, polish: bool = True,
+                backend_options: dict | None = None) -> tuple[np.ndarray, SolverReport]:
+    """Solve the constraint problem to a tight natural residual (the reference solution).
+
+    Parameters
+    ----------
+    problem : The constraint problem; W must be symmetric to ``symmetry_tolerance`` and positive
+        semi-definite (it may be singular). Its symmetric part is given to the backends; the residual is
+        always computed with W as given.
+    tolerance : Target natural residual [-]; the report says ``converged`` when it is reached.
+    backend : qpsolvers backend for the QP solves (``"clarabel"``, ``"osqp"`` or any name of
+        :func:`available_backends`). Contacts (cones) are always solved by Clarabel's own interface.
+    max_iterations : Largest number of outer fixed-point iterations on the friction bounds, ≥ 1.
+    symmetry_tolerance : Largest accepted relative asymmetry ‖W − Wᵀ‖_F / ‖W‖_F [-].
+    polish : Finish with the active-set polish.
+    backend_options : Options passed to the backend, replacing our tight defaults key by key.
+
+    Returns
+    -------
+    multipliers : λ [N], shape (row_count,), the best found.
+    report : :class:`~refsim.solvers.SolverReport`; ``message`` gives the reason when not converged.
+
+    Raises
+    ------
+    ValueError : For a non-symmetric W, an unknown backend or bad options.
+    """
+    start = time.perf_counter()
+    if not (np.isfinite(tolerance) and tolerance > 0.0):
+        raise ValueError(f"tolerance = {tolerance!r}; valid range (0, inf)")
+    if int(max_iterations) != max_iterations or max_iterations < 1:
+        raise ValueError(f"max_iterations = {max_iterations!r}; valid range: integers >= 1")
+    backends = available_backends()
+    if backend not in backends:
+        raise ValueError(f"backend = {backend!r} is not installed; available: {', '.join(backends)}")
+    label = f"problem {problem.name!r}" if problem.name else "the problem"
+    asymmetry = problem.asymmetry()
+    if asymmetry > symmetry_tolerance:
+        raise ValueError(f"solve_exact: the compliance of {label} is not symmetric: relative asymmetry "
+                         f"{asymmetry:.3e} > symmetry_tolerance {symmetry_tolerance:.1e}; the exact solver "
+                         "needs a symmetric positive semi-definite W (use solve_gauss_seidel, or pass a "
+                         "larger symmetry_tolerance to solve with the symmetric part)")
+    solver_name = f"exact/{backend}"
+    n = problem.row_count
+    if n == 0:
+        return np.zeros(0), SolverReport(solver=solver_name, iterations=0, residual=0.0, converged=True,
+                                         seconds=time.perf_counter() - start, message="empty problem")
+    options = dict(_BACKEND_OPTIONS.get(backend, {}))
+    options.update(backend_options or {})
+    cone_options = dict(_BACKEND_OPTIONS["clarabel"])
+    if backend == "clarabel":
+        cone_options.update(backend_options or {})
+    symmetric = 0.5 * (problem.compliance + problem.compliance.T)
+    scaling = _scaling(problem, symmetric)
+    has_contacts = len(problem.contacts) > 0
+    needs_fixed_point = has_contacts or len(problem.shaft_friction) > 0
+
+    multipliers = np.zeros(n)  # the iterate whose forces set the shaft bounds
+    best, best_residual = multipliers, natural_residual(problem, multipliers)
+    history = []
+    status = "not started"
+    modified_gap = problem.free_gap.copy()
+    iterations = 0
+    settled = False
+    damping = 1.0
+    polish_steps = 0
+    previous_residual = np.inf
+    for iterations in range(1, int(max_iterations) + 1):
+        lower, upper = _bounds(problem, multipliers)
+        linear = scaling.gap_scale * modified_gap
+        if has_contacts:
+            z, status = _solve_cone(problem, scaling.hessian, linear, lower / scaling.factor,
+                                    upper / scaling.factor, cone_options)
+        else:
+            z, status = _solve_qp(scaling.hessian, linear, lower / scaling.factor, upper / scaling.factor,
+                                  backend, options)
+        if z is None:
+            history.append(np.nan)
+            break
+        new_multipliers = scaling.factor * z
+        residual = natural_residual(problem, new_multipliers)
+        history.append(residual)
+        if residual < best_residual:
+            best, best_residual = new_multipliers, residual
+        if not needs_fixed_point:
+            settled = True
+            break
+        if polish and residual <= _POLISH_FROM and (iterations - 1) % _POLISH_EVERY == 0:
+            candidate, candidate_residual, steps = _polish(problem, new_multipliers, residual, tolerance,
+                                                           scaling.weight, max_steps=20)
+            polish_steps += steps
+            if candidate_residual < best_residual:
+                best, best_residual = candidate, candidate_residual
+            if best_residual <= tolerance:
+                settled = True
+                break
+        # bounds of the next iterate: pair forces and De Saxcé slip terms; damped once the iterates oscillate
+        if residual > previous_residual:
+            damping = 0.5
+        previous_residual = residual
+        next_multipliers = damping * new_multipliers + (1.0 - damping) * multipliers
+        gap = problem.compliance @ next_multipliers + problem.free_gap
+        new_gap = problem.free_gap.copy()
+        if has_contacts:
+            slip = np.linalg.norm(gap[problem.contacts[:, 1:]], axis=1)
+            new_gap[problem.contacts[:, 0]] += problem.contact_friction * slip
+        change_gap = np.linalg.norm(new_gap - modified_gap)
+        shaft = problem.shaft_friction
+        change_bound = np.linalg.norm(_bounds(problem, next_multipliers)[1][shaft]
+                                      - _bounds(problem, multipliers)[1][shaft])
+        scale_gap = max(np.linalg.norm(problem.free_gap), np.linalg.norm(gap), np.finfo(float).tiny)
+        scale_force = max(np.linalg.norm(next_multipliers), np.finfo(float).tiny)
+        multipliers, modified_gap = next_multipliers, new_gap
+        if change_gap <= 1e-3 * tolerance * scale_gap and change_bound <= 1e-3 * tolerance * scale_force:
+            settled = True
+            break
+        if residual <= 1e-3 * tolerance:
+            settled = True
+            break
+    if polish and best_residual > 1e-3 * tolerance:
+        best, best_residual, steps = _polish(problem, best, best_residual, tolerance, scaling.weight)
+        polish_steps += steps
+        history.append(best_residual)
+    residual = natural_residual(problem, best)
+    converged = bool(residual <= tolerance)
+    parts = [f"{iterations} {'cone' if has_contacts else 'QP'} solve(s), last status {status}"]
+    if needs_fixed_point:
+        parts.append("fixed point on the friction bounds " + ("settled" if settled else
+                                                               f"not settled after {iterations} iterations")
+                     + (", damped after oscillating" if damping < 1.0 else ""))
+    if polish:
+        parts.append(f"{polish_steps} Newton polish step(s)")
+    if not converged:
+        worst = _worst_kind(problem, best)
+        parts.insert(0, f"not converged: residual {residual:.3e} > tolerance {tolerance:.1e} "
+                        f"(largest error in {worst} rows)")
+        logger.info("solve_exact %s: %s", label, "; ".join(parts))
+    return best, SolverReport(solver=solver_name, iterations=iterations, residual=residual,
+                              converged=converged,
+                              seconds=time.perf_counter() - start, message="; ".join(parts),
+                              history=np.array(history, dtype=float))
+
+
+def _worst_kind(problem: ConstraintProblem, multipliers: np.ndarray) -> str:
+    error, _ = natural_map_error(problem, multipliers)
+    return KIND_NAMES[int(problem.row_kinds()[int(np.argmax(np.abs(error)))])]

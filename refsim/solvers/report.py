@@ -1,0 +1,43 @@
+"""The report every constraint solver returns with its multipliers."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["SolverReport"]
+
+
+def _empty_history() -> np.ndarray:
+    return np.zeros(0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SolverReport:
+    """What a constraint solve did.
+
+    Attributes
+    ----------
+    solver : Solver name, e.g. ``"gauss_seidel"`` or ``"exact/clarabel"``.
+    iterations : Gauss–Seidel sweeps, or outer fixed-point iterations (one QP or cone solve each) of the exact
+        solver.
+    residual : Natural residual of the returned multipliers, recomputed by
+        :func:`refsim.solvers.natural_residual` [-].
+    converged : True when the stopping criterion was met (for the residual criterion: residual ≤ tolerance).
+    seconds : Wall-clock time of the solve [s].
+    message : Why the solver stopped, in words (always set when ``converged`` is False).
+    increment : SOFA's increment measure Σ_j |W_jj Δλ_j| of the last Gauss–Seidel sweep [m]; NaN for the exact
+        solver.
+    history : Natural residual after each iteration (Gauss–Seidel: computed on the incrementally updated gap,
+        exact to round-off), shape (iterations,).
+    """
+
+    solver: str
+    iterations: int
+    residual: float
+    converged: bool
+    seconds: float
+    message: str = ""
+    increment: float = float("nan")
+    history: np.ndarray = field(default_factory=_empty_history)
