@@ -3,7 +3,9 @@
 Each point is a material point of the tissue, anchored by the barycentric coordinates of its tet (found in the
 deformed state when the point is created, then fixed), and is coupled to the needle at its projection on the
 centreline: two bilateral rows in the plane normal to the needle (φ_i) and one shaft friction row along it
-(ψ_i), whose Coulomb bound is μ_i times the norm of the two bilateral forces (stick inside, slip at the bound).
+(ψ_i), whose Coulomb bound is μ_i times the norm of the two bilateral forces (stick inside, slip at the bound),
+plus, optionally, μ_i times a normal preload per point: the tissue's radial grip on the needle, which a
+centreline model does not see (our extension; with a zero preload this is the paper's model).
 """
 
 from __future__ import annotations
@@ -85,12 +87,18 @@ def insertion_block(
     needle_previous: NeedleGeometry,
     friction_coefficient: float,
     tissue_dof_count: int,
+    normal_preload: float = 0.0,
 ) -> RowBlock:
     """Rows of the insertion points: per point two bilateral rows and, when μ_i > 0, one shaft friction row.
+
+    ``normal_preload`` [N] (≥ 0, finite) is added to the norm of each point's two lateral forces in its Coulomb
+    bound: μ_i (‖(λ_b1, λ_b2)‖ + normal_preload); the scene sets it to shaft_normal_force × d_i.
 
     The needle point of each tissue point is its projection on the needle at the start of the step (a material
     point of the needle for this step); the friction row measures the relative axial displacement over the step.
     """
+    if not (np.isfinite(normal_preload) and normal_preload >= 0.0):
+        raise ValueError(f"normal_preload = {normal_preload!r} N; valid range [0, inf)")
     point_count = path.point_count
     tissue_point_free = path.positions(tissue_free, mesh_tets)
     tissue_point_previous = path.positions(tissue_previous, mesh_tets)
@@ -128,6 +136,7 @@ def insertion_block(
         shaft_rows=(base + 2) if with_friction else np.zeros(0, dtype=np.int64),
         shaft_pairs=np.stack([base, base + 1], axis=1) if with_friction else np.zeros((0, 2), dtype=np.int64),
         shaft_friction_coefficient=np.full(point_count if with_friction else 0, friction_coefficient),
+        shaft_normal_preload=np.full(point_count if with_friction else 0, float(normal_preload)),
     )
 
 

@@ -57,6 +57,8 @@ class RowBlock:
     shaft_rows : Row indices of shaft friction rows, shape (m,).
     shaft_pairs : The two bilateral rows whose force bounds each shaft row, shape (m, 2).
     shaft_friction_coefficient : shape (m,).
+    shaft_normal_preload : Normal force added to the pair force norm in each shaft row's Coulomb bound [N],
+        shape (m,) (empty: zeros).
     """
 
     tissue_jacobian: sp.csr_matrix
@@ -71,6 +73,7 @@ class RowBlock:
     shaft_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     shaft_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     shaft_friction_coefficient: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    shaft_normal_preload: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def row_count(self) -> int:
@@ -126,7 +129,15 @@ def concatenate(blocks: list[RowBlock]) -> RowBlock:
         shaft_rows=np.concatenate([b.shaft_rows + o for b, o in zip(blocks, offsets)]).astype(np.int64),
         shaft_pairs=np.concatenate([b.shaft_pairs + o for b, o in zip(blocks, offsets)]).astype(np.int64),
         shaft_friction_coefficient=np.concatenate([b.shaft_friction_coefficient for b in blocks]),
+        shaft_normal_preload=np.concatenate([_shaft_preload(b) for b in blocks]),
     )
+
+
+def _shaft_preload(block: RowBlock) -> np.ndarray:
+    """The block's shaft preloads [N], shape (m,): zeros when the block left the field empty."""
+    if block.shaft_normal_preload.size == 0:
+        return np.zeros(block.shaft_rows.shape[0])
+    return np.asarray(block.shaft_normal_preload, dtype=float)
 
 
 def orthonormal_basis(tangents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

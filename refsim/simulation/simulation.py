@@ -251,6 +251,7 @@ class Simulation:
                     needle_previous=needle_previous,
                     friction_coefficient=spec.shaft_friction_coefficient,
                     tissue_dof_count=dof_count,
+                    normal_preload=spec.shaft_normal_force * spec.spacing,
                 )
             )
         if state.phase == CUTTING_PHASE:
@@ -294,6 +295,7 @@ class Simulation:
             shaft_friction=sets["shaft_rows"],
             shaft_pairs=rows.shaft_pairs,
             shaft_friction_coefficient=rows.shaft_friction_coefficient,
+            shaft_normal_preload=rows.shaft_normal_preload,
         )
         return problem, tissue_responses, needle_responses
 

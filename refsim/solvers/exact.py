@@ -6,8 +6,8 @@
    rows and z free on bilateral rows: a convex QP whose KKT conditions are exactly the laws of these rows.
    It is solved through qpsolvers with the chosen backend (Clarabel by default, OSQP with tight tolerances and
    polishing, or any installed backend by name).
-3. Friction by a fixed point on the bounds. Shaft rows get the box |λ_s| ≤ μ ‖(λ_b1, λ_b2)‖ with the pair
-   forces of the previous iterate. Contacts get the second-order cone ‖λ_t‖ ≤ μ λ_n through Clarabel's own
+3. Friction by a fixed point on the bounds. Shaft rows get the box |λ_s| ≤ μ (‖(λ_b1, λ_b2)‖ + p) with the
+   pair forces of the previous iterate and the row's constant normal preload p. Contacts get the second-order cone ‖λ_t‖ ≤ μ λ_n through Clarabel's own
    interface (qpsolvers has no cones), with the De Saxcé modification of the free gap
    δ_free,n + μ ‖δ_t‖ from the previous iterate; the KKT conditions of that cone QP are then the Coulomb law
    (Acary, Cadoux, Lemaréchal and Brogliato 2011). Iterate until the bounds stop changing.
@@ -93,7 +93,7 @@ def _bounds(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[np.nda
     lower[problem.box_rows] = problem.box_lower
     upper[problem.box_rows] = problem.box_upper
     if len(problem.shaft_friction):
-        bound = problem.shaft_friction_coefficient * np.linalg.norm(multipliers[problem.shaft_pairs], axis=1)
+        bound = problem.shaft_bounds(multipliers)
         lower[problem.shaft_friction] = -bound
         upper[problem.shaft_friction] = bound
     return lower, upper
@@ -237,7 +237,7 @@ def _newton_step(problem: ConstraintProblem, multipliers: np.ndarray,
         rows = problem.shaft_friction
         pair = multipliers[problem.shaft_pairs]
         pair_norm = np.linalg.norm(pair, axis=1)
-        bound = problem.shaft_friction_coefficient * pair_norm
+        bound = problem.shaft_bounds(multipliers)  # the preload is constant: ∂b/∂λ is the pair term only
         z = multipliers[rows] - weighted[rows]
         inside = np.abs(z) < bound
         projection[rows, rows] = inside.astype(float)

@@ -14,7 +14,8 @@ Blocks:
   λ_t ← λ_t − 2 ω δ_t / (W_t1t1 + W_t2t2) projected onto the disk ‖λ_t‖ ≤ μ λ_n (SOFA's local Coulomb
   resolution). Its fixed points are exactly the solutions of the De Saxcé law (stick inside the disk with
   δ = 0, slip on it opposing δ_t, δ_n = 0);
-- shaft friction row: λ ← clip(λ − ω δ / W_ii, ±μ ‖(λ_b1, λ_b2)‖) with the current pair forces;
+- shaft friction row: λ ← clip(λ − ω δ / W_ii, ±μ (‖(λ_b1, λ_b2)‖ + p)) with the current pair forces and the
+  row's normal preload p;
 - box row: λ ← clip(λ − ω δ / W_ii, lower, upper).
 
 A row whose diagonal W_ii is zero (below 1e-14 of the largest diagonal) or negative cannot be solved alone:
@@ -52,9 +53,9 @@ def _blocks(problem: ConstraintProblem) -> tuple[np.ndarray, np.ndarray, np.ndar
     kinds = [np.full(len(rows), code, dtype=np.int64) for rows, code in singles]
     rows = [np.column_stack([r, np.zeros((len(r), 2), dtype=np.int64)]) for r, _ in singles]
     params = [np.zeros((len(problem.bilateral), 2)), np.zeros((len(problem.unilateral), 2)),
-              np.column_stack([problem.shaft_friction_coefficient, np.zeros(len(problem.shaft_friction))]),
+              np.column_stack([problem.shaft_friction_coefficient, problem.shaft_normal_preload]),
               np.column_stack([problem.box_lower, problem.box_upper])]
-    # shaft rows carry their pair in columns 1, 2
+    # shaft rows carry their pair in columns 1, 2 of rows and (μ, preload) in params
     rows[2][:, 1:] = problem.shaft_pairs
     kinds.append(np.full(len(problem.contacts), _CONTACT, dtype=np.int64))
     rows.append(problem.contacts.astype(np.int64))
@@ -123,7 +124,7 @@ def _sweep(transposed, diagonal, kinds, rows, params, multipliers, gap, relaxati
         elif kind == _SHAFT:
             pair1 = multipliers[rows[b, 1]]
             pair2 = multipliers[rows[b, 2]]
-            bound = params[b, 0] * np.sqrt(pair1 * pair1 + pair2 * pair2)
+            bound = params[b, 0] * (np.sqrt(pair1 * pair1 + pair2 * pair2) + params[b, 1])
             force = min(max(force, -bound), bound)
         elif kind == _BOX:
             force = min(max(force, params[b, 0]), params[b, 1])
@@ -169,7 +170,7 @@ def _residual(kinds, rows, params, multipliers, gap, free_norm):
             elif kind == _SHAFT:
                 pair1 = multipliers[rows[b, 1]]
                 pair2 = multipliers[rows[b, 2]]
-                bound = params[b, 0] * np.sqrt(pair1 * pair1 + pair2 * pair2)
+                bound = params[b, 0] * (np.sqrt(pair1 * pair1 + pair2 * pair2) + params[b, 1])
                 error = multipliers[row] - min(max(z, -bound), bound)
             else:
                 error = multipliers[row] - min(max(z, params[b, 0]), params[b, 1])

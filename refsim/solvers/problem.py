@@ -6,8 +6,9 @@ Every row of the problem belongs to exactly one kind:
 - unilateral (Signorini): 0 ≤ δ ⊥ λ ≥ 0;
 - contact (3 rows: normal, tangent 1, tangent 2): Coulomb cone ‖λ_t‖ ≤ μ λ_n with the De Saxcé
   complementarity (friction opposing the slip, δ_n = 0 while in contact);
-- shaft friction: |λ_s| ≤ μ ‖(λ_b1, λ_b2)‖ where (b1, b2) is a pair of bilateral rows, stick inside the bound,
-  slip at the bound opposing δ_s (the friction along the needle shaft);
+- shaft friction: |λ_s| ≤ μ (‖(λ_b1, λ_b2)‖ + p) where (b1, b2) is a pair of bilateral rows and p ≥ 0 a given
+  normal preload, stick inside the bound, slip at the bound opposing δ_s (the friction along the needle shaft;
+  p is the tissue's radial grip on the needle, which the two centreline rows do not see);
 - box: box_lower ≤ λ ≤ box_upper with δ = 0 strictly inside, δ ≥ 0 at the lower and δ ≤ 0 at the upper bound
   (a one-dimensional friction law with a given bound, Siconos' "relay").
 """
@@ -60,6 +61,9 @@ class ConstraintProblem:
     shaft_friction : Shaft friction rows, shape (m,).
     shaft_pairs : The two bilateral rows whose force norm bounds each shaft friction row, shape (m, 2).
     shaft_friction_coefficient : Friction coefficient of each shaft row [-], shape (m,), ≥ 0.
+    shaft_normal_preload : Normal force added to the pair force norm in each shaft row's Coulomb bound [N],
+        shape (m,), finite, ≥ 0; empty (the default) means zeros. The bound of row j is
+        μ_j (‖(λ_b1, λ_b2)‖ + preload_j).
     box_rows : Rows with fixed bounds, shape (r,).
     box_lower : Lower bound of each box row [N], shape (r,), may be -inf.
     box_upper : Upper bound of each box row [N], shape (r,), ≥ box_lower, may be +inf.
@@ -75,6 +79,7 @@ class ConstraintProblem:
     shaft_friction: np.ndarray = field(default_factory=_empty_rows)
     shaft_pairs: np.ndarray = field(default_factory=_empty_pairs)
     shaft_friction_coefficient: np.ndarray = field(default_factory=_empty_values)
+    shaft_normal_preload: np.ndarray = field(default_factory=_empty_values)
     box_rows: np.ndarray = field(default_factory=_empty_rows)
     box_lower: np.ndarray = field(default_factory=_empty_values)
     box_upper: np.ndarray = field(default_factory=_empty_values)
@@ -101,6 +106,7 @@ class ConstraintProblem:
         self._set("shaft_friction_coefficient",
                   self._coefficients("shaft_friction_coefficient", self.shaft_friction_coefficient,
                                      len(self.shaft_friction)))
+        self._set("shaft_normal_preload", self._preload(len(self.shaft_friction)))
         self._validate_box()
         self._validate_coverage()
         self._validate_shaft_pairs()
@@ -150,6 +156,18 @@ class ConstraintProblem:
             self._fail(f"{name} has shape {array.shape}, expected ({count},), one per row or contact")
         if (array < 0).any():
             self._fail(f"{name} has a negative coefficient {array[array < 0][0]}, valid range [0, inf)")
+        return array
+
+    def _preload(self, count: int) -> np.ndarray:
+        name = "shaft_normal_preload"
+        if np.size(self.shaft_normal_preload) == 0:
+            return np.zeros(count)
+        array = self._float_array(name, np.atleast_1d(np.asarray(self.shaft_normal_preload, dtype=object)),
+                                  ndim=1)
+        if array.shape != (count,):
+            self._fail(f"{name} has shape {array.shape}, expected ({count},), one per shaft_friction row")
+        if (array < 0).any():
+            self._fail(f"{name} has a negative value {array[array < 0][0]} N, valid range [0, inf)")
         return array
 
     def _validate_box(self) -> None:
@@ -213,6 +231,12 @@ class ConstraintProblem:
         for code, rows in enumerate(self._kind_rows()):
             kinds[rows] = code
         return kinds
+
+    def shaft_bounds(self, multipliers: np.ndarray) -> np.ndarray:
+        """Coulomb bound μ_j (‖(λ_b1, λ_b2)‖ + preload_j) [N] of every shaft row, shape (m,), for multipliers λ
+        [N] of shape (row_count,) (not checked: this is called in inner loops)."""
+        pair_norm = np.linalg.norm(np.asarray(multipliers)[self.shaft_pairs], axis=1)
+        return self.shaft_friction_coefficient * (pair_norm + self.shaft_normal_preload)
 
     def gap(self, multipliers: np.ndarray) -> np.ndarray:
         """Gap δ = W λ + δ_free [m], shape (row_count,), for multipliers λ [N] of shape (row_count,)."""

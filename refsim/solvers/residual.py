@@ -6,7 +6,7 @@ extended to the kinds of :class:`~refsim.solvers.ConstraintProblem`):
 - bilateral: e = δ;
 - unilateral: e = λ − max(0, λ − δ);
 - contact: e = λ − P_K(λ − δ̂), δ̂ = δ + μ ‖δ_t‖ e_n (De Saxcé), K = {‖λ_t‖ ≤ μ λ_n};
-- shaft friction: e = λ − clip(λ − δ, −b, b), b = μ ‖(λ_b1, λ_b2)‖;
+- shaft friction: e = λ − clip(λ − δ, −b, b), b = μ (‖(λ_b1, λ_b2)‖ + p), p the row's normal preload;
 - box: e = λ − clip(λ − δ, lower, upper).
 
 The residual is ‖e‖₂ / max(‖δ_free‖, ‖λ‖, ‖δ‖); it is zero exactly at a solution.
@@ -88,7 +88,7 @@ def natural_map_error(problem: ConstraintProblem, multipliers: np.ndarray,
         error[contacts] = local_force - project_friction_cone(local_force - modified, mu)
     if len(problem.shaft_friction):
         rows = problem.shaft_friction
-        bound = problem.shaft_friction_coefficient * np.linalg.norm(multipliers[problem.shaft_pairs], axis=1)
+        bound = problem.shaft_bounds(multipliers)
         error[rows] = multipliers[rows] - np.clip(multipliers[rows] - weighted[rows], -bound, bound)
     rows = problem.box_rows
     error[rows] = multipliers[rows] - np.clip(multipliers[rows] - weighted[rows], problem.box_lower,

@@ -62,6 +62,29 @@ def external_problems(root: Path) -> list[tuple[str, ConstraintProblem]]:
     return problems
 
 
+def cube_problems(every: int = 5) -> list[tuple[str, ConstraintProblem]]:
+    """Constraint problems recorded from the built-in scenes: every ``every``-th step of the cube's insertion
+    (family "cube insertion") and of cube_cut from its "cut_start" event on (family "cube cutting")."""
+    import dataclasses
+
+    from refsim.scene import load_scene
+    from refsim.simulation import Simulation
+
+    problems = []
+    for scene_name, family in (("cube", "cube insertion"), ("cube_cut", "cube cutting")):
+        scene = load_scene(scene_name, ["output.record_problems=true"])
+        records = []
+        Simulation(scene).run(on_step=lambda state, record: records.append(record))
+        start = 0
+        if family == "cube cutting":
+            start = next(r.step for r in records if any(e.name == "cut_start" for e in r.events))
+        kept = [r for r in records if r.problem is not None and r.step >= start and r.step % every == 0]
+        problems.extend((family, dataclasses.replace(r.problem, name=f"{scene_name}_step_{r.step:04d}"))
+                        for r in kept)
+        logger.info("%s: %d problems recorded", family, len(kept))
+    return problems
+
+
 def _gap_error(problem: ConstraintProblem, multipliers: np.ndarray,
                reference_gap: np.ndarray | None) -> float:
     if reference_gap is None:
@@ -188,7 +211,7 @@ def main(argv: list[str] | None = None) -> None:
     root = args.data or shared_problems()
     if not (root / "MANIFEST.tsv").is_file():
         raise SystemExit(f"external problems absent: {root}")
-    path = run_study(external_problems(root), args.output)
+    path = run_study(external_problems(root) + cube_problems(), args.output)
     logger.info("wrote %s", path)
 
 

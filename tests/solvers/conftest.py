@@ -28,12 +28,15 @@ def problems_root() -> Path:
 
 def planted_problem(rng: np.random.Generator, *, bilateral: int = 0, unilateral: int = 0, contacts: int = 0,
                     shafts: int = 0, box: int = 0, rank: int | None = None, friction: float = 0.5,
-                    scale: float = 1.0) -> tuple[ConstraintProblem, np.ndarray, np.ndarray]:
+                    scale: float = 1.0, shaft_preload: float = 0.0) -> tuple[ConstraintProblem, np.ndarray, np.ndarray]:
     """A problem with a known solution (λ*, δ*) satisfying every law; δ_free = δ* − W λ*.
 
     Every kind gets a mix of its states: unilateral active / separated / degenerate, contacts stick / slip /
     separated, shaft rows stick / slip both ways, box rows inside / at lower / at upper. W = A Aᵀ / rank with
-    A of shape (n, rank): singular when rank < n. Each shaft row brings its own pair of bilateral rows.
+    A of shape (n, rank): singular when rank < n. Each shaft row brings its own pair of bilateral rows. With
+    ``shaft_preload`` > 0 every shaft row gets a normal preload p_j ~ U(0.5, 1.5) · shaft_preload [N] (before the
+    force scaling), and its bound is μ (‖λ_pair‖ + p_j); with 0 (the default) no random number is drawn for it,
+    so the problems of the other tests are unchanged.
     """
     rows = iter(range(10**6))
 
@@ -73,8 +76,9 @@ def planted_problem(rng: np.random.Generator, *, bilateral: int = 0, unilateral:
             gap[normal] = rng.uniform(0.5, 2.0)
             gap[[t1, t2]] = rng.standard_normal(2)
     shaft_mu = np.full(shafts, friction)
+    preload = rng.uniform(0.5, 1.5, shafts) * shaft_preload if shaft_preload > 0.0 else np.zeros(shafts)
     for index, row in enumerate(shaft_rows):
-        bound = shaft_mu[index] * np.linalg.norm(force[pair_rows[index]])
+        bound = shaft_mu[index] * (np.linalg.norm(force[pair_rows[index]]) + preload[index])
         kind = index % 3
         if kind == 0:  # stick
             force[row] = rng.uniform(-0.8, 0.8) * bound
@@ -92,13 +96,14 @@ def planted_problem(rng: np.random.Generator, *, bilateral: int = 0, unilateral:
     force[box_rows[state == 2]] = upper[state == 2]
     gap[box_rows[state == 2]] = -rng.uniform(0.5, 2.0, np.count_nonzero(state == 2))
     force *= 1.0 / scale  # keep δ of order one whatever the compliance scale
+    preload /= scale
     lower /= scale
     upper /= scale
     free_gap = gap - compliance @ force
     problem = ConstraintProblem(compliance=compliance, free_gap=free_gap, bilateral=all_bilateral,
                                 unilateral=unilateral_rows, contacts=contact_rows, contact_friction=mu,
                                 shaft_friction=shaft_rows, shaft_pairs=pair_rows,
-                                shaft_friction_coefficient=shaft_mu, box_rows=box_rows, box_lower=lower,
+                                shaft_friction_coefficient=shaft_mu, shaft_normal_preload=preload, box_rows=box_rows, box_lower=lower,
                                 box_upper=upper, name="planted")
     return problem, force, gap
 

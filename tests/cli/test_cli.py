@@ -1,0 +1,76 @@
+"""The command line: exit codes, messages that name the problem, and no half-written results file."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import pytest
+
+from refsim.cli import main
+
+
+def _refsim(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "refsim", *args], capture_output=True, text=True, cwd=cwd, timeout=600
+    )
+
+
+@pytest.mark.parametrize(
+    ("arguments", "fragments"),
+    [
+        (["run", "cube", "--set", "needle.radius=-1"], ["cube.toml", "radius", "-1", "(0.0, inf]"]),
+        (["run", "cube", "--set", "tissue.colour=1"], ["unknown key tissue.colour"]),
+        (["run", "no_such_scene"], ["neither a scene file nor a built-in scene"]),
+        (["run", "cube", "--set", "nonsense"], ["section.key=value"]),
+    ],
+)
+def test_bad_input_exits_2_names_the_problem_and_writes_nothing(tmp_path, capsys, arguments, fragments):
+    output = tmp_path / "result.h5"
+    code = main([*arguments, "-o", str(output)])
+    error = capsys.readouterr().err
+    assert code == 2
+    for fragment in fragments:
+        assert fragment in error
+    assert "Traceback" not in error
+    assert not output.exists()
+
+
+def test_bad_mesh_file_is_named(tmp_path, capsys):
+    scene = Path(__file__).resolve().parents[2] / "refsim" / "scenes" / "cube.toml"
+    text = scene.read_text().replace('generator = "box"', f'file = "{tmp_path / "broken.msh"}"')
+    (tmp_path / "broken.msh").write_text("not a mesh\n")
+    path = tmp_path / "scene.toml"
+    path.write_text(text)
+    code = main(["run", str(path), "-o", str(tmp_path / "out.h5")])
+    error = capsys.readouterr().err
+    assert code == 2 and "broken.msh" in error and not (tmp_path / "out.h5").exists()
+
+
+def test_existing_results_file_is_not_overwritten_silently(tmp_path, capsys):
+    output = tmp_path / "result.h5"
+    output.write_bytes(b"precious")
+    code = main(["run", "cube", "-o", str(output), "--set", "time.duration=0.02"])
+    assert code == 2 and "--overwrite" in capsys.readouterr().err
+    assert output.read_bytes() == b"precious"
+
+
+def test_run_writes_results_and_summary(tmp_path):
+    output = tmp_path / "short.h5"
+    process = _refsim(
+        "run", "cube", "-o", str(output), "-q", "--set", "mesh.cells=[4, 4, 4]", "--set", "time.duration=0.4"
+    )
+    assert process.returncode == 0, process.stderr
+    assert "puncture" in process.stdout and "steps/s" in process.stdout
+    with h5py.File(output, "r") as results:
+        assert bool(results.attrs["complete"])
+        assert int(results.attrs["steps_completed"]) == 40
+
+
+def test_verify_prints_the_table_and_passes():
+    process = _refsim("verify")
+    assert process.returncode == 0, process.stdout + process.stderr
+    assert "needle cantilever, small load" in process.stdout
+    assert " 0 failed" in process.stdout
