@@ -62,15 +62,20 @@ def _cmd_run(args: argparse.Namespace) -> int:
     status = 0
     with ResultWriter(output, scene, simulation.models, overwrite=args.overwrite) as writer:
 
+        written_cut = [None]
+
         def on_step(state, record) -> None:
             writer.append(record)
+            if state.cut is not None and state.cut is not written_cut[0]:
+                # The cut changed in this step: rewrite its history now, so an interrupted run keeps it too.
+                writer.write_cut_surface(*_cut_history(state.cut), tet_indices=state.cut.tet_indices,
+                                         barycentric=state.cut.barycentric)
+                written_cut[0] = state.cut
             summary.add(record)
             progress.update(record.step, record.phase)
 
         try:
-            final = simulation.run(on_step=on_step)
-            if getattr(final, "cut", None) is not None:
-                writer.write_cut_surface(*_cut_history(final.cut))
+            simulation.run(on_step=on_step)
         except SimulationError as error:
             print(f"refsim run: {error}", file=sys.stderr)
             status = EXIT_SIMULATION

@@ -1,0 +1,455 @@
+"""Reading a results file written by :class:`refsim.io.ResultWriter` (layout in :mod:`refsim.io.schema`).
+
+The reader trusts the root attribute ``steps_completed``: per-step datasets are cut to that many steps, so a file
+left by an interrupted run (``complete = False``) reads like a shorter complete one.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from refsim.io import schema
+
+__all__ = [
+    "CutHistory",
+    "RecordedEvent",
+    "ResultsError",
+    "Results",
+    "StepConstraints",
+    "read_problems",
+    "read_results",
+]
+
+
+class ResultsError(ValueError):
+    """A file that cannot be read as refsim results; the message names the file and the problem."""
+
+
+class RecordedEvent(NamedTuple):
+    """An event of the run: step, time [s], name, triggering force [N] (NaN when none)."""
+
+    step: int
+    time: float
+    name: str
+    force: float
+
+
+class StepConstraints(NamedTuple):
+    """Constraint rows of one step.
+
+    kind : Row kind codes (names in ``Results.kind_names``), shape (r,).
+    source : Row source codes (names in ``Results.source_names``), shape (r,).
+    points : Tissue-side points [m], shape (r, 3).
+    directions : Unit row directions, shape (r, 3).
+    forces : Multipliers λ [N], shape (r,).
+    """
+
+    kind: np.ndarray
+    source: np.ndarray
+    points: np.ndarray
+    directions: np.ndarray
+    forces: np.ndarray
+
+
+@dataclass(frozen=True)
+class CutHistory:
+    """The cut surface history: every point and triangle with the step that created it.
+
+    Attributes
+    ----------
+    points : Points in rest coordinates [m], shape (p, 3).
+    point_step : Creation step of each point, shape (p,).
+    triangles : Triangles (point indices), shape (t, 3).
+    triangle_step : Creation step of each triangle, shape (t,).
+    tet_indices : Tissue tet of each point, shape (p,), or None when the file does not hold them.
+    barycentric : Barycentric coordinates of each point in its tet, shape (p, 4), or None.
+    """
+
+    points: np.ndarray
+    point_step: np.ndarray
+    triangles: np.ndarray
+    triangle_step: np.ndarray
+    tet_indices: np.ndarray | None = None
+    barycentric: np.ndarray | None = None
+
+    def at(self, step: int) -> tuple[np.ndarray, np.ndarray]:
+        """Rest-state points [m] (p_s, 3) and triangles (t_s, 3) that existed after ``step``.
+
+        Points are created before the triangles that use them and never removed, so the points of step s are a
+        prefix of the history and the triangles index it directly.
+        """
+        point_count = int(np.count_nonzero(self.point_step <= step))
+        triangles = self.triangles[self.triangle_step <= step]
+        return self.points[:point_count], triangles
+
+
+@dataclass(frozen=True)
+class Results:
+    """A run read from its results file. Per-step arrays have one entry per completed step.
+
+    Attributes
+    ----------
+    path : The file.
+    attributes : Root attributes (schema_version, refsim_version, git_commit, created, scene_name, ...).
+    scene : The scene as a dict (decoded from the JSON root attribute).
+    complete : False when the run was interrupted.
+    rest_positions : Tissue rest positions [m], (n, 3). tets : (m, 4). faces : boundary triangles, (f, 3).
+    fixed_nodes : Clamped tissue nodes, (c,). needle_rest_nodes : Needle nodes at t = 0 [m], (k, 3).
+    step : Step indices, (s,). time : [s], (s,). phase : phase codes into ``phase_names``, (s,).
+    base_position : [m], (s, 3). needle_positions : [m], (s, k, 3). needle_frames : (s, k, 3, 3).
+    needle_force : Force of the tissue on the needle [N], (s, 3).
+    insertion_point_count, cut_point_count, cut_triangle_count : (s,). triangulation_seconds : [s], (s,).
+    stage_seconds : Seconds of each stage, name -> (s,).
+    solver : Solver report arrays: iterations (s,) (-1 no solve), residual (s,) (NaN), converged (s,) int8
+        (1, 0, -1 no solve), seconds [s], increment [m], name, message.
+    tissue_steps : Steps whose tissue positions were recorded, (t,). tissue_times : [s], (t,).
+    tissue_positions : [m], (t, n, 3).
+    constraint_offsets : (s + 1,); the rows of the i-th step are offsets[i]:offsets[i + 1].
+    constraint_kind, constraint_source : (R,). constraint_points, constraint_directions : (R, 3).
+    constraint_forces : [N], (R,).
+    kind_names, source_names, phase_names, stage_names : Names of the codes.
+    events : Events in order of occurrence.
+    cut : The cut surface history, or None when the run cut nothing.
+    """
+
+    path: Path
+    attributes: dict
+    scene: dict
+    complete: bool
+    rest_positions: np.ndarray
+    tets: np.ndarray
+    faces: np.ndarray
+    fixed_nodes: np.ndarray
+    needle_rest_nodes: np.ndarray
+    step: np.ndarray
+    time: np.ndarray
+    phase: np.ndarray
+    base_position: np.ndarray
+    needle_positions: np.ndarray
+    needle_frames: np.ndarray
+    needle_force: np.ndarray
+    insertion_point_count: np.ndarray
+    cut_point_count: np.ndarray
+    cut_triangle_count: np.ndarray
+    triangulation_seconds: np.ndarray
+    stage_seconds: dict
+    solver: dict
+    tissue_steps: np.ndarray
+    tissue_times: np.ndarray
+    tissue_positions: np.ndarray
+    constraint_offsets: np.ndarray
+    constraint_kind: np.ndarray
+    constraint_source: np.ndarray
+    constraint_points: np.ndarray
+    constraint_directions: np.ndarray
+    constraint_forces: np.ndarray
+    kind_names: tuple
+    source_names: tuple
+    phase_names: tuple
+    stage_names: tuple
+    events: tuple = ()
+    cut: CutHistory | None = None
+    problem_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    # ------------------------------------------------------------------ sizes
+
+    @property
+    def step_count(self) -> int:
+        """Number of completed steps in the file."""
+        return int(self.step.shape[0])
+
+    @property
+    def scene_name(self) -> str:
+        """The scene's name."""
+        return str(self.attributes.get("scene_name", ""))
+
+    @property
+    def phase_name(self) -> np.ndarray:
+        """Phase of each step as strings, (s,)."""
+        return np.asarray(self.phase_names, dtype=object)[self.phase]
+
+    # ------------------------------------------------------------------ lookups
+
+    def index_of(self, step: int) -> int:
+        """Position of ``step`` in the per-step arrays.
+
+        Raises
+        ------
+        ResultsError (a ValueError)
+            When the file holds no such step (naming the range it holds).
+        """
+        where = np.flatnonzero(self.step == int(step))
+        if where.size == 0:
+            held = f"{self.step[0]}..{self.step[-1]}" if self.step_count else "none"
+            raise ResultsError(f"{self.path}: no step {step} in the file (steps held: {held})")
+        return int(where[0])
+
+    def constraints_at(self, step: int) -> StepConstraints:
+        """The constraint rows of ``step`` (a step number, as in ``self.step``)."""
+        index = self.index_of(step)
+        rows = slice(int(self.constraint_offsets[index]), int(self.constraint_offsets[index + 1]))
+        return StepConstraints(
+            self.constraint_kind[rows],
+            self.constraint_source[rows],
+            self.constraint_points[rows],
+            self.constraint_directions[rows],
+            self.constraint_forces[rows],
+        )
+
+    def nearest_tissue_step(self, step: int) -> int:
+        """The recorded tissue step nearest to ``step`` (the earlier one on a tie).
+
+        Raises
+        ------
+        LookupError
+            When no tissue state was recorded.
+        """
+        if self.tissue_steps.size == 0:
+            raise LookupError(f"{self.path}: no tissue positions recorded")
+        return int(self.tissue_steps[np.argmin(np.abs(self.tissue_steps - int(step)))])
+
+    def tissue_positions_at(self, step: int) -> np.ndarray:
+        """Tissue positions [m] (n, 3) of the recorded step nearest to ``step``; rest positions for step 0."""
+        if int(step) <= 0:
+            return self.rest_positions
+        nearest = self.nearest_tissue_step(step)
+        return self.tissue_positions[int(np.flatnonzero(self.tissue_steps == nearest)[0])]
+
+    def events_named(self, name: str) -> list[RecordedEvent]:
+        """The events called ``name`` (e.g. "puncture", "tear")."""
+        return [event for event in self.events if event.name == name]
+
+    # ------------------------------------------------------------------ derived quantities
+
+    def needle_axis(self, *, at: str = "base") -> np.ndarray:
+        """Unit needle direction per step, (s, 3): the first segment ("base") or the last segment ("tip"),
+        pointing from the base towards the tip."""
+        if at not in ("base", "tip"):
+            raise ValueError(f"at = {at!r}: expected 'base' or 'tip'")
+        nodes = self.needle_positions
+        segment = nodes[:, 1] - nodes[:, 0] if at == "base" else nodes[:, -1] - nodes[:, -2]
+        return segment / np.linalg.norm(segment, axis=1, keepdims=True)
+
+    def puncture_point(self) -> np.ndarray | None:
+        """Where the needle entered the tissue [m], (3,): the tissue-side point of the penetration row of the
+        first puncture step (the closest surface point to the tip), or None when the needle never punctured."""
+        punctures = self.events_named("puncture")
+        if not punctures:
+            return None
+        rows = self.constraints_at(punctures[0].step)
+        if "penetration" in self.source_names:
+            penetration = rows.source == self.source_names.index("penetration")
+            if np.any(penetration):
+                return rows.points[np.flatnonzero(penetration)[0]].copy()
+        return self.needle_positions[self.index_of(punctures[0].step), -1].copy()
+
+    def tip_depth(self) -> np.ndarray:
+        """Depth of the tip along the needle from the puncture point [m], (s,): (tip − puncture point) · tip
+        direction; negative before the tip reaches it, NaN everywhere when the needle never punctured."""
+        entry = self.puncture_point()
+        if entry is None:
+            return np.full(self.step_count, np.nan)
+        tip = self.needle_positions[:, -1]
+        return np.einsum("ij,ij->i", tip - entry, self.needle_axis(at="tip"))
+
+    def axial_lateral_force(self) -> tuple[np.ndarray, np.ndarray]:
+        """Force of the tissue on the needle split along the base segment's axis t [N]: the axial component
+        F·t (negative when the tissue resists insertion), (s,), and the lateral norm ‖F − (F·t) t‖, (s,)."""
+        axis = self.needle_axis(at="base")
+        axial = np.einsum("ij,ij->i", self.needle_force, axis)
+        lateral = np.linalg.norm(self.needle_force - axial[:, None] * axis, axis=1)
+        return axial, lateral
+
+
+# ---------------------------------------------------------------------- opening
+
+
+def _open(path) -> tuple:
+    import h5py
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such results file")
+    if path.is_dir():
+        raise ResultsError(f"{path}: is a directory, not a results file")
+    try:
+        handle = h5py.File(path, "r")
+    except OSError as error:
+        raise ResultsError(f"{path}: not an HDF5 file, so not a refsim results file ({error})") from None
+    attributes = {key: _plain(value) for key, value in handle.attrs.items()}
+    if attributes.get("format") != schema.FORMAT_NAME:
+        handle.close()
+        raise ResultsError(
+            f"{path}: an HDF5 file, but not a refsim results file (root attribute 'format' is "
+            f"{attributes.get('format')!r}, expected {schema.FORMAT_NAME!r})"
+        )
+    version = attributes.get("schema_version")
+    if version not in schema.SUPPORTED_SCHEMA_VERSIONS:
+        handle.close()
+        raise ResultsError(
+            f"{path}: results schema version {version!r} is not supported by this refsim (supported: "
+            f"{', '.join(map(str, schema.SUPPORTED_SCHEMA_VERSIONS))}); use the refsim version that wrote it "
+            f"({attributes.get('refsim_version', 'unknown')})"
+        )
+    return path, handle, attributes
+
+
+def _plain(value):
+    if isinstance(value, bytes):
+        return value.decode("utf-8")
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _names(dataset) -> tuple[str, ...]:
+    return tuple(_plain(name) for name in dataset.attrs.get("names", ()))
+
+
+def _read(handle, path: str, count: int | None = None) -> np.ndarray:
+    dataset = handle[path]
+    data = dataset[()] if count is None else dataset[:count]
+    if dataset.dtype.kind == "O":
+        data = np.array([_plain(item) for item in np.ravel(data)], dtype=object).reshape(np.shape(data))
+    return data
+
+
+def _require(handle, path: Path, dataset_path: str):
+    if dataset_path not in handle:
+        raise ResultsError(f"{path}: dataset {dataset_path!r} is missing; the file is damaged or incomplete")
+    return handle[dataset_path]
+
+
+def read_results(path) -> Results:
+    """Read a results file.
+
+    Parameters
+    ----------
+    path : The HDF5 file written by :class:`refsim.io.ResultWriter`.
+
+    Raises
+    ------
+    FileNotFoundError
+        When the file does not exist.
+    ResultsError
+        When the file is not an HDF5 file, not a refsim results file, of an unsupported schema version, or
+        misses a dataset (each message names the file).
+    """
+    path, handle, attributes = _open(path)
+    with handle:
+        for spec in schema.all_datasets():
+            if spec.growing or spec.path.startswith("scene/"):
+                _require(handle, path, spec.path)
+        count = int(attributes.get("steps_completed", 0))
+        count = min(count, handle[schema.STEPS["step"].path].shape[0])
+        offsets = _read(handle, schema.CONSTRAINTS["offsets"].path, count + 1)
+        row_count = int(offsets[-1])
+        last_step = int(handle[schema.STEPS["step"].path][count - 1]) if count else 0
+
+        steps = {name: _read(handle, spec.path, count) for name, spec in schema.STEPS.items()}
+        stage_names = _names(handle[schema.STEPS["stage_seconds"].path])
+        solver = {name: _read(handle, spec.path, count) for name, spec in schema.SOLVER.items()}
+        rows = {
+            name: _read(handle, spec.path, row_count)
+            for name, spec in schema.CONSTRAINTS.items() if name != "offsets"
+        }
+        tissue_steps = _read(handle, schema.TISSUE["step"].path)
+        tissue_count = int(np.count_nonzero(tissue_steps <= last_step))
+        event_steps = _read(handle, schema.EVENTS["step"].path)
+        event_count = int(np.count_nonzero(event_steps <= last_step))
+        event_data = {name: _read(handle, spec.path, event_count) for name, spec in schema.EVENTS.items()}
+        events = tuple(
+            RecordedEvent(int(s), float(t), str(n), float(f))
+            for s, t, n, f in zip(event_data["step"], event_data["time"], event_data["name"], event_data["force"])
+        )
+        cut = None
+        if "cut" in handle:
+            cut_data = {name: _read(handle, spec.path) for name, spec in schema.CUT.items() if spec.path in handle}
+            cut = CutHistory(**cut_data)
+        try:
+            scene = json.loads(attributes.get("scene", "{}"))
+        except json.JSONDecodeError as error:
+            raise ResultsError(f"{path}: the root attribute 'scene' is not valid JSON ({error})") from None
+        return Results(
+            path=path,
+            attributes=attributes,
+            scene=scene,
+            complete=bool(attributes.get("complete", False)),
+            rest_positions=_read(handle, schema.STATIC["tissue/rest_positions"].path),
+            tets=_read(handle, schema.STATIC["tissue/tets"].path),
+            faces=_read(handle, schema.STATIC["tissue/faces"].path),
+            fixed_nodes=_read(handle, schema.STATIC["tissue/fixed_nodes"].path),
+            needle_rest_nodes=_read(handle, schema.STATIC["needle/rest_nodes"].path),
+            step=steps["step"],
+            time=steps["time"],
+            phase=steps["phase"].astype(np.int64),
+            base_position=steps["base_position"],
+            needle_positions=steps["needle_positions"],
+            needle_frames=steps["needle_frames"],
+            needle_force=steps["needle_force"],
+            insertion_point_count=steps["insertion_point_count"],
+            cut_point_count=steps["cut_point_count"],
+            cut_triangle_count=steps["cut_triangle_count"],
+            triangulation_seconds=steps["triangulation_seconds"],
+            stage_seconds={name: steps["stage_seconds"][:, column] for column, name in enumerate(stage_names)},
+            solver=solver,
+            tissue_steps=tissue_steps[:tissue_count],
+            tissue_times=_read(handle, schema.TISSUE["time"].path, tissue_count),
+            tissue_positions=_read(handle, schema.TISSUE["positions"].path, tissue_count),
+            constraint_offsets=offsets,
+            constraint_kind=rows["kind"],
+            constraint_source=rows["source"],
+            constraint_points=rows["points"],
+            constraint_directions=rows["directions"],
+            constraint_forces=rows["forces"],
+            kind_names=_names(handle[schema.CONSTRAINTS["kind"].path]),
+            source_names=_names(handle[schema.CONSTRAINTS["source"].path]),
+            phase_names=_names(handle[schema.STEPS["phase"].path]),
+            stage_names=stage_names,
+            events=events,
+            cut=cut,
+            problem_steps=np.array(_problem_steps(handle, last_step), dtype=np.int64),
+        )
+
+
+def _problem_steps(handle, last_step: int) -> list[int]:
+    if schema.PROBLEMS_GROUP not in handle:
+        return []
+    steps = sorted(int(group.attrs["step"]) for group in handle[schema.PROBLEMS_GROUP].values())
+    return [step for step in steps if step <= last_step]
+
+
+def read_problems(path, *, steps=None) -> list[tuple[int, object]]:
+    """The constraint problems recorded in a results file (scene key ``output.record_problems = true``).
+
+    Parameters
+    ----------
+    path : The results file.
+    steps : Only these steps (an iterable of step numbers); all recorded steps by default.
+
+    Returns
+    -------
+    list of (step, refsim.solvers.ConstraintProblem), in step order; empty when none were recorded.
+    """
+    from refsim.solvers import ConstraintProblem
+
+    path, handle, attributes = _open(path)
+    wanted = None if steps is None else {int(step) for step in steps}
+    problems = []
+    with handle:
+        count = int(attributes.get("steps_completed", 0))
+        step_data = handle[schema.STEPS["step"].path]
+        last_step = int(step_data[min(count, step_data.shape[0]) - 1]) if count else 0
+        for step in _problem_steps(handle, last_step):
+            if wanted is not None and step not in wanted:
+                continue
+            group = handle[schema.problem_group_name(step)]
+            fields = {spec.name: group[spec.name][()] for spec in schema.PROBLEM_FIELDS.values()}
+            name = _plain(group.attrs.get("name", "")) or f"{path.name} step {step}"
+            problems.append((step, ConstraintProblem(**fields, name=name)))
+    return problems

@@ -1,0 +1,281 @@
+"""The results file's schema: the single source of every dataset path, its unit and its meaning.
+
+The writer (:mod:`refsim.io.writer`), the reader (:mod:`refsim.io.reader`) and ``docs/results.md`` all take
+their paths from here. A dataset is described by a :class:`DatasetSpec`: path, unit (the ``units`` attribute
+written on it), dtype, the shape of one entry (per-step datasets grow along their first axis) and a one-line
+meaning. Change the layout here, bump :data:`SCHEMA_VERSION`, and update ``docs/results.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "FORMAT_NAME",
+    "SCHEMA_VERSION",
+    "SUPPORTED_SCHEMA_VERSIONS",
+    "PHASE_NAMES",
+    "ROOT_ATTRIBUTES",
+    "DatasetSpec",
+    "STATIC",
+    "STEPS",
+    "SOLVER",
+    "TISSUE",
+    "CONSTRAINTS",
+    "EVENTS",
+    "CUT",
+    "PROBLEM_FIELDS",
+    "PROBLEMS_GROUP",
+    "problem_group_name",
+    "all_datasets",
+    "numpy_dtype",
+]
+
+#: Value of the root attribute ``format``: what marks an HDF5 file as a refsim results file.
+FORMAT_NAME = "refsim-results"
+#: Version of the layout written by this code (root attribute ``schema_version``).
+SCHEMA_VERSION = 1
+#: Versions the reader understands.
+SUPPORTED_SCHEMA_VERSIONS = (1,)
+
+#: Phase names, in the order of the int8 codes of ``steps/phase``.
+PHASE_NAMES = ("approach", "insertion", "cutting")
+
+#: Root attributes and their meaning.
+ROOT_ATTRIBUTES = {
+    "format": f'always "{FORMAT_NAME}"',
+    "schema_version": "layout version (integer)",
+    "refsim_version": "refsim.__version__ of the writer",
+    "git_commit": 'commit of the refsim checkout that wrote the file (`git rev-parse HEAD`), or "unknown"',
+    "created": "creation time, ISO 8601 in UTC",
+    "scene": "the full scene as JSON (refsim.scene.scene_to_json)",
+    "scene_name": "the scene's name",
+    "complete": "True once the run finished and the file was closed normally",
+    "steps_completed": "number of steps fully written; the reader trusts this count, not dataset lengths",
+}
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """One dataset of the results file.
+
+    Attributes
+    ----------
+    path : Path from the file's root.
+    unit : The ``units`` attribute ("m", "N", "s", "1" for dimensionless or index data, "m/N").
+    dtype : numpy dtype name, or "str" for variable-length UTF-8 strings.
+    entry_shape : Shape of one entry; per-step (growing) datasets hold (count,) + entry_shape. Symbols: n tissue
+        nodes, m tets, f faces, k needle nodes, r rows of the problem, "?" any.
+    meaning : What the data is, in one line.
+    growing : True for datasets appended along their first axis as the run goes.
+    """
+
+    path: str
+    unit: str
+    dtype: str
+    entry_shape: tuple
+    meaning: str
+    growing: bool = True
+
+    @property
+    def name(self) -> str:
+        """Last component of the path."""
+        return self.path.rsplit("/", 1)[-1]
+
+
+def _specs(group: str, rows: list[tuple], *, growing: bool = True) -> dict[str, DatasetSpec]:
+    return {
+        name: DatasetSpec(f"{group}/{name}", unit, dtype, shape, meaning, growing)
+        for name, unit, dtype, shape, meaning in rows
+    }
+
+
+#: Static data, written once when the file is created.
+STATIC = _specs(
+    "scene",
+    [
+        ("tissue/rest_positions", "m", "float64", ("n", 3), "tissue node positions at rest"),
+        ("tissue/tets", "1", "int64", ("m", 4), "tetrahedra (node indices)"),
+        ("tissue/faces", "1", "int64", ("f", 3), "boundary triangles, oriented outward (node indices)"),
+        ("tissue/fixed_nodes", "1", "int64", ("?",), "indices of the clamped tissue nodes"),
+        ("needle/rest_nodes", "m", "float64", ("k", 3), "needle nodes at the trajectory's initial pose (t = 0)"),
+    ],
+    growing=False,
+)
+
+#: One entry per step.
+STEPS = _specs(
+    "steps",
+    [
+        ("step", "1", "int64", (), "step index, from 1"),
+        ("time", "s", "float64", (), "time at the end of the step"),
+        ("phase", "1", "int8", (), "phase after the step's events; code into the attribute `names`"),
+        ("base_position", "m", "float64", (3,), "needle base position"),
+        ("needle_positions", "m", "float64", ("k", 3), "needle node positions"),
+        ("needle_frames", "1", "float64", ("k", 3, 3), "needle node frames (rotation matrices)"),
+        ("needle_force", "N", "float64", (3,), "force of the tissue on the needle, sum of multiplier x direction"),
+        ("insertion_point_count", "1", "int64", (), "insertion points after the step"),
+        ("cut_point_count", "1", "int64", (), "cut surface points after the step"),
+        ("cut_triangle_count", "1", "int64", (), "cut surface triangles after the step"),
+        ("triangulation_seconds", "s", "float64", (), "wall-clock time of the cut triangulation in the step"),
+        ("stage_seconds", "s", "float64", ("stages",), "wall-clock time of each stage; columns in attribute `names`"),
+    ],
+)
+
+#: Constraint solve of each step (one entry per step; NaN / -1 when the step had no constraint).
+SOLVER = _specs(
+    "solver",
+    [
+        ("iterations", "1", "int64", (), "solver iterations (Gauss-Seidel sweeps); -1 when no solve"),
+        ("residual", "1", "float64", (), "natural residual of the returned multipliers; NaN when no solve"),
+        ("converged", "1", "int8", (), "1 converged, 0 not converged, -1 no solve"),
+        ("seconds", "s", "float64", (), "wall-clock time of the solve; NaN when no solve"),
+        ("increment", "m", "float64", (), "Gauss-Seidel increment measure sum |W_jj dlambda_j|; NaN otherwise"),
+        ("name", "1", "str", (), 'solver name ("gauss_seidel", "exact/clarabel", ...); "" when no solve'),
+        ("message", "1", "str", (), "why the solver stopped (set when not converged)"),
+    ],
+)
+
+#: Tissue positions, recorded every k-th step (scene key output.tissue_every) and at the last step.
+TISSUE = _specs(
+    "tissue",
+    [
+        ("step", "1", "int64", (), "step of each recorded tissue state"),
+        ("time", "s", "float64", (), "time of each recorded tissue state"),
+        ("positions", "m", "float64", ("n", 3), "tissue node positions"),
+    ],
+)
+
+#: Constraint rows of every step, as ragged arrays: rows of the i-th step (0-based) are
+#: ``offsets[i]:offsets[i + 1]``; ``offsets`` has steps_completed + 1 entries and starts with 0.
+CONSTRAINTS = _specs(
+    "constraints",
+    [
+        ("offsets", "1", "int64", (), "row offsets; step i's rows are offsets[i]:offsets[i+1] (length steps + 1)"),
+        ("kind", "1", "int8", (), "row kind; code into the attribute `names` (bilateral, unilateral, friction)"),
+        ("source", "1", "int8", (), "row source; code into the attribute `names` (penetration, insertion, ...)"),
+        ("points", "m", "float64", (3,), "tissue-side point of each row"),
+        ("directions", "1", "float64", (3,), "unit direction n of each row (delta = n.(x_needle - x_tissue))"),
+        ("forces", "N", "float64", (), "multiplier lambda of each row"),
+    ],
+)
+
+#: Events, one entry per event, in the order they happened.
+EVENTS = _specs(
+    "events",
+    [
+        ("step", "1", "int64", (), "step of the event"),
+        ("time", "s", "float64", (), "time at the end of that step"),
+        ("name", "1", "str", (), "puncture, cut_start, tear, retraction, withdrawal, ..."),
+        ("force", "N", "float64", (), "force that triggered the event (NaN when none)"),
+    ],
+)
+
+#: Cut surface history, rewritten whole by ResultWriter.write_cut_surface; absent when nothing was cut.
+CUT = _specs(
+    "cut",
+    [
+        ("points", "m", "float64", (3,), "cut surface points in rest coordinates (equation 4 of the paper)"),
+        ("point_step", "1", "int64", (), "step at which each point was created"),
+        ("triangles", "1", "int64", (3,), "cut surface triangles (point indices)"),
+        ("triangle_step", "1", "int64", (), "step at which each triangle was created"),
+        ("tet_indices", "1", "int64", (), "tissue tet holding each point (optional)"),
+        ("barycentric", "1", "float64", (4,), "barycentric coordinates of each point in its tet (optional)"),
+    ],
+    growing=False,
+)
+
+#: Group holding one subgroup per recorded constraint problem (scene key output.record_problems).
+PROBLEMS_GROUP = "problems"
+
+#: Datasets of one problem subgroup ``problems/step_NNNNNNN`` (fields of refsim.solvers.ConstraintProblem).
+PROBLEM_FIELDS = _specs(
+    "problems/step_NNNNNNN",
+    [
+        ("compliance", "m/N", "float64", ("r", "r"), "compliance (Delassus operator) W"),
+        ("free_gap", "m", "float64", ("r",), "free-motion gap delta_free"),
+        ("bilateral", "1", "int64", ("?",), "bilateral rows"),
+        ("unilateral", "1", "int64", ("?",), "unilateral (Signorini) rows"),
+        ("contacts", "1", "int64", ("?", 3), "contact rows (normal, tangent 1, tangent 2)"),
+        ("contact_friction", "1", "float64", ("?",), "Coulomb friction coefficient of each contact"),
+        ("shaft_friction", "1", "int64", ("?",), "shaft friction rows"),
+        ("shaft_pairs", "1", "int64", ("?", 2), "the two bilateral rows bounding each shaft friction row"),
+        ("shaft_friction_coefficient", "1", "float64", ("?",), "friction coefficient of each shaft row"),
+        ("box_rows", "1", "int64", ("?",), "rows with fixed bounds"),
+        ("box_lower", "N", "float64", ("?",), "lower bound of each box row"),
+        ("box_upper", "N", "float64", ("?",), "upper bound of each box row"),
+    ],
+    growing=False,
+)
+
+
+def problem_group_name(step: int) -> str:
+    """Path of the group holding the constraint problem of ``step``."""
+    return f"{PROBLEMS_GROUP}/step_{int(step):07d}"
+
+
+def all_datasets() -> list[DatasetSpec]:
+    """Every dataset of the schema, in documentation order."""
+    groups = (STATIC, STEPS, SOLVER, TISSUE, CONSTRAINTS, EVENTS, CUT, PROBLEM_FIELDS)
+    return [spec for group in groups for spec in group.values()]
+
+
+def numpy_dtype(spec: DatasetSpec):
+    """The numpy / h5py dtype of a dataset."""
+    if spec.dtype == "str":
+        import h5py
+
+        return h5py.string_dtype()
+    return np.dtype(spec.dtype)
+
+
+def reference_markdown() -> str:
+    """The schema as Markdown: ``docs/results.md`` is this text (a test checks it is current)."""
+    lines = [
+        "# Results file (HDF5)",
+        "",
+        "Generated by `refsim.io.schema.reference_markdown()`; `tests/io/test_results.py` checks this page is current.",
+        "",
+        f"One file per run, written step by step by `refsim run` (`refsim.io.ResultWriter`); schema version "
+        f"{SCHEMA_VERSION}. Per-step datasets grow along their first axis and are flushed after every step, so an "
+        "interrupted run keeps every completed step: the root attribute `steps_completed` says how many, and "
+        "`complete` stays false. Every dataset carries a `units` attribute.",
+        "",
+        "Read it with `refsim.io.read_results(path)`, or with h5py directly:",
+        "",
+        "```python",
+        "import h5py, json",
+        'with h5py.File("results/cube.h5", "r") as f:',
+        '    scene = json.loads(f.attrs["scene"])            # the full scene',
+        '    steps = int(f.attrs["steps_completed"])',
+        '    time = f["steps/time"][:steps]                    # [s]',
+        '    force = f["steps/needle_force"][:steps]          # [N], force of the tissue on the needle',
+        '    offsets = f["constraints/offsets"][:]             # rows of step i: offsets[i]:offsets[i + 1]',
+        '    forces = f["constraints/forces"][offsets[-2]:offsets[-1]]  # multipliers of the last step [N]',
+        "```",
+        "",
+        "## Root attributes",
+        "",
+        "| attribute | meaning |",
+        "|---|---|",
+    ]
+    lines += [f"| `{name}` | {meaning} |" for name, meaning in ROOT_ATTRIBUTES.items()]
+    lines += [
+        "",
+        "## Datasets",
+        "",
+        f"Symbols in shapes: n tissue nodes, m tets, f faces, k needle nodes, r rows, \"?\" any; a leading `steps` "
+        f"means one entry per step. Constraint problems (with `output.record_problems = true`) are in groups "
+        f"`{PROBLEMS_GROUP}/step_NNNNNNN`.",
+        "",
+        "| path | shape | dtype | unit | meaning |",
+        "|---|---|---|---|---|",
+    ]
+    for spec in all_datasets():
+        shape = ("steps",) + tuple(spec.entry_shape) if spec.growing else tuple(spec.entry_shape)
+        lines.append(
+            f"| `{spec.path}` | ({', '.join(str(s) for s in shape)}) | {spec.dtype} | {spec.unit} | {spec.meaning} |"
+        )
+    return "\n".join(lines)
