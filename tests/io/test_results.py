@@ -144,3 +144,34 @@ def test_schema_page_is_current():
         "\"from refsim.io.schema import reference_markdown; print(reference_markdown())\" > docs/results.md"
     )
     assert len(all_datasets()) > 20
+
+
+def test_two_runs_give_the_same_file(tmp_path):
+    # Everything but wall-clock times and the creation date is bit-for-bit the same.
+    from refsim.cli import main
+
+    paths = [tmp_path / "first.h5", tmp_path / "second.h5"]
+    for path in paths:
+        assert main(["run", "cube", "-o", str(path), "-q", "--set", "mesh.cells=[4, 4, 4]",
+                     "--set", "time.duration=0.5"]) == 0
+    clock = {"steps/stage_seconds", "solver/seconds", "steps/triangulation_seconds"}
+    contents = []
+    for path in paths:
+        data = {}
+        with h5py.File(path, "r") as results:
+            def visit(name, item):
+                if isinstance(item, h5py.Dataset) and name not in clock:
+                    data[name] = item[()]
+
+            results.visititems(visit)
+            data["attributes"] = {k: v for k, v in results.attrs.items() if k != "created"}
+        contents.append(data)
+    first, second = contents
+    assert first.keys() == second.keys()
+    for name in first:
+        if name == "attributes":
+            assert first[name].keys() == second[name].keys()
+            for key in first[name]:
+                assert first[name][key] == second[name][key], key
+        else:
+            np.testing.assert_array_equal(first[name], second[name], err_msg=name)
