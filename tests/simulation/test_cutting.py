@@ -61,6 +61,13 @@ def cube_scene_module():
     return lambda *overrides, name="cube": load_scene(name, list(overrides))
 
 
+def _lateral_force(record) -> tuple[np.ndarray, int]:
+    """Σ n λ over the insertion constraints' bilateral rows (the paper's t_i) and their point count n_i."""
+    lateral = (record.row_source == INSERTION) & (record.row_kind == BILATERAL)
+    force = (record.row_directions[lateral] * record.row_forces[lateral, None]).sum(axis=0)
+    return force, int(lateral.sum()) // 2
+
+
 def _event_steps(records, name):
     return [r.step for r in records if any(e.name == name for e in r.events)]
 
@@ -74,9 +81,7 @@ def test_cut_starts_at_the_first_step_where_the_criterion_holds(cut_run):
     for record in cut_run.records:
         if record.step > starts[0]:
             break
-        lateral = (record.row_source == INSERTION) & (record.row_kind == BILATERAL)
-        count = int(lateral.sum()) // 2
-        force = (record.row_directions[lateral] * record.row_forces[lateral, None]).sum(axis=0)
+        force, count = _lateral_force(record)
         holds.append(count > 0 and np.linalg.norm(force) > count * scene.cutting.cutting_force)
     assert holds[-1] and not any(holds[:-1])
 
@@ -84,10 +89,9 @@ def test_cut_starts_at_the_first_step_where_the_criterion_holds(cut_run):
 def test_no_cut_when_fc_exceeds_the_largest_lateral_force(cut_run, cube_scene_module):
     largest = 0.0
     for record in cut_run.records:
-        lateral = (record.row_source == INSERTION) & (record.row_kind == BILATERAL)
-        if lateral.any():
-            force = (record.row_directions[lateral] * record.row_forces[lateral, None]).sum(axis=0)
-            largest = max(largest, float(np.linalg.norm(force)) / (int(lateral.sum()) // 2))
+        force, count = _lateral_force(record)
+        if count:
+            largest = max(largest, float(np.linalg.norm(force)) / count)
     scene = cube_scene_module(f"cutting.cutting_force={1.5 * largest}", name="cube_cut")
     run = _run(scene)
     assert not _event_steps(run.records, "cut_start")
@@ -95,10 +99,9 @@ def test_no_cut_when_fc_exceeds_the_largest_lateral_force(cut_run, cube_scene_mo
     # The premise holds in this run too: its own mean lateral force stayed below f_c.
     reached = 0.0
     for record in run.records:
-        lateral = (record.row_source == INSERTION) & (record.row_kind == BILATERAL)
-        if lateral.any():
-            force = (record.row_directions[lateral] * record.row_forces[lateral, None]).sum(axis=0)
-            reached = max(reached, float(np.linalg.norm(force)) / (int(lateral.sum()) // 2))
+        force, count = _lateral_force(record)
+        if count:
+            reached = max(reached, float(np.linalg.norm(force)) / count)
     assert reached < scene.cutting.cutting_force
 
 
