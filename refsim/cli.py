@@ -123,6 +123,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         simulation.run(on_step=lambda state, record: summary.add(record))
         print(f"scene {scene.name}: solver {scene.solver.method}, tolerance {scene.solver.tolerance:g}")
         print(summary.format_table())
+        if summary.cut_points:
+            print(summary.format_cut())
     if args.tissue or not args.scene:
         from refsim.fem.bench import bench_tissue
 
