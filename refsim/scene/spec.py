@@ -205,6 +205,11 @@ class SolverSpec(_Validated):
     tolerance: float = spec(unit="-", doc="natural residual to reach", low=0.0, high=1.0, low_open=True)
     max_iterations: int = spec(unit="-", doc="iteration cap (Gauss–Seidel sweeps)", low=1, high=10_000_000)
     backend: str = spec("clarabel", doc="QP backend of the exact solver (qpsolvers name)")
+    criterion: str = spec(
+        "residual",
+        doc="Gauss–Seidel stopping test: the natural residual, or SOFA's increment Σ|W_jj Δλ_j| < tolerance·(rows+1) [m]",
+        choices=("residual", "increment"),
+    )
 
     def validate(self) -> None:
         if not isinstance(self.max_iterations, int) or isinstance(self.max_iterations, bool):

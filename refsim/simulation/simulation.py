@@ -306,7 +306,11 @@ class Simulation:
         if spec.method == "exact":
             return solve_exact(problem, tolerance=spec.tolerance, backend=spec.backend)
         return solve_gauss_seidel(
-            problem, tolerance=spec.tolerance, max_iterations=spec.max_iterations, warm_start=warm_start
+            problem,
+            tolerance=spec.tolerance,
+            max_iterations=spec.max_iterations,
+            warm_start=warm_start,
+            criterion=spec.criterion,
         )
 
     @staticmethod
