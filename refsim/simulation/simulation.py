@@ -419,9 +419,7 @@ class Simulation:
         tissue and those within d_c/2 of an existing point."""
         cutting = self.scene.cutting
         if cut.point_count:
-            existing = cut.deformed_points(positions, self.tets)
-            distance = np.linalg.norm(points[:, None, :] - existing[None, :, :], axis=2).min(axis=1)
-            points = points[distance > 0.5 * cutting.point_spacing]
+            points = _far_from(points, cut.deformed_points(positions, self.tets), 0.5 * cutting.point_spacing)
         if len(points) == 0:
             return cut
         tets, barycentric = TetLocator(positions, self.tets).locate(points)
@@ -435,8 +433,7 @@ class Simulation:
         """Add rest-state points to the cut (those inside the tissue and farther than d_c/2 from every point)."""
         spacing = self.scene.cutting.point_spacing
         if cut.point_count and len(rest_points):
-            distance = np.linalg.norm(rest_points[:, None, :] - cut.rest_points[None, :, :], axis=2).min(axis=1)
-            rest_points = rest_points[distance > 0.5 * spacing]
+            rest_points = _far_from(rest_points, cut.rest_points, 0.5 * spacing)
         if len(rest_points) == 0:
             return cut
         tets, barycentric = self._rest_locator().locate(rest_points)
@@ -509,3 +506,13 @@ def _triangulation_seconds(before, after) -> float:
     if after is None or after is before or after.last_triangulation is None:
         return 0.0
     return float(after.last_triangulation.seconds)
+
+
+def _far_from(points: np.ndarray, existing: np.ndarray, distance: float) -> np.ndarray:
+    """The points farther than ``distance`` [m] from every existing point (KD-tree), shape (k, 3)."""
+    from scipy.spatial import cKDTree
+
+    if len(points) == 0 or len(existing) == 0:
+        return points
+    nearest, _ = cKDTree(existing).query(points, k=1)
+    return points[nearest > distance]
