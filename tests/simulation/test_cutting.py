@@ -196,8 +196,8 @@ def test_needle_stays_on_the_cut_and_inside_its_border(cut_run):
 
 def test_energy_stays_below_the_work_done(cut_run):
     # Implicit Euler and Rayleigh damping dissipate; constraints do no work of their own: the tissue's strain and
-    # kinetic energy never exceed the work the needle did on it (plus the linearisation error of one Newton step,
-    # O(strain²), bounded here by 10 %).
+    # kinetic energy never exceed the work the needle did on it. The 10 % margin is our choice (not derived) for
+    # the linearisation error of one Newton step per time step, which is second order in the strain increment.
     for step, energy, work in cut_run.energies:
         assert np.isfinite(energy)
         assert energy <= 1.1 * max(work, 0.0) + 1e-9, (step, energy, work)
