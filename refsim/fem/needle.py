@@ -53,7 +53,7 @@ from refsim.fem.beam_element import (
     local_deformations,
     timoshenko_stiffness,
 )
-from refsim.geometry.rotations import rotation_matrix, skew
+from refsim.geometry.rotations import needle_rest_frame, rotation_matrix, skew
 
 __all__ = ["NeedleSection", "NeedleModel"]
 
@@ -173,23 +173,11 @@ class NeedleModel:
         base = np.asarray(self.base_position, dtype=float)
         if base.shape != (3,) or not np.all(np.isfinite(base)):
             raise ValueError(f"base_position must be 3 finite numbers [m], got {self.base_position!r}")
-        direction = np.asarray(self.direction, dtype=float)
-        norm = np.linalg.norm(direction) if direction.shape == (3,) else 0.0
-        if direction.shape != (3,) or not np.isfinite(norm) or norm <= 0.0:
-            raise ValueError(f"direction must be a non-zero finite 3-vector, got {self.direction!r}")
-        direction = direction / norm
-        if self.up is None:
-            up = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < np.cos(np.radians(25.0)) else np.eye(3)[1]
-        else:
-            up = np.asarray(self.up, dtype=float)
-            if up.shape != (3,) or not np.all(np.isfinite(up)):
-                raise ValueError(f"up must be a finite 3-vector, got {self.up!r}")
-        normal = up - (up @ direction) * direction
-        if np.linalg.norm(normal) <= 1e-6 * max(np.linalg.norm(up), 1e-300):
-            raise ValueError(f"up {self.up!r} is parallel to direction {self.direction!r}: frame undefined")
+        frame = needle_rest_frame(self.direction, self.up)  # validates direction and up
+        direction, normal = frame[:, 0], frame[:, 1]
         object.__setattr__(self, "base_position", base)
         object.__setattr__(self, "direction", direction)
-        object.__setattr__(self, "up", normal / np.linalg.norm(normal))
+        object.__setattr__(self, "up", normal)
 
     # ------------------------------------------------------------------ sizes and static data
     @property
@@ -225,6 +213,7 @@ class NeedleModel:
     @cached_property
     def rest_frame(self) -> np.ndarray:
         """Rest material frame of every node, columns (direction, up, direction × up), shape (3, 3)."""
+        # The columns of refsim.geometry.needle_rest_frame(direction, up), from the validated direction and up.
         return np.stack([self.direction, self.up, np.cross(self.direction, self.up)], axis=-1)
 
     @cached_property

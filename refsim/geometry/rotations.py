@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["skew", "rotation_matrix", "rotation_vector", "polar_rotation"]
+__all__ = ["skew", "rotation_matrix", "rotation_vector", "polar_rotation", "needle_rest_frame"]
 
 # Below this angle [rad] the series expansions of sin(θ)/θ and (1 − cos θ)/θ² are used; their truncation error
 # (θ⁴/120 and θ⁴/720) is then under 1e-18, below double round-off.
@@ -118,3 +118,36 @@ def polar_rotation(deformation_gradients: np.ndarray) -> np.ndarray:
     det = np.linalg.det(u @ vt)
     u[..., :, 2] *= det[..., None]
     return u @ vt
+
+
+def needle_rest_frame(direction: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
+    """The needle's rest material frame: columns (direction, e₁, direction × e₁), shape (3, 3).
+
+    The one convention of both needles (the rigid one and the beam model). e₁ is the part of ``up`` normal to
+    ``direction``, normalised; by default ``up`` is world z, or world y when the needle is within 25° of z.
+
+    Parameters
+    ----------
+    direction : Needle direction from base to tip, shape (3,), non-zero (normalised here).
+    up : Reference vector fixing the cross-section frame, shape (3,), not parallel to ``direction``.
+
+    Raises
+    ------
+    ValueError
+        When ``direction`` is zero or not finite, or ``up`` is parallel to it.
+    """
+    direction = np.asarray(direction, dtype=float)
+    norm = np.linalg.norm(direction) if direction.shape == (3,) else 0.0
+    if direction.shape != (3,) or not np.isfinite(norm) or norm <= 0.0:
+        raise ValueError(f"direction must be a non-zero finite 3-vector, got {direction!r}")
+    direction = direction / norm
+    if up is None:
+        up = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < np.cos(np.radians(25.0)) else np.eye(3)[1]
+    up = np.asarray(up, dtype=float)
+    if up.shape != (3,) or not np.all(np.isfinite(up)):
+        raise ValueError(f"up must be a finite 3-vector, got {up!r}")
+    normal = up - (up @ direction) * direction
+    if np.linalg.norm(normal) <= 1e-6 * max(np.linalg.norm(up), 1e-300):
+        raise ValueError(f"up {up!r} is parallel to direction {direction!r}: frame undefined")
+    normal /= np.linalg.norm(normal)
+    return np.stack([direction, normal, np.cross(direction, normal)], axis=-1)
