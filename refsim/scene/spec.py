@@ -184,10 +184,25 @@ class CuttingSpec(_Validated):
     """Laceration (paper, section 4): criteria, cut surface resolution and triangulation parameters."""
 
     enabled: bool = spec(doc="whether the scene can cut the tissue")
-    cutting_force: float = spec(unit="N", doc="f_c: mean lateral force per insertion constraint that starts the cut", low=0.0)
-    tearing_force: float = spec(unit="N", doc="f_t: border contact force that extends the cut", low=0.0)
+    law: str = spec(
+        "energy",
+        doc="cut law: 'energy' (the cut starts and its crack tip advances where the needle pushes with more than "
+        "G_c per unit length: independent of d_i, d_c and the mesh) or 'paper' (equation 3 with f_c per "
+        "insertion point, tears of d_t at a front row force f_t)",
+        choices=("energy", "paper"),
+    )
+    fracture_energy: float = spec(
+        200.0,
+        unit="J/m^2",
+        doc="G_c: energy per unit area of new cut, the lateral force per unit length of needle that cuts "
+        "(liver about 76–225 J/m², Azar and Hayward 2008); energy law only",
+        low=0.0,
+        low_open=True,
+    )
+    cutting_force: float = spec(unit="N", doc="f_c: mean lateral force per insertion constraint that starts the cut (paper law)", low=0.0)
+    tearing_force: float = spec(unit="N", doc="f_t: front row force that extends the cut by d_t (paper law)", low=0.0)
     point_spacing: float = spec(unit="m", doc="d_c: distance between points of the cut surface", low=0.0, low_open=True)
-    extent: float = spec(unit="m", doc="d_t: extent of the cut surface beyond the path, and of each tear", low=0.0, low_open=True)
+    extent: float = spec(unit="m", doc="d_t: extent of the first cut surface beyond the path, and of each tear (paper law)", low=0.0, low_open=True)
     min_angle: float = spec(unit="deg", doc="θ_min: smallest triangle angle", low=0.0, high=60.0)
     max_angle: float = spec(unit="deg", doc="θ_max: largest triangle angle", low=60.0, high=180.0, high_open=True)
     max_normal_angle: float = spec(unit="deg", doc="θ_s: largest angle between neighbouring triangle normals", low=0.0, high=180.0)

@@ -87,7 +87,8 @@ class Simulation:
                 rayleigh_stiffness=scene.needle.rayleigh_stiffness,
             )
         self.dt = scene.time.dt
-        self.detector = Detector(scene, self.faces, self.needle.dof_count)
+        mesh_size = float(np.cbrt(6.0 * np.mean(self.tissue.element_volumes)))
+        self.detector = Detector(scene, self.faces, self.needle.dof_count, mesh_size)
         self.event_rules = EventRules(
             scene, self.tets, self.models.mesh.rest_positions, self.tissue.deformation_gradients, self.needle.geometry
         )
