@@ -31,7 +31,8 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sparse
 
-from refsim.solvers.problem import KIND_NAMES, ConstraintProblem
+from refsim.solvers.laws import LAW_NAMES
+from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.report import SolverReport
 from refsim.solvers.residual import natural_map_error, natural_residual
 
@@ -92,10 +93,11 @@ def _bounds(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[np.nda
     lower[problem.unilateral] = 0.0
     lower[problem.box_rows] = problem.box_lower
     upper[problem.box_rows] = problem.box_upper
-    if len(problem.shaft_friction):
-        bound = problem.shaft_bounds(multipliers)
-        lower[problem.shaft_friction] = -bound
-        upper[problem.shaft_friction] = bound
+    rows = problem.friction_groups()[0]
+    if len(rows):
+        bound = problem.friction_bounds(multipliers)
+        lower[rows] = -bound
+        upper[rows] = bound
     return lower, upper
 
 
@@ -233,18 +235,20 @@ def _newton_step(problem: ConstraintProblem, multipliers: np.ndarray,
     z = multipliers[rows] - weighted[rows]
     projection[rows, rows] = ((z > problem.box_lower) & (z < problem.box_upper)).astype(float)
     bound_term = np.zeros((n, n))
-    if len(problem.shaft_friction):
-        rows = problem.shaft_friction
-        pair = multipliers[problem.shaft_pairs]
-        pair_norm = np.linalg.norm(pair, axis=1)
-        bound = problem.shaft_bounds(multipliers)  # the preload is constant: ∂b/∂λ is the pair term only
+    rows, offsets, members, coefficient, _ = problem.friction_groups()
+    if len(rows):
+        sizes = np.diff(offsets)
+        owner = np.repeat(np.arange(rows.size), sizes)
+        member_force = multipliers[members]
+        group_norm = np.sqrt(np.bincount(owner, weights=member_force ** 2, minlength=rows.size))
+        bound = problem.friction_bounds(multipliers)  # the preload is constant: ∂b/∂λ is the group term only
         z = multipliers[rows] - weighted[rows]
         inside = np.abs(z) < bound
         projection[rows, rows] = inside.astype(float)
-        slope = np.where((~inside & (pair_norm > 0.0))[:, None],
-                         (np.sign(z) * problem.shaft_friction_coefficient)[:, None] * pair
-                         / np.maximum(pair_norm, 1e-300)[:, None], 0.0)
-        bound_term[rows[:, None], problem.shaft_pairs] += slope
+        slope = np.where((~inside & (group_norm > 0.0))[owner],
+                         (np.sign(z) * coefficient)[owner] * member_force
+                         / np.maximum(group_norm, 1e-300)[owner], 0.0)
+        np.add.at(bound_term, (rows[owner], members), slope)
     if len(problem.contacts):
         contacts = problem.contacts
         mu = problem.contact_friction
@@ -349,7 +353,7 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
     symmetric = 0.5 * (problem.compliance + problem.compliance.T)
     scaling = _scaling(problem, symmetric)
     has_contacts = len(problem.contacts) > 0
-    needs_fixed_point = has_contacts or len(problem.shaft_friction) > 0
+    needs_fixed_point = has_contacts or len(problem.friction_groups()[0]) > 0
 
     multipliers = np.zeros(n)  # the iterate whose forces set the shaft bounds
     best, best_residual = multipliers, natural_residual(problem, multipliers)
@@ -401,7 +405,7 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
             slip = np.linalg.norm(gap[problem.contacts[:, 1:]], axis=1)
             new_gap[problem.contacts[:, 0]] += problem.contact_friction * slip
         change_gap = np.linalg.norm(new_gap - modified_gap)
-        shaft = problem.shaft_friction
+        shaft = problem.friction_groups()[0]
         change_bound = np.linalg.norm(_bounds(problem, next_multipliers)[1][shaft]
                                       - _bounds(problem, multipliers)[1][shaft])
         scale_gap = max(np.linalg.norm(problem.free_gap), np.linalg.norm(gap), np.finfo(float).tiny)
@@ -439,4 +443,4 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
 
 def _worst_kind(problem: ConstraintProblem, multipliers: np.ndarray) -> str:
     error, _ = natural_map_error(problem, multipliers)
-    return KIND_NAMES[int(problem.row_kinds()[int(np.argmax(np.abs(error)))])]
+    return LAW_NAMES[int(problem.row_kinds()[int(np.argmax(np.abs(error)))])]

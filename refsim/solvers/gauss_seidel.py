@@ -5,7 +5,7 @@ row order; each block solves its own law with the others fixed, and the gap δ =
 date by adding the column W[:, j] Δλ_j after every change (so one sweep costs O(row_count²) and no row is
 recomputed).
 
-Blocks:
+Blocks (the kernels are in :mod:`refsim.solvers.laws`, one per law of the table):
 
 - bilateral row: λ ← λ − ω δ / W_ii (exact for the row);
 - unilateral row: λ ← max(0, λ − ω δ / W_ii);
@@ -14,8 +14,8 @@ Blocks:
   λ_t ← λ_t − 2 ω δ_t / (W_t1t1 + W_t2t2) projected onto the disk ‖λ_t‖ ≤ μ λ_n (SOFA's local Coulomb
   resolution). Its fixed points are exactly the solutions of the De Saxcé law (stick inside the disk with
   δ = 0, slip on it opposing δ_t, δ_n = 0);
-- shaft friction row: λ ← clip(λ − ω δ / W_ii, ±μ (‖(λ_b1, λ_b2)‖ + p)) with the current pair forces and the
-  row's normal preload p;
+- group friction row: λ ← clip(λ − ω δ / W_ii, ±μ (‖λ_G‖ + p)) with the current forces of its group G and
+  its preload p;
 - box row: λ ← clip(λ − ω δ / W_ii, lower, upper).
 
 A row whose diagonal W_ii is zero (below 1e-14 of the largest diagonal) or negative cannot be solved alone:
@@ -34,6 +34,7 @@ import time
 import numba
 import numpy as np
 
+from refsim.solvers.laws import CONTACT, block_arrays, gauss_seidel_sweep, natural_map_blocks
 from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.report import SolverReport
 from refsim.solvers.residual import natural_residual
@@ -42,139 +43,23 @@ __all__ = ["solve_gauss_seidel"]
 
 logger = logging.getLogger(__name__)
 
-_BILATERAL, _UNILATERAL, _CONTACT, _SHAFT, _BOX = 0, 1, 2, 3, 4
 _DIAGONAL_FLOOR = 1e-14
 
 
-def _blocks(problem: ConstraintProblem) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Block kinds (b,), rows (b, 3) and parameters (b, 2) sorted by first row (vectorised)."""
-    singles = [(problem.bilateral, _BILATERAL), (problem.unilateral, _UNILATERAL),
-               (problem.shaft_friction, _SHAFT), (problem.box_rows, _BOX)]
-    kinds = [np.full(len(rows), code, dtype=np.int64) for rows, code in singles]
-    rows = [np.column_stack([r, np.zeros((len(r), 2), dtype=np.int64)]) for r, _ in singles]
-    params = [np.zeros((len(problem.bilateral), 2)), np.zeros((len(problem.unilateral), 2)),
-              np.column_stack([problem.shaft_friction_coefficient, problem.shaft_normal_preload]),
-              np.column_stack([problem.box_lower, problem.box_upper])]
-    # shaft rows carry their pair in columns 1, 2 of rows and (μ, preload) in params
-    rows[2][:, 1:] = problem.shaft_pairs
-    kinds.append(np.full(len(problem.contacts), _CONTACT, dtype=np.int64))
-    rows.append(problem.contacts.astype(np.int64))
-    params.append(np.column_stack([problem.contact_friction, np.zeros(len(problem.contacts))]))
-    kind = np.concatenate(kinds)
-    row = np.concatenate(rows).astype(np.int64)
-    param = np.concatenate(params).astype(np.float64)
-    order = np.argsort(row[:, 0], kind="stable")
-    return (np.ascontiguousarray(kind[order]), np.ascontiguousarray(row[order]),
-            np.ascontiguousarray(param[order]))
-
-
 @numba.njit(cache=True)
-def _apply(transposed, diagonal, multipliers, gap, row, value):
-    """Set λ[row] = value and update the gap with W[:, row] Δλ; return |W_rr Δλ|."""
-    change = value - multipliers[row]
-    if change == 0.0:
-        return 0.0
-    multipliers[row] = value
-    column = transposed[row]
-    for i in range(gap.shape[0]):
-        gap[i] += column[i] * change
-    return abs(diagonal[row] * change)
-
-
-@numba.njit(cache=True)
-def _sweep(transposed, diagonal, kinds, rows, params, multipliers, gap, relaxation):
-    """One Gauss–Seidel sweep over all blocks; returns SOFA's increment Σ|W_jj Δλ_j|."""
-    increment = 0.0
-    for b in range(kinds.shape[0]):
-        kind = kinds[b]
-        row = rows[b, 0]
-        if kind == _CONTACT:
-            tangent1 = rows[b, 1]
-            tangent2 = rows[b, 2]
-            friction = params[b, 0]
-            normal_force = multipliers[row]
-            if diagonal[row] > 0.0:
-                normal_force -= relaxation * gap[row] / diagonal[row]
-            if normal_force <= 0.0:
-                increment += _apply(transposed, diagonal, multipliers, gap, row, 0.0)
-                increment += _apply(transposed, diagonal, multipliers, gap, tangent1, 0.0)
-                increment += _apply(transposed, diagonal, multipliers, gap, tangent2, 0.0)
-                continue
-            increment += _apply(transposed, diagonal, multipliers, gap, row, normal_force)
-            force1 = multipliers[tangent1]
-            force2 = multipliers[tangent2]
-            tangent_diagonal = diagonal[tangent1] + diagonal[tangent2]
-            if tangent_diagonal > 0.0:
-                force1 -= 2.0 * relaxation * gap[tangent1] / tangent_diagonal
-                force2 -= 2.0 * relaxation * gap[tangent2] / tangent_diagonal
-            norm = np.sqrt(force1 * force1 + force2 * force2)
-            limit = friction * normal_force
-            if norm > limit:
-                scale = limit / norm
-                force1 *= scale
-                force2 *= scale
-            increment += _apply(transposed, diagonal, multipliers, gap, tangent1, force1)
-            increment += _apply(transposed, diagonal, multipliers, gap, tangent2, force2)
-            continue
-        force = multipliers[row]
-        if diagonal[row] > 0.0:
-            force -= relaxation * gap[row] / diagonal[row]
-        if kind == _UNILATERAL:
-            force = max(force, 0.0)
-        elif kind == _SHAFT:
-            pair1 = multipliers[rows[b, 1]]
-            pair2 = multipliers[rows[b, 2]]
-            bound = params[b, 0] * (np.sqrt(pair1 * pair1 + pair2 * pair2) + params[b, 1])
-            force = min(max(force, -bound), bound)
-        elif kind == _BOX:
-            force = min(max(force, params[b, 0]), params[b, 1])
-        increment += _apply(transposed, diagonal, multipliers, gap, row, force)
-    return increment
-
-
-@numba.njit(cache=True)
-def _residual(kinds, rows, params, multipliers, gap, free_norm):
+def _residual(kinds, rows, params, members, multipliers, gap, free_norm, error, unit_weight):
     """Natural residual (same definition as refsim.solvers.residual) from a given gap."""
+    natural_map_blocks(kinds, rows, params, members, multipliers, gap, unit_weight, error)
     total = 0.0
     for b in range(kinds.shape[0]):
-        kind = kinds[b]
         row = rows[b, 0]
-        if kind == _CONTACT:
-            t1 = rows[b, 1]
-            t2 = rows[b, 2]
-            mu = params[b, 0]
-            slip = np.sqrt(gap[t1] * gap[t1] + gap[t2] * gap[t2])
-            zn = multipliers[row] - (gap[row] + mu * slip)
-            z1 = multipliers[t1] - gap[t1]
-            z2 = multipliers[t2] - gap[t2]
-            zt = np.sqrt(z1 * z1 + z2 * z2)
-            if zt <= mu * zn:
-                pn, p1, p2 = zn, z1, z2
-            elif mu * zt <= -zn:
-                pn, p1, p2 = 0.0, 0.0, 0.0
-            else:
-                pn = max((zn + mu * zt) / (1.0 + mu * mu), 0.0)
-                ratio = mu * pn / zt if zt > 0.0 else 0.0
-                p1, p2 = ratio * z1, ratio * z2
-            en = multipliers[row] - pn
-            e1 = multipliers[t1] - p1
-            e2 = multipliers[t2] - p2
+        if kinds[b] == CONTACT:
+            en = error[row]
+            e1 = error[rows[b, 1]]
+            e2 = error[rows[b, 2]]
             total += en * en + e1 * e1 + e2 * e2
-            continue
-        if kind == _BILATERAL:
-            error = gap[row]
         else:
-            z = multipliers[row] - gap[row]
-            if kind == _UNILATERAL:
-                error = multipliers[row] - max(z, 0.0)
-            elif kind == _SHAFT:
-                pair1 = multipliers[rows[b, 1]]
-                pair2 = multipliers[rows[b, 2]]
-                bound = params[b, 0] * (np.sqrt(pair1 * pair1 + pair2 * pair2) + params[b, 1])
-                error = multipliers[row] - min(max(z, -bound), bound)
-            else:
-                error = multipliers[row] - min(max(z, params[b, 0]), params[b, 1])
-        total += error * error
+            total += error[row] * error[row]
     scale = max(free_norm, _norm(multipliers), _norm(gap))
     if scale <= 0.0:
         scale = 1.0
@@ -210,7 +95,7 @@ def _exact_gap(transposed, free_gap, multipliers, gap):
 
 
 @numba.njit(cache=True)
-def _gauss_seidel(transposed, free_gap, diagonal, kinds, rows, params, multipliers, gap, tolerance,
+def _gauss_seidel(transposed, free_gap, diagonal, kinds, rows, params, members, multipliers, gap, tolerance,
                   max_iterations, relaxation, stop_on_increment, history):
     """Sweep until the stopping criterion holds; returns (iterations, increment, status).
 
@@ -218,10 +103,13 @@ def _gauss_seidel(transposed, free_gap, diagonal, kinds, rows, params, multiplie
     """
     free_norm = _norm(free_gap)
     row_count = free_gap.shape[0]
+    error = np.zeros(row_count)
+    unit_weight = np.ones(row_count)
     increment = np.nan
     for iteration in range(max_iterations):
-        increment = _sweep(transposed, diagonal, kinds, rows, params, multipliers, gap, relaxation)
-        residual = _residual(kinds, rows, params, multipliers, gap, free_norm)
+        increment = gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, multipliers, gap,
+                                       relaxation)
+        residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, error, unit_weight)
         history[iteration] = residual
         if residual == np.inf or not np.isfinite(increment):
             return iteration + 1, increment, 2
@@ -233,7 +121,7 @@ def _gauss_seidel(transposed, free_gap, diagonal, kinds, rows, params, multiplie
             _exact_gap(transposed, free_gap, multipliers, gap)
             if stop_on_increment:
                 return iteration + 1, increment, 1
-            residual = _residual(kinds, rows, params, multipliers, gap, free_norm)
+            residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, error, unit_weight)
             history[iteration] = residual
             if residual <= tolerance:
                 return iteration + 1, increment, 1
@@ -282,11 +170,12 @@ def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, m
     diagonal = np.diag(compliance).copy()
     floor = _DIAGONAL_FLOOR * max(float(np.abs(diagonal).max()), np.finfo(float).tiny)
     diagonal[diagonal <= floor] = 0.0
-    kinds, rows, params = _blocks(problem)
+    kinds, rows, params, members = block_arrays(problem)
     gap = compliance @ multipliers + problem.free_gap
     history = np.full(int(max_iterations), np.nan)
     iterations, increment, status = _gauss_seidel(
-        transposed, np.array(problem.free_gap, copy=True), diagonal, kinds, rows, params, multipliers, gap,
+        transposed, np.array(problem.free_gap, copy=True), diagonal, kinds, rows, params, members, multipliers,
+        gap,
         float(tolerance), int(max_iterations), float(relaxation), criterion == "increment", history)
     diverged = status == 2 or not np.all(np.isfinite(multipliers))
     if diverged:

@@ -6,7 +6,7 @@ extended to the kinds of :class:`~refsim.solvers.ConstraintProblem`):
 - bilateral: e = δ;
 - unilateral: e = λ − max(0, λ − δ);
 - contact: e = λ − P_K(λ − δ̂), δ̂ = δ + μ ‖δ_t‖ e_n (De Saxcé), K = {‖λ_t‖ ≤ μ λ_n};
-- shaft friction: e = λ − clip(λ − δ, −b, b), b = μ (‖(λ_b1, λ_b2)‖ + p), p the row's normal preload;
+- group friction: e = λ − clip(λ − δ, −b, b), b = μ (‖λ_G‖ + p), G the row's group and p its preload;
 - box: e = λ − clip(λ − δ, lower, upper).
 
 The residual is ‖e‖₂ / max(‖δ_free‖, ‖λ‖, ‖δ‖); it is zero exactly at a solution.
@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from refsim.solvers.problem import KIND_NAMES, ConstraintProblem
+from refsim.solvers.laws import LAW_NAMES
+from refsim.solvers.problem import ConstraintProblem
 
 __all__ = ["natural_map_error", "natural_residual", "natural_residual_by_kind", "project_friction_cone"]
 
@@ -86,9 +87,9 @@ def natural_map_error(problem: ConstraintProblem, multipliers: np.ndarray,
             modified *= gap_weight[contacts]
         local_force = multipliers[contacts]
         error[contacts] = local_force - project_friction_cone(local_force - modified, mu)
-    if len(problem.shaft_friction):
-        rows = problem.shaft_friction
-        bound = problem.shaft_bounds(multipliers)
+    rows = problem.friction_groups()[0]
+    if len(rows):
+        bound = problem.friction_bounds(multipliers)
         error[rows] = multipliers[rows] - np.clip(multipliers[rows] - weighted[rows], -bound, bound)
     rows = problem.box_rows
     error[rows] = multipliers[rows] - np.clip(multipliers[rows] - weighted[rows], problem.box_lower,
@@ -131,7 +132,7 @@ def natural_residual_by_kind(problem: ConstraintProblem, multipliers: np.ndarray
 
     Returns
     -------
-    A dict mapping each name of :data:`refsim.solvers.problem.KIND_NAMES` to
+    A dict mapping each name of :data:`refsim.solvers.laws.LAW_NAMES` to
     ‖e_kind‖₂ / max(‖δ_free‖, ‖λ‖, ‖δ‖);
     the squares of the values sum to the square of :func:`natural_residual`.
     """
@@ -139,4 +140,4 @@ def natural_residual_by_kind(problem: ConstraintProblem, multipliers: np.ndarray
     denominator = _denominator(problem, np.asarray(multipliers, float), gap)
     kinds = problem.row_kinds()
     return {name: _norm(error[kinds == code]) / denominator
-            for code, name in enumerate(KIND_NAMES)}
+            for code, name in enumerate(LAW_NAMES)}
