@@ -11,6 +11,9 @@ from refsim.solvers.problem import KIND_NAMES, ConstraintProblem
 from refsim.solvers.readers import read_fclib, read_problem, read_siconos
 from refsim.solvers.report import SolverReport
 from refsim.solvers.residual import (
+    data_residual,
+    data_residual_by_kind,
+    data_scales,
     natural_map_error,
     natural_residual,
     natural_residual_by_kind,
@@ -25,6 +28,9 @@ __all__ = [
     "ConstraintProblem",
     "SolverReport",
     "available_backends",
+    "data_residual",
+    "data_residual_by_kind",
+    "data_scales",
     "natural_map_error",
     "natural_residual",
     "natural_residual_by_kind",

@@ -37,13 +37,14 @@ import numpy as np
 from refsim.solvers.laws import CONTACT, block_arrays, gauss_seidel_sweep, natural_map_blocks
 from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.report import SolverReport
-from refsim.solvers.residual import natural_residual
+from refsim.solvers.residual import data_residual, data_scales, natural_residual
 
 __all__ = ["solve_gauss_seidel"]
 
 logger = logging.getLogger(__name__)
 
 _DIAGONAL_FLOOR = 1e-14
+_STOP_MODES = {"residual": 0, "increment": 1, "strict": 2}
 
 
 @numba.njit(cache=True)
@@ -65,6 +66,16 @@ def _residual(kinds, rows, params, members, multipliers, gap, free_norm, error, 
         scale = 1.0
     residual = np.sqrt(total) / scale
     if not np.isfinite(residual) or not np.isfinite(scale) or total > 1e300:
+        return np.inf
+    return residual
+
+
+@numba.njit(cache=True)
+def _data_residual(kinds, rows, params, members, multipliers, gap, weight, data_scale, error):
+    """refsim.solvers.data_residual from a given gap: ‖λ − Π(λ − δ̂)‖ / max(‖δ_free‖, F_data) (weight = 1)."""
+    natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error)
+    residual = _norm(error) / data_scale
+    if not np.isfinite(residual):
         return np.inf
     return residual
 
@@ -96,8 +107,12 @@ def _exact_gap(transposed, free_gap, multipliers, gap):
 
 @numba.njit(cache=True)
 def _gauss_seidel(transposed, free_gap, diagonal, kinds, rows, params, members, multipliers, gap, tolerance,
-                  max_iterations, relaxation, stop_on_increment, history):
+                  max_iterations, relaxation, stop_mode, history, weight, data_scale, data_history,
+                  force_history):
     """Sweep until the stopping criterion holds; returns (iterations, increment, status).
+
+    stop_mode: 0 natural residual ≤ tolerance, 1 SOFA's increment, 2 both the natural and the data residual
+    (which a diverging λ cannot shrink) ≤ tolerance.
 
     status: 1 converged, 0 not converged within max_iterations, 2 diverged (non-finite or overflowing values).
     """
@@ -111,22 +126,35 @@ def _gauss_seidel(transposed, free_gap, diagonal, kinds, rows, params, members, 
                                        relaxation)
         residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, error, unit_weight)
         history[iteration] = residual
+        data = _data_residual(kinds, rows, params, members, multipliers, gap, weight, data_scale, error)
+        data_history[iteration] = data
+        force_history[iteration] = _norm(multipliers)
         if residual == np.inf or not np.isfinite(increment):
             return iteration + 1, increment, 2
-        if stop_on_increment:
+        if stop_mode == 1:
             done = increment < tolerance * (row_count + 1)
         else:
-            done = residual <= tolerance
+            done = residual <= tolerance and (stop_mode == 0 or data <= tolerance)
         if done:
             _exact_gap(transposed, free_gap, multipliers, gap)
-            if stop_on_increment:
+            if stop_mode == 1:
                 return iteration + 1, increment, 1
             residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, error, unit_weight)
             history[iteration] = residual
-            if residual <= tolerance:
+            if residual <= tolerance and (stop_mode == 0 or _data_residual(
+                    kinds, rows, params, members, multipliers, gap, weight, data_scale, error) <= tolerance):
                 return iteration + 1, increment, 1
     _exact_gap(transposed, free_gap, multipliers, gap)
     return max_iterations, increment, 0
+
+
+def _growing_without_progress(data_history: np.ndarray, force_history: np.ndarray) -> bool:
+    """Over the second half of the sweeps, ‖λ‖ grew by half or more while the data residual fell by < 1 %."""
+    count = data_history.size
+    if count < 20:
+        return False
+    half = count // 2
+    return bool(force_history[-1] >= 1.5 * force_history[half] and data_history[-1] >= 0.99 * data_history[half])
 
 
 def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, max_iterations: int = 1000,
@@ -142,7 +170,11 @@ def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, m
     max_iterations : Largest number of sweeps, ≥ 1.
     warm_start : Initial multipliers λ₀ [N], shape (row_count,); zeros when None.
     relaxation : Over-relaxation factor ω in (0, 2).
-    criterion : ``"residual"`` (default) or ``"increment"``.
+    criterion : ``"residual"`` (default: natural residual ≤ tolerance), ``"increment"`` (SOFA's) or
+        ``"strict"`` (natural and data residual ≤ tolerance). Whatever the criterion, the report gives the data
+        residual (:func:`refsim.solvers.data_residual`, which a diverging λ cannot shrink), and a criterion met
+        while that stays above the tolerance and ‖λ‖ grows by half or more over the second half of the sweeps
+        is reported as divergence (``diverged`` True, ``converged`` False).
 
     Returns
     -------
@@ -155,8 +187,8 @@ def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, m
         raise ValueError(f"max_iterations = {max_iterations!r}; valid range: integers >= 1")
     if not (0.0 < relaxation < 2.0):
         raise ValueError(f"relaxation = {relaxation!r}; valid range (0, 2)")
-    if criterion not in ("residual", "increment"):
-        raise ValueError(f"criterion = {criterion!r}; valid values 'residual', 'increment'")
+    if criterion not in _STOP_MODES:
+        raise ValueError(f"criterion = {criterion!r}; valid values 'residual', 'increment', 'strict'")
     start = time.perf_counter()
     row_count = problem.row_count
     multipliers = (np.zeros(row_count) if warm_start is None
@@ -164,40 +196,62 @@ def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, m
     if row_count == 0:
         return multipliers, SolverReport(solver="gauss_seidel", iterations=0, residual=0.0, converged=True,
                                          seconds=time.perf_counter() - start, message="empty problem",
-                                         increment=0.0)
+                                         increment=0.0, data_residual=0.0, path="gauss_seidel")
     compliance = problem.compliance
     transposed = np.array(compliance.T, order="C", copy=True)  # writable: one numba specialisation
     diagonal = np.diag(compliance).copy()
     floor = _DIAGONAL_FLOOR * max(float(np.abs(diagonal).max()), np.finfo(float).tiny)
     diagonal[diagonal <= floor] = 0.0
     kinds, rows, params, members = block_arrays(problem)
+    weight = np.ones(row_count)
+    data_scale = max(float(np.linalg.norm(problem.free_gap)), data_scales(problem)[1])
     gap = compliance @ multipliers + problem.free_gap
     history = np.full(int(max_iterations), np.nan)
+    data_history = np.full(int(max_iterations), np.nan)
+    force_history = np.full(int(max_iterations), np.nan)
     iterations, increment, status = _gauss_seidel(
         transposed, np.array(problem.free_gap, copy=True), diagonal, kinds, rows, params, members, multipliers,
         gap,
-        float(tolerance), int(max_iterations), float(relaxation), criterion == "increment", history)
-    diverged = status == 2 or not np.all(np.isfinite(multipliers))
-    if diverged:
-        residual = float("inf")
-        converged = False
+        float(tolerance), int(max_iterations), float(relaxation), _STOP_MODES[criterion], history, weight,
+        float(data_scale), data_history, force_history)
+    overflow = status == 2 or not np.all(np.isfinite(multipliers))
+    if overflow:
+        residual = data = float("inf")
+        converged = growing = False
     else:
         residual = natural_residual(problem, multipliers)
-        converged = bool(residual <= tolerance) if criterion == "residual" else status == 1
+        data = data_residual(problem, multipliers)
+        if criterion == "strict":
+            met = bool(residual <= tolerance and data <= tolerance)
+        elif criterion == "residual":
+            met = bool(residual <= tolerance)
+        else:
+            met = status == 1
+        # a criterion met while the data residual stays above the tolerance and ‖λ‖ grows is divergence
+        growing = (data > tolerance and _growing_without_progress(data_history[:iterations],
+                                                                   force_history[:iterations]))
+        converged = met and not growing
     seconds = time.perf_counter() - start
-    if diverged:
+    if overflow:
         message = (f"diverged after {iterations} sweeps: multipliers overflow (Gauss-Seidel needs a W with a "
                    "positive diagonal that dominates enough, e.g. symmetric positive definite)")
+        logger.info("Gauss-Seidel %s: %s", problem.name or "problem", message)
+    elif growing:
+        message = (f"diverging after {iterations} sweeps: ‖λ‖ = {force_history[iterations - 1]:.3e} N grows while "
+                   f"the data residual stays at {data:.3e} (natural residual {residual:.3e}, which ‖λ‖ divides); "
+                   "the problem probably has no solution (infeasible or W not positive semi-definite)")
         logger.info("Gauss-Seidel %s: %s", problem.name or "problem", message)
     elif converged:
         message = f"{criterion} criterion met after {iterations} sweeps"
     else:
         zero_rows = int(np.count_nonzero(diagonal == 0.0))
         message = (f"not converged: {criterion} criterion not met after {iterations} sweeps "
-                   f"(residual {residual:.3e}, increment {increment:.3e}"
+                   f"(residual {residual:.3e}, data residual {data:.3e}, increment {increment:.3e}"
                    + (f", {zero_rows} rows with zero diagonal cannot be solved alone" if zero_rows else "")
                    + ")")
         logger.info("Gauss-Seidel %s: %s", problem.name or "problem", message)
     return multipliers, SolverReport(solver="gauss_seidel", iterations=int(iterations), residual=residual,
                                      converged=bool(converged), seconds=seconds, message=message,
-                                     increment=float(increment), history=history[:iterations].copy())
+                                     increment=float(increment), history=history[:iterations].copy(),
+                                     data_residual=float(data), diverged=bool(overflow or growing),
+                                     path="gauss_seidel")

@@ -9,7 +9,15 @@ extended to the kinds of :class:`~refsim.solvers.ConstraintProblem`):
 - group friction: e = λ − clip(λ − δ, −b, b), b = μ (‖λ_G‖ + p), G the row's group and p its preload;
 - box: e = λ − clip(λ − δ, lower, upper).
 
-The residual is ‖e‖₂ / max(‖δ_free‖, ‖λ‖, ‖δ‖); it is zero exactly at a solution.
+The residual is ‖e‖₂ / max(‖δ_free‖, ‖λ‖, ‖δ‖); it is zero exactly at a solution. Because ‖λ‖ is in its
+denominator, a diverging λ makes it small: it is the measure of the external problem sets, not a proof.
+
+:func:`data_residual` cannot be shrunk that way: the same error e divided by scales of the problem's data only,
+max(‖δ_free‖ [m], F_data [N]), where the data force scale F_data = max(‖ρ δ_free‖, ‖finite box bounds‖,
+‖μ p‖ of the group-friction preloads) [N] with ρ_i = 1/W_ii [N/m] (‖ρ δ_free‖: the forces that would close each
+free gap alone) replaces ‖λ‖, and ‖δ_free‖ replaces ‖δ‖. Per law, e is a gap [m] on rows where the law's
+projection is the identity (δ must vanish) and a force [N] where it clamps; the two data scales are the
+references of these units. A solver reports ``converged`` only when both residuals meet the tolerance.
 """
 
 from __future__ import annotations
@@ -19,7 +27,8 @@ import numpy as np
 from refsim.solvers.laws import LAW_NAMES
 from refsim.solvers.problem import ConstraintProblem
 
-__all__ = ["natural_map_error", "natural_residual", "natural_residual_by_kind", "project_friction_cone"]
+__all__ = ["data_residual", "data_residual_by_kind", "data_scales", "natural_map_error", "natural_residual",
+           "natural_residual_by_kind", "project_friction_cone"]
 
 
 def project_friction_cone(points: np.ndarray, friction_coefficient: np.ndarray) -> np.ndarray:
@@ -141,3 +150,58 @@ def natural_residual_by_kind(problem: ConstraintProblem, multipliers: np.ndarray
     kinds = problem.row_kinds()
     return {name: _norm(error[kinds == code]) / denominator
             for code, name in enumerate(LAW_NAMES)}
+
+
+def data_scales(problem: ConstraintProblem) -> tuple[np.ndarray, float]:
+    """Row weights ρ [N/m] and the data force scale F_data [N] used by :func:`data_residual`.
+
+    ρ_i = 1/W_ii (the mean over the three rows of a contact, so the cone is unchanged; rows whose W_ii is not
+    above 1e-14 of the largest diagonal get 1/max_j W_jj). F_data = max(‖ρ δ_free‖, ‖finite nonzero box
+    bounds‖, ‖μ_j p_j‖ over group friction rows); 1 when all are zero.
+
+    Returns
+    -------
+    weight : ρ [N/m], shape (row_count,).
+    scale : F_data [N].
+    """
+    diagonal = np.diag(problem.compliance).copy()
+    largest = float(diagonal.max()) if diagonal.size else 0.0
+    if not largest > 0.0:
+        largest = 1.0
+    safe = np.where(diagonal > 1e-14 * largest, diagonal, largest)
+    if len(problem.contacts):
+        safe[problem.contacts] = safe[problem.contacts].mean(axis=1)[:, None]
+    weight = 1.0 / safe
+    bounds = np.concatenate([problem.box_lower, problem.box_upper])
+    _, _, _, coefficient, preload = problem.friction_groups()
+    scale = max(_norm(weight * problem.free_gap), _norm(bounds[np.isfinite(bounds)]), _norm(coefficient * preload))
+    return weight, (scale if scale > 0.0 else 1.0)
+
+
+def _data_error(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[np.ndarray, float]:
+    _, force_scale = data_scales(problem)
+    scale = max(_norm(problem.free_gap), force_scale)
+    multipliers = np.asarray(multipliers, dtype=np.float64)
+    if not np.all(np.isfinite(multipliers)):
+        return np.full(problem.row_count, np.inf), scale
+    error, _ = natural_map_error(problem, multipliers)
+    return error, scale
+
+
+def data_residual(problem: ConstraintProblem, multipliers: np.ndarray) -> float:
+    """Natural-map error over scales of the data only, ‖e‖₂ / max(‖δ_free‖, F_data) [-] (see the module notes).
+
+    Unlike :func:`natural_residual`, its denominator does not depend on λ: a diverging λ cannot make it small.
+    Zero exactly at a solution; inf for non-finite multipliers.
+    """
+    error, scale = _data_error(problem, multipliers)
+    residual = _norm(error) / scale
+    return residual if np.isfinite(residual) else float("inf")
+
+
+def data_residual_by_kind(problem: ConstraintProblem, multipliers: np.ndarray) -> dict[str, float]:
+    """:func:`data_residual` split by law: ‖e_law‖₂ / max(‖δ_free‖, F_data) for each name of ``LAW_NAMES``
+    (squares sum to the square of the total)."""
+    error, scale = _data_error(problem, multipliers)
+    kinds = problem.row_kinds()
+    return {name: _norm(error[kinds == code]) / scale for code, name in enumerate(LAW_NAMES)}
