@@ -32,9 +32,10 @@ import scipy.linalg
 import scipy.sparse as sparse
 
 from refsim.solvers.laws import LAW_NAMES
+from refsim.solvers.newton import solve_newton
 from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.report import SolverReport
-from refsim.solvers.residual import natural_map_error, natural_residual
+from refsim.solvers.residual import data_residual, natural_map_error, natural_residual
 
 __all__ = ["available_backends", "solve_exact"]
 
@@ -271,75 +272,121 @@ def _newton_step(problem: ConstraintProblem, multipliers: np.ndarray,
 
 
 def _polish(problem, multipliers, residual, tolerance, weight, max_steps=50):
-    """Semismooth Newton with a backtracking line search on ‖F‖²; returns (λ, residual, steps accepted)."""
-    accepted = 0
-    best, best_residual = multipliers, residual
-    for _ in range(max_steps):
-        if best_residual <= 1e-3 * tolerance:
-            break
-        error, direction = _newton_step(problem, multipliers, weight)
-        merit = float(error @ error)
-        if not np.all(np.isfinite(direction)):
-            break
-        step = 1.0
-        while step > 1e-6:
-            candidate = multipliers + step * direction
-            candidate_error, _ = natural_map_error(problem, candidate, weight)
-            if candidate_error @ candidate_error <= (1.0 - 1e-4 * step) * merit:
-                break
-            step *= 0.5
-        else:
-            break
-        multipliers = candidate
-        accepted += 1
-        candidate_residual = natural_residual(problem, candidate)
-        if candidate_residual < best_residual:
-            best, best_residual = candidate, candidate_residual
-    return best, best_residual, accepted
+    """The semismooth Newton of :mod:`refsim.solvers.newton` from ``multipliers``; returns (λ, natural
+    residual, Newton iterations). ``weight`` is unused (Newton takes ρ = 1/W_ii itself)."""
+    result = solve_newton(problem, tolerance=tolerance, warm_start=multipliers, max_iterations=max_steps)
+    candidate_residual = natural_residual(problem, result.multipliers)
+    if candidate_residual < residual:
+        return result.multipliers, candidate_residual, result.iterations
+    return multipliers, residual, result.iterations
 
 
 def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend: str = "clarabel",
                 max_iterations: int = 100, symmetry_tolerance: float = 1e-8, polish: bool = True,
-                backend_options: dict | None = None) -> tuple[np.ndarray, SolverReport]:
-    """Solve the constraint problem to a tight natural residual (the reference solution).
+                backend_options: dict | None = None, warm_start: np.ndarray | None = None,
+                method: str = "auto", newton_iterations: int = 100) -> tuple[np.ndarray, SolverReport]:
+    """Solve the constraint problem to a tight residual (the reference solution).
 
     Parameters
     ----------
-    problem : The constraint problem; W must be symmetric to ``symmetry_tolerance`` and positive
-        semi-definite (it may be singular). Its symmetric part is given to the backends; the residual is
-        always computed with W as given.
-    tolerance : Target natural residual [-]; the report says ``converged`` when it is reached.
-    backend : qpsolvers backend for the QP solves (``"clarabel"``, ``"osqp"`` or any name of
-        :func:`available_backends`). Contacts (cones) are always solved by Clarabel's own interface.
-    max_iterations : Largest number of outer fixed-point iterations on the friction bounds, ≥ 1.
-    symmetry_tolerance : Largest accepted relative asymmetry ‖W − Wᵀ‖_F / ‖W‖_F [-].
-    polish : Finish with the active-set polish.
+    problem : The constraint problem; W may be singular and non-symmetric (the Newton path solves it as given;
+        the cone route solves with its symmetric part, and the residual is always measured with W as given).
+    tolerance : Stop when the natural residual and the data residual (:mod:`refsim.solvers.residual`) are both
+        at most this [-]; the report says ``converged`` when they are.
+    backend : qpsolvers backend for the QP solves of the cone route (``"clarabel"``, ``"osqp"`` or any name
+        of :func:`available_backends`). Contacts (cones) are always solved by Clarabel's own interface.
+    max_iterations : Largest number of outer fixed-point iterations of the cone route, ≥ 1.
+    symmetry_tolerance : Relative asymmetry ‖W − Wᵀ‖_F / ‖W‖_F [-] above which the message says the cone route
+        solved the symmetric part (nothing is rejected any more).
+    polish : Let the cone route finish with Newton iterations from its answer.
     backend_options : Options passed to the backend, replacing our tight defaults key by key.
+    warm_start : Initial multipliers λ₀ [N], shape (row_count,), for the Newton path (e.g. the previous step's).
+    method : ``"auto"`` (Newton, then the cone route if Newton did not reach the tolerance), ``"newton"`` or
+        ``"cone"``.
+    newton_iterations : Largest number of Newton iterations.
 
     Returns
     -------
     multipliers : λ [N], shape (row_count,), the best found.
-    report : :class:`~refsim.solvers.SolverReport`; ``message`` gives the reason when not converged.
+    report : :class:`~refsim.solvers.SolverReport`; ``path`` says which method produced the answer
+        (``"newton"``, ``"cone"`` or ``"cone+newton"``), ``asymmetry`` the relative asymmetry of W, ``message``
+        the reason when not converged.
 
     Raises
     ------
-    ValueError : For a non-symmetric W, an unknown backend or bad options.
+    ValueError : For an unknown backend or method, or bad options.
     """
     start = time.perf_counter()
     if not (np.isfinite(tolerance) and tolerance > 0.0):
         raise ValueError(f"tolerance = {tolerance!r}; valid range (0, inf)")
     if int(max_iterations) != max_iterations or max_iterations < 1:
         raise ValueError(f"max_iterations = {max_iterations!r}; valid range: integers >= 1")
+    if method not in ("auto", "newton", "cone"):
+        raise ValueError(f"method = {method!r}; valid values 'auto', 'newton', 'cone'")
     backends = available_backends()
     if backend not in backends:
         raise ValueError(f"backend = {backend!r} is not installed; available: {', '.join(backends)}")
-    label = f"problem {problem.name!r}" if problem.name else "the problem"
+    if warm_start is not None:
+        warm_start = problem.check_multipliers(warm_start)
     asymmetry = problem.asymmetry()
+    n = problem.row_count
+    if n == 0:
+        return np.zeros(0), SolverReport(solver="exact/newton", iterations=0, residual=0.0, converged=True,
+                                         seconds=time.perf_counter() - start, message="empty problem",
+                                         data_residual=0.0, asymmetry=0.0, path="newton")
+    note = (f"; W non-symmetric by {asymmetry:.1e} (solved as given)" if asymmetry > symmetry_tolerance else "")
+    newton = None
+    if method in ("auto", "newton"):
+        newton = solve_newton(problem, tolerance=tolerance, warm_start=warm_start,
+                              max_iterations=int(newton_iterations))
+        if not newton.converged:
+            # second attempt from the best point so far with a monotone line search (more robust where W is
+            # singular and the friction bounds move along its null space)
+            second = solve_newton(problem, tolerance=tolerance, warm_start=newton.multipliers,
+                                  max_iterations=int(newton_iterations), line_search_memory=1)
+            if second.converged or max(second.residual, second.data_residual) < max(newton.residual,
+                                                                                    newton.data_residual):
+                second.iterations += newton.iterations
+                second.message += f" (after {newton.iterations} non-monotone iterations: {newton.message})"
+                newton = second
+        residual = natural_residual(problem, newton.multipliers)
+        data = data_residual(problem, newton.multipliers)
+        converged = bool(residual <= tolerance and data <= tolerance)
+        if converged or method == "newton":
+            message = (f"newton ({newton.storage}): {newton.message}; {newton.line_search_failures} line-search "
+                       f"failure(s), {newton.fallback_sweeps} fallback sweep(s)" + note)
+            if not converged:
+                message = (f"not converged: residual {residual:.3e}, data residual {data:.3e} > tolerance "
+                           f"{tolerance:.1e} (largest error in {_worst_kind(problem, newton.multipliers)} rows); "
+                           + message)
+                logger.info("solve_exact %s: %s", problem.name or "problem", message)
+            return newton.multipliers, SolverReport(
+                solver="exact/newton", iterations=newton.iterations, residual=residual, converged=converged,
+                seconds=time.perf_counter() - start, message=message, history=newton.history,
+                data_residual=data, asymmetry=asymmetry, path="newton")
+    multipliers, report = _cone_route(problem, tolerance=tolerance, backend=backend,
+                                      max_iterations=max_iterations, polish=polish,
+                                      backend_options=backend_options, start=start)
+    data = data_residual(problem, multipliers)
+    path = report.path
+    message = report.message
     if asymmetry > symmetry_tolerance:
-        raise ValueError(f"solve_exact: the compliance of {label} is not symmetric: relative asymmetry "
-                         f"{asymmetry:.3e} > symmetry_tolerance {symmetry_tolerance:.1e}; the exact solver "
-                         "needs a symmetric positive semi-definite W (use solve_gauss_seidel, or pass a "
-                         "larger symmetry_tolerance to solve with the symmetric part)")
+        message += f"; the cone route solved the symmetric part of W (asymmetry {asymmetry:.1e})"
+    if newton is not None:
+        message = f"newton first: {newton.message} (residual {newton.residual:.1e}); then " + message
+        if max(newton.residual, newton.data_residual) < max(report.residual, data):
+            multipliers, path = newton.multipliers, "newton"
+            data = newton.data_residual
+    residual = natural_residual(problem, multipliers)
+    converged = bool(residual <= tolerance and data <= tolerance)
+    return multipliers, SolverReport(solver=report.solver, iterations=report.iterations, residual=residual,
+                                     converged=converged, seconds=time.perf_counter() - start, message=message,
+                                     history=report.history, data_residual=data, asymmetry=asymmetry, path=path)
+
+
+def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, max_iterations: int,
+                polish: bool, backend_options: dict | None, start: float) -> tuple[np.ndarray, SolverReport]:
+    """The cone-programming route (steps 1-4 of the module notes) on the symmetric part of W."""
     solver_name = f"exact/{backend}"
     n = problem.row_count
     if n == 0:
@@ -429,16 +476,18 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
                                                                f"not settled after {iterations} iterations")
                      + (", damped after oscillating" if damping < 1.0 else ""))
     if polish:
-        parts.append(f"{polish_steps} Newton polish step(s)")
+        parts.append(f"{polish_steps} Newton polish iteration(s)")
+    converged = bool(converged and data_residual(problem, best) <= tolerance)
     if not converged:
         worst = _worst_kind(problem, best)
         parts.insert(0, f"not converged: residual {residual:.3e} > tolerance {tolerance:.1e} "
                         f"(largest error in {worst} rows)")
-        logger.info("solve_exact %s: %s", label, "; ".join(parts))
+        logger.info("solve_exact %s: %s", problem.name or "problem", "; ".join(parts))
     return best, SolverReport(solver=solver_name, iterations=iterations, residual=residual,
                               converged=converged,
                               seconds=time.perf_counter() - start, message="; ".join(parts),
-                              history=np.array(history, dtype=float))
+                              history=np.array(history, dtype=float),
+                              path="cone+newton" if polish_steps else "cone")
 
 
 def _worst_kind(problem: ConstraintProblem, multipliers: np.ndarray) -> str:
