@@ -32,6 +32,7 @@ import scipy.linalg
 import scipy.sparse as sparse
 
 from refsim.solvers.laws import LAW_NAMES
+from refsim.solvers.gauss_seidel import solve_gauss_seidel
 from refsim.solvers.newton import solve_newton
 from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.report import SolverReport
@@ -53,6 +54,8 @@ _BACKEND_OPTIONS = {
 #: The fixed point tries the Newton polish from an iterate whose residual is below this, every few iterations.
 _POLISH_FROM = 1e-3
 _POLISH_EVERY = 5
+#: Gauss-Seidel sweeps tried when Newton stalls, before the cone route.
+_GAUSS_SEIDEL_SWEEPS = 2000
 
 
 def available_backends() -> list[str]:
@@ -339,9 +342,18 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
     if method in ("auto", "newton"):
         newton = solve_newton(problem, tolerance=tolerance, warm_start=warm_start,
                               max_iterations=int(newton_iterations))
+        path = "newton"
         if not newton.converged:
-            # second attempt from the best point so far with a monotone line search (more robust where W is
-            # singular and the friction bounds move along its null space)
+            # Newton stalls where the map is nonsmooth at the solution (friction bounds ‖λ_G‖ at λ_G = 0, cone
+            # apices): projected Gauss-Seidel from the best point, which such points do not trouble
+            multipliers, sweeps = solve_gauss_seidel(problem, tolerance=tolerance, warm_start=newton.multipliers,
+                                                     max_iterations=_GAUSS_SEIDEL_SWEEPS, criterion="strict")
+            if sweeps.converged:
+                newton.multipliers, newton.converged, path = multipliers, True, "newton+gauss_seidel"
+                newton.message += f"; then {sweeps.iterations} Gauss-Seidel sweeps"
+                newton.residual, newton.data_residual = sweeps.residual, sweeps.data_residual
+        if not newton.converged:
+            # a monotone line search from the best point (more robust where W is singular)
             second = solve_newton(problem, tolerance=tolerance, warm_start=newton.multipliers,
                                   max_iterations=int(newton_iterations), line_search_memory=1)
             if second.converged or max(second.residual, second.data_residual) < max(newton.residual,
@@ -363,7 +375,7 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
             return newton.multipliers, SolverReport(
                 solver="exact/newton", iterations=newton.iterations, residual=residual, converged=converged,
                 seconds=time.perf_counter() - start, message=message, history=newton.history,
-                data_residual=data, asymmetry=asymmetry, path="newton")
+                data_residual=data, asymmetry=asymmetry, path=path)
     multipliers, report = _cone_route(problem, tolerance=tolerance, backend=backend,
                                       max_iterations=max_iterations, polish=polish,
                                       backend_options=backend_options, start=start)

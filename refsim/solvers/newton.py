@@ -142,11 +142,15 @@ class _Operator:
         """Minimum-norm least-squares solution of J d = rhs for the last dense J (LAPACK gelsy)."""
         return scipy.linalg.lstsq(self.jacobian, rhs, cond=1e-12, lapack_driver="gelsy", check_finite=False)[0]
 
+    def assemble(self, local, gap_factor, bound_values, eta):
+        """The dense J + η I into ``self.jacobian``."""
+        _dense_jacobian(self.dense, self.kinds, self.rows, local, gap_factor, self.members, bound_values, eta,
+                        self.jacobian)
+
     def factorize(self, local, gap_factor, bound_values, eta):
         """Factor J + η I; returns a solve(rhs) callable, or None when the factorisation fails."""
         if self.sparse is None:
-            _dense_jacobian(self.dense, self.kinds, self.rows, local, gap_factor, self.members, bound_values, eta,
-                            self.jacobian)
+            self.assemble(local, gap_factor, bound_values, eta)
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")  # an exactly singular J is handled below
@@ -175,7 +179,8 @@ class _Operator:
 
 def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np.ndarray | None = None,
                  max_iterations: int = 100, sparse_above: int = SPARSE_ABOVE, eta_max: float = 1e-2,
-                 time_limit: float = np.inf, line_search_memory: int = 3) -> NewtonResult:
+                 time_limit: float = np.inf, line_search_memory: int = 3,
+                 minimum_norm: bool = False, stall_iterations: int = 20) -> NewtonResult:
     """Semismooth Newton on the natural map (see the module notes).
 
     Parameters
@@ -188,6 +193,8 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     eta_max : Largest Levenberg–Marquardt regularisation η [-] (relative to the unit diagonal of ρ W).
     time_limit : Stop after this many seconds [s].
     line_search_memory : Number of past merit values the non-monotone Armijo test compares with (1: monotone).
+    minimum_norm : Take minimum-norm least-squares steps (LAPACK gelsy) instead of LU ones on dense problems.
+    stall_iterations : Stop when the best residual has not halved in this many iterations.
 
     Returns
     -------
@@ -240,7 +247,7 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     best = (max(residual, data), multipliers.copy(), residual, data)
     memory = [theta]
     history = [residual]
-    failures = consecutive = fallback = singular_steps = 0
+    failures = consecutive = fallback = singular_steps = since_progress = 0
     level = 0  # regularisation level: 0 plain Newton, k > 0: η = min(η_max, ‖F‖/F_data) 10^(k−1)
     iterations = 0
     message = ""
@@ -256,13 +263,18 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
         jacobian_blocks(kinds, rows, params, members, multipliers, gap, weight, local, gap_factor, bound_values)
         relative = np.sqrt(2.0 * theta) / force_scale
         eta = 0.0 if level == 0 else max(min(eta_max, relative) * 10.0 ** (level - 1), 1e-14)
-        solve = operator.factorize(local, gap_factor, bound_values, eta)
-        direction = None if solve is None else solve(-error)
+        if level == 0 and operator.sparse is None and minimum_norm:
+            operator.assemble(local, gap_factor, bound_values, 0.0)
+            direction = operator.least_squares(-error)
+            solve = None
+        else:
+            solve = operator.factorize(local, gap_factor, bound_values, eta)
+            direction = None if solve is None else solve(-error)
         limit = 1e4 * max(np.linalg.norm(multipliers), force_scale)
         # a direction far longer than the forces in play comes from a (nearly) singular J: take the least-squares
         # (rank-revealing QR) step of the dense J instead, or regularise a sparse one
-        if level == 0 and (direction is None or not np.all(np.isfinite(direction))
-                           or np.linalg.norm(direction) > limit) and operator.sparse is None:
+        if level == 0 and not minimum_norm and operator.sparse is None and (
+                direction is None or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) > limit):
             direction = operator.least_squares(-error)
             singular_steps += 1
         if direction is None or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) > limit:
@@ -305,9 +317,16 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
         memory.append(theta)
         residual, data = residuals(multipliers, gap)
         history.append(residual)
+        if max(residual, data) < 0.5 * best[0]:
+            since_progress = 0
+        else:
+            since_progress += 1
         if max(residual, data) < best[0]:
             best = (max(residual, data), multipliers.copy(), residual, data)
         converged = residual <= tolerance and data <= tolerance
+        if not converged and since_progress >= stall_iterations:
+            message = f"stalled: the best residual did not halve in {stall_iterations} iterations"
+            break
     _, multipliers, residual, data = best
     converged = residual <= tolerance and data <= tolerance
     if converged:

@@ -66,7 +66,8 @@ def test_planted_problems_every_law(kinds, rank):
     rng = np.random.default_rng(7)
     problem, _, _ = planted_problem(rng, rank=rank, **kinds)
     multipliers, report = solve_exact(problem, tolerance=1e-10, method="newton")
-    assert report.converged and report.path == "newton", report.message
+    # Newton, finished by Gauss-Seidel sweeps where it stalls (W of rank 6: friction bounds along its null space)
+    assert report.converged and report.path in ("newton", "newton+gauss_seidel"), report.message
     assert natural_residual(problem, multipliers) <= 1e-10
 
 
