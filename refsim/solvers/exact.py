@@ -1,23 +1,25 @@
-"""The exact reference solver: QP and cone solves, a fixed point on the friction bounds, a Newton polish.
+"""The exact reference solver: semismooth Newton first, the cone-programming route as fallback and certificate.
+
+:func:`solve_exact` runs the Newton method of :mod:`refsim.solvers.newton` on W as given (any law of the table,
+non-symmetric W accepted), finishes with Gauss–Seidel sweeps or a monotone Newton where it stalls, and only then
+falls back to the cone route below; ``report.path`` says which produced the answer. The cone route:
 
 1. Scaling. λ = τ D z with D a diagonal of 1/√W_ii (one common factor per contact, so that the Coulomb cone
    is unchanged) and τ = ‖D δ_free‖, so that the scaled compliance has a unit diagonal and z is of order one.
 2. Frictionless part. min ½ zᵀ(D W D)z + (D δ_free / τ)ᵀz with z ≥ 0 on unilateral rows, fixed bounds on box
-   rows and z free on bilateral rows: a convex QP whose KKT conditions are exactly the laws of these rows.
-   It is solved through qpsolvers with the chosen backend (Clarabel by default, OSQP with tight tolerances and
-   polishing, or any installed backend by name).
-3. Friction by a fixed point on the bounds. Shaft rows get the box |λ_s| ≤ μ (‖(λ_b1, λ_b2)‖ + p) with the
-   pair forces of the previous iterate and the row's constant normal preload p. Contacts get the second-order cone ‖λ_t‖ ≤ μ λ_n through Clarabel's own
-   interface (qpsolvers has no cones), with the De Saxcé modification of the free gap
-   δ_free,n + μ ‖δ_t‖ from the previous iterate; the KKT conditions of that cone QP are then the Coulomb law
-   (Acary, Cadoux, Lemaréchal and Brogliato 2011). Iterate until the bounds stop changing.
-4. Polish. From the active set identified by the natural map (which rows have δ = 0, which sit at a bound,
-   which contacts stick, slip or separate), solve the linear system of that set with the original W by least
-   squares (W may be singular), linearising the slip direction and the shaft bound at the current point;
-   accept a step only if the natural residual drops; repeat while it does.
+   rows and z free on bilateral rows: a convex QP whose KKT conditions are exactly the laws of these rows
+   (W is replaced by its symmetric part). Solved through qpsolvers (Clarabel by default, OSQP, or any
+   installed backend by name).
+3. Friction by a fixed point on the bounds. Group friction rows get the box |λ_s| ≤ μ (‖λ_G‖ + p) with the group
+   forces of the previous iterate. Contacts get the second-order cone ‖λ_t‖ ≤ μ λ_n through Clarabel's own
+   interface (qpsolvers has no cones), with the De Saxcé modification of the free gap δ_free,n + μ ‖δ_t‖ from
+   the previous iterate; the KKT conditions of that cone QP are then the Coulomb law (Acary, Cadoux, Lemaréchal
+   and Brogliato 2011). Iterate until the bounds stop changing.
+4. Polish: Newton iterations (:mod:`refsim.solvers.newton`) from the cone route's answer.
 
-The residual reported is always recomputed by :func:`refsim.solvers.natural_residual` on the problem as given;
-a backend's own "solved" is not believed. On failure the best multipliers found are returned with the reason.
+The residuals reported are always recomputed by :func:`refsim.solvers.natural_residual` and
+:func:`refsim.solvers.data_residual` on the problem as given; a backend's own "solved" is not believed. On
+failure the best multipliers found are returned with the reason.
 """
 
 from __future__ import annotations
@@ -274,14 +276,47 @@ def _newton_step(problem: ConstraintProblem, multipliers: np.ndarray,
     return error, direction
 
 
+def _least_squares_polish(problem, multipliers, residual, tolerance, weight, max_steps=50):
+    """Semismooth Newton with a backtracking line search on ‖F‖²; returns (λ, residual, steps accepted)."""
+    accepted = 0
+    best, best_residual = multipliers, residual
+    for _ in range(max_steps):
+        if best_residual <= 1e-3 * tolerance:
+            break
+        error, direction = _newton_step(problem, multipliers, weight)
+        merit = float(error @ error)
+        if not np.all(np.isfinite(direction)):
+            break
+        step = 1.0
+        while step > 1e-6:
+            candidate = multipliers + step * direction
+            candidate_error, _ = natural_map_error(problem, candidate, weight)
+            if candidate_error @ candidate_error <= (1.0 - 1e-4 * step) * merit:
+                break
+            step *= 0.5
+        else:
+            break
+        multipliers = candidate
+        accepted += 1
+        candidate_residual = natural_residual(problem, candidate)
+        if candidate_residual < best_residual:
+            best, best_residual = candidate, candidate_residual
+    return best, best_residual, accepted
+
+
 def _polish(problem, multipliers, residual, tolerance, weight, max_steps=50):
-    """The semismooth Newton of :mod:`refsim.solvers.newton` from ``multipliers``; returns (λ, natural
-    residual, Newton iterations). ``weight`` is unused (Newton takes ρ = 1/W_ii itself)."""
-    result = solve_newton(problem, tolerance=tolerance, warm_start=multipliers, max_iterations=max_steps)
+    """Polish the cone route's answer: the damped least-squares Newton of the previous exact solver, then the
+    semismooth Newton of :mod:`refsim.solvers.newton` if that is not enough; returns (λ, natural residual,
+    steps)."""
+    best, best_residual, steps = _least_squares_polish(problem, multipliers, residual, tolerance, weight,
+                                                       max_steps=max_steps)
+    if best_residual <= tolerance and data_residual(problem, best) <= tolerance:
+        return best, best_residual, steps
+    result = solve_newton(problem, tolerance=tolerance, warm_start=best, max_iterations=max_steps)
     candidate_residual = natural_residual(problem, result.multipliers)
-    if candidate_residual < residual:
-        return result.multipliers, candidate_residual, result.iterations
-    return multipliers, residual, result.iterations
+    if max(candidate_residual, result.data_residual) < max(best_residual, data_residual(problem, best)):
+        return result.multipliers, candidate_residual, steps + result.iterations
+    return best, best_residual, steps + result.iterations
 
 
 def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend: str = "clarabel",

@@ -154,7 +154,7 @@ def _growing_without_progress(data_history: np.ndarray, force_history: np.ndarra
     if count < 20:
         return False
     half = count // 2
-    return bool(force_history[-1] >= 1.5 * force_history[half] and data_history[-1] >= 0.99 * data_history[half])
+    return bool(force_history[-1] > 1.5 * force_history[half] and data_history[-1] >= 0.99 * data_history[half])
 
 
 def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, max_iterations: int = 1000,
