@@ -246,6 +246,9 @@ def block_arrays(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
     params : Parameters, shape (b, 2): (μ, 0) contact, (μ, p) group friction, (lower, upper) box, else zeros.
     members : Group members, shape (g,).
     """
+    cached = problem.__dict__.get("_block_arrays")
+    if cached is not None:  # the problem is immutable (frozen, read-only arrays): compute once
+        return cached
     f_rows, f_offsets, members, f_mu, f_preload = friction_groups(problem)
     singles = {BILATERAL: problem.bilateral, UNILATERAL: problem.unilateral, BOX: problem.box_rows}
     kinds, rows, params = [], [], []
@@ -264,8 +267,12 @@ def block_arrays(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
     row = np.concatenate(rows).astype(np.int64).reshape(-1, 3)
     param = np.concatenate(params).astype(np.float64).reshape(-1, 2)
     order = np.argsort(row[:, 0], kind="stable")
-    return (np.ascontiguousarray(kind[order]), np.ascontiguousarray(row[order]),
-            np.ascontiguousarray(param[order]), np.ascontiguousarray(members))
+    result = (np.ascontiguousarray(kind[order]), np.ascontiguousarray(row[order]),
+              np.ascontiguousarray(param[order]), np.ascontiguousarray(members))
+    for array in result:
+        array.setflags(write=False)
+    object.__setattr__(problem, "_block_arrays", result)
+    return result
 
 
 # ---------------------------------------------------------------------------------------------------- kernels

@@ -50,6 +50,8 @@ __all__ = ["NewtonResult", "solve_newton"]
 SPARSE_ABOVE = 300
 #: Largest density nnz(W) / n² for the sparse path.
 SPARSE_DENSITY = 0.15
+#: Dense problems up to this many rows solve J d = −F in compiled code (no SciPy call overhead).
+_COMPILED_SOLVE_BELOW = 120
 
 
 @dataclass
@@ -89,6 +91,12 @@ def _dense_jacobian(compliance, kinds, rows, local, gap_factor, members, bound_v
             ri = rows[b, 0]
             for k in range(rows[b, 1], rows[b, 2]):
                 out[ri, members[k]] -= bound_values[k]
+
+
+@numba.njit(cache=True)
+def _gesv(matrix, rhs):
+    """np.linalg.solve in compiled code (LAPACK gesv)."""
+    return np.linalg.solve(matrix, rhs)
 
 
 class _Operator:
@@ -138,6 +146,14 @@ class _Operator:
                                                                               strict=True)])
                             if friction.size else np.zeros(0, dtype=np.int64))
 
+    def _compiled_solve(self, rhs):
+        """J d = rhs by LAPACK gesv inside a compiled function (no Python-side overhead for small J); None when
+        J is singular."""
+        try:
+            return _gesv(self.jacobian, rhs)
+        except Exception:  # numba raises a plain exception for a singular matrix
+            return None
+
     def least_squares(self, rhs):
         """Minimum-norm least-squares solution of J d = rhs for the last dense J (LAPACK gelsy)."""
         return scipy.linalg.lstsq(self.jacobian, rhs, cond=1e-12, lapack_driver="gelsy", check_finite=False)[0]
@@ -151,6 +167,8 @@ class _Operator:
         """Factor J + η I; returns a solve(rhs) callable, or None when the factorisation fails."""
         if self.sparse is None:
             self.assemble(local, gap_factor, bound_values, eta)
+            if self.n <= _COMPILED_SOLVE_BELOW:
+                return self._compiled_solve
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")  # an exactly singular J is handled below

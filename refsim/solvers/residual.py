@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from refsim.solvers.laws import LAW_NAMES
+from refsim.solvers.laws import LAW_NAMES, block_arrays, natural_map_blocks
 from refsim.solvers.problem import ConstraintProblem
 
 __all__ = ["data_residual", "data_residual_by_kind", "data_scales", "natural_map_error", "natural_residual",
@@ -119,6 +119,16 @@ def _denominator(problem: ConstraintProblem, multipliers: np.ndarray, gap: np.nd
     return float(scale) if scale > 0.0 else 1.0
 
 
+def _compiled_error(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """natural_map_error with ρ = 1 through the compiled kernel (same values to round-off, less overhead)."""
+    multipliers = problem.check_multipliers(multipliers)
+    kinds, rows, params, members = block_arrays(problem)
+    gap = problem.compliance @ multipliers + problem.free_gap
+    error = np.zeros(problem.row_count)
+    natural_map_blocks(kinds, rows, params, members, multipliers, gap, np.ones(problem.row_count), error)
+    return error, gap
+
+
 def natural_residual(problem: ConstraintProblem, multipliers: np.ndarray) -> float:
     """Normalised natural-map residual ‖e‖₂ / max(‖δ_free‖, ‖λ‖, ‖δ‖) of ``multipliers``.
 
@@ -131,7 +141,7 @@ def natural_residual(problem: ConstraintProblem, multipliers: np.ndarray) -> flo
     -------
     The residual [-]; 0 exactly at a solution (1 when everything is zero is impossible: then e = 0).
     """
-    error, gap = natural_map_error(problem, multipliers)
+    error, gap = _compiled_error(problem, multipliers)
     residual = _norm(error) / _denominator(problem, np.asarray(multipliers, float), gap)
     return residual if np.isfinite(residual) else float("inf")
 
@@ -164,6 +174,9 @@ def data_scales(problem: ConstraintProblem) -> tuple[np.ndarray, float]:
     weight : ρ [N/m], shape (row_count,).
     scale : F_data [N].
     """
+    cached = problem.__dict__.get("_data_scales")
+    if cached is not None:  # the problem is immutable: compute once
+        return cached
     diagonal = np.diag(problem.compliance).copy()
     largest = float(diagonal.max()) if diagonal.size else 0.0
     if not largest > 0.0:
@@ -175,7 +188,10 @@ def data_scales(problem: ConstraintProblem) -> tuple[np.ndarray, float]:
     bounds = np.concatenate([problem.box_lower, problem.box_upper])
     _, _, _, coefficient, preload = problem.friction_groups()
     scale = max(_norm(weight * problem.free_gap), _norm(bounds[np.isfinite(bounds)]), _norm(coefficient * preload))
-    return weight, (scale if scale > 0.0 else 1.0)
+    weight.setflags(write=False)
+    result = (weight, scale if scale > 0.0 else 1.0)
+    object.__setattr__(problem, "_data_scales", result)
+    return result
 
 
 def _data_error(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[np.ndarray, float]:
@@ -184,7 +200,7 @@ def _data_error(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[np
     multipliers = np.asarray(multipliers, dtype=np.float64)
     if not np.all(np.isfinite(multipliers)):
         return np.full(problem.row_count, np.inf), scale
-    error, _ = natural_map_error(problem, multipliers)
+    error, _ = _compiled_error(problem, multipliers)
     return error, scale
 
 

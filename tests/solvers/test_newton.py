@@ -206,3 +206,16 @@ def test_property_exact_and_gauss_seidel_both_solve_friction(seed, contacts, sha
     _, gs_report = solve_gauss_seidel(problem, tolerance=1e-8, max_iterations=100_000)
     if gs_report.converged:
         assert gs_report.residual <= 1e-8
+
+
+def test_stops_at_the_tolerance_asked():
+    # The stopping test is the residual asked for, not a polish far beyond it: a loose tolerance takes fewer
+    # iterations, and every answer meets its own tolerance in both residuals.
+    rng = np.random.default_rng(13)
+    problem, _, _ = planted_problem(rng, unilateral=6, contacts=6, box=3)
+    loose = solve_newton(problem, tolerance=1e-3)
+    tight = solve_newton(problem, tolerance=1e-12)
+    assert loose.converged and tight.converged
+    assert loose.iterations < tight.iterations
+    assert loose.residual <= 1e-3 and loose.data_residual <= 1e-3
+    assert tight.residual <= 1e-12 and tight.data_residual <= 1e-12
