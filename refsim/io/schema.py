@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from refsim.solvers.laws import problem_field_specs
+
 __all__ = [
     "FORMAT_NAME",
     "SCHEMA_VERSION",
@@ -190,23 +192,13 @@ CUT = _specs(
 #: Group holding one subgroup per recorded constraint problem (scene key output.record_problems).
 PROBLEMS_GROUP = "problems"
 
-#: Datasets of one problem subgroup ``problems/step_NNNNNNN`` (fields of refsim.solvers.ConstraintProblem).
+#: Datasets of one problem subgroup ``problems/step_NNNNNNN``: every array field of
+#: refsim.solvers.ConstraintProblem, derived from the solvers' law table (refsim.solvers.laws), so a new law or
+#: field is recorded and read back without touching this file. Fields absent from an older file take their
+#: defaults when read.
 PROBLEM_FIELDS = _specs(
     "problems/step_NNNNNNN",
-    [
-        ("compliance", "m/N", "float64", ("r", "r"), "compliance (Delassus operator) W"),
-        ("free_gap", "m", "float64", ("r",), "free-motion gap delta_free"),
-        ("bilateral", "1", "int64", ("?",), "bilateral rows"),
-        ("unilateral", "1", "int64", ("?",), "unilateral (Signorini) rows"),
-        ("contacts", "1", "int64", ("?", 3), "contact rows (normal, tangent 1, tangent 2)"),
-        ("contact_friction", "1", "float64", ("?",), "Coulomb friction coefficient of each contact"),
-        ("shaft_friction", "1", "int64", ("?",), "shaft friction rows"),
-        ("shaft_pairs", "1", "int64", ("?", 2), "the two bilateral rows bounding each shaft friction row"),
-        ("shaft_friction_coefficient", "1", "float64", ("?",), "friction coefficient of each shaft row"),
-        ("box_rows", "1", "int64", ("?",), "rows with fixed bounds"),
-        ("box_lower", "N", "float64", ("?",), "lower bound of each box row"),
-        ("box_upper", "N", "float64", ("?",), "upper bound of each box row"),
-    ],
+    [(spec.name, spec.unit, spec.dtype, spec.entry_shape, spec.meaning) for spec in problem_field_specs()],
     growing=False,
 )
 

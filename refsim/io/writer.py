@@ -372,8 +372,15 @@ class ResultWriter:
             del self._file[group_path]
         group = self._file.create_group(group_path)
         group.attrs["step"] = int(step)
-        group.attrs["name"] = str(problem.name)
-        for spec in schema.PROBLEM_FIELDS.values():
-            dataset = group.create_dataset(spec.name, data=np.asarray(getattr(problem, spec.name)),
-                                           dtype=schema.numpy_dtype(spec))
-            self._describe(dataset, spec)
+        write_problem_group(group, problem)
+
+
+def write_problem_group(group, problem) -> None:
+    """Write every field of a ConstraintProblem (schema.PROBLEM_FIELDS, derived from the solvers' law table) and
+    its name into an open h5py group; :func:`refsim.io.reader.read_problem_group` reads it back."""
+    group.attrs["name"] = str(problem.name)
+    for spec in schema.PROBLEM_FIELDS.values():
+        dataset = group.create_dataset(spec.name, data=np.asarray(getattr(problem, spec.name)),
+                                       dtype=schema.numpy_dtype(spec))
+        dataset.attrs["units"] = spec.unit
+        dataset.attrs["description"] = spec.meaning
