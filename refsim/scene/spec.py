@@ -24,6 +24,7 @@ __all__ = [
     "CuttingSpec",
     "SolverSpec",
     "OutputSpec",
+    "ComplianceSpec",
     "Scene",
     "FACE_NAMES",
 ]
@@ -229,6 +230,29 @@ class OutputSpec(_Validated):
 
 
 @dataclass(frozen=True, kw_only=True)
+class ComplianceSpec(_Validated):
+    """How each body's compliance is computed (refsim.fem.compliance) and by which sparse solver; optional section."""
+
+    strategy: str = spec(
+        "exact",
+        doc="exact: factorise every step; refreshed: factorise every refresh_every steps, free motion and W's columns "
+        "by PCG on the current matrix; precomputed: the rest compliance rotated per node (SOFA-like)",
+        choices=("exact", "refreshed", "precomputed"),
+    )
+    refresh_every: int = spec(10, unit="-", doc="steps between factorisations of the refreshed strategy", low=1, high=1_000_000)
+    linear_solver: str = spec(
+        "auto",
+        doc="sparse solver: auto (PARDISO where its wheel installs, else CHOLMOD if importable, else SuperLU; "
+        "$REFSIM_LINEAR_SOLVER overrides auto), or one of pardiso, cholmod, superlu",
+        choices=("auto", "pardiso", "cholmod", "superlu"),
+    )
+
+    def validate(self) -> None:
+        if not isinstance(self.refresh_every, int) or isinstance(self.refresh_every, bool):
+            raise ValueError(f"refresh_every = {self.refresh_every!r}: expected an integer >= 1")
+
+
+@dataclass(frozen=True, kw_only=True)
 class Scene:
     """A whole scene. Built once, never mutated (STYLE.md pattern 6)."""
 
@@ -242,6 +266,7 @@ class Scene:
     cutting: CuttingSpec
     solver: SolverSpec
     output: OutputSpec = dataclasses.field(default_factory=OutputSpec)
+    compliance: ComplianceSpec = dataclasses.field(default_factory=ComplianceSpec)
     source: str = "<memory>"
     base_directory: str = "."
 
@@ -263,6 +288,7 @@ SECTIONS = {
     "cutting": CuttingSpec,
     "solver": SolverSpec,
     "output": OutputSpec,
+    "compliance": ComplianceSpec,
 }
 
 

@@ -31,6 +31,7 @@ from refsim.constraints import (
     points_beyond_tip,
 )
 from refsim.constraints.cut import cut_block, cut_criterion, front_border_points, resample_polyline, sweep_points
+from refsim.fem.compliance import make_strategy
 from refsim.fem.tissue import TissueState
 from refsim.geometry import SurfaceProjector, TetLocator
 from refsim.scene import Scene
@@ -111,6 +112,10 @@ class Simulation:
                 rayleigh_stiffness=scene.needle.rayleigh_stiffness,
             )
         self.dt = scene.time.dt
+        spec = scene.compliance
+        self.tissue_compliance = make_strategy(
+            spec.strategy, refresh_every=spec.refresh_every, linear_solver=spec.linear_solver
+        ).bind()
 
     # ------------------------------------------------------------------ state
 
@@ -137,7 +142,7 @@ class Simulation:
         base, direction = self.models.trajectory.pose(time)
         timer.lap("motion")
 
-        tissue_free, _, tissue_system = self.tissue.free_motion(state.tissue, dt)
+        tissue_free, _, tissue_system = self.tissue.free_motion(state.tissue, dt, compliance=self.tissue_compliance)
         needle_free, needle_system = self.needle.free_motion(state.needle, base, direction, dt)
         timer.lap("free_motion")
 
