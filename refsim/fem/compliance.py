@@ -39,6 +39,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from refsim.fem.linear import make_linear_solver
+from refsim.fem.threads import hot_path_threads
 
 __all__ = [
     "STRATEGIES",
@@ -259,6 +260,10 @@ class StepCompliance:
 
     def delassus(self, jacobian: sp.spmatrix) -> np.ndarray:
         """W = H A⁻¹ Hᵀ [m/N] for rows H of shape (rows, dof_count); dense, symmetric, (rows, rows)."""
+        with hot_path_threads():
+            return self._delassus(jacobian)
+
+    def _delassus(self, jacobian: sp.spmatrix) -> np.ndarray:
         positions, restricted, influence = self._influence(jacobian)
         compliance = restricted @ influence[positions] @ restricted.T
         compliance = 0.5 * (compliance + compliance.T)
@@ -270,6 +275,10 @@ class StepCompliance:
 
     def correction(self, jacobian: sp.spmatrix, multipliers: np.ndarray) -> np.ndarray:
         """A⁻¹ Hᵀ λ [m] on every DoF (zero on the constrained ones), shape (dof_count,)."""
+        with hot_path_threads():
+            return self._correction(jacobian, multipliers)
+
+    def _correction(self, jacobian: sp.spmatrix, multipliers: np.ndarray) -> np.ndarray:
         positions, restricted, influence = self._influence(jacobian)
         multipliers = np.asarray(multipliers, dtype=float)
         if multipliers.shape != (restricted.shape[0],):
@@ -318,6 +327,10 @@ class BodyCompliance:
 
     def step(self, system: StepSystem) -> StepCompliance:
         """The compliance of this step's system (advances the strategy's step counter)."""
+        with hot_path_threads():
+            return self._counted_step(system)
+
+    def _counted_step(self, system: StepSystem) -> StepCompliance:
         exact = self._exact.step(system) if self._exact is not None else None
         result = self._step(system, exact)
         self.steps += 1

@@ -32,8 +32,10 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from refsim.fem.assembly import FreePattern, assemble_free_system
 from refsim.fem.compliance import BodyCompliance, Exact, StepCompliance, StepSystem
 from refsim.fem.integration import ImplicitEulerSystem, effective_stiffness
+from refsim.fem.threads import hot_path_threads
 from refsim.geometry.rotations import polar_rotation
 from refsim.materials import HookeMaterial
 
@@ -461,6 +463,7 @@ class TissueModel:
         dt: float,
         *,
         fixed_displacements: np.ndarray | None = None,
+        compiled: bool = True,
     ) -> StepSystem:
         """The step system of the compliance strategies: A on the free DoFs and the free motion's right-hand side.
 
@@ -473,28 +476,68 @@ class TissueModel:
         dt : Time step [s], > 0.
         fixed_displacements : Displacement of the fixed nodes over the step [m], shape (k, 3) in the order of
             ``fixed_nodes`` (a boundary motion: a Dirichlet condition on those nodes); zero (held) by default.
+        compiled : Co-rotation and assembly in one compiled pass into the fixed free-DoF pattern
+            (:mod:`refsim.fem.assembly`, default); False: the NumPy path (batched products, then elimination), equal
+            to round-off and bit-identical to refsim before the compiled path.
         """
+        if not dt > 0.0:
+            raise ValueError(f"dt must be > 0 s, got {dt!r}")
         positions = self._checked_positions(state.positions)
         velocities = np.asarray(state.velocities, dtype=float)
-        rotations = self.element_rotations(positions)
-        forces = self.external_forces() - self.internal_forces(positions, rotations)
         prescribed = self._prescribed(fixed_displacements)
-        matrix = effective_stiffness(
-            self.mass_matrix,
-            self.tangent_stiffness(rotations),
-            dt,
-            rayleigh_mass=self.rayleigh_mass,
-            rayleigh_stiffness=self.rayleigh_stiffness,
+        if not compiled:
+            rotations = self.element_rotations(positions)
+            forces = self.external_forces() - self.internal_forces(positions, rotations)
+            matrix = effective_stiffness(
+                self.mass_matrix,
+                self.tangent_stiffness(rotations),
+                dt,
+                rayleigh_mass=self.rayleigh_mass,
+                rayleigh_stiffness=self.rayleigh_stiffness,
+            )
+            rhs = forces.ravel() + (self.mass_matrix @ velocities.ravel()) / dt
+            return StepSystem.from_matrices(
+                matrix,
+                rhs,
+                self.fixed_dofs,
+                prescribed,
+                group_rotations=lambda: self.node_rotations(rotations),
+                rest_matrix=lambda: self._rest_effective_stiffness(dt),
+            )
+        pattern = self.free_pattern
+        data, coupling_data, internal, rotations = assemble_free_system(
+            pattern,
+            positions,
+            self.tets,
+            self._rest_edges_inverse,
+            self._centred_rest,
+            self._element_stiffness,
+            1.0 / dt**2 + self.rayleigh_mass / dt,
+            1.0 + self.rayleigh_stiffness / dt,
         )
-        rhs = forces.ravel() + (self.mass_matrix @ velocities.ravel()) / dt
-        return StepSystem.from_matrices(
-            matrix,
-            rhs,
-            self.fixed_dofs,
+        rhs = self.external_forces().ravel() - internal + (self.mass_matrix @ velocities.ravel()) / dt
+        reduced = rhs[pattern.free_dofs]
+        if prescribed is not None and prescribed.size:
+            reduced = reduced - pattern.coupling(coupling_data) @ prescribed
+        else:
+            prescribed = np.zeros(pattern.constrained_dofs.size)
+        return StepSystem(
+            self.dof_count,
+            pattern.free_dofs,
+            pattern.constrained_dofs,
+            pattern.matrix(data),
+            reduced,
             prescribed,
             group_rotations=lambda: self.node_rotations(rotations),
             rest_matrix=lambda: self._rest_effective_stiffness(dt),
         )
+
+    @property
+    def free_pattern(self) -> FreePattern:
+        """The fixed CSR patterns of A_ff and A_fc (built on first use)."""
+        if not hasattr(self, "_free_pattern"):
+            self._free_pattern = FreePattern(self._pattern, self._scatter, self.fixed_dofs, self.mass_matrix)
+        return self._free_pattern
 
     def _prescribed(self, fixed_displacements: np.ndarray | None) -> np.ndarray | None:
         if fixed_displacements is None:
@@ -568,10 +611,11 @@ class TissueModel:
         step : The step's compliance: ``delassus(H)``, ``correction(H, λ)``, and ``compliance(H)`` → (W, A⁻¹Hᵀ).
         """
         positions = self._checked_positions(state.positions)
-        system = self.assemble_step(state, dt, fixed_displacements=fixed_displacements)
         if compliance is None:
             compliance = Exact().bind()
-        step = compliance.step(system)
+        with hot_path_threads():
+            system = self.assemble_step(state, dt, fixed_displacements=fixed_displacements)
+            step = compliance.step(system)
         displacement = step.free_displacement.reshape(self.node_count, 3)
         return positions + displacement, displacement / dt, step
 

@@ -159,7 +159,7 @@ class Simulation:
 
         tissue_positions = tissue_free
         if tissue_responses is not None:
-            tissue_positions = tissue_free + (tissue_responses @ multipliers).reshape(-1, 3)
+            tissue_positions = tissue_free + tissue_system.correction(tissue_responses, multipliers).reshape(-1, 3)
         tissue_state = TissueState(
             positions=tissue_positions, velocities=(tissue_positions - state.tissue.positions) / dt
         )
@@ -284,7 +284,8 @@ class Simulation:
     def _problem(self, rows: RowBlock, tissue_system, needle_system):
         if rows.row_count == 0:
             return None, None, None
-        compliance, tissue_responses = tissue_system.compliance(rows.tissue_jacobian)
+        compliance = tissue_system.delassus(rows.tissue_jacobian)
+        tissue_responses = rows.tissue_jacobian  # the correction is tissue_system.correction(H, λ)
         needle_responses = None
         if rows.needle_jacobian is not None:
             needle_compliance, needle_responses = needle_system.compliance(rows.needle_jacobian)

@@ -64,25 +64,28 @@ def dense_reference(model: TissueModel, state: TissueState, prescribed: np.ndarr
 
 
 def test_exact_strategy_is_bit_identical_to_implicit_euler_system(model):
-    # Today's path (issue 8): ImplicitEulerSystem with SuperLU/COLAMD; the exact strategy on the same solver must
-    # give the same bits for the free motion and for (W, A⁻¹Hᵀ).
+    # Today's path (issue 8): ImplicitEulerSystem with SuperLU/COLAMD; the exact strategy on the same solver and the
+    # NumPy assembly must give the same bits for the free motion and for (W, A⁻¹Hᵀ).
     state = deformed(model)
     rotations = model.element_rotations(state.positions)
     legacy = model.step_system(rotations, DT)
     forces = (model.external_forces() - model.internal_forces(state.positions, rotations)).ravel()
     legacy_free = legacy.free_displacement(forces, state.velocities.ravel())
-    positions, velocities, step = model.free_motion(
-        state, DT, compliance=Exact(linear_solver="superlu:COLAMD").bind()
-    )
-    np.testing.assert_array_equal(positions, state.positions + legacy_free.reshape(-1, 3))
-    np.testing.assert_array_equal(velocities, legacy_free.reshape(-1, 3) / DT)
+    step = Exact(linear_solver="superlu:COLAMD").bind().step(model.assemble_step(state, DT, compiled=False))
+    np.testing.assert_array_equal(step.free_displacement, legacy_free)
+    # free_motion (compiled assembly, default solver) gives the same to round-off: κ(A)·ε relative.
+    kappa = np.linalg.cond(step.system.matrix.toarray())
+    positions, velocities, _ = model.free_motion(state, DT)
+    moved = (positions - state.positions).ravel()
+    assert np.abs(moved - legacy_free).max() <= 10 * kappa * EPS * np.abs(legacy_free).max()
+    # v = Δx/dt, and x₀ + Δx − x₀ is Δx to the round-off of the positions (ε max|x|).
+    assert np.abs(velocities.ravel() - moved / DT).max() <= 2 * EPS * np.abs(positions).max() / DT
     jacobian = rows_on(model)
     legacy_w, legacy_responses = legacy.compliance(jacobian)
     w, responses = step.compliance(jacobian)
     np.testing.assert_array_equal(w, legacy_w)
     np.testing.assert_array_equal(responses, legacy_responses)
     # The fast forms agree with it to round-off: κ(A)·ε relative (κ measured).
-    kappa = np.linalg.cond(step.system.matrix.toarray())
     lam = np.random.default_rng(2).standard_normal(jacobian.shape[0])
     np.testing.assert_allclose(step.delassus(jacobian), w, rtol=0, atol=10 * kappa * EPS * np.abs(w).max())
     correction = step.correction(jacobian, lam)
