@@ -245,6 +245,7 @@ class StepCompliance:
         """Used free DoFs of H (positions among the free DoFs), H restricted to them, and A⁻¹ E on them."""
         if self._cache_key is jacobian:
             return self._cache
+        key = jacobian
         jacobian = sp.csr_matrix(jacobian)
         if jacobian.shape[1] != self.system.dof_count:
             raise ValueError(f"rows must have {self.system.dof_count} columns (DoFs), got {jacobian.shape[1]}")
@@ -255,7 +256,7 @@ class StepCompliance:
         used, positions = used[on_free], positions[on_free]
         restricted = jacobian[:, used].toarray()  # (rows, u): constrained DoFs do not move
         influence = self._columns(positions) if used.size else np.zeros((self.system.free_dofs.size, 0))
-        self._cache_key, self._cache = jacobian, (positions, restricted, influence)
+        self._cache_key, self._cache = key, (positions, restricted, influence)
         return self._cache
 
     def delassus(self, jacobian: sp.spmatrix) -> np.ndarray:
@@ -559,6 +560,7 @@ def make_strategy(
     linear_solver: str = "auto",
     against_exact: bool = False,
     tolerance: float = 1e-10,
+    w_update: str = "pcg",
 ):
     """The strategy value for a scene's ``compliance`` section.
 
@@ -569,12 +571,14 @@ def make_strategy(
     linear_solver : "auto", "pardiso", "cholmod" or "superlu".
     against_exact : Report errors against exact each step (fast strategies only).
     tolerance : PCG tolerance of the fast strategies.
+    w_update : Of :class:`Refreshed` (its ``compliance_update``): "pcg" or "stale".
     """
     if name == "exact":
         return Exact(linear_solver=linear_solver)
     if name == "refreshed":
         return Refreshed(
-            refresh_every=refresh_every, tolerance=tolerance, linear_solver=linear_solver, against_exact=against_exact
+            refresh_every=refresh_every, tolerance=tolerance, linear_solver=linear_solver, against_exact=against_exact,
+            compliance_update=w_update,
         )
     if name == "precomputed":
         return Precomputed(tolerance=tolerance, linear_solver=linear_solver, against_exact=against_exact)

@@ -240,6 +240,12 @@ class ComplianceSpec(_Validated):
         choices=("exact", "refreshed", "precomputed"),
     )
     refresh_every: int = spec(10, unit="-", doc="steps between factorisations of the refreshed strategy", low=1, high=1_000_000)
+    w_update: str = spec(
+        "pcg",
+        doc="refreshed strategy: W's columns solved by PCG on the current matrix (pcg, corrected to the PCG "
+        "tolerance) or taken from the stale factor (stale, error measured by refsim bench --against-exact)",
+        choices=("pcg", "stale"),
+    )
     linear_solver: str = spec(
         "auto",
         doc="sparse solver: auto (PARDISO where its wheel installs, else CHOLMOD if importable, else SuperLU; "

@@ -114,7 +114,7 @@ class Simulation:
         self.dt = scene.time.dt
         spec = scene.compliance
         self.tissue_compliance = make_strategy(
-            spec.strategy, refresh_every=spec.refresh_every, linear_solver=spec.linear_solver
+            spec.strategy, refresh_every=spec.refresh_every, linear_solver=spec.linear_solver, w_update=spec.w_update
         ).bind()
 
     # ------------------------------------------------------------------ state
