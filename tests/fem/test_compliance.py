@@ -218,3 +218,44 @@ def test_pcg_solves_columns_to_their_tolerance():
 def test_bad_strategy_values_are_named(kwargs, match):
     with pytest.raises(ValueError, match=match):
         make_strategy(**kwargs).bind()
+
+
+def test_needle_behind_the_interface_equals_its_implicit_euler_system():
+    # What refsim.simulation.needle_body.FlexibleNeedle does today, against NeedleModel.assemble_step + Exact.
+    from refsim.fem.needle import NeedleModel
+
+    needle = NeedleModel(length=0.1, radius=5e-4, element_count=8, youngs_modulus=2e11, poisson_ratio=0.3,
+                         density=7850.0)
+    positions, frames = needle.rest_state()
+    rng = np.random.default_rng(5)
+    velocities = 1e-3 * rng.standard_normal((needle.node_count, 6))
+    increment = np.array([1e-4, 2e-4, 0.0, 0.0, 1e-3, -2e-3])
+    mass = needle.mass_matrix()
+    legacy = ImplicitEulerSystem.build(mass, needle.tangent_stiffness(positions, frames), DT, rayleigh_mass=0.5,
+                                       rayleigh_stiffness=1e-3, constrained_dofs=needle.base_dofs)
+    expected = legacy.free_displacement(-needle.internal_forces(positions, frames), velocities.ravel(), increment)
+    system = needle.assemble_step(positions, frames, velocities, DT, increment, rayleigh_mass=0.5,
+                                  rayleigh_stiffness=1e-3, mass=mass)
+    step = Exact(linear_solver="superlu:COLAMD").bind().step(system)
+    np.testing.assert_array_equal(step.free_displacement, expected)
+    rows = sp.csr_matrix(rng.standard_normal((4, needle.dof_count)))
+    kappa = np.linalg.cond(system.matrix.toarray())
+    w_legacy = legacy.compliance(rows)[0]
+    assert np.abs(step.delassus(rows) - w_legacy).max() <= 10 * kappa * EPS * np.abs(w_legacy).max()
+
+
+def test_scene_keys_choose_the_strategy():
+    from refsim.scene import load_scene
+    from refsim.scene.loader import SceneError
+
+    scene = load_scene("cube", ['compliance.strategy="refreshed"', "compliance.refresh_every=5",
+                                'compliance.w_update="stale"', 'compliance.linear_solver="superlu"'])
+    spec = scene.compliance
+    strategy = make_strategy(spec.strategy, refresh_every=spec.refresh_every, linear_solver=spec.linear_solver,
+                             w_update=spec.w_update)
+    assert isinstance(strategy, Refreshed) and strategy.refresh_every == 5 and strategy.compliance_update == "stale"
+    assert load_scene("cube").compliance.strategy == "exact"
+    with pytest.raises(SceneError, match="refresh_every"):
+        load_scene("cube", ["compliance.refresh_every=0"])
+    with pytest.raises(SceneError, match="strategy"):
+        load_scene("cube", ['compliance.strategy="fast"'])
