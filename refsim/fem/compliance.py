@@ -214,8 +214,12 @@ class StepCompliance:
         report: dict,
         exact: StepCompliance | None = None,
         solve: Callable | None = None,
+        block: Callable | None = None,
+        apply: Callable | None = None,
     ):
         self.system = system
+        self._block = block  # (positions, influence) -> E_uᵀ A⁻¹ E_u, (u, u); influence[positions] by default
+        self._apply = apply  # (free load, first guess) -> A⁻¹ load; influence @ (H_uᵀ λ) by default
         self._solve = solve  # the exact factor's solve on the free DoFs (exact strategy only)
         self.free_displacement = system.expand(free_free, system.prescribed)
         self.report = report
@@ -266,7 +270,8 @@ class StepCompliance:
 
     def _delassus(self, jacobian: sp.spmatrix) -> np.ndarray:
         positions, restricted, influence = self._influence(jacobian)
-        compliance = restricted @ influence[positions] @ restricted.T
+        block = influence[positions] if self._block is None else self._block(positions, influence)
+        compliance = restricted @ block @ restricted.T
         compliance = 0.5 * (compliance + compliance.T)
         if self._exact is not None:
             reference = self._exact.delassus(jacobian)
@@ -284,7 +289,13 @@ class StepCompliance:
         multipliers = np.asarray(multipliers, dtype=float)
         if multipliers.shape != (restricted.shape[0],):
             raise ValueError(f"multipliers must have shape ({restricted.shape[0]},), got {multipliers.shape}")
-        out = self.system.expand(influence @ (restricted.T @ multipliers))
+        weights = restricted.T @ multipliers
+        free = influence @ weights
+        if self._apply is not None and positions.size:
+            load = np.zeros(self.system.free_dofs.size)
+            np.add.at(load, positions, weights)
+            free = self._apply(load, free)
+        out = self.system.expand(free)
         if self._exact is not None:
             self.report["correction_error"] = float(
                 np.abs(out - self._exact.correction(jacobian, multipliers)).max(initial=0.0)
@@ -397,12 +408,14 @@ class _RefreshedBody(BodyCompliance):
         super().__init__(strategy)
         self._solver = make_linear_solver(strategy.linear_solver)
         self._age = None
+        self._factored = None  # the matrix of the stale factor
 
     def _step(self, system: StepSystem, exact) -> StepCompliance:
         strategy = self.strategy
         refactorised = self._age is None or self._age >= strategy.refresh_every
         if refactorised:
             self._solver.factorise(system.matrix)
+            self._factored = system.matrix.copy()
             self._age = 0
         self._age += 1
         solver, matrix = self._solver, system.matrix
@@ -419,7 +432,7 @@ class _RefreshedBody(BodyCompliance):
         def columns(positions):
             unit = np.zeros((size, positions.size))
             unit[positions, np.arange(positions.size)] = 1.0
-            if refactorised or strategy.compliance_update == "stale":
+            if refactorised or strategy.compliance_update in ("stale", "first_order"):
                 return solver.solve(unit)
             solution, column_iterations, column_residual = pcg(
                 matrix.dot, solver.solve, unit, tolerance=strategy.tolerance, max_iterations=strategy.max_iterations
@@ -428,7 +441,36 @@ class _RefreshedBody(BodyCompliance):
             report["column_pcg_residual"] = column_residual
             return solution
 
-        return StepCompliance(system, free, columns, report, exact)
+        block = apply = None
+        if strategy.compliance_update == "first_order" and not refactorised:
+            change = _difference(matrix, self._factored)
+
+            def block(positions, influence):
+                # A⁻¹ = A₀⁻¹ − A₀⁻¹ ΔA A₀⁻¹ + O(‖A₀⁻¹ΔA‖²): E_uᵀA⁻¹E_u ≈ Z₀[u] − Z₀ᵀ ΔA Z₀, Z₀ = A₀⁻¹ E_u.
+                first = influence[positions] - influence.T @ (change @ influence)
+                return 0.5 * (first + first.T)
+
+            def apply(load, start):
+                solution, load_iterations, _ = pcg(
+                    matrix.dot, solver.solve, load, tolerance=strategy.tolerance,
+                    max_iterations=strategy.max_iterations, start=start,
+                )
+                report["correction_pcg_iterations"] = load_iterations
+                return solution
+
+        return StepCompliance(system, free, columns, report, exact, block=block, apply=apply)
+
+
+def _difference(matrix: sp.csr_matrix, reference: sp.csr_matrix) -> sp.csr_matrix:
+    """matrix − reference, on their common pattern when they share it (the usual case: one pattern per run)."""
+    if (
+        matrix.shape == reference.shape
+        and matrix.nnz == reference.nnz
+        and np.array_equal(matrix.indptr, reference.indptr)
+        and np.array_equal(matrix.indices, reference.indices)
+    ):
+        return sp.csr_matrix((matrix.data - reference.data, matrix.indices, matrix.indptr), shape=matrix.shape)
+    return (matrix - reference).tocsr()
 
 
 @dataclass(frozen=True)
@@ -440,7 +482,9 @@ class Refreshed:
     refresh_every : Steps between factorisations, ≥ 1 (1 is the exact strategy with extra CG checks).
     tolerance : Relative residual of the PCG solves, in (0, 1).
     max_iterations : PCG iteration cap per solve, ≥ 1.
-    compliance_update : "pcg" (W's columns solved on the current A to ``tolerance``) or "stale" (the stale factor's).
+    compliance_update : "pcg" (W's columns solved on the current A to ``tolerance``), "stale" (the stale factor's
+        W and correction) or "first_order" (W corrected to first order, W ≈ H(Z₀ − Z₀ᵀ(A − A₀)Z₀)Hᵀ with
+        Z₀ = A₀⁻¹E_u from the stale factor, error O(‖A₀⁻¹(A − A₀)‖²) relative; the correction by PCG to ``tolerance``).
     linear_solver : As for :class:`Exact`.
     against_exact : Also compute the exact answer each step and report the errors (for benchmarks).
     """
@@ -461,8 +505,10 @@ class Refreshed:
             raise ValueError(f"tolerance = {self.tolerance!r}: expected a number in (0, 1)")
         if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
             raise ValueError(f"max_iterations = {self.max_iterations!r}: expected an integer >= 1")
-        if self.compliance_update not in ("pcg", "stale"):
-            raise ValueError(f"compliance_update = {self.compliance_update!r}: expected 'pcg' or 'stale'")
+        if self.compliance_update not in ("pcg", "stale", "first_order"):
+            raise ValueError(
+                f"compliance_update = {self.compliance_update!r}: expected 'pcg', 'stale' or 'first_order'"
+            )
 
     def bind(self) -> BodyCompliance:
         """A fresh per-body, per-run compliance."""

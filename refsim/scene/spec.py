@@ -243,8 +243,9 @@ class ComplianceSpec(_Validated):
     w_update: str = spec(
         "pcg",
         doc="refreshed strategy: W's columns solved by PCG on the current matrix (pcg, corrected to the PCG "
-        "tolerance) or taken from the stale factor (stale, error measured by refsim bench --against-exact)",
-        choices=("pcg", "stale"),
+        "tolerance), corrected to first order in the change of the matrix since the factorisation with the "
+        "correction by PCG (first_order), or taken from the stale factor (stale); errors by refsim bench --against-exact",
+        choices=("pcg", "first_order", "stale"),
     )
     linear_solver: str = spec(
         "auto",

@@ -259,3 +259,33 @@ def test_scene_keys_choose_the_strategy():
         load_scene("cube", ["compliance.refresh_every=0"])
     with pytest.raises(SceneError, match="strategy"):
         load_scene("cube", ['compliance.strategy="fast"'])
+
+
+def test_first_order_w_update_is_second_order_in_the_matrix_change(model):
+    # A⁻¹ = A₀⁻¹ − A₀⁻¹ΔA A₀⁻¹ + O(‖A₀⁻¹ΔA‖²): the stale W errs by O(ΔA), the first-order corrected one by O(ΔA²).
+    # ΔA is proportional to the change of configuration h (the rotations move by O(h)): fitted orders 1 and 2.
+    base = deformed(model, 0.01)
+    direction = deformed(model, 0.01, seed=7).positions - base.positions
+    jacobian = rows_on(model)
+    sizes = np.array([0.4, 0.2, 0.1])
+    errors = {"stale": [], "first_order": []}
+    for update in errors:
+        for h in sizes:
+            body = Refreshed(refresh_every=100, compliance_update=update, against_exact=True).bind()
+            body.step(model.assemble_step(base, DT))
+            moved = TissueState(positions=base.positions + h * direction, velocities=base.velocities)
+            step = body.step(model.assemble_step(moved, DT))
+            step.delassus(jacobian)
+            errors[update].append(step.report["compliance_error"])
+    stale_order = np.polyfit(np.log(sizes), np.log(errors["stale"]), 1)[0]
+    first_order = np.polyfit(np.log(sizes), np.log(errors["first_order"]), 1)[0]
+    assert 0.8 <= stale_order <= 1.2, errors
+    assert 1.8 <= first_order <= 2.2, errors
+    assert np.all(np.array(errors["first_order"]) < np.array(errors["stale"]))
+    # Its correction is a PCG solve on the current A: exact to the tolerance.
+    lam = np.ones(jacobian.shape[0])
+    correction = step.correction(jacobian, lam)
+    _, dense, inverse, _ = dense_reference(model, moved)
+    expected = step.system.expand(inverse @ (jacobian[:, step.system.free_dofs].T @ lam))
+    kappa = np.linalg.cond(dense)
+    assert np.linalg.norm(correction - expected) <= kappa * 1e-10 * np.linalg.norm(expected)
