@@ -37,12 +37,16 @@ class FreePattern:
     mass_matrix : M on the full pattern's DoFs (CSR; its entries must lie in the pattern).
     """
 
-    def __init__(self, pattern: sp.csr_matrix, scatter: np.ndarray, constrained_dofs: np.ndarray, mass_matrix) -> None:
+    def __init__(
+        self, pattern: sp.csr_matrix, scatter: np.ndarray, constrained_dofs: np.ndarray, mass_matrix
+    ) -> None:
         n = pattern.shape[0]
         self.dof_count = n
         self.constrained_dofs = np.asarray(constrained_dofs, dtype=np.int64)
         self.free_dofs = np.setdiff1d(np.arange(n), self.constrained_dofs)
-        numbered = sp.csr_matrix((np.arange(pattern.nnz, dtype=float), pattern.indices, pattern.indptr), shape=(n, n))
+        numbered = sp.csr_matrix(
+            (np.arange(pattern.nnz, dtype=float), pattern.indices, pattern.indptr), shape=(n, n)
+        )
         numbered.has_sorted_indices = True
         free_free = numbered[self.free_dofs][:, self.free_dofs].tocsr()
         free_free.sort_indices()
@@ -102,8 +106,18 @@ class FreePattern:
 
 @numba.njit(cache=True)
 def _assemble(
-    positions, tets, rest_edges_inverse, centred_rest, stiffness, stiffness_factor,
-    slots, coupling_slots, data, coupling_data, forces, rotations,
+    positions,
+    tets,
+    rest_edges_inverse,
+    centred_rest,
+    stiffness,
+    stiffness_factor,
+    slots,
+    coupling_slots,
+    data,
+    coupling_data,
+    forces,
+    rotations,
 ):  # pragma: no cover - compiled
     tet_count = tets.shape[0]
     f = np.empty((3, 3))
@@ -128,8 +142,12 @@ def _assemble(
         rotations[e, :, :] = r
         # centred element positions and u_a = Rᵀ x_a − X_a
         for i in range(3):
-            mean = 0.25 * (positions[tets[e, 0], i] + positions[tets[e, 1], i] + positions[tets[e, 2], i]
-                           + positions[tets[e, 3], i])
+            mean = 0.25 * (
+                positions[tets[e, 0], i]
+                + positions[tets[e, 1], i]
+                + positions[tets[e, 2], i]
+                + positions[tets[e, 3], i]
+            )
             for a in range(4):
                 x[a, i] = positions[tets[e, a], i] - mean
         for a in range(4):
@@ -206,7 +224,17 @@ def assemble_free_system(
     forces = np.zeros(pattern.dof_count)
     rotations = np.empty((tets.shape[0], 3, 3))
     _assemble(
-        np.ascontiguousarray(positions, dtype=float), tets, rest_edges_inverse, centred_rest, stiffness,
-        float(stiffness_factor), pattern.slots, pattern.coupling_slots, data, coupling, forces, rotations,
+        np.ascontiguousarray(positions, dtype=float),
+        tets,
+        rest_edges_inverse,
+        centred_rest,
+        stiffness,
+        float(stiffness_factor),
+        pattern.slots,
+        pattern.coupling_slots,
+        data,
+        coupling,
+        forces,
+        rotations,
     )
     return data, coupling, forces, rotations

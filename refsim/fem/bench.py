@@ -79,7 +79,9 @@ def _rows(model: TissueModel, nodes: int = 7) -> sp.csr_matrix:
     centre = np.array([0.5, 0.5, 1.0]) * _CUBE_SIZE
     chosen = np.argsort(np.linalg.norm(rest - centre, axis=1))[:nodes]
     dofs = (3 * chosen[:, None] + np.arange(3)).ravel()
-    return sp.csr_matrix((np.ones(dofs.size), (np.arange(dofs.size), dofs)), shape=(dofs.size, model.dof_count))
+    return sp.csr_matrix(
+        (np.ones(dofs.size), (np.arange(dofs.size), dofs)), shape=(dofs.size, model.dof_count)
+    )
 
 
 def superlu_reference_ms(model: TissueModel, repeats: int = 3) -> float:
@@ -95,13 +97,23 @@ def _strategy(name: str, refresh_every: int, against_exact: bool, linear_solver:
     if name == "exact":
         return Exact(linear_solver=linear_solver)
     if name == "refreshed":
-        return Refreshed(refresh_every=refresh_every, linear_solver=linear_solver, against_exact=against_exact)
+        return Refreshed(
+            refresh_every=refresh_every, linear_solver=linear_solver, against_exact=against_exact
+        )
     if name == "refreshed_first_order":
-        return Refreshed(refresh_every=refresh_every, linear_solver=linear_solver, against_exact=against_exact,
-                         compliance_update="first_order")
+        return Refreshed(
+            refresh_every=refresh_every,
+            linear_solver=linear_solver,
+            against_exact=against_exact,
+            compliance_update="first_order",
+        )
     if name == "refreshed_stale":
-        return Refreshed(refresh_every=refresh_every, linear_solver=linear_solver, against_exact=against_exact,
-                         compliance_update="stale")
+        return Refreshed(
+            refresh_every=refresh_every,
+            linear_solver=linear_solver,
+            against_exact=against_exact,
+            compliance_update="stale",
+        )
     if name == "precomputed":
         return Precomputed(linear_solver=linear_solver, against_exact=against_exact)
     raise ValueError(f"strategy {name!r}: expected exact, refreshed or precomputed")
@@ -114,7 +126,11 @@ def _run_strategy(
     body = strategy.bind()
     state = model.rest_state()
     per_step = np.zeros((steps, len(STAGES)))
-    iterations, column_iterations, errors = [], [], {"free_motion_error": 0.0, "compliance_error": 0.0, "correction_error": 0.0}
+    iterations, column_iterations, errors = (
+        [],
+        [],
+        {"free_motion_error": 0.0, "compliance_error": 0.0, "correction_error": 0.0},
+    )
     drive = np.zeros((model.fixed_nodes.size, 3))
     drive[:, 0] = shear / steps
     lam = 1e-2 * np.sin(np.arange(rows.shape[0]))  # forces [N] of the rows, for the correction
@@ -177,7 +193,13 @@ def _advance(model, body, state, drive, rows, lam) -> TissueState:
 def bench_strategies(
     cells: int = 8,
     *,
-    strategies: tuple[str, ...] = ("exact", "refreshed", "refreshed_first_order", "refreshed_stale", "precomputed"),
+    strategies: tuple[str, ...] = (
+        "exact",
+        "refreshed",
+        "refreshed_first_order",
+        "refreshed_stale",
+        "precomputed",
+    ),
     steps: int = 30,
     shear: float = 0.01,
     refresh_every: int = 10,
@@ -205,8 +227,12 @@ def bench_strategies(
         results.append(_run_strategy(model, strategy, steps, shear, rows))
         if against_exact and name != "exact":
             # Timings without the error bookkeeping (it runs an exact factorisation each step)
-            timed = _run_strategy(model, _strategy(name, refresh_every, False, linear_solver), steps, shear, rows)
-            errors = {k: results[-1][k] for k in ("free_motion_error", "compliance_error", "correction_error")}
+            timed = _run_strategy(
+                model, _strategy(name, refresh_every, False, linear_solver), steps, shear, rows
+            )
+            errors = {
+                k: results[-1][k] for k in ("free_motion_error", "compliance_error", "correction_error")
+            }
             results[-1] = {**timed, **errors}
         logger.info("strategy bench: %s", results[-1])
     return reference, results
@@ -226,40 +252,47 @@ def bench_scaling(
     *,
     steps: int = 10,
     refresh_every: int = 10,
+    strategies: tuple[str, ...] = ("exact", "refreshed", "refreshed_first_order", "refreshed_stale"),
     linear_solver: str = "auto",
     max_step_seconds: float = 30.0,
 ) -> list[dict[str, float | int]]:
-    """Cost per step of exact and refreshed on refined cubes (the loaded step sequence of :func:`bench_strategies`).
+    """Cost per step of each strategy on refined cubes (the loaded step sequence of :func:`bench_strategies`).
 
     Sizes after one whose exact step took longer than ``max_step_seconds`` are skipped (logged).
 
     Returns
     -------
-    One dict per size: ``cells_per_axis``, ``free_dofs``, ``exact_ms``, ``exact_factorisation_ms``, ``refreshed_ms``
-    (mean per step over ``steps`` steps, one factorisation amortised over ``refresh_every``), ``pcg_iterations``.
+    One dict per size: ``cells_per_axis``, ``free_dofs``, ``exact_factorisation_ms``, then per strategy
+    ``<name>_ms`` (mean per step over ``steps`` steps; the refreshed factorisation amortised over ``refresh_every``)
+    and ``<name>_compliance_ms`` (W and correction), and ``pcg_iterations`` (free motion, refreshed).
     """
     out = []
     for cells in cells_per_axis:
         model = cube_model(int(cells))
         rows = _rows(model)
         _run_strategy(model, Exact(linear_solver=linear_solver), 1, 0.01, rows)  # numba, analysis
-        exact = _run_strategy(model, Exact(linear_solver=linear_solver), steps, 0.01, rows)
-        refreshed = _run_strategy(
-            model, Refreshed(refresh_every=refresh_every, linear_solver=linear_solver), steps, 0.01, rows
-        )
-        row = {
+        row: dict[str, float | int] = {
             "cells_per_axis": int(cells),
             "free_dofs": int(model.dof_count - model.fixed_dofs.size),
-            "exact_ms": exact["total_ms"],
-            "exact_factorisation_ms": exact["factorisation_ms"],
-            "refreshed_ms": refreshed["total_ms"],
-            "pcg_iterations": refreshed["pcg_iterations"],
         }
+        for name in strategies:
+            result = _run_strategy(
+                model, _strategy(name, refresh_every, False, linear_solver), steps, 0.01, rows
+            )
+            if name == "exact":
+                row["exact_factorisation_ms"] = result["factorisation_ms"]
+            row[f"{name}_ms"] = result["total_ms"]
+            row[f"{name}_compliance_ms"] = result["compliance_ms"] + result["correction_ms"]
+            if name == "refreshed":
+                row["pcg_iterations"] = result["pcg_iterations"]
         logger.info("scaling bench: %s", row)
         out.append(row)
-        if exact["total_ms"] > 1e3 * max_step_seconds:
-            logger.warning("exact step took %.1f s on %d cells per axis: larger sizes skipped",
-                           exact["total_ms"] / 1e3, cells)
+        if row.get("exact_ms", 0.0) > 1e3 * max_step_seconds:
+            logger.warning(
+                "exact step took %.1f s on %d cells per axis: larger sizes skipped",
+                row["exact_ms"] / 1e3,
+                cells,
+            )
             break
     return out
 
@@ -286,12 +319,16 @@ def compare_runs(reference: dict, candidate: dict) -> dict[str, float | bool | s
     out: dict[str, float | bool | str] = {
         "position_error": float(np.abs(x_ref[:steps] - x[:steps]).max()) if steps else float("nan"),
         "force_error": float(np.linalg.norm(f_ref[:force_steps] - f[:force_steps], axis=1).max())
-        if force_steps else float("nan"),
+        if force_steps
+        else float("nan"),
         "peak_force": float(np.linalg.norm(f_ref, axis=1).max()) if len(f_ref) else float("nan"),
         "same_events": events_ref == events,
     }
     if events_ref != events:
-        first = next((i for i, (a, b) in enumerate(zip(events_ref, events)) if a != b), min(len(events_ref), len(events)))
+        first = next(
+            (i for i, (a, b) in enumerate(zip(events_ref, events, strict=False)) if a != b),
+            min(len(events_ref), len(events)),
+        )
         out["event_shift"] = (
             f"event {first}: exact {events_ref[first] if first < len(events_ref) else None}, "
             f"this {events[first] if first < len(events) else None}; counts {len(events_ref)} / {len(events)}"
@@ -351,40 +388,49 @@ def bench_tissue(
         raise ValueError(f"repeats must be >= 1, got {repeats!r}")
     rows: list[dict[str, float | int]] = []
     for cells in cells_per_axis:
-        start = time.perf_counter()
-        model = cube_model(int(cells))
-        setup_ms = 1e3 * (time.perf_counter() - start)
-        rest = model.rest_positions
-        positions = rest + 0.01 * _CUBE_SIZE * np.sin(20.0 * rest / _CUBE_SIZE)
-        positions[model.fixed_nodes] = rest[model.fixed_nodes]
-        state = TissueState(positions=positions, velocities=np.zeros_like(rest))
-        with hot_path_threads():
-            model.assemble_step(state, _DT)  # compile
-            rotations_ms, _ = _best_ms(lambda: model.element_rotations(state.positions), repeats)
-            assembly_ms, system = _best_ms(lambda: model.assemble_step(state, _DT), repeats)
-            body = Exact().bind()
-            body.step(system)
-            factor_repeats = repeats if cells <= 16 else 1
-            factorisation_ms, _ = _best_ms(lambda: body._solver.factorise(system.matrix), factor_repeats)
-            solve_ms, _ = _best_ms(lambda: body._solver.solve(system.rhs), repeats)
-            superlu = SuperLUSolver("COLAMD")
-            superlu_ms, _ = _best_ms(lambda: superlu.factorise(system.matrix), 1)
-        row = {
-            "cells_per_axis": int(cells),
-            "node_count": model.node_count,
-            "tet_count": model.tet_count,
-            "dof_count": model.dof_count,
-            "setup_ms": setup_ms,
-            "rotations_ms": rotations_ms,
-            "assembly_ms": assembly_ms,
-            "factorisation_ms": factorisation_ms,
-            "solve_ms": solve_ms,
-            "superlu_ms": superlu_ms,
-        }
+        row = _bench_one(int(cells), repeats)
         logger.info("tissue bench: %s", row)
         rows.append(row)
-        if max(factorisation_ms, superlu_ms) > 1e3 * max_factorisation_seconds:
-            logger.warning("factorisation took > %.0f s on %d cells per axis: larger sizes skipped",
-                           max_factorisation_seconds, cells)
+        if max(row["factorisation_ms"], row["superlu_ms"]) > 1e3 * max_factorisation_seconds:
+            logger.warning(
+                "factorisation took > %.0f s on %d cells per axis: larger sizes skipped",
+                max_factorisation_seconds,
+                cells,
+            )
             break
     return rows
+
+
+def _bench_one(cells: int, repeats: int) -> dict[str, float | int]:
+    """Timings of one cube size (see :func:`bench_tissue`)."""
+    start = time.perf_counter()
+    model = cube_model(int(cells))
+    setup_ms = 1e3 * (time.perf_counter() - start)
+    rest = model.rest_positions
+    positions = rest + 0.01 * _CUBE_SIZE * np.sin(20.0 * rest / _CUBE_SIZE)
+    positions[model.fixed_nodes] = rest[model.fixed_nodes]
+    state = TissueState(positions=positions, velocities=np.zeros_like(rest))
+    with hot_path_threads():
+        model.assemble_step(state, _DT)  # compile
+        rotations_ms, _ = _best_ms(lambda: model.element_rotations(state.positions), repeats)
+        assembly_ms, system = _best_ms(lambda: model.assemble_step(state, _DT), repeats)
+        body = Exact().bind()
+        body.step(system)
+        factor_repeats = repeats if cells <= 16 else 1
+        factorisation_ms, _ = _best_ms(lambda: body._solver.factorise(system.matrix), factor_repeats)
+        solve_ms, _ = _best_ms(lambda: body._solver.solve(system.rhs), repeats)
+        superlu = SuperLUSolver("COLAMD")
+        superlu_ms, _ = _best_ms(lambda: superlu.factorise(system.matrix), 1)
+    row = {
+        "cells_per_axis": int(cells),
+        "node_count": model.node_count,
+        "tet_count": model.tet_count,
+        "dof_count": model.dof_count,
+        "setup_ms": setup_ms,
+        "rotations_ms": rotations_ms,
+        "assembly_ms": assembly_ms,
+        "factorisation_ms": factorisation_ms,
+        "solve_ms": solve_ms,
+        "superlu_ms": superlu_ms,
+    }
+    return row

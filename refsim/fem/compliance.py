@@ -105,9 +105,13 @@ class StepSystem:
         """
         matrix = sp.csr_matrix(matrix)
         n = matrix.shape[0]
-        constrained = np.unique(np.asarray([] if constrained_dofs is None else constrained_dofs, dtype=np.int64))
+        constrained = np.unique(
+            np.asarray([] if constrained_dofs is None else constrained_dofs, dtype=np.int64)
+        )
         if constrained.size and (constrained[0] < 0 or constrained[-1] >= n):
-            raise ValueError(f"constrained_dofs must lie in [0, {n}), got {constrained.min()}..{constrained.max()}")
+            raise ValueError(
+                f"constrained_dofs must lie in [0, {n}), got {constrained.min()}..{constrained.max()}"
+            )
         free = np.setdiff1d(np.arange(n), constrained)
         if free.size == 0:
             raise ValueError("every DoF is constrained: nothing to solve")
@@ -228,7 +232,9 @@ class StepCompliance:
         self._cache_key = None
         self._cache = None
         if exact is not None:
-            report["free_motion_error"] = float(np.abs(self.free_displacement - exact.free_displacement).max())
+            report["free_motion_error"] = float(
+                np.abs(self.free_displacement - exact.free_displacement).max()
+            )
 
     @property
     def dof_count(self) -> int:
@@ -252,7 +258,9 @@ class StepCompliance:
         key = jacobian
         jacobian = sp.csr_matrix(jacobian)
         if jacobian.shape[1] != self.system.dof_count:
-            raise ValueError(f"rows must have {self.system.dof_count} columns (DoFs), got {jacobian.shape[1]}")
+            raise ValueError(
+                f"rows must have {self.system.dof_count} columns (DoFs), got {jacobian.shape[1]}"
+            )
         used = np.unique(jacobian.indices)
         positions = np.searchsorted(self.system.free_dofs, used)
         positions = np.minimum(positions, self.system.free_dofs.size - 1)
@@ -335,7 +343,9 @@ class BodyCompliance:
     def __init__(self, strategy) -> None:
         self.strategy = strategy
         self.steps = 0
-        self._exact = _ExactBody(strategy.linear_solver) if getattr(strategy, "against_exact", False) else None
+        self._exact = (
+            _ExactBody(strategy.linear_solver) if getattr(strategy, "against_exact", False) else None
+        )
 
     def step(self, system: StepSystem) -> StepCompliance:
         """The compliance of this step's system (advances the strategy's step counter)."""
@@ -423,7 +433,10 @@ class _RefreshedBody(BodyCompliance):
             free, iterations, residual = solver.solve(system.rhs), 0, 0.0
         else:
             free, iterations, residual = pcg(
-                matrix.dot, solver.solve, system.rhs, tolerance=strategy.tolerance,
+                matrix.dot,
+                solver.solve,
+                system.rhs,
+                tolerance=strategy.tolerance,
                 max_iterations=strategy.max_iterations,
             )
         report = {"refactorised": refactorised, "pcg_iterations": iterations, "pcg_residual": residual}
@@ -435,7 +448,11 @@ class _RefreshedBody(BodyCompliance):
             if refactorised or strategy.compliance_update in ("stale", "first_order"):
                 return solver.solve(unit)
             solution, column_iterations, column_residual = pcg(
-                matrix.dot, solver.solve, unit, tolerance=strategy.tolerance, max_iterations=strategy.max_iterations
+                matrix.dot,
+                solver.solve,
+                unit,
+                tolerance=strategy.tolerance,
+                max_iterations=strategy.max_iterations,
             )
             report["column_pcg_iterations"] = column_iterations
             report["column_pcg_residual"] = column_residual
@@ -452,8 +469,12 @@ class _RefreshedBody(BodyCompliance):
 
             def apply(load, start):
                 solution, load_iterations, _ = pcg(
-                    matrix.dot, solver.solve, load, tolerance=strategy.tolerance,
-                    max_iterations=strategy.max_iterations, start=start,
+                    matrix.dot,
+                    solver.solve,
+                    load,
+                    tolerance=strategy.tolerance,
+                    max_iterations=strategy.max_iterations,
+                    start=start,
                 )
                 report["correction_pcg_iterations"] = load_iterations
                 return solution
@@ -469,7 +490,9 @@ def _difference(matrix: sp.csr_matrix, reference: sp.csr_matrix) -> sp.csr_matri
         and np.array_equal(matrix.indptr, reference.indptr)
         and np.array_equal(matrix.indices, reference.indices)
     ):
-        return sp.csr_matrix((matrix.data - reference.data, matrix.indices, matrix.indptr), shape=matrix.shape)
+        return sp.csr_matrix(
+            (matrix.data - reference.data, matrix.indices, matrix.indptr), shape=matrix.shape
+        )
     return (matrix - reference).tocsr()
 
 
@@ -499,7 +522,11 @@ class Refreshed:
 
     def __post_init__(self) -> None:
         _check_common(self.linear_solver, self.against_exact)
-        if not isinstance(self.refresh_every, int) or isinstance(self.refresh_every, bool) or self.refresh_every < 1:
+        if (
+            not isinstance(self.refresh_every, int)
+            or isinstance(self.refresh_every, bool)
+            or self.refresh_every < 1
+        ):
             raise ValueError(f"refresh_every = {self.refresh_every!r}: expected an integer >= 1")
         if not (0.0 < self.tolerance < 1.0):
             raise ValueError(f"tolerance = {self.tolerance!r}: expected a number in (0, 1)")
@@ -524,9 +551,13 @@ class _PrecomputedBody(BodyCompliance):
 
     def _prepare(self, system: StepSystem) -> None:
         if system.rest_matrix is None or system.group_rotations is None:
-            raise ValueError("the precomputed strategy needs a body with a rest matrix and per-node rotations")
-        if system.dof_count % 3 or np.any(np.diff(system.free_dofs.reshape(-1, 3), axis=1) != 1) or np.any(
-            system.free_dofs.reshape(-1, 3)[:, 0] % 3
+            raise ValueError(
+                "the precomputed strategy needs a body with a rest matrix and per-node rotations"
+            )
+        if (
+            system.dof_count % 3
+            or np.any(np.diff(system.free_dofs.reshape(-1, 3), axis=1) != 1)
+            or np.any(system.free_dofs.reshape(-1, 3)[:, 0] % 3)
         ):
             raise ValueError("the precomputed strategy needs whole 3-DoF groups free or constrained")
         self._solver.factorise(system.rest_matrix())
@@ -547,7 +578,10 @@ class _PrecomputedBody(BodyCompliance):
             self._prepare(system)
         strategy = self.strategy
         free, iterations, residual = pcg(
-            system.matrix.dot, self._solver.solve, system.rhs, tolerance=strategy.tolerance,
+            system.matrix.dot,
+            self._solver.solve,
+            system.rhs,
+            tolerance=strategy.tolerance,
             max_iterations=strategy.max_iterations,
         )
         report = {"refactorised": False, "pcg_iterations": iterations, "pcg_residual": residual}
@@ -623,7 +657,10 @@ def make_strategy(
         return Exact(linear_solver=linear_solver)
     if name == "refreshed":
         return Refreshed(
-            refresh_every=refresh_every, tolerance=tolerance, linear_solver=linear_solver, against_exact=against_exact,
+            refresh_every=refresh_every,
+            tolerance=tolerance,
+            linear_solver=linear_solver,
+            against_exact=against_exact,
             compliance_update=w_update,
         )
     if name == "precomputed":

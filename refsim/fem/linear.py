@@ -169,7 +169,9 @@ class PardisoSolver:
             ctypes.byref(error),
         )
         if error.value != 0:
-            raise LinearSolverError(f"pardiso phase {phase} failed with error {error.value} (oneMKL error code)")
+            raise LinearSolverError(
+                f"pardiso phase {phase} failed with error {error.value} (oneMKL error code)"
+            )
 
     def factorise(self, matrix: sp.spmatrix) -> None:
         """Factorise A (symmetric positive definite, full storage); the analysis runs when the pattern is new."""
@@ -210,7 +212,10 @@ class PardisoSolver:
 
     @property
     def description(self) -> dict:
-        return {"name": self.name, "ordering": {0: "minimum degree", 2: "METIS"}.get(self.ordering, self.ordering)}
+        return {
+            "name": self.name,
+            "ordering": {0: "minimum degree", 2: "METIS"}.get(self.ordering, self.ordering),
+        }
 
 
 class CholmodSolver:
@@ -247,7 +252,9 @@ class CholmodSolver:
 def _pardiso_function():
     """oneMKL's ``pardiso`` entry point, found through pypardiso's search for ``mkl_rt``."""
     if platform.machine().lower() not in ("x86_64", "amd64"):
-        raise LinearSolverError(f"pardiso: oneMKL wheels exist for x86-64 only, this machine is {platform.machine()}")
+        raise LinearSolverError(
+            f"pardiso: oneMKL wheels exist for x86-64 only, this machine is {platform.machine()}"
+        )
     try:
         import pypardiso
     except ImportError as error:
@@ -258,8 +265,24 @@ def _pardiso_function():
         raise LinearSolverError(f"pardiso: the mkl_rt library was not found ({error})") from None
     function = library.pardiso
     i32 = ctypes.POINTER(ctypes.c_int32)
-    function.argtypes = [ctypes.POINTER(ctypes.c_int64), i32, i32, i32, i32, i32, ctypes.c_void_p, i32, i32, i32, i32,
-                         i32, i32, ctypes.c_void_p, ctypes.c_void_p, i32]
+    function.argtypes = [
+        ctypes.POINTER(ctypes.c_int64),
+        i32,
+        i32,
+        i32,
+        i32,
+        i32,
+        ctypes.c_void_p,
+        i32,
+        i32,
+        i32,
+        i32,
+        i32,
+        i32,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+        i32,
+    ]
     function.restype = None
     return function
 

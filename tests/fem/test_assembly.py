@@ -71,8 +71,15 @@ def test_polar_inverted_and_singular_use_the_svd():
 def model() -> TissueModel:
     mesh = box_mesh(size=(0.1, 0.1, 0.1), cells=(4, 3, 2))
     rest = np.asarray(mesh.rest_positions, dtype=float)
-    return TissueModel(rest, np.asarray(mesh.tets), MATERIAL, rayleigh_mass=0.7, rayleigh_stiffness=0.02,
-                       fixed_nodes=np.flatnonzero(rest[:, 0] < 1e-12), gravity=(0.0, -9.81, 0.0))
+    return TissueModel(
+        rest,
+        np.asarray(mesh.tets),
+        MATERIAL,
+        rayleigh_mass=0.7,
+        rayleigh_stiffness=0.02,
+        fixed_nodes=np.flatnonzero(rest[:, 0] < 1e-12),
+        gravity=(0.0, -9.81, 0.0),
+    )
 
 
 def test_compiled_assembly_equals_numpy_assembly(model):

@@ -25,8 +25,13 @@ def model() -> TissueModel:
     mesh = box_mesh(size=(0.1, 0.1, 0.1), cells=(3, 3, 3))
     rest = np.asarray(mesh.rest_positions, dtype=float)
     return TissueModel(
-        rest, np.asarray(mesh.tets), MATERIAL, rayleigh_mass=1.0, rayleigh_stiffness=0.01,
-        fixed_nodes=np.flatnonzero(rest[:, 2] < 1e-12), gravity=(0.0, 0.0, -9.81),
+        rest,
+        np.asarray(mesh.tets),
+        MATERIAL,
+        rayleigh_mass=1.0,
+        rayleigh_stiffness=0.01,
+        fixed_nodes=np.flatnonzero(rest[:, 2] < 1e-12),
+        gravity=(0.0, 0.0, -9.81),
     )
 
 
@@ -117,8 +122,9 @@ def test_fixed_node_displacements_are_a_dirichlet_condition(model):
     rotations = model.element_rotations(state.positions)
     from refsim.fem.integration import effective_stiffness
 
-    a = effective_stiffness(model.mass_matrix, model.tangent_stiffness(rotations), DT, rayleigh_mass=1.0,
-                            rayleigh_stiffness=0.01).toarray()
+    a = effective_stiffness(
+        model.mass_matrix, model.tangent_stiffness(rotations), DT, rayleigh_mass=1.0, rayleigh_stiffness=0.01
+    ).toarray()
     free, fixed = full.free_dofs, full.constrained_dofs
     b = full.rhs - a[np.ix_(free, fixed)] @ drive.ravel()
     expected = np.linalg.solve(a[np.ix_(free, free)], b)
@@ -148,7 +154,9 @@ def test_refreshed_equals_exact_at_refresh_and_meets_its_tolerance_between(model
         h = jacobian[:, system.free_dofs].toarray()
         w_reference = h @ inverse @ h.T
         w = step.delassus(jacobian)
-        assert np.linalg.norm(w - w_reference) <= kappa * max(tau, 10 * EPS) * np.linalg.norm(w_reference) * 10
+        assert (
+            np.linalg.norm(w - w_reference) <= kappa * max(tau, 10 * EPS) * np.linalg.norm(w_reference) * 10
+        )
         assert "compliance_error" in step.report and "free_motion_error" in step.report
     # Stale W: measured, not bounded: it differs from exact by more than the PCG-corrected one.
     stale = Refreshed(refresh_every=3, compliance_update="stale", against_exact=True).bind()
@@ -163,8 +171,9 @@ def test_precomputed_is_exact_at_rest_and_under_a_rigid_rotation(model):
     # isotropic) = R M Rᵀ, so A⁻¹ = R A₀⁻¹ Rᵀ exactly: the rotated rest compliance is then the exact one.
     rotation = rotation_matrix(np.array([[0.3, -0.2, 0.5]]))[0]
     rest = model.rest_positions
-    unfixed = TissueModel(rest, model.tets, MATERIAL, rayleigh_mass=1.0, rayleigh_stiffness=0.01,
-                          fixed_nodes=np.array([0]))
+    unfixed = TissueModel(
+        rest, model.tets, MATERIAL, rayleigh_mass=1.0, rayleigh_stiffness=0.01, fixed_nodes=np.array([0])
+    )
     jacobian = rows_on(unfixed)
     for positions in (rest, rest @ rotation.T):
         state = TissueState(positions=positions, velocities=np.zeros_like(rest))
@@ -204,16 +213,20 @@ def test_pcg_solves_columns_to_their_tolerance():
     q, _ = np.linalg.qr(rng.standard_normal((30, 30)))
     a = q @ np.diag(np.linspace(1.0, 100.0, 30)) @ q.T
     b = rng.standard_normal((30, 4))
-    x, iterations, residual = pcg(lambda v: a @ v, lambda r: r / np.diag(a)[:, None], b, tolerance=1e-12,
-                                  max_iterations=100)
+    x, iterations, residual = pcg(
+        lambda v: a @ v, lambda r: r / np.diag(a)[:, None], b, tolerance=1e-12, max_iterations=100
+    )
     assert residual <= 1e-12 and iterations <= 30 + 5  # CG terminates in ≤ n steps in exact arithmetic
     assert np.linalg.norm(a @ x - b, axis=0).max() <= 1e-12 * np.linalg.norm(b, axis=0).max() * 1.001
 
 
 @pytest.mark.parametrize(
     "kwargs, match",
-    [({"name": "fast"}, "compliance strategy"), ({"name": "refreshed", "refresh_every": 0}, "refresh_every"),
-     ({"linear_solver": "umfpack"}, "linear solver")],
+    [
+        ({"name": "fast"}, "compliance strategy"),
+        ({"name": "refreshed", "refresh_every": 0}, "refresh_every"),
+        ({"linear_solver": "umfpack"}, "linear solver"),
+    ],
 )
 def test_bad_strategy_values_are_named(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -224,18 +237,28 @@ def test_needle_behind_the_interface_equals_its_implicit_euler_system():
     # What refsim.simulation.needle_body.FlexibleNeedle does today, against NeedleModel.assemble_step + Exact.
     from refsim.fem.needle import NeedleModel
 
-    needle = NeedleModel(length=0.1, radius=5e-4, element_count=8, youngs_modulus=2e11, poisson_ratio=0.3,
-                         density=7850.0)
+    needle = NeedleModel(
+        length=0.1, radius=5e-4, element_count=8, youngs_modulus=2e11, poisson_ratio=0.3, density=7850.0
+    )
     positions, frames = needle.rest_state()
     rng = np.random.default_rng(5)
     velocities = 1e-3 * rng.standard_normal((needle.node_count, 6))
     increment = np.array([1e-4, 2e-4, 0.0, 0.0, 1e-3, -2e-3])
     mass = needle.mass_matrix()
-    legacy = ImplicitEulerSystem.build(mass, needle.tangent_stiffness(positions, frames), DT, rayleigh_mass=0.5,
-                                       rayleigh_stiffness=1e-3, constrained_dofs=needle.base_dofs)
-    expected = legacy.free_displacement(-needle.internal_forces(positions, frames), velocities.ravel(), increment)
-    system = needle.assemble_step(positions, frames, velocities, DT, increment, rayleigh_mass=0.5,
-                                  rayleigh_stiffness=1e-3, mass=mass)
+    legacy = ImplicitEulerSystem.build(
+        mass,
+        needle.tangent_stiffness(positions, frames),
+        DT,
+        rayleigh_mass=0.5,
+        rayleigh_stiffness=1e-3,
+        constrained_dofs=needle.base_dofs,
+    )
+    expected = legacy.free_displacement(
+        -needle.internal_forces(positions, frames), velocities.ravel(), increment
+    )
+    system = needle.assemble_step(
+        positions, frames, velocities, DT, increment, rayleigh_mass=0.5, rayleigh_stiffness=1e-3, mass=mass
+    )
     step = Exact(linear_solver="superlu:COLAMD").bind().step(system)
     np.testing.assert_array_equal(step.free_displacement, expected)
     rows = sp.csr_matrix(rng.standard_normal((4, needle.dof_count)))
@@ -248,12 +271,27 @@ def test_scene_keys_choose_the_strategy():
     from refsim.scene import load_scene
     from refsim.scene.loader import SceneError
 
-    scene = load_scene("cube", ['compliance.strategy="refreshed"', "compliance.refresh_every=5",
-                                'compliance.w_update="stale"', 'compliance.linear_solver="superlu"'])
+    scene = load_scene(
+        "cube",
+        [
+            'compliance.strategy="refreshed"',
+            "compliance.refresh_every=5",
+            'compliance.w_update="stale"',
+            'compliance.linear_solver="superlu"',
+        ],
+    )
     spec = scene.compliance
-    strategy = make_strategy(spec.strategy, refresh_every=spec.refresh_every, linear_solver=spec.linear_solver,
-                             w_update=spec.w_update)
-    assert isinstance(strategy, Refreshed) and strategy.refresh_every == 5 and strategy.compliance_update == "stale"
+    strategy = make_strategy(
+        spec.strategy,
+        refresh_every=spec.refresh_every,
+        linear_solver=spec.linear_solver,
+        w_update=spec.w_update,
+    )
+    assert (
+        isinstance(strategy, Refreshed)
+        and strategy.refresh_every == 5
+        and strategy.compliance_update == "stale"
+    )
     assert load_scene("cube").compliance.strategy == "exact"
     with pytest.raises(SceneError, match="refresh_every"):
         load_scene("cube", ["compliance.refresh_every=0"])

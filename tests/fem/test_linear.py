@@ -26,8 +26,11 @@ def spd_matrix(n: int, seed: int, shift: float = 1.0) -> sp.csr_matrix:
     rng = np.random.default_rng(seed)
     side = round(n ** (1 / 3))
     index = np.arange(side**3).reshape(side, side, side)
-    pairs = [np.stack([index[:-1].ravel(), index[1:].ravel()], 1), np.stack([index[:, :-1].ravel(), index[:, 1:].ravel()], 1),
-             np.stack([index[:, :, :-1].ravel(), index[:, :, 1:].ravel()], 1)]
+    pairs = [
+        np.stack([index[:-1].ravel(), index[1:].ravel()], 1),
+        np.stack([index[:, :-1].ravel(), index[:, 1:].ravel()], 1),
+        np.stack([index[:, :, :-1].ravel(), index[:, :, 1:].ravel()], 1),
+    ]
     edges = np.concatenate(pairs)
     weights = rng.uniform(0.5, 2.0, edges.shape[0])
     m = side**3
@@ -55,11 +58,14 @@ def test_solver_equals_a_fresh_dense_factorisation(name):
         # Backward-stable direct solves: relative forward error ≲ κ(A) ε (Higham, Accuracy and Stability, ch. 7, 10).
         bound = 10 * np.linalg.cond(dense) * EPS
         np.testing.assert_allclose(solver.solve(rhs), expected, rtol=0, atol=bound * np.abs(expected).max())
-        np.testing.assert_allclose(solver.solve(rhs[:, 0]), expected[:, 0], rtol=0,
-                                   atol=bound * np.abs(expected).max())
+        np.testing.assert_allclose(
+            solver.solve(rhs[:, 0]), expected[:, 0], rtol=0, atol=bound * np.abs(expected).max()
+        )
 
 
-@pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"), reason="oneMKL wheels are x86-64 only")
+@pytest.mark.skipif(
+    platform.machine().lower() not in ("x86_64", "amd64"), reason="oneMKL wheels are x86-64 only"
+)
 def test_pardiso_is_available_on_x86_64():
     # pyproject.toml installs pypardiso on x86-64: the PARDISO path must be the one CI tests there.
     assert "pardiso" in available_linear_solvers()
