@@ -361,13 +361,13 @@ def format_rows(rows: list[dict], keys: list[str] | None = None) -> str:
     if not rows:
         return ""
     keys = keys or list(rows[0].keys())
-    width = max(12, *(len(k) for k in keys))
-    lines = ["  ".join(f"{k:>{width}}" for k in keys)]
+    widths = [max(10, len(k)) for k in keys]
+    lines = ["  ".join(f"{k:>{w}}" for k, w in zip(keys, widths, strict=True))]
     for row in rows:
         cells = []
-        for k in keys:
+        for k, w in zip(keys, widths, strict=True):
             value = row.get(k, "")
-            cells.append(f"{value:>{width}.4g}" if isinstance(value, float) else f"{value!s:>{width}}")
+            cells.append(f"{value:>{w}.4g}" if isinstance(value, float) else f"{value!s:>{w}}")
         lines.append("  ".join(cells))
     return "\n".join(lines)
 
