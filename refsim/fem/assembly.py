@@ -58,8 +58,13 @@ class FreePattern:
         to_free[free_free.data.astype(np.int64)] = np.arange(free_free.nnz)
         to_coupling = np.full(pattern.nnz, -1, dtype=np.int64)
         to_coupling[free_fixed.data.astype(np.int64)] = np.arange(free_fixed.nnz)
-        self.slots = to_free[scatter].reshape(-1, 144)
-        self.coupling_slots = to_coupling[scatter].reshape(-1, 144)
+        # One int32 slot per element entry (little memory traffic in the scatter): k ≥ 0 is entry k of A_ff,
+        # k ≤ −2 entry −k − 2 of A_fc, −1 nothing (a constrained row).
+        free_slot, coupling_slot = to_free[scatter], to_coupling[scatter]
+        combined = np.where(free_slot >= 0, free_slot, np.where(coupling_slot >= 0, -coupling_slot - 2, -1))
+        if max(free_free.nnz, free_fixed.nnz) >= 2**31 - 2:
+            raise ValueError("the stiffness pattern is too large for int32 slots")
+        self.slots = combined.reshape(-1, 144).astype(np.int32)
         self.nnz, self.coupling_nnz = free_free.nnz, free_fixed.nnz
         mass = sp.csr_matrix(mass_matrix)
         mass_ff = mass[self.free_dofs][:, self.free_dofs].tocsr()
@@ -113,7 +118,6 @@ def _assemble(
     stiffness,
     stiffness_factor,
     slots,
-    coupling_slots,
     data,
     coupling_data,
     forces,
@@ -168,28 +172,34 @@ def _assemble(
                 for k in range(3):
                     s += r[i, k] * fl[3 * a + k]
                 forces[3 * node + i] += s
-        # tangent blocks R K_ab Rᵀ, scaled, into the slots
+        # tangent blocks R K_ab Rᵀ, scaled, into the slots; Kₑ is symmetric, so block (b, a) is block (a, b)ᵀ
         for a in range(4):
-            for b in range(4):
+            for b in range(a, 4):
                 for i in range(3):
                     for j in range(3):
                         s = 0.0
                         for k in range(3):
                             s += stiffness[e, 3 * a + i, 3 * b + k] * r[j, k]
                         kr[i, j] = s  # K_ab Rᵀ
-                base = (a * 4 + b) * 9
+                upper = (a * 4 + b) * 9
+                lower = (b * 4 + a) * 9
                 for i in range(3):
                     for j in range(3):
                         s = 0.0
                         for k in range(3):
                             s += r[i, k] * kr[k, j]
-                        slot = slots[e, base + 3 * i + j]
+                        s *= stiffness_factor
+                        slot = slots[e, upper + 3 * i + j]
                         if slot >= 0:
-                            data[slot] += stiffness_factor * s
-                        else:
-                            slot = coupling_slots[e, base + 3 * i + j]
+                            data[slot] += s
+                        elif slot <= -2:
+                            coupling_data[-slot - 2] += s
+                        if b != a:
+                            slot = slots[e, lower + 3 * j + i]
                             if slot >= 0:
-                                coupling_data[slot] += stiffness_factor * s
+                                data[slot] += s
+                            elif slot <= -2:
+                                coupling_data[-slot - 2] += s
 
 
 def assemble_free_system(
@@ -231,7 +241,6 @@ def assemble_free_system(
         stiffness,
         float(stiffness_factor),
         pattern.slots,
-        pattern.coupling_slots,
         data,
         coupling,
         forces,
