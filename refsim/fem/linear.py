@@ -128,6 +128,7 @@ class PardisoSolver:
         self._iparm[17] = -1  # report nnz(L)
         self._iparm[34] = 1  # zero-based indices
         self._pattern_key = None
+        self._pattern_arrays = None
         self._upper = None  # positions in the full CSR data of the upper-triangle entries
         self._ia = self._ja = self._a = None
         self._n = 0
@@ -176,7 +177,13 @@ class PardisoSolver:
     def factorise(self, matrix: sp.spmatrix) -> None:
         """Factorise A (symmetric positive definite, full storage); the analysis runs when the pattern is new."""
         matrix = _check_square(matrix)
-        key = (matrix.shape[0], matrix.nnz, hash(matrix.indptr.tobytes()), hash(matrix.indices.tobytes()))
+        last = self._pattern_arrays
+        if last is not None and last[0] is matrix.indptr and last[1] is matrix.indices:
+            # The very arrays of last time (one FreePattern per run; held here, so they cannot be recycled).
+            key = self._pattern_key
+        else:
+            key = (matrix.shape[0], matrix.nnz, hash(matrix.indptr.tobytes()), hash(matrix.indices.tobytes()))
+        self._pattern_arrays = (matrix.indptr, matrix.indices)
         if key != self._pattern_key:
             if self._n:
                 self._call(-1, np.zeros(1), np.zeros(1), 1)
