@@ -16,6 +16,7 @@ __all__ = ["main"]
 
 logger = logging.getLogger("refsim")
 
+STRATEGY_CHOICES = ("exact", "refreshed", "refreshed_first_order", "refreshed_stale", "precomputed")
 EXIT_FAILED, EXIT_INPUT, EXIT_SIMULATION, EXIT_INTERRUPTED = 1, 2, 3, 130
 
 
@@ -111,29 +112,83 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     return EXIT_FAILED if failed else 0
 
 
-def _cmd_bench(args: argparse.Namespace) -> int:
-    from refsim.scene import load_scene
+def _run_for_bench(scene):
+    """Run a scene, keeping what the strategy comparison needs: summary, tissue positions, needle force, events."""
     from refsim.simulation import Simulation
     from refsim.simulation.summary import RunSummary
 
-    if args.scene:
-        scene = load_scene(args.scene, args.set or ())
-        simulation = Simulation(scene)
-        summary = RunSummary()
-        simulation.run(on_step=lambda state, record: summary.add(record))
-        print(f"scene {scene.name}: solver {scene.solver.method}, tolerance {scene.solver.tolerance:g}")
-        print(summary.format_table())
-        if summary.cut_points:
-            print(summary.format_cut())
-    if args.tissue or not args.scene:
-        from refsim.fem.bench import bench_tissue
+    simulation = Simulation(scene)
+    summary = RunSummary()
+    kept = {"tissue_positions": [], "needle_force": [], "events": []}
 
-        print("tissue model, 0.1 m cube (ms): co-rotational update, assembly, factorisation, one solve")
-        rows = bench_tissue(cells_per_axis=tuple(args.cells))
-        keys = list(rows[0].keys())
-        print("  ".join(f"{k:>14}" for k in keys))
+    def on_step(state, record):
+        summary.add(record)
+        kept["tissue_positions"].append(state.tissue.positions)
+        kept["needle_force"].append(record.needle_force)
+        kept["events"].extend((record.step, event.name) for event in record.events)
+
+    simulation.run(on_step=on_step)
+    return summary, kept
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from refsim.fem import bench
+    from refsim.scene import load_scene
+
+    print("\n".join(bench.header_lines()))
+    reference_ms = None
+    if args.scene:
+        strategies = args.strategies or ["exact"]
+        if args.against_exact and "exact" not in strategies:
+            strategies = ["exact", *strategies]
+        reference_ms = bench.superlu_reference_ms(bench.cube_model(8))
+        print(f"reference: one SuperLU (COLAMD) factorisation of the cube's matrix, this run: {reference_ms:.2f} ms")
+        runs = {}
+        for strategy in strategies:
+            key, _, update = strategy.partition("_")
+            update = update or "pcg"
+            overrides = [*(args.set or ()), f'compliance.strategy="{key}"', f'compliance.w_update="{update}"']
+            scene = load_scene(args.scene, overrides)
+            # The machine's load changes: the reference is timed again beside each run (the mean of before and after).
+            before = bench.superlu_reference_ms(bench.cube_model(8))
+            summary, kept = _run_for_bench(scene)
+            reference_ms = 0.5 * (before + bench.superlu_reference_ms(bench.cube_model(8)))
+            runs[strategy] = kept
+            per_step = 1e3 * summary.seconds / max(summary.steps, 1)
+            print(f"\nscene {scene.name}, compliance {strategy} (w_update {update}, refresh_every {scene.compliance.refresh_every}): "
+                  f"solver {scene.solver.method}, tolerance {scene.solver.tolerance:g}; {per_step:.2f} ms per step, "
+                  f"{per_step / reference_ms:.2f} of the SuperLU factorisation ({reference_ms:.2f} ms around this run)")
+            print(summary.format_table())
+            if summary.cut_points:
+                print(summary.format_cut())
+        if args.against_exact:
+            print("\nerrors against exact (same scene): positions [m], needle force [N], events")
+            for strategy, kept in runs.items():
+                if strategy == "exact":
+                    continue
+                errors = bench.compare_runs(runs["exact"], kept)
+                print(f"  {strategy:<12} position {errors['position_error']:.3e} m, force {errors['force_error']:.3e} N "
+                      f"(peak {errors['peak_force']:.4g} N), events {'same' if errors['same_events'] else 'DIFFER: '}"
+                      f"{errors.get('event_shift', '')}")
+    if args.tissue or not args.scene:
+        strategies = tuple(
+            args.strategies or ("exact", "refreshed", "refreshed_first_order", "refreshed_stale", "precomputed")
+        )
+        reference_ms, rows = bench.bench_strategies(8, strategies=strategies, against_exact=True)
+        print(f"\ntissue step on the paper's cube (8 cells per axis, bottom sheared 1 cm over the run), ms per step; "
+              f"SuperLU (COLAMD) factorisation of its matrix, this run: {reference_ms:.2f} ms")
         for row in rows:
-            print("  ".join(f"{row[k]:>14.4g}" if isinstance(row[k], float) else f"{row[k]:>14}" for k in keys))
+            row["ratio_to_superlu"] = row["total_ms"] / reference_ms
+        print(bench.format_rows(rows, ["strategy", "assembly_ms", "factorisation_ms", "free_solve_ms", "compliance_ms",
+                                       "correction_ms", "total_ms", "ratio_to_superlu", "pcg_iterations",
+                                       "free_motion_error", "compliance_error", "correction_error"]))
+        scaling = bench.bench_scaling(tuple(args.cells))
+        print("\nscaling (refreshed: every 10 steps), ms per step; *_compliance_ms: W and the correction")
+        print(bench.format_rows(scaling))
+        dofs = [row["free_dofs"] for row in scaling]
+        for key in [k for k in scaling[0] if k.endswith("_ms")]:
+            exponent = bench.growth_exponent(dofs, [row[key] for row in scaling])
+            print(f"growth exponent of {key} against free DoFs: {exponent:.2f}")
     return 0
 
 
@@ -173,8 +228,13 @@ def _parser() -> argparse.ArgumentParser:
     bench = commands.add_parser("bench", help="time a scene (the paper's Table 1) and the tissue model")
     bench.add_argument("scene", nargs="?", help="scene to time; without it, only the tissue model bench")
     bench.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override a scene value")
-    bench.add_argument("--tissue", action="store_true", help="also time the tissue model on refined cubes")
-    bench.add_argument("--cells", type=int, nargs="+", default=[8, 16, 32], help="cells per axis (default 8 16 32)")
+    bench.add_argument("--tissue", action="store_true", help="also time the tissue step per strategy and its scaling")
+    bench.add_argument("--cells", type=int, nargs="+", default=[8, 12, 16, 24],
+                       help="cells per axis of the scaling table (default 8 12 16 24)")
+    bench.add_argument("--strategies", nargs="+", choices=STRATEGY_CHOICES,
+                       help="compliance strategies to time (scene: exact, refreshed, precomputed)")
+    bench.add_argument("--against-exact", action="store_true",
+                       help="also run the scene exactly and report each strategy's errors (positions, forces, events)")
     bench.set_defaults(handler=_cmd_bench)
 
     render = commands.add_parser("render", help="off-screen picture of a results file")

@@ -80,7 +80,7 @@ def scene_from_dict(data: dict, *, source: str = "<memory>", base_directory: str
     for name, cls in SECTIONS.items():
         table = data.get(name)
         if table is None:
-            if name == "output":
+            if name in ("output", "compliance"):
                 table = {}
             else:
                 raise SceneError(f"{source}: missing section [{name}]")

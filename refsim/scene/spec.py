@@ -24,6 +24,7 @@ __all__ = [
     "CuttingSpec",
     "SolverSpec",
     "OutputSpec",
+    "ComplianceSpec",
     "Scene",
     "FACE_NAMES",
 ]
@@ -244,6 +245,36 @@ class OutputSpec(_Validated):
 
 
 @dataclass(frozen=True, kw_only=True)
+class ComplianceSpec(_Validated):
+    """How each body's compliance is computed (refsim.fem.compliance) and by which sparse solver; optional section."""
+
+    strategy: str = spec(
+        "exact",
+        doc="exact: factorise every step; refreshed: factorise every refresh_every steps, free motion and W's columns "
+        "by PCG on the current matrix; precomputed: the rest compliance rotated per node (SOFA-like)",
+        choices=("exact", "refreshed", "precomputed"),
+    )
+    refresh_every: int = spec(10, unit="-", doc="steps between factorisations of the refreshed strategy", low=1, high=1_000_000)
+    w_update: str = spec(
+        "pcg",
+        doc="refreshed strategy: W's columns solved by PCG on the current matrix (pcg, corrected to the PCG "
+        "tolerance), corrected to first order in the change of the matrix since the factorisation with the "
+        "correction by PCG (first_order), or taken from the stale factor (stale); errors by refsim bench --against-exact",
+        choices=("pcg", "first_order", "stale"),
+    )
+    linear_solver: str = spec(
+        "auto",
+        doc="sparse solver: auto (PARDISO where its wheel installs, else CHOLMOD if importable, else SuperLU; "
+        "$REFSIM_LINEAR_SOLVER overrides auto), or one of pardiso, cholmod, superlu",
+        choices=("auto", "pardiso", "cholmod", "superlu"),
+    )
+
+    def validate(self) -> None:
+        if not isinstance(self.refresh_every, int) or isinstance(self.refresh_every, bool):
+            raise ValueError(f"refresh_every = {self.refresh_every!r}: expected an integer >= 1")
+
+
+@dataclass(frozen=True, kw_only=True)
 class Scene:
     """A whole scene. Built once, never mutated (STYLE.md pattern 6)."""
 
@@ -257,6 +288,7 @@ class Scene:
     cutting: CuttingSpec
     solver: SolverSpec
     output: OutputSpec = dataclasses.field(default_factory=OutputSpec)
+    compliance: ComplianceSpec = dataclasses.field(default_factory=ComplianceSpec)
     source: str = "<memory>"
     base_directory: str = "."
 
@@ -278,6 +310,7 @@ SECTIONS = {
     "cutting": CuttingSpec,
     "solver": SolverSpec,
     "output": OutputSpec,
+    "compliance": ComplianceSpec,
 }
 
 
