@@ -65,7 +65,8 @@ def read_mesh(path: str | Path, *, fix_orientation: bool = True) -> TetMesh:
     else:
         positions, tets = _read_meshio(path)
     positions, tets = validate_mesh(
-        positions, tets, source=source, fix_orientation=fix_orientation, drop_unused_nodes=True
+        positions, tets, source=source, fix_orientation=fix_orientation, drop_unused_nodes=True,
+        merge_duplicates=True,
     )
     mesh = TetMesh(positions, tets, source=source)
     logger.info("read %s: %d nodes, %d tetrahedra", source, mesh.node_count, mesh.tet_count)
