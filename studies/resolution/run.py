@@ -15,7 +15,6 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
 
 LATERAL = [
     "trajectory.times=[0.0, 1.9, 2.0, 2.3]",
