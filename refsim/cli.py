@@ -1,7 +1,9 @@
 """The `refsim` command line: run, verify, bench, render, plot.
 
-Exit codes: 0 success; 1 a verification case failed; 2 bad input (scene, file, option); 3 the simulation
-stopped on a detected error (the results file keeps every completed step); 130 interrupted (same).
+Exit codes: 0 success; 1 a verification case failed; 2 bad input (scene, file, option; nothing is written);
+3 the simulation stopped on a detected numerical problem or a failed write (the results file keeps every
+completed step, complete = false, the reason in stop_reason); 130 interrupted by SIGINT, 143 by SIGTERM (same).
+No command prints a traceback: unexpected errors are reported in one line (-v logs the traceback).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ __all__ = ["main"]
 logger = logging.getLogger("refsim")
 
 STRATEGY_CHOICES = ("exact", "refreshed", "refreshed_first_order", "refreshed_stale", "precomputed")
-EXIT_FAILED, EXIT_INPUT, EXIT_SIMULATION, EXIT_INTERRUPTED = 1, 2, 3, 130
+EXIT_FAILED, EXIT_INPUT, EXIT_SIMULATION, EXIT_INTERRUPTED, EXIT_TERMINATED = 1, 2, 3, 130, 143
 
 
 class _Progress:
@@ -45,61 +47,44 @@ class _Progress:
             sys.stderr.write(f"{done}/{self.total} steps ({100 * fraction:.0f}%), {rate:.1f} steps/s, {phase}\n")
 
 
+_FIGURE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
-    from refsim.io import ResultWriter
+    from refsim.io.driver import check_output_path, run_scene
     from refsim.scene import load_scene
-    from refsim.simulation import Simulation, SimulationError
-    from refsim.simulation.summary import RunSummary
 
     scene = load_scene(args.scene, args.set or ())
-    output = Path(args.output)
-    if output.exists() and not args.overwrite:
-        raise ValueError(f"{output}: the results file exists; pass --overwrite to replace it")
-    simulation = Simulation(scene)  # every input error surfaces here, before any file is written
-    steps = scene.time.step_count
-    progress = _Progress(steps, enabled=not args.quiet)
-    summary = RunSummary()
-    output.parent.mkdir(parents=True, exist_ok=True)
-    status = 0
-    with ResultWriter(output, scene, simulation.models, overwrite=args.overwrite) as writer:
-
-        written_cut = [None]
-
-        def on_step(state, record) -> None:
-            writer.append(record)
-            if state.cut is not None and state.cut is not written_cut[0]:
-                # The cut changed in this step: rewrite its history now, so an interrupted run keeps it too.
-                writer.write_cut_surface(*_cut_history(state.cut), tet_indices=state.cut.tet_indices,
-                                         barycentric=state.cut.barycentric)
-                written_cut[0] = state.cut
-            summary.add(record)
-            progress.update(record.step, record.phase)
-
-        try:
-            simulation.run(on_step=on_step)
-        except SimulationError as error:
-            print(f"refsim run: {error}", file=sys.stderr)
-            status = EXIT_SIMULATION
-        except KeyboardInterrupt:
-            print(f"\nrefsim run: interrupted; {summary.steps} completed steps kept in {output}", file=sys.stderr)
-            status = EXIT_INTERRUPTED
+    output = check_output_path(args.output, overwrite=args.overwrite)
+    figure = None
+    if args.figure:  # checked before the run, not after it
+        figure = Path(args.figure)
+        if figure.suffix.lower() not in _FIGURE_SUFFIXES:
+            raise ValueError(f"--figure {figure}: expected a picture file ending in {', '.join(_FIGURE_SUFFIXES)}")
+        if figure.resolve() == output.resolve():
+            raise ValueError(f"--figure {figure}: is the results file (-o)")
+        check_output_path(figure, overwrite=True, what="figure")
+    progress = _Progress(scene.time.step_count, enabled=not args.quiet)
+    summary = run_scene(scene, output, overwrite=args.overwrite,
+                        progress=lambda done, total, phase: progress.update(done, phase))
+    if summary.status in ("interrupted", "terminated"):
+        print(f"\nrefsim run: {summary.stop_reason}; {summary.steps_written} completed steps kept in {output}",
+              file=sys.stderr)
+    elif summary.status != "complete":
+        print(f"refsim run: error: {summary.stop_reason}; {summary.steps_written} completed steps kept in "
+              f"{output} (complete = false)", file=sys.stderr)
     print(f"scene {scene.name} ({scene.source}) -> {output}")
     print(summary.format())
     print(summary.format_table())
-    if args.figure and status == 0:
+    if figure is not None and summary.complete:
         from refsim.viz import plot_result, render_result
 
-        figure = Path(args.figure)
         figure.parent.mkdir(parents=True, exist_ok=True)
         render_result(output, figure)
         plot_path = figure.with_name(figure.stem + "_forces" + figure.suffix)
         plot_result(output, plot_path)
         print(f"figures: {figure}, {plot_path}")
-    return status
-
-
-def _cut_history(cut):
-    return cut.rest_points, cut.created_step, cut.triangles, cut.triangle_created_step
+    return summary.exit_code
 
 
 def _cmd_verify(args: argparse.Namespace) -> int:
@@ -256,12 +241,17 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         return args.handler(args)
-    except (ValueError, FileNotFoundError, OSError) as error:
+    except (ValueError, OSError) as error:  # SceneError, MeshError, RunInputError, paths
         print(f"refsim {args.command}: error: {error}", file=sys.stderr)
         return EXIT_INPUT
     except KeyboardInterrupt:
         print(f"refsim {args.command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except Exception as error:  # noqa: BLE001 - never a traceback; -v logs it
+        logger.debug("unexpected error", exc_info=True)
+        print(f"refsim {args.command}: internal error: {type(error).__name__}: {error} (rerun with -v for the "
+              "traceback, and report it)", file=sys.stderr)
+        return EXIT_INPUT
 
 
 if __name__ == "__main__":

@@ -54,6 +54,7 @@ from refsim.fem.beam_element import (
     timoshenko_stiffness,
 )
 from refsim.geometry.rotations import needle_rest_frame, rotation_matrix, skew
+from refsim.materials import HookeMaterial
 
 __all__ = ["NeedleSection", "NeedleModel"]
 
@@ -90,12 +91,13 @@ class NeedleSection:
     density: float
 
     def __post_init__(self) -> None:
-        for name in ("radius", "youngs_modulus", "density"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
-        nu = float(self.poisson_ratio)
-        if not (np.isfinite(nu) and -1.0 < nu < 0.5):
-            raise ValueError(f"poisson_ratio must lie in (-1, 0.5), got {self.poisson_ratio!r}")
-        object.__setattr__(self, "poisson_ratio", nu)
+        object.__setattr__(self, "radius", _positive("radius", self.radius))
+        # The material's one definition and validator (refsim.materials): E, ν, ρ and their limits.
+        material = HookeMaterial(
+            youngs_modulus=self.youngs_modulus, poisson_ratio=self.poisson_ratio, density=self.density
+        )
+        for name in ("youngs_modulus", "poisson_ratio", "density"):
+            object.__setattr__(self, name, float(getattr(material, name)))
 
     @property
     def area(self) -> float:

@@ -38,6 +38,7 @@ from refsim.fem.integration import ImplicitEulerSystem, effective_stiffness
 from refsim.fem.threads import hot_path_threads
 from refsim.geometry.rotations import polar_rotation
 from refsim.materials import HookeMaterial
+from refsim.mesh.validation import DEGENERATE_VOLUME_RATIO, degenerate_tets
 
 __all__ = [
     "TissueModel",
@@ -748,14 +749,11 @@ def _validated_mesh(rest_positions: np.ndarray, tets: np.ndarray) -> tuple[np.nd
         raise ValueError(
             f"tets {np.flatnonzero(out_of_range)[:10].tolist()} have node indices outside [0, {node_count})"
         )
-    edges = rest_positions[tets[:, 1:]] - rest_positions[tets[:, :1]]
-    volumes = np.abs(np.linalg.det(edges)) / 6.0
-    lengths = np.linalg.norm(edges, axis=2).max(axis=1)
-    degenerate = volumes <= 1e-10 * lengths**3
-    if np.any(degenerate):
+    degenerate = degenerate_tets(rest_positions, tets)  # the one threshold, refsim.mesh.validation
+    if degenerate.size:
         raise ValueError(
-            f"tets {np.flatnonzero(degenerate)[:10].tolist()} have zero volume "
-            "(|V| <= 1e-10 * longest edge^3)"
+            f"tets {degenerate[:10].tolist()} have zero volume "
+            f"(|V| <= {DEGENERATE_VOLUME_RATIO:g} * longest edge^3)"
         )
     return rest_positions, tets
 

@@ -165,6 +165,11 @@ class Results:
         return int(self.step.shape[0])
 
     @property
+    def stop_reason(self) -> str:
+        """Why the run stopped early ("" for a complete run; files written before the attribute existed: "")."""
+        return str(self.attributes.get("stop_reason", ""))
+
+    @property
     def scene_name(self) -> str:
         """The scene's name."""
         return str(self.attributes.get("scene_name", ""))
