@@ -34,8 +34,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from refsim.constraints.needle_geometry import NeedleGeometry, needle_rows
+from refsim.constraints.needle_geometry import needle_rows
 from refsim.constraints.rows import BILATERAL, CUT_BORDER, CUT_SLIDE, UNILATERAL, RowBlock, point_rows
+from refsim.constraints.step_geometry import StepGeometry
+from refsim.cutting.growth import border_inward_directions, front_border_points, resample_polyline, sweep_points
 
 __all__ = [
     "cut_criterion",
@@ -58,59 +60,6 @@ def cut_criterion(lateral_force: np.ndarray, point_count: int, cutting_force: fl
     return point_count > 0 and float(np.linalg.norm(lateral_force)) > point_count * cutting_force
 
 
-def resample_polyline(points: np.ndarray, spacing: float) -> np.ndarray:
-    """Points every ``spacing`` [m] along a polyline (its first and last points included), shape (q, 3)."""
-    points = np.asarray(points, dtype=float)
-    if len(points) < 2:
-        return points.copy()
-    lengths = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
-    total = lengths[-1]
-    if total <= 0.0:
-        return points[:1].copy()
-    count = max(int(round(total / spacing)), 1)
-    samples = np.linspace(0.0, total, count + 1)
-    return np.stack([np.interp(samples, lengths, points[:, k]) for k in range(3)], axis=1)
-
-
-def sweep_points(base_points: np.ndarray, direction: np.ndarray, extent: float, spacing: float, *, first: int = 0):
-    """``base_points`` swept along ``direction`` every ``spacing`` up to ``extent``: shape (q · (K + 1 − first), 3),
-    K = max(round(extent / spacing), 1); ``first`` = 1 leaves out the base points themselves."""
-    steps = max(int(round(extent / spacing)), 1)
-    offsets = np.arange(first, steps + 1) * (extent / steps)
-    direction = np.asarray(direction, dtype=float)
-    if direction.ndim == 1:
-        direction = np.broadcast_to(direction, np.shape(base_points))
-    return (base_points[:, None, :] + offsets[None, :, None] * direction[:, None, :]).reshape(-1, 3)
-
-
-def border_inward_directions(triangles: np.ndarray, points: np.ndarray, border_points: np.ndarray) -> np.ndarray:
-    """Unit inward direction of the surface at each border point, in the surface, normal to the border.
-
-    For each border edge (a, b) of triangle (a, b, c), the inward direction is the component of c − a normal to
-    b − a; a border point averages those of its border edges.
-
-    Returns
-    -------
-    Directions, shape (len(border_points), 3) (zero where undefined).
-    """
-    edges = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
-    opposite = np.concatenate([triangles[:, 2], triangles[:, 0], triangles[:, 1]])
-    key = np.sort(edges, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    border = counts[inverse.ravel()] == 1
-    a, b, c = points[edges[border, 0]], points[edges[border, 1]], points[opposite[border]]
-    along = b - a
-    along /= np.linalg.norm(along, axis=1, keepdims=True)
-    inward = (c - a) - np.einsum("ij,ij->i", c - a, along)[:, None] * along
-    inward /= np.linalg.norm(inward, axis=1, keepdims=True)
-    sums = np.zeros((len(points), 3))
-    np.add.at(sums, edges[border, 0], inward)
-    np.add.at(sums, edges[border, 1], inward)
-    out = sums[border_points]
-    norms = np.linalg.norm(out, axis=1, keepdims=True)
-    return np.divide(out, norms, out=np.zeros_like(out), where=norms > 1e-12)
-
-
 def one_per_group(groups: np.ndarray, scores: np.ndarray) -> np.ndarray:
     """Indices of the smallest score in each group (ties: the first), sorted, shape (g,)."""
     if groups.size == 0:
@@ -118,15 +67,6 @@ def one_per_group(groups: np.ndarray, scores: np.ndarray) -> np.ndarray:
     order = np.lexsort((np.arange(groups.size), scores, groups))
     first = np.concatenate([[True], groups[order][1:] != groups[order][:-1]])
     return np.sort(order[first])
-
-
-def front_border_points(cut, surface: np.ndarray, cut_direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Border points on the front of the cut (inward direction against ĉ by more than 60°) and their inward
-    directions, shapes (b,) and (b, 3)."""
-    border = cut.border_points()
-    inward = border_inward_directions(cut.triangles, surface, border)
-    front = inward @ cut_direction <= -_MIN_NORMAL_COMPONENT
-    return border[front], inward[front]
 
 
 @dataclass(frozen=True)
@@ -147,28 +87,24 @@ def _surface_point_nodes(cut, mesh_tets, triangle, weights):
 
 def cut_block(
     cut,
+    geometry: StepGeometry,
     *,
-    mesh_tets: np.ndarray,
-    tissue_free: np.ndarray,
-    needle_free: NeedleGeometry,
     entry_arc_length: float,
     spacing: float,
     cut_direction: np.ndarray,
-    tissue_dof_count: int,
 ) -> tuple[RowBlock | None, CutRowInfo]:
-    """Sliding (bilateral) and border (unilateral) rows of the cut surface.
+    """Sliding (bilateral) and border (unilateral) rows of the cut surface, on the free positions.
 
     Parameters
     ----------
     cut : The `refsim.cutting.CutSurface`.
-    mesh_tets : Tissue tets, shape (m, 4).
-    tissue_free : Tissue positions after free motion [m], shape (n, 3).
-    needle_free : The needle after free motion.
+    geometry : The step's geometry.
     entry_arc_length : Arc length [m] of the needle at the entry point; the inserted part is [entry, length].
     spacing : d_c [m], the needle sampling.
     cut_direction : ĉ, the unit direction the cut runs (deformed state), shape (3,).
-    tissue_dof_count : 3 · tissue node count.
     """
+    mesh_tets, tissue_free, needle_free = geometry.mesh_tets, geometry.tissue_free, geometry.needle_free
+    tissue_dof_count = geometry.tissue_dof_count
     empty = CutRowInfo(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
     if cut.triangle_count == 0:
         return None, empty

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from refsim.solvers import ConstraintProblem
+
 __all__ = [
     "BILATERAL",
     "UNILATERAL",
@@ -79,6 +81,24 @@ class RowBlock:
     def row_count(self) -> int:
         """Number of rows."""
         return int(self.free_gap.shape[0])
+
+    def problem(self, compliance: np.ndarray, *, name: str = ""):
+        """The solver's :class:`~refsim.solvers.ConstraintProblem` of these rows with compliance W [m/N],
+        shape (row_count, row_count): the one place where row kinds become solver laws."""
+        sets = self.index_sets()
+        return ConstraintProblem(
+            compliance=compliance,
+            free_gap=self.free_gap,
+            bilateral=sets["bilateral"],
+            unilateral=sets["unilateral"],
+            contacts=sets["contacts"],
+            contact_friction=self.contact_friction,
+            shaft_friction=sets["shaft_rows"],
+            shaft_pairs=self.shaft_pairs,
+            shaft_friction_coefficient=self.shaft_friction_coefficient,
+            shaft_normal_preload=self.shaft_normal_preload,
+            name=name,
+        )
 
     def index_sets(self) -> dict[str, np.ndarray]:
         """Row index sets by solver kind: bilateral and unilateral rows outside contacts, contacts, shaft rows."""

@@ -13,10 +13,11 @@ import numpy as np
 from refsim.fem.tissue import TissueModel
 from refsim.materials import HookeMaterial
 from refsim.mesh import TetMesh, box_mesh, read_mesh
+from refsim.scene.controls import Controls
 from refsim.scene.spec import FACE_NAMES, MeshSpec, Scene
 from refsim.scene.trajectory import Trajectory
 
-__all__ = ["SceneModels", "build_models", "build_mesh", "fixed_nodes"]
+__all__ = ["SceneModels", "build_controls", "build_models", "build_mesh", "fixed_nodes"]
 
 
 @dataclass(frozen=True)
@@ -111,3 +112,9 @@ def build_models(scene: Scene) -> SceneModels:
             direction=direction,
         )
     return SceneModels(mesh=mesh, tissue=tissue, needle=needle, trajectory=trajectory)
+
+
+def build_controls(scene: Scene, models: SceneModels) -> Controls:
+    """The controls of a scene: the needle base trajectory (and, when the scene declares one, the tissue
+    boundary motion)."""
+    return Controls(trajectory=models.trajectory)

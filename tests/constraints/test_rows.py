@@ -10,6 +10,7 @@ from refsim.constraints import (
     FRICTION,
     InsertionPath,
     RigidNeedleGeometry,
+    StepGeometry,
     concatenate,
     grow_path,
     insertion_block,
@@ -60,16 +61,8 @@ def test_concatenate_offsets_contacts_and_shaft_rows():
     tets, bary = locator.locate(points)
     path = InsertionPath.empty().appended(tets, bary, 1)
     needle = RigidNeedleGeometry(np.array([0.011, 0.012, 0.05]), np.array([0.0, 0.0, -1.0]), 0.045)
-    block = insertion_block(
-        path,
-        mesh_tets=mesh.tets,
-        tissue_free=mesh.rest_positions,
-        tissue_previous=mesh.rest_positions,
-        needle_free=needle,
-        needle_previous=needle,
-        friction_coefficient=0.2,
-        tissue_dof_count=3 * mesh.node_count,
-    )
+    geometry = StepGeometry(mesh.tets, mesh.rest_positions, mesh.rest_positions, needle, needle)
+    block = insertion_block(path, geometry, friction_coefficient=0.2)
     both = concatenate([block, block])
     assert both.row_count == 12
     np.testing.assert_array_equal(both.shaft_rows, [2, 5, 8, 11])
@@ -88,16 +81,8 @@ def test_insertion_gaps_measure_the_lateral_offset_and_the_axial_slip():
     previous = RigidNeedleGeometry(np.array([0.011, 0.012, 0.05]), direction, 0.048)
     shift = np.array([1e-4, -2e-4, -3e-4])  # lateral (x, y) and axial (along −z, i.e. +3e-4 along the needle)
     free = RigidNeedleGeometry(previous.base + shift, direction, 0.048)
-    block = insertion_block(
-        path,
-        mesh_tets=mesh.tets,
-        tissue_free=mesh.rest_positions,
-        tissue_previous=mesh.rest_positions,
-        needle_free=free,
-        needle_previous=previous,
-        friction_coefficient=0.3,
-        tissue_dof_count=3 * mesh.node_count,
-    )
+    geometry = StepGeometry(mesh.tets, mesh.rest_positions, mesh.rest_positions, previous, free)
+    block = insertion_block(path, geometry, friction_coefficient=0.3)
     kinds = block.kind.reshape(3, 3)
     assert np.all(kinds[:, :2] == BILATERAL) and np.all(kinds[:, 2] == FRICTION)
     gaps = block.free_gap.reshape(3, 3)

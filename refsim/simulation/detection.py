@@ -1,0 +1,106 @@
+"""Detection: the rows of one step from the free positions, by phase (DESIGN.md, step 3).
+
+- approach: the tip against the closest surface point (penetration), when within the contact distance;
+- insertion: the insertion points along the path;
+- cutting: the entry point's rows, and the sliding and border rows of the cut surface.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from refsim.constraints import (
+    RowBlock,
+    StepGeometry,
+    SurfaceContact,
+    concatenate,
+    empty_block,
+    find_surface_contact,
+    insertion_block,
+    penetration_block,
+)
+from refsim.constraints.cut import cut_block
+from refsim.geometry import SurfaceProjector
+from refsim.scene import Scene
+from refsim.simulation.state import Phase, SimulationState
+
+__all__ = ["Detection", "Detector"]
+
+
+@dataclass(frozen=True)
+class Detection:
+    """The rows of a step and what the events need to know about them.
+
+    Attributes
+    ----------
+    rows : The step's rows, in solver order.
+    contact : The tip's closest surface point (approach phase), else None.
+    border_points : The cut point of each border row, shape (b,) (cutting phase).
+    border_rows : The border rows' indices in ``rows``, shape (b,).
+    """
+
+    rows: RowBlock
+    contact: SurfaceContact | None = None
+    border_points: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    border_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+
+class Detector:
+    """Builds the rows of each step for a scene.
+
+    Parameters
+    ----------
+    scene : The validated scene.
+    faces : Tissue surface triangles, shape (f, 3).
+    needle_dof_count : DoFs of the needle in the constraint problem, None for a rigid needle.
+    """
+
+    def __init__(self, scene: Scene, faces: np.ndarray, needle_dof_count: int | None) -> None:
+        self.insertion = scene.insertion
+        self.cutting = scene.cutting
+        self.faces = faces
+        self.needle_dof_count = needle_dof_count
+
+    def detect(self, state: SimulationState, geometry: StepGeometry) -> Detection:
+        """The rows of the step that starts from ``state``, on the free positions of ``geometry``."""
+        spec = self.insertion
+        blocks: list[RowBlock] = []
+        contact = None
+        border_points = border_rows = np.zeros(0, dtype=np.int64)
+        if state.phase == Phase.APPROACH:
+            projector = SurfaceProjector(geometry.tissue_free, self.faces)
+            contact = find_surface_contact(projector, self.faces, geometry.needle_free.tip)
+            if contact.gap < spec.contact_distance:
+                blocks.append(
+                    penetration_block(contact, geometry, friction_coefficient=spec.surface_friction_coefficient)
+                )
+        elif state.path.point_count:
+            blocks.append(
+                insertion_block(
+                    state.path,
+                    geometry,
+                    friction_coefficient=spec.shaft_friction_coefficient,
+                    normal_preload=spec.shaft_normal_force * spec.spacing,
+                )
+            )
+        if state.phase == Phase.CUTTING:
+            entry = state.path.positions(state.tissue.positions, geometry.mesh_tets)[:1]
+            entry_arc_length = float(geometry.needle_previous.project(entry)[0][0])
+            offset = sum(block.row_count for block in blocks)
+            block, info = cut_block(
+                state.cut,
+                geometry,
+                entry_arc_length=entry_arc_length,
+                spacing=self.cutting.point_spacing,
+                cut_direction=state.cut_direction,
+            )
+            if block is not None:
+                blocks.append(block)
+            border_points, border_rows = info.border_point, offset + info.rows
+        if not blocks:
+            rows = empty_block(geometry.tissue_dof_count, self.needle_dof_count)
+        else:
+            rows = concatenate(blocks)
+        return Detection(rows, contact, border_points, border_rows)
