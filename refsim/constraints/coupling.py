@@ -28,12 +28,14 @@ Functions of plain arrays: the builder of the rows (``ring_insertion_block``) fo
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 
-from refsim.constraints.needle_geometry import NeedleGeometry, needle_rows
+from refsim.constraints.friction import friction_rows
+from refsim.constraints.needle_geometry import needle_rows
 from refsim.constraints.rows import BILATERAL, FRICTION, INSERTION, RowBlock, orthonormal_basis, point_rows
+from refsim.constraints.step_geometry import StepGeometry
 
 __all__ = [
     "LATERAL",
@@ -48,7 +50,9 @@ __all__ = [
     "local_mesh_size",
     "subgrid_compliance",
     "ring_points",
+    "RingLayout",
     "ring_insertion_block",
+    "insertion_compliance",
     "interference_pressure",
     "grip_preload",
     "shaft_friction_coefficients",
@@ -83,6 +87,9 @@ RING_EQUIVALENT_RADIUS = np.array(
         [3.00, 3.2399, 3.1825],
     ]
 )
+#: Barycentric tolerance of the ring points' location (dimensionless): a point 1e-6 h outside is inside.
+SURFACE_TOLERANCE = 1e-6
+
 #: Half the largest spread of the calibrated a_c over positions in the cell (± relative), see the table.
 RING_EQUIVALENT_RADIUS_SPREAD = 0.026
 
@@ -201,65 +208,96 @@ def subgrid_compliance(
     return np.where(kinds == LATERAL, lateral, axial)
 
 
-def ring_points(centres: np.ndarray, tangents: np.ndarray, radius: float, count: int) -> np.ndarray:
+def ring_points(centres: np.ndarray, tangents: np.ndarray, radius: np.ndarray | float, count: int) -> np.ndarray:
     """Points of rings around a centreline [m], shape (p, count, 3).
 
     Parameters
     ----------
     centres : Ring centres [m], shape (p, 3).
     tangents : Unit needle tangents, shape (p, 3).
-    radius : Ring radius [m], > 0.
-    count : Points per ring (≥ 1; 1 gives the centre).
+    radius : Ring radius [m], scalar or shape (p,), > 0.
+    count : Points per ring (1 gives the centre; else even, the points come in antipodal pairs).
     """
     centres = np.asarray(centres, dtype=float).reshape(-1, 3)
     if count == 1:
         return centres[:, None, :].copy()
     first, second = orthonormal_basis(tangents)
+    radius = np.broadcast_to(np.asarray(radius, dtype=float), (centres.shape[0],))
     angles = 2.0 * math.pi * (np.arange(count) + 0.5) / count
-    offsets = radius * (np.cos(angles)[None, :, None] * first[:, None, :] + np.sin(angles)[None, :, None] * second[:, None, :])
+    offsets = radius[:, None, None] * (
+        np.cos(angles)[None, :, None] * first[:, None, :] + np.sin(angles)[None, :, None] * second[:, None, :]
+    )
     return centres[:, None, :] + offsets
 
 
+@dataclass(frozen=True)
+class RingLayout:
+    """The coupling ring of every insertion point: material points located in the rest mesh.
+
+    Attributes
+    ----------
+    tets : Tet of each ring point, shape (p, q), −1 outside the tissue.
+    barycentric : Their barycentric coordinates, shape (p, q, 4).
+    mesh_size : Local mesh size h of each point [m], shape (p,).
+    radius : Ring radius ρ_c = max(r, h) of each point [m], shape (p,).
+    """
+
+    tets: np.ndarray
+    barycentric: np.ndarray
+    mesh_size: np.ndarray
+    radius: np.ndarray
+
+    @classmethod
+    def around(cls, path, *, rest_positions: np.ndarray, mesh_tets: np.ndarray, locator, tangents: np.ndarray,
+               needle_radius: float) -> RingLayout:
+        """Rings around the rest positions of the path's points, normal to ``tangents`` (p, 3).
+
+        ``locator`` locates points in the *rest* mesh (a :class:`refsim.geometry.TetLocator` on the rest
+        positions), so the ring points are material points, like the centres. The point count q is the largest
+        :func:`ring_count` over the path (arc spacing ≤ h/2 everywhere).
+        """
+        centres = path.positions(rest_positions, mesh_tets)
+        sizes = local_mesh_size(rest_positions, mesh_tets, path.tets)
+        radius = coupling_radius(needle_radius, sizes)
+        count = ring_count(float((radius / sizes).max()), 1.0)
+        points = ring_points(centres, tangents, radius, count)
+        # Points within 1e-6 h outside count as inside: a ring lying in the surface (a needle normal to it) must
+        # not lose its points to round-off of the tangent.
+        tets, barycentric = locator.locate(points.reshape(-1, 3), tolerance=SURFACE_TOLERANCE)
+        return cls(tets.reshape(path.point_count, count), barycentric.reshape(path.point_count, count, 4), sizes, radius)
+
+
 def ring_insertion_block(
-    centres_rest_tets: np.ndarray,
-    centres_barycentric: np.ndarray,
+    path,
+    geometry: StepGeometry,
+    rings: RingLayout,
     *,
-    ring_tets: np.ndarray,
-    ring_barycentric: np.ndarray,
-    mesh_tets: np.ndarray,
-    tissue_free: np.ndarray,
-    tissue_previous: np.ndarray,
-    needle_free: NeedleGeometry,
-    needle_previous: NeedleGeometry,
     friction_coefficient: float,
-    tissue_dof_count: int,
     normal_preload: np.ndarray | float = 0.0,
 ) -> RowBlock:
     """Rows of the insertion points, each averaging the tissue over its ring (see module docstring).
 
-    Like :func:`refsim.constraints.insertion.insertion_block` (two bilateral rows and, with μ > 0, one shaft
-    friction row per point), but the tissue side of every row is the mean of the ring points' interpolations.
+    Like :func:`refsim.constraints.insertion.insertion_block` (per point two bilateral rows and, with μ > 0, one
+    shaft friction row, ordered point by point), but the tissue side of every row is the mean of the ring points'
+    interpolations. A ring point is kept only with its antipode (a ring cut by the surface stays centred on the
+    needle); a point left without a pair uses its centre. The needle point of each row is the projection of the
+    centre at the start of the step.
 
     Parameters
     ----------
-    centres_rest_tets, centres_barycentric : Tet (p,) and barycentric coordinates (p, 4) of each point's
-        centre (the insertion point on the centreline; it fixes the needle point of the rows).
-    ring_tets : Tet of each ring point, shape (p, q), q even, −1 for points outside the tissue (left out of the mean
-        with their antipode; a point left with no pair uses its centre).
-    ring_barycentric : Their barycentric coordinates, shape (p, q, 4).
+    path : The insertion points (:class:`refsim.constraints.insertion.InsertionPath`), p of them.
+    geometry : The step's geometry.
+    rings : Their rings (:meth:`RingLayout.around`), q points each, q even or 1.
+    friction_coefficient : μ_i ≥ 0.
     normal_preload : Normal force added in each point's Coulomb bound [N], scalar or shape (p,), ≥ 0
         (:func:`grip_preload`).
     """
-    centres_rest_tets = np.asarray(centres_rest_tets, dtype=np.int64)
-    centres_barycentric = np.asarray(centres_barycentric, dtype=float).reshape(-1, 4)
-    preload = np.broadcast_to(np.asarray(normal_preload, dtype=float), (centres_rest_tets.shape[0],))
+    point_count = path.point_count
+    preload = np.broadcast_to(np.asarray(normal_preload, dtype=float), (point_count,))
     if np.any(~np.isfinite(preload)) or np.any(preload < 0.0):
         raise ValueError(f"normal_preload = {normal_preload!r} N; valid range [0, inf)")
-    ring_tets = np.asarray(ring_tets, dtype=np.int64)
-    ring_barycentric = np.asarray(ring_barycentric, dtype=float)
-    point_count, per_ring = ring_tets.shape
-    # Keep a ring point only with its antipode (a ring cut by the surface stays centred on the needle); a point
-    # with no complete pair falls back to its centre. Column 0 of the stack is the centre.
+    ring_tets = np.asarray(rings.tets, dtype=np.int64)
+    per_ring = ring_tets.shape[1]
     inside = ring_tets >= 0
     if per_ring > 1:
         if per_ring % 2:
@@ -267,22 +305,16 @@ def ring_insertion_block(
         inside &= np.roll(inside, per_ring // 2, axis=1)
     counts = inside.sum(axis=1)
     use_centre = counts == 0
-    all_tets = np.concatenate([centres_rest_tets[:, None], np.where(inside, ring_tets, 0)], axis=1)
-    all_bary = np.concatenate([centres_barycentric[:, None, :], np.nan_to_num(ring_barycentric)], axis=1)
+    all_tets = np.concatenate([path.tets[:, None], np.where(inside, ring_tets, 0)], axis=1)  # (p, q + 1)
+    all_bary = np.concatenate([path.barycentric[:, None, :], np.nan_to_num(rings.barycentric)], axis=1)
     share = np.concatenate([use_centre[:, None].astype(float), inside / np.maximum(counts, 1)[:, None]], axis=1)
-    weights = share[:, :, None] * all_bary  # (p, q + 1, 4)
-    nodes = np.asarray(mesh_tets)[all_tets]  # (p, q + 1, 4)
-
-    def mean_position(positions: np.ndarray) -> np.ndarray:
-        return np.einsum("pqk,pqkj->pj", weights, positions[nodes])
-
-    tissue_point_free = mean_position(tissue_free)
-    tissue_point_previous = mean_position(tissue_previous)
-    arc_lengths, _ = needle_previous.project(
-        np.einsum("pk,pkj->pj", centres_barycentric, tissue_previous[np.asarray(mesh_tets)[centres_rest_tets]])
-    )
-    needle_point_free = needle_free.points(arc_lengths)
-    tangents = needle_free.tangents(arc_lengths)
+    nodes = geometry.mesh_tets[all_tets].reshape(point_count, -1)  # (p, 4 (q + 1))
+    weights = (share[:, :, None] * all_bary).reshape(point_count, -1)
+    tissue_point_previous, tissue_point_free = geometry.tissue_points(nodes, weights)
+    centre_previous, _ = geometry.tissue_points(geometry.mesh_tets[path.tets], path.barycentric)
+    arc_lengths, _ = geometry.needle_previous.project(centre_previous)
+    needle_point_free = geometry.needle_free.points(arc_lengths)
+    tangents = geometry.needle_free.tangents(arc_lengths)
     first, second = orthonormal_basis(tangents)
     offset = needle_point_free - tissue_point_free
     with_friction = friction_coefficient > 0.0
@@ -294,25 +326,19 @@ def ring_insertion_block(
     gaps[:, 1] = np.einsum("ij,ij->i", second, offset)
     kinds = np.full((point_count, per_point), BILATERAL, dtype=np.int8)
     if with_friction:
+        friction = friction_rows(geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=arc_lengths,
+                                 tangents=tangents)
         directions[:, 2] = tangents
-        slip = (needle_point_free - needle_previous.points(arc_lengths)) - (tissue_point_free - tissue_point_previous)
-        gaps[:, 2] = np.einsum("ij,ij->i", tangents, slip)
+        gaps[:, 2] = friction.free_gap
         kinds[:, 2] = FRICTION
-    row_count = point_count * per_point
-    # Tissue side: −Σ_q Σ_k w_pqk n_r on node (p, q, k), for each row r of point p (sign convention of rows.py).
-    values = -(weights[:, None, :, :, None] * directions[:, :, None, None, :])  # (p, rows, q, 4, 3)
-    columns = 3 * nodes[:, None, :, :, None] + np.arange(3)
-    columns = np.broadcast_to(columns, values.shape)
-    rows = np.broadcast_to(np.arange(row_count).reshape(point_count, per_point, 1, 1, 1), values.shape)
-    tissue_jacobian = sp.csr_matrix(
-        (values.ravel(), (rows.ravel(), columns.ravel())), shape=(row_count, tissue_dof_count)
-    )
-    tissue_jacobian.sum_duplicates()
     flat_directions = directions.reshape(-1, 3)
+    row_nodes = np.repeat(nodes, per_point, axis=0)
+    row_weights = np.repeat(weights, per_point, axis=0)
+    row_count = point_count * per_point
     base = np.arange(point_count) * per_point
     return RowBlock(
-        tissue_jacobian=tissue_jacobian,
-        needle_jacobian=needle_rows(needle_free, np.repeat(arc_lengths, per_point), flat_directions),
+        tissue_jacobian=point_rows(row_nodes, row_weights, flat_directions, geometry.tissue_dof_count),
+        needle_jacobian=needle_rows(geometry.needle_free, np.repeat(arc_lengths, per_point), flat_directions),
         free_gap=gaps.ravel(),
         kind=kinds.ravel(),
         source=np.full(row_count, INSERTION, dtype=np.int8),
@@ -323,6 +349,20 @@ def ring_insertion_block(
         shaft_friction_coefficient=np.full(point_count if with_friction else 0, friction_coefficient),
         shaft_normal_preload=preload.copy() if with_friction else np.zeros(0),
     )
+
+
+def insertion_compliance(rows: RowBlock, *, shear_modulus: float, poisson_ratio: float, needle_radius: float,
+                         mesh_size: np.ndarray, spacing: float, coupling: str = "ring") -> np.ndarray:
+    """The sub-grid compliance of an insertion block's rows [m/N], shape (row_count,).
+
+    Bilateral rows are lateral, friction rows axial; ``mesh_size`` (p,) is each point's h
+    (:attr:`RingLayout.mesh_size`), repeated over the point's rows (the block's rows are ordered point by point).
+    """
+    per_point = rows.row_count // max(1, np.asarray(mesh_size).size)
+    kinds = np.where(rows.kind == FRICTION, AXIAL, LATERAL)
+    return subgrid_compliance(kinds, shear_modulus=shear_modulus, poisson_ratio=poisson_ratio,
+                              needle_radius=needle_radius, mesh_size=np.repeat(mesh_size, per_point),
+                              spacing=spacing, coupling=coupling)
 
 
 def interference_pressure(
@@ -397,23 +437,19 @@ def stuck_points(multipliers: np.ndarray, bounds: np.ndarray, *, relative_tolera
 
 
 def tip_cutting_block(
+    geometry: StepGeometry,
     *,
     tip_tet: int,
     tip_barycentric: np.ndarray,
-    mesh_tets: np.ndarray,
-    tissue_free: np.ndarray,
-    tissue_previous: np.ndarray,
-    needle_free: NeedleGeometry,
-    needle_previous: NeedleGeometry,
-    tissue_dof_count: int,
     cutting_force: float,
 ) -> tuple[RowBlock, np.ndarray, np.ndarray]:
     """The tip's cutting row after puncture: one row along the needle at the tip, its force in [0, f_cut].
 
     The row ties the needle tip to the tissue material point where the tip was at the start of the step
     (``tip_tet``, ``tip_barycentric``), along n = −t (t the tip tangent), and measures the relative displacement
-    over the step. Under the box law [0, f_cut]: the tip sticks (δ = 0, the tissue deforms ahead of it) while the
-    force is below f_cut, cuts forward at exactly f_cut (δ ≤ 0), and is free when it retreats (λ = 0, δ ≥ 0).
+    over the step (a friction row of :func:`refsim.constraints.friction.friction_rows`). Under the box law
+    [0, f_cut]: the tip sticks (δ = 0, the tissue deforms ahead of it) while the force is below f_cut, cuts
+    forward at exactly f_cut (δ ≤ 0), and is free when it retreats (λ = 0, δ ≥ 0).
 
     Returns
     -------
@@ -422,18 +458,16 @@ def tip_cutting_block(
     """
     if not (math.isfinite(cutting_force) and cutting_force >= 0.0):
         raise ValueError(f"insertion.cutting_force = {cutting_force!r} N; valid range [0, inf)")
-    tip_s = np.array([needle_previous.length])
-    tangent = needle_free.tangents(tip_s)
-    direction = -tangent
-    nodes = np.asarray(mesh_tets)[[tip_tet]]
+    tip_s = np.array([geometry.needle_previous.length])
+    direction = -geometry.needle_free.tangents(tip_s)
+    nodes = geometry.mesh_tets[[tip_tet]]
     weights = np.asarray(tip_barycentric, dtype=float).reshape(1, 4)
-    tissue_now = np.einsum("pk,pkj->pj", weights, tissue_free[nodes])
-    tissue_before = np.einsum("pk,pkj->pj", weights, tissue_previous[nodes])
-    slip = (needle_free.points(tip_s) - needle_previous.points(tip_s)) - (tissue_now - tissue_before)
+    rows = friction_rows(geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=tip_s, tangents=direction)
+    _, tissue_now = geometry.tissue_points(nodes, weights)
     block = RowBlock(
-        tissue_jacobian=point_rows(nodes, weights, direction, tissue_dof_count),
-        needle_jacobian=needle_rows(needle_free, tip_s, direction),
-        free_gap=np.einsum("ij,ij->i", direction, slip),
+        tissue_jacobian=rows.tissue_jacobian,
+        needle_jacobian=rows.needle_jacobian,
+        free_gap=rows.free_gap,
         kind=np.array([FRICTION], dtype=np.int8),
         source=np.array([INSERTION], dtype=np.int8),
         points=tissue_now,

@@ -61,6 +61,8 @@ class RowBlock:
     shaft_friction_coefficient : shape (m,).
     shaft_normal_preload : Normal force added to the pair force norm in each shaft row's Coulomb bound [N],
         shape (m,) (empty: zeros).
+    compliance_diagonal : Compliance added to W's diagonal for each row [m/N] (the sub-grid compliance of the
+        well-posed coupling, :mod:`refsim.constraints.coupling`), shape (row_count,) (empty: zeros).
     """
 
     tissue_jacobian: sp.csr_matrix
@@ -76,6 +78,7 @@ class RowBlock:
     shaft_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     shaft_friction_coefficient: np.ndarray = field(default_factory=lambda: np.zeros(0))
     shaft_normal_preload: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    compliance_diagonal: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def row_count(self) -> int:
@@ -86,6 +89,8 @@ class RowBlock:
         """The solver's :class:`~refsim.solvers.ConstraintProblem` of these rows with compliance W [m/N],
         shape (row_count, row_count): the one place where row kinds become solver laws."""
         sets = self.index_sets()
+        if self.compliance_diagonal.size:
+            compliance = compliance + np.diag(self.compliance_diagonal)
         return ConstraintProblem(
             compliance=compliance,
             free_gap=self.free_gap,
@@ -150,7 +155,15 @@ def concatenate(blocks: list[RowBlock]) -> RowBlock:
         shaft_pairs=np.concatenate([b.shaft_pairs + o for b, o in zip(blocks, offsets)]).astype(np.int64),
         shaft_friction_coefficient=np.concatenate([b.shaft_friction_coefficient for b in blocks]),
         shaft_normal_preload=np.concatenate([_shaft_preload(b) for b in blocks]),
+        compliance_diagonal=np.concatenate([_compliance_diagonal(b) for b in blocks]),
     )
+
+
+def _compliance_diagonal(block: RowBlock) -> np.ndarray:
+    """The block's added compliance [m/N], shape (row_count,): zeros when the block left the field empty."""
+    if block.compliance_diagonal.size == 0:
+        return np.zeros(block.row_count)
+    return np.asarray(block.compliance_diagonal, dtype=float)
 
 
 def _shaft_preload(block: RowBlock) -> np.ndarray:

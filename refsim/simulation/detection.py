@@ -7,7 +7,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -21,8 +21,10 @@ from refsim.constraints import (
     insertion_block,
     penetration_block,
 )
+from refsim.constraints.coupling import RingLayout, grip_preload, insertion_compliance, ring_insertion_block
 from refsim.constraints.cut import cut_block
-from refsim.geometry import SurfaceProjector
+from refsim.constraints.insertion import InsertionPath
+from refsim.geometry import SurfaceProjector, TetLocator
 from refsim.scene import Scene
 from refsim.simulation.state import Phase, SimulationState
 
@@ -57,11 +59,45 @@ class Detector:
     needle_dof_count : DoFs of the needle in the constraint problem, None for a rigid needle.
     """
 
-    def __init__(self, scene: Scene, faces: np.ndarray, needle_dof_count: int | None) -> None:
+    def __init__(self, scene: Scene, faces: np.ndarray, needle_dof_count: int | None,
+                 rest_positions: np.ndarray | None = None, tets: np.ndarray | None = None) -> None:
         self.insertion = scene.insertion
         self.cutting = scene.cutting
         self.faces = faces
         self.needle_dof_count = needle_dof_count
+        spec = scene.insertion
+        tissue = scene.tissue
+        self.shear_modulus = tissue.youngs_modulus / (2.0 * (1.0 + tissue.poisson_ratio))
+        self.poisson_ratio = tissue.poisson_ratio
+        self.needle_radius = scene.needle.radius
+        self.preload = spec.shaft_normal_force * spec.spacing
+        if spec.interference > 0.0:
+            self.preload += float(grip_preload(
+                shear_modulus=self.shear_modulus, poisson_ratio=self.poisson_ratio, radius=self.needle_radius,
+                interference=spec.interference, spacing=spec.spacing))
+        self.ring = spec.coupling == "ring"
+        if self.ring and (rest_positions is None or tets is None):
+            raise ValueError("insertion.coupling = 'ring' needs the rest mesh (rest_positions and tets) in Detector")
+        self.rest_positions = None if rest_positions is None else np.asarray(rest_positions, dtype=float)
+        self.rest_locator = TetLocator(self.rest_positions, np.asarray(tets)) if self.ring else None
+
+    def insertion_rows(self, path: InsertionPath, geometry: StepGeometry) -> RowBlock:
+        """The insertion points' rows: the ring coupling with its sub-grid compliance, or the paper's rows."""
+        spec = self.insertion
+        if not self.ring:
+            return insertion_block(path, geometry, friction_coefficient=spec.shaft_friction_coefficient,
+                                   normal_preload=self.preload)
+        centres_previous = path.positions(geometry.tissue_previous, geometry.mesh_tets)
+        arc_lengths, _ = geometry.needle_previous.project(centres_previous)
+        rings = RingLayout.around(path, rest_positions=self.rest_positions, mesh_tets=geometry.mesh_tets,
+                                  locator=self.rest_locator, tangents=geometry.needle_previous.tangents(arc_lengths),
+                                  needle_radius=self.needle_radius)
+        block = ring_insertion_block(path, geometry, rings, friction_coefficient=spec.shaft_friction_coefficient,
+                                     normal_preload=self.preload)
+        diagonal = insertion_compliance(block, shear_modulus=self.shear_modulus, poisson_ratio=self.poisson_ratio,
+                                        needle_radius=self.needle_radius, mesh_size=rings.mesh_size,
+                                        spacing=spec.spacing)
+        return replace(block, compliance_diagonal=diagonal)
 
     def detect(self, state: SimulationState, geometry: StepGeometry) -> Detection:
         """The rows of the step that starts from ``state``, on the free positions of ``geometry``."""
@@ -77,14 +113,7 @@ class Detector:
                     penetration_block(contact, geometry, friction_coefficient=spec.surface_friction_coefficient)
                 )
         elif state.path.point_count:
-            blocks.append(
-                insertion_block(
-                    state.path,
-                    geometry,
-                    friction_coefficient=spec.shaft_friction_coefficient,
-                    normal_preload=spec.shaft_normal_force * spec.spacing,
-                )
-            )
+            blocks.append(self.insertion_rows(state.path, geometry))
         if state.phase == Phase.CUTTING:
             entry = state.path.positions(state.tissue.positions, geometry.mesh_tets)[:1]
             entry_arc_length = float(geometry.needle_previous.project(entry)[0][0])

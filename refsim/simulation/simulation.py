@@ -87,7 +87,7 @@ class Simulation:
                 rayleigh_stiffness=scene.needle.rayleigh_stiffness,
             )
         self.dt = scene.time.dt
-        self.detector = Detector(scene, self.faces, self.needle.dof_count)
+        self.detector = Detector(scene, self.faces, self.needle.dof_count, self.models.mesh.rest_positions, self.tets)
         self.event_rules = EventRules(
             scene, self.tets, self.models.mesh.rest_positions, self.tissue.deformation_gradients, self.needle.geometry
         )

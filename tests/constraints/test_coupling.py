@@ -10,6 +10,7 @@ import pytest
 from refsim.constraints import coupling
 from refsim.constraints.insertion import InsertionPath, insertion_block
 from refsim.constraints.needle_geometry import RigidNeedleGeometry
+from refsim.constraints.step_geometry import StepGeometry
 from refsim.fem.tissue import TissueModel
 from refsim.geometry.search import TetLocator
 from refsim.materials import HookeMaterial
@@ -92,21 +93,25 @@ def _needle_in_box(cells=4, angle_deg=30.0, spacing_ratio=0.1, depth=0.06):
     return model, needle, centres, spacing, h
 
 
+def _geometry(model, needle, positions=None):
+    rest = model.rest_positions if positions is None else positions
+    return StepGeometry(mesh_tets=model.tets, tissue_previous=rest, tissue_free=rest, needle_previous=needle,
+                        needle_free=needle)
+
+
+def _path(model, centres):
+    tets, bary = TetLocator(model.rest_positions, model.tets).locate(centres)
+    return InsertionPath(tets, bary, np.zeros(len(tets), dtype=np.int64))
+
+
 def _ring_rows(model, needle, centres, spacing, needle_radius, friction=0.0, preload=0.0):
-    locator = TetLocator(model.rest_positions, model.tets)
-    tets, bary = locator.locate(centres)
-    h = coupling.local_mesh_size(model.rest_positions, model.tets, tets)
-    radius = float(coupling.coupling_radius(needle_radius, h.max()))
-    count = coupling.ring_count(radius, h.max())
-    points = coupling.ring_points(centres, needle.tangents(np.zeros(len(centres))), radius, count)
-    ring_tets, ring_bary = locator.locate(points.reshape(-1, 3))
-    rest = model.rest_positions
-    block = coupling.ring_insertion_block(
-        tets, bary, ring_tets=ring_tets.reshape(len(centres), count),
-        ring_barycentric=ring_bary.reshape(len(centres), count, 4), mesh_tets=model.tets, tissue_free=rest,
-        tissue_previous=rest, needle_free=needle, needle_previous=needle, friction_coefficient=friction,
-        tissue_dof_count=model.dof_count, normal_preload=preload)
-    return block, h
+    path = _path(model, centres)
+    rings = coupling.RingLayout.around(path, rest_positions=model.rest_positions, mesh_tets=model.tets,
+                                       locator=TetLocator(model.rest_positions, model.tets),
+                                       tangents=needle.tangents(np.zeros(len(centres))), needle_radius=needle_radius)
+    block = coupling.ring_insertion_block(path, _geometry(model, needle), rings, friction_coefficient=friction,
+                                          normal_preload=preload)
+    return block, rings.mesh_size
 
 
 def test_ring_rows_measure_the_mean_ring_displacement_and_reduce_to_the_paper_rows():
@@ -119,19 +124,15 @@ def test_ring_rows_measure_the_mean_ring_displacement_and_reduce_to_the_paper_ro
     # Centreline points on the needle: the free gap is zero up to the ring's mean offset (a few ε).
     assert np.abs(block.free_gap).max() < 1e-12
     # One ring point at the centre gives exactly the paper's rows.
-    locator = TetLocator(model.rest_positions, model.tets)
-    tets, bary = locator.locate(centres)
-    rest = model.rest_positions
-    single = coupling.ring_insertion_block(
-        tets, bary, ring_tets=tets[:, None], ring_barycentric=bary[:, None, :], mesh_tets=model.tets,
-        tissue_free=rest, tissue_previous=rest, needle_free=needle, needle_previous=needle,
-        friction_coefficient=0.1, tissue_dof_count=model.dof_count)
-    paper = insertion_block(InsertionPath(tets, bary, np.zeros(len(tets), dtype=np.int64)), mesh_tets=model.tets,
-                            tissue_free=rest, tissue_previous=rest, needle_free=needle, needle_previous=needle,
-                            friction_coefficient=0.1, tissue_dof_count=model.dof_count)
-    assert abs(single.tissue_jacobian - paper.tissue_jacobian).max() < 1e-15
-    assert np.allclose(single.free_gap, paper.free_gap, atol=1e-15)
-    assert np.array_equal(single.shaft_pairs, paper.shaft_pairs)
+    path = _path(model, centres)
+    single = coupling.RingLayout(path.tets[:, None], path.barycentric[:, None, :], np.full(len(centres), h),
+                                 np.full(len(centres), h))
+    ring = coupling.ring_insertion_block(path, _geometry(model, needle), single, friction_coefficient=0.1)
+    paper = insertion_block(path, _geometry(model, needle), friction_coefficient=0.1)
+    assert abs(ring.tissue_jacobian - paper.tissue_jacobian).max() < 1e-15
+    assert np.allclose(ring.free_gap, paper.free_gap, atol=1e-15)
+    assert np.array_equal(ring.shaft_pairs, paper.shaft_pairs)
+    assert np.array_equal(ring.kind, paper.kind)
 
 
 def _lateral_push(coupling_name, *, cells=4, angle_deg=30.0, spacing_ratio=0.1, needle_radius=0.5e-3):
@@ -140,13 +141,9 @@ def _lateral_push(coupling_name, *, cells=4, angle_deg=30.0, spacing_ratio=0.1, 
     if coupling_name == "ring":
         block, sizes = _ring_rows(model, needle, centres, spacing, needle_radius)
     else:
-        locator = TetLocator(model.rest_positions, model.tets)
-        tets, bary = locator.locate(centres)
-        rest = model.rest_positions
-        block = insertion_block(InsertionPath(tets, bary, np.zeros(len(tets), dtype=np.int64)), mesh_tets=model.tets,
-                                tissue_free=rest, tissue_previous=rest, needle_free=needle, needle_previous=needle,
-                                friction_coefficient=0.0, tissue_dof_count=model.dof_count)
-        sizes = coupling.local_mesh_size(model.rest_positions, model.tets, tets)
+        path = _path(model, centres)
+        block = insertion_block(path, _geometry(model, needle), friction_coefficient=0.0)
+        sizes = coupling.local_mesh_size(model.rest_positions, model.tets, path.tets)
     system = model.step_system(np.broadcast_to(np.eye(3), (model.tet_count, 3, 3)), dt=1e3)
     compliance, _ = system.compliance(block.tissue_jacobian)
     extra = coupling.subgrid_compliance(np.zeros(block.row_count, dtype=int), shear_modulus=G, poisson_ratio=NU,
@@ -256,10 +253,10 @@ def test_tip_cutting_row_sticks_below_and_cuts_at_f_cut():
     for advance, expected_state in ((1e-6, "stick"), (1e-3, "cut"), (-1e-3, "free")):
         ahead = RigidNeedleGeometry(base=moved.base + advance * moved.direction, direction=moved.direction,
                                     length=moved.length)
-        block, lower, upper = coupling.tip_cutting_block(
-            tip_tet=int(tet[0]), tip_barycentric=bary[0], mesh_tets=model.tets, tissue_free=rest,
-            tissue_previous=rest, needle_free=ahead, needle_previous=moved, tissue_dof_count=model.dof_count,
-            cutting_force=f_cut)
+        geometry = StepGeometry(mesh_tets=model.tets, tissue_previous=rest, tissue_free=rest, needle_previous=moved,
+                                needle_free=ahead)
+        block, lower, upper = coupling.tip_cutting_block(geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0],
+                                                         cutting_force=f_cut)
         compliance, _ = system.compliance(block.tissue_jacobian)
         assert block.free_gap[0] == pytest.approx(-advance)
         problem = ConstraintProblem(compliance=compliance, free_gap=block.free_gap, box_rows=np.array([0]),
