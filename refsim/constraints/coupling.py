@@ -247,6 +247,23 @@ class RingLayout:
     mesh_size: np.ndarray
     radius: np.ndarray
 
+    def subset(self, keep: np.ndarray) -> RingLayout:
+        """The rings of the points ``keep`` selects (indices or bool, shape (p,))."""
+        return RingLayout(self.tets[keep], self.barycentric[keep], self.mesh_size[keep], self.radius[keep])
+
+    @classmethod
+    def merged(cls, first: RingLayout, second: RingLayout, take_first: np.ndarray) -> RingLayout:
+        """Rings of points in order, from ``first`` where ``take_first`` (bool (p,)) and ``second`` elsewhere."""
+        take_first = np.asarray(take_first, dtype=bool)
+
+        def merge(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            out = np.empty((take_first.size, *a.shape[1:]), dtype=a.dtype)
+            out[take_first], out[~take_first] = a, b
+            return out
+
+        return cls(merge(first.tets, second.tets), merge(first.barycentric, second.barycentric),
+                   merge(first.mesh_size, second.mesh_size), merge(first.radius, second.radius))
+
     @classmethod
     def around(cls, path, *, rest_positions: np.ndarray, mesh_tets: np.ndarray, locator, tangents: np.ndarray,
                needle_radius: float) -> RingLayout:

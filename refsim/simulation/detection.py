@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -29,6 +30,8 @@ from refsim.scene import Scene
 from refsim.simulation.state import Phase, SimulationState
 
 __all__ = ["Detection", "Detector"]
+
+RING_REUSE_COSINE = math.cos(1e-3)  # a ring is rebuilt when its point's tangent turned by more than 1e-3 rad
 
 
 @dataclass(frozen=True)
@@ -80,6 +83,36 @@ class Detector:
             raise ValueError("insertion.coupling = 'ring' needs the rest mesh (rest_positions and tets) in Detector")
         self.rest_positions = None if rest_positions is None else np.asarray(rest_positions, dtype=float)
         self.rest_locator = TetLocator(self.rest_positions, np.asarray(tets)) if self.ring else None
+        self._ring_cache = None  # (tets and creation steps (p, 2), tangents (p, 3), RingLayout) of the last step
+
+    def _rings(self, path: InsertionPath, tangents: np.ndarray, mesh_tets: np.ndarray) -> RingLayout:
+        """The points' rings; a point keeps last step's ring while its tangent turned less than 1e-3 rad."""
+        cached = self._ring_cache
+        reuse = np.zeros(path.point_count, dtype=bool)
+        if cached is not None:
+            key, old_tangents, layout = cached
+            shared = min(len(key), path.point_count)
+            same = (key[:shared, 0] == path.tets[:shared]) & (key[:shared, 1] == path.created_step[:shared])
+            same &= np.einsum("ij,ij->i", old_tangents[:shared], tangents[:shared]) > RING_REUSE_COSINE
+            reuse[:shared] = same
+        if reuse.all():
+            layout = cached[2].subset(np.arange(path.point_count))
+        else:
+            fresh = RingLayout.around(path.subset(~reuse), rest_positions=self.rest_positions, mesh_tets=mesh_tets,
+                                      locator=self.rest_locator, tangents=tangents[~reuse],
+                                      needle_radius=self.needle_radius)
+            if reuse.any() and cached[2].tets.shape[1] == fresh.tets.shape[1]:
+                layout = RingLayout.merged(cached[2].subset(np.flatnonzero(reuse)), fresh, reuse)
+            else:
+                layout = RingLayout.around(path, rest_positions=self.rest_positions, mesh_tets=mesh_tets,
+                                           locator=self.rest_locator, tangents=tangents,
+                                           needle_radius=self.needle_radius)
+                reuse[:] = False
+        kept_tangents = tangents.copy()
+        if cached is not None and reuse.any():
+            kept_tangents[reuse] = cached[1][np.flatnonzero(reuse)]
+        self._ring_cache = (np.stack([path.tets, path.created_step], axis=1), kept_tangents, layout)
+        return layout
 
     def insertion_rows(self, path: InsertionPath, geometry: StepGeometry) -> RowBlock:
         """The insertion points' rows: the ring coupling with its sub-grid compliance, or the paper's rows."""
@@ -89,9 +122,7 @@ class Detector:
                                    normal_preload=self.preload)
         centres_previous = path.positions(geometry.tissue_previous, geometry.mesh_tets)
         arc_lengths, _ = geometry.needle_previous.project(centres_previous)
-        rings = RingLayout.around(path, rest_positions=self.rest_positions, mesh_tets=geometry.mesh_tets,
-                                  locator=self.rest_locator, tangents=geometry.needle_previous.tangents(arc_lengths),
-                                  needle_radius=self.needle_radius)
+        rings = self._rings(path, geometry.needle_previous.tangents(arc_lengths), geometry.mesh_tets)
         block = ring_insertion_block(path, geometry, rings, friction_coefficient=spec.shaft_friction_coefficient,
                                      normal_preload=self.preload)
         diagonal = insertion_compliance(block, shear_modulus=self.shear_modulus, poisson_ratio=self.poisson_ratio,
