@@ -246,6 +246,19 @@ class InsertionSpec(_Validated):
     contact_distance: float = spec(
         unit="m", doc="tip-surface distance under which the penetration constraint is built", low=0.0, low_open=True
     )
+    coupling: str = spec(
+        "ring",
+        doc="needle-tissue coupling: 'ring' (well posed: rows average the tissue over a ring of radius max(r, h) and "
+        "carry the sub-grid compliance of the annulus, docs/coupling.md) or 'paper' (rows on the centreline)",
+        choices=("ring", "paper"),
+    )
+    interference: float = spec(
+        0.0,
+        unit="m",
+        doc="δ_r: radial interference of the needle in its channel; the grip 2π r p₀ d_i (Lamé, p₀ = 2G δ_r/r) is "
+        "added to each point's shaft Coulomb bound, with shaft_normal_force d_i",
+        low=0.0,
+    )
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -161,7 +161,10 @@ class EventRules:
             spacing=self.insertion.spacing,
             step=state.step,
         )
-        beyond = points_beyond_tip(path, path.positions(positions, self.tets), needle)
+        # Ring coupling: the centre of a point is not tied to the needle (its ring is), so it drifts along the needle
+        # with the tissue's strain; half a spacing of hysteresis keeps such drift from removing and re-adding it.
+        margin = 0.5 * self.insertion.spacing if self.insertion.coupling == "ring" else 0.0
+        beyond = points_beyond_tip(path, path.positions(positions, self.tets), needle, margin)
         if np.any(beyond):
             path = path.subset(~beyond)
             events.append(Event("retraction"))
