@@ -22,8 +22,6 @@ import numpy as np
 
 from refsim.constraints import (
     BILATERAL,
-    CUT_BORDER,
-    CUT_SLIDE,
     INSERTION,
     PENETRATION,
     UNILATERAL,
@@ -208,20 +206,6 @@ class EventRules:
         )
         return state, [Event("cut_start", trigger)]
 
-    @staticmethod
-    def _push_direction(detection, multipliers, needle, previous):
-        """The direction the needle pushes the tissue through the cut rows, normal to the needle (unit, (3,)):
-        −(Σ λ n over the sliding and front rows), its component normal to the mean tangent. The crack tip
-        advances that way, so a cut follows the needle's stroke even when it started in another direction;
-        ``previous`` (ĉ) when the rows carry no force."""
-        rows = detection.rows
-        cut_rows = (rows.source == CUT_SLIDE) | (rows.source == CUT_BORDER)
-        force = (rows.directions[cut_rows] * multipliers[cut_rows, None]).sum(axis=0)
-        tangent = needle.tangents(np.array([needle.length]))[0]
-        push = -(force - (force @ tangent) * tangent)
-        norm = float(np.linalg.norm(push))
-        return push / norm if norm > 0.0 else previous
-
     def _cutting(self, state, detection, multipliers):
         """Withdrawal through the cut, and the growth of the cut where the needle pushes through its front."""
         positions = state.tissue.positions
@@ -246,11 +230,12 @@ class EventRules:
             advances = np.zeros(strip.column_count)
             np.maximum.at(advances, front.segment, over)
             np.maximum.at(advances, front.segment + 1, over)
-            direction = self._push_direction(detection, multipliers, needle, state.cut_direction)
-            moved = strip.with_front(advance_front(self.growth, strip, advances, direction, positions))
+            # The crack runs in the plane of the needle and ĉ set at the cut start (letting it turn with the
+            # rows' forces made it zigzag by ±30° and doubled the peak force on cube_cut: 5.4 N against 3.6 N).
+            moved = strip.with_front(advance_front(self.growth, strip, advances, state.cut_direction, positions))
             cut, laid = moved.lay(state.cut, state.step, cutting.point_spacing)
             events = [Event("tear", float(forces.sum()))] if laid.layers.shape[0] > strip.layers.shape[0] else []
-            return replace(state, cut=cut, cut_strip=laid, cut_direction=direction), events
+            return replace(state, cut=cut, cut_strip=laid), events
         strongest = float(forces.max())
         if strongest < cutting.tearing_force:
             return state, []
