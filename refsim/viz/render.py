@@ -67,7 +67,7 @@ def cut_surface_positions(results, step: int, tissue_positions: np.ndarray) -> t
     return np.einsum("pk,pkd->pd", barycentric, corners), triangles
 
 
-def _triangle_cells(triangles: np.ndarray) -> np.ndarray:
+def triangle_cells(triangles: np.ndarray) -> np.ndarray:
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     return np.hstack([np.full((triangles.shape[0], 1), 3, dtype=np.int64), triangles]).ravel()
 
@@ -127,7 +127,7 @@ def render_result(
     plotter = pv.Plotter(off_screen=True, window_size=list(window_size))
     try:
         plotter.set_background("white")
-        surface = pv.PolyData(tissue_positions, _triangle_cells(results.faces))
+        surface = pv.PolyData(tissue_positions, triangle_cells(results.faces))
         plotter.add_mesh(surface, color=TISSUE_COLOR, opacity=tissue_opacity, show_edges=True,
                          edge_color="#8c6d62", line_width=0.5, smooth_shading=False)
 
@@ -147,7 +147,7 @@ def render_result(
 
         cut_points, cut_triangles = cut_surface_positions(results, step, tissue_positions)
         if cut_triangles.size:
-            cut = pv.PolyData(cut_points, _triangle_cells(cut_triangles))
+            cut = pv.PolyData(cut_points, triangle_cells(cut_triangles))
             plotter.add_mesh(cut, color=CUT_COLOR, opacity=1.0, show_edges=True, edge_color="#7f1010")
         elif cut_points.size:
             plotter.add_mesh(pv.PolyData(cut_points), color=CUT_COLOR, point_size=6,
