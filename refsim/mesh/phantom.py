@@ -5,7 +5,7 @@ across the long axis. Axes: x is the long (left-right) axis, y the antero-poster
 +y), z the cranio-caudal axis (the convex diaphragmatic face at +z, the visceral face at −z). The right lobe is
 at x < 0 (thick, about 10 cm), the left lobe at x > 0 (thinner, tapering to its tip), the two separated by a
 dip of the thickness and an anterior notch; the visceral face is concave (pushed up into the organ) between the
-lobes. Size about 24 × 15 × 10 cm, volume about 1.6 L. The shape is a plausible organ, not an anatomical model.
+lobes. Size 24.3 × 13.9 × 10.0 cm, volume 1.0 L. The shape is a plausible organ, not an anatomical model.
 
 Shipped meshes (package data, ``refsim/mesh/data/liver_phantom_<resolution>.vtu``) are read with
 :func:`liver_phantom`; :func:`generate_liver_phantom` regenerates them (it needs the ``gmsh`` package, an
@@ -23,6 +23,7 @@ import numpy as np
 from refsim.mesh.tetmesh import TetMesh
 
 __all__ = [
+    "GENERATED_WITH_GMSH",
     "LIVER_PHANTOM_RESOLUTIONS",
     "MeshQuality",
     "generate_liver_phantom",
@@ -34,6 +35,8 @@ __all__ = [
 
 #: Target element size [m] of each shipped resolution.
 LIVER_PHANTOM_RESOLUTIONS = {"coarse": 0.020, "medium": 0.009}
+#: The Gmsh version that generated the shipped meshes (another version may place nodes differently).
+GENERATED_WITH_GMSH = "4.15.2"
 
 # Half length of the organ along x [mm] (the geometry is built in millimetres, then scaled to metres: Gmsh's
 # geometric tolerances are absolute, 1e-8 by default, so millimetres keep them far below the features).
@@ -62,10 +65,11 @@ def liver_cross_section(x: float, point_count: int = _SECTION_POINTS) -> np.ndar
 
     Notes
     -----
-    With the envelope e(x) = sqrt(1 − (x / 122)²), the lobe bumps g_R (centre −40 mm, width 60 mm) and g_L
-    (centre 55 mm, width 50 mm), the section is a superellipse-like curve of posterior half-width
-    W = e (41 + 34 g_R + 30 g_L) (the anterior half-width has a notch at x = 18 mm), upper height
-    T = e (10 + 50 g_R + 14 g_L) and lower depth B = e (8 + 42 g_R + 10 g_L); the lower half is pushed up by the
+    With the envelope e(x) = sqrt(1 − (x / 122)²) and the lobe bumps g(x) = exp(−((x − c)/w)²), g_R
+    (c = −50 mm, w = 45 mm) and g_L (c = 55 mm, w = 35 mm), the section is a superellipse-like curve of
+    posterior half-width W = e (41 + 34 g_R + 30 g_L) (the anterior half-width has a 22 % notch at x = 18 mm),
+    upper height T = e (8 + 54 g_R + 22 g_L) and lower depth B = e (6 + 44 g_R + 18 g_L) [mm]: the thickness
+    T + B has one maximum per lobe (about 10 cm and 5 cm) and a dip between them. The lower half is pushed up by the
     visceral concavity D (1 − (y/W)²)² |sin θ|, D = 22 e exp(−((x − 8)/40)²) mm.
     """
     if point_count < 8:
@@ -73,11 +77,11 @@ def liver_cross_section(x: float, point_count: int = _SECTION_POINTS) -> np.ndar
     if not abs(x) < _HALF_LENGTH:
         raise ValueError(f"x = {x} mm: expected a station in (-{_HALF_LENGTH}, {_HALF_LENGTH})")
     envelope = np.sqrt(1.0 - (x / _HALF_LENGTH) ** 2)
-    right, left = _bump(x, -40.0, 60.0), _bump(x, 55.0, 50.0)
+    right, left = _bump(x, -50.0, 45.0), _bump(x, 55.0, 35.0)
     back = envelope * (41.0 + 34.0 * right + 30.0 * left)
     front = back * (1.0 - 0.22 * _bump(x, 18.0, 14.0))
-    top = envelope * (10.0 + 50.0 * right + 14.0 * left)
-    bottom = envelope * (8.0 + 42.0 * right + 10.0 * left)
+    top = envelope * (8.0 + 54.0 * right + 22.0 * left)
+    bottom = envelope * (6.0 + 44.0 * right + 18.0 * left)
     concavity = 22.0 * envelope * _bump(x, 8.0, 40.0)
 
     theta = np.linspace(0.0, 2.0 * np.pi, point_count, endpoint=False)
@@ -101,8 +105,8 @@ def generate_liver_phantom(mesh_size: float, *, optimize: bool = True) -> TetMes
 
     Parameters
     ----------
-    mesh_size : Target (largest) element size [m], in [0.003, 0.05]; 0.020 gives 624 nodes and 2,127
-        tetrahedra, 0.009 gives 3,422 nodes and 14,772 tetrahedra (Gmsh 4.15). Elements are smaller only near
+    mesh_size : Target (largest) element size [m], in [0.003, 0.05]; 0.020 gives 536 nodes and 1,735
+        tetrahedra, 0.009 gives 2,582 nodes and 10,523 tetrahedra (Gmsh 4.15). Elements are smaller only near
         the two tips, whose end caps are about 2 mm across.
     optimize : Run Gmsh's and Netgen's tetrahedron optimisation (improves the worst elements).
 
@@ -174,7 +178,8 @@ def liver_phantom_path(resolution: str = "coarse") -> Path:
 
     Parameters
     ----------
-    resolution : "coarse" (2,127 tetrahedra, for tests) or "medium" (14,772, for scenes).
+    resolution : "coarse" (536 nodes, 1,735 tetrahedra, for tests) or "medium" (2,582 nodes,
+        10,523 tetrahedra, for scenes).
     """
     if resolution not in LIVER_PHANTOM_RESOLUTIONS:
         raise ValueError(
