@@ -112,7 +112,7 @@ def animate_result(
     last, tissue, cut_points, cut_triangles = states[-1]
     view = frame_camera(results, last, tissue, cut_points, cut_triangles, camera=camera, view_up=view_up,
                         zoom=zoom, focus=focus, aspect=width / height, locator=locator,
-                        include=together if isinstance(focus, str) and focus == "auto" else None)
+                        include=together if focus == "auto" else None)
 
     prepare_offscreen()
     import pyvista as pv

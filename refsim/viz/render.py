@@ -220,6 +220,8 @@ def frame_camera(
         raise ValueError(f"zoom = {zoom}: expected a number > 0")
     index = results.index_of(step)
     axis = _unit(results.needle_positions[index, -1] - results.needle_positions[index, 0])
+    if isinstance(focus, str) and ("," in focus or " " in focus.strip()):
+        focus = parse_vector(focus, "focus")
     if isinstance(focus, str):
         if focus not in FOCUS_CHOICES:
             raise ValueError(f"focus = {focus!r}: expected one of {', '.join(FOCUS_CHOICES)} or a point x,y,z")
@@ -253,13 +255,13 @@ def frame_camera(
 
 
 def _view_direction(camera, axis: np.ndarray, cut_points: np.ndarray, cut_triangles: np.ndarray) -> np.ndarray:
-    if isinstance(camera, str) and camera != "auto":
-        if camera not in NAMED_VIEWS:
+    if isinstance(camera, str) and camera in NAMED_VIEWS:
+        return _unit(np.array(NAMED_VIEWS[camera]))
+    if camera is not None and camera != "auto":
+        if isinstance(camera, str) and "," not in camera and " " not in camera.strip():
             raise ValueError(
                 f"camera = {camera!r}: expected auto, one of {', '.join(NAMED_VIEWS)} or a direction x,y,z"
             )
-        return _unit(np.array(NAMED_VIEWS[camera]))
-    if camera is not None and not isinstance(camera, str):
         direction = parse_vector(camera, "camera")
         if np.linalg.norm(direction) == 0:
             raise ValueError("camera direction is zero")
