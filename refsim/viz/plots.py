@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_result", "base_force_components", "lateral_stroke", "EVENT_STYLES", "LATERAL_STROKE_MIN"]
+__all__ = ["plot_result", "force_figure", "base_force_components", "lateral_stroke", "EVENT_STYLES", "LATERAL_STROKE_MIN"]
 
 logger = logging.getLogger(__name__)
 
@@ -87,12 +87,28 @@ def plot_result(path, output_png, *, dpi: int = 120) -> Path:
     -------
     The PNG's path.
     """
-    # A bare Figure renders with the Agg canvas and never touches pyplot's global state or a display.
-    from matplotlib.figure import Figure
-
     from refsim.io import read_results
 
     results = read_results(path)
+    figure = force_figure(results)
+    output_png = Path(output_png)
+    output_png.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(output_png, dpi=dpi)
+    logger.info("plotted %s to %s", results.path, output_png)
+    return output_png
+
+
+def force_figure(results):
+    """The figure of :func:`plot_result` for a :class:`refsim.io.Results` (a matplotlib Figure, Agg canvas).
+
+    Raises
+    ------
+    ValueError
+        When the results hold no step.
+    """
+    # A bare Figure renders with the Agg canvas and never touches pyplot's global state or a display.
+    from matplotlib.figure import Figure
+
     if results.step_count == 0:
         raise ValueError(f"{results.path}: the file holds no step to plot")
     axial, lateral = base_force_components(results)
@@ -145,11 +161,7 @@ def plot_result(path, output_png, *, dpi: int = 120) -> Path:
 
     status = "" if results.complete else "  (interrupted run)"
     figure.suptitle(f"{results.scene_name}: force on the needle base{status}")
-    output_png = Path(output_png)
-    output_png.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(output_png, dpi=dpi)
-    logger.info("plotted %s to %s", results.path, output_png)
-    return output_png
+    return figure
 
 
 def _shade_phases(axis, results) -> None:

@@ -323,7 +323,7 @@ def _draw_step(plotter, results, step: int, tissue_positions, cut_points, cut_tr
     plotter.add_mesh(needle, color=NEEDLE_COLOR, smooth_shading=True, opacity=0.45)
     legend.append([f"needle, r = {1e3 * radius:.2f} mm" if radius > 0 else "needle", NEEDLE_COLOR])
 
-    mark = max(0.35 * drawn_radius, 0.006 * view_size)
+    mark = max(0.35 * drawn_radius, 0.012 * view_size)
     rows = results.constraints_at(step)
     if "insertion" in results.source_names:
         insertion = np.unique(rows.points[rows.source == results.source_names.index("insertion")], axis=0)
