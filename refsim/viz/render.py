@@ -372,7 +372,7 @@ def _draw_step(plotter, results, step: int, tissue_positions, cut_points, cut_tr
         width, height = plotter.window_size
         line = max(14, int(0.03 * height))
         for row, (label, color) in enumerate(legend):
-            plotter.add_text(label, position=(int(0.66 * width), height - int(0.02 * height) - (row + 1) * line),
+            plotter.add_text(label, position=(int(0.6 * width), height - int(0.02 * height) - (row + 1) * line),
                              font_size=max(7, int(0.42 * line * 72 / 96)), color=color)
 
 
