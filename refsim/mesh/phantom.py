@@ -2,10 +2,11 @@
 
 The shape is a loft (OpenCASCADE ``ThruSections``, a smooth B-spline skin) through closed cross-sections taken
 across the long axis. Axes: x is the long (left-right) axis, y the antero-posterior axis (anterior edge at
-+y), z the cranio-caudal axis (the convex diaphragmatic face at +z, the visceral face at −z). The right lobe is
-at x < 0 (thick, about 10 cm), the left lobe at x > 0 (thinner, tapering to its tip), the two separated by a
-dip of the thickness and an anterior notch; the visceral face is concave (pushed up into the organ) between the
-lobes. Size 24.3 × 13.9 × 10.0 cm, volume 1.0 L. The shape is a plausible organ, not an anatomical model.
++y), z the cranio-caudal axis (the convex diaphragmatic face at +z, the visceral face at −z). The
+right lobe is at x < 0 (thick, about 10 cm), the left lobe at x > 0 (thinner, tapering to its tip), the two
+separated by a dip of the thickness and an anterior notch; the visceral face is concave (pushed up into the
+organ) between the lobes. Size 24.3 × 13.9 × 10.0 cm, volume 1.0 L. The shape is a plausible organ, not an
+anatomical model.
 
 Shipped meshes (package data, ``refsim/mesh/data/liver_phantom_<resolution>.vtu``) are read with
 :func:`liver_phantom`; :func:`generate_liver_phantom` regenerates them (it needs the ``gmsh`` package, an
@@ -69,8 +70,8 @@ def liver_cross_section(x: float, point_count: int = _SECTION_POINTS) -> np.ndar
     (c = −50 mm, w = 45 mm) and g_L (c = 55 mm, w = 35 mm), the section is a superellipse-like curve of
     posterior half-width W = e (41 + 34 g_R + 30 g_L) (the anterior half-width has a 22 % notch at x = 18 mm),
     upper height T = e (8 + 54 g_R + 22 g_L) and lower depth B = e (6 + 44 g_R + 18 g_L) [mm]: the thickness
-    T + B has one maximum per lobe (about 10 cm and 5 cm) and a dip between them. The lower half is pushed up by the
-    visceral concavity D (1 − (y/W)²)² |sin θ|, D = 22 e exp(−((x − 8)/40)²) mm.
+    T + B has one maximum per lobe (about 10 cm and 5 cm) and a dip between them. The lower half is pushed
+    up by the visceral concavity D (1 − (y/W)²)² |sin θ|, D = 22 e exp(−((x − 8)/40)²) mm.
     """
     if point_count < 8:
         raise ValueError(f"point_count = {point_count}: expected at least 8")
@@ -164,8 +165,11 @@ def generate_liver_phantom(mesh_size: float, *, optimize: bool = True) -> TetMes
     volumes = _signed_volumes(positions[used], renumber[tets])
     tets = renumber[tets]
     tets[volumes < 0] = tets[volumes < 0][:, [0, 1, 3, 2]]
-    return TetMesh(positions[used], tets, source=f"refsim liver phantom, gmsh {gmsh.__version__}, "
-                                                  f"mesh size {mesh_size:g} m")
+    return TetMesh(
+        positions[used],
+        tets,
+        source=f"refsim liver phantom, gmsh {gmsh.__version__}, mesh size {mesh_size:g} m",
+    )
 
 
 def _signed_volumes(positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -229,14 +233,20 @@ class MeshQuality:
         """A short report: sizes, dihedral range, radius-ratio quantiles and histogram."""
         quantiles = self.radius_ratio_quantiles()
         counts, edges = np.histogram(self.radius_ratio, bins=np.linspace(0.0, 1.0, 11))
-        histogram = "  ".join(f"{lo:.1f}-{hi:.1f}: {c}" for lo, hi, c in zip(edges[:-1], edges[1:], counts) if c)
-        return "\n".join([
-            f"{self.node_count} nodes, {self.tet_count} tetrahedra, edges "
-            f"{1e3 * self.edge_length_range[0]:.2f}-{1e3 * self.edge_length_range[1]:.2f} mm",
-            f"dihedral angles {self.min_dihedral:.2f}-{self.max_dihedral:.2f} deg",
-            "radius ratio 3 r_in/r_circ: min {:.3f}, 1% {:.3f}, 5% {:.3f}, median {:.3f}".format(*quantiles.values()),
-            f"radius ratio histogram: {histogram}",
-        ])
+        histogram = "  ".join(
+            f"{lo:.1f}-{hi:.1f}: {c}" for lo, hi, c in zip(edges[:-1], edges[1:], counts, strict=True) if c
+        )
+        return "\n".join(
+            [
+                f"{self.node_count} nodes, {self.tet_count} tetrahedra, edges "
+                f"{1e3 * self.edge_length_range[0]:.2f}-{1e3 * self.edge_length_range[1]:.2f} mm",
+                f"dihedral angles {self.min_dihedral:.2f}-{self.max_dihedral:.2f} deg",
+                "radius ratio 3 r_in/r_circ: min {:.3f}, 1% {:.3f}, 5% {:.3f}, median {:.3f}".format(
+                    *quantiles.values()
+                ),
+                f"radius ratio histogram: {histogram}",
+            ]
+        )
 
 
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
@@ -263,12 +273,15 @@ def mesh_quality(mesh: TetMesh) -> MeshQuality:
     a, b, c = (vertices[:, i] - origin for i in (1, 2, 3))
     volume = np.einsum("ij,ij->i", np.cross(a, b), c) / 6.0
     # Area vectors (times 2) of the faces opposite each node, pointing outward for a positive tet.
-    normals = np.stack([
-        np.cross(vertices[:, 2] - vertices[:, 1], vertices[:, 3] - vertices[:, 1]),
-        np.cross(vertices[:, 3] - vertices[:, 0], vertices[:, 2] - vertices[:, 0]),
-        np.cross(vertices[:, 1] - vertices[:, 0], vertices[:, 3] - vertices[:, 0]),
-        np.cross(vertices[:, 2] - vertices[:, 0], vertices[:, 1] - vertices[:, 0]),
-    ], axis=1)
+    normals = np.stack(
+        [
+            np.cross(vertices[:, 2] - vertices[:, 1], vertices[:, 3] - vertices[:, 1]),
+            np.cross(vertices[:, 3] - vertices[:, 0], vertices[:, 2] - vertices[:, 0]),
+            np.cross(vertices[:, 1] - vertices[:, 0], vertices[:, 3] - vertices[:, 0]),
+            np.cross(vertices[:, 2] - vertices[:, 0], vertices[:, 1] - vertices[:, 0]),
+        ],
+        axis=1,
+    )
     areas = np.linalg.norm(normals, axis=2)  # 2 × face areas
     unit = normals / areas[:, :, None]
     cosines = np.einsum("mej,mej->me", unit[:, _OPPOSITE[:, 0]], unit[:, _OPPOSITE[:, 1]])

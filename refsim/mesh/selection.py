@@ -1,4 +1,4 @@
-"""Choosing tissue nodes on a mesh surface: a patch near a point or a plane (e.g. the fixed nodes of an organ)."""
+"""Choosing tissue nodes on a mesh surface: a patch near a point or a plane (e.g. an organ's fixed nodes)."""
 
 from __future__ import annotations
 
@@ -23,8 +23,10 @@ def surface_patch(
     Parameters
     ----------
     rest_positions : Node positions at rest [m], shape (node_count, 3).
-    boundary_faces : Boundary triangles (node indices), shape (face_count, 3), e.g. ``TetMesh.boundary_faces``.
-    distance : Largest distance [m] from the point (Euclidean) or from the plane (unsigned, |(x − p)·n|), >= 0.
+    boundary_faces : Boundary triangles (node indices), shape (face_count, 3), e.g.
+        ``TetMesh.boundary_faces``.
+    distance : Largest distance [m] from the point (Euclidean) or from the plane (unsigned,
+        |(x − p)·n|), >= 0.
     point : Centre of a spherical patch [m], shape (3,).
     plane : ``(origin, normal)``: a point of the plane [m], shape (3,), and its normal, shape (3,), non-zero
         (normalised here).
@@ -44,7 +46,9 @@ def surface_patch(
         raise ValueError(f"rest_positions must have shape (node_count, 3), got {positions.shape}")
     faces = np.asarray(boundary_faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
-        raise ValueError(f"boundary_faces must be integers of shape (face_count, 3), got {faces.dtype} {faces.shape}")
+        raise ValueError(
+            f"boundary_faces must be integers of shape (face_count, 3), got {faces.dtype} {faces.shape}"
+        )
     if faces.size and (faces.min() < 0 or faces.max() >= positions.shape[0]):
         raise ValueError(f"boundary_faces hold node indices outside [0, {positions.shape[0] - 1}]")
     if not (np.isfinite(distance) and distance >= 0.0):

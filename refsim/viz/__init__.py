@@ -1,4 +1,5 @@
-"""Figures of a run (layer 6): an off-screen pyvista picture, an animation and matplotlib plots, read from the results file.
+"""Figures of a run (layer 6): an off-screen pyvista picture, an animation and matplotlib plots, read from
+the results file; a picture of a mesh alone.
 
 pyvista and matplotlib are imported inside the functions that draw, so importing refsim.viz is light.
 """
@@ -6,7 +7,13 @@ pyvista and matplotlib are imported inside the functions that draw, so importing
 from refsim.viz.animation import animate_result, animation_steps
 from refsim.viz.phantom import render_phantom
 from refsim.viz.plots import plot_result
-from refsim.viz.render import CameraView, cut_surface_positions, frame_camera, prepare_offscreen, render_result
+from refsim.viz.render import (
+    CameraView,
+    cut_surface_positions,
+    frame_camera,
+    prepare_offscreen,
+    render_result,
+)
 
 __all__ = [
     "CameraView",

@@ -42,7 +42,7 @@ def animation_steps(step: np.ndarray, every: int) -> np.ndarray:
     if int(every) != every or every < 1:
         raise ValueError(f"every = {every}: expected an integer >= 1")
     every = int(every)
-    chosen = np.asarray(step)[every - 1::every]
+    chosen = np.asarray(step)[every - 1 :: every]
     if chosen.size == 0 or chosen[-1] != step[-1]:
         chosen = np.append(chosen, step[-1])
     return chosen
@@ -110,9 +110,20 @@ def animate_result(
     # One camera for all frames: the last step's framing, holding what every frame focuses on.
     together = np.concatenate([focus_points(results, s, t, c, "auto", locator) for s, t, c, _ in states])
     last, tissue, cut_points, cut_triangles = states[-1]
-    view = frame_camera(results, last, tissue, cut_points, cut_triangles, camera=camera, view_up=view_up,
-                        zoom=zoom, focus=focus, aspect=width / height, locator=locator,
-                        include=together if focus == "auto" else None)
+    view = frame_camera(
+        results,
+        last,
+        tissue,
+        cut_points,
+        cut_triangles,
+        camera=camera,
+        view_up=view_up,
+        zoom=zoom,
+        focus=focus,
+        aspect=width / height,
+        locator=locator,
+        include=together if focus == "auto" else None,
+    )
 
     prepare_offscreen()
     import pyvista as pv
@@ -128,8 +139,9 @@ def animate_result(
         plotter.set_background("white")
         for step, tissue, cut_points, cut_triangles in states:
             plotter.clear_actors()
-            _draw_step(plotter, results, step, tissue, cut_points, cut_triangles, view_size,
-                       _Style(tissue_opacity))
+            _draw_step(
+                plotter, results, step, tissue, cut_points, cut_triangles, view_size, _Style(tissue_opacity)
+            )
             _apply_camera(plotter, view)
             writer.append_data(plotter.screenshot(return_img=True))
             plotter.clear()

@@ -38,10 +38,16 @@ def render_phantom(mesh, output_png, *, highlight=None, window_size: tuple[int, 
         plotter.set_background("white")
         for column, (title, camera, elevation) in enumerate(views):
             plotter.subplot(0, column)
-            plotter.add_mesh(surface, color=TISSUE_COLOR, show_edges=True, edge_color="#6b3b30", line_width=0.4)
+            plotter.add_mesh(
+                surface, color=TISSUE_COLOR, show_edges=True, edge_color="#6b3b30", line_width=0.4
+            )
             if highlight is not None and len(highlight):
-                plotter.add_mesh(pv.PolyData(np.asarray(mesh.rest_positions)[np.asarray(highlight)]),
-                                 color=FIXED_COLOR, point_size=9, render_points_as_spheres=True)
+                plotter.add_mesh(
+                    pv.PolyData(np.asarray(mesh.rest_positions)[np.asarray(highlight)]),
+                    color=FIXED_COLOR,
+                    point_size=9,
+                    render_points_as_spheres=True,
+                )
             plotter.camera_position = camera
             if elevation:
                 plotter.camera.elevation = elevation
@@ -49,7 +55,9 @@ def render_phantom(mesh, output_png, *, highlight=None, window_size: tuple[int, 
         plotter.add_text(
             f"{mesh.node_count} nodes, {mesh.tet_count} tets, "
             f"{100 * extent[0]:.1f} x {100 * extent[1]:.1f} x {100 * extent[2]:.1f} cm",
-            position="lower_right", font_size=9, color="black",
+            position="lower_right",
+            font_size=9,
+            color="black",
         )
         output_png = Path(output_png)
         output_png.parent.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,7 @@
 """Generate the shipped liver phantom meshes, print their quality, and draw the phantom figure.
 
-    python studies/liver_phantom/generate.py [--output refsim/mesh/data] [--figure docs/figures/liver_phantom.png]
+    python studies/liver_phantom/generate.py [--output refsim/mesh/data]
+        [--figure docs/figures/liver_phantom.png]
 
 Needs the gmsh package (``pip install gmsh``). Each mesh is written as VTU (metres), read back through
 refsim's loader (validation: positive volumes, closed outward boundary) and its quality printed.
@@ -38,17 +39,21 @@ def main(argv: list[str] | None = None) -> None:
         mesh = read_mesh(path, fix_orientation=False)
         extent = 1e2 * np.ptp(mesh.rest_positions, axis=0)
         print(f"{resolution} (size {1e3 * size:g} mm) -> {path}")
-        print(f"  extent {extent[0]:.1f} x {extent[1]:.1f} x {extent[2]:.1f} cm, volume "
-              f"{1e3 * mesh.volumes.sum():.3f} L, closed outward boundary: {is_closed_surface(mesh.boundary_faces)}")
+        print(
+            f"  extent {extent[0]:.1f} x {extent[1]:.1f} x {extent[2]:.1f} cm, volume "
+            f"{1e3 * mesh.volumes.sum():.3f} L, closed outward boundary: "
+            f"{is_closed_surface(mesh.boundary_faces)}"
+        )
         print("  " + mesh_quality(mesh).format().replace("\n", "\n  "))
     if args.figure:
+        from refsim.mesh import surface_patch
         from refsim.viz.phantom import render_phantom
 
-        from refsim.mesh import surface_patch
-
         mesh = read_mesh(output / "liver_phantom_medium.vtu")
-        # An example fixed patch: surface nodes within 3 cm of a point on the posterior face of the right lobe.
-        patch = surface_patch(mesh.rest_positions, mesh.boundary_faces, distance=0.03, point=(-0.04, -0.07, 0.0))
+        # An example fixed patch: surface nodes within 3 cm of a point of the right lobe's posterior face.
+        patch = surface_patch(
+            mesh.rest_positions, mesh.boundary_faces, distance=0.03, point=(-0.04, -0.07, 0.0)
+        )
         render_phantom(mesh, args.figure, highlight=patch)
         print(f"figure -> {args.figure}")
 

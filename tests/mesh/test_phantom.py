@@ -61,7 +61,7 @@ def test_boundary_is_closed_and_outward(phantom):
 
 
 def _thickness_profile(mesh: TetMesh, stations: np.ndarray, step: float = 1e-3) -> np.ndarray:
-    """Largest thickness along z [m] at each x station (maximum over y of the inside length of a vertical line)."""
+    """Largest thickness along z [m] at each x station (over y, the inside length of a vertical line)."""
     ys = np.arange(-0.08, 0.08, 5e-3)
     zs = np.arange(-0.06, 0.07, step)
     grid = np.stack(np.meshgrid(stations, ys, zs, indexing="ij"), axis=-1)
@@ -79,7 +79,7 @@ def test_two_lobes_two_maxima_of_thickness(phantom):
     assert stations[right] < 0 < stations[left]  # right lobe at x < 0, left lobe at x > 0
     assert 0.08 < thickness[right] < 0.12 and thickness[left] < 0.7 * thickness[right]
     # A real dip between them (not a plateau): at least 20 % below the smaller lobe (measured step 1 mm).
-    assert thickness[right:left + 1].min() < 0.8 * thickness[left]
+    assert thickness[right : left + 1].min() < 0.8 * thickness[left]
 
 
 def test_visceral_face_is_concave(phantom):
@@ -98,7 +98,7 @@ def test_visceral_face_is_concave(phantom):
 
 
 def test_quality_thresholds(phantom):
-    # Chosen thresholds (not derived): dihedral angles in [10°, 160°] and a radius ratio above 0.15 everywhere,
+    # Chosen thresholds (not derived): dihedral angles in [10°, 160°], a radius ratio above 0.15 everywhere,
     # above 0.5 for 95 % of the tets (Delaunay meshes after optimisation; a sliver has ρ -> 0).
     quality = mesh_quality(phantom)
     assert quality.min_dihedral > 10.0 and quality.max_dihedral < 160.0
@@ -111,7 +111,9 @@ def test_quality_thresholds(phantom):
 def test_quality_of_tetrahedra_of_known_angles():
     # Regular tetrahedron: every dihedral arccos(1/3) = 70.529°, ρ = 1. Trirectangular (unit legs): three
     # 90° angles at the corner and arccos(1/√3) = 54.736°; r_in = 1/(3 + √3), r_circ = √3/2, ρ = √3 − 1.
-    regular = TetMesh(np.array([[1, 1, 1], [1, -1, -1], [-1, -1, 1], [-1, 1, -1]], float), np.array([[0, 1, 2, 3]]))
+    regular = TetMesh(
+        np.array([[1, 1, 1], [1, -1, -1], [-1, -1, 1], [-1, 1, -1]], float), np.array([[0, 1, 2, 3]])
+    )
     quality = mesh_quality(regular)
     assert quality.min_dihedral == pytest.approx(np.degrees(np.arccos(1 / 3)), abs=1e-9)
     assert quality.max_dihedral == pytest.approx(np.degrees(np.arccos(1 / 3)), abs=1e-9)
@@ -169,8 +171,9 @@ def test_point_patch_is_every_surface_node_within_the_distance():
 
 def test_plane_patch_takes_surface_nodes_near_the_plane_only():
     mesh = liver_phantom("coarse")
-    patch = surface_patch(mesh.rest_positions, mesh.boundary_faces, distance=0.01,
-                          plane=((0.0, 0.0, 0.0), (2.0, 0.0, 0.0)))  # the plane x = 0, normal not unit
+    patch = surface_patch(
+        mesh.rest_positions, mesh.boundary_faces, distance=0.01, plane=((0.0, 0.0, 0.0), (2.0, 0.0, 0.0))
+    )  # the plane x = 0, normal not unit
     x = mesh.rest_positions[:, 0]
     np.testing.assert_array_equal(patch, mesh.boundary_nodes[np.abs(x[mesh.boundary_nodes]) <= 0.01])
     assert patch.size > 5

@@ -21,16 +21,23 @@ def _run(path, overrides):
 @pytest.fixture(scope="session")
 def insertion_file(tmp_path_factory):
     """The cube (4³ cells) with the needle inserted 3 mm: 50 steps, tissue recorded every 10 (of 0.5 s)."""
-    return _run(tmp_path_factory.mktemp("viz") / "insertion.h5", ["mesh.cells=[4, 4, 4]", "time.duration=0.5"])
+    return _run(
+        tmp_path_factory.mktemp("viz") / "insertion.h5", ["mesh.cells=[4, 4, 4]", "time.duration=0.5"]
+    )
 
 
 @pytest.fixture(scope="session")
 def lateral_file(tmp_path_factory):
     """The cube (4³ cells): 8 mm insertion, then the base moves 3 mm along +x: 40 steps."""
-    return _run(tmp_path_factory.mktemp("viz") / "lateral.h5", [
-        "mesh.cells=[4, 4, 4]", "time.duration=0.4", "time.dt=0.01",
-        "trajectory.times=[0.0, 0.25, 0.4]",
-        "trajectory.base_positions=[[0.00123, 0.00231, 0.422], [0.00123, 0.00231, 0.412], "
-        "[0.00423, 0.00231, 0.412]]",
-        "trajectory.directions=[[0, 0, -1], [0, 0, -1], [0, 0, -1]]",
-    ])
+    return _run(
+        tmp_path_factory.mktemp("viz") / "lateral.h5",
+        [
+            "mesh.cells=[4, 4, 4]",
+            "time.duration=0.4",
+            "time.dt=0.01",
+            "trajectory.times=[0.0, 0.25, 0.4]",
+            "trajectory.base_positions=[[0.00123, 0.00231, 0.422], [0.00123, 0.00231, 0.412], "
+            "[0.00423, 0.00231, 0.412]]",
+            "trajectory.directions=[[0, 0, -1], [0, 0, -1], [0, 0, -1]]",
+        ],
+    )

@@ -42,8 +42,16 @@ def test_render_has_the_asked_size_and_is_not_blank(insertion_file, tmp_path):
     assert len(np.unique(image.reshape(-1, 3).round(2), axis=0)) > 20
 
 
-@pytest.mark.parametrize("options", [{}, {"camera": "iso"}, {"camera": "xz", "zoom": 2.0},
-                                     {"camera": (1.0, -0.5, 0.2), "view_up": (0, 0, 1)}, {"focus": "needle"}])
+@pytest.mark.parametrize(
+    "options",
+    [
+        {},
+        {"camera": "iso"},
+        {"camera": "xz", "zoom": 2.0},
+        {"camera": (1.0, -0.5, 0.2), "view_up": (0, 0, 1)},
+        {"focus": "needle"},
+    ],
+)
 def test_framing_puts_the_needle_tip_and_inserted_part_in_view(insertion_file, options):
     results = read_results(insertion_file)
     view = _camera(results, **options)
@@ -53,9 +61,18 @@ def test_framing_puts_the_needle_tip_and_inserted_part_in_view(insertion_file, o
     assert np.all(np.abs(uv) < 1.0), uv
 
 
+def test_framing_before_the_needle_reaches_the_tissue_holds_the_tip_and_the_surface(insertion_file):
+    results = read_results(insertion_file)
+    view = _camera(results, step=1)
+    tip = results.needle_positions[0, -1]
+    assert tip[2] > results.rest_positions[:, 2].max()  # still in the air
+    below = np.array([tip[0], tip[1], results.rest_positions[:, 2].max()])  # the surface point under it
+    assert np.all(np.abs(view.project(np.vstack([tip, below]), aspect=4 / 3)) < 1.0)
+
+
 def test_projection_agrees_with_vtk(insertion_file):
-    # CameraView.project is the pinhole model; VTK's world-to-display transform of the same camera must give the
-    # same pixel (to a pixel's rounding) for the needle tip, so the framing test above tests what is drawn.
+    # CameraView.project is the pinhole model; VTK's world-to-display transform of the same camera must give
+    # the same pixel (to a pixel's rounding) for the needle tip, so the framing test tests what is drawn.
     from refsim.viz.render import _apply_camera, prepare_offscreen
 
     results = read_results(insertion_file)
@@ -88,13 +105,16 @@ def test_zoom_brings_the_camera_closer(insertion_file):
     assert ratio == pytest.approx(2.0, rel=1e-12)
 
 
-@pytest.mark.parametrize(("options", "message"), [
-    ({"camera": "top"}, "camera = 'top'"),
-    ({"camera": "1,2"}, "camera"),
-    ({"focus": "organ"}, "focus = 'organ'"),
-    ({"zoom": 0.0}, "zoom = 0"),
-    ({"camera": "xy", "view_up": (0, 0, 1)}, "parallel"),
-])
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"camera": "top"}, "camera = 'top'"),
+        ({"camera": "1,2"}, "camera"),
+        ({"focus": "organ"}, "focus = 'organ'"),
+        ({"zoom": 0.0}, "zoom = 0"),
+        ({"camera": "xy", "view_up": (0, 0, 1)}, "parallel"),
+    ],
+)
 def test_bad_camera_options_are_named(insertion_file, options, message):
     with pytest.raises(ValueError, match=message):
         _camera(read_results(insertion_file), **options)
@@ -114,14 +134,20 @@ def _count_purple(image):
     """Purple (arrow) pixels outside the legend (the upper right corner, whose text has the same colour)."""
     purple = _mask(image, lambda r, g, b: (b > g + 40) & (r > g + 30))
     height, width = purple.shape
-    purple[: int(0.3 * height), int(0.55 * width):] = False
+    purple[: int(0.3 * height), int(0.55 * width) :] = False
     return int(np.count_nonzero(purple))
 
 
 def test_fixed_nodes_are_drawn(insertion_file, tmp_path):
     # The clamped bottom face (25 nodes on 4² cells) drawn as green cubes when the camera sees it.
-    output = render_result(insertion_file, tmp_path / "fixed.png", focus="tissue", camera=(0.4, -1.0, -0.6),
-                           view_up=(0, 0, 1), window_size=(640, 480))
+    output = render_result(
+        insertion_file,
+        tmp_path / "fixed.png",
+        focus="tissue",
+        camera=(0.4, -1.0, -0.6),
+        view_up=(0, 0, 1),
+        window_size=(640, 480),
+    )
     assert _count_green(_read_png(output)) > 100
     assert read_results(insertion_file).fixed_nodes.size == 25
 
@@ -136,7 +162,12 @@ def test_boundary_motion_arrows_appear_only_when_the_fixed_nodes_move(insertion_
         positions = handle["tissue/positions"][:]
         positions[:, fixed, 0] += 0.005  # a prescribed 5 mm motion along x of the clamped face
         handle["tissue/positions"][:] = positions
-    options = {"focus": "tissue", "camera": (0.4, -1.0, -0.6), "view_up": (0, 0, 1), "window_size": (640, 480)}
+    options = {
+        "focus": "tissue",
+        "camera": (0.4, -1.0, -0.6),
+        "view_up": (0, 0, 1),
+        "window_size": (640, 480),
+    }
     still = _read_png(render_result(insertion_file, tmp_path / "still.png", **options))
     moving = _read_png(render_result(moved, tmp_path / "moving.png", **options))
     assert _count_purple(still) == 0
@@ -183,8 +214,10 @@ def test_animation_rejects_an_unknown_format(insertion_file, tmp_path):
 
 def test_each_tear_is_labelled_with_its_own_force(insertion_file):
     results = read_results(insertion_file)
-    tears = (RecordedEvent(30, float(results.time[29]), "tear", 2.27), RecordedEvent(40, float(results.time[39]),
-                                                                                     "tear", 13.77))
+    tears = (
+        RecordedEvent(30, float(results.time[29]), "tear", 2.27),
+        RecordedEvent(40, float(results.time[39]), "tear", 13.77),
+    )
     results = dataclasses.replace(results, events=results.events + tears)
     figure = force_figure(results)
     texts = [text.get_text() for axis in figure.axes for text in axis.texts]
