@@ -39,10 +39,14 @@ def main(argv: list[str] | None = None) -> None:
         mesh = read_mesh(path, fix_orientation=False)
         extent = 1e2 * np.ptp(mesh.rest_positions, axis=0)
         print(f"{resolution} (size {1e3 * size:g} mm) -> {path}")
+        faces = mesh.boundary_faces
+        a, b, c = (mesh.rest_positions[faces[:, k]] for k in range(3))
+        # Outward faces: the volume they enclose (divergence theorem) equals the tets' (positive) volume.
+        enclosed = np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0
         print(
             f"  extent {extent[0]:.1f} x {extent[1]:.1f} x {extent[2]:.1f} cm, volume "
-            f"{1e3 * mesh.volumes.sum():.3f} L, closed outward boundary: "
-            f"{is_closed_surface(mesh.boundary_faces)}"
+            f"{1e3 * mesh.volumes.sum():.3f} L (boundary encloses {1e3 * enclosed:.3f} L), closed: "
+            f"{is_closed_surface(faces)}, {faces.shape[0]} boundary faces"
         )
         print("  " + mesh_quality(mesh).format().replace("\n", "\n  "))
     if args.figure:
