@@ -41,3 +41,19 @@ def lateral_file(tmp_path_factory):
             "trajectory.directions=[[0, 0, -1], [0, 0, -1], [0, 0, -1]]",
         ],
     )
+
+
+@pytest.fixture(scope="session")
+def organ_file(tmp_path_factory):
+    """studies/liver_phantom/demo.toml (a 1 mm needle into the coarse liver phantom) for 1 s: 5 mm inserted."""
+    from pathlib import Path
+
+    from refsim.scene import load_scene
+
+    scene_path = Path(__file__).resolve().parents[2] / "studies" / "liver_phantom" / "demo.toml"
+    scene = load_scene(str(scene_path), ["time.duration=1.0"])
+    simulation = Simulation(scene)
+    path = tmp_path_factory.mktemp("viz") / "organ.h5"
+    with ResultWriter(path, scene, simulation.models) as writer:
+        simulation.run(on_step=lambda state, record: writer.append(record))
+    return path

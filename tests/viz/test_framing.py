@@ -22,8 +22,14 @@ def _read_png(path):
 
 
 def _mask(image, condition):
+    """Pixels where condition(r, g, b) holds (0-255), outside the legend (upper right, text in the same
+    colours as what it names) and the title (upper left)."""
     r, g, b = (255 * image[:, :, i] for i in range(3))
-    return condition(r, g, b)
+    mask = condition(r, g, b)
+    height, width = mask.shape
+    mask[: int(0.3 * height), int(0.55 * width) :] = False
+    mask[: int(0.06 * height), :] = False
+    return mask
 
 
 def _camera(results, step=None, **options):
@@ -131,11 +137,8 @@ def _count_green(image):
 
 
 def _count_purple(image):
-    """Purple (arrow) pixels outside the legend (the upper right corner, whose text has the same colour)."""
-    purple = _mask(image, lambda r, g, b: (b > g + 40) & (r > g + 30))
-    height, width = purple.shape
-    purple[: int(0.3 * height), int(0.55 * width) :] = False
-    return int(np.count_nonzero(purple))
+    """Purple (boundary-motion arrow) pixels."""
+    return int(np.count_nonzero(_mask(image, lambda r, g, b: (b > g + 40) & (r > g + 30))))
 
 
 def test_fixed_nodes_are_drawn(insertion_file, tmp_path):
@@ -236,3 +239,19 @@ def test_lateral_motion_gets_a_stroke_panel(lateral_file, tmp_path):
     assert len(figure.axes) == 3 and "lateral stroke" in figure.axes[2].get_xlabel()
     output = plot_result(lateral_file, tmp_path / "forces.png")
     assert _read_png(output).shape[1] > 1.4 * _read_png(output).shape[0]
+
+
+def _count_blue(image):
+    return int(np.count_nonzero(_mask(image, lambda r, g, b: (b > r + 50) & (b > g + 20))))
+
+
+def test_organ_picture_shows_insertion_points_and_fixed_nodes(organ_file, tmp_path):
+    results = read_results(organ_file)
+    assert results.insertion_point_count[-1] > 0 and results.fixed_nodes.size > 0
+    # Auto framing on the inserted needle: the insertion points (blue) are visible at organ scale.
+    needle = _read_png(render_result(organ_file, tmp_path / "needle.png", window_size=(640, 480)))
+    assert _count_blue(needle) > 30
+    # The whole organ from behind-above: the fixed posterior edge (green cubes) is visible.
+    organ = _read_png(render_result(organ_file, tmp_path / "organ.png", focus="tissue", camera=(0.3, -1.0, 0.8),
+                                    window_size=(640, 480)))
+    assert _count_green(organ) > 30
