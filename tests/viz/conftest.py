@@ -45,7 +45,7 @@ def lateral_file(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def organ_file(tmp_path_factory):
-    """studies/liver_phantom/demo.toml (a 1 mm needle into the coarse liver phantom) for 1 s: 5 mm inserted."""
+    """studies/liver_phantom/demo.toml (a 1 mm needle into the coarse liver phantom), 1 s: 5 mm deep."""
     from pathlib import Path
 
     from refsim.scene import load_scene
