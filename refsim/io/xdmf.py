@@ -84,8 +84,7 @@ def write_xdmf(results_path, output=None) -> Path:
     """
     import h5py
 
-    from refsim.io import read_results
-    from refsim.io import schema
+    from refsim.io import read_results, schema
 
     results_path = Path(results_path)
     results = read_results(results_path)  # validates the file; counts of completed steps

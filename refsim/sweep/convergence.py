@@ -12,8 +12,9 @@ r21 = h2/h1 > 1, r32 = h3/h2 > 1, ε21 = f2 − f1, ε32 = f3 − f2.
 - Grid convergence index (fine):     GCI = Fs |e21| / (r21^p − 1), e21 = (f1 − f2)/f1, Fs = 1.25 (three levels);
   the uncertainty band of f1 is ± GCI |f1|.
 
-The sequence is monotone when 0 < ε21/ε32 < 1, oscillatory when ε21/ε32 < 0, divergent when |ε21/ε32| > 1; an
-order is reported for a monotone sequence only (NaN otherwise, with the type saying why).
+The sequence is oscillatory when ε21/ε32 < 0, divergent when no positive order fits (for a constant ratio,
+|ε21| ≥ |ε32|), monotone otherwise; an order is reported for a monotone sequence only (NaN otherwise, with the
+type saying why).
 """
 
 from __future__ import annotations
@@ -89,7 +90,7 @@ def observed_order(fine: float, medium: float, coarse: float, ratio: float, rati
 
     Returns
     -------
-    p [-]; NaN when the sequence is not monotone (ε21/ε32 ≤ 0 or ≥ 1) or ε21 = 0.
+    p [-]; NaN when the sequence is oscillatory (ε21/ε32 < 0), divergent (no positive p) or ε21 = 0.
 
     Raises
     ------
@@ -102,21 +103,23 @@ def observed_order(fine: float, medium: float, coarse: float, ratio: float, rati
     if not np.all(np.isfinite(values)):
         raise ValueError(f"values {values.tolist()}: expected finite numbers")
     e21, e32 = medium - fine, coarse - medium
-    if e21 == 0.0 or e32 == 0.0:
+    if e21 == 0.0 or e32 == 0.0 or e32 / e21 <= 0.0:  # converged to round-off, or oscillatory
         return float("nan")
     quotient = e32 / e21
-    if not quotient > 1.0:  # oscillatory (< 0) or divergent (|e21| > |e32|)
-        return float("nan")
     if r32 == r21:
-        return math.log(quotient) / math.log(r21)
-    p = math.log(quotient) / math.log(r21)
+        p = math.log(quotient) / math.log(r21)
+        return p if p > 0.0 else float("nan")
+    # p ln r21 = ln(ε32/ε21) + q(p), q(p) = ln((r21^p − 1)/(r32^p − 1)); a fixed point from p = 1.
+    p = 1.0
     for _ in range(max_iterations):
         q = math.log((r21**p - 1.0) / (r32**p - 1.0))
-        updated = abs(math.log(quotient) + q) / math.log(r21)
+        updated = (math.log(quotient) + q) / math.log(r21)
+        if not (math.isfinite(updated) and updated > 0.0):
+            return float("nan")  # divergent: no positive order fits
         if abs(updated - p) < tolerance:
             return updated
         p = updated
-    return p
+    return float("nan")
 
 
 def richardson(fine: float, medium: float, ratio: float, order: float) -> float:
@@ -168,24 +171,20 @@ def convergence(spacings, values) -> ConvergenceResult:
     r21, r32 = h2 / h1, h3 / h2
     e21, e32 = f2 - f1, f3 - f2
     nan = float("nan")
+    order = extrapolated = gci = uncertainty = nan
     if e21 == 0.0:
         kind = "converged"
-    elif e32 == 0.0 or abs(e21) > abs(e32):
-        kind = "divergent"
-    elif e21 / e32 < 0.0:
-        kind = "oscillatory"
-    else:
-        kind = "monotone"
-    order = extrapolated = gci = uncertainty = nan
-    if kind == "monotone":
-        order = observed_order(f1, f2, f3, r21, r32)
-        if math.isfinite(order):
-            extrapolated = richardson(f1, f2, r21, order)
-            if f1 != 0.0:
-                gci = grid_convergence_index(f1, f2, r21, order)
-                uncertainty = gci * abs(f1)
-    elif kind == "converged":
         extrapolated, gci, uncertainty = float(f1), 0.0, 0.0
+    elif e32 == 0.0 or e21 / e32 < 0.0:
+        kind = "oscillatory" if e32 != 0.0 else "divergent"
+    else:
+        order = observed_order(f1, f2, f3, r21, r32)
+        kind = "monotone" if math.isfinite(order) else "divergent"
+    if kind == "monotone":
+        extrapolated = richardson(f1, f2, r21, order)
+        if f1 != 0.0:
+            gci = grid_convergence_index(f1, f2, r21, order)
+            uncertainty = gci * abs(f1)
     return ConvergenceResult(
         spacings=(float(h1), float(h2), float(h3)), values=(float(f1), float(f2), float(f3)),
         ratio_fine=float(r21), ratio_coarse=float(r32), kind=kind, order=float(order),
