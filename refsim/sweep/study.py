@@ -37,7 +37,7 @@ from refsim.sweep.quantities import UNITS
 from refsim.sweep.spec import RunSpec, StudySpec
 from refsim.sweep.worker import BLAS_ENVIRONMENT, run_one
 
-__all__ = ["STUDY_FORMAT", "STUDY_SCHEMA_VERSION", "read_study", "run_study", "run_folder"]
+__all__ = ["STUDY_FORMAT", "STUDY_SCHEMA_VERSION", "read_study", "run_study", "run_folder", "start_client"]
 
 logger = logging.getLogger(__name__)
 
@@ -56,7 +56,10 @@ def _pending(run: RunSpec) -> dict:
             "ms_per_step": float("nan"), "quantities": {}}
 
 
-def _start_client(scheduler: str | None, workers: int | None):
+def start_client(scheduler: str | None = None, workers: int | None = None):
+    """A Dask client on ``scheduler``, or on a new LocalCluster of ``workers`` processes (the cores by
+    default), one thread and one BLAS thread each. Returns (client, cluster); cluster is None for a scheduler.
+    Close both when done."""
     from distributed import Client, LocalCluster
 
     if scheduler:
@@ -69,7 +72,7 @@ def _start_client(scheduler: str | None, workers: int | None):
 
 
 def run_study(spec: StudySpec, output, *, scheduler: str | None = None, workers: int | None = None,
-              progress: bool = True) -> dict:
+              progress: bool = True, client=None) -> dict:
     """Run every missing run of a study on Dask and write the study file.
 
     Parameters
@@ -79,6 +82,8 @@ def run_study(spec: StudySpec, output, *, scheduler: str | None = None, workers:
     scheduler : Address of a running Dask scheduler (``tcp://host:8786``); a LocalCluster when None.
     workers : Worker processes of the LocalCluster (one thread and one BLAS thread each); the cores by default.
     progress : Show a progress bar (tqdm, on stderr).
+    client : An existing ``distributed.Client`` to use (and leave open), e.g. one for several studies;
+        ``scheduler`` and ``workers`` are then ignored.
 
     Returns
     -------
@@ -101,7 +106,9 @@ def run_study(spec: StudySpec, output, *, scheduler: str | None = None, workers:
     if missing:
         from tqdm import tqdm
 
-        client, cluster = _start_client(scheduler, workers)
+        own = client is None
+        if own:
+            client, cluster = start_client(scheduler, workers)
         bar = tqdm(total=len(every), initial=len(done), desc=f"study {spec.name}", unit="run",
                    disable=not progress, file=sys.stderr)
         try:
@@ -122,9 +129,10 @@ def run_study(spec: StudySpec, output, *, scheduler: str | None = None, workers:
                 _write(spec, output, runs, reference, rows)
         finally:
             bar.close()
-            client.close()
-            if cluster is not None:
-                cluster.close()
+            if own:
+                client.close()
+                if cluster is not None:
+                    cluster.close()
     _write(spec, output, runs, reference, rows, final=True)
     return read_study(output)
 
