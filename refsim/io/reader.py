@@ -21,6 +21,7 @@ __all__ = [
     "ResultsError",
     "Results",
     "StepConstraints",
+    "read_problem_group",
     "read_problems",
     "read_results",
 ]
@@ -162,6 +163,11 @@ class Results:
     def step_count(self) -> int:
         """Number of completed steps in the file."""
         return int(self.step.shape[0])
+
+    @property
+    def stop_reason(self) -> str:
+        """Why the run stopped early ("" for a complete run; files written before the attribute existed: "")."""
+        return str(self.attributes.get("stop_reason", ""))
 
     @property
     def scene_name(self) -> str:
@@ -436,8 +442,6 @@ def read_problems(path, *, steps=None) -> list[tuple[int, object]]:
     -------
     list of (step, refsim.solvers.ConstraintProblem), in step order; empty when none were recorded.
     """
-    from refsim.solvers import ConstraintProblem
-
     path, handle, attributes = _open(path)
     wanted = None if steps is None else {int(step) for step in steps}
     problems = []
@@ -449,7 +453,18 @@ def read_problems(path, *, steps=None) -> list[tuple[int, object]]:
             if wanted is not None and step not in wanted:
                 continue
             group = handle[schema.problem_group_name(step)]
-            fields = {spec.name: group[spec.name][()] for spec in schema.PROBLEM_FIELDS.values()}
-            name = _plain(group.attrs.get("name", "")) or f"{path.name} step {step}"
-            problems.append((step, ConstraintProblem(**fields, name=name)))
+            problems.append((step, read_problem_group(group, default_name=f"{path.name} step {step}")))
     return problems
+
+
+def read_problem_group(group, *, default_name: str = ""):
+    """The ConstraintProblem stored in an open h5py group by :func:`refsim.io.writer.write_problem_group`.
+
+    Fields newer than the file (absent from the group) take their defaults.
+    """
+    from refsim.solvers import ConstraintProblem
+
+    fields = {spec.name: group[spec.name][()] for spec in schema.PROBLEM_FIELDS.values()
+              if spec.name in group}
+    name = _plain(group.attrs.get("name", "")) or default_name
+    return ConstraintProblem(**fields, name=name)

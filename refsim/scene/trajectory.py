@@ -77,4 +77,10 @@ def read_trajectory_csv(path: Path) -> Trajectory:
     norms = np.linalg.norm(data[:, 4:7], axis=1)
     if np.any(norms < 1e-12):
         raise ValueError(f"{path}: zero direction at row {int(np.argmax(norms < 1e-12)) + 1}")
+    from refsim.scene.spec import check_directions
+
+    try:
+        check_directions(data[:, 4:7], "directions", times)
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
     return Trajectory(times, data[:, 1:4], data[:, 4:7] / norms[:, None])

@@ -1,7 +1,6 @@
 """One run of a study, as executed on a Dask worker: scene → results file (+ XDMF sidecar) → quantities.
 
-:func:`run_scene` is the local adapter for the one run driver (issue 8, item 6); when ``refsim.io`` provides
-the driver, :func:`run_scene` becomes a call to it and nothing else here changes.
+:func:`run_scene` calls the one run driver (:func:`refsim.io.driver.run_scene`) and adds the XDMF sidecar.
 """
 
 from __future__ import annotations
@@ -22,7 +21,8 @@ BLAS_ENVIRONMENT = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NU
 
 
 def run_scene(scene, output, *, overwrite: bool = False):
-    """Run ``scene`` and write its results file (with the cut surface) and its XDMF sidecar.
+    """Run ``scene`` through the one run driver (:func:`refsim.io.driver.run_scene`: results file with the cut
+    surface, summary) and write the XDMF sidecar beside the file.
 
     Parameters
     ----------
@@ -32,34 +32,18 @@ def run_scene(scene, output, *, overwrite: bool = False):
 
     Returns
     -------
-    refsim.simulation.summary.RunSummary of the completed steps.
+    The driver's RunSummary (``status``, ``stop_reason``, ``complete``): a run stopped by a numerical problem
+    keeps its completed steps with ``complete = False``.
 
     Raises
     ------
-    refsim.simulation.SimulationError
-        When the run stops on a detected error (the file keeps every completed step, ``complete = False``).
+    refsim.io.driver.RunInputError
+        Bad input (scene, models, output path), before any file is written.
     """
-    from refsim.io import ResultWriter
+    from refsim.io.driver import run_scene as drive
     from refsim.io.xdmf import write_xdmf
-    from refsim.simulation import Simulation
-    from refsim.simulation.summary import RunSummary
 
-    simulation = Simulation(scene)
-    summary = RunSummary()
-    with ResultWriter(output, scene, simulation.models, overwrite=overwrite) as writer:
-        written = [None]
-
-        def on_step(state, record) -> None:
-            writer.append(record)
-            if state.cut is not None and state.cut is not written[0]:
-                cut = state.cut
-                writer.write_cut_surface(cut.rest_points, cut.created_step, cut.triangles,
-                                         cut.triangle_created_step, tet_indices=cut.tet_indices,
-                                         barycentric=cut.barycentric)
-                written[0] = cut
-            summary.add(record)
-
-        simulation.run(on_step=on_step)
+    summary = drive(scene, output, overwrite=overwrite, handle_signals=False)
     write_xdmf(output)
     return summary
 
@@ -130,10 +114,13 @@ def run_one(scene: str, overrides: tuple, output: str, quantities: tuple) -> dic
 
             start = time.perf_counter()
             with threadpool_limits(limits=1):
-                run_scene(load_scene(scene, list(overrides)), output, overwrite=True)
+                summary = run_scene(load_scene(scene, list(overrides)), output, overwrite=True)
             row["seconds"] = time.perf_counter() - start
+            if not summary.complete:
+                row["error"] = f"{summary.status}: {summary.stop_reason}"
         row.update(describe(output, quantities))
-        row["status"] = "complete" if row.pop("complete") else "incomplete"
+        complete = row.pop("complete")
+        row["status"] = "complete" if complete else ("failed" if row["error"] else "incomplete")
     except Exception as error:  # a failing run is a result of the study, not a crash of it
         row["error"] = f"{type(error).__name__}: {error}"
         row["traceback"] = traceback.format_exc(limit=5)

@@ -1,4 +1,5 @@
-"""Cut rows on a hand-made planar cut in a box: sliding rows along the surface normal, border rows on the front."""
+"""Cut rows on a hand-made planar strip in a box: sliding rows along the surface normal wherever the needle lies
+in the cut, front rows on the crack tip, with the strength G_c × (the inserted length each stands for)."""
 
 from __future__ import annotations
 
@@ -6,18 +7,20 @@ import numpy as np
 import pytest
 
 from refsim.constraints import BILATERAL, CUT_BORDER, CUT_SLIDE, UNILATERAL
-from refsim.constraints.cut import cut_block
+from refsim.constraints.cut import strip_cut_block
 from refsim.cutting import CutGrowth, TriangulationParameters
+from refsim.cutting.growth import start_strip
 from refsim.mesh import box_mesh
 from tests.constraints.conftest import rigid_needle, still_geometry
 
 SPACING = 0.5e-3
+C_HAT = np.array([1.0, 0.0, 0.0])
 
 
 @pytest.fixture(scope="module")
-def planar_cut():
-    """A 12 mm box (6 cells per axis); a cut started from a vertical path at (x, y) = (4.1, 6.3) mm running
-    along +x by d_t = 2 mm: the plane y = 6.3 mm, x in [4.1, 6.1] mm, z in [4, 12] mm."""
+def planar_strip():
+    """A 12 mm box (6 cells per axis); a strip started from a vertical path at (x, y) = (4.1, 6.3) mm swept along
+    +x by 2 mm: the plane y = 6.3 mm, x in [4.1, 6.1] mm, z in [4, 12] mm; its crack tip at x = 6.1 mm."""
     mesh = box_mesh(size=(0.012, 0.012, 0.012), cells=(6, 6, 6))
     growth = CutGrowth(
         rest_positions=mesh.rest_positions,
@@ -26,67 +29,73 @@ def planar_cut():
         extent=2e-3,
         parameters=TriangulationParameters.from_degrees(min_angle=10, max_angle=120, max_surface_angle=45),
     )
-    top, bottom = np.array([0.0041, 0.0063, 0.012 - 1e-9]), np.array([0.0041, 0.0063, 0.004])
-    path = np.linspace(top, bottom, 17)
-    cut = growth.start(path, np.array([1.0, 0.0, 0.0]), mesh.rest_positions, step=1)
-    return mesh, growth, cut
+    path = np.linspace([0.0041, 0.0063, 0.012], [0.0041, 0.0063, 0.004], 17)
+    cut, strip = start_strip(growth, None, path, C_HAT, mesh.rest_positions, 1, extent=2e-3)
+    return mesh, cut, strip
 
 
-def test_the_first_surface_is_the_path_swept_along_the_cut_direction(planar_cut):
-    _, _, cut = planar_cut
-    points = cut.rest_points
-    np.testing.assert_allclose(points[:, 1], 0.0063, atol=1e-15)
-    assert points[:, 0].min() == pytest.approx(0.0041, abs=1e-12)
-    assert points[:, 0].max() == pytest.approx(0.0061, abs=1e-12)
-    assert cut.triangle_count > 0
-
-
-def test_a_needle_in_the_cut_gets_sliding_rows_normal_to_the_surface(planar_cut):
-    mesh, _, cut = planar_cut
-    # The needle lies in the cut, 1 mm ahead of its back border, shifted 0.1 mm off the plane (+y).
-    needle = rigid_needle([0.0051, 0.0064, 0.0045], [0.0, 0.0, -1.0], length=0.02)
-    rows, info = cut_block(
-        cut, still_geometry(mesh, needle), entry_arc_length=needle.length - 0.0075, spacing=SPACING,
-        cut_direction=np.array([1.0, 0.0, 0.0]),
+def _rows(planar_strip, needle, strength=np.inf):
+    mesh, cut, strip = planar_strip
+    return strip_cut_block(
+        cut, strip, still_geometry(mesh, needle), entry_arc_length=needle.length - 0.0075, spacing=SPACING,
+        cut_direction=C_HAT, front_strength=strength,
     )
+
+
+def test_the_strip_is_the_path_swept_along_the_cut_direction(planar_strip):
+    _, cut, strip = planar_strip
+    np.testing.assert_allclose(cut.rest_points[:, 1], 0.0063, atol=1e-15)
+    assert cut.rest_points[:, 0].min() == pytest.approx(0.0041, abs=1e-12)
+    np.testing.assert_allclose(strip.front.rest_points[:, 0], 0.0061, atol=1e-12)
+    assert strip.layers.shape == (5, 17)  # d_t / d_c + 1 layers of 17 columns
+
+
+def test_a_needle_in_the_cut_gets_a_sliding_row_at_every_sample(planar_strip):
+    # The needle lies in the cut 1 mm behind the crack tip, 0.1 mm off the plane (+y), 7.5 mm inserted.
+    needle = rigid_needle([0.0051, 0.0064, 0.0045], [0.0, 0.0, -1.0], length=0.02)
+    rows, _ = _rows(planar_strip, needle)
     slide = rows.source == CUT_SLIDE
-    assert np.count_nonzero(slide) >= 2 and np.all(rows.kind[slide] == BILATERAL)
+    # Samples every d_c over [entry − d_c, tip]: 7.5 mm / 0.5 mm + 1, every one inside the strip.
+    assert np.count_nonzero(slide) == 16
+    assert np.all(rows.kind[slide] == BILATERAL)
     np.testing.assert_allclose(np.abs(rows.directions[slide] @ [0.0, 1.0, 0.0]), 1.0, atol=1e-9)
-    # δ = nᵀ(x_needle − x_surface): the 0.1 mm offset, with the sign of the normal.
     signed = rows.free_gap[slide] * (rows.directions[slide] @ [0.0, 1.0, 0.0])
     np.testing.assert_allclose(signed, 1e-4, atol=1e-12)
 
 
-def test_border_rows_hold_the_needle_behind_the_front(planar_cut):
-    mesh, _, cut = planar_cut
+def test_front_rows_hold_the_needle_behind_the_crack_tip(planar_strip):
     needle = rigid_needle([0.0051, 0.0063, 0.0045], [0.0, 0.0, -1.0], length=0.02)
-    rows, info = cut_block(
-        cut, still_geometry(mesh, needle), entry_arc_length=needle.length - 0.0075, spacing=SPACING,
-        cut_direction=np.array([1.0, 0.0, 0.0]),
-    )
+    rows, front = _rows(planar_strip, needle)
     border = rows.source == CUT_BORDER
-    assert np.count_nonzero(border) >= 1 and np.all(rows.kind[border] == UNILATERAL)
-    np.testing.assert_array_equal(np.flatnonzero(border), info.rows)
-    # Only the front (x = 6.1 mm) holds the needle: the rows point back along −x, normal to the needle.
-    np.testing.assert_allclose(rows.directions[border] @ [0.0, 0.0, 1.0], 0.0, atol=1e-12)
-    assert np.all(rows.directions[border] @ [1.0, 0.0, 0.0] < -0.5)
-    np.testing.assert_allclose(rows.points[border][:, 0], 0.0061, atol=1e-9)
-    # The needle is 1 mm behind the front: every border gap is about +1 mm (inside the cut).
-    np.testing.assert_allclose(rows.free_gap[border], 1e-3, atol=1e-6)
+    assert np.count_nonzero(border) >= 10 and np.all(rows.kind[border] == UNILATERAL)
+    np.testing.assert_array_equal(np.flatnonzero(border), front.rows)
+    np.testing.assert_allclose(rows.directions[border], np.broadcast_to(-C_HAT, (front.rows.size, 3)), atol=1e-12)
+    np.testing.assert_allclose(rows.points[border][:, 0], 0.0061, atol=1e-12)
+    np.testing.assert_allclose(rows.free_gap[border], 1e-3, atol=1e-12)  # 1 mm behind the tip: inside
+    assert rows.force_limit.size == 0 or np.all(np.isinf(rows.force_limit))  # unbounded: the paper's law
 
 
-def test_tear_grows_the_front_by_the_extent_along_the_outward_direction(planar_cut):
-    mesh, growth, cut = planar_cut
+def test_front_strength_adds_up_to_gc_times_the_inserted_length(planar_strip):
     needle = rigid_needle([0.0051, 0.0063, 0.0045], [0.0, 0.0, -1.0], length=0.02)
-    gradients = np.broadcast_to(np.eye(3), (mesh.tets.shape[0], 3, 3))
-    grown = growth.tear(
-        cut, positions=mesh.rest_positions, deformation_gradients=gradients, outward=np.array([1.0, 0.0, 0.0]),
-        cut_direction=np.array([1.0, 0.0, 0.0]), needle=needle, entry_arc_length=needle.length - 0.0075, step=2,
+    rows, front = _rows(planar_strip, needle, strength=200.0)
+    limits = rows.force_limit[front.rows]
+    assert np.all(np.isfinite(limits)) and np.all(limits > 0)
+    # Σ ℓ_k = 7.5 mm, the inserted length (every sample's projection lies inside the crack tip's span).
+    assert limits.sum() == pytest.approx(200.0 * 0.0075, rel=1e-12)
+    problem = rows.problem(np.eye(rows.row_count))
+    np.testing.assert_array_equal(problem.box_rows, front.rows)
+    np.testing.assert_allclose(problem.box_lower, 0.0)
+
+
+def test_rows_are_chosen_on_the_start_of_step_state(planar_strip):
+    # The needle moves 3 mm ahead during the free motion: the rows are those of where it was (in the cut), their
+    # gaps those of where it is (past the crack tip: negative front gaps).
+    mesh, cut, strip = planar_strip
+    previous = rigid_needle([0.0051, 0.0063, 0.0045], [0.0, 0.0, -1.0], length=0.02)
+    free = rigid_needle([0.0081, 0.0063, 0.0045], [0.0, 0.0, -1.0], length=0.02)
+    rows, front = strip_cut_block(
+        cut, strip, still_geometry(mesh, previous, needle_free=free), entry_arc_length=previous.length - 0.0075,
+        spacing=SPACING, cut_direction=C_HAT,
     )
-    new = grown.rest_points[cut.point_count:]
-    assert new.shape[0] > 0
-    assert new[:, 0].max() == pytest.approx(0.0081, abs=1e-9)  # 6.1 mm + d_t
-    np.testing.assert_allclose(new[:, 1], 0.0063, atol=1e-12)
-    # Prefix-stable: old points and triangles unchanged.
-    np.testing.assert_array_equal(grown.rest_points[: cut.point_count], cut.rest_points)
-    np.testing.assert_array_equal(grown.triangles[: cut.triangle_count], cut.triangles)
+    assert np.count_nonzero(rows.source == CUT_SLIDE) == 16
+    np.testing.assert_allclose(rows.free_gap[front.rows], -2e-3, atol=1e-12)
