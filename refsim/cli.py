@@ -1,4 +1,4 @@
-"""The `refsim` command line: run, verify, bench, render, plot.
+"""The `refsim` command line: run, verify, bench, render, plot, study, export.
 
 Exit codes: 0 success; 1 a verification case failed; 2 bad input (scene, file, option; nothing is written);
 3 the simulation stopped on a detected numerical problem or a failed write (the results file keeps every
@@ -74,6 +74,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         print(f"refsim run: error: {summary.stop_reason}; {summary.steps_written} completed steps kept in "
               f"{output} (complete = false)", file=sys.stderr)
     print(f"scene {scene.name} ({scene.source}) -> {output}")
+    _write_sidecar(output)
     print(summary.format())
     print(summary.format_table())
     if figure is not None and summary.complete:
@@ -85,6 +86,70 @@ def _cmd_run(args: argparse.Namespace) -> int:
         plot_result(output, plot_path)
         print(f"figures: {figure}, {plot_path}")
     return summary.exit_code
+
+
+def _write_sidecar(output: Path) -> None:
+    """The ParaView sidecar (RESULT.xdmf) of a results file; a failure is reported, never fatal to the run."""
+    from refsim.io.xdmf import write_xdmf
+
+    try:
+        print(f"ParaView: {write_xdmf(output)}")
+    except (OSError, ValueError) as error:
+        print(f"refsim: no XDMF sidecar for {output}: {error}", file=sys.stderr)
+
+
+def _cmd_study(args: argparse.Namespace) -> int:
+    """`refsim study`: a study file, or a scene with --sweep options, run on Dask."""
+    from refsim.sweep import load_study, run_study, study_from_options
+
+    target = Path(args.target)
+    is_study_file = target.suffix == ".toml" and target.is_file() and args.sweep is None
+    if is_study_file:
+        spec = load_study(target)
+        if args.set:
+            import dataclasses
+
+            spec = dataclasses.replace(spec, overrides=tuple(spec.overrides) + tuple(args.set))
+    else:
+        if not args.sweep:
+            raise ValueError(f"{args.target}: give --sweep section.key=v1,v2,... (or a study file .toml)")
+        spec = study_from_options(args.target, args.sweep, combine="zip" if args.zip else "product",
+                                  overrides=args.set or (), quantities=args.quantity,
+                                  reference=args.reference, name=args.name)
+    output = Path(args.output) if args.output else Path(f"{spec.name}_study.h5")
+    study = run_study(spec, output, scheduler=args.scheduler, workers=args.workers, progress=not args.quiet)
+    runs = study["runs"]
+    print(f"study {spec.name}: {len(runs['id'])} runs, {study['attributes']['runs_complete']} complete, "
+          f"{study['attributes']['runs_failed']} failed -> {output}")
+    for row in study["convergence"]:
+        print(f"  {row['key']:<22} {row['quantity']:<26} {row['kind']:<11} order {row['order']:7.3f}  "
+              f"extrapolated {row['extrapolated']:.6g}  GCI {100 * row['gci']:.3g}%")
+    return 0 if study["attributes"]["runs_failed"] == 0 else EXIT_SIMULATION
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    """`refsim export`: ParaView sidecar, reference problems (problem set, FCLib) and the force CSV."""
+    from refsim.io.export import export_force_csv, export_problems
+    from refsim.io.xdmf import write_xdmf
+
+    result = Path(args.result)
+    if not (args.xdmf or args.problems or args.csv):
+        raise ValueError("refsim export: choose at least one of --xdmf, --problems OUT.h5, --csv OUT.csv")
+    if args.xdmf:
+        print(f"wrote {write_xdmf(result)}")
+    if args.problems:
+        summary = export_problems(result, args.problems, fclib_folder=args.fclib)
+        print(f"wrote {summary['problems']} problems with their exact solutions to {args.problems}"
+              + (f"; {len(summary['fclib'])} FCLib files in {args.fclib}" if args.fclib else ""))
+        if summary["unconverged"]:
+            print(f"  exact solve above tolerance at steps {summary['unconverged']}", file=sys.stderr)
+    if args.csv:
+        print(f"wrote {export_force_csv(result, args.csv)}")
+    return 0
+
+
+def _cut_history(cut):
+    return cut.rest_points, cut.created_step, cut.triangles, cut.triangle_created_step
 
 
 def _cmd_verify(args: argparse.Namespace) -> int:
@@ -250,6 +315,29 @@ def _parser() -> argparse.ArgumentParser:
     plot.add_argument("result")
     plot.add_argument("-o", "--output", required=True)
     plot.set_defaults(handler=_cmd_plot)
+
+    study = commands.add_parser("study", help="parameter sweep on Dask (a LocalCluster, or --scheduler)")
+    study.add_argument("target", help="study file (.toml), or a scene (file or built-in name) with --sweep")
+    study.add_argument("--sweep", action="append", metavar="SECTION.KEY=V1,V2,...", help="values of a scene key")
+    study.add_argument("--zip", action="store_true", help="pair the i-th values of every sweep (default: product)")
+    study.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override for every run")
+    study.add_argument("--quantity", action="append", help="quantity of interest (refsim.sweep.quantities)")
+    study.add_argument("--reference", action="append", metavar="SECTION.KEY=VALUE",
+                       help="override of the reference run (errors are taken against it)")
+    study.add_argument("--name", help="study name (default: the scene's)")
+    study.add_argument("-o", "--output", help="study file (.h5); runs go to <stem>_runs/ beside it")
+    study.add_argument("--scheduler", help="address of a running Dask scheduler, e.g. tcp://host:8786")
+    study.add_argument("--workers", type=int, help="LocalCluster worker processes (default: the cores)")
+    study.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    study.set_defaults(handler=_cmd_study)
+
+    export = commands.add_parser("export", help="ParaView sidecar, reference problems, force CSV of a result")
+    export.add_argument("result")
+    export.add_argument("--xdmf", action="store_true", help="write RESULT.xdmf beside the file (ParaView)")
+    export.add_argument("--problems", metavar="OUT.h5", help="recorded problems with exact solutions")
+    export.add_argument("--fclib", metavar="FOLDER", help="with --problems: FCLib files of pure-contact steps")
+    export.add_argument("--csv", metavar="OUT.csv", help="needle force history")
+    export.set_defaults(handler=_cmd_export)
     return parser
 
 
