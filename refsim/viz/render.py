@@ -201,7 +201,8 @@ def frame_camera(
     tissue_positions : Tissue node positions [m], shape (n, 3).
     cut_points, cut_triangles : The deformed cut surface (see :func:`cut_surface_positions`).
     camera : None or "auto": looking at the cut face-on (its mean normal, perpendicular to the needle), or
-        without a cut from the side of the needle, 30° around it and 20° from its base; a name of
+        without a cut from the side of the needle, 30° around it and 20° from its base, from the side where
+        the camera is outside the tissue when only one is; a name of
         ``NAMED_VIEWS``; or a direction from the focus towards the camera, shape (3,).
     view_up : Up direction of the picture, shape (3,); by default the needle's base is up.
     zoom : Magnification (> 0) applied after the framing; 2 shows half the size.
@@ -220,6 +221,10 @@ def frame_camera(
         raise ValueError(f"zoom = {zoom}: expected a number > 0")
     index = results.index_of(step)
     axis = _unit(results.needle_positions[index, -1] - results.needle_positions[index, 0])
+    if locator is None:
+        from refsim.geometry import TetLocator
+
+        locator = TetLocator(results.rest_positions, results.tets)
     if isinstance(focus, str) and ("," in focus or " " in focus.strip()):
         focus = parse_vector(focus, "focus")
     if isinstance(focus, str):
@@ -251,6 +256,12 @@ def frame_camera(
     half_angle = np.radians(_VIEW_ANGLE) / 2.0
     narrow = min(half_angle, np.arctan(np.tan(half_angle) * aspect))
     distance = radius / np.sin(narrow) / zoom
+    if camera is None or (isinstance(camera, str) and camera == "auto"):
+        # Of the two sides of the cut (or of the needle), prefer one where the camera is outside the tissue.
+        mirrored = _unit(direction - 2.0 * (direction - (direction @ axis) * axis))
+        inside = locator.locate(np.array([centre + distance * direction, centre + distance * mirrored]))[0] >= 0
+        if inside[0] and not inside[1]:
+            direction = mirrored
     return CameraView(centre + distance * direction, centre, up)
 
 
