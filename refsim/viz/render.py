@@ -470,6 +470,7 @@ def render_result(
         _draw_step(plotter, results, step, tissue_positions, cut_points, cut_triangles, view_size,
                    _Style(tissue_opacity))
         _apply_camera(plotter, view)
+        plotter.render()
         output_png = Path(output_png)
         output_png.parent.mkdir(parents=True, exist_ok=True)
         plotter.screenshot(str(output_png))
