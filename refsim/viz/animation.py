@@ -143,6 +143,7 @@ def animate_result(
                 plotter, results, step, tissue, cut_points, cut_triangles, view_size, _Style(tissue_opacity)
             )
             _apply_camera(plotter, view)
+            plotter.render()  # the actors were added without rendering; the screenshot reuses the last render
             writer.append_data(plotter.screenshot(return_img=True))
             plotter.clear()
     finally:

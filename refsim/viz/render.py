@@ -201,7 +201,8 @@ def frame_camera(
     tissue_positions : Tissue node positions [m], shape (n, 3).
     cut_points, cut_triangles : The deformed cut surface (see :func:`cut_surface_positions`).
     camera : None or "auto": looking at the cut face-on (its mean normal, perpendicular to the needle), or
-        without a cut from the side of the needle, 30° around it and 20° from its base; a name of
+        without a cut from the side of the needle, 30° around it and 20° from its base, from the side where
+        the camera is outside the tissue when only one is; a name of
         ``NAMED_VIEWS``; or a direction from the focus towards the camera, shape (3,).
     view_up : Up direction of the picture, shape (3,); by default the needle's base is up.
     zoom : Magnification (> 0) applied after the framing; 2 shows half the size.
@@ -220,6 +221,10 @@ def frame_camera(
         raise ValueError(f"zoom = {zoom}: expected a number > 0")
     index = results.index_of(step)
     axis = _unit(results.needle_positions[index, -1] - results.needle_positions[index, 0])
+    if locator is None:
+        from refsim.geometry import TetLocator
+
+        locator = TetLocator(results.rest_positions, results.tets)
     if isinstance(focus, str) and ("," in focus or " " in focus.strip()):
         focus = parse_vector(focus, "focus")
     if isinstance(focus, str):
@@ -251,6 +256,12 @@ def frame_camera(
     half_angle = np.radians(_VIEW_ANGLE) / 2.0
     narrow = min(half_angle, np.arctan(np.tan(half_angle) * aspect))
     distance = radius / np.sin(narrow) / zoom
+    if camera is None or (isinstance(camera, str) and camera == "auto"):
+        # Of the two sides of the cut (or of the needle), prefer one where the camera is outside the tissue.
+        mirrored = _unit(direction - 2.0 * (direction - (direction @ axis) * axis))
+        inside = locator.locate(np.array([centre + distance * direction, centre + distance * mirrored]))[0] >= 0
+        if inside[0] and not inside[1]:
+            direction = mirrored
     return CameraView(centre + distance * direction, centre, up)
 
 
@@ -305,14 +316,15 @@ class _Style:
 
 def _draw_step(plotter, results, step: int, tissue_positions, cut_points, cut_triangles, view_size: float,
                style: _Style) -> None:
-    """Add the actors of one step to a plotter (see :func:`render_result`)."""
+    """Add the actors of one step to a plotter (see :func:`render_result`), without rendering (each render
+    through Mesa takes ~0.2 s; the screenshot renders once)."""
     import pyvista as pv
 
     index = results.index_of(step)
     legend = []
     surface = pv.PolyData(tissue_positions, triangle_cells(results.faces))
     plotter.add_mesh(surface, color=TISSUE_COLOR, opacity=style.tissue_opacity, show_edges=True,
-                     edge_color="#8c6d62", line_width=0.5, smooth_shading=False)
+                     edge_color="#8c6d62", line_width=0.5, smooth_shading=False, render=False)
     legend.append(["tissue", "#8c5a48"])
 
     radius = float(results.scene.get("needle", {}).get("radius", 0.0) or 0.0)
@@ -320,7 +332,7 @@ def _draw_step(plotter, results, step: int, tissue_positions, cut_points, cut_tr
     drawn_radius = radius if radius > 0 else 1e-3 * float(np.ptp(results.rest_positions, axis=0).max())
     needle = pv.lines_from_points(needle_nodes).tube(radius=drawn_radius, n_sides=32, capping=True)
     # Translucent: the needle is drawn at its real radius and may be wider than the cut it would hide.
-    plotter.add_mesh(needle, color=NEEDLE_COLOR, smooth_shading=True, opacity=0.45)
+    plotter.add_mesh(needle, color=NEEDLE_COLOR, smooth_shading=True, opacity=0.45, render=False)
     legend.append([f"needle, r = {1e3 * radius:.2f} mm" if radius > 0 else "needle", NEEDLE_COLOR])
 
     mark = max(0.35 * drawn_radius, 0.012 * view_size)
@@ -329,7 +341,7 @@ def _draw_step(plotter, results, step: int, tissue_positions, cut_points, cut_tr
         insertion = np.unique(rows.points[rows.source == results.source_names.index("insertion")], axis=0)
         if insertion.size:
             spheres = pv.PolyData(insertion).glyph(geom=pv.Sphere(radius=mark), scale=False, orient=False)
-            plotter.add_mesh(spheres, color=INSERTION_COLOR, smooth_shading=True)
+            plotter.add_mesh(spheres, color=INSERTION_COLOR, smooth_shading=True, render=False)
             legend.append([f"insertion points ({insertion.shape[0]})", INSERTION_COLOR])
 
     fixed = np.asarray(results.fixed_nodes, dtype=np.int64)
@@ -337,7 +349,7 @@ def _draw_step(plotter, results, step: int, tissue_positions, cut_points, cut_tr
         cubes = pv.PolyData(tissue_positions[fixed]).glyph(geom=pv.Cube(x_length=1.4 * mark, y_length=1.4 * mark,
                                                                          z_length=1.4 * mark),
                                                             scale=False, orient=False)
-        plotter.add_mesh(cubes, color=FIXED_COLOR)
+        plotter.add_mesh(cubes, color=FIXED_COLOR, render=False)
         legend.append([f"fixed nodes ({fixed.size})", FIXED_COLOR])
         motion = _fixed_motion(results, tissue_positions)
         largest = float(np.linalg.norm(motion, axis=1).max())
@@ -347,16 +359,18 @@ def _draw_step(plotter, results, step: int, tissue_positions, cut_points, cut_tr
             arrows = pv.PolyData(tissue_positions[fixed[shown]])
             arrows["motion"] = motion[shown] * scale
             plotter.add_mesh(arrows.glyph(orient="motion", scale="motion", factor=1.0, geom=pv.Arrow()),
-                             color=MOTION_COLOR)
+                             color=MOTION_COLOR, render=False)
             legend.append([f"boundary motion (max {1e3 * largest:.2f} mm, x{scale:.3g})", MOTION_COLOR])
 
     if cut_triangles.size:
         cut = pv.PolyData(cut_points, triangle_cells(cut_triangles))
-        plotter.add_mesh(cut, color=CUT_COLOR, opacity=1.0, show_edges=True, edge_color="#7f1010")
+        plotter.add_mesh(cut, color=CUT_COLOR, opacity=1.0, show_edges=True, edge_color="#7f1010",
+                         render=False)
         legend.append([f"cut surface ({cut_points.shape[0]} points, {cut_triangles.shape[0]} triangles)",
                        CUT_COLOR])
     elif cut_points.size:
-        plotter.add_mesh(pv.PolyData(cut_points), color=CUT_COLOR, point_size=8, render_points_as_spheres=True)
+        plotter.add_mesh(pv.PolyData(cut_points), color=CUT_COLOR, point_size=8, render_points_as_spheres=True,
+                         render=False)
         legend.append([f"cut points ({cut_points.shape[0]})", CUT_COLOR])
 
     phase = results.phase_names[results.phase[index]]
@@ -364,7 +378,7 @@ def _draw_step(plotter, results, step: int, tissue_positions, cut_points, cut_tr
     tissue_note = "" if tissue_step == step else f" (tissue of step {tissue_step})"
     plotter.add_text(
         f"{results.scene_name}  step {step}  t = {results.time[index]:.3f} s  {phase}{tissue_note}",
-        position="upper_left", font_size=10, color="black",
+        position="upper_left", font_size=10, color="black", render=False,
     )
     if style.show_legend:
         # A legend of coloured text lines at the upper right, usually over the background above the tissue
@@ -373,7 +387,7 @@ def _draw_step(plotter, results, step: int, tissue_positions, cut_points, cut_tr
         line = max(14, int(0.03 * height))
         for row, (label, color) in enumerate(legend):
             plotter.add_text(label, position=(int(0.6 * width), height - int(0.02 * height) - (row + 1) * line),
-                             font_size=max(7, int(0.42 * line * 72 / 96)), color=color)
+                             font_size=max(7, int(0.42 * line * 72 / 96)), color=color, render=False)
 
 
 def _apply_camera(plotter, view: CameraView) -> None:
@@ -456,6 +470,7 @@ def render_result(
         _draw_step(plotter, results, step, tissue_positions, cut_points, cut_triangles, view_size,
                    _Style(tissue_opacity))
         _apply_camera(plotter, view)
+        plotter.render()
         output_png = Path(output_png)
         output_png.parent.mkdir(parents=True, exist_ok=True)
         plotter.screenshot(str(output_png))
