@@ -283,6 +283,10 @@ class CuttingSpec(_Validated):
         low=0.0,
         low_open=True,
     )
+    friction_coefficient: float = spec(
+        0.0, unit="-", doc="μ_c: Coulomb friction of the needle on the cut faces (0: frictionless, the paper's model)",
+        low=0.0, high=10.0,
+    )
     cutting_force: float = spec(unit="N", doc="f_c: mean lateral force per insertion constraint that starts the cut (paper law)", low=0.0)
     tearing_force: float = spec(unit="N", doc="f_t: front row force that extends the cut by d_t (paper law)", low=0.0)
     point_spacing: float = spec(unit="m", doc="d_c: distance between points of the cut surface", low=0.0, low_open=True)

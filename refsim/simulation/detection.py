@@ -23,6 +23,7 @@ from refsim.constraints import (
     penetration_block,
 )
 from refsim.constraints.coupling import (
+    AXIAL,
     LATERAL,
     RingLayout,
     grip_preload,
@@ -75,7 +76,10 @@ class Detector:
         self.cutting = scene.cutting
         self.faces = faces
         self.needle_dof_count = needle_dof_count
-        self.slide_compliance = _slide_compliance(scene, mesh_size) if scene.cutting.enabled else 0.0
+        self.slide_compliance = _slide_compliance(scene, mesh_size, LATERAL) if scene.cutting.enabled else 0.0
+        self.friction_compliance = (
+            (_slide_compliance(scene, mesh_size, AXIAL), self.slide_compliance) if scene.cutting.enabled else (0.0, 0.0)
+        )
         spec = scene.insertion
         tissue = scene.tissue
         self.shear_modulus = tissue.youngs_modulus / (2.0 * (1.0 + tissue.poisson_ratio))
@@ -170,6 +174,8 @@ class Detector:
                 cut_direction=state.cut_direction,
                 front_strength=strength,
                 slide_compliance=self.slide_compliance,
+                friction_coefficient=cutting.friction_coefficient,
+                friction_compliance=self.friction_compliance,
             )
             if block is not None:
                 blocks.append(block)
@@ -181,7 +187,7 @@ class Detector:
         return Detection(rows, contact, front)
 
 
-def _slide_compliance(scene: Scene, mesh_size: float) -> float:
+def _slide_compliance(scene: Scene, mesh_size: float, kind: int) -> float:
     """Sub-grid compliance of one sliding row of the cut [m/N]: the lateral compliance of the well-posed
     coupling (:func:`refsim.constraints.coupling.subgrid_compliance`, the annulus between the needle and the
     equivalent radius of the mesh, Peaceman's well model) for the length d_c a sliding row stands for."""
@@ -190,7 +196,7 @@ def _slide_compliance(scene: Scene, mesh_size: float) -> float:
     tissue = scene.tissue
     return float(
         subgrid_compliance(
-            np.array([LATERAL]),
+            np.array([kind]),
             shear_modulus=tissue.youngs_modulus / (2.0 * (1.0 + tissue.poisson_ratio)),
             poisson_ratio=tissue.poisson_ratio,
             needle_radius=scene.needle.radius,
