@@ -228,7 +228,9 @@ class Simulation:
             return np.zeros(0), None
         spec = self.scene.solver
         if spec.method == "exact":
-            return solve_exact(problem, tolerance=spec.tolerance, backend=spec.backend)
+            return solve_exact(
+                problem, tolerance=spec.tolerance, backend=spec.backend, method=spec.exact_method, warm_start=warm_start
+            )
         return solve_gauss_seidel(
             problem,
             tolerance=spec.tolerance,
