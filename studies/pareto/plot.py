@@ -42,12 +42,17 @@ def _figure(study: dict, path: Path) -> None:
     families = spec.get("families", {})
     times = np.asarray(runs["ms_per_step"], dtype=float)
     errors = np.asarray(runs["errors"]["force_history"], dtype=float)
+    valid = np.isfinite(errors) & np.isfinite(times) & np.array([s == "complete" for s in runs["status"]])
+    errors = np.where(valid, errors, np.nan)  # a failed run has no error; it is listed under the axes
     floor = np.nanmin(errors[errors > 0]) / 10 if np.any(errors > 0) else 1e-16
     shown = np.where(errors > 0, errors, floor)  # an error of exactly 0 is drawn at the floor
     figure, axis = plt.subplots(figsize=(6.4, 4.6))
     markers = "osD^v<>p*hX"
     for number, family in enumerate(dict.fromkeys(families.get(label, "other") for label in runs["label"])):
-        members = [i for i, label in enumerate(runs["label"]) if families.get(label, "other") == family]
+        members = [i for i, label in enumerate(runs["label"])
+                   if families.get(label, "other") == family and valid[i]]
+        if not members:
+            continue
         axis.loglog(times[members], shown[members], markers[number % len(markers)], label=family, ms=6)
         for i in members:
             axis.annotate(runs["label"][i], (times[i], shown[i]), fontsize=6, xytext=(3, 3),
@@ -57,7 +62,11 @@ def _figure(study: dict, path: Path) -> None:
     reference = study["reference"]
     if reference and np.isfinite(reference.get("ms_per_step", np.nan)):
         axis.axvline(reference["ms_per_step"], color="k", ls="--", lw=0.8, label="exact mode")
-    axis.set_xlabel("ms per step (mean wall time)")
+    failed = [label for i, label in enumerate(runs["label"]) if not valid[i]]
+    xlabel = "ms per step (mean wall time)"
+    if failed:
+        xlabel += f"\nnot shown, run failed: {', '.join(failed)}"
+    axis.set_xlabel(xlabel)
     axis.set_ylabel("relative error of the needle force history")
     axis.set_title(f"{spec['scene']}: speed against error (reference: {reference['label'] if reference else '-'})",
                    fontsize=10)
@@ -99,6 +108,8 @@ def main(argv: list[str] | None = None) -> None:
         for i, label in enumerate(runs["label"]):
             mark = " **(front)**" if i in front else ""
             cells = " | ".join(f"{runs['errors'][n][i]:.2e}" for n in names)
+            if runs["status"][i] != "complete":
+                mark = f" (failed: {runs['error'][i][:120]})"
             lines.append(f"| {label}{mark} | {spec.get('families', {}).get(label, '')} | "
                          f"{runs['ms_per_step'][i]:.1f} | {runs['errors']['force_history'][i]:.2e} | {cells} |")
         lines += ["", f"![{spec['scene']}](figures/{figure.name})", ""]
