@@ -1,7 +1,7 @@
 """Running a study on Dask and its HDF5 index (the study file).
 
 The study file ``STUDY.h5`` indexes the runs, whose results files sit in the folder ``STUDY_runs/`` beside it
-(one ``<run id>.h5`` each, the id a hash of the run's overrides). It is rewritten (atomically) each time a run
+(one ``<run id>.h5`` each, the id a hash of the scene and the run's overrides). It is rewritten (atomically) each time a run
 finishes, so an interrupted study keeps what it did; started again, it runs only the runs whose results file is
 missing or not ``complete``. Layout (also in ``docs/studies.md``):
 
