@@ -243,10 +243,17 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from refsim.viz import render_result
+    from refsim.viz import animate_result, render_result
 
-    render_result(Path(args.result), Path(args.output), step=args.step)
-    print(f"wrote {args.output}")
+    framing = {"camera": args.camera, "view_up": args.view_up, "zoom": args.zoom, "focus": args.focus}
+    if args.animate:
+        animate_result(Path(args.result), Path(args.animate), every=args.every, fps=args.fps, **framing)
+        print(f"wrote {args.animate}")
+    if args.output:
+        render_result(Path(args.result), Path(args.output), step=args.step, **framing)
+        print(f"wrote {args.output}")
+    if not (args.output or args.animate):
+        raise ValueError("refsim render needs -o FIG.png, --animate OUT.gif|.mp4, or both")
     return 0
 
 
@@ -287,10 +294,21 @@ def _parser() -> argparse.ArgumentParser:
                        help="also run the scene exactly and report each strategy's errors (positions, forces, events)")
     bench.set_defaults(handler=_cmd_bench)
 
-    render = commands.add_parser("render", help="off-screen picture of a results file")
+    render = commands.add_parser("render", help="off-screen picture (or animation) of a results file")
     render.add_argument("result")
-    render.add_argument("-o", "--output", required=True)
+    render.add_argument("-o", "--output", help="picture to write (.png)")
     render.add_argument("--step", type=int, default=None, help="step to show (default: last)")
+    render.add_argument("--camera", default=None,
+                        help="view direction from the focus to the camera: auto (default: face the cut, else "
+                             "beside the needle), iso, xy, yx, xz, zx, yz, zy, or x,y,z")
+    render.add_argument("--view-up", default=None, metavar="X,Y,Z", help="up direction (default: needle base up)")
+    render.add_argument("--zoom", type=float, default=1.0, help="magnification after the framing (default 1)")
+    render.add_argument("--focus", default="auto",
+                        help="what to frame: auto (needle's inserted part, insertion points, cut), needle, cut, "
+                             "tissue, or a point x,y,z [m]")
+    render.add_argument("--animate", metavar="OUT", help="also write an animation (.gif or .mp4)")
+    render.add_argument("--every", type=int, default=1, metavar="K", help="animation: one frame every K steps")
+    render.add_argument("--fps", type=float, default=10.0, help="animation: frames per second (default 10)")
     render.set_defaults(handler=_cmd_render)
 
     plot = commands.add_parser("plot", help="force on the needle base against depth and time")

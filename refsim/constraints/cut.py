@@ -219,6 +219,6 @@ def strip_cut_block(
         points=np.concatenate([b[4] for b in blocks]),
         directions=np.concatenate([b[3] for b in blocks]),
         force_limit=limits if np.any(np.isfinite(limits)) else np.zeros(0),
-        added_compliance=np.concatenate([np.full(slide_count, float(slide_compliance)), np.zeros(front_info.rows.size)]),
+        compliance_diagonal=np.concatenate([np.full(slide_count, float(slide_compliance)), np.zeros(front_info.rows.size)]),
     )
     return block, front_info

@@ -189,11 +189,11 @@ def grow_path(
     return path.appended(tets[inside], barycentric[inside], step), int(np.count_nonzero(inside))
 
 
-def points_beyond_tip(path: InsertionPath, points: np.ndarray, needle: NeedleGeometry) -> np.ndarray:
-    """Which points lie beyond the tip along the needle (after a withdrawal), bool shape (p,)."""
+def points_beyond_tip(path: InsertionPath, points: np.ndarray, needle: NeedleGeometry, margin: float = 0.0) -> np.ndarray:
+    """Which points lie beyond the tip along the needle by more than ``margin`` [m] (after a withdrawal), bool (p,)."""
     if path.point_count == 0:
         return np.zeros(0, dtype=bool)
     tip_s = np.array([needle.length])
     tip = needle.points(tip_s)[0]
     tangent = needle.tangents(tip_s)[0]
-    return (points - tip) @ tangent > 0.0
+    return (points - tip) @ tangent > margin

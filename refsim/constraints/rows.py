@@ -65,8 +65,9 @@ class RowBlock:
         A unilateral row with a finite limit L has 0 ≤ λ ≤ L and gives way (δ < 0) at L; a bilateral row
         |λ| ≤ L. This is how a row models a strength: the tissue's resistance to puncture, to cutting at the tip,
         to tearing at the front of a cut.
-    added_compliance : Compliance added to the diagonal of W for each row [m/N], shape (row_count,), ≥ 0
-        (empty: zeros): the part of a row's flexibility the mesh does not resolve (a sub-grid model).
+    compliance_diagonal : Compliance added to the diagonal of W for each row [m/N], shape (row_count,), ≥ 0
+        (empty: zeros): the part of a row's flexibility the mesh does not resolve (the sub-grid compliance of
+        the well-posed coupling, :mod:`refsim.constraints.coupling`, and of the cut's sliding rows).
     """
 
     tissue_jacobian: sp.csr_matrix
@@ -83,16 +84,16 @@ class RowBlock:
     shaft_friction_coefficient: np.ndarray = field(default_factory=lambda: np.zeros(0))
     shaft_normal_preload: np.ndarray = field(default_factory=lambda: np.zeros(0))
     force_limit: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    added_compliance: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    compliance_diagonal: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
         rows = self.free_gap.shape[0]
         limit = np.asarray(self.force_limit, dtype=float)
         if limit.size and (limit.shape != (rows,) or np.any(~(limit > 0.0))):
             raise ValueError(f"force_limit must have shape ({rows},) with values in (0, inf], got {limit!r}")
-        added = np.asarray(self.added_compliance, dtype=float)
+        added = np.asarray(self.compliance_diagonal, dtype=float)
         if added.size and (added.shape != (rows,) or np.any(~np.isfinite(added)) or np.any(added < 0.0)):
-            raise ValueError(f"added_compliance must have shape ({rows},) with finite values >= 0 [m/N]")
+            raise ValueError(f"compliance_diagonal must have shape ({rows},) with finite values >= 0 [m/N]")
 
     @property
     def row_count(self) -> int:
@@ -103,7 +104,7 @@ class RowBlock:
         """The solver's :class:`~refsim.solvers.ConstraintProblem` of these rows with compliance W [m/N],
         shape (row_count, row_count): the one place where row kinds become solver laws."""
         sets = self.index_sets()
-        added = _added_compliance(self)
+        added = _compliance_diagonal(self)
         if np.any(added):
             compliance = compliance + np.diag(added)
         limit = _force_limit(self)
@@ -182,7 +183,7 @@ def concatenate(blocks: list[RowBlock]) -> RowBlock:
         shaft_friction_coefficient=np.concatenate([b.shaft_friction_coefficient for b in blocks]),
         shaft_normal_preload=np.concatenate([_shaft_preload(b) for b in blocks]),
         force_limit=np.concatenate([_force_limit(b) for b in blocks]),
-        added_compliance=np.concatenate([_added_compliance(b) for b in blocks]),
+        compliance_diagonal=np.concatenate([_compliance_diagonal(b) for b in blocks]),
     )
 
 
@@ -193,11 +194,11 @@ def _force_limit(block: RowBlock) -> np.ndarray:
     return np.asarray(block.force_limit, dtype=float)
 
 
-def _added_compliance(block: RowBlock) -> np.ndarray:
+def _compliance_diagonal(block: RowBlock) -> np.ndarray:
     """The rows' added compliance [m/N], shape (row_count,): zeros when the block left the field empty."""
-    if block.added_compliance.size == 0:
+    if block.compliance_diagonal.size == 0:
         return np.zeros(block.row_count)
-    return np.asarray(block.added_compliance, dtype=float)
+    return np.asarray(block.compliance_diagonal, dtype=float)
 
 
 def _shaft_preload(block: RowBlock) -> np.ndarray:

@@ -104,6 +104,7 @@ STATIC = _specs(
         ("tissue/tets", "1", "int64", ("m", 4), "tetrahedra (node indices)"),
         ("tissue/faces", "1", "int64", ("f", 3), "boundary triangles, oriented outward (node indices)"),
         ("tissue/fixed_nodes", "1", "int64", ("?",), "indices of the clamped tissue nodes"),
+        ("tissue/boundary_nodes", "1", "int64", ("?",), "indices of the nodes a boundary motion moves (empty: none)"),
         ("needle/rest_nodes", "m", "float64", ("k", 3), "needle nodes at the trajectory's initial pose (t = 0)"),
     ],
     growing=False,
@@ -125,6 +126,9 @@ STEPS = _specs(
         ("cut_triangle_count", "1", "int64", (), "cut surface triangles after the step"),
         ("triangulation_seconds", "s", "float64", (), "wall-clock time of the cut triangulation in the step"),
         ("stage_seconds", "s", "float64", ("stages",), "wall-clock time of each stage; columns in attribute `names`"),
+        ("boundary_displacement", "m", "float64", ("b", 3),
+         "prescribed displacement from rest of the nodes scene/tissue/boundary_nodes at the end of the step "
+         "(one row of zeros without a boundary motion)"),
     ],
 )
 

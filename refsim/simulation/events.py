@@ -159,7 +159,10 @@ class EventRules:
             spacing=self.insertion.spacing,
             step=state.step,
         )
-        beyond = points_beyond_tip(path, path.positions(positions, self.tets), needle)
+        # Ring coupling: the centre of a point is not tied to the needle (its ring is), so it drifts along the needle
+        # with the tissue's strain; half a spacing of hysteresis keeps such drift from removing and re-adding it.
+        margin = 0.5 * self.insertion.spacing if self.insertion.coupling == "ring" else 0.0
+        beyond = points_beyond_tip(path, path.positions(positions, self.tets), needle, margin)
         if np.any(beyond):
             path = path.subset(~beyond)
             events.append(Event("retraction"))
@@ -227,6 +230,8 @@ class EventRules:
             advances = np.zeros(strip.column_count)
             np.maximum.at(advances, front.segment, over)
             np.maximum.at(advances, front.segment + 1, over)
+            # The crack runs in the plane of the needle and ĉ set at the cut start (letting it turn with the
+            # rows' forces made it zigzag by ±30° and doubled the peak force on cube_cut: 5.4 N against 3.6 N).
             moved = strip.with_front(advance_front(self.growth, strip, advances, state.cut_direction, positions))
             cut, laid = moved.lay(state.cut, state.step, cutting.point_spacing)
             events = [Event("tear", float(forces.sum()))] if laid.layers.shape[0] > strip.layers.shape[0] else []

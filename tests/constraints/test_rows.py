@@ -142,9 +142,9 @@ def _two_rows(**fields):
     )
 
 
-def test_force_limits_become_box_rows_and_added_compliance_joins_the_diagonal():
+def test_force_limits_become_box_rows_and_compliance_diagonal_joins_the_diagonal():
     # A unilateral row limited to L has 0 <= λ <= L; a bilateral one |λ| <= L (the box law of the solvers).
-    block = _two_rows(force_limit=np.array([0.8, 2.0]), added_compliance=np.array([1e-3, 0.0]))
+    block = _two_rows(force_limit=np.array([0.8, 2.0]), compliance_diagonal=np.array([1e-3, 0.0]))
     problem = block.problem(np.eye(2))
     np.testing.assert_array_equal(problem.box_rows, [0, 1])
     np.testing.assert_allclose(problem.box_lower, [0.0, -2.0])
@@ -153,10 +153,10 @@ def test_force_limits_become_box_rows_and_added_compliance_joins_the_diagonal():
     np.testing.assert_allclose(problem.compliance, np.diag([1.001, 1.0]))
     both = concatenate([block, _two_rows()])
     np.testing.assert_allclose(both.force_limit, [0.8, 2.0, np.inf, np.inf])
-    np.testing.assert_allclose(both.added_compliance, [1e-3, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(both.compliance_diagonal, [1e-3, 0.0, 0.0, 0.0])
 
 
-@pytest.mark.parametrize("fields", [dict(force_limit=np.array([0.0, 1.0])), dict(added_compliance=np.array([-1.0, 0.0]))])
+@pytest.mark.parametrize("fields", [dict(force_limit=np.array([0.0, 1.0])), dict(compliance_diagonal=np.array([-1.0, 0.0]))])
 def test_bad_limits_and_compliance_are_rejected(fields):
     with pytest.raises(ValueError):
         _two_rows(**fields)

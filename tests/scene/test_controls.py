@@ -60,3 +60,12 @@ def test_controls_give_the_needle_pose_and_the_boundary_displacements():
     np.testing.assert_allclose(values.boundary_displacements[:, 2], 0.004 * (1 - np.cos(np.pi / 4) ** 2))
     bare = Controls(trajectory).at(0.5)
     assert bare.boundary_nodes.size == 0 and bare.boundary_displacements.shape == (0, 3)
+
+
+def test_a_trajectory_csv_may_start_with_comments_before_its_header(tmp_path):
+    from refsim.scene.trajectory import read_trajectory_csv
+
+    path = tmp_path / "robot.csv"
+    path.write_text("# made by a robot planner\n# second comment\nt,x,y,z,dx,dy,dz\n0,0,0,0.4,0,0,-1\n1,0,0,0.39,0,0,-1\n")
+    trajectory = read_trajectory_csv(path)
+    np.testing.assert_allclose(trajectory.base_positions[:, 2], [0.4, 0.39])

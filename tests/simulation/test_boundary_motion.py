@@ -69,3 +69,50 @@ def test_moving_nodes_that_are_not_fixed_are_rejected():
     simulation = Simulation(scene, simulation.models, controls)
     with pytest.raises(ValueError, match="not fixed"):
         simulation.step(simulation.initial_state())
+
+
+def test_a_scene_file_boundary_section_moves_the_tissue_and_the_results_record_it(tmp_path):
+    # The [boundary] section: the bottom face (a box around z = 0) breathes up by 4 mm over T = 1.2 s; the
+    # results hold the moving nodes and their prescribed displacement at every step, so the file stands alone.
+    from refsim.io import read_results
+    from refsim.io.driver import run_scene
+
+    scene = load_scene("cube", [
+        "mesh.cells=[4,4,4]", "time.duration=0.3", 'boundary.motion="periodic"',
+        "boundary.box=[[-0.06, -0.06, -0.001], [0.06, 0.06, 0.001]]", "boundary.amplitude=[0, 0, 0.004]",
+        "boundary.period=1.2", "boundary.exponent=2",
+    ])
+    path = tmp_path / "moving.h5"
+    run_scene(scene, path, overwrite=True)
+    results = read_results(path)
+    law = PeriodicBoundaryMotion(nodes=results.boundary_nodes, amplitude=[0, 0, 0.004], period=1.2, exponent=2)
+    assert results.boundary_nodes.size == 25  # the 5 × 5 nodes of the bottom face
+    assert set(results.boundary_nodes) <= set(results.fixed_nodes)
+    for index, time in enumerate(results.time):
+        np.testing.assert_allclose(results.boundary_displacement[index], law.displacement(time), atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (['boundary.motion="periodic"', "boundary.amplitude=[0, 0, 0.004]"], "exactly one of"),
+        (['boundary.motion="periodic"', "boundary.nodes=[0, 1]"], "amplitude"),
+        (['boundary.motion="file"', "boundary.nodes=[0]"], "file"),
+        (['boundary.motion="periodic"', "boundary.patch_point=[0, 0, 0.1]", "boundary.amplitude=[0, 0, 1e-3]"],
+         "patch_distance"),
+    ],
+)
+def test_bad_boundary_sections_are_refused_naming_the_key(overrides, message):
+    from refsim.scene import SceneError
+
+    with pytest.raises(SceneError, match=message):
+        load_scene("cube", overrides)
+
+
+def test_a_selection_that_catches_no_node_is_refused():
+    from refsim.scene import SceneError
+
+    scene = load_scene("cube", ["mesh.cells=[4,4,4]", 'boundary.motion="periodic"', "boundary.amplitude=[0, 0, 1e-3]",
+                                "boundary.box=[[1, 1, 1], [2, 2, 2]]"])
+    with pytest.raises(SceneError, match="boundary.box selects no node"):
+        Simulation(scene)
