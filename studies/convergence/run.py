@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> None:
     client, cluster = start_client(args.scheduler, args.workers)
     try:
         for spec in studies(args.quick, args.only, args.liver):
-            study = run_study(spec, output / f"{spec.name}.h5", client=client,
+            study = run_study(spec, output / f"{spec.name}.h5", client=client, warm_up=not args.quick,
                               progress=not args.quiet)
             print(f"{spec.name}: {study['attributes']['runs_complete']}/{study['attributes']['runs_total']} complete")
             for row in study["convergence"]:
