@@ -67,7 +67,7 @@ def start_client(scheduler: str | None = None, workers: int | None = None):
     for name, value in BLAS_ENVIRONMENT.items():
         os.environ.setdefault(name, value)  # inherited by the worker processes
     cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
-                           dashboard_address=None, env=dict(BLAS_ENVIRONMENT), silence_logs=logging.ERROR)
+                           dashboard_address=":0", env=dict(BLAS_ENVIRONMENT), silence_logs=logging.ERROR)
     return Client(cluster), cluster
 
 
