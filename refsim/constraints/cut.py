@@ -23,7 +23,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from refsim.constraints.needle_geometry import needle_rows
-from refsim.constraints.rows import BILATERAL, CUT_BORDER, CUT_SLIDE, UNILATERAL, RowBlock, point_rows
+from refsim.constraints.friction import friction_rows
+from refsim.constraints.rows import BILATERAL, CUT_BORDER, CUT_SLIDE, FRICTION, UNILATERAL, RowBlock, point_rows
 from refsim.constraints.step_geometry import StepGeometry
 
 __all__ = ["FrontRows", "cut_criterion", "strip_cut_block"]
@@ -104,6 +105,8 @@ def strip_cut_block(
     cut_direction: np.ndarray,
     front_strength: float = np.inf,
     slide_compliance: float = 0.0,
+    friction_coefficient: float = 0.0,
+    friction_compliance: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[RowBlock | None, FrontRows]:
     """Sliding rows on the cut and front rows on its crack tip, for a strip cut (:mod:`refsim.cutting.strip`).
 
@@ -132,6 +135,14 @@ def strip_cut_block(
     slide_compliance : Compliance added to each sliding row [m/N], ≥ 0: the sub-grid flexibility of the cut
         face under the needle, which makes the sliding rows' multipliers unique (d_c ≪ h puts many rows on one
         triangle).
+    friction_coefficient : μ_c ≥ 0 of the cut faces: with μ_c > 0 every sliding row gets two friction rows in
+        the surface, along the needle and across it (along ĉ), each bounded by μ_c |λ| of its sliding row (the
+        solvers' group-friction law: a square, not a disc, of admissible tangential forces), measuring the
+        relative slip over the step (:func:`refsim.constraints.friction.friction_rows`).
+    friction_compliance : Compliance added to the (axial, across) friction rows [m/N], ≥ 0 (the sub-grid
+        compliance of the coupling's axial and lateral rows).
+
+    Rows are ordered: sliding rows, then front rows, then the friction rows (two per sliding row).
     """
     tets = geometry.mesh_tets
     length = geometry.needle_free.length
@@ -143,6 +154,7 @@ def strip_cut_block(
     blocks = []
 
     slide_count = 0
+    slide_anchor = None
     front_keep = np.zeros(0, dtype=np.int64)
     if cut.triangle_count:
         surface_previous = cut.deformed_points(geometry.tissue_previous, tets)
@@ -157,6 +169,7 @@ def strip_cut_block(
             normals = cut.triangle_normals(surface_free)[triangle]
             anchor = np.einsum("qv,qvj->qj", weights, surface_free[cut.triangles[triangle]])
             nodes, node_weights = _surface_point_nodes(cut, tets, triangle, weights)
+            slide_anchor = (nodes, node_weights, samples[inside], normals, anchor)
             blocks.append(
                 (
                     point_rows(nodes, node_weights, normals, geometry.tissue_dof_count),
@@ -208,8 +221,49 @@ def strip_cut_block(
             front_keep = keep
     if not blocks:
         return None, front_info
+    friction_count = 0
+    if friction_coefficient > 0.0 and slide_anchor is not None:
+        nodes, node_weights, arcs, normals, anchor = slide_anchor
+        axial = geometry.needle_free.tangents(arcs)
+        across = np.cross(normals, axial)
+        across /= np.linalg.norm(across, axis=1, keepdims=True)
+        tangents = np.concatenate([axial, across])
+        previous = np.einsum("qk,qkj->qj", node_weights, geometry.tissue_previous[nodes])
+        friction = friction_rows(
+            geometry,
+            tissue_nodes=np.concatenate([nodes, nodes]),
+            tissue_weights=np.concatenate([node_weights, node_weights]),
+            arc_lengths=np.concatenate([arcs, arcs]),
+            tangents=tangents,
+            tissue_free_points=np.concatenate([anchor, anchor]),
+            tissue_previous_points=np.concatenate([previous, previous]),
+        )
+        friction_count = tangents.shape[0]
+        blocks.append(
+            (
+                friction.tissue_jacobian,
+                friction.needle_jacobian,
+                friction.free_gap,
+                tangents,
+                np.concatenate([anchor, anchor]),
+                np.full(friction_count, FRICTION),
+                np.full(friction_count, CUT_SLIDE),
+            )
+        )
     rigid = blocks[0][1] is None
-    limits = np.concatenate([np.full(slide_count, np.inf), float(front_strength) * shares[front_keep]])
+    limits = np.concatenate(
+        [np.full(slide_count, np.inf), float(front_strength) * shares[front_keep], np.full(friction_count, np.inf)]
+    )
+    first_friction = slide_count + front_info.rows.size
+    groups = {}
+    if friction_count:
+        pair = np.arange(slide_count)
+        groups = dict(
+            group_rows=first_friction + np.arange(friction_count),
+            group_offsets=np.arange(friction_count + 1),
+            group_members=np.concatenate([pair, pair]),
+            group_coefficient=np.full(friction_count, float(friction_coefficient)),
+        )
     block = RowBlock(
         tissue_jacobian=sp.vstack([b[0] for b in blocks], format="csr"),
         needle_jacobian=None if rigid else sp.vstack([b[1] for b in blocks], format="csr"),
@@ -219,6 +273,10 @@ def strip_cut_block(
         points=np.concatenate([b[4] for b in blocks]),
         directions=np.concatenate([b[3] for b in blocks]),
         force_limit=limits if np.any(np.isfinite(limits)) else np.zeros(0),
-        compliance_diagonal=np.concatenate([np.full(slide_count, float(slide_compliance)), np.zeros(front_info.rows.size)]),
+        compliance_diagonal=np.concatenate([
+            np.full(slide_count, float(slide_compliance)), np.zeros(front_info.rows.size),
+            np.repeat(np.asarray(friction_compliance, dtype=float), slide_count) if friction_count else np.zeros(0),
+        ]),
+        **groups,
     )
     return block, front_info

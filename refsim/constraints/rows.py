@@ -68,6 +68,11 @@ class RowBlock:
     compliance_diagonal : Compliance added to the diagonal of W for each row [m/N], shape (row_count,), ≥ 0
         (empty: zeros): the part of a row's flexibility the mesh does not resolve (the sub-grid compliance of
         the well-posed coupling, :mod:`refsim.constraints.coupling`, and of the cut's sliding rows).
+    group_rows : Friction rows bounded by a group of other rows (the solvers' group-friction law), shape (g,).
+    group_offsets, group_members : The group of friction row j is
+        ``group_members[group_offsets[j]:group_offsets[j + 1]]``; shapes (g + 1,) and (Σ sizes,).
+    group_coefficient : Friction coefficient of each group friction row, shape (g,); the bound is
+        μ_j ‖λ_Gj‖ (friction on the cut surface bounded by its sliding row's force).
     """
 
     tissue_jacobian: sp.csr_matrix
@@ -85,6 +90,10 @@ class RowBlock:
     shaft_normal_preload: np.ndarray = field(default_factory=lambda: np.zeros(0))
     force_limit: np.ndarray = field(default_factory=lambda: np.zeros(0))
     compliance_diagonal: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    group_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    group_offsets: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
+    group_members: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    group_coefficient: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
         rows = self.free_gap.shape[0]
@@ -123,6 +132,10 @@ class RowBlock:
             box_rows=boxed,
             box_lower=box_lower,
             box_upper=box_upper,
+            group_friction=self.group_rows,
+            group_offsets=self.group_offsets,
+            group_members=self.group_members,
+            group_friction_coefficient=self.group_coefficient,
             contacts=sets["contacts"],
             contact_friction=self.contact_friction,
             shaft_friction=sets["shaft_rows"],
@@ -184,6 +197,12 @@ def concatenate(blocks: list[RowBlock]) -> RowBlock:
         shaft_normal_preload=np.concatenate([_shaft_preload(b) for b in blocks]),
         force_limit=np.concatenate([_force_limit(b) for b in blocks]),
         compliance_diagonal=np.concatenate([_compliance_diagonal(b) for b in blocks]),
+        group_rows=np.concatenate([b.group_rows + o for b, o in zip(blocks, offsets)]).astype(np.int64),
+        group_members=np.concatenate([b.group_members + o for b, o in zip(blocks, offsets)]).astype(np.int64),
+        group_offsets=np.concatenate(
+            [[0]] + [b.group_offsets[1:] + m for b, m in zip(blocks, np.cumsum([0] + [b.group_members.size for b in blocks])[:-1])]
+        ).astype(np.int64),
+        group_coefficient=np.concatenate([b.group_coefficient for b in blocks]),
     )
 
 

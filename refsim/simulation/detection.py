@@ -23,6 +23,7 @@ from refsim.constraints import (
     penetration_block,
 )
 from refsim.constraints.coupling import (
+    AXIAL,
     LATERAL,
     RingLayout,
     grip_preload,
@@ -50,11 +51,13 @@ class Detection:
     rows : The step's rows, in solver order.
     contact : The tip's closest surface point (approach phase), else None.
     front : Where the front rows press on the crack tip (cutting phase); their indices are into ``rows``.
+    insertion_points : The path points whose insertion rows are in ``rows``, in row order, shape (p,).
     """
 
     rows: RowBlock
     contact: SurfaceContact | None = None
     front: FrontRows = field(default_factory=FrontRows.empty)
+    insertion_points: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
 class Detector:
@@ -75,7 +78,10 @@ class Detector:
         self.cutting = scene.cutting
         self.faces = faces
         self.needle_dof_count = needle_dof_count
-        self.slide_compliance = _slide_compliance(scene, mesh_size) if scene.cutting.enabled else 0.0
+        self.slide_compliance = _slide_compliance(scene, mesh_size, LATERAL) if scene.cutting.enabled else 0.0
+        self.friction_compliance = (
+            (_slide_compliance(scene, mesh_size, AXIAL), self.slide_compliance) if scene.cutting.enabled else (0.0, 0.0)
+        )
         spec = scene.insertion
         tissue = scene.tissue
         self.shear_modulus = tissue.youngs_modulus / (2.0 * (1.0 + tissue.poisson_ratio))
@@ -144,6 +150,7 @@ class Detector:
         blocks: list[RowBlock] = []
         contact = None
         front = FrontRows.empty()
+        insertion_points = np.zeros(0, dtype=np.int64)
         if state.phase == Phase.APPROACH:
             projector = SurfaceProjector(geometry.tissue_free, self.faces)
             contact = find_surface_contact(projector, self.faces, geometry.needle_free.tip)
@@ -151,10 +158,16 @@ class Detector:
                 blocks.append(
                     penetration_block(contact, geometry, friction_coefficient=spec.surface_friction_coefficient)
                 )
-        elif state.path.point_count and not (state.phase == Phase.CUTTING and self.cutting.law == "energy"):
-            # In the energy law's cutting phase the cut holds the needle (sliding rows, crack tip) and the entry
-            # point only marks the inserted length: anchored there, it would drag the tissue along the stroke.
-            blocks.append(self.insertion_rows(state.path, geometry))
+        elif state.path.point_count:
+            points = np.arange(state.path.point_count)
+            if state.phase == Phase.CUTTING and self.cutting.law == "energy":
+                # The cut holds the needle along the strip (sliding rows, crack tip) and the entry point only
+                # marks the inserted length (anchored there, it would drag the tissue along the stroke); the
+                # points below the strip (a needle still inserted after the cut start) keep their rows.
+                points = points[1:]
+            if points.size:
+                blocks.append(self.insertion_rows(state.path.subset(points), geometry))
+                insertion_points = points
         if state.phase == Phase.CUTTING and state.cut_strip is not None:
             entry = state.path.positions(state.tissue.positions, geometry.mesh_tets)[:1]
             entry_arc_length = float(geometry.needle_previous.project(entry)[0][0])
@@ -170,6 +183,8 @@ class Detector:
                 cut_direction=state.cut_direction,
                 front_strength=strength,
                 slide_compliance=self.slide_compliance,
+                friction_coefficient=cutting.friction_coefficient,
+                friction_compliance=self.friction_compliance,
             )
             if block is not None:
                 blocks.append(block)
@@ -178,10 +193,10 @@ class Detector:
             rows = empty_block(geometry.tissue_dof_count, self.needle_dof_count)
         else:
             rows = concatenate(blocks)
-        return Detection(rows, contact, front)
+        return Detection(rows, contact, front, insertion_points)
 
 
-def _slide_compliance(scene: Scene, mesh_size: float) -> float:
+def _slide_compliance(scene: Scene, mesh_size: float, kind: int) -> float:
     """Sub-grid compliance of one sliding row of the cut [m/N]: the lateral compliance of the well-posed
     coupling (:func:`refsim.constraints.coupling.subgrid_compliance`, the annulus between the needle and the
     equivalent radius of the mesh, Peaceman's well model) for the length d_c a sliding row stands for."""
@@ -190,7 +205,7 @@ def _slide_compliance(scene: Scene, mesh_size: float) -> float:
     tissue = scene.tissue
     return float(
         subgrid_compliance(
-            np.array([LATERAL]),
+            np.array([kind]),
             shear_modulus=tissue.youngs_modulus / (2.0 * (1.0 + tissue.poisson_ratio)),
             poisson_ratio=tissue.poisson_ratio,
             needle_radius=scene.needle.radius,

@@ -99,3 +99,27 @@ def test_rows_are_chosen_on_the_start_of_step_state(planar_strip):
     )
     assert np.count_nonzero(rows.source == CUT_SLIDE) == 16
     np.testing.assert_allclose(rows.free_gap[front.rows], -2e-3, atol=1e-12)
+
+
+def test_friction_on_the_cut_faces_is_bounded_by_each_sliding_row(planar_strip):
+    from refsim.constraints import FRICTION
+
+    mesh, cut, strip = planar_strip
+    previous = rigid_needle([0.0051, 0.0064, 0.0045], [0.0, 0.0, -1.0], length=0.02)
+    free = rigid_needle([0.0052, 0.0064, 0.0043], [0.0, 0.0, -1.0], length=0.02)  # 0.1 mm along x, 0.2 mm down
+    rows, front = strip_cut_block(
+        cut, strip, still_geometry(mesh, previous, needle_free=free), entry_arc_length=previous.length - 0.0075,
+        spacing=SPACING, cut_direction=C_HAT, friction_coefficient=0.3,
+    )
+    slide = np.flatnonzero((rows.source == CUT_SLIDE) & (rows.kind == BILATERAL))
+    friction = np.flatnonzero(rows.kind == FRICTION)
+    assert friction.size == 2 * slide.size
+    np.testing.assert_array_equal(rows.group_rows, friction)
+    np.testing.assert_array_equal(rows.group_members, np.concatenate([slide, slide]))
+    np.testing.assert_allclose(rows.group_coefficient, 0.3)
+    # Slip gaps: the needle moved 0.2 mm along itself (axial rows) and 0.1 mm across (along x) over the step.
+    axial, across = friction[: slide.size], friction[slide.size:]
+    np.testing.assert_allclose(rows.free_gap[axial], 2e-4, atol=1e-12)
+    np.testing.assert_allclose(np.abs(rows.free_gap[across]), 1e-4, atol=1e-12)
+    problem = rows.problem(np.eye(rows.row_count))
+    np.testing.assert_array_equal(problem.group_friction, friction)

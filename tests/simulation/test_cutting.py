@@ -263,3 +263,32 @@ def test_hard_cases_run_or_stop_with_a_detected_error(overrides):
     from refsim.cutting.metrics import surface_topology
 
     assert surface_topology(state.cut.triangles, state.cut.point_count).is_disc
+
+
+def test_friction_on_the_cut_faces_adds_to_the_cutting_force_within_its_bounds():
+    # Coulomb friction on the faces (μ_c = 0.5) opposes the needle's motion along the cut: the force along the
+    # stroke grows, and every friction row stays within μ_c times its sliding row's force.
+    from refsim.constraints import FRICTION
+
+    dry = run_case(CuttingCase(overrides=("cutting.friction_coefficient=0.5",)))
+    wet = run_case(CuttingCase())
+    mu = 0.5
+    checked = 0
+    for record in dry.records:
+        if record.phase != "cutting":
+            continue
+        slide = (record.row_source == CUT_SLIDE) & (record.row_kind == BILATERAL)
+        friction = (record.row_source == CUT_SLIDE) & (record.row_kind == FRICTION)
+        if not np.any(friction):
+            continue
+        normal = np.abs(record.row_forces[slide])
+        tangential = np.abs(record.row_forces[friction]).reshape(2, -1)
+        assert np.all(tangential <= mu * normal[None, :] * (1 + 1e-6) + 1e-9)
+        checked += 1
+    assert checked > 5
+
+    def mean_stroke_force(run):
+        forces = [-(r.needle_force @ run.cut_direction) for r in run.records if r.phase == "cutting"]
+        return float(np.mean(forces))
+
+    assert mean_stroke_force(dry) > mean_stroke_force(wet)
