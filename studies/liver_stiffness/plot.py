@@ -47,6 +47,11 @@ def main(argv=None) -> int:
         left.semilogx(moduli / 1e9, loads, "o-", label=f"a = {amplitude * 1e3:g} mm")
         critical.append(critical_modulus(moduli, loads, g_c))
     left.axhline(g_c, color="k", ls="--", label=f"G_c = {g_c:g} J/m²")
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
+    left.set_xticks(sorted({r["youngs_modulus"] / 1e9 for r in rows}))
+    left.xaxis.set_major_formatter(ScalarFormatter())
+    left.xaxis.set_minor_formatter(NullFormatter())
     left.set_xlabel("needle modulus E [GPa]")
     left.set_ylabel("largest shaft load per length q [N/m]")
     left.legend()
