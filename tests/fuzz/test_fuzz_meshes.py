@@ -32,7 +32,10 @@ def _write_gmsh_v1(path: Path, positions: np.ndarray, tets: np.ndarray) -> None:
     lines = ["$NOD", str(positions.shape[0])]
     lines += [f"{label} {float(x)!r} {float(y)!r} {float(z)!r}" for label, (x, y, z) in zip(labels, positions, strict=True)]
     lines += ["$ENDNOD", "$ELM", str(tets.shape[0])]
-    lines += [f"{i + 1} 4 1 1 4 " + " ".join(str(labels[n]) for n in tet) for i, tet in enumerate(tets)]
+    def label(node):  # an index out of range becomes a label that $NOD does not list
+        return str(labels[node]) if 0 <= node < labels.size else str(7 * (labels.size + 1) + 1)
+
+    lines += [f"{i + 1} 4 1 1 4 " + " ".join(label(n) for n in tet) for i, tet in enumerate(tets)]
     lines += ["$ENDELM"]
     path.write_text("\n".join(lines) + "\n")
 
