@@ -11,7 +11,10 @@ process, on the paper's cube reduced to 3³ cells and a few steps, and is classi
 - **crashed**: a traceback, an "internal error", or a death by a signal (a segfault);
 - **silent**: exit 0 without the expected error or warning (a wrong answer given as a right one).
 
-    python studies/faults/probe.py [--markdown docs/faults_table.md] [--only NAME ...]
+    python studies/faults/probe.py [--markdown table.md] [--only NAME ...] [--tree CHECKOUT]
+
+``--tree`` probes another checkout of refsim (e.g. the issue's 132aab8, unpacked with ``git archive``) with the
+same cases, for a before/after comparison.
 
 The table and the counts in docs/faults.md come from this script.
 """
@@ -362,8 +365,8 @@ def _file_state(path: Path) -> dict | None:
         return {"unreadable": f"{type(error).__name__}: {error}"}
 
 
-def run_case(case: Case, folder: Path) -> dict:
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+def run_case(case: Case, folder: Path, tree: Path = ROOT) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(tree), "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
     if case.setup:
         subprocess.run([sys.executable, "-c", f"from pathlib import Path\nfolder = Path({str(folder)!r})\n" + case.setup],
                        check=True, env=env, cwd=folder)
@@ -432,13 +435,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--markdown", help="also write the table as Markdown to this file")
     parser.add_argument("--only", nargs="*", help="run only these cases (names)")
+    parser.add_argument("--tree", default=str(ROOT), help="the refsim checkout to probe (default: this one)")
     args = parser.parse_args(argv)
     cases = [c for c in CASES if not args.only or c.name in args.only]
     rows = []
     for index, case in enumerate(cases, 1):
         with tempfile.TemporaryDirectory(prefix=f"probe_{case.name}_") as folder:
             start = time.perf_counter()
-            result = run_case(case, Path(folder))
+            result = run_case(case, Path(folder), Path(args.tree))
             result["seconds"] = time.perf_counter() - start
         rows.append((case, result))
         print(f"{index:3d}/{len(cases)} {case.name:28s} exit {str(result['code']):>4s}  {result['verdict']:8s} "

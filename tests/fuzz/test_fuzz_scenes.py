@@ -80,6 +80,11 @@ def mutated_scenes(draw):
     return data, changed
 
 
+def _string(text: str) -> str:
+    """A TOML basic string: JSON's escapes are valid TOML ones; TOML also forbids a raw DEL (0x7f)."""
+    return json.dumps(text, ensure_ascii=False).replace("\x7f", "\\u007f")
+
+
 def _toml(value) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
@@ -88,11 +93,11 @@ def _toml(value) -> str:
     if isinstance(value, int):
         return str(value)
     if isinstance(value, str):
-        return json.dumps(value, ensure_ascii=False)  # JSON string escapes are valid in TOML basic strings
+        return _string(value)
     if isinstance(value, list):
         return "[" + ", ".join(_toml(v) for v in value) + "]"
     if isinstance(value, dict):
-        return "{" + ", ".join(f"{json.dumps(k, ensure_ascii=False)} = {_toml(v)}" for k, v in value.items()) + "}"
+        return "{" + ", ".join(f"{_string(k)} = {_toml(v)}" for k, v in value.items()) + "}"
     raise TypeError(type(value))
 
 
@@ -101,7 +106,7 @@ def write_scene(data: dict, path: Path) -> None:
     for section, table in data.items():
         if isinstance(table, dict):
             lines.append(f"[{section}]")
-            lines += [f"{json.dumps(key, ensure_ascii=False)} = {_toml(value)}" for key, value in table.items()]
+            lines += [f"{_string(key)} = {_toml(value)}" for key, value in table.items()]
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
