@@ -405,6 +405,14 @@ def _first_message(error: str, out: str) -> str:
     return text.replace("|", "\\|").strip()[:240]
 
 
+def _mentions(text: str, fragment: str) -> bool:
+    """``fragment`` in ``text``; a key "section.key" also counts as named when written "[section] key"."""
+    if fragment in text:
+        return True
+    section, dot, key = fragment.partition(".")
+    return bool(dot) and " " not in fragment and f"[{section}] {key}" in text
+
+
 def classify(case: Case, code: int, out: str, error: str, state, output: Path, preexisting: dict) -> dict:
     text = error + out
     if code < 0 or code >= 128 and code not in (130, 143) or "Traceback" in text or "internal error" in text:
@@ -416,7 +424,7 @@ def classify(case: Case, code: int, out: str, error: str, state, output: Path, p
     problems = []
     if code != case.code:
         problems.append(f"exit {code}, expected {case.code}")
-    missing = [f for f in case.fragments if f not in text]
+    missing = [f for f in case.fragments if not _mentions(text, f)]
     if missing:
         problems.append(f"message lacks {missing}")
     if code == 2 and output.name not in preexisting and state is not None:
