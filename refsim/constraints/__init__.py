@@ -1,5 +1,6 @@
 """Constraint builders (layer 3): rows of H, gaps and kinds for penetration, insertion and cutting."""
 
+from refsim.constraints.friction import FrictionRows, friction_rows, slip_gaps
 from refsim.constraints.insertion import InsertionPath, grow_path, insertion_block, points_beyond_tip
 from refsim.constraints.needle_geometry import BeamNeedleGeometry, NeedleGeometry, RigidNeedleGeometry, needle_rows
 from refsim.constraints.penetration import SurfaceContact, find_surface_contact, penetration_block
@@ -19,6 +20,7 @@ from refsim.constraints.rows import (
     orthonormal_basis,
     point_rows,
 )
+from refsim.constraints.step_geometry import StepGeometry
 
 __all__ = [
     "BILATERAL",
@@ -31,6 +33,8 @@ __all__ = [
     "SOURCE_NAMES",
     "UNILATERAL",
     "BeamNeedleGeometry",
+    "FrictionRows",
+    "StepGeometry",
     "InsertionPath",
     "NeedleGeometry",
     "RigidNeedleGeometry",
@@ -39,6 +43,8 @@ __all__ = [
     "concatenate",
     "empty_block",
     "find_surface_contact",
+    "friction_rows",
+    "slip_gaps",
     "grow_path",
     "insertion_block",
     "needle_rows",

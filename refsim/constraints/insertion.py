@@ -14,8 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import scipy.sparse as sp
+
+from refsim.constraints.friction import friction_rows
 from refsim.constraints.needle_geometry import NeedleGeometry, needle_rows
 from refsim.constraints.rows import BILATERAL, FRICTION, INSERTION, RowBlock, orthonormal_basis, point_rows
+from refsim.constraints.step_geometry import StepGeometry
 
 __all__ = ["InsertionPath", "insertion_block", "grow_path", "points_beyond_tip"]
 
@@ -79,14 +83,9 @@ class InsertionPath:
 
 def insertion_block(
     path: InsertionPath,
+    geometry: StepGeometry,
     *,
-    mesh_tets: np.ndarray,
-    tissue_free: np.ndarray,
-    tissue_previous: np.ndarray,
-    needle_free: NeedleGeometry,
-    needle_previous: NeedleGeometry,
     friction_coefficient: float,
-    tissue_dof_count: int,
     normal_preload: float = 0.0,
 ) -> RowBlock:
     """Rows of the insertion points: per point two bilateral rows and, when μ_i > 0, one shaft friction row.
@@ -95,41 +94,54 @@ def insertion_block(
     bound: μ_i (‖(λ_b1, λ_b2)‖ + normal_preload); the scene sets it to shaft_normal_force × d_i.
 
     The needle point of each tissue point is its projection on the needle at the start of the step (a material
-    point of the needle for this step); the friction row measures the relative axial displacement over the step.
+    point of the needle for this step); the friction row (built by
+    :func:`refsim.constraints.friction.friction_rows` from the same anchors) measures the relative axial slip
+    over the step. Rows are ordered point by point: (lateral 1, lateral 2[, axial]).
     """
     if not (np.isfinite(normal_preload) and normal_preload >= 0.0):
         raise ValueError(f"normal_preload = {normal_preload!r} N; valid range [0, inf)")
     point_count = path.point_count
-    tissue_point_free = path.positions(tissue_free, mesh_tets)
-    tissue_point_previous = path.positions(tissue_previous, mesh_tets)
-    arc_lengths, _ = needle_previous.project(tissue_point_previous)
-    needle_point_free = needle_free.points(arc_lengths)
-    tangents = needle_free.tangents(arc_lengths)
+    nodes = geometry.mesh_tets[path.tets]
+    weights = path.barycentric
+    tissue_point_previous, tissue_point_free = geometry.tissue_points(nodes, weights)
+    arc_lengths, _ = geometry.needle_previous.project(tissue_point_previous)
+    needle_point_free = geometry.needle_free.points(arc_lengths)
+    tangents = geometry.needle_free.tangents(arc_lengths)
     first, second = orthonormal_basis(tangents)
     offset = needle_point_free - tissue_point_free
+    lateral_directions = np.stack([first, second], axis=1).reshape(-1, 3)
+    lateral_gaps = np.stack(
+        [np.einsum("ij,ij->i", first, offset), np.einsum("ij,ij->i", second, offset)], axis=1
+    ).ravel()
+    lateral_nodes, lateral_weights = np.repeat(nodes, 2, axis=0), np.repeat(weights, 2, axis=0)
+    lateral_arcs = np.repeat(arc_lengths, 2)
+    tissue_jacobian = point_rows(lateral_nodes, lateral_weights, lateral_directions, geometry.tissue_dof_count)
+    needle_jacobian = needle_rows(geometry.needle_free, lateral_arcs, lateral_directions)
+    directions, gaps = lateral_directions, lateral_gaps
+    kinds = np.full(2 * point_count, BILATERAL, dtype=np.int8)
     with_friction = friction_coefficient > 0.0
     per_point = 3 if with_friction else 2
-    directions = np.empty((point_count, per_point, 3))
-    directions[:, 0], directions[:, 1] = first, second
-    gaps = np.empty((point_count, per_point))
-    gaps[:, 0] = np.einsum("ij,ij->i", first, offset)
-    gaps[:, 1] = np.einsum("ij,ij->i", second, offset)
-    kinds = np.full((point_count, per_point), BILATERAL, dtype=np.int8)
     if with_friction:
-        directions[:, 2] = tangents
-        slip = (needle_point_free - needle_previous.points(arc_lengths)) - (tissue_point_free - tissue_point_previous)
-        gaps[:, 2] = np.einsum("ij,ij->i", tangents, slip)
-        kinds[:, 2] = FRICTION
-    directions = directions.reshape(-1, 3)
+        friction = friction_rows(
+            geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=arc_lengths, tangents=tangents
+        )
+        # Interleave: point p's rows are (2p, 2p + 1) of the lateral rows and p of the friction rows.
+        order = np.concatenate(
+            [np.arange(2 * point_count).reshape(-1, 2), 2 * point_count + np.arange(point_count)[:, None]], axis=1
+        ).ravel()
+        tissue_jacobian = sp.vstack([tissue_jacobian, friction.tissue_jacobian], format="csr")[order]
+        if needle_jacobian is not None:
+            needle_jacobian = sp.vstack([needle_jacobian, friction.needle_jacobian], format="csr")[order]
+        directions = np.concatenate([lateral_directions, tangents])[order]
+        gaps = np.concatenate([lateral_gaps, friction.free_gap])[order]
+        kinds = np.concatenate([kinds, np.full(point_count, FRICTION, dtype=np.int8)])[order]
     row_count = point_count * per_point
-    nodes = np.repeat(mesh_tets[path.tets], per_point, axis=0)
-    weights = np.repeat(path.barycentric, per_point, axis=0)
     base = np.arange(point_count) * per_point
     return RowBlock(
-        tissue_jacobian=point_rows(nodes, weights, directions, tissue_dof_count),
-        needle_jacobian=needle_rows(needle_free, np.repeat(arc_lengths, per_point), directions),
-        free_gap=gaps.ravel(),
-        kind=kinds.ravel(),
+        tissue_jacobian=tissue_jacobian,
+        needle_jacobian=needle_jacobian,
+        free_gap=gaps,
+        kind=kinds,
         source=np.full(row_count, INSERTION, dtype=np.int8),
         points=np.repeat(tissue_point_free, per_point, axis=0),
         directions=directions,
@@ -177,11 +189,11 @@ def grow_path(
     return path.appended(tets[inside], barycentric[inside], step), int(np.count_nonzero(inside))
 
 
-def points_beyond_tip(path: InsertionPath, points: np.ndarray, needle: NeedleGeometry) -> np.ndarray:
-    """Which points lie beyond the tip along the needle (after a withdrawal), bool shape (p,)."""
+def points_beyond_tip(path: InsertionPath, points: np.ndarray, needle: NeedleGeometry, margin: float = 0.0) -> np.ndarray:
+    """Which points lie beyond the tip along the needle by more than ``margin`` [m] (after a withdrawal), bool (p,)."""
     if path.point_count == 0:
         return np.zeros(0, dtype=bool)
     tip_s = np.array([needle.length])
     tip = needle.points(tip_s)[0]
     tangent = needle.tangents(tip_s)[0]
-    return (points - tip) @ tangent > 0.0
+    return (points - tip) @ tangent > margin

@@ -11,8 +11,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from refsim.constraints.needle_geometry import NeedleGeometry, needle_rows
+import scipy.sparse as sp
+
+from refsim.constraints.friction import friction_rows
+from refsim.constraints.needle_geometry import needle_rows
 from refsim.constraints.rows import FRICTION, PENETRATION, UNILATERAL, RowBlock, orthonormal_basis, point_rows
+from refsim.constraints.step_geometry import StepGeometry
 
 __all__ = ["SurfaceContact", "find_surface_contact", "penetration_block"]
 
@@ -66,51 +70,59 @@ def find_surface_contact(projector, faces: np.ndarray, tip: np.ndarray) -> Surfa
 
 
 def penetration_block(
-    *,
     contact: SurfaceContact,
-    tissue_free: np.ndarray,
-    tissue_previous: np.ndarray,
-    needle_free: NeedleGeometry,
-    needle_previous: NeedleGeometry,
+    geometry: StepGeometry,
+    *,
     friction_coefficient: float,
-    tissue_dof_count: int,
 ) -> RowBlock:
     """Rows of the tip contact: one unilateral row, plus two friction rows when μ_p > 0.
 
     Parameters
     ----------
     contact : The surface point found on the free positions.
-    tissue_free, tissue_previous : Tissue positions after free motion and at the start of the step [m], (n, 3).
-    needle_free, needle_previous : The needle after free motion and at the start of the step.
+    geometry : The step's geometry (both bodies at the start of the step and after free motion).
     friction_coefficient : μ_p ≥ 0.
-    tissue_dof_count : 3 · tissue node count.
     """
-    tip_s = np.array([needle_free.length])
-    tip_free = needle_free.points(tip_s)[0]
-    tip_previous = needle_previous.points(tip_s)[0]
+    tip_s = np.array([geometry.needle_free.length])
+    tip_free = geometry.needle_free.points(tip_s)[0]
     normal = contact.normal
     gap_normal = float(normal @ (tip_free - contact.point))
+    nodes, weights = contact.nodes[None, :], contact.barycentric[None, :]
+    normal_jacobian = point_rows(nodes, weights, normal[None, :], geometry.tissue_dof_count)
+    normal_needle = needle_rows(geometry.needle_free, tip_s, normal[None, :])
     if friction_coefficient > 0.0:
         first, second = orthonormal_basis(normal[None, :])
-        directions = np.vstack([normal, first, second])
-        surface_previous = contact.barycentric @ tissue_previous[contact.nodes]
-        slip = (tip_free - tip_previous) - (contact.point - surface_previous)
-        gaps = np.array([gap_normal, first[0] @ slip, second[0] @ slip])
+        tangents = np.vstack([first, second])
+        friction = friction_rows(
+            geometry,
+            tissue_nodes=np.repeat(nodes, 2, axis=0),
+            tissue_weights=np.repeat(weights, 2, axis=0),
+            arc_lengths=np.repeat(tip_s, 2),
+            tangents=tangents,
+            tissue_free_points=np.repeat(contact.point[None, :], 2, axis=0),
+            tissue_previous_points=np.repeat(
+                (contact.barycentric @ geometry.tissue_previous[contact.nodes])[None, :], 2, axis=0
+            ),
+        )
+        directions = np.vstack([normal, tangents])
+        gaps = np.concatenate([[gap_normal], friction.free_gap])
         kinds = np.array([UNILATERAL, FRICTION, FRICTION], dtype=np.int8)
+        tissue_jacobian = sp.vstack([normal_jacobian, friction.tissue_jacobian], format="csr")
+        needle_jacobian = None if normal_needle is None else sp.vstack(
+            [normal_needle, friction.needle_jacobian], format="csr"
+        )
         contacts = np.array([[0, 1, 2]], dtype=np.int64)
         contact_friction = np.array([friction_coefficient])
     else:
         directions = normal[None, :]
         gaps = np.array([gap_normal])
         kinds = np.array([UNILATERAL], dtype=np.int8)
+        tissue_jacobian, needle_jacobian = normal_jacobian, normal_needle
         contacts = np.zeros((0, 3), dtype=np.int64)
         contact_friction = np.zeros(0)
     row_count = len(gaps)
-    nodes = np.broadcast_to(contact.nodes, (row_count, 3))
-    weights = np.broadcast_to(contact.barycentric, (row_count, 3))
-    needle_jacobian = needle_rows(needle_free, np.repeat(tip_s, row_count), directions)
     return RowBlock(
-        tissue_jacobian=point_rows(nodes, weights, directions, tissue_dof_count),
+        tissue_jacobian=tissue_jacobian,
         needle_jacobian=needle_jacobian,
         free_gap=gaps,
         kind=kinds,

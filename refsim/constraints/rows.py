@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from refsim.solvers import ConstraintProblem
+
 __all__ = [
     "BILATERAL",
     "UNILATERAL",
@@ -59,6 +61,13 @@ class RowBlock:
     shaft_friction_coefficient : shape (m,).
     shaft_normal_preload : Normal force added to the pair force norm in each shaft row's Coulomb bound [N],
         shape (m,) (empty: zeros).
+    force_limit : Largest force each row can carry [N], shape (row_count,), > 0, inf for none (empty: all inf).
+        A unilateral row with a finite limit L has 0 ≤ λ ≤ L and gives way (δ < 0) at L; a bilateral row
+        |λ| ≤ L. This is how a row models a strength: the tissue's resistance to puncture, to cutting at the tip,
+        to tearing at the front of a cut.
+    compliance_diagonal : Compliance added to the diagonal of W for each row [m/N], shape (row_count,), ≥ 0
+        (empty: zeros): the part of a row's flexibility the mesh does not resolve (the sub-grid compliance of
+        the well-posed coupling, :mod:`refsim.constraints.coupling`, and of the cut's sliding rows).
     """
 
     tissue_jacobian: sp.csr_matrix
@@ -74,11 +83,54 @@ class RowBlock:
     shaft_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     shaft_friction_coefficient: np.ndarray = field(default_factory=lambda: np.zeros(0))
     shaft_normal_preload: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    force_limit: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    compliance_diagonal: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def __post_init__(self) -> None:
+        rows = self.free_gap.shape[0]
+        limit = np.asarray(self.force_limit, dtype=float)
+        if limit.size and (limit.shape != (rows,) or np.any(~(limit > 0.0))):
+            raise ValueError(f"force_limit must have shape ({rows},) with values in (0, inf], got {limit!r}")
+        added = np.asarray(self.compliance_diagonal, dtype=float)
+        if added.size and (added.shape != (rows,) or np.any(~np.isfinite(added)) or np.any(added < 0.0)):
+            raise ValueError(f"compliance_diagonal must have shape ({rows},) with finite values >= 0 [m/N]")
 
     @property
     def row_count(self) -> int:
         """Number of rows."""
         return int(self.free_gap.shape[0])
+
+    def problem(self, compliance: np.ndarray, *, name: str = ""):
+        """The solver's :class:`~refsim.solvers.ConstraintProblem` of these rows with compliance W [m/N],
+        shape (row_count, row_count): the one place where row kinds become solver laws."""
+        sets = self.index_sets()
+        added = _compliance_diagonal(self)
+        if np.any(added):
+            compliance = compliance + np.diag(added)
+        limit = _force_limit(self)
+        boxed = np.flatnonzero(np.isfinite(limit))
+        bilateral, unilateral = sets["bilateral"], sets["unilateral"]
+        box_lower = np.where(self.kind[boxed] == UNILATERAL, 0.0, -limit[boxed])
+        box_upper = limit[boxed]
+        if boxed.size:
+            bilateral = np.setdiff1d(bilateral, boxed)
+            unilateral = np.setdiff1d(unilateral, boxed)
+        return ConstraintProblem(
+            compliance=compliance,
+            free_gap=self.free_gap,
+            bilateral=bilateral,
+            unilateral=unilateral,
+            box_rows=boxed,
+            box_lower=box_lower,
+            box_upper=box_upper,
+            contacts=sets["contacts"],
+            contact_friction=self.contact_friction,
+            shaft_friction=sets["shaft_rows"],
+            shaft_pairs=self.shaft_pairs,
+            shaft_friction_coefficient=self.shaft_friction_coefficient,
+            shaft_normal_preload=self.shaft_normal_preload,
+            name=name,
+        )
 
     def index_sets(self) -> dict[str, np.ndarray]:
         """Row index sets by solver kind: bilateral and unilateral rows outside contacts, contacts, shaft rows."""
@@ -130,7 +182,23 @@ def concatenate(blocks: list[RowBlock]) -> RowBlock:
         shaft_pairs=np.concatenate([b.shaft_pairs + o for b, o in zip(blocks, offsets)]).astype(np.int64),
         shaft_friction_coefficient=np.concatenate([b.shaft_friction_coefficient for b in blocks]),
         shaft_normal_preload=np.concatenate([_shaft_preload(b) for b in blocks]),
+        force_limit=np.concatenate([_force_limit(b) for b in blocks]),
+        compliance_diagonal=np.concatenate([_compliance_diagonal(b) for b in blocks]),
     )
+
+
+def _force_limit(block: RowBlock) -> np.ndarray:
+    """The rows' force limits [N], shape (row_count,): inf when the block left the field empty."""
+    if block.force_limit.size == 0:
+        return np.full(block.row_count, np.inf)
+    return np.asarray(block.force_limit, dtype=float)
+
+
+def _compliance_diagonal(block: RowBlock) -> np.ndarray:
+    """The rows' added compliance [m/N], shape (row_count,): zeros when the block left the field empty."""
+    if block.compliance_diagonal.size == 0:
+        return np.zeros(block.row_count)
+    return np.asarray(block.compliance_diagonal, dtype=float)
 
 
 def _shaft_preload(block: RowBlock) -> np.ndarray:

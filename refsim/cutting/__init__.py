@@ -3,6 +3,11 @@
 ``import refsim.cutting`` does not import open3d; `import_open3d` does, on first use.
 """
 
+from refsim.cutting.growth import (
+    CutGrowth,
+    resample_polyline,
+    sweep_points,
+)
 from refsim.cutting.open3d_support import estimate_normals_open3d, import_open3d
 from refsim.cutting.surface import ClosestCutPoints, CutSurface, TriangulationReport
 from refsim.cutting.triangulation import (
@@ -14,6 +19,9 @@ from refsim.cutting.triangulation import (
 
 __all__ = [
     "ClosestCutPoints",
+    "CutGrowth",
+    "resample_polyline",
+    "sweep_points",
     "CutSurface",
     "TriangulationParameters",
     "TriangulationReport",

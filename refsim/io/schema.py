@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from refsim.solvers.laws import problem_field_specs
+
 __all__ = [
     "FORMAT_NAME",
     "SCHEMA_VERSION",
@@ -102,6 +104,7 @@ STATIC = _specs(
         ("tissue/tets", "1", "int64", ("m", 4), "tetrahedra (node indices)"),
         ("tissue/faces", "1", "int64", ("f", 3), "boundary triangles, oriented outward (node indices)"),
         ("tissue/fixed_nodes", "1", "int64", ("?",), "indices of the clamped tissue nodes"),
+        ("tissue/boundary_nodes", "1", "int64", ("?",), "indices of the nodes a boundary motion moves (empty: none)"),
         ("needle/rest_nodes", "m", "float64", ("k", 3), "needle nodes at the trajectory's initial pose (t = 0)"),
     ],
     growing=False,
@@ -123,6 +126,9 @@ STEPS = _specs(
         ("cut_triangle_count", "1", "int64", (), "cut surface triangles after the step"),
         ("triangulation_seconds", "s", "float64", (), "wall-clock time of the cut triangulation in the step"),
         ("stage_seconds", "s", "float64", ("stages",), "wall-clock time of each stage; columns in attribute `names`"),
+        ("boundary_displacement", "m", "float64", ("b", 3),
+         "prescribed displacement from rest of the nodes scene/tissue/boundary_nodes at the end of the step "
+         "(one row of zeros without a boundary motion)"),
     ],
 )
 
@@ -192,23 +198,13 @@ CUT = _specs(
 #: Group holding one subgroup per recorded constraint problem (scene key output.record_problems).
 PROBLEMS_GROUP = "problems"
 
-#: Datasets of one problem subgroup ``problems/step_NNNNNNN`` (fields of refsim.solvers.ConstraintProblem).
+#: Datasets of one problem subgroup ``problems/step_NNNNNNN``: every array field of
+#: refsim.solvers.ConstraintProblem, derived from the solvers' law table (refsim.solvers.laws), so a new law or
+#: field is recorded and read back without touching this file. Fields absent from an older file take their
+#: defaults when read.
 PROBLEM_FIELDS = _specs(
     "problems/step_NNNNNNN",
-    [
-        ("compliance", "m/N", "float64", ("r", "r"), "compliance (Delassus operator) W"),
-        ("free_gap", "m", "float64", ("r",), "free-motion gap delta_free"),
-        ("bilateral", "1", "int64", ("?",), "bilateral rows"),
-        ("unilateral", "1", "int64", ("?",), "unilateral (Signorini) rows"),
-        ("contacts", "1", "int64", ("?", 3), "contact rows (normal, tangent 1, tangent 2)"),
-        ("contact_friction", "1", "float64", ("?",), "Coulomb friction coefficient of each contact"),
-        ("shaft_friction", "1", "int64", ("?",), "shaft friction rows"),
-        ("shaft_pairs", "1", "int64", ("?", 2), "the two bilateral rows bounding each shaft friction row"),
-        ("shaft_friction_coefficient", "1", "float64", ("?",), "friction coefficient of each shaft row"),
-        ("box_rows", "1", "int64", ("?",), "rows with fixed bounds"),
-        ("box_lower", "N", "float64", ("?",), "lower bound of each box row"),
-        ("box_upper", "N", "float64", ("?",), "upper bound of each box row"),
-    ],
+    [(spec.name, spec.unit, spec.dtype, spec.entry_shape, spec.meaning) for spec in problem_field_specs()],
     growing=False,
 )
 

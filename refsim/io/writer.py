@@ -133,7 +133,9 @@ class ResultWriter:
             _initial_needle_nodes(scene, models) if needle_rest_nodes is None
             else np.asarray(needle_rest_nodes, dtype=np.float64)
         )
-        self._sizes = {"n": rest_positions.shape[0], "k": rest_nodes.shape[0], "stages": len(self._stages)}
+        self._boundary_nodes = np.asarray(getattr(models, "boundary_nodes", np.zeros(0)), dtype=np.int64)
+        self._sizes = {"n": rest_positions.shape[0], "k": rest_nodes.shape[0], "stages": len(self._stages),
+                       "b": max(self._boundary_nodes.size, 1)}
 
         self._file = h5py.File(self.path, "w")
         try:
@@ -153,6 +155,7 @@ class ResultWriter:
                 "tissue/tets": np.asarray(mesh.tets, dtype=np.int64),
                 "tissue/faces": np.asarray(mesh.boundary_faces, dtype=np.int64),
                 "tissue/fixed_nodes": np.asarray(models.tissue.fixed_nodes, dtype=np.int64),
+                "tissue/boundary_nodes": self._boundary_nodes,
                 "needle/rest_nodes": rest_nodes,
             }
             for name, value in static.items():
@@ -540,8 +543,16 @@ class ResultWriter:
             "stage_seconds": np.array(
                 [[float(record.stage_seconds.get(stage, np.nan)) for stage in self._stages]], dtype=np.float64
             ),
+            "boundary_displacement": self._boundary_displacement(record)[None],
         }
         return {schema.STEPS[name].path: value for name, value in values.items()}
+
+    def _boundary_displacement(self, record) -> np.ndarray:
+        """The step's prescribed boundary displacement (b, 3) [m]; zeros (1, 3) without a boundary motion."""
+        value = getattr(record, "boundary_displacements", None)
+        if value is None or self._boundary_nodes.size == 0:
+            return np.zeros((self._sizes["b"], 3))
+        return self._check_shape("boundary_displacements", value, (self._boundary_nodes.size, 3))
 
     def _write_problem(self, step: int, problem) -> None:
         group_path = schema.problem_group_name(step)
@@ -549,8 +560,15 @@ class ResultWriter:
             del self._file[group_path]
         group = self._file.create_group(group_path)
         group.attrs["step"] = int(step)
-        group.attrs["name"] = str(problem.name)
-        for spec in schema.PROBLEM_FIELDS.values():
-            dataset = group.create_dataset(spec.name, data=np.asarray(getattr(problem, spec.name)),
-                                           dtype=schema.numpy_dtype(spec))
-            self._describe(dataset, spec)
+        write_problem_group(group, problem)
+
+
+def write_problem_group(group, problem) -> None:
+    """Write every field of a ConstraintProblem (schema.PROBLEM_FIELDS, derived from the solvers' law table) and
+    its name into an open h5py group; :func:`refsim.io.reader.read_problem_group` reads it back."""
+    group.attrs["name"] = str(problem.name)
+    for spec in schema.PROBLEM_FIELDS.values():
+        dataset = group.create_dataset(spec.name, data=np.asarray(getattr(problem, spec.name)),
+                                       dtype=schema.numpy_dtype(spec))
+        dataset.attrs["units"] = spec.unit
+        dataset.attrs["description"] = spec.meaning

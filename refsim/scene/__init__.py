@@ -1,5 +1,12 @@
 """Scene description (layer 4): frozen, validated dataclasses loaded from TOML, and the models built from them."""
 
+from refsim.scene.controls import (
+    BoundaryMotion,
+    ControlValues,
+    Controls,
+    PeriodicBoundaryMotion,
+    SampledBoundaryMotion,
+)
 from refsim.scene.loader import (
     SceneError,
     builtin_scenes,
@@ -22,6 +29,11 @@ from refsim.scene.spec import (
 )
 
 __all__ = [
+    "BoundaryMotion",
+    "ControlValues",
+    "Controls",
+    "PeriodicBoundaryMotion",
+    "SampledBoundaryMotion",
     "CuttingSpec",
     "InsertionSpec",
     "MeshSpec",

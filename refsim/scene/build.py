@@ -6,6 +6,7 @@ Only what the scene uses is built: a rigid needle has no beam model (it is moved
 from __future__ import annotations
 
 import logging
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,11 +15,12 @@ import numpy as np
 from refsim.fem.tissue import TissueModel
 from refsim.materials import HookeMaterial
 from refsim.mesh import TetMesh, box_mesh, read_mesh
+from refsim.scene.controls import Controls
 from refsim.scene.loader import SceneError
 from refsim.scene.spec import FACE_NAMES, MeshSpec, Scene
 from refsim.scene.trajectory import Trajectory
 
-__all__ = ["SceneModels", "build_models", "build_mesh", "check_models", "fixed_nodes"]
+__all__ = ["SceneModels", "boundary_nodes", "build_controls", "build_models", "build_mesh", "check_models", "fixed_nodes", "read_displacement_csv"]
 
 logger = logging.getLogger("refsim.scene")
 
@@ -33,12 +35,15 @@ class SceneModels:
     tissue : Co-rotational tetrahedral model.
     needle : Beam model of a flexible needle, or None for a rigid needle.
     trajectory : Motion of the needle base.
+    boundary_nodes : Tissue nodes a boundary motion moves (a subset of the tissue's fixed nodes), shape (b,);
+        empty without a [boundary] motion.
     """
 
     mesh: TetMesh
     tissue: TissueModel
     needle: object | None
     trajectory: Trajectory
+    boundary_nodes: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
 def build_mesh(spec: MeshSpec, base_directory: str = ".") -> TetMesh:
@@ -64,6 +69,16 @@ def fixed_nodes(spec: MeshSpec, rest_positions: np.ndarray) -> np.ndarray:
     """
     lower, upper = rest_positions.min(axis=0), rest_positions.max(axis=0)
     selected = np.zeros(len(rest_positions), dtype=bool)
+    if spec.fixed_nodes is not None:
+        indices = np.asarray(spec.fixed_nodes, dtype=np.int64)
+        if indices.size and indices.max() >= len(rest_positions):
+            raise ValueError(
+                f"mesh.fixed_nodes contains {int(indices.max())}: the mesh has {len(rest_positions)} nodes "
+                f"(indices 0 .. {len(rest_positions) - 1})"
+            )
+        selected[indices] = True
+    if not spec.fixed_faces and spec.fixed_box is None and spec.fixed_nodes is None:
+        return np.zeros(0, dtype=np.int64)  # the boundary motion holds the tissue
     for face in spec.fixed_faces:
         axis = FACE_NAMES.index(face) // 2
         bound = lower[axis] if face.endswith("min") else upper[axis]
@@ -74,7 +89,8 @@ def fixed_nodes(spec: MeshSpec, rest_positions: np.ndarray) -> np.ndarray:
     nodes = np.flatnonzero(selected)
     if nodes.size == 0:
         raise ValueError(
-            f"mesh.fixed_faces = {list(spec.fixed_faces)!r}, mesh.fixed_box = {spec.fixed_box!r} select no node "
+            f"mesh.fixed_faces = {list(spec.fixed_faces)!r}, mesh.fixed_box = {spec.fixed_box!r}, "
+            f"mesh.fixed_nodes = {spec.fixed_nodes!r} select no node "
             f"(mesh bounding box {lower.tolist()} .. {upper.tolist()} m)"
         )
     if nodes.size == len(rest_positions):
@@ -92,6 +108,7 @@ def build_models(scene: Scene) -> SceneModels:
         mesh = build_mesh(scene.mesh, scene.base_directory)
     except ValueError as error:  # MeshError names the file and the defect
         raise SceneError(f"{scene.source}: mesh: {error}") from None
+    moving = boundary_nodes(scene, mesh)
     tissue_spec = scene.tissue
     tissue = TissueModel(
         mesh.rest_positions,
@@ -103,7 +120,7 @@ def build_models(scene: Scene) -> SceneModels:
         ),
         rayleigh_mass=tissue_spec.rayleigh_mass,
         rayleigh_stiffness=tissue_spec.rayleigh_stiffness,
-        fixed_nodes=_fixed_nodes_or_error(scene, mesh),
+        fixed_nodes=np.union1d(_fixed_nodes_or_error(scene, mesh), moving),
         gravity=tissue_spec.gravity,
     )
     try:
@@ -127,7 +144,103 @@ def build_models(scene: Scene) -> SceneModels:
             base_position=base,
             direction=direction,
         )
-    return SceneModels(mesh=mesh, tissue=tissue, needle=needle, trajectory=trajectory)
+    return SceneModels(mesh=mesh, tissue=tissue, needle=needle, trajectory=trajectory, boundary_nodes=moving)
+
+
+def boundary_nodes(scene: Scene, mesh: TetMesh) -> np.ndarray:
+    """The nodes a [boundary] motion moves, sorted, shape (b,) (empty without a motion).
+
+    Raises
+    ------
+    SceneError
+        When the selection is empty or an index is out of range, naming the key.
+    """
+    spec = scene.boundary
+    if spec.motion == "none":
+        return np.zeros(0, dtype=np.int64)
+    rest = mesh.rest_positions
+    where = f"{scene.source}: boundary"
+    if spec.nodes is not None:
+        nodes = np.unique(np.asarray(spec.nodes, dtype=np.int64))
+        if nodes.size and nodes.max() >= len(rest):
+            raise SceneError(f"{where}.nodes contains {int(nodes.max())}: the mesh has {len(rest)} nodes")
+        key = "nodes"
+    elif spec.box is not None:
+        box = np.asarray(spec.box, dtype=float)
+        nodes = np.flatnonzero(np.all((rest >= box[0]) & (rest <= box[1]), axis=1))
+        key = "box"
+    else:
+        from refsim.mesh.selection import surface_patch
+
+        if spec.patch_point is not None:
+            nodes = surface_patch(rest, mesh.boundary_faces, distance=spec.patch_distance, point=spec.patch_point)
+            key = "patch_point"
+        else:
+            origin, normal = np.asarray(spec.patch_plane, dtype=float)
+            nodes = surface_patch(rest, mesh.boundary_faces, distance=spec.patch_distance, plane=(origin, normal))
+            key = "patch_plane"
+    if nodes.size == 0:
+        lower, upper = rest.min(axis=0), rest.max(axis=0)
+        raise SceneError(
+            f"{where}.{key} selects no node (mesh bounding box {lower.round(6).tolist()} .. "
+            f"{upper.round(6).tolist()} m)"
+        )
+    return np.asarray(nodes, dtype=np.int64)
+
+
+def read_displacement_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A displacement history: columns t, dx, dy, dz [s, m]; '#' comment lines and one header line allowed.
+
+    Returns
+    -------
+    (times (w,), displacements (w, 3)).
+
+    Raises
+    ------
+    ValueError
+        Naming the file and the defect.
+    """
+    if not path.is_file():
+        raise ValueError(f"{path}: boundary motion file not found")
+    lines = [line for line in path.read_text(encoding="utf-8").splitlines() if line.strip() and not line.lstrip().startswith("#")]
+    try:
+        data = np.loadtxt(lines, delimiter=",", ndmin=2)
+    except ValueError:
+        try:
+            data = np.loadtxt(lines[1:], delimiter=",", ndmin=2)
+        except ValueError as error:
+            raise ValueError(f"{path}: cannot read t, dx, dy, dz as numbers: {error}") from None
+    if data.shape[0] == 0 or data.shape[1] != 4:
+        raise ValueError(f"{path}: expected rows of 4 columns t, dx, dy, dz; got shape {data.shape}")
+    if not np.all(np.isfinite(data)):
+        raise ValueError(f"{path}: non-finite values")
+    return data[:, 0], data[:, 1:]
+
+
+def build_controls(scene: Scene, models: SceneModels) -> Controls:
+    """The controls of a scene: the needle base trajectory and, when the scene declares one, the tissue
+    boundary motion of ``models.boundary_nodes``."""
+    from refsim.scene.controls import PeriodicBoundaryMotion, SampledBoundaryMotion
+
+    spec = scene.boundary
+    if spec.motion == "none":
+        return Controls(trajectory=models.trajectory)
+    if spec.motion == "periodic":
+        motion = PeriodicBoundaryMotion(
+            nodes=models.boundary_nodes, amplitude=spec.amplitude, period=spec.period, exponent=spec.exponent,
+            phase=spec.phase,
+        )
+    else:
+        path = Path(spec.file)
+        if not path.is_absolute():
+            path = Path(scene.base_directory) / path
+        try:
+            times, displacements = read_displacement_csv(path)
+            motion = SampledBoundaryMotion(nodes=models.boundary_nodes, times=times, displacements=displacements)
+        except ValueError as error:
+            raise SceneError(f"{scene.source}: boundary.file: {error}") from None
+    return Controls(trajectory=models.trajectory, boundary=motion)
+
 
 
 def _fixed_nodes_or_error(scene: Scene, mesh: TetMesh) -> np.ndarray:

@@ -108,7 +108,7 @@ def scene_from_dict(
     for name, cls in SECTIONS.items():
         table = data.get(name)
         if table is None:
-            if name == "output":
+            if name in ("output", "compliance", "boundary"):
                 table = {}
             else:
                 raise SceneError(f"{source}: missing section [{name}]")

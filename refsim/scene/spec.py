@@ -25,6 +25,8 @@ __all__ = [
     "CuttingSpec",
     "SolverSpec",
     "OutputSpec",
+    "ComplianceSpec",
+    "BoundarySpec",
     "Scene",
     "FACE_NAMES",
     "ConsistencyError",
@@ -56,6 +58,7 @@ class MeshSpec(_Validated):
     scale: float = spec(1.0, unit="-", doc="factor applied to the file's coordinates to get metres", low=0.0, low_open=True)
     fixed_faces: tuple = spec((), doc="bounding-box faces whose nodes are fixed: xmin, xmax, ymin, ymax, zmin, zmax")
     fixed_box: tuple | None = spec(None, doc="nodes inside this box [[xmin, ymin, zmin], [xmax, ymax, zmax]] [m] are fixed")
+    fixed_nodes: tuple | None = spec(None, doc="indices of fixed nodes (as SOFA's FixedConstraint lists them), in the mesh file's order", low=0, integer=True)
     face_tolerance: float = spec(1e-9, unit="m", doc="distance to a bounding-box face within which a node is on it", low=0.0)
 
     def validate(self) -> None:
@@ -76,8 +79,8 @@ class MeshSpec(_Validated):
             box = numbers_array("fixed_box", self.fixed_box, (2, 3), "[[xmin, ymin, zmin], [xmax, ymax, zmax]] [m]")
             if np.any(box[0] > box[1]):
                 raise FieldError("fixed_box", f"fixed_box = {self.fixed_box!r}: expected [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min <= max")
-        if not self.fixed_faces and self.fixed_box is None:
-            raise FieldError("fixed_faces", "no fixed nodes: give fixed_faces or fixed_box (a free tissue has no static equilibrium)")
+        if self.fixed_nodes is not None and len(set(self.fixed_nodes)) != len(self.fixed_nodes):
+            raise FieldError("fixed_nodes", "fixed_nodes lists a node twice")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -245,6 +248,19 @@ class InsertionSpec(_Validated):
     contact_distance: float = spec(
         unit="m", doc="tip-surface distance under which the penetration constraint is built", low=0.0, low_open=True
     )
+    coupling: str = spec(
+        "ring",
+        doc="needle-tissue coupling: 'ring' (well posed: rows average the tissue over a ring of radius max(r, h) and "
+        "carry the sub-grid compliance of the annulus, docs/coupling.md) or 'paper' (rows on the centreline)",
+        choices=("ring", "paper"),
+    )
+    interference: float = spec(
+        0.0,
+        unit="m",
+        doc="δ_r: radial interference of the needle in its channel; the grip 2π r p₀ d_i (Lamé, p₀ = 2G δ_r/r) is "
+        "added to each point's shaft Coulomb bound, with shaft_normal_force d_i",
+        low=0.0,
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -252,10 +268,25 @@ class CuttingSpec(_Validated):
     """Laceration (paper, section 4): criteria, cut surface resolution and triangulation parameters."""
 
     enabled: bool = spec(doc="whether the scene can cut the tissue")
-    cutting_force: float = spec(unit="N", doc="f_c: mean lateral force per insertion constraint that starts the cut", low=0.0)
-    tearing_force: float = spec(unit="N", doc="f_t: border contact force that extends the cut", low=0.0)
+    law: str = spec(
+        "energy",
+        doc="cut law: 'energy' (the cut starts and its crack tip advances where the needle pushes with more than "
+        "G_c per unit length: independent of d_i, d_c and the mesh) or 'paper' (equation 3 with f_c per "
+        "insertion point, tears of d_t at a front row force f_t)",
+        choices=("energy", "paper"),
+    )
+    fracture_energy: float = spec(
+        200.0,
+        unit="J/m^2",
+        doc="G_c: energy per unit area of new cut, the lateral force per unit length of needle that cuts "
+        "(liver about 76–225 J/m², Azar and Hayward 2008); energy law only",
+        low=0.0,
+        low_open=True,
+    )
+    cutting_force: float = spec(unit="N", doc="f_c: mean lateral force per insertion constraint that starts the cut (paper law)", low=0.0)
+    tearing_force: float = spec(unit="N", doc="f_t: front row force that extends the cut by d_t (paper law)", low=0.0)
     point_spacing: float = spec(unit="m", doc="d_c: distance between points of the cut surface", low=0.0, low_open=True)
-    extent: float = spec(unit="m", doc="d_t: extent of the cut surface beyond the path, and of each tear", low=0.0, low_open=True)
+    extent: float = spec(unit="m", doc="d_t: extent of the first cut surface beyond the path, and of each tear (paper law)", low=0.0, low_open=True)
     min_angle: float = spec(unit="deg", doc="θ_min: smallest triangle angle", low=0.0, high=60.0)
     max_angle: float = spec(unit="deg", doc="θ_max: largest triangle angle", low=60.0, high=180.0, high_open=True)
     max_normal_angle: float = spec(unit="deg", doc="θ_s: largest angle between neighbouring triangle normals", low=0.0, high=180.0)
@@ -299,6 +330,79 @@ class OutputSpec(_Validated):
 
 
 @dataclass(frozen=True, kw_only=True)
+class ComplianceSpec(_Validated):
+    """How each body's compliance is computed (refsim.fem.compliance) and by which sparse solver; optional section."""
+
+    strategy: str = spec(
+        "exact",
+        doc="exact: factorise every step; refreshed: factorise every refresh_every steps, free motion and W's columns "
+        "by PCG on the current matrix; precomputed: the rest compliance rotated per node (SOFA-like)",
+        choices=("exact", "refreshed", "precomputed"),
+    )
+    refresh_every: int = spec(10, unit="-", doc="steps between factorisations of the refreshed strategy", low=1, high=1_000_000)
+    w_update: str = spec(
+        "pcg",
+        doc="refreshed strategy: W's columns solved by PCG on the current matrix (pcg, corrected to the PCG "
+        "tolerance), corrected to first order in the change of the matrix since the factorisation with the "
+        "correction by PCG (first_order), or taken from the stale factor (stale); errors by refsim bench --against-exact",
+        choices=("pcg", "first_order", "stale"),
+    )
+    linear_solver: str = spec(
+        "auto",
+        doc="sparse solver: auto (PARDISO where its wheel installs, else CHOLMOD if importable, else SuperLU; "
+        "$REFSIM_LINEAR_SOLVER overrides auto), or one of pardiso, cholmod, superlu",
+        choices=("auto", "pardiso", "cholmod", "superlu"),
+    )
+
+    def validate(self) -> None:
+        if not isinstance(self.refresh_every, int) or isinstance(self.refresh_every, bool):
+            raise ValueError(f"refresh_every = {self.refresh_every!r}: expected an integer >= 1")
+
+
+@dataclass(frozen=True, kw_only=True)
+class BoundarySpec(_Validated):
+    """A tissue boundary motion (breathing, a moving support): chosen nodes follow a prescribed displacement; optional section."""
+
+    motion: str = spec(
+        "none",
+        doc="none; periodic: d(t) = a (1 − cos^{2n}(π t/T − φ)) offset to 0 at t = 0 (Lujan et al. 1999); "
+        "file: displacement samples t, dx, dy, dz from a CSV file",
+        choices=("none", "periodic", "file"),
+    )
+    nodes: tuple | None = spec(None, doc="indices of the moving nodes", low=0, integer=True)
+    box: tuple | None = spec(None, doc="the nodes inside this box [[xmin, ymin, zmin], [xmax, ymax, zmax]] [m] move")
+    patch_point: tuple | None = spec(None, unit="m", doc="surface nodes within patch_distance of this point move", length=3)
+    patch_plane: tuple | None = spec(None, unit="m", doc="surface nodes within patch_distance of the plane [[origin], [normal]] move")
+    patch_distance: float = spec(0.0, unit="m", doc="distance of a surface patch from its point or plane", low=0.0)
+    amplitude: tuple = spec((0.0, 0.0, 0.0), unit="m", doc="a: the displacement at the peak of a periodic motion", length=3)
+    period: float = spec(4.0, unit="s", doc="T: period of a periodic motion (breathing: about 4 s)", low=0.0, low_open=True)
+    exponent: int = spec(1, unit="-", doc="n of cos^{2n}: 1 a sine squared, larger for a longer exhale plateau", low=1, high=10, integer=True)
+    phase: float = spec(0.0, unit="rad", doc="φ: phase of a periodic motion", low=-10.0, high=10.0)
+    file: str | None = spec(None, doc="CSV of displacement samples (t, dx, dy, dz [s, m]), relative to the scene file; '#' comments and a header allowed")
+
+    def validate(self) -> None:
+        selections = [self.nodes is not None, self.box is not None, self.patch_point is not None, self.patch_plane is not None]
+        if self.motion == "none":
+            return
+        if sum(selections) != 1:
+            raise FieldError("nodes", "a boundary motion needs exactly one of nodes, box, patch_point, patch_plane")
+        if self.box is not None:
+            box = numbers_array("box", self.box, (2, 3), "[[xmin, ymin, zmin], [xmax, ymax, zmax]] [m]")
+            if np.any(box[0] > box[1]):
+                raise FieldError("box", f"box = {self.box!r}: expected min <= max")
+        if self.patch_plane is not None:
+            plane = numbers_array("patch_plane", self.patch_plane, (2, 3), "[[origin x, y, z], [normal x, y, z]] [m]")
+            if np.linalg.norm(plane[1]) == 0.0:
+                raise FieldError("patch_plane", "patch_plane: the normal is zero")
+        if (self.patch_point is not None or self.patch_plane is not None) and self.patch_distance <= 0.0:
+            raise FieldError("patch_distance", "a surface patch needs patch_distance > 0 [m]")
+        if self.motion == "file" and not self.file:
+            raise FieldError("file", "motion = 'file' needs file, a CSV of t, dx, dy, dz")
+        if self.motion == "periodic" and not np.any(np.asarray(self.amplitude, dtype=float)):
+            raise FieldError("amplitude", "a periodic motion needs a non-zero amplitude [m]")
+
+
+@dataclass(frozen=True, kw_only=True)
 class Scene:
     """A whole scene. Built once, never mutated (STYLE.md pattern 6)."""
 
@@ -312,6 +416,8 @@ class Scene:
     cutting: CuttingSpec
     solver: SolverSpec
     output: OutputSpec = dataclasses.field(default_factory=OutputSpec)
+    compliance: ComplianceSpec = dataclasses.field(default_factory=ComplianceSpec)
+    boundary: BoundarySpec = dataclasses.field(default_factory=BoundarySpec)
     source: str = "<memory>"
     base_directory: str = "."
 
@@ -366,6 +472,13 @@ def check_consistency(scene: Scene) -> None:
     import logging
 
     logger = logging.getLogger("refsim.scene")
+    mesh = scene.mesh
+    if not mesh.fixed_faces and mesh.fixed_box is None and mesh.fixed_nodes is None and scene.boundary.motion == "none":
+        raise ConsistencyError(
+            "mesh", "fixed_faces", related=(("boundary", "motion"),), message=
+            "no fixed nodes: give mesh.fixed_faces, fixed_box or fixed_nodes, or a [boundary] motion (a free tissue "
+            "has no static equilibrium)",
+        )
     length = scene.needle.length
     spacing = scene.insertion.spacing
     if spacing >= length:
@@ -409,6 +522,8 @@ SECTIONS = {
     "cutting": CuttingSpec,
     "solver": SolverSpec,
     "output": OutputSpec,
+    "compliance": ComplianceSpec,
+    "boundary": BoundarySpec,
 }
 
 

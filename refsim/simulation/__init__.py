@@ -2,13 +2,15 @@
 
 from refsim.simulation.needle_body import FlexibleNeedle, NeedleState, RigidNeedle
 from refsim.simulation.records import STAGES, Event, StepRecord
-from refsim.simulation.simulation import Simulation, SimulationError, SimulationState
+from refsim.simulation.simulation import Simulation, SimulationError
+from refsim.simulation.state import Phase, SimulationState
 
 __all__ = [
     "STAGES",
     "Event",
     "FlexibleNeedle",
     "NeedleState",
+    "Phase",
     "RigidNeedle",
     "Simulation",
     "SimulationError",

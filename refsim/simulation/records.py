@@ -44,6 +44,10 @@ class StepRecord:
     solver : Report of the constraint solve (iterations, residual, converged, seconds, ...), or None.
     stage_seconds : Seconds spent in each stage of STAGES.
     problem : The step's constraint problem when recorded, else None.
+    cut_point_count, cut_triangle_count : Size of the cut surface after the step.
+    triangulation_seconds : Seconds of the step's triangulation (0 when the cut did not grow).
+    boundary_displacements : Prescribed displacement from rest of the tissue's moving boundary nodes at the end
+        of the step [m], (k, 3), or None without boundary motion.
     """
 
     step: int
@@ -67,3 +71,4 @@ class StepRecord:
     cut_point_count: int = 0
     cut_triangle_count: int = 0
     triangulation_seconds: float = 0.0
+    boundary_displacements: np.ndarray | None = None

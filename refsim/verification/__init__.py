@@ -1,7 +1,7 @@
 """Verification cases (layer 6): closed-form and reference problems a user can run (`refsim verify`).
 
 Each case states its reference (an equation or a published value) and derives its tolerance; see the modules
-`refsim.verification.needle` and `refsim.verification.tissue`.
+`refsim.verification.needle`, `refsim.verification.tissue` and `refsim.verification.coupling`.
 """
 
 from __future__ import annotations
@@ -25,10 +25,10 @@ def needle_cantilever(*args, **kwargs):
 
 
 def all_cases() -> list[Callable[[], CaseResult | list[CaseResult]]]:
-    """Every registered case, needle first, then tissue."""
-    from refsim.verification import needle, tissue
+    """Every registered case: needle, tissue, then the needle–tissue coupling."""
+    from refsim.verification import coupling, needle, tissue
 
-    return [*needle.CASES, *tissue.CASES]
+    return [*needle.CASES, *tissue.CASES, *coupling.CASES]
 
 
 def run_cases(cases: Iterable[Callable[[], CaseResult | list[CaseResult]]] | None = None) -> list[CaseResult]:

@@ -1,0 +1,510 @@
+"""The well-posed needle–tissue coupling (issue 9): ring-averaged rows with a sub-grid compliance.
+
+The paper couples the needle to tissue points on its centreline, one point every d_i. In P1 tetrahedra that
+line has no definite stiffness: it behaves like a rigid cylinder of radius a_eq ≈ 0.3–0.7 h (depending on where
+the line crosses the cells), so its force falls like 1/ln(R/h) under refinement, and rows closer than h are
+redundant (W singular, multipliers not unique). Here, instead (derivation and calibration in docs/coupling.md):
+
+1. **Ring averaging.** Each insertion point's rows measure the *mean* tissue displacement over a ring of
+   ``ring_count(ρ_c, h)`` material points at the coupling radius ρ_c = max(r, h) around the centreline
+   (r the needle radius, h the local mesh size). In the continuum the mean displacement of a uniformly loaded
+   ring of radius ρ equals the displacement of a rigid disc of radius ρ (lateral and axial), so the ring is a
+   rigid-cylinder coupling; in P1 it behaves like a rigid disc of radius a_c = ``equivalent_radius(ρ_c, h)``,
+   calibrated numerically (a_c ≈ 1.26 h at ρ_c = h, within ±2 % wherever the ring sits in the mesh, for
+   d_i from h/20 to h and for jittered tets).
+2. **Sub-grid compliance (Peaceman's well model).** The elastic annulus between the needle (r) and the ring's
+   equivalent radius (a_c ≥ r) is added to the diagonal of W for each row,
+
+       lateral:  C = (3 − 4ν) ln(a_c / r) / (8 π G (1 − ν) d_i),      axial:  C = ln(a_c / r) / (2 π G d_i),
+
+   the difference of the plane-strain (Kelvin) and antiplane line-load solutions between the two radii.
+   a_c > r always (Galerkin: a P1 model is stiffer than the continuum under the same ring load), so C > 0, the
+   coupling block W + diag(C) is positive definite and the multipliers are unique.
+
+Functions of plain arrays: the builder of the rows (``ring_insertion_block``) follows
+:func:`refsim.constraints.insertion.insertion_block`, so the step can use either.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from refsim.constraints.friction import friction_rows
+from refsim.constraints.needle_geometry import needle_rows
+from refsim.constraints.rows import BILATERAL, FRICTION, INSERTION, RowBlock, orthonormal_basis, point_rows
+from refsim.constraints.step_geometry import StepGeometry
+
+__all__ = [
+    "LATERAL",
+    "AXIAL",
+    "COUPLINGS",
+    "LINE_EQUIVALENT_RADIUS_RANGE",
+    "RING_EQUIVALENT_RADIUS",
+    "RING_EQUIVALENT_RADIUS_SPREAD",
+    "coupling_radius",
+    "ring_count",
+    "equivalent_radius",
+    "local_mesh_size",
+    "subgrid_compliance",
+    "ring_points",
+    "RingLayout",
+    "ring_insertion_block",
+    "insertion_compliance",
+    "interference_pressure",
+    "grip_preload",
+    "shaft_friction_coefficients",
+    "stuck_points",
+    "tip_cutting_block",
+    "puncture_bounds",
+    "puncture_detected",
+]
+
+LATERAL, AXIAL = 0, 1
+#: Scene values of ``insertion.coupling``: the well-posed ring coupling (default) and the paper's bare line.
+COUPLINGS = ("ring", "paper")
+
+#: Equivalent radius a_eq/h of the *bare* line (rows on the centreline) in Kuhn-split tets, (min, max) over
+#: where the line crosses the cells (through grid nodes … generic), d_i ≤ h/4; lateral and axial. Not used by
+#: the model (it is position dependent by a factor 2.5), reported by the calibration (docs/coupling.md).
+LINE_EQUIVALENT_RADIUS_RANGE = {"lateral": (0.28, 0.71), "axial": (0.20, 0.60)}
+
+# Calibrated equivalent radius a_c/h of a ring of radius ρ/h: refsim.verification.coupling.calibrate_rings
+# (a 32 × 32 × 2 box of Kuhn cells with the exact line-load field on its sides, d_i = h/4, mean over 4 positions of
+# the centreline in its cell; the spread max/min − 1 over positions is at most 4.4 % lateral, 5.2 % axial, at
+# ρ = 1.25 h, and 2.2 %, 2.8 % at ρ = h). Columns: ρ/h, lateral a_c/h, axial a_c/h. For ρ ≥ h, a_c ≈ ρ + 0.25 h
+# (lateral), ρ + 0.19 h (axial); beyond the last row a_c − ρ is held at its last value.
+RING_EQUIVALENT_RADIUS = np.array(
+    [
+        [1.00, 1.2718, 1.1975],
+        [1.25, 1.5205, 1.4500],
+        [1.50, 1.7515, 1.6832],
+        [1.75, 2.0037, 1.9405],
+        [2.00, 2.2536, 2.1921],
+        [2.50, 2.7452, 2.6864],
+        [3.00, 3.2399, 3.1825],
+    ]
+)
+#: Barycentric tolerance of the ring points' location (dimensionless): a point 1e-6 h outside is inside.
+SURFACE_TOLERANCE = 1e-6
+
+#: Half the largest spread of the calibrated a_c over positions in the cell (± relative), see the table.
+RING_EQUIVALENT_RADIUS_SPREAD = 0.026
+
+
+def coupling_radius(needle_radius: np.ndarray | float, mesh_size: np.ndarray | float) -> np.ndarray:
+    """Radius ρ_c = max(r, h) of the coupling ring [m].
+
+    Below h the ring's equivalent radius would depend on where it sits in the cells (the bare line, ρ = 0,
+    varies by a factor 2.5); from h up it is within ±2 % (docs/coupling.md).
+    """
+    return np.maximum(np.asarray(needle_radius, dtype=float), np.asarray(mesh_size, dtype=float))
+
+
+def ring_count(radius: float, mesh_size: float) -> int:
+    """Points of a ring of radius ρ [m] in a mesh of size h [m]: a multiple of 4, arc spacing ≤ h/2."""
+    if not (radius > 0.0 and mesh_size > 0.0 and math.isfinite(radius) and math.isfinite(mesh_size)):
+        raise ValueError(f"ring radius {radius!r} m and mesh size {mesh_size!r} m must be finite and > 0")
+    return max(4, 4 * math.ceil(math.pi * radius / mesh_size))
+
+
+def equivalent_radius(radius: np.ndarray | float, mesh_size: np.ndarray | float, kind: str) -> np.ndarray:
+    """Equivalent rigid-disc radius a_c [m] of a coupling ring of radius ρ ≥ h in Kuhn-split P1 tets.
+
+    Parameters
+    ----------
+    radius : Ring radius ρ [m], shape (k,) or scalar, each ≥ mesh_size (see :func:`coupling_radius`).
+    mesh_size : Local mesh size h [m] (:func:`local_mesh_size`), same shape.
+    kind : "lateral" (plane strain) or "axial" (antiplane shear).
+
+    Returns
+    -------
+    a_c [m], shape of the broadcast inputs.
+    """
+    column = {"lateral": 1, "axial": 2}.get(kind)
+    if column is None:
+        raise ValueError(f"kind = {kind!r}; valid: 'lateral', 'axial'")
+    radius = np.asarray(radius, dtype=float)
+    mesh_size = np.asarray(mesh_size, dtype=float)
+    ratio = radius / mesh_size
+    if np.any(~np.isfinite(ratio)) or np.any(ratio < 1.0 - 1e-12):
+        raise ValueError(f"ring radius / mesh size = {ratio!r}; valid range [1, inf) (use coupling_radius)")
+    table = RING_EQUIVALENT_RADIUS
+    inside = np.interp(ratio, table[:, 0], table[:, column])
+    beyond = ratio + (table[-1, column] - table[-1, 0])
+    return np.where(ratio <= table[-1, 0], inside, beyond) * mesh_size
+
+
+def local_mesh_size(rest_positions: np.ndarray, tets: np.ndarray, tet_indices: np.ndarray) -> np.ndarray:
+    """Local mesh size h = (6 V)^(1/3) [m] of the given tets (the cell edge of a Kuhn-split box).
+
+    Parameters
+    ----------
+    rest_positions : Node rest positions [m], shape (n, 3).
+    tets : Tets, shape (m, 4).
+    tet_indices : Tets to measure, shape (k,).
+    """
+    vertices = np.asarray(rest_positions, dtype=float)[np.asarray(tets)[np.asarray(tet_indices)]]
+    edges = vertices[:, 1:] - vertices[:, :1]
+    volume = np.abs(np.linalg.det(edges)) / 6.0
+    return np.cbrt(6.0 * volume)
+
+
+def subgrid_compliance(
+    kinds: np.ndarray,
+    *,
+    shear_modulus: float,
+    poisson_ratio: float,
+    needle_radius: float,
+    mesh_size: np.ndarray,
+    spacing: np.ndarray | float,
+    coupling: str = "ring",
+) -> np.ndarray:
+    """Diagonal additions to W [m/N] for coupling rows (the sub-grid compliance of the annulus r … a_c).
+
+    Parameters
+    ----------
+    kinds : LATERAL or AXIAL per row, shape (k,).
+    shear_modulus : G [Pa], > 0.
+    poisson_ratio : ν, in (−1, 0.5).
+    needle_radius : r [m], > 0.
+    mesh_size : Local mesh size h per row [m] (:func:`local_mesh_size`), shape (k,) or scalar.
+    spacing : Length of needle each row stands for, d_i [m], shape (k,) or scalar, > 0.
+    coupling : "ring" (the ring-averaged rows of :func:`ring_insertion_block`, ρ_c = max(r, h)) or "paper"
+        (the bare line: no compliance, zeros).
+
+    Returns
+    -------
+    C [m/N], shape (k,): (3 − 4ν) ln(a_c/r) / (8πG(1−ν) d_i) for lateral rows, ln(a_c/r) / (2πG d_i) for axial
+    rows; all > 0 for "ring".
+    """
+    kinds = np.asarray(kinds)
+    if coupling not in COUPLINGS:
+        raise ValueError(f"insertion.coupling = {coupling!r}; valid: {', '.join(map(repr, COUPLINGS))}")
+    if not (math.isfinite(shear_modulus) and shear_modulus > 0.0):
+        raise ValueError(f"shear_modulus = {shear_modulus!r} Pa; valid range (0, inf)")
+    if not -1.0 < poisson_ratio < 0.5:
+        raise ValueError(f"poisson_ratio = {poisson_ratio!r}; valid range (-1, 0.5)")
+    if not (math.isfinite(needle_radius) and needle_radius > 0.0):
+        raise ValueError(f"needle_radius = {needle_radius!r} m; valid range (0, inf)")
+    spacing = np.broadcast_to(np.asarray(spacing, dtype=float), kinds.shape)
+    mesh_size = np.broadcast_to(np.asarray(mesh_size, dtype=float), kinds.shape)
+    if np.any(~(spacing > 0.0)) or np.any(~np.isfinite(spacing)):
+        raise ValueError(f"spacing d_i = {spacing!r} m; valid range (0, inf)")
+    if np.any(~(mesh_size > 0.0)) or np.any(~np.isfinite(mesh_size)):
+        raise ValueError(f"mesh_size h = {mesh_size!r} m; valid range (0, inf)")
+    if np.any((kinds != LATERAL) & (kinds != AXIAL)):
+        raise ValueError(f"kinds must be LATERAL ({LATERAL}) or AXIAL ({AXIAL}), got {np.unique(kinds)!r}")
+    if coupling == "paper":
+        return np.zeros(kinds.shape)
+    radius = coupling_radius(needle_radius, mesh_size)
+    log_lateral = np.log(equivalent_radius(radius, mesh_size, "lateral") / needle_radius)
+    log_axial = np.log(equivalent_radius(radius, mesh_size, "axial") / needle_radius)
+    nu = poisson_ratio
+    lateral = (3.0 - 4.0 * nu) * log_lateral / (8.0 * math.pi * shear_modulus * (1.0 - nu) * spacing)
+    axial = log_axial / (2.0 * math.pi * shear_modulus * spacing)
+    return np.where(kinds == LATERAL, lateral, axial)
+
+
+def ring_points(centres: np.ndarray, tangents: np.ndarray, radius: np.ndarray | float, count: int) -> np.ndarray:
+    """Points of rings around a centreline [m], shape (p, count, 3).
+
+    Parameters
+    ----------
+    centres : Ring centres [m], shape (p, 3).
+    tangents : Unit needle tangents, shape (p, 3).
+    radius : Ring radius [m], scalar or shape (p,), > 0.
+    count : Points per ring (1 gives the centre; else even, the points come in antipodal pairs).
+    """
+    centres = np.asarray(centres, dtype=float).reshape(-1, 3)
+    if count == 1:
+        return centres[:, None, :].copy()
+    first, second = orthonormal_basis(tangents)
+    radius = np.broadcast_to(np.asarray(radius, dtype=float), (centres.shape[0],))
+    angles = 2.0 * math.pi * (np.arange(count) + 0.5) / count
+    offsets = radius[:, None, None] * (
+        np.cos(angles)[None, :, None] * first[:, None, :] + np.sin(angles)[None, :, None] * second[:, None, :]
+    )
+    return centres[:, None, :] + offsets
+
+
+@dataclass(frozen=True)
+class RingLayout:
+    """The coupling ring of every insertion point: material points located in the rest mesh.
+
+    Attributes
+    ----------
+    tets : Tet of each ring point, shape (p, q), −1 outside the tissue.
+    barycentric : Their barycentric coordinates, shape (p, q, 4).
+    mesh_size : Local mesh size h of each point [m], shape (p,).
+    radius : Ring radius ρ_c = max(r, h) of each point [m], shape (p,).
+    """
+
+    tets: np.ndarray
+    barycentric: np.ndarray
+    mesh_size: np.ndarray
+    radius: np.ndarray
+
+    def subset(self, keep: np.ndarray) -> RingLayout:
+        """The rings of the points ``keep`` selects (indices or bool, shape (p,))."""
+        return RingLayout(self.tets[keep], self.barycentric[keep], self.mesh_size[keep], self.radius[keep])
+
+    @classmethod
+    def merged(cls, first: RingLayout, second: RingLayout, take_first: np.ndarray) -> RingLayout:
+        """Rings of points in order, from ``first`` where ``take_first`` (bool (p,)) and ``second`` elsewhere."""
+        take_first = np.asarray(take_first, dtype=bool)
+
+        def merge(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            out = np.empty((take_first.size, *a.shape[1:]), dtype=a.dtype)
+            out[take_first], out[~take_first] = a, b
+            return out
+
+        return cls(merge(first.tets, second.tets), merge(first.barycentric, second.barycentric),
+                   merge(first.mesh_size, second.mesh_size), merge(first.radius, second.radius))
+
+    @classmethod
+    def around(cls, path, *, rest_positions: np.ndarray, mesh_tets: np.ndarray, locator, tangents: np.ndarray,
+               needle_radius: float) -> RingLayout:
+        """Rings around the rest positions of the path's points, normal to ``tangents`` (p, 3).
+
+        ``locator`` locates points in the *rest* mesh (a :class:`refsim.geometry.TetLocator` on the rest
+        positions), so the ring points are material points, like the centres. The point count q is the largest
+        :func:`ring_count` over the path (arc spacing ≤ h/2 everywhere).
+        """
+        centres = path.positions(rest_positions, mesh_tets)
+        sizes = local_mesh_size(rest_positions, mesh_tets, path.tets)
+        radius = coupling_radius(needle_radius, sizes)
+        count = ring_count(float((radius / sizes).max()), 1.0)
+        points = ring_points(centres, tangents, radius, count)
+        # Points within 1e-6 h outside count as inside: a ring lying in the surface (a needle normal to it) must
+        # not lose its points to round-off of the tangent.
+        tets, barycentric = locator.locate(points.reshape(-1, 3), tolerance=SURFACE_TOLERANCE)
+        return cls(tets.reshape(path.point_count, count), barycentric.reshape(path.point_count, count, 4), sizes, radius)
+
+
+def ring_insertion_block(
+    path,
+    geometry: StepGeometry,
+    rings: RingLayout,
+    *,
+    friction_coefficient: float,
+    normal_preload: np.ndarray | float = 0.0,
+) -> RowBlock:
+    """Rows of the insertion points, each averaging the tissue over its ring (see module docstring).
+
+    Like :func:`refsim.constraints.insertion.insertion_block` (per point two bilateral rows and, with μ > 0, one
+    shaft friction row, ordered point by point), but the tissue side of every row is the mean of the ring points'
+    interpolations. A ring point is kept only with its antipode (a ring cut by the surface stays centred on the
+    needle); a point left without a pair uses its centre. The needle point of each row is the projection of the
+    centre at the start of the step.
+
+    Parameters
+    ----------
+    path : The insertion points (:class:`refsim.constraints.insertion.InsertionPath`), p of them.
+    geometry : The step's geometry.
+    rings : Their rings (:meth:`RingLayout.around`), q points each, q even or 1.
+    friction_coefficient : μ_i ≥ 0.
+    normal_preload : Normal force added in each point's Coulomb bound [N], scalar or shape (p,), ≥ 0
+        (:func:`grip_preload`).
+    """
+    point_count = path.point_count
+    preload = np.broadcast_to(np.asarray(normal_preload, dtype=float), (point_count,))
+    if np.any(~np.isfinite(preload)) or np.any(preload < 0.0):
+        raise ValueError(f"normal_preload = {normal_preload!r} N; valid range [0, inf)")
+    ring_tets = np.asarray(rings.tets, dtype=np.int64)
+    per_ring = ring_tets.shape[1]
+    inside = ring_tets >= 0
+    if per_ring > 1:
+        if per_ring % 2:
+            raise ValueError(f"ring point count {per_ring} must be even (antipodal pairs)")
+        inside &= np.roll(inside, per_ring // 2, axis=1)
+    counts = inside.sum(axis=1)
+    use_centre = counts == 0
+    all_tets = np.concatenate([path.tets[:, None], np.where(inside, ring_tets, 0)], axis=1)  # (p, q + 1)
+    all_bary = np.concatenate([path.barycentric[:, None, :], np.nan_to_num(rings.barycentric)], axis=1)
+    share = np.concatenate([use_centre[:, None].astype(float), inside / np.maximum(counts, 1)[:, None]], axis=1)
+    nodes = geometry.mesh_tets[all_tets].reshape(point_count, -1)  # (p, 4 (q + 1))
+    weights = (share[:, :, None] * all_bary).reshape(point_count, -1)
+    tissue_point_previous, tissue_point_free = geometry.tissue_points(nodes, weights)
+    centre_previous, _ = geometry.tissue_points(geometry.mesh_tets[path.tets], path.barycentric)
+    arc_lengths, _ = geometry.needle_previous.project(centre_previous)
+    needle_point_free = geometry.needle_free.points(arc_lengths)
+    tangents = geometry.needle_free.tangents(arc_lengths)
+    first, second = orthonormal_basis(tangents)
+    offset = needle_point_free - tissue_point_free
+    with_friction = friction_coefficient > 0.0
+    per_point = 3 if with_friction else 2
+    directions = np.empty((point_count, per_point, 3))
+    directions[:, 0], directions[:, 1] = first, second
+    gaps = np.empty((point_count, per_point))
+    gaps[:, 0] = np.einsum("ij,ij->i", first, offset)
+    gaps[:, 1] = np.einsum("ij,ij->i", second, offset)
+    kinds = np.full((point_count, per_point), BILATERAL, dtype=np.int8)
+    if with_friction:
+        friction = friction_rows(geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=arc_lengths,
+                                 tangents=tangents)
+        directions[:, 2] = tangents
+        gaps[:, 2] = friction.free_gap
+        kinds[:, 2] = FRICTION
+    flat_directions = directions.reshape(-1, 3)
+    row_nodes = np.repeat(nodes, per_point, axis=0)
+    row_weights = np.repeat(weights, per_point, axis=0)
+    row_count = point_count * per_point
+    base = np.arange(point_count) * per_point
+    return RowBlock(
+        tissue_jacobian=point_rows(row_nodes, row_weights, flat_directions, geometry.tissue_dof_count),
+        needle_jacobian=needle_rows(geometry.needle_free, np.repeat(arc_lengths, per_point), flat_directions),
+        free_gap=gaps.ravel(),
+        kind=kinds.ravel(),
+        source=np.full(row_count, INSERTION, dtype=np.int8),
+        points=np.repeat(tissue_point_free, per_point, axis=0),
+        directions=flat_directions,
+        shaft_rows=(base + 2) if with_friction else np.zeros(0, dtype=np.int64),
+        shaft_pairs=np.stack([base, base + 1], axis=1) if with_friction else np.zeros((0, 2), dtype=np.int64),
+        shaft_friction_coefficient=np.full(point_count if with_friction else 0, friction_coefficient),
+        shaft_normal_preload=preload.copy() if with_friction else np.zeros(0),
+    )
+
+
+def insertion_compliance(rows: RowBlock, *, shear_modulus: float, poisson_ratio: float, needle_radius: float,
+                         mesh_size: np.ndarray, spacing: float, coupling: str = "ring") -> np.ndarray:
+    """The sub-grid compliance of an insertion block's rows [m/N], shape (row_count,).
+
+    Bilateral rows are lateral, friction rows axial; ``mesh_size`` (p,) is each point's h
+    (:attr:`RingLayout.mesh_size`), repeated over the point's rows (the block's rows are ordered point by point).
+    """
+    per_point = rows.row_count // max(1, np.asarray(mesh_size).size)
+    kinds = np.where(rows.kind == FRICTION, AXIAL, LATERAL)
+    return subgrid_compliance(kinds, shear_modulus=shear_modulus, poisson_ratio=poisson_ratio,
+                              needle_radius=needle_radius, mesh_size=np.repeat(mesh_size, per_point),
+                              spacing=spacing, coupling=coupling)
+
+
+def interference_pressure(
+    *, shear_modulus: float, poisson_ratio: float, radius: float, interference: float,
+    outer_radius: float = math.inf,
+) -> float:
+    """Contact pressure p [Pa] of an interference fit (Lamé, plane strain, outer surface clamped).
+
+    A channel of radius r − δ_r opened to r by the needle: u_r = A ρ + B/ρ with u_r(r) = δ_r, u_r(R) = 0 gives
+    p = −σ_rr(r) = B (2(λ + G)/R² + 2G/r²), B = δ_r / (1/r − r/R²); for R → ∞, p = 2 G δ_r / r.
+
+    Parameters
+    ----------
+    shear_modulus : G [Pa]. poisson_ratio : ν. radius : r [m]. interference : δ_r [m], 0 ≤ δ_r < r.
+    outer_radius : Clamped outer radius R [m], > r; infinite by default.
+    """
+    if not (math.isfinite(shear_modulus) and shear_modulus > 0.0):
+        raise ValueError(f"shear_modulus = {shear_modulus!r} Pa; valid range (0, inf)")
+    if not -1.0 < poisson_ratio < 0.5:
+        raise ValueError(f"poisson_ratio = {poisson_ratio!r}; valid range (-1, 0.5)")
+    if not (math.isfinite(radius) and radius > 0.0):
+        raise ValueError(f"radius = {radius!r} m; valid range (0, inf)")
+    if not (math.isfinite(interference) and 0.0 <= interference < radius):
+        raise ValueError(f"interference = {interference!r} m; valid range [0, radius = {radius})")
+    if not outer_radius > radius:
+        raise ValueError(f"outer_radius = {outer_radius!r} m; valid range (radius = {radius}, inf]")
+    lame_lambda = 2.0 * shear_modulus * poisson_ratio / (1.0 - 2.0 * poisson_ratio)
+    inverse_outer = 0.0 if math.isinf(outer_radius) else 1.0 / outer_radius
+    b = interference / (1.0 / radius - radius * inverse_outer**2)
+    return b * (2.0 * (lame_lambda + shear_modulus) * inverse_outer**2 + 2.0 * shear_modulus / radius**2)
+
+
+def grip_preload(
+    *, shear_modulus: float, poisson_ratio: float, radius: float, interference: float,
+    spacing: np.ndarray | float, outer_radius: float = math.inf,
+) -> np.ndarray:
+    """Normal force of the grip per insertion point [N]: 2π r p · d_i (p from :func:`interference_pressure`).
+
+    The shaft friction bound of a point is μ (‖λ_lateral‖ + this), so in steady slip without lateral load the
+    axial force grows at μ 2π r p per metre inserted.
+    """
+    spacing = np.asarray(spacing, dtype=float)
+    if np.any(~(spacing > 0.0)) or np.any(~np.isfinite(spacing)):
+        raise ValueError(f"spacing d_i = {spacing!r} m; valid range (0, inf)")
+    pressure = interference_pressure(
+        shear_modulus=shear_modulus, poisson_ratio=poisson_ratio, radius=radius, interference=interference,
+        outer_radius=outer_radius,
+    )
+    return 2.0 * math.pi * radius * pressure * spacing
+
+
+# ------------------------------------------------------------------ friction, tip cutting force, puncture (3–5)
+def shaft_friction_coefficients(stuck: np.ndarray, *, static: float, dynamic: float) -> np.ndarray:
+    """Per-point shaft friction coefficient: μ_s where the point stuck at the last step, μ_d where it slipped.
+
+    Parameters
+    ----------
+    stuck : Whether each point was inside its Coulomb bound at the last solve, bool shape (p,) (new points:
+        True, they start stuck).
+    static, dynamic : μ_s ≥ μ_d ≥ 0.
+    """
+    if not (math.isfinite(static) and math.isfinite(dynamic) and static >= dynamic >= 0.0):
+        raise ValueError(f"friction coefficients static = {static!r}, dynamic = {dynamic!r}; valid: static >= dynamic >= 0")
+    return np.where(np.asarray(stuck, dtype=bool), static, dynamic)
+
+
+def stuck_points(multipliers: np.ndarray, bounds: np.ndarray, *, relative_tolerance: float = 1e-6) -> np.ndarray:
+    """Which shaft rows are inside their bound (stick), bool shape (p,): |λ_s| < (1 − tol) · bound."""
+    multipliers = np.abs(np.asarray(multipliers, dtype=float))
+    bounds = np.asarray(bounds, dtype=float)
+    return multipliers < (1.0 - relative_tolerance) * bounds
+
+
+def tip_cutting_block(
+    geometry: StepGeometry,
+    *,
+    tip_tet: int,
+    tip_barycentric: np.ndarray,
+    cutting_force: float,
+) -> tuple[RowBlock, np.ndarray, np.ndarray]:
+    """The tip's cutting row after puncture: one row along the needle at the tip, its force in [0, f_cut].
+
+    The row ties the needle tip to the tissue material point where the tip was at the start of the step
+    (``tip_tet``, ``tip_barycentric``), along n = −t (t the tip tangent), and measures the relative displacement
+    over the step (a friction row of :func:`refsim.constraints.friction.friction_rows`). Under the box law
+    [0, f_cut]: the tip sticks (δ = 0, the tissue deforms ahead of it) while the force is below f_cut, cuts
+    forward at exactly f_cut (δ ≤ 0), and is free when it retreats (λ = 0, δ ≥ 0).
+
+    Returns
+    -------
+    (block, box_lower, box_upper) : one row, kind FRICTION (a bounded row: give it to the solver as a box row
+    with bounds [0, f_cut], shape (1,) each).
+    """
+    if not (math.isfinite(cutting_force) and cutting_force >= 0.0):
+        raise ValueError(f"insertion.cutting_force = {cutting_force!r} N; valid range [0, inf)")
+    tip_s = np.array([geometry.needle_previous.length])
+    direction = -geometry.needle_free.tangents(tip_s)
+    nodes = geometry.mesh_tets[[tip_tet]]
+    weights = np.asarray(tip_barycentric, dtype=float).reshape(1, 4)
+    rows = friction_rows(geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=tip_s, tangents=direction)
+    _, tissue_now = geometry.tissue_points(nodes, weights)
+    block = RowBlock(
+        tissue_jacobian=rows.tissue_jacobian,
+        needle_jacobian=rows.needle_jacobian,
+        free_gap=rows.free_gap,
+        kind=np.array([FRICTION], dtype=np.int8),
+        source=np.array([INSERTION], dtype=np.int8),
+        points=tissue_now,
+        directions=direction,
+    )
+    return block, np.zeros(1), np.array([float(cutting_force)])
+
+
+def puncture_bounds(puncture_force: float, count: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Box bounds [0, f_p] of penetration rows: a Signorini contact whose force cannot exceed f_p.
+
+    Below f_p the row is a contact (δ ≥ 0 ⊥ λ ≥ 0); when the push would need more, λ = f_p and δ < 0: the tip
+    enters, within the step, at exactly f_p, whatever dt and speed.
+    """
+    if not (math.isfinite(puncture_force) and puncture_force > 0.0):
+        raise ValueError(f"insertion.puncture_force = {puncture_force!r} N; valid range (0, inf)")
+    return np.zeros(count), np.full(count, float(puncture_force))
+
+
+def puncture_detected(multiplier: float, gap: float, puncture_force: float, *,
+                      relative_tolerance: float = 1e-3) -> bool:
+    """Whether a capped penetration row punctured: λ at its bound f_p (within the tolerance) and δ < 0."""
+    return bool(multiplier >= (1.0 - relative_tolerance) * puncture_force and gap < 0.0)

@@ -1,0 +1,194 @@
+"""Growth of the cut surface (paper, section 4): the strip at the cut start, and its crack tip's advance.
+
+Pure functions of arrays and of a :class:`CutGrowth` built once per tissue (its rest positions, tets and the
+scene's cutting parameters). The surface lives in rest coordinates (the paper's equation 4): a point found in
+the deformed tissue keeps the tet and barycentric coordinates it has there, and its rest position is the same
+coordinates applied to the rest nodes.
+
+- Cut start (:func:`start_strip`): the insertion path, resampled every d_c, is the first layer of a strip
+  (:mod:`refsim.cutting.strip`); with the paper's law it is swept along ĉ up to d_t, in layers at most d_c
+  apart; with the energy law the crack tip starts on the path.
+- Crack advance (:func:`advance_front`): the crack tip moves, column by column, to the material point where the
+  needle pushed it (energy law) or by d_t (the paper's tear); a layer is laid once it is d_c ahead
+  (:meth:`refsim.cutting.strip.CutStrip.lay`).
+"""
+
+from __future__ import annotations
+
+import time as clock
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from refsim.cutting.surface import CutSurface
+from refsim.cutting.triangulation import TriangulationParameters
+from refsim.geometry import TetLocator
+
+__all__ = [
+    "CutGrowth",
+    "advance_front",
+    "start_strip",
+    "far_from",
+    "resample_polyline",
+    "sweep_points",
+]
+
+def resample_polyline(points: np.ndarray, spacing: float) -> np.ndarray:
+    """Points every ``spacing`` [m] along a polyline (its first and last points included), shape (q, 3)."""
+    points = np.asarray(points, dtype=float)
+    if len(points) < 2:
+        return points.copy()
+    lengths = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+    total = lengths[-1]
+    if total <= 0.0:
+        return points[:1].copy()
+    count = max(int(round(total / spacing)), 1)
+    samples = np.linspace(0.0, total, count + 1)
+    return np.stack([np.interp(samples, lengths, points[:, k]) for k in range(3)], axis=1)
+
+
+def sweep_points(base_points: np.ndarray, direction: np.ndarray, extent: float, spacing: float, *, first: int = 0):
+    """``base_points`` swept along ``direction`` every ``spacing`` up to ``extent``: shape (q · (K + 1 − first), 3),
+    K = max(round(extent / spacing), 1); ``first`` = 1 leaves out the base points themselves."""
+    steps = max(int(round(extent / spacing)), 1)
+    offsets = np.arange(first, steps + 1) * (extent / steps)
+    direction = np.asarray(direction, dtype=float)
+    if direction.ndim == 1:
+        direction = np.broadcast_to(direction, np.shape(base_points))
+    return (base_points[:, None, :] + offsets[None, :, None] * direction[:, None, :]).reshape(-1, 3)
+
+
+def far_from(points: np.ndarray, existing: np.ndarray, distance: float) -> np.ndarray:
+    """The points farther than ``distance`` [m] from every existing point (KD-tree), shape (k, 3)."""
+    from scipy.spatial import cKDTree
+
+    if len(points) == 0 or len(existing) == 0:
+        return points
+    nearest, _ = cKDTree(existing).query(points, k=1)
+    return points[nearest > distance]
+
+
+@dataclass(frozen=True)
+class CutGrowth:
+    """How the cut surface of one tissue grows.
+
+    Attributes
+    ----------
+    rest_positions : Rest positions of the tissue nodes [m], shape (node_count, 3).
+    tets : Tissue tets, shape (tet_count, 4).
+    point_spacing : d_c [m], > 0.
+    extent : d_t [m], > 0: how far the first surface reaches from the path and how far a tear extends.
+    parameters : Triangulation limits.
+    """
+
+    rest_positions: np.ndarray
+    tets: np.ndarray
+    point_spacing: float
+    extent: float
+    parameters: TriangulationParameters
+
+    @cached_property
+    def rest_locator(self) -> TetLocator:
+        """Tet locator on the rest positions (built on first use, then kept)."""
+        return TetLocator(self.rest_positions, self.tets)
+
+
+def start_strip(
+    growth: CutGrowth,
+    cut: CutSurface | None,
+    path_points: np.ndarray,
+    direction: np.ndarray,
+    positions: np.ndarray,
+    step: int,
+    *,
+    extent: float,
+):
+    """A new strip on the insertion path: columns every d_c along it, swept along ĉ by ``extent`` (0: the
+    crack tip starts on the path, as the energy law wants; d_t for the paper's initial surface).
+
+    Parameters
+    ----------
+    growth : The tissue's cut growth (rest positions, tets, d_c).
+    cut : The tissue's cut surface so far (None or empty for the first cut); the strip's points are appended.
+    path_points : The insertion points in the deformed tissue [m], shape (p, 3), entry first.
+    direction : ĉ in the deformed state, unit, shape (3,).
+    positions : Tissue positions [m], shape (n, 3).
+    step : The step.
+    extent : How far the first surface reaches along ĉ [m], ≥ 0.
+
+    Returns
+    -------
+    (cut, strip) : The grown surface and the new strip, or (cut, None) when fewer than two columns lie in the
+    tissue.
+    """
+    from refsim.cutting.strip import CutFront, CutStrip, append_points, locate_material_points, strip_triangles
+
+    started = clock.perf_counter()
+    cut = CutSurface.empty(growth.parameters) if cut is None else cut
+    spacing = growth.point_spacing
+    columns = resample_polyline(path_points, spacing)
+    layer_count = 1 if extent <= 0.0 else max(int(np.ceil(extent / spacing - 1e-9)), 1) + 1
+    offsets = np.linspace(0.0, extent, layer_count) if layer_count > 1 else np.zeros(1)
+    points = columns[None, :, :] + offsets[:, None, None] * np.asarray(direction, dtype=float)
+    locator = TetLocator(positions, growth.tets)
+    tets, barycentric, inside = locate_material_points(locator, positions, growth.tets, points.reshape(-1, 3))
+    tets, barycentric = tets.reshape(layer_count, -1), barycentric.reshape(layer_count, -1, 4)
+    inside = inside.reshape(layer_count, -1)
+    keep = inside[0]
+    if np.count_nonzero(keep) < 2:
+        return cut, None
+    tets, barycentric, inside = tets[:, keep], barycentric[:, keep], inside[:, keep]
+    rest = np.einsum("lqk,lqkj->lqj", barycentric, growth.rest_positions[growth.tets[np.maximum(tets, 0)]])
+    # A column stops at its first point outside the tissue: later layers reuse its last point inside.
+    reach = np.cumprod(inside, axis=0).astype(bool)
+    layers = np.empty(tets.shape, dtype=np.int64)
+    count = cut.point_count
+    new_rest, new_tets, new_bary = [], [], []
+    for layer in range(layer_count):  # a handful of layers (d_t / d_c), each vectorised over the columns
+        fresh = reach[layer]
+        layers[layer] = layers[layer - 1] if layer else -1
+        layers[layer, fresh] = count + np.arange(int(fresh.sum()))
+        count += int(fresh.sum())
+        new_rest.append(rest[layer, fresh])
+        new_tets.append(tets[layer, fresh])
+        new_bary.append(barycentric[layer, fresh])
+    triangles = [strip_triangles(layers[k], layers[k + 1]) for k in range(layer_count - 1)]
+    grown = append_points(
+        cut,
+        np.concatenate(new_rest),
+        np.concatenate(new_tets),
+        np.concatenate(new_bary),
+        step,
+        np.concatenate(triangles) if triangles else np.zeros((0, 3), dtype=np.int64),
+        seconds=clock.perf_counter() - started,
+    )
+    last = layers[-1]
+    front = CutFront(grown.rest_points[last], grown.tet_indices[last], grown.barycentric[last])
+    return grown, CutStrip(layers, front)
+
+
+def advance_front(growth: CutGrowth, strip, advances: np.ndarray, direction: np.ndarray, positions: np.ndarray):
+    """The crack tip moved by ``advances`` [m] (deformed length, per column) along ``direction`` (deformed,
+    unit): each moving tip point goes to the material point found at its deformed position plus a·u in the
+    current configuration (kept in rest coordinates, equation 4). Columns whose target lies outside the tissue
+    stay. Returns the new `CutFront`."""
+    from refsim.cutting.strip import CutFront, locate_material_points
+
+    front = strip.front
+    moving = np.flatnonzero(np.asarray(advances) > 0.0)
+    if moving.size == 0:
+        return front
+    current = front.positions(positions, growth.tets)[moving]
+    target = current + np.asarray(advances, dtype=float)[moving, None] * np.asarray(direction, dtype=float)
+    locator = TetLocator(positions, growth.tets)
+    # The crack tip on the tissue surface (the entry column) may step a hair outside it: keep it on the surface.
+    tets, barycentric, inside = locate_material_points(
+        locator, positions, growth.tets, target, snap_distance=0.5 * growth.point_spacing
+    )
+    rest_points, tet_indices, bary = front.rest_points.copy(), front.tet_indices.copy(), front.barycentric.copy()
+    chosen = moving[inside]
+    tet_indices[chosen] = tets[inside]
+    bary[chosen] = barycentric[inside]
+    rest_points[chosen] = np.einsum("pk,pkj->pj", barycentric[inside], growth.rest_positions[growth.tets[tets[inside]]])
+    return CutFront(rest_points, tet_indices, bary)

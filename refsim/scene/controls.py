@@ -1,0 +1,164 @@
+"""Controls: what drives a run from outside the model, read by the step at each time (Model / State / Control).
+
+Two controls exist: the pose of the needle base (a trajectory: waypoints or a robot's precomputed motion) and
+a tissue boundary motion (prescribed displacements of chosen nodes as a function of time: breathing, a moving
+support). The built scene never changes during a run; a step asks the controls for their values at its end
+time and applies them as kinematic conditions (the needle's base node, the tissue's prescribed DoFs).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from refsim.scene.trajectory import Trajectory
+
+__all__ = [
+    "BoundaryMotion",
+    "ControlValues",
+    "Controls",
+    "PeriodicBoundaryMotion",
+    "SampledBoundaryMotion",
+]
+
+
+class BoundaryMotion(Protocol):
+    """Prescribed displacement from the rest position of chosen tissue nodes."""
+
+    nodes: np.ndarray
+
+    def displacement(self, time: float) -> np.ndarray:
+        """Displacement of each node from its rest position at ``time`` [s] [m], shape (len(nodes), 3)."""
+
+
+def _checked_nodes(nodes) -> np.ndarray:
+    nodes = np.asarray(nodes)
+    if nodes.ndim != 1 or nodes.size == 0 or not np.issubdtype(nodes.dtype, np.integer):
+        raise ValueError(f"boundary motion nodes must be a non-empty 1-D array of node indices, got {nodes!r}")
+    if np.any(nodes < 0) or np.unique(nodes).size != nodes.size:
+        raise ValueError("boundary motion nodes must be distinct non-negative node indices")
+    return np.sort(nodes.astype(np.int64))
+
+
+@dataclass(frozen=True)
+class PeriodicBoundaryMotion:
+    """A periodic breathing motion after Lujan et al. (Med. Phys. 26(5), 1999): every node moves by
+
+        d(t) = a · (1 − cos^{2n}(π t / T − φ)) − a · (1 − cos^{2n}(−φ)),
+
+    so d(0) = 0 and the displacement swings between 0 and the amplitude vector a (end of exhale to end of
+    inhale, for φ = 0) with period T; n ≥ 1 sharpens the exhale plateau (n = 1 is a sine squared).
+
+    Attributes
+    ----------
+    nodes : Tissue nodes that move, shape (k,).
+    amplitude : a [m], shape (3,), finite.
+    period : T [s], > 0.
+    exponent : n, integer ≥ 1.
+    phase : φ [rad], finite.
+    """
+
+    nodes: np.ndarray
+    amplitude: np.ndarray
+    period: float
+    exponent: int = 1
+    phase: float = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "nodes", _checked_nodes(self.nodes))
+        amplitude = np.asarray(self.amplitude, dtype=float)
+        if amplitude.shape != (3,) or not np.all(np.isfinite(amplitude)):
+            raise ValueError(f"amplitude must be 3 finite numbers [m], got {self.amplitude!r}")
+        object.__setattr__(self, "amplitude", amplitude)
+        if not (np.isfinite(self.period) and self.period > 0.0):
+            raise ValueError(f"period = {self.period!r} s; valid range (0, inf)")
+        if isinstance(self.exponent, bool) or int(self.exponent) != self.exponent or self.exponent < 1:
+            raise ValueError(f"exponent = {self.exponent!r}; an integer >= 1")
+        if not np.isfinite(self.phase):
+            raise ValueError(f"phase = {self.phase!r} rad; must be finite")
+
+    def profile(self, time: float) -> float:
+        """The scalar profile 1 − cos^{2n}(π t/T − φ), offset to 0 at t = 0 [-]."""
+        power = 2 * int(self.exponent)
+        value = 1.0 - np.cos(np.pi * time / self.period - self.phase) ** power
+        return float(value - (1.0 - np.cos(-self.phase) ** power))
+
+    def displacement(self, time: float) -> np.ndarray:
+        return np.broadcast_to(self.profile(time) * self.amplitude, (self.nodes.size, 3)).copy()
+
+
+@dataclass(frozen=True)
+class SampledBoundaryMotion:
+    """A displacement sampled in time (a recorded or computed motion), linear between samples and constant
+    after the last; the same displacement for every node.
+
+    Attributes
+    ----------
+    nodes : Tissue nodes that move, shape (k,).
+    times : Sample times [s], strictly increasing from 0, shape (w,).
+    displacements : Displacement at each sample [m], shape (w, 3), zero at t = 0.
+    """
+
+    nodes: np.ndarray
+    times: np.ndarray
+    displacements: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "nodes", _checked_nodes(self.nodes))
+        times = np.asarray(self.times, dtype=float)
+        values = np.asarray(self.displacements, dtype=float)
+        if times.ndim != 1 or times.size == 0 or times[0] != 0.0 or np.any(np.diff(times) <= 0.0):
+            raise ValueError("times must start at 0 s and increase strictly")
+        if values.shape != (times.size, 3) or not np.all(np.isfinite(values)):
+            raise ValueError(f"displacements must be finite with shape ({times.size}, 3), got {values.shape}")
+        if np.any(values[0] != 0.0):
+            raise ValueError(f"the displacement at t = 0 must be zero (the tissue starts at rest), got {values[0]}")
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "displacements", values)
+
+    def displacement(self, time: float) -> np.ndarray:
+        value = np.array([np.interp(time, self.times, self.displacements[:, k]) for k in range(3)])
+        return np.broadcast_to(value, (self.nodes.size, 3)).copy()
+
+
+@dataclass(frozen=True)
+class ControlValues:
+    """The controls' values at one time.
+
+    Attributes
+    ----------
+    time : Time [s].
+    base_position : Needle base position [m], shape (3,).
+    direction : Unit needle direction (base to tip), shape (3,).
+    boundary_nodes : Tissue nodes with a prescribed displacement, shape (k,) (empty without boundary motion).
+    boundary_displacements : Their displacement from rest [m], shape (k, 3).
+    """
+
+    time: float
+    base_position: np.ndarray
+    direction: np.ndarray
+    boundary_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    boundary_displacements: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+
+@dataclass(frozen=True)
+class Controls:
+    """The controls of a run.
+
+    Attributes
+    ----------
+    trajectory : Pose of the needle base against time.
+    boundary : Tissue boundary motion, or None (the fixed nodes stay in place).
+    """
+
+    trajectory: Trajectory
+    boundary: BoundaryMotion | None = None
+
+    def at(self, time: float) -> ControlValues:
+        """Values of every control at ``time`` [s]."""
+        base, direction = self.trajectory.pose(time)
+        if self.boundary is None:
+            return ControlValues(time, base, direction)
+        return ControlValues(time, base, direction, self.boundary.nodes, self.boundary.displacement(time))

@@ -1,0 +1,200 @@
+"""Detection: the rows of one step from the free positions, by phase (DESIGN.md, step 3).
+
+- approach: the tip against the closest surface point (penetration), when within the contact distance;
+- insertion: the insertion points along the path;
+- cutting: the entry point's rows, and the sliding and border rows of the cut surface.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from refsim.constraints import (
+    RowBlock,
+    StepGeometry,
+    SurfaceContact,
+    concatenate,
+    empty_block,
+    find_surface_contact,
+    insertion_block,
+    penetration_block,
+)
+from refsim.constraints.coupling import (
+    LATERAL,
+    RingLayout,
+    grip_preload,
+    insertion_compliance,
+    ring_insertion_block,
+    subgrid_compliance,
+)
+from refsim.constraints.cut import FrontRows, strip_cut_block
+from refsim.constraints.insertion import InsertionPath
+from refsim.geometry import SurfaceProjector, TetLocator
+from refsim.scene import Scene
+from refsim.simulation.state import Phase, SimulationState
+
+__all__ = ["Detection", "Detector"]
+
+RING_REUSE_COSINE = math.cos(1e-3)  # a ring is rebuilt when its point's tangent turned by more than 1e-3 rad
+
+
+@dataclass(frozen=True)
+class Detection:
+    """The rows of a step and what the events need to know about them.
+
+    Attributes
+    ----------
+    rows : The step's rows, in solver order.
+    contact : The tip's closest surface point (approach phase), else None.
+    front : Where the front rows press on the crack tip (cutting phase); their indices are into ``rows``.
+    """
+
+    rows: RowBlock
+    contact: SurfaceContact | None = None
+    front: FrontRows = field(default_factory=FrontRows.empty)
+
+
+class Detector:
+    """Builds the rows of each step for a scene.
+
+    Parameters
+    ----------
+    scene : The validated scene.
+    faces : Tissue surface triangles, shape (f, 3).
+    needle_dof_count : DoFs of the needle in the constraint problem, None for a rigid needle.
+    mesh_size : Typical tet size h [m] (the cut rows' sub-grid compliance depends on it).
+    """
+
+    def __init__(self, scene: Scene, faces: np.ndarray, needle_dof_count: int | None,
+                 rest_positions: np.ndarray | None = None, tets: np.ndarray | None = None,
+                 mesh_size: float = 0.0) -> None:
+        self.insertion = scene.insertion
+        self.cutting = scene.cutting
+        self.faces = faces
+        self.needle_dof_count = needle_dof_count
+        self.slide_compliance = _slide_compliance(scene, mesh_size) if scene.cutting.enabled else 0.0
+        spec = scene.insertion
+        tissue = scene.tissue
+        self.shear_modulus = tissue.youngs_modulus / (2.0 * (1.0 + tissue.poisson_ratio))
+        self.poisson_ratio = tissue.poisson_ratio
+        self.needle_radius = scene.needle.radius
+        self.preload = spec.shaft_normal_force * spec.spacing
+        if spec.interference > 0.0:
+            self.preload += float(grip_preload(
+                shear_modulus=self.shear_modulus, poisson_ratio=self.poisson_ratio, radius=self.needle_radius,
+                interference=spec.interference, spacing=spec.spacing))
+        self.ring = spec.coupling == "ring"
+        if self.ring and (rest_positions is None or tets is None):
+            raise ValueError("insertion.coupling = 'ring' needs the rest mesh (rest_positions and tets) in Detector")
+        self.rest_positions = None if rest_positions is None else np.asarray(rest_positions, dtype=float)
+        self.rest_locator = TetLocator(self.rest_positions, np.asarray(tets)) if self.ring else None
+        self._ring_cache = None  # (tets and creation steps (p, 2), tangents (p, 3), RingLayout) of the last step
+
+    def _rings(self, path: InsertionPath, tangents: np.ndarray, mesh_tets: np.ndarray) -> RingLayout:
+        """The points' rings; a point keeps last step's ring while its tangent turned less than 1e-3 rad."""
+        cached = self._ring_cache
+        reuse = np.zeros(path.point_count, dtype=bool)
+        if cached is not None:
+            key, old_tangents, layout = cached
+            shared = min(len(key), path.point_count)
+            same = (key[:shared, 0] == path.tets[:shared]) & (key[:shared, 1] == path.created_step[:shared])
+            same &= np.einsum("ij,ij->i", old_tangents[:shared], tangents[:shared]) > RING_REUSE_COSINE
+            reuse[:shared] = same
+        if reuse.all():
+            layout = cached[2].subset(np.arange(path.point_count))
+        else:
+            fresh = RingLayout.around(path.subset(~reuse), rest_positions=self.rest_positions, mesh_tets=mesh_tets,
+                                      locator=self.rest_locator, tangents=tangents[~reuse],
+                                      needle_radius=self.needle_radius)
+            if reuse.any() and cached[2].tets.shape[1] == fresh.tets.shape[1]:
+                layout = RingLayout.merged(cached[2].subset(np.flatnonzero(reuse)), fresh, reuse)
+            else:
+                layout = RingLayout.around(path, rest_positions=self.rest_positions, mesh_tets=mesh_tets,
+                                           locator=self.rest_locator, tangents=tangents,
+                                           needle_radius=self.needle_radius)
+                reuse[:] = False
+        kept_tangents = tangents.copy()
+        if cached is not None and reuse.any():
+            kept_tangents[reuse] = cached[1][np.flatnonzero(reuse)]
+        self._ring_cache = (np.stack([path.tets, path.created_step], axis=1), kept_tangents, layout)
+        return layout
+
+    def insertion_rows(self, path: InsertionPath, geometry: StepGeometry) -> RowBlock:
+        """The insertion points' rows: the ring coupling with its sub-grid compliance, or the paper's rows."""
+        spec = self.insertion
+        if not self.ring:
+            return insertion_block(path, geometry, friction_coefficient=spec.shaft_friction_coefficient,
+                                   normal_preload=self.preload)
+        centres_previous = path.positions(geometry.tissue_previous, geometry.mesh_tets)
+        arc_lengths, _ = geometry.needle_previous.project(centres_previous)
+        rings = self._rings(path, geometry.needle_previous.tangents(arc_lengths), geometry.mesh_tets)
+        block = ring_insertion_block(path, geometry, rings, friction_coefficient=spec.shaft_friction_coefficient,
+                                     normal_preload=self.preload)
+        diagonal = insertion_compliance(block, shear_modulus=self.shear_modulus, poisson_ratio=self.poisson_ratio,
+                                        needle_radius=self.needle_radius, mesh_size=rings.mesh_size,
+                                        spacing=spec.spacing)
+        return replace(block, compliance_diagonal=diagonal)
+
+    def detect(self, state: SimulationState, geometry: StepGeometry) -> Detection:
+        """The rows of the step that starts from ``state``, on the free positions of ``geometry``."""
+        spec = self.insertion
+        blocks: list[RowBlock] = []
+        contact = None
+        front = FrontRows.empty()
+        if state.phase == Phase.APPROACH:
+            projector = SurfaceProjector(geometry.tissue_free, self.faces)
+            contact = find_surface_contact(projector, self.faces, geometry.needle_free.tip)
+            if contact.gap < spec.contact_distance:
+                blocks.append(
+                    penetration_block(contact, geometry, friction_coefficient=spec.surface_friction_coefficient)
+                )
+        elif state.path.point_count and not (state.phase == Phase.CUTTING and self.cutting.law == "energy"):
+            # In the energy law's cutting phase the cut holds the needle (sliding rows, crack tip) and the entry
+            # point only marks the inserted length: anchored there, it would drag the tissue along the stroke.
+            blocks.append(self.insertion_rows(state.path, geometry))
+        if state.phase == Phase.CUTTING and state.cut_strip is not None:
+            entry = state.path.positions(state.tissue.positions, geometry.mesh_tets)[:1]
+            entry_arc_length = float(geometry.needle_previous.project(entry)[0][0])
+            offset = sum(block.row_count for block in blocks)
+            cutting = self.cutting
+            strength = cutting.fracture_energy if cutting.law == "energy" else np.inf
+            block, front = strip_cut_block(
+                state.cut,
+                state.cut_strip,
+                geometry,
+                entry_arc_length=entry_arc_length,
+                spacing=cutting.point_spacing,
+                cut_direction=state.cut_direction,
+                front_strength=strength,
+                slide_compliance=self.slide_compliance,
+            )
+            if block is not None:
+                blocks.append(block)
+            front = replace(front, rows=front.rows + offset)
+        if not blocks:
+            rows = empty_block(geometry.tissue_dof_count, self.needle_dof_count)
+        else:
+            rows = concatenate(blocks)
+        return Detection(rows, contact, front)
+
+
+def _slide_compliance(scene: Scene, mesh_size: float) -> float:
+    """Sub-grid compliance of one sliding row of the cut [m/N]: the lateral compliance of the well-posed
+    coupling (:func:`refsim.constraints.coupling.subgrid_compliance`, the annulus between the needle and the
+    equivalent radius of the mesh, Peaceman's well model) for the length d_c a sliding row stands for."""
+    if mesh_size <= 0.0:
+        return 0.0
+    tissue = scene.tissue
+    return float(
+        subgrid_compliance(
+            np.array([LATERAL]),
+            shear_modulus=tissue.youngs_modulus / (2.0 * (1.0 + tissue.poisson_ratio)),
+            poisson_ratio=tissue.poisson_ratio,
+            needle_radius=scene.needle.radius,
+            mesh_size=mesh_size,
+            spacing=scene.cutting.point_spacing,
+        )[0]
+    )

@@ -1,0 +1,52 @@
+"""The state of a run: everything that changes from step to step (Model / State / Control)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+
+from refsim.constraints import InsertionPath
+from refsim.fem.tissue import TissueState
+from refsim.simulation.needle_body import NeedleState
+
+__all__ = ["Phase", "SimulationState"]
+
+
+class Phase(StrEnum):
+    """Phases of a needle's life (their values are the names stored in the results)."""
+
+    APPROACH = "approach"  # the tip is outside: tip contact with the surface
+    INSERTION = "insertion"  # after puncture: insertion points along the path
+    CUTTING = "cutting"  # after the cut start: the entry point, sliding and border rows of the cut
+
+
+@dataclass(frozen=True)
+class SimulationState:
+    """Everything that changes during a run.
+
+    Attributes
+    ----------
+    step : Steps done.
+    time : Simulated time [s].
+    phase : The needle's phase.
+    tissue : Tissue positions [m] and velocities [m/s], each (n, 3).
+    needle : Needle configuration.
+    path : Insertion points (material points of the tissue).
+    cut : The cut surface (`refsim.cutting.CutSurface`), None until the tissue is cut.
+    cut_direction : ĉ, the unit direction the cut runs in the deformed state, shape (3,); None until the cut
+        starts.
+    cut_strip : The structure of the cut the needle is making (`refsim.cutting.strip.CutStrip`: its layers
+        and crack tip); None outside the cutting phase (a withdrawn needle leaves the cut surface behind).
+    """
+
+    step: int
+    time: float
+    phase: Phase
+    tissue: TissueState
+    needle: NeedleState
+    path: InsertionPath
+    cut: object | None = None
+    cut_direction: np.ndarray | None = None
+    cut_strip: object | None = None

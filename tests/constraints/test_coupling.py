@@ -1,0 +1,308 @@
+"""The well-posed coupling (refsim.constraints.coupling): sub-grid compliance, ring rows, grip, tip, puncture."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from refsim.constraints import coupling
+from refsim.constraints.insertion import InsertionPath, insertion_block
+from refsim.constraints.needle_geometry import RigidNeedleGeometry
+from refsim.constraints.step_geometry import StepGeometry
+from refsim.fem.tissue import TissueModel
+from refsim.geometry.search import TetLocator
+from refsim.materials import HookeMaterial
+from refsim.mesh.generators import box_mesh
+from refsim.solvers import ConstraintProblem, solve_exact, solve_gauss_seidel
+
+TISSUE = HookeMaterial(youngs_modulus=5.0e5, poisson_ratio=0.4, density=1000.0)
+G, NU = TISSUE.shear_modulus, TISSUE.poisson_ratio
+
+
+# ------------------------------------------------------------------------------------ sub-grid compliance
+def test_subgrid_compliance_is_the_line_load_difference_between_the_two_radii():
+    # Independent evaluation: the plane-strain Kelvin and the antiplane solutions between r and a_c (ρ = h).
+    h, r, d = 0.0125, 0.5e-3, 0.5e-3
+    kinds = np.array([coupling.LATERAL, coupling.AXIAL])
+    c = coupling.subgrid_compliance(kinds, shear_modulus=G, poisson_ratio=NU, needle_radius=r, mesh_size=h, spacing=d)
+    a_lat, a_ax = 1.2718 * h, 1.1975 * h
+    assert c[0] == pytest.approx((3 - 4 * NU) * math.log(a_lat / r) / (8 * math.pi * G * (1 - NU) * d), rel=1e-12)
+    assert c[1] == pytest.approx(math.log(a_ax / r) / (2 * math.pi * G * d), rel=1e-12)
+
+
+@pytest.mark.parametrize("ratio", [1e-3, 0.1, 0.64, 0.99, 1.0, 1.3, 2.0, 3.0, 10.0])
+def test_subgrid_compliance_is_positive_for_any_needle_radius(ratio):
+    # a_c > ρ_c ≥ r: the coupling block W + C is positive definite whatever r/h (thin or the paper's 8 mm).
+    h = 0.01
+    c = coupling.subgrid_compliance(np.array([0, 1]), shear_modulus=G, poisson_ratio=NU, needle_radius=ratio * h,
+                                    mesh_size=h, spacing=h / 4)
+    assert np.all(c > 0.0)
+
+
+def test_paper_coupling_adds_nothing_and_bad_values_are_named():
+    kinds = np.zeros(3, dtype=int)
+    assert np.all(coupling.subgrid_compliance(kinds, shear_modulus=G, poisson_ratio=NU, needle_radius=1e-3,
+                                              mesh_size=0.01, spacing=1e-3, coupling="paper") == 0.0)
+    with pytest.raises(ValueError, match="insertion.coupling"):
+        coupling.subgrid_compliance(kinds, shear_modulus=G, poisson_ratio=NU, needle_radius=1e-3, mesh_size=0.01,
+                                    spacing=1e-3, coupling="mortar")
+    with pytest.raises(ValueError, match="spacing"):
+        coupling.subgrid_compliance(kinds, shear_modulus=G, poisson_ratio=NU, needle_radius=1e-3, mesh_size=0.01,
+                                    spacing=0.0)
+    with pytest.raises(ValueError, match="needle_radius"):
+        coupling.subgrid_compliance(kinds, shear_modulus=G, poisson_ratio=NU, needle_radius=-1.0, mesh_size=0.01,
+                                    spacing=1e-3)
+    with pytest.raises(ValueError, match="ring radius / mesh size"):
+        coupling.equivalent_radius(0.5, 1.0, "lateral")
+
+
+def test_equivalent_radius_grows_with_the_ring_and_stays_above_it():
+    radii = np.linspace(1.0, 6.0, 51)
+    for kind in ("lateral", "axial"):
+        a = coupling.equivalent_radius(radii, 1.0, kind)
+        assert np.all(np.diff(a) > 0.0)
+        assert np.all(a > radii)
+
+
+def test_ring_count_spacing_and_local_mesh_size():
+    assert coupling.ring_count(0.01, 0.0125) == 12
+    for radius in (0.001, 0.01, 0.03):
+        count = coupling.ring_count(radius, 0.01)
+        assert count % 4 == 0 and 2 * math.pi * radius / count <= 0.005 + 1e-15
+    mesh = box_mesh(size=(0.1, 0.1, 0.1), cells=(8, 8, 8))
+    h = coupling.local_mesh_size(mesh.rest_positions, mesh.tets, np.arange(mesh.tet_count))
+    assert np.allclose(h, 0.0125)
+
+
+# ----------------------------------------------------------------------------------------------- ring rows
+def _needle_in_box(cells=4, angle_deg=30.0, spacing_ratio=0.1, depth=0.06):
+    mesh = box_mesh(size=(0.1, 0.1, 0.1), cells=(cells, cells, cells), origin=(-0.05, -0.05, 0.0))
+    rest = np.asarray(mesh.rest_positions)
+    fixed = np.flatnonzero(rest[:, 2] < 1e-9)
+    model = TissueModel(rest, np.asarray(mesh.tets), TISSUE, fixed_nodes=fixed)
+    angle = math.radians(angle_deg)
+    direction = np.array([math.sin(angle), 0.0, -math.cos(angle)])
+    entry = np.array([-0.011, 0.0031, 0.1])
+    h = 0.1 / cells
+    spacing = spacing_ratio * h
+    count = int(depth / spacing)
+    centres = entry + np.outer((np.arange(count) + 0.5) * spacing, direction)
+    needle = RigidNeedleGeometry(base=entry - 0.2 * direction, direction=direction, length=0.2 + depth)
+    return model, needle, centres, spacing, h
+
+
+def _geometry(model, needle, positions=None):
+    rest = model.rest_positions if positions is None else positions
+    return StepGeometry(mesh_tets=model.tets, tissue_previous=rest, tissue_free=rest, needle_previous=needle,
+                        needle_free=needle)
+
+
+def _path(model, centres):
+    tets, bary = TetLocator(model.rest_positions, model.tets).locate(centres)
+    return InsertionPath(tets, bary, np.zeros(len(tets), dtype=np.int64))
+
+
+def _ring_rows(model, needle, centres, spacing, needle_radius, friction=0.0, preload=0.0):
+    path = _path(model, centres)
+    rings = coupling.RingLayout.around(path, rest_positions=model.rest_positions, mesh_tets=model.tets,
+                                       locator=TetLocator(model.rest_positions, model.tets),
+                                       tangents=needle.tangents(np.zeros(len(centres))), needle_radius=needle_radius)
+    block = coupling.ring_insertion_block(path, _geometry(model, needle), rings, friction_coefficient=friction,
+                                          normal_preload=preload)
+    return block, rings.mesh_size
+
+
+def test_ring_rows_measure_the_mean_ring_displacement_and_reduce_to_the_paper_rows():
+    model, needle, centres, spacing, h = _needle_in_box()
+    block, _ = _ring_rows(model, needle, centres, spacing, needle_radius=0.2 * h)
+    # A uniform translation t of the tissue: every row reads −nᵀt (tissue side of δ = nᵀ(x_needle − x_tissue)).
+    t = np.array([1e-3, -2e-3, 0.5e-3])
+    uniform = np.tile(t, model.node_count)
+    assert np.allclose(block.tissue_jacobian @ uniform, -block.directions @ t, atol=1e-15)
+    # Centreline points on the needle: the free gap is zero up to the ring's mean offset (a few ε).
+    assert np.abs(block.free_gap).max() < 1e-12
+    # One ring point at the centre gives exactly the paper's rows.
+    path = _path(model, centres)
+    single = coupling.RingLayout(path.tets[:, None], path.barycentric[:, None, :], np.full(len(centres), h),
+                                 np.full(len(centres), h))
+    ring = coupling.ring_insertion_block(path, _geometry(model, needle), single, friction_coefficient=0.1)
+    paper = insertion_block(path, _geometry(model, needle), friction_coefficient=0.1)
+    assert abs(ring.tissue_jacobian - paper.tissue_jacobian).max() < 1e-15
+    assert np.allclose(ring.free_gap, paper.free_gap, atol=1e-15)
+    assert np.array_equal(ring.shaft_pairs, paper.shaft_pairs)
+    assert np.array_equal(ring.kind, paper.kind)
+
+
+def _lateral_push(coupling_name, *, cells=4, angle_deg=30.0, spacing_ratio=0.1, needle_radius=0.5e-3):
+    """A rigid needle pushed 1 mm sideways against the tissue it is coupled to (bilateral lateral rows only)."""
+    model, needle, centres, spacing, h = _needle_in_box(cells, angle_deg, spacing_ratio)
+    if coupling_name == "ring":
+        block, sizes = _ring_rows(model, needle, centres, spacing, needle_radius)
+    else:
+        path = _path(model, centres)
+        block = insertion_block(path, _geometry(model, needle), friction_coefficient=0.0)
+        sizes = coupling.local_mesh_size(model.rest_positions, model.tets, path.tets)
+    system = model.step_system(np.broadcast_to(np.eye(3), (model.tet_count, 3, 3)), dt=1e3)
+    compliance, _ = system.compliance(block.tissue_jacobian)
+    extra = coupling.subgrid_compliance(np.zeros(block.row_count, dtype=int), shear_modulus=G, poisson_ratio=NU,
+                                        needle_radius=needle_radius, mesh_size=np.repeat(sizes, 2), spacing=spacing,
+                                        coupling=coupling_name)
+    push = np.array([0.0, 1e-3, 0.0])  # along y, normal to the needle (which lies in the x–z plane)
+    free_gap = block.directions @ push
+    problem = ConstraintProblem(compliance=compliance + np.diag(extra), free_gap=free_gap,
+                                bilateral=np.arange(block.row_count))
+    return problem
+
+
+def _inflation(multipliers):
+    pairs = multipliers.reshape(-1, 2)
+    return float(np.linalg.norm(pairs, axis=1).sum() / np.linalg.norm(pairs.sum(axis=0)))
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, 30.0])
+def test_ring_coupling_has_unique_multipliers_and_no_inflation(angle_deg):
+    problem = _lateral_push("ring", angle_deg=angle_deg)
+    eigenvalues = np.linalg.eigvalsh(0.5 * (problem.compliance + problem.compliance.T))
+    assert eigenvalues.min() > 0.0  # positive definite: λ unique
+    exact, _ = solve_exact(problem, tolerance=1e-10)
+    gauss_seidel, report = solve_gauss_seidel(problem, tolerance=1e-10, max_iterations=20000)
+    assert np.linalg.norm(gauss_seidel - exact) <= 1e-6 * np.linalg.norm(exact)
+    # A uniform lateral load: every point's lateral force points the same way, Σ‖λ‖ / ‖Σλ‖ = 1 (to 1 %).
+    assert _inflation(exact) < 1.01
+
+
+def test_paper_coupling_inflates_the_lateral_forces():
+    problem = _lateral_push("paper")
+    eigenvalues = np.linalg.eigvalsh(0.5 * (problem.compliance + problem.compliance.T))
+    assert eigenvalues.min() < 1e-12 * eigenvalues.max()  # singular: λ not unique
+    gauss_seidel, _ = solve_gauss_seidel(problem, tolerance=1e-10, max_iterations=20000)
+    assert _inflation(gauss_seidel) > 2.0
+
+
+# ---------------------------------------------------------------------------------------- grip (item 3)
+def test_interference_pressure_is_lame_with_a_clamped_outer_surface():
+    r, delta, outer = 0.004, 1e-4, 0.05
+    lam = 2 * G * NU / (1 - 2 * NU)
+    # u_r = A ρ + B/ρ: u_r(r) = δ, u_r(R) = 0, solved here as a 2 × 2 system; p = −σ_rr(r).
+    a_coef, b_coef = np.linalg.solve([[r, 1 / r], [outer, 1 / outer]], [delta, 0.0])
+    sigma_rr = 2 * (lam + G) * a_coef - 2 * G * b_coef / r**2
+    p = coupling.interference_pressure(shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta,
+                                       outer_radius=outer)
+    assert p == pytest.approx(-sigma_rr, rel=1e-12)
+    infinite = coupling.interference_pressure(shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta)
+    assert infinite == pytest.approx(2 * G * delta / r, rel=1e-12)
+    assert coupling.grip_preload(shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta,
+                                 spacing=5e-4) == pytest.approx(2 * math.pi * r * infinite * 5e-4)
+    with pytest.raises(ValueError, match="interference"):
+        coupling.interference_pressure(shear_modulus=G, poisson_ratio=NU, radius=r, interference=r)
+
+
+@pytest.mark.parametrize("solver", [solve_gauss_seidel, solve_exact], ids=["gauss_seidel", "exact"])
+def test_pullout_force_grows_at_mu_2pi_r_p_per_metre_and_does_not_lock(solver):
+    # Ring rows with the grip preload, the needle pulled 5 mm along its axis: every point slips at its bound,
+    # μ 2π r p₀ d_i, so F / L = μ 2π r p₀ whatever the mesh (no lateral load, no inflation).
+    r, delta, mu = 0.8e-3, 0.05e-3, 0.2
+    model, needle, centres, spacing, h = _needle_in_box(cells=4, angle_deg=30.0, spacing_ratio=0.25)
+    preload = coupling.grip_preload(shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta, spacing=spacing)
+    block, sizes = _ring_rows(model, needle, centres, spacing, r, friction=mu, preload=preload)
+    system = model.step_system(np.broadcast_to(np.eye(3), (model.tet_count, 3, 3)), dt=1e3)
+    compliance, _ = system.compliance(block.tissue_jacobian)
+    kinds = np.tile([coupling.LATERAL, coupling.LATERAL, coupling.AXIAL], len(centres))
+    extra = coupling.subgrid_compliance(kinds, shear_modulus=G, poisson_ratio=NU, needle_radius=r,
+                                        mesh_size=np.repeat(sizes, 3), spacing=spacing)
+    free_gap = block.free_gap.copy()
+    free_gap[block.shaft_rows] = -5e-3  # pulled back along −t by 5 mm
+    bilateral = np.setdiff1d(np.arange(block.row_count), block.shaft_rows)
+    problem = ConstraintProblem(compliance=compliance + np.diag(extra), free_gap=free_gap, bilateral=bilateral,
+                                shaft_friction=block.shaft_rows, shaft_pairs=block.shaft_pairs,
+                                shaft_friction_coefficient=block.shaft_friction_coefficient,
+                                shaft_normal_preload=block.shaft_normal_preload)
+    multipliers, _ = solver(problem, tolerance=1e-10)
+    length = len(centres) * spacing
+    pressure = coupling.interference_pressure(shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta)
+    lateral = np.linalg.norm(multipliers[block.shaft_pairs], axis=1)
+    axial = np.abs(multipliers[block.shaft_rows])
+    # Every point slips at its bound μ (‖λ_lateral‖ + 2π r p₀ d_i): no lock, the needle moves (δ_s ≠ 0).
+    assert np.allclose(axial, mu * (lateral + preload), rtol=1e-6)
+    gaps = problem.gap(multipliers)[block.shaft_rows]
+    assert np.all(np.abs(gaps) > 1e-4)
+    # The force per metre: the grip's μ 2π r p₀ plus μ times the lateral reactions of the dragged tissue.
+    assert axial.sum() / length == pytest.approx(mu * (2 * math.pi * r * pressure + lateral.sum() / length), rel=1e-6)
+    assert lateral.sum() < axial.sum() / mu
+
+
+def test_static_then_dynamic_friction_coefficients():
+    stuck = coupling.stuck_points(np.array([0.5, 1.0, -1.0]), np.array([1.0, 1.0, 1.0]))
+    assert stuck.tolist() == [True, False, False]
+    assert coupling.shaft_friction_coefficients(stuck, static=0.3, dynamic=0.2).tolist() == [0.3, 0.2, 0.2]
+    with pytest.raises(ValueError, match="static"):
+        coupling.shaft_friction_coefficients(stuck, static=0.1, dynamic=0.2)
+
+
+# ------------------------------------------------------------------------------- tip cutting force (item 4)
+def test_tip_cutting_row_sticks_below_and_cuts_at_f_cut():
+    model, needle, centres, spacing, h = _needle_in_box(cells=4, angle_deg=0.0)
+    rest = model.rest_positions
+    tip = centres[-1]
+    tet, bary = TetLocator(rest, model.tets).locate(tip[None])
+    moved = RigidNeedleGeometry(base=needle.base, direction=needle.direction, length=needle.length)
+    system = model.step_system(np.broadcast_to(np.eye(3), (model.tet_count, 3, 3)), dt=1e3)
+    f_cut = 0.5
+    for advance, expected_state in ((1e-6, "stick"), (1e-3, "cut"), (-1e-3, "free")):
+        ahead = RigidNeedleGeometry(base=moved.base + advance * moved.direction, direction=moved.direction,
+                                    length=moved.length)
+        geometry = StepGeometry(mesh_tets=model.tets, tissue_previous=rest, tissue_free=rest, needle_previous=moved,
+                                needle_free=ahead)
+        block, lower, upper = coupling.tip_cutting_block(geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0],
+                                                         cutting_force=f_cut)
+        compliance, _ = system.compliance(block.tissue_jacobian)
+        assert block.free_gap[0] == pytest.approx(-advance)
+        problem = ConstraintProblem(compliance=compliance, free_gap=block.free_gap, box_rows=np.array([0]),
+                                    box_lower=lower, box_upper=upper)
+        for solver in (solve_gauss_seidel, solve_exact):
+            force = solver(problem, tolerance=1e-12)[0][0]
+            if expected_state == "stick":
+                assert 0.0 < force < f_cut
+                assert force == pytest.approx(advance / compliance[0, 0], rel=1e-6)
+            elif expected_state == "cut":
+                assert force == pytest.approx(f_cut, rel=1e-9)
+            else:
+                assert force == pytest.approx(0.0, abs=1e-12)
+
+
+# --------------------------------------------------------------------------- puncture within the step (5)
+@pytest.mark.parametrize("dt", [1e-3, 1e-2, 5e-2])
+@pytest.mark.parametrize("speed", [1e-3, 1e-2, 5e-2])
+def test_puncture_force_is_f_p_for_any_dt_and_speed(dt, speed):
+    # The tip pushes a surface node of a clamped-bottom box; the penetration row's force is capped at f_p.
+    # The capped row punctures at f_p within 1 %; the plain unilateral row, detected after the step, overshoots by
+    # up to speed·dt / W.
+    mesh = box_mesh(size=(0.1, 0.1, 0.1), cells=(4, 4, 4), origin=(-0.05, -0.05, 0.0))
+    rest = np.asarray(mesh.rest_positions)
+    model = TissueModel(rest, np.asarray(mesh.tets), TISSUE, fixed_nodes=np.flatnonzero(rest[:, 2] < 1e-9))
+    node = int(np.argmin(np.linalg.norm(rest - [0.0, 0.0, 0.1], axis=1)))
+    rows = np.zeros((1, model.dof_count))
+    rows[0, 3 * node + 2] = -1.0  # δ = n·(x_tip − x_surface), n = +z
+    system = model.step_system(np.broadcast_to(np.eye(3), (model.tet_count, 3, 3)), dt=1e3)
+    w = system.compliance(rows)[0][0, 0]
+    f_p = 0.8
+    lower, upper = coupling.puncture_bounds(f_p)
+    capped_force = unilateral_force = None
+    for step in range(1, 100000):
+        free_gap = np.array([-speed * dt * step])  # the tip's position below the undeformed surface
+        capped = ConstraintProblem(compliance=np.array([[w]]), free_gap=free_gap, box_rows=np.array([0]),
+                                   box_lower=lower, box_upper=upper)
+        force = solve_gauss_seidel(capped, tolerance=1e-12)[0][0]
+        gap = w * force + free_gap[0]
+        if capped_force is None and coupling.puncture_detected(force, gap, f_p):
+            capped_force = force
+        plain = ConstraintProblem(compliance=np.array([[w]]), free_gap=free_gap, unilateral=np.array([0]))
+        plain_force = solve_gauss_seidel(plain, tolerance=1e-12)[0][0]
+        if unilateral_force is None and plain_force >= f_p:
+            unilateral_force = plain_force
+        if capped_force is not None and unilateral_force is not None:
+            break
+    assert capped_force == pytest.approx(f_p, rel=1e-2)
+    assert unilateral_force - f_p <= speed * dt / w + 1e-12
