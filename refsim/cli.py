@@ -74,7 +74,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         print(f"refsim run: error: {summary.stop_reason}; {summary.steps_written} completed steps kept in "
               f"{output} (complete = false)", file=sys.stderr)
     print(f"scene {scene.name} ({scene.source}) -> {output}")
-    _write_sidecar(output)
+    if summary.status != "write_failed":  # the sidecar writes into the results file: not on a full disk
+        _write_sidecar(output)
     print(summary.format())
     print(summary.format_table())
     if figure is not None and summary.complete:
@@ -94,7 +95,7 @@ def _write_sidecar(output: Path) -> None:
 
     try:
         print(f"ParaView: {write_xdmf(output)}")
-    except (OSError, ValueError) as error:
+    except (OSError, ValueError, RuntimeError) as error:  # h5py reports a failed flush as RuntimeError
         print(f"refsim: no XDMF sidecar for {output}: {error}", file=sys.stderr)
 
 

@@ -121,10 +121,15 @@ def _truncation_hint(path: Path) -> str:
         return "the file is truncated, malformed or not in this format "
     try:
         with path.open("rb") as stream:
+            head = stream.read(256).lstrip()
             stream.seek(max(0, path.stat().st_size - 4096))
             tail = stream.read()
     except OSError:
         return ""
+    if marker == b"$End" and not head.startswith(b"$"):
+        return "it is not a Gmsh file (no $MeshFormat header) "
+    if marker == b"</VTKFile>" and not head.startswith(b"<"):
+        return "it is not an XML VTK file "
     if marker == b"$End":  # Gmsh: the last section must be closed, e.g. $EndElements
         closed = tail.rstrip().splitlines()[-1:] if tail.strip() else []
         if not closed or not closed[0].strip().startswith(b"$End"):

@@ -93,6 +93,12 @@ def fixed_nodes(spec: MeshSpec, rest_positions: np.ndarray) -> np.ndarray:
             f"mesh.fixed_nodes = {spec.fixed_nodes!r} select no node "
             f"(mesh bounding box {lower.tolist()} .. {upper.tolist()} m)"
         )
+    if nodes.size == len(rest_positions):
+        raise ValueError(
+            f"mesh.fixed_faces = {list(spec.fixed_faces)!r}, mesh.fixed_box = {spec.fixed_box!r}, "
+            f"mesh.face_tolerance = {spec.face_tolerance!r} m fix every node of the mesh: nothing could move "
+            f"(mesh bounding box {lower.tolist()} .. {upper.tolist()} m)"
+        )
     return nodes
 
 
@@ -282,7 +288,8 @@ def check_models(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
     if 2.0 * needle.radius >= smallest:
         raise SceneError(
             f"{where}: needle.radius = {needle.radius!r} m: the needle (diameter {2 * needle.radius:.3g} m) is not "
-            f"thinner than the tissue (smallest extent {smallest:.3g} m); the radius enters the contact geometry"
+            f"thinner than the tissue (smallest extent of the mesh {smallest:.3g} m, see mesh.size or mesh.scale); "
+            "the radius enters the contact geometry"
         )
     base, direction = trajectory.pose(0.0)
     step = min(scene.insertion.spacing, smallest / 50.0)

@@ -511,7 +511,7 @@ def check_consistency(scene: Scene) -> None:
                 "time", "dt", related=(("insertion", "contact_distance"), ("trajectory", "times"),
                                        ("trajectory", "base_positions"), ("trajectory", "directions")), message=
                 f"dt = {scene.time.dt!r} s: the needle tip moves up to {travel:.3g} m in one step (speed {speed:.3g} "
-                f"m/s), more than insertion.contact_distance = {contact!r} m, so it can cross the contact zone "
+                f"m/s along trajectory.times and base_positions), more than insertion.contact_distance = {contact!r} m, so it can cross the contact zone "
                 f"without its force being measured; use dt <= {contact / speed:.3g} s",
             )
         if travel > spacing:

@@ -104,3 +104,25 @@ def test_parent_of_the_output_is_a_file(tmp_path, capsys):
     code = main(["run", "cube", "-o", str(tmp_path / "afile" / "out.h5"), "-q"])
     error = capsys.readouterr().err
     assert code == 2 and "afile is a file, not a folder" in error and "Errno" not in error
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "geteuid") or __import__("os").geteuid() != 0,
+                    reason="needs root to mount a tmpfs")
+def test_full_disk_exits_3_with_a_readable_file(tmp_path, capsys):
+    """A 1 MiB tmpfs fills up during the run: exit 3, a one-line message, every written step readable (and no
+    XDMF sidecar written into the file on the full disk)."""
+    from refsim.io import read_results
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(disk)]).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        code = main(["run", "cube", "-o", str(disk / "out.h5"), "-q", "--set", "mesh.cells=[4, 4, 4]",
+                     "--set", "time.duration=2.2", "--set", "output.tissue_every=1"])
+        error = capsys.readouterr().err
+        assert code == 3 and "no space left" in error and "internal error" not in error, error
+        results = read_results(disk / "out.h5")
+        assert 0 < results.step_count < 220 and not results.complete and "space" in results.stop_reason
+    finally:
+        subprocess.run(["umount", str(disk)])
