@@ -34,7 +34,16 @@ import numpy as np
 
 from refsim.constraints.friction import friction_rows
 from refsim.constraints.needle_geometry import needle_rows
-from refsim.constraints.rows import BILATERAL, FRICTION, INSERTION, RowBlock, orthonormal_basis, point_rows
+from refsim.constraints.rows import (
+    BILATERAL,
+    FRICTION,
+    INSERTION,
+    SHAFT_CONTACT,
+    UNILATERAL,
+    RowBlock,
+    orthonormal_basis,
+    point_rows,
+)
 from refsim.constraints.step_geometry import StepGeometry
 
 __all__ = [
@@ -60,6 +69,7 @@ __all__ = [
     "tip_cutting_block",
     "puncture_bounds",
     "puncture_detected",
+    "shaft_contact_block",
 ]
 
 LATERAL, AXIAL = 0, 1
@@ -508,3 +518,66 @@ def puncture_detected(multiplier: float, gap: float, puncture_force: float, *,
                       relative_tolerance: float = 1e-3) -> bool:
     """Whether a capped penetration row punctured: λ at its bound f_p (within the tolerance) and δ < 0."""
     return bool(multiplier >= (1.0 - relative_tolerance) * puncture_force and gap < 0.0)
+
+
+# ------------------------------------------------------------------------ shaft contact before puncture (6)
+def shaft_contact_block(
+    geometry: StepGeometry,
+    projector,
+    faces: np.ndarray,
+    *,
+    spacing: float,
+    contact_distance: float,
+    tip_clearance: float,
+) -> RowBlock | None:
+    """Unilateral rows keeping the needle's centreline out of the tissue before puncture (issue 9, item 6).
+
+    The shaft is sampled every ``spacing`` from the base to ``tip_clearance`` before the tip (the tip has its own
+    contact); each sample closer to the surface than ``contact_distance`` (or under it) gets one frictionless
+    unilateral row against its closest surface point, along the direction from that point to the sample (the
+    face's outward normal for a sample on or under the surface): δ = nᵀ(x_needle(s) − x_surface) ≥ 0.
+
+    Parameters
+    ----------
+    geometry : The step's geometry.
+    projector : A :class:`refsim.geometry.SurfaceProjector` on the free tissue positions.
+    faces : Surface triangles, shape (f, 3).
+    spacing, contact_distance, tip_clearance : [m], > 0.
+
+    Returns
+    -------
+    The rows (source SHAFT_CONTACT), or None when no sample is near the surface.
+    """
+    for name, value in (("spacing", spacing), ("contact_distance", contact_distance), ("tip_clearance", tip_clearance)):
+        if not (math.isfinite(value) and value > 0.0):
+            raise ValueError(f"{name} = {value!r} m; valid range (0, inf)")
+    needle = geometry.needle_free
+    end = needle.length - tip_clearance
+    if end <= 0.0:
+        return None
+    arc_lengths = np.arange(0.5 * spacing, end, spacing)
+    samples = needle.points(arc_lengths)
+    found = projector.closest(samples)
+    offsets = samples - found.closest
+    distance = np.linalg.norm(offsets, axis=1)
+    outside = np.einsum("ij,ij->i", offsets, found.normal) > 0.0
+    near = ~outside | (distance < contact_distance)
+    if not np.any(near):
+        return None
+    arc_lengths, offsets, distance, outside = arc_lengths[near], offsets[near], distance[near], outside[near]
+    face_index, barycentric = found.face_index[near], found.barycentric[near]
+    points = found.closest[near]
+    use_offset = outside & (distance > 1e-9)
+    normals = np.where(use_offset[:, None], offsets / np.maximum(distance, 1e-300)[:, None], found.normal[near])
+    nodes = np.asarray(faces)[face_index]
+    gaps = np.einsum("ij,ij->i", normals, offsets)
+    count = arc_lengths.size
+    return RowBlock(
+        tissue_jacobian=point_rows(nodes, barycentric, normals, geometry.tissue_dof_count),
+        needle_jacobian=needle_rows(needle, arc_lengths, normals),
+        free_gap=gaps,
+        kind=np.full(count, UNILATERAL, dtype=np.int8),
+        source=np.full(count, SHAFT_CONTACT, dtype=np.int8),
+        points=points,
+        directions=normals,
+    )

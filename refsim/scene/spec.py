@@ -183,6 +183,11 @@ class InsertionSpec(_Validated):
         "carry the sub-grid compliance of the annulus, docs/coupling.md) or 'paper' (rows on the centreline)",
         choices=("ring", "paper"),
     )
+    shaft_contact: bool = spec(
+        True,
+        doc="before puncture, keep the whole needle's centreline out of the tissue (unilateral rows on shaft samples "
+        "near the surface), not only the tip",
+    )
     interference: float = spec(
         0.0,
         unit="m",
@@ -190,6 +195,10 @@ class InsertionSpec(_Validated):
         "added to each point's shaft Coulomb bound, with shaft_normal_force d_i",
         low=0.0,
     )
+
+    def validate(self) -> None:
+        if not isinstance(self.shaft_contact, bool):
+            raise ValueError(f"shaft_contact = {self.shaft_contact!r}: expected true or false")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -22,7 +22,14 @@ from refsim.constraints import (
     insertion_block,
     penetration_block,
 )
-from refsim.constraints.coupling import RingLayout, grip_preload, insertion_compliance, ring_insertion_block
+from refsim.constraints.coupling import (
+    RingLayout,
+    grip_preload,
+    insertion_compliance,
+    local_mesh_size,
+    ring_insertion_block,
+    shaft_contact_block,
+)
 from refsim.constraints.cut import cut_block
 from refsim.constraints.insertion import InsertionPath
 from refsim.geometry import SurfaceProjector, TetLocator
@@ -84,6 +91,11 @@ class Detector:
         self.rest_positions = None if rest_positions is None else np.asarray(rest_positions, dtype=float)
         self.rest_locator = TetLocator(self.rest_positions, np.asarray(tets)) if self.ring else None
         self._ring_cache = None  # (tets and creation steps (p, 2), tangents (p, 3), RingLayout) of the last step
+        # Shaft samples before puncture every half mean tet size (the surface cannot bend between them).
+        self.shaft_spacing = 0.01
+        if rest_positions is not None and tets is not None:
+            sizes = local_mesh_size(rest_positions, tets, np.arange(len(tets)))
+            self.shaft_spacing = 0.5 * float(sizes.mean())
 
     def _rings(self, path: InsertionPath, tangents: np.ndarray, mesh_tets: np.ndarray) -> RingLayout:
         """The points' rings; a point keeps last step's ring while its tangent turned less than 1e-3 rad."""
@@ -143,6 +155,12 @@ class Detector:
                 blocks.append(
                     penetration_block(contact, geometry, friction_coefficient=spec.surface_friction_coefficient)
                 )
+            if spec.shaft_contact:
+                shaft = shaft_contact_block(geometry, projector, self.faces, spacing=self.shaft_spacing,
+                                            contact_distance=spec.contact_distance,
+                                            tip_clearance=2.0 * spec.contact_distance)
+                if shaft is not None:
+                    blocks.append(shaft)
         elif state.path.point_count:
             blocks.append(self.insertion_rows(state.path, geometry))
         if state.phase == Phase.CUTTING:

@@ -306,3 +306,47 @@ def test_puncture_force_is_f_p_for_any_dt_and_speed(dt, speed):
             break
     assert capped_force == pytest.approx(f_p, rel=1e-2)
     assert unilateral_force - f_p <= speed * dt / w + 1e-12
+
+
+# ----------------------------------------------------------------------- shaft contact before puncture (6)
+def _lowered_shaft(cube_scene, shaft_contact):
+    """A needle 80° from vertical, tip beyond the cube's +x face, lowered 20 mm onto the top face's edge."""
+    from refsim.simulation import Simulation
+
+    tilt = math.radians(80.0)
+    direction = np.array([math.sin(tilt), 0.0, -math.cos(tilt)])
+    tip = np.array([0.07, 0.0031, 0.105])
+    base = tip - 0.32 * direction
+    lowered = base - np.array([0.0, 0.0, 0.020])
+
+    def vector(v):
+        return "[" + ", ".join(f"{x:.9f}" for x in v) + "]"
+
+    d = vector(direction)
+    scene = cube_scene("mesh.cells=[4, 4, 4]", "time.dt=0.02", "time.duration=1.0", "trajectory.times=[0.0, 1.0]",
+                       f"trajectory.base_positions=[{vector(base)}, {vector(lowered)}]",
+                       f"trajectory.directions=[{d}, {d}]", f"insertion.shaft_contact={str(shaft_contact).lower()}")
+    simulation = Simulation(scene)
+    records = []
+    state = simulation.run(on_step=lambda s, r: records.append(r))
+    from refsim.geometry import SurfaceProjector
+
+    positions = state.tissue.positions
+    needle = simulation.needle.geometry(state.needle)
+    samples = needle.points(np.linspace(0.0, needle.length - 0.004, 400))
+    found = SurfaceProjector(positions, simulation.faces).closest(samples)
+    offsets = samples - found.closest
+    signed = np.where(np.einsum("ij,ij->i", offsets, found.normal) > 0.0, 1.0, -1.0) * found.distance
+    return records, signed
+
+
+def test_shaft_contact_keeps_a_tilted_needle_out_of_the_tissue(cube_scene):
+    # Without shaft rows the shaft passes ~11 mm into the cube (the tip never touches); with them the shaft presses
+    # the edge down and stays out (to the linearisation of one step and the sampling between rows), no puncture.
+    records, signed = _lowered_shaft(cube_scene, shaft_contact=False)
+    assert signed.min() < -5e-3
+    records, signed = _lowered_shaft(cube_scene, shaft_contact=True)
+    assert signed.min() > -0.5e-3
+    assert all(r.phase == "approach" for r in records)
+    assert not any(e.name == "puncture" for r in records for e in r.events)
+    assert np.linalg.norm(records[-1].needle_force) > 1.0  # the shaft carries the load (more than f_p)
