@@ -218,7 +218,9 @@ def subgrid_compliance(
     return np.where(kinds == LATERAL, lateral, axial)
 
 
-def ring_points(centres: np.ndarray, tangents: np.ndarray, radius: np.ndarray | float, count: int) -> np.ndarray:
+def ring_points(
+    centres: np.ndarray, tangents: np.ndarray, radius: np.ndarray | float, count: int
+) -> np.ndarray:
     """Points of rings around a centreline [m], shape (p, count, 3).
 
     Parameters
@@ -271,12 +273,24 @@ class RingLayout:
             out[take_first], out[~take_first] = a, b
             return out
 
-        return cls(merge(first.tets, second.tets), merge(first.barycentric, second.barycentric),
-                   merge(first.mesh_size, second.mesh_size), merge(first.radius, second.radius))
+        return cls(
+            merge(first.tets, second.tets),
+            merge(first.barycentric, second.barycentric),
+            merge(first.mesh_size, second.mesh_size),
+            merge(first.radius, second.radius),
+        )
 
     @classmethod
-    def around(cls, path, *, rest_positions: np.ndarray, mesh_tets: np.ndarray, locator, tangents: np.ndarray,
-               needle_radius: float) -> RingLayout:
+    def around(
+        cls,
+        path,
+        *,
+        rest_positions: np.ndarray,
+        mesh_tets: np.ndarray,
+        locator,
+        tangents: np.ndarray,
+        needle_radius: float,
+    ) -> RingLayout:
         """Rings around the rest positions of the path's points, normal to ``tangents`` (p, 3).
 
         ``locator`` locates points in the *rest* mesh (a :class:`refsim.geometry.TetLocator` on the rest
@@ -291,7 +305,12 @@ class RingLayout:
         # Points within 1e-6 h outside count as inside: a ring lying in the surface (a needle normal to it) must
         # not lose its points to round-off of the tangent.
         tets, barycentric = locator.locate(points.reshape(-1, 3), tolerance=SURFACE_TOLERANCE)
-        return cls(tets.reshape(path.point_count, count), barycentric.reshape(path.point_count, count, 4), sizes, radius)
+        return cls(
+            tets.reshape(path.point_count, count),
+            barycentric.reshape(path.point_count, count, 4),
+            sizes,
+            radius,
+        )
 
 
 def ring_insertion_block(
@@ -334,7 +353,9 @@ def ring_insertion_block(
     use_centre = counts == 0
     all_tets = np.concatenate([path.tets[:, None], np.where(inside, ring_tets, 0)], axis=1)  # (p, q + 1)
     all_bary = np.concatenate([path.barycentric[:, None, :], np.nan_to_num(rings.barycentric)], axis=1)
-    share = np.concatenate([use_centre[:, None].astype(float), inside / np.maximum(counts, 1)[:, None]], axis=1)
+    share = np.concatenate(
+        [use_centre[:, None].astype(float), inside / np.maximum(counts, 1)[:, None]], axis=1
+    )
     nodes = geometry.mesh_tets[all_tets].reshape(point_count, -1)  # (p, 4 (q + 1))
     weights = (share[:, :, None] * all_bary).reshape(point_count, -1)
     tissue_point_previous, tissue_point_free = geometry.tissue_points(nodes, weights)
@@ -353,8 +374,9 @@ def ring_insertion_block(
     gaps[:, 1] = np.einsum("ij,ij->i", second, offset)
     kinds = np.full((point_count, per_point), BILATERAL, dtype=np.int8)
     if with_friction:
-        friction = friction_rows(geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=arc_lengths,
-                                 tangents=tangents)
+        friction = friction_rows(
+            geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=arc_lengths, tangents=tangents
+        )
         directions[:, 2] = tangents
         gaps[:, 2] = friction.free_gap
         kinds[:, 2] = FRICTION
@@ -378,8 +400,16 @@ def ring_insertion_block(
     )
 
 
-def insertion_compliance(rows: RowBlock, *, shear_modulus: float, poisson_ratio: float, needle_radius: float,
-                         mesh_size: np.ndarray, spacing: float, coupling: str = "ring") -> np.ndarray:
+def insertion_compliance(
+    rows: RowBlock,
+    *,
+    shear_modulus: float,
+    poisson_ratio: float,
+    needle_radius: float,
+    mesh_size: np.ndarray,
+    spacing: float,
+    coupling: str = "ring",
+) -> np.ndarray:
     """The sub-grid compliance of an insertion block's rows [m/N], shape (row_count,).
 
     Bilateral rows are lateral, friction rows axial; ``mesh_size`` (p,) is each point's h
@@ -387,13 +417,23 @@ def insertion_compliance(rows: RowBlock, *, shear_modulus: float, poisson_ratio:
     """
     per_point = rows.row_count // max(1, np.asarray(mesh_size).size)
     kinds = np.where(rows.kind == FRICTION, AXIAL, LATERAL)
-    return subgrid_compliance(kinds, shear_modulus=shear_modulus, poisson_ratio=poisson_ratio,
-                              needle_radius=needle_radius, mesh_size=np.repeat(mesh_size, per_point),
-                              spacing=spacing, coupling=coupling)
+    return subgrid_compliance(
+        kinds,
+        shear_modulus=shear_modulus,
+        poisson_ratio=poisson_ratio,
+        needle_radius=needle_radius,
+        mesh_size=np.repeat(mesh_size, per_point),
+        spacing=spacing,
+        coupling=coupling,
+    )
 
 
 def interference_pressure(
-    *, shear_modulus: float, poisson_ratio: float, radius: float, interference: float,
+    *,
+    shear_modulus: float,
+    poisson_ratio: float,
+    radius: float,
+    interference: float,
     outer_radius: float = math.inf,
 ) -> float:
     """Contact pressure p [Pa] of an interference fit (Lamé, plane strain, outer surface clamped).
@@ -423,8 +463,13 @@ def interference_pressure(
 
 
 def grip_preload(
-    *, shear_modulus: float, poisson_ratio: float, radius: float, interference: float,
-    spacing: np.ndarray | float, outer_radius: float = math.inf,
+    *,
+    shear_modulus: float,
+    poisson_ratio: float,
+    radius: float,
+    interference: float,
+    spacing: np.ndarray | float,
+    outer_radius: float = math.inf,
 ) -> np.ndarray:
     """Normal force of the grip per insertion point [N]: 2π r p · d_i (p from :func:`interference_pressure`).
 
@@ -435,7 +480,10 @@ def grip_preload(
     if np.any(~(spacing > 0.0)) or np.any(~np.isfinite(spacing)):
         raise ValueError(f"spacing d_i = {spacing!r} m; valid range (0, inf)")
     pressure = interference_pressure(
-        shear_modulus=shear_modulus, poisson_ratio=poisson_ratio, radius=radius, interference=interference,
+        shear_modulus=shear_modulus,
+        poisson_ratio=poisson_ratio,
+        radius=radius,
+        interference=interference,
         outer_radius=outer_radius,
     )
     return 2.0 * math.pi * radius * pressure * spacing
@@ -452,11 +500,15 @@ def shaft_friction_coefficients(stuck: np.ndarray, *, static: float, dynamic: fl
     static, dynamic : μ_s ≥ μ_d ≥ 0.
     """
     if not (math.isfinite(static) and math.isfinite(dynamic) and static >= dynamic >= 0.0):
-        raise ValueError(f"friction coefficients static = {static!r}, dynamic = {dynamic!r}; valid: static >= dynamic >= 0")
+        raise ValueError(
+            f"friction coefficients static = {static!r}, dynamic = {dynamic!r}; valid: static >= dynamic >= 0"
+        )
     return np.where(np.asarray(stuck, dtype=bool), static, dynamic)
 
 
-def stuck_points(multipliers: np.ndarray, bounds: np.ndarray, *, relative_tolerance: float = 1e-6) -> np.ndarray:
+def stuck_points(
+    multipliers: np.ndarray, bounds: np.ndarray, *, relative_tolerance: float = 1e-6
+) -> np.ndarray:
     """Which shaft rows are inside their bound (stick), bool shape (p,): |λ_s| < (1 − tol) · bound."""
     multipliers = np.abs(np.asarray(multipliers, dtype=float))
     bounds = np.asarray(bounds, dtype=float)
@@ -489,7 +541,9 @@ def tip_cutting_block(
     direction = -geometry.needle_free.tangents(tip_s)
     nodes = geometry.mesh_tets[[tip_tet]]
     weights = np.asarray(tip_barycentric, dtype=float).reshape(1, 4)
-    rows = friction_rows(geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=tip_s, tangents=direction)
+    rows = friction_rows(
+        geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=tip_s, tangents=direction
+    )
     _, tissue_now = geometry.tissue_points(nodes, weights)
     block = RowBlock(
         tissue_jacobian=rows.tissue_jacobian,
@@ -514,8 +568,9 @@ def puncture_bounds(puncture_force: float, count: int = 1) -> tuple[np.ndarray, 
     return np.zeros(count), np.full(count, float(puncture_force))
 
 
-def puncture_detected(multiplier: float, gap: float, puncture_force: float, *,
-                      relative_tolerance: float = 1e-3) -> bool:
+def puncture_detected(
+    multiplier: float, gap: float, puncture_force: float, *, relative_tolerance: float = 1e-3
+) -> bool:
     """Whether a capped penetration row punctured: λ at its bound f_p (within the tolerance) and δ < 0."""
     return bool(multiplier >= (1.0 - relative_tolerance) * puncture_force and gap < 0.0)
 
@@ -548,7 +603,11 @@ def shaft_contact_block(
     -------
     The rows (source SHAFT_CONTACT), or None when no sample is near the surface.
     """
-    for name, value in (("spacing", spacing), ("contact_distance", contact_distance), ("tip_clearance", tip_clearance)):
+    for name, value in (
+        ("spacing", spacing),
+        ("contact_distance", contact_distance),
+        ("tip_clearance", tip_clearance),
+    ):
         if not (math.isfinite(value) and value > 0.0):
             raise ValueError(f"{name} = {value!r} m; valid range (0, inf)")
     needle = geometry.needle_free
@@ -568,7 +627,9 @@ def shaft_contact_block(
     face_index, barycentric = found.face_index[near], found.barycentric[near]
     points = found.closest[near]
     use_offset = outside & (distance > 1e-9)
-    normals = np.where(use_offset[:, None], offsets / np.maximum(distance, 1e-300)[:, None], found.normal[near])
+    normals = np.where(
+        use_offset[:, None], offsets / np.maximum(distance, 1e-300)[:, None], found.normal[near]
+    )
     nodes = np.asarray(faces)[face_index]
     gaps = np.einsum("ij,ij->i", normals, offsets)
     count = arc_lengths.size
