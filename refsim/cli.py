@@ -1,7 +1,9 @@
-"""The `refsim` command line: run, verify, bench, render, plot.
+"""The `refsim` command line: run, verify, bench, render, plot, study, export.
 
-Exit codes: 0 success; 1 a verification case failed; 2 bad input (scene, file, option); 3 the simulation
-stopped on a detected error (the results file keeps every completed step); 130 interrupted (same).
+Exit codes: 0 success; 1 a verification case failed; 2 bad input (scene, file, option; nothing is written);
+3 the simulation stopped on a detected numerical problem or a failed write (the results file keeps every
+completed step, complete = false, the reason in stop_reason); 130 interrupted by SIGINT, 143 by SIGTERM (same).
+No command prints a traceback: unexpected errors are reported in one line (-v logs the traceback).
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ __all__ = ["main"]
 
 logger = logging.getLogger("refsim")
 
-EXIT_FAILED, EXIT_INPUT, EXIT_SIMULATION, EXIT_INTERRUPTED = 1, 2, 3, 130
+STRATEGY_CHOICES = ("exact", "refreshed", "refreshed_first_order", "refreshed_stale", "precomputed")
+EXIT_FAILED, EXIT_INPUT, EXIT_SIMULATION, EXIT_INTERRUPTED, EXIT_TERMINATED = 1, 2, 3, 130, 143
 
 
 class _Progress:
@@ -44,57 +47,105 @@ class _Progress:
             sys.stderr.write(f"{done}/{self.total} steps ({100 * fraction:.0f}%), {rate:.1f} steps/s, {phase}\n")
 
 
+_FIGURE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
-    from refsim.io import ResultWriter
+    from refsim.io.driver import check_output_path, run_scene
     from refsim.scene import load_scene
-    from refsim.simulation import Simulation, SimulationError
-    from refsim.simulation.summary import RunSummary
 
     scene = load_scene(args.scene, args.set or ())
-    output = Path(args.output)
-    if output.exists() and not args.overwrite:
-        raise ValueError(f"{output}: the results file exists; pass --overwrite to replace it")
-    simulation = Simulation(scene)  # every input error surfaces here, before any file is written
-    steps = scene.time.step_count
-    progress = _Progress(steps, enabled=not args.quiet)
-    summary = RunSummary()
-    output.parent.mkdir(parents=True, exist_ok=True)
-    status = 0
-    with ResultWriter(output, scene, simulation.models, overwrite=args.overwrite) as writer:
-
-        written_cut = [None]
-
-        def on_step(state, record) -> None:
-            writer.append(record)
-            if state.cut is not None and state.cut is not written_cut[0]:
-                # The cut changed in this step: rewrite its history now, so an interrupted run keeps it too.
-                writer.write_cut_surface(*_cut_history(state.cut), tet_indices=state.cut.tet_indices,
-                                         barycentric=state.cut.barycentric)
-                written_cut[0] = state.cut
-            summary.add(record)
-            progress.update(record.step, record.phase)
-
-        try:
-            simulation.run(on_step=on_step)
-        except SimulationError as error:
-            print(f"refsim run: {error}", file=sys.stderr)
-            status = EXIT_SIMULATION
-        except KeyboardInterrupt:
-            print(f"\nrefsim run: interrupted; {summary.steps} completed steps kept in {output}", file=sys.stderr)
-            status = EXIT_INTERRUPTED
+    output = check_output_path(args.output, overwrite=args.overwrite)
+    figure = None
+    if args.figure:  # checked before the run, not after it
+        figure = Path(args.figure)
+        if figure.suffix.lower() not in _FIGURE_SUFFIXES:
+            raise ValueError(f"--figure {figure}: expected a picture file ending in {', '.join(_FIGURE_SUFFIXES)}")
+        if figure.resolve() == output.resolve():
+            raise ValueError(f"--figure {figure}: is the results file (-o)")
+        check_output_path(figure, overwrite=True, what="figure")
+    progress = _Progress(scene.time.step_count, enabled=not args.quiet)
+    summary = run_scene(scene, output, overwrite=args.overwrite,
+                        progress=lambda done, total, phase: progress.update(done, phase))
+    if summary.status in ("interrupted", "terminated"):
+        print(f"\nrefsim run: {summary.stop_reason}; {summary.steps_written} completed steps kept in {output}",
+              file=sys.stderr)
+    elif summary.status != "complete":
+        print(f"refsim run: error: {summary.stop_reason}; {summary.steps_written} completed steps kept in "
+              f"{output} (complete = false)", file=sys.stderr)
     print(f"scene {scene.name} ({scene.source}) -> {output}")
+    _write_sidecar(output)
     print(summary.format())
     print(summary.format_table())
-    if args.figure and status == 0:
+    if figure is not None and summary.complete:
         from refsim.viz import plot_result, render_result
 
-        figure = Path(args.figure)
         figure.parent.mkdir(parents=True, exist_ok=True)
         render_result(output, figure)
         plot_path = figure.with_name(figure.stem + "_forces" + figure.suffix)
         plot_result(output, plot_path)
         print(f"figures: {figure}, {plot_path}")
-    return status
+    return summary.exit_code
+
+
+def _write_sidecar(output: Path) -> None:
+    """The ParaView sidecar (RESULT.xdmf) of a results file; a failure is reported, never fatal to the run."""
+    from refsim.io.xdmf import write_xdmf
+
+    try:
+        print(f"ParaView: {write_xdmf(output)}")
+    except (OSError, ValueError) as error:
+        print(f"refsim: no XDMF sidecar for {output}: {error}", file=sys.stderr)
+
+
+def _cmd_study(args: argparse.Namespace) -> int:
+    """`refsim study`: a study file, or a scene with --sweep options, run on Dask."""
+    from refsim.sweep import load_study, run_study, study_from_options
+
+    target = Path(args.target)
+    is_study_file = target.suffix == ".toml" and target.is_file() and args.sweep is None
+    if is_study_file:
+        spec = load_study(target)
+        if args.set:
+            import dataclasses
+
+            spec = dataclasses.replace(spec, overrides=tuple(spec.overrides) + tuple(args.set))
+    else:
+        if not args.sweep:
+            raise ValueError(f"{args.target}: give --sweep section.key=v1,v2,... (or a study file .toml)")
+        spec = study_from_options(args.target, args.sweep, combine="zip" if args.zip else "product",
+                                  overrides=args.set or (), quantities=args.quantity,
+                                  reference=args.reference, name=args.name)
+    output = Path(args.output) if args.output else Path(f"{spec.name}_study.h5")
+    study = run_study(spec, output, scheduler=args.scheduler, workers=args.workers, progress=not args.quiet)
+    runs = study["runs"]
+    print(f"study {spec.name}: {len(runs['id'])} runs, {study['attributes']['runs_complete']} complete, "
+          f"{study['attributes']['runs_failed']} failed -> {output}")
+    for row in study["convergence"]:
+        print(f"  {row['key']:<22} {row['quantity']:<26} {row['kind']:<11} order {row['order']:7.3f}  "
+              f"extrapolated {row['extrapolated']:.6g}  GCI {100 * row['gci']:.3g}%")
+    return 0 if study["attributes"]["runs_failed"] == 0 else EXIT_SIMULATION
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    """`refsim export`: ParaView sidecar, reference problems (problem set, FCLib) and the force CSV."""
+    from refsim.io.export import export_force_csv, export_problems
+    from refsim.io.xdmf import write_xdmf
+
+    result = Path(args.result)
+    if not (args.xdmf or args.problems or args.csv):
+        raise ValueError("refsim export: choose at least one of --xdmf, --problems OUT.h5, --csv OUT.csv")
+    if args.xdmf:
+        print(f"wrote {write_xdmf(result)}")
+    if args.problems:
+        summary = export_problems(result, args.problems, fclib_folder=args.fclib)
+        print(f"wrote {summary['problems']} problems with their exact solutions to {args.problems}"
+              + (f"; {len(summary['fclib'])} FCLib files in {args.fclib}" if args.fclib else ""))
+        if summary["unconverged"]:
+            print(f"  exact solve above tolerance at steps {summary['unconverged']}", file=sys.stderr)
+    if args.csv:
+        print(f"wrote {export_force_csv(result, args.csv)}")
+    return 0
 
 
 def _cut_history(cut):
@@ -111,37 +162,98 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     return EXIT_FAILED if failed else 0
 
 
-def _cmd_bench(args: argparse.Namespace) -> int:
-    from refsim.scene import load_scene
+def _run_for_bench(scene):
+    """Run a scene, keeping what the strategy comparison needs: summary, tissue positions, needle force, events."""
     from refsim.simulation import Simulation
     from refsim.simulation.summary import RunSummary
 
-    if args.scene:
-        scene = load_scene(args.scene, args.set or ())
-        simulation = Simulation(scene)
-        summary = RunSummary()
-        simulation.run(on_step=lambda state, record: summary.add(record))
-        print(f"scene {scene.name}: solver {scene.solver.method}, tolerance {scene.solver.tolerance:g}")
-        print(summary.format_table())
-        if summary.cut_points:
-            print(summary.format_cut())
-    if args.tissue or not args.scene:
-        from refsim.fem.bench import bench_tissue
+    simulation = Simulation(scene)
+    summary = RunSummary()
+    kept = {"tissue_positions": [], "needle_force": [], "events": []}
 
-        print("tissue model, 0.1 m cube (ms): co-rotational update, assembly, factorisation, one solve")
-        rows = bench_tissue(cells_per_axis=tuple(args.cells))
-        keys = list(rows[0].keys())
-        print("  ".join(f"{k:>14}" for k in keys))
+    def on_step(state, record):
+        summary.add(record)
+        kept["tissue_positions"].append(state.tissue.positions)
+        kept["needle_force"].append(record.needle_force)
+        kept["events"].extend((record.step, event.name) for event in record.events)
+
+    simulation.run(on_step=on_step)
+    return summary, kept
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from refsim.fem import bench
+    from refsim.scene import load_scene
+
+    print("\n".join(bench.header_lines()))
+    reference_ms = None
+    if args.scene:
+        strategies = args.strategies or ["exact"]
+        if args.against_exact and "exact" not in strategies:
+            strategies = ["exact", *strategies]
+        reference_ms = bench.superlu_reference_ms(bench.cube_model(8))
+        print(f"reference: one SuperLU (COLAMD) factorisation of the cube's matrix, this run: {reference_ms:.2f} ms")
+        runs = {}
+        for strategy in strategies:
+            key, _, update = strategy.partition("_")
+            update = update or "pcg"
+            overrides = [*(args.set or ()), f'compliance.strategy="{key}"', f'compliance.w_update="{update}"']
+            scene = load_scene(args.scene, overrides)
+            # The machine's load changes: the reference is timed again beside each run (the mean of before and after).
+            before = bench.superlu_reference_ms(bench.cube_model(8))
+            summary, kept = _run_for_bench(scene)
+            reference_ms = 0.5 * (before + bench.superlu_reference_ms(bench.cube_model(8)))
+            runs[strategy] = kept
+            per_step = 1e3 * summary.seconds / max(summary.steps, 1)
+            print(f"\nscene {scene.name}, compliance {strategy} (w_update {update}, refresh_every {scene.compliance.refresh_every}): "
+                  f"solver {scene.solver.method}, tolerance {scene.solver.tolerance:g}; {per_step:.2f} ms per step, "
+                  f"{per_step / reference_ms:.2f} of the SuperLU factorisation ({reference_ms:.2f} ms around this run)")
+            print(summary.format_table())
+            if summary.cut_points:
+                print(summary.format_cut())
+        if args.against_exact:
+            print("\nerrors against exact (same scene): positions [m], needle force [N], events")
+            for strategy, kept in runs.items():
+                if strategy == "exact":
+                    continue
+                errors = bench.compare_runs(runs["exact"], kept)
+                print(f"  {strategy:<12} position {errors['position_error']:.3e} m, force {errors['force_error']:.3e} N "
+                      f"(peak {errors['peak_force']:.4g} N), events {'same' if errors['same_events'] else 'DIFFER: '}"
+                      f"{errors.get('event_shift', '')}")
+    if args.tissue or not args.scene:
+        strategies = tuple(
+            args.strategies or ("exact", "refreshed", "refreshed_first_order", "refreshed_stale", "precomputed")
+        )
+        reference_ms, rows = bench.bench_strategies(8, strategies=strategies, against_exact=True)
+        print(f"\ntissue step on the paper's cube (8 cells per axis, bottom sheared 1 cm over the run), ms per step; "
+              f"SuperLU (COLAMD) factorisation of its matrix, this run: {reference_ms:.2f} ms")
         for row in rows:
-            print("  ".join(f"{row[k]:>14.4g}" if isinstance(row[k], float) else f"{row[k]:>14}" for k in keys))
+            row["ratio_to_superlu"] = row["total_ms"] / reference_ms
+        print(bench.format_rows(rows, ["strategy", "assembly_ms", "factorisation_ms", "free_solve_ms", "compliance_ms",
+                                       "correction_ms", "total_ms", "ratio_to_superlu", "pcg_iterations",
+                                       "free_motion_error", "compliance_error", "correction_error"]))
+        scaling = bench.bench_scaling(tuple(args.cells))
+        print("\nscaling (refreshed: every 10 steps), ms per step; *_compliance_ms: W and the correction")
+        print(bench.format_rows(scaling))
+        dofs = [row["free_dofs"] for row in scaling]
+        for key in [k for k in scaling[0] if k.endswith("_ms")]:
+            exponent = bench.growth_exponent(dofs, [row[key] for row in scaling])
+            print(f"growth exponent of {key} against free DoFs: {exponent:.2f}")
     return 0
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from refsim.viz import render_result
+    from refsim.viz import animate_result, render_result
 
-    render_result(Path(args.result), Path(args.output), step=args.step)
-    print(f"wrote {args.output}")
+    framing = {"camera": args.camera, "view_up": args.view_up, "zoom": args.zoom, "focus": args.focus}
+    if args.animate:
+        animate_result(Path(args.result), Path(args.animate), every=args.every, fps=args.fps, **framing)
+        print(f"wrote {args.animate}")
+    if args.output:
+        render_result(Path(args.result), Path(args.output), step=args.step, **framing)
+        print(f"wrote {args.output}")
+    if not (args.output or args.animate):
+        raise ValueError("refsim render needs -o FIG.png, --animate OUT.gif|.mp4, or both")
     return 0
 
 
@@ -173,20 +285,59 @@ def _parser() -> argparse.ArgumentParser:
     bench = commands.add_parser("bench", help="time a scene (the paper's Table 1) and the tissue model")
     bench.add_argument("scene", nargs="?", help="scene to time; without it, only the tissue model bench")
     bench.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override a scene value")
-    bench.add_argument("--tissue", action="store_true", help="also time the tissue model on refined cubes")
-    bench.add_argument("--cells", type=int, nargs="+", default=[8, 16, 32], help="cells per axis (default 8 16 32)")
+    bench.add_argument("--tissue", action="store_true", help="also time the tissue step per strategy and its scaling")
+    bench.add_argument("--cells", type=int, nargs="+", default=[8, 12, 16, 24],
+                       help="cells per axis of the scaling table (default 8 12 16 24)")
+    bench.add_argument("--strategies", nargs="+", choices=STRATEGY_CHOICES,
+                       help="compliance strategies to time (scene: exact, refreshed, precomputed)")
+    bench.add_argument("--against-exact", action="store_true",
+                       help="also run the scene exactly and report each strategy's errors (positions, forces, events)")
     bench.set_defaults(handler=_cmd_bench)
 
-    render = commands.add_parser("render", help="off-screen picture of a results file")
+    render = commands.add_parser("render", help="off-screen picture (or animation) of a results file")
     render.add_argument("result")
-    render.add_argument("-o", "--output", required=True)
+    render.add_argument("-o", "--output", help="picture to write (.png)")
     render.add_argument("--step", type=int, default=None, help="step to show (default: last)")
+    render.add_argument("--camera", default=None,
+                        help="view direction from the focus to the camera: auto (default: face the cut, else "
+                             "beside the needle), iso, xy, yx, xz, zx, yz, zy, or x,y,z")
+    render.add_argument("--view-up", default=None, metavar="X,Y,Z", help="up direction (default: needle base up)")
+    render.add_argument("--zoom", type=float, default=1.0, help="magnification after the framing (default 1)")
+    render.add_argument("--focus", default="auto",
+                        help="what to frame: auto (needle's inserted part, insertion points, cut), needle, cut, "
+                             "tissue, or a point x,y,z [m]")
+    render.add_argument("--animate", metavar="OUT", help="also write an animation (.gif or .mp4)")
+    render.add_argument("--every", type=int, default=1, metavar="K", help="animation: one frame every K steps")
+    render.add_argument("--fps", type=float, default=10.0, help="animation: frames per second (default 10)")
     render.set_defaults(handler=_cmd_render)
 
     plot = commands.add_parser("plot", help="force on the needle base against depth and time")
     plot.add_argument("result")
     plot.add_argument("-o", "--output", required=True)
     plot.set_defaults(handler=_cmd_plot)
+
+    study = commands.add_parser("study", help="parameter sweep on Dask (a LocalCluster, or --scheduler)")
+    study.add_argument("target", help="study file (.toml), or a scene (file or built-in name) with --sweep")
+    study.add_argument("--sweep", action="append", metavar="SECTION.KEY=V1,V2,...", help="values of a scene key")
+    study.add_argument("--zip", action="store_true", help="pair the i-th values of every sweep (default: product)")
+    study.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override for every run")
+    study.add_argument("--quantity", action="append", help="quantity of interest (refsim.sweep.quantities)")
+    study.add_argument("--reference", action="append", metavar="SECTION.KEY=VALUE",
+                       help="override of the reference run (errors are taken against it)")
+    study.add_argument("--name", help="study name (default: the scene's)")
+    study.add_argument("-o", "--output", help="study file (.h5); runs go to <stem>_runs/ beside it")
+    study.add_argument("--scheduler", help="address of a running Dask scheduler, e.g. tcp://host:8786")
+    study.add_argument("--workers", type=int, help="LocalCluster worker processes (default: the cores)")
+    study.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    study.set_defaults(handler=_cmd_study)
+
+    export = commands.add_parser("export", help="ParaView sidecar, reference problems, force CSV of a result")
+    export.add_argument("result")
+    export.add_argument("--xdmf", action="store_true", help="write RESULT.xdmf beside the file (ParaView)")
+    export.add_argument("--problems", metavar="OUT.h5", help="recorded problems with exact solutions")
+    export.add_argument("--fclib", metavar="FOLDER", help="with --problems: FCLib files of pure-contact steps")
+    export.add_argument("--csv", metavar="OUT.csv", help="needle force history")
+    export.set_defaults(handler=_cmd_export)
     return parser
 
 
@@ -196,12 +347,17 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         return args.handler(args)
-    except (ValueError, FileNotFoundError, OSError) as error:
+    except (ValueError, OSError) as error:  # SceneError, MeshError, RunInputError, paths
         print(f"refsim {args.command}: error: {error}", file=sys.stderr)
         return EXIT_INPUT
     except KeyboardInterrupt:
         print(f"refsim {args.command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except Exception as error:  # noqa: BLE001 - never a traceback; -v logs it
+        logger.debug("unexpected error", exc_info=True)
+        print(f"refsim {args.command}: internal error: {type(error).__name__}: {error} (rerun with -v for the "
+              "traceback, and report it)", file=sys.stderr)
+        return EXIT_INPUT
 
 
 if __name__ == "__main__":

@@ -6,8 +6,23 @@ import os
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 from refsim.scene import load_scene
+
+# Hypothesis profiles. "ci" (the default) is derandomised: the same examples on every run, so a property test
+# cannot fail at random on a fresh clone; a defect it finds is found every time. "slow" draws fresh random
+# examples, many more of them: HYPOTHESIS_PROFILE=slow python -m pytest tests/geometry tests/fuzz
+# Tests give no max_examples of their own (or scale the profile's, see tests/fuzz), so the profile decides.
+settings.register_profile(
+    "ci", max_examples=40, derandomize=True, database=None, deadline=None, print_blob=True,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+settings.register_profile(
+    "slow", max_examples=2000, derandomize=False, database=None, deadline=None, print_blob=True,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
 def shared_data() -> Path:

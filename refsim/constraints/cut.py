@@ -1,30 +1,18 @@
-"""Cutting constraints and the growth of the cut (paper, section 4 and Figure 1c).
+"""Cutting constraints (paper, section 4 and Figure 1c) on a strip cut (:mod:`refsim.cutting.strip`).
 
-- Cut start (equation 3): with the insertion constraints' bilateral forces, t = Σ n_i^φ λ_i^φ is the lateral
-  force of the tissue on the needle; cutting starts when ‖t‖ > n_i · f_c. The cut runs the way the needle pushes
-  the tissue, ĉ = −t/‖t‖ (the paper's t_i up to the sign of its normals).
-- Point cloud: the path (the insertion points, resampled every d_c) swept towards ĉ up to d_t, every d_c:
-  p + k d_c ĉ, k = 0 … round(d_t/d_c). Each point is located in its tet in the deformed state and kept in rest
-  coordinates through its barycentric coordinates (equation 4).
+- Cut start (the paper's equation 3, selectable): with the insertion constraints' bilateral forces,
+  t = Σ n_i^φ λ_i^φ is the lateral force of the tissue on the needle; the paper starts the cut when
+  ‖t‖ > n_i · f_c. The default law starts it when ‖t‖ ≥ G_c L_in (a force per unit inserted length, so the
+  start does not depend on d_i or the mesh). The cut runs the way the needle pushes the tissue, ĉ = −t/‖t‖.
 - Sliding rows (φ_c): every needle sample (every d_c along the inserted length) whose projection falls inside
-  the cut surface gets one bilateral row along the surface normal at its closest point. The surface starts on
-  the needle (its back border is the path), so "inside" admits samples within d_c/4 of the surface in its own
-  plane; otherwise the needle, sitting on that border, would get no row at all.
-- Border rows (χ_c): every border point of the surface gets one unilateral row against its closest point on the
-  needle, along the surface's inward direction at that point (in the surface, normal to the needle), so the
-  needle stays inside the border; per needle edge only the closest border point along its row direction (the
-  smallest gap) is kept, so that the front of the cut, not the back border the needle leaves, holds the
-  needle. The needle edges are
-  those of the sampled centreline (samples every d_c), not the beam elements: with the paper's 2 cm beam
-  elements and a 17 mm insertion, one row per beam element would let most of the shaft cross the border.
-  Border points at the ends of the strip, whose inward direction runs along the needle, get no row, nor do
-  points of the back border (inward direction along the cut direction ĉ): only the front holds the needle.
-- At most one sliding row and one border row per tissue tet (the smallest gap): rows in one tet constrain the
-  same four nodes, whose motion is affine; more rows only make W rank-deficient and, with a kinematic (rigid)
-  needle, inconsistent, which drives the multipliers to infinity.
-- Tearing: when a border row's force reaches f_t, the surface is extended by d_t against that row's direction
-  (−n_c), every d_c, from every front border point along the inserted length, so the front advances as a
-  whole. Growing a single point would make a spike the angle criteria cannot triangulate.
+  the cut surface gets one bilateral row along the surface normal at its closest point.
+- Front rows (χ_c): every needle sample against the crack tip, along −ĉ normal to the needle, so the needle
+  stays behind the crack tip; their strength G_c × (the needle length each row stands for) makes the needle cut
+  through at G_c per unit length (the energy law), or, unbounded, they tear the cut by d_t when one reaches f_t
+  (the paper's law).
+
+Rows are chosen and anchored on the state at the start of the step and linearised at the free positions. The
+growth of the cut is in :mod:`refsim.cutting.growth` and :mod:`refsim.cutting.strip`.
 """
 
 from __future__ import annotations
@@ -35,20 +23,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from refsim.constraints.needle_geometry import needle_rows
-from refsim.constraints.rows import BILATERAL, CUT_BORDER, CUT_SLIDE, UNILATERAL, RowBlock, point_rows
+from refsim.constraints.friction import friction_rows
+from refsim.constraints.rows import BILATERAL, CUT_BORDER, CUT_SLIDE, FRICTION, UNILATERAL, RowBlock, point_rows
 from refsim.constraints.step_geometry import StepGeometry
-from refsim.cutting.growth import border_inward_directions, front_border_points, resample_polyline, sweep_points
 
-__all__ = [
-    "cut_criterion",
-    "sweep_points",
-    "resample_polyline",
-    "cut_block",
-    "border_inward_directions",
-    "CutRowInfo",
-    "front_border_points",
-    "one_per_group",
-]
+__all__ = ["FrontRows", "cut_criterion", "strip_cut_block"]
 
 # Border points whose inward direction has less than this component normal to the needle are ends of the
 # strip (their inward direction runs along the shaft): they would only block the axial motion. cos(60°).
@@ -60,23 +39,6 @@ def cut_criterion(lateral_force: np.ndarray, point_count: int, cutting_force: fl
     return point_count > 0 and float(np.linalg.norm(lateral_force)) > point_count * cutting_force
 
 
-def one_per_group(groups: np.ndarray, scores: np.ndarray) -> np.ndarray:
-    """Indices of the smallest score in each group (ties: the first), sorted, shape (g,)."""
-    if groups.size == 0:
-        return np.zeros(0, dtype=np.int64)
-    order = np.lexsort((np.arange(groups.size), scores, groups))
-    first = np.concatenate([[True], groups[order][1:] != groups[order][:-1]])
-    return np.sort(order[first])
-
-
-@dataclass(frozen=True)
-class CutRowInfo:
-    """Which border point each border row belongs to (for tearing), shape (b,), and the rows' index in the block."""
-
-    border_point: np.ndarray
-    rows: np.ndarray
-
-
 def _surface_point_nodes(cut, mesh_tets, triangle, weights):
     """Tissue nodes and weights of points on cut triangles: Σ_v w_v Σ_k β_vk x_{tet_v, k}, shape (q, 12)."""
     corners = cut.triangles[triangle]  # (q, 3)
@@ -85,80 +47,236 @@ def _surface_point_nodes(cut, mesh_tets, triangle, weights):
     return nodes, node_weights
 
 
-def cut_block(
+@dataclass(frozen=True)
+class FrontRows:
+    """Where each front row of a strip presses on the crack tip.
+
+    Attributes
+    ----------
+    rows : The front rows' indices in the block, shape (f,).
+    segment : The crack-tip segment (columns j, j + 1) of each row, shape (f,).
+    parameter : Position t ∈ [0, 1] on the segment, shape (f,).
+    arc_lengths : The needle point of each row [m], shape (f,).
+    directions : Row directions n (in the cut, normal to the needle, pointing back into the cut), shape (f, 3).
+    """
+
+    rows: np.ndarray
+    segment: np.ndarray
+    parameter: np.ndarray
+    arc_lengths: np.ndarray
+    directions: np.ndarray
+
+    @classmethod
+    def empty(cls) -> FrontRows:
+        return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros((0, 3)))
+
+    def gaps(self, front_points: np.ndarray, needle) -> np.ndarray:
+        """δ = nᵀ(x_needle − x_tip) of each row for crack-tip points (q, 3) and a needle centreline [m], (f,)."""
+        anchor = (1.0 - self.parameter)[:, None] * front_points[self.segment] + self.parameter[:, None] * (
+            front_points[self.segment + 1]
+        )
+        return np.einsum("ij,ij->i", self.directions, needle.points(self.arc_lengths) - anchor)
+
+
+def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closest segment, parameter t ∈ [0, 1] and whether the projection is interior (not clamped beyond an
+    end of the polyline), for each point; shapes (k,), (k,), (k,)."""
+    start, end = polyline[:-1], polyline[1:]
+    along = end - start  # (s, 3)
+    lengths = np.einsum("sj,sj->s", along, along)
+    raw = np.einsum("ksj,sj->ks", points[:, None, :] - start[None], along) / np.where(lengths > 0, lengths, 1.0)
+    t = np.clip(raw, 0.0, 1.0)
+    nearest = start[None] + t[..., None] * along[None]
+    distance = np.linalg.norm(points[:, None, :] - nearest, axis=2)
+    segment = np.argmin(distance, axis=1)
+    rows = np.arange(points.shape[0])
+    raw_t = raw[rows, segment]
+    interior = ~(((segment == 0) & (raw_t < -1e-9)) | ((segment == along.shape[0] - 1) & (raw_t > 1 + 1e-9)))
+    return segment, t[rows, segment], interior
+
+
+def strip_cut_block(
     cut,
+    strip,
     geometry: StepGeometry,
     *,
     entry_arc_length: float,
     spacing: float,
     cut_direction: np.ndarray,
-) -> tuple[RowBlock | None, CutRowInfo]:
-    """Sliding (bilateral) and border (unilateral) rows of the cut surface, on the free positions.
+    front_strength: float = np.inf,
+    slide_compliance: float = 0.0,
+    friction_coefficient: float = 0.0,
+    friction_compliance: tuple[float, float] = (0.0, 0.0),
+) -> tuple[RowBlock | None, FrontRows]:
+    """Sliding rows on the cut and front rows on its crack tip, for a strip cut (:mod:`refsim.cutting.strip`).
+
+    The needle is sampled every d_c along its inserted length. Which rows exist, and where they are anchored,
+    is decided on the state at the start of the step (a consistent state: the one the previous correction
+    produced); their gaps are linearised at the free positions.
+
+    - Sliding (bilateral): every sample whose projection falls inside the cut surface (or within d_c/4 of it in
+      its plane), along the normal of the triangle holding its closest point, anchored at that point's
+      barycentric coordinates: the needle stays on the cut wherever it lies in it.
+    - Front (unilateral): every sample against the closest point of the crack-tip polyline, along
+      n = −(ĉ normal to the needle): the needle stays behind the crack tip. With ``front_strength`` finite
+      (the fracture law: G_c), each row gives way at G_c ℓ_k, ℓ_k the inserted length its sample stands for
+      (Σ ℓ_k = the inserted length), and the needle cuts through at G_c per unit length.
 
     Parameters
     ----------
     cut : The `refsim.cutting.CutSurface`.
+    strip : Its `refsim.cutting.strip.CutStrip`.
     geometry : The step's geometry.
-    entry_arc_length : Arc length [m] of the needle at the entry point; the inserted part is [entry, length].
-    spacing : d_c [m], the needle sampling.
-    cut_direction : ĉ, the unit direction the cut runs (deformed state), shape (3,).
+    entry_arc_length : Arc length of the needle at the entry point [m].
+    spacing : d_c [m].
+    cut_direction : ĉ (deformed), unit, shape (3,).
+    front_strength : Force per unit length of needle at which the front gives way [N/m], > 0 (G_c; inf:
+        unbounded, the paper's criterion).
+    slide_compliance : Compliance added to each sliding row [m/N], ≥ 0: the sub-grid flexibility of the cut
+        face under the needle, which makes the sliding rows' multipliers unique (d_c ≪ h puts many rows on one
+        triangle).
+    friction_coefficient : μ_c ≥ 0 of the cut faces: with μ_c > 0 every sliding row gets two friction rows in
+        the surface, along the needle and across it (along ĉ), each bounded by μ_c |λ| of its sliding row (the
+        solvers' group-friction law: a square, not a disc, of admissible tangential forces), measuring the
+        relative slip over the step (:func:`refsim.constraints.friction.friction_rows`).
+    friction_compliance : Compliance added to the (axial, across) friction rows [m/N], ≥ 0 (the sub-grid
+        compliance of the coupling's axial and lateral rows).
+
+    Rows are ordered: sliding rows, then front rows, then the friction rows (two per sliding row).
     """
-    mesh_tets, tissue_free, needle_free = geometry.mesh_tets, geometry.tissue_free, geometry.needle_free
-    tissue_dof_count = geometry.tissue_dof_count
-    empty = CutRowInfo(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
-    if cut.triangle_count == 0:
-        return None, empty
-    surface = cut.deformed_points(tissue_free, mesh_tets)
-    length = needle_free.length
+    tets = geometry.mesh_tets
+    length = geometry.needle_free.length
     start = max(0.0, min(entry_arc_length, length) - spacing)
     count = max(int(np.ceil((length - start) / spacing)), 1)
     samples = np.linspace(start, length, count + 1)
-    needle_points = needle_free.points(samples)
+    needle_previous = geometry.needle_previous.points(samples)
+    needle_free = geometry.needle_free.points(samples)
+    blocks = []
 
-    # Sliding rows: needle samples whose projection falls inside the surface.
-    found = cut.closest_points(needle_points, surface)
-    all_normals = cut.triangle_normals(surface)[found.triangle]
-    offset = needle_points - found.closest
-    in_plane = offset - np.einsum("ij,ij->i", offset, all_normals)[:, None] * all_normals
-    inside = np.flatnonzero(found.inside | (np.linalg.norm(in_plane, axis=1) <= 0.25 * spacing))
-    nearest_vertex = cut.triangles[found.triangle[inside], np.argmax(found.barycentric[inside], axis=1)]
-    slide_gap_all = np.abs(np.einsum("ij,ij->i", all_normals[inside], offset[inside]))
-    inside = inside[one_per_group(cut.tet_indices[nearest_vertex], slide_gap_all)]
-    normals = all_normals[inside]
-    slide_gaps = np.einsum("ij,ij->i", normals, needle_points[inside] - found.closest[inside])
-    slide_nodes, slide_weights = _surface_point_nodes(cut, mesh_tets, found.triangle[inside], found.barycentric[inside])
+    slide_count = 0
+    slide_anchor = None
+    front_keep = np.zeros(0, dtype=np.int64)
+    if cut.triangle_count:
+        surface_previous = cut.deformed_points(geometry.tissue_previous, tets)
+        found = cut.closest_points(needle_previous, surface_previous)
+        normals_previous = cut.triangle_normals(surface_previous)[found.triangle]
+        offset = needle_previous - found.closest
+        in_plane = offset - np.einsum("ij,ij->i", offset, normals_previous)[:, None] * normals_previous
+        inside = np.flatnonzero(found.inside | (np.linalg.norm(in_plane, axis=1) <= 0.25 * spacing))
+        if inside.size:
+            triangle, weights = found.triangle[inside], found.barycentric[inside]
+            surface_free = cut.deformed_points(geometry.tissue_free, tets)
+            normals = cut.triangle_normals(surface_free)[triangle]
+            anchor = np.einsum("qv,qvj->qj", weights, surface_free[cut.triangles[triangle]])
+            nodes, node_weights = _surface_point_nodes(cut, tets, triangle, weights)
+            slide_anchor = (nodes, node_weights, samples[inside], normals, anchor)
+            blocks.append(
+                (
+                    point_rows(nodes, node_weights, normals, geometry.tissue_dof_count),
+                    needle_rows(geometry.needle_free, samples[inside], normals),
+                    np.einsum("ij,ij->i", normals, needle_free[inside] - anchor),
+                    normals,
+                    anchor,
+                    np.full(inside.size, BILATERAL),
+                    np.full(inside.size, CUT_SLIDE),
+                )
+            )
+            slide_count = inside.size
 
-    # Border rows: each border point against its closest needle point, the closest per needle edge kept.
-    border, inward = front_border_points(cut, surface, cut_direction)
-    arc, closest = needle_free.project(surface[border])
-    tangents = needle_free.tangents(arc)
-    direction = inward - np.einsum("ij,ij->i", inward, tangents)[:, None] * tangents
-    norms = np.linalg.norm(direction, axis=1)
-    usable = (norms >= _MIN_NORMAL_COMPONENT) & (arc >= start) & (arc <= length)
-    direction[usable] /= norms[usable, None]
-    gaps = np.einsum("ij,ij->i", direction, closest - surface[border])
-    edge = np.minimum(np.searchsorted(samples, arc, side="right") - 1, count - 1)
-    candidates = np.flatnonzero(usable)
-    keep = candidates[one_per_group(edge[candidates], gaps[candidates])]
-    keep = keep[one_per_group(cut.tet_indices[border[keep]], gaps[keep])]
-    border_gaps = gaps[keep]
-    border_nodes = mesh_tets[cut.tet_indices[border[keep]]]
-    border_weights = cut.barycentric[border[keep]]
-
-    slide_count, border_count = inside.size, keep.size
-    if slide_count + border_count == 0:
-        return None, empty
-    jacobian_slide = point_rows(slide_nodes, slide_weights, normals, tissue_dof_count)
-    jacobian_border = point_rows(border_nodes, border_weights, direction[keep], tissue_dof_count)
-    directions = np.concatenate([normals, direction[keep]])
-    arc_lengths = np.concatenate([samples[inside], arc[keep]])
-    block = RowBlock(
-        tissue_jacobian=sp.vstack([jacobian_slide, jacobian_border], format="csr"),
-        needle_jacobian=needle_rows(needle_free, arc_lengths, directions),
-        free_gap=np.concatenate([slide_gaps, border_gaps]),
-        kind=np.concatenate([np.full(slide_count, BILATERAL), np.full(border_count, UNILATERAL)]).astype(np.int8),
-        source=np.concatenate([np.full(slide_count, CUT_SLIDE), np.full(border_count, CUT_BORDER)]).astype(np.int8),
-        points=np.concatenate([found.closest[inside], surface[border[keep]]]),
-        directions=directions,
+    front_previous = strip.front.positions(geometry.tissue_previous, tets)
+    front_info = FrontRows.empty()
+    # The inserted length each sample stands for: [s − Δ/2, s + Δ/2] ∩ [entry, L].
+    step = samples[1] - samples[0] if samples.size > 1 else spacing
+    shares = np.clip(np.minimum(samples + 0.5 * step, length) - np.maximum(samples - 0.5 * step, entry_arc_length), 0.0, None)
+    if front_previous.shape[0] >= 2:
+        segment, parameter, interior = _closest_on_polyline(needle_previous, front_previous)
+        keep = np.flatnonzero(interior & (shares > 1e-9 * step))
+        if keep.size:
+            tangents = geometry.needle_free.tangents(samples[keep])
+            lateral = cut_direction - (tangents @ cut_direction)[:, None] * tangents
+            norms = np.linalg.norm(lateral, axis=1)
+            usable = norms > _MIN_NORMAL_COMPONENT
+            keep, lateral, norms = keep[usable], lateral[usable], norms[usable]
+        if keep.size:
+            directions = -lateral / norms[:, None]
+            seg, t = segment[keep], parameter[keep]
+            front_free = strip.front.positions(geometry.tissue_free, tets)
+            anchor = (1.0 - t)[:, None] * front_free[seg] + t[:, None] * front_free[seg + 1]
+            nodes = np.concatenate([tets[strip.front.tet_indices[seg]], tets[strip.front.tet_indices[seg + 1]]], 1)
+            node_weights = np.concatenate(
+                [(1.0 - t)[:, None] * strip.front.barycentric[seg], t[:, None] * strip.front.barycentric[seg + 1]], 1
+            )
+            blocks.append(
+                (
+                    point_rows(nodes, node_weights, directions, geometry.tissue_dof_count),
+                    needle_rows(geometry.needle_free, samples[keep], directions),
+                    np.einsum("ij,ij->i", directions, needle_free[keep] - anchor),
+                    directions,
+                    anchor,
+                    np.full(keep.size, UNILATERAL),
+                    np.full(keep.size, CUT_BORDER),
+                )
+            )
+            front_info = FrontRows(slide_count + np.arange(keep.size), seg, t, samples[keep], directions)
+            front_keep = keep
+    if not blocks:
+        return None, front_info
+    friction_count = 0
+    if friction_coefficient > 0.0 and slide_anchor is not None:
+        nodes, node_weights, arcs, normals, anchor = slide_anchor
+        axial = geometry.needle_free.tangents(arcs)
+        across = np.cross(normals, axial)
+        across /= np.linalg.norm(across, axis=1, keepdims=True)
+        tangents = np.concatenate([axial, across])
+        previous = np.einsum("qk,qkj->qj", node_weights, geometry.tissue_previous[nodes])
+        friction = friction_rows(
+            geometry,
+            tissue_nodes=np.concatenate([nodes, nodes]),
+            tissue_weights=np.concatenate([node_weights, node_weights]),
+            arc_lengths=np.concatenate([arcs, arcs]),
+            tangents=tangents,
+            tissue_free_points=np.concatenate([anchor, anchor]),
+            tissue_previous_points=np.concatenate([previous, previous]),
+        )
+        friction_count = tangents.shape[0]
+        blocks.append(
+            (
+                friction.tissue_jacobian,
+                friction.needle_jacobian,
+                friction.free_gap,
+                tangents,
+                np.concatenate([anchor, anchor]),
+                np.full(friction_count, FRICTION),
+                np.full(friction_count, CUT_SLIDE),
+            )
+        )
+    rigid = blocks[0][1] is None
+    limits = np.concatenate(
+        [np.full(slide_count, np.inf), float(front_strength) * shares[front_keep], np.full(friction_count, np.inf)]
     )
-    return block, CutRowInfo(border[keep], slide_count + np.arange(border_count))
+    first_friction = slide_count + front_info.rows.size
+    groups = {}
+    if friction_count:
+        pair = np.arange(slide_count)
+        groups = dict(
+            group_rows=first_friction + np.arange(friction_count),
+            group_offsets=np.arange(friction_count + 1),
+            group_members=np.concatenate([pair, pair]),
+            group_coefficient=np.full(friction_count, float(friction_coefficient)),
+        )
+    block = RowBlock(
+        tissue_jacobian=sp.vstack([b[0] for b in blocks], format="csr"),
+        needle_jacobian=None if rigid else sp.vstack([b[1] for b in blocks], format="csr"),
+        free_gap=np.concatenate([b[2] for b in blocks]),
+        kind=np.concatenate([b[5] for b in blocks]).astype(np.int8),
+        source=np.concatenate([b[6] for b in blocks]).astype(np.int8),
+        points=np.concatenate([b[4] for b in blocks]),
+        directions=np.concatenate([b[3] for b in blocks]),
+        force_limit=limits if np.any(np.isfinite(limits)) else np.zeros(0),
+        compliance_diagonal=np.concatenate([
+            np.full(slide_count, float(slide_compliance)), np.zeros(front_info.rows.size),
+            np.repeat(np.asarray(friction_compliance, dtype=float), slide_count) if friction_count else np.zeros(0),
+        ]),
+        **groups,
+    )
+    return block, front_info

@@ -62,8 +62,18 @@ class RowBlock:
     shaft_friction_coefficient : shape (m,).
     shaft_normal_preload : Normal force added to the pair force norm in each shaft row's Coulomb bound [N],
         shape (m,) (empty: zeros).
-    compliance_diagonal : Compliance added to W's diagonal for each row [m/N] (the sub-grid compliance of the
-        well-posed coupling, :mod:`refsim.constraints.coupling`), shape (row_count,) (empty: zeros).
+    force_limit : Largest force each row can carry [N], shape (row_count,), > 0, inf for none (empty: all inf).
+        A unilateral row with a finite limit L has 0 ≤ λ ≤ L and gives way (δ < 0) at L; a bilateral row
+        |λ| ≤ L. This is how a row models a strength: the tissue's resistance to puncture, to cutting at the tip,
+        to tearing at the front of a cut.
+    compliance_diagonal : Compliance added to the diagonal of W for each row [m/N], shape (row_count,), ≥ 0
+        (empty: zeros): the part of a row's flexibility the mesh does not resolve (the sub-grid compliance of
+        the well-posed coupling, :mod:`refsim.constraints.coupling`, and of the cut's sliding rows).
+    group_rows : Friction rows bounded by a group of other rows (the solvers' group-friction law), shape (g,).
+    group_offsets, group_members : The group of friction row j is
+        ``group_members[group_offsets[j]:group_offsets[j + 1]]``; shapes (g + 1,) and (Σ sizes,).
+    group_coefficient : Friction coefficient of each group friction row, shape (g,); the bound is
+        μ_j ‖λ_Gj‖ (friction on the cut surface bounded by its sliding row's force).
     """
 
     tissue_jacobian: sp.csr_matrix
@@ -79,7 +89,21 @@ class RowBlock:
     shaft_pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     shaft_friction_coefficient: np.ndarray = field(default_factory=lambda: np.zeros(0))
     shaft_normal_preload: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    force_limit: np.ndarray = field(default_factory=lambda: np.zeros(0))
     compliance_diagonal: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    group_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    group_offsets: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
+    group_members: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    group_coefficient: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def __post_init__(self) -> None:
+        rows = self.free_gap.shape[0]
+        limit = np.asarray(self.force_limit, dtype=float)
+        if limit.size and (limit.shape != (rows,) or np.any(~(limit > 0.0))):
+            raise ValueError(f"force_limit must have shape ({rows},) with values in (0, inf], got {limit!r}")
+        added = np.asarray(self.compliance_diagonal, dtype=float)
+        if added.size and (added.shape != (rows,) or np.any(~np.isfinite(added)) or np.any(added < 0.0)):
+            raise ValueError(f"compliance_diagonal must have shape ({rows},) with finite values >= 0 [m/N]")
 
     @property
     def row_count(self) -> int:
@@ -90,13 +114,29 @@ class RowBlock:
         """The solver's :class:`~refsim.solvers.ConstraintProblem` of these rows with compliance W [m/N],
         shape (row_count, row_count): the one place where row kinds become solver laws."""
         sets = self.index_sets()
-        if self.compliance_diagonal.size:
-            compliance = compliance + np.diag(self.compliance_diagonal)
+        added = _compliance_diagonal(self)
+        if np.any(added):
+            compliance = compliance + np.diag(added)
+        limit = _force_limit(self)
+        boxed = np.flatnonzero(np.isfinite(limit))
+        bilateral, unilateral = sets["bilateral"], sets["unilateral"]
+        box_lower = np.where(self.kind[boxed] == UNILATERAL, 0.0, -limit[boxed])
+        box_upper = limit[boxed]
+        if boxed.size:
+            bilateral = np.setdiff1d(bilateral, boxed)
+            unilateral = np.setdiff1d(unilateral, boxed)
         return ConstraintProblem(
             compliance=compliance,
             free_gap=self.free_gap,
-            bilateral=sets["bilateral"],
-            unilateral=sets["unilateral"],
+            bilateral=bilateral,
+            unilateral=unilateral,
+            box_rows=boxed,
+            box_lower=box_lower,
+            box_upper=box_upper,
+            group_friction=self.group_rows,
+            group_offsets=self.group_offsets,
+            group_members=self.group_members,
+            group_friction_coefficient=self.group_coefficient,
             contacts=sets["contacts"],
             contact_friction=self.contact_friction,
             shaft_friction=sets["shaft_rows"],
@@ -156,12 +196,26 @@ def concatenate(blocks: list[RowBlock]) -> RowBlock:
         shaft_pairs=np.concatenate([b.shaft_pairs + o for b, o in zip(blocks, offsets)]).astype(np.int64),
         shaft_friction_coefficient=np.concatenate([b.shaft_friction_coefficient for b in blocks]),
         shaft_normal_preload=np.concatenate([_shaft_preload(b) for b in blocks]),
+        force_limit=np.concatenate([_force_limit(b) for b in blocks]),
         compliance_diagonal=np.concatenate([_compliance_diagonal(b) for b in blocks]),
+        group_rows=np.concatenate([b.group_rows + o for b, o in zip(blocks, offsets)]).astype(np.int64),
+        group_members=np.concatenate([b.group_members + o for b, o in zip(blocks, offsets)]).astype(np.int64),
+        group_offsets=np.concatenate(
+            [[0]] + [b.group_offsets[1:] + m for b, m in zip(blocks, np.cumsum([0] + [b.group_members.size for b in blocks])[:-1])]
+        ).astype(np.int64),
+        group_coefficient=np.concatenate([b.group_coefficient for b in blocks]),
     )
 
 
+def _force_limit(block: RowBlock) -> np.ndarray:
+    """The rows' force limits [N], shape (row_count,): inf when the block left the field empty."""
+    if block.force_limit.size == 0:
+        return np.full(block.row_count, np.inf)
+    return np.asarray(block.force_limit, dtype=float)
+
+
 def _compliance_diagonal(block: RowBlock) -> np.ndarray:
-    """The block's added compliance [m/N], shape (row_count,): zeros when the block left the field empty."""
+    """The rows' added compliance [m/N], shape (row_count,): zeros when the block left the field empty."""
     if block.compliance_diagonal.size == 0:
         return np.zeros(block.row_count)
     return np.asarray(block.compliance_diagonal, dtype=float)

@@ -5,8 +5,6 @@
 
 from refsim.cutting.growth import (
     CutGrowth,
-    border_inward_directions,
-    front_border_points,
     resample_polyline,
     sweep_points,
 )
@@ -22,8 +20,6 @@ from refsim.cutting.triangulation import (
 __all__ = [
     "ClosestCutPoints",
     "CutGrowth",
-    "border_inward_directions",
-    "front_border_points",
     "resample_polyline",
     "sweep_points",
     "CutSurface",

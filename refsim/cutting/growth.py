@@ -1,20 +1,21 @@
-"""Growth of the cut surface (paper, section 4): the first surface at the cut start, and tears.
+"""Growth of the cut surface (paper, section 4): the strip at the cut start, and its crack tip's advance.
 
 Pure functions of arrays and of a :class:`CutGrowth` built once per tissue (its rest positions, tets and the
 scene's cutting parameters). The surface lives in rest coordinates (the paper's equation 4): a point found in
 the deformed tissue keeps the tet and barycentric coordinates it has there, and its rest position is the same
 coordinates applied to the rest nodes.
 
-- Cut start: the insertion path, resampled every d_c, swept along the cut direction ĉ up to d_t every d_c.
-- Tear: when a border row's force reaches f_t, the front of the cut (border points whose inward direction is
-  against ĉ) along the inserted length grows by d_t against that row's direction −n_c. The growth is done in
-  rest coordinates, where the triangulation lives: the deformed-state direction is pulled back through each
-  front point's deformation gradient (F⁻¹ u), so new points keep the rest-state spacing d_c. Growing the whole
-  front rather than one point keeps the surface triangulable under the angle limits.
+- Cut start (:func:`start_strip`): the insertion path, resampled every d_c, is the first layer of a strip
+  (:mod:`refsim.cutting.strip`); with the paper's law it is swept along ĉ up to d_t, in layers at most d_c
+  apart; with the energy law the crack tip starts on the path.
+- Crack advance (:func:`advance_front`): the crack tip moves, column by column, to the material point where the
+  needle pushed it (energy law) or by d_t (the paper's tear); a layer is laid once it is d_c ahead
+  (:meth:`refsim.cutting.strip.CutStrip.lay`).
 """
 
 from __future__ import annotations
 
+import time as clock
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -26,16 +27,12 @@ from refsim.geometry import TetLocator
 
 __all__ = [
     "CutGrowth",
-    "border_inward_directions",
+    "advance_front",
+    "start_strip",
     "far_from",
-    "front_border_points",
     "resample_polyline",
     "sweep_points",
 ]
-
-# Border points whose inward direction has less than this component against ĉ are not on the front. cos(60°).
-FRONT_COSINE = 0.5
-
 
 def resample_polyline(points: np.ndarray, spacing: float) -> np.ndarray:
     """Points every ``spacing`` [m] along a polyline (its first and last points included), shape (q, 3)."""
@@ -60,43 +57,6 @@ def sweep_points(base_points: np.ndarray, direction: np.ndarray, extent: float, 
     if direction.ndim == 1:
         direction = np.broadcast_to(direction, np.shape(base_points))
     return (base_points[:, None, :] + offsets[None, :, None] * direction[:, None, :]).reshape(-1, 3)
-
-
-def border_inward_directions(triangles: np.ndarray, points: np.ndarray, border_points: np.ndarray) -> np.ndarray:
-    """Unit inward direction of the surface at each border point, in the surface, normal to the border.
-
-    For each border edge (a, b) of triangle (a, b, c), the inward direction is the component of c − a normal to
-    b − a; a border point averages those of its border edges.
-
-    Returns
-    -------
-    Directions, shape (len(border_points), 3) (zero where undefined).
-    """
-    edges = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
-    opposite = np.concatenate([triangles[:, 2], triangles[:, 0], triangles[:, 1]])
-    key = np.sort(edges, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    border = counts[inverse.ravel()] == 1
-    a, b, c = points[edges[border, 0]], points[edges[border, 1]], points[opposite[border]]
-    along = b - a
-    along /= np.linalg.norm(along, axis=1, keepdims=True)
-    inward = (c - a) - np.einsum("ij,ij->i", c - a, along)[:, None] * along
-    inward /= np.linalg.norm(inward, axis=1, keepdims=True)
-    sums = np.zeros((len(points), 3))
-    np.add.at(sums, edges[border, 0], inward)
-    np.add.at(sums, edges[border, 1], inward)
-    out = sums[border_points]
-    norms = np.linalg.norm(out, axis=1, keepdims=True)
-    return np.divide(out, norms, out=np.zeros_like(out), where=norms > 1e-12)
-
-
-def front_border_points(cut, surface: np.ndarray, cut_direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Border points on the front of the cut (inward direction against ĉ by more than 60°) and their inward
-    directions, shapes (b,) and (b, 3)."""
-    border = cut.border_points()
-    inward = border_inward_directions(cut.triangles, surface, border)
-    front = inward @ cut_direction <= -FRONT_COSINE
-    return border[front], inward[front]
 
 
 def far_from(points: np.ndarray, existing: np.ndarray, distance: float) -> np.ndarray:
@@ -133,77 +93,102 @@ class CutGrowth:
         """Tet locator on the rest positions (built on first use, then kept)."""
         return TetLocator(self.rest_positions, self.tets)
 
-    def start(self, path_points: np.ndarray, direction: np.ndarray, positions: np.ndarray, step: int) -> CutSurface:
-        """The first cut surface: the path swept along the cut direction.
 
-        Parameters
-        ----------
-        path_points : The insertion points in the deformed tissue [m], shape (p, 3), entry first.
-        direction : ĉ, unit, shape (3,).
-        positions : Tissue positions [m], shape (node_count, 3).
-        step : The step creating the points.
-        """
-        resampled = resample_polyline(path_points, self.point_spacing)
-        cloud = sweep_points(resampled, direction, self.extent, self.point_spacing)
-        return self.grow_deformed(CutSurface.empty(self.parameters), cloud, positions, step)
+def start_strip(
+    growth: CutGrowth,
+    cut: CutSurface | None,
+    path_points: np.ndarray,
+    direction: np.ndarray,
+    positions: np.ndarray,
+    step: int,
+    *,
+    extent: float,
+):
+    """A new strip on the insertion path: columns every d_c along it, swept along ĉ by ``extent`` (0: the
+    crack tip starts on the path, as the energy law wants; d_t for the paper's initial surface).
 
-    def grow_deformed(self, cut: CutSurface, points: np.ndarray, positions: np.ndarray, step: int) -> CutSurface:
-        """Add deformed-state points, kept in rest coordinates (equation 4); drop those outside the tissue and
-        those within d_c/2 of an existing point."""
-        if cut.point_count:
-            points = far_from(points, cut.deformed_points(positions, self.tets), 0.5 * self.point_spacing)
-        if len(points) == 0:
-            return cut
-        tets, barycentric = TetLocator(positions, self.tets).locate(points)
-        inside = tets >= 0
-        if not np.any(inside):
-            return cut
-        rest = np.einsum("pk,pkj->pj", barycentric[inside], self.rest_positions[self.tets[tets[inside]]])
-        return cut.with_points(rest, tets[inside], barycentric[inside], step)
+    Parameters
+    ----------
+    growth : The tissue's cut growth (rest positions, tets, d_c).
+    cut : The tissue's cut surface so far (None or empty for the first cut); the strip's points are appended.
+    path_points : The insertion points in the deformed tissue [m], shape (p, 3), entry first.
+    direction : ĉ in the deformed state, unit, shape (3,).
+    positions : Tissue positions [m], shape (n, 3).
+    step : The step.
+    extent : How far the first surface reaches along ĉ [m], ≥ 0.
 
-    def grow_rest(self, cut: CutSurface, rest_points: np.ndarray, step: int) -> CutSurface:
-        """Add rest-state points (those inside the tissue and farther than d_c/2 from every point)."""
-        if cut.point_count and len(rest_points):
-            rest_points = far_from(rest_points, cut.rest_points, 0.5 * self.point_spacing)
-        if len(rest_points) == 0:
-            return cut
-        tets, barycentric = self.rest_locator.locate(rest_points)
-        inside = tets >= 0
-        if not np.any(inside):
-            return cut
-        return cut.with_points(rest_points[inside], tets[inside], barycentric[inside], step)
+    Returns
+    -------
+    (cut, strip) : The grown surface and the new strip, or (cut, None) when fewer than two columns lie in the
+    tissue.
+    """
+    from refsim.cutting.strip import CutFront, CutStrip, append_points, locate_material_points, strip_triangles
 
-    def tear(
-        self,
-        cut: CutSurface,
-        *,
-        positions: np.ndarray,
-        deformation_gradients: np.ndarray,
-        outward: np.ndarray,
-        cut_direction: np.ndarray,
-        needle,
-        entry_arc_length: float,
-        step: int,
-    ) -> CutSurface:
-        """Extend the front of the cut along the inserted length by d_t, along ``outward`` (deformed state).
+    started = clock.perf_counter()
+    cut = CutSurface.empty(growth.parameters) if cut is None else cut
+    spacing = growth.point_spacing
+    columns = resample_polyline(path_points, spacing)
+    layer_count = 1 if extent <= 0.0 else max(int(np.ceil(extent / spacing - 1e-9)), 1) + 1
+    offsets = np.linspace(0.0, extent, layer_count) if layer_count > 1 else np.zeros(1)
+    points = columns[None, :, :] + offsets[:, None, None] * np.asarray(direction, dtype=float)
+    locator = TetLocator(positions, growth.tets)
+    tets, barycentric, inside = locate_material_points(locator, positions, growth.tets, points.reshape(-1, 3))
+    tets, barycentric = tets.reshape(layer_count, -1), barycentric.reshape(layer_count, -1, 4)
+    inside = inside.reshape(layer_count, -1)
+    keep = inside[0]
+    if np.count_nonzero(keep) < 2:
+        return cut, None
+    tets, barycentric, inside = tets[:, keep], barycentric[:, keep], inside[:, keep]
+    rest = np.einsum("lqk,lqkj->lqj", barycentric, growth.rest_positions[growth.tets[np.maximum(tets, 0)]])
+    # A column stops at its first point outside the tissue: later layers reuse its last point inside.
+    reach = np.cumprod(inside, axis=0).astype(bool)
+    layers = np.empty(tets.shape, dtype=np.int64)
+    count = cut.point_count
+    new_rest, new_tets, new_bary = [], [], []
+    for layer in range(layer_count):  # a handful of layers (d_t / d_c), each vectorised over the columns
+        fresh = reach[layer]
+        layers[layer] = layers[layer - 1] if layer else -1
+        layers[layer, fresh] = count + np.arange(int(fresh.sum()))
+        count += int(fresh.sum())
+        new_rest.append(rest[layer, fresh])
+        new_tets.append(tets[layer, fresh])
+        new_bary.append(barycentric[layer, fresh])
+    triangles = [strip_triangles(layers[k], layers[k + 1]) for k in range(layer_count - 1)]
+    grown = append_points(
+        cut,
+        np.concatenate(new_rest),
+        np.concatenate(new_tets),
+        np.concatenate(new_bary),
+        step,
+        np.concatenate(triangles) if triangles else np.zeros((0, 3), dtype=np.int64),
+        seconds=clock.perf_counter() - started,
+    )
+    last = layers[-1]
+    front = CutFront(grown.rest_points[last], grown.tet_indices[last], grown.barycentric[last])
+    return grown, CutStrip(layers, front)
 
-        Parameters
-        ----------
-        cut : The cut surface.
-        positions : Tissue positions [m], shape (node_count, 3).
-        deformation_gradients : F of every tet at ``positions``, shape (tet_count, 3, 3).
-        outward : Unit direction of the growth in the deformed state (−n_c of the tearing row), shape (3,).
-        cut_direction : ĉ, unit, shape (3,).
-        needle : The needle's centreline (anything with ``project(points) -> (arc_lengths, closest)``).
-        entry_arc_length : Arc length of the needle at the entry point [m].
-        step : The step creating the points.
-        """
-        surface = cut.deformed_points(positions, self.tets)
-        front, _ = front_border_points(cut, surface, cut_direction)
-        arc, _ = needle.project(surface[front])
-        front = front[arc >= entry_arc_length - self.point_spacing]  # along the inserted length
-        gradients = deformation_gradients[cut.tet_indices[front]]
-        rest_outward = np.linalg.solve(gradients, np.broadcast_to(outward, (front.size, 3))[..., None])[..., 0]
-        rest_outward /= np.linalg.norm(rest_outward, axis=1, keepdims=True)
-        new_points = sweep_points(cut.rest_points[front], rest_outward, self.extent, self.point_spacing, first=1)
-        return self.grow_rest(cut, new_points, step)
+
+def advance_front(growth: CutGrowth, strip, advances: np.ndarray, direction: np.ndarray, positions: np.ndarray):
+    """The crack tip moved by ``advances`` [m] (deformed length, per column) along ``direction`` (deformed,
+    unit): each moving tip point goes to the material point found at its deformed position plus a·u in the
+    current configuration (kept in rest coordinates, equation 4). Columns whose target lies outside the tissue
+    stay. Returns the new `CutFront`."""
+    from refsim.cutting.strip import CutFront, locate_material_points
+
+    front = strip.front
+    moving = np.flatnonzero(np.asarray(advances) > 0.0)
+    if moving.size == 0:
+        return front
+    current = front.positions(positions, growth.tets)[moving]
+    target = current + np.asarray(advances, dtype=float)[moving, None] * np.asarray(direction, dtype=float)
+    locator = TetLocator(positions, growth.tets)
+    # The crack tip on the tissue surface (the entry column) may step a hair outside it: keep it on the surface.
+    tets, barycentric, inside = locate_material_points(
+        locator, positions, growth.tets, target, snap_distance=0.5 * growth.point_spacing
+    )
+    rest_points, tet_indices, bary = front.rest_points.copy(), front.tet_indices.copy(), front.barycentric.copy()
+    chosen = moving[inside]
+    tet_indices[chosen] = tets[inside]
+    bary[chosen] = barycentric[inside]
+    rest_points[chosen] = np.einsum("pk,pkj->pj", barycentric[inside], growth.rest_positions[growth.tets[tets[inside]]])
+    return CutFront(rest_points, tet_indices, bary)

@@ -53,7 +53,8 @@ from refsim.fem.beam_element import (
     local_deformations,
     timoshenko_stiffness,
 )
-from refsim.geometry.rotations import rotation_matrix, skew
+from refsim.geometry.rotations import needle_rest_frame, rotation_matrix, skew
+from refsim.materials import HookeMaterial
 
 __all__ = ["NeedleSection", "NeedleModel"]
 
@@ -90,12 +91,13 @@ class NeedleSection:
     density: float
 
     def __post_init__(self) -> None:
-        for name in ("radius", "youngs_modulus", "density"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
-        nu = float(self.poisson_ratio)
-        if not (np.isfinite(nu) and -1.0 < nu < 0.5):
-            raise ValueError(f"poisson_ratio must lie in (-1, 0.5), got {self.poisson_ratio!r}")
-        object.__setattr__(self, "poisson_ratio", nu)
+        object.__setattr__(self, "radius", _positive("radius", self.radius))
+        # The material's one definition and validator (refsim.materials): E, ν, ρ and their limits.
+        material = HookeMaterial(
+            youngs_modulus=self.youngs_modulus, poisson_ratio=self.poisson_ratio, density=self.density
+        )
+        for name in ("youngs_modulus", "poisson_ratio", "density"):
+            object.__setattr__(self, name, float(getattr(material, name)))
 
     @property
     def area(self) -> float:
@@ -173,23 +175,11 @@ class NeedleModel:
         base = np.asarray(self.base_position, dtype=float)
         if base.shape != (3,) or not np.all(np.isfinite(base)):
             raise ValueError(f"base_position must be 3 finite numbers [m], got {self.base_position!r}")
-        direction = np.asarray(self.direction, dtype=float)
-        norm = np.linalg.norm(direction) if direction.shape == (3,) else 0.0
-        if direction.shape != (3,) or not np.isfinite(norm) or norm <= 0.0:
-            raise ValueError(f"direction must be a non-zero finite 3-vector, got {self.direction!r}")
-        direction = direction / norm
-        if self.up is None:
-            up = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < np.cos(np.radians(25.0)) else np.eye(3)[1]
-        else:
-            up = np.asarray(self.up, dtype=float)
-            if up.shape != (3,) or not np.all(np.isfinite(up)):
-                raise ValueError(f"up must be a finite 3-vector, got {self.up!r}")
-        normal = up - (up @ direction) * direction
-        if np.linalg.norm(normal) <= 1e-6 * max(np.linalg.norm(up), 1e-300):
-            raise ValueError(f"up {self.up!r} is parallel to direction {self.direction!r}: frame undefined")
+        frame = needle_rest_frame(self.direction, self.up)  # validates direction and up
+        direction, normal = frame[:, 0], frame[:, 1]
         object.__setattr__(self, "base_position", base)
         object.__setattr__(self, "direction", direction)
-        object.__setattr__(self, "up", normal / np.linalg.norm(normal))
+        object.__setattr__(self, "up", normal)
 
     # ------------------------------------------------------------------ sizes and static data
     @property
@@ -225,6 +215,7 @@ class NeedleModel:
     @cached_property
     def rest_frame(self) -> np.ndarray:
         """Rest material frame of every node, columns (direction, up, direction × up), shape (3, 3)."""
+        # The columns of refsim.geometry.needle_rest_frame(direction, up), from the validated direction and up.
         return np.stack([self.direction, self.up, np.cross(self.direction, self.up)], axis=-1)
 
     @cached_property
@@ -450,6 +441,60 @@ class NeedleModel:
         blocks[:, :3, :3] = (s.density * s.area * share)[:, None, None] * np.eye(3)
         blocks[:, 3:, 3:] = rotary
         return sp.block_diag(list(blocks), format="csr")
+
+    def assemble_step(
+        self,
+        positions: np.ndarray,
+        frames: np.ndarray,
+        velocities: np.ndarray,
+        dt: float,
+        base_increment: np.ndarray,
+        *,
+        rayleigh_mass: float = 0.0,
+        rayleigh_stiffness: float = 0.0,
+        mass: sp.spmatrix | None = None,
+        forces: np.ndarray | None = None,
+    ):
+        """The step system of the compliance strategies (:mod:`refsim.fem.compliance`), base node prescribed.
+
+        One Newton step of implicit Euler on A = M/dt² + C/dt + K (co-rotated tangent), the six base DoFs moved by
+        ``base_increment``; a strategy's ``step`` then gives the free motion Δx, W and the correction, which
+        :meth:`apply_increment` turns into positions and frames.
+
+        Parameters
+        ----------
+        positions, frames : The state at the start of the step, shapes (node_count, 3) and (node_count, 3, 3).
+        velocities : Node velocities, linear [m/s] then angular [rad/s], shape (node_count, 6).
+        dt : Time step [s].
+        base_increment : Δx of the base over the step: translation [m] then rotation vector [rad], shape (6,).
+        rayleigh_mass, rayleigh_stiffness : Rayleigh α [1/s] and β [s].
+        mass : M (:meth:`mass_matrix` by default).
+        forces : External minus internal forces [N, N·m], shape (dof_count,); −internal_forces by default.
+        """
+        from refsim.fem.compliance import StepSystem
+        from refsim.fem.integration import effective_stiffness
+
+        positions, frames = self._check_state(positions, frames)
+        mass = self.mass_matrix() if mass is None else mass
+        if forces is None:
+            forces = -self.internal_forces(positions, frames)
+        matrix = effective_stiffness(
+            mass, self.tangent_stiffness(positions, frames), dt,
+            rayleigh_mass=rayleigh_mass, rayleigh_stiffness=rayleigh_stiffness,
+        )
+        increment = np.asarray(base_increment, dtype=float)
+        if increment.shape != (6,):
+            raise ValueError(f"base_increment must have shape (6,), got {increment.shape}")
+        base = np.asarray(self.base_dofs)
+        order = np.argsort(base)
+        rhs = np.asarray(forces, dtype=float) + (sp.csr_matrix(mass) @ np.asarray(velocities, float).ravel()) / dt
+        rest = np.broadcast_to(self.rest_frame, frames.shape)
+
+        def group_rotations() -> np.ndarray:
+            # One rotation per node (frame now · rest frameᵀ), for both 3-DoF groups of the node.
+            return np.repeat(frames @ np.swapaxes(rest, 1, 2), 2, axis=0)
+
+        return StepSystem.from_matrices(matrix, rhs, base, increment[order], group_rotations=group_rotations)
 
     def gravity_forces(self, gravity: np.ndarray) -> np.ndarray:
         """External forces of gravity on the lumped masses [N], shape (dof_count,).

@@ -32,9 +32,13 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from refsim.fem.integration import ImplicitEulerSystem
+from refsim.fem.assembly import FreePattern, assemble_free_system
+from refsim.fem.compliance import BodyCompliance, Exact, StepCompliance, StepSystem
+from refsim.fem.integration import ImplicitEulerSystem, effective_stiffness
+from refsim.fem.threads import hot_path_threads
 from refsim.geometry.rotations import polar_rotation
 from refsim.materials import HookeMaterial
+from refsim.mesh.validation import DEGENERATE_VOLUME_RATIO, degenerate_tets
 
 __all__ = [
     "TissueModel",
@@ -454,48 +458,167 @@ class TissueModel:
             constrained_dofs=self.fixed_dofs,
         )
 
+    def assemble_step(
+        self,
+        state: TissueState,
+        dt: float,
+        *,
+        fixed_displacements: np.ndarray | None = None,
+        compiled: bool = True,
+    ) -> StepSystem:
+        """The step system of the compliance strategies: A on the free DoFs and the free motion's right-hand side.
+
+        A = M/dt² + C/dt + K with the co-rotational tangent at x₀ (see :mod:`refsim.fem.integration`), the fixed
+        DoFs eliminated; rhs = f_ext − f_int(x₀) + (M/dt) v₀ − A_fc Δx_c.
+
+        Parameters
+        ----------
+        state : Positions x₀ [m] and velocities v₀ [m/s] at the start of the step, each (node_count, 3).
+        dt : Time step [s], > 0.
+        fixed_displacements : Displacement of the fixed nodes over the step [m], shape (k, 3) in the order of
+            ``fixed_nodes`` (a boundary motion: a Dirichlet condition on those nodes); zero (held) by default.
+        compiled : Co-rotation and assembly in one compiled pass into the fixed free-DoF pattern
+            (:mod:`refsim.fem.assembly`, default); False: the NumPy path (batched products, then elimination), equal
+            to round-off and bit-identical to refsim before the compiled path.
+        """
+        if not dt > 0.0:
+            raise ValueError(f"dt must be > 0 s, got {dt!r}")
+        positions = self._checked_positions(state.positions)
+        velocities = np.asarray(state.velocities, dtype=float)
+        prescribed = self._prescribed(fixed_displacements)
+        if not compiled:
+            rotations = self.element_rotations(positions)
+            forces = self.external_forces() - self.internal_forces(positions, rotations)
+            matrix = effective_stiffness(
+                self.mass_matrix,
+                self.tangent_stiffness(rotations),
+                dt,
+                rayleigh_mass=self.rayleigh_mass,
+                rayleigh_stiffness=self.rayleigh_stiffness,
+            )
+            rhs = forces.ravel() + (self.mass_matrix @ velocities.ravel()) / dt
+            return StepSystem.from_matrices(
+                matrix,
+                rhs,
+                self.fixed_dofs,
+                prescribed,
+                group_rotations=lambda: self.node_rotations(rotations),
+                rest_matrix=lambda: self._rest_effective_stiffness(dt),
+            )
+        pattern = self.free_pattern
+        data, coupling_data, internal, rotations = assemble_free_system(
+            pattern,
+            positions,
+            self.tets,
+            self._rest_edges_inverse,
+            self._centred_rest,
+            self._element_stiffness,
+            1.0 / dt**2 + self.rayleigh_mass / dt,
+            1.0 + self.rayleigh_stiffness / dt,
+        )
+        rhs = self.external_forces().ravel() - internal + (self.mass_matrix @ velocities.ravel()) / dt
+        reduced = rhs[pattern.free_dofs]
+        if prescribed is not None and prescribed.size:
+            reduced = reduced - pattern.coupling(coupling_data) @ prescribed
+        else:
+            prescribed = np.zeros(pattern.constrained_dofs.size)
+        return StepSystem(
+            self.dof_count,
+            pattern.free_dofs,
+            pattern.constrained_dofs,
+            pattern.matrix(data),
+            reduced,
+            prescribed,
+            group_rotations=lambda: self.node_rotations(rotations),
+            rest_matrix=lambda: self._rest_effective_stiffness(dt),
+        )
+
+    @property
+    def free_pattern(self) -> FreePattern:
+        """The fixed CSR patterns of A_ff and A_fc (built on first use)."""
+        if not hasattr(self, "_free_pattern"):
+            self._free_pattern = FreePattern(self._pattern, self._scatter, self.fixed_dofs, self.mass_matrix)
+        return self._free_pattern
+
+    def _prescribed(self, fixed_displacements: np.ndarray | None) -> np.ndarray | None:
+        if fixed_displacements is None:
+            return None
+        fixed_displacements = np.asarray(fixed_displacements, dtype=float)
+        if fixed_displacements.shape != (self.fixed_nodes.size, 3) or not np.all(np.isfinite(fixed_displacements)):
+            raise ValueError(
+                f"fixed_displacements must be finite, of shape ({self.fixed_nodes.size}, 3) [m] (one row per fixed "
+                f"node, in the order of fixed_nodes), got shape {fixed_displacements.shape}"
+            )
+        return fixed_displacements.ravel()  # fixed_dofs are node-major over the sorted fixed nodes
+
+    def _rest_effective_stiffness(self, dt: float) -> sp.csr_matrix:
+        """A at the rest shape on the free DoFs (the precomputed strategy's C₀ = A₀⁻¹)."""
+        matrix = effective_stiffness(
+            self.mass_matrix,
+            self.rest_stiffness,
+            dt,
+            rayleigh_mass=self.rayleigh_mass,
+            rayleigh_stiffness=self.rayleigh_stiffness,
+        )
+        free = np.setdiff1d(np.arange(self.dof_count), self.fixed_dofs)
+        reduced = matrix[free][:, free].tocsr()
+        reduced.sort_indices()
+        return reduced
+
+    def node_rotations(self, rotations: np.ndarray) -> np.ndarray:
+        """One rotation per node: the polar rotation of the sum of the rotations of its tets, shape (node_count, 3, 3).
+
+        Parameters
+        ----------
+        rotations : Element rotations, shape (tet_count, 3, 3).
+        """
+        rotations = self._checked_rotations(rotations)
+        if not hasattr(self, "_incidence"):
+            tet_count = self.tet_count
+            self._incidence = sp.csr_matrix(
+                (np.ones(4 * tet_count), (self.tets.ravel(), np.repeat(np.arange(tet_count), 4))),
+                shape=(self.node_count, tet_count),
+            )
+        summed = (self._incidence @ rotations.reshape(self.tet_count, 9)).reshape(self.node_count, 3, 3)
+        return polar_rotation(summed)
+
     def free_motion(
         self,
         state: TissueState,
         dt: float,
         *,
         fixed_displacements: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray, ImplicitEulerSystem]:
+        compliance: BodyCompliance | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, StepCompliance]:
         """Free motion: one Newton step of implicit Euler without constraint forces.
 
         Solves A Δx = f_ext − f_int(x₀) + (M/dt) v₀ (see :mod:`refsim.fem.integration`) with the co-rotational
-        tangent at x₀; x_free = x₀ + Δx, v_free = Δx / dt. The constraint correction is then
-        ``x = x_free + system.solve(Hᵀ λ)`` and ``v = (x − x₀)/dt``.
+        tangent at x₀, through a compliance strategy; x_free = x₀ + Δx, v_free = Δx / dt. The constraint
+        correction is then ``x = x_free + step.correction(H, λ)`` and ``v = (x − x₀)/dt``.
 
         Parameters
         ----------
         state : Positions x₀ [m] and velocities v₀ [m/s] at the start of the step, each (node_count, 3).
         dt : Time step [s].
         fixed_displacements : Displacement of the fixed nodes over the step [m], shape (k, 3) in the order of
-            ``fixed_nodes``; zero (held in place) by default.
+            ``fixed_nodes``; zero (held in place) by default. The fixed nodes end the step exactly there.
+        compliance : A strategy bound to this tissue for the run (``Exact().bind()``, ``Refreshed(...).bind()``,
+            …, :mod:`refsim.fem.compliance`); a fresh exact one (factorised now) by default.
 
         Returns
         -------
         free_positions : x_free [m], shape (node_count, 3).
         free_velocities : v_free [m/s], shape (node_count, 3).
-        system : The factorised step system, for the compliance and the correction.
+        step : The step's compliance: ``delassus(H)``, ``correction(H, λ)``, and ``compliance(H)`` → (W, A⁻¹Hᵀ).
         """
         positions = self._checked_positions(state.positions)
-        rotations = self.element_rotations(positions)
-        system = self.step_system(rotations, dt)
-        forces = self.external_forces() - self.internal_forces(positions, rotations)
-        prescribed = None
-        if fixed_displacements is not None:
-            fixed_displacements = np.asarray(fixed_displacements, dtype=float)
-            if fixed_displacements.shape != (self.fixed_nodes.size, 3):
-                raise ValueError(
-                    f"fixed_displacements must have shape ({self.fixed_nodes.size}, 3), "
-                    f"got {fixed_displacements.shape}"
-                )
-            prescribed = fixed_displacements.ravel()
-        step = system.free_displacement(forces.ravel(), state.velocities.ravel(), prescribed)
-        step = step.reshape(self.node_count, 3)
-        return positions + step, step / dt, system
+        if compliance is None:
+            compliance = Exact().bind()
+        with hot_path_threads():
+            system = self.assemble_step(state, dt, fixed_displacements=fixed_displacements)
+            step = compliance.step(system)
+        displacement = step.free_displacement.reshape(self.node_count, 3)
+        return positions + displacement, displacement / dt, step
 
     # ---------------------------------------------------------------- statics
 
@@ -626,14 +749,11 @@ def _validated_mesh(rest_positions: np.ndarray, tets: np.ndarray) -> tuple[np.nd
         raise ValueError(
             f"tets {np.flatnonzero(out_of_range)[:10].tolist()} have node indices outside [0, {node_count})"
         )
-    edges = rest_positions[tets[:, 1:]] - rest_positions[tets[:, :1]]
-    volumes = np.abs(np.linalg.det(edges)) / 6.0
-    lengths = np.linalg.norm(edges, axis=2).max(axis=1)
-    degenerate = volumes <= 1e-10 * lengths**3
-    if np.any(degenerate):
+    degenerate = degenerate_tets(rest_positions, tets)  # the one threshold, refsim.mesh.validation
+    if degenerate.size:
         raise ValueError(
-            f"tets {np.flatnonzero(degenerate)[:10].tolist()} have zero volume "
-            "(|V| <= 1e-10 * longest edge^3)"
+            f"tets {degenerate[:10].tolist()} have zero volume "
+            f"(|V| <= {DEGENERATE_VOLUME_RATIO:g} * longest edge^3)"
         )
     return rest_positions, tets
 

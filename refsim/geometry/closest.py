@@ -2,8 +2,18 @@
 
 The triangle kernel is Ericson's Voronoi-region method ("Real-Time Collision Detection", 2005, §5.1.5): the
 region of the point (three vertex regions, three edge regions, the face) is decided from six dot products,
-here with numpy masks instead of early returns. Triangles whose area vanishes relative to their longest edge
-(collinear or coincident vertices) fall back to the closest of their three edges.
+here with numpy masks instead of early returns. Its face-region formulas divide by |ab × ac|², computed as a
+difference of products of order (longest edge)⁴: on a sliver (area small against the longest edge squared) the
+cancellation leaves barycentric coordinates that are wrong by O(ε L⁴ / |ab × ac|²) and may be negative, and the
+returned point can be metres away from the triangle (measured: 6 m on 5 m triangles with |ab × ac| = 1e-11 L²).
+Thin triangles (|ab × ac| < _THIN_AREA L², and any triangle where Ericson's coordinates come out negative or
+non-finite) therefore take a second path that is correct by construction: the closest of the candidates "the
+closest point of each edge" and "the orthogonal projection on the plane, when its barycentric coordinates
+(from sub-triangle areas) are all non-negative". Every candidate is a point of the triangle, and the true
+closest point is either the plane projection (inside) or on an edge, so the minimum is the closest point up to
+round-off. The plane projection is computed in the frame of the longest edge (see `_face_barycentric`),
+which stays accurate however thin the triangle; exactly collinear or coincident vertices (|ab × ac| = 0) use the
+edges only. Well-shaped triangles keep Ericson's formulas (bit for bit the earlier results).
 """
 
 from __future__ import annotations
@@ -15,6 +25,9 @@ __all__ = ["closest_points_on_segments", "closest_points_on_triangles", "triangl
 # A triangle is degenerate when |ab × ac| <= _DEGENERATE_AREA * (longest edge)²: its normal is then lost in
 # round-off and the face-region formulas divide by (nearly) zero.
 _DEGENERATE_AREA = 1e-12
+# Triangles with |ab × ac| < _THIN_AREA × (longest edge)² take the candidate path. Ericson's face coordinates err by
+# about ε / (|ab × ac| / L²)², 2e-14 relative at this bound: below it the candidates are used instead.
+_THIN_AREA = 1e-1
 
 
 def _check_points(points: np.ndarray) -> np.ndarray:
@@ -107,14 +120,20 @@ def closest_points_on_triangles(points: np.ndarray, triangles: np.ndarray) -> tu
     if triangles.shape != (points.shape[0], 3, 3):
         raise ValueError(f"triangles must have shape ({points.shape[0]}, 3, 3), got {triangles.shape}")
     barycentric = np.zeros((points.shape[0], 3))
+    longest2 = _longest_edge_squared(triangles)
     area2 = np.linalg.norm(
         np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]), axis=1
     )
-    degenerate = area2 <= _DEGENERATE_AREA * _longest_edge_squared(triangles)
-    regular = ~degenerate
-    barycentric[regular] = _ericson_barycentric(points[regular], triangles[regular])
-    if np.any(degenerate):
-        barycentric[degenerate] = _degenerate_barycentric(points[degenerate], triangles[degenerate])
+    regular = area2 >= _THIN_AREA * longest2
+    ericson = _ericson_barycentric(points[regular], triangles[regular])
+    # Ericson's coordinates are non-negative in every region in exact arithmetic; anything else is round-off.
+    trusted = np.all(np.isfinite(ericson), axis=1) & np.all(ericson >= 0.0, axis=1)
+    barycentric[np.flatnonzero(regular)[trusted]] = ericson[trusted]
+    careful = ~regular
+    careful[np.flatnonzero(regular)[~trusted]] = True
+    if np.any(careful):
+        with_face = area2[careful] > 0.0
+        barycentric[careful] = _candidate_barycentric(points[careful], triangles[careful], with_face)
     closest = np.einsum("qk,qki->qi", barycentric, triangles)
     return closest, barycentric
 
@@ -158,17 +177,71 @@ def _ericson_barycentric(points: np.ndarray, triangles: np.ndarray) -> np.ndarra
     return result
 
 
-def _degenerate_barycentric(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates of the closest points on degenerate triangles: the closest of their edges."""
+def _candidate_barycentric(points: np.ndarray, triangles: np.ndarray, with_face: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates of the closest points on thin or degenerate triangles, shape (q, 3).
+
+    The closest of four candidates, each a point of the triangle: the closest point of each edge, and (where
+    ``with_face``) the plane projection when its sub-area coordinates are all non-negative. Ties go to the
+    edges, so a point in a vertex region gets that vertex exactly.
+    """
     count = points.shape[0]
+    rows = np.arange(count)
     starts = triangles[:, [0, 1, 2]].reshape(-1, 3)
     ends = triangles[:, [1, 2, 0]].reshape(-1, 3)
-    closest, parameter = closest_points_on_segments(np.repeat(points, 3, axis=0), starts, ends)
-    distance2 = np.sum((closest - np.repeat(points, 3, axis=0)) ** 2, axis=1).reshape(count, 3)
+    repeated = np.repeat(points, 3, axis=0)
+    closest, parameter = closest_points_on_segments(repeated, starts, ends)
+    distance2 = np.sum((closest - repeated) ** 2, axis=1).reshape(count, 3)
     edge = np.argmin(distance2, axis=1)
-    t = parameter.reshape(count, 3)[np.arange(count), edge]
+    t = parameter.reshape(count, 3)[rows, edge]
     result = np.zeros((count, 3))
-    rows = np.arange(count)
     result[rows, edge] = 1.0 - t
     result[rows, (edge + 1) % 3] += t
+    best = distance2[rows, edge]
+
+    if np.any(with_face):
+        index = np.flatnonzero(with_face)
+        weights = _face_barycentric(points[index], triangles[index])
+        inside = np.all(np.isfinite(weights), axis=1) & np.all(weights >= 0.0, axis=1)
+        face_point = np.einsum("qk,qki->qi", weights, triangles[index])
+        face_distance2 = np.sum((face_point - points[index]) ** 2, axis=1)
+        better = inside & (face_distance2 < best[index])
+        result[index[better]] = weights[better]
+    return result
+
+
+def _face_barycentric(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates of the plane projections of points on thin (non-degenerate) triangles, (q, 3).
+
+    Computed in the frame of the longest edge (u, v), opposite vertex w: ê along v − u, ê₂ the unit part of
+    w − u normal to ê (the triangle's height H = |w − u − c₁ ê|, c₁ = (w − u)·ê). The point's offset from the
+    edge's line, d − x ê, is small near a sliver, so the in-plane coordinate y = ê₂·(d − x ê) suffers little
+    from the ill-determined plane (direction error ε L / H), and the coordinates
+    b_w = y / H, b_v = (x − b_w c₁) / |v − u|, b_u = 1 − b_v − b_w rebuild u + x ê + y ê₂ to round-off even
+    where b_w itself is inaccurate. May be negative (the projection is outside): the caller tests.
+    """
+    count = points.shape[0]
+    rows = np.arange(count)
+    edges = triangles[:, [1, 2, 0]] - triangles
+    longest = np.argmax(np.einsum("fij,fij->fi", edges, edges), axis=1)
+    u = triangles[rows, longest]
+    v = triangles[rows, (longest + 1) % 3]
+    w = triangles[rows, (longest + 2) % 3]
+    edge = v - u
+    edge_length = np.sqrt(_dot(edge, edge))
+    along = edge / edge_length[:, None]
+    c = w - u
+    c1 = _dot(c, along)
+    across = c - c1[:, None] * along
+    height = np.sqrt(_dot(across, across))
+    offset = points - u
+    x = _dot(offset, along)
+    with np.errstate(divide="ignore", invalid="ignore"):  # height 0 (collinear to round-off): non-finite, rejected
+        across /= height[:, None]
+        y = _dot(across, offset - x[:, None] * along)
+        weight_w = y / height
+        weight_v = (x - weight_w * c1) / edge_length
+    result = np.zeros((count, 3))
+    result[rows, longest] = 1.0 - weight_v - weight_w
+    result[rows, (longest + 1) % 3] = weight_v
+    result[rows, (longest + 2) % 3] = weight_w
     return result

@@ -6,9 +6,18 @@ All functions take and return stacks: rotation vectors of shape (k, 3) [rad] and
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
-__all__ = ["skew", "rotation_matrix", "rotation_vector", "polar_rotation"]
+__all__ = [
+    "skew",
+    "rotation_matrix",
+    "rotation_vector",
+    "polar_rotation",
+    "polar_rotation_svd",
+    "polar_rotation_one",
+    "needle_rest_frame",
+]
 
 # Below this angle [rad] the series expansions of sin(θ)/θ and (1 − cos θ)/θ² are used; their truncation error
 # (θ⁴/120 and θ⁴/720) is then under 1e-18, below double round-off.
@@ -100,11 +109,106 @@ def rotation_vector(matrices: np.ndarray) -> np.ndarray:
     return out
 
 
-def polar_rotation(deformation_gradients: np.ndarray) -> np.ndarray:
-    """Rotation factor R of the polar decomposition F = R U, with det R = +1.
+@numba.njit(cache=True, fastmath=False)
+def _polar_svd(f: np.ndarray, out: np.ndarray) -> None:
+    u, _, vt = np.linalg.svd(f)
+    r = u @ vt
+    if np.linalg.det(r) < 0.0:
+        for i in range(3):
+            u[i, 2] = -u[i, 2]
+        r = u @ vt
+    out[:, :] = r
 
-    Computed by batched SVD, F = P Σ Qᵀ, R = P diag(1, 1, det(P Qᵀ)) Qᵀ, so that inverted elements (det F < 0) still
-    give a proper rotation (the closest one to F).
+
+@numba.njit(cache=True, fastmath=False)
+def polar_rotation_one(f: np.ndarray, out: np.ndarray) -> int:
+    """Rotation of the polar decomposition of one 3 × 3 matrix, into ``out``; returns the iterations (-1: SVD).
+
+    Scaled Newton iteration X ← ½ (γ X + γ⁻¹ X⁻ᵀ), γ = (‖X⁻¹‖_F / ‖X‖_F)^½ (Higham, Functions of Matrices, §8.6),
+    from X₀ = F; it converges quadratically to R when det F > 0. When det F ≤ 0 (an inverted or flat element) or
+    without convergence in 30 iterations the SVD gives the closest proper rotation, as :func:`polar_rotation_svd`.
+    """
+    a00, a01, a02 = f[0, 0], f[0, 1], f[0, 2]
+    a10, a11, a12 = f[1, 0], f[1, 1], f[1, 2]
+    a20, a21, a22 = f[2, 0], f[2, 1], f[2, 2]
+    det = a00 * (a11 * a22 - a12 * a21) - a01 * (a10 * a22 - a12 * a20) + a02 * (a10 * a21 - a11 * a20)
+    scale = a00 * a00 + a01 * a01 + a02 * a02 + a10 * a10 + a11 * a11 + a12 * a12 + a20 * a20 + a21 * a21 + a22 * a22
+    if not (det > 1e-14 * scale**1.5):
+        _polar_svd(f, out)
+        return -1
+    scaled = True
+    for iteration in range(30):
+        # cofactor matrix C: X⁻ᵀ = C / det
+        c00 = a11 * a22 - a12 * a21
+        c01 = a12 * a20 - a10 * a22
+        c02 = a10 * a21 - a11 * a20
+        c10 = a02 * a21 - a01 * a22
+        c11 = a00 * a22 - a02 * a20
+        c12 = a01 * a20 - a00 * a21
+        c20 = a01 * a12 - a02 * a11
+        c21 = a02 * a10 - a00 * a12
+        c22 = a00 * a11 - a01 * a10
+        det = a00 * c00 + a01 * c01 + a02 * c02
+        norm = a00 * a00 + a01 * a01 + a02 * a02 + a10 * a10 + a11 * a11 + a12 * a12 + a20 * a20 + a21 * a21 + a22 * a22
+        inverse_norm = (
+            c00 * c00 + c01 * c01 + c02 * c02 + c10 * c10 + c11 * c11 + c12 * c12 + c20 * c20 + c21 * c21 + c22 * c22
+        ) / (det * det)
+        gamma = (inverse_norm / norm) ** 0.25 if scaled else 1.0
+        g = 0.5 * gamma
+        h = 0.5 / (gamma * det)
+        b00, b01, b02 = g * a00 + h * c00, g * a01 + h * c01, g * a02 + h * c02
+        b10, b11, b12 = g * a10 + h * c10, g * a11 + h * c11, g * a12 + h * c12
+        b20, b21, b22 = g * a20 + h * c20, g * a21 + h * c21, g * a22 + h * c22
+        change = (
+            (b00 - a00) ** 2 + (b01 - a01) ** 2 + (b02 - a02) ** 2 + (b10 - a10) ** 2 + (b11 - a11) ** 2
+            + (b12 - a12) ** 2 + (b20 - a20) ** 2 + (b21 - a21) ** 2 + (b22 - a22) ** 2
+        )
+        a00, a01, a02, a10, a11, a12, a20, a21, a22 = b00, b01, b02, b10, b11, b12, b20, b21, b22
+        if change < 1e-6:
+            scaled = False  # near convergence the scaling only perturbs the quadratic rate
+        if change < 1e-30:  # ‖ΔX‖_F < 1e-15: the next step is below round-off (quadratic convergence)
+            out[0, 0], out[0, 1], out[0, 2] = a00, a01, a02
+            out[1, 0], out[1, 1], out[1, 2] = a10, a11, a12
+            out[2, 0], out[2, 1], out[2, 2] = a20, a21, a22
+            return iteration + 1
+    _polar_svd(f, out)
+    return -1
+
+
+@numba.njit(cache=True)
+def _polar_batch(f: np.ndarray, out: np.ndarray) -> None:
+    for k in range(f.shape[0]):
+        polar_rotation_one(f[k], out[k])
+
+
+def polar_rotation(deformation_gradients: np.ndarray) -> np.ndarray:
+    """Rotation factor R of the polar decomposition F = R U, with det R = +1 (compiled scaled Newton).
+
+    See :func:`polar_rotation_one`: scaled Newton when det F > 0, the SVD (closest proper rotation) otherwise.
+    Equal to :func:`polar_rotation_svd` to a few ε.
+
+    Parameters
+    ----------
+    deformation_gradients : Matrices F, shape (k, 3, 3).
+
+    Returns
+    -------
+    Rotation matrices, shape (k, 3, 3).
+    """
+    f = np.ascontiguousarray(deformation_gradients, dtype=float)
+    if f.shape[-2:] != (3, 3):
+        raise ValueError(f"deformation_gradients must have shape (k, 3, 3), got {f.shape}")
+    flat = f.reshape(-1, 3, 3)
+    out = np.empty_like(flat)
+    _polar_batch(flat, out)
+    return out.reshape(f.shape)
+
+
+def polar_rotation_svd(deformation_gradients: np.ndarray) -> np.ndarray:
+    """Rotation factor R of the polar decomposition F = R U, with det R = +1, by batched SVD (the reference).
+
+    F = P Σ Qᵀ, R = P diag(1, 1, det(P Qᵀ)) Qᵀ, so that inverted elements (det F < 0) still give a proper rotation
+    (the closest one to F).
 
     Parameters
     ----------
@@ -118,3 +222,36 @@ def polar_rotation(deformation_gradients: np.ndarray) -> np.ndarray:
     det = np.linalg.det(u @ vt)
     u[..., :, 2] *= det[..., None]
     return u @ vt
+
+
+def needle_rest_frame(direction: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
+    """The needle's rest material frame: columns (direction, e₁, direction × e₁), shape (3, 3).
+
+    The one convention of both needles (the rigid one and the beam model). e₁ is the part of ``up`` normal to
+    ``direction``, normalised; by default ``up`` is world z, or world y when the needle is within 25° of z.
+
+    Parameters
+    ----------
+    direction : Needle direction from base to tip, shape (3,), non-zero (normalised here).
+    up : Reference vector fixing the cross-section frame, shape (3,), not parallel to ``direction``.
+
+    Raises
+    ------
+    ValueError
+        When ``direction`` is zero or not finite, or ``up`` is parallel to it.
+    """
+    direction = np.asarray(direction, dtype=float)
+    norm = np.linalg.norm(direction) if direction.shape == (3,) else 0.0
+    if direction.shape != (3,) or not np.isfinite(norm) or norm <= 0.0:
+        raise ValueError(f"direction must be a non-zero finite 3-vector, got {direction!r}")
+    direction = direction / norm
+    if up is None:
+        up = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < np.cos(np.radians(25.0)) else np.eye(3)[1]
+    up = np.asarray(up, dtype=float)
+    if up.shape != (3,) or not np.all(np.isfinite(up)):
+        raise ValueError(f"up must be a finite 3-vector, got {up!r}")
+    normal = up - (up @ direction) * direction
+    if np.linalg.norm(normal) <= 1e-6 * max(np.linalg.norm(up), 1e-300):
+        raise ValueError(f"up {up!r} is parallel to direction {direction!r}: frame undefined")
+    normal /= np.linalg.norm(normal)
+    return np.stack([direction, normal, np.cross(direction, normal)], axis=-1)

@@ -21,6 +21,7 @@ __all__ = [
     "ResultsError",
     "Results",
     "StepConstraints",
+    "read_problem_group",
     "read_problems",
     "read_results",
 ]
@@ -115,6 +116,8 @@ class Results:
     kind_names, source_names, phase_names, stage_names : Names of the codes.
     events : Events in order of occurrence.
     cut : The cut surface history, or None when the run cut nothing.
+    boundary_nodes : Nodes a boundary motion moves, (b,) (empty: none).
+    boundary_displacement : Their prescribed displacement from rest after each step [m], (s, b, 3).
     """
 
     path: Path
@@ -155,6 +158,8 @@ class Results:
     events: tuple = ()
     cut: CutHistory | None = None
     problem_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    boundary_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    boundary_displacement: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3)))
 
     # ------------------------------------------------------------------ sizes
 
@@ -162,6 +167,11 @@ class Results:
     def step_count(self) -> int:
         """Number of completed steps in the file."""
         return int(self.step.shape[0])
+
+    @property
+    def stop_reason(self) -> str:
+        """Why the run stopped early ("" for a complete run; files written before the attribute existed: "")."""
+        return str(self.attributes.get("stop_reason", ""))
 
     @property
     def scene_name(self) -> str:
@@ -351,7 +361,8 @@ def read_results(path) -> Results:
         row_count = int(offsets[-1])
         last_step = int(handle[schema.STEPS["step"].path][count - 1]) if count else 0
 
-        steps = {name: _read(handle, spec.path, count) for name, spec in schema.STEPS.items()}
+        steps = {name: _read(handle, spec.path, count) for name, spec in schema.STEPS.items()
+                 if spec.path in handle or name != "boundary_displacement"}  # files before the boundary motion
         stage_names = _names(handle[schema.STEPS["stage_seconds"].path])
         solver = {name: _read(handle, spec.path, count) for name, spec in schema.SOLVER.items()}
         rows = {
@@ -412,6 +423,11 @@ def read_results(path) -> Results:
             phase_names=_names(handle[schema.STEPS["phase"].path]),
             stage_names=stage_names,
             events=events,
+            boundary_nodes=_read(handle, schema.STATIC["tissue/boundary_nodes"].path)
+            if schema.STATIC["tissue/boundary_nodes"].path in handle
+            else np.zeros(0, dtype=np.int64),
+            boundary_displacement=steps["boundary_displacement"] if "boundary_displacement" in steps
+            else np.zeros((len(steps["step"]), 0, 3)),
             cut=cut,
             problem_steps=np.array(_problem_steps(handle, last_step), dtype=np.int64),
         )
@@ -436,8 +452,6 @@ def read_problems(path, *, steps=None) -> list[tuple[int, object]]:
     -------
     list of (step, refsim.solvers.ConstraintProblem), in step order; empty when none were recorded.
     """
-    from refsim.solvers import ConstraintProblem
-
     path, handle, attributes = _open(path)
     wanted = None if steps is None else {int(step) for step in steps}
     problems = []
@@ -449,7 +463,18 @@ def read_problems(path, *, steps=None) -> list[tuple[int, object]]:
             if wanted is not None and step not in wanted:
                 continue
             group = handle[schema.problem_group_name(step)]
-            fields = {spec.name: group[spec.name][()] for spec in schema.PROBLEM_FIELDS.values()}
-            name = _plain(group.attrs.get("name", "")) or f"{path.name} step {step}"
-            problems.append((step, ConstraintProblem(**fields, name=name)))
+            problems.append((step, read_problem_group(group, default_name=f"{path.name} step {step}")))
     return problems
+
+
+def read_problem_group(group, *, default_name: str = ""):
+    """The ConstraintProblem stored in an open h5py group by :func:`refsim.io.writer.write_problem_group`.
+
+    Fields newer than the file (absent from the group) take their defaults.
+    """
+    from refsim.solvers import ConstraintProblem
+
+    fields = {spec.name: group[spec.name][()] for spec in schema.PROBLEM_FIELDS.values()
+              if spec.name in group}
+    name = _plain(group.attrs.get("name", "")) or default_name
+    return ConstraintProblem(**fields, name=name)

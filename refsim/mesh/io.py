@@ -9,6 +9,8 @@ as ``label x y z``.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 from pathlib import Path
 
@@ -65,7 +67,8 @@ def read_mesh(path: str | Path, *, fix_orientation: bool = True) -> TetMesh:
     else:
         positions, tets = _read_meshio(path)
     positions, tets = validate_mesh(
-        positions, tets, source=source, fix_orientation=fix_orientation, drop_unused_nodes=True
+        positions, tets, source=source, fix_orientation=fix_orientation, drop_unused_nodes=True,
+        merge_duplicates=True,
     )
     mesh = TetMesh(positions, tets, source=source)
     logger.info("read %s: %d nodes, %d tetrahedra", source, mesh.node_count, mesh.tet_count)
@@ -76,10 +79,15 @@ def _read_meshio(path: Path) -> tuple[np.ndarray, np.ndarray]:
     import meshio
 
     source = str(path)
+    captured = io.StringIO()
     try:
-        data = meshio.read(path)
-    except (Exception, SystemExit) as error:  # meshio raises many types, and its gmsh reader calls sys.exit
-        raise MeshError(source, f"meshio cannot read it ({type(error).__name__}: {error})") from None
+        # meshio prints its own errors and some readers call sys.exit: keep both out of the user's terminal.
+        with contextlib.redirect_stdout(captured), contextlib.redirect_stderr(captured):
+            data = meshio.read(path)
+    except (Exception, SystemExit) as error:  # meshio raises many types
+        said = " ".join(captured.getvalue().split()) or f"{type(error).__name__}: {error}"
+        raise MeshError(source, f"cannot read it as a {_format_name(path)} mesh: {_truncation_hint(path)}"
+                                f"(meshio said: {said[:300]})") from None
     blocks = [block.data for block in data.cells if block.type == "tetra"]
     ignored = sorted({block.type for block in data.cells if block.type != "tetra"})
     if not blocks:
@@ -93,6 +101,37 @@ def _read_meshio(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if points.ndim != 2 or points.shape[1] != 3:
         raise MeshError(source, f"points must be 3-D, got an array of shape {points.shape}")
     return points, np.concatenate(blocks).astype(np.int64)
+
+
+_FORMAT_NAMES = {".vtu": "VTK XML (.vtu)", ".vtk": "legacy VTK (.vtk)", ".msh": "Gmsh (.msh)", ".xdmf": "XDMF",
+                 ".med": "MED", ".mesh": "Medit (.mesh)", ".inp": "Abaqus (.inp)"}
+# The last marker of a complete file, per format: without it the file was cut short.
+_END_MARKERS = {".vtu": b"</VTKFile>", ".msh": b"$End"}
+
+
+def _format_name(path: Path) -> str:
+    return _FORMAT_NAMES.get(path.suffix.lower(), f"'{path.suffix or 'unknown'}'")
+
+
+def _truncation_hint(path: Path) -> str:
+    """"the file is truncated (...)" when its format's closing marker is missing from its end, else "the file
+    is malformed or not in this format "."""
+    marker = _END_MARKERS.get(path.suffix.lower())
+    if marker is None:
+        return "the file is truncated, malformed or not in this format "
+    try:
+        with path.open("rb") as stream:
+            stream.seek(max(0, path.stat().st_size - 4096))
+            tail = stream.read()
+    except OSError:
+        return ""
+    if marker == b"$End":  # Gmsh: the last section must be closed, e.g. $EndElements
+        closed = tail.rstrip().splitlines()[-1:] if tail.strip() else []
+        if not closed or not closed[0].strip().startswith(b"$End"):
+            return "the file is truncated (it does not end with a closing $End... line) "
+    elif marker not in tail:
+        return f"the file is truncated (no closing {marker.decode()}) "
+    return "the file is malformed "
 
 
 def _section(text: str, begin: str, end: str, source: str) -> list[str]:

@@ -8,14 +8,18 @@ import numpy as np
 
 from refsim.geometry.barycentric import signed_volumes
 
-__all__ = ["MeshError", "validate_mesh"]
+__all__ = ["DEGENERATE_VOLUME_RATIO", "DUPLICATE_NODE_TOLERANCE", "MeshError", "degenerate_tets", "merge_duplicate_nodes", "validate_mesh"]
 
 logger = logging.getLogger(__name__)
 
-# A tetrahedron is degenerate when |volume| <= _DEGENERATE_VOLUME × (longest edge)³. A regular tetrahedron has
-# volume / edge³ = 0.118 and a Kuhn tetrahedron of the box generator 0.032; the determinant's round-off is
-# ~1e-16 relative, so 1e-12 flags only elements that are flat to within round-off of their own size.
-_DEGENERATE_VOLUME = 1e-12
+# A tetrahedron is degenerate when |volume| <= DEGENERATE_VOLUME_RATIO × (longest edge)³. A regular tetrahedron has
+# volume / edge³ = 0.118 and a Kuhn tetrahedron of the box generator 0.032. The determinant's round-off is ~1e-16
+# relative, but an element with a ratio of 1e-10 already makes the stiffness matrix's condition number grow by
+# ~1e9 and its rotation (polar decomposition) unreliable: such elements are refused. This is the one threshold of
+# refsim: the mesh validation and the tissue model (refsim.fem.tissue) both use it.
+DEGENERATE_VOLUME_RATIO = 1e-10
+#: Nodes closer than this fraction of the mesh's bounding-box diagonal are duplicates (merged by `read_mesh`).
+DUPLICATE_NODE_TOLERANCE = 1e-9
 # Tetrahedron edges as pairs of local node indices.
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 _TET_FACES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
@@ -67,6 +71,7 @@ def validate_mesh(
     source: str = "<array>",
     fix_orientation: bool = False,
     drop_unused_nodes: bool = False,
+    merge_duplicates: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Check a tetrahedral mesh and return it as float64 positions and int64 tets.
 
@@ -79,6 +84,8 @@ def validate_mesh(
         nodes, with a logged warning; otherwise inverted tetrahedra are an error.
     drop_unused_nodes : Remove nodes used by no tetrahedron and renumber, with a logged warning; otherwise
         unused nodes are an error (they would make the stiffness matrix singular).
+    merge_duplicates : Merge coincident nodes (`merge_duplicate_nodes`) with a logged warning; otherwise
+        coincident nodes are an error.
 
     Returns
     -------
@@ -107,17 +114,77 @@ def validate_mesh(
             f"{out_of_range.size} tetrahedra with node indices out of range [0, {node_count - 1}]: "
             f"tets {_first(out_of_range)} (indices {_first(values)})",
         )
+    if merge_duplicates:
+        positions, tets, _ = merge_duplicate_nodes(positions, tets, source=source)
+    else:
+        _check_duplicates(positions, source)
     tets = _check_volumes(positions, tets, source, fix_orientation)
     _check_faces(tets, source)
     return _check_unused(positions, tets, source, drop_unused_nodes)
 
 
-def _check_volumes(positions: np.ndarray, tets: np.ndarray, source: str, fix_orientation: bool) -> np.ndarray:
-    vertices = positions[tets]
+def degenerate_tets(rest_positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Indices of the degenerate tetrahedra: |volume| <= DEGENERATE_VOLUME_RATIO × (longest of 6 edges)³, (d,).
+
+    Parameters
+    ----------
+    rest_positions : Node positions [m], shape (n, 3).
+    tets : Node indices, shape (m, 4).
+    """
+    vertices = np.asarray(rest_positions, dtype=float)[np.asarray(tets)]
     volumes = signed_volumes(vertices)
     edges = vertices[:, _TET_EDGES[:, 1]] - vertices[:, _TET_EDGES[:, 0]]
     longest = np.sqrt(np.max(np.einsum("mei,mei->me", edges, edges), axis=1))
-    degenerate = np.flatnonzero(np.abs(volumes) <= _DEGENERATE_VOLUME * longest**3)
+    return np.flatnonzero(np.abs(volumes) <= DEGENERATE_VOLUME_RATIO * longest**3)
+
+
+def merge_duplicate_nodes(
+    rest_positions: np.ndarray, tets: np.ndarray, *, source: str = "<array>"
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Merge nodes closer than DUPLICATE_NODE_TOLERANCE × the bounding-box diagonal; renumber the tets.
+
+    Unmerged duplicates (a mesh exported without "coherence") split the tissue into loose elements that share
+    no node: its stiffness falls apart. They are merged onto the first node of each cluster, with a logged
+    warning giving the count; elements that become degenerate (two of their nodes merged) are then refused by
+    the volume check.
+
+    Returns
+    -------
+    rest_positions : Positions of the kept nodes [m], (n', 3).
+    tets : Renumbered tets, (m, 4).
+    merged : Number of nodes merged away.
+    """
+    from scipy.spatial import cKDTree
+
+    positions = np.asarray(rest_positions, dtype=float)
+    diagonal = float(np.linalg.norm(positions.max(axis=0) - positions.min(axis=0)))
+    pairs = cKDTree(positions).query_pairs(DUPLICATE_NODE_TOLERANCE * max(diagonal, 1e-300), output_type="ndarray")
+    if pairs.size == 0:
+        return positions, np.asarray(tets), 0
+    # Union the pairs (connected components) and map each node onto the smallest index of its cluster.
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    count = positions.shape[0]
+    graph = coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(count, count))
+    _, labels = connected_components(graph, directed=False)
+    first = np.full(labels.max() + 1, count, dtype=np.int64)
+    np.minimum.at(first, labels, np.arange(count))
+    representative = first[labels]
+    keep = representative == np.arange(count)
+    renumber = np.cumsum(keep) - 1
+    merged = int(count - keep.sum())
+    logger.warning(
+        "%s: merged %d duplicate node(s) (closer than %.1e of the mesh size %.3g m); the mesh had unconnected "
+        "elements at those nodes", source, merged, DUPLICATE_NODE_TOLERANCE, diagonal,
+    )
+    return positions[keep], renumber[representative[np.asarray(tets)]], merged
+
+
+def _check_volumes(positions: np.ndarray, tets: np.ndarray, source: str, fix_orientation: bool) -> np.ndarray:
+    vertices = positions[tets]
+    volumes = signed_volumes(vertices)
+    degenerate = degenerate_tets(positions, tets)
     if degenerate.size:
         raise MeshError(
             source,
@@ -136,6 +203,19 @@ def _check_volumes(positions: np.ndarray, tets: np.ndarray, source: str, fix_ori
         tets = tets.copy()
         tets[inverted] = tets[inverted][:, [0, 1, 3, 2]]
     return tets
+
+
+def _check_duplicates(positions: np.ndarray, source: str) -> None:
+    from scipy.spatial import cKDTree
+
+    diagonal = float(np.linalg.norm(positions.max(axis=0) - positions.min(axis=0)))
+    pairs = cKDTree(positions).query_pairs(DUPLICATE_NODE_TOLERANCE * max(diagonal, 1e-300), output_type="ndarray")
+    if pairs.size:
+        raise MeshError(
+            source,
+            f"{pairs.shape[0]} pair(s) of coincident nodes (closer than {DUPLICATE_NODE_TOLERANCE:g} of the mesh "
+            f"size), e.g. nodes {pairs[0].tolist()}: elements there share no node (read_mesh merges them)",
+        )
 
 
 def _check_faces(tets: np.ndarray, source: str) -> None:

@@ -9,8 +9,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from refsim.scene.fields import describe_field
-from refsim.scene.spec import SECTIONS, Scene
+from refsim.scene.fields import FieldError, describe_field
+from refsim.scene.spec import SECTIONS, ConsistencyError, Scene
 
 __all__ = ["SceneError", "load_scene", "scene_from_dict", "scene_to_json", "builtin_scenes", "parse_override"]
 
@@ -55,7 +55,9 @@ def parse_override(text: str) -> tuple[str, str, Any]:
     if "=" not in text or "." not in text.split("=", 1)[0]:
         raise SceneError(f"override {text!r}: expected section.key=value, e.g. needle.radius=0.001")
     dotted, raw = text.split("=", 1)
-    section, key = dotted.strip().split(".", 1)
+    section, key = (part.strip() for part in dotted.strip().split(".", 1))
+    if not section or not key or "." in key:
+        raise SceneError(f"override {text!r}: expected section.key=value, e.g. needle.radius=0.001")
     try:
         value = tomllib.loads(f"v = {raw.strip()}")["v"]
     except tomllib.TOMLDecodeError:
@@ -63,14 +65,40 @@ def parse_override(text: str) -> tuple[str, str, Any]:
     return section, key, value
 
 
-def scene_from_dict(data: dict, *, source: str = "<memory>", base_directory: str = ".") -> Scene:
+def _origin(source: str, overrides: dict, section: str, key: str | None, related=()) -> str:
+    """Who gave the value of section.key (or of a related key the check involves): the ``--set`` override when
+    there is one, else the file."""
+    for candidate in [(section, key), *related]:
+        text = overrides.get(candidate)
+        if text is not None:
+            return f"override --set {text!r} (scene {source})"
+    return source
+
+
+def _qualified(section: str, key: str, message: str) -> str:
+    """The message with its leading key named as section.key."""
+    return f"{section}.{message}" if message.startswith(key) else f"[{section}] {message}"
+
+
+def scene_from_dict(
+    data: dict, *, source: str = "<memory>", base_directory: str = ".", overrides: dict | None = None
+) -> Scene:
     """Build a validated scene from plain data (the TOML document).
+
+    Parameters
+    ----------
+    data : The TOML document as plain data.
+    source : The file it came from (named in messages).
+    base_directory : Relative paths in the scene are relative to this folder.
+    overrides : ``{(section, key): "section.key=value"}`` for values given by ``--set``: an error in such a value
+        is blamed on the override, not on the file.
 
     Raises
     ------
     SceneError
-        Naming ``source``, the key, the value and what is allowed.
+        Naming the file or the override, section.key, the value and what is allowed.
     """
+    overrides = overrides or {}
     unknown = sorted(set(data) - set(SECTIONS) - {"name"})
     if unknown:
         raise SceneError(f"{source}: unknown section or key {unknown[0]!r} (sections: {', '.join(SECTIONS)})")
@@ -80,7 +108,7 @@ def scene_from_dict(data: dict, *, source: str = "<memory>", base_directory: str
     for name, cls in SECTIONS.items():
         table = data.get(name)
         if table is None:
-            if name == "output":
+            if name in ("output", "compliance", "boundary"):
                 table = {}
             else:
                 raise SceneError(f"{source}: missing section [{name}]")
@@ -89,7 +117,10 @@ def scene_from_dict(data: dict, *, source: str = "<memory>", base_directory: str
         fields = {f.name: f for f in dataclasses.fields(cls)}
         for key in table:
             if key not in fields:
-                raise SceneError(f"{source}: unknown key {name}.{key} (keys of [{name}]: {', '.join(fields)})")
+                raise SceneError(
+                    f"{_origin(source, overrides, name, key)}: unknown key {name}.{key} "
+                    f"(keys of [{name}]: {', '.join(fields)})"
+                )
         for key, field in fields.items():
             required = field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING
             if required and key not in table:
@@ -98,11 +129,22 @@ def scene_from_dict(data: dict, *, source: str = "<memory>", base_directory: str
                 )
         try:
             sections[name] = cls(**{k: _tuples(v) for k, v in table.items()})
+        except FieldError as error:
+            raise SceneError(
+                f"{_origin(source, overrides, name, error.key, [(name, k) for k in error.related])}: "
+                f"{_qualified(name, error.key, str(error))}"
+            ) from None
         except (ValueError, TypeError) as error:
             raise SceneError(f"{source}: [{name}] {error}") from None
-    return Scene(
-        name=data.get("name", Path(source).stem), source=source, base_directory=base_directory, **sections
-    )
+    try:
+        return Scene(
+            name=data.get("name", Path(source).stem), source=source, base_directory=base_directory, **sections
+        )
+    except ConsistencyError as error:
+        raise SceneError(
+            f"{_origin(source, overrides, error.section, error.key, error.related_keys)}: "
+            f"{_qualified(error.section, error.key, str(error))}"
+        ) from None
 
 
 def load_scene(path_or_name: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> Scene:
@@ -111,7 +153,8 @@ def load_scene(path_or_name: str | Path, overrides: list[str] | tuple[str, ...] 
     Parameters
     ----------
     path_or_name : A path to a TOML file, or the name of a built-in scene (``cube``, ``cube_cut``, ...).
-    overrides : Strings ``section.key=value`` (TOML values), applied after reading.
+    overrides : Strings ``section.key=value`` (TOML values), applied after reading; an error in one of them is
+        blamed on it (``override --set '...'``), not on the file.
     """
     path = _resolve(path_or_name)
     try:
@@ -120,12 +163,16 @@ def load_scene(path_or_name: str | Path, overrides: list[str] | tuple[str, ...] 
         raise SceneError(f"{path}: not valid TOML: {error}") from None
     except (OSError, UnicodeDecodeError) as error:
         raise SceneError(f"{path}: cannot read the scene file: {error}") from None
+    origins = {}
     for text in overrides:
         section, key, value = parse_override(text)
         if section not in SECTIONS:
             raise SceneError(f"override {text!r}: unknown section {section!r} (sections: {', '.join(SECTIONS)})")
+        if not isinstance(data.get(section, {}), dict):
+            raise SceneError(f"{path}: [{section}] must be a table")
         data.setdefault(section, {})[key] = value
-    return scene_from_dict(data, source=str(path), base_directory=str(path.parent))
+        origins[(section, key)] = text
+    return scene_from_dict(data, source=str(path), base_directory=str(path.parent), overrides=origins)
 
 
 def scene_to_json(scene: Scene) -> str:

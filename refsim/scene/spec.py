@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from refsim.scene.fields import check_fields, spec
+from refsim.materials import MATERIAL_LIMITS
+from refsim.scene.fields import FieldError, check_fields, spec
 
 __all__ = [
     "MeshSpec",
@@ -24,8 +25,13 @@ __all__ = [
     "CuttingSpec",
     "SolverSpec",
     "OutputSpec",
+    "ComplianceSpec",
+    "BoundarySpec",
     "Scene",
     "FACE_NAMES",
+    "ConsistencyError",
+    "check_consistency",
+    "max_tip_speed",
 ]
 
 FACE_NAMES = ("xmin", "xmax", "ymin", "ymax", "zmin", "zmax")
@@ -46,66 +52,67 @@ class MeshSpec(_Validated):
 
     generator: str | None = spec(None, doc="mesh generator, 'box', or none when `file` is given", choices=("box",))
     size: tuple | None = spec(None, unit="m", doc="box edge lengths", low=0.0, low_open=True, length=3)
-    cells: tuple | None = spec(None, doc="box cells per axis (6 tets each)", low=1, high=256, length=3)
+    cells: tuple | None = spec(None, doc="box cells per axis (6 tets each)", low=1, high=256, length=3, integer=True)
     origin: tuple = spec((0.0, 0.0, 0.0), unit="m", doc="box corner with the smallest coordinates", length=3)
     file: str | None = spec(None, doc="volume mesh file (any format meshio reads, or Gmsh v1); relative to the scene")
     scale: float = spec(1.0, unit="-", doc="factor applied to the file's coordinates to get metres", low=0.0, low_open=True)
     fixed_faces: tuple = spec((), doc="bounding-box faces whose nodes are fixed: xmin, xmax, ymin, ymax, zmin, zmax")
     fixed_box: tuple | None = spec(None, doc="nodes inside this box [[xmin, ymin, zmin], [xmax, ymax, zmax]] [m] are fixed")
+    fixed_nodes: tuple | None = spec(None, doc="indices of fixed nodes (as SOFA's FixedConstraint lists them), in the mesh file's order", low=0, integer=True)
     face_tolerance: float = spec(1e-9, unit="m", doc="distance to a bounding-box face within which a node is on it", low=0.0)
 
     def validate(self) -> None:
         if (self.generator is None) == (self.file is None):
-            raise ValueError(f"give exactly one of generator or file, got generator={self.generator!r}, file={self.file!r}")
+            raise FieldError("generator", f"give exactly one of generator or file, got generator={self.generator!r}, file={self.file!r}")
         if self.generator == "box":
             if self.size is None or self.cells is None:
-                raise ValueError("the box generator needs size [m] (3 numbers) and cells (3 integers)")
-            if not all(isinstance(c, int) and not isinstance(c, bool) for c in self.cells):
-                raise ValueError(f"cells = {self.cells!r}: expected 3 integers in [1, 256]")
+                raise FieldError("size" if self.size is None else "cells",
+                                 "the box generator needs size [m] (3 numbers) and cells (3 integers)")
+        if self.file is not None and not self.file.strip():
+            raise FieldError("file", "file = '': expected the path of a volume mesh file")
         for face in self.fixed_faces:
             if face not in FACE_NAMES:
-                raise ValueError(f"fixed_faces contains {face!r}: expected names from {', '.join(FACE_NAMES)}")
+                raise FieldError("fixed_faces", f"fixed_faces contains {face!r}: expected names from {', '.join(FACE_NAMES)}")
+        if len(set(self.fixed_faces)) != len(self.fixed_faces):
+            raise FieldError("fixed_faces", f"fixed_faces = {list(self.fixed_faces)!r} names a face twice")
         if self.fixed_box is not None:
-            box = np.asarray(self.fixed_box, dtype=float)
-            if box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[0] > box[1]):
-                raise ValueError(f"fixed_box = {self.fixed_box!r}: expected [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min <= max")
-        if not self.fixed_faces and self.fixed_box is None:
-            raise ValueError("no fixed nodes: give fixed_faces or fixed_box (a free tissue has no static equilibrium)")
+            box = numbers_array("fixed_box", self.fixed_box, (2, 3), "[[xmin, ymin, zmin], [xmax, ymax, zmax]] [m]")
+            if np.any(box[0] > box[1]):
+                raise FieldError("fixed_box", f"fixed_box = {self.fixed_box!r}: expected [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min <= max")
+        if self.fixed_nodes is not None and len(set(self.fixed_nodes)) != len(self.fixed_nodes):
+            raise FieldError("fixed_nodes", "fixed_nodes lists a node twice")
 
 
 @dataclass(frozen=True, kw_only=True)
 class TissueSpec(_Validated):
     """Tissue material (co-rotational linear tetrahedra, Hooke's law) and damping."""
 
-    youngs_modulus: float = spec(unit="Pa", doc="Young's modulus E", low=0.0, low_open=True)
-    poisson_ratio: float = spec(unit="-", doc="Poisson's ratio ν", low=-1.0, high=0.5, low_open=True, high_open=True)
-    density: float = spec(unit="kg/m^3", doc="mass density", low=0.0, low_open=True)
-    rayleigh_mass: float = spec(0.0, unit="1/s", doc="Rayleigh damping α (C = αM + βK)", low=0.0)
-    rayleigh_stiffness: float = spec(0.0, unit="s", doc="Rayleigh damping β (C = αM + βK)", low=0.0)
-    gravity: tuple = spec((0.0, 0.0, 0.0), unit="m/s^2", doc="gravity acceleration", length=3)
+    youngs_modulus: float = spec(doc="Young's modulus E", **MATERIAL_LIMITS["youngs_modulus"])
+    poisson_ratio: float = spec(doc="Poisson's ratio ν", **MATERIAL_LIMITS["poisson_ratio"])
+    density: float = spec(doc="mass density", **MATERIAL_LIMITS["density"])
+    rayleigh_mass: float = spec(0.0, unit="1/s", doc="Rayleigh damping α (C = αM + βK)", low=0.0, high=1e6)
+    rayleigh_stiffness: float = spec(0.0, unit="s", doc="Rayleigh damping β (C = αM + βK)", low=0.0, high=1e3)
+    gravity: tuple = spec((0.0, 0.0, 0.0), unit="m/s^2", doc="gravity acceleration", low=-1e4, high=1e4, length=3)
 
 
 @dataclass(frozen=True, kw_only=True)
 class NeedleSpec(_Validated):
     """The needle: co-rotational Timoshenko beams with 6-DoF nodes, or a rigid body driven by its base."""
 
-    length: float = spec(unit="m", doc="needle length", low=0.0, low_open=True)
+    length: float = spec(unit="m", doc="needle length", low=0.0, high=10.0, low_open=True)
     radius: float = spec(unit="m", doc="radius of the solid circular section", low=0.0, low_open=True)
     element_count: int = spec(unit="-", doc="number of beam elements", low=1, high=10000)
-    youngs_modulus: float = spec(unit="Pa", doc="Young's modulus E", low=0.0, low_open=True)
-    poisson_ratio: float = spec(unit="-", doc="Poisson's ratio ν", low=-1.0, high=0.5, low_open=True, high_open=True)
-    density: float = spec(unit="kg/m^3", doc="mass density", low=0.0, low_open=True)
+    youngs_modulus: float = spec(doc="Young's modulus E", **MATERIAL_LIMITS["youngs_modulus"])
+    poisson_ratio: float = spec(doc="Poisson's ratio ν", **MATERIAL_LIMITS["poisson_ratio"])
+    density: float = spec(doc="mass density", **MATERIAL_LIMITS["density"])
     rigid: bool = spec(doc="true: the needle is a rigid body moved by the trajectory (no beam solve)")
-    rayleigh_mass: float = spec(0.0, unit="1/s", doc="Rayleigh damping α of the beam", low=0.0)
-    rayleigh_stiffness: float = spec(0.0, unit="s", doc="Rayleigh damping β of the beam", low=0.0)
+    rayleigh_mass: float = spec(0.0, unit="1/s", doc="Rayleigh damping α of the beam", low=0.0, high=1e6)
+    rayleigh_stiffness: float = spec(0.0, unit="s", doc="Rayleigh damping β of the beam", low=0.0, high=1e3)
 
     def validate(self) -> None:
-        if not isinstance(self.rigid, bool):
-            raise ValueError(f"rigid = {self.rigid!r}: expected true or false")
-        if not isinstance(self.element_count, int) or isinstance(self.element_count, bool):
-            raise ValueError(f"element_count = {self.element_count!r}: expected an integer in [1, 10000]")
         if self.radius >= self.length:
-            raise ValueError(f"radius = {self.radius!r} m must be smaller than length = {self.length!r} m")
+            raise FieldError("radius", f"radius = {self.radius!r} m must be smaller than length = {self.length!r} m",
+                             related=("length",))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -123,22 +130,72 @@ class TrajectorySpec(_Validated):
 
     def validate(self) -> None:
         if (self.file is None) == (self.times is None):
-            raise ValueError("give either file, or times with base_positions and directions")
+            raise FieldError("times" if self.file is None else "file",
+                             "give either file, or times with base_positions and directions")
         if self.file is not None:
+            if self.base_positions is not None or self.directions is not None:
+                raise FieldError("file", "give either file, or times with base_positions and directions, not both")
+            if not self.file.strip():
+                raise FieldError("file", "file = '': expected the path of a CSV trajectory")
             return
-        times = np.asarray(self.times, dtype=float)
-        if times.ndim != 1 or times.size < 1 or not np.all(np.isfinite(times)):
-            raise ValueError(f"times = {self.times!r}: expected a list of finite numbers [s]")
+        times = numbers_array("times", self.times, (None,), "a list of finite times [s]")
+        if times.size < 1:
+            raise FieldError("times", f"times = {self.times!r}: expected at least one time [s]")
         if times[0] != 0.0 or np.any(np.diff(times) <= 0.0):
-            raise ValueError(f"times = {self.times!r}: expected strictly increasing times starting at 0 s")
+            raise FieldError("times", f"times = {self.times!r}: expected strictly increasing times starting at 0 s")
         for name in ("base_positions", "directions"):
             value = getattr(self, name)
-            array = np.asarray(value if value is not None else [], dtype=float)
-            if array.shape != (times.size, 3) or not np.all(np.isfinite(array)):
-                raise ValueError(f"{name} = {value!r}: expected {times.size} rows of 3 finite numbers (one per time)")
-        norms = np.linalg.norm(np.asarray(self.directions, dtype=float), axis=1)
-        if np.any(norms < 1e-12):
-            raise ValueError(f"directions = {self.directions!r}: every direction must be non-zero")
+            if value is None:
+                raise FieldError(name, f"{name} is missing: expected {times.size} rows of 3 numbers (one per time)")
+            array = numbers_array(name, value, (times.size, 3), f"{times.size} rows of 3 finite numbers (one per time)")
+            if name == "base_positions" and np.any(np.abs(array) > 1e3):
+                raise FieldError(name, f"{name} = {value!r}: expected coordinates within ±1000 m")
+        directions = np.asarray(self.directions, dtype=float)
+        check_directions(directions, "directions", times)
+
+
+def check_directions(directions: np.ndarray, name: str, times: np.ndarray) -> None:
+    """Non-zero needle directions, and consecutive ones less than 90° apart.
+
+    Directions are interpolated linearly and normalised: at 180° the interpolation passes through zero (an
+    undefined direction, NaN), and near it the needle swings half a turn within a small fraction of the
+    interval (measured: a 180° flip in one step inside the tissue). Above 90° insert intermediate waypoints.
+
+    Raises
+    ------
+    FieldError
+        Naming the waypoints and the angle.
+    """
+    norms = np.linalg.norm(directions, axis=1)
+    if np.any(norms < 1e-12):
+        row = int(np.argmax(norms < 1e-12))
+        raise FieldError(name, f"{name}: the direction at t = {times[row]:g} s (row {row + 1}) is zero; every direction must be non-zero")
+    unit = directions / norms[:, None]
+    cosines = np.einsum("ij,ij->i", unit[:-1], unit[1:])
+    if np.any(cosines < 0.0):
+        row = int(np.argmax(cosines < 0.0))
+        angle = float(np.degrees(np.arccos(np.clip(cosines[row], -1.0, 1.0))))
+        raise FieldError(
+            name,
+            f"{name}: the needle turns {angle:.1f} degrees between t = {times[row]:g} s and t = {times[row + 1]:g} s "
+            "(rows {0} and {1}); consecutive directions must be less than 90 degrees apart (linear interpolation of "
+            "antiparallel directions is undefined): add intermediate waypoints".format(row + 1, row + 2),
+        )
+
+
+def numbers_array(name: str, value, shape: tuple, expected: str) -> np.ndarray:
+    """``value`` as a float array of ``shape`` (None: any length) with finite entries, else a FieldError."""
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise FieldError(name, f"{name} = {value!r}: expected {expected}") from None
+    if array.ndim != len(shape) or any(n is not None and n != m for n, m in zip(shape, array.shape)):
+        raise FieldError(name, f"{name} = {value!r}: expected {expected}")
+    if not np.all(np.isfinite(array)):
+        raise FieldError(name, f"{name} = {value!r}: expected finite numbers ({expected})")
+    if any(isinstance(item, bool) for item in np.asarray(value, dtype=object).ravel()):
+        raise FieldError(name, f"{name} = {value!r}: expected numbers, not true/false ({expected})")
+    return array
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -146,11 +203,23 @@ class TimeSpec(_Validated):
     """Time integration: implicit Euler, one Newton step per time step."""
 
     dt: float = spec(unit="s", doc="time step", low=0.0, high=1.0, low_open=True)
-    duration: float = spec(unit="s", doc="simulated time", low=0.0, low_open=True)
+    duration: float = spec(unit="s", doc="simulated time, a whole number of time steps", low=0.0, high=1e6, low_open=True)
 
     def validate(self) -> None:
         if self.duration < self.dt:
-            raise ValueError(f"duration = {self.duration!r} s is shorter than one time step dt = {self.dt!r} s")
+            raise FieldError("duration", f"duration = {self.duration!r} s is shorter than one time step dt = {self.dt!r} s",
+                             related=("dt",))
+        steps = self.duration / self.dt
+        if abs(steps - round(steps)) > 1e-6 * max(1.0, steps):
+            below, above = int(steps) * self.dt, (int(steps) + 1) * self.dt
+            raise FieldError(
+                "duration",
+                related=("dt",),
+                message=f"duration = {self.duration!r} s is not a whole number of time steps dt = {self.dt!r} s "
+                f"({steps:.4g} steps): use {below:.6g} or {above:.6g}",
+            )
+        if round(steps) > 10_000_000:
+            raise FieldError("duration", f"duration / dt = {steps:.3g} steps: at most 1e7 steps per run")
 
     @property
     def step_count(self) -> int:
@@ -162,7 +231,9 @@ class TimeSpec(_Validated):
 class InsertionSpec(_Validated):
     """Penetration at the tip and insertion constraints along the path (paper, section 3)."""
 
-    puncture_force: float = spec(unit="N", doc="f_p: normal tip force that punctures the surface", low=0.0)
+    puncture_force: float = spec(
+        unit="N", doc="f_p: normal tip force that punctures the surface (> 0: with 0 the tip would puncture in "
+        "the air as soon as its contact row is built)", low=0.0, low_open=True)
     surface_friction_coefficient: float = spec(unit="-", doc="μ_p: Coulomb friction of the tip on the surface", low=0.0)
     shaft_friction_coefficient: float = spec(unit="-", doc="μ_i: Coulomb friction along the shaft", low=0.0)
     spacing: float = spec(unit="m", doc="d_i: distance between insertion constraints", low=0.0, low_open=True)
@@ -206,17 +277,37 @@ class CuttingSpec(_Validated):
     """Laceration (paper, section 4): criteria, cut surface resolution and triangulation parameters."""
 
     enabled: bool = spec(doc="whether the scene can cut the tissue")
-    cutting_force: float = spec(unit="N", doc="f_c: mean lateral force per insertion constraint that starts the cut", low=0.0)
-    tearing_force: float = spec(unit="N", doc="f_t: border contact force that extends the cut", low=0.0)
+    law: str = spec(
+        "energy",
+        doc="cut law: 'energy' (the cut starts and its crack tip advances where the needle pushes with more than "
+        "G_c per unit length: independent of d_i, d_c and the mesh) or 'paper' (equation 3 with f_c per "
+        "insertion point, tears of d_t at a front row force f_t)",
+        choices=("energy", "paper"),
+    )
+    fracture_energy: float = spec(
+        200.0,
+        unit="J/m^2",
+        doc="G_c: energy per unit area of new cut, the lateral force per unit length of needle that cuts "
+        "(liver about 76–225 J/m², Azar and Hayward 2008); energy law only",
+        low=0.0,
+        low_open=True,
+    )
+    friction_coefficient: float = spec(
+        0.0, unit="-", doc="μ_c: Coulomb friction of the needle on the cut faces (0: frictionless, the paper's model)",
+        low=0.0, high=10.0,
+    )
+    cutting_force: float = spec(unit="N", doc="f_c: mean lateral force per insertion constraint that starts the cut (paper law)", low=0.0)
+    tearing_force: float = spec(unit="N", doc="f_t: front row force that extends the cut by d_t (paper law)", low=0.0)
     point_spacing: float = spec(unit="m", doc="d_c: distance between points of the cut surface", low=0.0, low_open=True)
-    extent: float = spec(unit="m", doc="d_t: extent of the cut surface beyond the path, and of each tear", low=0.0, low_open=True)
+    extent: float = spec(unit="m", doc="d_t: extent of the first cut surface beyond the path, and of each tear (paper law)", low=0.0, low_open=True)
     min_angle: float = spec(unit="deg", doc="θ_min: smallest triangle angle", low=0.0, high=60.0)
     max_angle: float = spec(unit="deg", doc="θ_max: largest triangle angle", low=60.0, high=180.0, high_open=True)
     max_normal_angle: float = spec(unit="deg", doc="θ_s: largest angle between neighbouring triangle normals", low=0.0, high=180.0)
 
     def validate(self) -> None:
-        if not isinstance(self.enabled, bool):
-            raise ValueError(f"enabled = {self.enabled!r}: expected true or false")
+        if self.min_angle >= self.max_angle:
+            raise FieldError("min_angle", f"min_angle = {self.min_angle!r} deg must be smaller than max_angle = {self.max_angle!r} deg",
+                             related=("max_angle",))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -226,7 +317,7 @@ class SolverSpec(_Validated):
     method: str = spec(doc="constraint solver", choices=("gauss_seidel", "exact"))
     tolerance: float = spec(unit="-", doc="natural residual to reach", low=0.0, high=1.0, low_open=True)
     max_iterations: int = spec(unit="-", doc="iteration cap (Gauss–Seidel sweeps)", low=1, high=10_000_000)
-    backend: str = spec("clarabel", doc="QP backend of the exact solver (qpsolvers name)")
+    backend: str = spec("clarabel", doc="QP backend of the exact solver: a qpsolvers name installed here (qpsolvers.available_solvers)")
     criterion: str = spec(
         "residual",
         doc="Gauss–Seidel stopping test: the natural residual, or SOFA's increment Σ|W_jj Δλ_j| < tolerance·(rows+1) [m]",
@@ -234,8 +325,12 @@ class SolverSpec(_Validated):
     )
 
     def validate(self) -> None:
-        if not isinstance(self.max_iterations, int) or isinstance(self.max_iterations, bool):
-            raise ValueError(f"max_iterations = {self.max_iterations!r}: expected an integer >= 1")
+        import qpsolvers
+
+        available = tuple(qpsolvers.available_solvers)
+        if self.backend not in available:
+            raise FieldError("backend", f"backend = {self.backend!r}: expected one of the installed qpsolvers backends "
+                             f"{', '.join(repr(name) for name in available)}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -245,9 +340,79 @@ class OutputSpec(_Validated):
     tissue_every: int = spec(1, unit="-", doc="record tissue positions every k-th step (and the last)", low=1, high=1_000_000)
     record_problems: bool = spec(False, doc="record each step's constraint problem (W, δ_free, kinds)")
 
+
+
+@dataclass(frozen=True, kw_only=True)
+class ComplianceSpec(_Validated):
+    """How each body's compliance is computed (refsim.fem.compliance) and by which sparse solver; optional section."""
+
+    strategy: str = spec(
+        "exact",
+        doc="exact: factorise every step; refreshed: factorise every refresh_every steps, free motion and W's columns "
+        "by PCG on the current matrix; precomputed: the rest compliance rotated per node (SOFA-like)",
+        choices=("exact", "refreshed", "precomputed"),
+    )
+    refresh_every: int = spec(10, unit="-", doc="steps between factorisations of the refreshed strategy", low=1, high=1_000_000)
+    w_update: str = spec(
+        "pcg",
+        doc="refreshed strategy: W's columns solved by PCG on the current matrix (pcg, corrected to the PCG "
+        "tolerance), corrected to first order in the change of the matrix since the factorisation with the "
+        "correction by PCG (first_order), or taken from the stale factor (stale); errors by refsim bench --against-exact",
+        choices=("pcg", "first_order", "stale"),
+    )
+    linear_solver: str = spec(
+        "auto",
+        doc="sparse solver: auto (PARDISO where its wheel installs, else CHOLMOD if importable, else SuperLU; "
+        "$REFSIM_LINEAR_SOLVER overrides auto), or one of pardiso, cholmod, superlu",
+        choices=("auto", "pardiso", "cholmod", "superlu"),
+    )
+
     def validate(self) -> None:
-        if not isinstance(self.record_problems, bool):
-            raise ValueError(f"record_problems = {self.record_problems!r}: expected true or false")
+        if not isinstance(self.refresh_every, int) or isinstance(self.refresh_every, bool):
+            raise ValueError(f"refresh_every = {self.refresh_every!r}: expected an integer >= 1")
+
+
+@dataclass(frozen=True, kw_only=True)
+class BoundarySpec(_Validated):
+    """A tissue boundary motion (breathing, a moving support): chosen nodes follow a prescribed displacement; optional section."""
+
+    motion: str = spec(
+        "none",
+        doc="none; periodic: d(t) = a (1 − cos^{2n}(π t/T − φ)) offset to 0 at t = 0 (Lujan et al. 1999); "
+        "file: displacement samples t, dx, dy, dz from a CSV file",
+        choices=("none", "periodic", "file"),
+    )
+    nodes: tuple | None = spec(None, doc="indices of the moving nodes", low=0, integer=True)
+    box: tuple | None = spec(None, doc="the nodes inside this box [[xmin, ymin, zmin], [xmax, ymax, zmax]] [m] move")
+    patch_point: tuple | None = spec(None, unit="m", doc="surface nodes within patch_distance of this point move", length=3)
+    patch_plane: tuple | None = spec(None, unit="m", doc="surface nodes within patch_distance of the plane [[origin], [normal]] move")
+    patch_distance: float = spec(0.0, unit="m", doc="distance of a surface patch from its point or plane", low=0.0)
+    amplitude: tuple = spec((0.0, 0.0, 0.0), unit="m", doc="a: the displacement at the peak of a periodic motion", length=3)
+    period: float = spec(4.0, unit="s", doc="T: period of a periodic motion (breathing: about 4 s)", low=0.0, low_open=True)
+    exponent: int = spec(1, unit="-", doc="n of cos^{2n}: 1 a sine squared, larger for a longer exhale plateau", low=1, high=10, integer=True)
+    phase: float = spec(0.0, unit="rad", doc="φ: phase of a periodic motion", low=-10.0, high=10.0)
+    file: str | None = spec(None, doc="CSV of displacement samples (t, dx, dy, dz [s, m]), relative to the scene file; '#' comments and a header allowed")
+
+    def validate(self) -> None:
+        selections = [self.nodes is not None, self.box is not None, self.patch_point is not None, self.patch_plane is not None]
+        if self.motion == "none":
+            return
+        if sum(selections) != 1:
+            raise FieldError("nodes", "a boundary motion needs exactly one of nodes, box, patch_point, patch_plane")
+        if self.box is not None:
+            box = numbers_array("box", self.box, (2, 3), "[[xmin, ymin, zmin], [xmax, ymax, zmax]] [m]")
+            if np.any(box[0] > box[1]):
+                raise FieldError("box", f"box = {self.box!r}: expected min <= max")
+        if self.patch_plane is not None:
+            plane = numbers_array("patch_plane", self.patch_plane, (2, 3), "[[origin x, y, z], [normal x, y, z]] [m]")
+            if np.linalg.norm(plane[1]) == 0.0:
+                raise FieldError("patch_plane", "patch_plane: the normal is zero")
+        if (self.patch_point is not None or self.patch_plane is not None) and self.patch_distance <= 0.0:
+            raise FieldError("patch_distance", "a surface patch needs patch_distance > 0 [m]")
+        if self.motion == "file" and not self.file:
+            raise FieldError("file", "motion = 'file' needs file, a CSV of t, dx, dy, dz")
+        if self.motion == "periodic" and not np.any(np.asarray(self.amplitude, dtype=float)):
+            raise FieldError("amplitude", "a periodic motion needs a non-zero amplitude [m]")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -264,8 +429,13 @@ class Scene:
     cutting: CuttingSpec
     solver: SolverSpec
     output: OutputSpec = dataclasses.field(default_factory=OutputSpec)
+    compliance: ComplianceSpec = dataclasses.field(default_factory=ComplianceSpec)
+    boundary: BoundarySpec = dataclasses.field(default_factory=BoundarySpec)
     source: str = "<memory>"
     base_directory: str = "."
+
+    def __post_init__(self) -> None:
+        check_consistency(self)
 
     def to_dict(self) -> dict:
         """The scene as plain data (TOML sections), for the results file and for overrides."""
@@ -273,6 +443,86 @@ class Scene:
         for section in SECTIONS:
             out[section] = dataclasses.asdict(getattr(self, section))
         return out
+
+
+class ConsistencyError(FieldError):
+    """Keys of different sections that contradict each other; ``section`` and ``key`` name the one to change."""
+
+    def __init__(self, section: str, key: str, message: str, related: tuple[tuple[str, str], ...] = ()):
+        super().__init__(key, message)
+        self.section = section
+        self.related_keys = tuple(related)
+
+
+def max_tip_speed(trajectory: TrajectorySpec, needle_length: float) -> float | None:
+    """Largest speed of the needle tip between waypoints [m/s]: base speed plus length × turning rate (None for a
+    trajectory file, checked when it is read)."""
+    if trajectory.times is None or len(trajectory.times) < 2:
+        return 0.0 if trajectory.times is not None else None
+    times = np.asarray(trajectory.times, dtype=float)
+    bases = np.asarray(trajectory.base_positions, dtype=float)
+    directions = np.asarray(trajectory.directions, dtype=float)
+    directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    turn = np.arccos(np.clip(np.einsum("ij,ij->i", directions[:-1], directions[1:]), -1.0, 1.0))
+    speeds = (np.linalg.norm(np.diff(bases, axis=0), axis=1) + needle_length * turn) / np.diff(times)
+    return float(speeds.max())
+
+
+def check_consistency(scene: Scene) -> None:
+    """Checks across sections that need no mesh (the mesh-dependent ones are in `refsim.scene.build`).
+
+    - d_i (insertion.spacing) shorter than the needle: otherwise at most one insertion point fits;
+    - the tip's travel in one step (largest tip speed × dt) within insertion.contact_distance: a faster tip can
+      jump across the contact zone, and the puncture force is never measured (dt = 1 s gave 139 N instead of
+      3.5 N). Travel beyond d_i is allowed (several points per step are created) but logged as a warning;
+    - the cut surface spacing d_c shorter than the needle.
+
+    Raises
+    ------
+    ConsistencyError
+        Naming both keys, their values and what would be consistent.
+    """
+    import logging
+
+    logger = logging.getLogger("refsim.scene")
+    mesh = scene.mesh
+    if not mesh.fixed_faces and mesh.fixed_box is None and mesh.fixed_nodes is None and scene.boundary.motion == "none":
+        raise ConsistencyError(
+            "mesh", "fixed_faces", related=(("boundary", "motion"),), message=
+            "no fixed nodes: give mesh.fixed_faces, fixed_box or fixed_nodes, or a [boundary] motion (a free tissue "
+            "has no static equilibrium)",
+        )
+    length = scene.needle.length
+    spacing = scene.insertion.spacing
+    if spacing >= length:
+        raise ConsistencyError(
+            "insertion", "spacing", related=(("needle", "length"),), message=
+            f"spacing = {spacing!r} m (d_i) is not shorter than needle.length = {length!r} m: at most one insertion "
+            "point would fit on the needle; d_i is a fraction of a millimetre in the paper (0.5 mm)",
+        )
+    if scene.cutting.enabled and scene.cutting.point_spacing >= length:
+        raise ConsistencyError(
+            "cutting", "point_spacing", related=(("needle", "length"),), message=
+            f"point_spacing = {scene.cutting.point_spacing!r} m (d_c) is not shorter than needle.length = {length!r} m",
+        )
+    speed = max_tip_speed(scene.trajectory, length)
+    if speed:
+        travel = speed * scene.time.dt
+        contact = scene.insertion.contact_distance
+        if travel > contact:
+            raise ConsistencyError(
+                "time", "dt", related=(("insertion", "contact_distance"), ("trajectory", "times"),
+                                       ("trajectory", "base_positions"), ("trajectory", "directions")), message=
+                f"dt = {scene.time.dt!r} s: the needle tip moves up to {travel:.3g} m in one step (speed {speed:.3g} "
+                f"m/s), more than insertion.contact_distance = {contact!r} m, so it can cross the contact zone "
+                f"without its force being measured; use dt <= {contact / speed:.3g} s",
+            )
+        if travel > spacing:
+            logger.warning(
+                "time.dt = %g s: the needle tip moves up to %.3g m per step, more than insertion.spacing = %g m "
+                "(d_i): several insertion points are created per step; dt <= %.3g s keeps one per step",
+                scene.time.dt, travel, spacing, spacing / speed,
+            )
 
 
 SECTIONS = {
@@ -285,6 +535,8 @@ SECTIONS = {
     "cutting": CuttingSpec,
     "solver": SolverSpec,
     "output": OutputSpec,
+    "compliance": ComplianceSpec,
+    "boundary": BoundarySpec,
 }
 
 

@@ -60,11 +60,14 @@ def read_trajectory_csv(path: Path) -> Trajectory:
     """
     if not path.is_file():
         raise ValueError(f"{path}: trajectory file not found")
+    # '#' comment lines anywhere (before the header too), then an optional header line.
+    lines = [line for line in path.read_text(encoding="utf-8").splitlines()
+             if line.strip() and not line.lstrip().startswith("#")]
     try:
-        data = np.loadtxt(path, delimiter=",", comments="#", ndmin=2)
+        data = np.loadtxt(lines, delimiter=",", comments="#", ndmin=2)
     except ValueError:
         try:
-            data = np.loadtxt(path, delimiter=",", comments="#", ndmin=2, skiprows=1)
+            data = np.loadtxt(lines[1:], delimiter=",", comments="#", ndmin=2)
         except ValueError as error:
             raise ValueError(f"{path}: cannot read the trajectory as numbers: {error}") from None
     if data.shape[0] == 0 or data.shape[1] != 7:
@@ -77,4 +80,10 @@ def read_trajectory_csv(path: Path) -> Trajectory:
     norms = np.linalg.norm(data[:, 4:7], axis=1)
     if np.any(norms < 1e-12):
         raise ValueError(f"{path}: zero direction at row {int(np.argmax(norms < 1e-12)) + 1}")
+    from refsim.scene.spec import check_directions
+
+    try:
+        check_directions(data[:, 4:7], "directions", times)
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
     return Trajectory(times, data[:, 1:4], data[:, 4:7] / norms[:, None])

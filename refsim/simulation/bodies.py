@@ -22,10 +22,15 @@ class TissueBody:
     ----------
     model : The co-rotational tetrahedral model; its fixed nodes must include every node a boundary motion
         moves.
+    compliance : The bound compliance strategy (`refsim.fem.compliance.make_strategy(...).bind()`): how A⁻¹ is
+        applied (refactorised every step, refreshed, precomputed); one per run. The exact strategy by default.
     """
 
-    def __init__(self, model: TissueModel) -> None:
+    def __init__(self, model: TissueModel, compliance=None) -> None:
+        from refsim.fem.compliance import make_strategy
+
         self.model = model
+        self.strategy = compliance if compliance is not None else make_strategy("exact").bind()
         self._fixed = np.asarray(model.fixed_nodes)
 
     def prescribed_increments(self, state: TissueState, control: ControlValues) -> np.ndarray | None:
@@ -45,19 +50,20 @@ class TissueBody:
     def free_motion(self, state: TissueState, dt: float, control: ControlValues):
         """Free positions [m] (n, 3) and the step's system (for the compliance and the correction)."""
         free, _, system = self.model.free_motion(
-            state, dt, fixed_displacements=self.prescribed_increments(state, control)
+            state, dt, fixed_displacements=self.prescribed_increments(state, control), compliance=self.strategy
         )
         return free, system
 
     @staticmethod
     def compliance(system, jacobian):
-        """W = H A⁻¹ Hᵀ [m/N] and the responses A⁻¹ Hᵀ."""
-        return system.compliance(jacobian)
+        """W = H A⁻¹ Hᵀ [m/N], and what the correction needs (the rows H: the step's compliance keeps the
+        columns A⁻¹Hᵀ it computed for W)."""
+        return system.delassus(jacobian), jacobian
 
     @staticmethod
-    def correct(previous: TissueState, free: np.ndarray, responses, multipliers: np.ndarray, dt: float) -> TissueState:
+    def correct(system, previous: TissueState, free: np.ndarray, jacobian, multipliers: np.ndarray, dt: float):
         """x = x_free + A⁻¹ Hᵀ λ, v = (x − x₀)/dt."""
         positions = free
-        if responses is not None and multipliers.size:
-            positions = free + (responses @ multipliers).reshape(-1, 3)
+        if jacobian is not None and multipliers.size:
+            positions = free + system.correction(jacobian, multipliers).reshape(-1, 3)
         return TissueState(positions=positions, velocities=(positions - previous.positions) / dt)

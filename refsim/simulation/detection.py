@@ -23,14 +23,17 @@ from refsim.constraints import (
     penetration_block,
 )
 from refsim.constraints.coupling import (
+    AXIAL,
+    LATERAL,
     RingLayout,
     grip_preload,
     insertion_compliance,
     local_mesh_size,
     ring_insertion_block,
     shaft_contact_block,
+    subgrid_compliance,
 )
-from refsim.constraints.cut import cut_block
+from refsim.constraints.cut import FrontRows, strip_cut_block
 from refsim.constraints.insertion import InsertionPath
 from refsim.geometry import SurfaceProjector, TetLocator
 from refsim.scene import Scene
@@ -49,14 +52,12 @@ class Detection:
     ----------
     rows : The step's rows, in solver order.
     contact : The tip's closest surface point (approach phase), else None.
-    border_points : The cut point of each border row, shape (b,) (cutting phase).
-    border_rows : The border rows' indices in ``rows``, shape (b,).
+    front : Where the front rows press on the crack tip (cutting phase); their indices are into ``rows``.
     """
 
     rows: RowBlock
     contact: SurfaceContact | None = None
-    border_points: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    border_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    front: FrontRows = field(default_factory=FrontRows.empty)
 
 
 class Detector:
@@ -67,14 +68,20 @@ class Detector:
     scene : The validated scene.
     faces : Tissue surface triangles, shape (f, 3).
     needle_dof_count : DoFs of the needle in the constraint problem, None for a rigid needle.
+    mesh_size : Typical tet size h [m] (the cut rows' sub-grid compliance depends on it).
     """
 
     def __init__(self, scene: Scene, faces: np.ndarray, needle_dof_count: int | None,
-                 rest_positions: np.ndarray | None = None, tets: np.ndarray | None = None) -> None:
+                 rest_positions: np.ndarray | None = None, tets: np.ndarray | None = None,
+                 mesh_size: float = 0.0) -> None:
         self.insertion = scene.insertion
         self.cutting = scene.cutting
         self.faces = faces
         self.needle_dof_count = needle_dof_count
+        self.slide_compliance = _slide_compliance(scene, mesh_size, LATERAL) if scene.cutting.enabled else 0.0
+        self.friction_compliance = (
+            (_slide_compliance(scene, mesh_size, AXIAL), self.slide_compliance) if scene.cutting.enabled else (0.0, 0.0)
+        )
         spec = scene.insertion
         tissue = scene.tissue
         self.shear_modulus = tissue.youngs_modulus / (2.0 * (1.0 + tissue.poisson_ratio))
@@ -147,7 +154,7 @@ class Detector:
         spec = self.insertion
         blocks: list[RowBlock] = []
         contact = None
-        border_points = border_rows = np.zeros(0, dtype=np.int64)
+        front = FrontRows.empty()
         if state.phase == Phase.APPROACH:
             projector = SurfaceProjector(geometry.tissue_free, self.faces)
             contact = find_surface_contact(projector, self.faces, geometry.needle_free.tip)
@@ -161,24 +168,52 @@ class Detector:
                                             tip_clearance=2.0 * spec.contact_distance)
                 if shaft is not None:
                     blocks.append(shaft)
-        elif state.path.point_count:
+        elif state.path.point_count and not (state.phase == Phase.CUTTING and self.cutting.law == "energy"):
+            # In the energy law's cutting phase the cut holds the needle (sliding rows, crack tip) and the entry
+            # point only marks the inserted length: anchored there, it would drag the tissue along the stroke.
             blocks.append(self.insertion_rows(state.path, geometry))
-        if state.phase == Phase.CUTTING:
+        if state.phase == Phase.CUTTING and state.cut_strip is not None:
             entry = state.path.positions(state.tissue.positions, geometry.mesh_tets)[:1]
             entry_arc_length = float(geometry.needle_previous.project(entry)[0][0])
             offset = sum(block.row_count for block in blocks)
-            block, info = cut_block(
+            cutting = self.cutting
+            strength = cutting.fracture_energy if cutting.law == "energy" else np.inf
+            block, front = strip_cut_block(
                 state.cut,
+                state.cut_strip,
                 geometry,
                 entry_arc_length=entry_arc_length,
-                spacing=self.cutting.point_spacing,
+                spacing=cutting.point_spacing,
                 cut_direction=state.cut_direction,
+                front_strength=strength,
+                slide_compliance=self.slide_compliance,
+                friction_coefficient=cutting.friction_coefficient,
+                friction_compliance=self.friction_compliance,
             )
             if block is not None:
                 blocks.append(block)
-            border_points, border_rows = info.border_point, offset + info.rows
+            front = replace(front, rows=front.rows + offset)
         if not blocks:
             rows = empty_block(geometry.tissue_dof_count, self.needle_dof_count)
         else:
             rows = concatenate(blocks)
-        return Detection(rows, contact, border_points, border_rows)
+        return Detection(rows, contact, front)
+
+
+def _slide_compliance(scene: Scene, mesh_size: float, kind: int) -> float:
+    """Sub-grid compliance of one sliding row of the cut [m/N]: the lateral compliance of the well-posed
+    coupling (:func:`refsim.constraints.coupling.subgrid_compliance`, the annulus between the needle and the
+    equivalent radius of the mesh, Peaceman's well model) for the length d_c a sliding row stands for."""
+    if mesh_size <= 0.0:
+        return 0.0
+    tissue = scene.tissue
+    return float(
+        subgrid_compliance(
+            np.array([kind]),
+            shear_modulus=tissue.youngs_modulus / (2.0 * (1.0 + tissue.poisson_ratio)),
+            poisson_ratio=tissue.poisson_ratio,
+            needle_radius=scene.needle.radius,
+            mesh_size=mesh_size,
+            spacing=scene.cutting.point_spacing,
+        )[0]
+    )

@@ -13,7 +13,7 @@ import numpy as np
 
 from refsim.constraints import BeamNeedleGeometry, RigidNeedleGeometry, orthonormal_basis
 from refsim.fem.integration import ImplicitEulerSystem
-from refsim.geometry import rotation_matrix
+from refsim.geometry import needle_rest_frame, rotation_matrix
 
 __all__ = ["NeedleState", "RigidNeedle", "FlexibleNeedle", "rotation_between"]
 
@@ -52,9 +52,9 @@ def rotation_between(start: np.ndarray, end: np.ndarray) -> np.ndarray:
 
 
 def _rest_frames(direction: np.ndarray, node_count: int) -> np.ndarray:
-    first, second = orthonormal_basis(direction[None, :])
-    frame = np.stack([direction, first[0], second[0]], axis=1)
-    return np.broadcast_to(frame, (node_count, 3, 3)).copy()
+    """Every node's frame of a straight needle along ``direction``: the one rest-frame convention of
+    :func:`refsim.geometry.needle_rest_frame`, shape (node_count, 3, 3)."""
+    return np.broadcast_to(needle_rest_frame(direction), (node_count, 3, 3)).copy()
 
 
 class RigidNeedle:

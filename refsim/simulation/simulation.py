@@ -26,6 +26,7 @@ from dataclasses import replace
 import numpy as np
 
 from refsim.constraints import INSERTION, InsertionPath, RowBlock, StepGeometry
+from refsim.fem.compliance import make_strategy
 from refsim.scene import Scene
 from refsim.scene.build import SceneModels, build_controls, build_models
 from refsim.scene.controls import Controls
@@ -77,7 +78,6 @@ class Simulation:
         self.tets = np.asarray(self.models.mesh.tets)
         self.faces = np.asarray(self.models.mesh.boundary_faces)
         self.tissue = self.models.tissue
-        self.tissue_body = TissueBody(self.tissue)
         if scene.needle.rigid:
             self.needle = RigidNeedle(scene.needle.length, scene.needle.element_count)
         else:
@@ -87,7 +87,15 @@ class Simulation:
                 rayleigh_stiffness=scene.needle.rayleigh_stiffness,
             )
         self.dt = scene.time.dt
-        self.detector = Detector(scene, self.faces, self.needle.dof_count, self.models.mesh.rest_positions, self.tets)
+        spec = scene.compliance
+        self.tissue_compliance = make_strategy(
+            spec.strategy, refresh_every=spec.refresh_every, linear_solver=spec.linear_solver, w_update=spec.w_update
+        ).bind()
+        self.tissue_body = TissueBody(self.tissue, self.tissue_compliance)
+        mesh_size = float(np.cbrt(6.0 * np.mean(self.tissue.element_volumes)))
+        self.detector = Detector(
+            scene, self.faces, self.needle.dof_count, self.models.mesh.rest_positions, self.tets, mesh_size
+        )
         self.event_rules = EventRules(
             scene, self.tets, self.models.mesh.rest_positions, self.tissue.deformation_gradients, self.needle.geometry
         )
@@ -138,7 +146,9 @@ class Simulation:
         multipliers, report = self._solve(problem, self._warm_start(state, rows))
         timer.lap("solve")
 
-        tissue_state = self.tissue_body.correct(state.tissue, tissue_free, tissue_responses, multipliers, dt)
+        tissue_state = self.tissue_body.correct(
+            tissue_system, state.tissue, tissue_free, tissue_responses, multipliers, dt
+        )
         needle_state = self.needle.correct(state.needle, needle_free, needle_system, needle_responses, multipliers, dt)
         self._check_finite(step, tissue_state, needle_state, multipliers)
         timer.lap("correction")

@@ -37,6 +37,8 @@ class SimulationState:
     cut : The cut surface (`refsim.cutting.CutSurface`), None until the tissue is cut.
     cut_direction : ĉ, the unit direction the cut runs in the deformed state, shape (3,); None until the cut
         starts.
+    cut_strip : The structure of the cut the needle is making (`refsim.cutting.strip.CutStrip`: its layers
+        and crack tip); None outside the cutting phase (a withdrawn needle leaves the cut surface behind).
     """
 
     step: int
@@ -47,3 +49,4 @@ class SimulationState:
     path: InsertionPath
     cut: object | None = None
     cut_direction: np.ndarray | None = None
+    cut_strip: object | None = None

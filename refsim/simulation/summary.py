@@ -53,6 +53,22 @@ class RunSummary:
     cut_points: int = 0
     cut_triangles: int = 0
     first_cut_step: int | None = None
+    total_steps: int | None = None  # steps the run was to make
+    output: str = ""  # the results file
+    status: str = "running"  # complete, numerical, write_failed, interrupted, terminated (set by finish)
+    exit_code: int = 0  # 0, 3, 3, 130, 143 (refsim run's exit code)
+    stop_reason: str = ""  # why the run stopped early, "" when complete
+    steps_written: int = 0  # steps readable in the results file
+
+    @property
+    def complete(self) -> bool:
+        """True when the run made all its steps and the file was closed normally."""
+        return self.status == "complete"
+
+    def finish(self, *, status: str, exit_code: int, stop_reason: str, steps_written: int) -> None:
+        """Record how the run ended (called by the run driver, refsim.io.driver.run_scene)."""
+        self.status, self.exit_code, self.stop_reason = status, int(exit_code), stop_reason
+        self.steps_written = int(steps_written)
 
     def add(self, record: StepRecord) -> None:
         self.steps += 1
@@ -94,6 +110,9 @@ class RunSummary:
         )
         rate = self.steps / self.seconds if self.seconds > 0 else float("nan")
         lines.append(f"{self.steps} steps in {self.seconds:.2f} s: {rate:.1f} steps/s")
+        if self.status not in ("running", "complete"):
+            lines.append(f"stopped early ({self.status}): {self.stop_reason}; {self.steps_written} steps kept in "
+                         f"{self.output or 'the results file'}")
         if self.cut_points:
             lines.append(self.format_cut())
         return "\n".join(lines)

@@ -1,23 +1,25 @@
-"""The exact reference solver: QP and cone solves, a fixed point on the friction bounds, a Newton polish.
+"""The exact reference solver: semismooth Newton first, the cone-programming route as fallback and certificate.
+
+:func:`solve_exact` runs the Newton method of :mod:`refsim.solvers.newton` on W as given (any law of the table,
+non-symmetric W accepted), finishes with Gauss–Seidel sweeps or a monotone Newton where it stalls, and only then
+falls back to the cone route below; ``report.path`` says which produced the answer. The cone route:
 
 1. Scaling. λ = τ D z with D a diagonal of 1/√W_ii (one common factor per contact, so that the Coulomb cone
    is unchanged) and τ = ‖D δ_free‖, so that the scaled compliance has a unit diagonal and z is of order one.
 2. Frictionless part. min ½ zᵀ(D W D)z + (D δ_free / τ)ᵀz with z ≥ 0 on unilateral rows, fixed bounds on box
-   rows and z free on bilateral rows: a convex QP whose KKT conditions are exactly the laws of these rows.
-   It is solved through qpsolvers with the chosen backend (Clarabel by default, OSQP with tight tolerances and
-   polishing, or any installed backend by name).
-3. Friction by a fixed point on the bounds. Shaft rows get the box |λ_s| ≤ μ (‖(λ_b1, λ_b2)‖ + p) with the
-   pair forces of the previous iterate and the row's constant normal preload p. Contacts get the second-order cone ‖λ_t‖ ≤ μ λ_n through Clarabel's own
-   interface (qpsolvers has no cones), with the De Saxcé modification of the free gap
-   δ_free,n + μ ‖δ_t‖ from the previous iterate; the KKT conditions of that cone QP are then the Coulomb law
-   (Acary, Cadoux, Lemaréchal and Brogliato 2011). Iterate until the bounds stop changing.
-4. Polish. From the active set identified by the natural map (which rows have δ = 0, which sit at a bound,
-   which contacts stick, slip or separate), solve the linear system of that set with the original W by least
-   squares (W may be singular), linearising the slip direction and the shaft bound at the current point;
-   accept a step only if the natural residual drops; repeat while it does.
+   rows and z free on bilateral rows: a convex QP whose KKT conditions are exactly the laws of these rows
+   (W is replaced by its symmetric part). Solved through qpsolvers (Clarabel by default, OSQP, or any
+   installed backend by name).
+3. Friction by a fixed point on the bounds. Group friction rows get the box |λ_s| ≤ μ (‖λ_G‖ + p) with the group
+   forces of the previous iterate. Contacts get the second-order cone ‖λ_t‖ ≤ μ λ_n through Clarabel's own
+   interface (qpsolvers has no cones), with the De Saxcé modification of the free gap δ_free,n + μ ‖δ_t‖ from
+   the previous iterate; the KKT conditions of that cone QP are then the Coulomb law (Acary, Cadoux, Lemaréchal
+   and Brogliato 2011). Iterate until the bounds stop changing.
+4. Polish: Newton iterations (:mod:`refsim.solvers.newton`) from the cone route's answer.
 
-The residual reported is always recomputed by :func:`refsim.solvers.natural_residual` on the problem as given;
-a backend's own "solved" is not believed. On failure the best multipliers found are returned with the reason.
+The residuals reported are always recomputed by :func:`refsim.solvers.natural_residual` and
+:func:`refsim.solvers.data_residual` on the problem as given; a backend's own "solved" is not believed. On
+failure the best multipliers found are returned with the reason.
 """
 
 from __future__ import annotations
@@ -31,9 +33,12 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sparse
 
-from refsim.solvers.problem import KIND_NAMES, ConstraintProblem
+from refsim.solvers.laws import LAW_NAMES
+from refsim.solvers.gauss_seidel import solve_gauss_seidel
+from refsim.solvers.newton import solve_newton
+from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.report import SolverReport
-from refsim.solvers.residual import natural_map_error, natural_residual
+from refsim.solvers.residual import data_residual, natural_map_error, natural_residual
 
 __all__ = ["available_backends", "solve_exact"]
 
@@ -51,6 +56,8 @@ _BACKEND_OPTIONS = {
 #: The fixed point tries the Newton polish from an iterate whose residual is below this, every few iterations.
 _POLISH_FROM = 1e-3
 _POLISH_EVERY = 5
+#: Gauss-Seidel sweeps tried when Newton stalls, before the cone route.
+_GAUSS_SEIDEL_SWEEPS = 2000
 
 
 def available_backends() -> list[str]:
@@ -92,10 +99,11 @@ def _bounds(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[np.nda
     lower[problem.unilateral] = 0.0
     lower[problem.box_rows] = problem.box_lower
     upper[problem.box_rows] = problem.box_upper
-    if len(problem.shaft_friction):
-        bound = problem.shaft_bounds(multipliers)
-        lower[problem.shaft_friction] = -bound
-        upper[problem.shaft_friction] = bound
+    rows = problem.friction_groups()[0]
+    if len(rows):
+        bound = problem.friction_bounds(multipliers)
+        lower[rows] = -bound
+        upper[rows] = bound
     return lower, upper
 
 
@@ -233,18 +241,20 @@ def _newton_step(problem: ConstraintProblem, multipliers: np.ndarray,
     z = multipliers[rows] - weighted[rows]
     projection[rows, rows] = ((z > problem.box_lower) & (z < problem.box_upper)).astype(float)
     bound_term = np.zeros((n, n))
-    if len(problem.shaft_friction):
-        rows = problem.shaft_friction
-        pair = multipliers[problem.shaft_pairs]
-        pair_norm = np.linalg.norm(pair, axis=1)
-        bound = problem.shaft_bounds(multipliers)  # the preload is constant: ∂b/∂λ is the pair term only
+    rows, offsets, members, coefficient, _ = problem.friction_groups()
+    if len(rows):
+        sizes = np.diff(offsets)
+        owner = np.repeat(np.arange(rows.size), sizes)
+        member_force = multipliers[members]
+        group_norm = np.sqrt(np.bincount(owner, weights=member_force ** 2, minlength=rows.size))
+        bound = problem.friction_bounds(multipliers)  # the preload is constant: ∂b/∂λ is the group term only
         z = multipliers[rows] - weighted[rows]
         inside = np.abs(z) < bound
         projection[rows, rows] = inside.astype(float)
-        slope = np.where((~inside & (pair_norm > 0.0))[:, None],
-                         (np.sign(z) * problem.shaft_friction_coefficient)[:, None] * pair
-                         / np.maximum(pair_norm, 1e-300)[:, None], 0.0)
-        bound_term[rows[:, None], problem.shaft_pairs] += slope
+        slope = np.where((~inside & (group_norm > 0.0))[owner],
+                         (np.sign(z) * coefficient)[owner] * member_force
+                         / np.maximum(group_norm, 1e-300)[owner], 0.0)
+        np.add.at(bound_term, (rows[owner], members), slope)
     if len(problem.contacts):
         contacts = problem.contacts
         mu = problem.contact_friction
@@ -266,7 +276,7 @@ def _newton_step(problem: ConstraintProblem, multipliers: np.ndarray,
     return error, direction
 
 
-def _polish(problem, multipliers, residual, tolerance, weight, max_steps=50):
+def _least_squares_polish(problem, multipliers, residual, tolerance, weight, max_steps=50):
     """Semismooth Newton with a backtracking line search on ‖F‖²; returns (λ, residual, steps accepted)."""
     accepted = 0
     best, best_residual = multipliers, residual
@@ -294,48 +304,136 @@ def _polish(problem, multipliers, residual, tolerance, weight, max_steps=50):
     return best, best_residual, accepted
 
 
+def _polish(problem, multipliers, residual, tolerance, weight, max_steps=50):
+    """Polish the cone route's answer: the damped least-squares Newton of the previous exact solver, then the
+    semismooth Newton of :mod:`refsim.solvers.newton` if that is not enough; returns (λ, natural residual,
+    steps)."""
+    best, best_residual, steps = _least_squares_polish(problem, multipliers, residual, tolerance, weight,
+                                                       max_steps=max_steps)
+    if best_residual <= tolerance and data_residual(problem, best) <= tolerance:
+        return best, best_residual, steps
+    result = solve_newton(problem, tolerance=tolerance, warm_start=best, max_iterations=max_steps)
+    candidate_residual = natural_residual(problem, result.multipliers)
+    if max(candidate_residual, result.data_residual) < max(best_residual, data_residual(problem, best)):
+        return result.multipliers, candidate_residual, steps + result.iterations
+    return best, best_residual, steps + result.iterations
+
+
 def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend: str = "clarabel",
                 max_iterations: int = 100, symmetry_tolerance: float = 1e-8, polish: bool = True,
-                backend_options: dict | None = None) -> tuple[np.ndarray, SolverReport]:
-    """Solve the constraint problem to a tight natural residual (the reference solution).
+                backend_options: dict | None = None, warm_start: np.ndarray | None = None,
+                method: str = "auto", newton_iterations: int = 100) -> tuple[np.ndarray, SolverReport]:
+    """Solve the constraint problem to a tight residual (the reference solution).
 
     Parameters
     ----------
-    problem : The constraint problem; W must be symmetric to ``symmetry_tolerance`` and positive
-        semi-definite (it may be singular). Its symmetric part is given to the backends; the residual is
-        always computed with W as given.
-    tolerance : Target natural residual [-]; the report says ``converged`` when it is reached.
-    backend : qpsolvers backend for the QP solves (``"clarabel"``, ``"osqp"`` or any name of
-        :func:`available_backends`). Contacts (cones) are always solved by Clarabel's own interface.
-    max_iterations : Largest number of outer fixed-point iterations on the friction bounds, ≥ 1.
-    symmetry_tolerance : Largest accepted relative asymmetry ‖W − Wᵀ‖_F / ‖W‖_F [-].
-    polish : Finish with the active-set polish.
+    problem : The constraint problem; W may be singular and non-symmetric (the Newton path solves it as given;
+        the cone route solves with its symmetric part, and the residual is always measured with W as given).
+    tolerance : Stop when the natural residual and the data residual (:mod:`refsim.solvers.residual`) are both
+        at most this [-]; the report says ``converged`` when they are.
+    backend : qpsolvers backend for the QP solves of the cone route (``"clarabel"``, ``"osqp"`` or any name
+        of :func:`available_backends`). Contacts (cones) are always solved by Clarabel's own interface.
+    max_iterations : Largest number of outer fixed-point iterations of the cone route, ≥ 1.
+    symmetry_tolerance : Relative asymmetry ‖W − Wᵀ‖_F / ‖W‖_F [-] above which the message says the cone route
+        solved the symmetric part (nothing is rejected any more).
+    polish : Let the cone route finish with Newton iterations from its answer.
     backend_options : Options passed to the backend, replacing our tight defaults key by key.
+    warm_start : Initial multipliers λ₀ [N], shape (row_count,), for the Newton path (e.g. the previous step's).
+    method : ``"auto"`` (Newton, then the cone route if Newton did not reach the tolerance), ``"newton"`` or
+        ``"cone"``.
+    newton_iterations : Largest number of Newton iterations.
 
     Returns
     -------
     multipliers : λ [N], shape (row_count,), the best found.
-    report : :class:`~refsim.solvers.SolverReport`; ``message`` gives the reason when not converged.
+    report : :class:`~refsim.solvers.SolverReport`; ``path`` says which method produced the answer
+        (``"newton"``, ``"cone"`` or ``"cone+newton"``), ``asymmetry`` the relative asymmetry of W, ``message``
+        the reason when not converged.
 
     Raises
     ------
-    ValueError : For a non-symmetric W, an unknown backend or bad options.
+    ValueError : For an unknown backend or method, or bad options.
     """
     start = time.perf_counter()
     if not (np.isfinite(tolerance) and tolerance > 0.0):
         raise ValueError(f"tolerance = {tolerance!r}; valid range (0, inf)")
     if int(max_iterations) != max_iterations or max_iterations < 1:
         raise ValueError(f"max_iterations = {max_iterations!r}; valid range: integers >= 1")
+    if method not in ("auto", "newton", "cone"):
+        raise ValueError(f"method = {method!r}; valid values 'auto', 'newton', 'cone'")
     backends = available_backends()
     if backend not in backends:
         raise ValueError(f"backend = {backend!r} is not installed; available: {', '.join(backends)}")
-    label = f"problem {problem.name!r}" if problem.name else "the problem"
+    if warm_start is not None:
+        warm_start = problem.check_multipliers(warm_start)
     asymmetry = problem.asymmetry()
+    n = problem.row_count
+    if n == 0:
+        return np.zeros(0), SolverReport(solver="exact/newton", iterations=0, residual=0.0, converged=True,
+                                         seconds=time.perf_counter() - start, message="empty problem",
+                                         data_residual=0.0, asymmetry=0.0, path="newton")
+    note = (f"; W non-symmetric by {asymmetry:.1e} (solved as given)" if asymmetry > symmetry_tolerance else "")
+    newton = None
+    if method in ("auto", "newton"):
+        newton = solve_newton(problem, tolerance=tolerance, warm_start=warm_start,
+                              max_iterations=int(newton_iterations))
+        path = "newton"
+        if not newton.converged:
+            # Newton stalls where the map is nonsmooth at the solution (friction bounds ‖λ_G‖ at λ_G = 0, cone
+            # apices): projected Gauss-Seidel from the best point, which such points do not trouble
+            multipliers, sweeps = solve_gauss_seidel(problem, tolerance=tolerance, warm_start=newton.multipliers,
+                                                     max_iterations=_GAUSS_SEIDEL_SWEEPS, criterion="strict")
+            if sweeps.converged:
+                newton.multipliers, newton.converged, path = multipliers, True, "newton+gauss_seidel"
+                newton.message += f"; then {sweeps.iterations} Gauss-Seidel sweeps"
+                newton.residual, newton.data_residual = sweeps.residual, sweeps.data_residual
+        if not newton.converged:
+            # a monotone line search from the best point (more robust where W is singular)
+            second = solve_newton(problem, tolerance=tolerance, warm_start=newton.multipliers,
+                                  max_iterations=int(newton_iterations), line_search_memory=1)
+            if second.converged or max(second.residual, second.data_residual) < max(newton.residual,
+                                                                                    newton.data_residual):
+                second.iterations += newton.iterations
+                second.message += f" (after {newton.iterations} non-monotone iterations: {newton.message})"
+                newton = second
+        residual = natural_residual(problem, newton.multipliers)
+        data = data_residual(problem, newton.multipliers)
+        converged = bool(residual <= tolerance and data <= tolerance)
+        if converged or method == "newton":
+            message = (f"newton ({newton.storage}): {newton.message}; {newton.line_search_failures} line-search "
+                       f"failure(s), {newton.fallback_sweeps} fallback sweep(s)" + note)
+            if not converged:
+                message = (f"not converged: residual {residual:.3e}, data residual {data:.3e} > tolerance "
+                           f"{tolerance:.1e} (largest error in {_worst_kind(problem, newton.multipliers)} rows); "
+                           + message)
+                logger.info("solve_exact %s: %s", problem.name or "problem", message)
+            return newton.multipliers, SolverReport(
+                solver="exact/newton", iterations=newton.iterations, residual=residual, converged=converged,
+                seconds=time.perf_counter() - start, message=message, history=newton.history,
+                data_residual=data, asymmetry=asymmetry, path=path)
+    multipliers, report = _cone_route(problem, tolerance=tolerance, backend=backend,
+                                      max_iterations=max_iterations, polish=polish,
+                                      backend_options=backend_options, start=start)
+    data = data_residual(problem, multipliers)
+    path = report.path
+    message = report.message
     if asymmetry > symmetry_tolerance:
-        raise ValueError(f"solve_exact: the compliance of {label} is not symmetric: relative asymmetry "
-                         f"{asymmetry:.3e} > symmetry_tolerance {symmetry_tolerance:.1e}; the exact solver "
-                         "needs a symmetric positive semi-definite W (use solve_gauss_seidel, or pass a "
-                         "larger symmetry_tolerance to solve with the symmetric part)")
+        message += f"; the cone route solved the symmetric part of W (asymmetry {asymmetry:.1e})"
+    if newton is not None:
+        message = f"newton first: {newton.message} (residual {newton.residual:.1e}); then " + message
+        if max(newton.residual, newton.data_residual) < max(report.residual, data):
+            multipliers, path = newton.multipliers, "newton"
+            data = newton.data_residual
+    residual = natural_residual(problem, multipliers)
+    converged = bool(residual <= tolerance and data <= tolerance)
+    return multipliers, SolverReport(solver=report.solver, iterations=report.iterations, residual=residual,
+                                     converged=converged, seconds=time.perf_counter() - start, message=message,
+                                     history=report.history, data_residual=data, asymmetry=asymmetry, path=path)
+
+
+def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, max_iterations: int,
+                polish: bool, backend_options: dict | None, start: float) -> tuple[np.ndarray, SolverReport]:
+    """The cone-programming route (steps 1-4 of the module notes) on the symmetric part of W."""
     solver_name = f"exact/{backend}"
     n = problem.row_count
     if n == 0:
@@ -349,7 +447,7 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
     symmetric = 0.5 * (problem.compliance + problem.compliance.T)
     scaling = _scaling(problem, symmetric)
     has_contacts = len(problem.contacts) > 0
-    needs_fixed_point = has_contacts or len(problem.shaft_friction) > 0
+    needs_fixed_point = has_contacts or len(problem.friction_groups()[0]) > 0
 
     multipliers = np.zeros(n)  # the iterate whose forces set the shaft bounds
     best, best_residual = multipliers, natural_residual(problem, multipliers)
@@ -401,7 +499,7 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
             slip = np.linalg.norm(gap[problem.contacts[:, 1:]], axis=1)
             new_gap[problem.contacts[:, 0]] += problem.contact_friction * slip
         change_gap = np.linalg.norm(new_gap - modified_gap)
-        shaft = problem.shaft_friction
+        shaft = problem.friction_groups()[0]
         change_bound = np.linalg.norm(_bounds(problem, next_multipliers)[1][shaft]
                                       - _bounds(problem, multipliers)[1][shaft])
         scale_gap = max(np.linalg.norm(problem.free_gap), np.linalg.norm(gap), np.finfo(float).tiny)
@@ -425,18 +523,20 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
                                                                f"not settled after {iterations} iterations")
                      + (", damped after oscillating" if damping < 1.0 else ""))
     if polish:
-        parts.append(f"{polish_steps} Newton polish step(s)")
+        parts.append(f"{polish_steps} Newton polish iteration(s)")
+    converged = bool(converged and data_residual(problem, best) <= tolerance)
     if not converged:
         worst = _worst_kind(problem, best)
         parts.insert(0, f"not converged: residual {residual:.3e} > tolerance {tolerance:.1e} "
                         f"(largest error in {worst} rows)")
-        logger.info("solve_exact %s: %s", label, "; ".join(parts))
+        logger.info("solve_exact %s: %s", problem.name or "problem", "; ".join(parts))
     return best, SolverReport(solver=solver_name, iterations=iterations, residual=residual,
                               converged=converged,
                               seconds=time.perf_counter() - start, message="; ".join(parts),
-                              history=np.array(history, dtype=float))
+                              history=np.array(history, dtype=float),
+                              path="cone+newton" if polish_steps else "cone")
 
 
 def _worst_kind(problem: ConstraintProblem, multipliers: np.ndarray) -> str:
     error, _ = natural_map_error(problem, multipliers)
-    return KIND_NAMES[int(problem.row_kinds()[int(np.argmax(np.abs(error)))])]
+    return LAW_NAMES[int(problem.row_kinds()[int(np.argmax(np.abs(error)))])]

@@ -5,7 +5,7 @@ row order; each block solves its own law with the others fixed, and the gap δ =
 date by adding the column W[:, j] Δλ_j after every change (so one sweep costs O(row_count²) and no row is
 recomputed).
 
-Blocks:
+Blocks (the kernels are in :mod:`refsim.solvers.laws`, one per law of the table):
 
 - bilateral row: λ ← λ − ω δ / W_ii (exact for the row);
 - unilateral row: λ ← max(0, λ − ω δ / W_ii);
@@ -14,8 +14,8 @@ Blocks:
   λ_t ← λ_t − 2 ω δ_t / (W_t1t1 + W_t2t2) projected onto the disk ‖λ_t‖ ≤ μ λ_n (SOFA's local Coulomb
   resolution). Its fixed points are exactly the solutions of the De Saxcé law (stick inside the disk with
   δ = 0, slip on it opposing δ_t, δ_n = 0);
-- shaft friction row: λ ← clip(λ − ω δ / W_ii, ±μ (‖(λ_b1, λ_b2)‖ + p)) with the current pair forces and the
-  row's normal preload p;
+- group friction row: λ ← clip(λ − ω δ / W_ii, ±μ (‖λ_G‖ + p)) with the current forces of its group G and
+  its preload p;
 - box row: λ ← clip(λ − ω δ / W_ii, lower, upper).
 
 A row whose diagonal W_ii is zero (below 1e-14 of the largest diagonal) or negative cannot be solved alone:
@@ -34,152 +34,48 @@ import time
 import numba
 import numpy as np
 
+from refsim.solvers.laws import CONTACT, block_arrays, gauss_seidel_sweep, natural_map_blocks
 from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.report import SolverReport
-from refsim.solvers.residual import natural_residual
+from refsim.solvers.residual import data_residual, data_scales, natural_residual
 
 __all__ = ["solve_gauss_seidel"]
 
 logger = logging.getLogger(__name__)
 
-_BILATERAL, _UNILATERAL, _CONTACT, _SHAFT, _BOX = 0, 1, 2, 3, 4
 _DIAGONAL_FLOOR = 1e-14
-
-
-def _blocks(problem: ConstraintProblem) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Block kinds (b,), rows (b, 3) and parameters (b, 2) sorted by first row (vectorised)."""
-    singles = [(problem.bilateral, _BILATERAL), (problem.unilateral, _UNILATERAL),
-               (problem.shaft_friction, _SHAFT), (problem.box_rows, _BOX)]
-    kinds = [np.full(len(rows), code, dtype=np.int64) for rows, code in singles]
-    rows = [np.column_stack([r, np.zeros((len(r), 2), dtype=np.int64)]) for r, _ in singles]
-    params = [np.zeros((len(problem.bilateral), 2)), np.zeros((len(problem.unilateral), 2)),
-              np.column_stack([problem.shaft_friction_coefficient, problem.shaft_normal_preload]),
-              np.column_stack([problem.box_lower, problem.box_upper])]
-    # shaft rows carry their pair in columns 1, 2 of rows and (μ, preload) in params
-    rows[2][:, 1:] = problem.shaft_pairs
-    kinds.append(np.full(len(problem.contacts), _CONTACT, dtype=np.int64))
-    rows.append(problem.contacts.astype(np.int64))
-    params.append(np.column_stack([problem.contact_friction, np.zeros(len(problem.contacts))]))
-    kind = np.concatenate(kinds)
-    row = np.concatenate(rows).astype(np.int64)
-    param = np.concatenate(params).astype(np.float64)
-    order = np.argsort(row[:, 0], kind="stable")
-    return (np.ascontiguousarray(kind[order]), np.ascontiguousarray(row[order]),
-            np.ascontiguousarray(param[order]))
+_STOP_MODES = {"residual": 0, "increment": 1, "strict": 2}
 
 
 @numba.njit(cache=True)
-def _apply(transposed, diagonal, multipliers, gap, row, value):
-    """Set λ[row] = value and update the gap with W[:, row] Δλ; return |W_rr Δλ|."""
-    change = value - multipliers[row]
-    if change == 0.0:
-        return 0.0
-    multipliers[row] = value
-    column = transposed[row]
-    for i in range(gap.shape[0]):
-        gap[i] += column[i] * change
-    return abs(diagonal[row] * change)
-
-
-@numba.njit(cache=True)
-def _sweep(transposed, diagonal, kinds, rows, params, multipliers, gap, relaxation):
-    """One Gauss–Seidel sweep over all blocks; returns SOFA's increment Σ|W_jj Δλ_j|."""
-    increment = 0.0
-    for b in range(kinds.shape[0]):
-        kind = kinds[b]
-        row = rows[b, 0]
-        if kind == _CONTACT:
-            tangent1 = rows[b, 1]
-            tangent2 = rows[b, 2]
-            friction = params[b, 0]
-            normal_force = multipliers[row]
-            if diagonal[row] > 0.0:
-                normal_force -= relaxation * gap[row] / diagonal[row]
-            if normal_force <= 0.0:
-                increment += _apply(transposed, diagonal, multipliers, gap, row, 0.0)
-                increment += _apply(transposed, diagonal, multipliers, gap, tangent1, 0.0)
-                increment += _apply(transposed, diagonal, multipliers, gap, tangent2, 0.0)
-                continue
-            increment += _apply(transposed, diagonal, multipliers, gap, row, normal_force)
-            force1 = multipliers[tangent1]
-            force2 = multipliers[tangent2]
-            tangent_diagonal = diagonal[tangent1] + diagonal[tangent2]
-            if tangent_diagonal > 0.0:
-                force1 -= 2.0 * relaxation * gap[tangent1] / tangent_diagonal
-                force2 -= 2.0 * relaxation * gap[tangent2] / tangent_diagonal
-            norm = np.sqrt(force1 * force1 + force2 * force2)
-            limit = friction * normal_force
-            if norm > limit:
-                scale = limit / norm
-                force1 *= scale
-                force2 *= scale
-            increment += _apply(transposed, diagonal, multipliers, gap, tangent1, force1)
-            increment += _apply(transposed, diagonal, multipliers, gap, tangent2, force2)
-            continue
-        force = multipliers[row]
-        if diagonal[row] > 0.0:
-            force -= relaxation * gap[row] / diagonal[row]
-        if kind == _UNILATERAL:
-            force = max(force, 0.0)
-        elif kind == _SHAFT:
-            pair1 = multipliers[rows[b, 1]]
-            pair2 = multipliers[rows[b, 2]]
-            bound = params[b, 0] * (np.sqrt(pair1 * pair1 + pair2 * pair2) + params[b, 1])
-            force = min(max(force, -bound), bound)
-        elif kind == _BOX:
-            force = min(max(force, params[b, 0]), params[b, 1])
-        increment += _apply(transposed, diagonal, multipliers, gap, row, force)
-    return increment
-
-
-@numba.njit(cache=True)
-def _residual(kinds, rows, params, multipliers, gap, free_norm):
+def _residual(kinds, rows, params, members, multipliers, gap, free_norm, error, unit_weight):
     """Natural residual (same definition as refsim.solvers.residual) from a given gap."""
+    natural_map_blocks(kinds, rows, params, members, multipliers, gap, unit_weight, error)
     total = 0.0
     for b in range(kinds.shape[0]):
-        kind = kinds[b]
         row = rows[b, 0]
-        if kind == _CONTACT:
-            t1 = rows[b, 1]
-            t2 = rows[b, 2]
-            mu = params[b, 0]
-            slip = np.sqrt(gap[t1] * gap[t1] + gap[t2] * gap[t2])
-            zn = multipliers[row] - (gap[row] + mu * slip)
-            z1 = multipliers[t1] - gap[t1]
-            z2 = multipliers[t2] - gap[t2]
-            zt = np.sqrt(z1 * z1 + z2 * z2)
-            if zt <= mu * zn:
-                pn, p1, p2 = zn, z1, z2
-            elif mu * zt <= -zn:
-                pn, p1, p2 = 0.0, 0.0, 0.0
-            else:
-                pn = max((zn + mu * zt) / (1.0 + mu * mu), 0.0)
-                ratio = mu * pn / zt if zt > 0.0 else 0.0
-                p1, p2 = ratio * z1, ratio * z2
-            en = multipliers[row] - pn
-            e1 = multipliers[t1] - p1
-            e2 = multipliers[t2] - p2
+        if kinds[b] == CONTACT:
+            en = error[row]
+            e1 = error[rows[b, 1]]
+            e2 = error[rows[b, 2]]
             total += en * en + e1 * e1 + e2 * e2
-            continue
-        if kind == _BILATERAL:
-            error = gap[row]
         else:
-            z = multipliers[row] - gap[row]
-            if kind == _UNILATERAL:
-                error = multipliers[row] - max(z, 0.0)
-            elif kind == _SHAFT:
-                pair1 = multipliers[rows[b, 1]]
-                pair2 = multipliers[rows[b, 2]]
-                bound = params[b, 0] * (np.sqrt(pair1 * pair1 + pair2 * pair2) + params[b, 1])
-                error = multipliers[row] - min(max(z, -bound), bound)
-            else:
-                error = multipliers[row] - min(max(z, params[b, 0]), params[b, 1])
-        total += error * error
+            total += error[row] * error[row]
     scale = max(free_norm, _norm(multipliers), _norm(gap))
     if scale <= 0.0:
         scale = 1.0
     residual = np.sqrt(total) / scale
     if not np.isfinite(residual) or not np.isfinite(scale) or total > 1e300:
+        return np.inf
+    return residual
+
+
+@numba.njit(cache=True)
+def _data_residual(kinds, rows, params, members, multipliers, gap, weight, data_scale, error):
+    """refsim.solvers.data_residual from a given gap: ‖λ − Π(λ − δ̂)‖ / max(‖δ_free‖, F_data) (weight = 1)."""
+    natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error)
+    residual = _norm(error) / data_scale
+    if not np.isfinite(residual):
         return np.inf
     return residual
 
@@ -210,35 +106,55 @@ def _exact_gap(transposed, free_gap, multipliers, gap):
 
 
 @numba.njit(cache=True)
-def _gauss_seidel(transposed, free_gap, diagonal, kinds, rows, params, multipliers, gap, tolerance,
-                  max_iterations, relaxation, stop_on_increment, history):
+def _gauss_seidel(transposed, free_gap, diagonal, kinds, rows, params, members, multipliers, gap, tolerance,
+                  max_iterations, relaxation, stop_mode, history, weight, data_scale, data_history,
+                  force_history):
     """Sweep until the stopping criterion holds; returns (iterations, increment, status).
+
+    stop_mode: 0 natural residual ≤ tolerance, 1 SOFA's increment, 2 both the natural and the data residual
+    (which a diverging λ cannot shrink) ≤ tolerance.
 
     status: 1 converged, 0 not converged within max_iterations, 2 diverged (non-finite or overflowing values).
     """
     free_norm = _norm(free_gap)
     row_count = free_gap.shape[0]
+    error = np.zeros(row_count)
+    unit_weight = np.ones(row_count)
     increment = np.nan
     for iteration in range(max_iterations):
-        increment = _sweep(transposed, diagonal, kinds, rows, params, multipliers, gap, relaxation)
-        residual = _residual(kinds, rows, params, multipliers, gap, free_norm)
+        increment = gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, multipliers, gap,
+                                       relaxation)
+        residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, error, unit_weight)
         history[iteration] = residual
+        data = _data_residual(kinds, rows, params, members, multipliers, gap, weight, data_scale, error)
+        data_history[iteration] = data
+        force_history[iteration] = _norm(multipliers)
         if residual == np.inf or not np.isfinite(increment):
             return iteration + 1, increment, 2
-        if stop_on_increment:
+        if stop_mode == 1:
             done = increment < tolerance * (row_count + 1)
         else:
-            done = residual <= tolerance
+            done = residual <= tolerance and (stop_mode == 0 or data <= tolerance)
         if done:
             _exact_gap(transposed, free_gap, multipliers, gap)
-            if stop_on_increment:
+            if stop_mode == 1:
                 return iteration + 1, increment, 1
-            residual = _residual(kinds, rows, params, multipliers, gap, free_norm)
+            residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, error, unit_weight)
             history[iteration] = residual
-            if residual <= tolerance:
+            if residual <= tolerance and (stop_mode == 0 or _data_residual(
+                    kinds, rows, params, members, multipliers, gap, weight, data_scale, error) <= tolerance):
                 return iteration + 1, increment, 1
     _exact_gap(transposed, free_gap, multipliers, gap)
     return max_iterations, increment, 0
+
+
+def _growing_without_progress(data_history: np.ndarray, force_history: np.ndarray) -> bool:
+    """Over the second half of the sweeps, ‖λ‖ grew by half or more while the data residual fell by < 1 %."""
+    count = data_history.size
+    if count < 20:
+        return False
+    half = count // 2
+    return bool(force_history[-1] > 1.5 * force_history[half] and data_history[-1] >= 0.99 * data_history[half])
 
 
 def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, max_iterations: int = 1000,
@@ -254,7 +170,11 @@ def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, m
     max_iterations : Largest number of sweeps, ≥ 1.
     warm_start : Initial multipliers λ₀ [N], shape (row_count,); zeros when None.
     relaxation : Over-relaxation factor ω in (0, 2).
-    criterion : ``"residual"`` (default) or ``"increment"``.
+    criterion : ``"residual"`` (default: natural residual ≤ tolerance), ``"increment"`` (SOFA's) or
+        ``"strict"`` (natural and data residual ≤ tolerance). Whatever the criterion, the report gives the data
+        residual (:func:`refsim.solvers.data_residual`, which a diverging λ cannot shrink), and a criterion met
+        while that stays above the tolerance and ‖λ‖ grows by half or more over the second half of the sweeps
+        is reported as divergence (``diverged`` True, ``converged`` False).
 
     Returns
     -------
@@ -267,8 +187,8 @@ def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, m
         raise ValueError(f"max_iterations = {max_iterations!r}; valid range: integers >= 1")
     if not (0.0 < relaxation < 2.0):
         raise ValueError(f"relaxation = {relaxation!r}; valid range (0, 2)")
-    if criterion not in ("residual", "increment"):
-        raise ValueError(f"criterion = {criterion!r}; valid values 'residual', 'increment'")
+    if criterion not in _STOP_MODES:
+        raise ValueError(f"criterion = {criterion!r}; valid values 'residual', 'increment', 'strict'")
     start = time.perf_counter()
     row_count = problem.row_count
     multipliers = (np.zeros(row_count) if warm_start is None
@@ -276,39 +196,62 @@ def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, m
     if row_count == 0:
         return multipliers, SolverReport(solver="gauss_seidel", iterations=0, residual=0.0, converged=True,
                                          seconds=time.perf_counter() - start, message="empty problem",
-                                         increment=0.0)
+                                         increment=0.0, data_residual=0.0, path="gauss_seidel")
     compliance = problem.compliance
     transposed = np.array(compliance.T, order="C", copy=True)  # writable: one numba specialisation
     diagonal = np.diag(compliance).copy()
     floor = _DIAGONAL_FLOOR * max(float(np.abs(diagonal).max()), np.finfo(float).tiny)
     diagonal[diagonal <= floor] = 0.0
-    kinds, rows, params = _blocks(problem)
+    kinds, rows, params, members = block_arrays(problem)
+    weight = np.ones(row_count)
+    data_scale = max(float(np.linalg.norm(problem.free_gap)), data_scales(problem)[1])
     gap = compliance @ multipliers + problem.free_gap
     history = np.full(int(max_iterations), np.nan)
+    data_history = np.full(int(max_iterations), np.nan)
+    force_history = np.full(int(max_iterations), np.nan)
     iterations, increment, status = _gauss_seidel(
-        transposed, np.array(problem.free_gap, copy=True), diagonal, kinds, rows, params, multipliers, gap,
-        float(tolerance), int(max_iterations), float(relaxation), criterion == "increment", history)
-    diverged = status == 2 or not np.all(np.isfinite(multipliers))
-    if diverged:
-        residual = float("inf")
-        converged = False
+        transposed, np.array(problem.free_gap, copy=True), diagonal, kinds, rows, params, members, multipliers,
+        gap,
+        float(tolerance), int(max_iterations), float(relaxation), _STOP_MODES[criterion], history, weight,
+        float(data_scale), data_history, force_history)
+    overflow = status == 2 or not np.all(np.isfinite(multipliers))
+    if overflow:
+        residual = data = float("inf")
+        converged = growing = False
     else:
         residual = natural_residual(problem, multipliers)
-        converged = bool(residual <= tolerance) if criterion == "residual" else status == 1
+        data = data_residual(problem, multipliers)
+        if criterion == "strict":
+            met = bool(residual <= tolerance and data <= tolerance)
+        elif criterion == "residual":
+            met = bool(residual <= tolerance)
+        else:
+            met = status == 1
+        # a criterion met while the data residual stays above the tolerance and ‖λ‖ grows is divergence
+        growing = (data > tolerance and _growing_without_progress(data_history[:iterations],
+                                                                   force_history[:iterations]))
+        converged = met and not growing
     seconds = time.perf_counter() - start
-    if diverged:
+    if overflow:
         message = (f"diverged after {iterations} sweeps: multipliers overflow (Gauss-Seidel needs a W with a "
                    "positive diagonal that dominates enough, e.g. symmetric positive definite)")
+        logger.info("Gauss-Seidel %s: %s", problem.name or "problem", message)
+    elif growing:
+        message = (f"diverging after {iterations} sweeps: ‖λ‖ = {force_history[iterations - 1]:.3e} N grows while "
+                   f"the data residual stays at {data:.3e} (natural residual {residual:.3e}, which ‖λ‖ divides); "
+                   "the problem probably has no solution (infeasible or W not positive semi-definite)")
         logger.info("Gauss-Seidel %s: %s", problem.name or "problem", message)
     elif converged:
         message = f"{criterion} criterion met after {iterations} sweeps"
     else:
         zero_rows = int(np.count_nonzero(diagonal == 0.0))
         message = (f"not converged: {criterion} criterion not met after {iterations} sweeps "
-                   f"(residual {residual:.3e}, increment {increment:.3e}"
+                   f"(residual {residual:.3e}, data residual {data:.3e}, increment {increment:.3e}"
                    + (f", {zero_rows} rows with zero diagonal cannot be solved alone" if zero_rows else "")
                    + ")")
         logger.info("Gauss-Seidel %s: %s", problem.name or "problem", message)
     return multipliers, SolverReport(solver="gauss_seidel", iterations=int(iterations), residual=residual,
                                      converged=bool(converged), seconds=seconds, message=message,
-                                     increment=float(increment), history=history[:iterations].copy())
+                                     increment=float(increment), history=history[:iterations].copy(),
+                                     data_residual=float(data), diverged=bool(overflow or growing),
+                                     path="gauss_seidel")

@@ -1,7 +1,7 @@
 """Readers of external problem files (Siconos ``.dat`` and FCLib ``.hdf5``) into :class:`ConstraintProblem`.
 
 Formats as documented in ``shared/data/solver-problems/README.md`` (Siconos numerics test data and FCLib's
-``fclib_local`` group). Siconos' u = W r + q maps to δ = W λ + δ_free with the same signs: Siconos' LCP rows
+``fclib_local`` and ``fclib_global`` groups). Siconos' u = W r + q maps to δ = W λ + δ_free with the same signs: Siconos' LCP rows
 are unilateral rows, equality rows bilateral, relay rows box rows, and 3-D friction contacts are contacts
 (rows normal, tangent 1, tangent 2). Every error names the file and what was expected.
 """
@@ -14,7 +14,7 @@ import numpy as np
 
 from refsim.solvers.problem import ConstraintProblem
 
-__all__ = ["PROBLEM_KINDS", "read_fclib", "read_problem", "read_siconos"]
+__all__ = ["PROBLEM_KINDS", "condense_global", "read_fclib", "read_problem", "read_siconos"]
 
 #: Problem kinds the readers understand (the folder names of the shared data set).
 PROBLEM_KINDS = ("lcp", "mlcp", "relay", "fc3d", "gmp", "fclib")
@@ -216,8 +216,82 @@ def read_siconos(path: str | Path, kind: str) -> ConstraintProblem:
         raise ValueError(f"{path}: {error}") from None
 
 
+def _fclib_matrix(group, path: Path, name: str):
+    """An FCLib matrix group (m, n, nz, p, i, x) as a scipy sparse matrix."""
+    import scipy.sparse as sparse
+
+    try:
+        matrix_group = group[name]
+        rows, cols = int(np.ravel(matrix_group["m"][()])[0]), int(np.ravel(matrix_group["n"][()])[0])
+        storage = int(np.ravel(matrix_group["nz"][()])[0])
+        pointers = np.ravel(matrix_group["p"][()])
+        indices = np.ravel(matrix_group["i"][()])
+        values = np.ravel(matrix_group["x"][()])
+    except KeyError as error:
+        raise ValueError(f"{path}: FCLib matrix {group.name}/{name} is incomplete ({error})") from None
+    if storage == -1:
+        return sparse.csc_matrix((values, indices, pointers), shape=(rows, cols))
+    if storage == -2:
+        return sparse.csr_matrix((values, indices, pointers), shape=(rows, cols))
+    if storage >= 0:
+        return sparse.coo_matrix((values[:storage], (indices[:storage], pointers[:storage])), shape=(rows, cols))
+    raise ValueError(f"{path}: {group.name}/{name}/nz = {storage} is not a known storage (-2 CSR, -1 CSC, >= 0 "
+                     "triplet)")
+
+
+def condense_global(mass, contact_operator, force, contact_offset, friction, *, equality_operator=None,
+                    equality_offset=None, name: str = "") -> ConstraintProblem:
+    """The local (condensed) problem of FCLib's global frictional contact problem.
+
+    FCLib's global form: M v = H r + G λ + f, Gᵀ v + b = 0, u = Hᵀ v + w with the Coulomb law on (u, r) per
+    contact. With B = [H G] and x = (r, λ), v = M⁻¹ (B x + f) and δ = Bᵀ M⁻¹ B x + Bᵀ M⁻¹ f + (w, b): the
+    compliance W = Bᵀ M⁻¹ B, the free gap Bᵀ M⁻¹ f + (w, b); the contact rows come first (three per contact),
+    then one bilateral row per column of G. M⁻¹ B is computed by a sparse LU of M.
+
+    Parameters
+    ----------
+    mass : M, shape (n, n), symmetric positive definite (dense or scipy sparse).
+    contact_operator : H, shape (n, 3 k).
+    force : f, shape (n,).
+    contact_offset : w, shape (3 k,).
+    friction : μ, shape (k,).
+    equality_operator : G, shape (n, p), or None.
+    equality_offset : b, shape (p,), or None.
+    name : Problem name.
+    """
+    import scipy.sparse as sparse
+    import scipy.sparse.linalg as sparse_linalg
+
+    mass = sparse.csc_matrix(mass)
+    operator = sparse.csc_matrix(contact_operator)
+    offset = np.asarray(contact_offset, dtype=float).reshape(-1)
+    equality_count = 0
+    if equality_operator is not None:
+        equality = sparse.csc_matrix(equality_operator)
+        equality_count = equality.shape[1]
+        operator = sparse.hstack([operator, equality]).tocsc()
+        offset = np.concatenate([offset, np.asarray(equality_offset, dtype=float).reshape(-1)])
+    n = mass.shape[0]
+    if mass.shape != (n, n) or operator.shape[0] != n:
+        raise ValueError(f"{name or 'global problem'}: M has shape {mass.shape} and H {operator.shape}; expected "
+                         "M (n, n) and H with n rows")
+    try:
+        factor = sparse_linalg.splu(mass)
+    except RuntimeError as error:
+        raise ValueError(f"{name or 'global problem'}: M cannot be factorised ({error})") from None
+    solved = factor.solve(operator.toarray())
+    compliance = operator.T @ solved
+    free_gap = operator.T @ factor.solve(np.asarray(force, dtype=float)) + offset
+    contact_rows = operator.shape[1] - equality_count
+    return ConstraintProblem(compliance=np.asarray(compliance), free_gap=np.asarray(free_gap).reshape(-1),
+                             contacts=np.arange(contact_rows).reshape(-1, 3),
+                             contact_friction=np.asarray(friction, dtype=float),
+                             bilateral=np.arange(contact_rows, contact_rows + equality_count), name=name)
+
+
 def read_fclib(path: str | Path) -> ConstraintProblem:
-    """Read the ``/fclib_local`` problem of an FCLib HDF5 file (3-D frictional contact).
+    """Read an FCLib HDF5 file (3-D frictional contact): the ``/fclib_local`` problem, or else the
+    ``/fclib_global`` one condensed by :func:`condense_global`.
 
     Parameters
     ----------
@@ -225,37 +299,42 @@ def read_fclib(path: str | Path) -> ConstraintProblem:
 
     Returns
     -------
-    The problem (contacts only), named after the file.
+    The problem (contacts, and bilateral rows for a global problem's G), named after the file.
     """
     import h5py
-    import scipy.sparse as sparse
 
     path = Path(path)
     try:
-        with h5py.File(path, "r") as handle:
-            group = handle["fclib_local"]
-            dimension = int(group["spacedim"][0])
-            matrix_group = group["W"]
-            rows, cols = int(matrix_group["m"][0]), int(matrix_group["n"][0])
-            storage = int(matrix_group["nz"][0])
-            pointers = matrix_group["p"][()]
-            indices = matrix_group["i"][()]
-            values = matrix_group["x"][()]
-            vector = group["vectors"]["q"][()]
-            friction = group["vectors"]["mu"][()]
-    except (OSError, KeyError) as error:
-        raise ValueError(f"{path}: not a readable FCLib local problem ({error})") from None
+        handle = h5py.File(path, "r")
+    except OSError as error:
+        raise ValueError(f"{path}: not a readable HDF5 file ({error})") from None
+    with handle:
+        kind = "fclib_local" if "fclib_local" in handle else "fclib_global" if "fclib_global" in handle else None
+        if kind is None:
+            raise ValueError(f"{path}: neither /fclib_local nor /fclib_global is in the file (groups: "
+                             f"{', '.join(handle)})")
+        group = handle[kind]
+        try:
+            dimension = int(np.ravel(group["spacedim"][()])[0])
+            vectors = group["vectors"]
+            friction = np.ravel(vectors["mu"][()])
+            if kind == "fclib_local":
+                matrix = _fclib_matrix(group, path, "W")
+                vector = np.ravel(vectors["q"][()])
+            else:
+                mass = _fclib_matrix(group, path, "M")
+                contact_operator = _fclib_matrix(group, path, "H")
+                force = np.ravel(vectors["f"][()])
+                contact_offset = np.ravel(vectors["w"][()])
+                equality = _fclib_matrix(group, path, "G") if "G" in group else None
+                equality_offset = np.ravel(vectors["b"][()]) if equality is not None else None
+        except KeyError as error:
+            raise ValueError(f"{path}: not a readable FCLib {kind[6:]} problem ({error})") from None
     if dimension != 3:
         raise ValueError(f"{path}: spacedim {dimension} is not supported (3 only)")
-    if storage == -1:
-        matrix = sparse.csc_matrix((values, indices, pointers), shape=(rows, cols))
-    elif storage == -2:
-        matrix = sparse.csr_matrix((values, indices, pointers), shape=(rows, cols))
-    elif storage >= 0:
-        matrix = sparse.coo_matrix((values[:storage], (indices[:storage], pointers[:storage])),
-                                   shape=(rows, cols))
-    else:
-        raise ValueError(f"{path}: W/nz = {storage} is not a known storage (-2 CSR, -1 CSC, >= 0 triplet)")
+    if kind == "fclib_global":
+        return condense_global(mass, contact_operator, force, contact_offset, friction,
+                               equality_operator=equality, equality_offset=equality_offset, name=path.stem)
     contact_count = friction.size
     return ConstraintProblem(compliance=matrix.toarray(), free_gap=vector,
                              contacts=np.arange(3 * contact_count).reshape(-1, 3), contact_friction=friction,

@@ -31,6 +31,13 @@ class SolverReport:
         solver.
     history : Natural residual after each iteration (Gauss–Seidel: computed on the incrementally updated gap,
         exact to round-off), shape (iterations,).
+    data_residual : :func:`refsim.solvers.data_residual` of the returned multipliers, the error in newtons over
+        the data's force scale [-]; a diverging λ cannot make it small. ``converged`` requires it (and
+        ``residual``) at most the tolerance.
+    diverged : True when the multipliers overflowed or grew without the data residual falling (no solution
+        found, and probably none exists).
+    asymmetry : Relative asymmetry ‖W − Wᵀ‖_F / ‖W‖_F of the problem's W [-] (NaN when not computed).
+    path : Which method produced the answer, e.g. ``"newton"``, ``"cone"`` (Clarabel), ``"gauss_seidel"``.
     """
 
     solver: str
@@ -41,3 +48,7 @@ class SolverReport:
     message: str = ""
     increment: float = float("nan")
     history: np.ndarray = field(default_factory=_empty_history)
+    data_residual: float = float("nan")
+    diverged: bool = False
+    asymmetry: float = float("nan")
+    path: str = ""

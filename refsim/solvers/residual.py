@@ -6,19 +6,29 @@ extended to the kinds of :class:`~refsim.solvers.ConstraintProblem`):
 - bilateral: e = δ;
 - unilateral: e = λ − max(0, λ − δ);
 - contact: e = λ − P_K(λ − δ̂), δ̂ = δ + μ ‖δ_t‖ e_n (De Saxcé), K = {‖λ_t‖ ≤ μ λ_n};
-- shaft friction: e = λ − clip(λ − δ, −b, b), b = μ (‖(λ_b1, λ_b2)‖ + p), p the row's normal preload;
+- group friction: e = λ − clip(λ − δ, −b, b), b = μ (‖λ_G‖ + p), G the row's group and p its preload;
 - box: e = λ − clip(λ − δ, lower, upper).
 
-The residual is ‖e‖₂ / max(‖δ_free‖, ‖λ‖, ‖δ‖); it is zero exactly at a solution.
+The residual is ‖e‖₂ / max(‖δ_free‖, ‖λ‖, ‖δ‖); it is zero exactly at a solution. Because ‖λ‖ is in its
+denominator, a diverging λ makes it small: it is the measure of the external problem sets, not a proof.
+
+:func:`data_residual` cannot be shrunk that way: the same error e divided by scales of the problem's data only,
+max(‖δ_free‖ [m], F_data [N]), where the data force scale F_data = max(‖ρ δ_free‖, ‖finite box bounds‖,
+‖μ p‖ of the group-friction preloads) [N] with ρ_i = 1/W_ii [N/m] (‖ρ δ_free‖: the forces that would close each
+free gap alone) replaces ‖λ‖, and ‖δ_free‖ replaces ‖δ‖. Per law, e is a gap [m] on rows where the law's
+projection is the identity (δ must vanish) and a force [N] where it clamps; the two data scales are the
+references of these units. A solver reports ``converged`` only when both residuals meet the tolerance.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from refsim.solvers.problem import KIND_NAMES, ConstraintProblem
+from refsim.solvers.laws import LAW_NAMES, block_arrays, natural_map_blocks
+from refsim.solvers.problem import ConstraintProblem
 
-__all__ = ["natural_map_error", "natural_residual", "natural_residual_by_kind", "project_friction_cone"]
+__all__ = ["data_residual", "data_residual_by_kind", "data_scales", "natural_map_error", "natural_residual",
+           "natural_residual_by_kind", "project_friction_cone"]
 
 
 def project_friction_cone(points: np.ndarray, friction_coefficient: np.ndarray) -> np.ndarray:
@@ -86,9 +96,9 @@ def natural_map_error(problem: ConstraintProblem, multipliers: np.ndarray,
             modified *= gap_weight[contacts]
         local_force = multipliers[contacts]
         error[contacts] = local_force - project_friction_cone(local_force - modified, mu)
-    if len(problem.shaft_friction):
-        rows = problem.shaft_friction
-        bound = problem.shaft_bounds(multipliers)
+    rows = problem.friction_groups()[0]
+    if len(rows):
+        bound = problem.friction_bounds(multipliers)
         error[rows] = multipliers[rows] - np.clip(multipliers[rows] - weighted[rows], -bound, bound)
     rows = problem.box_rows
     error[rows] = multipliers[rows] - np.clip(multipliers[rows] - weighted[rows], problem.box_lower,
@@ -109,6 +119,16 @@ def _denominator(problem: ConstraintProblem, multipliers: np.ndarray, gap: np.nd
     return float(scale) if scale > 0.0 else 1.0
 
 
+def _compiled_error(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """natural_map_error with ρ = 1 through the compiled kernel (same values to round-off, less overhead)."""
+    multipliers = problem.check_multipliers(multipliers)
+    kinds, rows, params, members = block_arrays(problem)
+    gap = problem.compliance @ multipliers + problem.free_gap
+    error = np.zeros(problem.row_count)
+    natural_map_blocks(kinds, rows, params, members, multipliers, gap, np.ones(problem.row_count), error)
+    return error, gap
+
+
 def natural_residual(problem: ConstraintProblem, multipliers: np.ndarray) -> float:
     """Normalised natural-map residual ‖e‖₂ / max(‖δ_free‖, ‖λ‖, ‖δ‖) of ``multipliers``.
 
@@ -121,7 +141,7 @@ def natural_residual(problem: ConstraintProblem, multipliers: np.ndarray) -> flo
     -------
     The residual [-]; 0 exactly at a solution (1 when everything is zero is impossible: then e = 0).
     """
-    error, gap = natural_map_error(problem, multipliers)
+    error, gap = _compiled_error(problem, multipliers)
     residual = _norm(error) / _denominator(problem, np.asarray(multipliers, float), gap)
     return residual if np.isfinite(residual) else float("inf")
 
@@ -131,7 +151,7 @@ def natural_residual_by_kind(problem: ConstraintProblem, multipliers: np.ndarray
 
     Returns
     -------
-    A dict mapping each name of :data:`refsim.solvers.problem.KIND_NAMES` to
+    A dict mapping each name of :data:`refsim.solvers.laws.LAW_NAMES` to
     ‖e_kind‖₂ / max(‖δ_free‖, ‖λ‖, ‖δ‖);
     the squares of the values sum to the square of :func:`natural_residual`.
     """
@@ -139,4 +159,65 @@ def natural_residual_by_kind(problem: ConstraintProblem, multipliers: np.ndarray
     denominator = _denominator(problem, np.asarray(multipliers, float), gap)
     kinds = problem.row_kinds()
     return {name: _norm(error[kinds == code]) / denominator
-            for code, name in enumerate(KIND_NAMES)}
+            for code, name in enumerate(LAW_NAMES)}
+
+
+def data_scales(problem: ConstraintProblem) -> tuple[np.ndarray, float]:
+    """Row weights ρ [N/m] and the data force scale F_data [N] used by :func:`data_residual`.
+
+    ρ_i = 1/W_ii (the mean over the three rows of a contact, so the cone is unchanged; rows whose W_ii is not
+    above 1e-14 of the largest diagonal get 1/max_j W_jj). F_data = max(‖ρ δ_free‖, ‖finite nonzero box
+    bounds‖, ‖μ_j p_j‖ over group friction rows); 1 when all are zero.
+
+    Returns
+    -------
+    weight : ρ [N/m], shape (row_count,).
+    scale : F_data [N].
+    """
+    cached = problem.__dict__.get("_data_scales")
+    if cached is not None:  # the problem is immutable: compute once
+        return cached
+    diagonal = np.diag(problem.compliance).copy()
+    largest = float(diagonal.max()) if diagonal.size else 0.0
+    if not largest > 0.0:
+        largest = 1.0
+    safe = np.where(diagonal > 1e-14 * largest, diagonal, largest)
+    if len(problem.contacts):
+        safe[problem.contacts] = safe[problem.contacts].mean(axis=1)[:, None]
+    weight = 1.0 / safe
+    bounds = np.concatenate([problem.box_lower, problem.box_upper])
+    _, _, _, coefficient, preload = problem.friction_groups()
+    scale = max(_norm(weight * problem.free_gap), _norm(bounds[np.isfinite(bounds)]), _norm(coefficient * preload))
+    weight.setflags(write=False)
+    result = (weight, scale if scale > 0.0 else 1.0)
+    object.__setattr__(problem, "_data_scales", result)
+    return result
+
+
+def _data_error(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[np.ndarray, float]:
+    _, force_scale = data_scales(problem)
+    scale = max(_norm(problem.free_gap), force_scale)
+    multipliers = np.asarray(multipliers, dtype=np.float64)
+    if not np.all(np.isfinite(multipliers)):
+        return np.full(problem.row_count, np.inf), scale
+    error, _ = _compiled_error(problem, multipliers)
+    return error, scale
+
+
+def data_residual(problem: ConstraintProblem, multipliers: np.ndarray) -> float:
+    """Natural-map error over scales of the data only, ‖e‖₂ / max(‖δ_free‖, F_data) [-] (see the module notes).
+
+    Unlike :func:`natural_residual`, its denominator does not depend on λ: a diverging λ cannot make it small.
+    Zero exactly at a solution; inf for non-finite multipliers.
+    """
+    error, scale = _data_error(problem, multipliers)
+    residual = _norm(error) / scale
+    return residual if np.isfinite(residual) else float("inf")
+
+
+def data_residual_by_kind(problem: ConstraintProblem, multipliers: np.ndarray) -> dict[str, float]:
+    """:func:`data_residual` split by law: ‖e_law‖₂ / max(‖δ_free‖, F_data) for each name of ``LAW_NAMES``
+    (squares sum to the square of the total)."""
+    error, scale = _data_error(problem, multipliers)
+    kinds = problem.row_kinds()
+    return {name: _norm(error[kinds == code]) / scale for code, name in enumerate(LAW_NAMES)}

@@ -15,7 +15,6 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
 
 LATERAL = [
     "trajectory.times=[0.0, 1.9, 2.0, 2.3]",
@@ -38,28 +37,32 @@ def sweeps(quick: bool) -> dict[str, list[tuple[str, list[str]]]]:
 
 
 def run_one(overrides: list[str], output: Path) -> dict:
-    from refsim.io import ResultWriter
+    """One run through the run driver (the same path as `refsim run`: checks, results file with the cut
+    surface, summary); a run that stops early is an error of the study."""
+    from refsim.io.driver import run_scene
     from refsim.scene import load_scene
-    from refsim.simulation import Simulation
-    from refsim.simulation.summary import RunSummary
 
     scene = load_scene("cube", LATERAL + overrides)
-    simulation = Simulation(scene)
-    summary = RunSummary()
     last = {}
-    with ResultWriter(output, scene, simulation.models, overwrite=True) as writer:
-        def on_step(state, record):
-            writer.append(record)
-            summary.add(record)
-            last["record"] = record
 
-        simulation.run(on_step=on_step)
+    def keep_last(state, record):
+        last["record"] = record
+
+    summary = run_scene(scene, output, overwrite=True, on_step=keep_last, handle_signals=False)
+    if not summary.complete:
+        raise RuntimeError(f"{output}: the run stopped early ({summary.status}): {summary.stop_reason}")
     record = last["record"]
+    import h5py
+
+    from refsim.io import schema
+
+    with h5py.File(output, "r") as handle:
+        tet_count = int(handle[schema.STATIC["tissue/tets"].path].shape[0])
     return {
         "lateral_force": float(-record.needle_force[0]),
         "insertion_points": int(record.insertion_point_count),
         "ms_per_step": 1e3 * summary.seconds / summary.steps,
-        "tet_count": int(simulation.models.mesh.tet_count),
+        "tet_count": tet_count,
         "file": str(output),
     }
 

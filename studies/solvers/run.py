@@ -3,6 +3,12 @@
 Usage::
 
     python studies/solvers/run.py [-o studies/solvers/output/solvers.h5] [--data PATH]
+    python studies/solvers/run.py --benchmark [--benchmark-output studies/solvers/output/exact_benchmark.h5]
+
+The benchmark (issue 15) times, in one run, the exact solver (semismooth Newton first), today's
+solve_exact before it (the cone route of commit 132aab8, loaded from git), Gauss–Seidel and, when Debian's
+python3-siconos is installed, Siconos' NSN_AC, NSGS, PROX and VI_FPP (in a subprocess of /usr/bin/python3), all
+at 1e-8, and prints the table of docs/solvers.md (solved, shifted geometric mean time with a 10 ms shift).
 
 For every problem: one long Gauss–Seidel run recording the natural residual after every sweep, Gauss–Seidel
 runs at several tolerances (timed, best of three), and the exact solver with every backend. The error of a
@@ -46,8 +52,14 @@ SCHEMA = "refsim-solver-study/1"
 def shared_problems() -> Path:
     """The external problem folder (REFSIM_SHARED_DATA overrides ``../shared/data``)."""
     base = os.environ.get("REFSIM_SHARED_DATA")
-    root = Path(base) if base else Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
-    return root / "solver-problems"
+    if base:
+        return Path(base) / "solver-problems"
+    repository = Path(__file__).resolve().parents[2]
+    candidates = [repository / ".." / "shared" / "data", repository / ".." / ".." / "shared" / "data"]
+    for root in candidates:  # beside a checkout (/work/main) or two levels up for a worktree (/work/wt/NAME)
+        if (root / "solver-problems" / "MANIFEST.tsv").is_file():
+            return root / "solver-problems"
+    return candidates[0] / "solver-problems"
 
 
 def external_problems(root: Path) -> list[tuple[str, ConstraintProblem]]:
@@ -201,17 +213,215 @@ def run_study(problems: list[tuple[str, ConstraintProblem]], output: Path,
     return output
 
 
+LEGACY_COMMIT = "132aab8"
+BENCHMARK_TOLERANCE = 1e-8
+SHIFT_SECONDS = 0.010
+SICONOS_PYTHON = Path("/usr/bin/python3")
+
+
+def legacy_solve_exact():
+    """``solve_exact`` as it was before the Newton path (commit 132aab8), loaded from git; None when git or the
+    commit is unavailable."""
+    import subprocess
+    import types
+
+    repository = Path(__file__).resolve().parents[2]
+    try:
+        source = subprocess.run(["git", "-C", str(repository), "show", f"{LEGACY_COMMIT}:refsim/solvers/exact.py"],
+                                check=True, capture_output=True, text=True).stdout
+    except (OSError, subprocess.CalledProcessError) as error:
+        logger.warning("legacy solve_exact unavailable: %s", error)
+        return None
+    module = types.ModuleType("refsim_legacy_exact")
+    exec(compile(source, f"{LEGACY_COMMIT}:refsim/solvers/exact.py", "exec"), module.__dict__)  # noqa: S102
+    return module.solve_exact
+
+
+def _best_time(function, problem, repeats=3):
+    """Best of ``repeats`` times of function(copy of problem): each run gets a fresh copy, so nothing cached on
+    the problem (compiled-kernel block arrays, data scales) is reused, as in a simulation step."""
+    import dataclasses
+
+    best, result = np.inf, None
+    for _ in range(repeats):
+        fresh = dataclasses.replace(problem)
+        start = time.perf_counter()
+        result = function(fresh)
+        best = min(best, time.perf_counter() - start)
+    return best, result
+
+
+def _siconos(problems, tolerance):
+    """Siconos results {solver: [(seconds, reactions, info) per problem or None]} for contact-only problems."""
+    import subprocess
+    import tempfile
+
+    if not SICONOS_PYTHON.is_file():
+        return {}
+    check = subprocess.run([str(SICONOS_PYTHON), "-c", "import siconos.numerics"], capture_output=True)
+    if check.returncode != 0:
+        logger.warning("python3-siconos not installed: no Siconos comparison")
+        return {}
+    chosen = [i for i, (_, p) in enumerate(problems)
+              if len(p.contacts) and 3 * len(p.contacts) == p.row_count
+              and np.array_equal(p.contacts.reshape(-1), np.arange(p.row_count))]
+    with tempfile.TemporaryDirectory() as folder:
+        source, target = Path(folder) / "problems.npz", Path(folder) / "results.npz"
+        arrays = {"tolerance": tolerance, "count": len(chosen)}
+        for k, i in enumerate(chosen):
+            problem = problems[i][1]
+            arrays.update({f"W_{k}": problem.compliance, f"q_{k}": problem.free_gap,
+                           f"mu_{k}": problem.contact_friction})
+        np.savez(source, **arrays)
+        runner = Path(__file__).resolve().parent / "siconos_runner.py"
+        environment = dict(os.environ, PYTHONPATH="")
+        done = subprocess.run([str(SICONOS_PYTHON), str(runner), str(source), str(target)], capture_output=True,
+                              text=True, env=environment)
+        if done.returncode != 0:
+            logger.warning("Siconos runner failed: %s", done.stderr[-2000:])
+            return {}
+        data = np.load(target)
+        results = {}
+        for name in ("NSN_AC", "NSGS", "PROX", "VI_FPP"):
+            entries = [None] * len(problems)
+            for k, i in enumerate(chosen):
+                entries[i] = (float(data[f"{name}_seconds_{k}"]), data[f"{name}_r_{k}"], int(data[f"{name}_info_{k}"]))
+            results[name] = entries
+    return results
+
+
+def shifted_geometric_mean(seconds, shift=SHIFT_SECONDS) -> float:
+    """exp(mean(log(t + shift))) − shift [s] (the benchmark mean of Mittelmann's tables)."""
+    seconds = np.asarray(seconds, dtype=float)
+    if seconds.size == 0:
+        return float("nan")
+    return float(np.exp(np.mean(np.log(seconds + shift))) - shift)
+
+
+def _table(table, subset, sizes, tolerance, title) -> str:
+    """Markdown table over the problems of ``subset`` for every solver that attempted all of them."""
+    names = [name for name, rows in table.items() if not np.isnan(np.array(rows, dtype=float)[subset, 1]).any()]
+    errors = {name: np.array(table[name], dtype=float)[:, 1] for name in names}
+    seconds = {name: np.array(table[name], dtype=float)[:, 0] for name in names}
+    everyone = subset & np.logical_and.reduce([errors[name] <= tolerance for name in names])
+    lines = [f"**{title}**: {int(subset.sum())} problems, {int(everyone.sum())} solved by all; shifted geometric "
+             f"mean (shift {SHIFT_SECONDS * 1e3:.0f} ms) of the time over the problems each solves.", "",
+             "| solver | solved to 1e-8 | SGM ms | SGM ms, < 100 rows | SGM ms, ≥ 100 rows | SGM ms, solved by all |",
+             "|---|---|---|---|---|---|"]
+    for name in names:
+        solved = subset & (errors[name] <= tolerance)
+        cells = [shifted_geometric_mean(seconds[name][solved & part]) * 1e3
+                 for part in (np.ones_like(solved), sizes < 100, sizes >= 100)]
+        cells.append(shifted_geometric_mean(seconds[name][everyone]) * 1e3)
+        lines.append(f"| {name} | {int(solved.sum())} / {int(subset.sum())} | " + " | ".join(f"{c:.3f}" for c in cells)
+                     + " |")
+    return "\n".join(lines)
+
+
+def _figure(table, sizes, tolerance, path: Path) -> None:
+    """Time against rows for every solver (filled: solved to the tolerance, open: not)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(7.5, 4.5))
+    markers = "osD^v<>ph*"
+    for index, (name, rows) in enumerate(table.items()):
+        rows = np.array(rows, dtype=float)
+        seconds, errors = rows[:, 0], rows[:, 1]
+        shown = np.isfinite(seconds)
+        solved = shown & (errors <= tolerance)
+        color = f"C{index}"
+        axis.scatter(sizes[solved], seconds[solved] * 1e3, marker=markers[index % 10], color=color, s=14,
+                     label=name)
+        axis.scatter(sizes[shown & ~solved], seconds[shown & ~solved] * 1e3, marker=markers[index % 10], s=14,
+                     facecolors="none", edgecolors=color)
+    axis.set(xscale="log", yscale="log", xlabel="rows", ylabel="time [ms]",
+             title=f"Time to {tolerance:.0e} (filled: solved; open: not solved)")
+    axis.legend(fontsize=7)
+    figure.tight_layout()
+    figure.savefig(path, dpi=130)
+    plt.close(figure)
+
+
+def benchmark_exact(problems, output: Path) -> str:
+    """Time every solver on ``problems`` at 1e-8 (see the module notes); write ``output``; return the markdown
+    table. A problem counts as solved by a solver when both refsim residuals of its answer are ≤ 1e-8."""
+    from refsim.solvers import data_residual, natural_residual
+
+    tolerance = BENCHMARK_TOLERANCE
+    legacy = legacy_solve_exact()
+    solvers = {
+        "refsim exact (Newton first)": lambda p: solve_exact(p, tolerance=tolerance)[0],
+        "refsim Gauss-Seidel": lambda p: solve_gauss_seidel(p, tolerance=tolerance, max_iterations=20_000)[0],
+    }
+    if legacy is not None:
+        solvers["refsim exact before (cone route, 132aab8)"] = (
+            lambda p: legacy(p, tolerance=tolerance, symmetry_tolerance=SYMMETRY_TOLERANCE)[0])
+    if problems:
+        solve_exact(problems[0][1], tolerance=tolerance)  # load the compiled kernels
+    table = {name: [] for name in solvers}
+    paths = []
+    for family, problem in problems:
+        for name, solver in solvers.items():
+            repeats = 1 if "before" in name else 3
+            try:
+                seconds, multipliers = _best_time(solver, problem, repeats)
+                error = max(natural_residual(problem, multipliers), data_residual(problem, multipliers))
+            except ValueError as failure:  # the legacy solver rejects non-symmetric W
+                seconds, error = np.nan, np.inf
+                logger.info("%s rejects %s: %s", name, problem.name, str(failure)[:80])
+            table[name].append((seconds, error))
+        _, report = solve_exact(problem, tolerance=tolerance)
+        paths.append(report.path)
+        logger.info("%s/%s (%d rows): %s", family, problem.name, problem.row_count,
+                    ", ".join(f"{n.split()[1]} {t[-1][0] * 1e3:.2f} ms {t[-1][1]:.1e}" for n, t in table.items()))
+    for name, entries in _siconos(problems, tolerance).items():
+        rows = []
+        for (_, problem), entry in zip(problems, entries, strict=True):
+            if entry is None:
+                rows.append((np.nan, np.nan))
+                continue
+            seconds, reaction, _ = entry
+            rows.append((seconds, max(natural_residual(problem, reaction), data_residual(problem, reaction))))
+        table[f"Siconos {name}"] = rows
+    sizes = np.array([p.row_count for _, p in problems])
+    output.parent.mkdir(parents=True, exist_ok=True)
+    with h5py.File(output, "w") as handle:
+        handle.attrs.update(created=time.strftime("%Y-%m-%dT%H:%M:%S"), tolerance=tolerance,
+                            shift_seconds=SHIFT_SECONDS, names=[p.name for _, p in problems],
+                            families=[f for f, _ in problems], rows=sizes, exact_paths=paths)
+        for name, rows in table.items():
+            handle.create_dataset(name, data=np.array(rows, dtype=float))
+    contact_only = np.array([bool(len(p.contacts)) and 3 * len(p.contacts) == p.row_count for _, p in problems])
+    lines = [_table(table, np.ones(len(problems), bool), sizes, tolerance,
+                    "All problems (shared set and the recorded cube steps), refsim's solvers"),
+             "", _table(table, contact_only, sizes, tolerance,
+                        "Contact-only problems (3-D Coulomb; the problems Siconos' fc3d solvers take)")]
+    _figure(table, sizes, tolerance, output.with_suffix(".png"))
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("-o", "--output", type=Path,
                         default=Path(__file__).resolve().parent / "output" / "solvers.h5")
     parser.add_argument("--data", type=Path, default=None, help="solver-problems folder")
+    parser.add_argument("--benchmark", action="store_true", help="only the exact-solver benchmark (issue 15)")
+    parser.add_argument("--benchmark-output", type=Path,
+                        default=Path(__file__).resolve().parent / "output" / "exact_benchmark.h5")
+    parser.add_argument("--cube-every", type=int, default=5, help="record every n-th cube step")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     root = args.data or shared_problems()
     if not (root / "MANIFEST.tsv").is_file():
         raise SystemExit(f"external problems absent: {root}")
-    path = run_study(external_problems(root) + cube_problems(), args.output)
+    problems = external_problems(root) + cube_problems(args.cube_every)
+    if args.benchmark:
+        print(benchmark_exact(problems, args.benchmark_output))
+        return
+    path = run_study(problems, args.output)
     logger.info("wrote %s", path)
 
 

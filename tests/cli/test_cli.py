@@ -74,3 +74,33 @@ def test_verify_prints_the_table_and_passes():
     assert process.returncode == 0, process.stdout + process.stderr
     assert "needle cantilever, small load" in process.stdout
     assert " 0 failed" in process.stdout
+
+
+@pytest.mark.parametrize(
+    ("extra", "fragments"),
+    [
+        (["--set", 'needle.youngs_modulus="soft"'], ["override --set", "needle.youngs_modulus = 'soft'"]),
+        (["--set", "insertion.spacing=abc"], ["override --set", "insertion.spacing = 'abc'"]),
+        (["--set", "tissue.density=1e300"], ["tissue.density", "out of range"]),
+        (["--set", 'solver.backend="nosuch"'], ["solver.backend", "installed qpsolvers"]),
+        (["--figure", "FOLDER/picture.txt"], ["--figure", ".png"]),
+        (["--figure", "AFILE/picture.png"], ["afile is a file, not a folder"]),
+    ],
+)
+def test_issue_10_inputs_exit_2_before_anything_is_written(tmp_path, capsys, extra, fragments):
+    (tmp_path / "afile").write_text("x")
+    extra = [part.replace("FOLDER", str(tmp_path)).replace("AFILE", str(tmp_path / "afile")) for part in extra]
+    output = tmp_path / "result.h5"
+    code = main(["run", "cube", "-o", str(output), "-q", *extra])
+    error = capsys.readouterr().err
+    assert code == 2, error
+    for fragment in fragments:
+        assert fragment in error, (fragment, error)
+    assert "Traceback" not in error and not output.exists()
+
+
+def test_parent_of_the_output_is_a_file(tmp_path, capsys):
+    (tmp_path / "afile").write_text("x")
+    code = main(["run", "cube", "-o", str(tmp_path / "afile" / "out.h5"), "-q"])
+    error = capsys.readouterr().err
+    assert code == 2 and "afile is a file, not a folder" in error and "Errno" not in error

@@ -124,3 +124,39 @@ def test_points_beyond_tip_after_withdrawal():
     points = np.array([[0.0, 0.0, 0.06], [0.0, 0.0, 0.05 + 1e-12], [0.0, 0.0, 0.05 - 1e-12], [0.001, 0.0, 0.04]])
     path = InsertionPath.empty().appended(np.zeros(4, int), np.full((4, 4), 0.25), 0)
     np.testing.assert_array_equal(points_beyond_tip(path, points, needle), [False, False, True, True])
+
+
+def _two_rows(**fields):
+    from refsim.constraints import RowBlock, UNILATERAL
+    import scipy.sparse as sp
+
+    return RowBlock(
+        tissue_jacobian=sp.csr_matrix(np.eye(2, 6)),
+        needle_jacobian=None,
+        free_gap=np.array([-1e-3, 2e-3]),
+        kind=np.array([UNILATERAL, BILATERAL], dtype=np.int8),
+        source=np.zeros(2, dtype=np.int8),
+        points=np.zeros((2, 3)),
+        directions=np.eye(3)[:2],
+        **fields,
+    )
+
+
+def test_force_limits_become_box_rows_and_compliance_diagonal_joins_the_diagonal():
+    # A unilateral row limited to L has 0 <= λ <= L; a bilateral one |λ| <= L (the box law of the solvers).
+    block = _two_rows(force_limit=np.array([0.8, 2.0]), compliance_diagonal=np.array([1e-3, 0.0]))
+    problem = block.problem(np.eye(2))
+    np.testing.assert_array_equal(problem.box_rows, [0, 1])
+    np.testing.assert_allclose(problem.box_lower, [0.0, -2.0])
+    np.testing.assert_allclose(problem.box_upper, [0.8, 2.0])
+    assert problem.unilateral.size == 0 and problem.bilateral.size == 0
+    np.testing.assert_allclose(problem.compliance, np.diag([1.001, 1.0]))
+    both = concatenate([block, _two_rows()])
+    np.testing.assert_allclose(both.force_limit, [0.8, 2.0, np.inf, np.inf])
+    np.testing.assert_allclose(both.compliance_diagonal, [1e-3, 0.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("fields", [dict(force_limit=np.array([0.0, 1.0])), dict(compliance_diagonal=np.array([-1.0, 0.0]))])
+def test_bad_limits_and_compliance_are_rejected(fields):
+    with pytest.raises(ValueError):
+        _two_rows(**fields)

@@ -81,7 +81,7 @@ def test_degenerate_gives_nan_and_bad_shapes_raise():
         tet_barycentric(np.zeros((2, 3)), flat)
 
 
-@settings(max_examples=40, deadline=None, database=None)
+@settings(deadline=None)
 @given(
     arrays(np.float64, (4, 3), elements=st.floats(-10, 10)),
     arrays(np.float64, (4,), elements=st.floats(0.01, 1.0)),

@@ -234,7 +234,7 @@ def test_projector_on_box_vertices_edges_faces(box, offset):
     np.testing.assert_allclose(result.normal[on_one_face], cube_normal[on_one_face], atol=1e-15)
 
 
-@settings(max_examples=25, deadline=None, database=None)
+@settings(deadline=None)
 @given(arrays(np.float64, (8, 3), elements=st.floats(-3.0, 3.0)), st.integers(0, 2**32 - 1))
 def test_property_projector_and_locator_against_brute_force(points, seed):
     rng = np.random.default_rng(seed)

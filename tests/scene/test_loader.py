@@ -39,7 +39,7 @@ def test_cube_has_the_papers_values():
         ("needle.colour=1", ["cube.toml", "needle.colour", "keys of [needle]"]),
         ('solver.method="newton"', ["cube.toml", "method", "newton", "gauss_seidel"]),
         ("tissue.poisson_ratio=0.5", ["poisson_ratio", "0.5", "(-1.0, 0.5)"]),
-        ("mesh.cells=[8, 8]", ["cells", "3 numbers"]),
+        ("mesh.cells=[8, 8]", ["cells", "3 integers"]),
         ("needle.rigid=1", ["rigid", "true or false"]),
         ("time.dt=0", ["dt", "(0.0, 1.0]"]),
         ('mesh.fixed_faces=["top"]', ["fixed_faces", "top", "zmin"]),

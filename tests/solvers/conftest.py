@@ -14,8 +14,15 @@ from refsim.solvers import ConstraintProblem
 def shared_problems() -> Path:
     """Folder of the external Siconos / FCLib problems (REFSIM_SHARED_DATA overrides the default)."""
     base = os.environ.get("REFSIM_SHARED_DATA")
-    root = Path(base) if base else Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
-    return root / "solver-problems"
+    if base:
+        return Path(base) / "solver-problems"
+    repository = Path(__file__).resolve().parents[2]
+    # ../shared beside a checkout (/work/main), or two levels up for a worktree (/work/wt/NAME)
+    candidates = [repository / ".." / "shared" / "data", repository / ".." / ".." / "shared" / "data"]
+    for root in candidates:
+        if (root / "solver-problems" / "MANIFEST.tsv").is_file():
+            return root / "solver-problems"
+    return candidates[0] / "solver-problems"
 
 
 @pytest.fixture

@@ -24,11 +24,12 @@ def test_frictionless_planted_to_round_off(planted, rng, kinds, rank, backend):
     # Target of issue 3: natural residual ≤ 1e-9 on every frictionless symmetric PSD problem, singular or not
     size = sum(kinds.values())
     problem, _, gap = planted(rng, rank=None if rank is None else size // 2, **kinds)
-    multipliers, report = solve_exact(problem, backend=backend)
-    assert report.converged, report.message
-    assert report.residual <= 1e-9
-    assert report.residual == natural_residual(problem, multipliers)
-    assert report.solver == f"exact/{backend}"
+    for method in ("auto", "cone"):
+        multipliers, report = solve_exact(problem, backend=backend, method=method)
+        assert report.converged, report.message
+        assert report.residual <= 1e-9
+        assert report.residual == natural_residual(problem, multipliers)
+        assert report.solver == ("exact/newton" if method == "auto" else f"exact/{backend}")
     # δ is unique at a solution of a convex QP even when λ is not (W singular): compare by δ
     assert np.linalg.norm(problem.gap(multipliers) - gap) <= 1e-7 * max(1.0, np.linalg.norm(gap))
 
@@ -85,15 +86,19 @@ def test_agrees_with_gauss_seidel_by_gap_on_singular_problem(planted, rng):
 
 def test_backends_agree(planted, rng):
     problem, _, _ = planted(rng, bilateral=2, unilateral=6, box=4, rank=7)
-    gaps = [problem.gap(solve_exact(problem, backend=name)[0]) for name in ("clarabel", "osqp")]
+    gaps = [problem.gap(solve_exact(problem, backend=name, method="cone")[0]) for name in ("clarabel", "osqp")]
     np.testing.assert_allclose(gaps[0], gaps[1], atol=1e-8)
 
 
-def test_non_symmetric_compliance_is_rejected():
+def test_non_symmetric_compliance_is_solved_as_given():
+    # Reference: W = [[1, 0.5], [0, 1]], δ_free = (−1, −1), both unilateral: both active gives
+    # λ = W⁻¹ (1, 1) = (0.5, 1) ≥ 0, δ = 0, the (unique, W is a P-matrix) solution.
     problem = ConstraintProblem(compliance=[[1.0, 0.5], [0.0, 1.0]], free_gap=[-1, -1], unilateral=[0, 1],
                                 name="skew")
-    with pytest.raises(ValueError, match="'skew' is not symmetric: relative asymmetry"):
-        solve_exact(problem)
+    multipliers, report = solve_exact(problem)
+    assert report.converged and report.path == "newton"
+    assert report.asymmetry == pytest.approx(problem.asymmetry()) and "non-symmetric" in report.message
+    np.testing.assert_allclose(multipliers, [0.5, 1.0], atol=1e-12)
     # within round-off it is accepted and the residual is measured on W as given
     nearly = ConstraintProblem(compliance=[[1.0, 0.5 + 1e-12], [0.5, 1.0]], free_gap=[-1, -1],
                                unilateral=[0, 1])
@@ -113,7 +118,7 @@ def test_non_convergence_is_reported_with_best_answer(planted, rng):
     # one outer iteration cannot settle the friction bounds and no polish is allowed: not converged, but the
     # best multipliers are returned and the message says why
     problem, _, _ = planted(rng, contacts=4, friction=0.8)
-    multipliers, report = solve_exact(problem, max_iterations=1, polish=False)
+    multipliers, report = solve_exact(problem, max_iterations=1, polish=False, method="cone")
     assert not report.converged
     assert "not converged" in report.message and "not settled" in report.message
     assert report.residual == natural_residual(problem, multipliers)

@@ -16,7 +16,7 @@ def _base(**overrides):
 def test_valid_problem_has_read_only_arrays_and_kinds():
     problem = _base(name="ok")
     assert problem.row_count == 4
-    assert [KIND_NAMES[k] for k in problem.row_kinds()] == ["bilateral", "bilateral", "shaft_friction",
+    assert [KIND_NAMES[k] for k in problem.row_kinds()] == ["bilateral", "bilateral", "group_friction",
                                                             "unilateral"]
     assert problem.contacts.shape == (0, 3) and problem.box_rows.shape == (0,)
     with pytest.raises(ValueError):

@@ -36,7 +36,7 @@ def test_by_kind_squares_sum_to_total(planted, rng):
     problem, force, _ = planted(rng, bilateral=2, unilateral=3, contacts=3, shafts=3, box=3)
     perturbed = force + 1e-2 * rng.standard_normal(force.size)
     parts = natural_residual_by_kind(problem, perturbed)
-    assert set(parts) == {"bilateral", "unilateral", "contact", "shaft_friction", "box"}
+    assert set(parts) == {"bilateral", "unilateral", "contact", "group_friction", "box"}
     assert np.sqrt(sum(v * v for v in parts.values())) == pytest.approx(natural_residual(problem, perturbed))
     assert all(v > 0 for v in parts.values())
 

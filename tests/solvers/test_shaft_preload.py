@@ -65,7 +65,7 @@ def test_residual_sees_the_preload(planted, rng):
     # The same forces without the preload violate the law on every slipping row (they exceed μ ‖λ_pair‖).
     bare = ConstraintProblem(**{**_fields(problem), "shaft_normal_preload": np.zeros(6)})
     parts = natural_residual_by_kind(bare, force)
-    assert parts["shaft_friction"] > 1e-3
+    assert parts["group_friction"] > 1e-3
     error, _ = natural_map_error(bare, force)
     slipping = np.abs(force[problem.shaft_friction]) >= problem.shaft_bounds(force) * (1 - 1e-12)
     assert slipping.sum() == 4  # rows 1, 2 of every 3 slip (planted_problem's pattern)

@@ -1,0 +1,220 @@
+"""The cut as a strip grown by the needle: a structured surface whose front is a crack tip in the tissue.
+
+The paper grows a point cloud and triangulates it with a greedy projection. Tried on scenes it was not built
+around (a diagonal stroke, a tilted needle, an entry on a mesh vertex) that cloud left holes inside the strip,
+and the border of a hole, taken for the front of the cut, put a row behind the needle: the cut then tore every
+step and ran to the wall of the tissue. Here the cut is a *strip* with an explicit front:
+
+- **Columns** along the needle: the insertion path at the cut start, resampled every d_c (column j).
+- **Layers** across it: layer 0 is the path (the back border); each later layer is the front at the time it
+  was laid. Consecutive layers are joined by two triangles per column pair, so the surface is a manifold
+  disc with no holes and no isolated points, whatever the mesh, the direction or the entry point.
+- **The crack tip**: one material point per column (a tet and barycentric coordinates, kept in rest
+  coordinates like every cut point, the paper's equation 4) where the tissue is cut up to. The front rows of
+  the needle press on the crack tip. It advances where the needle pushes through it, in the direction it
+  pushes (pulled back to rest coordinates through the local deformation gradient, F⁻¹u), and a new layer is
+  laid at the crack tip once it is d_c ahead of the last one.
+
+So the cut extends only where the needle pushes on its front, within the region the needle sweeps.
+"""
+
+from __future__ import annotations
+
+import time as clock
+from dataclasses import dataclass
+
+import numpy as np
+
+from refsim.cutting.surface import CutSurface, TriangulationReport
+from refsim.geometry import TetLocator
+
+__all__ = ["CutFront", "CutStrip", "locate_material_points", "strip_triangles"]
+
+# A point outside every tet by at most this much in barycentric coordinates is kept in the nearest tet (points
+# on the tissue surface: the entry point, by round-off); farther ones are outside the tissue.
+_OUTSIDE_TOLERANCE = 1e-6
+
+
+def locate_material_points(
+    locator: TetLocator,
+    positions: np.ndarray,
+    tets: np.ndarray,
+    points: np.ndarray,
+    *,
+    snap_distance: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Tets and barycentric coordinates of points in a configuration of the tissue.
+
+    A point outside every tet is moved to the closest point of one of its 8 nearest tets (by centroid; the
+    barycentric coordinates clipped to [0, 1] and renormalised) when that is within ``snap_distance`` [m] (and
+    always within 1e-6 of the tet's size: round-off on the surface); otherwise it is reported outside.
+
+    Returns
+    -------
+    (tets (q,), barycentric (q, 4), inside (q,) bool); tets are -1 where outside.
+    """
+    found, barycentric = locator.locate(points)
+    outside = np.flatnonzero(found < 0)
+    if outside.size:
+        from scipy.spatial import cKDTree
+
+        centroids = positions[tets].mean(axis=1)
+        _, nearest = cKDTree(centroids).query(points[outside], k=min(8, len(tets)))
+        nearest = nearest.reshape(outside.size, -1)
+        best = np.full(outside.size, np.inf)
+        for column in range(nearest.shape[1]):  # 8 candidate tets per point, vectorised over the points
+            candidate = nearest[:, column]
+            corners = positions[tets[candidate]]
+            matrix = np.concatenate([corners.transpose(0, 2, 1), np.ones((candidate.size, 1, 4))], axis=1)
+            rhs = np.concatenate([points[outside], np.ones((outside.size, 1))], axis=1)
+            coordinates = np.linalg.solve(matrix, rhs[..., None])[..., 0]
+            clipped = np.clip(coordinates, 0.0, None)
+            clipped /= clipped.sum(axis=1, keepdims=True)
+            snapped = np.einsum("qk,qkj->qj", clipped, corners)
+            distance = np.linalg.norm(snapped - points[outside], axis=1)
+            accept = (distance < best) & (
+                (distance <= snap_distance) | (coordinates.min(axis=1) >= -_OUTSIDE_TOLERANCE)
+            )
+            best[accept] = distance[accept]
+            found[outside[accept]] = candidate[accept]
+            barycentric[outside[accept]] = np.where(
+                (coordinates.min(axis=1) >= -_OUTSIDE_TOLERANCE)[accept, None], coordinates[accept], clipped[accept]
+            )
+    return found, barycentric, found >= 0
+
+
+def strip_triangles(back: np.ndarray, front: np.ndarray) -> np.ndarray:
+    """Triangles joining two layers of point indices column by column, shape (t, 3).
+
+    Quad j is (back_j, back_j+1, front_j+1, front_j), split into (back_j, back_j+1, front_j) and
+    (back_j+1, front_j+1, front_j); triangles with a repeated vertex (a column that did not advance) are left
+    out. Every triangle has the same winding, so the strip is oriented.
+    """
+    a, b = back[:-1], back[1:]
+    c, d = front[1:], front[:-1]
+    first = np.stack([a, b, d], axis=1)
+    second = np.stack([b, c, d], axis=1)
+    triangles = np.concatenate([first, second])
+    distinct = (triangles[:, 0] != triangles[:, 1]) & (triangles[:, 1] != triangles[:, 2]) & (
+        triangles[:, 0] != triangles[:, 2]
+    )
+    return triangles[distinct]
+
+
+def _vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals of a triangle mesh, shape (p, 3) (zero for points in no triangle)."""
+    corners = points[triangles]
+    face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals = np.zeros_like(points)
+    for k in range(3):
+        np.add.at(normals, triangles[:, k], face)
+    norms = np.linalg.norm(normals, axis=1, keepdims=True)
+    return np.divide(normals, norms, out=np.zeros_like(normals), where=norms > 0.0)
+
+
+@dataclass(frozen=True)
+class CutFront:
+    """The crack tip: one material point per column of the strip.
+
+    Attributes
+    ----------
+    rest_points : Rest positions [m], shape (q, 3).
+    tet_indices : Tet of each point, shape (q,).
+    barycentric : Barycentric coordinates in that tet, shape (q, 4).
+    """
+
+    rest_points: np.ndarray
+    tet_indices: np.ndarray
+    barycentric: np.ndarray
+
+    def positions(self, tissue_positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
+        """The crack tip in a tissue configuration [m], shape (q, 3)."""
+        return np.einsum("pk,pkj->pj", self.barycentric, tissue_positions[tets[self.tet_indices]])
+
+
+@dataclass(frozen=True)
+class CutStrip:
+    """The structure of the cut: which surface points form each layer, and the crack tip.
+
+    Attributes
+    ----------
+    layers : Point indices into the `CutSurface`, shape (layer_count, column_count); row 0 is the path.
+    front : The crack tip.
+    """
+
+    layers: np.ndarray
+    front: CutFront
+
+    @property
+    def column_count(self) -> int:
+        return int(self.layers.shape[1])
+
+    @property
+    def last_layer(self) -> np.ndarray:
+        """Point indices of the layer laid last, shape (q,)."""
+        return self.layers[-1]
+
+    def with_front(self, front: CutFront) -> CutStrip:
+        return CutStrip(self.layers, front)
+
+    def lay(self, cut: CutSurface, step: int, minimum_gap: float) -> tuple[CutSurface, CutStrip]:
+        """Lay a layer at the crack tip when any column's tip is farther than ``minimum_gap`` [m] (rest) from
+        the last layer; columns whose tip has not moved reuse their last point. Returns the surface and strip
+        (unchanged when no column is due)."""
+        last = self.last_layer
+        distance = np.linalg.norm(self.front.rest_points - cut.rest_points[last], axis=1)
+        if not np.any(distance >= minimum_gap):
+            return cut, self
+        started = clock.perf_counter()
+        moved = distance >= 1e-3 * minimum_gap
+        layer = last.copy()
+        layer[moved] = cut.point_count + np.arange(int(moved.sum()))
+        triangles = strip_triangles(last, layer)
+        grown = append_points(
+            cut,
+            self.front.rest_points[moved],
+            self.front.tet_indices[moved],
+            self.front.barycentric[moved],
+            step,
+            triangles,
+            seconds=clock.perf_counter() - started,
+        )
+        return grown, CutStrip(np.vstack([self.layers, layer[None, :]]), self.front)
+
+
+def append_points(
+    cut: CutSurface,
+    rest_points: np.ndarray,
+    tet_indices: np.ndarray,
+    barycentric: np.ndarray,
+    step: int,
+    triangles: np.ndarray,
+    *,
+    seconds: float = 0.0,
+) -> CutSurface:
+    """The surface with points and explicit triangles (indices into the grown surface) appended; the normals
+    are the area-weighted vertex normals of the whole surface (its triangles never change)."""
+    points = np.concatenate([cut.rest_points, rest_points])
+    all_triangles = np.concatenate([cut.triangles, np.asarray(triangles, dtype=np.int64).reshape(-1, 3)])
+    normals = _vertex_normals(points, all_triangles) if all_triangles.size else np.zeros_like(points)
+    added = int(rest_points.shape[0])
+    report = TriangulationReport(
+        step=step,
+        new_point_count=added,
+        new_triangle_count=int(all_triangles.shape[0] - cut.triangle_count),
+        normal_seconds=0.0,
+        triangulation_seconds=seconds,
+    )
+    return CutSurface(
+        rest_points=points,
+        tet_indices=np.concatenate([cut.tet_indices, tet_indices]),
+        barycentric=np.concatenate([cut.barycentric, barycentric]),
+        created_step=np.concatenate([cut.created_step, np.full(added, step, dtype=np.int64)]),
+        triangles=all_triangles,
+        triangle_created_step=np.concatenate(
+            [cut.triangle_created_step, np.full(all_triangles.shape[0] - cut.triangle_count, step, dtype=np.int64)]
+        ),
+        normals=normals,
+        parameters=cut.parameters,
+        last_triangulation=report,
+    )

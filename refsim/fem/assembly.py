@@ -1,0 +1,249 @@
+"""Co-rotation and assembly of the tissue's step system, compiled (numba) into the fixed pattern of the free DoFs.
+
+One pass over the tets computes, per element, F = Ds Dm⁻¹, its polar rotation R (scaled Newton,
+:func:`refsim.geometry.rotations.polar_rotation_one`), the local displacement u = Rᵀ x − X (centred, as in
+:meth:`TissueModel.internal_forces`), the internal force R Kₑ u and the blocks s · R Kₑ_ab Rᵀ of the tangent, and adds
+them straight into
+
+* the ``data`` of A_ff = (M/dt² + C/dt + K)_ff, a CSR matrix whose pattern is built once (free DoFs only, the fixed
+  ones eliminated), through a precomputed slot of each of the 144 entries of each tet (−1 when the row or the column
+  is constrained);
+* the ``data`` of the coupling A_fc (free rows, constrained columns), for prescribed displacements;
+* the internal force vector.
+
+No Python loop over elements; the result equals the NumPy/scikit-fem assembly of :class:`TissueModel` to round-off
+(tests/fem/test_assembly.py).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+
+from refsim.geometry.rotations import polar_rotation_one
+
+__all__ = ["FreePattern", "assemble_free_system"]
+
+
+class FreePattern:
+    """The fixed CSR patterns of A_ff and A_fc and the slot of every element entry in them.
+
+    Parameters
+    ----------
+    pattern : The full stiffness pattern (CSR, dof_count × dof_count).
+    scatter : Full-pattern index of each element entry, in the order (tet, a, b, i, j), shape (tet_count·144,).
+    constrained_dofs : Sorted constrained DoFs, shape (c,).
+    mass_matrix : M on the full pattern's DoFs (CSR; its entries must lie in the pattern).
+    """
+
+    def __init__(
+        self, pattern: sp.csr_matrix, scatter: np.ndarray, constrained_dofs: np.ndarray, mass_matrix
+    ) -> None:
+        n = pattern.shape[0]
+        self.dof_count = n
+        self.constrained_dofs = np.asarray(constrained_dofs, dtype=np.int64)
+        self.free_dofs = np.setdiff1d(np.arange(n), self.constrained_dofs)
+        numbered = sp.csr_matrix(
+            (np.arange(pattern.nnz, dtype=float), pattern.indices, pattern.indptr), shape=(n, n)
+        )
+        numbered.has_sorted_indices = True
+        free_free = numbered[self.free_dofs][:, self.free_dofs].tocsr()
+        free_free.sort_indices()
+        free_fixed = numbered[self.free_dofs][:, self.constrained_dofs].tocsr()
+        free_fixed.sort_indices()
+        self.indptr, self.indices = free_free.indptr.copy(), free_free.indices.copy()
+        self.coupling_indptr, self.coupling_indices = free_fixed.indptr.copy(), free_fixed.indices.copy()
+        to_free = np.full(pattern.nnz, -1, dtype=np.int64)
+        to_free[free_free.data.astype(np.int64)] = np.arange(free_free.nnz)
+        to_coupling = np.full(pattern.nnz, -1, dtype=np.int64)
+        to_coupling[free_fixed.data.astype(np.int64)] = np.arange(free_fixed.nnz)
+        # One int32 slot per element entry (little memory traffic in the scatter): k ≥ 0 is entry k of A_ff,
+        # k ≤ −2 entry −k − 2 of A_fc, −1 nothing (a constrained row).
+        free_slot, coupling_slot = to_free[scatter], to_coupling[scatter]
+        combined = np.where(free_slot >= 0, free_slot, np.where(coupling_slot >= 0, -coupling_slot - 2, -1))
+        if max(free_free.nnz, free_fixed.nnz) >= 2**31 - 2:
+            raise ValueError("the stiffness pattern is too large for int32 slots")
+        self.slots = combined.reshape(-1, 144).astype(np.int32)
+        self.nnz, self.coupling_nnz = free_free.nnz, free_fixed.nnz
+        mass = sp.csr_matrix(mass_matrix)
+        mass_ff = mass[self.free_dofs][:, self.free_dofs].tocsr()
+        mass_ff.sort_indices()
+        self.mass_data = self._on_pattern(mass_ff, self.indptr, self.indices)
+        mass_fc = mass[self.free_dofs][:, self.constrained_dofs].tocsr()
+        mass_fc.sort_indices()
+        self.mass_coupling_data = self._on_pattern(mass_fc, self.coupling_indptr, self.coupling_indices)
+
+    @staticmethod
+    def _on_pattern(matrix: sp.csr_matrix, indptr: np.ndarray, indices: np.ndarray) -> np.ndarray:
+        """The entries of ``matrix`` in the order of the pattern (indptr, indices); zero where it has none."""
+        shape = (indptr.size - 1, matrix.shape[1])
+        holder = sp.csr_matrix((np.arange(indices.size, dtype=float) + 1.0, indices, indptr), shape=shape)
+        out = np.zeros(indices.size)
+        coo = matrix.tocoo()
+        if coo.nnz == 0:
+            return out
+        picked = holder[coo.row, coo.col]
+        positions = np.asarray(picked.todense() if sp.issparse(picked) else picked, dtype=float).ravel()
+        if np.any((positions == 0.0) & (coo.data != 0.0)):
+            raise ValueError("the mass matrix has entries outside the stiffness pattern")
+        keep = positions > 0.0
+        np.add.at(out, positions[keep].astype(np.int64) - 1, coo.data[keep])
+        return out
+
+    def matrix(self, data: np.ndarray) -> sp.csr_matrix:
+        """A_ff as a CSR matrix on this pattern (no copy of ``data``)."""
+        f = self.free_dofs.size
+        out = sp.csr_matrix((data, self.indices, self.indptr), shape=(f, f), copy=False)
+        out.has_sorted_indices = True
+        return out
+
+    def coupling(self, data: np.ndarray) -> sp.csr_matrix:
+        """A_fc as a CSR matrix (free rows, constrained columns)."""
+        out = sp.csr_matrix(
+            (data, self.coupling_indices, self.coupling_indptr),
+            shape=(self.free_dofs.size, self.constrained_dofs.size),
+            copy=False,
+        )
+        out.has_sorted_indices = True
+        return out
+
+
+@numba.njit(cache=True)
+def _assemble(
+    positions,
+    tets,
+    rest_edges_inverse,
+    centred_rest,
+    stiffness,
+    stiffness_factor,
+    slots,
+    data,
+    coupling_data,
+    forces,
+    rotations,
+):  # pragma: no cover - compiled
+    tet_count = tets.shape[0]
+    f = np.empty((3, 3))
+    ds = np.empty((3, 3))
+    r = np.empty((3, 3))
+    x = np.empty((4, 3))
+    u = np.empty(12)
+    fl = np.empty(12)
+    kr = np.empty((3, 3))
+    for e in range(tet_count):
+        n0 = tets[e, 0]
+        for c in range(3):
+            for i in range(3):
+                ds[i, c] = positions[tets[e, c + 1], i] - positions[n0, i]
+        for i in range(3):
+            for j in range(3):
+                s = 0.0
+                for k in range(3):
+                    s += ds[i, k] * rest_edges_inverse[e, k, j]
+                f[i, j] = s
+        polar_rotation_one(f, r)
+        rotations[e, :, :] = r
+        # centred element positions and u_a = Rᵀ x_a − X_a
+        for i in range(3):
+            mean = 0.25 * (
+                positions[tets[e, 0], i]
+                + positions[tets[e, 1], i]
+                + positions[tets[e, 2], i]
+                + positions[tets[e, 3], i]
+            )
+            for a in range(4):
+                x[a, i] = positions[tets[e, a], i] - mean
+        for a in range(4):
+            for i in range(3):
+                s = 0.0
+                for k in range(3):
+                    s += x[a, k] * r[k, i]
+                u[3 * a + i] = s - centred_rest[e, a, i]
+        for p in range(12):
+            s = 0.0
+            for q in range(12):
+                s += stiffness[e, p, q] * u[q]
+            fl[p] = s
+        for a in range(4):
+            node = tets[e, a]
+            for i in range(3):
+                s = 0.0
+                for k in range(3):
+                    s += r[i, k] * fl[3 * a + k]
+                forces[3 * node + i] += s
+        # tangent blocks R K_ab Rᵀ, scaled, into the slots; Kₑ is symmetric, so block (b, a) is block (a, b)ᵀ
+        for a in range(4):
+            for b in range(a, 4):
+                for i in range(3):
+                    for j in range(3):
+                        s = 0.0
+                        for k in range(3):
+                            s += stiffness[e, 3 * a + i, 3 * b + k] * r[j, k]
+                        kr[i, j] = s  # K_ab Rᵀ
+                upper = (a * 4 + b) * 9
+                lower = (b * 4 + a) * 9
+                for i in range(3):
+                    for j in range(3):
+                        s = 0.0
+                        for k in range(3):
+                            s += r[i, k] * kr[k, j]
+                        s *= stiffness_factor
+                        slot = slots[e, upper + 3 * i + j]
+                        if slot >= 0:
+                            data[slot] += s
+                        elif slot <= -2:
+                            coupling_data[-slot - 2] += s
+                        if b != a:
+                            slot = slots[e, lower + 3 * j + i]
+                            if slot >= 0:
+                                data[slot] += s
+                            elif slot <= -2:
+                                coupling_data[-slot - 2] += s
+
+
+def assemble_free_system(
+    pattern: FreePattern,
+    positions: np.ndarray,
+    tets: np.ndarray,
+    rest_edges_inverse: np.ndarray,
+    centred_rest: np.ndarray,
+    stiffness: np.ndarray,
+    mass_factor: float,
+    stiffness_factor: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rotations, internal forces and the data of A_ff and A_fc in one compiled pass.
+
+    Parameters
+    ----------
+    pattern : The fixed patterns (:class:`FreePattern`).
+    positions : Node positions [m], shape (node_count, 3).
+    tets : Node indices, shape (tet_count, 4), int64.
+    rest_edges_inverse : Dm⁻¹ per tet, shape (tet_count, 3, 3).
+    centred_rest : Rest positions relative to each tet's centroid [m], shape (tet_count, 4, 3).
+    stiffness : Kₑ [N/m], shape (tet_count, 12, 12), node-major local DoFs.
+    mass_factor : 1/dt² + α/dt [1/s²].
+    stiffness_factor : 1 + β/dt.
+
+    Returns
+    -------
+    A_ff data (pattern order), A_fc data, internal forces [N] (dof_count,), rotations (tet_count, 3, 3).
+    """
+    data = mass_factor * pattern.mass_data
+    coupling = mass_factor * pattern.mass_coupling_data
+    forces = np.zeros(pattern.dof_count)
+    rotations = np.empty((tets.shape[0], 3, 3))
+    _assemble(
+        np.ascontiguousarray(positions, dtype=float),
+        tets,
+        rest_edges_inverse,
+        centred_rest,
+        stiffness,
+        float(stiffness_factor),
+        pattern.slots,
+        data,
+        coupling,
+        forces,
+        rotations,
+    )
+    return data, coupling, forces, rotations

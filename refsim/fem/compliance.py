@@ -1,0 +1,668 @@
+"""Compliance strategies as values: how a body's step system gives its free motion, W and its correction (layer 2).
+
+A body (the tissue, a flexible needle) assembles, at each step, its effective stiffness A = M/dt² + C/dt + K on its
+free DoFs (always the same sparsity pattern) and the right-hand side of the free motion (see
+:mod:`refsim.fem.integration`): a :class:`StepSystem`. A **strategy** is a plain value (like the solver factories
+scikit-fem passes to ``solve``), chosen by the scene key ``compliance.strategy``:
+
+``Exact()``
+    Factorises A every step (refsim's reference): free motion, W = H A⁻¹ Hᵀ and the correction A⁻¹ Hᵀ λ are those
+    of a fresh factorisation, to round-off.
+``Refreshed(refresh_every=10, tolerance=1e-10)``
+    Factorises A every ``refresh_every`` steps only. The free motion solves the *current* A by conjugate gradients
+    preconditioned by the stale factor, to a relative residual ``tolerance``. W and the correction: with
+    ``compliance_update="pcg"`` (default) the columns A⁻¹ e_j of the DoFs the rows touch are also solved by
+    preconditioned CG on the current A to ``tolerance``, so W is *corrected* (its error is that of the CG solves,
+    ‖ΔW‖ ≤ ‖H‖² ‖A⁻¹‖ · tolerance · ‖e_j‖ per column); with ``"stale"`` W comes from the stale factor alone and its
+    error is only measured (``against_exact``).
+``Precomputed()``
+    SOFA's precomputed constraint correction: the rest compliance C₀ = A₀⁻¹ (A at the rest shape) is computed once
+    (dense when the body has at most ``dense_limit`` free DoFs, otherwise kept as the rest factor) and rotated per
+    node, W = H R C₀ Rᵀ Hᵀ with R block-diagonal (one rotation per 3-DoF group). The free motion is CG on the
+    current A preconditioned by the rest factor. For comparison and large interactive runs: its W is not the
+    current one (on cube_cut it moves forces markedly).
+
+Binding a strategy to a body (:meth:`bind`) gives a :class:`BodyCompliance` that keeps what lives across steps (the
+analysis, the stale or rest factor); its :meth:`BodyCompliance.step` takes a step system and returns a
+:class:`StepCompliance` with ``free_displacement``, :meth:`~StepCompliance.delassus` (W for rows H given as a scipy
+CSR matrix of shape (rows, dof_count)) and :meth:`~StepCompliance.correction` (A⁻¹ Hᵀ λ). Every fast strategy can
+also compute the exact answer in the same step (``against_exact=True``) and report its errors in
+:attr:`StepCompliance.report`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from refsim.fem.linear import make_linear_solver
+from refsim.fem.threads import hot_path_threads
+
+__all__ = [
+    "STRATEGIES",
+    "StepSystem",
+    "StepCompliance",
+    "BodyCompliance",
+    "Exact",
+    "Refreshed",
+    "Precomputed",
+    "make_strategy",
+    "pcg",
+]
+
+STRATEGIES = ("exact", "refreshed", "precomputed")
+
+
+@dataclass(eq=False)
+class StepSystem:
+    """What a body assembles at one step for the compliance strategies.
+
+    Attributes
+    ----------
+    dof_count : Number of DoFs of the body.
+    free_dofs : Unconstrained DoFs, sorted, shape (f,).
+    constrained_dofs : Fixed or prescribed DoFs, sorted, shape (c,).
+    matrix : A on the free DoFs [N/m], sparse CSR (f, f), symmetric positive definite, full storage, the same
+        pattern at every step of a run.
+    rhs : Right-hand side of the free motion on the free DoFs [N], f_ext − f_int(x₀) + (M/dt) v₀ − A_fc Δx_c,
+        shape (f,).
+    prescribed : Δx on the constrained DoFs over the step [m], shape (c,) (zero for fixed DoFs).
+    group_rotations : Callable returning one rotation per 3-DoF group, shape (dof_count // 3, 3, 3) (the
+        precomputed strategy's R); None if the body has none.
+    rest_matrix : Callable returning A at the rest shape on the free DoFs (same pattern); None if the body has none.
+    """
+
+    dof_count: int
+    free_dofs: np.ndarray
+    constrained_dofs: np.ndarray
+    matrix: sp.csr_matrix
+    rhs: np.ndarray
+    prescribed: np.ndarray
+    group_rotations: Callable[[], np.ndarray] | None = None
+    rest_matrix: Callable[[], sp.csr_matrix] | None = None
+
+    @classmethod
+    def from_matrices(
+        cls,
+        matrix: sp.spmatrix,
+        rhs: np.ndarray,
+        constrained_dofs: np.ndarray | None = None,
+        prescribed: np.ndarray | None = None,
+        **callables,
+    ) -> StepSystem:
+        """Eliminate the constrained DoFs of a full system A Δx = rhs (the generic path, e.g. the needle's).
+
+        Parameters
+        ----------
+        matrix : A on every DoF, shape (n, n).
+        rhs : f_ext − f_int + (M/dt) v₀ on every DoF, shape (n,).
+        constrained_dofs : DoFs with a given Δx, shape (c,), any order (sorted here); none by default.
+        prescribed : Δx on the constrained DoFs, in the order of *sorted* ``constrained_dofs``, shape (c,); zero by
+            default.
+        """
+        matrix = sp.csr_matrix(matrix)
+        n = matrix.shape[0]
+        constrained = np.unique(
+            np.asarray([] if constrained_dofs is None else constrained_dofs, dtype=np.int64)
+        )
+        if constrained.size and (constrained[0] < 0 or constrained[-1] >= n):
+            raise ValueError(
+                f"constrained_dofs must lie in [0, {n}), got {constrained.min()}..{constrained.max()}"
+            )
+        free = np.setdiff1d(np.arange(n), constrained)
+        if free.size == 0:
+            raise ValueError("every DoF is constrained: nothing to solve")
+        rhs = np.asarray(rhs, dtype=float)
+        if rhs.shape != (n,):
+            raise ValueError(f"rhs must have shape ({n},), got {rhs.shape}")
+        reduced_rhs = rhs[free]
+        values = np.zeros(constrained.size)
+        if prescribed is not None and constrained.size:
+            values = np.asarray(prescribed, dtype=float)
+            if values.shape != constrained.shape:
+                raise ValueError(f"prescribed has shape {values.shape}, expected {constrained.shape}")
+            reduced_rhs = reduced_rhs - matrix[free][:, constrained] @ values
+        reduced = matrix[free][:, free].tocsr()
+        reduced.sort_indices()
+        return cls(n, free, constrained, reduced, reduced_rhs, values, **callables)
+
+    def expand(self, free_values: np.ndarray, constrained_values: np.ndarray | None = None) -> np.ndarray:
+        """A DoF vector (dof_count,) (or (dof_count, k)) from its free part, constrained part zero unless given."""
+        out = np.zeros((self.dof_count,) + free_values.shape[1:])
+        out[self.free_dofs] = free_values
+        if constrained_values is not None:
+            out[self.constrained_dofs] = constrained_values
+        return out
+
+
+def pcg(
+    matvec: Callable[[np.ndarray], np.ndarray],
+    preconditioner: Callable[[np.ndarray], np.ndarray],
+    rhs: np.ndarray,
+    *,
+    tolerance: float,
+    max_iterations: int,
+    start: np.ndarray | None = None,
+) -> tuple[np.ndarray, int, float]:
+    """Preconditioned conjugate gradients on the columns of ``rhs`` at once (each column its own CG).
+
+    Parameters
+    ----------
+    matvec : x ↦ A x for x of shape (n, k), A symmetric positive definite.
+    preconditioner : r ↦ P⁻¹ r, P symmetric positive definite (here a stale or rest factor of A).
+    rhs : b, shape (n,) or (n, k).
+    tolerance : Stop when ‖b − A x‖₂ ≤ tolerance ‖b‖₂ for every column.
+    max_iterations : Iteration cap, ≥ 0.
+    start : First iterate; P⁻¹ b by default (the stale factor's answer).
+
+    Returns
+    -------
+    x (shape of ``rhs``), iterations done, the largest relative residual reached.
+    """
+    b = np.asarray(rhs, dtype=float)
+    single = b.ndim == 1
+    b2 = b[:, None] if single else b
+    norm_b = np.linalg.norm(b2, axis=0)
+    norm_b = np.where(norm_b > 0.0, norm_b, 1.0)
+    x = preconditioner(b2) if start is None else np.array(start, dtype=float).reshape(b2.shape)
+    if x.ndim == 1:
+        x = x[:, None]
+    r = b2 - matvec(x)
+    relative = np.linalg.norm(r, axis=0) / norm_b
+    iterations = 0
+    if relative.max(initial=0.0) > tolerance and max_iterations > 0:
+        z = preconditioner(r)
+        z = z[:, None] if z.ndim == 1 else z
+        p = z.copy()
+        rz = np.einsum("ij,ij->j", r, z)
+        while iterations < max_iterations:
+            ap = matvec(p)
+            pap = np.einsum("ij,ij->j", p, ap)
+            active = relative > tolerance
+            alpha = np.where(active & (pap > 0.0), rz / np.where(pap > 0.0, pap, 1.0), 0.0)
+            x += alpha * p
+            r -= alpha * ap
+            iterations += 1
+            relative = np.linalg.norm(r, axis=0) / norm_b
+            if relative.max() <= tolerance:
+                break
+            z = preconditioner(r)
+            z = z[:, None] if z.ndim == 1 else z
+            rz_new = np.einsum("ij,ij->j", r, z)
+            beta = np.where(rz > 0.0, rz_new / np.where(rz > 0.0, rz, 1.0), 0.0)
+            p = z + beta * p
+            rz = rz_new
+    return (x[:, 0] if single else x), iterations, float(relative.max(initial=0.0))
+
+
+class StepCompliance:
+    """The compliance of one body at one step: its free motion, W for rows, and the correction.
+
+    Attributes
+    ----------
+    system : The step system it was made from.
+    free_displacement : Δx_free [m], shape (dof_count,), equal to ``prescribed`` on the constrained DoFs.
+    report : What the strategy did this step (``refactorised``, ``pcg_iterations``, ``pcg_residual``, and with
+        ``against_exact`` the errors ``free_motion_error`` [m], ``compliance_error`` (relative, Frobenius) and
+        ``correction_error`` [m]).
+    """
+
+    def __init__(
+        self,
+        system: StepSystem,
+        free_free: np.ndarray,
+        columns: Callable,
+        report: dict,
+        exact: StepCompliance | None = None,
+        solve: Callable | None = None,
+        block: Callable | None = None,
+        apply: Callable | None = None,
+    ):
+        self.system = system
+        self._block = block  # (positions, influence) -> E_uᵀ A⁻¹ E_u, (u, u); influence[positions] by default
+        self._apply = apply  # (free load, first guess) -> A⁻¹ load; influence @ (H_uᵀ λ) by default
+        self._solve = solve  # the exact factor's solve on the free DoFs (exact strategy only)
+        self.free_displacement = system.expand(free_free, system.prescribed)
+        self.report = report
+        self._columns = columns  # (used free positions) -> A⁻¹ E on the free DoFs, shape (f, u)
+        self._exact = exact  # an exact StepCompliance for the error report, or None
+        self._cache_key = None
+        self._cache = None
+        if exact is not None:
+            report["free_motion_error"] = float(
+                np.abs(self.free_displacement - exact.free_displacement).max()
+            )
+
+    @property
+    def dof_count(self) -> int:
+        """Number of DoFs of the body."""
+        return self.system.dof_count
+
+    @property
+    def free_dofs(self) -> np.ndarray:
+        """Unconstrained DoFs, sorted."""
+        return self.system.free_dofs
+
+    @property
+    def constrained_dofs(self) -> np.ndarray:
+        """Fixed or prescribed DoFs, sorted."""
+        return self.system.constrained_dofs
+
+    def _influence(self, jacobian: sp.csr_matrix):
+        """Used free DoFs of H (positions among the free DoFs), H restricted to them, and A⁻¹ E on them."""
+        if self._cache_key is jacobian:
+            return self._cache
+        key = jacobian
+        jacobian = sp.csr_matrix(jacobian)
+        if jacobian.shape[1] != self.system.dof_count:
+            raise ValueError(
+                f"rows must have {self.system.dof_count} columns (DoFs), got {jacobian.shape[1]}"
+            )
+        used = np.unique(jacobian.indices)
+        positions = np.searchsorted(self.system.free_dofs, used)
+        positions = np.minimum(positions, self.system.free_dofs.size - 1)
+        on_free = self.system.free_dofs[positions] == used
+        used, positions = used[on_free], positions[on_free]
+        restricted = jacobian[:, used].toarray()  # (rows, u): constrained DoFs do not move
+        influence = self._columns(positions) if used.size else np.zeros((self.system.free_dofs.size, 0))
+        self._cache_key, self._cache = key, (positions, restricted, influence)
+        return self._cache
+
+    def delassus(self, jacobian: sp.spmatrix) -> np.ndarray:
+        """W = H A⁻¹ Hᵀ [m/N] for rows H of shape (rows, dof_count); dense, symmetric, (rows, rows)."""
+        with hot_path_threads():
+            return self._delassus(jacobian)
+
+    def _delassus(self, jacobian: sp.spmatrix) -> np.ndarray:
+        positions, restricted, influence = self._influence(jacobian)
+        block = influence[positions] if self._block is None else self._block(positions, influence)
+        compliance = restricted @ block @ restricted.T
+        compliance = 0.5 * (compliance + compliance.T)
+        if self._exact is not None:
+            reference = self._exact.delassus(jacobian)
+            scale = max(np.linalg.norm(reference), np.finfo(float).tiny)
+            self.report["compliance_error"] = float(np.linalg.norm(compliance - reference) / scale)
+        return compliance
+
+    def correction(self, jacobian: sp.spmatrix, multipliers: np.ndarray) -> np.ndarray:
+        """A⁻¹ Hᵀ λ [m] on every DoF (zero on the constrained ones), shape (dof_count,)."""
+        with hot_path_threads():
+            return self._correction(jacobian, multipliers)
+
+    def _correction(self, jacobian: sp.spmatrix, multipliers: np.ndarray) -> np.ndarray:
+        positions, restricted, influence = self._influence(jacobian)
+        multipliers = np.asarray(multipliers, dtype=float)
+        if multipliers.shape != (restricted.shape[0],):
+            raise ValueError(f"multipliers must have shape ({restricted.shape[0]},), got {multipliers.shape}")
+        weights = restricted.T @ multipliers
+        free = influence @ weights
+        if self._apply is not None and positions.size:
+            load = np.zeros(self.system.free_dofs.size)
+            np.add.at(load, positions, weights)
+            free = self._apply(load, free)
+        out = self.system.expand(free)
+        if self._exact is not None:
+            self.report["correction_error"] = float(
+                np.abs(out - self._exact.correction(jacobian, multipliers)).max(initial=0.0)
+            )
+        return out
+
+    def compliance(self, jacobian: sp.spmatrix) -> tuple[np.ndarray, np.ndarray]:
+        """W and the responses A⁻¹ Hᵀ [m/N], dense (dof_count, rows) — the form :class:`ImplicitEulerSystem` gives."""
+        if self._solve is None:
+            positions, restricted, influence = self._influence(jacobian)
+            responses = self.system.expand(influence @ restricted.T)
+            return self.delassus(jacobian), responses
+        # The exact factor: the arithmetic of ImplicitEulerSystem.compliance, so that results stay bit-identical.
+        jacobian = sp.csr_matrix(jacobian)
+        row_count = jacobian.shape[0]
+        used = np.unique(jacobian.indices)
+        if used.size < row_count:
+            unit_loads = np.zeros((self.system.dof_count, used.size))
+            unit_loads[used, np.arange(used.size)] = 1.0
+            responses = self._solve_full(unit_loads) @ jacobian[:, used].T.toarray()
+        else:
+            responses = self._solve_full(jacobian.T.toarray())
+        compliance = np.asarray(jacobian @ responses)
+        return 0.5 * (compliance + compliance.T), responses
+
+    def _solve_full(self, rhs: np.ndarray) -> np.ndarray:
+        out = np.zeros_like(rhs)
+        if rhs.ndim == 2 and rhs.shape[1] == 0:
+            return out
+        out[self.system.free_dofs] = self._solve(np.ascontiguousarray(rhs[self.system.free_dofs]))
+        return out
+
+
+class BodyCompliance:
+    """A strategy bound to one body for a run: holds the factor(s) that live across steps."""
+
+    def __init__(self, strategy) -> None:
+        self.strategy = strategy
+        self.steps = 0
+        self._exact = (
+            _ExactBody(strategy.linear_solver) if getattr(strategy, "against_exact", False) else None
+        )
+
+    def step(self, system: StepSystem) -> StepCompliance:
+        """The compliance of this step's system (advances the strategy's step counter)."""
+        with hot_path_threads():
+            return self._counted_step(system)
+
+    def _counted_step(self, system: StepSystem) -> StepCompliance:
+        exact = self._exact.step(system) if self._exact is not None else None
+        result = self._step(system, exact)
+        self.steps += 1
+        return result
+
+    def _step(self, system: StepSystem, exact) -> StepCompliance:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+class _ExactBody(BodyCompliance):
+    def __init__(self, linear_solver: str) -> None:
+        self.strategy = None
+        self.steps = 0
+        self._exact = None
+        self._solver = make_linear_solver(linear_solver)
+
+    def _step(self, system: StepSystem, exact) -> StepCompliance:
+        self._solver.factorise(system.matrix)
+        solver = self._solver
+        free = solver.solve(system.rhs)
+        size = system.free_dofs.size
+
+        def columns(positions):
+            unit = np.zeros((size, positions.size))
+            unit[positions, np.arange(positions.size)] = 1.0
+            return solver.solve(unit)
+
+        return StepCompliance(system, free, columns, {"refactorised": True}, exact, solver.solve)
+
+
+def _check_common(linear_solver: str, against_exact: bool) -> None:
+    if not isinstance(linear_solver, str):
+        raise ValueError(f"linear_solver must be a string, got {linear_solver!r}")
+    if not isinstance(against_exact, bool):
+        raise ValueError(f"against_exact must be true or false, got {against_exact!r}")
+
+
+@dataclass(frozen=True)
+class Exact:
+    """Refactorise every step (the reference).
+
+    Parameters
+    ----------
+    linear_solver : "auto" (default: :func:`refsim.fem.linear.default_linear_solver`), "pardiso", "cholmod" or
+        "superlu".
+    """
+
+    linear_solver: str = "auto"
+    name: str = field(default="exact", init=False)
+
+    def __post_init__(self) -> None:
+        _check_common(self.linear_solver, False)
+
+    def bind(self) -> BodyCompliance:
+        """A fresh per-body, per-run compliance."""
+        body = _ExactBody(self.linear_solver)
+        body.strategy = self
+        return body
+
+
+class _RefreshedBody(BodyCompliance):
+    def __init__(self, strategy: Refreshed) -> None:
+        super().__init__(strategy)
+        self._solver = make_linear_solver(strategy.linear_solver)
+        self._age = None
+        self._factored = None  # the matrix of the stale factor
+
+    def _step(self, system: StepSystem, exact) -> StepCompliance:
+        strategy = self.strategy
+        refactorised = self._age is None or self._age >= strategy.refresh_every
+        if refactorised:
+            self._solver.factorise(system.matrix)
+            self._factored = system.matrix.copy()
+            self._age = 0
+        self._age += 1
+        solver, matrix = self._solver, system.matrix
+        if refactorised:
+            free, iterations, residual = solver.solve(system.rhs), 0, 0.0
+        else:
+            free, iterations, residual = pcg(
+                matrix.dot,
+                solver.solve,
+                system.rhs,
+                tolerance=strategy.tolerance,
+                max_iterations=strategy.max_iterations,
+            )
+        report = {"refactorised": refactorised, "pcg_iterations": iterations, "pcg_residual": residual}
+        size = system.free_dofs.size
+
+        def columns(positions):
+            unit = np.zeros((size, positions.size))
+            unit[positions, np.arange(positions.size)] = 1.0
+            if refactorised or strategy.compliance_update in ("stale", "first_order"):
+                return solver.solve(unit)
+            solution, column_iterations, column_residual = pcg(
+                matrix.dot,
+                solver.solve,
+                unit,
+                tolerance=strategy.tolerance,
+                max_iterations=strategy.max_iterations,
+            )
+            report["column_pcg_iterations"] = column_iterations
+            report["column_pcg_residual"] = column_residual
+            return solution
+
+        block = apply = None
+        if strategy.compliance_update == "first_order" and not refactorised:
+            change = _difference(matrix, self._factored)
+
+            def block(positions, influence):
+                # A⁻¹ = A₀⁻¹ − A₀⁻¹ ΔA A₀⁻¹ + O(‖A₀⁻¹ΔA‖²): E_uᵀA⁻¹E_u ≈ Z₀[u] − Z₀ᵀ ΔA Z₀, Z₀ = A₀⁻¹ E_u.
+                first = influence[positions] - influence.T @ (change @ influence)
+                return 0.5 * (first + first.T)
+
+            def apply(load, start):
+                solution, load_iterations, _ = pcg(
+                    matrix.dot,
+                    solver.solve,
+                    load,
+                    tolerance=strategy.tolerance,
+                    max_iterations=strategy.max_iterations,
+                    start=start,
+                )
+                report["correction_pcg_iterations"] = load_iterations
+                return solution
+
+        return StepCompliance(system, free, columns, report, exact, block=block, apply=apply)
+
+
+def _difference(matrix: sp.csr_matrix, reference: sp.csr_matrix) -> sp.csr_matrix:
+    """matrix − reference, on their common pattern when they share it (the usual case: one pattern per run)."""
+    if (
+        matrix.shape == reference.shape
+        and matrix.nnz == reference.nnz
+        and np.array_equal(matrix.indptr, reference.indptr)
+        and np.array_equal(matrix.indices, reference.indices)
+    ):
+        return sp.csr_matrix(
+            (matrix.data - reference.data, matrix.indices, matrix.indptr), shape=matrix.shape
+        )
+    return (matrix - reference).tocsr()
+
+
+@dataclass(frozen=True)
+class Refreshed:
+    """Factorise every ``refresh_every`` steps; free motion (and by default W's columns) by PCG on the current A.
+
+    Parameters
+    ----------
+    refresh_every : Steps between factorisations, ≥ 1 (1 is the exact strategy with extra CG checks).
+    tolerance : Relative residual of the PCG solves, in (0, 1).
+    max_iterations : PCG iteration cap per solve, ≥ 1.
+    compliance_update : "pcg" (W's columns solved on the current A to ``tolerance``), "stale" (the stale factor's
+        W and correction) or "first_order" (W corrected to first order, W ≈ H(Z₀ − Z₀ᵀ(A − A₀)Z₀)Hᵀ with
+        Z₀ = A₀⁻¹E_u from the stale factor, error O(‖A₀⁻¹(A − A₀)‖²) relative; the correction by PCG to ``tolerance``).
+    linear_solver : As for :class:`Exact`.
+    against_exact : Also compute the exact answer each step and report the errors (for benchmarks).
+    """
+
+    refresh_every: int = 10
+    tolerance: float = 1e-10
+    max_iterations: int = 200
+    compliance_update: str = "pcg"
+    linear_solver: str = "auto"
+    against_exact: bool = False
+    name: str = field(default="refreshed", init=False)
+
+    def __post_init__(self) -> None:
+        _check_common(self.linear_solver, self.against_exact)
+        if (
+            not isinstance(self.refresh_every, int)
+            or isinstance(self.refresh_every, bool)
+            or self.refresh_every < 1
+        ):
+            raise ValueError(f"refresh_every = {self.refresh_every!r}: expected an integer >= 1")
+        if not (0.0 < self.tolerance < 1.0):
+            raise ValueError(f"tolerance = {self.tolerance!r}: expected a number in (0, 1)")
+        if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
+            raise ValueError(f"max_iterations = {self.max_iterations!r}: expected an integer >= 1")
+        if self.compliance_update not in ("pcg", "stale", "first_order"):
+            raise ValueError(
+                f"compliance_update = {self.compliance_update!r}: expected 'pcg', 'stale' or 'first_order'"
+            )
+
+    def bind(self) -> BodyCompliance:
+        """A fresh per-body, per-run compliance."""
+        return _RefreshedBody(self)
+
+
+class _PrecomputedBody(BodyCompliance):
+    def __init__(self, strategy: Precomputed) -> None:
+        super().__init__(strategy)
+        self._solver = make_linear_solver(strategy.linear_solver)
+        self._dense = None
+        self._ready = False
+
+    def _prepare(self, system: StepSystem) -> None:
+        if system.rest_matrix is None or system.group_rotations is None:
+            raise ValueError(
+                "the precomputed strategy needs a body with a rest matrix and per-node rotations"
+            )
+        if (
+            system.dof_count % 3
+            or np.any(np.diff(system.free_dofs.reshape(-1, 3), axis=1) != 1)
+            or np.any(system.free_dofs.reshape(-1, 3)[:, 0] % 3)
+        ):
+            raise ValueError("the precomputed strategy needs whole 3-DoF groups free or constrained")
+        self._solver.factorise(system.rest_matrix())
+        size = system.free_dofs.size
+        if size <= self.strategy.dense_limit:
+            self._dense = self._solver.solve(np.eye(size))
+        self._groups = system.free_dofs.reshape(-1, 3)[:, 0] // 3
+        self._ready = True
+
+    def _rest_columns(self, loads: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """C₀ applied to loads supported on the free positions ``positions``, shape (f, k)."""
+        if self._dense is not None:
+            return self._dense[:, positions] @ loads[positions]
+        return self._solver.solve(loads)
+
+    def _step(self, system: StepSystem, exact) -> StepCompliance:
+        if not self._ready:
+            self._prepare(system)
+        strategy = self.strategy
+        free, iterations, residual = pcg(
+            system.matrix.dot,
+            self._solver.solve,
+            system.rhs,
+            tolerance=strategy.tolerance,
+            max_iterations=strategy.max_iterations,
+        )
+        report = {"refactorised": False, "pcg_iterations": iterations, "pcg_residual": residual}
+        rotations = system.group_rotations()[self._groups]  # (f/3, 3, 3), one per free node
+        size = system.free_dofs.size
+
+        def columns(positions):
+            # Rᵀ e_j: only the 3-DoF groups of the used DoFs carry a load.
+            groups = np.unique(positions // 3)
+            support = (3 * groups[:, None] + np.arange(3)).ravel()
+            unit = np.zeros((size, positions.size))
+            unit[positions, np.arange(positions.size)] = 1.0
+            loads = np.zeros_like(unit)
+            blocks = unit[support].reshape(groups.size, 3, -1)
+            loads[support] = np.einsum("gji,gjk->gik", rotations[groups], blocks).reshape(support.size, -1)
+            rest = self._rest_columns(loads, support).reshape(-1, 3, positions.size)
+            return np.einsum("gij,gjk->gik", rotations, rest).reshape(size, positions.size)
+
+        return StepCompliance(system, free, columns, report, exact)
+
+
+@dataclass(frozen=True)
+class Precomputed:
+    """The rest compliance rotated per node (SOFA's precomputed constraint correction); free motion by PCG.
+
+    Parameters
+    ----------
+    tolerance, max_iterations : Of the free motion's PCG (preconditioned by the rest factor).
+    dense_limit : Largest free DoF count for which C₀ is stored dense (f² · 8 bytes).
+    linear_solver, against_exact : As for :class:`Refreshed`.
+    """
+
+    tolerance: float = 1e-10
+    max_iterations: int = 500
+    dense_limit: int = 4000
+    linear_solver: str = "auto"
+    against_exact: bool = False
+    name: str = field(default="precomputed", init=False)
+
+    def __post_init__(self) -> None:
+        _check_common(self.linear_solver, self.against_exact)
+        if not (0.0 < self.tolerance < 1.0):
+            raise ValueError(f"tolerance = {self.tolerance!r}: expected a number in (0, 1)")
+        if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
+            raise ValueError(f"max_iterations = {self.max_iterations!r}: expected an integer >= 1")
+
+    def bind(self) -> BodyCompliance:
+        """A fresh per-body, per-run compliance."""
+        return _PrecomputedBody(self)
+
+
+def make_strategy(
+    name: str = "exact",
+    *,
+    refresh_every: int = 10,
+    linear_solver: str = "auto",
+    against_exact: bool = False,
+    tolerance: float = 1e-10,
+    w_update: str = "pcg",
+):
+    """The strategy value for a scene's ``compliance`` section.
+
+    Parameters
+    ----------
+    name : "exact", "refreshed" or "precomputed".
+    refresh_every : Of :class:`Refreshed`.
+    linear_solver : "auto", "pardiso", "cholmod" or "superlu".
+    against_exact : Report errors against exact each step (fast strategies only).
+    tolerance : PCG tolerance of the fast strategies.
+    w_update : Of :class:`Refreshed` (its ``compliance_update``): "pcg" or "stale".
+    """
+    if name == "exact":
+        return Exact(linear_solver=linear_solver)
+    if name == "refreshed":
+        return Refreshed(
+            refresh_every=refresh_every,
+            tolerance=tolerance,
+            linear_solver=linear_solver,
+            against_exact=against_exact,
+            compliance_update=w_update,
+        )
+    if name == "precomputed":
+        return Precomputed(tolerance=tolerance, linear_solver=linear_solver, against_exact=against_exact)
+    raise ValueError(f"compliance strategy {name!r}: expected one of {', '.join(STRATEGIES)}")

@@ -1,0 +1,382 @@
+"""Sparse symmetric positive definite solvers that fit the machine: PARDISO, CHOLMOD or SuperLU (layer 2).
+
+Every body's effective stiffness A = M/dt² + C/dt + K keeps one sparsity pattern for a whole run (the free DoFs of
+a fixed mesh), so a solver is made **for a pattern**: the symbolic analysis (fill-reducing ordering, elimination
+tree) is done once, and each step only refactorises numerically.
+
+Backends, in the order of :func:`default_linear_solver`:
+
+``"pardiso"``
+    Intel oneMKL PARDISO through the ``pypardiso`` wheel (x86-64 only; it brings the ``mkl`` wheel): real SPD
+    (mtype 2), upper triangle, zero-based. Phase 11 (analysis) once per pattern, phase 22 (numeric Cholesky) per
+    step, phase 33 (solve) per right-hand side block.
+``"cholmod"``
+    CHOLMOD (scikit-sparse), only when it imports: it has no wheel here and needs a system SuiteSparse.
+    Symbolic analysis once, ``cholesky_inplace`` per step.
+``"superlu"``
+    SciPy's SuperLU in its symmetric mode (no off-diagonal pivoting), with a fill-reducing column ordering
+    (``MMD_AT_PLUS_A`` by default: the minimum degree of A + Aᵀ, which suits a symmetric matrix; ``COLAMD`` is
+    what refsim used before). SuperLU has no separate symbolic phase in SciPy: each step orders and factorises.
+
+The choice is forced by ``REFSIM_LINEAR_SOLVER=pardiso|cholmod|superlu`` (or a scene's ``compliance.linear_solver``
+key through :func:`make_linear_solver`); :func:`linear_solver_info` returns the choice and the versions for the
+results file.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import importlib.metadata
+import os
+import platform
+from functools import lru_cache
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+__all__ = [
+    "LINEAR_SOLVERS",
+    "ENVIRONMENT_VARIABLE",
+    "LinearSolverError",
+    "SuperLUSolver",
+    "PardisoSolver",
+    "CholmodSolver",
+    "available_linear_solvers",
+    "default_linear_solver",
+    "make_linear_solver",
+    "linear_solver_info",
+]
+
+LINEAR_SOLVERS = ("pardiso", "cholmod", "superlu")
+ENVIRONMENT_VARIABLE = "REFSIM_LINEAR_SOLVER"
+SUPERLU_ORDERINGS = ("MMD_AT_PLUS_A", "COLAMD", "MMD_ATA", "NATURAL")
+DEFAULT_SUPERLU_ORDERING = "MMD_AT_PLUS_A"
+
+
+class LinearSolverError(RuntimeError):
+    """A linear solver is not available here or failed (the message names which and why)."""
+
+
+def _check_square(matrix: sp.spmatrix) -> sp.csr_matrix:
+    matrix = sp.csr_matrix(matrix)
+    if matrix.shape[0] != matrix.shape[1] or matrix.shape[0] == 0:
+        raise ValueError(f"matrix must be square and non-empty, got shape {matrix.shape}")
+    matrix.sort_indices()
+    return matrix
+
+
+class SuperLUSolver:
+    """SuperLU (SciPy) in symmetric mode with a fill-reducing ordering.
+
+    Parameters
+    ----------
+    ordering : Column ordering, one of ``MMD_AT_PLUS_A`` (default), ``COLAMD``, ``MMD_ATA``, ``NATURAL``.
+    """
+
+    name = "superlu"
+
+    def __init__(self, ordering: str = DEFAULT_SUPERLU_ORDERING) -> None:
+        if ordering not in SUPERLU_ORDERINGS:
+            raise ValueError(f"SuperLU ordering {ordering!r}: expected one of {', '.join(SUPERLU_ORDERINGS)}")
+        self.ordering = ordering
+        self._factor = None
+        self._size = 0
+
+    def factorise(self, matrix: sp.spmatrix) -> None:
+        """Factorise A (symmetric positive definite, full storage), replacing the previous factor."""
+        csc = sp.csc_matrix(matrix)
+        if csc.shape[0] != csc.shape[1]:
+            raise ValueError(f"matrix must be square, got shape {csc.shape}")
+        # A is SPD: no pivoting off the diagonal (SuperLU's symmetric mode), which also halves the cost of a solve.
+        self._factor = spla.splu(
+            csc, permc_spec=self.ordering, diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+        )
+        self._size = csc.shape[0]
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """A⁻¹ rhs for rhs of shape (n,) or (n, k)."""
+        if self._factor is None:
+            raise LinearSolverError("superlu: solve before factorise")
+        return self._factor.solve(np.ascontiguousarray(rhs, dtype=float))
+
+    @property
+    def description(self) -> dict:
+        return {"name": self.name, "ordering": self.ordering}
+
+
+class PardisoSolver:
+    """oneMKL PARDISO, real symmetric positive definite: analysis once per pattern, numeric refactorisation per step.
+
+    Parameters
+    ----------
+    ordering : PARDISO's fill-in reducing ordering, iparm[1]: 0 minimum degree, 2 METIS nested dissection.
+    """
+
+    name = "pardiso"
+    _MTYPE = 2  # real symmetric positive definite
+
+    def __init__(self, ordering: int = 2) -> None:
+        self._pardiso = _pardiso_function()
+        self.ordering = int(ordering)
+        self._pt = np.zeros(64, dtype=np.int64)
+        self._iparm = np.zeros(64, dtype=np.int32)
+        self._iparm[0] = 1  # we supply the parameters
+        self._iparm[1] = self.ordering
+        self._iparm[7] = 0  # no iterative refinement
+        self._iparm[9] = 13  # pivot perturbation 1e-13 (not used for SPD)
+        self._iparm[17] = -1  # report nnz(L)
+        self._iparm[34] = 1  # zero-based indices
+        self._pattern_key = None
+        self._pattern_arrays = None
+        self._upper = None  # positions in the full CSR data of the upper-triangle entries
+        self._ia = self._ja = self._a = None
+        self._n = 0
+        self._factorised = False
+
+    def __del__(self) -> None:
+        try:
+            if self._n:
+                self._call(-1, np.zeros(1), np.zeros(1), 1)
+        except Exception:  # noqa: BLE001 - freeing at interpreter exit must not raise
+            pass
+
+    @property
+    def factor_nonzeros(self) -> int:
+        """Non-zeros of the Cholesky factor (after the analysis)."""
+        return int(self._iparm[17])
+
+    def _call(self, phase: int, b: np.ndarray, x: np.ndarray, nrhs: int) -> None:
+        error = ctypes.c_int32(0)
+        i32 = ctypes.POINTER(ctypes.c_int32)
+        f64 = ctypes.POINTER(ctypes.c_double)
+        perm = np.zeros(1, dtype=np.int32)
+        self._pardiso(
+            self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
+            ctypes.byref(ctypes.c_int32(1)),
+            ctypes.byref(ctypes.c_int32(1)),
+            ctypes.byref(ctypes.c_int32(self._MTYPE)),
+            ctypes.byref(ctypes.c_int32(phase)),
+            ctypes.byref(ctypes.c_int32(self._n)),
+            (self._a if self._a is not None else np.zeros(1)).ctypes.data_as(f64),
+            (self._ia if self._ia is not None else np.zeros(1, np.int32)).ctypes.data_as(i32),
+            (self._ja if self._ja is not None else np.zeros(1, np.int32)).ctypes.data_as(i32),
+            perm.ctypes.data_as(i32),
+            ctypes.byref(ctypes.c_int32(nrhs)),
+            self._iparm.ctypes.data_as(i32),
+            ctypes.byref(ctypes.c_int32(0)),
+            b.ctypes.data_as(f64),
+            x.ctypes.data_as(f64),
+            ctypes.byref(error),
+        )
+        if error.value != 0:
+            raise LinearSolverError(
+                f"pardiso phase {phase} failed with error {error.value} (oneMKL error code)"
+            )
+
+    def factorise(self, matrix: sp.spmatrix) -> None:
+        """Factorise A (symmetric positive definite, full storage); the analysis runs when the pattern is new."""
+        matrix = _check_square(matrix)
+        last = self._pattern_arrays
+        if last is not None and last[0] is matrix.indptr and last[1] is matrix.indices:
+            # The very arrays of last time (one FreePattern per run; held here, so they cannot be recycled).
+            key = self._pattern_key
+        else:
+            key = (matrix.shape[0], matrix.nnz, hash(matrix.indptr.tobytes()), hash(matrix.indices.tobytes()))
+        self._pattern_arrays = (matrix.indptr, matrix.indices)
+        if key != self._pattern_key:
+            if self._n:
+                self._call(-1, np.zeros(1), np.zeros(1), 1)
+                self._pt[:] = 0
+            rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
+            self._upper = np.flatnonzero(matrix.indices >= rows)
+            upper = sp.triu(matrix, format="csr")
+            upper.sort_indices()
+            self._n = matrix.shape[0]
+            self._ia = upper.indptr.astype(np.int32)
+            self._ja = upper.indices.astype(np.int32)
+            self._a = np.ascontiguousarray(matrix.data[self._upper], dtype=float)
+            self._call(11, np.zeros(1), np.zeros(1), 1)
+            self._pattern_key = key
+        else:
+            self._a = np.ascontiguousarray(matrix.data[self._upper], dtype=float)
+        self._call(22, np.zeros(1), np.zeros(1), 1)
+        self._factorised = True
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """A⁻¹ rhs for rhs of shape (n,) or (n, k)."""
+        if not self._factorised:
+            raise LinearSolverError("pardiso: solve before factorise")
+        rhs = np.asarray(rhs, dtype=float)
+        if rhs.shape[0] != self._n:
+            raise ValueError(f"rhs has {rhs.shape[0]} rows, the matrix {self._n}")
+        if rhs.ndim == 2 and rhs.shape[1] == 0:
+            return np.zeros_like(rhs)
+        b = np.asfortranarray(rhs)
+        x = np.zeros_like(b, order="F")
+        self._call(33, b, x, 1 if rhs.ndim == 1 else rhs.shape[1])
+        return np.ascontiguousarray(x)
+
+    @property
+    def description(self) -> dict:
+        return {
+            "name": self.name,
+            "ordering": {0: "minimum degree", 2: "METIS"}.get(self.ordering, self.ordering),
+        }
+
+
+class CholmodSolver:
+    """CHOLMOD (scikit-sparse): symbolic analysis once per pattern, numeric Cholesky per step."""
+
+    name = "cholmod"
+
+    def __init__(self) -> None:
+        try:
+            from sksparse import cholmod
+        except ImportError as error:  # pragma: no cover - depends on the machine
+            raise LinearSolverError(f"cholmod: scikit-sparse does not import here ({error})") from None
+        self._cholmod = cholmod
+        self._factor = None
+        self._pattern_key = None
+
+    def factorise(self, matrix: sp.spmatrix) -> None:  # pragma: no cover - needs scikit-sparse
+        csc = sp.csc_matrix(matrix)
+        key = (csc.shape[0], csc.nnz, hash(csc.indptr.tobytes()), hash(csc.indices.tobytes()))
+        if key != self._pattern_key or self._factor is None:
+            self._factor = self._cholmod.analyze(csc)
+            self._pattern_key = key
+        self._factor.cholesky_inplace(csc)
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:  # pragma: no cover - needs scikit-sparse
+        return self._factor(np.asarray(rhs, dtype=float))
+
+    @property
+    def description(self) -> dict:  # pragma: no cover
+        return {"name": self.name}
+
+
+@lru_cache(maxsize=1)
+def _pardiso_function():
+    """oneMKL's ``pardiso`` entry point, found through pypardiso's search for ``mkl_rt``."""
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        raise LinearSolverError(
+            f"pardiso: oneMKL wheels exist for x86-64 only, this machine is {platform.machine()}"
+        )
+    try:
+        import pypardiso
+    except ImportError as error:
+        raise LinearSolverError(f"pardiso: pypardiso does not import here ({error})") from None
+    try:
+        library = pypardiso.PyPardisoSolver().libmkl
+    except (ImportError, OSError) as error:
+        raise LinearSolverError(f"pardiso: the mkl_rt library was not found ({error})") from None
+    function = library.pardiso
+    i32 = ctypes.POINTER(ctypes.c_int32)
+    function.argtypes = [
+        ctypes.POINTER(ctypes.c_int64),
+        i32,
+        i32,
+        i32,
+        i32,
+        i32,
+        ctypes.c_void_p,
+        i32,
+        i32,
+        i32,
+        i32,
+        i32,
+        i32,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+        i32,
+    ]
+    function.restype = None
+    return function
+
+
+@lru_cache(maxsize=None)
+def _available(name: str) -> bool:
+    try:
+        _construct(name)
+    except LinearSolverError:
+        return False
+    return True
+
+
+def available_linear_solvers() -> tuple[str, ...]:
+    """The backends that work on this machine, in order of preference."""
+    return tuple(name for name in LINEAR_SOLVERS if _available(name))
+
+
+def _construct(name: str):
+    if name.startswith("superlu:"):
+        return SuperLUSolver(name.split(":", 1)[1].upper())
+    if name == "pardiso":
+        return PardisoSolver()
+    if name == "cholmod":
+        return CholmodSolver()
+    if name == "superlu":
+        return SuperLUSolver()
+    raise ValueError(f"linear solver {name!r}: expected one of {', '.join(LINEAR_SOLVERS)} or 'auto'")
+
+
+def default_linear_solver() -> str:
+    """The backend used when none is asked for: ``$REFSIM_LINEAR_SOLVER`` if set, else the first available."""
+    forced = os.environ.get(ENVIRONMENT_VARIABLE, "").strip().lower()
+    if forced and forced != "auto":
+        if forced.split(":", 1)[0] not in LINEAR_SOLVERS:
+            raise ValueError(
+                f"{ENVIRONMENT_VARIABLE}={forced!r}: expected one of {', '.join(LINEAR_SOLVERS)} or 'auto'"
+            )
+        return forced
+    return available_linear_solvers()[0]
+
+
+def make_linear_solver(name: str | None = None):
+    """A new solver instance of backend ``name`` ("auto" or None: :func:`default_linear_solver`).
+
+    ``"superlu:ORDERING"`` picks SuperLU's column ordering (e.g. ``superlu:COLAMD``, refsim's former choice).
+
+    Raises
+    ------
+    LinearSolverError
+        When the backend asked for does not work here (the message says why).
+    """
+    if name is None or name == "auto":
+        name = default_linear_solver()
+    return _construct(name)
+
+
+def _version(distribution: str) -> str | None:
+    try:
+        return importlib.metadata.version(distribution)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def linear_solver_info(name: str | None = None) -> dict:
+    """The linear solver a run uses and the versions behind it, for the results file's attributes.
+
+    Parameters
+    ----------
+    name : The backend asked for (a scene's ``compliance.linear_solver``); "auto" or None for the default.
+
+    Returns
+    -------
+    ``{"linear_solver": ..., "requested": ..., "environment": $REFSIM_LINEAR_SOLVER or "", "available": [...],
+    "scipy": ..., "pypardiso": ..., "mkl": ..., "scikit-sparse": ..., "superlu_ordering": ...}`` (versions are None
+    when not installed).
+    """
+    chosen = default_linear_solver() if name in (None, "auto") else name
+    return {
+        "linear_solver": chosen,
+        "requested": name or "auto",
+        "environment": os.environ.get(ENVIRONMENT_VARIABLE, ""),
+        "available": list(available_linear_solvers()),
+        "superlu_ordering": DEFAULT_SUPERLU_ORDERING,
+        "scipy": _version("scipy"),
+        "pypardiso": _version("pypardiso"),
+        "mkl": _version("mkl"),
+        "scikit-sparse": _version("scikit-sparse"),
+        "machine": platform.machine(),
+    }

@@ -1,0 +1,286 @@
+"""The one run driver: scene → simulation → results file → summary (used by `refsim run`, the studies and sweeps).
+
+:func:`run_scene` is a plain function without global state, so a Dask task can call it. It checks the output
+path before anything is built, builds the simulation (every input error surfaces there, before a file exists),
+then runs it, writing each step (buffered in blocks, see :mod:`refsim.io.writer`) and the cut surface as it
+grows, and feeding a :class:`~refsim.simulation.summary.RunSummary`. Whatever stops the run, the file is closed
+with every completed step readable, ``complete`` false and the reason in the root attribute ``stop_reason``:
+
+============================================  ====================  =========
+what stopped the run                           ``summary.status``    exit code
+============================================  ====================  =========
+nothing (finished)                             "complete"            0
+non-finite or overflowing values, singular     "numerical"           3
+factorisation, diverging constraint solver
+a failed write (full disk)                     "write_failed"        3
+SIGINT (Ctrl-C)                                "interrupted"         130
+SIGTERM                                        "terminated"          143
+============================================  ====================  =========
+
+Bad input raises :class:`RunInputError` (exit code 2) before any file is written.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "EXIT_INPUT",
+    "EXIT_INTERRUPTED",
+    "EXIT_NUMERICAL",
+    "EXIT_OK",
+    "EXIT_TERMINATED",
+    "RunInputError",
+    "check_output_path",
+    "check_record",
+    "run_scene",
+]
+
+logger = logging.getLogger(__name__)
+
+EXIT_OK, EXIT_INPUT, EXIT_NUMERICAL, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 2, 3, 130, 143
+
+#: A tissue displacement beyond this many times the tissue's bounding-box diagonal is a diverging run: a tissue
+#: with fixed nodes cannot move that far (measured: an overflow moved it by 1e144 m with finite numbers).
+DIVERGENCE_FACTOR = 10.0
+#: Largest magnitude of a force [N] or position [m] that is still a number to compute with (beyond it squares
+#: overflow float64 and the next step gives inf).
+OVERFLOW = 1e150
+
+
+class RunInputError(ValueError):
+    """Bad input found before the run (scene, mesh, output path); nothing was written. Exit code 2."""
+
+
+class _Terminated(BaseException):
+    """Raised in the main thread by the SIGTERM handler (a BaseException, like KeyboardInterrupt)."""
+
+
+class _NumericalProblem(Exception):
+    """A detected numerical problem (the message names the step and the value)."""
+
+
+def check_output_path(path: str | Path, *, overwrite: bool, what: str = "results file") -> Path:
+    """Check that ``path`` can be created, before anything runs.
+
+    Parameters
+    ----------
+    path : The file to write.
+    overwrite : Whether an existing file may be replaced.
+    what : What the file is, for messages ("results file", "figure").
+
+    Raises
+    ------
+    RunInputError
+        When the path is a directory, exists (without ``overwrite``), has a parent that is a file, or lies in a
+        folder that cannot be created or written to; the message names the path and the cause.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise RunInputError(f"{path}: is a directory; expected the path of the {what}")
+    if path.exists() and not overwrite:
+        raise RunInputError(f"{path}: the {what} exists; pass --overwrite to replace it")
+    ancestor = path.parent
+    while not ancestor.exists():
+        if ancestor == ancestor.parent:
+            break
+        ancestor = ancestor.parent
+    if ancestor.exists() and not ancestor.is_dir():
+        raise RunInputError(f"{path}: cannot create the {what}: {ancestor} is a file, not a folder")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise RunInputError(f"{path}: cannot create the {what}: the folder {ancestor} is not writable")
+    return path
+
+
+def check_record(state, record, *, size: float, rest_positions: np.ndarray) -> None:
+    """Stop on a numerical problem visible in a step: non-finite or overflowing values, a diverging tissue, a
+    solver that reports divergence or a non-finite residual.
+
+    Raises
+    ------
+    _NumericalProblem
+        Naming the step, the quantity and its value.
+    """
+    step = record.step
+    checks = (
+        ("needle positions [m]", record.needle_positions),
+        ("needle frames", record.needle_frames),
+        ("constraint forces [N]", record.row_forces),
+        ("force on the needle [N]", record.needle_force),
+        ("tissue positions [m]", state.tissue.positions),
+        ("tissue velocities [m/s]", state.tissue.velocities),
+    )
+    for name, values in checks:
+        values = np.asarray(values, dtype=float)
+        if values.size == 0:
+            continue
+        finite = np.isfinite(values)
+        if not np.all(finite):
+            raise _NumericalProblem(f"step {step}: non-finite {name} ({int(np.count_nonzero(~finite))} values)")
+        largest = float(np.abs(values).max())
+        if largest > OVERFLOW:
+            raise _NumericalProblem(f"step {step}: overflowing {name}: |value| up to {largest:.3g}")
+    moved = float(np.linalg.norm(np.asarray(state.tissue.positions) - rest_positions, axis=1).max())
+    if moved > DIVERGENCE_FACTOR * size:
+        raise _NumericalProblem(
+            f"step {step}: the tissue diverges: a node moved {moved:.3g} m, more than {DIVERGENCE_FACTOR:g} times "
+            f"the tissue's size ({size:.3g} m); check the material (E, density) and dt"
+        )
+    report = record.solver
+    if report is not None:
+        if getattr(report, "diverged", False):
+            raise _NumericalProblem(f"step {step}: the constraint solver diverged ({getattr(report, 'message', '')})")
+        residual = float(getattr(report, "residual", 0.0))
+        if not np.isfinite(residual) and np.asarray(record.row_forces).size:
+            raise _NumericalProblem(f"step {step}: the constraint solver's residual is {residual}")
+
+
+def _numerical_message(error: BaseException, step: int) -> str | None:
+    """A clear message for the numerical errors the libraries raise, or None when ``error`` is not one."""
+    from refsim.simulation import SimulationError
+
+    text = str(error)
+    if isinstance(error, (_NumericalProblem, SimulationError)):
+        return text
+    if isinstance(error, RuntimeError) and "singular" in text.lower():
+        return (f"step {step}: the system matrix is singular (the sparse factorisation said: {text}); the "
+                "material or dt leave it without a usable inverse (e.g. a Young's modulus so large that the mass "
+                "is lost in round-off)")
+    if isinstance(error, np.linalg.LinAlgError):
+        return f"step {step}: linear algebra failed ({text})"
+    if isinstance(error, (FloatingPointError, OverflowError, ZeroDivisionError)):
+        return f"step {step}: arithmetic failed ({type(error).__name__}: {text})"
+    return None
+
+
+class _Signals:
+    """SIGINT raises KeyboardInterrupt and SIGTERM raises _Terminated in the main thread, for one run; the
+    previous handlers come back afterwards. In another thread (a Dask worker) nothing is installed."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.enabled = enabled and threading.current_thread() is threading.main_thread()
+        self.previous: dict = {}
+
+    def __enter__(self) -> _Signals:
+        if self.enabled:
+            self.previous[signal.SIGINT] = signal.signal(signal.SIGINT, signal.default_int_handler)
+            self.previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, self._terminate)
+        return self
+
+    @staticmethod
+    def _terminate(signum, frame) -> None:
+        raise _Terminated()
+
+    def __exit__(self, *exc) -> None:
+        for number, handler in self.previous.items():
+            signal.signal(number, handler)
+
+
+def run_scene(
+    scene,
+    output_path: str | Path,
+    *,
+    overwrite: bool = False,
+    progress: Callable[[int, int, str], None] | None = None,
+    on_step: Callable | None = None,
+    steps: int | None = None,
+    buffer_steps: int | None = None,
+    handle_signals: bool = True,
+):
+    """Run a scene and write its results file; return the run's summary.
+
+    Parameters
+    ----------
+    scene : A validated :class:`refsim.scene.Scene` (``refsim.scene.load_scene``).
+    output_path : The results file (.h5) to create.
+    overwrite : Replace an existing file (otherwise an existing file is bad input).
+    progress : Called after each step as ``progress(done, total, phase)``.
+    on_step : Called after each step as ``on_step(state, record)`` (after it was checked and buffered).
+    steps : Steps to run (the scene's duration by default).
+    buffer_steps : Steps per written block (`refsim.io.writer.DEFAULT_BUFFER_STEPS` by default).
+    handle_signals : In the main thread, turn SIGTERM into a clean stop (exit code 143) for the run's duration
+        and make SIGINT raise KeyboardInterrupt (130); the previous handlers are restored afterwards.
+
+    Returns
+    -------
+    RunSummary
+        Events, forces, solver health and timing, plus ``status`` ("complete", "numerical", "write_failed",
+        "interrupted", "terminated"), ``exit_code`` (0, 3, 3, 130, 143), ``stop_reason`` ("" when complete),
+        ``complete`` and ``output``. The results file holds every completed step in every case.
+
+    Raises
+    ------
+    RunInputError
+        Bad input (the scene's models, the mesh, the output path), before any file is written.
+    """
+    from refsim.io.writer import DEFAULT_BUFFER_STEPS, ResultWriter
+    from refsim.simulation import Simulation
+    from refsim.simulation.summary import RunSummary
+
+    output = check_output_path(output_path, overwrite=overwrite)
+    try:
+        simulation = Simulation(scene)  # every input error surfaces here, before any file is written
+    except (ValueError, OSError) as error:
+        raise RunInputError(str(error)) from None
+    total = scene.time.step_count if steps is None else int(steps)
+    summary = RunSummary(total_steps=total, output=str(output))
+    rest = np.asarray(simulation.models.mesh.rest_positions)
+    size = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
+    try:
+        output.parent.mkdir(parents=True, exist_ok=True)
+        writer = ResultWriter(output, scene, simulation.models, overwrite=overwrite,
+                              buffer_steps=DEFAULT_BUFFER_STEPS if buffer_steps is None else buffer_steps)
+    except (OSError, ValueError) as error:
+        raise RunInputError(f"{output}: cannot create the results file: {error}") from None
+
+    written_cut = [None]
+
+    def step_done(state, record) -> None:
+        check_record(state, record, size=size, rest_positions=rest)
+        writer.append(record)
+        if state.cut is not None and state.cut is not written_cut[0]:
+            cut = state.cut
+            writer.write_cut_surface(cut.rest_points, cut.created_step, cut.triangles, cut.triangle_created_step,
+                                     tet_indices=cut.tet_indices, barycentric=cut.barycentric)
+            written_cut[0] = cut
+        summary.add(record)
+        if on_step is not None:
+            on_step(state, record)
+        if progress is not None:
+            progress(record.step, total, record.phase)
+
+    status, code, reason = "complete", EXIT_OK, ""
+    with _Signals(handle_signals):
+        try:
+            try:
+                simulation.run(steps=total, on_step=step_done)
+            except KeyboardInterrupt:
+                status, code, reason = "interrupted", EXIT_INTERRUPTED, "interrupted by SIGINT"
+            except _Terminated:
+                status, code, reason = "terminated", EXIT_TERMINATED, "interrupted by SIGTERM"
+            except OSError as error:
+                status, code = "write_failed", EXIT_NUMERICAL
+                reason = writer.failure or f"writing the results failed: {error}"
+            except Exception as error:  # noqa: BLE001 - every failure must close the file and say why
+                step = summary.steps + 1
+                message = _numerical_message(error, step)
+                status, code = "numerical", EXIT_NUMERICAL
+                if message is None:
+                    logger.debug("run stopped by an unexpected error", exc_info=True)
+                    message = f"step {step}: stopped by an internal error ({type(error).__name__}: {error})"
+                reason = message
+        finally:
+            # Also reached on a second Ctrl-C during the handling above: the file is closed in every case.
+            writer.close(complete=status == "complete", reason=reason)
+    if writer.failure is not None and status != "write_failed":
+        status, code = "write_failed", EXIT_NUMERICAL
+        reason = f"{reason}; {writer.failure}" if reason else writer.failure
+    summary.finish(status=status, exit_code=code, stop_reason=reason, steps_written=writer.steps_completed)
+    return summary

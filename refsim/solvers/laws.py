@@ -1,0 +1,488 @@
+"""The constraint laws, as data: one table that every part of :mod:`refsim.solvers` and the problem schema read.
+
+A law says which multipliers λ and gaps δ = W λ + δ_free are admissible on its rows. Each entry of
+:data:`LAWS` gives its name, its integer code (the index of the entry), the number of rows of one block, the
+fields of :class:`~refsim.solvers.ConstraintProblem` that hold its rows and parameters (with unit, dtype, shape
+and meaning: the HDF5 problem schema is derived from them) and a one-line statement. The compiled kernels of the
+laws (one Gauss–Seidel block update, one natural-map block and its generalised Jacobian) are the ``_*_block``
+functions below; the solvers dispatch on the law code.
+
+Laws (codes in this order):
+
+0. ``bilateral``: δ = 0, λ free.
+1. ``unilateral`` (Signorini): 0 ≤ δ ⊥ λ ≥ 0.
+2. ``contact``: 3-D Coulomb cone on rows (normal, tangent 1, tangent 2): ‖λ_t‖ ≤ μ λ_n with the De Saxcé
+   complementarity (friction opposing the slip, δ_n = 0 while in contact).
+3. ``group_friction``: |λ_s| ≤ μ (‖λ_G‖ + p) for a friction row s, a group G of any other rows (ragged: any
+   number of rows per friction row), a coefficient μ ≥ 0 and a preload p ≥ 0 [N]; stick (δ_s = 0) inside the
+   bound, slip at the bound opposing δ_s. Given either as ``group_friction`` rows with ``group_offsets`` /
+   ``group_members`` (the group of friction row j is ``group_members[group_offsets[j]:group_offsets[j + 1]]``),
+   or in the older pair form ``shaft_friction`` / ``shaft_pairs`` (groups of two bilateral rows); both forms may
+   be used in one problem and are solved as one law.
+4. ``box``: lower ≤ λ ≤ upper with δ = 0 strictly inside, δ ≥ 0 at the lower and δ ≤ 0 at the upper bound.
+
+Adding a law: one entry in :data:`LAWS` (its fields appear in ``ConstraintProblem``, its validation, the
+residual's per-law split and the HDF5 schema), its kernels here, and one branch in each dispatcher
+(:func:`block_arrays` and the ``_block_*`` dispatch functions).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numba
+import numpy as np
+
+__all__ = [
+    "BILATERAL",
+    "BOX",
+    "CONTACT",
+    "FieldSpec",
+    "GROUP_FRICTION",
+    "LAWS",
+    "LAW_FIELDS",
+    "LAW_NAMES",
+    "Law",
+    "UNILATERAL",
+    "block_arrays",
+    "problem_field_specs",
+]
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    """One field of :class:`~refsim.solvers.ConstraintProblem` (and one dataset of a recorded problem).
+
+    Attributes
+    ----------
+    name : Keyword of the field.
+    unit : Unit ("m/N", "m", "N", "1" for indices and dimensionless data).
+    dtype : "float64" or "int64".
+    entry_shape : Shape; "r" the row count, "?" a count of this field's own.
+    meaning : One line.
+    role : How the field is validated: "rows" (row indices of the law, one per block or (count, block_size)),
+        "members" (row indices of groups, ragged), "offsets" (group offsets), "coefficient" (finite ≥ 0, one per
+        block), "preload" (finite ≥ 0, one per block, empty means zeros), "bound" (may be ±inf, one per block),
+        "matrix" / "vector" (the compliance and the free gap).
+    per : For parameters, the rows field they are one per.
+    """
+
+    name: str
+    unit: str
+    dtype: str
+    entry_shape: tuple
+    meaning: str
+    role: str
+    per: str = ""
+
+    def empty(self) -> np.ndarray:
+        """The default (no entries) of this field."""
+        shape = tuple(0 if size == "?" else size for size in self.entry_shape)
+        return np.zeros(shape, dtype=np.int64 if self.dtype == "int64" else np.float64)
+
+
+@dataclass(frozen=True)
+class Law:
+    """One constraint law of the table.
+
+    Attributes
+    ----------
+    name : Name used in messages, residual splits and study tables.
+    code : Integer code (index in :data:`LAWS`), used by the compiled kernels.
+    block_size : Rows of one block (1, or 3 for a contact).
+    fields : The problem fields of this law; the "rows" fields list its rows.
+    statement : The law in one line.
+    validate : Extra checks beyond the per-field ones, called with the problem and a fail(message) callback.
+    """
+
+    name: str
+    code: int
+    block_size: int
+    fields: tuple[FieldSpec, ...]
+    statement: str
+    validate: Callable | None = None
+
+    @property
+    def row_fields(self) -> tuple[str, ...]:
+        """Names of the fields holding the law's rows."""
+        return tuple(spec.name for spec in self.fields if spec.role == "rows")
+
+    def rows_of(self, problem) -> np.ndarray:
+        """Every row of this law in ``problem``, shape (count,)."""
+        parts = [np.asarray(getattr(problem, name)).reshape(-1) for name in self.row_fields]
+        return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, dtype=np.int64)
+
+
+BILATERAL, UNILATERAL, CONTACT, GROUP_FRICTION, BOX = 0, 1, 2, 3, 4
+
+
+def _check_groups(problem, fail) -> None:
+    """Offsets of the group form and the pair form of group friction."""
+    rows = problem.group_friction
+    offsets = problem.group_offsets
+    members = problem.group_members
+    if rows.size == 0 and offsets.size == 0:
+        if members.size:
+            fail(f"group_members has {members.size} rows but group_friction is empty")
+    else:
+        if offsets.shape != (rows.size + 1,):
+            fail(f"group_offsets has shape {offsets.shape}, expected ({rows.size + 1},): group_friction row j "
+                 "has the group group_members[group_offsets[j]:group_offsets[j + 1]]")
+        if offsets[0] != 0 or offsets[-1] != members.size or (np.diff(offsets) < 0).any():
+            fail(f"group_offsets must start at 0, never decrease and end at len(group_members) = {members.size}, "
+                 f"got {offsets[:3].tolist()}...{offsets[-1:].tolist()}")
+        friction = np.zeros(problem.row_count, dtype=bool)
+        friction[rows] = True
+        friction[problem.shaft_friction] = True
+        in_group = friction[members]
+        if in_group.any():
+            fail(f"group_members holds row {int(members[in_group][0])}, a group friction row; a group may hold "
+                 "any rows but friction rows")
+    if len(problem.shaft_pairs) != len(problem.shaft_friction):
+        fail(f"shaft_pairs has {len(problem.shaft_pairs)} pairs for {len(problem.shaft_friction)} "
+             "shaft_friction rows; one pair per row is required")
+    bilateral = np.zeros(problem.row_count, dtype=bool)
+    bilateral[problem.bilateral] = True
+    not_bilateral = ~bilateral[problem.shaft_pairs]
+    if not_bilateral.any():
+        row = int(problem.shaft_pairs[not_bilateral][0])
+        fail(f"shaft_pairs references row {row}, which is {LAW_NAMES[problem.row_kinds()[row]]}; the pair of a "
+             "shaft friction row must be bilateral rows (use group_friction for any other group)")
+
+
+def _check_box(problem, fail) -> None:
+    lower, upper = problem.box_lower, problem.box_upper
+    if (lower > upper).any():
+        index = int(np.argmax(lower > upper))
+        fail(f"box row {int(problem.box_rows[index])} has box_lower {lower[index]} > box_upper {upper[index]}")
+
+
+#: The law table. Field order here is the keyword order of ConstraintProblem and of the problem schema.
+LAWS: tuple[Law, ...] = (
+    Law("bilateral", BILATERAL, 1,
+        (FieldSpec("bilateral", "1", "int64", ("?",), "bilateral rows", "rows"),),
+        "δ = 0, λ free"),
+    Law("unilateral", UNILATERAL, 1,
+        (FieldSpec("unilateral", "1", "int64", ("?",), "unilateral (Signorini) rows", "rows"),),
+        "0 ≤ δ ⊥ λ ≥ 0 (Signorini)"),
+    Law("contact", CONTACT, 3,
+        (FieldSpec("contacts", "1", "int64", ("?", 3), "contact rows (normal, tangent 1, tangent 2)", "rows"),
+         FieldSpec("contact_friction", "1", "float64", ("?",), "Coulomb friction coefficient of each contact",
+                   "coefficient", per="contacts")),
+        "‖λ_t‖ ≤ μ λ_n, De Saxcé complementarity (3-D Coulomb cone)"),
+    Law("group_friction", GROUP_FRICTION, 1,
+        (FieldSpec("shaft_friction", "1", "int64", ("?",), "friction rows bounded by a pair of bilateral rows "
+                   "(pair form of group friction)", "rows"),
+         FieldSpec("shaft_pairs", "1", "int64", ("?", 2), "the two bilateral rows bounding each shaft_friction "
+                   "row", "members", per="shaft_friction"),
+         FieldSpec("shaft_friction_coefficient", "1", "float64", ("?",), "friction coefficient of each "
+                   "shaft_friction row", "coefficient", per="shaft_friction"),
+         FieldSpec("shaft_normal_preload", "N", "float64", ("?",), "preload p added to the pair force norm in "
+                   "each shaft_friction row's bound (empty: zeros)", "preload", per="shaft_friction"),
+         FieldSpec("group_friction", "1", "int64", ("?",), "friction rows bounded by a group of rows", "rows"),
+         FieldSpec("group_offsets", "1", "int64", ("?",), "group of group_friction row j: "
+                   "group_members[group_offsets[j]:group_offsets[j+1]]", "offsets", per="group_friction"),
+         FieldSpec("group_members", "1", "int64", ("?",), "rows of all groups, concatenated", "members",
+                   per="group_friction"),
+         FieldSpec("group_friction_coefficient", "1", "float64", ("?",), "friction coefficient of each "
+                   "group_friction row", "coefficient", per="group_friction"),
+         FieldSpec("group_preload", "N", "float64", ("?",), "preload p of each group_friction row's bound "
+                   "(empty: zeros)", "preload", per="group_friction")),
+        "|λ_s| ≤ μ (‖λ_G‖ + p), stick inside, slip at the bound opposing δ_s", _check_groups),
+    Law("box", BOX, 1,
+        (FieldSpec("box_rows", "1", "int64", ("?",), "rows with fixed bounds", "rows"),
+         FieldSpec("box_lower", "N", "float64", ("?",), "lower bound of each box row (may be -inf)", "bound",
+                   per="box_rows"),
+         FieldSpec("box_upper", "N", "float64", ("?",), "upper bound of each box row (may be +inf)", "bound",
+                   per="box_rows")),
+        "lower ≤ λ ≤ upper; δ = 0 inside, δ ≥ 0 at lower, δ ≤ 0 at upper (Siconos' relay)", _check_box),
+)
+
+#: Names of the laws, in the order of their codes (:meth:`ConstraintProblem.row_kinds`).
+LAW_NAMES: tuple[str, ...] = tuple(law.name for law in LAWS)
+
+#: Every law field, in keyword order.
+LAW_FIELDS: tuple[FieldSpec, ...] = tuple(spec for law in LAWS for spec in law.fields)
+
+_DATA_FIELDS = (
+    FieldSpec("compliance", "m/N", "float64", ("r", "r"), "compliance (Delassus operator) W", "matrix"),
+    FieldSpec("free_gap", "m", "float64", ("r",), "free-motion gap delta_free", "vector"),
+)
+
+assert all(law.code == index for index, law in enumerate(LAWS)), "law codes must be their table index"
+
+
+def problem_field_specs() -> tuple[FieldSpec, ...]:
+    """Every array field of :class:`~refsim.solvers.ConstraintProblem`: W, δ_free, then the law fields."""
+    return _DATA_FIELDS + LAW_FIELDS
+
+
+# ---------------------------------------------------------------------------------------------------- blocks
+def friction_groups(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Both forms of group friction merged: (rows (m,), offsets (m + 1,), members, coefficient (m,), preload (m,)).
+
+    Pair-form rows come first, then the group-form rows.
+    """
+    pairs = problem.shaft_pairs
+    count = len(problem.shaft_friction)
+    rows = np.concatenate([problem.shaft_friction, problem.group_friction]).astype(np.int64)
+    group_offsets = problem.group_offsets if problem.group_offsets.size else np.zeros(1, dtype=np.int64)
+    offsets = np.concatenate([2 * np.arange(count, dtype=np.int64), 2 * count + group_offsets]).astype(np.int64)
+    members = np.concatenate([pairs.reshape(-1), problem.group_members]).astype(np.int64)
+    coefficient = np.concatenate([problem.shaft_friction_coefficient, problem.group_friction_coefficient])
+    preload = np.concatenate([problem.shaft_normal_preload, problem.group_preload])
+    return rows, offsets, members, coefficient, preload
+
+
+def block_arrays(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The problem as blocks sorted by first row, for the compiled kernels (vectorised).
+
+    Returns
+    -------
+    kinds : Law code of each block, shape (b,).
+    rows : Rows of each block, shape (b, 3): (row, 0, 0) for one-row laws, (normal, t1, t2) for a contact, and
+        (row, start, end) for group friction, the group being members[start:end].
+    params : Parameters, shape (b, 2): (μ, 0) contact, (μ, p) group friction, (lower, upper) box, else zeros.
+    members : Group members, shape (g,).
+    """
+    cached = problem.__dict__.get("_block_arrays")
+    if cached is not None:  # the problem is immutable (frozen, read-only arrays): compute once
+        return cached
+    f_rows, f_offsets, members, f_mu, f_preload = friction_groups(problem)
+    singles = {BILATERAL: problem.bilateral, UNILATERAL: problem.unilateral, BOX: problem.box_rows}
+    kinds, rows, params = [], [], []
+    for code, law_rows in singles.items():
+        kinds.append(np.full(len(law_rows), code, dtype=np.int64))
+        rows.append(np.column_stack([law_rows, np.zeros((len(law_rows), 2), dtype=np.int64)]))
+        params.append(np.zeros((len(law_rows), 2)) if code != BOX
+                      else np.column_stack([problem.box_lower, problem.box_upper]))
+    kinds.append(np.full(len(f_rows), GROUP_FRICTION, dtype=np.int64))
+    rows.append(np.column_stack([f_rows, f_offsets[:-1], f_offsets[1:]]))
+    params.append(np.column_stack([f_mu, f_preload]))
+    kinds.append(np.full(len(problem.contacts), CONTACT, dtype=np.int64))
+    rows.append(problem.contacts.astype(np.int64))
+    params.append(np.column_stack([problem.contact_friction, np.zeros(len(problem.contacts))]))
+    kind = np.concatenate(kinds)
+    row = np.concatenate(rows).astype(np.int64).reshape(-1, 3)
+    param = np.concatenate(params).astype(np.float64).reshape(-1, 2)
+    order = np.argsort(row[:, 0], kind="stable")
+    result = (np.ascontiguousarray(kind[order]), np.ascontiguousarray(row[order]),
+              np.ascontiguousarray(param[order]), np.ascontiguousarray(members))
+    for array in result:
+        array.setflags(write=False)
+    object.__setattr__(problem, "_block_arrays", result)
+    return result
+
+
+# ---------------------------------------------------------------------------------------------------- kernels
+@numba.njit(cache=True)
+def group_bound(multipliers, members, start, end, coefficient, preload):
+    """μ (‖λ_G‖ + p) [N] for the group members[start:end]."""
+    total = 0.0
+    for k in range(start, end):
+        value = multipliers[members[k]]
+        total += value * value
+    return coefficient * (np.sqrt(total) + preload)
+
+
+@numba.njit(cache=True)
+def project_cone(zn, z1, z2, mu):
+    """Projection of (zn, z1, z2) onto {‖x_t‖ ≤ μ x_n}."""
+    zt = np.sqrt(z1 * z1 + z2 * z2)
+    if zt <= mu * zn:
+        return zn, z1, z2
+    if mu * zt <= -zn:
+        return 0.0, 0.0, 0.0
+    pn = max((zn + mu * zt) / (1.0 + mu * mu), 0.0)
+    ratio = mu * pn / zt if zt > 0.0 else 0.0
+    return pn, ratio * z1, ratio * z2
+
+
+@numba.njit(cache=True)
+def natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error):
+    """Natural-map error e = λ − Π(λ − ρ δ̂) of every block into ``error`` (bilateral: e = ρ δ).
+
+    ``weight`` ρ [N/m] per row (equal on the rows of a contact); ρ = 1 gives the residual's definition.
+    """
+    for b in range(kinds.shape[0]):
+        kind = kinds[b]
+        row = rows[b, 0]
+        if kind == CONTACT:
+            t1 = rows[b, 1]
+            t2 = rows[b, 2]
+            mu = params[b, 0]
+            rho = weight[row]
+            slip = np.sqrt(gap[t1] * gap[t1] + gap[t2] * gap[t2])
+            pn, p1, p2 = project_cone(multipliers[row] - rho * (gap[row] + mu * slip),
+                                      multipliers[t1] - rho * gap[t1], multipliers[t2] - rho * gap[t2], mu)
+            error[row] = multipliers[row] - pn
+            error[t1] = multipliers[t1] - p1
+            error[t2] = multipliers[t2] - p2
+        elif kind == BILATERAL:
+            error[row] = weight[row] * gap[row]
+        else:
+            z = multipliers[row] - weight[row] * gap[row]
+            if kind == UNILATERAL:
+                error[row] = multipliers[row] - max(z, 0.0)
+            elif kind == GROUP_FRICTION:
+                bound = group_bound(multipliers, members, rows[b, 1], rows[b, 2], params[b, 0], params[b, 1])
+                error[row] = multipliers[row] - min(max(z, -bound), bound)
+            else:
+                error[row] = multipliers[row] - min(max(z, params[b, 0]), params[b, 1])
+
+
+@numba.njit(cache=True)
+def _apply(transposed, diagonal, multipliers, gap, row, value):
+    """Set λ[row] = value and update the gap with W[:, row] Δλ; return |W_rr Δλ|."""
+    change = value - multipliers[row]
+    if change == 0.0:
+        return 0.0
+    multipliers[row] = value
+    column = transposed[row]
+    for i in range(gap.shape[0]):
+        gap[i] += column[i] * change
+    return abs(diagonal[row] * change)
+
+
+@numba.njit(cache=True)
+def gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, multipliers, gap, relaxation):
+    """One projected block Gauss–Seidel sweep (SOFA's); returns the increment Σ|W_jj Δλ_j| [m]."""
+    increment = 0.0
+    for b in range(kinds.shape[0]):
+        kind = kinds[b]
+        row = rows[b, 0]
+        if kind == CONTACT:
+            tangent1 = rows[b, 1]
+            tangent2 = rows[b, 2]
+            friction = params[b, 0]
+            normal_force = multipliers[row]
+            if diagonal[row] > 0.0:
+                normal_force -= relaxation * gap[row] / diagonal[row]
+            if normal_force <= 0.0:
+                increment += _apply(transposed, diagonal, multipliers, gap, row, 0.0)
+                increment += _apply(transposed, diagonal, multipliers, gap, tangent1, 0.0)
+                increment += _apply(transposed, diagonal, multipliers, gap, tangent2, 0.0)
+                continue
+            increment += _apply(transposed, diagonal, multipliers, gap, row, normal_force)
+            force1 = multipliers[tangent1]
+            force2 = multipliers[tangent2]
+            tangent_diagonal = diagonal[tangent1] + diagonal[tangent2]
+            if tangent_diagonal > 0.0:
+                force1 -= 2.0 * relaxation * gap[tangent1] / tangent_diagonal
+                force2 -= 2.0 * relaxation * gap[tangent2] / tangent_diagonal
+            norm = np.sqrt(force1 * force1 + force2 * force2)
+            limit = friction * normal_force
+            if norm > limit:
+                scale = limit / norm
+                force1 *= scale
+                force2 *= scale
+            increment += _apply(transposed, diagonal, multipliers, gap, tangent1, force1)
+            increment += _apply(transposed, diagonal, multipliers, gap, tangent2, force2)
+            continue
+        force = multipliers[row]
+        if diagonal[row] > 0.0:
+            force -= relaxation * gap[row] / diagonal[row]
+        if kind == UNILATERAL:
+            force = max(force, 0.0)
+        elif kind == GROUP_FRICTION:
+            bound = group_bound(multipliers, members, rows[b, 1], rows[b, 2], params[b, 0], params[b, 1])
+            force = min(max(force, -bound), bound)
+        elif kind == BOX:
+            force = min(max(force, params[b, 0]), params[b, 1])
+        increment += _apply(transposed, diagonal, multipliers, gap, row, force)
+    return increment
+
+
+@numba.njit(cache=True)
+def _cone_jacobian(zn, z1, z2, mu, out):
+    """Jacobian (3, 3) of the cone projection at z into ``out``."""
+    zt = np.sqrt(z1 * z1 + z2 * z2)
+    out[:, :] = 0.0
+    if zt <= mu * zn:
+        out[0, 0] = 1.0
+        out[1, 1] = 1.0
+        out[2, 2] = 1.0
+        return
+    if mu * zt <= -zn:
+        return
+    t = max(zt, 1e-300)
+    w1 = z1 / t
+    w2 = z2 / t
+    c = 1.0 / (1.0 + mu * mu)
+    ray0, ray1, ray2 = 1.0, mu * w1, mu * w2
+    height = (zn + mu * t) * c
+    out[0, 0] = ray0 * c
+    out[1, 0] = ray1 * c
+    out[2, 0] = ray2 * c
+    for i, ri in enumerate((ray0, ray1, ray2)):
+        out[i, 1] = mu * c * ri * w1
+        out[i, 2] = mu * c * ri * w2
+    k = height * mu / t
+    out[1, 1] += k * (1.0 - w1 * w1)
+    out[1, 2] += k * (-w1 * w2)
+    out[2, 1] += k * (-w2 * w1)
+    out[2, 2] += k * (1.0 - w2 * w2)
+
+
+@numba.njit(cache=True)
+def jacobian_blocks(kinds, rows, params, members, multipliers, gap, weight, local, gap_factor, bound_values):
+    """Factors of the generalised Jacobian J = N + M W − G of the weighted natural map (see refsim.solvers.newton).
+
+    For block b with rows r (1 or 3): ``local[b]`` = N_b = I − D_Π (on λ_r), ``gap_factor[b]`` = M_b =
+    D_Π diag(ρ_r) T_b (on δ_r = W_r λ + δ_free,r, T_b the De Saxcé derivative), both (3, 3) with only the
+    leading (s, s) part used; ``bound_values[k]`` = ∂Π/∂b ∂b/∂λ_members[k] of the group friction row owning
+    member k (G's entries: row rows[b, 0], column members[k]).
+    """
+    for b in range(kinds.shape[0]):
+        kind = kinds[b]
+        row = rows[b, 0]
+        local[b, :, :] = 0.0
+        gap_factor[b, :, :] = 0.0
+        if kind == CONTACT:
+            t1 = rows[b, 1]
+            t2 = rows[b, 2]
+            mu = params[b, 0]
+            rho = weight[row]
+            slip = np.sqrt(gap[t1] * gap[t1] + gap[t2] * gap[t2])
+            zn = multipliers[row] - rho * (gap[row] + mu * slip)
+            projection = np.empty((3, 3))
+            _cone_jacobian(zn, multipliers[t1] - rho * gap[t1], multipliers[t2] - rho * gap[t2], mu, projection)
+            s1 = gap[t1] / slip if slip > 0.0 else 0.0
+            s2 = gap[t2] / slip if slip > 0.0 else 0.0
+            for i in range(3):
+                local[b, i, i] = 1.0
+                for j in range(3):
+                    local[b, i, j] -= projection[i, j]
+                # M = D_Π ρ T, T = I + μ e_n (0, s1, s2)
+                gap_factor[b, i, 0] = rho * projection[i, 0]
+                gap_factor[b, i, 1] = rho * (projection[i, 1] + projection[i, 0] * mu * s1)
+                gap_factor[b, i, 2] = rho * (projection[i, 2] + projection[i, 0] * mu * s2)
+            continue
+        rho = weight[row]
+        if kind == BILATERAL:
+            gap_factor[b, 0, 0] = rho
+            continue
+        z = multipliers[row] - rho * gap[row]
+        if kind == UNILATERAL:
+            active = z > 0.0
+        elif kind == BOX:
+            active = params[b, 0] < z < params[b, 1]
+        else:
+            start = rows[b, 1]
+            end = rows[b, 2]
+            bound = group_bound(multipliers, members, start, end, params[b, 0], params[b, 1])
+            active = -bound < z < bound
+            total = 0.0
+            for k in range(start, end):
+                total += multipliers[members[k]] ** 2
+            norm = np.sqrt(total)
+            for k in range(start, end):
+                if active or norm <= 0.0:
+                    bound_values[k] = 0.0
+                else:
+                    bound_values[k] = (1.0 if z > 0.0 else -1.0) * params[b, 0] * multipliers[members[k]] / norm
+        if active:
+            gap_factor[b, 0, 0] = rho
+        else:
+            local[b, 0, 0] = 1.0

@@ -1,0 +1,355 @@
+"""A nonsmooth (semismooth) Newton method on the natural map, for every law of the table.
+
+The map is F(λ) = λ − Π(λ − ρ δ̂(λ)) with δ = W λ + δ_free, δ̂ the De Saxcé modified gap (contacts), Π the
+projection of each block on its admissible set (a law of :data:`refsim.solvers.laws.LAWS`; group friction
+bounds move with λ) and ρ_i = 1/W_ii [N/m] (equal on the rows of a contact), so that F is a force [N] and its
+zeros are the solutions (Alart and Curnier 1991 use the same projection with an augmented Lagrangian; Acary,
+Brémond and Huber 2018 compare such Newton variants on FCLib).
+
+A generalised Jacobian is J = N + M W − G, with block-diagonal N = I − D_Π and M = D_Π diag(ρ) T (T the
+derivative of the De Saxcé term), and G the derivative of the group bounds; its blocks come from the compiled
+kernel :func:`refsim.solvers.laws.jacobian_blocks`, so every law of the table is covered.
+
+Each step solves (J + η I) d = −F: plain Newton (η = 0) while it works, else a Levenberg–Marquardt
+regularisation η = min(η_max, ‖F‖ / F_data) 10^(k−1), the level k raised after each failure (a singular
+factor, a failed line search) and lowered after each success (W is often singular: redundant contacts). Dense LAPACK LU below
+``sparse_above`` rows or when W is dense, else a sparse LU (SuperLU) of the sparse J. Globalisation: a
+non-monotone Armijo line search on θ = ½‖F‖² (Grippo, Lampariello and Lucidi 1986; memory 3 by default); when it fails,
+a few projected Gauss–Seidel sweeps are taken instead and η is raised; after repeated failures the method
+stops and says so (the caller then falls back to the cone route). Stops as soon as the natural residual and the
+data residual (:mod:`refsim.solvers.residual`) are at most the tolerance.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sparse
+import scipy.sparse.linalg as sparse_linalg
+
+from refsim.solvers.gauss_seidel import _data_residual, _residual
+from refsim.solvers.laws import (
+    CONTACT,
+    GROUP_FRICTION,
+    block_arrays,
+    gauss_seidel_sweep,
+    jacobian_blocks,
+    natural_map_blocks,
+)
+from refsim.solvers.problem import ConstraintProblem
+from refsim.solvers.residual import data_scales
+
+__all__ = ["NewtonResult", "solve_newton"]
+
+#: Problems with more rows than this (and a sparse enough W) use sparse storage and a sparse LU.
+SPARSE_ABOVE = 300
+#: Largest density nnz(W) / n² for the sparse path.
+SPARSE_DENSITY = 0.15
+#: Dense problems up to this many rows solve J d = −F in compiled code (no SciPy call overhead).
+_COMPILED_SOLVE_BELOW = 120
+
+
+@dataclass
+class NewtonResult:
+    """What :func:`solve_newton` did (internal to the exact solver)."""
+
+    multipliers: np.ndarray
+    converged: bool
+    iterations: int
+    residual: float  # natural residual, from the compiled kernel on the final gap
+    data_residual: float
+    message: str
+    storage: str  # "dense" or "sparse"
+    history: np.ndarray
+    line_search_failures: int
+    fallback_sweeps: int
+
+
+@numba.njit(cache=True)
+def _dense_jacobian(compliance, kinds, rows, local, gap_factor, members, bound_values, eta, out):
+    """out = N + M W − G + η I (dense)."""
+    n = compliance.shape[0]
+    out[:, :] = 0.0
+    for b in range(kinds.shape[0]):
+        size = 3 if kinds[b] == CONTACT else 1
+        for i in range(size):
+            ri = rows[b, i]
+            for j in range(size):
+                rj = rows[b, j]
+                factor = gap_factor[b, i, j]
+                if factor != 0.0:
+                    for c in range(n):
+                        out[ri, c] += factor * compliance[rj, c]
+                out[ri, rj] += local[b, i, j]
+            out[ri, ri] += eta
+        if kinds[b] == GROUP_FRICTION:
+            ri = rows[b, 0]
+            for k in range(rows[b, 1], rows[b, 2]):
+                out[ri, members[k]] -= bound_values[k]
+
+
+@numba.njit(cache=True)
+def _gesv(matrix, rhs):
+    """np.linalg.solve in compiled code (LAPACK gesv)."""
+    return np.linalg.solve(matrix, rhs)
+
+
+class _Operator:
+    """W in dense or sparse (CSR) storage, with the products and the Jacobian assembly the method needs."""
+
+    def __init__(self, problem: ConstraintProblem, kinds, rows, members, sparse_above: int):
+        compliance = problem.compliance
+        n = problem.row_count
+        self.dense = compliance
+        self.sparse = None
+        if n > sparse_above:
+            nonzero = np.count_nonzero(compliance)
+            if nonzero <= SPARSE_DENSITY * n * n:
+                self.sparse = sparse.csr_matrix(compliance)
+        self.kinds, self.rows, self.members = kinds, rows, members
+        self.n = n
+        if self.sparse is not None:
+            self._prepare_sparse_pattern()
+        else:
+            self.jacobian = np.empty((n, n))
+
+    @property
+    def storage(self) -> str:
+        return "dense" if self.sparse is None else "sparse"
+
+    def gap(self, multipliers, free_gap):
+        if self.sparse is None:
+            return self.dense @ multipliers + free_gap
+        return self.sparse @ multipliers + free_gap
+
+    def _prepare_sparse_pattern(self):
+        kinds, rows = self.kinds, self.rows
+        contact = kinds == CONTACT
+        single = np.flatnonzero(~contact)
+        cone = np.flatnonzero(contact)
+        # block entries (row, column, block index, i, j)
+        i_idx, j_idx = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
+        self.block_rows = np.concatenate([rows[single, 0], rows[cone][:, i_idx.reshape(-1)].reshape(-1)])
+        self.block_cols = np.concatenate([rows[single, 0], rows[cone][:, j_idx.reshape(-1)].reshape(-1)])
+        self.block_index = np.concatenate([single, np.repeat(cone, 9)])
+        self.block_i = np.concatenate([np.zeros(single.size, dtype=np.int64), np.tile(i_idx.reshape(-1), cone.size)])
+        self.block_j = np.concatenate([np.zeros(single.size, dtype=np.int64), np.tile(j_idx.reshape(-1), cone.size)])
+        friction = np.flatnonzero(kinds == GROUP_FRICTION)
+        sizes = rows[friction, 2] - rows[friction, 1]
+        self.group_rows = np.repeat(rows[friction, 0], sizes)
+        self.group_slots = (np.concatenate([np.arange(s, e) for s, e in zip(rows[friction, 1], rows[friction, 2],
+                                                                              strict=True)])
+                            if friction.size else np.zeros(0, dtype=np.int64))
+
+    def _compiled_solve(self, rhs):
+        """J d = rhs by LAPACK gesv inside a compiled function (no Python-side overhead for small J); None when
+        J is singular."""
+        try:
+            return _gesv(self.jacobian, rhs)
+        except Exception:  # numba raises a plain exception for a singular matrix
+            return None
+
+    def least_squares(self, rhs):
+        """Minimum-norm least-squares solution of J d = rhs for the last dense J (LAPACK gelsy)."""
+        return scipy.linalg.lstsq(self.jacobian, rhs, cond=1e-12, lapack_driver="gelsy", check_finite=False)[0]
+
+    def assemble(self, local, gap_factor, bound_values, eta):
+        """The dense J + η I into ``self.jacobian``."""
+        _dense_jacobian(self.dense, self.kinds, self.rows, local, gap_factor, self.members, bound_values, eta,
+                        self.jacobian)
+
+    def factorize(self, local, gap_factor, bound_values, eta):
+        """Factor J + η I; returns a solve(rhs) callable, or None when the factorisation fails."""
+        if self.sparse is None:
+            self.assemble(local, gap_factor, bound_values, eta)
+            if self.n <= _COMPILED_SOLVE_BELOW:
+                return self._compiled_solve
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # an exactly singular J is handled below
+                    factor = scipy.linalg.lu_factor(self.jacobian, check_finite=False, overwrite_a=False)
+            except (ValueError, np.linalg.LinAlgError):
+                return None
+            if not np.all(np.isfinite(factor[0])) or np.min(np.abs(np.diag(factor[0]))) == 0.0:
+                return None
+            return lambda rhs: scipy.linalg.lu_solve(factor, rhs, check_finite=False)
+        n = self.n
+        values_m = gap_factor[self.block_index, self.block_i, self.block_j]
+        values_n = local[self.block_index, self.block_i, self.block_j]
+        block_m = sparse.csr_matrix((values_m, (self.block_rows, self.block_cols)), shape=(n, n))
+        rest = sparse.csr_matrix(
+            (np.concatenate([values_n, np.full(n, eta), -bound_values[self.group_slots]]),
+             (np.concatenate([self.block_rows, np.arange(n), self.group_rows]),
+              np.concatenate([self.block_cols, np.arange(n), self.members[self.group_slots]]))),
+            shape=(n, n))
+        jacobian = (block_m @ self.sparse + rest).tocsc()
+        try:
+            factor = sparse_linalg.splu(jacobian, permc_spec="COLAMD")
+        except RuntimeError:
+            return None
+        return factor.solve
+
+
+def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np.ndarray | None = None,
+                 max_iterations: int = 100, sparse_above: int = SPARSE_ABOVE, eta_max: float = 1e-2,
+                 time_limit: float = np.inf, line_search_memory: int = 3,
+                 minimum_norm: bool = False, stall_iterations: int = 20) -> NewtonResult:
+    """Semismooth Newton on the natural map (see the module notes).
+
+    Parameters
+    ----------
+    problem : The constraint problem (W as given: need not be symmetric).
+    tolerance : Stop when the natural residual and the data residual are both at most this [-].
+    warm_start : Initial multipliers λ₀ [N], shape (row_count,); zeros when None.
+    max_iterations : Largest number of Newton iterations.
+    sparse_above : Row count above which a sparse W (density ≤ 15 %) is stored and factorised sparse.
+    eta_max : Largest Levenberg–Marquardt regularisation η [-] (relative to the unit diagonal of ρ W).
+    time_limit : Stop after this many seconds [s].
+    line_search_memory : Number of past merit values the non-monotone Armijo test compares with (1: monotone).
+    minimum_norm : Take minimum-norm least-squares steps (LAPACK gelsy) instead of LU ones on dense problems.
+    stall_iterations : Stop when the best residual has not halved in this many iterations.
+
+    Returns
+    -------
+    NewtonResult with the best multipliers found.
+    """
+    start = time.perf_counter()
+    n = problem.row_count
+    kinds, rows, params, members = block_arrays(problem)
+    weight, force_scale = data_scales(problem)
+    free_gap = np.ascontiguousarray(problem.free_gap)
+    free_norm = float(np.linalg.norm(free_gap))
+    data_scale = max(free_norm, force_scale)
+    unit = np.ones(n)
+    operator = _Operator(problem, kinds, rows, members, sparse_above)
+    multipliers = (np.zeros(n) if warm_start is None
+                   else np.array(problem.check_multipliers(warm_start), dtype=np.float64))
+    error = np.empty(n)
+    scratch = np.empty(n)
+    local = np.empty((kinds.size, 3, 3))
+    gap_factor = np.empty((kinds.size, 3, 3))
+    bound_values = np.zeros(members.size)
+
+    def merit(force):
+        gap = operator.gap(force, free_gap)
+        natural_map_blocks(kinds, rows, params, members, force, gap, weight, error)
+        return 0.5 * float(error @ error), gap
+
+    def residuals(force, gap):
+        return (_residual(kinds, rows, params, members, force, gap, free_norm, scratch, unit),
+                _data_residual(kinds, rows, params, members, force, gap, unit, data_scale, scratch))
+
+    transposed = None
+    diagonal = None
+
+    def sweeps(force, count):
+        nonlocal transposed, diagonal
+        if transposed is None:
+            transposed = np.array(problem.compliance.T, order="C", copy=True)
+            diagonal = np.diag(problem.compliance).copy()
+            floor = 1e-14 * max(float(np.abs(diagonal).max()), np.finfo(float).tiny)
+            diagonal[diagonal <= floor] = 0.0
+        force = force.copy()
+        gap = operator.gap(force, free_gap)
+        for _ in range(count):
+            gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, force, gap, 1.0)
+        return force
+
+    theta, gap = merit(multipliers)
+    residual, data = residuals(multipliers, gap)
+    best = (max(residual, data), multipliers.copy(), residual, data)
+    memory = [theta]
+    history = [residual]
+    failures = consecutive = fallback = singular_steps = since_progress = 0
+    level = 0  # regularisation level: 0 plain Newton, k > 0: η = min(η_max, ‖F‖/F_data) 10^(k−1)
+    iterations = 0
+    message = ""
+    converged = residual <= tolerance and data <= tolerance
+    while not converged:
+        if iterations >= max_iterations:
+            message = f"iteration cap {max_iterations} reached"
+            break
+        if time.perf_counter() - start > time_limit:
+            message = f"time limit {time_limit:.1f} s reached"
+            break
+        iterations += 1
+        jacobian_blocks(kinds, rows, params, members, multipliers, gap, weight, local, gap_factor, bound_values)
+        relative = np.sqrt(2.0 * theta) / force_scale
+        eta = 0.0 if level == 0 else max(min(eta_max, relative) * 10.0 ** (level - 1), 1e-14)
+        if level == 0 and operator.sparse is None and minimum_norm:
+            operator.assemble(local, gap_factor, bound_values, 0.0)
+            direction = operator.least_squares(-error)
+            solve = None
+        else:
+            solve = operator.factorize(local, gap_factor, bound_values, eta)
+            direction = None if solve is None else solve(-error)
+        limit = 1e4 * max(np.linalg.norm(multipliers), force_scale)
+        # a direction far longer than the forces in play comes from a (nearly) singular J: take the least-squares
+        # (rank-revealing QR) step of the dense J instead, or regularise a sparse one
+        if level == 0 and not minimum_norm and operator.sparse is None and (
+                direction is None or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) > limit):
+            direction = operator.least_squares(-error)
+            singular_steps += 1
+        if direction is None or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) > limit:
+            failures += 1
+            consecutive += 1
+            level = min(level + 1, 8)
+            if consecutive > 8:
+                message = "the regularised Jacobian could not be factorised"
+                break
+            continue
+        reference = max(memory[-int(line_search_memory):])
+        step = 1.0
+        accepted = False
+        while step >= 2.0 ** -12:
+            candidate = multipliers + step * direction
+            candidate_theta, candidate_gap = merit(candidate)
+            if candidate_theta <= reference - 1e-4 * step * 2.0 * theta:
+                accepted = True
+                break
+            step *= 0.5
+        if not accepted:
+            # fallback: projected Gauss-Seidel sweeps from the current point, more regularisation next time
+            failures += 1
+            consecutive += 1
+            fallback += 10
+            level = min(level + 1, 8)
+            candidate = sweeps(multipliers, 10)
+            candidate_theta, candidate_gap = merit(candidate)
+            if consecutive > 8:
+                message = f"line search failed {consecutive} times in a row"
+                multipliers, theta, gap = candidate, candidate_theta, candidate_gap
+                residual, data = residuals(multipliers, gap)
+                if max(residual, data) < best[0]:
+                    best = (max(residual, data), multipliers.copy(), residual, data)
+                break
+        else:
+            consecutive = 0
+            level = max(level - 1, 0)
+        multipliers, theta, gap = candidate, candidate_theta, candidate_gap
+        memory.append(theta)
+        residual, data = residuals(multipliers, gap)
+        history.append(residual)
+        if max(residual, data) < 0.5 * best[0]:
+            since_progress = 0
+        else:
+            since_progress += 1
+        if max(residual, data) < best[0]:
+            best = (max(residual, data), multipliers.copy(), residual, data)
+        converged = residual <= tolerance and data <= tolerance
+        if not converged and since_progress >= stall_iterations:
+            message = f"stalled: the best residual did not halve in {stall_iterations} iterations"
+            break
+    _, multipliers, residual, data = best
+    converged = residual <= tolerance and data <= tolerance
+    if converged:
+        message = f"converged in {iterations} Newton iteration(s)"
+    return NewtonResult(multipliers=multipliers, converged=bool(converged), iterations=iterations,
+                        residual=float(residual), data_residual=float(data), message=message,
+                        storage=operator.storage, history=np.array(history), line_search_failures=failures,
+                        fallback_sweeps=fallback)

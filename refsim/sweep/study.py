@@ -1,0 +1,324 @@
+"""Running a study on Dask and its HDF5 index (the study file).
+
+The study file ``STUDY.h5`` indexes the runs, whose results files sit in the folder ``STUDY_runs/`` beside it
+(one ``<run id>.h5`` each, the id a hash of the run's overrides). It is rewritten (atomically) each time a run
+finishes, so an interrupted study keeps what it did; started again, it runs only the runs whose results file is
+missing or not ``complete``. Layout (also in ``docs/studies.md``):
+
+| path | shape | meaning |
+|---|---|---|
+| root attributes | | ``format`` = "refsim-study", ``schema_version``, ``name``, ``scene``, ``combine``, ``study`` (the study as JSON), ``created``, ``refsim_version``, ``git_commit``, ``run_folder``, ``runs_total``, ``runs_complete``, ``runs_failed`` |
+| ``runs/id``, ``runs/label``, ``runs/file`` | (R,) str | run id, label, results file (relative to the study file) |
+| ``runs/status``, ``runs/error`` | (R,) str | complete, incomplete, failed, pending; the error message |
+| ``runs/ms_per_step`` [ms], ``runs/seconds`` [s], ``runs/steps`` | (R,) | mean wall time per step, wall time of the run (NaN when reused), steps done |
+| ``runs/worker`` | (R,) str | host:pid of the worker that ran it |
+| ``runs/values/<key>`` | (R,) | swept value (float, or JSON text for lists; NaN / "" for a case) |
+| ``runs/spacing/<key>`` | (R,) f8 | refinement measure h of that value |
+| ``runs/quantities/<name>`` | (R,) f8 | quantity of interest (unit attribute) |
+| ``runs/errors/<name>`` | (R,) f8 | relative error against the reference run; ``force_history``: ‖F − F_ref‖/‖F_ref‖ |
+| ``reference/`` | | attributes ``label``, ``id``, ``file``, ``status``; ``quantities/<name>`` scalars |
+| ``convergence/<column>`` | (C,) | one row per (key, quantity, group of fixed values): ``key``, ``quantity``, ``group``, ``kind``, ``order``, ``extrapolated``, ``gci``, ``uncertainty``, ``ratio_fine``, ``ratio_coarse``, ``h`` (C, 3), ``f`` (C, 3), ``fitted_order``, ``levels`` |
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import logging
+import math
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from refsim.sweep.convergence import convergence, fitted_order
+from refsim.sweep.quantities import UNITS
+from refsim.sweep.spec import RunSpec, StudySpec
+from refsim.sweep.worker import BLAS_ENVIRONMENT, run_one
+
+__all__ = ["STUDY_FORMAT", "STUDY_SCHEMA_VERSION", "read_study", "run_study", "run_folder", "start_client"]
+
+logger = logging.getLogger(__name__)
+
+STUDY_FORMAT = "refsim-study"
+STUDY_SCHEMA_VERSION = 1
+
+
+def run_folder(output) -> Path:
+    """Folder holding the runs' results files of the study file ``output``."""
+    output = Path(output)
+    return output.with_name(output.stem + "_runs")
+
+
+def _pending(run: RunSpec) -> dict:
+    return {"status": "pending", "error": "", "seconds": float("nan"), "worker": "", "steps": 0,
+            "ms_per_step": float("nan"), "quantities": {}}
+
+
+def start_client(scheduler: str | None = None, workers: int | None = None):
+    """A Dask client on ``scheduler``, or on a new LocalCluster of ``workers`` processes (the cores by
+    default), one thread and one BLAS thread each. Returns (client, cluster); cluster is None for a scheduler.
+    Close both when done."""
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        return Client(scheduler), None
+    for name, value in BLAS_ENVIRONMENT.items():
+        os.environ.setdefault(name, value)  # inherited by the worker processes
+    cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
+                           dashboard_address=None, env=dict(BLAS_ENVIRONMENT), silence_logs=logging.ERROR)
+    return Client(cluster), cluster
+
+
+def run_study(spec: StudySpec, output, *, scheduler: str | None = None, workers: int | None = None,
+              progress: bool = True, client=None) -> dict:
+    """Run every missing run of a study on Dask and write the study file.
+
+    Parameters
+    ----------
+    spec : The study.
+    output : The study file (.h5); the runs go to :func:`run_folder` (output).
+    scheduler : Address of a running Dask scheduler (``tcp://host:8786``); a LocalCluster when None.
+    workers : Worker processes of the LocalCluster (one thread and one BLAS thread each); the cores by default.
+    progress : Show a progress bar (tqdm, on stderr).
+    client : An existing ``distributed.Client`` to use (and leave open), e.g. one for several studies;
+        ``scheduler`` and ``workers`` are then ignored.
+
+    Returns
+    -------
+    The study as read back by :func:`read_study`.
+    """
+    output = Path(output).resolve()
+    folder = run_folder(output)
+    folder.mkdir(parents=True, exist_ok=True)
+    runs = spec.runs()
+    reference = spec.reference_run()
+    every = runs + ([reference] if reference is not None and reference.id not in {r.id for r in runs} else [])
+    rows = {run.id: _pending(run) for run in every}
+    from refsim.sweep.worker import is_complete
+
+    missing = [run for run in every if not is_complete(folder / run.file_name)]
+    done = [run for run in every if run not in missing]
+    for run in done:  # reused: quantities read here, nothing is run again
+        rows[run.id] = run_one(spec.scene, run.overrides, str(folder / run.file_name), spec.quantities)
+    _write(spec, output, runs, reference, rows)
+    if missing:
+        from tqdm import tqdm
+
+        own = client is None
+        if own:
+            client, cluster = start_client(scheduler, workers)
+        bar = tqdm(total=len(every), initial=len(done), desc=f"study {spec.name}", unit="run",
+                   disable=not progress, file=sys.stderr)
+        try:
+            from distributed import as_completed
+
+            futures = {client.submit(run_one, spec.scene, run.overrides, str(folder / run.file_name),
+                                     spec.quantities, key=f"run-{spec.name}-{run.id}", pure=False): run
+                       for run in missing}
+            for future in as_completed(futures):
+                run = futures[future]
+                try:
+                    rows[run.id] = future.result()
+                except Exception as error:  # the worker died (killed, out of memory)
+                    rows[run.id] = {**_pending(run), "status": "failed", "error": f"{type(error).__name__}: {error}"}
+                bar.update(1)
+                if rows[run.id]["status"] != "complete":
+                    bar.write(f"run {run.id} ({run.label}): {rows[run.id]['status']} {rows[run.id]['error']}")
+                _write(spec, output, runs, reference, rows)
+        finally:
+            bar.close()
+            if own:
+                client.close()
+                if cluster is not None:
+                    cluster.close()
+    _write(spec, output, runs, reference, rows, final=True)
+    return read_study(output)
+
+
+# ---------------------------------------------------------------------- the study file
+
+
+def _errors(spec, folder, runs, reference, rows) -> dict:
+    if reference is None or rows[reference.id]["status"] != "complete":
+        return {}
+    from refsim.io import read_results
+    from refsim.sweep.quantities import force_history_error
+
+    reference_values = rows[reference.id]["quantities"]
+    errors = {name: np.full(len(runs), np.nan) for name in (*spec.quantities, "force_history")}
+    reference_results = read_results(folder / reference.file_name)
+    for index, run in enumerate(runs):
+        if rows[run.id]["status"] != "complete":
+            continue
+        for name in spec.quantities:
+            value, exact = rows[run.id]["quantities"].get(name, np.nan), reference_values.get(name, np.nan)
+            if np.isfinite(value) and np.isfinite(exact) and exact != 0.0:
+                errors[name][index] = abs(value - exact) / abs(exact)
+        errors["force_history"][index] = force_history_error(read_results(folder / run.file_name),
+                                                             reference_results)
+    return errors
+
+
+def convergence_rows(spec: StudySpec, runs, rows) -> list[dict]:
+    """Convergence of every quantity along every swept key with a refinement measure (three finest levels),
+    within each group of runs sharing the values of the other keys."""
+    table = []
+    swept = [run for run in runs if run.values]
+    for sweep in spec.sweeps:
+        if sweep.measure == "none":
+            continue
+        others = [s.key for s in spec.sweeps if s.key != sweep.key] if spec.combine == "product" else []
+        groups: dict = {}
+        for run in swept:
+            group = json.dumps({key: run.values[key] for key in others}, sort_keys=True)
+            groups.setdefault(group, []).append(run)
+        for group, members in groups.items():
+            members = [m for m in members if rows[m.id]["status"] == "complete"]
+            h = np.array([sweep.spacing(m.values[sweep.key]) for m in members])
+            if np.count_nonzero(np.isfinite(h)) < 3 or np.unique(h).size < 3:
+                continue
+            for name in spec.quantities:
+                f = np.array([rows[m.id]["quantities"].get(name, np.nan) for m in members])
+                keep = np.isfinite(h) & np.isfinite(f)
+                if np.count_nonzero(keep) < 3 or np.unique(h[keep]).size < 3:
+                    continue
+                result = convergence(h[keep], f[keep])
+                slope = (fitted_order(h[keep], f[keep], result.extrapolated)[0]
+                         if math.isfinite(result.extrapolated) and result.kind == "monotone" else float("nan"))
+                table.append({"key": sweep.key, "quantity": name, "group": group, "fitted_order": slope,
+                              "levels": int(np.count_nonzero(keep)), **result.as_dict()})
+    return table
+
+
+def _strings(handle, path, values) -> None:
+    import h5py
+
+    handle.create_dataset(path, data=np.array([str(v) for v in values], dtype=object), dtype=h5py.string_dtype())
+
+
+def _write(spec, output: Path, runs, reference, rows, *, final: bool = False) -> None:
+    import h5py
+
+    from refsim import __version__
+    from refsim.io import git_commit
+
+    folder = run_folder(output)
+    temporary = output.with_name(output.name + ".tmp")
+    created = None
+    if output.exists():
+        try:
+            with h5py.File(output, "r") as old:
+                created = old.attrs.get("created")
+        except OSError:
+            created = None
+    now = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+    statuses = [rows[run.id]["status"] for run in runs]
+    with h5py.File(temporary, "w") as handle:
+        attributes = handle.attrs
+        attributes.update({
+            "format": STUDY_FORMAT, "schema_version": STUDY_SCHEMA_VERSION, "name": spec.name, "scene": spec.scene,
+            "combine": spec.combine, "study": spec.to_json(), "created": created or now, "updated": now,
+            "refsim_version": __version__, "git_commit": git_commit(), "run_folder": folder.name,
+            "runs_total": len(runs), "runs_complete": statuses.count("complete"),
+            "runs_failed": statuses.count("failed"), "final": bool(final),
+        })
+        group = handle.create_group("runs")
+        _strings(group, "id", [run.id for run in runs])
+        _strings(group, "label", [run.label for run in runs])
+        _strings(group, "file", [f"{folder.name}/{run.file_name}" for run in runs])
+        _strings(group, "overrides", ["\n".join(run.overrides) for run in runs])
+        _strings(group, "status", statuses)
+        _strings(group, "error", [rows[run.id]["error"] for run in runs])
+        _strings(group, "worker", [rows[run.id]["worker"] for run in runs])
+        for name, unit in (("ms_per_step", "ms"), ("seconds", "s")):
+            group.create_dataset(name, data=np.array([rows[run.id][name] for run in runs], dtype=float))
+            group[name].attrs["units"] = unit
+        group.create_dataset("steps", data=np.array([rows[run.id]["steps"] for run in runs], dtype=np.int64))
+        for sweep in spec.sweeps:
+            values = [run.values.get(sweep.key) for run in runs]
+            if all(isinstance(v, (int, float)) and not isinstance(v, bool) or v is None for v in values):
+                group.create_dataset(f"values/{sweep.key}", data=np.array(
+                    [np.nan if v is None else v for v in values], dtype=float))
+            else:
+                _strings(group, f"values/{sweep.key}", ["" if v is None else json.dumps(v) for v in values])
+            group.create_dataset(f"spacing/{sweep.key}", data=np.array(
+                [np.nan if v is None else sweep.spacing(v) for v in values], dtype=float))
+            group[f"spacing/{sweep.key}"].attrs["measure"] = sweep.measure
+        for name in spec.quantities:
+            dataset = group.create_dataset(f"quantities/{name}", data=np.array(
+                [rows[run.id]["quantities"].get(name, np.nan) for run in runs], dtype=float))
+            dataset.attrs["units"] = UNITS.get(name.partition("@")[0], "")
+        if final:
+            for name, values in _errors(spec, folder, runs, reference, rows).items():
+                group.create_dataset(f"errors/{name}", data=values).attrs["units"] = "1"
+        if reference is not None:
+            ref = handle.create_group("reference")
+            ref.attrs.update({"label": reference.label, "id": reference.id,
+                              "file": f"{folder.name}/{reference.file_name}",
+                              "status": rows[reference.id]["status"], "error": rows[reference.id]["error"],
+                              "ms_per_step": rows[reference.id]["ms_per_step"]})
+            for name in spec.quantities:
+                ref.create_dataset(f"quantities/{name}", data=rows[reference.id]["quantities"].get(name, np.nan))
+        table = convergence_rows(spec, runs, rows)
+        if table:
+            conv = handle.create_group("convergence")
+            for column in ("key", "quantity", "group", "kind"):
+                _strings(conv, column, [row[column] for row in table])
+            for column in ("order", "extrapolated", "gci", "uncertainty", "ratio_fine", "ratio_coarse",
+                           "fitted_order"):
+                conv.create_dataset(column, data=np.array([row[column] for row in table], dtype=float))
+            conv.create_dataset("levels", data=np.array([row["levels"] for row in table], dtype=np.int64))
+            conv.create_dataset("h", data=np.array([row["spacings"] for row in table], dtype=float))
+            conv.create_dataset("f", data=np.array([row["values"] for row in table], dtype=float))
+    os.replace(temporary, output)
+
+
+def read_study(path) -> dict:
+    """A study file as plain data: ``attributes``, ``runs`` (a dict of columns, with ``values``, ``spacing``,
+    ``quantities`` and ``errors`` as dicts of columns), ``reference`` and ``convergence`` (a list of rows).
+
+    Raises
+    ------
+    ValueError
+        When the file is not a refsim study file.
+    """
+    import h5py
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such study file")
+
+    def plain(value):
+        if isinstance(value, bytes):
+            return value.decode()
+        if isinstance(value, np.ndarray) and value.dtype.kind == "O":
+            return [v.decode() if isinstance(v, bytes) else v for v in value.tolist()]
+        if isinstance(value, np.generic):
+            return value.item()
+        return value
+
+    with h5py.File(path, "r") as handle:
+        if plain(handle.attrs.get("format")) != STUDY_FORMAT:
+            raise ValueError(f"{path}: not a refsim study file (root attribute 'format' is "
+                             f"{plain(handle.attrs.get('format'))!r}, expected {STUDY_FORMAT!r})")
+        attributes = {key: plain(value) for key, value in handle.attrs.items()}
+        runs: dict = {}
+        for name, item in handle["runs"].items():
+            if isinstance(item, h5py.Group):
+                runs[name] = {key: plain(item[key][()]) for key in item}
+            else:
+                runs[name] = plain(item[()])
+        reference = None
+        if "reference" in handle:
+            reference = {key: plain(value) for key, value in handle["reference"].attrs.items()}
+            reference["quantities"] = {k: float(v[()]) for k, v in handle["reference/quantities"].items()}
+        table = []
+        if "convergence" in handle:
+            columns = {key: plain(handle["convergence"][key][()]) for key in handle["convergence"]}
+            count = len(columns["key"])
+            table = [{key: (value[i].tolist() if isinstance(value, np.ndarray) else value[i])
+                      for key, value in columns.items()} for i in range(count)]
+    return {"attributes": attributes, "runs": runs, "reference": reference, "convergence": table,
+            "path": path}

@@ -1,0 +1,133 @@
+"""One run of a study, as executed on a Dask worker: scene → results file (+ XDMF sidecar) → quantities.
+
+:func:`run_scene` calls the one run driver (:func:`refsim.io.driver.run_scene`) and adds the XDMF sidecar.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["BLAS_ENVIRONMENT", "is_complete", "run_one", "run_scene"]
+
+#: Environment that gives each worker one BLAS / OpenMP thread (workers = cores, so threads would oversubscribe).
+BLAS_ENVIRONMENT = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+                    "NUMBA_NUM_THREADS": "1"}
+
+
+def run_scene(scene, output, *, overwrite: bool = False):
+    """Run ``scene`` through the one run driver (:func:`refsim.io.driver.run_scene`: results file with the cut
+    surface, summary) and write the XDMF sidecar beside the file.
+
+    Parameters
+    ----------
+    scene : A validated :class:`refsim.scene.Scene`.
+    output : The results file (.h5).
+    overwrite : Replace an existing file.
+
+    Returns
+    -------
+    The driver's RunSummary (``status``, ``stop_reason``, ``complete``): a run stopped by a numerical problem
+    keeps its completed steps with ``complete = False``.
+
+    Raises
+    ------
+    refsim.io.driver.RunInputError
+        Bad input (scene, models, output path), before any file is written.
+    """
+    from refsim.io.driver import run_scene as drive
+    from refsim.io.xdmf import write_xdmf
+
+    summary = drive(scene, output, overwrite=overwrite, handle_signals=False)
+    write_xdmf(output)
+    return summary
+
+
+def is_complete(path) -> bool:
+    """True when ``path`` is a results file whose run finished (root attribute ``complete``)."""
+    import h5py
+
+    path = Path(path)
+    if not path.is_file():
+        return False
+    try:
+        with h5py.File(path, "r") as handle:
+            return bool(handle.attrs.get("complete", False))
+    except OSError:
+        return False
+
+
+def _ms_per_step(results) -> float:
+    if results.step_count == 0:
+        return float("nan")
+    total = sum(np.asarray(seconds, dtype=float) for seconds in results.stage_seconds.values())
+    return float(1e3 * np.nanmean(total))
+
+
+def describe(path, quantities) -> dict:
+    """Quantities, ms per step and step count of a results file."""
+    from refsim.io import read_results
+    from refsim.sweep.quantities import quantity
+
+    results = read_results(path)
+    row = {"steps": results.step_count, "ms_per_step": _ms_per_step(results), "quantities": {}}
+    for name in quantities:
+        try:
+            row["quantities"][name] = quantity(results, name)
+        except (ValueError, LookupError):
+            row["quantities"][name] = float("nan")
+    row["complete"] = results.complete
+    return row
+
+
+def run_one(scene: str, overrides: tuple, output: str, quantities: tuple) -> dict:
+    """Run one study point on this process (a Dask task) unless its results file is already complete.
+
+    Parameters
+    ----------
+    scene : Built-in scene name or scene file path (absolute on a cluster).
+    overrides : ``section.key=value`` strings.
+    output : Results file path (on the shared filesystem for a cluster).
+    quantities : Names of the quantities of interest (refsim.sweep.quantities).
+
+    Returns
+    -------
+    dict with status ("complete", "failed"), error (message, "" when none), seconds (wall time, NaN when the
+    file was reused), worker (host and pid), steps, ms_per_step and quantities {name: value}. Never raises for a
+    failing run: the failure is the row's status.
+    """
+    from threadpoolctl import threadpool_limits
+
+    for name, value in BLAS_ENVIRONMENT.items():
+        os.environ.setdefault(name, value)
+    row = {"status": "failed", "error": "", "seconds": float("nan"), "worker": f"{socket.gethostname()}:{os.getpid()}",
+           "steps": 0, "ms_per_step": float("nan"), "quantities": {name: float("nan") for name in quantities}}
+    output = Path(output)
+    try:
+        if not is_complete(output):
+            from refsim.scene import load_scene
+
+            start = time.perf_counter()
+            with threadpool_limits(limits=1):
+                summary = run_scene(load_scene(scene, list(overrides)), output, overwrite=True)
+            row["seconds"] = time.perf_counter() - start
+            if not summary.complete:
+                row["error"] = f"{summary.status}: {summary.stop_reason}"
+        row.update(describe(output, quantities))
+        complete = row.pop("complete")
+        row["status"] = "complete" if complete else ("failed" if row["error"] else "incomplete")
+    except Exception as error:  # a failing run is a result of the study, not a crash of it
+        row["error"] = f"{type(error).__name__}: {error}"
+        row["traceback"] = traceback.format_exc(limit=5)
+        if output.is_file():
+            try:
+                row.update(describe(output, quantities))
+                row.pop("complete", None)
+            except Exception:  # noqa: BLE001 - a damaged partial file: keep the error of the run
+                pass
+    return row

@@ -1,0 +1,84 @@
+"""Penetration rows on a hand-made box: the contact normal's switch, the gaps and their Jacobians."""
+
+from __future__ import annotations
+
+
+import numpy as np
+import pytest
+
+from refsim.constraints import FRICTION, UNILATERAL, find_surface_contact, penetration_block
+from refsim.geometry import SurfaceProjector
+from tests.constraints.conftest import rigid_needle, still_geometry
+
+
+
+_geometry = still_geometry
+_needle = rigid_needle
+
+
+def _contact(mesh, tip):
+    projector = SurfaceProjector(mesh.rest_positions, mesh.boundary_faces)
+    return find_surface_contact(projector, mesh.boundary_faces, np.asarray(tip, dtype=float))
+
+
+def test_above_a_face_the_normal_is_the_face_normal(block):
+    contact = _contact(block, [0.0123, 0.0071, 0.0205])
+    np.testing.assert_allclose(contact.normal, [0.0, 0.0, 1.0], atol=1e-12)
+    assert contact.gap == pytest.approx(0.0005, abs=1e-15)
+    np.testing.assert_allclose(contact.point, [0.0123, 0.0071, 0.02], atol=1e-15)
+
+
+def test_beyond_an_edge_the_normal_points_from_the_edge_to_the_tip(block):
+    # Tip outside the top-right edge (x = 0.02, z = 0.02): the closest point is on the edge, and no face normal
+    # is right there; the row's normal must be the edge-to-tip direction (the contact-normal switch).
+    tip = np.array([0.0203, 0.011, 0.0204])
+    contact = _contact(block, tip)
+    expected = np.array([0.0003, 0.0, 0.0004]) / 0.0005
+    np.testing.assert_allclose(contact.normal, expected, atol=1e-9)
+    assert contact.gap == pytest.approx(0.0005, rel=1e-9)
+
+
+@pytest.mark.parametrize("depth", [0.0, 1e-12, 3e-4])
+def test_under_or_on_the_surface_the_face_normal_is_used_and_the_gap_is_negative(block, depth):
+    contact = _contact(block, [0.0123, 0.0071, 0.02 - depth])
+    np.testing.assert_allclose(contact.normal, [0.0, 0.0, 1.0], atol=1e-12)
+    assert contact.gap == pytest.approx(-depth, abs=1e-15)
+
+
+@pytest.mark.parametrize("friction", [0.0, 0.3])
+def test_rows_gaps_and_kinds(block, friction):
+    tip = np.array([0.0123, 0.0071, 0.0203])
+    previous = _needle(tip, [0.0, 0.0, -1.0])
+    moved = _needle(tip + [2e-4, -1e-4, -5e-4], [0.0, 0.0, -1.0])  # down and sideways over the step
+    contact = _contact(block, moved.tip)
+    rows = penetration_block(contact, _geometry(block, previous, needle_free=moved), friction_coefficient=friction)
+    assert rows.kind[0] == UNILATERAL
+    # δ_n = nᵀ(tip_free − contact point): 0.3 mm − 0.5 mm.
+    assert rows.free_gap[0] == pytest.approx(-2e-4, abs=1e-15)
+    if friction == 0.0:
+        assert rows.row_count == 1 and rows.contacts.shape == (0, 3)
+        return
+    assert rows.row_count == 3 and list(rows.kind[1:]) == [FRICTION, FRICTION]
+    np.testing.assert_array_equal(rows.contacts, [[0, 1, 2]])
+    np.testing.assert_allclose(rows.contact_friction, [friction])
+    # Tangent rows measure the tip's tangential slip over the step (the tissue did not move).
+    tangents = rows.directions[1:]
+    np.testing.assert_allclose(tangents @ [0.0, 0.0, 1.0], 0.0, atol=1e-15)
+    np.testing.assert_allclose(rows.free_gap[1:], tangents @ np.array([2e-4, -1e-4, -5e-4]), atol=1e-17)
+
+
+def test_tissue_jacobian_linearises_the_normal_and_slip_gaps(block):
+    # Every row is affine in the tissue positions with the contact point's barycentric coordinates fixed, so
+    # H_tissue Δx equals the change of the gaps to round-off for any tissue motion Δx.
+    rng = np.random.default_rng(7)
+    tip = np.array([0.0123, 0.0071, 0.0203])
+    needle = _needle(tip, [0.0, 0.0, -1.0])
+    contact = _contact(block, tip)
+    rows = penetration_block(contact, _geometry(block, needle), friction_coefficient=0.2)
+    motion = 1e-5 * rng.normal(size=block.rest_positions.shape)
+    moved = block.rest_positions + motion
+    point = contact.barycentric @ moved[contact.nodes]
+    normal_gap = rows.directions[0] @ (tip - point)
+    slip = -(point - contact.point)  # the tissue point moved, the needle did not
+    change = np.concatenate([[normal_gap - rows.free_gap[0]], rows.directions[1:] @ slip - rows.free_gap[1:]])
+    np.testing.assert_allclose(rows.tissue_jacobian @ motion.ravel(), change, atol=1e-17)

@@ -1,0 +1,345 @@
+"""Compliance strategies (refsim.fem.compliance): exact against today's ImplicitEulerSystem, Dirichlet motion of
+fixed nodes, refreshed and precomputed against exact with errors derived or measured."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from refsim.fem.compliance import Exact, Precomputed, Refreshed, StepSystem, make_strategy, pcg
+from refsim.fem.integration import ImplicitEulerSystem
+from refsim.fem.linear import available_linear_solvers
+from refsim.fem.tissue import TissueModel, TissueState
+from refsim.geometry.rotations import rotation_matrix
+from refsim.materials import HookeMaterial
+from refsim.mesh.generators import box_mesh
+
+EPS = np.finfo(float).eps
+MATERIAL = HookeMaterial(youngs_modulus=5.0e5, poisson_ratio=0.4, density=1000.0)
+DT = 0.01
+
+
+@pytest.fixture(scope="module")
+def model() -> TissueModel:
+    mesh = box_mesh(size=(0.1, 0.1, 0.1), cells=(3, 3, 3))
+    rest = np.asarray(mesh.rest_positions, dtype=float)
+    return TissueModel(
+        rest,
+        np.asarray(mesh.tets),
+        MATERIAL,
+        rayleigh_mass=1.0,
+        rayleigh_stiffness=0.01,
+        fixed_nodes=np.flatnonzero(rest[:, 2] < 1e-12),
+        gravity=(0.0, 0.0, -9.81),
+    )
+
+
+def deformed(model: TissueModel, amplitude: float = 0.01, seed: int = 0) -> TissueState:
+    rest = model.rest_positions
+    positions = rest + amplitude * np.sin(20.0 * rest + seed)
+    positions[model.fixed_nodes] = rest[model.fixed_nodes]
+    velocities = 0.05 * np.cos(10.0 * rest + seed)
+    velocities[model.fixed_nodes] = 0.0
+    return TissueState(positions=positions, velocities=velocities)
+
+
+def rows_on(model: TissueModel, count: int = 6, seed: int = 1) -> sp.csr_matrix:
+    """Constraint-like rows: each couples the 12 DoFs of one tet (a point inside it) with a direction."""
+    rng = np.random.default_rng(seed)
+    tets = rng.choice(model.tet_count, count, replace=False)
+    data, cols, rows = [], [], []
+    for row, tet in enumerate(tets):
+        weights = rng.dirichlet(np.ones(4))
+        direction = rng.standard_normal(3)
+        direction /= np.linalg.norm(direction)
+        for node, weight in zip(model.tets[tet], weights, strict=True):
+            rows += [row] * 3
+            cols += list(3 * node + np.arange(3))
+            data += list(weight * direction)
+    return sp.csr_matrix((data, (rows, cols)), shape=(count, model.dof_count))
+
+
+def dense_reference(model: TissueModel, state: TissueState, prescribed: np.ndarray | None = None):
+    """Free motion and A⁻¹ of the reduced system by dense LAPACK (the reference)."""
+    system = model.assemble_step(state, DT, fixed_displacements=prescribed)
+    dense = system.matrix.toarray()
+    inverse = np.linalg.inv(dense)
+    return system, dense, inverse, system.expand(np.linalg.solve(dense, system.rhs), system.prescribed)
+
+
+def test_exact_strategy_is_bit_identical_to_implicit_euler_system(model):
+    # Today's path (issue 8): ImplicitEulerSystem with SuperLU/COLAMD; the exact strategy on the same solver and the
+    # NumPy assembly must give the same bits for the free motion and for (W, A⁻¹Hᵀ).
+    state = deformed(model)
+    rotations = model.element_rotations(state.positions)
+    legacy = model.step_system(rotations, DT)
+    forces = (model.external_forces() - model.internal_forces(state.positions, rotations)).ravel()
+    legacy_free = legacy.free_displacement(forces, state.velocities.ravel())
+    step = Exact(linear_solver="superlu:COLAMD").bind().step(model.assemble_step(state, DT, compiled=False))
+    np.testing.assert_array_equal(step.free_displacement, legacy_free)
+    # free_motion (compiled assembly, default solver) gives the same to round-off: κ(A)·ε relative.
+    kappa = np.linalg.cond(step.system.matrix.toarray())
+    positions, velocities, _ = model.free_motion(state, DT)
+    moved = (positions - state.positions).ravel()
+    assert np.abs(moved - legacy_free).max() <= 10 * kappa * EPS * np.abs(legacy_free).max()
+    # v = Δx/dt, and x₀ + Δx − x₀ is Δx to the round-off of the positions (ε max|x|).
+    assert np.abs(velocities.ravel() - moved / DT).max() <= 2 * EPS * np.abs(positions).max() / DT
+    jacobian = rows_on(model)
+    legacy_w, legacy_responses = legacy.compliance(jacobian)
+    w, responses = step.compliance(jacobian)
+    np.testing.assert_array_equal(w, legacy_w)
+    np.testing.assert_array_equal(responses, legacy_responses)
+    # The fast forms agree with it to round-off: κ(A)·ε relative (κ measured).
+    lam = np.random.default_rng(2).standard_normal(jacobian.shape[0])
+    np.testing.assert_allclose(step.delassus(jacobian), w, rtol=0, atol=10 * kappa * EPS * np.abs(w).max())
+    correction = step.correction(jacobian, lam)
+    reference = responses @ lam
+    assert np.abs(correction - reference).max() <= 10 * kappa * EPS * np.abs(reference).max()
+
+
+@pytest.mark.parametrize("solver", available_linear_solvers())
+def test_exact_strategy_on_every_linear_solver_equals_a_dense_solve(model, solver):
+    state = deformed(model)
+    system, dense, inverse, free = dense_reference(model, state)
+    step = Exact(linear_solver=solver).bind().step(system)
+    kappa = np.linalg.cond(dense)
+    bound = 10 * kappa * EPS  # backward-stable direct solve: relative forward error ≲ κ ε (Higham, ch. 7)
+    assert np.abs(step.free_displacement - free).max() <= bound * np.abs(free).max()
+    jacobian = rows_on(model)
+    h = jacobian[:, system.free_dofs].toarray()
+    w_reference = h @ inverse @ h.T
+    assert np.abs(step.delassus(jacobian) - w_reference).max() <= bound * np.abs(w_reference).max()
+
+
+def test_fixed_node_displacements_are_a_dirichlet_condition(model):
+    state = deformed(model)
+    drive = np.tile([1e-3, -2e-3, 5e-4], (model.fixed_nodes.size, 1))
+    positions, _, step = model.free_motion(state, DT, fixed_displacements=drive)
+    np.testing.assert_array_equal(positions[model.fixed_nodes], state.positions[model.fixed_nodes] + drive)
+    # Reference: the full system A Δx = b with Δx_c given, solved densely on the free DoFs.
+    full = model.assemble_step(state, DT)
+    rotations = model.element_rotations(state.positions)
+    from refsim.fem.integration import effective_stiffness
+
+    a = effective_stiffness(
+        model.mass_matrix, model.tangent_stiffness(rotations), DT, rayleigh_mass=1.0, rayleigh_stiffness=0.01
+    ).toarray()
+    free, fixed = full.free_dofs, full.constrained_dofs
+    b = full.rhs - a[np.ix_(free, fixed)] @ drive.ravel()
+    expected = np.linalg.solve(a[np.ix_(free, free)], b)
+    kappa = np.linalg.cond(a[np.ix_(free, free)])
+    displacement = (positions - state.positions).ravel()
+    assert np.abs(displacement[free] - expected).max() <= 10 * kappa * EPS * np.abs(expected).max()
+    # The drive moves the body: not the same as holding the nodes.
+    held, _, _ = model.free_motion(state, DT)
+    assert np.abs(held - positions)[~np.isin(np.arange(model.node_count), model.fixed_nodes)].max() > 1e-5
+
+
+def test_refreshed_equals_exact_at_refresh_and_meets_its_tolerance_between(model):
+    strategy = Refreshed(refresh_every=3, tolerance=1e-10, against_exact=True)
+    body = strategy.bind()
+    state = deformed(model, 0.0)
+    jacobian = rows_on(model)
+    for index in range(5):
+        state = deformed(model, 0.004 * (index + 1), seed=index)
+        system = model.assemble_step(state, DT)
+        step = body.step(system)
+        assert step.report["refactorised"] == (index % 3 == 0)
+        _, dense, inverse, free = dense_reference(model, state)
+        kappa = np.linalg.cond(dense)
+        # PCG to a relative residual τ: ‖Δx − Δx*‖ ≤ κ τ ‖Δx*‖ (plus the direct solve's κ ε at a refresh).
+        tau = strategy.tolerance if not step.report["refactorised"] else 10 * EPS
+        assert np.linalg.norm(step.free_displacement - free) <= kappa * tau * np.linalg.norm(free) * 1.01
+        h = jacobian[:, system.free_dofs].toarray()
+        w_reference = h @ inverse @ h.T
+        w = step.delassus(jacobian)
+        assert (
+            np.linalg.norm(w - w_reference) <= kappa * max(tau, 10 * EPS) * np.linalg.norm(w_reference) * 10
+        )
+        assert "compliance_error" in step.report and "free_motion_error" in step.report
+    # Stale W: measured, not bounded: it differs from exact by more than the PCG-corrected one.
+    stale = Refreshed(refresh_every=3, compliance_update="stale", against_exact=True).bind()
+    stale.step(model.assemble_step(deformed(model, 0.0), DT))
+    far = stale.step(model.assemble_step(deformed(model, 0.02, seed=4), DT))
+    far.delassus(jacobian)
+    assert far.report["compliance_error"] > 1e-8
+
+
+def test_precomputed_is_exact_at_rest_and_under_a_rigid_rotation(model):
+    # A₀ = M/dt² + C/dt + K₀; for a rigid rotation R of the whole body K = R K₀ Rᵀ and M (lumped, per-node
+    # isotropic) = R M Rᵀ, so A⁻¹ = R A₀⁻¹ Rᵀ exactly: the rotated rest compliance is then the exact one.
+    rotation = rotation_matrix(np.array([[0.3, -0.2, 0.5]]))[0]
+    rest = model.rest_positions
+    unfixed = TissueModel(
+        rest, model.tets, MATERIAL, rayleigh_mass=1.0, rayleigh_stiffness=0.01, fixed_nodes=np.array([0])
+    )
+    jacobian = rows_on(unfixed)
+    for positions in (rest, rest @ rotation.T):
+        state = TissueState(positions=positions, velocities=np.zeros_like(rest))
+        system = unfixed.assemble_step(state, DT)
+        body = Precomputed(against_exact=True).bind()
+        step = body.step(system)
+        w = step.delassus(jacobian)
+        kappa = np.linalg.cond(system.matrix.toarray())
+        assert step.report["compliance_error"] <= 10 * kappa * EPS
+        assert np.abs(w).max() > 0.0
+    # Deformed: the precomputed W is off (measured), the free motion still meets the PCG tolerance.
+    state = deformed(model, 0.02)
+    step = Precomputed(against_exact=True).bind().step(model.assemble_step(state, DT))
+    step.delassus(rows_on(model))
+    assert step.report["compliance_error"] > 1e-6
+    assert step.report["pcg_residual"] <= 1e-10
+
+
+def test_generic_step_system_serves_a_needle_like_body():
+    # The needle's ImplicitEulerSystem inputs (a chain, one end prescribed) through StepSystem.from_matrices.
+    count = 12
+    laplacian = sp.diags([-np.ones(count - 1), 2.0 * np.ones(count), -np.ones(count - 1)], [-1, 0, 1]).tocsr()
+    mass, stiffness = sp.identity(count, format="csr") * 0.1, 50.0 * laplacian
+    legacy = ImplicitEulerSystem.build(mass, stiffness, DT, constrained_dofs=[0])
+    rng = np.random.default_rng(3)
+    forces, velocities = rng.standard_normal(count), rng.standard_normal(count)
+    expected = legacy.free_displacement(forces, velocities, np.array([0.01]))
+    system = StepSystem.from_matrices(legacy.matrix, forces + mass @ velocities / DT, [0], np.array([0.01]))
+    step = Exact(linear_solver="superlu:COLAMD").bind().step(system)
+    np.testing.assert_allclose(step.free_displacement, expected, rtol=1e-13, atol=1e-16)
+    rows = sp.csr_matrix(rng.standard_normal((3, count)))
+    np.testing.assert_allclose(step.delassus(rows), legacy.compliance(rows)[0], rtol=1e-12)
+
+
+def test_pcg_solves_columns_to_their_tolerance():
+    rng = np.random.default_rng(4)
+    q, _ = np.linalg.qr(rng.standard_normal((30, 30)))
+    a = q @ np.diag(np.linspace(1.0, 100.0, 30)) @ q.T
+    b = rng.standard_normal((30, 4))
+    x, iterations, residual = pcg(
+        lambda v: a @ v, lambda r: r / np.diag(a)[:, None], b, tolerance=1e-12, max_iterations=100
+    )
+    assert residual <= 1e-12 and iterations <= 30 + 5  # CG terminates in ≤ n steps in exact arithmetic
+    assert np.linalg.norm(a @ x - b, axis=0).max() <= 1e-12 * np.linalg.norm(b, axis=0).max() * 1.001
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"name": "fast"}, "compliance strategy"),
+        ({"name": "refreshed", "refresh_every": 0}, "refresh_every"),
+        ({"linear_solver": "umfpack"}, "linear solver"),
+    ],
+)
+def test_bad_strategy_values_are_named(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        make_strategy(**kwargs).bind()
+
+
+def test_needle_behind_the_interface_equals_its_implicit_euler_system():
+    # What refsim.simulation.needle_body.FlexibleNeedle does today, against NeedleModel.assemble_step + Exact.
+    from refsim.fem.needle import NeedleModel
+
+    needle = NeedleModel(
+        length=0.1, radius=5e-4, element_count=8, youngs_modulus=2e11, poisson_ratio=0.3, density=7850.0
+    )
+    positions, frames = needle.rest_state()
+    rng = np.random.default_rng(5)
+    velocities = 1e-3 * rng.standard_normal((needle.node_count, 6))
+    increment = np.array([1e-4, 2e-4, 0.0, 0.0, 1e-3, -2e-3])
+    mass = needle.mass_matrix()
+    legacy = ImplicitEulerSystem.build(
+        mass,
+        needle.tangent_stiffness(positions, frames),
+        DT,
+        rayleigh_mass=0.5,
+        rayleigh_stiffness=1e-3,
+        constrained_dofs=needle.base_dofs,
+    )
+    expected = legacy.free_displacement(
+        -needle.internal_forces(positions, frames), velocities.ravel(), increment
+    )
+    system = needle.assemble_step(
+        positions, frames, velocities, DT, increment, rayleigh_mass=0.5, rayleigh_stiffness=1e-3, mass=mass
+    )
+    step = Exact(linear_solver="superlu:COLAMD").bind().step(system)
+    np.testing.assert_array_equal(step.free_displacement, expected)
+    rows = sp.csr_matrix(rng.standard_normal((4, needle.dof_count)))
+    kappa = np.linalg.cond(system.matrix.toarray())
+    w_legacy = legacy.compliance(rows)[0]
+    assert np.abs(step.delassus(rows) - w_legacy).max() <= 10 * kappa * EPS * np.abs(w_legacy).max()
+
+
+def test_scene_keys_choose_the_strategy():
+    from refsim.scene import load_scene
+    from refsim.scene.loader import SceneError
+
+    scene = load_scene(
+        "cube",
+        [
+            'compliance.strategy="refreshed"',
+            "compliance.refresh_every=5",
+            'compliance.w_update="stale"',
+            'compliance.linear_solver="superlu"',
+        ],
+    )
+    spec = scene.compliance
+    strategy = make_strategy(
+        spec.strategy,
+        refresh_every=spec.refresh_every,
+        linear_solver=spec.linear_solver,
+        w_update=spec.w_update,
+    )
+    assert (
+        isinstance(strategy, Refreshed)
+        and strategy.refresh_every == 5
+        and strategy.compliance_update == "stale"
+    )
+    assert load_scene("cube").compliance.strategy == "exact"
+    with pytest.raises(SceneError, match="refresh_every"):
+        load_scene("cube", ["compliance.refresh_every=0"])
+    with pytest.raises(SceneError, match="strategy"):
+        load_scene("cube", ['compliance.strategy="fast"'])
+
+
+def test_first_order_w_update_is_second_order_in_the_matrix_change(model):
+    # A⁻¹ = A₀⁻¹ − A₀⁻¹ΔA A₀⁻¹ + O(‖A₀⁻¹ΔA‖²): the stale W errs by O(ΔA), the first-order corrected one by O(ΔA²).
+    # ΔA is proportional to the change of configuration h (the rotations move by O(h)): fitted orders 1 and 2.
+    base = deformed(model, 0.01)
+    direction = deformed(model, 0.01, seed=7).positions - base.positions
+    jacobian = rows_on(model)
+    sizes = np.array([0.4, 0.2, 0.1])
+    errors = {"stale": [], "first_order": []}
+    for update in errors:
+        for h in sizes:
+            body = Refreshed(refresh_every=100, compliance_update=update, against_exact=True).bind()
+            body.step(model.assemble_step(base, DT))
+            moved = TissueState(positions=base.positions + h * direction, velocities=base.velocities)
+            step = body.step(model.assemble_step(moved, DT))
+            step.delassus(jacobian)
+            errors[update].append(step.report["compliance_error"])
+    stale_order = np.polyfit(np.log(sizes), np.log(errors["stale"]), 1)[0]
+    first_order = np.polyfit(np.log(sizes), np.log(errors["first_order"]), 1)[0]
+    assert 0.8 <= stale_order <= 1.2, errors
+    assert 1.8 <= first_order <= 2.2, errors
+    assert np.all(np.array(errors["first_order"]) < np.array(errors["stale"]))
+    # Its correction is a PCG solve on the current A: exact to the tolerance.
+    lam = np.ones(jacobian.shape[0])
+    correction = step.correction(jacobian, lam)
+    _, dense, inverse, _ = dense_reference(model, moved)
+    expected = step.system.expand(inverse @ (jacobian[:, step.system.free_dofs].T @ lam))
+    kappa = np.linalg.cond(dense)
+    assert np.linalg.norm(correction - expected) <= kappa * 1e-10 * np.linalg.norm(expected)
+
+
+@pytest.mark.parametrize("strategy", [Exact(), Refreshed(refresh_every=2), Precomputed()], ids=lambda s: s.name)
+def test_every_strategy_moves_prescribed_nodes_exactly(model, strategy):
+    body = strategy.bind()
+    state = deformed(model, 0.003)
+    drive = np.tile([0.0, 5e-4, -2e-4], (model.fixed_nodes.size, 1))
+    for _ in range(3):
+        positions, _, step = model.free_motion(state, DT, fixed_displacements=drive, compliance=body)
+        np.testing.assert_array_equal(positions[model.fixed_nodes], state.positions[model.fixed_nodes] + drive)
+        _, dense, _, reference = dense_reference(model, state, drive)
+        kappa = np.linalg.cond(dense)
+        # Direct solve: κ ε; PCG to 1e-10: κ · 1e-10 (relative, 2-norm).
+        tau = 1e-10 if step.report.get("pcg_iterations", 0) else 10 * EPS
+        assert np.linalg.norm(step.free_displacement - reference) <= kappa * tau * np.linalg.norm(reference)
+        state = TissueState(positions=positions, velocities=(positions - state.positions) / DT)

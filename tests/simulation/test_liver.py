@@ -1,0 +1,67 @@
+"""The liver scenes: the phantom with a breathing boundary and a robot-held needle, and an outside organ mesh
+(SOFA's liver) under the same [boundary] section."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from refsim.scene import load_scene
+from refsim.simulation import Simulation
+
+SHARED = Path(os.environ.get("REFSIM_SHARED_DATA", Path(__file__).resolve().parents[2].parent / "shared" / "data"))
+SOFA_LIVER = SHARED / "meshes" / "liver_gmsh22.msh"
+
+
+@pytest.mark.parametrize("name", ["liver_rigid", "liver_flexible"])
+def test_the_liver_scenes_load_with_their_robot_trajectory_and_breathing(name):
+    scene = load_scene(name)
+    simulation = Simulation(scene)
+    controls = simulation.controls
+    assert controls.boundary is not None and controls.boundary.nodes.size > 10
+    assert set(controls.boundary.nodes) <= set(simulation.tissue.fixed_nodes)
+    # The robot follows the target: its base moves across the needle by the breathing amplitude (12 mm).
+    trajectory = simulation.models.trajectory
+    across = trajectory.base_positions[:, [0, 2]] - trajectory.base_positions[0, [0, 2]]
+    assert 0.005 < np.abs(across).max() < 0.015
+    assert scene.needle.length == pytest.approx(0.12) and not scene.needle.rigid
+
+
+@pytest.mark.skipif(not SOFA_LIVER.is_file(), reason=f"shared organ meshes absent ({SOFA_LIVER})")
+def test_sofa_liver_runs_with_the_same_boundary_section():
+    import tomllib
+    from importlib import resources
+
+    from refsim.mesh import read_mesh
+    from refsim.scene.loader import scene_from_dict
+
+    mesh = read_mesh(SOFA_LIVER).scaled(0.04)
+    rest = mesh.rest_positions
+    centre = 0.5 * (rest.min(axis=0) + rest.max(axis=0))
+    top = rest[:, 1].max()
+    # Straight down (−y) from 4 mm above the organ's top at its middle, 4 cm of travel in 2 s.
+    tip0 = np.array([centre[0], top + 0.004, centre[2]])
+    base0 = tip0 + [0.0, 0.12, 0.0]
+    path = Path(str(resources.files("refsim") / "scenes" / "liver_flexible.toml"))
+    data = tomllib.loads(path.read_text(encoding="utf-8"))
+    data["mesh"] = {"file": str(SOFA_LIVER), "scale": 0.04, "fixed_nodes": [3, 39, 64]}
+    data["boundary"].update({"patch_point": [float(centre[0]), float(top), float(centre[2])],
+                             "patch_distance": 0.05, "amplitude": [0.0, -0.008, 0.0]})
+    data["trajectory"] = {"times": [0.0, 2.0], "base_positions": [base0.tolist(), (base0 - [0, 0.04, 0]).tolist()],
+                          "directions": [[0.0, -1.0, 0.0], [0.0, -1.0, 0.0]]}
+    data["time"] = {"dt": 0.01, "duration": 2.0}
+    scene = scene_from_dict(data, source="sofa-liver", base_directory=str(path.parent))
+    simulation = Simulation(scene)
+    assert set([3, 39, 64]) <= set(simulation.tissue.fixed_nodes.tolist())
+    records, states = [], []
+    simulation.run(on_step=lambda s, r: (records.append(r), states.append(s)))
+    names = [e.name for r in records for e in r.events]
+    assert "puncture" in names
+    assert "cut_start" not in names  # a pure axial push does not cut
+    law = simulation.controls.boundary
+    moved = states[-1].tissue.positions[law.nodes] - rest[law.nodes]
+    np.testing.assert_allclose(moved, law.displacement(states[-1].time), atol=1e-12)
+    assert max(np.linalg.norm(r.needle_force) for r in records) < 50.0

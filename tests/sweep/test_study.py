@@ -1,0 +1,93 @@
+"""A small study end to end on a one-worker LocalCluster: the command line, the study file, failures, resuming."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from refsim.cli import main
+from refsim.sweep import load_study, read_study, run_study
+from refsim.sweep.study import run_folder
+
+# The cube on 2 cells per axis for 0.35 s: the tip touches the top at 0.2 s and punctures; a few seconds a run.
+BASE = ["mesh.cells=[2, 2, 2]", "time.duration=0.35", "output.tissue_every=10"]
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("study")
+    text = f"""
+name = "small"
+scene = "cube"
+set = {BASE!r}
+quantities = ["needle_force@end", "puncture_force", "displacement@0.0,0.0,0.09"]
+[[sweep]]
+key = "insertion.spacing"
+values = [2e-3, 1e-3, 5e-4]
+[[case]]
+label = "bad spacing"
+set = ["insertion.spacing=-1.0"]
+[reference]
+label = "exact"
+set = ['solver.method="exact"']
+""".replace("'", '"').replace('["solver.method="exact""]', "['solver.method=\"exact\"']")
+    (folder / "small.toml").write_text(text)
+    output = folder / "small.h5"
+    code = main(["study", str(folder / "small.toml"), "-o", str(output), "--workers", "1", "-q"])
+    return folder, output, code
+
+
+def test_study_file_indexes_the_runs(study):
+    folder, output, code = study
+    assert code == 3  # one run failed: the exit code of a simulation error
+    data = read_study(output)
+    runs = data["runs"]
+    assert runs["status"] == ["complete", "complete", "complete", "failed"]
+    assert "[insertion] spacing = -1.0" in runs["error"][3] and "SceneError" in runs["error"][3]
+    assert np.allclose(runs["values"]["insertion.spacing"][:3], [2e-3, 1e-3, 5e-4])
+    assert np.isnan(runs["values"]["insertion.spacing"][3])
+    assert np.all(np.isfinite(runs["ms_per_step"][:3])) and np.all(runs["steps"][:3] == 35)
+    assert np.all(np.isfinite(runs["quantities"]["puncture_force"][:3]))
+    for name in runs["file"][:3]:
+        with h5py.File(output.parent / name, "r") as handle:
+            assert handle.attrs["complete"]
+        assert (output.parent / name).with_suffix(".xdmf").is_file()
+    assert data["reference"]["status"] == "complete" and data["reference"]["label"] == "exact"
+    assert np.all(runs["errors"]["force_history"][:3] >= 0.0)
+    assert data["attributes"]["format"] == "refsim-study" and data["attributes"]["runs_failed"] == 1
+    keys = {(row["key"], row["quantity"]) for row in data["convergence"]}
+    assert ("insertion.spacing", "needle_force@end") in keys
+
+
+def test_resume_runs_only_what_is_missing(study):
+    folder, output, _ = study
+    before = read_study(output)["runs"]
+    files = [output.parent / name for name in before["file"]]
+    files[0].unlink()
+    with h5py.File(files[1], "a") as handle:  # an interrupted run: complete = False
+        handle.attrs["complete"] = False
+    after = run_study(load_study(folder / "small.toml"), output, workers=1, progress=False)["runs"]
+    assert np.isfinite(after["seconds"][0]) and np.isfinite(after["seconds"][1])  # run again
+    assert np.isnan(after["seconds"][2])  # reused: not run
+    assert after["status"][:3] == ["complete"] * 3 and after["status"][3] == "failed"
+    for name in ("needle_force@end", "puncture_force"):
+        assert np.allclose(after["quantities"][name][:3], before["quantities"][name][:3])  # deterministic runs
+    assert sorted(p.name for p in run_folder(output).glob("*.h5")) == sorted(
+        p.name for p in files[:3] + [output.parent / read_study(output)["reference"]["file"]])
+
+
+def test_command_line_sweeps(tmp_path):
+    code = main(["study", "cube", "--sweep", "insertion.spacing=2e-3,1e-3", "--sweep", "solver.tolerance=1e-6",
+                 *sum((["--set", s] for s in BASE), []), "-o", str(tmp_path / "cli.h5"), "--workers", "1", "-q"])
+    assert code == 0
+    runs = read_study(tmp_path / "cli.h5")["runs"]
+    assert runs["label"] == ["insertion.spacing=0.002, solver.tolerance=1e-06",
+                             "insertion.spacing=0.001, solver.tolerance=1e-06"]
+
+
+def test_bad_command_line_is_an_input_error(tmp_path, capsys):
+    assert main(["study", "cube", "-o", str(tmp_path / "x.h5")]) == 2
+    assert "--sweep" in capsys.readouterr().err
+    assert main(["study", "cube", "--sweep", "insertion.nokey=1,2", "-o", str(tmp_path / "x.h5")]) == 2
+    assert "has no key 'nokey'" in capsys.readouterr().err
