@@ -254,6 +254,11 @@ class InsertionSpec(_Validated):
         "carry the sub-grid compliance of the annulus, docs/coupling.md) or 'paper' (rows on the centreline)",
         choices=("ring", "paper"),
     )
+    puncture_within_step: bool = spec(
+        True,
+        doc="cap the tip contact's force at f_p, so the tip punctures within the step at exactly f_p (for any dt "
+        "and speed); false: the tip contact is a plain Coulomb contact and puncture is declared after the step",
+    )
     shaft_contact: bool = spec(
         True,
         doc="before puncture, keep the whole needle's centreline out of the tissue (unilateral rows on shaft samples "
@@ -268,8 +273,9 @@ class InsertionSpec(_Validated):
     )
 
     def validate(self) -> None:
-        if not isinstance(self.shaft_contact, bool):
-            raise ValueError(f"shaft_contact = {self.shaft_contact!r}: expected true or false")
+        for name in ("shaft_contact", "puncture_within_step"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} = {getattr(self, name)!r}: expected true or false")
 
 
 @dataclass(frozen=True, kw_only=True)

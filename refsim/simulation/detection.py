@@ -160,7 +160,8 @@ class Detector:
             contact = find_surface_contact(projector, self.faces, geometry.needle_free.tip)
             if contact.gap < spec.contact_distance:
                 blocks.append(
-                    penetration_block(contact, geometry, friction_coefficient=spec.surface_friction_coefficient)
+                    penetration_block(contact, geometry, friction_coefficient=spec.surface_friction_coefficient,
+                                      puncture_force=spec.puncture_force if spec.puncture_within_step else None)
                 )
             if spec.shaft_contact:
                 shaft = shaft_contact_block(geometry, projector, self.faces, spacing=self.shaft_spacing,

@@ -438,3 +438,23 @@ def test_shaft_contact_keeps_a_tilted_needle_out_of_the_tissue(cube_scene):
     assert all(r.phase == "approach" for r in records)
     assert not any(e.name == "puncture" for r in records for e in r.events)
     assert np.linalg.norm(records[-1].needle_force) > 1.0  # the shaft carries the load (more than f_p)
+
+
+# ---------------------------------------------------------------------- puncture in the step, wired (item 5)
+@pytest.mark.parametrize(("dt", "speed"), [(0.001, 0.01), (0.01, 0.01), (0.05, 0.01), (0.01, 0.05), (0.02, 0.002)])
+def test_cube_punctures_at_f_p_for_any_dt_and_speed(cube_scene, dt, speed):
+    # insertion.puncture_within_step (default): the tip contact's force is capped at f_p, so the puncture event
+    # reports f_p within 1 % (issue 9, item 5); the plain contact reported 1.97 N for f_p = 0.8 N on this scene.
+    from refsim.simulation import Simulation
+
+    duration = round(0.006 / speed / dt) * dt  # the tip travels 6 mm: 2 mm to the surface, then 4 mm
+    base = 0.422
+    scene = cube_scene("mesh.cells=[4, 4, 4]", f"time.dt={dt}", f"time.duration={duration}",
+                       f"trajectory.times=[0.0, {duration}]",
+                       f"trajectory.base_positions=[[0.00123, 0.00231, {base}], [0.00123, 0.00231, {base - speed * duration}]]",
+                       "trajectory.directions=[[0, 0, -1], [0, 0, -1]]")
+    records = []
+    Simulation(scene).run(on_step=lambda s, r: records.append(r))
+    punctures = [e for r in records for e in r.events if e.name == "puncture"]
+    assert len(punctures) == 1
+    assert punctures[0].force == pytest.approx(scene.insertion.puncture_force, rel=1e-2)
