@@ -38,6 +38,7 @@ from refsim.constraints.rows import (
     BILATERAL,
     FRICTION,
     INSERTION,
+    PENETRATION,
     SHAFT_CONTACT,
     UNILATERAL,
     RowBlock,
@@ -532,11 +533,11 @@ def tip_cutting_block(
 
     Returns
     -------
-    (block, box_lower, box_upper) : one row, kind FRICTION (a bounded row: give it to the solver as a box row
-    with bounds [0, f_cut], shape (1,) each).
+    (block, box_lower, box_upper) : one unilateral row (source PENETRATION: the tip's row) whose force_limit is
+    f_cut (the step's problem makes it the box [0, f_cut]), and those bounds, shape (1,) each.
     """
-    if not (math.isfinite(cutting_force) and cutting_force >= 0.0):
-        raise ValueError(f"insertion.cutting_force = {cutting_force!r} N; valid range [0, inf)")
+    if not (math.isfinite(cutting_force) and cutting_force > 0.0):
+        raise ValueError(f"insertion.tip_cutting_force = {cutting_force!r} N; valid range (0, inf)")
     tip_s = np.array([geometry.needle_previous.length])
     direction = -geometry.needle_free.tangents(tip_s)
     nodes = geometry.mesh_tets[[tip_tet]]
@@ -549,10 +550,11 @@ def tip_cutting_block(
         tissue_jacobian=rows.tissue_jacobian,
         needle_jacobian=rows.needle_jacobian,
         free_gap=rows.free_gap,
-        kind=np.array([FRICTION], dtype=np.int8),
-        source=np.array([INSERTION], dtype=np.int8),
+        kind=np.array([UNILATERAL], dtype=np.int8),
+        source=np.array([PENETRATION], dtype=np.int8),
         points=tissue_now,
         directions=direction,
+        force_limit=np.array([float(cutting_force)]),
     )
     return block, np.zeros(1), np.array([float(cutting_force)])
 

@@ -254,6 +254,13 @@ class InsertionSpec(_Validated):
         "carry the sub-grid compliance of the annulus, docs/coupling.md) or 'paper' (rows on the centreline)",
         choices=("ring", "paper"),
     )
+    tip_cutting_force: float = spec(
+        0.0,
+        unit="N",
+        doc="f_cut: after puncture, the force the tissue opposes to the tip advancing (one row along the needle at "
+        "the tip, its force in [0, f_cut]: the tip sticks below, cuts at f_cut); 0 gives the paper's model (none)",
+        low=0.0,
+    )
     puncture_within_step: bool = spec(
         True,
         doc="cap the tip contact's force at f_p, so the tip punctures within the step at exactly f_p (for any dt "

@@ -32,6 +32,7 @@ from refsim.constraints.coupling import (
     ring_insertion_block,
     shaft_contact_block,
     subgrid_compliance,
+    tip_cutting_block,
 )
 from refsim.constraints.cut import FrontRows, strip_cut_block
 from refsim.constraints.insertion import InsertionPath
@@ -173,6 +174,12 @@ class Detector:
             # In the energy law's cutting phase the cut holds the needle (sliding rows, crack tip) and the entry
             # point only marks the inserted length: anchored there, it would drag the tissue along the stroke.
             blocks.append(self.insertion_rows(state.path, geometry))
+            if spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION:
+                # The tip's cutting row, against the newest insertion point (at most d_i behind the tip).
+                tip_block, _, _ = tip_cutting_block(geometry, tip_tet=int(state.path.tets[-1]),
+                                                    tip_barycentric=state.path.barycentric[-1],
+                                                    cutting_force=spec.tip_cutting_force)
+                blocks.append(tip_block)
         if state.phase == Phase.CUTTING and state.cut_strip is not None:
             entry = state.path.positions(state.tissue.positions, geometry.mesh_tets)[:1]
             entry_arc_length = float(geometry.needle_previous.project(entry)[0][0])
