@@ -330,7 +330,13 @@ class SolverSpec(_Validated):
     method: str = spec(doc="constraint solver", choices=("gauss_seidel", "exact"))
     tolerance: float = spec(unit="-", doc="natural residual to reach", low=0.0, high=1.0, low_open=True)
     max_iterations: int = spec(unit="-", doc="iteration cap (Gauss–Seidel sweeps)", low=1, high=10_000_000)
-    backend: str = spec("clarabel", doc="QP backend of the exact solver: a qpsolvers name installed here (qpsolvers.available_solvers)")
+    backend: str = spec("clarabel", doc="QP backend of the exact solver's cone route: a qpsolvers name installed here (qpsolvers.available_solvers)")
+    exact_method: str = spec(
+        "auto",
+        doc="exact solver: auto (semismooth Newton on the natural map, then a Gauss–Seidel finish, a monotone "
+        "Newton retry and the cone route; the report says which answered), newton, or cone (Clarabel/OSQP)",
+        choices=("auto", "newton", "cone"),
+    )
     criterion: str = spec(
         "residual",
         doc="Gauss–Seidel stopping test: the natural residual, or SOFA's increment Σ|W_jj Δλ_j| < tolerance·(rows+1) [m]",

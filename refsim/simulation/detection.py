@@ -54,11 +54,13 @@ class Detection:
     rows : The step's rows, in solver order.
     contact : The tip's closest surface point (approach phase), else None.
     front : Where the front rows press on the crack tip (cutting phase); their indices are into ``rows``.
+    insertion_points : The path points whose insertion rows are in ``rows``, in row order, shape (p,).
     """
 
     rows: RowBlock
     contact: SurfaceContact | None = None
     front: FrontRows = field(default_factory=FrontRows.empty)
+    insertion_points: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
 class Detector:
@@ -156,6 +158,7 @@ class Detector:
         blocks: list[RowBlock] = []
         contact = None
         front = FrontRows.empty()
+        insertion_points = np.zeros(0, dtype=np.int64)
         if state.phase == Phase.APPROACH:
             projector = SurfaceProjector(geometry.tissue_free, self.faces)
             contact = find_surface_contact(projector, self.faces, geometry.needle_free.tip)
@@ -170,10 +173,16 @@ class Detector:
                                             tip_clearance=2.0 * spec.contact_distance)
                 if shaft is not None:
                     blocks.append(shaft)
-        elif state.path.point_count and not (state.phase == Phase.CUTTING and self.cutting.law == "energy"):
-            # In the energy law's cutting phase the cut holds the needle (sliding rows, crack tip) and the entry
-            # point only marks the inserted length: anchored there, it would drag the tissue along the stroke.
-            blocks.append(self.insertion_rows(state.path, geometry))
+        elif state.path.point_count:
+            points = np.arange(state.path.point_count)
+            if state.phase == Phase.CUTTING and self.cutting.law == "energy":
+                # The cut holds the needle along the strip (sliding rows, crack tip) and the entry point only
+                # marks the inserted length (anchored there, it would drag the tissue along the stroke); the
+                # points below the strip (a needle still inserted after the cut start) keep their rows.
+                points = points[1:]
+            if points.size:
+                blocks.append(self.insertion_rows(state.path.subset(points), geometry))
+                insertion_points = points
             if spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION:
                 # The tip's cutting row, against the newest insertion point (at most d_i behind the tip).
                 tip_block, _, _ = tip_cutting_block(geometry, tip_tet=int(state.path.tets[-1]),
@@ -205,7 +214,7 @@ class Detector:
             rows = empty_block(geometry.tissue_dof_count, self.needle_dof_count)
         else:
             rows = concatenate(blocks)
-        return Detection(rows, contact, front)
+        return Detection(rows, contact, front, insertion_points)
 
 
 def _slide_compliance(scene: Scene, mesh_size: float, kind: int) -> float:

@@ -201,13 +201,16 @@ class EventRules:
         cut, strip = start_strip(self.growth, state.cut, path_points, direction, positions, state.step, extent=extent)
         if strip is None:
             return None
+        # The entry point is kept (it marks the inserted length); with the energy law so is the deepest point,
+        # from which the path grows again if the needle goes on inserting below the strip.
+        keep = [0] if cutting.law == "paper" or state.path.point_count < 2 else [0, state.path.point_count - 1]
         state = replace(
             state,
             phase=Phase.CUTTING,
             cut=cut,
             cut_direction=np.asarray(direction, dtype=float),
             cut_strip=strip,
-            path=state.path.subset(np.array([0])),
+            path=state.path.subset(np.array(keep)),
         )
         return state, [Event("cut_start", trigger)]
 
@@ -220,18 +223,30 @@ class EventRules:
             # The tip is back above the entry point: every row is released; the tissue keeps its cut.
             state = replace(state, phase=Phase.APPROACH, path=InsertionPath.empty(), cut_strip=None)
             return state, [Event("retraction"), Event("withdrawal")]
+        events: list[Event] = []
+        cutting = self.cutting
+        if cutting.law == "energy" and state.path.point_count >= 2:
+            # A needle still inserted below the strip: insertion points again, from the deepest one to the tip.
+            path, _ = grow_path(state.path, tip=needle.tip, tissue_positions=positions, mesh_tets=self.tets,
+                                locator=LazyLocator(positions, self.tets), spacing=self.insertion.spacing,
+                                step=state.step)
+            beyond = points_beyond_tip(path, path.positions(positions, self.tets), needle)
+            beyond[0] = False  # the entry point (checked above)
+            if np.any(beyond):
+                path = path.subset(~beyond)
+                events.append(Event("retraction"))
+            state = replace(state, path=path)
         front = detection.front
         if front.rows.size == 0:
-            return state, []
+            return state, events
         forces = multipliers[front.rows]
         strip = state.cut_strip
-        cutting = self.cutting
         if cutting.law == "energy":
             limit = detection.rows.force_limit[front.rows]
             gaps = front.gaps(strip.front.positions(positions, self.tets), needle)
             over = np.where((forces >= (1.0 - 1e-6) * limit) & (gaps < 0.0), -gaps, 0.0)
             if not np.any(over > 0.0):
-                return state, []
+                return state, events
             advances = np.zeros(strip.column_count)
             np.maximum.at(advances, front.segment, over)
             np.maximum.at(advances, front.segment + 1, over)
@@ -239,11 +254,12 @@ class EventRules:
             # rows' forces made it zigzag by ±30° and doubled the peak force on cube_cut: 5.4 N against 3.6 N).
             moved = strip.with_front(advance_front(self.growth, strip, advances, state.cut_direction, positions))
             cut, laid = moved.lay(state.cut, state.step, cutting.point_spacing)
-            events = [Event("tear", float(forces.sum()))] if laid.layers.shape[0] > strip.layers.shape[0] else []
+            if laid.layers.shape[0] > strip.layers.shape[0]:
+                events.append(Event("tear", float(forces.sum())))
             return replace(state, cut=cut, cut_strip=laid), events
         strongest = float(forces.max())
         if strongest < cutting.tearing_force:
-            return state, []
+            return state, events
         # Paper law: the whole front extends by d_t along ĉ, in layers at most d_c apart.
         pieces = max(int(np.ceil(cutting.extent / cutting.point_spacing - 1e-9)), 1)
         cut = state.cut
@@ -251,4 +267,4 @@ class EventRules:
             advances = np.full(strip.column_count, cutting.extent / pieces)
             strip = strip.with_front(advance_front(self.growth, strip, advances, state.cut_direction, positions))
             cut, strip = strip.lay(cut, state.step, 0.5 * cutting.extent / pieces)
-        return replace(state, cut=cut, cut_strip=strip), [Event("tear", strongest)]
+        return replace(state, cut=cut, cut_strip=strip), [*events, Event("tear", strongest)]

@@ -143,7 +143,7 @@ class Simulation:
         problem, tissue_responses, needle_responses = self._problem(rows, tissue_system, needle_system)
         timer.lap("compliance")
 
-        multipliers, report = self._solve(problem, self._warm_start(state, rows))
+        multipliers, report = self._solve(problem, self._warm_start(state, detection))
         timer.lap("solve")
 
         tissue_state = self.tissue_body.correct(
@@ -159,7 +159,7 @@ class Simulation:
             time=time,
             tissue=tissue_state,
             needle=needle_state,
-            path=self._store_multipliers(state.path, rows, multipliers),
+            path=self._store_multipliers(state.path, detection, multipliers),
         )
         new_state, events = self.event_rules.apply(new_state, detection, multipliers)
         timer.lap("events")
@@ -228,7 +228,9 @@ class Simulation:
             return np.zeros(0), None
         spec = self.scene.solver
         if spec.method == "exact":
-            return solve_exact(problem, tolerance=spec.tolerance, backend=spec.backend)
+            return solve_exact(
+                problem, tolerance=spec.tolerance, backend=spec.backend, method=spec.exact_method, warm_start=warm_start
+            )
         return solve_gauss_seidel(
             problem,
             tolerance=spec.tolerance,
@@ -241,20 +243,27 @@ class Simulation:
     def _insertion_rows(rows: RowBlock) -> np.ndarray:
         return np.flatnonzero(rows.source == INSERTION)
 
-    def _warm_start(self, state: SimulationState, rows: RowBlock) -> np.ndarray:
+    def _warm_start(self, state: SimulationState, detection) -> np.ndarray:
         """Last step's multipliers of the insertion points (they persist from step to step), zero elsewhere."""
+        rows = detection.rows
         warm = np.zeros(rows.row_count)
         insertion = self._insertion_rows(rows)
-        if insertion.size and state.path.point_count:
-            per_point = insertion.size // state.path.point_count
-            warm[insertion] = state.path.multipliers[:, :per_point].ravel()
+        points = detection.insertion_points
+        if insertion.size and points.size:
+            per_point = insertion.size // points.size
+            warm[insertion] = state.path.multipliers[points, :per_point].ravel()
         return warm
 
-    def _store_multipliers(self, path: InsertionPath, rows: RowBlock, multipliers: np.ndarray) -> InsertionPath:
-        insertion = self._insertion_rows(rows)
-        if insertion.size == 0 or path.point_count == 0:
+    def _store_multipliers(self, path: InsertionPath, detection, multipliers: np.ndarray) -> InsertionPath:
+        insertion = self._insertion_rows(detection.rows)
+        points = detection.insertion_points
+        if insertion.size == 0 or points.size == 0:
             return path
-        return path.with_multipliers(multipliers[insertion].reshape(path.point_count, -1))
+        stored = np.array(path.multipliers, copy=True)
+        values = multipliers[insertion].reshape(points.size, -1)
+        stored[points] = 0.0
+        stored[points, : values.shape[1]] = values[:, :3]
+        return path.with_multipliers(stored)
 
     @staticmethod
     def _check_finite(step, tissue_state, needle_state, multipliers) -> None:

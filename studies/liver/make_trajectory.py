@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-TARGET = np.array([-0.05, 0.0185, 0.01])  # [m] 5 cm below the anterior face, in the right lobe
+TARGET = np.array([-0.05, -0.0115, 0.01])  # [m] 8 cm below the anterior face, in the right lobe
 DIRECTION = np.array([0.0, -1.0, 0.0])  # inserted from the anterior face, posteriorly
-START_GAP, DEPTH, SPEED = 0.002, 0.05, 0.01  # [m], [m], [m/s]
+START_GAP, DEPTH, SPEED = 0.002, 0.08, 0.02  # [m], [m], [m/s]
 
 
 def main(argv=None) -> int:
@@ -51,7 +51,7 @@ def _scene_without_trajectory(name: str):
 
     from refsim.scene.loader import scene_from_dict
 
-    path = Path(str(resources.files("refsim") / "scenes" / f"{name}.toml"))
+    path = Path(name) if name.endswith(".toml") else Path(str(resources.files("refsim") / "scenes" / f"{name}.toml"))
     data = tomllib.loads(path.read_text(encoding="utf-8"))
     base = (TARGET - (DEPTH + START_GAP) * DIRECTION - 0.12 * DIRECTION).tolist()
     data["trajectory"] = {"times": [0.0, 1.0], "base_positions": [base, base],

@@ -93,7 +93,7 @@ def test_unused_nodes_are_dropped_with_a_warning(tmp_path, cube, caplog):
     [
         ("", "empty"),
         ("   \n\n", "empty"),
-        ("this is not a mesh\n", "meshio cannot read"),
+        ("this is not a mesh\n", "cannot read it as a Gmsh"),
         ("$NOD\n2\n1 0 0 0\n$ENDNOD\n", "announces 2 nodes"),
         ("$NOD\n1\n1 0 0 0\n", "not closed by"),
         ("$NOD\n1\n1 0 0 nan\n$ENDNOD\n$ELM\n0\n$ENDELM\n", "no tetrahedra"),

@@ -26,15 +26,16 @@ def _run(scene):
 
 def test_very_stiff_flexible_needle_matches_the_rigid_one(cube_scene):
     rigid = _run(cube_scene(*COARSE, *LATERAL))
-    # E = 1e14 Pa: the tip deflection F L³/(3 E I) under ~40 N is ~1 µm, 1e-3 of the 3 mm lateral move.
-    flexible = _run(cube_scene(*COARSE, *LATERAL, "needle.rigid=false", "needle.youngs_modulus=1e14"))
+    # E = 1e13 Pa (the largest the scene accepts): the tip deflection F L³/(3 E I) under ~40 N is ~14 µm, 5e-3
+    # of the 3 mm lateral move.
+    flexible = _run(cube_scene(*COARSE, *LATERAL, "needle.rigid=false", "needle.youngs_modulus=1e13"))
     assert [r.phase for r in rigid] == [r.phase for r in flexible]
     force_rigid = np.stack([r.needle_force for r in rigid])
     force_flexible = np.stack([r.needle_force for r in flexible])
     peak = np.abs(force_rigid).max()
     assert peak > 1.0
-    # Forces scale with the tissue displacement, which differs by the deflection: 1e-3 of the move, so 1e-2 is
-    # a tenfold margin.
+    # Forces scale with the tissue displacement, which differs by the deflection: 5e-3 of the move, so 1e-2 is
+    # a twofold margin.
     assert np.abs(force_flexible - force_rigid).max() <= 1e-2 * peak
 
 

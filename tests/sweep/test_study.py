@@ -44,7 +44,7 @@ def test_study_file_indexes_the_runs(study):
     data = read_study(output)
     runs = data["runs"]
     assert runs["status"] == ["complete", "complete", "complete", "failed"]
-    assert "[insertion] spacing = -1.0" in runs["error"][3] and "SceneError" in runs["error"][3]
+    assert "insertion.spacing = -1.0" in runs["error"][3] and "SceneError" in runs["error"][3]
     assert np.allclose(runs["values"]["insertion.spacing"][:3], [2e-3, 1e-3, 5e-4])
     assert np.isnan(runs["values"]["insertion.spacing"][3])
     assert np.all(np.isfinite(runs["ms_per_step"][:3])) and np.all(runs["steps"][:3] == 35)
