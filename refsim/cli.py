@@ -117,7 +117,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
                                   overrides=args.set or (), quantities=args.quantity,
                                   reference=args.reference, name=args.name)
     output = Path(args.output) if args.output else Path(f"{spec.name}_study.h5")
-    study = run_study(spec, output, scheduler=args.scheduler, workers=args.workers, progress=not args.quiet)
+    study = run_study(spec, output, scheduler=args.scheduler, workers=args.workers, progress=not args.quiet,
+                      warm_up=not args.no_warm_up)
     runs = study["runs"]
     print(f"study {spec.name}: {len(runs['id'])} runs, {study['attributes']['runs_complete']} complete, "
           f"{study['attributes']['runs_failed']} failed -> {output}")
@@ -328,6 +329,8 @@ def _parser() -> argparse.ArgumentParser:
     study.add_argument("-o", "--output", help="study file (.h5); runs go to <stem>_runs/ beside it")
     study.add_argument("--scheduler", help="address of a running Dask scheduler, e.g. tcp://host:8786")
     study.add_argument("--workers", type=int, help="LocalCluster worker processes (default: the cores)")
+    study.add_argument("--no-warm-up", action="store_true",
+                       help="no untimed warm-up run per worker (the first run then includes kernel compilation)")
     study.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     study.set_defaults(handler=_cmd_study)
 

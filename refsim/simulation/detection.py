@@ -176,10 +176,11 @@ class Detector:
         elif state.path.point_count:
             points = np.arange(state.path.point_count)
             if state.phase == Phase.CUTTING and self.cutting.law == "energy":
-                # The cut holds the needle along the strip (sliding rows, crack tip) and the entry point only
-                # marks the inserted length (anchored there, it would drag the tissue along the stroke); the
-                # points below the strip (a needle still inserted after the cut start) keep their rows.
-                points = points[1:]
+                # The cut holds the needle along the strip (sliding rows, crack tip); the entry point only
+                # marks the inserted length and the strip's deepest point only seeds the path below it (anchored,
+                # either would drag the tissue along the stroke); points below the strip, created while the
+                # needle goes on inserting after the cut start, have their rows.
+                points = points[2:]
             if points.size:
                 blocks.append(self.insertion_rows(state.path.subset(points), geometry))
                 insertion_points = points

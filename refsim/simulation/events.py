@@ -226,12 +226,21 @@ class EventRules:
         events: list[Event] = []
         cutting = self.cutting
         if cutting.law == "energy" and state.path.point_count >= 2:
-            # A needle still inserted below the strip: insertion points again, from the deepest one to the tip.
-            path, _ = grow_path(state.path, tip=needle.tip, tissue_positions=positions, mesh_tets=self.tets,
-                                locator=LazyLocator(positions, self.tets), spacing=self.insertion.spacing,
-                                step=state.step)
+            # A needle still inserted below the strip: insertion points again, on the centreline every d_i from
+            # the deepest point's projection to the tip (not towards the tip from the point: during a lateral
+            # stroke that segment lies across the cut).
+            points = state.path.positions(positions, self.tets)
+            deepest = float(needle.project(points[-1:])[0][0])
+            count = int(np.floor((needle.length - deepest) / self.insertion.spacing + 1e-9))
+            path = state.path
+            if count > 0:
+                arcs = deepest + self.insertion.spacing * np.arange(1, count + 1)
+                tets, barycentric = LazyLocator(positions, self.tets).locate(needle.points(arcs))
+                inside = tets >= 0
+                if np.any(inside):
+                    path = path.appended(tets[inside], barycentric[inside], state.step)
             beyond = points_beyond_tip(path, path.positions(positions, self.tets), needle)
-            beyond[0] = False  # the entry point (checked above)
+            beyond[:2] = False  # the entry point (checked above) and the seed of the path below the strip
             if np.any(beyond):
                 path = path.subset(~beyond)
                 events.append(Event("retraction"))

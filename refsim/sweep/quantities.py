@@ -4,7 +4,7 @@ A name is ``quantity`` or ``quantity@argument``:
 
 | name | meaning | unit |
 |---|---|---|
-| ``needle_force@EVENT`` | ‖force of the tissue on the needle‖ at the first step of event EVENT (puncture, cut_start, tear, ...) or at ``end`` (the last step) | N |
+| ``needle_force@EVENT`` | ‖force of the tissue on the needle‖ at the first step of event EVENT (puncture, cut_start, tear, ...), at ``end`` (the last step) or at ``t=SECONDS`` (the nearest step) | N |
 | ``axial_force@EVENT``, ``lateral_force@EVENT`` | its component along the base segment (minus sign: resisting insertion is positive) and the norm of the rest | N |
 | ``puncture_force`` | the force that triggered the puncture event | N |
 | ``cut_area`` | area of the cut surface at the end, summed over its triangles in rest coordinates | m² |
@@ -28,6 +28,14 @@ __all__ = ["QUANTITIES", "UNITS", "check_quantity", "force_history_error", "quan
 def _event_index(results, event: str) -> int | None:
     if event in ("end", "last"):
         return results.step_count - 1 if results.step_count else None
+    if event.startswith("t="):  # the step nearest a time [s]
+        try:
+            time = float(event[2:])
+        except ValueError:
+            raise ValueError(f"@{event}: expected t=SECONDS, e.g. needle_force@t=1.9") from None
+        if results.step_count == 0 or time > results.time[-1] + 1e-9:
+            return None
+        return int(np.argmin(np.abs(results.time - time)))
     found = results.events_named(event)
     if not found:
         return None

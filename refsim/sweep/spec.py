@@ -107,7 +107,7 @@ class Sweep:
 
 @dataclass(frozen=True)
 class RunSpec:
-    """One run of a study: its id (stable, from its overrides), label, swept values and scene overrides."""
+    """One run of a study: its id (stable, from its scene and overrides), label, swept values and overrides."""
 
     id: str
     label: str
@@ -120,8 +120,9 @@ class RunSpec:
         return f"{self.id}.h5"
 
 
-def _run_id(overrides: tuple) -> str:
-    return hashlib.sha1("\n".join(overrides).encode()).hexdigest()[:12]
+def _run_id(scene: str, overrides: tuple) -> str:
+    """12 hex digits of the SHA-1 of the scene and the overrides: the same run has the same id in any study."""
+    return hashlib.sha1("\n".join((str(scene),) + tuple(overrides)).encode()).hexdigest()[:12]
 
 
 @dataclass(frozen=True)
@@ -163,10 +164,10 @@ class StudySpec:
                 values = {s.key: v for s, v in zip(self.sweeps, row, strict=True)}
                 overrides = tuple(self.overrides) + tuple(f"{k}={toml_value(v)}" for k, v in values.items())
                 label = ", ".join(f"{k}={toml_value(v)}" for k, v in values.items())
-                runs.append(RunSpec(_run_id(overrides), label, values, overrides))
+                runs.append(RunSpec(_run_id(self.scene, overrides), label, values, overrides))
         for label, case in self.cases:
             overrides = tuple(self.overrides) + tuple(case)
-            runs.append(RunSpec(_run_id(overrides), label, {}, overrides))
+            runs.append(RunSpec(_run_id(self.scene, overrides), label, {}, overrides))
         ids = [run.id for run in runs]
         if len(set(ids)) != len(ids):
             raise ValueError(f"{self.source}: two runs have the same overrides (the same run twice)")
@@ -178,7 +179,7 @@ class StudySpec:
             return None
         label, case = self.reference
         overrides = tuple(self.overrides) + tuple(case)
-        return RunSpec(_run_id(overrides), label, {}, overrides)
+        return RunSpec(_run_id(self.scene, overrides), label, {}, overrides)
 
     def to_json(self) -> str:
         """The study as JSON (stored in the study file)."""
@@ -256,6 +257,9 @@ def load_study(path) -> StudySpec:
     except tomllib.TOMLDecodeError as error:
         raise ValueError(f"{path}: not valid TOML: {error}") from None
     known = {"name", "scene", "set", "combine", "quantities", "sweep", "case", "reference", "plot"}
+    if {"mesh", "tissue", "needle"} & set(data):
+        raise ValueError(f"{path}: a scene file, not a study file; sweep it with: refsim study {path} "
+                         "--sweep section.key=v1,v2,...")
     unknown = sorted(set(data) - known)
     if unknown:
         raise ValueError(f"{path}: unknown key {unknown[0]!r} (keys: {', '.join(sorted(known))})")

@@ -1,7 +1,7 @@
 """Running a study on Dask and its HDF5 index (the study file).
 
 The study file ``STUDY.h5`` indexes the runs, whose results files sit in the folder ``STUDY_runs/`` beside it
-(one ``<run id>.h5`` each, the id a hash of the run's overrides). It is rewritten (atomically) each time a run
+(one ``<run id>.h5`` each, the id a hash of the scene and the run's overrides). It is rewritten (atomically) each time a run
 finishes, so an interrupted study keeps what it did; started again, it runs only the runs whose results file is
 missing or not ``complete``. Layout (also in ``docs/studies.md``):
 
@@ -10,7 +10,7 @@ missing or not ``complete``. Layout (also in ``docs/studies.md``):
 | root attributes | | ``format`` = "refsim-study", ``schema_version``, ``name``, ``scene``, ``combine``, ``study`` (the study as JSON), ``created``, ``refsim_version``, ``git_commit``, ``run_folder``, ``runs_total``, ``runs_complete``, ``runs_failed`` |
 | ``runs/id``, ``runs/label``, ``runs/file`` | (R,) str | run id, label, results file (relative to the study file) |
 | ``runs/status``, ``runs/error`` | (R,) str | complete, incomplete, failed, pending; the error message |
-| ``runs/ms_per_step`` [ms], ``runs/seconds`` [s], ``runs/steps`` | (R,) | mean wall time per step, wall time of the run (NaN when reused), steps done |
+| ``runs/ms_per_step``, ``runs/cpu_ms_per_step`` [ms], ``runs/seconds`` [s], ``runs/steps`` | (R,) | mean wall time per step, process CPU time per step (NaN when reused), wall time of the run (NaN when reused), steps done |
 | ``runs/worker`` | (R,) str | host:pid of the worker that ran it |
 | ``runs/values/<key>`` | (R,) | swept value (float, or JSON text for lists; NaN / "" for a case) |
 | ``runs/spacing/<key>`` | (R,) f8 | refinement measure h of that value |
@@ -53,7 +53,7 @@ def run_folder(output) -> Path:
 
 def _pending(run: RunSpec) -> dict:
     return {"status": "pending", "error": "", "seconds": float("nan"), "worker": "", "steps": 0,
-            "ms_per_step": float("nan"), "quantities": {}}
+            "ms_per_step": float("nan"), "cpu_ms_per_step": float("nan"), "quantities": {}}
 
 
 def start_client(scheduler: str | None = None, workers: int | None = None):
@@ -67,12 +67,12 @@ def start_client(scheduler: str | None = None, workers: int | None = None):
     for name, value in BLAS_ENVIRONMENT.items():
         os.environ.setdefault(name, value)  # inherited by the worker processes
     cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
-                           dashboard_address=None, env=dict(BLAS_ENVIRONMENT), silence_logs=logging.ERROR)
+                           dashboard_address=":0", env=dict(BLAS_ENVIRONMENT), silence_logs=logging.ERROR)
     return Client(cluster), cluster
 
 
 def run_study(spec: StudySpec, output, *, scheduler: str | None = None, workers: int | None = None,
-              progress: bool = True, client=None) -> dict:
+              progress: bool = True, client=None, warm_up: bool = True) -> dict:
     """Run every missing run of a study on Dask and write the study file.
 
     Parameters
@@ -84,6 +84,8 @@ def run_study(spec: StudySpec, output, *, scheduler: str | None = None, workers:
     progress : Show a progress bar (tqdm, on stderr).
     client : An existing ``distributed.Client`` to use (and leave open), e.g. one for several studies;
         ``scheduler`` and ``workers`` are then ignored.
+    warm_up : Each worker first runs a small cutting scene untimed, so that compiling the kernels does not
+        count in the first run's time per step (about 5 s per worker).
 
     Returns
     -------
@@ -100,8 +102,10 @@ def run_study(spec: StudySpec, output, *, scheduler: str | None = None, workers:
 
     missing = [run for run in every if not is_complete(folder / run.file_name)]
     done = [run for run in every if run not in missing]
-    for run in done:  # reused: quantities read here, nothing is run again
+    previous = _previous_timing(output)
+    for run in done:  # reused: quantities read here, nothing is run again; timings kept from the last study file
         rows[run.id] = run_one(spec.scene, run.overrides, str(folder / run.file_name), spec.quantities)
+        rows[run.id].update(previous.get(run.id, {}))
     _write(spec, output, runs, reference, rows)
     if missing:
         from tqdm import tqdm
@@ -115,7 +119,7 @@ def run_study(spec: StudySpec, output, *, scheduler: str | None = None, workers:
             from distributed import as_completed
 
             futures = {client.submit(run_one, spec.scene, run.overrides, str(folder / run.file_name),
-                                     spec.quantities, key=f"run-{spec.name}-{run.id}", pure=False): run
+                                     spec.quantities, warm_up, key=f"run-{spec.name}-{run.id}", pure=False): run
                        for run in missing}
             for future in as_completed(futures):
                 run = futures[future]
@@ -138,6 +142,21 @@ def run_study(spec: StudySpec, output, *, scheduler: str | None = None, workers:
 
 
 # ---------------------------------------------------------------------- the study file
+
+
+def _previous_timing(output: Path) -> dict:
+    """{run id: {seconds, cpu_ms_per_step, worker}} from an existing study file (runs reused keep them)."""
+    if not output.is_file():
+        return {}
+    try:
+        runs = read_study(output)["runs"]
+    except (OSError, ValueError, KeyError):
+        return {}
+    keep = {}
+    for index, run_id in enumerate(runs.get("id", [])):
+        keep[run_id] = {name: runs[name][index] for name in ("seconds", "cpu_ms_per_step", "worker")
+                        if name in runs}
+    return keep
 
 
 def _errors(spec, folder, runs, reference, rows) -> dict:
@@ -232,8 +251,9 @@ def _write(spec, output: Path, runs, reference, rows, *, final: bool = False) ->
         _strings(group, "status", statuses)
         _strings(group, "error", [rows[run.id]["error"] for run in runs])
         _strings(group, "worker", [rows[run.id]["worker"] for run in runs])
-        for name, unit in (("ms_per_step", "ms"), ("seconds", "s")):
-            group.create_dataset(name, data=np.array([rows[run.id][name] for run in runs], dtype=float))
+        for name, unit in (("ms_per_step", "ms"), ("cpu_ms_per_step", "ms"), ("seconds", "s")):
+            group.create_dataset(name, data=np.array([rows[run.id].get(name, np.nan) for run in runs],
+                                                     dtype=float))
             group[name].attrs["units"] = unit
         group.create_dataset("steps", data=np.array([rows[run.id]["steps"] for run in runs], dtype=np.int64))
         for sweep in spec.sweeps:
@@ -258,7 +278,8 @@ def _write(spec, output: Path, runs, reference, rows, *, final: bool = False) ->
             ref.attrs.update({"label": reference.label, "id": reference.id,
                               "file": f"{folder.name}/{reference.file_name}",
                               "status": rows[reference.id]["status"], "error": rows[reference.id]["error"],
-                              "ms_per_step": rows[reference.id]["ms_per_step"]})
+                              "ms_per_step": rows[reference.id]["ms_per_step"],
+                              "cpu_ms_per_step": rows[reference.id].get("cpu_ms_per_step", np.nan)})
             for name in spec.quantities:
                 ref.create_dataset(f"quantities/{name}", data=rows[reference.id]["quantities"].get(name, np.nan))
         table = convergence_rows(spec, runs, rows)

@@ -20,7 +20,7 @@ BLAS_ENVIRONMENT = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NU
                     "NUMBA_NUM_THREADS": "1"}
 
 
-def run_scene(scene, output, *, overwrite: bool = False):
+def run_scene(scene, output, *, overwrite: bool = False, on_step=None):
     """Run ``scene`` through the one run driver (:func:`refsim.io.driver.run_scene`: results file with the cut
     surface, summary) and write the XDMF sidecar beside the file.
 
@@ -29,6 +29,7 @@ def run_scene(scene, output, *, overwrite: bool = False):
     scene : A validated :class:`refsim.scene.Scene`.
     output : The results file (.h5).
     overwrite : Replace an existing file.
+    on_step : Called after each step as ``on_step(state, record)``.
 
     Returns
     -------
@@ -43,7 +44,7 @@ def run_scene(scene, output, *, overwrite: bool = False):
     from refsim.io.driver import run_scene as drive
     from refsim.io.xdmf import write_xdmf
 
-    summary = drive(scene, output, overwrite=overwrite, handle_signals=False)
+    summary = drive(scene, output, overwrite=overwrite, handle_signals=False, on_step=on_step)
     write_xdmf(output)
     return summary
 
@@ -85,7 +86,26 @@ def describe(path, quantities) -> dict:
     return row
 
 
-def run_one(scene: str, overrides: tuple, output: str, quantities: tuple) -> dict:
+_WARMED_UP = False
+
+
+def _warm_up() -> None:
+    """Compile the numba kernels and load the lazy modules of this process once, on a small cutting run
+    (cube_cut on 4³ cells, about 5 s), so that the first timed run of a worker does not pay for them."""
+    global _WARMED_UP
+    if _WARMED_UP:
+        return
+    import tempfile
+
+    from refsim.scene import load_scene
+
+    with tempfile.TemporaryDirectory() as folder:
+        scene = load_scene("cube_cut", ["mesh.cells=[4, 4, 4]", "output.tissue_every=1000"])
+        run_scene(scene, Path(folder) / "warm_up.h5", overwrite=True)
+    _WARMED_UP = True
+
+
+def run_one(scene: str, overrides: tuple, output: str, quantities: tuple, warm_up: bool = False) -> dict:
     """Run one study point on this process (a Dask task) unless its results file is already complete.
 
     Parameters
@@ -94,11 +114,14 @@ def run_one(scene: str, overrides: tuple, output: str, quantities: tuple) -> dic
     overrides : ``section.key=value`` strings.
     output : Results file path (on the shared filesystem for a cluster).
     quantities : Names of the quantities of interest (refsim.sweep.quantities).
+    warm_up : Before the first run of this process, run a small cutting scene untimed (compiles the kernels).
 
     Returns
     -------
     dict with status ("complete", "failed"), error (message, "" when none), seconds (wall time, NaN when the
-    file was reused), worker (host and pid), steps, ms_per_step and quantities {name: value}. Never raises for a
+    file was reused), worker (host and pid), steps, ms_per_step (mean wall time of a step, from the file),
+    cpu_ms_per_step (process CPU time per step between the first and the last step; NaN when reused) and
+    quantities {name: value}. Never raises for a
     failing run: the failure is the row's status.
     """
     from threadpoolctl import threadpool_limits
@@ -106,16 +129,26 @@ def run_one(scene: str, overrides: tuple, output: str, quantities: tuple) -> dic
     for name, value in BLAS_ENVIRONMENT.items():
         os.environ.setdefault(name, value)
     row = {"status": "failed", "error": "", "seconds": float("nan"), "worker": f"{socket.gethostname()}:{os.getpid()}",
-           "steps": 0, "ms_per_step": float("nan"), "quantities": {name: float("nan") for name in quantities}}
+           "steps": 0, "ms_per_step": float("nan"), "cpu_ms_per_step": float("nan"), "quantities": {name: float("nan") for name in quantities}}
     output = Path(output)
     try:
         if not is_complete(output):
             from refsim.scene import load_scene
 
+            scene_spec = load_scene(scene, list(overrides))
+            if warm_up:
+                _warm_up()
             start = time.perf_counter()
+            cpu = []  # process CPU time at each step: robust to other processes sharing the cores
+
+            def on_step(state, record) -> None:
+                cpu.append(time.process_time())
+
             with threadpool_limits(limits=1):
-                summary = run_scene(load_scene(scene, list(overrides)), output, overwrite=True)
+                summary = run_scene(scene_spec, output, overwrite=True, on_step=on_step)
             row["seconds"] = time.perf_counter() - start
+            if len(cpu) > 1:
+                row["cpu_ms_per_step"] = 1e3 * (cpu[-1] - cpu[0]) / (len(cpu) - 1)
             if not summary.complete:
                 row["error"] = f"{summary.status}: {summary.stop_reason}"
         row.update(describe(output, quantities))

@@ -26,6 +26,7 @@ def _figure(study: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     runs = study["runs"]
     spec = json.loads(study["attributes"]["study"])
@@ -67,6 +68,7 @@ def _figure(study: dict, path: Path) -> None:
             bottom.set_yticks([])
         bottom.set_xlabel(MEASURE_LABEL.get(key, key), fontsize=8)
         for axis in (top, bottom):
+            axis.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
             axis.tick_params(labelsize=7)
             axis.grid(True, which="both", alpha=0.3)
     figure.suptitle(f"{spec['name']}: scene {spec['scene']}, sweep of {key}", fontsize=10)
@@ -81,7 +83,7 @@ def _table(study: dict) -> list[str]:
     key = spec["sweep"][0]["key"]
     lines = [f"| {key} | status | ms/step | " + " | ".join(spec["quantities"]) + " |",
              "|---" * (3 + len(spec["quantities"])) + "|"]
-    for index, label in enumerate(runs["label"]):
+    for index in range(len(runs["label"])):
         value = runs["values"][key][index]
         cells = [f"{runs['quantities'][name][index]:.5g}" for name in spec["quantities"]]
         lines.append(f"| {value} | {runs['status'][index]} | {runs['ms_per_step'][index]:.1f} | "

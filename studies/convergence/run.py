@@ -8,6 +8,8 @@ Resumable: run it again after an interruption and only the missing runs are done
                                       [--only cube_mesh ...] [--quick]
 
 ``--quick`` (for tests): the cube's d_i and mesh sweeps only, three levels, 0.4 s, on 2 to 4 cells.
+``--liver``: also the d_i and d_c sweeps of ``liver/`` (liver_rigid, liver_flexible: about 15 min a run on one
+core; the phantom has two mesh levels only, too few for an order).
 """
 
 from __future__ import annotations
@@ -19,10 +21,11 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
-def studies(quick: bool, only=None) -> list:
+def studies(quick: bool, only=None, liver: bool = False) -> list:
     from refsim.sweep import Sweep, load_study
 
-    specs = [load_study(path) for path in sorted(HERE.glob("*.toml"))]
+    paths = sorted(HERE.glob("*.toml")) + (sorted((HERE / "liver").glob("*.toml")) if liver else [])
+    specs = [load_study(path) for path in paths]
     if only:
         specs = [spec for spec in specs if spec.name in only]
     if not quick:
@@ -50,14 +53,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--scheduler", default=None)
     parser.add_argument("--only", nargs="+", help="study names (the .toml stems)")
     parser.add_argument("--quick", action="store_true", help="small and short (for tests)")
+    parser.add_argument("--liver", action="store_true", help="also the liver sweeps of liver/ (slow: hours)")
     parser.add_argument("-q", "--quiet", action="store_true")
     args = parser.parse_args(argv)
     output = Path(args.output)
     output.mkdir(parents=True, exist_ok=True)
     client, cluster = start_client(args.scheduler, args.workers)
     try:
-        for spec in studies(args.quick, args.only):
-            study = run_study(spec, output / f"{spec.name}.h5", client=client,
+        for spec in studies(args.quick, args.only, args.liver):
+            study = run_study(spec, output / f"{spec.name}.h5", client=client, warm_up=not args.quick,
                               progress=not args.quiet)
             print(f"{spec.name}: {study['attributes']['runs_complete']}/{study['attributes']['runs_total']} complete")
             for row in study["convergence"]:

@@ -31,6 +31,15 @@ def pareto_front(times, errors) -> np.ndarray:
     return np.array(front, dtype=np.int64)
 
 
+def step_times(runs) -> tuple[np.ndarray, str]:
+    """Time per step of each run [ms] and what it is: the process CPU time when every run has it (robust to
+    other processes sharing the cores), else the mean wall time."""
+    cpu = np.asarray(runs.get("cpu_ms_per_step", []), dtype=float)
+    if cpu.size and np.all(np.isfinite(cpu) | np.array([s != "complete" for s in runs["status"]])):
+        return cpu, "CPU ms per step (process time, one BLAS thread)"
+    return np.asarray(runs["ms_per_step"], dtype=float), "ms per step (mean wall time)"
+
+
 def _figure(study: dict, path: Path) -> None:
     import matplotlib
 
@@ -40,14 +49,19 @@ def _figure(study: dict, path: Path) -> None:
     runs = study["runs"]
     spec = json.loads(study["attributes"]["study"])
     families = spec.get("families", {})
-    times = np.asarray(runs["ms_per_step"], dtype=float)
+    times, measure = step_times(runs)
     errors = np.asarray(runs["errors"]["force_history"], dtype=float)
+    valid = np.isfinite(errors) & np.isfinite(times) & np.array([s == "complete" for s in runs["status"]])
+    errors = np.where(valid, errors, np.nan)  # a failed run has no error; it is listed under the axes
     floor = np.nanmin(errors[errors > 0]) / 10 if np.any(errors > 0) else 1e-16
     shown = np.where(errors > 0, errors, floor)  # an error of exactly 0 is drawn at the floor
     figure, axis = plt.subplots(figsize=(6.4, 4.6))
     markers = "osD^v<>p*hX"
     for number, family in enumerate(dict.fromkeys(families.get(label, "other") for label in runs["label"])):
-        members = [i for i, label in enumerate(runs["label"]) if families.get(label, "other") == family]
+        members = [i for i, label in enumerate(runs["label"])
+                   if families.get(label, "other") == family and valid[i]]
+        if not members:
+            continue
         axis.loglog(times[members], shown[members], markers[number % len(markers)], label=family, ms=6)
         for i in members:
             axis.annotate(runs["label"][i], (times[i], shown[i]), fontsize=6, xytext=(3, 3),
@@ -55,9 +69,15 @@ def _figure(study: dict, path: Path) -> None:
     front = pareto_front(times, errors)
     axis.loglog(times[front], shown[front], "k-", lw=0.8, alpha=0.6, label="Pareto front")
     reference = study["reference"]
-    if reference and np.isfinite(reference.get("ms_per_step", np.nan)):
-        axis.axvline(reference["ms_per_step"], color="k", ls="--", lw=0.8, label="exact mode")
-    axis.set_xlabel("ms per step (mean wall time)")
+    reference_time = reference.get("cpu_ms_per_step" if measure.startswith("CPU") else "ms_per_step", np.nan) \
+        if reference else np.nan
+    if np.isfinite(reference_time):
+        axis.axvline(reference_time, color="k", ls="--", lw=0.8, label="exact mode")
+    failed = [label for i, label in enumerate(runs["label"]) if not valid[i]]
+    xlabel = measure
+    if failed:
+        xlabel += f"\nnot shown, run failed: {', '.join(failed)}"
+    axis.set_xlabel(xlabel)
     axis.set_ylabel("relative error of the needle force history")
     axis.set_title(f"{spec['scene']}: speed against error (reference: {reference['label'] if reference else '-'})",
                    fontsize=10)
@@ -82,8 +102,11 @@ def main(argv: list[str] | None = None) -> None:
              "`python studies/pareto/run.py && python studies/pareto/plot.py`). Every fast option of "
              "`studies/pareto/options.toml` is one run of the scene; the error is the relative L2 difference of "
              "the needle force history from the exact mode of the same scene (`solver.method = \"exact\"`, "
-             "tolerance 1e-10), ‖F − F_exact‖/‖F_exact‖ over all steps; time is the mean wall time per step on "
-             "one worker (one BLAS thread). Add an option by adding an `[[option]]` to options.toml.", ""]
+             "tolerance 1e-10), ‖F − F_exact‖/‖F_exact‖ over all steps; time is the process CPU time per step "
+             "of the worker that ran it (one BLAS thread; measured from the first to the last step, after an "
+             "untimed warm-up run that compiles the kernels), which other processes sharing the cores do not "
+             "inflate as they do the wall time (also given). Add an option by adding an `[[option]]` to "
+             "options.toml.", ""]
     for path in sorted(Path(args.output).glob("*.h5")):
         study = read_study(path)
         spec = json.loads(study["attributes"]["study"])
@@ -91,16 +114,22 @@ def main(argv: list[str] | None = None) -> None:
         _figure(study, figure)
         runs = study["runs"]
         names = spec["quantities"]
+        times, measure = step_times(runs)
+        reference = study["reference"]
         lines += [f"## {spec['scene']}", "",
-                  f"Exact mode: {study['reference']['ms_per_step']:.1f} ms per step.", "",
-                  "| option | family | ms/step | force history error | " + " | ".join(f"error {n}" for n in names)
-                  + " |", "|---" * (4 + len(names)) + "|"]
-        front = set(pareto_front(runs["ms_per_step"], runs["errors"]["force_history"]).tolist())
+                  f"Exact mode: {reference.get('cpu_ms_per_step', np.nan):.1f} CPU ms, "
+                  f"{reference['ms_per_step']:.1f} wall ms per step. Time axis: {measure}.", "",
+                  "| option | family | CPU ms/step | wall ms/step | force history error | "
+                  + " | ".join(f"error {n}" for n in names) + " |", "|---" * (5 + len(names)) + "|"]
+        front = set(pareto_front(times, runs["errors"]["force_history"]).tolist())
         for i, label in enumerate(runs["label"]):
             mark = " **(front)**" if i in front else ""
             cells = " | ".join(f"{runs['errors'][n][i]:.2e}" for n in names)
+            if runs["status"][i] != "complete":
+                mark = f" (failed: {runs['error'][i][:120]})"
             lines.append(f"| {label}{mark} | {spec.get('families', {}).get(label, '')} | "
-                         f"{runs['ms_per_step'][i]:.1f} | {runs['errors']['force_history'][i]:.2e} | {cells} |")
+                         f"{runs.get('cpu_ms_per_step', [np.nan] * len(times))[i]:.1f} | {runs['ms_per_step'][i]:.1f} | "
+                         f"{runs['errors']['force_history'][i]:.2e} | {cells} |")
         lines += ["", f"![{spec['scene']}](figures/{figure.name})", ""]
     (docs / "pareto.md").write_text("\n".join(lines) + "\n", encoding="utf-8")
     print(f"wrote {docs / 'pareto.md'} and its figures")

@@ -14,9 +14,9 @@ from refsim.io.xdmf import write_xdmf, xdmf_path
 
 @pytest.fixture(scope="module")
 def cut_run(tmp_path_factory):
-    """cube_cut on 3 cells per axis, written by `refsim run` (which writes the sidecar at the end)."""
+    """cube_cut on 4 cells per axis, written by `refsim run` (which writes the sidecar at the end)."""
     path = tmp_path_factory.mktemp("xdmf") / "cut.h5"
-    code = main(["run", "cube_cut", "-o", str(path), "-q", "--set", "mesh.cells=[3, 3, 3]",
+    code = main(["run", "cube_cut", "-o", str(path), "-q", "--set", "mesh.cells=[4, 4, 4]",
                  "--set", "output.tissue_every=25"])
     assert code == 0
     return path

@@ -24,6 +24,8 @@ def test_convergence_study_files_are_valid():
     assert {spec.name for spec in specs} == {"cube_spacing", "cube_mesh", "cube_cut_spacing",
                                              "cube_cut_point_spacing", "cube_cut_mesh"}
     assert all(len(spec.runs()) >= 3 for spec in specs)
+    liver = _load("convergence", "run").studies(quick=False, liver=True)
+    assert {"liver_rigid_spacing", "liver_rigid_point_spacing", "liver_flexible_spacing"} < {s.name for s in liver}
 
 
 def test_quick_convergence_study_runs_and_plots(tmp_path):

@@ -41,6 +41,10 @@ def test_forces_at_events():
     assert quantity(results, "lateral_force@cut_start") == pytest.approx(3.0)
     assert quantity(results, "puncture_force") == pytest.approx(0.8)
     assert np.isnan(quantity(results, "needle_force@tear"))  # no such event: NaN
+    assert quantity(results, "needle_force@t=0.031") == pytest.approx(5.0)  # nearest step: 3 (t = 0.03 s)
+    assert np.isnan(quantity(results, "needle_force@t=1.0"))  # after the run's end
+    with pytest.raises(ValueError, match="t=SECONDS"):
+        quantity(results, "needle_force@t=soon")
 
 
 def test_lateral_stroke_at_cut_start():

@@ -48,6 +48,9 @@ def test_run_ids_are_stable_and_distinct():
     assert len({r.id for r in first}) == 2
     other = study_from_options("cube", ["insertion.spacing=1e-3,5e-4"]).runs()
     assert {r.id for r in other}.isdisjoint(r.id for r in first)
+    other_scene = study_from_options("cube_cut", ["insertion.spacing=1e-3,5e-4"],
+                                     overrides=["mesh.cells=[4, 4, 4]"]).runs()
+    assert {r.id for r in other_scene}.isdisjoint(r.id for r in first)  # a changed scene is never reused
 
 
 def test_toml_values():
@@ -89,6 +92,7 @@ set = ['solver.method="exact"']
     ('scene = "cube"\nquantities=["bogus"]\n[[case]]\nset=[]', "quantity 'bogus': unknown"),
     ('scene = "cube"\ncombine="cross"\n[[case]]\nset=[]', "combine = 'cross'"),
     ('scene = "cube"\n[[sweep]]\nkey="insertion.spacing"', "needs key and values"),
+    ('name = "x"\n[mesh]\ngenerator = "box"', "a scene file, not a study file"),
 ])
 def test_bad_study_file_is_named(tmp_path, text, message):
     path = tmp_path / "bad.toml"

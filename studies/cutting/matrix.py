@@ -1,0 +1,43 @@
+"""The cutting variant matrix of issue 11, as a table: for each case the tears, the cut's extent along ĉ, the
+largest needle-to-cut distance, the topology, the peak force and ms per step.
+
+    PYTHONPATH=. python studies/cutting/matrix.py [--solver exact]
+
+The cases are those of tests/simulation/test_cutting.py (tests/simulation/cutting_cases.py builds them).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+
+def main(argv=None) -> int:
+    from tests.simulation.cutting_cases import CuttingCase, run_case
+    from tests.simulation.test_cutting import CASES
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--solver", default="gauss_seidel", choices=("gauss_seidel", "exact"))
+    args = parser.parse_args(argv)
+    print("| case | cut start | tears | extent [mm] | stroke [mm] | needle-to-cut [mm] | disc | peak [N] | ms/step |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, case in sorted(CASES.items()):
+        case = CuttingCase(**{**case.__dict__, "overrides": case.overrides + (f'solver.method="{args.solver}"',)})
+        started = time.perf_counter()
+        run = run_case(case)
+        seconds = time.perf_counter() - started
+        peak = max(np.linalg.norm(r.needle_force) for r in run.records)
+        print(f"| {name} | {run.first('cut_start')} | {run.count('tear')} | {run.extent() * 1e3:.2f} | "
+              f"{np.linalg.norm(case.stroke) * 1e3:.1f} | {run.needle_to_cut * 1e3:.3f} | {run.topology.is_disc} | "
+              f"{peak:.2f} | {1e3 * seconds / len(run.records):.0f} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
