@@ -34,7 +34,17 @@ import numpy as np
 
 from refsim.constraints.friction import friction_rows
 from refsim.constraints.needle_geometry import needle_rows
-from refsim.constraints.rows import BILATERAL, FRICTION, INSERTION, RowBlock, orthonormal_basis, point_rows
+from refsim.constraints.rows import (
+    BILATERAL,
+    FRICTION,
+    INSERTION,
+    PENETRATION,
+    SHAFT_CONTACT,
+    UNILATERAL,
+    RowBlock,
+    orthonormal_basis,
+    point_rows,
+)
 from refsim.constraints.step_geometry import StepGeometry
 
 __all__ = [
@@ -60,6 +70,7 @@ __all__ = [
     "tip_cutting_block",
     "puncture_bounds",
     "puncture_detected",
+    "shaft_contact_block",
 ]
 
 LATERAL, AXIAL = 0, 1
@@ -208,7 +219,9 @@ def subgrid_compliance(
     return np.where(kinds == LATERAL, lateral, axial)
 
 
-def ring_points(centres: np.ndarray, tangents: np.ndarray, radius: np.ndarray | float, count: int) -> np.ndarray:
+def ring_points(
+    centres: np.ndarray, tangents: np.ndarray, radius: np.ndarray | float, count: int
+) -> np.ndarray:
     """Points of rings around a centreline [m], shape (p, count, 3).
 
     Parameters
@@ -261,12 +274,24 @@ class RingLayout:
             out[take_first], out[~take_first] = a, b
             return out
 
-        return cls(merge(first.tets, second.tets), merge(first.barycentric, second.barycentric),
-                   merge(first.mesh_size, second.mesh_size), merge(first.radius, second.radius))
+        return cls(
+            merge(first.tets, second.tets),
+            merge(first.barycentric, second.barycentric),
+            merge(first.mesh_size, second.mesh_size),
+            merge(first.radius, second.radius),
+        )
 
     @classmethod
-    def around(cls, path, *, rest_positions: np.ndarray, mesh_tets: np.ndarray, locator, tangents: np.ndarray,
-               needle_radius: float) -> RingLayout:
+    def around(
+        cls,
+        path,
+        *,
+        rest_positions: np.ndarray,
+        mesh_tets: np.ndarray,
+        locator,
+        tangents: np.ndarray,
+        needle_radius: float,
+    ) -> RingLayout:
         """Rings around the rest positions of the path's points, normal to ``tangents`` (p, 3).
 
         ``locator`` locates points in the *rest* mesh (a :class:`refsim.geometry.TetLocator` on the rest
@@ -281,7 +306,12 @@ class RingLayout:
         # Points within 1e-6 h outside count as inside: a ring lying in the surface (a needle normal to it) must
         # not lose its points to round-off of the tangent.
         tets, barycentric = locator.locate(points.reshape(-1, 3), tolerance=SURFACE_TOLERANCE)
-        return cls(tets.reshape(path.point_count, count), barycentric.reshape(path.point_count, count, 4), sizes, radius)
+        return cls(
+            tets.reshape(path.point_count, count),
+            barycentric.reshape(path.point_count, count, 4),
+            sizes,
+            radius,
+        )
 
 
 def ring_insertion_block(
@@ -324,7 +354,9 @@ def ring_insertion_block(
     use_centre = counts == 0
     all_tets = np.concatenate([path.tets[:, None], np.where(inside, ring_tets, 0)], axis=1)  # (p, q + 1)
     all_bary = np.concatenate([path.barycentric[:, None, :], np.nan_to_num(rings.barycentric)], axis=1)
-    share = np.concatenate([use_centre[:, None].astype(float), inside / np.maximum(counts, 1)[:, None]], axis=1)
+    share = np.concatenate(
+        [use_centre[:, None].astype(float), inside / np.maximum(counts, 1)[:, None]], axis=1
+    )
     nodes = geometry.mesh_tets[all_tets].reshape(point_count, -1)  # (p, 4 (q + 1))
     weights = (share[:, :, None] * all_bary).reshape(point_count, -1)
     tissue_point_previous, tissue_point_free = geometry.tissue_points(nodes, weights)
@@ -343,8 +375,9 @@ def ring_insertion_block(
     gaps[:, 1] = np.einsum("ij,ij->i", second, offset)
     kinds = np.full((point_count, per_point), BILATERAL, dtype=np.int8)
     if with_friction:
-        friction = friction_rows(geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=arc_lengths,
-                                 tangents=tangents)
+        friction = friction_rows(
+            geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=arc_lengths, tangents=tangents
+        )
         directions[:, 2] = tangents
         gaps[:, 2] = friction.free_gap
         kinds[:, 2] = FRICTION
@@ -368,8 +401,16 @@ def ring_insertion_block(
     )
 
 
-def insertion_compliance(rows: RowBlock, *, shear_modulus: float, poisson_ratio: float, needle_radius: float,
-                         mesh_size: np.ndarray, spacing: float, coupling: str = "ring") -> np.ndarray:
+def insertion_compliance(
+    rows: RowBlock,
+    *,
+    shear_modulus: float,
+    poisson_ratio: float,
+    needle_radius: float,
+    mesh_size: np.ndarray,
+    spacing: float,
+    coupling: str = "ring",
+) -> np.ndarray:
     """The sub-grid compliance of an insertion block's rows [m/N], shape (row_count,).
 
     Bilateral rows are lateral, friction rows axial; ``mesh_size`` (p,) is each point's h
@@ -377,13 +418,23 @@ def insertion_compliance(rows: RowBlock, *, shear_modulus: float, poisson_ratio:
     """
     per_point = rows.row_count // max(1, np.asarray(mesh_size).size)
     kinds = np.where(rows.kind == FRICTION, AXIAL, LATERAL)
-    return subgrid_compliance(kinds, shear_modulus=shear_modulus, poisson_ratio=poisson_ratio,
-                              needle_radius=needle_radius, mesh_size=np.repeat(mesh_size, per_point),
-                              spacing=spacing, coupling=coupling)
+    return subgrid_compliance(
+        kinds,
+        shear_modulus=shear_modulus,
+        poisson_ratio=poisson_ratio,
+        needle_radius=needle_radius,
+        mesh_size=np.repeat(mesh_size, per_point),
+        spacing=spacing,
+        coupling=coupling,
+    )
 
 
 def interference_pressure(
-    *, shear_modulus: float, poisson_ratio: float, radius: float, interference: float,
+    *,
+    shear_modulus: float,
+    poisson_ratio: float,
+    radius: float,
+    interference: float,
     outer_radius: float = math.inf,
 ) -> float:
     """Contact pressure p [Pa] of an interference fit (Lamé, plane strain, outer surface clamped).
@@ -413,8 +464,13 @@ def interference_pressure(
 
 
 def grip_preload(
-    *, shear_modulus: float, poisson_ratio: float, radius: float, interference: float,
-    spacing: np.ndarray | float, outer_radius: float = math.inf,
+    *,
+    shear_modulus: float,
+    poisson_ratio: float,
+    radius: float,
+    interference: float,
+    spacing: np.ndarray | float,
+    outer_radius: float = math.inf,
 ) -> np.ndarray:
     """Normal force of the grip per insertion point [N]: 2π r p · d_i (p from :func:`interference_pressure`).
 
@@ -425,7 +481,10 @@ def grip_preload(
     if np.any(~(spacing > 0.0)) or np.any(~np.isfinite(spacing)):
         raise ValueError(f"spacing d_i = {spacing!r} m; valid range (0, inf)")
     pressure = interference_pressure(
-        shear_modulus=shear_modulus, poisson_ratio=poisson_ratio, radius=radius, interference=interference,
+        shear_modulus=shear_modulus,
+        poisson_ratio=poisson_ratio,
+        radius=radius,
+        interference=interference,
         outer_radius=outer_radius,
     )
     return 2.0 * math.pi * radius * pressure * spacing
@@ -442,11 +501,15 @@ def shaft_friction_coefficients(stuck: np.ndarray, *, static: float, dynamic: fl
     static, dynamic : μ_s ≥ μ_d ≥ 0.
     """
     if not (math.isfinite(static) and math.isfinite(dynamic) and static >= dynamic >= 0.0):
-        raise ValueError(f"friction coefficients static = {static!r}, dynamic = {dynamic!r}; valid: static >= dynamic >= 0")
+        raise ValueError(
+            f"friction coefficients static = {static!r}, dynamic = {dynamic!r}; valid: static >= dynamic >= 0"
+        )
     return np.where(np.asarray(stuck, dtype=bool), static, dynamic)
 
 
-def stuck_points(multipliers: np.ndarray, bounds: np.ndarray, *, relative_tolerance: float = 1e-6) -> np.ndarray:
+def stuck_points(
+    multipliers: np.ndarray, bounds: np.ndarray, *, relative_tolerance: float = 1e-6
+) -> np.ndarray:
     """Which shaft rows are inside their bound (stick), bool shape (p,): |λ_s| < (1 − tol) · bound."""
     multipliers = np.abs(np.asarray(multipliers, dtype=float))
     bounds = np.asarray(bounds, dtype=float)
@@ -470,25 +533,28 @@ def tip_cutting_block(
 
     Returns
     -------
-    (block, box_lower, box_upper) : one row, kind FRICTION (a bounded row: give it to the solver as a box row
-    with bounds [0, f_cut], shape (1,) each).
+    (block, box_lower, box_upper) : one unilateral row (source PENETRATION: the tip's row) whose force_limit is
+    f_cut (the step's problem makes it the box [0, f_cut]), and those bounds, shape (1,) each.
     """
-    if not (math.isfinite(cutting_force) and cutting_force >= 0.0):
-        raise ValueError(f"insertion.cutting_force = {cutting_force!r} N; valid range [0, inf)")
+    if not (math.isfinite(cutting_force) and cutting_force > 0.0):
+        raise ValueError(f"insertion.tip_cutting_force = {cutting_force!r} N; valid range (0, inf)")
     tip_s = np.array([geometry.needle_previous.length])
     direction = -geometry.needle_free.tangents(tip_s)
     nodes = geometry.mesh_tets[[tip_tet]]
     weights = np.asarray(tip_barycentric, dtype=float).reshape(1, 4)
-    rows = friction_rows(geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=tip_s, tangents=direction)
+    rows = friction_rows(
+        geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=tip_s, tangents=direction
+    )
     _, tissue_now = geometry.tissue_points(nodes, weights)
     block = RowBlock(
         tissue_jacobian=rows.tissue_jacobian,
         needle_jacobian=rows.needle_jacobian,
         free_gap=rows.free_gap,
-        kind=np.array([FRICTION], dtype=np.int8),
-        source=np.array([INSERTION], dtype=np.int8),
+        kind=np.array([UNILATERAL], dtype=np.int8),
+        source=np.array([PENETRATION], dtype=np.int8),
         points=tissue_now,
         directions=direction,
+        force_limit=np.array([float(cutting_force)]),
     )
     return block, np.zeros(1), np.array([float(cutting_force)])
 
@@ -504,7 +570,77 @@ def puncture_bounds(puncture_force: float, count: int = 1) -> tuple[np.ndarray, 
     return np.zeros(count), np.full(count, float(puncture_force))
 
 
-def puncture_detected(multiplier: float, gap: float, puncture_force: float, *,
-                      relative_tolerance: float = 1e-3) -> bool:
+def puncture_detected(
+    multiplier: float, gap: float, puncture_force: float, *, relative_tolerance: float = 1e-3
+) -> bool:
     """Whether a capped penetration row punctured: λ at its bound f_p (within the tolerance) and δ < 0."""
     return bool(multiplier >= (1.0 - relative_tolerance) * puncture_force and gap < 0.0)
+
+
+# ------------------------------------------------------------------------ shaft contact before puncture (6)
+def shaft_contact_block(
+    geometry: StepGeometry,
+    projector,
+    faces: np.ndarray,
+    *,
+    spacing: float,
+    contact_distance: float,
+    tip_clearance: float,
+) -> RowBlock | None:
+    """Unilateral rows keeping the needle's centreline out of the tissue before puncture (issue 9, item 6).
+
+    The shaft is sampled every ``spacing`` from the base to ``tip_clearance`` before the tip (the tip has its own
+    contact); each sample closer to the surface than ``contact_distance`` (or under it) gets one frictionless
+    unilateral row against its closest surface point, along the direction from that point to the sample (the
+    face's outward normal for a sample on or under the surface): δ = nᵀ(x_needle(s) − x_surface) ≥ 0.
+
+    Parameters
+    ----------
+    geometry : The step's geometry.
+    projector : A :class:`refsim.geometry.SurfaceProjector` on the free tissue positions.
+    faces : Surface triangles, shape (f, 3).
+    spacing, contact_distance, tip_clearance : [m], > 0.
+
+    Returns
+    -------
+    The rows (source SHAFT_CONTACT), or None when no sample is near the surface.
+    """
+    for name, value in (
+        ("spacing", spacing),
+        ("contact_distance", contact_distance),
+        ("tip_clearance", tip_clearance),
+    ):
+        if not (math.isfinite(value) and value > 0.0):
+            raise ValueError(f"{name} = {value!r} m; valid range (0, inf)")
+    needle = geometry.needle_free
+    end = needle.length - tip_clearance
+    if end <= 0.0:
+        return None
+    arc_lengths = np.arange(0.5 * spacing, end, spacing)
+    samples = needle.points(arc_lengths)
+    found = projector.closest(samples)
+    offsets = samples - found.closest
+    distance = np.linalg.norm(offsets, axis=1)
+    outside = np.einsum("ij,ij->i", offsets, found.normal) > 0.0
+    near = ~outside | (distance < contact_distance)
+    if not np.any(near):
+        return None
+    arc_lengths, offsets, distance, outside = arc_lengths[near], offsets[near], distance[near], outside[near]
+    face_index, barycentric = found.face_index[near], found.barycentric[near]
+    points = found.closest[near]
+    use_offset = outside & (distance > 1e-9)
+    normals = np.where(
+        use_offset[:, None], offsets / np.maximum(distance, 1e-300)[:, None], found.normal[near]
+    )
+    nodes = np.asarray(faces)[face_index]
+    gaps = np.einsum("ij,ij->i", normals, offsets)
+    count = arc_lengths.size
+    return RowBlock(
+        tissue_jacobian=point_rows(nodes, barycentric, normals, geometry.tissue_dof_count),
+        needle_jacobian=needle_rows(needle, arc_lengths, normals),
+        free_gap=gaps,
+        kind=np.full(count, UNILATERAL, dtype=np.int8),
+        source=np.full(count, SHAFT_CONTACT, dtype=np.int8),
+        points=points,
+        directions=normals,
+    )

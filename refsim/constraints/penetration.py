@@ -74,8 +74,14 @@ def penetration_block(
     geometry: StepGeometry,
     *,
     friction_coefficient: float,
+    puncture_force: float | None = None,
 ) -> RowBlock:
     """Rows of the tip contact: one unilateral row, plus two friction rows when μ_p > 0.
+
+    With ``puncture_force`` f_p [N] the normal row's force is capped at f_p (issue 9, item 5; force_limit): the
+    step in which the tip would need more ends with λ = f_p and the tip through (δ < 0), so puncture happens at
+    f_p whatever dt and speed. The two friction rows are then each bounded by μ_p λ_n (group-friction law, a
+    square instead of the Coulomb disc: the solvers' contact cone has no capped normal).
 
     Parameters
     ----------
@@ -113,6 +119,14 @@ def penetration_block(
         )
         contacts = np.array([[0, 1, 2]], dtype=np.int64)
         contact_friction = np.array([friction_coefficient])
+        if puncture_force is not None:
+            contacts, contact_friction = np.zeros((0, 3), dtype=np.int64), np.zeros(0)
+            groups = dict(
+                group_rows=np.array([1, 2], dtype=np.int64),
+                group_offsets=np.array([0, 1, 2], dtype=np.int64),
+                group_members=np.array([0, 0], dtype=np.int64),
+                group_coefficient=np.full(2, float(friction_coefficient)),
+            )
     else:
         directions = normal[None, :]
         gaps = np.array([gap_normal])
@@ -121,6 +135,13 @@ def penetration_block(
         contacts = np.zeros((0, 3), dtype=np.int64)
         contact_friction = np.zeros(0)
     row_count = len(gaps)
+    capped = {}
+    if puncture_force is not None:
+        if not (np.isfinite(puncture_force) and puncture_force > 0.0):
+            raise ValueError(f"insertion.puncture_force = {puncture_force!r} N; valid range (0, inf)")
+        limit = np.full(row_count, np.inf)
+        limit[0] = float(puncture_force)
+        capped = dict(force_limit=limit, **(groups if friction_coefficient > 0.0 else {}))
     return RowBlock(
         tissue_jacobian=tissue_jacobian,
         needle_jacobian=needle_jacobian,
@@ -131,4 +152,5 @@ def penetration_block(
         directions=directions,
         contacts=contacts,
         contact_friction=contact_friction,
+        **capped,
     )

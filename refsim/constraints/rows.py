@@ -28,6 +28,7 @@ __all__ = [
     "INSERTION",
     "CUT_SLIDE",
     "CUT_BORDER",
+    "SHAFT_CONTACT",
     "RowBlock",
     "concatenate",
     "empty_block",
@@ -37,8 +38,8 @@ __all__ = [
 
 BILATERAL, UNILATERAL, FRICTION = 0, 1, 2
 KIND_NAMES = ("bilateral", "unilateral", "friction")
-PENETRATION, INSERTION, CUT_SLIDE, CUT_BORDER = 0, 1, 2, 3
-SOURCE_NAMES = ("penetration", "insertion", "cut_slide", "cut_border")
+PENETRATION, INSERTION, CUT_SLIDE, CUT_BORDER, SHAFT_CONTACT = 0, 1, 2, 3, 4
+SOURCE_NAMES = ("penetration", "insertion", "cut_slide", "cut_border", "shaft_contact")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -51,7 +52,7 @@ class RowBlock:
     needle_jacobian : H_needle, shape (row_count, 6·needle_node_count), or None for a rigid (kinematic) needle.
     free_gap : δ_free [m], shape (row_count,).
     kind : BILATERAL, UNILATERAL or FRICTION per row, shape (row_count,).
-    source : PENETRATION, INSERTION, CUT_SLIDE or CUT_BORDER per row, shape (row_count,).
+    source : PENETRATION, INSERTION, CUT_SLIDE, CUT_BORDER or SHAFT_CONTACT per row, shape (row_count,).
     points : Tissue-side point of each row [m], shape (row_count, 3).
     directions : Unit direction n of each row, shape (row_count, 3).
     contacts : Row indices (normal, tangent 1, tangent 2) of Coulomb contacts, shape (k, 3).

@@ -254,6 +254,23 @@ class InsertionSpec(_Validated):
         "carry the sub-grid compliance of the annulus, docs/coupling.md) or 'paper' (rows on the centreline)",
         choices=("ring", "paper"),
     )
+    tip_cutting_force: float = spec(
+        0.0,
+        unit="N",
+        doc="f_cut: after puncture, the force the tissue opposes to the tip advancing (one row along the needle at "
+        "the tip, its force in [0, f_cut]: the tip sticks below, cuts at f_cut); 0 gives the paper's model (none)",
+        low=0.0,
+    )
+    puncture_within_step: bool = spec(
+        True,
+        doc="cap the tip contact's force at f_p, so the tip punctures within the step at exactly f_p (for any dt "
+        "and speed); false: the tip contact is a plain Coulomb contact and puncture is declared after the step",
+    )
+    shaft_contact: bool = spec(
+        True,
+        doc="before puncture, keep the whole needle's centreline out of the tissue (unilateral rows on shaft samples "
+        "near the surface), not only the tip",
+    )
     interference: float = spec(
         0.0,
         unit="m",
@@ -261,6 +278,11 @@ class InsertionSpec(_Validated):
         "added to each point's shaft Coulomb bound, with shaft_normal_force d_i",
         low=0.0,
     )
+
+    def validate(self) -> None:
+        for name in ("shaft_contact", "puncture_within_step"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} = {getattr(self, name)!r}: expected true or false")
 
 
 @dataclass(frozen=True, kw_only=True)

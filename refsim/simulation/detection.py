@@ -28,8 +28,11 @@ from refsim.constraints.coupling import (
     RingLayout,
     grip_preload,
     insertion_compliance,
+    local_mesh_size,
     ring_insertion_block,
+    shaft_contact_block,
     subgrid_compliance,
+    tip_cutting_block,
 )
 from refsim.constraints.cut import FrontRows, strip_cut_block
 from refsim.constraints.insertion import InsertionPath
@@ -98,6 +101,11 @@ class Detector:
         self.rest_positions = None if rest_positions is None else np.asarray(rest_positions, dtype=float)
         self.rest_locator = TetLocator(self.rest_positions, np.asarray(tets)) if self.ring else None
         self._ring_cache = None  # (tets and creation steps (p, 2), tangents (p, 3), RingLayout) of the last step
+        # Shaft samples before puncture every half mean tet size (the surface cannot bend between them).
+        self.shaft_spacing = 0.01
+        if rest_positions is not None and tets is not None:
+            sizes = local_mesh_size(rest_positions, tets, np.arange(len(tets)))
+            self.shaft_spacing = 0.5 * float(sizes.mean())
 
     def _rings(self, path: InsertionPath, tangents: np.ndarray, mesh_tets: np.ndarray) -> RingLayout:
         """The points' rings; a point keeps last step's ring while its tangent turned less than 1e-3 rad."""
@@ -156,8 +164,15 @@ class Detector:
             contact = find_surface_contact(projector, self.faces, geometry.needle_free.tip)
             if contact.gap < spec.contact_distance:
                 blocks.append(
-                    penetration_block(contact, geometry, friction_coefficient=spec.surface_friction_coefficient)
+                    penetration_block(contact, geometry, friction_coefficient=spec.surface_friction_coefficient,
+                                      puncture_force=spec.puncture_force if spec.puncture_within_step else None)
                 )
+            if spec.shaft_contact:
+                shaft = shaft_contact_block(geometry, projector, self.faces, spacing=self.shaft_spacing,
+                                            contact_distance=spec.contact_distance,
+                                            tip_clearance=2.0 * spec.contact_distance)
+                if shaft is not None:
+                    blocks.append(shaft)
         elif state.path.point_count:
             points = np.arange(state.path.point_count)
             if state.phase == Phase.CUTTING and self.cutting.law == "energy":
@@ -169,6 +184,12 @@ class Detector:
             if points.size:
                 blocks.append(self.insertion_rows(state.path.subset(points), geometry))
                 insertion_points = points
+            if spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION:
+                # The tip's cutting row, against the newest insertion point (at most d_i behind the tip).
+                tip_block, _, _ = tip_cutting_block(geometry, tip_tet=int(state.path.tets[-1]),
+                                                    tip_barycentric=state.path.barycentric[-1],
+                                                    cutting_force=spec.tip_cutting_force)
+                blocks.append(tip_block)
         if state.phase == Phase.CUTTING and state.cut_strip is not None:
             entry = state.path.positions(state.tissue.positions, geometry.mesh_tets)[:1]
             entry_arc_length = float(geometry.needle_previous.project(entry)[0][0])

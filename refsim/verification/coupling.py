@@ -104,7 +104,9 @@ def grid_convergence(values: np.ndarray) -> tuple[float, float, float]:
 
 
 # ------------------------------------------------------------------------------------------------ meshes
-def _merge_nodes(positions: np.ndarray, tets: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _merge_nodes(
+    positions: np.ndarray, tets: np.ndarray, target: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Replace node i by target[i] in the tets and drop unused nodes."""
     tets = target[tets]
     used = np.unique(tets)
@@ -142,7 +144,9 @@ def disc_slab(radius: float, cells: int, layers: int, height: float) -> tuple[np
     """
     mesh = box_mesh(size=(2.0, 2.0, height), cells=(cells, cells, layers), origin=(-1.0, -1.0, 0.0))
     u, v, z = np.asarray(mesh.rest_positions).T
-    positions = np.stack([radius * u * np.sqrt(1.0 - v**2 / 2.0), radius * v * np.sqrt(1.0 - u**2 / 2.0), z], axis=1)
+    positions = np.stack(
+        [radius * u * np.sqrt(1.0 - v**2 / 2.0), radius * v * np.sqrt(1.0 - u**2 / 2.0), z], axis=1
+    )
     return positions, _positively_oriented(positions, np.asarray(mesh.tets))
 
 
@@ -159,8 +163,14 @@ def _dofs(nodes: np.ndarray, components) -> np.ndarray:
     return (3 * np.asarray(nodes)[:, None] + np.asarray(components)[None, :]).ravel()
 
 
-def _interpolation_rows(model: TissueModel, points: np.ndarray, directions: np.ndarray, groups: np.ndarray,
-                        weights: np.ndarray, group_count: int) -> sp.csr_matrix:
+def _interpolation_rows(
+    model: TissueModel,
+    points: np.ndarray,
+    directions: np.ndarray,
+    groups: np.ndarray,
+    weights: np.ndarray,
+    group_count: int,
+) -> sp.csr_matrix:
     """Rows Σ_points w nᵀ N(x) (positive sign: the row measures the tissue displacement along n)."""
     tets, barycentric = TetLocator(model.rest_positions, model.tets).locate(points)
     if np.any(tets < 0):
@@ -169,7 +179,9 @@ def _interpolation_rows(model: TissueModel, points: np.ndarray, directions: np.n
     values = (weights[:, None, None] * barycentric[:, :, None]) * directions[:, None, :]
     columns = 3 * nodes[:, :, None] + np.arange(3)
     rows = np.broadcast_to(groups[:, None, None], columns.shape)
-    matrix = sp.csr_matrix((values.ravel(), (rows.ravel(), columns.ravel())), shape=(group_count, model.dof_count))
+    matrix = sp.csr_matrix(
+        (values.ravel(), (rows.ravel(), columns.ravel())), shape=(group_count, model.dof_count)
+    )
     matrix.sum_duplicates()
     return matrix
 
@@ -181,13 +193,21 @@ class _Response:
     stiffness is assembled on the true geometry, then the identified DoFs are summed, K ← Πᵀ K Π).
     """
 
-    def __init__(self, model: TissueModel, fixed: np.ndarray, values: np.ndarray, rows: sp.csr_matrix,
-                 identify: np.ndarray | None = None):
+    def __init__(
+        self,
+        model: TissueModel,
+        fixed: np.ndarray,
+        values: np.ndarray,
+        rows: sp.csr_matrix,
+        identify: np.ndarray | None = None,
+    ):
         stiffness = model.rest_stiffness.tocsr()
         dof_count = model.dof_count
         if identify is not None:
             targets = (3 * np.asarray(identify)[:, None] + np.arange(3)).ravel()
-            projection = sp.csr_matrix((np.ones(dof_count), (np.arange(dof_count), targets)), shape=(dof_count, dof_count))
+            projection = sp.csr_matrix(
+                (np.ones(dof_count), (np.arange(dof_count), targets)), shape=(dof_count, dof_count)
+            )
             stiffness = (projection.T @ stiffness @ projection).tocsr()
             rows = (rows @ projection).tocsr()
             kept = np.unique(targets)
@@ -204,7 +224,9 @@ class _Response:
         self.compliance = reduced @ factor.solve(np.ascontiguousarray(reduced.T))
         self.boundary_values = rows @ lifted
 
-    def needle_stiffness(self, mapping: np.ndarray, extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def needle_stiffness(
+        self, mapping: np.ndarray, extra: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Stiffness of the needle's rigid motion U (rows = mapping U) and the force the boundary field exerts.
 
         With rows δ = B U − P u = C λ and K u = Pᵀ λ (+ boundary data): λ = (W + C)⁺ (B U − P u_g), the force on
@@ -217,8 +239,15 @@ class _Response:
 
 
 @functools.lru_cache(maxsize=64)
-def annulus_stiffness(kind: str, inner: float, outer: float, angular: int, *, layers: int = 2,
-                      material: HookeMaterial = PAPER_TISSUE) -> float:
+def annulus_stiffness(
+    kind: str,
+    inner: float,
+    outer: float,
+    angular: int,
+    *,
+    layers: int = 2,
+    material: HookeMaterial = PAPER_TISSUE,
+) -> float:
     """K′ [N/m²] of a rigid cylinder (bilateral rows on every hole node) in a clamped annulus slab.
 
     ``kind`` "lateral" (plane strain, top and bottom on rollers u_z = 0) or "axial" (antiplane, u_x = u_y = 0 on
@@ -235,7 +264,9 @@ def annulus_stiffness(kind: str, inner: float, outer: float, angular: int, *, la
     face_components = [2] if kind == "lateral" else [0, 1]
     fixed = np.concatenate([_dofs(rim, [0, 1, 2]), _dofs(faces, face_components)])
     dofs = _dofs(hole, components)
-    rows = sp.csr_matrix((np.ones(dofs.size), (np.arange(dofs.size), dofs)), shape=(dofs.size, model.dof_count))
+    rows = sp.csr_matrix(
+        (np.ones(dofs.size), (np.arange(dofs.size), dofs)), shape=(dofs.size, model.dof_count)
+    )
     response = _Response(model, fixed, np.zeros(model.dof_count), rows)
     stiffness, _ = response.needle_stiffness(np.ones((dofs.size, 1)))
     return float(stiffness[0, 0]) / height
@@ -245,11 +276,19 @@ def _ring_layout(centre: np.ndarray, radius: float, count: int, levels: np.ndarr
     angles = 2.0 * math.pi * (np.arange(count) + 0.5) / count
     ring = radius * np.stack([np.cos(angles), np.sin(angles)], axis=1) if count > 1 else np.zeros((1, 2))
     xy = centre[None, None, :] + ring[None, :, :] + np.zeros((levels.size, 1, 1))
-    return np.concatenate([xy, np.broadcast_to(levels[:, None, None], (levels.size, ring.shape[0], 1))], axis=2)
+    return np.concatenate(
+        [xy, np.broadcast_to(levels[:, None, None], (levels.size, ring.shape[0], 1))], axis=2
+    )
 
 
-def _coupling_rows(model: TissueModel, centre: np.ndarray, radius: float, count: int, levels: np.ndarray,
-                   components: list[int]) -> sp.csr_matrix:
+def _coupling_rows(
+    model: TissueModel,
+    centre: np.ndarray,
+    radius: float,
+    count: int,
+    levels: np.ndarray,
+    components: list[int],
+) -> sp.csr_matrix:
     """One row per level and component: the mean over the ring of the tissue displacement component."""
     points = _ring_layout(centre, radius, count, levels)  # (levels, count, 3)
     level_count, per_ring = points.shape[:2]
@@ -270,9 +309,18 @@ def _coupling_rows(model: TissueModel, centre: np.ndarray, radius: float, count:
 
 
 @functools.lru_cache(maxsize=64)
-def coupled_stiffness(kind: str, coupling: str, *, needle_radius: float, outer: float, cells: int,
-                      spacing_ratio: float = 0.25, offset=(0.31, 0.17), layers: int = 2,
-                      material: HookeMaterial = PAPER_TISSUE) -> float:
+def coupled_stiffness(
+    kind: str,
+    coupling: str,
+    *,
+    needle_radius: float,
+    outer: float,
+    cells: int,
+    spacing_ratio: float = 0.25,
+    offset=(0.31, 0.17),
+    layers: int = 2,
+    material: HookeMaterial = PAPER_TISSUE,
+) -> float:
     """K′ [N/m²] of a rigid needle coupled to a clamped disc slab that does not resolve it.
 
     Parameters
@@ -304,9 +352,20 @@ def coupled_stiffness(kind: str, coupling: str, *, needle_radius: float, outer: 
         radius, count = 0.0, 1
     rows = _coupling_rows(model, centre, radius, count, levels, components)
     response = _Response(model, fixed, np.zeros(model.dof_count), rows)
-    row_kinds = np.zeros(rows.shape[0], dtype=np.int64) if kind == "lateral" else np.ones(rows.shape[0], dtype=np.int64)
-    extra = subgrid_compliance(row_kinds, shear_modulus=material.shear_modulus, poisson_ratio=material.poisson_ratio,
-                               needle_radius=needle_radius, mesh_size=h, spacing=spacing, coupling=coupling)
+    row_kinds = (
+        np.zeros(rows.shape[0], dtype=np.int64)
+        if kind == "lateral"
+        else np.ones(rows.shape[0], dtype=np.int64)
+    )
+    extra = subgrid_compliance(
+        row_kinds,
+        shear_modulus=material.shear_modulus,
+        poisson_ratio=material.poisson_ratio,
+        needle_radius=needle_radius,
+        mesh_size=h,
+        spacing=spacing,
+        coupling=coupling,
+    )
     mapping = np.zeros((rows.shape[0], len(components)))
     for c_index in range(len(components)):
         mapping[c_index :: len(components), c_index] = 1.0
@@ -314,9 +373,18 @@ def coupled_stiffness(kind: str, coupling: str, *, needle_radius: float, outer: 
     return float(stiffness[0, 0]) / height
 
 
-def ring_equivalent_radius(kind: str, ratio: float, *, cells: int = 32, offset=(0.31, 0.17),
-                           spacing_ratio: float = 0.25, layers: int = 2, jitter: float = 0.0, seed: int = 0,
-                           material: HookeMaterial = PAPER_TISSUE) -> float:
+def ring_equivalent_radius(
+    kind: str,
+    ratio: float,
+    *,
+    cells: int = 32,
+    offset=(0.31, 0.17),
+    spacing_ratio: float = 0.25,
+    layers: int = 2,
+    jitter: float = 0.0,
+    seed: int = 0,
+    material: HookeMaterial = PAPER_TISSUE,
+) -> float:
     """Equivalent rigid-disc radius a/h of a coupling ring of radius ρ = ratio·h (0: the bare line) in P1 tets.
 
     A box slab of ``cells`` × ``cells`` Kuhn cells (h = 0.1 m / cells), rollers on top and bottom, carries the
@@ -328,10 +396,14 @@ def ring_equivalent_radius(kind: str, ratio: float, *, cells: int = 32, offset=(
     size = 0.1
     h = size / cells
     height = layers * h
-    mesh = box_mesh(size=(size, size, height), cells=(cells, cells, layers), origin=(-size / 2, -size / 2, 0.0))
+    mesh = box_mesh(
+        size=(size, size, height), cells=(cells, cells, layers), origin=(-size / 2, -size / 2, 0.0)
+    )
     positions = np.array(mesh.rest_positions)
     tol = 1e-9 * size
-    side = (np.abs(np.abs(positions[:, 0]) - size / 2) < tol) | (np.abs(np.abs(positions[:, 1]) - size / 2) < tol)
+    side = (np.abs(np.abs(positions[:, 0]) - size / 2) < tol) | (
+        np.abs(np.abs(positions[:, 1]) - size / 2) < tol
+    )
     faces = (positions[:, 2] < tol) | (positions[:, 2] > height - tol)
     if jitter:
         inner = ~side & ~faces
@@ -347,7 +419,11 @@ def ring_equivalent_radius(kind: str, ratio: float, *, cells: int = 32, offset=(
         a_guess = max(ratio, 0.5) * h
         k = 1.0 / (8.0 * math.pi * g * (1.0 - nu))
         x, y = relative.T
-        field[:, 0] = k * (-(3 - 4 * nu) * 0.5 * np.log(rho2) + x**2 / rho2 + 0.5 * a_guess**2 * (1 / rho2 - 2 * x**2 / rho2**2))
+        field[:, 0] = k * (
+            -(3 - 4 * nu) * 0.5 * np.log(rho2)
+            + x**2 / rho2
+            + 0.5 * a_guess**2 * (1 / rho2 - 2 * x**2 / rho2**2)
+        )
         field[:, 1] = k * (x * y / rho2 - a_guess**2 * x * y / rho2**2)
         fixed = np.concatenate([_dofs(np.flatnonzero(side), [0, 1, 2]), _dofs(np.flatnonzero(faces), [2])])
     else:
@@ -376,7 +452,9 @@ def ring_equivalent_radius(kind: str, ratio: float, *, cells: int = 32, offset=(
 CALIBRATION_OFFSETS = ((0.0, 0.0), (0.5, 0.5), (0.31, 0.17), (0.77, 0.41))
 
 
-def calibrate_rings(ratios=(1.0, 1.25, 1.5, 2.0), *, cells: int = 32, offsets=CALIBRATION_OFFSETS) -> np.ndarray:
+def calibrate_rings(
+    ratios=(1.0, 1.25, 1.5, 2.0), *, cells: int = 32, offsets=CALIBRATION_OFFSETS
+) -> np.ndarray:
     """The table of :data:`refsim.constraints.coupling.RING_EQUIVALENT_RADIUS`, measured.
 
     Returns
@@ -387,8 +465,15 @@ def calibrate_rings(ratios=(1.0, 1.25, 1.5, 2.0), *, cells: int = 32, offsets=CA
     for ratio in ratios:
         lateral = np.array([ring_equivalent_radius("lateral", ratio, cells=cells, offset=o) for o in offsets])
         axial = np.array([ring_equivalent_radius("axial", ratio, cells=cells, offset=o) for o in offsets])
-        table.append([ratio, lateral.mean(), lateral.max() / lateral.min() - 1.0, axial.mean(),
-                      axial.max() / axial.min() - 1.0])
+        table.append(
+            [
+                ratio,
+                lateral.mean(),
+                lateral.max() / lateral.min() - 1.0,
+                axial.mean(),
+                axial.max() / axial.min() - 1.0,
+            ]
+        )
     return np.array(table)
 
 
@@ -403,8 +488,9 @@ ORDER_TOLERANCE = 0.15  # |p − 2| / 2: the asymptotic range, successive differ
 
 def _order_result(name: str, reference: str, order: float) -> CaseResult:
     error = abs(order - 2.0) / 2.0 if order == order else math.inf
-    return CaseResult(name=name, reference=reference, expected=2.0, computed=order, error=error,
-                      tolerance=ORDER_TOLERANCE)
+    return CaseResult(
+        name=name, reference=reference, expected=2.0, computed=order, error=error, tolerance=ORDER_TOLERANCE
+    )
 
 
 def _annulus_case(kind: str, exact: float, label: str, reference: str, inner: float) -> list[CaseResult]:
@@ -413,30 +499,55 @@ def _annulus_case(kind: str, exact: float, label: str, reference: str, inner: fl
     order, _, gci = grid_convergence(values)
     meshes = ", ".join(map(str, angular))
     return [
-        CaseResult(name=f"{label} (a = {inner * 1e3:g} mm, R = {OUTER * 1e3:g} mm; {meshes} cells around)",
-                   reference=f"{reference}; tolerance GCI (F_s 1.25, observed order)", expected=exact,
-                   computed=float(values[-1]), error=abs(values[-1] - exact) / exact, tolerance=gci / values[-1],
-                   unit="N/m²"),
-        _order_result(f"{label}: observed order ({meshes} cells around)",
-                      "compliance error O(h²) (P1, smooth solution): fitted p = log2 of successive differences", order),
+        CaseResult(
+            name=f"{label} (a = {inner * 1e3:g} mm, R = {OUTER * 1e3:g} mm; {meshes} cells around)",
+            reference=f"{reference}; tolerance GCI (F_s 1.25, observed order)",
+            expected=exact,
+            computed=float(values[-1]),
+            error=abs(values[-1] - exact) / exact,
+            tolerance=gci / values[-1],
+            unit="N/m²",
+        ),
+        _order_result(
+            f"{label}: observed order ({meshes} cells around)",
+            "compliance error O(h²) (P1, smooth solution): fitted p = log2 of successive differences",
+            order,
+        ),
     ]
 
 
 def case_baguelin_lateral(inner: float = 4.0e-3) -> list[CaseResult]:
     """A rigid cylinder (bilateral rows on the hole nodes) pushed laterally in a clamped annulus, plane strain."""
-    return _annulus_case("lateral", baguelin_stiffness(PAPER_TISSUE, inner, OUTER), "rigid cylinder, lateral, clamped annulus",
-                         "K′ = 8πG(1−ν)(3−4ν)/[(3−4ν)² ln(R/a) − (R²−a²)/(R²+a²)] (Baguelin, Frank, Saïd 1977)", inner)
+    return _annulus_case(
+        "lateral",
+        baguelin_stiffness(PAPER_TISSUE, inner, OUTER),
+        "rigid cylinder, lateral, clamped annulus",
+        "K′ = 8πG(1−ν)(3−4ν)/[(3−4ν)² ln(R/a) − (R²−a²)/(R²+a²)] (Baguelin, Frank, Saïd 1977)",
+        inner,
+    )
 
 
 def case_antiplane_axial(inner: float = 4.0e-3) -> list[CaseResult]:
     """The same cylinder pushed along its axis (antiplane shear)."""
-    return _annulus_case("axial", antiplane_stiffness(PAPER_TISSUE, inner, OUTER), "rigid cylinder, axial, clamped annulus",
-                         "K′_ax = 2πG / ln(R/a) (antiplane shear)", inner)
+    return _annulus_case(
+        "axial",
+        antiplane_stiffness(PAPER_TISSUE, inner, OUTER),
+        "rigid cylinder, axial, clamped annulus",
+        "K′_ax = 2πG / ln(R/a) (antiplane shear)",
+        inner,
+    )
 
 
 @functools.lru_cache(maxsize=16)
-def interference_pullout(angular: int, *, inner: float = NEEDLE_PAPER, interference: float = 0.1e-3,
-                         friction_coefficient: float = 0.2, layers: int = 2, material: HookeMaterial = PAPER_TISSUE):
+def interference_pullout(
+    angular: int,
+    *,
+    inner: float = NEEDLE_PAPER,
+    interference: float = 0.1e-3,
+    friction_coefficient: float = 0.2,
+    layers: int = 2,
+    material: HookeMaterial = PAPER_TISSUE,
+):
     """Interference fit on a clamped annulus slab, then the cylinder pulled along its axis until it slips.
 
     The slab is periodic in z (top nodes identified with bottom nodes), so every level of the hole is the same
@@ -471,8 +582,10 @@ def interference_pullout(angular: int, *, inner: float = NEEDLE_PAPER, interfere
     directions = np.concatenate([radial_dir, tangential_dir, np.tile([0.0, 0.0, 1.0], (count, 1))])
     row_count = nodes.size
     columns = 3 * nodes[:, None] + np.arange(3)
-    rows = sp.csr_matrix((directions.ravel(), (np.repeat(np.arange(row_count), 3), columns.ravel())),
-                         shape=(row_count, model.dof_count))
+    rows = sp.csr_matrix(
+        (directions.ravel(), (np.repeat(np.arange(row_count), 3), columns.ravel())),
+        shape=(row_count, model.dof_count),
+    )
     compliance = _Response(model, fixed, np.zeros(model.dof_count), rows, identify).compliance
     free_gap = np.concatenate([np.full(count, interference), np.zeros(2 * count)])
     normal = np.linalg.solve(compliance[: 2 * count, : 2 * count], -free_gap[: 2 * count])
@@ -482,9 +595,13 @@ def interference_pullout(angular: int, *, inner: float = NEEDLE_PAPER, interfere
     pull = 100.0 * float(np.abs(compliance[np.ix_(axial_rows, axial_rows)]).sum(axis=1).max() * bound.max())
     free_gap[axial_rows] = pull
     problem = ConstraintProblem(
-        compliance=0.5 * (compliance + compliance.T), free_gap=free_gap, bilateral=np.arange(2 * count),
-        shaft_friction=axial_rows, shaft_pairs=np.stack([np.arange(count), count + np.arange(count)], axis=1),
-        shaft_friction_coefficient=np.full(count, friction_coefficient), name="interference pull-out",
+        compliance=0.5 * (compliance + compliance.T),
+        free_gap=free_gap,
+        bilateral=np.arange(2 * count),
+        shaft_friction=axial_rows,
+        shaft_pairs=np.stack([np.arange(count), count + np.arange(count)], axis=1),
+        shaft_friction_coefficient=np.full(count, friction_coefficient),
+        name="interference pull-out",
     )
     forces = []
     for label, solve in (("gauss_seidel", solve_gauss_seidel), ("exact", solve_exact)):
@@ -496,58 +613,102 @@ def interference_pullout(angular: int, *, inner: float = NEEDLE_PAPER, interfere
 def case_interference_pullout(coarsest: int = 24) -> list[CaseResult]:
     """Interference fit: contact pressure against Lamé (clamped outer surface), then pull-out against 2π a μ p."""
     material, inner, interference, mu = PAPER_TISSUE, NEEDLE_PAPER, 0.1e-3, 0.2
-    exact = interference_pressure(shear_modulus=material.shear_modulus, poisson_ratio=material.poisson_ratio,
-                                  radius=inner, interference=interference, outer_radius=OUTER)
+    exact = interference_pressure(
+        shear_modulus=material.shear_modulus,
+        poisson_ratio=material.poisson_ratio,
+        radius=inner,
+        interference=interference,
+        outer_radius=OUTER,
+    )
     angular = (coarsest, 2 * coarsest, 4 * coarsest)
-    runs = [interference_pullout(n, inner=inner, interference=interference, friction_coefficient=mu) for n in angular]
+    runs = [
+        interference_pullout(n, inner=inner, interference=interference, friction_coefficient=mu)
+        for n in angular
+    ]
     pressures = np.array([p for p, _ in runs])
     order, _, gci = grid_convergence(pressures)
     relative_gci = gci / pressures[-1]
     meshes = ", ".join(map(str, angular))
     results = [
-        CaseResult(name=f"interference fit δ_r = {interference * 1e3:g} mm, a = {inner * 1e3:g} mm: pressure ({meshes} around)",
-                   reference="Lamé, plane strain, u_r(R) = 0: p = B(2(λ+G)/R² + 2G/a²), B = δ_r/(1/a − a/R²); tol. GCI",
-                   expected=exact, computed=float(pressures[-1]), error=abs(pressures[-1] - exact) / exact,
-                   tolerance=relative_gci, unit="Pa"),
-        _order_result(f"interference fit pressure: observed order ({meshes} around)",
-                      "compliance error O(h²) (P1, smooth solution): fitted p = log2 of successive differences", order),
+        CaseResult(
+            name=f"interference fit δ_r = {interference * 1e3:g} mm, a = {inner * 1e3:g} mm: pressure ({meshes} around)",
+            reference="Lamé, plane strain, u_r(R) = 0: p = B(2(λ+G)/R² + 2G/a²), B = δ_r/(1/a − a/R²); tol. GCI",
+            expected=exact,
+            computed=float(pressures[-1]),
+            error=abs(pressures[-1] - exact) / exact,
+            tolerance=relative_gci,
+            unit="Pa",
+        ),
+        _order_result(
+            f"interference fit pressure: observed order ({meshes} around)",
+            "compliance error O(h²) (P1, smooth solution): fitted p = log2 of successive differences",
+            order,
+        ),
     ]
     expected_pull = 2.0 * math.pi * inner * mu * exact
     for solver, force in runs[-1][1]:
         # The law gives μ Σ‖λ_normal‖ exactly at full slip; the error is the pressure's, plus the solver's tolerance.
-        results.append(CaseResult(
-            name=f"pull-out at full slip, μ = {mu:g}, {solver} ({angular[-1]} around)",
-            reference="dF/dL = 2π a μ p (p from Lamé); tolerance: the pressure's GCI + 1e-6 (solver)",
-            expected=expected_pull, computed=force, error=abs(force - expected_pull) / expected_pull,
-            tolerance=relative_gci + 1e-6, unit="N/m"))
+        results.append(
+            CaseResult(
+                name=f"pull-out at full slip, μ = {mu:g}, {solver} ({angular[-1]} around)",
+                reference="dF/dL = 2π a μ p (p from Lamé); tolerance: the pressure's GCI + 1e-6 (solver)",
+                expected=expected_pull,
+                computed=force,
+                error=abs(force - expected_pull) / expected_pull,
+                tolerance=relative_gci + 1e-6,
+                unit="N/m",
+            )
+        )
     return results
 
 
 def _calibration_tolerance(kind: str, material: HookeMaterial, exact_stiffness: float) -> float:
     """Relative stiffness error from the ± spread of a_c: the sub-grid term's log moves by ln(1 + spread)."""
     nu, g = material.poisson_ratio, material.shear_modulus
-    per_log = (3.0 - 4.0 * nu) / (8.0 * math.pi * g * (1.0 - nu)) if kind == "lateral" else 1.0 / (2.0 * math.pi * g)
+    per_log = (
+        (3.0 - 4.0 * nu) / (8.0 * math.pi * g * (1.0 - nu))
+        if kind == "lateral"
+        else 1.0 / (2.0 * math.pi * g)
+    )
     return per_log * math.log(1.0 + RING_EQUIVALENT_RADIUS_SPREAD) * exact_stiffness
 
 
 def _coupling_case(kind: str, needle_radius: float) -> list[CaseResult]:
     material = PAPER_TISSUE
     exact = (baguelin_stiffness if kind == "lateral" else antiplane_stiffness)(material, needle_radius, OUTER)
-    values = np.array([coupled_stiffness(kind, "ring", needle_radius=needle_radius, outer=OUTER, cells=n)
-                       for n in COUPLING_CELLS])
+    values = np.array(
+        [
+            coupled_stiffness(kind, "ring", needle_radius=needle_radius, outer=OUTER, cells=n)
+            for n in COUPLING_CELLS
+        ]
+    )
     meshes = ", ".join(map(str, COUPLING_CELLS))
     discretisation = abs(values[-1] - values[-2]) / values[-1]
-    name = (f"needle r = {needle_radius * 1e3:g} mm, ring coupling, {kind}, clamped disc R = {OUTER * 1e3:g} mm "
-            f"({meshes} cells across)")
-    formula = ("K′ Baguelin et al. 1977" if kind == "lateral" else "K′_ax = 2πG/ln(R/a)")
-    results = [CaseResult(
-        name=name, reference=f"{formula}; tolerance: spread of a_c (± {RING_EQUIVALENT_RADIUS_SPREAD:.1%}) + |K_f − K_m|",
-        expected=exact, computed=float(values[-1]), error=abs(values[-1] - exact) / exact,
-        tolerance=_calibration_tolerance(kind, material, exact) + discretisation, unit="N/m²")]
+    name = (
+        f"needle r = {needle_radius * 1e3:g} mm, ring coupling, {kind}, clamped disc R = {OUTER * 1e3:g} mm "
+        f"({meshes} cells across)"
+    )
+    formula = "K′ Baguelin et al. 1977" if kind == "lateral" else "K′_ax = 2πG/ln(R/a)"
+    results = [
+        CaseResult(
+            name=name,
+            reference=f"{formula}; tolerance: spread of a_c (± {RING_EQUIVALENT_RADIUS_SPREAD:.1%}) + |K_f − K_m|",
+            expected=exact,
+            computed=float(values[-1]),
+            error=abs(values[-1] - exact) / exact,
+            tolerance=_calibration_tolerance(kind, material, exact) + discretisation,
+            unit="N/m²",
+        )
+    ]
     if kind == "lateral" and needle_radius < 2.0 * OUTER / COUPLING_CELLS[-1]:
         order, _, _ = grid_convergence(values)
-        results.append(_order_result(f"needle r = {needle_radius * 1e3:g} mm, ring coupling, lateral: observed order",
-                                     "far-field P1 error O(h²) once the line's singularity is sub-grid", order))
+        results.append(
+            _order_result(
+                f"needle r = {needle_radius * 1e3:g} mm, ring coupling, lateral: observed order",
+                "far-field P1 error O(h²) once the line's singularity is sub-grid",
+                order,
+            )
+        )
     return results
 
 
@@ -576,10 +737,18 @@ def bare_line_compliance_slope(kind: str, cells=COUPLING_CELLS, needle_radius: f
     material = PAPER_TISSUE
     nu, g = material.poisson_ratio, material.shear_modulus
     sizes = np.array([2.0 * OUTER / n for n in cells])
-    bare = np.array([coupled_stiffness(kind, "paper", needle_radius=needle_radius, outer=OUTER, cells=n) for n in cells])
-    ring = np.array([coupled_stiffness(kind, "ring", needle_radius=needle_radius, outer=OUTER, cells=n) for n in cells])
+    bare = np.array(
+        [coupled_stiffness(kind, "paper", needle_radius=needle_radius, outer=OUTER, cells=n) for n in cells]
+    )
+    ring = np.array(
+        [coupled_stiffness(kind, "ring", needle_radius=needle_radius, outer=OUTER, cells=n) for n in cells]
+    )
     slope = float(np.polyfit(np.log(sizes), 1.0 / bare, 1)[0])
-    theory = -(3.0 - 4.0 * nu) / (8.0 * math.pi * g * (1.0 - nu)) if kind == "lateral" else -1.0 / (2.0 * math.pi * g)
+    theory = (
+        -(3.0 - 4.0 * nu) / (8.0 * math.pi * g * (1.0 - nu))
+        if kind == "lateral"
+        else -1.0 / (2.0 * math.pi * g)
+    )
     drift = float(np.abs(np.polyfit(np.log(sizes), 1.0 / ring, 1)[0]))
     return slope, theory, drift, bare, ring
 
@@ -590,12 +759,20 @@ def case_bare_line_lateral() -> list[CaseResult]:
     for kind in ("lateral", "axial"):
         slope, theory, drift, bare, _ = bare_line_compliance_slope(kind)
         meshes = ", ".join(map(str, COUPLING_CELLS))
-        results.append(CaseResult(
-            name=f"paper's bare line, {kind}, r = {NEEDLE_THIN * 1e3:g} mm: slope of 1/K′ against ln h ({meshes} cells)",
-            reference=("line load = rigid disc of radius c·h: d(1/K′)/d ln h = −(3−4ν)/(8πG(1−ν)) (lateral), −1/(2πG) "
-                       "(axial); tolerance: the ring coupling's slope on the same meshes"),
-            expected=theory, computed=slope, error=abs(slope - theory) / abs(theory), tolerance=drift / abs(theory),
-            unit="m²/N"))
+        results.append(
+            CaseResult(
+                name=f"paper's bare line, {kind}, r = {NEEDLE_THIN * 1e3:g} mm: slope of 1/K′ against ln h ({meshes} cells)",
+                reference=(
+                    "line load = rigid disc of radius c·h: d(1/K′)/d ln h = −(3−4ν)/(8πG(1−ν)) (lateral), −1/(2πG) "
+                    "(axial); tolerance: the ring coupling's slope on the same meshes"
+                ),
+                expected=theory,
+                computed=slope,
+                error=abs(slope - theory) / abs(theory),
+                tolerance=drift / abs(theory),
+                unit="m²/N",
+            )
+        )
     return results
 
 
@@ -605,11 +782,16 @@ def case_ring_calibration(cells: int = 24) -> list[CaseResult]:
     for kind, column in (("lateral", 1), ("axial", 2)):
         expected = float(RING_EQUIVALENT_RADIUS[0, column])
         computed = ring_equivalent_radius(kind, 1.0, cells=cells, offset=(0.63, 0.29), spacing_ratio=0.1)
-        results.append(CaseResult(
-            name=f"ring equivalent radius a_c/h at ρ = h, {kind} ({cells} cells, d_i = h/10, centreline at (0.63, 0.29) h)",
-            reference="calibration table RING_EQUIVALENT_RADIUS (32 cells, d_i = h/4, regular tets); tol. its spread",
-            expected=expected, computed=computed, error=abs(computed - expected) / expected,
-            tolerance=RING_EQUIVALENT_RADIUS_SPREAD))
+        results.append(
+            CaseResult(
+                name=f"ring equivalent radius a_c/h at ρ = h, {kind} ({cells} cells, d_i = h/10, centreline at (0.63, 0.29) h)",
+                reference="calibration table RING_EQUIVALENT_RADIUS (32 cells, d_i = h/4, regular tets); tol. its spread",
+                expected=expected,
+                computed=computed,
+                error=abs(computed - expected) / expected,
+                tolerance=RING_EQUIVALENT_RADIUS_SPREAD,
+            )
+        )
     return results
 
 

@@ -26,9 +26,13 @@ def test_subgrid_compliance_is_the_line_load_difference_between_the_two_radii():
     # Independent evaluation: the plane-strain Kelvin and the antiplane solutions between r and a_c (ρ = h).
     h, r, d = 0.0125, 0.5e-3, 0.5e-3
     kinds = np.array([coupling.LATERAL, coupling.AXIAL])
-    c = coupling.subgrid_compliance(kinds, shear_modulus=G, poisson_ratio=NU, needle_radius=r, mesh_size=h, spacing=d)
+    c = coupling.subgrid_compliance(
+        kinds, shear_modulus=G, poisson_ratio=NU, needle_radius=r, mesh_size=h, spacing=d
+    )
     a_lat, a_ax = 1.2718 * h, 1.1975 * h
-    assert c[0] == pytest.approx((3 - 4 * NU) * math.log(a_lat / r) / (8 * math.pi * G * (1 - NU) * d), rel=1e-12)
+    assert c[0] == pytest.approx(
+        (3 - 4 * NU) * math.log(a_lat / r) / (8 * math.pi * G * (1 - NU) * d), rel=1e-12
+    )
     assert c[1] == pytest.approx(math.log(a_ax / r) / (2 * math.pi * G * d), rel=1e-12)
 
 
@@ -36,24 +40,49 @@ def test_subgrid_compliance_is_the_line_load_difference_between_the_two_radii():
 def test_subgrid_compliance_is_positive_for_any_needle_radius(ratio):
     # a_c > ρ_c ≥ r: the coupling block W + C is positive definite whatever r/h (thin or the paper's 8 mm).
     h = 0.01
-    c = coupling.subgrid_compliance(np.array([0, 1]), shear_modulus=G, poisson_ratio=NU, needle_radius=ratio * h,
-                                    mesh_size=h, spacing=h / 4)
+    c = coupling.subgrid_compliance(
+        np.array([0, 1]),
+        shear_modulus=G,
+        poisson_ratio=NU,
+        needle_radius=ratio * h,
+        mesh_size=h,
+        spacing=h / 4,
+    )
     assert np.all(c > 0.0)
 
 
 def test_paper_coupling_adds_nothing_and_bad_values_are_named():
     kinds = np.zeros(3, dtype=int)
-    assert np.all(coupling.subgrid_compliance(kinds, shear_modulus=G, poisson_ratio=NU, needle_radius=1e-3,
-                                              mesh_size=0.01, spacing=1e-3, coupling="paper") == 0.0)
+    assert np.all(
+        coupling.subgrid_compliance(
+            kinds,
+            shear_modulus=G,
+            poisson_ratio=NU,
+            needle_radius=1e-3,
+            mesh_size=0.01,
+            spacing=1e-3,
+            coupling="paper",
+        )
+        == 0.0
+    )
     with pytest.raises(ValueError, match="insertion.coupling"):
-        coupling.subgrid_compliance(kinds, shear_modulus=G, poisson_ratio=NU, needle_radius=1e-3, mesh_size=0.01,
-                                    spacing=1e-3, coupling="mortar")
+        coupling.subgrid_compliance(
+            kinds,
+            shear_modulus=G,
+            poisson_ratio=NU,
+            needle_radius=1e-3,
+            mesh_size=0.01,
+            spacing=1e-3,
+            coupling="mortar",
+        )
     with pytest.raises(ValueError, match="spacing"):
-        coupling.subgrid_compliance(kinds, shear_modulus=G, poisson_ratio=NU, needle_radius=1e-3, mesh_size=0.01,
-                                    spacing=0.0)
+        coupling.subgrid_compliance(
+            kinds, shear_modulus=G, poisson_ratio=NU, needle_radius=1e-3, mesh_size=0.01, spacing=0.0
+        )
     with pytest.raises(ValueError, match="needle_radius"):
-        coupling.subgrid_compliance(kinds, shear_modulus=G, poisson_ratio=NU, needle_radius=-1.0, mesh_size=0.01,
-                                    spacing=1e-3)
+        coupling.subgrid_compliance(
+            kinds, shear_modulus=G, poisson_ratio=NU, needle_radius=-1.0, mesh_size=0.01, spacing=1e-3
+        )
     with pytest.raises(ValueError, match="ring radius / mesh size"):
         coupling.equivalent_radius(0.5, 1.0, "lateral")
 
@@ -95,8 +124,13 @@ def _needle_in_box(cells=4, angle_deg=30.0, spacing_ratio=0.1, depth=0.06):
 
 def _geometry(model, needle, positions=None):
     rest = model.rest_positions if positions is None else positions
-    return StepGeometry(mesh_tets=model.tets, tissue_previous=rest, tissue_free=rest, needle_previous=needle,
-                        needle_free=needle)
+    return StepGeometry(
+        mesh_tets=model.tets,
+        tissue_previous=rest,
+        tissue_free=rest,
+        needle_previous=needle,
+        needle_free=needle,
+    )
 
 
 def _path(model, centres):
@@ -106,11 +140,17 @@ def _path(model, centres):
 
 def _ring_rows(model, needle, centres, spacing, needle_radius, friction=0.0, preload=0.0):
     path = _path(model, centres)
-    rings = coupling.RingLayout.around(path, rest_positions=model.rest_positions, mesh_tets=model.tets,
-                                       locator=TetLocator(model.rest_positions, model.tets),
-                                       tangents=needle.tangents(np.zeros(len(centres))), needle_radius=needle_radius)
-    block = coupling.ring_insertion_block(path, _geometry(model, needle), rings, friction_coefficient=friction,
-                                          normal_preload=preload)
+    rings = coupling.RingLayout.around(
+        path,
+        rest_positions=model.rest_positions,
+        mesh_tets=model.tets,
+        locator=TetLocator(model.rest_positions, model.tets),
+        tangents=needle.tangents(np.zeros(len(centres))),
+        needle_radius=needle_radius,
+    )
+    block = coupling.ring_insertion_block(
+        path, _geometry(model, needle), rings, friction_coefficient=friction, normal_preload=preload
+    )
     return block, rings.mesh_size
 
 
@@ -125,8 +165,9 @@ def test_ring_rows_measure_the_mean_ring_displacement_and_reduce_to_the_paper_ro
     assert np.abs(block.free_gap).max() < 1e-12
     # One ring point at the centre gives exactly the paper's rows.
     path = _path(model, centres)
-    single = coupling.RingLayout(path.tets[:, None], path.barycentric[:, None, :], np.full(len(centres), h),
-                                 np.full(len(centres), h))
+    single = coupling.RingLayout(
+        path.tets[:, None], path.barycentric[:, None, :], np.full(len(centres), h), np.full(len(centres), h)
+    )
     ring = coupling.ring_insertion_block(path, _geometry(model, needle), single, friction_coefficient=0.1)
     paper = insertion_block(path, _geometry(model, needle), friction_coefficient=0.1)
     assert abs(ring.tissue_jacobian - paper.tissue_jacobian).max() < 1e-15
@@ -146,13 +187,20 @@ def _lateral_push(coupling_name, *, cells=4, angle_deg=30.0, spacing_ratio=0.1, 
         sizes = coupling.local_mesh_size(model.rest_positions, model.tets, path.tets)
     system = model.step_system(np.broadcast_to(np.eye(3), (model.tet_count, 3, 3)), dt=1e3)
     compliance, _ = system.compliance(block.tissue_jacobian)
-    extra = coupling.subgrid_compliance(np.zeros(block.row_count, dtype=int), shear_modulus=G, poisson_ratio=NU,
-                                        needle_radius=needle_radius, mesh_size=np.repeat(sizes, 2), spacing=spacing,
-                                        coupling=coupling_name)
+    extra = coupling.subgrid_compliance(
+        np.zeros(block.row_count, dtype=int),
+        shear_modulus=G,
+        poisson_ratio=NU,
+        needle_radius=needle_radius,
+        mesh_size=np.repeat(sizes, 2),
+        spacing=spacing,
+        coupling=coupling_name,
+    )
     push = np.array([0.0, 1e-3, 0.0])  # along y, normal to the needle (which lies in the x–z plane)
     free_gap = block.directions @ push
-    problem = ConstraintProblem(compliance=compliance + np.diag(extra), free_gap=free_gap,
-                                bilateral=np.arange(block.row_count))
+    problem = ConstraintProblem(
+        compliance=compliance + np.diag(extra), free_gap=free_gap, bilateral=np.arange(block.row_count)
+    )
     return problem
 
 
@@ -188,13 +236,15 @@ def test_interference_pressure_is_lame_with_a_clamped_outer_surface():
     # u_r = A ρ + B/ρ: u_r(r) = δ, u_r(R) = 0, solved here as a 2 × 2 system; p = −σ_rr(r).
     a_coef, b_coef = np.linalg.solve([[r, 1 / r], [outer, 1 / outer]], [delta, 0.0])
     sigma_rr = 2 * (lam + G) * a_coef - 2 * G * b_coef / r**2
-    p = coupling.interference_pressure(shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta,
-                                       outer_radius=outer)
+    p = coupling.interference_pressure(
+        shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta, outer_radius=outer
+    )
     assert p == pytest.approx(-sigma_rr, rel=1e-12)
     infinite = coupling.interference_pressure(shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta)
     assert infinite == pytest.approx(2 * G * delta / r, rel=1e-12)
-    assert coupling.grip_preload(shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta,
-                                 spacing=5e-4) == pytest.approx(2 * math.pi * r * infinite * 5e-4)
+    assert coupling.grip_preload(
+        shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta, spacing=5e-4
+    ) == pytest.approx(2 * math.pi * r * infinite * 5e-4)
     with pytest.raises(ValueError, match="interference"):
         coupling.interference_pressure(shear_modulus=G, poisson_ratio=NU, radius=r, interference=r)
 
@@ -205,20 +255,33 @@ def test_pullout_force_grows_at_mu_2pi_r_p_per_metre_and_does_not_lock(solver):
     # μ 2π r p₀ d_i, so F / L = μ 2π r p₀ whatever the mesh (no lateral load, no inflation).
     r, delta, mu = 0.8e-3, 0.05e-3, 0.2
     model, needle, centres, spacing, h = _needle_in_box(cells=4, angle_deg=30.0, spacing_ratio=0.25)
-    preload = coupling.grip_preload(shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta, spacing=spacing)
+    preload = coupling.grip_preload(
+        shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta, spacing=spacing
+    )
     block, sizes = _ring_rows(model, needle, centres, spacing, r, friction=mu, preload=preload)
     system = model.step_system(np.broadcast_to(np.eye(3), (model.tet_count, 3, 3)), dt=1e3)
     compliance, _ = system.compliance(block.tissue_jacobian)
     kinds = np.tile([coupling.LATERAL, coupling.LATERAL, coupling.AXIAL], len(centres))
-    extra = coupling.subgrid_compliance(kinds, shear_modulus=G, poisson_ratio=NU, needle_radius=r,
-                                        mesh_size=np.repeat(sizes, 3), spacing=spacing)
+    extra = coupling.subgrid_compliance(
+        kinds,
+        shear_modulus=G,
+        poisson_ratio=NU,
+        needle_radius=r,
+        mesh_size=np.repeat(sizes, 3),
+        spacing=spacing,
+    )
     free_gap = block.free_gap.copy()
     free_gap[block.shaft_rows] = -5e-3  # pulled back along −t by 5 mm
     bilateral = np.setdiff1d(np.arange(block.row_count), block.shaft_rows)
-    problem = ConstraintProblem(compliance=compliance + np.diag(extra), free_gap=free_gap, bilateral=bilateral,
-                                shaft_friction=block.shaft_rows, shaft_pairs=block.shaft_pairs,
-                                shaft_friction_coefficient=block.shaft_friction_coefficient,
-                                shaft_normal_preload=block.shaft_normal_preload)
+    problem = ConstraintProblem(
+        compliance=compliance + np.diag(extra),
+        free_gap=free_gap,
+        bilateral=bilateral,
+        shaft_friction=block.shaft_rows,
+        shaft_pairs=block.shaft_pairs,
+        shaft_friction_coefficient=block.shaft_friction_coefficient,
+        shaft_normal_preload=block.shaft_normal_preload,
+    )
     multipliers, _ = solver(problem, tolerance=1e-10)
     length = len(centres) * spacing
     pressure = coupling.interference_pressure(shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta)
@@ -229,7 +292,9 @@ def test_pullout_force_grows_at_mu_2pi_r_p_per_metre_and_does_not_lock(solver):
     gaps = problem.gap(multipliers)[block.shaft_rows]
     assert np.all(np.abs(gaps) > 1e-4)
     # The force per metre: the grip's μ 2π r p₀ plus μ times the lateral reactions of the dragged tissue.
-    assert axial.sum() / length == pytest.approx(mu * (2 * math.pi * r * pressure + lateral.sum() / length), rel=1e-6)
+    assert axial.sum() / length == pytest.approx(
+        mu * (2 * math.pi * r * pressure + lateral.sum() / length), rel=1e-6
+    )
     assert lateral.sum() < axial.sum() / mu
 
 
@@ -251,16 +316,28 @@ def test_tip_cutting_row_sticks_below_and_cuts_at_f_cut():
     system = model.step_system(np.broadcast_to(np.eye(3), (model.tet_count, 3, 3)), dt=1e3)
     f_cut = 0.5
     for advance, expected_state in ((1e-6, "stick"), (1e-3, "cut"), (-1e-3, "free")):
-        ahead = RigidNeedleGeometry(base=moved.base + advance * moved.direction, direction=moved.direction,
-                                    length=moved.length)
-        geometry = StepGeometry(mesh_tets=model.tets, tissue_previous=rest, tissue_free=rest, needle_previous=moved,
-                                needle_free=ahead)
-        block, lower, upper = coupling.tip_cutting_block(geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0],
-                                                         cutting_force=f_cut)
+        ahead = RigidNeedleGeometry(
+            base=moved.base + advance * moved.direction, direction=moved.direction, length=moved.length
+        )
+        geometry = StepGeometry(
+            mesh_tets=model.tets,
+            tissue_previous=rest,
+            tissue_free=rest,
+            needle_previous=moved,
+            needle_free=ahead,
+        )
+        block, lower, upper = coupling.tip_cutting_block(
+            geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0], cutting_force=f_cut
+        )
         compliance, _ = system.compliance(block.tissue_jacobian)
         assert block.free_gap[0] == pytest.approx(-advance)
-        problem = ConstraintProblem(compliance=compliance, free_gap=block.free_gap, box_rows=np.array([0]),
-                                    box_lower=lower, box_upper=upper)
+        problem = ConstraintProblem(
+            compliance=compliance,
+            free_gap=block.free_gap,
+            box_rows=np.array([0]),
+            box_lower=lower,
+            box_upper=upper,
+        )
         for solver in (solve_gauss_seidel, solve_exact):
             force = solver(problem, tolerance=1e-12)[0][0]
             if expected_state == "stick":
@@ -292,8 +369,13 @@ def test_puncture_force_is_f_p_for_any_dt_and_speed(dt, speed):
     capped_force = unilateral_force = None
     for step in range(1, 100000):
         free_gap = np.array([-speed * dt * step])  # the tip's position below the undeformed surface
-        capped = ConstraintProblem(compliance=np.array([[w]]), free_gap=free_gap, box_rows=np.array([0]),
-                                   box_lower=lower, box_upper=upper)
+        capped = ConstraintProblem(
+            compliance=np.array([[w]]),
+            free_gap=free_gap,
+            box_rows=np.array([0]),
+            box_lower=lower,
+            box_upper=upper,
+        )
         force = solve_gauss_seidel(capped, tolerance=1e-12)[0][0]
         gap = w * force + free_gap[0]
         if capped_force is None and coupling.puncture_detected(force, gap, f_p):
@@ -306,3 +388,103 @@ def test_puncture_force_is_f_p_for_any_dt_and_speed(dt, speed):
             break
     assert capped_force == pytest.approx(f_p, rel=1e-2)
     assert unilateral_force - f_p <= speed * dt / w + 1e-12
+
+
+# ----------------------------------------------------------------------- shaft contact before puncture (6)
+def _lowered_shaft(cube_scene, shaft_contact):
+    """A needle 80° from vertical, tip beyond the cube's +x face, lowered 20 mm onto the top face's edge."""
+    from refsim.simulation import Simulation
+
+    tilt = math.radians(80.0)
+    direction = np.array([math.sin(tilt), 0.0, -math.cos(tilt)])
+    tip = np.array([0.07, 0.0031, 0.105])
+    base = tip - 0.32 * direction
+    lowered = base - np.array([0.0, 0.0, 0.020])
+
+    def vector(v):
+        return "[" + ", ".join(f"{x:.9f}" for x in v) + "]"
+
+    d = vector(direction)
+    scene = cube_scene(
+        "mesh.cells=[4, 4, 4]",
+        "time.dt=0.02",
+        "time.duration=1.0",
+        "trajectory.times=[0.0, 1.0]",
+        f"trajectory.base_positions=[{vector(base)}, {vector(lowered)}]",
+        f"trajectory.directions=[{d}, {d}]",
+        f"insertion.shaft_contact={str(shaft_contact).lower()}",
+    )
+    simulation = Simulation(scene)
+    records = []
+    state = simulation.run(on_step=lambda s, r: records.append(r))
+    from refsim.geometry import SurfaceProjector
+
+    positions = state.tissue.positions
+    needle = simulation.needle.geometry(state.needle)
+    samples = needle.points(np.linspace(0.0, needle.length - 0.004, 400))
+    found = SurfaceProjector(positions, simulation.faces).closest(samples)
+    offsets = samples - found.closest
+    signed = np.where(np.einsum("ij,ij->i", offsets, found.normal) > 0.0, 1.0, -1.0) * found.distance
+    return records, signed
+
+
+def test_shaft_contact_keeps_a_tilted_needle_out_of_the_tissue(cube_scene):
+    # Without shaft rows the shaft passes ~11 mm into the cube (the tip never touches); with them the shaft presses
+    # the edge down and stays out (to the linearisation of one step and the sampling between rows), no puncture.
+    records, signed = _lowered_shaft(cube_scene, shaft_contact=False)
+    assert signed.min() < -5e-3
+    records, signed = _lowered_shaft(cube_scene, shaft_contact=True)
+    assert signed.min() > -0.5e-3
+    assert all(r.phase == "approach" for r in records)
+    assert not any(e.name == "puncture" for r in records for e in r.events)
+    assert np.linalg.norm(records[-1].needle_force) > 1.0  # the shaft carries the load (more than f_p)
+
+
+# ---------------------------------------------------------------------- puncture in the step, wired (item 5)
+@pytest.mark.parametrize(("dt", "speed"), [(0.001, 0.01), (0.01, 0.01), (0.05, 0.01), (0.01, 0.05), (0.02, 0.002)])
+def test_cube_punctures_at_f_p_for_any_dt_and_speed(cube_scene, dt, speed):
+    # insertion.puncture_within_step (default): the tip contact's force is capped at f_p, so the puncture event
+    # reports f_p within 1 % (issue 9, item 5); the plain contact reported 1.97 N for f_p = 0.8 N on this scene.
+    from refsim.simulation import Simulation
+
+    duration = round(0.006 / speed / dt) * dt  # the tip travels 6 mm: 2 mm to the surface, then 4 mm
+    base = 0.422
+    scene = cube_scene("mesh.cells=[4, 4, 4]", f"time.dt={dt}", f"time.duration={duration}",
+                       f"trajectory.times=[0.0, {duration}]",
+                       f"trajectory.base_positions=[[0.00123, 0.00231, {base}], [0.00123, 0.00231, {base - speed * duration}]]",
+                       "trajectory.directions=[[0, 0, -1], [0, 0, -1]]")
+    records = []
+    Simulation(scene).run(on_step=lambda s, r: records.append(r))
+    punctures = [e for r in records for e in r.events if e.name == "puncture"]
+    assert len(punctures) == 1
+    assert punctures[0].force == pytest.approx(scene.insertion.puncture_force, rel=1e-2)
+
+
+# ------------------------------------------------------------------------------ the insertion force profile
+def test_cube_insertion_profile_rise_puncture_cut_and_friction(cube_scene):
+    # Okamura et al. 2004's profile: a rise to f_p, puncture at f_p, a drop to the cutting force f_cut, then
+    # f_cut plus friction growing with the inserted length at μ 2π r p₀ per metre (grip from δ_r by Lamé).
+    from refsim.simulation import Simulation
+
+    f_cut, delta = 0.5, 2e-5
+    scene = cube_scene(f"insertion.tip_cutting_force={f_cut}", f"insertion.interference={delta}")
+    records = []
+    Simulation(scene).run(on_step=lambda s, r: records.append(r))
+    axial = np.array([r.needle_force[2] for r in records])
+    puncture = [(r.step, e.force) for r in records for e in r.events if e.name == "puncture"]
+    assert len(puncture) == 1 and puncture[0][1] == pytest.approx(scene.insertion.puncture_force, rel=1e-2)
+    assert axial[: puncture[0][0]].max() <= scene.insertion.puncture_force * (1 + 1e-2)
+    # Steady insertion: from 5 mm past puncture to the end of the motion (the base stops at t = 1.9 s).
+    times = np.array([r.time for r in records])
+    speed = 0.01
+    window = (times > times[puncture[0][0] - 1] + 0.5) & (times < 1.85)
+    depth = speed * (times[window] - times[puncture[0][0] - 1])
+    slope, intercept = np.polyfit(depth, axial[window], 1)
+    g, nu, r = G, NU, scene.needle.radius
+    mu = scene.insertion.shaft_friction_coefficient
+    expected = mu * 2 * math.pi * r * coupling.interference_pressure(shear_modulus=g, poisson_ratio=nu, radius=r,
+                                                                     interference=delta)
+    # Measured 5.8 % above: points are placed every d_i in the dragged (deformed) tissue, so a little more than
+    # one per d_i of needle, each with the grip 2π r p₀ d_i (μ Σ‖λ_lat‖ adds 0.1 %); 10 % bounds that.
+    assert slope == pytest.approx(expected, rel=0.1)
+    assert intercept == pytest.approx(f_cut, rel=0.05)

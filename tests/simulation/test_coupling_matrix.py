@@ -42,11 +42,17 @@ def _scene(cube_scene, *, cells, angle, entry, spacing_ratio, rigid, solver, gri
 
     d = vector(direction)
     return cube_scene(
-        f"mesh.cells=[{cells}, {cells}, {cells}]", "time.dt=0.02", "time.duration=1.3",
-        "trajectory.times=[0.0, 1.0, 1.3]", f"trajectory.base_positions=[{vector(start)}, {vector(end)}, {vector(moved)}]",
-        f"trajectory.directions=[{d}, {d}, {d}]", f"insertion.spacing={spacing_ratio * h}",
-        f"needle.rigid={'true' if rigid else 'false'}", f"solver.method={solver}",
-        f"insertion.shaft_normal_force={grip}", "insertion.coupling=ring",
+        f"mesh.cells=[{cells}, {cells}, {cells}]",
+        "time.dt=0.02",
+        "time.duration=1.3",
+        "trajectory.times=[0.0, 1.0, 1.3]",
+        f"trajectory.base_positions=[{vector(start)}, {vector(end)}, {vector(moved)}]",
+        f"trajectory.directions=[{d}, {d}, {d}]",
+        f"insertion.spacing={spacing_ratio * h}",
+        f"needle.rigid={'true' if rigid else 'false'}",
+        f"solver.method={solver}",
+        f"insertion.shaft_normal_force={grip}",
+        "insertion.coupling=ring",
     )
 
 
@@ -65,14 +71,20 @@ def _inflation(record) -> float:
 
 
 def _check_variant(cube_scene, **variant):
-    runs = {solver: _run(_scene(cube_scene, solver=solver, **variant)) for solver in ("gauss_seidel", "exact")}
+    runs = {
+        solver: _run(_scene(cube_scene, solver=solver, **variant)) for solver in ("gauss_seidel", "exact")
+    }
     for solver, records in runs.items():
         assert all(r.solver is None or r.solver.converged for r in records), f"{solver} did not converge"
         assert records[-1].insertion_point_count >= 2, "the needle did not insert"
         assert _inflation(records[-1]) < INFLATION
-    events = {solver: [(r.step, e.name) for r in records for e in r.events] for solver, records in runs.items()}
+    events = {
+        solver: [(r.step, e.name) for r in records for e in r.events] for solver, records in runs.items()
+    }
     assert events["gauss_seidel"] == events["exact"]
-    assert [r.insertion_point_count for r in runs["gauss_seidel"]] == [r.insertion_point_count for r in runs["exact"]]
+    assert [r.insertion_point_count for r in runs["gauss_seidel"]] == [
+        r.insertion_point_count for r in runs["exact"]
+    ]
     forces = {solver: np.stack([r.needle_force for r in records]) for solver, records in runs.items()}
     peak = np.abs(forces["exact"]).max()
     assert np.abs(forces["gauss_seidel"] - forces["exact"]).max() <= AGREEMENT * peak
@@ -81,7 +93,9 @@ def _check_variant(cube_scene, **variant):
 DEFAULT = [
     dict(cells=4, angle=0.0, entry="face", spacing_ratio=0.5, rigid=True),
     dict(cells=4, angle=30.0, entry="vertex", spacing_ratio=0.1, rigid=True),
-    dict(cells=4, angle=30.0, entry="face", spacing_ratio=0.1, rigid=True, grip=20.0),  # the lock case
+    dict(
+        cells=4, angle=30.0, entry="face", spacing_ratio=0.1, rigid=True, grip=20.0
+    ),  # the lock case
     dict(cells=6, angle=30.0, entry="edge", spacing_ratio=0.5, rigid=False),
     dict(cells=6, angle=0.0, entry="vertex", spacing_ratio=0.1, rigid=False),
 ]

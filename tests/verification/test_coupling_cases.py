@@ -25,8 +25,14 @@ def test_bare_line_fails_baguelin_where_the_ring_coupling_passes():
     # and its force keeps falling with h (1/ln h): no limit. The ring coupling's error is within tolerance.
     exact = coupling.baguelin_stiffness(coupling.PAPER_TISSUE, coupling.NEEDLE_PAPER, coupling.OUTER)
     tolerance = coupling._calibration_tolerance("lateral", coupling.PAPER_TISSUE, exact) / exact
-    bare = np.array([coupling.coupled_stiffness("lateral", "paper", needle_radius=coupling.NEEDLE_PAPER,
-                                                outer=coupling.OUTER, cells=n) for n in coupling.COUPLING_CELLS])
+    bare = np.array(
+        [
+            coupling.coupled_stiffness(
+                "lateral", "paper", needle_radius=coupling.NEEDLE_PAPER, outer=coupling.OUTER, cells=n
+            )
+            for n in coupling.COUPLING_CELLS
+        ]
+    )
     assert np.all(np.abs(bare - exact) / exact > 10 * tolerance)
     assert np.all(np.diff(bare) < 0.0)
     # The fitted slope of 1/K′ against ln h is the line-load theory's (case_bare_line_lateral), and the bare
@@ -35,12 +41,14 @@ def test_bare_line_fails_baguelin_where_the_ring_coupling_passes():
     nu, g = coupling.PAPER_TISSUE.poisson_ratio, coupling.PAPER_TISSUE.shear_modulus
     k = 3 - 4 * nu
     ratios = []
-    for stiffness, h in zip(bare, sizes):
+    for stiffness, h in zip(bare, sizes, strict=True):
         # Invert Baguelin for a: k² ln(R/a) − (R²−a²)/(R²+a²) = 8πG(1−ν)k / K′ (fixed point, a ≪ R).
         target = 8 * math.pi * g * (1 - nu) * k / stiffness
         a = 0.5 * h
         for _ in range(50):
-            a = coupling.OUTER * math.exp(-(target + (coupling.OUTER**2 - a**2) / (coupling.OUTER**2 + a**2)) / k**2)
+            a = coupling.OUTER * math.exp(
+                -(target + (coupling.OUTER**2 - a**2) / (coupling.OUTER**2 + a**2)) / k**2
+            )
         ratios.append(a / h)
     assert max(ratios) / min(ratios) - 1 < 0.02
 
