@@ -103,10 +103,14 @@ class CuttingRun:
         return surface_topology(cut.triangles, cut.point_count)
 
     def extent(self) -> float:
-        """Extent of the cut in rest coordinates along ĉ [m]."""
-        cut = self.state.cut
-        projection = cut.rest_points @ self.cut_direction
-        return float(np.ptp(projection))
+        """How far the cut reaches beyond the path it started on, along ĉ in rest coordinates [m]: the largest
+        advance of a crack-tip column from its first layer (the whole cloud's spread along ĉ when the strip is
+        gone: the path itself is not straight in rest coordinates after a tilted insertion)."""
+        cut, strip = self.state.cut, getattr(self.state, "cut_strip", None)
+        if strip is None:
+            return float(np.ptp(cut.rest_points @ self.cut_direction))
+        advance = (strip.front.rest_points - cut.rest_points[strip.layers[0]]) @ self.cut_direction
+        return float(advance.max())
 
     cut_direction: np.ndarray | None = None
 

@@ -116,7 +116,10 @@ def test_in_steady_cutting_the_front_pushes_with_gc_per_unit_length(reference):
             continue
         length = reference.inserted[index]
         per_length = record.row_forces[front].sum() / length
-        assert g_c * (1 - 2 * d_c / length) - 1e-6 <= per_length <= g_c * (1 + 1e-6)
+        # The solver meets each row's bound to its tolerance times the problem's force scale (at least the
+        # step's largest multiplier): the rows together may exceed G_c L by that much.
+        excess = np.count_nonzero(front) * scene.solver.tolerance * np.abs(record.row_forces).max() / length
+        assert g_c * (1 - 2 * d_c / length) - 1e-6 <= per_length <= g_c * (1 + 1e-6) + excess
         checked += 1
     assert checked >= 3
 
