@@ -206,7 +206,9 @@ def run_scene(
     steps : Steps to run (the scene's duration by default).
     buffer_steps : Steps per written block (`refsim.io.writer.DEFAULT_BUFFER_STEPS` by default).
     handle_signals : In the main thread, turn SIGTERM into a clean stop (exit code 143) for the run's duration
-        and make SIGINT raise KeyboardInterrupt (130); the previous handlers are restored afterwards.
+        and make SIGINT raise KeyboardInterrupt (130); the previous handlers are restored afterwards. The signal
+        ends this run and is reported in the summary, not re-raised: a caller that runs several scenes in a loop
+        must stop when ``summary.status`` is "interrupted" or "terminated" (the resolution study does).
 
     Returns
     -------

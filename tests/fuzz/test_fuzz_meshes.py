@@ -15,7 +15,7 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from refsim.mesh import box_mesh, write_mesh
+from refsim.mesh import box_mesh
 
 _spec = importlib.util.spec_from_file_location("fuzz_scenes", Path(__file__).with_name("test_fuzz_scenes.py"))
 _scenes = importlib.util.module_from_spec(_spec)
