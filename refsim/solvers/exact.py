@@ -523,12 +523,13 @@ def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, m
                                                                f"not settled after {iterations} iterations")
                      + (", damped after oscillating" if damping < 1.0 else ""))
     if polish:
-        parts.append(f"{polish_steps} Newton polish iteration(s)")
+        parts.append(f"{polish_steps} least-squares Newton polish step(s)")
     converged = bool(converged and data_residual(problem, best) <= tolerance)
     if not converged:
         worst = _worst_kind(problem, best)
-        parts.insert(0, f"not converged: residual {residual:.3e} > tolerance {tolerance:.1e} "
-                        f"(largest error in {worst} rows)")
+        parts.insert(0, f"not converged: residual {residual:.3e}, data residual "
+                        f"{data_residual(problem, best):.3e}, tolerance {tolerance:.1e} (largest error in {worst} "
+                        "rows)")
         logger.info("solve_exact %s: %s", problem.name or "problem", "; ".join(parts))
     return best, SolverReport(solver=solver_name, iterations=iterations, residual=residual,
                               converged=converged,
