@@ -305,24 +305,15 @@ def _least_squares_polish(problem, multipliers, residual, tolerance, weight, max
 
 
 def _polish(problem, multipliers, residual, tolerance, weight, max_steps=50):
-    """Polish the cone route's answer: the damped least-squares Newton of the previous exact solver, then the
-    semismooth Newton of :mod:`refsim.solvers.newton` if that is not enough; returns (λ, natural residual,
-    steps)."""
-    best, best_residual, steps = _least_squares_polish(problem, multipliers, residual, tolerance, weight,
-                                                       max_steps=max_steps)
-    if best_residual <= tolerance and data_residual(problem, best) <= tolerance:
-        return best, best_residual, steps
-    result = solve_newton(problem, tolerance=tolerance, warm_start=best, max_iterations=max_steps)
-    candidate_residual = natural_residual(problem, result.multipliers)
-    if max(candidate_residual, result.data_residual) < max(best_residual, data_residual(problem, best)):
-        return result.multipliers, candidate_residual, steps + result.iterations
-    return best, best_residual, steps + result.iterations
+    """The cone route's polish: the damped least-squares Newton of the previous exact solver (unchanged, so the
+    cone route returns the multipliers it returned before); returns (λ, natural residual, steps)."""
+    return _least_squares_polish(problem, multipliers, residual, tolerance, weight, max_steps=max_steps)
 
 
 def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend: str = "clarabel",
                 max_iterations: int = 100, symmetry_tolerance: float = 1e-8, polish: bool = True,
                 backend_options: dict | None = None, warm_start: np.ndarray | None = None,
-                method: str = "auto", newton_iterations: int = 100) -> tuple[np.ndarray, SolverReport]:
+                method: str = "cone", newton_iterations: int = 100) -> tuple[np.ndarray, SolverReport]:
     """Solve the constraint problem to a tight residual (the reference solution).
 
     Parameters
@@ -339,8 +330,11 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
     polish : Let the cone route finish with Newton iterations from its answer.
     backend_options : Options passed to the backend, replacing our tight defaults key by key.
     warm_start : Initial multipliers λ₀ [N], shape (row_count,), for the Newton path (e.g. the previous step's).
-    method : ``"auto"`` (Newton, then the cone route if Newton did not reach the tolerance), ``"newton"`` or
-        ``"cone"``.
+    method : ``"auto"`` (Newton, then the cone route if Newton did not reach the tolerance; the fast path),
+        ``"newton"`` (Newton and its Gauss–Seidel finish only) or ``"cone"`` (the default for now: the cone route
+        of before, polished; it keeps the simulation's exact-mode results. Where W is singular and group friction
+        bounds grow along its null space the problems have many solutions, and the two routes pick different
+        ones; see docs/solvers.md). ``warm_start`` is used by the Newton path only.
     newton_iterations : Largest number of Newton iterations.
 
     Returns
@@ -416,6 +410,12 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
                                       backend_options=backend_options, start=start)
     data = data_residual(problem, multipliers)
     path = report.path
+    if method == "auto" and polish and (report.residual > tolerance or data > tolerance):
+        # the fast path's last resort: Newton from the cone route's answer
+        result = solve_newton(problem, tolerance=tolerance, warm_start=multipliers,
+                              max_iterations=int(newton_iterations))
+        if max(result.residual, result.data_residual) < max(report.residual, data):
+            multipliers, data, path = result.multipliers, result.data_residual, "cone+newton"
     message = report.message
     if asymmetry > symmetry_tolerance:
         message += f"; the cone route solved the symmetric part of W (asymmetry {asymmetry:.1e})"
@@ -523,18 +523,19 @@ def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, m
                                                                f"not settled after {iterations} iterations")
                      + (", damped after oscillating" if damping < 1.0 else ""))
     if polish:
-        parts.append(f"{polish_steps} Newton polish iteration(s)")
+        parts.append(f"{polish_steps} least-squares Newton polish step(s)")
     converged = bool(converged and data_residual(problem, best) <= tolerance)
     if not converged:
         worst = _worst_kind(problem, best)
-        parts.insert(0, f"not converged: residual {residual:.3e} > tolerance {tolerance:.1e} "
-                        f"(largest error in {worst} rows)")
+        parts.insert(0, f"not converged: residual {residual:.3e}, data residual "
+                        f"{data_residual(problem, best):.3e}, tolerance {tolerance:.1e} (largest error in {worst} "
+                        "rows)")
         logger.info("solve_exact %s: %s", problem.name or "problem", "; ".join(parts))
     return best, SolverReport(solver=solver_name, iterations=iterations, residual=residual,
                               converged=converged,
                               seconds=time.perf_counter() - start, message="; ".join(parts),
                               history=np.array(history, dtype=float),
-                              path="cone+newton" if polish_steps else "cone")
+                              path="cone")
 
 
 def _worst_kind(problem: ConstraintProblem, multipliers: np.ndarray) -> str:

@@ -353,14 +353,14 @@ def benchmark_exact(problems, output: Path) -> str:
     tolerance = BENCHMARK_TOLERANCE
     legacy = legacy_solve_exact()
     solvers = {
-        "refsim exact (Newton first)": lambda p: solve_exact(p, tolerance=tolerance)[0],
+        "refsim exact (Newton first)": lambda p: solve_exact(p, tolerance=tolerance, method="auto")[0],
         "refsim Gauss-Seidel": lambda p: solve_gauss_seidel(p, tolerance=tolerance, max_iterations=20_000)[0],
     }
     if legacy is not None:
         solvers["refsim exact before (cone route, 132aab8)"] = (
             lambda p: legacy(p, tolerance=tolerance, symmetry_tolerance=SYMMETRY_TOLERANCE)[0])
     if problems:
-        solve_exact(problems[0][1], tolerance=tolerance)  # load the compiled kernels
+        solve_exact(problems[0][1], tolerance=tolerance, method="auto")  # load the compiled kernels
     table = {name: [] for name in solvers}
     paths = []
     for family, problem in problems:
@@ -373,7 +373,7 @@ def benchmark_exact(problems, output: Path) -> str:
                 seconds, error = np.nan, np.inf
                 logger.info("%s rejects %s: %s", name, problem.name, str(failure)[:80])
             table[name].append((seconds, error))
-        _, report = solve_exact(problem, tolerance=tolerance)
+        _, report = solve_exact(problem, tolerance=tolerance, method="auto")
         paths.append(report.path)
         logger.info("%s/%s (%d rows): %s", family, problem.name, problem.row_count,
                     ", ".join(f"{n.split()[1]} {t[-1][0] * 1e3:.2f} ms {t[-1][1]:.1e}" for n, t in table.items()))

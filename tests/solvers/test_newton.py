@@ -81,7 +81,7 @@ def test_warm_start_from_a_solution_and_from_a_nearby_point():
     nearby = cold.multipliers * (1.0 + 1e-4 * rng.standard_normal(problem.row_count))
     warm = solve_newton(problem, tolerance=1e-11, warm_start=nearby)
     assert warm.converged and warm.iterations < cold.iterations
-    _, report = solve_exact(problem, tolerance=1e-11, warm_start=cold.multipliers)
+    _, report = solve_exact(problem, tolerance=1e-11, warm_start=cold.multipliers, method="auto")
     assert report.iterations == 0 and report.converged
 
 
@@ -98,7 +98,7 @@ def test_non_symmetric_w_solved_as_given(asymmetry):
     problem = ConstraintProblem(compliance=compliance, free_gap=gap - compliance @ force, **fields)
     assert problem.asymmetry() == pytest.approx(asymmetry * np.sqrt(2), rel=0.5)
     assert natural_residual(problem, force) < 1e-13
-    multipliers, report = solve_exact(problem, tolerance=1e-10)
+    multipliers, report = solve_exact(problem, tolerance=1e-10, method="auto")
     assert report.converged, report.message
     assert report.residual == natural_residual(problem, multipliers)  # measured with W as given
     assert report.asymmetry == problem.asymmetry()
@@ -158,7 +158,7 @@ def test_fclib_global_form_condensed(tmp_path):
                                + np.concatenate([offset, equality_offset]), rtol=1e-12, atol=1e-14)
     np.testing.assert_array_equal(problem.contacts, [[0, 1, 2], [3, 4, 5]])
     np.testing.assert_array_equal(problem.bilateral, [6])
-    multipliers, report = solve_exact(problem, tolerance=1e-12)
+    multipliers, report = solve_exact(problem, tolerance=1e-12, method="auto")
     assert report.converged, report.message
     # back in the global form: v = M⁻¹ (H r + G λ + f) satisfies Gᵀ v + b = 0 and u = Hᵀ v + w = δ
     velocity = inverse @ (operator @ multipliers + force)
@@ -184,7 +184,7 @@ def test_property_exact_and_gauss_seidel_agree_frictionless(seed, bilateral, uni
     problem, force, _ = planted_problem(rng, bilateral=bilateral, unilateral=unilateral, box=box, scale=scale)
     eigenvalues = np.linalg.eigvalsh(problem.compliance)
     bound = (1.0 + eigenvalues[-1]) / eigenvalues[0]
-    exact, report = solve_exact(problem, tolerance=1e-11)
+    exact, report = solve_exact(problem, tolerance=1e-11, method="auto")
     gs, gs_report = solve_gauss_seidel(problem, tolerance=1e-11, max_iterations=200_000)
     assert report.converged, report.message
     for answer in (exact, gs) if gs_report.converged else (exact,):
@@ -201,7 +201,7 @@ def test_property_exact_and_gauss_seidel_both_solve_friction(seed, contacts, sha
     # With friction λ need not be unique; both must reach the tolerance on the same (planted, solvable) problem.
     rng = np.random.default_rng(seed)
     problem, _, _ = planted_problem(rng, unilateral=2, contacts=contacts, shafts=shafts, friction=friction)
-    _, report = solve_exact(problem, tolerance=1e-10)
+    _, report = solve_exact(problem, tolerance=1e-10, method="auto")
     assert report.converged, report.message
     _, gs_report = solve_gauss_seidel(problem, tolerance=1e-8, max_iterations=100_000)
     if gs_report.converged:
