@@ -262,9 +262,10 @@ class InsertionSpec(_Validated):
         low=0.0,
     )
     puncture_within_step: bool = spec(
-        True,
+        False,
         doc="cap the tip contact's force at f_p, so the tip punctures within the step at exactly f_p (for any dt "
-        "and speed); false: the tip contact is a plain Coulomb contact and puncture is declared after the step",
+        "and speed); false (default for now): the tip contact is a plain Coulomb contact and puncture is declared "
+        "after the step",
     )
     shaft_contact: bool = spec(
         True,

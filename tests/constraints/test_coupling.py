@@ -443,7 +443,7 @@ def test_shaft_contact_keeps_a_tilted_needle_out_of_the_tissue(cube_scene):
 # ---------------------------------------------------------------------- puncture in the step, wired (item 5)
 @pytest.mark.parametrize(("dt", "speed"), [(0.001, 0.01), (0.01, 0.01), (0.05, 0.01), (0.01, 0.05), (0.02, 0.002)])
 def test_cube_punctures_at_f_p_for_any_dt_and_speed(cube_scene, dt, speed):
-    # insertion.puncture_within_step (default): the tip contact's force is capped at f_p, so the puncture event
+    # insertion.puncture_within_step = true: the tip contact's force is capped at f_p, so the puncture event
     # reports f_p within 1 % (issue 9, item 5); the plain contact reported 1.97 N for f_p = 0.8 N on this scene.
     from refsim.simulation import Simulation
 
@@ -452,7 +452,7 @@ def test_cube_punctures_at_f_p_for_any_dt_and_speed(cube_scene, dt, speed):
     scene = cube_scene("mesh.cells=[4, 4, 4]", f"time.dt={dt}", f"time.duration={duration}",
                        f"trajectory.times=[0.0, {duration}]",
                        f"trajectory.base_positions=[[0.00123, 0.00231, {base}], [0.00123, 0.00231, {base - speed * duration}]]",
-                       "trajectory.directions=[[0, 0, -1], [0, 0, -1]]")
+                       "trajectory.directions=[[0, 0, -1], [0, 0, -1]]", "insertion.puncture_within_step=true")
     records = []
     Simulation(scene).run(on_step=lambda s, r: records.append(r))
     punctures = [e for r in records for e in r.events if e.name == "puncture"]
@@ -467,7 +467,8 @@ def test_cube_insertion_profile_rise_puncture_cut_and_friction(cube_scene):
     from refsim.simulation import Simulation
 
     f_cut, delta = 0.5, 2e-5
-    scene = cube_scene(f"insertion.tip_cutting_force={f_cut}", f"insertion.interference={delta}")
+    scene = cube_scene(f"insertion.tip_cutting_force={f_cut}", f"insertion.interference={delta}",
+                       "insertion.puncture_within_step=true")
     records = []
     Simulation(scene).run(on_step=lambda s, r: records.append(r))
     axial = np.array([r.needle_force[2] for r in records])

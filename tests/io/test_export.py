@@ -25,8 +25,8 @@ from refsim.solvers.readers import read_fclib
 def recorded(tmp_path_factory):
     """The cube on 2 cells per axis for 0.3 s with every problem recorded: contact steps, then insertion.
 
-    The tip contact is the plain Coulomb contact (insertion.puncture_within_step = false): a tip capped at f_p
-    (box normal, group friction) is not a pure contact problem, which FCLib holds.
+    The tip contact is the plain Coulomb contact (insertion.puncture_within_step = false, said explicitly): a tip
+    capped at f_p (box normal, group friction) is not a pure contact problem, which FCLib holds.
     """
     path = tmp_path_factory.mktemp("export") / "cube.h5"
     assert main(["run", "cube", "-o", str(path), "-q", "--set", "mesh.cells=[2, 2, 2]", "--set",
