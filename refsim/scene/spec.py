@@ -262,10 +262,9 @@ class InsertionSpec(_Validated):
         low=0.0,
     )
     puncture_within_step: bool = spec(
-        False,
+        True,
         doc="cap the tip contact's force at f_p, so the tip punctures within the step at exactly f_p (for any dt "
-        "and speed); false (default for now): the tip contact is a plain Coulomb contact and puncture is declared "
-        "after the step",
+        "and speed); false: the tip contact is a plain Coulomb contact and puncture is declared after the step",
     )
     shaft_contact: bool = spec(
         True,
