@@ -118,6 +118,7 @@ class Results:
     cut : The cut surface history, or None when the run cut nothing.
     boundary_nodes : Nodes a boundary motion moves, (b,) (empty: none).
     boundary_displacement : Their prescribed displacement from rest after each step [m], (s, b, 3).
+    trajectory_samples : The base trajectory the run used: t [s], x, y, z [m], dx, dy, dz, (w, 7).
     """
 
     path: Path
@@ -160,6 +161,7 @@ class Results:
     problem_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     boundary_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     boundary_displacement: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3)))
+    trajectory_samples: np.ndarray = field(default_factory=lambda: np.zeros((0, 7)))
 
     # ------------------------------------------------------------------ sizes
 
@@ -423,6 +425,8 @@ def read_results(path) -> Results:
             phase_names=_names(handle[schema.STEPS["phase"].path]),
             stage_names=stage_names,
             events=events,
+            trajectory_samples=_read(handle, schema.STATIC["trajectory/samples"].path)
+            if schema.STATIC["trajectory/samples"].path in handle else np.zeros((0, 7)),
             boundary_nodes=_read(handle, schema.STATIC["tissue/boundary_nodes"].path)
             if schema.STATIC["tissue/boundary_nodes"].path in handle
             else np.zeros(0, dtype=np.int64),

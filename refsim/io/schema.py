@@ -105,6 +105,9 @@ STATIC = _specs(
         ("tissue/faces", "1", "int64", ("f", 3), "boundary triangles, oriented outward (node indices)"),
         ("tissue/fixed_nodes", "1", "int64", ("?",), "indices of the clamped tissue nodes"),
         ("tissue/boundary_nodes", "1", "int64", ("?",), "indices of the nodes a boundary motion moves (empty: none)"),
+        ("trajectory/samples", "-", "float64", ("?", 7),
+         "the needle base's trajectory as the run used it: t [s], base x, y, z [m], unit direction dx, dy, dz "
+         "(a CSV trajectory is copied here, so the file stands alone)"),
         ("needle/rest_nodes", "m", "float64", ("k", 3), "needle nodes at the trajectory's initial pose (t = 0)"),
     ],
     growing=False,

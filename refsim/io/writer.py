@@ -18,6 +18,7 @@ the steps of the blocks written before.
 from __future__ import annotations
 
 import datetime
+import json
 import errno
 import logging
 import shutil
@@ -147,6 +148,8 @@ class ResultWriter:
             attributes["created"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
             attributes["scene"] = scene_to_json(scene)
             attributes["scene_name"] = scene.name
+            attributes["linear_solver"] = json.dumps(_linear_solver(scene))
+            attributes["threads"] = json.dumps(_threads())
             attributes["complete"] = False
             attributes["steps_completed"] = 0
             attributes["stop_reason"] = "running (or stopped without a reason: killed)"
@@ -156,6 +159,9 @@ class ResultWriter:
                 "tissue/faces": np.asarray(mesh.boundary_faces, dtype=np.int64),
                 "tissue/fixed_nodes": np.asarray(models.tissue.fixed_nodes, dtype=np.int64),
                 "tissue/boundary_nodes": self._boundary_nodes,
+                "trajectory/samples": np.column_stack([
+                    models.trajectory.times, models.trajectory.base_positions, models.trajectory.directions
+                ]).astype(np.float64),
                 "needle/rest_nodes": rest_nodes,
             }
             for name, value in static.items():
@@ -572,3 +578,20 @@ def write_problem_group(group, problem) -> None:
                                        dtype=schema.numpy_dtype(spec))
         dataset.attrs["units"] = spec.unit
         dataset.attrs["description"] = spec.meaning
+
+
+def _linear_solver(scene) -> dict:
+    """The sparse solver the run's compliance uses and its versions (refsim.fem.linear)."""
+    from refsim.fem.linear import linear_solver_info
+
+    try:
+        return linear_solver_info(getattr(getattr(scene, "compliance", None), "linear_solver", None))
+    except (ValueError, ImportError) as error:  # reported, not fatal: the run checks the solver itself
+        return {"error": str(error)}
+
+
+def _threads() -> list:
+    """The BLAS / OpenMP thread pools when the file is created (the step pins them to one thread)."""
+    from refsim.fem.threads import thread_settings
+
+    return thread_settings()

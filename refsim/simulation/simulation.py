@@ -27,6 +27,7 @@ import numpy as np
 
 from refsim.constraints import INSERTION, InsertionPath, RowBlock, StepGeometry
 from refsim.fem.compliance import make_strategy
+from refsim.fem.threads import hot_path_threads
 from refsim.scene import Scene
 from refsim.scene.build import SceneModels, build_controls, build_models
 from refsim.scene.controls import Controls
@@ -117,7 +118,14 @@ class Simulation:
     # ------------------------------------------------------------------ step
 
     def step(self, state: SimulationState, *, record_tissue: bool = False) -> tuple[SimulationState, StepRecord]:
-        """Advance one time step; return the new state and the record of the step."""
+        """Advance one time step; return the new state and the record of the step.
+
+        BLAS and OpenMP run on one thread inside the step (on 2 cores two OpenBLAS threads made one W computation
+        26 times slower); the caller's setting is restored after it."""
+        with hot_path_threads(1):
+            return self._step(state, record_tissue=record_tissue)
+
+    def _step(self, state: SimulationState, *, record_tissue: bool) -> tuple[SimulationState, StepRecord]:
         dt = self.dt
         timer = _StageTimer()
         time = state.time + dt

@@ -90,3 +90,19 @@ def test_the_flexible_needle_bends_and_does_not_cut_the_rigid_one_cuts():
     assert not any(e.name == "cut_start" for r in flexible[0] for e in r.events)
     assert any(e.name == "cut_start" for r in rigid[0] for e in r.events)
     assert flexible[1] > rigid[1]  # the flexible needle bends more
+
+
+def test_the_results_file_holds_the_robot_trajectory_and_the_breathing(tmp_path):
+    # A file stands alone: the CSV trajectory the scene read and the prescribed boundary displacement are in it.
+    from refsim.io import read_results
+    from refsim.io.driver import run_scene
+    from refsim.scene.trajectory import read_trajectory_csv
+
+    scene = load_scene("liver_flexible")
+    path = tmp_path / "liver.h5"
+    run_scene(scene, path, overwrite=True, steps=3)
+    results = read_results(path)
+    csv = read_trajectory_csv(Path(scene.base_directory) / scene.trajectory.file)
+    np.testing.assert_array_equal(results.trajectory_samples[:, 0], csv.times)
+    np.testing.assert_array_equal(results.trajectory_samples[:, 1:4], csv.base_positions)
+    assert results.boundary_nodes.size > 10 and results.boundary_displacement.shape == (3, results.boundary_nodes.size, 3)
