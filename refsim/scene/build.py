@@ -18,7 +18,7 @@ from refsim.mesh import TetMesh, box_mesh, read_mesh
 from refsim.scene.controls import Controls
 from refsim.scene.loader import SceneError
 from refsim.scene.spec import FACE_NAMES, MeshSpec, Scene
-from refsim.scene.trajectory import Trajectory
+from refsim.scene.trajectory import Trajectory, read_numeric_csv
 
 __all__ = ["SceneModels", "boundary_nodes", "build_controls", "build_models", "build_mesh", "check_models", "fixed_nodes", "read_displacement_csv"]
 
@@ -200,20 +200,7 @@ def read_displacement_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
     ValueError
         Naming the file and the defect.
     """
-    if not path.is_file():
-        raise ValueError(f"{path}: boundary motion file not found")
-    lines = [line for line in path.read_text(encoding="utf-8").splitlines() if line.strip() and not line.lstrip().startswith("#")]
-    try:
-        data = np.loadtxt(lines, delimiter=",", ndmin=2)
-    except ValueError:
-        try:
-            data = np.loadtxt(lines[1:], delimiter=",", ndmin=2)
-        except ValueError as error:
-            raise ValueError(f"{path}: cannot read t, dx, dy, dz as numbers: {error}") from None
-    if data.shape[0] == 0 or data.shape[1] != 4:
-        raise ValueError(f"{path}: expected rows of 4 columns t, dx, dy, dz; got shape {data.shape}")
-    if not np.all(np.isfinite(data)):
-        raise ValueError(f"{path}: non-finite values")
+    data = read_numeric_csv(path, ("t", "dx", "dy", "dz"), "boundary motion")
     return data[:, 0], data[:, 1:]
 
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from refsim.scene.spec import TrajectorySpec
 
-__all__ = ["Trajectory", "read_trajectory_csv"]
+__all__ = ["Trajectory", "read_numeric_csv", "read_trajectory_csv"]
 
 
 @dataclass(frozen=True)
@@ -49,6 +49,35 @@ class Trajectory:
         return base, direction / np.linalg.norm(direction)
 
 
+def read_numeric_csv(path: Path, columns: tuple[str, ...], what: str) -> np.ndarray:
+    """Rows of numbers from a CSV file with the given columns, shape (rows, len(columns)).
+
+    '#' comment lines anywhere (before the header too) and one header line are allowed.
+
+    Raises
+    ------
+    ValueError
+        Naming the file and the defect (missing, not numbers, wrong column count, non-finite values).
+    """
+    if not path.is_file():
+        raise ValueError(f"{path}: {what} file not found")
+    lines = [line for line in path.read_text(encoding="utf-8").splitlines()
+             if line.strip() and not line.lstrip().startswith("#")]
+    try:
+        data = np.loadtxt(lines, delimiter=",", ndmin=2)
+    except ValueError:
+        try:
+            data = np.loadtxt(lines[1:], delimiter=",", ndmin=2)
+        except ValueError as error:
+            raise ValueError(f"{path}: cannot read the {what} as numbers: {error}") from None
+    names = ", ".join(columns)
+    if data.shape[0] == 0 or data.shape[1] != len(columns):
+        raise ValueError(f"{path}: expected rows of {len(columns)} columns {names}; got shape {data.shape}")
+    if not np.all(np.isfinite(data)):
+        raise ValueError(f"{path}: non-finite values in the {what}")
+    return data
+
+
 def read_trajectory_csv(path: Path) -> Trajectory:
     """Read a CSV trajectory: columns t, x, y, z, dx, dy, dz [s, m, -]; '#' comments and a header line allowed.
 
@@ -58,22 +87,7 @@ def read_trajectory_csv(path: Path) -> Trajectory:
         Naming the file and the defect (missing file, wrong column count, non-finite values, times not
         increasing from 0, zero directions).
     """
-    if not path.is_file():
-        raise ValueError(f"{path}: trajectory file not found")
-    # '#' comment lines anywhere (before the header too), then an optional header line.
-    lines = [line for line in path.read_text(encoding="utf-8").splitlines()
-             if line.strip() and not line.lstrip().startswith("#")]
-    try:
-        data = np.loadtxt(lines, delimiter=",", comments="#", ndmin=2)
-    except ValueError:
-        try:
-            data = np.loadtxt(lines[1:], delimiter=",", comments="#", ndmin=2)
-        except ValueError as error:
-            raise ValueError(f"{path}: cannot read the trajectory as numbers: {error}") from None
-    if data.shape[0] == 0 or data.shape[1] != 7:
-        raise ValueError(f"{path}: expected rows of 7 columns t, x, y, z, dx, dy, dz; got shape {data.shape}")
-    if not np.all(np.isfinite(data)):
-        raise ValueError(f"{path}: non-finite values in the trajectory")
+    data = read_numeric_csv(path, ("t", "x", "y", "z", "dx", "dy", "dz"), "trajectory")
     times = data[:, 0]
     if times[0] != 0.0 or np.any(np.diff(times) <= 0.0):
         raise ValueError(f"{path}: times must start at 0 s and increase strictly")
