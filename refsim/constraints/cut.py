@@ -95,6 +95,16 @@ def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray) -> tuple[np.n
     return segment, t[rows, segment], interior
 
 
+def _cut_compliance(per_tet, slide_tets: np.ndarray, front_count: int, with_friction: bool) -> np.ndarray:
+    """Diagonal compliance of the block's rows [m/N]: sliding rows, front rows (none), friction rows (axial,
+    then across), in that order; empty when no compliance is given."""
+    if per_tet is None:
+        return np.zeros(0)
+    lateral, axial = (np.asarray(values, dtype=float)[slide_tets] for values in per_tet)
+    parts = [lateral, np.zeros(front_count)] + ([axial, lateral] if with_friction else [])
+    return np.concatenate(parts)
+
+
 def strip_cut_block(
     cut,
     strip,
@@ -104,9 +114,8 @@ def strip_cut_block(
     spacing: float,
     cut_direction: np.ndarray,
     front_strength: float = np.inf,
-    slide_compliance: float = 0.0,
     friction_coefficient: float = 0.0,
-    friction_compliance: tuple[float, float] = (0.0, 0.0),
+    subgrid_compliance: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[RowBlock | None, FrontRows]:
     """Sliding rows on the cut and front rows on its crack tip, for a strip cut (:mod:`refsim.cutting.strip`).
 
@@ -132,15 +141,15 @@ def strip_cut_block(
     cut_direction : ĉ (deformed), unit, shape (3,).
     front_strength : Force per unit length of needle at which the front gives way [N/m], > 0 (G_c; inf:
         unbounded, the paper's criterion).
-    slide_compliance : Compliance added to each sliding row [m/N], ≥ 0: the sub-grid flexibility of the cut
-        face under the needle, which makes the sliding rows' multipliers unique (d_c ≪ h puts many rows on one
-        triangle).
     friction_coefficient : μ_c ≥ 0 of the cut faces: with μ_c > 0 every sliding row gets two friction rows in
         the surface, along the needle and across it (along ĉ), each bounded by μ_c |λ| of its sliding row (the
         solvers' group-friction law: a square, not a disc, of admissible tangential forces), measuring the
         relative slip over the step (:func:`refsim.constraints.friction.friction_rows`).
-    friction_compliance : Compliance added to the (axial, across) friction rows [m/N], ≥ 0 (the sub-grid
-        compliance of the coupling's axial and lateral rows).
+    subgrid_compliance : (lateral, axial) compliance [m/N] of a row standing for d_c of needle in each tissue tet,
+        shapes (tet_count,) each (:func:`refsim.constraints.coupling.subgrid_compliance` with the tet's own size):
+        added to each sliding row (lateral) and to its friction rows (axial along the needle, lateral across),
+        after the tet of the row's nearest cut point. It makes the sliding rows' multipliers unique (d_c ≪ h puts
+        many rows on one triangle). None: no compliance added.
 
     Rows are ordered: sliding rows, then front rows, then the friction rows (two per sliding row).
     """
@@ -155,6 +164,7 @@ def strip_cut_block(
 
     slide_count = 0
     slide_anchor = None
+    slide_tets = np.zeros(0, dtype=np.int64)
     front_keep = np.zeros(0, dtype=np.int64)
     if cut.triangle_count:
         surface_previous = cut.deformed_points(geometry.tissue_previous, tets)
@@ -170,6 +180,8 @@ def strip_cut_block(
             anchor = np.einsum("qv,qvj->qj", weights, surface_free[cut.triangles[triangle]])
             nodes, node_weights = _surface_point_nodes(cut, tets, triangle, weights)
             slide_anchor = (nodes, node_weights, samples[inside], normals, anchor)
+            nearest = cut.triangles[triangle, np.argmax(weights, axis=1)]
+            slide_tets = cut.tet_indices[nearest]
             blocks.append(
                 (
                     point_rows(nodes, node_weights, normals, geometry.tissue_dof_count),
@@ -273,10 +285,7 @@ def strip_cut_block(
         points=np.concatenate([b[4] for b in blocks]),
         directions=np.concatenate([b[3] for b in blocks]),
         force_limit=limits if np.any(np.isfinite(limits)) else np.zeros(0),
-        compliance_diagonal=np.concatenate([
-            np.full(slide_count, float(slide_compliance)), np.zeros(front_info.rows.size),
-            np.repeat(np.asarray(friction_compliance, dtype=float), slide_count) if friction_count else np.zeros(0),
-        ]),
+        compliance_diagonal=_cut_compliance(subgrid_compliance, slide_tets, front_info.rows.size, friction_count > 0),
         **groups,
     )
     return block, front_info

@@ -6,7 +6,6 @@
 from refsim.cutting.growth import (
     CutGrowth,
     resample_polyline,
-    sweep_points,
 )
 from refsim.cutting.open3d_support import estimate_normals_open3d, import_open3d
 from refsim.cutting.surface import ClosestCutPoints, CutSurface, TriangulationReport
@@ -21,7 +20,6 @@ __all__ = [
     "ClosestCutPoints",
     "CutGrowth",
     "resample_polyline",
-    "sweep_points",
     "CutSurface",
     "TriangulationParameters",
     "TriangulationReport",

@@ -29,9 +29,7 @@ __all__ = [
     "CutGrowth",
     "advance_front",
     "start_strip",
-    "far_from",
     "resample_polyline",
-    "sweep_points",
 ]
 
 def resample_polyline(points: np.ndarray, spacing: float) -> np.ndarray:
@@ -46,27 +44,6 @@ def resample_polyline(points: np.ndarray, spacing: float) -> np.ndarray:
     count = max(int(round(total / spacing)), 1)
     samples = np.linspace(0.0, total, count + 1)
     return np.stack([np.interp(samples, lengths, points[:, k]) for k in range(3)], axis=1)
-
-
-def sweep_points(base_points: np.ndarray, direction: np.ndarray, extent: float, spacing: float, *, first: int = 0):
-    """``base_points`` swept along ``direction`` every ``spacing`` up to ``extent``: shape (q · (K + 1 − first), 3),
-    K = max(round(extent / spacing), 1); ``first`` = 1 leaves out the base points themselves."""
-    steps = max(int(round(extent / spacing)), 1)
-    offsets = np.arange(first, steps + 1) * (extent / steps)
-    direction = np.asarray(direction, dtype=float)
-    if direction.ndim == 1:
-        direction = np.broadcast_to(direction, np.shape(base_points))
-    return (base_points[:, None, :] + offsets[None, :, None] * direction[:, None, :]).reshape(-1, 3)
-
-
-def far_from(points: np.ndarray, existing: np.ndarray, distance: float) -> np.ndarray:
-    """The points farther than ``distance`` [m] from every existing point (KD-tree), shape (k, 3)."""
-    from scipy.spatial import cKDTree
-
-    if len(points) == 0 or len(existing) == 0:
-        return points
-    nearest, _ = cKDTree(existing).query(points, k=1)
-    return points[nearest > distance]
 
 
 @dataclass(frozen=True)

@@ -71,20 +71,17 @@ class Detector:
     scene : The validated scene.
     faces : Tissue surface triangles, shape (f, 3).
     needle_dof_count : DoFs of the needle in the constraint problem, None for a rigid needle.
-    mesh_size : Typical tet size h [m] (the cut rows' sub-grid compliance depends on it).
     """
 
     def __init__(self, scene: Scene, faces: np.ndarray, needle_dof_count: int | None,
-                 rest_positions: np.ndarray | None = None, tets: np.ndarray | None = None,
-                 mesh_size: float = 0.0) -> None:
+                 rest_positions: np.ndarray | None = None, tets: np.ndarray | None = None) -> None:
         self.insertion = scene.insertion
         self.cutting = scene.cutting
         self.faces = faces
         self.needle_dof_count = needle_dof_count
-        self.slide_compliance = _slide_compliance(scene, mesh_size, LATERAL) if scene.cutting.enabled else 0.0
-        self.friction_compliance = (
-            (_slide_compliance(scene, mesh_size, AXIAL), self.slide_compliance) if scene.cutting.enabled else (0.0, 0.0)
-        )
+        self.cut_compliance = None
+        if scene.cutting.enabled and rest_positions is not None and tets is not None:
+            self.cut_compliance = _cut_compliance(scene, rest_positions, tets)
         spec = scene.insertion
         tissue = scene.tissue
         self.shear_modulus = tissue.youngs_modulus / (2.0 * (1.0 + tissue.poisson_ratio))
@@ -204,9 +201,8 @@ class Detector:
                 spacing=cutting.point_spacing,
                 cut_direction=state.cut_direction,
                 front_strength=strength,
-                slide_compliance=self.slide_compliance,
                 friction_coefficient=cutting.friction_coefficient,
-                friction_compliance=self.friction_compliance,
+                subgrid_compliance=self.cut_compliance,
             )
             if block is not None:
                 blocks.append(block)
@@ -218,20 +214,22 @@ class Detector:
         return Detection(rows, contact, front, insertion_points)
 
 
-def _slide_compliance(scene: Scene, mesh_size: float, kind: int) -> float:
-    """Sub-grid compliance of one sliding row of the cut [m/N]: the lateral compliance of the well-posed
-    coupling (:func:`refsim.constraints.coupling.subgrid_compliance`, the annulus between the needle and the
-    equivalent radius of the mesh, Peaceman's well model) for the length d_c a sliding row stands for."""
-    if mesh_size <= 0.0:
-        return 0.0
+def _cut_compliance(scene: Scene, rest_positions: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-grid compliance of a cut row in each tet [m/N], (lateral, axial), shapes (tet_count,) each: the
+    coupling's (:func:`refsim.constraints.coupling.subgrid_compliance`, the annulus between the needle and the
+    equivalent radius of the mesh, Peaceman's well model) with the tet's own size, for the length d_c a cut row
+    stands for."""
+    tets = np.asarray(tets)
+    size = local_mesh_size(rest_positions, tets, np.arange(tets.shape[0]))
     tissue = scene.tissue
-    return float(
-        subgrid_compliance(
-            np.array([kind]),
-            shear_modulus=tissue.youngs_modulus / (2.0 * (1.0 + tissue.poisson_ratio)),
-            poisson_ratio=tissue.poisson_ratio,
-            needle_radius=scene.needle.radius,
-            mesh_size=mesh_size,
-            spacing=scene.cutting.point_spacing,
-        )[0]
+    common = dict(
+        shear_modulus=tissue.youngs_modulus / (2.0 * (1.0 + tissue.poisson_ratio)),
+        poisson_ratio=tissue.poisson_ratio,
+        needle_radius=scene.needle.radius,
+        mesh_size=size,
+        spacing=scene.cutting.point_spacing,
+    )
+    return (
+        subgrid_compliance(np.full(size.size, LATERAL), **common),
+        subgrid_compliance(np.full(size.size, AXIAL), **common),
     )

@@ -38,7 +38,28 @@ from refsim.simulation.detection import Detection
 from refsim.simulation.records import Event
 from refsim.simulation.state import Phase, SimulationState
 
-__all__ = ["EventRules", "LazyLocator", "locate_under_surface"]
+__all__ = ["EventRules", "LazyLocator", "locate_under_surface", "shaft_lateral_force"]
+
+
+def shaft_lateral_force(source, kind, directions, forces, *, without_entry: bool) -> np.ndarray:
+    """The lateral force of the tissue on the needle through its insertion points, t = Σ n λ over their bilateral
+    rows [N], shape (3,) (the cut-start load).
+
+    Parameters
+    ----------
+    source, kind : Source and kind of each row, shape (r,); the insertion points' rows in path order, entry first.
+    directions : Row directions, shape (r, 3). forces : Multipliers [N], shape (r,).
+    without_entry : Leave out the entry point's rows: at the free surface they also carry the surface's reaction
+        to an oblique entry (a 30° axial push put 0.37 N on the lone entry point three steps after puncture:
+        700 N/m over 0.52 mm), a load no shaft cuts with (the energy law).
+    """
+    insertion = np.flatnonzero(np.asarray(source) == INSERTION)
+    lateral = insertion[np.asarray(kind)[insertion] == BILATERAL]
+    if without_entry:
+        # Each point has its two lateral rows first (then its axial row when there is friction): the entry's
+        # are the first two.
+        lateral = lateral[2:]
+    return (np.asarray(directions)[lateral] * np.asarray(forces)[lateral, None]).sum(axis=0)
 
 #: Relative tolerance on f_p of the puncture test (a capped row carries f_p to the solve's accuracy).
 PUNCTURE_TOLERANCE = 1e-6
@@ -144,13 +165,9 @@ class EventRules:
         events: list[Event] = []
         positions = state.tissue.positions
         if self.growth is not None and rows.row_count:
-            lateral = (rows.source == INSERTION) & (rows.kind == BILATERAL)
-            if self.cutting.law == "energy":
-                # The shaft's lateral load: without the entry point's rows, which at the free surface also carry
-                # the surface's reaction to an oblique entry (a 30° axial push put 0.37 N on the lone entry
-                # point three steps after puncture: 700 N/m over 0.52 mm), a load no shaft cuts with.
-                lateral[np.flatnonzero(lateral)[:2]] = False
-            force_on_needle = (rows.directions[lateral] * multipliers[lateral, None]).sum(axis=0)
+            force_on_needle = shaft_lateral_force(
+                rows.source, rows.kind, rows.directions, multipliers, without_entry=self.cutting.law == "energy"
+            )
             started = self._cut_starts(state, force_on_needle)
             if started is not None:
                 return started

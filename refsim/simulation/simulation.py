@@ -93,9 +93,8 @@ class Simulation:
             spec.strategy, refresh_every=spec.refresh_every, linear_solver=spec.linear_solver, w_update=spec.w_update
         ).bind()
         self.tissue_body = TissueBody(self.tissue, self.tissue_compliance)
-        mesh_size = float(np.cbrt(6.0 * np.mean(self.tissue.element_volumes)))
         self.detector = Detector(
-            scene, self.faces, self.needle.dof_count, self.models.mesh.rest_positions, self.tets, mesh_size
+            scene, self.faces, self.needle.dof_count, self.models.mesh.rest_positions, self.tets
         )
         self.event_rules = EventRules(
             scene, self.tets, self.models.mesh.rest_positions, self.tissue.deformation_gradients, self.needle.geometry

@@ -32,12 +32,14 @@ def shaft_load(records, states, tets) -> tuple[float, int]:
     """Largest ‖t‖ / L_in over the run [N/m] and its step: t the insertion rows' lateral force without the entry
     point's rows (the energy law's cut-start load), L_in the inserted length (> 1 cm, below which the load per
     length is the surface's)."""
+    from refsim.simulation.events import shaft_lateral_force
+
     best, at = 0.0, -1
     for record, state in zip(records, states):
-        lateral = np.flatnonzero((record.row_source == 1) & (record.row_kind == 0))[2:]
-        if lateral.size == 0 or state.path.point_count == 0:
+        if state.path.point_count == 0 or state.phase != "insertion":
             continue
-        force = (record.row_directions[lateral] * record.row_forces[lateral, None]).sum(axis=0)
+        force = shaft_lateral_force(record.row_source, record.row_kind, record.row_directions, record.row_forces,
+                                    without_entry=True)
         needle_tip = record.needle_positions[-1]
         entry = state.path.positions(state.tissue.positions, tets)[0]
         length = float(np.linalg.norm(needle_tip - entry))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from refsim.constraints import InsertionPath, friction_rows, orthonormal_basis, slip_gaps
+from refsim.constraints import InsertionPath, friction_rows, slip_gaps
 from refsim.geometry import TetLocator
 from tests.constraints.conftest import rigid_needle, still_geometry
 
@@ -45,10 +45,3 @@ def test_rows_anchored_at_tissue_points_linearise_the_slip(block):
         tangents=tangents,
     )
     np.testing.assert_allclose(rows.tissue_jacobian @ motion.ravel(), again.free_gap - rows.free_gap, atol=1e-18)
-
-
-def test_tangents_of_a_contact_are_orthogonal_to_its_normal():
-    normals = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [1.0, 1e-13, 0.0]])
-    first, second = orthonormal_basis(normals)
-    np.testing.assert_allclose(np.einsum("ij,ij->i", first, normals), 0.0, atol=1e-15)
-    np.testing.assert_allclose(np.einsum("ij,ij->i", second, normals), 0.0, atol=1e-15)
