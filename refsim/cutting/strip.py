@@ -140,10 +140,14 @@ class CutStrip:
     ----------
     layers : Point indices into the `CutSurface`, shape (layer_count, column_count); row 0 is the path.
     front : The crack tip.
+    depths : Depth of each column along the needle below the tissue surface at the cut start [m], shape
+        (column_count,) (0 for the entry column): where on the needle each column's crack tip is taken to
+        (:func:`refsim.cutting.growth.crack_tip_targets`).
     """
 
     layers: np.ndarray
     front: CutFront
+    depths: np.ndarray
 
     @property
     def column_count(self) -> int:
@@ -155,7 +159,7 @@ class CutStrip:
         return self.layers[-1]
 
     def with_front(self, front: CutFront) -> CutStrip:
-        return CutStrip(self.layers, front)
+        return CutStrip(self.layers, front, self.depths)
 
     def lay(self, cut: CutSurface, step: int, minimum_gap: float) -> tuple[CutSurface, CutStrip]:
         """Lay a layer at the crack tip when any column's tip is farther than ``minimum_gap`` [m] (rest) from
@@ -179,7 +183,7 @@ class CutStrip:
             triangles,
             seconds=clock.perf_counter() - started,
         )
-        return grown, CutStrip(np.vstack([self.layers, layer[None, :]]), self.front)
+        return grown, CutStrip(np.vstack([self.layers, layer[None, :]]), self.front, self.depths)
 
 
 def append_points(

@@ -317,6 +317,22 @@ class CutSurface:
             raise ValueError(f"tets of the cut points index nodes outside [0, {positions.shape[0]})")
         return np.einsum("pk,pki->pi", self.barycentric, positions[nodes])
 
+    def interpolated_normals(self, points: np.ndarray, triangle: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """Unit normals at points of the surface given by triangle and barycentric weights (q,), (q, 3): the
+        area-weighted vertex normals on ``points`` interpolated with the weights, shape (q, 3).
+
+        A sliver (three nearly collinear points, where the cut's border follows a straight path of the needle
+        tip) has an arbitrary normal of its own; it weighs nothing in its vertices' normals.
+        """
+        corners = points[self.triangles]
+        face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        vertex = np.zeros_like(points)
+        for k in range(3):  # the three corners of every triangle, vectorised over the triangles
+            np.add.at(vertex, self.triangles[:, k], face)
+        vertex /= np.maximum(np.linalg.norm(vertex, axis=1, keepdims=True), 1e-300)
+        normals = np.einsum("qv,qvj->qj", weights, vertex[self.triangles[triangle]])
+        return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+
     def triangle_normals(self, points: np.ndarray) -> np.ndarray:
         """Unit normals (b − a) × (c − a) of the triangles on given point positions (rest or deformed).
 

@@ -34,7 +34,7 @@ from refsim.constraints.coupling import (
     subgrid_compliance,
     tip_cutting_block,
 )
-from refsim.constraints.cut import FrontRows, strip_cut_block
+from refsim.constraints.cut import FrontRows, inserted_arc, strip_cut_block
 from refsim.constraints.insertion import InsertionPath
 from refsim.geometry import SurfaceProjector, TetLocator
 from refsim.scene import Scene
@@ -188,8 +188,11 @@ class Detector:
                                                     cutting_force=spec.tip_cutting_force)
                 blocks.append(tip_block)
         if state.phase == Phase.CUTTING and state.cut_strip is not None:
-            entry = state.path.positions(state.tissue.positions, geometry.mesh_tets)[:1]
-            entry_arc_length = float(geometry.needle_previous.project(entry)[0][0])
+            # The inserted part of the needle: from where it enters the tissue (not the entry point's projection,
+            # which a tilted needle pushed sideways leaves above the tissue) to the tip, on the start-of-step state.
+            entry_arc_length = inserted_arc(geometry.needle_previous,
+                                            TetLocator(geometry.tissue_previous, geometry.mesh_tets),
+                                            self.cutting.point_spacing)
             offset = sum(block.row_count for block in blocks)
             cutting = self.cutting
             strength = cutting.fracture_energy if cutting.law == "energy" else np.inf

@@ -29,9 +29,9 @@ from refsim.constraints import (
     grow_path,
     points_beyond_tip,
 )
-from refsim.constraints.cut import cut_criterion
+from refsim.constraints.cut import cut_criterion, inserted_arc
 from refsim.cutting import CutGrowth, TriangulationParameters
-from refsim.cutting.growth import advance_front, start_strip
+from refsim.cutting.growth import advance_front, crack_tip_targets, move_front, start_strip
 from refsim.geometry import TetLocator
 from refsim.scene import Scene
 from refsim.simulation.detection import Detection
@@ -280,15 +280,15 @@ class EventRules:
             # distance past the column's crack-tip point along ĉ normal to the needle (moving the ends of a
             # row's segment by the row's overshoot carried a lagging column's overshoot to its neighbour: one
             # column of a 30° needle 1.5 mm past it).
+            # Each goes to the needle at its own depth below the tissue surface, when that is ahead of it.
             columns = np.unique(np.concatenate([front.segment[over > 0.0], front.segment[over > 0.0] + 1]))
             tips = strip.front.positions(positions, self.tets)[columns]
-            arcs, closest = needle.project(tips)
-            tangents = needle.tangents(arcs)
+            entry_arc = inserted_arc(needle, TetLocator(positions, self.tets), cutting.point_spacing)
+            targets, reached = crack_tip_targets(strip, needle, entry_arc, columns, cutting.point_spacing)
+            tangents = needle.tangents(needle.project(targets)[0])
             across = state.cut_direction - (tangents @ state.cut_direction)[:, None] * tangents
-            across /= np.linalg.norm(across, axis=1, keepdims=True)
-            advances = np.zeros(strip.column_count)
-            advances[columns] = np.maximum(np.einsum("ij,ij->i", closest - tips, across), 0.0)
-            moved = strip.with_front(advance_front(self.growth, strip, advances, state.cut_direction, positions))
+            ahead = reached & (np.einsum("ij,ij->i", targets - tips, across) > 0.0)
+            moved = strip.with_front(move_front(self.growth, strip, columns[ahead], targets[ahead], positions))
             cut, laid = moved.lay(state.cut, state.step, cutting.point_spacing)
             if laid.layers.shape[0] > strip.layers.shape[0]:
                 events.append(Event("tear", float(forces.sum())))

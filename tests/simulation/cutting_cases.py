@@ -7,7 +7,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from refsim.constraints import BILATERAL, CUT_SLIDE
+from refsim.constraints.cut import inserted_arc
 from refsim.cutting.metrics import surface_topology
+from refsim.geometry import TetLocator
 from refsim.scene import load_scene
 from refsim.simulation import Simulation
 
@@ -81,10 +84,16 @@ class CuttingRun:
     records: list
     state: object
     simulation: Simulation
-    needle_to_cut: float  # the largest distance of a needle sample inside the cut from the cut surface [m]
+    # The largest distance normal to the cut of a needle sample in the tissue and in the cut (projecting inside
+    # it or within d_c of its front) [m].
+    needle_to_cut: float
     inserted: list = field(default_factory=list)  # inserted length after each step [m] (0 before puncture)
     cuts: dict = field(default_factory=dict)  # step -> cut surface after the step
     work: list = field(default_factory=list)  # (step, tissue energy [J], work of the needle on the tissue [J])
+    # (step, largest distance normal to the cut of a needle sample in the tissue and in the cut [m], the largest
+    # C λ of the step's sliding rows plus d_c times the largest rotation of a cut triangle's normal over the step
+    # [m]) of each cutting step with such a sample.
+    offsets: list = field(default_factory=list)
 
     @property
     def events(self) -> list[tuple[int, str]]:
@@ -115,6 +124,15 @@ class CuttingRun:
     cut_direction: np.ndarray | None = None
 
 
+def _kink(cut, surface: np.ndarray) -> float:
+    """The largest |n_a − n_b| between the vertex normals of two corners of a triangle (how much the normal
+    the rows use varies over one triangle)."""
+    corners = np.arange(cut.triangle_count).repeat(3)
+    normals = cut.interpolated_normals(surface, corners, np.tile(np.eye(3), (cut.triangle_count, 1)))
+    normals = normals.reshape(-1, 3, 3)
+    return float(max(np.linalg.norm(normals[:, a] - normals[:, b], axis=1).max() for a, b in ((0, 1), (1, 2), (0, 2))))
+
+
 def run_case(case: CuttingCase) -> CuttingRun:
     """Run a case, measuring after each cutting step how far the needle's samples inside the cut are from it."""
     scene = case.scene()
@@ -124,8 +142,13 @@ def run_case(case: CuttingCase) -> CuttingRun:
     state = simulation.initial_state()
     tets = simulation.tets
     tissue = simulation.tissue
+    spacing = scene.cutting.point_spacing
+    offsets = []
+    # The largest lateral sub-grid compliance of a sliding row [m/N] (refsim.simulation.detection).
+    compliance = float(simulation.detector.cut_compliance[0].max())
     for _ in range(scene.time.step_count):
         previous_base = state.needle.base_position
+        previous_positions, cut_before = state.tissue.positions, state.cut
         state, record = simulation.step(state)
         records.append(record)
         # Work of the needle on the tissue (a rigid needle translates with its base; the tissue receives −F).
@@ -133,24 +156,48 @@ def run_case(case: CuttingCase) -> CuttingRun:
         energy = tissue.strain_energy(state.tissue.positions) + tissue.kinetic_energy(state.tissue.velocities)
         energies.append((record.step, energy, work))
         needle = simulation.needle.geometry(state.needle)
+        entry_arc = needle.length
         if state.path.point_count:
-            entry = state.path.positions(state.tissue.positions, tets)[:1]
-            inserted.append(needle.length - float(needle.project(entry)[0][0]))
-        else:
-            inserted.append(0.0)
+            if record.phase == "cutting":
+                # Cutting: the needle's part inside the tissue (a tilted needle pushed sideways leaves its entry
+                # point's projection above the tissue).
+                entry_arc = inserted_arc(needle, TetLocator(state.tissue.positions, tets), spacing)
+            else:
+                entry = state.path.positions(state.tissue.positions, tets)[:1]
+                entry_arc = float(needle.project(entry)[0][0])
+        inserted.append(needle.length - entry_arc)
         if state.cut is not None:
             cuts[record.step] = state.cut
         if state.cut is not None and state.cut_direction is not None:
             direction = state.cut_direction
         if record.phase == "cutting" and state.cut is not None and state.cut.triangle_count:
-            needle = simulation.needle.geometry(state.needle)
             surface = state.cut.deformed_points(state.tissue.positions, tets)
-            entry = state.path.positions(state.tissue.positions, tets)[:1]
-            start = float(needle.project(entry)[0][0])
-            samples = needle.points(np.linspace(start, needle.length, 20))
+            samples = needle.points(np.linspace(entry_arc, needle.length, 20))
             found = state.cut.closest_points(samples, surface)
-            if np.any(found.inside):
-                worst = max(worst, float(np.linalg.norm(samples - found.closest, axis=1)[found.inside].max()))
-    run = CuttingRun(records, state, simulation, worst, inserted, cuts, energies)
+            # Samples in the cut: projecting inside it, or beyond its front by less than one layer (d_c: the
+            # crack tip is at the needle, the last layer up to d_c behind it); their distance normal to the cut.
+            normals = state.cut.interpolated_normals(surface, found.triangle, found.barycentric)
+            offset = samples - found.closest
+            across = np.einsum("ij,ij->i", offset, normals)
+            in_plane = np.linalg.norm(offset - across[:, None] * normals, axis=1)
+            near = found.inside | (in_plane <= spacing)
+            if np.any(near) and cut_before is not None and cut_before.triangle_count:
+                distance = float(np.abs(across[near]).max())
+                worst = max(worst, distance)
+                slide = (record.row_source == CUT_SLIDE) & (record.row_kind == BILATERAL)
+                largest = float(np.abs(record.row_forces[slide]).max()) if np.any(slide) else 0.0
+                # The rows are linearised with the normals of the step's start: the cut's rotation over the step,
+                # times the sample's offset in the plane (≤ d_c), is what the linearisation may miss.
+                shared = cut_before.triangle_count
+                eye = np.tile(np.eye(3), (shared, 1))
+                previous_normals = cut_before.interpolated_normals(
+                    cut_before.deformed_points(previous_positions, tets), np.arange(shared).repeat(3), eye)
+                turn = state.cut.interpolated_normals(surface, np.arange(shared).repeat(3), eye) - previous_normals
+                rotation = float(np.linalg.norm(turn, axis=1).max()) if shared else 0.0
+                # And a row holds its sample against the triangle its closest point was on at the step's start,
+                # the measure takes the closest at the end: the angle between neighbouring triangles (the cut's
+                # kinks), times the offset in the plane, is the difference.
+                offsets.append((record.step, distance, compliance * largest + spacing * (rotation + _kink(state.cut, surface))))
+    run = CuttingRun(records, state, simulation, worst, inserted, cuts, energies, offsets)
     run.cut_direction = direction
     return run

@@ -207,8 +207,13 @@ CASES = {
     "y": CuttingCase(stroke=(0.0, 0.005)),
     "diagonal": CuttingCase(stroke=(0.0035, 0.0035)),
     "oblique": CuttingCase(stroke=(0.0047, 0.0017)),
+    "tilt-15": CuttingCase(tilt=15.0),
     "tilt-30": CuttingCase(tilt=30.0),
+    "tilt-45": CuttingCase(tilt=45.0),
+    "tilt-30-back": CuttingCase(tilt=30.0, stroke=(-0.005, 0.0)),  # the push has a downward component
+    "tilt-30-y": CuttingCase(tilt=30.0, stroke=(0.0, 0.005)),
     "tilt-15-diagonal": CuttingCase(tilt=15.0, stroke=(0.0035, 0.0035)),
+    "tilt-30-diagonal": CuttingCase(tilt=30.0, stroke=(0.0035, 0.0035)),
     "entry-edge": CuttingCase(entry=(0.0, 0.00231)),
     "entry-vertex": CuttingCase(entry=(0.0, 0.0)),
     "d_c-0.25": CuttingCase(overrides=("cutting.point_spacing=0.25e-3",)),
@@ -230,6 +235,14 @@ def test_cutting_matrix_is_bounded_and_manifold(name):
     assert run.extent() <= stroke + d_c, (name, run.extent())
     assert run.count("tear") <= stroke / d_c + 2, (name, run.count("tear"))
     assert max(np.linalg.norm(r.needle_force) for r in run.records) < 50.0  # no runaway
+    # The needle on the cut (item 1): every sample of the inserted needle that lies in the cut (projecting inside
+    # it, or beyond its front by less than the layer spacing d_c) is off the cut, normally to it, by at most the
+    # sliding rows' sub-grid compliance times their force (C λ, physical: the tissue around a row yields) plus
+    # what linearising the rows at the step's start may miss (d_c times the change of the normal over the step
+    # and over a triangle; cutting_cases.run_case), at every cutting step.
+    assert run.offsets, name
+    for step, distance, bound in run.offsets:
+        assert distance <= bound + 1e-9, (name, step, distance, bound)
 
 
 @pytest.mark.parametrize("name", ["x", "diagonal", "tilt-30", "entry-vertex"])
