@@ -17,7 +17,7 @@ growth of the cut is in :mod:`refsim.cutting.growth` and :mod:`refsim.cutting.st
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -85,6 +85,9 @@ class FrontRows:
     parameter : Position t ∈ [0, 1] on the segment, shape (f,).
     arc_lengths : The needle point of each row [m], shape (f,).
     directions : Row directions n (in the cut, normal to the needle, pointing back into the cut), shape (f, 3).
+    band_rows : The sliding rows at the front (bounded at G_c ℓ_k: the needle cuts out of the plane there when
+        they give way), indices in the block, shape (b,).
+    band_segment : The crack-tip segment nearest each of them, shape (b,).
     """
 
     rows: np.ndarray
@@ -92,6 +95,8 @@ class FrontRows:
     parameter: np.ndarray
     arc_lengths: np.ndarray
     directions: np.ndarray
+    band_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    band_segment: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @classmethod
     def empty(cls) -> FrontRows:
@@ -195,6 +200,12 @@ def strip_cut_block(
     needle_free = geometry.needle_free.points(samples)
     blocks = []
 
+    front_previous = strip.front.positions(geometry.tissue_previous, tets)
+    # The inserted length each sample stands for: [s − Δ/2, s + Δ/2] ∩ [entry, L].
+    step = samples[1] - samples[0] if samples.size > 1 else spacing
+    shares = np.clip(np.minimum(samples + 0.5 * step, length) - np.maximum(samples - 0.5 * step, entry_arc_length), 0.0, None)
+    slide_limits = np.zeros(0)
+    band_rows, band_segment = np.zeros(0, np.int64), np.zeros(0, np.int64)
     slide_count = 0
     slide_anchor = None
     slide_tets = np.zeros(0, dtype=np.int64)
@@ -227,12 +238,21 @@ def strip_cut_block(
                 )
             )
             slide_count = inside.size
+            # At the front (within 1.5 d_c of the crack tip) the needle has uncut tissue on every side but the
+            # cut's: pushed out of the cut's plane it cuts through at G_c per unit length as it does ahead, so
+            # those sliding rows carry at most G_c ℓ_k (a needle whose stroke turns then turns the cut; held by
+            # unbounded rows there, an L-shaped stroke dragged the tissue sideways, 7.3 N against 3.6 N).
+            slide_limits = np.full(inside.size, np.inf)
+            if np.isfinite(front_strength) and front_previous.shape[0] >= 2:
+                segment, parameter, _ = _closest_on_polyline(needle_previous[inside], front_previous)
+                nearest_tip = (1.0 - parameter)[:, None] * front_previous[segment] + parameter[:, None] * (
+                    front_previous[segment + 1])
+                band = np.flatnonzero((np.linalg.norm(needle_previous[inside] - nearest_tip, axis=1) <= 1.5 * spacing)
+                                      & (shares[inside] > 1e-9 * step))
+                slide_limits[band] = float(front_strength) * shares[inside][band]
+                band_rows, band_segment = band, segment[band]
 
-    front_previous = strip.front.positions(geometry.tissue_previous, tets)
     front_info = FrontRows.empty()
-    # The inserted length each sample stands for: [s − Δ/2, s + Δ/2] ∩ [entry, L].
-    step = samples[1] - samples[0] if samples.size > 1 else spacing
-    shares = np.clip(np.minimum(samples + 0.5 * step, length) - np.maximum(samples - 0.5 * step, entry_arc_length), 0.0, None)
     if front_previous.shape[0] >= 2:
         segment, parameter, interior = _closest_on_polyline(needle_previous, front_previous)
         keep = np.flatnonzero(interior & (shares > 1e-9 * step))
@@ -262,8 +282,12 @@ def strip_cut_block(
                     np.full(keep.size, CUT_BORDER),
                 )
             )
-            front_info = FrontRows(slide_count + np.arange(keep.size), seg, t, samples[keep], directions)
+            front_info = FrontRows(slide_count + np.arange(keep.size), seg, t, samples[keep], directions,
+                                   band_rows, band_segment)
             front_keep = keep
+    if front_info.rows.size == 0 and band_rows.size:
+        front_info = FrontRows(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0),
+                               np.zeros((0, 3)), band_rows, band_segment)
     if not blocks:
         return None, front_info
     friction_count = 0
@@ -297,7 +321,8 @@ def strip_cut_block(
         )
     rigid = blocks[0][1] is None
     limits = np.concatenate(
-        [np.full(slide_count, np.inf), float(front_strength) * shares[front_keep], np.full(friction_count, np.inf)]
+        [slide_limits if slide_limits.size else np.full(slide_count, np.inf), float(front_strength) * shares[front_keep],
+         np.full(friction_count, np.inf)]
     )
     first_friction = slide_count + front_info.rows.size
     groups = {}

@@ -209,7 +209,7 @@ class Detector:
             )
             if block is not None:
                 blocks.append(block)
-            front = replace(front, rows=front.rows + offset)
+            front = replace(front, rows=front.rows + offset, band_rows=front.band_rows + offset)
         if not blocks:
             rows = empty_block(geometry.tissue_dof_count, self.needle_dof_count)
         else:

@@ -231,6 +231,30 @@ class EventRules:
         )
         return state, [Event("cut_start", trigger)]
 
+    def _swept_direction(self, cut, strip, positions, needle, direction):
+        """ĉ after a layer is laid: the mean of the old ĉ and of the direction the last layer moved in (its
+        columns' mean displacement from the layer before, deformed, normal to the needle), unit.
+
+        The cut's plane thus follows the needle's swept path, turned by half the angle each layer (d_c of
+        sweep): a stroke that turns turns the cut, and a straight one keeps it (ĉ taken from the rows' push
+        each step zigzagged by ±30°).
+        """
+        points = cut.deformed_points(positions, self.tets)
+        last, before = strip.layers[-1], strip.layers[-2]
+        moved = last != before
+        if not np.any(moved):
+            return direction
+        swept = (points[last[moved]] - points[before[moved]]).mean(axis=0)
+        tangent = needle.tangents(np.array([needle.length]))[0]
+        swept -= (swept @ tangent) * tangent
+        old = direction - (direction @ tangent) * tangent
+        norm_swept, norm_old = np.linalg.norm(swept), np.linalg.norm(old)
+        if norm_swept <= 0.0 or norm_old <= 0.0:
+            return direction
+        blended = old / norm_old + swept / norm_swept
+        norm = np.linalg.norm(blended)
+        return blended / norm if norm > 1e-6 else direction
+
     def _cutting(self, state, detection, multipliers):
         """Withdrawal through the cut, and the growth of the cut where the needle pushes through its front."""
         positions = state.tissue.positions
@@ -266,7 +290,7 @@ class EventRules:
                 events.append(Event("retraction"))
             state = replace(state, path=path)
         front = detection.front
-        if front.rows.size == 0:
+        if front.rows.size == 0 and (cutting.law != "energy" or front.band_rows.size == 0):
             return state, events
         forces = multipliers[front.rows]
         strip = state.cut_strip
@@ -274,25 +298,37 @@ class EventRules:
             limit = detection.rows.force_limit[front.rows]
             gaps = front.gaps(strip.front.positions(positions, self.tets), needle)
             over = np.where((forces >= (1.0 - 1e-6) * limit) & (gaps < 0.0), -gaps, 0.0)
-            if not np.any(over > 0.0):
+            # Sliding rows at the front that gave way: the needle cuts out of the cut's plane there.
+            band_limit = detection.rows.force_limit[front.band_rows]
+            sideways = np.abs(multipliers[front.band_rows]) >= (1.0 - 1e-6) * band_limit
+            if not (np.any(over > 0.0) or np.any(sideways)):
                 return state, events
             # Each column next to a row that gave way moves to the needle: its own overshoot, the needle's
             # distance past the column's crack-tip point along ĉ normal to the needle (moving the ends of a
             # row's segment by the row's overshoot carried a lagging column's overshoot to its neighbour: one
             # column of a 30° needle 1.5 mm past it).
             # Each goes to the needle at its own depth below the tissue surface, when that is ahead of it.
-            columns = np.unique(np.concatenate([front.segment[over > 0.0], front.segment[over > 0.0] + 1]))
+            given = np.concatenate([front.segment[over > 0.0], front.band_segment[sideways]])
+            columns = np.unique(np.concatenate([given, given + 1]))
             tips = strip.front.positions(positions, self.tets)[columns]
             entry_arc = inserted_arc(needle, TetLocator(positions, self.tets), cutting.point_spacing)
             targets, reached = crack_tip_targets(strip, needle, entry_arc, columns, cutting.point_spacing)
             tangents = needle.tangents(needle.project(targets)[0])
             across = state.cut_direction - (tangents @ state.cut_direction)[:, None] * tangents
-            ahead = reached & (np.einsum("ij,ij->i", targets - tips, across) > 0.0)
+            across /= np.linalg.norm(across, axis=1, keepdims=True)
+            motion = targets - tips
+            distance = np.linalg.norm(motion, axis=1)
+            # Forward, or sideways (a turning stroke): anything but back into the cut (within 60° of ĉ's
+            # opposite: the needle has moved back from the crack tip, and there is nothing to cut).
+            ahead = reached & (distance > 1e-6 * cutting.point_spacing) & (
+                np.einsum("ij,ij->i", motion, across) > -0.5 * distance)
             moved = strip.with_front(move_front(self.growth, strip, columns[ahead], targets[ahead], positions))
             cut, laid = moved.lay(state.cut, state.step, cutting.point_spacing)
+            direction = state.cut_direction
             if laid.layers.shape[0] > strip.layers.shape[0]:
-                events.append(Event("tear", float(forces.sum())))
-            return replace(state, cut=cut, cut_strip=laid), events
+                events.append(Event("tear", float(forces.sum()) + float(np.abs(multipliers[front.band_rows]).sum())))
+                direction = self._swept_direction(cut, laid, positions, needle, direction)
+            return replace(state, cut=cut, cut_strip=laid, cut_direction=direction), events
         strongest = float(forces.max())
         if strongest < cutting.tearing_force:
             return state, events

@@ -30,6 +30,7 @@ class CuttingCase:
         in-plane axis normal to the needle.
     depth : Inserted length [m].
     cells : Cells per axis.
+    turn : A second lateral stroke after the first (an L-shaped path), like ``stroke`` [m]; (0, 0): none.
     overrides : Further scene overrides.
     """
 
@@ -38,6 +39,7 @@ class CuttingCase:
     stroke: tuple[float, float] = (0.005, 0.0)
     depth: float = 0.012
     cells: int = 6
+    turn: tuple[float, float] = (0.0, 0.0)
     overrides: tuple[str, ...] = field(default_factory=tuple)
 
     @property
@@ -45,11 +47,14 @@ class CuttingCase:
         angle = np.radians(self.tilt)
         return np.array([np.sin(angle), 0.0, -np.cos(angle)])
 
-    @property
-    def stroke_vector(self) -> np.ndarray:
+    def lateral(self, stroke) -> np.ndarray:
         angle = np.radians(self.tilt)
         across = np.array([np.cos(angle), 0.0, np.sin(angle)])  # in the xz plane, normal to the needle
-        return self.stroke[0] * across + self.stroke[1] * np.array([0.0, 1.0, 0.0])
+        return stroke[0] * across + stroke[1] * np.array([0.0, 1.0, 0.0])
+
+    @property
+    def stroke_vector(self) -> np.ndarray:
+        return self.lateral(self.stroke)
 
     def scene_overrides(self) -> list[str]:
         d = self.direction
@@ -63,13 +68,19 @@ class CuttingCase:
         base1 = base0 + (0.002 + self.depth) * d
         base2 = base1 + stroke
         fmt = lambda v: "[" + ", ".join(f"{x:.9g}" for x in v) + "]"  # noqa: E731
-        times = [0.0, t_insert, t_stroke, t_stroke + 0.1]
+        times, bases = [0.0, t_insert, t_stroke], [base0, base1, base2]
+        turn = self.lateral(self.turn)
+        if np.linalg.norm(turn) > 0.0:
+            times.append(times[-1] + float(np.linalg.norm(turn)) / speed)
+            bases.append(base2 + turn)
+        times.append(times[-1] + 0.1)
+        bases.append(bases[-1])
         duration = round(times[-1], 2)
         return [
             f"mesh.cells=[{self.cells}, {self.cells}, {self.cells}]",
             f"trajectory.times={fmt(times)}",
-            f"trajectory.base_positions=[{fmt(base0)}, {fmt(base1)}, {fmt(base2)}, {fmt(base2)}]",
-            f"trajectory.directions=[{fmt(d)}, {fmt(d)}, {fmt(d)}, {fmt(d)}]",
+            f"trajectory.base_positions=[{', '.join(fmt(b) for b in bases)}]",
+            f"trajectory.directions=[{', '.join([fmt(d)] * len(times))}]",
             f"time.duration={duration}",
             "output.tissue_every=1000",
             *self.overrides,
