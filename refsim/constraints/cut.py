@@ -169,7 +169,8 @@ def strip_cut_block(
     Parameters
     ----------
     cut : The `refsim.cutting.CutSurface`.
-    strip : Its `refsim.cutting.strip.CutStrip`.
+    strip : Its `refsim.cutting.strip.CutStrip`; None for a needle inserted along an existing cut (no crack tip:
+        sliding rows only, unbounded).
     geometry : The step's geometry.
     entry_arc_length : Arc length where the needle enters the tissue [m] (:func:`inserted_arc`); the samples run
         from there to the tip (none, and no rows, when it is the needle's length: the tip is out).
@@ -200,7 +201,7 @@ def strip_cut_block(
     needle_free = geometry.needle_free.points(samples)
     blocks = []
 
-    front_previous = strip.front.positions(geometry.tissue_previous, tets)
+    front_previous = np.zeros((0, 3)) if strip is None else strip.front.positions(geometry.tissue_previous, tets)
     # The inserted length each sample stands for: [s − Δ/2, s + Δ/2] ∩ [entry, L].
     step = samples[1] - samples[0] if samples.size > 1 else spacing
     shares = np.clip(np.minimum(samples + 0.5 * step, length) - np.maximum(samples - 0.5 * step, entry_arc_length), 0.0, None)

@@ -187,6 +187,16 @@ class Detector:
                                                     tip_barycentric=state.path.barycentric[-1],
                                                     cutting_force=spec.tip_cutting_force)
                 blocks.append(tip_block)
+        if state.phase == Phase.INSERTION and state.cut is not None and state.cut.triangle_count:
+            # A needle inserted along an existing cut slides in it: the old cut's sliding rows (no crack tip).
+            entry_arc_length = inserted_arc(geometry.needle_previous,
+                                            TetLocator(geometry.tissue_previous, geometry.mesh_tets),
+                                            self.cutting.point_spacing)
+            block, _ = strip_cut_block(state.cut, None, geometry, entry_arc_length=entry_arc_length,
+                                       spacing=self.cutting.point_spacing, cut_direction=np.zeros(3),
+                                       subgrid_compliance=self.cut_compliance)
+            if block is not None:
+                blocks.append(block)
         if state.phase == Phase.CUTTING and state.cut_strip is not None:
             # The inserted part of the needle: from where it enters the tissue (not the entry point's projection,
             # which a tilted needle pushed sideways leaves above the tissue) to the tip, on the start-of-step state.

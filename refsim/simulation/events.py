@@ -172,7 +172,7 @@ class EventRules:
             if started is not None:
                 return started
         needle = self.needle_geometry(state.needle)
-        path, _ = grow_path(
+        path, added = grow_path(
             state.path,
             tip=needle.tip,
             tissue_positions=positions,
@@ -181,6 +181,8 @@ class EventRules:
             spacing=self.insertion.spacing,
             step=state.step,
         )
+        if added and state.cut is not None and state.cut.triangle_count:
+            path = self._outside_cut(path, state, positions)
         # Ring coupling: the centre of a point is not tied to the needle (its ring is), so it drifts along the needle
         # with the tissue's strain; half a spacing of hysteresis keeps such drift from removing and re-adding it.
         margin = 0.5 * self.insertion.spacing if self.insertion.coupling == "ring" else 0.0
@@ -193,6 +195,23 @@ class EventRules:
             state = replace(state, phase=Phase.APPROACH)
             events.append(Event("withdrawal"))
         return state, events
+
+    def _outside_cut(self, path, state, positions):
+        """The path without its new points that lie in the existing cut (projecting inside it, within d_c of it):
+        a needle inserted along a cut slides in it (its sliding rows), it does not puncture the tissue there."""
+        new = np.flatnonzero(path.created_step == state.step)
+        if new.size == 0:
+            return path
+        cut = state.cut
+        found = cut.closest_points(path.positions(positions, self.tets)[new], cut.deformed_points(positions, self.tets))
+        distance = np.linalg.norm(path.positions(positions, self.tets)[new] - found.closest, axis=1)
+        in_cut = found.inside & (distance <= self.cutting.point_spacing)
+        in_cut &= new > 0  # the entry point stays: it marks the inserted length
+        if not np.any(in_cut):
+            return path
+        keep = np.ones(path.point_count, dtype=bool)
+        keep[new[in_cut]] = False
+        return path.subset(keep)
 
     def _cut_starts(self, state, force_on_needle):
         """The state and events of a cut start, or None when the criterion does not hold.

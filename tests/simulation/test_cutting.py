@@ -334,3 +334,52 @@ def test_a_turning_stroke_turns_the_cut(turn):
     assert run.state.cut_direction @ swept >= np.cos(np.radians(30.0)), run.state.cut_direction
     peak = max(np.linalg.norm(r.needle_force) for r in run.records)
     assert peak <= 1.25 * max(np.linalg.norm(r.needle_force) for r in straight.records)
+
+
+def test_reinsertion_along_an_existing_cut_slides_in_it():
+    # Insert 14 mm, cut 5 mm along x, pull out, come back above the middle of the cut and insert 10 mm there
+    # (item 5): the needle slides in the old cut (its sliding rows hold it on it) and gets no insertion point
+    # where the cut is (the tissue there is already cut).
+    from refsim.constraints import INSERTION
+    from refsim.scene import load_scene
+    from refsim.simulation import Simulation
+
+    t = [0.0, 0.7, 0.95, 1.75, 1.9, 2.4, 2.5]
+    x0, y0, top = 0.00123, 0.00231, 0.422
+    positions = [
+        [x0, y0, top], [x0, y0, top - 0.014], [x0 + 0.005, y0, top - 0.014], [x0 + 0.005, y0, top + 0.002],
+        [x0 + 0.0025, y0, top + 0.002], [x0 + 0.0025, y0, top - 0.010], [x0 + 0.0025, y0, top - 0.010],
+    ]
+    fmt = lambda v: "[" + ", ".join(str(x) for x in v) + "]"  # noqa: E731
+    scene = load_scene("cube_cut", [
+        "mesh.cells=[6, 6, 6]", f"trajectory.times={fmt(t)}",
+        f"trajectory.base_positions=[{', '.join(fmt(p) for p in positions)}]",
+        f"trajectory.directions=[{', '.join(['[0, 0, -1]'] * len(t))}]", "time.duration=2.5",
+    ])
+    simulation = Simulation(scene)
+    records, states = [], []
+    simulation.run(on_step=lambda s, r: (records.append(r), states.append(s)))
+    names = [(r.step, e.name) for r in records for e in r.events]
+    withdrawn = [s for s, n in names if n == "withdrawal"]
+    again = [s for s, n in names if n == "puncture" and withdrawn and s > withdrawn[0]]
+    assert withdrawn and again, names
+    d_c = scene.cutting.point_spacing
+    later = [r for r in records if r.step > again[0] + 2]
+    assert later and all(r.phase == "insertion" for r in later)
+    slid = 0
+    for record, state in zip(records, states):
+        if record.step <= again[0] + 2:
+            continue
+        slide = record.row_source == CUT_SLIDE
+        slid += bool(np.any(slide))
+        # No insertion point in the cut: only the entry point, on the tissue surface.
+        assert state.path.point_count == 1, (record.step, state.path.point_count)
+        assert not np.any(record.row_source[record.row_kind == BILATERAL] == INSERTION) or state.path.point_count == 1
+        # And the needle lies on the cut.
+        needle = simulation.needle.geometry(state.needle)
+        surface = state.cut.deformed_points(state.tissue.positions, simulation.tets)
+        entry = float(needle.project(state.path.positions(state.tissue.positions, simulation.tets)[:1])[0][0])
+        found = state.cut.closest_points(needle.points(np.linspace(entry, needle.length, 10)), surface)
+        distance = np.linalg.norm(needle.points(np.linspace(entry, needle.length, 10)) - found.closest, axis=1)
+        assert np.all(distance[found.inside] <= 0.1 * d_c), (record.step, distance)
+    assert slid == len(later)
