@@ -161,16 +161,39 @@ class CutStrip:
     def with_front(self, front: CutFront) -> CutStrip:
         return CutStrip(self.layers, front, self.depths)
 
+    def extended(self, front: CutFront, depths: np.ndarray) -> CutStrip:
+        """The strip with columns added below its deepest one: their crack tip ``front`` (q points) at
+        ``depths`` (q,). Until a layer is laid they share the deepest column's points (no triangle: the
+        tissue below the strip has not been cut yet); the first layer joins them to it."""
+        count = int(np.asarray(depths).size)
+        if count == 0:
+            return self
+        layers = np.hstack([self.layers, np.repeat(self.layers[:, -1:], count, axis=1)])
+        joined = CutFront(
+            np.concatenate([self.front.rest_points, front.rest_points]),
+            np.concatenate([self.front.tet_indices, front.tet_indices]),
+            np.concatenate([self.front.barycentric, front.barycentric]),
+        )
+        return CutStrip(layers, joined, np.concatenate([self.depths, depths]))
+
     def lay(self, cut: CutSurface, step: int, minimum_gap: float) -> tuple[CutSurface, CutStrip]:
         """Lay a layer at the crack tip when any column's tip is farther than ``minimum_gap`` [m] (rest) from
         the last layer; columns whose tip has not moved reuse their last point. Returns the surface and strip
         (unchanged when no column is due)."""
         last = self.last_layer
         distance = np.linalg.norm(self.front.rest_points - cut.rest_points[last], axis=1)
-        if not np.any(distance >= minimum_gap):
+        # Columns added below the strip (`extended`) share their upper neighbour's point until they are laid;
+        # they neither call for a layer nor move without that neighbour (alone, their point would join no
+        # triangle).
+        fresh = np.zeros(last.size, dtype=bool)
+        fresh[1:] = last[1:] == last[:-1]
+        if not np.any((distance >= minimum_gap) & ~fresh):
             return cut, self
         started = clock.perf_counter()
         moved = distance >= 1e-3 * minimum_gap
+        if np.any(fresh):
+            run = int(np.flatnonzero(~fresh)[-1]) + 1  # the fresh columns are the strip's last ones
+            moved[run:] = np.logical_and.accumulate(moved[run:]) & moved[run - 1]
         layer = last.copy()
         layer[moved] = cut.point_count + np.arange(int(moved.sum()))
         triangles = strip_triangles(last, layer)

@@ -79,3 +79,31 @@ def test_points_far_outside_are_outside(growth):
         snap_distance=0.5 * SPACING,
     )
     assert not inside[0]
+
+
+def test_columns_added_below_the_strip_join_it_as_a_disc_when_laid(growth):
+    # A strip 8 columns deep (4 mm) cut 1 mm along x, then extended by 3 columns below it (the needle inserted
+    # deeper while cutting): nothing changes until the next layer, which joins the new columns to the strip.
+    from refsim.cutting.strip import CutFront
+
+    path = np.linspace([0.0041, 0.0063, 0.012], [0.0041, 0.0063, 0.008], 9)
+    x = np.array([1.0, 0.0, 0.0])
+    cut, strip = start_strip(growth, None, path, x, growth.rest_positions, 1, extent=0.0)
+    for step in (2, 3):
+        strip = strip.with_front(advance_front(growth, strip, np.full(9, SPACING), x, growth.rest_positions))
+        cut, strip = strip.lay(cut, step, SPACING)
+    assert strip.layers.shape == (3, 9) and surface_topology(cut.triangles, cut.point_count).is_disc
+    below = strip.front.rest_points[-1] + np.array([[0, 0, -1.0], [0, 0, -2.0], [0, 0, -3.0]]) * SPACING
+    tets, barycentric, inside = locate_material_points(TetLocator(growth.rest_positions, growth.tets),
+                                                       growth.rest_positions, growth.tets, below)
+    assert inside.all()
+    extended = strip.extended(CutFront(below, tets, barycentric), strip.depths[-1] + SPACING * np.arange(1, 4))
+    assert extended.column_count == 12 and np.all(np.diff(extended.depths) > 0)
+    # Not due yet: the new columns alone do not lay a layer (their points would join no triangle).
+    same, unchanged = extended.lay(cut, 4, SPACING)
+    assert same is cut and unchanged.layers.shape == (3, 12)
+    moved = extended.with_front(advance_front(growth, extended, np.full(12, SPACING), x, growth.rest_positions))
+    grown, laid = moved.lay(cut, 5, SPACING)
+    topology = surface_topology(grown.triangles, grown.point_count)
+    assert laid.layers.shape == (4, 12) and topology.is_disc, topology
+    assert grown.triangle_count == cut.triangle_count + 2 * 8 + 3  # a quad per old pair, a fan for the new columns

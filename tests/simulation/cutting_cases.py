@@ -31,6 +31,7 @@ class CuttingCase:
     depth : Inserted length [m].
     cells : Cells per axis.
     turn : A second lateral stroke after the first (an L-shaped path), like ``stroke`` [m]; (0, 0): none.
+    plunge : How much deeper the needle goes along its axis during the (first) stroke [m].
     overrides : Further scene overrides.
     """
 
@@ -40,6 +41,7 @@ class CuttingCase:
     depth: float = 0.012
     cells: int = 6
     turn: tuple[float, float] = (0.0, 0.0)
+    plunge: float = 0.0
     overrides: tuple[str, ...] = field(default_factory=tuple)
 
     @property
@@ -63,10 +65,10 @@ class CuttingCase:
         speed = 0.02  # [m/s]
         t_insert = (0.002 + self.depth) / speed
         stroke = self.stroke_vector
-        t_stroke = t_insert + max(float(np.linalg.norm(stroke)), 0.002) / speed  # a hold when there is no stroke
+        t_stroke = t_insert + max(float(np.linalg.norm(stroke + self.plunge * d)), 0.002) / speed  # a hold without a stroke
         base0 = tip_start - NEEDLE_LENGTH * d
         base1 = base0 + (0.002 + self.depth) * d
-        base2 = base1 + stroke
+        base2 = base1 + stroke + self.plunge * d
         fmt = lambda v: "[" + ", ".join(f"{x:.9g}" for x in v) + "]"  # noqa: E731
         times, bases = [0.0, t_insert, t_stroke], [base0, base1, base2]
         turn = self.lateral(self.turn)

@@ -383,3 +383,29 @@ def test_reinsertion_along_an_existing_cut_slides_in_it():
         distance = np.linalg.norm(needle.points(np.linspace(entry, needle.length, 10)) - found.closest, axis=1)
         assert np.all(distance[found.inside] <= 0.1 * d_c), (record.step, distance)
     assert slid == len(later)
+
+
+@pytest.mark.parametrize("tilt", [0.0, 30.0])
+def test_a_needle_inserted_deeper_while_cutting_extends_the_cut_along_its_shaft(tilt):
+    # A 5 mm stroke during which the needle goes 3 mm deeper (item 3). Pushed sideways with the rest of the shaft,
+    # the part below the strip cuts at G_c per unit length too: the strip reaches down the whole inserted length
+    # (to within d_c of the tip: columns every d_c), and in steady cutting the front pushes with G_c per unit
+    # inserted length (Griffith, as for a straight stroke; test_in_steady_cutting_the_front_pushes_with_gc_...).
+    run = run_case(CuttingCase(tilt=tilt, plunge=0.003))
+    scene = run.simulation.scene
+    g_c, d_c = scene.cutting.fracture_energy, scene.cutting.point_spacing
+    assert run.topology.is_disc, run.topology
+    strip = run.state.cut_strip
+    assert strip.depths[-1] >= run.inserted[-1] - 2 * d_c, (strip.depths[-1], run.inserted[-1])
+    assert run.state.path.point_count == 2  # no insertion point below the strip: the cut holds the needle
+    checked = 0
+    for index, record in enumerate(run.records):
+        front = record.row_source == CUT_BORDER
+        if record.phase != "cutting" or not any(e.name == "tear" for e in record.events):
+            continue
+        length = run.inserted[index]
+        per_length = record.row_forces[front].sum() / length
+        excess = np.count_nonzero(front) * scene.solver.tolerance * np.abs(record.row_forces).max() / length
+        assert g_c * (1 - 2 * d_c / length) - 1e-6 <= per_length <= g_c * (1 + 1e-6) + excess, (record.step, per_length)
+        checked += 1
+    assert checked >= 3
