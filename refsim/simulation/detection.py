@@ -173,10 +173,9 @@ class Detector:
         elif state.path.point_count:
             points = np.arange(state.path.point_count)
             if state.phase == Phase.CUTTING and self.cutting.law == "energy":
-                # The cut holds the needle along the strip (sliding rows, crack tip); the entry point only
-                # marks the inserted length and the strip's deepest point only seeds the path below it (anchored,
-                # either would drag the tissue along the stroke); points below the strip, created while the
-                # needle goes on inserting after the cut start, have their rows.
+                # The cut holds the needle along the strip (sliding rows, crack tip; the strip extends down the
+                # shaft when the needle goes deeper); the entry point and the strip's deepest point at the cut
+                # start are kept without rows (anchored, either would drag the tissue along the stroke).
                 points = points[2:]
             if points.size:
                 blocks.append(self.insertion_rows(state.path.subset(points), geometry))

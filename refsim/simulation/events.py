@@ -3,12 +3,13 @@
 | phase | event | when | then |
 |---|---|---|---|
 | approach | puncture | tip normal force ≥ f_p | the entry point is the first insertion point; insertion |
-| insertion | (new points) | the tip is farther than d_i from every point | points every d_i behind the tip |
+| insertion | (new points) | the tip is farther than d_i from every point | points every d_i behind the tip, but none in an existing cut |
 | insertion | retraction | points lie beyond the tip | they are removed |
 | insertion | withdrawal | no point is left | approach |
 | insertion | cut_start | energy law: ‖t‖ ≥ G_c L_in; paper law (equation 3): ‖t‖ > n_i f_c | a strip on the path; cutting, the entry point kept |
-| cutting | (crack advance) | energy law: a front row at its strength G_c d_c and the needle past the crack tip | the crack tip advances to the needle |
-| cutting | tear | energy law: a new layer laid (the crack tip d_c past the last); paper law: a front row's force ≥ f_t | the surface grows |
+| cutting | (crack advance) | energy law: a front row at its strength G_c ℓ_k and the needle past the crack tip, or a sliding row at the front at G_c ℓ_k | the crack tip advances to the needle |
+| cutting | (extension) | energy law: the needle inserted d_c deeper than the strip | columns added below the strip |
+| cutting | tear | energy law: a new layer laid (the crack tip d_c past the last); paper law: a front row's force ≥ f_t | the surface grows (energy law: ĉ turns half-way to the layer's swept direction) |
 | cutting | retraction, withdrawal | the entry point beyond the tip | every row released; approach (the cut stays) |
 
 The cut surface itself grows in :mod:`refsim.cutting.growth` and :mod:`refsim.cutting.strip`.
@@ -237,8 +238,8 @@ class EventRules:
         cut, strip = start_strip(self.growth, state.cut, path_points, direction, positions, state.step, extent=extent)
         if strip is None:
             return None
-        # The entry point is kept (it marks the inserted length); with the energy law so is the deepest point,
-        # from which the path grows again if the needle goes on inserting below the strip.
+        # The entry point is kept (withdrawal: the tip back above it); with the energy law so is the deepest
+        # point (neither has rows while cutting).
         keep = [0] if cutting.law == "paper" or state.path.point_count < 2 else [0, state.path.point_count - 1]
         state = replace(
             state,
@@ -326,11 +327,10 @@ class EventRules:
             sideways = np.abs(multipliers[front.band_rows]) >= (1.0 - 1e-6) * band_limit
             if not (np.any(over > 0.0) or np.any(sideways)):
                 return state, events
-            # Each column next to a row that gave way moves to the needle: its own overshoot, the needle's
-            # distance past the column's crack-tip point along ĉ normal to the needle (moving the ends of a
-            # row's segment by the row's overshoot carried a lagging column's overshoot to its neighbour: one
-            # column of a 30° needle 1.5 mm past it).
-            # Each goes to the needle at its own depth below the tissue surface, when that is ahead of it.
+            # Each column next to a row that gave way (a front row, or a sliding row at the front) moves to the
+            # needle at its own depth below the tissue surface (moving the ends of a row's segment by the row's
+            # overshoot carried a lagging column's overshoot to its neighbour: one column of a 30° needle 1.5 mm
+            # past it).
             given = np.concatenate([front.segment[over > 0.0], front.band_segment[sideways]])
             columns = np.unique(np.concatenate([given, given + 1]))
             tips = strip.front.positions(positions, self.tets)[columns]
