@@ -204,7 +204,8 @@ def strip_cut_block(
     front_previous = np.zeros((0, 3)) if strip is None else strip.front.positions(geometry.tissue_previous, tets)
     # The inserted length each sample stands for: [s − Δ/2, s + Δ/2] ∩ [entry, L].
     step = samples[1] - samples[0] if samples.size > 1 else spacing
-    shares = np.clip(np.minimum(samples + 0.5 * step, length) - np.maximum(samples - 0.5 * step, entry_arc_length), 0.0, None)
+    shares = np.clip(np.minimum(samples + 0.5 * step, length) - np.maximum(samples - 0.5 * step, entry_arc_length),
+                     0.0, None)
     slide_limits = np.zeros(0)
     band_rows, band_segment = np.zeros(0, np.int64), np.zeros(0, np.int64)
     slide_count = 0
@@ -322,8 +323,11 @@ def strip_cut_block(
         )
     rigid = blocks[0][1] is None
     limits = np.concatenate(
-        [slide_limits if slide_limits.size else np.full(slide_count, np.inf), float(front_strength) * shares[front_keep],
-         np.full(friction_count, np.inf)]
+        [
+            slide_limits if slide_limits.size else np.full(slide_count, np.inf),
+            float(front_strength) * shares[front_keep],
+            np.full(friction_count, np.inf),
+        ]
     )
     first_friction = slide_count + front_info.rows.size
     groups = {}

@@ -181,17 +181,19 @@ def crack_tip_targets(strip, needle, entry_arc: float, columns: np.ndarray, spac
     return needle.points(np.minimum(arcs, needle.length)), arcs <= needle.length + 0.5 * spacing
 
 
-def move_front(growth: CutGrowth, strip, columns: np.ndarray, targets: np.ndarray, positions: np.ndarray):
+def move_front(growth: CutGrowth, strip, columns: np.ndarray, targets: np.ndarray, positions: np.ndarray, *,
+               locator: TetLocator | None = None):
     """The crack tip with ``columns`` moved to ``targets`` (deformed, shape (c, 3)): each goes to the material
     point found there in the current configuration (kept in rest coordinates, equation 4); a target outside
-    the tissue by more than d_c/2 leaves its column where it is. Returns the new `CutFront`."""
+    the tissue by more than d_c/2 leaves its column where it is (``locator``: one on ``positions``, built when
+    None). Returns the new `CutFront`."""
     from refsim.cutting.strip import CutFront, locate_material_points
 
     front = strip.front
     columns = np.asarray(columns, dtype=np.int64)
     if columns.size == 0:
         return front
-    locator = TetLocator(positions, growth.tets)
+    locator = TetLocator(positions, growth.tets) if locator is None else locator
     # The crack tip on the tissue surface (the entry column) may step a hair outside it: keep it on the surface.
     tets, barycentric, inside = locate_material_points(
         locator, positions, growth.tets, np.asarray(targets, dtype=float), snap_distance=0.5 * growth.point_spacing

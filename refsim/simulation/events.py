@@ -251,13 +251,12 @@ class EventRules:
         )
         return state, [Event("cut_start", trigger)]
 
-    def _extended(self, strip, needle, positions):
-        """The strip with columns added below its deepest one down to the needle's tip, every d_c."""
+    def _extended(self, strip, needle, positions, locator, entry_arc):
+        """The strip with columns added below its deepest one down to the needle's tip, every d_c (``locator``
+        on ``positions``; ``entry_arc`` where the needle enters the tissue)."""
         from refsim.cutting.strip import CutFront, locate_material_points
 
         spacing = self.cutting.point_spacing
-        locator = TetLocator(positions, self.tets)
-        entry_arc = inserted_arc(needle, locator, spacing)
         count = int(np.floor((needle.length - entry_arc - strip.depths[-1]) / spacing + 1e-9))
         if count <= 0:
             return strip
@@ -312,7 +311,9 @@ class EventRules:
             # on where along the shaft the load is), so the strip extends down along it, a column every d_c
             # to the tip, its crack tip at the needle (insertion points there, anchored in uncut tissue, dragged
             # it sideways: 6.35 N against 4.0 N for a 30° needle pushed 5 mm sideways and 2.9 mm deeper).
-            state = replace(state, cut_strip=self._extended(state.cut_strip, needle, positions))
+            locator = TetLocator(positions, self.tets)
+            entry_arc = inserted_arc(needle, locator, cutting.point_spacing)
+            state = replace(state, cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc))
         front = detection.front
         if front.rows.size == 0 and (cutting.law != "energy" or front.band_rows.size == 0):
             return state, events
@@ -334,7 +335,6 @@ class EventRules:
             given = np.concatenate([front.segment[over > 0.0], front.band_segment[sideways]])
             columns = np.unique(np.concatenate([given, given + 1]))
             tips = strip.front.positions(positions, self.tets)[columns]
-            entry_arc = inserted_arc(needle, TetLocator(positions, self.tets), cutting.point_spacing)
             targets, reached = crack_tip_targets(strip, needle, entry_arc, columns, cutting.point_spacing)
             tangents = needle.tangents(needle.project(targets)[0])
             across = state.cut_direction - (tangents @ state.cut_direction)[:, None] * tangents
@@ -345,7 +345,8 @@ class EventRules:
             # opposite: the needle has moved back from the crack tip, and there is nothing to cut).
             ahead = reached & (distance > 1e-6 * cutting.point_spacing) & (
                 np.einsum("ij,ij->i", motion, across) > -0.5 * distance)
-            moved = strip.with_front(move_front(self.growth, strip, columns[ahead], targets[ahead], positions))
+            moved = strip.with_front(move_front(self.growth, strip, columns[ahead], targets[ahead], positions,
+                                                locator=locator))
             cut, laid = moved.lay(state.cut, state.step, cutting.point_spacing)
             direction = state.cut_direction
             if laid.layers.shape[0] > strip.layers.shape[0]:

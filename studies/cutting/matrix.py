@@ -1,5 +1,6 @@
 """The cutting variant matrix of issue 11, as a table: for each case the tears, the cut's extent along ĉ, the
-largest needle-to-cut distance (normal to the cut, of a needle sample in it) and its bound at that step, the topology, the peak force and ms per step.
+largest needle-to-cut distance (normal to the cut, of a needle sample in it) and its bound at that step, the
+topology, the peak force and ms per cutting step.
 
     PYTHONPATH=. python studies/cutting/matrix.py [--solver exact]
 

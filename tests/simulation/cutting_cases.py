@@ -65,7 +65,8 @@ class CuttingCase:
         speed = 0.02  # [m/s]
         t_insert = (0.002 + self.depth) / speed
         stroke = self.stroke_vector
-        t_stroke = t_insert + max(float(np.linalg.norm(stroke + self.plunge * d)), 0.002) / speed  # a hold without a stroke
+        # (A hold when there is no stroke.)
+        t_stroke = t_insert + max(float(np.linalg.norm(stroke + self.plunge * d)), 0.002) / speed
         base0 = tip_start - NEEDLE_LENGTH * d
         base1 = base0 + (0.002 + self.depth) * d
         base2 = base1 + stroke + self.plunge * d
@@ -210,7 +211,8 @@ def run_case(case: CuttingCase) -> CuttingRun:
                 # And a row holds its sample against the triangle its closest point was on at the step's start,
                 # the measure takes the closest at the end: the angle between neighbouring triangles (the cut's
                 # kinks), times the offset in the plane, is the difference.
-                offsets.append((record.step, distance, compliance * largest + spacing * (rotation + _kink(state.cut, surface))))
+                bound = compliance * largest + spacing * (rotation + _kink(state.cut, surface))
+                offsets.append((record.step, distance, bound))
     run = CuttingRun(records, state, simulation, worst, inserted, cuts, energies, offsets)
     run.cut_direction = direction
     return run

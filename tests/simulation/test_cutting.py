@@ -367,7 +367,7 @@ def test_reinsertion_along_an_existing_cut_slides_in_it():
     later = [r for r in records if r.step > again[0] + 2]
     assert later and all(r.phase == "insertion" for r in later)
     slid = 0
-    for record, state in zip(records, states):
+    for record, state in zip(records, states, strict=True):
         if record.step <= again[0] + 2:
             continue
         slide = record.row_source == CUT_SLIDE
