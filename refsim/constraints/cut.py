@@ -170,7 +170,8 @@ def strip_cut_block(
     ----------
     cut : The `refsim.cutting.CutSurface`.
     strip : Its `refsim.cutting.strip.CutStrip`; None for a needle inserted along an existing cut (no crack tip:
-        sliding rows only, unbounded).
+        sliding rows only, unbounded, for samples projecting inside it: beside an old cut's border the tissue is
+        intact).
     geometry : The step's geometry.
     entry_arc_length : Arc length where the needle enters the tissue [m] (:func:`inserted_arc`); the samples run
         from there to the tip (none, and no rows, when it is the needle's length: the tip is out).
@@ -218,7 +219,8 @@ def strip_cut_block(
         normals_previous = cut.interpolated_normals(surface_previous, found.triangle, found.barycentric)
         offset = needle_previous - found.closest
         in_plane = offset - np.einsum("ij,ij->i", offset, normals_previous)[:, None] * normals_previous
-        inside = np.flatnonzero(found.inside | (np.linalg.norm(in_plane, axis=1) <= spacing))
+        reach = spacing if strip is not None else 0.0
+        inside = np.flatnonzero(found.inside | (np.linalg.norm(in_plane, axis=1) <= reach))
         if inside.size:
             triangle, weights = found.triangle[inside], found.barycentric[inside]
             surface_free = cut.deformed_points(geometry.tissue_free, tets)
