@@ -20,13 +20,13 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 MEASURE_LABEL = {"mesh.cells": "h = 1/cells", "insertion.spacing": "d_i [m]", "cutting.point_spacing": "d_c [m]"}
 
-#: Values theory gives for a quantity of a scene, (value, what it is): drawn in the figure and tabulated.
+#: Values theory gives for a quantity of a scene, (value, label, what it is): drawn in the figure and tabulated.
 #: cube_cut: the needle is inserted to L = 17 mm (base at z = 0.403 m, needle 0.32 m, top face z = 0.1 m), then
 #: moved 8 mm sideways; the energy law's steady cut needs F = G_c L (G_c = 200 J/m²), and the cut swept by the
 #: shaft from the cut start (0.4 mm of stroke) to the end is about L × 7.6 mm (in rest coordinates).
 REFERENCES = {
-    ("cube_cut", "lateral_force@end"): (200.0 * 0.017, "G_c L (energy balance of a steady cut)"),
-    ("cube_cut", "cut_area"): (0.017 * 0.0076, "L × (8 mm − 0.4 mm), the swept rectangle"),
+    ("cube_cut", "lateral_force@end"): (200.0 * 0.017, "G_c L", "G_c L, energy balance of a steady cut"),
+    ("cube_cut", "cut_area"): (0.017 * 0.0076, "swept rectangle", "L × (8 mm − 0.4 mm), the swept rectangle"),
 }
 
 #: What each study's quantities are and what theory says of their order (text of the page; no measured numbers,
@@ -60,18 +60,26 @@ NOTES = {
         "a line load, singular at the shaft, for which no such order holds, and the coupling's sub-grid "
         "compliance depends on h by design (docs/coupling.md)."),
     "liver_rigid_spacing": (
-        "Coarse phantom (1,735 tets), the whole 6 s trajectory (about 1 min a run on one core here: no "
-        "restriction of the trajectory was needed). The puncture force is the threshold (0.5 N). t = 0.9 s is "
-        "the insertion before the cut start (the coupling's quadrature in d_i, first order in theory); "
-        "`time@cut_start` is a multiple of dt and the force and stroke at the cut start are read at that step, "
-        "so they are quantised by the step; the cut area and the forces at 4 s and at the end follow the cut "
-        "start and the tears (discrete events)."),
+        "Coarse phantom (1,735 tets), the whole 6 s trajectory: about 1 min a run on one core, so no part of "
+        "the trajectory had to be cut off. The puncture force is the threshold (0.5 N). The forces at t = 0.9 s "
+        "(the insertion, before any cut start) are of the coupling's quadrature, first order in d_i in theory. "
+        "The cut starts earlier as d_i is refined; `time@cut_start` is a multiple of dt = 10 ms, so its order "
+        "is measurable only while the levels differ by several steps (see the table), and the force and "
+        "stroke at the cut start are read at that step. The cut area and the force at 4 s (the end of the "
+        "insertion) follow the cut; the force at the end follows the breathing and the tears after it "
+        "(discrete events)."),
     "liver_rigid_point_spacing": (
         "As liver_rigid_spacing, d_c swept: the quantities before the cut start do not depend on d_c."),
     "liver_flexible_spacing": (
         "The flexible needle bends and does not cut: every quantity is of the insertion (the coupling's "
         "quadrature in d_i, first order in theory) and of the breathing after it."),
 }
+
+
+def _relative_change(row: dict) -> str:
+    """|f1 − f2|/|f1| of a convergence row, as text (an order from differences this small is not asymptotic)."""
+    f1, f2 = row["f"][0], row["f"][1]
+    return f"{abs(f1 - f2) / abs(f1):.2e}" if f1 != 0 and math.isfinite(f1) and math.isfinite(f2) else "nan"
 
 
 def _reference(spec: dict, name: str):
@@ -103,7 +111,7 @@ def _figure(study: dict, path: Path) -> None:
         row = rows.get(name)
         reference = _reference(spec, name)
         if reference is not None:
-            top.axhline(reference[0], color="C2", ls=":", lw=1.0, label=reference[1].split(" (")[0])
+            top.axhline(reference[0], color="C2", ls=":", lw=1.0, label=reference[1])
             top.legend(fontsize=7)
         if row is not None and math.isfinite(row["extrapolated"]):
             top.axhline(row["extrapolated"], color="k", ls="--", lw=0.8, label="f_ext")
@@ -150,13 +158,15 @@ def _table(study: dict) -> list[str]:
         lines.append(f"| {value} | {runs['status'][index]} | {runs['ms_per_step'][index]:.1f} | "
                      + " | ".join(cells) + " |")
     lines += ["", "| quantity | type | observed order p (3 finest) | fitted slope (all levels) | f_ext (Richardson) | "
-              "GCI (finest) | f1 ± | theory's value | f1 against it |", "|---|---|---|---|---|---|---|---|---|"]
+              "GCI (finest) | f1 ± | \\|f1 − f2\\|/\\|f1\\| | theory's value | f1 against it |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for row in study["convergence"]:
         reference = _reference(spec, row["quantity"])
-        theory = (f"{reference[0]:.6g} ({reference[1]}) | {100 * (row['f'][0] / reference[0] - 1):+.2f} %"
+        theory = (f"{reference[0]:.6g} ({reference[2]}) | {100 * (row['f'][0] / reference[0] - 1):+.2f} %"
                   if reference is not None else " | ")
         lines.append(f"| {row['quantity']} | {row['kind']} | {row['order']:.3f} | {row['fitted_order']:.3f} | "
-                     f"{row['extrapolated']:.6g} | {100 * row['gci']:.3g} % | {row['uncertainty']:.3g} | {theory} |")
+                     f"{row['extrapolated']:.6g} | {100 * row['gci']:.3g} % | {row['uncertainty']:.3g} | "
+                     f"{_relative_change(row)} | {theory} |")
     note = NOTES.get(spec["name"])
     if note:
         lines += ["", note]
@@ -175,19 +185,20 @@ def main(argv: list[str] | None = None) -> None:
     lines = [
         "# Convergence study: d_i, d_c and mesh on cube, cube_cut and the liver", "",
         "Generated by `studies/convergence/plot.py` from the study files of `studies/convergence/run.py`. "
-        "Regenerate (each about 5 min on 2 cores; one line each):", "",
-        "    PYTHONPATH=. python studies/convergence/run.py && PYTHONPATH=. python studies/convergence/plot.py",
-        "    PYTHONPATH=. python studies/convergence/run.py --liver --only liver_rigid_spacing "
-        "liver_rigid_point_spacing liver_flexible_spacing && PYTHONPATH=. python studies/convergence/plot.py", "",
-        "The first runs the cube and cube_cut sweeps (`studies/convergence/*.toml`), the second the liver's "
-        "(`studies/convergence/liver/*.toml`); the page shows every study file in the output folder, so run "
-        "both before plotting. A run already complete is not run again: delete "
+        "Regenerate (one line; about 10 min on 2 idle cores):", "",
+        "    PYTHONPATH=. python studies/convergence/run.py --liver && PYTHONPATH=. python studies/convergence/plot.py",
+        "",
+        "It runs the cube and cube_cut sweeps (`studies/convergence/*.toml`, 20 runs) and the liver's "
+        "(`studies/convergence/liver/*.toml`, 12 runs); without `--liver` only the former, and the page shows "
+        "every study file of the output folder. A run already complete is not run again: delete "
         "`studies/convergence/output/` after changing the code. "
         "Method: `refsim.sweep.convergence` — observed order from "
         "the three finest levels p = ln(ε32/ε21)/ln r (Celik et al. 2008 for unequal ratios), Richardson "
         "extrapolation f_ext = f1 + (f1 − f2)/(r^p − 1), Roache's GCI = 1.25 |(f1 − f2)/f1|/(r^p − 1). "
         "The fitted slope is the least-squares slope of log|f − f_ext| against log h over all levels. "
         "An order is given only for a monotone sequence; \"converged\" means the two finest levels are equal. "
+        "|f1 − f2|/|f1| is the change between the two finest levels: an order computed from changes near the "
+        "solver's or the events' resolution (say below 1e-3) is not an asymptotic order. "
         "An order is meaningful only for a quantity that depends smoothly on the parameter: the notes under "
         "each table say which do.", "",
     ]
