@@ -10,13 +10,15 @@ coupling's perturbation, converges as O(d_i) (a midpoint or trapezoidal weightin
 
 The case: cube_cut with cutting off (the shaft is loaded sideways without the crack changing the problem),
 inserted 17 mm, then moved 0.3 mm across its axis (t = 2.03 s); the quantity is the lateral force on the needle
-(about 2.8 N); d_i = 0.5, 0.25, 0.125 mm (17 mm is a multiple of each, so the tip point does not add a
+(about 2.8 N); d_i = 0.5, 0.25, 0.125 mm (17 mm is about a multiple of each, so the tip point adds no
 sawtooth). Over a matrix of mesh sizes and entry points.
 
 Tolerance: the three-level order departs from 1 by 3β/ln 2 for an error a d + b d², β = b d/a at the finest
 level. Measured (2026-12-01, 4 and 6 cells, d_i from 1 mm to 0.125 mm) p = 1.006 to 1.017; |p − 1| ≤ 0.1
-allows β up to 0.02 and still tells the first order from the second. The sign is the theory's too: the extra
-end weights stiffen the coupling, so the force falls as d_i is refined.
+allows β up to 0.02 and still tells the first order from the second. The sign of the error is not asserted
+(at 0.3 mm of stroke the force falls as d_i is refined, at 0.1 mm it rises; measured on 4 and 6 cells).
+Roache's GCI of the finest level (measured 0.11 to 0.18 %) must be below 1 %: d_i = 0.125 mm resolves the
+coupling to that accuracy.
 """
 
 from __future__ import annotations
@@ -61,4 +63,4 @@ def test_lateral_force_converges_at_first_order_in_d_i(tmp_path, cells, shift):
     result = convergence(SPACINGS, forces)
     assert result.kind == "monotone", result
     assert abs(result.order - 1.0) <= 0.1, result
-    assert forces[0] > forces[1] > forces[2], forces  # d_i from coarse to fine: the coarser, the stiffer
+    assert result.gci < 0.01, result  # the finest level within 1 % of the limit: the rows resolve the coupling
