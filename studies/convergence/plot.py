@@ -139,8 +139,13 @@ def _figure(study: dict, path: Path) -> None:
             bottom.set_xticks([])
             bottom.set_yticks([])
         bottom.set_xlabel(MEASURE_LABEL.get(key, key), fontsize=8)
+        levels = np.unique(h[complete & np.isfinite(h)])
         for axis in (top, bottom):
-            axis.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            if levels.size and axis.has_data():  # ticks at the levels (a sweep often spans less than a decade)
+                axis.set_xticks(levels, labels=[f"{v:.3g}" for v in levels])
+                axis.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
+            else:
+                axis.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
             axis.tick_params(labelsize=7)
             axis.grid(True, which="both", alpha=0.3)
     figure.suptitle(f"{spec['name']}: scene {spec['scene']}, sweep of {key}", fontsize=10)
