@@ -30,7 +30,10 @@ __all__ = [
     "CUT",
     "PROBLEM_FIELDS",
     "PROBLEMS_GROUP",
+    "XDMF",
+    "XDMF_GROUP",
     "problem_group_name",
+    "xdmf_path_of",
     "all_datasets",
     "numpy_dtype",
 ]
@@ -212,6 +215,36 @@ PROBLEM_FIELDS = _specs(
 )
 
 
+#: Group of the views and derived arrays of the XDMF sidecar (refsim.io.xdmf), added by ``write_xdmf`` (every
+#: results file of ``refsim run`` and of a study has it; a file written by ResultWriter alone does not).
+XDMF_GROUP = "xdmf"
+
+#: Datasets of the ``xdmf/`` group; NNNNNNN is a step number (7 digits), one dataset per step. The views are
+#: HDF5 virtual datasets mapping onto one entry of a per-step dataset (no copy of the data).
+XDMF = _specs(
+    XDMF_GROUP,
+    [
+        ("needle/polyline", "1", "int64", (1, "k"), "the needle's polyline connectivity, 0 .. k-1"),
+        ("needle/positions/NNNNNNN", "m", "float64", ("k", 3),
+         "view of steps/needle_positions at step NNNNNNN (virtual dataset)"),
+        ("cut/points/NNNNNNN", "m", "float64", ("?", 3),
+         "every cut surface point mapped into the tissue deformed at recorded step NNNNNNN (equation 4: its tet's "
+         "nodes at tissue/positions weighted by cut/barycentric); derived, stored"),
+        ("cut/triangles/NNNNNNN", "1", "int64", ("?", 3),
+         "the cut triangles existing at recorded step NNNNNNN: a view of the first rows of cut/triangles "
+         "(virtual dataset), a copy when the triangles are not in step order"),
+        ("tissue/positions/NNNNNNN", "m", "float64", ("n", 3),
+         "view of tissue/positions at recorded step NNNNNNN (virtual dataset)"),
+    ],
+    growing=False,
+)
+
+
+def xdmf_path_of(spec: DatasetSpec, step: int) -> str:
+    """Path of the ``xdmf/`` dataset ``spec`` (one of :data:`XDMF`) for ``step`` (NNNNNNN replaced)."""
+    return spec.path.replace("NNNNNNN", f"{int(step):07d}")
+
+
 def problem_group_name(step: int) -> str:
     """Path of the group holding the constraint problem of ``step``."""
     return f"{PROBLEMS_GROUP}/step_{int(step):07d}"
@@ -288,9 +321,25 @@ def reference_markdown() -> str:
         "| path | shape | dtype | unit | meaning |",
         "|---|---|---|---|---|",
     ]
-    for spec in all_datasets():
-        shape = ("steps",) + tuple(spec.entry_shape) if spec.growing else tuple(spec.entry_shape)
-        lines.append(
-            f"| `{spec.path}` | ({', '.join(str(s) for s in shape)}) | {spec.dtype} | {spec.unit} | {spec.meaning} |"
-        )
+    lines += [_row(spec) for spec in all_datasets()]
+    lines += [
+        "",
+        f"## The `{XDMF_GROUP}/` group (ParaView sidecar)",
+        "",
+        f"`refsim.io.xdmf.write_xdmf` (called by `refsim run`, by every run of a study and by `refsim export "
+        f"--xdmf`) writes `RESULT.xdmf` beside the file and this group into it; it replaces the group when run "
+        f"again. NNNNNNN is a step number (7 digits): one dataset per step for the needle, one per recorded "
+        f"tissue step (`tissue/step`) for the tissue and the cut. Views are HDF5 virtual datasets onto one entry "
+        f"of a per-step dataset (no data copied); only the deformed cut points are stored. The group's attribute "
+        f"`description` says the same.",
+        "",
+        "| path | shape | dtype | unit | meaning |",
+        "|---|---|---|---|---|",
+    ]
+    lines += [_row(spec) for spec in XDMF.values()]
     return "\n".join(lines)
+
+
+def _row(spec: DatasetSpec) -> str:
+    shape = ("steps",) + tuple(spec.entry_shape) if spec.growing else tuple(spec.entry_shape)
+    return f"| `{spec.path}` | ({', '.join(str(s) for s in shape)}) | {spec.dtype} | {spec.unit} | {spec.meaning} |"

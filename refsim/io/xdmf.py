@@ -22,10 +22,9 @@ from xml.etree import ElementTree as ET
 
 import numpy as np
 
-__all__ = ["XDMF_GROUP", "write_xdmf", "xdmf_path"]
+from refsim.io.schema import XDMF, XDMF_GROUP, xdmf_path_of  # XDMF_GROUP: the group of the views (re-exported)
 
-#: Group of the results file holding the views (virtual datasets) and the derived arrays of the sidecar.
-XDMF_GROUP = "xdmf"
+__all__ = ["XDMF_GROUP", "write_xdmf", "xdmf_path"]
 
 
 def xdmf_path(results_path) -> Path:
@@ -34,13 +33,15 @@ def xdmf_path(results_path) -> Path:
 
 
 def _view(handle, name: str, source: str, index: int | slice, entry_shape: tuple, dtype) -> str:
-    """A virtual dataset ``name`` of the results file viewing ``source[index]`` (no copy); returns its path."""
+    """A virtual dataset ``name`` of the results file viewing ``source[index]`` (no copy), with the ``units`` of
+    its source; returns its path."""
     import h5py
 
     layout = h5py.VirtualLayout(shape=entry_shape, dtype=dtype)
     full = handle[source].shape
     layout[...] = h5py.VirtualSource(".", source, shape=full)[index]
-    handle.create_virtual_dataset(name, layout)
+    view = handle.create_virtual_dataset(name, layout)
+    view.attrs["units"] = handle[source].attrs.get("units", "1")
     return "/" + name
 
 
@@ -103,13 +104,16 @@ def write_xdmf(results_path, output=None) -> Path:
             del handle[XDMF_GROUP]
         group = handle.create_group(XDMF_GROUP)
         group.attrs["description"] = ("views (HDF5 virtual datasets, no data) and derived arrays of the XDMF "
-                                      "sidecar; rewritten by refsim.io.xdmf.write_xdmf")
+                                      "sidecar; rewritten by refsim.io.xdmf.write_xdmf; its datasets are listed in "
+                                      "refsim.io.schema.XDMF and docs/results.md")
         # needle: a polyline per step
         needle = ET.SubElement(domain, "Grid", Name="needle", GridType="Collection", CollectionType="Temporal")
-        connectivity = group.create_dataset("needle/polyline", data=np.arange(needle_nodes, dtype=np.int64)[None])
+        connectivity = handle.create_dataset(XDMF["needle/polyline"].path,
+                                             data=np.arange(needle_nodes, dtype=np.int64)[None])
+        connectivity.attrs["units"] = XDMF["needle/polyline"].unit
         for index in range(steps):
             step = int(results.step[index])
-            path = _view(handle, f"{XDMF_GROUP}/needle/positions/{step:07d}", schema.STEPS["needle_positions"].path,
+            path = _view(handle, xdmf_path_of(XDMF["needle/positions/NNNNNNN"], step), schema.STEPS["needle_positions"].path,
                          index, (needle_nodes, 3), np.float64)
             grid = _grid(needle, f"needle_{step:07d}", results.time[index])
             _topology(grid, "Polyline", 1, file_name, connectivity.name, (1, needle_nodes),
@@ -130,14 +134,16 @@ def write_xdmf(results_path, output=None) -> Path:
                     continue
                 positions = results.tissue_positions[index]
                 deformed = np.einsum("pk,pki->pi", cut.barycentric, positions[corners])
-                points = group.create_dataset(f"cut/points/{int(step):07d}", data=deformed)
-                points.attrs["units"] = "m"
-                name = f"{XDMF_GROUP}/cut/triangles/{int(step):07d}"
+                points = handle.create_dataset(xdmf_path_of(XDMF["cut/points/NNNNNNN"], step), data=deformed)
+                points.attrs["units"] = XDMF["cut/points/NNNNNNN"].unit
+                name = xdmf_path_of(XDMF["cut/triangles/NNNNNNN"], step)
                 if in_order:  # the triangles of the step are a prefix: a view
                     triangles = _view(handle, name, schema.CUT["triangles"].path, slice(0, triangle_count),
                                       (triangle_count, 3), np.int64)
                 else:
-                    triangles = group.create_dataset(name.split("/", 1)[1], data=cut.triangles[existing]).name
+                    copy = handle.create_dataset(name, data=cut.triangles[existing])
+                    copy.attrs["units"] = XDMF["cut/triangles/NNNNNNN"].unit
+                    triangles = copy.name
                 grid = _grid(collection, f"cut_{int(step):07d}", results.tissue_times[index])
                 _topology(grid, "Triangle", triangle_count, file_name, triangles, (triangle_count, 3))
                 _geometry(grid, file_name, points.name, (point_count, 3))
@@ -149,7 +155,7 @@ def write_xdmf(results_path, output=None) -> Path:
             if index is None:
                 path = "/" + schema.STATIC["tissue/rest_positions"].path
             else:
-                path = _view(handle, f"{XDMF_GROUP}/tissue/positions/{step:07d}", schema.TISSUE["positions"].path,
+                path = _view(handle, xdmf_path_of(XDMF["tissue/positions/NNNNNNN"], step), schema.TISSUE["positions"].path,
                              index, (nodes, 3), np.float64)
             grid = _grid(tissue, f"tissue_{step:07d}", time)
             _topology(grid, "Tetrahedron", tets, file_name, "/" + schema.STATIC["tissue/tets"].path, (tets, 4))

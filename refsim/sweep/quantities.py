@@ -7,6 +7,7 @@ A name is ``quantity`` or ``quantity@argument``:
 | ``needle_force@EVENT`` | ‖force of the tissue on the needle‖ at the first step of event EVENT (puncture, cut_start, tear, ...), at ``end`` (the last step) or at ``t=SECONDS`` (the nearest step) | N |
 | ``axial_force@EVENT``, ``lateral_force@EVENT`` | its component along the base segment (minus sign: resisting insertion is positive) and the norm of the rest | N |
 | ``puncture_force`` | the force that triggered the puncture event | N |
+| ``time@EVENT`` | time at the end of the step of the first EVENT (a multiple of the time step) | s |
 | ``cut_area`` | area of the cut surface at the end, summed over its triangles in rest coordinates | m² |
 | ``lateral_stroke@EVENT`` | distance the needle base moved across the needle's initial axis, at EVENT (default ``cut_start``) | m |
 | ``displacement@X,Y,Z`` | ‖tissue displacement‖ at the rest point (X, Y, Z) [m] at the last recorded tissue state (P1 interpolation in its tet) | m |
@@ -61,6 +62,11 @@ def _lateral_force(results, event: str = "end") -> float:
         return float("nan")
     _, lateral = results.axial_lateral_force()
     return float(lateral[index])
+
+
+def _event_time(results, event: str = "cut_start") -> float:
+    found = results.events_named(event or "cut_start")
+    return float(found[0].time) if found else float("nan")
 
 
 def _puncture_force(results, argument: str = "") -> float:
@@ -122,6 +128,7 @@ QUANTITIES: dict[str, Callable] = {
     "axial_force": _axial_force,
     "lateral_force": _lateral_force,
     "puncture_force": _puncture_force,
+    "time": _event_time,
     "cut_area": _cut_area,
     "lateral_stroke": _lateral_stroke,
     "displacement": _displacement(None),
@@ -131,7 +138,8 @@ QUANTITIES: dict[str, Callable] = {
 }
 
 #: Unit of each quantity.
-UNITS = {"needle_force": "N", "axial_force": "N", "lateral_force": "N", "puncture_force": "N", "cut_area": "m^2",
+UNITS = {"needle_force": "N", "axial_force": "N", "lateral_force": "N", "puncture_force": "N", "time": "s",
+         "cut_area": "m^2",
          "lateral_stroke": "m", "displacement": "m", "displacement_x": "m", "displacement_y": "m",
          "displacement_z": "m"}
 

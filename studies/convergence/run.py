@@ -8,8 +8,9 @@ Resumable: run it again after an interruption and only the missing runs are done
                                       [--only cube_mesh ...] [--quick]
 
 ``--quick`` (for tests): the cube's d_i and mesh sweeps only, three levels, 0.4 s, on 2 to 4 cells.
-``--liver``: also the d_i and d_c sweeps of ``liver/`` (liver_rigid, liver_flexible: about 15 min a run on one
-core; the phantom has two mesh levels only, too few for an order).
+``--liver``: also the d_i and d_c sweeps of ``liver/`` (liver_rigid, liver_flexible on the coarse phantom, the
+whole trajectory: 12 runs of about 1 min each on one core; the phantom has two mesh levels only, too few for an
+order); with ``--only liver_rigid_spacing liver_rigid_point_spacing liver_flexible_spacing`` the liver alone.
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--scheduler", default=None)
     parser.add_argument("--only", nargs="+", help="study names (the .toml stems)")
     parser.add_argument("--quick", action="store_true", help="small and short (for tests)")
-    parser.add_argument("--liver", action="store_true", help="also the liver sweeps of liver/ (slow: hours)")
+    parser.add_argument("--liver", action="store_true", help="also the liver sweeps of liver/ (12 runs, about 1 min each)")
     parser.add_argument("-q", "--quiet", action="store_true")
     args = parser.parse_args(argv)
     output = Path(args.output)

@@ -88,3 +88,26 @@ def test_rewriting_replaces_the_views(cut_run):
 def test_sidecar_must_sit_beside_the_results(cut_run, tmp_path):
     with pytest.raises(ValueError, match="must be in the folder"):
         write_xdmf(cut_run, tmp_path / "elsewhere.xdmf")
+
+
+def test_xdmf_group_is_the_schemas(cut_run):
+    """Every dataset of the xdmf/ group is one of refsim.io.schema.XDMF (its step number as NNNNNNN), with the
+    schema's units and dtype, and a cut run has every one of them."""
+    import re
+
+    from refsim.io import schema
+
+    seen = set()
+
+    def check(name, item):
+        if isinstance(item, h5py.Dataset):
+            key = re.sub(r"/\d{7}$", "/NNNNNNN", name)
+            assert key in {spec.path for spec in schema.XDMF.values()}, f"{name} is not in schema.XDMF"
+            spec = next(spec for spec in schema.XDMF.values() if spec.path == key)
+            assert item.attrs["units"] == spec.unit, name
+            assert item.dtype == np.dtype(spec.dtype), name
+            seen.add(key)
+
+    with h5py.File(cut_run, "r") as handle:
+        handle[schema.XDMF_GROUP].visititems(lambda name, item: check(f"{schema.XDMF_GROUP}/{name}", item))
+    assert seen == {spec.path for spec in schema.XDMF.values()}

@@ -40,6 +40,8 @@ def test_forces_at_events():
     assert quantity(results, "axial_force@cut_start") == pytest.approx(4.0)  # resisting the insertion along -z
     assert quantity(results, "lateral_force@cut_start") == pytest.approx(3.0)
     assert quantity(results, "puncture_force") == pytest.approx(0.8)
+    assert quantity(results, "time@cut_start") == pytest.approx(0.03)
+    assert np.isnan(quantity(results, "time@tear"))
     assert np.isnan(quantity(results, "needle_force@tear"))  # no such event: NaN
     assert quantity(results, "needle_force@t=0.031") == pytest.approx(5.0)  # nearest step: 3 (t = 0.03 s)
     assert np.isnan(quantity(results, "needle_force@t=1.0"))  # after the run's end
