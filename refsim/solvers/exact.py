@@ -38,7 +38,7 @@ from refsim.solvers.gauss_seidel import solve_gauss_seidel
 from refsim.solvers.newton import solve_newton
 from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.report import SolverReport
-from refsim.solvers.residual import data_residual, natural_map_error, natural_residual
+from refsim.solvers.residual import data_residual, natural_map_error, natural_residual, residuals
 
 __all__ = ["available_backends", "solve_exact"]
 
@@ -390,8 +390,7 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
                 second.iterations += newton.iterations
                 second.message += f" (after {newton.iterations} non-monotone iterations: {newton.message})"
                 newton = second
-        residual = natural_residual(problem, newton.multipliers)
-        data = data_residual(problem, newton.multipliers)
+        residual, data = residuals(problem, newton.multipliers)
         converged = bool(residual <= tolerance and data <= tolerance)
         if converged or method == "newton":
             message = (f"newton ({newton.storage}): {newton.message}; {newton.line_search_failures} line-search "

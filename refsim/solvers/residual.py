@@ -22,6 +22,7 @@ references of these units. A solver reports ``converged`` only when both residua
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from refsim.solvers.laws import LAW_NAMES, block_arrays, natural_map_blocks
@@ -106,12 +107,25 @@ def natural_map_error(problem: ConstraintProblem, multipliers: np.ndarray,
     return error, gap
 
 
-def _norm(vector: np.ndarray) -> float:
-    """Euclidean norm without overflow for entries up to the largest float."""
-    largest = float(np.max(np.abs(vector))) if vector.size else 0.0
+@numba.njit(cache=True)
+def _compiled_norm(vector):
+    largest = 0.0
+    for value in vector:
+        magnitude = abs(value)
+        if magnitude != magnitude:  # NaN
+            return magnitude
+        largest = max(largest, magnitude)
     if largest == 0.0 or not np.isfinite(largest):
         return largest
-    return largest * float(np.sqrt(np.sum((vector / largest) ** 2)))
+    total = 0.0
+    for value in vector:
+        total += (value / largest) ** 2
+    return largest * np.sqrt(total)
+
+
+def _norm(vector: np.ndarray) -> float:
+    """Euclidean norm without overflow for entries up to the largest float (compiled: no NumPy call overhead)."""
+    return float(_compiled_norm(np.asarray(vector, dtype=np.float64).reshape(-1)))
 
 
 def _denominator(problem: ConstraintProblem, multipliers: np.ndarray, gap: np.ndarray) -> float:
@@ -144,6 +158,20 @@ def natural_residual(problem: ConstraintProblem, multipliers: np.ndarray) -> flo
     error, gap = _compiled_error(problem, multipliers)
     residual = _norm(error) / _denominator(problem, np.asarray(multipliers, float), gap)
     return residual if np.isfinite(residual) else float("inf")
+
+
+def residuals(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[float, float]:
+    """(:func:`natural_residual`, :func:`data_residual`) of ``multipliers`` from one gap and one natural-map error
+    (the same values as the two calls)."""
+    multipliers = np.asarray(multipliers, dtype=np.float64)
+    if not np.all(np.isfinite(multipliers)):
+        problem.check_multipliers(multipliers)  # raises
+    error, gap = _compiled_error(problem, multipliers)
+    norm = _norm(error)
+    residual = norm / _denominator(problem, multipliers, gap)
+    _, force_scale = data_scales(problem)
+    data = norm / max(_norm(problem.free_gap), force_scale)
+    return (residual if np.isfinite(residual) else float("inf"), data if np.isfinite(data) else float("inf"))
 
 
 def natural_residual_by_kind(problem: ConstraintProblem, multipliers: np.ndarray) -> dict[str, float]:
