@@ -35,6 +35,7 @@ import scipy.sparse as sparse
 
 from refsim.solvers.laws import LAW_NAMES
 from refsim.solvers.gauss_seidel import solve_gauss_seidel
+from refsim.solvers.lemke import lemke_applicable, solve_lemke
 from refsim.solvers.newton import solve_newton
 from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.report import SolverReport
@@ -368,6 +369,12 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
                                          data_residual=0.0, asymmetry=0.0, path="newton")
     note = (f"; W non-symmetric by {asymmetry:.1e} (solved as given)" if asymmetry > symmetry_tolerance else "")
     newton = None
+    lemke_note = ""
+    if method == "auto" and lemke_applicable(problem) and asymmetry > symmetry_tolerance and warm_start is None:
+        # a non-symmetric LCP/MLCP: no merit function need be convex, Lemke's pivoting first
+        answer, lemke_note = _lemke_path(problem, tolerance)
+        if answer is not None:
+            return _lemke_report(problem, answer, lemke_note + note, asymmetry, start)
     if method in ("auto", "newton"):
         newton = solve_newton(problem, tolerance=tolerance, warm_start=warm_start,
                               max_iterations=int(newton_iterations))
@@ -392,6 +399,11 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
                 newton = second
         residual, data = residuals(problem, newton.multipliers)
         converged = bool(residual <= tolerance and data <= tolerance)
+        if not converged and method == "auto" and lemke_applicable(problem) and not lemke_note:
+            answer, lemke_note = _lemke_path(problem, tolerance)
+            if answer is not None:
+                return _lemke_report(problem, answer, f"newton first: {newton.message}; then " + lemke_note + note,
+                                     asymmetry, start)
         if converged or method == "newton":
             message = (f"newton ({newton.storage}): {newton.message}; {newton.line_search_failures} line-search "
                        f"failure(s), {newton.fallback_sweeps} fallback sweep(s)" + note)
@@ -418,6 +430,8 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
     message = report.message
     if asymmetry > symmetry_tolerance:
         message += f"; the cone route solved the symmetric part of W (asymmetry {asymmetry:.1e})"
+    if lemke_note:
+        message = f"{lemke_note}; then " + message
     if newton is not None:
         message = f"newton first: {newton.message} (residual {newton.residual:.1e}); then " + message
         if max(newton.residual, newton.data_residual) < max(report.residual, data):
@@ -428,6 +442,37 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
     return multipliers, SolverReport(solver=report.solver, iterations=report.iterations, residual=residual,
                                      converged=converged, seconds=time.perf_counter() - start, message=message,
                                      history=report.history, data_residual=data, asymmetry=asymmetry, path=path)
+
+
+def _lemke_path(problem: ConstraintProblem, tolerance: float):
+    """Lemke's pivoting (:mod:`refsim.solvers.lemke`), then Newton from its answer if round-off left it above the
+    tolerance; returns ((λ, path, residual, data) or None, message)."""
+    result = solve_lemke(problem)
+    if result.multipliers is None:
+        if result.status == "ray":
+            return None, (f"{result.message} (secondary ray: no solution found; for a copositive-plus W this "
+                          "proves the problem infeasible)")
+        return None, result.message
+    multipliers = result.multipliers
+    residual, data = residuals(problem, multipliers)
+    path = "lemke"
+    message = result.message
+    if not (residual <= tolerance and data <= tolerance):
+        polished = solve_newton(problem, tolerance=tolerance, warm_start=multipliers)
+        if max(polished.residual, polished.data_residual) < max(residual, data):
+            multipliers, path = polished.multipliers, "lemke+newton"
+            residual, data = residuals(problem, multipliers)
+            message += f"; then Newton: {polished.message}"
+    if residual <= tolerance and data <= tolerance:
+        return (multipliers, path, residual, data), message
+    return None, message + f" (residual {residual:.1e}, data residual {data:.1e})"
+
+
+def _lemke_report(problem, answer, message, asymmetry, start):
+    multipliers, path, residual, data = answer
+    return multipliers, SolverReport(solver="exact/lemke", iterations=0, residual=residual, converged=True,
+                                     seconds=time.perf_counter() - start, message=message, data_residual=data,
+                                     asymmetry=asymmetry, path=path)
 
 
 def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, max_iterations: int,
