@@ -428,13 +428,13 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     free_gap = np.ascontiguousarray(problem.free_gap)
     free_norm = float(np.linalg.norm(free_gap))
     data_scale = max(free_norm, force_scale)
-    unit = np.ones(n)
     multipliers = (np.zeros(n) if warm_start is None
                    else np.array(problem.check_multipliers(warm_start), dtype=np.float64))
     if not minimum_norm and not np.isfinite(time_limit) and _dense_storage(problem, sparse_above):
         return _solve_dense_compiled(problem, kinds, rows, params, members, weight, free_gap, free_norm, data_scale,
                                      force_scale, multipliers, tolerance, max_iterations, eta_max,
                                      line_search_memory, stall_iterations)
+    unit = np.ones(n)
     operator = _Operator(problem, kinds, rows, members, sparse_above)
     error = np.empty(n)
     scratch = np.empty(n)
