@@ -397,7 +397,10 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
                 second.iterations += newton.iterations
                 second.message += f" (after {newton.iterations} non-monotone iterations: {newton.message})"
                 newton = second
-        residual, data = residuals(problem, newton.multipliers)
+        if path == "newton" and newton.report_residuals is not None:
+            residual, data = newton.report_residuals  # the values residuals() gives, from the compiled path
+        else:
+            residual, data = residuals(problem, newton.multipliers)
         converged = bool(residual <= tolerance and data <= tolerance)
         if not converged and method == "auto" and lemke_applicable(problem) and not lemke_note:
             answer, lemke_note = _lemke_path(problem, tolerance)

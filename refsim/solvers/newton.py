@@ -42,7 +42,7 @@ from refsim.solvers.laws import (
     natural_map_blocks,
 )
 from refsim.solvers.problem import ConstraintProblem
-from refsim.solvers.residual import data_scales
+from refsim.solvers.residual import _residual_pair, data_scales
 
 __all__ = ["NewtonResult", "solve_newton"]
 
@@ -68,6 +68,8 @@ class NewtonResult:
     history: np.ndarray
     line_search_failures: int
     fallback_sweeps: int
+    #: (natural_residual, data_residual) of ``multipliers`` when the compiled path computed them, else None
+    report_residuals: tuple | None = None
 
 
 @numba.njit(cache=True)
@@ -109,6 +111,108 @@ def _lu_direction(jacobian, rhs):
 
 
 @numba.njit(cache=True)
+def _reduced_direction(jacobian, rhs, kinds, rows, members, local, gap_factor, bound_values, position, direction):
+    """J d = rhs with the explicit rows eliminated; returns False when no row is explicit or the reduced matrix
+    is singular (the caller then solves the full system).
+
+    A block is explicit where its projection is constant (N_b = I, M_b = 0: a separated unilateral row or
+    contact, a slipping friction row, a box row at a bound): its row i reads J_ii d_i − Σ_k g_k d_{G_k} = rhs_i,
+    J_ii = 1 + η, the g_k = ∂b/∂λ of a slipping friction row's group members (no other entry: M_b = 0). With E
+    those rows and A the rest: a member in E is a plain row (members are never friction rows), d_j = rhs_j / J_jj;
+    so d_i = c_i + Σ_{k: G_k ∈ A} (g_k / J_ii) d_{G_k}, c_i = (rhs_i + Σ_{k: G_k ∈ E} g_k rhs_{G_k} / J_{G_k G_k})
+    / J_ii, and (J_AA + Σ_{i ∈ E} J_{A i} (g / J_ii)ᵀ) d_A = rhs_A − J_AE c: an LU of |A| rows instead of n
+    (the cube's insertion steps: the shaft friction rows slip, |A| = 2n/3, about a third of the LU's cost).
+    ``position`` (n,) gets each row's index in A (−1 for E).
+    """
+    n = rhs.shape[0]
+    blocks = kinds.shape[0]
+    count = 0
+    for b in range(blocks):
+        size = 3 if kinds[b] == CONTACT else 1
+        constant = True
+        for i in range(size):
+            for j in range(size):
+                if gap_factor[b, i, j] != 0.0 or local[b, i, j] != (1.0 if i == j else 0.0):
+                    constant = False
+        for i in range(size):
+            position[rows[b, i]] = -2 if constant else 0
+        if constant:
+            count += size
+    if count == 0:
+        return False
+    m = 0
+    active = np.empty(n - count, dtype=np.int64)
+    for i in range(n):
+        if position[i] == 0:
+            position[i] = m
+            active[m] = i
+            m += 1
+        else:
+            position[i] = -1
+    values = np.empty(n)
+    for i in range(n):
+        if position[i] < 0:
+            values[i] = rhs[i] / jacobian[i, i]
+    for b in range(blocks):  # slipping friction rows: their members' contributions
+        if kinds[b] != GROUP_FRICTION:
+            continue
+        row = rows[b, 0]
+        if position[row] >= 0:
+            continue
+        value = rhs[row]
+        for k in range(rows[b, 1], rows[b, 2]):
+            member = members[k]
+            if bound_values[k] != 0.0 and position[member] < 0:
+                value += bound_values[k] * rhs[member] / jacobian[member, member]
+        values[row] = value / jacobian[row, row]
+    if m > 0:
+        reduced = np.empty((m, m))
+        reduced_rhs = np.empty(m)
+        for a in range(m):
+            source = active[a]
+            total = rhs[source]
+            for c in range(m):
+                reduced[a, c] = jacobian[source, active[c]]
+            for i in range(n):
+                if position[i] < 0:
+                    total -= jacobian[source, i] * values[i]
+            reduced_rhs[a] = total
+        for b in range(blocks):
+            if kinds[b] != GROUP_FRICTION:
+                continue
+            row = rows[b, 0]
+            if position[row] >= 0:
+                continue
+            for k in range(rows[b, 1], rows[b, 2]):
+                column = position[members[k]]
+                if bound_values[k] != 0.0 and column >= 0:
+                    coupling = bound_values[k] / jacobian[row, row]
+                    for a in range(m):
+                        reduced[a, column] += jacobian[active[a], row] * coupling
+        solution, ok = _lu_direction(reduced, reduced_rhs)
+        if not ok:
+            return False
+        for a in range(m):
+            direction[active[a]] = solution[a]
+    for i in range(n):
+        if position[i] < 0:
+            direction[i] = values[i]
+    for b in range(blocks):
+        if kinds[b] != GROUP_FRICTION:
+            continue
+        row = rows[b, 0]
+        if position[row] >= 0:
+            continue
+        value = values[row]
+        for k in range(rows[b, 1], rows[b, 2]):
+            member = members[k]
+            if bound_values[k] != 0.0 and position[member] >= 0:
+                value += bound_values[k] * direction[member] / jacobian[row, row]
+        direction[row] = value
+    return True
+
+
+@numba.njit(cache=True)
 def _finite_and_short(direction, limit):
     total = 0.0
     for value in direction:
@@ -120,14 +224,16 @@ def _finite_and_short(direction, limit):
 
 @numba.njit(cache=True)
 def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, free_norm, data_scale, force_scale,
-                  multipliers, tolerance, max_iterations, eta_max, memory_size, stall_iterations, history, counts):
+                  multipliers, tolerance, max_iterations, eta_max, memory_size, stall_iterations, history, counts,
+                  final):
     """The dense Newton iteration of :func:`solve_newton` in compiled code (the same steps, line search and
     Gauss–Seidel fallback; no Python call per iteration). ``multipliers`` is the start on entry and the best
     point on exit; ``history`` (max_iterations + 1,) gets the residual after each iteration.
 
     Returns (iterations, residual, data residual, reason): reason 0 converged, 1 iteration cap, 2 the
     regularised Jacobian could not be factorised, 3 the line search failed 9 times in a row, 4 stalled.
-    ``counts`` gets (line-search failures, fallback sweeps, least-squares steps, history length).
+    ``counts`` gets (line-search failures, fallback sweeps, least-squares steps, history length), ``final`` the
+    natural and data residual of the answer as :func:`refsim.solvers.residuals` computes them.
     """
     n = free_gap.shape[0]
     blocks = kinds.shape[0]
@@ -138,6 +244,7 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
     gap_factor = np.empty((blocks, 3, 3))
     bound_values = np.zeros(members.shape[0])
     jacobian = np.empty((n, n))
+    position = np.empty(n, dtype=np.int64)
     transposed = np.empty((0, 0))
     diagonal = np.empty(0)
     memory = np.empty(max(memory_size, 1))
@@ -175,7 +282,11 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
             eta = max(min(eta_max, relative) * 10.0 ** (level - 1), 1e-14)
         _dense_jacobian(compliance, kinds, rows, local, gap_factor, members, bound_values, eta, jacobian)
         limit = 1e4 * max(np.sqrt(np.dot(multipliers, multipliers)), force_scale)
-        direction, ok = _lu_direction(jacobian, -error)
+        direction = np.empty(n)
+        ok = _reduced_direction(jacobian, -error, kinds, rows, members, local, gap_factor, bound_values, position,
+                                direction)
+        if not ok:
+            direction, ok = _lu_direction(jacobian, -error)
         ok = ok and _finite_and_short(direction, limit)
         if level == 0 and not ok:
             # (nearly) singular J: the minimum-norm least-squares step instead
@@ -266,6 +377,8 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
     counts[1] = fallback
     counts[2] = singular_steps
     counts[3] = recorded
+    # the report's residuals of the answer, by the kernel of refsim.solvers.natural_residual / data_residual
+    final[0], final[1] = _residual_pair(compliance, free_gap, kinds, rows, params, members, best, force_scale)
     return best, iterations, best_residual, best_data, reason
 
 
@@ -385,17 +498,20 @@ def _solve_dense_compiled(problem, kinds, rows, params, members, weight, free_ga
         compliance = np.ascontiguousarray(compliance)
     history = np.empty(int(max_iterations) + 1)
     counts = np.zeros(4, dtype=np.int64)
+    final = np.empty(2)
     best, iterations, residual, data, reason = _dense_newton(
         compliance, free_gap, kinds, rows, params, members, weight, float(free_norm), float(data_scale),
         float(force_scale), multipliers, float(tolerance), int(max_iterations), float(eta_max),
-        int(line_search_memory), int(stall_iterations), history, counts)
+        int(line_search_memory), int(stall_iterations), history, counts, final)
     converged = residual <= tolerance and data <= tolerance
     message = (f"converged in {iterations} Newton iteration(s)" if converged
                else _REASONS[reason].format(cap=max_iterations, stall=stall_iterations))
     return NewtonResult(multipliers=best, converged=bool(converged), iterations=int(iterations),
                         residual=float(residual), data_residual=float(data), message=message, storage="dense",
                         history=history[:counts[3]].copy(), line_search_failures=int(counts[0]),
-                        fallback_sweeps=int(counts[1]))
+                        fallback_sweeps=int(counts[1]),
+                        report_residuals=(float(final[0]) if np.isfinite(final[0]) else float("inf"),
+                                          float(final[1]) if np.isfinite(final[1]) else float("inf")))
 
 
 def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np.ndarray | None = None,
