@@ -24,6 +24,7 @@ failure the best multipliers found are returned with the reason.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 import warnings
@@ -57,8 +58,10 @@ _BACKEND_OPTIONS = {
 #: The fixed point tries the Newton polish from an iterate whose residual is below this, every few iterations.
 _POLISH_FROM = 1e-3
 _POLISH_EVERY = 5
-#: Gauss-Seidel sweeps tried when Newton stalls, before the cone route.
+#: Gauss-Seidel sweeps tried when Newton stalls, before the cone route: a probe of this many first, the rest only
+#: when the probe at least halved the error.
 _GAUSS_SEIDEL_SWEEPS = 2000
+_GAUSS_SEIDEL_PROBE = 200
 
 
 def available_backends() -> list[str]:
@@ -277,12 +280,13 @@ def _newton_step(problem: ConstraintProblem, multipliers: np.ndarray,
     return error, direction
 
 
-def _least_squares_polish(problem, multipliers, residual, tolerance, weight, max_steps=50):
-    """Semismooth Newton with a backtracking line search on ‖F‖²; returns (λ, residual, steps accepted)."""
+def _least_squares_polish(problem, multipliers, residual, tolerance, weight, max_steps=50, margin=1e-3):
+    """Semismooth Newton with a backtracking line search on ‖F‖² until the natural residual is ≤ margin ×
+    tolerance; returns (λ, residual, steps accepted)."""
     accepted = 0
     best, best_residual = multipliers, residual
     for _ in range(max_steps):
-        if best_residual <= 1e-3 * tolerance:
+        if best_residual <= margin * tolerance:
             break
         error, direction = _newton_step(problem, multipliers, weight)
         merit = float(error @ error)
@@ -305,10 +309,11 @@ def _least_squares_polish(problem, multipliers, residual, tolerance, weight, max
     return best, best_residual, accepted
 
 
-def _polish(problem, multipliers, residual, tolerance, weight, max_steps=50):
+def _polish(problem, multipliers, residual, tolerance, weight, max_steps=50, margin=1e-3):
     """The cone route's polish: the damped least-squares Newton of the previous exact solver (unchanged, so the
     cone route returns the multipliers it returned before); returns (λ, natural residual, steps)."""
-    return _least_squares_polish(problem, multipliers, residual, tolerance, weight, max_steps=max_steps)
+    return _least_squares_polish(problem, multipliers, residual, tolerance, weight, max_steps=max_steps,
+                                 margin=margin)
 
 
 def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend: str = "clarabel",
@@ -382,8 +387,18 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
         if not newton.converged:
             # Newton stalls where the map is nonsmooth at the solution (friction bounds ‖λ_G‖ at λ_G = 0, cone
             # apices): projected Gauss-Seidel from the best point, which such points do not trouble
+            # in two parts: the rest of the sweeps only while the first ones made progress (where Gauss-Seidel
+            # cannot solve the problem, e.g. FCLib's rank-deficient local_problem_test, they would be wasted)
             multipliers, sweeps = solve_gauss_seidel(problem, tolerance=tolerance, warm_start=newton.multipliers,
-                                                     max_iterations=_GAUSS_SEIDEL_SWEEPS, criterion="strict")
+                                                     max_iterations=_GAUSS_SEIDEL_PROBE, criterion="strict")
+            if not sweeps.converged and not sweeps.diverged and (
+                    max(sweeps.residual, sweeps.data_residual)
+                    <= 0.5 * max(newton.residual, newton.data_residual)):
+                probe = sweeps.iterations
+                multipliers, sweeps = solve_gauss_seidel(problem, tolerance=tolerance, warm_start=multipliers,
+                                                         max_iterations=_GAUSS_SEIDEL_SWEEPS - probe,
+                                                         criterion="strict")
+                sweeps = dataclasses.replace(sweeps, iterations=sweeps.iterations + probe)
             if sweeps.converged:
                 newton.multipliers, newton.converged, path = multipliers, True, "newton+gauss_seidel"
                 newton.message += f"; then {sweeps.iterations} Gauss-Seidel sweeps"
@@ -419,9 +434,12 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
                 solver="exact/newton", iterations=newton.iterations, residual=residual, converged=converged,
                 seconds=time.perf_counter() - start, message=message, history=newton.history,
                 data_residual=data, asymmetry=asymmetry, path=path)
+    # "cone" keeps the route of before (its polish goes on to 1e-3 × the tolerance); "auto" stops it at the
+    # tolerance (Newton then finishes the data residual if needed)
     multipliers, report = _cone_route(problem, tolerance=tolerance, backend=backend,
                                       max_iterations=max_iterations, polish=polish,
-                                      backend_options=backend_options, start=start)
+                                      backend_options=backend_options, start=start,
+                                      margin=1.0 if method == "auto" else 1e-3)
     data = data_residual(problem, multipliers)
     path = report.path
     if method == "auto" and polish and (report.residual > tolerance or data > tolerance):
@@ -479,7 +497,8 @@ def _lemke_report(problem, answer, message, asymmetry, start):
 
 
 def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, max_iterations: int,
-                polish: bool, backend_options: dict | None, start: float) -> tuple[np.ndarray, SolverReport]:
+                polish: bool, backend_options: dict | None, start: float,
+                margin: float = 1e-3) -> tuple[np.ndarray, SolverReport]:
     """The cone-programming route (steps 1-4 of the module notes) on the symmetric part of W."""
     solver_name = f"exact/{backend}"
     n = problem.row_count
@@ -528,7 +547,7 @@ def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, m
             break
         if polish and residual <= _POLISH_FROM and (iterations - 1) % _POLISH_EVERY == 0:
             candidate, candidate_residual, steps = _polish(problem, new_multipliers, residual, tolerance,
-                                                           scaling.weight, max_steps=20)
+                                                           scaling.weight, max_steps=20, margin=margin)
             polish_steps += steps
             if candidate_residual < best_residual:
                 best, best_residual = candidate, candidate_residual
@@ -558,8 +577,9 @@ def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, m
         if residual <= 1e-3 * tolerance:
             settled = True
             break
-    if polish and best_residual > 1e-3 * tolerance:
-        best, best_residual, steps = _polish(problem, best, best_residual, tolerance, scaling.weight)
+    if polish and best_residual > margin * tolerance:
+        best, best_residual, steps = _polish(problem, best, best_residual, tolerance, scaling.weight,
+                                             margin=margin)
         polish_steps += steps
         history.append(best_residual)
     residual = natural_residual(problem, best)
