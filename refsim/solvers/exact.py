@@ -59,7 +59,7 @@ _BACKEND_OPTIONS = {
 _POLISH_FROM = 1e-3
 _POLISH_EVERY = 5
 #: Gauss-Seidel sweeps tried when Newton stalls, before the cone route: a probe of this many first, the rest only
-#: when the probe at least halved the error.
+#: when the rate over the probe's second half (linear convergence assumed) reaches the tolerance within them.
 _GAUSS_SEIDEL_SWEEPS = 2000
 _GAUSS_SEIDEL_PROBE = 200
 
@@ -387,13 +387,17 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
         if not newton.converged:
             # Newton stalls where the map is nonsmooth at the solution (friction bounds ‖λ_G‖ at λ_G = 0, cone
             # apices): projected Gauss-Seidel from the best point, which such points do not trouble
-            # in two parts: the rest of the sweeps only while the first ones made progress (where Gauss-Seidel
-            # cannot solve the problem, e.g. FCLib's rank-deficient local_problem_test, they would be wasted)
+            # in two parts: the rest of the sweeps only if the rate of the probe's second half (linear
+            # convergence assumed) reaches the tolerance within them (where Gauss-Seidel cannot solve the problem, e.g. FCLib's rank-deficient local_problem_test,
+            # they would be wasted)
             multipliers, sweeps = solve_gauss_seidel(problem, tolerance=tolerance, warm_start=newton.multipliers,
                                                      max_iterations=_GAUSS_SEIDEL_PROBE, criterion="strict")
-            if not sweeps.converged and not sweeps.diverged and (
-                    max(sweeps.residual, sweeps.data_residual)
-                    <= 0.5 * max(newton.residual, newton.data_residual)):
+            history = sweeps.history
+            half = history.size // 2
+            after = max(sweeps.residual, sweeps.data_residual)
+            if (not sweeps.converged and not sweeps.diverged and half > 0 and 0.0 < history[-1] < history[half]
+                    and np.log(tolerance / after) / np.log(history[-1] / history[half]) * (history.size - half)
+                    <= _GAUSS_SEIDEL_SWEEPS - sweeps.iterations):
                 probe = sweeps.iterations
                 multipliers, sweeps = solve_gauss_seidel(problem, tolerance=tolerance, warm_start=multipliers,
                                                          max_iterations=_GAUSS_SEIDEL_SWEEPS - probe,
