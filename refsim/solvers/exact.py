@@ -25,6 +25,7 @@ failure the best multipliers found are returned with the reason.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import time
 import warnings
@@ -66,9 +67,14 @@ _GAUSS_SEIDEL_PROBE = 200
 
 def available_backends() -> list[str]:
     """Names of the QP backends qpsolvers can use on this machine."""
-    import qpsolvers
+    return list(_installed_backends())
 
-    return sorted(qpsolvers.available_solvers)
+
+@functools.cache
+def _installed_backends() -> tuple[str, ...]:
+    import qpsolvers  # its list is fixed when it is imported
+
+    return tuple(sorted(qpsolvers.available_solvers))
 
 
 @dataclass(frozen=True)
@@ -361,7 +367,7 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
         raise ValueError(f"max_iterations = {max_iterations!r}; valid range: integers >= 1")
     if method not in ("auto", "newton", "cone"):
         raise ValueError(f"method = {method!r}; valid values 'auto', 'newton', 'cone'")
-    backends = available_backends()
+    backends = _installed_backends()
     if backend not in backends:
         raise ValueError(f"backend = {backend!r} is not installed; available: {', '.join(backends)}")
     if warm_start is not None:

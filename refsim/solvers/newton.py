@@ -42,7 +42,7 @@ from refsim.solvers.laws import (
     natural_map_blocks,
 )
 from refsim.solvers.problem import ConstraintProblem
-from refsim.solvers.residual import _residual_pair, data_scales
+from refsim.solvers.residual import _compiled_norm, _residual_pair, data_scales
 
 __all__ = ["NewtonResult", "solve_newton"]
 
@@ -99,6 +99,15 @@ def _dense_jacobian(compliance, kinds, rows, local, gap_factor, members, bound_v
 def _gesv(matrix, rhs):
     """np.linalg.solve in compiled code (LAPACK gesv)."""
     return np.linalg.solve(matrix, rhs)
+
+
+@numba.njit(cache=True)
+def _data_from_error(error, data_scale):
+    """The data residual (refsim.solvers.gauss_seidel._data_residual) from the unit-weight error already computed."""
+    residual = _compiled_norm(error) / data_scale
+    if not np.isfinite(residual):
+        return np.inf
+    return residual
 
 
 @numba.njit(cache=True)
@@ -252,7 +261,7 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
     natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error)
     theta = 0.5 * np.dot(error, error)
     residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, scratch, unit)
-    data = _data_residual(kinds, rows, params, members, multipliers, gap, unit, data_scale, scratch)
+    data = _data_from_error(scratch, data_scale)  # the error _residual left in scratch
     best_value = max(residual, data)
     best = multipliers.copy()
     best_residual = residual
@@ -347,7 +356,7 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
         theta = candidate_theta
         gap = candidate_gap
         residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, scratch, unit)
-        data = _data_residual(kinds, rows, params, members, multipliers, gap, unit, data_scale, scratch)
+        data = _data_from_error(scratch, data_scale)  # the error _residual left in scratch
         if stop:
             if max(residual, data) < best_value:
                 best_value = max(residual, data)
