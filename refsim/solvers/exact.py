@@ -24,6 +24,8 @@ failure the best multipliers found are returned with the reason.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import logging
 import time
 import warnings
@@ -35,10 +37,11 @@ import scipy.sparse as sparse
 
 from refsim.solvers.laws import LAW_NAMES
 from refsim.solvers.gauss_seidel import solve_gauss_seidel
+from refsim.solvers.lemke import lemke_applicable, solve_lemke
 from refsim.solvers.newton import solve_newton
 from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.report import SolverReport
-from refsim.solvers.residual import data_residual, natural_map_error, natural_residual
+from refsim.solvers.residual import data_residual, natural_map_error, natural_residual, residuals
 
 __all__ = ["available_backends", "solve_exact"]
 
@@ -56,15 +59,22 @@ _BACKEND_OPTIONS = {
 #: The fixed point tries the Newton polish from an iterate whose residual is below this, every few iterations.
 _POLISH_FROM = 1e-3
 _POLISH_EVERY = 5
-#: Gauss-Seidel sweeps tried when Newton stalls, before the cone route.
+#: Gauss-Seidel sweeps tried when Newton stalls, before the cone route: a probe of this many first, the rest only
+#: when the rate over the probe's second half (linear convergence assumed) reaches the tolerance within them.
 _GAUSS_SEIDEL_SWEEPS = 2000
+_GAUSS_SEIDEL_PROBE = 200
 
 
 def available_backends() -> list[str]:
     """Names of the QP backends qpsolvers can use on this machine."""
-    import qpsolvers
+    return list(_installed_backends())
 
-    return sorted(qpsolvers.available_solvers)
+
+@functools.cache
+def _installed_backends() -> tuple[str, ...]:
+    import qpsolvers  # its list is fixed when it is imported
+
+    return tuple(sorted(qpsolvers.available_solvers))
 
 
 @dataclass(frozen=True)
@@ -276,12 +286,13 @@ def _newton_step(problem: ConstraintProblem, multipliers: np.ndarray,
     return error, direction
 
 
-def _least_squares_polish(problem, multipliers, residual, tolerance, weight, max_steps=50):
-    """Semismooth Newton with a backtracking line search on ‖F‖²; returns (λ, residual, steps accepted)."""
+def _least_squares_polish(problem, multipliers, residual, tolerance, weight, max_steps=50, margin=1e-3):
+    """Semismooth Newton with a backtracking line search on ‖F‖² until the natural residual is ≤ margin ×
+    tolerance; returns (λ, residual, steps accepted)."""
     accepted = 0
     best, best_residual = multipliers, residual
     for _ in range(max_steps):
-        if best_residual <= 1e-3 * tolerance:
+        if best_residual <= margin * tolerance:
             break
         error, direction = _newton_step(problem, multipliers, weight)
         merit = float(error @ error)
@@ -304,10 +315,11 @@ def _least_squares_polish(problem, multipliers, residual, tolerance, weight, max
     return best, best_residual, accepted
 
 
-def _polish(problem, multipliers, residual, tolerance, weight, max_steps=50):
+def _polish(problem, multipliers, residual, tolerance, weight, max_steps=50, margin=1e-3):
     """The cone route's polish: the damped least-squares Newton of the previous exact solver (unchanged, so the
     cone route returns the multipliers it returned before); returns (λ, natural residual, steps)."""
-    return _least_squares_polish(problem, multipliers, residual, tolerance, weight, max_steps=max_steps)
+    return _least_squares_polish(problem, multipliers, residual, tolerance, weight, max_steps=max_steps,
+                                 margin=margin)
 
 
 def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend: str = "clarabel",
@@ -355,7 +367,7 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
         raise ValueError(f"max_iterations = {max_iterations!r}; valid range: integers >= 1")
     if method not in ("auto", "newton", "cone"):
         raise ValueError(f"method = {method!r}; valid values 'auto', 'newton', 'cone'")
-    backends = available_backends()
+    backends = _installed_backends()
     if backend not in backends:
         raise ValueError(f"backend = {backend!r} is not installed; available: {', '.join(backends)}")
     if warm_start is not None:
@@ -368,6 +380,12 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
                                          data_residual=0.0, asymmetry=0.0, path="newton")
     note = (f"; W non-symmetric by {asymmetry:.1e} (solved as given)" if asymmetry > symmetry_tolerance else "")
     newton = None
+    lemke_note = ""
+    if method == "auto" and lemke_applicable(problem) and asymmetry > symmetry_tolerance and warm_start is None:
+        # a non-symmetric LCP/MLCP: no merit function need be convex, Lemke's pivoting first
+        answer, lemke_note = _lemke_path(problem, tolerance)
+        if answer is not None:
+            return _lemke_report(problem, answer, lemke_note + note, asymmetry, start)
     if method in ("auto", "newton"):
         newton = solve_newton(problem, tolerance=tolerance, warm_start=warm_start,
                               max_iterations=int(newton_iterations))
@@ -375,8 +393,22 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
         if not newton.converged:
             # Newton stalls where the map is nonsmooth at the solution (friction bounds ‖λ_G‖ at λ_G = 0, cone
             # apices): projected Gauss-Seidel from the best point, which such points do not trouble
+            # in two parts: the rest of the sweeps only if the rate of the probe's second half (linear
+            # convergence assumed) reaches the tolerance within them (where Gauss-Seidel cannot solve the problem, e.g. FCLib's rank-deficient local_problem_test,
+            # they would be wasted)
             multipliers, sweeps = solve_gauss_seidel(problem, tolerance=tolerance, warm_start=newton.multipliers,
-                                                     max_iterations=_GAUSS_SEIDEL_SWEEPS, criterion="strict")
+                                                     max_iterations=_GAUSS_SEIDEL_PROBE, criterion="strict")
+            history = sweeps.history
+            half = history.size // 2
+            after = max(sweeps.residual, sweeps.data_residual)
+            if (not sweeps.converged and not sweeps.diverged and half > 0 and 0.0 < history[-1] < history[half]
+                    and np.log(tolerance / after) / np.log(history[-1] / history[half]) * (history.size - half)
+                    <= _GAUSS_SEIDEL_SWEEPS - sweeps.iterations):
+                probe = sweeps.iterations
+                multipliers, sweeps = solve_gauss_seidel(problem, tolerance=tolerance, warm_start=multipliers,
+                                                         max_iterations=_GAUSS_SEIDEL_SWEEPS - probe,
+                                                         criterion="strict")
+                sweeps = dataclasses.replace(sweeps, iterations=sweeps.iterations + probe)
             if sweeps.converged:
                 newton.multipliers, newton.converged, path = multipliers, True, "newton+gauss_seidel"
                 newton.message += f"; then {sweeps.iterations} Gauss-Seidel sweeps"
@@ -390,9 +422,16 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
                 second.iterations += newton.iterations
                 second.message += f" (after {newton.iterations} non-monotone iterations: {newton.message})"
                 newton = second
-        residual = natural_residual(problem, newton.multipliers)
-        data = data_residual(problem, newton.multipliers)
+        if path == "newton" and newton.report_residuals is not None:
+            residual, data = newton.report_residuals  # the values residuals() gives, from the compiled path
+        else:
+            residual, data = residuals(problem, newton.multipliers)
         converged = bool(residual <= tolerance and data <= tolerance)
+        if not converged and method == "auto" and lemke_applicable(problem) and not lemke_note:
+            answer, lemke_note = _lemke_path(problem, tolerance)
+            if answer is not None:
+                return _lemke_report(problem, answer, f"newton first: {newton.message}; then " + lemke_note + note,
+                                     asymmetry, start)
         if converged or method == "newton":
             message = (f"newton ({newton.storage}): {newton.message}; {newton.line_search_failures} line-search "
                        f"failure(s), {newton.fallback_sweeps} fallback sweep(s)" + note)
@@ -405,9 +444,12 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
                 solver="exact/newton", iterations=newton.iterations, residual=residual, converged=converged,
                 seconds=time.perf_counter() - start, message=message, history=newton.history,
                 data_residual=data, asymmetry=asymmetry, path=path)
+    # "cone" keeps the route of before (its polish goes on to 1e-3 × the tolerance); "auto" stops it at the
+    # tolerance (Newton then finishes the data residual if needed)
     multipliers, report = _cone_route(problem, tolerance=tolerance, backend=backend,
                                       max_iterations=max_iterations, polish=polish,
-                                      backend_options=backend_options, start=start)
+                                      backend_options=backend_options, start=start,
+                                      margin=1.0 if method == "auto" else 1e-3)
     data = data_residual(problem, multipliers)
     path = report.path
     if method == "auto" and polish and (report.residual > tolerance or data > tolerance):
@@ -419,6 +461,8 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
     message = report.message
     if asymmetry > symmetry_tolerance:
         message += f"; the cone route solved the symmetric part of W (asymmetry {asymmetry:.1e})"
+    if lemke_note:
+        message = f"{lemke_note}; then " + message
     if newton is not None:
         message = f"newton first: {newton.message} (residual {newton.residual:.1e}); then " + message
         if max(newton.residual, newton.data_residual) < max(report.residual, data):
@@ -431,8 +475,40 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
                                      history=report.history, data_residual=data, asymmetry=asymmetry, path=path)
 
 
+def _lemke_path(problem: ConstraintProblem, tolerance: float):
+    """Lemke's pivoting (:mod:`refsim.solvers.lemke`), then Newton from its answer if round-off left it above the
+    tolerance; returns ((λ, path, residual, data) or None, message)."""
+    result = solve_lemke(problem)
+    if result.multipliers is None:
+        if result.status == "ray":
+            return None, (f"{result.message} (secondary ray: no solution found; for a copositive-plus W this "
+                          "proves the problem infeasible)")
+        return None, result.message
+    multipliers = result.multipliers
+    residual, data = residuals(problem, multipliers)
+    path = "lemke"
+    message = result.message
+    if not (residual <= tolerance and data <= tolerance):
+        polished = solve_newton(problem, tolerance=tolerance, warm_start=multipliers)
+        if max(polished.residual, polished.data_residual) < max(residual, data):
+            multipliers, path = polished.multipliers, "lemke+newton"
+            residual, data = residuals(problem, multipliers)
+            message += f"; then Newton: {polished.message}"
+    if residual <= tolerance and data <= tolerance:
+        return (multipliers, path, residual, data), message
+    return None, message + f" (residual {residual:.1e}, data residual {data:.1e})"
+
+
+def _lemke_report(problem, answer, message, asymmetry, start):
+    multipliers, path, residual, data = answer
+    return multipliers, SolverReport(solver="exact/lemke", iterations=0, residual=residual, converged=True,
+                                     seconds=time.perf_counter() - start, message=message, data_residual=data,
+                                     asymmetry=asymmetry, path=path)
+
+
 def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, max_iterations: int,
-                polish: bool, backend_options: dict | None, start: float) -> tuple[np.ndarray, SolverReport]:
+                polish: bool, backend_options: dict | None, start: float,
+                margin: float = 1e-3) -> tuple[np.ndarray, SolverReport]:
     """The cone-programming route (steps 1-4 of the module notes) on the symmetric part of W."""
     solver_name = f"exact/{backend}"
     n = problem.row_count
@@ -481,7 +557,7 @@ def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, m
             break
         if polish and residual <= _POLISH_FROM and (iterations - 1) % _POLISH_EVERY == 0:
             candidate, candidate_residual, steps = _polish(problem, new_multipliers, residual, tolerance,
-                                                           scaling.weight, max_steps=20)
+                                                           scaling.weight, max_steps=20, margin=margin)
             polish_steps += steps
             if candidate_residual < best_residual:
                 best, best_residual = candidate, candidate_residual
@@ -511,8 +587,9 @@ def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, m
         if residual <= 1e-3 * tolerance:
             settled = True
             break
-    if polish and best_residual > 1e-3 * tolerance:
-        best, best_residual, steps = _polish(problem, best, best_residual, tolerance, scaling.weight)
+    if polish and best_residual > margin * tolerance:
+        best, best_residual, steps = _polish(problem, best, best_residual, tolerance, scaling.weight,
+                                             margin=margin)
         polish_steps += steps
         history.append(best_residual)
     residual = natural_residual(problem, best)

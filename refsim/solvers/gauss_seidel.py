@@ -37,7 +37,7 @@ import numpy as np
 from refsim.solvers.laws import CONTACT, block_arrays, gauss_seidel_sweep, natural_map_blocks
 from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.report import SolverReport
-from refsim.solvers.residual import data_residual, data_scales, natural_residual
+from refsim.solvers.residual import data_scales, residuals
 
 __all__ = ["solve_gauss_seidel"]
 
@@ -219,8 +219,7 @@ def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, m
         residual = data = float("inf")
         converged = growing = False
     else:
-        residual = natural_residual(problem, multipliers)
-        data = data_residual(problem, multipliers)
+        residual, data = residuals(problem, multipliers)
         if criterion == "strict":
             met = bool(residual <= tolerance and data <= tolerance)
         elif criterion == "residual":

@@ -235,6 +235,12 @@ def friction_groups(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     return rows, offsets, members, coefficient, preload
 
 
+_NO_INDEX = np.zeros(0, dtype=np.int64)
+_NO_VALUE = np.zeros(0)
+_NO_INDEX.setflags(write=False)
+_NO_VALUE.setflags(write=False)
+
+
 def block_arrays(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The problem as blocks sorted by first row, for the compiled kernels (vectorised).
 
@@ -249,30 +255,73 @@ def block_arrays(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
     cached = problem.__dict__.get("_block_arrays")
     if cached is not None:  # the problem is immutable (frozen, read-only arrays): compute once
         return cached
-    f_rows, f_offsets, members, f_mu, f_preload = friction_groups(problem)
-    singles = {BILATERAL: problem.bilateral, UNILATERAL: problem.unilateral, BOX: problem.box_rows}
-    kinds, rows, params = [], [], []
-    for code, law_rows in singles.items():
-        kinds.append(np.full(len(law_rows), code, dtype=np.int64))
-        rows.append(np.column_stack([law_rows, np.zeros((len(law_rows), 2), dtype=np.int64)]))
-        params.append(np.zeros((len(law_rows), 2)) if code != BOX
-                      else np.column_stack([problem.box_lower, problem.box_upper]))
-    kinds.append(np.full(len(f_rows), GROUP_FRICTION, dtype=np.int64))
-    rows.append(np.column_stack([f_rows, f_offsets[:-1], f_offsets[1:]]))
-    params.append(np.column_stack([f_mu, f_preload]))
-    kinds.append(np.full(len(problem.contacts), CONTACT, dtype=np.int64))
-    rows.append(problem.contacts.astype(np.int64))
-    params.append(np.column_stack([problem.contact_friction, np.zeros(len(problem.contacts))]))
-    kind = np.concatenate(kinds)
-    row = np.concatenate(rows).astype(np.int64).reshape(-1, 3)
-    param = np.concatenate(params).astype(np.float64).reshape(-1, 2)
-    order = np.argsort(row[:, 0], kind="stable")
-    result = (np.ascontiguousarray(kind[order]), np.ascontiguousarray(row[order]),
-              np.ascontiguousarray(param[order]), np.ascontiguousarray(members))
+    bilateral, unilateral, box = problem.bilateral, problem.unilateral, problem.box_rows
+    contacts = problem.contacts
+    if len(problem.shaft_friction) or len(problem.group_friction):
+        f_rows, f_offsets, members, f_mu, f_preload = friction_groups(problem)
+    else:  # no group friction: skip the merging
+        f_rows = f_offsets = members = _NO_INDEX
+        f_mu = f_preload = _NO_VALUE
+    counts = (len(bilateral), len(unilateral), len(box), len(f_rows), len(contacts))
+    total = sum(counts)
+    kind = np.empty(total, dtype=np.int64)
+    row = np.zeros((total, 3), dtype=np.int64)
+    param = np.zeros((total, 2))
+    start = 0
+    for code, law_rows, count in ((BILATERAL, bilateral, counts[0]), (UNILATERAL, unilateral, counts[1]),
+                                  (BOX, box, counts[2])):
+        if count:
+            kind[start:start + count] = code
+            row[start:start + count, 0] = law_rows
+            if code == BOX:
+                param[start:start + count, 0] = problem.box_lower
+                param[start:start + count, 1] = problem.box_upper
+        start += count
+    if counts[3]:
+        stop = start + counts[3]
+        kind[start:stop] = GROUP_FRICTION
+        row[start:stop, 0] = f_rows
+        row[start:stop, 1] = f_offsets[:-1]
+        row[start:stop, 2] = f_offsets[1:]
+        param[start:stop, 0] = f_mu
+        param[start:stop, 1] = f_preload
+        start = stop
+    if counts[4]:
+        kind[start:] = CONTACT
+        row[start:] = contacts
+        param[start:, 0] = problem.contact_friction
+    first = row[:, 0]
+    if total > 1 and not bool(np.all(first[1:] > first[:-1])):
+        order = np.argsort(first, kind="stable")
+        kind, row, param = kind[order], row[order], param[order]
+    result = (kind, np.ascontiguousarray(row), param, np.ascontiguousarray(members, dtype=np.int64))
     for array in result:
         array.setflags(write=False)
     object.__setattr__(problem, "_block_arrays", result)
     return result
+
+
+@numba.njit(cache=True)
+def relative_asymmetry(matrix):
+    """‖A − Aᵀ‖_F / ‖A‖_F of a square matrix (0 for a zero matrix), without temporaries; overflow-safe by
+    scaling with the largest entry."""
+    n = matrix.shape[0]
+    largest = 0.0
+    for i in range(n):
+        for j in range(n):
+            largest = max(largest, abs(matrix[i, j]))
+    if largest == 0.0 or not np.isfinite(largest):
+        return 0.0 if largest == 0.0 else np.nan
+    skew = 0.0
+    total = 0.0
+    for i in range(n):
+        total += (matrix[i, i] / largest) ** 2
+        for j in range(i + 1, n):
+            a = matrix[i, j] / largest
+            b = matrix[j, i] / largest
+            total += a * a + b * b
+            skew += 2.0 * (a - b) * (a - b)
+    return np.sqrt(skew) / np.sqrt(total)
 
 
 # ---------------------------------------------------------------------------------------------------- kernels

@@ -42,7 +42,7 @@ from refsim.solvers.laws import (
     natural_map_blocks,
 )
 from refsim.solvers.problem import ConstraintProblem
-from refsim.solvers.residual import data_scales
+from refsim.solvers.residual import _compiled_norm, _residual_pair, data_scales
 
 __all__ = ["NewtonResult", "solve_newton"]
 
@@ -68,6 +68,8 @@ class NewtonResult:
     history: np.ndarray
     line_search_failures: int
     fallback_sweeps: int
+    #: (natural_residual, data_residual) of ``multipliers`` when the compiled path computed them, else None
+    report_residuals: tuple | None = None
 
 
 @numba.njit(cache=True)
@@ -97,6 +99,296 @@ def _dense_jacobian(compliance, kinds, rows, local, gap_factor, members, bound_v
 def _gesv(matrix, rhs):
     """np.linalg.solve in compiled code (LAPACK gesv)."""
     return np.linalg.solve(matrix, rhs)
+
+
+@numba.njit(cache=True)
+def _data_from_error(error, data_scale):
+    """The data residual (refsim.solvers.gauss_seidel._data_residual) from the unit-weight error already computed."""
+    residual = _compiled_norm(error) / data_scale
+    if not np.isfinite(residual):
+        return np.inf
+    return residual
+
+
+@numba.njit(cache=True)
+def _lu_direction(jacobian, rhs):
+    """J d = rhs by LAPACK gesv; (d, True), or (rhs, False) when J is singular."""
+    try:
+        return np.linalg.solve(jacobian, rhs), True
+    except Exception:  # numba raises a plain exception for an exactly singular matrix
+        return rhs, False
+
+
+@numba.njit(cache=True)
+def _reduced_direction(jacobian, rhs, kinds, rows, members, local, gap_factor, bound_values, position, direction):
+    """J d = rhs with the explicit rows eliminated; returns False when no row is explicit or the reduced matrix
+    is singular (the caller then solves the full system).
+
+    A block is explicit where its projection is constant (N_b = I, M_b = 0: a separated unilateral row or
+    contact, a slipping friction row, a box row at a bound): its row i reads J_ii d_i − Σ_k g_k d_{G_k} = rhs_i,
+    J_ii = 1 + η, the g_k = ∂b/∂λ of a slipping friction row's group members (no other entry: M_b = 0). With E
+    those rows and A the rest: a member in E is a plain row (members are never friction rows), d_j = rhs_j / J_jj;
+    so d_i = c_i + Σ_{k: G_k ∈ A} (g_k / J_ii) d_{G_k}, c_i = (rhs_i + Σ_{k: G_k ∈ E} g_k rhs_{G_k} / J_{G_k G_k})
+    / J_ii, and (J_AA + Σ_{i ∈ E} J_{A i} (g / J_ii)ᵀ) d_A = rhs_A − J_AE c: an LU of |A| rows instead of n
+    (the cube's insertion steps: the shaft friction rows slip, |A| = 2n/3, about a third of the LU's cost).
+    ``position`` (n,) gets each row's index in A (−1 for E).
+    """
+    n = rhs.shape[0]
+    blocks = kinds.shape[0]
+    count = 0
+    for b in range(blocks):
+        size = 3 if kinds[b] == CONTACT else 1
+        constant = True
+        for i in range(size):
+            for j in range(size):
+                if gap_factor[b, i, j] != 0.0 or local[b, i, j] != (1.0 if i == j else 0.0):
+                    constant = False
+        for i in range(size):
+            position[rows[b, i]] = -2 if constant else 0
+        if constant:
+            count += size
+    if count == 0:
+        return False
+    m = 0
+    active = np.empty(n - count, dtype=np.int64)
+    for i in range(n):
+        if position[i] == 0:
+            position[i] = m
+            active[m] = i
+            m += 1
+        else:
+            position[i] = -1
+    values = np.empty(n)
+    for i in range(n):
+        if position[i] < 0:
+            values[i] = rhs[i] / jacobian[i, i]
+    for b in range(blocks):  # slipping friction rows: their members' contributions
+        if kinds[b] != GROUP_FRICTION:
+            continue
+        row = rows[b, 0]
+        if position[row] >= 0:
+            continue
+        value = rhs[row]
+        for k in range(rows[b, 1], rows[b, 2]):
+            member = members[k]
+            if bound_values[k] != 0.0 and position[member] < 0:
+                value += bound_values[k] * rhs[member] / jacobian[member, member]
+        values[row] = value / jacobian[row, row]
+    if m > 0:
+        reduced = np.empty((m, m))
+        reduced_rhs = np.empty(m)
+        for a in range(m):
+            source = active[a]
+            total = rhs[source]
+            for c in range(m):
+                reduced[a, c] = jacobian[source, active[c]]
+            for i in range(n):
+                if position[i] < 0:
+                    total -= jacobian[source, i] * values[i]
+            reduced_rhs[a] = total
+        for b in range(blocks):
+            if kinds[b] != GROUP_FRICTION:
+                continue
+            row = rows[b, 0]
+            if position[row] >= 0:
+                continue
+            for k in range(rows[b, 1], rows[b, 2]):
+                column = position[members[k]]
+                if bound_values[k] != 0.0 and column >= 0:
+                    coupling = bound_values[k] / jacobian[row, row]
+                    for a in range(m):
+                        reduced[a, column] += jacobian[active[a], row] * coupling
+        solution, ok = _lu_direction(reduced, reduced_rhs)
+        if not ok:
+            return False
+        for a in range(m):
+            direction[active[a]] = solution[a]
+    for i in range(n):
+        if position[i] < 0:
+            direction[i] = values[i]
+    for b in range(blocks):
+        if kinds[b] != GROUP_FRICTION:
+            continue
+        row = rows[b, 0]
+        if position[row] >= 0:
+            continue
+        value = values[row]
+        for k in range(rows[b, 1], rows[b, 2]):
+            member = members[k]
+            if bound_values[k] != 0.0 and position[member] >= 0:
+                value += bound_values[k] * direction[member] / jacobian[row, row]
+        direction[row] = value
+    return True
+
+
+@numba.njit(cache=True)
+def _finite_and_short(direction, limit):
+    total = 0.0
+    for value in direction:
+        if not np.isfinite(value):
+            return False
+        total += value * value
+    return np.sqrt(total) <= limit
+
+
+@numba.njit(cache=True)
+def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, free_norm, data_scale, force_scale,
+                  multipliers, tolerance, max_iterations, eta_max, memory_size, stall_iterations, history, counts,
+                  final):
+    """The dense Newton iteration of :func:`solve_newton` in compiled code (the same steps, line search and
+    Gauss–Seidel fallback; no Python call per iteration). ``multipliers`` is the start on entry and the best
+    point on exit; ``history`` (max_iterations + 1,) gets the residual after each iteration.
+
+    Returns (iterations, residual, data residual, reason): reason 0 converged, 1 iteration cap, 2 the
+    regularised Jacobian could not be factorised, 3 the line search failed 9 times in a row, 4 stalled.
+    ``counts`` gets (line-search failures, fallback sweeps, least-squares steps, history length), ``final`` the
+    natural and data residual of the answer as :func:`refsim.solvers.residuals` computes them.
+    """
+    n = free_gap.shape[0]
+    blocks = kinds.shape[0]
+    unit = np.ones(n)
+    error = np.empty(n)
+    scratch = np.empty(n)
+    local = np.empty((blocks, 3, 3))
+    gap_factor = np.empty((blocks, 3, 3))
+    bound_values = np.zeros(members.shape[0])
+    jacobian = np.empty((n, n))
+    position = np.empty(n, dtype=np.int64)
+    transposed = np.empty((0, 0))
+    diagonal = np.empty(0)
+    memory = np.empty(max(memory_size, 1))
+    gap = compliance @ multipliers + free_gap
+    natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error)
+    theta = 0.5 * np.dot(error, error)
+    residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, scratch, unit)
+    data = _data_from_error(scratch, data_scale)  # the error _residual left in scratch
+    best_value = max(residual, data)
+    best = multipliers.copy()
+    best_residual = residual
+    best_data = data
+    memory[0] = theta
+    stored = 1
+    history[0] = residual
+    recorded = 1
+    failures = 0
+    consecutive = 0
+    fallback = 0
+    singular_steps = 0
+    since_progress = 0
+    level = 0
+    iterations = 0
+    reason = 0
+    converged = residual <= tolerance and data <= tolerance
+    while not converged:
+        if iterations >= max_iterations:
+            reason = 1
+            break
+        iterations += 1
+        jacobian_blocks(kinds, rows, params, members, multipliers, gap, weight, local, gap_factor, bound_values)
+        relative = np.sqrt(2.0 * theta) / force_scale
+        eta = 0.0
+        if level > 0:
+            eta = max(min(eta_max, relative) * 10.0 ** (level - 1), 1e-14)
+        _dense_jacobian(compliance, kinds, rows, local, gap_factor, members, bound_values, eta, jacobian)
+        limit = 1e4 * max(np.sqrt(np.dot(multipliers, multipliers)), force_scale)
+        direction = np.empty(n)
+        ok = _reduced_direction(jacobian, -error, kinds, rows, members, local, gap_factor, bound_values, position,
+                                direction)
+        if not ok:
+            direction, ok = _lu_direction(jacobian, -error)
+        ok = ok and _finite_and_short(direction, limit)
+        if level == 0 and not ok:
+            # (nearly) singular J: the minimum-norm least-squares step instead
+            direction = np.linalg.lstsq(jacobian, -error, 1e-12)[0]
+            singular_steps += 1
+            ok = _finite_and_short(direction, limit)
+        if not ok:
+            failures += 1
+            consecutive += 1
+            level = min(level + 1, 8)
+            if consecutive > 8:
+                reason = 2
+                break
+            continue
+        reference = memory[0]
+        for k in range(1, min(stored, memory_size)):
+            reference = max(reference, memory[k])
+        step = 1.0
+        accepted = False
+        candidate = multipliers.copy()
+        candidate_gap = gap.copy()
+        candidate_theta = theta
+        while step >= 2.0 ** -12:
+            candidate = multipliers + step * direction
+            candidate_gap = compliance @ candidate + free_gap
+            natural_map_blocks(kinds, rows, params, members, candidate, candidate_gap, weight, error)
+            candidate_theta = 0.5 * np.dot(error, error)
+            if candidate_theta <= reference - 1e-4 * step * 2.0 * theta:
+                accepted = True
+                break
+            step *= 0.5
+        stop = False
+        if not accepted:
+            failures += 1
+            consecutive += 1
+            fallback += 10
+            level = min(level + 1, 8)
+            if transposed.shape[0] == 0:
+                transposed = np.ascontiguousarray(compliance.T)
+                diagonal = np.diag(compliance).copy()
+                floor = 1e-14 * max(np.abs(diagonal).max(), 2.2250738585072014e-308)
+                for i in range(n):
+                    if diagonal[i] <= floor:
+                        diagonal[i] = 0.0
+            candidate = multipliers.copy()
+            candidate_gap = compliance @ candidate + free_gap
+            for _ in range(10):
+                gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, candidate, candidate_gap,
+                                   1.0)
+            candidate_gap = compliance @ candidate + free_gap
+            natural_map_blocks(kinds, rows, params, members, candidate, candidate_gap, weight, error)
+            candidate_theta = 0.5 * np.dot(error, error)
+            stop = consecutive > 8
+        else:
+            consecutive = 0
+            level = max(level - 1, 0)
+        multipliers = candidate
+        theta = candidate_theta
+        gap = candidate_gap
+        residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, scratch, unit)
+        data = _data_from_error(scratch, data_scale)  # the error _residual left in scratch
+        if stop:
+            if max(residual, data) < best_value:
+                best_value = max(residual, data)
+                best[:] = multipliers
+                best_residual = residual
+                best_data = data
+            reason = 3
+            break
+        memory[stored % memory_size] = theta
+        stored += 1
+        history[recorded] = residual
+        recorded += 1
+        if max(residual, data) < 0.5 * best_value:
+            since_progress = 0
+        else:
+            since_progress += 1
+        if max(residual, data) < best_value:
+            best_value = max(residual, data)
+            best[:] = multipliers
+            best_residual = residual
+            best_data = data
+        converged = residual <= tolerance and data <= tolerance
+        if not converged and since_progress >= stall_iterations:
+            reason = 4
+            break
+    counts[0] = failures
+    counts[1] = fallback
+    counts[2] = singular_steps
+    counts[3] = recorded
+    # the report's residuals of the answer, by the kernel of refsim.solvers.natural_residual / data_residual
+    final[0], final[1] = _residual_pair(compliance, free_gap, kinds, rows, params, members, best, force_scale)
+    return best, iterations, best_residual, best_data, reason
 
 
 class _Operator:
@@ -195,6 +487,42 @@ class _Operator:
         return factor.solve
 
 
+_REASONS = ("", "iteration cap {cap} reached", "the regularised Jacobian could not be factorised",
+            "line search failed 9 times in a row",
+            "stalled: the best residual did not halve in {stall} iterations")
+
+
+def _dense_storage(problem: ConstraintProblem, sparse_above: int) -> bool:
+    """True when :class:`_Operator` would store W dense (small, or more than 15 % non-zero)."""
+    n = problem.row_count
+    return n <= sparse_above or np.count_nonzero(problem.compliance) > SPARSE_DENSITY * n * n
+
+
+def _solve_dense_compiled(problem, kinds, rows, params, members, weight, free_gap, free_norm, data_scale,
+                          force_scale, multipliers, tolerance, max_iterations, eta_max, line_search_memory,
+                          stall_iterations) -> NewtonResult:
+    """solve_newton on dense storage, every iteration in the compiled kernel :func:`_dense_newton`."""
+    compliance = problem.compliance
+    if not compliance.flags.c_contiguous:
+        compliance = np.ascontiguousarray(compliance)
+    history = np.empty(int(max_iterations) + 1)
+    counts = np.zeros(4, dtype=np.int64)
+    final = np.empty(2)
+    best, iterations, residual, data, reason = _dense_newton(
+        compliance, free_gap, kinds, rows, params, members, weight, float(free_norm), float(data_scale),
+        float(force_scale), multipliers, float(tolerance), int(max_iterations), float(eta_max),
+        int(line_search_memory), int(stall_iterations), history, counts, final)
+    converged = residual <= tolerance and data <= tolerance
+    message = (f"converged in {iterations} Newton iteration(s)" if converged
+               else _REASONS[reason].format(cap=max_iterations, stall=stall_iterations))
+    return NewtonResult(multipliers=best, converged=bool(converged), iterations=int(iterations),
+                        residual=float(residual), data_residual=float(data), message=message, storage="dense",
+                        history=history[:counts[3]].copy(), line_search_failures=int(counts[0]),
+                        fallback_sweeps=int(counts[1]),
+                        report_residuals=(float(final[0]) if np.isfinite(final[0]) else float("inf"),
+                                          float(final[1]) if np.isfinite(final[1]) else float("inf")))
+
+
 def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np.ndarray | None = None,
                  max_iterations: int = 100, sparse_above: int = SPARSE_ABOVE, eta_max: float = 1e-2,
                  time_limit: float = np.inf, line_search_memory: int = 3,
@@ -225,10 +553,14 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     free_gap = np.ascontiguousarray(problem.free_gap)
     free_norm = float(np.linalg.norm(free_gap))
     data_scale = max(free_norm, force_scale)
-    unit = np.ones(n)
-    operator = _Operator(problem, kinds, rows, members, sparse_above)
     multipliers = (np.zeros(n) if warm_start is None
                    else np.array(problem.check_multipliers(warm_start), dtype=np.float64))
+    if not minimum_norm and not np.isfinite(time_limit) and _dense_storage(problem, sparse_above):
+        return _solve_dense_compiled(problem, kinds, rows, params, members, weight, free_gap, free_norm, data_scale,
+                                     force_scale, multipliers, tolerance, max_iterations, eta_max,
+                                     line_search_memory, stall_iterations)
+    unit = np.ones(n)
+    operator = _Operator(problem, kinds, rows, members, sparse_above)
     error = np.empty(n)
     scratch = np.empty(n)
     local = np.empty((kinds.size, 3, 3))

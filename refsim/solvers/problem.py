@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from refsim.solvers.laws import LAW_FIELDS, LAW_NAMES, LAWS, friction_groups
+from refsim.solvers.laws import LAW_FIELDS, LAW_NAMES, LAWS, friction_groups, relative_asymmetry
 
 __all__ = ["ConstraintProblem", "KIND_NAMES", "LAW_NAMES"]
 
@@ -220,7 +220,4 @@ class ConstraintProblem:
 
     def asymmetry(self) -> float:
         """Relative asymmetry ‖W − Wᵀ‖_F / ‖W‖_F (0 for a zero matrix)."""
-        scale = np.linalg.norm(self.compliance)
-        if scale == 0.0:
-            return 0.0
-        return float(np.linalg.norm(self.compliance - self.compliance.T) / scale)
+        return float(relative_asymmetry(self.compliance))

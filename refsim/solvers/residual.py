@@ -22,6 +22,7 @@ references of these units. A solver reports ``converged`` only when both residua
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from refsim.solvers.laws import LAW_NAMES, block_arrays, natural_map_blocks
@@ -106,12 +107,25 @@ def natural_map_error(problem: ConstraintProblem, multipliers: np.ndarray,
     return error, gap
 
 
-def _norm(vector: np.ndarray) -> float:
-    """Euclidean norm without overflow for entries up to the largest float."""
-    largest = float(np.max(np.abs(vector))) if vector.size else 0.0
+@numba.njit(cache=True)
+def _compiled_norm(vector):
+    largest = 0.0
+    for value in vector:
+        magnitude = abs(value)
+        if magnitude != magnitude:  # NaN
+            return magnitude
+        largest = max(largest, magnitude)
     if largest == 0.0 or not np.isfinite(largest):
         return largest
-    return largest * float(np.sqrt(np.sum((vector / largest) ** 2)))
+    total = 0.0
+    for value in vector:
+        total += (value / largest) ** 2
+    return largest * np.sqrt(total)
+
+
+def _norm(vector: np.ndarray) -> float:
+    """Euclidean norm without overflow for entries up to the largest float (compiled: no NumPy call overhead)."""
+    return float(_compiled_norm(np.asarray(vector, dtype=np.float64).reshape(-1)))
 
 
 def _denominator(problem: ConstraintProblem, multipliers: np.ndarray, gap: np.ndarray) -> float:
@@ -129,6 +143,30 @@ def _compiled_error(problem: ConstraintProblem, multipliers: np.ndarray) -> tupl
     return error, gap
 
 
+@numba.njit(cache=True)
+def _residual_pair(compliance, free_gap, kinds, rows, params, members, multipliers, force_scale):
+    """(natural residual, data residual) of ``multipliers``: one gap, one error, the norms of :func:`_norm`."""
+    n = free_gap.shape[0]
+    gap = compliance @ multipliers + free_gap
+    error = np.empty(n)
+    natural_map_blocks(kinds, rows, params, members, multipliers, gap, np.ones(n), error)
+    norm = _compiled_norm(error)
+    free = _compiled_norm(free_gap)
+    scale = max(free, max(_compiled_norm(multipliers), _compiled_norm(gap)))
+    if not scale > 0.0:
+        scale = 1.0
+    return norm / scale, norm / max(free, force_scale)
+
+
+def _pair(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[float, float]:
+    kinds, rows, params, members = block_arrays(problem)
+    _, force_scale = data_scales(problem)
+    natural, data = _residual_pair(np.ascontiguousarray(problem.compliance), problem.free_gap, kinds, rows,
+                                   params, members, np.ascontiguousarray(multipliers), float(force_scale))
+    return (float(natural) if np.isfinite(natural) else float("inf"),
+            float(data) if np.isfinite(data) else float("inf"))
+
+
 def natural_residual(problem: ConstraintProblem, multipliers: np.ndarray) -> float:
     """Normalised natural-map residual ‖e‖₂ / max(‖δ_free‖, ‖λ‖, ‖δ‖) of ``multipliers``.
 
@@ -141,9 +179,13 @@ def natural_residual(problem: ConstraintProblem, multipliers: np.ndarray) -> flo
     -------
     The residual [-]; 0 exactly at a solution (1 when everything is zero is impossible: then e = 0).
     """
-    error, gap = _compiled_error(problem, multipliers)
-    residual = _norm(error) / _denominator(problem, np.asarray(multipliers, float), gap)
-    return residual if np.isfinite(residual) else float("inf")
+    return _pair(problem, problem.check_multipliers(multipliers))[0]
+
+
+def residuals(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[float, float]:
+    """(:func:`natural_residual`, :func:`data_residual`) of ``multipliers`` from one gap and one natural-map error
+    (the same values as the two calls; non-finite multipliers raise, as in :func:`natural_residual`)."""
+    return _pair(problem, problem.check_multipliers(multipliers))
 
 
 def natural_residual_by_kind(problem: ConstraintProblem, multipliers: np.ndarray) -> dict[str, float]:
@@ -185,9 +227,13 @@ def data_scales(problem: ConstraintProblem) -> tuple[np.ndarray, float]:
     if len(problem.contacts):
         safe[problem.contacts] = safe[problem.contacts].mean(axis=1)[:, None]
     weight = 1.0 / safe
-    bounds = np.concatenate([problem.box_lower, problem.box_upper])
-    _, _, _, coefficient, preload = problem.friction_groups()
-    scale = max(_norm(weight * problem.free_gap), _norm(bounds[np.isfinite(bounds)]), _norm(coefficient * preload))
+    scale = _norm(weight * problem.free_gap)
+    if len(problem.box_rows):
+        bounds = np.concatenate([problem.box_lower, problem.box_upper])
+        scale = max(scale, _norm(bounds[np.isfinite(bounds)]))
+    if len(problem.shaft_friction) or len(problem.group_friction):
+        _, _, _, coefficient, preload = problem.friction_groups()
+        scale = max(scale, _norm(coefficient * preload))
     weight.setflags(write=False)
     result = (weight, scale if scale > 0.0 else 1.0)
     object.__setattr__(problem, "_data_scales", result)
@@ -210,9 +256,12 @@ def data_residual(problem: ConstraintProblem, multipliers: np.ndarray) -> float:
     Unlike :func:`natural_residual`, its denominator does not depend on λ: a diverging λ cannot make it small.
     Zero exactly at a solution; inf for non-finite multipliers.
     """
-    error, scale = _data_error(problem, multipliers)
-    residual = _norm(error) / scale
-    return residual if np.isfinite(residual) else float("inf")
+    multipliers = np.asarray(multipliers, dtype=np.float64)
+    if multipliers.shape != (problem.row_count,):
+        problem.check_multipliers(multipliers)  # raises, naming the shape
+    if not np.all(np.isfinite(multipliers)):
+        return float("inf")
+    return _pair(problem, multipliers)[1]
 
 
 def data_residual_by_kind(problem: ConstraintProblem, multipliers: np.ndarray) -> dict[str, float]:

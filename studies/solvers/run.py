@@ -318,6 +318,35 @@ def _table(table, subset, sizes, tolerance, title) -> str:
     return "\n".join(lines)
 
 
+def _ratio_table(table, sizes, tolerance, reference="refsim exact (Newton first)") -> str:
+    """Per-size ratios of ``reference``'s time to the fastest Siconos solver that solved the same problem (and to
+    refsim's Gauss-Seidel), over the problems both solved: median and shifted geometric mean ratio."""
+    errors = {name: np.array(rows, dtype=float)[:, 1] for name, rows in table.items()}
+    seconds = {name: np.array(rows, dtype=float)[:, 0] for name, rows in table.items()}
+    mine = errors[reference] <= tolerance
+    siconos = [name for name in table if name.startswith("Siconos")]
+    best = np.full(sizes.size, np.inf)
+    for name in siconos:
+        solved = errors[name] <= tolerance
+        best[solved] = np.minimum(best[solved], seconds[name][solved])
+    lines = [f"**Per-size time ratios of {reference}** (median of per-problem ratios over the problems both "
+             "solve; SGM ratio: ratio of the shifted geometric means over those problems)", "",
+             "| against | rows | problems | median ratio | SGM ratio |", "|---|---|---|---|---|"]
+    others = {"fastest Siconos solver on each problem": best}
+    others["refsim Gauss-Seidel"] = np.where(errors["refsim Gauss-Seidel"] <= tolerance,
+                                             seconds["refsim Gauss-Seidel"], np.inf)
+    for label, other in others.items():
+        for low, high in ((0, 30), (30, 100), (100, 10**9), (0, 10**9)):
+            part = mine & np.isfinite(other) & (sizes >= low) & (sizes < high)
+            if not part.any():
+                continue
+            ratio = seconds[reference][part] / other[part]
+            sgm = shifted_geometric_mean(seconds[reference][part]) / shifted_geometric_mean(other[part])
+            span = f"{low}–{high - 1}" if high < 10**9 else (f"≥ {low}" if low else "all")
+            lines.append(f"| {label} | {span} | {int(part.sum())} | {np.median(ratio):.2f} | {sgm:.2f} |")
+    return "\n".join(lines)
+
+
 def _figure(table, sizes, tolerance, path: Path) -> None:
     """Time against rows for every solver (filled: solved to the tolerance, open: not)."""
     import matplotlib
@@ -398,7 +427,8 @@ def benchmark_exact(problems, output: Path) -> str:
     lines = [_table(table, np.ones(len(problems), bool), sizes, tolerance,
                     "All problems (shared set and the recorded cube steps), refsim's solvers"),
              "", _table(table, contact_only, sizes, tolerance,
-                        "Contact-only problems (3-D Coulomb; the problems Siconos' fc3d solvers take)")]
+                        "Contact-only problems (3-D Coulomb; the problems Siconos' fc3d solvers take)"),
+             "", _ratio_table(table, sizes, tolerance)]
     _figure(table, sizes, tolerance, output.with_suffix(".png"))
     return "\n".join(lines)
 

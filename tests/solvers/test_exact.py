@@ -95,10 +95,12 @@ def test_non_symmetric_compliance_is_solved_as_given():
     # λ = W⁻¹ (1, 1) = (0.5, 1) ≥ 0, δ = 0, the (unique, W is a P-matrix) solution.
     problem = ConstraintProblem(compliance=[[1.0, 0.5], [0.0, 1.0]], free_gap=[-1, -1], unilateral=[0, 1],
                                 name="skew")
-    multipliers, report = solve_exact(problem, method="auto")
-    assert report.converged and report.path == "newton"
-    assert report.asymmetry == pytest.approx(problem.asymmetry()) and "non-symmetric" in report.message
-    np.testing.assert_allclose(multipliers, [0.5, 1.0], atol=1e-12)
+    # "auto" takes Lemke's pivoting first on a non-symmetric LCP, "newton" the semismooth Newton: both as given
+    for method, path in (("auto", "lemke"), ("newton", "newton")):
+        multipliers, report = solve_exact(problem, method=method)
+        assert report.converged and report.path == path
+        assert report.asymmetry == pytest.approx(problem.asymmetry()) and "non-symmetric" in report.message
+        np.testing.assert_allclose(multipliers, [0.5, 1.0], atol=1e-12)
     # within round-off it is accepted and the residual is measured on W as given
     nearly = ConstraintProblem(compliance=[[1.0, 0.5 + 1e-12], [0.5, 1.0]], free_gap=[-1, -1],
                                unilateral=[0, 1])
