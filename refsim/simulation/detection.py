@@ -28,6 +28,7 @@ from refsim.constraints.coupling import (
     RingLayout,
     grip_preload,
     insertion_compliance,
+    shaft_friction_coefficients,
     local_mesh_size,
     ring_insertion_block,
     shaft_contact_block,
@@ -136,17 +137,20 @@ class Detector:
     def insertion_rows(self, path: InsertionPath, geometry: StepGeometry) -> RowBlock:
         """The insertion points' rows: the ring coupling with its sub-grid compliance, or the paper's rows."""
         spec = self.insertion
+        # μ_s for the points that stuck at the last solve, μ_i (dynamic) for those that slipped.
+        friction = shaft_friction_coefficients(path.stuck, static=spec.static_friction_coefficient,
+                                               dynamic=spec.shaft_friction_coefficient)
         if not self.ring:
-            return insertion_block(path, geometry, friction_coefficient=spec.shaft_friction_coefficient,
-                                   normal_preload=self.preload)
+            return insertion_block(path, geometry, friction_coefficient=friction, normal_preload=self.preload)
         centres_previous = path.positions(geometry.tissue_previous, geometry.mesh_tets)
         arc_lengths, _ = geometry.needle_previous.project(centres_previous)
         rings = self._rings(path, geometry.needle_previous.tangents(arc_lengths), geometry.mesh_tets)
-        block = ring_insertion_block(path, geometry, rings, friction_coefficient=spec.shaft_friction_coefficient,
+        block = ring_insertion_block(path, geometry, rings, friction_coefficient=friction,
                                      normal_preload=self.preload)
+        # The 3-D sub-grid compliance of the inserted line, which starts at the free surface (its mirror image).
         diagonal = insertion_compliance(block, shear_modulus=self.shear_modulus, poisson_ratio=self.poisson_ratio,
                                         needle_radius=self.needle_radius, mesh_size=rings.mesh_size,
-                                        spacing=spec.spacing)
+                                        spacing=spec.spacing, arc_lengths=arc_lengths)
         return replace(block, compliance_diagonal=diagonal)
 
     def detect(self, state: SimulationState, geometry: StepGeometry) -> Detection:
