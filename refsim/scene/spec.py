@@ -263,6 +263,13 @@ class InsertionSpec(_Validated):
         "carry the sub-grid compliance of the annulus, docs/coupling.md) or 'paper' (rows on the centreline)",
         choices=("ring", "paper"),
     )
+    subgrid_line: str = spec(
+        "infinite",
+        doc="sub-grid compliance of the ring rows: 'infinite' (the plane-strain and antiplane values of an infinite "
+        "line) or 'finite' (3-D: the inserted line's own length, its mirror across the entry surface; converges "
+        "better on short insertions and coarse meshes, docs/coupling.md; applied before the cut starts)",
+        choices=("infinite", "finite"),
+    )
     tip_cutting_force: float = spec(
         0.0,
         unit="N",

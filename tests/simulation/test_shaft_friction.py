@@ -62,4 +62,6 @@ def test_pull_out_force_peaks_at_static_and_drops_to_dynamic_friction(cube_scene
 
 def test_static_coefficient_below_the_dynamic_one_is_refused(cube_scene):
     with pytest.raises((FieldError, ValueError), match="shaft_static_friction_coefficient"):
-        cube_scene("insertion.shaft_friction_coefficient=0.2", "insertion.shaft_static_friction_coefficient=0.1")
+        cube_scene(
+            "insertion.shaft_friction_coefficient=0.2", "insertion.shaft_static_friction_coefficient=0.1"
+        )
