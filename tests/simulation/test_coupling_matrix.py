@@ -26,7 +26,7 @@ AGREEMENT = 1e-3
 INFLATION = 1.05
 
 
-def _scene(cube_scene, *, cells, angle, entry, spacing_ratio, rigid, solver, grip=0.0):
+def _scene(cube_scene, *, cells, angle, entry, spacing_ratio, rigid, solver, grip=0.0, subgrid_line="infinite"):
     h = 0.1 / cells
     offset = np.array(ENTRIES[entry]) * h
     tilt = math.radians(angle)
@@ -53,6 +53,7 @@ def _scene(cube_scene, *, cells, angle, entry, spacing_ratio, rigid, solver, gri
         f"solver.method={solver}",
         f"insertion.shaft_normal_force={grip}",
         "insertion.coupling=ring",
+        f'insertion.subgrid_line="{subgrid_line}"',
     )
 
 
@@ -102,6 +103,7 @@ DEFAULT = [
     ),  # the issue's lock case
     dict(cells=6, angle=30.0, entry="edge", spacing_ratio=0.5, rigid=False),
     dict(cells=6, angle=0.0, entry="vertex", spacing_ratio=0.1, rigid=False),
+    dict(cells=4, angle=45.0, entry="edge", spacing_ratio=0.5, rigid=True, subgrid_line="finite"),
 ]
 
 
