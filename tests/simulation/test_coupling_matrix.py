@@ -26,7 +26,9 @@ AGREEMENT = 1e-3
 INFLATION = 1.05
 
 
-def _scene(cube_scene, *, cells, angle, entry, spacing_ratio, rigid, solver, grip=0.0, subgrid_line="infinite"):
+def _scene(
+    cube_scene, *, cells, angle, entry, spacing_ratio, rigid, solver, grip=0.0, subgrid_line="infinite"
+):
     h = 0.1 / cells
     offset = np.array(ENTRIES[entry]) * h
     tilt = math.radians(angle)
