@@ -59,6 +59,7 @@ __all__ = [
     "equivalent_radius",
     "local_mesh_size",
     "subgrid_compliance",
+    "finite_line_annulus",
     "ring_points",
     "RingLayout",
     "ring_insertion_block",
@@ -172,6 +173,7 @@ def subgrid_compliance(
     mesh_size: np.ndarray,
     spacing: np.ndarray | float,
     coupling: str = "ring",
+    line_extent: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Diagonal additions to W [m/N] for coupling rows (the sub-grid compliance of the annulus r … a_c).
 
@@ -185,11 +187,15 @@ def subgrid_compliance(
     spacing : Length of needle each row stands for, d_i [m], shape (k,) or scalar, > 0.
     coupling : "ring" (the ring-averaged rows of :func:`ring_insertion_block`, ρ_c = max(r, h)) or "paper"
         (the bare line: no compliance, zeros).
+    line_extent : Length of the loaded line (the inserted needle) before and after each row [m], two arrays of
+        shape (k,) or scalars, ≥ 0; None: an infinite line (plane strain and antiplane shear, the 2-D values).
+        A finite line gives the 3-D value :func:`finite_line_annulus` (smaller: the annulus' compliance of a
+        short line saturates at radii beyond its length).
 
     Returns
     -------
-    C [m/N], shape (k,): (3 − 4ν) ln(a_c/r) / (8πG(1−ν) d_i) for lateral rows, ln(a_c/r) / (2πG d_i) for axial
-    rows; all > 0 for "ring".
+    C [m/N], shape (k,): for an infinite line (3 − 4ν) ln(a_c/r) / (8πG(1−ν) d_i) for lateral rows,
+    ln(a_c/r) / (2πG d_i) for axial rows; all > 0 for "ring".
     """
     kinds = np.asarray(kinds)
     if coupling not in COUPLINGS:
@@ -211,12 +217,104 @@ def subgrid_compliance(
     if coupling == "paper":
         return np.zeros(kinds.shape)
     radius = coupling_radius(needle_radius, mesh_size)
-    log_lateral = np.log(equivalent_radius(radius, mesh_size, "lateral") / needle_radius)
-    log_axial = np.log(equivalent_radius(radius, mesh_size, "axial") / needle_radius)
+    a_lateral = equivalent_radius(radius, mesh_size, "lateral")
+    a_axial = equivalent_radius(radius, mesh_size, "axial")
     nu = poisson_ratio
-    lateral = (3.0 - 4.0 * nu) * log_lateral / (8.0 * math.pi * shear_modulus * (1.0 - nu) * spacing)
-    axial = log_axial / (2.0 * math.pi * shear_modulus * spacing)
-    return np.where(kinds == LATERAL, lateral, axial)
+    if line_extent is None:
+        lateral = (3.0 - 4.0 * nu) * np.log(a_lateral / needle_radius) / (
+            8.0 * math.pi * shear_modulus * (1.0 - nu) * spacing
+        )
+        axial = np.log(a_axial / needle_radius) / (2.0 * math.pi * shear_modulus * spacing)
+        return np.where(kinds == LATERAL, lateral, axial)
+    before, after = (np.broadcast_to(np.asarray(t, dtype=float), kinds.shape) for t in line_extent)
+    if np.any(~(before >= 0.0)) or np.any(~(after >= 0.0)):
+        raise ValueError(f"line_extent = {line_extent!r} m; valid range [0, inf)")
+    out = np.empty(kinds.shape)
+    for kind, code, outer in (("lateral", LATERAL, a_lateral), ("axial", AXIAL, a_axial)):
+        rows = kinds == code
+        if np.any(rows):
+            out[rows] = finite_line_annulus(
+                kind,
+                shear_modulus=shear_modulus,
+                poisson_ratio=nu,
+                inner=needle_radius,
+                outer=outer[rows],
+                before=before[rows],
+                after=after[rows],
+            ) / spacing[rows]
+    return out
+
+
+# Quadrature of the mean over the relative angle θ ∈ (0, π) of two points of a ring: Gauss–Legendre in u with
+# θ = π u² (nodes gathered near θ = 0, where the integrands vary on the scale t/ρ). Σ w f(θ_k) ≈ ⟨f⟩; 1e-4
+# relative for t/ρ ≥ 3e-3 against adaptive quadrature.
+_U, _U_WEIGHTS = np.polynomial.legendre.leggauss(64)
+_U = 0.5 * (_U + 1.0)
+_ANGLES = math.pi * _U**2
+_ANGLE_WEIGHTS = _U_WEIGHTS * _U  # (1/π) dθ = 2u du, and du = dx/2
+
+
+def _ring_line_means(extent: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ring means A = ⟨asinh(t/D)⟩ and B = ⟨t/√(t² + D²)⟩ over the chord D = 2ρ sin(θ/2) of a ring (ρ), shape (k,).
+
+    asinh(t/D) = −ln D + ln(t + √(t² + D²)) and ⟨ln D⟩ = ln ρ exactly (the mean of ln|2 sin(θ/2)| is 0), so
+    only smooth terms are integrated numerically.
+    """
+    t = np.asarray(extent, dtype=float)[:, None]
+    chord = 2.0 * np.asarray(radius, dtype=float)[:, None] * np.sin(0.5 * _ANGLES)[None, :]
+    root = np.sqrt(t**2 + chord**2)
+    smooth = np.log(np.where(root > 0.0, t + root, 1.0)) @ _ANGLE_WEIGHTS
+    mean_a = np.where(t[:, 0] > 0.0, smooth - np.log(np.asarray(radius, dtype=float)), 0.0)
+    mean_b = (t / np.where(root > 0.0, root, 1.0)) @ _ANGLE_WEIGHTS
+    return mean_a, mean_b
+
+
+def finite_line_annulus(
+    kind: str,
+    *,
+    shear_modulus: float,
+    poisson_ratio: float,
+    inner: float,
+    outer: np.ndarray | float,
+    before: np.ndarray | float,
+    after: np.ndarray | float,
+) -> np.ndarray:
+    """3-D compliance of the annulus r … a under a uniform line load on a finite straight line [m²/N].
+
+    The mean displacement, over a ring of radius ρ at a point of the line, of a uniform load F′ on rings of the
+    same radius along the line, from t₁ before the point to t₂ after it (Kelvin's solution integrated; the
+    ring-mean of R_x² is D²/2 with D the chord), per unit F′:
+
+        lateral:  U_ρ = Σ_{t ∈ (t₁, t₂)} [(3 − 4ν) ⟨asinh(t/D)⟩ + ½ ⟨t/√(t² + D²)⟩] / (16πG(1 − ν)),
+        axial:    U_ρ = Σ_{t ∈ (t₁, t₂)} [(4 − 4ν) ⟨asinh(t/D)⟩ − ⟨t/√(t² + D²)⟩] / (16πG(1 − ν)).
+
+    Returns U_r − U_a (> 0 for a > r). For t₁, t₂ → ∞ it tends to the plane-strain (3 − 4ν) ln(a/r) / (8πG(1−ν))
+    and the antiplane ln(a/r) / (2πG); a line shorter than a gives less (the missing annulus of a short line is
+    not a 2-D annulus). The free surface is not modelled (an infinite medium).
+
+    Parameters
+    ----------
+    kind : "lateral" or "axial". shear_modulus : G [Pa]. poisson_ratio : ν.
+    inner : r [m], > 0. outer : a [m], ≥ r, shape (k,) or scalar. before, after : t₁, t₂ [m], ≥ 0, same shape.
+    """
+    if kind not in ("lateral", "axial"):
+        raise ValueError(f"kind = {kind!r}; valid: 'lateral', 'axial'")
+    outer, before, after = np.broadcast_arrays(
+        np.asarray(outer, dtype=float), np.asarray(before, dtype=float), np.asarray(after, dtype=float)
+    )
+    shape = outer.shape
+    outer, before, after = outer.ravel(), before.ravel(), after.ravel()
+    nu = poisson_ratio
+    scale = 16.0 * math.pi * shear_modulus * (1.0 - nu)
+    total = np.zeros(outer.size)
+    for extent in (before, after):
+        for sign, radius in ((1.0, np.full(outer.size, float(inner))), (-1.0, outer)):
+            mean_a, mean_b = _ring_line_means(extent, radius)
+            if kind == "lateral":
+                total += sign * ((3.0 - 4.0 * nu) * mean_a + 0.5 * mean_b)
+            else:
+                total += sign * ((4.0 - 4.0 * nu) * mean_a - mean_b)
+    return (total / scale).reshape(shape)
 
 
 def ring_points(
@@ -319,7 +417,7 @@ def ring_insertion_block(
     geometry: StepGeometry,
     rings: RingLayout,
     *,
-    friction_coefficient: float,
+    friction_coefficient: float | np.ndarray,
     normal_preload: np.ndarray | float = 0.0,
 ) -> RowBlock:
     """Rows of the insertion points, each averaging the tissue over its ring (see module docstring).
@@ -335,7 +433,8 @@ def ring_insertion_block(
     path : The insertion points (:class:`refsim.constraints.insertion.InsertionPath`), p of them.
     geometry : The step's geometry.
     rings : Their rings (:meth:`RingLayout.around`), q points each, q even or 1.
-    friction_coefficient : μ_i ≥ 0.
+    friction_coefficient : μ_i ≥ 0, scalar or one per point, shape (p,) (static or dynamic,
+        :func:`shaft_friction_coefficients`); the friction rows exist when any is > 0.
     normal_preload : Normal force added in each point's Coulomb bound [N], scalar or shape (p,), ≥ 0
         (:func:`grip_preload`).
     """
@@ -366,7 +465,10 @@ def ring_insertion_block(
     tangents = geometry.needle_free.tangents(arc_lengths)
     first, second = orthonormal_basis(tangents)
     offset = needle_point_free - tissue_point_free
-    with_friction = friction_coefficient > 0.0
+    coefficients = np.broadcast_to(np.asarray(friction_coefficient, dtype=float), (point_count,))
+    if np.any(~np.isfinite(coefficients)) or np.any(coefficients < 0.0):
+        raise ValueError(f"friction_coefficient = {friction_coefficient!r}; valid range [0, inf)")
+    with_friction = bool(np.any(np.asarray(friction_coefficient, dtype=float) > 0.0))
     per_point = 3 if with_friction else 2
     directions = np.empty((point_count, per_point, 3))
     directions[:, 0], directions[:, 1] = first, second
@@ -396,7 +498,7 @@ def ring_insertion_block(
         directions=flat_directions,
         shaft_rows=(base + 2) if with_friction else np.zeros(0, dtype=np.int64),
         shaft_pairs=np.stack([base, base + 1], axis=1) if with_friction else np.zeros((0, 2), dtype=np.int64),
-        shaft_friction_coefficient=np.full(point_count if with_friction else 0, friction_coefficient),
+        shaft_friction_coefficient=coefficients.copy() if with_friction else np.zeros(0),
         shaft_normal_preload=preload.copy() if with_friction else np.zeros(0),
     )
 
@@ -410,14 +512,27 @@ def insertion_compliance(
     mesh_size: np.ndarray,
     spacing: float,
     coupling: str = "ring",
+    arc_lengths: np.ndarray | None = None,
+    free_surface: bool = True,
 ) -> np.ndarray:
     """The sub-grid compliance of an insertion block's rows [m/N], shape (row_count,).
 
     Bilateral rows are lateral, friction rows axial; ``mesh_size`` (p,) is each point's h
     (:attr:`RingLayout.mesh_size`), repeated over the point's rows (the block's rows are ordered point by point).
+    ``arc_lengths`` (p,): the points' arc lengths on the needle [m]; given, the loaded line is the inserted
+    needle, from the first point − d_i/2 to the last + d_i/2 (each point stands for d_i), and the compliance is
+    the 3-D one of that finite line (:func:`finite_line_annulus`); None: an infinite line (the 2-D values).
     """
     per_point = rows.row_count // max(1, np.asarray(mesh_size).size)
     kinds = np.where(rows.kind == FRICTION, AXIAL, LATERAL)
+    extent = None
+    if arc_lengths is not None and np.asarray(arc_lengths).size:
+        s = np.asarray(arc_lengths, dtype=float)
+        start, end = s.min() - 0.5 * spacing, s.max() + 0.5 * spacing
+        before, after = s - start, end - s
+        if free_surface:
+            before = before + (end - start)
+        extent = (np.repeat(before, per_point), np.repeat(after, per_point))
     return subgrid_compliance(
         kinds,
         shear_modulus=shear_modulus,
@@ -426,6 +541,7 @@ def insertion_compliance(
         mesh_size=np.repeat(mesh_size, per_point),
         spacing=spacing,
         coupling=coupling,
+        line_extent=extent,
     )
 
 
@@ -508,9 +624,13 @@ def shaft_friction_coefficients(stuck: np.ndarray, *, static: float, dynamic: fl
 
 
 def stuck_points(
-    multipliers: np.ndarray, bounds: np.ndarray, *, relative_tolerance: float = 1e-6
+    multipliers: np.ndarray, bounds: np.ndarray, *, relative_tolerance: float = 1e-3
 ) -> np.ndarray:
-    """Which shaft rows are inside their bound (stick), bool shape (p,): |λ_s| < (1 − tol) · bound."""
+    """Which shaft rows are inside their bound (stick), bool shape (p,): |λ_s| < (1 − tol) · bound.
+
+    The default tolerance, 1e-3, is far above the solvers' (a row slipping at its bound, solved to 1e-8, is
+    never read as stuck, which would give it μ_s again at the next step); a row that sticks within 1e-3 of its
+    bound is read as slipping, a force change of at most 1e-3 (μ_s − μ_d)/μ_d of it."""
     multipliers = np.abs(np.asarray(multipliers, dtype=float))
     bounds = np.asarray(bounds, dtype=float)
     return multipliers < (1.0 - relative_tolerance) * bounds

@@ -35,16 +35,21 @@ class InsertionPath:
     created_step : Step at which each point was created, shape (p,).
     multipliers : The point's multipliers at its last solve [N], (lateral 1, lateral 2, axial), shape (p, 3); the
         warm start of the next solve.
+    stuck : Whether the point's shaft force was inside its Coulomb bound at its last solve (it sticks), bool
+        shape (p,); new points start stuck. Chooses the static or the dynamic coefficient of the next step.
     """
 
     tets: np.ndarray
     barycentric: np.ndarray
     created_step: np.ndarray
     multipliers: np.ndarray | None = None
+    stuck: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.multipliers is None:
             object.__setattr__(self, "multipliers", np.zeros((self.tets.shape[0], 3)))
+        if self.stuck is None:
+            object.__setattr__(self, "stuck", np.ones(self.tets.shape[0], dtype=bool))
 
     @classmethod
     def empty(cls) -> InsertionPath:
@@ -55,7 +60,12 @@ class InsertionPath:
         stored = np.zeros((self.point_count, 3))
         multipliers = np.asarray(multipliers, dtype=float).reshape(self.point_count, -1)
         stored[:, : multipliers.shape[1]] = multipliers
-        return InsertionPath(self.tets, self.barycentric, self.created_step, stored)
+        return InsertionPath(self.tets, self.barycentric, self.created_step, stored, self.stuck)
+
+    def with_stuck(self, stuck: np.ndarray) -> InsertionPath:
+        """The same points with their stick state (bool (p,)) after a solve."""
+        stuck = np.asarray(stuck, dtype=bool).reshape(self.point_count)
+        return InsertionPath(self.tets, self.barycentric, self.created_step, self.multipliers, stuck)
 
     @property
     def point_count(self) -> int:
@@ -72,12 +82,13 @@ class InsertionPath:
             np.concatenate([self.barycentric, np.asarray(barycentric, dtype=float).reshape(-1, 4)]),
             np.concatenate([self.created_step, np.full(len(tets), step, dtype=np.int64)]),
             np.concatenate([self.multipliers, np.zeros((len(tets), 3))]),
+            np.concatenate([self.stuck, np.ones(len(tets), dtype=bool)]),
         )
 
     def subset(self, keep: np.ndarray) -> InsertionPath:
         """A path with only the points where ``keep`` (bool (p,) or indices) selects."""
         return InsertionPath(
-            self.tets[keep], self.barycentric[keep], self.created_step[keep], self.multipliers[keep]
+            self.tets[keep], self.barycentric[keep], self.created_step[keep], self.multipliers[keep], self.stuck[keep]
         )
 
 
@@ -85,10 +96,13 @@ def insertion_block(
     path: InsertionPath,
     geometry: StepGeometry,
     *,
-    friction_coefficient: float,
+    friction_coefficient: float | np.ndarray,
     normal_preload: float = 0.0,
 ) -> RowBlock:
     """Rows of the insertion points: per point two bilateral rows and, when μ_i > 0, one shaft friction row.
+
+    ``friction_coefficient``: μ_i, a scalar or one per point, shape (p,) (static or dynamic,
+    :func:`refsim.constraints.coupling.shaft_friction_coefficients`); the friction rows exist when any is > 0.
 
     ``normal_preload`` [N] (≥ 0, finite) is added to the norm of each point's two lateral forces in its Coulomb
     bound: μ_i (‖(λ_b1, λ_b2)‖ + normal_preload); the scene sets it to shaft_normal_force × d_i.
@@ -119,7 +133,8 @@ def insertion_block(
     needle_jacobian = needle_rows(geometry.needle_free, lateral_arcs, lateral_directions)
     directions, gaps = lateral_directions, lateral_gaps
     kinds = np.full(2 * point_count, BILATERAL, dtype=np.int8)
-    with_friction = friction_coefficient > 0.0
+    coefficients = np.broadcast_to(np.asarray(friction_coefficient, dtype=float), (point_count,))
+    with_friction = bool(np.any(np.asarray(friction_coefficient, dtype=float) > 0.0))
     per_point = 3 if with_friction else 2
     if with_friction:
         friction = friction_rows(
@@ -147,7 +162,7 @@ def insertion_block(
         directions=directions,
         shaft_rows=(base + 2) if with_friction else np.zeros(0, dtype=np.int64),
         shaft_pairs=np.stack([base, base + 1], axis=1) if with_friction else np.zeros((0, 2), dtype=np.int64),
-        shaft_friction_coefficient=np.full(point_count if with_friction else 0, friction_coefficient),
+        shaft_friction_coefficient=coefficients.copy() if with_friction else np.zeros(0),
         shaft_normal_preload=np.full(point_count if with_friction else 0, float(normal_preload)),
     )
 

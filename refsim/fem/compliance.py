@@ -220,8 +220,10 @@ class StepCompliance:
         solve: Callable | None = None,
         block: Callable | None = None,
         apply: Callable | None = None,
+        half_solve: Callable | None = None,
     ):
         self.system = system
+        self._half = half_solve  # B -> Y with YᵀY = Bᵀ A⁻¹ B (the factor's forward half), exact strategy only
         self._block = block  # (positions, influence) -> E_uᵀ A⁻¹ E_u, (u, u); influence[positions] by default
         self._apply = apply  # (free load, first guess) -> A⁻¹ load; influence @ (H_uᵀ λ) by default
         self._solve = solve  # the exact factor's solve on the free DoFs (exact strategy only)
@@ -267,8 +269,27 @@ class StepCompliance:
         on_free = self.system.free_dofs[positions] == used
         used, positions = used[on_free], positions[on_free]
         restricted = jacobian[:, used].toarray()  # (rows, u): constrained DoFs do not move
+        exact = self._solve is not None and self._block is None and self._apply is None
+        rows = restricted.shape[0]
+        if exact and used.size and (self._half is not None or rows < used.size):
+            # The exact factor: min(rows, u) right-hand sides, the rows' loads H_uᵀ when there are fewer rows than
+            # DoFs touched (the ring coupling's rows spread over many tets), else the unit loads E_u. With a
+            # Cholesky factor A = Pᵀ L Lᵀ P, only the forward half: Y = L⁻¹ P B and BᵀA⁻¹B = YᵀY (half the
+            # work of a solve); the correction then solves the one load H_uᵀλ.
+            by_rows = rows < used.size
+            loads = np.zeros((self.system.free_dofs.size, rows if by_rows else used.size))
+            if by_rows:
+                loads[positions] = restricted.T
+            else:
+                loads[positions, np.arange(used.size)] = 1.0
+            if self._half is not None:
+                half = ("rows" if by_rows else "units", self._half(loads))
+            else:
+                half = ("responses", self._solve(loads))
+            self._cache_key, self._cache = key, (positions, restricted, None, half)
+            return self._cache
         influence = self._columns(positions) if used.size else np.zeros((self.system.free_dofs.size, 0))
-        self._cache_key, self._cache = key, (positions, restricted, influence)
+        self._cache_key, self._cache = key, (positions, restricted, influence, None)
         return self._cache
 
     def delassus(self, jacobian: sp.spmatrix) -> np.ndarray:
@@ -277,9 +298,18 @@ class StepCompliance:
             return self._delassus(jacobian)
 
     def _delassus(self, jacobian: sp.spmatrix) -> np.ndarray:
-        positions, restricted, influence = self._influence(jacobian)
-        block = influence[positions] if self._block is None else self._block(positions, influence)
-        compliance = restricted @ block @ restricted.T
+        positions, restricted, influence, half = self._influence(jacobian)
+        if half is not None:
+            form, values = half
+            if form == "rows":
+                compliance = values.T @ values
+            elif form == "units":
+                compliance = restricted @ (values.T @ values) @ restricted.T
+            else:
+                compliance = restricted @ values[positions]
+        else:
+            block = influence[positions] if self._block is None else self._block(positions, influence)
+            compliance = restricted @ block @ restricted.T
         compliance = 0.5 * (compliance + compliance.T)
         if self._exact is not None:
             reference = self._exact.delassus(jacobian)
@@ -293,12 +323,19 @@ class StepCompliance:
             return self._correction(jacobian, multipliers)
 
     def _correction(self, jacobian: sp.spmatrix, multipliers: np.ndarray) -> np.ndarray:
-        positions, restricted, influence = self._influence(jacobian)
+        positions, restricted, influence, half = self._influence(jacobian)
         multipliers = np.asarray(multipliers, dtype=float)
         if multipliers.shape != (restricted.shape[0],):
             raise ValueError(f"multipliers must have shape ({restricted.shape[0]},), got {multipliers.shape}")
         weights = restricted.T @ multipliers
-        free = influence @ weights
+        if half is None:
+            free = influence @ weights
+        elif half[0] == "responses":
+            free = half[1] @ multipliers
+        else:
+            load = np.zeros(self.system.free_dofs.size)
+            load[positions] = weights
+            free = self._solve(load)
         if self._apply is not None and positions.size:
             load = np.zeros(self.system.free_dofs.size)
             np.add.at(load, positions, weights)
@@ -313,7 +350,7 @@ class StepCompliance:
     def compliance(self, jacobian: sp.spmatrix) -> tuple[np.ndarray, np.ndarray]:
         """W and the responses A⁻¹ Hᵀ [m/N], dense (dof_count, rows) — the form :class:`ImplicitEulerSystem` gives."""
         if self._solve is None:
-            positions, restricted, influence = self._influence(jacobian)
+            positions, restricted, influence, _ = self._influence(jacobian)
             responses = self.system.expand(influence @ restricted.T)
             return self.delassus(jacobian), responses
         # The exact factor: the arithmetic of ImplicitEulerSystem.compliance, so that results stay bit-identical.
@@ -380,7 +417,8 @@ class _ExactBody(BodyCompliance):
             unit[positions, np.arange(positions.size)] = 1.0
             return solver.solve(unit)
 
-        return StepCompliance(system, free, columns, {"refactorised": True}, exact, solver.solve)
+        return StepCompliance(system, free, columns, {"refactorised": True}, exact, solver.solve,
+                              half_solve=getattr(solver, "half_solve", None))
 
 
 def _check_common(linear_solver: str, against_exact: bool) -> None:

@@ -217,6 +217,23 @@ class PardisoSolver:
         self._call(33, b, x, 1 if rhs.ndim == 1 else rhs.shape[1])
         return np.ascontiguousarray(x)
 
+    def half_solve(self, rhs: np.ndarray) -> np.ndarray:
+        """The forward half of a solve, Y = L⁻¹ P rhs for A = Pᵀ L Lᵀ P (phase 331): Yᵀ Y = rhsᵀ A⁻¹ rhs.
+
+        rhs of shape (n, k); half the work of :meth:`solve` for a compliance rhsᵀ A⁻¹ rhs.
+        """
+        if not self._factorised:
+            raise LinearSolverError("pardiso: solve before factorise")
+        rhs = np.asarray(rhs, dtype=float)
+        if rhs.ndim != 2 or rhs.shape[0] != self._n:
+            raise ValueError(f"rhs must have shape ({self._n}, k), got {rhs.shape}")
+        if rhs.shape[1] == 0:
+            return np.zeros_like(rhs)
+        b = np.asfortranarray(rhs)
+        y = np.zeros_like(b, order="F")
+        self._call(331, b, y, rhs.shape[1])
+        return np.ascontiguousarray(y)
+
     @property
     def description(self) -> dict:
         return {

@@ -235,7 +235,16 @@ class InsertionSpec(_Validated):
         unit="N", doc="f_p: normal tip force that punctures the surface (> 0: with 0 the tip would puncture in "
         "the air as soon as its contact row is built)", low=0.0, low_open=True)
     surface_friction_coefficient: float = spec(unit="-", doc="μ_p: Coulomb friction of the tip on the surface", low=0.0)
-    shaft_friction_coefficient: float = spec(unit="-", doc="μ_i: Coulomb friction along the shaft", low=0.0)
+    shaft_friction_coefficient: float = spec(
+        unit="-", doc="μ_i: Coulomb friction along the shaft (the dynamic coefficient μ_d, of a slipping point)",
+        low=0.0)
+    shaft_static_friction_coefficient: float = spec(
+        0.0,
+        unit="-",
+        doc="μ_s: static shaft friction, the coefficient of a point that stuck at the last step (new points start "
+        "stuck); ≥ shaft_friction_coefficient, or 0 (default): μ_s = μ_i, one coefficient as in the paper",
+        low=0.0,
+    )
     spacing: float = spec(unit="m", doc="d_i: distance between insertion constraints", low=0.0, low_open=True)
     shaft_normal_force: float = spec(
         0.0,
@@ -253,6 +262,13 @@ class InsertionSpec(_Validated):
         doc="needle-tissue coupling: 'ring' (well posed: rows average the tissue over a ring of radius max(r, h) and "
         "carry the sub-grid compliance of the annulus, docs/coupling.md) or 'paper' (rows on the centreline)",
         choices=("ring", "paper"),
+    )
+    subgrid_line: str = spec(
+        "infinite",
+        doc="sub-grid compliance of the ring rows: 'infinite' (the plane-strain and antiplane values of an infinite "
+        "line) or 'finite' (3-D: the inserted line's own length, its mirror across the entry surface; converges "
+        "better on short insertions and coarse meshes, docs/coupling.md; applied before the cut starts)",
+        choices=("infinite", "finite"),
     )
     tip_cutting_force: float = spec(
         0.0,
@@ -283,6 +299,19 @@ class InsertionSpec(_Validated):
         for name in ("shaft_contact", "puncture_within_step"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} = {getattr(self, name)!r}: expected true or false")
+        static, dynamic = self.shaft_static_friction_coefficient, self.shaft_friction_coefficient
+        if static != 0.0 and static < dynamic:
+            raise FieldError(
+                "shaft_static_friction_coefficient",
+                related=("shaft_friction_coefficient",),
+                message=f"shaft_static_friction_coefficient = {static!r} is below shaft_friction_coefficient = "
+                f"{dynamic!r}: the static coefficient must be >= the dynamic one (or 0: the same)",
+            )
+
+    @property
+    def static_friction_coefficient(self) -> float:
+        """μ_s of the shaft: the static key, or μ_i when it is 0."""
+        return self.shaft_static_friction_coefficient or self.shaft_friction_coefficient
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -28,6 +28,7 @@ from refsim.constraints.coupling import (
     RingLayout,
     grip_preload,
     insertion_compliance,
+    shaft_friction_coefficients,
     local_mesh_size,
     ring_insertion_block,
     shaft_contact_block,
@@ -133,20 +134,29 @@ class Detector:
         self._ring_cache = (np.stack([path.tets, path.created_step], axis=1), kept_tangents, layout)
         return layout
 
-    def insertion_rows(self, path: InsertionPath, geometry: StepGeometry) -> RowBlock:
-        """The insertion points' rows: the ring coupling with its sub-grid compliance, or the paper's rows."""
+    def insertion_rows(self, path: InsertionPath, geometry: StepGeometry, *, finite_line: bool = False) -> RowBlock:
+        """The insertion points' rows: the ring coupling with its sub-grid compliance, or the paper's rows.
+
+        ``finite_line``: the 3-D sub-grid compliance of the inserted line (insertion); false: the 2-D values, which
+        the cut rows also use (while cutting: rows of both kinds along one needle must have the same stiffness
+        model; with the 3-D value on the insertion rows only, cube_cut's needle is held, 27.8 N, and cuts 2.3 mm
+        of its 5 mm stroke).
+        """
         spec = self.insertion
+        # μ_s for the points that stuck at the last solve, μ_i (dynamic) for those that slipped.
+        friction = shaft_friction_coefficients(path.stuck, static=spec.static_friction_coefficient,
+                                               dynamic=spec.shaft_friction_coefficient)
         if not self.ring:
-            return insertion_block(path, geometry, friction_coefficient=spec.shaft_friction_coefficient,
-                                   normal_preload=self.preload)
+            return insertion_block(path, geometry, friction_coefficient=friction, normal_preload=self.preload)
         centres_previous = path.positions(geometry.tissue_previous, geometry.mesh_tets)
         arc_lengths, _ = geometry.needle_previous.project(centres_previous)
         rings = self._rings(path, geometry.needle_previous.tangents(arc_lengths), geometry.mesh_tets)
-        block = ring_insertion_block(path, geometry, rings, friction_coefficient=spec.shaft_friction_coefficient,
+        block = ring_insertion_block(path, geometry, rings, friction_coefficient=friction,
                                      normal_preload=self.preload)
+        # With finite_line, the 3-D sub-grid compliance of the inserted line, which starts at the free surface.
         diagonal = insertion_compliance(block, shear_modulus=self.shear_modulus, poisson_ratio=self.poisson_ratio,
                                         needle_radius=self.needle_radius, mesh_size=rings.mesh_size,
-                                        spacing=spec.spacing)
+                                        spacing=spec.spacing, arc_lengths=arc_lengths if finite_line else None)
         return replace(block, compliance_diagonal=diagonal)
 
     def detect(self, state: SimulationState, geometry: StepGeometry) -> Detection:
@@ -178,7 +188,9 @@ class Detector:
                 # start are kept without rows (anchored, either would drag the tissue along the stroke).
                 points = points[2:]
             if points.size:
-                blocks.append(self.insertion_rows(state.path.subset(points), geometry))
+                blocks.append(self.insertion_rows(state.path.subset(points), geometry,
+                                                  finite_line=spec.subgrid_line == "finite"
+                                                  and state.phase != Phase.CUTTING))
                 insertion_points = points
             if spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION:
                 # The tip's cutting row, against the newest insertion point (at most d_i behind the tip).

@@ -26,6 +26,7 @@ from dataclasses import replace
 import numpy as np
 
 from refsim.constraints import INSERTION, InsertionPath, RowBlock, StepGeometry
+from refsim.constraints.coupling import stuck_points
 from refsim.fem.compliance import make_strategy
 from refsim.fem.threads import hot_path_threads
 from refsim.scene import Scene
@@ -270,7 +271,19 @@ class Simulation:
         values = multipliers[insertion].reshape(points.size, -1)
         stored[points] = 0.0
         stored[points, : values.shape[1]] = values[:, :3]
-        return path.with_multipliers(stored)
+        path = path.with_multipliers(stored)
+        rows = detection.rows
+        shaft = np.flatnonzero(rows.source[rows.shaft_rows] == INSERTION) if rows.shaft_rows.size else []
+        if len(shaft) != points.size:
+            return path
+        # The stick state of each point for the next step's coefficient (μ_s when stuck, μ_d when slipping).
+        pairs = rows.shaft_pairs[shaft]
+        bounds = rows.shaft_friction_coefficient[shaft] * (
+            np.linalg.norm(multipliers[pairs], axis=1) + rows.shaft_normal_preload[shaft]
+        )
+        stuck = np.array(path.stuck, copy=True)
+        stuck[points] = stuck_points(multipliers[rows.shaft_rows[shaft]], bounds)
+        return path.with_stuck(stuck)
 
     @staticmethod
     def _check_finite(step, tissue_state, needle_state, multipliers) -> None:

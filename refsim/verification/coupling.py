@@ -62,6 +62,7 @@ __all__ = [
     "case_coupling_axial",
     "case_bare_line_lateral",
     "case_ring_calibration",
+    "cube_needle_stiffness",
 ]
 
 PAPER_TISSUE = HookeMaterial(youngs_modulus=5.0e5, poisson_ratio=0.4, density=1000.0)
@@ -804,3 +805,96 @@ CASES: list[Callable[[], CaseResult | list[CaseResult]]] = [
     case_bare_line_lateral,
     case_ring_calibration,
 ]
+
+
+# ------------------------------------------------------------------------- the cube, 3-D, under refinement
+CUBE_CELLS = (6, 12, 24)  # cells per axis of the clamped 100 mm cube (h = 16.7, 8.33, 4.17 mm)
+CUBE_DEPTH = 0.04  # [m], inserted length (the rows every d_i = 0.5 mm from the top face down)
+
+
+@functools.lru_cache(maxsize=8)
+def cube_needle_stiffness(
+    cells: int,
+    *,
+    radii: tuple[float, ...] = (NEEDLE_THIN, NEEDLE_PAPER),
+    depth: float = CUBE_DEPTH,
+    spacing: float = 0.5e-3,
+    entry: tuple[float, float] = (0.00123, 0.00231),
+    material: HookeMaterial = PAPER_TISSUE,
+) -> dict[tuple[str, float, str], float]:
+    """Static stiffness [N/m] of a rigid vertical needle inserted ``depth`` into the paper's cube (bottom clamped).
+
+    The rows of the simulation (``ring_insertion_block`` with the sub-grid compliance of the inserted line, 3-D
+    or infinite; or the paper's ``insertion_block``), bonded (stuck needle):
+    K = gᵀ (W + C)⁻¹ g for a unit rigid translation, lateral (x) with the lateral rows, axial with the axial rows.
+    W = H K⁻¹ Hᵀ on the rest stiffness (one factorisation for all needles and both couplings).
+
+    Returns
+    -------
+    {(coupling, needle radius, "lateral" | "axial"): K}, coupling "ring" (3-D sub-grid compliance of the finite
+    line, ``insertion.subgrid_line = "finite"``), "ring-infinite" (the plane-strain and antiplane values) or
+    "paper".
+    """
+    from refsim.constraints.coupling import RingLayout, insertion_compliance, ring_insertion_block
+    from refsim.constraints.insertion import InsertionPath, insertion_block
+    from refsim.constraints.needle_geometry import RigidNeedleGeometry
+    from refsim.constraints.rows import FRICTION
+    from refsim.constraints.step_geometry import StepGeometry
+
+    mesh = box_mesh(size=(0.1, 0.1, 0.1), cells=(cells, cells, cells), origin=(-0.05, -0.05, 0.0))
+    rest, tets = np.asarray(mesh.rest_positions), np.asarray(mesh.tets)
+    model = TissueModel(rest, tets, material, fixed_nodes=np.flatnonzero(rest[:, 2] < 1e-9))
+    stiffness = model.rest_stiffness.tocsr()
+    free = np.setdiff1d(np.arange(model.dof_count), model.fixed_dofs)
+    factor = spla.splu(stiffness[free][:, free].tocsc(), permc_spec="COLAMD")
+    direction = np.array([0.0, 0.0, -1.0])
+    top = np.array([entry[0], entry[1], 0.1])
+    count = int(round(depth / spacing))
+    arc = 0.2 + (np.arange(count) + 0.5) * spacing  # the needle's base is 0.2 m above the top face
+    centres = top + np.outer(arc - 0.2, direction)
+    needle = RigidNeedleGeometry(base=top - 0.2 * direction, direction=direction, length=0.2 + depth)
+    locator = TetLocator(rest, tets)
+    found, barycentric = locator.locate(centres)
+    path = InsertionPath(found, barycentric, np.zeros(count, dtype=np.int64))
+    geometry = StepGeometry(
+        mesh_tets=tets, tissue_previous=rest, tissue_free=rest, needle_previous=needle, needle_free=needle
+    )
+    g, nu = material.shear_modulus, material.poisson_ratio
+    blocks = {("paper", radius): (insertion_block(path, geometry, friction_coefficient=1.0), None)
+              for radius in radii}
+    for radius in radii:
+        rings = RingLayout.around(path, rest_positions=rest, mesh_tets=tets, locator=locator,
+                                  tangents=needle.tangents(arc), needle_radius=radius)
+        block = ring_insertion_block(path, geometry, rings, friction_coefficient=1.0)
+        common = dict(shear_modulus=g, poisson_ratio=nu, needle_radius=radius, mesh_size=rings.mesh_size,
+                      spacing=spacing)
+        blocks[("ring", radius)] = (block, insertion_compliance(block, **common, arc_lengths=arc))
+        blocks[("ring-infinite", radius)] = (block, insertion_compliance(block, **common))
+    out = {}
+    paper_done = None
+    mesh_part = {}
+    for (coupling, radius), (block, extra) in blocks.items():
+        if coupling == "paper" and paper_done is not None:
+            out[("paper", radius, "lateral")], out[("paper", radius, "axial")] = paper_done
+            continue
+        if id(block) not in mesh_part:
+            dense = sp.csr_matrix(block.tissue_jacobian)[:, free].toarray()
+            product = dense @ factor.solve(np.ascontiguousarray(dense.T))
+            mesh_part[id(block)] = 0.5 * (product + product.T)
+        compliance = mesh_part[id(block)]
+        if extra is not None:
+            compliance = compliance + np.diag(extra)
+        values = []
+        for kind, mask, motion in (
+            ("lateral", block.kind != FRICTION, np.array([1.0, 0.0, 0.0])),
+            ("axial", block.kind == FRICTION, direction),
+        ):
+            index = np.flatnonzero(mask)
+            gap = block.directions[index] @ motion
+            matrix = compliance[np.ix_(index, index)]
+            force = np.linalg.pinv(matrix, rcond=1e-11, hermitian=True) @ gap
+            out[(coupling, radius, kind)] = float(force @ gap)
+            values.append(float(force @ gap))
+        if coupling == "paper":
+            paper_done = tuple(values)
+    return out

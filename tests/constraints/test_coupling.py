@@ -489,3 +489,64 @@ def test_cube_insertion_profile_rise_puncture_cut_and_friction(cube_scene):
     # one per d_i of needle, each with the grip 2π r p₀ d_i (μ Σ‖λ_lat‖ adds 0.1 %); 10 % bounds that.
     assert slope == pytest.approx(expected, rel=0.1)
     assert intercept == pytest.approx(f_cut, rel=0.05)
+
+
+# ------------------------------------------------------------- 3-D sub-grid compliance of a finite line
+def _kelvin_ring_line(kind, extent, radius):
+    """Independent evaluation: the mean over a ring (radius ρ) of Kelvin's displacement of uniform ring loads along
+    a line of length t on one side, by adaptive quadrature of the double integral over the chord angle and the
+    axial offset [per unit line load, times 16πG(1−ν)]."""
+    from scipy.integrate import dblquad
+
+    def integrand(s, theta):
+        chord2 = (2.0 * radius * math.sin(0.5 * theta)) ** 2
+        distance = math.sqrt(s * s + chord2)
+        if kind == "lateral":  # ⟨R_x²⟩ = D²/2 over the ring
+            return ((3 - 4 * NU) / distance + 0.5 * chord2 / distance**3) / math.pi
+        return ((3 - 4 * NU) / distance + s * s / distance**3) / math.pi
+
+    value, _ = dblquad(integrand, 0.0, math.pi, 0.0, extent, epsabs=1e-12, epsrel=1e-10)
+    return value
+
+
+@pytest.mark.parametrize("kind", ["lateral", "axial"])
+def test_finite_line_annulus_is_kelvin_integrated_and_tends_to_the_2d_values(kind):
+    r, a = 0.5e-3, 6e-3
+    scale = 16 * math.pi * G * (1 - NU)
+    for before, after in ((2e-3, 7e-3), (0.04, 0.01)):
+        # U_r − U_a summed over the line's two sides (the integrand is singular, integrably, at s = θ = 0).
+        expected = sum(
+            _kelvin_ring_line(kind, t, r) - _kelvin_ring_line(kind, t, a) for t in (before, after)
+        ) / scale
+        computed = coupling.finite_line_annulus(
+            kind, shear_modulus=G, poisson_ratio=NU, inner=r, outer=a, before=before, after=after
+        )
+        assert computed == pytest.approx(expected, rel=1e-6)
+    # A long line: the plane-strain (lateral) and antiplane (axial) values of subgrid_compliance.
+    plane = coupling.subgrid_compliance(
+        np.array([coupling.LATERAL if kind == "lateral" else coupling.AXIAL]),
+        shear_modulus=G, poisson_ratio=NU, needle_radius=r, mesh_size=a / 1.2718, spacing=1.0,
+    )[0]
+    a_c = coupling.equivalent_radius(a / 1.2718, a / 1.2718, kind)
+    long = coupling.finite_line_annulus(
+        kind, shear_modulus=G, poisson_ratio=NU, inner=r, outer=a_c, before=1e3, after=1e3
+    )
+    assert long == pytest.approx(plane, rel=1e-6)
+    # Shorter lines have less annulus compliance, and it stays positive.
+    short = coupling.finite_line_annulus(
+        kind, shear_modulus=G, poisson_ratio=NU, inner=r, outer=a_c, before=1e-3, after=1e-3
+    )
+    assert 0.0 < short < long
+
+
+def test_insertion_compliance_of_a_finite_line_is_smaller_at_its_ends():
+    model, needle, centres, spacing, h = _needle_in_box(cells=4, angle_deg=0.0, spacing_ratio=0.1, depth=0.03)
+    block, sizes = _ring_rows(model, needle, centres, spacing, 0.5e-3, friction=0.1)
+    arcs = 0.2 + (np.arange(len(centres)) + 0.5) * spacing
+    common = dict(shear_modulus=G, poisson_ratio=NU, needle_radius=0.5e-3, mesh_size=sizes, spacing=spacing)
+    infinite = coupling.insertion_compliance(block, **common)
+    finite = coupling.insertion_compliance(block, **common, arc_lengths=arcs)
+    assert np.all(finite > 0.0) and np.all(finite < infinite)
+    lateral = finite[0::3]
+    # The tip end (no mirror) is the most compliant deficit; the surface end sees the line's mirror image.
+    assert lateral[-1] < lateral[len(lateral) // 2] and lateral[-1] < lateral[0]

@@ -112,6 +112,43 @@ def test_exact_strategy_on_every_linear_solver_equals_a_dense_solve(model, solve
     assert np.abs(step.delassus(jacobian) - w_reference).max() <= bound * np.abs(w_reference).max()
 
 
+def crowded_rows(model: TissueModel, count: int = 30, seed: int = 3) -> sp.csr_matrix:
+    """More rows than DoFs touched: ``count`` points in two tets (as the paper's line rows in few tets)."""
+    rng = np.random.default_rng(seed)
+    tets = model.tets[rng.choice(model.tet_count, 2, replace=False)]
+    data, cols, rows = [], [], []
+    for row in range(count):
+        nodes = tets[row % 2]
+        weights = rng.dirichlet(np.ones(4))
+        direction = rng.standard_normal(3)
+        direction /= np.linalg.norm(direction)
+        for node, weight in zip(nodes, weights, strict=True):
+            rows += [row] * 3
+            cols += list(3 * node + np.arange(3))
+            data += list(weight * direction)
+    return sp.csr_matrix((data, (rows, cols)), shape=(count, model.dof_count))
+
+
+@pytest.mark.parametrize("layout", ["spread", "crowded"])
+@pytest.mark.parametrize("solver", available_linear_solvers())
+def test_exact_delassus_and_correction_for_few_or_many_rows(model, solver, layout):
+    # Fewer rows than DoFs touched (solved for the rows' loads) or more (for the unit loads), with the factor's
+    # forward half when the solver has one (PARDISO): W and A⁻¹Hᵀλ equal the dense solve to κ(A)·ε.
+    state = deformed(model)
+    system, dense, inverse, _ = dense_reference(model, state)
+    step = Exact(linear_solver=solver).bind().step(system)
+    jacobian = rows_on(model, count=6) if layout == "spread" else crowded_rows(model)
+    used = np.unique(jacobian.indices).size
+    assert (jacobian.shape[0] < used) == (layout == "spread")
+    bound = 10 * np.linalg.cond(dense) * EPS
+    h = jacobian[:, system.free_dofs].toarray()
+    w_reference = h @ inverse @ h.T
+    assert np.abs(step.delassus(jacobian) - w_reference).max() <= bound * np.abs(w_reference).max()
+    lam = np.random.default_rng(4).standard_normal(jacobian.shape[0])
+    reference = system.expand(inverse @ (h.T @ lam))
+    assert np.abs(step.correction(jacobian, lam) - reference).max() <= bound * np.abs(reference).max()
+
+
 def test_fixed_node_displacements_are_a_dirichlet_condition(model):
     state = deformed(model)
     drive = np.tile([1e-3, -2e-3, 5e-4], (model.fixed_nodes.size, 1))

@@ -1,0 +1,60 @@
+"""The needle's reaction in the paper's cube under refinement (issue 9, item 2), ring coupling.
+
+A rigid needle inserted 40 mm (rows every 0.5 mm) into the clamped 100 mm cube, stuck, translated sideways or
+along its axis: K = gᵀ(W + C)⁻¹g on 6, 12, 24 cells per axis (h = 16.7, 8.33, 4.17 mm;
+:func:`refsim.verification.coupling.cube_needle_stiffness`, C the sub-grid compliance of the rows).
+Reference: none in closed form (a 3-D problem); the test asserts Roache's observed order of the three levels,
+p = log2(ε₃₂/ε₂₁) ≥ 0.5 (a logarithmic drift, the bare line's in the limit, gives ε₃₂/ε₂₁ → 1, p → 0), and a
+grid convergence index of the finest level below 5 %, and reports the Richardson value.
+
+Both sub-grid models (``insertion.subgrid_line``): "infinite" (default; key "ring-infinite") and "finite"
+("ring"). Measured (docs/coupling.md): the thin needle converges with both, except the finite model's axial
+stiffness; the 8 mm needle does not on these meshes. Those cases are strict expected failures, so that a fix
+shows.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from refsim.sweep.convergence import grid_convergence_index, observed_order, richardson
+from refsim.verification import coupling
+
+pytestmark = pytest.mark.slow
+
+
+def _check(key):
+    coarse, medium, fine = (coupling.cube_needle_stiffness(n)[key] for n in coupling.CUBE_CELLS)
+    order = observed_order(fine, medium, coarse, 2.0)
+    print(f"\n{key}: K = {coarse:.1f}, {medium:.1f}, {fine:.1f} N/m, p = {order:.2f}")
+    assert math.isfinite(order) and order >= 0.5
+    extrapolated = richardson(fine, medium, 2.0, order)
+    gci = grid_convergence_index(fine, medium, 2.0, order)
+    print(f"Richardson {extrapolated:.1f} N/m, GCI {gci:.2%}")
+    assert gci < 0.05
+
+
+def _failing(reason):
+    return pytest.mark.xfail(strict=True, reason=reason)
+
+
+THIN, PAPER = coupling.NEEDLE_THIN, coupling.NEEDLE_PAPER
+CROSSING = "the ring is at ρ_c = h on 6 and 12 cells and at r on 24 (h < r): the sequence crosses h = r"
+CASES = [
+    pytest.param(("ring-infinite", THIN, "lateral"), id="infinite-thin-lateral"),
+    pytest.param(("ring-infinite", THIN, "axial"), id="infinite-thin-axial"),
+    pytest.param(("ring", THIN, "lateral"), id="finite-thin-lateral"),
+    pytest.param(("ring", THIN, "axial"), id="finite-thin-axial",
+                 marks=_failing("K = 10781, 10590, 10417 N/m: ε₃₂/ε₂₁ = 1.1 (p = 0.15), 1.6 % per halving")),
+    pytest.param(("ring-infinite", PAPER, "lateral"), id="infinite-8mm-lateral",
+                 marks=_failing(f"K = 11949, 12163, 12023 N/m, not monotone: {CROSSING}")),
+    pytest.param(("ring", PAPER, "lateral"), id="finite-8mm-lateral",
+                 marks=_failing(f"K = 12706, 12564, 12252 N/m, ε₂₁ > ε₃₂: {CROSSING}")),
+]
+
+
+@pytest.mark.parametrize("key", CASES)
+def test_needle_stiffness_converges_at_an_observed_order(key):
+    _check(key)
