@@ -14,7 +14,11 @@ import pytest
 from refsim.scene import load_scene
 from refsim.simulation import Simulation
 
-COARSE = ("mesh.cells=[4, 4, 4]", "output.record_problems=true")
+# The cube's own grip (insertion.interference) and tip cutting force are switched off: this test isolates the
+# older per-length grip f (insertion.shaft_normal_force); the interference's own law is tested in
+# tests/constraints/test_coupling.py and tests/simulation/test_shaft_friction.py.
+COARSE = ("mesh.cells=[4, 4, 4]", "output.record_problems=true", "insertion.interference=0",
+          "insertion.tip_cutting_force=0")
 FRICTION = 0.1
 NORMAL_FORCE = 200.0  # [N/m]: the preload μ f d_i = 0.01 N per point dominates the lateral forces' share
 
