@@ -523,7 +523,8 @@ def check_consistency(scene: Scene) -> None:
     - the tip's travel in one step (largest tip speed × dt) within insertion.contact_distance: a faster tip can
       jump across the contact zone, and the puncture force is never measured (dt = 1 s gave 139 N instead of
       3.5 N). Travel beyond d_i is allowed (several points per step are created) but logged as a warning;
-    - the cut surface spacing d_c shorter than the needle.
+    - the cut surface spacing d_c shorter than the needle;
+    - the channel's interference δ_r smaller than the needle's radius.
 
     Raises
     ------
@@ -547,6 +548,14 @@ def check_consistency(scene: Scene) -> None:
             "insertion", "spacing", related=(("needle", "length"),), message=
             f"spacing = {spacing!r} m (d_i) is not shorter than needle.length = {length!r} m: at most one insertion "
             "point would fit on the needle; d_i is a fraction of a millimetre in the paper (0.5 mm)",
+        )
+    interference = scene.insertion.interference
+    if interference >= scene.needle.radius:
+        raise ConsistencyError(
+            "insertion", "interference", related=(("needle", "radius"),), message=
+            f"interference = {interference!r} m (the channel's radial interference delta_r) is not smaller than "
+            f"needle.radius = {scene.needle.radius!r} m: the channel's radius r - delta_r must be positive; "
+            "delta_r is micrometres for a tight channel",
         )
     if scene.cutting.enabled and scene.cutting.point_spacing >= length:
         raise ConsistencyError(

@@ -53,6 +53,7 @@ def test_a_string_in_any_numeric_key_is_refused_and_blamed_on_the_override(secti
         ("time.duration=2.205", ["time.duration", "not a whole number", "2.2 or 2.21"]),
         ("time.dt=1", ["dt = 1 s"]),  # blamed on the override of dt although duration is the key checked
         ("insertion.spacing=1", ["insertion.spacing = 1", "needle.length = 0.32"]),
+        ("insertion.interference=0.008", ["insertion.interference = 0.008", "needle.radius = 0.008"]),
         ("trajectory.directions=[[0, 0, -1], [0, 0, 1], [0, 0, 1]]", ["trajectory.directions", "180.0 degrees"]),
         ("trajectory.directions=[[0, 0, -1], [1, 0, 0.1], [1, 0, 0.1]]", ["trajectory.directions", "less than 90"]),
         ('solver.backend="nosuch"', ["solver.backend = 'nosuch'", "clarabel"]),

@@ -27,7 +27,8 @@ INFLATION = 1.05
 
 
 def _scene(
-    cube_scene, *, cells, angle, entry, spacing_ratio, rigid, solver, grip=0.0, subgrid_line="infinite"
+    cube_scene, *, cells, angle, entry, spacing_ratio, rigid, solver, grip=0.0, interference=0.0,
+    subgrid_line="infinite"
 ):
     h = 0.1 / cells
     offset = np.array(ENTRIES[entry]) * h
@@ -54,6 +55,7 @@ def _scene(
         f"needle.rigid={'true' if rigid else 'false'}",
         f"solver.method={solver}",
         f"insertion.shaft_normal_force={grip}",
+        f"insertion.interference={interference}",  # the cube's own grip is explicit here: off unless a variant sets it
         "insertion.coupling=ring",
         f'insertion.subgrid_line="{subgrid_line}"',
     )
@@ -104,6 +106,7 @@ DEFAULT = [
         cells=4, angle=30.0, entry="face", spacing_ratio=0.1, rigid=True, grip=20.0
     ),  # the issue's lock case
     dict(cells=6, angle=30.0, entry="edge", spacing_ratio=0.5, rigid=False),
+    dict(cells=4, angle=30.0, entry="edge", spacing_ratio=0.5, rigid=True, interference=2e-5),  # Lame grip
     dict(cells=6, angle=0.0, entry="vertex", spacing_ratio=0.1, rigid=False),
     dict(cells=4, angle=45.0, entry="edge", spacing_ratio=0.5, rigid=True, subgrid_line="finite"),
 ]
@@ -115,9 +118,9 @@ def test_variant(cube_scene, variant):
 
 
 FULL = [
-    dict(cells=cells, angle=angle, entry=entry, spacing_ratio=ratio, rigid=rigid)
-    for cells, angle, entry, ratio, rigid in itertools.product(
-        (4, 6, 8), (0.0, 30.0, 45.0), tuple(ENTRIES), (0.05, 0.1, 0.5, 1.0), (True, False)
+    dict(cells=cells, angle=angle, entry=entry, spacing_ratio=ratio, rigid=rigid, interference=grip)
+    for cells, angle, entry, ratio, rigid, grip in itertools.product(
+        (4, 6, 8), (0.0, 30.0, 45.0), tuple(ENTRIES), (0.05, 0.1, 0.5, 1.0), (True, False), (0.0, 2e-5)
     )
 ]
 

@@ -24,6 +24,7 @@ SCENE = (
     "mesh.cells=[4, 4, 4]",
     "needle.radius=0.0005",
     f"insertion.interference={INTERFERENCE}",
+    "insertion.tip_cutting_force=0",  # friction alone: the cube's tip cutting force would add f_cut to the hold
     f"insertion.shaft_friction_coefficient={DYNAMIC}",
     f"insertion.shaft_static_friction_coefficient={STATIC}",
     "trajectory.times=[0.0, 1.2, 1.6, 1.9]",
