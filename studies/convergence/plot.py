@@ -34,12 +34,16 @@ REFERENCES = {
 NOTES = {
     "cube_spacing": (
         "The cube is punctured within the step of the first contact (0.1 mm of travel per step reaches f_p), so "
-        "`puncture_force` is the threshold f_p itself under any refinement. After the puncture nothing in this "
-        "scene resists a straight insertion (`tip_cutting_force`, `shaft_normal_force` and `interference` are 0, "
-        "so the shaft's Coulomb friction has no normal load): the forces after the puncture are about 1e-4 of "
-        "f_p and the displacement at the point is nanometres. They grow under refinement and have no order; "
-        "they are not a convergence test of the model (the cube_cut sweeps are)."),
-    "cube_mesh": "As for cube_spacing: the puncture force is the threshold, the rest is about 1e-4 of it.",
+        "`puncture_force` is the threshold f_p itself under any refinement. After the puncture the tip cuts at "
+        "f_cut = 0.5 N and the shaft's friction on the channel's grip (Lamé, δ_r = 20 µm) adds μ 2π r p₀ per "
+        "metre inserted (docs/coupling.md): `axial_force@t=1.9` (the base stops) is about 0.58 N, and "
+        "`needle_force@end` relaxes to f_cut. Each insertion point carries the grip of a length d_i, with full "
+        "weights at both ends of the inserted length (a rectangle rule): O(d_i) in theory."),
+    "cube_mesh": (
+        "As for cube_spacing, on 3–8 cells per axis. With the paper's thick needle (r = 8 mm) the ring radius "
+        "max(r, h) of the coupling is h on all these meshes, above r: the levels are not in the asymptotic "
+        "range of the ring on the needle's surface (docs/coupling.md), and the differences between levels do "
+        "not decrease (divergent in the table) although they stay below 0.5 %."),
     "cube_cut_spacing": (
         "`lateral_force@t=2.03` is the shaft's lateral load 0.3 mm into the stroke, before the cut starts: the "
         "coupling rows are a quadrature of the shaft's distributed coupling with weight d_i per point and full "
