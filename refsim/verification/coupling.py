@@ -42,6 +42,7 @@ from refsim.geometry.search import TetLocator
 from refsim.materials import HookeMaterial
 from refsim.mesh.generators import box_mesh
 from refsim.solvers import ConstraintProblem, solve_exact, solve_gauss_seidel
+from refsim.sweep.convergence import SAFETY_FACTOR, observed_order, richardson
 from refsim.verification.result import CaseResult
 
 __all__ = [
@@ -66,7 +67,6 @@ __all__ = [
 ]
 
 PAPER_TISSUE = HookeMaterial(youngs_modulus=5.0e5, poisson_ratio=0.4, density=1000.0)
-SAFETY_FACTOR = 1.25  # F_s of Roache's GCI for three meshes with an observed order
 
 
 # ------------------------------------------------------------------------------------------- closed forms
@@ -86,22 +86,23 @@ def antiplane_stiffness(material: HookeMaterial, inner: float, outer: float) -> 
 def grid_convergence(values: np.ndarray) -> tuple[float, float, float]:
     """Observed order, Richardson value and GCI (absolute) of the last of three values on meshes refined by 2.
 
+    The order and the extrapolation are `refsim.sweep.convergence`'s (Roache's safety factor F_s = 1.25 there too);
+    this wraps them for the verification cases' coarse-to-fine sequences with an absolute index.
+
     Parameters
     ----------
     values : Results on meshes h, h/2, h/4, shape (3,).
 
     Returns
     -------
-    (order, extrapolated, gci) : p = log2(|f₁ − f₂| / |f₂ − f₃|), f₃ + (f₃ − f₂)/(2^p − 1), and
-    F_s |f₃ − f₂| / (2^p − 1). A non-monotone sequence gives p = nan.
+    (order, extrapolated, gci) : p = log2((f₁ − f₂) / (f₂ − f₃)), f₃ + (f₃ − f₂)/(2^p − 1), and
+    F_s |f₃ − f₂| / (2^p − 1), in the values' unit. A non-monotone or divergent sequence gives (nan, f₃, inf).
     """
-    f1, f2, f3 = (float(v) for v in values)
-    ratio = (f1 - f2) / (f2 - f3) if f2 != f3 else math.inf
-    if not ratio > 0.0:
-        return math.nan, f3, math.inf
-    order = math.log2(ratio)
-    factor = 2.0**order - 1.0
-    return order, f3 + (f3 - f2) / factor, SAFETY_FACTOR * abs(f3 - f2) / factor
+    coarse, medium, fine = (float(v) for v in values)
+    order = observed_order(fine, medium, coarse, 2.0)
+    if not math.isfinite(order):
+        return math.nan, fine, math.inf
+    return order, richardson(fine, medium, 2.0, order), SAFETY_FACTOR * abs(fine - medium) / (2.0**order - 1.0)
 
 
 # ------------------------------------------------------------------------------------------------ meshes
