@@ -24,6 +24,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -31,6 +32,7 @@ import scipy.sparse.linalg as spla
 
 from refsim.constraints.coupling import (
     RING_EQUIVALENT_RADIUS,
+    equivalent_radius,
     RING_EQUIVALENT_RADIUS_SPREAD,
     coupling_radius,
     interference_pressure,
@@ -42,7 +44,7 @@ from refsim.geometry.search import TetLocator
 from refsim.materials import HookeMaterial
 from refsim.mesh.generators import box_mesh
 from refsim.solvers import ConstraintProblem, solve_exact, solve_gauss_seidel
-from refsim.sweep.convergence import SAFETY_FACTOR, observed_order, richardson
+from refsim.sweep.convergence import SAFETY_FACTOR, ConvergenceResult, convergence, observed_order, richardson
 from refsim.verification.result import CaseResult
 
 __all__ = [
@@ -63,6 +65,13 @@ __all__ = [
     "case_coupling_axial",
     "case_bare_line_lateral",
     "case_ring_calibration",
+    "case_surface_coupling",
+    "SURFACE_POSITIONS",
+    "SurfaceStudy",
+    "surface_coupling_study",
+    "surface_coupling_results",
+    "surface_offsets",
+    "cylinder_radius_of",
     "cube_needle_stiffness",
 ]
 
@@ -172,9 +181,11 @@ def _interpolation_rows(
     groups: np.ndarray,
     weights: np.ndarray,
     group_count: int,
+    locator: TetLocator | None = None,
 ) -> sp.csr_matrix:
     """Rows Σ_points w nᵀ N(x) (positive sign: the row measures the tissue displacement along n)."""
-    tets, barycentric = TetLocator(model.rest_positions, model.tets).locate(points)
+    locator = TetLocator(model.rest_positions, model.tets) if locator is None else locator
+    tets, barycentric = locator.locate(points)
     if np.any(tets < 0):
         raise ValueError(f"{np.count_nonzero(tets < 0)} coupling points lie outside the mesh")
     nodes = model.tets[tets]
@@ -290,6 +301,7 @@ def _coupling_rows(
     count: int,
     levels: np.ndarray,
     components: list[int],
+    locator: TetLocator | None = None,
 ) -> sp.csr_matrix:
     """One row per level and component: the mean over the ring of the tissue displacement component."""
     points = _ring_layout(centre, radius, count, levels)  # (levels, count, 3)
@@ -307,10 +319,36 @@ def _coupling_rows(
         np.concatenate([b[2] for b in blocks]),
         np.full(sum(b[0].shape[0] for b in blocks), 1.0 / per_ring),
         level_count * len(components),
+        locator,
     )
 
 
-@functools.lru_cache(maxsize=64)
+@functools.lru_cache(maxsize=4)
+def _disc_slab_model(outer: float, cells: int, layers: int, material: HookeMaterial):
+    """The disc slab's tissue model and a locator on it (shared by the lateral and axial systems)."""
+    h = 2.0 * outer / cells
+    positions, tets = disc_slab(outer, cells, layers, layers * h)
+    return TissueModel(positions, tets, material), TetLocator(positions, tets)
+
+
+@functools.lru_cache(maxsize=6)
+def _disc_slab_system(kind: str, outer: float, cells: int, layers: int, material: HookeMaterial):
+    """(model, free DoFs, factor of K_ff) of the clamped disc slab, rim clamped, faces on rollers (lateral) or
+    held in plane (axial); one factorisation for every centreline position and coupling."""
+    model, _ = _disc_slab_model(outer, cells, layers, material)
+    positions = model.rest_positions
+    height = layers * 2.0 * outer / cells
+    tol = 1e-9 * outer
+    rim = np.flatnonzero(np.hypot(positions[:, 0], positions[:, 1]) > outer - tol)
+    faces = np.flatnonzero((positions[:, 2] < tol) | (positions[:, 2] > height - tol))
+    face_components = [2] if kind == "lateral" else [0, 1]
+    fixed = np.unique(np.concatenate([_dofs(rim, [0, 1, 2]), _dofs(faces, face_components)]))
+    free = np.setdiff1d(np.arange(model.dof_count), fixed)
+    stiffness = model.rest_stiffness.tocsr()
+    return model, free, spla.splu(stiffness[free][:, free].tocsc())
+
+
+@functools.lru_cache(maxsize=256)
 def coupled_stiffness(
     kind: str,
     coupling: str,
@@ -322,6 +360,7 @@ def coupled_stiffness(
     offset=(0.31, 0.17),
     layers: int = 2,
     material: HookeMaterial = PAPER_TISSUE,
+    surface_subgrid: bool = True,
 ) -> float:
     """K′ [N/m²] of a rigid needle coupled to a clamped disc slab that does not resolve it.
 
@@ -332,17 +371,13 @@ def coupled_stiffness(
         "paper" (rows on the centreline, no compliance).
     needle_radius : r [m]. outer : Clamped radius R [m]. cells : Cells across the diameter (h = 2R / cells).
     spacing_ratio : d_i / h. offset : Centreline position in its cell, in units of h.
+    surface_subgrid : False: no sub-grid compliance when the ring lies on the needle's surface (h ≤ r), the bare
+        surface coupling (:func:`refsim.constraints.coupling.subgrid_compliance`).
     """
     h = 2.0 * outer / cells
     height = layers * h
-    positions, tets = disc_slab(outer, cells, layers, height)
-    model = TissueModel(positions, tets, material)
-    tol = 1e-9 * outer
-    rim = np.flatnonzero(np.hypot(positions[:, 0], positions[:, 1]) > outer - tol)
-    faces = np.flatnonzero((positions[:, 2] < tol) | (positions[:, 2] > height - tol))
+    model, free, factor = _disc_slab_system(kind, outer, cells, layers, material)
     components = [0, 1] if kind == "lateral" else [2]
-    face_components = [2] if kind == "lateral" else [0, 1]
-    fixed = np.concatenate([_dofs(rim, [0, 1, 2]), _dofs(faces, face_components)])
     count_levels = max(1, round(height / (spacing_ratio * h)))
     spacing = height / count_levels
     levels = (np.arange(count_levels) + 0.5) * spacing
@@ -352,8 +387,10 @@ def coupled_stiffness(
         count = ring_count(radius, h)
     else:
         radius, count = 0.0, 1
-    rows = _coupling_rows(model, centre, radius, count, levels, components)
-    response = _Response(model, fixed, np.zeros(model.dof_count), rows)
+    rows = _coupling_rows(model, centre, radius, count, levels, components,
+                          _disc_slab_model(outer, cells, layers, material)[1])
+    reduced = rows[:, free].toarray()
+    compliance = reduced @ factor.solve(np.ascontiguousarray(reduced.T))
     row_kinds = (
         np.zeros(rows.shape[0], dtype=np.int64)
         if kind == "lateral"
@@ -367,12 +404,13 @@ def coupled_stiffness(
         mesh_size=h,
         spacing=spacing,
         coupling=coupling,
+        surface_subgrid=surface_subgrid,
     )
     mapping = np.zeros((rows.shape[0], len(components)))
     for c_index in range(len(components)):
         mapping[c_index :: len(components), c_index] = 1.0
-    stiffness, _ = response.needle_stiffness(mapping, extra)
-    return float(stiffness[0, 0]) / height
+    inverse = np.linalg.pinv(0.5 * (compliance + compliance.T) + np.diag(extra), rcond=1e-11, hermitian=True)
+    return float((mapping.T @ inverse @ mapping)[0, 0]) / height
 
 
 def ring_equivalent_radius(
@@ -797,6 +835,189 @@ def case_ring_calibration(cells: int = 24) -> list[CaseResult]:
     return results
 
 
+# ------------------------------------------------------- the 8 mm needle coupled on its surface (h ≤ r)
+def _halton(index: int, base: int) -> float:
+    value, scale = 0.0, 1.0
+    while index > 0:
+        scale /= base
+        value += scale * (index % base)
+        index //= base
+    return value
+
+
+#: Positions of the centreline in its cell (units of h) over which the surface coupling is averaged: the first
+#: eight points of the Halton sequence in bases 2 and 3 (spread over the cell, none on its symmetry points).
+SURFACE_POSITIONS = tuple((_halton(i, 2), _halton(i, 3)) for i in range(1, 9))
+SURFACE_CELLS_FINE = (32, 64, 128)  # the slow test's levels (h = 3.125, 1.5625, 0.78125 mm)
+
+
+@dataclass(frozen=True)
+class SurfaceStudy:
+    """The 8 mm needle in the clamped disc slab with h ≤ r on every level (the ring on the needle's surface).
+
+    Attributes
+    ----------
+    kind : "lateral" or "axial". needle_radius : r [m]. cells : Cells across, coarse to fine.
+    exact : The closed form K′ [N/m²] (Baguelin et al. 1977, lateral; 2πG/ln(R/r), axial).
+    bare : K′ [N/m²] of the bare surface coupling (no sub-grid compliance), shape (levels, positions).
+    model : K′ [N/m²] of the model (ring with its sub-grid compliance, the default), same shape.
+    convergence : Observed order, Richardson value and GCI of the position mean of ``bare``.
+    predicted : K′ [N/m²] of a rigid cylinder of the calibrated equivalent radius a_c(ρ = r, h) (the table
+        RING_EQUIVALENT_RADIUS), per level: what the bare surface coupling should give, before averaging.
+    predicted_order : The observed order of ``predicted`` (→ 1 as h → 0).
+    """
+
+    kind: str
+    needle_radius: float
+    cells: tuple
+    exact: float
+    bare: np.ndarray
+    model: np.ndarray
+    convergence: ConvergenceResult
+    predicted: np.ndarray
+    predicted_order: float
+
+
+def surface_coupling_study(
+    kind: str,
+    cells=COUPLING_CELLS,
+    *,
+    needle_radius: float = NEEDLE_PAPER,
+    positions=SURFACE_POSITIONS,
+    outer: float = OUTER,
+    material: HookeMaterial = PAPER_TISSUE,
+) -> SurfaceStudy:
+    """K′ of a needle coupled on its surface (h ≤ r) in the clamped disc slab, with and without the sub-grid term.
+
+    Once h ≤ r the ring lies on the needle's surface (ρ_c = r) and behaves like a rigid cylinder of radius
+    a_c ≈ r + 0.25 h: the bare surface coupling (C = 0) converges at order 1 to the closed form from above; the
+    model's sub-grid term ln(a_c/r) removes that O(h) offset with the calibrated a_c, leaving the a_c's
+    dependence on where the ring crosses the cells (not a smooth function of h). Each level is the mean over
+    ``positions`` of the centreline in its cell (one factorisation per level and kind).
+
+    Raises
+    ------
+    ValueError
+        For a kind other than lateral/axial, fewer than three levels, or a level with h > r.
+    """
+    if kind not in ("lateral", "axial"):
+        raise ValueError(f"kind = {kind!r}; valid: 'lateral', 'axial'")
+    cells = tuple(int(n) for n in cells)
+    sizes = np.array([2.0 * outer / n for n in cells])
+    if len(cells) < 3 or np.any(sizes > needle_radius):
+        raise ValueError(
+            f"cells = {cells}: need three or more levels with h = 2R/cells ≤ r = {needle_radius} m "
+            f"(h = {sizes.tolist()} m)"
+        )
+    closed_form = baguelin_stiffness if kind == "lateral" else antiplane_stiffness
+    exact = closed_form(material, needle_radius, outer)
+    values = {}
+    for subgrid in (False, True):
+        values[subgrid] = np.array(
+            [
+                [
+                    coupled_stiffness(kind, "ring", needle_radius=needle_radius, outer=outer, cells=n,
+                                      offset=tuple(o), material=material, surface_subgrid=subgrid)
+                    for o in positions
+                ]
+                for n in cells
+            ]
+        )
+    predicted = np.array(
+        [closed_form(material, float(equivalent_radius(needle_radius, h, kind)), outer) for h in sizes]
+    )
+    result = convergence(sizes, values[False].mean(axis=1))
+    predicted_order = observed_order(predicted[-1], predicted[-2], predicted[-3], sizes[-2] / sizes[-1],
+                                     sizes[-3] / sizes[-2])
+    return SurfaceStudy(kind, needle_radius, cells, exact, values[False], values[True], result, predicted,
+                        predicted_order)
+
+
+def cylinder_radius_of(kind: str, stiffness: float, outer: float = OUTER,
+                       material: HookeMaterial = PAPER_TISSUE) -> float:
+    """The radius a [m] of the rigid cylinder whose closed-form K′ (clamped at R) is ``stiffness`` [N/m²].
+
+    Inverts :func:`baguelin_stiffness` (lateral, increasing in a; bisection) or :func:`antiplane_stiffness`
+    (axial, a = R exp(−2πG/K′)). Used to read a coupling's stiffness as an equivalent radius.
+    """
+    from scipy.optimize import brentq
+
+    if kind == "axial":
+        return outer * math.exp(-2.0 * math.pi * material.shear_modulus / stiffness)
+    if kind != "lateral":
+        raise ValueError(f"kind = {kind!r}; valid: 'lateral', 'axial'")
+    return float(brentq(lambda a: baguelin_stiffness(material, a, outer) - stiffness, 1e-9 * outer,
+                        (1.0 - 1e-9) * outer, xtol=1e-15 * outer))
+
+
+def surface_offsets(study: SurfaceStudy, outer: float = OUTER) -> tuple[np.ndarray, np.ndarray]:
+    """The rings' measured offsets (a − r)/h per level and position, of the bare surface coupling and of the
+    model (for the model, the residual offset after its sub-grid term), shape (levels, positions) each."""
+    sizes = np.array([2.0 * outer / n for n in study.cells])[:, None]
+    def offsets(values):
+        radii = np.vectorize(lambda k: cylinder_radius_of(study.kind, k, outer))(values)
+        return (radii - study.needle_radius) / sizes
+    return offsets(study.bare), offsets(study.model)
+
+
+def surface_coupling_results(study: SurfaceStudy) -> list[CaseResult]:
+    """The three checks of a :class:`SurfaceStudy`.
+
+    1. The Richardson value of the bare surface coupling against the closed form; tolerance the GCI of the
+       finest level (Roache, F_s = 1.25, observed order).
+    2. The observed order against the order of the calibrated cylinder K′(a_c(r, h)) (→ 1); tolerance 15 %
+       (ORDER_TOLERANCE, the asymptotic range).
+    3. The model (with the sub-grid term) on the finest level, at every position, inside the GCI band of that
+       Richardson value: error max |K′_model − K′_ext| / K′_ext, tolerance GCI |K′_f| / K′_ext.
+    """
+    result = study.convergence
+    r_mm, kind = study.needle_radius * 1e3, study.kind
+    meshes = ", ".join(map(str, study.cells))
+    where = f"{len(study.bare[0])} centreline positions, {meshes} cells across"
+    formula = "K′ Baguelin et al. 1977" if kind == "lateral" else "K′_ax = 2πG/ln(R/r)"
+    extrapolated = result.extrapolated
+    band = result.uncertainty / extrapolated if result.kind == "monotone" else math.nan
+    order_error = (abs(result.order - study.predicted_order) / study.predicted_order
+                   if result.kind == "monotone" else math.inf)
+    spread = float(np.max(np.abs(study.model[-1] - extrapolated)) / extrapolated)
+    return [
+        CaseResult(
+            name=f"needle r = {r_mm:g} mm on its surface (h ≤ r), no sub-grid term, {kind}: Richardson ({where})",
+            reference=f"{formula}; tolerance GCI of the finest level (F_s 1.25, observed order)",
+            expected=study.exact,
+            computed=extrapolated,
+            error=abs(extrapolated - study.exact) / study.exact,
+            tolerance=result.gci,
+            unit="N/m²",
+        ),
+        CaseResult(
+            name=f"needle r = {r_mm:g} mm on its surface, no sub-grid term, {kind}: observed order",
+            reference="order of K′(a_c), a_c = r + c h from RING_EQUIVALENT_RADIUS (→ 1: the ring's O(h) offset); tol. 15 %",
+            expected=study.predicted_order,
+            computed=result.order,
+            error=order_error,
+            tolerance=ORDER_TOLERANCE,
+        ),
+        CaseResult(
+            name=f"needle r = {r_mm:g} mm, ring coupling (default, with the sub-grid term), {kind}: finest level, "
+                 "every position, in the GCI band",
+            reference="the Richardson value above ± GCI |K′_f|; error max over positions |K′ − K′_ext| / K′_ext",
+            expected=extrapolated,
+            computed=float(study.model[-1].mean()),
+            error=spread,
+            tolerance=band,
+            unit="N/m²",
+        ),
+    ]
+
+
+def case_surface_coupling() -> list[CaseResult]:
+    """The paper's 8 mm needle coupled on its surface (h ≤ r on 16, 32, 64 cells): an observed order, lateral
+    and axial."""
+    return [*surface_coupling_results(surface_coupling_study("lateral")),
+            *surface_coupling_results(surface_coupling_study("axial"))]
+
+
 CASES: list[Callable[[], CaseResult | list[CaseResult]]] = [
     case_baguelin_lateral,
     case_antiplane_axial,
@@ -805,6 +1026,7 @@ CASES: list[Callable[[], CaseResult | list[CaseResult]]] = [
     case_coupling_axial,
     case_bare_line_lateral,
     case_ring_calibration,
+    case_surface_coupling,
 ]
 
 
@@ -813,7 +1035,26 @@ CUBE_CELLS = (6, 12, 24)  # cells per axis of the clamped 100 mm cube (h = 16.7,
 CUBE_DEPTH = 0.04  # [m], inserted length (the rows every d_i = 0.5 mm from the top face down)
 
 
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=2)
+def _cube_system(cells: int, size: float, clamp_sides: bool, material: HookeMaterial):
+    """(rest positions, tets, free DoFs, factorised K_ff, locator) of a Kuhn cube, bottom (and sides) clamped."""
+    from refsim.fem.linear import make_linear_solver
+
+    mesh = box_mesh(size=(size, size, size), cells=(cells, cells, cells), origin=(-size / 2, -size / 2, 0.0))
+    rest, tets = np.asarray(mesh.rest_positions), np.asarray(mesh.tets)
+    tol = 1e-9 * size
+    clamped = rest[:, 2] < tol
+    if clamp_sides:
+        clamped |= (np.abs(np.abs(rest[:, 0]) - size / 2) < tol) | (np.abs(np.abs(rest[:, 1]) - size / 2) < tol)
+    model = TissueModel(rest, tets, material, fixed_nodes=np.flatnonzero(clamped))
+    stiffness = model.rest_stiffness.tocsr()
+    free = np.setdiff1d(np.arange(model.dof_count), model.fixed_dofs)
+    solver = make_linear_solver()
+    solver.factorise(stiffness[free][:, free])
+    return rest, tets, free, solver, TetLocator(rest, tets)
+
+
+@functools.lru_cache(maxsize=64)
 def cube_needle_stiffness(
     cells: int,
     *,
@@ -822,19 +1063,24 @@ def cube_needle_stiffness(
     spacing: float = 0.5e-3,
     entry: tuple[float, float] = (0.00123, 0.00231),
     material: HookeMaterial = PAPER_TISSUE,
+    size: float = 0.1,
+    clamp_sides: bool = False,
 ) -> dict[tuple[str, float, str], float]:
-    """Static stiffness [N/m] of a rigid vertical needle inserted ``depth`` into the paper's cube (bottom clamped).
+    """Static stiffness [N/m] of a rigid vertical needle inserted ``depth`` into a cube (the paper's: 100 mm).
 
-    The rows of the simulation (``ring_insertion_block`` with the sub-grid compliance of the inserted line, 3-D
-    or infinite; or the paper's ``insertion_block``), bonded (stuck needle):
-    K = gᵀ (W + C)⁻¹ g for a unit rigid translation, lateral (x) with the lateral rows, axial with the axial rows.
-    W = H K⁻¹ Hᵀ on the rest stiffness (one factorisation for all needles and both couplings).
+    The cube of edge ``size`` (x, y centred on 0, z from 0 up) has its bottom clamped (and its sides too when
+    ``clamp_sides``); the needle enters the top face at ``entry`` (x, y) [m]. The rows of the simulation
+    (``ring_insertion_block`` with the sub-grid compliance of the inserted line, 3-D or infinite; or the paper's
+    ``insertion_block``), bonded (stuck needle): K = gᵀ (W + C)⁻¹ g for a unit rigid translation, lateral (x)
+    with the lateral rows, axial with the axial rows. W = H K⁻¹ Hᵀ on the rest stiffness (one factorisation per
+    cube, for all needles, couplings and entries).
 
     Returns
     -------
     {(coupling, needle radius, "lateral" | "axial"): K}, coupling "ring" (3-D sub-grid compliance of the finite
-    line, ``insertion.subgrid_line = "finite"``), "ring-infinite" (the plane-strain and antiplane values) or
-    "paper".
+    line, ``insertion.subgrid_line = "finite"``), "ring-infinite" (the plane-strain and antiplane values),
+    "surface" (the ring with no sub-grid compliance on the points coupled on the needle's surface, h ≤ r:
+    ``surface_subgrid=False``, infinite values elsewhere) or "paper".
     """
     from refsim.constraints.coupling import RingLayout, insertion_compliance, ring_insertion_block
     from refsim.constraints.insertion import InsertionPath, insertion_block
@@ -842,19 +1088,13 @@ def cube_needle_stiffness(
     from refsim.constraints.rows import FRICTION
     from refsim.constraints.step_geometry import StepGeometry
 
-    mesh = box_mesh(size=(0.1, 0.1, 0.1), cells=(cells, cells, cells), origin=(-0.05, -0.05, 0.0))
-    rest, tets = np.asarray(mesh.rest_positions), np.asarray(mesh.tets)
-    model = TissueModel(rest, tets, material, fixed_nodes=np.flatnonzero(rest[:, 2] < 1e-9))
-    stiffness = model.rest_stiffness.tocsr()
-    free = np.setdiff1d(np.arange(model.dof_count), model.fixed_dofs)
-    factor = spla.splu(stiffness[free][:, free].tocsc(), permc_spec="COLAMD")
+    rest, tets, free, solver, locator = _cube_system(cells, size, clamp_sides, material)
     direction = np.array([0.0, 0.0, -1.0])
-    top = np.array([entry[0], entry[1], 0.1])
+    top = np.array([entry[0], entry[1], size])
     count = int(round(depth / spacing))
     arc = 0.2 + (np.arange(count) + 0.5) * spacing  # the needle's base is 0.2 m above the top face
     centres = top + np.outer(arc - 0.2, direction)
     needle = RigidNeedleGeometry(base=top - 0.2 * direction, direction=direction, length=0.2 + depth)
-    locator = TetLocator(rest, tets)
     found, barycentric = locator.locate(centres)
     path = InsertionPath(found, barycentric, np.zeros(count, dtype=np.int64))
     geometry = StepGeometry(
@@ -871,6 +1111,7 @@ def cube_needle_stiffness(
                       spacing=spacing)
         blocks[("ring", radius)] = (block, insertion_compliance(block, **common, arc_lengths=arc))
         blocks[("ring-infinite", radius)] = (block, insertion_compliance(block, **common))
+        blocks[("surface", radius)] = (block, insertion_compliance(block, **common, surface_subgrid=False))
     out = {}
     paper_done = None
     mesh_part = {}
@@ -880,7 +1121,7 @@ def cube_needle_stiffness(
             continue
         if id(block) not in mesh_part:
             dense = sp.csr_matrix(block.tissue_jacobian)[:, free].toarray()
-            product = dense @ factor.solve(np.ascontiguousarray(dense.T))
+            product = dense @ solver.solve(np.ascontiguousarray(dense.T))
             mesh_part[id(block)] = 0.5 * (product + product.T)
         compliance = mesh_part[id(block)]
         if extra is not None:

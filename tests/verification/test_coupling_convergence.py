@@ -58,3 +58,23 @@ CASES = [
 @pytest.mark.parametrize("key", CASES)
 def test_needle_stiffness_converges_at_an_observed_order(key):
     _check(key)
+
+
+# ------------------------------------------------------------ the 8 mm needle on its surface, 2-D (h ≤ r)
+@pytest.mark.parametrize("kind", ["lateral", "axial"])
+def test_8mm_needle_on_its_surface_converges_in_the_slab(kind):
+    """The clamped disc slab (R = 50 mm) on 32, 64, 128 cells across (h = 3.1 … 0.78 mm < r = 8 mm), mean over 8
+    centreline positions. Reference: Baguelin et al. (1977) lateral, 2πG/ln(R/r) axial. The bare surface
+    coupling (no sub-grid term) converges at the order of the calibrated cylinder K′(a_c = r + c h) (→ 1,
+    within 15 %), its Richardson value equals the closed form within the GCI of the finest level, and the
+    default model lies, at every position, inside that GCI band (refsim.verification.coupling.surface_coupling_results).
+    """
+    study = coupling.surface_coupling_study(kind, coupling.SURFACE_CELLS_FINE)
+    result = study.convergence
+    print(f"\n{kind}: bare mean K′/K′_th = {', '.join(f'{v:.5f}' for v in study.bare.mean(axis=1) / study.exact)}, "
+          f"p = {result.order:.3f} (predicted {study.predicted_order:.3f}), Richardson "
+          f"{result.extrapolated / study.exact:.5f}, GCI {result.gci:.2%}; model "
+          f"{', '.join(f'{v:.5f}' for v in study.model.mean(axis=1) / study.exact)}")
+    assert result.kind == "monotone"
+    for check in coupling.surface_coupling_results(study):
+        assert check.passed, f"{check.name}: error {check.error:.3e} > tolerance {check.tolerance:.3e}"
