@@ -73,6 +73,7 @@ __all__ = [
     "surface_offsets",
     "cylinder_radius_of",
     "cube_needle_stiffness",
+    "box_surface_study",
 ]
 
 PAPER_TISSUE = HookeMaterial(youngs_modulus=5.0e5, poisson_ratio=0.4, density=1000.0)
@@ -1140,3 +1141,49 @@ def cube_needle_stiffness(
         if coupling == "paper":
             paper_done = tuple(values)
     return out
+
+
+# --------------------------------------------------- the 8 mm needle in a clamped 3-D box, h ≤ r on every level
+BOX_SIZE = 0.04  # [m], edge of the box (bottom and sides clamped), the needle at its centre
+BOX_DEPTH = 0.02  # [m], inserted length (rows every 0.5 mm)
+BOX_CELLS = (8, 16, 32)  # cells per axis: h = 5, 2.5, 1.25 mm < r = 8 mm
+
+
+def box_surface_study(
+    cells=BOX_CELLS,
+    *,
+    needle_radius: float = NEEDLE_PAPER,
+    size: float = BOX_SIZE,
+    depth: float = BOX_DEPTH,
+    positions=SURFACE_POSITIONS,
+) -> dict[tuple[str, str], np.ndarray]:
+    """K [N/m] of a rigid needle inserted ``depth`` at the centre of a box clamped on its bottom and sides, per
+    level and entry position (the entry at ``positions`` × h from the box's axis, a grid node).
+
+    Returns
+    -------
+    {(coupling, kind): K of shape (levels, positions)} for the couplings of :func:`cube_needle_stiffness`
+    ("ring-infinite" the default, "ring" the finite line, "surface" the bare surface coupling, "paper").
+
+    Raises
+    ------
+    ValueError
+        When a level has h > r (the ring would not lie on the needle's surface).
+    """
+    sizes = np.array([size / n for n in cells])
+    if np.any(sizes > needle_radius):
+        raise ValueError(f"cells = {tuple(cells)}: h = {sizes.tolist()} m must be ≤ r = {needle_radius} m")
+    runs = [
+        [
+            cube_needle_stiffness(n, radii=(needle_radius,), depth=depth, size=size, clamp_sides=True,
+                                  entry=(o[0] * size / n, o[1] * size / n))
+            for o in positions
+        ]
+        for n in cells
+    ]
+    _cube_system.cache_clear()  # the finest factor holds ~2.5 GB
+    return {
+        (coupling, kind): np.array([[run[(coupling, needle_radius, kind)] for run in level] for level in runs])
+        for coupling in ("ring-infinite", "ring", "surface", "paper")
+        for kind in ("lateral", "axial")
+    }
