@@ -372,8 +372,8 @@ def coupled_stiffness(
         "paper" (rows on the centreline, no compliance).
     needle_radius : r [m]. outer : Clamped radius R [m]. cells : Cells across the diameter (h = 2R / cells).
     spacing_ratio : d_i / h. offset : Centreline position in its cell, in units of h.
-    surface_subgrid : False: no sub-grid compliance when the ring lies on the needle's surface (h ≤ r), the bare
-        surface coupling (:func:`refsim.constraints.coupling.subgrid_compliance`).
+    surface_subgrid : False: no sub-grid compliance when the ring lies on the needle's surface (h ≤ r), the
+        bare surface coupling (:func:`refsim.constraints.coupling.subgrid_compliance`).
     """
     h = 2.0 * outer / cells
     height = layers * h
@@ -888,11 +888,11 @@ def surface_coupling_study(
     outer: float = OUTER,
     material: HookeMaterial = PAPER_TISSUE,
 ) -> SurfaceStudy:
-    """K′ of a needle coupled on its surface (h ≤ r) in the clamped disc slab, with and without the sub-grid term.
+    """K′ of a needle coupled on its surface (h ≤ r) in the clamped disc slab, with and without sub-grid term.
 
     Once h ≤ r the ring lies on the needle's surface (ρ_c = r) and behaves like a rigid cylinder of radius
-    a_c ≈ r + 0.25 h: the bare surface coupling (C = 0) converges at order 1 to the closed form from above; the
-    model's sub-grid term ln(a_c/r) removes that O(h) offset with the calibrated a_c, leaving the a_c's
+    a_c ≈ r + 0.25 h: the bare surface coupling (C = 0) converges at order 1 to the closed form from above;
+    the model's sub-grid term ln(a_c/r) removes that O(h) offset with the calibrated a_c, leaving the a_c's
     dependence on where the ring crosses the cells (not a smooth function of h). Each level is the mean over
     ``positions`` of the centreline in its cell (one factorisation per level and kind).
 
@@ -974,7 +974,7 @@ def surface_coupling_results(study: SurfaceStudy) -> list[CaseResult]:
     result = study.convergence
     r_mm, kind = study.needle_radius * 1e3, study.kind
     meshes = ", ".join(map(str, study.cells))
-    where = f"{len(study.bare[0])} centreline positions, {meshes} cells across"
+    where = f"{len(study.bare[0])} positions, {meshes} cells"
     formula = "K′ Baguelin et al. 1977" if kind == "lateral" else "K′_ax = 2πG/ln(R/r)"
     extrapolated = result.extrapolated
     band = result.uncertainty / extrapolated if result.kind == "monotone" else math.nan
@@ -983,7 +983,7 @@ def surface_coupling_results(study: SurfaceStudy) -> list[CaseResult]:
     spread = float(np.max(np.abs(study.model[-1] - extrapolated)) / extrapolated)
     return [
         CaseResult(
-            name=f"needle r = {r_mm:g} mm on its surface (h ≤ r), no sub-grid term, {kind}: Richardson ({where})",
+            name=f"needle r = {r_mm:g} mm on its surface, no sub-grid term, {kind}: Richardson ({where})",
             reference=f"{formula}; tolerance GCI of the finest level (F_s 1.25, observed order)",
             expected=study.exact,
             computed=extrapolated,
@@ -993,16 +993,21 @@ def surface_coupling_results(study: SurfaceStudy) -> list[CaseResult]:
         ),
         CaseResult(
             name=f"needle r = {r_mm:g} mm on its surface, no sub-grid term, {kind}: observed order",
-            reference="order of K′(a_c), a_c = r + c h from RING_EQUIVALENT_RADIUS (→ 1: the ring's O(h) offset); tol. 15 %",
+            reference=(
+                "order of K′(a_c), a_c = r + c h from RING_EQUIVALENT_RADIUS (→ 1: the ring's O(h) offset); "
+                "tol. 15 %"
+            ),
             expected=study.predicted_order,
             computed=result.order,
             error=order_error,
             tolerance=ORDER_TOLERANCE,
         ),
         CaseResult(
-            name=f"needle r = {r_mm:g} mm, ring coupling (default, with the sub-grid term), {kind}: finest level, "
-                 "every position, in the GCI band",
-            reference="the Richardson value above ± GCI |K′_f|; error max over positions |K′ − K′_ext| / K′_ext",
+            name=f"needle r = {r_mm:g} mm, ring coupling (default), {kind}: {study.cells[-1]} cells, every "
+                 "position in that GCI band",
+            reference=(
+                "the Richardson value above ± GCI |K′_f|; error max over positions |K′ − K′_ext| / K′_ext"
+            ),
             expected=extrapolated,
             computed=float(study.model[-1].mean()),
             error=spread,
@@ -1038,7 +1043,7 @@ CUBE_DEPTH = 0.04  # [m], inserted length (the rows every d_i = 0.5 mm from the 
 
 @functools.lru_cache(maxsize=2)
 def _cube_system(cells: int, size: float, clamp_sides: bool, material: HookeMaterial):
-    """(rest positions, tets, free DoFs, factorised K_ff, locator) of a Kuhn cube, bottom (and sides) clamped."""
+    """(rest positions, tets, free DoFs, factorised K_ff, locator) of a Kuhn cube, bottom (sides) clamped."""
     from refsim.fem.linear import make_linear_solver
 
     mesh = box_mesh(size=(size, size, size), cells=(cells, cells, cells), origin=(-size / 2, -size / 2, 0.0))
@@ -1046,7 +1051,8 @@ def _cube_system(cells: int, size: float, clamp_sides: bool, material: HookeMate
     tol = 1e-9 * size
     clamped = rest[:, 2] < tol
     if clamp_sides:
-        clamped |= (np.abs(np.abs(rest[:, 0]) - size / 2) < tol) | (np.abs(np.abs(rest[:, 1]) - size / 2) < tol)
+        side = np.abs(np.abs(rest[:, :2]) - size / 2) < tol
+        clamped |= side[:, 0] | side[:, 1]
     model = TissueModel(rest, tets, material, fixed_nodes=np.flatnonzero(clamped))
     stiffness = model.rest_stiffness.tocsr()
     free = np.setdiff1d(np.arange(model.dof_count), model.fixed_dofs)
@@ -1071,10 +1077,10 @@ def cube_needle_stiffness(
 
     The cube of edge ``size`` (x, y centred on 0, z from 0 up) has its bottom clamped (and its sides too when
     ``clamp_sides``); the needle enters the top face at ``entry`` (x, y) [m]. The rows of the simulation
-    (``ring_insertion_block`` with the sub-grid compliance of the inserted line, 3-D or infinite; or the paper's
-    ``insertion_block``), bonded (stuck needle): K = gᵀ (W + C)⁻¹ g for a unit rigid translation, lateral (x)
-    with the lateral rows, axial with the axial rows. W = H K⁻¹ Hᵀ on the rest stiffness (one factorisation per
-    cube, for all needles, couplings and entries).
+    (``ring_insertion_block`` with the sub-grid compliance of the inserted line, 3-D or infinite; or the
+    paper's ``insertion_block``), bonded (stuck needle): K = gᵀ (W + C)⁻¹ g for a unit rigid translation,
+    lateral (x) with the lateral rows, axial with the axial rows. W = H K⁻¹ Hᵀ on the rest stiffness (one
+    factorisation per cube, for all needles, couplings and entries).
 
     Returns
     -------
@@ -1143,7 +1149,7 @@ def cube_needle_stiffness(
     return out
 
 
-# --------------------------------------------------- the 8 mm needle in a clamped 3-D box, h ≤ r on every level
+# ------------------------------------------------ the 8 mm needle in a clamped 3-D box, h ≤ r on every level
 BOX_SIZE = 0.04  # [m], edge of the box (bottom and sides clamped), the needle at its centre
 BOX_DEPTH = 0.02  # [m], inserted length (rows every 0.5 mm)
 BOX_CELLS = (8, 16, 32)  # cells per axis: h = 5, 2.5, 1.25 mm < r = 8 mm
@@ -1157,8 +1163,8 @@ def box_surface_study(
     depth: float = BOX_DEPTH,
     positions=SURFACE_POSITIONS,
 ) -> dict[tuple[str, str], np.ndarray]:
-    """K [N/m] of a rigid needle inserted ``depth`` at the centre of a box clamped on its bottom and sides, per
-    level and entry position (the entry at ``positions`` × h from the box's axis, a grid node).
+    """K [N/m] of a rigid needle inserted ``depth`` at the centre of a box clamped on its bottom and sides,
+    per level and entry position (the entry at ``positions`` × h from the box's axis, a grid node).
 
     Returns
     -------
@@ -1183,7 +1189,9 @@ def box_surface_study(
     ]
     _cube_system.cache_clear()  # the finest factor holds ~2.5 GB
     return {
-        (coupling, kind): np.array([[run[(coupling, needle_radius, kind)] for run in level] for level in runs])
+        (coupling, kind): np.array(
+            [[run[(coupling, needle_radius, kind)] for run in level] for level in runs]
+        )
         for coupling in ("ring-infinite", "ring", "surface", "paper")
         for kind in ("lateral", "axial")
     }

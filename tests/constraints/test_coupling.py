@@ -51,10 +51,12 @@ def test_subgrid_compliance_is_positive_for_any_needle_radius(ratio):
     assert np.all(c > 0.0)
 
 
-@pytest.mark.parametrize("line_extent", [None, (np.full(4, 0.03), np.full(4, 0.01))], ids=["infinite", "finite"])
+@pytest.mark.parametrize(
+    "line_extent", [None, (np.full(4, 0.03), np.full(4, 0.01))], ids=["infinite", "finite"]
+)
 def test_surface_subgrid_false_drops_the_annulus_of_rows_on_the_needles_surface_only(line_extent):
-    # surface_subgrid=False: rows with h ≤ r (ring on the needle's surface, ρ_c = r) get C = 0; rows with h > r
-    # (ρ_c = h > r) keep the model's value, for both line models.
+    # surface_subgrid=False: rows with h ≤ r (ring on the needle's surface, ρ_c = r) get C = 0; rows with
+    # h > r (ρ_c = h > r) keep the model's value, for both line models.
     r = 8e-3
     sizes = np.array([4e-3, 8e-3, 12.5e-3, 25e-3])  # h < r, h = r, h > r, h > r
     kinds = np.array([coupling.LATERAL, coupling.AXIAL, coupling.LATERAL, coupling.AXIAL])

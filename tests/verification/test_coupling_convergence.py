@@ -12,9 +12,9 @@ Both sub-grid models (``insertion.subgrid_line``): "infinite" (default; key "rin
 stiffness; the 8 mm needle does not on these meshes (they cross h = r). Those cases are strict expected
 failures, so that a fix shows.
 
-The 8 mm needle with h ≤ r on every level (the ring on the needle's surface) converges: in the clamped disc slab
-against the closed forms (32, 64, 128 cells across) and in 3-D in a 40 mm clamped box (8, 16, 32 cells), both
-averaged over 8 centreline positions in the cell (the tests at the end).
+The 8 mm needle with h ≤ r on every level (the ring on the needle's surface) converges: in the clamped disc
+slab against the closed forms (32, 64, 128 cells across) and in 3-D in a 40 mm clamped box (8, 16, 32
+cells), both averaged over 8 centreline positions in the cell (the tests at the end).
 """
 
 from __future__ import annotations
@@ -69,15 +69,17 @@ def test_needle_stiffness_converges_at_an_observed_order(key):
 # ------------------------------------------------------------ the 8 mm needle on its surface, 2-D (h ≤ r)
 @pytest.mark.parametrize("kind", ["lateral", "axial"])
 def test_8mm_needle_on_its_surface_converges_in_the_slab(kind):
-    """The clamped disc slab (R = 50 mm) on 32, 64, 128 cells across (h = 3.1 … 0.78 mm < r = 8 mm), mean over 8
-    centreline positions. Reference: Baguelin et al. (1977) lateral, 2πG/ln(R/r) axial. The bare surface
-    coupling (no sub-grid term) converges at the order of the calibrated cylinder K′(a_c = r + c h) (→ 1,
-    within 15 %), its Richardson value equals the closed form within the GCI of the finest level, and the
-    default model lies, at every position, inside that GCI band (refsim.verification.coupling.surface_coupling_results).
+    """The clamped disc slab (R = 50 mm) on 32, 64, 128 cells across (h = 3.1 … 0.78 mm < r = 8 mm), mean
+    over 8 centreline positions. Reference: Baguelin et al. (1977) lateral, 2πG/ln(R/r) axial. The bare
+    surface coupling (no sub-grid term) converges at the order of the calibrated cylinder K′(a_c = r + c h)
+    (→ 1, within 15 %), its Richardson value equals the closed form within the GCI of the finest level, and
+    the default model lies, at every position, inside that GCI band
+    (refsim.verification.coupling.surface_coupling_results).
     """
     study = coupling.surface_coupling_study(kind, coupling.SURFACE_CELLS_FINE)
     result = study.convergence
-    print(f"\n{kind}: bare mean K′/K′_th = {', '.join(f'{v:.5f}' for v in study.bare.mean(axis=1) / study.exact)}, "
+    bare = ", ".join(f"{v:.5f}" for v in study.bare.mean(axis=1) / study.exact)
+    print(f"\n{kind}: bare mean K′/K′_th = {bare}, "
           f"p = {result.order:.3f} (predicted {study.predicted_order:.3f}), Richardson "
           f"{result.extrapolated / study.exact:.5f}, GCI {result.gci:.2%}; model "
           f"{', '.join(f'{v:.5f}' for v in study.model.mean(axis=1) / study.exact)}")
@@ -86,7 +88,7 @@ def test_8mm_needle_on_its_surface_converges_in_the_slab(kind):
         assert check.passed, f"{check.name}: error {check.error:.3e} > tolerance {check.tolerance:.3e}"
 
 
-# --------------------------------------------------- the 8 mm needle on its surface, 3-D (h ≤ r on every level)
+# ------------------------------------------------ the 8 mm needle on its surface, 3-D (h ≤ r on every level)
 @pytest.fixture(scope="module")
 def box():
     return coupling.box_surface_study()
@@ -94,22 +96,25 @@ def box():
 
 @pytest.mark.parametrize("kind", ["lateral", "axial"])
 def test_8mm_needle_in_a_clamped_box_converges_with_h_below_r(box, kind):
-    """A rigid 8 mm needle inserted 20 mm at the centre of a 40 mm box (bottom and sides clamped), 8, 16, 32 cells
-    per axis (h = 5, 2.5, 1.25 mm < r), mean over 8 entry positions in the cell. Reference: no closed form (3-D);
-    the bare surface coupling (no sub-grid term: its error is the ring's O(h) offset) must converge at an
-    observed order (monotone, p ≥ 0.5), and its Richardson value ± its GCI (F_s 1.25) is the reference band.
+    """A rigid 8 mm needle inserted 20 mm at the centre of a 40 mm box (bottom and sides clamped), 8, 16, 32
+    cells per axis (h = 5, 2.5, 1.25 mm < r), mean over 8 entry positions in the cell. Reference: no closed
+    form (3-D); the bare surface coupling (no sub-grid term: its error is the ring's O(h) offset) must
+    converge at an observed order (monotone, p ≥ 0.5), and its Richardson value ± its GCI (F_s 1.25) is the
+    reference band.
     Both models ("infinite", the default, and "finite") must converge too (p ≥ 0.5, GCI < 5 %, the cube test's
     criteria), their Richardson values and every position's finest value lying in that band.
     """
     sizes = coupling.BOX_SIZE / np.array(coupling.BOX_CELLS)
     bare = convergence(sizes, box[("surface", kind)].mean(axis=1))
-    print(f"\n{kind}: surface K = {', '.join(f'{v:.1f}' for v in bare.values[::-1])} N/m, p = {bare.order:.3f}, "
+    levels = ", ".join(f"{v:.1f}" for v in bare.values[::-1])
+    print(f"\n{kind}: surface K = {levels} N/m, p = {bare.order:.3f}, "
           f"Richardson {bare.extrapolated:.1f} ± {bare.uncertainty:.1f} N/m (GCI {bare.gci:.2%})")
     assert bare.kind == "monotone" and bare.order >= 0.5
     for model in ("ring-infinite", "ring"):
         values = box[(model, kind)]
         result = convergence(sizes, values.mean(axis=1))
-        print(f"{model}: K = {', '.join(f'{v:.1f}' for v in result.values[::-1])} N/m, p = {result.order:.3f}, "
+        levels = ", ".join(f"{v:.1f}" for v in result.values[::-1])
+        print(f"{model}: K = {levels} N/m, p = {result.order:.3f}, "
               f"Richardson {result.extrapolated:.1f} (GCI {result.gci:.2%}); finest level over positions "
               f"{values[-1].min():.1f} … {values[-1].max():.1f}")
         assert result.kind == "monotone" and result.order >= 0.5 and result.gci < 0.05
