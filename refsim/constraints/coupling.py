@@ -195,7 +195,7 @@ def subgrid_compliance(
     surface_subgrid : True (the model): every "ring" row gets its annulus. False: rows coupled on the needle's
         surface (h ≤ r, so ρ_c = r) get none, C = 0 there: the bare surface coupling, whose stiffness error is
         the ring's O(h) offset a_c − r ≈ 0.25 h, used to verify the 8 mm needle's observed order
-        (docs/coupling.md, "The 8 mm needle: an observed order"); rows with h > r keep their C.
+        (docs/coupling.md, "The 8 mm needle on its surface: an observed order"); rows with h > r keep their C.
 
     Returns
     -------
