@@ -204,7 +204,8 @@ def strip_cut_block(
     produced); their gaps are linearised at the free positions.
 
     - Sliding (bilateral): every sample whose projection falls inside the cut surface, or beyond its border by
-      at most d_c in its plane (the crack tip is at the needle, the last layer up to d_c behind it: the tissue
+      at most d_c in its plane, plus the front rows' compression C(d_c) G_c d_c when they are compliant (the
+      crack tip is at the needle, less that compression, the last layer up to d_c behind it: the tissue
       between them is cut, and without these rows the needle drifted off the plane there, 2 µm on cube_cut),
       along the surface's normal at its closest point (area-weighted vertex normals interpolated: a sliver's
       own normal is arbitrary), anchored at that point's barycentric coordinates: the needle stays on the cut
@@ -268,7 +269,14 @@ def strip_cut_block(
         normals_previous = cut.interpolated_normals(surface_previous, found.triangle, found.barycentric)
         offset = needle_previous - found.closest
         in_plane = offset - np.einsum("ij,ij->i", offset, normals_previous)[:, None] * normals_previous
-        reach = spacing if strip is not None else 0.0
+        compression = np.zeros(needle_previous.shape[0])
+        if strip is not None and subgrid_compliance is not None and np.isfinite(front_strength):
+            # The crack tip lies behind the needle by its front rows' compression C λ ≤ C(d_c) G_c d_c
+            # (crack_tip_compression), so the last layer lies up to d_c plus that behind it.
+            near = cut.triangles[found.triangle, np.argmax(found.barycentric, axis=1)]
+            lateral = np.asarray(subgrid_compliance[0], dtype=float)[cut.tet_indices[near]]
+            compression = lateral * float(front_strength) * spacing
+        reach = spacing + compression if strip is not None else 0.0
         inside = np.flatnonzero(found.inside | (np.linalg.norm(in_plane, axis=1) <= reach))
         if inside.size:
             triangle, weights = found.triangle[inside], found.barycentric[inside]
@@ -291,7 +299,8 @@ def strip_cut_block(
                 )
             )
             slide_count = inside.size
-            # At the front (within 1.5 d_c of the crack tip) the needle has uncut tissue on every side but the
+            # At the front (within 1.5 d_c of the crack tip, plus the front's compression) the needle has uncut
+            # tissue on every side but the
             # cut's: pushed out of the cut's plane it cuts through at G_c per unit length as it does ahead, so
             # those sliding rows carry at most G_c ℓ_k (a needle whose stroke turns then turns the cut; held by
             # unbounded rows there, an L-shaped stroke dragged the tissue sideways, 7.3 N against 3.6 N).
@@ -300,7 +309,8 @@ def strip_cut_block(
                 segment, parameter, _ = _closest_on_polyline(needle_previous[inside], front_previous)
                 nearest_tip = (1.0 - parameter)[:, None] * front_previous[segment] + parameter[:, None] * (
                     front_previous[segment + 1])
-                band = np.flatnonzero((np.linalg.norm(needle_previous[inside] - nearest_tip, axis=1) <= 1.5 * spacing)
+                band = np.flatnonzero((np.linalg.norm(needle_previous[inside] - nearest_tip, axis=1)
+                                       <= 1.5 * spacing + compression[inside])
                                       & (shares[inside] > 1e-9 * step))
                 slide_limits[band] = float(front_strength) * shares[inside][band]
                 band_rows, band_segment = band, segment[band]
