@@ -300,10 +300,10 @@ def strip_cut_block(
             )
             slide_count = inside.size
             # At the front (within 1.5 d_c of the crack tip, plus the front's compression) the needle has uncut
-            # tissue on every side but the
-            # cut's: pushed out of the cut's plane it cuts through at G_c per unit length as it does ahead, so
-            # those sliding rows carry at most G_c ℓ_k (a needle whose stroke turns then turns the cut; held by
-            # unbounded rows there, an L-shaped stroke dragged the tissue sideways, 7.3 N against 3.6 N).
+            # tissue on every side but the cut's: pushed out of the cut's plane it cuts through at G_c per unit
+            # length as it does ahead, so those sliding rows carry at most G_c ℓ_k (a needle whose stroke turns
+            # then turns the cut; held by unbounded rows there, an L-shaped stroke dragged the tissue sideways,
+            # 7.3 N against 3.6 N).
             slide_limits = np.full(inside.size, np.inf)
             if np.isfinite(front_strength) and front_previous.shape[0] >= 2:
                 segment, parameter, _ = _closest_on_polyline(needle_previous[inside], front_previous)
