@@ -27,7 +27,7 @@ from refsim.constraints.friction import friction_rows
 from refsim.constraints.rows import BILATERAL, CUT_BORDER, CUT_SLIDE, FRICTION, UNILATERAL, RowBlock, point_rows
 from refsim.constraints.step_geometry import StepGeometry
 
-__all__ = ["FrontRows", "cut_criterion", "inserted_arc", "strip_cut_block"]
+__all__ = ["FrontRows", "crack_tip_compression", "cut_criterion", "inserted_arc", "strip_cut_block"]
 
 # Border points whose inward direction has less than this component normal to the needle are ends of the
 # strip (their inward direction runs along the shaft): they would only block the axial motion. cos(60°).
@@ -138,14 +138,51 @@ def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray) -> tuple[np.n
     return segment, t[rows, segment], interior
 
 
-def _cut_compliance(per_tet, slide_tets: np.ndarray, front_count: int, with_friction: bool) -> np.ndarray:
-    """Diagonal compliance of the block's rows [m/N]: sliding rows, front rows (none), friction rows (axial,
-    then across), in that order; empty when no compliance is given."""
+def _cut_compliance(per_tet, slide_tets: np.ndarray, front_tets: np.ndarray, front_shares: np.ndarray,
+                    spacing: float, with_friction: bool) -> np.ndarray:
+    """Diagonal compliance of the block's rows [m/N]: sliding rows, front rows, friction rows (axial, then
+    across), in that order; empty when no compliance is given.
+
+    ``per_tet`` holds the (lateral, axial) sub-grid compliance of a row standing for d_c = ``spacing`` of needle
+    in each tet. A front row stands for the inserted length ℓ_k of its sample (``front_shares``) and presses
+    laterally on the tissue at the crack tip: it gets the lateral compliance of the tet of its nearest crack-tip
+    column, scaled to its length, C_k = C(d_c) d_c / ℓ_k (a line load's compliance is inverse to its length).
+    Without it the front rows' W is singular where several rows act on the nodes of one crack-tip segment or
+    one tet (docs/cutting.md, "A well-posed cut block").
+    """
     if per_tet is None:
         return np.zeros(0)
     lateral, axial = (np.asarray(values, dtype=float)[slide_tets] for values in per_tet)
-    parts = [lateral, np.zeros(front_count)] + ([axial, lateral] if with_friction else [])
+    front = np.asarray(per_tet[0], dtype=float)[front_tets] * (spacing / front_shares)
+    parts = [lateral, front] + ([axial, lateral] if with_friction else [])
     return np.concatenate(parts)
+
+
+def crack_tip_compression(rows: RowBlock, multipliers: np.ndarray, given_rows: np.ndarray,
+                          given_segments: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    """Where the tissue's material point in contact with the needle lies, relative to the needle's
+    centreline, for crack-tip ``columns`` that the needle cuts through [m], shape (c, 3).
+
+    A compliant row k (compliance C_k, direction d_k, force λ_k on the needle along d_k) holds the needle
+    at δ_k = d_kᵀ(x_needle − x_anchor) = −C_k λ_k: the annulus around the needle, which the mesh does not
+    resolve, is compressed by C_k λ_k. A crack tip moved to the needle's centreline would discard that
+    compression (the row restarts from λ = 0 and the needle must move C_k λ_k further to cut again); moved to
+    x_needle + C_k λ_k d_k it keeps the row's force. Each column takes the mean of C_k λ_k d_k over the rows
+    that gave way on the crack-tip segments it ends (``given_rows`` in ``rows``, on segments
+    ``given_segments``, columns s and s + 1). Zero without compliance (the bare rows).
+    """
+    columns = np.asarray(columns, dtype=np.int64)
+    offsets = np.zeros((columns.size, 3))
+    diagonal = np.asarray(rows.compliance_diagonal, dtype=float)
+    if diagonal.size == 0 or given_rows.size == 0 or columns.size == 0:
+        return offsets
+    vectors = (diagonal[given_rows] * multipliers[given_rows])[:, None] * rows.directions[given_rows]
+    ends = np.concatenate([given_segments, given_segments + 1])
+    where = np.searchsorted(columns, ends)
+    counts = np.zeros(columns.size)
+    np.add.at(offsets, where, np.concatenate([vectors, vectors]))
+    np.add.at(counts, where, 1.0)
+    return offsets / np.maximum(counts, 1.0)[:, None]
 
 
 def strip_cut_block(
@@ -167,7 +204,8 @@ def strip_cut_block(
     produced); their gaps are linearised at the free positions.
 
     - Sliding (bilateral): every sample whose projection falls inside the cut surface, or beyond its border by
-      at most d_c in its plane (the crack tip is at the needle, the last layer up to d_c behind it: the tissue
+      at most d_c in its plane, plus the front rows' compression C(d_c) G_c d_c when they are compliant (the
+      crack tip is at the needle, less that compression, the last layer up to d_c behind it: the tissue
       between them is cut, and without these rows the needle drifted off the plane there, 2 µm on cube_cut),
       along the surface's normal at its closest point (area-weighted vertex normals interpolated: a sliver's
       own normal is arbitrary), anchored at that point's barycentric coordinates: the needle stays on the cut
@@ -224,13 +262,21 @@ def strip_cut_block(
     slide_anchor = None
     slide_tets = np.zeros(0, dtype=np.int64)
     front_keep = np.zeros(0, dtype=np.int64)
+    front_tets = np.zeros(0, np.int64)
     if cut.triangle_count:
         surface_previous = cut.deformed_points(geometry.tissue_previous, tets)
         found = cut.closest_points(needle_previous, surface_previous)
         normals_previous = cut.interpolated_normals(surface_previous, found.triangle, found.barycentric)
         offset = needle_previous - found.closest
         in_plane = offset - np.einsum("ij,ij->i", offset, normals_previous)[:, None] * normals_previous
-        reach = spacing if strip is not None else 0.0
+        compression = np.zeros(needle_previous.shape[0])
+        if strip is not None and subgrid_compliance is not None and np.isfinite(front_strength):
+            # The crack tip lies behind the needle by its front rows' compression C λ ≤ C(d_c) G_c d_c
+            # (crack_tip_compression), so the last layer lies up to d_c plus that behind it.
+            near = cut.triangles[found.triangle, np.argmax(found.barycentric, axis=1)]
+            lateral = np.asarray(subgrid_compliance[0], dtype=float)[cut.tet_indices[near]]
+            compression = lateral * float(front_strength) * spacing
+        reach = spacing + compression if strip is not None else 0.0
         inside = np.flatnonzero(found.inside | (np.linalg.norm(in_plane, axis=1) <= reach))
         if inside.size:
             triangle, weights = found.triangle[inside], found.barycentric[inside]
@@ -254,14 +300,18 @@ def strip_cut_block(
             )
             slide_count = inside.size
             # At the front (within 1.5 d_c of the crack tip) the needle has uncut tissue on every side but the
-            # cut's: pushed out of the cut's plane it cuts through at G_c per unit length as it does ahead, so
-            # those sliding rows carry at most G_c ℓ_k (a needle whose stroke turns then turns the cut; held by
-            # unbounded rows there, an L-shaped stroke dragged the tissue sideways, 7.3 N against 3.6 N).
+            # cut's: pushed out of the cut's plane it cuts through at G_c per unit
+            # length as it does ahead, so those sliding rows carry at most G_c ℓ_k (a needle whose stroke turns
+            # then turns the cut; held by unbounded rows there, an L-shaped stroke dragged the tissue sideways,
+            # 7.3 N against 3.6 N).
             slide_limits = np.full(inside.size, np.inf)
             if np.isfinite(front_strength) and front_previous.shape[0] >= 2:
                 segment, parameter, _ = _closest_on_polyline(needle_previous[inside], front_previous)
                 nearest_tip = (1.0 - parameter)[:, None] * front_previous[segment] + parameter[:, None] * (
                     front_previous[segment + 1])
+                # (Not widened by the front's compression: so widened, the band took in every sliding row of the
+                # liver's rigid needle, whose crack tip lies 2.8 mm behind it, and the area the crack tip swept
+                # came out 230, 361, 203 mm² for d_c = 0.5, 1, 2 mm, against 199, 200, 203 mm² as it is.)
                 band = np.flatnonzero((np.linalg.norm(needle_previous[inside] - nearest_tip, axis=1) <= 1.5 * spacing)
                                       & (shares[inside] > 1e-9 * step))
                 slide_limits[band] = float(front_strength) * shares[inside][band]
@@ -300,6 +350,7 @@ def strip_cut_block(
             front_info = FrontRows(slide_count + np.arange(keep.size), seg, t, samples[keep], directions,
                                    band_rows, band_segment)
             front_keep = keep
+            front_tets = strip.front.tet_indices[np.where(t < 0.5, seg, seg + 1)]
     if front_info.rows.size == 0 and band_rows.size:
         front_info = FrontRows(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0),
                                np.zeros((0, 3)), band_rows, band_segment)
@@ -361,7 +412,8 @@ def strip_cut_block(
         points=np.concatenate([b[4] for b in blocks]),
         directions=np.concatenate([b[3] for b in blocks]),
         force_limit=limits if np.any(np.isfinite(limits)) else np.zeros(0),
-        compliance_diagonal=_cut_compliance(subgrid_compliance, slide_tets, front_info.rows.size, friction_count > 0),
+        compliance_diagonal=_cut_compliance(subgrid_compliance, slide_tets, front_tets, shares[front_keep], spacing,
+                                            friction_count > 0),
         **groups,
     )
     return block, front_info

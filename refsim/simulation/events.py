@@ -30,7 +30,7 @@ from refsim.constraints import (
     grow_path,
     points_beyond_tip,
 )
-from refsim.constraints.cut import cut_criterion, inserted_arc
+from refsim.constraints.cut import crack_tip_compression, cut_criterion, inserted_arc
 from refsim.cutting import CutGrowth, TriangulationParameters
 from refsim.cutting.growth import advance_front, crack_tip_targets, move_front, start_strip
 from refsim.geometry import TetLocator
@@ -336,6 +336,10 @@ class EventRules:
             columns = np.unique(np.concatenate([given, given + 1]))
             tips = strip.front.positions(positions, self.tets)[columns]
             targets, reached = crack_tip_targets(strip, needle, entry_arc, columns, cutting.point_spacing)
+            # The material point in contact with the needle: the centreline plus the compliant rows' compression
+            # C λ along their direction, so the rows keep their force as the crack tip moves.
+            given_rows = np.concatenate([front.rows[over > 0.0], front.band_rows[sideways]])
+            targets = targets + crack_tip_compression(detection.rows, multipliers, given_rows, given, columns)
             tangents = needle.tangents(needle.project(targets)[0])
             across = state.cut_direction - (tangents @ state.cut_direction)[:, None] * tangents
             across /= np.linalg.norm(across, axis=1, keepdims=True)

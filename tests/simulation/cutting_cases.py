@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from refsim.constraints import BILATERAL, CUT_SLIDE
+from refsim.constraints import BILATERAL, CUT_BORDER, CUT_SLIDE
 from refsim.constraints.cut import inserted_arc
 from refsim.cutting.metrics import surface_topology
 from refsim.geometry import TetLocator
@@ -108,6 +108,8 @@ class CuttingRun:
     # C λ of the step's sliding rows plus d_c times the largest rotation of a cut triangle's normal over the step
     # [m]) of each cutting step with such a sample.
     offsets: list = field(default_factory=list)
+    # The cut block's spectrum at each step with cut rows (watch_cut_blocks).
+    blocks: list = field(default_factory=list)
 
     @property
     def events(self) -> list[tuple[int, str]]:
@@ -138,6 +140,41 @@ class CuttingRun:
     cut_direction: np.ndarray | None = None
 
 
+@dataclass(frozen=True)
+class CutBlockSpectrum:
+    """The cut rows' block of one step's constraint problem (sliding, front and their friction rows): W + diag(C)
+    as the solver gets it, C the rows' sub-grid compliance."""
+
+    rows: int
+    front_rows: int
+    smallest: float  # smallest eigenvalue of W + diag(C) [m/N]
+    largest: float  # largest eigenvalue of W + diag(C) [m/N]
+    smallest_compliance: float  # min C over the rows [m/N]
+    smallest_w: float  # smallest eigenvalue of W alone [m/N]
+
+
+def watch_cut_blocks(simulation: Simulation) -> list:
+    """Record the spectrum of the cut block of every problem ``simulation`` builds (a list it appends to)."""
+    spectra = []
+    build = simulation._problem
+
+    def problem(rows, tissue_system, needle_system):
+        built = build(rows, tissue_system, needle_system)
+        cut = np.flatnonzero((rows.source == CUT_SLIDE) | (rows.source == CUT_BORDER))
+        if built[0] is not None and cut.size:
+            total = built[0].compliance[np.ix_(cut, cut)]
+            diagonal = np.asarray(rows.compliance_diagonal, dtype=float)
+            added = diagonal[cut] if diagonal.size else np.zeros(cut.size)
+            eigen = np.linalg.eigvalsh(0.5 * (total + total.T))
+            bare = np.linalg.eigvalsh(0.5 * (total + total.T) - np.diag(added))
+            spectra.append(CutBlockSpectrum(cut.size, int(np.count_nonzero(rows.source == CUT_BORDER)),
+                                            float(eigen[0]), float(eigen[-1]), float(added.min()), float(bare[0])))
+        return built
+
+    simulation._problem = problem
+    return spectra
+
+
 def _kink(cut, surface: np.ndarray) -> float:
     """The largest |n_a − n_b| between the vertex normals of two corners of a triangle (how much the normal
     the rows use varies over one triangle)."""
@@ -151,6 +188,7 @@ def run_case(case: CuttingCase) -> CuttingRun:
     """Run a case, measuring after each cutting step how far the needle's samples inside the cut are from it."""
     scene = case.scene()
     simulation = Simulation(scene)
+    spectra = watch_cut_blocks(simulation)
     records, worst, direction = [], 0.0, None
     inserted, cuts, energies, work = [], {}, [], 0.0
     state = simulation.initial_state()
@@ -213,6 +251,6 @@ def run_case(case: CuttingCase) -> CuttingRun:
                 # kinks), times the offset in the plane, is the difference.
                 bound = compliance * largest + spacing * (rotation + _kink(state.cut, surface))
                 offsets.append((record.step, distance, bound))
-    run = CuttingRun(records, state, simulation, worst, inserted, cuts, energies, offsets)
+    run = CuttingRun(records, state, simulation, worst, inserted, cuts, energies, offsets, spectra)
     run.cut_direction = direction
     return run

@@ -11,7 +11,7 @@ import pytest
 
 from refsim.constraints import BILATERAL, CUT_BORDER, CUT_SLIDE, UNILATERAL
 from refsim.simulation import SimulationError
-from tests.simulation.cutting_cases import CuttingCase, run_case
+from tests.simulation.cutting_cases import CuttingCase, run_case, watch_cut_blocks
 
 EXACT = ('solver.method="exact"', "output.record_problems=true")
 
@@ -89,8 +89,14 @@ def test_front_rows_are_ahead_of_the_needle(reference):
     # The crack tip is where the needle pushed it at the end of the previous step; a needle cutting through it
     # passes it within the step (the front row at its strength), so a row may lag the needle by at most the
     # base's motion over one step, and on the tissue surface by the distance a crack-tip point is snapped back
-    # into the tissue (d_c/2). (The defect this guards against: a row 3.4 mm behind the needle.)
+    # into the tissue (d_c/2). The crack tip goes to the tissue's material point in contact with the needle, which
+    # lies behind the centreline by the compliant front row's compression C_k λ_k ≤ C(d_c) G_c d_c (C_k =
+    # C(d_c) d_c / ℓ_k, λ_k ≤ G_c ℓ_k; refsim.constraints.cut.crack_tip_compression). (The defect this guards
+    # against: a row 3.4 mm behind the needle.)
     direction = reference.cut_direction
+    scene = reference.simulation.scene
+    compression = (float(reference.simulation.detector.cut_compliance[0].max()) * scene.cutting.fracture_energy
+                   * scene.cutting.point_spacing)
     previous = None
     for record in reference.records:
         motion = 0.0 if previous is None else float(np.linalg.norm(record.base_position - previous))
@@ -103,13 +109,15 @@ def test_front_rows_are_ahead_of_the_needle(reference):
         points = record.row_points[front]
         on_axis = needle[0] + ((points - needle[0]) @ axis)[:, None] * axis
         snap = 0.5 * reference.simulation.scene.cutting.point_spacing
-        assert np.all((points - on_axis) @ direction >= -(motion + snap + 1e-6))
+        assert np.all((points - on_axis) @ direction >= -(motion + snap + compression + 1e-6))
 
 
 def test_in_steady_cutting_the_front_pushes_with_gc_per_unit_length(reference):
     # Energy balance (Griffith): without friction, advancing the crack by da over the inserted length L costs
     # G_c L da, and the only force doing that work is the front's, so F_front = G_c L. The rows stand for
-    # Σ ℓ_k ≤ L (samples whose projection falls off the ends of the crack tip get no row: at most 2 d_c).
+    # Σ ℓ_k ≤ L (samples whose projection falls off the ends of the crack tip get no row: at most 2 d_c), L the
+    # inserted length at the step's start (the rows and their bounds are chosen on the start-of-step state; the
+    # length at the step's end may differ by the resolution of refsim.constraints.cut.inserted_arc, d_c/16).
     scene = reference.simulation.scene
     g_c, d_c = scene.cutting.fracture_energy, scene.cutting.point_spacing
     checked = 0
@@ -117,7 +125,7 @@ def test_in_steady_cutting_the_front_pushes_with_gc_per_unit_length(reference):
         front = record.row_source == CUT_BORDER
         if record.phase != "cutting" or not any(e.name == "tear" for e in record.events):
             continue
-        length = reference.inserted[index]
+        length = reference.inserted[index - 1]
         per_length = record.row_forces[front].sum() / length
         # The solver meets each row's bound to its tolerance times the problem's force scale (at least the
         # step's largest multiplier): the rows together may exceed G_c L by that much.
@@ -224,6 +232,25 @@ CASES = {
 }
 
 
+def assert_cut_block_is_positive_definite(spectra, name):
+    """The cut rows' block W + diag(C) of every recorded problem is positive definite, with a derived bound.
+
+    W = H A⁻¹ Hᵀ is positive semi-definite (A the bodies' step matrices), so by Weyl's inequality
+    λ_min(W + diag(C)) ≥ λ_min(W) + min C ≥ min C: with every cut row compliant (C > 0: the sliding rows, the
+    front rows and their friction rows, refsim.constraints.cut) the block is positive definite and λ unique, and
+    λ_min / λ_max ≥ min C / λ_max. (Before the front rows had their compliance, the liver's cut block had
+    λ_min/λ_max ≈ −4e-16 on every cutting step: docs/cutting.md, "A well-posed cut block".) Round-off of the
+    eigenvalues of a symmetric matrix: a few n ε λ_max; 1e-12 λ_max allowed.
+    """
+    assert spectra, name
+    for spectrum in spectra:
+        round_off = 1e-12 * spectrum.largest
+        assert spectrum.smallest_compliance > 0.0, (name, spectrum)
+        assert spectrum.smallest_w >= -round_off, (name, spectrum)  # W is a compliance
+        assert spectrum.smallest / spectrum.largest >= (spectrum.smallest_compliance - round_off) / spectrum.largest, (
+            name, spectrum)
+
+
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_cutting_matrix_is_bounded_and_manifold(name):
     case = CASES[name]
@@ -243,21 +270,36 @@ def test_cutting_matrix_is_bounded_and_manifold(name):
     assert run.offsets, name
     for step, distance, bound in run.offsets:
         assert distance <= bound + 1e-9, (name, step, distance, bound)
+    # A well-posed cut block (issue 9, item 1): positive definite on every step, and Gauss–Seidel converges on
+    # every step to its tolerance, never at its sweep cap (the liver's rigid needle hit it on 54 of 502 cutting
+    # steps while the front rows had no compliance).
+    assert_cut_block_is_positive_definite(run.blocks, name)
+    assert all(r.solver is None or r.solver.converged for r in run.records), name
 
 
 # Beside the matrix (a turning stroke leaves the plane by design: no needle-to-cut bound there).
 TURNING = {"turn-L": CuttingCase(stroke=(0.003, 0.0), turn=(0.0, 0.003))}
 
 
-@pytest.mark.parametrize("name", ["x", "diagonal", "tilt-30", "entry-vertex", "turn-L"])
+@pytest.mark.parametrize("name", ["x", "diagonal", "tilt-30", "entry-vertex", "entry-edge", "d_c-0.25", "d_c-2",
+                                  "turn-L"])
 def test_gauss_seidel_and_exact_agree_on_the_events(name):
+    # The cut block is positive definite (assert_cut_block_is_positive_definite), so λ is unique and both solvers,
+    # each converged to a natural residual of 1e-8, find the same one: the same events at the same steps, the same
+    # cut (its extent within a thousandth), and needle forces within a thousandth of the peak (the coupling matrix's bound,
+    # tests/simulation/test_coupling_matrix.py), over the stroke direction, the tilt, the entry on a vertex or an
+    # edge of the mesh, d_c and a turning stroke.
     case = {**CASES, **TURNING}[name]
     iterative = run_case(case)
     exact = run_case(CuttingCase(**{**case.__dict__, "overrides": case.overrides + ('solver.method="exact"',)}))
-    assert [n for _, n in iterative.events if n != "tear"] == [n for _, n in exact.events if n != "tear"]
-    assert abs(iterative.first("cut_start") - exact.first("cut_start")) <= 1
-    assert abs(iterative.count("tear") - exact.count("tear")) <= 1
-    assert abs(iterative.extent() - exact.extent()) <= iterative.simulation.scene.cutting.point_spacing
+    assert iterative.events == exact.events, name
+    assert iterative.state.cut.point_count == exact.state.cut.point_count
+    assert abs(iterative.extent() - exact.extent()) <= 1e-3 * exact.extent()  # as the forces (below)
+    for run in (iterative, exact):
+        assert all(r.solver is None or r.solver.converged for r in run.records), name
+        assert_cut_block_is_positive_definite(run.blocks, name)
+    forces = [np.stack([r.needle_force for r in run.records]) for run in (iterative, exact)]
+    assert np.abs(forces[0] - forces[1]).max() <= 1e-3 * np.abs(forces[1]).max(), name
 
 
 @pytest.mark.parametrize(
@@ -407,7 +449,7 @@ def test_a_needle_inserted_deeper_while_cutting_extends_the_cut_along_its_shaft(
         front = record.row_source == CUT_BORDER
         if record.phase != "cutting" or not any(e.name == "tear" for e in record.events):
             continue
-        length = run.inserted[index]
+        length = run.inserted[index - 1]  # at the step's start, as the rows' bounds
         per_length = record.row_forces[front].sum() / length
         excess = np.count_nonzero(front) * scene.solver.tolerance * np.abs(record.row_forces).max() / length
         assert g_c * (1 - 2 * d_c / length) - 1e-6 <= per_length <= g_c * (1 + 1e-6) + excess, (record.step, per_length)
@@ -427,9 +469,11 @@ def test_cube_cut_forces_do_not_depend_on_the_solver():
     forces = {}
     for method in ("gauss_seidel", "exact"):
         records = []
-        Simulation(load_scene("cube_cut", [f'solver.method="{method}"'])).run(
-            on_step=lambda s, r: records.append(r))
+        simulation = Simulation(load_scene("cube_cut", [f'solver.method="{method}"']))
+        spectra = watch_cut_blocks(simulation)
+        simulation.run(on_step=lambda s, r: records.append(r))
         forces[method] = np.stack([r.needle_force for r in records])
         assert all(r.solver is None or r.solver.converged for r in records)
+        assert_cut_block_is_positive_definite(spectra, f"cube_cut {method}")
     peak = np.abs(forces["exact"]).max()
     assert np.abs(forces["gauss_seidel"] - forces["exact"]).max() <= 1e-3 * peak
