@@ -22,6 +22,7 @@ data residual (:mod:`refsim.solvers.residual`) are at most the tolerance.
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from dataclasses import dataclass
@@ -587,15 +588,16 @@ def _solve_dense_compiled(problem, kinds, rows, params, members, weight, free_ga
     converged = residual <= tolerance and data <= tolerance
     message = (f"converged in {iterations} Newton iteration(s)" if converged
                else _REASONS[reason].format(cap=max_iterations, stall=stall_iterations))
-    if counts[4]:
-        message = f"{int(counts[4])} Gauss-Seidel pre-sweep(s), then " + message
+    failures, fallback, _, recorded, swept = counts.tolist()
+    if swept:
+        message = f"{swept} Gauss-Seidel pre-sweep(s), then " + message
+    natural, data_final = final.tolist()
     return NewtonResult(multipliers=best, converged=bool(converged), iterations=int(iterations),
                         residual=float(residual), data_residual=float(data), message=message, storage="dense",
-                        history=history[:counts[3]].copy(), line_search_failures=int(counts[0]),
-                        fallback_sweeps=int(counts[1]),
-                        report_residuals=(float(final[0]) if np.isfinite(final[0]) else float("inf"),
-                                          float(final[1]) if np.isfinite(final[1]) else float("inf")),
-                        presweeps=int(counts[4]))
+                        history=history[:recorded].copy(), line_search_failures=failures, fallback_sweeps=fallback,
+                        report_residuals=(natural if math.isfinite(natural) else math.inf,
+                                          data_final if math.isfinite(data_final) else math.inf),
+                        presweeps=swept)
 
 
 def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np.ndarray | None = None,
@@ -629,7 +631,7 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     kinds, rows, params, members = block_arrays(problem)
     weight, force_scale = data_scales(problem)
     free_gap = np.ascontiguousarray(problem.free_gap)
-    free_norm = float(np.linalg.norm(free_gap))
+    free_norm = math.sqrt(float(free_gap.dot(free_gap)))  # np.linalg.norm's own formula, without its overhead
     data_scale = max(free_norm, force_scale)
     multipliers = (np.zeros(n) if warm_start is None
                    else np.array(problem.check_multipliers(warm_start), dtype=np.float64))
