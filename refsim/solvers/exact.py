@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import math
 import time
 import warnings
 from dataclasses import dataclass
@@ -377,7 +378,7 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
     ValueError : For an unknown backend or method, or bad options.
     """
     start = time.perf_counter()
-    if not (np.isfinite(tolerance) and tolerance > 0.0):
+    if not (isinstance(tolerance, (int, float, np.floating)) and math.isfinite(tolerance) and tolerance > 0.0):
         raise ValueError(f"tolerance = {tolerance!r}; valid range (0, inf)")
     if int(max_iterations) != max_iterations or max_iterations < 1:
         raise ValueError(f"max_iterations = {max_iterations!r}; valid range: integers >= 1")

@@ -635,7 +635,7 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     data_scale = max(free_norm, force_scale)
     multipliers = (np.zeros(n) if warm_start is None
                    else np.array(problem.check_multipliers(warm_start), dtype=np.float64))
-    if not minimum_norm and not np.isfinite(time_limit) and _dense_storage(problem, sparse_above):
+    if not minimum_norm and not math.isfinite(time_limit) and _dense_storage(problem, sparse_above):
         return _solve_dense_compiled(problem, kinds, rows, params, members, weight, free_gap, free_norm, data_scale,
                                      force_scale, multipliers, tolerance, max_iterations, eta_max,
                                      line_search_memory, stall_iterations, presweeps)
