@@ -128,3 +128,18 @@ def test_compiled_setup_matches_the_problem(laws):
     expected = max(np.linalg.norm(weight * problem.free_gap), np.linalg.norm(bounds[np.isfinite(bounds)]),
                    np.linalg.norm(mu * preload))
     assert scale == pytest.approx(expected, rel=1e-14)
+
+
+@pytest.mark.parametrize("laws", list(LAWS))
+def test_python_path_presweeps_match_the_compiled_kernel(laws):
+    # The Python iteration (a finite time limit selects it) runs the same compiled pre-sweeps: with no Newton
+    # iteration allowed both return the swept point, which must be the same bits; then both converge.
+    rng = np.random.default_rng(11)
+    problem, _, _ = planted_problem(rng, **LAWS[laws])
+    budget = _presweep_budget(problem.row_count)
+    compiled = solve_newton(problem, tolerance=1e-10, presweeps=budget, max_iterations=0)
+    python = solve_newton(problem, tolerance=1e-10, presweeps=budget, max_iterations=0, time_limit=60.0)
+    assert compiled.storage == python.storage == "dense"
+    assert compiled.presweeps == python.presweeps > 0
+    np.testing.assert_array_equal(python.multipliers, compiled.multipliers)
+    assert solve_newton(problem, tolerance=1e-10, presweeps=budget, time_limit=60.0).converged
