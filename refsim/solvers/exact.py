@@ -60,8 +60,8 @@ _BACKEND_OPTIONS = {
 #: The fixed point tries the Newton polish from an iterate whose residual is below this, every few iterations.
 _POLISH_FROM = 1e-3
 _POLISH_EVERY = 5
-#: Gauss-Seidel sweeps tried when Newton stalls, before the cone route: a probe of this many first, the rest only
-#: when the rate over the probe's second half (linear convergence assumed) reaches the tolerance within them.
+#: Gauss-Seidel sweeps tried when Newton stalls, before the cone route: chunks of _GAUSS_SEIDEL_PROBE, the next only
+#: while the rate over the last chunk's second half (linear convergence assumed) reaches the tolerance in time.
 _GAUSS_SEIDEL_SWEEPS = 2000
 _GAUSS_SEIDEL_PROBE = 100
 #: Fewest Gauss-Seidel sweeps tried before Newton by method="auto" (see _presweep_budget).
@@ -413,11 +413,11 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
             path = "gauss_seidel+newton" if newton.iterations else "gauss_seidel"
         if not newton.converged:
             # Newton stalls where the map is nonsmooth at the solution (friction bounds ‖λ_G‖ at λ_G = 0, cone
-            # apices): projected Gauss-Seidel from the best point, which such points do not trouble
-            # in two parts: the rest of the sweeps only if the rate of the probe's second half (linear
-            # convergence assumed) reaches the tolerance within them (where Gauss-Seidel cannot solve the problem, e.g. FCLib's rank-deficient local_problem_test,
-            # they would be wasted)
-            # (the rate is measured again on every probe-sized chunk: Gauss-Seidel on a singular W often slows down)
+            # apices): projected Gauss-Seidel from the best point, which such points do not trouble, in chunks of
+            # _GAUSS_SEIDEL_PROBE sweeps, the next only while the rate of the last chunk's second half (linear
+            # convergence assumed) reaches the tolerance within the sweeps left (where Gauss-Seidel cannot solve
+            # the problem, e.g. FCLib's rank-deficient local_problem_test, they would be wasted; its rate on a
+            # singular W often falls, so it is measured again on every chunk)
             multipliers, sweeps = solve_gauss_seidel(problem, tolerance=tolerance, warm_start=newton.multipliers,
                                                      max_iterations=_GAUSS_SEIDEL_PROBE, criterion="strict")
             done = sweeps.iterations
