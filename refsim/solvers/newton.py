@@ -17,7 +17,9 @@ factor, a failed line search) and lowered after each success (W is often singula
 non-monotone Armijo line search on θ = ½‖F‖² (Grippo, Lampariello and Lucidi 1986; memory 3 by default); when it fails,
 a few projected Gauss–Seidel sweeps are taken instead and η is raised; after repeated failures the method
 stops and says so (the caller then falls back to the cone route). Stops as soon as the natural residual and the
-data residual (:mod:`refsim.solvers.residual`) are at most the tolerance.
+data residual (:mod:`refsim.solvers.residual`) are at most the tolerance. With ``presweeps`` > 0, projected
+Gauss–Seidel sweeps come first (:func:`_presweep`: at most that many, stopped when their observed rate cannot
+reach the tolerance in time) and Newton starts from the swept point when it is better.
 """
 
 from __future__ import annotations
