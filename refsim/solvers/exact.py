@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import math
 import time
 import warnings
 from dataclasses import dataclass
@@ -59,10 +60,26 @@ _BACKEND_OPTIONS = {
 #: The fixed point tries the Newton polish from an iterate whose residual is below this, every few iterations.
 _POLISH_FROM = 1e-3
 _POLISH_EVERY = 5
-#: Gauss-Seidel sweeps tried when Newton stalls, before the cone route: a probe of this many first, the rest only
-#: when the rate over the probe's second half (linear convergence assumed) reaches the tolerance within them.
+#: Gauss-Seidel sweeps tried when Newton stalls, before the cone route: chunks of _GAUSS_SEIDEL_PROBE, the next only
+#: while the rate over the last chunk's second half (linear convergence assumed) reaches the tolerance in time.
 _GAUSS_SEIDEL_SWEEPS = 2000
-_GAUSS_SEIDEL_PROBE = 200
+_GAUSS_SEIDEL_PROBE = 100
+#: Fewest Gauss-Seidel sweeps tried before Newton by method="auto" (see _presweep_budget).
+_PRESWEEPS_MIN = 8
+#: Newton stops when its best residual has not halved in this many iterations: with "auto" the Gauss-Seidel
+#: finish and the cone route follow, so a stall is left sooner (measured on the 74 shared problems and every
+#: 10th step of cube and cube_cut, cold: the same 125 of 126 solved with 10 as with 20, local_problem_test
+#: 21.2 -> 13.8 ms, GMP6 8.4 -> 3.4 ms, deltasigma_mlcp 7.9 -> 3.8 ms); "newton" keeps 20.
+_AUTO_STALL = 10
+_NEWTON_STALL = 20
+
+
+def _presweep_budget(row_count: int) -> int:
+    """Gauss–Seidel sweeps tried before Newton (``method="auto"``): max(8, n / 2). A sweep with its residual
+    check costs about 2 n² flops, a dense Newton iteration an LU (2/3 n³) and several n² products, so n / 2
+    sweeps cost about one or two Newton iterations; the sweeps stop earlier when their rate cannot reach the
+    tolerance."""
+    return max(_PRESWEEPS_MIN, row_count // 2)
 
 
 def available_backends() -> list[str]:
@@ -361,7 +378,7 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
     ValueError : For an unknown backend or method, or bad options.
     """
     start = time.perf_counter()
-    if not (np.isfinite(tolerance) and tolerance > 0.0):
+    if not (isinstance(tolerance, (int, float, np.floating)) and math.isfinite(tolerance) and tolerance > 0.0):
         raise ValueError(f"tolerance = {tolerance!r}; valid range (0, inf)")
     if int(max_iterations) != max_iterations or max_iterations < 1:
         raise ValueError(f"max_iterations = {max_iterations!r}; valid range: integers >= 1")
@@ -388,33 +405,37 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
             return _lemke_report(problem, answer, lemke_note + note, asymmetry, start)
     if method in ("auto", "newton"):
         newton = solve_newton(problem, tolerance=tolerance, warm_start=warm_start,
-                              max_iterations=int(newton_iterations))
+                              max_iterations=int(newton_iterations),
+                              presweeps=_presweep_budget(n) if method == "auto" else 0,
+                              stall_iterations=_AUTO_STALL if method == "auto" else _NEWTON_STALL)
         path = "newton"
+        if newton.presweeps:
+            path = "gauss_seidel+newton" if newton.iterations else "gauss_seidel"
         if not newton.converged:
             # Newton stalls where the map is nonsmooth at the solution (friction bounds ‖λ_G‖ at λ_G = 0, cone
-            # apices): projected Gauss-Seidel from the best point, which such points do not trouble
-            # in two parts: the rest of the sweeps only if the rate of the probe's second half (linear
-            # convergence assumed) reaches the tolerance within them (where Gauss-Seidel cannot solve the problem, e.g. FCLib's rank-deficient local_problem_test,
-            # they would be wasted)
+            # apices): projected Gauss-Seidel from the best point, which such points do not trouble, in chunks of
+            # _GAUSS_SEIDEL_PROBE sweeps, the next only while the rate of the last chunk's second half (linear
+            # convergence assumed) reaches the tolerance within the sweeps left (where Gauss-Seidel cannot solve
+            # the problem, e.g. FCLib's rank-deficient local_problem_test, they would be wasted; its rate on a
+            # singular W often falls, so it is measured again on every chunk)
             multipliers, sweeps = solve_gauss_seidel(problem, tolerance=tolerance, warm_start=newton.multipliers,
                                                      max_iterations=_GAUSS_SEIDEL_PROBE, criterion="strict")
-            history = sweeps.history
-            half = history.size // 2
-            after = max(sweeps.residual, sweeps.data_residual)
-            if (not sweeps.converged and not sweeps.diverged and half > 0 and 0.0 < history[-1] < history[half]
-                    and np.log(tolerance / after) / np.log(history[-1] / history[half]) * (history.size - half)
-                    <= _GAUSS_SEIDEL_SWEEPS - sweeps.iterations):
-                probe = sweeps.iterations
-                multipliers, sweeps = solve_gauss_seidel(problem, tolerance=tolerance, warm_start=multipliers,
-                                                         max_iterations=_GAUSS_SEIDEL_SWEEPS - probe,
-                                                         criterion="strict")
-                sweeps = dataclasses.replace(sweeps, iterations=sweeps.iterations + probe)
+            done = sweeps.iterations
+            while (not sweeps.converged and done < _GAUSS_SEIDEL_SWEEPS
+                   and _gauss_seidel_can_finish(sweeps, tolerance, _GAUSS_SEIDEL_SWEEPS - done)):
+                multipliers, sweeps = solve_gauss_seidel(
+                    problem, tolerance=tolerance, warm_start=multipliers,
+                    max_iterations=min(_GAUSS_SEIDEL_PROBE, _GAUSS_SEIDEL_SWEEPS - done), criterion="strict")
+                done += sweeps.iterations
+            sweeps = dataclasses.replace(sweeps, iterations=done)
             if sweeps.converged:
                 newton.multipliers, newton.converged, path = multipliers, True, "newton+gauss_seidel"
                 newton.message += f"; then {sweeps.iterations} Gauss-Seidel sweeps"
                 newton.residual, newton.data_residual = sweeps.residual, sweeps.data_residual
-        if not newton.converged:
-            # a monotone line search from the best point (more robust where W is singular)
+        if not newton.converged and method == "newton":
+            # a monotone line search from the best point (Newton alone has no other fallback; with "auto" the cone
+            # route follows: on the 74 shared problems and the 520 steps of cube and cube_cut this retry never
+            # converged, and took 14 ms on local_problem_test)
             second = solve_newton(problem, tolerance=tolerance, warm_start=newton.multipliers,
                                   max_iterations=int(newton_iterations), line_search_memory=1)
             if second.converged or max(second.residual, second.data_residual) < max(newton.residual,
@@ -422,7 +443,7 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
                 second.iterations += newton.iterations
                 second.message += f" (after {newton.iterations} non-monotone iterations: {newton.message})"
                 newton = second
-        if path == "newton" and newton.report_residuals is not None:
+        if path in ("newton", "gauss_seidel", "gauss_seidel+newton") and newton.report_residuals is not None:
             residual, data = newton.report_residuals  # the values residuals() gives, from the compiled path
         else:
             residual, data = residuals(problem, newton.multipliers)
@@ -473,6 +494,18 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
     return multipliers, SolverReport(solver=report.solver, iterations=report.iterations, residual=residual,
                                      converged=converged, seconds=time.perf_counter() - start, message=message,
                                      history=report.history, data_residual=data, asymmetry=asymmetry, path=path)
+
+
+def _gauss_seidel_can_finish(sweeps: SolverReport, tolerance: float, remaining: int) -> bool:
+    """Whether the rate of the second half of the sweeps of ``sweeps`` (linear convergence assumed) reaches the
+    tolerance within ``remaining`` more sweeps."""
+    history = sweeps.history
+    half = history.size // 2
+    after = max(sweeps.residual, sweeps.data_residual)
+    if sweeps.diverged or half == 0 or not (0.0 < history[-1] < history[half]) or not after > 0.0:
+        return False
+    return bool(np.log(tolerance / after) / np.log(history[-1] / history[half]) * (history.size - half)
+                <= remaining)
 
 
 def _lemke_path(problem: ConstraintProblem, tolerance: float):

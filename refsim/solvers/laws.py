@@ -242,7 +242,8 @@ _NO_VALUE.setflags(write=False)
 
 
 def block_arrays(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The problem as blocks sorted by first row, for the compiled kernels (vectorised).
+    """The problem as blocks sorted by first row, for the compiled kernels (one compiled pass, cached on the
+    problem).
 
     Returns
     -------
@@ -255,50 +256,86 @@ def block_arrays(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
     cached = problem.__dict__.get("_block_arrays")
     if cached is not None:  # the problem is immutable (frozen, read-only arrays): compute once
         return cached
-    bilateral, unilateral, box = problem.bilateral, problem.unilateral, problem.box_rows
-    contacts = problem.contacts
     if len(problem.shaft_friction) or len(problem.group_friction):
         f_rows, f_offsets, members, f_mu, f_preload = friction_groups(problem)
     else:  # no group friction: skip the merging
         f_rows = f_offsets = members = _NO_INDEX
         f_mu = f_preload = _NO_VALUE
-    counts = (len(bilateral), len(unilateral), len(box), len(f_rows), len(contacts))
-    total = sum(counts)
-    kind = np.empty(total, dtype=np.int64)
-    row = np.zeros((total, 3), dtype=np.int64)
-    param = np.zeros((total, 2))
-    start = 0
-    for code, law_rows, count in ((BILATERAL, bilateral, counts[0]), (UNILATERAL, unilateral, counts[1]),
-                                  (BOX, box, counts[2])):
-        if count:
-            kind[start:start + count] = code
-            row[start:start + count, 0] = law_rows
-            if code == BOX:
-                param[start:start + count, 0] = problem.box_lower
-                param[start:start + count, 1] = problem.box_upper
-        start += count
-    if counts[3]:
-        stop = start + counts[3]
-        kind[start:stop] = GROUP_FRICTION
-        row[start:stop, 0] = f_rows
-        row[start:stop, 1] = f_offsets[:-1]
-        row[start:stop, 2] = f_offsets[1:]
-        param[start:stop, 0] = f_mu
-        param[start:stop, 1] = f_preload
-        start = stop
-    if counts[4]:
-        kind[start:] = CONTACT
-        row[start:] = contacts
-        param[start:, 0] = problem.contact_friction
-    first = row[:, 0]
-    if total > 1 and not bool(np.all(first[1:] > first[:-1])):
-        order = np.argsort(first, kind="stable")
-        kind, row, param = kind[order], row[order], param[order]
-    result = (kind, np.ascontiguousarray(row), param, np.ascontiguousarray(members, dtype=np.int64))
+    kind, row, param = _assemble_blocks(problem.bilateral, problem.unilateral, problem.box_rows, problem.box_lower,
+                                        problem.box_upper, f_rows, f_offsets, f_mu, f_preload, problem.contacts,
+                                        problem.contact_friction)
+    result = (kind, row, param, np.ascontiguousarray(members, dtype=np.int64))
     for array in result:
         array.setflags(write=False)
     object.__setattr__(problem, "_block_arrays", result)
     return result
+
+
+@numba.njit(cache=True)
+def _assemble_blocks(bilateral, unilateral, box, box_lower, box_upper, f_rows, f_offsets, f_mu, f_preload, contacts,
+                     contact_friction):
+    """(kinds, rows, params) of :func:`block_arrays` in one compiled pass: the laws in code order, then sorted by
+    first row (first rows are distinct: every row belongs to one law)."""
+    counts = (bilateral.shape[0], unilateral.shape[0], box.shape[0], f_rows.shape[0], contacts.shape[0])
+    total = counts[0] + counts[1] + counts[2] + counts[3] + counts[4]
+    kind = np.empty(total, dtype=np.int64)
+    row = np.zeros((total, 3), dtype=np.int64)
+    param = np.zeros((total, 2))
+    b = 0
+    for i in range(counts[0]):
+        kind[b] = BILATERAL
+        row[b, 0] = bilateral[i]
+        b += 1
+    for i in range(counts[1]):
+        kind[b] = UNILATERAL
+        row[b, 0] = unilateral[i]
+        b += 1
+    for i in range(counts[2]):
+        kind[b] = BOX
+        row[b, 0] = box[i]
+        param[b, 0] = box_lower[i]
+        param[b, 1] = box_upper[i]
+        b += 1
+    for i in range(counts[3]):
+        kind[b] = GROUP_FRICTION
+        row[b, 0] = f_rows[i]
+        row[b, 1] = f_offsets[i]
+        row[b, 2] = f_offsets[i + 1]
+        param[b, 0] = f_mu[i]
+        param[b, 1] = f_preload[i]
+        b += 1
+    for i in range(counts[4]):
+        kind[b] = CONTACT
+        row[b, 0] = contacts[i, 0]
+        row[b, 1] = contacts[i, 1]
+        row[b, 2] = contacts[i, 2]
+        param[b, 0] = contact_friction[i]
+        b += 1
+    ordered = True
+    for i in range(1, total):
+        if row[i, 0] <= row[i - 1, 0]:
+            ordered = False
+            break
+    if ordered:
+        return kind, row, param
+    order = np.argsort(row[:, 0])
+    sorted_kind = np.empty_like(kind)
+    sorted_row = np.empty_like(row)
+    sorted_param = np.empty_like(param)
+    for i in range(total):
+        sorted_kind[i] = kind[order[i]]
+        sorted_row[i] = row[order[i]]
+        sorted_param[i] = param[order[i]]
+    return sorted_kind, sorted_row, sorted_param
+
+
+@numba.njit(cache=True)
+def all_finite(vector):
+    """Whether every entry of a 1-D array is finite (np.isfinite(v).all() without its temporary)."""
+    for value in vector:
+        if not np.isfinite(value):
+            return False
+    return True
 
 
 @numba.njit(cache=True)

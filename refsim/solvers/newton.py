@@ -17,11 +17,14 @@ factor, a failed line search) and lowered after each success (W is often singula
 non-monotone Armijo line search on θ = ½‖F‖² (Grippo, Lampariello and Lucidi 1986; memory 3 by default); when it fails,
 a few projected Gauss–Seidel sweeps are taken instead and η is raised; after repeated failures the method
 stops and says so (the caller then falls back to the cone route). Stops as soon as the natural residual and the
-data residual (:mod:`refsim.solvers.residual`) are at most the tolerance.
+data residual (:mod:`refsim.solvers.residual`) are at most the tolerance. With ``presweeps`` > 0, projected
+Gauss–Seidel sweeps come first (:func:`_presweep`: at most that many, stopped when their observed rate cannot
+reach the tolerance in time) and Newton starts from the swept point when it is better.
 """
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from dataclasses import dataclass
@@ -70,6 +73,8 @@ class NewtonResult:
     fallback_sweeps: int
     #: (natural_residual, data_residual) of ``multipliers`` when the compiled path computed them, else None
     report_residuals: tuple | None = None
+    #: Gauss-Seidel sweeps taken before the first Newton iteration (``presweeps``)
+    presweeps: int = 0
 
 
 @numba.njit(cache=True)
@@ -232,17 +237,76 @@ def _finite_and_short(direction, limit):
 
 
 @numba.njit(cache=True)
+def _sweep_arrays(compliance):
+    """Wᵀ (C order) and the diagonal with entries ≤ 1e-14 max|W_jj| set to 0, as Gauss–Seidel takes them."""
+    n = compliance.shape[0]
+    transposed = np.ascontiguousarray(compliance.T)
+    diagonal = np.diag(compliance).copy()
+    floor = 1e-14 * max(np.abs(diagonal).max(), 2.2250738585072014e-308)
+    for i in range(n):
+        if diagonal[i] <= floor:
+            diagonal[i] = 0.0
+    return transposed, diagonal
+
+
+@numba.njit(cache=True)
+def _presweep(compliance, transposed, diagonal, free_gap, kinds, rows, params, members, free_norm, data_scale,
+              best, best_value, tolerance, budget, scratch, unit):
+    """Projected Gauss–Seidel sweeps from ``best`` (the start), at most ``budget``, while their observed rate can
+    reach the tolerance within the budget: stops when the natural and data residual are both ≤ the tolerance
+    (checked on the sweeps' incremental gap, then confirmed on the gap recomputed from scratch), or when
+    r_k / r_(k-2), taken as the square of a linear rate, predicts more sweeps than are left (or does not fall).
+    ``best`` gets the best point of the sweeps if it is better than the start (judged on a gap from scratch);
+    returns (sweeps, its max(natural, data residual))."""
+    candidate = best.copy()
+    gap = compliance @ candidate + free_gap
+    values = np.empty(budget)
+    swept = budget
+    for k in range(budget):
+        gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, candidate, gap, 1.0)
+        residual = _residual(kinds, rows, params, members, candidate, gap, free_norm, scratch, unit)
+        data = _data_from_error(scratch, data_scale)
+        value = max(residual, data)
+        values[k] = value
+        if not np.isfinite(value):
+            swept = k + 1
+            break
+        if residual <= tolerance and data <= tolerance:
+            gap = compliance @ candidate + free_gap  # confirmed on a gap without the sweeps' drift
+            residual = _residual(kinds, rows, params, members, candidate, gap, free_norm, scratch, unit)
+            data = _data_from_error(scratch, data_scale)
+            if residual <= tolerance and data <= tolerance:
+                best[:] = candidate
+                return k + 1, max(residual, data)
+        if k >= 2:
+            ratio = value / values[k - 2]
+            # sweeps still needed at rate √ratio: 2 log(tol / value) / log(ratio)
+            if not ratio < 1.0 or 2.0 * np.log(tolerance / value) / np.log(ratio) > budget - k - 1:
+                swept = k + 1
+                break
+    if np.all(np.isfinite(candidate)):
+        gap = compliance @ candidate + free_gap
+        residual = _residual(kinds, rows, params, members, candidate, gap, free_norm, scratch, unit)
+        data = _data_from_error(scratch, data_scale)
+        if max(residual, data) < best_value:
+            best[:] = candidate
+            best_value = max(residual, data)
+    return swept, best_value
+
+
+@numba.njit(cache=True)
 def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, free_norm, data_scale, force_scale,
-                  multipliers, tolerance, max_iterations, eta_max, memory_size, stall_iterations, history, counts,
-                  final):
+                  multipliers, tolerance, max_iterations, eta_max, memory_size, stall_iterations, presweeps, history,
+                  counts, final):
     """The dense Newton iteration of :func:`solve_newton` in compiled code (the same steps, line search and
     Gauss–Seidel fallback; no Python call per iteration). ``multipliers`` is the start on entry and the best
     point on exit; ``history`` (max_iterations + 1,) gets the residual after each iteration.
 
-    Returns (iterations, residual, data residual, reason): reason 0 converged, 1 iteration cap, 2 the
+    First up to ``presweeps`` projected Gauss–Seidel sweeps (:func:`_presweep`), kept when they improve the
+    start. Returns (iterations, residual, data residual, reason): reason 0 converged, 1 iteration cap, 2 the
     regularised Jacobian could not be factorised, 3 the line search failed 9 times in a row, 4 stalled.
-    ``counts`` gets (line-search failures, fallback sweeps, least-squares steps, history length), ``final`` the
-    natural and data residual of the answer as :func:`refsim.solvers.residuals` computes them.
+    ``counts`` gets (line-search failures, fallback sweeps, least-squares steps, history length, pre-sweeps),
+    ``final`` the natural and data residual of the answer as :func:`refsim.solvers.residuals` computes them.
     """
     n = free_gap.shape[0]
     blocks = kinds.shape[0]
@@ -266,6 +330,21 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
     best = multipliers.copy()
     best_residual = residual
     best_data = data
+    swept = 0
+    if presweeps > 0 and not (residual <= tolerance and data <= tolerance):
+        transposed, diagonal = _sweep_arrays(compliance)
+        swept, value = _presweep(compliance, transposed, diagonal, free_gap, kinds, rows, params, members,
+                                 free_norm, data_scale, best, best_value, tolerance, presweeps, scratch, unit)
+        if value < best_value:  # start Newton from the swept point
+            multipliers = best.copy()
+            gap = compliance @ multipliers + free_gap
+            natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error)
+            theta = 0.5 * np.dot(error, error)
+            residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, scratch, unit)
+            data = _data_from_error(scratch, data_scale)
+            best_value = max(residual, data)
+            best_residual = residual
+            best_data = data
     memory[0] = theta
     stored = 1
     history[0] = residual
@@ -334,12 +413,7 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
             fallback += 10
             level = min(level + 1, 8)
             if transposed.shape[0] == 0:
-                transposed = np.ascontiguousarray(compliance.T)
-                diagonal = np.diag(compliance).copy()
-                floor = 1e-14 * max(np.abs(diagonal).max(), 2.2250738585072014e-308)
-                for i in range(n):
-                    if diagonal[i] <= floor:
-                        diagonal[i] = 0.0
+                transposed, diagonal = _sweep_arrays(compliance)
             candidate = multipliers.copy()
             candidate_gap = compliance @ candidate + free_gap
             for _ in range(10):
@@ -386,6 +460,7 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
     counts[1] = fallback
     counts[2] = singular_steps
     counts[3] = recorded
+    counts[4] = swept
     # the report's residuals of the answer, by the kernel of refsim.solvers.natural_residual / data_residual
     final[0], final[1] = _residual_pair(compliance, free_gap, kinds, rows, params, members, best, force_scale)
     return best, iterations, best_residual, best_data, reason
@@ -500,33 +575,37 @@ def _dense_storage(problem: ConstraintProblem, sparse_above: int) -> bool:
 
 def _solve_dense_compiled(problem, kinds, rows, params, members, weight, free_gap, free_norm, data_scale,
                           force_scale, multipliers, tolerance, max_iterations, eta_max, line_search_memory,
-                          stall_iterations) -> NewtonResult:
+                          stall_iterations, presweeps) -> NewtonResult:
     """solve_newton on dense storage, every iteration in the compiled kernel :func:`_dense_newton`."""
     compliance = problem.compliance
     if not compliance.flags.c_contiguous:
         compliance = np.ascontiguousarray(compliance)
     history = np.empty(int(max_iterations) + 1)
-    counts = np.zeros(4, dtype=np.int64)
+    counts = np.zeros(5, dtype=np.int64)
     final = np.empty(2)
     best, iterations, residual, data, reason = _dense_newton(
         compliance, free_gap, kinds, rows, params, members, weight, float(free_norm), float(data_scale),
         float(force_scale), multipliers, float(tolerance), int(max_iterations), float(eta_max),
-        int(line_search_memory), int(stall_iterations), history, counts, final)
+        int(line_search_memory), int(stall_iterations), int(presweeps), history, counts, final)
     converged = residual <= tolerance and data <= tolerance
     message = (f"converged in {iterations} Newton iteration(s)" if converged
                else _REASONS[reason].format(cap=max_iterations, stall=stall_iterations))
+    failures, fallback, _, recorded, swept = counts.tolist()
+    if swept:
+        message = f"{swept} Gauss-Seidel pre-sweep(s), then " + message
+    natural, data_final = final.tolist()
     return NewtonResult(multipliers=best, converged=bool(converged), iterations=int(iterations),
                         residual=float(residual), data_residual=float(data), message=message, storage="dense",
-                        history=history[:counts[3]].copy(), line_search_failures=int(counts[0]),
-                        fallback_sweeps=int(counts[1]),
-                        report_residuals=(float(final[0]) if np.isfinite(final[0]) else float("inf"),
-                                          float(final[1]) if np.isfinite(final[1]) else float("inf")))
+                        history=history[:recorded].copy(), line_search_failures=failures, fallback_sweeps=fallback,
+                        report_residuals=(natural if math.isfinite(natural) else math.inf,
+                                          data_final if math.isfinite(data_final) else math.inf),
+                        presweeps=swept)
 
 
 def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np.ndarray | None = None,
                  max_iterations: int = 100, sparse_above: int = SPARSE_ABOVE, eta_max: float = 1e-2,
                  time_limit: float = np.inf, line_search_memory: int = 3,
-                 minimum_norm: bool = False, stall_iterations: int = 20) -> NewtonResult:
+                 minimum_norm: bool = False, stall_iterations: int = 20, presweeps: int = 0) -> NewtonResult:
     """Semismooth Newton on the natural map (see the module notes).
 
     Parameters
@@ -541,6 +620,9 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     line_search_memory : Number of past merit values the non-monotone Armijo test compares with (1: monotone).
     minimum_norm : Take minimum-norm least-squares steps (LAPACK gelsy) instead of LU ones on dense problems.
     stall_iterations : Stop when the best residual has not halved in this many iterations.
+    presweeps : At most this many projected Gauss–Seidel sweeps before the first Newton iteration, stopped as soon
+        as both residuals meet the tolerance or the sweeps' observed rate cannot reach it within the rest;
+        Newton starts from the swept point when it is better than the start (0: none).
 
     Returns
     -------
@@ -551,14 +633,14 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     kinds, rows, params, members = block_arrays(problem)
     weight, force_scale = data_scales(problem)
     free_gap = np.ascontiguousarray(problem.free_gap)
-    free_norm = float(np.linalg.norm(free_gap))
+    free_norm = math.sqrt(float(free_gap.dot(free_gap)))  # np.linalg.norm's own formula, without its overhead
     data_scale = max(free_norm, force_scale)
     multipliers = (np.zeros(n) if warm_start is None
                    else np.array(problem.check_multipliers(warm_start), dtype=np.float64))
-    if not minimum_norm and not np.isfinite(time_limit) and _dense_storage(problem, sparse_above):
+    if not minimum_norm and not math.isfinite(time_limit) and _dense_storage(problem, sparse_above):
         return _solve_dense_compiled(problem, kinds, rows, params, members, weight, free_gap, free_norm, data_scale,
                                      force_scale, multipliers, tolerance, max_iterations, eta_max,
-                                     line_search_memory, stall_iterations)
+                                     line_search_memory, stall_iterations, presweeps)
     unit = np.ones(n)
     operator = _Operator(problem, kinds, rows, members, sparse_above)
     error = np.empty(n)
@@ -594,6 +676,17 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
 
     theta, gap = merit(multipliers)
     residual, data = residuals(multipliers, gap)
+    swept = 0
+    if presweeps > 0 and not (residual <= tolerance and data <= tolerance):
+        compliance = np.ascontiguousarray(problem.compliance)
+        start_point = multipliers.copy()
+        swept, value = _presweep(compliance, *_sweep_arrays(compliance), free_gap, kinds, rows, params, members,
+                                 free_norm, data_scale, start_point, max(residual, data), float(tolerance),
+                                 int(presweeps), scratch, unit)
+        if value < max(residual, data):
+            multipliers = start_point
+            theta, gap = merit(multipliers)
+            residual, data = residuals(multipliers, gap)
     best = (max(residual, data), multipliers.copy(), residual, data)
     memory = [theta]
     history = [residual]
@@ -681,7 +774,9 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     converged = residual <= tolerance and data <= tolerance
     if converged:
         message = f"converged in {iterations} Newton iteration(s)"
+    if swept:
+        message = f"{swept} Gauss-Seidel pre-sweep(s), then " + message
     return NewtonResult(multipliers=multipliers, converged=bool(converged), iterations=iterations,
                         residual=float(residual), data_residual=float(data), message=message,
                         storage=operator.storage, history=np.array(history), line_search_failures=failures,
-                        fallback_sweeps=fallback)
+                        fallback_sweeps=fallback, presweeps=swept)

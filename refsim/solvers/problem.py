@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from refsim.solvers.laws import LAW_FIELDS, LAW_NAMES, LAWS, friction_groups, relative_asymmetry
+from refsim.solvers.laws import LAW_FIELDS, LAW_NAMES, LAWS, all_finite, friction_groups, relative_asymmetry
 
 __all__ = ["ConstraintProblem", "KIND_NAMES", "LAW_NAMES"]
 
@@ -214,7 +214,7 @@ class ConstraintProblem:
         array = np.asarray(multipliers, dtype=np.float64)
         if array.shape != (self.row_count,):
             self._fail(f"multipliers have shape {array.shape}, expected ({self.row_count},)")
-        if not np.isfinite(array).all():
+        if not all_finite(array):
             self._fail("multipliers hold a non-finite value")
         return array
 

@@ -35,6 +35,8 @@ def gap_bound(problem, first, second) -> float:
     y₁ and y₂, with the shaft bounds b(λ_i) of each solution (so C₁ ≠ C₂ by at most ‖b₁ − b₂‖ on shaft rows),
     give Δλᵀ W Δλ ≤ (‖W‖ + 1) ‖Δe‖ ‖Δλ‖ + ‖b₁ − b₂‖ (‖δ₁ − e₁‖ + ‖δ₂ − e₂‖), and ‖Δδ‖² ≤ ‖W‖ Δλᵀ W Δλ (W PSD).
     For contacts (cones with λ-dependent De Saxcé shift) it is not a proof; the problems here have one at most.
+    Plus the round-off of the two computed gaps, |fl(W λ + δ_free) − (W λ + δ_free)| ≤ γ_(n+1) (|W| |λ| + |δ_free|)
+    (Higham 2002, §3.5), which dominates when both solvers land on the same point (a gap difference of 2e-19).
     """
     error1, gap1 = natural_map_error(problem, first)
     error2, gap2 = natural_map_error(problem, second)
@@ -42,7 +44,12 @@ def gap_bound(problem, first, second) -> float:
     bounds = np.linalg.norm(problem.shaft_bounds(first) - problem.shaft_bounds(second))
     square = norm * ((norm + 1.0) * np.linalg.norm(error1 - error2) * np.linalg.norm(first - second)
                      + bounds * (np.linalg.norm(gap1 - error1) + np.linalg.norm(gap2 - error2)))
-    return float(np.sqrt(max(square, 0.0)))
+    n = problem.row_count
+    gamma = (n + 1) * np.finfo(float).eps / (1.0 - (n + 1) * np.finfo(float).eps)
+    magnitude = np.abs(problem.compliance)
+    roundoff = gamma * (np.linalg.norm(magnitude @ np.abs(first) + np.abs(problem.free_gap))
+                        + np.linalg.norm(magnitude @ np.abs(second) + np.abs(problem.free_gap)))
+    return float(np.sqrt(max(square, 0.0)) + roundoff)
 
 
 def _check_steps(records, tolerance):
