@@ -389,25 +389,32 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
         raise ValueError(f"backend = {backend!r} is not installed; available: {', '.join(backends)}")
     if warm_start is not None:
         warm_start = problem.check_multipliers(warm_start)
-    asymmetry = problem.asymmetry()
     n = problem.row_count
     if n == 0:
         return np.zeros(0), SolverReport(solver="exact/newton", iterations=0, residual=0.0, converged=True,
                                          seconds=time.perf_counter() - start, message="empty problem",
                                          data_residual=0.0, asymmetry=0.0, path="newton")
-    note = (f"; W non-symmetric by {asymmetry:.1e} (solved as given)" if asymmetry > symmetry_tolerance else "")
     newton = None
     lemke_note = ""
-    if method == "auto" and lemke_applicable(problem) and asymmetry > symmetry_tolerance and warm_start is None:
-        # a non-symmetric LCP/MLCP: no merit function need be convex, Lemke's pivoting first
-        answer, lemke_note = _lemke_path(problem, tolerance)
-        if answer is not None:
-            return _lemke_report(problem, answer, lemke_note + note, asymmetry, start)
+    if method == "cone" or (method == "auto" and warm_start is None and lemke_applicable(problem)):
+        # W's asymmetry is needed before any solve here; else it comes after Newton, whose compiled set-up
+        # computes it on small fresh problems (one call: see refsim.solvers.newton._solve_dense_fresh)
+        asymmetry = problem.asymmetry()
+        note = (f"; W non-symmetric by {asymmetry:.1e} (solved as given)" if asymmetry > symmetry_tolerance
+                else "")
+        if method == "auto" and asymmetry > symmetry_tolerance:
+            # a non-symmetric LCP/MLCP: no merit function need be convex, Lemke's pivoting first
+            answer, lemke_note = _lemke_path(problem, tolerance)
+            if answer is not None:
+                return _lemke_report(problem, answer, lemke_note + note, asymmetry, start)
     if method in ("auto", "newton"):
         newton = solve_newton(problem, tolerance=tolerance, warm_start=warm_start,
                               max_iterations=int(newton_iterations),
                               presweeps=_presweep_budget(n) if method == "auto" else 0,
                               stall_iterations=_AUTO_STALL if method == "auto" else _NEWTON_STALL)
+        asymmetry = problem.asymmetry()  # cached by the call above when it computed it
+        note = (f"; W non-symmetric by {asymmetry:.1e} (solved as given)" if asymmetry > symmetry_tolerance
+                else "")
         path = "newton"
         if newton.presweeps:
             path = "gauss_seidel+newton" if newton.iterations else "gauss_seidel"

@@ -39,13 +39,15 @@ from refsim.solvers.gauss_seidel import _data_residual, _residual
 from refsim.solvers.laws import (
     CONTACT,
     GROUP_FRICTION,
+    _assemble_blocks,
     block_arrays,
     gauss_seidel_sweep,
     jacobian_blocks,
     natural_map_blocks,
+    relative_asymmetry,
 )
 from refsim.solvers.problem import ConstraintProblem
-from refsim.solvers.residual import _compiled_norm, _residual_pair, data_scales
+from refsim.solvers.residual import _compiled_norm, _residual_pair, _scales, data_scales
 
 __all__ = ["NewtonResult", "solve_newton"]
 
@@ -55,6 +57,9 @@ SPARSE_ABOVE = 300
 SPARSE_DENSITY = 0.15
 #: Dense problems up to this many rows solve J d = −F in compiled code (no SciPy call overhead).
 _COMPILED_SOLVE_BELOW = 120
+#: Fresh problems (nothing cached) without group friction and with fewer rows than this take one compiled call
+#: for the set-up (block arrays, data scales, W's asymmetry) and the dense kernel (:func:`_dense_newton_fresh`).
+_FRESH_BELOW = 120
 
 
 @dataclass
@@ -583,22 +588,68 @@ def _solve_dense_compiled(problem, kinds, rows, params, members, weight, free_ga
     history = np.empty(int(max_iterations) + 1)
     counts = np.zeros(5, dtype=np.int64)
     final = np.empty(2)
-    best, iterations, residual, data, reason = _dense_newton(
+    outcome = _dense_newton(
         compliance, free_gap, kinds, rows, params, members, weight, float(free_norm), float(data_scale),
         float(force_scale), multipliers, float(tolerance), int(max_iterations), float(eta_max),
         int(line_search_memory), int(stall_iterations), int(presweeps), history, counts, final)
+    return _dense_result(outcome, history, counts, final, tolerance, max_iterations, stall_iterations)
+
+
+def _solve_dense_fresh(problem, free_gap, free_norm, multipliers, tolerance, max_iterations, eta_max,
+                       line_search_memory, stall_iterations, presweeps) -> NewtonResult:
+    """:func:`_solve_dense_compiled` for a fresh problem without group friction: the set-up of
+    :func:`~refsim.solvers.laws.block_arrays` and :func:`~refsim.solvers.residual.data_scales` and W's asymmetry
+    (cached on the problem for :meth:`ConstraintProblem.asymmetry`) in the same compiled call as the kernel (the
+    same compiled functions in the same order, so the same numbers bit for bit; one dispatch instead of four)."""
+    compliance = problem.compliance
+    if not compliance.flags.c_contiguous:
+        compliance = np.ascontiguousarray(compliance)
+    history = np.empty(int(max_iterations) + 1)
+    counts = np.zeros(5, dtype=np.int64)
+    final = np.empty(3)
+    outcome = _dense_newton_fresh(
+        compliance, free_gap, problem.bilateral, problem.unilateral, problem.box_rows, problem.box_lower,
+        problem.box_upper, problem.contacts, problem.contact_friction, float(free_norm), multipliers,
+        float(tolerance), int(max_iterations), float(eta_max), int(line_search_memory), int(stall_iterations),
+        int(presweeps), history, counts, final)
+    if "_asymmetry" not in problem.__dict__:
+        object.__setattr__(problem, "_asymmetry", float(final[2]))
+    return _dense_result(outcome, history, counts, final, tolerance, max_iterations, stall_iterations)
+
+
+@numba.njit(cache=True)
+def _dense_newton_fresh(compliance, free_gap, bilateral, unilateral, box, box_lower, box_upper, contacts,
+                        contact_friction, free_norm, multipliers, tolerance, max_iterations, eta_max, memory_size,
+                        stall_iterations, presweeps, history, counts, final):
+    """The set-up of a problem without group friction (block arrays, data scales), then :func:`_dense_newton`;
+    ``final`` (3,) gets the kernel's two residuals (entries 0, 1) and W's relative asymmetry (entry 2)."""
+    no_index = np.zeros(0, dtype=np.int64)
+    no_value = np.zeros(0)
+    kinds, rows, params = _assemble_blocks(bilateral, unilateral, box, box_lower, box_upper, no_index, no_index,
+                                           no_value, no_value, contacts, contact_friction)
+    weight, force_scale = _scales(compliance, free_gap, contacts, box_lower, box_upper, no_value, no_value)
+    final[2] = relative_asymmetry(compliance)
+    data_scale = max(free_norm, force_scale)
+    return _dense_newton(compliance, free_gap, kinds, rows, params, no_index, weight, free_norm, data_scale,
+                         force_scale, multipliers, tolerance, max_iterations, eta_max, memory_size,
+                         stall_iterations, presweeps, history, counts, final)
+
+
+def _dense_result(outcome, history, counts, final, tolerance, max_iterations, stall_iterations) -> NewtonResult:
+    """The NewtonResult of a compiled dense solve."""
+    best, iterations, residual, data, reason = outcome
     converged = residual <= tolerance and data <= tolerance
     message = (f"converged in {iterations} Newton iteration(s)" if converged
                else _REASONS[reason].format(cap=max_iterations, stall=stall_iterations))
     failures, fallback, _, recorded, swept = counts.tolist()
     if swept:
         message = f"{swept} Gauss-Seidel pre-sweep(s), then " + message
-    natural, data_final = final.tolist()
+    natural, data_final = final[0], final[1]
     return NewtonResult(multipliers=best, converged=bool(converged), iterations=int(iterations),
                         residual=float(residual), data_residual=float(data), message=message, storage="dense",
                         history=history[:recorded].copy(), line_search_failures=failures, fallback_sweeps=fallback,
-                        report_residuals=(natural if math.isfinite(natural) else math.inf,
-                                          data_final if math.isfinite(data_final) else math.inf),
+                        report_residuals=(float(natural) if math.isfinite(natural) else math.inf,
+                                          float(data_final) if math.isfinite(data_final) else math.inf),
                         presweeps=swept)
 
 
@@ -630,6 +681,18 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     """
     start = time.perf_counter()
     n = problem.row_count
+    cached = problem.__dict__
+    if (n < _FRESH_BELOW and n <= sparse_above and not minimum_norm and not math.isfinite(time_limit)
+            and "_block_arrays" not in cached and "_data_scales" not in cached
+            and not len(problem.shaft_friction) and not len(problem.group_friction)):
+        free_gap = problem.free_gap
+        if not free_gap.flags.c_contiguous:
+            free_gap = np.ascontiguousarray(free_gap)
+        multipliers = (np.zeros(n) if warm_start is None
+                       else np.array(problem.check_multipliers(warm_start), dtype=np.float64))
+        return _solve_dense_fresh(problem, free_gap, math.sqrt(float(free_gap.dot(free_gap))), multipliers,
+                                  tolerance, max_iterations, eta_max, line_search_memory, stall_iterations,
+                                  presweeps)
     kinds, rows, params, members = block_arrays(problem)
     weight, force_scale = data_scales(problem)
     free_gap = np.ascontiguousarray(problem.free_gap)

@@ -219,5 +219,10 @@ class ConstraintProblem:
         return array
 
     def asymmetry(self) -> float:
-        """Relative asymmetry ‖W − Wᵀ‖_F / ‖W‖_F (0 for a zero matrix)."""
-        return float(relative_asymmetry(self.compliance))
+        """Relative asymmetry ‖W − Wᵀ‖_F / ‖W‖_F (0 for a zero matrix); computed once (the problem is
+        immutable), possibly by :func:`refsim.solvers.residual.prepare_caches`."""
+        cached = self.__dict__.get("_asymmetry")
+        if cached is None:
+            cached = float(relative_asymmetry(self.compliance))
+            object.__setattr__(self, "_asymmetry", cached)
+        return cached

@@ -1,0 +1,113 @@
+"""The one-call compiled path of small fresh problems (refsim.solvers.newton._solve_dense_fresh) against the
+layered path of before (set-up by block_arrays / data_scales, asymmetry by ConstraintProblem.asymmetry, then
+the kernel): the same multipliers and the same report, bit for bit.
+
+Reference: the layered path, taken on a copy whose set-up caches are filled first (the fresh path is only for
+problems with nothing cached). Both call the same compiled functions in the same order, so no tolerance: equality
+of the bytes of λ, of the history and of every report field but the wall-clock time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from refsim.solvers import ConstraintProblem, solve_exact
+from refsim.solvers.laws import block_arrays
+from refsim.solvers.newton import _FRESH_BELOW, solve_newton
+from refsim.solvers.residual import data_scales
+
+from .conftest import planted_problem
+
+LAWS = {"contacts": dict(contacts=4), "mixed": dict(bilateral=2, unilateral=3, contacts=3, box=3),
+        "lcp": dict(unilateral=6), "box": dict(box=5, bilateral=1)}
+
+
+def _same(first, second) -> bool:
+    """Equal values, NaN equal to NaN, arrays compared by dtype, shape and bytes."""
+    if isinstance(first, np.ndarray) or isinstance(second, np.ndarray):
+        first, second = np.asarray(first), np.asarray(second)
+        return first.dtype == second.dtype and first.shape == second.shape and first.tobytes() == second.tobytes()
+    if isinstance(first, float) and isinstance(second, float) and math.isnan(first) and math.isnan(second):
+        return True
+    return type(first) is type(second) and first == second
+
+
+def _layered(problem: ConstraintProblem) -> ConstraintProblem:
+    copy = dataclasses.replace(problem)
+    block_arrays(copy)
+    data_scales(copy)
+    return copy
+
+
+def _assert_identical(problem: ConstraintProblem, **options) -> None:
+    fresh = dataclasses.replace(problem)
+    lam_fresh, report_fresh = solve_exact(fresh, **options)
+    layered = _layered(problem)
+    lam_layered, report_layered = solve_exact(layered, **options)
+    assert _same(lam_fresh, lam_layered)
+    for field in dataclasses.fields(report_fresh):
+        if field.name != "seconds":
+            assert _same(getattr(report_fresh, field.name), getattr(report_layered, field.name)), field.name
+    assert report_fresh.asymmetry == problem.asymmetry()
+
+
+def _skewed(problem: ConstraintProblem, rng: np.random.Generator, amount: float) -> ConstraintProblem:
+    """W made non-symmetric by ``amount`` (relative), the rest unchanged."""
+    noise = rng.standard_normal(problem.compliance.shape)
+    compliance = problem.compliance + amount * np.abs(problem.compliance).max() * (noise - noise.T)
+    return dataclasses.replace(problem, compliance=compliance)
+
+
+@pytest.mark.parametrize("laws", sorted(LAWS))
+@pytest.mark.parametrize("skew", [0.0, 1e-4])
+@pytest.mark.parametrize("method", ["auto", "newton"])
+@pytest.mark.parametrize("start", ["cold", "warm"])
+def test_fresh_path_is_bit_identical_to_the_layered_path(laws, skew, method, start):
+    rng = np.random.default_rng(15)
+    for rank_drop in (0, 2):
+        problem, force, _ = planted_problem(rng, **LAWS[laws])
+        if rank_drop:
+            problem, force, _ = planted_problem(rng, rank=problem.row_count - rank_drop, **LAWS[laws])
+        problem = _skewed(problem, rng, skew) if skew else problem
+        warm = force * (1.0 + 0.1 * rng.standard_normal(force.size)) if start == "warm" else None
+        _assert_identical(problem, tolerance=1e-8, method=method, warm_start=warm)
+
+
+def test_fresh_path_is_taken_and_leaves_the_asymmetry_cached():
+    problem, _, _ = planted_problem(np.random.default_rng(3), contacts=3, unilateral=2)
+    fresh = dataclasses.replace(problem)
+    result = solve_newton(fresh, tolerance=1e-8)
+    assert result.converged
+    assert "_block_arrays" not in fresh.__dict__  # the set-up ran inside the compiled call
+    assert fresh.__dict__["_asymmetry"] == dataclasses.replace(problem).asymmetry()
+
+
+def test_group_friction_and_large_problems_keep_the_layered_path():
+    problem, _, _ = planted_problem(np.random.default_rng(4), bilateral=2, shafts=2, contacts=2)
+    copy = dataclasses.replace(problem)
+    solve_newton(copy, tolerance=1e-8)
+    assert "_block_arrays" in copy.__dict__
+    large, _, _ = planted_problem(np.random.default_rng(5), contacts=_FRESH_BELOW // 3 + 1)
+    copy = dataclasses.replace(large)
+    solve_newton(copy, tolerance=1e-8, max_iterations=2)
+    assert "_block_arrays" in copy.__dict__
+
+
+def test_fresh_path_on_the_shared_problems(problems_root):
+    """Every shared problem below _FRESH_BELOW rows (the 22 contact problems of the floor study among them)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "studies" / "solvers" / "run.py"
+    spec = importlib.util.spec_from_file_location("solver_study_run_fresh", path)
+    run = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(run)
+    problems = [p for _, p in run.external_problems(problems_root) if 0 < p.row_count < _FRESH_BELOW]
+    assert len(problems) >= 22
+    for problem in problems:
+        for method in ("auto", "newton"):
+            _assert_identical(problem, tolerance=1e-8, method=method)
