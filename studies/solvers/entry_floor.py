@@ -6,10 +6,12 @@ Usage::
 
 For every contact-only problem of the shared set with fewer than ``--below`` rows, on ``dataclasses.replace``
 copies (nothing cached on the problem, as for a new simulation step), best of ``--repeats`` batches of ``--calls``
-calls, µs per call of: the set-up (``block_arrays`` and ``data_scales``), ``solve_newton`` with the pre-sweeps of
-``method="auto"`` (set-up, Python layers and the compiled kernel), ``solve_exact(method="auto")`` (its checks,
-the asymmetry and the report on top). The differences are the layers' costs. Prints one line per problem and the
-medians, with the machine's load average.
+calls, µs per call of: the layered set-up (``block_arrays`` and ``data_scales``: what problems with group
+friction, or of 120 rows or more, run before the kernel), the compiled call alone (``_dense_newton_fresh``:
+set-up, W's asymmetry and the dense Newton kernel with the pre-sweeps, its output arrays allocated in the
+timed call), ``solve_newton`` with the pre-sweeps and stall rule of ``method="auto"`` (the compiled call and its Python
+layer), ``solve_exact(method="auto")`` (its checks and the report on top). The differences are the layers'
+costs. Prints one line per problem and the medians, with the machine's load average.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
 import logging  # noqa: E402
+import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -33,9 +36,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from run import external_problems, shared_problems  # noqa: E402
 
 from refsim.solvers import solve_exact  # noqa: E402
-from refsim.solvers.exact import _presweep_budget  # noqa: E402
+from refsim.solvers.exact import _AUTO_STALL, _presweep_budget  # noqa: E402
 from refsim.solvers.laws import block_arrays  # noqa: E402
-from refsim.solvers.newton import solve_newton  # noqa: E402
+from refsim.solvers.newton import _dense_newton_fresh, solve_newton  # noqa: E402
 from refsim.solvers.residual import data_scales  # noqa: E402
 
 TOLERANCE = 1e-8
@@ -53,6 +56,16 @@ def per_call(function, problem, calls: int, repeats: int) -> float:
     return best
 
 
+def compiled_call(problem) -> None:
+    """The one compiled call of solve_newton on a small fresh problem, with the arguments solve_newton gives."""
+    n = problem.row_count
+    free_gap = problem.free_gap
+    _dense_newton_fresh(problem.compliance, free_gap, problem.bilateral, problem.unilateral, problem.box_rows,
+                        problem.box_lower, problem.box_upper, problem.contacts, problem.contact_friction,
+                        math.sqrt(float(free_gap.dot(free_gap))), np.zeros(n), TOLERANCE, 100, 1e-2, 3, _AUTO_STALL,
+                        _presweep_budget(n), np.empty(101), np.zeros(5, dtype=np.int64), np.empty(3))
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--below", type=int, default=30)
@@ -64,8 +77,10 @@ def main(argv: list[str] | None = None) -> None:
                 if len(p.contacts) and 3 * len(p.contacts) == p.row_count and p.row_count < args.below]
     print(f"load average at start {os.getloadavg()[0]:.2f}; {len(problems)} problems below {args.below} rows")
     measures = {"set-up": lambda p: (block_arrays(p), data_scales(p)),
+                "compiled call": compiled_call,
                 "solve_newton": lambda p: solve_newton(p, tolerance=TOLERANCE,
-                                                       presweeps=_presweep_budget(p.row_count)),
+                                                       presweeps=_presweep_budget(p.row_count),
+                                                       stall_iterations=_AUTO_STALL),
                 "solve_exact": lambda p: solve_exact(p, tolerance=TOLERANCE, method="auto")}
     for function in measures.values():  # compiled kernels loaded
         function(dataclasses.replace(problems[0]))
