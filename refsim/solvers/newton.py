@@ -57,8 +57,9 @@ SPARSE_ABOVE = 300
 SPARSE_DENSITY = 0.15
 #: Dense problems up to this many rows solve J d = −F in compiled code (no SciPy call overhead).
 _COMPILED_SOLVE_BELOW = 120
-#: Fresh problems (nothing cached) without group friction and with fewer rows than this take one compiled call
-#: for the set-up (block arrays, data scales, W's asymmetry) and the dense kernel (:func:`_dense_newton_fresh`).
+#: Fresh problems (nothing cached) without group friction and with fewer rows than this take one compiled
+#: call for the set-up (block arrays, data scales, W's asymmetry) and the dense kernel
+#: (:func:`_dense_newton_fresh`).
 _FRESH_BELOW = 120
 
 
@@ -598,9 +599,10 @@ def _solve_dense_compiled(problem, kinds, rows, params, members, weight, free_ga
 def _solve_dense_fresh(problem, free_gap, free_norm, multipliers, tolerance, max_iterations, eta_max,
                        line_search_memory, stall_iterations, presweeps) -> NewtonResult:
     """:func:`_solve_dense_compiled` for a fresh problem without group friction: the set-up of
-    :func:`~refsim.solvers.laws.block_arrays` and :func:`~refsim.solvers.residual.data_scales` and W's asymmetry
-    (cached on the problem for :meth:`ConstraintProblem.asymmetry`) in the same compiled call as the kernel (the
-    same compiled functions in the same order, so the same numbers bit for bit; one dispatch instead of four)."""
+    :func:`~refsim.solvers.laws.block_arrays` and :func:`~refsim.solvers.residual.data_scales` and W's
+    asymmetry (cached on the problem for :meth:`ConstraintProblem.asymmetry`) in the same compiled call as the
+    kernel (the same compiled functions in the same order, so the same numbers bit for bit; one dispatch
+    instead of four)."""
     compliance = problem.compliance
     if not compliance.flags.c_contiguous:
         compliance = np.ascontiguousarray(compliance)
@@ -619,14 +621,14 @@ def _solve_dense_fresh(problem, free_gap, free_norm, multipliers, tolerance, max
 
 @numba.njit(cache=True)
 def _dense_newton_fresh(compliance, free_gap, bilateral, unilateral, box, box_lower, box_upper, contacts,
-                        contact_friction, free_norm, multipliers, tolerance, max_iterations, eta_max, memory_size,
-                        stall_iterations, presweeps, history, counts, final):
+                        contact_friction, free_norm, multipliers, tolerance, max_iterations, eta_max,
+                        memory_size, stall_iterations, presweeps, history, counts, final):
     """The set-up of a problem without group friction (block arrays, data scales), then :func:`_dense_newton`;
     ``final`` (3,) gets the kernel's two residuals (entries 0, 1) and W's relative asymmetry (entry 2)."""
     no_index = np.zeros(0, dtype=np.int64)
     no_value = np.zeros(0)
-    kinds, rows, params = _assemble_blocks(bilateral, unilateral, box, box_lower, box_upper, no_index, no_index,
-                                           no_value, no_value, contacts, contact_friction)
+    kinds, rows, params = _assemble_blocks(bilateral, unilateral, box, box_lower, box_upper, no_index,
+                                           no_index, no_value, no_value, contacts, contact_friction)
     weight, force_scale = _scales(compliance, free_gap, contacts, box_lower, box_upper, no_value, no_value)
     final[2] = relative_asymmetry(compliance)
     data_scale = max(free_norm, force_scale)
@@ -635,7 +637,8 @@ def _dense_newton_fresh(compliance, free_gap, bilateral, unilateral, box, box_lo
                          stall_iterations, presweeps, history, counts, final)
 
 
-def _dense_result(outcome, history, counts, final, tolerance, max_iterations, stall_iterations) -> NewtonResult:
+def _dense_result(outcome, history, counts, final, tolerance, max_iterations,
+                  stall_iterations) -> NewtonResult:
     """The NewtonResult of a compiled dense solve."""
     best, iterations, residual, data, reason = outcome
     converged = residual <= tolerance and data <= tolerance

@@ -9,9 +9,9 @@ copies (nothing cached on the problem, as for a new simulation step), best of ``
 calls, µs per call of: the layered set-up (``block_arrays`` and ``data_scales``: what problems with group
 friction, or of 120 rows or more, run before the kernel), the compiled call alone (``_dense_newton_fresh``:
 set-up, W's asymmetry and the dense Newton kernel with the pre-sweeps, its output arrays allocated in the
-timed call), ``solve_newton`` with the pre-sweeps and stall rule of ``method="auto"`` (the compiled call and its Python
-layer), ``solve_exact(method="auto")`` (its checks and the report on top). The differences are the layers'
-costs. Prints one line per problem and the medians, with the machine's load average.
+timed call), ``solve_newton`` with the pre-sweeps and stall rule of ``method="auto"`` (the compiled call and
+its Python layer), ``solve_exact(method="auto")`` (its checks and the report on top). The differences are
+the layers' costs. Prints one line per problem and the medians, with the machine's load average.
 """
 
 from __future__ import annotations
@@ -57,13 +57,13 @@ def per_call(function, problem, calls: int, repeats: int) -> float:
 
 
 def compiled_call(problem) -> None:
-    """The one compiled call of solve_newton on a small fresh problem, with the arguments solve_newton gives."""
+    """The one compiled call of solve_newton on a small fresh problem, with solve_newton's arguments."""
     n = problem.row_count
     free_gap = problem.free_gap
     _dense_newton_fresh(problem.compliance, free_gap, problem.bilateral, problem.unilateral, problem.box_rows,
                         problem.box_lower, problem.box_upper, problem.contacts, problem.contact_friction,
-                        math.sqrt(float(free_gap.dot(free_gap))), np.zeros(n), TOLERANCE, 100, 1e-2, 3, _AUTO_STALL,
-                        _presweep_budget(n), np.empty(101), np.zeros(5, dtype=np.int64), np.empty(3))
+                        math.sqrt(float(free_gap.dot(free_gap))), np.zeros(n), TOLERANCE, 100, 1e-2, 3,
+                        _AUTO_STALL, _presweep_budget(n), np.empty(101), np.zeros(5, dtype=np.int64), np.empty(3))
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -3,8 +3,8 @@ layered path of before (set-up by block_arrays / data_scales, asymmetry by Const
 the kernel): the same multipliers and the same report, bit for bit.
 
 Reference: the layered path, taken on a copy whose set-up caches are filled first (the fresh path is only for
-problems with nothing cached). Both call the same compiled functions in the same order, so no tolerance: equality
-of the bytes of λ, of the history and of every report field but the wall-clock time.
+problems with nothing cached). Both call the same compiled functions in the same order, so no tolerance:
+equality of the bytes of λ, of the history and of every report field but the wall-clock time.
 """
 
 from __future__ import annotations
@@ -30,7 +30,8 @@ def _same(first, second) -> bool:
     """Equal values, NaN equal to NaN, arrays compared by dtype, shape and bytes."""
     if isinstance(first, np.ndarray) or isinstance(second, np.ndarray):
         first, second = np.asarray(first), np.asarray(second)
-        return first.dtype == second.dtype and first.shape == second.shape and first.tobytes() == second.tobytes()
+        return (first.dtype == second.dtype and first.shape == second.shape
+                and first.tobytes() == second.tobytes())
     if isinstance(first, float) and isinstance(second, float) and math.isnan(first) and math.isnan(second):
         return True
     return type(first) is type(second) and first == second
@@ -98,7 +99,7 @@ def test_group_friction_and_large_problems_keep_the_layered_path():
 
 
 def test_fresh_path_on_the_shared_problems(problems_root):
-    """Every shared problem below _FRESH_BELOW rows (the 22 contact problems of the floor study among them)."""
+    """Every shared problem below _FRESH_BELOW rows (the floor study's 22 contact problems among them)."""
     import importlib.util
     from pathlib import Path
 
