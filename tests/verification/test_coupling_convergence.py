@@ -2,7 +2,7 @@
 
 A rigid needle inserted 40 mm (rows every 0.5 mm) into the clamped 100 mm cube, stuck, translated sideways or
 along its axis: K = gᵀ(W + C)⁻¹g on 6, 12, 24 cells per axis (h = 16.7, 8.33, 4.17 mm;
-:func:`refsim.verification.coupling.cube_needle_stiffness`, C the sub-grid compliance of the rows).
+:func:`refsim.verification.coupling_3d.cube_needle_stiffness`, C the sub-grid compliance of the rows).
 Reference: none in closed form (a 3-D problem); the test asserts Roache's observed order of the three levels,
 p = log2(ε₃₂/ε₂₁) ≥ 0.5 (a logarithmic drift, the bare line's in the limit, gives ε₃₂/ε₂₁ → 1, p → 0), and a
 grid convergence index of the finest level below 5 %, and reports the Richardson value.
@@ -25,13 +25,13 @@ import numpy as np
 import pytest
 
 from refsim.sweep.convergence import convergence, grid_convergence_index, observed_order, richardson
-from refsim.verification import coupling
+from refsim.verification import coupling, coupling_3d
 
 pytestmark = pytest.mark.slow
 
 
 def _check(key):
-    coarse, medium, fine = (coupling.cube_needle_stiffness(n)[key] for n in coupling.CUBE_CELLS)
+    coarse, medium, fine = (coupling_3d.cube_needle_stiffness(n)[key] for n in coupling_3d.CUBE_CELLS)
     order = observed_order(fine, medium, coarse, 2.0)
     print(f"\n{key}: K = {coarse:.1f}, {medium:.1f}, {fine:.1f} N/m, p = {order:.2f}")
     assert math.isfinite(order) and order >= 0.5
@@ -98,7 +98,7 @@ def test_8mm_needle_on_its_surface_converges_in_the_slab(kind):
 # ------------------------------------------------ the 8 mm needle on its surface, 3-D (h ≤ r on every level)
 @pytest.fixture(scope="module")
 def box():
-    return coupling.box_surface_study()
+    return coupling_3d.box_surface_study()
 
 
 @pytest.mark.parametrize("kind", ["lateral", "axial"])
@@ -114,7 +114,7 @@ def test_8mm_needle_in_a_clamped_box_converges_with_h_below_r(box, kind):
     successive differences are no power law (divergent on 12, 16, 24; docs/coupling.md): what is left after
     its sub-grid term is the calibration's position spread.
     """
-    sizes = coupling.BOX_SIZE / np.array(coupling.BOX_CELLS)
+    sizes = coupling_3d.BOX_SIZE / np.array(coupling_3d.BOX_CELLS)
     bare = convergence(sizes, box[("surface", kind)].mean(axis=1))
     levels = ", ".join(f"{v:.1f}" for v in bare.values[::-1])
     print(f"\n{kind}: surface K = {levels} N/m, p = {bare.order:.3f}, "
