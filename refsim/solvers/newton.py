@@ -579,16 +579,19 @@ def _dense_storage(problem: ConstraintProblem, sparse_above: int) -> bool:
     return n <= sparse_above or np.count_nonzero(problem.compliance) > SPARSE_DENSITY * n * n
 
 
+def _kernel_buffers(problem: ConstraintProblem, max_iterations: int, finals: int):
+    """(C-contiguous W, history (max_iterations + 1,), counts (5,) int64, final (finals,)) for the dense kernels."""
+    compliance = problem.compliance
+    if not compliance.flags.c_contiguous:
+        compliance = np.ascontiguousarray(compliance)
+    return compliance, np.empty(int(max_iterations) + 1), np.zeros(5, dtype=np.int64), np.empty(finals)
+
+
 def _solve_dense_compiled(problem, kinds, rows, params, members, weight, free_gap, free_norm, data_scale,
                           force_scale, multipliers, tolerance, max_iterations, eta_max, line_search_memory,
                           stall_iterations, presweeps) -> NewtonResult:
     """solve_newton on dense storage, every iteration in the compiled kernel :func:`_dense_newton`."""
-    compliance = problem.compliance
-    if not compliance.flags.c_contiguous:
-        compliance = np.ascontiguousarray(compliance)
-    history = np.empty(int(max_iterations) + 1)
-    counts = np.zeros(5, dtype=np.int64)
-    final = np.empty(2)
+    compliance, history, counts, final = _kernel_buffers(problem, max_iterations, 2)
     outcome = _dense_newton(
         compliance, free_gap, kinds, rows, params, members, weight, float(free_norm), float(data_scale),
         float(force_scale), multipliers, float(tolerance), int(max_iterations), float(eta_max),
@@ -603,12 +606,7 @@ def _solve_dense_fresh(problem, free_gap, free_norm, multipliers, tolerance, max
     asymmetry (cached on the problem for :meth:`ConstraintProblem.asymmetry`) in the same compiled call as the
     kernel (the same compiled functions in the same order, so the same numbers bit for bit; one dispatch
     instead of four)."""
-    compliance = problem.compliance
-    if not compliance.flags.c_contiguous:
-        compliance = np.ascontiguousarray(compliance)
-    history = np.empty(int(max_iterations) + 1)
-    counts = np.zeros(5, dtype=np.int64)
-    final = np.empty(3)
+    compliance, history, counts, final = _kernel_buffers(problem, max_iterations, 3)
     outcome = _dense_newton_fresh(
         compliance, free_gap, problem.bilateral, problem.unilateral, problem.box_rows, problem.box_lower,
         problem.box_upper, problem.contacts, problem.contact_friction, float(free_norm), multipliers,
