@@ -174,11 +174,28 @@ def test_no_cut_during_a_pure_axial_push():
     assert run.first("cut_start") is None
 
 
-def test_the_whole_life_of_a_needle():
-    # Insert, cut, pull out through the cut, move in the air, re-insert elsewhere; then cut again.
+def _run_vertical_stroke(times, positions):
+    """(simulation, records, states) of cube_cut on 6³ cells with a vertical needle whose base moves through ``positions``
+    [m] at ``times`` [s], run to the last time."""
     from refsim.scene import load_scene
     from refsim.simulation import Simulation
 
+    def fmt(values):
+        return "[" + ", ".join(str(x) for x in values) + "]"
+
+    scene = load_scene("cube_cut", [
+        "mesh.cells=[6, 6, 6]", f"trajectory.times={fmt(times)}",
+        f"trajectory.base_positions=[{', '.join(fmt(p) for p in positions)}]",
+        f"trajectory.directions=[{', '.join(['[0, 0, -1]'] * len(times))}]", f"time.duration={times[-1]}",
+    ])
+    simulation = Simulation(scene)
+    records, states = [], []
+    simulation.run(on_step=lambda s, r: (records.append(r), states.append(s)))
+    return simulation, records, states
+
+
+def test_the_whole_life_of_a_needle():
+    # Insert, cut, pull out through the cut, move in the air, re-insert elsewhere; then cut again.
     t = [0.0, 0.7, 0.95, 1.75, 2.0, 2.7, 2.9, 3.0]
     x0, y0, top = 0.00123, 0.00231, 0.422
     positions = [
@@ -186,15 +203,7 @@ def test_the_whole_life_of_a_needle():
         [x0 + 0.025, y0, top + 0.002], [x0 + 0.025, y0, top - 0.012], [x0 + 0.025, y0 + 0.004, top - 0.012],
         [x0 + 0.025, y0 + 0.004, top - 0.012],
     ]
-    fmt = lambda v: "[" + ", ".join(str(x) for x in v) + "]"  # noqa: E731
-    scene = load_scene("cube_cut", [
-        "mesh.cells=[6, 6, 6]", f"trajectory.times={fmt(t)}",
-        f"trajectory.base_positions=[{', '.join(fmt(p) for p in positions)}]",
-        f"trajectory.directions=[{', '.join(['[0, 0, -1]'] * len(t))}]", "time.duration=3.0",
-    ])
-    simulation = Simulation(scene)
-    records, states = [], []
-    simulation.run(on_step=lambda s, r: (records.append(r), states.append(s)))
+    simulation, records, states = _run_vertical_stroke(t, positions)
     names = [(r.step, e.name) for r in records for e in r.events]
     order = [n for _, n in names if n != "tear"]
     assert order[:3] == ["puncture", "cut_start", "retraction"] and "withdrawal" in order
@@ -387,24 +396,14 @@ def test_reinsertion_along_an_existing_cut_slides_in_it():
     # (item 5): the needle slides in the old cut (its sliding rows hold it on it) and gets no insertion point
     # where the cut is (the tissue there is already cut).
     from refsim.constraints import INSERTION
-    from refsim.scene import load_scene
-    from refsim.simulation import Simulation
-
     t = [0.0, 0.7, 0.95, 1.75, 1.9, 2.4, 2.5]
     x0, y0, top = 0.00123, 0.00231, 0.422
     positions = [
         [x0, y0, top], [x0, y0, top - 0.014], [x0 + 0.005, y0, top - 0.014], [x0 + 0.005, y0, top + 0.002],
         [x0 + 0.0025, y0, top + 0.002], [x0 + 0.0025, y0, top - 0.010], [x0 + 0.0025, y0, top - 0.010],
     ]
-    fmt = lambda v: "[" + ", ".join(str(x) for x in v) + "]"  # noqa: E731
-    scene = load_scene("cube_cut", [
-        "mesh.cells=[6, 6, 6]", f"trajectory.times={fmt(t)}",
-        f"trajectory.base_positions=[{', '.join(fmt(p) for p in positions)}]",
-        f"trajectory.directions=[{', '.join(['[0, 0, -1]'] * len(t))}]", "time.duration=2.5",
-    ])
-    simulation = Simulation(scene)
-    records, states = [], []
-    simulation.run(on_step=lambda s, r: (records.append(r), states.append(s)))
+    simulation, records, states = _run_vertical_stroke(t, positions)
+    scene = simulation.scene
     names = [(r.step, e.name) for r in records for e in r.events]
     withdrawn = [s for s, n in names if n == "withdrawal"]
     again = [s for s, n in names if n == "puncture" and withdrawn and s > withdrawn[0]]
