@@ -235,6 +235,36 @@ def friction_groups(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     return rows, offsets, members, coefficient, preload
 
 
+@numba.njit(cache=True)
+def merge_friction_groups(shaft_friction, shaft_pairs, shaft_coefficient, shaft_preload, group_friction,
+                          group_offsets, group_members, group_coefficient, group_preload):
+    """:func:`friction_groups` from the problem's arrays in compiled code (the same arrays: pair-form rows first,
+    each with its two bilateral rows as members)."""
+    pairs = shaft_friction.shape[0]
+    groups = group_friction.shape[0]
+    rows = np.empty(pairs + groups, dtype=np.int64)
+    offsets = np.empty(pairs + groups + 1, dtype=np.int64)
+    members = np.empty(2 * pairs + group_members.shape[0], dtype=np.int64)
+    coefficient = np.empty(pairs + groups)
+    preload = np.empty(pairs + groups)
+    for j in range(pairs):
+        rows[j] = shaft_friction[j]
+        offsets[j] = 2 * j
+        members[2 * j] = shaft_pairs[j, 0]
+        members[2 * j + 1] = shaft_pairs[j, 1]
+        coefficient[j] = shaft_coefficient[j]
+        preload[j] = shaft_preload[j]
+    offsets[pairs] = 2 * pairs
+    for j in range(groups):
+        rows[pairs + j] = group_friction[j]
+        offsets[pairs + j + 1] = 2 * pairs + group_offsets[j + 1]
+        coefficient[pairs + j] = group_coefficient[j]
+        preload[pairs + j] = group_preload[j]
+    for k in range(group_members.shape[0]):
+        members[2 * pairs + k] = group_members[k]
+    return rows, offsets, members, coefficient, preload
+
+
 _NO_INDEX = np.zeros(0, dtype=np.int64)
 _NO_VALUE = np.zeros(0)
 _NO_INDEX.setflags(write=False)

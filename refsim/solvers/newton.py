@@ -19,7 +19,8 @@ a few projected Gauss–Seidel sweeps are taken instead and η is raised; after 
 stops and says so (the caller then falls back to the cone route). Stops as soon as the natural residual and the
 data residual (:mod:`refsim.solvers.residual`) are at most the tolerance. With ``presweeps`` > 0, projected
 Gauss–Seidel sweeps come first (:func:`_presweep`: at most that many, stopped when their observed rate cannot
-reach the tolerance in time) and Newton starts from the swept point when it is better.
+reach the tolerance in time) and Newton starts from the swept point when it at least halves the start's
+residual (:data:`_KEEP_SWEPT`).
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from refsim.solvers.laws import (
     block_arrays,
     gauss_seidel_sweep,
     jacobian_blocks,
+    merge_friction_groups,
     natural_map_blocks,
     relative_asymmetry,
 )
@@ -61,6 +63,14 @@ _COMPILED_SOLVE_BELOW = 120
 #: call for the set-up (block arrays, data scales, W's asymmetry) and the dense kernel
 #: (:func:`_dense_newton_fresh`).
 _FRESH_BELOW = 120
+#: Pre-sweeps abandoned by their rate rule leave Newton's start unchanged unless they at least multiplied its
+#: max(natural, data residual) by this. Measured on the 106 benchmark problems from a cold start: a point the
+#: sweeps barely improved is no better a Newton start (OneObject-i1028-138, 0.92 of the start's residual after
+#: 3 sweeps: 16 Newton iterations from it, 11 from the start; relay1, 0.97: not converged in 10 from it,
+#: converged from the start), where a halving one is (LMGC_100: 1.5e-8 after 72 sweeps, 4 iterations).
+_KEEP_SWEPT = 0.5
+#: Dense systems with fewer rows than this are solved by the compiled elimination :func:`_small_lu_solve`.
+_SMALL_LU_BELOW = 24
 
 
 @dataclass
@@ -122,8 +132,54 @@ def _data_from_error(error, data_scale):
 
 
 @numba.njit(cache=True)
+def _small_lu_solve(matrix, rhs):
+    """J d = rhs by Gaussian elimination with partial pivoting (the algorithm of LAPACK getf2/getrs, unblocked)
+    on a copy; (d, True), or (rhs, False) when a pivot is exactly zero or not a number (LAPACK's info > 0).
+
+    Below :data:`_SMALL_LU_BELOW` rows it is faster than numba's call of gesv, which copies J to Fortran order
+    and checks it (measured at one thread, compiled loops: 0.08 / 0.40 / 1.30 µs against 0.36 / 1.04 / 2.10 µs
+    at n = 3 / 9 / 15; 7.7 against 6.7 µs at n = 30)."""
+    n = rhs.shape[0]
+    work = matrix.copy()
+    out = rhs.copy()
+    for k in range(n):
+        pivot_row = k
+        largest = abs(work[k, k])
+        for i in range(k + 1, n):
+            value = abs(work[i, k])
+            if value > largest:
+                largest = value
+                pivot_row = i
+        if not largest > 0.0:
+            return rhs, False
+        if pivot_row != k:
+            for j in range(n):
+                swap = work[k, j]
+                work[k, j] = work[pivot_row, j]
+                work[pivot_row, j] = swap
+            swap = out[k]
+            out[k] = out[pivot_row]
+            out[pivot_row] = swap
+        pivot = work[k, k]
+        for i in range(k + 1, n):
+            factor = work[i, k] / pivot
+            for j in range(k + 1, n):
+                work[i, j] -= factor * work[k, j]
+            out[i] -= factor * out[k]
+    for i in range(n - 1, -1, -1):
+        total = out[i]
+        for j in range(i + 1, n):
+            total -= work[i, j] * out[j]
+        out[i] = total / work[i, i]
+    return out, True
+
+
+@numba.njit(cache=True)
 def _lu_direction(jacobian, rhs):
-    """J d = rhs by LAPACK gesv; (d, True), or (rhs, False) when J is singular."""
+    """J d = rhs by LU with partial pivoting (:func:`_small_lu_solve` below :data:`_SMALL_LU_BELOW` rows, else
+    LAPACK gesv); (d, True), or (rhs, False) when J is singular."""
+    if rhs.shape[0] < _SMALL_LU_BELOW:
+        return _small_lu_solve(jacobian, rhs)
     try:
         return np.linalg.solve(jacobian, rhs), True
     except Exception:  # numba raises a plain exception for an exactly singular matrix
@@ -262,8 +318,9 @@ def _presweep(compliance, transposed, diagonal, free_gap, kinds, rows, params, m
     reach the tolerance within the budget: stops when the natural and data residual are both ≤ the tolerance
     (checked on the sweeps' incremental gap, then confirmed on the gap recomputed from scratch), or when
     r_k / r_(k-2), taken as the square of a linear rate, predicts more sweeps than are left (or does not fall).
-    ``best`` gets the best point of the sweeps if it is better than the start (judged on a gap from scratch);
-    returns (sweeps, its max(natural, data residual))."""
+    ``best`` gets the best point of the sweeps when they converged, or when it at least halves the start's
+    ``best_value`` (judged on a gap from scratch: :data:`_KEEP_SWEPT`); returns (sweeps, the max(natural, data
+    residual) of ``best`` on exit)."""
     candidate = best.copy()
     gap = compliance @ candidate + free_gap
     values = np.empty(budget)
@@ -294,7 +351,7 @@ def _presweep(compliance, transposed, diagonal, free_gap, kinds, rows, params, m
         gap = compliance @ candidate + free_gap
         residual = _residual(kinds, rows, params, members, candidate, gap, free_norm, scratch, unit)
         data = _data_from_error(scratch, data_scale)
-        if max(residual, data) < best_value:
+        if max(residual, data) <= _KEEP_SWEPT * best_value:
             best[:] = candidate
             best_value = max(residual, data)
     return swept, best_value
@@ -599,59 +656,86 @@ def _solve_dense_compiled(problem, kinds, rows, params, members, weight, free_ga
     return _dense_result(outcome, history, counts, final, tolerance, max_iterations, stall_iterations)
 
 
-def _solve_dense_fresh(problem, free_gap, free_norm, multipliers, tolerance, max_iterations, eta_max,
-                       line_search_memory, stall_iterations, presweeps) -> NewtonResult:
-    """:func:`_solve_dense_compiled` for a fresh problem without group friction: the set-up of
-    :func:`~refsim.solvers.laws.block_arrays` and :func:`~refsim.solvers.residual.data_scales` and W's
-    asymmetry (cached on the problem for :meth:`ConstraintProblem.asymmetry`) in the same compiled call as the
-    kernel (the same compiled functions in the same order, so the same numbers bit for bit; one dispatch
-    instead of four)."""
-    compliance, history, counts, final = _kernel_buffers(problem, max_iterations, 3)
-    outcome = _dense_newton_fresh(
-        compliance, free_gap, problem.bilateral, problem.unilateral, problem.box_rows, problem.box_lower,
-        problem.box_upper, problem.contacts, problem.contact_friction, float(free_norm), multipliers,
-        float(tolerance), int(max_iterations), float(eta_max), int(line_search_memory), int(stall_iterations),
-        int(presweeps), history, counts, final)
-    if "_asymmetry" not in problem.__dict__:
-        object.__setattr__(problem, "_asymmetry", float(final[2]))
-    return _dense_result(outcome, history, counts, final, tolerance, max_iterations, stall_iterations)
+def _solve_dense_fresh(problem, multipliers, tolerance, max_iterations, eta_max, line_search_memory,
+                       stall_iterations, presweeps) -> NewtonResult:
+    """:func:`_solve_dense_compiled` for a fresh problem (nothing cached on it): the set-up of
+    :func:`~refsim.solvers.laws.block_arrays` (group friction merged by
+    :func:`~refsim.solvers.laws.merge_friction_groups`) and :func:`~refsim.solvers.residual.data_scales`, ‖δ_free‖,
+    W's asymmetry (cached on the problem for :meth:`ConstraintProblem.asymmetry`) and the kernel's buffers in the
+    same compiled call as the kernel (the same compiled operations in the same order, so the same numbers bit for
+    bit; one dispatch instead of four, no array allocated in Python)."""
+    p = problem
+    compliance, free_gap = p.compliance, p.free_gap
+    if not (compliance.flags.c_contiguous and free_gap.flags.c_contiguous):
+        compliance, free_gap = np.ascontiguousarray(compliance), np.ascontiguousarray(free_gap)
+    (best, history, iterations, reason, failures, fallback, swept, residual, data, natural, data_final,
+     asymmetry) = _dense_newton_fresh(
+        compliance, free_gap, p.bilateral, p.unilateral, p.box_rows, p.box_lower, p.box_upper, p.contacts,
+        p.contact_friction, p.shaft_friction, p.shaft_pairs, p.shaft_friction_coefficient, p.shaft_normal_preload,
+        p.group_friction, p.group_offsets, p.group_members, p.group_friction_coefficient, p.group_preload,
+        multipliers, float(tolerance), int(max_iterations), float(eta_max), int(line_search_memory),
+        int(stall_iterations), int(presweeps))
+    if "_asymmetry" not in p.__dict__:
+        object.__setattr__(p, "_asymmetry", asymmetry)
+    return _newton_result(best, history, iterations, reason, failures, fallback, swept, residual, data, natural,
+                          data_final, tolerance, max_iterations, stall_iterations)
 
 
 @numba.njit(cache=True)
 def _dense_newton_fresh(compliance, free_gap, bilateral, unilateral, box, box_lower, box_upper, contacts,
-                        contact_friction, free_norm, multipliers, tolerance, max_iterations, eta_max,
-                        memory_size, stall_iterations, presweeps, history, counts, final):
-    """The set-up of a problem without group friction (block arrays, data scales), then :func:`_dense_newton`;
-    ``final`` (3,) gets the kernel's two residuals (entries 0, 1) and W's relative asymmetry (entry 2)."""
-    no_index = np.zeros(0, dtype=np.int64)
-    no_value = np.zeros(0)
-    kinds, rows, params = _assemble_blocks(bilateral, unilateral, box, box_lower, box_upper, no_index,
-                                           no_index, no_value, no_value, contacts, contact_friction)
-    weight, force_scale = _scales(compliance, free_gap, contacts, box_lower, box_upper, no_value, no_value)
-    final[2] = relative_asymmetry(compliance)
+                        contact_friction, shaft_friction, shaft_pairs, shaft_coefficient, shaft_preload,
+                        group_friction, group_offsets, group_members, group_coefficient, group_preload,
+                        multipliers, tolerance, max_iterations, eta_max, memory_size, stall_iterations, presweeps):
+    """The set-up of a fresh problem (block arrays, data scales, ‖δ_free‖, W's asymmetry), then
+    :func:`_dense_newton` (W and δ_free C-contiguous). Returns (best λ, the history, iterations, reason,
+    line-search failures, fallback sweeps, pre-sweeps, best natural and data residual, the report's natural and data
+    residual, W's relative asymmetry): scalars rather than arrays, which cost more to return to Python."""
+    if shaft_friction.shape[0] or group_friction.shape[0]:
+        f_rows, f_offsets, members, f_mu, f_preload = merge_friction_groups(
+            shaft_friction, shaft_pairs, shaft_coefficient, shaft_preload, group_friction, group_offsets,
+            group_members, group_coefficient, group_preload)
+    else:  # as block_arrays and data_scales: no merging
+        f_rows = f_offsets = members = np.zeros(0, dtype=np.int64)
+        f_mu = f_preload = np.zeros(0)
+    kinds, rows, params = _assemble_blocks(bilateral, unilateral, box, box_lower, box_upper, f_rows, f_offsets,
+                                           f_mu, f_preload, contacts, contact_friction)
+    weight, force_scale = _scales(compliance, free_gap, contacts, box_lower, box_upper, f_mu, f_preload)
+    free_norm = np.sqrt(np.dot(free_gap, free_gap))  # the dot product of solve_newton's layered path
+    history = np.empty(max_iterations + 1)
+    counts = np.zeros(5, dtype=np.int64)
+    final = np.empty(2)
+    asymmetry = relative_asymmetry(compliance)
     data_scale = max(free_norm, force_scale)
-    return _dense_newton(compliance, free_gap, kinds, rows, params, no_index, weight, free_norm, data_scale,
-                         force_scale, multipliers, tolerance, max_iterations, eta_max, memory_size,
-                         stall_iterations, presweeps, history, counts, final)
+    best, iterations, residual, data, reason = _dense_newton(
+        compliance, free_gap, kinds, rows, params, members, weight, free_norm, data_scale, force_scale, multipliers,
+        tolerance, max_iterations, eta_max, memory_size, stall_iterations, presweeps, history, counts, final)
+    return (best, history[:counts[3]].copy(), iterations, reason, counts[0], counts[1], counts[4], residual, data,
+            final[0], final[1], asymmetry)
+
+
+def _newton_result(best, history, iterations, reason, failures, fallback, swept, residual, data, natural,
+                   data_final, tolerance, max_iterations, stall_iterations) -> NewtonResult:
+    """The NewtonResult of a compiled dense solve (``history`` already of its recorded length)."""
+    converged = residual <= tolerance and data <= tolerance
+    message = (f"converged in {iterations} Newton iteration(s)" if converged
+               else _REASONS[reason].format(cap=max_iterations, stall=stall_iterations))
+    if swept:
+        message = f"{swept} Gauss-Seidel pre-sweep(s), then " + message
+    return NewtonResult(multipliers=best, converged=bool(converged), iterations=int(iterations),
+                        residual=float(residual), data_residual=float(data), message=message, storage="dense",
+                        history=history, line_search_failures=int(failures), fallback_sweeps=int(fallback),
+                        report_residuals=(float(natural) if math.isfinite(natural) else math.inf,
+                                          float(data_final) if math.isfinite(data_final) else math.inf),
+                        presweeps=int(swept))
 
 
 def _dense_result(outcome, history, counts, final, tolerance, max_iterations,
                   stall_iterations) -> NewtonResult:
-    """The NewtonResult of a compiled dense solve."""
+    """The NewtonResult of a compiled dense solve from the kernel's buffers."""
     best, iterations, residual, data, reason = outcome
-    converged = residual <= tolerance and data <= tolerance
-    message = (f"converged in {iterations} Newton iteration(s)" if converged
-               else _REASONS[reason].format(cap=max_iterations, stall=stall_iterations))
     failures, fallback, _, recorded, swept = counts.tolist()
-    if swept:
-        message = f"{swept} Gauss-Seidel pre-sweep(s), then " + message
-    natural, data_final = final[0], final[1]
-    return NewtonResult(multipliers=best, converged=bool(converged), iterations=int(iterations),
-                        residual=float(residual), data_residual=float(data), message=message, storage="dense",
-                        history=history[:recorded].copy(), line_search_failures=failures, fallback_sweeps=fallback,
-                        report_residuals=(float(natural) if math.isfinite(natural) else math.inf,
-                                          float(data_final) if math.isfinite(data_final) else math.inf),
-                        presweeps=swept)
+    return _newton_result(best, history[:recorded].copy(), iterations, reason, failures, fallback, swept, residual,
+                          data, final[0], final[1], tolerance, max_iterations, stall_iterations)
 
 
 def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np.ndarray | None = None,
@@ -674,7 +758,7 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     stall_iterations : Stop when the best residual has not halved in this many iterations.
     presweeps : At most this many projected Gauss–Seidel sweeps before the first Newton iteration, stopped as soon
         as both residuals meet the tolerance or the sweeps' observed rate cannot reach it within the rest;
-        Newton starts from the swept point when it is better than the start (0: none).
+        Newton starts from the swept point when it at least halves the start's residual (0: none).
 
     Returns
     -------
@@ -684,16 +768,11 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     n = problem.row_count
     cached = problem.__dict__
     if (n < _FRESH_BELOW and n <= sparse_above and not minimum_norm and not math.isfinite(time_limit)
-            and "_block_arrays" not in cached and "_data_scales" not in cached
-            and not len(problem.shaft_friction) and not len(problem.group_friction)):
-        free_gap = problem.free_gap
-        if not free_gap.flags.c_contiguous:
-            free_gap = np.ascontiguousarray(free_gap)
+            and "_block_arrays" not in cached and "_data_scales" not in cached):
         multipliers = (np.zeros(n) if warm_start is None
                        else np.array(problem.check_multipliers(warm_start), dtype=np.float64))
-        return _solve_dense_fresh(problem, free_gap, math.sqrt(float(free_gap.dot(free_gap))), multipliers,
-                                  tolerance, max_iterations, eta_max, line_search_memory, stall_iterations,
-                                  presweeps)
+        return _solve_dense_fresh(problem, multipliers, tolerance, max_iterations, eta_max, line_search_memory,
+                                  stall_iterations, presweeps)
     kinds, rows, params, members = block_arrays(problem)
     weight, force_scale = data_scales(problem)
     free_gap = np.ascontiguousarray(problem.free_gap)

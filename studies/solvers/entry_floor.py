@@ -6,10 +6,10 @@ Usage::
 
 For every contact-only problem of the shared set with fewer than ``--below`` rows, on ``dataclasses.replace``
 copies (nothing cached on the problem, as for a new simulation step), best of ``--repeats`` batches of ``--calls``
-calls, µs per call of: the layered set-up (``block_arrays`` and ``data_scales``: what problems with group
-friction, or of 120 rows or more, run before the kernel), the compiled call alone (``_dense_newton_fresh``:
-set-up, W's asymmetry and the dense Newton kernel with the pre-sweeps, its output arrays allocated in the
-timed call), ``solve_newton`` with the pre-sweeps and stall rule of ``method="auto"`` (the compiled call and
+calls, µs per call of: the layered set-up (``block_arrays`` and ``data_scales``: what problems of 120 rows
+or more run before the kernel), the compiled call alone (``_dense_newton_fresh``:
+set-up with group friction merged, ‖δ_free‖, W's asymmetry, the kernel's buffers and the dense Newton kernel
+with the pre-sweeps), ``solve_newton`` with the pre-sweeps and stall rule of ``method="auto"`` (the compiled call and
 its Python layer), ``solve_exact(method="auto")`` (its checks and the report on top). The differences are
 the layers' costs. Prints one line per problem and the medians, with the machine's load average.
 """
@@ -24,7 +24,6 @@ for _variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
 import logging  # noqa: E402
-import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -58,12 +57,12 @@ def per_call(function, problem, calls: int, repeats: int) -> float:
 
 def compiled_call(problem) -> None:
     """The one compiled call of solve_newton on a small fresh problem, with solve_newton's arguments."""
-    n = problem.row_count
-    free_gap = problem.free_gap
-    _dense_newton_fresh(problem.compliance, free_gap, problem.bilateral, problem.unilateral, problem.box_rows,
-                        problem.box_lower, problem.box_upper, problem.contacts, problem.contact_friction,
-                        math.sqrt(float(free_gap.dot(free_gap))), np.zeros(n), TOLERANCE, 100, 1e-2, 3,
-                        _AUTO_STALL, _presweep_budget(n), np.empty(101), np.zeros(5, dtype=np.int64), np.empty(3))
+    p = problem
+    _dense_newton_fresh(p.compliance, p.free_gap, p.bilateral, p.unilateral, p.box_rows, p.box_lower, p.box_upper,
+                        p.contacts, p.contact_friction, p.shaft_friction, p.shaft_pairs, p.shaft_friction_coefficient,
+                        p.shaft_normal_preload, p.group_friction, p.group_offsets, p.group_members,
+                        p.group_friction_coefficient, p.group_preload, np.zeros(p.row_count), TOLERANCE, 100, 1e-2,
+                        3, _AUTO_STALL, _presweep_budget(p.row_count))
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -16,14 +16,43 @@ import numpy as np
 import pytest
 
 from refsim.solvers import ConstraintProblem, solve_exact
-from refsim.solvers.laws import block_arrays
+from refsim.solvers.laws import block_arrays, friction_groups, merge_friction_groups
 from refsim.solvers.newton import _FRESH_BELOW, solve_newton
 from refsim.solvers.residual import data_scales
 
 from .conftest import planted_problem
 
 LAWS = {"contacts": dict(contacts=4), "mixed": dict(bilateral=2, unilateral=3, contacts=3, box=3),
-        "lcp": dict(unilateral=6), "box": dict(box=5, bilateral=1)}
+        "lcp": dict(unilateral=6), "box": dict(box=5, bilateral=1),
+        "shafts": dict(bilateral=1, shafts=3, contacts=2, shaft_preload=0.2),
+        "groups": dict(bilateral=1, unilateral=2, shafts=4, box=1, shaft_preload=0.2)}
+
+
+def _with_group_form(problem: ConstraintProblem) -> ConstraintProblem:
+    """The last half of the pair-form (shaft) rows written in the group form, each group also holding the first
+    unilateral row (when there is one), and a plain bilateral row (when there is one) made an empty group: both forms in one problem, merged by the
+    compiled set-up as by :func:`~refsim.solvers.laws.friction_groups`."""
+    count = len(problem.shaft_friction)
+    keep = count // 2
+    extra = problem.unilateral[:1].tolist()
+    members, offsets = [], [0]
+    for pair in problem.shaft_pairs[keep:]:
+        members += pair.tolist() + extra
+        offsets.append(len(members))
+    moved = problem.shaft_friction[keep:]
+    plain = np.setdiff1d(problem.bilateral, problem.shaft_pairs.reshape(-1))
+    group_rows = moved
+    if plain.size:  # a plain bilateral row becomes an empty group: bound μ p
+        group_rows = np.concatenate([moved, plain[:1]])
+        offsets.append(len(members))
+    bilateral = np.setdiff1d(problem.bilateral, group_rows)
+    size = len(group_rows)
+    return dataclasses.replace(
+        problem, bilateral=bilateral, shaft_friction=problem.shaft_friction[:keep],
+        shaft_pairs=problem.shaft_pairs[:keep], shaft_friction_coefficient=problem.shaft_friction_coefficient[:keep],
+        shaft_normal_preload=problem.shaft_normal_preload[:keep], group_friction=group_rows,
+        group_offsets=np.array(offsets), group_members=np.array(members, dtype=np.int64),
+        group_friction_coefficient=np.full(size, 0.4), group_preload=np.linspace(0.0, 0.3, size))
 
 
 def _same(first, second) -> bool:
@@ -74,6 +103,8 @@ def test_fresh_path_is_bit_identical_to_the_layered_path(laws, skew, method, sta
         if rank_drop:
             problem, force, _ = planted_problem(rng, rank=problem.row_count - rank_drop, **LAWS[laws])
         problem = _skewed(problem, rng, skew) if skew else problem
+        if laws == "groups":
+            problem = _with_group_form(problem)
         warm = force * (1.0 + 0.1 * rng.standard_normal(force.size)) if start == "warm" else None
         _assert_identical(problem, tolerance=1e-8, method=method, warm_start=warm)
 
@@ -87,15 +118,31 @@ def test_fresh_path_is_taken_and_leaves_the_asymmetry_cached():
     assert fresh.__dict__["_asymmetry"] == dataclasses.replace(problem).asymmetry()
 
 
-def test_group_friction_and_large_problems_keep_the_layered_path():
-    problem, _, _ = planted_problem(np.random.default_rng(4), bilateral=2, shafts=2, contacts=2)
-    copy = dataclasses.replace(problem)
-    solve_newton(copy, tolerance=1e-8)
-    assert "_block_arrays" in copy.__dict__
+def test_group_friction_takes_the_fresh_path():
+    # the needle's problems (shaft rows: the pair form) and the group form, merged in compiled code
+    for problem in (planted_problem(np.random.default_rng(4), bilateral=2, shafts=2, contacts=2)[0],
+                    _with_group_form(planted_problem(np.random.default_rng(4), unilateral=1, shafts=4)[0])):
+        copy = dataclasses.replace(problem)
+        assert solve_newton(copy, tolerance=1e-8).converged
+        assert "_block_arrays" not in copy.__dict__ and "_asymmetry" in copy.__dict__
+
+
+def test_large_problems_keep_the_layered_path():
     large, _, _ = planted_problem(np.random.default_rng(5), contacts=_FRESH_BELOW // 3 + 1)
     copy = dataclasses.replace(large)
     solve_newton(copy, tolerance=1e-8, max_iterations=2)
     assert "_block_arrays" in copy.__dict__
+
+
+def test_compiled_group_merge_equals_friction_groups():
+    problem = _with_group_form(planted_problem(np.random.default_rng(8), bilateral=1, unilateral=2, shafts=5,
+                                               shaft_preload=0.3)[0])
+    compiled = merge_friction_groups(
+        problem.shaft_friction, problem.shaft_pairs, problem.shaft_friction_coefficient,
+        problem.shaft_normal_preload, problem.group_friction, problem.group_offsets, problem.group_members,
+        problem.group_friction_coefficient, problem.group_preload)
+    for got, expected in zip(compiled, friction_groups(problem), strict=True):
+        assert _same(np.asarray(got), np.asarray(expected))
 
 
 def test_fresh_path_on_the_shared_problems(problems_root):

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from refsim.solvers import (
     ConstraintProblem,
+    data_residual,
     natural_map_error,
     natural_residual,
     solve_exact,
@@ -256,3 +257,71 @@ def test_reduced_direction_equals_the_full_solve(seed, eta):
         np.testing.assert_allclose(direction, reference, rtol=0,
                                    atol=1e3 * np.finfo(float).eps * condition * np.abs(reference).max())
     assert tested >= 5  # the reduction applied (some rows explicit) on enough random points
+
+
+@pytest.mark.parametrize("size", [1, 2, 3, 9, 15, 23])
+@pytest.mark.parametrize("condition", [1.0, 1e6, 1e12])
+def test_small_lu_solve_is_backward_stable(size, condition):
+    """The compiled elimination of small Newton systems (newton._small_lu_solve) against Gaussian elimination's
+    backward-error bound (Higham 2002, Thm. 9.5: (A + ΔA) x = b with |ΔA| ≤ γ_3n |L||U|, γ_k = k ε / (1 − k ε)):
+    the residual ‖b − A x‖_∞ ≤ γ_3n ‖|L||U|‖_∞ ‖x‖_∞, with L, U of the same pivoting (scipy.linalg.lu); and its
+    answer within the forward bound cond(A) · that backward error of LAPACK's."""
+    import scipy.linalg
+
+    from refsim.solvers.newton import _small_lu_solve
+
+    rng = np.random.default_rng(size)
+    left, _ = np.linalg.qr(rng.standard_normal((size, size)))
+    right, _ = np.linalg.qr(rng.standard_normal((size, size)))
+    matrix = left @ np.diag(np.geomspace(1.0, 1.0 / condition, size)) @ right.T
+    rhs = rng.standard_normal(size)
+    solution, ok = _small_lu_solve(matrix, rhs)
+    assert ok
+    _, lower, upper = scipy.linalg.lu(matrix)
+    gamma = 3 * size * np.finfo(float).eps / (1 - 3 * size * np.finfo(float).eps)
+    bound = gamma * np.abs(np.abs(lower) @ np.abs(upper)).sum(axis=1).max() * np.abs(solution).max()
+    assert np.abs(rhs - matrix @ solution).max() <= bound
+    reference = np.linalg.solve(matrix, rhs)
+    forward = np.linalg.cond(matrix, np.inf) * bound / np.abs(matrix).sum(axis=1).max()
+    assert np.abs(solution - reference).max() <= 2 * forward + 4 * np.finfo(float).eps * np.abs(reference).max()
+
+
+def test_small_lu_solve_reports_a_singular_matrix():
+    from refsim.solvers.newton import _lu_direction, _small_lu_solve
+
+    # LAPACK's info > 0: an exactly zero pivot (rank 1 here, and the zero matrix), or one that is not a number
+    singular = np.array([[1.0, 2.0, 3.0], [2.0, 4.0, 6.0], [0.0, 0.0, 0.0]])
+    for matrix in (singular, np.zeros((3, 3)), np.full((3, 3), np.nan)):
+        assert not _small_lu_solve(matrix, np.ones(3))[1]
+        assert not _lu_direction(matrix, np.ones(3))[1]
+
+
+def test_barely_improving_presweeps_leave_newtons_start():
+    """Pre-sweeps abandoned by their rate rule without halving the start's residual (newton._KEEP_SWEPT) are
+    dropped: Newton then runs from the start exactly as without pre-sweeps (same bits). The bilateral chain
+    W = tridiag(−1, 2 + 1e-6, −1), n = 60: Gauss–Seidel contracts by cos²(π/61) ≈ 0.9973 per sweep."""
+    n = 60
+    compliance = (2.0 + 1e-6) * np.eye(n) - np.eye(n, k=1) - np.eye(n, k=-1)
+    problem = ConstraintProblem(compliance=compliance, free_gap=np.linspace(-1.0, 1.0, n), bilateral=np.arange(n))
+    swept = solve_newton(problem, tolerance=1e-10, presweeps=30)
+    plain = solve_newton(problem, tolerance=1e-10)
+    assert swept.presweeps == 3 and plain.presweeps == 0
+    np.testing.assert_array_equal(swept.multipliers, plain.multipliers)
+    assert swept.iterations == plain.iterations and swept.converged
+
+
+def test_halving_presweeps_become_newtons_start():
+    """Sweeps that halve the start's residual are kept even when their rate rule stops them: with no Newton
+    iteration allowed the answer is the swept point, Gauss–Seidel's own after the same sweeps from zero (W
+    diagonally dominant: about 0.3 per sweep, too slow for 1e-14 in a budget of 8)."""
+    rng = np.random.default_rng(2)
+    n = 12
+    coupling = 0.3 * rng.standard_normal((n, n)) / np.sqrt(n)
+    compliance = np.eye(n) + coupling @ coupling.T
+    problem = ConstraintProblem(compliance=compliance, free_gap=rng.standard_normal(n), unilateral=np.arange(n))
+    start = max(natural_residual(problem, np.zeros(n)), data_residual(problem, np.zeros(n)))
+    result = solve_newton(problem, tolerance=1e-14, presweeps=8, max_iterations=0)
+    assert 0 < result.presweeps < 8
+    swept, _ = solve_gauss_seidel(problem, tolerance=1e-300, max_iterations=result.presweeps)
+    assert max(result.residual, result.data_residual) <= 0.5 * start
+    np.testing.assert_allclose(result.multipliers, swept, rtol=0, atol=1e-14 * np.abs(swept).max())
