@@ -450,13 +450,17 @@ def natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, e
 
 @numba.njit(cache=True)
 def _apply(transposed, diagonal, multipliers, gap, row, value):
-    """Set λ[row] = value and update the gap with W[:, row] Δλ; return |W_rr Δλ|."""
+    """Set λ[row] = value and update the gap with W[:, row] Δλ; return |W_rr Δλ|.
+
+    No early return for an unchanged row: its loop gets no trips instead. Measured (one thread, compiled loop):
+    with ``if change == 0.0: return 0.0`` one sweep took 265 ns on a 3-row contact problem and 939 ns on Rover1040
+    (15 rows), without it 128 and 215 ns; numba's code for the early exit is that much slower, for any form of
+    it tried (a guard on the row count, the update inside an ``if``)."""
     change = value - multipliers[row]
-    if change == 0.0:
-        return 0.0
     multipliers[row] = value
     column = transposed[row]
-    for i in range(gap.shape[0]):
+    count = gap.shape[0] if change != 0.0 else 0  # an unchanged row leaves the gap as it is
+    for i in range(count):
         gap[i] += column[i] * change
     return abs(diagonal[row] * change)
 
