@@ -436,11 +436,17 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
         direction = np.empty(n)
         ok = _reduced_direction(jacobian, -error, kinds, rows, members, local, gap_factor, bound_values, position,
                                 direction)
+        factored = True
         if not ok:
             direction, ok = _lu_direction(jacobian, -error)
+            factored = ok
         ok = ok and _finite_and_short(direction, limit)
-        if level == 0 and not ok:
-            # (nearly) singular J: the minimum-norm least-squares step instead
+        if level == 0 and not factored:
+            # exactly singular J (a zero pivot): the minimum-norm least-squares step instead. A factorised J whose
+            # step is absurdly long (nearly singular) goes to the regularised step of the next iteration (an LU, not
+            # an SVD). Measured (best of 7, one thread, method="auto", cold): there the least-squares step was
+            # rejected as too long as well on Rover1040 / 1041 / 3865 (93-98 -> 65-67 us without it) and did not
+            # help GMP6 (2.7 -> 1.1 ms); PD_mlcp, which its least-squares steps answer, has an exactly singular J.
             direction = np.linalg.lstsq(jacobian, -error, 1e-12)[0]
             singular_steps += 1
             ok = _finite_and_short(direction, limit)
@@ -857,10 +863,10 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
             solve = operator.factorize(local, gap_factor, bound_values, eta)
             direction = None if solve is None else solve(-error)
         limit = 1e4 * max(np.linalg.norm(multipliers), force_scale)
-        # a direction far longer than the forces in play comes from a (nearly) singular J: take the least-squares
-        # (rank-revealing QR) step of the dense J instead, or regularise a sparse one
-        if level == 0 and not minimum_norm and operator.sparse is None and (
-                direction is None or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) > limit):
+        # an exactly singular dense J (no LU): the least-squares (rank-revealing QR) step instead; a direction far
+        # longer than the forces in play (a nearly singular J) is regularised next iteration, as in the compiled
+        # kernel (see _dense_newton)
+        if level == 0 and not minimum_norm and operator.sparse is None and direction is None:
             direction = operator.least_squares(-error)
             singular_steps += 1
         if direction is None or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) > limit:
