@@ -74,6 +74,13 @@ def _residual(kinds, rows, params, members, multipliers, gap, free_norm, error, 
 def _data_residual(kinds, rows, params, members, multipliers, gap, weight, data_scale, error):
     """refsim.solvers.data_residual from a given gap: ‖λ − Π(λ − δ̂)‖ / max(‖δ_free‖, F_data) (weight = 1)."""
     natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error)
+    return _data_from_error(error, data_scale)
+
+
+@numba.njit(cache=True)
+def _data_from_error(error, data_scale):
+    """The data residual ‖e‖ / max(‖δ_free‖, F_data) from the unit-weight natural-map error e already computed
+    (inf when not finite)."""
     residual = _norm(error) / data_scale
     if not np.isfinite(residual):
         return np.inf
@@ -131,9 +138,7 @@ def _gauss_seidel(transposed, free_gap, diagonal, kinds, rows, params, members, 
         history[iteration] = residual
         # the data residual from the error _residual left (both are of the unit-weight natural map: the same
         # numbers as _data_residual, without evaluating the map twice per sweep)
-        data = _norm(error) / data_scale
-        if not np.isfinite(data):
-            data = np.inf
+        data = _data_from_error(error, data_scale)
         data_history[iteration] = data
         force_history[iteration] = _norm(multipliers)
         if residual == np.inf or not np.isfinite(increment):

@@ -222,24 +222,18 @@ def problem_field_specs() -> tuple[FieldSpec, ...]:
 def friction_groups(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Both forms of group friction merged: (rows (m,), offsets (m + 1,), members, coefficient (m,), preload (m,)).
 
-    Pair-form rows come first, then the group-form rows.
+    Pair-form rows come first (each with its two bilateral rows as members), then the group-form rows.
     """
-    pairs = problem.shaft_pairs
-    count = len(problem.shaft_friction)
-    rows = np.concatenate([problem.shaft_friction, problem.group_friction]).astype(np.int64)
-    group_offsets = problem.group_offsets if problem.group_offsets.size else np.zeros(1, dtype=np.int64)
-    offsets = np.concatenate([2 * np.arange(count, dtype=np.int64), 2 * count + group_offsets]).astype(np.int64)
-    members = np.concatenate([pairs.reshape(-1), problem.group_members]).astype(np.int64)
-    coefficient = np.concatenate([problem.shaft_friction_coefficient, problem.group_friction_coefficient])
-    preload = np.concatenate([problem.shaft_normal_preload, problem.group_preload])
-    return rows, offsets, members, coefficient, preload
+    return merge_friction_groups(problem.shaft_friction, problem.shaft_pairs, problem.shaft_friction_coefficient,
+                                 problem.shaft_normal_preload, problem.group_friction, problem.group_offsets,
+                                 problem.group_members, problem.group_friction_coefficient, problem.group_preload)
 
 
 @numba.njit(cache=True)
 def merge_friction_groups(shaft_friction, shaft_pairs, shaft_coefficient, shaft_preload, group_friction,
                           group_offsets, group_members, group_coefficient, group_preload):
-    """:func:`friction_groups` from the problem's arrays in compiled code (the same arrays: pair-form rows first,
-    each with its two bilateral rows as members)."""
+    """:func:`friction_groups` from the problem's arrays, in compiled code (the fresh-problem kernel of
+    :mod:`refsim.solvers.newton` calls it directly)."""
     pairs = shaft_friction.shape[0]
     groups = group_friction.shape[0]
     rows = np.empty(pairs + groups, dtype=np.int64)

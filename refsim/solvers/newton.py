@@ -36,7 +36,7 @@ import scipy.linalg
 import scipy.sparse as sparse
 import scipy.sparse.linalg as sparse_linalg
 
-from refsim.solvers.gauss_seidel import _data_residual, _residual
+from refsim.solvers.gauss_seidel import _data_from_error, _data_residual, _residual
 from refsim.solvers.laws import (
     CONTACT,
     GROUP_FRICTION,
@@ -49,7 +49,7 @@ from refsim.solvers.laws import (
     relative_asymmetry,
 )
 from refsim.solvers.problem import ConstraintProblem
-from refsim.solvers.residual import _compiled_norm, _residual_pair, _scales, data_scales
+from refsim.solvers.residual import _residual_pair, _scales, data_scales
 
 __all__ = ["NewtonResult", "solve_newton"]
 
@@ -120,15 +120,6 @@ def _dense_jacobian(compliance, kinds, rows, local, gap_factor, members, bound_v
 def _gesv(matrix, rhs):
     """np.linalg.solve in compiled code (LAPACK gesv)."""
     return np.linalg.solve(matrix, rhs)
-
-
-@numba.njit(cache=True)
-def _data_from_error(error, data_scale):
-    """The data residual (refsim.solvers.gauss_seidel._data_residual) from the unit-weight error already computed."""
-    residual = _compiled_norm(error) / data_scale
-    if not np.isfinite(residual):
-        return np.inf
-    return residual
 
 
 @numba.njit(cache=True)

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from refsim.solvers import ConstraintProblem, solve_exact
-from refsim.solvers.laws import block_arrays, friction_groups, merge_friction_groups
+from refsim.solvers.laws import block_arrays, friction_groups
 from refsim.solvers.newton import _FRESH_BELOW, solve_newton
 from refsim.solvers.residual import data_scales
 
@@ -134,15 +134,21 @@ def test_large_problems_keep_the_layered_path():
     assert "_block_arrays" in copy.__dict__
 
 
-def test_compiled_group_merge_equals_friction_groups():
-    problem = _with_group_form(planted_problem(np.random.default_rng(8), bilateral=1, unilateral=2, shafts=5,
-                                               shaft_preload=0.3)[0])
-    compiled = merge_friction_groups(
-        problem.shaft_friction, problem.shaft_pairs, problem.shaft_friction_coefficient,
-        problem.shaft_normal_preload, problem.group_friction, problem.group_offsets, problem.group_members,
-        problem.group_friction_coefficient, problem.group_preload)
-    for got, expected in zip(compiled, friction_groups(problem), strict=True):
-        assert _same(np.asarray(got), np.asarray(expected))
+def test_friction_groups_merge_both_forms():
+    # Reference: the law's statement (docs/solvers.md): pair-form rows first, members their two bilateral rows;
+    # then the group-form rows with their offsets shifted by the pair members (2 per pair), an empty group kept.
+    problem = ConstraintProblem(
+        compliance=np.eye(8), free_gap=np.ones(8), bilateral=[0, 1, 2, 3], unilateral=[4],
+        shaft_friction=[5], shaft_pairs=[[0, 1]], shaft_friction_coefficient=[0.3], shaft_normal_preload=[0.1],
+        group_friction=[6, 7], group_offsets=[0, 3, 3], group_members=[2, 3, 4],
+        group_friction_coefficient=[0.4, 0.5], group_preload=[0.0, 0.2])
+    rows, offsets, members, coefficient, preload = friction_groups(problem)
+    np.testing.assert_array_equal(rows, [5, 6, 7])
+    np.testing.assert_array_equal(offsets, [0, 2, 5, 5])
+    np.testing.assert_array_equal(members, [0, 1, 2, 3, 4])
+    np.testing.assert_array_equal(coefficient, [0.3, 0.4, 0.5])
+    np.testing.assert_array_equal(preload, [0.1, 0.0, 0.2])
+    assert rows.dtype == offsets.dtype == members.dtype == np.int64
 
 
 def test_fresh_path_on_the_shared_problems(problems_root):
