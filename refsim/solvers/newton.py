@@ -49,12 +49,15 @@ from refsim.solvers.laws import (
     relative_asymmetry,
 )
 from refsim.solvers.problem import ConstraintProblem
-from refsim.solvers.residual import _residual_pair, _scales, data_scales
+from refsim.solvers.residual import _gap_into, _residual_pair, _scales, data_scales
 
 __all__ = ["NewtonResult", "solve_newton"]
 
 #: Problems with more rows than this (and a sparse enough W) use sparse storage and a sparse LU.
 SPARSE_ABOVE = 300
+#: Defaults of :func:`solve_newton`: the largest Levenberg–Marquardt regularisation and the line search's memory.
+ETA_MAX = 1e-2
+LINE_SEARCH_MEMORY = 3
 #: Largest density nnz(W) / n² for the sparse path.
 SPARSE_DENSITY = 0.15
 #: Dense problems up to this many rows solve J d = −F in compiled code (no SciPy call overhead).
@@ -73,7 +76,7 @@ _KEEP_SWEPT = 0.5
 _SMALL_LU_BELOW = 24
 
 
-@dataclass
+@dataclass(slots=True)
 class NewtonResult:
     """What :func:`solve_newton` did (internal to the exact solver)."""
 
@@ -130,9 +133,17 @@ def _small_lu_solve(matrix, rhs):
     Below :data:`_SMALL_LU_BELOW` rows it is faster than numba's call of gesv, which copies J to Fortran order
     and checks it (measured at one thread, compiled loops: 0.08 / 0.40 / 1.30 µs against 0.36 / 1.04 / 2.10 µs
     at n = 3 / 9 / 15; 7.7 against 6.7 µs at n = 30)."""
-    n = rhs.shape[0]
-    work = matrix.copy()
     out = rhs.copy()
+    if _small_lu_inplace(matrix.copy(), out):
+        return out, True
+    return rhs, False
+
+
+@numba.njit(cache=True)
+def _small_lu_inplace(work, out):
+    """:func:`_small_lu_solve` in place: ``work`` (n, n) is overwritten by its factors, ``out`` (n,) holds the
+    right-hand side on entry and the solution on exit when it returns True (False: a zero or NaN pivot)."""
+    n = out.shape[0]
     for k in range(n):
         pivot_row = k
         largest = abs(work[k, k])
@@ -142,7 +153,7 @@ def _small_lu_solve(matrix, rhs):
                 largest = value
                 pivot_row = i
         if not largest > 0.0:
-            return rhs, False
+            return False
         if pivot_row != k:
             for j in range(n):
                 swap = work[k, j]
@@ -162,7 +173,7 @@ def _small_lu_solve(matrix, rhs):
         for j in range(i + 1, n):
             total -= work[i, j] * out[j]
         out[i] = total / work[i, i]
-    return out, True
+    return True
 
 
 @numba.njit(cache=True)
@@ -179,8 +190,19 @@ def _lu_direction(jacobian, rhs):
 
 @numba.njit(cache=True)
 def _reduced_direction(jacobian, rhs, kinds, rows, members, local, gap_factor, bound_values, position, direction):
+    """:func:`_reduced_direction_into` with its work arrays allocated here."""
+    n = rhs.shape[0]
+    return _reduced_direction_into(jacobian, rhs, kinds, rows, members, local, gap_factor, bound_values, position,
+                                   direction, np.empty((n, n)), np.empty(n), np.empty(n, dtype=np.int64),
+                                   np.empty(n))
+
+
+@numba.njit(cache=True)
+def _reduced_direction_into(jacobian, rhs, kinds, rows, members, local, gap_factor, bound_values, position,
+                            direction, work, values, active, reduced_rhs):
     """J d = rhs with the explicit rows eliminated; returns False when no row is explicit or the reduced matrix
-    is singular (the caller then solves the full system).
+    is singular (the caller then solves the full system). ``work`` (n, n), ``values`` (n,), ``active`` (n,)
+    int64 and ``reduced_rhs`` (n,) are work arrays (the Newton kernel allocates them once).
 
     A block is explicit where its projection is constant (N_b = I, M_b = 0: a separated unilateral row or
     contact, a slipping friction row, a box row at a bound): its row i reads J_ii d_i − Σ_k g_k d_{G_k} = rhs_i,
@@ -208,7 +230,6 @@ def _reduced_direction(jacobian, rhs, kinds, rows, members, local, gap_factor, b
     if count == 0:
         return False
     m = 0
-    active = np.empty(n - count, dtype=np.int64)
     for i in range(n):
         if position[i] == 0:
             position[i] = m
@@ -216,7 +237,6 @@ def _reduced_direction(jacobian, rhs, kinds, rows, members, local, gap_factor, b
             m += 1
         else:
             position[i] = -1
-    values = np.empty(n)
     for i in range(n):
         if position[i] < 0:
             values[i] = rhs[i] / jacobian[i, i]
@@ -233,8 +253,7 @@ def _reduced_direction(jacobian, rhs, kinds, rows, members, local, gap_factor, b
                 value += bound_values[k] * rhs[member] / jacobian[member, member]
         values[row] = value / jacobian[row, row]
     if m > 0:
-        reduced = np.empty((m, m))
-        reduced_rhs = np.empty(m)
+        reduced = work[:m, :m]
         for a in range(m):
             source = active[a]
             total = rhs[source]
@@ -256,9 +275,14 @@ def _reduced_direction(jacobian, rhs, kinds, rows, members, local, gap_factor, b
                     coupling = bound_values[k] / jacobian[row, row]
                     for a in range(m):
                         reduced[a, column] += jacobian[active[a], row] * coupling
-        solution, ok = _lu_direction(reduced, reduced_rhs)
-        if not ok:
-            return False
+        if m < _SMALL_LU_BELOW:  # in place: the work arrays hold the factors and the solution
+            solution = reduced_rhs[:m]
+            if not _small_lu_inplace(reduced, solution):
+                return False
+        else:
+            solution, ok = _lu_direction(reduced, reduced_rhs[:m])
+            if not ok:
+                return False
         for a in range(m):
             direction[active[a]] = solution[a]
     for i in range(n):
@@ -304,16 +328,18 @@ def _sweep_arrays(compliance):
 
 @numba.njit(cache=True)
 def _presweep(compliance, transposed, diagonal, free_gap, kinds, rows, params, members, free_norm, data_scale,
-              best, best_value, tolerance, budget, scratch, unit):
+              best, best_value, tolerance, budget, scratch, unit, candidate, gap):
     """Projected Gauss–Seidel sweeps from ``best`` (the start), at most ``budget``, while their observed rate can
     reach the tolerance within the budget: stops when the natural and data residual are both ≤ the tolerance
     (checked on the sweeps' incremental gap, then confirmed on the gap recomputed from scratch), or when
     r_k / r_(k-2), taken as the square of a linear rate, predicts more sweeps than are left (or does not fall).
     ``best`` gets the best point of the sweeps when they converged, or when it at least halves the start's
     ``best_value`` (judged on a gap from scratch: :data:`_KEEP_SWEPT`); returns (sweeps, the max(natural, data
-    residual) of ``best`` on exit)."""
-    candidate = best.copy()
-    gap = compliance @ candidate + free_gap
+    residual) of ``best`` on exit, whether ``best`` was replaced, its natural and data residual then (on the gap
+    from scratch: what the caller would compute again; NaN when not replaced), whether they meet the
+    tolerance)."""
+    candidate[:] = best  # ``candidate`` and ``gap`` (n,): work arrays
+    _gap_into(compliance, candidate, free_gap, gap)
     values = np.empty(budget)
     swept = budget
     for k in range(budget):
@@ -326,12 +352,12 @@ def _presweep(compliance, transposed, diagonal, free_gap, kinds, rows, params, m
             swept = k + 1
             break
         if residual <= tolerance and data <= tolerance:
-            gap = compliance @ candidate + free_gap  # confirmed on a gap without the sweeps' drift
+            _gap_into(compliance, candidate, free_gap, gap)  # confirmed on a gap without the sweeps' drift
             residual = _residual(kinds, rows, params, members, candidate, gap, free_norm, scratch, unit)
             data = _data_from_error(scratch, data_scale)
             if residual <= tolerance and data <= tolerance:
                 best[:] = candidate
-                return k + 1, max(residual, data)
+                return k + 1, max(residual, data), True, residual, data, True
         if k >= 2:
             ratio = value / values[k - 2]
             # sweeps still needed at rate √ratio: 2 log(tol / value) / log(ratio)
@@ -339,13 +365,13 @@ def _presweep(compliance, transposed, diagonal, free_gap, kinds, rows, params, m
                 swept = k + 1
                 break
     if np.all(np.isfinite(candidate)):
-        gap = compliance @ candidate + free_gap
+        _gap_into(compliance, candidate, free_gap, gap)
         residual = _residual(kinds, rows, params, members, candidate, gap, free_norm, scratch, unit)
         data = _data_from_error(scratch, data_scale)
         if max(residual, data) <= _KEEP_SWEPT * best_value:
             best[:] = candidate
-            best_value = max(residual, data)
-    return swept, best_value
+            return swept, max(residual, data), True, residual, data, residual <= tolerance and data <= tolerance
+    return swept, best_value, False, np.nan, np.nan, False
 
 
 @numba.njit(cache=True)
@@ -364,41 +390,60 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
     """
     n = free_gap.shape[0]
     blocks = kinds.shape[0]
-    unit = np.ones(n)
-    error = np.empty(n)
-    scratch = np.empty(n)
-    local = np.empty((blocks, 3, 3))
-    gap_factor = np.empty((blocks, 3, 3))
-    bound_values = np.zeros(members.shape[0])
-    jacobian = np.empty((n, n))
-    position = np.empty(n, dtype=np.int64)
+    memory_length = max(memory_size, 1)
+    # every float work array is a view into one allocation, every int one into another (an allocation costs
+    # about 0.1 µs in compiled code, and a small problem needs some thirty of them); the answer is copied out
+    floats = np.empty(14 * n + 2 * n * n + 18 * blocks + memory_length + members.shape[0])
+    ints = np.empty(2 * n, dtype=np.int64)
+    unit, error, scratch = floats[:n], floats[n:2 * n], floats[2 * n:3 * n]
+    unit[:] = 1.0
+    gap, best, candidate, candidate_gap = floats[3 * n:4 * n], floats[4 * n:5 * n], floats[5 * n:6 * n], \
+        floats[6 * n:7 * n]
+    direction, rhs, values, reduced_rhs = floats[7 * n:8 * n], floats[8 * n:9 * n], floats[9 * n:10 * n], \
+        floats[10 * n:11 * n]
+    sweep_point, sweep_gap, start = floats[11 * n:12 * n], floats[12 * n:13 * n], floats[13 * n:14 * n]
+    at = 14 * n
+    jacobian = floats[at:at + n * n].reshape((n, n))
+    work = floats[at + n * n:at + 2 * n * n].reshape((n, n))  # the reduced system (_reduced_direction_into)
+    at += 2 * n * n
+    local = floats[at:at + 9 * blocks].reshape((blocks, 3, 3))
+    gap_factor = floats[at + 9 * blocks:at + 18 * blocks].reshape((blocks, 3, 3))
+    at += 18 * blocks
+    memory = floats[at:at + memory_length]
+    bound_values = floats[at + memory_length:]
+    bound_values[:] = 0.0
+    position, active = ints[:n], ints[n:]
     transposed = np.empty((0, 0))
     diagonal = np.empty(0)
-    memory = np.empty(max(memory_size, 1))
-    gap = compliance @ multipliers + free_gap
+    start[:] = multipliers  # the caller's array is not written
+    multipliers = start
+    _gap_into(compliance, multipliers, free_gap, gap)
     natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error)
     theta = 0.5 * np.dot(error, error)
     residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, scratch, unit)
     data = _data_from_error(scratch, data_scale)  # the error _residual left in scratch
     best_value = max(residual, data)
-    best = multipliers.copy()
+    best[:] = multipliers
     best_residual = residual
     best_data = data
     swept = 0
     if presweeps > 0 and not (residual <= tolerance and data <= tolerance):
         transposed, diagonal = _sweep_arrays(compliance)
-        swept, value = _presweep(compliance, transposed, diagonal, free_gap, kinds, rows, params, members,
-                                 free_norm, data_scale, best, best_value, tolerance, presweeps, scratch, unit)
-        if value < best_value:  # start Newton from the swept point
-            multipliers = best.copy()
-            gap = compliance @ multipliers + free_gap
-            natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error)
-            theta = 0.5 * np.dot(error, error)
-            residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, scratch, unit)
-            data = _data_from_error(scratch, data_scale)
-            best_value = max(residual, data)
+        swept, value, replaced, residual_swept, data_swept, done = _presweep(
+            compliance, transposed, diagonal, free_gap, kinds, rows, params, members, free_norm, data_scale, best,
+            best_value, tolerance, presweeps, scratch, unit, sweep_point, sweep_gap)
+        if replaced:  # start Newton from the swept point (its residuals as computed here, on a gap from scratch)
+            multipliers[:] = best
+            residual = residual_swept
+            data = data_swept
+            best_value = value
             best_residual = residual
             best_data = data
+            if not done:  # Newton's merit at the new start (not needed when the sweeps solved the problem)
+                _gap_into(compliance, multipliers, free_gap, gap)
+                natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error)
+                theta = 0.5 * np.dot(error, error)
+    # multipliers / gap and candidate / candidate_gap swap roles on each accepted step
     memory[0] = theta
     stored = 1
     history[0] = residual
@@ -424,12 +469,13 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
             eta = max(min(eta_max, relative) * 10.0 ** (level - 1), 1e-14)
         _dense_jacobian(compliance, kinds, rows, local, gap_factor, members, bound_values, eta, jacobian)
         limit = 1e4 * max(np.sqrt(np.dot(multipliers, multipliers)), force_scale)
-        direction = np.empty(n)
-        ok = _reduced_direction(jacobian, -error, kinds, rows, members, local, gap_factor, bound_values, position,
-                                direction)
+        for i in range(n):
+            rhs[i] = -error[i]
+        ok = _reduced_direction_into(jacobian, rhs, kinds, rows, members, local, gap_factor, bound_values,
+                                     position, direction, work, values, active, reduced_rhs)
         factored = True
         if not ok:
-            direction, ok = _lu_direction(jacobian, -error)
+            direction, ok = _lu_direction(jacobian, rhs)
             factored = ok
         ok = ok and _finite_and_short(direction, limit)
         if level == 0 and not factored:
@@ -438,7 +484,7 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
             # an SVD). Measured (best of 7, one thread, method="auto", cold): there the least-squares step was
             # rejected as too long as well on Rover1040 / 1041 / 3865 (93-98 -> 65-67 us without it) and did not
             # help GMP6 (2.7 -> 1.1 ms); PD_mlcp, which its least-squares steps answer, has an exactly singular J.
-            direction = np.linalg.lstsq(jacobian, -error, 1e-12)[0]
+            direction = np.linalg.lstsq(jacobian, rhs, 1e-12)[0]
             singular_steps += 1
             ok = _finite_and_short(direction, limit)
         if not ok:
@@ -454,12 +500,11 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
             reference = max(reference, memory[k])
         step = 1.0
         accepted = False
-        candidate = multipliers.copy()
-        candidate_gap = gap.copy()
         candidate_theta = theta
         while step >= 2.0 ** -12:
-            candidate = multipliers + step * direction
-            candidate_gap = compliance @ candidate + free_gap
+            for i in range(n):
+                candidate[i] = multipliers[i] + step * direction[i]
+            _gap_into(compliance, candidate, free_gap, candidate_gap)
             natural_map_blocks(kinds, rows, params, members, candidate, candidate_gap, weight, error)
             candidate_theta = 0.5 * np.dot(error, error)
             if candidate_theta <= reference - 1e-4 * step * 2.0 * theta:
@@ -474,21 +519,22 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
             level = min(level + 1, 8)
             if transposed.shape[0] == 0:
                 transposed, diagonal = _sweep_arrays(compliance)
-            candidate = multipliers.copy()
-            candidate_gap = compliance @ candidate + free_gap
+            candidate[:] = multipliers
+            _gap_into(compliance, candidate, free_gap, candidate_gap)
             for _ in range(10):
                 gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, candidate, candidate_gap,
                                    1.0)
-            candidate_gap = compliance @ candidate + free_gap
+            _gap_into(compliance, candidate, free_gap, candidate_gap)
             natural_map_blocks(kinds, rows, params, members, candidate, candidate_gap, weight, error)
             candidate_theta = 0.5 * np.dot(error, error)
             stop = consecutive > 8
         else:
             consecutive = 0
             level = max(level - 1, 0)
-        multipliers = candidate
+        # the candidate becomes the iterate: the two pairs of buffers swap roles
+        multipliers, candidate = candidate, multipliers
+        gap, candidate_gap = candidate_gap, gap
         theta = candidate_theta
-        gap = candidate_gap
         residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, scratch, unit)
         data = _data_from_error(scratch, data_scale)  # the error _residual left in scratch
         if stop:
@@ -523,7 +569,7 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
     counts[4] = swept
     # the report's residuals of the answer, by the kernel of refsim.solvers.natural_residual / data_residual
     final[0], final[1] = _residual_pair(compliance, free_gap, kinds, rows, params, members, best, force_scale)
-    return best, iterations, best_residual, best_data, reason
+    return best.copy(), iterations, best_residual, best_data, reason
 
 
 class _Operator:
@@ -653,6 +699,40 @@ def _solve_dense_compiled(problem, kinds, rows, params, members, weight, free_ga
     return _dense_result(outcome, history, counts, final, tolerance, max_iterations, stall_iterations)
 
 
+def takes_fresh_path(problem: ConstraintProblem) -> bool:
+    """True when :func:`solve_newton` with its default storage options solves ``problem`` by the one compiled call
+    of :func:`_solve_dense_fresh` (fewer than :data:`_FRESH_BELOW` rows, nothing cached on the problem)."""
+    cached = problem.__dict__
+    return problem.row_count < _FRESH_BELOW and "_block_arrays" not in cached and "_data_scales" not in cached
+
+
+def _fresh_outcome(problem, multipliers, tolerance, max_iterations, eta_max, line_search_memory, stall_iterations,
+                   presweeps) -> tuple:
+    """The compiled call of :func:`_solve_dense_fresh`: its raw outcome (best λ, history, iterations, reason,
+    line-search failures, fallback sweeps, pre-sweeps, best natural and data residual, the report's natural and
+    data residual, asymmetry), W's asymmetry cached on the problem."""
+    p = problem
+    compliance, free_gap = p.compliance, p.free_gap
+    if not (compliance.flags.c_contiguous and free_gap.flags.c_contiguous):
+        compliance, free_gap = np.ascontiguousarray(compliance), np.ascontiguousarray(free_gap)
+    outcome = _dense_newton_fresh(
+        compliance, free_gap, p.bilateral, p.unilateral, p.box_rows, p.box_lower, p.box_upper, p.contacts,
+        p.contact_friction, p.shaft_friction, p.shaft_pairs, p.shaft_friction_coefficient, p.shaft_normal_preload,
+        p.group_friction, p.group_offsets, p.group_members, p.group_friction_coefficient, p.group_preload,
+        multipliers, float(tolerance), int(max_iterations), float(eta_max), int(line_search_memory),
+        int(stall_iterations), int(presweeps))
+    if "_asymmetry" not in p.__dict__:
+        object.__setattr__(p, "_asymmetry", outcome[-1])
+    return outcome
+
+
+def converged_message(iterations: int, presweeps: int) -> str:
+    """The message of a Newton solve that converged."""
+    if presweeps:
+        return f"{presweeps} Gauss-Seidel pre-sweep(s), then converged in {iterations} Newton iteration(s)"
+    return f"converged in {iterations} Newton iteration(s)"
+
+
 def _solve_dense_fresh(problem, multipliers, tolerance, max_iterations, eta_max, line_search_memory,
                        stall_iterations, presweeps) -> NewtonResult:
     """:func:`_solve_dense_compiled` for a fresh problem (nothing cached on it): the set-up of
@@ -661,21 +741,9 @@ def _solve_dense_fresh(problem, multipliers, tolerance, max_iterations, eta_max,
     W's asymmetry (cached on the problem for :meth:`ConstraintProblem.asymmetry`) and the kernel's buffers in the
     same compiled call as the kernel (the same compiled operations in the same order, so the same numbers bit for
     bit; one dispatch instead of four, no array allocated in Python)."""
-    p = problem
-    compliance, free_gap = p.compliance, p.free_gap
-    if not (compliance.flags.c_contiguous and free_gap.flags.c_contiguous):
-        compliance, free_gap = np.ascontiguousarray(compliance), np.ascontiguousarray(free_gap)
-    (best, history, iterations, reason, failures, fallback, swept, residual, data, natural, data_final,
-     asymmetry) = _dense_newton_fresh(
-        compliance, free_gap, p.bilateral, p.unilateral, p.box_rows, p.box_lower, p.box_upper, p.contacts,
-        p.contact_friction, p.shaft_friction, p.shaft_pairs, p.shaft_friction_coefficient, p.shaft_normal_preload,
-        p.group_friction, p.group_offsets, p.group_members, p.group_friction_coefficient, p.group_preload,
-        multipliers, float(tolerance), int(max_iterations), float(eta_max), int(line_search_memory),
-        int(stall_iterations), int(presweeps))
-    if "_asymmetry" not in p.__dict__:
-        object.__setattr__(p, "_asymmetry", asymmetry)
-    return _newton_result(best, history, iterations, reason, failures, fallback, swept, residual, data, natural,
-                          data_final, tolerance, max_iterations, stall_iterations)
+    outcome = _fresh_outcome(problem, multipliers, tolerance, max_iterations, eta_max, line_search_memory,
+                             stall_iterations, presweeps)
+    return _newton_result(*outcome[:-1], tolerance, max_iterations, stall_iterations)
 
 
 @numba.njit(cache=True)
@@ -713,17 +781,17 @@ def _dense_newton_fresh(compliance, free_gap, bilateral, unilateral, box, box_lo
 def _newton_result(best, history, iterations, reason, failures, fallback, swept, residual, data, natural,
                    data_final, tolerance, max_iterations, stall_iterations) -> NewtonResult:
     """The NewtonResult of a compiled dense solve (``history`` already of its recorded length)."""
+    # the kernel's scalars arrive as Python floats, ints and bools (numba boxes them): no conversion needed
     converged = residual <= tolerance and data <= tolerance
-    message = (f"converged in {iterations} Newton iteration(s)" if converged
-               else _REASONS[reason].format(cap=max_iterations, stall=stall_iterations))
-    if swept:
-        message = f"{swept} Gauss-Seidel pre-sweep(s), then " + message
-    return NewtonResult(multipliers=best, converged=bool(converged), iterations=int(iterations),
-                        residual=float(residual), data_residual=float(data), message=message, storage="dense",
-                        history=history, line_search_failures=int(failures), fallback_sweeps=int(fallback),
-                        report_residuals=(float(natural) if math.isfinite(natural) else math.inf,
-                                          float(data_final) if math.isfinite(data_final) else math.inf),
-                        presweeps=int(swept))
+    if converged:
+        message = converged_message(iterations, swept)
+    else:
+        message = _REASONS[reason].format(cap=max_iterations, stall=stall_iterations)
+        if swept:
+            message = f"{swept} Gauss-Seidel pre-sweep(s), then {message}"
+    return NewtonResult(best, converged, iterations, residual, data, message, "dense", history, failures, fallback,
+                        (natural if natural <= math.inf else math.inf,  # NaN compares False: inf
+                         data_final if data_final <= math.inf else math.inf), swept)
 
 
 def _dense_result(outcome, history, counts, final, tolerance, max_iterations,
@@ -731,13 +799,14 @@ def _dense_result(outcome, history, counts, final, tolerance, max_iterations,
     """The NewtonResult of a compiled dense solve from the kernel's buffers."""
     best, iterations, residual, data, reason = outcome
     failures, fallback, _, recorded, swept = counts.tolist()
+    natural, data_final = final.tolist()  # Python floats, as the fresh kernel returns them
     return _newton_result(best, history[:recorded].copy(), iterations, reason, failures, fallback, swept, residual,
-                          data, final[0], final[1], tolerance, max_iterations, stall_iterations)
+                          data, natural, data_final, tolerance, max_iterations, stall_iterations)
 
 
 def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np.ndarray | None = None,
-                 max_iterations: int = 100, sparse_above: int = SPARSE_ABOVE, eta_max: float = 1e-2,
-                 time_limit: float = np.inf, line_search_memory: int = 3,
+                 max_iterations: int = 100, sparse_above: int = SPARSE_ABOVE, eta_max: float = ETA_MAX,
+                 time_limit: float = np.inf, line_search_memory: int = LINE_SEARCH_MEMORY,
                  minimum_norm: bool = False, stall_iterations: int = 20, presweeps: int = 0) -> NewtonResult:
     """Semismooth Newton on the natural map (see the module notes).
 
@@ -765,7 +834,7 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     n = problem.row_count
     cached = problem.__dict__
     if (n < _FRESH_BELOW and n <= sparse_above and not minimum_norm and not math.isfinite(time_limit)
-            and "_block_arrays" not in cached and "_data_scales" not in cached):
+            and "_block_arrays" not in cached and "_data_scales" not in cached):  # as takes_fresh_path
         multipliers = (np.zeros(n) if warm_start is None
                        else np.array(problem.check_multipliers(warm_start), dtype=np.float64))
         return _solve_dense_fresh(problem, multipliers, tolerance, max_iterations, eta_max, line_search_memory,
@@ -820,10 +889,11 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     if presweeps > 0 and not (residual <= tolerance and data <= tolerance):
         compliance = np.ascontiguousarray(problem.compliance)
         start_point = multipliers.copy()
-        swept, value = _presweep(compliance, *_sweep_arrays(compliance), free_gap, kinds, rows, params, members,
-                                 free_norm, data_scale, start_point, max(residual, data), float(tolerance),
-                                 int(presweeps), scratch, unit)
-        if value < max(residual, data):
+        swept, _, replaced, _, _, _ = _presweep(
+            compliance, *_sweep_arrays(compliance), free_gap, kinds, rows, params, members, free_norm, data_scale,
+            start_point, max(residual, data), float(tolerance), int(presweeps), scratch, unit, np.empty(n),
+            np.empty(n))
+        if replaced:  # the residuals again on this path's own gap (sparse storage: another product)
             multipliers = start_point
             theta, gap = merit(multipliers)
             residual, data = residuals(multipliers, gap)
@@ -913,8 +983,8 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     _, multipliers, residual, data = best
     converged = residual <= tolerance and data <= tolerance
     if converged:
-        message = f"converged in {iterations} Newton iteration(s)"
-    if swept:
+        message = converged_message(iterations, swept)
+    elif swept:
         message = f"{swept} Gauss-Seidel pre-sweep(s), then " + message
     return NewtonResult(multipliers=multipliers, converged=bool(converged), iterations=iterations,
                         residual=float(residual), data_residual=float(data), message=message,

@@ -67,6 +67,7 @@ class ConstraintProblem:
             self._fail(f"free_gap has shape {free_gap.shape}, expected ({row_count},) to match compliance")
         self._set("compliance", compliance)
         self._set("free_gap", free_gap)
+        object.__setattr__(self, "_row_count", row_count)  # read by every solve (the property is on hot paths)
         for spec in LAW_FIELDS:
             if spec.role in ("rows", "members"):
                 self._set(spec.name, self._rows(spec.name, getattr(self, spec.name),
@@ -171,7 +172,7 @@ class ConstraintProblem:
     @property
     def row_count(self) -> int:
         """Number of rows (constraints) of the problem."""
-        return int(self.compliance.shape[0])
+        return self._row_count
 
     def row_kinds(self) -> np.ndarray:
         """Law code of every row (index into :data:`LAW_NAMES`), shape (row_count,)."""

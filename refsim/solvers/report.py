@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -13,7 +14,7 @@ def _empty_history() -> np.ndarray:
     return np.zeros(0)
 
 
-@dataclass(frozen=True, kw_only=True)
+@dataclass(frozen=True, kw_only=True, init=False)
 class SolverReport:
     """What a constraint solve did.
 
@@ -52,3 +53,15 @@ class SolverReport:
     diverged: bool = False
     asymmetry: float = float("nan")
     path: str = ""
+
+    def __init__(self, *, solver: str, iterations: int, residual: float, converged: bool, seconds: float,
+                 message: str = "", increment: float = math.nan, history: np.ndarray | None = None,
+                 data_residual: float = math.nan, diverged: bool = False, asymmetry: float = math.nan,
+                 path: str = "") -> None:
+        # one write of the instance dictionary instead of the twelve object.__setattr__ calls of the frozen
+        # dataclass's own __init__ (measured 2.3-2.8 -> 1.6 µs; every solve builds one). The same fields and defaults
+        # (tests/solvers/test_reports.py checks them against the field list).
+        self.__dict__.update(solver=solver, iterations=iterations, residual=residual, converged=converged,
+                             seconds=seconds, message=message, increment=increment,
+                             history=_empty_history() if history is None else history,
+                             data_residual=data_residual, diverged=diverged, asymmetry=asymmetry, path=path)

@@ -18,7 +18,7 @@ import pytest
 from refsim.solvers import ConstraintProblem, solve_exact
 from refsim.solvers.laws import block_arrays, friction_groups
 from refsim.solvers.newton import _FRESH_BELOW, solve_newton
-from refsim.solvers.residual import data_scales
+from refsim.solvers.residual import data_scales, residuals
 
 from .conftest import planted_problem
 
@@ -107,6 +107,37 @@ def test_fresh_path_is_bit_identical_to_the_layered_path(laws, skew, method, sta
             problem = _with_group_form(problem)
         warm = force * (1.0 + 0.1 * rng.standard_normal(force.size)) if start == "warm" else None
         _assert_identical(problem, tolerance=1e-8, method=method, warm_start=warm)
+
+
+@pytest.mark.parametrize("newton_iterations", [0, 1])
+def test_fresh_path_that_does_not_converge_goes_on_as_the_layered_path(newton_iterations):
+    # solve_exact answers from the compiled call's outcome only when it converged; otherwise its general code
+    # (Gauss-Seidel chunks, Lemke, the cone route) takes over from the same Newton result: the same report
+    rng = np.random.default_rng(16)
+    unfinished = 0
+    for laws in ("contacts", "mixed", "shafts"):
+        problem, _, _ = planted_problem(rng, rank=None, **LAWS[laws])
+        _assert_identical(problem, tolerance=1e-12, method="auto", newton_iterations=newton_iterations)
+        _, report = solve_exact(dataclasses.replace(problem), tolerance=1e-12, method="auto",
+                                newton_iterations=newton_iterations)
+        unfinished += report.path not in ("newton", "gauss_seidel", "gauss_seidel+newton")
+    assert unfinished  # the case is exercised: some answers came from the code after Newton
+
+
+def test_solve_exact_answers_small_fresh_problems_from_the_compiled_outcome(monkeypatch):
+    # the converged fresh solve builds its report without solve_newton's layers (and without solve_newton)
+    import refsim.solvers.exact as exact
+
+    problem, _, _ = planted_problem(np.random.default_rng(6), contacts=3, unilateral=2)
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("solve_newton called on a small fresh problem")
+
+    monkeypatch.setattr(exact, "solve_newton", forbidden)
+    multipliers, report = solve_exact(dataclasses.replace(problem), tolerance=1e-8, method="auto")
+    assert report.converged and report.solver == "exact/newton"
+    assert report.residual <= 1e-8 and report.data_residual <= 1e-8
+    assert (report.residual, report.data_residual) == residuals(problem, multipliers)
 
 
 def test_fresh_path_is_taken_and_leaves_the_asymmetry_cached():

@@ -325,3 +325,28 @@ def test_halving_presweeps_become_newtons_start():
     swept, _ = solve_gauss_seidel(problem, tolerance=1e-300, max_iterations=result.presweeps)
     assert max(result.residual, result.data_residual) <= 0.5 * start
     np.testing.assert_allclose(result.multipliers, swept, rtol=0, atol=1e-14 * np.abs(swept).max())
+
+
+@pytest.mark.parametrize("rows", [1, 3, 23, 24, 40])
+def test_gap_product_meets_the_dot_product_error_bound(rows):
+    # residual._gap_into: a compiled loop below _LOOP_PRODUCT_BELOW rows, BLAS above. Reference: the exact
+    # W λ + δ_free in rational arithmetic; each row is a dot product of rows + 1 terms, so the floating-point
+    # error is at most γ_(n+1) (|W| |λ| + |δ_free|)_i with γ_k = k u / (1 − k u), u = 2⁻⁵³ (Higham 2002, §3.1).
+    from fractions import Fraction
+
+    from refsim.solvers.residual import _LOOP_PRODUCT_BELOW, _gap_into
+
+    assert 3 < _LOOP_PRODUCT_BELOW <= 24  # both branches are among the sizes
+    rng = np.random.default_rng(rows)
+    compliance = rng.standard_normal((rows, rows))
+    multipliers = rng.standard_normal(rows) * 10.0 ** rng.integers(-3, 4, rows)
+    free_gap = rng.standard_normal(rows)
+    out = np.empty(rows)
+    _gap_into(compliance, multipliers, free_gap, out)
+    unit = 2.0 ** -53
+    gamma = (rows + 1) * unit / (1 - (rows + 1) * unit)
+    bound = gamma * (np.abs(compliance) @ np.abs(multipliers) + np.abs(free_gap))
+    for i in range(rows):
+        exact = sum((Fraction(compliance[i, j]) * Fraction(multipliers[j]) for j in range(rows)),
+                    Fraction(free_gap[i]))
+        assert abs(Fraction(out[i]) - exact) <= Fraction(bound[i])

@@ -68,3 +68,35 @@ def test_strict_criterion_meets_both_residuals():
     problem, _, _ = planted_problem(rng, bilateral=3, unilateral=4, contacts=3, shafts=1, box=2, scale=1e-3)
     _, report = solve_gauss_seidel(problem, tolerance=1e-10, max_iterations=50_000, criterion="strict")
     assert report.converged and report.residual <= 1e-10 and report.data_residual <= 1e-10
+
+
+def test_report_constructor_has_the_fields_and_defaults_of_the_dataclass():
+    # SolverReport writes its instance dictionary in one call (a hand-written __init__): its keywords must be the
+    # dataclass fields, in order, with the fields' defaults, and the result must behave as the frozen dataclass
+    import dataclasses
+    import inspect
+
+    from refsim.solvers import SolverReport
+
+    parameters = inspect.signature(SolverReport.__init__).parameters
+    fields = dataclasses.fields(SolverReport)
+    assert list(parameters)[1:] == [f.name for f in fields]
+    for f in fields:
+        parameter = parameters[f.name]
+        assert parameter.kind is inspect.Parameter.KEYWORD_ONLY
+        if f.default is not dataclasses.MISSING:
+            default, expected = parameter.default, f.default
+            assert (default == expected) or (default != default and expected != expected), f.name  # NaN == NaN
+        elif f.default_factory is not dataclasses.MISSING:
+            assert parameter.default is None, f.name  # history: a new empty array per report
+        else:
+            assert parameter.default is inspect.Parameter.empty, f.name
+    report = SolverReport(solver="s", iterations=2, residual=0.5, converged=False, seconds=1.0)
+    other = SolverReport(solver="s", iterations=2, residual=0.5, converged=False, seconds=1.0)
+    assert report.history.shape == (0,) and report.history is not other.history
+    assert np.isnan(report.increment) and np.isnan(report.asymmetry) and report.path == "" and not report.diverged
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        report.iterations = 3
+    changed = dataclasses.replace(report, iterations=5, history=np.ones(2))
+    assert changed.iterations == 5 and changed.solver == "s" and changed.history.tolist() == [1.0, 1.0]
+    assert "iterations=2" in repr(report)
