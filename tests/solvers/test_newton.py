@@ -350,3 +350,26 @@ def test_gap_product_meets_the_dot_product_error_bound(rows):
         exact = sum((Fraction(compliance[i, j]) * Fraction(multipliers[j]) for j in range(rows)),
                     Fraction(free_gap[i]))
         assert abs(Fraction(out[i]) - exact) <= Fraction(bound[i])
+
+
+@pytest.mark.parametrize("size", [24, 30, 69])
+def test_in_place_gesv_is_the_solve_of_before(size):
+    # newton._lu_direction_into calls LAPACK gesv in place on Jᵀ (J in Fortran order) where numba's
+    # np.linalg.solve (newton._lu_direction) copies J to Fortran order first: the same routine on the same
+    # numbers, so the same bits; a singular or non-finite J is reported, as np.linalg.solve's exception was
+    from refsim.solvers.newton import _PIVOT_DTYPE, _lu_direction, _lu_direction_into
+
+    rng = np.random.default_rng(size)
+    matrix = rng.standard_normal((size, size))
+    rhs = rng.standard_normal(size)
+    work, out, pivots = np.empty((size, size)), np.empty(size), np.empty(size, dtype=_PIVOT_DTYPE)
+    direction, ok = _lu_direction_into(matrix, rhs, work, out, pivots)
+    reference, reference_ok = _lu_direction(matrix, rhs)
+    assert ok and reference_ok
+    assert direction.tobytes() == reference.tobytes()
+    assert np.abs(matrix @ direction - rhs).max() <= 1e-10 * np.abs(matrix).sum(axis=1).max() * np.abs(direction).max()
+    singular = matrix.copy()
+    singular[:, size // 2] = 0.0  # a zero column stays exactly zero under elimination: a zero pivot (info > 0)
+    for bad in (np.zeros((size, size)), singular, np.full((size, size), np.nan)):
+        assert not _lu_direction_into(bad, rhs, work, out, pivots)[1]
+        assert not _lu_direction(bad, rhs)[1]
