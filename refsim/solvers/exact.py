@@ -408,8 +408,7 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
         # W's asymmetry is needed before any solve here; else it comes after Newton, whose compiled set-up
         # computes it on small fresh problems (one call: see refsim.solvers.newton._solve_dense_fresh)
         asymmetry = problem.asymmetry()
-        note = (f"; W non-symmetric by {asymmetry:.1e} (solved as given)" if asymmetry > symmetry_tolerance
-                else "")
+        note = _asymmetry_note(asymmetry, symmetry_tolerance)
         if method == "auto" and asymmetry > symmetry_tolerance:
             # a non-symmetric LCP/MLCP: no merit function need be convex, Lemke's pivoting first
             answer, lemke_note = _lemke_path(problem, tolerance)
@@ -429,26 +428,20 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
              asymmetry) = outcome
             if (residual <= tolerance and data <= tolerance and natural <= tolerance
                     and data_final <= tolerance):
-                note = (f"; W non-symmetric by {asymmetry:.1e} (solved as given)"
-                        if asymmetry > symmetry_tolerance else "")
-                path = ("gauss_seidel+newton" if iterations else "gauss_seidel") if swept else "newton"
                 return best, SolverReport(
                     solver="exact/newton", iterations=iterations, residual=natural, converged=True,
                     seconds=time.perf_counter() - start, history=history, data_residual=data_final,
-                    asymmetry=asymmetry, path=path,
-                    message=(f"newton (dense): {converged_message(iterations, swept)}; {failures} line-search "
-                             f"failure(s), {fallback} fallback sweep(s){note}"))
+                    asymmetry=asymmetry, path=_newton_path(swept, iterations),
+                    message=_newton_message("dense", converged_message(iterations, swept), failures, fallback,
+                                            _asymmetry_note(asymmetry, symmetry_tolerance)))
             newton = _newton_result(*outcome[:-1], tolerance, int(newton_iterations), stall)
         else:
             newton = solve_newton(problem, tolerance=tolerance, warm_start=warm_start,
                                   max_iterations=int(newton_iterations), presweeps=presweeps,
                                   stall_iterations=stall)
         asymmetry = problem.asymmetry()  # cached by the call above when it computed it
-        note = (f"; W non-symmetric by {asymmetry:.1e} (solved as given)" if asymmetry > symmetry_tolerance
-                else "")
-        path = "newton"
-        if newton.presweeps:
-            path = "gauss_seidel+newton" if newton.iterations else "gauss_seidel"
+        note = _asymmetry_note(asymmetry, symmetry_tolerance)
+        path = _newton_path(newton.presweeps, newton.iterations)
         if not newton.converged:
             # Newton stalls where the map is nonsmooth at the solution (friction bounds ‖λ_G‖ at λ_G = 0, cone
             # apices): projected Gauss-Seidel from the best point, which such points do not trouble, in chunks of
@@ -492,8 +485,8 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
                 return _lemke_report(problem, answer, f"newton first: {newton.message}; then " + lemke_note + note,
                                      asymmetry, start)
         if converged or method == "newton":
-            message = (f"newton ({newton.storage}): {newton.message}; {newton.line_search_failures} line-search "
-                       f"failure(s), {newton.fallback_sweeps} fallback sweep(s)" + note)
+            message = _newton_message(newton.storage, newton.message, newton.line_search_failures,
+                                      newton.fallback_sweeps, note)
             if not converged:
                 message = (f"not converged: residual {residual:.3e}, data residual {data:.3e} > tolerance "
                            f"{tolerance:.1e} (largest error in {_worst_kind(problem, newton.multipliers)} rows); "
@@ -532,6 +525,23 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
     return multipliers, SolverReport(solver=report.solver, iterations=report.iterations, residual=residual,
                                      converged=converged, seconds=time.perf_counter() - start, message=message,
                                      history=report.history, data_residual=data, asymmetry=asymmetry, path=path)
+
+
+def _asymmetry_note(asymmetry: float, symmetry_tolerance: float) -> str:
+    """The message's note on a W non-symmetric by more than ``symmetry_tolerance`` (relative), else ""."""
+    return f"; W non-symmetric by {asymmetry:.1e} (solved as given)" if asymmetry > symmetry_tolerance else ""
+
+
+def _newton_path(presweeps: int, iterations: int) -> str:
+    """report.path of an answer of the Newton path (pre-sweeps alone, pre-sweeps then Newton, Newton)."""
+    if presweeps:
+        return "gauss_seidel+newton" if iterations else "gauss_seidel"
+    return "newton"
+
+
+def _newton_message(storage: str, message: str, failures: int, fallback: int, note: str) -> str:
+    """report.message of an answer of the Newton path."""
+    return f"newton ({storage}): {message}; {failures} line-search failure(s), {fallback} fallback sweep(s){note}"
 
 
 def _gauss_seidel_can_finish(sweeps: SolverReport, tolerance: float, remaining: int) -> bool:

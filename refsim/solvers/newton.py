@@ -48,6 +48,13 @@ from refsim.solvers.laws import (
     natural_map_blocks,
     relative_asymmetry,
 )
+from refsim.solvers.linear import (
+    PIVOT_DTYPE,
+    _dense_jacobian,
+    _gesv,
+    _lu_direction_into,
+    _reduced_direction_into,
+)
 from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.residual import _gap_into, _residual_pair, _scales, data_scales
 
@@ -62,7 +69,7 @@ LINE_SEARCH_MEMORY = 3
 SPARSE_DENSITY = 0.15
 #: Dense problems up to this many rows solve J d = −F in compiled code (no SciPy call overhead).
 _COMPILED_SOLVE_BELOW = 120
-#: Fresh problems (nothing cached) without group friction and with fewer rows than this take one compiled
+#: Fresh problems (nothing cached; every law, group friction included) with fewer rows than this take one compiled
 #: call for the set-up (block arrays, data scales, W's asymmetry) and the dense kernel
 #: (:func:`_dense_newton_fresh`).
 _FRESH_BELOW = 120
@@ -72,8 +79,6 @@ _FRESH_BELOW = 120
 #: 3 sweeps: 16 Newton iterations from it, 11 from the start; relay1, 0.97: not converged in 10 from it,
 #: converged from the start), where a halving one is (LMGC_100: 1.5e-8 after 72 sweeps, 4 iterations).
 _KEEP_SWEPT = 0.5
-#: Dense systems with fewer rows than this are solved by the compiled elimination :func:`_small_lu_solve`.
-_SMALL_LU_BELOW = 24
 
 
 @dataclass(slots=True)
@@ -94,263 +99,6 @@ class NewtonResult:
     report_residuals: tuple | None = None
     #: Gauss-Seidel sweeps taken before the first Newton iteration (``presweeps``)
     presweeps: int = 0
-
-
-@numba.njit(cache=True)
-def _dense_jacobian(compliance, kinds, rows, local, gap_factor, members, bound_values, eta, out):
-    """out = N + M W − G + η I (dense)."""
-    n = compliance.shape[0]
-    out[:, :] = 0.0
-    for b in range(kinds.shape[0]):
-        size = 3 if kinds[b] == CONTACT else 1
-        for i in range(size):
-            ri = rows[b, i]
-            for j in range(size):
-                rj = rows[b, j]
-                factor = gap_factor[b, i, j]
-                if factor != 0.0:
-                    for c in range(n):
-                        out[ri, c] += factor * compliance[rj, c]
-                out[ri, rj] += local[b, i, j]
-            out[ri, ri] += eta
-        if kinds[b] == GROUP_FRICTION:
-            ri = rows[b, 0]
-            for k in range(rows[b, 1], rows[b, 2]):
-                out[ri, members[k]] -= bound_values[k]
-
-
-@numba.njit(cache=True)
-def _gesv(matrix, rhs):
-    """np.linalg.solve in compiled code (LAPACK gesv)."""
-    return np.linalg.solve(matrix, rhs)
-
-
-@numba.njit(cache=True)
-def _small_lu_solve(matrix, rhs):
-    """J d = rhs by Gaussian elimination with partial pivoting (the algorithm of LAPACK getf2/getrs, unblocked)
-    on a copy; (d, True), or (rhs, False) when a pivot is exactly zero or not a number (LAPACK's info > 0).
-
-    Below :data:`_SMALL_LU_BELOW` rows it is faster than numba's call of gesv, which copies J to Fortran order
-    and checks it (measured at one thread, compiled loops: 0.08 / 0.40 / 1.30 µs against 0.36 / 1.04 / 2.10 µs
-    at n = 3 / 9 / 15; 7.7 against 6.7 µs at n = 30)."""
-    out = rhs.copy()
-    if _small_lu_inplace(matrix.copy(), out):
-        return out, True
-    return rhs, False
-
-
-@numba.njit(cache=True)
-def _small_lu_inplace(work, out):
-    """:func:`_small_lu_solve` in place: ``work`` (n, n) is overwritten by its factors, ``out`` (n,) holds the
-    right-hand side on entry and the solution on exit when it returns True (False: a zero or NaN pivot)."""
-    n = out.shape[0]
-    for k in range(n):
-        pivot_row = k
-        largest = abs(work[k, k])
-        for i in range(k + 1, n):
-            value = abs(work[i, k])
-            if value > largest:
-                largest = value
-                pivot_row = i
-        if not largest > 0.0:
-            return False
-        if pivot_row != k:
-            for j in range(n):
-                swap = work[k, j]
-                work[k, j] = work[pivot_row, j]
-                work[pivot_row, j] = swap
-            swap = out[k]
-            out[k] = out[pivot_row]
-            out[pivot_row] = swap
-        # rows as one-dimensional views: the same operations, about a quarter faster at 9-15 rows (measured
-        # 0.74 -> 0.61 µs at 9, 1.94 -> 1.50 µs at 15, copies included; the same bits)
-        row_k = work[k]
-        pivot = row_k[k]
-        out_k = out[k]
-        for i in range(k + 1, n):
-            row_i = work[i]
-            factor = row_i[k] / pivot
-            for j in range(k + 1, n):
-                row_i[j] -= factor * row_k[j]
-            out[i] -= factor * out_k
-    for i in range(n - 1, -1, -1):
-        row_i = work[i]
-        total = out[i]
-        for j in range(i + 1, n):
-            total -= row_i[j] * out[j]
-        out[i] = total / row_i[i]
-    return True
-
-
-try:  # LAPACK's gesv as numba's np.linalg.solve calls it (numba's helper library), without its copies and checks
-    from numba.np.linalg import F_INT_nptype as _PIVOT_DTYPE
-    from numba.np.linalg import _LAPACK
-
-    _XGESV = _LAPACK().numba_xgesv(numba.types.float64)
-except (ImportError, AttributeError):  # another numba: np.linalg.solve does the same
-    _XGESV = None
-    _PIVOT_DTYPE = np.int32
-
-
-if _XGESV is not None:
-    @numba.njit(cache=True)
-    def _gesv_inplace(transposed, rhs, pivots):
-        """A x = rhs by LAPACK gesv, in place: ``transposed`` (m, m) C-contiguous holds Aᵀ (A in Fortran order)
-        and gets its LU factors, ``rhs`` (m,) contiguous gets x; ``pivots`` (≥ m,) int work. True when A was
-        factorised (LAPACK info 0; the same factors and solution as np.linalg.solve, which copies A to Fortran
-        order and checks it for NaN first: measured 35 / 42 µs at m = 69, 15 / 21 µs at m = 46)."""
-        m = rhs.shape[0]
-        return _XGESV(ord("d"), m, 1, transposed.ctypes, m, pivots.ctypes, rhs.ctypes, m) == 0
-else:
-    @numba.njit(cache=True)
-    def _gesv_inplace(transposed, rhs, pivots):
-        """Fallback of the gesv call: np.linalg.solve on Aᵀᵀ."""
-        try:
-            rhs[:] = np.linalg.solve(transposed.T, rhs)
-            return True
-        except Exception:  # noqa: BLE001 (numba raises a plain exception for a singular matrix)
-            return False
-
-
-@numba.njit(cache=True)
-def _lu_direction_into(jacobian, rhs, work, out, pivots):
-    """J d = rhs by LU with partial pivoting: :func:`_small_lu_solve` below :data:`_SMALL_LU_BELOW` rows, else
-    LAPACK gesv on J copied in Fortran order into ``work`` (n, n) C-contiguous, with ``out`` (n,) and ``pivots``
-    (n,) of :data:`_PIVOT_DTYPE`; (d, True), d in ``out`` from gesv, or (rhs, False) when J is singular."""
-    n = rhs.shape[0]
-    if n < _SMALL_LU_BELOW:
-        return _small_lu_solve(jacobian, rhs)
-    for i in range(n):
-        for j in range(n):
-            work[j, i] = jacobian[i, j]
-        out[i] = rhs[i]
-    if _gesv_inplace(work, out, pivots) and np.all(np.isfinite(out)):
-        return out, True
-    return rhs, False
-
-
-@numba.njit(cache=True)
-def _reduced_direction(jacobian, rhs, kinds, rows, members, local, gap_factor, bound_values, position, direction):
-    """:func:`_reduced_direction_into` with its work arrays allocated here."""
-    n = rhs.shape[0]
-    return _reduced_direction_into(jacobian, rhs, kinds, rows, members, local, gap_factor, bound_values, position,
-                                   direction, np.empty((n, n)), np.empty(n), np.empty(n, dtype=np.int64),
-                                   np.empty(n), np.empty(n, dtype=_PIVOT_DTYPE))
-
-
-@numba.njit(cache=True)
-def _reduced_direction_into(jacobian, rhs, kinds, rows, members, local, gap_factor, bound_values, position,
-                            direction, work, values, active, reduced_rhs, pivots):
-    """J d = rhs with the explicit rows eliminated; returns False when no row is explicit or the reduced matrix
-    is singular (the caller then solves the full system). ``work`` (n, n) C-contiguous, ``values`` (n,),
-    ``active`` (n,) int64, ``reduced_rhs`` (n,) and ``pivots`` (n,) of :data:`_PIVOT_DTYPE` are work arrays (the
-    Newton kernel allocates them once).
-
-    A block is explicit where its projection is constant (N_b = I, M_b = 0: a separated unilateral row or
-    contact, a slipping friction row, a box row at a bound): its row i reads J_ii d_i − Σ_k g_k d_{G_k} = rhs_i,
-    J_ii = 1 + η, the g_k = ∂b/∂λ of a slipping friction row's group members (no other entry: M_b = 0). With E
-    those rows and A the rest: a member in E is a plain row (members are never friction rows), d_j = rhs_j / J_jj;
-    so d_i = c_i + Σ_{k: G_k ∈ A} (g_k / J_ii) d_{G_k}, c_i = (rhs_i + Σ_{k: G_k ∈ E} g_k rhs_{G_k} / J_{G_k G_k})
-    / J_ii, and (J_AA + Σ_{i ∈ E} J_{A i} (g / J_ii)ᵀ) d_A = rhs_A − J_AE c: an LU of |A| rows instead of n
-    (the cube's insertion steps: the shaft friction rows slip, |A| = 2n/3, about a third of the LU's cost).
-    ``position`` (n,) gets each row's index in A (−1 for E).
-    """
-    n = rhs.shape[0]
-    blocks = kinds.shape[0]
-    count = 0
-    for b in range(blocks):
-        size = 3 if kinds[b] == CONTACT else 1
-        constant = True
-        for i in range(size):
-            for j in range(size):
-                if gap_factor[b, i, j] != 0.0 or local[b, i, j] != (1.0 if i == j else 0.0):
-                    constant = False
-        for i in range(size):
-            position[rows[b, i]] = -2 if constant else 0
-        if constant:
-            count += size
-    if count == 0:
-        return False
-    m = 0
-    for i in range(n):
-        if position[i] == 0:
-            position[i] = m
-            active[m] = i
-            m += 1
-        else:
-            position[i] = -1
-    for i in range(n):
-        if position[i] < 0:
-            values[i] = rhs[i] / jacobian[i, i]
-    for b in range(blocks):  # slipping friction rows: their members' contributions
-        if kinds[b] != GROUP_FRICTION:
-            continue
-        row = rows[b, 0]
-        if position[row] >= 0:
-            continue
-        value = rhs[row]
-        for k in range(rows[b, 1], rows[b, 2]):
-            member = members[k]
-            if bound_values[k] != 0.0 and position[member] < 0:
-                value += bound_values[k] * rhs[member] / jacobian[member, member]
-        values[row] = value / jacobian[row, row]
-    if m > 0:
-        # the reduced matrix A in a contiguous (m, m) part of ``work``: as A (C order) for the compiled
-        # elimination, as Aᵀ (A in Fortran order) for LAPACK's gesv, so that neither copies it again
-        lapack = m >= _SMALL_LU_BELOW
-        reduced = work.reshape(-1)[:m * m].reshape((m, m))
-        for a in range(m):
-            source = active[a]
-            total = rhs[source]
-            if lapack:
-                for c in range(m):
-                    reduced[c, a] = jacobian[source, active[c]]
-            else:
-                for c in range(m):
-                    reduced[a, c] = jacobian[source, active[c]]
-            for i in range(n):
-                if position[i] < 0:
-                    total -= jacobian[source, i] * values[i]
-            reduced_rhs[a] = total
-        for b in range(blocks):
-            if kinds[b] != GROUP_FRICTION:
-                continue
-            row = rows[b, 0]
-            if position[row] >= 0:
-                continue
-            for k in range(rows[b, 1], rows[b, 2]):
-                column = position[members[k]]
-                if bound_values[k] != 0.0 and column >= 0:
-                    coupling = bound_values[k] / jacobian[row, row]
-                    for a in range(m):
-                        if lapack:
-                            reduced[column, a] += jacobian[active[a], row] * coupling
-                        else:
-                            reduced[a, column] += jacobian[active[a], row] * coupling
-        solution = reduced_rhs[:m]  # in place: the work arrays get the factors and the solution
-        if lapack:
-            if not (_gesv_inplace(reduced, solution, pivots) and np.all(np.isfinite(solution))):
-                return False
-        elif not _small_lu_inplace(reduced, solution):
-            return False
-        for a in range(m):
-            direction[active[a]] = solution[a]
-    for i in range(n):
-        if position[i] < 0:
-            direction[i] = values[i]
-    for b in range(blocks):
-        if kinds[b] != GROUP_FRICTION:
-            continue
-        row = rows[b, 0]
-        if position[row] >= 0:
-            continue
-        value = values[row]
-        for k in range(rows[b, 1], rows[b, 2]):
-            member = members[k]
-            if bound_values[k] != 0.0 and position[member] >= 0:
-                value += bound_values[k] * direction[member] / jacobian[row, row]
-        direction[row] = value
-    return True
 
 
 @numba.njit(cache=True)
@@ -464,7 +212,7 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
     bound_values = floats[at + memory_length:]
     bound_values[:] = 0.0
     position, active = ints[:n], ints[n:]
-    pivots = np.empty(n, dtype=_PIVOT_DTYPE)
+    pivots = np.empty(n, dtype=PIVOT_DTYPE)
     transposed = np.empty((0, 0))
     diagonal = np.empty(0)
     start[:] = multipliers  # the caller's array is not written
@@ -885,9 +633,7 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     """
     start = time.perf_counter()
     n = problem.row_count
-    cached = problem.__dict__
-    if (n < _FRESH_BELOW and n <= sparse_above and not minimum_norm and not math.isfinite(time_limit)
-            and "_block_arrays" not in cached and "_data_scales" not in cached):  # as takes_fresh_path
+    if n <= sparse_above and not minimum_norm and not math.isfinite(time_limit) and takes_fresh_path(problem):
         multipliers = (np.zeros(n) if warm_start is None
                        else np.array(problem.check_multipliers(warm_start), dtype=np.float64))
         return _solve_dense_fresh(problem, multipliers, tolerance, max_iterations, eta_max, line_search_memory,

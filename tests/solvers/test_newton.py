@@ -228,7 +228,7 @@ def test_reduced_direction_equals_the_full_solve(seed, eta):
     """The Newton step with the explicit rows (separated, slipping, at a bound) eliminated solves the same
     system: reference np.linalg.solve of the full J + ηI; tolerance 1e3 ε cond(J)."""
     from refsim.solvers.laws import block_arrays, jacobian_blocks
-    from refsim.solvers.newton import _dense_jacobian, _reduced_direction
+    from refsim.solvers.linear import PIVOT_DTYPE, _dense_jacobian, _reduced_direction_into
     from refsim.solvers.residual import data_scales
 
     rng = np.random.default_rng(seed)
@@ -247,8 +247,10 @@ def test_reduced_direction_equals_the_full_solve(seed, eta):
         _dense_jacobian(problem.compliance, kinds, rows, local, factor, members, bounds, eta, jacobian)
         rhs = rng.normal(size=n)
         direction = np.empty(n)
-        ok = _reduced_direction(jacobian, rhs, kinds, rows, members, local, factor, bounds,
-                                np.empty(n, dtype=np.int64), direction)
+        position = np.empty(n, dtype=np.int64)
+        ok = _reduced_direction_into(jacobian, rhs, kinds, rows, members, local, factor, bounds, position,
+                                     direction, np.empty((n, n)), np.empty(n), np.empty(n, dtype=np.int64),
+                                     np.empty(n), np.empty(n, dtype=PIVOT_DTYPE))
         condition = np.linalg.cond(jacobian)
         if not ok or condition > 1e8:
             continue
@@ -262,21 +264,21 @@ def test_reduced_direction_equals_the_full_solve(seed, eta):
 @pytest.mark.parametrize("size", [1, 2, 3, 9, 15, 23])
 @pytest.mark.parametrize("condition", [1.0, 1e6, 1e12])
 def test_small_lu_solve_is_backward_stable(size, condition):
-    """The compiled elimination of small Newton systems (newton._small_lu_solve) against Gaussian elimination's
+    """The compiled elimination of small Newton systems (linear._small_lu_inplace) against Gaussian elimination's
     backward-error bound (Higham 2002, Thm. 9.5: (A + ΔA) x = b with |ΔA| ≤ γ_3n |L||U|, γ_k = k ε / (1 − k ε)):
     the residual ‖b − A x‖_∞ ≤ γ_3n ‖|L||U|‖_∞ ‖x‖_∞, with L, U of the same pivoting (scipy.linalg.lu); and its
     answer within the forward bound cond(A) · that backward error of LAPACK's."""
     import scipy.linalg
 
-    from refsim.solvers.newton import _small_lu_solve
+    from refsim.solvers.linear import _small_lu_inplace
 
     rng = np.random.default_rng(size)
     left, _ = np.linalg.qr(rng.standard_normal((size, size)))
     right, _ = np.linalg.qr(rng.standard_normal((size, size)))
     matrix = left @ np.diag(np.geomspace(1.0, 1.0 / condition, size)) @ right.T
     rhs = rng.standard_normal(size)
-    solution, ok = _small_lu_solve(matrix, rhs)
-    assert ok
+    solution = rhs.copy()
+    assert _small_lu_inplace(matrix.copy(), solution)
     _, lower, upper = scipy.linalg.lu(matrix)
     gamma = 3 * size * np.finfo(float).eps / (1 - 3 * size * np.finfo(float).eps)
     bound = gamma * np.abs(np.abs(lower) @ np.abs(upper)).sum(axis=1).max() * np.abs(solution).max()
@@ -287,13 +289,13 @@ def test_small_lu_solve_is_backward_stable(size, condition):
 
 
 def test_small_lu_solve_reports_a_singular_matrix():
-    from refsim.solvers.newton import _PIVOT_DTYPE, _lu_direction_into, _small_lu_solve
+    from refsim.solvers.linear import PIVOT_DTYPE, _lu_direction_into, _small_lu_inplace
 
     # LAPACK's info > 0: an exactly zero pivot (rank 1 here, and the zero matrix), or one that is not a number
     singular = np.array([[1.0, 2.0, 3.0], [2.0, 4.0, 6.0], [0.0, 0.0, 0.0]])
     for matrix in (singular, np.zeros((3, 3)), np.full((3, 3), np.nan)):
-        assert not _small_lu_solve(matrix, np.ones(3))[1]
-        work, out, pivots = np.empty((3, 3)), np.empty(3), np.empty(3, dtype=_PIVOT_DTYPE)
+        assert not _small_lu_inplace(matrix.copy(), np.ones(3))
+        work, out, pivots = np.empty((3, 3)), np.empty(3), np.empty(3, dtype=PIVOT_DTYPE)
         assert not _lu_direction_into(matrix, np.ones(3), work, out, pivots)[1]
 
 
@@ -355,15 +357,15 @@ def test_gap_product_meets_the_dot_product_error_bound(rows):
 
 @pytest.mark.parametrize("size", [24, 30, 69])
 def test_in_place_gesv_is_the_solve_of_before(size):
-    # newton._lu_direction_into calls LAPACK gesv in place on Jᵀ (J in Fortran order) where numba's
-    # np.linalg.solve (newton._gesv, the kernel's call before) copies J to Fortran order first: the same routine
+    # linear._lu_direction_into calls LAPACK gesv in place on Jᵀ (J in Fortran order) where numba's
+    # np.linalg.solve (linear._gesv, the kernel's call before) copies J to Fortran order first: the same routine
     # on the same numbers, so the same bits; a singular or non-finite J is reported (np.linalg.solve raises)
-    from refsim.solvers.newton import _PIVOT_DTYPE, _gesv, _lu_direction_into
+    from refsim.solvers.linear import PIVOT_DTYPE, _gesv, _lu_direction_into
 
     rng = np.random.default_rng(size)
     matrix = rng.standard_normal((size, size))
     rhs = rng.standard_normal(size)
-    work, out, pivots = np.empty((size, size)), np.empty(size), np.empty(size, dtype=_PIVOT_DTYPE)
+    work, out, pivots = np.empty((size, size)), np.empty(size), np.empty(size, dtype=PIVOT_DTYPE)
     direction, ok = _lu_direction_into(matrix, rhs, work, out, pivots)
     reference = _gesv(matrix, rhs)
     assert ok
