@@ -2,8 +2,8 @@
 
 Exit codes: 0 success; 1 a verification case failed; 2 bad input (scene, file, option; nothing is written);
 3 the simulation stopped on a detected numerical problem or a failed write (the results file keeps every
-completed step, complete = false, the reason in stop_reason); 130 interrupted by SIGINT, 143 by SIGTERM (same).
-No command prints a traceback: unexpected errors are reported in one line (-v logs the traceback).
+completed step, complete = false, the reason in stop_reason); 130 interrupted by SIGINT, 143 by SIGTERM
+(same). No command prints a traceback: unexpected errors are reported in one line (-v logs the traceback).
 """
 
 from __future__ import annotations
@@ -44,7 +44,9 @@ class _Progress:
             sys.stderr.flush()
         elif int(10 * fraction) > self._last_decile:
             self._last_decile = int(10 * fraction)
-            sys.stderr.write(f"{done}/{self.total} steps ({100 * fraction:.0f}%), {rate:.1f} steps/s, {phase}\n")
+            sys.stderr.write(
+                f"{done}/{self.total} steps ({100 * fraction:.0f}%), {rate:.1f} steps/s, {phase}\n"
+            )
 
 
 _FIGURE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -60,19 +62,30 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.figure:  # checked before the run, not after it
         figure = Path(args.figure)
         if figure.suffix.lower() not in _FIGURE_SUFFIXES:
-            raise ValueError(f"--figure {figure}: expected a picture file ending in {', '.join(_FIGURE_SUFFIXES)}")
+            raise ValueError(
+                f"--figure {figure}: expected a picture file ending in {', '.join(_FIGURE_SUFFIXES)}"
+            )
         if figure.resolve() == output.resolve():
             raise ValueError(f"--figure {figure}: is the results file (-o)")
         check_output_path(figure, overwrite=True, what="figure")
     progress = _Progress(scene.time.step_count, enabled=not args.quiet)
-    summary = run_scene(scene, output, overwrite=args.overwrite,
-                        progress=lambda done, total, phase: progress.update(done, phase))
+    summary = run_scene(
+        scene,
+        output,
+        overwrite=args.overwrite,
+        progress=lambda done, total, phase: progress.update(done, phase),
+    )
     if summary.status in ("interrupted", "terminated"):
-        print(f"\nrefsim run: {summary.stop_reason}; {summary.steps_written} completed steps kept in {output}",
-              file=sys.stderr)
+        print(
+            f"\nrefsim run: {summary.stop_reason}; {summary.steps_written} completed steps kept in {output}",
+            file=sys.stderr,
+        )
     elif summary.status != "complete":
-        print(f"refsim run: error: {summary.stop_reason}; {summary.steps_written} completed steps kept in "
-              f"{output} (complete = false)", file=sys.stderr)
+        print(
+            f"refsim run: error: {summary.stop_reason}; {summary.steps_written} completed steps kept in "
+            f"{output} (complete = false)",
+            file=sys.stderr,
+        )
     print(f"scene {scene.name} ({scene.source}) -> {output}")
     if summary.status != "write_failed":  # the sidecar writes into the results file: not on a full disk
         _write_sidecar(output)
@@ -114,18 +127,34 @@ def _cmd_study(args: argparse.Namespace) -> int:
     else:
         if not args.sweep:
             raise ValueError(f"{args.target}: give --sweep section.key=v1,v2,... (or a study file .toml)")
-        spec = study_from_options(args.target, args.sweep, combine="zip" if args.zip else "product",
-                                  overrides=args.set or (), quantities=args.quantity,
-                                  reference=args.reference, name=args.name)
+        spec = study_from_options(
+            args.target,
+            args.sweep,
+            combine="zip" if args.zip else "product",
+            overrides=args.set or (),
+            quantities=args.quantity,
+            reference=args.reference,
+            name=args.name,
+        )
     output = Path(args.output) if args.output else Path(f"{spec.name}_study.h5")
-    study = run_study(spec, output, scheduler=args.scheduler, workers=args.workers, progress=not args.quiet,
-                      warm_up=not args.no_warm_up)
+    study = run_study(
+        spec,
+        output,
+        scheduler=args.scheduler,
+        workers=args.workers,
+        progress=not args.quiet,
+        warm_up=not args.no_warm_up,
+    )
     runs = study["runs"]
-    print(f"study {spec.name}: {len(runs['id'])} runs, {study['attributes']['runs_complete']} complete, "
-          f"{study['attributes']['runs_failed']} failed -> {output}")
+    print(
+        f"study {spec.name}: {len(runs['id'])} runs, {study['attributes']['runs_complete']} complete, "
+        f"{study['attributes']['runs_failed']} failed -> {output}"
+    )
     for row in study["convergence"]:
-        print(f"  {row['key']:<22} {row['quantity']:<26} {row['kind']:<11} order {row['order']:7.3f}  "
-              f"extrapolated {row['extrapolated']:.6g}  GCI {100 * row['gci']:.3g}%")
+        print(
+            f"  {row['key']:<22} {row['quantity']:<26} {row['kind']:<11} order {row['order']:7.3f}  "
+            f"extrapolated {row['extrapolated']:.6g}  GCI {100 * row['gci']:.3g}%"
+        )
     return 0 if study["attributes"]["runs_failed"] == 0 else EXIT_SIMULATION
 
 
@@ -141,8 +170,10 @@ def _cmd_export(args: argparse.Namespace) -> int:
         print(f"wrote {write_xdmf(result)}")
     if args.problems:
         summary = export_problems(result, args.problems, fclib_folder=args.fclib)
-        print(f"wrote {summary['problems']} problems with their exact solutions to {args.problems}"
-              + (f"; {len(summary['fclib'])} FCLib files in {args.fclib}" if args.fclib else ""))
+        print(
+            f"wrote {summary['problems']} problems with their exact solutions to {args.problems}"
+            + (f"; {len(summary['fclib'])} FCLib files in {args.fclib}" if args.fclib else "")
+        )
         if summary["unconverged"]:
             print(f"  exact solve above tolerance at steps {summary['unconverged']}", file=sys.stderr)
     if args.csv:
@@ -165,7 +196,8 @@ def _cmd_verify(args: argparse.Namespace) -> int:
 
 
 def _run_for_bench(scene):
-    """Run a scene, keeping what the strategy comparison needs: summary, tissue positions, needle force, events."""
+    """Run a scene, keeping what the strategy comparison needs: summary, tissue positions, needle force,
+    events."""
     from refsim.simulation import Simulation
     from refsim.simulation.summary import RunSummary
 
@@ -194,22 +226,31 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if args.against_exact and "exact" not in strategies:
             strategies = ["exact", *strategies]
         reference_ms = bench.superlu_reference_ms(bench.cube_model(8))
-        print(f"reference: one SuperLU (COLAMD) factorisation of the cube's matrix, this run: {reference_ms:.2f} ms")
+        print(
+            f"reference: one SuperLU (COLAMD) factorisation of the cube's matrix, this run: "
+            f"{reference_ms:.2f} ms"
+        )
         runs = {}
         for strategy in strategies:
             key, _, update = strategy.partition("_")
             update = update or "pcg"
             overrides = [*(args.set or ()), f'compliance.strategy="{key}"', f'compliance.w_update="{update}"']
             scene = load_scene(args.scene, overrides)
-            # The machine's load changes: the reference is timed again beside each run (the mean of before and after).
+            # The machine's load changes: the reference is timed again beside each run (the mean of before and
+            # after).
             before = bench.superlu_reference_ms(bench.cube_model(8))
             summary, kept = _run_for_bench(scene)
             reference_ms = 0.5 * (before + bench.superlu_reference_ms(bench.cube_model(8)))
             runs[strategy] = kept
             per_step = 1e3 * summary.seconds / max(summary.steps, 1)
-            print(f"\nscene {scene.name}, compliance {strategy} (w_update {update}, refresh_every {scene.compliance.refresh_every}): "
-                  f"solver {scene.solver.method}, tolerance {scene.solver.tolerance:g}; {per_step:.2f} ms per step, "
-                  f"{per_step / reference_ms:.2f} of the SuperLU factorisation ({reference_ms:.2f} ms around this run)")
+            print(
+                f"\nscene {scene.name}, compliance {strategy} (w_update {update}, refresh_every "
+                f"{scene.compliance.refresh_every}): "
+                f"solver {scene.solver.method}, tolerance {scene.solver.tolerance:g}; {per_step:.2f} ms per "
+                f"step, "
+                f"{per_step / reference_ms:.2f} of the SuperLU factorisation ({reference_ms:.2f} ms around "
+                f"this run)"
+            )
             print(summary.format_table())
             if summary.cut_points:
                 print(summary.format_cut())
@@ -219,21 +260,45 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 if strategy == "exact":
                     continue
                 errors = bench.compare_runs(runs["exact"], kept)
-                print(f"  {strategy:<12} position {errors['position_error']:.3e} m, force {errors['force_error']:.3e} N "
-                      f"(peak {errors['peak_force']:.4g} N), events {'same' if errors['same_events'] else 'DIFFER: '}"
-                      f"{errors.get('event_shift', '')}")
+                print(
+                    f"  {strategy:<12} position {errors['position_error']:.3e} m, force "
+                    f"{errors['force_error']:.3e} N "
+                    f"(peak {errors['peak_force']:.4g} N), events "
+                    f"{'same' if errors['same_events'] else 'DIFFER: '}"
+                    f"{errors.get('event_shift', '')}"
+                )
     if args.tissue or not args.scene:
         strategies = tuple(
-            args.strategies or ("exact", "refreshed", "refreshed_first_order", "refreshed_stale", "precomputed")
+            args.strategies
+            or ("exact", "refreshed", "refreshed_first_order", "refreshed_stale", "precomputed")
         )
         reference_ms, rows = bench.bench_strategies(8, strategies=strategies, against_exact=True)
-        print(f"\ntissue step on the paper's cube (8 cells per axis, bottom sheared 1 cm over the run), ms per step; "
-              f"SuperLU (COLAMD) factorisation of its matrix, this run: {reference_ms:.2f} ms")
+        print(
+            f"\ntissue step on the paper's cube (8 cells per axis, bottom sheared 1 cm over the run), ms per "
+            f"step; "
+            f"SuperLU (COLAMD) factorisation of its matrix, this run: {reference_ms:.2f} ms"
+        )
         for row in rows:
             row["ratio_to_superlu"] = row["total_ms"] / reference_ms
-        print(bench.format_rows(rows, ["strategy", "assembly_ms", "factorisation_ms", "free_solve_ms", "compliance_ms",
-                                       "correction_ms", "total_ms", "ratio_to_superlu", "pcg_iterations",
-                                       "free_motion_error", "compliance_error", "correction_error"]))
+        print(
+            bench.format_rows(
+                rows,
+                [
+                    "strategy",
+                    "assembly_ms",
+                    "factorisation_ms",
+                    "free_solve_ms",
+                    "compliance_ms",
+                    "correction_ms",
+                    "total_ms",
+                    "ratio_to_superlu",
+                    "pcg_iterations",
+                    "free_motion_error",
+                    "compliance_error",
+                    "correction_error",
+                ],
+            )
+        )
         scaling = bench.bench_scaling(tuple(args.cells))
         print("\nscaling (refreshed: every 10 steps), ms per step; *_compliance_ms: W and the correction")
         print(bench.format_rows(scaling))
@@ -287,29 +352,53 @@ def _parser() -> argparse.ArgumentParser:
     bench = commands.add_parser("bench", help="time a scene (the paper's Table 1) and the tissue model")
     bench.add_argument("scene", nargs="?", help="scene to time; without it, only the tissue model bench")
     bench.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override a scene value")
-    bench.add_argument("--tissue", action="store_true", help="also time the tissue step per strategy and its scaling")
-    bench.add_argument("--cells", type=int, nargs="+", default=[8, 12, 16, 24],
-                       help="cells per axis of the scaling table (default 8 12 16 24)")
-    bench.add_argument("--strategies", nargs="+", choices=STRATEGY_CHOICES,
-                       help="compliance strategies to time (scene: exact, refreshed, precomputed)")
-    bench.add_argument("--against-exact", action="store_true",
-                       help="also run the scene exactly and report each strategy's errors (positions, forces, events)")
+    bench.add_argument(
+        "--tissue", action="store_true", help="also time the tissue step per strategy and its scaling"
+    )
+    bench.add_argument(
+        "--cells",
+        type=int,
+        nargs="+",
+        default=[8, 12, 16, 24],
+        help="cells per axis of the scaling table (default 8 12 16 24)",
+    )
+    bench.add_argument(
+        "--strategies",
+        nargs="+",
+        choices=STRATEGY_CHOICES,
+        help="compliance strategies to time (scene: exact, refreshed, precomputed)",
+    )
+    bench.add_argument(
+        "--against-exact",
+        action="store_true",
+        help="also run the scene exactly and report each strategy's errors (positions, forces, events)",
+    )
     bench.set_defaults(handler=_cmd_bench)
 
     render = commands.add_parser("render", help="off-screen picture (or animation) of a results file")
     render.add_argument("result")
     render.add_argument("-o", "--output", help="picture to write (.png)")
     render.add_argument("--step", type=int, default=None, help="step to show (default: last)")
-    render.add_argument("--camera", default=None,
-                        help="view direction from the focus to the camera: auto (default: face the cut, else "
-                             "beside the needle), iso, xy, yx, xz, zx, yz, zy, or x,y,z")
-    render.add_argument("--view-up", default=None, metavar="X,Y,Z", help="up direction (default: needle base up)")
+    render.add_argument(
+        "--camera",
+        default=None,
+        help="view direction from the focus to the camera: auto (default: face the cut, else "
+        "beside the needle), iso, xy, yx, xz, zx, yz, zy, or x,y,z",
+    )
+    render.add_argument(
+        "--view-up", default=None, metavar="X,Y,Z", help="up direction (default: needle base up)"
+    )
     render.add_argument("--zoom", type=float, default=1.0, help="magnification after the framing (default 1)")
-    render.add_argument("--focus", default="auto",
-                        help="what to frame: auto (needle's inserted part, insertion points, cut), needle, cut, "
-                             "tissue, or a point x,y,z [m]")
+    render.add_argument(
+        "--focus",
+        default="auto",
+        help="what to frame: auto (needle's inserted part, insertion points, cut), needle, cut, "
+        "tissue, or a point x,y,z [m]",
+    )
     render.add_argument("--animate", metavar="OUT", help="also write an animation (.gif or .mp4)")
-    render.add_argument("--every", type=int, default=1, metavar="K", help="animation: one frame every K steps")
+    render.add_argument(
+        "--every", type=int, default=1, metavar="K", help="animation: one frame every K steps"
+    )
     render.add_argument("--fps", type=float, default=10.0, help="animation: frames per second (default 10)")
     render.set_defaults(handler=_cmd_render)
 
@@ -320,18 +409,29 @@ def _parser() -> argparse.ArgumentParser:
 
     study = commands.add_parser("study", help="parameter sweep on Dask (a LocalCluster, or --scheduler)")
     study.add_argument("target", help="study file (.toml), or a scene (file or built-in name) with --sweep")
-    study.add_argument("--sweep", action="append", metavar="SECTION.KEY=V1,V2,...", help="values of a scene key")
-    study.add_argument("--zip", action="store_true", help="pair the i-th values of every sweep (default: product)")
+    study.add_argument(
+        "--sweep", action="append", metavar="SECTION.KEY=V1,V2,...", help="values of a scene key"
+    )
+    study.add_argument(
+        "--zip", action="store_true", help="pair the i-th values of every sweep (default: product)"
+    )
     study.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override for every run")
     study.add_argument("--quantity", action="append", help="quantity of interest (refsim.sweep.quantities)")
-    study.add_argument("--reference", action="append", metavar="SECTION.KEY=VALUE",
-                       help="override of the reference run (errors are taken against it)")
+    study.add_argument(
+        "--reference",
+        action="append",
+        metavar="SECTION.KEY=VALUE",
+        help="override of the reference run (errors are taken against it)",
+    )
     study.add_argument("--name", help="study name (default: the scene's)")
     study.add_argument("-o", "--output", help="study file (.h5); runs go to <stem>_runs/ beside it")
     study.add_argument("--scheduler", help="address of a running Dask scheduler, e.g. tcp://host:8786")
     study.add_argument("--workers", type=int, help="LocalCluster worker processes (default: the cores)")
-    study.add_argument("--no-warm-up", action="store_true",
-                       help="no untimed warm-up run per worker (the first run then includes kernel compilation)")
+    study.add_argument(
+        "--no-warm-up",
+        action="store_true",
+        help="no untimed warm-up run per worker (the first run then includes kernel compilation)",
+    )
     study.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     study.set_defaults(handler=_cmd_study)
 
@@ -339,7 +439,9 @@ def _parser() -> argparse.ArgumentParser:
     export.add_argument("result")
     export.add_argument("--xdmf", action="store_true", help="write RESULT.xdmf beside the file (ParaView)")
     export.add_argument("--problems", metavar="OUT.h5", help="recorded problems with exact solutions")
-    export.add_argument("--fclib", metavar="FOLDER", help="with --problems: FCLib files of pure-contact steps")
+    export.add_argument(
+        "--fclib", metavar="FOLDER", help="with --problems: FCLib files of pure-contact steps"
+    )
     export.add_argument("--csv", metavar="OUT.csv", help="needle force history")
     export.set_defaults(handler=_cmd_export)
     return parser
@@ -348,7 +450,9 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `refsim` console script; returns the exit code."""
     args = _parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
+    )
     try:
         return args.handler(args)
     except (ValueError, OSError) as error:  # SceneError, MeshError, RunInputError, paths
@@ -359,8 +463,11 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_INTERRUPTED
     except Exception as error:  # noqa: BLE001 - never a traceback; -v logs it
         logger.debug("unexpected error", exc_info=True)
-        print(f"refsim {args.command}: internal error: {type(error).__name__}: {error} (rerun with -v for the "
-              "traceback, and report it)", file=sys.stderr)
+        print(
+            f"refsim {args.command}: internal error: {type(error).__name__}: {error} (rerun with -v for the "
+            "traceback, and report it)",
+            file=sys.stderr,
+        )
         return EXIT_INPUT
 
 

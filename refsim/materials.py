@@ -2,10 +2,10 @@
 
 :data:`MATERIAL_LIMITS` is the single source of the valid range of each material constant: the
 :class:`HookeMaterial` record checks against it, the scene keys of the tissue and the needle take their range
-from it (``refsim.scene.spec``), and the needle's cross-section (``refsim.fem.needle.NeedleSection``) validates
-its material by building a :class:`HookeMaterial`. The upper bounds are physical (no solid is stiffer than
-diamond, 1.2e12 Pa, or denser than osmium, 22.6e3 kg/m³) with a margin, so that an overflowing value such as a
-density of 1e300 kg/m³ is refused before a run rather than found as inf forces in it.
+from it (``refsim.scene.spec``), and the needle's cross-section (``refsim.fem.needle.NeedleSection``)
+validates its material by building a :class:`HookeMaterial`. The upper bounds are physical (no solid is
+stiffer than diamond, 1.2e12 Pa, or denser than osmium, 22.6e3 kg/m³) with a margin, so that an overflowing
+value such as a density of 1e300 kg/m³ is refused before a run rather than found as inf forces in it.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from dataclasses import dataclass
 __all__ = ["HookeMaterial", "MATERIAL_LIMITS", "check_material_value"]
 
 #: Valid range of each material constant: keyword arguments of ``refsim.scene.fields.spec`` (unit, low, high,
-#: open ends). Young's modulus (0, 1e13] Pa; Poisson's ratio (−1, 0.5) (0.5, incompressible, has no finite first
-#: Lamé parameter); density (0, 1e5] kg/m³.
+# : open ends). Young's modulus (0, 1e13] Pa; Poisson's ratio (−1, 0.5) (0.5, incompressible, has no finite
+# first : Lamé parameter); density (0, 1e5] kg/m³.
 MATERIAL_LIMITS = {
     "youngs_modulus": dict(unit="Pa", low=0.0, high=1e13, low_open=True),
     "poisson_ratio": dict(unit="-", low=-1.0, high=0.5, low_open=True, high_open=True),

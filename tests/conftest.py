@@ -15,11 +15,21 @@ from refsim.scene import load_scene
 # examples, many more of them: HYPOTHESIS_PROFILE=slow python -m pytest tests/geometry tests/fuzz
 # Tests give no max_examples of their own (or scale the profile's, see tests/fuzz), so the profile decides.
 settings.register_profile(
-    "ci", max_examples=40, derandomize=True, database=None, deadline=None, print_blob=True,
+    "ci",
+    max_examples=40,
+    derandomize=True,
+    database=None,
+    deadline=None,
+    print_blob=True,
     suppress_health_check=[HealthCheck.too_slow],
 )
 settings.register_profile(
-    "slow", max_examples=2000, derandomize=False, database=None, deadline=None, print_blob=True,
+    "slow",
+    max_examples=2000,
+    derandomize=False,
+    database=None,
+    deadline=None,
+    print_blob=True,
     suppress_health_check=[HealthCheck.too_slow],
 )
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))

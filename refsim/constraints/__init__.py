@@ -2,7 +2,12 @@
 
 from refsim.constraints.friction import FrictionRows, friction_rows, slip_gaps
 from refsim.constraints.insertion import InsertionPath, grow_path, insertion_block, points_beyond_tip
-from refsim.constraints.needle_geometry import BeamNeedleGeometry, NeedleGeometry, RigidNeedleGeometry, needle_rows
+from refsim.constraints.needle_geometry import (
+    BeamNeedleGeometry,
+    NeedleGeometry,
+    RigidNeedleGeometry,
+    needle_rows,
+)
 from refsim.constraints.penetration import SurfaceContact, find_surface_contact, penetration_block
 from refsim.constraints.rows import (
     BILATERAL,

@@ -1,9 +1,10 @@
 """The well-posed needle–tissue coupling (issue 9): ring-averaged rows with a sub-grid compliance.
 
 The paper couples the needle to tissue points on its centreline, one point every d_i. In P1 tetrahedra that
-line has no definite stiffness: it behaves like a rigid cylinder of radius a_eq ≈ 0.3–0.7 h (depending on where
-the line crosses the cells), so its force falls like 1/ln(R/h) under refinement, and rows closer than h are
-redundant (W singular, multipliers not unique). Here, instead (derivation and calibration in docs/coupling.md):
+line has no definite stiffness: it behaves like a rigid cylinder of radius a_eq ≈ 0.3–0.7 h (depending on
+where the line crosses the cells), so its force falls like 1/ln(R/h) under refinement, and rows closer than h
+are redundant (W singular, multipliers not unique). Here, instead (derivation and calibration in
+docs/coupling.md):
 
 1. **Ring averaging.** Each insertion point's rows measure the *mean* tissue displacement over a ring of
    ``ring_count(ρ_c, h)`` material points at the coupling radius ρ_c = max(r, h) around the centreline
@@ -84,10 +85,10 @@ COUPLINGS = ("ring", "paper")
 LINE_EQUIVALENT_RADIUS_RANGE = {"lateral": (0.28, 0.71), "axial": (0.20, 0.60)}
 
 # Calibrated equivalent radius a_c/h of a ring of radius ρ/h: refsim.verification.coupling.calibrate_rings
-# (a 32 × 32 × 2 box of Kuhn cells with the exact line-load field on its sides, d_i = h/4, mean over 4 positions of
-# the centreline in its cell; the spread max/min − 1 over positions is at most 4.4 % lateral, 5.2 % axial, at
-# ρ = 1.25 h, and 2.2 %, 2.8 % at ρ = h). Columns: ρ/h, lateral a_c/h, axial a_c/h. For ρ ≥ h, a_c ≈ ρ + 0.25 h
-# (lateral), ρ + 0.19 h (axial); beyond the last row a_c − ρ is held at its last value.
+# (a 32 × 32 × 2 box of Kuhn cells with the exact line-load field on its sides, d_i = h/4, mean over 4
+# positions of the centreline in its cell; the spread max/min − 1 over positions is at most 4.4 % lateral, 5.2
+# % axial, at ρ = 1.25 h, and 2.2 %, 2.8 % at ρ = h). Columns: ρ/h, lateral a_c/h, axial a_c/h. For ρ ≥ h, a_c
+# ≈ ρ + 0.25 h (lateral), ρ + 0.19 h (axial); beyond the last row a_c − ρ is held at its last value.
 RING_EQUIVALENT_RADIUS = np.array(
     [
         [1.00, 1.2718, 1.1975],
@@ -226,12 +227,15 @@ def subgrid_compliance(
     a_axial = equivalent_radius(radius, mesh_size, "axial")
     nu = poisson_ratio
     if line_extent is None:
-        lateral = (3.0 - 4.0 * nu) * np.log(a_lateral / needle_radius) / (
-            8.0 * math.pi * shear_modulus * (1.0 - nu) * spacing
+        lateral = (
+            (3.0 - 4.0 * nu)
+            * np.log(a_lateral / needle_radius)
+            / (8.0 * math.pi * shear_modulus * (1.0 - nu) * spacing)
         )
         axial = np.log(a_axial / needle_radius) / (2.0 * math.pi * shear_modulus * spacing)
-        return _surface_rows_zero(np.where(kinds == LATERAL, lateral, axial), mesh_size, needle_radius,
-                                  surface_subgrid)
+        return _surface_rows_zero(
+            np.where(kinds == LATERAL, lateral, axial), mesh_size, needle_radius, surface_subgrid
+        )
     before, after = (np.broadcast_to(np.asarray(t, dtype=float), kinds.shape) for t in line_extent)
     if np.any(~(before >= 0.0)) or np.any(~(after >= 0.0)):
         raise ValueError(f"line_extent = {line_extent!r} m; valid range [0, inf)")
@@ -239,15 +243,18 @@ def subgrid_compliance(
     for kind, code, outer in (("lateral", LATERAL, a_lateral), ("axial", AXIAL, a_axial)):
         rows = kinds == code
         if np.any(rows):
-            out[rows] = finite_line_annulus(
-                kind,
-                shear_modulus=shear_modulus,
-                poisson_ratio=nu,
-                inner=needle_radius,
-                outer=outer[rows],
-                before=before[rows],
-                after=after[rows],
-            ) / spacing[rows]
+            out[rows] = (
+                finite_line_annulus(
+                    kind,
+                    shear_modulus=shear_modulus,
+                    poisson_ratio=nu,
+                    inner=needle_radius,
+                    outer=outer[rows],
+                    before=before[rows],
+                    after=after[rows],
+                )
+                / spacing[rows]
+            )
     return _surface_rows_zero(out, mesh_size, needle_radius, surface_subgrid)
 
 
@@ -268,7 +275,8 @@ _ANGLE_WEIGHTS = _U_WEIGHTS * _U  # (1/π) dθ = 2u du, and du = dx/2
 
 
 def _ring_line_means(extent: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Ring means A = ⟨asinh(t/D)⟩ and B = ⟨t/√(t² + D²)⟩ over the chord D = 2ρ sin(θ/2) of a ring (ρ), shape (k,).
+    """Ring means A = ⟨asinh(t/D)⟩ and B = ⟨t/√(t² + D²)⟩ over the chord D = 2ρ sin(θ/2) of a ring (ρ), shape
+    (k,).
 
     asinh(t/D) = −ln D + ln(t + √(t² + D²)) and ⟨ln D⟩ = ln ρ exactly (the mean of ln|2 sin(θ/2)| is 0), so
     only smooth terms are integrated numerically.
@@ -294,16 +302,16 @@ def finite_line_annulus(
 ) -> np.ndarray:
     """3-D compliance of the annulus r … a under a uniform line load on a finite straight line [m²/N].
 
-    The mean displacement, over a ring of radius ρ at a point of the line, of a uniform load F′ on rings of the
-    same radius along the line, from t₁ before the point to t₂ after it (Kelvin's solution integrated; the
+    The mean displacement, over a ring of radius ρ at a point of the line, of a uniform load F′ on rings of
+    the same radius along the line, from t₁ before the point to t₂ after it (Kelvin's solution integrated; the
     ring-mean of R_x² is D²/2 with D the chord), per unit F′:
 
         lateral:  U_ρ = Σ_{t ∈ (t₁, t₂)} [(3 − 4ν) ⟨asinh(t/D)⟩ + ½ ⟨t/√(t² + D²)⟩] / (16πG(1 − ν)),
         axial:    U_ρ = Σ_{t ∈ (t₁, t₂)} [(4 − 4ν) ⟨asinh(t/D)⟩ − ⟨t/√(t² + D²)⟩] / (16πG(1 − ν)).
 
-    Returns U_r − U_a (> 0 for a > r). For t₁, t₂ → ∞ it tends to the plane-strain (3 − 4ν) ln(a/r) / (8πG(1−ν))
-    and the antiplane ln(a/r) / (2πG); a line shorter than a gives less (the missing annulus of a short line is
-    not a 2-D annulus). The free surface is not modelled (an infinite medium).
+    Returns U_r − U_a (> 0 for a > r). For t₁, t₂ → ∞ it tends to the plane-strain (3 − 4ν) ln(a/r) /
+    (8πG(1−ν)) and the antiplane ln(a/r) / (2πG); a line shorter than a gives less (the missing annulus of a
+    short line is not a 2-D annulus). The free surface is not modelled (an infinite medium).
 
     Parameters
     ----------
@@ -377,7 +385,8 @@ class RingLayout:
 
     @classmethod
     def merged(cls, first: RingLayout, second: RingLayout, take_first: np.ndarray) -> RingLayout:
-        """Rings of points in order, from ``first`` where ``take_first`` (bool (p,)) and ``second`` elsewhere."""
+        """Rings of points in order, from ``first`` where ``take_first`` (bool (p,)) and ``second``
+        elsewhere."""
         take_first = np.asarray(take_first, dtype=bool)
 
         def merge(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -414,8 +423,8 @@ class RingLayout:
         radius = coupling_radius(needle_radius, sizes)
         count = ring_count(float((radius / sizes).max()), 1.0)
         points = ring_points(centres, tangents, radius, count)
-        # Points within 1e-6 h outside count as inside: a ring lying in the surface (a needle normal to it) must
-        # not lose its points to round-off of the tangent.
+        # Points within 1e-6 h outside count as inside: a ring lying in the surface (a needle normal to it)
+        # must not lose its points to round-off of the tangent.
         tets, barycentric = locator.locate(points.reshape(-1, 3), tolerance=SURFACE_TOLERANCE)
         return cls(
             tets.reshape(path.point_count, count),
@@ -435,11 +444,11 @@ def ring_insertion_block(
 ) -> RowBlock:
     """Rows of the insertion points, each averaging the tissue over its ring (see module docstring).
 
-    Like :func:`refsim.constraints.insertion.insertion_block` (per point two bilateral rows and, with μ > 0, one
-    shaft friction row, ordered point by point), but the tissue side of every row is the mean of the ring points'
-    interpolations. A ring point is kept only with its antipode (a ring cut by the surface stays centred on the
-    needle); a point left without a pair uses its centre. The needle point of each row is the projection of the
-    centre at the start of the step.
+    Like :func:`refsim.constraints.insertion.insertion_block` (per point two bilateral rows and, with μ > 0,
+    one shaft friction row, ordered point by point), but the tissue side of every row is the mean of the ring
+    points' interpolations. A ring point is kept only with its antipode (a ring cut by the surface stays
+    centred on the needle); a point left without a pair uses its centre. The needle point of each row is the
+    projection of the centre at the start of the step.
 
     Parameters
     ----------
@@ -532,11 +541,11 @@ def insertion_compliance(
     """The sub-grid compliance of an insertion block's rows [m/N], shape (row_count,).
 
     Bilateral rows are lateral, friction rows axial; ``mesh_size`` (p,) is each point's h
-    (:attr:`RingLayout.mesh_size`), repeated over the point's rows (the block's rows are ordered point by point).
-    ``arc_lengths`` (p,): the points' arc lengths on the needle [m]; given, the loaded line is the inserted
-    needle, from the first point − d_i/2 to the last + d_i/2 (each point stands for d_i), and the compliance is
-    the 3-D one of that finite line (:func:`finite_line_annulus`); None: an infinite line (the 2-D values).
-    ``surface_subgrid`` False: no compliance for points coupled on the needle's surface (see
+    (:attr:`RingLayout.mesh_size`), repeated over the point's rows (the block's rows are ordered point by
+    point). ``arc_lengths`` (p,): the points' arc lengths on the needle [m]; given, the loaded line is the
+    inserted needle, from the first point − d_i/2 to the last + d_i/2 (each point stands for d_i), and the
+    compliance is the 3-D one of that finite line (:func:`finite_line_annulus`); None: an infinite line (the
+    2-D values). ``surface_subgrid`` False: no compliance for points coupled on the needle's surface (see
     :func:`subgrid_compliance`).
     """
     per_point = rows.row_count // max(1, np.asarray(mesh_size).size)
@@ -623,7 +632,8 @@ def grip_preload(
     return 2.0 * math.pi * radius * pressure * spacing
 
 
-# ------------------------------------------------------------------ friction, tip cutting force, puncture (3–5)
+# ------------------------------------------------------------------ friction, tip cutting force, puncture
+# (3–5)
 def shaft_friction_coefficients(stuck: np.ndarray, *, static: float, dynamic: float) -> np.ndarray:
     """Per-point shaft friction coefficient: μ_s where the point stuck at the last step, μ_d where it slipped.
 
@@ -663,15 +673,15 @@ def tip_cutting_block(
     """The tip's cutting row after puncture: one row along the needle at the tip, its force in [0, f_cut].
 
     The row ties the needle tip to the tissue material point where the tip was at the start of the step
-    (``tip_tet``, ``tip_barycentric``), along n = −t (t the tip tangent), and measures the relative displacement
-    over the step (a friction row of :func:`refsim.constraints.friction.friction_rows`). Under the box law
-    [0, f_cut]: the tip sticks (δ = 0, the tissue deforms ahead of it) while the force is below f_cut, cuts
-    forward at exactly f_cut (δ ≤ 0), and is free when it retreats (λ = 0, δ ≥ 0).
+    (``tip_tet``, ``tip_barycentric``), along n = −t (t the tip tangent), and measures the relative
+    displacement over the step (a friction row of :func:`refsim.constraints.friction.friction_rows`). Under
+    the box law [0, f_cut]: the tip sticks (δ = 0, the tissue deforms ahead of it) while the force is below
+    f_cut, cuts forward at exactly f_cut (δ ≤ 0), and is free when it retreats (λ = 0, δ ≥ 0).
 
     Returns
     -------
-    (block, box_lower, box_upper) : one unilateral row (source PENETRATION: the tip's row) whose force_limit is
-    f_cut (the step's problem makes it the box [0, f_cut]), and those bounds, shape (1,) each.
+    (block, box_lower, box_upper) : one unilateral row (source PENETRATION: the tip's row) whose force_limit
+    is f_cut (the step's problem makes it the box [0, f_cut]), and those bounds, shape (1,) each.
     """
     if not (math.isfinite(cutting_force) and cutting_force > 0.0):
         raise ValueError(f"insertion.tip_cutting_force = {cutting_force!r} N; valid range (0, inf)")
@@ -726,10 +736,11 @@ def shaft_contact_block(
 ) -> RowBlock | None:
     """Unilateral rows keeping the needle's centreline out of the tissue before puncture (issue 9, item 6).
 
-    The shaft is sampled every ``spacing`` from the base to ``tip_clearance`` before the tip (the tip has its own
-    contact); each sample closer to the surface than ``contact_distance`` (or under it) gets one frictionless
-    unilateral row against its closest surface point, along the direction from that point to the sample (the
-    face's outward normal for a sample on or under the surface): δ = nᵀ(x_needle(s) − x_surface) ≥ 0.
+    The shaft is sampled every ``spacing`` from the base to ``tip_clearance`` before the tip (the tip has its
+    own contact); each sample closer to the surface than ``contact_distance`` (or under it) gets one
+    frictionless unilateral row against its closest surface point, along the direction from that point to the
+    sample (the face's outward normal for a sample on or under the surface): δ = nᵀ(x_needle(s) − x_surface) ≥
+    0.
 
     Parameters
     ----------

@@ -7,9 +7,9 @@
 - Sliding rows (φ_c): every needle sample (every d_c along the inserted length) whose projection falls inside
   the cut surface gets one bilateral row along the surface normal at its closest point.
 - Front rows (χ_c): every needle sample against the crack tip, along −ĉ normal to the needle, so the needle
-  stays behind the crack tip; their strength G_c × (the needle length each row stands for) makes the needle cut
-  through at G_c per unit length (the energy law), or, unbounded, they tear the cut by d_t when one reaches f_t
-  (the paper's law).
+  stays behind the crack tip; their strength G_c × (the needle length each row stands for) makes the needle
+  cut through at G_c per unit length (the energy law), or, unbounded, they tear the cut by d_t when one
+  reaches f_t (the paper's law).
 
 Rows are chosen and anchored on the state at the start of the step and linearised at the free positions. The
 growth of the cut is in :mod:`refsim.cutting.growth` and :mod:`refsim.cutting.strip`.
@@ -22,9 +22,17 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from refsim.constraints.needle_geometry import needle_rows
 from refsim.constraints.friction import friction_rows
-from refsim.constraints.rows import BILATERAL, CUT_BORDER, CUT_SLIDE, FRICTION, UNILATERAL, RowBlock, point_rows
+from refsim.constraints.needle_geometry import needle_rows
+from refsim.constraints.rows import (
+    BILATERAL,
+    CUT_BORDER,
+    CUT_SLIDE,
+    FRICTION,
+    UNILATERAL,
+    RowBlock,
+    point_rows,
+)
 from refsim.constraints.step_geometry import StepGeometry
 
 __all__ = ["FrontRows", "crack_tip_compression", "cut_criterion", "inserted_arc", "strip_cut_block"]
@@ -35,14 +43,14 @@ _MIN_NORMAL_COMPONENT = 0.5
 
 
 def inserted_arc(needle, locator, spacing: float, *, refinement: int = 16) -> float:
-    """Arc length [m] where the needle enters the tissue: the smallest s such that the centreline from s to the
-    tip lies in the tissue mesh (``locator``, a `refsim.geometry.TetLocator` on the configuration of
+    """Arc length [m] where the needle enters the tissue: the smallest s such that the centreline from s to
+    the tip lies in the tissue mesh (``locator``, a `refsim.geometry.TetLocator` on the configuration of
     ``needle``), to ``spacing / refinement``; the needle's length when the tip is outside.
 
-    This, not the projection of the entry point, bounds the inserted part of the needle while it cuts: a tilted
-    needle pushed sideways moves away from its entry point along the tissue surface, and the entry point's
-    projection then lies up to stroke × tan(tilt) above the tissue (2.2 mm for a 30° needle and a 5 mm stroke;
-    rows placed there pulled the needle onto the tissue surface: 10.8 N against 3.6 N).
+    This, not the projection of the entry point, bounds the inserted part of the needle while it cuts: a
+    tilted needle pushed sideways moves away from its entry point along the tissue surface, and the entry
+    point's projection then lies up to stroke × tan(tilt) above the tissue (2.2 mm for a 30° needle and a 5 mm
+    stroke; rows placed there pulled the needle onto the tissue surface: 10.8 N against 3.6 N).
     """
     length = needle.length
     arcs = np.arange(length, -0.5 * spacing, -spacing)  # from the tip to the base, every spacing
@@ -84,7 +92,8 @@ class FrontRows:
     segment : The crack-tip segment (columns j, j + 1) of each row, shape (f,).
     parameter : Position t ∈ [0, 1] on the segment, shape (f,).
     arc_lengths : The needle point of each row [m], shape (f,).
-    directions : Row directions n (in the cut, normal to the needle, pointing back into the cut), shape (f, 3).
+    directions : Row directions n (in the cut, normal to the needle, pointing back into the cut), shape (f,
+    3).
     band_rows : The sliding rows at the front (bounded at G_c ℓ_k: the needle cuts out of the plane there when
         they give way), indices in the block, shape (b,).
     band_segment : The crack-tip segment nearest each of them, shape (b,).
@@ -103,52 +112,65 @@ class FrontRows:
         return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros((0, 3)))
 
     def gaps(self, front_points: np.ndarray, needle) -> np.ndarray:
-        """δ = nᵀ(x_needle − x_tip) of each row for crack-tip points (q, 3) and a needle centreline [m], (f,)."""
+        """δ = nᵀ(x_needle − x_tip) of each row for crack-tip points (q, 3) and a needle centreline [m],
+        (f,)."""
         anchor = (1.0 - self.parameter)[:, None] * front_points[self.segment] + self.parameter[:, None] * (
             front_points[self.segment + 1]
         )
         return np.einsum("ij,ij->i", self.directions, needle.points(self.arc_lengths) - anchor)
 
 
-#: Fraction of the end segment's length beyond an end of the crack tip's polyline within which a needle sample still
-#: projects onto the polyline (see `_closest_on_polyline`).
+# : Fraction of the end segment's length beyond an end of the crack tip's polyline within which a needle
+# sample still : projects onto the polyline (see `_closest_on_polyline`).
 END_TOLERANCE = 1e-3
 
 
-def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _closest_on_polyline(
+    points: np.ndarray, polyline: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest segment, parameter t ∈ [0, 1] and whether the projection is interior (not clamped beyond an
     end of the polyline), for each point; shapes (k,), (k,), (k,)."""
     start, end = polyline[:-1], polyline[1:]
     along = end - start  # (s, 3)
     lengths = np.einsum("sj,sj->s", along, along)
-    raw = np.einsum("ksj,sj->ks", points[:, None, :] - start[None], along) / np.where(lengths > 0, lengths, 1.0)
+    raw = np.einsum("ksj,sj->ks", points[:, None, :] - start[None], along) / np.where(
+        lengths > 0, lengths, 1.0
+    )
     t = np.clip(raw, 0.0, 1.0)
     nearest = start[None] + t[..., None] * along[None]
     distance = np.linalg.norm(points[:, None, :] - nearest, axis=2)
     segment = np.argmin(distance, axis=1)
     rows = np.arange(points.shape[0])
     raw_t = raw[rows, segment]
-    # A point that projects onto an end within a thousandth of the end segment's length counts as interior: the
-    # crack tip's end columns are laid at the needle's tip and at the tissue surface, so the end samples project
-    # onto the polyline's ends by construction, and a tolerance at round-off (1e-9) made their rows come and go
-    # with the solver's last digits (cube_cut after the stroke: Gauss–Seidel and the exact mode differed by
-    # 0.066 N, 34 against 35 front rows, with the same events; 9.6e-5 N with this tolerance).
+    # A point that projects onto an end within a thousandth of the end segment's length counts as interior:
+    # the crack tip's end columns are laid at the needle's tip and at the tissue surface, so the end samples
+    # project onto the polyline's ends by construction, and a tolerance at round-off (1e-9) made their rows
+    # come and go with the solver's last digits (cube_cut after the stroke: Gauss–Seidel and the exact mode
+    # differed by 0.066 N, 34 against 35 front rows, with the same events; 9.6e-5 N with this tolerance).
     slack = END_TOLERANCE
-    interior = ~(((segment == 0) & (raw_t < -slack)) | ((segment == along.shape[0] - 1) & (raw_t > 1 + slack)))
+    interior = ~(
+        ((segment == 0) & (raw_t < -slack)) | ((segment == along.shape[0] - 1) & (raw_t > 1 + slack))
+    )
     return segment, t[rows, segment], interior
 
 
-def _cut_compliance(per_tet, slide_tets: np.ndarray, front_tets: np.ndarray, front_shares: np.ndarray,
-                    spacing: float, with_friction: bool) -> np.ndarray:
+def _cut_compliance(
+    per_tet,
+    slide_tets: np.ndarray,
+    front_tets: np.ndarray,
+    front_shares: np.ndarray,
+    spacing: float,
+    with_friction: bool,
+) -> np.ndarray:
     """Diagonal compliance of the block's rows [m/N]: sliding rows, front rows, friction rows (axial, then
     across), in that order; empty when no compliance is given.
 
-    ``per_tet`` holds the (lateral, axial) sub-grid compliance of a row standing for d_c = ``spacing`` of needle
-    in each tet. A front row stands for the inserted length ℓ_k of its sample (``front_shares``) and presses
-    laterally on the tissue at the crack tip: it gets the lateral compliance of the tet of its nearest crack-tip
-    column, scaled to its length, C_k = C(d_c) d_c / ℓ_k (a line load's compliance is inverse to its length).
-    Without it the front rows' W is singular where several rows act on the nodes of one crack-tip segment or
-    one tet (docs/cutting.md, "A well-posed cut block").
+    ``per_tet`` holds the (lateral, axial) sub-grid compliance of a row standing for d_c = ``spacing`` of
+    needle in each tet. A front row stands for the inserted length ℓ_k of its sample (``front_shares``) and
+    presses laterally on the tissue at the crack tip: it gets the lateral compliance of the tet of its nearest
+    crack-tip column, scaled to its length, C_k = C(d_c) d_c / ℓ_k (a line load's compliance is inverse to its
+    length). Without it the front rows' W is singular where several rows act on the nodes of one crack-tip
+    segment or one tet (docs/cutting.md, "A well-posed cut block").
     """
     if per_tet is None:
         return np.zeros(0)
@@ -158,8 +180,13 @@ def _cut_compliance(per_tet, slide_tets: np.ndarray, front_tets: np.ndarray, fro
     return np.concatenate(parts)
 
 
-def crack_tip_compression(rows: RowBlock, multipliers: np.ndarray, given_rows: np.ndarray,
-                          given_segments: np.ndarray, columns: np.ndarray) -> np.ndarray:
+def crack_tip_compression(
+    rows: RowBlock,
+    multipliers: np.ndarray,
+    given_rows: np.ndarray,
+    given_segments: np.ndarray,
+    columns: np.ndarray,
+) -> np.ndarray:
     """Where the tissue's material point in contact with the needle lies, relative to the needle's
     centreline, for crack-tip ``columns`` that the needle cuts through [m], shape (c, 3).
 
@@ -218,12 +245,12 @@ def strip_cut_block(
     Parameters
     ----------
     cut : The `refsim.cutting.CutSurface`.
-    strip : Its `refsim.cutting.strip.CutStrip`; None for a needle inserted along an existing cut (no crack tip:
-        sliding rows only, unbounded, for samples projecting inside it: beside an old cut's border the tissue is
-        intact).
+    strip : Its `refsim.cutting.strip.CutStrip`; None for a needle inserted along an existing cut (no crack
+        tip: sliding rows only, unbounded, for samples projecting inside it: beside an old cut's border the
+        tissue is intact).
     geometry : The step's geometry.
-    entry_arc_length : Arc length where the needle enters the tissue [m] (:func:`inserted_arc`); the samples run
-        from there to the tip (none, and no rows, when it is the needle's length: the tip is out).
+    entry_arc_length : Arc length where the needle enters the tissue [m] (:func:`inserted_arc`); the samples
+        run from there to the tip (none, and no rows, when it is the needle's length: the tip is out).
     spacing : d_c [m].
     cut_direction : ĉ (deformed), unit, shape (3,).
     front_strength : Force per unit length of needle at which the front gives way [N/m], > 0 (G_c; inf:
@@ -232,11 +259,11 @@ def strip_cut_block(
         the surface, along the needle and across it (along ĉ), each bounded by μ_c |λ| of its sliding row (the
         solvers' group-friction law: a square, not a disc, of admissible tangential forces), measuring the
         relative slip over the step (:func:`refsim.constraints.friction.friction_rows`).
-    subgrid_compliance : (lateral, axial) compliance [m/N] of a row standing for d_c of needle in each tissue tet,
-        shapes (tet_count,) each (:func:`refsim.constraints.coupling.subgrid_compliance` with the tet's own size):
-        added to each sliding row (lateral) and to its friction rows (axial along the needle, lateral across),
-        after the tet of the row's nearest cut point. It makes the sliding rows' multipliers unique (d_c ≪ h puts
-        many rows on one triangle). None: no compliance added.
+    subgrid_compliance : (lateral, axial) compliance [m/N] of a row standing for d_c of needle in each tissue
+        tet, shapes (tet_count,) each (:func:`refsim.constraints.coupling.subgrid_compliance` with the tet's
+        own size): added to each sliding row (lateral) and to its friction rows (axial along the needle,
+        lateral across), after the tet of the row's nearest cut point. It makes the sliding rows' multipliers
+        unique (d_c ≪ h puts many rows on one triangle). None: no compliance added.
 
     Rows are ordered: sliding rows, then front rows, then the friction rows (two per sliding row).
     """
@@ -251,11 +278,16 @@ def strip_cut_block(
     needle_free = geometry.needle_free.points(samples)
     blocks = []
 
-    front_previous = np.zeros((0, 3)) if strip is None else strip.front.positions(geometry.tissue_previous, tets)
+    front_previous = (
+        np.zeros((0, 3)) if strip is None else strip.front.positions(geometry.tissue_previous, tets)
+    )
     # The inserted length each sample stands for: [s − Δ/2, s + Δ/2] ∩ [entry, L].
     step = samples[1] - samples[0] if samples.size > 1 else spacing
-    shares = np.clip(np.minimum(samples + 0.5 * step, length) - np.maximum(samples - 0.5 * step, entry_arc_length),
-                     0.0, None)
+    shares = np.clip(
+        np.minimum(samples + 0.5 * step, length) - np.maximum(samples - 0.5 * step, entry_arc_length),
+        0.0,
+        None,
+    )
     slide_limits = np.zeros(0)
     band_rows, band_segment = np.zeros(0, np.int64), np.zeros(0, np.int64)
     slide_count = 0
@@ -301,19 +333,23 @@ def strip_cut_block(
             slide_count = inside.size
             # At the front (within 1.5 d_c of the crack tip) the needle has uncut tissue on every side but the
             # cut's: pushed out of the cut's plane it cuts through at G_c per unit
-            # length as it does ahead, so those sliding rows carry at most G_c ℓ_k (a needle whose stroke turns
-            # then turns the cut; held by unbounded rows there, an L-shaped stroke dragged the tissue sideways,
-            # 7.3 N against 3.6 N).
+            # length as it does ahead, so those sliding rows carry at most G_c ℓ_k (a needle whose stroke
+            # turns then turns the cut; held by unbounded rows there, an L-shaped stroke dragged the tissue
+            # sideways, 7.3 N against 3.6 N).
             slide_limits = np.full(inside.size, np.inf)
             if np.isfinite(front_strength) and front_previous.shape[0] >= 2:
                 segment, parameter, _ = _closest_on_polyline(needle_previous[inside], front_previous)
                 nearest_tip = (1.0 - parameter)[:, None] * front_previous[segment] + parameter[:, None] * (
-                    front_previous[segment + 1])
-                # (Not widened by the front's compression: so widened, the band took in every sliding row of the
-                # liver's rigid needle, whose crack tip lies 2.8 mm behind it, and the area the crack tip swept
-                # came out 230, 361, 203 mm² for d_c = 0.5, 1, 2 mm, against 199, 200, 203 mm² as it is.)
-                band = np.flatnonzero((np.linalg.norm(needle_previous[inside] - nearest_tip, axis=1) <= 1.5 * spacing)
-                                      & (shares[inside] > 1e-9 * step))
+                    front_previous[segment + 1]
+                )
+                # (Not widened by the front's compression: so widened, the band took in every sliding row of
+                # the liver's rigid needle, whose crack tip lies 2.8 mm behind it, and the area the crack tip
+                # swept came out 230, 361, 203 mm² for d_c = 0.5, 1, 2 mm, against 199, 200, 203 mm² as it
+                # is.)
+                band = np.flatnonzero(
+                    (np.linalg.norm(needle_previous[inside] - nearest_tip, axis=1) <= 1.5 * spacing)
+                    & (shares[inside] > 1e-9 * step)
+                )
                 slide_limits[band] = float(front_strength) * shares[inside][band]
                 band_rows, band_segment = band, segment[band]
 
@@ -332,9 +368,15 @@ def strip_cut_block(
             seg, t = segment[keep], parameter[keep]
             front_free = strip.front.positions(geometry.tissue_free, tets)
             anchor = (1.0 - t)[:, None] * front_free[seg] + t[:, None] * front_free[seg + 1]
-            nodes = np.concatenate([tets[strip.front.tet_indices[seg]], tets[strip.front.tet_indices[seg + 1]]], 1)
+            nodes = np.concatenate(
+                [tets[strip.front.tet_indices[seg]], tets[strip.front.tet_indices[seg + 1]]], 1
+            )
             node_weights = np.concatenate(
-                [(1.0 - t)[:, None] * strip.front.barycentric[seg], t[:, None] * strip.front.barycentric[seg + 1]], 1
+                [
+                    (1.0 - t)[:, None] * strip.front.barycentric[seg],
+                    t[:, None] * strip.front.barycentric[seg + 1],
+                ],
+                1,
             )
             blocks.append(
                 (
@@ -347,13 +389,21 @@ def strip_cut_block(
                     np.full(keep.size, CUT_BORDER),
                 )
             )
-            front_info = FrontRows(slide_count + np.arange(keep.size), seg, t, samples[keep], directions,
-                                   band_rows, band_segment)
+            front_info = FrontRows(
+                slide_count + np.arange(keep.size), seg, t, samples[keep], directions, band_rows, band_segment
+            )
             front_keep = keep
             front_tets = strip.front.tet_indices[np.where(t < 0.5, seg, seg + 1)]
     if front_info.rows.size == 0 and band_rows.size:
-        front_info = FrontRows(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0),
-                               np.zeros((0, 3)), band_rows, band_segment)
+        front_info = FrontRows(
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int64),
+            np.zeros(0),
+            np.zeros(0),
+            np.zeros((0, 3)),
+            band_rows,
+            band_segment,
+        )
     if not blocks:
         return None, front_info
     friction_count = 0
@@ -412,8 +462,9 @@ def strip_cut_block(
         points=np.concatenate([b[4] for b in blocks]),
         directions=np.concatenate([b[3] for b in blocks]),
         force_limit=limits if np.any(np.isfinite(limits)) else np.zeros(0),
-        compliance_diagonal=_cut_compliance(subgrid_compliance, slide_tets, front_tets, shares[front_keep], spacing,
-                                            friction_count > 0),
+        compliance_diagonal=_cut_compliance(
+            subgrid_compliance, slide_tets, front_tets, shares[front_keep], spacing, friction_count > 0
+        ),
         **groups,
     )
     return block, front_info

@@ -9,8 +9,8 @@ over the step,
 and its multiplier is bounded by a friction coefficient times the norm of the forces of a group of normal rows
 (plus a preload): the law "friction bounded by a group" of :mod:`refsim.solvers`. The Coulomb contact of the
 tip (two tangent rows bounded by its normal row) and the shaft friction of the insertion points (one axial row
-bounded by the two lateral rows, plus the tissue's grip) are both built by :func:`friction_rows`; so can be any
-friction on the cut surface.
+bounded by the two lateral rows, plus the tissue's grip) are both built by :func:`friction_rows`; so can be
+any friction on the cut surface.
 """
 
 from __future__ import annotations
@@ -40,10 +40,10 @@ def slip_gaps(
     Parameters
     ----------
     tangents : Unit tangents of the friction rows, shape (r, 3).
-    needle_free, needle_previous : Needle point of each row after free motion and at the start of the step [m],
-        shape (r, 3).
-    tissue_free, tissue_previous : Tissue point of each row after free motion and at the start of the step [m],
-        shape (r, 3).
+    needle_free, needle_previous : Needle point of each row after free motion and at the start of the step
+        [m], shape (r, 3).
+    tissue_free, tissue_previous : Tissue point of each row after free motion and at the start of the step
+        [m], shape (r, 3).
     """
     slip = (needle_free - needle_previous) - (tissue_free - tissue_previous)
     return np.einsum("ij,ij->i", np.asarray(tangents, dtype=float), slip)

@@ -3,9 +3,9 @@
 Each point is a material point of the tissue, anchored by the barycentric coordinates of its tet (found in the
 deformed state when the point is created, then fixed), and is coupled to the needle at its projection on the
 centreline: two bilateral rows in the plane normal to the needle (φ_i) and one shaft friction row along it
-(ψ_i), whose Coulomb bound is μ_i times the norm of the two bilateral forces (stick inside, slip at the bound),
-plus, optionally, μ_i times a normal preload per point: the tissue's radial grip on the needle, which a
-centreline model does not see (our extension; with a zero preload this is the paper's model).
+(ψ_i), whose Coulomb bound is μ_i times the norm of the two bilateral forces (stick inside, slip at the
+bound), plus, optionally, μ_i times a normal preload per point: the tissue's radial grip on the needle, which
+a centreline model does not see (our extension; with a zero preload this is the paper's model).
 """
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
 import scipy.sparse as sp
 
 from refsim.constraints.friction import friction_rows
@@ -33,8 +32,8 @@ class InsertionPath:
     tets : Tet of each point, shape (p,).
     barycentric : Barycentric coordinates in that tet, shape (p, 4).
     created_step : Step at which each point was created, shape (p,).
-    multipliers : The point's multipliers at its last solve [N], (lateral 1, lateral 2, axial), shape (p, 3); the
-        warm start of the next solve.
+    multipliers : The point's multipliers at its last solve [N], (lateral 1, lateral 2, axial), shape (p, 3);
+        the warm start of the next solve.
     stuck : Whether the point's shaft force was inside its Coulomb bound at its last solve (it sticks), bool
         shape (p,); new points start stuck. Chooses the static or the dynamic coefficient of the next step.
     """
@@ -88,7 +87,11 @@ class InsertionPath:
     def subset(self, keep: np.ndarray) -> InsertionPath:
         """A path with only the points where ``keep`` (bool (p,) or indices) selects."""
         return InsertionPath(
-            self.tets[keep], self.barycentric[keep], self.created_step[keep], self.multipliers[keep], self.stuck[keep]
+            self.tets[keep],
+            self.barycentric[keep],
+            self.created_step[keep],
+            self.multipliers[keep],
+            self.stuck[keep],
         )
 
 
@@ -104,8 +107,8 @@ def insertion_block(
     ``friction_coefficient``: μ_i, a scalar or one per point, shape (p,) (static or dynamic,
     :func:`refsim.constraints.coupling.shaft_friction_coefficients`); the friction rows exist when any is > 0.
 
-    ``normal_preload`` [N] (≥ 0, finite) is added to the norm of each point's two lateral forces in its Coulomb
-    bound: μ_i (‖(λ_b1, λ_b2)‖ + normal_preload); the scene sets it to shaft_normal_force × d_i.
+    ``normal_preload`` [N] (≥ 0, finite) is added to the norm of each point's two lateral forces in its
+    Coulomb bound: μ_i (‖(λ_b1, λ_b2)‖ + normal_preload); the scene sets it to shaft_normal_force × d_i.
 
     The needle point of each tissue point is its projection on the needle at the start of the step (a material
     point of the needle for this step); the friction row (built by
@@ -129,7 +132,9 @@ def insertion_block(
     ).ravel()
     lateral_nodes, lateral_weights = np.repeat(nodes, 2, axis=0), np.repeat(weights, 2, axis=0)
     lateral_arcs = np.repeat(arc_lengths, 2)
-    tissue_jacobian = point_rows(lateral_nodes, lateral_weights, lateral_directions, geometry.tissue_dof_count)
+    tissue_jacobian = point_rows(
+        lateral_nodes, lateral_weights, lateral_directions, geometry.tissue_dof_count
+    )
     needle_jacobian = needle_rows(geometry.needle_free, lateral_arcs, lateral_directions)
     directions, gaps = lateral_directions, lateral_gaps
     kinds = np.full(2 * point_count, BILATERAL, dtype=np.int8)
@@ -142,7 +147,8 @@ def insertion_block(
         )
         # Interleave: point p's rows are (2p, 2p + 1) of the lateral rows and p of the friction rows.
         order = np.concatenate(
-            [np.arange(2 * point_count).reshape(-1, 2), 2 * point_count + np.arange(point_count)[:, None]], axis=1
+            [np.arange(2 * point_count).reshape(-1, 2), 2 * point_count + np.arange(point_count)[:, None]],
+            axis=1,
         ).ravel()
         tissue_jacobian = sp.vstack([tissue_jacobian, friction.tissue_jacobian], format="csr")[order]
         if needle_jacobian is not None:
@@ -180,8 +186,8 @@ def grow_path(
     """Add points behind the tip so that no two consecutive points are farther apart than ``spacing``.
 
     When the tip is farther than d_i = ``spacing`` from every existing point, points are placed on the segment
-    from the last point to the tip every d_i (several in one step when the tip moved more than d_i), located in
-    the current deformed tissue. Points that fall outside the tissue are not added.
+    from the last point to the tip every d_i (several in one step when the tip moved more than d_i), located
+    in the current deformed tissue. Points that fall outside the tissue are not added.
 
     Returns
     -------
@@ -204,8 +210,11 @@ def grow_path(
     return path.appended(tets[inside], barycentric[inside], step), int(np.count_nonzero(inside))
 
 
-def points_beyond_tip(path: InsertionPath, points: np.ndarray, needle: NeedleGeometry, margin: float = 0.0) -> np.ndarray:
-    """Which points lie beyond the tip along the needle by more than ``margin`` [m] (after a withdrawal), bool (p,)."""
+def points_beyond_tip(
+    path: InsertionPath, points: np.ndarray, needle: NeedleGeometry, margin: float = 0.0
+) -> np.ndarray:
+    """Which points lie beyond the tip along the needle by more than ``margin`` [m] (after a withdrawal), bool
+    (p,)."""
     if path.point_count == 0:
         return np.zeros(0, dtype=bool)
     tip_s = np.array([needle.length])

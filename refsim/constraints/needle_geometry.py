@@ -1,8 +1,8 @@
 """The needle's centreline as the constraint builders see it: points, tangents, projections and Jacobians.
 
 A rigid needle is a straight segment moved kinematically by its base: it has no DoFs in the constraint problem
-(its Jacobian is None, its compliance zero). A flexible needle wraps the beam model's centreline, whose Jacobian
-maps the 6 DoFs of each node to centreline points.
+(its Jacobian is None, its compliance zero). A flexible needle wraps the beam model's centreline, whose
+Jacobian maps the 6 DoFs of each node to centreline points.
 """
 
 from __future__ import annotations
@@ -88,24 +88,33 @@ class BeamNeedleGeometry:
         return self.model.centreline_points(self.positions, self.frames, np.asarray(arc_lengths, dtype=float))
 
     def tangents(self, arc_lengths: np.ndarray) -> np.ndarray:
-        return self.model.centreline_tangents(self.positions, self.frames, np.asarray(arc_lengths, dtype=float))
+        return self.model.centreline_tangents(
+            self.positions, self.frames, np.asarray(arc_lengths, dtype=float)
+        )
 
     def jacobian(self, arc_lengths: np.ndarray) -> sp.csr_matrix:
-        return self.model.centreline_jacobian(self.positions, self.frames, np.asarray(arc_lengths, dtype=float))
+        return self.model.centreline_jacobian(
+            self.positions, self.frames, np.asarray(arc_lengths, dtype=float)
+        )
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         arc_lengths, closest, _ = self.model.project_on_centreline(self.positions, self.frames, points)
         return arc_lengths, closest
 
 
-def needle_rows(geometry: NeedleGeometry, arc_lengths: np.ndarray, directions: np.ndarray) -> sp.csr_matrix | None:
+def needle_rows(
+    geometry: NeedleGeometry, arc_lengths: np.ndarray, directions: np.ndarray
+) -> sp.csr_matrix | None:
     """Rows nᵀ J(s) of H_needle for centreline points at ``arc_lengths`` along ``directions`` (r, 3)."""
     jacobian = geometry.jacobian(arc_lengths)
     if jacobian is None:
         return None
     row_count = len(arc_lengths)
     selector = sp.csr_matrix(
-        (np.asarray(directions, dtype=float).ravel(), (np.repeat(np.arange(row_count), 3), np.arange(3 * row_count))),
+        (
+            np.asarray(directions, dtype=float).ravel(),
+            (np.repeat(np.arange(row_count), 3), np.arange(3 * row_count)),
+        ),
         shape=(row_count, 3 * row_count),
     )
     return (selector @ jacobian).tocsr()

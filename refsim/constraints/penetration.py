@@ -1,7 +1,7 @@
 """Penetration constraint (paper, section 3 and Figure 1a): the tip against the tissue surface.
 
-While the tip is outside, the closest point of the tissue surface to the tip gives one unilateral row along the
-surface normal and, with a friction coefficient μ_p > 0, two friction rows in the tangent plane (a Coulomb
+While the tip is outside, the closest point of the tissue surface to the tip gives one unilateral row along
+the surface normal and, with a friction coefficient μ_p > 0, two friction rows in the tangent plane (a Coulomb
 contact). The tip punctures when the normal force reaches f_p (a force, not an impulse).
 """
 
@@ -10,7 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
 import scipy.sparse as sp
 
 from refsim.constraints.friction import friction_rows
@@ -47,8 +46,8 @@ def find_surface_contact(projector, faces: np.ndarray, tip: np.ndarray) -> Surfa
     """Closest surface point to the tip and the contact normal.
 
     The normal is the direction from the closest point to the tip when the tip is outside and away from the
-    surface (right on edges and vertices, where face normals disagree), and the face's outward normal otherwise
-    (tip on or under the surface).
+    surface (right on edges and vertices, where face normals disagree), and the face's outward normal
+    otherwise (tip on or under the surface).
 
     Parameters
     ----------
@@ -78,10 +77,11 @@ def penetration_block(
 ) -> RowBlock:
     """Rows of the tip contact: one unilateral row, plus two friction rows when μ_p > 0.
 
-    With ``puncture_force`` f_p [N] the normal row's force is capped at f_p (issue 9, item 5; force_limit): the
-    step in which the tip would need more ends with λ = f_p and the tip through (δ < 0), so puncture happens at
-    f_p whatever dt and speed. The two friction rows are then each bounded by μ_p λ_n (group-friction law, a
-    square instead of the Coulomb disc: the solvers' contact cone has no capped normal).
+    With ``puncture_force`` f_p [N] the normal row's force is capped at f_p (issue 9, item 5; force_limit):
+    the step in which the tip would need more ends with λ = f_p and the tip through (δ < 0), so puncture
+    happens at f_p whatever dt and speed. The two friction rows are then each bounded by μ_p λ_n
+    (group-friction law, a square instead of the Coulomb disc: the solvers' contact cone has no capped
+    normal).
 
     Parameters
     ----------
@@ -114,8 +114,10 @@ def penetration_block(
         gaps = np.concatenate([[gap_normal], friction.free_gap])
         kinds = np.array([UNILATERAL, FRICTION, FRICTION], dtype=np.int8)
         tissue_jacobian = sp.vstack([normal_jacobian, friction.tissue_jacobian], format="csr")
-        needle_jacobian = None if normal_needle is None else sp.vstack(
-            [normal_needle, friction.needle_jacobian], format="csr"
+        needle_jacobian = (
+            None
+            if normal_needle is None
+            else sp.vstack([normal_needle, friction.needle_jacobian], format="csr")
         )
         contacts = np.array([[0, 1, 2]], dtype=np.int64)
         contact_friction = np.array([friction_coefficient])

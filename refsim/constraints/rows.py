@@ -4,9 +4,9 @@ A block of rows (:class:`RowBlock`) comes from one builder (penetration, inserti
 concatenated into the rows of a step (:func:`concatenate`), which give the solver's
 :class:`~refsim.solvers.ConstraintProblem` once the compliance W = Σ_b H_b A_b⁻¹ H_bᵀ is known.
 
-Sign convention: a row along the unit direction n measures δ = nᵀ(x_needle − x_tissue) [m]; its multiplier λ [N]
-pushes the needle along +n and the tissue along −n. Unilateral rows keep δ ≥ 0 (n points from the tissue towards
-the needle); friction rows measure the relative tangential displacement over the step.
+Sign convention: a row along the unit direction n measures δ = nᵀ(x_needle − x_tissue) [m]; its multiplier λ
+[N] pushes the needle along +n and the tissue along −n. Unilateral rows keep δ ≥ 0 (n points from the tissue
+towards the needle); friction rows measure the relative tangential displacement over the step.
 """
 
 from __future__ import annotations
@@ -49,7 +49,8 @@ class RowBlock:
     Attributes
     ----------
     tissue_jacobian : H_tissue, shape (row_count, 3·tissue_node_count).
-    needle_jacobian : H_needle, shape (row_count, 6·needle_node_count), or None for a rigid (kinematic) needle.
+    needle_jacobian : H_needle, shape (row_count, 6·needle_node_count), or None for a rigid (kinematic)
+    needle.
     free_gap : δ_free [m], shape (row_count,).
     kind : BILATERAL, UNILATERAL or FRICTION per row, shape (row_count,).
     source : PENETRATION, INSERTION, CUT_SLIDE, CUT_BORDER or SHAFT_CONTACT per row, shape (row_count,).
@@ -62,10 +63,10 @@ class RowBlock:
     shaft_friction_coefficient : shape (m,).
     shaft_normal_preload : Normal force added to the pair force norm in each shaft row's Coulomb bound [N],
         shape (m,) (empty: zeros).
-    force_limit : Largest force each row can carry [N], shape (row_count,), > 0, inf for none (empty: all inf).
-        A unilateral row with a finite limit L has 0 ≤ λ ≤ L and gives way (δ < 0) at L; a bilateral row
-        |λ| ≤ L. This is how a row models a strength: the tissue's resistance to puncture, to cutting at the tip,
-        to tearing at the front of a cut.
+    force_limit : Largest force each row can carry [N], shape (row_count,), > 0, inf for none (empty: all
+        inf). A unilateral row with a finite limit L has 0 ≤ λ ≤ L and gives way (δ < 0) at L; a bilateral
+        row |λ| ≤ L. This is how a row models a strength: the tissue's resistance to puncture, to cutting at
+        the tip, to tearing at the front of a cut.
     compliance_diagonal : Compliance added to the diagonal of W for each row [m/N], shape (row_count,), ≥ 0
         (empty: zeros): the part of a row's flexibility the mesh does not resolve (the sub-grid compliance of
         the well-posed coupling, :mod:`refsim.constraints.coupling`, and of the cut's sliding rows).
@@ -147,7 +148,8 @@ class RowBlock:
         )
 
     def index_sets(self) -> dict[str, np.ndarray]:
-        """Row index sets by solver kind: bilateral and unilateral rows outside contacts, contacts, shaft rows."""
+        """Row index sets by solver kind: bilateral and unilateral rows outside contacts, contacts, shaft
+        rows."""
         in_contact = np.zeros(self.row_count, dtype=bool)
         in_contact[self.contacts.ravel()] = True
         in_shaft = np.zeros(self.row_count, dtype=bool)
@@ -190,18 +192,34 @@ def concatenate(blocks: list[RowBlock]) -> RowBlock:
         source=np.concatenate([b.source for b in blocks]),
         points=np.concatenate([b.points for b in blocks]),
         directions=np.concatenate([b.directions for b in blocks]),
-        contacts=np.concatenate([b.contacts + o for b, o in zip(blocks, offsets)]).astype(np.int64),
+        contacts=np.concatenate([b.contacts + o for b, o in zip(blocks, offsets, strict=False)]).astype(
+            np.int64
+        ),
         contact_friction=np.concatenate([b.contact_friction for b in blocks]),
-        shaft_rows=np.concatenate([b.shaft_rows + o for b, o in zip(blocks, offsets)]).astype(np.int64),
-        shaft_pairs=np.concatenate([b.shaft_pairs + o for b, o in zip(blocks, offsets)]).astype(np.int64),
+        shaft_rows=np.concatenate([b.shaft_rows + o for b, o in zip(blocks, offsets, strict=False)]).astype(
+            np.int64
+        ),
+        shaft_pairs=np.concatenate([b.shaft_pairs + o for b, o in zip(blocks, offsets, strict=False)]).astype(
+            np.int64
+        ),
         shaft_friction_coefficient=np.concatenate([b.shaft_friction_coefficient for b in blocks]),
         shaft_normal_preload=np.concatenate([_shaft_preload(b) for b in blocks]),
         force_limit=np.concatenate([_force_limit(b) for b in blocks]),
         compliance_diagonal=np.concatenate([_compliance_diagonal(b) for b in blocks]),
-        group_rows=np.concatenate([b.group_rows + o for b, o in zip(blocks, offsets)]).astype(np.int64),
-        group_members=np.concatenate([b.group_members + o for b, o in zip(blocks, offsets)]).astype(np.int64),
+        group_rows=np.concatenate([b.group_rows + o for b, o in zip(blocks, offsets, strict=False)]).astype(
+            np.int64
+        ),
+        group_members=np.concatenate(
+            [b.group_members + o for b, o in zip(blocks, offsets, strict=False)]
+        ).astype(np.int64),
         group_offsets=np.concatenate(
-            [[0]] + [b.group_offsets[1:] + m for b, m in zip(blocks, np.cumsum([0] + [b.group_members.size for b in blocks])[:-1])]
+            [[0]]
+            + [
+                b.group_offsets[1:] + m
+                for b, m in zip(
+                    blocks, np.cumsum([0] + [b.group_members.size for b in blocks])[:-1], strict=False
+                )
+            ]
         ).astype(np.int64),
         group_coefficient=np.concatenate([b.group_coefficient for b in blocks]),
     )
@@ -249,7 +267,12 @@ def orthonormal_basis(tangents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def point_rows(
-    node_indices: np.ndarray, weights: np.ndarray, directions: np.ndarray, dof_count: int, *, sign: float = -1.0
+    node_indices: np.ndarray,
+    weights: np.ndarray,
+    directions: np.ndarray,
+    dof_count: int,
+    *,
+    sign: float = -1.0,
 ) -> sp.csr_matrix:
     """Rows of H for points interpolated from mesh nodes, projected on directions.
 
@@ -268,8 +291,6 @@ def point_rows(
     values = sign * weights[:, :, None] * directions[:, None, :]  # (r, p, 3)
     columns = 3 * node_indices[:, :, None] + np.arange(3)  # (r, p, 3)
     rows = np.broadcast_to(np.arange(row_count)[:, None, None], columns.shape)
-    matrix = sp.csr_matrix(
-        (values.ravel(), (rows.ravel(), columns.ravel())), shape=(row_count, dof_count)
-    )
+    matrix = sp.csr_matrix((values.ravel(), (rows.ravel(), columns.ravel())), shape=(row_count, dof_count))
     matrix.sum_duplicates()
     return matrix

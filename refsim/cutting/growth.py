@@ -8,8 +8,8 @@ coordinates applied to the rest nodes.
 - Cut start (:func:`start_strip`): the insertion path, resampled every d_c, is the first layer of a strip
   (:mod:`refsim.cutting.strip`); with the paper's law it is swept along ĉ up to d_t, in layers at most d_c
   apart; with the energy law the crack tip starts on the path.
-- Crack advance (:func:`advance_front`): the crack tip moves, column by column, to the material point where the
-  needle pushed it (energy law) or by d_t (the paper's tear); a layer is laid once it is d_c ahead
+- Crack advance (:func:`advance_front`): the crack tip moves, column by column, to the material point where
+  the needle pushed it (energy law) or by d_t (the paper's tear); a layer is laid once it is d_c ahead
   (:meth:`refsim.cutting.strip.CutStrip.lay`).
 """
 
@@ -33,6 +33,7 @@ __all__ = [
     "start_strip",
     "resample_polyline",
 ]
+
 
 def resample_polyline(points: np.ndarray, spacing: float) -> np.ndarray:
     """Points every ``spacing`` [m] along a polyline (its first and last points included), shape (q, 3)."""
@@ -101,7 +102,13 @@ def start_strip(
     (cut, strip) : The grown surface and the new strip, or (cut, None) when fewer than two columns lie in the
     tissue.
     """
-    from refsim.cutting.strip import CutFront, CutStrip, append_points, locate_material_points, strip_triangles
+    from refsim.cutting.strip import (
+        CutFront,
+        CutStrip,
+        append_points,
+        locate_material_points,
+        strip_triangles,
+    )
 
     started = clock.perf_counter()
     cut = CutSurface.empty(growth.parameters) if cut is None else cut
@@ -149,7 +156,9 @@ def start_strip(
     return grown, CutStrip(layers, front, depths)
 
 
-def advance_front(growth: CutGrowth, strip, advances: np.ndarray, direction: np.ndarray, positions: np.ndarray):
+def advance_front(
+    growth: CutGrowth, strip, advances: np.ndarray, direction: np.ndarray, positions: np.ndarray
+):
     """The crack tip moved by ``advances`` [m] (deformed length, per column) along ``direction`` (deformed,
     unit): each moving tip point goes to the material point found at its deformed position plus a·u in the
     current configuration (kept in rest coordinates, equation 4). Columns whose target lies outside the tissue
@@ -163,17 +172,19 @@ def advance_front(growth: CutGrowth, strip, advances: np.ndarray, direction: np.
 
 
 def crack_tip_targets(strip, needle, entry_arc: float, columns: np.ndarray, spacing: float):
-    """Where the needle has cut each of ``columns`` up to: the point of the needle's centreline at the column's
-    depth below the tissue surface (``strip.depths``; ``entry_arc`` is where the needle enters the tissue,
-    :func:`refsim.constraints.cut.inserted_arc`), and whether the needle reaches that depth, shapes (c, 3) [m]
-    and (c,): a column deeper than the inserted needle (a needle pushed sideways and partly out, or retracting)
-    stays where the tip left it (sent to the tip, such columns bunched up along the needle into slivers).
+    """Where the needle has cut each of ``columns`` up to: the point of the needle's centreline at the
+    column's depth below the tissue surface (``strip.depths``; ``entry_arc`` is where the needle enters the
+    tissue, :func:`refsim.constraints.cut.inserted_arc`), and whether the needle reaches that depth, shapes
+    (c, 3) [m] and (c,): a column deeper than the inserted needle (a needle pushed sideways and partly out, or
+    retracting) stays where the tip left it (sent to the tip, such columns bunched up along the needle into
+    slivers).
 
     The crack tip is the needle's inserted segment, column j at depth d_j along it. Taking instead the foot of
     the perpendicular from the column's tip to the needle sends the top columns of a tilted needle pushed
     sideways out of the tissue (the push has a component normal to the surface): snapped back onto the tissue
-    surface they lagged (2.1 mm against 4.4 mm for a 30° needle) and bunched up into slivers lying in the tissue
-    surface, whose normals (nearly vertical) then pinned the needle to the surface (10.8 N against 3.6 N).
+    surface they lagged (2.1 mm against 4.4 mm for a 30° needle) and bunched up into slivers lying in the
+    tissue surface, whose normals (nearly vertical) then pinned the needle to the surface (10.8 N against 3.6
+    N).
     """
     arcs = entry_arc + np.asarray(strip.depths)[columns]
     # Half a column spacing of slack: the tissue surface moves along the needle while it cuts (the entry arc
@@ -181,8 +192,15 @@ def crack_tip_targets(strip, needle, entry_arc: float, columns: np.ndarray, spac
     return needle.points(np.minimum(arcs, needle.length)), arcs <= needle.length + 0.5 * spacing
 
 
-def move_front(growth: CutGrowth, strip, columns: np.ndarray, targets: np.ndarray, positions: np.ndarray, *,
-               locator: TetLocator | None = None):
+def move_front(
+    growth: CutGrowth,
+    strip,
+    columns: np.ndarray,
+    targets: np.ndarray,
+    positions: np.ndarray,
+    *,
+    locator: TetLocator | None = None,
+):
     """The crack tip with ``columns`` moved to ``targets`` (deformed, shape (c, 3)): each goes to the material
     point found there in the current configuration (kept in rest coordinates, equation 4); a target outside
     the tissue by more than d_c/2 leaves its column where it is (``locator``: one on ``positions``, built when
@@ -194,13 +212,24 @@ def move_front(growth: CutGrowth, strip, columns: np.ndarray, targets: np.ndarra
     if columns.size == 0:
         return front
     locator = TetLocator(positions, growth.tets) if locator is None else locator
-    # The crack tip on the tissue surface (the entry column) may step a hair outside it: keep it on the surface.
+    # The crack tip on the tissue surface (the entry column) may step a hair outside it: keep it on the
+    # surface.
     tets, barycentric, inside = locate_material_points(
-        locator, positions, growth.tets, np.asarray(targets, dtype=float), snap_distance=0.5 * growth.point_spacing
+        locator,
+        positions,
+        growth.tets,
+        np.asarray(targets, dtype=float),
+        snap_distance=0.5 * growth.point_spacing,
     )
-    rest_points, tet_indices, bary = front.rest_points.copy(), front.tet_indices.copy(), front.barycentric.copy()
+    rest_points, tet_indices, bary = (
+        front.rest_points.copy(),
+        front.tet_indices.copy(),
+        front.barycentric.copy(),
+    )
     chosen = columns[inside]
     tet_indices[chosen] = tets[inside]
     bary[chosen] = barycentric[inside]
-    rest_points[chosen] = np.einsum("pk,pkj->pj", barycentric[inside], growth.rest_positions[growth.tets[tets[inside]]])
+    rest_points[chosen] = np.einsum(
+        "pk,pkj->pj", barycentric[inside], growth.rest_positions[growth.tets[tets[inside]]]
+    )
     return CutFront(rest_points, tet_indices, bary)

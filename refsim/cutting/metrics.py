@@ -58,7 +58,9 @@ def boundary_loop_count(border_edges: np.ndarray) -> int:
 
     nodes, inverse = np.unique(border_edges, return_inverse=True)
     inverse = inverse.reshape(-1, 2)
-    graph = coo_matrix((np.ones(len(inverse)), (inverse[:, 0], inverse[:, 1])), shape=(nodes.size, nodes.size))
+    graph = coo_matrix(
+        (np.ones(len(inverse)), (inverse[:, 0], inverse[:, 1])), shape=(nodes.size, nodes.size)
+    )
     return int(connected_components(graph, directed=False)[0])
 
 
@@ -66,7 +68,9 @@ def surface_topology(triangles: np.ndarray, point_count: int) -> SurfaceTopology
     """The topology of triangles (t, 3) over ``point_count`` points."""
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     used = np.unique(triangles)
-    edges, counts = _edges(triangles) if triangles.size else (np.zeros((0, 2), np.int64), np.zeros(0, np.int64))
+    edges, counts = (
+        _edges(triangles) if triangles.size else (np.zeros((0, 2), np.int64), np.zeros(0, np.int64))
+    )
     border = edges[counts == 1]
     return SurfaceTopology(
         point_count=int(point_count),

@@ -78,7 +78,9 @@ def locate_material_points(
             best[accept] = distance[accept]
             found[outside[accept]] = candidate[accept]
             barycentric[outside[accept]] = np.where(
-                (coordinates.min(axis=1) >= -_OUTSIDE_TOLERANCE)[accept, None], coordinates[accept], clipped[accept]
+                (coordinates.min(axis=1) >= -_OUTSIDE_TOLERANCE)[accept, None],
+                coordinates[accept],
+                clipped[accept],
             )
     return found, barycentric, found >= 0
 
@@ -95,8 +97,10 @@ def strip_triangles(back: np.ndarray, front: np.ndarray) -> np.ndarray:
     first = np.stack([a, b, d], axis=1)
     second = np.stack([b, c, d], axis=1)
     triangles = np.concatenate([first, second])
-    distinct = (triangles[:, 0] != triangles[:, 1]) & (triangles[:, 1] != triangles[:, 2]) & (
-        triangles[:, 0] != triangles[:, 2]
+    distinct = (
+        (triangles[:, 0] != triangles[:, 1])
+        & (triangles[:, 1] != triangles[:, 2])
+        & (triangles[:, 0] != triangles[:, 2])
     )
     return triangles[distinct]
 
@@ -239,7 +243,10 @@ def append_points(
         created_step=np.concatenate([cut.created_step, np.full(added, step, dtype=np.int64)]),
         triangles=all_triangles,
         triangle_created_step=np.concatenate(
-            [cut.triangle_created_step, np.full(all_triangles.shape[0] - cut.triangle_count, step, dtype=np.int64)]
+            [
+                cut.triangle_created_step,
+                np.full(all_triangles.shape[0] - cut.triangle_count, step, dtype=np.int64),
+            ]
         ),
         normals=normals,
         parameters=cut.parameters,

@@ -317,7 +317,9 @@ class CutSurface:
             raise ValueError(f"tets of the cut points index nodes outside [0, {positions.shape[0]})")
         return np.einsum("pk,pki->pi", self.barycentric, positions[nodes])
 
-    def interpolated_normals(self, points: np.ndarray, triangle: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    def interpolated_normals(
+        self, points: np.ndarray, triangle: np.ndarray, weights: np.ndarray
+    ) -> np.ndarray:
         """Unit normals at points of the surface given by triangle and barycentric weights (q,), (q, 3): the
         area-weighted vertex normals on ``points`` interpolated with the weights, shape (q, 3).
 

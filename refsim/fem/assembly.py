@@ -1,18 +1,19 @@
-"""Co-rotation and assembly of the tissue's step system, compiled (numba) into the fixed pattern of the free DoFs.
+"""Co-rotation and assembly of the tissue's step system, compiled (numba) into the fixed pattern of the free
+DoFs.
 
 One pass over the tets computes, per element, F = Ds Dm⁻¹, its polar rotation R (scaled Newton,
 :func:`refsim.geometry.rotations.polar_rotation_one`), the local displacement u = Rᵀ x − X (centred, as in
-:meth:`TissueModel.internal_forces`), the internal force R Kₑ u and the blocks s · R Kₑ_ab Rᵀ of the tangent, and adds
-them straight into
+:meth:`TissueModel.internal_forces`), the internal force R Kₑ u and the blocks s · R Kₑ_ab Rᵀ of the tangent,
+and adds them straight into
 
-* the ``data`` of A_ff = (M/dt² + C/dt + K)_ff, a CSR matrix whose pattern is built once (free DoFs only, the fixed
-  ones eliminated), through a precomputed slot of each of the 144 entries of each tet (−1 when the row or the column
-  is constrained);
+* the ``data`` of A_ff = (M/dt² + C/dt + K)_ff, a CSR matrix whose pattern is built once (free DoFs only, the
+  fixed ones eliminated), through a precomputed slot of each of the 144 entries of each tet (−1 when the row
+  or the column is constrained);
 * the ``data`` of the coupling A_fc (free rows, constrained columns), for prescribed displacements;
 * the internal force vector.
 
-No Python loop over elements; the result equals the NumPy/scikit-fem assembly of :class:`TissueModel` to round-off
-(tests/fem/test_assembly.py).
+No Python loop over elements; the result equals the NumPy/scikit-fem assembly of :class:`TissueModel` to
+round-off (tests/fem/test_assembly.py).
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ class FreePattern:
     Parameters
     ----------
     pattern : The full stiffness pattern (CSR, dof_count × dof_count).
-    scatter : Full-pattern index of each element entry, in the order (tet, a, b, i, j), shape (tet_count·144,).
+    scatter : Full-pattern index of each element entry, in the order (tet, a, b, i, j), shape
+    (tet_count·144,).
     constrained_dofs : Sorted constrained DoFs, shape (c,).
     mass_matrix : M on the full pattern's DoFs (CSR; its entries must lie in the pattern).
     """

@@ -1,12 +1,13 @@
-"""Timings of the tissue's step stages per compliance strategy, for ``refsim bench`` (figures, never asserted).
+"""Timings of the tissue's step stages per compliance strategy, for ``refsim bench`` (figures, never
+asserted).
 
-Everything here runs on the paper's 0.1 m cube (E = 500 kPa, ν = 0.4, 1000 kg/m³, dt = 0.01 s, Rayleigh 1 / 0.01,
-bottom face fixed, gravity) meshed with ``cells`` hexahedra per axis (6 tets each; 8 is the paper's 3,072 tets). The
-loaded step sequence is a **boundary motion**: the fixed bottom face is sheared along x by ``shear`` metres over the
-run (prescribed displacements, a Dirichlet condition), so that the tissue rotates and the matrix changes from step
-to step. Each step does what the simulation does for the tissue: co-rotation and assembly, the strategy's
-factorisation and free motion, W for rows on the DoFs of the 7 top nodes nearest the centre (21 DoFs, as the cube's
-insertion touches) and the correction.
+Everything here runs on the paper's 0.1 m cube (E = 500 kPa, ν = 0.4, 1000 kg/m³, dt = 0.01 s, Rayleigh 1 /
+0.01, bottom face fixed, gravity) meshed with ``cells`` hexahedra per axis (6 tets each; 8 is the paper's
+3,072 tets). The loaded step sequence is a **boundary motion**: the fixed bottom face is sheared along x by
+``shear`` metres over the run (prescribed displacements, a Dirichlet condition), so that the tissue rotates
+and the matrix changes from step to step. Each step does what the simulation does for the tissue: co-rotation
+and assembly, the strategy's factorisation and free motion, W for rows on the DoFs of the 7 top nodes nearest
+the centre (21 DoFs, as the cube's insertion touches) and the correction.
 
 The reference of every ratio is **one SuperLU factorisation of the cube's matrix** as refsim did it before
 (COLAMD ordering, symmetric mode), timed in the same process right before the strategies.
@@ -85,7 +86,8 @@ def _rows(model: TissueModel, nodes: int = 7) -> sp.csr_matrix:
 
 
 def superlu_reference_ms(model: TissueModel, repeats: int = 3) -> float:
-    """One SuperLU factorisation (COLAMD, symmetric mode: refsim before issue 12) of the model's step matrix [ms]."""
+    """One SuperLU factorisation (COLAMD, symmetric mode: refsim before issue 12) of the model's step matrix
+    [ms]."""
     state = TissueState(positions=model.rest_positions, velocities=np.zeros_like(model.rest_positions))
     with hot_path_threads():
         matrix = model.assemble_step(state, _DT).matrix
@@ -147,7 +149,8 @@ def _run_strategy(
             t3 = time.perf_counter()
             correction = step.correction(rows, lam)
             t4 = time.perf_counter()
-            # body.step does the factorisation (when there is one) and the free solve: split by timing a solve alone
+            # body.step does the factorisation (when there is one) and the free solve: split by timing a solve
+            # alone
             factorised = bool(step.report.get("refactorised", False))
             per_step[index] = [t1 - t0, t2 - t1, 0.0, t3 - t2, t4 - t3]
             if not factorised:
@@ -212,12 +215,13 @@ def bench_strategies(
 
     Returns
     -------
-    The SuperLU (COLAMD) factorisation time of the cube's matrix [ms], and one dict per strategy: ``strategy``,
-    ``assembly_ms`` (co-rotation, forces and A in the fixed pattern), ``factorisation_ms`` (mean per step: every step
-    for exact, every ``refresh_every`` for refreshed, none for precomputed after its set-up), ``free_solve_ms`` (the
-    solve or the PCG), ``compliance_ms`` (W for 21 rows), ``correction_ms``, ``total_ms``, ``pcg_iterations`` (mean),
-    and with ``against_exact`` the largest per-step errors against an exact factorisation of the same matrices
-    (``free_motion_error`` [m], ``compliance_error`` relative Frobenius, ``correction_error`` [m]).
+    The SuperLU (COLAMD) factorisation time of the cube's matrix [ms], and one dict per strategy:
+    ``strategy``, ``assembly_ms`` (co-rotation, forces and A in the fixed pattern), ``factorisation_ms`` (mean
+    per step: every step for exact, every ``refresh_every`` for refreshed, none for precomputed after its
+    set-up), ``free_solve_ms`` (the solve or the PCG), ``compliance_ms`` (W for 21 rows), ``correction_ms``,
+    ``total_ms``, ``pcg_iterations`` (mean), and with ``against_exact`` the largest per-step errors against an
+    exact factorisation of the same matrices (``free_motion_error`` [m], ``compliance_error`` relative
+    Frobenius, ``correction_error`` [m]).
     """
     model = cube_model(cells)
     rows = _rows(model)
@@ -265,8 +269,9 @@ def bench_scaling(
     Returns
     -------
     One dict per size: ``cells_per_axis``, ``free_dofs``, ``exact_factorisation_ms``, then per strategy
-    ``<name>_ms`` (mean per step over ``steps`` steps; the refreshed factorisation amortised over ``refresh_every``)
-    and ``<name>_compliance_ms`` (W and correction), and ``pcg_iterations`` (free motion, refreshed).
+    ``<name>_ms`` (mean per step over ``steps`` steps; the refreshed factorisation amortised over
+    ``refresh_every``) and ``<name>_compliance_ms`` (W and correction), and ``pcg_iterations`` (free motion,
+    refreshed).
     """
     out = []
     for cells in cells_per_axis:
@@ -309,9 +314,9 @@ def compare_runs(reference: dict, candidate: dict) -> dict[str, float | bool | s
 
     Returns
     -------
-    ``position_error`` (largest |Δx| over steps and nodes [m]), ``force_error`` (largest |ΔF| of the needle force
-    [N]), ``peak_force`` of the reference [N], ``same_events`` and, when they differ, ``event_shift`` (the steps of
-    the first differing events).
+    ``position_error`` (largest |Δx| over steps and nodes [m]), ``force_error`` (largest |ΔF| of the needle
+    force [N]), ``peak_force`` of the reference [N], ``same_events`` and, when they differ, ``event_shift``
+    (the steps of the first differing events).
     """
     x_ref, x = np.asarray(reference["tissue_positions"]), np.asarray(candidate["tissue_positions"])
     f_ref, f = np.asarray(reference["needle_force"]), np.asarray(candidate["needle_force"])
@@ -383,8 +388,9 @@ def bench_tissue(
     Returns
     -------
     One dict per size: ``cells_per_axis``, ``node_count``, ``tet_count``, ``dof_count``, ``setup_ms``,
-    ``rotations_ms`` (the compiled polar decomposition), ``assembly_ms`` (compiled co-rotation and assembly into the
-    free pattern), ``factorisation_ms`` (the default linear solver), ``solve_ms``, ``superlu_ms`` (SuperLU COLAMD).
+    ``rotations_ms`` (the compiled polar decomposition), ``assembly_ms`` (compiled co-rotation and assembly
+    into the free pattern), ``factorisation_ms`` (the default linear solver), ``solve_ms``, ``superlu_ms``
+    (SuperLU COLAMD).
     """
     if repeats < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats!r}")

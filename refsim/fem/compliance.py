@@ -1,32 +1,33 @@
-"""Compliance strategies as values: how a body's step system gives its free motion, W and its correction (layer 2).
+"""Compliance strategies as values: how a body's step system gives its free motion, W and its correction
+(layer 2).
 
-A body (the tissue, a flexible needle) assembles, at each step, its effective stiffness A = M/dt² + C/dt + K on its
-free DoFs (always the same sparsity pattern) and the right-hand side of the free motion (see
-:mod:`refsim.fem.integration`): a :class:`StepSystem`. A **strategy** is a plain value (like the solver factories
-scikit-fem passes to ``solve``), chosen by the scene key ``compliance.strategy``:
+A body (the tissue, a flexible needle) assembles, at each step, its effective stiffness A = M/dt² + C/dt + K
+on its free DoFs (always the same sparsity pattern) and the right-hand side of the free motion (see
+:mod:`refsim.fem.integration`): a :class:`StepSystem`. A **strategy** is a plain value (like the solver
+factories scikit-fem passes to ``solve``), chosen by the scene key ``compliance.strategy``:
 
 ``Exact()``
-    Factorises A every step (refsim's reference): free motion, W = H A⁻¹ Hᵀ and the correction A⁻¹ Hᵀ λ are those
-    of a fresh factorisation, to round-off.
+    Factorises A every step (refsim's reference): free motion, W = H A⁻¹ Hᵀ and the correction A⁻¹ Hᵀ λ are
+    those of a fresh factorisation, to round-off.
 ``Refreshed(refresh_every=10, tolerance=1e-10)``
-    Factorises A every ``refresh_every`` steps only. The free motion solves the *current* A by conjugate gradients
-    preconditioned by the stale factor, to a relative residual ``tolerance``. W and the correction: with
-    ``compliance_update="pcg"`` (default) the columns A⁻¹ e_j of the DoFs the rows touch are also solved by
-    preconditioned CG on the current A to ``tolerance``, so W is *corrected* (its error is that of the CG solves,
-    ‖ΔW‖ ≤ ‖H‖² ‖A⁻¹‖ · tolerance · ‖e_j‖ per column); with ``"stale"`` W comes from the stale factor alone and its
-    error is only measured (``against_exact``).
+    Factorises A every ``refresh_every`` steps only. The free motion solves the *current* A by conjugate
+    gradients preconditioned by the stale factor, to a relative residual ``tolerance``. W and the correction:
+    with ``compliance_update="pcg"`` (default) the columns A⁻¹ e_j of the DoFs the rows touch are also solved
+    by preconditioned CG on the current A to ``tolerance``, so W is *corrected* (its error is that of the CG
+    solves, ‖ΔW‖ ≤ ‖H‖² ‖A⁻¹‖ · tolerance · ‖e_j‖ per column); with ``"stale"`` W comes from the stale factor
+    alone and its error is only measured (``against_exact``).
 ``Precomputed()``
-    SOFA's precomputed constraint correction: the rest compliance C₀ = A₀⁻¹ (A at the rest shape) is computed once
-    (dense when the body has at most ``dense_limit`` free DoFs, otherwise kept as the rest factor) and rotated per
-    node, W = H R C₀ Rᵀ Hᵀ with R block-diagonal (one rotation per 3-DoF group). The free motion is CG on the
-    current A preconditioned by the rest factor. For comparison and large interactive runs: its W is not the
-    current one (on cube_cut it moves forces markedly).
+    SOFA's precomputed constraint correction: the rest compliance C₀ = A₀⁻¹ (A at the rest shape) is computed
+    once (dense when the body has at most ``dense_limit`` free DoFs, otherwise kept as the rest factor) and
+    rotated per node, W = H R C₀ Rᵀ Hᵀ with R block-diagonal (one rotation per 3-DoF group). The free motion
+    is CG on the current A preconditioned by the rest factor. For comparison and large interactive runs: its W
+    is not the current one (on cube_cut it moves forces markedly).
 
-Binding a strategy to a body (:meth:`bind`) gives a :class:`BodyCompliance` that keeps what lives across steps (the
-analysis, the stale or rest factor); its :meth:`BodyCompliance.step` takes a step system and returns a
-:class:`StepCompliance` with ``free_displacement``, :meth:`~StepCompliance.delassus` (W for rows H given as a scipy
-CSR matrix of shape (rows, dof_count)) and :meth:`~StepCompliance.correction` (A⁻¹ Hᵀ λ). Every fast strategy can
-also compute the exact answer in the same step (``against_exact=True``) and report its errors in
+Binding a strategy to a body (:meth:`bind`) gives a :class:`BodyCompliance` that keeps what lives across steps
+(the analysis, the stale or rest factor); its :meth:`BodyCompliance.step` takes a step system and returns a
+:class:`StepCompliance` with ``free_displacement``, :meth:`~StepCompliance.delassus` (W for rows H given as a
+scipy CSR matrix of shape (rows, dof_count)) and :meth:`~StepCompliance.correction` (A⁻¹ Hᵀ λ). Every fast
+strategy can also compute the exact answer in the same step (``against_exact=True``) and report its errors in
 :attr:`StepCompliance.report`.
 """
 
@@ -72,7 +73,8 @@ class StepSystem:
     prescribed : Δx on the constrained DoFs over the step [m], shape (c,) (zero for fixed DoFs).
     group_rotations : Callable returning one rotation per 3-DoF group, shape (dof_count // 3, 3, 3) (the
         precomputed strategy's R); None if the body has none.
-    rest_matrix : Callable returning A at the rest shape on the free DoFs (same pattern); None if the body has none.
+    rest_matrix : Callable returning A at the rest shape on the free DoFs (same pattern); None if the body has
+    none.
     """
 
     dof_count: int
@@ -100,8 +102,8 @@ class StepSystem:
         matrix : A on every DoF, shape (n, n).
         rhs : f_ext − f_int + (M/dt) v₀ on every DoF, shape (n,).
         constrained_dofs : DoFs with a given Δx, shape (c,), any order (sorted here); none by default.
-        prescribed : Δx on the constrained DoFs, in the order of *sorted* ``constrained_dofs``, shape (c,); zero by
-            default.
+        prescribed : Δx on the constrained DoFs, in the order of *sorted* ``constrained_dofs``, shape (c,);
+            zero by default.
         """
         matrix = sp.csr_matrix(matrix)
         n = matrix.shape[0]
@@ -130,7 +132,8 @@ class StepSystem:
         return cls(n, free, constrained, reduced, reduced_rhs, values, **callables)
 
     def expand(self, free_values: np.ndarray, constrained_values: np.ndarray | None = None) -> np.ndarray:
-        """A DoF vector (dof_count,) (or (dof_count, k)) from its free part, constrained part zero unless given."""
+        """A DoF vector (dof_count,) (or (dof_count, k)) from its free part, constrained part zero unless
+        given."""
         out = np.zeros((self.dof_count,) + free_values.shape[1:])
         out[self.free_dofs] = free_values
         if constrained_values is not None:
@@ -272,10 +275,10 @@ class StepCompliance:
         exact = self._solve is not None and self._block is None and self._apply is None
         rows = restricted.shape[0]
         if exact and used.size and (self._half is not None or rows < used.size):
-            # The exact factor: min(rows, u) right-hand sides, the rows' loads H_uᵀ when there are fewer rows than
-            # DoFs touched (the ring coupling's rows spread over many tets), else the unit loads E_u. With a
-            # Cholesky factor A = Pᵀ L Lᵀ P, only the forward half: Y = L⁻¹ P B and BᵀA⁻¹B = YᵀY (half the
-            # work of a solve); the correction then solves the one load H_uᵀλ.
+            # The exact factor: min(rows, u) right-hand sides, the rows' loads H_uᵀ when there are fewer rows
+            # than DoFs touched (the ring coupling's rows spread over many tets), else the unit loads E_u.
+            # With a Cholesky factor A = Pᵀ L Lᵀ P, only the forward half: Y = L⁻¹ P B and BᵀA⁻¹B = YᵀY (half
+            # the work of a solve); the correction then solves the one load H_uᵀλ.
             by_rows = rows < used.size
             loads = np.zeros((self.system.free_dofs.size, rows if by_rows else used.size))
             if by_rows:
@@ -348,12 +351,14 @@ class StepCompliance:
         return out
 
     def compliance(self, jacobian: sp.spmatrix) -> tuple[np.ndarray, np.ndarray]:
-        """W and the responses A⁻¹ Hᵀ [m/N], dense (dof_count, rows) — the form :class:`ImplicitEulerSystem` gives."""
+        """W and the responses A⁻¹ Hᵀ [m/N], dense (dof_count, rows) — the form :class:`ImplicitEulerSystem`
+        gives."""
         if self._solve is None:
             positions, restricted, influence, _ = self._influence(jacobian)
             responses = self.system.expand(influence @ restricted.T)
             return self.delassus(jacobian), responses
-        # The exact factor: the arithmetic of ImplicitEulerSystem.compliance, so that results stay bit-identical.
+        # The exact factor: the arithmetic of ImplicitEulerSystem.compliance, so that results stay
+        # bit-identical.
         jacobian = sp.csr_matrix(jacobian)
         row_count = jacobian.shape[0]
         used = np.unique(jacobian.indices)
@@ -417,8 +422,15 @@ class _ExactBody(BodyCompliance):
             unit[positions, np.arange(positions.size)] = 1.0
             return solver.solve(unit)
 
-        return StepCompliance(system, free, columns, {"refactorised": True}, exact, solver.solve,
-                              half_solve=getattr(solver, "half_solve", None))
+        return StepCompliance(
+            system,
+            free,
+            columns,
+            {"refactorised": True},
+            exact,
+            solver.solve,
+            half_solve=getattr(solver, "half_solve", None),
+        )
 
 
 def _check_common(linear_solver: str, against_exact: bool) -> None:
@@ -521,7 +533,8 @@ class _RefreshedBody(BodyCompliance):
 
 
 def _difference(matrix: sp.csr_matrix, reference: sp.csr_matrix) -> sp.csr_matrix:
-    """matrix − reference, on their common pattern when they share it (the usual case: one pattern per run)."""
+    """matrix − reference, on their common pattern when they share it (the usual case: one pattern per
+    run)."""
     if (
         matrix.shape == reference.shape
         and matrix.nnz == reference.nnz
@@ -536,16 +549,18 @@ def _difference(matrix: sp.csr_matrix, reference: sp.csr_matrix) -> sp.csr_matri
 
 @dataclass(frozen=True)
 class Refreshed:
-    """Factorise every ``refresh_every`` steps; free motion (and by default W's columns) by PCG on the current A.
+    """Factorise every ``refresh_every`` steps; free motion (and by default W's columns) by PCG on the current
+    A.
 
     Parameters
     ----------
     refresh_every : Steps between factorisations, ≥ 1 (1 is the exact strategy with extra CG checks).
     tolerance : Relative residual of the PCG solves, in (0, 1).
     max_iterations : PCG iteration cap per solve, ≥ 1.
-    compliance_update : "pcg" (W's columns solved on the current A to ``tolerance``), "stale" (the stale factor's
-        W and correction) or "first_order" (W corrected to first order, W ≈ H(Z₀ − Z₀ᵀ(A − A₀)Z₀)Hᵀ with
-        Z₀ = A₀⁻¹E_u from the stale factor, error O(‖A₀⁻¹(A − A₀)‖²) relative; the correction by PCG to ``tolerance``).
+    compliance_update : "pcg" (W's columns solved on the current A to ``tolerance``), "stale" (the stale
+        factor's W and correction) or "first_order" (W corrected to first order, W ≈ H(Z₀ − Z₀ᵀ(A − A₀)Z₀)Hᵀ
+        with Z₀ = A₀⁻¹E_u from the stale factor, error O(‖A₀⁻¹(A − A₀)‖²) relative; the correction by PCG to
+        ``tolerance``).
     linear_solver : As for :class:`Exact`.
     against_exact : Also compute the exact answer each step and report the errors (for benchmarks).
     """

@@ -7,9 +7,9 @@ One step of implicit Euler, M (v₁ − v₀)/dt = f(x₁, v₁), with f lineari
 
     A Δx = f_ext − f_int(x₀) + (M/dt) v₀ + Hᵀ λ,      A = M/dt² + C/dt + K   [N/m],
 
-with C = rayleigh_mass · M + rayleigh_stiffness · K (Rayleigh damping). A is an *effective stiffness*, so that the
-compliance W = H A⁻¹ Hᵀ is in [m/N] (or [rad/N·m] on rotational DoFs), multipliers λ are forces [N], and the
-constraint correction is Δx = Δx_free + A⁻¹ Hᵀ λ [m], v₁ = Δx / dt.
+with C = rayleigh_mass · M + rayleigh_stiffness · K (Rayleigh damping). A is an *effective stiffness*, so that
+the compliance W = H A⁻¹ Hᵀ is in [m/N] (or [rad/N·m] on rotational DoFs), multipliers λ are forces [N], and
+the constraint correction is Δx = Δx_free + A⁻¹ Hᵀ λ [m], v₁ = Δx / dt.
 
 Fixed DoFs (Δx = 0) and prescribed DoFs (Δx given, e.g. a needle base driven by a trajectory) are eliminated
 from the factorised system; the solution is zero on both in `solve`, the response to a load only.
@@ -64,8 +64,9 @@ def effective_stiffness(
 class ImplicitEulerSystem:
     """The factorised effective stiffness of one body at one time step.
 
-    Build it with :meth:`build`; then :meth:`free_displacement` gives the free motion and :meth:`solve` applies
-    A⁻¹ to any number of right-hand sides (one per constraint row for the compliance, :meth:`compliance`).
+    Build it with :meth:`build`; then :meth:`free_displacement` gives the free motion and :meth:`solve`
+    applies A⁻¹ to any number of right-hand sides (one per constraint row for the compliance,
+    :meth:`compliance`).
 
     Attributes
     ----------
@@ -108,16 +109,23 @@ class ImplicitEulerSystem:
             mass, stiffness, dt, rayleigh_mass=rayleigh_mass, rayleigh_stiffness=rayleigh_stiffness
         )
         dof_count = matrix.shape[0]
-        constrained = np.unique(np.asarray([] if constrained_dofs is None else constrained_dofs, dtype=np.int64))
+        constrained = np.unique(
+            np.asarray([] if constrained_dofs is None else constrained_dofs, dtype=np.int64)
+        )
         if constrained.size and (constrained[0] < 0 or constrained[-1] >= dof_count):
-            raise ValueError(f"constrained_dofs must lie in [0, {dof_count}), got {constrained.min()}..{constrained.max()}")
+            raise ValueError(
+                f"constrained_dofs must lie in [0, {dof_count}), got {constrained.min()}..{constrained.max()}"
+            )
         free = np.setdiff1d(np.arange(dof_count), constrained)
         if free.size == 0:
             raise ValueError("every DoF is constrained: nothing to solve")
         reduced = matrix[free][:, free].tocsc()
-        # A is symmetric positive definite: no pivoting off the diagonal (SuperLU's symmetric mode), which also
-        # halves the cost of each solve against the default threshold pivoting (measured on the paper's cube).
-        factor = spla.splu(reduced, permc_spec="COLAMD", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        # A is symmetric positive definite: no pivoting off the diagonal (SuperLU's symmetric mode), which
+        # also halves the cost of each solve against the default threshold pivoting (measured on the paper's
+        # cube).
+        factor = spla.splu(
+            reduced, permc_spec="COLAMD", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+        )
         coupling = matrix[free][:, constrained].tocsr()
         return cls(matrix, sp.csr_matrix(mass), float(dt), constrained, free, factor, coupling)
 
@@ -177,7 +185,8 @@ class ImplicitEulerSystem:
             prescribed = np.asarray(prescribed_displacements, dtype=float)
             if prescribed.shape != self.constrained_dofs.shape:
                 raise ValueError(
-                    f"prescribed_displacements has shape {prescribed.shape}, expected {self.constrained_dofs.shape}"
+                    f"prescribed_displacements has shape {prescribed.shape}, expected "
+                    f"{self.constrained_dofs.shape}"
                 )
             reduced = reduced - self._coupling @ prescribed
             out[self.constrained_dofs] = prescribed
@@ -200,8 +209,9 @@ class ImplicitEulerSystem:
         row_count = jacobian.shape[0]
         used = np.unique(jacobian.indices)
         if used.size < row_count:
-            # Rows touch few DoFs (a constraint point involves the 4 nodes of its tet): solve for the unit loads
-            # on those DoFs only, Z = A⁻¹ E_D, then A⁻¹ Hᵀ = Z H_Dᵀ — min(rows, used DoFs) solves instead of rows.
+            # Rows touch few DoFs (a constraint point involves the 4 nodes of its tet): solve for the unit
+            # loads on those DoFs only, Z = A⁻¹ E_D, then A⁻¹ Hᵀ = Z H_Dᵀ — min(rows, used DoFs) solves
+            # instead of rows.
             unit_loads = np.zeros((self.dof_count, used.size))
             unit_loads[used, np.arange(used.size)] = 1.0
             influence = self.solve(unit_loads)

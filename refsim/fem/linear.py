@@ -1,26 +1,27 @@
 """Sparse symmetric positive definite solvers that fit the machine: PARDISO, CHOLMOD or SuperLU (layer 2).
 
-Every body's effective stiffness A = M/dt² + C/dt + K keeps one sparsity pattern for a whole run (the free DoFs of
-a fixed mesh), so a solver is made **for a pattern**: the symbolic analysis (fill-reducing ordering, elimination
-tree) is done once, and each step only refactorises numerically.
+Every body's effective stiffness A = M/dt² + C/dt + K keeps one sparsity pattern for a whole run (the free
+DoFs of a fixed mesh), so a solver is made **for a pattern**: the symbolic analysis (fill-reducing ordering,
+elimination tree) is done once, and each step only refactorises numerically.
 
 Backends, in the order of :func:`default_linear_solver`:
 
 ``"pardiso"``
     Intel oneMKL PARDISO through the ``pypardiso`` wheel (x86-64 only; it brings the ``mkl`` wheel): real SPD
-    (mtype 2), upper triangle, zero-based. Phase 11 (analysis) once per pattern, phase 22 (numeric Cholesky) per
-    step, phase 33 (solve) per right-hand side block.
+    (mtype 2), upper triangle, zero-based. Phase 11 (analysis) once per pattern, phase 22 (numeric Cholesky)
+    per step, phase 33 (solve) per right-hand side block.
 ``"cholmod"``
     CHOLMOD (scikit-sparse), only when it imports: it has no wheel here and needs a system SuiteSparse.
     Symbolic analysis once, ``cholesky_inplace`` per step.
 ``"superlu"``
     SciPy's SuperLU in its symmetric mode (no off-diagonal pivoting), with a fill-reducing column ordering
     (``MMD_AT_PLUS_A`` by default: the minimum degree of A + Aᵀ, which suits a symmetric matrix; ``COLAMD`` is
-    what refsim used before). SuperLU has no separate symbolic phase in SciPy: each step orders and factorises.
+    what refsim used before). SuperLU has no separate symbolic phase in SciPy: each step orders and
+    factorises.
 
-The choice is forced by ``REFSIM_LINEAR_SOLVER=pardiso|cholmod|superlu`` (or a scene's ``compliance.linear_solver``
-key through :func:`make_linear_solver`); :func:`linear_solver_info` returns the choice and the versions for the
-results file.
+The choice is forced by ``REFSIM_LINEAR_SOLVER=pardiso|cholmod|superlu`` (or a scene's
+``compliance.linear_solver`` key through :func:`make_linear_solver`); :func:`linear_solver_info` returns the
+choice and the versions for the results file.
 """
 
 from __future__ import annotations
@@ -88,7 +89,8 @@ class SuperLUSolver:
         csc = sp.csc_matrix(matrix)
         if csc.shape[0] != csc.shape[1]:
             raise ValueError(f"matrix must be square, got shape {csc.shape}")
-        # A is SPD: no pivoting off the diagonal (SuperLU's symmetric mode), which also halves the cost of a solve.
+        # A is SPD: no pivoting off the diagonal (SuperLU's symmetric mode), which also halves the cost of a
+        # solve.
         self._factor = spla.splu(
             csc, permc_spec=self.ordering, diag_pivot_thresh=0.0, options={"SymmetricMode": True}
         )
@@ -106,7 +108,8 @@ class SuperLUSolver:
 
 
 class PardisoSolver:
-    """oneMKL PARDISO, real symmetric positive definite: analysis once per pattern, numeric refactorisation per step.
+    """oneMKL PARDISO, real symmetric positive definite: analysis once per pattern, numeric refactorisation
+    per step.
 
     Parameters
     ----------
@@ -175,7 +178,8 @@ class PardisoSolver:
             )
 
     def factorise(self, matrix: sp.spmatrix) -> None:
-        """Factorise A (symmetric positive definite, full storage); the analysis runs when the pattern is new."""
+        """Factorise A (symmetric positive definite, full storage); the analysis runs when the pattern is
+        new."""
         matrix = _check_square(matrix)
         last = self._pattern_arrays
         if last is not None and last[0] is matrix.indptr and last[1] is matrix.indices:
@@ -381,8 +385,8 @@ def linear_solver_info(name: str | None = None) -> dict:
     Returns
     -------
     ``{"linear_solver": ..., "requested": ..., "environment": $REFSIM_LINEAR_SOLVER or "", "available": [...],
-    "scipy": ..., "pypardiso": ..., "mkl": ..., "scikit-sparse": ..., "superlu_ordering": ...}`` (versions are None
-    when not installed).
+    "scipy": ..., "pypardiso": ..., "mkl": ..., "scikit-sparse": ..., "superlu_ordering": ...}`` (versions are
+    None when not installed).
     """
     chosen = default_linear_solver() if name in (None, "auto") else name
     return {

@@ -215,7 +215,8 @@ class NeedleModel:
     @cached_property
     def rest_frame(self) -> np.ndarray:
         """Rest material frame of every node, columns (direction, up, direction × up), shape (3, 3)."""
-        # The columns of refsim.geometry.needle_rest_frame(direction, up), from the validated direction and up.
+        # The columns of refsim.geometry.needle_rest_frame(direction, up), from the validated direction and
+        # up.
         return np.stack([self.direction, self.up, np.cross(self.direction, self.up)], axis=-1)
 
     @cached_property
@@ -457,9 +458,9 @@ class NeedleModel:
     ):
         """The step system of the compliance strategies (:mod:`refsim.fem.compliance`), base node prescribed.
 
-        One Newton step of implicit Euler on A = M/dt² + C/dt + K (co-rotated tangent), the six base DoFs moved by
-        ``base_increment``; a strategy's ``step`` then gives the free motion Δx, W and the correction, which
-        :meth:`apply_increment` turns into positions and frames.
+        One Newton step of implicit Euler on A = M/dt² + C/dt + K (co-rotated tangent), the six base DoFs
+        moved by ``base_increment``; a strategy's ``step`` then gives the free motion Δx, W and the
+        correction, which :meth:`apply_increment` turns into positions and frames.
 
         Parameters
         ----------
@@ -479,15 +480,21 @@ class NeedleModel:
         if forces is None:
             forces = -self.internal_forces(positions, frames)
         matrix = effective_stiffness(
-            mass, self.tangent_stiffness(positions, frames), dt,
-            rayleigh_mass=rayleigh_mass, rayleigh_stiffness=rayleigh_stiffness,
+            mass,
+            self.tangent_stiffness(positions, frames),
+            dt,
+            rayleigh_mass=rayleigh_mass,
+            rayleigh_stiffness=rayleigh_stiffness,
         )
         increment = np.asarray(base_increment, dtype=float)
         if increment.shape != (6,):
             raise ValueError(f"base_increment must have shape (6,), got {increment.shape}")
         base = np.asarray(self.base_dofs)
         order = np.argsort(base)
-        rhs = np.asarray(forces, dtype=float) + (sp.csr_matrix(mass) @ np.asarray(velocities, float).ravel()) / dt
+        rhs = (
+            np.asarray(forces, dtype=float)
+            + (sp.csr_matrix(mass) @ np.asarray(velocities, float).ravel()) / dt
+        )
         rest = np.broadcast_to(self.rest_frame, frames.shape)
 
         def group_rotations() -> np.ndarray:
@@ -534,7 +541,8 @@ class NeedleModel:
         d, rot = local["deformations"], local["element_frames"]
         shapes, slopes = hermite_shapes(xi)
         l0 = self.element_length
-        # Local deflection (0, v, w) with v' = θz and w' = −θy (d = [ū, θ̄x_a, θ̄y_a, θ̄z_a, θ̄x_b, θ̄y_b, θ̄z_b]).
+        # Local deflection (0, v, w) with v' = θz and w' = −θy (d = [ū, θ̄x_a, θ̄y_a, θ̄z_a, θ̄x_b, θ̄y_b,
+        # θ̄z_b]).
         v_rows, w_rows = np.array([3, 6]), np.array([2, 5])
         deflection = np.zeros((xi.size, 3))
         deflection[:, 1] = l0 * np.einsum("qk,qk->q", shapes, d[:, v_rows])

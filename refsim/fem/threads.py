@@ -1,10 +1,10 @@
 """BLAS and OpenMP threads inside refsim's hot path (layer 2).
 
-The step's dense and sparse kernels are small (a few thousand DoFs, tens of columns): on a shared 2-core machine two
-OpenBLAS threads made one W computation 26 times slower than one thread (196 against 7.4 ms, issue 12). Inside the
-step refsim therefore pins every BLAS / OpenMP pool (OpenBLAS, MKL, the OpenMP runtime) to one thread with
-threadpoolctl, *as a context manager*: the user's global setting is restored on exit, so NumPy code around refsim
-keeps its threads.
+The step's dense and sparse kernels are small (a few thousand DoFs, tens of columns): on a shared 2-core
+machine two OpenBLAS threads made one W computation 26 times slower than one thread (196 against 7.4 ms, issue
+12). Inside the step refsim therefore pins every BLAS / OpenMP pool (OpenBLAS, MKL, the OpenMP runtime) to one
+thread with threadpoolctl, *as a context manager*: the user's global setting is restored on exit, so NumPy
+code around refsim keeps its threads.
 """
 
 from __future__ import annotations

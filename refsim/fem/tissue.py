@@ -466,10 +466,11 @@ class TissueModel:
         fixed_displacements: np.ndarray | None = None,
         compiled: bool = True,
     ) -> StepSystem:
-        """The step system of the compliance strategies: A on the free DoFs and the free motion's right-hand side.
+        """The step system of the compliance strategies: A on the free DoFs and the free motion's right-hand
+        side.
 
-        A = M/dt² + C/dt + K with the co-rotational tangent at x₀ (see :mod:`refsim.fem.integration`), the fixed
-        DoFs eliminated; rhs = f_ext − f_int(x₀) + (M/dt) v₀ − A_fc Δx_c.
+        A = M/dt² + C/dt + K with the co-rotational tangent at x₀ (see :mod:`refsim.fem.integration`), the
+        fixed DoFs eliminated; rhs = f_ext − f_int(x₀) + (M/dt) v₀ − A_fc Δx_c.
 
         Parameters
         ----------
@@ -478,8 +479,8 @@ class TissueModel:
         fixed_displacements : Displacement of the fixed nodes over the step [m], shape (k, 3) in the order of
             ``fixed_nodes`` (a boundary motion: a Dirichlet condition on those nodes); zero (held) by default.
         compiled : Co-rotation and assembly in one compiled pass into the fixed free-DoF pattern
-            (:mod:`refsim.fem.assembly`, default); False: the NumPy path (batched products, then elimination), equal
-            to round-off and bit-identical to refsim before the compiled path.
+            (:mod:`refsim.fem.assembly`, default); False: the NumPy path (batched products, then elimination),
+            equal to round-off and bit-identical to refsim before the compiled path.
         """
         if not dt > 0.0:
             raise ValueError(f"dt must be > 0 s, got {dt!r}")
@@ -544,9 +545,12 @@ class TissueModel:
         if fixed_displacements is None:
             return None
         fixed_displacements = np.asarray(fixed_displacements, dtype=float)
-        if fixed_displacements.shape != (self.fixed_nodes.size, 3) or not np.all(np.isfinite(fixed_displacements)):
+        if fixed_displacements.shape != (self.fixed_nodes.size, 3) or not np.all(
+            np.isfinite(fixed_displacements)
+        ):
             raise ValueError(
-                f"fixed_displacements must be finite, of shape ({self.fixed_nodes.size}, 3) [m] (one row per fixed "
+                f"fixed_displacements must be finite, of shape ({self.fixed_nodes.size}, 3) [m] (one row per "
+                f"fixed "
                 f"node, in the order of fixed_nodes), got shape {fixed_displacements.shape}"
             )
         return fixed_displacements.ravel()  # fixed_dofs are node-major over the sorted fixed nodes
@@ -566,7 +570,8 @@ class TissueModel:
         return reduced
 
     def node_rotations(self, rotations: np.ndarray) -> np.ndarray:
-        """One rotation per node: the polar rotation of the sum of the rotations of its tets, shape (node_count, 3, 3).
+        """One rotation per node: the polar rotation of the sum of the rotations of its tets, shape
+        (node_count, 3, 3).
 
         Parameters
         ----------
@@ -602,14 +607,16 @@ class TissueModel:
         dt : Time step [s].
         fixed_displacements : Displacement of the fixed nodes over the step [m], shape (k, 3) in the order of
             ``fixed_nodes``; zero (held in place) by default. The fixed nodes end the step exactly there.
-        compliance : A strategy bound to this tissue for the run (``Exact().bind()``, ``Refreshed(...).bind()``,
-            …, :mod:`refsim.fem.compliance`); a fresh exact one (factorised now) by default.
+        compliance : A strategy bound to this tissue for the run (``Exact().bind()``,
+            ``Refreshed(...).bind()``, …, :mod:`refsim.fem.compliance`); a fresh exact one (factorised now) by
+            default.
 
         Returns
         -------
         free_positions : x_free [m], shape (node_count, 3).
         free_velocities : v_free [m/s], shape (node_count, 3).
-        step : The step's compliance: ``delassus(H)``, ``correction(H, λ)``, and ``compliance(H)`` → (W, A⁻¹Hᵀ).
+        step : The step's compliance: ``delassus(H)``, ``correction(H, λ)``, and ``compliance(H)`` → (W,
+        A⁻¹Hᵀ).
         """
         positions = self._checked_positions(state.positions)
         if compliance is None:

@@ -4,16 +4,16 @@ The triangle kernel is Ericson's Voronoi-region method ("Real-Time Collision Det
 region of the point (three vertex regions, three edge regions, the face) is decided from six dot products,
 here with numpy masks instead of early returns. Its face-region formulas divide by |ab × ac|², computed as a
 difference of products of order (longest edge)⁴: on a sliver (area small against the longest edge squared) the
-cancellation leaves barycentric coordinates that are wrong by O(ε L⁴ / |ab × ac|²) and may be negative, and the
-returned point can be metres away from the triangle (measured: 6 m on 5 m triangles with |ab × ac| = 1e-11 L²).
-Thin triangles (|ab × ac| < _THIN_AREA L², and any triangle where Ericson's coordinates come out negative or
-non-finite) therefore take a second path that is correct by construction: the closest of the candidates "the
-closest point of each edge" and "the orthogonal projection on the plane, when its barycentric coordinates
+cancellation leaves barycentric coordinates that are wrong by O(ε L⁴ / |ab × ac|²) and may be negative, and
+the returned point can be metres away from the triangle (measured: 6 m on 5 m triangles with |ab × ac| = 1e-11
+L²). Thin triangles (|ab × ac| < _THIN_AREA L², and any triangle where Ericson's coordinates come out negative
+or non-finite) therefore take a second path that is correct by construction: the closest of the candidates
+"the closest point of each edge" and "the orthogonal projection on the plane, when its barycentric coordinates
 (from sub-triangle areas) are all non-negative". Every candidate is a point of the triangle, and the true
 closest point is either the plane projection (inside) or on an edge, so the minimum is the closest point up to
 round-off. The plane projection is computed in the frame of the longest edge (see `_face_barycentric`),
-which stays accurate however thin the triangle; exactly collinear or coincident vertices (|ab × ac| = 0) use the
-edges only. Well-shaped triangles keep Ericson's formulas (bit for bit the earlier results).
+which stays accurate however thin the triangle; exactly collinear or coincident vertices (|ab × ac| = 0) use
+the edges only. Well-shaped triangles keep Ericson's formulas (bit for bit the earlier results).
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ __all__ = ["closest_points_on_segments", "closest_points_on_triangles", "triangl
 # A triangle is degenerate when |ab × ac| <= _DEGENERATE_AREA * (longest edge)²: its normal is then lost in
 # round-off and the face-region formulas divide by (nearly) zero.
 _DEGENERATE_AREA = 1e-12
-# Triangles with |ab × ac| < _THIN_AREA × (longest edge)² take the candidate path. Ericson's face coordinates err by
-# about ε / (|ab × ac| / L²)², 2e-14 relative at this bound: below it the candidates are used instead.
+# Triangles with |ab × ac| < _THIN_AREA × (longest edge)² take the candidate path. Ericson's face coordinates
+# err by about ε / (|ab × ac| / L²)², 2e-14 relative at this bound: below it the candidates are used instead.
 _THIN_AREA = 1e-1
 
 
@@ -235,7 +235,9 @@ def _face_barycentric(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     height = np.sqrt(_dot(across, across))
     offset = points - u
     x = _dot(offset, along)
-    with np.errstate(divide="ignore", invalid="ignore"):  # height 0 (collinear to round-off): non-finite, rejected
+    with np.errstate(
+        divide="ignore", invalid="ignore"
+    ):  # height 0 (collinear to round-off): non-finite, rejected
         across /= height[:, None]
         y = _dot(across, offset - x[:, None] * along)
         weight_w = y / height

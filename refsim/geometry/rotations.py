@@ -96,7 +96,8 @@ def rotation_vector(matrices: np.ndarray) -> np.ndarray:
     factor = np.where(small, 1.0 + theta * theta / 6.0, theta / np.where(small, 1.0, sin_theta))
     out = factor[..., None] * axial
     if np.any(near_pi):
-        # Near π the axial part vanishes; take the axis from the symmetric part R + Rᵀ = 2 cos θ I + 2(1−cos θ) a aᵀ.
+        # Near π the axial part vanishes; take the axis from the symmetric part R + Rᵀ = 2 cos θ I + 2(1−cos
+        # θ) a aᵀ.
         sym = 0.5 * (matrices[near_pi] + np.swapaxes(matrices[near_pi], -1, -2))
         c = cos_theta[near_pi][..., None, None]
         aat = (sym - c * np.eye(3)) / (1.0 - c)
@@ -122,17 +123,29 @@ def _polar_svd(f: np.ndarray, out: np.ndarray) -> None:
 
 @numba.njit(cache=True, fastmath=False)
 def polar_rotation_one(f: np.ndarray, out: np.ndarray) -> int:
-    """Rotation of the polar decomposition of one 3 × 3 matrix, into ``out``; returns the iterations (-1: SVD).
+    """Rotation of the polar decomposition of one 3 × 3 matrix, into ``out``; returns the iterations (-1:
+    SVD).
 
-    Scaled Newton iteration X ← ½ (γ X + γ⁻¹ X⁻ᵀ), γ = (‖X⁻¹‖_F / ‖X‖_F)^½ (Higham, Functions of Matrices, §8.6),
-    from X₀ = F; it converges quadratically to R when det F > 0. When det F ≤ 0 (an inverted or flat element) or
-    without convergence in 30 iterations the SVD gives the closest proper rotation, as :func:`polar_rotation_svd`.
+    Scaled Newton iteration X ← ½ (γ X + γ⁻¹ X⁻ᵀ), γ = (‖X⁻¹‖_F / ‖X‖_F)^½ (Higham, Functions of Matrices,
+    §8.6), from X₀ = F; it converges quadratically to R when det F > 0. When det F ≤ 0 (an inverted or flat
+    element) or without convergence in 30 iterations the SVD gives the closest proper rotation, as
+    :func:`polar_rotation_svd`.
     """
     a00, a01, a02 = f[0, 0], f[0, 1], f[0, 2]
     a10, a11, a12 = f[1, 0], f[1, 1], f[1, 2]
     a20, a21, a22 = f[2, 0], f[2, 1], f[2, 2]
     det = a00 * (a11 * a22 - a12 * a21) - a01 * (a10 * a22 - a12 * a20) + a02 * (a10 * a21 - a11 * a20)
-    scale = a00 * a00 + a01 * a01 + a02 * a02 + a10 * a10 + a11 * a11 + a12 * a12 + a20 * a20 + a21 * a21 + a22 * a22
+    scale = (
+        a00 * a00
+        + a01 * a01
+        + a02 * a02
+        + a10 * a10
+        + a11 * a11
+        + a12 * a12
+        + a20 * a20
+        + a21 * a21
+        + a22 * a22
+    )
     if not (det > 1e-14 * scale**1.5):
         _polar_svd(f, out)
         return -1
@@ -149,9 +162,27 @@ def polar_rotation_one(f: np.ndarray, out: np.ndarray) -> int:
         c21 = a02 * a10 - a00 * a12
         c22 = a00 * a11 - a01 * a10
         det = a00 * c00 + a01 * c01 + a02 * c02
-        norm = a00 * a00 + a01 * a01 + a02 * a02 + a10 * a10 + a11 * a11 + a12 * a12 + a20 * a20 + a21 * a21 + a22 * a22
+        norm = (
+            a00 * a00
+            + a01 * a01
+            + a02 * a02
+            + a10 * a10
+            + a11 * a11
+            + a12 * a12
+            + a20 * a20
+            + a21 * a21
+            + a22 * a22
+        )
         inverse_norm = (
-            c00 * c00 + c01 * c01 + c02 * c02 + c10 * c10 + c11 * c11 + c12 * c12 + c20 * c20 + c21 * c21 + c22 * c22
+            c00 * c00
+            + c01 * c01
+            + c02 * c02
+            + c10 * c10
+            + c11 * c11
+            + c12 * c12
+            + c20 * c20
+            + c21 * c21
+            + c22 * c22
         ) / (det * det)
         gamma = (inverse_norm / norm) ** 0.25 if scaled else 1.0
         g = 0.5 * gamma
@@ -160,8 +191,15 @@ def polar_rotation_one(f: np.ndarray, out: np.ndarray) -> int:
         b10, b11, b12 = g * a10 + h * c10, g * a11 + h * c11, g * a12 + h * c12
         b20, b21, b22 = g * a20 + h * c20, g * a21 + h * c21, g * a22 + h * c22
         change = (
-            (b00 - a00) ** 2 + (b01 - a01) ** 2 + (b02 - a02) ** 2 + (b10 - a10) ** 2 + (b11 - a11) ** 2
-            + (b12 - a12) ** 2 + (b20 - a20) ** 2 + (b21 - a21) ** 2 + (b22 - a22) ** 2
+            (b00 - a00) ** 2
+            + (b01 - a01) ** 2
+            + (b02 - a02) ** 2
+            + (b10 - a10) ** 2
+            + (b11 - a11) ** 2
+            + (b12 - a12) ** 2
+            + (b20 - a20) ** 2
+            + (b21 - a21) ** 2
+            + (b22 - a22) ** 2
         )
         a00, a01, a02, a10, a11, a12, a20, a21, a22 = b00, b01, b02, b10, b11, b12, b20, b21, b22
         if change < 1e-6:
@@ -207,8 +245,8 @@ def polar_rotation(deformation_gradients: np.ndarray) -> np.ndarray:
 def polar_rotation_svd(deformation_gradients: np.ndarray) -> np.ndarray:
     """Rotation factor R of the polar decomposition F = R U, with det R = +1, by batched SVD (the reference).
 
-    F = P Σ Qᵀ, R = P diag(1, 1, det(P Qᵀ)) Qᵀ, so that inverted elements (det F < 0) still give a proper rotation
-    (the closest one to F).
+    F = P Σ Qᵀ, R = P diag(1, 1, det(P Qᵀ)) Qᵀ, so that inverted elements (det F < 0) still give a proper
+    rotation (the closest one to F).
 
     Parameters
     ----------

@@ -1,10 +1,12 @@
-"""The one run driver: scene → simulation → results file → summary (used by `refsim run`, the studies and sweeps).
+"""The one run driver: scene → simulation → results file → summary (used by `refsim run`, the studies and
+sweeps).
 
 :func:`run_scene` is a plain function without global state, so a Dask task can call it. It checks the output
 path before anything is built, builds the simulation (every input error surfaces there, before a file exists),
 then runs it, writing each step (buffered in blocks, see :mod:`refsim.io.writer`) and the cut surface as it
-grows, and feeding a :class:`~refsim.simulation.summary.RunSummary`. Whatever stops the run, the file is closed
-with every completed step readable, ``complete`` false and the reason in the root attribute ``stop_reason``:
+grows, and feeding a :class:`~refsim.simulation.summary.RunSummary`. Whatever stops the run, the file is
+closed with every completed step readable, ``complete`` false and the reason in the root attribute
+``stop_reason``:
 
 ============================================  ====================  =========
 what stopped the run                           ``summary.status``    exit code
@@ -47,8 +49,9 @@ logger = logging.getLogger(__name__)
 
 EXIT_OK, EXIT_INPUT, EXIT_NUMERICAL, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 2, 3, 130, 143
 
-#: A tissue displacement beyond this many times the tissue's bounding-box diagonal is a diverging run: a tissue
-#: with fixed nodes cannot move that far (measured: an overflow moved it by 1e144 m with finite numbers).
+# : A tissue displacement beyond this many times the tissue's bounding-box diagonal is a diverging run: a
+# tissue : with fixed nodes cannot move that far (measured: an overflow moved it by 1e144 m with finite
+# numbers).
 DIVERGENCE_FACTOR = 10.0
 #: Largest magnitude of a force [N] or position [m] that is still a number to compute with (beyond it squares
 #: overflow float64 and the next step gives inf).
@@ -79,8 +82,8 @@ def check_output_path(path: str | Path, *, overwrite: bool, what: str = "results
     Raises
     ------
     RunInputError
-        When the path is a directory, exists (without ``overwrite``), has a parent that is a file, or lies in a
-        folder that cannot be created or written to; the message names the path and the cause.
+        When the path is a directory, exists (without ``overwrite``), has a parent that is a file, or lies in
+        a folder that cannot be created or written to; the message names the path and the cause.
     """
     path = Path(path)
     if path.is_dir():
@@ -123,20 +126,25 @@ def check_record(state, record, *, size: float, rest_positions: np.ndarray) -> N
             continue
         finite = np.isfinite(values)
         if not np.all(finite):
-            raise _NumericalProblem(f"step {step}: non-finite {name} ({int(np.count_nonzero(~finite))} values)")
+            raise _NumericalProblem(
+                f"step {step}: non-finite {name} ({int(np.count_nonzero(~finite))} values)"
+            )
         largest = float(np.abs(values).max())
         if largest > OVERFLOW:
             raise _NumericalProblem(f"step {step}: overflowing {name}: |value| up to {largest:.3g}")
     moved = float(np.linalg.norm(np.asarray(state.tissue.positions) - rest_positions, axis=1).max())
     if moved > DIVERGENCE_FACTOR * size:
         raise _NumericalProblem(
-            f"step {step}: the tissue diverges: a node moved {moved:.3g} m, more than {DIVERGENCE_FACTOR:g} times "
+            f"step {step}: the tissue diverges: a node moved {moved:.3g} m, more than {DIVERGENCE_FACTOR:g} "
+            f"times "
             f"the tissue's size ({size:.3g} m); check the material (E, density) and dt"
         )
     report = record.solver
     if report is not None:
         if getattr(report, "diverged", False):
-            raise _NumericalProblem(f"step {step}: the constraint solver diverged ({getattr(report, 'message', '')})")
+            raise _NumericalProblem(
+                f"step {step}: the constraint solver diverged ({getattr(report, 'message', '')})"
+            )
         residual = float(getattr(report, "residual", 0.0))
         if not np.isfinite(residual) and np.asarray(record.row_forces).size:
             raise _NumericalProblem(f"step {step}: the constraint solver's residual is {residual}")
@@ -150,9 +158,11 @@ def _numerical_message(error: BaseException, step: int) -> str | None:
     if isinstance(error, (_NumericalProblem, SimulationError)):
         return text
     if isinstance(error, RuntimeError) and "singular" in text.lower():
-        return (f"step {step}: the system matrix is singular (the sparse factorisation said: {text}); the "
-                "material or dt leave it without a usable inverse (e.g. a Young's modulus so large that the mass "
-                "is lost in round-off)")
+        return (
+            f"step {step}: the system matrix is singular (the sparse factorisation said: {text}); the "
+            "material or dt leave it without a usable inverse (e.g. a Young's modulus so large that the mass "
+            "is lost in round-off)"
+        )
     if isinstance(error, np.linalg.LinAlgError):
         return f"step {step}: linear algebra failed ({text})"
     if isinstance(error, (FloatingPointError, OverflowError, ZeroDivisionError)):
@@ -206,9 +216,10 @@ def run_scene(
     steps : Steps to run (the scene's duration by default).
     buffer_steps : Steps per written block (`refsim.io.writer.DEFAULT_BUFFER_STEPS` by default).
     handle_signals : In the main thread, turn SIGTERM into a clean stop (exit code 143) for the run's duration
-        and make SIGINT raise KeyboardInterrupt (130); the previous handlers are restored afterwards. The signal
-        ends this run and is reported in the summary, not re-raised: a caller that runs several scenes in a loop
-        must stop when ``summary.status`` is "interrupted" or "terminated" (the resolution study does).
+        and make SIGINT raise KeyboardInterrupt (130); the previous handlers are restored afterwards. The
+        signal ends this run and is reported in the summary, not re-raised: a caller that runs several scenes
+        in a loop must stop when ``summary.status`` is "interrupted" or "terminated" (the resolution study
+        does).
 
     Returns
     -------
@@ -237,8 +248,13 @@ def run_scene(
     size = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
     try:
         output.parent.mkdir(parents=True, exist_ok=True)
-        writer = ResultWriter(output, scene, simulation.models, overwrite=overwrite,
-                              buffer_steps=DEFAULT_BUFFER_STEPS if buffer_steps is None else buffer_steps)
+        writer = ResultWriter(
+            output,
+            scene,
+            simulation.models,
+            overwrite=overwrite,
+            buffer_steps=DEFAULT_BUFFER_STEPS if buffer_steps is None else buffer_steps,
+        )
     except (OSError, ValueError) as error:
         raise RunInputError(f"{output}: cannot create the results file: {error}") from None
 
@@ -249,8 +265,14 @@ def run_scene(
         writer.append(record)
         if state.cut is not None and state.cut is not written_cut[0]:
             cut = state.cut
-            writer.write_cut_surface(cut.rest_points, cut.created_step, cut.triangles, cut.triangle_created_step,
-                                     tet_indices=cut.tet_indices, barycentric=cut.barycentric)
+            writer.write_cut_surface(
+                cut.rest_points,
+                cut.created_step,
+                cut.triangles,
+                cut.triangle_created_step,
+                tet_indices=cut.tet_indices,
+                barycentric=cut.barycentric,
+            )
             written_cut[0] = cut
         summary.add(record)
         if on_step is not None:

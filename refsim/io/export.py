@@ -8,8 +8,9 @@
 
 Problem-set file (HDF5, ``format = "refsim-problem-set"``, ``schema_version = 1``)::
 
-    /                       attributes: format, schema_version, source (results file), scene (JSON), scene_name,
-                            git_commit, created, solver (how the solutions were computed), problem_count
+    /                       attributes: format, schema_version, source (results file), scene (JSON),
+                            scene_name, git_commit, created, solver (how the solutions were computed),
+                            problem_count
     /problems/step_NNNNNNN/ attributes: step, time [s], phase, name, pure_contact (bool), kinds (JSON: rows of
                             each kind)
         compliance (r, r) [m/N], free_gap (r,) [m]      δ = W λ + δ_free
@@ -20,9 +21,9 @@ Problem-set file (HDF5, ``format = "refsim-problem-set"``, ``schema_version = 1`
                             attributes: residual (natural residual), converged, solver, seconds
 
 FCLib local file (one problem, Siconos' u = W r + q; FCLib's ``fclib_local`` layout): ``/fclib_local/W``
-({m, n, nz = -1, nzmax, p, i, x}: CSC, int32 indices), ``/fclib_local/vectors/{q, mu}``, ``/fclib_local/spacedim``
-= 3, ``/fclib_local/info/{title, description, math_info}``, and ``/solution/{r, u}``. Rows are reordered so
-that contact k holds rows 3k (normal), 3k + 1, 3k + 2 (tangents); r = λ, u = δ.
+({m, n, nz = -1, nzmax, p, i, x}: CSC, int32 indices), ``/fclib_local/vectors/{q, mu}``,
+``/fclib_local/spacedim`` = 3, ``/fclib_local/info/{title, description, math_info}``, and ``/solution/{r,
+u}``. Rows are reordered so that contact k holds rows 3k (normal), 3k + 1, 3k + 2 (tangents); r = λ, u = δ.
 """
 
 from __future__ import annotations
@@ -34,8 +35,14 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["PROBLEM_SET_FORMAT", "export_force_csv", "export_problems", "is_pure_contact", "read_problem_set",
-           "write_fclib"]
+__all__ = [
+    "PROBLEM_SET_FORMAT",
+    "export_force_csv",
+    "export_problems",
+    "is_pure_contact",
+    "read_problem_set",
+    "write_fclib",
+]
 
 PROBLEM_SET_FORMAT = "refsim-problem-set"
 PROBLEM_SET_SCHEMA_VERSION = 1
@@ -72,9 +79,11 @@ def write_fclib(problem, path, *, solution=None, title: str = "", description: s
     import scipy.sparse as sparse
 
     if not is_pure_contact(problem):
-        raise ValueError(f"problem {problem.name!r}: {problem.row_count - problem.contacts.size} of "
-                         f"{problem.row_count} rows are not frictional contacts; FCLib's local format holds "
-                         "contacts only")
+        raise ValueError(
+            f"problem {problem.name!r}: {problem.row_count - problem.contacts.size} of "
+            f"{problem.row_count} rows are not frictional contacts; FCLib's local format holds "
+            "contacts only"
+        )
     order = problem.contacts.reshape(-1)
     matrix = sparse.csc_matrix(problem.compliance[np.ix_(order, order)])
     matrix.eliminate_zeros()
@@ -98,7 +107,9 @@ def write_fclib(problem, path, *, solution=None, title: str = "", description: s
         info = local.create_group("info")
         info.create_dataset("title", data=np.bytes_(title or problem.name or path.stem))
         info.create_dataset("description", data=np.bytes_(description or "exported by refsim.io.export"))
-        info.create_dataset("math_info", data=np.bytes_("u = W r + q; contact k: rows 3k (normal), 3k+1, 3k+2"))
+        info.create_dataset(
+            "math_info", data=np.bytes_("u = W r + q; contact k: rows 3k (normal), 3k+1, 3k+2")
+        )
         if solution is not None:
             solution = np.asarray(solution, dtype=np.float64)
             group = handle.create_group("solution")
@@ -107,15 +118,17 @@ def write_fclib(problem, path, *, solution=None, title: str = "", description: s
     return path
 
 
-def export_problems(results_path, output, *, fclib_folder=None, tolerance: float = 1e-10,
-                    backend: str = "clarabel") -> dict:
+def export_problems(
+    results_path, output, *, fclib_folder=None, tolerance: float = 1e-10, backend: str = "clarabel"
+) -> dict:
     """Export every recorded constraint problem of a results file with its exact solution.
 
     Parameters
     ----------
     results_path : A results file written with ``output.record_problems = true``.
     output : The problem-set file to write (.h5).
-    fclib_folder : Also write ``step_NNNNNNN.hdf5`` FCLib files here for the pure-contact steps; none when None.
+    fclib_folder : Also write ``step_NNNNNNN.hdf5`` FCLib files here for the pure-contact steps; none when
+    None.
     tolerance : Natural residual the exact solver is asked for.
     backend : QP backend of the exact solver.
 
@@ -139,52 +152,87 @@ def export_problems(results_path, output, *, fclib_folder=None, tolerance: float
     results = read_results(results_path)
     problems = read_problems(results_path)
     if not problems:
-        raise ValueError(f"{results_path}: no recorded constraint problems; run the scene with "
-                         "--set output.record_problems=true")
+        raise ValueError(
+            f"{results_path}: no recorded constraint problems; run the scene with "
+            "--set output.record_problems=true"
+        )
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
     fields = _problem_fields()
     written, unconverged = [], []
     with h5py.File(output, "w") as handle:
-        handle.attrs.update({
-            "format": PROBLEM_SET_FORMAT, "schema_version": PROBLEM_SET_SCHEMA_VERSION,
-            "source": str(results_path), "scene": json.dumps(results.scene, sort_keys=True),
-            "scene_name": results.scene_name, "git_commit": git_commit(),
-            "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-            "solver": f"refsim.solvers.solve_exact(tolerance={tolerance:g}, backend={backend!r})",
-            "problem_count": len(problems),
-        })
+        handle.attrs.update(
+            {
+                "format": PROBLEM_SET_FORMAT,
+                "schema_version": PROBLEM_SET_SCHEMA_VERSION,
+                "source": str(results_path),
+                "scene": json.dumps(results.scene, sort_keys=True),
+                "scene_name": results.scene_name,
+                "git_commit": git_commit(),
+                "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                "solver": f"refsim.solvers.solve_exact(tolerance={tolerance:g}, backend={backend!r})",
+                "problem_count": len(problems),
+            }
+        )
         for step, problem in problems:
             multipliers, report = solve_exact(problem, tolerance=tolerance, backend=backend)
             index = results.index_of(step)
             group = handle.create_group(f"problems/step_{step:07d}")
             kinds = np.bincount(problem.row_kinds(), minlength=5)
-            group.attrs.update({"step": step, "time": float(results.time[index]),
-                                "phase": str(results.phase_name[index]), "name": problem.name,
-                                "pure_contact": is_pure_contact(problem),
-                                "kinds": json.dumps({name: int(count) for name, count in
-                                                     zip(("bilateral", "unilateral", "contact", "shaft_friction",
-                                                          "box"), kinds, strict=False)})})
+            group.attrs.update(
+                {
+                    "step": step,
+                    "time": float(results.time[index]),
+                    "phase": str(results.phase_name[index]),
+                    "name": problem.name,
+                    "pure_contact": is_pure_contact(problem),
+                    "kinds": json.dumps(
+                        {
+                            name: int(count)
+                            for name, count in zip(
+                                ("bilateral", "unilateral", "contact", "shaft_friction", "box"),
+                                kinds,
+                                strict=False,
+                            )
+                        }
+                    ),
+                }
+            )
             for name in fields:
                 dataset = group.create_dataset(name, data=np.asarray(getattr(problem, name)))
-                dataset.attrs["units"] = {"compliance": "m/N", "free_gap": "m", "shaft_normal_preload": "N",
-                                          "box_lower": "N", "box_upper": "N"}.get(name, "1")
+                dataset.attrs["units"] = {
+                    "compliance": "m/N",
+                    "free_gap": "m",
+                    "shaft_normal_preload": "N",
+                    "box_lower": "N",
+                    "box_upper": "N",
+                }.get(name, "1")
             solution = group.create_group("solution")
             solution.create_dataset("multipliers", data=multipliers).attrs["units"] = "N"
             solution.create_dataset("gap", data=problem.gap(multipliers)).attrs["units"] = "m"
-            solution.attrs.update({"residual": float(natural_residual(problem, multipliers)),
-                                   "converged": bool(report.converged), "solver": str(report.solver),
-                                   "seconds": float(report.seconds)})
+            solution.attrs.update(
+                {
+                    "residual": float(natural_residual(problem, multipliers)),
+                    "converged": bool(report.converged),
+                    "solver": str(report.solver),
+                    "seconds": float(report.seconds),
+                }
+            )
             if not report.converged:
                 unconverged.append(step)
             if fclib_folder is not None and is_pure_contact(problem):
-                written.append(write_fclib(
-                    problem, Path(fclib_folder) / f"step_{step:07d}.hdf5", solution=multipliers,
-                    title=f"{results.scene_name} step {step}",
-                    description=f"refsim needle-tissue problem: scene {results.scene_name}, step {step}, "
-                                f"t = {results.time[index]:.4g} s, phase {results.phase_name[index]}, from "
-                                f"{results_path.name}; solution by solve_exact (natural residual "
-                                f"{natural_residual(problem, multipliers):.1e})"))
+                written.append(
+                    write_fclib(
+                        problem,
+                        Path(fclib_folder) / f"step_{step:07d}.hdf5",
+                        solution=multipliers,
+                        title=f"{results.scene_name} step {step}",
+                        description=f"refsim needle-tissue problem: scene {results.scene_name}, step {step}, "
+                        f"t = {results.time[index]:.4g} s, phase {results.phase_name[index]}, from "
+                        f"{results_path.name}; solution by solve_exact (natural residual "
+                        f"{natural_residual(problem, multipliers):.1e})",
+                    )
+                )
     return {"problems": len(problems), "fclib": written, "unconverged": unconverged, "output": output}
 
 
@@ -205,26 +253,42 @@ def read_problem_set(path) -> list[tuple[int, object, np.ndarray]]:
         found = handle.attrs.get("format")
         found = found.decode() if isinstance(found, bytes) else found
         if found != PROBLEM_SET_FORMAT:
-            raise ValueError(f"{path}: not a refsim problem set (format {found!r}, expected {PROBLEM_SET_FORMAT!r})")
+            raise ValueError(
+                f"{path}: not a refsim problem set (format {found!r}, expected {PROBLEM_SET_FORMAT!r})"
+            )
         out = []
         for name in sorted(handle["problems"]):
             group = handle["problems"][name]
             fields = {key: group[key][()] for key in _problem_fields() if key in group}
             label = group.attrs.get("name", name)
-            problem = ConstraintProblem(**fields, name=label.decode() if isinstance(label, bytes) else str(label))
+            problem = ConstraintProblem(
+                **fields, name=label.decode() if isinstance(label, bytes) else str(label)
+            )
             out.append((int(group.attrs["step"]), problem, group["solution/multipliers"][()]))
     return out
 
 
 #: Columns of the force CSV and their units.
-FORCE_COLUMNS = ("step", "time_s", "phase", "force_x_N", "force_y_N", "force_z_N", "axial_N", "lateral_N",
-                 "tip_depth_m", "base_x_m", "base_y_m", "base_z_m")
+FORCE_COLUMNS = (
+    "step",
+    "time_s",
+    "phase",
+    "force_x_N",
+    "force_y_N",
+    "force_z_N",
+    "axial_N",
+    "lateral_N",
+    "tip_depth_m",
+    "base_x_m",
+    "base_y_m",
+    "base_z_m",
+)
 
 
 def export_force_csv(results_path, output) -> Path:
-    """Write the needle force history of a results file as CSV (columns :data:`FORCE_COLUMNS`; the force of the
-    tissue on the needle, its axial component along the base segment and the lateral norm, the tip depth from
-    the puncture point, NaN before a puncture)."""
+    """Write the needle force history of a results file as CSV (columns :data:`FORCE_COLUMNS`; the force of
+    the tissue on the needle, its axial component along the base segment and the lateral norm, the tip depth
+    from the puncture point, NaN before a puncture)."""
     from refsim.io.reader import read_results
 
     results = read_results(results_path)
@@ -235,9 +299,16 @@ def export_force_csv(results_path, output) -> Path:
     lines = [",".join(FORCE_COLUMNS)]
     phases = results.phase_name
     for i in range(results.step_count):
-        values = [f"{results.step[i]:d}", f"{results.time[i]:.9g}", str(phases[i]),
-                  *(f"{v:.9g}" for v in results.needle_force[i]), f"{axial[i]:.9g}", f"{lateral[i]:.9g}",
-                  f"{depth[i]:.9g}", *(f"{v:.9g}" for v in results.base_position[i])]
+        values = [
+            f"{results.step[i]:d}",
+            f"{results.time[i]:.9g}",
+            str(phases[i]),
+            *(f"{v:.9g}" for v in results.needle_force[i]),
+            f"{axial[i]:.9g}",
+            f"{lateral[i]:.9g}",
+            f"{depth[i]:.9g}",
+            *(f"{v:.9g}" for v in results.base_position[i]),
+        ]
         lines.append(",".join(values))
     output.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return output

@@ -1,7 +1,7 @@
 """Reading a results file written by :class:`refsim.io.ResultWriter` (layout in :mod:`refsim.io.schema`).
 
-The reader trusts the root attribute ``steps_completed``: per-step datasets are cut to that many steps, so a file
-left by an interrupted run (``complete = False``) reads like a shorter complete one.
+The reader trusts the root attribute ``steps_completed``: per-step datasets are cut to that many steps, so a
+file left by an interrupted run (``complete = False``) reads like a shorter complete one.
 """
 
 from __future__ import annotations
@@ -172,7 +172,8 @@ class Results:
 
     @property
     def stop_reason(self) -> str:
-        """Why the run stopped early ("" for a complete run; files written before the attribute existed: "")."""
+        """Why the run stopped early ("" for a complete run; files written before the attribute existed:
+        "")."""
         return str(self.attributes.get("stop_reason", ""))
 
     @property
@@ -249,7 +250,8 @@ class Results:
 
     def puncture_point(self) -> np.ndarray | None:
         """Where the needle entered the tissue [m], (3,): the tissue-side point of the penetration row of the
-        first puncture step (the closest surface point to the tip), or None when the needle never punctured."""
+        first puncture step (the closest surface point to the tip), or None when the needle never
+        punctured."""
         punctures = self.events_named("puncture")
         if not punctures:
             return None
@@ -363,13 +365,17 @@ def read_results(path) -> Results:
         row_count = int(offsets[-1])
         last_step = int(handle[schema.STEPS["step"].path][count - 1]) if count else 0
 
-        steps = {name: _read(handle, spec.path, count) for name, spec in schema.STEPS.items()
-                 if spec.path in handle or name != "boundary_displacement"}  # files before the boundary motion
+        steps = {
+            name: _read(handle, spec.path, count)
+            for name, spec in schema.STEPS.items()
+            if spec.path in handle or name != "boundary_displacement"
+        }  # files before the boundary motion
         stage_names = _names(handle[schema.STEPS["stage_seconds"].path])
         solver = {name: _read(handle, spec.path, count) for name, spec in schema.SOLVER.items()}
         rows = {
             name: _read(handle, spec.path, row_count)
-            for name, spec in schema.CONSTRAINTS.items() if name != "offsets"
+            for name, spec in schema.CONSTRAINTS.items()
+            if name != "offsets"
         }
         tissue_steps = _read(handle, schema.TISSUE["step"].path)
         tissue_count = int(np.count_nonzero(tissue_steps <= last_step))
@@ -378,11 +384,15 @@ def read_results(path) -> Results:
         event_data = {name: _read(handle, spec.path, event_count) for name, spec in schema.EVENTS.items()}
         events = tuple(
             RecordedEvent(int(s), float(t), str(n), float(f))
-            for s, t, n, f in zip(event_data["step"], event_data["time"], event_data["name"], event_data["force"])
+            for s, t, n, f in zip(
+                event_data["step"], event_data["time"], event_data["name"], event_data["force"], strict=False
+            )
         )
         cut = None
         if "cut" in handle:
-            cut_data = {name: _read(handle, spec.path) for name, spec in schema.CUT.items() if spec.path in handle}
+            cut_data = {
+                name: _read(handle, spec.path) for name, spec in schema.CUT.items() if spec.path in handle
+            }
             cut = CutHistory(**cut_data)
         try:
             scene = json.loads(attributes.get("scene", "{}"))
@@ -409,7 +419,9 @@ def read_results(path) -> Results:
             cut_point_count=steps["cut_point_count"],
             cut_triangle_count=steps["cut_triangle_count"],
             triangulation_seconds=steps["triangulation_seconds"],
-            stage_seconds={name: steps["stage_seconds"][:, column] for column, name in enumerate(stage_names)},
+            stage_seconds={
+                name: steps["stage_seconds"][:, column] for column, name in enumerate(stage_names)
+            },
             solver=solver,
             tissue_steps=tissue_steps[:tissue_count],
             tissue_times=_read(handle, schema.TISSUE["time"].path, tissue_count),
@@ -426,11 +438,13 @@ def read_results(path) -> Results:
             stage_names=stage_names,
             events=events,
             trajectory_samples=_read(handle, schema.STATIC["trajectory/samples"].path)
-            if schema.STATIC["trajectory/samples"].path in handle else np.zeros((0, 7)),
+            if schema.STATIC["trajectory/samples"].path in handle
+            else np.zeros((0, 7)),
             boundary_nodes=_read(handle, schema.STATIC["tissue/boundary_nodes"].path)
             if schema.STATIC["tissue/boundary_nodes"].path in handle
             else np.zeros(0, dtype=np.int64),
-            boundary_displacement=steps["boundary_displacement"] if "boundary_displacement" in steps
+            boundary_displacement=steps["boundary_displacement"]
+            if "boundary_displacement" in steps
             else np.zeros((len(steps["step"]), 0, 3)),
             cut=cut,
             problem_steps=np.array(_problem_steps(handle, last_step), dtype=np.int64),
@@ -478,7 +492,8 @@ def read_problem_group(group, *, default_name: str = ""):
     """
     from refsim.solvers import ConstraintProblem
 
-    fields = {spec.name: group[spec.name][()] for spec in schema.PROBLEM_FIELDS.values()
-              if spec.name in group}
+    fields = {
+        spec.name: group[spec.name][()] for spec in schema.PROBLEM_FIELDS.values() if spec.name in group
+    }
     name = _plain(group.attrs.get("name", "")) or default_name
     return ConstraintProblem(**fields, name=name)

@@ -59,7 +59,8 @@ ROOT_ATTRIBUTES = {
     "scene_name": "the scene's name",
     "complete": "True once the run finished and the file was closed normally",
     "steps_completed": "number of steps fully written; the reader trusts this count, not dataset lengths",
-    "stop_reason": 'why the run stopped early (interrupted by SIGINT/SIGTERM, a numerical error, a failed write); '
+    "stop_reason": "why the run stopped early (interrupted by SIGINT/SIGTERM, a numerical error, a failed "
+    "write); "
     '"" for a complete run',
 }
 
@@ -73,8 +74,8 @@ class DatasetSpec:
     path : Path from the file's root.
     unit : The ``units`` attribute ("m", "N", "s", "1" for dimensionless or index data, "m/N").
     dtype : numpy dtype name, or "str" for variable-length UTF-8 strings.
-    entry_shape : Shape of one entry; per-step (growing) datasets hold (count,) + entry_shape. Symbols: n tissue
-        nodes, m tets, f faces, k needle nodes, r rows of the problem, "?" any.
+    entry_shape : Shape of one entry; per-step (growing) datasets hold (count,) + entry_shape. Symbols: n
+        tissue nodes, m tets, f faces, k needle nodes, r rows of the problem, "?" any.
     meaning : What the data is, in one line.
     growing : True for datasets appended along their first axis as the run goes.
     """
@@ -107,11 +108,29 @@ STATIC = _specs(
         ("tissue/tets", "1", "int64", ("m", 4), "tetrahedra (node indices)"),
         ("tissue/faces", "1", "int64", ("f", 3), "boundary triangles, oriented outward (node indices)"),
         ("tissue/fixed_nodes", "1", "int64", ("?",), "indices of the clamped tissue nodes"),
-        ("tissue/boundary_nodes", "1", "int64", ("?",), "indices of the nodes a boundary motion moves (empty: none)"),
-        ("trajectory/samples", "-", "float64", ("?", 7),
-         "the needle base's trajectory as the run used it: t [s], base x, y, z [m], unit direction dx, dy, dz "
-         "(a CSV trajectory is copied here, so the file stands alone)"),
-        ("needle/rest_nodes", "m", "float64", ("k", 3), "needle nodes at the trajectory's initial pose (t = 0)"),
+        (
+            "tissue/boundary_nodes",
+            "1",
+            "int64",
+            ("?",),
+            "indices of the nodes a boundary motion moves (empty: none)",
+        ),
+        (
+            "trajectory/samples",
+            "-",
+            "float64",
+            ("?", 7),
+            "the needle base's trajectory as the run used it: t [s], base x, y, z [m], unit direction dx, "
+            "dy, dz "
+            "(a CSV trajectory is copied here, so the file stands alone)",
+        ),
+        (
+            "needle/rest_nodes",
+            "m",
+            "float64",
+            ("k", 3),
+            "needle nodes at the trajectory's initial pose (t = 0)",
+        ),
     ],
     growing=False,
 )
@@ -126,15 +145,33 @@ STEPS = _specs(
         ("base_position", "m", "float64", (3,), "needle base position"),
         ("needle_positions", "m", "float64", ("k", 3), "needle node positions"),
         ("needle_frames", "1", "float64", ("k", 3, 3), "needle node frames (rotation matrices)"),
-        ("needle_force", "N", "float64", (3,), "force of the tissue on the needle, sum of multiplier x direction"),
+        (
+            "needle_force",
+            "N",
+            "float64",
+            (3,),
+            "force of the tissue on the needle, sum of multiplier x direction",
+        ),
         ("insertion_point_count", "1", "int64", (), "insertion points after the step"),
         ("cut_point_count", "1", "int64", (), "cut surface points after the step"),
         ("cut_triangle_count", "1", "int64", (), "cut surface triangles after the step"),
         ("triangulation_seconds", "s", "float64", (), "wall-clock time of the cut triangulation in the step"),
-        ("stage_seconds", "s", "float64", ("stages",), "wall-clock time of each stage; columns in attribute `names`"),
-        ("boundary_displacement", "m", "float64", ("b", 3),
-         "prescribed displacement from rest of the nodes scene/tissue/boundary_nodes at the end of the step "
-         "(one row of zeros without a boundary motion)"),
+        (
+            "stage_seconds",
+            "s",
+            "float64",
+            ("stages",),
+            "wall-clock time of each stage; columns in attribute `names`",
+        ),
+        (
+            "boundary_displacement",
+            "m",
+            "float64",
+            ("b", 3),
+            "prescribed displacement from rest of the nodes scene/tissue/boundary_nodes at the end of the "
+            "step "
+            "(one row of zeros without a boundary motion)",
+        ),
     ],
 )
 
@@ -146,7 +183,13 @@ SOLVER = _specs(
         ("residual", "1", "float64", (), "natural residual of the returned multipliers; NaN when no solve"),
         ("converged", "1", "int8", (), "1 converged, 0 not converged, -1 no solve"),
         ("seconds", "s", "float64", (), "wall-clock time of the solve; NaN when no solve"),
-        ("increment", "m", "float64", (), "Gauss-Seidel increment measure sum |W_jj dlambda_j|; NaN otherwise"),
+        (
+            "increment",
+            "m",
+            "float64",
+            (),
+            "Gauss-Seidel increment measure sum |W_jj dlambda_j|; NaN otherwise",
+        ),
         ("name", "1", "str", (), 'solver name ("gauss_seidel", "exact/clarabel", ...); "" when no solve'),
         ("message", "1", "str", (), "why the solver stopped (set when not converged)"),
     ],
@@ -167,11 +210,35 @@ TISSUE = _specs(
 CONSTRAINTS = _specs(
     "constraints",
     [
-        ("offsets", "1", "int64", (), "row offsets; step i's rows are offsets[i]:offsets[i+1] (length steps + 1)"),
-        ("kind", "1", "int8", (), "row kind; code into the attribute `names` (bilateral, unilateral, friction)"),
-        ("source", "1", "int8", (), "row source; code into the attribute `names` (penetration, insertion, ...)"),
+        (
+            "offsets",
+            "1",
+            "int64",
+            (),
+            "row offsets; step i's rows are offsets[i]:offsets[i+1] (length steps + 1)",
+        ),
+        (
+            "kind",
+            "1",
+            "int8",
+            (),
+            "row kind; code into the attribute `names` (bilateral, unilateral, friction)",
+        ),
+        (
+            "source",
+            "1",
+            "int8",
+            (),
+            "row source; code into the attribute `names` (penetration, insertion, ...)",
+        ),
         ("points", "m", "float64", (3,), "tissue-side point of each row"),
-        ("directions", "1", "float64", (3,), "unit direction n of each row (delta = n.(x_needle - x_tissue))"),
+        (
+            "directions",
+            "1",
+            "float64",
+            (3,),
+            "unit direction n of each row (delta = n.(x_needle - x_tissue))",
+        ),
         ("forces", "N", "float64", (), "multiplier lambda of each row"),
     ],
 )
@@ -205,8 +272,8 @@ CUT = _specs(
 PROBLEMS_GROUP = "problems"
 
 #: Datasets of one problem subgroup ``problems/step_NNNNNNN``: every array field of
-#: refsim.solvers.ConstraintProblem, derived from the solvers' law table (refsim.solvers.laws), so a new law or
-#: field is recorded and read back without touching this file. Fields absent from an older file take their
+# : refsim.solvers.ConstraintProblem, derived from the solvers' law table (refsim.solvers.laws), so a new law
+# or : field is recorded and read back without touching this file. Fields absent from an older file take their
 #: defaults when read.
 PROBLEM_FIELDS = _specs(
     "problems/step_NNNNNNN",
@@ -225,16 +292,37 @@ XDMF = _specs(
     XDMF_GROUP,
     [
         ("needle/polyline", "1", "int64", (1, "k"), "the needle's polyline connectivity, 0 .. k-1"),
-        ("needle/positions/NNNNNNN", "m", "float64", ("k", 3),
-         "view of steps/needle_positions at step NNNNNNN (virtual dataset)"),
-        ("cut/points/NNNNNNN", "m", "float64", ("?", 3),
-         "every cut surface point mapped into the tissue deformed at recorded step NNNNNNN (equation 4: its tet's "
-         "nodes at tissue/positions weighted by cut/barycentric); derived, stored"),
-        ("cut/triangles/NNNNNNN", "1", "int64", ("?", 3),
-         "the cut triangles existing at recorded step NNNNNNN: a view of the first rows of cut/triangles "
-         "(virtual dataset), a copy when the triangles are not in step order"),
-        ("tissue/positions/NNNNNNN", "m", "float64", ("n", 3),
-         "view of tissue/positions at recorded step NNNNNNN (virtual dataset)"),
+        (
+            "needle/positions/NNNNNNN",
+            "m",
+            "float64",
+            ("k", 3),
+            "view of steps/needle_positions at step NNNNNNN (virtual dataset)",
+        ),
+        (
+            "cut/points/NNNNNNN",
+            "m",
+            "float64",
+            ("?", 3),
+            "every cut surface point mapped into the tissue deformed at recorded step NNNNNNN (equation 4: "
+            "its tet's "
+            "nodes at tissue/positions weighted by cut/barycentric); derived, stored",
+        ),
+        (
+            "cut/triangles/NNNNNNN",
+            "1",
+            "int64",
+            ("?", 3),
+            "the cut triangles existing at recorded step NNNNNNN: a view of the first rows of cut/triangles "
+            "(virtual dataset), a copy when the triangles are not in step order",
+        ),
+        (
+            "tissue/positions/NNNNNNN",
+            "m",
+            "float64",
+            ("n", 3),
+            "view of tissue/positions at recorded step NNNNNNN (virtual dataset)",
+        ),
     ],
     growing=False,
 )
@@ -270,24 +358,31 @@ def reference_markdown() -> str:
     lines = [
         "# Results file (HDF5)",
         "",
-        "Generated by `refsim.io.schema.reference_markdown()`; `tests/io/test_results.py` checks this page is current.",
+        "Generated by `refsim.io.schema.reference_markdown()`; `tests/io/test_results.py` checks this page "
+        "is current.",
         "",
         f"One file per run, written step by step by `refsim run` (`refsim.io.ResultWriter`); schema version "
-        f"{SCHEMA_VERSION}. Per-step datasets grow along their first axis. The writer buffers steps and writes "
-        "them in blocks (32 steps by default, one resize and one write per dataset per block); the run driver "
-        "(`refsim.io.driver.run_scene`) writes the buffered steps whenever a run stops, so an interrupted run "
+        f"{SCHEMA_VERSION}. Per-step datasets grow along their first axis. The writer buffers steps and "
+        f"writes "
+        "them in blocks (32 steps by default, one resize and one write per dataset per block); the run "
+        "driver "
+        "(`refsim.io.driver.run_scene`) writes the buffered steps whenever a run stops, so an interrupted "
+        "run "
         "(Ctrl-C, SIGTERM), a run stopped by a numerical error and a run whose disk filled up all keep every "
-        "completed step (a full disk: every step of the blocks written before the failure). The root attribute "
-        "`steps_completed` says how many, `complete` stays false and `stop_reason` says why. Only a hard kill "
+        "completed step (a full disk: every step of the blocks written before the failure). The root "
+        "attribute "
+        "`steps_completed` says how many, `complete` stays false and `stop_reason` says why. Only a hard "
+        "kill "
         "(SIGKILL) can lose the last buffered block. Every dataset carries a `units` attribute.",
         "",
         "| how the run ended | exit code of `refsim run` | `complete` | `stop_reason` |",
         "|---|---|---|---|",
-        "| finished | 0 | true | \"\" |",
+        '| finished | 0 | true | "" |',
         "| bad input (scene, mesh, paths) | 2 | no file is written | - |",
         "| numerical problem (non-finite or overflowing values, singular factorisation, diverging solver) "
         "| 3 | false | what was detected, at which step |",
-        "| failed write (disk full) | 3 | false | the write error; the steps of earlier blocks are readable |",
+        "| failed write (disk full) | 3 | false "
+        "| the write error; the steps of earlier blocks are readable |",
         "| SIGINT (Ctrl-C) | 130 | false | interrupted by SIGINT |",
         "| SIGTERM | 143 | false | interrupted by SIGTERM |",
         "",
@@ -314,7 +409,8 @@ def reference_markdown() -> str:
         "",
         "## Datasets",
         "",
-        f"Symbols in shapes: n tissue nodes, m tets, f faces, k needle nodes, r rows, \"?\" any; a leading `steps` "
+        f'Symbols in shapes: n tissue nodes, m tets, f faces, k needle nodes, r rows, "?" any; a leading '
+        f"`steps` "
         f"means one entry per step. Constraint problems (with `output.record_problems = true`) are in groups "
         f"`{PROBLEMS_GROUP}/step_NNNNNNN`.",
         "",
@@ -326,12 +422,15 @@ def reference_markdown() -> str:
         "",
         f"## The `{XDMF_GROUP}/` group (ParaView sidecar)",
         "",
-        f"`refsim.io.xdmf.write_xdmf` (called by `refsim run`, by every run of a study and by `refsim export "
-        f"--xdmf`) writes `RESULT.xdmf` beside the file and this group into it; it replaces the group when run "
-        f"again. NNNNNNN is a step number (7 digits): one dataset per step for the needle, one per recorded "
-        f"tissue step (`tissue/step`) for the tissue and the cut. Views are HDF5 virtual datasets onto one entry "
-        f"of a per-step dataset (no data copied); only the deformed cut points are stored. The group's attribute "
-        f"`description` says the same.",
+        "`refsim.io.xdmf.write_xdmf` (called by `refsim run`, by every run of a study and by `refsim export "
+        "--xdmf`) writes `RESULT.xdmf` beside the file and this group into it; it replaces the group when "
+        "run "
+        "again. NNNNNNN is a step number (7 digits): one dataset per step for the needle, one per recorded "
+        "tissue step (`tissue/step`) for the tissue and the cut. Views are HDF5 virtual datasets onto one "
+        "entry "
+        "of a per-step dataset (no data copied); only the deformed cut points are stored. The group's "
+        "attribute "
+        "`description` says the same.",
         "",
         "| path | shape | dtype | unit | meaning |",
         "|---|---|---|---|---|",
@@ -342,4 +441,5 @@ def reference_markdown() -> str:
 
 def _row(spec: DatasetSpec) -> str:
     shape = ("steps",) + tuple(spec.entry_shape) if spec.growing else tuple(spec.entry_shape)
-    return f"| `{spec.path}` | ({', '.join(str(s) for s in shape)}) | {spec.dtype} | {spec.unit} | {spec.meaning} |"
+    dims = ", ".join(str(s) for s in shape)
+    return f"| `{spec.path}` | ({dims}) | {spec.dtype} | {spec.unit} | {spec.meaning} |"

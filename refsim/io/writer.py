@@ -1,25 +1,27 @@
-"""Writing a run to its HDF5 results file, step by step (DESIGN.md, "Results"; layout in :mod:`refsim.io.schema`).
+"""Writing a run to its HDF5 results file, step by step (DESIGN.md, "Results"; layout in
+:mod:`refsim.io.schema`).
 
-:meth:`ResultWriter.append` checks a step and buffers it; every ``buffer_steps`` steps :meth:`ResultWriter.flush`
-grows each resizable chunked dataset once for the whole block (one resize and one write per dataset instead of
-~25 per step: 4.5 ms per step measured before), then updates the root attribute ``steps_completed`` last and
-flushes the file. :meth:`ResultWriter.close` flushes what is buffered, so a run that stops (an exception,
-Ctrl-C, SIGTERM, a numerical error: the run driver closes the writer in every case) leaves a readable file holding
-every completed step with ``complete = False`` and the reason in ``stop_reason``. Only a hard kill (SIGKILL, a
-power cut) can lose the last buffered steps, at most ``buffer_steps`` of them.
+:meth:`ResultWriter.append` checks a step and buffers it; every ``buffer_steps`` steps
+:meth:`ResultWriter.flush` grows each resizable chunked dataset once for the whole block (one resize and one
+write per dataset instead of ~25 per step: 4.5 ms per step measured before), then updates the root attribute
+``steps_completed`` last and flushes the file. :meth:`ResultWriter.close` flushes what is buffered, so a run
+that stops (an exception, Ctrl-C, SIGTERM, a numerical error: the run driver closes the writer in every case)
+leaves a readable file holding every completed step with ``complete = False`` and the reason in
+``stop_reason``. Only a hard kill (SIGKILL, a power cut) can lose the last buffered steps, at most
+``buffer_steps`` of them.
 
 A failed write (a full disk) must not corrupt what was written: before each block the writer checks the free
 space of the file's file system against the block's size (with a margin for HDF5's metadata) and refuses the
-block with an :class:`OSError` (ENOSPC) before touching the file; an OSError raised by HDF5 itself is caught the
-same way. After a failed write the writer accepts no more steps and :meth:`close` leaves the file readable with
-the steps of the blocks written before.
+block with an :class:`OSError` (ENOSPC) before touching the file; an OSError raised by HDF5 itself is caught
+the same way. After a failed write the writer accepts no more steps and :meth:`close` leaves the file readable
+with the steps of the blocks written before.
 """
 
 from __future__ import annotations
 
 import datetime
-import json
 import errno
+import json
 import logging
 import shutil
 import subprocess
@@ -52,7 +54,12 @@ def git_commit(directory: str | Path | None = None) -> str:
     directory = Path(__file__).resolve().parent if directory is None else Path(directory)
     try:
         result = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=directory, capture_output=True, text=True, timeout=10, check=False
+            ["git", "rev-parse", "HEAD"],
+            cwd=directory,
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=False,
         )
     except (OSError, subprocess.SubprocessError):
         return "unknown"
@@ -97,8 +104,16 @@ class ResultWriter:
     ...     sim.run(on_step=lambda state, record: writer.append(record))
     """
 
-    def __init__(self, path, scene, models, *, overwrite: bool = False, needle_rest_nodes=None,
-                 buffer_steps: int = DEFAULT_BUFFER_STEPS) -> None:
+    def __init__(
+        self,
+        path,
+        scene,
+        models,
+        *,
+        overwrite: bool = False,
+        needle_rest_nodes=None,
+        buffer_steps: int = DEFAULT_BUFFER_STEPS,
+    ) -> None:
         import h5py
 
         from refsim import __version__
@@ -131,12 +146,17 @@ class ResultWriter:
         mesh = models.mesh
         rest_positions = np.asarray(mesh.rest_positions, dtype=np.float64)
         rest_nodes = (
-            _initial_needle_nodes(scene, models) if needle_rest_nodes is None
+            _initial_needle_nodes(scene, models)
+            if needle_rest_nodes is None
             else np.asarray(needle_rest_nodes, dtype=np.float64)
         )
         self._boundary_nodes = np.asarray(getattr(models, "boundary_nodes", np.zeros(0)), dtype=np.int64)
-        self._sizes = {"n": rest_positions.shape[0], "k": rest_nodes.shape[0], "stages": len(self._stages),
-                       "b": max(self._boundary_nodes.size, 1)}
+        self._sizes = {
+            "n": rest_positions.shape[0],
+            "k": rest_nodes.shape[0],
+            "stages": len(self._stages),
+            "b": max(self._boundary_nodes.size, 1),
+        }
 
         self._file = h5py.File(self.path, "w")
         try:
@@ -159,9 +179,9 @@ class ResultWriter:
                 "tissue/faces": np.asarray(mesh.boundary_faces, dtype=np.int64),
                 "tissue/fixed_nodes": np.asarray(models.tissue.fixed_nodes, dtype=np.int64),
                 "tissue/boundary_nodes": self._boundary_nodes,
-                "trajectory/samples": np.column_stack([
-                    models.trajectory.times, models.trajectory.base_positions, models.trajectory.directions
-                ]).astype(np.float64),
+                "trajectory/samples": np.column_stack(
+                    [models.trajectory.times, models.trajectory.base_positions, models.trajectory.directions]
+                ).astype(np.float64),
                 "needle/rest_nodes": rest_nodes,
             }
             for name, value in static.items():
@@ -218,7 +238,11 @@ class ResultWriter:
                     self._fail(error)
             if self.failure is not None:
                 complete = False
-                reason = reason if self.failure in reason else (f"{reason}; {self.failure}" if reason else self.failure)
+                reason = (
+                    reason
+                    if self.failure in reason
+                    else (f"{reason}; {self.failure}" if reason else self.failure)
+                )
             self._file.attrs["complete"] = bool(complete)
             self._file.attrs["steps_completed"] = self._steps_completed
             self._file.attrs["stop_reason"] = "" if complete else (reason or "stopped")
@@ -270,12 +294,15 @@ class ResultWriter:
             self._write_block()
         except OSError as error:
             self._fail(error)
-            raise OSError(errno.ENOSPC if "space" in str(error).lower() else errno.EIO,
-                          f"{self.path}: {self.failure}") from None
+            raise OSError(
+                errno.ENOSPC if "space" in str(error).lower() else errno.EIO, f"{self.path}: {self.failure}"
+            ) from None
 
     def _fail(self, error: BaseException) -> None:
-        self.failure = (f"writing step {self._steps_completed + 1} failed ({error}); the file keeps the "
-                        f"{self._steps_completed} steps written before")
+        self.failure = (
+            f"writing step {self._steps_completed + 1} failed ({error}); the file keeps the "
+            f"{self._steps_completed} steps written before"
+        )
         self._pending.clear()
         self._pending_problems.clear()
         self._pending_cut = None
@@ -303,12 +330,15 @@ class ResultWriter:
 
     @staticmethod
     def _values_bytes(values: dict) -> int:
-        return sum(value.size * (64 if value.dtype == object else value.itemsize)
-                   for value in values.values() if isinstance(value, np.ndarray))
+        return sum(
+            value.size * (64 if value.dtype == object else value.itemsize)
+            for value in values.values()
+            if isinstance(value, np.ndarray)
+        )
 
     def _bytes_needed(self, count: int) -> int:
-        """Bytes the file grows by when the first ``count`` buffered steps are written: the new chunks of every
-        growing dataset (HDF5 allocates whole chunks), the recorded problems and the cut surface."""
+        """Bytes the file grows by when the first ``count`` buffered steps are written: the new chunks of
+        every growing dataset (HDF5 allocates whole chunks), the recorded problems and the cut surface."""
         pending = self._pending[:count]
         total = 0
         for path, dataset in self._datasets.items():
@@ -325,8 +355,11 @@ class ResultWriter:
             if dataset.dtype.kind == "O":
                 total += 64 * added  # the strings themselves, in the global heap
         last = int(pending[-1][schema.STEPS["step"].path][0]) if pending else -1
-        total += sum(sum(np.asarray(getattr(problem, spec.name)).nbytes for spec in schema.PROBLEM_FIELDS.values())
-                     for step, problem in self._pending_problems if step <= last)
+        total += sum(
+            sum(np.asarray(getattr(problem, spec.name)).nbytes for spec in schema.PROBLEM_FIELDS.values())
+            for step, problem in self._pending_problems
+            if step <= last
+        )
         if self._pending_cut is not None and count == len(self._pending):
             total += sum(np.asarray(v).nbytes for v in self._pending_cut.values())
         return total
@@ -357,16 +390,20 @@ class ResultWriter:
         short = fit < len(self._pending)
         if short:
             free = shutil.disk_usage(self.path.parent).free
-            logger.warning("%s: %d bytes free: writing %d of %d buffered steps", self.path, free, fit,
-                           len(self._pending))
+            logger.warning(
+                "%s: %d bytes free: writing %d of %d buffered steps", self.path, free, fit, len(self._pending)
+            )
         pending = self._pending[:fit]
         last_step = int(pending[-1][schema.STEPS["step"].path][0]) if pending else -1
         row_counts = np.array([values["constraints/row_count"] for values in pending], dtype=np.int64)
         paths = [path for path in self._datasets if path not in ("constraints/offsets",)]
         # Ragged and optional data first; the per-step arrays and "steps/step" last (the reader trusts
         # steps_completed, and the length of steps/step is the count of fully written steps).
-        order = [path for path in paths if not path.startswith("steps/")] + \
-            [path for path in paths if path.startswith("steps/") and path != "steps/step"] + ["steps/step"]
+        order = (
+            [path for path in paths if not path.startswith("steps/")]
+            + [path for path in paths if path.startswith("steps/") and path != "steps/step"]
+            + ["steps/step"]
+        )
         for path in order:
             blocks = [values[path] for values in pending if path in values]
             if blocks:
@@ -382,15 +419,20 @@ class ResultWriter:
         self._rows_written += int(row_counts.sum())
         self._steps_completed += len(pending)
         self._pending = self._pending[fit:]
-        self._pending_problems = [(step, problem) for step, problem in self._pending_problems if step > last_step] \
-            if short else []
+        self._pending_problems = (
+            [(step, problem) for step, problem in self._pending_problems if step > last_step] if short else []
+        )
         if not short:
             self._pending_cut = None
         self._file.attrs["steps_completed"] = self._steps_completed
         self._file.flush()
         if short:
-            raise OSError(errno.ENOSPC, f"no space left on the device for step {self._steps_completed + 1} "
-                          f"({shutil.disk_usage(self.path.parent).free} bytes free)", str(self.path))
+            raise OSError(
+                errno.ENOSPC,
+                f"no space left on the device for step {self._steps_completed + 1} "
+                f"({shutil.disk_usage(self.path.parent).free} bytes free)",
+                str(self.path),
+            )
 
     def write_cut_surface(
         self,
@@ -402,8 +444,8 @@ class ResultWriter:
         tet_indices: np.ndarray | None = None,
         barycentric: np.ndarray | None = None,
     ) -> None:
-        """(Re)write the cut surface history: the whole surface so far, replacing what was written before (with
-        the next block of steps).
+        """(Re)write the cut surface history: the whole surface so far, replacing what was written before
+        (with the next block of steps).
 
         Parameters
         ----------
@@ -427,13 +469,19 @@ class ResultWriter:
             "cut triangle_step", triangle_step, (values["triangles"].shape[0],), dtype=np.int64
         )
         if values["triangles"].size and (values["triangles"].min() < 0 or values["triangles"].max() >= count):
-            raise ValueError(f"cut triangles must index the {count} cut points, got indices "
-                             f"{values['triangles'].min()}..{values['triangles'].max()}")
+            raise ValueError(
+                f"cut triangles must index the {count} cut points, got indices "
+                f"{values['triangles'].min()}..{values['triangles'].max()}"
+            )
         if (tet_indices is None) != (barycentric is None):
             raise ValueError("write_cut_surface: give both tet_indices and barycentric, or neither")
         if tet_indices is not None:
-            values["tet_indices"] = self._check_shape("cut tet_indices", tet_indices, (count,), dtype=np.int64)
-            values["barycentric"] = self._check_shape("cut barycentric", barycentric, (count, 4), dtype=np.float64)
+            values["tet_indices"] = self._check_shape(
+                "cut tet_indices", tet_indices, (count,), dtype=np.int64
+            )
+            values["barycentric"] = self._check_shape(
+                "cut barycentric", barycentric, (count, 4), dtype=np.float64
+            )
         self._pending_cut = values  # written with the next block (the latest surface replaces older ones)
 
     def _write_cut(self, values: dict) -> None:
@@ -464,8 +512,10 @@ class ResultWriter:
 
     def _create_growing(self, spec: DatasetSpec) -> None:
         entry = self._entry_shape(spec)
-        chunk = (1,) if spec.path == "tissue/positions" else (
-            (_CHUNK_ROWS,) if spec.path.split("/")[0] in ("constraints", "events") else (_CHUNK_STEPS,)
+        chunk = (
+            (1,)
+            if spec.path == "tissue/positions"
+            else ((_CHUNK_ROWS,) if spec.path.split("/")[0] in ("constraints", "events") else (_CHUNK_STEPS,))
         )
         dataset = self._file.create_dataset(
             spec.path,
@@ -488,7 +538,9 @@ class ResultWriter:
             array = np.asarray(value, dtype=dtype)
         except (TypeError, ValueError) as error:
             raise ValueError(f"{self.path}: {name} is not a numeric array ({error})") from None
-        if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape)):
+        if array.ndim != len(shape) or any(
+            s is not None and s != a for s, a in zip(shape, array.shape, strict=False)
+        ):
             expected = "(" + ", ".join("any" if s is None else str(s) for s in shape) + ")"
             raise ValueError(f"{self.path}: {name} has shape {array.shape}, expected {expected}")
         return array
@@ -506,8 +558,15 @@ class ResultWriter:
 
     def _solver_values(self, report) -> dict:
         if report is None:
-            values = {"iterations": -1, "residual": np.nan, "converged": -1, "seconds": np.nan,
-                      "increment": np.nan, "name": "", "message": ""}
+            values = {
+                "iterations": -1,
+                "residual": np.nan,
+                "converged": -1,
+                "seconds": np.nan,
+                "increment": np.nan,
+                "name": "",
+                "message": "",
+            }
         else:
             values = {
                 "iterations": int(report.iterations),
@@ -528,12 +587,16 @@ class ResultWriter:
     def _step_arrays(self, record) -> dict:
         k = self._sizes["k"]
         if record.phase not in schema.PHASE_NAMES:
-            raise ValueError(f"{self.path}: step {record.step} has phase {record.phase!r}; "
-                             f"the results schema knows {', '.join(schema.PHASE_NAMES)}")
+            raise ValueError(
+                f"{self.path}: step {record.step} has phase {record.phase!r}; "
+                f"the results schema knows {', '.join(schema.PHASE_NAMES)}"
+            )
         unknown = set(record.stage_seconds) - set(self._stages)
         if unknown:
-            raise ValueError(f"{self.path}: step {record.step} times unknown stages {sorted(unknown)}; "
-                             f"stages are {', '.join(self._stages)}")
+            raise ValueError(
+                f"{self.path}: step {record.step} times unknown stages {sorted(unknown)}; "
+                f"stages are {', '.join(self._stages)}"
+            )
         values = {
             "step": np.array([record.step], dtype=np.int64),
             "time": np.array([record.time], dtype=np.float64),
@@ -570,12 +633,13 @@ class ResultWriter:
 
 
 def write_problem_group(group, problem) -> None:
-    """Write every field of a ConstraintProblem (schema.PROBLEM_FIELDS, derived from the solvers' law table) and
-    its name into an open h5py group; :func:`refsim.io.reader.read_problem_group` reads it back."""
+    """Write every field of a ConstraintProblem (schema.PROBLEM_FIELDS, derived from the solvers' law table)
+    and its name into an open h5py group; :func:`refsim.io.reader.read_problem_group` reads it back."""
     group.attrs["name"] = str(problem.name)
     for spec in schema.PROBLEM_FIELDS.values():
-        dataset = group.create_dataset(spec.name, data=np.asarray(getattr(problem, spec.name)),
-                                       dtype=schema.numpy_dtype(spec))
+        dataset = group.create_dataset(
+            spec.name, data=np.asarray(getattr(problem, spec.name)), dtype=schema.numpy_dtype(spec)
+        )
         dataset.attrs["units"] = spec.unit
         dataset.attrs["description"] = spec.meaning
 

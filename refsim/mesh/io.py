@@ -67,7 +67,11 @@ def read_mesh(path: str | Path, *, fix_orientation: bool = True) -> TetMesh:
     else:
         positions, tets = _read_meshio(path)
     positions, tets = validate_mesh(
-        positions, tets, source=source, fix_orientation=fix_orientation, drop_unused_nodes=True,
+        positions,
+        tets,
+        source=source,
+        fix_orientation=fix_orientation,
+        drop_unused_nodes=True,
         merge_duplicates=True,
     )
     mesh = TetMesh(positions, tets, source=source)
@@ -86,8 +90,11 @@ def _read_meshio(path: Path) -> tuple[np.ndarray, np.ndarray]:
             data = meshio.read(path)
     except (Exception, SystemExit) as error:  # meshio raises many types
         said = " ".join(captured.getvalue().split()) or f"{type(error).__name__}: {error}"
-        raise MeshError(source, f"cannot read it as a {_format_name(path)} mesh: {_truncation_hint(path)}"
-                                f"(meshio said: {said[:300]})") from None
+        raise MeshError(
+            source,
+            f"cannot read it as a {_format_name(path)} mesh: {_truncation_hint(path)}"
+            f"(meshio said: {said[:300]})",
+        ) from None
     blocks = [block.data for block in data.cells if block.type == "tetra"]
     ignored = sorted({block.type for block in data.cells if block.type != "tetra"})
     if not blocks:
@@ -103,8 +110,15 @@ def _read_meshio(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return points, np.concatenate(blocks).astype(np.int64)
 
 
-_FORMAT_NAMES = {".vtu": "VTK XML (.vtu)", ".vtk": "legacy VTK (.vtk)", ".msh": "Gmsh (.msh)", ".xdmf": "XDMF",
-                 ".med": "MED", ".mesh": "Medit (.mesh)", ".inp": "Abaqus (.inp)"}
+_FORMAT_NAMES = {
+    ".vtu": "VTK XML (.vtu)",
+    ".vtk": "legacy VTK (.vtk)",
+    ".msh": "Gmsh (.msh)",
+    ".xdmf": "XDMF",
+    ".med": "MED",
+    ".mesh": "Medit (.mesh)",
+    ".inp": "Abaqus (.inp)",
+}
 # The last marker of a complete file, per format: without it the file was cut short.
 _END_MARKERS = {".vtu": b"</VTKFile>", ".msh": b"$End"}
 
@@ -114,7 +128,7 @@ def _format_name(path: Path) -> str:
 
 
 def _truncation_hint(path: Path) -> str:
-    """"the file is truncated (...)" when its format's closing marker is missing from its end, else "the file
+    """ "the file is truncated (...)" when its format's closing marker is missing from its end, else "the file
     is malformed or not in this format "."""
     marker = _END_MARKERS.get(path.suffix.lower())
     if marker is None:

@@ -8,15 +8,23 @@ import numpy as np
 
 from refsim.geometry.barycentric import signed_volumes
 
-__all__ = ["DEGENERATE_VOLUME_RATIO", "DUPLICATE_NODE_TOLERANCE", "MeshError", "degenerate_tets", "merge_duplicate_nodes", "validate_mesh"]
+__all__ = [
+    "DEGENERATE_VOLUME_RATIO",
+    "DUPLICATE_NODE_TOLERANCE",
+    "MeshError",
+    "degenerate_tets",
+    "merge_duplicate_nodes",
+    "validate_mesh",
+]
 
 logger = logging.getLogger(__name__)
 
-# A tetrahedron is degenerate when |volume| <= DEGENERATE_VOLUME_RATIO × (longest edge)³. A regular tetrahedron has
-# volume / edge³ = 0.118 and a Kuhn tetrahedron of the box generator 0.032. The determinant's round-off is ~1e-16
-# relative, but an element with a ratio of 1e-10 already makes the stiffness matrix's condition number grow by
-# ~1e9 and its rotation (polar decomposition) unreliable: such elements are refused. This is the one threshold of
-# refsim: the mesh validation and the tissue model (refsim.fem.tissue) both use it.
+# A tetrahedron is degenerate when |volume| <= DEGENERATE_VOLUME_RATIO × (longest edge)³. A regular
+# tetrahedron has volume / edge³ = 0.118 and a Kuhn tetrahedron of the box generator 0.032. The determinant's
+# round-off is ~1e-16 relative, but an element with a ratio of 1e-10 already makes the stiffness matrix's
+# condition number grow by ~1e9 and its rotation (polar decomposition) unreliable: such elements are refused.
+# This is the one threshold of refsim: the mesh validation and the tissue model (refsim.fem.tissue) both use
+# it.
 DEGENERATE_VOLUME_RATIO = 1e-10
 #: Nodes closer than this fraction of the mesh's bounding-box diagonal are duplicates (merged by `read_mesh`).
 DUPLICATE_NODE_TOLERANCE = 1e-9
@@ -124,7 +132,8 @@ def validate_mesh(
 
 
 def degenerate_tets(rest_positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Indices of the degenerate tetrahedra: |volume| <= DEGENERATE_VOLUME_RATIO × (longest of 6 edges)³, (d,).
+    """Indices of the degenerate tetrahedra: |volume| <= DEGENERATE_VOLUME_RATIO × (longest of 6 edges)³,
+    (d,).
 
     Parameters
     ----------
@@ -158,7 +167,9 @@ def merge_duplicate_nodes(
 
     positions = np.asarray(rest_positions, dtype=float)
     diagonal = float(np.linalg.norm(positions.max(axis=0) - positions.min(axis=0)))
-    pairs = cKDTree(positions).query_pairs(DUPLICATE_NODE_TOLERANCE * max(diagonal, 1e-300), output_type="ndarray")
+    pairs = cKDTree(positions).query_pairs(
+        DUPLICATE_NODE_TOLERANCE * max(diagonal, 1e-300), output_type="ndarray"
+    )
     if pairs.size == 0:
         return positions, np.asarray(tets), 0
     # Union the pairs (connected components) and map each node onto the smallest index of its cluster.
@@ -175,8 +186,13 @@ def merge_duplicate_nodes(
     renumber = np.cumsum(keep) - 1
     merged = int(count - keep.sum())
     logger.warning(
-        "%s: merged %d duplicate node(s) (closer than %.1e of the mesh size %.3g m); the mesh had unconnected "
-        "elements at those nodes", source, merged, DUPLICATE_NODE_TOLERANCE, diagonal,
+        "%s: merged %d duplicate node(s) (closer than %.1e of the mesh size %.3g m); the mesh had "
+        "unconnected "
+        "elements at those nodes",
+        source,
+        merged,
+        DUPLICATE_NODE_TOLERANCE,
+        diagonal,
     )
     return positions[keep], renumber[representative[np.asarray(tets)]], merged
 
@@ -209,11 +225,14 @@ def _check_duplicates(positions: np.ndarray, source: str) -> None:
     from scipy.spatial import cKDTree
 
     diagonal = float(np.linalg.norm(positions.max(axis=0) - positions.min(axis=0)))
-    pairs = cKDTree(positions).query_pairs(DUPLICATE_NODE_TOLERANCE * max(diagonal, 1e-300), output_type="ndarray")
+    pairs = cKDTree(positions).query_pairs(
+        DUPLICATE_NODE_TOLERANCE * max(diagonal, 1e-300), output_type="ndarray"
+    )
     if pairs.size:
         raise MeshError(
             source,
-            f"{pairs.shape[0]} pair(s) of coincident nodes (closer than {DUPLICATE_NODE_TOLERANCE:g} of the mesh "
+            f"{pairs.shape[0]} pair(s) of coincident nodes (closer than {DUPLICATE_NODE_TOLERANCE:g} of the "
+            f"mesh "
             f"size), e.g. nodes {pairs[0].tolist()}: elements there share no node (read_mesh merges them)",
         )
 

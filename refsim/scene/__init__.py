@@ -1,9 +1,10 @@
-"""Scene description (layer 4): frozen, validated dataclasses loaded from TOML, and the models built from them."""
+"""Scene description (layer 4): frozen, validated dataclasses loaded from TOML, and the models built from
+them."""
 
 from refsim.scene.controls import (
     BoundaryMotion,
-    ControlValues,
     Controls,
+    ControlValues,
     PeriodicBoundaryMotion,
     SampledBoundaryMotion,
 )

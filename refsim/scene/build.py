@@ -5,8 +5,8 @@ Only what the scene uses is built: a rigid needle has no beam model (it is moved
 
 from __future__ import annotations
 
-import logging
 import dataclasses
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,7 +20,16 @@ from refsim.scene.loader import SceneError
 from refsim.scene.spec import FACE_NAMES, MeshSpec, Scene
 from refsim.scene.trajectory import Trajectory, read_numeric_csv
 
-__all__ = ["SceneModels", "boundary_nodes", "build_controls", "build_models", "build_mesh", "check_models", "fixed_nodes", "read_displacement_csv"]
+__all__ = [
+    "SceneModels",
+    "boundary_nodes",
+    "build_controls",
+    "build_models",
+    "build_mesh",
+    "check_models",
+    "fixed_nodes",
+    "read_displacement_csv",
+]
 
 logger = logging.getLogger("refsim.scene")
 
@@ -173,11 +182,15 @@ def boundary_nodes(scene: Scene, mesh: TetMesh) -> np.ndarray:
         from refsim.mesh.selection import surface_patch
 
         if spec.patch_point is not None:
-            nodes = surface_patch(rest, mesh.boundary_faces, distance=spec.patch_distance, point=spec.patch_point)
+            nodes = surface_patch(
+                rest, mesh.boundary_faces, distance=spec.patch_distance, point=spec.patch_point
+            )
             key = "patch_point"
         else:
             origin, normal = np.asarray(spec.patch_plane, dtype=float)
-            nodes = surface_patch(rest, mesh.boundary_faces, distance=spec.patch_distance, plane=(origin, normal))
+            nodes = surface_patch(
+                rest, mesh.boundary_faces, distance=spec.patch_distance, plane=(origin, normal)
+            )
             key = "patch_plane"
     if nodes.size == 0:
         lower, upper = rest.min(axis=0), rest.max(axis=0)
@@ -214,7 +227,10 @@ def build_controls(scene: Scene, models: SceneModels) -> Controls:
         return Controls(trajectory=models.trajectory)
     if spec.motion == "periodic":
         motion = PeriodicBoundaryMotion(
-            nodes=models.boundary_nodes, amplitude=spec.amplitude, period=spec.period, exponent=spec.exponent,
+            nodes=models.boundary_nodes,
+            amplitude=spec.amplitude,
+            period=spec.period,
+            exponent=spec.exponent,
             phase=spec.phase,
         )
     else:
@@ -223,11 +239,12 @@ def build_controls(scene: Scene, models: SceneModels) -> Controls:
             path = Path(scene.base_directory) / path
         try:
             times, displacements = read_displacement_csv(path)
-            motion = SampledBoundaryMotion(nodes=models.boundary_nodes, times=times, displacements=displacements)
+            motion = SampledBoundaryMotion(
+                nodes=models.boundary_nodes, times=times, displacements=displacements
+            )
         except ValueError as error:
             raise SceneError(f"{scene.source}: boundary.file: {error}") from None
     return Controls(trajectory=models.trajectory, boundary=motion)
-
 
 
 def _fixed_nodes_or_error(scene: Scene, mesh: TetMesh) -> np.ndarray:
@@ -245,8 +262,8 @@ def check_models(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
     """Checks of the scene against its mesh and trajectory, before anything runs.
 
     Errors (SceneError, naming the keys):
-    - the needle (its centreline, sampled every min(d_i, shortest mesh extent / 50)) inside the tissue at t = 0:
-      the penetration constraint assumes the tip starts outside (a needle inside gave a 282 N "puncture");
+    - the needle (its centreline, sampled every min(d_i, shortest mesh extent / 50)) inside the tissue at t =
+      0: the penetration constraint assumes the tip starts outside (a needle inside gave a 282 N "puncture");
     - the needle diameter not smaller than the tissue's smallest extent;
     - the tip never within insertion.contact_distance of the mesh's bounding box during the trajectory (no
       contact could ever happen), checked on the waypoints and the segments between them.
@@ -263,19 +280,29 @@ def check_models(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
     ratio = size / needle.length
     if ratio > 30.0 or ratio < 1.0 / 30.0:
         exponent = int(np.round(np.log10(1.0 / ratio)))
-        likely = {-3: "millimetres (mesh.scale = 0.001)", -2: "centimetres (mesh.scale = 0.01)",
-                  -1: "decimetres or the needle in other units (mesh.scale = 0.1)",
-                  3: "kilometres? or the needle in millimetres (mesh.scale = 1000)"}
-        hint = likely.get(exponent, f"a scale of 1e{exponent} (mesh.scale = {10.0 ** exponent:g})")
+        likely = {
+            -3: "millimetres (mesh.scale = 0.001)",
+            -2: "centimetres (mesh.scale = 0.01)",
+            -1: "decimetres or the needle in other units (mesh.scale = 0.1)",
+            3: "kilometres? or the needle in millimetres (mesh.scale = 1000)",
+        }
+        hint = likely.get(exponent, f"a scale of 1e{exponent} (mesh.scale = {10.0**exponent:g})")
         logger.warning(
             "%s: the tissue mesh is %.3g m across but the needle is %.3g m long (%.0f times): are the mesh "
-            "coordinates in %s?", where, size, needle.length, ratio if ratio > 1 else 1 / ratio, hint,
+            "coordinates in %s?",
+            where,
+            size,
+            needle.length,
+            ratio if ratio > 1 else 1 / ratio,
+            hint,
         )
     smallest = float(extent.min())
     if 2.0 * needle.radius >= smallest:
         raise SceneError(
-            f"{where}: needle.radius = {needle.radius!r} m: the needle (diameter {2 * needle.radius:.3g} m) is not "
-            f"thinner than the tissue (smallest extent of the mesh {smallest:.3g} m, see mesh.size or mesh.scale); "
+            f"{where}: needle.radius = {needle.radius!r} m: the needle (diameter {2 * needle.radius:.3g} m) "
+            f"is not "
+            f"thinner than the tissue (smallest extent of the mesh {smallest:.3g} m, see mesh.size or "
+            f"mesh.scale); "
             "the radius enters the contact geometry"
         )
     base, direction = trajectory.pose(0.0)
@@ -288,42 +315,64 @@ def check_models(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
     if np.any(inside):
         depth = float(needle.length * (1.0 - np.argmax(inside) / max(count - 1, 1)))
         raise SceneError(
-            f"{where}: trajectory: at t = 0 the needle is inside the tissue ({depth:.3g} m of it from the tip, "
+            f"{where}: trajectory: at t = 0 the needle is inside the tissue ({depth:.3g} m of it from the "
+            f"tip, "
             f"tip at {samples[-1].round(6).tolist()} m; the tissue spans {bounds[0].round(6).tolist()} .. "
-            f"{bounds[1].round(6).tolist()} m): start the needle outside (trajectory.base_positions[0]) so that "
+            f"{bounds[1].round(6).tolist()} m): start the needle outside (trajectory.base_positions[0]) so "
+            f"that "
             "the puncture is simulated; check mesh.scale if the mesh is in other units"
         )
     times = np.asarray(trajectory.times, dtype=float)
     tips = trajectory.base_positions + needle.length * trajectory.directions
     if times.size > 1:  # also the points between waypoints, at 20 per segment
         fractions = np.linspace(0.0, 1.0, 21)
-        between = np.concatenate([[trajectory.pose(t)[0] + needle.length * trajectory.pose(t)[1]
-                                   for t in times[i] + fractions * (times[i + 1] - times[i])]
-                                  for i in range(times.size - 1)])
+        between = np.concatenate(
+            [
+                [
+                    trajectory.pose(t)[0] + needle.length * trajectory.pose(t)[1]
+                    for t in times[i] + fractions * (times[i + 1] - times[i])
+                ]
+                for i in range(times.size - 1)
+            ]
+        )
         tips = np.vstack([tips, between])
     reach = scene.insertion.contact_distance + needle.radius
     gaps = np.maximum(np.maximum(bounds[0] - tips, tips - bounds[1]), 0.0)
     if np.all(np.linalg.norm(gaps, axis=1) > reach):
         logger.warning(
-            "%s: the needle tip never comes within insertion.contact_distance of the tissue (closest %.3g m from "
-            "its bounding box): the run will record no contact", where, float(np.linalg.norm(gaps, axis=1).min()),
+            "%s: the needle tip never comes within insertion.contact_distance of the tissue (closest %.3g m "
+            "from "
+            "its bounding box): the run will record no contact",
+            where,
+            float(np.linalg.norm(gaps, axis=1).min()),
         )
-    edges = mesh.rest_positions[mesh.tets[:, [1, 2, 3, 2, 3, 3]]] - mesh.rest_positions[mesh.tets[:, [0, 0, 0, 1, 1, 2]]]
+    edges = (
+        mesh.rest_positions[mesh.tets[:, [1, 2, 3, 2, 3, 3]]]
+        - mesh.rest_positions[mesh.tets[:, [0, 0, 0, 1, 1, 2]]]
+    )
     mean_edge = float(np.linalg.norm(edges, axis=2).mean())
     if scene.insertion.spacing > mean_edge:
         logger.warning(
-            "%s: insertion.spacing = %g m (d_i) is longer than the mean mesh edge %.3g m: insertion points skip "
-            "elements and the coupling force depends on where they fall", where, scene.insertion.spacing, mean_edge,
+            "%s: insertion.spacing = %g m (d_i) is longer than the mean mesh edge %.3g m: insertion points "
+            "skip "
+            "elements and the coupling force depends on where they fall",
+            where,
+            scene.insertion.spacing,
+            mean_edge,
         )
     if scene.trajectory.file is not None:  # the speed check of the scene needs the file's samples
-        speeds = (np.linalg.norm(np.diff(trajectory.base_positions, axis=0), axis=1)
-                  + needle.length * np.arccos(np.clip(np.einsum("ij,ij->i", trajectory.directions[:-1],
-                                                                trajectory.directions[1:]), -1.0, 1.0)))
+        speeds = np.linalg.norm(
+            np.diff(trajectory.base_positions, axis=0), axis=1
+        ) + needle.length * np.arccos(
+            np.clip(np.einsum("ij,ij->i", trajectory.directions[:-1], trajectory.directions[1:]), -1.0, 1.0)
+        )
         if speeds.size:
             speed = float((speeds / np.diff(times)).max())
             if speed * scene.time.dt > scene.insertion.contact_distance:
                 raise SceneError(
-                    f"{where}: time.dt = {scene.time.dt!r} s: the needle tip moves up to {speed * scene.time.dt:.3g} m "
+                    f"{where}: time.dt = {scene.time.dt!r} s: the needle tip moves up to "
+                    f"{speed * scene.time.dt:.3g} m "
                     f"per step along trajectory.file, more than insertion.contact_distance = "
-                    f"{scene.insertion.contact_distance!r} m; use dt <= {scene.insertion.contact_distance / speed:.3g} s"
+                    f"{scene.insertion.contact_distance!r} m; use dt <= "
+                    f"{scene.insertion.contact_distance / speed:.3g} s"
                 )

@@ -1,4 +1,5 @@
-"""Controls: what drives a run from outside the model, read by the step at each time (Model / State / Control).
+"""Controls: what drives a run from outside the model, read by the step at each time (Model / State /
+Control).
 
 Two controls exist: the pose of the needle base (a trajectory: waypoints or a robot's precomputed motion) and
 a tissue boundary motion (prescribed displacements of chosen nodes as a function of time: breathing, a moving
@@ -36,7 +37,9 @@ class BoundaryMotion(Protocol):
 def _checked_nodes(nodes) -> np.ndarray:
     nodes = np.asarray(nodes)
     if nodes.ndim != 1 or nodes.size == 0 or not np.issubdtype(nodes.dtype, np.integer):
-        raise ValueError(f"boundary motion nodes must be a non-empty 1-D array of node indices, got {nodes!r}")
+        raise ValueError(
+            f"boundary motion nodes must be a non-empty 1-D array of node indices, got {nodes!r}"
+        )
     if np.any(nodes < 0) or np.unique(nodes).size != nodes.size:
         raise ValueError("boundary motion nodes must be distinct non-negative node indices")
     return np.sort(nodes.astype(np.int64))
@@ -114,7 +117,9 @@ class SampledBoundaryMotion:
         if values.shape != (times.size, 3) or not np.all(np.isfinite(values)):
             raise ValueError(f"displacements must be finite with shape ({times.size}, 3), got {values.shape}")
         if np.any(values[0] != 0.0):
-            raise ValueError(f"the displacement at t = 0 must be zero (the tissue starts at rest), got {values[0]}")
+            raise ValueError(
+                f"the displacement at t = 0 must be zero (the tissue starts at rest), got {values[0]}"
+            )
         object.__setattr__(self, "times", times)
         object.__setattr__(self, "displacements", values)
 

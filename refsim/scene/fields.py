@@ -1,10 +1,10 @@
 """Declarative, validated fields for the scene dataclasses.
 
 Each field of a scene section carries its unit, its valid range and a one-line description; `check_fields`
-validates a dataclass instance against them: the type first (a number, an integer, true/false, a string, a list,
-from the field's annotation), then the range or the choices, and raises a :class:`FieldError` that names the
-field, the value and what is allowed. The TOML loader turns that into a `SceneError` that also names the file
-(or the ``--set`` override that gave the value) and the section.
+validates a dataclass instance against them: the type first (a number, an integer, true/false, a string, a
+list, from the field's annotation), then the range or the choices, and raises a :class:`FieldError` that names
+the field, the value and what is allowed. The TOML loader turns that into a `SceneError` that also names the
+file (or the ``--set`` override that gave the value) and the section.
 """
 
 from __future__ import annotations
@@ -47,8 +47,15 @@ def spec(
 ) -> Any:
     """A dataclass field with validation metadata (unit, range, choices, vector length, integer items)."""
     metadata = dict(
-        unit=unit, doc=doc, low=low, high=high, low_open=low_open, high_open=high_open, choices=choices,
-        length=length, integer=integer,
+        unit=unit,
+        doc=doc,
+        low=low,
+        high=high,
+        low_open=low_open,
+        high_open=high_open,
+        choices=choices,
+        length=length,
+        integer=integer,
     )
     if isinstance(default, (list, dict)):
         raise TypeError("use tuples for defaults")
@@ -58,7 +65,9 @@ def spec(
 def field_kind(field: dataclasses.Field) -> tuple[str, bool]:
     """The field's value kind from its annotation ("float", "int", "bool", "str", "tuple") and whether None is
     allowed (annotation ``X | None``)."""
-    annotation = field.type if isinstance(field.type, str) else getattr(field.type, "__name__", str(field.type))
+    annotation = (
+        field.type if isinstance(field.type, str) else getattr(field.type, "__name__", str(field.type))
+    )
     parts = [part.strip() for part in annotation.split("|")]
     optional = "None" in parts
     kinds = [part for part in parts if part != "None"]
@@ -76,7 +85,9 @@ def describe_field(field: dataclasses.Field) -> str:
     low, high = meta.get("low"), meta.get("high")
     left = "(" if meta.get("low_open") else "["
     right = ")" if meta.get("high_open") else "]"
-    interval = f"{left}{'-inf' if low is None else _bound(low)}, {'inf' if high is None else _bound(high)}{right}"
+    interval = (
+        f"{left}{'-inf' if low is None else _bound(low)}, {'inf' if high is None else _bound(high)}{right}"
+    )
     unit = f" [{meta['unit']}]" if meta.get("unit") else ""
     if meta.get("length"):
         what = "integers" if meta.get("integer") else "numbers"
@@ -102,9 +113,13 @@ def _check_number(name: str, value: Any, field: dataclasses.Field, *, integer: b
     meta = field.metadata
     if integer:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise FieldError(name, f"{name} = {value!r}: expected {describe_field(field)} (got {_type_name(value)})")
+            raise FieldError(
+                name, f"{name} = {value!r}: expected {describe_field(field)} (got {_type_name(value)})"
+            )
     elif not _is_number(value):
-        raise FieldError(name, f"{name} = {value!r}: expected {describe_field(field)} (got {_type_name(value)})")
+        raise FieldError(
+            name, f"{name} = {value!r}: expected {describe_field(field)} (got {_type_name(value)})"
+        )
     if not math.isfinite(value):
         raise FieldError(name, f"{name} = {value!r}: expected a finite number, {describe_field(field)}")
     low, high = meta.get("low"), meta.get("high")
@@ -115,8 +130,14 @@ def _check_number(name: str, value: Any, field: dataclasses.Field, *, integer: b
 
 
 def _type_name(value: Any) -> str:
-    return {bool: "true/false", int: "an integer", float: "a number", str: "a string", tuple: "a list",
-            dict: "a table"}.get(type(value), type(value).__name__)
+    return {
+        bool: "true/false",
+        int: "an integer",
+        float: "a number",
+        str: "a string",
+        tuple: "a list",
+        dict: "a table",
+    }.get(type(value), type(value).__name__)
 
 
 def check_fields(instance: Any) -> None:
@@ -140,16 +161,23 @@ def check_fields(instance: Any) -> None:
         name = field.name
         if kind == "bool":
             if not isinstance(value, bool):
-                raise FieldError(name, f"{name} = {value!r}: expected true or false (got {_type_name(value)})")
+                raise FieldError(
+                    name, f"{name} = {value!r}: expected true or false (got {_type_name(value)})"
+                )
         elif kind == "str":
             if not isinstance(value, str):
-                raise FieldError(name, f"{name} = {value!r}: expected {describe_field(field)} (got {_type_name(value)})")
+                raise FieldError(
+                    name, f"{name} = {value!r}: expected {describe_field(field)} (got {_type_name(value)})"
+                )
             if meta.get("choices") and value not in meta["choices"]:
                 raise FieldError(name, f"{name} = {value!r}: expected {describe_field(field)}")
         elif kind == "tuple":
             if not isinstance(value, tuple):
-                raise FieldError(name, f"{name} = {value!r}: expected a list (got {_type_name(value)}); "
-                                 f"{describe_field(field) if meta.get('length') else meta['doc']}")
+                raise FieldError(
+                    name,
+                    f"{name} = {value!r}: expected a list (got {_type_name(value)}); "
+                    f"{describe_field(field) if meta.get('length') else meta['doc']}",
+                )
             if meta.get("length"):
                 if len(value) != meta["length"]:
                     raise FieldError(name, f"{name} = {value!r}: expected {describe_field(field)}")
@@ -157,8 +185,10 @@ def check_fields(instance: Any) -> None:
                     try:
                         _check_number(name, item, field, integer=bool(meta.get("integer")))
                     except FieldError:
-                        raise FieldError(name, f"{name} = {list(value)!r}: expected {describe_field(field)} "
-                                         f"(item {item!r})") from None
+                        raise FieldError(
+                            name,
+                            f"{name} = {list(value)!r}: expected {describe_field(field)} (item {item!r})",
+                        ) from None
         elif kind == "int":
             _check_number(name, value, field, integer=True)
         else:

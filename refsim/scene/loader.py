@@ -16,7 +16,8 @@ __all__ = ["SceneError", "load_scene", "scene_from_dict", "scene_to_json", "buil
 
 
 class SceneError(ValueError):
-    """A scene file or override is invalid; the message names the file, the key, the value and what is allowed."""
+    """A scene file or override is invalid; the message names the file, the key, the value and what is
+    allowed."""
 
 
 def builtin_scenes() -> list[str]:
@@ -35,7 +36,8 @@ def _resolve(path_or_name: str | Path) -> Path:
     if candidate.is_file():
         return candidate
     raise SceneError(
-        f"{path_or_name!r} is neither a scene file nor a built-in scene (built-in: {', '.join(builtin_scenes())})"
+        f"{path_or_name!r} is neither a scene file nor a built-in scene "
+        f"(built-in: {', '.join(builtin_scenes())})"
     )
 
 
@@ -90,8 +92,8 @@ def scene_from_dict(
     data : The TOML document as plain data.
     source : The file it came from (named in messages).
     base_directory : Relative paths in the scene are relative to this folder.
-    overrides : ``{(section, key): "section.key=value"}`` for values given by ``--set``: an error in such a value
-        is blamed on the override, not on the file.
+    overrides : ``{(section, key): "section.key=value"}`` for values given by ``--set``: an error in such a
+        value is blamed on the override, not on the file.
 
     Raises
     ------
@@ -125,7 +127,8 @@ def scene_from_dict(
             required = field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING
             if required and key not in table:
                 raise SceneError(
-                    f"{source}: missing key {name}.{key} ({field.metadata.get('doc', '')}; {describe_field(field)})"
+                    f"{source}: missing key {name}.{key} ({field.metadata.get('doc', '')}; "
+                    f"{describe_field(field)})"
                 )
         try:
             sections[name] = cls(**{k: _tuples(v) for k, v in table.items()})
@@ -167,7 +170,9 @@ def load_scene(path_or_name: str | Path, overrides: list[str] | tuple[str, ...] 
     for text in overrides:
         section, key, value = parse_override(text)
         if section not in SECTIONS:
-            raise SceneError(f"override {text!r}: unknown section {section!r} (sections: {', '.join(SECTIONS)})")
+            raise SceneError(
+                f"override {text!r}: unknown section {section!r} (sections: {', '.join(SECTIONS)})"
+            )
         if not isinstance(data.get(section, {}), dict):
             raise SceneError(f"{path}: [{section}] must be a table")
         data.setdefault(section, {})[key] = value

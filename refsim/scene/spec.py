@@ -2,7 +2,8 @@
 
 Every parameter of the paper is a key here, in SI units (angles of the triangulation in degrees, as the paper
 states them). A field's metadata gives its unit, its valid range and its meaning; `refsim.scene.load_scene`
-reads a TOML file into a :class:`Scene` and names the file, the key, the value and the valid range on any error.
+reads a TOML file into a :class:`Scene` and names the file, the key, the value and the valid range on any
+error.
 """
 
 from __future__ import annotations
@@ -50,35 +51,69 @@ class _Validated:
 class MeshSpec(_Validated):
     """The tissue mesh: a generated box or a file, and which of its nodes are fixed."""
 
-    generator: str | None = spec(None, doc="mesh generator, 'box', or none when `file` is given", choices=("box",))
+    generator: str | None = spec(
+        None, doc="mesh generator, 'box', or none when `file` is given", choices=("box",)
+    )
     size: tuple | None = spec(None, unit="m", doc="box edge lengths", low=0.0, low_open=True, length=3)
-    cells: tuple | None = spec(None, doc="box cells per axis (6 tets each)", low=1, high=256, length=3, integer=True)
+    cells: tuple | None = spec(
+        None, doc="box cells per axis (6 tets each)", low=1, high=256, length=3, integer=True
+    )
     origin: tuple = spec((0.0, 0.0, 0.0), unit="m", doc="box corner with the smallest coordinates", length=3)
-    file: str | None = spec(None, doc="volume mesh file (any format meshio reads, or Gmsh v1); relative to the scene")
-    scale: float = spec(1.0, unit="-", doc="factor applied to the file's coordinates to get metres", low=0.0, low_open=True)
-    fixed_faces: tuple = spec((), doc="bounding-box faces whose nodes are fixed: xmin, xmax, ymin, ymax, zmin, zmax")
-    fixed_box: tuple | None = spec(None, doc="nodes inside this box [[xmin, ymin, zmin], [xmax, ymax, zmax]] [m] are fixed")
-    fixed_nodes: tuple | None = spec(None, doc="indices of fixed nodes (as SOFA's FixedConstraint lists them), in the mesh file's order", low=0, integer=True)
-    face_tolerance: float = spec(1e-9, unit="m", doc="distance to a bounding-box face within which a node is on it", low=0.0)
+    file: str | None = spec(
+        None, doc="volume mesh file (any format meshio reads, or Gmsh v1); relative to the scene"
+    )
+    scale: float = spec(
+        1.0, unit="-", doc="factor applied to the file's coordinates to get metres", low=0.0, low_open=True
+    )
+    fixed_faces: tuple = spec(
+        (), doc="bounding-box faces whose nodes are fixed: xmin, xmax, ymin, ymax, zmin, zmax"
+    )
+    fixed_box: tuple | None = spec(
+        None, doc="nodes inside this box [[xmin, ymin, zmin], [xmax, ymax, zmax]] [m] are fixed"
+    )
+    fixed_nodes: tuple | None = spec(
+        None,
+        doc="indices of fixed nodes (as SOFA's FixedConstraint lists them), in the mesh file's order",
+        low=0,
+        integer=True,
+    )
+    face_tolerance: float = spec(
+        1e-9, unit="m", doc="distance to a bounding-box face within which a node is on it", low=0.0
+    )
 
     def validate(self) -> None:
         if (self.generator is None) == (self.file is None):
-            raise FieldError("generator", f"give exactly one of generator or file, got generator={self.generator!r}, file={self.file!r}")
+            raise FieldError(
+                "generator",
+                f"give exactly one of generator or file, got generator={self.generator!r}, "
+                f"file={self.file!r}",
+            )
         if self.generator == "box":
             if self.size is None or self.cells is None:
-                raise FieldError("size" if self.size is None else "cells",
-                                 "the box generator needs size [m] (3 numbers) and cells (3 integers)")
+                raise FieldError(
+                    "size" if self.size is None else "cells",
+                    "the box generator needs size [m] (3 numbers) and cells (3 integers)",
+                )
         if self.file is not None and not self.file.strip():
             raise FieldError("file", "file = '': expected the path of a volume mesh file")
         for face in self.fixed_faces:
             if face not in FACE_NAMES:
-                raise FieldError("fixed_faces", f"fixed_faces contains {face!r}: expected names from {', '.join(FACE_NAMES)}")
+                raise FieldError(
+                    "fixed_faces",
+                    f"fixed_faces contains {face!r}: expected names from {', '.join(FACE_NAMES)}",
+                )
         if len(set(self.fixed_faces)) != len(self.fixed_faces):
             raise FieldError("fixed_faces", f"fixed_faces = {list(self.fixed_faces)!r} names a face twice")
         if self.fixed_box is not None:
-            box = numbers_array("fixed_box", self.fixed_box, (2, 3), "[[xmin, ymin, zmin], [xmax, ymax, zmax]] [m]")
+            box = numbers_array(
+                "fixed_box", self.fixed_box, (2, 3), "[[xmin, ymin, zmin], [xmax, ymax, zmax]] [m]"
+            )
             if np.any(box[0] > box[1]):
-                raise FieldError("fixed_box", f"fixed_box = {self.fixed_box!r}: expected [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min <= max")
+                raise FieldError(
+                    "fixed_box",
+                    f"fixed_box = {self.fixed_box!r}: expected [[xmin, ymin, zmin], [xmax, ymax, zmax]] with "
+                    f"min <= max",
+                )
         if self.fixed_nodes is not None and len(set(self.fixed_nodes)) != len(self.fixed_nodes):
             raise FieldError("fixed_nodes", "fixed_nodes lists a node twice")
 
@@ -92,7 +127,9 @@ class TissueSpec(_Validated):
     density: float = spec(doc="mass density", **MATERIAL_LIMITS["density"])
     rayleigh_mass: float = spec(0.0, unit="1/s", doc="Rayleigh damping α (C = αM + βK)", low=0.0, high=1e6)
     rayleigh_stiffness: float = spec(0.0, unit="s", doc="Rayleigh damping β (C = αM + βK)", low=0.0, high=1e3)
-    gravity: tuple = spec((0.0, 0.0, 0.0), unit="m/s^2", doc="gravity acceleration", low=-1e4, high=1e4, length=3)
+    gravity: tuple = spec(
+        (0.0, 0.0, 0.0), unit="m/s^2", doc="gravity acceleration", low=-1e4, high=1e4, length=3
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -111,13 +148,17 @@ class NeedleSpec(_Validated):
 
     def validate(self) -> None:
         if self.radius >= self.length:
-            raise FieldError("radius", f"radius = {self.radius!r} m must be smaller than length = {self.length!r} m",
-                             related=("length",))
+            raise FieldError(
+                "radius",
+                f"radius = {self.radius!r} m must be smaller than length = {self.length!r} m",
+                related=("length",),
+            )
 
 
 @dataclass(frozen=True, kw_only=True)
 class TrajectorySpec(_Validated):
-    """Motion of the needle base: piecewise-linear waypoints, or a sampled file (a robot's precomputed motion).
+    """Motion of the needle base: piecewise-linear waypoints, or a sampled file (a robot's precomputed
+    motion).
 
     The needle points from its base along ``direction``; the tip is at base + length · direction at rest.
     Directions are interpolated linearly and normalised (for a constant direction they are exact).
@@ -125,16 +166,24 @@ class TrajectorySpec(_Validated):
 
     times: tuple | None = spec(None, unit="s", doc="waypoint times, increasing, first 0")
     base_positions: tuple | None = spec(None, unit="m", doc="base position at each waypoint, (w, 3)")
-    directions: tuple | None = spec(None, unit="-", doc="needle direction (base to tip) at each waypoint, (w, 3)")
-    file: str | None = spec(None, doc="CSV file with columns t, x, y, z, dx, dy, dz [s, m, -]; relative to the scene")
+    directions: tuple | None = spec(
+        None, unit="-", doc="needle direction (base to tip) at each waypoint, (w, 3)"
+    )
+    file: str | None = spec(
+        None, doc="CSV file with columns t, x, y, z, dx, dy, dz [s, m, -]; relative to the scene"
+    )
 
     def validate(self) -> None:
         if (self.file is None) == (self.times is None):
-            raise FieldError("times" if self.file is None else "file",
-                             "give either file, or times with base_positions and directions")
+            raise FieldError(
+                "times" if self.file is None else "file",
+                "give either file, or times with base_positions and directions",
+            )
         if self.file is not None:
             if self.base_positions is not None or self.directions is not None:
-                raise FieldError("file", "give either file, or times with base_positions and directions, not both")
+                raise FieldError(
+                    "file", "give either file, or times with base_positions and directions, not both"
+                )
             if not self.file.strip():
                 raise FieldError("file", "file = '': expected the path of a CSV trajectory")
             return
@@ -142,12 +191,18 @@ class TrajectorySpec(_Validated):
         if times.size < 1:
             raise FieldError("times", f"times = {self.times!r}: expected at least one time [s]")
         if times[0] != 0.0 or np.any(np.diff(times) <= 0.0):
-            raise FieldError("times", f"times = {self.times!r}: expected strictly increasing times starting at 0 s")
+            raise FieldError(
+                "times", f"times = {self.times!r}: expected strictly increasing times starting at 0 s"
+            )
         for name in ("base_positions", "directions"):
             value = getattr(self, name)
             if value is None:
-                raise FieldError(name, f"{name} is missing: expected {times.size} rows of 3 numbers (one per time)")
-            array = numbers_array(name, value, (times.size, 3), f"{times.size} rows of 3 finite numbers (one per time)")
+                raise FieldError(
+                    name, f"{name} is missing: expected {times.size} rows of 3 numbers (one per time)"
+                )
+            array = numbers_array(
+                name, value, (times.size, 3), f"{times.size} rows of 3 finite numbers (one per time)"
+            )
             if name == "base_positions" and np.any(np.abs(array) > 1e3):
                 raise FieldError(name, f"{name} = {value!r}: expected coordinates within ±1000 m")
         directions = np.asarray(self.directions, dtype=float)
@@ -169,7 +224,11 @@ def check_directions(directions: np.ndarray, name: str, times: np.ndarray) -> No
     norms = np.linalg.norm(directions, axis=1)
     if np.any(norms < 1e-12):
         row = int(np.argmax(norms < 1e-12))
-        raise FieldError(name, f"{name}: the direction at t = {times[row]:g} s (row {row + 1}) is zero; every direction must be non-zero")
+        raise FieldError(
+            name,
+            f"{name}: the direction at t = {times[row]:g} s (row {row + 1}) is zero; every direction must be "
+            f"non-zero",
+        )
     unit = directions / norms[:, None]
     cosines = np.einsum("ij,ij->i", unit[:-1], unit[1:])
     if np.any(cosines < 0.0):
@@ -177,8 +236,10 @@ def check_directions(directions: np.ndarray, name: str, times: np.ndarray) -> No
         angle = float(np.degrees(np.arccos(np.clip(cosines[row], -1.0, 1.0))))
         raise FieldError(
             name,
-            f"{name}: the needle turns {angle:.1f} degrees between t = {times[row]:g} s and t = {times[row + 1]:g} s "
-            "(rows {0} and {1}); consecutive directions must be less than 90 degrees apart (linear interpolation of "
+            f"{name}: the needle turns {angle:.1f} degrees between t = {times[row]:g} s and "
+            f"t = {times[row + 1]:g} s "
+            "(rows {0} and {1}); consecutive directions must be less than 90 degrees apart (linear "
+            "interpolation of "
             "antiparallel directions is undefined): add intermediate waypoints".format(row + 1, row + 2),
         )
 
@@ -189,7 +250,9 @@ def numbers_array(name: str, value, shape: tuple, expected: str) -> np.ndarray:
         array = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         raise FieldError(name, f"{name} = {value!r}: expected {expected}") from None
-    if array.ndim != len(shape) or any(n is not None and n != m for n, m in zip(shape, array.shape)):
+    if array.ndim != len(shape) or any(
+        n is not None and n != m for n, m in zip(shape, array.shape, strict=False)
+    ):
         raise FieldError(name, f"{name} = {value!r}: expected {expected}")
     if not np.all(np.isfinite(array)):
         raise FieldError(name, f"{name} = {value!r}: expected finite numbers ({expected})")
@@ -203,19 +266,25 @@ class TimeSpec(_Validated):
     """Time integration: implicit Euler, one Newton step per time step."""
 
     dt: float = spec(unit="s", doc="time step", low=0.0, high=1.0, low_open=True)
-    duration: float = spec(unit="s", doc="simulated time, a whole number of time steps", low=0.0, high=1e6, low_open=True)
+    duration: float = spec(
+        unit="s", doc="simulated time, a whole number of time steps", low=0.0, high=1e6, low_open=True
+    )
 
     def validate(self) -> None:
         if self.duration < self.dt:
-            raise FieldError("duration", f"duration = {self.duration!r} s is shorter than one time step dt = {self.dt!r} s",
-                             related=("dt",))
+            raise FieldError(
+                "duration",
+                f"duration = {self.duration!r} s is shorter than one time step dt = {self.dt!r} s",
+                related=("dt",),
+            )
         steps = self.duration / self.dt
         if abs(steps - round(steps)) > 1e-6 * max(1.0, steps):
             below, above = int(steps) * self.dt, (int(steps) + 1) * self.dt
             raise FieldError(
                 "duration",
                 related=("dt",),
-                message=f"duration = {self.duration!r} s is not a whole number of time steps dt = {self.dt!r} s "
+                message=f"duration = {self.duration!r} s is not a whole number of time steps dt = "
+                f"{self.dt!r} s "
                 f"({steps:.4g} steps): use {below:.6g} or {above:.6g}",
             )
         if round(steps) > 10_000_000:
@@ -232,16 +301,25 @@ class InsertionSpec(_Validated):
     """Penetration at the tip and insertion constraints along the path (paper, section 3)."""
 
     puncture_force: float = spec(
-        unit="N", doc="f_p: normal tip force that punctures the surface (> 0: with 0 the tip would puncture in "
-        "the air as soon as its contact row is built)", low=0.0, low_open=True)
-    surface_friction_coefficient: float = spec(unit="-", doc="μ_p: Coulomb friction of the tip on the surface", low=0.0)
+        unit="N",
+        doc="f_p: normal tip force that punctures the surface (> 0: with 0 the tip would puncture in "
+        "the air as soon as its contact row is built)",
+        low=0.0,
+        low_open=True,
+    )
+    surface_friction_coefficient: float = spec(
+        unit="-", doc="μ_p: Coulomb friction of the tip on the surface", low=0.0
+    )
     shaft_friction_coefficient: float = spec(
-        unit="-", doc="μ_i: Coulomb friction along the shaft (the dynamic coefficient μ_d, of a slipping point)",
-        low=0.0)
+        unit="-",
+        doc="μ_i: Coulomb friction along the shaft (the dynamic coefficient μ_d, of a slipping point)",
+        low=0.0,
+    )
     shaft_static_friction_coefficient: float = spec(
         0.0,
         unit="-",
-        doc="μ_s: static shaft friction, the coefficient of a point that stuck at the last step (new points start "
+        doc="μ_s: static shaft friction, the coefficient of a point that stuck at the last step (new points "
+        "start "
         "stuck); ≥ shaft_friction_coefficient, or 0 (default): μ_s = μ_i, one coefficient as in the paper",
         low=0.0,
     )
@@ -249,48 +327,62 @@ class InsertionSpec(_Validated):
     shaft_normal_force: float = spec(
         0.0,
         unit="N/m",
-        doc="radial force per unit inserted length of the tissue on the needle (its grip, which the centreline "
-        "rows do not see), added to the lateral forces in the shaft Coulomb bound: preload f d_i per insertion "
+        doc="radial force per unit inserted length of the tissue on the needle (its grip, which the "
+        "centreline "
+        "rows do not see), added to the lateral forces in the shaft Coulomb bound: preload f d_i per "
+        "insertion "
         "point; 0 gives the paper's model",
         low=0.0,
     )
     contact_distance: float = spec(
-        unit="m", doc="tip-surface distance under which the penetration constraint is built", low=0.0, low_open=True
+        unit="m",
+        doc="tip-surface distance under which the penetration constraint is built",
+        low=0.0,
+        low_open=True,
     )
     coupling: str = spec(
         "ring",
-        doc="needle-tissue coupling: 'ring' (well posed: rows average the tissue over a ring of radius max(r, h) and "
+        doc="needle-tissue coupling: 'ring' (well posed: rows average the tissue over a ring of radius "
+        "max(r, h) and "
         "carry the sub-grid compliance of the annulus, docs/coupling.md) or 'paper' (rows on the centreline)",
         choices=("ring", "paper"),
     )
     subgrid_line: str = spec(
         "infinite",
-        doc="sub-grid compliance of the ring rows: 'infinite' (the plane-strain and antiplane values of an infinite "
-        "line) or 'finite' (3-D: the inserted line's own length, its mirror across the entry surface; converges "
+        doc="sub-grid compliance of the ring rows: 'infinite' (the plane-strain and antiplane values of an "
+        "infinite "
+        "line) or 'finite' (3-D: the inserted line's own length, its mirror across the entry surface; "
+        "converges "
         "better on short insertions and coarse meshes, docs/coupling.md; applied before the cut starts)",
         choices=("infinite", "finite"),
     )
     tip_cutting_force: float = spec(
         0.0,
         unit="N",
-        doc="f_cut: after puncture, the force the tissue opposes to the tip advancing (one row along the needle at "
-        "the tip, its force in [0, f_cut]: the tip sticks below, cuts at f_cut); 0 gives the paper's model (none)",
+        doc="f_cut: after puncture, the force the tissue opposes to the tip advancing (one row along the "
+        "needle at "
+        "the tip, its force in [0, f_cut]: the tip sticks below, cuts at f_cut); 0 gives the paper's model "
+        "(none)",
         low=0.0,
     )
     puncture_within_step: bool = spec(
         True,
-        doc="cap the tip contact's force at f_p, so the tip punctures within the step at exactly f_p (for any dt "
-        "and speed); false: the tip contact is a plain Coulomb contact and puncture is declared after the step",
+        doc="cap the tip contact's force at f_p, so the tip punctures within the step at exactly f_p (for "
+        "any dt "
+        "and speed); false: the tip contact is a plain Coulomb contact and puncture is declared after the "
+        "step",
     )
     shaft_contact: bool = spec(
         True,
-        doc="before puncture, keep the whole needle's centreline out of the tissue (unilateral rows on shaft samples "
+        doc="before puncture, keep the whole needle's centreline out of the tissue (unilateral rows on shaft "
+        "samples "
         "near the surface), not only the tip",
     )
     interference: float = spec(
         0.0,
         unit="m",
-        doc="δ_r: radial interference of the needle in its channel; the grip 2π r p₀ d_i (Lamé, p₀ = 2G δ_r/r) is "
+        doc="δ_r: radial interference of the needle in its channel; the grip 2π r p₀ d_i (Lamé, p₀ = 2G "
+        "δ_r/r) is "
         "added to each point's shaft Coulomb bound, with shaft_normal_force d_i",
         low=0.0,
     )
@@ -304,7 +396,8 @@ class InsertionSpec(_Validated):
             raise FieldError(
                 "shaft_static_friction_coefficient",
                 related=("shaft_friction_coefficient",),
-                message=f"shaft_static_friction_coefficient = {static!r} is below shaft_friction_coefficient = "
+                message=f"shaft_static_friction_coefficient = {static!r} is below shaft_friction_coefficient "
+                f"= "
                 f"{dynamic!r}: the static coefficient must be >= the dynamic one (or 0: the same)",
             )
 
@@ -321,7 +414,8 @@ class CuttingSpec(_Validated):
     enabled: bool = spec(doc="whether the scene can cut the tissue")
     law: str = spec(
         "energy",
-        doc="cut law: 'energy' (the cut starts and its crack tip advances where the needle pushes with more than "
+        doc="cut law: 'energy' (the cut starts and its crack tip advances where the needle pushes with more "
+        "than "
         "G_c per unit length: independent of d_i, d_c and the mesh) or 'paper' (equation 3 with f_c per "
         "insertion point, tears of d_t at a front row force f_t)",
         choices=("energy", "paper"),
@@ -335,21 +429,44 @@ class CuttingSpec(_Validated):
         low_open=True,
     )
     friction_coefficient: float = spec(
-        0.0, unit="-", doc="μ_c: Coulomb friction of the needle on the cut faces (0: frictionless, the paper's model)",
-        low=0.0, high=10.0,
+        0.0,
+        unit="-",
+        doc="μ_c: Coulomb friction of the needle on the cut faces (0: frictionless, the paper's model)",
+        low=0.0,
+        high=10.0,
     )
-    cutting_force: float = spec(unit="N", doc="f_c: mean lateral force per insertion constraint that starts the cut (paper law)", low=0.0)
-    tearing_force: float = spec(unit="N", doc="f_t: front row force that extends the cut by d_t (paper law)", low=0.0)
-    point_spacing: float = spec(unit="m", doc="d_c: distance between points of the cut surface", low=0.0, low_open=True)
-    extent: float = spec(unit="m", doc="d_t: extent of the first cut surface beyond the path, and of each tear (paper law)", low=0.0, low_open=True)
+    cutting_force: float = spec(
+        unit="N",
+        doc="f_c: mean lateral force per insertion constraint that starts the cut (paper law)",
+        low=0.0,
+    )
+    tearing_force: float = spec(
+        unit="N", doc="f_t: front row force that extends the cut by d_t (paper law)", low=0.0
+    )
+    point_spacing: float = spec(
+        unit="m", doc="d_c: distance between points of the cut surface", low=0.0, low_open=True
+    )
+    extent: float = spec(
+        unit="m",
+        doc="d_t: extent of the first cut surface beyond the path, and of each tear (paper law)",
+        low=0.0,
+        low_open=True,
+    )
     min_angle: float = spec(unit="deg", doc="θ_min: smallest triangle angle", low=0.0, high=60.0)
-    max_angle: float = spec(unit="deg", doc="θ_max: largest triangle angle", low=60.0, high=180.0, high_open=True)
-    max_normal_angle: float = spec(unit="deg", doc="θ_s: largest angle between neighbouring triangle normals", low=0.0, high=180.0)
+    max_angle: float = spec(
+        unit="deg", doc="θ_max: largest triangle angle", low=60.0, high=180.0, high_open=True
+    )
+    max_normal_angle: float = spec(
+        unit="deg", doc="θ_s: largest angle between neighbouring triangle normals", low=0.0, high=180.0
+    )
 
     def validate(self) -> None:
         if self.min_angle >= self.max_angle:
-            raise FieldError("min_angle", f"min_angle = {self.min_angle!r} deg must be smaller than max_angle = {self.max_angle!r} deg",
-                             related=("max_angle",))
+            raise FieldError(
+                "min_angle",
+                f"min_angle = {self.min_angle!r} deg must be smaller than max_angle = {self.max_angle!r} deg",
+                related=("max_angle",),
+            )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -359,16 +476,22 @@ class SolverSpec(_Validated):
     method: str = spec(doc="constraint solver", choices=("gauss_seidel", "exact"))
     tolerance: float = spec(unit="-", doc="natural residual to reach", low=0.0, high=1.0, low_open=True)
     max_iterations: int = spec(unit="-", doc="iteration cap (Gauss–Seidel sweeps)", low=1, high=10_000_000)
-    backend: str = spec("clarabel", doc="QP backend of the exact solver's cone route: a qpsolvers name installed here (qpsolvers.available_solvers)")
+    backend: str = spec(
+        "clarabel",
+        doc="QP backend of the exact solver's cone route: a qpsolvers name installed here "
+        "(qpsolvers.available_solvers)",
+    )
     exact_method: str = spec(
         "auto",
-        doc="exact solver: auto (semismooth Newton on the natural map, then a Gauss–Seidel finish, a monotone "
+        doc="exact solver: auto (semismooth Newton on the natural map, then a Gauss–Seidel finish, a "
+        "monotone "
         "Newton retry and the cone route; the report says which answered), newton, or cone (Clarabel/OSQP)",
         choices=("auto", "newton", "cone"),
     )
     criterion: str = spec(
         "residual",
-        doc="Gauss–Seidel stopping test: the natural residual, or SOFA's increment Σ|W_jj Δλ_j| < tolerance·(rows+1) [m]",
+        doc="Gauss–Seidel stopping test: the natural residual, or SOFA's increment Σ|W_jj Δλ_j| < "
+        "tolerance·(rows+1) [m]",
         choices=("residual", "increment"),
     )
 
@@ -377,40 +500,50 @@ class SolverSpec(_Validated):
 
         available = tuple(qpsolvers.available_solvers)
         if self.backend not in available:
-            raise FieldError("backend", f"backend = {self.backend!r}: expected one of the installed qpsolvers backends "
-                             f"{', '.join(repr(name) for name in available)}")
+            raise FieldError(
+                "backend",
+                f"backend = {self.backend!r}: expected one of the installed qpsolvers backends "
+                f"{', '.join(repr(name) for name in available)}",
+            )
 
 
 @dataclass(frozen=True, kw_only=True)
 class OutputSpec(_Validated):
     """What the results file records."""
 
-    tissue_every: int = spec(1, unit="-", doc="record tissue positions every k-th step (and the last)", low=1, high=1_000_000)
+    tissue_every: int = spec(
+        1, unit="-", doc="record tissue positions every k-th step (and the last)", low=1, high=1_000_000
+    )
     record_problems: bool = spec(False, doc="record each step's constraint problem (W, δ_free, kinds)")
-
 
 
 @dataclass(frozen=True, kw_only=True)
 class ComplianceSpec(_Validated):
-    """How each body's compliance is computed (refsim.fem.compliance) and by which sparse solver; optional section."""
+    """How each body's compliance is computed (refsim.fem.compliance) and by which sparse solver; optional
+    section."""
 
     strategy: str = spec(
         "exact",
-        doc="exact: factorise every step; refreshed: factorise every refresh_every steps, free motion and W's columns "
+        doc="exact: factorise every step; refreshed: factorise every refresh_every steps, free motion and "
+        "W's columns "
         "by PCG on the current matrix; precomputed: the rest compliance rotated per node (SOFA-like)",
         choices=("exact", "refreshed", "precomputed"),
     )
-    refresh_every: int = spec(10, unit="-", doc="steps between factorisations of the refreshed strategy", low=1, high=1_000_000)
+    refresh_every: int = spec(
+        10, unit="-", doc="steps between factorisations of the refreshed strategy", low=1, high=1_000_000
+    )
     w_update: str = spec(
         "pcg",
         doc="refreshed strategy: W's columns solved by PCG on the current matrix (pcg, corrected to the PCG "
         "tolerance), corrected to first order in the change of the matrix since the factorisation with the "
-        "correction by PCG (first_order), or taken from the stale factor (stale); errors by refsim bench --against-exact",
+        "correction by PCG (first_order), or taken from the stale factor (stale); errors by refsim bench "
+        "--against-exact",
         choices=("pcg", "first_order", "stale"),
     )
     linear_solver: str = spec(
         "auto",
-        doc="sparse solver: auto (PARDISO where its wheel installs, else CHOLMOD if importable, else SuperLU; "
+        doc="sparse solver: auto (PARDISO where its wheel installs, else CHOLMOD if importable, else "
+        "SuperLU; "
         "$REFSIM_LINEAR_SOLVER overrides auto), or one of pardiso, cholmod, superlu",
         choices=("auto", "pardiso", "cholmod", "superlu"),
     )
@@ -422,7 +555,8 @@ class ComplianceSpec(_Validated):
 
 @dataclass(frozen=True, kw_only=True)
 class BoundarySpec(_Validated):
-    """A tissue boundary motion (breathing, a moving support): chosen nodes follow a prescribed displacement; optional section."""
+    """A tissue boundary motion (breathing, a moving support): chosen nodes follow a prescribed displacement;
+    optional section."""
 
     motion: str = spec(
         "none",
@@ -431,28 +565,60 @@ class BoundarySpec(_Validated):
         choices=("none", "periodic", "file"),
     )
     nodes: tuple | None = spec(None, doc="indices of the moving nodes", low=0, integer=True)
-    box: tuple | None = spec(None, doc="the nodes inside this box [[xmin, ymin, zmin], [xmax, ymax, zmax]] [m] move")
-    patch_point: tuple | None = spec(None, unit="m", doc="surface nodes within patch_distance of this point move", length=3)
-    patch_plane: tuple | None = spec(None, unit="m", doc="surface nodes within patch_distance of the plane [[origin], [normal]] move")
-    patch_distance: float = spec(0.0, unit="m", doc="distance of a surface patch from its point or plane", low=0.0)
-    amplitude: tuple = spec((0.0, 0.0, 0.0), unit="m", doc="a: the displacement at the peak of a periodic motion", length=3)
-    period: float = spec(4.0, unit="s", doc="T: period of a periodic motion (breathing: about 4 s)", low=0.0, low_open=True)
-    exponent: int = spec(1, unit="-", doc="n of cos^{2n}: 1 a sine squared, larger for a longer exhale plateau", low=1, high=10, integer=True)
+    box: tuple | None = spec(
+        None, doc="the nodes inside this box [[xmin, ymin, zmin], [xmax, ymax, zmax]] [m] move"
+    )
+    patch_point: tuple | None = spec(
+        None, unit="m", doc="surface nodes within patch_distance of this point move", length=3
+    )
+    patch_plane: tuple | None = spec(
+        None, unit="m", doc="surface nodes within patch_distance of the plane [[origin], [normal]] move"
+    )
+    patch_distance: float = spec(
+        0.0, unit="m", doc="distance of a surface patch from its point or plane", low=0.0
+    )
+    amplitude: tuple = spec(
+        (0.0, 0.0, 0.0), unit="m", doc="a: the displacement at the peak of a periodic motion", length=3
+    )
+    period: float = spec(
+        4.0, unit="s", doc="T: period of a periodic motion (breathing: about 4 s)", low=0.0, low_open=True
+    )
+    exponent: int = spec(
+        1,
+        unit="-",
+        doc="n of cos^{2n}: 1 a sine squared, larger for a longer exhale plateau",
+        low=1,
+        high=10,
+        integer=True,
+    )
     phase: float = spec(0.0, unit="rad", doc="φ: phase of a periodic motion", low=-10.0, high=10.0)
-    file: str | None = spec(None, doc="CSV of displacement samples (t, dx, dy, dz [s, m]), relative to the scene file; '#' comments and a header allowed")
+    file: str | None = spec(
+        None,
+        doc="CSV of displacement samples (t, dx, dy, dz [s, m]), relative to the scene file; '#' comments "
+        "and a header allowed",
+    )
 
     def validate(self) -> None:
-        selections = [self.nodes is not None, self.box is not None, self.patch_point is not None, self.patch_plane is not None]
+        selections = [
+            self.nodes is not None,
+            self.box is not None,
+            self.patch_point is not None,
+            self.patch_plane is not None,
+        ]
         if self.motion == "none":
             return
         if sum(selections) != 1:
-            raise FieldError("nodes", "a boundary motion needs exactly one of nodes, box, patch_point, patch_plane")
+            raise FieldError(
+                "nodes", "a boundary motion needs exactly one of nodes, box, patch_point, patch_plane"
+            )
         if self.box is not None:
             box = numbers_array("box", self.box, (2, 3), "[[xmin, ymin, zmin], [xmax, ymax, zmax]] [m]")
             if np.any(box[0] > box[1]):
                 raise FieldError("box", f"box = {self.box!r}: expected min <= max")
         if self.patch_plane is not None:
-            plane = numbers_array("patch_plane", self.patch_plane, (2, 3), "[[origin x, y, z], [normal x, y, z]] [m]")
+            plane = numbers_array(
+                "patch_plane", self.patch_plane, (2, 3), "[[origin x, y, z], [normal x, y, z]] [m]"
+            )
             if np.linalg.norm(plane[1]) == 0.0:
                 raise FieldError("patch_plane", "patch_plane: the normal is zero")
         if (self.patch_point is not None or self.patch_plane is not None) and self.patch_distance <= 0.0:
@@ -494,7 +660,8 @@ class Scene:
 
 
 class ConsistencyError(FieldError):
-    """Keys of different sections that contradict each other; ``section`` and ``key`` name the one to change."""
+    """Keys of different sections that contradict each other; ``section`` and ``key`` name the one to
+    change."""
 
     def __init__(self, section: str, key: str, message: str, related: tuple[tuple[str, str], ...] = ()):
         super().__init__(key, message)
@@ -503,8 +670,8 @@ class ConsistencyError(FieldError):
 
 
 def max_tip_speed(trajectory: TrajectorySpec, needle_length: float) -> float | None:
-    """Largest speed of the needle tip between waypoints [m/s]: base speed plus length × turning rate (None for a
-    trajectory file, checked when it is read)."""
+    """Largest speed of the needle tip between waypoints [m/s]: base speed plus length × turning rate (None
+    for a trajectory file, checked when it is read)."""
     if trajectory.times is None or len(trajectory.times) < 2:
         return 0.0 if trajectory.times is not None else None
     times = np.asarray(trajectory.times, dtype=float)
@@ -520,9 +687,9 @@ def check_consistency(scene: Scene) -> None:
     """Checks across sections that need no mesh (the mesh-dependent ones are in `refsim.scene.build`).
 
     - d_i (insertion.spacing) shorter than the needle: otherwise at most one insertion point fits;
-    - the tip's travel in one step (largest tip speed × dt) within insertion.contact_distance: a faster tip can
-      jump across the contact zone, and the puncture force is never measured (dt = 1 s gave 139 N instead of
-      3.5 N). Travel beyond d_i is allowed (several points per step are created) but logged as a warning;
+    - the tip's travel in one step (largest tip speed × dt) within insertion.contact_distance: a faster tip
+      can jump across the contact zone, and the puncture force is never measured (dt = 1 s gave 139 N instead
+      of 3.5 N). Travel beyond d_i is allowed (several points per step are created) but logged as a warning;
     - the cut surface spacing d_c shorter than the needle;
     - the channel's interference δ_r smaller than the needle's radius.
 
@@ -535,32 +702,49 @@ def check_consistency(scene: Scene) -> None:
 
     logger = logging.getLogger("refsim.scene")
     mesh = scene.mesh
-    if not mesh.fixed_faces and mesh.fixed_box is None and mesh.fixed_nodes is None and scene.boundary.motion == "none":
+    if (
+        not mesh.fixed_faces
+        and mesh.fixed_box is None
+        and mesh.fixed_nodes is None
+        and scene.boundary.motion == "none"
+    ):
         raise ConsistencyError(
-            "mesh", "fixed_faces", related=(("boundary", "motion"),), message=
-            "no fixed nodes: give mesh.fixed_faces, fixed_box or fixed_nodes, or a [boundary] motion (a free tissue "
+            "mesh",
+            "fixed_faces",
+            related=(("boundary", "motion"),),
+            message="no fixed nodes: give mesh.fixed_faces, fixed_box or fixed_nodes, or a [boundary] motion "
+            "(a free tissue "
             "has no static equilibrium)",
         )
     length = scene.needle.length
     spacing = scene.insertion.spacing
     if spacing >= length:
         raise ConsistencyError(
-            "insertion", "spacing", related=(("needle", "length"),), message=
-            f"spacing = {spacing!r} m (d_i) is not shorter than needle.length = {length!r} m: at most one insertion "
+            "insertion",
+            "spacing",
+            related=(("needle", "length"),),
+            message=f"spacing = {spacing!r} m (d_i) is not shorter than needle.length = {length!r} m: at "
+            f"most one insertion "
             "point would fit on the needle; d_i is a fraction of a millimetre in the paper (0.5 mm)",
         )
     interference = scene.insertion.interference
     if interference >= scene.needle.radius:
         raise ConsistencyError(
-            "insertion", "interference", related=(("needle", "radius"),), message=
-            f"interference = {interference!r} m (the channel's radial interference delta_r) is not smaller than "
+            "insertion",
+            "interference",
+            related=(("needle", "radius"),),
+            message=f"interference = {interference!r} m (the channel's radial interference delta_r) is not "
+            f"smaller than "
             f"needle.radius = {scene.needle.radius!r} m: the channel's radius r - delta_r must be positive; "
             "delta_r is micrometres for a tight channel",
         )
     if scene.cutting.enabled and scene.cutting.point_spacing >= length:
         raise ConsistencyError(
-            "cutting", "point_spacing", related=(("needle", "length"),), message=
-            f"point_spacing = {scene.cutting.point_spacing!r} m (d_c) is not shorter than needle.length = {length!r} m",
+            "cutting",
+            "point_spacing",
+            related=(("needle", "length"),),
+            message=f"point_spacing = {scene.cutting.point_spacing!r} m (d_c) is not shorter than "
+            f"needle.length = {length!r} m",
         )
     speed = max_tip_speed(scene.trajectory, length)
     if speed:
@@ -568,17 +752,29 @@ def check_consistency(scene: Scene) -> None:
         contact = scene.insertion.contact_distance
         if travel > contact:
             raise ConsistencyError(
-                "time", "dt", related=(("insertion", "contact_distance"), ("trajectory", "times"),
-                                       ("trajectory", "base_positions"), ("trajectory", "directions")), message=
-                f"dt = {scene.time.dt!r} s: the needle tip moves up to {travel:.3g} m in one step (speed {speed:.3g} "
-                f"m/s along trajectory.times and base_positions), more than insertion.contact_distance = {contact!r} m, so it can cross the contact zone "
+                "time",
+                "dt",
+                related=(
+                    ("insertion", "contact_distance"),
+                    ("trajectory", "times"),
+                    ("trajectory", "base_positions"),
+                    ("trajectory", "directions"),
+                ),
+                message=f"dt = {scene.time.dt!r} s: the needle tip moves up to {travel:.3g} m in one step "
+                f"(speed {speed:.3g} "
+                f"m/s along trajectory.times and base_positions), more than insertion.contact_distance = "
+                f"{contact!r} m, so it can cross the contact zone "
                 f"without its force being measured; use dt <= {contact / speed:.3g} s",
             )
         if travel > spacing:
             logger.warning(
-                "time.dt = %g s: the needle tip moves up to %.3g m per step, more than insertion.spacing = %g m "
+                "time.dt = %g s: the needle tip moves up to %.3g m per step, more than insertion.spacing = "
+                "%g m "
                 "(d_i): several insertion points are created per step; dt <= %.3g s keeps one per step",
-                scene.time.dt, travel, spacing, spacing / speed,
+                scene.time.dt,
+                travel,
+                spacing,
+                spacing / speed,
             )
 
 
@@ -598,22 +794,44 @@ SECTIONS = {
 
 
 def scene_reference() -> str:
-    """Every scene key, with its unit, default and valid range, as Markdown (docs/scenes.md is generated by this)."""
+    """Every scene key, with its unit, default and valid range, as Markdown (docs/scenes.md is generated by
+    this)."""
     from refsim.scene.fields import describe_field
 
     lines = [
         "# Scene keys",
         "",
-        "Generated by `refsim.scene.spec.scene_reference()`; `tests/scene/test_docs.py` checks this page is current.",
-        "Every key is in SI units (angles of the triangulation in degrees). A key without a default is required.",
+        "Generated by `refsim.scene.spec.scene_reference()`; `tests/scene/test_docs.py` checks this page is "
+        "current.",
+        "Every key is in SI units (angles of the triangulation in degrees). A key without a default is "
+        "required.",
         "",
     ]
     for section, cls in SECTIONS.items():
-        lines += [f"## [{section}]", "", (cls.__doc__ or "").strip().splitlines()[0], "", "| key | meaning | unit | default | valid |", "|---|---|---|---|---|"]
+        lines += [
+            f"## [{section}]",
+            "",
+            (cls.__doc__ or "").strip().splitlines()[0],
+            "",
+            "| key | meaning | unit | default | valid |",
+            "|---|---|---|---|---|",
+        ]
         for field in dataclasses.fields(cls):
             meta = field.metadata
             default = "required" if field.default is dataclasses.MISSING else repr(field.default)
-            valid = describe_field(field) if (meta.get("low") is not None or meta.get("high") is not None or meta.get("choices") or meta.get("length")) else "see meaning"
-            lines.append(f"| `{field.name}` | {meta.get('doc', '')} | {meta.get('unit', '') or '-'} | {default} | {valid} |")
+            valid = (
+                describe_field(field)
+                if (
+                    meta.get("low") is not None
+                    or meta.get("high") is not None
+                    or meta.get("choices")
+                    or meta.get("length")
+                )
+                else "see meaning"
+            )
+            lines.append(
+                f"| `{field.name}` | {meta.get('doc', '')} | {meta.get('unit', '') or '-'} | {default} | "
+                f"{valid} |"
+            )
         lines.append("")
     return "\n".join(lines)

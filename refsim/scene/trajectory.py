@@ -61,8 +61,11 @@ def read_numeric_csv(path: Path, columns: tuple[str, ...], what: str) -> np.ndar
     """
     if not path.is_file():
         raise ValueError(f"{path}: {what} file not found")
-    lines = [line for line in path.read_text(encoding="utf-8").splitlines()
-             if line.strip() and not line.lstrip().startswith("#")]
+    lines = [
+        line
+        for line in path.read_text(encoding="utf-8").splitlines()
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
     try:
         data = np.loadtxt(lines, delimiter=",", ndmin=2)
     except ValueError:
@@ -79,7 +82,8 @@ def read_numeric_csv(path: Path, columns: tuple[str, ...], what: str) -> np.ndar
 
 
 def read_trajectory_csv(path: Path) -> Trajectory:
-    """Read a CSV trajectory: columns t, x, y, z, dx, dy, dz [s, m, -]; '#' comments and a header line allowed.
+    """Read a CSV trajectory: columns t, x, y, z, dx, dy, dz [s, m, -]; '#' comments and a header line
+    allowed.
 
     Raises
     ------

@@ -41,7 +41,9 @@ class TissueBody:
         inside = where < self._fixed.size
         if not (np.all(inside) and np.all(self._fixed[where[inside]] == control.boundary_nodes)):
             missing = np.setdiff1d(control.boundary_nodes, self._fixed)
-            raise ValueError(f"boundary motion moves nodes that are not fixed in the tissue model: {missing[:10]}")
+            raise ValueError(
+                f"boundary motion moves nodes that are not fixed in the tissue model: {missing[:10]}"
+            )
         increments = np.zeros((self._fixed.size, 3))
         target = self.model.rest_positions[control.boundary_nodes] + control.boundary_displacements
         increments[where] = target - state.positions[control.boundary_nodes]
@@ -50,7 +52,10 @@ class TissueBody:
     def free_motion(self, state: TissueState, dt: float, control: ControlValues):
         """Free positions [m] (n, 3) and the step's system (for the compliance and the correction)."""
         free, _, system = self.model.free_motion(
-            state, dt, fixed_displacements=self.prescribed_increments(state, control), compliance=self.strategy
+            state,
+            dt,
+            fixed_displacements=self.prescribed_increments(state, control),
+            compliance=self.strategy,
         )
         return free, system
 
@@ -61,7 +66,9 @@ class TissueBody:
         return system.delassus(jacobian), jacobian
 
     @staticmethod
-    def correct(system, previous: TissueState, free: np.ndarray, jacobian, multipliers: np.ndarray, dt: float):
+    def correct(
+        system, previous: TissueState, free: np.ndarray, jacobian, multipliers: np.ndarray, dt: float
+    ):
         """x = x_free + A⁻¹ Hᵀ λ, v = (x − x₀)/dt."""
         positions = free
         if jacobian is not None and multipliers.size:

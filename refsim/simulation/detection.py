@@ -28,10 +28,10 @@ from refsim.constraints.coupling import (
     RingLayout,
     grip_preload,
     insertion_compliance,
-    shaft_friction_coefficients,
     local_mesh_size,
     ring_insertion_block,
     shaft_contact_block,
+    shaft_friction_coefficients,
     subgrid_compliance,
     tip_cutting_block,
 )
@@ -74,8 +74,14 @@ class Detector:
     needle_dof_count : DoFs of the needle in the constraint problem, None for a rigid needle.
     """
 
-    def __init__(self, scene: Scene, faces: np.ndarray, needle_dof_count: int | None,
-                 rest_positions: np.ndarray | None = None, tets: np.ndarray | None = None) -> None:
+    def __init__(
+        self,
+        scene: Scene,
+        faces: np.ndarray,
+        needle_dof_count: int | None,
+        rest_positions: np.ndarray | None = None,
+        tets: np.ndarray | None = None,
+    ) -> None:
         self.insertion = scene.insertion
         self.cutting = scene.cutting
         self.faces = faces
@@ -90,15 +96,25 @@ class Detector:
         self.needle_radius = scene.needle.radius
         self.preload = spec.shaft_normal_force * spec.spacing
         if spec.interference > 0.0:
-            self.preload += float(grip_preload(
-                shear_modulus=self.shear_modulus, poisson_ratio=self.poisson_ratio, radius=self.needle_radius,
-                interference=spec.interference, spacing=spec.spacing))
+            self.preload += float(
+                grip_preload(
+                    shear_modulus=self.shear_modulus,
+                    poisson_ratio=self.poisson_ratio,
+                    radius=self.needle_radius,
+                    interference=spec.interference,
+                    spacing=spec.spacing,
+                )
+            )
         self.ring = spec.coupling == "ring"
         if self.ring and (rest_positions is None or tets is None):
-            raise ValueError("insertion.coupling = 'ring' needs the rest mesh (rest_positions and tets) in Detector")
+            raise ValueError(
+                "insertion.coupling = 'ring' needs the rest mesh (rest_positions and tets) in Detector"
+            )
         self.rest_positions = None if rest_positions is None else np.asarray(rest_positions, dtype=float)
         self.rest_locator = TetLocator(self.rest_positions, np.asarray(tets)) if self.ring else None
-        self._ring_cache = None  # (tets and creation steps (p, 2), tangents (p, 3), RingLayout) of the last step
+        self._ring_cache = (
+            None  # (tets and creation steps (p, 2), tangents (p, 3), RingLayout) of the last step
+        )
         # Shaft samples before puncture every half mean tet size (the surface cannot bend between them).
         self.shaft_spacing = 0.01
         if rest_positions is not None and tets is not None:
@@ -118,15 +134,25 @@ class Detector:
         if reuse.all():
             layout = cached[2].subset(np.arange(path.point_count))
         else:
-            fresh = RingLayout.around(path.subset(~reuse), rest_positions=self.rest_positions, mesh_tets=mesh_tets,
-                                      locator=self.rest_locator, tangents=tangents[~reuse],
-                                      needle_radius=self.needle_radius)
+            fresh = RingLayout.around(
+                path.subset(~reuse),
+                rest_positions=self.rest_positions,
+                mesh_tets=mesh_tets,
+                locator=self.rest_locator,
+                tangents=tangents[~reuse],
+                needle_radius=self.needle_radius,
+            )
             if reuse.any() and cached[2].tets.shape[1] == fresh.tets.shape[1]:
                 layout = RingLayout.merged(cached[2].subset(np.flatnonzero(reuse)), fresh, reuse)
             else:
-                layout = RingLayout.around(path, rest_positions=self.rest_positions, mesh_tets=mesh_tets,
-                                           locator=self.rest_locator, tangents=tangents,
-                                           needle_radius=self.needle_radius)
+                layout = RingLayout.around(
+                    path,
+                    rest_positions=self.rest_positions,
+                    mesh_tets=mesh_tets,
+                    locator=self.rest_locator,
+                    tangents=tangents,
+                    needle_radius=self.needle_radius,
+                )
                 reuse[:] = False
         kept_tangents = tangents.copy()
         if cached is not None and reuse.any():
@@ -134,29 +160,40 @@ class Detector:
         self._ring_cache = (np.stack([path.tets, path.created_step], axis=1), kept_tangents, layout)
         return layout
 
-    def insertion_rows(self, path: InsertionPath, geometry: StepGeometry, *, finite_line: bool = False) -> RowBlock:
+    def insertion_rows(
+        self, path: InsertionPath, geometry: StepGeometry, *, finite_line: bool = False
+    ) -> RowBlock:
         """The insertion points' rows: the ring coupling with its sub-grid compliance, or the paper's rows.
 
-        ``finite_line``: the 3-D sub-grid compliance of the inserted line (insertion); false: the 2-D values, which
-        the cut rows also use (while cutting: rows of both kinds along one needle must have the same stiffness
-        model; with the 3-D value on the insertion rows only, cube_cut's needle is held, 27.8 N, and cuts 2.3 mm
-        of its 5 mm stroke).
+        ``finite_line``: the 3-D sub-grid compliance of the inserted line (insertion); false: the 2-D values,
+        which the cut rows also use (while cutting: rows of both kinds along one needle must have the same
+        stiffness model; with the 3-D value on the insertion rows only, cube_cut's needle is held, 27.8 N, and
+        cuts 2.3 mm of its 5 mm stroke).
         """
         spec = self.insertion
         # μ_s for the points that stuck at the last solve, μ_i (dynamic) for those that slipped.
-        friction = shaft_friction_coefficients(path.stuck, static=spec.static_friction_coefficient,
-                                               dynamic=spec.shaft_friction_coefficient)
+        friction = shaft_friction_coefficients(
+            path.stuck, static=spec.static_friction_coefficient, dynamic=spec.shaft_friction_coefficient
+        )
         if not self.ring:
             return insertion_block(path, geometry, friction_coefficient=friction, normal_preload=self.preload)
         centres_previous = path.positions(geometry.tissue_previous, geometry.mesh_tets)
         arc_lengths, _ = geometry.needle_previous.project(centres_previous)
         rings = self._rings(path, geometry.needle_previous.tangents(arc_lengths), geometry.mesh_tets)
-        block = ring_insertion_block(path, geometry, rings, friction_coefficient=friction,
-                                     normal_preload=self.preload)
-        # With finite_line, the 3-D sub-grid compliance of the inserted line, which starts at the free surface.
-        diagonal = insertion_compliance(block, shear_modulus=self.shear_modulus, poisson_ratio=self.poisson_ratio,
-                                        needle_radius=self.needle_radius, mesh_size=rings.mesh_size,
-                                        spacing=spec.spacing, arc_lengths=arc_lengths if finite_line else None)
+        block = ring_insertion_block(
+            path, geometry, rings, friction_coefficient=friction, normal_preload=self.preload
+        )
+        # With finite_line, the 3-D sub-grid compliance of the inserted line, which starts at the free
+        # surface.
+        diagonal = insertion_compliance(
+            block,
+            shear_modulus=self.shear_modulus,
+            poisson_ratio=self.poisson_ratio,
+            needle_radius=self.needle_radius,
+            mesh_size=rings.mesh_size,
+            spacing=spec.spacing,
+            arc_lengths=arc_lengths if finite_line else None,
+        )
         return replace(block, compliance_diagonal=diagonal)
 
     def detect(self, state: SimulationState, geometry: StepGeometry) -> Detection:
@@ -171,49 +208,76 @@ class Detector:
             contact = find_surface_contact(projector, self.faces, geometry.needle_free.tip)
             if contact.gap < spec.contact_distance:
                 blocks.append(
-                    penetration_block(contact, geometry, friction_coefficient=spec.surface_friction_coefficient,
-                                      puncture_force=spec.puncture_force if spec.puncture_within_step else None)
+                    penetration_block(
+                        contact,
+                        geometry,
+                        friction_coefficient=spec.surface_friction_coefficient,
+                        puncture_force=spec.puncture_force if spec.puncture_within_step else None,
+                    )
                 )
             if spec.shaft_contact:
-                shaft = shaft_contact_block(geometry, projector, self.faces, spacing=self.shaft_spacing,
-                                            contact_distance=spec.contact_distance,
-                                            tip_clearance=2.0 * spec.contact_distance)
+                shaft = shaft_contact_block(
+                    geometry,
+                    projector,
+                    self.faces,
+                    spacing=self.shaft_spacing,
+                    contact_distance=spec.contact_distance,
+                    tip_clearance=2.0 * spec.contact_distance,
+                )
                 if shaft is not None:
                     blocks.append(shaft)
         elif state.path.point_count:
             points = np.arange(state.path.point_count)
             if state.phase == Phase.CUTTING and self.cutting.law == "energy":
-                # The cut holds the needle along the strip (sliding rows, crack tip; the strip extends down the
-                # shaft when the needle goes deeper); the entry point and the strip's deepest point at the cut
-                # start are kept without rows (anchored, either would drag the tissue along the stroke).
+                # The cut holds the needle along the strip (sliding rows, crack tip; the strip extends down
+                # the shaft when the needle goes deeper); the entry point and the strip's deepest point at the
+                # cut start are kept without rows (anchored, either would drag the tissue along the stroke).
                 points = points[2:]
             if points.size:
-                blocks.append(self.insertion_rows(state.path.subset(points), geometry,
-                                                  finite_line=spec.subgrid_line == "finite"
-                                                  and state.phase != Phase.CUTTING))
+                blocks.append(
+                    self.insertion_rows(
+                        state.path.subset(points),
+                        geometry,
+                        finite_line=spec.subgrid_line == "finite" and state.phase != Phase.CUTTING,
+                    )
+                )
                 insertion_points = points
             if spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION:
                 # The tip's cutting row, against the newest insertion point (at most d_i behind the tip).
-                tip_block, _, _ = tip_cutting_block(geometry, tip_tet=int(state.path.tets[-1]),
-                                                    tip_barycentric=state.path.barycentric[-1],
-                                                    cutting_force=spec.tip_cutting_force)
+                tip_block, _, _ = tip_cutting_block(
+                    geometry,
+                    tip_tet=int(state.path.tets[-1]),
+                    tip_barycentric=state.path.barycentric[-1],
+                    cutting_force=spec.tip_cutting_force,
+                )
                 blocks.append(tip_block)
         if state.phase == Phase.INSERTION and state.cut is not None and state.cut.triangle_count:
             # A needle inserted along an existing cut slides in it: the old cut's sliding rows (no crack tip).
-            entry_arc_length = inserted_arc(geometry.needle_previous,
-                                            TetLocator(geometry.tissue_previous, geometry.mesh_tets),
-                                            self.cutting.point_spacing)
-            block, _ = strip_cut_block(state.cut, None, geometry, entry_arc_length=entry_arc_length,
-                                       spacing=self.cutting.point_spacing, cut_direction=np.zeros(3),
-                                       subgrid_compliance=self.cut_compliance)
+            entry_arc_length = inserted_arc(
+                geometry.needle_previous,
+                TetLocator(geometry.tissue_previous, geometry.mesh_tets),
+                self.cutting.point_spacing,
+            )
+            block, _ = strip_cut_block(
+                state.cut,
+                None,
+                geometry,
+                entry_arc_length=entry_arc_length,
+                spacing=self.cutting.point_spacing,
+                cut_direction=np.zeros(3),
+                subgrid_compliance=self.cut_compliance,
+            )
             if block is not None:
                 blocks.append(block)
         if state.phase == Phase.CUTTING and state.cut_strip is not None:
-            # The inserted part of the needle: from where it enters the tissue (not the entry point's projection,
-            # which a tilted needle pushed sideways leaves above the tissue) to the tip, on the start-of-step state.
-            entry_arc_length = inserted_arc(geometry.needle_previous,
-                                            TetLocator(geometry.tissue_previous, geometry.mesh_tets),
-                                            self.cutting.point_spacing)
+            # The inserted part of the needle: from where it enters the tissue (not the entry point's
+            # projection, which a tilted needle pushed sideways leaves above the tissue) to the tip, on the
+            # start-of-step state.
+            entry_arc_length = inserted_arc(
+                geometry.needle_previous,
+                TetLocator(geometry.tissue_previous, geometry.mesh_tets),
+                self.cutting.point_spacing,
+            )
             offset = sum(block.row_count for block in blocks)
             cutting = self.cutting
             strength = cutting.fracture_energy if cutting.law == "energy" else np.inf
@@ -238,11 +302,13 @@ class Detector:
         return Detection(rows, contact, front, insertion_points)
 
 
-def _cut_compliance(scene: Scene, rest_positions: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _cut_compliance(
+    scene: Scene, rest_positions: np.ndarray, tets: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Sub-grid compliance of a cut row in each tet [m/N], (lateral, axial), shapes (tet_count,) each: the
     coupling's (:func:`refsim.constraints.coupling.subgrid_compliance`, the annulus between the needle and the
-    equivalent radius of the mesh, Peaceman's well model) with the tet's own size, for the length d_c a cut row
-    stands for."""
+    equivalent radius of the mesh, Peaceman's well model) with the tet's own size, for the length d_c a cut
+    row stands for."""
     tets = np.asarray(tets)
     size = local_mesh_size(rest_positions, tets, np.arange(tets.shape[0]))
     tissue = scene.tissue

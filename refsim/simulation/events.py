@@ -1,16 +1,22 @@
 """Phases and events (DESIGN.md, step 7): what the forces of a step change in the state.
 
-| phase | event | when | then |
-|---|---|---|---|
-| approach | puncture | tip normal force ≥ f_p | the entry point is the first insertion point; insertion |
-| insertion | (new points) | the tip is farther than d_i from every point | points every d_i behind the tip, but none in an existing cut |
-| insertion | retraction | points lie beyond the tip | they are removed |
-| insertion | withdrawal | no point is left | approach |
-| insertion | cut_start | energy law: ‖t‖ ≥ G_c L_in; paper law (equation 3): ‖t‖ > n_i f_c | a strip on the path; cutting, the entry point kept |
-| cutting | (crack advance) | energy law: a front row at its strength G_c ℓ_k and the needle past the crack tip, or a sliding row at the front at G_c ℓ_k | the crack tip advances to the needle |
-| cutting | (extension) | energy law: the needle inserted d_c deeper than the strip | columns added below the strip |
-| cutting | tear | energy law: a new layer laid (the crack tip d_c past the last); paper law: a front row's force ≥ f_t | the surface grows (energy law: ĉ turns half-way to the layer's swept direction) |
-| cutting | retraction, withdrawal | the entry point beyond the tip | every row released; approach (the cut stays) |
+- phase: approach; event: puncture; when: tip normal force ≥ f_p; then: the entry point is the first insertion
+  point; insertion
+- phase: insertion; event: (new points); when: the tip is farther than d_i from every point; then: points
+  every d_i behind the tip, but none in an existing cut
+- phase: insertion; event: retraction; when: points lie beyond the tip; then: they are removed
+- phase: insertion; event: withdrawal; when: no point is left; then: approach
+- phase: insertion; event: cut_start; when: energy law: ‖t‖ ≥ G_c L_in; paper law (equation 3): ‖t‖ > n_i f_c;
+  then: a strip on the path; cutting, the entry point kept
+- phase: cutting; event: (crack advance); when: energy law: a front row at its strength G_c ℓ_k and the needle
+  past the crack tip, or a sliding row at the front at G_c ℓ_k; then: the crack tip advances to the needle
+- phase: cutting; event: (extension); when: energy law: the needle inserted d_c deeper than the strip; then:
+  columns added below the strip
+- phase: cutting; event: tear; when: energy law: a new layer laid (the crack tip d_c past the last); paper
+  law: a front row's force ≥ f_t; then: the surface grows (energy law: ĉ turns half-way to the layer's swept
+  direction)
+- phase: cutting; event: retraction, withdrawal; when: the entry point beyond the tip; then: every row
+  released; approach (the cut stays)
 
 The cut surface itself grows in :mod:`refsim.cutting.growth` and :mod:`refsim.cutting.strip`.
 """
@@ -43,16 +49,17 @@ __all__ = ["EventRules", "LazyLocator", "locate_under_surface", "shaft_lateral_f
 
 
 def shaft_lateral_force(source, kind, directions, forces, *, without_entry: bool) -> np.ndarray:
-    """The lateral force of the tissue on the needle through its insertion points, t = Σ n λ over their bilateral
-    rows [N], shape (3,) (the cut-start load).
+    """The lateral force of the tissue on the needle through its insertion points, t = Σ n λ over their
+    bilateral rows [N], shape (3,) (the cut-start load).
 
     Parameters
     ----------
-    source, kind : Source and kind of each row, shape (r,); the insertion points' rows in path order, entry first.
+    source, kind : Source and kind of each row, shape (r,); the insertion points' rows in path order, entry
+    first.
     directions : Row directions, shape (r, 3). forces : Multipliers [N], shape (r,).
-    without_entry : Leave out the entry point's rows: at the free surface they also carry the surface's reaction
-        to an oblique entry (a 30° axial push put 0.37 N on the lone entry point three steps after puncture:
-        700 N/m over 0.52 mm), a load no shaft cuts with (the energy law).
+    without_entry : Leave out the entry point's rows: at the free surface they also carry the surface's
+        reaction to an oblique entry (a 30° axial push put 0.37 N on the lone entry point three steps after
+        puncture: 700 N/m over 0.52 mm), a load no shaft cuts with (the energy law).
     """
     insertion = np.flatnonzero(np.asarray(source) == INSERTION)
     lateral = insertion[np.asarray(kind)[insertion] == BILATERAL]
@@ -61,6 +68,7 @@ def shaft_lateral_force(source, kind, directions, forces, *, without_entry: bool
         # are the first two.
         lateral = lateral[2:]
     return (np.asarray(directions)[lateral] * np.asarray(forces)[lateral, None]).sum(axis=0)
+
 
 #: Relative tolerance on f_p of the puncture test (a capped row carries f_p to the solve's accuracy).
 PUNCTURE_TOLERANCE = 1e-6
@@ -136,7 +144,8 @@ class EventRules:
         if state.phase == Phase.APPROACH and rows.row_count:
             state, events = self._puncture(state, detection, multipliers)
         if state.phase == Phase.INSERTION and not events:
-            # (Not in the step that punctures: the entry point is then at the tip, on either side by round-off.)
+            # (Not in the step that punctures: the entry point is then at the tip, on either side by
+            # round-off.)
             state, more = self._insertion(state, detection, multipliers)
             events.extend(more)
         elif state.phase == Phase.CUTTING:
@@ -148,7 +157,8 @@ class EventRules:
         rows = detection.rows
         normal_rows = np.flatnonzero((rows.source == PENETRATION) & (rows.kind == UNILATERAL))
         normal_force = float(multipliers[normal_rows].sum())
-        # A capped normal row (insertion.puncture_within_step) reaches f_p to the solver's tolerance, not beyond.
+        # A capped normal row (insertion.puncture_within_step) reaches f_p to the solver's tolerance, not
+        # beyond.
         threshold = self.insertion.puncture_force * (1.0 - PUNCTURE_TOLERANCE)
         if normal_force < threshold:
             return state, []
@@ -167,7 +177,11 @@ class EventRules:
         positions = state.tissue.positions
         if self.growth is not None and rows.row_count:
             force_on_needle = shaft_lateral_force(
-                rows.source, rows.kind, rows.directions, multipliers, without_entry=self.cutting.law == "energy"
+                rows.source,
+                rows.kind,
+                rows.directions,
+                multipliers,
+                without_entry=self.cutting.law == "energy",
             )
             started = self._cut_starts(state, force_on_needle)
             if started is not None:
@@ -184,8 +198,9 @@ class EventRules:
         )
         if added and state.cut is not None and state.cut.triangle_count:
             path = self._outside_cut(path, state, positions)
-        # Ring coupling: the centre of a point is not tied to the needle (its ring is), so it drifts along the needle
-        # with the tissue's strain; half a spacing of hysteresis keeps such drift from removing and re-adding it.
+        # Ring coupling: the centre of a point is not tied to the needle (its ring is), so it drifts along the
+        # needle with the tissue's strain; half a spacing of hysteresis keeps such drift from removing and
+        # re-adding it.
         margin = 0.5 * self.insertion.spacing if self.insertion.coupling == "ring" else 0.0
         beyond = points_beyond_tip(path, path.positions(positions, self.tets), needle, margin)
         if np.any(beyond):
@@ -198,13 +213,16 @@ class EventRules:
         return state, events
 
     def _outside_cut(self, path, state, positions):
-        """The path without its new points that lie in the existing cut (projecting inside it, within d_c of it):
-        a needle inserted along a cut slides in it (its sliding rows), it does not puncture the tissue there."""
+        """The path without its new points that lie in the existing cut (projecting inside it, within d_c of
+        it): a needle inserted along a cut slides in it (its sliding rows), it does not puncture the tissue
+        there."""
         new = np.flatnonzero(path.created_step == state.step)
         if new.size == 0:
             return path
         cut = state.cut
-        found = cut.closest_points(path.positions(positions, self.tets)[new], cut.deformed_points(positions, self.tets))
+        found = cut.closest_points(
+            path.positions(positions, self.tets)[new], cut.deformed_points(positions, self.tets)
+        )
         distance = np.linalg.norm(path.positions(positions, self.tets)[new] - found.closest, axis=1)
         in_cut = found.inside & (distance <= self.cutting.point_spacing)
         in_cut &= new > 0  # the entry point stays: it marks the inserted length
@@ -235,12 +253,16 @@ class EventRules:
                 return None
             trigger, extent = magnitude / state.path.point_count, cutting.extent
         direction = -force_on_needle / magnitude
-        cut, strip = start_strip(self.growth, state.cut, path_points, direction, positions, state.step, extent=extent)
+        cut, strip = start_strip(
+            self.growth, state.cut, path_points, direction, positions, state.step, extent=extent
+        )
         if strip is None:
             return None
         # The entry point is kept (withdrawal: the tip back above it); with the energy law so is the deepest
         # point (neither has rows while cutting).
-        keep = [0] if cutting.law == "paper" or state.path.point_count < 2 else [0, state.path.point_count - 1]
+        keep = (
+            [0] if cutting.law == "paper" or state.path.point_count < 2 else [0, state.path.point_count - 1]
+        )
         state = replace(
             state,
             phase=Phase.CUTTING,
@@ -262,7 +284,8 @@ class EventRules:
             return strip
         depths = strip.depths[-1] + spacing * np.arange(1, count + 1)
         tets, barycentric, inside = locate_material_points(
-            locator, positions, self.tets, needle.points(entry_arc + depths), snap_distance=0.5 * spacing)
+            locator, positions, self.tets, needle.points(entry_arc + depths), snap_distance=0.5 * spacing
+        )
         run = int(np.cumprod(inside).sum())  # down to the first point outside the tissue
         if run == 0:
             return strip
@@ -306,14 +329,17 @@ class EventRules:
         events: list[Event] = []
         cutting = self.cutting
         if cutting.law == "energy" and state.cut_strip is not None:
-            # A needle inserted deeper than the strip while it cuts: pushed sideways with the rest of the shaft,
-            # its part below the strip cuts at G_c per unit length like the rest (the energy law does not depend
-            # on where along the shaft the load is), so the strip extends down along it, a column every d_c
-            # to the tip, its crack tip at the needle (insertion points there, anchored in uncut tissue, dragged
-            # it sideways: 6.35 N against 4.0 N for a 30° needle pushed 5 mm sideways and 2.9 mm deeper).
+            # A needle inserted deeper than the strip while it cuts: pushed sideways with the rest of the
+            # shaft, its part below the strip cuts at G_c per unit length like the rest (the energy law does
+            # not depend on where along the shaft the load is), so the strip extends down along it, a column
+            # every d_c to the tip, its crack tip at the needle (insertion points there, anchored in uncut
+            # tissue, dragged it sideways: 6.35 N against 4.0 N for a 30° needle pushed 5 mm sideways and 2.9
+            # mm deeper).
             locator = TetLocator(positions, self.tets)
             entry_arc = inserted_arc(needle, locator, cutting.point_spacing)
-            state = replace(state, cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc))
+            state = replace(
+                state, cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc)
+            )
         front = detection.front
         if front.rows.size == 0 and (cutting.law != "energy" or front.band_rows.size == 0):
             return state, events
@@ -328,16 +354,16 @@ class EventRules:
             sideways = np.abs(multipliers[front.band_rows]) >= (1.0 - 1e-6) * band_limit
             if not (np.any(over > 0.0) or np.any(sideways)):
                 return state, events
-            # Each column next to a row that gave way (a front row, or a sliding row at the front) moves to the
-            # needle at its own depth below the tissue surface (moving the ends of a row's segment by the row's
-            # overshoot carried a lagging column's overshoot to its neighbour: one column of a 30° needle 1.5 mm
-            # past it).
+            # Each column next to a row that gave way (a front row, or a sliding row at the front) moves to
+            # the needle at its own depth below the tissue surface (moving the ends of a row's segment by the
+            # row's overshoot carried a lagging column's overshoot to its neighbour: one column of a 30°
+            # needle 1.5 mm past it).
             given = np.concatenate([front.segment[over > 0.0], front.band_segment[sideways]])
             columns = np.unique(np.concatenate([given, given + 1]))
             tips = strip.front.positions(positions, self.tets)[columns]
             targets, reached = crack_tip_targets(strip, needle, entry_arc, columns, cutting.point_spacing)
-            # The material point in contact with the needle: the centreline plus the compliant rows' compression
-            # C λ along their direction, so the rows keep their force as the crack tip moves.
+            # The material point in contact with the needle: the centreline plus the compliant rows'
+            # compression C λ along their direction, so the rows keep their force as the crack tip moves.
             given_rows = np.concatenate([front.rows[over > 0.0], front.band_rows[sideways]])
             targets = targets + crack_tip_compression(detection.rows, multipliers, given_rows, given, columns)
             tangents = needle.tangents(needle.project(targets)[0])
@@ -347,14 +373,20 @@ class EventRules:
             distance = np.linalg.norm(motion, axis=1)
             # Forward, or sideways (a turning stroke): anything but back into the cut (within 60° of ĉ's
             # opposite: the needle has moved back from the crack tip, and there is nothing to cut).
-            ahead = reached & (distance > 1e-6 * cutting.point_spacing) & (
-                np.einsum("ij,ij->i", motion, across) > -0.5 * distance)
-            moved = strip.with_front(move_front(self.growth, strip, columns[ahead], targets[ahead], positions,
-                                                locator=locator))
+            ahead = (
+                reached
+                & (distance > 1e-6 * cutting.point_spacing)
+                & (np.einsum("ij,ij->i", motion, across) > -0.5 * distance)
+            )
+            moved = strip.with_front(
+                move_front(self.growth, strip, columns[ahead], targets[ahead], positions, locator=locator)
+            )
             cut, laid = moved.lay(state.cut, state.step, cutting.point_spacing)
             direction = state.cut_direction
             if laid.layers.shape[0] > strip.layers.shape[0]:
-                events.append(Event("tear", float(forces.sum()) + float(np.abs(multipliers[front.band_rows]).sum())))
+                events.append(
+                    Event("tear", float(forces.sum()) + float(np.abs(multipliers[front.band_rows]).sum()))
+                )
                 direction = self._swept_direction(cut, laid, positions, needle, direction)
             return replace(state, cut=cut, cut_strip=laid, cut_direction=direction), events
         strongest = float(forces.max())
@@ -365,6 +397,8 @@ class EventRules:
         cut = state.cut
         for _ in range(pieces):  # d_t / d_c layers, each vectorised over the columns
             advances = np.full(strip.column_count, cutting.extent / pieces)
-            strip = strip.with_front(advance_front(self.growth, strip, advances, state.cut_direction, positions))
+            strip = strip.with_front(
+                advance_front(self.growth, strip, advances, state.cut_direction, positions)
+            )
             cut, strip = strip.lay(cut, state.step, 0.5 * cutting.extent / pieces)
         return replace(state, cut=cut, cut_strip=strip), [*events, Event("tear", strongest)]

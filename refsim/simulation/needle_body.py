@@ -1,8 +1,8 @@
 """The needle as a body of the time step: rigid (kinematic) or flexible (co-rotational beams).
 
-A rigid needle follows its base exactly: its pose at the end of the step is the trajectory's, it adds nothing to
-the compliance and has no free-motion solve. A flexible needle is a beam model whose base node's six DoFs are
-prescribed by the trajectory; the rest moves by one Newton step of implicit Euler.
+A rigid needle follows its base exactly: its pose at the end of the step is the trajectory's, it adds nothing
+to the compliance and has no free-motion solve. A flexible needle is a beam model whose base node's six DoFs
+are prescribed by the trajectory; the rest moves by one Newton step of implicit Euler.
 """
 
 from __future__ import annotations
@@ -67,13 +67,17 @@ class RigidNeedle:
         self.length = float(length)
         self.arc_lengths = np.linspace(0.0, self.length, element_count + 1)
 
-    def state_at(self, base: np.ndarray, direction: np.ndarray, velocities: np.ndarray | None = None) -> NeedleState:
+    def state_at(
+        self, base: np.ndarray, direction: np.ndarray, velocities: np.ndarray | None = None
+    ) -> NeedleState:
         """The needle posed at ``base`` along ``direction``."""
         positions = base + self.arc_lengths[:, None] * direction
         frames = _rest_frames(direction, self.arc_lengths.size)
         if velocities is None:
             velocities = np.zeros((self.arc_lengths.size, 6))
-        return NeedleState(positions, frames, velocities, np.asarray(base, float), np.asarray(direction, float))
+        return NeedleState(
+            positions, frames, velocities, np.asarray(base, float), np.asarray(direction, float)
+        )
 
     def geometry(self, state: NeedleState) -> RigidNeedleGeometry:
         return RigidNeedleGeometry(state.base_position, state.direction, self.length)
@@ -83,9 +87,13 @@ class RigidNeedle:
         moved = self.state_at(base, direction)
         velocities = np.zeros_like(state.velocities)
         velocities[:, :3] = (moved.positions - state.positions) / dt
-        return NeedleState(moved.positions, moved.frames, velocities, moved.base_position, moved.direction), None
+        return NeedleState(
+            moved.positions, moved.frames, velocities, moved.base_position, moved.direction
+        ), None
 
-    def correct(self, previous: NeedleState, free: NeedleState, system, responses, multipliers, dt) -> NeedleState:
+    def correct(
+        self, previous: NeedleState, free: NeedleState, system, responses, multipliers, dt
+    ) -> NeedleState:
         return free
 
 
@@ -102,7 +110,9 @@ class FlexibleNeedle:
         self.dof_count = 6 * model.node_count
         self._mass = model.mass_matrix()
 
-    def state_at(self, base: np.ndarray, direction: np.ndarray, velocities: np.ndarray | None = None) -> NeedleState:
+    def state_at(
+        self, base: np.ndarray, direction: np.ndarray, velocities: np.ndarray | None = None
+    ) -> NeedleState:
         positions, frames = self.model.rest_state()
         # Pose the rest needle rigidly at (base, direction).
         rest_direction = positions[-1] - positions[0]
@@ -112,7 +122,9 @@ class FlexibleNeedle:
         frames = rotation @ frames
         if velocities is None:
             velocities = np.zeros((positions.shape[0], 6))
-        return NeedleState(positions, frames, velocities, np.asarray(base, float), np.asarray(direction, float))
+        return NeedleState(
+            positions, frames, velocities, np.asarray(base, float), np.asarray(direction, float)
+        )
 
     def geometry(self, state: NeedleState) -> BeamNeedleGeometry:
         return BeamNeedleGeometry(self.model, state.positions, state.frames)
@@ -138,7 +150,9 @@ class FlexibleNeedle:
         free = NeedleState(positions, frames, delta.reshape(-1, 6) / dt, np.asarray(base, float), direction)
         return free, system
 
-    def correct(self, previous: NeedleState, free: NeedleState, system, responses, multipliers, dt) -> NeedleState:
+    def correct(
+        self, previous: NeedleState, free: NeedleState, system, responses, multipliers, dt
+    ) -> NeedleState:
         """x = x_free + A⁻¹ Hᵀ λ, velocities from the whole step's increment."""
         if responses is None or multipliers.size == 0:
             return free

@@ -46,8 +46,8 @@ class StepRecord:
     problem : The step's constraint problem when recorded, else None.
     cut_point_count, cut_triangle_count : Size of the cut surface after the step.
     triangulation_seconds : Seconds of the step's triangulation (0 when the cut did not grow).
-    boundary_displacements : Prescribed displacement from rest of the tissue's moving boundary nodes at the end
-        of the step [m], (k, 3), or None without boundary motion.
+    boundary_displacements : Prescribed displacement from rest of the tissue's moving boundary nodes at the
+        end of the step [m], (k, 3), or None without boundary motion.
     """
 
     step: int

@@ -1,6 +1,6 @@
 """A robot-held needle that compensates a tissue motion (the paper's liver experiment, after Baksic et al.
-2020): the base follows a nominal insertion plus the motion of the target, precomputed by simulating the tissue
-alone under its boundary motion.
+2020): the base follows a nominal insertion plus the motion of the target, precomputed by simulating the
+tissue alone under its boundary motion.
 
 The robot knows where the target is at every time, not how the rest of the organ moves: the needle tracks the
 target, and the relative motion between the target and the entry point is what loads the needle.
@@ -22,8 +22,8 @@ __all__ = ["target_motion", "compensating_trajectory", "write_trajectory_csv"]
 
 
 def target_motion(scene: Scene, target: np.ndarray, times: np.ndarray) -> np.ndarray:
-    """Displacement of the tissue's material point at ``target`` (rest) under the scene's boundary motion alone,
-    without the needle [m], shape (len(times), 3), by the scene's own time stepping.
+    """Displacement of the tissue's material point at ``target`` (rest) under the scene's boundary motion
+    alone, without the needle [m], shape (len(times), 3), by the scene's own time stepping.
 
     Parameters
     ----------
@@ -34,7 +34,9 @@ def target_motion(scene: Scene, target: np.ndarray, times: np.ndarray) -> np.nda
     models = build_models(scene)
     controls = build_controls(scene, models)
     mesh = models.mesh
-    tets, barycentric = TetLocator(mesh.rest_positions, mesh.tets).locate(np.asarray(target, dtype=float)[None])
+    tets, barycentric = TetLocator(mesh.rest_positions, mesh.tets).locate(
+        np.asarray(target, dtype=float)[None]
+    )
     if tets[0] < 0:
         raise ValueError(f"target {np.asarray(target).tolist()} m is outside the tissue")
     nodes = mesh.tets[tets[0]]
@@ -64,8 +66,8 @@ def compensating_trajectory(
     """The base motion of a robot inserting a needle towards ``target`` while following the target's motion.
 
     The needle points along ``direction`` at the target; its tip starts ``start_gap`` before the entry
-    (``depth`` before the target along the needle, so the tip reaches the target at full depth) and advances at
-    ``speed``, then holds; at every time the whole pose is shifted by the target's displacement.
+    (``depth`` before the target along the needle, so the tip reaches the target at full depth) and advances
+    at ``speed``, then holds; at every time the whole pose is shifted by the target's displacement.
 
     Parameters
     ----------

@@ -1,14 +1,17 @@
 """The time step loop (DESIGN.md, "One time step"): it orders the stages and owns none of them.
 
-| stage | what | owner |
-|---|---|---|
-| motion | the controls at t + dt: needle base pose, tissue boundary displacements | `refsim.scene.controls` |
-| free_motion | one Newton step of implicit Euler per body, without constraint forces | `refsim.simulation.bodies`, `refsim.simulation.needle_body` (models in `refsim.fem`) |
-| detection | rows of H from the free positions, by phase | `refsim.simulation.detection` (builders in `refsim.constraints`) |
-| compliance | W = Σ_b H_b A_b⁻¹ H_bᵀ and the constraint problem | the bodies' systems; `RowBlock.problem` |
-| solve | Gauss–Seidel or the exact solver | `refsim.solvers` |
-| correction | x = x_free + A⁻¹ Hᵀ λ per body; a non-finite value stops the run | the bodies |
-| events | puncture, insertion points, retraction, withdrawal, cut start, tears | `refsim.simulation.events` (cut growth in `refsim.cutting.growth`) |
+- stage: motion; what: the controls at t + dt: needle base pose, tissue boundary displacements; owner:
+  `refsim.scene.controls`
+- stage: free_motion; what: one Newton step of implicit Euler per body, without constraint forces; owner:
+  `refsim.simulation.bodies`, `refsim.simulation.needle_body` (models in `refsim.fem`)
+- stage: detection; what: rows of H from the free positions, by phase; owner: `refsim.simulation.detection`
+  (builders in `refsim.constraints`)
+- stage: compliance; what: W = Σ_b H_b A_b⁻¹ H_bᵀ and the constraint problem; owner: the bodies' systems;
+  `RowBlock.problem`
+- stage: solve; what: Gauss–Seidel or the exact solver; owner: `refsim.solvers`
+- stage: correction; what: x = x_free + A⁻¹ Hᵀ λ per body; a non-finite value stops the run; owner: the bodies
+- stage: events; what: puncture, insertion points, retraction, withdrawal, cut start, tears; owner:
+  `refsim.simulation.events` (cut growth in `refsim.cutting.growth`)
 
 The scene, the models and the controls are static; a step takes a :class:`SimulationState` and returns a new
 one with the :class:`~refsim.simulation.records.StepRecord` of what it did. Nothing the scene does not declare
@@ -73,7 +76,9 @@ class Simulation:
     models : Prebuilt models (built from the scene by default).
     """
 
-    def __init__(self, scene: Scene, models: SceneModels | None = None, controls: Controls | None = None) -> None:
+    def __init__(
+        self, scene: Scene, models: SceneModels | None = None, controls: Controls | None = None
+    ) -> None:
         self.scene = scene
         self.models = models if models is not None else build_models(scene)
         self.controls = controls if controls is not None else build_controls(scene, self.models)
@@ -91,14 +96,21 @@ class Simulation:
         self.dt = scene.time.dt
         spec = scene.compliance
         self.tissue_compliance = make_strategy(
-            spec.strategy, refresh_every=spec.refresh_every, linear_solver=spec.linear_solver, w_update=spec.w_update
+            spec.strategy,
+            refresh_every=spec.refresh_every,
+            linear_solver=spec.linear_solver,
+            w_update=spec.w_update,
         ).bind()
         self.tissue_body = TissueBody(self.tissue, self.tissue_compliance)
         self.detector = Detector(
             scene, self.faces, self.needle.dof_count, self.models.mesh.rest_positions, self.tets
         )
         self.event_rules = EventRules(
-            scene, self.tets, self.models.mesh.rest_positions, self.tissue.deformation_gradients, self.needle.geometry
+            scene,
+            self.tets,
+            self.models.mesh.rest_positions,
+            self.tissue.deformation_gradients,
+            self.needle.geometry,
         )
 
     # ------------------------------------------------------------------ state
@@ -117,11 +129,13 @@ class Simulation:
 
     # ------------------------------------------------------------------ step
 
-    def step(self, state: SimulationState, *, record_tissue: bool = False) -> tuple[SimulationState, StepRecord]:
+    def step(
+        self, state: SimulationState, *, record_tissue: bool = False
+    ) -> tuple[SimulationState, StepRecord]:
         """Advance one time step; return the new state and the record of the step.
 
-        BLAS and OpenMP run on one thread inside the step (on 2 cores two OpenBLAS threads made one W computation
-        26 times slower); the caller's setting is restored after it."""
+        BLAS and OpenMP run on one thread inside the step (on 2 cores two OpenBLAS threads made one W
+        computation 26 times slower); the caller's setting is restored after it."""
         with hot_path_threads(1):
             return self._step(state, record_tissue=record_tissue)
 
@@ -134,7 +148,9 @@ class Simulation:
         timer.lap("motion")
 
         tissue_free, tissue_system = self.tissue_body.free_motion(state.tissue, dt, control)
-        needle_free, needle_system = self.needle.free_motion(state.needle, control.base_position, control.direction, dt)
+        needle_free, needle_system = self.needle.free_motion(
+            state.needle, control.base_position, control.direction, dt
+        )
         timer.lap("free_motion")
 
         geometry = StepGeometry(
@@ -157,7 +173,9 @@ class Simulation:
         tissue_state = self.tissue_body.correct(
             tissue_system, state.tissue, tissue_free, tissue_responses, multipliers, dt
         )
-        needle_state = self.needle.correct(state.needle, needle_free, needle_system, needle_responses, multipliers, dt)
+        needle_state = self.needle.correct(
+            state.needle, needle_free, needle_system, needle_responses, multipliers, dt
+        )
         self._check_finite(step, tissue_state, needle_state, multipliers)
         timer.lap("correction")
 
@@ -237,7 +255,11 @@ class Simulation:
         spec = self.scene.solver
         if spec.method == "exact":
             return solve_exact(
-                problem, tolerance=spec.tolerance, backend=spec.backend, method=spec.exact_method, warm_start=warm_start
+                problem,
+                tolerance=spec.tolerance,
+                backend=spec.backend,
+                method=spec.exact_method,
+                warm_start=warm_start,
             )
         return solve_gauss_seidel(
             problem,
@@ -252,7 +274,8 @@ class Simulation:
         return np.flatnonzero(rows.source == INSERTION)
 
     def _warm_start(self, state: SimulationState, detection) -> np.ndarray:
-        """Last step's multipliers of the insertion points (they persist from step to step), zero elsewhere."""
+        """Last step's multipliers of the insertion points (they persist from step to step), zero
+        elsewhere."""
         rows = detection.rows
         warm = np.zeros(rows.row_count)
         insertion = self._insertion_rows(rows)

@@ -102,17 +102,22 @@ class RunSummary:
     def format(self) -> str:
         """Events, peak force, solver health and speed, as text."""
         lines = ["events:"]
-        lines += [f"  step {s:5d}  t = {t:.4f} s  {name}" + (f"  force {f:.4g} N" if np.isfinite(f) else "")
-                  for s, t, name, f in self.events] or ["  none"]
+        lines += [
+            f"  step {s:5d}  t = {t:.4f} s  {name}" + (f"  force {f:.4g} N" if np.isfinite(f) else "")
+            for s, t, name, f in self.events
+        ] or ["  none"]
         lines.append(f"peak force on the needle: {self.peak_force:.4g} N at step {self.peak_force_step}")
         lines.append(
-            f"constraint solves not converged: {self.unconverged}; largest natural residual {self.max_residual:.2e}"
+            f"constraint solves not converged: {self.unconverged}; largest natural residual "
+            f"{self.max_residual:.2e}"
         )
         rate = self.steps / self.seconds if self.seconds > 0 else float("nan")
         lines.append(f"{self.steps} steps in {self.seconds:.2f} s: {rate:.1f} steps/s")
         if self.status not in ("running", "complete"):
-            lines.append(f"stopped early ({self.status}): {self.stop_reason}; {self.steps_written} steps kept in "
-                         f"{self.output or 'the results file'}")
+            lines.append(
+                f"stopped early ({self.status}): {self.stop_reason}; {self.steps_written} steps kept in "
+                f"{self.output or 'the results file'}"
+            )
         if self.cut_points:
             lines.append(self.format_cut())
         return "\n".join(lines)
@@ -126,14 +131,18 @@ class RunSummary:
         cutting_steps = self.steps - self.first_cut_step + 1
         later = seconds[1:] if count > 1 else seconds
         return (
-            f"cut surface: {self.cut_points} points, {self.cut_triangles} triangles; {count} triangulations in "
-            f"{cutting_steps} cutting steps (one every {cutting_steps / count:.1f} steps), first {1e3 * seconds[0]:.1f} ms "
+            f"cut surface: {self.cut_points} points, {self.cut_triangles} triangles; {count} triangulations "
+            f"in {cutting_steps} cutting steps (one every {cutting_steps / count:.1f} steps), "
+            f"first {1e3 * seconds[0]:.1f} ms "
             f"(includes loading open3d and the compiled kernels), then {1e3 * later.mean():.2f} ms on average"
         )
 
     def format_table(self) -> str:
         """The paper's Table 1 for this run: per phase, rows, solving ms and share, total ms per step."""
-        header = f"{'phase':<10} {'steps':>6} {'rows':>7} {'GS/solver it.':>13} {'solve ms':>9} {'share':>6} {'total ms':>9}"
+        header = (
+            f"{'phase':<10} {'steps':>6} {'rows':>7} {'GS/solver it.':>13} {'solve ms':>9} {'share':>6} "
+            f"{'total ms':>9}"
+        )
         lines = [header, "-" * len(header)]
         for phase, stats in self.phases.items():
             share = stats.solve_ms_per_step / stats.ms_per_step if stats.steps else float("nan")
@@ -146,6 +155,10 @@ class RunSummary:
             for stage, seconds in stats.stage_seconds.items():
                 stage_totals[stage] += seconds
         if self.steps:
-            lines.append("ms per step by stage: " + ", ".join(
-                f"{stage} {1e3 * seconds / self.steps:.2f}" for stage, seconds in stage_totals.items()))
+            lines.append(
+                "ms per step by stage: "
+                + ", ".join(
+                    f"{stage} {1e3 * seconds / self.steps:.2f}" for stage, seconds in stage_totals.items()
+                )
+            )
         return "\n".join(lines)

@@ -1,8 +1,9 @@
-"""The exact reference solver: semismooth Newton first, the cone-programming route as fallback and certificate.
+"""The exact reference solver: semismooth Newton first, the cone-programming route as fallback and
+certificate.
 
-:func:`solve_exact` runs the Newton method of :mod:`refsim.solvers.newton` on W as given (any law of the table,
-non-symmetric W accepted), finishes with Gauss–Seidel sweeps or a monotone Newton where it stalls, and only then
-falls back to the cone route below; ``report.path`` says which produced the answer. The cone route:
+:func:`solve_exact` runs the Newton method of :mod:`refsim.solvers.newton` on W as given (any law of the
+table, non-symmetric W accepted), finishes with Gauss–Seidel sweeps or a monotone Newton where it stalls, and
+only then falls back to the cone route below; ``report.path`` says which produced the answer. The cone route:
 
 1. Scaling. λ = τ D z with D a diagonal of 1/√W_ii (one common factor per contact, so that the Coulomb cone
    is unchanged) and τ = ‖D δ_free‖, so that the scaled compliance has a unit diagonal and z is of order one.
@@ -10,11 +11,11 @@ falls back to the cone route below; ``report.path`` says which produced the answ
    rows and z free on bilateral rows: a convex QP whose KKT conditions are exactly the laws of these rows
    (W is replaced by its symmetric part). Solved through qpsolvers (Clarabel by default, OSQP, or any
    installed backend by name).
-3. Friction by a fixed point on the bounds. Group friction rows get the box |λ_s| ≤ μ (‖λ_G‖ + p) with the group
-   forces of the previous iterate. Contacts get the second-order cone ‖λ_t‖ ≤ μ λ_n through Clarabel's own
-   interface (qpsolvers has no cones), with the De Saxcé modification of the free gap δ_free,n + μ ‖δ_t‖ from
-   the previous iterate; the KKT conditions of that cone QP are then the Coulomb law (Acary, Cadoux, Lemaréchal
-   and Brogliato 2011). Iterate until the bounds stop changing.
+3. Friction by a fixed point on the bounds. Group friction rows get the box |λ_s| ≤ μ (‖λ_G‖ + p) with the
+   group forces of the previous iterate. Contacts get the second-order cone ‖λ_t‖ ≤ μ λ_n through Clarabel's
+   own interface (qpsolvers has no cones), with the De Saxcé modification of the free gap δ_free,n + μ ‖δ_t‖
+   from the previous iterate; the KKT conditions of that cone QP are then the Coulomb law (Acary, Cadoux,
+   Lemaréchal and Brogliato 2011). Iterate until the bounds stop changing.
 4. Polish: Newton iterations (:mod:`refsim.solvers.newton`) from the cone route's answer.
 
 The residuals reported are always recomputed by :func:`refsim.solvers.natural_residual` and
@@ -36,8 +37,8 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sparse
 
-from refsim.solvers.laws import LAW_NAMES
 from refsim.solvers.gauss_seidel import solve_gauss_seidel
+from refsim.solvers.laws import LAW_NAMES
 from refsim.solvers.lemke import lemke_applicable, solve_lemke
 from refsim.solvers.newton import (
     ETA_MAX,
@@ -58,18 +59,29 @@ logger = logging.getLogger(__name__)
 
 #: Tight settings for the backends we know; any other qpsolvers backend runs with its defaults.
 _BACKEND_OPTIONS = {
-    "clarabel": {"tol_gap_abs": 1e-12, "tol_gap_rel": 1e-12, "tol_feas": 1e-12, "tol_ktratio": 1e-10,
-                 "max_iter": 500},
-    "osqp": {"eps_abs": 1e-10, "eps_rel": 1e-10, "polish": True, "max_iter": 200_000,
-             "polish_refine_iter": 10},
+    "clarabel": {
+        "tol_gap_abs": 1e-12,
+        "tol_gap_rel": 1e-12,
+        "tol_feas": 1e-12,
+        "tol_ktratio": 1e-10,
+        "max_iter": 500,
+    },
+    "osqp": {
+        "eps_abs": 1e-10,
+        "eps_rel": 1e-10,
+        "polish": True,
+        "max_iter": 200_000,
+        "polish_refine_iter": 10,
+    },
 }
 
 
 #: The fixed point tries the Newton polish from an iterate whose residual is below this, every few iterations.
 _POLISH_FROM = 1e-3
 _POLISH_EVERY = 5
-#: Gauss-Seidel sweeps tried when Newton stalls, before the cone route: chunks of _GAUSS_SEIDEL_PROBE, the next only
-#: while the rate over the last chunk's second half (linear convergence assumed) reaches the tolerance in time.
+# : Gauss-Seidel sweeps tried when Newton stalls, before the cone route: chunks of _GAUSS_SEIDEL_PROBE, the
+# next only : while the rate over the last chunk's second half (linear convergence assumed) reaches the
+# tolerance in time.
 _GAUSS_SEIDEL_SWEEPS = 2000
 _GAUSS_SEIDEL_PROBE = 100
 #: Fewest Gauss-Seidel sweeps tried before Newton by method="auto" (see _presweep_budget).
@@ -164,8 +176,9 @@ def _solve_qp(hessian, linear, lower, upper, backend, options) -> tuple[np.ndarr
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            solution = qpsolvers.solve_problem(qpsolvers.Problem(matrix, linear, **kwargs), solver=backend,
-                                               **options)
+            solution = qpsolvers.solve_problem(
+                qpsolvers.Problem(matrix, linear, **kwargs), solver=backend, **options
+            )
     except Exception as error:  # a backend failing in any way is a status to report, not a crash
         return None, f"{backend} raised {type(error).__name__}: {error}"
     if solution.x is None or not np.all(np.isfinite(solution.x)):
@@ -191,17 +204,23 @@ def _solve_cone(problem, hessian, linear, lower, upper, options) -> tuple[np.nda
     cone_mu = mu[~frictionless]
     blocks, rhs, cones = [], [], []
     if zero_rows.size:
-        blocks.append(sparse.csc_matrix((np.ones(zero_rows.size), (np.arange(zero_rows.size), zero_rows)),
-                                        shape=(zero_rows.size, n)))
+        blocks.append(
+            sparse.csc_matrix(
+                (np.ones(zero_rows.size), (np.arange(zero_rows.size), zero_rows)), shape=(zero_rows.size, n)
+            )
+        )
         rhs.append(np.zeros(zero_rows.size))
         cones.append(clarabel.ZeroConeT(zero_rows.size))
     nonnegative = bound.size + sticky_normals.size
     if nonnegative:
         blocks.append(inequality)
         rhs.append(bound)
-        blocks.append(sparse.csc_matrix((-np.ones(sticky_normals.size),
-                                         (np.arange(sticky_normals.size), sticky_normals)),
-                                        shape=(sticky_normals.size, n)))
+        blocks.append(
+            sparse.csc_matrix(
+                (-np.ones(sticky_normals.size), (np.arange(sticky_normals.size), sticky_normals)),
+                shape=(sticky_normals.size, n),
+            )
+        )
         rhs.append(np.zeros(sticky_normals.size))
         cones.append(clarabel.NonnegativeConeT(nonnegative))
     if cone_contacts.size:
@@ -217,8 +236,14 @@ def _solve_cone(problem, hessian, linear, lower, upper, options) -> tuple[np.nda
         setattr(settings, key, value)
     constraint = sparse.vstack(blocks).tocsc() if blocks else sparse.csc_matrix((0, n))
     try:
-        solver = clarabel.DefaultSolver(sparse.triu(sparse.csc_matrix(hessian)).tocsc(), linear, constraint,
-                                        np.concatenate(rhs) if rhs else np.zeros(0), cones, settings)
+        solver = clarabel.DefaultSolver(
+            sparse.triu(sparse.csc_matrix(hessian)).tocsc(),
+            linear,
+            constraint,
+            np.concatenate(rhs) if rhs else np.zeros(0),
+            cones,
+            settings,
+        )
         solution = solver.solve()
     except Exception as error:  # reported, not raised
         return None, f"clarabel raised {type(error).__name__}: {error}"
@@ -254,14 +279,15 @@ def _cone_projection_jacobian(points: np.ndarray, mu: np.ndarray) -> np.ndarray:
     return jacobian
 
 
-def _newton_step(problem: ConstraintProblem, multipliers: np.ndarray,
-                 weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _newton_step(
+    problem: ConstraintProblem, multipliers: np.ndarray, weight: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Semismooth Newton direction for the natural map F(λ) = λ − Π(λ − ρ δ̂(λ)); returns (F, direction).
 
-    A generalised Jacobian J = I − D_Π (I − ρ ∂δ̂/∂λ) − ∂Π/∂b ∂b/∂λ, D_Π the Jacobian of the projection of each
-    row or contact, ∂b/∂λ the derivative of the shaft bounds; the step solves J Δ = −F by least squares (J is
-    singular when W is). With D_Π ∈ {0, 1} on rows without friction this is the active-set solve. The weights
-    ρ ≈ 1/W_ii (equal within a contact) balance forces and gaps; they do not change the zeros of F.
+    A generalised Jacobian J = I − D_Π (I − ρ ∂δ̂/∂λ) − ∂Π/∂b ∂b/∂λ, D_Π the Jacobian of the projection of
+    each row or contact, ∂b/∂λ the derivative of the shaft bounds; the step solves J Δ = −F by least squares
+    (J is singular when W is). With D_Π ∈ {0, 1} on rows without friction this is the active-set solve. The
+    weights ρ ≈ 1/W_ii (equal within a contact) balance forces and gaps; they do not change the zeros of F.
     """
     n = problem.row_count
     error, gap = natural_map_error(problem, multipliers, weight)
@@ -281,14 +307,16 @@ def _newton_step(problem: ConstraintProblem, multipliers: np.ndarray,
         sizes = np.diff(offsets)
         owner = np.repeat(np.arange(rows.size), sizes)
         member_force = multipliers[members]
-        group_norm = np.sqrt(np.bincount(owner, weights=member_force ** 2, minlength=rows.size))
+        group_norm = np.sqrt(np.bincount(owner, weights=member_force**2, minlength=rows.size))
         bound = problem.friction_bounds(multipliers)  # the preload is constant: ∂b/∂λ is the group term only
         z = multipliers[rows] - weighted[rows]
         inside = np.abs(z) < bound
         projection[rows, rows] = inside.astype(float)
-        slope = np.where((~inside & (group_norm > 0.0))[owner],
-                         (np.sign(z) * coefficient)[owner] * member_force
-                         / np.maximum(group_norm, 1e-300)[owner], 0.0)
+        slope = np.where(
+            (~inside & (group_norm > 0.0))[owner],
+            (np.sign(z) * coefficient)[owner] * member_force / np.maximum(group_norm, 1e-300)[owner],
+            0.0,
+        )
         np.add.at(bound_term, (rows[owner], members), slope)
     if len(problem.contacts):
         contacts = problem.contacts
@@ -299,15 +327,15 @@ def _newton_step(problem: ConstraintProblem, multipliers: np.ndarray,
         modified[:, 0] += mu * slip
         slip_direction = local_gap[:, 1:] / np.maximum(slip, 1e-300)[:, None]
         normal_rows = contacts[:, 0]
-        gap_jacobian[normal_rows] += (mu[:, None, None] * slip_direction[:, :, None]
-                                      * problem.compliance[contacts[:, 1:]]).sum(axis=1)
+        gap_jacobian[normal_rows] += (
+            mu[:, None, None] * slip_direction[:, :, None] * problem.compliance[contacts[:, 1:]]
+        ).sum(axis=1)
         modified *= weight[contacts]
         blocks = _cone_projection_jacobian(multipliers[contacts] - modified, mu)
         projection[contacts[:, :, None], contacts[:, None, :]] = blocks
     jacobian = np.eye(n) - projection + projection @ (weight[:, None] * gap_jacobian) - bound_term
     # QR with column pivoting (LAPACK gelsy): rank-revealing like the SVD, several times faster
-    direction = scipy.linalg.lstsq(jacobian, -error, cond=1e-14, lapack_driver="gelsy",
-                                   check_finite=False)[0]
+    direction = scipy.linalg.lstsq(jacobian, -error, cond=1e-14, lapack_driver="gelsy", check_finite=False)[0]
     return error, direction
 
 
@@ -341,16 +369,26 @@ def _least_squares_polish(problem, multipliers, residual, tolerance, weight, max
 
 
 def _polish(problem, multipliers, residual, tolerance, weight, max_steps=50, margin=1e-3):
-    """The cone route's polish: the damped least-squares Newton of the previous exact solver (unchanged, so the
-    cone route returns the multipliers it returned before); returns (λ, natural residual, steps)."""
-    return _least_squares_polish(problem, multipliers, residual, tolerance, weight, max_steps=max_steps,
-                                 margin=margin)
+    """The cone route's polish: the damped least-squares Newton of the previous exact solver (unchanged, so
+    the cone route returns the multipliers it returned before); returns (λ, natural residual, steps)."""
+    return _least_squares_polish(
+        problem, multipliers, residual, tolerance, weight, max_steps=max_steps, margin=margin
+    )
 
 
-def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend: str = "clarabel",
-                max_iterations: int = 100, symmetry_tolerance: float = 1e-8, polish: bool = True,
-                backend_options: dict | None = None, warm_start: np.ndarray | None = None,
-                method: str = "cone", newton_iterations: int = 100) -> tuple[np.ndarray, SolverReport]:
+def solve_exact(
+    problem: ConstraintProblem,
+    *,
+    tolerance: float = 1e-9,
+    backend: str = "clarabel",
+    max_iterations: int = 100,
+    symmetry_tolerance: float = 1e-8,
+    polish: bool = True,
+    backend_options: dict | None = None,
+    warm_start: np.ndarray | None = None,
+    method: str = "cone",
+    newton_iterations: int = 100,
+) -> tuple[np.ndarray, SolverReport]:
     """Solve the constraint problem to a tight residual (the reference solution).
 
     Parameters
@@ -366,27 +404,30 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
         solved the symmetric part (nothing is rejected any more).
     polish : Let the cone route finish with Newton iterations from its answer.
     backend_options : Options passed to the backend, replacing our tight defaults key by key.
-    warm_start : Initial multipliers λ₀ [N], shape (row_count,), for the Newton path (e.g. the previous step's).
+    warm_start : Initial multipliers λ₀ [N], shape (row_count,), for the Newton path (e.g. the previous
+    step's).
     method : ``"auto"`` (Newton, then the cone route if Newton did not reach the tolerance; the fast path),
-        ``"newton"`` (Newton and its Gauss–Seidel finish only) or ``"cone"`` (the default for now: the cone route
-        of before, polished; it keeps the simulation's exact-mode results. Where W is singular and group friction
-        bounds grow along its null space the problems have many solutions, and the two routes pick different
-        ones; see docs/solvers.md). ``warm_start`` is used by the Newton path only.
+        ``"newton"`` (Newton and its Gauss–Seidel finish only) or ``"cone"`` (the default for now: the cone
+        route of before, polished; it keeps the simulation's exact-mode results. Where W is singular and group
+        friction bounds grow along its null space the problems have many solutions, and the two routes pick
+        different ones; see docs/solvers.md). ``warm_start`` is used by the Newton path only.
     newton_iterations : Largest number of Newton iterations.
 
     Returns
     -------
     multipliers : λ [N], shape (row_count,), the best found.
     report : :class:`~refsim.solvers.SolverReport`; ``path`` says which method produced the answer
-        (``"newton"``, ``"cone"`` or ``"cone+newton"``), ``asymmetry`` the relative asymmetry of W, ``message``
-        the reason when not converged.
+        (``"newton"``, ``"cone"`` or ``"cone+newton"``), ``asymmetry`` the relative asymmetry of W,
+        ``message`` the reason when not converged.
 
     Raises
     ------
     ValueError : For an unknown backend or method, or bad options.
     """
     start = time.perf_counter()
-    if not (isinstance(tolerance, (int, float, np.floating)) and math.isfinite(tolerance) and tolerance > 0.0):
+    if not (
+        isinstance(tolerance, (int, float, np.floating)) and math.isfinite(tolerance) and tolerance > 0.0
+    ):
         raise ValueError(f"tolerance = {tolerance!r}; valid range (0, inf)")
     if int(max_iterations) != max_iterations or max_iterations < 1:
         raise ValueError(f"max_iterations = {max_iterations!r}; valid range: integers >= 1")
@@ -399,9 +440,17 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
         warm_start = problem.check_multipliers(warm_start)
     n = problem.row_count
     if n == 0:
-        return np.zeros(0), SolverReport(solver="exact/newton", iterations=0, residual=0.0, converged=True,
-                                         seconds=time.perf_counter() - start, message="empty problem",
-                                         data_residual=0.0, asymmetry=0.0, path="newton")
+        return np.zeros(0), SolverReport(
+            solver="exact/newton",
+            iterations=0,
+            residual=0.0,
+            converged=True,
+            seconds=time.perf_counter() - start,
+            message="empty problem",
+            data_residual=0.0,
+            asymmetry=0.0,
+            path="newton",
+        )
     newton = None
     lemke_note = ""
     if method == "cone" or (method == "auto" and warm_start is None and lemke_applicable(problem)):
@@ -418,45 +467,98 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
         presweeps = _presweep_budget(n) if method == "auto" else 0
         stall = _AUTO_STALL if method == "auto" else _NEWTON_STALL
         if takes_fresh_path(problem):
-            # the one compiled call of small fresh problems; when it converged (as the report measures it), the
-            # report straight from its outcome (what the general code below gives, without its layers: a 3-row
-            # problem's whole solve is some 20 µs, of which these layers took about 5)
+            # the one compiled call of small fresh problems; when it converged (as the report measures it),
+            # the report straight from its outcome (what the general code below gives, without its layers: a
+            # 3-row problem's whole solve is some 20 µs, of which these layers took about 5)
             start_point = np.zeros(n) if warm_start is None else np.array(warm_start, dtype=np.float64)
-            outcome = _fresh_outcome(problem, start_point, tolerance, int(newton_iterations), ETA_MAX,
-                                     LINE_SEARCH_MEMORY, stall, presweeps)
-            (best, history, iterations, _, failures, fallback, swept, residual, data, natural, data_final,
-             asymmetry) = outcome
-            if (residual <= tolerance and data <= tolerance and natural <= tolerance
-                    and data_final <= tolerance):
+            outcome = _fresh_outcome(
+                problem,
+                start_point,
+                tolerance,
+                int(newton_iterations),
+                ETA_MAX,
+                LINE_SEARCH_MEMORY,
+                stall,
+                presweeps,
+            )
+            (
+                best,
+                history,
+                iterations,
+                _,
+                failures,
+                fallback,
+                swept,
+                residual,
+                data,
+                natural,
+                data_final,
+                asymmetry,
+            ) = outcome
+            if (
+                residual <= tolerance
+                and data <= tolerance
+                and natural <= tolerance
+                and data_final <= tolerance
+            ):
                 return best, SolverReport(
-                    solver="exact/newton", iterations=iterations, residual=natural, converged=True,
-                    seconds=time.perf_counter() - start, history=history, data_residual=data_final,
-                    asymmetry=asymmetry, path=_newton_path(swept, iterations),
-                    message=_newton_message("dense", converged_message(iterations, swept), failures, fallback,
-                                            _asymmetry_note(asymmetry, symmetry_tolerance)))
+                    solver="exact/newton",
+                    iterations=iterations,
+                    residual=natural,
+                    converged=True,
+                    seconds=time.perf_counter() - start,
+                    history=history,
+                    data_residual=data_final,
+                    asymmetry=asymmetry,
+                    path=_newton_path(swept, iterations),
+                    message=_newton_message(
+                        "dense",
+                        converged_message(iterations, swept),
+                        failures,
+                        fallback,
+                        _asymmetry_note(asymmetry, symmetry_tolerance),
+                    ),
+                )
             newton = _newton_result(*outcome[:-1], tolerance, int(newton_iterations), stall)
         else:
-            newton = solve_newton(problem, tolerance=tolerance, warm_start=warm_start,
-                                  max_iterations=int(newton_iterations), presweeps=presweeps,
-                                  stall_iterations=stall)
+            newton = solve_newton(
+                problem,
+                tolerance=tolerance,
+                warm_start=warm_start,
+                max_iterations=int(newton_iterations),
+                presweeps=presweeps,
+                stall_iterations=stall,
+            )
         asymmetry = problem.asymmetry()  # cached by the call above when it computed it
         note = _asymmetry_note(asymmetry, symmetry_tolerance)
         path = _newton_path(newton.presweeps, newton.iterations)
         if not newton.converged:
             # Newton stalls where the map is nonsmooth at the solution (friction bounds ‖λ_G‖ at λ_G = 0, cone
-            # apices): projected Gauss-Seidel from the best point, which such points do not trouble, in chunks of
-            # _GAUSS_SEIDEL_PROBE sweeps, the next only while the rate of the last chunk's second half (linear
-            # convergence assumed) reaches the tolerance within the sweeps left (where Gauss-Seidel cannot solve
-            # the problem, e.g. FCLib's rank-deficient local_problem_test, they would be wasted; its rate on a
-            # singular W often falls, so it is measured again on every chunk)
-            multipliers, sweeps = solve_gauss_seidel(problem, tolerance=tolerance, warm_start=newton.multipliers,
-                                                     max_iterations=_GAUSS_SEIDEL_PROBE, criterion="strict")
+            # apices): projected Gauss-Seidel from the best point, which such points do not trouble, in chunks
+            # of _GAUSS_SEIDEL_PROBE sweeps, the next only while the rate of the last chunk's second half
+            # (linear convergence assumed) reaches the tolerance within the sweeps left (where Gauss-Seidel
+            # cannot solve the problem, e.g. FCLib's rank-deficient local_problem_test, they would be wasted;
+            # its rate on a singular W often falls, so it is measured again on every chunk)
+            multipliers, sweeps = solve_gauss_seidel(
+                problem,
+                tolerance=tolerance,
+                warm_start=newton.multipliers,
+                max_iterations=_GAUSS_SEIDEL_PROBE,
+                criterion="strict",
+            )
             done = sweeps.iterations
-            while (not sweeps.converged and done < _GAUSS_SEIDEL_SWEEPS
-                   and _gauss_seidel_can_finish(sweeps, tolerance, _GAUSS_SEIDEL_SWEEPS - done)):
+            while (
+                not sweeps.converged
+                and done < _GAUSS_SEIDEL_SWEEPS
+                and _gauss_seidel_can_finish(sweeps, tolerance, _GAUSS_SEIDEL_SWEEPS - done)
+            ):
                 multipliers, sweeps = solve_gauss_seidel(
-                    problem, tolerance=tolerance, warm_start=multipliers,
-                    max_iterations=min(_GAUSS_SEIDEL_PROBE, _GAUSS_SEIDEL_SWEEPS - done), criterion="strict")
+                    problem,
+                    tolerance=tolerance,
+                    warm_start=multipliers,
+                    max_iterations=min(_GAUSS_SEIDEL_PROBE, _GAUSS_SEIDEL_SWEEPS - done),
+                    criterion="strict",
+                )
                 done += sweeps.iterations
             sweeps = dataclasses.replace(sweeps, iterations=done)
             if sweeps.converged:
@@ -464,13 +566,19 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
                 newton.message += f"; then {sweeps.iterations} Gauss-Seidel sweeps"
                 newton.residual, newton.data_residual = sweeps.residual, sweeps.data_residual
         if not newton.converged and method == "newton":
-            # a monotone line search from the best point (Newton alone has no other fallback; with "auto" the cone
-            # route follows: on the 74 shared problems and the 520 steps of cube and cube_cut this retry never
-            # converged, and took 14 ms on local_problem_test)
-            second = solve_newton(problem, tolerance=tolerance, warm_start=newton.multipliers,
-                                  max_iterations=int(newton_iterations), line_search_memory=1)
-            if second.converged or max(second.residual, second.data_residual) < max(newton.residual,
-                                                                                    newton.data_residual):
+            # a monotone line search from the best point (Newton alone has no other fallback; with "auto" the
+            # cone route follows: on the 74 shared problems and the 520 steps of cube and cube_cut this retry
+            # never converged, and took 14 ms on local_problem_test)
+            second = solve_newton(
+                problem,
+                tolerance=tolerance,
+                warm_start=newton.multipliers,
+                max_iterations=int(newton_iterations),
+                line_search_memory=1,
+            )
+            if second.converged or max(second.residual, second.data_residual) < max(
+                newton.residual, newton.data_residual
+            ):
                 second.iterations += newton.iterations
                 second.message += f" (after {newton.iterations} non-monotone iterations: {newton.message})"
                 newton = second
@@ -482,32 +590,55 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
         if not converged and method == "auto" and lemke_applicable(problem) and not lemke_note:
             answer, lemke_note = _lemke_path(problem, tolerance)
             if answer is not None:
-                return _lemke_report(problem, answer, f"newton first: {newton.message}; then " + lemke_note + note,
-                                     asymmetry, start)
+                return _lemke_report(
+                    problem,
+                    answer,
+                    f"newton first: {newton.message}; then " + lemke_note + note,
+                    asymmetry,
+                    start,
+                )
         if converged or method == "newton":
-            message = _newton_message(newton.storage, newton.message, newton.line_search_failures,
-                                      newton.fallback_sweeps, note)
+            message = _newton_message(
+                newton.storage, newton.message, newton.line_search_failures, newton.fallback_sweeps, note
+            )
             if not converged:
-                message = (f"not converged: residual {residual:.3e}, data residual {data:.3e} > tolerance "
-                           f"{tolerance:.1e} (largest error in {_worst_kind(problem, newton.multipliers)} rows); "
-                           + message)
+                message = (
+                    f"not converged: residual {residual:.3e}, data residual {data:.3e} > tolerance "
+                    f"{tolerance:.1e} (largest error in {_worst_kind(problem, newton.multipliers)} rows); "
+                    + message
+                )
                 logger.info("solve_exact %s: %s", problem.name or "problem", message)
             return newton.multipliers, SolverReport(
-                solver="exact/newton", iterations=newton.iterations, residual=residual, converged=converged,
-                seconds=time.perf_counter() - start, message=message, history=newton.history,
-                data_residual=data, asymmetry=asymmetry, path=path)
+                solver="exact/newton",
+                iterations=newton.iterations,
+                residual=residual,
+                converged=converged,
+                seconds=time.perf_counter() - start,
+                message=message,
+                history=newton.history,
+                data_residual=data,
+                asymmetry=asymmetry,
+                path=path,
+            )
     # "cone" keeps the route of before (its polish goes on to 1e-3 × the tolerance); "auto" stops it at the
     # tolerance (Newton then finishes the data residual if needed)
-    multipliers, report = _cone_route(problem, tolerance=tolerance, backend=backend,
-                                      max_iterations=max_iterations, polish=polish,
-                                      backend_options=backend_options, start=start,
-                                      margin=1.0 if method == "auto" else 1e-3)
+    multipliers, report = _cone_route(
+        problem,
+        tolerance=tolerance,
+        backend=backend,
+        max_iterations=max_iterations,
+        polish=polish,
+        backend_options=backend_options,
+        start=start,
+        margin=1.0 if method == "auto" else 1e-3,
+    )
     data = data_residual(problem, multipliers)
     path = report.path
     if method == "auto" and polish and (report.residual > tolerance or data > tolerance):
         # the fast path's last resort: Newton from the cone route's answer
-        result = solve_newton(problem, tolerance=tolerance, warm_start=multipliers,
-                              max_iterations=int(newton_iterations))
+        result = solve_newton(
+            problem, tolerance=tolerance, warm_start=multipliers, max_iterations=int(newton_iterations)
+        )
         if max(result.residual, result.data_residual) < max(report.residual, data):
             multipliers, data, path = result.multipliers, result.data_residual, "cone+newton"
     message = report.message
@@ -522,9 +653,18 @@ def solve_exact(problem: ConstraintProblem, *, tolerance: float = 1e-9, backend:
             data = newton.data_residual
     residual = natural_residual(problem, multipliers)
     converged = bool(residual <= tolerance and data <= tolerance)
-    return multipliers, SolverReport(solver=report.solver, iterations=report.iterations, residual=residual,
-                                     converged=converged, seconds=time.perf_counter() - start, message=message,
-                                     history=report.history, data_residual=data, asymmetry=asymmetry, path=path)
+    return multipliers, SolverReport(
+        solver=report.solver,
+        iterations=report.iterations,
+        residual=residual,
+        converged=converged,
+        seconds=time.perf_counter() - start,
+        message=message,
+        history=report.history,
+        data_residual=data,
+        asymmetry=asymmetry,
+        path=path,
+    )
 
 
 def _asymmetry_note(asymmetry: float, symmetry_tolerance: float) -> str:
@@ -541,29 +681,35 @@ def _newton_path(presweeps: int, iterations: int) -> str:
 
 def _newton_message(storage: str, message: str, failures: int, fallback: int, note: str) -> str:
     """report.message of an answer of the Newton path."""
-    return f"newton ({storage}): {message}; {failures} line-search failure(s), {fallback} fallback sweep(s){note}"
+    return (
+        f"newton ({storage}): {message}; {failures} line-search failure(s), "
+        f"{fallback} fallback sweep(s){note}"
+    )
 
 
 def _gauss_seidel_can_finish(sweeps: SolverReport, tolerance: float, remaining: int) -> bool:
-    """Whether the rate of the second half of the sweeps of ``sweeps`` (linear convergence assumed) reaches the
-    tolerance within ``remaining`` more sweeps."""
+    """Whether the rate of the second half of the sweeps of ``sweeps`` (linear convergence assumed) reaches
+    the tolerance within ``remaining`` more sweeps."""
     history = sweeps.history
     half = history.size // 2
     after = max(sweeps.residual, sweeps.data_residual)
     if sweeps.diverged or half == 0 or not (0.0 < history[-1] < history[half]) or not after > 0.0:
         return False
-    return bool(np.log(tolerance / after) / np.log(history[-1] / history[half]) * (history.size - half)
-                <= remaining)
+    return bool(
+        np.log(tolerance / after) / np.log(history[-1] / history[half]) * (history.size - half) <= remaining
+    )
 
 
 def _lemke_path(problem: ConstraintProblem, tolerance: float):
-    """Lemke's pivoting (:mod:`refsim.solvers.lemke`), then Newton from its answer if round-off left it above the
-    tolerance; returns ((λ, path, residual, data) or None, message)."""
+    """Lemke's pivoting (:mod:`refsim.solvers.lemke`), then Newton from its answer if round-off left it above
+    the tolerance; returns ((λ, path, residual, data) or None, message)."""
     result = solve_lemke(problem)
     if result.multipliers is None:
         if result.status == "ray":
-            return None, (f"{result.message} (secondary ray: no solution found; for a copositive-plus W this "
-                          "proves the problem infeasible)")
+            return None, (
+                f"{result.message} (secondary ray: no solution found; for a copositive-plus W this "
+                "proves the problem infeasible)"
+            )
         return None, result.message
     multipliers = result.multipliers
     residual, data = residuals(problem, multipliers)
@@ -582,20 +728,42 @@ def _lemke_path(problem: ConstraintProblem, tolerance: float):
 
 def _lemke_report(problem, answer, message, asymmetry, start):
     multipliers, path, residual, data = answer
-    return multipliers, SolverReport(solver="exact/lemke", iterations=0, residual=residual, converged=True,
-                                     seconds=time.perf_counter() - start, message=message, data_residual=data,
-                                     asymmetry=asymmetry, path=path)
+    return multipliers, SolverReport(
+        solver="exact/lemke",
+        iterations=0,
+        residual=residual,
+        converged=True,
+        seconds=time.perf_counter() - start,
+        message=message,
+        data_residual=data,
+        asymmetry=asymmetry,
+        path=path,
+    )
 
 
-def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, max_iterations: int,
-                polish: bool, backend_options: dict | None, start: float,
-                margin: float = 1e-3) -> tuple[np.ndarray, SolverReport]:
+def _cone_route(
+    problem: ConstraintProblem,
+    *,
+    tolerance: float,
+    backend: str,
+    max_iterations: int,
+    polish: bool,
+    backend_options: dict | None,
+    start: float,
+    margin: float = 1e-3,
+) -> tuple[np.ndarray, SolverReport]:
     """The cone-programming route (steps 1-4 of the module notes) on the symmetric part of W."""
     solver_name = f"exact/{backend}"
     n = problem.row_count
     if n == 0:
-        return np.zeros(0), SolverReport(solver=solver_name, iterations=0, residual=0.0, converged=True,
-                                         seconds=time.perf_counter() - start, message="empty problem")
+        return np.zeros(0), SolverReport(
+            solver=solver_name,
+            iterations=0,
+            residual=0.0,
+            converged=True,
+            seconds=time.perf_counter() - start,
+            message="empty problem",
+        )
     options = dict(_BACKEND_OPTIONS.get(backend, {}))
     options.update(backend_options or {})
     cone_options = dict(_BACKEND_OPTIONS["clarabel"])
@@ -620,11 +788,13 @@ def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, m
         lower, upper = _bounds(problem, multipliers)
         linear = scaling.gap_scale * modified_gap
         if has_contacts:
-            z, status = _solve_cone(problem, scaling.hessian, linear, lower / scaling.factor,
-                                    upper / scaling.factor, cone_options)
+            z, status = _solve_cone(
+                problem, scaling.hessian, linear, lower / scaling.factor, upper / scaling.factor, cone_options
+            )
         else:
-            z, status = _solve_qp(scaling.hessian, linear, lower / scaling.factor, upper / scaling.factor,
-                                  backend, options)
+            z, status = _solve_qp(
+                scaling.hessian, linear, lower / scaling.factor, upper / scaling.factor, backend, options
+            )
         if z is None:
             history.append(np.nan)
             break
@@ -637,8 +807,9 @@ def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, m
             settled = True
             break
         if polish and residual <= _POLISH_FROM and (iterations - 1) % _POLISH_EVERY == 0:
-            candidate, candidate_residual, steps = _polish(problem, new_multipliers, residual, tolerance,
-                                                           scaling.weight, max_steps=20, margin=margin)
+            candidate, candidate_residual, steps = _polish(
+                problem, new_multipliers, residual, tolerance, scaling.weight, max_steps=20, margin=margin
+            )
             polish_steps += steps
             if candidate_residual < best_residual:
                 best, best_residual = candidate, candidate_residual
@@ -657,8 +828,9 @@ def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, m
             new_gap[problem.contacts[:, 0]] += problem.contact_friction * slip
         change_gap = np.linalg.norm(new_gap - modified_gap)
         shaft = problem.friction_groups()[0]
-        change_bound = np.linalg.norm(_bounds(problem, next_multipliers)[1][shaft]
-                                      - _bounds(problem, multipliers)[1][shaft])
+        change_bound = np.linalg.norm(
+            _bounds(problem, next_multipliers)[1][shaft] - _bounds(problem, multipliers)[1][shaft]
+        )
         scale_gap = max(np.linalg.norm(problem.free_gap), np.linalg.norm(gap), np.finfo(float).tiny)
         scale_force = max(np.linalg.norm(next_multipliers), np.finfo(float).tiny)
         multipliers, modified_gap = next_multipliers, new_gap
@@ -669,31 +841,42 @@ def _cone_route(problem: ConstraintProblem, *, tolerance: float, backend: str, m
             settled = True
             break
     if polish and best_residual > margin * tolerance:
-        best, best_residual, steps = _polish(problem, best, best_residual, tolerance, scaling.weight,
-                                             margin=margin)
+        best, best_residual, steps = _polish(
+            problem, best, best_residual, tolerance, scaling.weight, margin=margin
+        )
         polish_steps += steps
         history.append(best_residual)
     residual = natural_residual(problem, best)
     converged = bool(residual <= tolerance)
     parts = [f"{iterations} {'cone' if has_contacts else 'QP'} solve(s), last status {status}"]
     if needs_fixed_point:
-        parts.append("fixed point on the friction bounds " + ("settled" if settled else
-                                                               f"not settled after {iterations} iterations")
-                     + (", damped after oscillating" if damping < 1.0 else ""))
+        parts.append(
+            "fixed point on the friction bounds "
+            + ("settled" if settled else f"not settled after {iterations} iterations")
+            + (", damped after oscillating" if damping < 1.0 else "")
+        )
     if polish:
         parts.append(f"{polish_steps} least-squares Newton polish step(s)")
     converged = bool(converged and data_residual(problem, best) <= tolerance)
     if not converged:
         worst = _worst_kind(problem, best)
-        parts.insert(0, f"not converged: residual {residual:.3e}, data residual "
-                        f"{data_residual(problem, best):.3e}, tolerance {tolerance:.1e} (largest error in {worst} "
-                        "rows)")
+        parts.insert(
+            0,
+            f"not converged: residual {residual:.3e}, data residual "
+            f"{data_residual(problem, best):.3e}, tolerance {tolerance:.1e} (largest error in {worst} "
+            "rows)",
+        )
         logger.info("solve_exact %s: %s", problem.name or "problem", "; ".join(parts))
-    return best, SolverReport(solver=solver_name, iterations=iterations, residual=residual,
-                              converged=converged,
-                              seconds=time.perf_counter() - start, message="; ".join(parts),
-                              history=np.array(history, dtype=float),
-                              path="cone")
+    return best, SolverReport(
+        solver=solver_name,
+        iterations=iterations,
+        residual=residual,
+        converged=converged,
+        seconds=time.perf_counter() - start,
+        message="; ".join(parts),
+        history=np.array(history, dtype=float),
+        path="cone",
+    )
 
 
 def _worst_kind(problem: ConstraintProblem, multipliers: np.ndarray) -> str:

@@ -113,9 +113,26 @@ def _exact_gap(transposed, free_gap, multipliers, gap):
 
 
 @numba.njit(cache=True)
-def _gauss_seidel(transposed, free_gap, diagonal, kinds, rows, params, members, multipliers, gap, tolerance,
-                  max_iterations, relaxation, stop_mode, history, weight, data_scale, data_history,
-                  force_history):
+def _gauss_seidel(
+    transposed,
+    free_gap,
+    diagonal,
+    kinds,
+    rows,
+    params,
+    members,
+    multipliers,
+    gap,
+    tolerance,
+    max_iterations,
+    relaxation,
+    stop_mode,
+    history,
+    weight,
+    data_scale,
+    data_history,
+    force_history,
+):
     """Sweep until the stopping criterion holds; returns (iterations, increment, status).
 
     stop_mode: 0 natural residual ≤ tolerance, 1 SOFA's increment, 2 both the natural and the data residual
@@ -123,8 +140,8 @@ def _gauss_seidel(transposed, free_gap, diagonal, kinds, rows, params, members, 
 
     status: 1 converged, 0 not converged within max_iterations, 2 diverged (non-finite or overflowing values).
 
-    ``weight`` must be ones (the residuals' definition): the data residual of each sweep is taken from the error
-    the natural residual leaves, which is the unit-weight natural map.
+    ``weight`` must be ones (the residuals' definition): the data residual of each sweep is taken from the
+    error the natural residual leaves, which is the unit-weight natural map.
     """
     free_norm = _norm(free_gap)
     row_count = free_gap.shape[0]
@@ -132,8 +149,9 @@ def _gauss_seidel(transposed, free_gap, diagonal, kinds, rows, params, members, 
     unit_weight = np.ones(row_count)
     increment = np.nan
     for iteration in range(max_iterations):
-        increment = gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, multipliers, gap,
-                                       relaxation)
+        increment = gauss_seidel_sweep(
+            transposed, diagonal, kinds, rows, params, members, multipliers, gap, relaxation
+        )
         residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, error, unit_weight)
         history[iteration] = residual
         # the data residual from the error _residual left (both are of the unit-weight natural map: the same
@@ -151,10 +169,15 @@ def _gauss_seidel(transposed, free_gap, diagonal, kinds, rows, params, members, 
             _exact_gap(transposed, free_gap, multipliers, gap)
             if stop_mode == 1:
                 return iteration + 1, increment, 1
-            residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, error, unit_weight)
+            residual = _residual(
+                kinds, rows, params, members, multipliers, gap, free_norm, error, unit_weight
+            )
             history[iteration] = residual
-            if residual <= tolerance and (stop_mode == 0 or _data_residual(
-                    kinds, rows, params, members, multipliers, gap, weight, data_scale, error) <= tolerance):
+            if residual <= tolerance and (
+                stop_mode == 0
+                or _data_residual(kinds, rows, params, members, multipliers, gap, weight, data_scale, error)
+                <= tolerance
+            ):
                 return iteration + 1, increment, 1
     _exact_gap(transposed, free_gap, multipliers, gap)
     return max_iterations, increment, 0
@@ -166,12 +189,20 @@ def _growing_without_progress(data_history: np.ndarray, force_history: np.ndarra
     if count < 20:
         return False
     half = count // 2
-    return bool(force_history[-1] > 1.5 * force_history[half] and data_history[-1] >= 0.99 * data_history[half])
+    return bool(
+        force_history[-1] > 1.5 * force_history[half] and data_history[-1] >= 0.99 * data_history[half]
+    )
 
 
-def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, max_iterations: int = 1000,
-                       warm_start: np.ndarray | None = None, relaxation: float = 1.0,
-                       criterion: str = "residual") -> tuple[np.ndarray, SolverReport]:
+def solve_gauss_seidel(
+    problem: ConstraintProblem,
+    *,
+    tolerance: float = 1e-6,
+    max_iterations: int = 1000,
+    warm_start: np.ndarray | None = None,
+    relaxation: float = 1.0,
+    criterion: str = "residual",
+) -> tuple[np.ndarray, SolverReport]:
     """Solve the constraint problem with the modified Gauss–Seidel of SOFA.
 
     Parameters
@@ -183,10 +214,10 @@ def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, m
     warm_start : Initial multipliers λ₀ [N], shape (row_count,); zeros when None.
     relaxation : Over-relaxation factor ω in (0, 2).
     criterion : ``"residual"`` (default: natural residual ≤ tolerance), ``"increment"`` (SOFA's) or
-        ``"strict"`` (natural and data residual ≤ tolerance). Whatever the criterion, the report gives the data
-        residual (:func:`refsim.solvers.data_residual`, which a diverging λ cannot shrink), and a criterion met
-        while that stays above the tolerance and ‖λ‖ grows by half or more over the second half of the sweeps
-        is reported as divergence (``diverged`` True, ``converged`` False).
+        ``"strict"`` (natural and data residual ≤ tolerance). Whatever the criterion, the report gives the
+        data residual (:func:`refsim.solvers.data_residual`, which a diverging λ cannot shrink), and a
+        criterion met while that stays above the tolerance and ‖λ‖ grows by half or more over the second half
+        of the sweeps is reported as divergence (``diverged`` True, ``converged`` False).
 
     Returns
     -------
@@ -203,12 +234,23 @@ def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, m
         raise ValueError(f"criterion = {criterion!r}; valid values 'residual', 'increment', 'strict'")
     start = time.perf_counter()
     row_count = problem.row_count
-    multipliers = (np.zeros(row_count) if warm_start is None
-                   else np.array(problem.check_multipliers(warm_start), dtype=np.float64))
+    multipliers = (
+        np.zeros(row_count)
+        if warm_start is None
+        else np.array(problem.check_multipliers(warm_start), dtype=np.float64)
+    )
     if row_count == 0:
-        return multipliers, SolverReport(solver="gauss_seidel", iterations=0, residual=0.0, converged=True,
-                                         seconds=time.perf_counter() - start, message="empty problem",
-                                         increment=0.0, data_residual=0.0, path="gauss_seidel")
+        return multipliers, SolverReport(
+            solver="gauss_seidel",
+            iterations=0,
+            residual=0.0,
+            converged=True,
+            seconds=time.perf_counter() - start,
+            message="empty problem",
+            increment=0.0,
+            data_residual=0.0,
+            path="gauss_seidel",
+        )
     compliance = problem.compliance
     transposed = np.array(compliance.T, order="C", copy=True)  # writable: one numba specialisation
     diagonal = np.diag(compliance).copy()
@@ -222,10 +264,25 @@ def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, m
     data_history = np.full(int(max_iterations), np.nan)
     force_history = np.full(int(max_iterations), np.nan)
     iterations, increment, status = _gauss_seidel(
-        transposed, np.array(problem.free_gap, copy=True), diagonal, kinds, rows, params, members, multipliers,
+        transposed,
+        np.array(problem.free_gap, copy=True),
+        diagonal,
+        kinds,
+        rows,
+        params,
+        members,
+        multipliers,
         gap,
-        float(tolerance), int(max_iterations), float(relaxation), _STOP_MODES[criterion], history, weight,
-        float(data_scale), data_history, force_history)
+        float(tolerance),
+        int(max_iterations),
+        float(relaxation),
+        _STOP_MODES[criterion],
+        history,
+        weight,
+        float(data_scale),
+        data_history,
+        force_history,
+    )
     overflow = status == 2 or not np.all(np.isfinite(multipliers))
     if overflow:
         residual = data = float("inf")
@@ -239,30 +296,45 @@ def solve_gauss_seidel(problem: ConstraintProblem, *, tolerance: float = 1e-6, m
         else:
             met = status == 1
         # a criterion met while the data residual stays above the tolerance and ‖λ‖ grows is divergence
-        growing = (data > tolerance and _growing_without_progress(data_history[:iterations],
-                                                                   force_history[:iterations]))
+        growing = data > tolerance and _growing_without_progress(
+            data_history[:iterations], force_history[:iterations]
+        )
         converged = met and not growing
     seconds = time.perf_counter() - start
     if overflow:
-        message = (f"diverged after {iterations} sweeps: multipliers overflow (Gauss-Seidel needs a W with a "
-                   "positive diagonal that dominates enough, e.g. symmetric positive definite)")
+        message = (
+            f"diverged after {iterations} sweeps: multipliers overflow (Gauss-Seidel needs a W with a "
+            "positive diagonal that dominates enough, e.g. symmetric positive definite)"
+        )
         logger.info("Gauss-Seidel %s: %s", problem.name or "problem", message)
     elif growing:
-        message = (f"diverging after {iterations} sweeps: ‖λ‖ = {force_history[iterations - 1]:.3e} N grows while "
-                   f"the data residual stays at {data:.3e} (natural residual {residual:.3e}, which ‖λ‖ divides); "
-                   "the problem probably has no solution (infeasible or W not positive semi-definite)")
+        message = (
+            f"diverging after {iterations} sweeps: ‖λ‖ = {force_history[iterations - 1]:.3e} N grows while "
+            f"the data residual stays at {data:.3e} (natural residual {residual:.3e}, which ‖λ‖ divides); "
+            "the problem probably has no solution (infeasible or W not positive semi-definite)"
+        )
         logger.info("Gauss-Seidel %s: %s", problem.name or "problem", message)
     elif converged:
         message = f"{criterion} criterion met after {iterations} sweeps"
     else:
         zero_rows = int(np.count_nonzero(diagonal == 0.0))
-        message = (f"not converged: {criterion} criterion not met after {iterations} sweeps "
-                   f"(residual {residual:.3e}, data residual {data:.3e}, increment {increment:.3e}"
-                   + (f", {zero_rows} rows with zero diagonal cannot be solved alone" if zero_rows else "")
-                   + ")")
+        message = (
+            f"not converged: {criterion} criterion not met after {iterations} sweeps "
+            f"(residual {residual:.3e}, data residual {data:.3e}, increment {increment:.3e}"
+            + (f", {zero_rows} rows with zero diagonal cannot be solved alone" if zero_rows else "")
+            + ")"
+        )
         logger.info("Gauss-Seidel %s: %s", problem.name or "problem", message)
-    return multipliers, SolverReport(solver="gauss_seidel", iterations=int(iterations), residual=residual,
-                                     converged=bool(converged), seconds=seconds, message=message,
-                                     increment=float(increment), history=history[:iterations].copy(),
-                                     data_residual=float(data), diverged=bool(overflow or growing),
-                                     path="gauss_seidel")
+    return multipliers, SolverReport(
+        solver="gauss_seidel",
+        iterations=int(iterations),
+        residual=residual,
+        converged=bool(converged),
+        seconds=seconds,
+        message=message,
+        increment=float(increment),
+        history=history[:iterations].copy(),
+        data_residual=float(data),
+        diverged=bool(overflow or growing),
+        path="gauss_seidel",
+    )

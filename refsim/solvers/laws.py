@@ -1,11 +1,12 @@
-"""The constraint laws, as data: one table that every part of :mod:`refsim.solvers` and the problem schema read.
+"""The constraint laws, as data: one table that every part of :mod:`refsim.solvers` and the problem schema
+read.
 
 A law says which multipliers λ and gaps δ = W λ + δ_free are admissible on its rows. Each entry of
 :data:`LAWS` gives its name, its integer code (the index of the entry), the number of rows of one block, the
-fields of :class:`~refsim.solvers.ConstraintProblem` that hold its rows and parameters (with unit, dtype, shape
-and meaning: the HDF5 problem schema is derived from them) and a one-line statement. The compiled kernels of the
-laws (one Gauss–Seidel block update, one natural-map block and its generalised Jacobian) are the ``_*_block``
-functions below; the solvers dispatch on the law code.
+fields of :class:`~refsim.solvers.ConstraintProblem` that hold its rows and parameters (with unit, dtype,
+shape and meaning: the HDF5 problem schema is derived from them) and a one-line statement. The compiled
+kernels of the laws (one Gauss–Seidel block update, one natural-map block and its generalised Jacobian) are
+the ``_*_block`` functions below; the solvers dispatch on the law code.
 
 Laws (codes in this order):
 
@@ -16,9 +17,9 @@ Laws (codes in this order):
 3. ``group_friction``: |λ_s| ≤ μ (‖λ_G‖ + p) for a friction row s, a group G of any other rows (ragged: any
    number of rows per friction row), a coefficient μ ≥ 0 and a preload p ≥ 0 [N]; stick (δ_s = 0) inside the
    bound, slip at the bound opposing δ_s. Given either as ``group_friction`` rows with ``group_offsets`` /
-   ``group_members`` (the group of friction row j is ``group_members[group_offsets[j]:group_offsets[j + 1]]``),
-   or in the older pair form ``shaft_friction`` / ``shaft_pairs`` (groups of two bilateral rows); both forms may
-   be used in one problem and are solved as one law.
+   ``group_members`` (the group of friction row j is ``group_members[group_offsets[j]:group_offsets[j +
+   1]]``), or in the older pair form ``shaft_friction`` / ``shaft_pairs`` (groups of two bilateral rows); both
+   forms may be used in one problem and are solved as one law.
 4. ``box``: lower ≤ λ ≤ upper with δ = 0 strictly inside, δ ≥ 0 at the lower and δ ≤ 0 at the upper bound.
 
 Adding a law: one entry in :data:`LAWS` (its fields appear in ``ConstraintProblem``, its validation, the
@@ -62,9 +63,9 @@ class FieldSpec:
     entry_shape : Shape; "r" the row count, "?" a count of this field's own.
     meaning : One line.
     role : How the field is validated: "rows" (row indices of the law, one per block or (count, block_size)),
-        "members" (row indices of groups, ragged), "offsets" (group offsets), "coefficient" (finite ≥ 0, one per
-        block), "preload" (finite ≥ 0, one per block, empty means zeros), "bound" (may be ±inf, one per block),
-        "matrix" / "vector" (the compliance and the free gap).
+        "members" (row indices of groups, ragged), "offsets" (group offsets), "coefficient" (finite ≥ 0, one
+        per block), "preload" (finite ≥ 0, one per block, empty means zeros), "bound" (may be ±inf, one per
+        block), "matrix" / "vector" (the compliance and the free gap).
     per : For parameters, the rows field they are one per.
     """
 
@@ -127,76 +128,199 @@ def _check_groups(problem, fail) -> None:
             fail(f"group_members has {members.size} rows but group_friction is empty")
     else:
         if offsets.shape != (rows.size + 1,):
-            fail(f"group_offsets has shape {offsets.shape}, expected ({rows.size + 1},): group_friction row j "
-                 "has the group group_members[group_offsets[j]:group_offsets[j + 1]]")
+            fail(
+                f"group_offsets has shape {offsets.shape}, expected ({rows.size + 1},): group_friction row j "
+                "has the group group_members[group_offsets[j]:group_offsets[j + 1]]"
+            )
         if offsets[0] != 0 or offsets[-1] != members.size or (np.diff(offsets) < 0).any():
-            fail(f"group_offsets must start at 0, never decrease and end at len(group_members) = {members.size}, "
-                 f"got {offsets[:3].tolist()}...{offsets[-1:].tolist()}")
+            fail(
+                f"group_offsets must start at 0, never decrease and end at len(group_members) = "
+                f"{members.size}, "
+                f"got {offsets[:3].tolist()}...{offsets[-1:].tolist()}"
+            )
         friction = np.zeros(problem.row_count, dtype=bool)
         friction[rows] = True
         friction[problem.shaft_friction] = True
         in_group = friction[members]
         if in_group.any():
-            fail(f"group_members holds row {int(members[in_group][0])}, a group friction row; a group may hold "
-                 "any rows but friction rows")
+            fail(
+                f"group_members holds row {int(members[in_group][0])}, a group friction row; a group may "
+                f"hold "
+                "any rows but friction rows"
+            )
     if len(problem.shaft_pairs) != len(problem.shaft_friction):
-        fail(f"shaft_pairs has {len(problem.shaft_pairs)} pairs for {len(problem.shaft_friction)} "
-             "shaft_friction rows; one pair per row is required")
+        fail(
+            f"shaft_pairs has {len(problem.shaft_pairs)} pairs for {len(problem.shaft_friction)} "
+            "shaft_friction rows; one pair per row is required"
+        )
     bilateral = np.zeros(problem.row_count, dtype=bool)
     bilateral[problem.bilateral] = True
     not_bilateral = ~bilateral[problem.shaft_pairs]
     if not_bilateral.any():
         row = int(problem.shaft_pairs[not_bilateral][0])
-        fail(f"shaft_pairs references row {row}, which is {LAW_NAMES[problem.row_kinds()[row]]}; the pair of a "
-             "shaft friction row must be bilateral rows (use group_friction for any other group)")
+        fail(
+            f"shaft_pairs references row {row}, which is {LAW_NAMES[problem.row_kinds()[row]]}; the pair of "
+            f"a "
+            "shaft friction row must be bilateral rows (use group_friction for any other group)"
+        )
 
 
 def _check_box(problem, fail) -> None:
     lower, upper = problem.box_lower, problem.box_upper
     if (lower > upper).any():
         index = int(np.argmax(lower > upper))
-        fail(f"box row {int(problem.box_rows[index])} has box_lower {lower[index]} > box_upper {upper[index]}")
+        fail(
+            f"box row {int(problem.box_rows[index])} has box_lower {lower[index]} > box_upper {upper[index]}"
+        )
 
 
 #: The law table. Field order here is the keyword order of ConstraintProblem and of the problem schema.
 LAWS: tuple[Law, ...] = (
-    Law("bilateral", BILATERAL, 1,
+    Law(
+        "bilateral",
+        BILATERAL,
+        1,
         (FieldSpec("bilateral", "1", "int64", ("?",), "bilateral rows", "rows"),),
-        "δ = 0, λ free"),
-    Law("unilateral", UNILATERAL, 1,
+        "δ = 0, λ free",
+    ),
+    Law(
+        "unilateral",
+        UNILATERAL,
+        1,
         (FieldSpec("unilateral", "1", "int64", ("?",), "unilateral (Signorini) rows", "rows"),),
-        "0 ≤ δ ⊥ λ ≥ 0 (Signorini)"),
-    Law("contact", CONTACT, 3,
-        (FieldSpec("contacts", "1", "int64", ("?", 3), "contact rows (normal, tangent 1, tangent 2)", "rows"),
-         FieldSpec("contact_friction", "1", "float64", ("?",), "Coulomb friction coefficient of each contact",
-                   "coefficient", per="contacts")),
-        "‖λ_t‖ ≤ μ λ_n, De Saxcé complementarity (3-D Coulomb cone)"),
-    Law("group_friction", GROUP_FRICTION, 1,
-        (FieldSpec("shaft_friction", "1", "int64", ("?",), "friction rows bounded by a pair of bilateral rows "
-                   "(pair form of group friction)", "rows"),
-         FieldSpec("shaft_pairs", "1", "int64", ("?", 2), "the two bilateral rows bounding each shaft_friction "
-                   "row", "members", per="shaft_friction"),
-         FieldSpec("shaft_friction_coefficient", "1", "float64", ("?",), "friction coefficient of each "
-                   "shaft_friction row", "coefficient", per="shaft_friction"),
-         FieldSpec("shaft_normal_preload", "N", "float64", ("?",), "preload p added to the pair force norm in "
-                   "each shaft_friction row's bound (empty: zeros)", "preload", per="shaft_friction"),
-         FieldSpec("group_friction", "1", "int64", ("?",), "friction rows bounded by a group of rows", "rows"),
-         FieldSpec("group_offsets", "1", "int64", ("?",), "group of group_friction row j: "
-                   "group_members[group_offsets[j]:group_offsets[j+1]]", "offsets", per="group_friction"),
-         FieldSpec("group_members", "1", "int64", ("?",), "rows of all groups, concatenated", "members",
-                   per="group_friction"),
-         FieldSpec("group_friction_coefficient", "1", "float64", ("?",), "friction coefficient of each "
-                   "group_friction row", "coefficient", per="group_friction"),
-         FieldSpec("group_preload", "N", "float64", ("?",), "preload p of each group_friction row's bound "
-                   "(empty: zeros)", "preload", per="group_friction")),
-        "|λ_s| ≤ μ (‖λ_G‖ + p), stick inside, slip at the bound opposing δ_s", _check_groups),
-    Law("box", BOX, 1,
-        (FieldSpec("box_rows", "1", "int64", ("?",), "rows with fixed bounds", "rows"),
-         FieldSpec("box_lower", "N", "float64", ("?",), "lower bound of each box row (may be -inf)", "bound",
-                   per="box_rows"),
-         FieldSpec("box_upper", "N", "float64", ("?",), "upper bound of each box row (may be +inf)", "bound",
-                   per="box_rows")),
-        "lower ≤ λ ≤ upper; δ = 0 inside, δ ≥ 0 at lower, δ ≤ 0 at upper (Siconos' relay)", _check_box),
+        "0 ≤ δ ⊥ λ ≥ 0 (Signorini)",
+    ),
+    Law(
+        "contact",
+        CONTACT,
+        3,
+        (
+            FieldSpec(
+                "contacts", "1", "int64", ("?", 3), "contact rows (normal, tangent 1, tangent 2)", "rows"
+            ),
+            FieldSpec(
+                "contact_friction",
+                "1",
+                "float64",
+                ("?",),
+                "Coulomb friction coefficient of each contact",
+                "coefficient",
+                per="contacts",
+            ),
+        ),
+        "‖λ_t‖ ≤ μ λ_n, De Saxcé complementarity (3-D Coulomb cone)",
+    ),
+    Law(
+        "group_friction",
+        GROUP_FRICTION,
+        1,
+        (
+            FieldSpec(
+                "shaft_friction",
+                "1",
+                "int64",
+                ("?",),
+                "friction rows bounded by a pair of bilateral rows (pair form of group friction)",
+                "rows",
+            ),
+            FieldSpec(
+                "shaft_pairs",
+                "1",
+                "int64",
+                ("?", 2),
+                "the two bilateral rows bounding each shaft_friction row",
+                "members",
+                per="shaft_friction",
+            ),
+            FieldSpec(
+                "shaft_friction_coefficient",
+                "1",
+                "float64",
+                ("?",),
+                "friction coefficient of each shaft_friction row",
+                "coefficient",
+                per="shaft_friction",
+            ),
+            FieldSpec(
+                "shaft_normal_preload",
+                "N",
+                "float64",
+                ("?",),
+                "preload p added to the pair force norm in each shaft_friction row's bound (empty: zeros)",
+                "preload",
+                per="shaft_friction",
+            ),
+            FieldSpec(
+                "group_friction", "1", "int64", ("?",), "friction rows bounded by a group of rows", "rows"
+            ),
+            FieldSpec(
+                "group_offsets",
+                "1",
+                "int64",
+                ("?",),
+                "group of group_friction row j: group_members[group_offsets[j]:group_offsets[j+1]]",
+                "offsets",
+                per="group_friction",
+            ),
+            FieldSpec(
+                "group_members",
+                "1",
+                "int64",
+                ("?",),
+                "rows of all groups, concatenated",
+                "members",
+                per="group_friction",
+            ),
+            FieldSpec(
+                "group_friction_coefficient",
+                "1",
+                "float64",
+                ("?",),
+                "friction coefficient of each group_friction row",
+                "coefficient",
+                per="group_friction",
+            ),
+            FieldSpec(
+                "group_preload",
+                "N",
+                "float64",
+                ("?",),
+                "preload p of each group_friction row's bound (empty: zeros)",
+                "preload",
+                per="group_friction",
+            ),
+        ),
+        "|λ_s| ≤ μ (‖λ_G‖ + p), stick inside, slip at the bound opposing δ_s",
+        _check_groups,
+    ),
+    Law(
+        "box",
+        BOX,
+        1,
+        (
+            FieldSpec("box_rows", "1", "int64", ("?",), "rows with fixed bounds", "rows"),
+            FieldSpec(
+                "box_lower",
+                "N",
+                "float64",
+                ("?",),
+                "lower bound of each box row (may be -inf)",
+                "bound",
+                per="box_rows",
+            ),
+            FieldSpec(
+                "box_upper",
+                "N",
+                "float64",
+                ("?",),
+                "upper bound of each box row (may be +inf)",
+                "bound",
+                per="box_rows",
+            ),
+        ),
+        "lower ≤ λ ≤ upper; δ = 0 inside, δ ≥ 0 at lower, δ ≤ 0 at upper (Siconos' relay)",
+        _check_box,
+    ),
 )
 
 #: Names of the laws, in the order of their codes (:meth:`ConstraintProblem.row_kinds`).
@@ -220,18 +344,36 @@ def problem_field_specs() -> tuple[FieldSpec, ...]:
 
 # ---------------------------------------------------------------------------------------------------- blocks
 def friction_groups(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Both forms of group friction merged: (rows (m,), offsets (m + 1,), members, coefficient (m,), preload (m,)).
+    """Both forms of group friction merged: (rows (m,), offsets (m + 1,), members, coefficient (m,), preload
+    (m,)).
 
     Pair-form rows come first (each with its two bilateral rows as members), then the group-form rows.
     """
-    return merge_friction_groups(problem.shaft_friction, problem.shaft_pairs, problem.shaft_friction_coefficient,
-                                 problem.shaft_normal_preload, problem.group_friction, problem.group_offsets,
-                                 problem.group_members, problem.group_friction_coefficient, problem.group_preload)
+    return merge_friction_groups(
+        problem.shaft_friction,
+        problem.shaft_pairs,
+        problem.shaft_friction_coefficient,
+        problem.shaft_normal_preload,
+        problem.group_friction,
+        problem.group_offsets,
+        problem.group_members,
+        problem.group_friction_coefficient,
+        problem.group_preload,
+    )
 
 
 @numba.njit(cache=True)
-def merge_friction_groups(shaft_friction, shaft_pairs, shaft_coefficient, shaft_preload, group_friction,
-                          group_offsets, group_members, group_coefficient, group_preload):
+def merge_friction_groups(
+    shaft_friction,
+    shaft_pairs,
+    shaft_coefficient,
+    shaft_preload,
+    group_friction,
+    group_offsets,
+    group_members,
+    group_coefficient,
+    group_preload,
+):
     """:func:`friction_groups` from the problem's arrays, in compiled code (the fresh-problem kernel of
     :mod:`refsim.solvers.newton` calls it directly)."""
     pairs = shaft_friction.shape[0]
@@ -285,9 +427,19 @@ def block_arrays(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
     else:  # no group friction: skip the merging
         f_rows = f_offsets = members = _NO_INDEX
         f_mu = f_preload = _NO_VALUE
-    kind, row, param = _assemble_blocks(problem.bilateral, problem.unilateral, problem.box_rows, problem.box_lower,
-                                        problem.box_upper, f_rows, f_offsets, f_mu, f_preload, problem.contacts,
-                                        problem.contact_friction)
+    kind, row, param = _assemble_blocks(
+        problem.bilateral,
+        problem.unilateral,
+        problem.box_rows,
+        problem.box_lower,
+        problem.box_upper,
+        f_rows,
+        f_offsets,
+        f_mu,
+        f_preload,
+        problem.contacts,
+        problem.contact_friction,
+    )
     result = (kind, row, param, np.ascontiguousarray(members, dtype=np.int64))
     for array in result:
         array.setflags(write=False)
@@ -296,10 +448,21 @@ def block_arrays(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
 
 
 @numba.njit(cache=True)
-def _assemble_blocks(bilateral, unilateral, box, box_lower, box_upper, f_rows, f_offsets, f_mu, f_preload, contacts,
-                     contact_friction):
-    """(kinds, rows, params) of :func:`block_arrays` in one compiled pass: the laws in code order, then sorted by
-    first row (first rows are distinct: every row belongs to one law)."""
+def _assemble_blocks(
+    bilateral,
+    unilateral,
+    box,
+    box_lower,
+    box_upper,
+    f_rows,
+    f_offsets,
+    f_mu,
+    f_preload,
+    contacts,
+    contact_friction,
+):
+    """(kinds, rows, params) of :func:`block_arrays` in one compiled pass: the laws in code order, then sorted
+    by first row (first rows are distinct: every row belongs to one law)."""
     counts = (bilateral.shape[0], unilateral.shape[0], box.shape[0], f_rows.shape[0], contacts.shape[0])
     total = counts[0] + counts[1] + counts[2] + counts[3] + counts[4]
     kind = np.empty(total, dtype=np.int64)
@@ -424,8 +587,12 @@ def natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, e
             mu = params[b, 0]
             rho = weight[row]
             slip = np.sqrt(gap[t1] * gap[t1] + gap[t2] * gap[t2])
-            pn, p1, p2 = project_cone(multipliers[row] - rho * (gap[row] + mu * slip),
-                                      multipliers[t1] - rho * gap[t1], multipliers[t2] - rho * gap[t2], mu)
+            pn, p1, p2 = project_cone(
+                multipliers[row] - rho * (gap[row] + mu * slip),
+                multipliers[t1] - rho * gap[t1],
+                multipliers[t2] - rho * gap[t2],
+                mu,
+            )
             error[row] = multipliers[row] - pn
             error[t1] = multipliers[t1] - p1
             error[t2] = multipliers[t2] - p2
@@ -446,10 +613,10 @@ def natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, e
 def _apply(transposed, diagonal, multipliers, gap, row, value):
     """Set λ[row] = value and update the gap with W[:, row] Δλ; return |W_rr Δλ|.
 
-    No early return for an unchanged row: its loop gets no trips instead. Measured (one thread, compiled loop):
-    with ``if change == 0.0: return 0.0`` one sweep took 265 ns on a 3-row contact problem and 939 ns on Rover1040
-    (15 rows), without it 128 and 215 ns; numba's code for the early exit is that much slower, for any form of
-    it tried (a guard on the row count, the update inside an ``if``)."""
+    No early return for an unchanged row: its loop gets no trips instead. Measured (one thread, compiled
+    loop): with ``if change == 0.0: return 0.0`` one sweep took 265 ns on a 3-row contact problem and 939 ns
+    on Rover1040 (15 rows), without it 128 and 215 ns; numba's code for the early exit is that much slower,
+    for any form of it tried (a guard on the row count, the update inside an ``if``)."""
     change = value - multipliers[row]
     multipliers[row] = value
     column = transposed[row]
@@ -541,7 +708,8 @@ def _cone_jacobian(zn, z1, z2, mu, out):
 
 @numba.njit(cache=True)
 def jacobian_blocks(kinds, rows, params, members, multipliers, gap, weight, local, gap_factor, bound_values):
-    """Factors of the generalised Jacobian J = N + M W − G of the weighted natural map (see refsim.solvers.newton).
+    """Factors of the generalised Jacobian J = N + M W − G of the weighted natural map (see
+    refsim.solvers.newton).
 
     For block b with rows r (1 or 3): ``local[b]`` = N_b = I − D_Π (on λ_r), ``gap_factor[b]`` = M_b =
     D_Π diag(ρ_r) T_b (on δ_r = W_r λ + δ_free,r, T_b the De Saxcé derivative), both (3, 3) with only the
@@ -561,7 +729,9 @@ def jacobian_blocks(kinds, rows, params, members, multipliers, gap, weight, loca
             slip = np.sqrt(gap[t1] * gap[t1] + gap[t2] * gap[t2])
             zn = multipliers[row] - rho * (gap[row] + mu * slip)
             projection = np.empty((3, 3))
-            _cone_jacobian(zn, multipliers[t1] - rho * gap[t1], multipliers[t2] - rho * gap[t2], mu, projection)
+            _cone_jacobian(
+                zn, multipliers[t1] - rho * gap[t1], multipliers[t2] - rho * gap[t2], mu, projection
+            )
             s1 = gap[t1] / slip if slip > 0.0 else 0.0
             s2 = gap[t2] / slip if slip > 0.0 else 0.0
             for i in range(3):
@@ -595,7 +765,9 @@ def jacobian_blocks(kinds, rows, params, members, multipliers, gap, weight, loca
                 if active or norm <= 0.0:
                     bound_values[k] = 0.0
                 else:
-                    bound_values[k] = (1.0 if z > 0.0 else -1.0) * params[b, 0] * multipliers[members[k]] / norm
+                    bound_values[k] = (
+                        (1.0 if z > 0.0 else -1.0) * params[b, 0] * multipliers[members[k]] / norm
+                    )
         if active:
             gap_factor[b, 0, 0] = rho
         else:

@@ -1,4 +1,5 @@
-"""Lemke's complementary pivoting for the problems without friction: LCPs and MLCPs with any (non-symmetric) W.
+"""Lemke's complementary pivoting for the problems without friction: LCPs and MLCPs with any (non-symmetric)
+W.
 
 The linear complementarity problem LCP(M, q): find z ≥ 0 with w = M z + q ≥ 0 and zᵀw = 0 — our unilateral
 rows (M = W, q = δ_free). Lemke's method (Lemke 1965; Cottle, Pang and Stone 1992, §4.4) adds an artificial
@@ -10,12 +11,13 @@ Gauss–Seidel method cannot (non-monotone, where the merit function has station
 solutions).
 
 Bilateral rows (δ = 0, λ free; an MLCP) are eliminated first by their Schur complement when W_bb is
-invertible: λ_b = −W_bb⁻¹ (W_bu λ_u + δ_free,b), leaving LCP(W_uu − W_ub W_bb⁻¹ W_bu, q_u − W_ub W_bb⁻¹ q_b); otherwise
-each free λ_b is split into two non-negative parts (λ_b = λ_b⁺ − λ_b⁻, with the rows ±δ_b ≥ 0).
+invertible: λ_b = −W_bb⁻¹ (W_bu λ_u + δ_free,b), leaving LCP(W_uu − W_ub W_bb⁻¹ W_bu, q_u − W_ub W_bb⁻¹ q_b);
+otherwise each free λ_b is split into two non-negative parts (λ_b = λ_b⁺ − λ_b⁻, with the rows ±δ_b ≥ 0).
 
 The pivots run on a dense tableau in compiled code; the ratio test is lexicographic (no cycling on
-degenerate problems) and lets z₀ leave first on a tie. The basis it ends with fixes the active set; the solution is then recomputed from that active
-set by an LU solve on the original data (no accumulated pivoting error), and checked by the natural residual.
+degenerate problems) and lets z₀ leave first on a tie. The basis it ends with fixes the active set; the
+solution is then recomputed from that active set by an LU solve on the original data (no accumulated pivoting
+error), and checked by the natural residual.
 """
 
 from __future__ import annotations
@@ -46,8 +48,13 @@ class LemkeResult:
 
 def lemke_applicable(problem: ConstraintProblem) -> bool:
     """True for problems of bilateral and unilateral rows only (an LCP or an MLCP)."""
-    return (len(problem.contacts) == 0 and len(problem.box_rows) == 0 and len(problem.shaft_friction) == 0
-            and len(problem.group_friction) == 0 and len(problem.unilateral) > 0)
+    return (
+        len(problem.contacts) == 0
+        and len(problem.box_rows) == 0
+        and len(problem.shaft_friction) == 0
+        and len(problem.group_friction) == 0
+        and len(problem.unilateral) > 0
+    )
 
 
 @numba.njit(cache=True)
@@ -182,10 +189,16 @@ def solve_lcp_lemke(matrix: np.ndarray, q: np.ndarray, max_pivots: int | None = 
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # ill-conditioned: judged by the check below
-                refined = scipy.linalg.solve(matrix[np.ix_(basic_z, basic_z)], -q[basic_z], check_finite=False)
+                refined = scipy.linalg.solve(
+                    matrix[np.ix_(basic_z, basic_z)], -q[basic_z], check_finite=False
+                )
         except (np.linalg.LinAlgError, ValueError):
             refined = None
-        if refined is not None and np.all(np.isfinite(refined)) and np.all(refined >= -1e-9 * max(1.0, np.abs(refined).max())):
+        if (
+            refined is not None
+            and np.all(np.isfinite(refined))
+            and np.all(refined >= -1e-9 * max(1.0, np.abs(refined).max()))
+        ):
             z[:] = 0.0
             z[basic_z] = np.maximum(refined, 0.0)
     return z, "solved", int(pivots)
@@ -225,17 +238,22 @@ def solve_lemke(problem: ConstraintProblem, max_pivots: int | None = None) -> Le
         solved_q = scipy.linalg.lu_solve(schur, q[b], check_finite=False)
         z, status, pivots = solve_lcp_lemke(W_uu - W_ub @ solved_bu, q[u] - W_ub @ solved_q, max_pivots)
         if z is None:
-            return LemkeResult(None, status, pivots, f"Lemke (Schur complement of the bilateral rows): {status} "
-                                                     f"after {pivots} pivots")
+            return LemkeResult(
+                None,
+                status,
+                pivots,
+                f"Lemke (Schur complement of the bilateral rows): {status} after {pivots} pivots",
+            )
         multipliers[u] = z
         multipliers[b] = -(solved_bu @ z + solved_q)
-        return LemkeResult(multipliers, status, pivots,
-                           f"Lemke (Schur complement of the bilateral rows): {pivots} pivots")
+        return LemkeResult(
+            multipliers, status, pivots, f"Lemke (Schur complement of the bilateral rows): {pivots} pivots"
+        )
     # W_bb singular: free multipliers split into two non-negative parts, bilateral rows as ±δ_b ≥ 0
     M = np.block([[W_bb, -W_bb, W_bu], [-W_bb, W_bb, -W_bu], [W_ub, -W_ub, W_uu]])
     z, status, pivots = solve_lcp_lemke(M, np.concatenate([q[b], -q[b], q[u]]), max_pivots)
     if z is None:
         return LemkeResult(None, status, pivots, f"Lemke (split free rows): {status} after {pivots} pivots")
-    multipliers[b] = z[:b.size] - z[b.size:2 * b.size]
-    multipliers[u] = z[2 * b.size:]
+    multipliers[b] = z[: b.size] - z[b.size : 2 * b.size]
+    multipliers[u] = z[2 * b.size :]
     return LemkeResult(multipliers, status, pivots, f"Lemke (split free rows): {pivots} pivots")

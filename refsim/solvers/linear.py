@@ -46,9 +46,10 @@ def _gesv(matrix, rhs):
 
 @numba.njit(cache=True)
 def _small_lu_inplace(work, out):
-    """J d = rhs by Gaussian elimination with partial pivoting (the algorithm of LAPACK getf2/getrs, unblocked),
-    in place: ``work`` (n, n) holds J on entry and its factors on exit, ``out`` (n,) the right-hand side on entry
-    and d on exit when it returns True (False: a pivot exactly zero or not a number, LAPACK's info > 0).
+    """J d = rhs by Gaussian elimination with partial pivoting (the algorithm of LAPACK getf2/getrs,
+    unblocked), in place: ``work`` (n, n) holds J on entry and its factors on exit, ``out`` (n,) the
+    right-hand side on entry and d on exit when it returns True (False: a pivot exactly zero or not a number,
+    LAPACK's info > 0).
 
     Below :data:`SMALL_LU_BELOW` rows it is faster than numba's call of gesv, which copies J to Fortran order
     and checks it (measured at one thread, compiled loops: 0.08 / 0.40 / 1.30 µs against 0.36 / 1.04 / 2.10 µs
@@ -92,9 +93,10 @@ def _small_lu_inplace(work, out):
     return True
 
 
-try:  # LAPACK's gesv as numba's np.linalg.solve calls it (numba's helper library), without its copies and checks
-    from numba.np.linalg import F_INT_nptype as PIVOT_DTYPE
+# LAPACK's gesv as numba's np.linalg.solve calls it (numba's helper library), without its copies and checks
+try:
     from numba.np.linalg import _LAPACK
+    from numba.np.linalg import F_INT_nptype as PIVOT_DTYPE
 
     _XGESV = _LAPACK().numba_xgesv(numba.types.float64)
 except (ImportError, AttributeError):  # another numba: np.linalg.solve does the same
@@ -103,15 +105,17 @@ except (ImportError, AttributeError):  # another numba: np.linalg.solve does the
 
 
 if _XGESV is not None:
+
     @numba.njit(cache=True)
     def _gesv_inplace(transposed, rhs, pivots):
-        """A x = rhs by LAPACK gesv, in place: ``transposed`` (m, m) C-contiguous holds Aᵀ (A in Fortran order)
-        and gets its LU factors, ``rhs`` (m,) contiguous gets x; ``pivots`` (≥ m,) int work. True when A was
-        factorised (LAPACK info 0; the same factors and solution as np.linalg.solve, which copies A to Fortran
-        order and checks it for NaN first: measured 35 / 42 µs at m = 69, 15 / 21 µs at m = 46)."""
+        """A x = rhs by LAPACK gesv, in place: ``transposed`` (m, m) C-contiguous holds Aᵀ (A in Fortran
+        order) and gets its LU factors, ``rhs`` (m,) contiguous gets x; ``pivots`` (≥ m,) int work. True when
+        A was factorised (LAPACK info 0; the same factors and solution as np.linalg.solve, which copies A to
+        Fortran order and checks it for NaN first: measured 35 / 42 µs at m = 69, 15 / 21 µs at m = 46)."""
         m = rhs.shape[0]
         return _XGESV(ord("d"), m, 1, transposed.ctypes, m, pivots.ctypes, rhs.ctypes, m) == 0
 else:
+
     @numba.njit(cache=True)
     def _gesv_inplace(transposed, rhs, pivots):
         """Fallback of the gesv call: np.linalg.solve on Aᵀᵀ."""
@@ -126,8 +130,8 @@ else:
 def _lu_direction_into(jacobian, rhs, work, out, pivots):
     """J d = rhs by LU with partial pivoting, on a copy of J in ``work`` (n, n) C-contiguous: the compiled
     elimination below :data:`SMALL_LU_BELOW` rows, else LAPACK gesv on J in Fortran order; ``out`` (n,) and
-    ``pivots`` (n,) of :data:`PIVOT_DTYPE` are work arrays. (d, True) with d in ``out``, or (rhs, False) when J is
-    singular (a zero or non-finite pivot)."""
+    ``pivots`` (n,) of :data:`PIVOT_DTYPE` are work arrays. (d, True) with d in ``out``, or (rhs, False) when
+    J is singular (a zero or non-finite pivot)."""
     n = rhs.shape[0]
     out[:] = rhs
     if n < SMALL_LU_BELOW:
@@ -144,20 +148,36 @@ def _lu_direction_into(jacobian, rhs, work, out, pivots):
 
 
 @numba.njit(cache=True)
-def _reduced_direction_into(jacobian, rhs, kinds, rows, members, local, gap_factor, bound_values, position,
-                            direction, work, values, active, reduced_rhs, pivots):
-    """J d = rhs with the explicit rows eliminated; returns False when no row is explicit or the reduced matrix
-    is singular (the caller then solves the full system). ``work`` (n, n) C-contiguous, ``values`` (n,),
-    ``active`` (n,) int64, ``reduced_rhs`` (n,) and ``pivots`` (n,) of :data:`PIVOT_DTYPE` are work arrays (the
-    Newton kernel allocates them once).
+def _reduced_direction_into(
+    jacobian,
+    rhs,
+    kinds,
+    rows,
+    members,
+    local,
+    gap_factor,
+    bound_values,
+    position,
+    direction,
+    work,
+    values,
+    active,
+    reduced_rhs,
+    pivots,
+):
+    """J d = rhs with the explicit rows eliminated; returns False when no row is explicit or the reduced
+    matrix is singular (the caller then solves the full system). ``work`` (n, n) C-contiguous, ``values``
+    (n,), ``active`` (n,) int64, ``reduced_rhs`` (n,) and ``pivots`` (n,) of :data:`PIVOT_DTYPE` are work
+    arrays (the Newton kernel allocates them once).
 
     A block is explicit where its projection is constant (N_b = I, M_b = 0: a separated unilateral row or
-    contact, a slipping friction row, a box row at a bound): its row i reads J_ii d_i − Σ_k g_k d_{G_k} = rhs_i,
-    J_ii = 1 + η, the g_k = ∂b/∂λ of a slipping friction row's group members (no other entry: M_b = 0). With E
-    those rows and A the rest: a member in E is a plain row (members are never friction rows), d_j = rhs_j / J_jj;
-    so d_i = c_i + Σ_{k: G_k ∈ A} (g_k / J_ii) d_{G_k}, c_i = (rhs_i + Σ_{k: G_k ∈ E} g_k rhs_{G_k} / J_{G_k G_k})
-    / J_ii, and (J_AA + Σ_{i ∈ E} J_{A i} (g / J_ii)ᵀ) d_A = rhs_A − J_AE c: an LU of |A| rows instead of n
-    (the cube's insertion steps: the shaft friction rows slip, |A| = 2n/3, about a third of the LU's cost).
+    contact, a slipping friction row, a box row at a bound): its row i reads J_ii d_i − Σ_k g_k d_{G_k} =
+    rhs_i, J_ii = 1 + η, the g_k = ∂b/∂λ of a slipping friction row's group members (no other entry: M_b = 0).
+    With E those rows and A the rest: a member in E is a plain row (members are never friction rows), d_j =
+    rhs_j / J_jj; so d_i = c_i + Σ_{k: G_k ∈ A} (g_k / J_ii) d_{G_k}, c_i = (rhs_i + Σ_{k: G_k ∈ E} g_k
+    rhs_{G_k} / J_{G_k G_k}) / J_ii, and (J_AA + Σ_{i ∈ E} J_{A i} (g / J_ii)ᵀ) d_A = rhs_A − J_AE c: an LU of
+    |A| rows instead of n (the cube's insertion steps: the shaft friction rows slip, |A| = 2n/3, about a third
+    of the LU's cost).
     ``position`` (n,) gets each row's index in A (−1 for E).
     """
     n = rhs.shape[0]
@@ -203,7 +223,7 @@ def _reduced_direction_into(jacobian, rhs, kinds, rows, members, local, gap_fact
         # the reduced matrix A in a contiguous (m, m) part of ``work``: as A (C order) for the compiled
         # elimination, as Aᵀ (A in Fortran order) for LAPACK's gesv, so that neither copies it again
         lapack = m >= SMALL_LU_BELOW
-        reduced = work.reshape(-1)[:m * m].reshape((m, m))
+        reduced = work.reshape(-1)[: m * m].reshape((m, m))
         for a in range(m):
             source = active[a]
             total = rhs[source]

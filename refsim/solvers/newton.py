@@ -12,15 +12,15 @@ kernel :func:`refsim.solvers.laws.jacobian_blocks`, so every law of the table is
 
 Each step solves (J + η I) d = −F: plain Newton (η = 0) while it works, else a Levenberg–Marquardt
 regularisation η = min(η_max, ‖F‖ / F_data) 10^(k−1), the level k raised after each failure (a singular
-factor, a failed line search) and lowered after each success (W is often singular: redundant contacts). Dense LAPACK LU below
-``sparse_above`` rows or when W is dense, else a sparse LU (SuperLU) of the sparse J. Globalisation: a
-non-monotone Armijo line search on θ = ½‖F‖² (Grippo, Lampariello and Lucidi 1986; memory 3 by default); when it fails,
-a few projected Gauss–Seidel sweeps are taken instead and η is raised; after repeated failures the method
-stops and says so (the caller then falls back to the cone route). Stops as soon as the natural residual and the
-data residual (:mod:`refsim.solvers.residual`) are at most the tolerance. With ``presweeps`` > 0, projected
-Gauss–Seidel sweeps come first (:func:`_presweep`: at most that many, stopped when their observed rate cannot
-reach the tolerance in time) and Newton starts from the swept point when it at least halves the start's
-residual (:data:`_KEEP_SWEPT`).
+factor, a failed line search) and lowered after each success (W is often singular: redundant contacts). Dense
+LAPACK LU below ``sparse_above`` rows or when W is dense, else a sparse LU (SuperLU) of the sparse J.
+Globalisation: a non-monotone Armijo line search on θ = ½‖F‖² (Grippo, Lampariello and Lucidi 1986; memory 3
+by default); when it fails, a few projected Gauss–Seidel sweeps are taken instead and η is raised; after
+repeated failures the method stops and says so (the caller then falls back to the cone route). Stops as soon
+as the natural residual and the data residual (:mod:`refsim.solvers.residual`) are at most the tolerance. With
+``presweeps`` > 0, projected Gauss–Seidel sweeps come first (:func:`_presweep`: at most that many, stopped
+when their observed rate cannot reach the tolerance in time) and Newton starts from the swept point when it at
+least halves the start's residual (:data:`_KEEP_SWEPT`).
 """
 
 from __future__ import annotations
@@ -62,15 +62,16 @@ __all__ = ["NewtonResult", "solve_newton"]
 
 #: Problems with more rows than this (and a sparse enough W) use sparse storage and a sparse LU.
 SPARSE_ABOVE = 300
-#: Defaults of :func:`solve_newton`: the largest Levenberg–Marquardt regularisation and the line search's memory.
+# : Defaults of :func:`solve_newton`: the largest Levenberg–Marquardt regularisation and the line search's
+# memory.
 ETA_MAX = 1e-2
 LINE_SEARCH_MEMORY = 3
 #: Largest density nnz(W) / n² for the sparse path.
 SPARSE_DENSITY = 0.15
 #: Dense problems up to this many rows solve J d = −F in compiled code (no SciPy call overhead).
 _COMPILED_SOLVE_BELOW = 120
-#: Fresh problems (nothing cached; every law, group friction included) with fewer rows than this take one compiled
-#: call for the set-up (block arrays, data scales, W's asymmetry) and the dense kernel
+# : Fresh problems (nothing cached; every law, group friction included) with fewer rows than this take one
+# compiled : call for the set-up (block arrays, data scales, W's asymmetry) and the dense kernel
 #: (:func:`_dense_newton_fresh`).
 _FRESH_BELOW = 120
 #: Pre-sweeps abandoned by their rate rule leave Newton's start unchanged unless they at least multiplied its
@@ -125,17 +126,35 @@ def _sweep_arrays(compliance):
 
 
 @numba.njit(cache=True)
-def _presweep(compliance, transposed, diagonal, free_gap, kinds, rows, params, members, free_norm, data_scale,
-              best, best_value, tolerance, budget, scratch, unit, candidate, gap):
-    """Projected Gauss–Seidel sweeps from ``best`` (the start), at most ``budget``, while their observed rate can
-    reach the tolerance within the budget: stops when the natural and data residual are both ≤ the tolerance
-    (checked on the sweeps' incremental gap, then confirmed on the gap recomputed from scratch), or when
-    r_k / r_(k-2), taken as the square of a linear rate, predicts more sweeps than are left (or does not fall).
-    ``best`` gets the best point of the sweeps when they converged, or when it at least halves the start's
-    ``best_value`` (judged on a gap from scratch: :data:`_KEEP_SWEPT`); returns (sweeps, the max(natural, data
-    residual) of ``best`` on exit, whether ``best`` was replaced, its natural and data residual then (on the gap
-    from scratch: what the caller would compute again; NaN when not replaced), whether they meet the
-    tolerance)."""
+def _presweep(
+    compliance,
+    transposed,
+    diagonal,
+    free_gap,
+    kinds,
+    rows,
+    params,
+    members,
+    free_norm,
+    data_scale,
+    best,
+    best_value,
+    tolerance,
+    budget,
+    scratch,
+    unit,
+    candidate,
+    gap,
+):
+    """Projected Gauss–Seidel sweeps from ``best`` (the start), at most ``budget``, while their observed rate
+    can reach the tolerance within the budget: stops when the natural and data residual are both ≤ the
+    tolerance (checked on the sweeps' incremental gap, then confirmed on the gap recomputed from scratch), or
+    when r_k / r_(k-2), taken as the square of a linear rate, predicts more sweeps than are left (or does not
+    fall). ``best`` gets the best point of the sweeps when they converged, or when it at least halves the
+    start's ``best_value`` (judged on a gap from scratch: :data:`_KEEP_SWEPT`); returns (sweeps, the
+    max(natural, data residual) of ``best`` on exit, whether ``best`` was replaced, its natural and data
+    residual then (on the gap from scratch: what the caller would compute again; NaN when not replaced),
+    whether they meet the tolerance)."""
     candidate[:] = best  # ``candidate`` and ``gap`` (n,): work arrays
     _gap_into(compliance, candidate, free_gap, gap)
     values = np.empty(budget)
@@ -168,14 +187,40 @@ def _presweep(compliance, transposed, diagonal, free_gap, kinds, rows, params, m
         data = _data_from_error(scratch, data_scale)
         if max(residual, data) <= _KEEP_SWEPT * best_value:
             best[:] = candidate
-            return swept, max(residual, data), True, residual, data, residual <= tolerance and data <= tolerance
+            return (
+                swept,
+                max(residual, data),
+                True,
+                residual,
+                data,
+                residual <= tolerance and data <= tolerance,
+            )
     return swept, best_value, False, np.nan, np.nan, False
 
 
 @numba.njit(cache=True)
-def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, free_norm, data_scale, force_scale,
-                  multipliers, tolerance, max_iterations, eta_max, memory_size, stall_iterations, presweeps, history,
-                  counts, final):
+def _dense_newton(
+    compliance,
+    free_gap,
+    kinds,
+    rows,
+    params,
+    members,
+    weight,
+    free_norm,
+    data_scale,
+    force_scale,
+    multipliers,
+    tolerance,
+    max_iterations,
+    eta_max,
+    memory_size,
+    stall_iterations,
+    presweeps,
+    history,
+    counts,
+    final,
+):
     """The dense Newton iteration of :func:`solve_newton` in compiled code (the same steps, line search and
     Gauss–Seidel fallback; no Python call per iteration). ``multipliers`` is the start on entry and the best
     point on exit; ``history`` (max_iterations + 1,) gets the residual after each iteration.
@@ -193,23 +238,31 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
     # about 0.1 µs in compiled code, and a small problem needs some thirty of them); the answer is copied out
     floats = np.empty(15 * n + 2 * n * n + 18 * blocks + memory_length + members.shape[0])
     ints = np.empty(2 * n, dtype=np.int64)
-    unit, error, scratch = floats[:n], floats[n:2 * n], floats[2 * n:3 * n]
+    unit, error, scratch = floats[:n], floats[n : 2 * n], floats[2 * n : 3 * n]
     unit[:] = 1.0
-    gap, best, candidate, candidate_gap = floats[3 * n:4 * n], floats[4 * n:5 * n], floats[5 * n:6 * n], \
-        floats[6 * n:7 * n]
-    direction_buffer, rhs, values, reduced_rhs = floats[7 * n:8 * n], floats[8 * n:9 * n], floats[9 * n:10 * n], \
-        floats[10 * n:11 * n]
-    sweep_point, sweep_gap, start = floats[11 * n:12 * n], floats[12 * n:13 * n], floats[13 * n:14 * n]
-    lu_out = floats[14 * n:15 * n]
+    gap, best, candidate, candidate_gap = (
+        floats[3 * n : 4 * n],
+        floats[4 * n : 5 * n],
+        floats[5 * n : 6 * n],
+        floats[6 * n : 7 * n],
+    )
+    direction_buffer, rhs, values, reduced_rhs = (
+        floats[7 * n : 8 * n],
+        floats[8 * n : 9 * n],
+        floats[9 * n : 10 * n],
+        floats[10 * n : 11 * n],
+    )
+    sweep_point, sweep_gap, start = floats[11 * n : 12 * n], floats[12 * n : 13 * n], floats[13 * n : 14 * n]
+    lu_out = floats[14 * n : 15 * n]
     at = 15 * n
-    jacobian = floats[at:at + n * n].reshape((n, n))
-    work = floats[at + n * n:at + 2 * n * n].reshape((n, n))  # the reduced system (_reduced_direction_into)
+    jacobian = floats[at : at + n * n].reshape((n, n))
+    work = floats[at + n * n : at + 2 * n * n].reshape((n, n))  # the reduced system (_reduced_direction_into)
     at += 2 * n * n
-    local = floats[at:at + 9 * blocks].reshape((blocks, 3, 3))
-    gap_factor = floats[at + 9 * blocks:at + 18 * blocks].reshape((blocks, 3, 3))
+    local = floats[at : at + 9 * blocks].reshape((blocks, 3, 3))
+    gap_factor = floats[at + 9 * blocks : at + 18 * blocks].reshape((blocks, 3, 3))
     at += 18 * blocks
-    memory = floats[at:at + memory_length]
-    bound_values = floats[at + memory_length:]
+    memory = floats[at : at + memory_length]
+    bound_values = floats[at + memory_length :]
     bound_values[:] = 0.0
     position, active = ints[:n], ints[n:]
     pivots = np.empty(n, dtype=PIVOT_DTYPE)
@@ -230,9 +283,28 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
     if presweeps > 0 and not (residual <= tolerance and data <= tolerance):
         transposed, diagonal = _sweep_arrays(compliance)
         swept, value, replaced, residual_swept, data_swept, done = _presweep(
-            compliance, transposed, diagonal, free_gap, kinds, rows, params, members, free_norm, data_scale, best,
-            best_value, tolerance, presweeps, scratch, unit, sweep_point, sweep_gap)
-        if replaced:  # start Newton from the swept point (its residuals as computed here, on a gap from scratch)
+            compliance,
+            transposed,
+            diagonal,
+            free_gap,
+            kinds,
+            rows,
+            params,
+            members,
+            free_norm,
+            data_scale,
+            best,
+            best_value,
+            tolerance,
+            presweeps,
+            scratch,
+            unit,
+            sweep_point,
+            sweep_gap,
+        )
+        if (
+            replaced
+        ):  # start Newton from the swept point (its residuals as computed here, on a gap from scratch)
             multipliers[:] = best
             residual = residual_swept
             data = data_swept
@@ -262,7 +334,9 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
             reason = 1
             break
         iterations += 1
-        jacobian_blocks(kinds, rows, params, members, multipliers, gap, weight, local, gap_factor, bound_values)
+        jacobian_blocks(
+            kinds, rows, params, members, multipliers, gap, weight, local, gap_factor, bound_values
+        )
         relative = np.sqrt(2.0 * theta) / force_scale
         eta = 0.0
         if level > 0:
@@ -272,19 +346,35 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
         for i in range(n):
             rhs[i] = -error[i]
         direction = direction_buffer  # (the LU paths may have returned another array last time)
-        ok = _reduced_direction_into(jacobian, rhs, kinds, rows, members, local, gap_factor, bound_values,
-                                     position, direction, work, values, active, reduced_rhs, pivots)
+        ok = _reduced_direction_into(
+            jacobian,
+            rhs,
+            kinds,
+            rows,
+            members,
+            local,
+            gap_factor,
+            bound_values,
+            position,
+            direction,
+            work,
+            values,
+            active,
+            reduced_rhs,
+            pivots,
+        )
         factored = True
         if not ok:
             direction, ok = _lu_direction_into(jacobian, rhs, work, lu_out, pivots)
             factored = ok
         ok = ok and _finite_and_short(direction, limit)
         if level == 0 and not factored:
-            # exactly singular J (a zero pivot): the minimum-norm least-squares step instead. A factorised J whose
-            # step is absurdly long (nearly singular) goes to the regularised step of the next iteration (an LU, not
-            # an SVD). Measured (best of 7, one thread, method="auto", cold): there the least-squares step was
-            # rejected as too long as well on Rover1040 / 1041 / 3865 (93-98 -> 65-67 us without it) and did not
-            # help GMP6 (2.7 -> 1.1 ms); PD_mlcp, which its least-squares steps answer, has an exactly singular J.
+            # exactly singular J (a zero pivot): the minimum-norm least-squares step instead. A factorised J
+            # whose step is absurdly long (nearly singular) goes to the regularised step of the next iteration
+            # (an LU, not an SVD). Measured (best of 7, one thread, method="auto", cold): there the
+            # least-squares step was rejected as too long as well on Rover1040 / 1041 / 3865 (93-98 -> 65-67
+            # us without it) and did not help GMP6 (2.7 -> 1.1 ms); PD_mlcp, which its least-squares steps
+            # answer, has an exactly singular J.
             direction = np.linalg.lstsq(jacobian, rhs, 1e-12)[0]
             singular_steps += 1
             ok = _finite_and_short(direction, limit)
@@ -302,7 +392,7 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
         step = 1.0
         accepted = False
         candidate_theta = theta
-        while step >= 2.0 ** -12:
+        while step >= 2.0**-12:
             for i in range(n):
                 candidate[i] = multipliers[i] + step * direction[i]
             _gap_into(compliance, candidate, free_gap, candidate_gap)
@@ -323,8 +413,9 @@ def _dense_newton(compliance, free_gap, kinds, rows, params, members, weight, fr
             candidate[:] = multipliers
             _gap_into(compliance, candidate, free_gap, candidate_gap)
             for _ in range(10):
-                gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, candidate, candidate_gap,
-                                   1.0)
+                gauss_seidel_sweep(
+                    transposed, diagonal, kinds, rows, params, members, candidate, candidate_gap, 1.0
+                )
             _gap_into(compliance, candidate, free_gap, candidate_gap)
             natural_map_blocks(kinds, rows, params, members, candidate, candidate_gap, weight, error)
             candidate_theta = 0.5 * np.dot(error, error)
@@ -411,18 +502,26 @@ class _Operator:
         self.block_rows = np.concatenate([rows[single, 0], rows[cone][:, i_idx.reshape(-1)].reshape(-1)])
         self.block_cols = np.concatenate([rows[single, 0], rows[cone][:, j_idx.reshape(-1)].reshape(-1)])
         self.block_index = np.concatenate([single, np.repeat(cone, 9)])
-        self.block_i = np.concatenate([np.zeros(single.size, dtype=np.int64), np.tile(i_idx.reshape(-1), cone.size)])
-        self.block_j = np.concatenate([np.zeros(single.size, dtype=np.int64), np.tile(j_idx.reshape(-1), cone.size)])
+        self.block_i = np.concatenate(
+            [np.zeros(single.size, dtype=np.int64), np.tile(i_idx.reshape(-1), cone.size)]
+        )
+        self.block_j = np.concatenate(
+            [np.zeros(single.size, dtype=np.int64), np.tile(j_idx.reshape(-1), cone.size)]
+        )
         friction = np.flatnonzero(kinds == GROUP_FRICTION)
         sizes = rows[friction, 2] - rows[friction, 1]
         self.group_rows = np.repeat(rows[friction, 0], sizes)
-        self.group_slots = (np.concatenate([np.arange(s, e) for s, e in zip(rows[friction, 1], rows[friction, 2],
-                                                                              strict=True)])
-                            if friction.size else np.zeros(0, dtype=np.int64))
+        self.group_slots = (
+            np.concatenate(
+                [np.arange(s, e) for s, e in zip(rows[friction, 1], rows[friction, 2], strict=True)]
+            )
+            if friction.size
+            else np.zeros(0, dtype=np.int64)
+        )
 
     def _compiled_solve(self, rhs):
-        """J d = rhs by LAPACK gesv inside a compiled function (no Python-side overhead for small J); None when
-        J is singular."""
+        """J d = rhs by LAPACK gesv inside a compiled function (no Python-side overhead for small J); None
+        when J is singular."""
         try:
             return _gesv(self.jacobian, rhs)
         except Exception:  # numba raises a plain exception for a singular matrix
@@ -430,12 +529,23 @@ class _Operator:
 
     def least_squares(self, rhs):
         """Minimum-norm least-squares solution of J d = rhs for the last dense J (LAPACK gelsy)."""
-        return scipy.linalg.lstsq(self.jacobian, rhs, cond=1e-12, lapack_driver="gelsy", check_finite=False)[0]
+        return scipy.linalg.lstsq(self.jacobian, rhs, cond=1e-12, lapack_driver="gelsy", check_finite=False)[
+            0
+        ]
 
     def assemble(self, local, gap_factor, bound_values, eta):
         """The dense J + η I into ``self.jacobian``."""
-        _dense_jacobian(self.dense, self.kinds, self.rows, local, gap_factor, self.members, bound_values, eta,
-                        self.jacobian)
+        _dense_jacobian(
+            self.dense,
+            self.kinds,
+            self.rows,
+            local,
+            gap_factor,
+            self.members,
+            bound_values,
+            eta,
+            self.jacobian,
+        )
 
     def factorize(self, local, gap_factor, bound_values, eta):
         """Factor J + η I; returns a solve(rhs) callable, or None when the factorisation fails."""
@@ -457,10 +567,15 @@ class _Operator:
         values_n = local[self.block_index, self.block_i, self.block_j]
         block_m = sparse.csr_matrix((values_m, (self.block_rows, self.block_cols)), shape=(n, n))
         rest = sparse.csr_matrix(
-            (np.concatenate([values_n, np.full(n, eta), -bound_values[self.group_slots]]),
-             (np.concatenate([self.block_rows, np.arange(n), self.group_rows]),
-              np.concatenate([self.block_cols, np.arange(n), self.members[self.group_slots]]))),
-            shape=(n, n))
+            (
+                np.concatenate([values_n, np.full(n, eta), -bound_values[self.group_slots]]),
+                (
+                    np.concatenate([self.block_rows, np.arange(n), self.group_rows]),
+                    np.concatenate([self.block_cols, np.arange(n), self.members[self.group_slots]]),
+                ),
+            ),
+            shape=(n, n),
+        )
         jacobian = (block_m @ self.sparse + rest).tocsc()
         try:
             factor = sparse_linalg.splu(jacobian, permc_spec="COLAMD")
@@ -469,9 +584,13 @@ class _Operator:
         return factor.solve
 
 
-_REASONS = ("", "iteration cap {cap} reached", "the regularised Jacobian could not be factorised",
-            "line search failed 9 times in a row",
-            "stalled: the best residual did not halve in {stall} iterations")
+_REASONS = (
+    "",
+    "iteration cap {cap} reached",
+    "the regularised Jacobian could not be factorised",
+    "line search failed 9 times in a row",
+    "stalled: the best residual did not halve in {stall} iterations",
+)
 
 
 def _dense_storage(problem: ConstraintProblem, sparse_above: int) -> bool:
@@ -481,47 +600,105 @@ def _dense_storage(problem: ConstraintProblem, sparse_above: int) -> bool:
 
 
 def _kernel_buffers(problem: ConstraintProblem, max_iterations: int, finals: int):
-    """(C-contiguous W, history (max_iterations + 1,), counts (5,) int64, final (finals,)) for the dense kernels."""
+    """(C-contiguous W, history (max_iterations + 1,), counts (5,) int64, final (finals,)) for the dense
+    kernels."""
     compliance = problem.compliance
     if not compliance.flags.c_contiguous:
         compliance = np.ascontiguousarray(compliance)
     return compliance, np.empty(int(max_iterations) + 1), np.zeros(5, dtype=np.int64), np.empty(finals)
 
 
-def _solve_dense_compiled(problem, kinds, rows, params, members, weight, free_gap, free_norm, data_scale,
-                          force_scale, multipliers, tolerance, max_iterations, eta_max, line_search_memory,
-                          stall_iterations, presweeps) -> NewtonResult:
+def _solve_dense_compiled(
+    problem,
+    kinds,
+    rows,
+    params,
+    members,
+    weight,
+    free_gap,
+    free_norm,
+    data_scale,
+    force_scale,
+    multipliers,
+    tolerance,
+    max_iterations,
+    eta_max,
+    line_search_memory,
+    stall_iterations,
+    presweeps,
+) -> NewtonResult:
     """solve_newton on dense storage, every iteration in the compiled kernel :func:`_dense_newton`."""
     compliance, history, counts, final = _kernel_buffers(problem, max_iterations, 2)
     outcome = _dense_newton(
-        compliance, free_gap, kinds, rows, params, members, weight, float(free_norm), float(data_scale),
-        float(force_scale), multipliers, float(tolerance), int(max_iterations), float(eta_max),
-        int(line_search_memory), int(stall_iterations), int(presweeps), history, counts, final)
+        compliance,
+        free_gap,
+        kinds,
+        rows,
+        params,
+        members,
+        weight,
+        float(free_norm),
+        float(data_scale),
+        float(force_scale),
+        multipliers,
+        float(tolerance),
+        int(max_iterations),
+        float(eta_max),
+        int(line_search_memory),
+        int(stall_iterations),
+        int(presweeps),
+        history,
+        counts,
+        final,
+    )
     return _dense_result(outcome, history, counts, final, tolerance, max_iterations, stall_iterations)
 
 
 def takes_fresh_path(problem: ConstraintProblem) -> bool:
-    """True when :func:`solve_newton` with its default storage options solves ``problem`` by the one compiled call
-    of :func:`_solve_dense_fresh` (fewer than :data:`_FRESH_BELOW` rows, nothing cached on the problem)."""
+    """True when :func:`solve_newton` with its default storage options solves ``problem`` by the one compiled
+    call of :func:`_solve_dense_fresh` (fewer than :data:`_FRESH_BELOW` rows, nothing cached on the
+    problem)."""
     cached = problem.__dict__
     return problem.row_count < _FRESH_BELOW and "_block_arrays" not in cached and "_data_scales" not in cached
 
 
-def _fresh_outcome(problem, multipliers, tolerance, max_iterations, eta_max, line_search_memory, stall_iterations,
-                   presweeps) -> tuple:
+def _fresh_outcome(
+    problem, multipliers, tolerance, max_iterations, eta_max, line_search_memory, stall_iterations, presweeps
+) -> tuple:
     """The compiled call of :func:`_solve_dense_fresh`: its raw outcome (best λ, history, iterations, reason,
-    line-search failures, fallback sweeps, pre-sweeps, best natural and data residual, the report's natural and
-    data residual, asymmetry), W's asymmetry cached on the problem."""
+    line-search failures, fallback sweeps, pre-sweeps, best natural and data residual, the report's natural
+    and data residual, asymmetry), W's asymmetry cached on the problem."""
     p = problem
     compliance, free_gap = p.compliance, p.free_gap
     if not (compliance.flags.c_contiguous and free_gap.flags.c_contiguous):
         compliance, free_gap = np.ascontiguousarray(compliance), np.ascontiguousarray(free_gap)
     outcome = _dense_newton_fresh(
-        compliance, free_gap, p.bilateral, p.unilateral, p.box_rows, p.box_lower, p.box_upper, p.contacts,
-        p.contact_friction, p.shaft_friction, p.shaft_pairs, p.shaft_friction_coefficient, p.shaft_normal_preload,
-        p.group_friction, p.group_offsets, p.group_members, p.group_friction_coefficient, p.group_preload,
-        multipliers, float(tolerance), int(max_iterations), float(eta_max), int(line_search_memory),
-        int(stall_iterations), int(presweeps))
+        compliance,
+        free_gap,
+        p.bilateral,
+        p.unilateral,
+        p.box_rows,
+        p.box_lower,
+        p.box_upper,
+        p.contacts,
+        p.contact_friction,
+        p.shaft_friction,
+        p.shaft_pairs,
+        p.shaft_friction_coefficient,
+        p.shaft_normal_preload,
+        p.group_friction,
+        p.group_offsets,
+        p.group_members,
+        p.group_friction_coefficient,
+        p.group_preload,
+        multipliers,
+        float(tolerance),
+        int(max_iterations),
+        float(eta_max),
+        int(line_search_memory),
+        int(stall_iterations),
+        int(presweeps),
+    )
     if "_asymmetry" not in p.__dict__:
         object.__setattr__(p, "_asymmetry", outcome[-1])
     return outcome
@@ -534,37 +711,89 @@ def converged_message(iterations: int, presweeps: int) -> str:
     return f"converged in {iterations} Newton iteration(s)"
 
 
-def _solve_dense_fresh(problem, multipliers, tolerance, max_iterations, eta_max, line_search_memory,
-                       stall_iterations, presweeps) -> NewtonResult:
+def _solve_dense_fresh(
+    problem, multipliers, tolerance, max_iterations, eta_max, line_search_memory, stall_iterations, presweeps
+) -> NewtonResult:
     """:func:`_solve_dense_compiled` for a fresh problem (nothing cached on it): the set-up of
     :func:`~refsim.solvers.laws.block_arrays` (group friction merged by
-    :func:`~refsim.solvers.laws.merge_friction_groups`) and :func:`~refsim.solvers.residual.data_scales`, ‖δ_free‖,
-    W's asymmetry (cached on the problem for :meth:`ConstraintProblem.asymmetry`) and the kernel's buffers in the
-    same compiled call as the kernel (the same compiled operations in the same order, so the same numbers bit for
-    bit; one dispatch instead of four, no array allocated in Python)."""
-    outcome = _fresh_outcome(problem, multipliers, tolerance, max_iterations, eta_max, line_search_memory,
-                             stall_iterations, presweeps)
+    :func:`~refsim.solvers.laws.merge_friction_groups`) and :func:`~refsim.solvers.residual.data_scales`,
+    ‖δ_free‖, W's asymmetry (cached on the problem for :meth:`ConstraintProblem.asymmetry`) and the kernel's
+    buffers in the same compiled call as the kernel (the same compiled operations in the same order, so the
+    same numbers bit for bit; one dispatch instead of four, no array allocated in Python)."""
+    outcome = _fresh_outcome(
+        problem,
+        multipliers,
+        tolerance,
+        max_iterations,
+        eta_max,
+        line_search_memory,
+        stall_iterations,
+        presweeps,
+    )
     return _newton_result(*outcome[:-1], tolerance, max_iterations, stall_iterations)
 
 
 @numba.njit(cache=True)
-def _dense_newton_fresh(compliance, free_gap, bilateral, unilateral, box, box_lower, box_upper, contacts,
-                        contact_friction, shaft_friction, shaft_pairs, shaft_coefficient, shaft_preload,
-                        group_friction, group_offsets, group_members, group_coefficient, group_preload,
-                        multipliers, tolerance, max_iterations, eta_max, memory_size, stall_iterations, presweeps):
+def _dense_newton_fresh(
+    compliance,
+    free_gap,
+    bilateral,
+    unilateral,
+    box,
+    box_lower,
+    box_upper,
+    contacts,
+    contact_friction,
+    shaft_friction,
+    shaft_pairs,
+    shaft_coefficient,
+    shaft_preload,
+    group_friction,
+    group_offsets,
+    group_members,
+    group_coefficient,
+    group_preload,
+    multipliers,
+    tolerance,
+    max_iterations,
+    eta_max,
+    memory_size,
+    stall_iterations,
+    presweeps,
+):
     """The set-up of a fresh problem (block arrays, data scales, ‖δ_free‖, W's asymmetry), then
     :func:`_dense_newton` (W and δ_free C-contiguous). Returns (best λ, the history, iterations, reason,
-    line-search failures, fallback sweeps, pre-sweeps, best natural and data residual, the report's natural and data
-    residual, W's relative asymmetry): scalars rather than arrays, which cost more to return to Python."""
+    line-search failures, fallback sweeps, pre-sweeps, best natural and data residual, the report's natural
+    and data residual, W's relative asymmetry): scalars rather than arrays, which cost more to return to
+    Python."""
     if shaft_friction.shape[0] or group_friction.shape[0]:
         f_rows, f_offsets, members, f_mu, f_preload = merge_friction_groups(
-            shaft_friction, shaft_pairs, shaft_coefficient, shaft_preload, group_friction, group_offsets,
-            group_members, group_coefficient, group_preload)
+            shaft_friction,
+            shaft_pairs,
+            shaft_coefficient,
+            shaft_preload,
+            group_friction,
+            group_offsets,
+            group_members,
+            group_coefficient,
+            group_preload,
+        )
     else:  # as block_arrays and data_scales: no merging
         f_rows = f_offsets = members = np.zeros(0, dtype=np.int64)
         f_mu = f_preload = np.zeros(0)
-    kinds, rows, params = _assemble_blocks(bilateral, unilateral, box, box_lower, box_upper, f_rows, f_offsets,
-                                           f_mu, f_preload, contacts, contact_friction)
+    kinds, rows, params = _assemble_blocks(
+        bilateral,
+        unilateral,
+        box,
+        box_lower,
+        box_upper,
+        f_rows,
+        f_offsets,
+        f_mu,
+        f_preload,
+        contacts,
+        contact_friction,
+    )
     weight, force_scale = _scales(compliance, free_gap, contacts, box_lower, box_upper, f_mu, f_preload)
     free_norm = np.sqrt(np.dot(free_gap, free_gap))  # the dot product of solve_newton's layered path
     history = np.empty(max_iterations + 1)
@@ -573,14 +802,59 @@ def _dense_newton_fresh(compliance, free_gap, bilateral, unilateral, box, box_lo
     asymmetry = relative_asymmetry(compliance)
     data_scale = max(free_norm, force_scale)
     best, iterations, residual, data, reason = _dense_newton(
-        compliance, free_gap, kinds, rows, params, members, weight, free_norm, data_scale, force_scale, multipliers,
-        tolerance, max_iterations, eta_max, memory_size, stall_iterations, presweeps, history, counts, final)
-    return (best, history[:counts[3]].copy(), iterations, reason, counts[0], counts[1], counts[4], residual, data,
-            final[0], final[1], asymmetry)
+        compliance,
+        free_gap,
+        kinds,
+        rows,
+        params,
+        members,
+        weight,
+        free_norm,
+        data_scale,
+        force_scale,
+        multipliers,
+        tolerance,
+        max_iterations,
+        eta_max,
+        memory_size,
+        stall_iterations,
+        presweeps,
+        history,
+        counts,
+        final,
+    )
+    return (
+        best,
+        history[: counts[3]].copy(),
+        iterations,
+        reason,
+        counts[0],
+        counts[1],
+        counts[4],
+        residual,
+        data,
+        final[0],
+        final[1],
+        asymmetry,
+    )
 
 
-def _newton_result(best, history, iterations, reason, failures, fallback, swept, residual, data, natural,
-                   data_final, tolerance, max_iterations, stall_iterations) -> NewtonResult:
+def _newton_result(
+    best,
+    history,
+    iterations,
+    reason,
+    failures,
+    fallback,
+    swept,
+    residual,
+    data,
+    natural,
+    data_final,
+    tolerance,
+    max_iterations,
+    stall_iterations,
+) -> NewtonResult:
     """The NewtonResult of a compiled dense solve (``history`` already of its recorded length)."""
     # the kernel's scalars arrive as Python floats, ints and bools (numba boxes them): no conversion needed
     converged = residual <= tolerance and data <= tolerance
@@ -590,25 +864,64 @@ def _newton_result(best, history, iterations, reason, failures, fallback, swept,
         message = _REASONS[reason].format(cap=max_iterations, stall=stall_iterations)
         if swept:
             message = f"{swept} Gauss-Seidel pre-sweep(s), then {message}"
-    return NewtonResult(best, converged, iterations, residual, data, message, "dense", history, failures, fallback,
-                        (natural if natural <= math.inf else math.inf,  # NaN compares False: inf
-                         data_final if data_final <= math.inf else math.inf), swept)
+    return NewtonResult(
+        best,
+        converged,
+        iterations,
+        residual,
+        data,
+        message,
+        "dense",
+        history,
+        failures,
+        fallback,
+        (
+            natural if natural <= math.inf else math.inf,  # NaN compares False: inf
+            data_final if data_final <= math.inf else math.inf,
+        ),
+        swept,
+    )
 
 
-def _dense_result(outcome, history, counts, final, tolerance, max_iterations,
-                  stall_iterations) -> NewtonResult:
+def _dense_result(
+    outcome, history, counts, final, tolerance, max_iterations, stall_iterations
+) -> NewtonResult:
     """The NewtonResult of a compiled dense solve from the kernel's buffers."""
     best, iterations, residual, data, reason = outcome
     failures, fallback, _, recorded, swept = counts.tolist()
     natural, data_final = final.tolist()  # Python floats, as the fresh kernel returns them
-    return _newton_result(best, history[:recorded].copy(), iterations, reason, failures, fallback, swept, residual,
-                          data, natural, data_final, tolerance, max_iterations, stall_iterations)
+    return _newton_result(
+        best,
+        history[:recorded].copy(),
+        iterations,
+        reason,
+        failures,
+        fallback,
+        swept,
+        residual,
+        data,
+        natural,
+        data_final,
+        tolerance,
+        max_iterations,
+        stall_iterations,
+    )
 
 
-def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np.ndarray | None = None,
-                 max_iterations: int = 100, sparse_above: int = SPARSE_ABOVE, eta_max: float = ETA_MAX,
-                 time_limit: float = np.inf, line_search_memory: int = LINE_SEARCH_MEMORY,
-                 minimum_norm: bool = False, stall_iterations: int = 20, presweeps: int = 0) -> NewtonResult:
+def solve_newton(
+    problem: ConstraintProblem,
+    *,
+    tolerance: float,
+    warm_start: np.ndarray | None = None,
+    max_iterations: int = 100,
+    sparse_above: int = SPARSE_ABOVE,
+    eta_max: float = ETA_MAX,
+    time_limit: float = np.inf,
+    line_search_memory: int = LINE_SEARCH_MEMORY,
+    minimum_norm: bool = False,
+    stall_iterations: int = 20,
+    presweeps: int = 0,
+) -> NewtonResult:
     """Semismooth Newton on the natural map (see the module notes).
 
     Parameters
@@ -623,9 +936,9 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     line_search_memory : Number of past merit values the non-monotone Armijo test compares with (1: monotone).
     minimum_norm : Take minimum-norm least-squares steps (LAPACK gelsy) instead of LU ones on dense problems.
     stall_iterations : Stop when the best residual has not halved in this many iterations.
-    presweeps : At most this many projected Gauss–Seidel sweeps before the first Newton iteration, stopped as soon
-        as both residuals meet the tolerance or the sweeps' observed rate cannot reach it within the rest;
-        Newton starts from the swept point when it at least halves the start's residual (0: none).
+    presweeps : At most this many projected Gauss–Seidel sweeps before the first Newton iteration, stopped as
+        soon as both residuals meet the tolerance or the sweeps' observed rate cannot reach it within the
+        rest; Newton starts from the swept point when it at least halves the start's residual (0: none).
 
     Returns
     -------
@@ -634,21 +947,51 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
     start = time.perf_counter()
     n = problem.row_count
     if n <= sparse_above and not minimum_norm and not math.isfinite(time_limit) and takes_fresh_path(problem):
-        multipliers = (np.zeros(n) if warm_start is None
-                       else np.array(problem.check_multipliers(warm_start), dtype=np.float64))
-        return _solve_dense_fresh(problem, multipliers, tolerance, max_iterations, eta_max, line_search_memory,
-                                  stall_iterations, presweeps)
+        multipliers = (
+            np.zeros(n)
+            if warm_start is None
+            else np.array(problem.check_multipliers(warm_start), dtype=np.float64)
+        )
+        return _solve_dense_fresh(
+            problem,
+            multipliers,
+            tolerance,
+            max_iterations,
+            eta_max,
+            line_search_memory,
+            stall_iterations,
+            presweeps,
+        )
     kinds, rows, params, members = block_arrays(problem)
     weight, force_scale = data_scales(problem)
     free_gap = np.ascontiguousarray(problem.free_gap)
     free_norm = math.sqrt(float(free_gap.dot(free_gap)))  # np.linalg.norm's own formula, without its overhead
     data_scale = max(free_norm, force_scale)
-    multipliers = (np.zeros(n) if warm_start is None
-                   else np.array(problem.check_multipliers(warm_start), dtype=np.float64))
+    multipliers = (
+        np.zeros(n)
+        if warm_start is None
+        else np.array(problem.check_multipliers(warm_start), dtype=np.float64)
+    )
     if not minimum_norm and not math.isfinite(time_limit) and _dense_storage(problem, sparse_above):
-        return _solve_dense_compiled(problem, kinds, rows, params, members, weight, free_gap, free_norm, data_scale,
-                                     force_scale, multipliers, tolerance, max_iterations, eta_max,
-                                     line_search_memory, stall_iterations, presweeps)
+        return _solve_dense_compiled(
+            problem,
+            kinds,
+            rows,
+            params,
+            members,
+            weight,
+            free_gap,
+            free_norm,
+            data_scale,
+            force_scale,
+            multipliers,
+            tolerance,
+            max_iterations,
+            eta_max,
+            line_search_memory,
+            stall_iterations,
+            presweeps,
+        )
     unit = np.ones(n)
     operator = _Operator(problem, kinds, rows, members, sparse_above)
     error = np.empty(n)
@@ -663,8 +1006,10 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
         return 0.5 * float(error @ error), gap
 
     def residuals(force, gap):
-        return (_residual(kinds, rows, params, members, force, gap, free_norm, scratch, unit),
-                _data_residual(kinds, rows, params, members, force, gap, unit, data_scale, scratch))
+        return (
+            _residual(kinds, rows, params, members, force, gap, free_norm, scratch, unit),
+            _data_residual(kinds, rows, params, members, force, gap, unit, data_scale, scratch),
+        )
 
     transposed = None
     diagonal = None
@@ -689,9 +1034,24 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
         compliance = np.ascontiguousarray(problem.compliance)
         start_point = multipliers.copy()
         swept, _, replaced, _, _, _ = _presweep(
-            compliance, *_sweep_arrays(compliance), free_gap, kinds, rows, params, members, free_norm, data_scale,
-            start_point, max(residual, data), float(tolerance), int(presweeps), scratch, unit, np.empty(n),
-            np.empty(n))
+            compliance,
+            *_sweep_arrays(compliance),
+            free_gap,
+            kinds,
+            rows,
+            params,
+            members,
+            free_norm,
+            data_scale,
+            start_point,
+            max(residual, data),
+            float(tolerance),
+            int(presweeps),
+            scratch,
+            unit,
+            np.empty(n),
+            np.empty(n),
+        )
         if replaced:  # the residuals again on this path's own gap (sparse storage: another product)
             multipliers = start_point
             theta, gap = merit(multipliers)
@@ -712,7 +1072,9 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
             message = f"time limit {time_limit:.1f} s reached"
             break
         iterations += 1
-        jacobian_blocks(kinds, rows, params, members, multipliers, gap, weight, local, gap_factor, bound_values)
+        jacobian_blocks(
+            kinds, rows, params, members, multipliers, gap, weight, local, gap_factor, bound_values
+        )
         relative = np.sqrt(2.0 * theta) / force_scale
         eta = 0.0 if level == 0 else max(min(eta_max, relative) * 10.0 ** (level - 1), 1e-14)
         if level == 0 and operator.sparse is None and minimum_norm:
@@ -723,9 +1085,9 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
             solve = operator.factorize(local, gap_factor, bound_values, eta)
             direction = None if solve is None else solve(-error)
         limit = 1e4 * max(np.linalg.norm(multipliers), force_scale)
-        # an exactly singular dense J (no LU): the least-squares (rank-revealing QR) step instead; a direction far
-        # longer than the forces in play (a nearly singular J) is regularised next iteration, as in the compiled
-        # kernel (see _dense_newton)
+        # an exactly singular dense J (no LU): the least-squares (rank-revealing QR) step instead; a direction
+        # far longer than the forces in play (a nearly singular J) is regularised next iteration, as in the
+        # compiled kernel (see _dense_newton)
         if level == 0 and not minimum_norm and operator.sparse is None and direction is None:
             direction = operator.least_squares(-error)
             singular_steps += 1
@@ -737,10 +1099,10 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
                 message = "the regularised Jacobian could not be factorised"
                 break
             continue
-        reference = max(memory[-int(line_search_memory):])
+        reference = max(memory[-int(line_search_memory) :])
         step = 1.0
         accepted = False
-        while step >= 2.0 ** -12:
+        while step >= 2.0**-12:
             candidate = multipliers + step * direction
             candidate_theta, candidate_gap = merit(candidate)
             if candidate_theta <= reference - 1e-4 * step * 2.0 * theta:
@@ -785,7 +1147,16 @@ def solve_newton(problem: ConstraintProblem, *, tolerance: float, warm_start: np
         message = converged_message(iterations, swept)
     elif swept:
         message = f"{swept} Gauss-Seidel pre-sweep(s), then " + message
-    return NewtonResult(multipliers=multipliers, converged=bool(converged), iterations=iterations,
-                        residual=float(residual), data_residual=float(data), message=message,
-                        storage=operator.storage, history=np.array(history), line_search_failures=failures,
-                        fallback_sweeps=fallback, presweeps=swept)
+    return NewtonResult(
+        multipliers=multipliers,
+        converged=bool(converged),
+        iterations=iterations,
+        residual=float(residual),
+        data_residual=float(data),
+        message=message,
+        storage=operator.storage,
+        history=np.array(history),
+        line_search_failures=failures,
+        fallback_sweeps=fallback,
+        presweeps=swept,
+    )

@@ -1,8 +1,8 @@
 """The constraint problem of one time step: δ = W λ + δ_free with a law per row.
 
 Every row of the problem belongs to exactly one law of the table :data:`refsim.solvers.laws.LAWS` (bilateral,
-unilateral, contact, group friction, box); the fields of :class:`ConstraintProblem` beyond the compliance and the
-free gap are the fields of those laws, taken from the table.
+unilateral, contact, group friction, box); the fields of :class:`ConstraintProblem` beyond the compliance and
+the free gap are the fields of those laws, taken from the table.
 """
 
 from __future__ import annotations
@@ -28,7 +28,9 @@ def _law_fields(cls):
     annotations["name"] = str
     cls.name = ""
     cls.__annotations__ = annotations
-    lines = [f"    {spec.name} : {spec.meaning} [{spec.unit}], shape {spec.entry_shape}." for spec in LAW_FIELDS]
+    lines = [
+        f"    {spec.name} : {spec.meaning} [{spec.unit}], shape {spec.entry_shape}." for spec in LAW_FIELDS
+    ]
     cls.__doc__ = cls.__doc__.replace("    LAW FIELDS\n", "\n".join(lines) + "\n")
     return cls
 
@@ -46,8 +48,8 @@ class ConstraintProblem:
     ``group_friction=[s, ...]``, ``group_members`` (all groups concatenated), ``group_offsets`` (length m + 1,
     group j = ``group_members[group_offsets[j]:group_offsets[j + 1]]``), ``group_friction_coefficient`` μ (m,)
     and optionally ``group_preload`` p [N] (m,); the bound is μ_j (‖λ_Gj‖ + p_j). The older pair form
-    (``shaft_friction``, ``shaft_pairs``, ``shaft_friction_coefficient``, ``shaft_normal_preload``) is the same
-    law with groups of two bilateral rows.
+    (``shaft_friction``, ``shaft_pairs``, ``shaft_friction_coefficient``, ``shaft_normal_preload``) is the
+    same law with groups of two bilateral rows.
 
     Attributes
     ----------
@@ -67,11 +69,17 @@ class ConstraintProblem:
             self._fail(f"free_gap has shape {free_gap.shape}, expected ({row_count},) to match compliance")
         self._set("compliance", compliance)
         self._set("free_gap", free_gap)
-        object.__setattr__(self, "_row_count", row_count)  # read by every solve (the property is on hot paths)
+        object.__setattr__(
+            self, "_row_count", row_count
+        )  # read by every solve (the property is on hot paths)
         for spec in LAW_FIELDS:
             if spec.role in ("rows", "members"):
-                self._set(spec.name, self._rows(spec.name, getattr(self, spec.name),
-                                                (-1,) + tuple(spec.entry_shape[1:]), row_count))
+                self._set(
+                    spec.name,
+                    self._rows(
+                        spec.name, getattr(self, spec.name), (-1,) + tuple(spec.entry_shape[1:]), row_count
+                    ),
+                )
             elif spec.role == "offsets":
                 self._set(spec.name, self._offsets(spec.name, getattr(self, spec.name)))
         for spec in LAW_FIELDS:
@@ -109,8 +117,10 @@ class ConstraintProblem:
         array = np.asarray(value)
         if array.size == 0:
             return None
-        if not (np.issubdtype(array.dtype, np.integer)
-                or (np.issubdtype(array.dtype, np.floating) and np.all(array == np.round(array)))):
+        if not (
+            np.issubdtype(array.dtype, np.integer)
+            or (np.issubdtype(array.dtype, np.floating) and np.all(array == np.round(array)))
+        ):
             self._fail(f"{name} must hold integer row indices, got dtype {array.dtype}")
         return np.array(array, dtype=np.int64, copy=True)
 
@@ -138,11 +148,14 @@ class ConstraintProblem:
         value = getattr(self, spec.name)
         if spec.role == "preload" and np.size(value) == 0:
             return np.zeros(count)
-        array = self._float_array(spec.name, np.atleast_1d(np.asarray(value, dtype=object)) if np.size(value)
-                                  else np.zeros(0), ndim=1, allow_inf=spec.role == "bound")
+        array = self._float_array(
+            spec.name,
+            np.atleast_1d(np.asarray(value, dtype=object)) if np.size(value) else np.zeros(0),
+            ndim=1,
+            allow_inf=spec.role == "bound",
+        )
         if array.shape != (count,):
-            self._fail(f"{spec.name} has shape {array.shape}, expected ({count},), one per {spec.per} "
-                       "entry")
+            self._fail(f"{spec.name} has shape {array.shape}, expected ({count},), one per {spec.per} entry")
         if spec.role != "bound" and (array < 0).any():
             what = "coefficient" if spec.role == "coefficient" else "value"
             unit = f" {spec.unit}" if spec.unit != "1" else ""
@@ -160,13 +173,17 @@ class ConstraintProblem:
             if clash.any():
                 row = int(rows[clash][0])
                 other = LAW_NAMES[owners[row]] if owners[row] >= 0 else law.name
-                self._fail(f"row {row} is listed as {other} and again as {law.name}; "
-                           "every row must belong to exactly one kind")
+                self._fail(
+                    f"row {row} is listed as {other} and again as {law.name}; "
+                    "every row must belong to exactly one kind"
+                )
             owners[rows] = law.code
         if (owners < 0).any():
             missing = np.flatnonzero(owners < 0)
-            self._fail(f"{missing.size} row(s) belong to no kind, first {missing[:5].tolist()}; every row "
-                       f"must be {', '.join(LAW_NAMES[:-1])} or {LAW_NAMES[-1]}")
+            self._fail(
+                f"{missing.size} row(s) belong to no kind, first {missing[:5].tolist()}; every row "
+                f"must be {', '.join(LAW_NAMES[:-1])} or {LAW_NAMES[-1]}"
+            )
 
     # ------------------------------------------------------------------ public helpers
     @property

@@ -1,9 +1,9 @@
 """Readers of external problem files (Siconos ``.dat`` and FCLib ``.hdf5``) into :class:`ConstraintProblem`.
 
 Formats as documented in ``shared/data/solver-problems/README.md`` (Siconos numerics test data and FCLib's
-``fclib_local`` and ``fclib_global`` groups). Siconos' u = W r + q maps to δ = W λ + δ_free with the same signs: Siconos' LCP rows
-are unilateral rows, equality rows bilateral, relay rows box rows, and 3-D friction contacts are contacts
-(rows normal, tangent 1, tangent 2). Every error names the file and what was expected.
+``fclib_local`` and ``fclib_global`` groups). Siconos' u = W r + q maps to δ = W λ + δ_free with the same
+signs: Siconos' LCP rows are unilateral rows, equality rows bilateral, relay rows box rows, and 3-D friction
+contacts are contacts (rows normal, tangent 1, tangent 2). Every error names the file and what was expected.
 """
 
 from __future__ import annotations
@@ -43,8 +43,9 @@ class _Tokens:
         try:
             return int(token)
         except ValueError:
-            raise ValueError(f"{self.path}: expected an integer for {what} at token {self.position - 1}, "
-                             f"got {token!r}") from None
+            raise ValueError(
+                f"{self.path}: expected an integer for {what} at token {self.position - 1}, got {token!r}"
+            ) from None
 
     def integers(self, count: int, what: str) -> np.ndarray:
         return np.array([self.integer(what) for _ in range(count)], dtype=np.int64)
@@ -52,10 +53,12 @@ class _Tokens:
     def floats(self, count: int, what: str) -> np.ndarray:
         end = self.position + count
         if end > len(self.tokens):
-            raise ValueError(f"{self.path}: file ends while reading {what} ({count} values expected, "
-                             f"{len(self.tokens) - self.position} left)")
+            raise ValueError(
+                f"{self.path}: file ends while reading {what} ({count} values expected, "
+                f"{len(self.tokens) - self.position} left)"
+            )
         try:
-            values = np.array([float(t) for t in self.tokens[self.position:end]], dtype=np.float64)
+            values = np.array([float(t) for t in self.tokens[self.position : end]], dtype=np.float64)
         except ValueError as error:
             raise ValueError(f"{self.path}: bad number in {what}: {error}") from None
         self.position = end
@@ -74,8 +77,9 @@ class _Tokens:
             return self.floats(rows * cols, f"{what} values").reshape(cols, rows).T.copy()
         if storage == 1:
             return self._block_matrix(rows, cols, what)
-        raise ValueError(f"{self.path}: {what} storage type {storage} is not supported (0 dense, 1 sparse "
-                         "block)")
+        raise ValueError(
+            f"{self.path}: {what} storage type {storage} is not supported (0 dense, 1 sparse block)"
+        )
 
     def _block_matrix(self, rows: int, cols: int, what: str) -> np.ndarray:
         self.integer(f"{what} nbblocks")
@@ -88,8 +92,10 @@ class _Tokens:
         row_pointers = self.integers(filled1, f"{what} index1_data")
         column_indices = self.integers(filled2, f"{what} index2_data")
         if row_ends[-1] != rows or col_ends[-1] != cols:
-            raise ValueError(f"{self.path}: {what} block sizes end at {row_ends[-1]}x{col_ends[-1]}, "
-                             f"matrix is {rows}x{cols}")
+            raise ValueError(
+                f"{self.path}: {what} block sizes end at {row_ends[-1]}x{col_ends[-1]}, "
+                f"matrix is {rows}x{cols}"
+            )
         row_starts = np.concatenate([[0], row_ends[:-1]])
         col_starts = np.concatenate([[0], col_ends[:-1]])
         dense = np.zeros((rows, cols))
@@ -100,8 +106,9 @@ class _Tokens:
                 height = row_ends[block_row] - row_starts[block_row]
                 width = col_ends[block_col] - col_starts[block_col]
                 values = self.floats(height * width, f"{what} block {entry}").reshape(width, height).T
-                dense[row_starts[block_row]:row_ends[block_row],
-                      col_starts[block_col]:col_ends[block_col]] = values
+                dense[
+                    row_starts[block_row] : row_ends[block_row], col_starts[block_col] : col_ends[block_col]
+                ] = values
         self.row_block_sizes = np.diff(np.concatenate([[0], row_ends]))
         return dense
 
@@ -116,15 +123,20 @@ def _lcp(tokens: _Tokens, name: str) -> ConstraintProblem:
 def _fc3d(tokens: _Tokens, name: str) -> ConstraintProblem:
     dimension = tokens.integer("d")
     if dimension != 3:
-        raise ValueError(f"{tokens.path}: friction problems of dimension {dimension} are not supported "
-                         "(3 only)")
+        raise ValueError(
+            f"{tokens.path}: friction problems of dimension {dimension} are not supported (3 only)"
+        )
     contact_count = tokens.integer("nc")
     matrix = tokens.matrix("W")
     vector = tokens.floats(3 * contact_count, "q")
     friction = tokens.floats(contact_count, "mu")
-    return ConstraintProblem(compliance=matrix, free_gap=vector,
-                             contacts=np.arange(3 * contact_count).reshape(-1, 3), contact_friction=friction,
-                             name=name)
+    return ConstraintProblem(
+        compliance=matrix,
+        free_gap=vector,
+        contacts=np.arange(3 * contact_count).reshape(-1, 3),
+        contact_friction=friction,
+        name=name,
+    )
 
 
 def _mlcp(tokens: _Tokens, name: str) -> ConstraintProblem:
@@ -143,8 +155,13 @@ def _mlcp(tokens: _Tokens, name: str) -> ConstraintProblem:
     if matrix.shape != (total, total):
         raise ValueError(f"{tokens.path}: M has shape {matrix.shape}, expected ({total}, {total})")
     vector = tokens.floats(total, "q")
-    return ConstraintProblem(compliance=matrix, free_gap=vector, bilateral=np.arange(equalities),
-                             unilateral=np.arange(equalities, total), name=name)
+    return ConstraintProblem(
+        compliance=matrix,
+        free_gap=vector,
+        bilateral=np.arange(equalities),
+        unilateral=np.arange(equalities, total),
+        name=name,
+    )
 
 
 def _relay(tokens: _Tokens, name: str) -> ConstraintProblem:
@@ -153,8 +170,9 @@ def _relay(tokens: _Tokens, name: str) -> ConstraintProblem:
     vector = tokens.floats(n, "q")
     lower = tokens.floats(n, "lb")
     upper = tokens.floats(n, "ub")
-    return ConstraintProblem(compliance=matrix, free_gap=vector, box_rows=np.arange(n), box_lower=lower,
-                             box_upper=upper, name=name)
+    return ConstraintProblem(
+        compliance=matrix, free_gap=vector, box_rows=np.arange(n), box_lower=lower, box_upper=upper, name=name
+    )
 
 
 def _gmp(tokens: _Tokens, name: str) -> ConstraintProblem:
@@ -176,16 +194,24 @@ def _gmp(tokens: _Tokens, name: str) -> ConstraintProblem:
             kinds["contacts"].append(rows)
             kinds["friction"].append(tokens.floats(1, "mu")[0])
         else:
-            raise ValueError(f"{tokens.path}: generic mechanical block type {block_type} is not supported "
-                             "(0 LCP, 2 EQUALITY, 4 FC3D are)")
+            raise ValueError(
+                f"{tokens.path}: generic mechanical block type {block_type} is not supported "
+                "(0 LCP, 2 EQUALITY, 4 FC3D are)"
+            )
 
     def stack(key):
         return np.concatenate(kinds[key]) if kinds[key] else np.zeros(0, dtype=np.int64)
 
     contacts = np.array(kinds["contacts"], dtype=np.int64).reshape(-1, 3)
-    return ConstraintProblem(compliance=matrix, free_gap=vector, bilateral=stack("bilateral"),
-                             unilateral=stack("unilateral"), contacts=contacts,
-                             contact_friction=np.array(kinds["friction"]), name=name)
+    return ConstraintProblem(
+        compliance=matrix,
+        free_gap=vector,
+        bilateral=stack("bilateral"),
+        unilateral=stack("unilateral"),
+        contacts=contacts,
+        contact_friction=np.array(kinds["friction"]),
+        name=name,
+    )
 
 
 _SICONOS = {"lcp": _lcp, "fc3d": _fc3d, "mlcp": _mlcp, "relay": _relay, "gmp": _gmp}
@@ -234,13 +260,25 @@ def _fclib_matrix(group, path: Path, name: str):
     if storage == -2:
         return sparse.csr_matrix((values, indices, pointers), shape=(rows, cols))
     if storage >= 0:
-        return sparse.coo_matrix((values[:storage], (indices[:storage], pointers[:storage])), shape=(rows, cols))
-    raise ValueError(f"{path}: {group.name}/{name}/nz = {storage} is not a known storage (-2 CSR, -1 CSC, >= 0 "
-                     "triplet)")
+        return sparse.coo_matrix(
+            (values[:storage], (indices[:storage], pointers[:storage])), shape=(rows, cols)
+        )
+    raise ValueError(
+        f"{path}: {group.name}/{name}/nz = {storage} is not a known storage (-2 CSR, -1 CSC, >= 0 triplet)"
+    )
 
 
-def condense_global(mass, contact_operator, force, contact_offset, friction, *, equality_operator=None,
-                    equality_offset=None, name: str = "") -> ConstraintProblem:
+def condense_global(
+    mass,
+    contact_operator,
+    force,
+    contact_offset,
+    friction,
+    *,
+    equality_operator=None,
+    equality_offset=None,
+    name: str = "",
+) -> ConstraintProblem:
     """The local (condensed) problem of FCLib's global frictional contact problem.
 
     FCLib's global form: M v = H r + G λ + f, Gᵀ v + b = 0, u = Hᵀ v + w with the Coulomb law on (u, r) per
@@ -273,8 +311,10 @@ def condense_global(mass, contact_operator, force, contact_offset, friction, *, 
         offset = np.concatenate([offset, np.asarray(equality_offset, dtype=float).reshape(-1)])
     n = mass.shape[0]
     if mass.shape != (n, n) or operator.shape[0] != n:
-        raise ValueError(f"{name or 'global problem'}: M has shape {mass.shape} and H {operator.shape}; expected "
-                         "M (n, n) and H with n rows")
+        raise ValueError(
+            f"{name or 'global problem'}: M has shape {mass.shape} and H {operator.shape}; expected "
+            "M (n, n) and H with n rows"
+        )
     try:
         factor = sparse_linalg.splu(mass)
     except RuntimeError as error:
@@ -283,10 +323,14 @@ def condense_global(mass, contact_operator, force, contact_offset, friction, *, 
     compliance = operator.T @ solved
     free_gap = operator.T @ factor.solve(np.asarray(force, dtype=float)) + offset
     contact_rows = operator.shape[1] - equality_count
-    return ConstraintProblem(compliance=np.asarray(compliance), free_gap=np.asarray(free_gap).reshape(-1),
-                             contacts=np.arange(contact_rows).reshape(-1, 3),
-                             contact_friction=np.asarray(friction, dtype=float),
-                             bilateral=np.arange(contact_rows, contact_rows + equality_count), name=name)
+    return ConstraintProblem(
+        compliance=np.asarray(compliance),
+        free_gap=np.asarray(free_gap).reshape(-1),
+        contacts=np.arange(contact_rows).reshape(-1, 3),
+        contact_friction=np.asarray(friction, dtype=float),
+        bilateral=np.arange(contact_rows, contact_rows + equality_count),
+        name=name,
+    )
 
 
 def read_fclib(path: str | Path) -> ConstraintProblem:
@@ -309,10 +353,13 @@ def read_fclib(path: str | Path) -> ConstraintProblem:
     except OSError as error:
         raise ValueError(f"{path}: not a readable HDF5 file ({error})") from None
     with handle:
-        kind = "fclib_local" if "fclib_local" in handle else "fclib_global" if "fclib_global" in handle else None
+        kind = (
+            "fclib_local" if "fclib_local" in handle else "fclib_global" if "fclib_global" in handle else None
+        )
         if kind is None:
-            raise ValueError(f"{path}: neither /fclib_local nor /fclib_global is in the file (groups: "
-                             f"{', '.join(handle)})")
+            raise ValueError(
+                f"{path}: neither /fclib_local nor /fclib_global is in the file (groups: {', '.join(handle)})"
+            )
         group = handle[kind]
         try:
             dimension = int(np.ravel(group["spacedim"][()])[0])
@@ -333,12 +380,24 @@ def read_fclib(path: str | Path) -> ConstraintProblem:
     if dimension != 3:
         raise ValueError(f"{path}: spacedim {dimension} is not supported (3 only)")
     if kind == "fclib_global":
-        return condense_global(mass, contact_operator, force, contact_offset, friction,
-                               equality_operator=equality, equality_offset=equality_offset, name=path.stem)
+        return condense_global(
+            mass,
+            contact_operator,
+            force,
+            contact_offset,
+            friction,
+            equality_operator=equality,
+            equality_offset=equality_offset,
+            name=path.stem,
+        )
     contact_count = friction.size
-    return ConstraintProblem(compliance=matrix.toarray(), free_gap=vector,
-                             contacts=np.arange(3 * contact_count).reshape(-1, 3), contact_friction=friction,
-                             name=path.stem)
+    return ConstraintProblem(
+        compliance=matrix.toarray(),
+        free_gap=vector,
+        contacts=np.arange(3 * contact_count).reshape(-1, 3),
+        contact_friction=friction,
+        name=path.stem,
+    )
 
 
 def read_problem(path: str | Path, kind: str | None = None) -> ConstraintProblem:

@@ -32,8 +32,8 @@ class SolverReport:
         solver.
     history : Natural residual after each iteration (Gauss–Seidel: computed on the incrementally updated gap,
         exact to round-off), shape (iterations,).
-    data_residual : :func:`refsim.solvers.data_residual` of the returned multipliers, the error in newtons over
-        the data's force scale [-]; a diverging λ cannot make it small. ``converged`` requires it (and
+    data_residual : :func:`refsim.solvers.data_residual` of the returned multipliers, the error in newtons
+        over the data's force scale [-]; a diverging λ cannot make it small. ``converged`` requires it (and
         ``residual``) at most the tolerance.
     diverged : True when the multipliers overflowed or grew without the data residual falling (no solution
         found, and probably none exists).
@@ -54,14 +54,36 @@ class SolverReport:
     asymmetry: float = float("nan")
     path: str = ""
 
-    def __init__(self, *, solver: str, iterations: int, residual: float, converged: bool, seconds: float,
-                 message: str = "", increment: float = math.nan, history: np.ndarray | None = None,
-                 data_residual: float = math.nan, diverged: bool = False, asymmetry: float = math.nan,
-                 path: str = "") -> None:
+    def __init__(
+        self,
+        *,
+        solver: str,
+        iterations: int,
+        residual: float,
+        converged: bool,
+        seconds: float,
+        message: str = "",
+        increment: float = math.nan,
+        history: np.ndarray | None = None,
+        data_residual: float = math.nan,
+        diverged: bool = False,
+        asymmetry: float = math.nan,
+        path: str = "",
+    ) -> None:
         # one write of the instance dictionary instead of the twelve object.__setattr__ calls of the frozen
-        # dataclass's own __init__ (measured 2.3-2.8 -> 1.6 µs; every solve builds one). The same fields and defaults
-        # (tests/solvers/test_reports.py checks them against the field list).
-        self.__dict__.update(solver=solver, iterations=iterations, residual=residual, converged=converged,
-                             seconds=seconds, message=message, increment=increment,
-                             history=_empty_history() if history is None else history,
-                             data_residual=data_residual, diverged=diverged, asymmetry=asymmetry, path=path)
+        # dataclass's own __init__ (measured 2.3-2.8 -> 1.6 µs; every solve builds one). The same fields and
+        # defaults (tests/solvers/test_reports.py checks them against the field list).
+        self.__dict__.update(
+            solver=solver,
+            iterations=iterations,
+            residual=residual,
+            converged=converged,
+            seconds=seconds,
+            message=message,
+            increment=increment,
+            history=_empty_history() if history is None else history,
+            data_residual=data_residual,
+            diverged=diverged,
+            asymmetry=asymmetry,
+            path=path,
+        )

@@ -12,10 +12,10 @@ extended to the kinds of :class:`~refsim.solvers.ConstraintProblem`):
 The residual is ‖e‖₂ / max(‖δ_free‖, ‖λ‖, ‖δ‖); it is zero exactly at a solution. Because ‖λ‖ is in its
 denominator, a diverging λ makes it small: it is the measure of the external problem sets, not a proof.
 
-:func:`data_residual` cannot be shrunk that way: the same error e divided by scales of the problem's data only,
-max(‖δ_free‖ [m], F_data [N]), where the data force scale F_data = max(‖ρ δ_free‖, ‖finite box bounds‖,
-‖μ p‖ of the group-friction preloads) [N] with ρ_i = 1/W_ii [N/m] (‖ρ δ_free‖: the forces that would close each
-free gap alone) replaces ‖λ‖, and ‖δ_free‖ replaces ‖δ‖. Per law, e is a gap [m] on rows where the law's
+:func:`data_residual` cannot be shrunk that way: the same error e divided by scales of the problem's data
+only, max(‖δ_free‖ [m], F_data [N]), where the data force scale F_data = max(‖ρ δ_free‖, ‖finite box bounds‖,
+‖μ p‖ of the group-friction preloads) [N] with ρ_i = 1/W_ii [N/m] (‖ρ δ_free‖: the forces that would close
+each free gap alone) replaces ‖λ‖, and ‖δ_free‖ replaces ‖δ‖. Per law, e is a gap [m] on rows where the law's
 projection is the identity (δ must vanish) and a force [N] where it clamps; the two data scales are the
 references of these units. A solver reports ``converged`` only when both residuals meet the tolerance.
 """
@@ -28,8 +28,15 @@ import numpy as np
 from refsim.solvers.laws import LAW_NAMES, block_arrays, natural_map_blocks
 from refsim.solvers.problem import ConstraintProblem
 
-__all__ = ["data_residual", "data_residual_by_kind", "data_scales", "natural_map_error", "natural_residual",
-           "natural_residual_by_kind", "project_friction_cone"]
+__all__ = [
+    "data_residual",
+    "data_residual_by_kind",
+    "data_scales",
+    "natural_map_error",
+    "natural_residual",
+    "natural_residual_by_kind",
+    "project_friction_cone",
+]
 
 
 def project_friction_cone(points: np.ndarray, friction_coefficient: np.ndarray) -> np.ndarray:
@@ -62,8 +69,9 @@ def project_friction_cone(points: np.ndarray, friction_coefficient: np.ndarray) 
     return result
 
 
-def natural_map_error(problem: ConstraintProblem, multipliers: np.ndarray,
-                      gap_weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def natural_map_error(
+    problem: ConstraintProblem, multipliers: np.ndarray, gap_weight: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-row natural-map error e and the gap δ.
 
     Parameters
@@ -102,8 +110,9 @@ def natural_map_error(problem: ConstraintProblem, multipliers: np.ndarray,
         bound = problem.friction_bounds(multipliers)
         error[rows] = multipliers[rows] - np.clip(multipliers[rows] - weighted[rows], -bound, bound)
     rows = problem.box_rows
-    error[rows] = multipliers[rows] - np.clip(multipliers[rows] - weighted[rows], problem.box_lower,
-                                              problem.box_upper)
+    error[rows] = multipliers[rows] - np.clip(
+        multipliers[rows] - weighted[rows], problem.box_lower, problem.box_upper
+    )
     return error, gap
 
 
@@ -124,7 +133,8 @@ def _compiled_norm(vector):
 
 
 def _norm(vector: np.ndarray) -> float:
-    """Euclidean norm without overflow for entries up to the largest float (compiled: no NumPy call overhead)."""
+    """Euclidean norm without overflow for entries up to the largest float (compiled: no NumPy call
+    overhead)."""
     return float(_compiled_norm(np.asarray(vector, dtype=np.float64).reshape(-1)))
 
 
@@ -143,9 +153,9 @@ def _compiled_error(problem: ConstraintProblem, multipliers: np.ndarray) -> tupl
     return error, gap
 
 
-#: Below this many rows W λ is a compiled loop rather than numba's BLAS call (gemv), whose fixed cost dominates
-#: small products (measured, one thread, compiled loops: 0.011 / 0.13 / 0.26 µs against 0.22 / 0.30 / 0.30 µs at
-#: n = 3 / 15 / 24; 0.49 against 0.34 µs at n = 32).
+# : Below this many rows W λ is a compiled loop rather than numba's BLAS call (gemv), whose fixed cost
+# dominates : small products (measured, one thread, compiled loops: 0.011 / 0.13 / 0.26 µs against 0.22 / 0.30
+# / 0.30 µs at : n = 3 / 15 / 24; 0.49 against 0.34 µs at n = 32).
 _LOOP_PRODUCT_BELOW = 24
 
 
@@ -168,7 +178,8 @@ def _gap_into(compliance, multipliers, free_gap, out):
 
 @numba.njit(cache=True)
 def _residual_pair(compliance, free_gap, kinds, rows, params, members, multipliers, force_scale):
-    """(natural residual, data residual) of ``multipliers``: one gap, one error, the norms of :func:`_norm`."""
+    """(natural residual, data residual) of ``multipliers``: one gap, one error, the norms of
+    :func:`_norm`."""
     n = free_gap.shape[0]
     gap = np.empty(n)
     _gap_into(compliance, multipliers, free_gap, gap)
@@ -185,10 +196,20 @@ def _residual_pair(compliance, free_gap, kinds, rows, params, members, multiplie
 def _pair(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[float, float]:
     kinds, rows, params, members = block_arrays(problem)
     _, force_scale = data_scales(problem)
-    natural, data = _residual_pair(np.ascontiguousarray(problem.compliance), problem.free_gap, kinds, rows,
-                                   params, members, np.ascontiguousarray(multipliers), float(force_scale))
-    return (float(natural) if np.isfinite(natural) else float("inf"),
-            float(data) if np.isfinite(data) else float("inf"))
+    natural, data = _residual_pair(
+        np.ascontiguousarray(problem.compliance),
+        problem.free_gap,
+        kinds,
+        rows,
+        params,
+        members,
+        np.ascontiguousarray(multipliers),
+        float(force_scale),
+    )
+    return (
+        float(natural) if np.isfinite(natural) else float("inf"),
+        float(data) if np.isfinite(data) else float("inf"),
+    )
 
 
 def natural_residual(problem: ConstraintProblem, multipliers: np.ndarray) -> float:
@@ -207,8 +228,8 @@ def natural_residual(problem: ConstraintProblem, multipliers: np.ndarray) -> flo
 
 
 def residuals(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[float, float]:
-    """(:func:`natural_residual`, :func:`data_residual`) of ``multipliers`` from one gap and one natural-map error
-    (the same values as the two calls; non-finite multipliers raise, as in :func:`natural_residual`)."""
+    """(:func:`natural_residual`, :func:`data_residual`) of ``multipliers`` from one gap and one natural-map
+    error (the same values as the two calls; non-finite multipliers raise, as in :func:`natural_residual`)."""
     return _pair(problem, problem.check_multipliers(multipliers))
 
 
@@ -224,8 +245,7 @@ def natural_residual_by_kind(problem: ConstraintProblem, multipliers: np.ndarray
     error, gap = natural_map_error(problem, multipliers)
     denominator = _denominator(problem, np.asarray(multipliers, float), gap)
     kinds = problem.row_kinds()
-    return {name: _norm(error[kinds == code]) / denominator
-            for code, name in enumerate(LAW_NAMES)}
+    return {name: _norm(error[kinds == code]) / denominator for code, name in enumerate(LAW_NAMES)}
 
 
 def data_scales(problem: ConstraintProblem) -> tuple[np.ndarray, float]:
@@ -247,8 +267,15 @@ def data_scales(problem: ConstraintProblem) -> tuple[np.ndarray, float]:
         _, _, _, coefficient, preload = problem.friction_groups()
     else:
         coefficient = preload = _NO_VALUE
-    weight, scale = _scales(problem.compliance, problem.free_gap, problem.contacts, problem.box_lower,
-                            problem.box_upper, coefficient, preload)
+    weight, scale = _scales(
+        problem.compliance,
+        problem.free_gap,
+        problem.contacts,
+        problem.box_lower,
+        problem.box_upper,
+        coefficient,
+        preload,
+    )
     weight.setflags(write=False)
     result = (weight, float(scale))
     object.__setattr__(problem, "_data_scales", result)
@@ -310,7 +337,8 @@ def _data_error(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[np
 
 
 def data_residual(problem: ConstraintProblem, multipliers: np.ndarray) -> float:
-    """Natural-map error over scales of the data only, ‖e‖₂ / max(‖δ_free‖, F_data) [-] (see the module notes).
+    """Natural-map error over scales of the data only, ‖e‖₂ / max(‖δ_free‖, F_data) [-] (see the module
+    notes).
 
     Unlike :func:`natural_residual`, its denominator does not depend on λ: a diverging λ cannot make it small.
     Zero exactly at a solution; inf for non-finite multipliers.

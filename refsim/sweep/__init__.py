@@ -1,7 +1,7 @@
 """Parameter sweeps on Dask (layer 6): studies, their runs, quantities of interest and convergence.
 
-``refsim study`` (refsim.cli) is the command line; :func:`run_study` the function. Dask is imported only when a
-study runs, so ``import refsim.sweep`` stays light. Layout of a study file: ``docs/studies.md``.
+``refsim study`` (refsim.cli) is the command line; :func:`run_study` the function. Dask is imported only when
+a study runs, so ``import refsim.sweep`` stays light. Layout of a study file: ``docs/studies.md``.
 """
 
 from refsim.sweep.convergence import (

@@ -1,16 +1,16 @@
 """Convergence under refinement: observed order, Richardson extrapolation and Roache's grid convergence index.
 
 Pure functions of a sequence of values f_i computed at refinement measures h_i (a spacing [m], or 1/cells).
-Notation of Roache (1998) and Celik et al. (2008, "Procedure for estimation and reporting of uncertainty due to
-discretization in CFD applications", J. Fluids Eng. 130, 078001): level 1 is the finest, 3 the coarsest,
+Notation of Roache (1998) and Celik et al. (2008, "Procedure for estimation and reporting of uncertainty due
+to discretization in CFD applications", J. Fluids Eng. 130, 078001): level 1 is the finest, 3 the coarsest,
 r21 = h2/h1 > 1, r32 = h3/h2 > 1, ε21 = f2 − f1, ε32 = f3 − f2.
 
 - Observed order, constant ratio r:  p = ln(ε32/ε21) / ln r.
 - Any ratios (Celik's fixed point):  p = |ln|ε32/ε21| + q(p)| / ln r21,  q(p) = ln((r21^p − s)/(r32^p − s)),
   s = sign(ε32/ε21).
 - Richardson extrapolation:          f_ext = f1 + (f1 − f2)/(r21^p − 1).
-- Grid convergence index (fine):     GCI = Fs |e21| / (r21^p − 1), e21 = (f1 − f2)/f1, Fs = 1.25 (three levels);
-  the uncertainty band of f1 is ± GCI |f1|.
+- Grid convergence index (fine):     GCI = Fs |e21| / (r21^p − 1), e21 = (f1 − f2)/f1, Fs = 1.25 (three
+  levels); the uncertainty band of f1 is ± GCI |f1|.
 
 The sequence is oscillatory when ε21/ε32 < 0, divergent when no positive order fits (for a constant ratio,
 |ε21| ≥ |ε32|), monotone otherwise; an order is reported for a monotone sequence only (NaN otherwise, with the
@@ -76,8 +76,16 @@ def _check_ratio(name: str, value: float) -> float:
     return value
 
 
-def observed_order(fine: float, medium: float, coarse: float, ratio: float, ratio_coarse: float | None = None,
-                   *, tolerance: float = 1e-12, max_iterations: int = 200) -> float:
+def observed_order(
+    fine: float,
+    medium: float,
+    coarse: float,
+    ratio: float,
+    ratio_coarse: float | None = None,
+    *,
+    tolerance: float = 1e-12,
+    max_iterations: int = 200,
+) -> float:
     """Observed order of convergence from three levels.
 
     Parameters
@@ -123,13 +131,15 @@ def observed_order(fine: float, medium: float, coarse: float, ratio: float, rati
 
 
 def richardson(fine: float, medium: float, ratio: float, order: float) -> float:
-    """Richardson-extrapolated value f1 + (f1 − f2)/(r^p − 1) for fine f1, medium f2, ratio r = h2/h1, order p."""
+    """Richardson-extrapolated value f1 + (f1 − f2)/(r^p − 1) for fine f1, medium f2, ratio r = h2/h1, order
+    p."""
     r = _check_ratio("ratio", ratio)
     return float(fine + (fine - medium) / (r**order - 1.0))
 
 
-def grid_convergence_index(fine: float, medium: float, ratio: float, order: float,
-                           safety_factor: float = SAFETY_FACTOR) -> float:
+def grid_convergence_index(
+    fine: float, medium: float, ratio: float, order: float, safety_factor: float = SAFETY_FACTOR
+) -> float:
     """Roache's grid convergence index of the fine level, relative: Fs |(f1 − f2)/f1| / (r^p − 1) [-].
 
     Raises
@@ -159,7 +169,9 @@ def convergence(spacings, values) -> ConvergenceResult:
     h = np.asarray(spacings, dtype=float)
     f = np.asarray(values, dtype=float)
     if h.ndim != 1 or h.shape != f.shape or h.size < 3:
-        raise ValueError(f"need at least three levels with one value each, got spacings {h.shape}, values {f.shape}")
+        raise ValueError(
+            f"need at least three levels with one value each, got spacings {h.shape}, values {f.shape}"
+        )
     if not (np.all(np.isfinite(h)) and np.all(h > 0.0)):
         raise ValueError(f"spacings {h.tolist()}: expected finite positive numbers")
     if not np.all(np.isfinite(f)):
@@ -186,9 +198,15 @@ def convergence(spacings, values) -> ConvergenceResult:
             gci = grid_convergence_index(f1, f2, r21, order)
             uncertainty = gci * abs(f1)
     return ConvergenceResult(
-        spacings=(float(h1), float(h2), float(h3)), values=(float(f1), float(f2), float(f3)),
-        ratio_fine=float(r21), ratio_coarse=float(r32), kind=kind, order=float(order),
-        extrapolated=float(extrapolated), gci=float(gci), uncertainty=float(uncertainty),
+        spacings=(float(h1), float(h2), float(h3)),
+        values=(float(f1), float(f2), float(f3)),
+        ratio_fine=float(r21),
+        ratio_coarse=float(r32),
+        kind=kind,
+        order=float(order),
+        extrapolated=float(extrapolated),
+        gci=float(gci),
+        uncertainty=float(uncertainty),
     )
 
 

@@ -2,19 +2,23 @@
 
 A name is ``quantity`` or ``quantity@argument``:
 
-| name | meaning | unit |
-|---|---|---|
-| ``needle_force@EVENT`` | ‖force of the tissue on the needle‖ at the first step of event EVENT (puncture, cut_start, tear, ...), at ``end`` (the last step) or at ``t=SECONDS`` (the nearest step) | N |
-| ``axial_force@EVENT``, ``lateral_force@EVENT`` | its component along the base segment (minus sign: resisting insertion is positive) and the norm of the rest | N |
-| ``puncture_force`` | the force that triggered the puncture event | N |
-| ``time@EVENT`` | time at the end of the step of the first EVENT (a multiple of the time step) | s |
-| ``cut_area`` | area of the cut surface at the end, summed over its triangles in rest coordinates | m² |
-| ``lateral_stroke@EVENT`` | distance the needle base moved across the needle's initial axis, at EVENT (default ``cut_start``) | m |
-| ``displacement@X,Y,Z`` | ‖tissue displacement‖ at the rest point (X, Y, Z) [m] at the last recorded tissue state (P1 interpolation in its tet) | m |
-| ``displacement_z@X,Y,Z`` | its z component (likewise ``_x``, ``_y``) | m |
+- name: ``needle_force@EVENT``; meaning: ‖force of the tissue on the needle‖ at the first step of event EVENT
+  (puncture, cut_start, tear, ...), at ``end`` (the last step) or at ``t=SECONDS`` (the nearest step); unit: N
+- name: ``axial_force@EVENT``, ``lateral_force@EVENT``; meaning: its component along the base segment (minus
+  sign: resisting insertion is positive) and the norm of the rest; unit: N
+- name: ``puncture_force``; meaning: the force that triggered the puncture event; unit: N
+- name: ``time@EVENT``; meaning: time at the end of the step of the first EVENT (a multiple of the time step);
+  unit: s
+- name: ``cut_area``; meaning: area of the cut surface at the end, summed over its triangles in rest
+  coordinates; unit: m²
+- name: ``lateral_stroke@EVENT``; meaning: distance the needle base moved across the needle's initial axis, at
+  EVENT (default ``cut_start``); unit: m
+- name: ``displacement@X,Y,Z``; meaning: ‖tissue displacement‖ at the rest point (X, Y, Z) [m] at the last
+  recorded tissue state (P1 interpolation in its tet); unit: m
+- name: ``displacement_z@X,Y,Z``; meaning: its z component (likewise ``_x``, ``_y``); unit: m
 
-A quantity that does not exist in a run (no cut, the event never happened) is NaN. Add a quantity by adding one
-function to :data:`QUANTITIES`.
+A quantity that does not exist in a run (no cut, the event never happened) is NaN. Add a quantity by adding
+one function to :data:`QUANTITIES`.
 """
 
 from __future__ import annotations
@@ -77,7 +81,9 @@ def _puncture_force(results, argument: str = "") -> float:
 def triangle_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Areas [m²] of triangles (t, 3) over points (p, 3) [m], shape (t,)."""
     corners = np.asarray(points, dtype=float)[np.asarray(triangles, dtype=np.int64)]
-    return 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    return 0.5 * np.linalg.norm(
+        np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1
+    )
 
 
 def _cut_area(results, argument: str = "") -> float:
@@ -104,7 +110,9 @@ def _displacement_vector(results, argument: str) -> np.ndarray:
     except ValueError:
         point = np.zeros(0)
     if point.shape != (3,):
-        raise ValueError(f"displacement@{argument}: expected a rest point X,Y,Z in metres, e.g. displacement@0,0,0.09")
+        raise ValueError(
+            f"displacement@{argument}: expected a rest point X,Y,Z in metres, e.g. displacement@0,0,0.09"
+        )
     if results.tissue_steps.size == 0:
         return np.full(3, np.nan)
     tet, barycentric = TetLocator(results.rest_positions, results.tets).locate(point[None], tolerance=1e-9)
@@ -138,10 +146,19 @@ QUANTITIES: dict[str, Callable] = {
 }
 
 #: Unit of each quantity.
-UNITS = {"needle_force": "N", "axial_force": "N", "lateral_force": "N", "puncture_force": "N", "time": "s",
-         "cut_area": "m^2",
-         "lateral_stroke": "m", "displacement": "m", "displacement_x": "m", "displacement_y": "m",
-         "displacement_z": "m"}
+UNITS = {
+    "needle_force": "N",
+    "axial_force": "N",
+    "lateral_force": "N",
+    "puncture_force": "N",
+    "time": "s",
+    "cut_area": "m^2",
+    "lateral_stroke": "m",
+    "displacement": "m",
+    "displacement_x": "m",
+    "displacement_y": "m",
+    "displacement_z": "m",
+}
 
 
 def _split(name: str) -> tuple[str, str]:
@@ -153,8 +170,10 @@ def check_quantity(name: str) -> str:
     """Return ``name`` if it names a known quantity, else raise a ValueError listing the known ones."""
     base, _ = _split(name)
     if base not in QUANTITIES:
-        raise ValueError(f"quantity {name!r}: unknown; known quantities: {', '.join(QUANTITIES)} "
-                         "(with @EVENT or @X,Y,Z where they take one)")
+        raise ValueError(
+            f"quantity {name!r}: unknown; known quantities: {', '.join(QUANTITIES)} "
+            "(with @EVENT or @X,Y,Z where they take one)"
+        )
     return name
 
 

@@ -13,8 +13,8 @@ A study file (TOML)::
     values = [2e-3, 1e-3, 5e-4]
     measure = "value"                          # refinement measure h: "value", "inverse" (1/value) or "none"
 
-    [[case]]                                   # explicit runs added after the sweep's (a Pareto study's options)
-    label = "GS tol 1e-4"
+    [[case]]                                   # explicit runs added after the sweep's (a Pareto study's
+    options) label = "GS tol 1e-4"
     set = ["solver.tolerance=1e-4"]
 
     [reference]                                # optional: errors of every run are taken against this run
@@ -37,11 +37,25 @@ from pathlib import Path
 
 from refsim.sweep.quantities import check_quantity
 
-__all__ = ["DEFAULT_QUANTITIES", "RunSpec", "StudySpec", "Sweep", "load_study", "parse_sweep", "study_from_options"]
+__all__ = [
+    "DEFAULT_QUANTITIES",
+    "RunSpec",
+    "StudySpec",
+    "Sweep",
+    "load_study",
+    "parse_sweep",
+    "study_from_options",
+]
 
 #: Quantities recorded when a study names none.
-DEFAULT_QUANTITIES = ("needle_force@end", "axial_force@end", "lateral_force@end", "puncture_force", "cut_area",
-                      "lateral_stroke@cut_start")
+DEFAULT_QUANTITIES = (
+    "needle_force@end",
+    "axial_force@end",
+    "lateral_force@end",
+    "puncture_force",
+    "cut_area",
+    "lateral_stroke@cut_start",
+)
 
 #: Refinement measure of a key when the study does not give one: h = 1/value for cell counts, h = value else.
 DEFAULT_MEASURES = {"mesh.cells": "inverse"}
@@ -107,7 +121,8 @@ class Sweep:
 
 @dataclass(frozen=True)
 class RunSpec:
-    """One run of a study: its id (stable, from its scene and overrides), label, swept values and overrides."""
+    """One run of a study: its id (stable, from its scene and overrides), label, swept values and
+    overrides."""
 
     id: str
     label: str
@@ -121,7 +136,8 @@ class RunSpec:
 
 
 def _run_id(scene: str, overrides: tuple) -> str:
-    """12 hex digits of the SHA-1 of the scene and the overrides: the same run has the same id in any study."""
+    """12 hex digits of the SHA-1 of the scene and the overrides: the same run has the same id in any
+    study."""
     return hashlib.sha1("\n".join((str(scene),) + tuple(overrides)).encode()).hexdigest()[:12]
 
 
@@ -183,15 +199,25 @@ class StudySpec:
 
     def to_json(self) -> str:
         """The study as JSON (stored in the study file)."""
-        return json.dumps({
-            "name": self.name, "scene": self.scene, "combine": self.combine, "set": list(self.overrides),
-            "sweep": [{"key": s.key, "values": list(s.values), "measure": s.measure} for s in self.sweeps],
-            "case": [{"label": label, "set": list(case)} for label, case in self.cases],
-            "quantities": list(self.quantities),
-            "reference": None if self.reference is None else {"label": self.reference[0],
-                                                              "set": list(self.reference[1])},
-            "source": self.source, **self.extra,
-        }, sort_keys=True)
+        return json.dumps(
+            {
+                "name": self.name,
+                "scene": self.scene,
+                "combine": self.combine,
+                "set": list(self.overrides),
+                "sweep": [
+                    {"key": s.key, "values": list(s.values), "measure": s.measure} for s in self.sweeps
+                ],
+                "case": [{"label": label, "set": list(case)} for label, case in self.cases],
+                "quantities": list(self.quantities),
+                "reference": None
+                if self.reference is None
+                else {"label": self.reference[0], "set": list(self.reference[1])},
+                "source": self.source,
+                **self.extra,
+            },
+            sort_keys=True,
+        )
 
 
 def _split_values(text: str) -> list[str]:
@@ -221,7 +247,9 @@ def _toml(raw: str):
 def parse_sweep(text: str, measure: str | None = None) -> Sweep:
     """A sweep from ``section.key=v1,v2,...`` (values in TOML syntax; bare words are strings)."""
     if "=" not in text:
-        raise ValueError(f"--sweep {text!r}: expected section.key=v1,v2,..., e.g. insertion.spacing=2e-3,1e-3")
+        raise ValueError(
+            f"--sweep {text!r}: expected section.key=v1,v2,..., e.g. insertion.spacing=2e-3,1e-3"
+        )
     key, raw = text.split("=", 1)
     key = key.strip()
     values = [_toml(v) for v in _split_values(raw)]
@@ -230,12 +258,23 @@ def parse_sweep(text: str, measure: str | None = None) -> Sweep:
     return Sweep(key, tuple(values), measure or DEFAULT_MEASURES.get(key, "value"))
 
 
-def study_from_options(scene: str, sweeps: list[str], *, combine: str = "product", overrides=(), quantities=None,
-                       reference=None, name: str | None = None) -> StudySpec:
+def study_from_options(
+    scene: str,
+    sweeps: list[str],
+    *,
+    combine: str = "product",
+    overrides=(),
+    quantities=None,
+    reference=None,
+    name: str | None = None,
+) -> StudySpec:
     """A study from command-line options (``reference``: overrides of the reference run, or None)."""
     return StudySpec(
-        name=name or Path(str(scene)).stem, scene=str(scene), sweeps=tuple(parse_sweep(s) for s in sweeps),
-        combine=combine, overrides=tuple(overrides or ()),
+        name=name or Path(str(scene)).stem,
+        scene=str(scene),
+        sweeps=tuple(parse_sweep(s) for s in sweeps),
+        combine=combine,
+        overrides=tuple(overrides or ()),
         quantities=tuple(quantities) if quantities else DEFAULT_QUANTITIES,
         reference=None if reference is None else ("reference", tuple(reference)),
     )
@@ -258,8 +297,10 @@ def load_study(path) -> StudySpec:
         raise ValueError(f"{path}: not valid TOML: {error}") from None
     known = {"name", "scene", "set", "combine", "quantities", "sweep", "case", "reference", "plot"}
     if {"mesh", "tissue", "needle"} & set(data):
-        raise ValueError(f"{path}: a scene file, not a study file; sweep it with: refsim study {path} "
-                         "--sweep section.key=v1,v2,...")
+        raise ValueError(
+            f"{path}: a scene file, not a study file; sweep it with: refsim study {path} "
+            "--sweep section.key=v1,v2,..."
+        )
     unknown = sorted(set(data) - known)
     if unknown:
         raise ValueError(f"{path}: unknown key {unknown[0]!r} (keys: {', '.join(sorted(known))})")
@@ -272,7 +313,9 @@ def load_study(path) -> StudySpec:
     def overrides(table, where: str) -> tuple:
         value = table.get("set", [])
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
-            raise ValueError(f"{path}: {where}set = {value!r}: expected a list of 'section.key=value' strings")
+            raise ValueError(
+                f"{path}: {where}set = {value!r}: expected a list of 'section.key=value' strings"
+            )
         return tuple(value)
 
     try:
@@ -280,18 +323,31 @@ def load_study(path) -> StudySpec:
         for index, table in enumerate(data.get("sweep", [])):
             if "key" not in table or "values" not in table:
                 raise ValueError(f"[[sweep]] {index + 1}: needs key and values")
-            sweeps.append(Sweep(table["key"], tuple(table["values"]),
-                                table.get("measure", DEFAULT_MEASURES.get(table["key"], "value"))))
-        cases = tuple((str(t.get("label", f"case {i + 1}")), overrides(t, f"[[case]] {i + 1}: "))
-                      for i, t in enumerate(data.get("case", [])))
+            sweeps.append(
+                Sweep(
+                    table["key"],
+                    tuple(table["values"]),
+                    table.get("measure", DEFAULT_MEASURES.get(table["key"], "value")),
+                )
+            )
+        cases = tuple(
+            (str(t.get("label", f"case {i + 1}")), overrides(t, f"[[case]] {i + 1}: "))
+            for i, t in enumerate(data.get("case", []))
+        )
         reference = data.get("reference")
         if reference is not None:
             reference = (str(reference.get("label", "reference")), overrides(reference, "[reference] "))
         return StudySpec(
-            name=str(data.get("name", path.stem)), scene=scene, sweeps=tuple(sweeps),
-            combine=str(data.get("combine", "product")), overrides=overrides(data, ""), cases=cases,
-            quantities=tuple(data.get("quantities", DEFAULT_QUANTITIES)), reference=reference,
-            source=str(path), extra={"plot": data.get("plot", {})},
+            name=str(data.get("name", path.stem)),
+            scene=scene,
+            sweeps=tuple(sweeps),
+            combine=str(data.get("combine", "product")),
+            overrides=overrides(data, ""),
+            cases=cases,
+            quantities=tuple(data.get("quantities", DEFAULT_QUANTITIES)),
+            reference=reference,
+            source=str(path),
+            extra={"plot": data.get("plot", {})},
         )
     except ValueError as error:
         message = str(error)

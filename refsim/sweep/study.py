@@ -1,23 +1,32 @@
 """Running a study on Dask and its HDF5 index (the study file).
 
 The study file ``STUDY.h5`` indexes the runs, whose results files sit in the folder ``STUDY_runs/`` beside it
-(one ``<run id>.h5`` each, the id a hash of the scene and the run's overrides). It is rewritten (atomically) each time a run
-finishes, so an interrupted study keeps what it did; started again, it runs only the runs whose results file is
-missing or not ``complete``. Layout (also in ``docs/studies.md``):
+(one ``<run id>.h5`` each, the id a hash of the scene and the run's overrides). It is rewritten (atomically)
+each time a run finishes, so an interrupted study keeps what it did; started again, it runs only the runs
+whose results file is missing or not ``complete``. Layout (also in ``docs/studies.md``):
 
-| path | shape | meaning |
-|---|---|---|
-| root attributes | | ``format`` = "refsim-study", ``schema_version``, ``name``, ``scene``, ``combine``, ``study`` (the study as JSON), ``created``, ``refsim_version``, ``git_commit``, ``run_folder``, ``runs_total``, ``runs_complete``, ``runs_failed`` |
-| ``runs/id``, ``runs/label``, ``runs/file`` | (R,) str | run id, label, results file (relative to the study file) |
-| ``runs/status``, ``runs/error`` | (R,) str | complete, incomplete, failed, pending; the error message |
-| ``runs/ms_per_step``, ``runs/cpu_ms_per_step`` [ms], ``runs/seconds`` [s], ``runs/steps`` | (R,) | mean wall time per step, process CPU time per step (NaN when reused), wall time of the run (NaN when reused), steps done |
-| ``runs/worker`` | (R,) str | host:pid of the worker that ran it |
-| ``runs/values/<key>`` | (R,) | swept value (float, or JSON text for lists; NaN / "" for a case) |
-| ``runs/spacing/<key>`` | (R,) f8 | refinement measure h of that value |
-| ``runs/quantities/<name>`` | (R,) f8 | quantity of interest (unit attribute) |
-| ``runs/errors/<name>`` | (R,) f8 | relative error against the reference run; ``force_history``: ‖F − F_ref‖/‖F_ref‖ |
-| ``reference/`` | | attributes ``label``, ``id``, ``file``, ``status``; ``quantities/<name>`` scalars |
-| ``convergence/<column>`` | (C,) | one row per (key, quantity, group of fixed values): ``key``, ``quantity``, ``group``, ``kind``, ``order``, ``extrapolated``, ``gci``, ``uncertainty``, ``ratio_fine``, ``ratio_coarse``, ``h`` (C, 3), ``f`` (C, 3), ``fitted_order``, ``levels`` |
+- path: root attributes; meaning: ``format`` = "refsim-study", ``schema_version``, ``name``, ``scene``,
+  ``combine``, ``study`` (the study as JSON), ``created``, ``refsim_version``, ``git_commit``, ``run_folder``,
+  ``runs_total``, ``runs_complete``, ``runs_failed``
+- path: ``runs/id``, ``runs/label``, ``runs/file``; shape: (R,) str; meaning: run id, label, results file
+  (relative to the study file)
+- path: ``runs/status``, ``runs/error``; shape: (R,) str; meaning: complete, incomplete, failed, pending; the
+  error message
+- path: ``runs/ms_per_step``, ``runs/cpu_ms_per_step`` [ms], ``runs/seconds`` [s], ``runs/steps``; shape:
+  (R,); meaning: mean wall time per step, process CPU time per step (NaN when reused), wall time of the run
+  (NaN when reused), steps done
+- path: ``runs/worker``; shape: (R,) str; meaning: host:pid of the worker that ran it
+- path: ``runs/values/<key>``; shape: (R,); meaning: swept value (float, or JSON text for lists; NaN / "" for
+  a case)
+- path: ``runs/spacing/<key>``; shape: (R,) f8; meaning: refinement measure h of that value
+- path: ``runs/quantities/<name>``; shape: (R,) f8; meaning: quantity of interest (unit attribute)
+- path: ``runs/errors/<name>``; shape: (R,) f8; meaning: relative error against the reference run;
+  ``force_history``: ‖F − F_ref‖/‖F_ref‖
+- path: ``reference/``; meaning: attributes ``label``, ``id``, ``file``, ``status``; ``quantities/<name>``
+  scalars
+- path: ``convergence/<column>``; shape: (C,); meaning: one row per (key, quantity, group of fixed values):
+  ``key``, ``quantity``, ``group``, ``kind``, ``order``, ``extrapolated``, ``gci``, ``uncertainty``,
+  ``ratio_fine``, ``ratio_coarse``, ``h`` (C, 3), ``f`` (C, 3), ``fitted_order``, ``levels``
 """
 
 from __future__ import annotations
@@ -52,8 +61,16 @@ def run_folder(output) -> Path:
 
 
 def _pending(run: RunSpec) -> dict:
-    return {"status": "pending", "error": "", "seconds": float("nan"), "worker": "", "steps": 0,
-            "ms_per_step": float("nan"), "cpu_ms_per_step": float("nan"), "quantities": {}}
+    return {
+        "status": "pending",
+        "error": "",
+        "seconds": float("nan"),
+        "worker": "",
+        "steps": 0,
+        "ms_per_step": float("nan"),
+        "cpu_ms_per_step": float("nan"),
+        "quantities": {},
+    }
 
 
 def start_client(scheduler: str | None = None, workers: int | None = None):
@@ -66,13 +83,27 @@ def start_client(scheduler: str | None = None, workers: int | None = None):
         return Client(scheduler), None
     for name, value in BLAS_ENVIRONMENT.items():
         os.environ.setdefault(name, value)  # inherited by the worker processes
-    cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
-                           dashboard_address=":0", env=dict(BLAS_ENVIRONMENT), silence_logs=logging.ERROR)
+    cluster = LocalCluster(
+        n_workers=workers or os.cpu_count() or 1,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=":0",
+        env=dict(BLAS_ENVIRONMENT),
+        silence_logs=logging.ERROR,
+    )
     return Client(cluster), cluster
 
 
-def run_study(spec: StudySpec, output, *, scheduler: str | None = None, workers: int | None = None,
-              progress: bool = True, client=None, warm_up: bool = True) -> dict:
+def run_study(
+    spec: StudySpec,
+    output,
+    *,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+    client=None,
+    warm_up: bool = True,
+) -> dict:
     """Run every missing run of a study on Dask and write the study file.
 
     Parameters
@@ -80,7 +111,8 @@ def run_study(spec: StudySpec, output, *, scheduler: str | None = None, workers:
     spec : The study.
     output : The study file (.h5); the runs go to :func:`run_folder` (output).
     scheduler : Address of a running Dask scheduler (``tcp://host:8786``); a LocalCluster when None.
-    workers : Worker processes of the LocalCluster (one thread and one BLAS thread each); the cores by default.
+    workers : Worker processes of the LocalCluster (one thread and one BLAS thread each); the cores by
+    default.
     progress : Show a progress bar (tqdm, on stderr).
     client : An existing ``distributed.Client`` to use (and leave open), e.g. one for several studies;
         ``scheduler`` and ``workers`` are then ignored.
@@ -103,7 +135,9 @@ def run_study(spec: StudySpec, output, *, scheduler: str | None = None, workers:
     missing = [run for run in every if not is_complete(folder / run.file_name)]
     done = [run for run in every if run not in missing]
     previous = _previous_timing(output)
-    for run in done:  # reused: quantities read here, nothing is run again; timings kept from the last study file
+    for (
+        run
+    ) in done:  # reused: quantities read here, nothing is run again; timings kept from the last study file
         rows[run.id] = run_one(spec.scene, run.overrides, str(folder / run.file_name), spec.quantities)
         rows[run.id].update(previous.get(run.id, {}))
     _write(spec, output, runs, reference, rows)
@@ -113,20 +147,40 @@ def run_study(spec: StudySpec, output, *, scheduler: str | None = None, workers:
         own = client is None
         if own:
             client, cluster = start_client(scheduler, workers)
-        bar = tqdm(total=len(every), initial=len(done), desc=f"study {spec.name}", unit="run",
-                   disable=not progress, file=sys.stderr)
+        bar = tqdm(
+            total=len(every),
+            initial=len(done),
+            desc=f"study {spec.name}",
+            unit="run",
+            disable=not progress,
+            file=sys.stderr,
+        )
         try:
             from distributed import as_completed
 
-            futures = {client.submit(run_one, spec.scene, run.overrides, str(folder / run.file_name),
-                                     spec.quantities, warm_up, key=f"run-{spec.name}-{run.id}", pure=False): run
-                       for run in missing}
+            futures = {
+                client.submit(
+                    run_one,
+                    spec.scene,
+                    run.overrides,
+                    str(folder / run.file_name),
+                    spec.quantities,
+                    warm_up,
+                    key=f"run-{spec.name}-{run.id}",
+                    pure=False,
+                ): run
+                for run in missing
+            }
             for future in as_completed(futures):
                 run = futures[future]
                 try:
                     rows[run.id] = future.result()
                 except Exception as error:  # the worker died (killed, out of memory)
-                    rows[run.id] = {**_pending(run), "status": "failed", "error": f"{type(error).__name__}: {error}"}
+                    rows[run.id] = {
+                        **_pending(run),
+                        "status": "failed",
+                        "error": f"{type(error).__name__}: {error}",
+                    }
                 bar.update(1)
                 if rows[run.id]["status"] != "complete":
                     bar.write(f"run {run.id} ({run.label}): {rows[run.id]['status']} {rows[run.id]['error']}")
@@ -154,8 +208,9 @@ def _previous_timing(output: Path) -> dict:
         return {}
     keep = {}
     for index, run_id in enumerate(runs.get("id", [])):
-        keep[run_id] = {name: runs[name][index] for name in ("seconds", "cpu_ms_per_step", "worker")
-                        if name in runs}
+        keep[run_id] = {
+            name: runs[name][index] for name in ("seconds", "cpu_ms_per_step", "worker") if name in runs
+        }
     return keep
 
 
@@ -175,8 +230,9 @@ def _errors(spec, folder, runs, reference, rows) -> dict:
             value, exact = rows[run.id]["quantities"].get(name, np.nan), reference_values.get(name, np.nan)
             if np.isfinite(value) and np.isfinite(exact) and exact != 0.0:
                 errors[name][index] = abs(value - exact) / abs(exact)
-        errors["force_history"][index] = force_history_error(read_results(folder / run.file_name),
-                                                             reference_results)
+        errors["force_history"][index] = force_history_error(
+            read_results(folder / run.file_name), reference_results
+        )
     return errors
 
 
@@ -204,17 +260,30 @@ def convergence_rows(spec: StudySpec, runs, rows) -> list[dict]:
                 if np.count_nonzero(keep) < 3 or np.unique(h[keep]).size < 3:
                     continue
                 result = convergence(h[keep], f[keep])
-                slope = (fitted_order(h[keep], f[keep], result.extrapolated)[0]
-                         if math.isfinite(result.extrapolated) and result.kind == "monotone" else float("nan"))
-                table.append({"key": sweep.key, "quantity": name, "group": group, "fitted_order": slope,
-                              "levels": int(np.count_nonzero(keep)), **result.as_dict()})
+                slope = (
+                    fitted_order(h[keep], f[keep], result.extrapolated)[0]
+                    if math.isfinite(result.extrapolated) and result.kind == "monotone"
+                    else float("nan")
+                )
+                table.append(
+                    {
+                        "key": sweep.key,
+                        "quantity": name,
+                        "group": group,
+                        "fitted_order": slope,
+                        "levels": int(np.count_nonzero(keep)),
+                        **result.as_dict(),
+                    }
+                )
     return table
 
 
 def _strings(handle, path, values) -> None:
     import h5py
 
-    handle.create_dataset(path, data=np.array([str(v) for v in values], dtype=object), dtype=h5py.string_dtype())
+    handle.create_dataset(
+        path, data=np.array([str(v) for v in values], dtype=object), dtype=h5py.string_dtype()
+    )
 
 
 def _write(spec, output: Path, runs, reference, rows, *, final: bool = False) -> None:
@@ -236,13 +305,25 @@ def _write(spec, output: Path, runs, reference, rows, *, final: bool = False) ->
     statuses = [rows[run.id]["status"] for run in runs]
     with h5py.File(temporary, "w") as handle:
         attributes = handle.attrs
-        attributes.update({
-            "format": STUDY_FORMAT, "schema_version": STUDY_SCHEMA_VERSION, "name": spec.name, "scene": spec.scene,
-            "combine": spec.combine, "study": spec.to_json(), "created": created or now, "updated": now,
-            "refsim_version": __version__, "git_commit": git_commit(), "run_folder": folder.name,
-            "runs_total": len(runs), "runs_complete": statuses.count("complete"),
-            "runs_failed": statuses.count("failed"), "final": bool(final),
-        })
+        attributes.update(
+            {
+                "format": STUDY_FORMAT,
+                "schema_version": STUDY_SCHEMA_VERSION,
+                "name": spec.name,
+                "scene": spec.scene,
+                "combine": spec.combine,
+                "study": spec.to_json(),
+                "created": created or now,
+                "updated": now,
+                "refsim_version": __version__,
+                "git_commit": git_commit(),
+                "run_folder": folder.name,
+                "runs_total": len(runs),
+                "runs_complete": statuses.count("complete"),
+                "runs_failed": statuses.count("failed"),
+                "final": bool(final),
+            }
+        )
         group = handle.create_group("runs")
         _strings(group, "id", [run.id for run in runs])
         _strings(group, "label", [run.label for run in runs])
@@ -252,43 +333,65 @@ def _write(spec, output: Path, runs, reference, rows, *, final: bool = False) ->
         _strings(group, "error", [rows[run.id]["error"] for run in runs])
         _strings(group, "worker", [rows[run.id]["worker"] for run in runs])
         for name, unit in (("ms_per_step", "ms"), ("cpu_ms_per_step", "ms"), ("seconds", "s")):
-            group.create_dataset(name, data=np.array([rows[run.id].get(name, np.nan) for run in runs],
-                                                     dtype=float))
+            group.create_dataset(
+                name, data=np.array([rows[run.id].get(name, np.nan) for run in runs], dtype=float)
+            )
             group[name].attrs["units"] = unit
         group.create_dataset("steps", data=np.array([rows[run.id]["steps"] for run in runs], dtype=np.int64))
         for sweep in spec.sweeps:
             values = [run.values.get(sweep.key) for run in runs]
             if all(isinstance(v, (int, float)) and not isinstance(v, bool) or v is None for v in values):
-                group.create_dataset(f"values/{sweep.key}", data=np.array(
-                    [np.nan if v is None else v for v in values], dtype=float))
+                group.create_dataset(
+                    f"values/{sweep.key}",
+                    data=np.array([np.nan if v is None else v for v in values], dtype=float),
+                )
             else:
                 _strings(group, f"values/{sweep.key}", ["" if v is None else json.dumps(v) for v in values])
-            group.create_dataset(f"spacing/{sweep.key}", data=np.array(
-                [np.nan if v is None else sweep.spacing(v) for v in values], dtype=float))
+            group.create_dataset(
+                f"spacing/{sweep.key}",
+                data=np.array([np.nan if v is None else sweep.spacing(v) for v in values], dtype=float),
+            )
             group[f"spacing/{sweep.key}"].attrs["measure"] = sweep.measure
         for name in spec.quantities:
-            dataset = group.create_dataset(f"quantities/{name}", data=np.array(
-                [rows[run.id]["quantities"].get(name, np.nan) for run in runs], dtype=float))
+            dataset = group.create_dataset(
+                f"quantities/{name}",
+                data=np.array([rows[run.id]["quantities"].get(name, np.nan) for run in runs], dtype=float),
+            )
             dataset.attrs["units"] = UNITS.get(name.partition("@")[0], "")
         if final:
             for name, values in _errors(spec, folder, runs, reference, rows).items():
                 group.create_dataset(f"errors/{name}", data=values).attrs["units"] = "1"
         if reference is not None:
             ref = handle.create_group("reference")
-            ref.attrs.update({"label": reference.label, "id": reference.id,
-                              "file": f"{folder.name}/{reference.file_name}",
-                              "status": rows[reference.id]["status"], "error": rows[reference.id]["error"],
-                              "ms_per_step": rows[reference.id]["ms_per_step"],
-                              "cpu_ms_per_step": rows[reference.id].get("cpu_ms_per_step", np.nan)})
+            ref.attrs.update(
+                {
+                    "label": reference.label,
+                    "id": reference.id,
+                    "file": f"{folder.name}/{reference.file_name}",
+                    "status": rows[reference.id]["status"],
+                    "error": rows[reference.id]["error"],
+                    "ms_per_step": rows[reference.id]["ms_per_step"],
+                    "cpu_ms_per_step": rows[reference.id].get("cpu_ms_per_step", np.nan),
+                }
+            )
             for name in spec.quantities:
-                ref.create_dataset(f"quantities/{name}", data=rows[reference.id]["quantities"].get(name, np.nan))
+                ref.create_dataset(
+                    f"quantities/{name}", data=rows[reference.id]["quantities"].get(name, np.nan)
+                )
         table = convergence_rows(spec, runs, rows)
         if table:
             conv = handle.create_group("convergence")
             for column in ("key", "quantity", "group", "kind"):
                 _strings(conv, column, [row[column] for row in table])
-            for column in ("order", "extrapolated", "gci", "uncertainty", "ratio_fine", "ratio_coarse",
-                           "fitted_order"):
+            for column in (
+                "order",
+                "extrapolated",
+                "gci",
+                "uncertainty",
+                "ratio_fine",
+                "ratio_coarse",
+                "fitted_order",
+            ):
                 conv.create_dataset(column, data=np.array([row[column] for row in table], dtype=float))
             conv.create_dataset("levels", data=np.array([row["levels"] for row in table], dtype=np.int64))
             conv.create_dataset("h", data=np.array([row["spacings"] for row in table], dtype=float))
@@ -322,8 +425,10 @@ def read_study(path) -> dict:
 
     with h5py.File(path, "r") as handle:
         if plain(handle.attrs.get("format")) != STUDY_FORMAT:
-            raise ValueError(f"{path}: not a refsim study file (root attribute 'format' is "
-                             f"{plain(handle.attrs.get('format'))!r}, expected {STUDY_FORMAT!r})")
+            raise ValueError(
+                f"{path}: not a refsim study file (root attribute 'format' is "
+                f"{plain(handle.attrs.get('format'))!r}, expected {STUDY_FORMAT!r})"
+            )
         attributes = {key: plain(value) for key, value in handle.attrs.items()}
         runs: dict = {}
         for name, item in handle["runs"].items():
@@ -339,7 +444,17 @@ def read_study(path) -> dict:
         if "convergence" in handle:
             columns = {key: plain(handle["convergence"][key][()]) for key in handle["convergence"]}
             count = len(columns["key"])
-            table = [{key: (value[i].tolist() if isinstance(value, np.ndarray) else value[i])
-                      for key, value in columns.items()} for i in range(count)]
-    return {"attributes": attributes, "runs": runs, "reference": reference, "convergence": table,
-            "path": path}
+            table = [
+                {
+                    key: (value[i].tolist() if isinstance(value, np.ndarray) else value[i])
+                    for key, value in columns.items()
+                }
+                for i in range(count)
+            ]
+    return {
+        "attributes": attributes,
+        "runs": runs,
+        "reference": reference,
+        "convergence": table,
+        "path": path,
+    }

@@ -15,9 +15,14 @@ import numpy as np
 
 __all__ = ["BLAS_ENVIRONMENT", "is_complete", "run_one", "run_scene"]
 
-#: Environment that gives each worker one BLAS / OpenMP thread (workers = cores, so threads would oversubscribe).
-BLAS_ENVIRONMENT = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
-                    "NUMBA_NUM_THREADS": "1"}
+# : Environment that gives each worker one BLAS / OpenMP thread (workers = cores, so threads would
+# oversubscribe).
+BLAS_ENVIRONMENT = {
+    "OPENBLAS_NUM_THREADS": "1",
+    "OMP_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "NUMBA_NUM_THREADS": "1",
+}
 
 
 def run_scene(scene, output, *, overwrite: bool = False, on_step=None):
@@ -128,8 +133,16 @@ def run_one(scene: str, overrides: tuple, output: str, quantities: tuple, warm_u
 
     for name, value in BLAS_ENVIRONMENT.items():
         os.environ.setdefault(name, value)
-    row = {"status": "failed", "error": "", "seconds": float("nan"), "worker": f"{socket.gethostname()}:{os.getpid()}",
-           "steps": 0, "ms_per_step": float("nan"), "cpu_ms_per_step": float("nan"), "quantities": {name: float("nan") for name in quantities}}
+    row = {
+        "status": "failed",
+        "error": "",
+        "seconds": float("nan"),
+        "worker": f"{socket.gethostname()}:{os.getpid()}",
+        "steps": 0,
+        "ms_per_step": float("nan"),
+        "cpu_ms_per_step": float("nan"),
+        "quantities": {name: float("nan") for name in quantities},
+    }
     output = Path(output)
     try:
         if not is_complete(output):

@@ -6,8 +6,8 @@ with the rest stiffness of :class:`~refsim.fem.tissue.TissueModel` and the coupl
 - a rigid cylinder pushed laterally in a clamped annulus (hole resolved by the mesh), against Baguelin, Frank
   and Saïd (1977): K′ = 8πG(1−ν)(3−4ν) / [(3−4ν)² ln(R/a) − (R²−a²)/(R²+a²)];
 - the same cylinder pushed axially, against the antiplane solution K′_ax = 2πG / ln(R/a);
-- an interference fit: the contact pressure against Lamé with the outer surface clamped, and the pull-out force
-  of the friction law (Gauss–Seidel and exact) against dF/dL = 2π a μ p;
+- an interference fit: the contact pressure against Lamé with the outer surface clamped, and the pull-out
+  force of the friction law (Gauss–Seidel and exact) against dF/dL = 2π a μ p;
 - a needle coupled to a disc slab that does not resolve it, lateral and axial: the well-posed ring coupling
   (:mod:`refsim.constraints.coupling`) converges to the closed forms above, the paper's bare line does not
   (its compliance grows like ln(1/h) at the slope the line-load solution predicts);
@@ -32,9 +32,9 @@ import scipy.sparse.linalg as spla
 
 from refsim.constraints.coupling import (
     RING_EQUIVALENT_RADIUS,
-    equivalent_radius,
     RING_EQUIVALENT_RADIUS_SPREAD,
     coupling_radius,
+    equivalent_radius,
     interference_pressure,
     ring_count,
     subgrid_compliance,
@@ -79,7 +79,8 @@ PAPER_TISSUE = HookeMaterial(youngs_modulus=5.0e5, poisson_ratio=0.4, density=10
 
 # ------------------------------------------------------------------------------------------- closed forms
 def baguelin_stiffness(material: HookeMaterial, inner: float, outer: float) -> float:
-    """Lateral stiffness per unit length K′ [N/m²] of a rigid cylinder of radius a in a clamped annulus (R)."""
+    """Lateral stiffness per unit length K′ [N/m²] of a rigid cylinder of radius a in a clamped annulus
+    (R)."""
     g, nu = material.shear_modulus, material.poisson_ratio
     k = 3.0 - 4.0 * nu
     ratio = (outer**2 - inner**2) / (outer**2 + inner**2)
@@ -94,8 +95,8 @@ def antiplane_stiffness(material: HookeMaterial, inner: float, outer: float) -> 
 def grid_convergence(values: np.ndarray) -> tuple[float, float, float]:
     """Observed order, Richardson value and GCI (absolute) of the last of three values on meshes refined by 2.
 
-    The order and the extrapolation are `refsim.sweep.convergence`'s (Roache's safety factor F_s = 1.25 there too);
-    this wraps them for the verification cases' coarse-to-fine sequences with an absolute index.
+    The order and the extrapolation are `refsim.sweep.convergence`'s (Roache's safety factor F_s = 1.25 there
+    too); this wraps them for the verification cases' coarse-to-fine sequences with an absolute index.
 
     Parameters
     ----------
@@ -110,7 +111,11 @@ def grid_convergence(values: np.ndarray) -> tuple[float, float, float]:
     order = observed_order(fine, medium, coarse, 2.0)
     if not math.isfinite(order):
         return math.nan, fine, math.inf
-    return order, richardson(fine, medium, 2.0, order), SAFETY_FACTOR * abs(fine - medium) / (2.0**order - 1.0)
+    return (
+        order,
+        richardson(fine, medium, 2.0, order),
+        SAFETY_FACTOR * abs(fine - medium) / (2.0**order - 1.0),
+    )
 
 
 # ------------------------------------------------------------------------------------------------ meshes
@@ -149,8 +154,8 @@ def annulus_slab(inner: float, outer: float, radial: int, angular: int, layers: 
 def disc_slab(radius: float, cells: int, layers: int, height: float) -> tuple[np.ndarray, np.ndarray]:
     """A disc slab ρ ≤ R, 0 ≤ z ≤ height: a Kuhn-split square grid of ``cells`` per side mapped onto the disc.
 
-    The elliptical map (u, v) ↦ R (u √(1 − v²/2), v √(1 − u²/2)) is the identity to second order at the centre,
-    so the cells there are cubes of edge h = 2R / cells.
+    The elliptical map (u, v) ↦ R (u √(1 − v²/2), v √(1 − u²/2)) is the identity to second order at the
+    centre, so the cells there are cubes of edge h = 2R / cells.
     """
     mesh = box_mesh(size=(2.0, 2.0, height), cells=(cells, cells, layers), origin=(-1.0, -1.0, 0.0))
     u, v, z = np.asarray(mesh.rest_positions).T
@@ -199,7 +204,8 @@ def _interpolation_rows(
 
 
 class _Response:
-    """Tissue response of a slab with Dirichlet DoFs: W = P K_ff⁻¹ Pᵀ and the rows' values of a boundary field.
+    """Tissue response of a slab with Dirichlet DoFs: W = P K_ff⁻¹ Pᵀ and the rows' values of a boundary
+    field.
 
     ``identify`` (optional, shape (n,)) maps each node to the node it is identified with (periodic slabs: the
     stiffness is assembled on the true geometry, then the identified DoFs are summed, K ← Πᵀ K Π).
@@ -239,11 +245,12 @@ class _Response:
     def needle_stiffness(
         self, mapping: np.ndarray, extra: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Stiffness of the needle's rigid motion U (rows = mapping U) and the force the boundary field exerts.
+        """Stiffness of the needle's rigid motion U (rows = mapping U) and the force the boundary field
+        exerts.
 
-        With rows δ = B U − P u = C λ and K u = Pᵀ λ (+ boundary data): λ = (W + C)⁺ (B U − P u_g), the force on
-        the needle F = Bᵀ λ = K_U U − F_g. The pseudo-inverse handles the bare line's singular W (the force does
-        not depend on the null-space part of λ).
+        With rows δ = B U − P u = C λ and K u = Pᵀ λ (+ boundary data): λ = (W + C)⁺ (B U − P u_g), the force
+        on the needle F = Bᵀ λ = K_U U − F_g. The pseudo-inverse handles the bare line's singular W (the force
+        does not depend on the null-space part of λ).
         """
         matrix = self.compliance + (np.diag(extra) if extra is not None else 0.0)
         inverse = np.linalg.pinv(matrix, rcond=1e-11, hermitian=True)
@@ -262,8 +269,8 @@ def annulus_stiffness(
 ) -> float:
     """K′ [N/m²] of a rigid cylinder (bilateral rows on every hole node) in a clamped annulus slab.
 
-    ``kind`` "lateral" (plane strain, top and bottom on rollers u_z = 0) or "axial" (antiplane, u_x = u_y = 0 on
-    top and bottom). Radial cells: as many as keep them square (Δρ ≈ ρ Δθ).
+    ``kind`` "lateral" (plane strain, top and bottom on rollers u_z = 0) or "axial" (antiplane, u_x = u_y = 0
+    on top and bottom). Radial cells: as many as keep them square (Δρ ≈ ρ Δθ).
     """
     radial = max(2, round(angular * math.log(outer / inner) / (2.0 * math.pi)))
     height = layers * 2.0 * math.pi * inner / angular
@@ -386,8 +393,9 @@ def coupled_stiffness(
         count = ring_count(radius, h)
     else:
         radius, count = 0.0, 1
-    rows = _coupling_rows(model, centre, radius, count, levels, components,
-                          _disc_slab_model(outer, cells, layers, material)[1])
+    rows = _coupling_rows(
+        model, centre, radius, count, levels, components, _disc_slab_model(outer, cells, layers, material)[1]
+    )
     reduced = rows[:, free].toarray()
     compliance = reduced @ factor.solve(np.ascontiguousarray(reduced.T))
     row_kinds = (
@@ -424,13 +432,15 @@ def ring_equivalent_radius(
     seed: int = 0,
     material: HookeMaterial = PAPER_TISSUE,
 ) -> float:
-    """Equivalent rigid-disc radius a/h of a coupling ring of radius ρ = ratio·h (0: the bare line) in P1 tets.
+    """Equivalent rigid-disc radius a/h of a coupling ring of radius ρ = ratio·h (0: the bare line) in P1
+    tets.
 
     A box slab of ``cells`` × ``cells`` Kuhn cells (h = 0.1 m / cells), rollers on top and bottom, carries the
-    exact field of a line load F′ = 1 N/m on its sides (plane-strain Kelvin solution plus the dipole of a rigid
-    disc, lateral; u_z = −F′ ln ρ /(2πG), axial). The ring's rows tie it to a rigid needle; the needle's
+    exact field of a line load F′ = 1 N/m on its sides (plane-strain Kelvin solution plus the dipole of a
+    rigid disc, lateral; u_z = −F′ ln ρ /(2πG), axial). The ring's rows tie it to a rigid needle; the needle's
     displacement U under F′ equals the rigid disc's U(a) = F′ [−(3−4ν) ln a + ½] / (8πG(1−ν)) (lateral) or
-    −F′ ln a / (2πG) (axial), which gives a. ``jitter`` moves interior nodes by up to ±jitter·h (irregular tets).
+    −F′ ln a / (2πG) (axial), which gives a. ``jitter`` moves interior nodes by up to ±jitter·h (irregular
+    tets).
     """
     size = 0.1
     h = size / cells
@@ -556,7 +566,8 @@ def _annulus_case(kind: str, exact: float, label: str, reference: str, inner: fl
 
 
 def case_baguelin_lateral(inner: float = 4.0e-3) -> list[CaseResult]:
-    """A rigid cylinder (bilateral rows on the hole nodes) pushed laterally in a clamped annulus, plane strain."""
+    """A rigid cylinder (bilateral rows on the hole nodes) pushed laterally in a clamped annulus, plane
+    strain."""
     return _annulus_case(
         "lateral",
         baguelin_stiffness(PAPER_TISSUE, inner, OUTER),
@@ -590,9 +601,9 @@ def interference_pullout(
     """Interference fit on a clamped annulus slab, then the cylinder pulled along its axis until it slips.
 
     The slab is periodic in z (top nodes identified with bottom nodes), so every level of the hole is the same
-    (plane strain for the fit, antiplane for the pull, no end effect). Rows per hole node: radial and tangential
-    bilateral rows (the channel of radius a − δ_r opened to a) and an axial shaft-friction row bounded by
-    μ ‖(λ_r, λ_θ)‖. The pull is 100 times the largest stick displacement, so every node slips.
+    (plane strain for the fit, antiplane for the pull, no end effect). Rows per hole node: radial and
+    tangential bilateral rows (the channel of radius a − δ_r opened to a) and an axial shaft-friction row
+    bounded by μ ‖(λ_r, λ_θ)‖. The pull is 100 times the largest stick displacement, so every node slips.
 
     Returns
     -------
@@ -608,7 +619,7 @@ def interference_pullout(
     # Identify each top node with the bottom node below it.
     key = np.round(positions[:, :2] / tol).astype(np.int64)
     bottom = np.flatnonzero(z < tol)
-    lookup = {tuple(k): n for k, n in zip(key[bottom], bottom)}
+    lookup = {tuple(k): n for k, n in zip(key[bottom], bottom, strict=False)}
     identify = np.arange(positions.shape[0])
     identify[top] = [lookup[tuple(k)] for k in key[top]]
     hole = np.flatnonzero((rho < inner + tol) & ~top)
@@ -650,7 +661,8 @@ def interference_pullout(
 
 
 def case_interference_pullout(coarsest: int = 24) -> list[CaseResult]:
-    """Interference fit: contact pressure against Lamé (clamped outer surface), then pull-out against 2π a μ p."""
+    """Interference fit: contact pressure against Lamé (clamped outer surface), then pull-out against 2π a μ
+    p."""
     material, inner, interference, mu = PAPER_TISSUE, NEEDLE_PAPER, 0.1e-3, 0.2
     exact = interference_pressure(
         shear_modulus=material.shear_modulus,
@@ -670,8 +682,10 @@ def case_interference_pullout(coarsest: int = 24) -> list[CaseResult]:
     meshes = ", ".join(map(str, angular))
     results = [
         CaseResult(
-            name=f"interference fit δ_r = {interference * 1e3:g} mm, a = {inner * 1e3:g} mm: pressure ({meshes} around)",
-            reference="Lamé, plane strain, u_r(R) = 0: p = B(2(λ+G)/R² + 2G/a²), B = δ_r/(1/a − a/R²); tol. GCI",
+            name=f"interference fit δ_r = {interference * 1e3:g} mm, a = {inner * 1e3:g} mm: pressure "
+            f"({meshes} around)",
+            reference="Lamé, plane strain, u_r(R) = 0: p = B(2(λ+G)/R² + 2G/a²), B = δ_r/(1/a − a/R²); tol. "
+            "GCI",
             expected=exact,
             computed=float(pressures[-1]),
             error=abs(pressures[-1] - exact) / exact,
@@ -686,7 +700,8 @@ def case_interference_pullout(coarsest: int = 24) -> list[CaseResult]:
     ]
     expected_pull = 2.0 * math.pi * inner * mu * exact
     for solver, force in runs[-1][1]:
-        # The law gives μ Σ‖λ_normal‖ exactly at full slip; the error is the pressure's, plus the solver's tolerance.
+        # The law gives μ Σ‖λ_normal‖ exactly at full slip; the error is the pressure's, plus the solver's
+        # tolerance.
         results.append(
             CaseResult(
                 name=f"pull-out at full slip, μ = {mu:g}, {solver} ({angular[-1]} around)",
@@ -731,7 +746,8 @@ def _coupling_case(kind: str, needle_radius: float) -> list[CaseResult]:
     results = [
         CaseResult(
             name=name,
-            reference=f"{formula}; tolerance: spread of a_c (± {RING_EQUIVALENT_RADIUS_SPREAD:.1%}) + |K_f − K_m|",
+            reference=f"{formula}; tolerance: spread of a_c (± {RING_EQUIVALENT_RADIUS_SPREAD:.1%}) + |K_f − "
+            f"K_m|",
             expected=exact,
             computed=float(values[-1]),
             error=abs(values[-1] - exact) / exact,
@@ -752,7 +768,8 @@ def _coupling_case(kind: str, needle_radius: float) -> list[CaseResult]:
 
 
 def case_coupling_lateral() -> list[CaseResult]:
-    """A rigid needle in a disc slab that does not resolve it, lateral: thin (0.5 mm) and the paper's (8 mm)."""
+    """A rigid needle in a disc slab that does not resolve it, lateral: thin (0.5 mm) and the paper's (8
+    mm)."""
     return [*_coupling_case("lateral", NEEDLE_THIN), *_coupling_case("lateral", NEEDLE_PAPER)]
 
 
@@ -764,10 +781,10 @@ def case_coupling_axial() -> list[CaseResult]:
 def bare_line_compliance_slope(kind: str, cells=COUPLING_CELLS, needle_radius: float = NEEDLE_THIN):
     """Fitted slope d(1/K′)/d ln h of the paper's bare line [m²/N], the theory's, and the ring's drift.
 
-    A line load in P1 acts as a rigid disc of radius a_eq = c h (c fixed by where the line sits in its cell), so
-    1/K′ = (3−4ν) ln(R/(c h))/(8πG(1−ν)) + const (lateral) or ln(R/(c h))/(2πG) (axial): slope −(3−4ν)/(8πG(1−ν))
-    or −1/(2πG). The far-field discretisation error, measured by the ring coupling on the same meshes (whose
-    limit is h-independent), bounds the error of the fitted slope.
+    A line load in P1 acts as a rigid disc of radius a_eq = c h (c fixed by where the line sits in its cell),
+    so 1/K′ = (3−4ν) ln(R/(c h))/(8πG(1−ν)) + const (lateral) or ln(R/(c h))/(2πG) (axial): slope
+    −(3−4ν)/(8πG(1−ν)) or −1/(2πG). The far-field discretisation error, measured by the ring coupling on the
+    same meshes (whose limit is h-independent), bounds the error of the fitted slope.
 
     Returns
     -------
@@ -800,9 +817,11 @@ def case_bare_line_lateral() -> list[CaseResult]:
         meshes = ", ".join(map(str, COUPLING_CELLS))
         results.append(
             CaseResult(
-                name=f"paper's bare line, {kind}, r = {NEEDLE_THIN * 1e3:g} mm: slope of 1/K′ against ln h ({meshes} cells)",
+                name=f"paper's bare line, {kind}, r = {NEEDLE_THIN * 1e3:g} mm: slope of 1/K′ against ln h "
+                f"({meshes} cells)",
                 reference=(
-                    "line load = rigid disc of radius c·h: d(1/K′)/d ln h = −(3−4ν)/(8πG(1−ν)) (lateral), −1/(2πG) "
+                    "line load = rigid disc of radius c·h: d(1/K′)/d ln h = −(3−4ν)/(8πG(1−ν)) (lateral), "
+                    "−1/(2πG) "
                     "(axial); tolerance: the ring coupling's slope on the same meshes"
                 ),
                 expected=theory,
@@ -823,8 +842,10 @@ def case_ring_calibration(cells: int = 24) -> list[CaseResult]:
         computed = ring_equivalent_radius(kind, 1.0, cells=cells, offset=(0.63, 0.29), spacing_ratio=0.1)
         results.append(
             CaseResult(
-                name=f"ring equivalent radius a_c/h at ρ = h, {kind} ({cells} cells, d_i = h/10, centreline at (0.63, 0.29) h)",
-                reference="calibration table RING_EQUIVALENT_RADIUS (32 cells, d_i = h/4, regular tets); tol. its spread",
+                name=f"ring equivalent radius a_c/h at ρ = h, {kind} ({cells} cells, d_i = h/10, centreline "
+                f"at (0.63, 0.29) h)",
+                reference="calibration table RING_EQUIVALENT_RADIUS (32 cells, d_i = h/4, regular tets); "
+                "tol. its spread",
                 expected=expected,
                 computed=computed,
                 error=abs(computed - expected) / expected,
@@ -915,8 +936,16 @@ def surface_coupling_study(
         values[subgrid] = np.array(
             [
                 [
-                    coupled_stiffness(kind, "ring", needle_radius=needle_radius, outer=outer, cells=n,
-                                      offset=tuple(o), material=material, surface_subgrid=subgrid)
+                    coupled_stiffness(
+                        kind,
+                        "ring",
+                        needle_radius=needle_radius,
+                        outer=outer,
+                        cells=n,
+                        offset=tuple(o),
+                        material=material,
+                        surface_subgrid=subgrid,
+                    )
                     for o in positions
                 ]
                 for n in cells
@@ -926,14 +955,17 @@ def surface_coupling_study(
         [closed_form(material, float(equivalent_radius(needle_radius, h, kind)), outer) for h in sizes]
     )
     result = convergence(sizes, values[False].mean(axis=1))
-    predicted_order = observed_order(predicted[-1], predicted[-2], predicted[-3], sizes[-2] / sizes[-1],
-                                     sizes[-3] / sizes[-2])
-    return SurfaceStudy(kind, needle_radius, cells, exact, values[False], values[True], result, predicted,
-                        predicted_order)
+    predicted_order = observed_order(
+        predicted[-1], predicted[-2], predicted[-3], sizes[-2] / sizes[-1], sizes[-3] / sizes[-2]
+    )
+    return SurfaceStudy(
+        kind, needle_radius, cells, exact, values[False], values[True], result, predicted, predicted_order
+    )
 
 
-def cylinder_radius_of(kind: str, stiffness: float, outer: float = OUTER,
-                       material: HookeMaterial = PAPER_TISSUE) -> float:
+def cylinder_radius_of(
+    kind: str, stiffness: float, outer: float = OUTER, material: HookeMaterial = PAPER_TISSUE
+) -> float:
     """The radius a [m] of the rigid cylinder whose closed-form K′ (clamped at R) is ``stiffness`` [N/m²].
 
     Inverts :func:`baguelin_stiffness` (lateral, increasing in a; bisection) or :func:`antiplane_stiffness`
@@ -945,17 +977,25 @@ def cylinder_radius_of(kind: str, stiffness: float, outer: float = OUTER,
         return outer * math.exp(-2.0 * math.pi * material.shear_modulus / stiffness)
     if kind != "lateral":
         raise ValueError(f"kind = {kind!r}; valid: 'lateral', 'axial'")
-    return float(brentq(lambda a: baguelin_stiffness(material, a, outer) - stiffness, 1e-9 * outer,
-                        (1.0 - 1e-9) * outer, xtol=1e-15 * outer))
+    return float(
+        brentq(
+            lambda a: baguelin_stiffness(material, a, outer) - stiffness,
+            1e-9 * outer,
+            (1.0 - 1e-9) * outer,
+            xtol=1e-15 * outer,
+        )
+    )
 
 
 def surface_offsets(study: SurfaceStudy, outer: float = OUTER) -> tuple[np.ndarray, np.ndarray]:
     """The rings' measured offsets (a − r)/h per level and position, of the bare surface coupling and of the
     model (for the model, the residual offset after its sub-grid term), shape (levels, positions) each."""
     sizes = np.array([2.0 * outer / n for n in study.cells])[:, None]
+
     def offsets(values):
         radii = np.vectorize(lambda k: cylinder_radius_of(study.kind, k, outer))(values)
         return (radii - study.needle_radius) / sizes
+
     return offsets(study.bare), offsets(study.model)
 
 
@@ -976,8 +1016,11 @@ def surface_coupling_results(study: SurfaceStudy) -> list[CaseResult]:
     formula = "K′ Baguelin et al. 1977" if kind == "lateral" else "K′_ax = 2πG/ln(R/r)"
     extrapolated = result.extrapolated
     band = result.uncertainty / extrapolated if result.kind == "monotone" else math.nan
-    order_error = (abs(result.order - study.predicted_order) / study.predicted_order
-                   if result.kind == "monotone" else math.inf)
+    order_error = (
+        abs(result.order - study.predicted_order) / study.predicted_order
+        if result.kind == "monotone"
+        else math.inf
+    )
     spread = float(np.max(np.abs(study.model[-1] - extrapolated)) / extrapolated)
     return [
         CaseResult(
@@ -1002,7 +1045,7 @@ def surface_coupling_results(study: SurfaceStudy) -> list[CaseResult]:
         ),
         CaseResult(
             name=f"needle r = {r_mm:g} mm, ring coupling (default), {kind}: {study.cells[-1]} cells, every "
-                 "position in that GCI band",
+            "position in that GCI band",
             reference=(
                 "the Richardson value above ± GCI |K′_f|; error max over positions |K′ − K′_ext| / K′_ext"
             ),
@@ -1018,8 +1061,10 @@ def surface_coupling_results(study: SurfaceStudy) -> list[CaseResult]:
 def case_surface_coupling() -> list[CaseResult]:
     """The paper's 8 mm needle coupled on its surface (h ≤ r on 16, 32, 64 cells): an observed order, lateral
     and axial."""
-    return [*surface_coupling_results(surface_coupling_study("lateral")),
-            *surface_coupling_results(surface_coupling_study("axial"))]
+    return [
+        *surface_coupling_results(surface_coupling_study("lateral")),
+        *surface_coupling_results(surface_coupling_study("axial")),
+    ]
 
 
 CASES: list[Callable[[], CaseResult | list[CaseResult]]] = [

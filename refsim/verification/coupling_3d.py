@@ -1,8 +1,9 @@
 """The needle's stiffness in 3-D under mesh refinement: the paper's cube and a clamped box (issue 9, item 2).
 
-Slow studies (minutes, gigabytes at the finest levels) behind ``tests/verification/test_coupling_convergence.py``
-and the tables of docs/coupling.md; the closed-form cases of ``refsim verify`` are in
-:mod:`refsim.verification.coupling`, whose needles, material and entry positions these use.
+Slow studies (minutes, gigabytes at the finest levels) behind
+``tests/verification/test_coupling_convergence.py`` and the tables of docs/coupling.md; the closed-form cases
+of ``refsim verify`` are in :mod:`refsim.verification.coupling`, whose needles, material and entry positions
+these use.
 """
 
 from __future__ import annotations
@@ -18,8 +19,15 @@ from refsim.materials import HookeMaterial
 from refsim.mesh.generators import box_mesh
 from refsim.verification.coupling import NEEDLE_PAPER, NEEDLE_THIN, PAPER_TISSUE, SURFACE_POSITIONS
 
-__all__ = ["BOX_CELLS", "BOX_DEPTH", "BOX_SIZE", "CUBE_CELLS", "CUBE_DEPTH", "box_surface_study",
-           "cube_needle_stiffness"]
+__all__ = [
+    "BOX_CELLS",
+    "BOX_DEPTH",
+    "BOX_SIZE",
+    "CUBE_CELLS",
+    "CUBE_DEPTH",
+    "box_surface_study",
+    "cube_needle_stiffness",
+]
 
 
 # ------------------------------------------------------------------------- the cube, 3-D, under refinement
@@ -70,10 +78,10 @@ def cube_needle_stiffness(
 
     Returns
     -------
-    {(coupling, needle radius, "lateral" | "axial"): K}, coupling "ring" (3-D sub-grid compliance of the finite
-    line, ``insertion.subgrid_line = "finite"``), "ring-infinite" (the plane-strain and antiplane values),
-    "surface" (the ring with no sub-grid compliance on the points coupled on the needle's surface, h ≤ r:
-    ``surface_subgrid=False``, infinite values elsewhere) or "paper".
+    {(coupling, needle radius, "lateral" | "axial"): K}, coupling "ring" (3-D sub-grid compliance of the
+    finite line, ``insertion.subgrid_line = "finite"``), "ring-infinite" (the plane-strain and antiplane
+    values), "surface" (the ring with no sub-grid compliance on the points coupled on the needle's surface, h
+    ≤ r: ``surface_subgrid=False``, infinite values elsewhere) or "paper".
     """
     from refsim.constraints.coupling import RingLayout, insertion_compliance, ring_insertion_block
     from refsim.constraints.insertion import InsertionPath, insertion_block
@@ -94,14 +102,27 @@ def cube_needle_stiffness(
         mesh_tets=tets, tissue_previous=rest, tissue_free=rest, needle_previous=needle, needle_free=needle
     )
     g, nu = material.shear_modulus, material.poisson_ratio
-    blocks = {("paper", radius): (insertion_block(path, geometry, friction_coefficient=1.0), None)
-              for radius in radii}
+    blocks = {
+        ("paper", radius): (insertion_block(path, geometry, friction_coefficient=1.0), None)
+        for radius in radii
+    }
     for radius in radii:
-        rings = RingLayout.around(path, rest_positions=rest, mesh_tets=tets, locator=locator,
-                                  tangents=needle.tangents(arc), needle_radius=radius)
+        rings = RingLayout.around(
+            path,
+            rest_positions=rest,
+            mesh_tets=tets,
+            locator=locator,
+            tangents=needle.tangents(arc),
+            needle_radius=radius,
+        )
         block = ring_insertion_block(path, geometry, rings, friction_coefficient=1.0)
-        common = dict(shear_modulus=g, poisson_ratio=nu, needle_radius=radius, mesh_size=rings.mesh_size,
-                      spacing=spacing)
+        common = dict(
+            shear_modulus=g,
+            poisson_ratio=nu,
+            needle_radius=radius,
+            mesh_size=rings.mesh_size,
+            spacing=spacing,
+        )
         blocks[("ring", radius)] = (block, insertion_compliance(block, **common, arc_lengths=arc))
         blocks[("ring-infinite", radius)] = (block, insertion_compliance(block, **common))
         blocks[("surface", radius)] = (block, insertion_compliance(block, **common, surface_subgrid=False))
@@ -167,8 +188,14 @@ def box_surface_study(
         raise ValueError(f"cells = {tuple(cells)}: h = {sizes.tolist()} m must be ≤ r = {needle_radius} m")
     runs = [
         [
-            cube_needle_stiffness(n, radii=(needle_radius,), depth=depth, size=size, clamp_sides=True,
-                                  entry=(o[0] * size / n, o[1] * size / n))
+            cube_needle_stiffness(
+                n,
+                radii=(needle_radius,),
+                depth=depth,
+                size=size,
+                clamp_sides=True,
+                entry=(o[0] * size / n, o[1] * size / n),
+            )
             for o in positions
         ]
         for n in cells

@@ -1,8 +1,8 @@
 """Force plots of a run with matplotlib (Agg backend, no display), read from the results file only.
 
-The force shown is the force on the needle base, taken quasi-statically as the opposite of the force of the tissue
-on the needle (``steps/needle_force`` = Σ λ n): F_base = −F. It is split along the unit direction t of the base
-segment (base towards tip): axial F_base·t (positive when the tissue resists insertion) and lateral
+The force shown is the force on the needle base, taken quasi-statically as the opposite of the force of the
+tissue on the needle (``steps/needle_force`` = Σ λ n): F_base = −F. It is split along the unit direction t of
+the base segment (base towards tip): axial F_base·t (positive when the tissue resists insertion) and lateral
 ‖F_base − (F_base·t) t‖.
 """
 
@@ -13,7 +13,14 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_result", "force_figure", "base_force_components", "lateral_stroke", "EVENT_STYLES", "LATERAL_STROKE_MIN"]
+__all__ = [
+    "plot_result",
+    "force_figure",
+    "base_force_components",
+    "lateral_stroke",
+    "EVENT_STYLES",
+    "LATERAL_STROKE_MIN",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -28,7 +35,8 @@ EVENT_STYLES = {
 
 
 def base_force_components(results) -> tuple[np.ndarray, np.ndarray]:
-    """Axial and lateral components [N] of the force on the needle base, each shape (s,) (see module notes)."""
+    """Axial and lateral components [N] of the force on the needle base, each shape (s,) (see module
+    notes)."""
     axial, lateral = results.axial_lateral_force()
     return -axial, lateral
 
@@ -56,26 +64,40 @@ def _mark_events(axis, results, positions: np.ndarray, *, label: bool, annotate:
         if where.size == 0 or not np.isfinite(positions[where[0]]):
             continue
         color, style = EVENT_STYLES.get(event.name, ("0.5", ":"))
-        axis.axvline(positions[where[0]], color=color, linestyle=style, linewidth=1.0,
-                     label=event.name if label and event.name not in seen else None)
+        axis.axvline(
+            positions[where[0]],
+            color=color,
+            linestyle=style,
+            linewidth=1.0,
+            label=event.name if label and event.name not in seen else None,
+        )
         seen.add(event.name)
         if annotate:
             text = event.name if np.isnan(event.force) else f"{event.name} {event.force:.2f} N"
             # Staggered heights so that labels of close events do not overlap.
-            axis.text(positions[where[0]], 0.97 - 0.09 * (number % 4), text, transform=transform, rotation=90,
-                      ha="right", va="top", fontsize=7, color=color,
-                      bbox={"facecolor": "white", "alpha": 0.75, "edgecolor": "none", "pad": 0.6})
+            axis.text(
+                positions[where[0]],
+                0.97 - 0.09 * (number % 4),
+                text,
+                transform=transform,
+                rotation=90,
+                ha="right",
+                va="top",
+                fontsize=7,
+                color=color,
+                bbox={"facecolor": "white", "alpha": 0.75, "edgecolor": "none", "pad": 0.6},
+            )
 
 
 def plot_result(path, output_png, *, dpi: int = 120) -> Path:
-    """Plot the force on the needle base against tip depth, time and, when the base moves sideways, the lateral
-    stroke, with the events marked.
+    """Plot the force on the needle base against tip depth, time and, when the base moves sideways, the
+    lateral stroke, with the events marked.
 
-    Left: axial and lateral force against the tip depth along the needle from the puncture point [mm] (omitted,
-    with a note, when the needle never punctured). Middle: the same against time [s], with the phases shaded.
-    Right, when the lateral stroke (:func:`lateral_stroke`) reaches ``LATERAL_STROKE_MIN``: the same against
-    the lateral stroke [mm], from the start of the lateral motion. Events (puncture, cut_start, tear, ...) are
-    vertical lines, each labelled with its own triggering force.
+    Left: axial and lateral force against the tip depth along the needle from the puncture point [mm]
+    (omitted, with a note, when the needle never punctured). Middle: the same against time [s], with the
+    phases shaded. Right, when the lateral stroke (:func:`lateral_stroke`) reaches ``LATERAL_STROKE_MIN``: the
+    same against the lateral stroke [mm], from the start of the lateral motion. Events (puncture, cut_start,
+    tear, ...) are vertical lines, each labelled with its own triggering force.
 
     Parameters
     ----------
@@ -122,8 +144,9 @@ def force_figure(results):
     by_depth, by_time = axes[0], axes[1]
 
     if np.all(np.isnan(depth_mm)):
-        by_depth.text(0.5, 0.5, "no puncture: depth undefined", ha="center", va="center",
-                      transform=by_depth.transAxes)
+        by_depth.text(
+            0.5, 0.5, "no puncture: depth undefined", ha="center", va="center", transform=by_depth.transAxes
+        )
     else:
         by_depth.plot(depth_mm, axial, color="#1f77b4", label="axial")
         by_depth.plot(depth_mm, lateral, color="#ff7f0e", label="lateral")
@@ -145,7 +168,8 @@ def force_figure(results):
     by_time.legend(loc="upper left", fontsize=8)
 
     if lateral_motion:
-        # Against the lateral stroke: the steps from the start of the lateral motion (1 % of its largest value).
+        # Against the lateral stroke: the steps from the start of the lateral motion (1 % of its largest
+        # value).
         by_stroke = axes[2]
         moving = stroke >= 0.01 * stroke.max()
         start = int(np.argmax(moving))
@@ -173,9 +197,14 @@ def _shade_phases(axis, results) -> None:
     ends = np.concatenate([changes, [phase.size]])
     dt = float(np.median(np.diff(results.time))) if results.time.size > 1 else 0.0
     labelled: set[str] = set()
-    for start, end in zip(starts, ends):
+    for start, end in zip(starts, ends, strict=False):
         name = results.phase_names[phase[start]]
         if name in colors:
-            axis.axvspan(results.time[start] - dt, results.time[end - 1], color=colors[name], alpha=0.07,
-                         label=None if name in labelled else f"{name} phase")
+            axis.axvspan(
+                results.time[start] - dt,
+                results.time[end - 1],
+                color=colors[name],
+                alpha=0.07,
+                label=None if name in labelled else f"{name} phase",
+            )
             labelled.add(name)

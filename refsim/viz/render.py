@@ -35,8 +35,13 @@ MOTION_COLOR = "#8e44ad"
 
 #: Named view directions (from the focus towards the camera) accepted by ``camera=``.
 NAMED_VIEWS = {
-    "iso": (1.0, 1.0, 1.0), "xy": (0.0, 0.0, 1.0), "yx": (0.0, 0.0, -1.0), "xz": (0.0, -1.0, 0.0),
-    "zx": (0.0, 1.0, 0.0), "yz": (1.0, 0.0, 0.0), "zy": (-1.0, 0.0, 0.0),
+    "iso": (1.0, 1.0, 1.0),
+    "xy": (0.0, 0.0, 1.0),
+    "yx": (0.0, 0.0, -1.0),
+    "xz": (0.0, -1.0, 0.0),
+    "zx": (0.0, 1.0, 0.0),
+    "yz": (1.0, 0.0, 0.0),
+    "zy": (-1.0, 0.0, 0.0),
 }
 #: Named focus choices accepted by ``focus=``.
 FOCUS_CHOICES = ("auto", "needle", "cut", "tissue")
@@ -55,10 +60,10 @@ def cut_surface_positions(results, step: int, tissue_positions: np.ndarray) -> t
     """The cut surface of ``step`` in the deformed tissue.
 
     Each rest-state point is carried by the tissue through its barycentric coordinates in its tet (the paper's
-    equation 4 applied with the current nodal positions). When the file does not hold the coordinates, they are
-    reconstructed by locating the rest-state point in the rest mesh: for linear tets the rest-state point has
-    the same barycentric coordinates as the deformed one, so this is exact (points off the mesh are clamped to
-    its closest point).
+    equation 4 applied with the current nodal positions). When the file does not hold the coordinates, they
+    are reconstructed by locating the rest-state point in the rest mesh: for linear tets the rest-state point
+    has the same barycentric coordinates as the deformed one, so this is exact (points off the mesh are
+    clamped to its closest point).
 
     Parameters
     ----------
@@ -83,7 +88,9 @@ def cut_surface_positions(results, step: int, tissue_positions: np.ndarray) -> t
     else:
         from refsim.geometry import TetLocator
 
-        tet_indices, barycentric, _ = TetLocator(results.rest_positions, results.tets).locate_nearest(rest_points)
+        tet_indices, barycentric, _ = TetLocator(results.rest_positions, results.tets).locate_nearest(
+            rest_points
+        )
     corners = tissue_positions[results.tets[tet_indices]]  # (p, 4, 3)
     return np.einsum("pk,pkd->pd", barycentric, corners), triangles
 
@@ -91,7 +98,6 @@ def cut_surface_positions(results, step: int, tissue_positions: np.ndarray) -> t
 def triangle_cells(triangles: np.ndarray) -> np.ndarray:
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     return np.hstack([np.full((triangles.shape[0], 1), 3, dtype=np.int64), triangles]).ravel()
-
 
 
 def parse_vector(text, name: str) -> np.ndarray:
@@ -114,7 +120,8 @@ def parse_vector(text, name: str) -> np.ndarray:
 
 @dataclass(frozen=True)
 class CameraView:
-    """A camera: position and focal point [m], shape (3,) each; unit view-up vector; vertical view angle [deg]."""
+    """A camera: position and focal point [m], shape (3,) each; unit view-up vector; vertical view angle
+    [deg]."""
 
     position: np.ndarray
     focal_point: np.ndarray
@@ -148,13 +155,14 @@ def _inserted_needle_nodes(results, index: int, locator) -> np.ndarray:
     return nodes[tets >= 0]
 
 
-def focus_points(results, step: int, tissue_positions: np.ndarray, cut_points: np.ndarray, focus="auto",
-                 locator=None) -> np.ndarray:
+def focus_points(
+    results, step: int, tissue_positions: np.ndarray, cut_points: np.ndarray, focus="auto", locator=None
+) -> np.ndarray:
     """Points the picture must hold, shape (q, 3) [m].
 
-    "auto": the needle's inserted part, its tip, the insertion points and the cut; before the needle reaches the
-    tissue, its tip and the closest point of the tissue's bounding box. "needle": the whole needle. "cut": the
-    cut (auto when there is none). "tissue": the tissue.
+    "auto": the needle's inserted part, its tip, the insertion points and the cut; before the needle reaches
+    the tissue, its tip and the closest point of the tissue's bounding box. "needle": the whole needle. "cut":
+    the cut (auto when there is none). "tissue": the tissue.
     """
     index = results.index_of(step)
     needle = results.needle_positions[index]
@@ -192,7 +200,8 @@ def frame_camera(
     locator=None,
     include=None,
 ) -> CameraView:
-    """The camera of a picture: aimed at the focus, far enough to hold it, from a direction that shows the cut.
+    """The camera of a picture: aimed at the focus, far enough to hold it, from a direction that shows the
+    cut.
 
     Parameters
     ----------
@@ -229,7 +238,9 @@ def frame_camera(
         focus = parse_vector(focus, "focus")
     if isinstance(focus, str):
         if focus not in FOCUS_CHOICES:
-            raise ValueError(f"focus = {focus!r}: expected one of {', '.join(FOCUS_CHOICES)} or a point x,y,z")
+            raise ValueError(
+                f"focus = {focus!r}: expected one of {', '.join(FOCUS_CHOICES)} or a point x,y,z"
+            )
         points = focus_points(results, step, tissue_positions, cut_points, focus, locator)
         if include is not None:
             points = np.concatenate([points, np.asarray(include, dtype=float).reshape(-1, 3)])
@@ -238,8 +249,10 @@ def frame_camera(
     else:
         centre = parse_vector(focus, "focus")
         points = focus_points(results, step, tissue_positions, cut_points, "auto", locator)
-        points = np.concatenate([points, centre[None, :]]
-                                + ([] if include is None else [np.asarray(include, dtype=float).reshape(-1, 3)]))
+        points = np.concatenate(
+            [points, centre[None, :]]
+            + ([] if include is None else [np.asarray(include, dtype=float).reshape(-1, 3)])
+        )
     radius = float(np.max(np.linalg.norm(points - centre, axis=1)))
     needle_radius = float(results.scene.get("needle", {}).get("radius", 0.0) or 0.0)
     extent = float(np.ptp(tissue_positions, axis=0).max())
@@ -259,13 +272,17 @@ def frame_camera(
     if camera is None or (isinstance(camera, str) and camera == "auto"):
         # Of the two sides of the cut (or of the needle), prefer one where the camera is outside the tissue.
         mirrored = _unit(direction - 2.0 * (direction - (direction @ axis) * axis))
-        inside = locator.locate(np.array([centre + distance * direction, centre + distance * mirrored]))[0] >= 0
+        inside = (
+            locator.locate(np.array([centre + distance * direction, centre + distance * mirrored]))[0] >= 0
+        )
         if inside[0] and not inside[1]:
             direction = mirrored
     return CameraView(centre + distance * direction, centre, up)
 
 
-def _view_direction(camera, axis: np.ndarray, cut_points: np.ndarray, cut_triangles: np.ndarray) -> np.ndarray:
+def _view_direction(
+    camera, axis: np.ndarray, cut_points: np.ndarray, cut_triangles: np.ndarray
+) -> np.ndarray:
     if isinstance(camera, str) and camera in NAMED_VIEWS:
         return _unit(np.array(NAMED_VIEWS[camera]))
     if camera is not None and camera != "auto":
@@ -299,9 +316,9 @@ def _view_direction(camera, axis: np.ndarray, cut_points: np.ndarray, cut_triang
 
 
 def _fixed_motion(results, tissue_positions: np.ndarray) -> np.ndarray:
-    """Displacement of the fixed nodes from rest [m], shape (c, 3): the prescribed boundary motion when there is
-    one (zero for clamped nodes). Taken from the recorded tissue positions, where fixed nodes sit exactly at
-    their prescribed positions, so it needs no boundary-motion dataset in the file."""
+    """Displacement of the fixed nodes from rest [m], shape (c, 3): the prescribed boundary motion when there
+    is one (zero for clamped nodes). Taken from the recorded tissue positions, where fixed nodes sit exactly
+    at their prescribed positions, so it needs no boundary-motion dataset in the file."""
     fixed = np.asarray(results.fixed_nodes, dtype=np.int64)
     return tissue_positions[fixed] - results.rest_positions[fixed]
 
@@ -314,8 +331,9 @@ class _Style:
     show_legend: bool = True
 
 
-def _draw_step(plotter, results, step: int, tissue_positions, cut_points, cut_triangles, view_size: float,
-               style: _Style) -> None:
+def _draw_step(
+    plotter, results, step: int, tissue_positions, cut_points, cut_triangles, view_size: float, style: _Style
+) -> None:
     """Add the actors of one step to a plotter (see :func:`render_result`), without rendering (each render
     through Mesa takes ~0.2 s; the screenshot renders once)."""
     import pyvista as pv
@@ -323,8 +341,16 @@ def _draw_step(plotter, results, step: int, tissue_positions, cut_points, cut_tr
     index = results.index_of(step)
     legend = []
     surface = pv.PolyData(tissue_positions, triangle_cells(results.faces))
-    plotter.add_mesh(surface, color=TISSUE_COLOR, opacity=style.tissue_opacity, show_edges=True,
-                     edge_color="#8c6d62", line_width=0.5, smooth_shading=False, render=False)
+    plotter.add_mesh(
+        surface,
+        color=TISSUE_COLOR,
+        opacity=style.tissue_opacity,
+        show_edges=True,
+        edge_color="#8c6d62",
+        line_width=0.5,
+        smooth_shading=False,
+        render=False,
+    )
     legend.append(["tissue", "#8c5a48"])
 
     radius = float(results.scene.get("needle", {}).get("radius", 0.0) or 0.0)
@@ -346,9 +372,11 @@ def _draw_step(plotter, results, step: int, tissue_positions, cut_points, cut_tr
 
     fixed = np.asarray(results.fixed_nodes, dtype=np.int64)
     if style.show_fixed and fixed.size:
-        cubes = pv.PolyData(tissue_positions[fixed]).glyph(geom=pv.Cube(x_length=1.4 * mark, y_length=1.4 * mark,
-                                                                         z_length=1.4 * mark),
-                                                            scale=False, orient=False)
+        cubes = pv.PolyData(tissue_positions[fixed]).glyph(
+            geom=pv.Cube(x_length=1.4 * mark, y_length=1.4 * mark, z_length=1.4 * mark),
+            scale=False,
+            orient=False,
+        )
         plotter.add_mesh(cubes, color=FIXED_COLOR, render=False)
         legend.append([f"fixed nodes ({fixed.size})", FIXED_COLOR])
         motion = _fixed_motion(results, tissue_positions)
@@ -358,19 +386,29 @@ def _draw_step(plotter, results, step: int, tissue_positions, cut_points, cut_tr
             shown = np.linspace(0, fixed.size - 1, min(fixed.size, 150)).astype(np.int64)
             arrows = pv.PolyData(tissue_positions[fixed[shown]])
             arrows["motion"] = motion[shown] * scale
-            plotter.add_mesh(arrows.glyph(orient="motion", scale="motion", factor=1.0, geom=pv.Arrow()),
-                             color=MOTION_COLOR, render=False)
+            plotter.add_mesh(
+                arrows.glyph(orient="motion", scale="motion", factor=1.0, geom=pv.Arrow()),
+                color=MOTION_COLOR,
+                render=False,
+            )
             legend.append([f"boundary motion (max {1e3 * largest:.2f} mm, x{scale:.3g})", MOTION_COLOR])
 
     if cut_triangles.size:
         cut = pv.PolyData(cut_points, triangle_cells(cut_triangles))
-        plotter.add_mesh(cut, color=CUT_COLOR, opacity=1.0, show_edges=True, edge_color="#7f1010",
-                         render=False)
-        legend.append([f"cut surface ({cut_points.shape[0]} points, {cut_triangles.shape[0]} triangles)",
-                       CUT_COLOR])
+        plotter.add_mesh(
+            cut, color=CUT_COLOR, opacity=1.0, show_edges=True, edge_color="#7f1010", render=False
+        )
+        legend.append(
+            [f"cut surface ({cut_points.shape[0]} points, {cut_triangles.shape[0]} triangles)", CUT_COLOR]
+        )
     elif cut_points.size:
-        plotter.add_mesh(pv.PolyData(cut_points), color=CUT_COLOR, point_size=8, render_points_as_spheres=True,
-                         render=False)
+        plotter.add_mesh(
+            pv.PolyData(cut_points),
+            color=CUT_COLOR,
+            point_size=8,
+            render_points_as_spheres=True,
+            render=False,
+        )
         legend.append([f"cut points ({cut_points.shape[0]})", CUT_COLOR])
 
     phase = results.phase_names[results.phase[index]]
@@ -378,7 +416,10 @@ def _draw_step(plotter, results, step: int, tissue_positions, cut_points, cut_tr
     tissue_note = "" if tissue_step == step else f" (tissue of step {tissue_step})"
     plotter.add_text(
         f"{results.scene_name}  step {step}  t = {results.time[index]:.3f} s  {phase}{tissue_note}",
-        position="upper_left", font_size=10, color="black", render=False,
+        position="upper_left",
+        font_size=10,
+        color="black",
+        render=False,
     )
     if style.show_legend:
         # A legend of coloured text lines at the upper right, usually over the background above the tissue
@@ -386,8 +427,13 @@ def _draw_step(plotter, results, step: int, tissue_positions, cut_points, cut_tr
         width, height = plotter.window_size
         line = max(14, int(0.03 * height))
         for row, (label, color) in enumerate(legend):
-            plotter.add_text(label, position=(int(0.6 * width), height - int(0.02 * height) - (row + 1) * line),
-                             font_size=max(7, int(0.42 * line * 72 / 96)), color=color, render=False)
+            plotter.add_text(
+                label,
+                position=(int(0.6 * width), height - int(0.02 * height) - (row + 1) * line),
+                font_size=max(7, int(0.42 * line * 72 / 96)),
+                color=color,
+                render=False,
+            )
 
 
 def _apply_camera(plotter, view: CameraView) -> None:
@@ -457,8 +503,18 @@ def render_result(
     results.index_of(step)
     tissue_positions = results.tissue_positions_at(step)
     cut_points, cut_triangles = cut_surface_positions(results, step, tissue_positions)
-    view = frame_camera(results, step, tissue_positions, cut_points, cut_triangles, camera=camera,
-                        view_up=view_up, zoom=zoom, focus=focus, aspect=width / height)
+    view = frame_camera(
+        results,
+        step,
+        tissue_positions,
+        cut_points,
+        cut_triangles,
+        camera=camera,
+        view_up=view_up,
+        zoom=zoom,
+        focus=focus,
+        aspect=width / height,
+    )
 
     prepare_offscreen()
     import pyvista as pv
@@ -467,8 +523,16 @@ def render_result(
     plotter = pv.Plotter(off_screen=True, window_size=[width, height])
     try:
         plotter.set_background("white")
-        _draw_step(plotter, results, step, tissue_positions, cut_points, cut_triangles, view_size,
-                   _Style(tissue_opacity))
+        _draw_step(
+            plotter,
+            results,
+            step,
+            tissue_positions,
+            cut_points,
+            cut_triangles,
+            view_size,
+            _Style(tissue_opacity),
+        )
         _apply_camera(plotter, view)
         plotter.render()
         output_png = Path(output_png)

@@ -9,8 +9,9 @@ Resumable: run it again after an interruption and only the missing runs are done
 
 ``--quick`` (for tests): the cube's d_i and mesh sweeps only, three levels, 0.4 s, on 2 to 4 cells.
 ``--liver``: also the d_i and d_c sweeps of ``liver/`` (liver_rigid, liver_flexible on the coarse phantom, the
-whole trajectory: 12 runs of about 1 min each on one core; the phantom has two mesh levels only, too few for an
-order); with ``--only liver_rigid_spacing liver_rigid_point_spacing liver_flexible_spacing`` the liver alone.
+whole trajectory: 12 runs of about 1 min each on one core; the phantom has two mesh levels only, too few for
+an order); with ``--only liver_rigid_spacing liver_rigid_point_spacing liver_flexible_spacing`` the liver
+alone.
 """
 
 from __future__ import annotations
@@ -39,8 +40,14 @@ def studies(quick: bool, only=None, liver: bool = False) -> list:
         sweep = spec.sweeps[0]
         values = (2, 3, 4) if sweep.key == "mesh.cells" else sweep.values[:3]
         base = short if sweep.key == "mesh.cells" else short + ("mesh.cells=[3, 3, 3]",)
-        quick_specs.append(dataclasses.replace(spec, name=spec.name + "_quick", overrides=base,
-                                               sweeps=(Sweep(sweep.key, tuple(values), sweep.measure),)))
+        quick_specs.append(
+            dataclasses.replace(
+                spec,
+                name=spec.name + "_quick",
+                overrides=base,
+                sweeps=(Sweep(sweep.key, tuple(values), sweep.measure),),
+            )
+        )
     return quick_specs
 
 
@@ -54,7 +61,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--scheduler", default=None)
     parser.add_argument("--only", nargs="+", help="study names (the .toml stems)")
     parser.add_argument("--quick", action="store_true", help="small and short (for tests)")
-    parser.add_argument("--liver", action="store_true", help="also the liver sweeps of liver/ (12 runs, about 1 min each)")
+    parser.add_argument(
+        "--liver", action="store_true", help="also the liver sweeps of liver/ (12 runs, about 1 min each)"
+    )
     parser.add_argument("-q", "--quiet", action="store_true")
     args = parser.parse_args(argv)
     output = Path(args.output)
@@ -62,17 +71,28 @@ def main(argv: list[str] | None = None) -> None:
     client, cluster = start_client(args.scheduler, args.workers)
     try:
         for spec in studies(args.quick, args.only, args.liver):
-            study = run_study(spec, output / f"{spec.name}.h5", client=client, warm_up=not args.quick,
-                              progress=not args.quiet)
-            print(f"{spec.name}: {study['attributes']['runs_complete']}/{study['attributes']['runs_total']} complete")
+            study = run_study(
+                spec,
+                output / f"{spec.name}.h5",
+                client=client,
+                warm_up=not args.quick,
+                progress=not args.quiet,
+            )
+            print(
+                f"{spec.name}: {study['attributes']['runs_complete']}/{study['attributes']['runs_total']} "
+                f"complete"
+            )
             for row in study["convergence"]:
-                print(f"  {row['quantity']:<28} {row['kind']:<11} p = {row['order']:6.3f}  "
-                      f"f_ext = {row['extrapolated']:.6g}  GCI = {100 * row['gci']:.3g} %")
+                print(
+                    f"  {row['quantity']:<28} {row['kind']:<11} p = {row['order']:6.3f}  "
+                    f"f_ext = {row['extrapolated']:.6g}  GCI = {100 * row['gci']:.3g} %"
+                )
 
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
+
 
 if __name__ == "__main__":
     main()

@@ -57,8 +57,10 @@ def main(argv: list[str]) -> None:
     _, w1, c1 = timed(False)
     before, after = np.median(seconds[True]), np.median(seconds[False])
     print(f"former {1e3 * before:.2f} ms, current {1e3 * after:.2f} ms, ratio {before / after:.2f}")
-    print(f"relative difference: W {np.abs(w0 - w1).max() / np.abs(w0).max():.1e}, "
-          f"correction {np.abs(c0 - c1).max() / np.abs(c0).max():.1e}")
+    print(
+        f"relative difference: W {np.abs(w0 - w1).max() / np.abs(w0).max():.1e}, "
+        f"correction {np.abs(c0 - c1).max() / np.abs(c0).max():.1e}"
+    )
 
 
 if __name__ == "__main__":

@@ -27,11 +27,16 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--solver", default="gauss_seidel", choices=("gauss_seidel", "exact"))
     args = parser.parse_args(argv)
-    print("| case | cut start | tears | extent [mm] | stroke [mm] | needle-to-cut [mm] | its bound [mm] | disc | peak [N] "
-          "| ms/cutting step | sweeps mean (max) | not converged | min λ_min/λ_max |")
+    print(
+        "| case | cut start | tears | extent [mm] | stroke [mm] | needle-to-cut [mm] | its bound [mm] | disc "
+        "| peak [N] "
+        "| ms/cutting step | sweeps mean (max) | not converged | min λ_min/λ_max |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, case in sorted(CASES.items()):
-        case = CuttingCase(**{**case.__dict__, "overrides": case.overrides + (f'solver.method="{args.solver}"',)})
+        case = CuttingCase(
+            **{**case.__dict__, "overrides": case.overrides + (f'solver.method="{args.solver}"',)}
+        )
         run = run_case(case)
         # The simulation's own time per cutting step (its stages; not this script's measurements).
         cutting = [sum(r.stage_seconds.values()) for r in run.records if r.phase == "cutting"]
@@ -39,13 +44,18 @@ def main(argv=None) -> int:
         sweeps = [r.solver.iterations for r in run.records if r.phase == "cutting" and r.solver is not None]
         failed = sum(1 for r in run.records if r.solver is not None and not r.solver.converged)
         ratio = min(b.smallest / b.largest for b in run.blocks) if run.blocks else float("nan")
-        # The bound of the step where the needle is farthest from the cut (C λ plus the linearisation's share).
+        # The bound of the step where the needle is farthest from the cut (C λ plus the linearisation's
+        # share).
         worst = max(run.offsets, key=lambda o: o[1]) if run.offsets else (0, 0.0, 0.0)
-        print(f"| {name} | {run.first('cut_start')} | {run.count('tear')} | {run.extent() * 1e3:.2f} | "
-              f"{np.linalg.norm(case.stroke) * 1e3:.1f} | {run.needle_to_cut * 1e3:.3f} | {worst[2] * 1e3:.3f} | "
-              f"{run.topology.is_disc} | "
-              f"{peak:.2f} | {1e3 * np.mean(cutting):.0f} | {np.mean(sweeps):.1f} ({max(sweeps)}) | {failed} | "
-              f"{ratio:.2f} |", flush=True)
+        print(
+            f"| {name} | {run.first('cut_start')} | {run.count('tear')} | {run.extent() * 1e3:.2f} | "
+            f"{np.linalg.norm(case.stroke) * 1e3:.1f} | {run.needle_to_cut * 1e3:.3f} | {worst[2] * 1e3:.3f} "
+            f"| "
+            f"{run.topology.is_disc} | "
+            f"{peak:.2f} | {1e3 * np.mean(cutting):.0f} | {np.mean(sweeps):.1f} ({max(sweeps)}) | {failed} | "
+            f"{ratio:.2f} |",
+            flush=True,
+        )
     return 0
 
 

@@ -27,7 +27,9 @@ def main(argv=None) -> None:
     simulation = Simulation(scene)
     records = []
     simulation.run(steps=args.steps, on_step=lambda state, record: records.append(record))
-    print(f"cube {args.cells}^3 cells, {len(records)} steps, tissue recorded every {scene.output.tissue_every}")
+    print(
+        f"cube {args.cells}^3 cells, {len(records)} steps, tissue recorded every {scene.output.tissue_every}"
+    )
     with tempfile.TemporaryDirectory() as folder:
         for block in (1, 8, 32, 128):
             best = float("inf")

@@ -5,16 +5,17 @@ process, on the paper's cube reduced to 3³ cells and a few steps, and is classi
 
 - **well**: the expected exit code (2 bad input, 3 numerical problem or failed write, 130 SIGINT, 143 SIGTERM,
   0 with the expected warning for inputs refsim repairs or only warns about), a message naming what the case
-  expects (the key, the file, the cause), no file after exit 2, a readable file with ``complete = false`` and a
-  stored reason after 3, 130 and 143;
-- **poorly**: reported, but with another exit code, a message that misses the key, or a file left in a wrong state;
+  expects (the key, the file, the cause), no file after exit 2, a readable file with ``complete = false`` and
+  a stored reason after 3, 130 and 143;
+- **poorly**: reported, but with another exit code, a message that misses the key, or a file left in a wrong
+  state;
 - **crashed**: a traceback, an "internal error", or a death by a signal (a segfault);
 - **silent**: exit 0 without the expected error or warning (a wrong answer given as a right one).
 
     python studies/faults/probe.py [--markdown table.md] [--only NAME ...] [--tree CHECKOUT]
 
-``--tree`` probes another checkout of refsim (e.g. the issue's 132aab8, unpacked with ``git archive``) with the
-same cases, for a before/after comparison.
+``--tree`` probes another checkout of refsim (e.g. the issue's 132aab8, unpacked with ``git archive``) with
+the same cases, for a before/after comparison.
 
 The table and the counts in docs/faults.md come from this script.
 """
@@ -98,8 +99,12 @@ SCENE_WITH_MESH = textwrap.dedent("""
 
 
 def mesh_case(name: str, kind: str, make: str, code: int = 2, fragments=(), warning: str = "") -> Case:
-    setup = MESH_SETUP + make + f"\nMESH = {name!r}\nimport refsim\nfrom pathlib import Path\n" + SCENE_WITH_MESH
-    return Case(name, kind, code=code, fragments=fragments, warning=warning, scene="{dir}/scene.toml", setup=setup)
+    setup = (
+        MESH_SETUP + make + f"\nMESH = {name!r}\nimport refsim\nfrom pathlib import Path\n" + SCENE_WITH_MESH
+    )
+    return Case(
+        name, kind, code=code, fragments=fragments, warning=warning, scene="{dir}/scene.toml", setup=setup
+    )
 
 
 INJECT = textwrap.dedent("""
@@ -121,196 +126,506 @@ def inject_case(name: str, kind: str, poison: str, fragments=()) -> Case:
 
 CASES = [
     # ---------------------------------------------------------------- scene values (--set)
-    Case("string_rigid_modulus", "string in a numeric key (rigid needle's modulus)",
-         s('needle.youngs_modulus="soft"'), fragments=("override --set", "needle.youngs_modulus")),
-    Case("string_spacing", "bare word in a numeric key (insertion.spacing=abc)", s("insertion.spacing=abc"),
-         fragments=("override --set", "insertion.spacing")),
-    Case("string_dt", "quoted number (time.dt = \"0.01\")", s('time.dt="0.01"'), fragments=("time.dt",)),
-    Case("string_flexible_modulus", "string modulus on a flexible needle",
-         s('needle.rigid=false; needle.youngs_modulus="soft"'), fragments=("needle.youngs_modulus",)),
+    Case(
+        "string_rigid_modulus",
+        "string in a numeric key (rigid needle's modulus)",
+        s('needle.youngs_modulus="soft"'),
+        fragments=("override --set", "needle.youngs_modulus"),
+    ),
+    Case(
+        "string_spacing",
+        "bare word in a numeric key (insertion.spacing=abc)",
+        s("insertion.spacing=abc"),
+        fragments=("override --set", "insertion.spacing"),
+    ),
+    Case("string_dt", 'quoted number (time.dt = "0.01")', s('time.dt="0.01"'), fragments=("time.dt",)),
+    Case(
+        "string_flexible_modulus",
+        "string modulus on a flexible needle",
+        s('needle.rigid=false; needle.youngs_modulus="soft"'),
+        fragments=("needle.youngs_modulus",),
+    ),
     Case("negative_radius", "negative needle radius", s("needle.radius=-1"), fragments=("needle.radius",)),
-    Case("poisson_half", "Poisson's ratio 0.5 (incompressible)", s("tissue.poisson_ratio=0.5"),
-         fragments=("tissue.poisson_ratio",)),
-    Case("density_overflow", "tissue density 1e300 (overflow)", s("tissue.density=1e300"),
-         fragments=("tissue.density",)),
-    Case("modulus_overflow", "tissue Young's modulus 1e308", s("tissue.youngs_modulus=1e308"),
-         fragments=("tissue.youngs_modulus",)),
-    Case("modulus_zero", "tissue Young's modulus 0", s("tissue.youngs_modulus=0"),
-         fragments=("tissue.youngs_modulus",)),
-    Case("element_count_float", "non-integer element count", s("needle.element_count=16.5"),
-         fragments=("needle.element_count",)),
-    Case("element_count_zero", "zero beam elements", s("needle.element_count=0"),
-         fragments=("needle.element_count",)),
-    Case("cells_two", "mesh.cells with 2 numbers", s("mesh.cells=[8, 8]"), fragments=("mesh.cells",), small=False),
-    Case("cells_zero", "zero cells along an axis", s("mesh.cells=[0, 4, 4]"), fragments=("mesh.cells",),
-         small=False),
+    Case(
+        "poisson_half",
+        "Poisson's ratio 0.5 (incompressible)",
+        s("tissue.poisson_ratio=0.5"),
+        fragments=("tissue.poisson_ratio",),
+    ),
+    Case(
+        "density_overflow",
+        "tissue density 1e300 (overflow)",
+        s("tissue.density=1e300"),
+        fragments=("tissue.density",),
+    ),
+    Case(
+        "modulus_overflow",
+        "tissue Young's modulus 1e308",
+        s("tissue.youngs_modulus=1e308"),
+        fragments=("tissue.youngs_modulus",),
+    ),
+    Case(
+        "modulus_zero",
+        "tissue Young's modulus 0",
+        s("tissue.youngs_modulus=0"),
+        fragments=("tissue.youngs_modulus",),
+    ),
+    Case(
+        "element_count_float",
+        "non-integer element count",
+        s("needle.element_count=16.5"),
+        fragments=("needle.element_count",),
+    ),
+    Case(
+        "element_count_zero",
+        "zero beam elements",
+        s("needle.element_count=0"),
+        fragments=("needle.element_count",),
+    ),
+    Case(
+        "cells_two",
+        "mesh.cells with 2 numbers",
+        s("mesh.cells=[8, 8]"),
+        fragments=("mesh.cells",),
+        small=False,
+    ),
+    Case(
+        "cells_zero",
+        "zero cells along an axis",
+        s("mesh.cells=[0, 4, 4]"),
+        fragments=("mesh.cells",),
+        small=False,
+    ),
     Case("rigid_int", "1 for a boolean key", s("needle.rigid=1"), fragments=("needle.rigid",)),
     Case("dt_zero", "dt = 0", s("time.dt=0"), fragments=("time.dt",)),
     Case("dt_nan", "dt = nan", s("time.dt=nan"), fragments=("time.dt",)),
-    Case("duration_not_multiple", "duration not a multiple of dt", s("time.duration=0.105"),
-         fragments=("time.duration", "whole number")),
-    Case("duration_short", "duration shorter than dt", s("time.duration=0.001"), fragments=("time.duration",)),
-    Case("puncture_zero", "f_p = 0 (puncture in the air)", s("insertion.puncture_force=0"),
-         fragments=("insertion.puncture_force",)),
-    Case("puncture_negative", "negative f_p", s("insertion.puncture_force=-1"),
-         fragments=("insertion.puncture_force",)),
-    Case("spacing_longer_than_needle", "d_i = 1 m for a 0.32 m needle", s("insertion.spacing=1"),
-         fragments=("insertion.spacing", "needle.length")),
-    Case("radius_wider_than_tissue", "needle radius wider than the tissue", s("needle.radius=0.06"),
-         fragments=("needle.radius",)),
-    Case("dt_too_coarse", "dt = 0.5 s: the tip jumps the contact zone", s("time.dt=0.5; time.duration=2.0"),
-         fragments=("time.dt", "contact_distance")),
-    Case("dt_beyond_spacing", "dt = 0.1 s: several insertion points per step (warning)",
-         s("time.dt=0.1; time.duration=0.3"), code=0, warning="several insertion points"),
-    Case("antiparallel_directions", "antiparallel consecutive directions",
-         s("trajectory.directions=[[0, 0, -1], [0, 0, 1], [0, 0, 1]]"), fragments=("trajectory.directions", "180")),
-    Case("obtuse_directions", "directions 95 degrees apart",
-         s("trajectory.directions=[[0, 0, -1], [1, 0, 0.1], [1, 0, 0.1]]"), fragments=("trajectory.directions",)),
-    Case("zero_direction", "zero direction", s("trajectory.directions=[[0, 0, 0], [0, 0, -1], [0, 0, -1]]"),
-         fragments=("trajectory.directions",)),
-    Case("times_decreasing", "waypoint times not increasing", s("trajectory.times=[0, 2, 1]"),
-         fragments=("trajectory.times",)),
-    Case("positions_rows", "base_positions with a missing row",
-         s("trajectory.base_positions=[[0, 0, 0.422], [0, 0, 0.403]]"), fragments=("trajectory.base_positions",)),
-    Case("needle_inside", "needle inside the tissue at t = 0", s(f"trajectory.base_positions={FAR}"),
-         fragments=("inside the tissue",)),
-    Case("needle_never_reaches", "the needle never comes near the tissue (warning)",
-         s("trajectory.base_positions=[[1, 1, 1.5], [1, 1, 1.5], [1, 1, 1.5]]"), code=0, warning="never comes"),
-    Case("unknown_backend", "unknown QP backend", s('solver.method="exact"; solver.backend="nosuch"'),
-         fragments=("solver.backend",)),
-    Case("unknown_method", "unknown solver method", s('solver.method="newton"'), fragments=("solver.method",)),
+    Case(
+        "duration_not_multiple",
+        "duration not a multiple of dt",
+        s("time.duration=0.105"),
+        fragments=("time.duration", "whole number"),
+    ),
+    Case(
+        "duration_short", "duration shorter than dt", s("time.duration=0.001"), fragments=("time.duration",)
+    ),
+    Case(
+        "puncture_zero",
+        "f_p = 0 (puncture in the air)",
+        s("insertion.puncture_force=0"),
+        fragments=("insertion.puncture_force",),
+    ),
+    Case(
+        "puncture_negative",
+        "negative f_p",
+        s("insertion.puncture_force=-1"),
+        fragments=("insertion.puncture_force",),
+    ),
+    Case(
+        "spacing_longer_than_needle",
+        "d_i = 1 m for a 0.32 m needle",
+        s("insertion.spacing=1"),
+        fragments=("insertion.spacing", "needle.length"),
+    ),
+    Case(
+        "radius_wider_than_tissue",
+        "needle radius wider than the tissue",
+        s("needle.radius=0.06"),
+        fragments=("needle.radius",),
+    ),
+    Case(
+        "dt_too_coarse",
+        "dt = 0.5 s: the tip jumps the contact zone",
+        s("time.dt=0.5; time.duration=2.0"),
+        fragments=("time.dt", "contact_distance"),
+    ),
+    Case(
+        "dt_beyond_spacing",
+        "dt = 0.1 s: several insertion points per step (warning)",
+        s("time.dt=0.1; time.duration=0.3"),
+        code=0,
+        warning="several insertion points",
+    ),
+    Case(
+        "antiparallel_directions",
+        "antiparallel consecutive directions",
+        s("trajectory.directions=[[0, 0, -1], [0, 0, 1], [0, 0, 1]]"),
+        fragments=("trajectory.directions", "180"),
+    ),
+    Case(
+        "obtuse_directions",
+        "directions 95 degrees apart",
+        s("trajectory.directions=[[0, 0, -1], [1, 0, 0.1], [1, 0, 0.1]]"),
+        fragments=("trajectory.directions",),
+    ),
+    Case(
+        "zero_direction",
+        "zero direction",
+        s("trajectory.directions=[[0, 0, 0], [0, 0, -1], [0, 0, -1]]"),
+        fragments=("trajectory.directions",),
+    ),
+    Case(
+        "times_decreasing",
+        "waypoint times not increasing",
+        s("trajectory.times=[0, 2, 1]"),
+        fragments=("trajectory.times",),
+    ),
+    Case(
+        "positions_rows",
+        "base_positions with a missing row",
+        s("trajectory.base_positions=[[0, 0, 0.422], [0, 0, 0.403]]"),
+        fragments=("trajectory.base_positions",),
+    ),
+    Case(
+        "needle_inside",
+        "needle inside the tissue at t = 0",
+        s(f"trajectory.base_positions={FAR}"),
+        fragments=("inside the tissue",),
+    ),
+    Case(
+        "needle_never_reaches",
+        "the needle never comes near the tissue (warning)",
+        s("trajectory.base_positions=[[1, 1, 1.5], [1, 1, 1.5], [1, 1, 1.5]]"),
+        code=0,
+        warning="never comes",
+    ),
+    Case(
+        "unknown_backend",
+        "unknown QP backend",
+        s('solver.method="exact"; solver.backend="nosuch"'),
+        fragments=("solver.backend",),
+    ),
+    Case(
+        "unknown_method", "unknown solver method", s('solver.method="newton"'), fragments=("solver.method",)
+    ),
     Case("tolerance_large", "solver tolerance 2", s("solver.tolerance=2"), fragments=("solver.tolerance",)),
-    Case("max_iterations_zero", "zero solver iterations", s("solver.max_iterations=0"),
-         fragments=("solver.max_iterations",)),
-    Case("unknown_key", "unknown key (blamed on the override)", s("needle.colour=1"),
-         fragments=("override --set", "needle.colour")),
+    Case(
+        "max_iterations_zero",
+        "zero solver iterations",
+        s("solver.max_iterations=0"),
+        fragments=("solver.max_iterations",),
+    ),
+    Case(
+        "unknown_key",
+        "unknown key (blamed on the override)",
+        s("needle.colour=1"),
+        fragments=("override --set", "needle.colour"),
+    ),
     Case("unknown_section", "unknown section in an override", s("foo.bar=1"), fragments=("foo",)),
-    Case("malformed_override", "override without section.key=", ["--set", "nonsense"],
-         fragments=("section.key=value",)),
-    Case("tissue_every_zero", "output.tissue_every = 0", s("output.tissue_every=0"),
-         fragments=("output.tissue_every",)),
-    Case("angles_crossed", "min_angle not below max_angle", s("cutting.max_angle=60; cutting.min_angle=60"),
-         fragments=("cutting.min_angle",)),
+    Case(
+        "malformed_override",
+        "override without section.key=",
+        ["--set", "nonsense"],
+        fragments=("section.key=value",),
+    ),
+    Case(
+        "tissue_every_zero",
+        "output.tissue_every = 0",
+        s("output.tissue_every=0"),
+        fragments=("output.tissue_every",),
+    ),
+    Case(
+        "angles_crossed",
+        "min_angle not below max_angle",
+        s("cutting.max_angle=60; cutting.min_angle=60"),
+        fragments=("cutting.min_angle",),
+    ),
     Case("bad_face", "unknown fixed face", s('mesh.fixed_faces=["top"]'), fragments=("mesh.fixed_faces",)),
     Case("no_fixed_nodes", "no fixed nodes", s("mesh.fixed_faces=[]"), fragments=("fixed",)),
-    Case("all_fixed", "face tolerance that fixes every node", s("mesh.face_tolerance=1"),
-         fragments=("mesh.face_tolerance", "every node")),
-    Case("gravity_overflow", "gravity 1e300 m/s²", s("tissue.gravity=[0, 0, -1e300]"),
-         fragments=("tissue.gravity",)),
-    Case("mesh_in_millimetres", "a tissue 1000 times too large (mesh in mm read as m: warning)",
-         s("mesh.size=[100, 100, 100]; mesh.origin=[-50, -50, -100.3]"), code=0, warning="millimetres"),
+    Case(
+        "all_fixed",
+        "face tolerance that fixes every node",
+        s("mesh.face_tolerance=1"),
+        fragments=("mesh.face_tolerance", "every node"),
+    ),
+    Case(
+        "gravity_overflow",
+        "gravity 1e300 m/s²",
+        s("tissue.gravity=[0, 0, -1e300]"),
+        fragments=("tissue.gravity",),
+    ),
+    Case(
+        "mesh_in_millimetres",
+        "a tissue 1000 times too large (mesh in mm read as m: warning)",
+        s("mesh.size=[100, 100, 100]; mesh.origin=[-50, -50, -100.3]"),
+        code=0,
+        warning="millimetres",
+    ),
     # ---------------------------------------------------------------- scene files
-    Case("scene_missing", "scene file missing", scene="{dir}/none.toml", fragments=("none.toml", "not found")),
-    Case("scene_unknown_name", "neither a file nor a built-in scene", scene="no_such_scene",
-         fragments=("neither a scene file",)),
-    Case("scene_bad_toml", "invalid TOML", scene="{dir}/bad.toml", setup="(folder / 'bad.toml').write_text('[mesh\\n')",
-         fragments=("bad.toml", "not valid TOML")),
-    Case("scene_missing_key", "required key missing in the file", scene="{dir}/scene.toml",
-         setup="import refsim\nfrom pathlib import Path\n(folder / 'scene.toml').write_text((Path(refsim.__file__).parent"
-               " / 'scenes' / 'cube.toml').read_text().replace('puncture_force = 0.8', ''))",
-         fragments=("scene.toml", "insertion.puncture_force")),
-    Case("scene_missing_section", "section missing in the file", scene="{dir}/scene.toml",
-         setup="import refsim, re\nfrom pathlib import Path\ntext = (Path(refsim.__file__).parent / 'scenes' / "
-               "'cube.toml').read_text()\n(folder / 'scene.toml').write_text(text.split('[solver]')[0])",
-         fragments=("missing section [solver]",)),
-    Case("string_in_file", "a string in a numeric key of the file", scene="{dir}/scene.toml",
-         setup="import refsim\nfrom pathlib import Path\n(folder / 'scene.toml').write_text((Path(refsim.__file__)."
-               "parent / 'scenes' / 'cube.toml').read_text().replace('dt = 0.01', 'dt = \"0.01\"'))",
-         fragments=("scene.toml", "time.dt")),
+    Case(
+        "scene_missing", "scene file missing", scene="{dir}/none.toml", fragments=("none.toml", "not found")
+    ),
+    Case(
+        "scene_unknown_name",
+        "neither a file nor a built-in scene",
+        scene="no_such_scene",
+        fragments=("neither a scene file",),
+    ),
+    Case(
+        "scene_bad_toml",
+        "invalid TOML",
+        scene="{dir}/bad.toml",
+        setup="(folder / 'bad.toml').write_text('[mesh\\n')",
+        fragments=("bad.toml", "not valid TOML"),
+    ),
+    Case(
+        "scene_missing_key",
+        "required key missing in the file",
+        scene="{dir}/scene.toml",
+        setup="import refsim\nfrom pathlib import Path\n(folder / "
+        "'scene.toml').write_text((Path(refsim.__file__).parent"
+        " / 'scenes' / 'cube.toml').read_text().replace('puncture_force = 0.8', ''))",
+        fragments=("scene.toml", "insertion.puncture_force"),
+    ),
+    Case(
+        "scene_missing_section",
+        "section missing in the file",
+        scene="{dir}/scene.toml",
+        setup="import refsim, re\nfrom pathlib import Path\ntext = (Path(refsim.__file__).parent / 'scenes' "
+        "/ "
+        "'cube.toml').read_text()\n(folder / 'scene.toml').write_text(text.split('[solver]')[0])",
+        fragments=("missing section [solver]",),
+    ),
+    Case(
+        "string_in_file",
+        "a string in a numeric key of the file",
+        scene="{dir}/scene.toml",
+        setup="import refsim\nfrom pathlib import Path\n(folder / "
+        "'scene.toml').write_text((Path(refsim.__file__)."
+        "parent / 'scenes' / 'cube.toml').read_text().replace('dt = 0.01', 'dt = \"0.01\"'))",
+        fragments=("scene.toml", "time.dt"),
+    ),
     # ---------------------------------------------------------------- meshes
     mesh_case("missing.vtu", "mesh file missing", "", fragments=("missing.vtu", "does not exist")),
-    mesh_case("cut.vtu", "truncated .vtu", "save('cut.vtu', positions, tets); truncate('cut.vtu')",
-              fragments=("cut.vtu", "truncated")),
-    mesh_case("cut22.msh", "truncated Gmsh 2.2", "save('cut22.msh', positions, tets, 'gmsh22'); truncate('cut22.msh')",
-              fragments=("cut22.msh", "truncated")),
-    mesh_case("cut41.msh", "truncated Gmsh 4.1", "save('cut41.msh', positions, tets, 'gmsh'); truncate('cut41.msh', 0.9)",
-              fragments=("cut41.msh", "truncated")),
-    mesh_case("garbage.vtk", "random bytes as a mesh",
-              "(folder / 'garbage.vtk').write_bytes(np.random.default_rng(0).integers(0, 256, 999, dtype=np.uint8).tobytes())",
-              fragments=("garbage.vtk",)),
-    mesh_case("empty.vtu", "empty mesh file", "(folder / 'empty.vtu').write_bytes(b'')", fragments=("empty",)),
-    mesh_case("loose.vtu", "unmerged duplicate nodes (merged: warning)",
-              "p = positions[tets].reshape(-1, 3); save('loose.vtu', p, np.arange(len(p)).reshape(-1, 4))",
-              code=0, warning="merged"),
-    mesh_case("inverted.vtu", "inverted tetrahedra (fixed: warning)",
-              "t = tets.copy(); t[::2] = t[::2][:, [0, 1, 3, 2]]; save('inverted.vtu', positions, t)",
-              code=0, warning="orientation"),
-    mesh_case("flat.vtu", "a degenerate (zero-volume) tetrahedron",
-              "save('flat.vtu', positions, np.vstack([tets, [[0, 1, 2, 2]]]))", fragments=("degenerate",)),
-    mesh_case("nan.vtu", "NaN node coordinate", "p = positions.copy(); p[3, 1] = np.nan; save('nan.vtu', p, tets)",
-              fragments=("non-finite",)),
-    mesh_case("index.vtu", "node index out of range",
-              "t = tets.copy(); t[0, 0] = len(positions) + 3; save('index.vtu', positions, t)",
-              fragments=("out of range",)),
-    mesh_case("surface.vtu", "surface mesh only (no tetrahedra)",
-              "save('surface.vtu', positions, tets[:, :3], cells='triangle')", fragments=("no tetrahedra",)),
-    mesh_case("overlap.vtu", "duplicated elements (a face shared by 3 tets)",
-              "save('overlap.vtu', positions, np.vstack([tets, tets[:1]]))", fragments=("more than two",)),
+    mesh_case(
+        "cut.vtu",
+        "truncated .vtu",
+        "save('cut.vtu', positions, tets); truncate('cut.vtu')",
+        fragments=("cut.vtu", "truncated"),
+    ),
+    mesh_case(
+        "cut22.msh",
+        "truncated Gmsh 2.2",
+        "save('cut22.msh', positions, tets, 'gmsh22'); truncate('cut22.msh')",
+        fragments=("cut22.msh", "truncated"),
+    ),
+    mesh_case(
+        "cut41.msh",
+        "truncated Gmsh 4.1",
+        "save('cut41.msh', positions, tets, 'gmsh'); truncate('cut41.msh', 0.9)",
+        fragments=("cut41.msh", "truncated"),
+    ),
+    mesh_case(
+        "garbage.vtk",
+        "random bytes as a mesh",
+        "(folder / 'garbage.vtk').write_bytes(np.random.default_rng(0).integers(0, 256, 999, "
+        "dtype=np.uint8).tobytes())",
+        fragments=("garbage.vtk",),
+    ),
+    mesh_case(
+        "empty.vtu", "empty mesh file", "(folder / 'empty.vtu').write_bytes(b'')", fragments=("empty",)
+    ),
+    mesh_case(
+        "loose.vtu",
+        "unmerged duplicate nodes (merged: warning)",
+        "p = positions[tets].reshape(-1, 3); save('loose.vtu', p, np.arange(len(p)).reshape(-1, 4))",
+        code=0,
+        warning="merged",
+    ),
+    mesh_case(
+        "inverted.vtu",
+        "inverted tetrahedra (fixed: warning)",
+        "t = tets.copy(); t[::2] = t[::2][:, [0, 1, 3, 2]]; save('inverted.vtu', positions, t)",
+        code=0,
+        warning="orientation",
+    ),
+    mesh_case(
+        "flat.vtu",
+        "a degenerate (zero-volume) tetrahedron",
+        "save('flat.vtu', positions, np.vstack([tets, [[0, 1, 2, 2]]]))",
+        fragments=("degenerate",),
+    ),
+    mesh_case(
+        "nan.vtu",
+        "NaN node coordinate",
+        "p = positions.copy(); p[3, 1] = np.nan; save('nan.vtu', p, tets)",
+        fragments=("non-finite",),
+    ),
+    mesh_case(
+        "index.vtu",
+        "node index out of range",
+        "t = tets.copy(); t[0, 0] = len(positions) + 3; save('index.vtu', positions, t)",
+        fragments=("out of range",),
+    ),
+    mesh_case(
+        "surface.vtu",
+        "surface mesh only (no tetrahedra)",
+        "save('surface.vtu', positions, tets[:, :3], cells='triangle')",
+        fragments=("no tetrahedra",),
+    ),
+    mesh_case(
+        "overlap.vtu",
+        "duplicated elements (a face shared by 3 tets)",
+        "save('overlap.vtu', positions, np.vstack([tets, tets[:1]]))",
+        fragments=("more than two",),
+    ),
     # ---------------------------------------------------------------- trajectory files
-    Case("csv_missing", "trajectory CSV missing", scene="{dir}/scene.toml",
-         setup="import refsim\nfrom pathlib import Path\nt = (Path(refsim.__file__).parent / 'scenes' / 'cube.toml')"
-               ".read_text()\nimport re\nt = re.sub(r'times = .*?\\ndirections = [^\\n]*\\n', 'file = \"none.csv\"\\n', t,"
-               " flags=re.S)\n(folder / 'scene.toml').write_text(t)", fragments=("none.csv",)),
-    Case("csv_antiparallel", "trajectory CSV with antiparallel directions", scene="{dir}/scene.toml",
-         setup="import refsim\nfrom pathlib import Path\nt = (Path(refsim.__file__).parent / 'scenes' / 'cube.toml')"
-               ".read_text()\nimport re\nt = re.sub(r'times = .*?\\ndirections = [^\\n]*\\n', 'file = \"robot.csv\"\\n', t,"
-               " flags=re.S)\n(folder / 'scene.toml').write_text(t)\n(folder / 'robot.csv').write_text("
-               "'0,0.00123,0.00231,0.422,0,0,-1\\n1,0.00123,0.00231,0.41,0,0,1\\n')", fragments=("robot.csv", "180")),
-    Case("csv_text", "trajectory CSV with text", scene="{dir}/scene.toml",
-         setup="import refsim\nfrom pathlib import Path\nt = (Path(refsim.__file__).parent / 'scenes' / 'cube.toml')"
-               ".read_text()\nimport re\nt = re.sub(r'times = .*?\\ndirections = [^\\n]*\\n', 'file = \"robot.csv\"\\n', t,"
-               " flags=re.S)\n(folder / 'scene.toml').write_text(t)\n(folder / 'robot.csv').write_text('a,b\\nc,d\\n')",
-         fragments=("robot.csv",)),
+    Case(
+        "csv_missing",
+        "trajectory CSV missing",
+        scene="{dir}/scene.toml",
+        setup="import refsim\nfrom pathlib import Path\nt = (Path(refsim.__file__).parent / 'scenes' / "
+        "'cube.toml')"
+        ".read_text()\nimport re\nt = re.sub(r'times = .*?\\ndirections = [^\\n]*\\n', 'file = "
+        '"none.csv"\\n\', t,'
+        " flags=re.S)\n(folder / 'scene.toml').write_text(t)",
+        fragments=("none.csv",),
+    ),
+    Case(
+        "csv_antiparallel",
+        "trajectory CSV with antiparallel directions",
+        scene="{dir}/scene.toml",
+        setup="import refsim\nfrom pathlib import Path\nt = (Path(refsim.__file__).parent / 'scenes' / "
+        "'cube.toml')"
+        ".read_text()\nimport re\nt = re.sub(r'times = .*?\\ndirections = [^\\n]*\\n', 'file = "
+        '"robot.csv"\\n\', t,'
+        " flags=re.S)\n(folder / 'scene.toml').write_text(t)\n(folder / 'robot.csv').write_text("
+        "'0,0.00123,0.00231,0.422,0,0,-1\\n1,0.00123,0.00231,0.41,0,0,1\\n')",
+        fragments=("robot.csv", "180"),
+    ),
+    Case(
+        "csv_text",
+        "trajectory CSV with text",
+        scene="{dir}/scene.toml",
+        setup="import refsim\nfrom pathlib import Path\nt = (Path(refsim.__file__).parent / 'scenes' / "
+        "'cube.toml')"
+        ".read_text()\nimport re\nt = re.sub(r'times = .*?\\ndirections = [^\\n]*\\n', 'file = "
+        '"robot.csv"\\n\', t,'
+        " flags=re.S)\n(folder / 'scene.toml').write_text(t)\n(folder / "
+        "'robot.csv').write_text('a,b\\nc,d\\n')",
+        fragments=("robot.csv",),
+    ),
     # ---------------------------------------------------------------- output paths
-    Case("output_exists", "results file exists, no --overwrite", setup="(folder / 'out.h5').write_bytes(b'keep')",
-         fragments=("--overwrite",)),
-    Case("output_parent_file", "parent of -o is a file", args=["-o", "{dir}/afile/out.h5"],
-         setup="(folder / 'afile').write_text('x')", fragments=("afile is a file, not a folder",)),
+    Case(
+        "output_exists",
+        "results file exists, no --overwrite",
+        setup="(folder / 'out.h5').write_bytes(b'keep')",
+        fragments=("--overwrite",),
+    ),
+    Case(
+        "output_parent_file",
+        "parent of -o is a file",
+        args=["-o", "{dir}/afile/out.h5"],
+        setup="(folder / 'afile').write_text('x')",
+        fragments=("afile is a file, not a folder",),
+    ),
     Case("output_directory", "-o is a directory", args=["-o", "{dir}"], fragments=("is a directory",)),
-    Case("figure_suffix", "--figure that is not a picture", args=["--figure", "{dir}/plot.txt"],
-         fragments=("--figure",)),
-    Case("figure_parent_file", "--figure in a folder that is a file", args=["--figure", "{dir}/afile/p.png"],
-         setup="(folder / 'afile').write_text('x')", fragments=("afile is a file",)),
+    Case(
+        "figure_suffix",
+        "--figure that is not a picture",
+        args=["--figure", "{dir}/plot.txt"],
+        fragments=("--figure",),
+    ),
+    Case(
+        "figure_parent_file",
+        "--figure in a folder that is a file",
+        args=["--figure", "{dir}/afile/p.png"],
+        setup="(folder / 'afile').write_text('x')",
+        fragments=("afile is a file",),
+    ),
     # ---------------------------------------------------------------- during the run
-    Case("sigint", "Ctrl-C (SIGINT) during the run", s("time.duration=20.0"), code=130, signal_after=signal.SIGINT,
-         fragments=("SIGINT",)),
-    Case("sigterm", "SIGTERM during the run", s("time.duration=20.0"), code=143, signal_after=signal.SIGTERM,
-         fragments=("SIGTERM",)),
-    Case("disk_full", "full disk (a 1 MiB tmpfs)", s("mesh.cells=[4, 4, 4]; time.duration=2.2; output.tissue_every=1"),
-         code=3, fragments=("space",), needs_root=True, small=False),
-    Case("write_error", "a write error from HDF5 (injected OSError)", code=3, fragments=("Input/output",),
-         harness="from refsim.io.writer import ResultWriter\noriginal = ResultWriter._append\n"
-                 "def failing(self, path, values):\n    if self._steps_completed >= 4 and path == 'steps/time':\n"
-                 "        raise OSError(5, 'Input/output error')\n    return original(self, path, values)\n"
-                 "ResultWriter._append = failing\nfrom refsim.io import writer\nwriter.DEFAULT_BUFFER_STEPS = 2\n"
-                 "run(ARGV)\n"),
-    inject_case("singular", "singular factorisation (scipy: Factor is exactly singular)",
-                "def POISON(self, state, record):\n    raise RuntimeError('Factor is exactly singular')\n",
-                fragments=("singular",)),
-    inject_case("nan_tissue", "NaN in the tissue positions",
-                "def POISON(self, state, record):\n    t = dataclasses.replace(state.tissue, positions=state.tissue.positions"
-                " * np.nan)\n    return dataclasses.replace(state, tissue=t), record\n", fragments=("non-finite",)),
-    inject_case("inf_force", "infinite force on the needle",
-                "def POISON(self, state, record):\n    return state, dataclasses.replace(record, needle_force=np.array("
-                "[np.inf, 0, 0]))\n", fragments=("non-finite",)),
-    inject_case("overflow_positions", "overflowing (finite, 1e200) needle positions",
-                "def POISON(self, state, record):\n    return state, dataclasses.replace(record, needle_positions="
-                "record.needle_positions * 1e200)\n", fragments=("overflowing",)),
-    inject_case("diverging_tissue", "a tissue thrown 1000 times its size (finite)",
-                "def POISON(self, state, record):\n    t = dataclasses.replace(state.tissue, positions=state.tissue.positions"
-                " * 1e3)\n    return dataclasses.replace(state, tissue=t), record\n", fragments=("diverges",)),
-    inject_case("diverged_report", "a solver report that says diverged",
-                "class R:\n    iterations, residual, converged, seconds, diverged, message = 5, 1e30, False, 0.0, True, 'x'\n"
-                "def POISON(self, state, record):\n    return state, dataclasses.replace(record, solver=R())\n",
-                fragments=("diverged",)),
-    Case("gauss_seidel_infeasible", "Gauss–Seidel on an infeasible problem (W = ones(2, 2), δ_free = (1, −1))",
-         code=3, fragments=("diverge",),
-         harness="import numpy as np, sys\nfrom refsim.solvers import ConstraintProblem, solve_gauss_seidel\n"
-                 "p = ConstraintProblem(compliance=np.ones((2, 2)), free_gap=np.array([1.0, -1.0]), bilateral="
-                 "np.array([0, 1]))\nlam, report = solve_gauss_seidel(p, tolerance=1e-8, max_iterations=100000)\n"
-                 "if report.converged:\n    print('converged', report.residual)\n    sys.exit(0)\n"
-                 "print('refsim: not converged:', getattr(report, 'message', ''), 'diverged' if getattr(report, "
-                 "'diverged', False) else '', file=sys.stderr)\nsys.exit(3)\n"),
+    Case(
+        "sigint",
+        "Ctrl-C (SIGINT) during the run",
+        s("time.duration=20.0"),
+        code=130,
+        signal_after=signal.SIGINT,
+        fragments=("SIGINT",),
+    ),
+    Case(
+        "sigterm",
+        "SIGTERM during the run",
+        s("time.duration=20.0"),
+        code=143,
+        signal_after=signal.SIGTERM,
+        fragments=("SIGTERM",),
+    ),
+    Case(
+        "disk_full",
+        "full disk (a 1 MiB tmpfs)",
+        s("mesh.cells=[4, 4, 4]; time.duration=2.2; output.tissue_every=1"),
+        code=3,
+        fragments=("space",),
+        needs_root=True,
+        small=False,
+    ),
+    Case(
+        "write_error",
+        "a write error from HDF5 (injected OSError)",
+        code=3,
+        fragments=("Input/output",),
+        harness="from refsim.io.writer import ResultWriter\noriginal = ResultWriter._append\n"
+        "def failing(self, path, values):\n    if self._steps_completed >= 4 and path == 'steps/time':\n"
+        "        raise OSError(5, 'Input/output error')\n    return original(self, path, values)\n"
+        "ResultWriter._append = failing\nfrom refsim.io import writer\nwriter.DEFAULT_BUFFER_STEPS = 2\n"
+        "run(ARGV)\n",
+    ),
+    inject_case(
+        "singular",
+        "singular factorisation (scipy: Factor is exactly singular)",
+        "def POISON(self, state, record):\n    raise RuntimeError('Factor is exactly singular')\n",
+        fragments=("singular",),
+    ),
+    inject_case(
+        "nan_tissue",
+        "NaN in the tissue positions",
+        "def POISON(self, state, record):\n    t = dataclasses.replace(state.tissue, "
+        "positions=state.tissue.positions"
+        " * np.nan)\n    return dataclasses.replace(state, tissue=t), record\n",
+        fragments=("non-finite",),
+    ),
+    inject_case(
+        "inf_force",
+        "infinite force on the needle",
+        "def POISON(self, state, record):\n    return state, dataclasses.replace(record, "
+        "needle_force=np.array("
+        "[np.inf, 0, 0]))\n",
+        fragments=("non-finite",),
+    ),
+    inject_case(
+        "overflow_positions",
+        "overflowing (finite, 1e200) needle positions",
+        "def POISON(self, state, record):\n    return state, dataclasses.replace(record, needle_positions="
+        "record.needle_positions * 1e200)\n",
+        fragments=("overflowing",),
+    ),
+    inject_case(
+        "diverging_tissue",
+        "a tissue thrown 1000 times its size (finite)",
+        "def POISON(self, state, record):\n    t = dataclasses.replace(state.tissue, "
+        "positions=state.tissue.positions"
+        " * 1e3)\n    return dataclasses.replace(state, tissue=t), record\n",
+        fragments=("diverges",),
+    ),
+    inject_case(
+        "diverged_report",
+        "a solver report that says diverged",
+        "class R:\n    iterations, residual, converged, seconds, diverged, message = 5, 1e30, False, 0.0, "
+        "True, 'x'\n"
+        "def POISON(self, state, record):\n    return state, dataclasses.replace(record, solver=R())\n",
+        fragments=("diverged",),
+    ),
+    Case(
+        "gauss_seidel_infeasible",
+        "Gauss–Seidel on an infeasible problem (W = ones(2, 2), δ_free = (1, −1))",
+        code=3,
+        fragments=("diverge",),
+        harness="import numpy as np, sys\nfrom refsim.solvers import ConstraintProblem, solve_gauss_seidel\n"
+        "p = ConstraintProblem(compliance=np.ones((2, 2)), free_gap=np.array([1.0, -1.0]), bilateral="
+        "np.array([0, 1]))\nlam, report = solve_gauss_seidel(p, tolerance=1e-8, max_iterations=100000)\n"
+        "if report.converged:\n    print('converged', report.residual)\n    sys.exit(0)\n"
+        "print('refsim: not converged:', getattr(report, 'message', ''), 'diverged' if getattr(report, "
+        "'diverged', False) else '', file=sys.stderr)\nsys.exit(3)\n",
+    ),
 ]
 
 
@@ -353,7 +668,8 @@ def _wait_for_steps(path: Path, count: int, process: subprocess.Popen, timeout: 
 
 
 def _file_state(path: Path) -> dict | None:
-    """complete, stop_reason, steps of a results file (None when absent; 'unreadable' when it cannot be read)."""
+    """complete, stop_reason, steps of a results file (None when absent; 'unreadable' when it cannot be
+    read)."""
     if not path.exists() or path.is_dir():
         return None
     try:
@@ -368,8 +684,16 @@ def _file_state(path: Path) -> dict | None:
 def run_case(case: Case, folder: Path, tree: Path = ROOT) -> dict:
     env = {**os.environ, "PYTHONPATH": str(tree), "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
     if case.setup:
-        subprocess.run([sys.executable, "-c", f"from pathlib import Path\nfolder = Path({str(folder)!r})\n" + case.setup],
-                       check=True, env=env, cwd=folder)
+        subprocess.run(
+            [
+                sys.executable,
+                "-c",
+                f"from pathlib import Path\nfolder = Path({str(folder)!r})\n" + case.setup,
+            ],
+            check=True,
+            env=env,
+            cwd=folder,
+        )
     mounted = False
     if case.needs_root:
         if os.geteuid() != 0:
@@ -383,8 +707,9 @@ def run_case(case: Case, folder: Path, tree: Path = ROOT) -> dict:
     preexisting = {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file()}
     command, output = _command(case, folder)
     try:
-        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                                   cwd=folder)
+        process = subprocess.Popen(
+            command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=folder
+        )
         if case.signal_after is not None:
             _wait_for_steps(output, 32, process)
             process.send_signal(case.signal_after)
@@ -394,8 +719,11 @@ def run_case(case: Case, folder: Path, tree: Path = ROOT) -> dict:
         if mounted:
             subprocess.run(["umount", str(folder / "disk")])
     code = process.returncode
-    return {**classify(case, code, out, error, state, output, preexisting), "code": code,
-            "message": _first_message(error, out)}
+    return {
+        **classify(case, code, out, error, state, output, preexisting),
+        "code": code,
+        "message": _first_message(error, out),
+    }
 
 
 def _first_message(error: str, out: str) -> str:
@@ -453,19 +781,28 @@ def main(argv: list[str] | None = None) -> int:
             result = run_case(case, Path(folder), Path(args.tree))
             result["seconds"] = time.perf_counter() - start
         rows.append((case, result))
-        print(f"{index:3d}/{len(cases)} {case.name:28s} exit {str(result['code']):>4s}  {result['verdict']:8s} "
-              f"{result.get('problems', '')}  | {result['message'][:110]}", flush=True)
-    counts = {verdict: sum(1 for _, r in rows if r["verdict"] == verdict)
-              for verdict in ("well", "poorly", "crashed", "silent", "not run")}
+        print(
+            f"{index:3d}/{len(cases)} {case.name:28s} exit {str(result['code']):>4s}  {result['verdict']:8s} "
+            f"{result.get('problems', '')}  | {result['message'][:110]}",
+            flush=True,
+        )
+    counts = {
+        verdict: sum(1 for _, r in rows if r["verdict"] == verdict)
+        for verdict in ("well", "poorly", "crashed", "silent", "not run")
+    }
     summary = ", ".join(f"{count} {verdict}" for verdict, count in counts.items())
     print(f"{len(rows)} kinds: {summary}")
     if args.markdown:
-        lines = ["| # | kind of bad input or fault | expected | exit | verdict | what refsim says |",
-                 "|---|---|---|---|---|---|"]
+        lines = [
+            "| # | kind of bad input or fault | expected | exit | verdict | what refsim says |",
+            "|---|---|---|---|---|---|",
+        ]
         for index, (case, result) in enumerate(rows, 1):
             expected = f"{case.code}" + (" + warning" if case.warning else "")
             note = result["message"] + (f" ({result['problems']})" if result.get("problems") else "")
-            lines.append(f"| {index} | {case.kind} | {expected} | {result['code']} | {result['verdict']} | {note} |")
+            lines.append(
+                f"| {index} | {case.kind} | {expected} | {result['code']} | {result['verdict']} | {note} |"
+            )
         lines += ["", f"**{len(rows)} kinds: {summary}.**"]
         Path(args.markdown).write_text("\n".join(lines) + "\n", encoding="utf-8")
     return 0 if counts["poorly"] + counts["crashed"] + counts["silent"] == 0 else 1

@@ -34,9 +34,13 @@ def largest_load(path: str) -> tuple[float, int]:
         if results.phase[index] != insertion:
             continue
         rows = slice(offsets[index], offsets[index + 1])
-        force = shaft_lateral_force(results.constraint_source[rows], results.constraint_kind[rows],
-                                    results.constraint_directions[rows], results.constraint_forces[rows],
-                                    without_entry=True)
+        force = shaft_lateral_force(
+            results.constraint_source[rows],
+            results.constraint_kind[rows],
+            results.constraint_directions[rows],
+            results.constraint_forces[rows],
+            without_entry=True,
+        )
         length = float((tips[index] - tips[first - 1]) @ axes[index])
         if length > 0.01 and np.linalg.norm(force) / length > best:
             best, at = float(np.linalg.norm(force) / length), index + 1
@@ -44,7 +48,7 @@ def largest_load(path: str) -> tuple[float, int]:
 
 
 def main(argv=None) -> int:
-    for path in (sys.argv[1:] if argv is None else argv):
+    for path in sys.argv[1:] if argv is None else argv:
         load, step = largest_load(path)
         print(f"{path}: largest shaft lateral force per inserted length {load:.1f} N/m at step {step}")
     return 0

@@ -1,6 +1,7 @@
-"""The rigid needle's cut in the liver for several d_c: the cut's area (the laid triangles plus the strip between
-the last layer and the crack tip, which the triangles lag by up to d_c), the largest lateral advance of the crack
-tip from the path it started on (x and z, rest coordinates), the layers laid and the peak needle force.
+"""The rigid needle's cut in the liver for several d_c: the cut's area (the laid triangles plus the strip
+between the last layer and the crack tip, which the triangles lag by up to d_c), the largest lateral advance
+of the crack tip from the path it started on (x and z, rest coordinates), the layers laid and the peak needle
+force.
 
     PYTHONPATH=. python studies/liver/cut_area.py [d_c ...]      (default: 0.5e-3 1e-3 2e-3 m)
 
@@ -18,12 +19,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 
 def cut_area(state) -> tuple[float, float]:
-    """(area [m²], largest lateral advance of a crack-tip column from the path [m]) of ``state``'s cut: the laid
-    triangles (rest coordinates) plus the strip between the last layer and the crack tip, over the columns that
-    have been laid (a column added below the strip shares its upper neighbour's point until the next layer)."""
+    """(area [m²], largest lateral advance of a crack-tip column from the path [m]) of ``state``'s cut: the
+    laid triangles (rest coordinates) plus the strip between the last layer and the crack tip, over the
+    columns that have been laid (a column added below the strip shares its upper neighbour's point until the
+    next layer)."""
     strip, cut = state.cut_strip, state.cut
     corners = cut.rest_points[cut.triangles]
-    laid = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum()
+    laid = (
+        0.5
+        * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum()
+    )
     last = strip.last_layer
     fresh = np.zeros(last.size, dtype=bool)
     fresh[1:] = last[1:] == last[:-1]
@@ -52,7 +57,10 @@ def main(argv=None) -> int:
             if state.cut_strip is not None and state.cut is not None:
                 area = max(area, cut_area(state))
         layers = state.cut_strip.layers.shape[0] if state.cut_strip is not None else 0
-        print(f"| {d_c * 1e3:g} | {area[0] * 1e6:.1f} | {area[1] * 1e3:.2f} | {layers} | {peak:.2f} |", flush=True)
+        print(
+            f"| {d_c * 1e3:g} | {area[0] * 1e6:.1f} | {area[1] * 1e3:.2f} | {layers} | {peak:.2f} |",
+            flush=True,
+        )
     return 0
 
 

@@ -19,27 +19,43 @@ START_GAP, DEPTH, SPEED = 0.002, 0.08, 0.02  # [m], [m], [m/s]
 
 
 def main(argv=None) -> int:
-    from refsim.scene import load_scene
     from refsim.simulation.robot import compensating_trajectory, write_trajectory_csv
 
     root = Path(__file__).resolve().parents[2]
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--output", type=Path, default=root / "refsim" / "scenes" / "liver_robot.csv")
-    parser.add_argument("--scene", default="liver_rigid", help="a liver scene (its tissue and boundary motion)")
+    parser.add_argument(
+        "--scene", default="liver_rigid", help="a liver scene (its tissue and boundary motion)"
+    )
     args = parser.parse_args(argv)
     # The scene reads the file we are writing: load it with a placeholder straight trajectory.
     scene = _scene_without_trajectory(args.scene)
-    trajectory = compensating_trajectory(scene, target=TARGET, direction=DIRECTION, start_gap=START_GAP,
-                                         depth=DEPTH, speed=SPEED, sample_count=401)
-    write_trajectory_csv(trajectory, args.output, comment=(
-        "The robot's base motion of the liver scenes (refsim studies/liver/make_trajectory.py):\n"
-        f"target {TARGET.tolist()} m, direction {DIRECTION.tolist()}, start gap {START_GAP} m, depth {DEPTH} m, "
-        f"speed {SPEED} m/s, following the target's motion under the [boundary] section of {args.scene}"))
+    trajectory = compensating_trajectory(
+        scene,
+        target=TARGET,
+        direction=DIRECTION,
+        start_gap=START_GAP,
+        depth=DEPTH,
+        speed=SPEED,
+        sample_count=401,
+    )
+    write_trajectory_csv(
+        trajectory,
+        args.output,
+        comment=(
+            "The robot's base motion of the liver scenes (refsim studies/liver/make_trajectory.py):\n"
+            f"target {TARGET.tolist()} m, direction {DIRECTION.tolist()}, start gap {START_GAP} m, depth "
+            f"{DEPTH} m, "
+            f"speed {SPEED} m/s, following the target's motion under the [boundary] section of {args.scene}"
+        ),
+    )
     nominal = trajectory.base_positions[:, 1] - trajectory.base_positions[0, 1]
     follow = trajectory.base_positions - trajectory.base_positions[0]
     follow[:, 1] -= nominal  # (the insertion is along y; what is left across it is the target's motion)
-    print(f"wrote {args.output}: {trajectory.times.size} samples over {trajectory.times[-1]:g} s; the target "
-          f"moves up to {np.abs(follow[:, [0, 2]]).max() * 1e3:.2f} mm across the needle")
+    print(
+        f"wrote {args.output}: {trajectory.times.size} samples over {trajectory.times[-1]:g} s; the target "
+        f"moves up to {np.abs(follow[:, [0, 2]]).max() * 1e3:.2f} mm across the needle"
+    )
     return 0
 
 
@@ -51,11 +67,18 @@ def _scene_without_trajectory(name: str):
 
     from refsim.scene.loader import scene_from_dict
 
-    path = Path(name) if name.endswith(".toml") else Path(str(resources.files("refsim") / "scenes" / f"{name}.toml"))
+    path = (
+        Path(name)
+        if name.endswith(".toml")
+        else Path(str(resources.files("refsim") / "scenes" / f"{name}.toml"))
+    )
     data = tomllib.loads(path.read_text(encoding="utf-8"))
     base = (TARGET - (DEPTH + START_GAP) * DIRECTION - 0.12 * DIRECTION).tolist()
-    data["trajectory"] = {"times": [0.0, 1.0], "base_positions": [base, base],
-                          "directions": [DIRECTION.tolist(), DIRECTION.tolist()]}
+    data["trajectory"] = {
+        "times": [0.0, 1.0],
+        "base_positions": [base, base],
+        "directions": [DIRECTION.tolist(), DIRECTION.tolist()],
+    }
     return scene_from_dict(data, source=str(path), base_directory=str(path.parent))
 
 

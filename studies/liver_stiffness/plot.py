@@ -1,6 +1,6 @@
 """Figure of the liver stiffness study: q_max(E) per amplitude against G_c, and the critical modulus E_c(a).
 
-    python studies/liver_stiffness/plot.py [--output studies/liver_stiffness/output]
+python studies/liver_stiffness/plot.py [--output studies/liver_stiffness/output]
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     figure.tight_layout()
     out = ROOT / "docs" / "figures" / "liver_stiffness.png"
     figure.savefig(out, dpi=120)
-    for amplitude, value in zip(amplitudes, critical):
+    for amplitude, value in zip(amplitudes, critical, strict=False):
         print(f"a = {amplitude * 1e3:g} mm: E_c = {value / 1e9:.3g} GPa")
     print(f"wrote {out}")
     return 0

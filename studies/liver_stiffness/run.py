@@ -29,17 +29,18 @@ sys.path.insert(0, str(ROOT / "studies" / "liver"))
 
 
 def shaft_load(records, states, tets) -> tuple[float, int]:
-    """Largest ‖t‖ / L_in over the run [N/m] and its step: t the insertion rows' lateral force without the entry
-    point's rows (the energy law's cut-start load), L_in the inserted length (> 1 cm, below which the load per
-    length is the surface's)."""
+    """Largest ‖t‖ / L_in over the run [N/m] and its step: t the insertion rows' lateral force without the
+    entry point's rows (the energy law's cut-start load), L_in the inserted length (> 1 cm, below which the
+    load per length is the surface's)."""
     from refsim.simulation.events import shaft_lateral_force
 
     best, at = 0.0, -1
-    for record, state in zip(records, states):
+    for record, state in zip(records, states, strict=False):
         if state.path.point_count == 0 or state.phase != "insertion":
             continue
-        force = shaft_lateral_force(record.row_source, record.row_kind, record.row_directions, record.row_forces,
-                                    without_entry=True)
+        force = shaft_lateral_force(
+            record.row_source, record.row_kind, record.row_directions, record.row_forces, without_entry=True
+        )
         needle_tip = record.needle_positions[-1]
         entry = state.path.positions(state.tissue.positions, tets)[0]
         length = float(np.linalg.norm(needle_tip - entry))
@@ -53,18 +54,29 @@ def one_run(amplitude: float, modulus: float, trajectory: str, output: str) -> d
     from refsim.scene import load_scene
     from refsim.simulation import Simulation
 
-    scene = load_scene("liver_rigid", [
-        f"needle.youngs_modulus={modulus}", f"boundary.amplitude=[0, 0, {-amplitude}]",
-        f"trajectory.file={json.dumps(trajectory)}", "cutting.enabled=false",
-    ])
+    scene = load_scene(
+        "liver_rigid",
+        [
+            f"needle.youngs_modulus={modulus}",
+            f"boundary.amplitude=[0, 0, {-amplitude}]",
+            f"trajectory.file={json.dumps(trajectory)}",
+            "cutting.enabled=false",
+        ],
+    )
     simulation = Simulation(scene)
     records, states = [], []
     started = time.perf_counter()
     simulation.run(on_step=lambda s, r: (records.append(r), states.append(s)))
     seconds = time.perf_counter() - started
     load, step = shaft_load(records, states, simulation.tets)
-    return {"amplitude": amplitude, "youngs_modulus": modulus, "q_max": load, "step": step,
-            "ms_per_step": 1e3 * seconds / len(records), "fracture_energy": load_scene("liver_rigid").cutting.fracture_energy}
+    return {
+        "amplitude": amplitude,
+        "youngs_modulus": modulus,
+        "q_max": load,
+        "step": step,
+        "ms_per_step": 1e3 * seconds / len(records),
+        "fracture_energy": load_scene("liver_rigid").cutting.fracture_energy,
+    }
 
 
 def main(argv=None) -> int:
@@ -76,6 +88,7 @@ def main(argv=None) -> int:
     amplitudes = [0.010, 0.020] if args.quick else [0.010, 0.015, 0.020]
     moduli = [25e9, 100e9, 400e9] if args.quick else [25e9, 50e9, 100e9, 200e9, 400e9]
     import make_trajectory
+
     from refsim.simulation.robot import compensating_trajectory, write_trajectory_csv
 
     jobs = []
@@ -84,19 +97,27 @@ def main(argv=None) -> int:
         from dataclasses import replace
 
         scene = replace(scene, boundary=replace(scene.boundary, amplitude=(0.0, 0.0, -amplitude)))
-        trajectory = compensating_trajectory(scene, target=make_trajectory.TARGET, direction=make_trajectory.DIRECTION,
-                                             start_gap=make_trajectory.START_GAP, depth=make_trajectory.DEPTH,
-                                             speed=make_trajectory.SPEED, sample_count=401)
+        trajectory = compensating_trajectory(
+            scene,
+            target=make_trajectory.TARGET,
+            direction=make_trajectory.DIRECTION,
+            start_gap=make_trajectory.START_GAP,
+            depth=make_trajectory.DEPTH,
+            speed=make_trajectory.SPEED,
+            sample_count=401,
+        )
         path = write_trajectory_csv(trajectory, args.output / f"robot_{amplitude * 1e3:g}mm.csv")
         jobs += [(amplitude, modulus, str(path), str(args.output)) for modulus in moduli]
     started = time.perf_counter()
     with ProcessPoolExecutor(max_workers=2) as pool:
-        rows = list(pool.map(one_run, *zip(*jobs)))
+        rows = list(pool.map(one_run, *zip(*jobs, strict=False)))
     summary = {"rows": rows, "wall_seconds": time.perf_counter() - started, "workers": 2, "blas_threads": 1}
     (args.output / "summary.json").write_text(json.dumps(summary, indent=1))
     for row in rows:
-        print(f"a = {row['amplitude'] * 1e3:4.0f} mm  E = {row['youngs_modulus'] / 1e9:5.0f} GPa  "
-              f"q_max = {row['q_max']:6.1f} N/m (step {row['step']})  {row['ms_per_step']:.0f} ms/step")
+        print(
+            f"a = {row['amplitude'] * 1e3:4.0f} mm  E = {row['youngs_modulus'] / 1e9:5.0f} GPa  "
+            f"q_max = {row['q_max']:6.1f} N/m (step {row['step']})  {row['ms_per_step']:.0f} ms/step"
+        )
     print(f"{len(rows)} runs in {summary['wall_seconds']:.0f} s on 2 workers")
     return 0
 

@@ -32,8 +32,14 @@ def options(path: Path = HERE / "options.toml") -> dict:
         missing = {"family", "label", "set"} - set(option)
         if missing:
             raise ValueError(f"{path}: [[option]] {index + 1} misses {sorted(missing)}")
-        table.append({"family": option["family"], "label": option["label"], "set": tuple(option["set"]),
-                      "scenes": tuple(option.get("scenes", ()))})
+        table.append(
+            {
+                "family": option["family"],
+                "label": option["label"],
+                "set": tuple(option["set"]),
+                "scenes": tuple(option.get("scenes", ())),
+            }
+        )
     reference = data["reference"]
     return {"reference": (reference.get("label", "exact"), tuple(reference["set"])), "options": table}
 
@@ -42,12 +48,22 @@ def study(scene: str, table: dict, *, base=(), name=None):
     """The study of one scene: a case per option that applies to it."""
     from refsim.sweep import StudySpec
 
-    cases = tuple((option["label"], option["set"]) for option in table["options"]
-                  if not option["scenes"] or scene in option["scenes"])
+    cases = tuple(
+        (option["label"], option["set"])
+        for option in table["options"]
+        if not option["scenes"] or scene in option["scenes"]
+    )
     families = {option["label"]: option["family"] for option in table["options"]}
-    return StudySpec(name=name or f"pareto_{scene}", scene=scene, cases=cases, overrides=tuple(base),
-                     quantities=QUANTITIES.get(scene, ("needle_force@end",)), reference=table["reference"],
-                     source=str(HERE / "options.toml"), extra={"families": families})
+    return StudySpec(
+        name=name or f"pareto_{scene}",
+        scene=scene,
+        cases=cases,
+        overrides=tuple(base),
+        quantities=QUANTITIES.get(scene, ("needle_force@end",)),
+        reference=table["reference"],
+        source=str(HERE / "options.toml"),
+        extra={"families": families},
+    )
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -74,18 +90,25 @@ def main(argv: list[str] | None = None) -> None:
     try:
         for scene in scenes:
             spec = study(scene, table, base=base, name=f"pareto_{scene}" + ("_quick" if args.quick else ""))
-            result = run_study(spec, output / f"{spec.name}.h5", client=client, warm_up=not args.quick,
-                               progress=not args.quiet)
+            result = run_study(
+                spec,
+                output / f"{spec.name}.h5",
+                client=client,
+                warm_up=not args.quick,
+                progress=not args.quiet,
+            )
             runs = result["runs"]
             print(f"{spec.name}: reference {result['reference']['ms_per_step']:.1f} ms/step")
-            for label, ms, error in zip(runs["label"], runs["ms_per_step"], runs["errors"]["force_history"],
-                                        strict=True):
+            for label, ms, error in zip(
+                runs["label"], runs["ms_per_step"], runs["errors"]["force_history"], strict=True
+            ):
                 print(f"  {label:<12} {ms:8.2f} ms/step  force history error {error:.3e}")
 
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
+
 
 if __name__ == "__main__":
     main()

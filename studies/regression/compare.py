@@ -21,7 +21,9 @@ IGNORED_ATTRIBUTES = ("created", "git_commit", "refsim_version")
 
 def datasets(handle: h5py.File) -> dict[str, h5py.Dataset]:
     found: dict[str, h5py.Dataset] = {}
-    handle.visititems(lambda name, obj: found.__setitem__(name, obj) if isinstance(obj, h5py.Dataset) else None)
+    handle.visititems(
+        lambda name, obj: found.__setitem__(name, obj) if isinstance(obj, h5py.Dataset) else None
+    )
     return found
 
 

@@ -1,10 +1,10 @@
 """Speed against error under refinement: mesh resolution and insertion spacing d_i.
 
-The scene is the paper's cube with the insertion followed by a 3 mm lateral motion of the base (no cut), so the
-quantity of interest, the lateral force on the needle at the end, depends on the whole coupling. Each run writes
-its HDF5 results; the summary (`summary.json`) holds, per run, the lateral force, the insertion points and the
-mean milliseconds per step. The error of each run is taken against the finest run of its sweep (the reference),
-so it measures convergence, not accuracy against an exact solution.
+The scene is the paper's cube with the insertion followed by a 3 mm lateral motion of the base (no cut), so
+the quantity of interest, the lateral force on the needle at the end, depends on the whole coupling. Each run
+writes its HDF5 results; the summary (`summary.json`) holds, per run, the lateral force, the insertion points
+and the mean milliseconds per step. The error of each run is taken against the finest run of its sweep (the
+reference), so it measures convergence, not accuracy against an exact solution.
 
     python studies/resolution/run.py [--output studies/resolution/output] [--quick]
 """
@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-
 
 LATERAL = [
     "trajectory.times=[0.0, 1.9, 2.0, 2.3]",
@@ -82,10 +81,14 @@ def main(argv: list[str] | None = None) -> None:
             row = run_one(overrides, output / name)
             row["label"] = label
             rows.append(row)
-            print(f"{sweep:8s} {label:14s} force {row['lateral_force']:.4f} N  {row['ms_per_step']:.1f} ms/step")
+            print(
+                f"{sweep:8s} {label:14s} force {row['lateral_force']:.4f} N  {row['ms_per_step']:.1f} ms/step"
+            )
         reference = rows[-1]["lateral_force"]
         for row in rows:
-            row["error"] = abs(row["lateral_force"] - reference) / abs(reference) if reference else float("nan")
+            row["error"] = (
+                abs(row["lateral_force"] - reference) / abs(reference) if reference else float("nan")
+            )
         summary[sweep] = rows
     (output / "summary.json").write_text(json.dumps(summary, indent=2))
     print(f"summary: {output / 'summary.json'}")

@@ -25,8 +25,13 @@ SET = ("mesh.cells=[4, 4, 4]", "output.tissue_every=1000")
 def study():
     from refsim.sweep import StudySpec, parse_sweep
 
-    return StudySpec(name="scaling", scene="cube", sweeps=tuple(parse_sweep(text) for text in SWEEPS),
-                     overrides=SET, quantities=("needle_force@end", "puncture_force"))
+    return StudySpec(
+        name="scaling",
+        scene="cube",
+        sweeps=tuple(parse_sweep(text) for text in SWEEPS),
+        overrides=SET,
+        quantities=("needle_force@end", "puncture_force"),
+    )
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -48,8 +53,10 @@ def main(argv: list[str] | None = None) -> None:
             result = run_study(spec, folder / "scaling.h5", workers=workers, progress=False, warm_up=False)
             seconds = time.perf_counter() - start
             complete = result["attributes"]["runs_complete"]
-            print(f"workers {workers}  repeat {repeat}: {seconds:6.1f} s wall, {complete}/{len(spec.runs())} "
-                  f"complete, load {os.getloadavg()[0]:.2f}")
+            print(
+                f"workers {workers}  repeat {repeat}: {seconds:6.1f} s wall, {complete}/{len(spec.runs())} "
+                f"complete, load {os.getloadavg()[0]:.2f}"
+            )
     print(f"load average after: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
 
 

@@ -5,13 +5,13 @@ Usage::
     python studies/solvers/entry_floor.py [--below 30] [--calls 2000] [--repeats 5]
 
 For every contact-only problem of the shared set with fewer than ``--below`` rows, on ``dataclasses.replace``
-copies (nothing cached on the problem, as for a new simulation step), best of ``--repeats`` batches of ``--calls``
-calls, µs per call of: the layered set-up (``block_arrays`` and ``data_scales``: what problems of 120 rows
-or more run before the kernel), the compiled call alone (``_dense_newton_fresh``:
+copies (nothing cached on the problem, as for a new simulation step), best of ``--repeats`` batches of
+``--calls`` calls, µs per call of: the layered set-up (``block_arrays`` and ``data_scales``: what problems of
+120 rows or more run before the kernel), the compiled call alone (``_dense_newton_fresh``:
 set-up with group friction merged, ‖δ_free‖, W's asymmetry, the kernel's buffers and the dense Newton kernel
-with the pre-sweeps), ``solve_newton`` with the pre-sweeps and stall rule of ``method="auto"`` (the compiled call and
-its Python layer), ``solve_exact(method="auto")`` (its checks and the report on top). The differences are
-the layers' costs. Prints one line per problem and the medians, with the machine's load average.
+with the pre-sweeps), ``solve_newton`` with the pre-sweeps and stall rule of ``method="auto"`` (the compiled
+call and its Python layer), ``solve_exact(method="auto")`` (its checks and the report on top). The differences
+are the layers' costs. Prints one line per problem and the medians, with the machine's load average.
 """
 
 from __future__ import annotations
@@ -58,11 +58,33 @@ def per_call(function, problem, calls: int, repeats: int) -> float:
 def compiled_call(problem) -> None:
     """The one compiled call of solve_newton on a small fresh problem, with solve_newton's arguments."""
     p = problem
-    _dense_newton_fresh(p.compliance, p.free_gap, p.bilateral, p.unilateral, p.box_rows, p.box_lower, p.box_upper,
-                        p.contacts, p.contact_friction, p.shaft_friction, p.shaft_pairs, p.shaft_friction_coefficient,
-                        p.shaft_normal_preload, p.group_friction, p.group_offsets, p.group_members,
-                        p.group_friction_coefficient, p.group_preload, np.zeros(p.row_count), TOLERANCE, 100, 1e-2,
-                        3, _AUTO_STALL, _presweep_budget(p.row_count))
+    _dense_newton_fresh(
+        p.compliance,
+        p.free_gap,
+        p.bilateral,
+        p.unilateral,
+        p.box_rows,
+        p.box_lower,
+        p.box_upper,
+        p.contacts,
+        p.contact_friction,
+        p.shaft_friction,
+        p.shaft_pairs,
+        p.shaft_friction_coefficient,
+        p.shaft_normal_preload,
+        p.group_friction,
+        p.group_offsets,
+        p.group_members,
+        p.group_friction_coefficient,
+        p.group_preload,
+        np.zeros(p.row_count),
+        TOLERANCE,
+        100,
+        1e-2,
+        3,
+        _AUTO_STALL,
+        _presweep_budget(p.row_count),
+    )
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -72,25 +94,35 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args(argv)
     logging.disable(logging.WARNING)
-    problems = [p for _, p in external_problems(shared_problems())
-                if len(p.contacts) and 3 * len(p.contacts) == p.row_count and p.row_count < args.below]
+    problems = [
+        p
+        for _, p in external_problems(shared_problems())
+        if len(p.contacts) and 3 * len(p.contacts) == p.row_count and p.row_count < args.below
+    ]
     print(f"load average at start {os.getloadavg()[0]:.2f}; {len(problems)} problems below {args.below} rows")
-    measures = {"set-up": lambda p: (block_arrays(p), data_scales(p)),
-                "compiled call": compiled_call,
-                "solve_newton": lambda p: solve_newton(p, tolerance=TOLERANCE,
-                                                       presweeps=_presweep_budget(p.row_count),
-                                                       stall_iterations=_AUTO_STALL),
-                "solve_exact": lambda p: solve_exact(p, tolerance=TOLERANCE, method="auto")}
+    measures = {
+        "set-up": lambda p: (block_arrays(p), data_scales(p)),
+        "compiled call": compiled_call,
+        "solve_newton": lambda p: solve_newton(
+            p, tolerance=TOLERANCE, presweeps=_presweep_budget(p.row_count), stall_iterations=_AUTO_STALL
+        ),
+        "solve_exact": lambda p: solve_exact(p, tolerance=TOLERANCE, method="auto"),
+    }
     for function in measures.values():  # compiled kernels loaded
         function(dataclasses.replace(problems[0]))
     table = []
     for problem in problems:
         row = [per_call(function, problem, args.calls, args.repeats) for function in measures.values()]
         table.append(row)
-        print(f"{problem.name[:36]:36s} {problem.row_count:3d} rows: "
-              + ", ".join(f"{name} {value:.1f} µs" for name, value in zip(measures, row, strict=True)))
+        print(
+            f"{problem.name[:36]:36s} {problem.row_count:3d} rows: "
+            + ", ".join(f"{name} {value:.1f} µs" for name, value in zip(measures, row, strict=True))
+        )
     medians = np.median(np.array(table), axis=0)
-    print("median: " + ", ".join(f"{name} {value:.1f} µs" for name, value in zip(measures, medians, strict=True)))
+    print(
+        "median: "
+        + ", ".join(f"{name} {value:.1f} µs" for name, value in zip(measures, medians, strict=True))
+    )
     print(f"load average at end {os.getloadavg()[0]:.2f}")
 
 

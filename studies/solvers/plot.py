@@ -35,9 +35,10 @@ def load(path: Path) -> dict:
         data = {"attrs": dict(handle.attrs), "benchmark": dict(handle["benchmark"].attrs), "problems": []}
         for key, group in handle["problems"].items():
             entry = {"key": key, **{k: group.attrs[k] for k in group.attrs}}
-            entry["exact"] = {name: {**dict(sub.attrs),
-                                     "history": sub["history"][()] if "history" in sub else np.zeros(0)}
-                              for name, sub in group["exact"].items()}
+            entry["exact"] = {
+                name: {**dict(sub.attrs), "history": sub["history"][()] if "history" in sub else np.zeros(0)}
+                for name, sub in group["exact"].items()
+            }
             entry["gs_history"] = group["gauss_seidel/history"][()]
             entry["gs_runs"] = group["gauss_seidel/tolerance_runs"][()]
             entry["sweep_seconds"] = float(group["gauss_seidel"].attrs["sweep_seconds"])
@@ -60,17 +61,25 @@ def tables(data: dict) -> str:
     backends = [str(b) for b in attrs["backends"]]
     cap = int(attrs["gs_cap"])
     problems = data["problems"]
-    lines = [f"Study run {attrs['created']} in {attrs['seconds']:.0f} s on {len(problems)} problems; "
-             f"Gauss–Seidel capped at {cap} sweeps; exact tolerance {attrs['exact_tolerance']:.0e}; "
-             f"shifted geometric means (SGM) with shift {SHIFT:g}, failures charged at the cap.", ""]
+    lines = [
+        f"Study run {attrs['created']} in {attrs['seconds']:.0f} s on {len(problems)} problems; "
+        f"Gauss–Seidel capped at {cap} sweeps; exact tolerance {attrs['exact_tolerance']:.0e}; "
+        f"shifted geometric means (SGM) with shift {SHIFT:g}, failures charged at the cap.",
+        "",
+    ]
     bench = data["benchmark"]
-    lines += ["**Gauss–Seidel sweep benchmark** (1,000 sweeps, 100 rows, every multiplier changing, "
-              "best of 7): "
-              + ", ".join(f"{k.split('_')[0]} {v * 1e3:.2f} ms" for k, v in sorted(bench.items()))
-              + " (target: under 5 ms).", ""]
+    lines += [
+        "**Gauss–Seidel sweep benchmark** (1,000 sweeps, 100 rows, every multiplier changing, "
+        "best of 7): "
+        + ", ".join(f"{k.split('_')[0]} {v * 1e3:.2f} ms" for k, v in sorted(bench.items()))
+        + " (target: under 5 ms).",
+        "",
+    ]
     families = sorted({p["family"] for p in problems})
-    header = ("| family | problems | exact ≤ 1e-9 | exact ≤ 1e-6 | GS ≤ 1e-6 | SGM GS sweeps to 1e-6 "
-              "| SGM GS ms to 1e-6 | " + " | ".join(f"SGM exact/{b} ms" for b in backends) + " |")
+    header = (
+        "| family | problems | exact ≤ 1e-9 | exact ≤ 1e-6 | GS ≤ 1e-6 | SGM GS sweeps to 1e-6 "
+        "| SGM GS ms to 1e-6 | " + " | ".join(f"SGM exact/{b} ms" for b in backends) + " |"
+    )
     lines += ["### Summary by family", "", header, "|" + "---|" * (7 + len(backends))]
     for family in families + ["all"]:
         group = [p for p in problems if family in ("all", p["family"])]
@@ -84,45 +93,68 @@ def tables(data: dict) -> str:
         millis = 1e3 * gs[:, 3]
         exact_ms = []
         for backend in backends:
-            times = [1e3 * p["exact"][backend]["seconds"] for p in group
-                     if p["exact"][backend]["status"] != "rejected"]
+            times = [
+                1e3 * p["exact"][backend]["seconds"]
+                for p in group
+                if p["exact"][backend]["status"] != "rejected"
+            ]
             exact_ms.append(_fmt(shifted_geometric_mean(times), ".2f"))
-        lines.append(f"| {family} | {len(group)} | {exact9}/{len(group) - rejected}"
-                     + (f" ({rejected} rejected)" if rejected else "")
-                     + f" | {exact6}/{len(group) - rejected} | {int(solved.sum())}/{len(group)} | "
-                     f"{shifted_geometric_mean(sweeps):.1f} | {shifted_geometric_mean(millis):.3f} | "
-                     + " | ".join(exact_ms) + " |")
-    lines += ["", "### Gauss–Seidel against its tolerance (all problems)", "",
-              "| tolerance | converged | SGM sweeps | SGM ms | median gap error vs exact | max gap error |",
-              "|---|---|---|---|---|---|"]
+        lines.append(
+            f"| {family} | {len(group)} | {exact9}/{len(group) - rejected}"
+            + (f" ({rejected} rejected)" if rejected else "")
+            + f" | {exact6}/{len(group) - rejected} | {int(solved.sum())}/{len(group)} | "
+            f"{shifted_geometric_mean(sweeps):.1f} | {shifted_geometric_mean(millis):.3f} | "
+            + " | ".join(exact_ms)
+            + " |"
+        )
+    lines += [
+        "",
+        "### Gauss–Seidel against its tolerance (all problems)",
+        "",
+        "| tolerance | converged | SGM sweeps | SGM ms | median gap error vs exact | max gap error |",
+        "|---|---|---|---|---|---|",
+    ]
     for tolerance in attrs["gs_tolerances"]:
         runs = np.array([_gs_at(p, tolerance) for p in problems])
         solved = runs[:, 4] > 0
         gap_errors = runs[:, 5][np.isfinite(runs[:, 5]) & solved]
-        lines.append(f"| {tolerance:.0e} | {int(solved.sum())}/{len(runs)} | "
-                     f"{shifted_geometric_mean(np.where(solved, runs[:, 1], cap)):.1f} | "
-                     f"{shifted_geometric_mean(1e3 * runs[:, 3]):.3f} | "
-                     f"{_fmt(np.median(gap_errors) if gap_errors.size else np.nan)} | "
-                     f"{_fmt(gap_errors.max() if gap_errors.size else np.nan)} |")
-    lines += ["", "### Every problem", "",
-              "Residuals are natural residuals recomputed by refsim; *rejected*: W not symmetric (relative "
-              f"asymmetry above {attrs['symmetry_tolerance']:.0e}), which the exact solver refuses.", "",
-              "| problem | rows | rank | asym. | friction | "
-              + " | ".join(f"exact/{b} residual (ms)" for b in backends)
-              + " | GS residual at tol 1e-6 (sweeps, ms) | GS gap error |",
-              "|---|---|---|---|---|" + "---|" * len(backends) + "---|---|"]
+        lines.append(
+            f"| {tolerance:.0e} | {int(solved.sum())}/{len(runs)} | "
+            f"{shifted_geometric_mean(np.where(solved, runs[:, 1], cap)):.1f} | "
+            f"{shifted_geometric_mean(1e3 * runs[:, 3]):.3f} | "
+            f"{_fmt(np.median(gap_errors) if gap_errors.size else np.nan)} | "
+            f"{_fmt(gap_errors.max() if gap_errors.size else np.nan)} |"
+        )
+    lines += [
+        "",
+        "### Every problem",
+        "",
+        "Residuals are natural residuals recomputed by refsim; *rejected*: W not symmetric (relative "
+        f"asymmetry above {attrs['symmetry_tolerance']:.0e}), which the exact solver refuses.",
+        "",
+        "| problem | rows | rank | asym. | friction | "
+        + " | ".join(f"exact/{b} residual (ms)" for b in backends)
+        + " | GS residual at tol 1e-6 (sweeps, ms) | GS gap error |",
+        "|---|---|---|---|---|" + "---|" * len(backends) + "---|---|",
+    ]
     for p in problems:
         cells = []
         for backend in backends:
             e = p["exact"][backend]
-            cells.append("rejected" if e["status"] == "rejected" else
-                         f"{_fmt(e['residual'])} ({1e3 * e['seconds']:.1f})"
-                         + ("" if e["converged"] else " ✗"))
+            cells.append(
+                "rejected"
+                if e["status"] == "rejected"
+                else f"{_fmt(e['residual'])} ({1e3 * e['seconds']:.1f})" + ("" if e["converged"] else " ✗")
+            )
         gs = _gs_at(p, 1e-6)
-        lines.append(f"| {p['key'].replace('__', '/')} | {p['rows']} | {p['rank']} | {p['asymmetry']:.0e} | "
-                     f"{'yes' if p['has_friction'] else 'no'} | " + " | ".join(cells)
-                     + f" | {_fmt(gs[2])} ({int(gs[1])}, {1e3 * gs[3]:.2f})" + ("" if gs[4] > 0 else " ✗")
-                     + f" | {_fmt(gs[5])} |")
+        lines.append(
+            f"| {p['key'].replace('__', '/')} | {p['rows']} | {p['rank']} | {p['asymmetry']:.0e} | "
+            f"{'yes' if p['has_friction'] else 'no'} | "
+            + " | ".join(cells)
+            + f" | {_fmt(gs[2])} ({int(gs[1])}, {1e3 * gs[3]:.2f})"
+            + ("" if gs[4] > 0 else " ✗")
+            + f" | {_fmt(gs[5])} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -144,12 +176,20 @@ def figure(data: dict, path: Path) -> None:
         history = np.maximum(p["gs_history"], floor)
         left.loglog(np.arange(1, history.size + 1), history, color=colour, lw=0.8, alpha=0.6)
         runs = p["gs_runs"]
-        right.loglog(1e3 * runs[:, 3], np.maximum(runs[:, 2], floor), color=colour, lw=0.8, alpha=0.6,
-                     marker=".", ms=3)
+        right.loglog(
+            1e3 * runs[:, 3], np.maximum(runs[:, 2], floor), color=colour, lw=0.8, alpha=0.6, marker=".", ms=3
+        )
         for backend, result in p["exact"].items():
             if result["status"] != "rejected":
-                right.loglog(1e3 * result["seconds"], max(result["residual"], floor), ls="none",
-                             marker=markers.get(backend, "^"), mfc="none", color=colour, ms=5)
+                right.loglog(
+                    1e3 * result["seconds"],
+                    max(result["residual"], floor),
+                    ls="none",
+                    marker=markers.get(backend, "^"),
+                    mfc="none",
+                    color=colour,
+                    ms=5,
+                )
     for family in families:
         left.plot([], [], color=colours[family], label=family)
     for backend, marker in markers.items():
@@ -176,7 +216,7 @@ def write_tables(markdown: str, document: Path) -> None:
     text = document.read_text() if document.exists() else ""
     block = f"{BEGIN}\n{markdown}{END}"
     if BEGIN in text and END in text:
-        text = text[:text.index(BEGIN)] + block + text[text.index(END) + len(END):]
+        text = text[: text.index(BEGIN)] + block + text[text.index(END) + len(END) :]
     else:
         text = text + ("\n" if text else "") + block + "\n"
     document.write_text(text)

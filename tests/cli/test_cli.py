@@ -89,7 +89,9 @@ def test_verify_prints_the_table_and_passes():
 )
 def test_issue_10_inputs_exit_2_before_anything_is_written(tmp_path, capsys, extra, fragments):
     (tmp_path / "afile").write_text("x")
-    extra = [part.replace("FOLDER", str(tmp_path)).replace("AFILE", str(tmp_path / "afile")) for part in extra]
+    extra = [
+        part.replace("FOLDER", str(tmp_path)).replace("AFILE", str(tmp_path / "afile")) for part in extra
+    ]
     output = tmp_path / "result.h5"
     code = main(["run", "cube", "-o", str(output), "-q", *extra])
     error = capsys.readouterr().err
@@ -106,8 +108,10 @@ def test_parent_of_the_output_is_a_file(tmp_path, capsys):
     assert code == 2 and "afile is a file, not a folder" in error and "Errno" not in error
 
 
-@pytest.mark.skipif(not hasattr(__import__("os"), "geteuid") or __import__("os").geteuid() != 0,
-                    reason="needs root to mount a tmpfs")
+@pytest.mark.skipif(
+    not hasattr(__import__("os"), "geteuid") or __import__("os").geteuid() != 0,
+    reason="needs root to mount a tmpfs",
+)
 def test_full_disk_exits_3_with_a_readable_file(tmp_path, capsys):
     """A 1 MiB tmpfs fills up during the run: exit 3, a one-line message, every written step readable (and no
     XDMF sidecar written into the file on the full disk)."""
@@ -118,8 +122,21 @@ def test_full_disk_exits_3_with_a_readable_file(tmp_path, capsys):
     if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(disk)]).returncode != 0:
         pytest.skip("cannot mount a tmpfs here")
     try:
-        code = main(["run", "cube", "-o", str(disk / "out.h5"), "-q", "--set", "mesh.cells=[4, 4, 4]",
-                     "--set", "time.duration=2.2", "--set", "output.tissue_every=1"])
+        code = main(
+            [
+                "run",
+                "cube",
+                "-o",
+                str(disk / "out.h5"),
+                "-q",
+                "--set",
+                "mesh.cells=[4, 4, 4]",
+                "--set",
+                "time.duration=2.2",
+                "--set",
+                "output.tissue_every=1",
+            ]
+        )
         error = capsys.readouterr().err
         assert code == 3 and "no space left" in error and "internal error" not in error, error
         results = read_results(disk / "out.h5")

@@ -1,4 +1,5 @@
-"""The well-posed coupling (refsim.constraints.coupling): sub-grid compliance, ring rows, grip, tip, puncture."""
+"""The well-posed coupling (refsim.constraints.coupling): sub-grid compliance, ring rows, grip, tip,
+puncture."""
 
 from __future__ import annotations
 
@@ -60,8 +61,14 @@ def test_surface_subgrid_false_drops_the_annulus_of_rows_on_the_needles_surface_
     r = 8e-3
     sizes = np.array([4e-3, 8e-3, 12.5e-3, 25e-3])  # h < r, h = r, h > r, h > r
     kinds = np.array([coupling.LATERAL, coupling.AXIAL, coupling.LATERAL, coupling.AXIAL])
-    common = dict(shear_modulus=G, poisson_ratio=NU, needle_radius=r, mesh_size=sizes, spacing=0.5e-3,
-                  line_extent=line_extent)
+    common = dict(
+        shear_modulus=G,
+        poisson_ratio=NU,
+        needle_radius=r,
+        mesh_size=sizes,
+        spacing=0.5e-3,
+        line_extent=line_extent,
+    )
     full = coupling.subgrid_compliance(kinds, **common)
     bare = coupling.subgrid_compliance(kinds, **common, surface_subgrid=False)
     assert np.all(full > 0.0)
@@ -175,7 +182,8 @@ def _ring_rows(model, needle, centres, spacing, needle_radius, friction=0.0, pre
 def test_ring_rows_measure_the_mean_ring_displacement_and_reduce_to_the_paper_rows():
     model, needle, centres, spacing, h = _needle_in_box()
     block, _ = _ring_rows(model, needle, centres, spacing, needle_radius=0.2 * h)
-    # A uniform translation t of the tissue: every row reads −nᵀt (tissue side of δ = nᵀ(x_needle − x_tissue)).
+    # A uniform translation t of the tissue: every row reads −nᵀt (tissue side of δ = nᵀ(x_needle −
+    # x_tissue)).
     t = np.array([1e-3, -2e-3, 0.5e-3])
     uniform = np.tile(t, model.node_count)
     assert np.allclose(block.tissue_jacobian @ uniform, -block.directions @ t, atol=1e-15)
@@ -195,7 +203,8 @@ def test_ring_rows_measure_the_mean_ring_displacement_and_reduce_to_the_paper_ro
 
 
 def _lateral_push(coupling_name, *, cells=4, angle_deg=30.0, spacing_ratio=0.1, needle_radius=0.5e-3):
-    """A rigid needle pushed 1 mm sideways against the tissue it is coupled to (bilateral lateral rows only)."""
+    """A rigid needle pushed 1 mm sideways against the tissue it is coupled to (bilateral lateral rows
+    only)."""
     model, needle, centres, spacing, h = _needle_in_box(cells, angle_deg, spacing_ratio)
     if coupling_name == "ring":
         block, sizes = _ring_rows(model, needle, centres, spacing, needle_radius)
@@ -372,8 +381,8 @@ def test_tip_cutting_row_sticks_below_and_cuts_at_f_cut():
 @pytest.mark.parametrize("speed", [1e-3, 1e-2, 5e-2])
 def test_puncture_force_is_f_p_for_any_dt_and_speed(dt, speed):
     # The tip pushes a surface node of a clamped-bottom box; the penetration row's force is capped at f_p.
-    # The capped row punctures at f_p within 1 %; the plain unilateral row, detected after the step, overshoots by
-    # up to speed·dt / W.
+    # The capped row punctures at f_p within 1 %; the plain unilateral row, detected after the step,
+    # overshoots by up to speed·dt / W.
     mesh = box_mesh(size=(0.1, 0.1, 0.1), cells=(4, 4, 4), origin=(-0.05, -0.05, 0.0))
     rest = np.asarray(mesh.rest_positions)
     model = TissueModel(rest, np.asarray(mesh.tets), TISSUE, fixed_nodes=np.flatnonzero(rest[:, 2] < 1e-9))
@@ -447,8 +456,9 @@ def _lowered_shaft(cube_scene, shaft_contact):
 
 
 def test_shaft_contact_keeps_a_tilted_needle_out_of_the_tissue(cube_scene):
-    # Without shaft rows the shaft passes ~11 mm into the cube (the tip never touches); with them the shaft presses
-    # the edge down and stays out (to the linearisation of one step and the sampling between rows), no puncture.
+    # Without shaft rows the shaft passes ~11 mm into the cube (the tip never touches); with them the shaft
+    # presses the edge down and stays out (to the linearisation of one step and the sampling between rows), no
+    # puncture.
     records, signed = _lowered_shaft(cube_scene, shaft_contact=False)
     assert signed.min() < -5e-3
     records, signed = _lowered_shaft(cube_scene, shaft_contact=True)
@@ -459,18 +469,27 @@ def test_shaft_contact_keeps_a_tilted_needle_out_of_the_tissue(cube_scene):
 
 
 # ---------------------------------------------------------------------- puncture in the step, wired (item 5)
-@pytest.mark.parametrize(("dt", "speed"), [(0.001, 0.01), (0.01, 0.01), (0.05, 0.01), (0.01, 0.05), (0.02, 0.002)])
+@pytest.mark.parametrize(
+    ("dt", "speed"), [(0.001, 0.01), (0.01, 0.01), (0.05, 0.01), (0.01, 0.05), (0.02, 0.002)]
+)
 def test_cube_punctures_at_f_p_for_any_dt_and_speed(cube_scene, dt, speed):
     # insertion.puncture_within_step = true: the tip contact's force is capped at f_p, so the puncture event
-    # reports f_p within 1 % (issue 9, item 5); the plain contact reported 1.97 N for f_p = 0.8 N on this scene.
+    # reports f_p within 1 % (issue 9, item 5); the plain contact reported 1.97 N for f_p = 0.8 N on this
+    # scene.
     from refsim.simulation import Simulation
 
     duration = round(0.006 / speed / dt) * dt  # the tip travels 6 mm: 2 mm to the surface, then 4 mm
     base = 0.422
-    scene = cube_scene("mesh.cells=[4, 4, 4]", f"time.dt={dt}", f"time.duration={duration}",
-                       f"trajectory.times=[0.0, {duration}]",
-                       f"trajectory.base_positions=[[0.00123, 0.00231, {base}], [0.00123, 0.00231, {base - speed * duration}]]",
-                       "trajectory.directions=[[0, 0, -1], [0, 0, -1]]", "insertion.puncture_within_step=true")
+    scene = cube_scene(
+        "mesh.cells=[4, 4, 4]",
+        f"time.dt={dt}",
+        f"time.duration={duration}",
+        f"trajectory.times=[0.0, {duration}]",
+        "trajectory.base_positions=[[0.00123, 0.00231, "
+        f"{base}], [0.00123, 0.00231, {base - speed * duration}]]",
+        "trajectory.directions=[[0, 0, -1], [0, 0, -1]]",
+        "insertion.puncture_within_step=true",
+    )
     records = []
     Simulation(scene).run(on_step=lambda s, r: records.append(r))
     punctures = [e for r in records for e in r.events if e.name == "puncture"]
@@ -485,8 +504,11 @@ def test_cube_insertion_profile_rise_puncture_cut_and_friction(cube_scene):
     from refsim.simulation import Simulation
 
     f_cut, delta = 0.5, 2e-5
-    scene = cube_scene(f"insertion.tip_cutting_force={f_cut}", f"insertion.interference={delta}",
-                       "insertion.puncture_within_step=true")
+    scene = cube_scene(
+        f"insertion.tip_cutting_force={f_cut}",
+        f"insertion.interference={delta}",
+        "insertion.puncture_within_step=true",
+    )
     records = []
     Simulation(scene).run(on_step=lambda s, r: records.append(r))
     axial = np.array([r.needle_force[2] for r in records])
@@ -501,19 +523,24 @@ def test_cube_insertion_profile_rise_puncture_cut_and_friction(cube_scene):
     slope, intercept = np.polyfit(depth, axial[window], 1)
     g, nu, r = G, NU, scene.needle.radius
     mu = scene.insertion.shaft_friction_coefficient
-    expected = mu * 2 * math.pi * r * coupling.interference_pressure(shear_modulus=g, poisson_ratio=nu, radius=r,
-                                                                     interference=delta)
-    # Measured 5.8 % above: points are placed every d_i in the dragged (deformed) tissue, so a little more than
-    # one per d_i of needle, each with the grip 2π r p₀ d_i (μ Σ‖λ_lat‖ adds 0.1 %); 10 % bounds that.
+    expected = (
+        mu
+        * 2
+        * math.pi
+        * r
+        * coupling.interference_pressure(shear_modulus=g, poisson_ratio=nu, radius=r, interference=delta)
+    )
+    # Measured 5.8 % above: points are placed every d_i in the dragged (deformed) tissue, so a little more
+    # than one per d_i of needle, each with the grip 2π r p₀ d_i (μ Σ‖λ_lat‖ adds 0.1 %); 10 % bounds that.
     assert slope == pytest.approx(expected, rel=0.1)
     assert intercept == pytest.approx(f_cut, rel=0.05)
 
 
 # ------------------------------------------------------------- 3-D sub-grid compliance of a finite line
 def _kelvin_ring_line(kind, extent, radius):
-    """Independent evaluation: the mean over a ring (radius ρ) of Kelvin's displacement of uniform ring loads along
-    a line of length t on one side, by adaptive quadrature of the double integral over the chord angle and the
-    axial offset [per unit line load, times 16πG(1−ν)]."""
+    """Independent evaluation: the mean over a ring (radius ρ) of Kelvin's displacement of uniform ring loads
+    along a line of length t on one side, by adaptive quadrature of the double integral over the chord angle
+    and the axial offset [per unit line load, times 16πG(1−ν)]."""
     from scipy.integrate import dblquad
 
     def integrand(s, theta):
@@ -533,9 +560,10 @@ def test_finite_line_annulus_is_kelvin_integrated_and_tends_to_the_2d_values(kin
     scale = 16 * math.pi * G * (1 - NU)
     for before, after in ((2e-3, 7e-3), (0.04, 0.01)):
         # U_r − U_a summed over the line's two sides (the integrand is singular, integrably, at s = θ = 0).
-        expected = sum(
-            _kelvin_ring_line(kind, t, r) - _kelvin_ring_line(kind, t, a) for t in (before, after)
-        ) / scale
+        expected = (
+            sum(_kelvin_ring_line(kind, t, r) - _kelvin_ring_line(kind, t, a) for t in (before, after))
+            / scale
+        )
         computed = coupling.finite_line_annulus(
             kind, shear_modulus=G, poisson_ratio=NU, inner=r, outer=a, before=before, after=after
         )
@@ -543,7 +571,11 @@ def test_finite_line_annulus_is_kelvin_integrated_and_tends_to_the_2d_values(kin
     # A long line: the plane-strain (lateral) and antiplane (axial) values of subgrid_compliance.
     plane = coupling.subgrid_compliance(
         np.array([coupling.LATERAL if kind == "lateral" else coupling.AXIAL]),
-        shear_modulus=G, poisson_ratio=NU, needle_radius=r, mesh_size=a / 1.2718, spacing=1.0,
+        shear_modulus=G,
+        poisson_ratio=NU,
+        needle_radius=r,
+        mesh_size=a / 1.2718,
+        spacing=1.0,
     )[0]
     a_c = coupling.equivalent_radius(a / 1.2718, a / 1.2718, kind)
     long = coupling.finite_line_annulus(

@@ -1,5 +1,6 @@
-"""Cut rows on a hand-made planar strip in a box: sliding rows along the surface normal wherever the needle lies
-in the cut, front rows on the crack tip, with the strength G_c × (the inserted length each stands for)."""
+"""Cut rows on a hand-made planar strip in a box: sliding rows along the surface normal wherever the needle
+lies in the cut, front rows on the crack tip, with the strength G_c × (the inserted length each stands
+for)."""
 
 from __future__ import annotations
 
@@ -19,8 +20,9 @@ C_HAT = np.array([1.0, 0.0, 0.0])
 
 @pytest.fixture(scope="module")
 def planar_strip():
-    """A 12 mm box (6 cells per axis); a strip started from a vertical path at (x, y) = (4.1, 6.3) mm swept along
-    +x by 2 mm: the plane y = 6.3 mm, x in [4.1, 6.1] mm, z in [4, 12] mm; its crack tip at x = 6.1 mm."""
+    """A 12 mm box (6 cells per axis); a strip started from a vertical path at (x, y) = (4.1, 6.3) mm swept
+    along +x by 2 mm: the plane y = 6.3 mm, x in [4.1, 6.1] mm, z in [4, 12] mm; its crack tip at x = 6.1
+    mm."""
     mesh = box_mesh(size=(0.012, 0.012, 0.012), cells=(6, 6, 6))
     growth = CutGrowth(
         rest_positions=mesh.rest_positions,
@@ -37,8 +39,13 @@ def planar_strip():
 def _rows(planar_strip, needle, strength=np.inf):
     mesh, cut, strip = planar_strip
     return strip_cut_block(
-        cut, strip, still_geometry(mesh, needle), entry_arc_length=needle.length - 0.0075, spacing=SPACING,
-        cut_direction=C_HAT, front_strength=strength,
+        cut,
+        strip,
+        still_geometry(mesh, needle),
+        entry_arc_length=needle.length - 0.0075,
+        spacing=SPACING,
+        cut_direction=C_HAT,
+        front_strength=strength,
     )
 
 
@@ -69,7 +76,9 @@ def test_front_rows_hold_the_needle_behind_the_crack_tip(planar_strip):
     border = rows.source == CUT_BORDER
     assert np.count_nonzero(border) >= 10 and np.all(rows.kind[border] == UNILATERAL)
     np.testing.assert_array_equal(np.flatnonzero(border), front.rows)
-    np.testing.assert_allclose(rows.directions[border], np.broadcast_to(-C_HAT, (front.rows.size, 3)), atol=1e-12)
+    np.testing.assert_allclose(
+        rows.directions[border], np.broadcast_to(-C_HAT, (front.rows.size, 3)), atol=1e-12
+    )
     np.testing.assert_allclose(rows.points[border][:, 0], 0.0061, atol=1e-12)
     np.testing.assert_allclose(rows.free_gap[border], 1e-3, atol=1e-12)  # 1 mm behind the tip: inside
     assert rows.force_limit.size == 0 or np.all(np.isinf(rows.force_limit))  # unbounded: the paper's law
@@ -88,14 +97,18 @@ def test_front_strength_adds_up_to_gc_times_the_inserted_length(planar_strip):
 
 
 def test_rows_are_chosen_on_the_start_of_step_state(planar_strip):
-    # The needle moves 3 mm ahead during the free motion: the rows are those of where it was (in the cut), their
-    # gaps those of where it is (past the crack tip: negative front gaps).
+    # The needle moves 3 mm ahead during the free motion: the rows are those of where it was (in the cut),
+    # their gaps those of where it is (past the crack tip: negative front gaps).
     mesh, cut, strip = planar_strip
     previous = rigid_needle([0.0051, 0.0063, 0.0045], [0.0, 0.0, -1.0], length=0.02)
     free = rigid_needle([0.0081, 0.0063, 0.0045], [0.0, 0.0, -1.0], length=0.02)
     rows, front = strip_cut_block(
-        cut, strip, still_geometry(mesh, previous, needle_free=free), entry_arc_length=previous.length - 0.0075,
-        spacing=SPACING, cut_direction=C_HAT,
+        cut,
+        strip,
+        still_geometry(mesh, previous, needle_free=free),
+        entry_arc_length=previous.length - 0.0075,
+        spacing=SPACING,
+        cut_direction=C_HAT,
     )
     assert np.count_nonzero(rows.source == CUT_SLIDE) == 16
     np.testing.assert_allclose(rows.free_gap[front.rows], -2e-3, atol=1e-12)
@@ -106,10 +119,17 @@ def test_friction_on_the_cut_faces_is_bounded_by_each_sliding_row(planar_strip):
 
     mesh, cut, strip = planar_strip
     previous = rigid_needle([0.0051, 0.0064, 0.0045], [0.0, 0.0, -1.0], length=0.02)
-    free = rigid_needle([0.0052, 0.0064, 0.0043], [0.0, 0.0, -1.0], length=0.02)  # 0.1 mm along x, 0.2 mm down
+    free = rigid_needle(
+        [0.0052, 0.0064, 0.0043], [0.0, 0.0, -1.0], length=0.02
+    )  # 0.1 mm along x, 0.2 mm down
     rows, front = strip_cut_block(
-        cut, strip, still_geometry(mesh, previous, needle_free=free), entry_arc_length=previous.length - 0.0075,
-        spacing=SPACING, cut_direction=C_HAT, friction_coefficient=0.3,
+        cut,
+        strip,
+        still_geometry(mesh, previous, needle_free=free),
+        entry_arc_length=previous.length - 0.0075,
+        spacing=SPACING,
+        cut_direction=C_HAT,
+        friction_coefficient=0.3,
     )
     slide = np.flatnonzero((rows.source == CUT_SLIDE) & (rows.kind == BILATERAL))
     friction = np.flatnonzero(rows.kind == FRICTION)
@@ -118,7 +138,7 @@ def test_friction_on_the_cut_faces_is_bounded_by_each_sliding_row(planar_strip):
     np.testing.assert_array_equal(rows.group_members, np.concatenate([slide, slide]))
     np.testing.assert_allclose(rows.group_coefficient, 0.3)
     # Slip gaps: the needle moved 0.2 mm along itself (axial rows) and 0.1 mm across (along x) over the step.
-    axial, across = friction[: slide.size], friction[slide.size:]
+    axial, across = friction[: slide.size], friction[slide.size :]
     np.testing.assert_allclose(rows.free_gap[axial], 2e-4, atol=1e-12)
     np.testing.assert_allclose(np.abs(rows.free_gap[across]), 1e-4, atol=1e-12)
     problem = rows.problem(np.eye(rows.row_count))

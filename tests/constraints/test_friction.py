@@ -33,7 +33,10 @@ def test_rows_anchored_at_tissue_points_linearise_the_slip(block):
     arcs, _ = previous.project(points)
     geometry = still_geometry(block, previous, needle_free=free)
     rows = friction_rows(
-        geometry, tissue_nodes=block.tets[path.tets], tissue_weights=path.barycentric, arc_lengths=arcs,
+        geometry,
+        tissue_nodes=block.tets[path.tets],
+        tissue_weights=path.barycentric,
+        arc_lengths=arcs,
         tangents=tangents,
     )
     np.testing.assert_allclose(rows.free_gap, 3e-4, atol=1e-15)
@@ -41,7 +44,12 @@ def test_rows_anchored_at_tissue_points_linearise_the_slip(block):
     motion = 1e-5 * rng.normal(size=block.rest_positions.shape)
     moved = still_geometry(block, previous, needle_free=free, tissue_free=block.rest_positions + motion)
     again = friction_rows(
-        moved, tissue_nodes=block.tets[path.tets], tissue_weights=path.barycentric, arc_lengths=arcs,
+        moved,
+        tissue_nodes=block.tets[path.tets],
+        tissue_weights=path.barycentric,
+        arc_lengths=arcs,
         tangents=tangents,
     )
-    np.testing.assert_allclose(rows.tissue_jacobian @ motion.ravel(), again.free_gap - rows.free_gap, atol=1e-18)
+    np.testing.assert_allclose(
+        rows.tissue_jacobian @ motion.ravel(), again.free_gap - rows.free_gap, atol=1e-18
+    )

@@ -35,8 +35,9 @@ def test_lateral_rows_are_normal_to_the_needle_and_measure_the_offset(block, ent
     previous = rigid_needle(tip, direction)
     shift = np.array([1e-4, -2e-4, 5e-5])
     free = rigid_needle(tip + shift, direction)
-    rows = insertion_block(path, still_geometry(block, previous, needle_free=free), friction_coefficient=0.2,
-                           normal_preload=0.01)
+    rows = insertion_block(
+        path, still_geometry(block, previous, needle_free=free), friction_coefficient=0.2, normal_preload=0.01
+    )
     kinds = rows.kind.reshape(3, 3)
     assert np.all(kinds[:, :2] == BILATERAL) and np.all(kinds[:, 2] == FRICTION)
     directions = rows.directions.reshape(3, 3, 3)

@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
 from refsim.constraints import FRICTION, UNILATERAL, find_surface_contact, penetration_block
 from refsim.geometry import SurfaceProjector
 from tests.constraints.conftest import rigid_needle, still_geometry
-
-
 
 _geometry = still_geometry
 _needle = rigid_needle
@@ -29,8 +26,8 @@ def test_above_a_face_the_normal_is_the_face_normal(block):
 
 
 def test_beyond_an_edge_the_normal_points_from_the_edge_to_the_tip(block):
-    # Tip outside the top-right edge (x = 0.02, z = 0.02): the closest point is on the edge, and no face normal
-    # is right there; the row's normal must be the edge-to-tip direction (the contact-normal switch).
+    # Tip outside the top-right edge (x = 0.02, z = 0.02): the closest point is on the edge, and no face
+    # normal is right there; the row's normal must be the edge-to-tip direction (the contact-normal switch).
     tip = np.array([0.0203, 0.011, 0.0204])
     contact = _contact(block, tip)
     expected = np.array([0.0003, 0.0, 0.0004]) / 0.0005
@@ -51,7 +48,9 @@ def test_rows_gaps_and_kinds(block, friction):
     previous = _needle(tip, [0.0, 0.0, -1.0])
     moved = _needle(tip + [2e-4, -1e-4, -5e-4], [0.0, 0.0, -1.0])  # down and sideways over the step
     contact = _contact(block, moved.tip)
-    rows = penetration_block(contact, _geometry(block, previous, needle_free=moved), friction_coefficient=friction)
+    rows = penetration_block(
+        contact, _geometry(block, previous, needle_free=moved), friction_coefficient=friction
+    )
     assert rows.kind[0] == UNILATERAL
     # δ_n = nᵀ(tip_free − contact point): 0.3 mm − 0.5 mm.
     assert rows.free_gap[0] == pytest.approx(-2e-4, abs=1e-15)

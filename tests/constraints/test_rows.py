@@ -109,8 +109,13 @@ def test_path_has_no_gaps_whatever_the_tip_speed(moves_per_step):
         depth = step * moves_per_step * spacing
         tip = start - np.array([0.0, 0.0, depth])
         path, _ = grow_path(
-            path, tip=tip, tissue_positions=mesh.rest_positions, mesh_tets=mesh.tets, locator=locator,
-            spacing=spacing, step=step,
+            path,
+            tip=tip,
+            tissue_positions=mesh.rest_positions,
+            mesh_tets=mesh.tets,
+            locator=locator,
+            spacing=spacing,
+            step=step,
         )
     positions = path.positions(mesh.rest_positions, mesh.tets)
     gaps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
@@ -120,15 +125,20 @@ def test_path_has_no_gaps_whatever_the_tip_speed(moves_per_step):
 
 
 def test_points_beyond_tip_after_withdrawal():
-    needle = RigidNeedleGeometry(np.array([0.0, 0.0, 0.1]), np.array([0.0, 0.0, -1.0]), 0.05)  # tip at z = 0.05
-    points = np.array([[0.0, 0.0, 0.06], [0.0, 0.0, 0.05 + 1e-12], [0.0, 0.0, 0.05 - 1e-12], [0.001, 0.0, 0.04]])
+    needle = RigidNeedleGeometry(
+        np.array([0.0, 0.0, 0.1]), np.array([0.0, 0.0, -1.0]), 0.05
+    )  # tip at z = 0.05
+    points = np.array(
+        [[0.0, 0.0, 0.06], [0.0, 0.0, 0.05 + 1e-12], [0.0, 0.0, 0.05 - 1e-12], [0.001, 0.0, 0.04]]
+    )
     path = InsertionPath.empty().appended(np.zeros(4, int), np.full((4, 4), 0.25), 0)
     np.testing.assert_array_equal(points_beyond_tip(path, points, needle), [False, False, True, True])
 
 
 def _two_rows(**fields):
-    from refsim.constraints import RowBlock, UNILATERAL
     import scipy.sparse as sp
+
+    from refsim.constraints import UNILATERAL, RowBlock
 
     return RowBlock(
         tissue_jacobian=sp.csr_matrix(np.eye(2, 6)),
@@ -156,7 +166,9 @@ def test_force_limits_become_box_rows_and_compliance_diagonal_joins_the_diagonal
     np.testing.assert_allclose(both.compliance_diagonal, [1e-3, 0.0, 0.0, 0.0])
 
 
-@pytest.mark.parametrize("fields", [dict(force_limit=np.array([0.0, 1.0])), dict(compliance_diagonal=np.array([-1.0, 0.0]))])
+@pytest.mark.parametrize(
+    "fields", [dict(force_limit=np.array([0.0, 1.0])), dict(compliance_diagonal=np.array([-1.0, 0.0]))]
+)
 def test_bad_limits_and_compliance_are_rejected(fields):
     with pytest.raises(ValueError):
         _two_rows(**fields)

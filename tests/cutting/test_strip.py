@@ -19,8 +19,12 @@ def test_strip_triangles_cover_each_quad_once_with_one_winding():
     back, front = np.arange(0, 5), np.arange(5, 10)
     triangles = strip_triangles(back, front)
     assert triangles.shape == (8, 3)
-    points = np.concatenate([np.stack([np.zeros(5), np.arange(5.0), np.zeros(5)], 1),
-                             np.stack([np.ones(5), np.arange(5.0), np.zeros(5)], 1)])
+    points = np.concatenate(
+        [
+            np.stack([np.zeros(5), np.arange(5.0), np.zeros(5)], 1),
+            np.stack([np.ones(5), np.arange(5.0), np.zeros(5)], 1),
+        ]
+    )
     corners = points[triangles]
     normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     np.testing.assert_allclose(np.abs(normals[:, 2]), 0.5 * 2, atol=1e-12)  # area 1/2 each, |n| = 2 A
@@ -44,14 +48,20 @@ def growth():
 
 def test_the_crack_tip_advances_to_the_pushed_material_point_and_layers_follow(growth):
     path = np.linspace([0.0041, 0.0063, 0.012], [0.0041, 0.0063, 0.004], 17)
-    cut, strip = start_strip(growth, None, path, np.array([1.0, 0.0, 0.0]), growth.rest_positions, 1, extent=0.0)
+    cut, strip = start_strip(
+        growth, None, path, np.array([1.0, 0.0, 0.0]), growth.rest_positions, 1, extent=0.0
+    )
     assert cut.triangle_count == 0 and strip.layers.shape == (1, 17)
     advances = np.full(17, 0.3e-3)
-    moved = strip.with_front(advance_front(growth, strip, advances, np.array([1.0, 0, 0]), growth.rest_positions))
+    moved = strip.with_front(
+        advance_front(growth, strip, advances, np.array([1.0, 0, 0]), growth.rest_positions)
+    )
     np.testing.assert_allclose(moved.front.rest_points[:, 0], 0.0044, atol=1e-12)
     same, not_yet = moved.lay(cut, 2, SPACING)
     assert not_yet.layers.shape == (1, 17) and same.point_count == cut.point_count  # 0.3 mm < d_c
-    further = not_yet.with_front(advance_front(growth, not_yet, advances, np.array([1.0, 0, 0]), growth.rest_positions))
+    further = not_yet.with_front(
+        advance_front(growth, not_yet, advances, np.array([1.0, 0, 0]), growth.rest_positions)
+    )
     grown, laid = further.lay(cut, 3, SPACING)
     assert laid.layers.shape == (2, 17) and grown.triangle_count == 32
     assert surface_topology(grown.triangles, grown.point_count).is_disc
@@ -62,7 +72,10 @@ def test_points_on_or_a_hair_above_the_surface_are_kept_in_the_tissue(growth, of
     # The crack tip on the top face (z = 12 mm) steps outside by round-off or a deformation's bulge.
     point = np.array([[0.0043, 0.0063, 0.012 + offset]])
     tets, bary, inside = locate_material_points(
-        TetLocator(growth.rest_positions, growth.tets), growth.rest_positions, growth.tets, point,
+        TetLocator(growth.rest_positions, growth.tets),
+        growth.rest_positions,
+        growth.tets,
+        point,
         snap_distance=0.5 * SPACING,
     )
     assert inside[0]
@@ -75,7 +88,10 @@ def test_points_on_or_a_hair_above_the_surface_are_kept_in_the_tissue(growth, of
 def test_points_far_outside_are_outside(growth):
     point = np.array([[0.0043, 0.0063, 0.013]])
     _, _, inside = locate_material_points(
-        TetLocator(growth.rest_positions, growth.tets), growth.rest_positions, growth.tets, point,
+        TetLocator(growth.rest_positions, growth.tets),
+        growth.rest_positions,
+        growth.tets,
+        point,
         snap_distance=0.5 * SPACING,
     )
     assert not inside[0]
@@ -94,16 +110,23 @@ def test_columns_added_below_the_strip_join_it_as_a_disc_when_laid(growth):
         cut, strip = strip.lay(cut, step, SPACING)
     assert strip.layers.shape == (3, 9) and surface_topology(cut.triangles, cut.point_count).is_disc
     below = strip.front.rest_points[-1] + np.array([[0, 0, -1.0], [0, 0, -2.0], [0, 0, -3.0]]) * SPACING
-    tets, barycentric, inside = locate_material_points(TetLocator(growth.rest_positions, growth.tets),
-                                                       growth.rest_positions, growth.tets, below)
+    tets, barycentric, inside = locate_material_points(
+        TetLocator(growth.rest_positions, growth.tets), growth.rest_positions, growth.tets, below
+    )
     assert inside.all()
-    extended = strip.extended(CutFront(below, tets, barycentric), strip.depths[-1] + SPACING * np.arange(1, 4))
+    extended = strip.extended(
+        CutFront(below, tets, barycentric), strip.depths[-1] + SPACING * np.arange(1, 4)
+    )
     assert extended.column_count == 12 and np.all(np.diff(extended.depths) > 0)
     # Not due yet: the new columns alone do not lay a layer (their points would join no triangle).
     same, unchanged = extended.lay(cut, 4, SPACING)
     assert same is cut and unchanged.layers.shape == (3, 12)
-    moved = extended.with_front(advance_front(growth, extended, np.full(12, SPACING), x, growth.rest_positions))
+    moved = extended.with_front(
+        advance_front(growth, extended, np.full(12, SPACING), x, growth.rest_positions)
+    )
     grown, laid = moved.lay(cut, 5, SPACING)
     topology = surface_topology(grown.triangles, grown.point_count)
     assert laid.layers.shape == (4, 12) and topology.is_disc, topology
-    assert grown.triangle_count == cut.triangle_count + 2 * 8 + 3  # a quad per old pair, a fan for the new columns
+    assert (
+        grown.triangle_count == cut.triangle_count + 2 * 8 + 3
+    )  # a quad per old pair, a fan for the new columns

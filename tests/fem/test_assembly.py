@@ -44,7 +44,8 @@ def test_polar_of_rotation_times_stretch():
 
 @pytest.mark.parametrize("flatness", [1e-4, 1e-8, 1e-12])
 def test_polar_near_degenerate(flatness):
-    # F = R diag(1, 1, s): as s → 0 the polar factor stays R (det F > 0), and the iteration must still converge.
+    # F = R diag(1, 1, s): as s → 0 the polar factor stays R (det F > 0), and the iteration must still
+    # converge.
     rng = np.random.default_rng(2)
     rotations = rotation_matrix(rng.standard_normal((50, 3)))
     f = rotations @ np.diag([1.0, 0.7, flatness])
@@ -92,7 +93,8 @@ def test_compiled_assembly_equals_numpy_assembly(model):
     numpy_path = model.assemble_step(state, 0.01, fixed_displacements=drive, compiled=False)
     compiled = model.assemble_step(state, 0.01, fixed_displacements=drive)
     np.testing.assert_array_equal(numpy_path.free_dofs, compiled.free_dofs)
-    # Same sums in another order: entries equal to a few ε of the largest (each is a sum of ≤ 24 element terms).
+    # Same sums in another order: entries equal to a few ε of the largest (each is a sum of ≤ 24 element
+    # terms).
     a, b = numpy_path.matrix.toarray(), compiled.matrix.toarray()
     assert np.abs(a - b).max() <= 64 * EPS * np.abs(a).max()
     assert np.abs(numpy_path.rhs - compiled.rhs).max() <= 64 * EPS * np.abs(numpy_path.rhs).max()

@@ -1,5 +1,5 @@
-"""Compliance strategies (refsim.fem.compliance): exact against today's ImplicitEulerSystem, Dirichlet motion of
-fixed nodes, refreshed and precomputed against exact with errors derived or measured."""
+"""Compliance strategies (refsim.fem.compliance): exact against today's ImplicitEulerSystem, Dirichlet motion
+of fixed nodes, refreshed and precomputed against exact with errors derived or measured."""
 
 from __future__ import annotations
 
@@ -69,8 +69,8 @@ def dense_reference(model: TissueModel, state: TissueState, prescribed: np.ndarr
 
 
 def test_exact_strategy_is_bit_identical_to_implicit_euler_system(model):
-    # Today's path (issue 8): ImplicitEulerSystem with SuperLU/COLAMD; the exact strategy on the same solver and the
-    # NumPy assembly must give the same bits for the free motion and for (W, A⁻¹Hᵀ).
+    # Today's path (issue 8): ImplicitEulerSystem with SuperLU/COLAMD; the exact strategy on the same solver
+    # and the NumPy assembly must give the same bits for the free motion and for (W, A⁻¹Hᵀ).
     state = deformed(model)
     rotations = model.element_rotations(state.positions)
     legacy = model.step_system(rotations, DT)
@@ -132,8 +132,8 @@ def crowded_rows(model: TissueModel, count: int = 30, seed: int = 3) -> sp.csr_m
 @pytest.mark.parametrize("layout", ["spread", "crowded"])
 @pytest.mark.parametrize("solver", available_linear_solvers())
 def test_exact_delassus_and_correction_for_few_or_many_rows(model, solver, layout):
-    # Fewer rows than DoFs touched (solved for the rows' loads) or more (for the unit loads), with the factor's
-    # forward half when the solver has one (PARDISO): W and A⁻¹Hᵀλ equal the dense solve to κ(A)·ε.
+    # Fewer rows than DoFs touched (solved for the rows' loads) or more (for the unit loads), with the
+    # factor's forward half when the solver has one (PARDISO): W and A⁻¹Hᵀλ equal the dense solve to κ(A)·ε.
     state = deformed(model)
     system, dense, inverse, _ = dense_reference(model, state)
     step = Exact(linear_solver=solver).bind().step(system)
@@ -337,8 +337,9 @@ def test_scene_keys_choose_the_strategy():
 
 
 def test_first_order_w_update_is_second_order_in_the_matrix_change(model):
-    # A⁻¹ = A₀⁻¹ − A₀⁻¹ΔA A₀⁻¹ + O(‖A₀⁻¹ΔA‖²): the stale W errs by O(ΔA), the first-order corrected one by O(ΔA²).
-    # ΔA is proportional to the change of configuration h (the rotations move by O(h)): fitted orders 1 and 2.
+    # A⁻¹ = A₀⁻¹ − A₀⁻¹ΔA A₀⁻¹ + O(‖A₀⁻¹ΔA‖²): the stale W errs by O(ΔA), the first-order corrected one by
+    # O(ΔA²). ΔA is proportional to the change of configuration h (the rotations move by O(h)): fitted orders
+    # 1 and 2.
     base = deformed(model, 0.01)
     direction = deformed(model, 0.01, seed=7).positions - base.positions
     jacobian = rows_on(model)
@@ -366,14 +367,18 @@ def test_first_order_w_update_is_second_order_in_the_matrix_change(model):
     assert np.linalg.norm(correction - expected) <= kappa * 1e-10 * np.linalg.norm(expected)
 
 
-@pytest.mark.parametrize("strategy", [Exact(), Refreshed(refresh_every=2), Precomputed()], ids=lambda s: s.name)
+@pytest.mark.parametrize(
+    "strategy", [Exact(), Refreshed(refresh_every=2), Precomputed()], ids=lambda s: s.name
+)
 def test_every_strategy_moves_prescribed_nodes_exactly(model, strategy):
     body = strategy.bind()
     state = deformed(model, 0.003)
     drive = np.tile([0.0, 5e-4, -2e-4], (model.fixed_nodes.size, 1))
     for _ in range(3):
         positions, _, step = model.free_motion(state, DT, fixed_displacements=drive, compliance=body)
-        np.testing.assert_array_equal(positions[model.fixed_nodes], state.positions[model.fixed_nodes] + drive)
+        np.testing.assert_array_equal(
+            positions[model.fixed_nodes], state.positions[model.fixed_nodes] + drive
+        )
         _, dense, _, reference = dense_reference(model, state, drive)
         kappa = np.linalg.cond(dense)
         # Direct solve: κ ε; PCG to 1e-10: κ · 1e-10 (relative, 2-norm).

@@ -1,5 +1,6 @@
-"""Sparse SPD solvers (refsim.fem.linear): every available backend equals a fresh dense factorisation to round-off,
-keeps its analysis across refactorisations of one pattern, and the environment variable forces the choice."""
+"""Sparse SPD solvers (refsim.fem.linear): every available backend equals a fresh dense factorisation to
+round-off, keeps its analysis across refactorisations of one pattern, and the environment variable forces the
+choice."""
 
 from __future__ import annotations
 
@@ -55,7 +56,8 @@ def test_solver_equals_a_fresh_dense_factorisation(name):
         rhs = rng.standard_normal((matrix.shape[0], 5))
         dense = matrix.toarray()
         expected = np.linalg.solve(dense, rhs)
-        # Backward-stable direct solves: relative forward error ≲ κ(A) ε (Higham, Accuracy and Stability, ch. 7, 10).
+        # Backward-stable direct solves: relative forward error ≲ κ(A) ε (Higham, Accuracy and Stability, ch.
+        # 7, 10).
         bound = 10 * np.linalg.cond(dense) * EPS
         np.testing.assert_allclose(solver.solve(rhs), expected, rtol=0, atol=bound * np.abs(expected).max())
         np.testing.assert_allclose(

@@ -23,15 +23,33 @@ _spec.loader.exec_module(_scenes)
 
 EXAMPLES = max(10, settings.default.max_examples // 2)
 FORMATS = [("vtu", ".vtu"), ("gmsh22", ".msh"), ("gmsh", ".msh"), ("vtk", ".vtk"), ("gmsh1", ".msh")]
-DEFECTS = ["none", "duplicated", "inverted", "degenerate", "collapsed_node", "scaled_mm", "scaled_tiny",
-           "truncated", "garbage", "nan_node", "index_out_of_range", "empty", "no_tets", "shuffled"]
+DEFECTS = [
+    "none",
+    "duplicated",
+    "inverted",
+    "degenerate",
+    "collapsed_node",
+    "scaled_mm",
+    "scaled_tiny",
+    "truncated",
+    "garbage",
+    "nan_node",
+    "index_out_of_range",
+    "empty",
+    "no_tets",
+    "shuffled",
+]
 
 
 def _write_gmsh_v1(path: Path, positions: np.ndarray, tets: np.ndarray) -> None:
     labels = np.arange(1, positions.shape[0] + 1) * 7  # arbitrary distinct labels
     lines = ["$NOD", str(positions.shape[0])]
-    lines += [f"{label} {float(x)!r} {float(y)!r} {float(z)!r}" for label, (x, y, z) in zip(labels, positions, strict=True)]
+    lines += [
+        f"{label} {float(x)!r} {float(y)!r} {float(z)!r}"
+        for label, (x, y, z) in zip(labels, positions, strict=True)
+    ]
     lines += ["$ENDNOD", "$ELM", str(tets.shape[0])]
+
     def label(node):  # an index out of range becomes a label that $NOD does not list
         return str(labels[node]) if 0 <= node < labels.size else str(7 * (labels.size + 1) + 1)
 
@@ -90,12 +108,17 @@ def _mesh_file(folder: Path, fmt: str, suffix: str, defect: str, seed: int) -> P
 
 
 @settings(max_examples=EXAMPLES, suppress_health_check=[HealthCheck.too_slow])
-@given(st.sampled_from(FORMATS), st.sampled_from(DEFECTS), st.integers(0, 2**16), st.sampled_from([1.0, 1e-3]))
+@given(
+    st.sampled_from(FORMATS), st.sampled_from(DEFECTS), st.integers(0, 2**16), st.sampled_from([1.0, 1e-3])
+)
 def test_fuzzed_mesh_files_end_cleanly(fmt, defect, seed, scale):
     with tempfile.TemporaryDirectory() as folder:
         folder = Path(folder)
         mesh_path = _mesh_file(folder, fmt[0], fmt[1], defect, seed)
-        data = {section: dict(table) if isinstance(table, dict) else table for section, table in _scenes.BASE.items()}
+        data = {
+            section: dict(table) if isinstance(table, dict) else table
+            for section, table in _scenes.BASE.items()
+        }
         data["mesh"] = {"file": str(mesh_path), "scale": scale, "fixed_faces": ["zmin"]}
         scene = folder / "scene.toml"
         _scenes.write_scene(data, scene)
@@ -104,6 +127,13 @@ def test_fuzzed_mesh_files_end_cleanly(fmt, defect, seed, scale):
         _scenes.assert_clean_outcome(code, error, output, [str(mesh_path), "mesh.", "[mesh]", "mesh"])
         if defect in ("none", "duplicated", "inverted", "shuffled") and scale == 1.0:
             assert code == 0, error  # repairable defects are repaired (with a warning)
-        if defect in ("degenerate", "collapsed_node", "nan_node", "index_out_of_range", "empty", "no_tets",
-                      "truncated"):
+        if defect in (
+            "degenerate",
+            "collapsed_node",
+            "nan_node",
+            "index_out_of_range",
+            "empty",
+            "no_tets",
+            "truncated",
+        ):
             assert code == 2, error

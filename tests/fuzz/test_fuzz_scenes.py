@@ -1,6 +1,6 @@
-"""Fuzz of scene files (issue 10): any key, in and out of range, of the wrong type; each case must end in a clean
-run (exit 0), a clean input error (exit 2: a message naming the key or its section, no traceback, no file) or a
-clean numerical stop (exit 3: a readable file with complete = false and the reason).
+"""Fuzz of scene files (issue 10): any key, in and out of range, of the wrong type; each case must end in a
+clean run (exit 0), a clean input error (exit 2: a message naming the key or its section, no traceback, no
+file) or a clean numerical stop (exit 3: a readable file with complete = false and the reason).
 
 Runs are tiny (2³ cells, at most 8 steps: the needle approaches the cube) so the default suite's share stays
 small; HYPOTHESIS_PROFILE=slow runs 50 times more examples.
@@ -29,23 +29,32 @@ BASE["mesh"]["cells"] = [2, 2, 2]
 BASE["time"]["duration"] = 0.05
 BASE["output"] = {"tissue_every": 2, "record_problems": False}
 KEYS = [(section, key) for section, table in BASE.items() if isinstance(table, dict) for key in table]
-EXTRA_KEYS = [("mesh", "file"), ("mesh", "scale"), ("mesh", "fixed_box"), ("mesh", "face_tolerance"),
-              ("trajectory", "file"), ("solver", "criterion"), ("insertion", "shaft_normal_force"),
-              ("needle", "rayleigh_mass"), ("needle", "rayleigh_stiffness"), ("output", "record_problems")]
+EXTRA_KEYS = [
+    ("mesh", "file"),
+    ("mesh", "scale"),
+    ("mesh", "fixed_box"),
+    ("mesh", "face_tolerance"),
+    ("trajectory", "file"),
+    ("solver", "criterion"),
+    ("insertion", "shaft_normal_force"),
+    ("needle", "rayleigh_mass"),
+    ("needle", "rayleigh_stiffness"),
+    ("output", "record_problems"),
+]
 EXAMPLES = settings.default.max_examples  # 40 in the ci profile, 2000 in slow
 
 
 def _scale_value(value):
     """Values near and far from a valid one: scaled, negated, zero, huge, tiny."""
-    return st.sampled_from([0.0, -1.0, 0.5, 2.0, 10.0, 1e-6, 1e6, 1e300, -1e300]).map(lambda f: value * f if
-                                                                                        isinstance(value, float)
-                                                                                        else f)
+    return st.sampled_from([0.0, -1.0, 0.5, 2.0, 10.0, 1e-6, 1e6, 1e300, -1e300]).map(
+        lambda f: value * f if isinstance(value, float) else f
+    )
 
 
 junk = st.one_of(
     st.text(max_size=8),
     st.booleans(),
-    st.integers(-10**6, 10**6),
+    st.integers(-(10**6), 10**6),
     st.floats(allow_nan=True, allow_infinity=True),
     st.lists(st.floats(-1e3, 1e3), max_size=4),
     st.lists(st.lists(st.integers(-3, 3), min_size=3, max_size=3), max_size=3),
@@ -69,11 +78,17 @@ def mutated_scenes(draw):
             table[key] = draw(_scale_value(float(current)))
             if isinstance(current, int):
                 table[key] = int(max(min(table[key], 1e9), -1e9))
-        elif how == "scale" and isinstance(current, list) and current and all(
-                isinstance(v, (int, float)) for v in current):
+        elif (
+            how == "scale"
+            and isinstance(current, list)
+            and current
+            and all(isinstance(v, (int, float)) for v in current)
+        ):
             factor = draw(_scale_value(1.0))
-            table[key] = [type(v)(v * factor) if math.isfinite(v * factor) and abs(v * factor) < 1e18 else v * factor
-                          for v in current]
+            table[key] = [
+                type(v)(v * factor) if math.isfinite(v * factor) and abs(v * factor) < 1e18 else v * factor
+                for v in current
+            ]
         else:
             table[key] = draw(junk)
         changed.append((section, key))
@@ -154,9 +169,27 @@ def test_fuzzed_scene_files_end_cleanly(case):
         assert_clean_outcome(code, error, output, names)
 
 
-override_values = st.one_of(st.sampled_from(["abc", '"x"', "true", "[1, 2]", "{a = 1}", "nan", "-inf", "1e400", "",
-                                             "[[0, 0, -1]]", "0", "-1", "1e300"]),
-                            st.floats(allow_nan=False).map(repr), st.integers(-5, 10**7).map(str))
+override_values = st.one_of(
+    st.sampled_from(
+        [
+            "abc",
+            '"x"',
+            "true",
+            "[1, 2]",
+            "{a = 1}",
+            "nan",
+            "-inf",
+            "1e400",
+            "",
+            "[[0, 0, -1]]",
+            "0",
+            "-1",
+            "1e300",
+        ]
+    ),
+    st.floats(allow_nan=False).map(repr),
+    st.integers(-5, 10**7).map(str),
+)
 
 
 @settings(max_examples=EXAMPLES, suppress_health_check=[HealthCheck.too_slow])

@@ -174,7 +174,8 @@ def _exact_distance2(point: np.ndarray, triangle: np.ndarray) -> float:
     """Squared distance from a point to a triangle in exact rational arithmetic (fractions.Fraction).
 
     The closest point is the plane projection when its barycentric coordinates are all >= 0, otherwise the
-    closest point of an edge; with exact arithmetic neither test suffers from cancellation, whatever the shape.
+    closest point of an edge; with exact arithmetic neither test suffers from cancellation, whatever the
+    shape.
     """
     from fractions import Fraction
 
@@ -203,15 +204,19 @@ def _exact_distance2(point: np.ndarray, triangle: np.ndarray) -> float:
     if normal2 > 0:
         height = dot(normal, sub(p, a)) / normal2
         foot = [p[i] - height * normal[i] for i in range(3)]
-        weights = [dot(normal, cross(sub(b, foot), sub(c, foot))), dot(normal, cross(sub(c, foot), sub(a, foot))),
-                   dot(normal, cross(sub(a, foot), sub(b, foot)))]
+        weights = [
+            dot(normal, cross(sub(b, foot), sub(c, foot))),
+            dot(normal, cross(sub(c, foot), sub(a, foot))),
+            dot(normal, cross(sub(a, foot), sub(b, foot))),
+        ]
         if min(weights) >= 0:
             best = min(best, height * height * normal2)
     return float(best)
 
 
 def _slivers(rng, count: int, thickness: float) -> np.ndarray:
-    """Triangles whose third vertex lies ``thickness`` × |ab| off the line ab, anywhere along it (a sliver)."""
+    """Triangles whose third vertex lies ``thickness`` × |ab| off the line ab, anywhere along it (a
+    sliver)."""
     a, b = rng.uniform(-5, 5, (2, count, 3))
     along = rng.uniform(-1.0, 2.0, count)
     offset = rng.normal(size=(count, 3))
@@ -221,10 +226,11 @@ def _slivers(rng, count: int, thickness: float) -> np.ndarray:
 
 @pytest.mark.parametrize("thickness", [0.0, 1e-13, 1e-12, 1e-11, 1e-9, 1e-7, 1e-5, 1e-3, 3e-2])
 def test_slivers_against_exact_arithmetic(thickness):
-    """Collinear (thickness 0) and nearly collinear triangles, points on and near them: the distance equals the
-    exact-arithmetic distance to round-off. Before the fix Ericson's face formulas returned points 6 m off here.
-    Tolerance 1e-13 m: round-off of distances between points of coordinates up to 10 m (ε·10 = 2.2e-15) times
-    the few dozen operations of the frame computation; thin triangles used to err by up to 6 m (the issue).
+    """Collinear (thickness 0) and nearly collinear triangles, points on and near them: the distance equals
+    the exact-arithmetic distance to round-off. Before the fix Ericson's face formulas returned points 6 m off
+    here. Tolerance 1e-13 m: round-off of distances between points of coordinates up to 10 m (ε·10 = 2.2e-15)
+    times the few dozen operations of the frame computation; thin triangles used to err by up to 6 m (the
+    issue).
     """
     rng = np.random.default_rng(11)
     count = 150
@@ -239,7 +245,9 @@ def test_slivers_against_exact_arithmetic(thickness):
     np.testing.assert_allclose(barycentric.sum(axis=1), 1.0, atol=1e-15)
 
 
-@pytest.mark.parametrize("shape", ["two_coincident", "all_coincident", "collinear_middle", "collinear_outside"])
+@pytest.mark.parametrize(
+    "shape", ["two_coincident", "all_coincident", "collinear_middle", "collinear_outside"]
+)
 def test_degenerate_shapes_by_name(shape):
     """Coincident and collinear vertices, each ordering: closest point exact (exact-arithmetic reference), the
     barycentric coordinates a valid convex combination, and a point of the segment hull returned as itself."""
@@ -278,12 +286,16 @@ def _thin_triangles(draw):
 
 
 @settings(deadline=None)
-@given(_thin_triangles(), arrays(np.float64, (3,), elements=st.floats(-8, 8)), st.floats(0, 1), st.floats(0, 1))
+@given(
+    _thin_triangles(), arrays(np.float64, (3,), elements=st.floats(-8, 8)), st.floats(0, 1), st.floats(0, 1)
+)
 def test_property_thin_triangles_match_exact_arithmetic(triangle, point, u, v):
     """Any triangle, slivers included, and points near it (the failure of issue 10 was a sliver)."""
     near = triangle[0] + u * (triangle[1] - triangle[0]) + v * (1 - u) * (triangle[2] - triangle[0])
     for query in (point, near, near + 1e-9 * point):
         closest, barycentric = closest_points_on_triangles(query[None], triangle[None])
         exact = np.sqrt(_exact_distance2(query, triangle))
-        assert abs(np.linalg.norm(query - closest[0]) - exact) <= 1e-13 * (1.0 + np.abs(triangle).max() + np.abs(query).max())
+        assert abs(np.linalg.norm(query - closest[0]) - exact) <= 1e-13 * (
+            1.0 + np.abs(triangle).max() + np.abs(query).max()
+        )
         assert barycentric.min() >= 0.0

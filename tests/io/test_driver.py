@@ -1,4 +1,5 @@
-"""The run driver (refsim.io.driver.run_scene): how every kind of stop ends, the file it leaves, and buffering.
+"""The run driver (refsim.io.driver.run_scene): how every kind of stop ends, the file it leaves, and
+buffering.
 
 Each test runs a few steps of the paper's cube on 3³ cells (a fraction of a second per run) and stops it on
 purpose: a signal sent from inside the run, an injected numerical failure, an injected or real write failure.
@@ -36,8 +37,9 @@ def test_complete_run_returns_its_summary(tmp_path):
     assert results.complete and results.step_count == 30 and results.stop_reason == ""
 
 
-@pytest.mark.parametrize(("number", "status", "code"), [(signal.SIGTERM, "terminated", 143),
-                                                         (signal.SIGINT, "interrupted", 130)])
+@pytest.mark.parametrize(
+    ("number", "status", "code"), [(signal.SIGTERM, "terminated", 143), (signal.SIGINT, "interrupted", 130)]
+)
 def test_signals_stop_the_run_and_keep_every_completed_step(tmp_path, number, status, code):
     def send(state, record):
         if record.step == 7:
@@ -58,9 +60,23 @@ def test_sigterm_from_outside_exits_143(tmp_path):
     """The command line in a child process, terminated by another process while it runs."""
     output = tmp_path / "run.h5"
     child = subprocess.Popen(
-        [os.environ.get("PYTHON", "python"), "-m", "refsim", "run", "cube", "-o", str(output), "-q",
-         "--set", "mesh.cells=[3, 3, 3]", "--set", "time.duration=20.0"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        [
+            os.environ.get("PYTHON", "python"),
+            "-m",
+            "refsim",
+            "run",
+            "cube",
+            "-o",
+            str(output),
+            "-q",
+            "--set",
+            "mesh.cells=[3, 3, 3]",
+            "--set",
+            "time.duration=20.0",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])},
     )
     deadline = 120.0
@@ -175,7 +191,9 @@ def test_injected_write_failure_keeps_the_blocks_written_before(tmp_path, monkey
     assert results.step_count == 8 and not results.complete and "No space left" in results.stop_reason
 
 
-@pytest.mark.skipif(os.geteuid() != 0 or not Path("/bin/mount").exists(), reason="needs root to mount a tmpfs")
+@pytest.mark.skipif(
+    os.geteuid() != 0 or not Path("/bin/mount").exists(), reason="needs root to mount a tmpfs"
+)
 def test_full_tmpfs_disk(tmp_path):
     """A real full disk: a 1 MiB tmpfs, tissue positions every step (about 3 kB each)."""
     folder = tmp_path / "disk"
@@ -222,8 +240,14 @@ def test_output_path_checks(tmp_path):
 
 
 def test_bad_input_writes_nothing(tmp_path):
-    scene = load_scene("cube", SMALL + ["trajectory.base_positions=[[0.00123, 0.00231, 0.38], "
-                                        "[0.00123, 0.00231, 0.38], [0.00123, 0.00231, 0.38]]"])
+    scene = load_scene(
+        "cube",
+        SMALL
+        + [
+            "trajectory.base_positions=[[0.00123, 0.00231, 0.38], "
+            "[0.00123, 0.00231, 0.38], [0.00123, 0.00231, 0.38]]"
+        ],
+    )
     with pytest.raises(RunInputError, match="inside the tissue"):
         run_scene(scene, tmp_path / "run.h5")
     assert not (tmp_path / "run.h5").exists()

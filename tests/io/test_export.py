@@ -1,4 +1,5 @@
-"""Reference-data export: problem set with exact solutions, FCLib round trip, force CSV, the `export` command."""
+"""Reference-data export: problem set with exact solutions, FCLib round trip, force CSV, the `export`
+command."""
 
 from __future__ import annotations
 
@@ -25,20 +26,49 @@ from refsim.solvers.readers import read_fclib
 def recorded(tmp_path_factory):
     """The cube on 2 cells per axis for 0.3 s with every problem recorded: contact steps, then insertion.
 
-    The tip contact is the plain Coulomb contact (insertion.puncture_within_step = false, said explicitly): a tip
-    capped at f_p (box normal, group friction) is not a pure contact problem, which FCLib holds.
+    The tip contact is the plain Coulomb contact (insertion.puncture_within_step = false, said explicitly): a
+    tip capped at f_p (box normal, group friction) is not a pure contact problem, which FCLib holds.
     """
     path = tmp_path_factory.mktemp("export") / "cube.h5"
-    assert main(["run", "cube", "-o", str(path), "-q", "--set", "mesh.cells=[2, 2, 2]", "--set",
-                 "time.duration=0.3", "--set", "output.record_problems=true",
-                 "--set", "insertion.puncture_within_step=false"]) == 0
+    assert (
+        main(
+            [
+                "run",
+                "cube",
+                "-o",
+                str(path),
+                "-q",
+                "--set",
+                "mesh.cells=[2, 2, 2]",
+                "--set",
+                "time.duration=0.3",
+                "--set",
+                "output.record_problems=true",
+                "--set",
+                "insertion.puncture_within_step=false",
+            ]
+        )
+        == 0
+    )
     return path
 
 
 def _same_problem(a: ConstraintProblem, b: ConstraintProblem) -> None:
-    for name in ("compliance", "free_gap", "bilateral", "unilateral", "contacts", "contact_friction",
-                 "shaft_friction", "shaft_pairs", "shaft_friction_coefficient", "shaft_normal_preload",
-                 "box_rows", "box_lower", "box_upper"):
+    for name in (
+        "compliance",
+        "free_gap",
+        "bilateral",
+        "unilateral",
+        "contacts",
+        "contact_friction",
+        "shaft_friction",
+        "shaft_pairs",
+        "shaft_friction_coefficient",
+        "shaft_normal_preload",
+        "box_rows",
+        "box_lower",
+        "box_upper",
+    ):
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
 
 
@@ -78,8 +108,9 @@ def test_fclib_files_round_trip_through_our_reader(recorded, tmp_path):
 
 
 def test_fclib_needs_pure_contact():
-    mixed = ConstraintProblem(compliance=np.eye(4), free_gap=np.ones(4), bilateral=[3],
-                              contacts=[[0, 1, 2]], contact_friction=[0.1])
+    mixed = ConstraintProblem(
+        compliance=np.eye(4), free_gap=np.ones(4), bilateral=[3], contacts=[[0, 1, 2]], contact_friction=[0.1]
+    )
     with pytest.raises(ValueError, match="1 of 4 rows are not frictional contacts"):
         write_fclib(mixed, "never.hdf5")
 
@@ -87,8 +118,12 @@ def test_fclib_needs_pure_contact():
 def test_fclib_reorders_scattered_contacts(tmp_path):
     rng = np.random.default_rng(3)
     factor = rng.normal(size=(6, 6))
-    problem = ConstraintProblem(compliance=factor @ factor.T + np.eye(6), free_gap=rng.normal(size=6),
-                                contacts=[[5, 0, 3], [1, 4, 2]], contact_friction=[0.2, 0.4])
+    problem = ConstraintProblem(
+        compliance=factor @ factor.T + np.eye(6),
+        free_gap=rng.normal(size=6),
+        contacts=[[5, 0, 3], [1, 4, 2]],
+        contact_friction=[0.2, 0.4],
+    )
     back = read_fclib(write_fclib(problem, tmp_path / "p.hdf5"))
     assert np.array_equal(back.compliance, problem.compliance[np.ix_([5, 0, 3, 1, 4, 2], [5, 0, 3, 1, 4, 2])])
     assert np.array_equal(back.free_gap, problem.free_gap[[5, 0, 3, 1, 4, 2]])
@@ -103,13 +138,41 @@ def test_force_csv(recorded, tmp_path):
 
 
 def test_export_command(recorded, tmp_path, capsys):
-    assert main(["export", str(recorded), "--csv", str(tmp_path / "f.csv"), "--problems", str(tmp_path / "s.h5"),
-                 "--fclib", str(tmp_path / "fc"), "--xdmf"]) == 0
+    assert (
+        main(
+            [
+                "export",
+                str(recorded),
+                "--csv",
+                str(tmp_path / "f.csv"),
+                "--problems",
+                str(tmp_path / "s.h5"),
+                "--fclib",
+                str(tmp_path / "fc"),
+                "--xdmf",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "FCLib files" in out and (tmp_path / "f.csv").is_file() and recorded.with_suffix(".xdmf").is_file()
     assert main(["export", str(recorded)]) == 2
     bare = tmp_path / "bare.h5"
-    assert main(["run", "cube", "-o", str(bare), "-q", "--set", "mesh.cells=[2, 2, 2]",
-                 "--set", "time.duration=0.05"]) == 0
+    assert (
+        main(
+            [
+                "run",
+                "cube",
+                "-o",
+                str(bare),
+                "-q",
+                "--set",
+                "mesh.cells=[2, 2, 2]",
+                "--set",
+                "time.duration=0.05",
+            ]
+        )
+        == 0
+    )
     assert main(["export", str(bare), "--problems", str(tmp_path / "none.h5")]) == 2
     assert "output.record_problems=true" in capsys.readouterr().err

@@ -17,14 +17,26 @@ def _every_field_problem():
     rng = np.random.default_rng(5)
     factor = rng.standard_normal((n, n))
     return ConstraintProblem(
-        compliance=factor @ factor.T, free_gap=rng.standard_normal(n),
-        bilateral=[0, 1, 2], unilateral=[3], contacts=[[4, 5, 6]], contact_friction=[0.4],
-        shaft_friction=[7], shaft_pairs=[[0, 1]], shaft_friction_coefficient=[0.2],
+        compliance=factor @ factor.T,
+        free_gap=rng.standard_normal(n),
+        bilateral=[0, 1, 2],
+        unilateral=[3],
+        contacts=[[4, 5, 6]],
+        contact_friction=[0.4],
+        shaft_friction=[7],
+        shaft_pairs=[[0, 1]],
+        shaft_friction_coefficient=[0.2],
         shaft_normal_preload=[0.01],
-        group_friction=[8, 9], group_offsets=[0, 3, 4], group_members=[2, 3, 4, 12],
-        group_friction_coefficient=[0.3, 0.5], group_preload=[0.02, 0.0],
-        box_rows=[10, 11, 12, 13], box_lower=[-1.0, -np.inf, 0.0, 0.5], box_upper=[1.0, 2.0, np.inf, 0.5],
-        name="every field")
+        group_friction=[8, 9],
+        group_offsets=[0, 3, 4],
+        group_members=[2, 3, 4, 12],
+        group_friction_coefficient=[0.3, 0.5],
+        group_preload=[0.02, 0.0],
+        box_rows=[10, 11, 12, 13],
+        box_lower=[-1.0, -np.inf, 0.0, 0.5],
+        box_upper=[1.0, 2.0, np.inf, 0.5],
+        name="every field",
+    )
 
 
 def test_every_field_round_trips(tmp_path):
@@ -52,8 +64,14 @@ def test_fields_missing_from_an_older_file_take_defaults(tmp_path):
     with h5py.File(tmp_path / "old.h5", "w") as handle:
         group = handle.create_group("p")
         write_problem_group(group, problem)
-        for name in ("shaft_normal_preload", "group_friction", "group_offsets", "group_members",
-                     "group_friction_coefficient", "group_preload"):
+        for name in (
+            "shaft_normal_preload",
+            "group_friction",
+            "group_offsets",
+            "group_members",
+            "group_friction_coefficient",
+            "group_preload",
+        ):
             del group[name]
     with h5py.File(tmp_path / "old.h5", "r") as handle:
         rebuilt = read_problem_group(handle["p"], default_name="old")

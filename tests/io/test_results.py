@@ -1,4 +1,5 @@
-"""Results files: round trip of a real run, units everywhere, interrupted runs, refusals, and the schema page."""
+"""Results files: round trip of a real run, units everywhere, interrupted runs, refusals, and the schema
+page."""
 
 from __future__ import annotations
 
@@ -17,12 +18,15 @@ from refsim.simulation import Simulation
 def short_run(tmp_path_factory):
     from refsim.scene import load_scene
 
-    scene = load_scene("cube", ["mesh.cells=[4, 4, 4]", "time.duration=0.4", "output.record_problems=true",
-                                "output.tissue_every=7"])
+    scene = load_scene(
+        "cube",
+        ["mesh.cells=[4, 4, 4]", "time.duration=0.4", "output.record_problems=true", "output.tissue_every=7"],
+    )
     simulation = Simulation(scene)
     path = tmp_path_factory.mktemp("results") / "short.h5"
     records = []
     with ResultWriter(path, scene, simulation.models) as writer:
+
         def on_step(state, record):
             writer.append(record)
             records.append(record)
@@ -70,6 +74,7 @@ def test_every_dataset_has_units(short_run):
     path, _, _ = short_run
     missing = []
     with h5py.File(path, "r") as results:
+
         def visit(name, item):
             if isinstance(item, h5py.Dataset) and "units" not in item.attrs:
                 missing.append(name)
@@ -90,6 +95,7 @@ def test_interrupted_run_keeps_its_completed_steps(tmp_path):
 
     with pytest.raises(Interrupt):
         with ResultWriter(path, scene, simulation.models) as writer:
+
             def on_step(state, record):
                 writer.append(record)
                 if record.step == 13:
@@ -141,7 +147,7 @@ def test_schema_page_is_current():
     page = Path(__file__).resolve().parents[2] / "docs" / "results.md"
     assert page.read_text(encoding="utf-8") == reference_markdown() + "\n", (
         "docs/results.md is stale: regenerate with python -c "
-        "\"from refsim.io.schema import reference_markdown; print(reference_markdown())\" > docs/results.md"
+        '"from refsim.io.schema import reference_markdown; print(reference_markdown())" > docs/results.md'
     )
     assert len(all_datasets()) > 20
 
@@ -152,14 +158,29 @@ def test_two_runs_give_the_same_file(tmp_path):
 
     paths = [tmp_path / "first.h5", tmp_path / "second.h5"]
     for path in paths:
-        assert main(["run", "cube", "-o", str(path), "-q", "--set", "mesh.cells=[4, 4, 4]",
-                     "--set", "time.duration=0.5"]) == 0
+        assert (
+            main(
+                [
+                    "run",
+                    "cube",
+                    "-o",
+                    str(path),
+                    "-q",
+                    "--set",
+                    "mesh.cells=[4, 4, 4]",
+                    "--set",
+                    "time.duration=0.5",
+                ]
+            )
+            == 0
+        )
     clock = {"steps/stage_seconds", "solver/seconds", "steps/triangulation_seconds"}
     contents = []
     for path in paths:
         data = {}
         with h5py.File(path, "r") as results:
-            def visit(name, item):
+
+            def visit(name, item, data=data):
                 if isinstance(item, h5py.Dataset) and name not in clock:
                     data[name] = item[()]
 

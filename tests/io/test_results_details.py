@@ -11,8 +11,7 @@ import h5py
 import numpy as np
 import pytest
 
-from refsim.io import ResultWriter, ResultsError, read_problems, read_results
-from refsim.io import schema
+from refsim.io import ResultsError, ResultWriter, read_problems, read_results, schema
 from refsim.scene import load_scene, scene_to_json
 from refsim.simulation import STAGES, Simulation
 
@@ -32,8 +31,12 @@ def synthetic_cut(tip_x: float = 0.002) -> dict:
             a = 3 * row + column
             triangles += [[a, a + 1, a + 4], [a, a + 4, a + 3]]
     triangles = np.array(triangles)
-    return {"points": points, "point_step": point_step, "triangles": triangles,
-            "triangle_step": np.where(triangles.max(axis=1) < 3, 25, 28)}
+    return {
+        "points": points,
+        "point_step": point_step,
+        "triangles": triangles,
+        "triangle_step": np.where(triangles.max(axis=1) < 3, 25, 28),
+    }
 
 
 @pytest.fixture(scope="module")
@@ -44,6 +47,7 @@ def run(tmp_path_factory):
     path = tmp_path_factory.mktemp("results") / "cube.h5"
     records = []
     with ResultWriter(path, scene, simulation.models) as writer:
+
         def on_step(state, record):
             records.append(record)
             writer.append(record)
@@ -68,10 +72,19 @@ def test_per_step_arrays_equal_the_records(run):
     results = read_results(path)
     np.testing.assert_array_equal(results.time, [r.time for r in records])
     assert list(results.phase_name) == [r.phase for r in records]
-    for name in ("base_position", "needle_positions", "needle_frames", "needle_force", "insertion_point_count",
-                 "cut_point_count", "cut_triangle_count", "triangulation_seconds"):
-        np.testing.assert_array_equal(getattr(results, name), np.array([getattr(r, name) for r in records]),
-                                      err_msg=name)
+    for name in (
+        "base_position",
+        "needle_positions",
+        "needle_frames",
+        "needle_force",
+        "insertion_point_count",
+        "cut_point_count",
+        "cut_triangle_count",
+        "triangulation_seconds",
+    ):
+        np.testing.assert_array_equal(
+            getattr(results, name), np.array([getattr(r, name) for r in records]), err_msg=name
+        )
     assert results.stage_names == STAGES
     for stage in STAGES:
         np.testing.assert_array_equal(results.stage_seconds[stage], [r.stage_seconds[stage] for r in records])
@@ -128,8 +141,9 @@ def test_static_data_and_root_attributes(run):
     np.testing.assert_array_equal(results.tets, mesh.tets)
     np.testing.assert_array_equal(results.faces, mesh.boundary_faces)
     np.testing.assert_array_equal(results.fixed_nodes, simulation.models.tissue.fixed_nodes)
-    np.testing.assert_allclose(results.needle_rest_nodes, simulation.initial_state().needle.positions,
-                               rtol=0, atol=1e-15)
+    np.testing.assert_allclose(
+        results.needle_rest_nodes, simulation.initial_state().needle.positions, rtol=0, atol=1e-15
+    )
     assert results.scene == json.loads(scene_to_json(scene))
     assert results.scene_name == scene.name == "cube"
     assert results.attributes["schema_version"] == schema.SCHEMA_VERSION
@@ -166,10 +180,13 @@ def test_problems_are_rebuilt_equal(run):
     recorded = [r for r in records if r.problem is not None]
     assert [step for step, _ in problems] == [r.step for r in recorded]
     assert len(problems) > 0
-    for (step, problem), record in zip(problems, recorded):
+    for (step, problem), record in zip(problems, recorded, strict=False):
         for spec in schema.PROBLEM_FIELDS.values():
-            np.testing.assert_array_equal(getattr(problem, spec.name), getattr(record.problem, spec.name),
-                                          err_msg=f"step {step} {spec.name}")
+            np.testing.assert_array_equal(
+                getattr(problem, spec.name),
+                getattr(record.problem, spec.name),
+                err_msg=f"step {step} {spec.name}",
+            )
     assert [step for step, _ in read_problems(path, steps=[22, 25])] == [22, 25]
 
 
@@ -218,7 +235,9 @@ def test_reader_trusts_steps_completed_over_dataset_lengths(tmp_path, run):
     assert results.step_count == 22 and not results.complete
     assert results.constraint_forces.shape[0] == sum(r.row_forces.size for r in records[:22])
     assert list(results.tissue_steps) == [7, 14, 21]
-    assert [step for step, _ in read_problems(copy)] == [r.step for r in records[:22] if r.problem is not None]
+    assert [step for step, _ in read_problems(copy)] == [
+        r.step for r in records[:22] if r.problem is not None
+    ]
 
 
 def test_overwriting_is_refused_unless_asked(tmp_path, run):

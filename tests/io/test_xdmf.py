@@ -16,8 +16,19 @@ from refsim.io.xdmf import write_xdmf, xdmf_path
 def cut_run(tmp_path_factory):
     """cube_cut on 4 cells per axis, written by `refsim run` (which writes the sidecar at the end)."""
     path = tmp_path_factory.mktemp("xdmf") / "cut.h5"
-    code = main(["run", "cube_cut", "-o", str(path), "-q", "--set", "mesh.cells=[4, 4, 4]",
-                 "--set", "output.tissue_every=25"])
+    code = main(
+        [
+            "run",
+            "cube_cut",
+            "-o",
+            str(path),
+            "-q",
+            "--set",
+            "mesh.cells=[4, 4, 4]",
+            "--set",
+            "output.tissue_every=25",
+        ]
+    )
     assert code == 0
     return path
 
@@ -63,9 +74,13 @@ def test_needle_and_cut_equal_the_results(cut_run):
         assert len(needle) == results.step_count
         for k in (0, results.step_count // 2, results.step_count - 1):
             assert float(needle[k].find("Time").get("Value")) == results.time[k]
-            assert np.array_equal(reader._read_data_item(_item(needle[k], "Geometry")), results.needle_positions[k])
-            assert np.array_equal(reader._read_data_item(_item(needle[k], "Topology")),
-                                  np.arange(results.needle_positions.shape[1])[None])
+            assert np.array_equal(
+                reader._read_data_item(_item(needle[k], "Geometry")), results.needle_positions[k]
+            )
+            assert np.array_equal(
+                reader._read_data_item(_item(needle[k], "Topology")),
+                np.arange(results.needle_positions.shape[1])[None],
+            )
         grids = _collection(reader, "cut")
         cut_steps = [s for s in results.tissue_steps if np.any(cut.triangle_step <= s)]
         assert len(grids) == len(cut_steps) > 0

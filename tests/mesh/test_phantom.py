@@ -17,13 +17,25 @@ from refsim.mesh import (
     read_mesh,
     surface_patch,
 )
-from refsim.mesh.phantom import GENERATED_WITH_GMSH, liver_cross_section
+from refsim.mesh.phantom import liver_cross_section
 
 RESOLUTIONS = tuple(LIVER_PHANTOM_RESOLUTIONS)
 
 
-@pytest.fixture(scope="module", params=RESOLUTIONS)
+@pytest.fixture(scope="module")
+def generated() -> TetMesh:
+    """The coarse phantom regenerated here by Gmsh (the shipped files are what runs use; this checks the
+    generator): Gmsh's node placement differs between machines, so only properties are asserted of it."""
+    pytest.importorskip("gmsh", reason="regenerating the phantom needs the optional gmsh package")
+    from refsim.mesh import generate_liver_phantom
+
+    return generate_liver_phantom(LIVER_PHANTOM_RESOLUTIONS["coarse"])
+
+
+@pytest.fixture(scope="module", params=(*RESOLUTIONS, "generated"))
 def phantom(request) -> TetMesh:
+    if request.param == "generated":
+        return request.getfixturevalue("generated")
     return liver_phantom(request.param)
 
 
@@ -131,19 +143,32 @@ def test_cross_section_rejects_stations_outside_the_organ():
         liver_cross_section(130.0)
 
 
-def test_generation_is_deterministic_and_matches_the_shipped_mesh():
-    gmsh = pytest.importorskip("gmsh")
+def test_generation_is_deterministic_on_one_machine(generated):
     from refsim.mesh import generate_liver_phantom
 
-    first = generate_liver_phantom(LIVER_PHANTOM_RESOLUTIONS["coarse"])
-    second = generate_liver_phantom(LIVER_PHANTOM_RESOLUTIONS["coarse"])
-    np.testing.assert_array_equal(first.rest_positions, second.rest_positions)
-    np.testing.assert_array_equal(first.tets, second.tets)
+    again = generate_liver_phantom(LIVER_PHANTOM_RESOLUTIONS["coarse"])
+    np.testing.assert_array_equal(again.rest_positions, generated.rest_positions)
+    np.testing.assert_array_equal(again.tets, generated.tets)
+
+
+def test_generation_matches_the_shipped_mesh_in_size_and_resolution(generated):
+    # Not bit for bit: Gmsh places nodes differently on another processor (536 against 581 nodes seen for the
+    # same size and version). Both meshes are polyhedra inscribed in the same CAD solid with the same target
+    # size h = 20 mm; on the convex parts each face's sag below the surface is at most h²/(8R), so the two
+    # volumes differ by less than A h² / (8 R) with the boundary area A and the smallest radius of curvature
+    # R away from the end caps (about the half-thickness, 0.05 m): 0.065 · 0.02² / 0.4 = 6.5e-5 m³ (6.7 %).
     shipped = liver_phantom("coarse")
-    if gmsh.__version__ != GENERATED_WITH_GMSH:
-        pytest.skip(f"gmsh {gmsh.__version__} installed; the shipped mesh is from gmsh {GENERATED_WITH_GMSH}")
-    np.testing.assert_allclose(first.rest_positions, shipped.rest_positions, rtol=0, atol=1e-12)
-    np.testing.assert_array_equal(first.tets, shipped.tets)
+    area = np.linalg.norm(_face_normals(shipped), axis=1).sum() / 2
+    bound = area * 0.02**2 / (8 * 0.05)
+    assert abs(generated.volumes.sum() - shipped.volumes.sum()) < bound
+    # The same target size gives the same resolution: tets scale as V / h³; the mesher's choices at one h
+    # moved the count by 11 % between two machines (1,931 against 1,735), while ±30 % is h changed by 9 %.
+    assert 0.7 < generated.tet_count / shipped.tet_count < 1.3
+
+
+def _face_normals(mesh: TetMesh) -> np.ndarray:
+    a, b, c = (mesh.rest_positions[mesh.boundary_faces[:, i]] for i in range(3))
+    return np.cross(b - a, c - a)
 
 
 def test_generation_rejects_a_size_out_of_range():

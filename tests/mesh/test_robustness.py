@@ -1,5 +1,5 @@
-"""Meshes of issue 10: duplicated nodes (merged with a warning), truncated files (a clear message), and the one
-degeneracy threshold shared by the mesh validation and the tissue model."""
+"""Meshes of issue 10: duplicated nodes (merged with a warning), truncated files (a clear message), and the
+one degeneracy threshold shared by the mesh validation and the tissue model."""
 
 from __future__ import annotations
 
@@ -51,7 +51,9 @@ def test_merging_that_collapses_an_element_is_refused_as_degenerate():
         validate_mesh(positions, tets, merge_duplicates=True)
 
 
-@pytest.mark.parametrize(("fmt", "suffix"), [("vtu", ".vtu"), ("gmsh22", ".msh"), ("gmsh", ".msh"), ("vtk", ".vtk")])
+@pytest.mark.parametrize(
+    ("fmt", "suffix"), [("vtu", ".vtu"), ("gmsh22", ".msh"), ("gmsh", ".msh"), ("vtk", ".vtk")]
+)
 @pytest.mark.parametrize("fraction", [0.3, 0.7, 0.95])
 def test_truncated_files_get_a_clear_message(tmp_path, capfd, fmt, suffix, fraction):
     path = tmp_path / f"mesh_{fmt}{suffix}"

@@ -1,9 +1,9 @@
 """refsim's compiled kernels are cached per version of its sources (refsim.numba_cache_directory).
 
-Reference: numba's caching notes, "Cache limitations": a cached function is invalidated only when its own source
-file changes, not when a function it calls from another file does. The tests check the digest that names the
-directory (it must change with any source file) and that importing refsim points numba at it, or leaves an
-explicit NUMBA_CACHE_DIR alone.
+Reference: numba's caching notes, "Cache limitations": a cached function is invalidated only when its own
+source file changes, not when a function it calls from another file does. The tests check the digest that
+names the directory (it must change with any source file) and that importing refsim points numba at it, or
+leaves an explicit NUMBA_CACHE_DIR alone.
 """
 
 from __future__ import annotations
@@ -48,8 +48,9 @@ def test_digest_ignores_compiled_caches(tmp_path):
 
 def _cache_dir_in_subprocess(environment: dict[str, str]) -> str:
     code = "import refsim, numba; print(numba.config.CACHE_DIR)"
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=environment,
-                          check=True)
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=environment, check=True
+    )
     return done.stdout.strip()
 
 
@@ -62,6 +63,8 @@ def test_import_points_numba_at_the_digest_directory(tmp_path):
 
 
 def test_an_explicit_numba_cache_dir_is_kept(tmp_path):
-    environment = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "mine"), XDG_CACHE_HOME=str(tmp_path / "xdg"))
+    environment = dict(
+        os.environ, NUMBA_CACHE_DIR=str(tmp_path / "mine"), XDG_CACHE_HOME=str(tmp_path / "xdg")
+    )
     assert _cache_dir_in_subprocess(environment) == str(tmp_path / "mine")
     assert not (tmp_path / "xdg").exists()

@@ -10,7 +10,9 @@ from refsim.scene.trajectory import Trajectory
 
 
 def test_periodic_motion_is_zero_at_start_reaches_the_amplitude_and_repeats():
-    motion = PeriodicBoundaryMotion(nodes=np.array([3, 1, 2]), amplitude=[0.0, 0.0, 0.005], period=4.0, exponent=2)
+    motion = PeriodicBoundaryMotion(
+        nodes=np.array([3, 1, 2]), amplitude=[0.0, 0.0, 0.005], period=4.0, exponent=2
+    )
     np.testing.assert_array_equal(motion.nodes, [1, 2, 3])
     np.testing.assert_allclose(motion.displacement(0.0), 0.0, atol=1e-18)
     # 1 − cos⁴(π t / T) is 1 at t = T/2: the full amplitude.
@@ -43,7 +45,9 @@ def test_bad_periodic_motions_are_rejected_by_name(kwargs, message):
 
 def test_sampled_motion_interpolates_and_holds_after_the_last_sample():
     motion = SampledBoundaryMotion(
-        nodes=np.array([4]), times=[0.0, 1.0, 2.0], displacements=[[0, 0, 0], [0, 0, 0.002], [0.001, 0, 0.002]]
+        nodes=np.array([4]),
+        times=[0.0, 1.0, 2.0],
+        displacements=[[0, 0, 0], [0, 0, 0.002], [0.001, 0, 0.002]],
     )
     np.testing.assert_allclose(motion.displacement(0.5), [[0.0, 0.0, 0.001]], atol=1e-18)
     np.testing.assert_allclose(motion.displacement(9.0), [[0.001, 0.0, 0.002]], atol=1e-18)
@@ -52,7 +56,9 @@ def test_sampled_motion_interpolates_and_holds_after_the_last_sample():
 
 
 def test_controls_give_the_needle_pose_and_the_boundary_displacements():
-    trajectory = Trajectory(np.array([0.0, 1.0]), np.array([[0, 0, 0.1], [0, 0, 0.09]]), np.array([[0, 0, -1.0]] * 2))
+    trajectory = Trajectory(
+        np.array([0.0, 1.0]), np.array([[0, 0, 0.1], [0, 0, 0.09]]), np.array([[0, 0, -1.0]] * 2)
+    )
     motion = PeriodicBoundaryMotion(nodes=np.array([7, 9]), amplitude=[0.0, 0.0, 0.004], period=2.0)
     values = Controls(trajectory, motion).at(0.5)
     np.testing.assert_allclose(values.base_position, [0, 0, 0.095], atol=1e-15)
@@ -66,6 +72,8 @@ def test_a_trajectory_csv_may_start_with_comments_before_its_header(tmp_path):
     from refsim.scene.trajectory import read_trajectory_csv
 
     path = tmp_path / "robot.csv"
-    path.write_text("# made by a robot planner\n# second comment\nt,x,y,z,dx,dy,dz\n0,0,0,0.4,0,0,-1\n1,0,0,0.39,0,0,-1\n")
+    path.write_text(
+        "# made by a robot planner\n# second comment\nt,x,y,z,dx,dy,dz\n0,0,0,0.4,0,0,-1\n1,0,0,0.39,0,0,-1\n"
+    )
     trajectory = read_trajectory_csv(path)
     np.testing.assert_allclose(trajectory.base_positions[:, 2], [0.4, 0.39])

@@ -1,4 +1,5 @@
-"""Scene files: every built-in scene loads; every bad input names the file, the key, the value and the range."""
+"""Scene files: every built-in scene loads; every bad input names the file, the key, the value and the
+range."""
 
 from __future__ import annotations
 
@@ -83,7 +84,9 @@ def test_override_changes_value_and_json_round_trip():
 
 def test_trajectory_interpolates_and_normalises():
     trajectory = Trajectory(
-        np.array([0.0, 1.0]), np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]]), np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+        np.array([0.0, 1.0]),
+        np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]]),
+        np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]),
     )
     base, direction = trajectory.pose(0.5)
     np.testing.assert_allclose(base, [0.0, 0.0, 0.5])

@@ -1,5 +1,6 @@
-"""Validation at load (issue 10): types and ranges of every key, overrides blamed, consistency across sections,
-and the checks against the mesh and the trajectory before a run (needle outside the tissue, units, radius)."""
+"""Validation at load (issue 10): types and ranges of every key, overrides blamed, consistency across
+sections, and the checks against the mesh and the trajectory before a run (needle outside the tissue, units,
+radius)."""
 
 from __future__ import annotations
 
@@ -54,8 +55,14 @@ def test_a_string_in_any_numeric_key_is_refused_and_blamed_on_the_override(secti
         ("time.dt=1", ["dt = 1 s"]),  # blamed on the override of dt although duration is the key checked
         ("insertion.spacing=1", ["insertion.spacing = 1", "needle.length = 0.32"]),
         ("insertion.interference=0.008", ["insertion.interference = 0.008", "needle.radius = 0.008"]),
-        ("trajectory.directions=[[0, 0, -1], [0, 0, 1], [0, 0, 1]]", ["trajectory.directions", "180.0 degrees"]),
-        ("trajectory.directions=[[0, 0, -1], [1, 0, 0.1], [1, 0, 0.1]]", ["trajectory.directions", "less than 90"]),
+        (
+            "trajectory.directions=[[0, 0, -1], [0, 0, 1], [0, 0, 1]]",
+            ["trajectory.directions", "180.0 degrees"],
+        ),
+        (
+            "trajectory.directions=[[0, 0, -1], [1, 0, 0.1], [1, 0, 0.1]]",
+            ["trajectory.directions", "less than 90"],
+        ),
         ('solver.backend="nosuch"', ["solver.backend = 'nosuch'", "clarabel"]),
         ('mesh.fixed_faces="zmin"', ["mesh.fixed_faces", "expected a list"]),
         ("trajectory.times=abc", ["trajectory.times"]),
@@ -82,8 +89,14 @@ def test_dt_beyond_d_i_is_a_warning(caplog):
 
 
 def test_needle_inside_the_tissue_at_t0_is_refused():
-    scene = load_scene("cube", SMALL + ["trajectory.base_positions=[[0.00123, 0.00231, 0.39], "
-                                        "[0.00123, 0.00231, 0.39], [0.00123, 0.00231, 0.39]]"])
+    scene = load_scene(
+        "cube",
+        SMALL
+        + [
+            "trajectory.base_positions=[[0.00123, 0.00231, 0.39], "
+            "[0.00123, 0.00231, 0.39], [0.00123, 0.00231, 0.39]]"
+        ],
+    )
     with pytest.raises(SceneError, match="at t = 0 the needle is inside the tissue"):
         build_models(scene)
 

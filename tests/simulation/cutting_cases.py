@@ -1,5 +1,6 @@
 """Cutting scenes over what users vary: entry point, needle tilt, stroke direction, mesh, d_i, d_c, needle,
-solver. Built from the built-in cube_cut by overrides, short enough for the default suite (about 100 steps)."""
+solver. Built from the built-in cube_cut by overrides, short enough for the default suite (about 100
+steps)."""
 
 from __future__ import annotations
 
@@ -98,15 +99,17 @@ class CuttingRun:
     records: list
     state: object
     simulation: Simulation
-    # The largest distance normal to the cut of a needle sample in the tissue and in the cut (projecting inside
-    # it or within d_c of its front) [m].
+    # The largest distance normal to the cut of a needle sample in the tissue and in the cut (projecting
+    # inside it or within d_c of its front) [m].
     needle_to_cut: float
     inserted: list = field(default_factory=list)  # inserted length after each step [m] (0 before puncture)
     cuts: dict = field(default_factory=dict)  # step -> cut surface after the step
-    work: list = field(default_factory=list)  # (step, tissue energy [J], work of the needle on the tissue [J])
-    # (step, largest distance normal to the cut of a needle sample in the tissue and in the cut [m], the largest
-    # C λ of the step's sliding rows plus d_c times the largest rotation of a cut triangle's normal over the step
-    # [m]) of each cutting step with such a sample.
+    work: list = field(
+        default_factory=list
+    )  # (step, tissue energy [J], work of the needle on the tissue [J])
+    # (step, largest distance normal to the cut of a needle sample in the tissue and in the cut [m], the
+    # largest C λ of the step's sliding rows plus d_c times the largest rotation of a cut triangle's normal
+    # over the step [m]) of each cutting step with such a sample.
     offsets: list = field(default_factory=list)
     # The cut block's spectrum at each step with cut rows (watch_cut_blocks).
     blocks: list = field(default_factory=list)
@@ -142,8 +145,8 @@ class CuttingRun:
 
 @dataclass(frozen=True)
 class CutBlockSpectrum:
-    """The cut rows' block of one step's constraint problem (sliding, front and their friction rows): W + diag(C)
-    as the solver gets it, C the rows' sub-grid compliance."""
+    """The cut rows' block of one step's constraint problem (sliding, front and their friction rows): W +
+    diag(C) as the solver gets it, C the rows' sub-grid compliance."""
 
     rows: int
     front_rows: int
@@ -167,8 +170,16 @@ def watch_cut_blocks(simulation: Simulation) -> list:
             added = diagonal[cut] if diagonal.size else np.zeros(cut.size)
             eigen = np.linalg.eigvalsh(0.5 * (total + total.T))
             bare = np.linalg.eigvalsh(0.5 * (total + total.T) - np.diag(added))
-            spectra.append(CutBlockSpectrum(cut.size, int(np.count_nonzero(rows.source == CUT_BORDER)),
-                                            float(eigen[0]), float(eigen[-1]), float(added.min()), float(bare[0])))
+            spectra.append(
+                CutBlockSpectrum(
+                    cut.size,
+                    int(np.count_nonzero(rows.source == CUT_BORDER)),
+                    float(eigen[0]),
+                    float(eigen[-1]),
+                    float(added.min()),
+                    float(bare[0]),
+                )
+            )
         return built
 
     simulation._problem = problem
@@ -181,11 +192,14 @@ def _kink(cut, surface: np.ndarray) -> float:
     corners = np.arange(cut.triangle_count).repeat(3)
     normals = cut.interpolated_normals(surface, corners, np.tile(np.eye(3), (cut.triangle_count, 1)))
     normals = normals.reshape(-1, 3, 3)
-    return float(max(np.linalg.norm(normals[:, a] - normals[:, b], axis=1).max() for a, b in ((0, 1), (1, 2), (0, 2))))
+    return float(
+        max(np.linalg.norm(normals[:, a] - normals[:, b], axis=1).max() for a, b in ((0, 1), (1, 2), (0, 2)))
+    )
 
 
 def run_case(case: CuttingCase) -> CuttingRun:
-    """Run a case, measuring after each cutting step how far the needle's samples inside the cut are from it."""
+    """Run a case, measuring after each cutting step how far the needle's samples inside the cut are from
+    it."""
     scene = case.scene()
     simulation = Simulation(scene)
     spectra = watch_cut_blocks(simulation)
@@ -211,8 +225,8 @@ def run_case(case: CuttingCase) -> CuttingRun:
         entry_arc = needle.length
         if state.path.point_count:
             if record.phase == "cutting":
-                # Cutting: the needle's part inside the tissue (a tilted needle pushed sideways leaves its entry
-                # point's projection above the tissue).
+                # Cutting: the needle's part inside the tissue (a tilted needle pushed sideways leaves its
+                # entry point's projection above the tissue).
                 entry_arc = inserted_arc(needle, TetLocator(state.tissue.positions, tets), spacing)
             else:
                 entry = state.path.positions(state.tissue.positions, tets)[:1]
@@ -227,7 +241,8 @@ def run_case(case: CuttingCase) -> CuttingRun:
             samples = needle.points(np.linspace(entry_arc, needle.length, 20))
             found = state.cut.closest_points(samples, surface)
             # Samples in the cut: projecting inside it, or beyond its front by less than one layer (d_c: the
-            # crack tip is at the needle, the last layer up to d_c behind it); their distance normal to the cut.
+            # crack tip is at the needle, the last layer up to d_c behind it); their distance normal to the
+            # cut.
             normals = state.cut.interpolated_normals(surface, found.triangle, found.barycentric)
             offset = samples - found.closest
             across = np.einsum("ij,ij->i", offset, normals)
@@ -238,17 +253,21 @@ def run_case(case: CuttingCase) -> CuttingRun:
                 worst = max(worst, distance)
                 slide = (record.row_source == CUT_SLIDE) & (record.row_kind == BILATERAL)
                 largest = float(np.abs(record.row_forces[slide]).max()) if np.any(slide) else 0.0
-                # The rows are linearised with the normals of the step's start: the cut's rotation over the step,
-                # times the sample's offset in the plane (≤ d_c), is what the linearisation may miss.
+                # The rows are linearised with the normals of the step's start: the cut's rotation over the
+                # step, times the sample's offset in the plane (≤ d_c), is what the linearisation may miss.
                 shared = cut_before.triangle_count
                 eye = np.tile(np.eye(3), (shared, 1))
                 previous_normals = cut_before.interpolated_normals(
-                    cut_before.deformed_points(previous_positions, tets), np.arange(shared).repeat(3), eye)
-                turn = state.cut.interpolated_normals(surface, np.arange(shared).repeat(3), eye) - previous_normals
+                    cut_before.deformed_points(previous_positions, tets), np.arange(shared).repeat(3), eye
+                )
+                turn = (
+                    state.cut.interpolated_normals(surface, np.arange(shared).repeat(3), eye)
+                    - previous_normals
+                )
                 rotation = float(np.linalg.norm(turn, axis=1).max()) if shared else 0.0
-                # And a row holds its sample against the triangle its closest point was on at the step's start,
-                # the measure takes the closest at the end: the angle between neighbouring triangles (the cut's
-                # kinks), times the offset in the plane, is the difference.
+                # And a row holds its sample against the triangle its closest point was on at the step's
+                # start, the measure takes the closest at the end: the angle between neighbouring triangles
+                # (the cut's kinks), times the offset in the plane, is the difference.
                 bound = compliance * largest + spacing * (rotation + _kink(state.cut, surface))
                 offsets.append((record.step, distance, bound))
     run = CuttingRun(records, state, simulation, worst, inserted, cuts, energies, offsets, spectra)

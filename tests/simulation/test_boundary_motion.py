@@ -34,7 +34,7 @@ def test_the_moving_nodes_follow_the_prescribed_displacement_exactly():
     simulation, states, records = _run(_scene(), motion)
     rest = simulation.tissue.rest_positions
     law = motion(simulation.tissue.fixed_nodes)
-    for state, record in zip(states, records):
+    for state, record in zip(states, records, strict=False):
         moved = state.tissue.positions[law.nodes] - rest[law.nodes]
         np.testing.assert_allclose(moved, law.displacement(state.time), atol=1e-15)
         np.testing.assert_allclose(record.boundary_displacements, law.displacement(state.time), atol=0)
@@ -77,15 +77,24 @@ def test_a_scene_file_boundary_section_moves_the_tissue_and_the_results_record_i
     from refsim.io import read_results
     from refsim.io.driver import run_scene
 
-    scene = load_scene("cube", [
-        "mesh.cells=[4,4,4]", "time.duration=0.3", 'boundary.motion="periodic"',
-        "boundary.box=[[-0.06, -0.06, -0.001], [0.06, 0.06, 0.001]]", "boundary.amplitude=[0, 0, 0.004]",
-        "boundary.period=1.2", "boundary.exponent=2",
-    ])
+    scene = load_scene(
+        "cube",
+        [
+            "mesh.cells=[4,4,4]",
+            "time.duration=0.3",
+            'boundary.motion="periodic"',
+            "boundary.box=[[-0.06, -0.06, -0.001], [0.06, 0.06, 0.001]]",
+            "boundary.amplitude=[0, 0, 0.004]",
+            "boundary.period=1.2",
+            "boundary.exponent=2",
+        ],
+    )
     path = tmp_path / "moving.h5"
     run_scene(scene, path, overwrite=True)
     results = read_results(path)
-    law = PeriodicBoundaryMotion(nodes=results.boundary_nodes, amplitude=[0, 0, 0.004], period=1.2, exponent=2)
+    law = PeriodicBoundaryMotion(
+        nodes=results.boundary_nodes, amplitude=[0, 0, 0.004], period=1.2, exponent=2
+    )
     assert results.boundary_nodes.size == 25  # the 5 × 5 nodes of the bottom face
     assert set(results.boundary_nodes) <= set(results.fixed_nodes)
     for index, time in enumerate(results.time):
@@ -98,8 +107,14 @@ def test_a_scene_file_boundary_section_moves_the_tissue_and_the_results_record_i
         (['boundary.motion="periodic"', "boundary.amplitude=[0, 0, 0.004]"], "exactly one of"),
         (['boundary.motion="periodic"', "boundary.nodes=[0, 1]"], "amplitude"),
         (['boundary.motion="file"', "boundary.nodes=[0]"], "file"),
-        (['boundary.motion="periodic"', "boundary.patch_point=[0, 0, 0.1]", "boundary.amplitude=[0, 0, 1e-3]"],
-         "patch_distance"),
+        (
+            [
+                'boundary.motion="periodic"',
+                "boundary.patch_point=[0, 0, 0.1]",
+                "boundary.amplitude=[0, 0, 1e-3]",
+            ],
+            "patch_distance",
+        ),
     ],
 )
 def test_bad_boundary_sections_are_refused_naming_the_key(overrides, message):
@@ -112,7 +127,14 @@ def test_bad_boundary_sections_are_refused_naming_the_key(overrides, message):
 def test_a_selection_that_catches_no_node_is_refused():
     from refsim.scene import SceneError
 
-    scene = load_scene("cube", ["mesh.cells=[4,4,4]", 'boundary.motion="periodic"', "boundary.amplitude=[0, 0, 1e-3]",
-                                "boundary.box=[[1, 1, 1], [2, 2, 2]]"])
+    scene = load_scene(
+        "cube",
+        [
+            "mesh.cells=[4,4,4]",
+            'boundary.motion="periodic"',
+            "boundary.amplitude=[0, 0, 1e-3]",
+            "boundary.box=[[1, 1, 1], [2, 2, 2]]",
+        ],
+    )
     with pytest.raises(SceneError, match="boundary.box selects no node"):
         Simulation(scene)

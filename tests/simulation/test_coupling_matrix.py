@@ -27,8 +27,17 @@ INFLATION = 1.05
 
 
 def _scene(
-    cube_scene, *, cells, angle, entry, spacing_ratio, rigid, solver, grip=0.0, interference=0.0,
-    subgrid_line="infinite"
+    cube_scene,
+    *,
+    cells,
+    angle,
+    entry,
+    spacing_ratio,
+    rigid,
+    solver,
+    grip=0.0,
+    interference=0.0,
+    subgrid_line="infinite",
 ):
     h = 0.1 / cells
     offset = np.array(ENTRIES[entry]) * h
@@ -55,7 +64,8 @@ def _scene(
         f"needle.rigid={'true' if rigid else 'false'}",
         f"solver.method={solver}",
         f"insertion.shaft_normal_force={grip}",
-        f"insertion.interference={interference}",  # the cube's own grip is explicit here: off unless a variant sets it
+        # the cube's own grip is explicit here: off unless a variant sets it
+        f"insertion.interference={interference}",
         "insertion.coupling=ring",
         f'insertion.subgrid_line="{subgrid_line}"',
     )
@@ -94,8 +104,10 @@ def _check_variant(cube_scene, **variant):
     peak = np.abs(forces["exact"]).max()
     difference = np.abs(forces["gauss_seidel"] - forces["exact"]).max()
     # The figures of the report (docs/coupling.md), shown with -s.
-    print(f"\nvariant {variant}: peak {peak:.4g} N, GS − exact {difference / peak:.2e} of the peak, "
-          f"inflation {max(_inflation(r[-1]) for r in runs.values()):.4f}")
+    print(
+        f"\nvariant {variant}: peak {peak:.4g} N, GS − exact {difference / peak:.2e} of the peak, "
+        f"inflation {max(_inflation(r[-1]) for r in runs.values()):.4f}"
+    )
     assert difference <= AGREEMENT * peak
 
 

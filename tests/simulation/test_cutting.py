@@ -25,8 +25,13 @@ def _lateral_force(record, *, without_entry=True) -> np.ndarray:
     # The energy law's load leaves out the entry point's rows; the paper's equation 3 counts every point.
     from refsim.simulation.events import shaft_lateral_force
 
-    return shaft_lateral_force(record.row_source, record.row_kind, record.row_directions, record.row_forces,
-                               without_entry=without_entry)
+    return shaft_lateral_force(
+        record.row_source,
+        record.row_kind,
+        record.row_directions,
+        record.row_forces,
+        without_entry=without_entry,
+    )
 
 
 def test_the_cut_starts_when_the_lateral_force_per_inserted_length_reaches_gc(reference):
@@ -37,7 +42,8 @@ def test_the_cut_starts_when_the_lateral_force_per_inserted_length_reaches_gc(re
         if record.phase == "insertion" and reference.inserted[index] > 0:
             assert np.linalg.norm(_lateral_force(record)) < g_c * reference.inserted[index] * (1 + 1e-9)
     record = reference.records[start - 1]
-    # The start step's own inserted length is that of the state before the event (the path is cut to its entry).
+    # The start step's own inserted length is that of the state before the event (the path is cut to its
+    # entry).
     assert np.linalg.norm(_lateral_force(record)) >= g_c * reference.inserted[start - 2]
 
 
@@ -52,7 +58,7 @@ def test_the_papers_law_starts_at_equation_3():
     start = run.first("cut_start")
     assert start is not None
     counts = [r.insertion_point_count for r in run.records]
-    for record, count in zip(run.records[: start - 1], counts):
+    for record, count in zip(run.records[: start - 1], counts, strict=False):
         if record.phase == "insertion":
             assert np.linalg.norm(_lateral_force(record, without_entry=False)) <= count * f_c
     assert run.topology.is_disc and run.count("tear") >= 1
@@ -62,7 +68,7 @@ def test_the_cut_is_a_manifold_disc_kept_in_rest_coordinates(reference):
     cuts = [reference.cuts[step] for step in sorted(reference.cuts)]
     rest = reference.simulation.models.mesh.rest_positions
     tets = reference.simulation.tets
-    for before, after in zip(cuts, cuts[1:]):
+    for before, after in zip(cuts, cuts[1:], strict=False):
         # History: points and triangles, once added, never change.
         np.testing.assert_array_equal(after.rest_points[: before.point_count], before.rest_points)
         np.testing.assert_array_equal(after.triangles[: before.triangle_count], before.triangles)
@@ -89,14 +95,17 @@ def test_front_rows_are_ahead_of_the_needle(reference):
     # The crack tip is where the needle pushed it at the end of the previous step; a needle cutting through it
     # passes it within the step (the front row at its strength), so a row may lag the needle by at most the
     # base's motion over one step, and on the tissue surface by the distance a crack-tip point is snapped back
-    # into the tissue (d_c/2). The crack tip goes to the tissue's material point in contact with the needle, which
-    # lies behind the centreline by the compliant front row's compression C_k λ_k ≤ C(d_c) G_c d_c (C_k =
-    # C(d_c) d_c / ℓ_k, λ_k ≤ G_c ℓ_k; refsim.constraints.cut.crack_tip_compression). (The defect this guards
-    # against: a row 3.4 mm behind the needle.)
+    # into the tissue (d_c/2). The crack tip goes to the tissue's material point in contact with the needle,
+    # which lies behind the centreline by the compliant front row's compression C_k λ_k ≤ C(d_c) G_c d_c (C_k
+    # = C(d_c) d_c / ℓ_k, λ_k ≤ G_c ℓ_k; refsim.constraints.cut.crack_tip_compression). (The defect this
+    # guards against: a row 3.4 mm behind the needle.)
     direction = reference.cut_direction
     scene = reference.simulation.scene
-    compression = (float(reference.simulation.detector.cut_compliance[0].max()) * scene.cutting.fracture_energy
-                   * scene.cutting.point_spacing)
+    compression = (
+        float(reference.simulation.detector.cut_compliance[0].max())
+        * scene.cutting.fracture_energy
+        * scene.cutting.point_spacing
+    )
     previous = None
     for record in reference.records:
         motion = 0.0 if previous is None else float(np.linalg.norm(record.base_position - previous))
@@ -115,9 +124,10 @@ def test_front_rows_are_ahead_of_the_needle(reference):
 def test_in_steady_cutting_the_front_pushes_with_gc_per_unit_length(reference):
     # Energy balance (Griffith): without friction, advancing the crack by da over the inserted length L costs
     # G_c L da, and the only force doing that work is the front's, so F_front = G_c L. The rows stand for
-    # Σ ℓ_k ≤ L (samples whose projection falls off the ends of the crack tip get no row: at most 2 d_c), L the
-    # inserted length at the step's start (the rows and their bounds are chosen on the start-of-step state; the
-    # length at the step's end may differ by the resolution of refsim.constraints.cut.inserted_arc, d_c/16).
+    # Σ ℓ_k ≤ L (samples whose projection falls off the ends of the crack tip get no row: at most 2 d_c), L
+    # the inserted length at the step's start (the rows and their bounds are chosen on the start-of-step
+    # state; the length at the step's end may differ by the resolution of refsim.constraints.cut.inserted_arc,
+    # d_c/16).
     scene = reference.simulation.scene
     g_c, d_c = scene.cutting.fracture_energy, scene.cutting.point_spacing
     checked = 0
@@ -151,15 +161,17 @@ def test_the_needle_is_held_on_the_cut(reference):
         front = (record.row_source == CUT_BORDER) & (record.row_kind == UNILATERAL)
         assert np.all(np.abs(gaps[slide]) <= scene.solver.tolerance * scale)
         limit = np.asarray(problem.box_upper)
-        at_limit = np.isin(np.flatnonzero(front), problem.box_rows[record.row_forces[problem.box_rows] >= 0.999 * limit])
+        at_limit = np.isin(
+            np.flatnonzero(front), problem.box_rows[record.row_forces[problem.box_rows] >= 0.999 * limit]
+        )
         assert np.all(gaps[front][~at_limit] >= -scene.solver.tolerance * scale)
         checked += 1
     assert checked > 10
 
 
 def test_energy_stays_below_the_work_done(reference):
-    # Implicit Euler and Rayleigh damping dissipate, cutting consumes G_c per unit area: the tissue's strain and
-    # kinetic energy never exceed the needle's work. The 10 % margin is our choice (not derived) for the
+    # Implicit Euler and Rayleigh damping dissipate, cutting consumes G_c per unit area: the tissue's strain
+    # and kinetic energy never exceed the needle's work. The 10 % margin is our choice (not derived) for the
     # linearisation error of one Newton step per time step.
     for step, energy, work in reference.work:
         assert np.isfinite(energy)
@@ -167,27 +179,39 @@ def test_energy_stays_below_the_work_done(reference):
 
 
 def test_no_cut_during_a_pure_axial_push():
-    # A deep straight insertion with a stiff flexible needle: lateral forces stay far below G_c per unit length.
-    run = run_case(CuttingCase(stroke=(0.0, 0.0), depth=0.03, cells=4, overrides=("needle.rigid=false",
-                                                                                  "needle.youngs_modulus=200e9")))
+    # A deep straight insertion with a stiff flexible needle: lateral forces stay far below G_c per unit
+    # length.
+    run = run_case(
+        CuttingCase(
+            stroke=(0.0, 0.0),
+            depth=0.03,
+            cells=4,
+            overrides=("needle.rigid=false", "needle.youngs_modulus=200e9"),
+        )
+    )
     assert run.first("puncture") is not None
     assert run.first("cut_start") is None
 
 
 def _run_vertical_stroke(times, positions):
-    """(simulation, records, states) of cube_cut on 6³ cells with a vertical needle whose base moves through ``positions``
-    [m] at ``times`` [s], run to the last time."""
+    """(simulation, records, states) of cube_cut on 6³ cells with a vertical needle whose base moves through
+    ``positions`` [m] at ``times`` [s], run to the last time."""
     from refsim.scene import load_scene
     from refsim.simulation import Simulation
 
     def fmt(values):
         return "[" + ", ".join(str(x) for x in values) + "]"
 
-    scene = load_scene("cube_cut", [
-        "mesh.cells=[6, 6, 6]", f"trajectory.times={fmt(times)}",
-        f"trajectory.base_positions=[{', '.join(fmt(p) for p in positions)}]",
-        f"trajectory.directions=[{', '.join(['[0, 0, -1]'] * len(times))}]", f"time.duration={times[-1]}",
-    ])
+    scene = load_scene(
+        "cube_cut",
+        [
+            "mesh.cells=[6, 6, 6]",
+            f"trajectory.times={fmt(times)}",
+            f"trajectory.base_positions=[{', '.join(fmt(p) for p in positions)}]",
+            f"trajectory.directions=[{', '.join(['[0, 0, -1]'] * len(times))}]",
+            f"time.duration={times[-1]}",
+        ],
+    )
     simulation = Simulation(scene)
     records, states = [], []
     simulation.run(on_step=lambda s, r: (records.append(r), states.append(s)))
@@ -199,8 +223,13 @@ def test_the_whole_life_of_a_needle():
     t = [0.0, 0.7, 0.95, 1.75, 2.0, 2.7, 2.9, 3.0]
     x0, y0, top = 0.00123, 0.00231, 0.422
     positions = [
-        [x0, y0, top], [x0, y0, top - 0.014], [x0 + 0.005, y0, top - 0.014], [x0 + 0.005, y0, top + 0.002],
-        [x0 + 0.025, y0, top + 0.002], [x0 + 0.025, y0, top - 0.012], [x0 + 0.025, y0 + 0.004, top - 0.012],
+        [x0, y0, top],
+        [x0, y0, top - 0.014],
+        [x0 + 0.005, y0, top - 0.014],
+        [x0 + 0.005, y0, top + 0.002],
+        [x0 + 0.025, y0, top + 0.002],
+        [x0 + 0.025, y0, top - 0.012],
+        [x0 + 0.025, y0 + 0.004, top - 0.012],
         [x0 + 0.025, y0 + 0.004, top - 0.012],
     ]
     simulation, records, states = _run_vertical_stroke(t, positions)
@@ -246,8 +275,8 @@ def assert_cut_block_is_positive_definite(spectra, name):
 
     W = H A⁻¹ Hᵀ is positive semi-definite (A the bodies' step matrices), so by Weyl's inequality
     λ_min(W + diag(C)) ≥ λ_min(W) + min C ≥ min C: with every cut row compliant (C > 0: the sliding rows, the
-    front rows and their friction rows, refsim.constraints.cut) the block is positive definite and λ unique, and
-    λ_min / λ_max ≥ min C / λ_max. (Before the front rows had their compliance, the liver's cut block had
+    front rows and their friction rows, refsim.constraints.cut) the block is positive definite and λ unique,
+    and λ_min / λ_max ≥ min C / λ_max. (Before the front rows had their compliance, the liver's cut block had
     λ_min/λ_max ≈ −4e-16 on every cutting step: docs/cutting.md, "A well-posed cut block".) Round-off of the
     eigenvalues of a symmetric matrix: a few n ε λ_max; 1e-12 λ_max allowed.
     """
@@ -256,8 +285,10 @@ def assert_cut_block_is_positive_definite(spectra, name):
         round_off = 1e-12 * spectrum.largest
         assert spectrum.smallest_compliance > 0.0, (name, spectrum)
         assert spectrum.smallest_w >= -round_off, (name, spectrum)  # W is a compliance
-        assert spectrum.smallest / spectrum.largest >= (spectrum.smallest_compliance - round_off) / spectrum.largest, (
-            name, spectrum)
+        assert (
+            spectrum.smallest / spectrum.largest
+            >= (spectrum.smallest_compliance - round_off) / spectrum.largest
+        ), (name, spectrum)
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
@@ -271,17 +302,17 @@ def test_cutting_matrix_is_bounded_and_manifold(name):
     assert run.extent() <= stroke + d_c, (name, run.extent())
     assert run.count("tear") <= stroke / d_c + 2, (name, run.count("tear"))
     assert max(np.linalg.norm(r.needle_force) for r in run.records) < 50.0  # no runaway
-    # The needle on the cut (item 1): every sample of the inserted needle that lies in the cut (projecting inside
-    # it, or beyond its front by less than the layer spacing d_c) is off the cut, normally to it, by at most the
-    # sliding rows' sub-grid compliance times their force (C λ, physical: the tissue around a row yields) plus
-    # what linearising the rows at the step's start may miss (d_c times the change of the normal over the step
-    # and over a triangle; cutting_cases.run_case), at every cutting step.
+    # The needle on the cut (item 1): every sample of the inserted needle that lies in the cut (projecting
+    # inside it, or beyond its front by less than the layer spacing d_c) is off the cut, normally to it, by at
+    # most the sliding rows' sub-grid compliance times their force (C λ, physical: the tissue around a row
+    # yields) plus what linearising the rows at the step's start may miss (d_c times the change of the normal
+    # over the step and over a triangle; cutting_cases.run_case), at every cutting step.
     assert run.offsets, name
     for step, distance, bound in run.offsets:
         assert distance <= bound + 1e-9, (name, step, distance, bound)
     # A well-posed cut block (issue 9, item 1): positive definite on every step, and Gauss–Seidel converges on
-    # every step to its tolerance, never at its sweep cap (the liver's rigid needle hit it on 54 of 502 cutting
-    # steps while the front rows had no compliance).
+    # every step to its tolerance, never at its sweep cap (the liver's rigid needle hit it on 54 of 502
+    # cutting steps while the front rows had no compliance).
     assert_cut_block_is_positive_definite(run.blocks, name)
     assert all(r.solver is None or r.solver.converged for r in run.records), name
 
@@ -290,17 +321,20 @@ def test_cutting_matrix_is_bounded_and_manifold(name):
 TURNING = {"turn-L": CuttingCase(stroke=(0.003, 0.0), turn=(0.0, 0.003))}
 
 
-@pytest.mark.parametrize("name", ["x", "diagonal", "tilt-30", "entry-vertex", "entry-edge", "d_c-0.25", "d_c-2",
-                                  "turn-L"])
+@pytest.mark.parametrize(
+    "name", ["x", "diagonal", "tilt-30", "entry-vertex", "entry-edge", "d_c-0.25", "d_c-2", "turn-L"]
+)
 def test_gauss_seidel_and_exact_agree_on_the_events(name):
-    # The cut block is positive definite (assert_cut_block_is_positive_definite), so λ is unique and both solvers,
-    # each converged to a natural residual of 1e-8, find the same one: the same events at the same steps, the same
-    # cut (its extent within a thousandth), and needle forces within a thousandth of the peak (the coupling matrix's bound,
-    # tests/simulation/test_coupling_matrix.py), over the stroke direction, the tilt, the entry on a vertex or an
-    # edge of the mesh, d_c and a turning stroke.
+    # The cut block is positive definite (assert_cut_block_is_positive_definite), so λ is unique and both
+    # solvers, each converged to a natural residual of 1e-8, find the same one: the same events at the same
+    # steps, the same cut (its extent within a thousandth), and needle forces within a thousandth of the peak
+    # (the coupling matrix's bound, tests/simulation/test_coupling_matrix.py), over the stroke direction, the
+    # tilt, the entry on a vertex or an edge of the mesh, d_c and a turning stroke.
     case = {**CASES, **TURNING}[name]
     iterative = run_case(case)
-    exact = run_case(CuttingCase(**{**case.__dict__, "overrides": case.overrides + ('solver.method="exact"',)}))
+    exact = run_case(
+        CuttingCase(**{**case.__dict__, "overrides": case.overrides + ('solver.method="exact"',)})
+    )
     assert iterative.events == exact.events, name
     assert iterative.state.cut.point_count == exact.state.cut.point_count
     assert abs(iterative.extent() - exact.extent()) <= 1e-3 * exact.extent()  # as the forces (below)
@@ -372,8 +406,8 @@ def test_friction_on_the_cut_faces_adds_to_the_cutting_force_within_its_bounds()
 def test_a_turning_stroke_turns_the_cut(turn):
     # 3 mm along x, then 3 mm along y (or 45° off x): the cut's plane follows the swept path (item 4). Held by
     # unbounded sliding rows to the plane of its start, the L-shaped stroke dragged the tissue sideways (7.3 N
-    # against 3.6 N for a straight stroke); cutting costs G_c per unit area in any direction, so the force stays
-    # that of the straight stroke (25 % margin: our choice, for the corner, where the front rows and the
+    # against 3.6 N for a straight stroke); cutting costs G_c per unit area in any direction, so the force
+    # stays that of the straight stroke (25 % margin: our choice, for the corner, where the front rows and the
     # sideways rows both carry load).
     first = (0.003, 0.0)
     run = run_case(CuttingCase(stroke=first, turn=turn))
@@ -396,11 +430,17 @@ def test_reinsertion_along_an_existing_cut_slides_in_it():
     # (item 5): the needle slides in the old cut (its sliding rows hold it on it) and gets no insertion point
     # where the cut is (the tissue there is already cut).
     from refsim.constraints import INSERTION
+
     t = [0.0, 0.7, 0.95, 1.75, 1.9, 2.4, 2.5]
     x0, y0, top = 0.00123, 0.00231, 0.422
     positions = [
-        [x0, y0, top], [x0, y0, top - 0.014], [x0 + 0.005, y0, top - 0.014], [x0 + 0.005, y0, top + 0.002],
-        [x0 + 0.0025, y0, top + 0.002], [x0 + 0.0025, y0, top - 0.010], [x0 + 0.0025, y0, top - 0.010],
+        [x0, y0, top],
+        [x0, y0, top - 0.014],
+        [x0 + 0.005, y0, top - 0.014],
+        [x0 + 0.005, y0, top + 0.002],
+        [x0 + 0.0025, y0, top + 0.002],
+        [x0 + 0.0025, y0, top - 0.010],
+        [x0 + 0.0025, y0, top - 0.010],
     ]
     simulation, records, states = _run_vertical_stroke(t, positions)
     scene = simulation.scene
@@ -419,23 +459,29 @@ def test_reinsertion_along_an_existing_cut_slides_in_it():
         slid += bool(np.any(slide))
         # No insertion point in the cut: only the entry point, on the tissue surface.
         assert state.path.point_count == 1, (record.step, state.path.point_count)
-        assert not np.any(record.row_source[record.row_kind == BILATERAL] == INSERTION) or state.path.point_count == 1
+        assert (
+            not np.any(record.row_source[record.row_kind == BILATERAL] == INSERTION)
+            or state.path.point_count == 1
+        )
         # And the needle lies on the cut.
         needle = simulation.needle.geometry(state.needle)
         surface = state.cut.deformed_points(state.tissue.positions, simulation.tets)
         entry = float(needle.project(state.path.positions(state.tissue.positions, simulation.tets)[:1])[0][0])
         found = state.cut.closest_points(needle.points(np.linspace(entry, needle.length, 10)), surface)
-        distance = np.linalg.norm(needle.points(np.linspace(entry, needle.length, 10)) - found.closest, axis=1)
+        distance = np.linalg.norm(
+            needle.points(np.linspace(entry, needle.length, 10)) - found.closest, axis=1
+        )
         assert np.all(distance[found.inside] <= 0.1 * d_c), (record.step, distance)
     assert slid == len(later)
 
 
 @pytest.mark.parametrize("tilt", [0.0, 30.0])
 def test_a_needle_inserted_deeper_while_cutting_extends_the_cut_along_its_shaft(tilt):
-    # A 5 mm stroke during which the needle goes 3 mm deeper (item 3). Pushed sideways with the rest of the shaft,
-    # the part below the strip cuts at G_c per unit length too: the strip reaches down the whole inserted length
-    # (to within d_c of the tip: columns every d_c), and in steady cutting the front pushes with G_c per unit
-    # inserted length (Griffith, as for a straight stroke; test_in_steady_cutting_the_front_pushes_with_gc_...).
+    # A 5 mm stroke during which the needle goes 3 mm deeper (item 3). Pushed sideways with the rest of the
+    # shaft, the part below the strip cuts at G_c per unit length too: the strip reaches down the whole
+    # inserted length (to within d_c of the tip: columns every d_c), and in steady cutting the front pushes
+    # with G_c per unit inserted length (Griffith, as for a straight stroke;
+    # test_in_steady_cutting_the_front_pushes_with_gc_...).
     run = run_case(CuttingCase(tilt=tilt, plunge=0.003))
     scene = run.simulation.scene
     g_c, d_c = scene.cutting.fracture_energy, scene.cutting.point_spacing
@@ -451,17 +497,21 @@ def test_a_needle_inserted_deeper_while_cutting_extends_the_cut_along_its_shaft(
         length = run.inserted[index - 1]  # at the step's start, as the rows' bounds
         per_length = record.row_forces[front].sum() / length
         excess = np.count_nonzero(front) * scene.solver.tolerance * np.abs(record.row_forces).max() / length
-        assert g_c * (1 - 2 * d_c / length) - 1e-6 <= per_length <= g_c * (1 + 1e-6) + excess, (record.step, per_length)
+        assert g_c * (1 - 2 * d_c / length) - 1e-6 <= per_length <= g_c * (1 + 1e-6) + excess, (
+            record.step,
+            per_length,
+        )
         checked += 1
     assert checked >= 3
 
 
 def test_cube_cut_forces_do_not_depend_on_the_solver():
-    # The built-in cube_cut, whole (insertion, stroke, then the hold after it): both solvers solve every step to a
-    # natural residual of 1e-8, so the needle forces of the two runs agree to a thousandth of the peak, the bound
-    # of the coupling matrix (tests/simulation/test_coupling_matrix.py). Before the crack tip's polyline had an end
-    # tolerance (refsim.constraints.cut.END_TOLERANCE), the tip sample's front row came and went with the solver's
-    # last digits once the stroke stopped: 0.066 N apart (1.8 % of the peak) with the same events.
+    # The built-in cube_cut, whole (insertion, stroke, then the hold after it): both solvers solve every step
+    # to a natural residual of 1e-8, so the needle forces of the two runs agree to a thousandth of the peak,
+    # the bound of the coupling matrix (tests/simulation/test_coupling_matrix.py). Before the crack tip's
+    # polyline had an end tolerance (refsim.constraints.cut.END_TOLERANCE), the tip sample's front row came
+    # and went with the solver's last digits once the stroke stopped: 0.066 N apart (1.8 % of the peak) with
+    # the same events.
     from refsim.scene import load_scene
     from refsim.simulation import Simulation
 
@@ -470,7 +520,7 @@ def test_cube_cut_forces_do_not_depend_on_the_solver():
         records = []
         simulation = Simulation(load_scene("cube_cut", [f'solver.method="{method}"']))
         spectra = watch_cut_blocks(simulation)
-        simulation.run(on_step=lambda s, r: records.append(r))
+        simulation.run(on_step=lambda s, r, records=records: records.append(r))
         forces[method] = np.stack([r.needle_force for r in records])
         assert all(r.solver is None or r.solver.converged for r in records)
         assert_cut_block_is_positive_definite(spectra, f"cube_cut {method}")

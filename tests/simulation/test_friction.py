@@ -1,9 +1,9 @@
 """Shaft friction with the tissue's normal grip (`insertion.shaft_normal_force`) on the coarse cube.
 
-Reference: Coulomb's law on every insertion point i, |λ_s,i| ≤ μ_i (‖λ_b,i‖ + f d_i) (docs/solvers.md); while the
-needle moves every point slips, so the axial force on the needle is Σ_i μ_i (‖λ_b,i‖ + f d_i): it grows like
-μ_i f per unit inserted length (plus μ_i times the growth of the lateral forces, which vanish in a perfectly
-straight insertion). Once the needle stops, the points stick and the tissue follows the needle.
+Reference: Coulomb's law on every insertion point i, |λ_s,i| ≤ μ_i (‖λ_b,i‖ + f d_i) (docs/solvers.md); while
+the needle moves every point slips, so the axial force on the needle is Σ_i μ_i (‖λ_b,i‖ + f d_i): it grows
+like μ_i f per unit inserted length (plus μ_i times the growth of the lateral forces, which vanish in a
+perfectly straight insertion). Once the needle stops, the points stick and the tissue follows the needle.
 """
 
 from __future__ import annotations
@@ -17,8 +17,12 @@ from refsim.simulation import Simulation
 # The cube's own grip (insertion.interference) and tip cutting force are switched off: this test isolates the
 # older per-length grip f (insertion.shaft_normal_force); the interference's own law is tested in
 # tests/constraints/test_coupling.py and tests/simulation/test_shaft_friction.py.
-COARSE = ("mesh.cells=[4, 4, 4]", "output.record_problems=true", "insertion.interference=0",
-          "insertion.tip_cutting_force=0")
+COARSE = (
+    "mesh.cells=[4, 4, 4]",
+    "output.record_problems=true",
+    "insertion.interference=0",
+    "insertion.tip_cutting_force=0",
+)
 FRICTION = 0.1
 NORMAL_FORCE = 200.0  # [N/m]: the preload μ f d_i = 0.01 N per point dominates the lateral forces' share
 
@@ -31,8 +35,14 @@ def _run(scene):
 
 @pytest.fixture(scope="module")
 def gripped():
-    scene = load_scene("cube", [*COARSE, f"insertion.shaft_friction_coefficient={FRICTION}",
-                                f"insertion.shaft_normal_force={NORMAL_FORCE}"])
+    scene = load_scene(
+        "cube",
+        [
+            *COARSE,
+            f"insertion.shaft_friction_coefficient={FRICTION}",
+            f"insertion.shaft_normal_force={NORMAL_FORCE}",
+        ],
+    )
     return scene, _run(scene)
 
 
@@ -81,17 +91,19 @@ def test_axial_force_grows_like_mu_times_normal_force(gripped):
     tolerance = FRICTION * abs(lateral_slope) + 2.0 * expected * spacing / np.ptp(depth)
     assert slope > 0.0
     assert abs(slope - expected) <= tolerance, (slope, expected, tolerance)
-    # and the identity behind it, at every moving step: Σ|λ_s| = μ Σ (‖λ_b‖ + f d_i) within the solver tolerance
+    # and the identity behind it, at every moving step: Σ|λ_s| = μ Σ (‖λ_b‖ + f d_i) within the solver
+    # tolerance
     for record in steps:
         forces, bounds, _, scale = _shaft_state(record)
         assert abs(np.abs(forces).sum() - bounds.sum()) <= forces.size * scene.solver.tolerance * scale
 
 
 def test_without_friction_the_axial_force_vanishes(cube_scene):
-    # μ_i = 0: no shaft rows, whatever the grip; the lateral rows are orthogonal to the (rigid, straight) needle,
-    # so the axial force is round-off: at most a few ulps of the sum of the lateral forces.
-    scene = cube_scene(*COARSE, "insertion.shaft_friction_coefficient=0.0",
-                       f"insertion.shaft_normal_force={NORMAL_FORCE}")
+    # μ_i = 0: no shaft rows, whatever the grip; the lateral rows are orthogonal to the (rigid, straight)
+    # needle, so the axial force is round-off: at most a few ulps of the sum of the lateral forces.
+    scene = cube_scene(
+        *COARSE, "insertion.shaft_friction_coefficient=0.0", f"insertion.shaft_normal_force={NORMAL_FORCE}"
+    )
     records = _after_puncture(_run(scene))
     direction = _direction(scene)
     assert any(r.insertion_point_count > 20 for r in records)
@@ -105,8 +117,11 @@ def test_without_friction_the_axial_force_vanishes(cube_scene):
 def test_moving_needle_slips_at_the_bound_and_stopped_needle_sticks(gripped):
     scene, records = gripped
     tolerance = scene.solver.tolerance
-    speed_step = float(np.linalg.norm(np.diff(np.asarray(scene.trajectory.base_positions)[:2], axis=0))
-                       / np.diff(scene.trajectory.times[:2])[0] * scene.time.dt)  # needle travel per step [m]
+    speed_step = float(
+        np.linalg.norm(np.diff(np.asarray(scene.trajectory.base_positions)[:2], axis=0))
+        / np.diff(scene.trajectory.times[:2])[0]
+        * scene.time.dt
+    )  # needle travel per step [m]
     moving = [r for r in _after_puncture(records) if _moving(scene, r) and r.insertion_point_count >= 2]
     stopped = [r for r in records if r.time >= scene.trajectory.times[-2] + 5 * scene.time.dt]
     assert moving and len(stopped) >= 10
@@ -125,9 +140,9 @@ def test_moving_needle_slips_at_the_bound_and_stopped_needle_sticks(gripped):
         assert np.all(np.abs(slip[stuck]) <= tolerance * scale)
         # and no point slides by more than a millionth of a moving step's travel
         assert np.all(np.abs(slip) <= 1e-6 * speed_step)
-    # Most points stick strictly inside the bound (measured: 91 % just after the stop, 71 % at the end). The others
-    # were left exactly at the bound by the slip and stay there while the tissue relaxes, creeping by less than
-    # a millionth of a step's travel (asserted above): the stick-slip limit, not a slide.
+    # Most points stick strictly inside the bound (measured: 91 % just after the stop, 71 % at the end). The
+    # others were left exactly at the bound by the slip and stay there while the tissue relaxes, creeping by
+    # less than a millionth of a step's travel (asserted above): the stick-slip limit, not a slide.
     assert min(stuck_counts) >= 0.5, stuck_counts
     # the axial force stays below the slip bound once stopped: the grip holds the tissue without sliding
     for record in stopped:

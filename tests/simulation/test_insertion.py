@@ -72,7 +72,8 @@ def test_withdrawal_removes_points_and_returns_to_approach(cube_scene):
     scene = cube_scene(
         *COARSE,
         "trajectory.times=[0.0, 1.0, 2.2]",
-        "trajectory.base_positions=[[0.00123, 0.00231, 0.422], [0.00123, 0.00231, 0.412], [0.00123, 0.00231, 0.43]]",
+        "trajectory.base_positions=[[0.00123, 0.00231, 0.422], [0.00123, 0.00231, 0.412], [0.00123, 0.00231, "
+        "0.43]]",
         "trajectory.directions=[[0, 0, -1], [0, 0, -1], [0, 0, -1]]",
     )
     _, records = _run(scene)
@@ -81,7 +82,9 @@ def test_withdrawal_removes_points_and_returns_to_approach(cube_scene):
     counts = [r.insertion_point_count for r in records]
     peak = int(np.argmax(counts))
     assert counts[peak] >= 10
-    assert all(b <= a for a, b in zip(counts[peak:], counts[peak + 1 :]))  # only shrinks while withdrawing
+    assert all(
+        b <= a for a, b in zip(counts[peak:], counts[peak + 1 :], strict=False)
+    )  # only shrinks while withdrawing
     assert records[-1].phase == "approach" and counts[-1] == 0
     assert all(np.all(np.isfinite(r.row_forces)) for r in records)
 

@@ -12,7 +12,9 @@ import pytest
 from refsim.scene import load_scene
 from refsim.simulation import Simulation
 
-SHARED = Path(os.environ.get("REFSIM_SHARED_DATA", Path(__file__).resolve().parents[2].parent / "shared" / "data"))
+SHARED = Path(
+    os.environ.get("REFSIM_SHARED_DATA", Path(__file__).resolve().parents[2].parent / "shared" / "data")
+)
 SOFA_LIVER = SHARED / "meshes" / "liver_gmsh22.msh"
 
 
@@ -48,10 +50,18 @@ def test_sofa_liver_runs_with_the_same_boundary_section():
     path = Path(str(resources.files("refsim") / "scenes" / "liver_flexible.toml"))
     data = tomllib.loads(path.read_text(encoding="utf-8"))
     data["mesh"] = {"file": str(SOFA_LIVER), "scale": 0.04, "fixed_nodes": [3, 39, 64]}
-    data["boundary"].update({"patch_point": [float(centre[0]), float(top), float(centre[2])],
-                             "patch_distance": 0.05, "amplitude": [0.0, -0.008, 0.0]})
-    data["trajectory"] = {"times": [0.0, 2.0], "base_positions": [base0.tolist(), (base0 - [0, 0.04, 0]).tolist()],
-                          "directions": [[0.0, -1.0, 0.0], [0.0, -1.0, 0.0]]}
+    data["boundary"].update(
+        {
+            "patch_point": [float(centre[0]), float(top), float(centre[2])],
+            "patch_distance": 0.05,
+            "amplitude": [0.0, -0.008, 0.0],
+        }
+    )
+    data["trajectory"] = {
+        "times": [0.0, 2.0],
+        "base_positions": [base0.tolist(), (base0 - [0, 0.04, 0]).tolist()],
+        "directions": [[0.0, -1.0, 0.0], [0.0, -1.0, 0.0]],
+    }
     data["time"] = {"dt": 0.01, "duration": 2.0}
     scene = scene_from_dict(data, source="sofa-liver", base_directory=str(path.parent))
     simulation = Simulation(scene)
@@ -77,9 +87,9 @@ def _deflection(record, direction) -> float:
 
 @pytest.mark.slow
 def test_the_flexible_needle_bends_and_does_not_cut_the_rigid_one_cuts():
-    # The paper's liver result (section 5, Figure 2). The margins of the criterion (the shaft's largest lateral
-    # load per inserted length against G_c = 45 J/m²) are in the scene files; measured 50.4 and 39.7 N/m.
-    # The rigid needle's cut block is well posed on every cutting step (tests/simulation/test_cutting.py,
+    # The paper's liver result (section 5, Figure 2). The margins of the criterion (the shaft's largest
+    # lateral load per inserted length against G_c = 45 J/m²) are in the scene files; measured 50.4 and 39.7
+    # N/m. The rigid needle's cut block is well posed on every cutting step (tests/simulation/test_cutting.py,
     # assert_cut_block_is_positive_definite) and Gauss–Seidel converges on every step: before the front rows
     # had their compliance it stopped at its 1,000-sweep cap on 54 of the 502 cutting steps (docs/liver.md).
     from tests.simulation.cutting_cases import watch_cut_blocks
@@ -90,7 +100,7 @@ def test_the_flexible_needle_bends_and_does_not_cut_the_rigid_one_cuts():
         simulation = Simulation(load_scene(name))
         spectra = watch_cut_blocks(simulation)
         records = []
-        simulation.run(on_step=lambda s, r: records.append(r))
+        simulation.run(on_step=lambda s, r, records=records: records.append(r))
         direction = simulation.models.trajectory.directions[0]
         runs[name] = (records, max(_deflection(r, direction) for r in records), spectra)
         assert all(r.solver is None or r.solver.converged for r in records), name
@@ -102,7 +112,8 @@ def test_the_flexible_needle_bends_and_does_not_cut_the_rigid_one_cuts():
 
 
 def test_the_results_file_holds_the_robot_trajectory_and_the_breathing(tmp_path):
-    # A file stands alone: the CSV trajectory the scene read and the prescribed boundary displacement are in it.
+    # A file stands alone: the CSV trajectory the scene read and the prescribed boundary displacement are in
+    # it.
     from refsim.io import read_results
     from refsim.io.driver import run_scene
     from refsim.scene.trajectory import read_trajectory_csv
@@ -114,4 +125,8 @@ def test_the_results_file_holds_the_robot_trajectory_and_the_breathing(tmp_path)
     csv = read_trajectory_csv(Path(scene.base_directory) / scene.trajectory.file)
     np.testing.assert_array_equal(results.trajectory_samples[:, 0], csv.times)
     np.testing.assert_array_equal(results.trajectory_samples[:, 1:4], csv.base_positions)
-    assert results.boundary_nodes.size > 10 and results.boundary_displacement.shape == (3, results.boundary_nodes.size, 3)
+    assert results.boundary_nodes.size > 10 and results.boundary_displacement.shape == (
+        3,
+        results.boundary_nodes.size,
+        3,
+    )

@@ -24,7 +24,8 @@ SCENE = (
     "mesh.cells=[4, 4, 4]",
     "needle.radius=0.0005",
     f"insertion.interference={INTERFERENCE}",
-    "insertion.tip_cutting_force=0",  # friction alone: the cube's tip cutting force would add f_cut to the hold
+    # friction alone: the cube's tip cutting force would add f_cut to the hold
+    "insertion.tip_cutting_force=0",
     f"insertion.shaft_friction_coefficient={DYNAMIC}",
     f"insertion.shaft_static_friction_coefficient={STATIC}",
     "trajectory.times=[0.0, 1.2, 1.6, 1.9]",
@@ -41,8 +42,13 @@ def test_pull_out_force_peaks_at_static_and_drops_to_dynamic_friction(cube_scene
     Simulation(scene).run(on_step=lambda state, record: records.append(record))
     tissue = scene.tissue
     shear = tissue.youngs_modulus / (2.0 * (1.0 + tissue.poisson_ratio))
-    grip = grip_preload(shear_modulus=shear, poisson_ratio=tissue.poisson_ratio, radius=scene.needle.radius,
-                        interference=INTERFERENCE, spacing=scene.insertion.spacing)
+    grip = grip_preload(
+        shear_modulus=shear,
+        poisson_ratio=tissue.poisson_ratio,
+        radius=scene.needle.radius,
+        interference=INTERFERENCE,
+        spacing=scene.insertion.spacing,
+    )
     first = next(i for i, r in enumerate(records) if r.time > PULL_START + 1e-9)
     pull = records[first : first + 12]
     for k, record in enumerate(pull):

@@ -33,17 +33,27 @@ def problems_root() -> Path:
     return root
 
 
-def planted_problem(rng: np.random.Generator, *, bilateral: int = 0, unilateral: int = 0, contacts: int = 0,
-                    shafts: int = 0, box: int = 0, rank: int | None = None, friction: float = 0.5,
-                    scale: float = 1.0, shaft_preload: float = 0.0) -> tuple[ConstraintProblem, np.ndarray, np.ndarray]:
+def planted_problem(
+    rng: np.random.Generator,
+    *,
+    bilateral: int = 0,
+    unilateral: int = 0,
+    contacts: int = 0,
+    shafts: int = 0,
+    box: int = 0,
+    rank: int | None = None,
+    friction: float = 0.5,
+    scale: float = 1.0,
+    shaft_preload: float = 0.0,
+) -> tuple[ConstraintProblem, np.ndarray, np.ndarray]:
     """A problem with a known solution (λ*, δ*) satisfying every law; δ_free = δ* − W λ*.
 
     Every kind gets a mix of its states: unilateral active / separated / degenerate, contacts stick / slip /
     separated, shaft rows stick / slip both ways, box rows inside / at lower / at upper. W = A Aᵀ / rank with
     A of shape (n, rank): singular when rank < n. Each shaft row brings its own pair of bilateral rows. With
-    ``shaft_preload`` > 0 every shaft row gets a normal preload p_j ~ U(0.5, 1.5) · shaft_preload [N] (before the
-    force scaling), and its bound is μ (‖λ_pair‖ + p_j); with 0 (the default) no random number is drawn for it,
-    so the problems of the other tests are unchanged.
+    ``shaft_preload`` > 0 every shaft row gets a normal preload p_j ~ U(0.5, 1.5) · shaft_preload [N] (before
+    the force scaling), and its bound is μ (‖λ_pair‖ + p_j); with 0 (the default) no random number is drawn
+    for it, so the problems of the other tests are unchanged.
     """
     rows = iter(range(10**6))
 
@@ -107,11 +117,22 @@ def planted_problem(rng: np.random.Generator, *, bilateral: int = 0, unilateral:
     lower /= scale
     upper /= scale
     free_gap = gap - compliance @ force
-    problem = ConstraintProblem(compliance=compliance, free_gap=free_gap, bilateral=all_bilateral,
-                                unilateral=unilateral_rows, contacts=contact_rows, contact_friction=mu,
-                                shaft_friction=shaft_rows, shaft_pairs=pair_rows,
-                                shaft_friction_coefficient=shaft_mu, shaft_normal_preload=preload, box_rows=box_rows, box_lower=lower,
-                                box_upper=upper, name="planted")
+    problem = ConstraintProblem(
+        compliance=compliance,
+        free_gap=free_gap,
+        bilateral=all_bilateral,
+        unilateral=unilateral_rows,
+        contacts=contact_rows,
+        contact_friction=mu,
+        shaft_friction=shaft_rows,
+        shaft_pairs=pair_rows,
+        shaft_friction_coefficient=shaft_mu,
+        shaft_normal_preload=preload,
+        box_rows=box_rows,
+        box_lower=lower,
+        box_upper=upper,
+        name="planted",
+    )
     return problem, force, gap
 
 

@@ -37,8 +37,11 @@ def test_frictionless_planted_to_round_off(planted, rng, kinds, rank, backend):
 @pytest.mark.parametrize("rank", [None, "half"])
 @pytest.mark.parametrize("kinds", FRICTION)
 def test_friction_planted(planted, rng, kinds, rank):
-    size = 3 * kinds.get("contacts", 0) + 3 * kinds.get("shafts", 0) + sum(
-        v for k, v in kinds.items() if k not in ("contacts", "shafts"))
+    size = (
+        3 * kinds.get("contacts", 0)
+        + 3 * kinds.get("shafts", 0)
+        + sum(v for k, v in kinds.items() if k not in ("contacts", "shafts"))
+    )
     problem, _, _ = planted(rng, rank=None if rank is None else size // 2, **kinds)
     multipliers, report = solve_exact(problem)
     assert report.converged, report.message
@@ -51,8 +54,12 @@ def test_block_on_plane_stick_and_slip(ratio):
     w_n, w_t, gap_n, mu = 0.5, 2.0, 0.1, 0.4
     normal_force = gap_n / w_n
     push = ratio * mu * normal_force * w_t
-    problem = ConstraintProblem(compliance=np.diag([w_n, w_t, w_t]), free_gap=[-gap_n, 0.0, push],
-                                contacts=[[0, 1, 2]], contact_friction=[mu])
+    problem = ConstraintProblem(
+        compliance=np.diag([w_n, w_t, w_t]),
+        free_gap=[-gap_n, 0.0, push],
+        contacts=[[0, 1, 2]],
+        contact_friction=[mu],
+    )
     multipliers, report = solve_exact(problem)
     assert report.converged, report.message
     tangent = -push / w_t if ratio <= 1 else -mu * normal_force
@@ -66,8 +73,14 @@ def test_shaft_pair_stick_and_slip(ratio):
     pair_gap = np.array([-0.3, 0.4])
     bound = 0.2 * np.linalg.norm(pair_gap / w[:2])
     push = ratio * bound * w[2]
-    problem = ConstraintProblem(compliance=np.diag(w), free_gap=[*pair_gap, push], bilateral=[0, 1],
-                                shaft_friction=[2], shaft_pairs=[[0, 1]], shaft_friction_coefficient=[0.2])
+    problem = ConstraintProblem(
+        compliance=np.diag(w),
+        free_gap=[*pair_gap, push],
+        bilateral=[0, 1],
+        shaft_friction=[2],
+        shaft_pairs=[[0, 1]],
+        shaft_friction_coefficient=[0.2],
+    )
     multipliers, report = solve_exact(problem)
     assert report.converged, report.message
     expected = -push / w[2] if abs(ratio) <= 1 else -bound * np.sign(push)
@@ -86,24 +99,29 @@ def test_agrees_with_gauss_seidel_by_gap_on_singular_problem(planted, rng):
 
 def test_backends_agree(planted, rng):
     problem, _, _ = planted(rng, bilateral=2, unilateral=6, box=4, rank=7)
-    gaps = [problem.gap(solve_exact(problem, backend=name, method="cone")[0]) for name in ("clarabel", "osqp")]
+    gaps = [
+        problem.gap(solve_exact(problem, backend=name, method="cone")[0]) for name in ("clarabel", "osqp")
+    ]
     np.testing.assert_allclose(gaps[0], gaps[1], atol=1e-8)
 
 
 def test_non_symmetric_compliance_is_solved_as_given():
     # Reference: W = [[1, 0.5], [0, 1]], δ_free = (−1, −1), both unilateral: both active gives
     # λ = W⁻¹ (1, 1) = (0.5, 1) ≥ 0, δ = 0, the (unique, W is a P-matrix) solution.
-    problem = ConstraintProblem(compliance=[[1.0, 0.5], [0.0, 1.0]], free_gap=[-1, -1], unilateral=[0, 1],
-                                name="skew")
-    # "auto" takes Lemke's pivoting first on a non-symmetric LCP, "newton" the semismooth Newton: both as given
+    problem = ConstraintProblem(
+        compliance=[[1.0, 0.5], [0.0, 1.0]], free_gap=[-1, -1], unilateral=[0, 1], name="skew"
+    )
+    # "auto" takes Lemke's pivoting first on a non-symmetric LCP, "newton" the semismooth Newton: both as
+    # given
     for method, path in (("auto", "lemke"), ("newton", "newton")):
         multipliers, report = solve_exact(problem, method=method)
         assert report.converged and report.path == path
         assert report.asymmetry == pytest.approx(problem.asymmetry()) and "non-symmetric" in report.message
         np.testing.assert_allclose(multipliers, [0.5, 1.0], atol=1e-12)
     # within round-off it is accepted and the residual is measured on W as given
-    nearly = ConstraintProblem(compliance=[[1.0, 0.5 + 1e-12], [0.5, 1.0]], free_gap=[-1, -1],
-                               unilateral=[0, 1])
+    nearly = ConstraintProblem(
+        compliance=[[1.0, 0.5 + 1e-12], [0.5, 1.0]], free_gap=[-1, -1], unilateral=[0, 1]
+    )
     assert solve_exact(nearly)[1].converged
 
 
@@ -139,12 +157,14 @@ def test_empty_problem():
     assert multipliers.shape == (0,) and report.converged
 
 
-@settings(max_examples=10, deadline=None, database=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=10, deadline=None, database=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(seed=st.integers(0, 10**6), rank_fraction=st.floats(0.3, 1.0), scale=st.sampled_from([1e-4, 1.0, 1e4]))
 def test_property_exact_frictionless_round_off(planted, seed, rank_fraction, scale):
     rng = np.random.default_rng(seed)
-    problem, _, _ = planted(rng, bilateral=2, unilateral=5, box=3, rank=max(1, int(10 * rank_fraction)),
-                            scale=scale)
+    problem, _, _ = planted(
+        rng, bilateral=2, unilateral=5, box=3, rank=max(1, int(10 * rank_fraction)), scale=scale
+    )
     _, report = solve_exact(problem)
     assert report.residual <= 1e-9, report.message

@@ -14,11 +14,21 @@ from refsim.solvers.readers import read_fclib, read_problem, read_siconos
 
 #: One or two files of every kind and format (dense and sparse-block Siconos, FCLib CSR), fast to solve.
 FAST_SUBSET = [
-    "lcp/lcp_mmc.dat", "lcp/lcp_deudeu_block.dat", "lcp/lcp_CPS_1.dat", "lcp/lcp_ortiz.dat",
-    "mlcp/PDSym_mlcp.dat", "mlcp/m3n2_mlcp.dat", "relay/relay1.dat", "relay/step_4x4.dat",
-    "gmp/GMP1.dat", "gmp/GMP5.dat", "fc3d/FrictionContact3D_1c.dat",
+    "lcp/lcp_mmc.dat",
+    "lcp/lcp_deudeu_block.dat",
+    "lcp/lcp_CPS_1.dat",
+    "lcp/lcp_ortiz.dat",
+    "mlcp/PDSym_mlcp.dat",
+    "mlcp/m3n2_mlcp.dat",
+    "relay/relay1.dat",
+    "relay/step_4x4.dat",
+    "gmp/GMP1.dat",
+    "gmp/GMP5.dat",
+    "fc3d/FrictionContact3D_1c.dat",
     "fc3d/Confeti-ex13-4contact-Fc3D-SBM.dat",
-    "fc3d/Rover4396.dat", "fc3d/NESpheres_10_1.dat", "fc3d/OneObject-i1028-138.hdf5.dat",
+    "fc3d/Rover4396.dat",
+    "fc3d/NESpheres_10_1.dat",
+    "fc3d/OneObject-i1028-138.hdf5.dat",
     "fclib/local_problem_test.hdf5",
 ]
 #: The data set's README: "some are slightly non-symmetric (1e-7 to 1e-3)": these friction problems are

@@ -22,16 +22,21 @@ from refsim.solvers.residual import data_scales, residuals
 
 from .conftest import planted_problem
 
-LAWS = {"contacts": dict(contacts=4), "mixed": dict(bilateral=2, unilateral=3, contacts=3, box=3),
-        "lcp": dict(unilateral=6), "box": dict(box=5, bilateral=1),
-        "shafts": dict(bilateral=1, shafts=3, contacts=2, shaft_preload=0.2),
-        "groups": dict(bilateral=1, unilateral=2, shafts=4, box=1, shaft_preload=0.2)}
+LAWS = {
+    "contacts": dict(contacts=4),
+    "mixed": dict(bilateral=2, unilateral=3, contacts=3, box=3),
+    "lcp": dict(unilateral=6),
+    "box": dict(box=5, bilateral=1),
+    "shafts": dict(bilateral=1, shafts=3, contacts=2, shaft_preload=0.2),
+    "groups": dict(bilateral=1, unilateral=2, shafts=4, box=1, shaft_preload=0.2),
+}
 
 
 def _with_group_form(problem: ConstraintProblem) -> ConstraintProblem:
-    """The last half of the pair-form (shaft) rows written in the group form, each group also holding the first
-    unilateral row (when there is one), and a plain bilateral row (when there is one) made an empty group: both forms in one problem, merged by the
-    compiled set-up as by :func:`~refsim.solvers.laws.friction_groups`."""
+    """The last half of the pair-form (shaft) rows written in the group form, each group also holding the
+    first unilateral row (when there is one), and a plain bilateral row (when there is one) made an empty
+    group: both forms in one problem, merged by the compiled set-up as by
+    :func:`~refsim.solvers.laws.friction_groups`."""
     count = len(problem.shaft_friction)
     keep = count // 2
     extra = problem.unilateral[:1].tolist()
@@ -48,19 +53,29 @@ def _with_group_form(problem: ConstraintProblem) -> ConstraintProblem:
     bilateral = np.setdiff1d(problem.bilateral, group_rows)
     size = len(group_rows)
     return dataclasses.replace(
-        problem, bilateral=bilateral, shaft_friction=problem.shaft_friction[:keep],
-        shaft_pairs=problem.shaft_pairs[:keep], shaft_friction_coefficient=problem.shaft_friction_coefficient[:keep],
-        shaft_normal_preload=problem.shaft_normal_preload[:keep], group_friction=group_rows,
-        group_offsets=np.array(offsets), group_members=np.array(members, dtype=np.int64),
-        group_friction_coefficient=np.full(size, 0.4), group_preload=np.linspace(0.0, 0.3, size))
+        problem,
+        bilateral=bilateral,
+        shaft_friction=problem.shaft_friction[:keep],
+        shaft_pairs=problem.shaft_pairs[:keep],
+        shaft_friction_coefficient=problem.shaft_friction_coefficient[:keep],
+        shaft_normal_preload=problem.shaft_normal_preload[:keep],
+        group_friction=group_rows,
+        group_offsets=np.array(offsets),
+        group_members=np.array(members, dtype=np.int64),
+        group_friction_coefficient=np.full(size, 0.4),
+        group_preload=np.linspace(0.0, 0.3, size),
+    )
 
 
 def _same(first, second) -> bool:
     """Equal values, NaN equal to NaN, arrays compared by dtype, shape and bytes."""
     if isinstance(first, np.ndarray) or isinstance(second, np.ndarray):
         first, second = np.asarray(first), np.asarray(second)
-        return (first.dtype == second.dtype and first.shape == second.shape
-                and first.tobytes() == second.tobytes())
+        return (
+            first.dtype == second.dtype
+            and first.shape == second.shape
+            and first.tobytes() == second.tobytes()
+        )
     if isinstance(first, float) and isinstance(second, float) and math.isnan(first) and math.isnan(second):
         return True
     return type(first) is type(second) and first == second
@@ -118,8 +133,9 @@ def test_fresh_path_that_does_not_converge_goes_on_as_the_layered_path(newton_it
     for laws in ("contacts", "mixed", "shafts"):
         problem, _, _ = planted_problem(rng, rank=None, **LAWS[laws])
         _assert_identical(problem, tolerance=1e-12, method="auto", newton_iterations=newton_iterations)
-        _, report = solve_exact(dataclasses.replace(problem), tolerance=1e-12, method="auto",
-                                newton_iterations=newton_iterations)
+        _, report = solve_exact(
+            dataclasses.replace(problem), tolerance=1e-12, method="auto", newton_iterations=newton_iterations
+        )
         unfinished += report.path not in ("newton", "gauss_seidel", "gauss_seidel+newton")
     assert unfinished  # the case is exercised: some answers came from the code after Newton
 
@@ -151,8 +167,10 @@ def test_fresh_path_is_taken_and_leaves_the_asymmetry_cached():
 
 def test_group_friction_takes_the_fresh_path():
     # the needle's problems (shaft rows: the pair form) and the group form, merged in compiled code
-    for problem in (planted_problem(np.random.default_rng(4), bilateral=2, shafts=2, contacts=2)[0],
-                    _with_group_form(planted_problem(np.random.default_rng(4), unilateral=1, shafts=4)[0])):
+    for problem in (
+        planted_problem(np.random.default_rng(4), bilateral=2, shafts=2, contacts=2)[0],
+        _with_group_form(planted_problem(np.random.default_rng(4), unilateral=1, shafts=4)[0]),
+    ):
         copy = dataclasses.replace(problem)
         assert solve_newton(copy, tolerance=1e-8).converged
         assert "_block_arrays" not in copy.__dict__ and "_asymmetry" in copy.__dict__
@@ -166,13 +184,24 @@ def test_large_problems_keep_the_layered_path():
 
 
 def test_friction_groups_merge_both_forms():
-    # Reference: the law's statement (docs/solvers.md): pair-form rows first, members their two bilateral rows;
-    # then the group-form rows with their offsets shifted by the pair members (2 per pair), an empty group kept.
+    # Reference: the law's statement (docs/solvers.md): pair-form rows first, members their two bilateral
+    # rows; then the group-form rows with their offsets shifted by the pair members (2 per pair), an empty
+    # group kept.
     problem = ConstraintProblem(
-        compliance=np.eye(8), free_gap=np.ones(8), bilateral=[0, 1, 2, 3], unilateral=[4],
-        shaft_friction=[5], shaft_pairs=[[0, 1]], shaft_friction_coefficient=[0.3], shaft_normal_preload=[0.1],
-        group_friction=[6, 7], group_offsets=[0, 3, 3], group_members=[2, 3, 4],
-        group_friction_coefficient=[0.4, 0.5], group_preload=[0.0, 0.2])
+        compliance=np.eye(8),
+        free_gap=np.ones(8),
+        bilateral=[0, 1, 2, 3],
+        unilateral=[4],
+        shaft_friction=[5],
+        shaft_pairs=[[0, 1]],
+        shaft_friction_coefficient=[0.3],
+        shaft_normal_preload=[0.1],
+        group_friction=[6, 7],
+        group_offsets=[0, 3, 3],
+        group_members=[2, 3, 4],
+        group_friction_coefficient=[0.4, 0.5],
+        group_preload=[0.0, 0.2],
+    )
     rows, offsets, members, coefficient, preload = friction_groups(problem)
     np.testing.assert_array_equal(rows, [5, 6, 7])
     np.testing.assert_array_equal(offsets, [0, 2, 5, 5])

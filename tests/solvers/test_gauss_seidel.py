@@ -7,8 +7,14 @@ from hypothesis import strategies as st
 
 from refsim.solvers import ConstraintProblem, natural_residual, solve_gauss_seidel
 
-KINDS = [dict(bilateral=6), dict(unilateral=6), dict(contacts=4), dict(shafts=3), dict(box=6),
-         dict(bilateral=2, unilateral=3, contacts=3, shafts=3, box=3)]
+KINDS = [
+    dict(bilateral=6),
+    dict(unilateral=6),
+    dict(contacts=4),
+    dict(shafts=3),
+    dict(box=6),
+    dict(bilateral=2, unilateral=3, contacts=3, shafts=3, box=3),
+]
 
 
 @pytest.mark.parametrize("kinds", KINDS)
@@ -26,9 +32,12 @@ def test_planted_non_singular(planted, rng, kinds):
 
 def block_on_plane(push, *, mass_compliance=2.0, normal_compliance=0.5, penetration=0.1, friction=0.4):
     """A point on a plane: W = diag(w_n, w_t, w_t), pressed by δ_free,n = −g and pushed by δ_free,t1 = p."""
-    return ConstraintProblem(compliance=np.diag([normal_compliance, mass_compliance, mass_compliance]),
-                             free_gap=[-penetration, push, 0.0], contacts=[[0, 1, 2]],
-                             contact_friction=[friction])
+    return ConstraintProblem(
+        compliance=np.diag([normal_compliance, mass_compliance, mass_compliance]),
+        free_gap=[-penetration, push, 0.0],
+        contacts=[[0, 1, 2]],
+        contact_friction=[friction],
+    )
 
 
 @pytest.mark.parametrize("ratio", [0.5, 0.99, 1.01, 3.0])
@@ -54,8 +63,14 @@ def test_shaft_pair_stick_and_slip(ratio):
     pair_gap = np.array([-0.3, 0.4])
     bound = 0.2 * np.linalg.norm(-pair_gap / w[:2])
     push = ratio * bound * w[2]
-    problem = ConstraintProblem(compliance=np.diag(w), free_gap=[*pair_gap, push], bilateral=[0, 1],
-                                shaft_friction=[2], shaft_pairs=[[0, 1]], shaft_friction_coefficient=[0.2])
+    problem = ConstraintProblem(
+        compliance=np.diag(w),
+        free_gap=[*pair_gap, push],
+        bilateral=[0, 1],
+        shaft_friction=[2],
+        shaft_pairs=[[0, 1]],
+        shaft_friction_coefficient=[0.2],
+    )
     multipliers, report = solve_gauss_seidel(problem, tolerance=1e-13)
     assert report.converged
     expected = -push / w[2] if abs(ratio) <= 1 else -bound * np.sign(push)
@@ -70,8 +85,9 @@ def test_warm_start_at_solution_stops_after_one_sweep(planted, rng):
 
 def test_non_convergence_is_reported():
     # a 2-row bilateral problem with strong coupling converges slowly: 3 sweeps are not enough
-    problem = ConstraintProblem(compliance=[[1.0, 0.999], [0.999, 1.0]], free_gap=[1.0, -1.0],
-                                bilateral=[0, 1])
+    problem = ConstraintProblem(
+        compliance=[[1.0, 0.999], [0.999, 1.0]], free_gap=[1.0, -1.0], bilateral=[0, 1]
+    )
     multipliers, report = solve_gauss_seidel(problem, tolerance=1e-10, max_iterations=3)
     assert not report.converged and report.iterations == 3
     assert "not converged" in report.message
@@ -81,8 +97,9 @@ def test_non_convergence_is_reported():
 def test_zero_diagonal_rows_do_not_crash():
     # row 1 has W_11 = 0 (a row with no compliance): it cannot be solved alone; the solver must not divide
     # by zero, keeps λ_1 at its projection, and the residual says whether the rest was solved.
-    problem = ConstraintProblem(compliance=np.diag([1.0, 0.0, 2.0]), free_gap=[-1.0, 0.5, -2.0],
-                                unilateral=[0, 1, 2])
+    problem = ConstraintProblem(
+        compliance=np.diag([1.0, 0.0, 2.0]), free_gap=[-1.0, 0.5, -2.0], unilateral=[0, 1, 2]
+    )
     multipliers, report = solve_gauss_seidel(problem, tolerance=1e-12)
     assert np.all(np.isfinite(multipliers))
     assert report.converged  # δ_1 = 0.5 ≥ 0 with λ_1 = 0 satisfies Signorini
@@ -94,8 +111,12 @@ def test_zero_diagonal_rows_do_not_crash():
 
 def test_divergence_is_reported():
     # a non-monotone LCP (negative diagonal coupling) on which Gauss–Seidel blows up
-    problem = ConstraintProblem(compliance=[[0.1, -0.1, -1.0], [-1.505, 0.5, 0.0], [0.0, -1.0, 0.0]],
-                                free_gap=[0.0, 0.495, 0.0], bilateral=[0, 1], unilateral=[2])
+    problem = ConstraintProblem(
+        compliance=[[0.1, -0.1, -1.0], [-1.505, 0.5, 0.0], [0.0, -1.0, 0.0]],
+        free_gap=[0.0, 0.495, 0.0],
+        bilateral=[0, 1],
+        unilateral=[2],
+    )
     multipliers, report = solve_gauss_seidel(problem, max_iterations=2000)
     assert not report.converged
     assert "diverged" in report.message or report.residual > 1e-6
@@ -109,11 +130,16 @@ def test_increment_criterion_and_relaxation(planted, rng):
     assert relaxed.converged
 
 
-@pytest.mark.parametrize(("kwargs", "words"), [
-    (dict(tolerance=-1.0), "tolerance"), (dict(max_iterations=0), "max_iterations"),
-    (dict(relaxation=2.0), "relaxation"), (dict(criterion="sofa"), "criterion"),
-    (dict(warm_start=np.zeros(2)), "multipliers have shape"),
-])
+@pytest.mark.parametrize(
+    ("kwargs", "words"),
+    [
+        (dict(tolerance=-1.0), "tolerance"),
+        (dict(max_iterations=0), "max_iterations"),
+        (dict(relaxation=2.0), "relaxation"),
+        (dict(criterion="sofa"), "criterion"),
+        (dict(warm_start=np.zeros(2)), "multipliers have shape"),
+    ],
+)
 def test_bad_arguments(kwargs, words):
     problem = ConstraintProblem(compliance=np.eye(3), free_gap=np.zeros(3), unilateral=[0, 1, 2])
     with pytest.raises(ValueError, match=words):
@@ -121,16 +147,19 @@ def test_bad_arguments(kwargs, words):
 
 
 def test_empty_problem():
-    multipliers, report = solve_gauss_seidel(ConstraintProblem(compliance=np.zeros((0, 0)),
-                                                               free_gap=np.zeros(0)))
+    multipliers, report = solve_gauss_seidel(
+        ConstraintProblem(compliance=np.zeros((0, 0)), free_gap=np.zeros(0))
+    )
     assert multipliers.shape == (0,) and report.converged
 
 
-@settings(max_examples=12, deadline=None, database=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=12, deadline=None, database=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(seed=st.integers(0, 10**6), friction=st.floats(0.0, 1.0))
 def test_property_gauss_seidel_solves_positive_definite_problems(planted, seed, friction):
-    problem, _, _ = planted(np.random.default_rng(seed), unilateral=3, contacts=2, shafts=2, box=2,
-                            friction=friction)
+    problem, _, _ = planted(
+        np.random.default_rng(seed), unilateral=3, contacts=2, shafts=2, box=2, friction=friction
+    )
     _, report = solve_gauss_seidel(problem, tolerance=1e-7, max_iterations=20000)
     assert report.converged, report.message

@@ -35,16 +35,25 @@ def _grouped_problem(preload=0.0):
     """W = I, so every row decouples except through the friction bounds. Rows:
 
     0 unilateral, δ_free = −1 → λ0 = 1 (δ0 = 0);
-    1 group friction, group {0}, μ = 0.5, p: bound b1 = 0.5 (1 + p); δ_free = −2 → slip λ1 = b1 (δ1 = b1 − 2 < 0);
-    2 group friction, group {0, 3, 4}, μ = 0.1: b2 = 0.1 √(1 + 9 + 16) = 0.5099; δ_free = 0.2 → stick
+    1 group friction, group {0}, μ = 0.5, p: bound b1 = 0.5 (1 + p); δ_free = −2 → slip λ1 = b1 (δ1 = b1 − 2 <
+    0); 2 group friction, group {0, 3, 4}, μ = 0.1: b2 = 0.1 √(1 + 9 + 16) = 0.5099; δ_free = 0.2 → stick
       λ2 = −0.2, δ2 = 0;
     3, 4 bilateral, δ_free = (−3, −4) → λ = (3, 4);
-    5 group friction with an empty group, μ = 0.3, p = 2: b5 = 0.6; δ_free = 5 → slip λ5 = −0.6 (δ5 = 4.4 > 0).
+    5 group friction with an empty group, μ = 0.3, p = 2: b5 = 0.6; δ_free = 5 → slip λ5 = −0.6 (δ5 = 4.4 >
+    0).
     """
     problem = ConstraintProblem(
-        compliance=np.eye(6), free_gap=[-1.0, -2.0, 0.2, -3.0, -4.0, 5.0], unilateral=[0], bilateral=[3, 4],
-        group_friction=[1, 2, 5], group_offsets=[0, 1, 4, 4], group_members=[0, 0, 3, 4],
-        group_friction_coefficient=[0.5, 0.1, 0.3], group_preload=[preload, 0.0, 2.0], name="grouped")
+        compliance=np.eye(6),
+        free_gap=[-1.0, -2.0, 0.2, -3.0, -4.0, 5.0],
+        unilateral=[0],
+        bilateral=[3, 4],
+        group_friction=[1, 2, 5],
+        group_offsets=[0, 1, 4, 4],
+        group_members=[0, 0, 3, 4],
+        group_friction_coefficient=[0.5, 0.1, 0.3],
+        group_preload=[preload, 0.0, 2.0],
+        name="grouped",
+    )
     solution = np.array([1.0, 0.5 * (1.0 + preload), -0.2, 3.0, 4.0, -0.6])
     return problem, solution
 
@@ -52,7 +61,9 @@ def _grouped_problem(preload=0.0):
 @pytest.mark.parametrize("preload", [0.0, 1.0])
 def test_group_friction_solution_by_hand(preload):
     problem, solution = _grouped_problem(preload)
-    np.testing.assert_allclose(problem.friction_bounds(solution), [0.5 * (1 + preload), 0.1 * np.sqrt(26), 0.6])
+    np.testing.assert_allclose(
+        problem.friction_bounds(solution), [0.5 * (1 + preload), 0.1 * np.sqrt(26), 0.6]
+    )
     assert natural_residual(problem, solution) < 1e-15
     # moving any row off its law shows in its own error
     for row in range(6):
@@ -75,11 +86,21 @@ def test_pair_form_is_group_friction_with_pairs():
     compliance = factor @ factor.T / 7 + 0.1 * np.eye(7)
     free_gap = rng.standard_normal(7)
     common = dict(compliance=compliance, free_gap=free_gap, bilateral=[0, 1, 2, 3], unilateral=[6])
-    pairs = ConstraintProblem(**common, shaft_friction=[4, 5], shaft_pairs=[[0, 1], [2, 3]],
-                              shaft_friction_coefficient=[0.3, 0.6], shaft_normal_preload=[0.1, 0.0])
-    groups = ConstraintProblem(**common, group_friction=[4, 5], group_offsets=[0, 2, 4],
-                               group_members=[0, 1, 2, 3], group_friction_coefficient=[0.3, 0.6],
-                               group_preload=[0.1, 0.0])
+    pairs = ConstraintProblem(
+        **common,
+        shaft_friction=[4, 5],
+        shaft_pairs=[[0, 1], [2, 3]],
+        shaft_friction_coefficient=[0.3, 0.6],
+        shaft_normal_preload=[0.1, 0.0],
+    )
+    groups = ConstraintProblem(
+        **common,
+        group_friction=[4, 5],
+        group_offsets=[0, 2, 4],
+        group_members=[0, 1, 2, 3],
+        group_friction_coefficient=[0.3, 0.6],
+        group_preload=[0.1, 0.0],
+    )
     for problem in (pairs, groups):
         assert LAW_NAMES[problem.row_kinds()[4]] == "group_friction"
     first, _ = solve_gauss_seidel(pairs, tolerance=1e-12, max_iterations=500)
@@ -93,20 +114,23 @@ def test_blocks_are_sorted_by_row_and_cover_every_row():
     kinds, rows, params, members = block_arrays(problem)
     np.testing.assert_array_equal(rows[:, 0], np.arange(6))
     np.testing.assert_array_equal(kinds, [1, 3, 3, 0, 0, 3])
-    np.testing.assert_array_equal(members[rows[2, 1]:rows[2, 2]], [0, 3, 4])
+    np.testing.assert_array_equal(members[rows[2, 1] : rows[2, 2]], [0, 3, 4])
     np.testing.assert_array_equal(params[5], [0.3, 2.0])
 
 
-@pytest.mark.parametrize(("overrides", "words"), [
-    (dict(group_offsets=[0, 1, 4]), "group_offsets has shape (3,), expected (4,)"),
-    (dict(group_offsets=[0, 3, 1, 4]), "never decrease"),
-    (dict(group_offsets=[0, 1, 4, 5]), "end at len(group_members) = 4"),
-    (dict(group_members=[0, 1, 3, 4]), "holds row 1, a group friction row"),
-    (dict(group_friction_coefficient=[0.5, -0.1, 0.3]), "negative coefficient -0.1"),
-    (dict(group_preload=[0.0, np.inf, 0.0]), "non-finite"),
-    (dict(group_preload=[0.0, 0.0]), "group_preload has shape (2,), expected (3,)"),
-    (dict(group_members=[0, 0, 3, 9]), "group_members holds row 9, outside [0, 6)"),
-])
+@pytest.mark.parametrize(
+    ("overrides", "words"),
+    [
+        (dict(group_offsets=[0, 1, 4]), "group_offsets has shape (3,), expected (4,)"),
+        (dict(group_offsets=[0, 3, 1, 4]), "never decrease"),
+        (dict(group_offsets=[0, 1, 4, 5]), "end at len(group_members) = 4"),
+        (dict(group_members=[0, 1, 3, 4]), "holds row 1, a group friction row"),
+        (dict(group_friction_coefficient=[0.5, -0.1, 0.3]), "negative coefficient -0.1"),
+        (dict(group_preload=[0.0, np.inf, 0.0]), "non-finite"),
+        (dict(group_preload=[0.0, 0.0]), "group_preload has shape (2,), expected (3,)"),
+        (dict(group_members=[0, 0, 3, 9]), "group_members holds row 9, outside [0, 6)"),
+    ],
+)
 def test_bad_groups_are_named(overrides, words):
     problem, _ = _grouped_problem()
     fields = {f.name: getattr(problem, f.name) for f in dataclasses.fields(problem)}

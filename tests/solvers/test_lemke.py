@@ -59,8 +59,12 @@ def test_mlcp_schur_complement_and_exact_solver(skew, bilateral):
     active = rng.random(unilateral.size) < 0.5
     planted[unilateral[active]] = rng.uniform(0.5, 2.0, active.sum())
     w[unilateral[~active]] = rng.uniform(0.5, 2.0, (~active).sum())
-    problem = ConstraintProblem(compliance=matrix, free_gap=w - matrix @ planted,
-                                bilateral=np.arange(bilateral), unilateral=unilateral)
+    problem = ConstraintProblem(
+        compliance=matrix,
+        free_gap=w - matrix @ planted,
+        bilateral=np.arange(bilateral),
+        unilateral=unilateral,
+    )
     result = solve_lemke(problem)
     assert result.status == "solved" and "Schur" in result.message
     np.testing.assert_allclose(result.multipliers, planted, atol=1e-10)
@@ -79,8 +83,9 @@ def test_mlcp_with_singular_bilateral_block():
     matrix = expand @ base @ expand.T
     planted = np.array([0.3, 0.3, -0.2, 1.0, 0.0, 0.7, 0.0])
     w = np.array([0, 0, 0, 0, 1.2, 0, 0.4])
-    problem = ConstraintProblem(compliance=matrix, free_gap=w - matrix @ planted, bilateral=[0, 1, 2],
-                                unilateral=[3, 4, 5, 6])
+    problem = ConstraintProblem(
+        compliance=matrix, free_gap=w - matrix @ planted, bilateral=[0, 1, 2], unilateral=[3, 4, 5, 6]
+    )
     result = solve_lemke(problem)
     assert result.status == "solved" and "split" in result.message
     assert natural_residual(problem, result.multipliers) <= 1e-12
@@ -106,8 +111,13 @@ def test_trivial_and_empty():
 
 #: The shared set's strongly non-symmetric, non-monotone LCP/MLCPs that Newton and the cone route leave
 #: unsolved (docs/solvers.md); lcp_tobenna is degenerate (32 of 40 entries of q are 0).
-NON_MONOTONE = ["lcp/lcp_CPS_2.dat", "lcp/lcp_CPS_4.dat", "lcp/lcp_CPS_4bis.dat", "lcp/lcp_tobenna.dat",
-                "mlcp/deltasigma_mlcp.dat"]
+NON_MONOTONE = [
+    "lcp/lcp_CPS_2.dat",
+    "lcp/lcp_CPS_4.dat",
+    "lcp/lcp_CPS_4bis.dat",
+    "lcp/lcp_tobenna.dat",
+    "mlcp/deltasigma_mlcp.dat",
+]
 
 
 @pytest.mark.parametrize("name", NON_MONOTONE)

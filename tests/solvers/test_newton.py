@@ -30,22 +30,39 @@ HAND_MADE = {
     "unilateral": (dict(free_gap=[-1.0, 2.0, 0.0], unilateral=[0, 1, 2]), [1.0, 0.0, 0.0]),
     # Coulomb, μ = 0.5, δ_free = (−1, 2, 0): λ_n = 1; sticking needs |λ_t| = 2 > μ λ_n, so it slips:
     # λ_t = −μ λ_n (1, 0), δ_t = (1.5, 0); De Saxcé: δ̂ = (0.75, 1.5, 0) ∈ K*, λ·δ̂ = 0
-    "contact slip": (dict(free_gap=[-1.0, 2.0, 0.0], contacts=[[0, 1, 2]], contact_friction=[0.5]),
-                     [1.0, -0.5, 0.0]),
+    "contact slip": (
+        dict(free_gap=[-1.0, 2.0, 0.0], contacts=[[0, 1, 2]], contact_friction=[0.5]),
+        [1.0, -0.5, 0.0],
+    ),
     # stick: |(0.2, −0.1)| < 0.5: λ_t = −δ_free,t
-    "contact stick": (dict(free_gap=[-1.0, 0.2, -0.1], contacts=[[0, 1, 2]], contact_friction=[0.5]),
-                      [1.0, -0.2, 0.1]),
+    "contact stick": (
+        dict(free_gap=[-1.0, 0.2, -0.1], contacts=[[0, 1, 2]], contact_friction=[0.5]),
+        [1.0, -0.2, 0.1],
+    ),
     # separation: δ_free,n > 0 gives λ = 0
-    "contact open": (dict(free_gap=[1.0, 3.0, 0.0], contacts=[[0, 1, 2]], contact_friction=[0.5]),
-                     [0.0, 0.0, 0.0]),
+    "contact open": (
+        dict(free_gap=[1.0, 3.0, 0.0], contacts=[[0, 1, 2]], contact_friction=[0.5]),
+        [0.0, 0.0, 0.0],
+    ),
     # box [−1, 1]: λ = clip(−δ_free, −1, 1)
-    "box": (dict(free_gap=[-2.0, 0.5, 3.0], box_rows=[0, 1, 2], box_lower=[-1.0] * 3, box_upper=[1.0] * 3),
-            [1.0, -0.5, -1.0]),
+    "box": (
+        dict(free_gap=[-2.0, 0.5, 3.0], box_rows=[0, 1, 2], box_lower=[-1.0] * 3, box_upper=[1.0] * 3),
+        [1.0, -0.5, -1.0],
+    ),
     # group friction: rows 0, 1 bilateral λ = (3, 4); row 2 bounded by {0, 1}, μ = 0.1, p = 0.5:
     # b = 0.1 (5 + 0.5) = 0.55 < 2 = |δ_free,2| so it slips, λ_2 = −0.55
-    "group friction": (dict(free_gap=[-3.0, -4.0, 2.0], bilateral=[0, 1], group_friction=[2],
-                            group_offsets=[0, 2], group_members=[0, 1], group_friction_coefficient=[0.1],
-                            group_preload=[0.5]), [3.0, 4.0, -0.55]),
+    "group friction": (
+        dict(
+            free_gap=[-3.0, -4.0, 2.0],
+            bilateral=[0, 1],
+            group_friction=[2],
+            group_offsets=[0, 2],
+            group_members=[0, 1],
+            group_friction_coefficient=[0.1],
+            group_preload=[0.5],
+        ),
+        [3.0, 4.0, -0.55],
+    ),
 }
 
 
@@ -59,15 +76,22 @@ def test_every_law_by_hand(case):
     np.testing.assert_allclose(multipliers, solution, atol=1e-12)
 
 
-@pytest.mark.parametrize("kinds", [dict(bilateral=3, unilateral=4, box=3), dict(contacts=5),
-                                   dict(shafts=3, unilateral=2), dict(bilateral=2, unilateral=3, contacts=3,
-                                                                      shafts=2, box=3)])
+@pytest.mark.parametrize(
+    "kinds",
+    [
+        dict(bilateral=3, unilateral=4, box=3),
+        dict(contacts=5),
+        dict(shafts=3, unilateral=2),
+        dict(bilateral=2, unilateral=3, contacts=3, shafts=2, box=3),
+    ],
+)
 @pytest.mark.parametrize("rank", [None, 6])
 def test_planted_problems_every_law(kinds, rank):
     rng = np.random.default_rng(7)
     problem, _, _ = planted_problem(rng, rank=rank, **kinds)
     multipliers, report = solve_exact(problem, tolerance=1e-10, method="newton")
-    # Newton, finished by Gauss-Seidel sweeps where it stalls (W of rank 6: friction bounds along its null space)
+    # Newton, finished by Gauss-Seidel sweeps where it stalls (W of rank 6: friction bounds along its null
+    # space)
     assert report.converged and report.path in ("newton", "newton+gauss_seidel"), report.message
     assert natural_residual(problem, multipliers) <= 1e-10
 
@@ -94,8 +118,10 @@ def test_non_symmetric_w_solved_as_given(asymmetry):
     skew = rng.standard_normal((base.row_count,) * 2)
     skew = skew - skew.T
     compliance = base.compliance + asymmetry * np.linalg.norm(base.compliance) / np.linalg.norm(skew) * skew
-    fields = {name: getattr(base, name) for name in ("unilateral", "contacts", "contact_friction", "box_rows",
-                                                     "box_lower", "box_upper")}
+    fields = {
+        name: getattr(base, name)
+        for name in ("unilateral", "contacts", "contact_friction", "box_rows", "box_lower", "box_upper")
+    }
     problem = ConstraintProblem(compliance=compliance, free_gap=gap - compliance @ force, **fields)
     assert problem.asymmetry() == pytest.approx(asymmetry * np.sqrt(2), rel=0.5)
     assert natural_residual(problem, force) < 1e-13
@@ -114,14 +140,21 @@ def test_sparse_path_matches_dense():
         blocks.append(factor @ factor.T + np.eye(3))
     compliance = sparse.block_diag(blocks).toarray()
     chain = 0.1 * (np.eye(360, k=3) + np.eye(360, k=-3))
-    problem = ConstraintProblem(compliance=compliance + chain, free_gap=rng.standard_normal(360),
-                                contacts=np.arange(360).reshape(-1, 3), contact_friction=np.full(120, 0.3))
+    problem = ConstraintProblem(
+        compliance=compliance + chain,
+        free_gap=rng.standard_normal(360),
+        contacts=np.arange(360).reshape(-1, 3),
+        contact_friction=np.full(120, 0.3),
+    )
     sparse_result = solve_newton(problem, tolerance=1e-10)
     dense_result = solve_newton(problem, tolerance=1e-10, sparse_above=10_000)
     assert sparse_result.storage == "sparse" and dense_result.storage == "dense"
     assert sparse_result.converged and dense_result.converged
-    np.testing.assert_allclose(problem.gap(sparse_result.multipliers), problem.gap(dense_result.multipliers),
-                               atol=1e-7 * np.linalg.norm(problem.free_gap))
+    np.testing.assert_allclose(
+        problem.gap(sparse_result.multipliers),
+        problem.gap(dense_result.multipliers),
+        atol=1e-7 * np.linalg.norm(problem.free_gap),
+    )
 
 
 def _write_matrix(group, name, matrix):
@@ -155,8 +188,12 @@ def test_fclib_global_form_condensed(tmp_path):
     operator = np.hstack([contact, equality])
     inverse = np.linalg.inv(mass)
     np.testing.assert_allclose(problem.compliance, operator.T @ inverse @ operator, rtol=1e-12, atol=1e-14)
-    np.testing.assert_allclose(problem.free_gap, operator.T @ inverse @ force
-                               + np.concatenate([offset, equality_offset]), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(
+        problem.free_gap,
+        operator.T @ inverse @ force + np.concatenate([offset, equality_offset]),
+        rtol=1e-12,
+        atol=1e-14,
+    )
     np.testing.assert_array_equal(problem.contacts, [[0, 1, 2], [3, 4, 5]])
     np.testing.assert_array_equal(problem.bilateral, [6])
     multipliers, report = solve_exact(problem, tolerance=1e-12, method="auto")
@@ -165,15 +202,26 @@ def test_fclib_global_form_condensed(tmp_path):
     velocity = inverse @ (operator @ multipliers + force)
     assert abs(equality[:, 0] @ velocity + equality_offset[0]) < 1e-10
     np.testing.assert_allclose(contact.T @ velocity + offset, problem.gap(multipliers)[:6], atol=1e-12)
-    same = condense_global(mass, contact, force, offset, mu, equality_operator=equality,
-                           equality_offset=equality_offset)
+    same = condense_global(
+        mass, contact, force, offset, mu, equality_operator=equality, equality_offset=equality_offset
+    )
     np.testing.assert_allclose(same.compliance, problem.compliance)
 
 
-@settings(max_examples=15, deadline=None, database=None, derandomize=True,
-          suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 10**6), bilateral=st.integers(0, 4), unilateral=st.integers(0, 6),
-       box=st.integers(0, 4), scale=st.sampled_from([1e-4, 1.0, 1e3]))
+@settings(
+    max_examples=15,
+    deadline=None,
+    database=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+@given(
+    seed=st.integers(0, 10**6),
+    bilateral=st.integers(0, 4),
+    unilateral=st.integers(0, 6),
+    box=st.integers(0, 4),
+    scale=st.sampled_from([1e-4, 1.0, 1e3]),
+)
 def test_property_exact_and_gauss_seidel_agree_frictionless(seed, bilateral, unilateral, box, scale):
     # W symmetric positive definite (full rank): the solution λ* is unique and, for the natural map of a
     # strongly monotone problem, ‖λ − λ*‖ ≤ (1 + ‖W‖₂) / σ_min(W) ‖e(λ)‖ (Mathias and Pang 1990; Facchinei and
@@ -191,15 +239,26 @@ def test_property_exact_and_gauss_seidel_agree_frictionless(seed, bilateral, uni
     for answer in (exact, gs) if gs_report.converged else (exact,):
         error, _ = natural_map_error(problem, answer)
         assert np.linalg.norm(answer - force) <= bound * np.linalg.norm(error) * (1 + 1e-6) + 1e-13 * max(
-            1.0, np.linalg.norm(force))
+            1.0, np.linalg.norm(force)
+        )
 
 
-@settings(max_examples=10, deadline=None, database=None, derandomize=True,
-          suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 10**6), contacts=st.integers(1, 5), shafts=st.integers(0, 2),
-       friction=st.sampled_from([0.1, 0.5, 1.0]))
+@settings(
+    max_examples=10,
+    deadline=None,
+    database=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+@given(
+    seed=st.integers(0, 10**6),
+    contacts=st.integers(1, 5),
+    shafts=st.integers(0, 2),
+    friction=st.sampled_from([0.1, 0.5, 1.0]),
+)
 def test_property_exact_and_gauss_seidel_both_solve_friction(seed, contacts, shafts, friction):
-    # With friction λ need not be unique; both must reach the tolerance on the same (planted, solvable) problem.
+    # With friction λ need not be unique; both must reach the tolerance on the same (planted, solvable)
+    # problem.
     rng = np.random.default_rng(seed)
     problem, _, _ = planted_problem(rng, unilateral=2, contacts=contacts, shafts=shafts, friction=friction)
     _, report = solve_exact(problem, tolerance=1e-10, method="auto")
@@ -248,26 +307,41 @@ def test_reduced_direction_equals_the_full_solve(seed, eta):
         rhs = rng.normal(size=n)
         direction = np.empty(n)
         position = np.empty(n, dtype=np.int64)
-        ok = _reduced_direction_into(jacobian, rhs, kinds, rows, members, local, factor, bounds, position,
-                                     direction, np.empty((n, n)), np.empty(n), np.empty(n, dtype=np.int64),
-                                     np.empty(n), np.empty(n, dtype=PIVOT_DTYPE))
+        ok = _reduced_direction_into(
+            jacobian,
+            rhs,
+            kinds,
+            rows,
+            members,
+            local,
+            factor,
+            bounds,
+            position,
+            direction,
+            np.empty((n, n)),
+            np.empty(n),
+            np.empty(n, dtype=np.int64),
+            np.empty(n),
+            np.empty(n, dtype=PIVOT_DTYPE),
+        )
         condition = np.linalg.cond(jacobian)
         if not ok or condition > 1e8:
             continue
         tested += 1
         reference = np.linalg.solve(jacobian, rhs)
-        np.testing.assert_allclose(direction, reference, rtol=0,
-                                   atol=1e3 * np.finfo(float).eps * condition * np.abs(reference).max())
+        np.testing.assert_allclose(
+            direction, reference, rtol=0, atol=1e3 * np.finfo(float).eps * condition * np.abs(reference).max()
+        )
     assert tested >= 5  # the reduction applied (some rows explicit) on enough random points
 
 
 @pytest.mark.parametrize("size", [1, 2, 3, 9, 15, 23])
 @pytest.mark.parametrize("condition", [1.0, 1e6, 1e12])
 def test_small_lu_solve_is_backward_stable(size, condition):
-    """The compiled elimination of small Newton systems (linear._small_lu_inplace) against Gaussian elimination's
-    backward-error bound (Higham 2002, Thm. 9.5: (A + ΔA) x = b with |ΔA| ≤ γ_3n |L||U|, γ_k = k ε / (1 − k ε)):
-    the residual ‖b − A x‖_∞ ≤ γ_3n ‖|L||U|‖_∞ ‖x‖_∞, with L, U of the same pivoting (scipy.linalg.lu); and its
-    answer within the forward bound cond(A) · that backward error of LAPACK's."""
+    """The compiled elimination of small Newton systems (linear._small_lu_inplace) against Gaussian
+    elimination's backward-error bound (Higham 2002, Thm. 9.5: (A + ΔA) x = b with |ΔA| ≤ γ_3n |L||U|, γ_k = k
+    ε / (1 − k ε)): the residual ‖b − A x‖_∞ ≤ γ_3n ‖|L||U|‖_∞ ‖x‖_∞, with L, U of the same pivoting
+    (scipy.linalg.lu); and its answer within the forward bound cond(A) · that backward error of LAPACK's."""
     import scipy.linalg
 
     from refsim.solvers.linear import _small_lu_inplace
@@ -285,7 +359,9 @@ def test_small_lu_solve_is_backward_stable(size, condition):
     assert np.abs(rhs - matrix @ solution).max() <= bound
     reference = np.linalg.solve(matrix, rhs)
     forward = np.linalg.cond(matrix, np.inf) * bound / np.abs(matrix).sum(axis=1).max()
-    assert np.abs(solution - reference).max() <= 2 * forward + 4 * np.finfo(float).eps * np.abs(reference).max()
+    assert (
+        np.abs(solution - reference).max() <= 2 * forward + 4 * np.finfo(float).eps * np.abs(reference).max()
+    )
 
 
 def test_small_lu_solve_reports_a_singular_matrix():
@@ -305,7 +381,9 @@ def test_barely_improving_presweeps_leave_newtons_start():
     W = tridiag(−1, 2 + 1e-6, −1), n = 60: Gauss–Seidel contracts by cos²(π/61) ≈ 0.9973 per sweep."""
     n = 60
     compliance = (2.0 + 1e-6) * np.eye(n) - np.eye(n, k=1) - np.eye(n, k=-1)
-    problem = ConstraintProblem(compliance=compliance, free_gap=np.linspace(-1.0, 1.0, n), bilateral=np.arange(n))
+    problem = ConstraintProblem(
+        compliance=compliance, free_gap=np.linspace(-1.0, 1.0, n), bilateral=np.arange(n)
+    )
     swept = solve_newton(problem, tolerance=1e-10, presweeps=30)
     plain = solve_newton(problem, tolerance=1e-10)
     assert swept.presweeps == 3 and plain.presweeps == 0
@@ -321,7 +399,9 @@ def test_halving_presweeps_become_newtons_start():
     n = 12
     coupling = 0.3 * rng.standard_normal((n, n)) / np.sqrt(n)
     compliance = np.eye(n) + coupling @ coupling.T
-    problem = ConstraintProblem(compliance=compliance, free_gap=rng.standard_normal(n), unilateral=np.arange(n))
+    problem = ConstraintProblem(
+        compliance=compliance, free_gap=rng.standard_normal(n), unilateral=np.arange(n)
+    )
     start = max(natural_residual(problem, np.zeros(n)), data_residual(problem, np.zeros(n)))
     result = solve_newton(problem, tolerance=1e-14, presweeps=8, max_iterations=0)
     assert 0 < result.presweeps < 8
@@ -334,7 +414,8 @@ def test_halving_presweeps_become_newtons_start():
 def test_gap_product_meets_the_dot_product_error_bound(rows):
     # residual._gap_into: a compiled loop below _LOOP_PRODUCT_BELOW rows, BLAS above. Reference: the exact
     # W λ + δ_free in rational arithmetic; each row is a dot product of rows + 1 terms, so the floating-point
-    # error is at most γ_(n+1) (|W| |λ| + |δ_free|)_i with γ_k = k u / (1 − k u), u = 2⁻⁵³ (Higham 2002, §3.1).
+    # error is at most γ_(n+1) (|W| |λ| + |δ_free|)_i with γ_k = k u / (1 − k u), u = 2⁻⁵³ (Higham 2002,
+    # §3.1).
     from fractions import Fraction
 
     from refsim.solvers.residual import _LOOP_PRODUCT_BELOW, _gap_into
@@ -346,20 +427,23 @@ def test_gap_product_meets_the_dot_product_error_bound(rows):
     free_gap = rng.standard_normal(rows)
     out = np.empty(rows)
     _gap_into(compliance, multipliers, free_gap, out)
-    unit = 2.0 ** -53
+    unit = 2.0**-53
     gamma = (rows + 1) * unit / (1 - (rows + 1) * unit)
     bound = gamma * (np.abs(compliance) @ np.abs(multipliers) + np.abs(free_gap))
     for i in range(rows):
-        exact = sum((Fraction(compliance[i, j]) * Fraction(multipliers[j]) for j in range(rows)),
-                    Fraction(free_gap[i]))
+        exact = sum(
+            (Fraction(compliance[i, j]) * Fraction(multipliers[j]) for j in range(rows)),
+            Fraction(free_gap[i]),
+        )
         assert abs(Fraction(out[i]) - exact) <= Fraction(bound[i])
 
 
 @pytest.mark.parametrize("size", [24, 30, 69])
 def test_in_place_gesv_is_the_solve_of_before(size):
     # linear._lu_direction_into calls LAPACK gesv in place on Jᵀ (J in Fortran order) where numba's
-    # np.linalg.solve (linear._gesv, the kernel's call before) copies J to Fortran order first: the same routine
-    # on the same numbers, so the same bits; a singular or non-finite J is reported (np.linalg.solve raises)
+    # np.linalg.solve (linear._gesv, the kernel's call before) copies J to Fortran order first: the same
+    # routine on the same numbers, so the same bits; a singular or non-finite J is reported (np.linalg.solve
+    # raises)
     from refsim.solvers.linear import PIVOT_DTYPE, _gesv, _lu_direction_into
 
     rng = np.random.default_rng(size)
@@ -370,9 +454,14 @@ def test_in_place_gesv_is_the_solve_of_before(size):
     reference = _gesv(matrix, rhs)
     assert ok
     assert direction.tobytes() == reference.tobytes()
-    assert np.abs(matrix @ direction - rhs).max() <= 1e-10 * np.abs(matrix).sum(axis=1).max() * np.abs(direction).max()
+    assert (
+        np.abs(matrix @ direction - rhs).max()
+        <= 1e-10 * np.abs(matrix).sum(axis=1).max() * np.abs(direction).max()
+    )
     singular = matrix.copy()
-    singular[:, size // 2] = 0.0  # a zero column stays exactly zero under elimination: a zero pivot (info > 0)
+    singular[:, size // 2] = (
+        0.0  # a zero column stays exactly zero under elimination: a zero pivot (info > 0)
+    )
     for bad in (np.zeros((size, size)), singular, np.full((size, size), np.nan)):
         assert not _lu_direction_into(bad, rhs, work, out, pivots)[1]
         with pytest.raises(Exception):  # noqa: B017 (numba raises a plain Exception for a singular matrix)

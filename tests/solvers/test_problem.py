@@ -7,8 +7,15 @@ from refsim.solvers import KIND_NAMES, ConstraintProblem
 
 
 def _base(**overrides):
-    fields = dict(compliance=np.eye(4), free_gap=np.zeros(4), bilateral=[0, 1], shaft_friction=[2],
-                  shaft_pairs=[[0, 1]], shaft_friction_coefficient=[0.3], unilateral=[3])
+    fields = dict(
+        compliance=np.eye(4),
+        free_gap=np.zeros(4),
+        bilateral=[0, 1],
+        shaft_friction=[2],
+        shaft_pairs=[[0, 1]],
+        shaft_friction_coefficient=[0.3],
+        unilateral=[3],
+    )
     fields.update(overrides)
     return ConstraintProblem(**fields)
 
@@ -16,8 +23,12 @@ def _base(**overrides):
 def test_valid_problem_has_read_only_arrays_and_kinds():
     problem = _base(name="ok")
     assert problem.row_count == 4
-    assert [KIND_NAMES[k] for k in problem.row_kinds()] == ["bilateral", "bilateral", "group_friction",
-                                                            "unilateral"]
+    assert [KIND_NAMES[k] for k in problem.row_kinds()] == [
+        "bilateral",
+        "bilateral",
+        "group_friction",
+        "unilateral",
+    ]
     assert problem.contacts.shape == (0, 3) and problem.box_rows.shape == (0,)
     with pytest.raises(ValueError):
         problem.compliance[0, 0] = 2.0
@@ -31,21 +42,24 @@ def test_inputs_are_copied():
     assert problem.compliance[0, 0] == 1.0
 
 
-@pytest.mark.parametrize(("overrides", "words"), [
-    (dict(compliance=np.ones((4, 3))), "square"),
-    (dict(compliance=np.ones(4)), "dimension"),
-    (dict(free_gap=np.zeros(3)), "free_gap has shape"),
-    (dict(free_gap=[0, np.nan, 0, 0]), "non-finite"),
-    (dict(compliance=np.diag([1, 1, np.inf, 1])), "non-finite"),
-    (dict(unilateral=[3, 1]), "row 1 is listed as bilateral and again as unilateral"),
-    (dict(unilateral=[]), "belong to no kind"),
-    (dict(unilateral=[4]), "outside [0, 4)"),
-    (dict(unilateral=[3.5]), "integer"),
-    (dict(shaft_friction_coefficient=[-0.1]), "negative coefficient"),
-    (dict(shaft_friction_coefficient=[0.1, 0.2]), "expected (1,)"),
-    (dict(shaft_pairs=[[0, 3]], unilateral=[3]), "must be bilateral"),
-    (dict(shaft_pairs=np.zeros((0, 2))), "one pair per row"),
-])
+@pytest.mark.parametrize(
+    ("overrides", "words"),
+    [
+        (dict(compliance=np.ones((4, 3))), "square"),
+        (dict(compliance=np.ones(4)), "dimension"),
+        (dict(free_gap=np.zeros(3)), "free_gap has shape"),
+        (dict(free_gap=[0, np.nan, 0, 0]), "non-finite"),
+        (dict(compliance=np.diag([1, 1, np.inf, 1])), "non-finite"),
+        (dict(unilateral=[3, 1]), "row 1 is listed as bilateral and again as unilateral"),
+        (dict(unilateral=[]), "belong to no kind"),
+        (dict(unilateral=[4]), "outside [0, 4)"),
+        (dict(unilateral=[3.5]), "integer"),
+        (dict(shaft_friction_coefficient=[-0.1]), "negative coefficient"),
+        (dict(shaft_friction_coefficient=[0.1, 0.2]), "expected (1,)"),
+        (dict(shaft_pairs=[[0, 3]], unilateral=[3]), "must be bilateral"),
+        (dict(shaft_pairs=np.zeros((0, 2))), "one pair per row"),
+    ],
+)
 def test_bad_problem_names_the_defect(overrides, words):
     with pytest.raises(ValueError, match="ConstraintProblem 'bad'") as info:
         _base(name="bad", **overrides)
@@ -53,24 +67,38 @@ def test_bad_problem_names_the_defect(overrides, words):
 
 
 def test_contact_and_box_validation():
-    good = ConstraintProblem(compliance=np.eye(5), free_gap=np.zeros(5), contacts=[[0, 1, 2]],
-                             contact_friction=[0.5], box_rows=[3, 4], box_lower=[-1, -np.inf],
-                             box_upper=[1, np.inf])
+    good = ConstraintProblem(
+        compliance=np.eye(5),
+        free_gap=np.zeros(5),
+        contacts=[[0, 1, 2]],
+        contact_friction=[0.5],
+        box_rows=[3, 4],
+        box_lower=[-1, -np.inf],
+        box_upper=[1, np.inf],
+    )
     assert good.box_lower[1] == -np.inf
     with pytest.raises(ValueError, match="negative coefficient"):
-        ConstraintProblem(compliance=np.eye(3), free_gap=np.zeros(3), contacts=[[0, 1, 2]],
-                          contact_friction=[-0.5])
+        ConstraintProblem(
+            compliance=np.eye(3), free_gap=np.zeros(3), contacts=[[0, 1, 2]], contact_friction=[-0.5]
+        )
     with pytest.raises(ValueError, match=r"contacts must have shape \(count, 3\)"):
-        ConstraintProblem(compliance=np.eye(2), free_gap=np.zeros(2), contacts=[[0, 1]],
-                          contact_friction=[0.5])
+        ConstraintProblem(
+            compliance=np.eye(2), free_gap=np.zeros(2), contacts=[[0, 1]], contact_friction=[0.5]
+        )
     with pytest.raises(ValueError, match="box_lower 1.0 > box_upper -1.0"):
-        ConstraintProblem(compliance=np.eye(1), free_gap=np.zeros(1), box_rows=[0], box_lower=[1.0],
-                          box_upper=[-1.0])
+        ConstraintProblem(
+            compliance=np.eye(1), free_gap=np.zeros(1), box_rows=[0], box_lower=[1.0], box_upper=[-1.0]
+        )
     with pytest.raises(ValueError, match="box_upper has shape"):
         ConstraintProblem(compliance=np.eye(1), free_gap=np.zeros(1), box_rows=[0], box_lower=[1.0])
     with pytest.raises(ValueError, match="listed as contact and again as contact"):
-        ConstraintProblem(compliance=np.eye(3), free_gap=np.zeros(3), contacts=[[0, 1, 1]],
-                          contact_friction=[0.5], unilateral=[2])
+        ConstraintProblem(
+            compliance=np.eye(3),
+            free_gap=np.zeros(3),
+            contacts=[[0, 1, 1]],
+            contact_friction=[0.5],
+            unilateral=[2],
+        )
 
 
 def test_multiplier_checks_and_asymmetry():

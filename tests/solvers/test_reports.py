@@ -1,4 +1,5 @@
-"""Solver reports that cannot lie: the data residual, and Gauss-Seidel's divergence on an infeasible problem."""
+"""Solver reports that cannot lie: the data residual, and Gauss-Seidel's divergence on an infeasible
+problem."""
 
 import numpy as np
 import pytest
@@ -71,8 +72,9 @@ def test_strict_criterion_meets_both_residuals():
 
 
 def test_report_constructor_has_the_fields_and_defaults_of_the_dataclass():
-    # SolverReport writes its instance dictionary in one call (a hand-written __init__): its keywords must be the
-    # dataclass fields, in order, with the fields' defaults, and the result must behave as the frozen dataclass
+    # SolverReport writes its instance dictionary in one call (a hand-written __init__): its keywords must be
+    # the dataclass fields, in order, with the fields' defaults, and the result must behave as the frozen
+    # dataclass
     import dataclasses
     import inspect
 
@@ -86,7 +88,9 @@ def test_report_constructor_has_the_fields_and_defaults_of_the_dataclass():
         assert parameter.kind is inspect.Parameter.KEYWORD_ONLY
         if f.default is not dataclasses.MISSING:
             default, expected = parameter.default, f.default
-            assert (default == expected) or (default != default and expected != expected), f.name  # NaN == NaN
+            assert (default == expected) or (default != default and expected != expected), (
+                f.name
+            )  # NaN == NaN
         elif f.default_factory is not dataclasses.MISSING:
             assert parameter.default is None, f.name  # history: a new empty array per report
         else:
@@ -94,7 +98,12 @@ def test_report_constructor_has_the_fields_and_defaults_of_the_dataclass():
     report = SolverReport(solver="s", iterations=2, residual=0.5, converged=False, seconds=1.0)
     other = SolverReport(solver="s", iterations=2, residual=0.5, converged=False, seconds=1.0)
     assert report.history.shape == (0,) and report.history is not other.history
-    assert np.isnan(report.increment) and np.isnan(report.asymmetry) and report.path == "" and not report.diverged
+    assert (
+        np.isnan(report.increment)
+        and np.isnan(report.asymmetry)
+        and report.path == ""
+        and not report.diverged
+    )
     with pytest.raises(dataclasses.FrozenInstanceError):
         report.iterations = 3
     changed = dataclasses.replace(report, iterations=5, history=np.ones(2))

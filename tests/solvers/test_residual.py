@@ -13,8 +13,14 @@ from refsim.solvers import (
     project_friction_cone,
 )
 
-KINDS = [dict(bilateral=5), dict(unilateral=6), dict(contacts=3), dict(shafts=3), dict(box=6),
-         dict(bilateral=2, unilateral=3, contacts=3, shafts=3, box=3)]
+KINDS = [
+    dict(bilateral=5),
+    dict(unilateral=6),
+    dict(contacts=3),
+    dict(shafts=3),
+    dict(box=6),
+    dict(bilateral=2, unilateral=3, contacts=3, shafts=3, box=3),
+]
 
 
 @pytest.mark.parametrize("kinds", KINDS)
@@ -48,8 +54,9 @@ def test_hand_computed_values():
     assert natural_residual(problem, [0.0]) == pytest.approx(1.0)
     assert natural_residual(problem, [0.5]) == 0.0
     # a contact sliding: W = I, δ_free = (−1, 2, 0), μ = 0.5: λ = (1, −0.5, 0) gives δ = (0, 1.5, 0)
-    problem = ConstraintProblem(compliance=np.eye(3), free_gap=[-1.0, 2.0, 0.0], contacts=[[0, 1, 2]],
-                                contact_friction=[0.5])
+    problem = ConstraintProblem(
+        compliance=np.eye(3), free_gap=[-1.0, 2.0, 0.0], contacts=[[0, 1, 2]], contact_friction=[0.5]
+    )
     assert natural_residual(problem, [1.0, -0.5, 0.0]) < 1e-16
     error, gap = natural_map_error(problem, [1.0, -0.5, 0.0])
     np.testing.assert_allclose(gap, [0.0, 1.5, 0.0])
@@ -74,20 +81,29 @@ def test_cone_projection_properties(point, mu):
     assert mu * np.linalg.norm(r[1:]) <= -r[0] + tol
 
 
-@settings(max_examples=15, deadline=None, database=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=15, deadline=None, database=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(seed=st.integers(0, 10**6), factor=st.floats(1e-4, 1e4))
 def test_residual_invariant_to_problem_scale(planted, seed, factor):
     # λ ↦ c λ, δ_free ↦ c δ_free leaves the normalised residual unchanged (every law is 1-homogeneous)
     rng = np.random.default_rng(seed)
     problem, force, _ = planted(rng, unilateral=2, contacts=2, shafts=2, box=2)
     trial = force + 0.1 * rng.standard_normal(force.size)
-    scaled = ConstraintProblem(compliance=problem.compliance, free_gap=factor * problem.free_gap,
-                               unilateral=problem.unilateral, contacts=problem.contacts,
-                               contact_friction=problem.contact_friction, bilateral=problem.bilateral,
-                               shaft_friction=problem.shaft_friction, shaft_pairs=problem.shaft_pairs,
-                               shaft_friction_coefficient=problem.shaft_friction_coefficient,
-                               box_rows=problem.box_rows, box_lower=factor * problem.box_lower,
-                               box_upper=factor * problem.box_upper)
-    assert natural_residual(scaled, factor * trial) == pytest.approx(natural_residual(problem, trial),
-                                                                     rel=1e-9)
+    scaled = ConstraintProblem(
+        compliance=problem.compliance,
+        free_gap=factor * problem.free_gap,
+        unilateral=problem.unilateral,
+        contacts=problem.contacts,
+        contact_friction=problem.contact_friction,
+        bilateral=problem.bilateral,
+        shaft_friction=problem.shaft_friction,
+        shaft_pairs=problem.shaft_pairs,
+        shaft_friction_coefficient=problem.shaft_friction_coefficient,
+        box_rows=problem.box_rows,
+        box_lower=factor * problem.box_lower,
+        box_upper=factor * problem.box_upper,
+    )
+    assert natural_residual(scaled, factor * trial) == pytest.approx(
+        natural_residual(problem, trial), rel=1e-9
+    )

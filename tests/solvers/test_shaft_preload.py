@@ -1,8 +1,8 @@
 """Shaft friction with a normal preload: the bound of shaft row j is μ_j (‖(λ_b1, λ_b2)‖ + p_j).
 
 References: the Coulomb law of a one-dimensional friction row with a given bound b (stick |λ| < b with δ = 0,
-slip λ = −b sign(δ)); here b = μ (‖λ_pair‖ + p). Tolerances of the agreement tests are derived from the solvers'
-tolerances and the conditioning of W (see :func:`_gap_agreement_bound`).
+slip λ = −b sign(δ)); here b = μ (‖λ_pair‖ + p). Tolerances of the agreement tests are derived from the
+solvers' tolerances and the conditioning of W (see :func:`_gap_agreement_bound`).
 """
 
 import numpy as np
@@ -21,8 +21,14 @@ MU = 0.3
 
 
 def _shaft_problem(**overrides):
-    fields = dict(compliance=np.eye(3), free_gap=np.zeros(3), bilateral=[0, 1], shaft_friction=[2],
-                  shaft_pairs=[[0, 1]], shaft_friction_coefficient=[MU])
+    fields = dict(
+        compliance=np.eye(3),
+        free_gap=np.zeros(3),
+        bilateral=[0, 1],
+        shaft_friction=[2],
+        shaft_pairs=[[0, 1]],
+        shaft_friction_coefficient=[MU],
+    )
     fields.update(overrides)
     return ConstraintProblem(**fields)
 
@@ -35,17 +41,22 @@ def test_preload_defaults_to_zeros_and_is_read_only():
     assert preloaded.shaft_normal_preload.dtype == np.float64
     with pytest.raises(ValueError):
         preloaded.shaft_normal_preload[0] = 1.0
-    assert ConstraintProblem(compliance=np.eye(1), free_gap=[0.0], bilateral=[0]).shaft_normal_preload.shape == (0,)
+    assert ConstraintProblem(
+        compliance=np.eye(1), free_gap=[0.0], bilateral=[0]
+    ).shaft_normal_preload.shape == (0,)
 
 
-@pytest.mark.parametrize("preload, words", [
-    ([-1.0], "negative value"),
-    ([np.nan], "non-finite"),
-    ([np.inf], "non-finite"),
-    ([1.0, 2.0], "expected (1,)"),
-    ([[1.0]], "dimension"),
-    (["a"], "numeric"),
-])
+@pytest.mark.parametrize(
+    "preload, words",
+    [
+        ([-1.0], "negative value"),
+        ([np.nan], "non-finite"),
+        ([np.inf], "non-finite"),
+        ([1.0, 2.0], "expected (1,)"),
+        ([[1.0]], "dimension"),
+        (["a"], "numeric"),
+    ],
+)
 def test_bad_preload_names_the_field(preload, words):
     with pytest.raises(ValueError) as error:
         _shaft_problem(shaft_normal_preload=preload)
@@ -73,9 +84,22 @@ def test_residual_sees_the_preload(planted, rng):
 
 
 def _fields(problem):
-    names = ("compliance", "free_gap", "bilateral", "unilateral", "contacts", "contact_friction",
-             "shaft_friction", "shaft_pairs", "shaft_friction_coefficient", "shaft_normal_preload", "box_rows",
-             "box_lower", "box_upper", "name")
+    names = (
+        "compliance",
+        "free_gap",
+        "bilateral",
+        "unilateral",
+        "contacts",
+        "contact_friction",
+        "shaft_friction",
+        "shaft_pairs",
+        "shaft_friction_coefficient",
+        "shaft_normal_preload",
+        "box_rows",
+        "box_lower",
+        "box_upper",
+        "name",
+    )
     return {name: getattr(problem, name) for name in names}
 
 
@@ -94,7 +118,9 @@ def _gap_agreement_bound(problem, first, second):
     return 10.0 * norm * (1.0 + norm) / alpha * errors
 
 
-@pytest.mark.parametrize("kinds", [dict(shafts=6), dict(bilateral=2, unilateral=3, contacts=2, shafts=6, box=2)])
+@pytest.mark.parametrize(
+    "kinds", [dict(shafts=6), dict(bilateral=2, unilateral=3, contacts=2, shafts=6, box=2)]
+)
 @pytest.mark.parametrize("preload", [0.5, 5.0])
 def test_planted_with_preload_both_solvers(planted, rng, kinds, preload):
     # Planted: stick rows inside μ (‖λ_b‖ + p), slip rows at it opposing δ_s (tests/solvers/conftest.py).
@@ -124,9 +150,15 @@ def test_zero_lateral_force_slips_at_mu_times_preload(solver, ratio):
     w = np.array([0.5, 0.25, 2.0])
     preload = 1.5
     push = ratio * MU * preload * w[2]
-    problem = ConstraintProblem(compliance=np.diag(w), free_gap=[0.0, 0.0, push], bilateral=[0, 1],
-                                shaft_friction=[2], shaft_pairs=[[0, 1]], shaft_friction_coefficient=[MU],
-                                shaft_normal_preload=[preload])
+    problem = ConstraintProblem(
+        compliance=np.diag(w),
+        free_gap=[0.0, 0.0, push],
+        bilateral=[0, 1],
+        shaft_friction=[2],
+        shaft_pairs=[[0, 1]],
+        shaft_friction_coefficient=[MU],
+        shaft_normal_preload=[preload],
+    )
     multipliers, report = _solve(solver, problem)
     assert report.converged, report.message
     sticks = abs(ratio) <= 1.0
@@ -141,29 +173,33 @@ def test_zero_lateral_force_slips_at_mu_times_preload(solver, ratio):
 
 @pytest.mark.parametrize("solver", ["gauss_seidel", "exact"])
 def test_coupled_shaft_rows_all_slip_at_their_preload(solver, rng):
-    # Reference (closed form): m shaft rows coupled through an SPD block W_ss, pair rows uncoupled with zero free
-    # gap (λ_b = 0). A push a_j = c with c ≥ 2 ‖W_ss‖ μ max p makes every row slip: λ_s = −μ p (all at the
-    # bound), δ_s = a − μ W_ss p > 0. A push with a smaller c of the opposite sign slips the other way.
+    # Reference (closed form): m shaft rows coupled through an SPD block W_ss, pair rows uncoupled with zero
+    # free gap (λ_b = 0). A push a_j = c with c ≥ 2 ‖W_ss‖ μ max p makes every row slip: λ_s = −μ p (all at
+    # the bound), δ_s = a − μ W_ss p > 0. A push with a smaller c of the opposite sign slips the other way.
     m = 5
     factor = rng.standard_normal((m, m))
     shaft_block = factor @ factor.T / m + 0.1 * np.eye(m)
     preload = rng.uniform(0.5, 2.0, m)
     compliance = np.zeros((3 * m, 3 * m))
     compliance[: 2 * m, : 2 * m] = np.diag(rng.uniform(0.5, 1.5, 2 * m))
-    compliance[2 * m:, 2 * m:] = shaft_block
+    compliance[2 * m :, 2 * m :] = shaft_block
     push = 2.0 * np.linalg.norm(shaft_block, 2) * MU * preload.max()
     for sign in (1.0, -1.0):
         problem = ConstraintProblem(
-            compliance=compliance, free_gap=np.concatenate([np.zeros(2 * m), np.full(m, sign * push)]),
-            bilateral=np.arange(2 * m), shaft_friction=np.arange(2 * m, 3 * m),
-            shaft_pairs=np.arange(2 * m).reshape(m, 2), shaft_friction_coefficient=np.full(m, MU),
-            shaft_normal_preload=preload)
+            compliance=compliance,
+            free_gap=np.concatenate([np.zeros(2 * m), np.full(m, sign * push)]),
+            bilateral=np.arange(2 * m),
+            shaft_friction=np.arange(2 * m, 3 * m),
+            shaft_pairs=np.arange(2 * m).reshape(m, 2),
+            shaft_friction_coefficient=np.full(m, MU),
+            shaft_normal_preload=preload,
+        )
         multipliers, report = _solve(solver, problem)
         assert report.converged, report.message
-        np.testing.assert_allclose(multipliers[2 * m:], -sign * MU * preload, atol=1e-9)
+        np.testing.assert_allclose(multipliers[2 * m :], -sign * MU * preload, atol=1e-9)
         np.testing.assert_allclose(multipliers[: 2 * m], 0.0, atol=1e-9)
         # total axial force = μ Σ p: the straight-insertion picture of the needle
-        assert -sign * multipliers[2 * m:].sum() == pytest.approx(MU * preload.sum(), rel=1e-9)
+        assert -sign * multipliers[2 * m :].sum() == pytest.approx(MU * preload.sum(), rel=1e-9)
 
 
 def _solve(solver, problem):

@@ -27,8 +27,10 @@ def test_shifted_geometric_mean():
 def test_study_runs_on_given_problems(planted, rng, tmp_path):
     run = _module("run")
     plot = _module("plot")
-    problems = [("planted", planted(rng, unilateral=4, contacts=2)[0]),
-                ("planted", planted(rng, bilateral=2, box=3, rank=3)[0])]
+    problems = [
+        ("planted", planted(rng, unilateral=4, contacts=2)[0]),
+        ("planted", planted(rng, bilateral=2, box=3, rank=3)[0]),
+    ]
     output = run.run_study(problems, tmp_path / "study.h5")
     with h5py.File(output) as handle:
         assert handle.attrs["schema"] == run.SCHEMA

@@ -1,4 +1,5 @@
-"""The convergence and Pareto studies are executable: run.py writes their study files, plot.py pages and figures."""
+"""The convergence and Pareto studies are executable: run.py writes their study files, plot.py pages and
+figures."""
 
 from __future__ import annotations
 
@@ -21,11 +22,18 @@ def _load(study: str, name: str):
 
 def test_convergence_study_files_are_valid():
     specs = _load("convergence", "run").studies(quick=False)
-    assert {spec.name for spec in specs} == {"cube_spacing", "cube_mesh", "cube_cut_spacing",
-                                             "cube_cut_point_spacing", "cube_cut_mesh"}
+    assert {spec.name for spec in specs} == {
+        "cube_spacing",
+        "cube_mesh",
+        "cube_cut_spacing",
+        "cube_cut_point_spacing",
+        "cube_cut_mesh",
+    }
     assert all(len(spec.runs()) >= 3 for spec in specs)
     liver = _load("convergence", "run").studies(quick=False, liver=True)
-    assert {"liver_rigid_spacing", "liver_rigid_point_spacing", "liver_flexible_spacing"} < {s.name for s in liver}
+    assert {"liver_rigid_spacing", "liver_rigid_point_spacing", "liver_flexible_spacing"} < {
+        s.name for s in liver
+    }
 
 
 def test_quick_convergence_study_runs_and_plots(tmp_path):

@@ -1,4 +1,5 @@
-"""The resolution study is executable: run.py writes its HDF5 files and summary, plot.py its page and figure."""
+"""The resolution study is executable: run.py writes its HDF5 files and summary, plot.py its page and
+figure."""
 
 from __future__ import annotations
 

@@ -55,8 +55,10 @@ def test_benchmark_rounds_keep_each_solvers_best_time(tmp_path, monkeypatch):
         return seconds, result
 
     monkeypatch.setattr(run, "_best_time", recording)
-    problems = [("planted", planted_problem(np.random.default_rng(seed), contacts=2, unilateral=1)[0])
-                for seed in (2, 3)]
+    problems = [
+        ("planted", planted_problem(np.random.default_rng(seed), contacts=2, unilateral=1)[0])
+        for seed in (2, 3)
+    ]
     output = tmp_path / "benchmark.h5"
     text = run.benchmark_exact(problems, output, rounds=2)
     assert "refsim exact" in text and output.is_file()

@@ -32,8 +32,9 @@ def test_order_formula_of_roache():
     assert observed_order(f1, f2, f3, r) == pytest.approx(math.log((f3 - f2) / (f2 - f1)) / math.log(r))
 
 
-@pytest.mark.parametrize(("h", "order"), [([0.1, 0.15, 0.3], 2.0), ([0.01, 0.013, 0.02], 1.3),
-                                          ([0.2, 0.5, 0.6], 2.5)])
+@pytest.mark.parametrize(
+    ("h", "order"), [([0.1, 0.15, 0.3], 2.0), ([0.01, 0.013, 0.02], 1.3), ([0.2, 0.5, 0.6], 2.5)]
+)
 def test_general_ratios_recover_order(h, order):
     result = convergence(h, _sequence(h, order=order))
     assert result.ratio_fine != pytest.approx(result.ratio_coarse)
@@ -88,12 +89,15 @@ def test_fitted_order_over_all_levels():
     assert math.isnan(fitted_order(h, np.full(5, 2.0), 2.0)[0])
 
 
-@pytest.mark.parametrize(("spacings", "values", "message"), [
-    ([0.1, 0.2], [1.0, 2.0], "three levels"),
-    ([0.1, 0.1, 0.2], [1.0, 2.0, 3.0], "distinct"),
-    ([0.1, -0.2, 0.3], [1.0, 2.0, 3.0], "positive"),
-    ([0.1, 0.2, 0.3], [1.0, np.nan, 3.0], "finite"),
-])
+@pytest.mark.parametrize(
+    ("spacings", "values", "message"),
+    [
+        ([0.1, 0.2], [1.0, 2.0], "three levels"),
+        ([0.1, 0.1, 0.2], [1.0, 2.0, 3.0], "distinct"),
+        ([0.1, -0.2, 0.3], [1.0, 2.0, 3.0], "positive"),
+        ([0.1, 0.2, 0.3], [1.0, np.nan, 3.0], "finite"),
+    ],
+)
 def test_bad_input_is_named(spacings, values, message):
     with pytest.raises(ValueError, match=message):
         convergence(spacings, values)

@@ -36,8 +36,9 @@ def errors():
     return [manufactured_solution_errors(cells) for cells in (4, 8, 16)]
 
 
-@pytest.mark.parametrize(("column", "order", "tolerance"), [(1, 1.0, 0.1), (2, 2.0, 0.2)],
-                         ids=["energy norm, O(h)", "L2, O(h^2)"])
+@pytest.mark.parametrize(
+    ("column", "order", "tolerance"), [(1, 1.0, 0.1), (2, 2.0, 0.2)], ids=["energy norm, O(h)", "L2, O(h^2)"]
+)
 def test_observed_order_of_p1_errors(errors, column, order, tolerance):
     result = convergence([row[0] for row in errors], [row[column] for row in errors])
     assert result.kind == "monotone"

@@ -1,4 +1,5 @@
-"""Quantities of interest on small hand-made results (no simulation): cut area, stroke, displacement, forces."""
+"""Quantities of interest on small hand-made results (no simulation): cut area, stroke, displacement,
+forces."""
 
 from __future__ import annotations
 
@@ -19,16 +20,26 @@ def _results(**extra):
     base = np.array([[0.0, 0, 0.4], [0, 0, 0.39], [0.002, 0, 0.39], [0.004, 0, 0.39]])
     forces = np.array([[0.0, 0, 0], [0, 0, 1.0], [-3.0, 0, 4.0], [-1.0, 0, 0]])
     results = SimpleNamespace(
-        step=steps, time=0.01 * steps, step_count=4, needle_force=forces, base_position=base,
-        needle_rest_nodes=np.array([[0.0, 0, 0.4], [0, 0, 0.3]]), rest_positions=rest, tets=tets,
-        tissue_steps=np.array([4]), tissue_positions=(rest + displacement)[None],
+        step=steps,
+        time=0.01 * steps,
+        step_count=4,
+        needle_force=forces,
+        base_position=base,
+        needle_rest_nodes=np.array([[0.0, 0, 0.4], [0, 0, 0.3]]),
+        rest_positions=rest,
+        tets=tets,
+        tissue_steps=np.array([4]),
+        tissue_positions=(rest + displacement)[None],
         events=(RecordedEvent(2, 0.02, "puncture", 0.8), RecordedEvent(3, 0.03, "cut_start", 1.0)),
-        **{"cut": None, **extra})
+        **{"cut": None, **extra},
+    )
     results.events_named = lambda name: [e for e in results.events if e.name == name]
     results.index_of = lambda step: int(np.flatnonzero(steps == step)[0])
     axis = np.array([0.0, 0, -1])
-    results.axial_lateral_force = lambda: (forces @ axis, np.linalg.norm(forces - np.outer(forces @ axis, axis),
-                                                                         axis=1))
+    results.axial_lateral_force = lambda: (
+        forces @ axis,
+        np.linalg.norm(forces - np.outer(forces @ axis, axis), axis=1),
+    )
     return results
 
 
@@ -37,7 +48,9 @@ def test_forces_at_events():
     assert quantity(results, "needle_force@puncture") == pytest.approx(1.0)
     assert quantity(results, "needle_force@cut_start") == pytest.approx(5.0)
     assert quantity(results, "needle_force@end") == pytest.approx(1.0)
-    assert quantity(results, "axial_force@cut_start") == pytest.approx(4.0)  # resisting the insertion along -z
+    assert quantity(results, "axial_force@cut_start") == pytest.approx(
+        4.0
+    )  # resisting the insertion along -z
     assert quantity(results, "lateral_force@cut_start") == pytest.approx(3.0)
     assert quantity(results, "puncture_force") == pytest.approx(0.8)
     assert quantity(results, "time@cut_start") == pytest.approx(0.03)
@@ -56,8 +69,12 @@ def test_lateral_stroke_at_cut_start():
 
 def test_cut_area_from_rest_triangles():
     square = np.array([[0.0, 0, 0], [0.002, 0, 0], [0.002, 0.003, 0], [0, 0.003, 0], [0.01, 0.01, 0.01]])
-    cut = CutHistory(points=square, point_step=np.zeros(5, dtype=int), triangles=np.array([[0, 1, 2], [0, 2, 3]]),
-                     triangle_step=np.zeros(2, dtype=int))
+    cut = CutHistory(
+        points=square,
+        point_step=np.zeros(5, dtype=int),
+        triangles=np.array([[0, 1, 2], [0, 2, 3]]),
+        triangle_step=np.zeros(2, dtype=int),
+    )
     assert quantity(_results(cut=cut), "cut_area") == pytest.approx(6e-6)
     assert np.isnan(quantity(_results(), "cut_area"))
 

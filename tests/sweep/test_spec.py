@@ -1,4 +1,5 @@
-"""Study specifications: --sweep parsing, product and zip, cases, the reference, study files and their errors."""
+"""Study specifications: --sweep parsing, product and zip, cases, the reference, study files and their
+errors."""
 
 from __future__ import annotations
 
@@ -17,12 +18,15 @@ def test_parse_sweep_values_and_lists():
     assert parse_sweep("solver.method=exact,gauss_seidel").values == ("exact", "gauss_seidel")
 
 
-@pytest.mark.parametrize(("text", "message"), [
-    ("insertion.spacing", "expected section.key=v1"),
-    ("insertion.nope=1,2", "has no key 'nope'"),
-    ("nosection.key=1", "expected section.key"),
-    ("insertion.spacing=", "no values"),
-])
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("insertion.spacing", "expected section.key=v1"),
+        ("insertion.nope=1,2", "has no key 'nope'"),
+        ("nosection.key=1", "expected section.key"),
+        ("insertion.spacing=", "no values"),
+    ],
+)
 def test_bad_sweep_is_named(text, message):
     with pytest.raises(ValueError, match=message):
         parse_sweep(text)
@@ -35,21 +39,27 @@ def test_product_and_zip():
     zipped = study_from_options("cube", sweeps, combine="zip").runs()
     assert [run.values for run in zipped] == [
         {"insertion.spacing": 1e-3, "cutting.point_spacing": 1e-3},
-        {"insertion.spacing": 5e-4, "cutting.point_spacing": 5e-4}]
+        {"insertion.spacing": 5e-4, "cutting.point_spacing": 5e-4},
+    ]
     assert zipped[0].overrides == ("insertion.spacing=0.001", "cutting.point_spacing=0.001")
     with pytest.raises(ValueError, match="equal length"):
         study_from_options("cube", ["insertion.spacing=1,2", "cutting.point_spacing=1"], combine="zip")
 
 
 def test_run_ids_are_stable_and_distinct():
-    first = study_from_options("cube", ["insertion.spacing=1e-3,5e-4"], overrides=["mesh.cells=[4, 4, 4]"]).runs()
-    again = study_from_options("cube", ["insertion.spacing=1e-3,5e-4"], overrides=["mesh.cells=[4, 4, 4]"]).runs()
+    first = study_from_options(
+        "cube", ["insertion.spacing=1e-3,5e-4"], overrides=["mesh.cells=[4, 4, 4]"]
+    ).runs()
+    again = study_from_options(
+        "cube", ["insertion.spacing=1e-3,5e-4"], overrides=["mesh.cells=[4, 4, 4]"]
+    ).runs()
     assert [r.id for r in first] == [r.id for r in again]
     assert len({r.id for r in first}) == 2
     other = study_from_options("cube", ["insertion.spacing=1e-3,5e-4"]).runs()
     assert {r.id for r in other}.isdisjoint(r.id for r in first)
-    other_scene = study_from_options("cube_cut", ["insertion.spacing=1e-3,5e-4"],
-                                     overrides=["mesh.cells=[4, 4, 4]"]).runs()
+    other_scene = study_from_options(
+        "cube_cut", ["insertion.spacing=1e-3,5e-4"], overrides=["mesh.cells=[4, 4, 4]"]
+    ).runs()
     assert {r.id for r in other_scene}.isdisjoint(r.id for r in first)  # a changed scene is never reused
 
 
@@ -85,15 +95,18 @@ set = ['solver.method="exact"']
     assert reference.label == "exact" and reference.overrides[-1] == 'solver.method="exact"'
 
 
-@pytest.mark.parametrize(("text", "message"), [
-    ('scene = "cube"\nfoo = 1\n[[sweep]]\nkey="insertion.spacing"\nvalues=[1]', "unknown key 'foo'"),
-    ('[[sweep]]\nkey="insertion.spacing"\nvalues=[1]', "missing key 'scene'"),
-    ('scene = "cube"', "at least one sweep or case"),
-    ('scene = "cube"\nquantities=["bogus"]\n[[case]]\nset=[]', "quantity 'bogus': unknown"),
-    ('scene = "cube"\ncombine="cross"\n[[case]]\nset=[]', "combine = 'cross'"),
-    ('scene = "cube"\n[[sweep]]\nkey="insertion.spacing"', "needs key and values"),
-    ('name = "x"\n[mesh]\ngenerator = "box"', "a scene file, not a study file"),
-])
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ('scene = "cube"\nfoo = 1\n[[sweep]]\nkey="insertion.spacing"\nvalues=[1]', "unknown key 'foo'"),
+        ('[[sweep]]\nkey="insertion.spacing"\nvalues=[1]', "missing key 'scene'"),
+        ('scene = "cube"', "at least one sweep or case"),
+        ('scene = "cube"\nquantities=["bogus"]\n[[case]]\nset=[]', "quantity 'bogus': unknown"),
+        ('scene = "cube"\ncombine="cross"\n[[case]]\nset=[]', "combine = 'cross'"),
+        ('scene = "cube"\n[[sweep]]\nkey="insertion.spacing"', "needs key and values"),
+        ('name = "x"\n[mesh]\ngenerator = "box"', "a scene file, not a study file"),
+    ],
+)
 def test_bad_study_file_is_named(tmp_path, text, message):
     path = tmp_path / "bad.toml"
     path.write_text(text)

@@ -1,4 +1,5 @@
-"""A small study end to end on a one-worker LocalCluster: the command line, the study file, failures, resuming."""
+"""A small study end to end on a one-worker LocalCluster: the command line, the study file, failures,
+resuming."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ from refsim.cli import main
 from refsim.sweep import load_study, read_study, run_study
 from refsim.sweep.study import run_folder
 
-# The cube on 2 cells per axis for 0.35 s: the tip touches the top at 0.2 s and punctures; a few seconds a run.
+# The cube on 2 cells per axis for 0.35 s: the tip touches the top at 0.2 s and punctures; a few seconds a
+# run.
 BASE = ["mesh.cells=[2, 2, 2]", "time.duration=0.35", "output.tissue_every=10"]
 
 
@@ -34,7 +36,9 @@ set = ['solver.method="exact"']
 """.replace("'", '"').replace('["solver.method="exact""]', "['solver.method=\"exact\"']")
     (folder / "small.toml").write_text(text)
     output = folder / "small.h5"
-    code = main(["study", str(folder / "small.toml"), "-o", str(output), "--workers", "1", "-q", "--no-warm-up"])
+    code = main(
+        ["study", str(folder / "small.toml"), "-o", str(output), "--workers", "1", "-q", "--no-warm-up"]
+    )
     return folder, output, code
 
 
@@ -67,24 +71,46 @@ def test_resume_runs_only_what_is_missing(study):
     files[0].unlink()
     with h5py.File(files[1], "a") as handle:  # an interrupted run: complete = False
         handle.attrs["complete"] = False
-    after = run_study(load_study(folder / "small.toml"), output, workers=1, progress=False, warm_up=True)["runs"]
+    after = run_study(load_study(folder / "small.toml"), output, workers=1, progress=False, warm_up=True)[
+        "runs"
+    ]
     assert np.isfinite(after["seconds"][0]) and np.isfinite(after["seconds"][1])  # run again
     assert after["seconds"][2] == before["seconds"][2]  # reused: not run, its timing kept from the study file
     assert np.isfinite(after["cpu_ms_per_step"][0]) and after["cpu_ms_per_step"][0] > 0.0
     assert after["status"][:3] == ["complete"] * 3 and after["status"][3] == "failed"
     for name in ("needle_force@end", "puncture_force"):
-        assert np.allclose(after["quantities"][name][:3], before["quantities"][name][:3])  # deterministic runs
+        assert np.allclose(
+            after["quantities"][name][:3], before["quantities"][name][:3]
+        )  # deterministic runs
     assert sorted(p.name for p in run_folder(output).glob("*.h5")) == sorted(
-        p.name for p in files[:3] + [output.parent / read_study(output)["reference"]["file"]])
+        p.name for p in files[:3] + [output.parent / read_study(output)["reference"]["file"]]
+    )
 
 
 def test_command_line_sweeps(tmp_path):
-    code = main(["study", "cube", "--sweep", "insertion.spacing=2e-3,1e-3", "--sweep", "solver.tolerance=1e-6",
-                 *sum((["--set", s] for s in BASE), []), "-o", str(tmp_path / "cli.h5"), "--workers", "1", "-q", "--no-warm-up"])
+    code = main(
+        [
+            "study",
+            "cube",
+            "--sweep",
+            "insertion.spacing=2e-3,1e-3",
+            "--sweep",
+            "solver.tolerance=1e-6",
+            *sum((["--set", s] for s in BASE), []),
+            "-o",
+            str(tmp_path / "cli.h5"),
+            "--workers",
+            "1",
+            "-q",
+            "--no-warm-up",
+        ]
+    )
     assert code == 0
     runs = read_study(tmp_path / "cli.h5")["runs"]
-    assert runs["label"] == ["insertion.spacing=0.002, solver.tolerance=1e-06",
-                             "insertion.spacing=0.001, solver.tolerance=1e-06"]
+    assert runs["label"] == [
+        "insertion.spacing=0.002, solver.tolerance=1e-06",
+        "insertion.spacing=0.001, solver.tolerance=1e-06",
+    ]
 
 
 def test_bad_command_line_is_an_input_error(tmp_path, capsys):

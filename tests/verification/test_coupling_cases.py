@@ -21,8 +21,9 @@ def test_case_passes(case):
 
 
 def test_bare_line_fails_baguelin_where_the_ring_coupling_passes():
-    # The paper's line: its error against K′(R, r) exceeds the ring coupling's derived tolerance on every mesh,
-    # and its force keeps falling with h (1/ln h): no limit. The ring coupling's error is within tolerance.
+    # The paper's line: its error against K′(R, r) exceeds the ring coupling's derived tolerance on every
+    # mesh, and its force keeps falling with h (1/ln h): no limit. The ring coupling's error is within
+    # tolerance.
     exact = coupling.baguelin_stiffness(coupling.PAPER_TISSUE, coupling.NEEDLE_PAPER, coupling.OUTER)
     tolerance = coupling._calibration_tolerance("lateral", coupling.PAPER_TISSUE, exact) / exact
     bare = np.array(

@@ -46,18 +46,29 @@ def _failing(reason):
 
 
 THIN, PAPER = coupling.NEEDLE_THIN, coupling.NEEDLE_PAPER
-CROSSING = ("the ring is at ρ_c = h on 6 and 12 cells and at r on 24 (h < r): the sequence crosses h = r "
-            "(with h < r on every level it converges: test_8mm_needle_in_a_clamped_box_…)")
+CROSSING = (
+    "the ring is at ρ_c = h on 6 and 12 cells and at r on 24 (h < r): the sequence crosses h = r "
+    "(with h < r on every level it converges: test_8mm_needle_in_a_clamped_box_…)"
+)
 CASES = [
     pytest.param(("ring-infinite", THIN, "lateral"), id="infinite-thin-lateral"),
     pytest.param(("ring-infinite", THIN, "axial"), id="infinite-thin-axial"),
     pytest.param(("ring", THIN, "lateral"), id="finite-thin-lateral"),
-    pytest.param(("ring", THIN, "axial"), id="finite-thin-axial",
-                 marks=_failing("K = 10781, 10590, 10417 N/m: ε₃₂/ε₂₁ = 1.1 (p = 0.15), 1.6 % per halving")),
-    pytest.param(("ring-infinite", PAPER, "lateral"), id="infinite-8mm-lateral",
-                 marks=_failing(f"K = 11949, 12163, 12023 N/m, not monotone: {CROSSING}")),
-    pytest.param(("ring", PAPER, "lateral"), id="finite-8mm-lateral",
-                 marks=_failing(f"K = 12706, 12564, 12252 N/m, ε₂₁ > ε₃₂: {CROSSING}")),
+    pytest.param(
+        ("ring", THIN, "axial"),
+        id="finite-thin-axial",
+        marks=_failing("K = 10781, 10590, 10417 N/m: ε₃₂/ε₂₁ = 1.1 (p = 0.15), 1.6 % per halving"),
+    ),
+    pytest.param(
+        ("ring-infinite", PAPER, "lateral"),
+        id="infinite-8mm-lateral",
+        marks=_failing(f"K = 11949, 12163, 12023 N/m, not monotone: {CROSSING}"),
+    ),
+    pytest.param(
+        ("ring", PAPER, "lateral"),
+        id="finite-8mm-lateral",
+        marks=_failing(f"K = 12706, 12564, 12252 N/m, ε₂₁ > ε₃₂: {CROSSING}"),
+    ),
 ]
 
 
@@ -79,10 +90,12 @@ def test_8mm_needle_on_its_surface_converges_in_the_slab(kind):
     study = coupling.surface_coupling_study(kind, coupling.SURFACE_CELLS_FINE)
     result = study.convergence
     bare = ", ".join(f"{v:.5f}" for v in study.bare.mean(axis=1) / study.exact)
-    print(f"\n{kind}: bare mean K′/K′_th = {bare}, "
-          f"p = {result.order:.3f} (predicted {study.predicted_order:.3f}), Richardson "
-          f"{result.extrapolated / study.exact:.5f}, GCI {result.gci:.2%}; model "
-          f"{', '.join(f'{v:.5f}' for v in study.model.mean(axis=1) / study.exact)}")
+    print(
+        f"\n{kind}: bare mean K′/K′_th = {bare}, "
+        f"p = {result.order:.3f} (predicted {study.predicted_order:.3f}), Richardson "
+        f"{result.extrapolated / study.exact:.5f}, GCI {result.gci:.2%}; model "
+        f"{', '.join(f'{v:.5f}' for v in study.model.mean(axis=1) / study.exact)}"
+    )
     assert result.kind == "monotone"
     for check in coupling.surface_coupling_results(study):
         assert check.passed, f"{check.name}: error {check.error:.3e} > tolerance {check.tolerance:.3e}"
@@ -117,15 +130,19 @@ def test_8mm_needle_in_a_clamped_box_converges_with_h_below_r(box, kind):
     sizes = coupling_3d.BOX_SIZE / np.array(coupling_3d.BOX_CELLS)
     bare = convergence(sizes, box[("surface", kind)].mean(axis=1))
     levels = ", ".join(f"{v:.1f}" for v in bare.values[::-1])
-    print(f"\n{kind}: surface K = {levels} N/m, p = {bare.order:.3f}, "
-          f"Richardson {bare.extrapolated:.1f} ± {bare.uncertainty:.1f} N/m (GCI {bare.gci:.2%})")
+    print(
+        f"\n{kind}: surface K = {levels} N/m, p = {bare.order:.3f}, "
+        f"Richardson {bare.extrapolated:.1f} ± {bare.uncertainty:.1f} N/m (GCI {bare.gci:.2%})"
+    )
     assert bare.kind == "monotone" and bare.order >= 0.5
     for model in ("ring-infinite", "ring"):
         values = box[(model, kind)]
         result = convergence(sizes, values.mean(axis=1))
         levels = ", ".join(f"{v:.1f}" for v in result.values[::-1])
-        print(f"{model}: K = {levels} N/m, p = {result.order:.3f}, "
-              f"Richardson {result.extrapolated:.1f} (GCI {result.gci:.2%}); finest level over positions "
-              f"{values[-1].min():.1f} … {values[-1].max():.1f}")
+        print(
+            f"{model}: K = {levels} N/m, p = {result.order:.3f}, "
+            f"Richardson {result.extrapolated:.1f} (GCI {result.gci:.2%}); finest level over positions "
+            f"{values[-1].min():.1f} … {values[-1].max():.1f}"
+        )
         assert np.all(np.diff(values.mean(axis=1)) < 0.0)
         assert np.max(np.abs(values[-1] - bare.extrapolated)) <= bare.uncertainty

@@ -9,8 +9,24 @@ from refsim.cli import main
 
 def test_render_with_camera_options_writes_the_picture(insertion_file, tmp_path, capsys):
     output = tmp_path / "fig.png"
-    code = main(["render", str(insertion_file), "-o", str(output), "--camera", "1,-1,0.5",
-                 "--view-up", "0,0,1", "--zoom", "1.5", "--focus", "0.001,0.002,0.09", "--step", "30"])
+    code = main(
+        [
+            "render",
+            str(insertion_file),
+            "-o",
+            str(output),
+            "--camera",
+            "1,-1,0.5",
+            "--view-up",
+            "0,0,1",
+            "--zoom",
+            "1.5",
+            "--focus",
+            "0.001,0.002,0.09",
+            "--step",
+            "30",
+        ]
+    )
     assert code == 0 and output.is_file()
     assert str(output) in capsys.readouterr().out
 

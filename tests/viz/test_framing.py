@@ -252,7 +252,13 @@ def test_organ_picture_shows_insertion_points_and_fixed_nodes(organ_file, tmp_pa
     needle = _read_png(render_result(organ_file, tmp_path / "needle.png", window_size=(640, 480)))
     assert _count_blue(needle) > 30
     # The whole organ from behind-above: the fixed posterior edge (green cubes) is visible.
-    organ = _read_png(render_result(organ_file, tmp_path / "organ.png", focus="tissue",
-                                    camera=(0.3, -1.0, 0.8),
-                                    window_size=(640, 480)))
+    organ = _read_png(
+        render_result(
+            organ_file,
+            tmp_path / "organ.png",
+            focus="tissue",
+            camera=(0.3, -1.0, 0.8),
+            window_size=(640, 480),
+        )
+    )
     assert _count_green(organ) > 30
