@@ -423,6 +423,7 @@ def reference_markdown() -> str:
         f"## The `{XDMF_GROUP}/` group (ParaView sidecar)",
         "",
         "`refsim.io.xdmf.write_xdmf` (called by `refsim run`, by every run of a study and by `refsim export "
+        "RESULT.h5 "
         "--xdmf`) writes `RESULT.xdmf` beside the file and this group into it; it replaces the group when "
         "run "
         "again. NNNNNNN is a step number (7 digits): one dataset per step for the needle, one per recorded "

@@ -5,7 +5,8 @@ Usage::
     python studies/solvers/plot.py [studies/solvers/output/solvers.h5] [--docs docs]
 
 Writes ``docs/figures/solvers_convergence.png`` and replaces the block between the study markers of
-``docs/solvers.md`` with the tables (summary with shifted geometric means, shift 10, and one row per problem).
+``docs/solver_study.md`` with the tables (summary with shifted geometric means, shift 10, and one row per
+problem).
 """
 
 from __future__ import annotations
@@ -230,7 +231,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     data = load(args.results)
     figure(data, args.docs / "figures" / "solvers_convergence.png")
-    write_tables(tables(data), args.docs / "solvers.md")
+    write_tables(tables(data), args.docs / "solver_study.md")
 
 
 if __name__ == "__main__":

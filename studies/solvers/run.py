@@ -8,7 +8,8 @@ Usage::
 The benchmark (issue 15) times, in one run, the exact solver (semismooth Newton first), today's
 solve_exact before it (the cone route of commit 132aab8, loaded from git), Gauss–Seidel and, when Debian's
 python3-siconos is installed, Siconos' NSN_AC, NSGS, PROX and VI_FPP (in a subprocess of /usr/bin/python3),
-all at 1e-8, and prints the table of docs/solvers.md (solved, shifted geometric mean time with a 10 ms shift).
+all at 1e-8, and prints the table of docs/solver_study.md (solved, shifted geometric mean time with a 10 ms
+shift).
 
 For every problem: one long Gauss–Seidel run recording the natural residual after every sweep, Gauss–Seidel
 runs at several tolerances (timed, best of three), and the exact solver with every backend. The error of a

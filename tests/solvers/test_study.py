@@ -41,9 +41,9 @@ def test_study_runs_on_given_problems(planted, rng, tmp_path):
     assert len(data["problems"]) == 2
     docs = tmp_path / "docs"
     docs.mkdir()
-    (docs / "solvers.md").write_text("# head\n")
+    (docs / "solver_study.md").write_text("# head\n")
     plot.figure(data, docs / "figures" / "solvers_convergence.png")
-    plot.write_tables(plot.tables(data), docs / "solvers.md")
-    text = (docs / "solvers.md").read_text()
+    plot.write_tables(plot.tables(data), docs / "solver_study.md")
+    text = (docs / "solver_study.md").read_text()
     assert text.startswith("# head") and "planted/planted_1" in text and plot.END in text
     assert (docs / "figures" / "solvers_convergence.png").stat().st_size > 0
