@@ -139,8 +139,8 @@ def validate_mesh(
         positions, tets = merged_positions, merged_tets
     else:
         _check_duplicates(positions, source)
-    _check_faces(tets, source)
     tets = _check_volumes(positions, tets, source, fix_orientation)
+    _check_faces(tets, source)
     positions, tets, renumber = _check_unused(positions, tets, source, drop_unused_nodes)
     if return_node_map:
         return positions, tets, renumber[node_map]
