@@ -58,6 +58,7 @@ __all__ = [
     "run_study",
     "run_folder",
     "start_client",
+    "stop_client",
 ]
 
 logger = logging.getLogger(__name__)
@@ -106,7 +107,7 @@ def _check_workers(workers) -> int:
 def start_client(scheduler: str | None = None, workers: int | None = None):
     """A Dask client on ``scheduler``, or on a new LocalCluster of ``workers`` processes (the cores by
     default), one thread and one BLAS thread each. Returns (client, cluster); cluster is None for a scheduler.
-    Close both when done.
+    Close both with :func:`stop_client`.
 
     The LocalCluster listens on the loopback interface only (scheduler, workers and dashboard on
     ``127.0.0.1``), authenticates its processes with TLS certificates made for it (``security=True``: a Dask
@@ -151,8 +152,19 @@ def start_client(scheduler: str | None = None, workers: int | None = None):
     except BaseException:
         shutil.rmtree(scratch, ignore_errors=True)
         raise
-    weakref.finalize(cluster, shutil.rmtree, scratch, ignore_errors=True)
+    cluster.refsim_scratch = scratch
+    weakref.finalize(cluster, shutil.rmtree, scratch, ignore_errors=True)  # also if a caller forgets
     return Client(cluster), cluster
+
+
+def stop_client(client, cluster) -> None:
+    """Close what :func:`start_client` opened: the client, the LocalCluster and its private scratch folder."""
+    client.close()
+    if cluster is not None:
+        cluster.close()
+        scratch = getattr(cluster, "refsim_scratch", None)
+        if scratch:
+            shutil.rmtree(scratch, ignore_errors=True)
 
 
 def check_study_output(spec: StudySpec, output, *, overwrite: bool = False) -> Path:
@@ -291,9 +303,7 @@ def run_study(
         finally:
             bar.close()
             if own:
-                client.close()
-                if cluster is not None:
-                    cluster.close()
+                stop_client(client, cluster)
     _write(spec, output, runs, reference, rows, final=True)
     return read_study(output)
 
