@@ -191,7 +191,8 @@ def _numerical_message(error: BaseException, step: int) -> str | None:
 
 class _Signals:
     """SIGINT raises KeyboardInterrupt, SIGTERM and SIGHUP raise _Terminated in the main thread, for one run;
-    the previous handlers come back afterwards. In another thread (a Dask worker) nothing is installed."""
+    the previous handlers come back afterwards. A SIGHUP that is ignored (``nohup refsim run``) stays ignored.
+    In another thread (a Dask worker) nothing is installed."""
 
     def __init__(self, enabled: bool) -> None:
         self.enabled = enabled and threading.current_thread() is threading.main_thread()
@@ -201,7 +202,8 @@ class _Signals:
         if self.enabled:
             self.previous[signal.SIGINT] = signal.signal(signal.SIGINT, signal.default_int_handler)
             self.previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, self._terminate)
-            self.previous[signal.SIGHUP] = signal.signal(signal.SIGHUP, self._terminate)
+            if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # `nohup refsim run`: keep running
+                self.previous[signal.SIGHUP] = signal.signal(signal.SIGHUP, self._terminate)
         return self
 
     @staticmethod
@@ -257,7 +259,7 @@ def run_scene(
     RunWriteError
         The results file cannot be created (a full disk); nothing is written.
     """
-    from refsim.io.writer import DEFAULT_BUFFER_STEPS, ResultWriter
+    from refsim.io.writer import DEFAULT_BUFFER_STEPS, ResultWriter, WriterLockedError
     from refsim.simulation import Simulation
     from refsim.simulation.summary import RunSummary
 
@@ -279,10 +281,12 @@ def run_scene(
             overwrite=overwrite,
             buffer_steps=DEFAULT_BUFFER_STEPS if buffer_steps is None else buffer_steps,
         )
+    except WriterLockedError as error:  # another run is writing the file: it is left alone
+        raise RunInputError(str(error)) from None
     except (FileExistsError, IsADirectoryError, NotADirectoryError, PermissionError, ValueError) as error:
         raise RunInputError(f"{output}: cannot create the results file: {error}") from None
     except OSError as error:  # a full disk: nothing written, an existing file untouched
-        raise RunWriteError(error.errno, f"{output}: cannot create the results file: {error}") from None
+        raise RunWriteError(error.errno, error.strerror or str(error)) from None
 
     written_cut = [None]
 

@@ -62,6 +62,9 @@ _METADATA_PER_DATASET = 8 * 1024
 class WriterLockedError(FileExistsError):
     """Another process holds the lock of a results file (it is writing it); nothing was touched."""
 
+    def __str__(self) -> str:
+        return str(self.strerror)
+
 
 class FileLock:
     """An exclusive advisory lock (``fcntl.flock``) on ``.<name>.lock`` beside ``path``, for one writer.

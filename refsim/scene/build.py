@@ -29,6 +29,7 @@ __all__ = [
     "check_boundary_motion",
     "check_held",
     "check_models",
+    "check_time_resolution",
     "fixed_nodes",
     "read_displacement_csv",
 ]
@@ -57,14 +58,66 @@ class SceneModels:
     boundary_nodes: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
+#: Peak memory of a run per tetrahedron [bytes]: the marginal peak RSS of the cube scene (5 steps) between
+#: 8³ and 20³ cells was 10.0 to 12.5 kB per tetrahedron (docs/faults.md, "Memory"); the larger is taken. The
+#: factorisation's fill grows faster than the tet count, so for larger meshes it underestimates: a mesh it
+#: refuses certainly does not fit.
+BYTES_PER_TET = 12_500
+
+
+def available_memory() -> int | None:
+    """Memory the system can give this process now [bytes] (MemAvailable of /proc/meminfo), or None."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as stream:
+            for line in stream:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError):
+        return None
+    return None
+
+
+def check_memory(tets: int, key: str, value) -> None:
+    """Refuse a mesh whose run would need more memory than the machine has available now.
+
+    Parameters
+    ----------
+    tets : Number of tetrahedra.
+    key, value : The scene key that sets the mesh size and its value, for the message.
+
+    Raises
+    ------
+    SceneError
+        Naming the key, the value, the estimate (tets × BYTES_PER_TET) and the memory available.
+    """
+    free = available_memory()
+    needed = tets * BYTES_PER_TET
+    if free is None or needed <= free:
+        return
+    raise SceneError(
+        f"{key} = {value!r}: {tets} tetrahedra need about {needed / 2**30:.3g} GiB ({BYTES_PER_TET} bytes "
+        f"per tetrahedron, measured) and this machine has {free / 2**30:.3g} GiB available; at most about "
+        f"{free // BYTES_PER_TET} tetrahedra fit"
+    )
+
+
 def build_mesh(spec: MeshSpec, base_directory: str = ".") -> TetMesh:
-    """The tissue mesh of a [mesh] section (a file path is relative to the scene file)."""
+    """The tissue mesh of a [mesh] section (a file path is relative to the scene file).
+
+    Raises
+    ------
+    SceneError
+        When the run of the mesh would need more memory than available (:func:`check_memory`), for a box
+        before it is generated.
+    """
     if spec.generator == "box":
+        check_memory(6 * int(np.prod(spec.cells)), "mesh.cells", list(spec.cells))
         return box_mesh(size=spec.size, cells=spec.cells, origin=spec.origin)
     path = Path(spec.file)
     if not path.is_absolute():
         path = Path(base_directory) / path
     mesh = read_mesh(path)
+    check_memory(mesh.tet_count, "mesh.file", str(path))
     if spec.scale != 1.0:
         mesh = mesh.scaled(spec.scale)
     return mesh
@@ -220,6 +273,7 @@ def build_models(scene: Scene) -> SceneModels:
     except ValueError as error:
         raise SceneError(f"{scene.source}: trajectory.file: {error}") from None
     check_models(scene, mesh, trajectory)
+    check_time_resolution(scene, mesh, trajectory)
     needle = None
     if not scene.needle.rigid:
         from refsim.fem.needle import NeedleModel  # only flexible needles need the beam model
@@ -330,6 +384,48 @@ def build_controls(scene: Scene, models: SceneModels) -> Controls:
             raise SceneError(f"{scene.source}: boundary.file: {error}") from None
     check_boundary_motion(scene, models.mesh, motion)
     return Controls(trajectory=models.trajectory, boundary=motion)
+
+
+#: Digits of a step's motion that the positions must keep: the tip's travel in one step must be at least
+#: 10**RESOLVED_DIGITS float64 epsilons of the largest coordinate, or the step's motion is lost in round-off.
+RESOLVED_DIGITS = 3
+
+
+def check_time_resolution(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
+    """The smallest time step the program can represent: the needle tip's fastest travel in one step (speed ×
+    dt) must be at least 10**RESOLVED_DIGITS × float64's epsilon × the largest coordinate of the scene
+    (tissue and trajectory), otherwise adding it to a position loses it in round-off and the run makes no
+    progress (dt = 1e-300 s ended in a ZeroDivisionError at step 1). A trajectory that never moves is not
+    checked (there is no motion to resolve).
+
+    Raises
+    ------
+    SceneError
+        Naming time.dt, the travel, the resolution and the smallest dt that resolves it.
+    """
+    times = np.asarray(trajectory.times, dtype=float)
+    if times.size < 2:
+        return
+    directions = np.asarray(trajectory.directions, dtype=float)
+    turn = np.arccos(np.clip(np.einsum("ij,ij->i", directions[:-1], directions[1:]), -1.0, 1.0))
+    speeds = (
+        np.linalg.norm(np.diff(trajectory.base_positions, axis=0), axis=1) + scene.needle.length * turn
+    ) / np.diff(times)
+    speed = float(speeds.max())
+    if speed == 0.0:
+        return
+    largest = max(
+        float(np.abs(mesh.rest_positions).max()),
+        float(np.abs(trajectory.base_positions).max()) + scene.needle.length,
+    )
+    resolution = 10.0**RESOLVED_DIGITS * np.finfo(float).eps * largest
+    if speed * scene.time.dt < resolution:
+        raise SceneError(
+            f"{scene.source}: time.dt = {scene.time.dt!r} s: the needle tip moves at most "
+            f"{speed * scene.time.dt:.3g} m per step, below what positions of up to {largest:.3g} m resolve "
+            f"({resolution:.3g} m: {10**RESOLVED_DIGITS} float64 epsilons of them); the run would make no "
+            f"progress: use time.dt >= {resolution / speed:.3g} s"
+        )
 
 
 #: Steps evaluated at once by the boundary motion check (bounds its memory: 3 arrays of this many rows).

@@ -704,6 +704,27 @@ CASES = [
         "save('tangled.vtu', p, tets)",
         fragments=("tangled",),
     ),
+    mesh_case(
+        "one_tet.vtu",
+        "a mesh of one tetrahedron whose lowest face is one node (held by that node only)",
+        "save('one_tet.vtu', np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.05], [0.0, 0.1, 0.05], "
+        "[0.05, 0.05, 0.1]]), np.array([[0, 1, 2, 3]]))",
+        fragments=("held node",),
+    ),
+    Case(
+        "cells_at_maximum",
+        "mesh.cells at its documented maximum (256³ cells, 100 million tetrahedra)",
+        s("mesh.cells=[256, 256, 256]"),
+        fragments=("mesh.cells", "GiB"),
+        small=False,
+    ),
+    Case(
+        "dt_below_roundoff",
+        "time.dt = 1e-300 s (below round-off)",
+        s("time.dt=1e-300; time.duration=1e-300"),
+        fragments=("time.dt",),
+        small=False,
+    ),
     # ---------------------------------------------------------------- boundary motions
     Case(
         "boundary_jump",
@@ -873,7 +894,7 @@ CASES = [
         "a truncated results file (a copy cut short)",
         argv=["export", "{dir}/out.h5", "--csv", "{dir}/force.csv"],
         setup=RUN_FIRST + "data = out.read_bytes(); out.write_bytes(data[: len(data) // 2])\n",
-        fragments=("truncated",),
+        fragments=("the file is truncated", "bytes of the"),
     ),
 ]
 
@@ -933,6 +954,11 @@ def _file_state(path: Path) -> dict | None:
         return {"unreadable": f"{type(error).__name__}: {error}"}
 
 
+def _terminal_signals() -> None:
+    """In the child: SIGHUP as in a terminal session (its default action), also under a nohup probe."""
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+
 def run_case(case: Case, folder: Path, tree: Path = ROOT) -> dict:
     env = {**os.environ, "PYTHONPATH": str(tree), "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
     if case.setup:
@@ -961,7 +987,13 @@ def run_case(case: Case, folder: Path, tree: Path = ROOT) -> dict:
     command, output = _command(case, folder)
     try:
         process = subprocess.Popen(
-            command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=folder
+            command,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+            cwd=folder,
+            preexec_fn=_terminal_signals,
         )
         if case.close_stdout:
             process.stdout.close()  # the reader went away (`| head`): the child's writes meet a closed pipe

@@ -191,6 +191,22 @@ def test_sighup_stops_the_run_like_sigterm(tmp_path):
     assert not results.complete and results.step_count == 4 and "SIGHUP" in results.stop_reason
 
 
+def test_an_ignored_sighup_is_left_ignored(tmp_path):
+    """`nohup refsim run ...` ignores SIGHUP: the run must go on when the terminal closes."""
+
+    def send(state, record):
+        if record.step == 4:
+            os.kill(os.getpid(), signal.SIGHUP)
+
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        summary = run_scene(_scene(), tmp_path / "run.h5", on_step=send)
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGHUP, previous)
+    assert summary.complete and read_results(tmp_path / "run.h5").step_count == 10
+
+
 def test_a_closed_pipe_does_not_change_the_exit_code(tmp_path):
     """`refsim run ... | true` (a reader that closes the pipe at once; `| head` does it when it has its
     lines): the run completes, exits 0 and writes its XDMF sidecar (before: exit 2, no sidecar)."""
