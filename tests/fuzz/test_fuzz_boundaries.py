@@ -59,7 +59,7 @@ def _run(folder: Path, mesh_path: Path | None = None, **sections) -> tuple[int, 
 
 @settings(max_examples=EXAMPLES, suppress_health_check=[HealthCheck.too_slow])
 @given(
-    st.sampled_from(range(27)),
+    st.one_of(st.just(13), st.sampled_from(range(27))),  # node 13 is the one interior node: it tangles
     st.floats(0.0, 1.5 * CELL),
     st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)).filter(lambda v: np.linalg.norm(v) > 0.1),
 )
