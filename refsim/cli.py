@@ -2,14 +2,19 @@
 
 Exit codes: 0 success; 1 a verification case failed; 2 bad input (scene, file, option; nothing is written);
 3 the simulation stopped on a detected numerical problem or a failed write (the results file keeps every
-completed step, complete = false, the reason in stop_reason); 130 interrupted by SIGINT, 143 by SIGTERM
-(same). No command prints a traceback: unexpected errors are reported in one line (-v logs the traceback).
+completed step, complete = false, the reason in stop_reason; a full disk before the first step, a figure or an
+export leaves no file); 130 interrupted by SIGINT, 129 by SIGHUP, 143 by SIGTERM (same). No command prints a
+traceback: unexpected errors are reported in one line (-v logs the traceback). A closed standard output
+(`refsim run ... | head`) does not change the exit code: what would have been printed is dropped.
 """
 
 from __future__ import annotations
 
 import argparse
+import errno
+import io
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -50,6 +55,68 @@ class _Progress:
 
 
 _FIGURE_SUFFIXES = (".png", ".jpg", ".jpeg")
+# errno values of a failed write (exit code 3), as opposed to a path that cannot be written (bad input, 2).
+_WRITE_FAILURES = (errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EFBIG)
+
+
+class _PipeSafe(io.TextIOBase):
+    """Standard output that survives a closed pipe (`refsim run ... | head`): after a BrokenPipeError the
+    stream's descriptor is pointed at /dev/null and later output is dropped, so the command finishes its work
+    (the XDMF sidecar, the exit code of the run) instead of failing on a print."""
+
+    def __init__(self, stream) -> None:
+        self._stream = stream
+        self.broken = False
+
+    def _break(self) -> None:
+        self.broken = True
+        try:  # the interpreter flushes sys.__stdout__ at exit: it must not meet the closed pipe again
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, self._stream.fileno())
+            os.close(devnull)
+        except (OSError, ValueError, io.UnsupportedOperation):
+            pass
+
+    def write(self, text: str) -> int:
+        if not self.broken:
+            try:
+                return self._stream.write(text)
+            except BrokenPipeError:
+                self._break()
+        return len(text)
+
+    def flush(self) -> None:
+        if not self.broken:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._break()
+
+    def isatty(self) -> bool:
+        return not self.broken and self._stream.isatty()
+
+    def fileno(self) -> int:
+        return self._stream.fileno()
+
+    @property
+    def encoding(self):
+        return getattr(self._stream, "encoding", "utf-8")
+
+
+def _write_failed(path: Path, what: str, error: OSError, *partial: Path):
+    """The error for a failed write of ``path``: partial files removed; a full disk (ENOSPC, EDQUOT, EIO,
+    EFBIG) is a failed write (RunWriteError, exit 3), anything else bad input (exit 2); both name the path."""
+    from refsim.io.driver import RunWriteError
+
+    for item in (path, *partial):
+        try:
+            Path(item).unlink(missing_ok=True)
+        except OSError:
+            pass
+    message = f"{path}: writing the {what} failed ({error.strerror or error}); no {what} was left"
+    if error.errno in _WRITE_FAILURES:
+        return RunWriteError(error.errno, message)
+    return OSError(error.errno, message)
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -75,7 +142,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
         progress=lambda done, total, phase: progress.update(done, phase),
     )
-    if summary.status in ("interrupted", "terminated"):
+    if summary.status in ("interrupted", "terminated", "hangup"):
         print(
             f"\nrefsim run: {summary.stop_reason}; {summary.steps_written} completed steps kept in {output}",
             file=sys.stderr,
@@ -95,9 +162,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
         from refsim.viz import plot_result, render_result
 
         figure.parent.mkdir(parents=True, exist_ok=True)
-        render_result(output, figure)
         plot_path = figure.with_name(figure.stem + "_forces" + figure.suffix)
-        plot_result(output, plot_path)
+        try:
+            render_result(output, figure)
+            plot_result(output, plot_path)
+        except OSError as error:
+            raise _write_failed(figure, "figure", error, plot_path) from None
         print(f"figures: {figure}, {plot_path}")
     return summary.exit_code
 
@@ -144,12 +214,20 @@ def _cmd_study(args: argparse.Namespace) -> int:
         workers=args.workers,
         progress=not args.quiet,
         warm_up=not args.no_warm_up,
+        overwrite=args.overwrite,
     )
     runs = study["runs"]
     print(
         f"study {spec.name}: {len(runs['id'])} runs, {study['attributes']['runs_complete']} complete, "
         f"{study['attributes']['runs_failed']} failed -> {output}"
     )
+    for index, status in enumerate(runs.get("status", [])):
+        if status != "complete":  # name every run that did not finish, with its file and its reason
+            print(
+                f"  run {runs['id'][index]} ({runs['label'][index]}): {status}: {runs['error'][index]} "
+                f"[{output.parent / runs['file'][index]}]",
+                file=sys.stderr,
+            )
     for row in study["convergence"]:
         print(
             f"  {row['key']:<22} {row['quantity']:<26} {row['kind']:<11} order {row['order']:7.3f}  "
@@ -167,9 +245,17 @@ def _cmd_export(args: argparse.Namespace) -> int:
     if not (args.xdmf or args.problems or args.csv):
         raise ValueError("refsim export: choose at least one of --xdmf, --problems OUT.h5, --csv OUT.csv")
     if args.xdmf:
-        print(f"wrote {write_xdmf(result)}")
+        try:
+            print(f"wrote {write_xdmf(result)}")
+        except OSError as error:
+            raise _write_failed(result.with_suffix(".xdmf"), "XDMF sidecar", error) from None
     if args.problems:
-        summary = export_problems(result, args.problems, fclib_folder=args.fclib)
+        try:
+            summary = export_problems(result, args.problems, fclib_folder=args.fclib)
+        except OSError as error:
+            if Path(args.problems).exists() and not isinstance(error, FileNotFoundError):
+                raise _write_failed(Path(args.problems), "problem set", error) from None
+            raise
         print(
             f"wrote {summary['problems']} problems with their exact solutions to {args.problems}"
             + (f"; {len(summary['fclib'])} FCLib files in {args.fclib}" if args.fclib else "")
@@ -177,7 +263,12 @@ def _cmd_export(args: argparse.Namespace) -> int:
         if summary["unconverged"]:
             print(f"  exact solve above tolerance at steps {summary['unconverged']}", file=sys.stderr)
     if args.csv:
-        print(f"wrote {export_force_csv(result, args.csv)}")
+        try:
+            print(f"wrote {export_force_csv(result, args.csv)}")
+        except OSError as error:
+            if Path(args.csv).exists():
+                raise _write_failed(Path(args.csv), "force CSV", error) from None
+            raise
     return 0
 
 
@@ -425,8 +516,15 @@ def _parser() -> argparse.ArgumentParser:
     )
     study.add_argument("--name", help="study name (default: the scene's)")
     study.add_argument("-o", "--output", help="study file (.h5); runs go to <stem>_runs/ beside it")
-    study.add_argument("--scheduler", help="address of a running Dask scheduler, e.g. tcp://host:8786")
+    study.add_argument(
+        "--scheduler",
+        help="address of a running Dask scheduler, e.g. tcp://host:8786; it and its workers run the study's "
+        "code: give only one you started (default: a LocalCluster on 127.0.0.1)",
+    )
     study.add_argument("--workers", type=int, help="LocalCluster worker processes (default: the cores)")
+    study.add_argument(
+        "--overwrite", action="store_true", help="replace an -o file that is not this study's study file"
+    )
     study.add_argument(
         "--no-warm-up",
         action="store_true",
@@ -453,8 +551,23 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
     )
+    stdout = sys.stdout
+    sys.stdout = _PipeSafe(stdout)
+    try:
+        return _handle(args)
+    finally:
+        sys.stdout.flush()
+        sys.stdout = stdout
+
+
+def _handle(args: argparse.Namespace) -> int:
+    from refsim.io.driver import RunWriteError
+
     try:
         return args.handler(args)
+    except RunWriteError as error:  # a full disk: nothing half-written is left
+        print(f"refsim {args.command}: error: {error}", file=sys.stderr)
+        return EXIT_SIMULATION
     except (ValueError, OSError) as error:  # SceneError, MeshError, RunInputError, paths
         print(f"refsim {args.command}: error: {error}", file=sys.stderr)
         return EXIT_INPUT

@@ -16,10 +16,13 @@ non-finite or overflowing values, singular     "numerical"           3
 factorisation, diverging constraint solver
 a failed write (full disk)                     "write_failed"        3
 SIGINT (Ctrl-C)                                "interrupted"         130
+SIGHUP (a closed terminal, a dropped ssh)      "hangup"              129
 SIGTERM                                        "terminated"          143
 ============================================  ====================  =========
 
-Bad input raises :class:`RunInputError` (exit code 2) before any file is written.
+Bad input raises :class:`RunInputError` (exit code 2) before any file is written; so does a results file that
+another run is writing (its lock is held). A file that cannot be created because the disk is full raises
+:class:`RunWriteError` (exit code 3), with nothing written and an existing file untouched.
 """
 
 from __future__ import annotations
@@ -34,12 +37,14 @@ from pathlib import Path
 import numpy as np
 
 __all__ = [
+    "EXIT_HANGUP",
     "EXIT_INPUT",
     "EXIT_INTERRUPTED",
     "EXIT_NUMERICAL",
     "EXIT_OK",
     "EXIT_TERMINATED",
     "RunInputError",
+    "RunWriteError",
     "check_output_path",
     "check_record",
     "run_scene",
@@ -48,6 +53,7 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 EXIT_OK, EXIT_INPUT, EXIT_NUMERICAL, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 2, 3, 130, 143
+EXIT_HANGUP = 129  # 128 + SIGHUP, the shell's convention
 
 # : A tissue displacement beyond this many times the tissue's bounding-box diagonal is a diverging run: a
 # tissue : with fixed nodes cannot move that far (measured: an overflow moved it by 1e144 m with finite
@@ -62,8 +68,21 @@ class RunInputError(ValueError):
     """Bad input found before the run (scene, mesh, output path); nothing was written. Exit code 2."""
 
 
+class RunWriteError(OSError):
+    """The results file could not be created (a full disk before the first step); nothing was written and an
+    existing file is untouched. Exit code 3."""
+
+    def __str__(self) -> str:
+        return str(self.strerror)
+
+
 class _Terminated(BaseException):
-    """Raised in the main thread by the SIGTERM handler (a BaseException, like KeyboardInterrupt)."""
+    """Raised in the main thread by the SIGTERM and SIGHUP handlers (a BaseException, like
+    KeyboardInterrupt); ``signum`` says which."""
+
+    def __init__(self, signum: int = signal.SIGTERM) -> None:
+        super().__init__(signum)
+        self.signum = signum
 
 
 class _NumericalProblem(Exception):
@@ -171,8 +190,9 @@ def _numerical_message(error: BaseException, step: int) -> str | None:
 
 
 class _Signals:
-    """SIGINT raises KeyboardInterrupt and SIGTERM raises _Terminated in the main thread, for one run; the
-    previous handlers come back afterwards. In another thread (a Dask worker) nothing is installed."""
+    """SIGINT raises KeyboardInterrupt, SIGTERM and SIGHUP raise _Terminated in the main thread, for one run;
+    the previous handlers come back afterwards. A SIGHUP that is ignored (``nohup refsim run``) stays ignored.
+    In another thread (a Dask worker) nothing is installed."""
 
     def __init__(self, enabled: bool) -> None:
         self.enabled = enabled and threading.current_thread() is threading.main_thread()
@@ -182,11 +202,13 @@ class _Signals:
         if self.enabled:
             self.previous[signal.SIGINT] = signal.signal(signal.SIGINT, signal.default_int_handler)
             self.previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, self._terminate)
+            if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # `nohup refsim run`: keep running
+                self.previous[signal.SIGHUP] = signal.signal(signal.SIGHUP, self._terminate)
         return self
 
     @staticmethod
     def _terminate(signum, frame) -> None:
-        raise _Terminated()
+        raise _Terminated(signum)
 
     def __exit__(self, *exc) -> None:
         for number, handler in self.previous.items():
@@ -215,25 +237,29 @@ def run_scene(
     on_step : Called after each step as ``on_step(state, record)`` (after it was checked and buffered).
     steps : Steps to run (the scene's duration by default).
     buffer_steps : Steps per written block (`refsim.io.writer.DEFAULT_BUFFER_STEPS` by default).
-    handle_signals : In the main thread, turn SIGTERM into a clean stop (exit code 143) for the run's duration
-        and make SIGINT raise KeyboardInterrupt (130); the previous handlers are restored afterwards. The
-        signal ends this run and is reported in the summary, not re-raised: a caller that runs several scenes
-        in a loop must stop when ``summary.status`` is "interrupted" or "terminated" (the resolution study
-        does).
+    handle_signals : In the main thread, turn SIGTERM and SIGHUP into a clean stop (exit codes 143 and 129)
+        for the run's duration and make SIGINT raise KeyboardInterrupt (130); the previous handlers are
+        restored afterwards. The signal ends this run and is reported in the summary, not re-raised: a caller
+        that runs several scenes in a loop must stop when ``summary.status`` is "interrupted", "terminated"
+        or "hangup" (the resolution study does).
 
     Returns
     -------
     RunSummary
         Events, forces, solver health and timing, plus ``status`` ("complete", "numerical", "write_failed",
-        "interrupted", "terminated"), ``exit_code`` (0, 3, 3, 130, 143), ``stop_reason`` ("" when complete),
-        ``complete`` and ``output``. The results file holds every completed step in every case.
+        "interrupted", "terminated", "hangup"), ``exit_code`` (0, 3, 3, 130, 143, 129), ``stop_reason`` (""
+        when complete), ``complete`` and ``output``.
+        The results file holds every completed step in every case.
 
     Raises
     ------
     RunInputError
-        Bad input (the scene's models, the mesh, the output path), before any file is written.
+        Bad input (the scene's models, the mesh, the output path, a file another run is writing), before any
+        file is written.
+    RunWriteError
+        The results file cannot be created (a full disk); nothing is written.
     """
-    from refsim.io.writer import DEFAULT_BUFFER_STEPS, ResultWriter
+    from refsim.io.writer import DEFAULT_BUFFER_STEPS, ResultWriter, WriterLockedError
     from refsim.simulation import Simulation
     from refsim.simulation.summary import RunSummary
 
@@ -255,8 +281,12 @@ def run_scene(
             overwrite=overwrite,
             buffer_steps=DEFAULT_BUFFER_STEPS if buffer_steps is None else buffer_steps,
         )
-    except (OSError, ValueError) as error:
+    except WriterLockedError as error:  # another run is writing the file: it is left alone
+        raise RunInputError(str(error)) from None
+    except (FileExistsError, IsADirectoryError, NotADirectoryError, PermissionError, ValueError) as error:
         raise RunInputError(f"{output}: cannot create the results file: {error}") from None
+    except OSError as error:  # a full disk: nothing written, an existing file untouched
+        raise RunWriteError(error.errno, error.strerror or str(error)) from None
 
     written_cut = [None]
 
@@ -287,8 +317,15 @@ def run_scene(
                 simulation.run(steps=total, on_step=step_done)
             except KeyboardInterrupt:
                 status, code, reason = "interrupted", EXIT_INTERRUPTED, "interrupted by SIGINT"
-            except _Terminated:
-                status, code, reason = "terminated", EXIT_TERMINATED, "interrupted by SIGTERM"
+            except _Terminated as stop:
+                if stop.signum == signal.SIGHUP:
+                    status, code, reason = (
+                        "hangup",
+                        EXIT_HANGUP,
+                        "interrupted by SIGHUP (the terminal closed)",
+                    )
+                else:
+                    status, code, reason = "terminated", EXIT_TERMINATED, "interrupted by SIGTERM"
             except OSError as error:
                 status, code = "write_failed", EXIT_NUMERICAL
                 reason = writer.failure or f"writing the results failed: {error}"

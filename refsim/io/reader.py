@@ -1,7 +1,10 @@
 """Reading a results file written by :class:`refsim.io.ResultWriter` (layout in :mod:`refsim.io.schema`).
 
-The reader trusts the root attribute ``steps_completed``: per-step datasets are cut to that many steps, so a
-file left by an interrupted run (``complete = False``) reads like a shorter complete one.
+The reader trusts the root attribute ``steps_completed`` once it is checked (an integer from 0 to the length
+of ``steps/step``): per-step datasets are cut to that many steps, so a file left by an interrupted run
+(``complete = False``) reads like a shorter complete one. Damage is named, never read as data: a file shorter
+than HDF5's superblock says (truncated: a copy or a transfer cut short) gives its two sizes, and a chunk whose
+Fletcher-32 checksum does not match (a bit flip on the disk or in a copy) gives the dataset.
 """
 
 from __future__ import annotations
@@ -294,7 +297,7 @@ def _open(path) -> tuple:
     try:
         handle = h5py.File(path, "r")
     except OSError as error:
-        raise ResultsError(f"{path}: not an HDF5 file, so not a refsim results file ({error})") from None
+        raise ResultsError(_open_failure(path, error)) from None
     attributes = {key: _plain(value) for key, value in handle.attrs.items()}
     if attributes.get("format") != schema.FORMAT_NAME:
         handle.close()
@@ -313,6 +316,27 @@ def _open(path) -> tuple:
     return path, handle, attributes
 
 
+def _open_failure(path: Path, error: OSError) -> str:
+    """Why h5py could not open ``path``, in words: truncated (with the sizes), not HDF5, or HDF5's reason."""
+    import re
+
+    text = str(error)
+    truncated = re.search(r"truncated file: eof = (\d+).*stored_eof = (\d+)", text)
+    if truncated:
+        size, expected = int(truncated.group(1)), int(truncated.group(2))
+        return (
+            f"{path}: the file is truncated: {size} bytes of the {expected} its HDF5 superblock announces "
+            f"({expected - size} missing at the end, e.g. a copy or a transfer cut short); HDF5 cannot open "
+            "it, so no step can be recovered from this copy: copy the whole file again from where the run "
+            "wrote it, or run the scene again"
+        )
+    with path.open("rb") as stream:
+        head = stream.read(8)
+    if head != b"\x89HDF\r\n\x1a\n":
+        return f"{path}: not an HDF5 file (no HDF5 signature at its start), so not a refsim results file"
+    return f"{path}: an HDF5 file that HDF5 cannot open, damaged ({text})"
+
+
 def _plain(value):
     if isinstance(value, bytes):
         return value.decode("utf-8")
@@ -327,10 +351,35 @@ def _names(dataset) -> tuple[str, ...]:
 
 def _read(handle, path: str, count: int | None = None) -> np.ndarray:
     dataset = handle[path]
-    data = dataset[()] if count is None else dataset[:count]
+    try:
+        data = dataset[()] if count is None else dataset[:count]
+    except OSError as error:  # HDF5: "filter returned failure during read" (Fletcher-32), a bad chunk
+        raise ResultsError(
+            f"{handle.filename}: dataset {path!r} is damaged: {_read_failure(error)}; the file cannot be "
+            "trusted (copy it again from where the run wrote it, or run the scene again)"
+        ) from None
     if dataset.dtype.kind == "O":
         data = np.array([_plain(item) for item in np.ravel(data)], dtype=object).reshape(np.shape(data))
     return data
+
+
+def _read_failure(error: OSError) -> str:
+    text = str(error)
+    if "filter" in text.lower() or "checksum" in text.lower():
+        return "its Fletcher-32 checksum does not match the data (a bit changed on the disk or in a copy)"
+    return f"HDF5 cannot read it ({text})"
+
+
+def _steps_completed(handle, path: Path, attributes: dict) -> int:
+    """The root attribute ``steps_completed``, checked: an integer in [0, length of steps/step]."""
+    value = attributes.get("steps_completed", 0)
+    stored = handle[schema.STEPS["step"].path].shape[0]
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 0 <= value <= stored:
+        raise ResultsError(
+            f"{path}: root attribute steps_completed = {value!r} is not an integer in [0, {stored}] (the "
+            f"steps the file holds); the file is damaged"
+        )
+    return int(value)
 
 
 def _require(handle, path: Path, dataset_path: str):
@@ -359,11 +408,10 @@ def read_results(path) -> Results:
         for spec in schema.all_datasets():
             if spec.growing or spec.path.startswith("scene/"):
                 _require(handle, path, spec.path)
-        count = int(attributes.get("steps_completed", 0))
-        count = min(count, handle[schema.STEPS["step"].path].shape[0])
+        count = _steps_completed(handle, path, attributes)
         offsets = _read(handle, schema.CONSTRAINTS["offsets"].path, count + 1)
         row_count = int(offsets[-1])
-        last_step = int(handle[schema.STEPS["step"].path][count - 1]) if count else 0
+        last_step = int(_read(handle, schema.STEPS["step"].path, count)[-1]) if count else 0
 
         steps = {
             name: _read(handle, spec.path, count)
@@ -474,9 +522,8 @@ def read_problems(path, *, steps=None) -> list[tuple[int, object]]:
     wanted = None if steps is None else {int(step) for step in steps}
     problems = []
     with handle:
-        count = int(attributes.get("steps_completed", 0))
-        step_data = handle[schema.STEPS["step"].path]
-        last_step = int(step_data[min(count, step_data.shape[0]) - 1]) if count else 0
+        count = _steps_completed(handle, path, attributes)
+        last_step = int(_read(handle, schema.STEPS["step"].path, count)[-1]) if count else 0
         for step in _problem_steps(handle, last_step):
             if wanted is not None and step not in wanted:
                 continue
@@ -492,8 +539,13 @@ def read_problem_group(group, *, default_name: str = ""):
     """
     from refsim.solvers import ConstraintProblem
 
-    fields = {
-        spec.name: group[spec.name][()] for spec in schema.PROBLEM_FIELDS.values() if spec.name in group
-    }
+    try:
+        fields = {
+            spec.name: group[spec.name][()] for spec in schema.PROBLEM_FIELDS.values() if spec.name in group
+        }
+    except OSError as error:
+        raise ResultsError(
+            f"{group.file.filename}: group {group.name!r} is damaged: {_read_failure(error)}"
+        ) from None
     name = _plain(group.attrs.get("name", "")) or default_name
     return ConstraintProblem(**fields, name=name)

@@ -15,14 +15,26 @@ space of the file's file system against the block's size (with a margin for HDF5
 block with an :class:`OSError` (ENOSPC) before touching the file; an OSError raised by HDF5 itself is caught
 the same way. After a failed write the writer accepts no more steps and :meth:`close` leaves the file readable
 with the steps of the blocks written before.
+
+Nothing half-written, one writer per file: the writer first takes an exclusive lock on the sidecar
+``.<name>.lock`` beside the file (``fcntl.flock``, held until :meth:`close`), so a second run on the same path
+fails before anything is truncated. It then checks the free space against the static part, writes the static
+part (attributes, mesh, trajectory, empty growing datasets) to a temporary ``.<name>.<pid>.partial`` beside
+the file and renames it into place (``os.replace``) only once that part is written and flushed: an existing
+file is replaced only by a readable one, and a failure before (a full disk) removes the temporary and leaves
+the old file untouched. Every numeric dataset carries HDF5's Fletcher-32 checksum filter
+(``fletcher32=True``; variable-length string datasets cannot take a filter), so a damaged chunk is detected
+when it is read (:func:`refsim.io.reader.read_results` names the dataset).
 """
 
 from __future__ import annotations
 
 import datetime
 import errno
+import fcntl
 import json
 import logging
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -32,7 +44,7 @@ import numpy as np
 from refsim.io import schema
 from refsim.io.schema import DatasetSpec
 
-__all__ = ["ResultWriter", "git_commit"]
+__all__ = ["FileLock", "ResultWriter", "WriterLockedError", "git_commit"]
 
 logger = logging.getLogger(__name__)
 
@@ -42,6 +54,68 @@ _CHUNK_ROWS = 1024  # rows per chunk of the ragged constraint and event datasets
 DEFAULT_BUFFER_STEPS = 32
 # Free space kept beyond a block's own bytes, for HDF5's metadata and the attributes written on close [bytes].
 _SPACE_MARGIN = 64 * 1024
+# Bytes of HDF5 metadata per dataset (object header, chunk index, attributes) counted in the static part's
+# estimate: an object header with two attributes and a v1 B-tree node is 2-5 kB; 8 kB is a bound.
+_METADATA_PER_DATASET = 8 * 1024
+
+
+class WriterLockedError(FileExistsError):
+    """Another process holds the lock of a results file (it is writing it); nothing was touched."""
+
+    def __str__(self) -> str:
+        return str(self.strerror)
+
+
+class FileLock:
+    """An exclusive advisory lock (``fcntl.flock``) on ``.<name>.lock`` beside ``path``, for one writer.
+
+    The lock file holds the pid of the holder. Taking it never blocks: a held lock raises
+    :class:`WriterLockedError` naming the path and the holder. :meth:`release` unlinks the lock file while
+    still holding it; a process that opened the old file meanwhile sees that its inode is no longer the
+    path's and tries again, so two processes never both believe they hold the lock.
+
+    Parameters
+    ----------
+    path : The file the lock protects.
+    """
+
+    def __init__(self, path) -> None:
+        self.path = Path(path)
+        self.lock_path = self.path.with_name(f".{self.path.name}.lock")
+        self._fd: int | None = None
+        for _ in range(10):
+            fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                holder = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "unknown"
+                os.close(fd)
+                raise WriterLockedError(
+                    errno.EBUSY,
+                    f"{self.path}: another process (pid {holder}) is writing this file (its lock "
+                    f"{self.lock_path.name} is held); wait for it to finish or choose another path",
+                ) from None
+            try:
+                same = os.fstat(fd).st_ino == os.stat(self.lock_path).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+                self._fd = fd
+                return
+            os.close(fd)  # released and unlinked by its holder meanwhile: take the new one
+        raise WriterLockedError(errno.EBUSY, f"{self.path}: cannot take the lock {self.lock_path.name}")
+
+    def release(self) -> None:
+        """Unlink the lock file and release the lock (idempotent)."""
+        if self._fd is None:
+            return
+        try:
+            self.lock_path.unlink(missing_ok=True)
+        finally:
+            os.close(self._fd)
+            self._fd = None
 
 
 def git_commit(directory: str | Path | None = None) -> str:
@@ -95,8 +169,13 @@ class ResultWriter:
 
     Raises
     ------
+    WriterLockedError (a FileExistsError)
+        When another process is writing ``path`` (its lock is held); nothing is touched.
     FileExistsError
         When ``path`` exists and ``overwrite`` is False (the message names the path).
+    OSError
+        When the static part cannot be written (ENOSPC: a full disk, checked before writing); the temporary
+        file is removed and an existing file at ``path`` is untouched.
 
     Examples
     --------
@@ -121,58 +200,45 @@ class ResultWriter:
         from refsim.simulation.records import STAGES
 
         self.path = Path(path)
-        if self.path.exists() and not overwrite:
-            raise FileExistsError(
-                f"{self.path}: the results file exists; choose another path or pass overwrite=True "
-                "(command line: --overwrite)"
-            )
         if self.path.is_dir():
             raise IsADirectoryError(f"{self.path}: is a directory, expected a results file path")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         if isinstance(buffer_steps, bool) or not isinstance(buffer_steps, int) or buffer_steps < 1:
             raise ValueError(f"buffer_steps must be an integer >= 1, got {buffer_steps!r}")
-        self._stages = tuple(STAGES)
-        self._steps_completed = 0
-        self._closed = False
-        self._datasets: dict = {}
-        self._buffer_steps = buffer_steps
-        self._pending: list[dict] = []  # one dict {dataset path: array} per buffered step
-        self._pending_problems: list = []  # (step, problem)
-        self._pending_cut: dict | None = None
-        self._pending_rows = 0  # constraint rows buffered (for the offsets)
-        self._rows_written = 0
-        self.failure: str | None = None  # why writing stopped (a failed write), or None
-
-        mesh = models.mesh
-        rest_positions = np.asarray(mesh.rest_positions, dtype=np.float64)
-        rest_nodes = (
-            _initial_needle_nodes(scene, models)
-            if needle_rest_nodes is None
-            else np.asarray(needle_rest_nodes, dtype=np.float64)
-        )
-        self._boundary_nodes = np.asarray(getattr(models, "boundary_nodes", np.zeros(0)), dtype=np.int64)
-        self._sizes = {
-            "n": rest_positions.shape[0],
-            "k": rest_nodes.shape[0],
-            "stages": len(self._stages),
-            "b": max(self._boundary_nodes.size, 1),
-        }
-
-        self._file = h5py.File(self.path, "w")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._lock = FileLock(self.path)  # before anything else: another writer is refused, nothing touched
         try:
-            attributes = self._file.attrs
-            attributes["format"] = schema.FORMAT_NAME
-            attributes["schema_version"] = schema.SCHEMA_VERSION
-            attributes["refsim_version"] = __version__
-            attributes["git_commit"] = git_commit()
-            attributes["created"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
-            attributes["scene"] = scene_to_json(scene)
-            attributes["scene_name"] = scene.name
-            attributes["linear_solver"] = json.dumps(_linear_solver(scene))
-            attributes["threads"] = json.dumps(_threads())
-            attributes["complete"] = False
-            attributes["steps_completed"] = 0
-            attributes["stop_reason"] = "running (or stopped without a reason: killed)"
+            if self.path.exists() and not overwrite:
+                raise FileExistsError(
+                    f"{self.path}: the results file exists; choose another path or pass overwrite=True "
+                    "(command line: --overwrite)"
+                )
+            self._stages = tuple(STAGES)
+            self._steps_completed = 0
+            self._closed = False
+            self._datasets: dict = {}
+            self._buffer_steps = buffer_steps
+            self._pending: list[dict] = []  # one dict {dataset path: array} per buffered step
+            self._pending_problems: list = []  # (step, problem)
+            self._pending_cut: dict | None = None
+            self._pending_rows = 0  # constraint rows buffered (for the offsets)
+            self._rows_written = 0
+            self.failure: str | None = None  # why writing stopped (a failed write), or None
+
+            mesh = models.mesh
+            rest_positions = np.asarray(mesh.rest_positions, dtype=np.float64)
+            rest_nodes = (
+                _initial_needle_nodes(scene, models)
+                if needle_rest_nodes is None
+                else np.asarray(needle_rest_nodes, dtype=np.float64)
+            )
+            self._boundary_nodes = np.asarray(getattr(models, "boundary_nodes", np.zeros(0)), dtype=np.int64)
+            self._sizes = {
+                "n": rest_positions.shape[0],
+                "k": rest_nodes.shape[0],
+                "stages": len(self._stages),
+                "b": max(self._boundary_nodes.size, 1),
+            }
+            scene_json = scene_to_json(scene)
             static = {
                 "tissue/rest_positions": rest_positions,
                 "tissue/tets": np.asarray(mesh.tets, dtype=np.int64),
@@ -184,18 +250,61 @@ class ResultWriter:
                 ).astype(np.float64),
                 "needle/rest_nodes": rest_nodes,
             }
-            for name, value in static.items():
-                self._write_fixed(schema.STATIC[name], value)
-            for group in (schema.STEPS, schema.SOLVER, schema.TISSUE, schema.CONSTRAINTS, schema.EVENTS):
-                for spec in group.values():
-                    self._create_growing(spec)
-            self._datasets["steps/phase"].attrs["names"] = list(schema.PHASE_NAMES)
-            self._datasets["steps/stage_seconds"].attrs["names"] = list(self._stages)
-            self._set_code_names()
-            self._append("constraints/offsets", np.zeros(1, dtype=np.int64))
-            self._file.flush()
+            self._check_static_space(static, len(scene_json))
+            temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.partial")
+            try:
+                self._file = h5py.File(temporary, "w")
+                try:
+                    attributes = self._file.attrs
+                    attributes["format"] = schema.FORMAT_NAME
+                    attributes["schema_version"] = schema.SCHEMA_VERSION
+                    attributes["refsim_version"] = __version__
+                    attributes["git_commit"] = git_commit()
+                    attributes["created"] = datetime.datetime.now(datetime.timezone.utc).isoformat(
+                        timespec="seconds"
+                    )
+                    attributes["scene"] = scene_json
+                    attributes["scene_name"] = scene.name
+                    attributes["linear_solver"] = json.dumps(_linear_solver(scene))
+                    attributes["threads"] = json.dumps(_threads())
+                    attributes["complete"] = False
+                    attributes["steps_completed"] = 0
+                    attributes["stop_reason"] = "running (or stopped without a reason: killed)"
+                    for name, value in static.items():
+                        self._write_fixed(schema.STATIC[name], value)
+                    for group in (
+                        schema.STEPS,
+                        schema.SOLVER,
+                        schema.TISSUE,
+                        schema.CONSTRAINTS,
+                        schema.EVENTS,
+                    ):
+                        for spec in group.values():
+                            self._create_growing(spec)
+                    self._datasets["steps/phase"].attrs["names"] = list(schema.PHASE_NAMES)
+                    self._datasets["steps/stage_seconds"].attrs["names"] = list(self._stages)
+                    self._set_code_names()
+                    self._append("constraints/offsets", np.zeros(1, dtype=np.int64))
+                    self._file.flush()
+                except BaseException:
+                    try:
+                        self._file.close()
+                    except OSError:
+                        pass
+                    raise
+                os.replace(temporary, self.path)  # only a file with its static part takes the name
+            except OSError as error:
+                temporary.unlink(missing_ok=True)
+                raise OSError(
+                    error.errno or errno.EIO,
+                    f"{self.path}: cannot write the results file's static part ({error}); nothing was "
+                    "written (an existing file is untouched)",
+                ) from None
+            except BaseException:
+                temporary.unlink(missing_ok=True)
+                raise
         except BaseException:
-            self._file.close()
+            self._lock.release()
             raise
         logger.info("writing results to %s", self.path)
 
@@ -253,6 +362,8 @@ class ResultWriter:
                 logger.error("%s: closing the results file failed: %s", self.path, error)
                 if self.failure is None:
                     self.failure = f"closing the results file failed: {error}"
+            finally:
+                self._lock.release()
         logger.info("closed %s: %d steps, complete=%s", self.path, self._steps_completed, complete)
 
     # ------------------------------------------------------------------ per step
@@ -363,6 +474,30 @@ class ResultWriter:
         if self._pending_cut is not None and count == len(self._pending):
             total += sum(np.asarray(v).nbytes for v in self._pending_cut.values())
         return total
+
+    def _check_static_space(self, static: dict, attribute_bytes: int) -> None:
+        """Refuse (OSError ENOSPC, naming the path and the sizes) when the file system lacks room for the
+        static part: its arrays, the attributes, the metadata of every dataset and the margin."""
+        dataset_count = len(static) + sum(
+            len(group)
+            for group in (schema.STEPS, schema.SOLVER, schema.TISSUE, schema.CONSTRAINTS, schema.EVENTS)
+        )
+        needed = (
+            sum(np.asarray(value).nbytes for value in static.values())
+            + attribute_bytes
+            + dataset_count * _METADATA_PER_DATASET
+            + _SPACE_MARGIN
+        )
+        try:
+            free = shutil.disk_usage(self.path.parent).free
+        except OSError:
+            return
+        if free < needed:
+            raise OSError(
+                errno.ENOSPC,
+                f"{self.path}: no space left for the results file: its static part (mesh, trajectory, "
+                f"scene) needs about {needed} bytes and {free} bytes are free; nothing was written",
+            )
 
     def _steps_that_fit(self) -> int:
         """How many of the buffered steps the file system has room for (all of them when it cannot tell)."""
@@ -507,7 +642,9 @@ class ResultWriter:
         dataset.attrs["description"] = spec.meaning
 
     def _write_fixed(self, spec: DatasetSpec, value: np.ndarray) -> None:
-        dataset = self._file.create_dataset(spec.path, data=value, dtype=schema.numpy_dtype(spec))
+        dataset = self._file.create_dataset(
+            spec.path, data=value, dtype=schema.numpy_dtype(spec), fletcher32=_checksummed(spec, value)
+        )
         self._describe(dataset, spec)
 
     def _create_growing(self, spec: DatasetSpec) -> None:
@@ -523,6 +660,7 @@ class ResultWriter:
             maxshape=(None,) + entry,
             chunks=chunk + entry,
             dtype=schema.numpy_dtype(spec),
+            fletcher32=spec.dtype != "str",
         )
         self._describe(dataset, spec)
         self._datasets[spec.path] = dataset
@@ -637,11 +775,18 @@ def write_problem_group(group, problem) -> None:
     and its name into an open h5py group; :func:`refsim.io.reader.read_problem_group` reads it back."""
     group.attrs["name"] = str(problem.name)
     for spec in schema.PROBLEM_FIELDS.values():
+        value = np.asarray(getattr(problem, spec.name))
         dataset = group.create_dataset(
-            spec.name, data=np.asarray(getattr(problem, spec.name)), dtype=schema.numpy_dtype(spec)
+            spec.name, data=value, dtype=schema.numpy_dtype(spec), fletcher32=_checksummed(spec, value)
         )
         dataset.attrs["units"] = spec.unit
         dataset.attrs["description"] = spec.meaning
+
+
+def _checksummed(spec: DatasetSpec, value) -> bool:
+    """Whether a dataset takes the Fletcher-32 filter: every numeric array (a filter needs chunks, which a
+    scalar cannot have, and HDF5 refuses filters on variable-length strings)."""
+    return spec.dtype != "str" and np.ndim(value) > 0
 
 
 def _linear_solver(scene) -> dict:

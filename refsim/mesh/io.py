@@ -41,13 +41,16 @@ def read_mesh(path: str | Path, *, fix_orientation: bool = True) -> TetMesh:
     Returns
     -------
     The mesh, with its tetrahedra (all "tetra" cell blocks); other cell types (triangles, lines, points,
-    quadratic elements) are ignored, and nodes used by no tetrahedron are dropped with a logged warning.
+    quadratic elements) are ignored, and nodes used by no tetrahedron are dropped with a logged warning. When
+    nodes were merged or dropped, ``mesh.node_map`` maps the file's node indices to the mesh's
+    (``mesh.file_nodes``), so that indices given in the file's numbering still name the same nodes.
 
     Raises
     ------
     MeshError
         Naming the file and the defect: missing, unreadable or empty file, no tetrahedra, non-finite
-        coordinates, node indices out of range, degenerate tetrahedra, or inverted ones when not fixed.
+        coordinates, node indices out of range, degenerate tetrahedra, a tangled mesh (overlapping
+        tetrahedra), or inverted ones when not fixed.
     """
     path = Path(path)
     source = str(path)
@@ -66,15 +69,17 @@ def read_mesh(path: str | Path, *, fix_orientation: bool = True) -> TetMesh:
         positions, tets = _read_gmsh_v1(path)
     else:
         positions, tets = _read_meshio(path)
-    positions, tets = validate_mesh(
+    positions, tets, node_map = validate_mesh(
         positions,
         tets,
         source=source,
         fix_orientation=fix_orientation,
         drop_unused_nodes=True,
         merge_duplicates=True,
+        return_node_map=True,
     )
-    mesh = TetMesh(positions, tets, source=source)
+    renumbered = not np.array_equal(node_map, np.arange(node_map.shape[0]))
+    mesh = TetMesh(positions, tets, source=source, node_map=node_map if renumbered else None)
     logger.info("read %s: %d nodes, %d tetrahedra", source, mesh.node_count, mesh.tet_count)
     return mesh
 

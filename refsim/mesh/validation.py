@@ -31,6 +31,9 @@ DUPLICATE_NODE_TOLERANCE = 1e-9
 # Tetrahedron edges as pairs of local node indices.
 _TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 _TET_FACES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+# The faces of a positively oriented tetrahedron, each ordered so that its right-hand normal points out of it
+# (for the unit tetrahedron 0, e1, e2, e3: (e2 − e1) × (e3 − e1) = (1, 1, 1) for the face opposite node 0).
+_TET_OUTWARD_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
 
 
 class MeshError(ValueError):
@@ -80,7 +83,8 @@ def validate_mesh(
     fix_orientation: bool = False,
     drop_unused_nodes: bool = False,
     merge_duplicates: bool = False,
-) -> tuple[np.ndarray, np.ndarray]:
+    return_node_map: bool = False,
+) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Check a tetrahedral mesh and return it as float64 positions and int64 tets.
 
     Parameters
@@ -89,23 +93,28 @@ def validate_mesh(
     tets : Node indices of the tetrahedra, shape (tet_count, 4).
     source : File name or description, used in error messages.
     fix_orientation : Reorder the nodes of inverted (negative-volume) tetrahedra, swapping their last two
-        nodes, with a logged warning; otherwise inverted tetrahedra are an error.
+        nodes, with a logged warning; otherwise inverted tetrahedra are an error. Only a wrong node order
+        is fixed: a tetrahedron inverted by the motion of a node (a tangled mesh: after the swap it lies on
+        the same side of a face as its neighbour, the two overlap) is an error either way.
     drop_unused_nodes : Remove nodes used by no tetrahedron and renumber, with a logged warning; otherwise
         unused nodes are an error (they would make the stiffness matrix singular).
     merge_duplicates : Merge coincident nodes (`merge_duplicate_nodes`) with a logged warning; otherwise
         coincident nodes are an error.
+    return_node_map : Also return where each input node went (merges and dropped nodes renumber them).
 
     Returns
     -------
     rest_positions : Node positions [m], shape (node_count, 3), float64.
     tets : Node indices, shape (tet_count, 4), int64, every tetrahedron of positive volume.
+    node_map : Only with ``return_node_map``: the index in the returned mesh of each input node, shape
+        (input node count,), int64; -1 for a node dropped as unused.
 
     Raises
     ------
     MeshError
         For bad shapes, no nodes or no tetrahedra, non-finite coordinates, indices out of range, zero-volume
-        (degenerate) tetrahedra, faces shared by more than two tetrahedra, and, unless fixed, inverted
-        tetrahedra and unused nodes.
+        (degenerate) tetrahedra, faces shared by more than two tetrahedra, tangled (overlapping) tetrahedra,
+        and, unless fixed, inverted tetrahedra and unused nodes.
     """
     positions, tets = _check_shapes(rest_positions, tets, source)
     node_count = positions.shape[0]
@@ -122,13 +131,20 @@ def validate_mesh(
             f"{out_of_range.size} tetrahedra with node indices out of range [0, {node_count - 1}]: "
             f"tets {_first(out_of_range)} (indices {_first(values)})",
         )
+    node_map = np.arange(node_count, dtype=np.int64)
     if merge_duplicates:
-        positions, tets, _ = merge_duplicate_nodes(positions, tets, source=source)
+        merged_positions, merged_tets, merged = merge_duplicate_nodes(positions, tets, source=source)
+        if merged:
+            node_map = _merge_map(positions)
+        positions, tets = merged_positions, merged_tets
     else:
         _check_duplicates(positions, source)
     tets = _check_volumes(positions, tets, source, fix_orientation)
     _check_faces(tets, source)
-    return _check_unused(positions, tets, source, drop_unused_nodes)
+    positions, tets, renumber = _check_unused(positions, tets, source, drop_unused_nodes)
+    if return_node_map:
+        return positions, tets, renumber[node_map]
+    return positions, tets
 
 
 def degenerate_tets(rest_positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -163,28 +179,15 @@ def merge_duplicate_nodes(
     tets : Renumbered tets, (m, 4).
     merged : Number of nodes merged away.
     """
-    from scipy.spatial import cKDTree
-
     positions = np.asarray(rest_positions, dtype=float)
     diagonal = float(np.linalg.norm(positions.max(axis=0) - positions.min(axis=0)))
-    pairs = cKDTree(positions).query_pairs(
-        DUPLICATE_NODE_TOLERANCE * max(diagonal, 1e-300), output_type="ndarray"
-    )
-    if pairs.size == 0:
-        return positions, np.asarray(tets), 0
-    # Union the pairs (connected components) and map each node onto the smallest index of its cluster.
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
+    mapping = _merge_map(positions)
     count = positions.shape[0]
-    graph = coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(count, count))
-    _, labels = connected_components(graph, directed=False)
-    first = np.full(labels.max() + 1, count, dtype=np.int64)
-    np.minimum.at(first, labels, np.arange(count))
-    representative = first[labels]
-    keep = representative == np.arange(count)
-    renumber = np.cumsum(keep) - 1
+    keep = np.zeros(count, dtype=bool)
+    keep[np.unique(mapping, return_index=True)[1]] = True  # each cluster keeps its smallest index
     merged = int(count - keep.sum())
+    if merged == 0:
+        return positions, np.asarray(tets), 0
     logger.warning(
         "%s: merged %d duplicate node(s) (closer than %.1e of the mesh size %.3g m); the mesh had "
         "unconnected "
@@ -194,7 +197,32 @@ def merge_duplicate_nodes(
         DUPLICATE_NODE_TOLERANCE,
         diagonal,
     )
-    return positions[keep], renumber[representative[np.asarray(tets)]], merged
+    return positions[keep], mapping[np.asarray(tets)], merged
+
+
+def _merge_map(positions: np.ndarray) -> np.ndarray:
+    """The index of each node after merging duplicates (clusters onto their smallest index, then
+    renumbered in order), shape (n,)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    count = positions.shape[0]
+    diagonal = float(np.linalg.norm(positions.max(axis=0) - positions.min(axis=0)))
+    pairs = cKDTree(positions).query_pairs(
+        DUPLICATE_NODE_TOLERANCE * max(diagonal, 1e-300), output_type="ndarray"
+    )
+    if pairs.size == 0:
+        return np.arange(count, dtype=np.int64)
+    # Union the pairs (connected components) and map each node onto the smallest index of its cluster.
+    graph = coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(count, count))
+    _, labels = connected_components(graph, directed=False)
+    first = np.full(labels.max() + 1, count, dtype=np.int64)
+    np.minimum.at(first, labels, np.arange(count))
+    representative = first[labels]
+    keep = representative == np.arange(count)
+    renumber = np.cumsum(keep) - 1
+    return renumber[representative].astype(np.int64)
 
 
 def _check_volumes(positions: np.ndarray, tets: np.ndarray, source: str, fix_orientation: bool) -> np.ndarray:
@@ -213,12 +241,47 @@ def _check_volumes(positions: np.ndarray, tets: np.ndarray, source: str, fix_ori
             raise MeshError(
                 source, f"{inverted.size} inverted (negative-volume) tetrahedra: tets {_first(inverted)}"
             )
-        logger.warning(
-            "%s: fixed the orientation of %d inverted tetrahedra (swapped two nodes)", source, inverted.size
-        )
         tets = tets.copy()
         tets[inverted] = tets[inverted][:, [0, 1, 3, 2]]
+        _check_folds(tets, inverted, source)
+        logger.warning(
+            "%s: fixed the orientation of %d inverted tetrahedra (swapped two nodes: the file listed them in "
+            "the other order; no element overlaps another)",
+            source,
+            inverted.size,
+        )
     return tets
+
+
+def _check_folds(tets: np.ndarray, swapped: np.ndarray, source: str) -> None:
+    """Refuse a tangled mesh: two positively oriented tetrahedra that share a face must lie on its two sides,
+    so they see the face with opposite orientations; the same orientation means both lie on one side and
+    overlap (a node was moved through a face of its element). ``tets`` are oriented (all volumes > 0);
+    ``swapped`` the tetrahedra whose nodes were reordered."""
+    faces = tets[:, _TET_OUTWARD_FACES].reshape(-1, 3)
+    # Orientation of each face relative to its sorted node order: the parity of the sorting permutation.
+    a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
+    parity = ((a > b).astype(np.int8) + (a > c) + (b > c)) % 2
+    _, inverse, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    order = np.argsort(inverse, kind="stable")
+    shared = counts[inverse[order]] == 2
+    pairs = order[shared].reshape(-1, 2)  # the two (tet, face) entries of every interior face
+    folded = pairs[parity[pairs[:, 0]] == parity[pairs[:, 1]]]
+    if folded.size == 0:
+        return
+    tets_folded = np.unique(folded // 4)
+    first = folded[0] // 4
+    face = np.sort(faces[folded[0, 0]]).tolist()
+    raise MeshError(
+        source,
+        f"the mesh is tangled: {tets_folded.size} tetrahedra overlap a neighbour (tets "
+        f"{_first(tets_folded)}; "
+        f"e.g. tets {int(first[0])} and {int(first[1])} lie on the same side of their shared face {face}). "
+        f"{np.isin(tets_folded, swapped).sum()} of them had a negative volume: a node moved through a face "
+        "of its element (a smoothing or a morph), which swapping nodes cannot repair (the overlap would be "
+        "counted twice); untangle the mesh in the mesher",
+    )
 
 
 def _check_duplicates(positions: np.ndarray, source: str) -> None:
@@ -251,14 +314,22 @@ def _check_faces(tets: np.ndarray, source: str) -> None:
 
 def _check_unused(
     positions: np.ndarray, tets: np.ndarray, source: str, drop_unused_nodes: bool
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions, tets and the new index of each node (-1 when dropped), after dropping unused nodes."""
     used = np.zeros(positions.shape[0], dtype=bool)
     used[tets.reshape(-1)] = True
     unused = np.flatnonzero(~used)
     if unused.size == 0:
-        return positions, tets
+        return positions, tets, np.arange(positions.shape[0], dtype=np.int64)
     if not drop_unused_nodes:
         raise MeshError(source, f"{unused.size} node(s) used by no tetrahedron: nodes {_first(unused)}")
-    logger.warning("%s: dropped %d node(s) used by no tetrahedron and renumbered", source, unused.size)
-    renumber = np.cumsum(used) - 1
-    return positions[used], renumber[tets]
+    logger.warning(
+        "%s: dropped %d node(s) used by no tetrahedron (nodes %s) and renumbered the others; node indices "
+        "given in the scene (mesh.fixed_nodes, boundary.nodes) refer to the file's numbering and are "
+        "renumbered with them",
+        source,
+        unused.size,
+        _first(unused),
+    )
+    renumber = np.where(used, np.cumsum(used) - 1, -1).astype(np.int64)
+    return positions[used], renumber[tets], renumber

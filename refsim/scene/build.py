@@ -26,7 +26,10 @@ __all__ = [
     "build_controls",
     "build_models",
     "build_mesh",
+    "check_boundary_motion",
+    "check_held",
     "check_models",
+    "check_time_resolution",
     "fixed_nodes",
     "read_displacement_csv",
 ]
@@ -55,34 +58,98 @@ class SceneModels:
     boundary_nodes: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
+#: Peak memory of a run per tetrahedron [bytes]: the marginal peak RSS of the cube scene (5 steps) between
+#: 8³ and 20³ cells was 10.0 to 12.5 kB per tetrahedron (docs/faults.md, "Memory"); the larger is taken. The
+#: factorisation's fill grows faster than the tet count, so for larger meshes it underestimates: a mesh it
+#: refuses certainly does not fit.
+BYTES_PER_TET = 12_500
+
+
+def available_memory() -> int | None:
+    """Memory the system can give this process now [bytes] (MemAvailable of /proc/meminfo), or None."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as stream:
+            for line in stream:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError):
+        return None
+    return None
+
+
+def check_memory(tets: int, key: str, value) -> None:
+    """Refuse a mesh whose run would need more memory than the machine has available now.
+
+    Parameters
+    ----------
+    tets : Number of tetrahedra.
+    key, value : The scene key that sets the mesh size and its value, for the message.
+
+    Raises
+    ------
+    SceneError
+        Naming the key, the value, the estimate (tets × BYTES_PER_TET) and the memory available.
+    """
+    free = available_memory()
+    needed = tets * BYTES_PER_TET
+    if free is None or needed <= free:
+        return
+    raise SceneError(
+        f"{key} = {value!r}: {tets} tetrahedra need about {needed / 2**30:.3g} GiB ({BYTES_PER_TET} bytes "
+        f"per tetrahedron, measured) and this machine has {free / 2**30:.3g} GiB available; at most about "
+        f"{free // BYTES_PER_TET} tetrahedra fit"
+    )
+
+
 def build_mesh(spec: MeshSpec, base_directory: str = ".") -> TetMesh:
-    """The tissue mesh of a [mesh] section (a file path is relative to the scene file)."""
+    """The tissue mesh of a [mesh] section (a file path is relative to the scene file).
+
+    Raises
+    ------
+    SceneError
+        When the run of the mesh would need more memory than available (:func:`check_memory`), for a box
+        before it is generated.
+    """
     if spec.generator == "box":
+        check_memory(6 * int(np.prod(spec.cells)), "mesh.cells", list(spec.cells))
         return box_mesh(size=spec.size, cells=spec.cells, origin=spec.origin)
     path = Path(spec.file)
     if not path.is_absolute():
         path = Path(base_directory) / path
     mesh = read_mesh(path)
+    check_memory(mesh.tet_count, "mesh.file", str(path))
     if spec.scale != 1.0:
         mesh = mesh.scaled(spec.scale)
     return mesh
 
 
-def fixed_nodes(spec: MeshSpec, rest_positions: np.ndarray) -> np.ndarray:
-    """Nodes on the named bounding-box faces or inside the fixed box, sorted, shape (k,).
+def fixed_nodes(spec: MeshSpec, rest_positions: np.ndarray, mesh: TetMesh | None = None) -> np.ndarray:
+    """Nodes on the named bounding-box faces, inside the fixed box or listed by index, sorted, shape (k,).
+
+    Parameters
+    ----------
+    spec : The [mesh] section.
+    rest_positions : Node positions [m], shape (n, 3).
+    mesh : The mesh as read: ``mesh.fixed_nodes`` are in the file's numbering and go through
+        ``mesh.file_nodes`` (the reader may have merged or dropped nodes); without it they are taken as
+        indices of ``rest_positions``.
 
     Raises
     ------
     ValueError
-        When the selection is empty (naming the keys).
+        When the selection is empty or every node, or an index is out of range or names a dropped node
+        (naming the keys).
     """
     lower, upper = rest_positions.min(axis=0), rest_positions.max(axis=0)
     selected = np.zeros(len(rest_positions), dtype=bool)
     if spec.fixed_nodes is not None:
-        indices = np.asarray(spec.fixed_nodes, dtype=np.int64)
-        if indices.size and indices.max() >= len(rest_positions):
+        indices = _node_indices(spec.fixed_nodes, "mesh.fixed_nodes")
+        if mesh is not None:
+            indices = mesh.file_nodes(indices, key="mesh.fixed_nodes")
+        elif indices.size and (indices.min() < 0 or indices.max() >= len(rest_positions)):
+            bad = indices[(indices < 0) | (indices >= len(rest_positions))]
             raise ValueError(
-                f"mesh.fixed_nodes contains {int(indices.max())}: the mesh has {len(rest_positions)} nodes "
+                f"mesh.fixed_nodes contains {int(bad[0])}: the mesh has {len(rest_positions)} nodes "
                 f"(indices 0 .. {len(rest_positions) - 1})"
             )
         selected[indices] = True
@@ -111,6 +178,73 @@ def fixed_nodes(spec: MeshSpec, rest_positions: np.ndarray) -> np.ndarray:
     return nodes
 
 
+def _node_indices(values, key: str) -> np.ndarray:
+    """Node indices from a scene key, checked: integers (not booleans, not 2.5), shape (k,)."""
+    values = tuple(values)
+    bad = [v for v in values if isinstance(v, bool) or not isinstance(v, (int, np.integer))]
+    if bad:
+        raise ValueError(f"{key} contains {bad[0]!r}: expected node indices, integers >= 0")
+    return np.asarray(values, dtype=np.int64).reshape(-1)
+
+
+def check_held(scene: Scene, mesh: TetMesh, held: np.ndarray) -> None:
+    """Every connected part of the mesh must be held in place: at least three of its nodes, not on one line,
+    fixed or moved by the boundary motion. A part held by fewer (or by collinear nodes) keeps a rigid-body
+    motion (a translation, or a rotation about the held point or line): it drifts away, falls under gravity or
+    spins when the needle pushes it, and has no static equilibrium.
+
+    Raises
+    ------
+    SceneError
+        Naming the part (its node and tet counts, its centre) and the keys that choose the held nodes.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    count = mesh.node_count
+    tets = mesh.tets
+    rows = np.repeat(tets[:, 0], 3)
+    cols = tets[:, 1:].reshape(-1)
+    graph = coo_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(count, count))
+    parts, labels = connected_components(graph, directed=False)
+    rest = mesh.rest_positions
+    extent = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
+    held = np.unique(np.asarray(held, dtype=np.int64))
+    part_of = labels[held]
+    anchors = np.bincount(part_of, minlength=parts)
+    # Spread of each part's held nodes: the eigenvalues of their covariance (sums per part, no loop): the
+    # second largest is zero when they lie on one line.
+    points = rest[held]
+    mean = np.stack([np.bincount(part_of, points[:, i], parts) for i in range(3)], axis=1)
+    mean /= np.maximum(anchors, 1)[:, None]
+    centred = points - mean[part_of]
+    outer = np.einsum("ki,kj->kij", centred, centred).reshape(-1, 9)
+    covariance = np.stack([np.bincount(part_of, outer[:, i], parts) for i in range(9)], axis=1)
+    spread = np.linalg.eigvalsh(covariance.reshape(parts, 3, 3) / np.maximum(anchors, 1)[:, None, None])
+    flat = np.sqrt(np.maximum(spread[:, 1], 0.0)) <= 1e-9 * extent
+    loose = np.flatnonzero((anchors < 3) | flat)
+    if loose.size == 0:
+        return
+    part = int(loose[0])
+    members = labels == part
+    nodes = int(np.count_nonzero(members))
+    elements = int(np.count_nonzero(members[tets[:, 0]]))
+    centre = rest[members].mean(axis=0).round(6).tolist()
+    which = f"part {part + 1} of {parts}" if parts > 1 else "the tissue"
+    how = (
+        "no held node"
+        if anchors[part] == 0
+        else f"only {anchors[part]} held node(s)" + (" on one line" if anchors[part] >= 3 else "")
+    )
+    raise SceneError(
+        f"{scene.source}: mesh: {which} ({nodes} nodes, {elements} tetrahedra, centred at {centre} m) "
+        f"has {how}: it keeps a rigid-body motion (it would drift, fall under gravity or spin about the "
+        "held nodes). Hold at least three non-collinear nodes of every part (mesh.fixed_faces, "
+        "mesh.fixed_box, mesh.fixed_nodes, or a boundary motion), or remove the loose part from the mesh"
+        + (f"; {loose.size} parts are loose" if loose.size > 1 else "")
+    )
+
+
 def build_models(scene: Scene) -> SceneModels:
     """Build the mesh, the tissue model, the needle model (flexible needles only) and the trajectory."""
     try:
@@ -118,6 +252,8 @@ def build_models(scene: Scene) -> SceneModels:
     except ValueError as error:  # MeshError names the file and the defect
         raise SceneError(f"{scene.source}: mesh: {error}") from None
     moving = boundary_nodes(scene, mesh)
+    held = np.union1d(_fixed_nodes_or_error(scene, mesh), moving)
+    check_held(scene, mesh, held)
     tissue_spec = scene.tissue
     tissue = TissueModel(
         mesh.rest_positions,
@@ -129,7 +265,7 @@ def build_models(scene: Scene) -> SceneModels:
         ),
         rayleigh_mass=tissue_spec.rayleigh_mass,
         rayleigh_stiffness=tissue_spec.rayleigh_stiffness,
-        fixed_nodes=np.union1d(_fixed_nodes_or_error(scene, mesh), moving),
+        fixed_nodes=held,
         gravity=tissue_spec.gravity,
     )
     try:
@@ -137,6 +273,7 @@ def build_models(scene: Scene) -> SceneModels:
     except ValueError as error:
         raise SceneError(f"{scene.source}: trajectory.file: {error}") from None
     check_models(scene, mesh, trajectory)
+    check_time_resolution(scene, mesh, trajectory)
     needle = None
     if not scene.needle.rigid:
         from refsim.fem.needle import NeedleModel  # only flexible needles need the beam model
@@ -170,9 +307,10 @@ def boundary_nodes(scene: Scene, mesh: TetMesh) -> np.ndarray:
     rest = mesh.rest_positions
     where = f"{scene.source}: boundary"
     if spec.nodes is not None:
-        nodes = np.unique(np.asarray(spec.nodes, dtype=np.int64))
-        if nodes.size and nodes.max() >= len(rest):
-            raise SceneError(f"{where}.nodes contains {int(nodes.max())}: the mesh has {len(rest)} nodes")
+        try:
+            nodes = np.unique(mesh.file_nodes(_node_indices(spec.nodes, "nodes"), key="nodes"))
+        except ValueError as error:
+            raise SceneError(f"{where}.{error}") from None
         key = "nodes"
     elif spec.box is not None:
         box = np.asarray(spec.box, dtype=float)
@@ -244,12 +382,133 @@ def build_controls(scene: Scene, models: SceneModels) -> Controls:
             )
         except ValueError as error:
             raise SceneError(f"{scene.source}: boundary.file: {error}") from None
+    check_boundary_motion(scene, models.mesh, motion)
     return Controls(trajectory=models.trajectory, boundary=motion)
+
+
+#: Digits of a step's motion that the positions must keep: the tip's travel in one step must be at least
+#: 10**RESOLVED_DIGITS float64 epsilons of the largest coordinate, or the step's motion is lost in round-off.
+RESOLVED_DIGITS = 3
+
+
+def check_time_resolution(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
+    """The smallest time step the program can represent: the needle tip's fastest travel in one step (speed ×
+    dt) must be at least 10**RESOLVED_DIGITS × float64's epsilon × the largest coordinate of the scene
+    (tissue and trajectory), otherwise adding it to a position loses it in round-off and the run makes no
+    progress (dt = 1e-300 s ended in a ZeroDivisionError at step 1). A trajectory that never moves is not
+    checked (there is no motion to resolve).
+
+    Raises
+    ------
+    SceneError
+        Naming time.dt, the travel, the resolution and the smallest dt that resolves it.
+    """
+    times = np.asarray(trajectory.times, dtype=float)
+    if times.size < 2:
+        return
+    directions = np.asarray(trajectory.directions, dtype=float)
+    turn = np.arccos(np.clip(np.einsum("ij,ij->i", directions[:-1], directions[1:]), -1.0, 1.0))
+    speeds = (
+        np.linalg.norm(np.diff(trajectory.base_positions, axis=0), axis=1) + scene.needle.length * turn
+    ) / np.diff(times)
+    speed = float(speeds.max())
+    if speed == 0.0:
+        return
+    largest = max(
+        float(np.abs(mesh.rest_positions).max()),
+        float(np.abs(trajectory.base_positions).max()) + scene.needle.length,
+    )
+    resolution = 10.0**RESOLVED_DIGITS * np.finfo(float).eps * largest
+    if speed * scene.time.dt < resolution:
+        raise SceneError(
+            f"{scene.source}: time.dt = {scene.time.dt!r} s: the needle tip moves at most "
+            f"{speed * scene.time.dt:.3g} m per step, below what positions of up to {largest:.3g} m resolve "
+            f"({resolution:.3g} m: {10**RESOLVED_DIGITS} float64 epsilons of them); the run would make no "
+            f"progress: use time.dt >= {resolution / speed:.3g} s"
+        )
+
+
+#: Steps evaluated at once by the boundary motion check (bounds its memory: 3 arrays of this many rows).
+_CHECK_CHUNK = 1_000_000
+
+
+def check_boundary_motion(scene: Scene, mesh: TetMesh, motion) -> None:
+    """Check a boundary motion the way the needle's trajectory is checked, on the run's own step times.
+
+    Errors (SceneError naming the keys, the value and the limit):
+    - a displacement larger than the tissue (its bounding-box diagonal): not a deformation of this tissue
+      (the run's divergence guard would stop it, or the mesh tangles first); usually a unit error;
+    - a move of the held nodes in one step longer than insertion.contact_distance, the bound of the needle
+      tip's travel per step: a faster boundary carries the tissue across the contact zone in one step (a 5 cm
+      jump of the clamped face gave 1,153 N and 66 insertion points in one step);
+    - a periodic motion with fewer than 4 steps per period of its highest harmonic (n / T for cos^{2n}):
+      sampled by the steps below Nyquist's 2, it aliases (a period equal to dt is exactly zero motion);
+    - a sampled (file) motion that the steps do not resolve: its samples deviate from the motion the run
+      applies (the file's motion seen at the step times, linear between them) by more than
+      insertion.contact_distance (an oscillation faster than the steps).
+    """
+    dt, steps = scene.time.dt, scene.time.step_count
+    where = f"{scene.source}: boundary"
+    contact = scene.insertion.contact_distance
+    rest = mesh.rest_positions
+    size = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
+    if scene.boundary.motion == "periodic":
+        harmonic = int(scene.boundary.exponent)
+        if dt > scene.boundary.period / (4 * harmonic):
+            raise SceneError(
+                f"{where}.period = {scene.boundary.period!r} s: with exponent n = {harmonic} the motion's "
+                f"highest harmonic has period T/n = {scene.boundary.period / harmonic:.3g} s, which "
+                f"time.dt = {dt!r} s samples {scene.boundary.period / harmonic / dt:.3g} times (Nyquist: "
+                f"more than 2; refsim asks at least 4, or the motion aliases): use period >= "
+                f"{4 * harmonic * dt:.3g} s or a smaller dt"
+            )
+    largest, jump, jump_time = 0.0, 0.0, 0.0
+    previous = None
+    for start in range(0, steps + 1, _CHECK_CHUNK):
+        times = dt * np.arange(start, min(start + _CHECK_CHUNK, steps + 1))
+        values = motion.history(times)
+        largest = max(largest, float(np.linalg.norm(values, axis=1).max()))
+        if previous is not None:
+            values = np.vstack([previous, values])
+            times = np.concatenate([[times[0] - dt], times])
+        if values.shape[0] > 1:
+            moves = np.linalg.norm(np.diff(values, axis=0), axis=1)
+            at = int(np.argmax(moves))
+            if moves[at] > jump:
+                jump, jump_time = float(moves[at]), float(times[at])
+        previous = values[-1:]
+    if largest > size:
+        raise SceneError(
+            f"{where}: the boundary motion moves its nodes by up to {largest:.3g} m, more than the tissue's "
+            f"size ({size:.3g} m, its bounding-box diagonal): check boundary.amplitude or the file's "
+            "displacements (units are metres)"
+        )
+    if jump > contact:
+        raise SceneError(
+            f"{where}: the boundary motion moves its nodes by {jump:.3g} m in one step (from t = "
+            f"{jump_time:.6g} s to {jump_time + dt:.6g} s), more than insertion.contact_distance = "
+            f"{contact!r} m, the limit of the needle tip's travel per step too: use a smaller time.dt or a "
+            "slower motion (boundary.amplitude, boundary.period, or the file's samples)"
+        )
+    if scene.boundary.motion == "file":
+        samples = motion.times[motion.times <= steps * dt]
+        before = np.minimum(np.floor(samples / dt), max(steps - 1, 0)) * dt  # the steps around each sample
+        weight = np.clip((samples - before) / dt, 0.0, 1.0)[:, None]
+        applied = (1.0 - weight) * motion.history(before) + weight * motion.history(before + dt)
+        errors = np.linalg.norm(applied - motion.history(samples), axis=1)
+        worst = int(np.argmax(errors)) if errors.size else 0
+        if errors.size and errors[worst] > contact:
+            raise SceneError(
+                f"{where}.file: the motion changes faster than the steps resolve: at t = "
+                f"{samples[worst]:.6g} s the file's displacement differs by {errors[worst]:.3g} m from the "
+                f"one the run applies (the file seen every time.dt = {dt!r} s), more than "
+                f"insertion.contact_distance = {contact!r} m: use a smaller time.dt"
+            )
 
 
 def _fixed_nodes_or_error(scene: Scene, mesh: TetMesh) -> np.ndarray:
     try:
-        return fixed_nodes(scene.mesh, mesh.rest_positions)
+        return fixed_nodes(scene.mesh, mesh.rest_positions, mesh)
     except ValueError as error:
         raise SceneError(f"{scene.source}: {error}") from None
 

@@ -33,6 +33,9 @@ class BoundaryMotion(Protocol):
     def displacement(self, time: float) -> np.ndarray:
         """Displacement of each node from its rest position at ``time`` [s] [m], shape (len(nodes), 3)."""
 
+    def history(self, times: np.ndarray) -> np.ndarray:
+        """The displacement shared by every node at each of ``times`` [s] [m], shape (len(times), 3)."""
+
 
 def _checked_nodes(nodes) -> np.ndarray:
     nodes = np.asarray(nodes)
@@ -91,6 +94,15 @@ class PeriodicBoundaryMotion:
     def displacement(self, time: float) -> np.ndarray:
         return np.broadcast_to(self.profile(time) * self.amplitude, (self.nodes.size, 3)).copy()
 
+    def history(self, times: np.ndarray) -> np.ndarray:
+        """The displacement shared by every moving node at each of ``times`` [s] [m], (len(times), 3)."""
+        power = 2 * int(self.exponent)
+        times = np.asarray(times, dtype=float)
+        profile = (1.0 - np.cos(np.pi * times / self.period - self.phase) ** power) - (
+            1.0 - np.cos(-self.phase) ** power
+        )
+        return profile[:, None] * self.amplitude
+
 
 @dataclass(frozen=True)
 class SampledBoundaryMotion:
@@ -126,6 +138,11 @@ class SampledBoundaryMotion:
     def displacement(self, time: float) -> np.ndarray:
         value = np.array([np.interp(time, self.times, self.displacements[:, k]) for k in range(3)])
         return np.broadcast_to(value, (self.nodes.size, 3)).copy()
+
+    def history(self, times: np.ndarray) -> np.ndarray:
+        """The displacement shared by every moving node at each of ``times`` [s] [m], (len(times), 3)."""
+        times = np.asarray(times, dtype=float)
+        return np.stack([np.interp(times, self.times, self.displacements[:, k]) for k in range(3)], axis=1)
 
 
 @dataclass(frozen=True)

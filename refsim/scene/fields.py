@@ -92,6 +92,8 @@ def describe_field(field: dataclasses.Field) -> str:
     if meta.get("length"):
         what = "integers" if meta.get("integer") else "numbers"
         return f"{meta['length']} {what} in {interval}{unit}"
+    if kind == "tuple" and meta.get("integer"):
+        return f"a list of integers in {interval}"
     if kind == "int":
         return f"an integer in {interval}"
     if kind == "str":
@@ -178,8 +180,8 @@ def check_fields(instance: Any) -> None:
                     f"{name} = {value!r}: expected a list (got {_type_name(value)}); "
                     f"{describe_field(field) if meta.get('length') else meta['doc']}",
                 )
-            if meta.get("length"):
-                if len(value) != meta["length"]:
+            if meta.get("length") or meta.get("integer"):  # a list of numbers: every item checked
+                if meta.get("length") and len(value) != meta["length"]:
                     raise FieldError(name, f"{name} = {value!r}: expected {describe_field(field)}")
                 for item in value:
                     try:

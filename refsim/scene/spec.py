@@ -578,7 +578,13 @@ class BoundarySpec(_Validated):
         0.0, unit="m", doc="distance of a surface patch from its point or plane", low=0.0
     )
     amplitude: tuple = spec(
-        (0.0, 0.0, 0.0), unit="m", doc="a: the displacement at the peak of a periodic motion", length=3
+        (0.0, 0.0, 0.0),
+        unit="m",
+        doc="a: the displacement at the peak of a periodic motion (also at most the tissue's size, checked "
+        "with the mesh)",
+        low=-1e3,
+        high=1e3,
+        length=3,
     )
     period: float = spec(
         4.0, unit="s", doc="T: period of a periodic motion (breathing: about 4 s)", low=0.0, low_open=True

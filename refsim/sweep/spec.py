@@ -31,6 +31,7 @@ import dataclasses
 import hashlib
 import itertools
 import json
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -141,6 +142,16 @@ def _run_id(scene: str, overrides: tuple) -> str:
     return hashlib.sha1("\n".join((str(scene),) + tuple(overrides)).encode()).hexdigest()[:12]
 
 
+# A study name: it becomes a file name (<name>_study.h5) in the working folder, never a path.
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
+
+
+def _default_name(stem: str) -> str:
+    """A valid study name from a file's stem (other characters become '_')."""
+    name = re.sub(r"[^A-Za-z0-9._-]", "_", stem).lstrip("._-")[:100]
+    return name or "study"
+
+
 @dataclass(frozen=True)
 class StudySpec:
     """A whole study (see the module docstring for the file format)."""
@@ -157,6 +168,12 @@ class StudySpec:
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not _NAME.fullmatch(self.name):
+            raise ValueError(
+                f"{self.source}: name = {self.name!r}: a study name must be a plain file name of at most "
+                "100 letters, digits, '.', '-' or '_', starting with a letter or a digit (no folder, no "
+                "'..'): it names the study file <name>_study.h5 in the working folder when -o is not given"
+            )
         if self.combine not in ("product", "zip"):
             raise ValueError(f"{self.source}: combine = {self.combine!r}; valid: 'product', 'zip'")
         keys = [s.key for s in self.sweeps]
@@ -270,7 +287,7 @@ def study_from_options(
 ) -> StudySpec:
     """A study from command-line options (``reference``: overrides of the reference run, or None)."""
     return StudySpec(
-        name=name or Path(str(scene)).stem,
+        name=name or _default_name(Path(str(scene)).stem),
         scene=str(scene),
         sweeps=tuple(parse_sweep(s) for s in sweeps),
         combine=combine,
@@ -338,7 +355,7 @@ def load_study(path) -> StudySpec:
         if reference is not None:
             reference = (str(reference.get("label", "reference")), overrides(reference, "[reference] "))
         return StudySpec(
-            name=str(data.get("name", path.stem)),
+            name=str(data.get("name", _default_name(path.stem))),
             scene=scene,
             sweeps=tuple(sweeps),
             combine=str(data.get("combine", "product")),

@@ -36,7 +36,10 @@ import json
 import logging
 import math
 import os
+import shutil
 import sys
+import tempfile
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -46,12 +49,26 @@ from refsim.sweep.quantities import UNITS
 from refsim.sweep.spec import RunSpec, StudySpec
 from refsim.sweep.worker import BLAS_ENVIRONMENT, run_one
 
-__all__ = ["STUDY_FORMAT", "STUDY_SCHEMA_VERSION", "read_study", "run_study", "run_folder", "start_client"]
+__all__ = [
+    "LOOPBACK",
+    "STUDY_FORMAT",
+    "STUDY_SCHEMA_VERSION",
+    "check_study_output",
+    "read_study",
+    "run_study",
+    "run_folder",
+    "start_client",
+    "stop_client",
+]
 
 logger = logging.getLogger(__name__)
 
 STUDY_FORMAT = "refsim-study"
 STUDY_SCHEMA_VERSION = 1
+#: The address a LocalCluster's scheduler, workers and dashboard listen on: this machine only.
+LOOPBACK = "127.0.0.1"
+#: Seconds to wait for a --scheduler to answer before the study gives up.
+SCHEDULER_TIMEOUT = 10
 
 
 def run_folder(output) -> Path:
@@ -73,25 +90,113 @@ def _pending(run: RunSpec) -> dict:
     }
 
 
+def _check_workers(workers) -> int:
+    """The LocalCluster's worker count: an integer in [1, 4 × cores] (each worker runs one single-threaded
+    run, so more workers than that only share the cores and the memory)."""
+    cores = os.cpu_count() or 1
+    if workers is None:
+        return cores
+    if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= 4 * cores:
+        raise ValueError(
+            f"--workers = {workers!r}: expected an integer in [1, {4 * cores}] (worker processes, each "
+            f"running one single-threaded run; this machine has {cores} cores)"
+        )
+    return workers
+
+
 def start_client(scheduler: str | None = None, workers: int | None = None):
     """A Dask client on ``scheduler``, or on a new LocalCluster of ``workers`` processes (the cores by
     default), one thread and one BLAS thread each. Returns (client, cluster); cluster is None for a scheduler.
-    Close both when done."""
+    Close both with :func:`stop_client`.
+
+    The LocalCluster listens on the loopback interface only (scheduler, workers and dashboard on
+    ``127.0.0.1``), authenticates its processes with TLS certificates made for it (``security=True``: a Dask
+    client of another user of the machine cannot submit tasks, which are pickled code), and keeps its scratch
+    space in a private temporary folder (mode 0700, removed with the cluster). A ``scheduler`` is trusted
+    completely: it and its workers run the study's code and read and write its files; give only the address
+    of a scheduler you started (docs/studies.md, "Security").
+
+    Raises
+    ------
+    ValueError
+        When ``workers`` is out of range or ``scheduler`` cannot be reached within SCHEDULER_TIMEOUT seconds
+        (naming the address).
+    """
     from distributed import Client, LocalCluster
 
     if scheduler:
-        return Client(scheduler), None
+        try:
+            return Client(scheduler, timeout=SCHEDULER_TIMEOUT), None
+        except (OSError, TimeoutError, ValueError, TypeError) as error:
+            raise ValueError(
+                f"--scheduler {scheduler}: cannot reach a Dask scheduler there within {SCHEDULER_TIMEOUT} s "
+                f"({type(error).__name__}: {error}); start one (dask scheduler) and give its address, e.g. "
+                "tcp://127.0.0.1:8786, or omit --scheduler for a local cluster"
+            ) from None
+    count = _check_workers(workers)
     for name, value in BLAS_ENVIRONMENT.items():
         os.environ.setdefault(name, value)  # inherited by the worker processes
-    cluster = LocalCluster(
-        n_workers=workers or os.cpu_count() or 1,
-        threads_per_worker=1,
-        processes=True,
-        dashboard_address=":0",
-        env=dict(BLAS_ENVIRONMENT),
-        silence_logs=logging.ERROR,
-    )
+    scratch = tempfile.mkdtemp(prefix="refsim-dask-")  # mode 0700: this user only
+    try:
+        cluster = LocalCluster(
+            n_workers=count,
+            threads_per_worker=1,
+            processes=True,
+            host=LOOPBACK,
+            dashboard_address=f"{LOOPBACK}:0",
+            security=True,
+            local_directory=scratch,
+            env=dict(BLAS_ENVIRONMENT),
+            silence_logs=logging.ERROR,
+        )
+    except BaseException:
+        shutil.rmtree(scratch, ignore_errors=True)
+        raise
+    cluster.refsim_scratch = scratch
+    weakref.finalize(cluster, shutil.rmtree, scratch, ignore_errors=True)  # also if a caller forgets
     return Client(cluster), cluster
+
+
+def stop_client(client, cluster) -> None:
+    """Close what :func:`start_client` opened: the client, the LocalCluster and its private scratch folder."""
+    client.close()
+    if cluster is not None:
+        cluster.close()
+        scratch = getattr(cluster, "refsim_scratch", None)
+        if scratch:
+            shutil.rmtree(scratch, ignore_errors=True)
+
+
+def check_study_output(spec: StudySpec, output, *, overwrite: bool = False) -> Path:
+    """Check the study file's path before anything runs.
+
+    An existing study file of the same study (same name and scene) is resumed: its complete runs are kept.
+    Any other existing file (another study's, a run's results file, anything) is replaced only with
+    ``overwrite``.
+
+    Raises
+    ------
+    ValueError
+        Naming the path and what it holds.
+    """
+    output = Path(output)
+    if output.is_dir():
+        raise ValueError(f"{output}: is a directory; expected the path of the study file (.h5)")
+    if not output.exists() or overwrite:
+        return output
+    try:
+        attributes = read_study(output)["attributes"]
+    except (OSError, ValueError, KeyError) as error:
+        raise ValueError(
+            f"{output}: exists and is not a refsim study file ({error}); pass --overwrite to replace it"
+        ) from None
+    if attributes.get("name") != spec.name or attributes.get("scene") != spec.scene:
+        raise ValueError(
+            f"{output}: holds another study (name {attributes.get('name')!r}, scene "
+            f"{attributes.get('scene')!r}; this one: {spec.name!r}, {spec.scene!r}); pass --overwrite to "
+            "replace it, or choose another -o"
+        )
+    return output
 
 
 def run_study(
@@ -103,6 +208,7 @@ def run_study(
     progress: bool = True,
     client=None,
     warm_up: bool = True,
+    overwrite: bool = False,
 ) -> dict:
     """Run every missing run of a study on Dask and write the study file.
 
@@ -118,12 +224,21 @@ def run_study(
         ``scheduler`` and ``workers`` are then ignored.
     warm_up : Each worker first runs a small cutting scene untimed, so that compiling the kernels does not
         count in the first run's time per step (about 5 s per worker).
+    overwrite : Replace an existing file that is not this study's (:func:`check_study_output`).
 
     Returns
     -------
     The study as read back by :func:`read_study`.
+
+    Raises
+    ------
+    ValueError
+        An existing output that is not this study's (without ``overwrite``), ``workers`` out of range, an
+        unreachable ``scheduler``; before anything runs.
     """
-    output = Path(output).resolve()
+    output = check_study_output(spec, Path(output).resolve(), overwrite=overwrite)
+    if client is None and not scheduler:
+        _check_workers(workers)
     folder = run_folder(output)
     folder.mkdir(parents=True, exist_ok=True)
     runs = spec.runs()
@@ -188,9 +303,7 @@ def run_study(
         finally:
             bar.close()
             if own:
-                client.close()
-                if cluster is not None:
-                    cluster.close()
+                stop_client(client, cluster)
     _write(spec, output, runs, reference, rows, final=True)
     return read_study(output)
 

@@ -1,4 +1,4 @@
-"""Probe of bad inputs and faults (issue 10): run every kind, classify what refsim did, print the table.
+"""Probe of bad inputs and faults (issues 10, 25): run every kind, classify what refsim did, print the table.
 
 Each kind runs `refsim run` (or a small Python harness that injects a fault and then calls it) in a child
 process, on the paper's cube reduced to 3³ cells and a few steps, and is classified:
@@ -10,7 +10,8 @@ process, on the paper's cube reduced to 3³ cells and a few steps, and is classi
 - **poorly**: reported, but with another exit code, a message that misses the key, or a file left in a wrong
   state;
 - **crashed**: a traceback, an "internal error", or a death by a signal (a segfault);
-- **silent**: exit 0 without the expected error or warning (a wrong answer given as a right one).
+- **silent**: exit 0 without the expected error or warning (a wrong answer given as a right one), or exit 0
+  with a result that fails the case's check of what the file must hold (e.g. the nodes it fixed).
 
     python studies/faults/probe.py [--markdown table.md] [--only NAME ...] [--tree CHECKOUT]
 
@@ -58,6 +59,14 @@ class Case:
     signal_after : Send this signal once the results file holds steps (SIGINT, SIGTERM).
     needs_root : Skipped unless run as root (a tmpfs is mounted).
     small : Add the 3³-cell, 10-step overrides.
+    argv : The whole command line after ``refsim`` ("{dir}" replaced), instead of ``run SCENE ...``; no
+        results file of the case's own is then expected.
+    verify : For code 0: a Python expression on ``results`` (the results file read), ``folder`` and ``np``
+        that must be true (what the file must hold, e.g. the nodes it fixed).
+    keeps_output : The output exists and belongs to another run (a second writer): not "left by bad input".
+    no_file : The expected outcome leaves no results file at all (a full disk before the first step).
+    tmpfs_size : Size of the tmpfs a needs_root case writes to.
+    close_stdout : Close the child's standard output at once (a reader that went away: `| head`).
     """
 
     name: str
@@ -72,6 +81,12 @@ class Case:
     signal_after: int | None = None
     needs_root: bool = False
     small: bool = True
+    argv: list | None = None
+    verify: str = ""
+    keeps_output: bool = False
+    no_file: bool = False
+    tmpfs_size: str = "1m"
+    close_stdout: bool = False
 
 
 def s(text: str) -> list[str]:
@@ -98,12 +113,21 @@ SCENE_WITH_MESH = textwrap.dedent("""
 """)
 
 
-def mesh_case(name: str, kind: str, make: str, code: int = 2, fragments=(), warning: str = "") -> Case:
+def mesh_case(
+    name: str, kind: str, make: str, code: int = 2, fragments=(), warning: str = "", **extra
+) -> Case:
     setup = (
         MESH_SETUP + make + f"\nMESH = {name!r}\nimport refsim\nfrom pathlib import Path\n" + SCENE_WITH_MESH
     )
     return Case(
-        name, kind, code=code, fragments=fragments, warning=warning, scene="{dir}/scene.toml", setup=setup
+        name,
+        kind,
+        code=code,
+        fragments=fragments,
+        warning=warning,
+        scene="{dir}/scene.toml",
+        setup=setup,
+        **extra,
     )
 
 
@@ -117,6 +141,14 @@ INJECT = textwrap.dedent("""
             new_state, record = POISON(self, new_state, record)
         return new_state, record
     Simulation.step = poisoned
+""")
+
+
+RUN_FIRST = textwrap.dedent("""
+    import subprocess, sys
+    out = folder / 'out.h5'
+    subprocess.run([sys.executable, '-m', 'refsim', 'run', 'cube', '--set', 'mesh.cells=[3, 3, 3]', '--set',
+                    'time.duration=0.1', '-q', '-o', str(out)], check=True, stdout=subprocess.DEVNULL)
 """)
 
 
@@ -626,6 +658,244 @@ CASES = [
         "print('refsim: not converged:', getattr(report, 'message', ''), 'diverged' if getattr(report, "
         "'diverged', False) else '', file=sys.stderr)\nsys.exit(3)\n",
     ),
+    # ================================================================ issue 25
+    # ---------------------------------------------------------------- boundary conditions
+    Case(
+        "fixed_nodes_negative",
+        "a negative fixed-node index (Python's indexing pinned the last node)",
+        s("mesh.fixed_faces=[]; mesh.fixed_nodes=[-1, 0, 1, 4]"),
+        fragments=("mesh.fixed_nodes", "-1"),
+    ),
+    Case(
+        "fixed_nodes_float",
+        "a non-integer fixed-node index (was truncated)",
+        s("mesh.fixed_faces=[]; mesh.fixed_nodes=[1.5, 0, 4, 16]"),
+        fragments=("mesh.fixed_nodes", "1.5"),
+    ),
+    mesh_case(
+        "renumbered.vtu",
+        "mesh.fixed_nodes in the file's numbering, the reader drops an unused node and renumbers",
+        "p = np.vstack([[[1.0, 1.0, 1.0]], positions]); save('renumbered.vtu', p, tets + 1)",
+        code=0,
+        warning="renumbered",
+        args=s("mesh.fixed_faces=[]; mesh.fixed_nodes=[" + ", ".join(str(i) for i in range(1, 17)) + "]"),
+        verify="np.all(results.rest_positions[results.fixed_nodes][:, 2] == 0.0) and "
+        "results.fixed_nodes.size == 16",
+    ),
+    mesh_case(
+        "loose_part.vtu",
+        "a second tissue part that nothing holds (it floats or falls)",
+        "c = box_mesh(size=(0.1, 0.1, 0.1), cells=(2, 2, 2), origin=(-0.05, -0.05, 0.0)); "
+        "p = np.vstack([positions, np.asarray(c.rest_positions) + [0.2, 0.0, 0.05]]); "
+        "save('loose_part.vtu', p, np.vstack([tets, np.asarray(c.tets) + len(positions)]))",
+        fragments=("part 2", "no held node"),
+    ),
+    Case(
+        "held_by_one_node",
+        "the tissue held by one node (free to spin about it)",
+        s("mesh.fixed_faces=[]; mesh.fixed_nodes=[0]"),
+        fragments=("held node",),
+    ),
+    mesh_case(
+        "tangled.vtu",
+        "a tangled mesh (a node moved through a face) 'fixed' by swapping nodes",
+        "p = positions.copy(); c = [-0.05 + 0.1 / 3, -0.05 + 0.1 / 3, 0.1 / 3]; "
+        "i = int(np.flatnonzero(np.all(np.isclose(p, c), axis=1))[0]); p[i, 0] += 0.05; "
+        "save('tangled.vtu', p, tets)",
+        fragments=("tangled",),
+    ),
+    mesh_case(
+        "one_tet.vtu",
+        "a mesh of one tetrahedron whose lowest face is one node (held by that node only)",
+        "save('one_tet.vtu', np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.05], [0.0, 0.1, 0.05], "
+        "[0.05, 0.05, 0.1]]), np.array([[0, 1, 2, 3]]))",
+        fragments=("held node",),
+    ),
+    Case(
+        "cells_at_maximum",
+        "mesh.cells at its documented maximum (256³ cells, 100 million tetrahedra)",
+        s("mesh.cells=[256, 256, 256]"),
+        fragments=("mesh.cells", "GiB"),
+        small=False,
+    ),
+    Case(
+        "dt_below_roundoff",
+        "time.dt = 1e-300 s (below round-off)",
+        s("time.dt=1e-300; time.duration=1e-300"),
+        fragments=("time.dt",),
+        small=False,
+    ),
+    # ---------------------------------------------------------------- boundary motions
+    Case(
+        "boundary_jump",
+        "a boundary CSV that moves the clamped face 5 cm in one step",
+        s(
+            'mesh.fixed_faces=[]; boundary.motion="file"; boundary.box=[[-1, -1, -1], [1, 1, 0.001]]; '
+            'boundary.file="{dir}/motion.csv"'
+        ),
+        setup="(folder / 'motion.csv').write_text('t,dx,dy,dz\\n0,0,0,0\\n0.05,0,0,0\\n0.06,0,0,0.05\\n')",
+        fragments=("boundary", "contact_distance"),
+    ),
+    Case(
+        "boundary_oscillation",
+        "a boundary CSV oscillating 2.5 cm faster than the steps",
+        s(
+            'mesh.fixed_faces=[]; boundary.motion="file"; boundary.box=[[-1, -1, -1], [1, 1, 0.001]]; '
+            'boundary.file="{dir}/motion.csv"'
+        ),
+        setup="(folder / 'motion.csv').write_text('t,dx,dy,dz\\n' + ''.join(f'{0.005 * k},0,0,"
+        "{0.0 if k % 2 == 0 else 0.025}\\n' for k in range(21)))",
+        fragments=("boundary.file",),
+    ),
+    Case(
+        "boundary_period_dt",
+        "a periodic boundary motion whose period is dt (aliased to zero motion)",
+        s(
+            'mesh.fixed_faces=[]; boundary.motion="periodic"; boundary.box=[[-1, -1, -1], [1, 1, 0.001]]; '
+            "boundary.amplitude=[0, 0, 0.01]; boundary.period=0.01"
+        ),
+        fragments=("boundary.period",),
+    ),
+    Case(
+        "boundary_amplitude_huge",
+        "a boundary amplitude of 1e300 m",
+        s(
+            'mesh.fixed_faces=[]; boundary.motion="periodic"; boundary.box=[[-1, -1, -1], [1, 1, 0.001]]; '
+            "boundary.amplitude=[0, 0, 1e300]"
+        ),
+        fragments=("boundary.amplitude",),
+    ),
+    # ---------------------------------------------------------------- two writers, one file
+    Case(
+        "second_writer",
+        "a second run with --overwrite on a file another run is writing",
+        code=2,
+        fragments=("is writing",),
+        keeps_output=True,
+        harness="import subprocess, time, h5py\nfrom pathlib import Path\n"
+        "out = Path(ARGV[ARGV.index('-o') + 1])\n"
+        "first = subprocess.Popen([sys.executable, '-m', 'refsim', 'run', 'cube', '--set', "
+        "'mesh.cells=[3, 3, 3]', '--set', 'time.duration=4.0', '-q', '-o', str(out)], "
+        "stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)\n"
+        "for _ in range(600):\n    time.sleep(0.2)\n    try:\n"
+        "        with h5py.File(out, 'r', locking=False) as f:\n"
+        "            if int(f.attrs['steps_completed']) >= 32: break\n    except Exception: pass\n"
+        "try:\n    code = main(ARGV + ['--overwrite'])\nexcept SystemExit as e:\n    code = e.code\n"
+        "first_code = first.wait()\nfrom refsim.io import read_results\n"
+        "try:\n    ok = read_results(out).complete and first_code == 0\nexcept Exception as e:\n"
+        "    ok = False; print('the first run lost its file:', e, file=sys.stderr)\n"
+        "if not ok:\n"
+        "    print(f'the first run ended with exit {first_code} and a damaged file', file=sys.stderr)\n"
+        "sys.exit(code if ok else 99)\n",
+    ),
+    Case(
+        "study_replaces_file",
+        "refsim study -o FILE on an existing results file, without --overwrite",
+        argv=["study", "cube", "--sweep", "insertion.spacing=2e-3,1e-3", "-o", "{dir}/keep.h5", "-q"],
+        setup="(folder / 'keep.h5').write_bytes(b'a results file')",
+        fragments=("keep.h5", "--overwrite"),
+        verify="(folder / 'keep.h5').read_bytes() == b'a results file'",
+    ),
+    # ---------------------------------------------------------------- a full disk, signals and pipes
+    Case(
+        "disk_full_before_first_step",
+        "full disk before the first step (a 64 KiB tmpfs)",
+        code=3,
+        fragments=("out.h5", "space"),
+        needs_root=True,
+        no_file=True,
+        tmpfs_size="64k",
+    ),
+    Case(
+        "sighup",
+        "SIGHUP during the run (a closed terminal, a dropped ssh)",
+        s("time.duration=20.0"),
+        code=129,
+        signal_after=signal.SIGHUP,
+        fragments=("SIGHUP",),
+    ),
+    Case(
+        "broken_pipe",
+        "refsim run ... | head: the reader closes the pipe",
+        code=0,
+        close_stdout=True,
+        verify="results.complete and (folder / 'out.xdmf').is_file()",
+    ),
+    # ---------------------------------------------------------------- studies
+    Case(
+        "study_workers_negative",
+        "refsim study --workers -1",
+        argv=[
+            "study",
+            "cube",
+            "--sweep",
+            "insertion.spacing=2e-3,1e-3",
+            "-o",
+            "{dir}/s.h5",
+            "--workers",
+            "-1",
+        ],
+        fragments=("--workers",),
+    ),
+    Case(
+        "study_unreachable_scheduler",
+        "refsim study --scheduler that cannot be reached",
+        argv=[
+            "study",
+            "cube",
+            "--sweep",
+            "insertion.spacing=2e-3,1e-3",
+            "-o",
+            "{dir}/s.h5",
+            "--scheduler",
+            "tcp://127.0.0.1:9",
+            "-q",
+        ],
+        fragments=("--scheduler", "127.0.0.1:9"),
+    ),
+    Case(
+        "study_name_absolute",
+        "a study file whose name is an absolute path (writes anywhere)",
+        argv=["study", "{dir}/study.toml", "--workers", "1", "-q", "--no-warm-up"],
+        setup='(folder / \'study.toml\').write_text(f\'name = "{folder}/elsewhere/x"\\nscene = "cube"\\n'
+        '[[case]]\\nlabel = "a"\\nset = ["mesh.cells=[2, 2, 2]"]\\n\')',
+        fragments=("name",),
+    ),
+    Case(
+        "study_failed_run",
+        "a study whose one run fails (which one?)",
+        argv=["study", "{dir}/study.toml", "-o", "{dir}/s.h5", "--workers", "1", "-q", "--no-warm-up"],
+        setup='(folder / \'study.toml\').write_text(\'name = "small"\\nscene = "cube"\\nset = '
+        '["mesh.cells=[2, 2, 2]", "time.duration=0.1"]\\n[[case]]\\nlabel = "bad spacing"\\n'
+        'set = ["insertion.spacing=-1.0"]\\n\')',
+        code=3,
+        fragments=("bad spacing", "insertion.spacing"),
+    ),
+    # ---------------------------------------------------------------- results you cannot trust
+    Case(
+        "bit_flip",
+        "a bit flip in a results file, exported",
+        argv=["export", "{dir}/out.h5", "--csv", "{dir}/force.csv"],
+        setup=RUN_FIRST + "import h5py\nwith h5py.File(out, 'r') as f:\n"
+        "    offset = f['steps/needle_force'].id.get_chunk_info(0).byte_offset\n"
+        "data = bytearray(out.read_bytes()); data[offset + 3] ^= 0x10; out.write_bytes(bytes(data))\n",
+        fragments=("steps/needle_force", "damaged"),
+    ),
+    Case(
+        "steps_completed_negative",
+        "steps_completed = -3 in a results file",
+        argv=["export", "{dir}/out.h5", "--csv", "{dir}/force.csv"],
+        setup=RUN_FIRST
+        + "import h5py\nwith h5py.File(out, 'r+') as f:\n    f.attrs['steps_completed'] = -3\n",
+        fragments=("steps_completed",),
+    ),
+    Case(
+        "truncated_results",
+        "a truncated results file (a copy cut short)",
+        argv=["export", "{dir}/out.h5", "--csv", "{dir}/force.csv"],
+        setup=RUN_FIRST + "data = out.read_bytes(); out.write_bytes(data[: len(data) // 2])\n",
+        fragments=("the file is truncated", "bytes of the"),
+    ),
 ]
 
 
@@ -638,6 +908,9 @@ HARNESS_PREFIX = textwrap.dedent("""
 
 
 def _command(case: Case, folder: Path) -> tuple[list[str], Path]:
+    if case.argv is not None:
+        argv = [a.replace("{dir}", str(folder)) for a in case.argv]
+        return [sys.executable, "-m", "refsim", *argv], folder / "__no_results_file__.h5"
     output = folder / "out.h5"
     scene = case.scene.replace("{dir}", str(folder))
     args = [a.replace("{dir}", str(folder)) for a in case.args]
@@ -681,6 +954,11 @@ def _file_state(path: Path) -> dict | None:
         return {"unreadable": f"{type(error).__name__}: {error}"}
 
 
+def _terminal_signals() -> None:
+    """In the child: SIGHUP as in a terminal session (its default action), also under a nohup probe."""
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+
 def run_case(case: Case, folder: Path, tree: Path = ROOT) -> dict:
     env = {**os.environ, "PYTHONPATH": str(tree), "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
     if case.setup:
@@ -700,7 +978,8 @@ def run_case(case: Case, folder: Path, tree: Path = ROOT) -> dict:
             return {"verdict": "not run", "code": None, "message": "needs root (a tmpfs)"}
         disk = folder / "disk"
         disk.mkdir()
-        if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(disk)]).returncode != 0:
+        mount = ["mount", "-t", "tmpfs", "-o", f"size={case.tmpfs_size}", "tmpfs", str(disk)]
+        if subprocess.run(mount).returncode != 0:
             return {"verdict": "not run", "code": None, "message": "cannot mount a tmpfs"}
         mounted = True
         case = Case(**{**case.__dict__, "args": [*case.args, "-o", str(disk / "out.h5")]})
@@ -708,22 +987,53 @@ def run_case(case: Case, folder: Path, tree: Path = ROOT) -> dict:
     command, output = _command(case, folder)
     try:
         process = subprocess.Popen(
-            command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=folder
+            command,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+            cwd=folder,
+            preexec_fn=_terminal_signals,
         )
-        if case.signal_after is not None:
-            _wait_for_steps(output, 32, process)
-            process.send_signal(case.signal_after)
-        out, error = process.communicate(timeout=900)
+        if case.close_stdout:
+            process.stdout.close()  # the reader went away (`| head`): the child's writes meet a closed pipe
+            error = process.stderr.read()
+            process.wait(timeout=900)
+            out = ""
+        else:
+            if case.signal_after is not None:
+                _wait_for_steps(output, 32, process)
+                process.send_signal(case.signal_after)
+            out, error = process.communicate(timeout=900)
         state = _file_state(output)
+        verified = _verify(case, output, folder)
+        leftovers = (
+            sorted(p.name for p in output.parent.iterdir() if p.name != "disk") if case.no_file else []
+        )
     finally:
         if mounted:
             subprocess.run(["umount", str(folder / "disk")])
     code = process.returncode
     return {
-        **classify(case, code, out, error, state, output, preexisting),
+        **classify(case, code, out, error, state, output, preexisting, verified, leftovers),
         "code": code,
         "message": _first_message(error, out),
     }
+
+
+def _verify(case: Case, output: Path, folder: Path) -> bool | None:
+    """The case's check of what the file holds (None when it has none); False when it fails or errors."""
+    if not case.verify:
+        return None
+    import numpy as np
+
+    try:
+        from refsim.io import read_results
+
+        results = read_results(output) if output.is_file() else None
+        return bool(eval(case.verify, {"np": np, "results": results, "folder": folder}))  # noqa: S307
+    except Exception:  # noqa: BLE001 - a check that cannot run is a failed check
+        return False
 
 
 def _first_message(error: str, out: str) -> str:
@@ -741,25 +1051,47 @@ def _mentions(text: str, fragment: str) -> bool:
     return bool(dot) and " " not in fragment and f"[{section}] {key}" in text
 
 
-def classify(case: Case, code: int, out: str, error: str, state, output: Path, preexisting: dict) -> dict:
+def classify(
+    case: Case,
+    code: int,
+    out: str,
+    error: str,
+    state,
+    output: Path,
+    preexisting: dict,
+    verified: bool | None = None,
+    leftovers: list | None = None,
+) -> dict:
     text = error + out
-    if code < 0 or code >= 128 and code not in (130, 143) or "Traceback" in text or "internal error" in text:
+    handled = (130, 143, 129) if case.code == 129 else (130, 143)
+    if code < 0 or code >= 128 and code not in handled or "Traceback" in text or "internal error" in text:
         return {"verdict": "crashed"}
     if code == 0 and case.code != 0:
         return {"verdict": "silent"}
     if code == 0 and case.warning and case.warning not in text:
         return {"verdict": "silent"}
+    if code == 0 and verified is False:
+        return {"verdict": "silent", "problems": "exit 0, but the file fails the case's check"}
     problems = []
     if code != case.code:
         problems.append(f"exit {code}, expected {case.code}")
     missing = [f for f in case.fragments if not _mentions(text, f)]
     if missing:
         problems.append(f"message lacks {missing}")
-    if code == 2 and output.name not in preexisting and state is not None:
+    if code == 2 and output.name not in preexisting and state is not None and not case.keeps_output:
         problems.append("a results file was left after a bad input")
+    if code != 0 and verified is False:
+        problems.append("the case's check of the files failed")
+    if case.no_file and leftovers:
+        problems.append(f"files left: {', '.join(leftovers)}")
     if code == 2 and output.name in preexisting and output.read_bytes() != preexisting[output.name]:
         problems.append("an existing file was changed")
-    if code in (3, 130, 143) and not case.harness.startswith("import numpy as np, sys"):
+    file_expected = case.argv is None and not case.no_file and not case.keeps_output
+    if (
+        code in (3, 129, 130, 143)
+        and file_expected
+        and not case.harness.startswith("import numpy as np, sys")
+    ):
         if state is None or "unreadable" in state:
             problems.append(f"results file missing or unreadable ({state})")
         elif state["complete"] or not state["reason"]:

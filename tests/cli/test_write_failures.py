@@ -1,0 +1,84 @@
+"""A full disk while writing a figure or an export (issue 25): exit 3, the path named, no partial file left;
+and the smallest time step the positions resolve."""
+
+from __future__ import annotations
+
+import errno
+
+import pytest
+
+from refsim.cli import main
+
+SMALL = ["--set", "mesh.cells=[3, 3, 3]", "--set", "time.duration=0.05", "-q"]
+
+
+def _fill_then_fail(path, *_args, **_kwargs):
+    """What a full disk does to a writer: part of the file, then ENOSPC."""
+    from pathlib import Path
+
+    Path(path).write_bytes(b"\x89PNG partial")
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory):
+    path = tmp_path_factory.mktemp("run") / "run.h5"
+    assert main(["run", "cube", "-o", str(path), *SMALL]) == 0
+    return path
+
+
+def test_a_figure_on_a_full_disk_is_named_and_removed(tmp_path, capsys, monkeypatch):
+    import refsim.viz
+
+    monkeypatch.setattr(refsim.viz, "render_result", lambda result, figure, **kw: _fill_then_fail(figure))
+    figure = tmp_path / "picture.png"
+    code = main(["run", "cube", "-o", str(tmp_path / "run.h5"), "--figure", str(figure), *SMALL])
+    assert code == 3
+    error = capsys.readouterr().err
+    assert f"{figure}: writing the figure failed (No space left on device)" in error
+    assert not figure.exists() and (tmp_path / "run.h5").is_file()
+
+
+def test_an_export_on_a_full_disk_is_named_and_removed(tmp_path, capsys, monkeypatch, results):
+    import refsim.io.export
+
+    monkeypatch.setattr(refsim.io.export, "export_force_csv", lambda result, path: _fill_then_fail(path))
+    csv = tmp_path / "force.csv"
+    assert main(["export", str(results), "--csv", str(csv)]) == 3
+    assert f"{csv}: writing the force CSV failed (No space left on device)" in capsys.readouterr().err
+    assert not csv.exists()
+
+
+def test_a_time_step_below_round_off_is_refused(tmp_path, capsys):
+    """dt = 1e-300 s: 1e-302 m of tip travel per step, below 1000 float64 epsilons of the cube scene's 0.74 m
+    coordinates (1.6e-13 m); before, a ZeroDivisionError at step 1, exit 3."""
+    code = main(
+        [
+            "run",
+            "cube",
+            "-o",
+            str(tmp_path / "run.h5"),
+            "--set",
+            "time.dt=1e-300",
+            "--set",
+            "time.duration=1e-300",
+        ]
+    )
+    assert code == 2
+    error = capsys.readouterr().err
+    assert "time.dt = 1e-300 s" in error and "use time.dt >= 1.6" in error
+    assert not (tmp_path / "run.h5").exists()
+
+
+def test_a_mesh_that_does_not_fit_in_memory_is_refused_before_it_is_generated(tmp_path, capsys, monkeypatch):
+    """mesh.cells = 256³ (the documented maximum: 100,663,296 tets) needs 1.1 TiB at 12.5 kB per tet; with
+    2 GiB available it is refused before box_mesh allocates anything (before: a MemoryError)."""
+    import refsim.scene.build as build
+
+    monkeypatch.setattr(build, "available_memory", lambda: 2 * 2**30)
+    monkeypatch.setattr(build, "box_mesh", lambda **kw: pytest.fail("the mesh was generated"))
+    code = main(["run", "cube", "-o", str(tmp_path / "run.h5"), "--set", "mesh.cells=[256, 256, 256]"])
+    assert code == 2
+    error = capsys.readouterr().err
+    assert "mesh.cells = [256, 256, 256]: 100663296 tetrahedra need about 1.17e+03 GiB" in error
+    assert "at most about 171798 tetrahedra fit" in error
