@@ -47,44 +47,76 @@ CASE_FORMAT = "refsim-reference-case"
 MANIFEST_FORMAT = "refsim-reference"
 SCHEMA_VERSION = 1
 #: Columns of a case's reference.csv (``refsim compare`` reads quantity, x, value; the rest is for people).
-CSV_COLUMNS = ("quantity", "x", "value", "uncertainty", "band", "method", "order", "gci", "unit", "x_unit")
+CSV_COLUMNS = (
+    "quantity",
+    "x",
+    "value",
+    "uncertainty",
+    "band",
+    "method",
+    "order",
+    "order_used",
+    "gci",
+    "unit",
+    "x_unit",
+)
 
 
-def reference_value(spacings, values) -> dict:
+def reference_value(spacings, values, formal_order: float) -> dict:
     """The reference value of one quantity at one sampling point from its refinement sequence.
+
+    The GCI follows Roy's rule (Oberkampf and Roy 2010, "Verification and Validation in Scientific Computing",
+    section 8.7): when the observed order p is within 10 % of the formal order p_f, Fs = 1.25 and p; otherwise
+    Fs = 3 and p̂ = min(max(0.5, p), p_f), so that an order far from the asymptotic one (a pre-asymptotic or
+    noisy sequence) widens the band instead of shrinking it.
 
     Parameters
     ----------
     spacings : Refinement measure h of each level, shape (L,), L ≥ 3.
     values : The quantity at each level, shape (L,).
+    formal_order : p_f of the discretisation refined together (1 when the implicit Euler step is refined with
+        the mesh, 2 for the static Timoshenko beam) [-].
 
     Returns
     -------
     dict with ``value``, ``uncertainty`` (half-width U of the band, in the quantity's unit), ``method``,
-    ``order``, ``gci``: "richardson" (monotone over the three finest levels: the Richardson value,
-    U = GCI |f1|, Roache's safety factor 1.25), "converged" (f1 = f2: f1, U = 0), "spread" (oscillatory or
-    divergent: the finest value f1, U = |f1 − f2|, the spread of the last two levels) or "missing" (a level
-    lacks it: NaN).
+    ``order`` (observed), ``order_used``, ``safety_factor``, ``gci``:
+
+    - "richardson": monotone over the three finest levels: the Richardson value with p̂, U = GCI |f1|,
+      GCI = Fs |(f1 − f2)/f1| / (r21^p̂ − 1);
+    - "converged": f1 = f2: f1, U = 0;
+    - "spread": oscillatory or divergent: the finest value f1, U = |f1 − f2| (the spread of the last two
+      levels);
+    - "missing": a level lacks the quantity: NaN.
     """
-    from refsim.sweep.convergence import convergence
+    from refsim.sweep.convergence import convergence, grid_convergence_index, richardson
 
     h, f = np.asarray(spacings, dtype=float), np.asarray(values, dtype=float)
     nan = float("nan")
+    answer = {"order": nan, "order_used": nan, "safety_factor": nan, "gci": nan}
     if not np.all(np.isfinite(f)):
-        return {"value": nan, "uncertainty": nan, "method": "missing", "order": nan, "gci": nan}
+        return {**answer, "value": nan, "uncertainty": nan, "method": "missing"}
     result = convergence(h, f)
     f1, f2 = result.values[0], result.values[1]
-    if result.kind == "monotone" and math.isfinite(result.uncertainty):
+    if result.kind == "monotone" and f1 != 0.0:
+        p = result.order
+        if abs(p - formal_order) <= 0.1 * formal_order:
+            used, factor = p, 1.25
+        else:
+            used, factor = min(max(0.5, p), formal_order), 3.0
+        gci = grid_convergence_index(f1, f2, result.ratio_fine, used, safety_factor=factor)
         return {
-            "value": result.extrapolated,
-            "uncertainty": result.uncertainty,
+            "value": richardson(f1, f2, result.ratio_fine, used),
+            "uncertainty": gci * abs(f1),
             "method": "richardson",
-            "order": result.order,
-            "gci": result.gci,
+            "order": p,
+            "order_used": used,
+            "safety_factor": factor,
+            "gci": gci,
         }
     if result.kind == "converged":
-        return {"value": f1, "uncertainty": 0.0, "method": "converged", "order": nan, "gci": 0.0}
-    return {"value": f1, "uncertainty": abs(f1 - f2), "method": "spread", "order": nan, "gci": nan}
+        return {**answer, "value": f1, "uncertainty": 0.0, "method": "converged", "gci": 0.0}
+    return {**answer, "value": f1, "uncertainty": abs(f1 - f2), "method": "spread"}
 
 
 # ---------------------------------------------------------------------- running the levels
@@ -203,7 +235,7 @@ def _answers(case: Case, spacings: np.ndarray, values: list[dict]) -> dict:
     answers = {}
     for quantity in case.quantities:
         levels = np.array([np.atleast_1d(v[quantity.name]) for v in values], dtype=float)  # (L, k)
-        rows = [reference_value(spacings, levels[:, j]) for j in range(levels.shape[1])]
+        rows = [reference_value(spacings, levels[:, j], case.formal_order) for j in range(levels.shape[1])]
         value = np.array([r["value"] for r in rows])
         uncertainty = np.array([r["uncertainty"] for r in rows])
         finite = value[np.isfinite(value)]
@@ -215,6 +247,8 @@ def _answers(case: Case, spacings: np.ndarray, values: list[dict]) -> dict:
             "uncertainty": uncertainty,
             "method": [r["method"] for r in rows],
             "order": np.array([r["order"] for r in rows]),
+            "order_used": np.array([r["order_used"] for r in rows]),
+            "safety_factor": np.array([r["safety_factor"] for r in rows]),
             "gci": np.array([r["gci"] for r in rows]),
             "scale": scale,
             "modelling": quantity.tolerance * scale,
@@ -236,6 +270,7 @@ def _write_case_h5(path: Path, case: Case, level: str, spacings, answers, files,
                 "title": case.title,
                 "level": level,
                 "refine": case.refine,
+                "formal_order": case.formal_order,
                 "levels": json.dumps(case.level(level)),
                 **meta,
             }
@@ -264,6 +299,8 @@ def _write_case_h5(path: Path, case: Case, level: str, spacings, answers, files,
                 group.create_dataset(name, data=answer[name]).attrs["units"] = quantity.unit
             group.create_dataset("levels", data=answer["levels"]).attrs["units"] = quantity.unit
             group.create_dataset("order", data=answer["order"]).attrs["units"] = "1"
+            group.create_dataset("order_used", data=answer["order_used"]).attrs["units"] = "1"
+            group.create_dataset("safety_factor", data=answer["safety_factor"]).attrs["units"] = "1"
             group.create_dataset("gci", data=answer["gci"]).attrs["units"] = "1"
             group.create_dataset("method", data=np.array(answer["method"], dtype=object), dtype=strings)
 
@@ -284,6 +321,7 @@ def _write_case_csv(path: Path, case: Case, answers) -> None:
                         f"{answer['band'][j]:.6g}",
                         answer["method"][j],
                         f"{answer['order'][j]:.4g}",
+                        f"{answer['order_used'][j]:.4g}",
                         f"{answer['gci'][j]:.4g}",
                         quantity.unit,
                         quantity.x_unit,
@@ -367,7 +405,7 @@ def read_case_reference(folder, case_name: str) -> dict:
         quantities = {}
         for name, group in handle["quantities"].items():
             entry = {k: plain(v) for k, v in group.attrs.items()}
-            for key in ("at", "value", "uncertainty", "band", "levels", "order", "gci"):
+            for key in ("at", "value", "uncertainty", "band", "levels", "order", "order_used", "gci"):
                 entry[key] = group[key][()]
             entry["method"] = [plain(v) for v in group["method"][()]]
             quantities[name] = entry
@@ -470,6 +508,7 @@ def build_reference(
                 "title": case.title,
                 "runner": case.runner,
                 "refine": case.refine,
+                "formal_order": case.formal_order,
                 "levels": case.level(level),
                 "h": spacings.tolist(),
                 "seconds": time.perf_counter() - case_start,

@@ -11,6 +11,8 @@ materials, needle, trajectory and every parameter, in SI units, commented). Case
     why = "..."                    # why another implementation needs this case
     setup = "..."                  # the set-up in words, enough to build it without refsim
     refine = "mesh.cells"          # the key whose value gives the refinement measure h = 1/value
+    formal_order = 1               # order of the discretisation refined together (1: implicit Euler's dt)
+    note = "..."                   # optional: what the answers show about the model (for the page)
 
     [levels]                       # level name -> {key: values}; the i-th values form run i (coarsest first)
     coarse = { "mesh.cells" = [2, 3, 4], "time.dt" = [0.012, 0.008, 0.006] }
@@ -129,11 +131,13 @@ class Case:
     setup: str
     runner: str
     refine: str
+    formal_order: float
     levels: dict
     quantities: tuple
     path: Path
     scene_path: Path | None = None
     cantilever: dict = field(default_factory=dict)
+    note: str = ""
 
     def level(self, level: str) -> dict:
         """{key: values} of a level.
@@ -252,7 +256,7 @@ def load_case(name_or_path) -> Case:
     except tomllib.TOMLDecodeError as error:
         raise ValueError(f"{path}: not valid TOML: {error}") from None
     head = data.get("case", {})
-    for key in ("title", "why", "setup", "refine"):
+    for key in ("title", "why", "setup", "refine", "formal_order"):
         if key not in head:
             _fail(path, "[case]", f"missing key {key!r}")
     runner = str(head.get("runner", "scene"))
@@ -265,6 +269,9 @@ def load_case(name_or_path) -> Case:
         scene_path = (path.parent / head["scene"]).resolve()
         if not scene_path.is_file():
             _fail(path, "[case] scene", f"{scene_path}: no such scene file")
+    formal_order = head["formal_order"]
+    if not (isinstance(formal_order, (int, float)) and 0.0 < formal_order <= 4.0):
+        _fail(path, "[case] formal_order", f"{formal_order!r}: expected a number in (0, 4]")
     levels = data.get("levels", {})
     if not levels:
         _fail(path, "[levels]", "no level")
@@ -291,11 +298,13 @@ def load_case(name_or_path) -> Case:
         setup=" ".join(str(head["setup"]).split()),
         runner=runner,
         refine=str(head["refine"]),
+        formal_order=float(formal_order),
         levels={k: {key: list(v) for key, v in keys.items()} for k, keys in levels.items()},
         quantities=quantities,
         path=path,
         scene_path=scene_path,
         cantilever=dict(data.get("cantilever", {})),
+        note=" ".join(str(head.get("note", "")).split()),
     )
 
 

@@ -49,7 +49,10 @@ Each quantity at each sampling point gets its reference value from the case's re
 d_c and dt refined together, h = 1/cells; the exact solver at a natural residual of 1e-10), with
 `refsim.sweep.convergence` on the three finest levels:
 
-- `richardson`: monotone convergence: the Richardson value, U = GCI·|f1| (Roache's safety factor 1.25);
+- `richardson`: monotone convergence: the Richardson value, U = GCI·|f1|, GCI = Fs·|(f1 − f2)/f1|/(r21^p̂ − 1)
+  with Roy's rule (Oberkampf and Roy 2010, section 8.7): Fs = 1.25 and p̂ = p when the observed order p is
+  within 10 % of the formal order p_f (the case's `formal_order`: 1 where implicit Euler's dt is refined with
+  the mesh, 2 for the static beam), otherwise Fs = 3 and p̂ = min(max(0.5, p), p_f);
 - `spread`: oscillatory or divergent (no asymptotic order observed): the finest value f1, U = |f1 − f2|, the
   spread of the last two levels;
 - `converged`: f1 = f2: f1, U = 0.
@@ -98,6 +101,8 @@ def _format(value: float) -> str:
 
 def _case_section(case, reference: dict, manifest_case: dict, figure: str | None) -> list[str]:
     lines = [f"## {case.name}: {case.title}", "", f"**Why.** {case.why}", "", f"**Set-up.** {case.setup}", ""]
+    if case.note:
+        lines += [f"**Note.** {case.note}", ""]
     if case.runner == "scene":
         lines.append(
             f"Scene file: `refsim/reference/cases/{case.scene_path.name}`; case file: `{case.path.name}`."
@@ -113,19 +118,19 @@ def _case_section(case, reference: dict, manifest_case: dict, figure: str | None
         f"Runs: {manifest_case['run_seconds']:.1f} s of run time; the case took "
         f"{manifest_case['seconds']:.1f} s on the build machine.",
         "",
-        "| quantity | x | reference | U | U + T | method | order | unit |",
-        "|---|---|---|---|---|---|---|---|",
+        "| quantity | x | reference | U | U + T | method | observed order | order used | unit |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for quantity in case.quantities:
         entry = reference["quantities"][quantity.name]
         at = np.atleast_1d(entry["at"])
         value, u, band = (np.atleast_1d(entry[k]) for k in ("value", "uncertainty", "band"))
-        order = np.atleast_1d(entry["order"])
+        order, used = np.atleast_1d(entry["order"]), np.atleast_1d(entry["order_used"])
         for j in range(value.size):
             x = f"{at[j]:.4g} {quantity.x_unit}" if quantity.kind == "curve" else ""
             lines.append(
                 f"| {quantity.name} | {x} | {_format(value[j])} | {_format(u[j])} | {_format(band[j])} | "
-                f"{entry['method'][j]} | {_format(order[j])} | {quantity.unit} |"
+                f"{entry['method'][j]} | {_format(order[j])} | {_format(used[j])} | {quantity.unit} |"
             )
     lines += ["", "Quantities:", ""]
     for quantity in case.quantities:

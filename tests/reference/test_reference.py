@@ -46,22 +46,29 @@ def _run_files(folder, case: str) -> list:
 
 def test_reference_value_on_manufactured_sequences():
     h = np.array([0.5, 0.25, 0.125])
-    # monotone, order 2: f = 1 + h²; Richardson recovers 1 exactly, U = 1.25 |f1 - f2| / (2² - 1)
-    answer = reference_value(h, 1.0 + h**2)
     f1, f2 = 1.0 + h[2] ** 2, 1.0 + h[1] ** 2
-    assert answer["method"] == "richardson"
+    # monotone at the formal order 2: f = 1 + h²; Richardson recovers 1, U = 1.25 |f1 - f2| / (2² - 1)
+    answer = reference_value(h, 1.0 + h**2, formal_order=2.0)
+    assert answer["method"] == "richardson" and answer["safety_factor"] == 1.25
     assert answer["value"] == pytest.approx(1.0, abs=1e-12)
     assert answer["order"] == pytest.approx(2.0, abs=1e-9)
     assert answer["uncertainty"] == pytest.approx(1.25 * abs(f1 - f2) / 3.0, rel=1e-12)
+    # the same sequence against a formal order of 1 (Roy's rule): Fs = 3 and p = 1, U = 3 |f1 - f2| / (2 - 1)
+    answer = reference_value(h, 1.0 + h**2, formal_order=1.0)
+    assert answer["safety_factor"] == 3.0 and answer["order_used"] == 1.0
+    assert answer["uncertainty"] == pytest.approx(3.0 * abs(f1 - f2), rel=1e-12)
+    # an order below 0.5 is used as 0.5: f = 1 + h^0.2
+    answer = reference_value(h, 1.0 + h**0.2, formal_order=1.0)
+    assert answer["order"] == pytest.approx(0.2, abs=1e-9) and answer["order_used"] == 0.5
     # oscillatory: the finest value with the spread of the last two levels
-    answer = reference_value(h, np.array([1.3, 0.8, 1.1]))
+    answer = reference_value(h, np.array([1.3, 0.8, 1.1]), formal_order=1.0)
     assert (
         answer["method"] == "spread"
         and answer["value"] == 1.1
         and answer["uncertainty"] == pytest.approx(0.3)
     )
-    assert reference_value(h, np.array([2.0, 1.0, 1.0]))["method"] == "converged"
-    assert reference_value(h, np.array([2.0, np.nan, 1.0]))["method"] == "missing"
+    assert reference_value(h, np.array([2.0, 1.0, 1.0]), formal_order=1.0)["method"] == "converged"
+    assert reference_value(h, np.array([2.0, np.nan, 1.0]), formal_order=1.0)["method"] == "missing"
 
 
 # ---------------------------------------------------------------------- the package
@@ -110,9 +117,9 @@ def test_cantilever_answers_bracket_the_closed_forms(package):
     folder, _ = package
     reference = read_case_reference(folder, "cantilever")
     for name, entry in reference["quantities"].items():
-        # Timoshenko's closed form (small load) and the elastica (large) lie within the GCI band of the
-        # Richardson value: the band is an upper bound of the discretisation error (Roache's Fs = 1.25),
-        # and the elastica BVP is solved to 1e-10.
+        # The elastica (Reissner's rod, the continuum the Timoshenko elements discretise) lies within the GCI
+        # band of the Richardson value: the band bounds the discretisation error (Fs = 1.25 or 3), and the
+        # elastica BVP is solved to 1e-10.
         assert entry["method"] == ["richardson"], name
         assert abs(entry["value"][0] - entry["closed_form"]) <= entry["uncertainty"][0] + 1e-9 * abs(
             entry["closed_form"]
@@ -153,8 +160,8 @@ def test_page_is_written_from_the_package(package, tmp_path):
 def test_refsim_finest_run_passes(package, tmp_path):
     folder, _ = package
     finest = _run_files(folder, "puncture")[-1]
-    # The reference is f1 (spread) or f1's Richardson value with |f1 - ref| = U/1.25 (richardson): the finest
-    # run lies inside U.
+    # The reference is f1 (spread, converged) or f1's Richardson value with |f1 - ref| = U/Fs (richardson,
+    # Fs >= 1.25): the finest run lies inside U.
     results = compare("puncture", finest, folder)
     assert all(item.all_passed for item in results)
     csv = write_their_csv(
@@ -307,17 +314,22 @@ def test_case_files_are_validated(tmp_path):
         assert len(case.level("coarse")[case.refine]) >= 3
     path = tmp_path / "broken.toml"
     path.write_text(
-        '[case]\ntitle = "t"\nwhy = "w"\nsetup = "s"\nrefine = "mesh.cells"\nrunner = "cantilever"\n'
+        '[case]\ntitle = "t"\nwhy = "w"\nsetup = "s"\nrefine = "mesh.cells"\nformal_order = 1\n'
+        'runner = "cantilever"\n'
         '[levels]\ncoarse = { "mesh.cells" = [2, 3] }\n'
     )
     with pytest.raises(ValueError, match=r"broken.toml: \[levels\] coarse: expected at least three"):
         load_case(path)
     path.write_text(
-        '[case]\ntitle = "t"\nwhy = "w"\nsetup = "s"\nrefine = "mesh.cells"\nrunner = "cantilever"\n'
+        '[case]\ntitle = "t"\nwhy = "w"\nsetup = "s"\nrefine = "mesh.cells"\nformal_order = 1\n'
+        'runner = "cantilever"\n'
         '[levels]\ncoarse = { "mesh.cells" = [2, 3, 4] }\n[[quantity]]\nname = "q"\nunit = "N"\n'
         'y = "force"\nx = "time"\nat = [1.0]\n'
     )
     with pytest.raises(ValueError, match=r"\[\[quantity\]\] 1: y = 'force'"):
+        load_case(path)
+    path.write_text(path.read_text().replace("formal_order = 1", "formal_order = -1"))
+    with pytest.raises(ValueError, match=r"\[case\] formal_order: -1: expected a number in \(0, 4\]"):
         load_case(path)
     with pytest.raises(ValueError, match="has no level 'fine'"):
         load_case("puncture").level("fine")
