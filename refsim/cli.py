@@ -508,7 +508,7 @@ def _parser() -> argparse.ArgumentParser:
     reference.add_argument("action", choices=("list", "build", "page"), help="list the cases, build, or page")
     reference.add_argument("-o", "--output", help="build: the package folder; page: the page (.md)")
     reference.add_argument(
-        "--level", default="coarse", choices=("coarse", "standard"), help="refinement levels (default coarse)"
+        "--level", default="coarse", help="refinement levels: coarse (default), standard, fine (a cluster's)"
     )
     reference.add_argument("--cases", nargs="+", help="cases to build (default: all)")
     reference.add_argument("--package", help="page: the package folder to write the page from")

@@ -359,6 +359,8 @@ def _figure(path: Path, case: Case, spacings, answers) -> None:
             axis.set_xlim(0.0, 1.1 * float(np.max(spacings)))
             axis.set_xlabel(f"h = 1/{case.refine}")
         axis.set_title(quantity.name, fontsize=9)
+        axis.ticklabel_format(axis="both", style="sci", scilimits=(-2, 3))
+        axis.tick_params(labelsize=7)
         axis.set_ylabel(f"[{quantity.unit}]")
         axis.legend(fontsize=6)
     figure.suptitle(case.title, fontsize=9)

@@ -266,6 +266,8 @@ def comparison_figure(path, case_name: str, comparisons: list[Comparison]) -> Pa
         else:
             axis.set_xticks([])
         axis.set_title(f"{item.quantity}: {'pass' if item.all_passed else 'FAIL'}", fontsize=9)
+        axis.ticklabel_format(axis="both", style="sci", scilimits=(-2, 3))
+        axis.tick_params(labelsize=7)
         axis.set_ylabel(f"[{item.unit}]")
         axis.legend(fontsize=6)
     figure.suptitle(f"{case.title}", fontsize=9)

@@ -43,6 +43,26 @@ machines": the package folder on a shared filesystem). Runs already complete in 
 cantilever case is static and runs on the client. `compare` exits 0 when every quantity passes, 1 when one
 fails, 2 for bad input (an unknown case, a package without it, a CSV without the columns or quantities below).
 
+## Running a case in another simulator
+
+1. Read the case's set-up below and its scene file (every key, unit and valid range: docs/scenes.md). The
+   needle's base follows the scene's `[trajectory]` (waypoints, linear in between); the tissue is linear
+   co-rotational elastic on linear tetrahedra in refsim, but any discretisation of the same continuum is a
+   valid implementation: the answers are extrapolated in the mesh (or, where no order is observed, the finest
+   level's with its spread), not tied to refsim's mesh.
+2. Record, at every step, the force of the tissue on the needle and the needle's base position (and the tip
+   for the tip depth); the quantities are read from them:
+   - `base_travel` [m]: the base's displacement along the needle's initial axis (from its initial position);
+   - `tip_depth` [m]: the tip's position along the needle from the entry point (the surface point the tip
+     touched at the puncture);
+   - `lateral_stroke` [m]: the base's displacement across the initial axis;
+   - `axial_force` [N]: minus the force's component along the needle's base segment (towards the tip):
+     positive when the tissue resists insertion; `lateral_force` [N]: the norm of the rest;
+   - `cut_area` [m²]: the area of the cut surface in the tissue's rest configuration.
+   A curve is read over the steps of its window (`window = [t0, t1]` in the case file) or before an event
+   (`until`), sampled at its `at` points by linear interpolation.
+3. Write one CSV (format below) and run `refsim compare CASE THEIR.csv --reference DIR -o FIG.png`.
+
 ## The uncertainty and the pass band
 
 Each quantity at each sampling point gets its reference value from the case's refinement sequence (mesh, d_i,
@@ -171,8 +191,9 @@ def write_page(package, output) -> Path:
     lines = [INTRODUCTION, "## This build", ""]
     lines += [
         f"Level `{manifest['level']}`, refsim {manifest['refsim_version']}, "
-        f"commit `{manifest['git_commit']}`, built {manifest['created']} in {manifest['seconds']:.1f} s "
-        f"with `{manifest['command']}`.",
+        f"commit `{manifest['git_commit']}`, built {manifest['created']} with `{manifest['command']}`: "
+        f"{sum(c['run_seconds'] for c in manifest['cases'].values()):.0f} s of worker time for the runs "
+        f"(this invocation {manifest['seconds']:.0f} s; runs already complete in the folder are reused).",
         "",
         "| case | quantity | method | largest U / scale | T / scale |",
         "|---|---|---|---|---|",

@@ -304,6 +304,9 @@ def test_bad_input_exits_2_naming_what_is_wrong(package, tmp_path, capsys):
     assert main(["compare", "puncture", str(short), "--reference", str(folder)]) == EXIT_INPUT
     assert "the reference samples it at" in capsys.readouterr().err
     assert main(["reference", "build", "--cases", "nope", "-o", str(tmp_path / "p")]) == EXIT_INPUT
+    assert "unknown reference case 'nope'" in capsys.readouterr().err
+    assert main(["reference", "build", "--level", "finest", "-o", str(tmp_path / "p")]) == EXIT_INPUT
+    assert "has no level 'finest' (levels: coarse, standard, fine)" in capsys.readouterr().err
     assert not (tmp_path / "p").exists()
 
 
@@ -331,5 +334,5 @@ def test_case_files_are_validated(tmp_path):
     path.write_text(path.read_text().replace("formal_order = 1", "formal_order = -1"))
     with pytest.raises(ValueError, match=r"\[case\] formal_order: -1: expected a number in \(0, 4\]"):
         load_case(path)
-    with pytest.raises(ValueError, match="has no level 'fine'"):
-        load_case("puncture").level("fine")
+    with pytest.raises(ValueError, match="has no level 'finest'"):
+        load_case("puncture").level("finest")
