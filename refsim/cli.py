@@ -272,6 +272,65 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------- reference set (issue 27)
+
+
+def _cmd_reference(args: argparse.Namespace) -> int:
+    """`refsim reference`: list the cases, build the package at a level, or write its page."""
+    from refsim.reference import case_names, load_case
+
+    if args.action == "list":
+        for name in case_names():
+            case = load_case(name)
+            print(f"{name:<14} {case.title}  (levels: {', '.join(case.levels)})")
+        return 0
+    if args.action == "page":
+        from refsim.reference.page import write_page
+
+        print(f"wrote {write_page(args.package, args.output)}")
+        return 0
+    from refsim.reference import build_reference
+
+    if args.output is None:
+        raise ValueError("refsim reference build: give the package folder with -o DIR")
+    manifest = build_reference(
+        args.output,
+        level=args.level,
+        cases=args.cases,
+        scheduler=args.scheduler,
+        workers=args.workers,
+        command="refsim " + " ".join(sys.argv[1:]),
+    )
+    print(
+        f"reference set ({args.level}) in {args.output}: {len(manifest['cases'])} cases, "
+        f"{manifest['seconds']:.1f} s"
+    )
+    for name, case in manifest["cases"].items():
+        for quantity, row in case["quantities"].items():
+            print(
+                f"  {name:<14} {quantity:<24} {'/'.join(row['methods']):<22} "
+                f"largest U/scale {row['largest_relative_uncertainty']:.3g}"
+            )
+    return 0
+
+
+def _cmd_compare(args: argparse.Namespace) -> int:
+    """`refsim compare CASE THEIR.csv`: their results against the reference; exit 1 when a quantity fails."""
+    from refsim.reference import compare, format_comparison
+    from refsim.reference.compare import comparison_figure
+
+    figure = None
+    if args.output:
+        figure = Path(args.output)
+        if figure.suffix.lower() not in _FIGURE_SUFFIXES:
+            raise ValueError(f"-o {figure}: expected a picture file ending in {', '.join(_FIGURE_SUFFIXES)}")
+    comparisons = compare(args.case, args.theirs, args.reference)
+    print(format_comparison(args.case, comparisons))
+    if figure is not None:
+        print(f"wrote {comparison_figure(figure, args.case, comparisons)}")
+    return 0 if all(item.all_passed for item in comparisons) else EXIT_FAILED
+
+
 def _cut_history(cut):
     return cut.rest_points, cut.created_step, cut.triangles, cut.triangle_created_step
 
@@ -542,6 +601,27 @@ def _parser() -> argparse.ArgumentParser:
     )
     export.add_argument("--csv", metavar="OUT.csv", help="needle force history")
     export.set_defaults(handler=_cmd_export)
+
+    reference = commands.add_parser("reference", help="the reference set: list its cases, build it, its page")
+    reference.add_argument("action", choices=("list", "build", "page"), help="list the cases, build, or page")
+    reference.add_argument("-o", "--output", help="build: the package folder; page: the page (.md)")
+    reference.add_argument(
+        "--level", default="coarse", help="refinement levels: coarse (default), standard, fine (a cluster's)"
+    )
+    reference.add_argument("--cases", nargs="+", help="cases to build (default: all)")
+    reference.add_argument("--package", help="page: the package folder to write the page from")
+    reference.add_argument("--scheduler", help="address of a running Dask scheduler, e.g. tcp://host:8786")
+    reference.add_argument("--workers", type=int, help="LocalCluster worker processes (default: the cores)")
+    reference.set_defaults(handler=_cmd_reference)
+
+    compare = commands.add_parser(
+        "compare", help="score another simulator's results against a reference case"
+    )
+    compare.add_argument("case", help="reference case (refsim reference list)")
+    compare.add_argument("theirs", help="their results: CSV with columns quantity,x,value (or a refsim .h5)")
+    compare.add_argument("--reference", default="reference", help="the package folder (default ./reference)")
+    compare.add_argument("-o", "--output", help="figure: their values over the reference band (.png)")
+    compare.set_defaults(handler=_cmd_compare)
     return parser
 
 

@@ -1,0 +1,560 @@
+"""Building the reference set: each case's refinement sequence on Dask, its converged answers and the package.
+
+:func:`build_reference` runs every case at a level through the study machinery
+(:func:`refsim.sweep.run_study`: one zipped sweep over the level's keys, a LocalCluster or
+``--scheduler``), reads each run's quantities (:func:`refsim.reference.cases.results_values`), and gives each
+quantity at each sampling point a reference value with an uncertainty (:func:`reference_value`).
+It writes the versioned data package (layout in ``docs/reference.md``)::
+
+    DIR/manifest.json                      format, refsim version, git commit, command, level, cases (levels,
+                                           quantities, worst uncertainty), seconds, SHA-256 of every file
+    DIR/cases/NAME/reference.h5            the answers (format "refsim-reference-case")
+    DIR/cases/NAME/reference.csv           the same as CSV (the columns ``refsim compare`` reads, and more)
+    DIR/cases/NAME/case.toml, scene.toml   the specification, as built
+    DIR/cases/NAME/study.h5, study_runs/   the study file and every run's results file
+    DIR/cases/NAME/problems.h5, fclib/     the finest run's constraint problems with exact solutions; FCLib
+                                           files for the steps whose rows are pure frictional contact
+    DIR/figures/NAME.png                   each quantity against refinement, with the reference band
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import json
+import logging
+import math
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+from refsim.reference.cases import Case, case_names, case_values, load_case
+
+__all__ = [
+    "CASE_FORMAT",
+    "MANIFEST_FORMAT",
+    "build_reference",
+    "check_manifest",
+    "read_case_reference",
+    "reference_value",
+]
+
+logger = logging.getLogger(__name__)
+
+CASE_FORMAT = "refsim-reference-case"
+MANIFEST_FORMAT = "refsim-reference"
+SCHEMA_VERSION = 1
+#: Columns of a case's reference.csv (``refsim compare`` reads quantity, x, value; the rest is for people).
+CSV_COLUMNS = (
+    "quantity",
+    "x",
+    "value",
+    "uncertainty",
+    "band",
+    "method",
+    "order",
+    "order_used",
+    "gci",
+    "unit",
+    "x_unit",
+)
+
+
+def reference_value(spacings, values, formal_order: float) -> dict:
+    """The reference value of one quantity at one sampling point from its refinement sequence.
+
+    The GCI follows Roy's rule (Oberkampf and Roy 2010, "Verification and Validation in Scientific Computing",
+    section 8.7): when the observed order p is within 10 % of the formal order p_f, Fs = 1.25 and p; otherwise
+    Fs = 3 and p̂ = min(max(0.5, p), p_f), so that an order far from the asymptotic one (a pre-asymptotic or
+    noisy sequence) widens the band instead of shrinking it.
+
+    Parameters
+    ----------
+    spacings : Refinement measure h of each level, shape (L,), L ≥ 3.
+    values : The quantity at each level, shape (L,).
+    formal_order : p_f of the discretisation refined together (1 when the implicit Euler step is refined with
+        the mesh, 2 for the static Timoshenko beam) [-].
+
+    Returns
+    -------
+    dict with ``value``, ``uncertainty`` (half-width U of the band, in the quantity's unit), ``method``,
+    ``order`` (observed), ``order_used``, ``safety_factor``, ``gci``:
+
+    - "richardson": monotone over the three finest levels: the Richardson value with p̂, U = GCI |f1|,
+      GCI = Fs |(f1 − f2)/f1| / (r21^p̂ − 1);
+    - "converged": f1 = f2: f1, U = 0;
+    - "spread": oscillatory or divergent: the finest value f1, U = |f1 − f2| (the spread of the last two
+      levels);
+    - "missing": a level lacks the quantity: NaN.
+    """
+    from refsim.sweep.convergence import convergence, grid_convergence_index, richardson
+
+    h, f = np.asarray(spacings, dtype=float), np.asarray(values, dtype=float)
+    nan = float("nan")
+    answer = {"order": nan, "order_used": nan, "safety_factor": nan, "gci": nan}
+    if not np.all(np.isfinite(f)):
+        return {**answer, "value": nan, "uncertainty": nan, "method": "missing"}
+    result = convergence(h, f)
+    f1, f2 = result.values[0], result.values[1]
+    if result.kind == "monotone" and f1 != 0.0:
+        p = result.order
+        if abs(p - formal_order) <= 0.1 * formal_order:
+            used, factor = p, 1.25
+        else:
+            used, factor = min(max(0.5, p), formal_order), 3.0
+        gci = grid_convergence_index(f1, f2, result.ratio_fine, used, safety_factor=factor)
+        return {
+            "value": richardson(f1, f2, result.ratio_fine, used),
+            "uncertainty": gci * abs(f1),
+            "method": "richardson",
+            "order": p,
+            "order_used": used,
+            "safety_factor": factor,
+            "gci": gci,
+        }
+    if result.kind == "converged":
+        return {**answer, "value": f1, "uncertainty": 0.0, "method": "converged", "gci": 0.0}
+    return {**answer, "value": f1, "uncertainty": abs(f1 - f2), "method": "spread"}
+
+
+# ---------------------------------------------------------------------- running the levels
+
+
+def _study(case: Case, level: str):
+    from refsim.sweep import StudySpec, Sweep
+
+    keys = case.level(level)
+    count = len(keys[case.refine])
+    sweeps = [
+        Sweep(key, tuple(values), "inverse" if key == case.refine else "value")
+        for key, values in keys.items()
+    ]
+    # only the finest run records its constraint problems (exported with exact solutions)
+    sweeps.append(Sweep("output.record_problems", tuple([False] * (count - 1) + [True]), "none"))
+    return StudySpec(
+        name=f"{case.name}_{level}",
+        scene=str(case.scene_path),
+        sweeps=tuple(sweeps),
+        combine="zip",
+        overrides=("output.tissue_every=1000000",),
+        quantities=tuple(q.source for q in case.quantities if q.source) or ("needle_force@end",),
+        source=str(case.path),
+    )
+
+
+def _run_scene_case(case: Case, level: str, folder: Path, client) -> tuple[list[dict], list[str], dict]:
+    """Run the levels on Dask; per level {quantity: values}, the run files (relative to ``folder``), study
+    attributes."""
+    from refsim.sweep import run_study
+
+    study = run_study(_study(case, level), folder / "study.h5", client=client, progress=False, warm_up=False)
+    runs = study["runs"]
+    failed = [
+        f"{label}: {error}"
+        for label, status, error in zip(runs["label"], runs["status"], runs["error"], strict=True)
+        if status != "complete"
+    ]
+    if failed:
+        raise RuntimeError(f"case {case.name}, level {level}: runs did not complete: {'; '.join(failed)}")
+    values = [case_values(case, folder / name) for name in runs["file"]]
+    seconds = float(np.nansum(np.asarray(runs["seconds"], dtype=float)))
+    return values, list(runs["file"]), {"run_seconds": seconds, "ms_per_step": list(runs["ms_per_step"])}
+
+
+def _run_cantilever_case(case: Case, level: str) -> tuple[list[dict], list[str], dict]:
+    """The needle alone, static (:func:`refsim.verification.needle.needle_cantilever`), at each element count;
+    closed forms for the cross-check."""
+    from refsim.fem.needle import NeedleModel
+    from refsim.verification.needle import elastica_tip_displacement, needle_cantilever
+
+    spec = case.cantilever
+    length, radius = float(spec["length"]), float(spec["radius"])
+    modulus, ratio = float(spec["youngs_modulus"]), float(spec["poisson_ratio"])
+    section = NeedleModel(
+        length=length,
+        radius=radius,
+        element_count=1,
+        youngs_modulus=modulus,
+        poisson_ratio=ratio,
+        density=1.0,
+    ).section
+    bending = modulus * section.second_moment
+    start = time.perf_counter()
+    values = []
+    for count in case.level(level)[case.refine]:
+        row = {}
+        for name, parameter in spec["load_parameters"].items():
+            force = float(parameter) * bending / length**2
+            tip = needle_cantilever(
+                [0.0, -force, 0.0],
+                length=length,
+                radius=radius,
+                youngs_modulus=modulus,
+                poisson_ratio=ratio,
+                element_count=int(count),
+            ).tip_displacement
+            row[f"deflection@{name}"] = -tip[1]
+            row[f"shortening@{name}"] = -tip[0]
+        values.append({q.name: np.asarray(row[q.source]) for q in case.quantities})
+    closed = {}
+    shear_modulus = modulus / (2.0 * (1.0 + ratio))
+    for name, parameter in spec["load_parameters"].items():
+        force = float(parameter) * bending / length**2
+        axial = bending / (modulus * section.area * length**2)
+        shear = bending / (section.shear_coefficient * shear_modulus * section.area * length**2)
+        dx, dy = elastica_tip_displacement(
+            float(parameter), length, axial_compliance=axial, shear_compliance=shear
+        )
+        closed[f"shortening@{name}"], closed[f"deflection@{name}"] = -dx, -dy
+        # Timoshenko's linear closed form, the small-load limit of the elastica
+        closed[f"linear_deflection@{name}"] = force * length**3 / (3.0 * bending) + force * length / (
+            section.shear_coefficient * shear_modulus * section.area
+        )
+    info = {
+        "run_seconds": time.perf_counter() - start,
+        "closed_form": {q.name: closed[q.source] for q in case.quantities if q.source in closed},
+    }
+    return values, [], info
+
+
+# ---------------------------------------------------------------------- writing
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _answers(case: Case, spacings: np.ndarray, values: list[dict]) -> dict:
+    """{quantity: {at, levels (L, k), value, uncertainty, method, order, gci, band, scale}}."""
+    answers = {}
+    for quantity in case.quantities:
+        levels = np.array([np.atleast_1d(v[quantity.name]) for v in values], dtype=float)  # (L, k)
+        rows = [reference_value(spacings, levels[:, j], case.formal_order) for j in range(levels.shape[1])]
+        value = np.array([r["value"] for r in rows])
+        uncertainty = np.array([r["uncertainty"] for r in rows])
+        finite = value[np.isfinite(value)]
+        scale = float(np.max(np.abs(finite))) if finite.size else float("nan")
+        answers[quantity.name] = {
+            "at": np.asarray(quantity.at, dtype=float),
+            "levels": levels,
+            "value": value,
+            "uncertainty": uncertainty,
+            "method": [r["method"] for r in rows],
+            "order": np.array([r["order"] for r in rows]),
+            "order_used": np.array([r["order_used"] for r in rows]),
+            "safety_factor": np.array([r["safety_factor"] for r in rows]),
+            "gci": np.array([r["gci"] for r in rows]),
+            "scale": scale,
+            "modelling": quantity.tolerance * scale,
+            "band": uncertainty + quantity.tolerance * scale,
+        }
+    return answers
+
+
+def _write_case_h5(path: Path, case: Case, level: str, spacings, answers, files, info, meta) -> None:
+    import h5py
+
+    strings = h5py.string_dtype()
+    with h5py.File(path, "w") as handle:
+        handle.attrs.update(
+            {
+                "format": CASE_FORMAT,
+                "schema_version": SCHEMA_VERSION,
+                "case": case.name,
+                "title": case.title,
+                "level": level,
+                "refine": case.refine,
+                "formal_order": case.formal_order,
+                "levels": json.dumps(case.level(level)),
+                **meta,
+            }
+        )
+        handle.create_dataset("h", data=np.asarray(spacings, dtype=float)).attrs["units"] = "1/value"
+        handle.create_dataset("runs", data=np.array(files, dtype=object), dtype=strings)
+        for quantity in case.quantities:
+            answer = answers[quantity.name]
+            group = handle.create_group(f"quantities/{quantity.name}")
+            group.attrs.update(
+                {
+                    "kind": quantity.kind,
+                    "unit": quantity.unit,
+                    "x_unit": quantity.x_unit,
+                    "description": quantity.description,
+                    "tolerance_relative": quantity.tolerance,
+                    "tolerance_note": quantity.tolerance_note,
+                    "modelling_tolerance": answer["modelling"],
+                    "scale": answer["scale"],
+                    "closed_form": float(info.get("closed_form", {}).get(quantity.name, np.nan)),
+                    "closed_form_text": quantity.closed_form,
+                }
+            )
+            group.create_dataset("at", data=answer["at"]).attrs["units"] = quantity.x_unit
+            for name in ("value", "uncertainty", "band"):
+                group.create_dataset(name, data=answer[name]).attrs["units"] = quantity.unit
+            group.create_dataset("levels", data=answer["levels"]).attrs["units"] = quantity.unit
+            group.create_dataset("order", data=answer["order"]).attrs["units"] = "1"
+            group.create_dataset("order_used", data=answer["order_used"]).attrs["units"] = "1"
+            group.create_dataset("safety_factor", data=answer["safety_factor"]).attrs["units"] = "1"
+            group.create_dataset("gci", data=answer["gci"]).attrs["units"] = "1"
+            group.create_dataset("method", data=np.array(answer["method"], dtype=object), dtype=strings)
+
+
+def _write_case_csv(path: Path, case: Case, answers) -> None:
+    lines = [",".join(CSV_COLUMNS)]
+    for quantity in case.quantities:
+        answer = answers[quantity.name]
+        xs = answer["at"] if quantity.kind == "curve" else [None]
+        for j, x in enumerate(xs):
+            lines.append(
+                ",".join(
+                    [
+                        quantity.name,
+                        "" if x is None else f"{x:.12g}",
+                        f"{answer['value'][j]:.12g}",
+                        f"{answer['uncertainty'][j]:.6g}",
+                        f"{answer['band'][j]:.6g}",
+                        answer["method"][j],
+                        f"{answer['order'][j]:.4g}",
+                        f"{answer['order_used'][j]:.4g}",
+                        f"{answer['gci'][j]:.4g}",
+                        quantity.unit,
+                        quantity.x_unit,
+                    ]
+                )
+            )
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def _figure(path: Path, case: Case, spacings, answers) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    count = len(case.quantities)
+    figure, axes = plt.subplots(1, count, figsize=(4.2 * count, 3.4), squeeze=False)
+    for axis, quantity in zip(axes[0], case.quantities, strict=True):
+        answer = answers[quantity.name]
+        if quantity.kind == "curve":
+            x = answer["at"]
+            for row, h in zip(answer["levels"], spacings, strict=True):
+                axis.plot(x, row, "o-", ms=3, lw=0.8, label=f"h = 1/{1 / h:.3g}")
+            value, band, u = answer["value"], answer["band"], answer["uncertainty"]
+            axis.fill_between(x, value - band, value + band, color="0.85", label="reference ± (U + T)")
+            axis.fill_between(x, value - u, value + u, color="0.6", label="reference ± U")
+            axis.plot(x, value, "k-", lw=1.2, label="reference")
+            axis.set_xlabel(f"{quantity.x} [{quantity.x_unit}]")
+        else:
+            axis.plot(spacings, answer["levels"][:, 0], "o-", label="levels")
+            value, band, u = answer["value"][0], answer["band"][0], answer["uncertainty"][0]
+            axis.axhspan(value - band, value + band, color="0.85", label="reference ± (U + T)")
+            axis.axhspan(value - u, value + u, color="0.6", label="reference ± U")
+            axis.axhline(value, color="k", lw=1.2, label="reference")
+            axis.set_xlim(0.0, 1.1 * float(np.max(spacings)))
+            axis.set_xlabel(f"h = 1/{case.refine}")
+        axis.set_title(quantity.name, fontsize=9)
+        axis.ticklabel_format(axis="both", style="sci", scilimits=(-2, 3))
+        axis.tick_params(labelsize=7)
+        axis.set_ylabel(f"[{quantity.unit}]")
+        axis.legend(fontsize=6)
+    figure.suptitle(case.title, fontsize=9)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def read_case_reference(folder, case_name: str) -> dict:
+    """The answers of one case from a package: attributes, ``h``, and ``quantities`` {name: {kind, unit,
+    x_unit, at, value, uncertainty, band, levels, order, gci, method, ...}}.
+
+    Raises
+    ------
+    ValueError
+        When the package has no such case (naming the cases it has) or the file is not a case file.
+    """
+    import h5py
+
+    folder = Path(folder)
+    path = folder / "cases" / case_name / "reference.h5"
+    if not path.is_file():
+        held = sorted(p.name for p in (folder / "cases").glob("*")) if (folder / "cases").is_dir() else []
+        raise ValueError(
+            f"{folder}: no reference for case {case_name!r} (cases in the package: "
+            f"{', '.join(held) or 'none'}; build it with: refsim reference build -o DIR)"
+        )
+
+    def plain(value):
+        if isinstance(value, bytes):
+            return value.decode()
+        if isinstance(value, np.generic):
+            return value.item()
+        return value
+
+    with h5py.File(path, "r") as handle:
+        if plain(handle.attrs.get("format")) != CASE_FORMAT:
+            raise ValueError(f"{path}: not a reference case file (format {handle.attrs.get('format')!r})")
+        out = {
+            "attributes": {k: plain(v) for k, v in handle.attrs.items()},
+            "h": handle["h"][()],
+            "path": path,
+        }
+        quantities = {}
+        for name, group in handle["quantities"].items():
+            entry = {k: plain(v) for k, v in group.attrs.items()}
+            for key in ("at", "value", "uncertainty", "band", "levels", "order", "order_used", "gci"):
+                entry[key] = group[key][()]
+            entry["method"] = [plain(v) for v in group["method"][()]]
+            quantities[name] = entry
+        out["quantities"] = quantities
+    return out
+
+
+def check_manifest(folder) -> list[str]:
+    """Files of a package whose SHA-256 differs from its manifest's, or that are missing ([] when intact)."""
+    folder = Path(folder)
+    manifest = json.loads((folder / "manifest.json").read_text(encoding="utf-8"))
+    bad = []
+    for name, digest in manifest["files"].items():
+        path = folder / name
+        if not path.is_file() or _sha256(path) != digest:
+            bad.append(name)
+    return bad
+
+
+def build_reference(
+    output,
+    *,
+    level: str = "coarse",
+    cases=None,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    client=None,
+    command: str = "",
+    figures: bool = True,
+) -> dict:
+    """Build the reference set at a level into the folder ``output`` and return its manifest.
+
+    Parameters
+    ----------
+    output : Package folder (created; runs already complete inside it are reused, like a study's).
+    level : "coarse" (seconds per case: the machinery) or "standard" (the published answers).
+    cases : Case names (all built-in cases when None).
+    scheduler, workers, client : Where the runs go (:func:`refsim.sweep.run_study`): a Dask scheduler address,
+        or a LocalCluster of ``workers`` processes, or an open ``distributed.Client``.
+    command : The command line, recorded in the manifest.
+    figures : Write the figures.
+
+    Raises
+    ------
+    ValueError
+        For an unknown case or level, before anything runs.
+    RuntimeError
+        When a run of a case did not complete (naming it).
+    """
+    from refsim import __version__
+    from refsim.io import git_commit
+    from refsim.io.export import export_problems
+
+    names = list(cases) if cases else case_names()
+    loaded = [load_case(name) for name in names]
+    for case in loaded:
+        case.level(level)
+    output = Path(output)
+    output.mkdir(parents=True, exist_ok=True)
+    meta = {
+        "refsim_version": __version__,
+        "git_commit": git_commit(),
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "command": command or f"build_reference({str(output)!r}, level={level!r}, cases={names!r})",
+    }
+    own = None
+    needs_cluster = any(case.runner == "scene" for case in loaded)
+    if client is None and needs_cluster:
+        from refsim.sweep.study import start_client
+
+        client, own = start_client(scheduler, workers)
+        own = (client, own)
+    start = time.perf_counter()
+    manifest_cases = {}
+    try:
+        for case in loaded:
+            case_start = time.perf_counter()
+            folder = output / "cases" / case.name
+            folder.mkdir(parents=True, exist_ok=True)
+            if case.runner == "scene":
+                values, files, info = _run_scene_case(case, level, folder, client)
+                shutil.copyfile(case.scene_path, folder / "scene.toml")
+            else:
+                values, files, info = _run_cantilever_case(case, level)
+            shutil.copyfile(case.path, folder / "case.toml")
+            spacings = case.spacings(level)
+            answers = _answers(case, spacings, values)
+            _write_case_h5(folder / "reference.h5", case, level, spacings, answers, files, info, meta)
+            _write_case_csv(folder / "reference.csv", case, answers)
+            problems = None
+            if files:
+                summary = export_problems(
+                    folder / files[-1], folder / "problems.h5", fclib_folder=folder / "fclib"
+                )
+                problems = {"count": summary["problems"], "fclib": len(summary["fclib"])}
+            if figures:
+                (output / "figures").mkdir(exist_ok=True)
+                _figure(output / "figures" / f"{case.name}.png", case, spacings, answers)
+            manifest_cases[case.name] = {
+                "title": case.title,
+                "runner": case.runner,
+                "refine": case.refine,
+                "formal_order": case.formal_order,
+                "levels": case.level(level),
+                "h": spacings.tolist(),
+                "seconds": time.perf_counter() - case_start,
+                "run_seconds": info["run_seconds"],
+                "problems": problems,
+                "quantities": {
+                    q.name: {
+                        "kind": q.kind,
+                        "unit": q.unit,
+                        "methods": sorted(set(answers[q.name]["method"])),
+                        "largest_relative_uncertainty": _largest_relative(answers[q.name]),
+                        "modelling_tolerance_relative": q.tolerance,
+                    }
+                    for q in case.quantities
+                },
+            }
+    finally:
+        if own is not None:
+            own[0].close()
+            if own[1] is not None:
+                own[1].close()
+    manifest = {
+        "format": MANIFEST_FORMAT,
+        "schema_version": SCHEMA_VERSION,
+        "level": level,
+        **meta,
+        "seconds": time.perf_counter() - start,
+        "cases": manifest_cases,
+    }
+    manifest["files"] = {
+        str(path.relative_to(output)): _sha256(path)
+        for path in sorted(output.rglob("*"))
+        if path.is_file() and path.name != "manifest.json" and not path.name.endswith(".tmp")
+    }
+    temporary = output / "manifest.json.tmp"
+    temporary.write_text(
+        json.dumps(manifest, indent=1, sort_keys=True, default=float) + "\n", encoding="utf-8"
+    )
+    temporary.replace(output / "manifest.json")
+    return manifest
+
+
+def _largest_relative(answer) -> float:
+    """max U/scale over the samples of a quantity [-] (NaN when it has no finite value)."""
+    if not math.isfinite(answer["scale"]) or answer["scale"] == 0.0:
+        return float("nan")
+    return float(np.nanmax(answer["uncertainty"]) / answer["scale"])

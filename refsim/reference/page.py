@@ -1,0 +1,219 @@
+"""The reference set's page (docs/reference.md), written from a built package: nothing in it is typed by hand
+except the fixed text below, so its numbers are those of the package's runs."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from refsim.reference.build import read_case_reference
+from refsim.reference.cases import load_case
+
+__all__ = ["write_page"]
+
+INTRODUCTION = """\
+# Reference set: canonical needle–tissue cases with converged answers
+
+A handful of cases that another implementation (a SOFA plugin, a GPU or haptic simulator) can set up without
+refsim, run in its own code and score against refsim's converged answers with `refsim compare`. Each case is
+two plain TOML files in `refsim/reference/cases/`: `NAME.toml` (what it checks, its set-up in words, its
+refinement levels, its quantities with their sampling points, units and modelling tolerances) and
+`NAME.scene.toml` (an ordinary refsim scene with every value in SI units and a comment on each). Code:
+`refsim.reference` (DESIGN.md layer 6, above the study machinery it runs on).
+
+This page is generated from a built package by `refsim reference page --package DIR -o docs/reference.md`; its
+numbers hold for the code and the level of that build (below). The physics is changing (friction, tip force,
+thin layers, withdrawal): rebuild the package and this page after such a change.
+
+## Commands
+
+    refsim reference list                                          # the cases
+    refsim reference build -o DIR [--level coarse|standard] [--cases NAME ...] [--workers N|--scheduler A]
+    refsim reference page --package DIR -o docs/reference.md       # this page from a package
+    refsim compare CASE THEIR.csv --reference DIR [-o FIG.png]     # score their results
+
+`build` runs each case's refinement sequence through the study machinery (`refsim.sweep.run_study`: one zipped
+sweep over the level's keys, every run an ordinary results file) on a Dask LocalCluster of `--workers`
+processes, or on a cluster with `--scheduler tcp://HOST:8786` (set-up in docs/studies.md, "Running on several
+machines": the package folder on a shared filesystem). Runs already complete in the folder are reused. The
+cantilever case is static and runs on the client. `compare` exits 0 when every quantity passes, 1 when one
+fails, 2 for bad input (an unknown case, a package without it, a CSV without the columns or quantities below).
+
+## Running a case in another simulator
+
+1. Read the case's set-up below and its scene file (every key, unit and valid range: docs/scenes.md). The
+   needle's base follows the scene's `[trajectory]` (waypoints, linear in between); the tissue is linear
+   co-rotational elastic on linear tetrahedra in refsim, but any discretisation of the same continuum is a
+   valid implementation: the answers are extrapolated in the mesh (or, where no order is observed, the finest
+   level's with its spread), not tied to refsim's mesh.
+2. Record, at every step, the force of the tissue on the needle and the needle's base position (and the tip
+   for the tip depth); the quantities are read from them:
+   - `base_travel` [m]: the base's displacement along the needle's initial axis (from its initial position);
+   - `tip_depth` [m]: the tip's position along the needle from the entry point (the surface point the tip
+     touched at the puncture);
+   - `lateral_stroke` [m]: the base's displacement across the initial axis;
+   - `axial_force` [N]: minus the force's component along the needle's base segment (towards the tip):
+     positive when the tissue resists insertion; `lateral_force` [N]: the norm of the rest;
+   - `cut_area` [m²]: the area of the cut surface in the tissue's rest configuration.
+   A curve is read over the steps of its window (`window = [t0, t1]` in the case file) or before an event
+   (`until`), sampled at its `at` points by linear interpolation.
+3. Write one CSV (format below) and run `refsim compare CASE THEIR.csv --reference DIR -o FIG.png`.
+
+## The uncertainty and the pass band
+
+Each quantity at each sampling point gets its reference value from the case's refinement sequence (mesh, d_i,
+d_c and dt refined together, h = 1/cells; the exact solver at a natural residual of 1e-10), with
+`refsim.sweep.convergence` on the three finest levels:
+
+- `richardson`: monotone convergence: the Richardson value, U = GCI·|f1|, GCI = Fs·|(f1 − f2)/f1|/(r21^p̂ − 1)
+  with Roy's rule (Oberkampf and Roy 2010, section 8.7): Fs = 1.25 and p̂ = p when the observed order p is
+  within 10 % of the formal order p_f (the case's `formal_order`: 1 where implicit Euler's dt is refined with
+  the mesh, 2 for the static beam), otherwise Fs = 3 and p̂ = min(max(0.5, p), p_f);
+- `spread`: oscillatory or divergent (no asymptotic order observed): the finest value f1, U = |f1 − f2|, the
+  spread of the last two levels;
+- `converged`: f1 = f2: f1, U = 0.
+
+`compare` reports per sample the error in units of the uncertainty, |theirs − ref|/U, and passes a sample when
+|theirs − ref| ≤ U + T. T is the case's modelling tolerance: a stated fraction of the quantity's scale (its
+largest |ref| over the samples), for what the specification leaves open between two correct implementations
+(each quantity's note says what). A quantity passes when all its samples do. A quantity whose U is large
+against its scale has no converged answer at the built level: its band says so, and so does the table.
+
+## Their results: the CSV format
+
+One row per sample, a header with the columns `quantity`, `x`, `value` (other columns are ignored), SI units
+as in the tables below; curves at any abscissae covering the reference's sampling points (interpolated
+linearly), scalars with `x` empty:
+
+    quantity,x,value
+    indentation_force,0.00020,0.512
+    indentation_force,0.00025,0.655
+    puncture_force,,0.8
+
+A refsim results file (`.h5`) is read directly instead.
+
+## The data package
+
+    DIR/manifest.json                      format, schema version, refsim version, git commit, command, level,
+                                           per case: levels, h, seconds, quantities (methods,
+                                           largest U/scale);
+                                           the SHA-256 of every file
+    DIR/cases/NAME/reference.h5            answers (format "refsim-reference-case"): /h; /quantities/Q/{at,
+                                           value, uncertainty, band, levels (L, k), order, gci, method}
+    DIR/cases/NAME/reference.csv           the same as CSV (quantity, x, value, uncertainty, band, method,
+                                           order, gci, unit, x_unit)
+    DIR/cases/NAME/case.toml, scene.toml   the specification as built
+    DIR/cases/NAME/study.h5, study_runs/   the study file and each run's results file
+    DIR/cases/NAME/problems.h5, fclib/     every constraint problem of the finest run with its exact solution
+                                           (the problem-set format of refsim/io/export.py); FCLib files for
+                                           the steps whose rows are pure frictional contact
+    DIR/figures/NAME.png                   each quantity against refinement with the reference band
+"""
+
+
+def _format(value: float) -> str:
+    return "—" if not math.isfinite(value) else f"{value:.5g}"
+
+
+def _case_section(case, reference: dict, manifest_case: dict, figure: str | None) -> list[str]:
+    lines = [f"## {case.name}: {case.title}", "", f"**Why.** {case.why}", "", f"**Set-up.** {case.setup}", ""]
+    if case.note:
+        lines += [f"**Note.** {case.note}", ""]
+    if case.runner == "scene":
+        lines.append(
+            f"Scene file: `refsim/reference/cases/{case.scene_path.name}`; case file: `{case.path.name}`."
+        )
+    else:
+        lines.append(f"Case file: `{case.path.name}` (solved statically, `refsim.verification.needle`).")
+    levels = manifest_case["levels"]
+    lines += ["", "| level | " + " | ".join(levels) + " |", "|---" * (len(levels) + 1) + "|"]
+    for index in range(len(next(iter(levels.values())))):
+        lines.append(f"| {index + 1} | " + " | ".join(str(v[index]) for v in levels.values()) + " |")
+    lines += [
+        "",
+        f"Runs: {manifest_case['run_seconds']:.1f} s of run time; the case took "
+        f"{manifest_case['seconds']:.1f} s on the build machine.",
+        "",
+        "| quantity | x | reference | U | U + T | method | observed order | order used | unit |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for quantity in case.quantities:
+        entry = reference["quantities"][quantity.name]
+        at = np.atleast_1d(entry["at"])
+        value, u, band = (np.atleast_1d(entry[k]) for k in ("value", "uncertainty", "band"))
+        order, used = np.atleast_1d(entry["order"]), np.atleast_1d(entry["order_used"])
+        for j in range(value.size):
+            x = f"{at[j]:.4g} {quantity.x_unit}" if quantity.kind == "curve" else ""
+            lines.append(
+                f"| {quantity.name} | {x} | {_format(value[j])} | {_format(u[j])} | {_format(band[j])} | "
+                f"{entry['method'][j]} | {_format(order[j])} | {_format(used[j])} | {quantity.unit} |"
+            )
+    lines += ["", "Quantities:", ""]
+    for quantity in case.quantities:
+        entry = reference["quantities"][quantity.name]
+        text = f"- `{quantity.name}` [{quantity.unit}]: {quantity.description}."
+        if quantity.kind == "curve":
+            text += (
+                f" Sampled at {quantity.x} = {', '.join(f'{v:g}' for v in quantity.at)} {quantity.x_unit}."
+            )
+        text += f" T = {100 * quantity.tolerance:g} % of its scale: {quantity.tolerance_note}."
+        if quantity.closed_form:
+            text += f" Cross-check: {quantity.closed_form}"
+            closed = float(entry.get("closed_form", math.nan))
+            text += f" = {closed:.6g} {quantity.unit}." if math.isfinite(closed) else "."
+        lines.append(text)
+    if figure:
+        lines += ["", f"![{case.name}]({figure})"]
+    return lines + [""]
+
+
+def write_page(package, output) -> Path:
+    """Write the page from the package folder ``package``; figures are copied to ``figures/reference/``
+    beside the page. Returns the page's path.
+
+    Raises
+    ------
+    ValueError
+        When the folder holds no manifest (naming it).
+    """
+    package, output = Path(package), Path(output)
+    manifest_path = package / "manifest.json"
+    if not manifest_path.is_file():
+        raise ValueError(
+            f"{package}: no manifest.json; build the package with: refsim reference build -o DIR"
+        )
+    manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+    figures = output.parent / "figures" / "reference"
+    lines = [INTRODUCTION, "## This build", ""]
+    lines += [
+        f"Level `{manifest['level']}`, refsim {manifest['refsim_version']}, "
+        f"commit `{manifest['git_commit']}`, built {manifest['created']} with `{manifest['command']}`: "
+        f"{sum(c['run_seconds'] for c in manifest['cases'].values()):.0f} s of worker time for the runs "
+        f"(this invocation {manifest['seconds']:.0f} s; runs already complete in the folder are reused).",
+        "",
+        "| case | quantity | method | largest U / scale | T / scale |",
+        "|---|---|---|---|---|",
+    ]
+    for name, case in manifest["cases"].items():
+        for quantity, row in case["quantities"].items():
+            lines.append(
+                f"| {name} | {quantity} | {', '.join(row['methods'])} | "
+                f"{_format(row['largest_relative_uncertainty'])} | {row['modelling_tolerance_relative']:g} |"
+            )
+    lines.append("")
+    for name, manifest_case in manifest["cases"].items():
+        case = load_case(name)
+        figure = None
+        source = package / "figures" / f"{name}.png"
+        if source.is_file():
+            figures.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(source, figures / f"{name}.png")
+            figure = f"figures/reference/{name}.png"
+        lines += _case_section(case, read_case_reference(package, name), manifest_case, figure)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_text("\n".join(lines), encoding="utf-8")
+    return output
