@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from refsim.constraints.friction import friction_rows
+from refsim.constraints.insertion import axial_offsets, point_row_metadata
 from refsim.constraints.needle_geometry import needle_rows
 from refsim.constraints.rows import (
     BILATERAL,
@@ -41,6 +42,7 @@ from refsim.constraints.rows import (
     INSERTION,
     PENETRATION,
     SHAFT_CONTACT,
+    TIP,
     UNILATERAL,
     RowBlock,
     orthonormal_basis,
@@ -498,9 +500,16 @@ def ring_insertion_block(
     gaps[:, 0] = np.einsum("ij,ij->i", first, offset)
     gaps[:, 1] = np.einsum("ij,ij->i", second, offset)
     kinds = np.full((point_count, per_point), BILATERAL, dtype=np.int8)
+    anchors = None
     if with_friction:
+        offsets, anchors = axial_offsets(path, geometry, arc_lengths, tissue_point_previous)
         friction = friction_rows(
-            geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=arc_lengths, tangents=tangents
+            geometry,
+            tissue_nodes=nodes,
+            tissue_weights=weights,
+            arc_lengths=arc_lengths,
+            tangents=tangents,
+            offsets=offsets,
         )
         directions[:, 2] = tangents
         gaps[:, 2] = friction.free_gap
@@ -522,6 +531,7 @@ def ring_insertion_block(
         shaft_pairs=np.stack([base, base + 1], axis=1) if with_friction else np.zeros((0, 2), dtype=np.int64),
         shaft_friction_coefficient=coefficients.copy() if with_friction else np.zeros(0),
         shaft_normal_preload=preload.copy() if with_friction else np.zeros(0),
+        **point_row_metadata(point_count, with_friction, anchors),
     )
 
 
@@ -651,16 +661,29 @@ def shaft_friction_coefficients(stuck: np.ndarray, *, static: float, dynamic: fl
 
 
 def stuck_points(
-    multipliers: np.ndarray, bounds: np.ndarray, *, relative_tolerance: float = 1e-3
+    multipliers: np.ndarray,
+    bounds: np.ndarray,
+    *,
+    slips: np.ndarray | None = None,
+    rest_slip: float = 0.0,
+    relative_tolerance: float = 1e-3,
 ) -> np.ndarray:
-    """Which shaft rows are inside their bound (stick), bool shape (p,): |λ_s| < (1 − tol) · bound.
+    """Which shaft rows stick, bool shape (p,): |λ_s| < (1 − tol) · bound, or the row did not slip.
 
-    The default tolerance, 1e-3, is far above the solvers' (a row slipping at its bound, solved to 1e-8, is
-    never read as stuck, which would give it μ_s again at the next step); a row that sticks within 1e-3 of its
-    bound is read as slipping, a force change of at most 1e-3 (μ_s − μ_d)/μ_d of it."""
+    The force test's tolerance, 1e-3, is far above the solvers' (a row slipping at its bound, solved to 1e-8,
+    is never read as stuck by its force). A row at its bound whose slip over the step ``slips`` [m] (the
+    solved gap of its friction row: the needle surface's slip on the tissue) is at most ``rest_slip`` [m] is
+    at rest, hence stuck: a point that stopped at its dynamic bound holds its load, and the static coefficient
+    applies from the next step (Coulomb's law at zero relative velocity). Without ``slips`` only the force is
+    read."""
     multipliers = np.abs(np.asarray(multipliers, dtype=float))
     bounds = np.asarray(bounds, dtype=float)
-    return multipliers < (1.0 - relative_tolerance) * bounds
+    stuck = multipliers < (1.0 - relative_tolerance) * bounds
+    if slips is not None:
+        if not (math.isfinite(rest_slip) and rest_slip >= 0.0):
+            raise ValueError(f"rest_slip = {rest_slip!r} m; valid range [0, inf)")
+        stuck |= np.abs(np.asarray(slips, dtype=float)) <= rest_slip
+    return stuck
 
 
 def tip_cutting_block(
@@ -702,6 +725,7 @@ def tip_cutting_block(
         points=tissue_now,
         directions=direction,
         force_limit=np.array([float(cutting_force)]),
+        role=np.array([TIP], dtype=np.int8),
     )
     return block, np.zeros(1), np.array([float(cutting_force)])
 

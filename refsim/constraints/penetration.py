@@ -14,7 +14,16 @@ import scipy.sparse as sp
 
 from refsim.constraints.friction import friction_rows
 from refsim.constraints.needle_geometry import needle_rows
-from refsim.constraints.rows import FRICTION, PENETRATION, UNILATERAL, RowBlock, orthonormal_basis, point_rows
+from refsim.constraints.rows import (
+    FRICTION,
+    NORMAL,
+    PENETRATION,
+    TANGENT,
+    UNILATERAL,
+    RowBlock,
+    orthonormal_basis,
+    point_rows,
+)
 from refsim.constraints.step_geometry import StepGeometry
 
 __all__ = ["SurfaceContact", "find_surface_contact", "penetration_block"]
@@ -154,5 +163,6 @@ def penetration_block(
         directions=directions,
         contacts=contacts,
         contact_friction=contact_friction,
+        role=np.array([NORMAL, TANGENT, TANGENT][:row_count], dtype=np.int8),
         **capped,
     )

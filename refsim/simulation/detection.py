@@ -55,7 +55,8 @@ class Detection:
     rows : The step's rows, in solver order.
     contact : The tip's closest surface point (approach phase), else None.
     front : Where the front rows press on the crack tip (cutting phase); their indices are into ``rows``.
-    insertion_points : The path points whose insertion rows are in ``rows``, in row order, shape (p,).
+    insertion_points : The path points whose insertion rows are in ``rows``, in row order, shape (p,) (each
+        row's own point is ``rows.point``, an index into the path).
     """
 
     rows: RowBlock
@@ -234,13 +235,14 @@ class Detector:
                 # cut start are kept without rows (anchored, either would drag the tissue along the stroke).
                 points = points[2:]
             if points.size:
-                blocks.append(
-                    self.insertion_rows(
-                        state.path.subset(points),
-                        geometry,
-                        finite_line=spec.subgrid_line == "finite" and state.phase != Phase.CUTTING,
-                    )
+                block = self.insertion_rows(
+                    state.path.subset(points),
+                    geometry,
+                    finite_line=spec.subgrid_line == "finite" and state.phase != Phase.CUTTING,
                 )
+                # The rows' points, from indices into the subset to indices into the path.
+                owner = block.points_of_rows
+                blocks.append(replace(block, point=np.where(owner >= 0, points[np.maximum(owner, 0)], -1)))
                 insertion_points = points
             if spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION:
                 # The tip's cutting row, against the newest insertion point (at most d_i behind the tip).

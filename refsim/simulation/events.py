@@ -48,25 +48,34 @@ from refsim.simulation.state import Phase, SimulationState
 __all__ = ["EventRules", "LazyLocator", "locate_under_surface", "shaft_lateral_force"]
 
 
-def shaft_lateral_force(source, kind, directions, forces, *, without_entry: bool) -> np.ndarray:
+def shaft_lateral_force(
+    source, kind, directions, forces, *, without_entry: bool, points: np.ndarray | None = None
+) -> np.ndarray:
     """The lateral force of the tissue on the needle through its insertion points, t = Σ n λ over their
     bilateral rows [N], shape (3,) (the cut-start load).
 
     Parameters
     ----------
-    source, kind : Source and kind of each row, shape (r,); the insertion points' rows in path order, entry
-    first.
+    source, kind : Source and kind of each row, shape (r,).
     directions : Row directions, shape (r, 3). forces : Multipliers [N], shape (r,).
     without_entry : Leave out the entry point's rows: at the free surface they also carry the surface's
         reaction to an oblique entry (a 30° axial push put 0.37 N on the lone entry point three steps after
         puncture: 700 N/m over 0.52 mm), a load no shaft cuts with (the energy law).
+    points : The insertion point of each row (``RowBlock.point``: its index in the path, the entry is 0, −1
+        for other rows), shape (r,). None (results files, which do not store it): the insertion rows are
+        taken in path order with the entry's two lateral rows first.
     """
-    insertion = np.flatnonzero(np.asarray(source) == INSERTION)
-    lateral = insertion[np.asarray(kind)[insertion] == BILATERAL]
-    if without_entry:
-        # Each point has its two lateral rows first (then its axial row when there is friction): the entry's
-        # are the first two.
-        lateral = lateral[2:]
+    source = np.asarray(source)
+    insertion = source == INSERTION
+    lateral = insertion & (np.asarray(kind) == BILATERAL)
+    if points is not None:
+        if without_entry:
+            lateral &= np.asarray(points) != 0
+        lateral = np.flatnonzero(lateral)
+    else:
+        lateral = np.flatnonzero(lateral)
+        if without_entry:
+            lateral = lateral[2:]
     return (np.asarray(directions)[lateral] * np.asarray(forces)[lateral, None]).sum(axis=0)
 
 
@@ -182,6 +191,7 @@ class EventRules:
                 rows.directions,
                 multipliers,
                 without_entry=self.cutting.law == "energy",
+                points=rows.points_of_rows,
             )
             started = self._cut_starts(state, force_on_needle)
             if started is not None:
