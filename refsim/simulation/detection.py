@@ -206,7 +206,8 @@ class Detector:
         insertion_points = np.zeros(0, dtype=np.int64)
         if state.phase == Phase.APPROACH:
             projector = SurfaceProjector(geometry.tissue_free, self.faces)
-            contact = find_surface_contact(projector, self.faces, geometry.needle_free.tip)
+            tip_direction = geometry.needle_free.tangents(np.array([geometry.needle_free.length]))[0]
+            contact = find_surface_contact(projector, self.faces, geometry.needle_free.tip, tip_direction)
             if contact.gap < spec.contact_distance:
                 blocks.append(
                     penetration_block(
@@ -244,12 +245,13 @@ class Detector:
                 owner = block.points_of_rows
                 blocks.append(replace(block, point=np.where(owner >= 0, points[np.maximum(owner, 0)], -1)))
                 insertion_points = points
-            if spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION:
-                # The tip's cutting row, against the newest insertion point (at most d_i behind the tip).
+            if spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION and state.tip_tet >= 0:
+                # The tip's cutting row, against the tissue's material point at the tip (the tip inside the
+                # tissue: none once it has left it through a face).
                 tip_block, _, _ = tip_cutting_block(
                     geometry,
-                    tip_tet=int(state.path.tets[-1]),
-                    tip_barycentric=state.path.barycentric[-1],
+                    tip_tet=state.tip_tet,
+                    tip_barycentric=state.tip_barycentric,
                     cutting_force=spec.tip_cutting_force,
                 )
                 blocks.append(tip_block)

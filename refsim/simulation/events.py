@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import scipy.sparse as sp
 
 from refsim.constraints import (
     BILATERAL,
@@ -129,6 +130,13 @@ class EventRules:
         self.tets = tets
         self.deformation_gradients = deformation_gradients
         self.needle_geometry = needle_geometry
+        tets = np.asarray(tets)
+        # node → tets incidence (CSR rows: the tets holding each node), for the tip's location
+        incidence = sp.csr_matrix(
+            (np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(tets.shape[0]), tets.shape[1]))),
+            shape=(int(tets.max()) + 1, tets.shape[0]),
+        )
+        self._node_tets = incidence
         self.growth = None
         if scene.cutting.enabled:
             cutting = scene.cutting
@@ -178,7 +186,10 @@ class EventRules:
         if tets[0] < 0:
             return state, []
         path = InsertionPath.empty().appended(tets, barycentric, state.step)
-        return replace(state, phase=Phase.INSERTION, path=path), [Event("puncture", normal_force)]
+        state = replace(
+            state, phase=Phase.INSERTION, path=path, tip_tet=int(tets[0]), tip_barycentric=barycentric[0]
+        )
+        return state, [Event("puncture", normal_force)]
 
     def _insertion(self, state, detection, multipliers):
         rows = detection.rows
@@ -216,11 +227,30 @@ class EventRules:
         if np.any(beyond):
             path = path.subset(~beyond)
             events.append(Event("retraction"))
-        state = replace(state, path=path)
+        # The tip's material state: the tet it lies in, or outside (it left the tissue through a face).
+        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet)
+        if state.tip_tet >= 0 and tip_tet < 0 and path.point_count:
+            events.append(Event("exit"))
+        state = replace(state, path=path, tip_tet=tip_tet, tip_barycentric=tip_barycentric)
         if path.point_count == 0:
-            state = replace(state, phase=Phase.APPROACH)
+            state = replace(state, phase=Phase.APPROACH, tip_tet=-1, tip_barycentric=None)
             events.append(Event("withdrawal"))
         return state, events
+
+    def locate_tip(self, positions: np.ndarray, tip: np.ndarray, hint: int) -> tuple[int, np.ndarray | None]:
+        """The tet holding the tip and the tip's barycentric coordinates in it, (−1, None) outside the tissue.
+
+        The tets around ``hint`` (the tip's last tet: those sharing a node with it) are tried first, the whole
+        mesh when the tip is not among them.
+        """
+        tip = np.asarray(tip, dtype=float)
+        if hint >= 0:
+            candidates = np.unique(self._node_tets[self.tets[hint]].indices)
+            found, barycentric = TetLocator(positions, self.tets[candidates]).locate(tip[None, :])
+            if found[0] >= 0:
+                return int(candidates[found[0]]), barycentric[0]
+        found, barycentric = TetLocator(positions, self.tets).locate(tip[None, :])
+        return (int(found[0]), barycentric[0]) if found[0] >= 0 else (-1, None)
 
     def _outside_cut(self, path, state, positions):
         """The path without its new points that lie in the existing cut (projecting inside it, within d_c of
