@@ -30,6 +30,7 @@ from refsim.constraints.coupling import (
     insertion_compliance,
     local_mesh_size,
     ring_insertion_block,
+    ring_weights,
     shaft_contact_block,
     shaft_friction_coefficients,
     subgrid_compliance,
@@ -197,6 +198,23 @@ class Detector:
         )
         return replace(block, compliance_diagonal=diagonal)
 
+    def tip_ring(self, state: SimulationState, geometry: StepGeometry) -> tuple[np.ndarray, np.ndarray]:
+        """The tip cutting row's tissue side with the ring coupling: the ring of material points around the
+        tip's material point, normal to the needle at the tip (nodes and weights, shape (1, k) each)."""
+        tip = InsertionPath(
+            np.array([state.tip_tet]), np.asarray(state.tip_barycentric).reshape(1, 4), np.zeros(1, np.int64)
+        )
+        tangent = geometry.needle_previous.tangents(np.array([geometry.needle_previous.length]))
+        rings = RingLayout.around(
+            tip,
+            rest_positions=self.rest_positions,
+            mesh_tets=geometry.mesh_tets,
+            locator=self.rest_locator,
+            tangents=tangent,
+            needle_radius=self.needle_radius,
+        )
+        return ring_weights(tip, rings, geometry.mesh_tets)
+
     def detect(self, state: SimulationState, geometry: StepGeometry) -> Detection:
         """The rows of the step that starts from ``state``, on the free positions of ``geometry``."""
         spec = self.insertion
@@ -248,11 +266,14 @@ class Detector:
             if spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION and state.tip_tet >= 0:
                 # The tip's cutting row, against the tissue's material point at the tip (the tip inside the
                 # tissue: none once it has left it through a face).
+                ring = self.tip_ring(state, geometry) if self.ring else (None, None)
                 tip_block, _, _ = tip_cutting_block(
                     geometry,
                     tip_tet=state.tip_tet,
                     tip_barycentric=state.tip_barycentric,
                     cutting_force=spec.tip_cutting_force,
+                    tissue_nodes=ring[0],
+                    tissue_weights=ring[1],
                 )
                 blocks.append(tip_block)
         if state.phase == Phase.INSERTION and state.cut is not None and state.cut.triangle_count:
