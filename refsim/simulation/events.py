@@ -313,6 +313,32 @@ class EventRules:
         )
         return state, [Event("cut_start", trigger)]
 
+    def _leave_cut(self, state, needle, positions):
+        """The state after the needle left its cut backwards, into intact tissue: insertion points along the
+        inserted needle every d_i (material points where the needle now is), the insertion phase, the cut kept
+        (the needle may cut again: a new cut start). Event ``leave_cut``."""
+        locator = TetLocator(positions, self.tets)
+        spacing = self.insertion.spacing
+        entry_arc = inserted_arc(needle, locator, spacing)
+        arcs = np.arange(entry_arc, needle.length + 1e-12 * spacing, spacing)
+        tets, barycentric = locator.locate(needle.points(arcs))
+        inside = tets >= 0
+        path = InsertionPath.empty().appended(tets[inside], barycentric[inside], state.step)
+        events = [Event("leave_cut")]
+        if path.point_count == 0:
+            state = replace(state, phase=Phase.APPROACH, path=path, cut_strip=None, tip_tet=-1)
+            return state, [*events, Event("withdrawal")]
+        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, -1)
+        state = replace(
+            state,
+            phase=Phase.INSERTION,
+            path=path,
+            cut_strip=None,
+            tip_tet=tip_tet,
+            tip_barycentric=tip_barycentric,
+        )
+        return state, events
+
     def _extended(self, strip, needle, positions, locator, entry_arc):
         """The strip with columns added below its deepest one down to the needle's tip, every d_c (``locator``
         on ``positions``; ``entry_arc`` where the needle enters the tissue)."""
@@ -368,6 +394,14 @@ class EventRules:
             return state, [Event("retraction"), Event("withdrawal")]
         events: list[Event] = []
         cutting = self.cutting
+        if state.cut_strip is not None and state.cut is not None:
+            # Moved back through its own cut and past the line it entered along (the strip's first layer, its
+            # rear edge) by more than half a cut spacing: the needle is in intact tissue again.
+            rear = state.cut.deformed_points(positions, self.tets)[state.cut_strip.layers[0]]
+            _, on_needle = needle.project(rear)
+            behind = float(((on_needle - rear) @ state.cut_direction).mean())
+            if behind < -0.5 * cutting.point_spacing:
+                return self._leave_cut(state, needle, positions)
         if cutting.law == "energy" and state.cut_strip is not None:
             # A needle inserted deeper than the strip while it cuts: pushed sideways with the rest of the
             # shaft, its part below the strip cuts at G_c per unit length like the rest (the energy law does

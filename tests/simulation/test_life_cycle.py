@@ -128,3 +128,47 @@ def test_a_straight_insertion_has_no_lateral_force_from_the_tip_row():
     assert np.count_nonzero(last.row_role == TIP) == 1
     lateral = np.linalg.norm(last.needle_force[:2])
     assert lateral <= 0.01 * abs(last.needle_force[2]), (last.needle_force, lateral)
+
+
+@pytest.mark.parametrize("solver", ["gauss_seidel", pytest.param("exact", marks=pytest.mark.slow)], ids=str)
+def test_back_through_the_cut_and_beyond_the_entry_the_needle_meets_intact_tissue(solver):
+    # cube_cut on 4³ cells: inserted 17 mm, cut 8 mm along +x, then moved back 14 mm: through its own cut
+    # (nothing to cut there) and 6 mm beyond the line it entered along, into intact tissue. Expected: the
+    # needle leaves its cut behind the entry line (within half a cut spacing plus a step's travel), starts a
+    # new cut the other way, and cuts at G_c per unit inserted length (Griffith, as forward: the front's force
+    # is G_c L, the rows standing for at least L − 2 d_c, test_cutting.py); not the zero force of a needle
+    # whose only rows faced the other way.
+    times = [0.0, 1.9, 2.0, 2.8, 3.0, 4.4, 4.6]
+    xs = [0.00123, 0.00123, 0.00123, 0.00923, 0.00923, -0.00477, -0.00477]
+    bases = (
+        "["
+        + ", ".join(f"[{x!r}, 0.00231, {z!r}]" for x, z in zip(xs, [0.422] + [0.403] * 6, strict=True))
+        + "]"
+    )
+    scene = load_scene(
+        "cube_cut",
+        [
+            "mesh.cells=[4, 4, 4]",
+            f"trajectory.times={times!r}",
+            f"trajectory.base_positions={bases}",
+            "trajectory.directions=[" + ", ".join(["[0, 0, -1]"] * len(times)) + "]",
+            f"time.duration={times[-1]}",
+            *SOLVERS[solver],
+        ],
+    )
+    records = []
+    Simulation(scene).run(on_step=lambda state, record: records.append(record))
+    named = lambda name: [r for r in records if any(e.name == name for e in r.events)]  # noqa: E731
+    left = named("leave_cut")
+    assert len(left) == 1 and len(named("cut_start")) == 2
+    d_c = scene.cutting.point_spacing
+    travel = 0.01 * scene.time.dt  # 10 mm/s
+    entry_x = xs[0]
+    assert entry_x - 0.5 * d_c - travel - 1e-3 * d_c <= left[0].needle_positions[-1, 0] <= entry_x - 0.5 * d_c
+    g_c, length = scene.cutting.fracture_energy, TOP - records[-1].needle_positions[-1, 2]
+    beyond = [r for r in records if r.time <= times[-2] and r.needle_positions[-1, 0] < entry_x - 2 * d_c]
+    assert len(beyond) > 20
+    for record in beyond:
+        # The tissue resists the needle moving −x: force +x, the cutting force G_c L within the rows'
+        # coverage (L − 2 d_c) and the surface's dip at the needle (the inserted length, within d_c).
+        assert g_c * (length - 3 * d_c) <= record.needle_force[0] <= g_c * (length + d_c), record.needle_force
