@@ -250,9 +250,10 @@ class Detector:
             points = np.arange(state.path.point_count)
             if state.phase == Phase.CUTTING and self.cutting.law == "energy":
                 # The cut holds the needle along the strip (sliding rows, crack tip; the strip extends down
-                # the shaft when the needle goes deeper); the entry point and the strip's deepest point at the
-                # cut start are kept without rows (anchored, either would drag the tissue along the stroke).
-                points = points[2:]
+                # the shaft when the needle goes deeper); the path's points while cutting, the entry point and
+                # the strip's deepest point at the cut start (events: _cut_starts), are kept without rows
+                # (anchored, either would drag the tissue along the stroke).
+                points = points[:0]
             if points.size:
                 block = self.insertion_rows(
                     state.path.subset(points),

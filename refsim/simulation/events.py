@@ -4,6 +4,10 @@
   point; insertion
 - phase: insertion; event: (new points); when: the tip is farther than d_i from every point; then: points
   every d_i behind the tip, but none in an existing cut
+- phase: insertion; event: (tip location); when: every step; then: the tip's material point (its tet and
+  barycentric coordinates) is stored in the state; the tip's cutting row exists while the tip lies in a tet
+- phase: insertion; event: exit; when: the tip, inside the tissue at the step's start, lies in no tet at its
+  end (it left through a far face); then: no tip row from the next step; the shaft keeps its points
 - phase: insertion; event: retraction; when: points lie beyond the tip; then: they are removed
 - phase: insertion; event: withdrawal; when: no point is left; then: approach
 - phase: insertion; event: cut_start; when: energy law: ‖t‖ ≥ G_c L_in; paper law (equation 3): ‖t‖ > n_i f_c;
@@ -17,6 +21,9 @@
   direction)
 - phase: cutting; event: retraction, withdrawal; when: the entry point beyond the tip; then: every row
   released; approach (the cut stays)
+- phase: cutting; event: leave_cut; when: the needle is back behind the strip's first layer (the line it
+  entered along) by more than d_c/2, along −ĉ; then: insertion points along the inserted needle every d_i
+  (intact tissue); insertion (the cut stays; a new cut may start)
 
 The cut surface itself grows in :mod:`refsim.cutting.growth` and :mod:`refsim.cutting.strip`.
 """
@@ -82,6 +89,9 @@ def shaft_lateral_force(
 
 #: Relative tolerance on f_p of the puncture test (a capped row carries f_p to the solve's accuracy).
 PUNCTURE_TOLERANCE = 1e-6
+#: Relative tolerance of "a row at its force limit" for the crack front's rows (G_c ℓ_k) and the sliding rows
+#: at the front: a row that gave way carries its limit to the solve's accuracy (≤ 1e-8), far inside 1e-6.
+LIMIT_TOLERANCE = 1e-6
 
 
 class LazyLocator:
@@ -422,10 +432,10 @@ class EventRules:
         if cutting.law == "energy":
             limit = detection.rows.force_limit[front.rows]
             gaps = front.gaps(strip.front.positions(positions, self.tets), needle)
-            over = np.where((forces >= (1.0 - 1e-6) * limit) & (gaps < 0.0), -gaps, 0.0)
+            over = np.where((forces >= (1.0 - LIMIT_TOLERANCE) * limit) & (gaps < 0.0), -gaps, 0.0)
             # Sliding rows at the front that gave way: the needle cuts out of the cut's plane there.
             band_limit = detection.rows.force_limit[front.band_rows]
-            sideways = np.abs(multipliers[front.band_rows]) >= (1.0 - 1e-6) * band_limit
+            sideways = np.abs(multipliers[front.band_rows]) >= (1.0 - LIMIT_TOLERANCE) * band_limit
             if not (np.any(over > 0.0) or np.any(sideways)):
                 return state, events
             # Each column next to a row that gave way (a front row, or a sliding row at the front) moves to

@@ -172,3 +172,16 @@ def test_back_through_the_cut_and_beyond_the_entry_the_needle_meets_intact_tissu
         # The tissue resists the needle moving −x: force +x, the cutting force G_c L within the rows'
         # coverage (L − 2 d_c) and the surface's dip at the needle (the inserted length, within d_c).
         assert g_c * (length - 3 * d_c) <= record.needle_force[0] <= g_c * (length + d_c), record.needle_force
+
+
+def test_a_tip_cutting_force_above_the_puncture_force_is_reported(caplog):
+    # Measured profiles drop after the puncture (Okamura et al. 2004): f_cut > f_p is accepted (a scene may
+    # want it) but said, naming both keys and values.
+    with caplog.at_level("WARNING", logger="refsim.scene"):
+        load_scene("cube", ["insertion.tip_cutting_force=1.2", "insertion.puncture_force=0.8"])
+    message = " ".join(record.getMessage() for record in caplog.records)
+    assert "insertion.tip_cutting_force = 1.2 N" in message and "insertion.puncture_force = 0.8 N" in message
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="refsim.scene"):
+        load_scene("cube")
+    assert not any("tip_cutting_force" in record.getMessage() for record in caplog.records)
