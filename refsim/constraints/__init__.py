@@ -1,6 +1,6 @@
 """Constraint builders (layer 3): rows of H, gaps and kinds for penetration, insertion and cutting."""
 
-from refsim.constraints.friction import FrictionRows, friction_rows, slip_gaps
+from refsim.constraints.friction import FrictionRows, friction_rows, slip_gaps, stick_offsets
 from refsim.constraints.insertion import InsertionPath, grow_path, insertion_block, points_beyond_tip
 from refsim.constraints.needle_geometry import (
     BeamNeedleGeometry,
@@ -10,15 +10,26 @@ from refsim.constraints.needle_geometry import (
 )
 from refsim.constraints.penetration import SurfaceContact, find_surface_contact, penetration_block
 from refsim.constraints.rows import (
+    AXIAL_FRICTION,
     BILATERAL,
+    BORDER,
     CUT_BORDER,
+    CUT_FRICTION,
     CUT_SLIDE,
     FRICTION,
+    FRONT,
     INSERTION,
     KIND_NAMES,
+    LATERAL_FIRST,
+    LATERAL_SECOND,
+    NORMAL,
     PENETRATION,
+    ROLE_NAMES,
     SHAFT_CONTACT,
+    SLIDING,
     SOURCE_NAMES,
+    TANGENT,
+    TIP,
     UNILATERAL,
     RowBlock,
     concatenate,
@@ -29,7 +40,18 @@ from refsim.constraints.rows import (
 from refsim.constraints.step_geometry import StepGeometry
 
 __all__ = [
+    "AXIAL_FRICTION",
     "BILATERAL",
+    "BORDER",
+    "CUT_FRICTION",
+    "FRONT",
+    "LATERAL_FIRST",
+    "LATERAL_SECOND",
+    "NORMAL",
+    "ROLE_NAMES",
+    "SLIDING",
+    "TANGENT",
+    "TIP",
     "CUT_BORDER",
     "CUT_SLIDE",
     "FRICTION",
@@ -52,6 +74,7 @@ __all__ = [
     "find_surface_contact",
     "friction_rows",
     "slip_gaps",
+    "stick_offsets",
     "grow_path",
     "insertion_block",
     "needle_rows",

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from refsim.constraints.friction import friction_rows
+from refsim.constraints.insertion import axial_offsets, point_row_metadata
 from refsim.constraints.needle_geometry import needle_rows
 from refsim.constraints.rows import (
     BILATERAL,
@@ -41,6 +42,7 @@ from refsim.constraints.rows import (
     INSERTION,
     PENETRATION,
     SHAFT_CONTACT,
+    TIP,
     UNILATERAL,
     RowBlock,
     orthonormal_basis,
@@ -64,6 +66,7 @@ __all__ = [
     "ring_points",
     "RingLayout",
     "ring_insertion_block",
+    "ring_weights",
     "insertion_compliance",
     "interference_pressure",
     "grip_preload",
@@ -434,6 +437,42 @@ class RingLayout:
         )
 
 
+def ring_weights(path, rings: RingLayout, mesh_tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The tissue side of ring-averaged rows: the mean of each point's ring points' interpolations.
+
+    A ring point is kept only with its antipode (a ring cut by the surface stays centred); a point left
+    without a pair uses its centre.
+
+    Parameters
+    ----------
+    path : The points (tets (p,), barycentric (p, 4)), :class:`refsim.constraints.insertion.InsertionPath`.
+    rings : Their rings (:meth:`RingLayout.around`), q points each, q even or 1.
+    mesh_tets : Tissue tets, shape (m, 4).
+
+    Returns
+    -------
+    (nodes, weights) : shape (p, 4 (q + 1)) each; Σ weights = 1 per point.
+    """
+    point_count = path.point_count
+    ring_tets = np.asarray(rings.tets, dtype=np.int64)
+    per_ring = ring_tets.shape[1]
+    inside = ring_tets >= 0
+    if per_ring > 1:
+        if per_ring % 2:
+            raise ValueError(f"ring point count {per_ring} must be even (antipodal pairs)")
+        inside &= np.roll(inside, per_ring // 2, axis=1)
+    counts = inside.sum(axis=1)
+    use_centre = counts == 0
+    all_tets = np.concatenate([path.tets[:, None], np.where(inside, ring_tets, 0)], axis=1)  # (p, q + 1)
+    all_bary = np.concatenate([path.barycentric[:, None, :], np.nan_to_num(rings.barycentric)], axis=1)
+    share = np.concatenate(
+        [use_centre[:, None].astype(float), inside / np.maximum(counts, 1)[:, None]], axis=1
+    )
+    nodes = np.asarray(mesh_tets)[all_tets].reshape(point_count, -1)  # (p, 4 (q + 1))
+    weights = (share[:, :, None] * all_bary).reshape(point_count, -1)
+    return nodes, weights
+
+
 def ring_insertion_block(
     path,
     geometry: StepGeometry,
@@ -464,22 +503,7 @@ def ring_insertion_block(
     preload = np.broadcast_to(np.asarray(normal_preload, dtype=float), (point_count,))
     if np.any(~np.isfinite(preload)) or np.any(preload < 0.0):
         raise ValueError(f"normal_preload = {normal_preload!r} N; valid range [0, inf)")
-    ring_tets = np.asarray(rings.tets, dtype=np.int64)
-    per_ring = ring_tets.shape[1]
-    inside = ring_tets >= 0
-    if per_ring > 1:
-        if per_ring % 2:
-            raise ValueError(f"ring point count {per_ring} must be even (antipodal pairs)")
-        inside &= np.roll(inside, per_ring // 2, axis=1)
-    counts = inside.sum(axis=1)
-    use_centre = counts == 0
-    all_tets = np.concatenate([path.tets[:, None], np.where(inside, ring_tets, 0)], axis=1)  # (p, q + 1)
-    all_bary = np.concatenate([path.barycentric[:, None, :], np.nan_to_num(rings.barycentric)], axis=1)
-    share = np.concatenate(
-        [use_centre[:, None].astype(float), inside / np.maximum(counts, 1)[:, None]], axis=1
-    )
-    nodes = geometry.mesh_tets[all_tets].reshape(point_count, -1)  # (p, 4 (q + 1))
-    weights = (share[:, :, None] * all_bary).reshape(point_count, -1)
+    nodes, weights = ring_weights(path, rings, geometry.mesh_tets)
     tissue_point_previous, tissue_point_free = geometry.tissue_points(nodes, weights)
     centre_previous, _ = geometry.tissue_points(geometry.mesh_tets[path.tets], path.barycentric)
     arc_lengths, _ = geometry.needle_previous.project(centre_previous)
@@ -498,9 +522,16 @@ def ring_insertion_block(
     gaps[:, 0] = np.einsum("ij,ij->i", first, offset)
     gaps[:, 1] = np.einsum("ij,ij->i", second, offset)
     kinds = np.full((point_count, per_point), BILATERAL, dtype=np.int8)
+    anchors = None
     if with_friction:
+        offsets, anchors = axial_offsets(path, geometry, arc_lengths, tissue_point_previous)
         friction = friction_rows(
-            geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=arc_lengths, tangents=tangents
+            geometry,
+            tissue_nodes=nodes,
+            tissue_weights=weights,
+            arc_lengths=arc_lengths,
+            tangents=tangents,
+            offsets=offsets,
         )
         directions[:, 2] = tangents
         gaps[:, 2] = friction.free_gap
@@ -522,6 +553,7 @@ def ring_insertion_block(
         shaft_pairs=np.stack([base, base + 1], axis=1) if with_friction else np.zeros((0, 2), dtype=np.int64),
         shaft_friction_coefficient=coefficients.copy() if with_friction else np.zeros(0),
         shaft_normal_preload=preload.copy() if with_friction else np.zeros(0),
+        **point_row_metadata(point_count, with_friction, anchors),
     )
 
 
@@ -651,16 +683,29 @@ def shaft_friction_coefficients(stuck: np.ndarray, *, static: float, dynamic: fl
 
 
 def stuck_points(
-    multipliers: np.ndarray, bounds: np.ndarray, *, relative_tolerance: float = 1e-3
+    multipliers: np.ndarray,
+    bounds: np.ndarray,
+    *,
+    slips: np.ndarray | None = None,
+    rest_slip: float = 0.0,
+    relative_tolerance: float = 1e-3,
 ) -> np.ndarray:
-    """Which shaft rows are inside their bound (stick), bool shape (p,): |λ_s| < (1 − tol) · bound.
+    """Which shaft rows stick, bool shape (p,): |λ_s| < (1 − tol) · bound, or the row did not slip.
 
-    The default tolerance, 1e-3, is far above the solvers' (a row slipping at its bound, solved to 1e-8, is
-    never read as stuck, which would give it μ_s again at the next step); a row that sticks within 1e-3 of its
-    bound is read as slipping, a force change of at most 1e-3 (μ_s − μ_d)/μ_d of it."""
+    The force test's tolerance, 1e-3, is far above the solvers' (a row slipping at its bound, solved to 1e-8,
+    is never read as stuck by its force). A row at its bound whose slip over the step ``slips`` [m] (the
+    solved gap of its friction row: the needle surface's slip on the tissue) is at most ``rest_slip`` [m] is
+    at rest, hence stuck: a point that stopped at its dynamic bound holds its load, and the static coefficient
+    applies from the next step (Coulomb's law at zero relative velocity). Without ``slips`` only the force is
+    read."""
     multipliers = np.abs(np.asarray(multipliers, dtype=float))
     bounds = np.asarray(bounds, dtype=float)
-    return multipliers < (1.0 - relative_tolerance) * bounds
+    stuck = multipliers < (1.0 - relative_tolerance) * bounds
+    if slips is not None:
+        if not (math.isfinite(rest_slip) and rest_slip >= 0.0):
+            raise ValueError(f"rest_slip = {rest_slip!r} m; valid range [0, inf)")
+        stuck |= np.abs(np.asarray(slips, dtype=float)) <= rest_slip
+    return stuck
 
 
 def tip_cutting_block(
@@ -669,6 +714,8 @@ def tip_cutting_block(
     tip_tet: int,
     tip_barycentric: np.ndarray,
     cutting_force: float,
+    tissue_nodes: np.ndarray | None = None,
+    tissue_weights: np.ndarray | None = None,
 ) -> tuple[RowBlock, np.ndarray, np.ndarray]:
     """The tip's cutting row after puncture: one row along the needle at the tip, its force in [0, f_cut].
 
@@ -677,6 +724,11 @@ def tip_cutting_block(
     displacement over the step (a friction row of :func:`refsim.constraints.friction.friction_rows`). Under
     the box law [0, f_cut]: the tip sticks (δ = 0, the tissue deforms ahead of it) while the force is below
     f_cut, cuts forward at exactly f_cut (δ ≤ 0), and is free when it retreats (λ = 0, δ ≥ 0).
+
+    ``tissue_nodes``, ``tissue_weights`` (shape (k,) each): the row's tissue side when it is not the tip's
+    material point alone, the ring around the tip with the ring coupling (:func:`ring_weights`): a point
+    load on one material point among ring-averaged rows pushes the mesh asymmetrically, and the lateral
+    rows then carry a lateral force a straight symmetric insertion does not have.
 
     Returns
     -------
@@ -689,6 +741,9 @@ def tip_cutting_block(
     direction = -geometry.needle_free.tangents(tip_s)
     nodes = geometry.mesh_tets[[tip_tet]]
     weights = np.asarray(tip_barycentric, dtype=float).reshape(1, 4)
+    if tissue_nodes is not None and tissue_weights is not None:
+        nodes = np.asarray(tissue_nodes).reshape(1, -1)
+        weights = np.asarray(tissue_weights, dtype=float).reshape(1, -1)
     rows = friction_rows(
         geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=tip_s, tangents=direction
     )
@@ -702,6 +757,7 @@ def tip_cutting_block(
         points=tissue_now,
         directions=direction,
         force_limit=np.array([float(cutting_force)]),
+        role=np.array([TIP], dtype=np.int8),
     )
     return block, np.zeros(1), np.array([float(cutting_force)])
 

@@ -27,8 +27,11 @@ from refsim.constraints.needle_geometry import needle_rows
 from refsim.constraints.rows import (
     BILATERAL,
     CUT_BORDER,
+    CUT_FRICTION,
     CUT_SLIDE,
     FRICTION,
+    FRONT,
+    SLIDING,
     UNILATERAL,
     RowBlock,
     point_rows,
@@ -465,6 +468,13 @@ def strip_cut_block(
         compliance_diagonal=_cut_compliance(
             subgrid_compliance, slide_tets, front_tets, shares[front_keep], spacing, friction_count > 0
         ),
+        role=np.concatenate(
+            [
+                np.full(slide_count, SLIDING),
+                np.full(front_keep.size, FRONT),
+                np.full(friction_count, CUT_FRICTION),
+            ]
+        ).astype(np.int8),
         **groups,
     )
     return block, front_info

@@ -10,17 +10,27 @@ a centreline model does not see (our extension; with a zero preload this is the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
 
-from refsim.constraints.friction import friction_rows
+from refsim.constraints.friction import friction_rows, stick_offsets
 from refsim.constraints.needle_geometry import NeedleGeometry, needle_rows
-from refsim.constraints.rows import BILATERAL, FRICTION, INSERTION, RowBlock, orthonormal_basis, point_rows
+from refsim.constraints.rows import (
+    AXIAL_FRICTION,
+    BILATERAL,
+    FRICTION,
+    INSERTION,
+    LATERAL_FIRST,
+    LATERAL_SECOND,
+    RowBlock,
+    orthonormal_basis,
+    point_rows,
+)
 from refsim.constraints.step_geometry import StepGeometry
 
-__all__ = ["InsertionPath", "insertion_block", "grow_path", "points_beyond_tip"]
+__all__ = ["InsertionPath", "insertion_block", "grow_path", "points_beyond_tip", "point_row_metadata"]
 
 
 @dataclass(frozen=True)
@@ -36,6 +46,10 @@ class InsertionPath:
         the warm start of the next solve.
     stuck : Whether the point's shaft force was inside its Coulomb bound at its last solve (it sticks), bool
         shape (p,); new points start stuck. Chooses the static or the dynamic coefficient of the next step.
+    anchors : Stick anchor of each point's axial friction row, the needle arc length [m] at which its sub-grid
+        annulus is unstretched (:func:`refsim.constraints.friction.stick_offsets`), shape (p,); NaN where
+        unset (a new point, or one that slipped at its last solve: the next step places it from ``stretch``).
+    stretch : The annulus' axial stretch −C λ at the point's last solve [m], shape (p,) (0 for a new point).
     """
 
     tets: np.ndarray
@@ -43,12 +57,19 @@ class InsertionPath:
     created_step: np.ndarray
     multipliers: np.ndarray | None = None
     stuck: np.ndarray | None = None
+    anchors: np.ndarray | None = None
+    stretch: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        count = self.tets.shape[0]
         if self.multipliers is None:
-            object.__setattr__(self, "multipliers", np.zeros((self.tets.shape[0], 3)))
+            object.__setattr__(self, "multipliers", np.zeros((count, 3)))
         if self.stuck is None:
-            object.__setattr__(self, "stuck", np.ones(self.tets.shape[0], dtype=bool))
+            object.__setattr__(self, "stuck", np.ones(count, dtype=bool))
+        if self.anchors is None:
+            object.__setattr__(self, "anchors", np.full(count, np.nan))
+        if self.stretch is None:
+            object.__setattr__(self, "stretch", np.zeros(count))
 
     @classmethod
     def empty(cls) -> InsertionPath:
@@ -59,12 +80,19 @@ class InsertionPath:
         stored = np.zeros((self.point_count, 3))
         multipliers = np.asarray(multipliers, dtype=float).reshape(self.point_count, -1)
         stored[:, : multipliers.shape[1]] = multipliers
-        return InsertionPath(self.tets, self.barycentric, self.created_step, stored, self.stuck)
+        return replace(self, multipliers=stored)
 
     def with_stuck(self, stuck: np.ndarray) -> InsertionPath:
         """The same points with their stick state (bool (p,)) after a solve."""
-        stuck = np.asarray(stuck, dtype=bool).reshape(self.point_count)
-        return InsertionPath(self.tets, self.barycentric, self.created_step, self.multipliers, stuck)
+        return replace(self, stuck=np.asarray(stuck, dtype=bool).reshape(self.point_count))
+
+    def with_anchors(self, anchors: np.ndarray, stretch: np.ndarray) -> InsertionPath:
+        """The same points with their stick anchors [m] (NaN: unset) and annulus stretches [m], (p,) each."""
+        return replace(
+            self,
+            anchors=np.asarray(anchors, dtype=float).reshape(self.point_count),
+            stretch=np.asarray(stretch, dtype=float).reshape(self.point_count),
+        )
 
     @property
     def point_count(self) -> int:
@@ -82,6 +110,8 @@ class InsertionPath:
             np.concatenate([self.created_step, np.full(len(tets), step, dtype=np.int64)]),
             np.concatenate([self.multipliers, np.zeros((len(tets), 3))]),
             np.concatenate([self.stuck, np.ones(len(tets), dtype=bool)]),
+            np.concatenate([self.anchors, np.full(len(tets), np.nan)]),
+            np.concatenate([self.stretch, np.zeros(len(tets))]),
         )
 
     def subset(self, keep: np.ndarray) -> InsertionPath:
@@ -92,7 +122,40 @@ class InsertionPath:
             self.created_step[keep],
             self.multipliers[keep],
             self.stuck[keep],
+            self.anchors[keep],
+            self.stretch[keep],
         )
+
+
+def point_row_metadata(point_count: int, with_friction: bool, anchors: np.ndarray | None = None) -> dict:
+    """The per-row metadata of insertion points' rows, ordered point by point (lateral first, lateral second[,
+    axial friction]): ``role``, ``point`` (index in the path the rows were built from) and ``anchor`` (the
+    axial rows' stick anchors [m], ``anchors`` shape (p,); NaN elsewhere), each shape (rows,)."""
+    per_point = 3 if with_friction else 2
+    roles = np.array([LATERAL_FIRST, LATERAL_SECOND, AXIAL_FRICTION][:per_point], dtype=np.int8)
+    anchor = np.full((point_count, per_point), np.nan)
+    if with_friction and anchors is not None:
+        anchor[:, 2] = anchors
+    return dict(
+        role=np.tile(roles, point_count),
+        point=np.repeat(np.arange(point_count, dtype=np.int64), per_point),
+        anchor=anchor.ravel(),
+    )
+
+
+def axial_offsets(path: InsertionPath, geometry: StepGeometry, arc_lengths, tissue_points_previous):
+    """The stick offsets D [m] and anchors s_a [m] of the points' axial rows at the start of the step, (p,)
+    each (:func:`refsim.constraints.friction.stick_offsets`; ``tissue_points_previous`` (p, 3) the rows'
+    tissue points at the start of the step)."""
+    needle = geometry.needle_previous
+    return stick_offsets(
+        arc_lengths,
+        needle_points=needle.points(arc_lengths),
+        tangents=needle.tangents(arc_lengths),
+        tissue_points=tissue_points_previous,
+        anchors=path.anchors,
+        stretch=path.stretch,
+    )
 
 
 def insertion_block(
@@ -112,8 +175,9 @@ def insertion_block(
 
     The needle point of each tissue point is its projection on the needle at the start of the step (a material
     point of the needle for this step); the friction row (built by
-    :func:`refsim.constraints.friction.friction_rows` from the same anchors) measures the relative axial slip
-    over the step. Rows are ordered point by point: (lateral 1, lateral 2[, axial]).
+    :func:`refsim.constraints.friction.friction_rows` on the same points) measures the relative axial
+    position from its stick anchor (``path.anchors``, :func:`refsim.constraints.friction.stick_offsets`).
+    Rows are ordered point by point: (lateral 1, lateral 2[, axial]), and carry their roles and points.
     """
     if not (np.isfinite(normal_preload) and normal_preload >= 0.0):
         raise ValueError(f"normal_preload = {normal_preload!r} N; valid range [0, inf)")
@@ -141,9 +205,16 @@ def insertion_block(
     coefficients = np.broadcast_to(np.asarray(friction_coefficient, dtype=float), (point_count,))
     with_friction = bool(np.any(np.asarray(friction_coefficient, dtype=float) > 0.0))
     per_point = 3 if with_friction else 2
+    anchors = None
     if with_friction:
+        offsets, anchors = axial_offsets(path, geometry, arc_lengths, tissue_point_previous)
         friction = friction_rows(
-            geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=arc_lengths, tangents=tangents
+            geometry,
+            tissue_nodes=nodes,
+            tissue_weights=weights,
+            arc_lengths=arc_lengths,
+            tangents=tangents,
+            offsets=offsets,
         )
         # Interleave: point p's rows are (2p, 2p + 1) of the lateral rows and p of the friction rows.
         order = np.concatenate(
@@ -170,6 +241,7 @@ def insertion_block(
         shaft_pairs=np.stack([base, base + 1], axis=1) if with_friction else np.zeros((0, 2), dtype=np.int64),
         shaft_friction_coefficient=coefficients.copy() if with_friction else np.zeros(0),
         shaft_normal_preload=np.full(point_count if with_friction else 0, float(normal_preload)),
+        **point_row_metadata(point_count, with_friction, anchors),
     )
 
 

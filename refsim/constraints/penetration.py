@@ -14,8 +14,18 @@ import scipy.sparse as sp
 
 from refsim.constraints.friction import friction_rows
 from refsim.constraints.needle_geometry import needle_rows
-from refsim.constraints.rows import FRICTION, PENETRATION, UNILATERAL, RowBlock, orthonormal_basis, point_rows
+from refsim.constraints.rows import (
+    FRICTION,
+    NORMAL,
+    PENETRATION,
+    TANGENT,
+    UNILATERAL,
+    RowBlock,
+    orthonormal_basis,
+    point_rows,
+)
 from refsim.constraints.step_geometry import StepGeometry
+from refsim.geometry import SurfaceProjector
 
 __all__ = ["SurfaceContact", "find_surface_contact", "penetration_block"]
 
@@ -42,20 +52,38 @@ class SurfaceContact:
     gap: float
 
 
-def find_surface_contact(projector, faces: np.ndarray, tip: np.ndarray) -> SurfaceContact:
+def find_surface_contact(
+    projector, faces: np.ndarray, tip: np.ndarray, direction: np.ndarray | None = None
+) -> SurfaceContact:
     """Closest surface point to the tip and the contact normal.
 
     The normal is the direction from the closest point to the tip when the tip is outside and away from the
     surface (right on edges and vertices, where face normals disagree), and the face's outward normal
     otherwise (tip on or under the surface).
 
+    With the needle's ``direction`` (unit, base to tip), the contact is with the surface the tip approaches
+    from outside: faces whose outward normal n has n · direction > 0 face away from the needle (the far face
+    of a thin layer, which the tip could only reach from inside). When the closest point lies on one, the
+    contact is the closest point on the faces turned towards the needle (n · direction < 0), the ones a tip
+    can come through from outside: the tip meets the near face, and puncture happens there. (A face parallel
+    to the needle, n · direction = 0, is kept when it is the closest: a needle can slide along it.)
+
     Parameters
     ----------
     projector : A `refsim.geometry.SurfaceProjector` built on the current tissue positions.
     faces : Surface triangles, shape (f, 3).
     tip : Tip position [m], shape (3,).
+    direction : The needle's unit direction at the tip, shape (3,), or None (any face).
     """
     found = projector.closest(np.asarray(tip, dtype=float)[None, :])
+    if direction is not None and float(found.normal[0] @ direction) > 0.0:
+        facing = np.flatnonzero(projector.normals @ np.asarray(direction, dtype=float) < 0.0)
+        if facing.size:
+            near = SurfaceProjector(projector.positions, np.asarray(faces)[facing]).closest(
+                np.asarray(tip, dtype=float)[None, :]
+            )
+            near.face_index[0] = facing[near.face_index[0]]
+            found = near
     face = int(found.face_index[0])
     point = found.closest[0]
     face_normal = found.normal[0]
@@ -154,5 +182,6 @@ def penetration_block(
         directions=directions,
         contacts=contacts,
         contact_friction=contact_friction,
+        role=np.array([NORMAL, TANGENT, TANGENT][:row_count], dtype=np.int8),
         **capped,
     )

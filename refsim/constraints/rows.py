@@ -29,6 +29,17 @@ __all__ = [
     "CUT_SLIDE",
     "CUT_BORDER",
     "SHAFT_CONTACT",
+    "ROLE_NAMES",
+    "NORMAL",
+    "TANGENT",
+    "LATERAL_FIRST",
+    "LATERAL_SECOND",
+    "AXIAL_FRICTION",
+    "TIP",
+    "SLIDING",
+    "FRONT",
+    "CUT_FRICTION",
+    "BORDER",
     "RowBlock",
     "concatenate",
     "empty_block",
@@ -40,6 +51,36 @@ BILATERAL, UNILATERAL, FRICTION = 0, 1, 2
 KIND_NAMES = ("bilateral", "unilateral", "friction")
 PENETRATION, INSERTION, CUT_SLIDE, CUT_BORDER, SHAFT_CONTACT = 0, 1, 2, 3, 4
 SOURCE_NAMES = ("penetration", "insertion", "cut_slide", "cut_border", "shaft_contact")
+#: What a row is (``RowBlock.role``): a contact's normal row and its tangent (friction) rows; an insertion
+#: point's two lateral rows and its axial shaft friction row; the tip's cutting row; the cut's sliding rows,
+#: crack-front rows, friction rows on the cut surface and border rows. Code reads rows by these roles and by
+#: ``RowBlock.point``, never by their position in a block.
+(
+    NORMAL,
+    TANGENT,
+    LATERAL_FIRST,
+    LATERAL_SECOND,
+    AXIAL_FRICTION,
+    TIP,
+    SLIDING,
+    FRONT,
+    CUT_FRICTION,
+    BORDER,
+) = range(10)
+ROLE_NAMES = (
+    "normal",
+    "tangent",
+    "lateral_first",
+    "lateral_second",
+    "axial_friction",
+    "tip",
+    "sliding",
+    "front",
+    "cut_friction",
+    "border",
+)
+#: Role of the rows of each source (indexed by source) when a builder gives none.
+_DEFAULT_ROLE = np.array([NORMAL, LATERAL_FIRST, SLIDING, BORDER, NORMAL], dtype=np.int8)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -75,6 +116,13 @@ class RowBlock:
         ``group_members[group_offsets[j]:group_offsets[j + 1]]``; shapes (g + 1,) and (Σ sizes,).
     group_coefficient : Friction coefficient of each group friction row, shape (g,); the bound is
         μ_j ‖λ_Gj‖ (friction on the cut surface bounded by its sliding row's force).
+    role : What each row is (NORMAL, TANGENT, LATERAL_FIRST, LATERAL_SECOND, AXIAL_FRICTION, TIP, SLIDING,
+        FRONT, CUT_FRICTION, BORDER), shape (row_count,) (empty: NORMAL for every row).
+    point : The insertion point each row belongs to (its index in the path the block was built from), −1 for
+        rows of no insertion point, shape (row_count,) (empty: all −1).
+    anchor : For the axial friction rows of insertion points, the needle arc length [m] at which the point's
+        sub-grid annulus is unstretched (its stick anchor, :mod:`refsim.constraints.friction`); NaN for every
+        other row, shape (row_count,) (empty: all NaN).
     """
 
     tissue_jacobian: sp.csr_matrix
@@ -96,9 +144,16 @@ class RowBlock:
     group_offsets: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
     group_members: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     group_coefficient: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    role: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int8))
+    point: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    anchor: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
         rows = self.free_gap.shape[0]
+        for name in ("role", "point", "anchor"):
+            value = np.asarray(getattr(self, name))
+            if value.size and value.shape != (rows,):
+                raise ValueError(f"{name} must have shape ({rows},), got {value.shape}")
         limit = np.asarray(self.force_limit, dtype=float)
         if limit.size and (limit.shape != (rows,) or np.any(~(limit > 0.0))):
             raise ValueError(f"force_limit must have shape ({rows},) with values in (0, inf], got {limit!r}")
@@ -110,6 +165,32 @@ class RowBlock:
     def row_count(self) -> int:
         """Number of rows."""
         return int(self.free_gap.shape[0])
+
+    @property
+    def roles(self) -> np.ndarray:
+        """Role of each row, shape (row_count,) (the field, or NORMAL everywhere when it was left empty)."""
+        return _roles(self)
+
+    @property
+    def points_of_rows(self) -> np.ndarray:
+        """Insertion point of each row, −1 for none, shape (row_count,)."""
+        return _points(self)
+
+    @property
+    def anchors(self) -> np.ndarray:
+        """Stick anchor of each row [m], NaN but on insertion points' axial friction rows, (row_count,)."""
+        return _anchors(self)
+
+    def problem_compliance_diagonal(self) -> np.ndarray:
+        """The compliance added to W's diagonal for each row [m/N], shape (row_count,) (zeros when none)."""
+        return _compliance_diagonal(self)
+
+    def rows_of(self, role: int, source: int | None = None) -> np.ndarray:
+        """Indices of the rows with that role (and source, when given), shape (k,)."""
+        selected = self.roles == role
+        if source is not None:
+            selected &= self.source == source
+        return np.flatnonzero(selected)
 
     def problem(self, compliance: np.ndarray, *, name: str = ""):
         """The solver's :class:`~refsim.solvers.ConstraintProblem` of these rows with compliance W [m/N],
@@ -222,7 +303,31 @@ def concatenate(blocks: list[RowBlock]) -> RowBlock:
             ]
         ).astype(np.int64),
         group_coefficient=np.concatenate([b.group_coefficient for b in blocks]),
+        role=np.concatenate([_roles(b) for b in blocks]).astype(np.int8),
+        point=np.concatenate([_points(b) for b in blocks]).astype(np.int64),
+        anchor=np.concatenate([_anchors(b) for b in blocks]),
     )
+
+
+def _roles(block: RowBlock) -> np.ndarray:
+    """The rows' roles, shape (row_count,): the source's default role when the block left the field empty."""
+    if block.role.size == 0 and block.row_count:
+        return _DEFAULT_ROLE[np.asarray(block.source, dtype=np.int64)]
+    return np.asarray(block.role, dtype=np.int8)
+
+
+def _points(block: RowBlock) -> np.ndarray:
+    """The rows' insertion points, shape (row_count,): −1 when the block left the field empty."""
+    if block.point.size == 0:
+        return np.full(block.row_count, -1, dtype=np.int64)
+    return np.asarray(block.point, dtype=np.int64)
+
+
+def _anchors(block: RowBlock) -> np.ndarray:
+    """The rows' stick anchors [m], shape (row_count,): NaN when the block left the field empty."""
+    if block.anchor.size == 0:
+        return np.full(block.row_count, np.nan)
+    return np.asarray(block.anchor, dtype=float)
 
 
 def _force_limit(block: RowBlock) -> np.ndarray:

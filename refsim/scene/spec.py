@@ -9,6 +9,7 @@ error.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -399,6 +400,15 @@ class InsertionSpec(_Validated):
                 message=f"shaft_static_friction_coefficient = {static!r} is below shaft_friction_coefficient "
                 f"= "
                 f"{dynamic!r}: the static coefficient must be >= the dynamic one (or 0: the same)",
+            )
+
+        if self.tip_cutting_force > self.puncture_force:
+            logging.getLogger("refsim.scene").warning(
+                "insertion.tip_cutting_force = %g N is above insertion.puncture_force = %g N: the tip needs "
+                "more force to advance after puncture than to puncture (measured profiles drop after the "
+                "puncture, Okamura et al. 2004); the puncture is then followed by a rise, not a drop",
+                self.tip_cutting_force,
+                self.puncture_force,
             )
 
     @property

@@ -30,6 +30,7 @@ from refsim.constraints.coupling import (
     insertion_compliance,
     local_mesh_size,
     ring_insertion_block,
+    ring_weights,
     shaft_contact_block,
     shaft_friction_coefficients,
     subgrid_compliance,
@@ -55,7 +56,8 @@ class Detection:
     rows : The step's rows, in solver order.
     contact : The tip's closest surface point (approach phase), else None.
     front : Where the front rows press on the crack tip (cutting phase); their indices are into ``rows``.
-    insertion_points : The path points whose insertion rows are in ``rows``, in row order, shape (p,).
+    insertion_points : The path points whose insertion rows are in ``rows``, in row order, shape (p,) (each
+        row's own point is ``rows.point``, an index into the path).
     """
 
     rows: RowBlock
@@ -196,6 +198,23 @@ class Detector:
         )
         return replace(block, compliance_diagonal=diagonal)
 
+    def tip_ring(self, state: SimulationState, geometry: StepGeometry) -> tuple[np.ndarray, np.ndarray]:
+        """The tip cutting row's tissue side with the ring coupling: the ring of material points around the
+        tip's material point, normal to the needle at the tip (nodes and weights, shape (1, k) each)."""
+        tip = InsertionPath(
+            np.array([state.tip_tet]), np.asarray(state.tip_barycentric).reshape(1, 4), np.zeros(1, np.int64)
+        )
+        tangent = geometry.needle_previous.tangents(np.array([geometry.needle_previous.length]))
+        rings = RingLayout.around(
+            tip,
+            rest_positions=self.rest_positions,
+            mesh_tets=geometry.mesh_tets,
+            locator=self.rest_locator,
+            tangents=tangent,
+            needle_radius=self.needle_radius,
+        )
+        return ring_weights(tip, rings, geometry.mesh_tets)
+
     def detect(self, state: SimulationState, geometry: StepGeometry) -> Detection:
         """The rows of the step that starts from ``state``, on the free positions of ``geometry``."""
         spec = self.insertion
@@ -205,7 +224,8 @@ class Detector:
         insertion_points = np.zeros(0, dtype=np.int64)
         if state.phase == Phase.APPROACH:
             projector = SurfaceProjector(geometry.tissue_free, self.faces)
-            contact = find_surface_contact(projector, self.faces, geometry.needle_free.tip)
+            tip_direction = geometry.needle_free.tangents(np.array([geometry.needle_free.length]))[0]
+            contact = find_surface_contact(projector, self.faces, geometry.needle_free.tip, tip_direction)
             if contact.gap < spec.contact_distance:
                 blocks.append(
                     penetration_block(
@@ -230,25 +250,31 @@ class Detector:
             points = np.arange(state.path.point_count)
             if state.phase == Phase.CUTTING and self.cutting.law == "energy":
                 # The cut holds the needle along the strip (sliding rows, crack tip; the strip extends down
-                # the shaft when the needle goes deeper); the entry point and the strip's deepest point at the
-                # cut start are kept without rows (anchored, either would drag the tissue along the stroke).
-                points = points[2:]
+                # the shaft when the needle goes deeper); the path's points while cutting, the entry point and
+                # the strip's deepest point at the cut start (events: _cut_starts), are kept without rows
+                # (anchored, either would drag the tissue along the stroke).
+                points = points[:0]
             if points.size:
-                blocks.append(
-                    self.insertion_rows(
-                        state.path.subset(points),
-                        geometry,
-                        finite_line=spec.subgrid_line == "finite" and state.phase != Phase.CUTTING,
-                    )
+                block = self.insertion_rows(
+                    state.path.subset(points),
+                    geometry,
+                    finite_line=spec.subgrid_line == "finite" and state.phase != Phase.CUTTING,
                 )
+                # The rows' points, from indices into the subset to indices into the path.
+                owner = block.points_of_rows
+                blocks.append(replace(block, point=np.where(owner >= 0, points[np.maximum(owner, 0)], -1)))
                 insertion_points = points
-            if spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION:
-                # The tip's cutting row, against the newest insertion point (at most d_i behind the tip).
+            if spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION and state.tip_tet >= 0:
+                # The tip's cutting row, against the tissue's material point at the tip (the tip inside the
+                # tissue: none once it has left it through a face).
+                ring = self.tip_ring(state, geometry) if self.ring else (None, None)
                 tip_block, _, _ = tip_cutting_block(
                     geometry,
-                    tip_tet=int(state.path.tets[-1]),
-                    tip_barycentric=state.path.barycentric[-1],
+                    tip_tet=state.tip_tet,
+                    tip_barycentric=state.tip_barycentric,
                     cutting_force=spec.tip_cutting_force,
+                    tissue_nodes=ring[0],
+                    tissue_weights=ring[1],
                 )
                 blocks.append(tip_block)
         if state.phase == Phase.INSERTION and state.cut is not None and state.cut.triangle_count:

@@ -4,6 +4,10 @@
   point; insertion
 - phase: insertion; event: (new points); when: the tip is farther than d_i from every point; then: points
   every d_i behind the tip, but none in an existing cut
+- phase: insertion; event: (tip location); when: every step; then: the tip's material point (its tet and
+  barycentric coordinates) is stored in the state; the tip's cutting row exists while the tip lies in a tet
+- phase: insertion; event: exit; when: the tip, inside the tissue at the step's start, lies in no tet at its
+  end (it left through a far face); then: no tip row from the next step; the shaft keeps its points
 - phase: insertion; event: retraction; when: points lie beyond the tip; then: they are removed
 - phase: insertion; event: withdrawal; when: no point is left; then: approach
 - phase: insertion; event: cut_start; when: energy law: ‖t‖ ≥ G_c L_in; paper law (equation 3): ‖t‖ > n_i f_c;
@@ -17,6 +21,9 @@
   direction)
 - phase: cutting; event: retraction, withdrawal; when: the entry point beyond the tip; then: every row
   released; approach (the cut stays)
+- phase: cutting; event: leave_cut; when: the needle is back behind the strip's first layer (the line it
+  entered along) by more than d_c/2, along −ĉ; then: insertion points along the inserted needle every d_i
+  (intact tissue); insertion (the cut stays; a new cut may start)
 
 The cut surface itself grows in :mod:`refsim.cutting.growth` and :mod:`refsim.cutting.strip`.
 """
@@ -26,6 +33,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import scipy.sparse as sp
 
 from refsim.constraints import (
     BILATERAL,
@@ -48,30 +56,42 @@ from refsim.simulation.state import Phase, SimulationState
 __all__ = ["EventRules", "LazyLocator", "locate_under_surface", "shaft_lateral_force"]
 
 
-def shaft_lateral_force(source, kind, directions, forces, *, without_entry: bool) -> np.ndarray:
+def shaft_lateral_force(
+    source, kind, directions, forces, *, without_entry: bool, points: np.ndarray | None = None
+) -> np.ndarray:
     """The lateral force of the tissue on the needle through its insertion points, t = Σ n λ over their
     bilateral rows [N], shape (3,) (the cut-start load).
 
     Parameters
     ----------
-    source, kind : Source and kind of each row, shape (r,); the insertion points' rows in path order, entry
-    first.
+    source, kind : Source and kind of each row, shape (r,).
     directions : Row directions, shape (r, 3). forces : Multipliers [N], shape (r,).
     without_entry : Leave out the entry point's rows: at the free surface they also carry the surface's
         reaction to an oblique entry (a 30° axial push put 0.37 N on the lone entry point three steps after
         puncture: 700 N/m over 0.52 mm), a load no shaft cuts with (the energy law).
+    points : The insertion point of each row (``RowBlock.point``: its index in the path, the entry is 0, −1
+        for other rows), shape (r,). None (results files, which do not store it): the insertion rows are
+        taken in path order with the entry's two lateral rows first.
     """
-    insertion = np.flatnonzero(np.asarray(source) == INSERTION)
-    lateral = insertion[np.asarray(kind)[insertion] == BILATERAL]
-    if without_entry:
-        # Each point has its two lateral rows first (then its axial row when there is friction): the entry's
-        # are the first two.
-        lateral = lateral[2:]
+    source = np.asarray(source)
+    insertion = source == INSERTION
+    lateral = insertion & (np.asarray(kind) == BILATERAL)
+    if points is not None:
+        if without_entry:
+            lateral &= np.asarray(points) != 0
+        lateral = np.flatnonzero(lateral)
+    else:
+        lateral = np.flatnonzero(lateral)
+        if without_entry:
+            lateral = lateral[2:]
     return (np.asarray(directions)[lateral] * np.asarray(forces)[lateral, None]).sum(axis=0)
 
 
 #: Relative tolerance on f_p of the puncture test (a capped row carries f_p to the solve's accuracy).
 PUNCTURE_TOLERANCE = 1e-6
+#: Relative tolerance of "a row at its force limit" for the crack front's rows (G_c ℓ_k) and the sliding rows
+#: at the front: a row that gave way carries its limit to the solve's accuracy (≤ 1e-8), far inside 1e-6.
+LIMIT_TOLERANCE = 1e-6
 
 
 class LazyLocator:
@@ -120,6 +140,13 @@ class EventRules:
         self.tets = tets
         self.deformation_gradients = deformation_gradients
         self.needle_geometry = needle_geometry
+        tets = np.asarray(tets)
+        # node → tets incidence (CSR rows: the tets holding each node), for the tip's location
+        incidence = sp.csr_matrix(
+            (np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(tets.shape[0]), tets.shape[1]))),
+            shape=(int(tets.max()) + 1, tets.shape[0]),
+        )
+        self._node_tets = incidence
         self.growth = None
         if scene.cutting.enabled:
             cutting = scene.cutting
@@ -169,7 +196,10 @@ class EventRules:
         if tets[0] < 0:
             return state, []
         path = InsertionPath.empty().appended(tets, barycentric, state.step)
-        return replace(state, phase=Phase.INSERTION, path=path), [Event("puncture", normal_force)]
+        state = replace(
+            state, phase=Phase.INSERTION, path=path, tip_tet=int(tets[0]), tip_barycentric=barycentric[0]
+        )
+        return state, [Event("puncture", normal_force)]
 
     def _insertion(self, state, detection, multipliers):
         rows = detection.rows
@@ -182,6 +212,7 @@ class EventRules:
                 rows.directions,
                 multipliers,
                 without_entry=self.cutting.law == "energy",
+                points=rows.points_of_rows,
             )
             started = self._cut_starts(state, force_on_needle)
             if started is not None:
@@ -206,11 +237,30 @@ class EventRules:
         if np.any(beyond):
             path = path.subset(~beyond)
             events.append(Event("retraction"))
-        state = replace(state, path=path)
+        # The tip's material state: the tet it lies in, or outside (it left the tissue through a face).
+        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet)
+        if state.tip_tet >= 0 and tip_tet < 0 and path.point_count:
+            events.append(Event("exit"))
+        state = replace(state, path=path, tip_tet=tip_tet, tip_barycentric=tip_barycentric)
         if path.point_count == 0:
-            state = replace(state, phase=Phase.APPROACH)
+            state = replace(state, phase=Phase.APPROACH, tip_tet=-1, tip_barycentric=None)
             events.append(Event("withdrawal"))
         return state, events
+
+    def locate_tip(self, positions: np.ndarray, tip: np.ndarray, hint: int) -> tuple[int, np.ndarray | None]:
+        """The tet holding the tip and the tip's barycentric coordinates in it, (−1, None) outside the tissue.
+
+        The tets around ``hint`` (the tip's last tet: those sharing a node with it) are tried first, the whole
+        mesh when the tip is not among them.
+        """
+        tip = np.asarray(tip, dtype=float)
+        if hint >= 0:
+            candidates = np.unique(self._node_tets[self.tets[hint]].indices)
+            found, barycentric = TetLocator(positions, self.tets[candidates]).locate(tip[None, :])
+            if found[0] >= 0:
+                return int(candidates[found[0]]), barycentric[0]
+        found, barycentric = TetLocator(positions, self.tets).locate(tip[None, :])
+        return (int(found[0]), barycentric[0]) if found[0] >= 0 else (-1, None)
 
     def _outside_cut(self, path, state, positions):
         """The path without its new points that lie in the existing cut (projecting inside it, within d_c of
@@ -273,6 +323,32 @@ class EventRules:
         )
         return state, [Event("cut_start", trigger)]
 
+    def _leave_cut(self, state, needle, positions):
+        """The state after the needle left its cut backwards, into intact tissue: insertion points along the
+        inserted needle every d_i (material points where the needle now is), the insertion phase, the cut kept
+        (the needle may cut again: a new cut start). Event ``leave_cut``."""
+        locator = TetLocator(positions, self.tets)
+        spacing = self.insertion.spacing
+        entry_arc = inserted_arc(needle, locator, spacing)
+        arcs = np.arange(entry_arc, needle.length + 1e-12 * spacing, spacing)
+        tets, barycentric = locator.locate(needle.points(arcs))
+        inside = tets >= 0
+        path = InsertionPath.empty().appended(tets[inside], barycentric[inside], state.step)
+        events = [Event("leave_cut")]
+        if path.point_count == 0:
+            state = replace(state, phase=Phase.APPROACH, path=path, cut_strip=None, tip_tet=-1)
+            return state, [*events, Event("withdrawal")]
+        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, -1)
+        state = replace(
+            state,
+            phase=Phase.INSERTION,
+            path=path,
+            cut_strip=None,
+            tip_tet=tip_tet,
+            tip_barycentric=tip_barycentric,
+        )
+        return state, events
+
     def _extended(self, strip, needle, positions, locator, entry_arc):
         """The strip with columns added below its deepest one down to the needle's tip, every d_c (``locator``
         on ``positions``; ``entry_arc`` where the needle enters the tissue)."""
@@ -328,6 +404,14 @@ class EventRules:
             return state, [Event("retraction"), Event("withdrawal")]
         events: list[Event] = []
         cutting = self.cutting
+        if state.cut_strip is not None and state.cut is not None:
+            # Moved back through its own cut and past the line it entered along (the strip's first layer, its
+            # rear edge) by more than half a cut spacing: the needle is in intact tissue again.
+            rear = state.cut.deformed_points(positions, self.tets)[state.cut_strip.layers[0]]
+            _, on_needle = needle.project(rear)
+            behind = float(((on_needle - rear) @ state.cut_direction).mean())
+            if behind < -0.5 * cutting.point_spacing:
+                return self._leave_cut(state, needle, positions)
         if cutting.law == "energy" and state.cut_strip is not None:
             # A needle inserted deeper than the strip while it cuts: pushed sideways with the rest of the
             # shaft, its part below the strip cuts at G_c per unit length like the rest (the energy law does
@@ -348,10 +432,10 @@ class EventRules:
         if cutting.law == "energy":
             limit = detection.rows.force_limit[front.rows]
             gaps = front.gaps(strip.front.positions(positions, self.tets), needle)
-            over = np.where((forces >= (1.0 - 1e-6) * limit) & (gaps < 0.0), -gaps, 0.0)
+            over = np.where((forces >= (1.0 - LIMIT_TOLERANCE) * limit) & (gaps < 0.0), -gaps, 0.0)
             # Sliding rows at the front that gave way: the needle cuts out of the cut's plane there.
             band_limit = detection.rows.force_limit[front.band_rows]
-            sideways = np.abs(multipliers[front.band_rows]) >= (1.0 - 1e-6) * band_limit
+            sideways = np.abs(multipliers[front.band_rows]) >= (1.0 - LIMIT_TOLERANCE) * band_limit
             if not (np.any(over > 0.0) or np.any(sideways)):
                 return state, events
             # Each column next to a row that gave way (a front row, or a sliding row at the front) moves to

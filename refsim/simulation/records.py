@@ -48,6 +48,8 @@ class StepRecord:
     triangulation_seconds : Seconds of the step's triangulation (0 when the cut did not grow).
     boundary_displacements : Prescribed displacement from rest of the tissue's moving boundary nodes at the
         end of the step [m], (k, 3), or None without boundary motion.
+    row_role : Role of each row (``refsim.constraints.ROLE_NAMES``), (r,).
+    row_point : Insertion point of each row (its index in the path, the entry is 0), −1 for others, (r,).
     """
 
     step: int
@@ -72,3 +74,5 @@ class StepRecord:
     cut_triangle_count: int = 0
     triangulation_seconds: float = 0.0
     boundary_displacements: np.ndarray | None = None
+    row_role: np.ndarray | None = None
+    row_point: np.ndarray | None = None

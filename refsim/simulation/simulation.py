@@ -28,7 +28,16 @@ from dataclasses import replace
 
 import numpy as np
 
-from refsim.constraints import INSERTION, InsertionPath, RowBlock, StepGeometry
+from refsim.constraints import (
+    AXIAL_FRICTION,
+    INSERTION,
+    LATERAL_FIRST,
+    LATERAL_SECOND,
+    ROLE_NAMES,
+    InsertionPath,
+    RowBlock,
+    StepGeometry,
+)
 from refsim.constraints.coupling import stuck_points
 from refsim.fem.compliance import make_strategy
 from refsim.fem.threads import hot_path_threads
@@ -46,6 +55,11 @@ from refsim.solvers import solve_exact, solve_gauss_seidel
 __all__ = ["Simulation", "SimulationState", "SimulationError", "Phase"]
 
 logger = logging.getLogger(__name__)
+
+#: A shaft row that slipped by at most this fraction of d_i over a step is at rest (stuck): 1e-6 d_i is far
+#: below any needle travel per step (10 mm/s × 1 ms = 20 d_i at d_i = 0.5 mm) and far above a stuck row's
+#: solved slip (the solver's residual).
+REST_SLIP = 1e-6
 
 # Kept for code that imported the phase names from here.
 APPROACH, INSERTION_PHASE, CUTTING_PHASE = Phase.APPROACH, Phase.INSERTION, Phase.CUTTING
@@ -185,7 +199,7 @@ class Simulation:
             time=time,
             tissue=tissue_state,
             needle=needle_state,
-            path=self._store_multipliers(state.path, detection, multipliers),
+            path=self._store_multipliers(state.path, detection, problem, multipliers),
         )
         new_state, events = self.event_rules.apply(new_state, detection, multipliers)
         timer.lap("events")
@@ -214,6 +228,8 @@ class Simulation:
             cut_triangle_count=0 if new_state.cut is None else new_state.cut.triangle_count,
             triangulation_seconds=_triangulation_seconds(state.cut, new_state.cut),
             boundary_displacements=control.boundary_displacements if control.boundary_nodes.size else None,
+            row_role=rows.roles,
+            row_point=rows.points_of_rows,
         )
         return new_state, record
 
@@ -269,44 +285,54 @@ class Simulation:
             criterion=spec.criterion,
         )
 
-    @staticmethod
-    def _insertion_rows(rows: RowBlock) -> np.ndarray:
-        return np.flatnonzero(rows.source == INSERTION)
-
     def _warm_start(self, state: SimulationState, detection) -> np.ndarray:
         """Last step's multipliers of the insertion points (they persist from step to step), zero
         elsewhere."""
         rows = detection.rows
         warm = np.zeros(rows.row_count)
-        insertion = self._insertion_rows(rows)
-        points = detection.insertion_points
-        if insertion.size and points.size:
-            per_point = insertion.size // points.size
-            warm[insertion] = state.path.multipliers[points, :per_point].ravel()
+        found, points, columns = _point_rows(rows)
+        if found.size:
+            warm[found] = state.path.multipliers[points, columns]
         return warm
 
-    def _store_multipliers(self, path: InsertionPath, detection, multipliers: np.ndarray) -> InsertionPath:
-        insertion = self._insertion_rows(detection.rows)
-        points = detection.insertion_points
-        if insertion.size == 0 or points.size == 0:
+    def _store_multipliers(
+        self, path: InsertionPath, detection, problem, multipliers: np.ndarray
+    ) -> InsertionPath:
+        """The path with each point's multipliers, stick state, stick anchor and annulus stretch after the
+        solve, read from the rows' roles and points (points without rows this step keep theirs)."""
+        rows = detection.rows
+        found, points, columns = _point_rows(rows)
+        if found.size == 0:
             return path
         stored = np.array(path.multipliers, copy=True)
-        values = multipliers[insertion].reshape(points.size, -1)
-        stored[points] = 0.0
-        stored[points, : values.shape[1]] = values[:, :3]
+        stored[np.unique(points)] = 0.0
+        stored[points, columns] = multipliers[found]
         path = path.with_multipliers(stored)
-        rows = detection.rows
-        shaft = np.flatnonzero(rows.source[rows.shaft_rows] == INSERTION) if rows.shaft_rows.size else []
-        if len(shaft) != points.size:
+        shaft = rows.shaft_rows[rows.source[rows.shaft_rows] == INSERTION] if rows.shaft_rows.size else []
+        if len(shaft) == 0:
             return path
         # The stick state of each point for the next step's coefficient (μ_s when stuck, μ_d when slipping).
-        pairs = rows.shaft_pairs[shaft]
-        bounds = rows.shaft_friction_coefficient[shaft] * (
-            np.linalg.norm(multipliers[pairs], axis=1) + rows.shaft_normal_preload[shaft]
+        selected = np.isin(rows.shaft_rows, shaft)
+        pairs = rows.shaft_pairs[selected]
+        bounds = rows.shaft_friction_coefficient[selected] * (
+            np.linalg.norm(multipliers[pairs], axis=1) + rows.shaft_normal_preload[selected]
+        )
+        owners = rows.points_of_rows[shaft]
+        # The needle surface's slip on the tissue over the step: the solved gap of each axial row.
+        slips = problem.compliance[shaft] @ multipliers + problem.free_gap[shaft]
+        stuck_now = stuck_points(
+            multipliers[shaft], bounds, slips=slips, rest_slip=REST_SLIP * self.scene.insertion.spacing
         )
         stuck = np.array(path.stuck, copy=True)
-        stuck[points] = stuck_points(multipliers[rows.shaft_rows[shaft]], bounds)
-        return path.with_stuck(stuck)
+        stuck[owners] = stuck_now
+        # A stuck point keeps its anchor; one that slipped gets it placed anew at the next step, from the
+        # annulus' stretch −C λ (refsim.constraints.friction).
+        added = rows.problem_compliance_diagonal()[shaft]
+        anchors = np.array(path.anchors, copy=True)
+        stretch = np.array(path.stretch, copy=True)
+        anchors[owners] = np.where(stuck_now, rows.anchors[shaft], np.nan)
+        stretch[owners] = -added * multipliers[shaft]
+        return path.with_stuck(stuck).with_anchors(anchors, stretch)
 
     @staticmethod
     def _check_finite(step, tissue_state, needle_state, multipliers) -> None:
@@ -324,3 +350,20 @@ def _triangulation_seconds(before, after) -> float:
     if after is None or after is before or after.last_triangulation is None:
         return 0.0
     return float(after.last_triangulation.seconds)
+
+
+#: Column of each insertion role in ``InsertionPath.multipliers`` (−1: not an insertion point's row).
+_ROLE_COLUMN = np.full(len(ROLE_NAMES), -1, dtype=np.int64)
+_ROLE_COLUMN[[LATERAL_FIRST, LATERAL_SECOND, AXIAL_FRICTION]] = (0, 1, 2)
+
+
+def _point_rows(rows: RowBlock) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The insertion points' rows: their indices, their points (into the path) and their columns in
+    ``InsertionPath.multipliers``, shape (k,) each."""
+    if rows.row_count == 0:
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty, empty
+    columns = _ROLE_COLUMN[rows.roles]
+    points = rows.points_of_rows
+    found = np.flatnonzero((rows.source == INSERTION) & (points >= 0) & (columns >= 0))
+    return found, points[found], columns[found]

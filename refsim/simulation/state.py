@@ -39,6 +39,9 @@ class SimulationState:
         starts.
     cut_strip : The structure of the cut the needle is making (`refsim.cutting.strip.CutStrip`: its layers
         and crack tip); None outside the cutting phase (a withdrawn needle leaves the cut surface behind).
+    tip_tet : The tissue tet the needle's tip lies in after the step, −1 when the tip is outside the tissue
+        (before puncture, after an exit through a far face or a withdrawal).
+    tip_barycentric : The tip's barycentric coordinates in ``tip_tet``, shape (4,); None when outside.
     """
 
     step: int
@@ -50,3 +53,5 @@ class SimulationState:
     cut: object | None = None
     cut_direction: np.ndarray | None = None
     cut_strip: object | None = None
+    tip_tet: int = -1
+    tip_barycentric: np.ndarray | None = None

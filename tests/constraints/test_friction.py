@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from refsim.constraints import InsertionPath, friction_rows, slip_gaps
+from refsim.constraints import InsertionPath, friction_rows, slip_gaps, stick_offsets
 from refsim.geometry import TetLocator
 from tests.constraints.conftest import rigid_needle, still_geometry
 
@@ -53,3 +53,66 @@ def test_rows_anchored_at_tissue_points_linearise_the_slip(block):
     np.testing.assert_allclose(
         rows.tissue_jacobian @ motion.ravel(), again.free_gap - rows.free_gap, atol=1e-18
     )
+
+
+def _held_spring(steps: int, *, anchored: bool, compliance: float, subgrid: float, push: float):
+    """A 1-D stuck friction row in series with a sub-grid spring: a rigid needle along +x moved by ``push``
+    [m] in the first step then held; the tissue point is a quasi-static spring of compliance W [m/N] (its
+    free motion returns it to rest), the row carries the sub-grid compliance C [m/N]. Returns λ per step [N].
+
+    The simulation's update, by hand: the row's gap is the slip over the step plus, when ``anchored``, the
+    offset D from the stick anchor (:func:`stick_offsets`); stuck, δ = (W + C) λ + δ_free = 0; the tissue is
+    corrected by −W λ (the row pushes the tissue along −n); the anchor is kept."""
+    direction = np.array([[1.0, 0.0, 0.0]])
+    base, tissue = 0.0, 0.0  # needle base and tissue point along x [m]
+    anchors, forces = np.array([np.nan]), []
+    for step in range(steps):
+        new_base = base + (push if step == 0 else 0.0)
+        arc = np.array([tissue - base])  # the point's projection on the needle at the start of the step
+        offsets, anchors = stick_offsets(
+            arc,
+            needle_points=np.array([[tissue, 0.0, 0.0]]),
+            tangents=direction,
+            tissue_points=np.array([[tissue, 0.0, 0.0]]),
+            anchors=anchors,
+            stretch=np.zeros(1),
+        )
+        free = 0.0  # quasi-static free motion: the unloaded spring is at rest
+        slip = (new_base - base) - (free - tissue)
+        gap = slip + (offsets[0] if anchored else 0.0)
+        force = -gap / (compliance + subgrid)
+        base, tissue = new_base, free - compliance * force
+        forces.append(force)
+    return np.array(forces)
+
+
+def test_a_stuck_row_in_series_with_its_subgrid_spring_keeps_its_load():
+    # Closed form: a needle moved by u against a spring W in series with the annulus C, stuck, holds
+    # λ = −u / (W + C) for as long as it is held. Measured over the step alone (no anchor) the row slips by
+    # C λ per step and forgets it: λ decays by W / (W + C) every step.
+    compliance, subgrid, push = 2e-4, 1e-4, 1e-4
+    held = _held_spring(200, anchored=True, compliance=compliance, subgrid=subgrid, push=push)
+    expected = -push / (compliance + subgrid)
+    np.testing.assert_allclose(held, expected, rtol=1e-12)
+    crept = _held_spring(4, anchored=False, compliance=compliance, subgrid=subgrid, push=push)
+    ratio = compliance / (compliance + subgrid)
+    np.testing.assert_allclose(crept, expected * ratio ** np.arange(4), rtol=1e-12)
+
+
+def test_stick_offsets_place_unset_anchors_at_the_annulus_stretch():
+    # A bent needle's point: tissue 0.3 mm off its projection along the tangent; a set anchor gives
+    # D = e + s_a − s, an unset one (NaN) D = the stretch given.
+    arcs = np.array([0.010, 0.020])
+    tangents = np.array([[0.0, 0.0, 1.0], [0.0, 0.6, 0.8]])
+    needle = np.array([[0.0, 0.0, 0.01], [0.0, 0.012, 0.016]])
+    tissue = needle - 3e-4 * tangents
+    offsets, anchors = stick_offsets(
+        arcs,
+        needle_points=needle,
+        tangents=tangents,
+        tissue_points=tissue,
+        anchors=np.array([0.0105, np.nan]),
+        stretch=np.array([0.0, -2e-5]),
+    )
+    np.testing.assert_allclose(offsets, [3e-4 + 0.0005, -2e-5], atol=1e-15)
+    np.testing.assert_allclose(anchors, [0.0105, 0.020 - 3e-4 - 2e-5], atol=1e-15)

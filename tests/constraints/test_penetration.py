@@ -81,3 +81,20 @@ def test_tissue_jacobian_linearises_the_normal_and_slip_gaps(block):
     slip = -(point - contact.point)  # the tissue point moved, the needle did not
     change = np.concatenate([[normal_gap - rows.free_gap[0]], rows.directions[1:] @ slip - rows.free_gap[1:]])
     np.testing.assert_allclose(rows.tissue_jacobian @ motion.ravel(), change, atol=1e-17)
+
+
+def test_a_tip_inside_a_thin_layer_meets_the_face_it_came_through(block):
+    # The box is 20 mm tall (top z = 0.02, bottom z = 0). A tip moving down (−z) at 16 mm depth is closest to
+    # the bottom face (4 mm), but that face's outward normal (−z) points along the needle: the tip could only
+    # reach it from inside. The contact is with the top face it approaches from outside (gap −16 mm).
+    tip = [0.0123, 0.0071, 0.004]
+    assert _contact(block, tip).normal[2] == pytest.approx(-1.0)  # without the needle's direction
+    projector = SurfaceProjector(block.rest_positions, block.boundary_faces)
+    down = np.array([0.0, 0.0, -1.0])
+    contact = find_surface_contact(projector, block.boundary_faces, np.asarray(tip), down)
+    np.testing.assert_allclose(contact.normal, [0.0, 0.0, 1.0], atol=1e-12)
+    assert contact.gap == pytest.approx(-0.016, rel=1e-12)
+    np.testing.assert_allclose(contact.point, [0.0123, 0.0071, 0.02], atol=1e-15)
+    # A needle moving up meets the bottom face.
+    up = find_surface_contact(projector, block.boundary_faces, np.asarray(tip), np.array([0.0, 0.0, 1.0]))
+    np.testing.assert_allclose(up.normal, [0.0, 0.0, -1.0], atol=1e-12)
