@@ -32,12 +32,14 @@ class ResultsError(ValueError):
 
 
 class RecordedEvent(NamedTuple):
-    """An event of the run: step, time [s], name, triggering force [N] (NaN when none)."""
+    """An event of the run: step, time [s], name, the value that triggered it (NaN when none) and its unit
+    ("N", or "N/m" for the energy law's cut_start; refsim.io.schema.EVENT_VALUE_DATASETS)."""
 
     step: int
     time: float
     name: str
     force: float
+    unit: str = "N"
 
 
 class StepConstraints(NamedTuple):
@@ -333,6 +335,16 @@ def _read(handle, path: str, count: int | None = None) -> np.ndarray:
     return data
 
 
+def _event_values(event_data: dict, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each event's value and unit, from the dataset of each unit (schema.EVENT_VALUE_DATASETS)."""
+    value, unit = np.full(count, np.nan), np.full(count, "N", dtype=object)
+    for name_unit, name in schema.EVENT_VALUE_DATASETS.items():
+        if name in event_data:
+            held = np.isfinite(event_data[name])
+            value[held], unit[held] = event_data[name][held], name_unit
+    return value, unit
+
+
 def _require(handle, path: Path, dataset_path: str):
     if dataset_path not in handle:
         raise ResultsError(f"{path}: dataset {dataset_path!r} is missing; the file is damaged or incomplete")
@@ -381,11 +393,16 @@ def read_results(path) -> Results:
         tissue_count = int(np.count_nonzero(tissue_steps <= last_step))
         event_steps = _read(handle, schema.EVENTS["step"].path)
         event_count = int(np.count_nonzero(event_steps <= last_step))
-        event_data = {name: _read(handle, spec.path, event_count) for name, spec in schema.EVENTS.items()}
+        event_data = {
+            name: _read(handle, spec.path, event_count)
+            for name, spec in schema.EVENTS.items()
+            if spec.path in handle  # events/force_per_length is absent from files of before it
+        }
+        value, unit = _event_values(event_data, event_count)
         events = tuple(
-            RecordedEvent(int(s), float(t), str(n), float(f))
-            for s, t, n, f in zip(
-                event_data["step"], event_data["time"], event_data["name"], event_data["force"], strict=False
+            RecordedEvent(int(s), float(t), str(n), float(f), str(u))
+            for s, t, n, f, u in zip(
+                event_data["step"], event_data["time"], event_data["name"], value, unit, strict=False
             )
         )
         cut = None

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from refsim.simulation.records import EVENT_UNITS
 from refsim.solvers.laws import problem_field_specs
 
 __all__ = [
@@ -27,6 +28,7 @@ __all__ = [
     "TISSUE",
     "CONSTRAINTS",
     "EVENTS",
+    "EVENT_VALUE_DATASETS",
     "CUT",
     "PROBLEM_FIELDS",
     "PROBLEMS_GROUP",
@@ -250,9 +252,33 @@ EVENTS = _specs(
         ("step", "1", "int64", (), "step of the event"),
         ("time", "s", "float64", (), "time at the end of that step"),
         ("name", "1", "str", (), "puncture, cut_start, tear, retraction, withdrawal, ..."),
-        ("force", "N", "float64", (), "force that triggered the event (NaN when none)"),
+        (
+            "force",
+            "N",
+            "float64",
+            (),
+            "force that triggered the event: puncture (tip normal force), tear, cut_start of the paper law "
+            "(lateral force per insertion point); NaN when the event has no force or its value is in "
+            "events/force_per_length",
+        ),
+        (
+            "force_per_length",
+            "N/m",
+            "float64",
+            (),
+            "force per unit length that triggered the event: cut_start of the energy law (lateral force per "
+            "inserted length, compared with G_c); NaN otherwise",
+        ),
     ],
 )
+
+#: The dataset of ``events/`` holding an event's value, by the value's unit (refsim.simulation.records.Event's
+#: ``unit``): each dataset has one unit, so its ``units`` attribute is true for every entry.
+EVENT_VALUE_DATASETS = {"N": "force", "N/m": "force_per_length"}
+if set(EVENT_VALUE_DATASETS) != set(EVENT_UNITS) or any(
+    EVENTS[name].unit != unit for unit, name in EVENT_VALUE_DATASETS.items()
+):  # pragma: no cover - a schema edit that forgot an event unit
+    raise ImportError("refsim.io.schema: EVENT_VALUE_DATASETS does not cover records.EVENT_UNITS")
 
 #: Cut surface history, rewritten whole by ResultWriter.write_cut_surface; absent when nothing was cut.
 CUT = _specs(
