@@ -56,6 +56,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from refsim.io.driver import check_output_path, run_scene
     from refsim.scene import load_scene
 
+    if not args.quiet:  # the load report: the fixed set, an aimed insertion (refsim.scene.build)
+        logging.getLogger("refsim.scene.load").setLevel(logging.INFO)
     scene = load_scene(args.scene, args.set or ())
     output = check_output_path(args.output, overwrite=args.overwrite)
     figure = None
