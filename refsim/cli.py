@@ -162,12 +162,21 @@ def _cmd_study(args: argparse.Namespace) -> int:
 
 def _cmd_export(args: argparse.Namespace) -> int:
     """`refsim export`: ParaView sidecar, reference problems (problem set, FCLib) and the force CSV."""
-    from refsim.io.export import export_force_csv, export_problems
+    from refsim.io.export import export_force_csv, export_problems, export_vtu
     from refsim.io.xdmf import write_xdmf
 
     result = Path(args.result)
-    if not (args.xdmf or args.problems or args.csv):
-        raise ValueError("refsim export: choose at least one of --xdmf, --problems OUT.h5, --csv OUT.csv")
+    if not (args.xdmf or args.problems or args.csv or args.vtu):
+        raise ValueError(
+            "refsim export: choose at least one of --xdmf, --vtu STEP, --problems OUT.h5, --csv OUT.csv"
+        )
+    if args.vtu:
+        files = export_vtu(result, args.vtu, args.vtu_folder)
+        print(
+            f"wrote {len(files)} files: "
+            + ", ".join(str(f) for f in files[:4])
+            + (", ..." if len(files) > 4 else "")
+        )
     if args.xdmf:
         print(f"wrote {write_xdmf(result)}")
     if args.problems:
@@ -445,6 +454,15 @@ def _parser() -> argparse.ArgumentParser:
         "--fclib", metavar="FOLDER", help="with --problems: FCLib files of pure-contact steps"
     )
     export.add_argument("--csv", metavar="OUT.csv", help="needle force history")
+    export.add_argument(
+        "--vtu",
+        metavar="STEP",
+        help="deformed tissue and cut surface at a recorded tissue step (a step number, last, or all: every "
+        "recorded step with a .pvd series) as .vtu files",
+    )
+    export.add_argument(
+        "--vtu-folder", metavar="FOLDER", help="with --vtu: where to write (default: beside RESULT)"
+    )
     export.set_defaults(handler=_cmd_export)
     return parser
 

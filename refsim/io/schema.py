@@ -339,8 +339,9 @@ XDMF = _specs(
             "1",
             "int64",
             ("?", 3),
-            "the cut triangles existing at recorded step NNNNNNN: a view of the first rows of cut/triangles "
-            "(virtual dataset), a copy when the triangles are not in step order",
+            "the cut triangles existing at step NNNNNNN, shared by the later steps until the cut grows: a "
+            "view of the first rows of cut/triangles (virtual dataset), a copy when the triangles are not in "
+            "step order",
         ),
         (
             "tissue/positions/NNNNNNN",
@@ -348,6 +349,30 @@ XDMF = _specs(
             "float64",
             ("n", 3),
             "view of tissue/positions at recorded step NNNNNNN (virtual dataset)",
+        ),
+        (
+            "tissue/displacement/NNNNNNN",
+            "m",
+            "float64",
+            ("n", 3),
+            "tissue node displacement from rest at recorded step NNNNNNN (0000000: rest, zeros); derived, "
+            "stored (point data `displacement`)",
+        ),
+        (
+            "tissue/constraint_force/NNNNNNN",
+            "N",
+            "float64",
+            ("n", 3),
+            "force of the needle on the tissue at recorded step NNNNNNN, each row's -lambda n spread on the "
+            "nodes of the tet holding its point by barycentric weights (its sum is -steps/needle_force); "
+            "derived, stored (point data `constraint_force`)",
+        ),
+        (
+            "tissue/fixed",
+            "1",
+            "int8",
+            ("n",),
+            "1 for the clamped tissue nodes (scene/tissue/fixed_nodes), else 0 (point data `fixed`)",
         ),
     ],
     growing=False,
@@ -450,13 +475,15 @@ def reference_markdown() -> str:
         "",
         "`refsim.io.xdmf.write_xdmf` (called by `refsim run`, by every run of a study and by `refsim export "
         "--xdmf`) writes `RESULT.xdmf` beside the file and this group into it; it replaces the group when "
-        "run "
-        "again. NNNNNNN is a step number (7 digits): one dataset per step for the needle, one per recorded "
-        "tissue step (`tissue/step`) for the tissue and the cut. Views are HDF5 virtual datasets onto one "
-        "entry "
-        "of a per-step dataset (no data copied); only the deformed cut points are stored. The group's "
-        "attribute "
-        "`description` says the same.",
+        "run again. The sidecar holds three temporal collections (needle, cut, tissue) on one sorted time "
+        "list, rest (t = 0) and the end of every step; between two recorded tissue steps the tissue and the "
+        "cut show the last record. The tissue carries the point data `displacement` [m], `fixed` and "
+        "`constraint_force` [N]. NNNNNNN is a step number (7 digits). Views are HDF5 virtual datasets onto "
+        "one entry of a per-step dataset (no data copied); stored are the derived arrays (deformed cut "
+        "points, displacement, nodal constraint forces) of each recorded tissue step. The group's attribute "
+        "`description` says the same. `refsim export RESULT.h5 --vtu STEP` (or `last`, or `all` with a "
+        "`.pvd` series) writes the tissue and the cut of recorded steps as `.vtu` files with the same point "
+        "data.",
         "",
         "| path | shape | dtype | unit | meaning |",
         "|---|---|---|---|---|",
