@@ -335,13 +335,17 @@ def _read(handle, path: str, count: int | None = None) -> np.ndarray:
     return data
 
 
-def _event_values(event_data: dict, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """Each event's value and unit, from the dataset of each unit (schema.EVENT_VALUE_DATASETS)."""
+def _event_values(event_data: dict, count: int, law: str) -> tuple[np.ndarray, np.ndarray]:
+    """Each event's value and unit, from the dataset of each unit (schema.EVENT_VALUE_DATASETS). A file
+    written before events/force_per_length held every value in events/force: there the energy law's
+    cut_start (``law``, the scene's cutting.law) is a force per unit length all the same."""
     value, unit = np.full(count, np.nan), np.full(count, "N", dtype=object)
     for name_unit, name in schema.EVENT_VALUE_DATASETS.items():
         if name in event_data:
             held = np.isfinite(event_data[name])
             value[held], unit[held] = event_data[name][held], name_unit
+    if "force_per_length" not in event_data and law == "energy":
+        unit[np.asarray(event_data["name"], dtype=object) == "cut_start"] = "N/m"
     return value, unit
 
 
@@ -369,7 +373,7 @@ def read_results(path) -> Results:
     path, handle, attributes = _open(path)
     with handle:
         for spec in schema.all_datasets():
-            if spec.growing or spec.path.startswith("scene/"):
+            if (spec.growing or spec.path.startswith("scene/")) and spec.path not in schema.OPTIONAL_DATASETS:
                 _require(handle, path, spec.path)
         count = int(attributes.get("steps_completed", 0))
         count = min(count, handle[schema.STEPS["step"].path].shape[0])
@@ -398,7 +402,8 @@ def read_results(path) -> Results:
             for name, spec in schema.EVENTS.items()
             if spec.path in handle  # events/force_per_length is absent from files of before it
         }
-        value, unit = _event_values(event_data, event_count)
+        law = json.loads(attributes.get("scene", "{}")).get("cutting", {}).get("law", "energy")
+        value, unit = _event_values(event_data, event_count, law)
         events = tuple(
             RecordedEvent(int(s), float(t), str(n), float(f), str(u))
             for s, t, n, f, u in zip(

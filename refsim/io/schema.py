@@ -29,6 +29,7 @@ __all__ = [
     "CONSTRAINTS",
     "EVENTS",
     "EVENT_VALUE_DATASETS",
+    "OPTIONAL_DATASETS",
     "CUT",
     "PROBLEM_FIELDS",
     "PROBLEMS_GROUP",
@@ -271,6 +272,9 @@ EVENTS = _specs(
         ),
     ],
 )
+
+#: Datasets a file of the same schema version written before them lacks; the reader takes them as absent.
+OPTIONAL_DATASETS = frozenset({"events/force_per_length"})
 
 #: The dataset of ``events/`` holding an event's value, by the value's unit (refsim.simulation.records.Event's
 #: ``unit``): each dataset has one unit, so its ``units`` attribute is true for every entry.

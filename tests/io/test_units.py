@@ -139,3 +139,21 @@ def test_each_event_value_is_stored_read_and_printed_in_the_unit_its_rule_comput
         assert start.unit == "N" and start.force > scene.cutting.cutting_force
         assert f"cut_start  force {start.force:.4g} N" in text
     assert all(e.unit == "N" for e in events if e.name in ("puncture", "tear"))
+
+
+def test_a_file_of_before_force_per_length_reads_its_energy_cut_start_in_n_per_m(cut_run, tmp_path):
+    """A file written before events/force_per_length held every event value in events/force; its scene says
+    the law, and under the energy law the cut_start value is a force per unit length."""
+    import shutil
+
+    legacy = tmp_path / "legacy.h5"
+    shutil.copy(cut_run, legacy)
+    with h5py.File(legacy, "a") as handle:
+        per_length = handle["events/force_per_length"][()]
+        force = handle["events/force"][()]
+        merged = np.where(np.isfinite(per_length), per_length, force)
+        del handle["events/force_per_length"], handle["events/force"]
+        handle.create_dataset("events/force", data=merged).attrs["units"] = "N"
+    new, old = read_results(cut_run), read_results(legacy)
+    assert [(e.name, e.force, e.unit) for e in old.events] == [(e.name, e.force, e.unit) for e in new.events]
+    assert [e.unit for e in old.events if e.name == "cut_start"] == ["N/m"]
