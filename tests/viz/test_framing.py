@@ -11,7 +11,7 @@ import pytest
 
 from refsim.io import RecordedEvent, read_results
 from refsim.viz import animate_result, animation_steps, frame_camera, plot_result, render_result
-from refsim.viz.plots import LATERAL_STROKE_MIN, force_figure, lateral_stroke
+from refsim.viz.plots import LATERAL_STROKE_MIN, event_rows, force_figure, lateral_stroke
 from refsim.viz.render import cut_surface_positions, parse_vector
 
 
@@ -215,17 +215,40 @@ def test_animation_rejects_an_unknown_format(insertion_file, tmp_path):
         animate_result(insertion_file, tmp_path / "run.avi")
 
 
-def test_each_tear_is_labelled_with_its_own_force(insertion_file):
+def _overlaps(a, b) -> bool:
+    return a.x0 < b.x1 and b.x0 < a.x1 and a.y0 < b.y1 and b.y0 < a.y1
+
+
+def test_one_label_per_event_kind_with_its_unit_and_the_legend_off_the_data(insertion_file):
     results = read_results(insertion_file)
-    tears = (
+    added = (
+        RecordedEvent(25, float(results.time[24]), "cut_start", 207.91, "N/m"),
         RecordedEvent(30, float(results.time[29]), "tear", 2.27),
         RecordedEvent(40, float(results.time[39]), "tear", 13.77),
     )
-    results = dataclasses.replace(results, events=results.events + tears)
+    results = dataclasses.replace(results, events=results.events + added)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     figure = force_figure(results)
-    texts = [text.get_text() for axis in figure.axes for text in axis.texts]
-    assert "tear 2.27 N" in texts and "tear 13.77 N" in texts
-    assert len(figure.axes) == 2  # no lateral motion: depth and time only
+    canvas = FigureCanvasAgg(figure)
+    canvas.draw()
+    panels = [axis for axis in figure.axes if axis.axison]
+    assert len(panels) == 2  # no lateral motion: depth and time only
+    assert not [text.get_text() for axis in panels for text in axis.texts]  # nothing written over the data
+    (legend,) = figure.legends
+    labels = [text.get_text() for text in legend.get_texts()]
+    assert labels.count("tear (2)") == 1 and labels.count("cut_start (1)") == 1
+    assert sum(label.startswith("tear") for label in labels) == 1
+    renderer = canvas.get_renderer()
+    box = legend.get_window_extent(renderer)
+    assert not any(_overlaps(box, axis.get_window_extent(renderer)) for axis in panels)
+    table = [axis for axis in figure.axes if not axis.axison][0].tables[0]
+    cells = {(row, col): cell.get_text().get_text() for (row, col), cell in table.get_celld().items()}
+    rows = {
+        cells[(r, 0)]: [cells[(r, c)] for c in range(1, 4)] for r in range(1, 1 + len(event_rows(results)))
+    }
+    assert rows["tear"] == ["2", "30 - 40", "2.27 - 13.77 N"]
+    assert rows["cut_start"] == ["1", "25", "207.9 N/m"]  # a force per unit length (energy law)
 
 
 def test_lateral_motion_gets_a_stroke_panel(lateral_file, tmp_path):
@@ -236,7 +259,10 @@ def test_lateral_motion_gets_a_stroke_panel(lateral_file, tmp_path):
     assert np.all(stroke[results.time <= 0.25 + 1e-9] < 1e-12)
     assert stroke.max() > LATERAL_STROKE_MIN
     figure = force_figure(results)
-    assert len(figure.axes) == 3 and "lateral stroke" in figure.axes[2].get_xlabel()
+    panels = [axis for axis in figure.axes if axis.axison]
+    # A lateral stroke: against time and the stroke; no depth panel (the depth stays still while it moves).
+    assert [axis.get_title() for axis in panels] == ["against time", "against the lateral stroke"]
+    assert "lateral stroke" in panels[1].get_xlabel()
     output = plot_result(lateral_file, tmp_path / "forces.png")
     assert _read_png(output).shape[1] > 1.4 * _read_png(output).shape[0]
 
