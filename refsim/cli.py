@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-import time
 from pathlib import Path
 
 __all__ = ["main"]
@@ -22,31 +21,21 @@ STRATEGY_CHOICES = ("exact", "refreshed", "refreshed_first_order", "refreshed_st
 EXIT_FAILED, EXIT_INPUT, EXIT_SIMULATION, EXIT_INTERRUPTED, EXIT_TERMINATED = 1, 2, 3, 130, 143
 
 
-class _Progress:
-    """A one-line progress bar on stderr (only when stderr is a terminal, or every 10% otherwise)."""
+def _progress_bar(total: int, enabled: bool):
+    """A tqdm progress bar of the run's steps on stderr, the phase as its postfix; on a log file (stderr not a
+    terminal) one line every 10 s."""
+    from tqdm import tqdm
 
-    def __init__(self, total: int, enabled: bool = True) -> None:
-        self.total, self.enabled, self.start = total, enabled, time.perf_counter()
-        self.tty = sys.stderr.isatty()
-        self._last_decile = -1
-
-    def update(self, done: int, phase: str) -> None:
-        if not self.enabled:
-            return
-        elapsed = time.perf_counter() - self.start
-        rate = done / elapsed if elapsed > 0 else 0.0
-        fraction = done / self.total
-        if self.tty:
-            bar = "#" * int(30 * fraction)
-            sys.stderr.write(f"\r[{bar:<30}] {done}/{self.total} steps  {rate:5.1f} steps/s  {phase:<9}")
-            if done == self.total:
-                sys.stderr.write("\n")
-            sys.stderr.flush()
-        elif int(10 * fraction) > self._last_decile:
-            self._last_decile = int(10 * fraction)
-            sys.stderr.write(
-                f"{done}/{self.total} steps ({100 * fraction:.0f}%), {rate:.1f} steps/s, {phase}\n"
-            )
+    tty = sys.stderr.isatty()
+    return tqdm(
+        total=total,
+        unit="step",
+        disable=not enabled,
+        file=sys.stderr,
+        dynamic_ncols=tty,
+        mininterval=0.2 if tty else 10.0,
+        leave=True,
+    )
 
 
 _FIGURE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -70,13 +59,16 @@ def _cmd_run(args: argparse.Namespace) -> int:
         if figure.resolve() == output.resolve():
             raise ValueError(f"--figure {figure}: is the results file (-o)")
         check_output_path(figure, overwrite=True, what="figure")
-    progress = _Progress(scene.time.step_count, enabled=not args.quiet)
-    summary = run_scene(
-        scene,
-        output,
-        overwrite=args.overwrite,
-        progress=lambda done, total, phase: progress.update(done, phase),
-    )
+    bar = _progress_bar(scene.time.step_count, enabled=not args.quiet)
+
+    def progress(done: int, total: int, phase: str) -> None:
+        bar.set_postfix_str(phase, refresh=False)
+        bar.update(done - bar.n)
+
+    try:
+        summary = run_scene(scene, output, overwrite=args.overwrite, progress=progress)
+    finally:
+        bar.close()
     if summary.status in ("interrupted", "terminated"):
         print(
             f"\nrefsim run: {summary.stop_reason}; {summary.steps_written} completed steps kept in {output}",
@@ -403,8 +395,8 @@ def _parser() -> argparse.ArgumentParser:
     render.add_argument(
         "--focus",
         default="auto",
-        help="what to frame: auto (needle's inserted part, insertion points, cut), needle, cut, "
-        "tissue, or a point x,y,z [m]",
+        help="what to frame: auto (the tissue, the needle entering it and the cut), insertion (the needle's "
+        "inserted part, insertion points and cut, close up), needle, cut, tissue, or a point x,y,z [m]",
     )
     render.add_argument("--animate", metavar="OUT", help="also write an animation (.gif or .mp4)")
     render.add_argument(

@@ -417,12 +417,13 @@ def _draw_step(
         if style.show_motion and largest > 1e-9:
             # Small and few, so that they show the motion without hiding the tissue or the cut.
             scale = 0.06 * float(np.ptp(tissue_positions, axis=0).max()) / largest
-            shown = np.linspace(0, fixed.size - 1, min(fixed.size, 40)).astype(np.int64)
+            shown = np.linspace(0, fixed.size - 1, min(fixed.size, 16)).astype(np.int64)
             arrows = pv.PolyData(tissue_positions[fixed[shown]])
             arrows["motion"] = motion[shown] * scale
             plotter.add_mesh(
                 arrows.glyph(orient="motion", scale="motion", factor=1.0, geom=pv.Arrow()),
                 color=MOTION_COLOR,
+                opacity=0.6,
                 render=False,
             )
             legend.append(

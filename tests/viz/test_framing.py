@@ -178,8 +178,8 @@ def test_boundary_motion_arrows_appear_only_when_the_fixed_nodes_move(insertion_
     still = _read_png(render_result(insertion_file, tmp_path / "still.png", **options))
     moving = _read_png(render_result(moved, tmp_path / "moving.png", **options))
     assert _count_purple(still) == 0
-    # At most 40 arrows of 6 % of the tissue (small, so that they do not hide the cut): about 150 pixels here.
-    assert _count_purple(moving) > 50
+    # At most 16 arrows of 6 % of the tissue, translucent (so that they do not hide the cut).
+    assert _count_purple(moving) > 50, _count_purple(moving)
 
 
 @pytest.mark.parametrize(("every", "frames"), [(10, 5), (7, 8), (50, 1), (1, 50)])
