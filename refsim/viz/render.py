@@ -455,6 +455,13 @@ def _draw_step(
     return legend, title
 
 
+def _distance_to_segment(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Distance from a 2-D point to the segment ab (same units)."""
+    ab = b - a
+    t = float(np.clip((point - a) @ ab / max(ab @ ab, 1e-30), 0.0, 1.0))
+    return float(np.linalg.norm(point - (a + t * ab)))
+
+
 def _scale_length(span: float) -> float:
     """A round length (1, 2 or 5 times a power of ten) [m] near a quarter of ``span`` [m]."""
     target = 0.25 * span
@@ -516,15 +523,31 @@ def compose_picture(image: np.ndarray, legend: list, title: str, view: CameraVie
     centre = np.array([0.3, 0.09])
     scale = 0.2
     ratio = (width - image.shape[1]) / height  # margin width over height
-    for axis_vector, name, color in zip(np.eye(3), "xyz", ("#c0392b", "#27ae60", "#2c3e50"), strict=True):
-        tip = np.array([axis_vector @ right, (axis_vector @ up) * ratio]) * scale
+    colors = ("#c0392b", "#27ae60", "#2c3e50")
+    tips = [np.array([v @ right, (v @ up) * ratio]) * scale for v in np.eye(3)]
+    pixels = np.array([width - image.shape[1], height], dtype=float)  # margin units to pixels
+    for index, (axis_vector, name, color, tip) in enumerate(zip(np.eye(3), "xyz", colors, tips, strict=True)):
+        if np.hypot(*(tip * pixels)) < 0.3 * scale * pixels[0]:  # along the view: no arrow, words instead
+            margin.text(
+                0.55,
+                0.13 - 0.04 * index,
+                f"{name} {'out of' if axis_vector @ forward < 0 else 'into'} the picture",
+                color=color,
+                fontsize=font * 0.8,
+                va="center",
+            )
+            continue
         margin.annotate(
             "",
             xy=centre + tip,
             xytext=centre,
             arrowprops={"arrowstyle": "-|>", "color": color, "linewidth": 1.5},
         )
-        margin.text(*(centre + 1.3 * tip), name, color=color, fontsize=font, ha="center", va="center")
+        label = centre + 1.3 * tip
+        if any(_distance_to_segment(label * pixels, (centre + other) * pixels, centre * pixels) < 0.6 * font
+               for j, other in enumerate(tips) if j != index):  # fmt: skip
+            label = centre + tip + (0.06, 0.0)  # on another arrow: the name beside its own tip
+        margin.text(*label, name, color=color, fontsize=font, ha="center", va="center")
     canvas.draw()
     return np.asarray(canvas.buffer_rgba())[:, :, :3].copy()
 
