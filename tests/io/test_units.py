@@ -1,6 +1,6 @@
 """Units of everything that leaves the program: one source per quantity (refsim.io.schema), the unit of each
 event's value carried from the rule that computes it (refsim.simulation.records.Event.unit) into the results
-file and the end-of-run summary (the force plot's labels: tests/viz/test_figures.py).
+file, the end-of-run summary and the force plot's event table.
 
 Reference: the cut criteria of docs/cutting.md. The energy law starts a cut when the lateral force per
 inserted length ‖t‖ / L_in reaches G_c (a force per unit length, N/m = J/m²); the paper's law (equation 3)
@@ -130,14 +130,19 @@ def test_each_event_value_is_stored_read_and_printed_in_the_unit_its_rule_comput
     assert len(starts) == 1
     start = starts[0]
     text = summary.format()
+    from refsim.viz.plots import event_rows
+
+    plotted = {kind: value for kind, _, _, value in event_rows(results)}  # the force plot's event table
     if law == "energy":
         # ‖t‖ / L_in ≥ G_c, in N/m; G_c = 200 J/m² is two hundred times any lateral force of this run in N.
         assert start.unit == "N/m" and start.force >= scene.cutting.fracture_energy
         assert f"cut_start  force per length {start.force:.4g} N/m" in text
+        assert plotted["cut_start"].endswith(" N/m")
     else:
         # ‖t‖ / n_i > f_c, in N.
         assert start.unit == "N" and start.force > scene.cutting.cutting_force
         assert f"cut_start  force {start.force:.4g} N" in text
+        assert plotted["cut_start"].endswith(" N") and "N/m" not in plotted["cut_start"]
     assert all(e.unit == "N" for e in events if e.name in ("puncture", "tear"))
 
 
