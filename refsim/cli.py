@@ -34,6 +34,7 @@ def _progress_bar(total: int, enabled: bool):
         file=sys.stderr,
         dynamic_ncols=tty,
         mininterval=0.2 if tty else 10.0,
+        delay=1e-3 if tty else 0.0,  # on a terminal, no empty bar above the load report of the scene
         leave=True,
     )
 
