@@ -396,7 +396,7 @@ def export_vtu(results_path, step: str | int, folder=None) -> list[Path]:
             },
         )
         path = folder / f"{stem}_tissue_{number:07d}.vtu"
-        meshio.write(path, tissue)
+        _write_whole(path, lambda temporary, mesh=tissue: meshio.write(temporary, mesh, file_format="vtu"))
         written.append(path)
         series["tissue"].append((time, path))
         if cut is None or cut.tet_indices is None:
@@ -412,7 +412,7 @@ def export_vtu(results_path, step: str | int, folder=None) -> list[Path]:
             point_data={"created_step": cut.point_step.astype(np.int64)},
         )
         path = folder / f"{stem}_cut_{number:07d}.vtu"
-        meshio.write(path, surface)
+        _write_whole(path, lambda temporary, mesh=surface: meshio.write(temporary, mesh, file_format="vtu"))
         written.append(path)
         series["cut"].append((time, path))
     if str(step) == "all":
@@ -427,5 +427,17 @@ def _write_pvd(path: Path, entries: list) -> Path:
     lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1">', "  <Collection>"]
     lines += [f'    <DataSet timestep="{time!r}" part="0" file="{file.name}"/>' for time, file in entries]
     lines += ["  </Collection>", "</VTKFile>"]
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    _write_whole(path, lambda temporary: temporary.write_text("\n".join(lines) + "\n", encoding="utf-8"))
     return path
+
+
+def _write_whole(path: Path, write) -> None:
+    """``write(temporary)`` beside ``path``, then renamed onto it: a failed write leaves no partial file."""
+    import os
+
+    temporary = path.with_name(f".{path.name}.partial")
+    try:
+        write(temporary)
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)

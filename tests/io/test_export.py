@@ -236,6 +236,7 @@ def test_vtu_series_has_every_recorded_step_and_sorted_pvd_times(cut_run, tmp_pa
     np.testing.assert_array_equal(times, results.tissue_times)
     assert all((tmp_path / item.get("file")).is_file() for item in collection)
     assert len([f for f in files if "_tissue_" in f.name]) == results.tissue_steps.size
+    assert sorted(tmp_path.iterdir()) == sorted(files)  # written whole: no temporary file left
 
 
 def test_vtu_of_an_unrecorded_step_exits_2_and_writes_nothing(cut_run, tmp_path, capsys):
