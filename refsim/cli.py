@@ -16,7 +16,6 @@ import io
 import logging
 import os
 import sys
-import time
 from pathlib import Path
 
 __all__ = ["main"]
@@ -27,31 +26,22 @@ STRATEGY_CHOICES = ("exact", "refreshed", "refreshed_first_order", "refreshed_st
 EXIT_FAILED, EXIT_INPUT, EXIT_SIMULATION, EXIT_INTERRUPTED, EXIT_TERMINATED = 1, 2, 3, 130, 143
 
 
-class _Progress:
-    """A one-line progress bar on stderr (only when stderr is a terminal, or every 10% otherwise)."""
+def _progress_bar(total: int, enabled: bool):
+    """A tqdm progress bar of the run's steps on stderr, the phase as its postfix; on a log file (stderr not a
+    terminal) one line every 10 s."""
+    from tqdm import tqdm
 
-    def __init__(self, total: int, enabled: bool = True) -> None:
-        self.total, self.enabled, self.start = total, enabled, time.perf_counter()
-        self.tty = sys.stderr.isatty()
-        self._last_decile = -1
-
-    def update(self, done: int, phase: str) -> None:
-        if not self.enabled:
-            return
-        elapsed = time.perf_counter() - self.start
-        rate = done / elapsed if elapsed > 0 else 0.0
-        fraction = done / self.total
-        if self.tty:
-            bar = "#" * int(30 * fraction)
-            sys.stderr.write(f"\r[{bar:<30}] {done}/{self.total} steps  {rate:5.1f} steps/s  {phase:<9}")
-            if done == self.total:
-                sys.stderr.write("\n")
-            sys.stderr.flush()
-        elif int(10 * fraction) > self._last_decile:
-            self._last_decile = int(10 * fraction)
-            sys.stderr.write(
-                f"{done}/{self.total} steps ({100 * fraction:.0f}%), {rate:.1f} steps/s, {phase}\n"
-            )
+    tty = sys.stderr.isatty()
+    return tqdm(
+        total=total,
+        unit="step",
+        disable=not enabled,
+        file=sys.stderr,
+        dynamic_ncols=tty,
+        mininterval=0.2 if tty else 10.0,
+        delay=1e-3 if tty else 0.0,  # on a terminal, no empty bar above the load report of the scene
+        leave=True,
+    )
 
 
 _FIGURE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -123,6 +113,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from refsim.io.driver import check_output_path, run_scene
     from refsim.scene import load_scene
 
+    if not args.quiet:  # the load report: the fixed set, an aimed insertion (refsim.scene.build)
+        logging.getLogger("refsim.scene.load").setLevel(logging.INFO)
     scene = load_scene(args.scene, args.set or ())
     output = check_output_path(args.output, overwrite=args.overwrite)
     figure = None
@@ -135,13 +127,16 @@ def _cmd_run(args: argparse.Namespace) -> int:
         if figure.resolve() == output.resolve():
             raise ValueError(f"--figure {figure}: is the results file (-o)")
         check_output_path(figure, overwrite=True, what="figure")
-    progress = _Progress(scene.time.step_count, enabled=not args.quiet)
-    summary = run_scene(
-        scene,
-        output,
-        overwrite=args.overwrite,
-        progress=lambda done, total, phase: progress.update(done, phase),
-    )
+    bar = _progress_bar(scene.time.step_count, enabled=not args.quiet)
+
+    def progress(done: int, total: int, phase: str) -> None:
+        bar.set_postfix_str(phase, refresh=False)
+        bar.update(done - bar.n)
+
+    try:
+        summary = run_scene(scene, output, overwrite=args.overwrite, progress=progress)
+    finally:
+        bar.close()
     if summary.status in ("interrupted", "terminated", "hangup"):
         print(
             f"\nrefsim run: {summary.stop_reason}; {summary.steps_written} completed steps kept in {output}",
@@ -238,12 +233,21 @@ def _cmd_study(args: argparse.Namespace) -> int:
 
 def _cmd_export(args: argparse.Namespace) -> int:
     """`refsim export`: ParaView sidecar, reference problems (problem set, FCLib) and the force CSV."""
-    from refsim.io.export import export_force_csv, export_problems
+    from refsim.io.export import export_force_csv, export_problems, export_vtu
     from refsim.io.xdmf import write_xdmf
 
     result = Path(args.result)
-    if not (args.xdmf or args.problems or args.csv):
-        raise ValueError("refsim export: choose at least one of --xdmf, --problems OUT.h5, --csv OUT.csv")
+    if not (args.xdmf or args.problems or args.csv or args.vtu):
+        raise ValueError(
+            "refsim export: choose at least one of --xdmf, --vtu STEP, --problems OUT.h5, --csv OUT.csv"
+        )
+    if args.vtu:
+        files = export_vtu(result, args.vtu, args.vtu_folder)
+        print(
+            f"wrote {len(files)} files: "
+            + ", ".join(str(f) for f in files[:4])
+            + (", ..." if len(files) > 4 else "")
+        )
     if args.xdmf:
         try:
             print(f"wrote {write_xdmf(result)}")
@@ -542,8 +546,8 @@ def _parser() -> argparse.ArgumentParser:
     render.add_argument(
         "--focus",
         default="auto",
-        help="what to frame: auto (needle's inserted part, insertion points, cut), needle, cut, "
-        "tissue, or a point x,y,z [m]",
+        help="what to frame: auto (the tissue, the needle entering it and the cut), insertion (the needle's "
+        "inserted part, insertion points and cut, close up), needle, cut, tissue, or a point x,y,z [m]",
     )
     render.add_argument("--animate", metavar="OUT", help="also write an animation (.gif or .mp4)")
     render.add_argument(
@@ -600,6 +604,15 @@ def _parser() -> argparse.ArgumentParser:
         "--fclib", metavar="FOLDER", help="with --problems: FCLib files of pure-contact steps"
     )
     export.add_argument("--csv", metavar="OUT.csv", help="needle force history")
+    export.add_argument(
+        "--vtu",
+        metavar="STEP",
+        help="deformed tissue and cut surface at a recorded tissue step (a step number, last, or all: every "
+        "recorded step with a .pvd series) as .vtu files",
+    )
+    export.add_argument(
+        "--vtu-folder", metavar="FOLDER", help="with --vtu: where to write (default: beside RESULT)"
+    )
     export.set_defaults(handler=_cmd_export)
 
     reference = commands.add_parser("reference", help="the reference set: list its cases, build it, its page")

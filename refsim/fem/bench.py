@@ -366,14 +366,14 @@ def format_rows(rows: list[dict], keys: list[str] | None = None) -> str:
     if not rows:
         return ""
     keys = keys or list(rows[0].keys())
-    widths = [max(10, len(k)) for k in keys]
+    cells = [
+        [f"{row.get(k, ''):.4g}" if isinstance(row.get(k), float) else str(row.get(k, "")) for k in keys]
+        for row in rows
+    ]
+    # Each column as wide as its widest cell or heading, so that no value runs into the next column.
+    widths = [max(len(k), *(len(line[i]) for line in cells)) for i, k in enumerate(keys)]
     lines = ["  ".join(f"{k:>{w}}" for k, w in zip(keys, widths, strict=True))]
-    for row in rows:
-        cells = []
-        for k, w in zip(keys, widths, strict=True):
-            value = row.get(k, "")
-            cells.append(f"{value:>{w}.4g}" if isinstance(value, float) else f"{value!s:>{w}}")
-        lines.append("  ".join(cells))
+    lines += ["  ".join(f"{c:>{w}}" for c, w in zip(line, widths, strict=True)) for line in cells]
     return "\n".join(lines)
 
 

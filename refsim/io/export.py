@@ -5,6 +5,9 @@
   problem-set format below; and, for the steps whose rows are pure frictional contact (3-D Coulomb contacts
   only), one FCLib file each (:func:`write_fclib`).
 - :func:`export_force_csv`: the needle force history as CSV.
+- :func:`export_vtu`: the deformed tissue (point data displacement [m], fixed, constraint_force [N]) and the
+  cut surface at a recorded tissue step, or at every one with a ParaView collection (.pvd) each, as VTK
+  unstructured grids (.vtu) that ParaView, VTK and ``meshio.read`` open alone.
 
 Problem-set file (HDF5, ``format = "refsim-problem-set"``, ``schema_version = 1``)::
 
@@ -38,6 +41,7 @@ import numpy as np
 __all__ = [
     "PROBLEM_SET_FORMAT",
     "export_force_csv",
+    "export_vtu",
     "export_problems",
     "is_pure_contact",
     "read_problem_set",
@@ -312,3 +316,128 @@ def export_force_csv(results_path, output) -> Path:
         lines.append(",".join(values))
     output.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return output
+
+
+def _tissue_step_indices(results, step: str | int, path) -> list[int]:
+    """Indices into the recorded tissue steps for ``step`` (a step number, "last" or "all")."""
+    recorded = results.tissue_steps
+    if recorded.size == 0:
+        raise ValueError(f"{path}: no tissue state is recorded (the run made no step)")
+    if str(step) == "all":
+        return list(range(recorded.size))
+    if str(step) == "last":
+        return [recorded.size - 1]
+    try:
+        number = int(step)
+    except ValueError:
+        number = None
+    found = np.flatnonzero(recorded == number) if number is not None else np.zeros(0, dtype=int)
+    if found.size == 0:
+        shown = ", ".join(str(int(s)) for s in recorded[:8]) + (", ..." if recorded.size > 8 else "")
+        raise ValueError(
+            f"{path}: --vtu {step}: not a recorded tissue step; the tissue is recorded at steps {shown} "
+            f"(last {int(recorded[-1])}; scene key output.tissue_every); give one of them, last or all"
+        )
+    return [int(found[0])]
+
+
+def export_vtu(results_path, step: str | int, folder=None) -> list[Path]:
+    """Write the deformed tissue and the cut surface of recorded tissue steps as VTK unstructured grids.
+
+    Parameters
+    ----------
+    results_path : The results file (.h5).
+    step : A recorded tissue step (``tissue/step``), "last", or "all" (every recorded step, and a ParaView
+        collection file per object, ``STEM_tissue.pvd`` and ``STEM_cut.pvd``, with the times).
+    folder : Where to write; the results file's folder by default.
+
+    Returns
+    -------
+    The files written: ``STEM_tissue_NNNNNNN.vtu`` (tetrahedra at the deformed positions [m]; point data
+    ``displacement`` [m] from rest, ``fixed`` (1 for a clamped node), ``constraint_force`` [N], the force
+    of the needle on the tissue spread on the nodes, refsim.io.xdmf.nodal_constraint_forces) and, when
+    triangles of the cut exist at the step, ``STEM_cut_NNNNNNN.vtu`` (those triangles, every cut point
+    mapped into the deformed tissue by equation 4; point data ``created_step``).
+
+    Raises
+    ------
+    ValueError
+        Naming the file and the step when the step is not recorded (listing the recorded ones).
+    """
+    import meshio
+
+    from refsim.io.reader import read_results
+    from refsim.io.xdmf import nodal_constraint_forces
+
+    results_path = Path(results_path)
+    results = read_results(results_path)
+    indices = _tissue_step_indices(results, step, results_path)
+    folder = results_path.parent if folder is None else Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    stem = results_path.stem
+    fixed = np.zeros(results.rest_positions.shape[0], dtype=np.int8)
+    fixed[results.fixed_nodes] = 1
+    cut = results.cut
+    written, series = [], {"tissue": [], "cut": []}
+    for index in indices:
+        number = int(results.tissue_steps[index])
+        time = float(results.tissue_times[index])
+        positions = results.tissue_positions[index]
+        rows = results.constraints_at(number)
+        tissue = meshio.Mesh(
+            positions,
+            [("tetra", results.tets)],
+            point_data={
+                "displacement": positions - results.rest_positions,
+                "fixed": fixed,
+                "constraint_force": nodal_constraint_forces(
+                    positions, results.tets, rows.points, rows.directions, rows.forces
+                ),
+            },
+        )
+        path = folder / f"{stem}_tissue_{number:07d}.vtu"
+        _write_whole(path, lambda temporary, mesh=tissue: meshio.write(temporary, mesh, file_format="vtu"))
+        written.append(path)
+        series["tissue"].append((time, path))
+        if cut is None or cut.tet_indices is None:
+            continue
+        existing = cut.triangle_step <= number
+        if not np.any(existing):
+            continue
+        corners = results.tets[cut.tet_indices]
+        points = np.einsum("pk,pki->pi", cut.barycentric, positions[corners])
+        surface = meshio.Mesh(
+            points,
+            [("triangle", cut.triangles[existing])],
+            point_data={"created_step": cut.point_step.astype(np.int64)},
+        )
+        path = folder / f"{stem}_cut_{number:07d}.vtu"
+        _write_whole(path, lambda temporary, mesh=surface: meshio.write(temporary, mesh, file_format="vtu"))
+        written.append(path)
+        series["cut"].append((time, path))
+    if str(step) == "all":
+        for name, entries in series.items():
+            if entries:
+                written.append(_write_pvd(folder / f"{stem}_{name}.pvd", entries))
+    return written
+
+
+def _write_pvd(path: Path, entries: list) -> Path:
+    """A ParaView collection file: each (time [s], .vtu path) as one time step."""
+    lines = ['<?xml version="1.0"?>', '<VTKFile type="Collection" version="0.1">', "  <Collection>"]
+    lines += [f'    <DataSet timestep="{time!r}" part="0" file="{file.name}"/>' for time, file in entries]
+    lines += ["  </Collection>", "</VTKFile>"]
+    _write_whole(path, lambda temporary: temporary.write_text("\n".join(lines) + "\n", encoding="utf-8"))
+    return path
+
+
+def _write_whole(path: Path, write) -> None:
+    """``write(temporary)`` beside ``path``, then renamed onto it: a failed write leaves no partial file."""
+    import os
+
+    temporary = path.with_name(f".{path.name}.partial")
+    try:
+        write(temporary)
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)

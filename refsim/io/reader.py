@@ -35,12 +35,14 @@ class ResultsError(ValueError):
 
 
 class RecordedEvent(NamedTuple):
-    """An event of the run: step, time [s], name, triggering force [N] (NaN when none)."""
+    """An event of the run: step, time [s], name, the value that triggered it (NaN when none) and its unit
+    ("N", or "N/m" for the energy law's cut_start; refsim.io.schema.EVENT_VALUE_DATASETS)."""
 
     step: int
     time: float
     name: str
     force: float
+    unit: str = "N"
 
 
 class StepConstraints(NamedTuple):
@@ -382,6 +384,20 @@ def _steps_completed(handle, path: Path, attributes: dict) -> int:
     return int(value)
 
 
+def _event_values(event_data: dict, count: int, law: str) -> tuple[np.ndarray, np.ndarray]:
+    """Each event's value and unit, from the dataset of each unit (schema.EVENT_VALUE_DATASETS). A file
+    written before events/force_per_length held every value in events/force: there the energy law's
+    cut_start (``law``, the scene's cutting.law) is a force per unit length all the same."""
+    value, unit = np.full(count, np.nan), np.full(count, "N", dtype=object)
+    for name_unit, name in schema.EVENT_VALUE_DATASETS.items():
+        if name in event_data:
+            held = np.isfinite(event_data[name])
+            value[held], unit[held] = event_data[name][held], name_unit
+    if "force_per_length" not in event_data and law == "energy":
+        unit[np.asarray(event_data["name"], dtype=object) == "cut_start"] = "N/m"
+    return value, unit
+
+
 def _require(handle, path: Path, dataset_path: str):
     if dataset_path not in handle:
         raise ResultsError(f"{path}: dataset {dataset_path!r} is missing; the file is damaged or incomplete")
@@ -406,7 +422,7 @@ def read_results(path) -> Results:
     path, handle, attributes = _open(path)
     with handle:
         for spec in schema.all_datasets():
-            if spec.growing or spec.path.startswith("scene/"):
+            if (spec.growing or spec.path.startswith("scene/")) and spec.path not in schema.OPTIONAL_DATASETS:
                 _require(handle, path, spec.path)
         count = _steps_completed(handle, path, attributes)
         offsets = _read(handle, schema.CONSTRAINTS["offsets"].path, count + 1)
@@ -429,11 +445,17 @@ def read_results(path) -> Results:
         tissue_count = int(np.count_nonzero(tissue_steps <= last_step))
         event_steps = _read(handle, schema.EVENTS["step"].path)
         event_count = int(np.count_nonzero(event_steps <= last_step))
-        event_data = {name: _read(handle, spec.path, event_count) for name, spec in schema.EVENTS.items()}
+        event_data = {
+            name: _read(handle, spec.path, event_count)
+            for name, spec in schema.EVENTS.items()
+            if spec.path in handle  # events/force_per_length is absent from files of before it
+        }
+        law = json.loads(attributes.get("scene", "{}")).get("cutting", {}).get("law", "energy")
+        value, unit = _event_values(event_data, event_count, law)
         events = tuple(
-            RecordedEvent(int(s), float(t), str(n), float(f))
-            for s, t, n, f in zip(
-                event_data["step"], event_data["time"], event_data["name"], event_data["force"], strict=False
+            RecordedEvent(int(s), float(t), str(n), float(f), str(u))
+            for s, t, n, f, u in zip(
+                event_data["step"], event_data["time"], event_data["name"], value, unit, strict=False
             )
         )
         cut = None

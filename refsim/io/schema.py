@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from refsim.simulation.records import EVENT_UNITS
 from refsim.solvers.laws import problem_field_specs
 
 __all__ = [
@@ -27,6 +28,8 @@ __all__ = [
     "TISSUE",
     "CONSTRAINTS",
     "EVENTS",
+    "EVENT_VALUE_DATASETS",
+    "OPTIONAL_DATASETS",
     "CUT",
     "PROBLEM_FIELDS",
     "PROBLEMS_GROUP",
@@ -250,9 +253,36 @@ EVENTS = _specs(
         ("step", "1", "int64", (), "step of the event"),
         ("time", "s", "float64", (), "time at the end of that step"),
         ("name", "1", "str", (), "puncture, cut_start, tear, retraction, withdrawal, ..."),
-        ("force", "N", "float64", (), "force that triggered the event (NaN when none)"),
+        (
+            "force",
+            "N",
+            "float64",
+            (),
+            "force that triggered the event: puncture (tip normal force), tear, cut_start of the paper law "
+            "(lateral force per insertion point); NaN when the event has no force or its value is in "
+            "events/force_per_length",
+        ),
+        (
+            "force_per_length",
+            "N/m",
+            "float64",
+            (),
+            "force per unit length that triggered the event: cut_start of the energy law (lateral force per "
+            "inserted length, compared with G_c); NaN otherwise",
+        ),
     ],
 )
+
+#: Datasets a file of the same schema version written before them lacks; the reader takes them as absent.
+OPTIONAL_DATASETS = frozenset({"events/force_per_length"})
+
+#: The dataset of ``events/`` holding an event's value, by the value's unit (refsim.simulation.records.Event's
+#: ``unit``): each dataset has one unit, so its ``units`` attribute is true for every entry.
+EVENT_VALUE_DATASETS = {"N": "force", "N/m": "force_per_length"}
+if set(EVENT_VALUE_DATASETS) != set(EVENT_UNITS) or any(
+    EVENTS[name].unit != unit for unit, name in EVENT_VALUE_DATASETS.items()
+):  # pragma: no cover - a schema edit that forgot an event unit
+    raise ImportError("refsim.io.schema: EVENT_VALUE_DATASETS does not cover records.EVENT_UNITS")
 
 #: Cut surface history, rewritten whole by ResultWriter.write_cut_surface; absent when nothing was cut.
 CUT = _specs(
@@ -313,8 +343,9 @@ XDMF = _specs(
             "1",
             "int64",
             ("?", 3),
-            "the cut triangles existing at recorded step NNNNNNN: a view of the first rows of cut/triangles "
-            "(virtual dataset), a copy when the triangles are not in step order",
+            "the cut triangles existing at step NNNNNNN, shared by the later steps until the cut grows: a "
+            "view of the first rows of cut/triangles (virtual dataset), a copy when the triangles are not in "
+            "step order",
         ),
         (
             "tissue/positions/NNNNNNN",
@@ -322,6 +353,30 @@ XDMF = _specs(
             "float64",
             ("n", 3),
             "view of tissue/positions at recorded step NNNNNNN (virtual dataset)",
+        ),
+        (
+            "tissue/displacement/NNNNNNN",
+            "m",
+            "float64",
+            ("n", 3),
+            "tissue node displacement from rest at recorded step NNNNNNN (0000000: rest, zeros); derived, "
+            "stored (point data `displacement`)",
+        ),
+        (
+            "tissue/constraint_force/NNNNNNN",
+            "N",
+            "float64",
+            ("n", 3),
+            "force of the needle on the tissue at recorded step NNNNNNN, each row's -lambda n spread on the "
+            "nodes of the tet holding its point by barycentric weights (its sum is -steps/needle_force); "
+            "derived, stored (point data `constraint_force`)",
+        ),
+        (
+            "tissue/fixed",
+            "1",
+            "int8",
+            ("n",),
+            "1 for the clamped tissue nodes (scene/tissue/fixed_nodes), else 0 (point data `fixed`)",
         ),
     ],
     growing=False,
@@ -425,13 +480,15 @@ def reference_markdown() -> str:
         "`refsim.io.xdmf.write_xdmf` (called by `refsim run`, by every run of a study and by `refsim export "
         "RESULT.h5 "
         "--xdmf`) writes `RESULT.xdmf` beside the file and this group into it; it replaces the group when "
-        "run "
-        "again. NNNNNNN is a step number (7 digits): one dataset per step for the needle, one per recorded "
-        "tissue step (`tissue/step`) for the tissue and the cut. Views are HDF5 virtual datasets onto one "
-        "entry "
-        "of a per-step dataset (no data copied); only the deformed cut points are stored. The group's "
-        "attribute "
-        "`description` says the same.",
+        "run again. The sidecar holds three temporal collections (needle, cut, tissue) on one sorted time "
+        "list, rest (t = 0) and the end of every step; between two recorded tissue steps the tissue and the "
+        "cut show the last record. The tissue carries the point data `displacement` [m], `fixed` and "
+        "`constraint_force` [N]. NNNNNNN is a step number (7 digits). Views are HDF5 virtual datasets onto "
+        "one entry of a per-step dataset (no data copied); stored are the derived arrays (deformed cut "
+        "points, displacement, nodal constraint forces) of each recorded tissue step. The group's attribute "
+        "`description` says the same. `refsim export RESULT.h5 --vtu STEP` (or `last`, or `all` with a "
+        "`.pvd` series) writes the tissue and the cut of recorded steps as `.vtu` files with the same point "
+        "data.",
         "",
         "| path | shape | dtype | unit | meaning |",
         "|---|---|---|---|---|",

@@ -429,7 +429,11 @@ class ResultWriter:
             values["events/step"] = np.full(len(record.events), record.step, dtype=np.int64)
             values["events/time"] = np.full(len(record.events), record.time, dtype=np.float64)
             values["events/name"] = np.array([event.name for event in record.events], dtype=object)
-            values["events/force"] = np.array([event.force for event in record.events], dtype=np.float64)
+            for unit, name in schema.EVENT_VALUE_DATASETS.items():  # each value in the dataset of its unit
+                values[f"events/{name}"] = np.array(
+                    [event.force if event.unit == unit else np.nan for event in record.events],
+                    dtype=np.float64,
+                )
         if record.tissue_positions is not None:
             positions = self._check_shape("tissue_positions", record.tissue_positions, (self._sizes["n"], 3))
             values["tissue/step"] = np.array([record.step], dtype=np.int64)

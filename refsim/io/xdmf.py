@@ -1,18 +1,28 @@
 """An XDMF 3 sidecar beside a results file, so that ParaView opens it directly (File > Open > RESULT.xdmf,
-reader "XDMF Reader" or "Xdmf3ReaderT").
+reader "XDMF Reader").
 
-The sidecar has three temporal collections in one domain:
+The sidecar has three temporal collections in one domain, on one sorted time list: t = 0 (rest) and the end
+of every step.
 
-- ``needle``: the needle centreline as a polyline at every step (``steps/needle_positions``);
-- ``cut`` (when the run cut): the cut surface triangles at every recorded tissue step, its rest points mapped
-  to the deformed tissue by their tets and barycentric coordinates (equation 4 of the paper);
-- ``tissue``: the tetrahedra at rest (time 0) and at every recorded tissue step (``tissue/positions``); the
-  displacement is ParaView's Calculator away (``coords`` minus the first step's), not stored twice.
+- ``needle``: the needle centreline as a polyline (``scene/needle/rest_nodes`` at t = 0, then
+  ``steps/needle_positions``);
+- ``cut`` (when the run cut): the cut surface triangles existing at each step, from the first step that has
+  one, its rest points mapped to the deformed tissue by their tets and barycentric coordinates (equation 4 of
+  the paper);
+- ``tissue``: the tetrahedra, with point data ``displacement`` [m] (from rest), ``fixed`` (1 for a clamped
+  node) and ``constraint_force`` [N] (the force of the needle on the tissue, spread on the nodes).
+
+The tissue is recorded every ``output.tissue_every`` steps: between two records the tissue and the cut show
+the last recorded state (``output.tissue_every = 1`` for every step). Every collection has a grid at every
+time of the list, so VTK's XDMF reader (ParaView's) lists the times sorted and shows all three at each.
 
 The heavy data is not copied: each per-step array is an HDF5 virtual dataset (a view, no data) in the group
 ``xdmf/`` of the results file that maps onto one entry of the per-step dataset, and the XDMF points at it as
-``RESULT.h5:/xdmf/...``. Only what is derived, the deformed cut points (a few hundred points per recorded
-step), is stored in ``xdmf/``. The tissue collection comes last, so ``meshio.xdmf.TimeSeriesReader`` reads it.
+``RESULT.h5:/xdmf/...``; a step between records points at the same view as the record before it. Stored are
+only what is derived: the deformed cut points, the displacement and the constraint forces at each recorded
+step. The tissue collection comes last, so ``meshio.xdmf.TimeSeriesReader`` reads it (the rest mesh once,
+then the point data of each time: the deformation is rest + ``displacement``); ``meshio.read`` reads single
+meshes only: ``refsim export RESULT.h5 --vtu STEP`` writes those.
 """
 
 from __future__ import annotations
@@ -28,7 +38,7 @@ from refsim.io.schema import (
     xdmf_path_of,
 )  # XDMF_GROUP: the group of the views (re-exported)
 
-__all__ = ["XDMF_GROUP", "write_xdmf", "xdmf_path"]
+__all__ = ["XDMF_GROUP", "nodal_constraint_forces", "write_xdmf", "xdmf_path"]
 
 
 def xdmf_path(results_path) -> Path:
@@ -51,7 +61,7 @@ def _view(handle, name: str, source: str, index: int | slice, entry_shape: tuple
 
 def _data_item(parent, file_name: str, path: str, shape: tuple, dtype) -> ET.Element:
     kind = np.dtype(dtype)
-    number = "Float" if kind.kind == "f" else "Int"
+    number = "Float" if kind.kind == "f" else ("Char" if kind.itemsize == 1 else "Int")
     item = ET.SubElement(
         parent,
         "DataItem",
@@ -80,6 +90,37 @@ def _geometry(grid, file_name: str, path: str, shape: tuple) -> None:
     _data_item(geometry, file_name, path, shape, np.float64)
 
 
+def _attribute(grid, name: str, center: str, kind: str, file_name: str, path: str, shape: tuple, dtype):
+    attribute = ET.SubElement(grid, "Attribute", Name=name, AttributeType=kind, Center=center)
+    _data_item(attribute, file_name, path, shape, dtype)
+
+
+def nodal_constraint_forces(
+    positions: np.ndarray, tets: np.ndarray, points: np.ndarray, directions: np.ndarray, forces: np.ndarray
+) -> np.ndarray:
+    """The force of the needle on the tissue at the nodes [N], shape (n, 3).
+
+    Each constraint row pushes the tissue along −n with its multiplier λ (refsim.constraints.rows); its force
+    −λ n is spread on the four nodes of the tet holding its tissue-side point in the tissue at ``positions``
+    (n, 3) [m] by the point's barycentric coordinates (the point clamped to the closest tet when it lies
+    just outside), so the nodal forces sum to −Σ λ n, the opposite of steps/needle_force.
+
+    Parameters
+    ----------
+    tets : (m, 4). points : Tissue-side points of the rows [m], (r, 3). directions : Row directions, (r, 3).
+    forces : Multipliers λ [N], (r,).
+    """
+    from refsim.geometry.search import TetLocator
+
+    nodal = np.zeros_like(positions)
+    if forces.size == 0:
+        return nodal
+    tet, barycentric = TetLocator(positions, tets).locate_nearest(points)[:2]
+    row_force = -forces[:, None] * directions  # (r, 3)
+    np.add.at(nodal, tets[tet].ravel(), (barycentric[:, :, None] * row_force[:, None, :]).reshape(-1, 3))
+    return nodal
+
+
 def write_xdmf(results_path, output=None) -> Path:
     """Write the XDMF sidecar of a results file (and its views in the file's ``xdmf/`` group).
 
@@ -105,7 +146,11 @@ def write_xdmf(results_path, output=None) -> Path:
     file_name = results_path.name
     steps = results.step_count
     nodes, tets = results.rest_positions.shape[0], results.tets.shape[0]
-    needle_nodes = results.needle_positions.shape[1] if steps else results.needle_rest_nodes.shape[0]
+    needle_nodes = results.needle_rest_nodes.shape[0]
+    # The time list: rest (step 0), then every step; the tissue record shown at each (-1: rest).
+    step_numbers = np.concatenate([[0], results.step[:steps]]).astype(np.int64)
+    times = np.concatenate([[0.0], results.time[:steps]])
+    record_of = np.searchsorted(results.tissue_steps, step_numbers, side="right") - 1
 
     root = ET.Element("Xdmf", Version="3.0")
     domain = ET.SubElement(root, "Domain")
@@ -118,36 +163,76 @@ def write_xdmf(results_path, output=None) -> Path:
             "sidecar; rewritten by refsim.io.xdmf.write_xdmf; its datasets are listed in "
             "refsim.io.schema.XDMF and docs/results.md"
         )
-        # needle: a polyline per step
+
+        def stored(spec_key: str, step: int | None, data: np.ndarray) -> str:
+            spec = XDMF[spec_key]
+            name = spec.path if step is None else xdmf_path_of(spec, step)
+            dataset = handle.create_dataset(name, data=np.asarray(data, dtype=spec.dtype))
+            dataset.attrs["units"] = spec.unit
+            return dataset.name
+
+        # needle: a polyline at rest, then at every step
         needle = ET.SubElement(
             domain, "Grid", Name="needle", GridType="Collection", CollectionType="Temporal"
         )
-        connectivity = handle.create_dataset(
-            XDMF["needle/polyline"].path, data=np.arange(needle_nodes, dtype=np.int64)[None]
-        )
-        connectivity.attrs["units"] = XDMF["needle/polyline"].unit
-        for index in range(steps):
-            step = int(results.step[index])
-            path = _view(
-                handle,
-                xdmf_path_of(XDMF["needle/positions/NNNNNNN"], step),
-                schema.STEPS["needle_positions"].path,
-                index,
-                (needle_nodes, 3),
-                np.float64,
-            )
-            grid = _grid(needle, f"needle_{step:07d}", results.time[index])
+        connectivity = stored("needle/polyline", None, np.arange(needle_nodes)[None])
+        for index, (step, time) in enumerate(zip(step_numbers, times, strict=True)):
+            if index == 0:
+                path = "/" + schema.STATIC["needle/rest_nodes"].path
+            else:
+                path = _view(
+                    handle,
+                    xdmf_path_of(XDMF["needle/positions/NNNNNNN"], step),
+                    schema.STEPS["needle_positions"].path,
+                    index - 1,
+                    (needle_nodes, 3),
+                    np.float64,
+                )
+            grid = _grid(needle, f"needle_{step:07d}", time)
             _topology(
                 grid,
                 "Polyline",
                 1,
                 file_name,
-                connectivity.name,
+                connectivity,
                 (1, needle_nodes),
                 NodesPerElement=str(needle_nodes),
             )
             _geometry(grid, file_name, path, (needle_nodes, 3))
-        # cut surface at the recorded tissue steps
+        # tissue records: views of the positions, displacement and constraint forces (derived)
+        fixed = np.zeros(nodes, dtype=np.int8)
+        fixed[results.fixed_nodes] = 1
+        fixed_path = stored("tissue/fixed", None, fixed)
+        zeros = np.zeros((nodes, 3))
+        record_paths = {
+            -1: (
+                "/" + schema.STATIC["tissue/rest_positions"].path,
+                stored("tissue/displacement/NNNNNNN", 0, zeros),
+                stored("tissue/constraint_force/NNNNNNN", 0, zeros),
+            )
+        }
+        for record, step in enumerate(results.tissue_steps):
+            positions = results.tissue_positions[record]
+            rows = results.constraints_at(int(step))
+            record_paths[record] = (
+                _view(
+                    handle,
+                    xdmf_path_of(XDMF["tissue/positions/NNNNNNN"], step),
+                    schema.TISSUE["positions"].path,
+                    record,
+                    (nodes, 3),
+                    np.float64,
+                ),
+                stored("tissue/displacement/NNNNNNN", step, positions - results.rest_positions),
+                stored(
+                    "tissue/constraint_force/NNNNNNN",
+                    step,
+                    nodal_constraint_forces(
+                        positions, results.tets, rows.points, rows.directions, rows.forces
+                    ),
+                ),
+            )
+        # cut surface at every step from its first triangle
         cut = results.cut
         if cut is not None and cut.triangles.shape[0] and cut.tet_indices is not None:
             collection = ET.SubElement(
@@ -158,57 +243,46 @@ def write_xdmf(results_path, output=None) -> Path:
                 0
             ]  # every point: later ones are unused until their triangles exist
             in_order = bool(np.all(np.diff(cut.triangle_step) >= 0))
-            for index, step in enumerate(results.tissue_steps):
-                existing = cut.triangle_step <= step
-                triangle_count = int(np.count_nonzero(existing))
-                if triangle_count == 0:
+            counts = np.count_nonzero(cut.triangle_step[None, :] <= step_numbers[:, None], axis=1)
+            point_paths, triangle_paths = {-1: "/" + schema.CUT["points"].path}, {}
+            for step, time, record, count in zip(step_numbers, times, record_of, counts, strict=True):
+                if count == 0:
                     continue
-                positions = results.tissue_positions[index]
-                deformed = np.einsum("pk,pki->pi", cut.barycentric, positions[corners])
-                points = handle.create_dataset(xdmf_path_of(XDMF["cut/points/NNNNNNN"], step), data=deformed)
-                points.attrs["units"] = XDMF["cut/points/NNNNNNN"].unit
-                name = xdmf_path_of(XDMF["cut/triangles/NNNNNNN"], step)
-                if in_order:  # the triangles of the step are a prefix: a view
-                    triangles = _view(
-                        handle,
-                        name,
-                        schema.CUT["triangles"].path,
-                        slice(0, triangle_count),
-                        (triangle_count, 3),
-                        np.int64,
+                if record not in point_paths:
+                    deformed = np.einsum(
+                        "pk,pki->pi", cut.barycentric, results.tissue_positions[record][corners]
                     )
-                else:
-                    copy = handle.create_dataset(name, data=cut.triangles[existing])
-                    copy.attrs["units"] = XDMF["cut/triangles/NNNNNNN"].unit
-                    triangles = copy.name
-                grid = _grid(collection, f"cut_{int(step):07d}", results.tissue_times[index])
-                _topology(grid, "Triangle", triangle_count, file_name, triangles, (triangle_count, 3))
-                _geometry(grid, file_name, points.name, (point_count, 3))
-        # tissue at the recorded steps (last: meshio's TimeSeriesReader reads the last temporal collection)
+                    point_paths[record] = stored(
+                        "cut/points/NNNNNNN", int(results.tissue_steps[record]), deformed
+                    )
+                if count not in triangle_paths:
+                    name = xdmf_path_of(XDMF["cut/triangles/NNNNNNN"], step)
+                    if in_order:  # the triangles of the step are a prefix: a view
+                        triangle_paths[count] = _view(
+                            handle, name, schema.CUT["triangles"].path, slice(0, count), (count, 3), np.int64
+                        )
+                    else:
+                        existing = cut.triangles[cut.triangle_step <= step]
+                        triangle_paths[count] = stored("cut/triangles/NNNNNNN", step, existing)
+                grid = _grid(collection, f"cut_{int(step):07d}", time)
+                _topology(grid, "Triangle", int(count), file_name, triangle_paths[count], (int(count), 3))
+                _geometry(grid, file_name, point_paths[record], (point_count, 3))
+        # tissue last: meshio's TimeSeriesReader reads the last temporal collection
         tissue = ET.SubElement(
             domain, "Grid", Name="tissue", GridType="Collection", CollectionType="Temporal"
         )
-        records = [(0, 0.0, None)] + [
-            (int(s), float(t), i)
-            for i, (s, t) in enumerate(zip(results.tissue_steps, results.tissue_times, strict=True))
-        ]
-        for step, time, index in records:
-            if index is None:
-                path = "/" + schema.STATIC["tissue/rest_positions"].path
-            else:
-                path = _view(
-                    handle,
-                    xdmf_path_of(XDMF["tissue/positions/NNNNNNN"], step),
-                    schema.TISSUE["positions"].path,
-                    index,
-                    (nodes, 3),
-                    np.float64,
-                )
+        for step, time, record in zip(step_numbers, times, record_of, strict=True):
+            positions, displacement, force = record_paths[int(record)]
             grid = _grid(tissue, f"tissue_{step:07d}", time)
             _topology(
                 grid, "Tetrahedron", tets, file_name, "/" + schema.STATIC["tissue/tets"].path, (tets, 4)
             )
-            _geometry(grid, file_name, path, (nodes, 3))
+            _geometry(grid, file_name, positions, (nodes, 3))
+            _attribute(
+                grid, "displacement", "Node", "Vector", file_name, displacement, (nodes, 3), np.float64
+            )
+            _attribute(grid, "fixed", "Node", "Scalar", file_name, fixed_path, (nodes,), np.int8)
+            _attribute(grid, "constraint_force", "Node", "Vector", file_name, force, (nodes, 3), np.float64)
     ET.indent(root)
     output.write_text(
         '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n", encoding="utf-8"

@@ -158,11 +158,20 @@ class NeedleSpec(_Validated):
 
 @dataclass(frozen=True, kw_only=True)
 class TrajectorySpec(_Validated):
-    """Motion of the needle base: piecewise-linear waypoints, or a sampled file (a robot's precomputed
-    motion).
+    """Motion of the needle base: piecewise-linear waypoints, a sampled file (a robot's precomputed motion),
+    or an aimed straight insertion (``entry`` and its keys).
 
     The needle points from its base along ``direction``; the tip is at base + length · direction at rest.
     Directions are interpolated linearly and normalised (for a constant direction they are exact).
+
+    Aiming (``entry``, turned into two waypoints when the mesh is built, refsim.scene.trajectory.aimed): the
+    needle enters at the point of the tissue's boundary surface closest to ``entry``, along
+    ``entry_direction`` or at ``entry_angle`` to the inward surface normal there (tilted towards
+    ``tilt_towards``; along the normal by default). At t = 0 the tip is ``standoff`` before the entry; it
+    moves at ``speed`` along the needle until it is ``depth`` past the entry, then holds still. Example: into
+    the cube's top face 1 cm off centre, 20° from the normal towards +x, 10 mm deep at 5 mm/s:
+    ``entry = [0.01, 0.0, 0.1]``, ``entry_angle = 20.0``, ``tilt_towards = [1.0, 0.0, 0.0]``,
+    ``depth = 0.01``, ``speed = 0.005`` (`refsim run` prints the entry and direction it resolved).
     """
 
     times: tuple | None = spec(None, unit="s", doc="waypoint times, increasing, first 0")
@@ -173,13 +182,62 @@ class TrajectorySpec(_Validated):
     file: str | None = spec(
         None, doc="CSV file with columns t, x, y, z, dx, dy, dz [s, m, -]; relative to the scene"
     )
+    entry: tuple | None = spec(
+        None,
+        unit="m",
+        length=3,
+        doc="aim: the needle enters the tissue at the point of its boundary surface closest to this point "
+        "(a point on the surface, or a target near it)",
+    )
+    entry_direction: tuple | None = spec(
+        None,
+        unit="-",
+        length=3,
+        doc="aim: insertion direction (base to tip); it must point into the tissue at the entry; default: "
+        "entry_angle to the inward surface normal",
+    )
+    entry_angle: float = spec(
+        0.0,
+        unit="deg",
+        low=0.0,
+        high=80.0,
+        doc="aim: angle between the needle and the inward surface normal at the entry (without "
+        "entry_direction)",
+    )
+    tilt_towards: tuple | None = spec(
+        None,
+        unit="-",
+        length=3,
+        doc="aim: the needle tilts from the normal by entry_angle towards this direction (its part along "
+        "the surface); required when entry_angle > 0",
+    )
+    standoff: float = spec(
+        2e-3, unit="m", low=0.0, low_open=True, doc="aim: distance of the tip before the entry at t = 0"
+    )
+    depth: float | None = spec(
+        None, unit="m", low=0.0, low_open=True, doc="aim: final tip depth past the entry, along the needle"
+    )
+    speed: float | None = spec(
+        None, unit="m/s", low=0.0, low_open=True, doc="aim: tip speed along the needle"
+    )
 
     def validate(self) -> None:
-        if (self.file is None) == (self.times is None):
+        modes = [name for name in ("times", "file", "entry") if getattr(self, name) is not None]
+        if len(modes) != 1:
+            key = modes[-1] if modes else "times"
             raise FieldError(
-                "times" if self.file is None else "file",
-                "give either file, or times with base_positions and directions",
+                key,
+                f"{key}: give one of: times with base_positions and directions; file; entry (aim) with depth "
+                f"and speed (given: {', '.join(modes) or 'none'})",
             )
+        aim_keys = ("entry_direction", "tilt_towards", "depth", "speed")
+        if self.entry is None:
+            for name in aim_keys:
+                if getattr(self, name) is not None:
+                    raise FieldError(name, f"{name} aims the needle: it needs trajectory.entry")
+        else:
+            self._validate_aim()
+            return
         if self.file is not None:
             if self.base_positions is not None or self.directions is not None:
                 raise FieldError(
@@ -208,6 +266,31 @@ class TrajectorySpec(_Validated):
                 raise FieldError(name, f"{name} = {value!r}: expected coordinates within ±1000 m")
         directions = np.asarray(self.directions, dtype=float)
         check_directions(directions, "directions", times)
+
+    def _validate_aim(self) -> None:
+        for name in ("base_positions", "directions"):
+            if getattr(self, name) is not None:
+                raise FieldError(name, f"{name}: give either waypoints (times, ...) or entry (aim), not both")
+        for name in ("depth", "speed"):
+            if getattr(self, name) is None:
+                raise FieldError(
+                    name, f"{name} is missing: the aimed insertion (entry) needs depth and speed"
+                )
+        for name in ("entry_direction", "tilt_towards"):
+            value = getattr(self, name)
+            if value is not None and np.linalg.norm(np.asarray(value, dtype=float)) < 1e-12:
+                raise FieldError(name, f"{name} = {list(value)!r}: expected a non-zero direction")
+        if self.entry_direction is not None and (self.entry_angle != 0.0 or self.tilt_towards is not None):
+            raise FieldError(
+                "entry_direction",
+                "entry_direction: give either entry_direction, or entry_angle with tilt_towards, not both",
+            )
+        if self.entry_angle > 0.0 and self.tilt_towards is None:
+            raise FieldError(
+                "tilt_towards",
+                f"tilt_towards is missing: entry_angle = {self.entry_angle!r} deg needs the direction the "
+                "needle tilts towards",
+            )
 
 
 def check_directions(directions: np.ndarray, name: str, times: np.ndarray) -> None:
@@ -688,6 +771,8 @@ class ConsistencyError(FieldError):
 def max_tip_speed(trajectory: TrajectorySpec, needle_length: float) -> float | None:
     """Largest speed of the needle tip between waypoints [m/s]: base speed plus length × turning rate (None
     for a trajectory file, checked when it is read)."""
+    if trajectory.entry is not None:  # an aimed insertion moves the tip at its speed along the needle
+        return float(trajectory.speed)
     if trajectory.times is None or len(trajectory.times) < 2:
         return 0.0 if trajectory.times is not None else None
     times = np.asarray(trajectory.times, dtype=float)
@@ -812,6 +897,8 @@ SECTIONS = {
 def scene_reference() -> str:
     """Every scene key, with its unit, default and valid range, as Markdown (docs/scenes.md is generated by
     this)."""
+    import inspect
+
     from refsim.scene.fields import describe_field
 
     lines = [
@@ -824,11 +911,11 @@ def scene_reference() -> str:
         "",
     ]
     for section, cls in SECTIONS.items():
+        paragraphs = [" ".join(text.split()) for text in inspect.cleandoc(cls.__doc__ or "").split("\n\n")]
         lines += [
             f"## [{section}]",
             "",
-            (cls.__doc__ or "").strip().splitlines()[0],
-            "",
+            *(line for paragraph in paragraphs for line in (paragraph, "")),
             "| key | meaning | unit | default | valid |",
             "|---|---|---|---|---|",
         ]

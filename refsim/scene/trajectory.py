@@ -9,7 +9,7 @@ import numpy as np
 
 from refsim.scene.spec import TrajectorySpec
 
-__all__ = ["Trajectory", "read_numeric_csv", "read_trajectory_csv"]
+__all__ = ["Aim", "Trajectory", "aimed", "read_numeric_csv", "read_trajectory_csv"]
 
 
 @dataclass(frozen=True)
@@ -29,7 +29,10 @@ class Trajectory:
 
     @classmethod
     def from_spec(cls, spec: TrajectorySpec, base_directory: str = ".") -> Trajectory:
-        """From the scene's [trajectory] section (a file path is relative to the scene file)."""
+        """From the scene's [trajectory] section (a file path is relative to the scene file); an aimed
+        insertion (``spec.entry``) needs the mesh: :func:`aimed`."""
+        if spec.entry is not None:
+            raise ValueError("trajectory.entry: an aimed insertion is resolved on the mesh (aimed)")
         if spec.file is not None:
             path = Path(spec.file)
             if not path.is_absolute():
@@ -105,3 +108,102 @@ def read_trajectory_csv(path: Path) -> Trajectory:
     except ValueError as error:
         raise ValueError(f"{path}: {error}") from None
     return Trajectory(times, data[:, 1:4], data[:, 4:7] / norms[:, None])
+
+
+@dataclass(frozen=True)
+class Aim:
+    """An aimed straight insertion resolved on the mesh (:func:`aimed`).
+
+    Attributes
+    ----------
+    requested : The scene's trajectory.entry [m], (3,).
+    entry : The closest point of the tissue's boundary surface [m], (3,).
+    normal : Inward unit surface normal at the entry (area-weighted over the faces holding it), (3,).
+    direction : Unit insertion direction (base to tip), (3,).
+    angle : Angle between the direction and the inward normal [deg].
+    standoff, depth : Tip distance before the entry at t = 0 and past it at the end [m].
+    trajectory : The two-waypoint trajectory: tip ``standoff`` before the entry at t = 0, ``depth`` past it at
+        t = (standoff + depth) / speed, then still.
+    """
+
+    requested: np.ndarray
+    entry: np.ndarray
+    normal: np.ndarray
+    direction: np.ndarray
+    angle: float
+    standoff: float
+    depth: float
+    trajectory: Trajectory
+
+    def describe(self) -> str:
+        """One line for the load report."""
+        moved = float(np.linalg.norm(self.entry - self.requested))
+        end = float(self.trajectory.times[-1])
+        reach = end * self.standoff / (self.standoff + self.depth)
+        return (
+            f"aimed insertion: entry {np.round(self.entry, 6).tolist()} m on the tissue surface "
+            f"({moved:.3g} m from trajectory.entry), direction {np.round(self.direction, 4).tolist()} at "
+            f"{self.angle:.1f} deg to the inward normal {np.round(self.normal, 4).tolist()}; the tip reaches "
+            f"the entry at t = {reach:.3g} s and {self.depth:.3g} m past it at t = {end:.3g} s"
+        )
+
+
+def aimed(spec: TrajectorySpec, rest_positions: np.ndarray, faces: np.ndarray, needle_length: float) -> Aim:
+    """Resolve an aimed insertion (spec.entry and its keys) on a tissue mesh.
+
+    Parameters
+    ----------
+    spec : The [trajectory] section with ``entry`` set.
+    rest_positions : Tissue nodes at rest [m], (n, 3).
+    faces : Boundary triangles oriented outward (node indices), (f, 3).
+    needle_length : Needle length [m] (the base is this far behind the tip).
+
+    Raises
+    ------
+    ValueError
+        Naming the key: an entry_direction pointing out of the tissue at the entry, a tilt_towards along
+        the normal.
+    """
+    from refsim.geometry.closest import closest_points_on_triangles
+
+    triangles = rest_positions[faces]  # (f, 3, 3)
+    requested = np.asarray(spec.entry, dtype=float)
+    closest, _ = closest_points_on_triangles(np.broadcast_to(requested, (faces.shape[0], 3)), triangles)
+    distances = np.linalg.norm(closest - requested, axis=1)
+    entry = closest[int(np.argmin(distances))]
+    size = float(np.linalg.norm(rest_positions.max(axis=0) - rest_positions.min(axis=0)))
+    holding = np.linalg.norm(closest - entry, axis=1) <= 1e-9 * size  # the faces through the entry point
+    area_normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    outward = area_normals[holding].sum(axis=0)
+    normal = -outward / np.linalg.norm(outward)
+    if spec.entry_direction is not None:
+        direction = np.asarray(spec.entry_direction, dtype=float)
+        direction = direction / np.linalg.norm(direction)
+        if direction @ normal <= 0.0:
+            raise ValueError(
+                f"trajectory.entry_direction = {list(spec.entry_direction)!r} points out of the tissue at "
+                f"the entry {np.round(entry, 6).tolist()} m (inward surface normal "
+                f"{np.round(normal, 4).tolist()})"
+            )
+    else:
+        direction = normal
+        if spec.entry_angle > 0.0:
+            towards = np.asarray(spec.tilt_towards, dtype=float)
+            along = towards - (towards @ normal) * normal
+            if np.linalg.norm(along) < 1e-6 * np.linalg.norm(towards):
+                raise ValueError(
+                    f"trajectory.tilt_towards = {list(spec.tilt_towards)!r} is along the surface normal "
+                    f"{np.round(normal, 4).tolist()} at the entry: it gives no tilt direction"
+                )
+            angle = np.radians(spec.entry_angle)
+            direction = np.cos(angle) * normal + np.sin(angle) * along / np.linalg.norm(along)
+    angle = float(np.degrees(np.arccos(np.clip(direction @ normal, -1.0, 1.0))))
+    tips = np.stack([entry - spec.standoff * direction, entry + spec.depth * direction])
+    trajectory = Trajectory(
+        np.array([0.0, (spec.standoff + spec.depth) / spec.speed]),
+        tips - needle_length * direction,
+        np.stack([direction, direction]),
+    )
+    return Aim(
+        requested, entry, normal, direction, angle, float(spec.standoff), float(spec.depth), trajectory
+    )

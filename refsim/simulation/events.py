@@ -297,11 +297,11 @@ class EventRules:
             inserted = needle.length - float(needle.project(path_points[:1])[0][0])
             if inserted <= 0.0 or magnitude < cutting.fracture_energy * inserted:
                 return None
-            trigger, extent = magnitude / inserted, 0.0
+            trigger, unit, extent = magnitude / inserted, "N/m", 0.0
         else:
             if not cut_criterion(force_on_needle, state.path.point_count, cutting.cutting_force):
                 return None
-            trigger, extent = magnitude / state.path.point_count, cutting.extent
+            trigger, unit, extent = magnitude / state.path.point_count, "N", cutting.extent
         direction = -force_on_needle / magnitude
         cut, strip = start_strip(
             self.growth, state.cut, path_points, direction, positions, state.step, extent=extent
@@ -321,7 +321,7 @@ class EventRules:
             cut_strip=strip,
             path=state.path.subset(np.array(keep)),
         )
-        return state, [Event("cut_start", trigger)]
+        return state, [Event("cut_start", trigger, unit)]
 
     def _leave_cut(self, state, needle, positions):
         """The state after the needle left its cut backwards, into intact tissue: insertion points along the

@@ -6,19 +6,31 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["STAGES", "Event", "StepRecord"]
+__all__ = ["EVENT_UNITS", "STAGES", "Event", "StepRecord"]
 
 # The stages of one step, in order (DESIGN.md, "One time step"); their seconds are recorded every step.
 STAGES = ("motion", "free_motion", "detection", "compliance", "solve", "correction", "events")
 
 
+#: Units an event's value can have, each stored in its own dataset of the results file
+#: (:data:`refsim.io.schema.EVENT_VALUE_DATASETS`): a force, or a force per unit length (the energy law's cut
+#: start compares the lateral force per inserted length with G_c).
+EVENT_UNITS = ("N", "N/m")
+
+
 @dataclass(frozen=True)
 class Event:
-    """Something that happened in a step: ``name`` (puncture, cut_start, tear, retraction, ...) and the force
-    [N] that triggered it (nan when no force is involved)."""
+    """Something that happened in a step: ``name`` (puncture, cut_start, tear, retraction, ...), the value
+    that triggered it, ``force`` (nan when none), and that value's ``unit``, one of :data:`EVENT_UNITS`: "N"
+    for a force, "N/m" for a force per unit length (the energy law's cut start)."""
 
     name: str
     force: float = float("nan")
+    unit: str = "N"
+
+    def __post_init__(self) -> None:
+        if self.unit not in EVENT_UNITS:
+            raise ValueError(f"event {self.name!r}: unit {self.unit!r} is not one of {EVENT_UNITS}")
 
 
 @dataclass(frozen=True, kw_only=True)

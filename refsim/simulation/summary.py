@@ -8,7 +8,17 @@ import numpy as np
 
 from refsim.simulation.records import STAGES, StepRecord
 
-__all__ = ["PhaseStatistics", "RunSummary"]
+__all__ = ["PhaseStatistics", "RunSummary", "event_value_text"]
+
+
+def event_value_text(value: float, unit: str) -> str:
+    """An event's triggering value with its unit (records.Event.unit): "force 0.81 N", "force per length
+    207.9 N/m"; the one wording of the summary and the figures."""
+    quantity = "force per length" if unit == "N/m" else "force"
+    return f"{quantity} {value:.4g} {unit}"
+
+
+_value_text = event_value_text
 
 
 @dataclass
@@ -73,7 +83,7 @@ class RunSummary:
     def add(self, record: StepRecord) -> None:
         self.steps += 1
         for event in record.events:
-            self.events.append((record.step, record.time, event.name, event.force))
+            self.events.append((record.step, record.time, event.name, event.force, event.unit))
         stats = self.phases.setdefault(record.phase, PhaseStatistics())
         stats.steps += 1
         stats.rows += int(record.row_forces.size)
@@ -103,8 +113,8 @@ class RunSummary:
         """Events, peak force, solver health and speed, as text."""
         lines = ["events:"]
         lines += [
-            f"  step {s:5d}  t = {t:.4f} s  {name}" + (f"  force {f:.4g} N" if np.isfinite(f) else "")
-            for s, t, name, f in self.events
+            f"  step {s:5d}  t = {t:.4f} s  {name}" + (f"  {_value_text(f, unit)}" if np.isfinite(f) else "")
+            for s, t, name, f, unit in self.events
         ] or ["  none"]
         lines.append(f"peak force on the needle: {self.peak_force:.4g} N at step {self.peak_force_step}")
         lines.append(

@@ -13,10 +13,12 @@ from refsim.viz.render import (
     _draw_step,
     _Style,
     _validate_window,
+    compose_picture,
     cut_surface_positions,
     focus_points,
     frame_camera,
     prepare_offscreen,
+    view_width_of,
 )
 
 __all__ = ["animate_result", "animation_steps"]
@@ -120,7 +122,7 @@ def animate_result(
         view_up=view_up,
         zoom=zoom,
         focus=focus,
-        aspect=width / height,
+        aspect=view_width_of(width) / height,
         locator=locator,
         include=together if focus == "auto" else None,
     )
@@ -134,17 +136,18 @@ def animate_result(
         writer = imageio.get_writer(output, mode="I", duration=1000.0 / fps, loop=0)
     else:
         writer = imageio.get_writer(output, format="FFMPEG", mode="I", fps=fps, macro_block_size=16)
-    plotter = pv.Plotter(off_screen=True, window_size=[width, height])
+    plotter = pv.Plotter(off_screen=True, window_size=[view_width_of(width), height])
     try:
         plotter.set_background("white")
         for step, tissue, cut_points, cut_triangles in states:
             plotter.clear_actors()
-            _draw_step(
+            legend, title = _draw_step(
                 plotter, results, step, tissue, cut_points, cut_triangles, view_size, _Style(tissue_opacity)
             )
             _apply_camera(plotter, view)
             plotter.render()  # the actors were added without rendering; the screenshot reuses the last render
-            writer.append_data(plotter.screenshot(return_img=True))
+            image = plotter.screenshot(return_img=True)
+            writer.append_data(compose_picture(image, legend, title, view, (width, height)))
             plotter.clear()
     finally:
         plotter.close()

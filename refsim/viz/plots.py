@@ -15,7 +15,9 @@ import numpy as np
 
 __all__ = [
     "plot_result",
+    "event_rows",
     "force_figure",
+    "force_panels",
     "base_force_components",
     "lateral_stroke",
     "EVENT_STYLES",
@@ -54,50 +56,58 @@ def lateral_stroke(results) -> np.ndarray:
 LATERAL_STROKE_MIN = 1e-4
 
 
-def _mark_events(axis, results, positions: np.ndarray, *, label: bool, annotate: bool = True) -> None:
-    """Vertical lines at the events; ``positions`` maps each step index to the abscissa. Each event with a
-    force gets its own label beside its line ("tear 2.27 N"), so every tear shows its own force."""
-    seen: set[str] = set()
-    transform = axis.get_xaxis_transform()
-    for number, event in enumerate(results.events):
+def _mark_events(axis, results, positions: np.ndarray) -> None:
+    """Vertical lines at the events, one colour and style per kind (``EVENT_STYLES``); ``positions`` maps
+    each step index to the abscissa. No text on the data: the kinds are named once, in the figure's legend,
+    and their values listed in the event table beside the panels (:func:`event_rows`)."""
+    for event in results.events:
         where = np.flatnonzero(results.step == event.step)
         if where.size == 0 or not np.isfinite(positions[where[0]]):
             continue
         color, style = EVENT_STYLES.get(event.name, ("0.5", ":"))
-        axis.axvline(
-            positions[where[0]],
-            color=color,
-            linestyle=style,
-            linewidth=1.0,
-            label=event.name if label and event.name not in seen else None,
+        axis.axvline(positions[where[0]], color=color, linestyle=style, linewidth=1.0)
+
+
+def _value_range(values: np.ndarray, unit: str) -> str:
+    """A value, or the range of several, with 4 significant digits of the largest and the same decimals."""
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return "-"
+    largest = float(np.abs(finite).max())
+    decimals = max(0, 3 - int(np.floor(np.log10(largest)))) if largest > 0 else 0
+    if np.ptp(finite) == 0.0:
+        return f"{finite[0]:.{decimals}f} {unit}"
+    return f"{finite.min():.{decimals}f} - {finite.max():.{decimals}f} {unit}"
+
+
+def event_rows(results) -> list[tuple[str, str, str, str]]:
+    """One row per event kind, in order of first occurrence: (kind, count, steps, triggering value with its
+    unit, the recorded event's ``unit``: N, or N/m for the energy law's cut_start)."""
+    kinds: dict[str, list] = {}
+    for event in results.events:
+        kinds.setdefault(event.name, []).append(event)
+    rows = []
+    for name, events in kinds.items():
+        steps = [e.step for e in events]
+        where = f"{steps[0]}" if len(steps) == 1 else f"{steps[0]} - {steps[-1]}"
+        units = {getattr(e, "unit", "N") for e in events}
+        values = ", ".join(
+            _value_range(np.array([e.force for e in events if getattr(e, "unit", "N") == u]), u)
+            for u in sorted(units)
         )
-        seen.add(event.name)
-        if annotate:
-            text = event.name if np.isnan(event.force) else f"{event.name} {event.force:.2f} N"
-            # Staggered heights so that labels of close events do not overlap.
-            axis.text(
-                positions[where[0]],
-                0.97 - 0.09 * (number % 4),
-                text,
-                transform=transform,
-                rotation=90,
-                ha="right",
-                va="top",
-                fontsize=7,
-                color=color,
-                bbox={"facecolor": "white", "alpha": 0.75, "edgecolor": "none", "pad": 0.6},
-            )
+        rows.append((name, str(len(events)), where, values))
+    return rows
 
 
 def plot_result(path, output_png, *, dpi: int = 120) -> Path:
-    """Plot the force on the needle base against tip depth, time and, when the base moves sideways, the
-    lateral stroke, with the events marked.
+    """Plot the force on the needle base, with the events marked, in panels chosen by what the run did.
 
-    Left: axial and lateral force against the tip depth along the needle from the puncture point [mm]
-    (omitted, with a note, when the needle never punctured). Middle: the same against time [s], with the
-    phases shaded. Right, when the lateral stroke (:func:`lateral_stroke`) reaches ``LATERAL_STROKE_MIN``: the
-    same against the lateral stroke [mm], from the start of the lateral motion. Events (puncture, cut_start,
-    tear, ...) are vertical lines, each labelled with its own triggering force.
+    Panels (:func:`force_figure`): when the base moves sideways (the lateral stroke, :func:`lateral_stroke`,
+    reaches ``LATERAL_STROKE_MIN``), against time and against the lateral stroke [mm] from the start of the
+    lateral motion; otherwise against the tip depth from the puncture point [mm] (when the needle punctured)
+    and against time, the phases shaded. Events (puncture, cut_start, tear, ...) are vertical lines, one
+    colour per kind named once in the legend below the panels; the table at the right lists each kind's
+    count, steps and triggering values with their unit.
 
     Parameters
     ----------
@@ -120,8 +130,19 @@ def plot_result(path, output_png, *, dpi: int = 120) -> Path:
     return output_png
 
 
+def force_panels(results) -> tuple[str, ...]:
+    """The panels of the force figure for what the run did: ("time", "stroke") for a lateral motion,
+    ("depth", "time") after a puncture, ("time",) otherwise."""
+    if lateral_stroke(results).max() >= LATERAL_STROKE_MIN:
+        return ("time", "stroke")
+    if np.any(np.isfinite(results.tip_depth())):
+        return ("depth", "time")
+    return ("time",)
+
+
 def force_figure(results):
-    """The figure of :func:`plot_result` for a :class:`refsim.io.Results` (a matplotlib Figure, Agg canvas).
+    """The figure of :func:`plot_result` for a :class:`refsim.io.Results` (a matplotlib Figure, Agg canvas):
+    the panels of :func:`force_panels`, an event table at the right, one legend below the panels.
 
     Raises
     ------
@@ -130,81 +151,90 @@ def force_figure(results):
     """
     # A bare Figure renders with the Agg canvas and never touches pyplot's global state or a display.
     from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
     if results.step_count == 0:
         raise ValueError(f"{results.path}: the file holds no step to plot")
     axial, lateral = base_force_components(results)
-    depth_mm = 1e3 * results.tip_depth()
+    panels = force_panels(results)
+    figure = Figure(figsize=(5.2 * len(panels) + 3.6, 4.8), layout="constrained")
+    grid = figure.add_gridspec(1, len(panels) + 1, width_ratios=[1.0] * len(panels) + [0.62])
+    for column, panel in enumerate(panels):
+        axis = figure.add_subplot(grid[0, column])
+        if panel == "depth":
+            abscissa = 1e3 * results.tip_depth()
+            axis.set_xlabel("tip depth from the puncture point [mm]")
+            axis.set_title("against depth")
+        elif panel == "time":
+            abscissa = results.time
+            _shade_phases(axis, results)
+            axis.set_xlabel("time [s]")
+            axis.set_title("against time")
+        else:  # the steps from the start of the lateral motion (1 % of its largest value)
+            stroke = lateral_stroke(results)
+            start = int(np.argmax(stroke >= 0.01 * stroke.max()))
+            abscissa = np.where(np.arange(stroke.size) >= start, 1e3 * stroke, np.nan)
+            axis.set_xlabel("lateral stroke of the needle base [mm]")
+            axis.set_title("against the lateral stroke")
+        axis.plot(abscissa, axial, color="#1f77b4")
+        axis.plot(abscissa, lateral, color="#ff7f0e")
+        _mark_events(axis, results, abscissa)
+        axis.set_ylabel("force on the needle base [N]")
+        axis.grid(True, alpha=0.3)
 
-    stroke = lateral_stroke(results)
-    lateral_motion = bool(stroke.max() >= LATERAL_STROKE_MIN)
-    panels = 3 if lateral_motion else 2
-    figure = Figure(figsize=(6.0 * panels, 4.6), layout="constrained")
-    axes = figure.subplots(1, panels)
-    by_depth, by_time = axes[0], axes[1]
+    handles = [
+        Line2D([], [], color="#1f77b4", label="axial force"),
+        Line2D([], [], color="#ff7f0e", label="lateral force"),
+    ]
+    if "time" in panels:
+        present = {results.phase_names[code] for code in np.unique(results.phase)}
+        handles += [
+            Patch(color=color, alpha=0.15, label=f"{name} phase")
+            for name, color in _PHASE_COLORS.items()
+            if name in present
+        ]
+    rows = event_rows(results)
+    for name, count, _, _ in rows:
+        color, style = EVENT_STYLES.get(name, ("0.5", ":"))
+        handles.append(Line2D([], [], color=color, linestyle=style, label=f"{name} ({count})"))
+    figure.legend(handles=handles, loc="outside lower center", ncols=min(len(handles), 7), fontsize=8)
 
-    if np.all(np.isnan(depth_mm)):
-        by_depth.text(
-            0.5, 0.5, "no puncture: depth undefined", ha="center", va="center", transform=by_depth.transAxes
+    table = figure.add_subplot(grid[0, -1])
+    table.set_axis_off()
+    table.set_title("events", fontsize=10)
+    if rows:
+        cells = table.table(
+            cellText=[list(row) for row in rows],
+            colLabels=["kind", "count", "step", "triggering value"],
+            loc="upper center",
+            cellLoc="left",
+            colLoc="left",
         )
+        cells.auto_set_font_size(False)
+        cells.set_fontsize(7.5)
+        cells.auto_set_column_width(list(range(4)))
+        cells.scale(1.0, 1.3)
     else:
-        by_depth.plot(depth_mm, axial, color="#1f77b4", label="axial")
-        by_depth.plot(depth_mm, lateral, color="#ff7f0e", label="lateral")
-        _mark_events(by_depth, results, depth_mm, label=False, annotate=not lateral_motion)
-    by_depth.set_xlabel("tip depth from the puncture point [mm]")
-    by_depth.set_ylabel("force on the needle base [N]")
-    by_depth.set_title("against depth")
-    by_depth.grid(True, alpha=0.3)
-    by_depth.legend(loc="upper left", fontsize=8)
-
-    by_time.plot(results.time, axial, color="#1f77b4", label="axial")
-    by_time.plot(results.time, lateral, color="#ff7f0e", label="lateral")
-    _shade_phases(by_time, results)
-    _mark_events(by_time, results, results.time, label=True)
-    by_time.set_xlabel("time [s]")
-    by_time.set_ylabel("force on the needle base [N]")
-    by_time.set_title("against time")
-    by_time.grid(True, alpha=0.3)
-    by_time.legend(loc="upper left", fontsize=8)
-
-    if lateral_motion:
-        # Against the lateral stroke: the steps from the start of the lateral motion (1 % of its largest
-        # value).
-        by_stroke = axes[2]
-        moving = stroke >= 0.01 * stroke.max()
-        start = int(np.argmax(moving))
-        stroke_mm = np.where(np.arange(stroke.size) >= start, 1e3 * stroke, np.nan)
-        by_stroke.plot(stroke_mm, axial, color="#1f77b4", label="axial")
-        by_stroke.plot(stroke_mm, lateral, color="#ff7f0e", label="lateral")
-        _mark_events(by_stroke, results, stroke_mm, label=False)
-        by_stroke.set_xlabel("lateral stroke of the needle base [mm]")
-        by_stroke.set_ylabel("force on the needle base [N]")
-        by_stroke.set_title("against the lateral stroke")
-        by_stroke.grid(True, alpha=0.3)
-        by_stroke.legend(loc="upper left", fontsize=8)
-
+        table.text(0.5, 0.9, "none", ha="center", va="top", transform=table.transAxes)
     status = "" if results.complete else "  (interrupted run)"
     figure.suptitle(f"{results.scene_name}: force on the needle base{status}")
     return figure
 
 
+_PHASE_COLORS = {"insertion": "#2ca02c", "cutting": "#d62728"}
+
+
 def _shade_phases(axis, results) -> None:
-    """Light background bands for the insertion and cutting phases."""
-    colors = {"insertion": "#2ca02c", "cutting": "#d62728"}
+    """Light background bands for the insertion and cutting phases (named in the figure's legend)."""
     phase = results.phase
     changes = np.flatnonzero(np.diff(phase)) + 1
     starts = np.concatenate([[0], changes])
     ends = np.concatenate([changes, [phase.size]])
     dt = float(np.median(np.diff(results.time))) if results.time.size > 1 else 0.0
-    labelled: set[str] = set()
     for start, end in zip(starts, ends, strict=False):
         name = results.phase_names[phase[start]]
-        if name in colors:
+        if name in _PHASE_COLORS:
             axis.axvspan(
-                results.time[start] - dt,
-                results.time[end - 1],
-                color=colors[name],
-                alpha=0.07,
-                label=None if name in labelled else f"{name} phase",
+                results.time[start] - dt, results.time[end - 1], color=_PHASE_COLORS[name], alpha=0.07
             )
-            labelled.add(name)

@@ -17,6 +17,7 @@ import numpy as np
 
 __all__ = [
     "CameraView",
+    "compose_picture",
     "cut_surface_positions",
     "frame_camera",
     "parse_vector",
@@ -44,9 +45,14 @@ NAMED_VIEWS = {
     "zy": (-1.0, 0.0, 0.0),
 }
 #: Named focus choices accepted by ``focus=``.
-FOCUS_CHOICES = ("auto", "needle", "cut", "tissue")
+FOCUS_CHOICES = ("auto", "insertion", "needle", "cut", "tissue")
+#: Width of the picture's margin (title, legend, scale bar, axes), as a fraction of the picture's width.
+MARGIN_FRACTION = 0.27
 # Vertical view angle of the camera [degrees] (VTK's default).
 _VIEW_ANGLE = 30.0
+# Angle of the automatic view above the plane perpendicular to the needle, from its base's side [degrees]:
+# enough to see the surface the needle enters.
+_ELEVATION = 30.0
 
 
 def prepare_offscreen() -> None:
@@ -160,9 +166,11 @@ def focus_points(
 ) -> np.ndarray:
     """Points the picture must hold, shape (q, 3) [m].
 
-    "auto": the needle's inserted part, its tip, the insertion points and the cut; before the needle reaches
-    the tissue, its tip and the closest point of the tissue's bounding box. "needle": the whole needle. "cut":
-    the cut (auto when there is none). "tissue": the tissue.
+    "auto": the tissue with the needle's inserted part, its tip, the insertion points and the cut, and the
+    needle's nodes within a quarter of the tissue's extent of its bounding box (the needle seen entering).
+    "insertion": the needle's inserted part, its tip, the insertion points and the cut; before the needle
+    reaches the tissue, its tip and the closest point of the tissue's bounding box. "needle": the whole
+    needle. "cut": the cut (insertion when there is none). "tissue": the tissue.
     """
     index = results.index_of(step)
     needle = results.needle_positions[index]
@@ -179,8 +187,12 @@ def focus_points(
     inserted = _inserted_needle_nodes(results, index, locator)
     rows = results.constraints_at(step)
     points = [needle[-1:], inserted, cut_points, rows.points]
-    if inserted.shape[0] == 0:
-        lower, upper = tissue_positions.min(axis=0), tissue_positions.max(axis=0)
+    lower, upper = tissue_positions.min(axis=0), tissue_positions.max(axis=0)
+    if focus == "auto":
+        reach = 0.25 * float(np.max(upper - lower))
+        outside = np.linalg.norm(np.maximum(np.maximum(lower - needle, needle - upper), 0.0), axis=1)
+        points += [tissue_positions, needle[outside <= reach]]
+    elif inserted.shape[0] == 0:
         points.append(np.clip(needle[-1], lower, upper)[None, :])
     return np.concatenate([p.reshape(-1, 3) for p in points])
 
@@ -253,11 +265,8 @@ def frame_camera(
             [points, centre[None, :]]
             + ([] if include is None else [np.asarray(include, dtype=float).reshape(-1, 3)])
         )
-    radius = float(np.max(np.linalg.norm(points - centre, axis=1)))
     needle_radius = float(results.scene.get("needle", {}).get("radius", 0.0) or 0.0)
     extent = float(np.ptp(tissue_positions, axis=0).max())
-    # Padding: the needle's thickness, and never a view smaller than 5 % of the tissue.
-    radius = max(1.3 * radius + 3.0 * needle_radius, 0.05 * extent)
 
     direction = _view_direction(camera, axis, cut_points, cut_triangles)
     up = -axis if view_up is None else _unit(parse_vector(view_up, "view_up"))
@@ -265,10 +274,7 @@ def frame_camera(
         if view_up is not None:
             raise ValueError(f"view_up = {view_up!r} is parallel to the view direction")
         up = _unit(np.cross(direction, np.cross(np.array([0.0, 0.0, 1.0]) + 0.1, direction)))
-    # Hold a sphere of that radius in the narrower of the two view angles.
-    half_angle = np.radians(_VIEW_ANGLE) / 2.0
-    narrow = min(half_angle, np.arctan(np.tan(half_angle) * aspect))
-    distance = radius / np.sin(narrow) / zoom
+    distance = _fitting_distance(points, centre, direction, up, aspect, needle_radius, extent) / zoom
     if camera is None or (isinstance(camera, str) and camera == "auto"):
         # Of the two sides of the cut (or of the needle), prefer one where the camera is outside the tissue.
         mirrored = _unit(direction - 2.0 * (direction - (direction @ axis) * axis))
@@ -278,6 +284,34 @@ def frame_camera(
         if inside[0] and not inside[1]:
             direction = mirrored
     return CameraView(centre + distance * direction, centre, up)
+
+
+def _fitting_distance(
+    points: np.ndarray,
+    centre: np.ndarray,
+    direction: np.ndarray,
+    up: np.ndarray,
+    aspect: float,
+    needle_radius: float,
+    extent: float,
+) -> float:
+    """Camera distance from ``centre`` along ``direction`` [m] at which every point projects inside 90 % of
+    the picture (pinhole model of :class:`CameraView`), each point padded by three needle radii; never
+    closer than a view 5 % of the tissue's extent ``extent`` [m] across.
+
+    A point at depth z towards the camera and lateral offsets (x, y) along the screen's right and up stays in
+    view when D − z ≥ |y| / tan(θ/2) and D − z ≥ |x| / (aspect tan(θ/2)), θ the vertical view angle."""
+    right = _unit(np.cross(-direction, up))
+    screen_up = np.cross(right, -direction)
+    relative = points - centre
+    depth = relative @ direction
+    pad = 3.0 * needle_radius
+    half = 0.9 * np.tan(np.radians(_VIEW_ANGLE) / 2.0)
+    needed = depth + np.maximum(
+        (np.abs(relative @ screen_up) + pad) / half, (np.abs(relative @ right) + pad) / (half * aspect)
+    )
+    narrow = min(half, half * aspect)
+    return float(max(needed.max(), 0.05 * extent / narrow + depth.max()))
 
 
 def _view_direction(
@@ -312,7 +346,7 @@ def _view_direction(
         side = _unit(np.cos(np.radians(30.0)) * side + np.sin(np.radians(30.0)) * np.cross(axis, side))
     if side @ np.array([0.3, -1.0, 0.2]) < 0:  # of the two faces, prefer the one seen from -y (front views)
         side = -side
-    return _unit(side - np.tan(np.radians(20.0)) * axis)
+    return _unit(side - np.tan(np.radians(_ELEVATION)) * axis)
 
 
 def _fixed_motion(results, tissue_positions: np.ndarray) -> np.ndarray:
@@ -328,14 +362,13 @@ class _Style:
     tissue_opacity: float
     show_fixed: bool = True
     show_motion: bool = True
-    show_legend: bool = True
 
 
 def _draw_step(
     plotter, results, step: int, tissue_positions, cut_points, cut_triangles, view_size: float, style: _Style
 ) -> None:
-    """Add the actors of one step to a plotter (see :func:`render_result`), without rendering (each render
-    through Mesa takes ~0.2 s; the screenshot renders once)."""
+    """Add the actors of one step to a plotter (see :func:`render_result`), without rendering (the screenshot
+    renders once). Returns the legend ([label, colour] rows) and the title of the picture's margin."""
     import pyvista as pv
 
     index = results.index_of(step)
@@ -351,7 +384,7 @@ def _draw_step(
         smooth_shading=False,
         render=False,
     )
-    legend.append(["tissue", "#8c5a48"])
+    legend.append(["tissue (deformed surface)", TISSUE_COLOR])
 
     radius = float(results.scene.get("needle", {}).get("radius", 0.0) or 0.0)
     needle_nodes = results.needle_positions[index]
@@ -382,16 +415,20 @@ def _draw_step(
         motion = _fixed_motion(results, tissue_positions)
         largest = float(np.linalg.norm(motion, axis=1).max())
         if style.show_motion and largest > 1e-9:
-            scale = 0.12 * float(np.ptp(tissue_positions, axis=0).max()) / largest
-            shown = np.linspace(0, fixed.size - 1, min(fixed.size, 150)).astype(np.int64)
+            # Small and few, so that they show the motion without hiding the tissue or the cut.
+            scale = 0.06 * float(np.ptp(tissue_positions, axis=0).max()) / largest
+            shown = np.linspace(0, fixed.size - 1, min(fixed.size, 16)).astype(np.int64)
             arrows = pv.PolyData(tissue_positions[fixed[shown]])
             arrows["motion"] = motion[shown] * scale
             plotter.add_mesh(
                 arrows.glyph(orient="motion", scale="motion", factor=1.0, geom=pv.Arrow()),
                 color=MOTION_COLOR,
+                opacity=0.6,
                 render=False,
             )
-            legend.append([f"boundary motion (max {1e3 * largest:.2f} mm, x{scale:.3g})", MOTION_COLOR])
+            legend.append(
+                [f"boundary motion\n(max {1e3 * largest:.2f} mm, drawn x{scale:.3g})", MOTION_COLOR]
+            )
 
     if cut_triangles.size:
         cut = pv.PolyData(cut_points, triangle_cells(cut_triangles))
@@ -399,7 +436,7 @@ def _draw_step(
             cut, color=CUT_COLOR, opacity=1.0, show_edges=True, edge_color="#7f1010", render=False
         )
         legend.append(
-            [f"cut surface ({cut_points.shape[0]} points, {cut_triangles.shape[0]} triangles)", CUT_COLOR]
+            [f"cut surface\n({cut_points.shape[0]} points, {cut_triangles.shape[0]} triangles)", CUT_COLOR]
         )
     elif cut_points.size:
         plotter.add_mesh(
@@ -413,27 +450,111 @@ def _draw_step(
 
     phase = results.phase_names[results.phase[index]]
     tissue_step = results.nearest_tissue_step(step) if results.tissue_steps.size else 0
-    tissue_note = "" if tissue_step == step else f" (tissue of step {tissue_step})"
-    plotter.add_text(
-        f"{results.scene_name}  step {step}  t = {results.time[index]:.3f} s  {phase}{tissue_note}",
-        position="upper_left",
-        font_size=10,
-        color="black",
-        render=False,
+    tissue_note = "" if tissue_step == step else f"\n(tissue of step {tissue_step})"
+    title = f"{results.scene_name}\nstep {step}, t = {results.time[index]:.3f} s\n{phase} phase{tissue_note}"
+    return legend, title
+
+
+def _distance_to_segment(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Distance from a 2-D point to the segment ab (same units)."""
+    ab = b - a
+    t = float(np.clip((point - a) @ ab / max(ab @ ab, 1e-30), 0.0, 1.0))
+    return float(np.linalg.norm(point - (a + t * ab)))
+
+
+def _scale_length(span: float) -> float:
+    """A round length (1, 2 or 5 times a power of ten) [m] near a quarter of ``span`` [m]."""
+    target = 0.25 * span
+    power = 10.0 ** np.floor(np.log10(target))
+    return float(max(m * power for m in (1.0, 2.0, 5.0) if m * power <= target))
+
+
+def _length_text(length: float) -> str:
+    return f"{1e3 * length:g} mm" if length < 1.0 else f"{length:g} m"
+
+
+def compose_picture(image: np.ndarray, legend: list, title: str, view: CameraView, size: tuple[int, int]):
+    """The picture: the 3-D view ``image`` (h, w3, 3) at the left, and in the margin at the right the
+    ``title``, the ``legend`` ([label, colour] rows), a scale bar and the axes' directions, all outside the
+    view. Returns the RGB array (h, w, 3) of ``size`` = (w, h) pixels.
+
+    The scale bar is the length of a segment at the focal point's depth, perpendicular to the view (the
+    camera has perspective: nearer things look larger); the axes are the world x, y, z as the camera sees
+    them."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Rectangle
+
+    width, height = size
+    dpi = 100.0
+    figure = Figure(figsize=(width / dpi, height / dpi), dpi=dpi)
+    canvas = FigureCanvasAgg(figure)
+    left = image.shape[1] / width
+    view_axis = figure.add_axes((0.0, 0.0, left, 1.0))
+    view_axis.imshow(image, interpolation="nearest")
+    view_axis.set_axis_off()
+    margin = figure.add_axes((left, 0.0, 1.0 - left, 1.0))
+    margin.set_xlim(0.0, 1.0)
+    margin.set_ylim(0.0, 1.0)
+    margin.set_axis_off()
+    font = float(np.clip(height / 75.0, 6.0, 12.0))
+    line = 1.9 * font / (height * 72.0 / dpi)  # a text line, in margin coordinates
+    margin.text(0.06, 0.97, title, va="top", ha="left", fontsize=font * 1.1, color="black")
+    y = 0.97 - (title.count("\n") + 2) * line * 1.1
+    for label, color in legend:
+        margin.add_patch(Rectangle((0.06, y - 0.55 * line), 0.06, 0.7 * line, color=color, clip_on=False))
+        margin.text(0.16, y, label, va="center", ha="left", fontsize=font * 0.85, color="black", wrap=True)
+        y -= 1.25 * line * (1 + label.count("\n"))
+    # Scale bar: metres per pixel at the focal point's depth.
+    distance = float(np.linalg.norm(view.position - view.focal_point))
+    span = 2.0 * distance * np.tan(np.radians(view.view_angle) / 2.0)  # view height [m] at that depth
+    length = _scale_length(span * image.shape[1] / image.shape[0])
+    fraction = length / span * image.shape[0] / (width - image.shape[1])  # of the margin's width
+    bar_y = 0.27
+    margin.plot([0.06, 0.06 + fraction], [bar_y, bar_y], color="black", linewidth=3, solid_capstyle="butt")
+    margin.text(
+        0.06, bar_y + 0.6 * line, f"{_length_text(length)} (at the focal point)", fontsize=font * 0.85
     )
-    if style.show_legend:
-        # A legend of coloured text lines at the upper right, usually over the background above the tissue
-        # (pyvista's legend box clips long labels).
-        width, height = plotter.window_size
-        line = max(14, int(0.03 * height))
-        for row, (label, color) in enumerate(legend):
-            plotter.add_text(
-                label,
-                position=(int(0.6 * width), height - int(0.02 * height) - (row + 1) * line),
-                font_size=max(7, int(0.42 * line * 72 / 96)),
+    # Axes: the world axes projected on the screen, arrows of equal length in pixels for equal projections.
+    forward = _unit(view.focal_point - view.position)
+    right = _unit(np.cross(forward, view.view_up))
+    up = np.cross(right, forward)
+    margin.text(0.06, 0.19, "axes", fontsize=font * 0.85)
+    centre = np.array([0.3, 0.09])
+    scale = 0.2
+    ratio = (width - image.shape[1]) / height  # margin width over height
+    colors = ("#c0392b", "#27ae60", "#2c3e50")
+    tips = [np.array([v @ right, (v @ up) * ratio]) * scale for v in np.eye(3)]
+    pixels = np.array([width - image.shape[1], height], dtype=float)  # margin units to pixels
+    for index, (axis_vector, name, color, tip) in enumerate(zip(np.eye(3), "xyz", colors, tips, strict=True)):
+        if np.hypot(*(tip * pixels)) < 0.3 * scale * pixels[0]:  # along the view: no arrow, words instead
+            margin.text(
+                0.55,
+                0.13 - 0.04 * index,
+                f"{name} {'out of' if axis_vector @ forward < 0 else 'into'} the picture",
                 color=color,
-                render=False,
+                fontsize=font * 0.8,
+                va="center",
             )
+            continue
+        margin.annotate(
+            "",
+            xy=centre + tip,
+            xytext=centre,
+            arrowprops={"arrowstyle": "-|>", "color": color, "linewidth": 1.5},
+        )
+        label = centre + 1.3 * tip
+        if any(_distance_to_segment(label * pixels, (centre + other) * pixels, centre * pixels) < 0.6 * font
+               for j, other in enumerate(tips) if j != index):  # fmt: skip
+            label = centre + tip + (0.06, 0.0)  # on another arrow: the name beside its own tip
+        margin.text(*label, name, color=color, fontsize=font, ha="center", va="center")
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba())[:, :, :3].copy()
+
+
+def view_width_of(width: int) -> int:
+    """Width [pixels] of the 3-D view in a picture ``width`` pixels wide (the rest is the margin), even."""
+    return 2 * int(round(0.5 * (1.0 - MARGIN_FRACTION) * width))
 
 
 def _apply_camera(plotter, view: CameraView) -> None:
@@ -463,12 +584,14 @@ def render_result(
     zoom: float = 1.0,
     focus="auto",
 ) -> Path:
-    """Render one step of a results file to a PNG, off-screen, framed on the needle and the cut.
+    """Render one step of a results file to a PNG, off-screen, framed on the tissue, the needle and the cut.
 
     Shows the deformed tissue surface (semi-transparent; the recorded tissue state nearest to ``step``), the
     needle as a tube at its real radius (``needle.radius`` of the scene), the insertion points (tissue-side
     points of the insertion rows) as blue spheres, the fixed nodes as green cubes with, when they move, arrows
-    of their prescribed displacement (scaled, the scale in the legend), and the cut surface in red.
+    of their prescribed displacement (scaled, the scale in the legend), and the cut surface in red. The
+    title, the legend, a scale bar and the axes are in a margin at the right (:func:`compose_picture`),
+    never over the view.
 
     Parameters
     ----------
@@ -477,8 +600,9 @@ def render_result(
     step : Step to show (a step number as in ``Results.step``); the last step by default.
     window_size : Picture size in pixels (width, height), each >= 64.
     tissue_opacity : Opacity of the tissue surface, in (0, 1].
-    camera, view_up, zoom, focus : The framing (see :func:`frame_camera`): by default aimed at the needle's
-        inserted part and the cut, looking at the cut face-on, the needle's base up.
+    camera, view_up, zoom, focus : The framing (see :func:`frame_camera`): by default the tissue with the
+        needle's inserted part and the cut, looking at the cut face-on from 30° on the needle's base side, the
+        base up.
 
     Returns
     -------
@@ -503,6 +627,7 @@ def render_result(
     results.index_of(step)
     tissue_positions = results.tissue_positions_at(step)
     cut_points, cut_triangles = cut_surface_positions(results, step, tissue_positions)
+    view_width = view_width_of(width)
     view = frame_camera(
         results,
         step,
@@ -513,17 +638,17 @@ def render_result(
         view_up=view_up,
         zoom=zoom,
         focus=focus,
-        aspect=width / height,
+        aspect=view_width / height,
     )
 
     prepare_offscreen()
     import pyvista as pv
 
     view_size = float(np.linalg.norm(view.position - view.focal_point)) * np.tan(np.radians(_VIEW_ANGLE) / 2)
-    plotter = pv.Plotter(off_screen=True, window_size=[width, height])
+    plotter = pv.Plotter(off_screen=True, window_size=[view_width, height])
     try:
         plotter.set_background("white")
-        _draw_step(
+        legend, title = _draw_step(
             plotter,
             results,
             step,
@@ -535,10 +660,13 @@ def render_result(
         )
         _apply_camera(plotter, view)
         plotter.render()
-        output_png = Path(output_png)
-        output_png.parent.mkdir(parents=True, exist_ok=True)
-        plotter.screenshot(str(output_png))
+        image = plotter.screenshot(return_img=True)
     finally:
         plotter.close()
+    import imageio.v3 as iio
+
+    output_png = Path(output_png)
+    output_png.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(output_png, compose_picture(image, legend, title, view, (width, height)))
     logger.info("rendered step %d of %s to %s", step, results.path, output_png)
     return output_png

@@ -176,3 +176,71 @@ def test_export_command(recorded, tmp_path, capsys):
     )
     assert main(["export", str(bare), "--problems", str(tmp_path / "none.h5")]) == 2
     assert "output.record_problems=true" in capsys.readouterr().err
+
+
+def _vtk_grid(path):
+    xml = pytest.importorskip("vtkmodules.vtkIOXML")
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    reader = xml.vtkXMLUnstructuredGridReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    grid = reader.GetOutput()
+    arrays = {
+        grid.GetPointData().GetArrayName(k): vtk_to_numpy(grid.GetPointData().GetArray(k))
+        for k in range(grid.GetPointData().GetNumberOfArrays())
+    }
+    return vtk_to_numpy(grid.GetPoints().GetData()), grid, arrays
+
+
+def test_vtu_of_a_step_holds_the_deformed_tissue_and_the_cut(cut_run, tmp_path, capsys):
+    """`refsim export --vtu STEP`, read back with VTK's XML reader: the points are the recorded tissue
+    positions of the step, the displacement is theirs minus rest, the cut triangles are those existing at the
+    step with their points mapped by equation 4; meshio.read opens the files too."""
+    import meshio
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    results = read_results(cut_run)
+    step = int(results.tissue_steps[-1])
+    assert main(["export", str(cut_run), "--vtu", str(step), "--vtu-folder", str(tmp_path)]) == 0
+    tissue_file = tmp_path / f"cut_tissue_{step:07d}.vtu"
+    points, grid, arrays = _vtk_grid(tissue_file)
+    positions = results.tissue_positions[-1]
+    np.testing.assert_array_equal(points, positions)
+    np.testing.assert_array_equal(arrays["displacement"], positions - results.rest_positions)
+    np.testing.assert_array_equal(np.flatnonzero(arrays["fixed"]), np.sort(results.fixed_nodes))
+    index = int(np.flatnonzero(results.step == step)[0])
+    scale = np.abs(results.constraints_at(step).forces).sum()
+    np.testing.assert_allclose(
+        arrays["constraint_force"].sum(axis=0), -results.needle_force[index], rtol=0, atol=1e-12 * scale
+    )
+    cells = vtk_to_numpy(grid.GetCells().GetConnectivityArray()).reshape(-1, 4)
+    np.testing.assert_array_equal(cells, results.tets)
+    cut = results.cut
+    cut_points, cut_grid, _ = _vtk_grid(tmp_path / f"cut_cut_{step:07d}.vtu")
+    expected = np.einsum("pk,pki->pi", cut.barycentric, positions[results.tets[cut.tet_indices]])
+    np.testing.assert_array_equal(cut_points, expected)
+    assert cut_grid.GetNumberOfCells() == np.count_nonzero(cut.triangle_step <= step) > 0
+    assert meshio.read(tissue_file).points.shape == positions.shape
+
+
+def test_vtu_series_has_every_recorded_step_and_sorted_pvd_times(cut_run, tmp_path):
+    from xml.etree import ElementTree as ET
+
+    from refsim.io.export import export_vtu
+
+    results = read_results(cut_run)
+    files = export_vtu(cut_run, "all", tmp_path)
+    collection = ET.parse(tmp_path / "cut_tissue.pvd").getroot().find("Collection")
+    times = [float(item.get("timestep")) for item in collection]
+    np.testing.assert_array_equal(times, results.tissue_times)
+    assert all((tmp_path / item.get("file")).is_file() for item in collection)
+    assert len([f for f in files if "_tissue_" in f.name]) == results.tissue_steps.size
+    assert sorted(tmp_path.iterdir()) == sorted(files)  # written whole: no temporary file left
+
+
+def test_vtu_of_an_unrecorded_step_exits_2_and_writes_nothing(cut_run, tmp_path, capsys):
+    assert main(["export", str(cut_run), "--vtu", "17", "--vtu-folder", str(tmp_path / "out")]) == 2
+    error = capsys.readouterr().err
+    assert "--vtu 17: not a recorded tissue step" in error and "25, 50" in error
+    assert not (tmp_path / "out").exists()

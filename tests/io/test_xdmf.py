@@ -1,4 +1,5 @@
-"""The XDMF sidecar read back with meshio: every geometry it points at equals the results file's data."""
+"""The XDMF sidecar read back with meshio and with VTK's XDMF reader (ParaView's): every geometry and point
+array it points at equals the results file's data."""
 
 from __future__ import annotations
 
@@ -7,30 +8,8 @@ import meshio
 import numpy as np
 import pytest
 
-from refsim.cli import main
 from refsim.io import read_results
 from refsim.io.xdmf import write_xdmf, xdmf_path
-
-
-@pytest.fixture(scope="module")
-def cut_run(tmp_path_factory):
-    """cube_cut on 4 cells per axis, written by `refsim run` (which writes the sidecar at the end)."""
-    path = tmp_path_factory.mktemp("xdmf") / "cut.h5"
-    code = main(
-        [
-            "run",
-            "cube_cut",
-            "-o",
-            str(path),
-            "-q",
-            "--set",
-            "mesh.cells=[4, 4, 4]",
-            "--set",
-            "output.tissue_every=25",
-        ]
-    )
-    assert code == 0
-    return path
 
 
 def _collection(reader, name):
@@ -50,19 +29,73 @@ def test_run_writes_the_sidecar(cut_run):
         assert handle["xdmf/tissue/positions"][next(iter(handle["xdmf/tissue/positions"]))].is_virtual
 
 
+def _record_at(results, step):
+    """Index of the tissue record shown at ``step`` (the last one at or before it), -1 for rest."""
+    return int(np.searchsorted(results.tissue_steps, step, side="right")) - 1
+
+
 def test_tissue_over_time_equals_the_results(cut_run):
+    """meshio reads the rest mesh once, then the point data of every time: rest + displacement is the
+    recorded tissue (the last record at or before each step), fixed flags the clamped nodes."""
     results = read_results(cut_run)
     with meshio.xdmf.TimeSeriesReader(xdmf_path(cut_run)) as reader:
         points, cells = reader.read_points_cells()
         assert np.array_equal(points, results.rest_positions)
         assert cells[0].type == "tetra" and np.array_equal(cells[0].data, results.tets)
-        assert reader.num_steps == results.tissue_steps.size + 1
-        for k in range(reader.num_steps):
-            time, _, _ = reader.read_data(k)
+        assert reader.num_steps == results.step_count + 1
+        for k in (0, 1, 24, 25, 26, reader.num_steps - 1):
+            time, point_data, _ = reader.read_data(k)
+            assert time == (0.0 if k == 0 else results.time[k - 1])
+            record = _record_at(results, 0 if k == 0 else results.step[k - 1])
+            expected = results.rest_positions if record < 0 else results.tissue_positions[record]
+            assert np.array_equal(points + point_data["displacement"], expected)
             geometry = reader._read_data_item(_item(reader.collection[k], "Geometry"))
-            expected = results.rest_positions if k == 0 else results.tissue_positions[k - 1]
-            assert time == (0.0 if k == 0 else results.tissue_times[k - 1])
             assert np.array_equal(geometry, expected)
+            assert np.array_equal(np.flatnonzero(point_data["fixed"]), np.sort(results.fixed_nodes))
+
+
+def test_vtk_reads_sorted_times_and_the_deformation_at_a_step(cut_run):
+    """VTK's own XDMF reader (ParaView's "XDMF Reader"): the times are [0, t_1, ..., t_s], sorted; at a
+    recorded step the tissue's points and displacement equal the HDF5's, the needle equals the step's and
+    the nodal constraint forces sum to minus the force on the needle (Newton's third law)."""
+    xdmf2 = pytest.importorskip("vtkmodules.vtkIOXdmf2")
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkCommonDataModel import vtkCompositeDataSet
+    from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline
+
+    results = read_results(cut_run)
+    reader = xdmf2.vtkXdmfReader()
+    reader.SetFileName(str(xdmf_path(cut_run)))
+    reader.UpdateInformation()
+    times = np.array(reader.GetOutputInformation(0).Get(vtkStreamingDemandDrivenPipeline.TIME_STEPS()))
+    np.testing.assert_array_equal(times, np.concatenate([[0.0], results.time]))
+    cut_steps = results.step[np.isin(results.step, results.tissue_steps)]
+    step = int(cut_steps[-1])  # the last recorded step, after the cut started
+    index = int(np.flatnonzero(results.step == step)[0])
+    reader.UpdateTimeStep(results.time[index])
+    blocks = reader.GetOutputDataObject(0)
+    named = {
+        blocks.GetMetaData(i).Get(vtkCompositeDataSet.NAME()): blocks.GetBlock(i)
+        for i in range(blocks.GetNumberOfBlocks())
+    }
+    tissue, needle, cut = named["tissue"], named["needle"], named["cut"]
+    record = _record_at(results, step)
+    positions = results.tissue_positions[record]
+    np.testing.assert_array_equal(vtk_to_numpy(tissue.GetPoints().GetData()), positions)
+    displacement = vtk_to_numpy(tissue.GetPointData().GetArray("displacement"))
+    np.testing.assert_array_equal(displacement, positions - results.rest_positions)
+    force = vtk_to_numpy(tissue.GetPointData().GetArray("constraint_force"))
+    scale = np.abs(results.constraints_at(step).forces).sum()
+    np.testing.assert_allclose(force.sum(axis=0), -results.needle_force[index], rtol=0, atol=1e-12 * scale)
+    np.testing.assert_array_equal(vtk_to_numpy(needle.GetPoints().GetData()), results.needle_positions[index])
+    assert cut.GetNumberOfCells() == np.count_nonzero(results.cut.triangle_step <= step) > 0
+    reader.UpdateTimeStep(0.0)
+    rest = reader.GetOutputDataObject(0)
+    named = {rest.GetMetaData(i).Get(vtkCompositeDataSet.NAME()): rest.GetBlock(i) for i in range(3)}
+    np.testing.assert_array_equal(
+        vtk_to_numpy(named["needle"].GetPoints().GetData()), results.needle_rest_nodes
+    )
+    assert named["cut"] is None  # nothing is cut at rest
 
 
 def test_needle_and_cut_equal_the_results(cut_run):
@@ -71,21 +104,22 @@ def test_needle_and_cut_equal_the_results(cut_run):
     assert cut is not None and cut.triangles.shape[0] > 0
     with meshio.xdmf.TimeSeriesReader(xdmf_path(cut_run)) as reader:
         needle = _collection(reader, "needle")
-        assert len(needle) == results.step_count
-        for k in (0, results.step_count // 2, results.step_count - 1):
-            assert float(needle[k].find("Time").get("Value")) == results.time[k]
+        assert len(needle) == results.step_count + 1
+        for k in (1, results.step_count // 2, results.step_count):
+            assert float(needle[k].find("Time").get("Value")) == results.time[k - 1]
             assert np.array_equal(
-                reader._read_data_item(_item(needle[k], "Geometry")), results.needle_positions[k]
+                reader._read_data_item(_item(needle[k], "Geometry")), results.needle_positions[k - 1]
             )
             assert np.array_equal(
                 reader._read_data_item(_item(needle[k], "Topology")),
                 np.arange(results.needle_positions.shape[1])[None],
             )
         grids = _collection(reader, "cut")
-        cut_steps = [s for s in results.tissue_steps if np.any(cut.triangle_step <= s)]
+        cut_steps = [s for s in results.step if np.any(cut.triangle_step <= s)]
         assert len(grids) == len(cut_steps) > 0
         for grid, step in zip(grids, cut_steps, strict=True):
-            positions = results.tissue_positions[int(np.flatnonzero(results.tissue_steps == step)[0])]
+            record = _record_at(results, step)
+            positions = results.rest_positions if record < 0 else results.tissue_positions[record]
             # equation 4: a cut point follows its tet's nodes by its barycentric coordinates
             deformed = np.einsum("pk,pki->pi", cut.barycentric, positions[results.tets[cut.tet_indices]])
             assert np.allclose(reader._read_data_item(_item(grid, "Geometry")), deformed, rtol=0, atol=1e-15)

@@ -56,4 +56,4 @@ def test_plot_of_a_lateral_motion(lateral_file, tmp_path):
     output = tmp_path / "forces.png"
     assert main(["plot", str(lateral_file), "-o", str(output)]) == 0
     height, width = matplotlib.image.imread(str(output)).shape[:2]
-    assert np.isclose(width / height, 18.0 / 4.6, rtol=0.02)  # three panels
+    assert np.isclose(width / height, (2 * 5.2 + 3.6) / 4.8, rtol=0.02)  # two panels and the event table
