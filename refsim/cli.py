@@ -9,6 +9,7 @@ completed step, complete = false, the reason in stop_reason); 130 interrupted by
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import logging
 import sys
 import time
@@ -20,6 +21,39 @@ logger = logging.getLogger("refsim")
 
 STRATEGY_CHOICES = ("exact", "refreshed", "refreshed_first_order", "refreshed_stale", "precomputed")
 EXIT_FAILED, EXIT_INPUT, EXIT_SIMULATION, EXIT_INTERRUPTED, EXIT_TERMINATED = 1, 2, 3, 130, 143
+
+#: The optional packages of each extra of pyproject.toml (import names) that a command needs.
+EXTRA_MODULES = {
+    "viz": ("pyvista", "matplotlib", "imageio"),
+    "study": ("distributed", "tqdm"),
+    "mesh": ("gmsh",),
+    "osqp": ("osqp",),
+}
+
+
+class MissingExtraError(ModuleNotFoundError):
+    """A command needs a package of an optional extra that is not installed (exit code 2)."""
+
+    def __init__(self, what: str, module: str, extra: str) -> None:
+        super().__init__(
+            f"{what} needs {module}, which is not installed: pip install 'refsim[{extra}]'", name=module
+        )
+
+
+def _extra_of(module: str) -> str | None:
+    """The extra that installs the top-level package ``module``, None for a package refsim always installs."""
+    top = module.split(".")[0]
+    aliases = {"vtk": "pyvista", "vtkmodules": "pyvista", "imageio_ffmpeg": "imageio", "dask": "distributed"}
+    top = aliases.get(top, top)
+    return next((extra for extra, modules in EXTRA_MODULES.items() if top in modules), None)
+
+
+def require_extra(extra: str, what: str, modules: tuple[str, ...] | None = None) -> None:
+    """Raise :class:`MissingExtraError` before any work when a module of ``extra`` (all its modules, or
+    ``modules``) cannot be imported."""
+    for module in modules or EXTRA_MODULES[extra]:
+        if importlib.util.find_spec(module) is None:
+            raise MissingExtraError(what, module, extra)
 
 
 class _Progress:
@@ -61,6 +95,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     figure = None
     if args.figure:  # checked before the run, not after it
         figure = Path(args.figure)
+        require_extra("viz", "refsim run --figure", ("pyvista", "matplotlib"))
         if figure.suffix.lower() not in _FIGURE_SUFFIXES:
             raise ValueError(
                 f"--figure {figure}: expected a picture file ending in {', '.join(_FIGURE_SUFFIXES)}"
@@ -114,6 +149,7 @@ def _write_sidecar(output: Path) -> None:
 
 def _cmd_study(args: argparse.Namespace) -> int:
     """`refsim study`: a study file, or a scene with --sweep options, run on Dask."""
+    require_extra("study", "refsim study")
     from refsim.sweep import load_study, run_study, study_from_options
 
     target = Path(args.target)
@@ -310,6 +346,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
+    require_extra("viz", "refsim render", ("pyvista", "imageio") if args.animate else ("pyvista",))
     from refsim.viz import animate_result, render_result
 
     framing = {"camera": args.camera, "view_up": args.view_up, "zoom": args.zoom, "focus": args.focus}
@@ -325,6 +362,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
+    require_extra("viz", "refsim plot", ("matplotlib",))
     from refsim.viz import plot_result
 
     plot_result(Path(args.result), Path(args.output))
@@ -455,6 +493,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         return args.handler(args)
+    except ModuleNotFoundError as error:  # an optional package, found missing where it is used
+        extra = _extra_of(error.name or "")
+        if extra is None:
+            return _internal_error(args, error)
+        if not isinstance(error, MissingExtraError):
+            error = MissingExtraError(f"refsim {args.command}", error.name, extra)
+        print(f"refsim {args.command}: error: {error}", file=sys.stderr)
+        return EXIT_INPUT
     except (ValueError, OSError) as error:  # SceneError, MeshError, RunInputError, paths
         print(f"refsim {args.command}: error: {error}", file=sys.stderr)
         return EXIT_INPUT
@@ -462,13 +508,18 @@ def main(argv: list[str] | None = None) -> int:
         print(f"refsim {args.command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Exception as error:  # noqa: BLE001 - never a traceback; -v logs it
-        logger.debug("unexpected error", exc_info=True)
-        print(
-            f"refsim {args.command}: internal error: {type(error).__name__}: {error} (rerun with -v for the "
-            "traceback, and report it)",
-            file=sys.stderr,
-        )
-        return EXIT_INPUT
+        return _internal_error(args, error)
+
+
+def _internal_error(args: argparse.Namespace, error: BaseException) -> int:
+    """Report an unexpected error in one line (-v logs the traceback); exit code 2."""
+    logger.debug("unexpected error", exc_info=error)
+    print(
+        f"refsim {args.command}: internal error: {type(error).__name__}: {error} (rerun with -v for the "
+        "traceback, and report it)",
+        file=sys.stderr,
+    )
+    return EXIT_INPUT
 
 
 if __name__ == "__main__":
