@@ -249,6 +249,5 @@ def append_points(
             ]
         ),
         normals=normals,
-        parameters=cut.parameters,
         last_triangulation=report,
     )
