@@ -22,7 +22,7 @@ from collections.abc import Callable
 import numpy as np
 import scipy.sparse as sp
 
-from refsim.fem.compliance import Exact, Precomputed, Refreshed
+from refsim.fem.compliance import STRATEGY_VARIANTS, Exact, Refreshed, make_strategy
 from refsim.fem.linear import SuperLUSolver, linear_solver_info
 from refsim.fem.threads import hot_path_threads, thread_settings
 from refsim.fem.tissue import TissueModel, TissueState
@@ -93,32 +93,6 @@ def superlu_reference_ms(model: TissueModel, repeats: int = 3) -> float:
         matrix = model.assemble_step(state, _DT).matrix
         solver = SuperLUSolver("COLAMD")
         return _best_ms(lambda: solver.factorise(matrix), repeats)[0]
-
-
-def _strategy(name: str, refresh_every: int, against_exact: bool, linear_solver: str):
-    if name == "exact":
-        return Exact(linear_solver=linear_solver)
-    if name == "refreshed":
-        return Refreshed(
-            refresh_every=refresh_every, linear_solver=linear_solver, against_exact=against_exact
-        )
-    if name == "refreshed_first_order":
-        return Refreshed(
-            refresh_every=refresh_every,
-            linear_solver=linear_solver,
-            against_exact=against_exact,
-            compliance_update="first_order",
-        )
-    if name == "refreshed_stale":
-        return Refreshed(
-            refresh_every=refresh_every,
-            linear_solver=linear_solver,
-            against_exact=against_exact,
-            compliance_update="stale",
-        )
-    if name == "precomputed":
-        return Precomputed(linear_solver=linear_solver, against_exact=against_exact)
-    raise ValueError(f"strategy {name!r}: expected exact, refreshed or precomputed")
 
 
 def _run_strategy(
@@ -198,13 +172,7 @@ def _advance(model, body, state, drive, rows, lam) -> TissueState:
 def bench_strategies(
     cells: int = 8,
     *,
-    strategies: tuple[str, ...] = (
-        "exact",
-        "refreshed",
-        "refreshed_first_order",
-        "refreshed_stale",
-        "precomputed",
-    ),
+    strategies: tuple[str, ...] = STRATEGY_VARIANTS,
     steps: int = 30,
     shear: float = 0.01,
     refresh_every: int = 10,
@@ -228,13 +196,22 @@ def bench_strategies(
     reference = superlu_reference_ms(model, repeats=5)
     results = []
     for name in strategies:
-        strategy = _strategy(name, refresh_every, against_exact and name != "exact", linear_solver)
+        strategy = make_strategy(
+            name,
+            refresh_every=refresh_every,
+            against_exact=against_exact and name != "exact",
+            linear_solver=linear_solver,
+        )
         _run_strategy(model, strategy, 1, shear, rows)  # warm-up: numba compilation
         results.append(_run_strategy(model, strategy, steps, shear, rows))
         if against_exact and name != "exact":
             # Timings without the error bookkeeping (it runs an exact factorisation each step)
             timed = _run_strategy(
-                model, _strategy(name, refresh_every, False, linear_solver), steps, shear, rows
+                model,
+                make_strategy(name, refresh_every=refresh_every, linear_solver=linear_solver),
+                steps,
+                shear,
+                rows,
             )
             errors = {
                 k: results[-1][k] for k in ("free_motion_error", "compliance_error", "correction_error")
@@ -258,7 +235,7 @@ def bench_scaling(
     *,
     steps: int = 10,
     refresh_every: int = 10,
-    strategies: tuple[str, ...] = ("exact", "refreshed", "refreshed_first_order", "refreshed_stale"),
+    strategies: tuple[str, ...] = tuple(name for name in STRATEGY_VARIANTS if name != "precomputed"),
     linear_solver: str = "auto",
     max_step_seconds: float = 30.0,
 ) -> list[dict[str, float | int]]:
@@ -284,7 +261,11 @@ def bench_scaling(
         }
         for name in strategies:
             result = _run_strategy(
-                model, _strategy(name, refresh_every, False, linear_solver), steps, 0.01, rows
+                model,
+                make_strategy(name, refresh_every=refresh_every, linear_solver=linear_solver),
+                steps,
+                0.01,
+                rows,
             )
             if name == "exact":
                 row["exact_factorisation_ms"] = result["factorisation_ms"]

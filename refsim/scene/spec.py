@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from refsim.fem.compliance import STRATEGIES, W_UPDATES
 from refsim.materials import MATERIAL_LIMITS
 from refsim.scene.fields import FieldError, check_fields, spec
 
@@ -511,7 +512,7 @@ class ComplianceSpec(_Validated):
         doc="exact: factorise every step; refreshed: factorise every refresh_every steps, free motion and "
         "W's columns "
         "by PCG on the current matrix; precomputed: the rest compliance rotated per node (SOFA-like)",
-        choices=("exact", "refreshed", "precomputed"),
+        choices=STRATEGIES,
     )
     refresh_every: int = spec(
         10, unit="-", doc="steps between factorisations of the refreshed strategy", low=1, high=1_000_000
@@ -522,7 +523,7 @@ class ComplianceSpec(_Validated):
         "tolerance), corrected to first order in the change of the matrix since the factorisation with the "
         "correction by PCG (first_order), or taken from the stale factor (stale); errors by refsim bench "
         "--against-exact",
-        choices=("pcg", "first_order", "stale"),
+        choices=W_UPDATES,
     )
     linear_solver: str = spec(
         "auto",

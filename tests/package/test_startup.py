@@ -48,7 +48,7 @@ def test_help_imports_nothing_heavy():
 def test_import_refsim_sets_up_no_kernel_cache(tmp_path):
     environment = {key: value for key, value in os.environ.items() if key != "NUMBA_CACHE_DIR"}
     environment["XDG_CACHE_HOME"] = str(tmp_path)
-    _modules_after("import refsim, refsim.cli, refsim.scene", environment)
+    _modules_after("import refsim, refsim.cli", environment)
     assert not (tmp_path / "refsim").exists()
     loaded = _modules_after("import refsim.solvers.laws", environment)
     assert "numba" in loaded and (tmp_path / "refsim" / "numba").is_dir()
