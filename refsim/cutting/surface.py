@@ -47,15 +47,13 @@ class TriangulationReport:
     """Points added."""
     new_triangle_count: int
     """Triangles added."""
-    normal_seconds: float
-    """Wall time of the normals' estimation [s]."""
     triangulation_seconds: float
     """Wall time of laying the points and their triangles [s]."""
 
     @property
     def seconds(self) -> float:
         """Total wall time [s]."""
-        return self.normal_seconds + self.triangulation_seconds
+        return self.triangulation_seconds
 
 
 def _readonly(array: np.ndarray) -> np.ndarray:
@@ -81,12 +79,10 @@ class CutSurface:
     created_step: np.ndarray
     """Time step at which each point was added, shape (point_count,), int64."""
     triangles: np.ndarray
-    """Point indices of the triangles, shape (triangle_count, 3), int64, oriented: (b − a) × (c − a) is on the
-    side of the point normals."""
+    """Point indices of the triangles, shape (triangle_count, 3), int64, all with the same winding (the strip
+    is oriented)."""
     triangle_created_step: np.ndarray
     """Time step at which each triangle was added, shape (triangle_count,), int64."""
-    normals: np.ndarray
-    """Unit point normals in the rest state, consistently oriented, shape (point_count, 3)."""
     last_triangulation: TriangulationReport | None = None
     """Report of the latest addition of points, None before the first."""
 
@@ -98,7 +94,6 @@ class CutSurface:
             "created_step": (np.int64, (-1,)),
             "triangles": (np.int64, (-1, 3)),
             "triangle_created_step": (np.int64, (-1,)),
-            "normals": (np.float64, (-1, 3)),
         }
         for name, (dtype, shape) in fields.items():
             value = np.asarray(getattr(self, name), dtype=dtype)
@@ -106,7 +101,7 @@ class CutSurface:
                 raise ValueError(f"CutSurface.{name} must have shape {shape} (−1: any), got {value.shape}")
             object.__setattr__(self, name, _readonly(value))
         points = self.rest_points.shape[0]
-        for name in ("tet_indices", "barycentric", "created_step", "normals"):
+        for name in ("tet_indices", "barycentric", "created_step"):
             if getattr(self, name).shape[0] != points:
                 raise ValueError(
                     f"CutSurface.{name} has {getattr(self, name).shape[0]} rows, expected {points}"
@@ -128,7 +123,6 @@ class CutSurface:
             created_step=np.zeros(0, dtype=np.int64),
             triangles=np.zeros((0, 3), dtype=np.int64),
             triangle_created_step=np.zeros(0, dtype=np.int64),
-            normals=np.zeros((0, 3)),
         )
 
     # -- sizes and topology --------------------------------------------------------------------------
@@ -213,21 +207,6 @@ class CutSurface:
         vertex /= np.maximum(np.linalg.norm(vertex, axis=1, keepdims=True), 1e-300)
         normals = np.einsum("qv,qvj->qj", weights, vertex[self.triangles[triangle]])
         return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
-
-    def triangle_normals(self, points: np.ndarray) -> np.ndarray:
-        """Unit normals (b − a) × (c − a) of the triangles on given point positions (rest or deformed).
-
-        Parameters
-        ----------
-        points : Cut points [m], shape (point_count, 3), e.g. from `deformed_points`.
-
-        Returns
-        -------
-        Unit normals, shape (triangle_count, 3); zero for degenerate triangles.
-        """
-        from refsim.geometry.closest import triangle_normals
-
-        return triangle_normals(self._check_surface_points(points)[self.triangles])
 
     def _check_surface_points(self, points: np.ndarray) -> np.ndarray:
         points = np.asarray(points, dtype=float)
