@@ -488,7 +488,8 @@ class SolverSpec(_Validated):
             raise FieldError(
                 "backend",
                 f"backend = {self.backend!r}: expected one of the installed qpsolvers backends "
-                f"{', '.join(repr(name) for name in available)}",
+                f"{', '.join(repr(name) for name in available)}"
+                + (" (OSQP installs with: pip install 'refsim[osqp]')" if self.backend == "osqp" else ""),
             )
 
 

@@ -92,3 +92,15 @@ def test_every_extra_module_maps_back_to_its_extra():
             assert _extra_of(module + ".sub") == extra
     assert _extra_of("vtk") == "viz" and _extra_of("dask.array") == "study"
     assert _extra_of("numpy") is None and _extra_of("") is None
+
+
+def test_the_osqp_backend_without_its_extra_names_the_pip_command(tmp_path, monkeypatch, capsys):
+    import qpsolvers  # its list of backends is fixed when it is imported: hide osqp from it
+
+    monkeypatch.setattr(
+        qpsolvers, "available_solvers", [n for n in qpsolvers.available_solvers if n != "osqp"]
+    )
+    code = main(["run", "cube", "-o", str(tmp_path / "r.h5"), "--set", 'solver.backend="osqp"'])
+    error = capsys.readouterr().err
+    assert code == 2 and "solver.backend" in error and "pip install 'refsim[osqp]'" in error
+    assert list(tmp_path.iterdir()) == []
