@@ -94,7 +94,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     figure = None
     if args.figure:  # checked before the run, not after it
         figure = Path(args.figure)
-        require_extra("viz", "refsim run --figure", ("pyvista", "matplotlib"))
+        require_extra("viz", "--figure", ("pyvista", "matplotlib"))
         if figure.suffix.lower() not in _FIGURE_SUFFIXES:
             raise ValueError(
                 f"--figure {figure}: expected a picture file ending in {', '.join(_FIGURE_SUFFIXES)}"
@@ -148,7 +148,7 @@ def _write_sidecar(output: Path) -> None:
 
 def _cmd_study(args: argparse.Namespace) -> int:
     """`refsim study`: a study file, or a scene with --sweep options, run on Dask."""
-    require_extra("study", "refsim study")
+    require_extra("study", "this command")
     from refsim.sweep import load_study, run_study, study_from_options
 
     target = Path(args.target)
@@ -344,7 +344,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    require_extra("viz", "refsim render", ("pyvista", "imageio") if args.animate else ("pyvista",))
+    require_extra("viz", "this command", ("pyvista", "imageio") if args.animate else ("pyvista",))
     from refsim.viz import animate_result, render_result
 
     framing = {"camera": args.camera, "view_up": args.view_up, "zoom": args.zoom, "focus": args.focus}
@@ -360,7 +360,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
-    require_extra("viz", "refsim plot", ("matplotlib",))
+    require_extra("viz", "this command", ("matplotlib",))
     from refsim.viz import plot_result
 
     plot_result(Path(args.result), Path(args.output))
@@ -497,7 +497,7 @@ def main(argv: list[str] | None = None) -> int:
         if extra is None:
             return _internal_error(args, error)
         if not isinstance(error, MissingExtraError):
-            error = MissingExtraError(f"refsim {args.command}", error.name, extra)
+            error = MissingExtraError("this command", error.name, extra)
         print(f"refsim {args.command}: error: {error}", file=sys.stderr)
         return EXIT_INPUT
     except (ValueError, OSError) as error:  # SceneError, MeshError, RunInputError, paths
