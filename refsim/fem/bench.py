@@ -29,7 +29,6 @@ from refsim.fem.tissue import TissueModel, TissueState
 from refsim.materials import HookeMaterial
 
 __all__ = [
-    "bench_tissue",
     "bench_strategies",
     "bench_scaling",
     "superlu_reference_ms",
@@ -356,70 +355,3 @@ def format_rows(rows: list[dict], keys: list[str] | None = None) -> str:
             cells.append(f"{value:>{w}.4g}" if isinstance(value, float) else f"{value!s:>{w}}")
         lines.append("  ".join(cells))
     return "\n".join(lines)
-
-
-def bench_tissue(
-    cells_per_axis: tuple[int, ...] = (8, 16, 24),
-    repeats: int = 3,
-    *,
-    max_factorisation_seconds: float = 60.0,
-) -> list[dict[str, float | int]]:
-    """Time the stages of one tissue step on cube meshes (the former bench; kept for its callers).
-
-    Returns
-    -------
-    One dict per size: ``cells_per_axis``, ``node_count``, ``tet_count``, ``dof_count``, ``setup_ms``,
-    ``rotations_ms`` (the compiled polar decomposition), ``assembly_ms`` (compiled co-rotation and assembly
-    into the free pattern), ``factorisation_ms`` (the default linear solver), ``solve_ms``, ``superlu_ms``
-    (SuperLU COLAMD).
-    """
-    if repeats < 1:
-        raise ValueError(f"repeats must be >= 1, got {repeats!r}")
-    rows: list[dict[str, float | int]] = []
-    for cells in cells_per_axis:
-        row = _bench_one(int(cells), repeats)
-        logger.info("tissue bench: %s", row)
-        rows.append(row)
-        if max(row["factorisation_ms"], row["superlu_ms"]) > 1e3 * max_factorisation_seconds:
-            logger.warning(
-                "factorisation took > %.0f s on %d cells per axis: larger sizes skipped",
-                max_factorisation_seconds,
-                cells,
-            )
-            break
-    return rows
-
-
-def _bench_one(cells: int, repeats: int) -> dict[str, float | int]:
-    """Timings of one cube size (see :func:`bench_tissue`)."""
-    start = time.perf_counter()
-    model = cube_model(int(cells))
-    setup_ms = 1e3 * (time.perf_counter() - start)
-    rest = model.rest_positions
-    positions = rest + 0.01 * _CUBE_SIZE * np.sin(20.0 * rest / _CUBE_SIZE)
-    positions[model.fixed_nodes] = rest[model.fixed_nodes]
-    state = TissueState(positions=positions, velocities=np.zeros_like(rest))
-    with hot_path_threads():
-        model.assemble_step(state, _DT)  # compile
-        rotations_ms, _ = _best_ms(lambda: model.element_rotations(state.positions), repeats)
-        assembly_ms, system = _best_ms(lambda: model.assemble_step(state, _DT), repeats)
-        body = Exact().bind()
-        body.step(system)
-        factor_repeats = repeats if cells <= 16 else 1
-        factorisation_ms, _ = _best_ms(lambda: body._solver.factorise(system.matrix), factor_repeats)
-        solve_ms, _ = _best_ms(lambda: body._solver.solve(system.rhs), repeats)
-        superlu = SuperLUSolver("COLAMD")
-        superlu_ms, _ = _best_ms(lambda: superlu.factorise(system.matrix), 1)
-    row = {
-        "cells_per_axis": int(cells),
-        "node_count": model.node_count,
-        "tet_count": model.tet_count,
-        "dof_count": model.dof_count,
-        "setup_ms": setup_ms,
-        "rotations_ms": rotations_ms,
-        "assembly_ms": assembly_ms,
-        "factorisation_ms": factorisation_ms,
-        "solve_ms": solve_ms,
-        "superlu_ms": superlu_ms,
-    }
-    return row
