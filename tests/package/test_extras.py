@@ -104,3 +104,20 @@ def test_the_osqp_backend_without_its_extra_names_the_pip_command(tmp_path, monk
     error = capsys.readouterr().err
     assert code == 2 and "solver.backend" in error and "pip install 'refsim[osqp]'" in error
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_extras_the_cli_names_are_those_of_pyproject():
+    import re
+    import tomllib
+    from pathlib import Path
+
+    pyproject = tomllib.loads((Path(__file__).resolve().parents[2] / "pyproject.toml").read_text())
+    extras = pyproject["project"]["optional-dependencies"]
+    required = " ".join(pyproject["project"]["dependencies"])
+    for extra, modules in EXTRA_MODULES.items():
+        names = " ".join(extras[extra])
+        for module in modules:  # each import name is a distribution of its extra (dask[distributed] included)
+            assert re.search(rf"\b{module}\b", names), (extra, module)
+            assert not re.search(rf"\b{module}\b", required), module  # and not a required package
+    test = " ".join(extras["test"])
+    assert all(extra in test for extra in EXTRA_MODULES)  # the test suite installs every extra
