@@ -52,3 +52,29 @@ def test_import_refsim_sets_up_no_kernel_cache(tmp_path):
     assert not (tmp_path / "refsim").exists()
     loaded = _modules_after("import refsim.solvers.laws", environment)
     assert "numba" in loaded and (tmp_path / "refsim" / "numba").is_dir()
+
+
+def test_importing_the_kernel_modules_compiles_no_kernel(tmp_path):
+    # Kernels have no explicit signature: numba compiles (or loads) each on its first call, so a run builds
+    # only the kernels it calls. After importing every module of refsim, no kernel has a compiled signature.
+    code = (
+        "import sys, pkgutil, importlib, json\nimport refsim\n"
+        "from numba.core.registry import CPUDispatcher\n"
+        "names = [m.name for m in pkgutil.walk_packages(refsim.__path__, 'refsim.')]\n"
+        "names = [name for name in names if not name.endswith('__main__')]\n"
+        "kernels = {}\n"
+        "for name in names:\n"
+        "    module = importlib.import_module(name)\n"
+        "    for attr, value in vars(module).items():\n"
+        "        if isinstance(value, CPUDispatcher) and value.__module__ == name:\n"
+        "            kernels[name + '.' + attr] = len(value.signatures)\n"
+        "print(json.dumps(kernels))"
+    )
+    environment = {key: value for key, value in os.environ.items() if key != "NUMBA_CACHE_DIR"}
+    environment["XDG_CACHE_HOME"] = str(tmp_path)
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=environment, check=True
+    )
+    kernels = json.loads(done.stdout.strip().splitlines()[-1])
+    assert len(kernels) > 20  # the solvers', geometry's and assembly's kernels were all found
+    assert {name: count for name, count in kernels.items() if count} == {}
