@@ -1,61 +1,12 @@
 """refsim: a reference solver for needle insertion and tissue laceration.
 
 After Perrusi, Baksic and Courtecuisse, "Interactive Finite Element model of needle insertion and laceration",
-Eurographics 2021. See DESIGN.md in docs/ for the architecture.
+Eurographics 2021. See docs/architecture.md for the layers.
 
-Compiled kernels (numba, ``cache=True``) are cached in a directory named after a digest of refsim's own
-sources (:func:`numba_cache_directory`), because numba invalidates a cached function only when its own file
-changes, not when a function it calls from another file does ("Cache limitations", numba's caching notes):
-after an edit of ``refsim/solvers/laws.py`` a kernel of ``refsim/solvers/gauss_seidel.py`` would otherwise
-keep running the old code. Setting ``NUMBA_CACHE_DIR`` keeps numba's own behaviour in that directory.
+``import refsim`` imports no dependency: each subpackage imports what it uses, numba with its kernel cache on
+the first import of a module that defines kernels (:mod:`refsim.kernel_cache`).
 """
-
-from __future__ import annotations
-
-import hashlib
-import os
-from pathlib import Path
 
 __version__ = "0.1.0"
 
-__all__ = ["__version__", "numba_cache_directory", "source_digest"]
-
-
-def source_digest(root: Path | None = None) -> str:
-    """SHA-256 (first 16 hex digits) of every ``*.py`` file under ``root`` (refsim's package folder by
-    default), names and contents, in sorted order."""
-    root = Path(__file__).resolve().parent if root is None else Path(root)
-    digest = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")):
-        digest.update(path.relative_to(root).as_posix().encode())
-        digest.update(b"\0")
-        digest.update(path.read_bytes())
-        digest.update(b"\0")
-    return digest.hexdigest()[:16]
-
-
-def numba_cache_directory() -> Path:
-    """Where refsim's compiled kernels are cached: ``$XDG_CACHE_HOME/refsim/numba/<source digest>``
-    (``~/.cache`` without XDG_CACHE_HOME). A new digest, i.e. any change of refsim's sources, starts an empty
-    cache; old ones can be deleted at any time no refsim process runs."""
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return base / "refsim" / "numba" / source_digest()
-
-
-def _configure_numba_cache() -> None:
-    """Point numba's cache at :func:`numba_cache_directory` before any refsim kernel is defined (numba reads
-    ``numba.config.CACHE_DIR`` when a ``cache=True`` function is decorated), unless NUMBA_CACHE_DIR is set or
-    the directory cannot be created (then numba's default: next to the sources)."""
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        return
-    try:
-        directory = numba_cache_directory()
-        directory.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return
-    import numba
-
-    numba.config.CACHE_DIR = str(directory)
-
-
-_configure_numba_cache()
+__all__ = ["__version__"]

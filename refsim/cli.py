@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import importlib.util
 import io
 import logging
 import os
@@ -22,8 +23,40 @@ __all__ = ["main"]
 
 logger = logging.getLogger("refsim")
 
-STRATEGY_CHOICES = ("exact", "refreshed", "refreshed_first_order", "refreshed_stale", "precomputed")
 EXIT_FAILED, EXIT_INPUT, EXIT_SIMULATION, EXIT_INTERRUPTED, EXIT_TERMINATED = 1, 2, 3, 130, 143
+
+#: The optional packages of each extra of pyproject.toml (import names) that a command needs.
+EXTRA_MODULES = {
+    "viz": ("pyvista", "matplotlib", "imageio"),
+    "study": ("distributed", "tqdm"),
+    "mesh": ("gmsh",),
+    "osqp": ("osqp",),
+}
+
+
+class MissingExtraError(ModuleNotFoundError):
+    """A command needs a package of an optional extra that is not installed (exit code 2)."""
+
+    def __init__(self, what: str, module: str, extra: str) -> None:
+        super().__init__(
+            f"{what} needs {module}, which is not installed: pip install 'refsim[{extra}]'", name=module
+        )
+
+
+def _extra_of(module: str) -> str | None:
+    """The extra that installs the top-level package ``module``, None for a package refsim always installs."""
+    top = module.split(".")[0]
+    aliases = {"vtk": "pyvista", "vtkmodules": "pyvista", "imageio_ffmpeg": "imageio", "dask": "distributed"}
+    top = aliases.get(top, top)
+    return next((extra for extra, modules in EXTRA_MODULES.items() if top in modules), None)
+
+
+def require_extra(extra: str, what: str, modules: tuple[str, ...] | None = None) -> None:
+    """Raise :class:`MissingExtraError` before any work when a module of ``extra`` (all its modules, or
+    ``modules``) cannot be imported."""
+    for module in modules or EXTRA_MODULES[extra]:
+        if importlib.util.find_spec(module) is None:
+            raise MissingExtraError(what, module, extra)
 
 
 def _progress_bar(total: int, enabled: bool):
@@ -120,6 +153,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     figure = None
     if args.figure:  # checked before the run, not after it
         figure = Path(args.figure)
+        require_extra("viz", "--figure", ("pyvista", "matplotlib"))
         if figure.suffix.lower() not in _FIGURE_SUFFIXES:
             raise ValueError(
                 f"--figure {figure}: expected a picture file ending in {', '.join(_FIGURE_SUFFIXES)}"
@@ -179,6 +213,7 @@ def _write_sidecar(output: Path) -> None:
 
 def _cmd_study(args: argparse.Namespace) -> int:
     """`refsim study`: a study file, or a scene with --sweep options, run on Dask."""
+    require_extra("study", "this command")
     from refsim.sweep import load_study, run_study, study_from_options
 
     target = Path(args.target)
@@ -371,8 +406,11 @@ def _run_for_bench(scene):
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     from refsim.fem import bench
+    from refsim.fem.compliance import STRATEGY_VARIANTS, strategy_variant
     from refsim.scene import load_scene
 
+    for variant in args.strategies or ():  # before any timing
+        strategy_variant(variant)
     print("\n".join(bench.header_lines()))
     reference_ms = None
     if args.scene:
@@ -386,8 +424,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         )
         runs = {}
         for strategy in strategies:
-            key, _, update = strategy.partition("_")
-            update = update or "pcg"
+            key, update = strategy_variant(strategy)
             overrides = [*(args.set or ()), f'compliance.strategy="{key}"', f'compliance.w_update="{update}"']
             scene = load_scene(args.scene, overrides)
             # The machine's load changes: the reference is timed again beside each run (the mean of before and
@@ -422,10 +459,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     f"{errors.get('event_shift', '')}"
                 )
     if args.tissue or not args.scene:
-        strategies = tuple(
-            args.strategies
-            or ("exact", "refreshed", "refreshed_first_order", "refreshed_stale", "precomputed")
-        )
+        strategies = tuple(args.strategies or STRATEGY_VARIANTS)
         reference_ms, rows = bench.bench_strategies(8, strategies=strategies, against_exact=True)
         print(
             f"\ntissue step on the paper's cube (8 cells per axis, bottom sheared 1 cm over the run), ms per "
@@ -464,6 +498,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
+    require_extra("viz", "this command", ("pyvista", "imageio") if args.animate else ("pyvista",))
     from refsim.viz import animate_result, render_result
 
     framing = {"camera": args.camera, "view_up": args.view_up, "zoom": args.zoom, "focus": args.focus}
@@ -479,6 +514,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
+    require_extra("viz", "this command", ("matplotlib",))
     from refsim.viz import plot_result
 
     plot_result(Path(args.result), Path(args.output))
@@ -519,8 +555,9 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument(
         "--strategies",
         nargs="+",
-        choices=STRATEGY_CHOICES,
-        help="compliance strategies to time (scene: exact, refreshed, precomputed)",
+        metavar="STRATEGY",
+        help="compliance strategies to time: a compliance.strategy, or refreshed_<w_update> (default: all; "
+        "with a scene: exact)",
     )
     bench.add_argument(
         "--against-exact",
@@ -661,6 +698,14 @@ def _handle(args: argparse.Namespace) -> int:
     except RunWriteError as error:  # a full disk: nothing half-written is left
         print(f"refsim {args.command}: error: {error}", file=sys.stderr)
         return EXIT_SIMULATION
+    except ModuleNotFoundError as error:  # an optional package, found missing where it is used
+        extra = _extra_of(error.name or "")
+        if extra is None:
+            return _internal_error(args, error)
+        if not isinstance(error, MissingExtraError):
+            error = MissingExtraError("this command", error.name, extra)
+        print(f"refsim {args.command}: error: {error}", file=sys.stderr)
+        return EXIT_INPUT
     except (ValueError, OSError) as error:  # SceneError, MeshError, RunInputError, paths
         print(f"refsim {args.command}: error: {error}", file=sys.stderr)
         return EXIT_INPUT
@@ -668,13 +713,18 @@ def _handle(args: argparse.Namespace) -> int:
         print(f"refsim {args.command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Exception as error:  # noqa: BLE001 - never a traceback; -v logs it
-        logger.debug("unexpected error", exc_info=True)
-        print(
-            f"refsim {args.command}: internal error: {type(error).__name__}: {error} (rerun with -v for the "
-            "traceback, and report it)",
-            file=sys.stderr,
-        )
-        return EXIT_INPUT
+        return _internal_error(args, error)
+
+
+def _internal_error(args: argparse.Namespace, error: BaseException) -> int:
+    """Report an unexpected error in one line (-v logs the traceback); exit code 2."""
+    logger.debug("unexpected error", exc_info=error)
+    print(
+        f"refsim {args.command}: internal error: {type(error).__name__}: {error} (rerun with -v for the "
+        "traceback, and report it)",
+        file=sys.stderr,
+    )
+    return EXIT_INPUT
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ __all__ = [
     "BILATERAL",
     "UNILATERAL",
     "FRICTION",
-    "KIND_NAMES",
+    "ROW_KIND_NAMES",
     "SOURCE_NAMES",
     "PENETRATION",
     "INSERTION",
@@ -48,7 +48,7 @@ __all__ = [
 ]
 
 BILATERAL, UNILATERAL, FRICTION = 0, 1, 2
-KIND_NAMES = ("bilateral", "unilateral", "friction")
+ROW_KIND_NAMES = ("bilateral", "unilateral", "friction")
 PENETRATION, INSERTION, CUT_SLIDE, CUT_BORDER, SHAFT_CONTACT = 0, 1, 2, 3, 4
 SOURCE_NAMES = ("penetration", "insertion", "cut_slide", "cut_border", "shaft_contact")
 #: What a row is (``RowBlock.role``): a contact's normal row and its tangent (friction) rows; an insertion

@@ -22,7 +22,6 @@ from functools import cached_property
 import numpy as np
 
 from refsim.cutting.surface import CutSurface
-from refsim.cutting.triangulation import TriangulationParameters
 from refsim.geometry import TetLocator
 
 __all__ = [
@@ -59,14 +58,12 @@ class CutGrowth:
     tets : Tissue tets, shape (tet_count, 4).
     point_spacing : d_c [m], > 0.
     extent : d_t [m], > 0: how far the first surface reaches from the path and how far a tear extends.
-    parameters : Triangulation limits.
     """
 
     rest_positions: np.ndarray
     tets: np.ndarray
     point_spacing: float
     extent: float
-    parameters: TriangulationParameters
 
     @cached_property
     def rest_locator(self) -> TetLocator:
@@ -111,7 +108,7 @@ def start_strip(
     )
 
     started = clock.perf_counter()
-    cut = CutSurface.empty(growth.parameters) if cut is None else cut
+    cut = CutSurface.empty() if cut is None else cut
     spacing = growth.point_spacing
     columns = resample_polyline(path_points, spacing)
     depths = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(columns, axis=0), axis=1))])

@@ -105,17 +105,6 @@ def strip_triangles(back: np.ndarray, front: np.ndarray) -> np.ndarray:
     return triangles[distinct]
 
 
-def _vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals of a triangle mesh, shape (p, 3) (zero for points in no triangle)."""
-    corners = points[triangles]
-    face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    normals = np.zeros_like(points)
-    for k in range(3):
-        np.add.at(normals, triangles[:, k], face)
-    norms = np.linalg.norm(normals, axis=1, keepdims=True)
-    return np.divide(normals, norms, out=np.zeros_like(normals), where=norms > 0.0)
-
-
 @dataclass(frozen=True)
 class CutFront:
     """The crack tip: one material point per column of the strip.
@@ -223,17 +212,14 @@ def append_points(
     *,
     seconds: float = 0.0,
 ) -> CutSurface:
-    """The surface with points and explicit triangles (indices into the grown surface) appended; the normals
-    are the area-weighted vertex normals of the whole surface (its triangles never change)."""
+    """The surface with points and explicit triangles (indices into the grown surface) appended."""
     points = np.concatenate([cut.rest_points, rest_points])
     all_triangles = np.concatenate([cut.triangles, np.asarray(triangles, dtype=np.int64).reshape(-1, 3)])
-    normals = _vertex_normals(points, all_triangles) if all_triangles.size else np.zeros_like(points)
     added = int(rest_points.shape[0])
     report = TriangulationReport(
         step=step,
         new_point_count=added,
         new_triangle_count=int(all_triangles.shape[0] - cut.triangle_count),
-        normal_seconds=0.0,
         triangulation_seconds=seconds,
     )
     return CutSurface(
@@ -248,7 +234,5 @@ def append_points(
                 np.full(all_triangles.shape[0] - cut.triangle_count, step, dtype=np.int64),
             ]
         ),
-        normals=normals,
-        parameters=cut.parameters,
         last_triangulation=report,
     )

@@ -1,29 +1,21 @@
-"""The cut surface: a point cloud kept in rest coordinates, its triangles, its image in the deformed tissue.
+"""The cut surface: points kept in rest coordinates, their triangles, its image in the deformed tissue.
 
 After Perrusi et al. 2021, section 4: each point of the cut is located in a tetrahedron of the tissue mesh and
-stored through its barycentric coordinates there (the paper's equation 4,
-p_r = Σ_k α_k q̄_k^(l)); the rest-state points are triangulated once, incrementally, and the same coordinates
-map the surface into the deformed tissue every step. The tissue mesh never changes.
+stored through its barycentric coordinates there (the paper's equation 4, p_r = Σ_k α_k q̄_k^(l)), and the
+same coordinates map the surface into the deformed tissue every step. The tissue mesh never changes. The
+points and triangles are laid by the cut strip (:mod:`refsim.cutting.strip`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
-import logging
-import time
 from typing import NamedTuple
 
 import numpy as np
 
-from refsim.cutting.triangulation import TriangulationParameters, estimate_normals, triangulate_incremental
-
 __all__ = ["CutSurface", "ClosestCutPoints", "TriangulationReport"]
 
-logger = logging.getLogger(__name__)
-
-# Barycentric coordinates of a new point must sum to one within this tolerance (dimensionless).
-_BARYCENTRIC_SUM_TOLERANCE = 1e-6
 # A projection is inside a triangle when its smallest barycentric coordinate is >= −_INSIDE_TOLERANCE, and a
 # clamped closest point lies on an edge or vertex when its coordinate there is <= _INSIDE_TOLERANCE.
 _INSIDE_TOLERANCE = 1e-9
@@ -47,7 +39,7 @@ class ClosestCutPoints(NamedTuple):
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class TriangulationReport:
-    """What one triangulation (one `CutSurface.with_points` call with new points) did."""
+    """What one addition of points and triangles to the surface did (refsim.cutting.strip.append_points)."""
 
     step: int
     """Time step of the new points."""
@@ -55,15 +47,13 @@ class TriangulationReport:
     """Points added."""
     new_triangle_count: int
     """Triangles added."""
-    normal_seconds: float
-    """Wall time of the normal estimation [s]."""
     triangulation_seconds: float
-    """Wall time of the incremental triangulation [s]."""
+    """Wall time of laying the points and their triangles [s]."""
 
     @property
     def seconds(self) -> float:
         """Total wall time [s]."""
-        return self.normal_seconds + self.triangulation_seconds
+        return self.triangulation_seconds
 
 
 def _readonly(array: np.ndarray) -> np.ndarray:
@@ -74,10 +64,10 @@ def _readonly(array: np.ndarray) -> np.ndarray:
 
 @dataclasses.dataclass(frozen=True, kw_only=True, eq=False)
 class CutSurface:
-    """The cut surface in rest coordinates: an immutable value; `with_points` returns a grown copy.
+    """The cut surface in rest coordinates: an immutable value; growing it returns a new surface
+    (refsim.cutting.strip.append_points).
 
-    Start with `CutSurface.empty(parameters)`; the simulation state holds the current surface. Arrays are
-    read-only.
+    Start with `CutSurface.empty()`; the simulation state holds the current surface. Arrays are read-only.
     """
 
     rest_points: np.ndarray
@@ -89,17 +79,12 @@ class CutSurface:
     created_step: np.ndarray
     """Time step at which each point was added, shape (point_count,), int64."""
     triangles: np.ndarray
-    """Point indices of the triangles, shape (triangle_count, 3), int64, oriented: (b − a) × (c − a) is on the
-    side of the point normals."""
+    """Point indices of the triangles, shape (triangle_count, 3), int64, all with the same winding (the strip
+    is oriented)."""
     triangle_created_step: np.ndarray
     """Time step at which each triangle was added, shape (triangle_count,), int64."""
-    normals: np.ndarray
-    """Unit point normals in the rest state, consistently oriented, shape (point_count, 3); re-estimated on
-    the whole cloud at each addition (triangles never change)."""
-    parameters: TriangulationParameters = dataclasses.field(default_factory=TriangulationParameters)
-    """Triangulation parameters used for every addition."""
     last_triangulation: TriangulationReport | None = None
-    """Report of the latest addition that triangulated, None before the first."""
+    """Report of the latest addition of points, None before the first."""
 
     def __post_init__(self) -> None:
         fields = {
@@ -109,7 +94,6 @@ class CutSurface:
             "created_step": (np.int64, (-1,)),
             "triangles": (np.int64, (-1, 3)),
             "triangle_created_step": (np.int64, (-1,)),
-            "normals": (np.float64, (-1, 3)),
         }
         for name, (dtype, shape) in fields.items():
             value = np.asarray(getattr(self, name), dtype=dtype)
@@ -117,7 +101,7 @@ class CutSurface:
                 raise ValueError(f"CutSurface.{name} must have shape {shape} (−1: any), got {value.shape}")
             object.__setattr__(self, name, _readonly(value))
         points = self.rest_points.shape[0]
-        for name in ("tet_indices", "barycentric", "created_step", "normals"):
+        for name in ("tet_indices", "barycentric", "created_step"):
             if getattr(self, name).shape[0] != points:
                 raise ValueError(
                     f"CutSurface.{name} has {getattr(self, name).shape[0]} rows, expected {points}"
@@ -130,8 +114,8 @@ class CutSurface:
     # -- construction --------------------------------------------------------------------------------
 
     @classmethod
-    def empty(cls, parameters: TriangulationParameters | None = None) -> CutSurface:
-        """A surface with no points, triangulating with ``parameters`` (defaults when None)."""
+    def empty(cls) -> CutSurface:
+        """A surface with no points."""
         return cls(
             rest_points=np.zeros((0, 3)),
             tet_indices=np.zeros(0, dtype=np.int64),
@@ -139,118 +123,7 @@ class CutSurface:
             created_step=np.zeros(0, dtype=np.int64),
             triangles=np.zeros((0, 3), dtype=np.int64),
             triangle_created_step=np.zeros(0, dtype=np.int64),
-            normals=np.zeros((0, 3)),
-            parameters=parameters or TriangulationParameters(),
         )
-
-    def with_points(
-        self,
-        rest_points: np.ndarray,
-        tet_indices: np.ndarray,
-        barycentric: np.ndarray,
-        step: int,
-        *,
-        normals: np.ndarray | None = None,
-    ) -> CutSurface:
-        """A new surface with points added and triangles added around them only.
-
-        Parameters
-        ----------
-        rest_points : New points in rest coordinates [m] (equation 4 with the rest node positions),
-            shape (k, 3).
-        tet_indices : Tissue tetrahedron of each new point, shape (k,).
-        barycentric : Barycentric coordinates of each new point in its tetrahedron, summing to one,
-            shape (k, 4).
-        step : Time step of the addition, >= the step of every existing point.
-        normals : Optional unit normals of the new points in the rest state (e.g. the cut plane's normal),
-            shape (k, 3); when given, the existing normals are kept and none is estimated. When None, the
-            normals of the whole cloud are estimated by a local plane fit (``parameters.normal_estimation``).
-
-        Returns
-        -------
-        The grown surface; ``self`` unchanged when ``k == 0`` (no triangulation without new points). Existing
-        points and triangles keep their indices and values; new points are appended, and so are new triangles,
-        each having at least one new point as a vertex.
-        """
-        rest_points, tet_indices, barycentric, step, normals = self._check_new_points(
-            rest_points, tet_indices, barycentric, step, normals
-        )
-        added = rest_points.shape[0]
-        if added == 0:
-            return self
-        points = np.concatenate([self.rest_points, rest_points])
-        started = time.perf_counter()
-        if normals is None:
-            all_normals = estimate_normals(points, self.triangles, self.parameters)
-        else:
-            all_normals = np.concatenate([self.normals, normals])
-        normal_seconds = time.perf_counter() - started
-        started = time.perf_counter()
-        new_triangles = triangulate_incremental(
-            points, all_normals, self.triangles, self.point_count, self.parameters
-        )
-        triangulation_seconds = time.perf_counter() - started
-        report = TriangulationReport(
-            step=step,
-            new_point_count=added,
-            new_triangle_count=int(new_triangles.shape[0]),
-            normal_seconds=normal_seconds,
-            triangulation_seconds=triangulation_seconds,
-        )
-        logger.debug("cut surface: %s", report)
-        return CutSurface(
-            rest_points=points,
-            tet_indices=np.concatenate([self.tet_indices, tet_indices]),
-            barycentric=np.concatenate([self.barycentric, barycentric]),
-            created_step=np.concatenate([self.created_step, np.full(added, step, dtype=np.int64)]),
-            triangles=np.concatenate([self.triangles, new_triangles]),
-            triangle_created_step=np.concatenate(
-                [self.triangle_created_step, np.full(new_triangles.shape[0], step, dtype=np.int64)]
-            ),
-            normals=all_normals,
-            parameters=self.parameters,
-            last_triangulation=report,
-        )
-
-    def _check_new_points(self, rest_points, tet_indices, barycentric, step, normals) -> tuple:
-        rest_points = np.asarray(rest_points, dtype=float)
-        if rest_points.ndim != 2 or rest_points.shape[1] != 3:
-            raise ValueError(f"rest_points must have shape (k, 3), got {rest_points.shape}")
-        added = rest_points.shape[0]
-        tet_indices = np.asarray(tet_indices)
-        barycentric = np.asarray(barycentric, dtype=float)
-        if tet_indices.shape != (added,) or not (
-            tet_indices.size == 0 or np.issubdtype(tet_indices.dtype, np.integer)
-        ):
-            raise ValueError(f"tet_indices must be integers of shape ({added},), got {tet_indices.shape}")
-        if barycentric.shape != (added, 4):
-            raise ValueError(f"barycentric must have shape ({added}, 4), got {barycentric.shape}")
-        if not (np.all(np.isfinite(rest_points)) and np.all(np.isfinite(barycentric))):
-            raise ValueError("rest_points and barycentric must be finite")
-        if added and tet_indices.min() < 0:
-            raise ValueError(f"tet_indices must be >= 0, got {int(tet_indices.min())}")
-        sums = barycentric.sum(axis=1)
-        bad = np.flatnonzero(np.abs(sums - 1.0) > _BARYCENTRIC_SUM_TOLERANCE)
-        if bad.size:
-            raise ValueError(
-                f"barycentric coordinates of new point {int(bad[0])} sum to {sums[bad[0]]!r}, not 1 "
-                f"(tolerance {_BARYCENTRIC_SUM_TOLERANCE})"
-            )
-        if not isinstance(step, int | np.integer) or step < 0:
-            raise ValueError(f"step must be an integer >= 0, got {step!r}")
-        if self.point_count and step < int(self.created_step.max()):
-            raise ValueError(
-                f"step = {step} is before the latest addition (step {int(self.created_step.max())})"
-            )
-        if normals is not None:
-            normals = np.asarray(normals, dtype=float)
-            lengths = np.linalg.norm(normals, axis=1) if normals.ndim == 2 else None
-            if normals.shape != (added, 3) or not np.all(np.isfinite(normals)) or np.any(lengths == 0.0):
-                raise ValueError(
-                    f"normals must be finite, non-zero, of shape ({added}, 3), got {normals.shape}"
-                )
-            normals = normals / lengths[:, None]
-        return rest_points, tet_indices.astype(np.int64), barycentric, int(step), normals
 
     # -- sizes and topology --------------------------------------------------------------------------
 
@@ -334,21 +207,6 @@ class CutSurface:
         vertex /= np.maximum(np.linalg.norm(vertex, axis=1, keepdims=True), 1e-300)
         normals = np.einsum("qv,qvj->qj", weights, vertex[self.triangles[triangle]])
         return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
-
-    def triangle_normals(self, points: np.ndarray) -> np.ndarray:
-        """Unit normals (b − a) × (c − a) of the triangles on given point positions (rest or deformed).
-
-        Parameters
-        ----------
-        points : Cut points [m], shape (point_count, 3), e.g. from `deformed_points`.
-
-        Returns
-        -------
-        Unit normals, shape (triangle_count, 3); zero for degenerate triangles.
-        """
-        from refsim.geometry.closest import triangle_normals
-
-        return triangle_normals(self._check_surface_points(points)[self.triangles])
 
     def _check_surface_points(self, points: np.ndarray) -> np.ndarray:
         points = np.asarray(points, dtype=float)

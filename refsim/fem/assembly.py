@@ -18,11 +18,11 @@ round-off (tests/fem/test_assembly.py).
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import scipy.sparse as sp
 
 from refsim.geometry.rotations import polar_rotation_one
+from refsim.kernel_cache import numba
 
 __all__ = ["FreePattern", "assemble_free_system"]
 

@@ -22,14 +22,13 @@ from collections.abc import Callable
 import numpy as np
 import scipy.sparse as sp
 
-from refsim.fem.compliance import Exact, Precomputed, Refreshed
+from refsim.fem.compliance import STRATEGY_VARIANTS, Exact, Refreshed, make_strategy
 from refsim.fem.linear import SuperLUSolver, linear_solver_info
 from refsim.fem.threads import hot_path_threads, thread_settings
 from refsim.fem.tissue import TissueModel, TissueState
 from refsim.materials import HookeMaterial
 
 __all__ = [
-    "bench_tissue",
     "bench_strategies",
     "bench_scaling",
     "superlu_reference_ms",
@@ -93,32 +92,6 @@ def superlu_reference_ms(model: TissueModel, repeats: int = 3) -> float:
         matrix = model.assemble_step(state, _DT).matrix
         solver = SuperLUSolver("COLAMD")
         return _best_ms(lambda: solver.factorise(matrix), repeats)[0]
-
-
-def _strategy(name: str, refresh_every: int, against_exact: bool, linear_solver: str):
-    if name == "exact":
-        return Exact(linear_solver=linear_solver)
-    if name == "refreshed":
-        return Refreshed(
-            refresh_every=refresh_every, linear_solver=linear_solver, against_exact=against_exact
-        )
-    if name == "refreshed_first_order":
-        return Refreshed(
-            refresh_every=refresh_every,
-            linear_solver=linear_solver,
-            against_exact=against_exact,
-            compliance_update="first_order",
-        )
-    if name == "refreshed_stale":
-        return Refreshed(
-            refresh_every=refresh_every,
-            linear_solver=linear_solver,
-            against_exact=against_exact,
-            compliance_update="stale",
-        )
-    if name == "precomputed":
-        return Precomputed(linear_solver=linear_solver, against_exact=against_exact)
-    raise ValueError(f"strategy {name!r}: expected exact, refreshed or precomputed")
 
 
 def _run_strategy(
@@ -198,13 +171,7 @@ def _advance(model, body, state, drive, rows, lam) -> TissueState:
 def bench_strategies(
     cells: int = 8,
     *,
-    strategies: tuple[str, ...] = (
-        "exact",
-        "refreshed",
-        "refreshed_first_order",
-        "refreshed_stale",
-        "precomputed",
-    ),
+    strategies: tuple[str, ...] = STRATEGY_VARIANTS,
     steps: int = 30,
     shear: float = 0.01,
     refresh_every: int = 10,
@@ -228,13 +195,22 @@ def bench_strategies(
     reference = superlu_reference_ms(model, repeats=5)
     results = []
     for name in strategies:
-        strategy = _strategy(name, refresh_every, against_exact and name != "exact", linear_solver)
+        strategy = make_strategy(
+            name,
+            refresh_every=refresh_every,
+            against_exact=against_exact and name != "exact",
+            linear_solver=linear_solver,
+        )
         _run_strategy(model, strategy, 1, shear, rows)  # warm-up: numba compilation
         results.append(_run_strategy(model, strategy, steps, shear, rows))
         if against_exact and name != "exact":
             # Timings without the error bookkeeping (it runs an exact factorisation each step)
             timed = _run_strategy(
-                model, _strategy(name, refresh_every, False, linear_solver), steps, shear, rows
+                model,
+                make_strategy(name, refresh_every=refresh_every, linear_solver=linear_solver),
+                steps,
+                shear,
+                rows,
             )
             errors = {
                 k: results[-1][k] for k in ("free_motion_error", "compliance_error", "correction_error")
@@ -258,7 +234,7 @@ def bench_scaling(
     *,
     steps: int = 10,
     refresh_every: int = 10,
-    strategies: tuple[str, ...] = ("exact", "refreshed", "refreshed_first_order", "refreshed_stale"),
+    strategies: tuple[str, ...] = tuple(name for name in STRATEGY_VARIANTS if name != "precomputed"),
     linear_solver: str = "auto",
     max_step_seconds: float = 30.0,
 ) -> list[dict[str, float | int]]:
@@ -284,7 +260,11 @@ def bench_scaling(
         }
         for name in strategies:
             result = _run_strategy(
-                model, _strategy(name, refresh_every, False, linear_solver), steps, 0.01, rows
+                model,
+                make_strategy(name, refresh_every=refresh_every, linear_solver=linear_solver),
+                steps,
+                0.01,
+                rows,
             )
             if name == "exact":
                 row["exact_factorisation_ms"] = result["factorisation_ms"]
@@ -375,70 +355,3 @@ def format_rows(rows: list[dict], keys: list[str] | None = None) -> str:
     lines = ["  ".join(f"{k:>{w}}" for k, w in zip(keys, widths, strict=True))]
     lines += ["  ".join(f"{c:>{w}}" for c, w in zip(line, widths, strict=True)) for line in cells]
     return "\n".join(lines)
-
-
-def bench_tissue(
-    cells_per_axis: tuple[int, ...] = (8, 16, 24),
-    repeats: int = 3,
-    *,
-    max_factorisation_seconds: float = 60.0,
-) -> list[dict[str, float | int]]:
-    """Time the stages of one tissue step on cube meshes (the former bench; kept for its callers).
-
-    Returns
-    -------
-    One dict per size: ``cells_per_axis``, ``node_count``, ``tet_count``, ``dof_count``, ``setup_ms``,
-    ``rotations_ms`` (the compiled polar decomposition), ``assembly_ms`` (compiled co-rotation and assembly
-    into the free pattern), ``factorisation_ms`` (the default linear solver), ``solve_ms``, ``superlu_ms``
-    (SuperLU COLAMD).
-    """
-    if repeats < 1:
-        raise ValueError(f"repeats must be >= 1, got {repeats!r}")
-    rows: list[dict[str, float | int]] = []
-    for cells in cells_per_axis:
-        row = _bench_one(int(cells), repeats)
-        logger.info("tissue bench: %s", row)
-        rows.append(row)
-        if max(row["factorisation_ms"], row["superlu_ms"]) > 1e3 * max_factorisation_seconds:
-            logger.warning(
-                "factorisation took > %.0f s on %d cells per axis: larger sizes skipped",
-                max_factorisation_seconds,
-                cells,
-            )
-            break
-    return rows
-
-
-def _bench_one(cells: int, repeats: int) -> dict[str, float | int]:
-    """Timings of one cube size (see :func:`bench_tissue`)."""
-    start = time.perf_counter()
-    model = cube_model(int(cells))
-    setup_ms = 1e3 * (time.perf_counter() - start)
-    rest = model.rest_positions
-    positions = rest + 0.01 * _CUBE_SIZE * np.sin(20.0 * rest / _CUBE_SIZE)
-    positions[model.fixed_nodes] = rest[model.fixed_nodes]
-    state = TissueState(positions=positions, velocities=np.zeros_like(rest))
-    with hot_path_threads():
-        model.assemble_step(state, _DT)  # compile
-        rotations_ms, _ = _best_ms(lambda: model.element_rotations(state.positions), repeats)
-        assembly_ms, system = _best_ms(lambda: model.assemble_step(state, _DT), repeats)
-        body = Exact().bind()
-        body.step(system)
-        factor_repeats = repeats if cells <= 16 else 1
-        factorisation_ms, _ = _best_ms(lambda: body._solver.factorise(system.matrix), factor_repeats)
-        solve_ms, _ = _best_ms(lambda: body._solver.solve(system.rhs), repeats)
-        superlu = SuperLUSolver("COLAMD")
-        superlu_ms, _ = _best_ms(lambda: superlu.factorise(system.matrix), 1)
-    row = {
-        "cells_per_axis": int(cells),
-        "node_count": model.node_count,
-        "tet_count": model.tet_count,
-        "dof_count": model.dof_count,
-        "setup_ms": setup_ms,
-        "rotations_ms": rotations_ms,
-        "assembly_ms": assembly_ms,
-        "factorisation_ms": factorisation_ms,
-        "solve_ms": solve_ms,
-        "superlu_ms": superlu_ms,
-    }
-    return row

@@ -44,6 +44,8 @@ from refsim.fem.threads import hot_path_threads
 
 __all__ = [
     "STRATEGIES",
+    "STRATEGY_VARIANTS",
+    "W_UPDATES",
     "StepSystem",
     "StepCompliance",
     "BodyCompliance",
@@ -52,9 +54,23 @@ __all__ = [
     "Precomputed",
     "make_strategy",
     "pcg",
+    "strategy_variant",
 ]
 
+#: The compliance strategies (a scene's ``compliance.strategy``).
 STRATEGIES = ("exact", "refreshed", "precomputed")
+#: How the refreshed strategy updates W between factorisations (:class:`Refreshed`'s ``compliance_update``, a
+#: scene's ``compliance.w_update``); the first is the default.
+W_UPDATES = ("pcg", "first_order", "stale")
+#: Every strategy with each of its W updates, by the names benchmarks use: "refreshed" with the default
+#: update, "refreshed_<update>" with another.
+STRATEGY_VARIANTS = tuple(
+    variant
+    for name in STRATEGIES
+    for variant in (
+        (name, *(f"{name}_{update}" for update in W_UPDATES[1:])) if name == "refreshed" else (name,)
+    )
+)
 
 
 @dataclass(eq=False)
@@ -585,9 +601,9 @@ class Refreshed:
             raise ValueError(f"tolerance = {self.tolerance!r}: expected a number in (0, 1)")
         if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
             raise ValueError(f"max_iterations = {self.max_iterations!r}: expected an integer >= 1")
-        if self.compliance_update not in ("pcg", "stale", "first_order"):
+        if self.compliance_update not in W_UPDATES:
             raise ValueError(
-                f"compliance_update = {self.compliance_update!r}: expected 'pcg', 'stale' or 'first_order'"
+                f"compliance_update = {self.compliance_update!r}: expected one of {', '.join(W_UPDATES)}"
             )
 
     def bind(self) -> BodyCompliance:
@@ -686,6 +702,15 @@ class Precomputed:
         return _PrecomputedBody(self)
 
 
+def strategy_variant(variant: str) -> tuple[str, str]:
+    """The strategy and W update of a name of :data:`STRATEGY_VARIANTS` ("refreshed_stale" ->
+    ("refreshed", "stale"); a strategy alone has the default update)."""
+    if variant not in STRATEGY_VARIANTS:
+        raise ValueError(f"compliance strategy {variant!r}: expected one of {', '.join(STRATEGY_VARIANTS)}")
+    name, _, update = variant.partition("_")
+    return name, update or W_UPDATES[0]
+
+
 def make_strategy(
     name: str = "exact",
     *,
@@ -693,19 +718,25 @@ def make_strategy(
     linear_solver: str = "auto",
     against_exact: bool = False,
     tolerance: float = 1e-10,
-    w_update: str = "pcg",
+    w_update: str | None = None,
 ):
-    """The strategy value for a scene's ``compliance`` section.
+    """The one factory of compliance strategies: a scene's ``compliance`` section, or a benchmark's variant.
 
     Parameters
     ----------
-    name : "exact", "refreshed" or "precomputed".
+    name : A strategy of :data:`STRATEGIES`, or a variant of :data:`STRATEGY_VARIANTS` ("refreshed_stale"),
+        which also sets the W update.
     refresh_every : Of :class:`Refreshed`.
     linear_solver : "auto", "pardiso", "cholmod" or "superlu".
-    against_exact : Report errors against exact each step (fast strategies only).
+    against_exact : Report errors against exact each step (fast strategies only; ignored by exact).
     tolerance : PCG tolerance of the fast strategies.
-    w_update : Of :class:`Refreshed` (its ``compliance_update``): "pcg" or "stale".
+    w_update : Of :class:`Refreshed` (its ``compliance_update``), one of :data:`W_UPDATES`; None: the
+        variant's, else "pcg". A variant's update and another ``w_update`` together are an error.
     """
+    name, update = strategy_variant(name)
+    if w_update is not None and update != W_UPDATES[0] and w_update != update:
+        raise ValueError(f"compliance strategy {name}_{update}: its W update is {update!r}, not {w_update!r}")
+    w_update = w_update or update
     if name == "exact":
         return Exact(linear_solver=linear_solver)
     if name == "refreshed":
@@ -716,6 +747,4 @@ def make_strategy(
             against_exact=against_exact,
             compliance_update=w_update,
         )
-    if name == "precomputed":
-        return Precomputed(tolerance=tolerance, linear_solver=linear_solver, against_exact=against_exact)
-    raise ValueError(f"compliance strategy {name!r}: expected one of {', '.join(STRATEGIES)}")
+    return Precomputed(tolerance=tolerance, linear_solver=linear_solver, against_exact=against_exact)

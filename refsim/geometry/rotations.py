@@ -6,8 +6,9 @@ All functions take and return stacks: rotation vectors of shape (k, 3) [rad] and
 
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from refsim.kernel_cache import numba
 
 __all__ = [
     "skew",

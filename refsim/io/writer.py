@@ -633,9 +633,9 @@ class ResultWriter:
     # ------------------------------------------------------------------ helpers
 
     def _set_code_names(self) -> None:
-        from refsim.constraints.rows import KIND_NAMES, SOURCE_NAMES
+        from refsim.constraints.rows import ROW_KIND_NAMES, SOURCE_NAMES
 
-        self._datasets["constraints/kind"].attrs["names"] = list(KIND_NAMES)
+        self._datasets["constraints/kind"].attrs["names"] = list(ROW_KIND_NAMES)
         self._datasets["constraints/source"].attrs["names"] = list(SOURCE_NAMES)
 
     def _entry_shape(self, spec: DatasetSpec) -> tuple[int, ...]:

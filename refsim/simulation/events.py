@@ -45,7 +45,7 @@ from refsim.constraints import (
     points_beyond_tip,
 )
 from refsim.constraints.cut import crack_tip_compression, cut_criterion, inserted_arc
-from refsim.cutting import CutGrowth, TriangulationParameters
+from refsim.cutting import CutGrowth
 from refsim.cutting.growth import advance_front, crack_tip_targets, move_front, start_strip
 from refsim.geometry import TetLocator
 from refsim.scene import Scene
@@ -155,11 +155,6 @@ class EventRules:
                 tets=tets,
                 point_spacing=cutting.point_spacing,
                 extent=cutting.extent,
-                parameters=TriangulationParameters.from_degrees(
-                    min_angle=cutting.min_angle,
-                    max_angle=cutting.max_angle,
-                    max_surface_angle=cutting.max_normal_angle,
-                ),
             )
 
     def apply(

@@ -144,7 +144,7 @@ class RunSummary:
             f"cut surface: {self.cut_points} points, {self.cut_triangles} triangles; {count} triangulations "
             f"in {cutting_steps} cutting steps (one every {cutting_steps / count:.1f} steps), "
             f"first {1e3 * seconds[0]:.1f} ms "
-            f"(includes loading open3d and the compiled kernels), then {1e3 * later.mean():.2f} ms on average"
+            f"(includes compiling or loading the kernels), then {1e3 * later.mean():.2f} ms on average"
         )
 
     def format_table(self) -> str:

@@ -7,7 +7,7 @@ table :data:`refsim.solvers.laws.LAWS`.
 from refsim.solvers.exact import available_backends, solve_exact
 from refsim.solvers.gauss_seidel import solve_gauss_seidel
 from refsim.solvers.laws import LAW_NAMES, LAWS, Law
-from refsim.solvers.problem import KIND_NAMES, ConstraintProblem
+from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.readers import read_fclib, read_problem, read_siconos
 from refsim.solvers.report import SolverReport
 from refsim.solvers.residual import (
@@ -21,7 +21,6 @@ from refsim.solvers.residual import (
 )
 
 __all__ = [
-    "KIND_NAMES",
     "LAWS",
     "LAW_NAMES",
     "Law",

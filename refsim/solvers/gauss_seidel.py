@@ -31,9 +31,9 @@ from __future__ import annotations
 import logging
 import time
 
-import numba
 import numpy as np
 
+from refsim.kernel_cache import numba
 from refsim.solvers.laws import CONTACT, block_arrays, gauss_seidel_sweep, natural_map_blocks
 from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.report import SolverReport

@@ -32,8 +32,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
-import numba
 import numpy as np
+
+from refsim.kernel_cache import numba
 
 __all__ = [
     "BILATERAL",

@@ -24,10 +24,10 @@ from __future__ import annotations
 
 import warnings
 
-import numba
 import numpy as np
 import scipy.linalg
 
+from refsim.kernel_cache import numba
 from refsim.solvers.problem import ConstraintProblem
 
 __all__ = ["LemkeResult", "lemke_applicable", "solve_lemke", "solve_lcp_lemke"]

@@ -6,9 +6,9 @@ above). Used by the Newton kernel of :mod:`refsim.solvers.newton`.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
+from refsim.kernel_cache import numba
 from refsim.solvers.laws import CONTACT, GROUP_FRICTION
 
 #: Dense systems with fewer rows than this are solved by the compiled elimination :func:`_small_lu_inplace`.

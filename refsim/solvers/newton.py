@@ -30,12 +30,12 @@ import time
 import warnings
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 import scipy.linalg
 import scipy.sparse as sparse
 import scipy.sparse.linalg as sparse_linalg
 
+from refsim.kernel_cache import numba
 from refsim.solvers.gauss_seidel import _data_from_error, _data_residual, _residual
 from refsim.solvers.laws import (
     CONTACT,

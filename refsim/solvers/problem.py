@@ -13,10 +13,7 @@ import numpy as np
 
 from refsim.solvers.laws import LAW_FIELDS, LAW_NAMES, LAWS, all_finite, friction_groups, relative_asymmetry
 
-__all__ = ["ConstraintProblem", "KIND_NAMES", "LAW_NAMES"]
-
-#: Former name of :data:`refsim.solvers.laws.LAW_NAMES` (the solver's row kinds are its laws).
-KIND_NAMES = LAW_NAMES
+__all__ = ["ConstraintProblem", "LAW_NAMES"]
 
 
 def _law_fields(cls):

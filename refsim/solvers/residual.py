@@ -22,9 +22,9 @@ references of these units. A solver reports ``converged`` only when both residua
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
+from refsim.kernel_cache import numba
 from refsim.solvers.laws import LAW_NAMES, block_arrays, natural_map_blocks
 from refsim.solvers.problem import ConstraintProblem
 

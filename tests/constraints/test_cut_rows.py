@@ -9,7 +9,7 @@ import pytest
 
 from refsim.constraints import BILATERAL, CUT_BORDER, CUT_SLIDE, UNILATERAL
 from refsim.constraints.cut import strip_cut_block
-from refsim.cutting import CutGrowth, TriangulationParameters
+from refsim.cutting import CutGrowth
 from refsim.cutting.growth import start_strip
 from refsim.mesh import box_mesh
 from tests.constraints.conftest import rigid_needle, still_geometry
@@ -29,7 +29,6 @@ def planar_strip():
         tets=mesh.tets,
         point_spacing=SPACING,
         extent=2e-3,
-        parameters=TriangulationParameters.from_degrees(min_angle=10, max_angle=120, max_surface_angle=45),
     )
     path = np.linspace([0.0041, 0.0063, 0.012], [0.0041, 0.0063, 0.004], 17)
     cut, strip = start_strip(growth, None, path, C_HAT, mesh.rest_positions, 1, extent=2e-3)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from refsim.cutting import CutGrowth, TriangulationParameters
+from refsim.cutting import CutGrowth
 from refsim.cutting.growth import advance_front, start_strip
 from refsim.cutting.metrics import surface_topology
 from refsim.cutting.strip import locate_material_points, strip_triangles
@@ -43,7 +43,7 @@ def test_a_column_that_did_not_advance_leaves_no_degenerate_triangle():
 @pytest.fixture(scope="module")
 def growth():
     mesh = box_mesh(size=(0.012, 0.012, 0.012), cells=(6, 6, 6))
-    return CutGrowth(mesh.rest_positions, mesh.tets, SPACING, 2e-3, TriangulationParameters())
+    return CutGrowth(mesh.rest_positions, mesh.tets, SPACING, 2e-3)
 
 
 def test_the_crack_tip_advances_to_the_pushed_material_point_and_layers_follow(growth):

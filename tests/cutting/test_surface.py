@@ -1,11 +1,13 @@
-"""CutSurface: rest-state storage (the paper's equation 4), deformed mapping, border, closest points."""
+"""CutSurface: rest-state storage (the paper's equation 4), deformed mapping, border, closest points; surfaces
+laid as strips (refsim.cutting.strip: layers of points joined column by column)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from refsim.cutting import CutSurface, TriangulationParameters
+from refsim.cutting import CutSurface
+from refsim.cutting.strip import append_points, strip_triangles
 
 SPACING = 0.5e-3  # [m]
 
@@ -43,19 +45,29 @@ def mesh():
     return kuhn_box(3, 10 * SPACING)
 
 
+def grid_triangles(layers: np.ndarray) -> np.ndarray:
+    """Triangles joining consecutive layers (point indices, shape (l, c)), shape (2(l − 1)(c − 1), 3)."""
+    pairs = zip(layers[:-1], layers[1:], strict=True)
+    return np.concatenate([strip_triangles(back, front) for back, front in pairs])
+
+
 @pytest.fixture(scope="module")
 def strip(mesh):
-    """A 6 × 8 planar grid (z = 2.3 spacings, in the box), grown in two batches, with its tissue mapping."""
+    """A 6 × 8 planar grid (z = 2.3 spacings, in the box) laid in two batches of three layers of 8 columns,
+    with its tissue mapping."""
     positions, tets = mesh
     i, j = np.meshgrid(np.arange(6), np.arange(8), indexing="ij")
     points = np.stack([(j + 1) * SPACING, (i + 2) * SPACING, np.full(i.shape, 2.3 * SPACING)], -1).reshape(
         -1, 3
     )
     tet, barycentric = locate(points, positions, tets)
-    surface = CutSurface.empty(TriangulationParameters(normal_estimation="pca"))
-    for step, part in enumerate(np.split(np.arange(48), [24])):
+    layers = np.arange(48).reshape(6, 8)
+    surface = CutSurface.empty()
+    for step, rows in enumerate((slice(0, 3), slice(2, 6))):  # the second batch joins on layer 2
+        part = np.arange(24) + 24 * step
         rest = np.einsum("pk,pki->pi", barycentric[part], positions[tets[tet[part]]])  # equation 4
-        surface = surface.with_points(rest, tet[part], barycentric[part], 10 * step)
+        triangles = grid_triangles(layers[rows])
+        surface = append_points(surface, rest, tet[part], barycentric[part], 10 * step, triangles)
     return surface, points
 
 
@@ -157,12 +169,20 @@ def test_closest_points_is_vectorised_over_many_queries(strip):
     assert triangle.shape == (500,)
 
 
-def test_triangle_normals_follow_the_point_normals(strip):
+def test_the_strip_is_oriented(strip):
+    # Every triangle of a planar strip has the same unit normal, and the interpolated normals (the cut rows')
+    # at any point of any triangle are that normal.
     surface, _ = strip
-    normals = surface.triangle_normals(surface.rest_points)
-    reference = surface.normals[surface.triangles].sum(axis=1)
-    assert np.all(np.einsum("ti,ti->t", normals, reference) > 0)
-    np.testing.assert_allclose(np.abs(normals[:, 2]), 1.0, rtol=0, atol=1e-12)
+    corners = surface.rest_points[surface.triangles]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    np.testing.assert_allclose(normals, np.tile(normals[0], (surface.triangle_count, 1)), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.abs(normals[0]), [0.0, 0.0, 1.0], rtol=0, atol=1e-12)
+    weights = np.random.default_rng(7).dirichlet(np.ones(3), size=surface.triangle_count)
+    interpolated = surface.interpolated_normals(
+        surface.rest_points, np.arange(surface.triangle_count), weights
+    )
+    np.testing.assert_allclose(interpolated, normals, rtol=0, atol=1e-12)
 
 
 def test_deformed_points_reject_a_mesh_that_does_not_match(strip, mesh):
@@ -179,46 +199,14 @@ def test_closest_points_need_triangles():
         CutSurface.empty().closest_points(np.zeros((1, 3)), np.zeros((0, 3)))
 
 
-@pytest.mark.parametrize(
-    ("change", "message"),
-    [
-        ({"rest_points": np.zeros((2, 2))}, "rest_points"),
-        ({"tet_indices": np.zeros(3, int)}, "tet_indices"),
-        ({"tet_indices": np.array([0, -1])}, "tet_indices"),
-        ({"barycentric": np.full((2, 4), 0.3)}, "sum to"),
-        ({"barycentric": np.full((2, 3), 0.25)}, "barycentric"),
-        ({"step": -1}, "step"),
-        ({"step": 0.5}, "step"),
-        ({"normals": np.zeros((2, 3))}, "normals"),
-        ({"rest_points": np.array([[np.nan, 0, 0], [0, 0, 0]])}, "finite"),
-    ],
-)
-def test_with_points_validates_its_input(change, message):
-    arguments = {
-        "rest_points": np.zeros((2, 3)),
-        "tet_indices": np.zeros(2, int),
-        "barycentric": np.full((2, 4), 0.25),
-        "step": 0,
-    }
-    arguments.update(change)
-    with pytest.raises(ValueError, match=message):
-        CutSurface.empty().with_points(**arguments)
-
-
-def test_steps_cannot_go_back(strip):
-    surface, _ = strip
-    with pytest.raises(ValueError, match="step"):
-        surface.with_points(np.ones((1, 3)), np.zeros(1, int), np.full((1, 4), 0.25), 3)
-
-
-def test_report_of_the_last_triangulation(strip):
+def test_report_of_the_last_addition(strip):
     surface, _ = strip
     report = surface.last_triangulation
     assert report.step == 10 and report.new_point_count == 24
     assert report.new_triangle_count == surface.triangle_count - int(
         np.sum(surface.triangle_created_step == 0)
     )
-    assert report.seconds >= report.triangulation_seconds > 0
+    assert report.new_triangle_count == 2 * 3 * 7
 
 
 def test_closest_point_on_an_interior_ridge_edge_is_inside():
@@ -228,8 +216,9 @@ def test_closest_point_on_an_interior_ridge_edge_is_inside():
     i, j = np.meshgrid(np.arange(5), np.arange(7), indexing="ij")
     x, y = j.reshape(-1) * SPACING, i.reshape(-1) * SPACING
     points = np.column_stack([x, y, -np.tan(np.radians(10.0)) * np.abs(x - 3 * SPACING)])
-    surface = CutSurface.empty(TriangulationParameters(normal_estimation="pca")).with_points(
-        points, np.zeros(35, int), np.full((35, 4), 0.25), 0, normals=np.tile([0.0, 0, 1], (35, 1))
+    triangles = grid_triangles(np.arange(35).reshape(5, 7))  # layers along y, the ridge on column 3
+    surface = append_points(
+        CutSurface.empty(), points, np.zeros(35, int), np.full((35, 4), 0.25), 0, triangles
     )
     assert surface.triangle_count == 2 * 4 * 6
     queries = np.array([[3 * SPACING, 2.5 * SPACING, 1e-3], [3 * SPACING, -0.5 * SPACING, 1e-3]])

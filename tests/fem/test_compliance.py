@@ -263,11 +263,24 @@ def test_pcg_solves_columns_to_their_tolerance():
         ({"name": "fast"}, "compliance strategy"),
         ({"name": "refreshed", "refresh_every": 0}, "refresh_every"),
         ({"linear_solver": "umfpack"}, "linear solver"),
+        ({"name": "refreshed_fast"}, "refreshed_first_order"),
+        ({"name": "refreshed_stale", "w_update": "pcg"}, "W update"),
+        ({"name": "refreshed", "w_update": "second_order"}, "compliance_update"),
     ],
 )
 def test_bad_strategy_values_are_named(kwargs, match):
     with pytest.raises(ValueError, match=match):
         make_strategy(**kwargs).bind()
+
+
+def test_every_strategy_variant_is_made_by_the_one_factory():
+    from refsim.fem.compliance import STRATEGIES, STRATEGY_VARIANTS, W_UPDATES
+
+    made = {variant: make_strategy(variant) for variant in STRATEGY_VARIANTS}
+    assert {strategy.name for strategy in made.values()} == set(STRATEGIES)
+    updates = [made[v].compliance_update for v in STRATEGY_VARIANTS if isinstance(made[v], Refreshed)]
+    assert sorted(updates) == sorted(W_UPDATES)  # refreshed once with each update
+    assert make_strategy("refreshed", w_update="stale") == make_strategy("refreshed_stale")
 
 
 def test_needle_behind_the_interface_equals_its_implicit_euler_system():

@@ -1,9 +1,10 @@
-"""refsim's compiled kernels are cached per version of its sources (refsim.numba_cache_directory).
+"""refsim's compiled kernels are cached per version of its sources (refsim.kernel_cache).
 
 Reference: numba's caching notes, "Cache limitations": a cached function is invalidated only when its own
 source file changes, not when a function it calls from another file does. The tests check the digest that
-names the directory (it must change with any source file) and that importing refsim points numba at it, or
-leaves an explicit NUMBA_CACHE_DIR alone.
+names the directory (it must change with any source file), that importing a module with kernels points numba
+at it before its kernels are defined, or leaves an explicit NUMBA_CACHE_DIR alone, and that ``import refsim``
+alone neither imports numba nor creates the directory (the set-up happens on first use of a kernel module).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import sys
 from pathlib import Path
 
 import refsim
-from refsim import source_digest
+from refsim.kernel_cache import source_digest
 
 PACKAGE = Path(refsim.__file__).resolve().parent
 
@@ -46,19 +47,26 @@ def test_digest_ignores_compiled_caches(tmp_path):
     assert source_digest(copy) == before
 
 
-def _cache_dir_in_subprocess(environment: dict[str, str]) -> str:
-    code = "import refsim, numba; print(numba.config.CACHE_DIR)"
+def _cache_dirs_in_subprocess(environment: dict[str, str]) -> tuple[Path, Path]:
+    """numba's cache directory, and where a kernel of refsim.solvers.laws writes its cache (its dispatcher's
+    cache path, fixed when the kernel is decorated), in a fresh interpreter."""
+    code = (
+        "import numba, refsim.solvers.laws as laws; "
+        "print(numba.config.CACHE_DIR); print(laws.all_finite._cache._cache_path)"
+    )
     done = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, env=environment, check=True
     )
-    return done.stdout.strip()
+    directory, kernel = done.stdout.strip().splitlines()[-2:]
+    return Path(directory), Path(kernel)
 
 
-def test_import_points_numba_at_the_digest_directory(tmp_path):
+def test_a_kernel_module_points_numba_at_the_digest_directory(tmp_path):
     environment = {key: value for key, value in os.environ.items() if key != "NUMBA_CACHE_DIR"}
     environment["XDG_CACHE_HOME"] = str(tmp_path)
     expected = tmp_path / "refsim" / "numba" / source_digest()
-    assert Path(_cache_dir_in_subprocess(environment)) == expected
+    directory, kernel = _cache_dirs_in_subprocess(environment)
+    assert directory == expected and kernel.is_relative_to(expected)
     assert expected.is_dir()
 
 
@@ -66,5 +74,6 @@ def test_an_explicit_numba_cache_dir_is_kept(tmp_path):
     environment = dict(
         os.environ, NUMBA_CACHE_DIR=str(tmp_path / "mine"), XDG_CACHE_HOME=str(tmp_path / "xdg")
     )
-    assert _cache_dir_in_subprocess(environment) == str(tmp_path / "mine")
+    directory, kernel = _cache_dirs_in_subprocess(environment)
+    assert directory == tmp_path / "mine" and kernel.is_relative_to(tmp_path / "mine")
     assert not (tmp_path / "xdg").exists()

@@ -119,8 +119,3 @@ def test_the_builtin_scenes_pass_every_check(caplog):
         for name in ("cube", "cube_cut"):
             build_models(load_scene(name, ["mesh.cells=[4, 4, 4]"]))
     assert not caplog.records
-
-
-def test_min_angle_against_max_angle():
-    message = _message("cutting.max_angle=60", "cutting.min_angle=60")
-    assert "cutting.min_angle" in message and "max_angle" in message and "override --set" in message

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from refsim.solvers import KIND_NAMES, ConstraintProblem
+from refsim.solvers import LAW_NAMES, ConstraintProblem
 
 
 def _base(**overrides):
@@ -23,7 +23,7 @@ def _base(**overrides):
 def test_valid_problem_has_read_only_arrays_and_kinds():
     problem = _base(name="ok")
     assert problem.row_count == 4
-    assert [KIND_NAMES[k] for k in problem.row_kinds()] == [
+    assert [LAW_NAMES[k] for k in problem.row_kinds()] == [
         "bilateral",
         "bilateral",
         "group_friction",
