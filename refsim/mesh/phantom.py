@@ -15,6 +15,7 @@ optional dependency: ``pip install gmsh``) and ``studies/liver_phantom/generate.
 
 from __future__ import annotations
 
+import signal
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -131,7 +132,11 @@ def generate_liver_phantom(mesh_size: float, *, optimize: bool = True) -> TetMes
         raise ImportError("generating the liver phantom needs the gmsh package: pip install gmsh") from error
 
     size_mm = 1e3 * mesh_size
+    # Gmsh's initialisation resets SIGPIPE to its default (kill the process); keep the caller's handler.
+    sigpipe = signal.getsignal(signal.SIGPIPE) if hasattr(signal, "SIGPIPE") else None
     gmsh.initialize(["refsim"], readConfigFiles=False)
+    if sigpipe is not None:
+        signal.signal(signal.SIGPIPE, sigpipe)
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.option.setNumber("General.NumThreads", 1)
