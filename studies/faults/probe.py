@@ -1133,7 +1133,8 @@ def main(argv: list[str] | None = None) -> int:
             expected = f"{case.code}" + (" + warning" if case.warning else "")
             note = result["message"] + (f" ({result['problems']})" if result.get("problems") else "")
             lines.append(
-                f"| {index} | {case.kind} | {expected} | {result['code']} | {result['verdict']} | {note} |"
+                f"| {index} | {case.kind.replace('|', chr(92) + '|')} | {expected} | {result['code']} | "
+                f"{result['verdict']} | {note} |"
             )
         lines += ["", f"**{len(rows)} kinds: {summary}.**"]
         Path(args.markdown).write_text("\n".join(lines) + "\n", encoding="utf-8")
