@@ -111,7 +111,8 @@ def start_client(scheduler: str | None = None, workers: int | None = None):
 
     The LocalCluster listens on the loopback interface only (scheduler, workers and dashboard on
     ``127.0.0.1``), authenticates its processes with TLS certificates made for it (``security=True``: a Dask
-    client of another user of the machine cannot submit tasks, which are pickled code), and keeps its scratch
+    client of another user of the machine cannot submit tasks, which are pickled code; without the package
+    ``cryptography`` it warns and runs without TLS), and keeps its scratch
     space in a private temporary folder (mode 0700, removed with the cluster). A ``scheduler`` is trusted
     completely: it and its workers run the study's code and read and write its files; give only the address
     of a scheduler you started (docs/studies.md, "Security").
@@ -138,13 +139,24 @@ def start_client(scheduler: str | None = None, workers: int | None = None):
         os.environ.setdefault(name, value)  # inherited by the worker processes
     scratch = tempfile.mkdtemp(prefix="refsim-dask-")  # mode 0700: this user only
     try:
+        import cryptography  # noqa: F401 - Dask makes the cluster's TLS certificates with it
+
+        tls = True
+    except ImportError:
+        tls = False
+        logger.warning(
+            "the Python package 'cryptography' is not installed: the LocalCluster listens on %s without TLS, "
+            "so another user of this machine could submit tasks to it (pip install cryptography)",
+            LOOPBACK,
+        )
+    try:
         cluster = LocalCluster(
             n_workers=count,
             threads_per_worker=1,
             processes=True,
             host=LOOPBACK,
             dashboard_address=f"{LOOPBACK}:0",
-            security=True,
+            security=tls,
             local_directory=scratch,
             env=dict(BLAS_ENVIRONMENT),
             silence_logs=logging.ERROR,
