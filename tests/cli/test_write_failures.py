@@ -71,7 +71,7 @@ def test_a_time_step_below_round_off_is_refused(tmp_path, capsys):
 
 
 def test_a_mesh_that_does_not_fit_in_memory_is_refused_before_it_is_generated(tmp_path, capsys, monkeypatch):
-    """mesh.cells = 256³ (the documented maximum: 100,663,296 tets) needs 1.2 TiB at 12,800 bytes per tet;
+    """mesh.cells = 256³ (the documented maximum: 100,663,296 tets) needs 1.2 TiB at 13,000 bytes per tet;
     with 2 GiB available it is refused before box_mesh allocates anything (before: a MemoryError)."""
     import refsim.scene.build as build
 
@@ -80,5 +80,5 @@ def test_a_mesh_that_does_not_fit_in_memory_is_refused_before_it_is_generated(tm
     code = main(["run", "cube", "-o", str(tmp_path / "run.h5"), "--set", "mesh.cells=[256, 256, 256]"])
     assert code == 2
     error = capsys.readouterr().err
-    assert "mesh.cells = [256, 256, 256]: 100663296 tetrahedra need about 1.2e+03 GiB" in error
-    assert "at most about 167772 tetrahedra fit" in error
+    assert "mesh.cells = [256, 256, 256]: 100663296 tetrahedra need about 1.22e+03 GiB" in error
+    assert "at most about 165191 tetrahedra fit" in error
