@@ -719,6 +719,12 @@ CASES = [
         small=False,
     ),
     Case(
+        "spacing_below_memory",
+        "insertion.spacing = 1e-9 m (a dense compliance of 10^14 rows squared)",
+        s("insertion.spacing=1e-9"),
+        fragments=("insertion.spacing", "GiB"),
+    ),
+    Case(
         "dt_below_roundoff",
         "time.dt = 1e-300 s (below round-off)",
         s("time.dt=1e-300; time.duration=1e-300"),
