@@ -102,6 +102,9 @@ class _PipeSafe(io.TextIOBase):
     def encoding(self):
         return getattr(self._stream, "encoding", "utf-8")
 
+    def __getattr__(self, name: str):  # buffer, errors, ...: those of the wrapped stream
+        return getattr(self._stream, name)
+
 
 def _write_failed(path: Path, what: str, error: OSError, *partial: Path):
     """The error for a failed write of ``path``: partial files removed; a full disk (ENOSPC, EDQUOT, EIO,
