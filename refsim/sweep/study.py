@@ -104,6 +104,17 @@ def _check_workers(workers) -> int:
     return workers
 
 
+def _ignore_sigpipe() -> None:
+    """Ignore SIGPIPE at the C level, as Python does at start-up: a library may have reset it (gmsh's
+    initialize does), and then a write to a socket a worker closed kills this process (exit 141) instead of
+    raising BrokenPipeError. Only the main thread can set a handler."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+
+
 def start_client(scheduler: str | None = None, workers: int | None = None):
     """A Dask client on ``scheduler``, or on a new LocalCluster of ``workers`` processes (the cores by
     default), one thread and one BLAS thread each. Returns (client, cluster); cluster is None for a scheduler.
@@ -126,6 +137,7 @@ def start_client(scheduler: str | None = None, workers: int | None = None):
     from distributed import Client, LocalCluster
 
     if scheduler:
+        _ignore_sigpipe()
         try:
             return Client(scheduler, timeout=SCHEDULER_TIMEOUT), None
         except (OSError, TimeoutError, ValueError, TypeError) as error:
@@ -135,6 +147,7 @@ def start_client(scheduler: str | None = None, workers: int | None = None):
                 "tcp://127.0.0.1:8786, or omit --scheduler for a local cluster"
             ) from None
     count = _check_workers(workers)
+    _ignore_sigpipe()
     for name, value in BLAS_ENVIRONMENT.items():
         os.environ.setdefault(name, value)  # inherited by the worker processes
     scratch = tempfile.mkdtemp(prefix="refsim-dask-")  # mode 0700: this user only
