@@ -16,7 +16,10 @@ import importlib.util
 import io
 import logging
 import os
+import signal
 import sys
+import threading
+import time
 from pathlib import Path
 
 __all__ = ["main"]
@@ -116,7 +119,10 @@ class _PipeSafe(io.TextIOBase):
                 self._break()
 
     def isatty(self) -> bool:
-        return not self.broken and self._stream.isatty()
+        try:
+            return not self.broken and self._stream.isatty()
+        except ValueError:  # the wrapped stream was closed (a library kept this object past main)
+            return False
 
     def fileno(self) -> int:
         return self._stream.fileno()
@@ -124,6 +130,9 @@ class _PipeSafe(io.TextIOBase):
     @property
     def encoding(self):
         return getattr(self._stream, "encoding", "utf-8")
+
+    def __getattr__(self, name: str):  # buffer, errors, ...: those of the wrapped stream
+        return getattr(self._stream, name)
 
 
 def _write_failed(path: Path, what: str, error: OSError, *partial: Path):
@@ -681,6 +690,10 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
     )
+    # A closed pipe must raise BrokenPipeError (handled by _PipeSafe), not kill the process: Python ignores
+    # SIGPIPE at start-up, but a library may have reset it at the C level (gmsh's initialize does).
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGPIPE, signal.SIG_IGN)
     stdout = sys.stdout
     sys.stdout = _PipeSafe(stdout)
     try:

@@ -28,6 +28,7 @@ __all__ = [
     "build_mesh",
     "check_boundary_motion",
     "check_held",
+    "check_insertion_spacing",
     "check_models",
     "check_time_resolution",
     "fixed_nodes",
@@ -62,10 +63,10 @@ class SceneModels:
 
 
 #: Peak memory of a run per tetrahedron [bytes]: the marginal peak RSS of the cube scene (5 steps) between
-#: 8³ and 20³ cells was 10.0 to 12.5 kB per tetrahedron (docs/faults.md, "Memory"); the larger is taken. The
-#: factorisation's fill grows faster than the tet count, so for larger meshes it underestimates: a mesh it
-#: refuses certainly does not fit.
-BYTES_PER_TET = 12_500
+#: 4³ and 20³ cells was 9,184 to 12,822 bytes per tetrahedron (docs/faults.md, "Memory"); the largest,
+#: rounded up. The factorisation's fill grows faster than the tet count, so for larger meshes it
+#: underestimates: a mesh it refuses certainly does not fit.
+BYTES_PER_TET = 13_000
 
 
 def available_memory() -> int | None:
@@ -286,6 +287,7 @@ def build_models(scene: Scene) -> SceneModels:
             raise SceneError(f"{scene.source}: trajectory.file: {error}") from None
     check_models(scene, mesh, trajectory)
     check_time_resolution(scene, mesh, trajectory)
+    check_insertion_spacing(scene, mesh, trajectory)
     needle = None
     if not scene.needle.rigid:
         from refsim.fem.needle import NeedleModel  # only flexible needles need the beam model
@@ -438,6 +440,61 @@ def check_time_resolution(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -
             f"({resolution:.3g} m: {10**RESOLVED_DIGITS} float64 epsilons of them); the run would make no "
             f"progress: use time.dt >= {resolution / speed:.3g} s"
         )
+
+
+#: Constraint rows per insertion point: two bilateral rows normal to the needle and one shaft friction row
+#: (refsim.constraints.insertion).
+ROWS_PER_INSERTION_POINT = 3
+
+
+def _tip_travel(scene: Scene, trajectory: Trajectory) -> float:
+    """An upper bound of the needle tip's path length over the run [m]: base travel plus length × angle
+    turned, per trajectory segment, over [0, duration]."""
+    times = np.asarray(trajectory.times, dtype=float)
+    if times.size < 2:
+        return 0.0
+    directions = np.asarray(trajectory.directions, dtype=float)
+    turn = np.arccos(np.clip(np.einsum("ij,ij->i", directions[:-1], directions[1:]), -1.0, 1.0))
+    lengths = np.linalg.norm(np.diff(trajectory.base_positions, axis=0), axis=1) + scene.needle.length * turn
+    covered = np.clip((scene.time.duration - times[:-1]) / np.diff(times), 0.0, 1.0)  # the run's share
+    return float(np.sum(lengths * covered))
+
+
+def check_insertion_spacing(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
+    """The smallest insertion spacing d_i the machine can run: every insertion point adds
+    ROWS_PER_INSERTION_POINT constraint rows and the compliance W of the rows is a dense matrix of 8-byte
+    numbers, so the points the run can create (the inserted length over d_i) must leave W within the memory
+    available now. The inserted length is bounded by the needle's length, the tissue's size (bounding-box
+    diagonal) and the tip's path over the run.
+
+    Raises
+    ------
+    SceneError
+        Naming insertion.spacing, the points and the memory W would need, the memory available and the
+        smallest d_i that fits.
+    """
+    free = available_memory()
+    if free is None:
+        return
+    rest = mesh.rest_positions
+    inserted = min(
+        scene.needle.length,
+        float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0))),
+        _tip_travel(scene, trajectory),
+    )
+    points = inserted / scene.insertion.spacing + 1.0
+    rows = ROWS_PER_INSERTION_POINT * points
+    needed = 8.0 * rows**2
+    if needed <= free:
+        return
+    smallest = ROWS_PER_INSERTION_POINT * inserted / (np.sqrt(free / 8.0) - ROWS_PER_INSERTION_POINT)
+    raise SceneError(
+        f"{scene.source}: insertion.spacing = {scene.insertion.spacing!r} m (d_i): up to {points:.3g} "
+        f"insertion points along the {inserted:.3g} m the needle can enter (the least of needle.length, the "
+        f"tissue's size and the tip's path over the run), {ROWS_PER_INSERTION_POINT} constraint rows each, "
+        f"whose dense compliance matrix needs {needed / 2**30:.3g} GiB; {free / 2**30:.3g} GiB are "
+        f"available: use insertion.spacing >= {smallest:.3g} m"
+    )
 
 
 #: Steps evaluated at once by the boundary motion check (bounds its memory: 3 arrays of this many rows).

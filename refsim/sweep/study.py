@@ -104,6 +104,17 @@ def _check_workers(workers) -> int:
     return workers
 
 
+def _ignore_sigpipe() -> None:
+    """Ignore SIGPIPE at the C level, as Python does at start-up: a library may have reset it (gmsh's
+    initialize does), and then a write to a socket a worker closed kills this process (exit 141) instead of
+    raising BrokenPipeError. Only the main thread can set a handler."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+
+
 def start_client(scheduler: str | None = None, workers: int | None = None):
     """A Dask client on ``scheduler``, or on a new LocalCluster of ``workers`` processes (the cores by
     default), one thread and one BLAS thread each. Returns (client, cluster); cluster is None for a scheduler.
@@ -111,7 +122,8 @@ def start_client(scheduler: str | None = None, workers: int | None = None):
 
     The LocalCluster listens on the loopback interface only (scheduler, workers and dashboard on
     ``127.0.0.1``), authenticates its processes with TLS certificates made for it (``security=True``: a Dask
-    client of another user of the machine cannot submit tasks, which are pickled code), and keeps its scratch
+    client of another user of the machine cannot submit tasks, which are pickled code; without the package
+    ``cryptography`` it warns and runs without TLS), and keeps its scratch
     space in a private temporary folder (mode 0700, removed with the cluster). A ``scheduler`` is trusted
     completely: it and its workers run the study's code and read and write its files; give only the address
     of a scheduler you started (docs/studies.md, "Security").
@@ -125,6 +137,7 @@ def start_client(scheduler: str | None = None, workers: int | None = None):
     from distributed import Client, LocalCluster
 
     if scheduler:
+        _ignore_sigpipe()
         try:
             return Client(scheduler, timeout=SCHEDULER_TIMEOUT), None
         except (OSError, TimeoutError, ValueError, TypeError) as error:
@@ -134,9 +147,21 @@ def start_client(scheduler: str | None = None, workers: int | None = None):
                 "tcp://127.0.0.1:8786, or omit --scheduler for a local cluster"
             ) from None
     count = _check_workers(workers)
+    _ignore_sigpipe()
     for name, value in BLAS_ENVIRONMENT.items():
         os.environ.setdefault(name, value)  # inherited by the worker processes
     scratch = tempfile.mkdtemp(prefix="refsim-dask-")  # mode 0700: this user only
+    try:
+        import cryptography  # noqa: F401 - Dask makes the cluster's TLS certificates with it
+
+        tls = True
+    except ImportError:
+        tls = False
+        logger.warning(
+            "the Python package 'cryptography' is not installed: the LocalCluster listens on %s without TLS, "
+            "so another user of this machine could submit tasks to it (pip install cryptography)",
+            LOOPBACK,
+        )
     try:
         cluster = LocalCluster(
             n_workers=count,
@@ -144,7 +169,7 @@ def start_client(scheduler: str | None = None, workers: int | None = None):
             processes=True,
             host=LOOPBACK,
             dashboard_address=f"{LOOPBACK}:0",
-            security=True,
+            security=tls,
             local_directory=scratch,
             env=dict(BLAS_ENVIRONMENT),
             silence_logs=logging.ERROR,

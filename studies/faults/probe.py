@@ -719,6 +719,12 @@ CASES = [
         small=False,
     ),
     Case(
+        "spacing_below_memory",
+        "insertion.spacing = 1e-9 m (a dense compliance of 10^14 rows squared)",
+        s("insertion.spacing=1e-9"),
+        fragments=("insertion.spacing", "GiB"),
+    ),
+    Case(
         "dt_below_roundoff",
         "time.dt = 1e-300 s (below round-off)",
         s("time.dt=1e-300; time.duration=1e-300"),
@@ -1133,7 +1139,8 @@ def main(argv: list[str] | None = None) -> int:
             expected = f"{case.code}" + (" + warning" if case.warning else "")
             note = result["message"] + (f" ({result['problems']})" if result.get("problems") else "")
             lines.append(
-                f"| {index} | {case.kind} | {expected} | {result['code']} | {result['verdict']} | {note} |"
+                f"| {index} | {case.kind.replace('|', chr(92) + '|')} | {expected} | {result['code']} | "
+                f"{result['verdict']} | {note} |"
             )
         lines += ["", f"**{len(rows)} kinds: {summary}.**"]
         Path(args.markdown).write_text("\n".join(lines) + "\n", encoding="utf-8")

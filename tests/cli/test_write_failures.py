@@ -71,8 +71,8 @@ def test_a_time_step_below_round_off_is_refused(tmp_path, capsys):
 
 
 def test_a_mesh_that_does_not_fit_in_memory_is_refused_before_it_is_generated(tmp_path, capsys, monkeypatch):
-    """mesh.cells = 256³ (the documented maximum: 100,663,296 tets) needs 1.1 TiB at 12.5 kB per tet; with
-    2 GiB available it is refused before box_mesh allocates anything (before: a MemoryError)."""
+    """mesh.cells = 256³ (the documented maximum: 100,663,296 tets) needs 1.2 TiB at 13,000 bytes per tet;
+    with 2 GiB available it is refused before box_mesh allocates anything (before: a MemoryError)."""
     import refsim.scene.build as build
 
     monkeypatch.setattr(build, "available_memory", lambda: 2 * 2**30)
@@ -80,5 +80,19 @@ def test_a_mesh_that_does_not_fit_in_memory_is_refused_before_it_is_generated(tm
     code = main(["run", "cube", "-o", str(tmp_path / "run.h5"), "--set", "mesh.cells=[256, 256, 256]"])
     assert code == 2
     error = capsys.readouterr().err
-    assert "mesh.cells = [256, 256, 256]: 100663296 tetrahedra need about 1.17e+03 GiB" in error
-    assert "at most about 171798 tetrahedra fit" in error
+    assert "mesh.cells = [256, 256, 256]: 100663296 tetrahedra need about 1.22e+03 GiB" in error
+    assert "at most about 165191 tetrahedra fit" in error
+
+
+def test_an_insertion_spacing_too_small_for_the_memory_is_refused(tmp_path, capsys, monkeypatch):
+    """d_i = 1e-7 m on the cube: the tip's path over the run is 0.019 m (17 mm deep from 2 mm above), so up
+    to 1.9e5 points, 5.7e5 rows, a dense W of 8 × (5.7e5)² bytes = 2.4e3 GiB; with 2 GiB available the
+    smallest d_i is 3 × 0.019 / (√(2 GiB / 8) − 3) = 3.5e-6 m."""
+    import refsim.scene.build as build
+
+    monkeypatch.setattr(build, "available_memory", lambda: 2 * 2**30)
+    code = main(["run", "cube", "-o", str(tmp_path / "run.h5"), "--set", "insertion.spacing=1e-7"])
+    assert code == 2
+    error = capsys.readouterr().err
+    assert "insertion.spacing = 1e-07 m (d_i): up to 1.9e+05 insertion points along the 0.019 m" in error
+    assert "needs 2.42e+03 GiB; 2 GiB are available: use insertion.spacing >= 3.48e-06 m" in error

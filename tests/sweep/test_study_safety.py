@@ -99,3 +99,28 @@ def test_a_failed_run_is_named_with_its_reason(tmp_path, capsys):
     assert main(["study", str(study), "-o", str(output), "--workers", "1", "-q", "--no-warm-up"]) == 3
     err = capsys.readouterr().err
     assert "(bad spacing): failed:" in err and "insertion.spacing" in err and "s_runs/" in err
+
+
+def _sigpipe_ignored() -> bool:
+    """SIGPIPE's disposition at the C level (SigIgn of /proc/self/status), not Python's cached one."""
+    import signal
+
+    mask = int(Path("/proc/self/status").read_text().split("SigIgn:")[1].split()[0], 16)
+    return bool(mask & (1 << (signal.SIGPIPE - 1)))
+
+
+def test_a_study_ignores_sigpipe_again_after_a_library_reset_it():
+    """gmsh.initialize() resets SIGPIPE to its default (kill) at the C level; a Dask client in that process
+    then died with exit 141 when a worker closed its socket (the test suite, after the phantom tests)."""
+    import ctypes
+    import signal
+
+    libc = ctypes.CDLL(None)
+    libc.signal.restype = ctypes.c_void_p
+    libc.signal(int(signal.SIGPIPE), ctypes.c_void_p(0))  # SIG_DFL, behind Python's back, as gmsh does
+    try:
+        assert not _sigpipe_ignored()
+        study_module._ignore_sigpipe()
+        assert _sigpipe_ignored()
+    finally:
+        signal.signal(signal.SIGPIPE, signal.SIG_IGN)
