@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from refsim.cli import EXIT_FAILED, EXIT_INPUT, main
+from refsim.io.export import read_problem_set
 from refsim.reference import (
     build_reference,
     case_names,
@@ -23,6 +24,7 @@ from refsim.reference import (
     write_their_csv,
 )
 from refsim.reference.page import write_page
+from refsim.solvers import natural_residual
 
 CASES = ["cantilever", "puncture"]
 
@@ -87,7 +89,16 @@ def test_manifest_records_version_levels_and_checksums(package):
     assert (
         "cases/puncture/scene.toml" in written["files"] and "cases/puncture/problems.h5" in written["files"]
     )
-    assert written["cases"]["puncture"]["problems"]["count"] > 0
+    problems = written["cases"]["puncture"]["problems"]
+    assert problems["count"] == 20 and problems["recorded"] > 20
+    problem_set = read_problem_set(folder / "cases" / "puncture" / "problems.h5")
+    assert len(problem_set) == problems["count"]
+    for (
+        _,
+        problem,
+        multipliers,
+    ) in problem_set:  # each stored solution solves its problem (solve_exact, 1e-10)
+        assert natural_residual(problem, multipliers) <= 1e-8
     assert check_manifest(folder) == []
     target = folder / "cases" / "puncture" / "reference.csv"
     original = target.read_bytes()

@@ -14,7 +14,7 @@ from refsim.reference import build_reference, case_names, check_manifest, read_c
 @pytest.mark.slow
 def test_standard_level_builds_every_case(tmp_path):
     folder = tmp_path / "reference"
-    manifest = build_reference(folder, level="standard", workers=2, command="slow test")
+    manifest = build_reference(folder, level="standard", workers=1, command="slow test")
     assert set(manifest["cases"]) == set(case_names())
     assert check_manifest(folder) == []
     for name in manifest["cases"]:
