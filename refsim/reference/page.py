@@ -156,8 +156,7 @@ def _case_section(case, reference: dict, manifest_case: dict, figure: str | None
         lines.append(f"| {index + 1} | " + " | ".join(str(v[index]) for v in levels.values()) + " |")
     lines += [
         "",
-        f"Runs: {manifest_case['run_seconds']:.1f} s of run time; the case took "
-        f"{manifest_case['seconds']:.1f} s on the build machine.",
+        f"Run time: {manifest_case['run_seconds']:.1f} s (the sum over the levels' runs).",
         "",
         "| quantity | x | reference | U | U + T | method | observed order | order used | unit |",
         "|---|---|---|---|---|---|---|---|---|",
