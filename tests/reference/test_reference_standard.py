@@ -35,7 +35,7 @@ def test_paper_coupling_as_another_implementation(tmp_path):
     """The paper's bare line coupling (insertion.coupling = "paper") run as another implementation of the
     insertion case. Its redundant rows leave null-space multipliers whose self-equilibrated lateral forces
     inflate the shaft's Coulomb bound (docs/architecture.md, known limits), so its axial force is not the
-    well-posed coupling's: compare must fail it, by far more than the band."""
+    well-posed coupling's: compare must fail it at every sampling point of the curve."""
     from refsim.reference import compare, load_case
     from refsim.scene import load_scene
     from refsim.sweep.worker import run_scene
@@ -48,5 +48,4 @@ def test_paper_coupling_as_another_implementation(tmp_path):
     paper = tmp_path / "paper.h5"
     run_scene(load_scene(case.scene_path, [*overrides, 'insertion.coupling="paper"']), paper)
     item = next(c for c in compare("insertion", paper, folder) if c.quantity == "axial_force_depth")
-    assert not item.all_passed
-    assert np.nanmax(np.abs(item.theirs - item.reference) / item.band) > 10.0
+    assert not np.any(item.passed)
