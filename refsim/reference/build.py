@@ -139,7 +139,7 @@ def _study(case: Case, level: str):
         scene=str(case.scene_path),
         sweeps=tuple(sweeps),
         combine="zip",
-        overrides=("output.tissue_every=1000000",),
+        overrides=("output.tissue_every=1000000", *case.overrides),
         quantities=tuple(q.source for q in case.quantities if q.source) or ("needle_force@end",),
         source=str(case.path),
     )

@@ -145,8 +145,10 @@ def _case_section(case, reference: dict, manifest_case: dict, figure: str | None
     if case.note:
         lines += [f"**Note.** {case.note}", ""]
     if case.runner == "scene":
+        changed = "".join(f", with `{text}`" for text in case.overrides)
         lines.append(
-            f"Scene file: `refsim/reference/cases/{case.scene_path.name}`; case file: `{case.path.name}`."
+            f"Scene file: `refsim/reference/cases/{case.scene_path.name}`{changed}; "
+            f"case file: `{case.path.name}`."
         )
     else:
         lines.append(f"Case file: `{case.path.name}` (solved statically, `refsim.verification.needle`).")

@@ -24,6 +24,7 @@ from refsim.reference import (
     write_their_csv,
 )
 from refsim.reference.page import write_page
+from refsim.scene import load_scene
 from refsim.solvers import natural_residual
 
 CASES = ["cantilever", "puncture"]
@@ -208,7 +209,6 @@ def test_two_percent_stiffer_tissue_against_the_band(package, tmp_path):
     """Tissue E x 1.02 on the finest coarse level. Before the puncture the indentation force is linear in E
     (linear quasi-static elasticity; the stiffness damping scales with E too, only the tissue's inertia does
     not), so theirs = 1.02 f1; the band predicts the verdict of each sample."""
-    from refsim.scene import load_scene
     from refsim.sweep.worker import run_scene
 
     folder, _ = package
@@ -326,6 +326,10 @@ def test_case_files_are_validated(tmp_path):
     for name in case_names():
         case = load_case(name)
         assert len(case.level("coarse")[case.refine]) >= 3
+    # a variant of a scene: the paper's cut law on the laceration scene, an override of every run
+    variant = load_case("laceration_paper_law")
+    assert variant.overrides == ('cutting.law="paper"',)
+    assert load_scene(variant.scene_path, list(variant.overrides)).cutting.law == "paper"
     path = tmp_path / "broken.toml"
     path.write_text(
         '[case]\ntitle = "t"\nwhy = "w"\nsetup = "s"\nrefine = "mesh.cells"\nformal_order = 1\n'
@@ -344,6 +348,9 @@ def test_case_files_are_validated(tmp_path):
         load_case(path)
     path.write_text(path.read_text().replace("formal_order = 1", "formal_order = -1"))
     with pytest.raises(ValueError, match=r"\[case\] formal_order: -1: expected a number in \(0, 4\]"):
+        load_case(path)
+    path.write_text(path.read_text().replace("formal_order = -1", "formal_order = 1\nset = 3"))
+    with pytest.raises(ValueError, match=r"\[case\] set: 3: expected a list of 'section.key=value' strings"):
         load_case(path)
     with pytest.raises(ValueError, match="has no level 'finest'"):
         load_case("puncture").level("finest")
