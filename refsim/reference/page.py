@@ -40,7 +40,8 @@ Each case isolates one thing another implementation must get right, in the order
   tip cutting force;
 - `lateral_push`: the shaft's coupling across its axis, the tissue's lateral stiffness around an inserted
   needle (the quantity that the 1-D needle in a 3-D mesh gets wrong first);
-- `laceration`: the paper's cut: when it starts, the force while cutting, the area cut.
+- `laceration`, `laceration_paper_law`: the paper's cut: when it starts, the force while cutting, the area
+  cut, by the energy law (refsim's default) and by the paper's equation 3.
 
 Not in the set: withdrawal through a cut and the liver cases (breathing, flexible and rigid needle); their
 scenes exist (`refsim/scenes/`) but they have no case file yet.
