@@ -330,7 +330,7 @@ def _cmd_reference(args: argparse.Namespace) -> int:
     if args.action == "list":
         for name in case_names():
             case = load_case(name)
-            print(f"{name:<14} {case.title}  (levels: {', '.join(case.levels)})")
+            print(f"{name:<22} {case.title}  (levels: {', '.join(case.levels)})")
         return 0
     if args.action == "page":
         from refsim.reference.page import write_page
@@ -356,7 +356,7 @@ def _cmd_reference(args: argparse.Namespace) -> int:
     for name, case in manifest["cases"].items():
         for quantity, row in case["quantities"].items():
             print(
-                f"  {name:<14} {quantity:<24} {'/'.join(row['methods']):<22} "
+                f"  {name:<22} {quantity:<24} {'/'.join(row['methods']):<22} "
                 f"largest U/scale {row['largest_relative_uncertainty']:.3g}"
             )
     return 0

@@ -12,8 +12,9 @@ It writes the versioned data package (layout in ``docs/reference.md``)::
     DIR/cases/NAME/reference.csv           the same as CSV (the columns ``refsim compare`` reads, and more)
     DIR/cases/NAME/case.toml, scene.toml   the specification, as built
     DIR/cases/NAME/study.h5, study_runs/   the study file and every run's results file
-    DIR/cases/NAME/problems.h5, fclib/     the finest run's constraint problems with exact solutions; FCLib
-                                           files for the steps whose rows are pure frictional contact
+    DIR/cases/NAME/problems.h5, fclib/     20 of the finest run's constraint problems (evenly spaced steps)
+                                           with exact solutions; FCLib files for those whose rows are pure
+                                           frictional contact
     DIR/figures/NAME.png                   each quantity against refinement, with the reference band
 """
 
@@ -138,7 +139,7 @@ def _study(case: Case, level: str):
         scene=str(case.scene_path),
         sweeps=tuple(sweeps),
         combine="zip",
-        overrides=("output.tissue_every=1000000",),
+        overrides=("output.tissue_every=1000000", *case.overrides),
         quantities=tuple(q.source for q in case.quantities if q.source) or ("needle_force@end",),
         source=str(case.path),
     )
@@ -369,6 +370,42 @@ def _figure(path: Path, case: Case, spacings, answers) -> None:
     plt.close(figure)
 
 
+#: Constraint problems kept per case: evenly spaced over the finest run's recorded steps.
+PROBLEM_STEPS = 20
+
+
+def _export_problems(run_file: Path, folder: Path, count: int = PROBLEM_STEPS) -> dict:
+    """Export the finest run's constraint problems with their exact solutions (refsim.io.export), keeping
+    ``count`` steps evenly spaced over the run: ``problems.h5`` and, for the kept steps whose rows are pure
+    frictional contact, FCLib files in ``fclib/``. Returns {count, recorded, fclib}."""
+    import h5py
+
+    from refsim.io.export import export_problems
+
+    full, fclib = folder / "problems_all.h5.tmp", folder / "fclib"
+    export_problems(run_file, full, fclib_folder=fclib)
+    with h5py.File(full, "r") as source:
+        names = sorted(source["problems"])
+        picks = np.unique(np.linspace(0, len(names) - 1, min(count, len(names))).round().astype(int))
+        chosen = [names[i] for i in picks]
+        with h5py.File(folder / "problems.h5", "w") as target:
+            target.attrs.update(dict(source.attrs))
+            target.attrs["problem_count"] = len(chosen)
+            target.attrs["selection"] = f"{len(chosen)} of the {len(names)} recorded steps, evenly spaced"
+            group = target.create_group("problems")
+            for name in chosen:
+                source.copy(source[f"problems/{name}"], group, name=name)
+    full.unlink()
+    kept = {f"{name}.hdf5" for name in chosen}
+    for path in fclib.glob("*.hdf5"):
+        if path.name not in kept:
+            path.unlink()
+    written = len(list(fclib.glob("*.hdf5")))
+    if written == 0 and fclib.is_dir():
+        fclib.rmdir()
+    return {"count": len(chosen), "recorded": len(names), "fclib": written}
+
+
 def read_case_reference(folder, case_name: str) -> dict:
     """The answers of one case from a package: attributes, ``h``, and ``quantities`` {name: {kind, unit,
     x_unit, at, value, uncertainty, band, levels, order, gci, method, ...}}.
@@ -459,7 +496,6 @@ def build_reference(
     """
     from refsim import __version__
     from refsim.io import git_commit
-    from refsim.io.export import export_problems
 
     names = list(cases) if cases else case_names()
     loaded = [load_case(name) for name in names]
@@ -497,12 +533,7 @@ def build_reference(
             answers = _answers(case, spacings, values)
             _write_case_h5(folder / "reference.h5", case, level, spacings, answers, files, info, meta)
             _write_case_csv(folder / "reference.csv", case, answers)
-            problems = None
-            if files:
-                summary = export_problems(
-                    folder / files[-1], folder / "problems.h5", fclib_folder=folder / "fclib"
-                )
-                problems = {"count": summary["problems"], "fclib": len(summary["fclib"])}
+            problems = _export_problems(folder / files[-1], folder) if files else None
             if figures:
                 (output / "figures").mkdir(exist_ok=True)
                 _figure(output / "figures" / f"{case.name}.png", case, spacings, answers)

@@ -8,6 +8,7 @@ materials, needle, trajectory and every parameter, in SI units, commented). Case
     [case]
     title = "..."
     scene = "NAME.scene.toml"      # or runner = "cantilever" (the needle alone, solved statically)
+    set = ["section.key=value"]    # optional: overrides of the scene for every run (a variant of a scene)
     why = "..."                    # why another implementation needs this case
     setup = "..."                  # the set-up in words, enough to build it without refsim
     refine = "mesh.cells"          # the key whose value gives the refinement measure h = 1/value
@@ -136,6 +137,7 @@ class Case:
     quantities: tuple
     path: Path
     scene_path: Path | None = None
+    overrides: tuple = ()
     cantilever: dict = field(default_factory=dict)
     note: str = ""
 
@@ -272,6 +274,9 @@ def load_case(name_or_path) -> Case:
     formal_order = head["formal_order"]
     if not (isinstance(formal_order, (int, float)) and 0.0 < formal_order <= 4.0):
         _fail(path, "[case] formal_order", f"{formal_order!r}: expected a number in (0, 4]")
+    overrides = head.get("set", [])
+    if not isinstance(overrides, list) or not all(isinstance(v, str) for v in overrides):
+        _fail(path, "[case] set", f"{overrides!r}: expected a list of 'section.key=value' strings")
     levels = data.get("levels", {})
     if not levels:
         _fail(path, "[levels]", "no level")
@@ -303,6 +308,7 @@ def load_case(name_or_path) -> Case:
         quantities=quantities,
         path=path,
         scene_path=scene_path,
+        overrides=tuple(overrides),
         cantilever=dict(data.get("cantilever", {})),
         note=" ".join(str(head.get("note", "")).split()),
     )

@@ -29,10 +29,31 @@ This page is generated from a built package by `refsim reference page --package 
 numbers hold for the code and the level of that build (below). The physics is changing (friction, tip force,
 thin layers, withdrawal): rebuild the package and this page after such a change.
 
+## The set, and why these cases
+
+Each case isolates one thing another implementation must get right, in the order they build on each other:
+
+- `cantilever`: the needle alone (beam stiffness, then geometric nonlinearity), with the elastica as a closed
+  form;
+- `puncture`: the tip's unilateral contact on a deformable surface and the puncture event at f_p;
+- `insertion`: the shaft's coupling along its axis: insertion constraints, Coulomb friction on the grip, the
+  tip cutting force;
+- `lateral_push`: the shaft's coupling across its axis, the tissue's lateral stiffness around an inserted
+  needle (the quantity that the 1-D needle in a 3-D mesh gets wrong first);
+- `laceration`, `laceration_paper_law`: the paper's cut: when it starts, the force while cutting, the area
+  cut, by the energy law (refsim's default) and by the paper's equation 3.
+
+Not in the set: withdrawal through a cut and the liver cases (breathing, flexible and rigid needle); their
+scenes exist (`refsim/scenes/`) but they have no case file yet.
+
+Levels: `coarse` (2–4 cells: seconds a case; the default tests build it to check the machinery),
+`standard` (4–8 cells: the answers on this page, minutes on one machine), `fine` (8–16 cells, for a cluster;
+defined in the case files, not built for this page).
+
 ## Commands
 
     refsim reference list                                          # the cases
-    refsim reference build -o DIR [--level coarse|standard] [--cases NAME ...] [--workers N|--scheduler A]
+    refsim reference build -o DIR [--level standard] [--cases NAME ...] [--workers N] [--scheduler A]
     refsim reference page --package DIR -o docs/reference.md       # this page from a package
     refsim compare CASE THEIR.csv --reference DIR [-o FIG.png]     # score their results
 
@@ -108,9 +129,10 @@ A refsim results file (`.h5`) is read directly instead.
                                            order, gci, unit, x_unit)
     DIR/cases/NAME/case.toml, scene.toml   the specification as built
     DIR/cases/NAME/study.h5, study_runs/   the study file and each run's results file
-    DIR/cases/NAME/problems.h5, fclib/     every constraint problem of the finest run with its exact solution
-                                           (the problem-set format of refsim/io/export.py); FCLib files for
-                                           the steps whose rows are pure frictional contact
+    DIR/cases/NAME/problems.h5, fclib/     20 constraint problems of the finest run (steps evenly spaced)
+                                           with their exact solutions (the problem-set format of
+                                           refsim/io/export.py); FCLib files for those whose rows are pure
+                                           frictional contact (none while the f_p cap is a box row)
     DIR/figures/NAME.png                   each quantity against refinement with the reference band
 """
 
@@ -124,8 +146,10 @@ def _case_section(case, reference: dict, manifest_case: dict, figure: str | None
     if case.note:
         lines += [f"**Note.** {case.note}", ""]
     if case.runner == "scene":
+        changed = "".join(f", with `{text}`" for text in case.overrides)
         lines.append(
-            f"Scene file: `refsim/reference/cases/{case.scene_path.name}`; case file: `{case.path.name}`."
+            f"Scene file: `refsim/reference/cases/{case.scene_path.name}`{changed}; "
+            f"case file: `{case.path.name}`."
         )
     else:
         lines.append(f"Case file: `{case.path.name}` (solved statically, `refsim.verification.needle`).")
@@ -135,8 +159,7 @@ def _case_section(case, reference: dict, manifest_case: dict, figure: str | None
         lines.append(f"| {index + 1} | " + " | ".join(str(v[index]) for v in levels.values()) + " |")
     lines += [
         "",
-        f"Runs: {manifest_case['run_seconds']:.1f} s of run time; the case took "
-        f"{manifest_case['seconds']:.1f} s on the build machine.",
+        f"Run time: {manifest_case['run_seconds']:.1f} s (the sum over the levels' runs).",
         "",
         "| quantity | x | reference | U | U + T | method | observed order | order used | unit |",
         "|---|---|---|---|---|---|---|---|---|",

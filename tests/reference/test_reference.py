@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from refsim.cli import EXIT_FAILED, EXIT_INPUT, main
+from refsim.io.export import read_problem_set
 from refsim.reference import (
     build_reference,
     case_names,
@@ -23,6 +24,8 @@ from refsim.reference import (
     write_their_csv,
 )
 from refsim.reference.page import write_page
+from refsim.scene import load_scene
+from refsim.solvers import natural_residual
 
 CASES = ["cantilever", "puncture"]
 
@@ -87,7 +90,16 @@ def test_manifest_records_version_levels_and_checksums(package):
     assert (
         "cases/puncture/scene.toml" in written["files"] and "cases/puncture/problems.h5" in written["files"]
     )
-    assert written["cases"]["puncture"]["problems"]["count"] > 0
+    problems = written["cases"]["puncture"]["problems"]
+    assert problems["count"] == 20 and problems["recorded"] > 20
+    problem_set = read_problem_set(folder / "cases" / "puncture" / "problems.h5")
+    assert len(problem_set) == problems["count"]
+    for (
+        _,
+        problem,
+        multipliers,
+    ) in problem_set:  # each stored solution solves its problem (solve_exact, 1e-10)
+        assert natural_residual(problem, multipliers) <= 1e-8
     assert check_manifest(folder) == []
     target = folder / "cases" / "puncture" / "reference.csv"
     original = target.read_bytes()
@@ -197,7 +209,6 @@ def test_two_percent_stiffer_tissue_against_the_band(package, tmp_path):
     """Tissue E x 1.02 on the finest coarse level. Before the puncture the indentation force is linear in E
     (linear quasi-static elasticity; the stiffness damping scales with E too, only the tissue's inertia does
     not), so theirs = 1.02 f1; the band predicts the verdict of each sample."""
-    from refsim.scene import load_scene
     from refsim.sweep.worker import run_scene
 
     folder, _ = package
@@ -315,6 +326,10 @@ def test_case_files_are_validated(tmp_path):
     for name in case_names():
         case = load_case(name)
         assert len(case.level("coarse")[case.refine]) >= 3
+    # a variant of a scene: the paper's cut law on the laceration scene, an override of every run
+    variant = load_case("laceration_paper_law")
+    assert variant.overrides == ('cutting.law="paper"',)
+    assert load_scene(variant.scene_path, list(variant.overrides)).cutting.law == "paper"
     path = tmp_path / "broken.toml"
     path.write_text(
         '[case]\ntitle = "t"\nwhy = "w"\nsetup = "s"\nrefine = "mesh.cells"\nformal_order = 1\n'
@@ -333,6 +348,9 @@ def test_case_files_are_validated(tmp_path):
         load_case(path)
     path.write_text(path.read_text().replace("formal_order = 1", "formal_order = -1"))
     with pytest.raises(ValueError, match=r"\[case\] formal_order: -1: expected a number in \(0, 4\]"):
+        load_case(path)
+    path.write_text(path.read_text().replace("formal_order = -1", "formal_order = 1\nset = 3"))
+    with pytest.raises(ValueError, match=r"\[case\] set: 3: expected a list of 'section.key=value' strings"):
         load_case(path)
     with pytest.raises(ValueError, match="has no level 'finest'"):
         load_case("puncture").level("finest")
