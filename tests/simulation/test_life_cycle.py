@@ -185,3 +185,65 @@ def test_a_tip_cutting_force_above_the_puncture_force_is_reported(caplog):
     with caplog.at_level("WARNING", logger="refsim.scene"):
         load_scene("cube")
     assert not any("tip_cutting_force" in record.getMessage() for record in caplog.records)
+
+
+def _path_overrides(knots, direction):
+    """Overrides of a trajectory through ``knots``: (time [s], entry (x, y) on the top face [m], depth of the
+    tip below it along ``direction`` [m]; negative: above)."""
+    direction = np.asarray(direction, dtype=float)
+    direction /= np.linalg.norm(direction)
+    bases = [np.array([x, y, TOP]) + (d - NEEDLE_LENGTH) * direction for _, (x, y), d in knots]
+    fmt = lambda v: "[" + ", ".join(repr(float(c)) for c in v) + "]"  # noqa: E731
+    times = [t for t, _, _ in knots]
+    return (
+        f"trajectory.times={fmt(times)}",
+        "trajectory.base_positions=[" + ", ".join(fmt(b) for b in bases) + "]",
+        "trajectory.directions=[" + ", ".join(fmt(direction) for _ in times) + "]",
+        f"time.duration={times[-1]}",
+    )
+
+
+# Entries on the 4³ cube's top face (grid lines every 25 mm): inside a surface triangle, on a grid edge, at a
+# grid vertex; the second insertion enters 25 mm further along x, at the same kind of place.
+ENTRIES = {"face": (0.00123, 0.00231), "edge": (0.0, 0.00231), "vertex": (0.0, 0.0)}
+DIRECTIONS = {"0deg": (0.0, 0.0, -1.0), "30deg": (0.5, 0.0, -0.8660254037844386)}
+NEEDLES = {"rigid": (), "flexible": ("needle.rigid=false",)}
+LIFE = [
+    pytest.param(entry, direction, needle, solver, marks=[pytest.mark.slow] if slow else [])
+    for entry in ENTRIES
+    for direction in DIRECTIONS
+    for needle in NEEDLES
+    for solver in SOLVERS
+    for slow in [needle != "rigid" or solver != "gauss_seidel"]
+]
+
+
+@pytest.mark.parametrize(("entry", "direction", "needle", "solver"), LIFE)
+def test_insert_hold_withdraw_and_reinsert_elsewhere(entry, direction, needle, solver):
+    # Inserted 8 mm, held 0.2 s, pulled out to 2 mm above the surface, moved 25 mm along x in the air and
+    # inserted 8 mm again. Expected: two punctures, each at f_p (the capped tip contact: f_p to the solve's
+    # tolerance, docs/coupling.md), one withdrawal between them with no force in the air, the held force
+    # constant (stick), insertion points again after the second puncture.
+    x, y = ENTRIES[entry]
+    knots = [
+        (0.0, (x, y), -0.002),
+        (0.5, (x, y), 0.008),
+        (0.7, (x, y), 0.008),
+        (1.2, (x, y), -0.002),
+        (1.4, (x + 0.025, y), -0.002),
+        (1.9, (x + 0.025, y), 0.008),
+    ]
+    scene, records = _run(*NEEDLES[needle], *SOLVERS[solver], *_path_overrides(knots, DIRECTIONS[direction]))
+    punctures = [(r, e) for r in records for e in r.events if e.name == "puncture"]
+    withdrawals = [r for r in records if any(e.name == "withdrawal" for e in r.events)]
+    assert len(punctures) == 2 and len(withdrawals) == 1
+    assert punctures[0][0].step < withdrawals[0].step < punctures[1][0].step
+    f_p = scene.insertion.puncture_force
+    for _, event in punctures:
+        assert event.force == pytest.approx(f_p, rel=1e-6)
+    air = [r for r in records if withdrawals[0].step < r.step and r.time <= 1.4]
+    assert air and all(r.row_forces.size == 0 or not np.any(r.row_forces) for r in air)
+    held = np.array([r.needle_force for r in records if 0.6 <= r.time <= 0.7 + 1e-9])
+    tolerance = len(records) * scene.solver.tolerance * np.abs(held).max()
+    assert np.ptp(held, axis=0).max() <= tolerance, np.ptp(held, axis=0)
+    assert records[-1].insertion_point_count >= 0.5 * 0.008 / scene.insertion.spacing
