@@ -63,10 +63,12 @@ def find_surface_contact(
 
     With the needle's ``direction`` (unit, base to tip), the contact is with the surface the tip approaches
     from outside: faces whose outward normal n has n · direction > 0 face away from the needle (the far face
-    of a thin layer, which the tip could only reach from inside). When the closest point lies on one, the
-    contact is the closest point on the faces turned towards the needle (n · direction < 0), the ones a tip
-    can come through from outside: the tip meets the near face, and puncture happens there. (A face parallel
-    to the needle, n · direction = 0, is kept when it is the closest: a needle can slide along it.)
+    of a thin layer, which the tip could only reach from inside). When the tip is under such a face (inside
+    the tissue) and it holds the closest point, the contact is the closest point on the faces turned towards
+    the needle (n · direction < 0), the ones a tip can come through from outside: the tip meets the near face,
+    and puncture happens there. (A face parallel to the needle, n · direction = 0, is kept when it is the
+    closest: a needle can slide along it; a tip outside, beyond a face turned away, keeps that face: it moves
+    away from it.)
 
     Parameters
     ----------
@@ -76,7 +78,9 @@ def find_surface_contact(
     direction : The needle's unit direction at the tip, shape (3,), or None (any face).
     """
     found = projector.closest(np.asarray(tip, dtype=float)[None, :])
-    if direction is not None and float(found.normal[0] @ direction) > 0.0:
+    tip = np.asarray(tip, dtype=float)
+    under = float((tip - found.closest[0]) @ found.normal[0]) <= 0.0
+    if direction is not None and under and float(found.normal[0] @ direction) > 0.0:
         facing = np.flatnonzero(projector.normals @ np.asarray(direction, dtype=float) < 0.0)
         if facing.size:
             near = SurfaceProjector(projector.positions, np.asarray(faces)[facing]).closest(

@@ -92,6 +92,8 @@ PUNCTURE_TOLERANCE = 1e-6
 #: Relative tolerance of "a row at its force limit" for the crack front's rows (G_c ℓ_k) and the sliding rows
 #: at the front: a row that gave way carries its limit to the solve's accuracy (≤ 1e-8), far inside 1e-6.
 LIMIT_TOLERANCE = 1e-6
+#: Barycentric tolerance of the tip's location among the tets around its last one (the locator's default).
+TIP_TOLERANCE = 1e-12
 
 
 class LazyLocator:
@@ -250,10 +252,18 @@ class EventRules:
         """
         tip = np.asarray(tip, dtype=float)
         if hint >= 0:
-            candidates = np.unique(self._node_tets[self.tets[hint]].indices)
-            found, barycentric = TetLocator(positions, self.tets[candidates]).locate(tip[None, :])
-            if found[0] >= 0:
-                return int(candidates[found[0]]), barycentric[0]
+            nodes, incidence = self.tets[hint], self._node_tets
+            spans = zip(incidence.indptr[nodes], incidence.indptr[nodes + 1], strict=True)
+            candidates = np.unique(np.concatenate([incidence.indices[a:b] for a, b in spans]))
+            corners = positions[self.tets[candidates]]  # (c, 4, 3)
+            edges = np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1))  # (c, 3, 3)
+            valid = np.abs(np.linalg.det(edges)) > 0.0
+            local = np.linalg.solve(edges[valid], (tip - corners[valid, 0])[:, :, None])[:, :, 0]
+            barycentric = np.concatenate([1.0 - local.sum(axis=1, keepdims=True), local], axis=1)
+            inside = np.flatnonzero(barycentric.min(axis=1) >= -TIP_TOLERANCE)
+            if inside.size:
+                best = inside[np.argmax(barycentric[inside].min(axis=1))]
+                return int(candidates[valid][best]), barycentric[best]
         found, barycentric = TetLocator(positions, self.tets).locate(tip[None, :])
         return (int(found[0]), barycentric[0]) if found[0] >= 0 else (-1, None)
 
