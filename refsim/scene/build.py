@@ -32,7 +32,6 @@ __all__ = [
     "check_models",
     "check_time_resolution",
     "fixed_nodes",
-    "fixed_set_holds",
     "read_displacement_csv",
 ]
 
@@ -575,41 +574,9 @@ def check_boundary_motion(scene: Scene, mesh: TetMesh, motion) -> None:
             )
 
 
-def fixed_set_holds(rest_positions: np.ndarray, tets: np.ndarray, fixed: np.ndarray) -> list[tuple[int, int]]:
-    """The connected parts of the mesh the fixed nodes cannot hold: fewer than 3 non-collinear fixed nodes
-    (a part held at one node, or along one line, can still turn about it).
-
-    Parameters
-    ----------
-    rest_positions : Nodes [m], (n, 3). tets : Tetrahedra, (m, 4). fixed : Fixed node indices, (k,).
-
-    Returns
-    -------
-    (node count of the part, fixed nodes in it) of each part that is not held, largest part first.
-    """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    n = rest_positions.shape[0]
-    pairs = tets[:, [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]].reshape(-1, 2)  # tet edges
-    graph = coo_matrix((np.ones(pairs.shape[0]), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    count, labels = connected_components(graph, directed=False)
-    used = np.zeros(n, dtype=bool)
-    used[tets.ravel()] = True
-    size = float(np.linalg.norm(rest_positions.max(axis=0) - rest_positions.min(axis=0)))
-    loose = []
-    for part in np.unique(labels[used]):  # one iteration per connected part (a handful)
-        held = fixed[labels[fixed] == part]
-        points = rest_positions[held] - rest_positions[held].mean(axis=0) if held.size else np.zeros((0, 3))
-        singular = np.linalg.svd(points, compute_uv=False) if held.size >= 3 else np.zeros(1)
-        if held.size < 3 or singular[1] <= 1e-9 * size * np.sqrt(held.size):
-            loose.append((int(np.count_nonzero(labels == part)), int(held.size)))
-    return sorted(loose, reverse=True)
-
-
 def report_fixed_set(scene: Scene, mesh: TetMesh, fixed: np.ndarray) -> None:
-    """Log the fixed set (how many nodes, their bounding box) at load, and warn when it cannot hold a part of
-    the tissue (:func:`fixed_set_holds`): such a part has no static equilibrium."""
+    """Log the fixed set (how many nodes, their bounding box) at load; :func:`check_held` refuses a fixed set
+    that cannot hold every part of the tissue."""
     if fixed.size == 0:
         return
     box = mesh.rest_positions[fixed]
@@ -621,19 +588,6 @@ def report_fixed_set(scene: Scene, mesh: TetMesh, fixed: np.ndarray) -> None:
         np.round(box.min(axis=0), 6).tolist(),
         np.round(box.max(axis=0), 6).tolist(),
     )
-    for nodes, held in fixed_set_holds(mesh.rest_positions, mesh.tets, fixed):
-        logger.warning(
-            "%s: the fixed set (mesh.fixed_faces = %s, fixed_box = %s, fixed_nodes = %s) holds a connected "
-            "part of %d nodes by %d node(s)%s: it can turn about them; fix at least 3 non-collinear nodes "
-            "of each part (e.g. mesh.fixed_box around a face of the organ)",
-            scene.source,
-            list(scene.mesh.fixed_faces),
-            scene.mesh.fixed_box,
-            "given" if scene.mesh.fixed_nodes is not None else None,
-            nodes,
-            held,
-            "" if held < 3 else " on one line",
-        )
 
 
 def _fixed_nodes_or_error(scene: Scene, mesh: TetMesh) -> np.ndarray:

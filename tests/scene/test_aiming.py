@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from refsim.scene import SceneError, scene_from_dict
-from refsim.scene.build import build_mesh, build_models, fixed_nodes, fixed_set_holds
+from refsim.scene.build import build_mesh, build_models, check_held, fixed_nodes
 
 SCENES = Path(__file__).resolve().parents[2] / "refsim" / "scenes"
 
@@ -108,24 +108,23 @@ def test_the_fixed_set_is_reported_and_a_cube_clamped_at_its_base_is_held(caplog
     with caplog.at_level(logging.INFO, logger="refsim.scene"):
         build_models(_scene({"entry": [0, 0, 0.12], "depth": 0.01, "speed": 0.01}))
     assert "25 fixed tissue nodes of 125, within [-0.05, -0.05, 0.0] .. [0.05, 0.05, 0.0] m" in caplog.text
-    assert "can turn about them" not in caplog.text
 
 
-def test_an_organ_held_by_one_node_is_warned_about(caplog):
+def test_an_organ_held_by_one_node_is_refused():
     scene = _scene({"entry": [0, 0, 0.12], "depth": 0.01, "speed": 0.01}, fixed_faces=[], fixed_nodes=[0])
-    with caplog.at_level(logging.WARNING, logger="refsim.scene"):
+    with pytest.raises(SceneError, match=r"the tissue \(125 nodes.*only 1 held node"):
         build_models(scene)
-    assert "holds a connected part of 125 nodes by 1 node(s): it can turn about them" in caplog.text
 
 
-def test_fixed_nodes_on_one_line_do_not_hold_and_the_liver_phantom_on_zmin_is_held_by_one_node():
+def test_fixed_nodes_on_one_line_and_the_liver_phantom_held_on_zmin_by_one_node_are_refused():
     scene = _scene({"entry": [0, 0, 0.12], "depth": 0.01, "speed": 0.01})
     mesh = build_mesh(scene.mesh)
     rest = mesh.rest_positions
     edge = np.flatnonzero((np.abs(rest[:, 0] + 0.05) < 1e-12) & (np.abs(rest[:, 2]) < 1e-12))
-    assert edge.size == 5 and fixed_set_holds(rest, mesh.tets, edge) == [(125, 5)]
-    bottom = fixed_nodes(scene.mesh, rest)
-    assert fixed_set_holds(rest, mesh.tets, bottom) == []
+    assert edge.size == 5
+    with pytest.raises(SceneError, match="only 5 held node.s. on one line"):
+        check_held(scene, mesh, edge)
+    check_held(scene, mesh, fixed_nodes(scene.mesh, rest))  # the bottom face holds the box
     from refsim.scene import load_scene
 
     liver = load_scene("liver_rigid", ['mesh.fixed_faces=["zmin"]'])
@@ -134,6 +133,6 @@ def test_fixed_nodes_on_one_line_do_not_hold_and_the_liver_phantom_on_zmin_is_he
     spec = dataclasses.replace(liver.mesh, fixed_box=None)
     organ = build_mesh(spec, liver.base_directory)
     held = fixed_nodes(spec, organ.rest_positions)
-    assert held.size == 1 and fixed_set_holds(organ.rest_positions, organ.tets, held) == [
-        (organ.rest_positions.shape[0], 1)
-    ]
+    assert held.size == 1
+    with pytest.raises(SceneError, match=f"the tissue \\({organ.node_count} nodes.*only 1 held node"):
+        check_held(liver, organ, held)
