@@ -44,7 +44,8 @@ NOTES = {
         "at "
         "f_cut = 0.5 N and the shaft's friction on the channel's grip (Lamé, δ_r = 20 µm) adds μ 2π r p₀ per "
         "metre inserted (docs/coupling.md): `axial_force@t=1.9` (the base stops) is about 0.58 N, and "
-        "`needle_force@end` relaxes to f_cut. Each insertion point carries the grip of a length d_i, with "
+        "`needle_force@end` is the load the stuck shaft holds after the base stops (static friction, stick "
+        "anchors: docs/coupling.md). Each insertion point carries the grip of a length d_i, with "
         "full "
         "weights at both ends of the inserted length (a rectangle rule): O(d_i) in theory."
     ),
