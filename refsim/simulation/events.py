@@ -331,9 +331,9 @@ class EventRules:
 
     def _leave_cut(self, state, needle, positions):
         """The state after the needle left its cut backwards, into intact tissue: insertion points along the
-        inserted needle every d_i (material points where the needle now is) but none in the cut (the rule of new
-        points: a part of the needle still in its cut slides in it), the insertion phase, the cut kept (the
-        needle may cut again: a new cut start). Event ``leave_cut``."""
+        inserted needle every d_i (material points where the needle now is) but none in the cut (the rule of
+        new points: a part of the needle still in its cut slides in it), the insertion phase, the cut kept
+        (the needle may cut again: a new cut start). Event ``leave_cut``."""
         locator = TetLocator(positions, self.tets)
         spacing = self.insertion.spacing
         entry_arc = inserted_arc(needle, locator, spacing)

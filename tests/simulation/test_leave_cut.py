@@ -1,13 +1,13 @@
 """Leaving a cut backwards with part of the needle still in it (issue 24): intact tissue grips the needle only
 where it is intact.
 
-cube_cut on 4³ cells: the needle is inserted 17 mm at x = 1.23 mm, cuts 8 mm along +x, then swings back: its
-surface crossing returns to 1 mm ahead of the line it entered along (inside its own cut) while it tilts so that
-its tip goes 4 mm behind that line (into intact tissue). Reference: the cut spans x from the entry line to the
-crack tip at about 9.2 mm, and an insertion point is a material point of intact tissue gripping the needle,
-so after the needle leaves its cut no insertion point may lie inside the cut's span (beyond the entry line by
-more than the cut's own thickness, d_c); the part of the needle still in the cut slides in it (the old cut's
-sliding rows).
+cube_cut on 4³ cells: the needle is inserted 17 mm at x = 1.23 mm, cuts 8 mm along +x, then swings back:
+its surface crossing returns to 1 mm ahead of the line it entered along (inside its own cut) while it tilts
+so that its tip goes 4 mm behind that line (into intact tissue). Reference: the cut spans x from the entry
+line to the crack tip at about 9.2 mm, and an insertion point is a material point of intact tissue gripping
+the needle, so after the needle leaves its cut no insertion point may lie inside the cut's span (beyond the
+entry line by more than the cut's own spacing, d_c); the part of the needle still in the cut slides in it
+(the old cut's sliding rows).
 """
 
 from __future__ import annotations
