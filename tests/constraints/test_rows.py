@@ -141,8 +141,7 @@ def _two_rows(**fields):
     from refsim.constraints import UNILATERAL, RowBlock
 
     return RowBlock(
-        tissue_jacobian=sp.csr_matrix(np.eye(2, 6)),
-        needle_jacobian=None,
+        jacobians={"tissue": sp.csr_matrix(np.eye(2, 6))},
         free_gap=np.array([-1e-3, 2e-3]),
         kind=np.array([UNILATERAL, BILATERAL], dtype=np.int8),
         source=np.zeros(2, dtype=np.int8),
