@@ -98,6 +98,7 @@ def test_exact_strategy_matches_dense_lapack_and_its_fast_forms(model):
     assert np.abs(correction - reference).max() <= tolerance * np.abs(reference).max()
 
 
+@pytest.mark.parametrize("solver", available_linear_solvers())
 def test_exact_strategy_on_every_linear_solver_equals_a_dense_solve(model, solver):
     state = deformed(model)
     system, dense, inverse, free = dense_reference(model, state)
