@@ -171,3 +171,19 @@ def test_correction_is_the_free_state_plus_the_response_to_the_forces(flexible):
     )
     # Nothing moves on the prescribed base DoFs.
     np.testing.assert_array_equal(needle.positions[0], free[NEEDLE].positions[0])
+
+
+def test_a_non_finite_body_state_stops_the_run_naming_the_body(rigid):
+    from dataclasses import replace
+
+    from refsim.simulation import SimulationError
+
+    state, free, _ = free_motion(rigid)
+    positions = free[NEEDLE].positions.copy()
+    positions[-1, 2] = np.nan
+    states = {TISSUE: free[TISSUE], NEEDLE: replace(free[NEEDLE], positions=positions)}
+    with pytest.raises(SimulationError, match="step 3: non-finite needle positions"):
+        rigid._check_finite(3, states, np.zeros(2))
+    rigid._check_finite(3, free, np.zeros(2))  # finite: nothing raised
+    with pytest.raises(SimulationError, match="non-finite constraint forces"):
+        rigid._check_finite(3, free, np.array([0.0, np.inf]))
