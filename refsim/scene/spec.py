@@ -560,12 +560,12 @@ class CuttingSpec(_Validated):
         low_open=True,
     )
 
-    def __post_init__(self) -> None:
-        # The law's keys before their values: a key of the law not chosen is named as such, whatever its
-        # value.
-        chosen = CUTTING_LAWS.get(self.law)
+    def validate(self) -> None:
+        """A key of the law not chosen is an error naming it, its law and the chosen law; the chosen law's
+        keys left out take the law's defaults."""
+        chosen = CUTTING_LAWS[self.law]
         for name, law in CUTTING_LAWS.items():
-            if chosen is None or law is chosen:
+            if law is chosen:
                 continue
             for key in law.keys:
                 value = getattr(self, key)
@@ -577,7 +577,6 @@ class CuttingSpec(_Validated):
                         f"choose law = {name!r}",
                         related=("law",),
                     )
-        super().__post_init__()
         for key, value in chosen.defaults().items():
             if getattr(self, key) is None:
                 object.__setattr__(self, key, value)
