@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from refsim.cutting.laws import CUTTING_LAWS, CuttingLaw, EnergyLaw, PaperLaw
+from refsim.cutting.laws import CUTTING_LAWS, CuttingLaw, law_of_key
 from refsim.fem.compliance import STRATEGIES, W_UPDATES
 from refsim.materials import MATERIAL_LIMITS
 from refsim.scene.fields import FieldError, check_fields, spec
@@ -522,8 +522,7 @@ class CuttingSpec(_Validated):
         None,
         unit="J/m^2",
         doc="G_c: energy per unit area of new cut, the lateral force per unit length of needle that cuts "
-        "(liver about 76–225 J/m², Azar and Hayward 2008); energy law only, "
-        f"{EnergyLaw.fracture_energy!r} when left out",
+        "(liver about 76–225 J/m², Azar and Hayward 2008); energy law only",
         low=0.0,
         low_open=True,
     )
@@ -537,15 +536,14 @@ class CuttingSpec(_Validated):
     cutting_force: float | None = spec(
         None,
         unit="N",
-        doc="f_c: mean lateral force per insertion constraint that starts the cut; paper law only, "
-        f"{PaperLaw.cutting_force!r} (the paper's) when left out",
+        doc="f_c: mean lateral force per insertion constraint that starts the cut; paper law only "
+        "(default: the paper's value)",
         low=0.0,
     )
     tearing_force: float | None = spec(
         None,
         unit="N",
-        doc="f_t: front row force that extends the cut by d_t; paper law only, "
-        f"{PaperLaw.tearing_force!r} (the paper's) when left out",
+        doc="f_t: front row force that extends the cut by d_t; paper law only (default: the paper's value)",
         low=0.0,
     )
     point_spacing: float = spec(
@@ -554,8 +552,8 @@ class CuttingSpec(_Validated):
     extent: float | None = spec(
         None,
         unit="m",
-        doc="d_t: extent of the first cut surface beyond the path, and of each tear; paper law only, "
-        f"{PaperLaw.extent!r} when left out (the paper gives no value)",
+        doc="d_t: extent of the first cut surface beyond the path, and of each tear; paper law only "
+        "(the paper gives no value)",
         low=0.0,
         low_open=True,
     )
@@ -948,6 +946,9 @@ def scene_reference() -> str:
         for field in dataclasses.fields(cls):
             meta = field.metadata
             default = "required" if field.default is dataclasses.MISSING else repr(field.default)
+            owner = law_of_key(field.name) if cls is CuttingSpec else None
+            if owner is not None:  # a law's key: its law's default, under that law only
+                default = f"{CUTTING_LAWS[owner].defaults()[field.name]!r} ({owner} law)"
             valid = (
                 describe_field(field)
                 if (
