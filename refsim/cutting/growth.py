@@ -57,13 +57,11 @@ class CutGrowth:
     rest_positions : Rest positions of the tissue nodes [m], shape (node_count, 3).
     tets : Tissue tets, shape (tet_count, 4).
     point_spacing : d_c [m], > 0.
-    extent : d_t [m], > 0: how far the first surface reaches from the path and how far a tear extends.
     """
 
     rest_positions: np.ndarray
     tets: np.ndarray
     point_spacing: float
-    extent: float
 
     @cached_property
     def rest_locator(self) -> TetLocator:

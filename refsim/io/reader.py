@@ -16,6 +16,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from refsim.cutting.laws import CUTTING_LAWS
 from refsim.io import schema
 
 __all__ = [
@@ -386,15 +387,15 @@ def _steps_completed(handle, path: Path, attributes: dict) -> int:
 
 def _event_values(event_data: dict, count: int, law: str) -> tuple[np.ndarray, np.ndarray]:
     """Each event's value and unit, from the dataset of each unit (schema.EVENT_VALUE_DATASETS). A file
-    written before events/force_per_length held every value in events/force: there the energy law's
-    cut_start (``law``, the scene's cutting.law) is a force per unit length all the same."""
+    written before events/force_per_length held every value in events/force: there a cut_start's unit is
+    its law's (``law``, the scene's cutting.law: a force per unit length for the energy law)."""
     value, unit = np.full(count, np.nan), np.full(count, "N", dtype=object)
     for name_unit, name in schema.EVENT_VALUE_DATASETS.items():
         if name in event_data:
             held = np.isfinite(event_data[name])
             value[held], unit[held] = event_data[name][held], name_unit
-    if "force_per_length" not in event_data and law == "energy":
-        unit[np.asarray(event_data["name"], dtype=object) == "cut_start"] = "N/m"
+    if "force_per_length" not in event_data and law in CUTTING_LAWS:
+        unit[np.asarray(event_data["name"], dtype=object) == "cut_start"] = CUTTING_LAWS[law].cut_start_unit
     return value, unit
 
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from refsim.cutting.laws import CUTTING_LAWS, CuttingLaw, law_of_key
 from refsim.fem.compliance import STRATEGIES, W_UPDATES
 from refsim.materials import MATERIAL_LIMITS
 from refsim.scene.fields import FieldError, check_fields, spec
@@ -502,19 +503,23 @@ class InsertionSpec(_Validated):
 
 @dataclass(frozen=True, kw_only=True)
 class CuttingSpec(_Validated):
-    """Laceration (paper, section 4): cut law, criteria and cut surface resolution."""
+    """Laceration (paper, section 4): cut law, criteria and cut surface resolution.
+
+    The law (`refsim.cutting.laws`) holds its own keys: `fracture_energy` belongs to the energy law,
+    `cutting_force`, `tearing_force` and `extent` to the paper's. Only the chosen law's keys may be given (a
+    key of the other law is an error naming it); a key of the chosen law left out takes the law's default,
+    and the other law's keys stay unset (none)."""
 
     enabled: bool = spec(doc="whether the scene can cut the tissue")
     law: str = spec(
         "energy",
         doc="cut law: 'energy' (the cut starts and its crack tip advances where the needle pushes with more "
-        "than "
-        "G_c per unit length: independent of d_i, d_c and the mesh) or 'paper' (equation 3 with f_c per "
+        "than G_c per unit length: independent of d_i, d_c and the mesh) or 'paper' (equation 3 with f_c per "
         "insertion point, tears of d_t at a front row force f_t)",
-        choices=("energy", "paper"),
+        choices=tuple(CUTTING_LAWS),
     )
-    fracture_energy: float = spec(
-        200.0,
+    fracture_energy: float | None = spec(
+        None,
         unit="J/m^2",
         doc="G_c: energy per unit area of new cut, the lateral force per unit length of needle that cuts "
         "(liver about 76–225 J/m², Azar and Hayward 2008); energy law only",
@@ -528,23 +533,57 @@ class CuttingSpec(_Validated):
         low=0.0,
         high=10.0,
     )
-    cutting_force: float = spec(
+    cutting_force: float | None = spec(
+        None,
         unit="N",
-        doc="f_c: mean lateral force per insertion constraint that starts the cut (paper law)",
+        doc="f_c: mean lateral force per insertion constraint that starts the cut; paper law only "
+        "(default: the paper's value)",
         low=0.0,
     )
-    tearing_force: float = spec(
-        unit="N", doc="f_t: front row force that extends the cut by d_t (paper law)", low=0.0
+    tearing_force: float | None = spec(
+        None,
+        unit="N",
+        doc="f_t: front row force that extends the cut by d_t; paper law only (default: the paper's value)",
+        low=0.0,
     )
     point_spacing: float = spec(
         unit="m", doc="d_c: distance between points of the cut surface", low=0.0, low_open=True
     )
-    extent: float = spec(
+    extent: float | None = spec(
+        None,
         unit="m",
-        doc="d_t: extent of the first cut surface beyond the path, and of each tear (paper law)",
+        doc="d_t: extent of the first cut surface beyond the path, and of each tear; paper law only "
+        "(the paper gives no value)",
         low=0.0,
         low_open=True,
     )
+
+    def validate(self) -> None:
+        """A key of the law not chosen is an error naming it, its law and the chosen law; the chosen law's
+        keys left out take the law's defaults."""
+        chosen = CUTTING_LAWS[self.law]
+        for name, law in CUTTING_LAWS.items():
+            if law is chosen:
+                continue
+            for key in law.keys:
+                value = getattr(self, key)
+                if value is not None:
+                    raise FieldError(
+                        key,
+                        f"{key} = {value!r} is a key of the {name!r} cutting law, but law = {self.law!r} "
+                        f"(the keys of the {self.law!r} law: {', '.join(chosen.keys)}): remove {key}, or "
+                        f"choose law = {name!r}",
+                        related=("law",),
+                    )
+        for key, value in chosen.defaults().items():
+            if getattr(self, key) is None:
+                object.__setattr__(self, key, value)
+
+    @property
+    def cutting_law(self) -> CuttingLaw:
+        """The chosen law with its parameters (`refsim.cutting.laws`)."""
+        law = CUTTING_LAWS[self.law]
+        return law(**{key: getattr(self, key) for key in law.keys})
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -907,6 +946,9 @@ def scene_reference() -> str:
         for field in dataclasses.fields(cls):
             meta = field.metadata
             default = "required" if field.default is dataclasses.MISSING else repr(field.default)
+            owner = law_of_key(field.name) if cls is CuttingSpec else None
+            if owner is not None:  # a law's key: its law's default, under that law only
+                default = f"{CUTTING_LAWS[owner].defaults()[field.name]!r} ({owner} law)"
             valid = (
                 describe_field(field)
                 if (

@@ -88,6 +88,7 @@ class Detector:
     ) -> None:
         self.insertion = scene.insertion
         self.cutting = scene.cutting
+        self.law = scene.cutting.cutting_law if scene.cutting.enabled else None
         self.faces = faces
         self.needle_dof_count = needle_dof_count
         self.cut_compliance = None
@@ -250,11 +251,11 @@ class Detector:
                     blocks.append(shaft)
         elif state.path.point_count:
             points = np.arange(state.path.point_count)
-            if state.phase == Phase.CUTTING and self.cutting.law == "energy":
+            if state.phase == Phase.CUTTING and not self.law.rows_while_cutting:
                 # The cut holds the needle along the strip (sliding rows, crack tip; the strip extends down
-                # the shaft when the needle goes deeper); the path's points while cutting, the entry point and
-                # the strip's deepest point at the cut start (events: _cut_starts), are kept without rows
-                # (anchored, either would drag the tissue along the stroke).
+                # the shaft when the needle goes deeper); the path's points kept at the cut start
+                # (CuttingLaw.kept_at_cut_start) have no rows (anchored, they would drag the tissue along the
+                # stroke).
                 points = points[:0]
             if points.size:
                 block = self.insertion_rows(
@@ -308,7 +309,6 @@ class Detector:
             )
             offset = sum(block.row_count for block in blocks)
             cutting = self.cutting
-            strength = cutting.fracture_energy if cutting.law == "energy" else np.inf
             block, front = strip_cut_block(
                 state.cut,
                 state.cut_strip,
@@ -316,7 +316,7 @@ class Detector:
                 entry_arc_length=entry_arc_length,
                 spacing=cutting.point_spacing,
                 cut_direction=state.cut_direction,
-                front_strength=strength,
+                front_strength=self.law.front_strength,
                 friction_coefficient=cutting.friction_coefficient,
                 subgrid_compliance=self.cut_compliance,
             )

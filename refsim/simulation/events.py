@@ -45,9 +45,10 @@ from refsim.constraints import (
     grow_path,
     points_beyond_tip,
 )
-from refsim.constraints.cut import crack_tip_compression, cut_criterion, inserted_arc
+from refsim.constraints.cut import crack_tip_compression, inserted_arc
 from refsim.cutting import CutGrowth
-from refsim.cutting.growth import advance_front, crack_tip_targets, move_front, start_strip
+from refsim.cutting.growth import start_strip
+from refsim.cutting.laws import FrontPush
 from refsim.geometry import TetLocator
 from refsim.scene import Scene
 from refsim.simulation.detection import Detection
@@ -68,8 +69,8 @@ def shaft_lateral_force(
     source, kind : Source and kind of each row, shape (r,).
     directions : Row directions, shape (r, 3). forces : Multipliers [N], shape (r,).
     without_entry : Leave out the entry point's rows: at the free surface they also carry the surface's
-        reaction to an oblique entry (a 30° axial push put 0.37 N on the lone entry point three steps after
-        puncture: 700 N/m over 0.52 mm), a load no shaft cuts with (the energy law).
+        reaction to an oblique entry, a load no shaft cuts with (the law says whether:
+        ``CuttingLaw.excludes_entry_point``).
     points : The insertion point of each row (``RowBlock.point``: its index in the path, the entry is 0, −1
         for other rows), shape (r,). None (results files, which do not store it): the insertion rows are
         taken in path order with the entry's two lateral rows first.
@@ -90,9 +91,6 @@ def shaft_lateral_force(
 
 #: Relative tolerance on f_p of the puncture test (a capped row carries f_p to the solve's accuracy).
 PUNCTURE_TOLERANCE = 1e-6
-#: Relative tolerance of "a row at its force limit" for the crack front's rows (G_c ℓ_k) and the sliding rows
-#: at the front: a row that gave way carries its limit to the solve's accuracy (≤ 1e-8), far inside 1e-6.
-LIMIT_TOLERANCE = 1e-6
 #: Barycentric tolerance of the tip's location among the tets around its last one (the locator's default).
 TIP_TOLERANCE = 1e-12
 
@@ -140,6 +138,7 @@ class EventRules:
     def __init__(self, scene: Scene, tets, rest_positions, deformation_gradients, needle_geometry) -> None:
         self.insertion = scene.insertion
         self.cutting = scene.cutting
+        self.law = scene.cutting.cutting_law if scene.cutting.enabled else None
         self.tets = tets
         self.deformation_gradients = deformation_gradients
         self.needle_geometry = needle_geometry
@@ -157,7 +156,6 @@ class EventRules:
                 rest_positions=rest_positions,
                 tets=tets,
                 point_spacing=cutting.point_spacing,
-                extent=cutting.extent,
             )
 
     def apply(
@@ -209,7 +207,7 @@ class EventRules:
                 rows.kind,
                 rows.directions,
                 multipliers,
-                without_entry=self.cutting.law == "energy",
+                without_entry=self.law.excludes_entry_point,
                 points=rows.points_of_rows,
             )
             started = self._cut_starts(state, force_on_needle)
@@ -289,45 +287,32 @@ class EventRules:
         return path.subset(keep)
 
     def _cut_starts(self, state, force_on_needle):
-        """The state and events of a cut start, or None when the criterion does not hold.
-
-        Energy law: the lateral force per unit inserted length reaches G_c, ‖t‖ ≥ G_c L_in. Paper law
-        (equation 3): ‖t‖ > n_i f_c. The cut runs the way the needle pushes the tissue, ĉ = −t/‖t‖.
-        """
-        cutting = self.cutting
-        magnitude = float(np.linalg.norm(force_on_needle))
+        """The state and events of a cut start, or None when the law's criterion does not hold
+        (``CuttingLaw.cut_start``). The cut runs the way the needle pushes the tissue, ĉ = −t/‖t‖."""
         positions = state.tissue.positions
         path_points = state.path.positions(positions, self.tets)
-        if cutting.law == "energy":
-            needle = self.needle_geometry(state.needle)
-            inserted = needle.length - float(needle.project(path_points[:1])[0][0])
-            if inserted <= 0.0 or magnitude < cutting.fracture_energy * inserted:
-                return None
-            trigger, unit, extent = magnitude / inserted, "N/m", 0.0
-        else:
-            if not cut_criterion(force_on_needle, state.path.point_count, cutting.cutting_force):
-                return None
-            trigger, unit, extent = magnitude / state.path.point_count, "N", cutting.extent
-        direction = -force_on_needle / magnitude
+        needle = self.needle_geometry(state.needle)
+        inserted = needle.length - float(needle.project(path_points[:1])[0][0])
+        start = self.law.cut_start(
+            force_on_needle, inserted_length=inserted, point_count=state.path.point_count
+        )
+        if start is None:
+            return None
+        direction = -force_on_needle / float(np.linalg.norm(force_on_needle))
         cut, strip = start_strip(
-            self.growth, state.cut, path_points, direction, positions, state.step, extent=extent
+            self.growth, state.cut, path_points, direction, positions, state.step, extent=start.extent
         )
         if strip is None:
             return None
-        # The entry point is kept (withdrawal: the tip back above it); with the energy law so is the deepest
-        # point (neither has rows while cutting).
-        keep = (
-            [0] if cutting.law == "paper" or state.path.point_count < 2 else [0, state.path.point_count - 1]
-        )
         state = replace(
             state,
             phase=Phase.CUTTING,
             cut=cut,
             cut_direction=np.asarray(direction, dtype=float),
             cut_strip=strip,
-            path=state.path.subset(np.array(keep)),
+            path=state.path.subset(self.law.kept_at_cut_start(state.path.point_count)),
         )
-        return state, [Event("cut_start", trigger, unit)]
+        return state, [Event("cut_start", start.trigger, start.unit)]
 
     def _leave_cut(self, state, needle, positions):
         """The state after the needle left its cut backwards, into intact tissue: insertion points along the
@@ -378,30 +363,6 @@ class EventRules:
         rest = np.einsum("pk,pkj->pj", barycentric, self.growth.rest_positions[self.tets[tets]])
         return strip.extended(CutFront(rest, tets, barycentric), depths[:run])
 
-    def _swept_direction(self, cut, strip, positions, needle, direction):
-        """ĉ after a layer is laid: the mean of the old ĉ and of the direction the last layer moved in (its
-        columns' mean displacement from the layer before, deformed, normal to the needle), unit.
-
-        The cut's plane thus follows the needle's swept path, turned by half the angle each layer (d_c of
-        sweep): a stroke that turns turns the cut, and a straight one keeps it (ĉ taken from the rows' push
-        each step zigzagged by ±30°).
-        """
-        points = cut.deformed_points(positions, self.tets)
-        last, before = strip.layers[-1], strip.layers[-2]
-        moved = last != before
-        if not np.any(moved):
-            return direction
-        swept = (points[last[moved]] - points[before[moved]]).mean(axis=0)
-        tangent = needle.tangents(np.array([needle.length]))[0]
-        swept -= (swept @ tangent) * tangent
-        old = direction - (direction @ tangent) * tangent
-        norm_swept, norm_old = np.linalg.norm(swept), np.linalg.norm(old)
-        if norm_swept <= 0.0 or norm_old <= 0.0:
-            return direction
-        blended = old / norm_old + swept / norm_swept
-        norm = np.linalg.norm(blended)
-        return blended / norm if norm > 1e-6 else direction
-
     def _cutting(self, state, detection, multipliers):
         """Withdrawal through the cut, and the growth of the cut where the needle pushes through its front."""
         positions = state.tissue.positions
@@ -421,77 +382,41 @@ class EventRules:
             behind = float(((on_needle - rear) @ state.cut_direction).mean())
             if behind < -0.5 * cutting.point_spacing:
                 return self._leave_cut(state, needle, positions)
-        if cutting.law == "energy" and state.cut_strip is not None:
+        locator, entry_arc = None, None
+        if self.law.extends_down_shaft and state.cut_strip is not None:
             # A needle inserted deeper than the strip while it cuts: pushed sideways with the rest of the
             # shaft, its part below the strip cuts at G_c per unit length like the rest (the energy law does
             # not depend on where along the shaft the load is), so the strip extends down along it, a column
             # every d_c to the tip, its crack tip at the needle (insertion points there, anchored in uncut
-            # tissue, dragged it sideways: 6.35 N against 4.0 N for a 30° needle pushed 5 mm sideways and 2.9
-            # mm deeper).
+            # tissue, would drag it sideways).
             locator = TetLocator(positions, self.tets)
             entry_arc = inserted_arc(needle, locator, cutting.point_spacing)
             state = replace(
                 state, cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc)
             )
-        front = detection.front
-        if front.rows.size == 0 and (cutting.law != "energy" or front.band_rows.size == 0):
+        rows = detection.rows
+        grown = self.law.grow(
+            FrontPush(
+                growth=self.growth,
+                cut=state.cut,
+                strip=state.cut_strip,
+                direction=state.cut_direction,
+                positions=positions,
+                step=state.step,
+                needle=needle,
+                front=detection.front,
+                multipliers=multipliers,
+                force_limit=rows.force_limit,
+                entry_arc=entry_arc,
+                locator=locator,
+                compression=lambda given_rows, given, columns: crack_tip_compression(
+                    rows, multipliers, given_rows, given, columns
+                ),
+            )
+        )
+        if grown is None:
             return state, events
-        forces = multipliers[front.rows]
-        strip = state.cut_strip
-        if cutting.law == "energy":
-            limit = detection.rows.force_limit[front.rows]
-            gaps = front.gaps(strip.front.positions(positions, self.tets), needle)
-            over = np.where((forces >= (1.0 - LIMIT_TOLERANCE) * limit) & (gaps < 0.0), -gaps, 0.0)
-            # Sliding rows at the front that gave way: the needle cuts out of the cut's plane there.
-            band_limit = detection.rows.force_limit[front.band_rows]
-            sideways = np.abs(multipliers[front.band_rows]) >= (1.0 - LIMIT_TOLERANCE) * band_limit
-            if not (np.any(over > 0.0) or np.any(sideways)):
-                return state, events
-            # Each column next to a row that gave way (a front row, or a sliding row at the front) moves to
-            # the needle at its own depth below the tissue surface (moving the ends of a row's segment by the
-            # row's overshoot carried a lagging column's overshoot to its neighbour: one column of a 30°
-            # needle 1.5 mm past it).
-            given = np.concatenate([front.segment[over > 0.0], front.band_segment[sideways]])
-            columns = np.unique(np.concatenate([given, given + 1]))
-            tips = strip.front.positions(positions, self.tets)[columns]
-            targets, reached = crack_tip_targets(strip, needle, entry_arc, columns, cutting.point_spacing)
-            # The material point in contact with the needle: the centreline plus the compliant rows'
-            # compression C λ along their direction, so the rows keep their force as the crack tip moves.
-            given_rows = np.concatenate([front.rows[over > 0.0], front.band_rows[sideways]])
-            targets = targets + crack_tip_compression(detection.rows, multipliers, given_rows, given, columns)
-            tangents = needle.tangents(needle.project(targets)[0])
-            across = state.cut_direction - (tangents @ state.cut_direction)[:, None] * tangents
-            across /= np.linalg.norm(across, axis=1, keepdims=True)
-            motion = targets - tips
-            distance = np.linalg.norm(motion, axis=1)
-            # Forward, or sideways (a turning stroke): anything but back into the cut (within 60° of ĉ's
-            # opposite: the needle has moved back from the crack tip, and there is nothing to cut).
-            ahead = (
-                reached
-                & (distance > 1e-6 * cutting.point_spacing)
-                & (np.einsum("ij,ij->i", motion, across) > -0.5 * distance)
-            )
-            moved = strip.with_front(
-                move_front(self.growth, strip, columns[ahead], targets[ahead], positions, locator=locator)
-            )
-            cut, laid = moved.lay(state.cut, state.step, cutting.point_spacing)
-            direction = state.cut_direction
-            if laid.layers.shape[0] > strip.layers.shape[0]:
-                events.append(
-                    Event("tear", float(forces.sum()) + float(np.abs(multipliers[front.band_rows]).sum()))
-                )
-                direction = self._swept_direction(cut, laid, positions, needle, direction)
-            return replace(state, cut=cut, cut_strip=laid, cut_direction=direction), events
-        strongest = float(forces.max())
-        if strongest < cutting.tearing_force:
-            return state, events
-        # Paper law: the whole front extends by d_t along ĉ, in layers at most d_c apart.
-        pieces = max(int(np.ceil(cutting.extent / cutting.point_spacing - 1e-9)), 1)
-        cut = state.cut
-        for _ in range(pieces):  # d_t / d_c layers, each vectorised over the columns
-            advances = np.full(strip.column_count, cutting.extent / pieces)
-            strip = strip.with_front(
-                advance_front(self.growth, strip, advances, state.cut_direction, positions)
-            )
-            cut, strip = strip.lay(cut, state.step, 0.5 * cutting.extent / pieces)
-        return replace(state, cut=cut, cut_strip=strip), [*events, Event("tear", strongest)]
+        if grown.tear is not None:
+            events.append(Event("tear", grown.tear))
+        state = replace(state, cut=grown.cut, cut_strip=grown.strip, cut_direction=grown.direction)
+        return state, events

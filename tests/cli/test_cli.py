@@ -143,3 +143,37 @@ def test_full_disk_exits_3_with_a_readable_file(tmp_path, capsys):
         assert 0 < results.step_count < 220 and not results.complete and "space" in results.stop_reason
     finally:
         subprocess.run(["umount", str(disk)])
+
+
+@pytest.mark.parametrize(
+    ("replace", "overrides", "fragments"),
+    [
+        # a scene file that sets f_c under the energy law (the law it names in the file)
+        (
+            ('law = "energy"', 'law = "energy"\ncutting_force = 1.0'),
+            [],
+            ["cutting_force", "'paper'", "'energy'"],
+        ),
+        # the law chosen by --set, a key of the other law in the file: the override is blamed
+        (
+            ('law = "energy"', 'law = "energy"\nfracture_energy = 150.0'),
+            ["cutting.law=paper"],
+            ["fracture_energy", "'energy' cutting law", "law = 'paper'", "--set 'cutting.law=paper'"],
+        ),
+    ],
+)
+def test_a_key_of_the_cutting_law_not_chosen_exits_2_and_is_named(
+    tmp_path, capsys, replace, overrides, fragments
+):
+    scene = Path(__file__).resolve().parents[2] / "refsim" / "scenes" / "cube_cut.toml"
+    text = scene.read_text()
+    assert text.count(replace[0]) == 1
+    path = tmp_path / "scene.toml"
+    path.write_text(text.replace(*replace))
+    output = tmp_path / "out.h5"
+    code = main(["run", str(path), "-o", str(output), *(a for o in overrides for a in ("--set", o))])
+    error = capsys.readouterr().err
+    assert code == 2, error
+    assert "scene.toml" in error and "Traceback" not in error and not output.exists()
+    for fragment in fragments:
+        assert fragment in error, error

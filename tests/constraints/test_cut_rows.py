@@ -28,7 +28,6 @@ def planar_strip():
         rest_positions=mesh.rest_positions,
         tets=mesh.tets,
         point_spacing=SPACING,
-        extent=2e-3,
     )
     path = np.linspace([0.0041, 0.0063, 0.012], [0.0041, 0.0063, 0.004], 17)
     cut, strip = start_strip(growth, None, path, C_HAT, mesh.rest_positions, 1, extent=2e-3)

@@ -43,7 +43,7 @@ def test_a_column_that_did_not_advance_leaves_no_degenerate_triangle():
 @pytest.fixture(scope="module")
 def growth():
     mesh = box_mesh(size=(0.012, 0.012, 0.012), cells=(6, 6, 6))
-    return CutGrowth(mesh.rest_positions, mesh.tets, SPACING, 2e-3)
+    return CutGrowth(mesh.rest_positions, mesh.tets, SPACING)
 
 
 def test_the_crack_tip_advances_to_the_pushed_material_point_and_layers_follow(growth):

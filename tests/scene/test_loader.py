@@ -29,8 +29,10 @@ def test_cube_has_the_papers_values():
     assert scene.needle.length == 0.32 and scene.needle.radius == 0.008 and scene.needle.element_count == 16
     assert scene.needle.youngs_modulus == 100e9 and scene.needle.poisson_ratio == 0.4
     assert scene.insertion.puncture_force == 0.8 and scene.insertion.spacing == 0.5e-3
-    assert scene.cutting.cutting_force == 1.0 and scene.cutting.tearing_force == 1.0
     assert scene.cutting.point_spacing == 0.5e-3
+    # f_c and f_t belong to the paper's law, whose defaults are the paper's values (cube: the energy law).
+    paper = load_scene("cube", ['cutting.law="paper"']).cutting
+    assert paper.cutting_force == 1.0 and paper.tearing_force == 1.0
 
 
 @pytest.mark.parametrize(

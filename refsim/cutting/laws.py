@@ -1,0 +1,345 @@
+"""Cutting laws: when a cut starts and how its crack front grows, one class per law, chosen once per scene.
+
+- :class:`EnergyLaw` (``cutting.law = "energy"``, the default): Griffith's energy balance with G_c per unit
+  area of new cut. The cut starts when the shaft's lateral load per unit inserted length reaches G_c,
+  ‖t‖ ≥ G_c L_in; the crack front's rows carry at most G_c per unit length of needle, and the crack tip moves
+  to the needle where a front row (or a sliding row at the front) reached that strength.
+- :class:`PaperLaw` (``cutting.law = "paper"``): the paper's equation 3, ‖t‖ > n_i f_c over the n_i insertion
+  points, a first surface reaching d_t beyond the path, and tears of d_t along ĉ when a front row's force
+  reaches f_t.
+
+A law holds its own parameters (the scene keys of ``CuttingLaw.keys``) and answers every question the
+detection and the events ask of the cut; nothing outside this module compares a law's name. The scene builds
+the law (`refsim.scene.spec.CuttingSpec.cutting_law`), and only the chosen law's keys may be set.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from refsim.cutting.growth import CutGrowth, advance_front, crack_tip_targets, move_front
+
+__all__ = [
+    "CUTTING_LAWS",
+    "LIMIT_TOLERANCE",
+    "CutStart",
+    "CuttingLaw",
+    "EnergyLaw",
+    "FrontGrowth",
+    "FrontPush",
+    "PaperLaw",
+    "law_of_key",
+    "swept_direction",
+]
+
+#: Relative tolerance of "a row at its force limit" for the crack front's rows (G_c ℓ_k) and the sliding rows
+#: at the front: a row that gave way carries its limit to the solve's accuracy (≤ 1e-8), far inside 1e-6.
+LIMIT_TOLERANCE = 1e-6
+
+
+@dataclass(frozen=True)
+class CutStart:
+    """A cut start: what triggered it and how far the first surface reaches.
+
+    Attributes
+    ----------
+    trigger : The load that started it: a force per unit length [N/m] (energy law) or per insertion point [N]
+        (paper law).
+    unit : The unit of ``trigger``, "N/m" or "N".
+    extent : How far the first surface reaches beyond the path along ĉ [m], ≥ 0.
+    """
+
+    trigger: float
+    unit: str
+    extent: float
+
+
+@dataclass(frozen=True)
+class FrontPush:
+    """The crack front's load at the end of a step, and what moving the front needs.
+
+    Attributes
+    ----------
+    growth : The tissue's cut growth (rest positions, tets, d_c).
+    cut : The cut surface. strip : Its strip (columns, layers, crack front).
+    direction : ĉ, unit, shape (3,).
+    positions : Tissue positions at the step's end [m], shape (n, 3).
+    step : The step's index (stamped on new cut points).
+    needle : The needle's centreline at the step's end.
+    front : The front rows (`refsim.constraints.cut.FrontRows`: ``rows``, ``segment``, ``band_rows``,
+        ``band_segment``, ``gaps``), indices into the step's rows.
+    multipliers : The step's multipliers [N], shape (r,).
+    force_limit : The rows' force limits [N], shape (r,).
+    entry_arc : Arc length where the needle enters the tissue [m] (energy law), None if not computed.
+    locator : Tet locator on ``positions`` (energy law), None if not built.
+    compression : ``(given_rows, given, columns) -> (c, 3)``: the compliant rows' compression C λ at the
+        columns a row gave way next to [m] (`refsim.constraints.cut.crack_tip_compression`).
+    """
+
+    growth: CutGrowth
+    cut: Any
+    strip: Any
+    direction: np.ndarray
+    positions: np.ndarray
+    step: int
+    needle: Any
+    front: Any
+    multipliers: np.ndarray
+    force_limit: np.ndarray
+    entry_arc: float | None = None
+    locator: Any = None
+    compression: Callable | None = None
+
+
+@dataclass(frozen=True)
+class FrontGrowth:
+    """The cut after its front grew in a step.
+
+    Attributes
+    ----------
+    cut : The cut surface. strip : Its strip. direction : ĉ, unit, shape (3,).
+    tear : The front's load that laid a new layer [N] (event ``tear``), None when no layer was laid.
+    """
+
+    cut: Any
+    strip: Any
+    direction: np.ndarray
+    tear: float | None
+
+
+class CuttingLaw:
+    """What a cutting law answers; one subclass per law (a frozen dataclass of its parameters).
+
+    Class attributes
+    ----------------
+    name : The law's name (the value of ``cutting.law``).
+    keys : The scene keys of ``[cutting]`` that belong to this law only (its parameters).
+    excludes_entry_point : Whether the cut-start load leaves out the entry point's rows (at the free surface
+        they also carry the surface's reaction to an oblique entry, a load no shaft cuts with).
+    rows_while_cutting : Whether the path's points keep their insertion rows while cutting.
+    extends_down_shaft : Whether the strip extends down a needle inserted deeper than it while cutting.
+    cut_start_unit : The unit of the load a cut start reports, "N/m" or "N".
+    """
+
+    name: ClassVar[str]
+    keys: ClassVar[tuple[str, ...]]
+    excludes_entry_point: ClassVar[bool]
+    rows_while_cutting: ClassVar[bool]
+    extends_down_shaft: ClassVar[bool]
+    cut_start_unit: ClassVar[str]
+
+    @property
+    def front_strength(self) -> float:
+        """Force per unit length of needle at which a crack front row gives way [N/m] (inf: never)."""
+        raise NotImplementedError
+
+    def cut_start(self, lateral_force: np.ndarray, *, inserted_length: float, point_count: int):
+        """The cut start under the shaft's lateral load t [N], shape (3,), or None when the criterion does not
+        hold. ``inserted_length`` [m] is the needle's length below the entry point, ``point_count`` the
+        insertion points n_i."""
+        raise NotImplementedError
+
+    def kept_at_cut_start(self, point_count: int) -> np.ndarray:
+        """Indices of the path points kept when the cut starts (the entry point first), shape (k,)."""
+        raise NotImplementedError
+
+    def grow(self, push: FrontPush) -> FrontGrowth | None:
+        """The cut after the front's load of a step, or None when the front holds."""
+        raise NotImplementedError
+
+    @classmethod
+    def defaults(cls) -> dict[str, float]:
+        """The law's parameters by default, by scene key."""
+        return {field.name: field.default for field in dataclasses.fields(cls)}
+
+
+@dataclass(frozen=True)
+class EnergyLaw(CuttingLaw):
+    """Griffith's energy balance: the needle cuts where it pushes with G_c per unit length (independent of
+    d_i, d_c and the mesh).
+
+    Attributes
+    ----------
+    fracture_energy : G_c [J/m²], > 0: energy per unit area of new cut, the lateral force per unit length of
+        needle that cuts.
+    """
+
+    name: ClassVar[str] = "energy"
+    keys: ClassVar[tuple[str, ...]] = ("fracture_energy",)
+    excludes_entry_point: ClassVar[bool] = True
+    rows_while_cutting: ClassVar[bool] = False
+    extends_down_shaft: ClassVar[bool] = True
+    cut_start_unit: ClassVar[str] = "N/m"
+
+    fracture_energy: float = 200.0
+
+    @property
+    def front_strength(self) -> float:
+        return self.fracture_energy
+
+    def cut_start(self, lateral_force, *, inserted_length, point_count):
+        """‖t‖ ≥ G_c L_in: the lateral load per unit inserted length reaches G_c. The first surface is the
+        path itself (extent 0)."""
+        magnitude = float(np.linalg.norm(lateral_force))
+        if inserted_length <= 0.0 or magnitude < self.fracture_energy * inserted_length:
+            return None
+        return CutStart(magnitude / inserted_length, self.cut_start_unit, 0.0)
+
+    def kept_at_cut_start(self, point_count):
+        """The entry point (withdrawal: the tip back above it) and the strip's deepest point; neither has rows
+        while cutting."""
+        return np.array([0] if point_count < 2 else [0, point_count - 1])
+
+    def given_way(self, push: FrontPush) -> tuple[np.ndarray, np.ndarray]:
+        """Where the front gave way: each front row's overshoot past the crack tip [m] (0 where it holds; it
+        gave way at its strength G_c ℓ_k with the needle past the crack tip), shape (f,), and which sliding
+        rows at the front reached their limit (the needle cuts out of the cut's plane there), shape (b,)."""
+        front, multipliers, limit = push.front, push.multipliers, push.force_limit
+        forces = multipliers[front.rows]
+        gaps = front.gaps(push.strip.front.positions(push.positions, push.growth.tets), push.needle)
+        over = np.where((forces >= (1.0 - LIMIT_TOLERANCE) * limit[front.rows]) & (gaps < 0.0), -gaps, 0.0)
+        band = front.band_rows
+        sideways = np.abs(multipliers[band]) >= (1.0 - LIMIT_TOLERANCE) * limit[band]
+        return over, sideways
+
+    def grow(self, push):
+        """The crack tip moves to the needle next to every row that gave way; a new layer (event ``tear``) is
+        laid once the crack tip is d_c past the last, and ĉ turns half-way to the layer's swept direction."""
+        front, strip, positions = push.front, push.strip, push.positions
+        if front.rows.size == 0 and front.band_rows.size == 0:
+            return None
+        over, sideways = self.given_way(push)
+        if not (np.any(over > 0.0) or np.any(sideways)):
+            return None
+        spacing = push.growth.point_spacing
+        # Each column next to a row that gave way (a front row, or a sliding row at the front) moves to the
+        # needle at its own depth below the tissue surface (moving the ends of a row's segment by the row's
+        # overshoot carries a lagging column's overshoot to its neighbour).
+        given = np.concatenate([front.segment[over > 0.0], front.band_segment[sideways]])
+        columns = np.unique(np.concatenate([given, given + 1]))
+        tips = strip.front.positions(positions, push.growth.tets)[columns]
+        targets, reached = crack_tip_targets(strip, push.needle, push.entry_arc, columns, spacing)
+        # The material point in contact with the needle: the centreline plus the compliant rows' compression
+        # C λ along their direction, so the rows keep their force as the crack tip moves.
+        given_rows = np.concatenate([front.rows[over > 0.0], front.band_rows[sideways]])
+        targets = targets + push.compression(given_rows, given, columns)
+        needle = push.needle
+        tangents = needle.tangents(needle.project(targets)[0])
+        across = push.direction - (tangents @ push.direction)[:, None] * tangents
+        across /= np.linalg.norm(across, axis=1, keepdims=True)
+        motion = targets - tips
+        distance = np.linalg.norm(motion, axis=1)
+        # Forward, or sideways (a turning stroke): anything but back into the cut (within 60° of ĉ's opposite:
+        # the needle has moved back from the crack tip, and there is nothing to cut).
+        ahead = (
+            reached & (distance > 1e-6 * spacing) & (np.einsum("ij,ij->i", motion, across) > -0.5 * distance)
+        )
+        moved = strip.with_front(
+            move_front(push.growth, strip, columns[ahead], targets[ahead], positions, locator=push.locator)
+        )
+        cut, laid = moved.lay(push.cut, push.step, spacing)
+        if laid.layers.shape[0] == strip.layers.shape[0]:
+            return FrontGrowth(cut, laid, push.direction, None)
+        load = float(push.multipliers[front.rows].sum()) + float(
+            np.abs(push.multipliers[front.band_rows]).sum()
+        )
+        points = cut.deformed_points(positions, push.growth.tets)
+        return FrontGrowth(cut, laid, swept_direction(points, laid, needle, push.direction), load)
+
+
+@dataclass(frozen=True)
+class PaperLaw(CuttingLaw):
+    """The paper's law (section 4): equation 3 starts the cut, a front row at f_t tears it by d_t.
+
+    Attributes
+    ----------
+    cutting_force : f_c [N], ≥ 0: mean lateral force per insertion point that starts the cut.
+    tearing_force : f_t [N], ≥ 0: front row force that extends the cut by d_t.
+    extent : d_t [m], > 0: extent of the first cut surface beyond the path, and of each tear (the paper gives
+        no value).
+    """
+
+    name: ClassVar[str] = "paper"
+    keys: ClassVar[tuple[str, ...]] = ("cutting_force", "tearing_force", "extent")
+    excludes_entry_point: ClassVar[bool] = False
+    rows_while_cutting: ClassVar[bool] = True
+    extends_down_shaft: ClassVar[bool] = False
+    cut_start_unit: ClassVar[str] = "N"
+
+    cutting_force: float = 1.0
+    tearing_force: float = 1.0
+    extent: float = 1e-3
+
+    @property
+    def front_strength(self) -> float:
+        return np.inf
+
+    def cut_start(self, lateral_force, *, inserted_length, point_count):
+        """Equation 3, ‖t‖ > n_i f_c. The first surface reaches d_t beyond the path."""
+        magnitude = float(np.linalg.norm(lateral_force))
+        if not (point_count > 0 and magnitude > point_count * self.cutting_force):
+            return None
+        return CutStart(magnitude / point_count, self.cut_start_unit, self.extent)
+
+    def kept_at_cut_start(self, point_count):
+        """The entry point (withdrawal: the tip back above it)."""
+        return np.array([0])
+
+    def grow(self, push):
+        """A front row's force ≥ f_t tears the whole front by d_t along ĉ, in layers at most d_c apart."""
+        forces = push.multipliers[push.front.rows]
+        if forces.size == 0:
+            return None
+        strongest = float(forces.max())
+        if strongest < self.tearing_force:
+            return None
+        pieces = max(int(np.ceil(self.extent / push.growth.point_spacing - 1e-9)), 1)
+        cut, strip = push.cut, push.strip
+        for _ in range(pieces):  # d_t / d_c layers, each vectorised over the columns
+            advances = np.full(strip.column_count, self.extent / pieces)
+            strip = strip.with_front(
+                advance_front(push.growth, strip, advances, push.direction, push.positions)
+            )
+            cut, strip = strip.lay(cut, push.step, 0.5 * self.extent / pieces)
+        return FrontGrowth(cut, strip, push.direction, strongest)
+
+
+#: The laws by name (the choices of ``cutting.law``).
+CUTTING_LAWS: dict[str, type[CuttingLaw]] = {law.name: law for law in (EnergyLaw, PaperLaw)}
+
+
+def law_of_key(key: str) -> str | None:
+    """The name of the law a ``[cutting]`` key belongs to, None for a key common to all laws."""
+    for name, law in CUTTING_LAWS.items():
+        if key in law.keys:
+            return name
+    return None
+
+
+def swept_direction(points: np.ndarray, strip, needle, direction: np.ndarray) -> np.ndarray:
+    """ĉ after a layer is laid: the mean of the old ĉ and of the direction the last layer moved in (its
+    columns' mean displacement from the layer before, on the cut's deformed ``points``, normal to the needle),
+    unit.
+
+    The cut's plane thus follows the needle's swept path, turned by half the angle each layer (d_c of
+    sweep): a stroke that turns turns the cut, and a straight one keeps it.
+    """
+    last, before = strip.layers[-1], strip.layers[-2]
+    moved = last != before
+    if not np.any(moved):
+        return direction
+    swept = (points[last[moved]] - points[before[moved]]).mean(axis=0)
+    tangent = needle.tangents(np.array([needle.length]))[0]
+    swept -= (swept @ tangent) * tangent
+    old = direction - (direction @ tangent) * tangent
+    norm_swept, norm_old = np.linalg.norm(swept), np.linalg.norm(old)
+    if norm_swept <= 0.0 or norm_old <= 0.0:
+        return direction
+    blended = old / norm_old + swept / norm_swept
+    norm = np.linalg.norm(blended)
+    return blended / norm if norm > 1e-6 else direction

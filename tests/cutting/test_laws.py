@@ -1,0 +1,220 @@
+"""The cutting laws (refsim/cutting/laws.py) on hand-made loads: each law's cut-start criterion at and
+either side of its threshold, where its crack front gives way, what it keeps at the cut start; the scene's
+choice of a law and its keys; and that no code outside the law classes compares a law's name."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from refsim.cutting.laws import (
+    CUTTING_LAWS,
+    LIMIT_TOLERANCE,
+    EnergyLaw,
+    FrontPush,
+    PaperLaw,
+    law_of_key,
+)
+from refsim.scene import load_scene
+from refsim.scene.fields import FieldError
+from refsim.scene.spec import CuttingSpec
+
+# A load just off the threshold, relative: far above round-off (1e-16) and far below any physical change.
+OFF = 1e-9
+DIRECTION = np.array([0.0, -1.0, 0.0])  # unit, exactly: ‖t‖ is the magnitude put along it
+
+
+# ----------------------------------------------------------------------------------------- cut start
+
+
+@pytest.mark.parametrize("g_c", [45.0, 200.0])
+def test_energy_law_starts_at_gc_per_inserted_length(g_c):
+    # Energy law: the cut starts when ‖t‖ ≥ G_c L_in (Griffith: the shaft's lateral load per unit inserted
+    # length reaches the fracture energy per unit area).
+    law, inserted = EnergyLaw(fracture_energy=g_c), 0.037
+    threshold = g_c * inserted
+    below = law.cut_start(DIRECTION * threshold * (1 - OFF), inserted_length=inserted, point_count=9)
+    at = law.cut_start(DIRECTION * threshold, inserted_length=inserted, point_count=9)
+    above = law.cut_start(DIRECTION * threshold * (1 + OFF), inserted_length=inserted, point_count=9)
+    assert below is None
+    assert at is not None and above is not None
+    assert at.unit == "N/m" and at.extent == 0.0
+    assert at.trigger == pytest.approx(g_c, rel=1e-14)  # ‖t‖ / L_in
+    # The number of insertion points plays no part in it.
+    assert law.cut_start(DIRECTION * threshold, inserted_length=inserted, point_count=1) is not None
+
+
+def test_energy_law_needs_an_inserted_length():
+    law = EnergyLaw()
+    assert law.cut_start(DIRECTION * 1e3, inserted_length=0.0, point_count=5) is None
+    assert law.cut_start(DIRECTION * 1e3, inserted_length=-1e-3, point_count=5) is None
+
+
+@pytest.mark.parametrize(("f_c", "points"), [(1.0, 12), (0.25, 3)])
+def test_paper_law_starts_above_equation_3(f_c, points):
+    # Paper's equation 3: the cut starts when ‖t‖ > n_i f_c (strictly) over the n_i insertion points.
+    law = PaperLaw(cutting_force=f_c, extent=2e-3)
+    threshold = points * f_c
+    assert law.cut_start(DIRECTION * threshold * (1 - OFF), inserted_length=0.01, point_count=points) is None
+    assert law.cut_start(DIRECTION * threshold, inserted_length=0.01, point_count=points) is None
+    above = law.cut_start(DIRECTION * threshold * (1 + OFF), inserted_length=0.01, point_count=points)
+    assert above is not None and above.unit == "N" and above.extent == 2e-3
+    assert above.trigger == pytest.approx(f_c * (1 + OFF), rel=1e-14)  # ‖t‖ / n_i
+    # No insertion point: no criterion (whatever the load).
+    assert law.cut_start(DIRECTION * 1e3, inserted_length=0.01, point_count=0) is None
+
+
+def test_what_each_law_keeps_at_the_cut_start():
+    assert EnergyLaw().kept_at_cut_start(7).tolist() == [0, 6]  # entry and deepest point, both without rows
+    assert EnergyLaw().kept_at_cut_start(1).tolist() == [0]
+    assert PaperLaw().kept_at_cut_start(7).tolist() == [0]  # the entry point
+    assert not EnergyLaw.rows_while_cutting and PaperLaw.rows_while_cutting
+    assert EnergyLaw.excludes_entry_point and not PaperLaw.excludes_entry_point
+    assert EnergyLaw(fracture_energy=80.0).front_strength == 80.0 and np.isinf(PaperLaw().front_strength)
+
+
+# ------------------------------------------------------------------------------------ the crack front
+
+
+@dataclass
+class _Front:
+    """Front rows on hand-made gaps (duck-typed `FrontRows`): front rows, their segments, sliding rows at the
+    front and theirs."""
+
+    rows: np.ndarray
+    segment: np.ndarray
+    gap_values: np.ndarray
+    band_rows: np.ndarray
+    band_segment: np.ndarray
+
+    def gaps(self, crack_tips, needle):
+        return self.gap_values
+
+
+class _Strip:
+    class front:  # noqa: N801 - the strip's crack front, as CutStrip names it
+        @staticmethod
+        def positions(positions, tets):
+            return np.zeros((3, 3))
+
+
+@dataclass
+class _Growth:
+    tets: np.ndarray
+    point_spacing: float = 1e-3
+
+
+def _push(forces, limits, gaps, band_forces=(), band_limits=()):
+    forces, band_forces = np.asarray(forces, float), np.asarray(band_forces, float)
+    f, b = forces.size, band_forces.size
+    front = _Front(np.arange(f), np.arange(f), np.asarray(gaps, float), np.arange(f, f + b), np.arange(b))
+    return FrontPush(
+        growth=_Growth(np.zeros((1, 4), dtype=np.int64)),
+        cut=None,
+        strip=_Strip(),
+        direction=np.array([1.0, 0.0, 0.0]),
+        positions=np.zeros((4, 3)),
+        step=0,
+        needle=None,
+        front=front,
+        multipliers=np.concatenate([forces, band_forces]),
+        force_limit=np.concatenate([np.asarray(limits, float), np.asarray(band_limits, float)]),
+    )
+
+
+def test_energy_front_gives_way_at_its_strength_with_the_needle_past_the_crack_tip():
+    # A front row of segment length ℓ_k carries at most G_c ℓ_k; it gave way where λ ≥ (1 − tol) G_c ℓ_k
+    # (tol = LIMIT_TOLERANCE: the solve's accuracy) and the needle is past the crack tip (gap < 0); its
+    # overshoot is −gap.
+    limit = 200.0 * 0.5e-3
+    forces = [limit, limit * (1 - LIMIT_TOLERANCE), limit * (1 - 10 * LIMIT_TOLERANCE), limit]
+    gaps = [-2e-4, -3e-4, -4e-4, 1e-5]
+    over, sideways = EnergyLaw().given_way(_push(forces, [limit] * 4, gaps))
+    assert over.tolist() == [2e-4, 3e-4, 0.0, 0.0]
+    assert sideways.size == 0
+
+
+def test_energy_front_gives_way_sideways_where_a_sliding_row_at_the_front_reaches_its_limit():
+    limit = 0.1
+    push = _push([0.0], [limit], [1e-4], band_forces=[-limit, 0.5 * limit], band_limits=[limit, limit])
+    over, sideways = EnergyLaw().given_way(push)
+    assert over.tolist() == [0.0] and sideways.tolist() == [True, False]
+
+
+def test_energy_front_that_holds_does_not_grow():
+    limit = 0.1
+    assert EnergyLaw().grow(_push([0.5 * limit], [limit], [-1e-4])) is None  # below its strength
+    assert EnergyLaw().grow(_push([limit], [limit], [1e-4])) is None  # at it, the needle behind the crack tip
+    assert EnergyLaw().grow(_push([], [], [])) is None  # no front row
+
+
+def test_paper_front_tears_at_ft():
+    # Paper law: a tear when the strongest front row's force reaches f_t; below it the front holds.
+    law = PaperLaw(tearing_force=1.0)
+    assert law.grow(_push([0.2, 1.0 * (1 - OFF)], [np.inf] * 2, [0.0, 0.0])) is None
+    assert law.grow(_push([], [], [])) is None
+
+
+# ------------------------------------------------------------------------------ the scene's choice
+
+
+def test_the_scene_builds_the_chosen_law_with_its_keys_and_defaults():
+    energy = CuttingSpec(enabled=True, point_spacing=1e-3, fracture_energy=80.0)
+    assert energy.cutting_law == EnergyLaw(fracture_energy=80.0)
+    assert energy.cutting_force is None and energy.tearing_force is None and energy.extent is None
+    paper = CuttingSpec(enabled=True, law="paper", point_spacing=1e-3, tearing_force=2.0)
+    assert paper.cutting_law == PaperLaw(cutting_force=1.0, tearing_force=2.0, extent=1e-3)
+    assert paper.fracture_energy is None and paper.cutting_force == PaperLaw().cutting_force
+    assert CuttingSpec(enabled=True, point_spacing=1e-3).fracture_energy == EnergyLaw().fracture_energy
+
+
+@pytest.mark.parametrize(
+    ("law", "key", "value", "owner"),
+    [
+        ("energy", "cutting_force", 1.0, "paper"),
+        ("energy", "tearing_force", 1.0, "paper"),
+        ("energy", "extent", 1e-3, "paper"),
+        ("paper", "fracture_energy", 200.0, "energy"),
+    ],
+)
+def test_a_key_of_the_law_not_chosen_is_an_error_naming_it(law, key, value, owner):
+    with pytest.raises(FieldError) as raised:
+        CuttingSpec(enabled=True, point_spacing=1e-3, law=law, **{key: value})
+    message = str(raised.value)
+    assert raised.value.key == key and "law" in raised.value.related
+    assert key in message and f"{owner!r} cutting law" in message and f"law = {law!r}" in message
+    assert law_of_key(key) == owner
+
+
+def test_every_law_key_is_a_scene_key_of_one_law_only():
+    keys = [key for law in CUTTING_LAWS.values() for key in law.keys]
+    assert len(keys) == len(set(keys))
+    fields = set(CuttingSpec.__dataclass_fields__)
+    assert set(keys) <= fields
+    assert law_of_key("point_spacing") is None and law_of_key("friction_coefficient") is None
+
+
+@pytest.mark.parametrize("name", ["cube", "cube_cut", "liver_rigid", "liver_flexible"])
+def test_builtin_scenes_load_under_either_law_where_they_set_no_law_key(name):
+    scene = load_scene(name)
+    assert scene.cutting.cutting_law.name == scene.cutting.law
+    if scene.cutting.fracture_energy == EnergyLaw().fracture_energy:  # G_c left at its default
+        assert load_scene(name, ['cutting.law="paper"']).cutting.cutting_law == PaperLaw()
+
+
+def test_no_code_outside_the_laws_compares_a_law_name():
+    # The law is chosen once (CuttingSpec.cutting_law); detection and events ask the law object.
+    root = Path(__file__).resolve().parents[2] / "refsim"
+    comparison = re.compile(r"""law\s*(==|!=|\bin\b)\s*\(?["']|["'](energy|paper)["']\s*(==|!=)""")
+    found = [
+        f"{path.relative_to(root)}:{number}: {line.strip()}"
+        for path in sorted(root.rglob("*.py"))
+        if path.name != "laws.py"
+        for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1)
+        if comparison.search(line)
+    ]
+    assert not found, found
