@@ -14,9 +14,10 @@
   `refsim.simulation.events` (cut growth in `refsim.cutting.growth`)
 
 The scene, the models and the controls are static; a step takes a :class:`SimulationState` and returns a new
-one with the :class:`~refsim.simulation.records.StepRecord` of what it did. Nothing the scene does not declare
-is computed: a rigid needle has no beam solve, μ = 0 gives no friction rows, a scene without cutting never
-builds a cut.
+one with the :class:`~refsim.simulation.records.StepRecord` of what it did. A step is a function of its state:
+a new simulation of the same scene continued from a state gives the bits the uninterrupted run gives.
+Nothing the scene does not declare is computed: a rigid needle has no beam solve, μ = 0 gives no friction
+rows, a scene without cutting never builds a cut.
 """
 
 from __future__ import annotations
@@ -161,6 +162,7 @@ class Simulation:
         control = self.controls.at(time)
         timer.lap("motion")
 
+        self.tissue_compliance.resume(state.tissue_factor)
         tissue_free, tissue_system = self.tissue_body.free_motion(state.tissue, dt, control)
         needle_free, needle_system = self.needle.free_motion(
             state.needle, control.base_position, control.direction, dt
@@ -193,13 +195,15 @@ class Simulation:
         self._check_finite(step, tissue_state, needle_state, multipliers)
         timer.lap("correction")
 
+        path = state.path if detection.rings is None else state.path.with_rings(detection.rings)
         new_state = replace(
             state,
             step=step,
             time=time,
             tissue=tissue_state,
             needle=needle_state,
-            path=self._store_multipliers(state.path, detection, problem, multipliers),
+            path=self._store_multipliers(path, detection, problem, multipliers),
+            tissue_factor=self.tissue_compliance.carried(),
         )
         new_state, events = self.event_rules.apply(new_state, detection, multipliers)
         timer.lap("events")
