@@ -429,14 +429,8 @@ class BodyCompliance:
     """A strategy bound to one body for a run: holds the factor(s) that live across steps.
 
     What a step changes is returned by :meth:`carried` and taken back by :meth:`resume`, so that the run's
-    state holds it; what a body keeps besides is a memo of its model."""
-
-    def carried(self) -> StaleFactor | None:
-        """What the next step depends on besides the model: None (the exact and precomputed strategies)."""
-        return None
-
-    def resume(self, carried: StaleFactor | None) -> None:
-        """Continue from ``carried`` (:meth:`carried` of some earlier step, or None: a run's start)."""
+    state holds it; what a body keeps besides is a memo of its model (and ``steps``, a count no result
+    reads)."""
 
     def __init__(self, strategy) -> None:
         self.strategy = strategy
@@ -444,6 +438,13 @@ class BodyCompliance:
         self._exact = (
             _ExactBody(strategy.linear_solver) if getattr(strategy, "against_exact", False) else None
         )
+
+    def carried(self) -> StaleFactor | None:
+        """What the next step depends on besides the model: None (the exact and precomputed strategies)."""
+        return None
+
+    def resume(self, carried: StaleFactor | None) -> None:
+        """Continue from ``carried`` (:meth:`carried` of some earlier step, or None: a run's start)."""
 
     def step(self, system: StepSystem) -> StepCompliance:
         """The compliance of this step's system (advances the strategy's step counter)."""
