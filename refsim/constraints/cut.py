@@ -17,9 +17,11 @@ growth of the cut is in :mod:`refsim.cutting.growth` and :mod:`refsim.cutting.st
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
+import scipy.sparse as sp
 
 from refsim.constraints.friction import friction_rows
 from refsim.constraints.needle_geometry import needle_rows
@@ -272,20 +274,105 @@ def strip_cut_block(
 
     Rows are ordered: sliding rows, then front rows, then the friction rows (two per sliding row).
     """
-    tets = geometry.mesh_tets
+    samples = _needle_samples(geometry, entry_arc_length, spacing)
+    if samples is None:
+        return None, FrontRows.empty()
+    front_previous = (
+        np.zeros((0, 3))
+        if strip is None
+        else strip.front.positions(geometry.tissue_previous, geometry.mesh_tets)
+    )
+    sliding = _sliding_rows(
+        cut,
+        strip,
+        geometry,
+        samples,
+        front_previous,
+        spacing=spacing,
+        front_strength=front_strength,
+        subgrid_compliance=subgrid_compliance,
+    )
+    front = _front_rows(strip, geometry, samples, front_previous, cut_direction, sliding)
+    if sliding.rows is None and front.rows is None:
+        return None, front.info
+    friction = None
+    if friction_coefficient > 0.0 and sliding.anchor is not None:
+        friction = _cut_friction_rows(geometry, sliding.anchor)
+    block = _cut_block(
+        sliding,
+        front,
+        friction,
+        samples.shares,
+        front_strength=front_strength,
+        friction_coefficient=friction_coefficient,
+        subgrid_compliance=subgrid_compliance,
+        spacing=spacing,
+    )
+    return block, front.info
+
+
+class _CutRows(NamedTuple):
+    """One kind of the cut block's rows, r of them (the fields of :class:`RowBlock` they fill)."""
+
+    tissue_jacobian: sp.csr_matrix  # (r, tissue DoFs)
+    needle_jacobian: sp.csr_matrix | None  # (r, needle DoFs); None for a rigid needle
+    free_gap: np.ndarray  # δ at the free positions [m], (r,)
+    directions: np.ndarray  # (r, 3)
+    points: np.ndarray  # the tissue-side points at the free positions [m], (r, 3)
+    kind: np.ndarray  # (r,)
+    source: np.ndarray  # (r,)
+
+
+class _NeedleSamples(NamedTuple):
+    """The needle every d_c along its inserted length, from the entry to the tip (k samples)."""
+
+    arc_lengths: np.ndarray  # [m], (k,)
+    shares: np.ndarray  # the inserted length each sample stands for [m], (k,)
+    step: float  # the samples' spacing [m]
+    previous: np.ndarray  # their points at the start of the step [m], (k, 3)
+    free: np.ndarray  # their points at the free positions [m], (k, 3)
+
+
+class _SlideAnchor(NamedTuple):
+    """Where the sliding rows hold the tissue (s rows): what their friction rows are built on."""
+
+    nodes: np.ndarray  # tissue nodes, (s, 12)
+    weights: np.ndarray  # their weights, (s, 12)
+    arc_lengths: np.ndarray  # the rows' needle points [m], (s,)
+    normals: np.ndarray  # the rows' directions, (s, 3)
+    points: np.ndarray  # the anchors at the free positions [m], (s, 3)
+
+
+class _Sliding(NamedTuple):
+    """The sliding rows of a step (s of them) and what the front and friction rows need of them."""
+
+    rows: _CutRows | None
+    anchor: _SlideAnchor | None
+    count: int  # s
+    tets: np.ndarray  # the tet of each row's nearest cut point (its sub-grid compliance), (s,)
+    limits: np.ndarray  # the rows' force limits [N], (s,) (inf: unbounded), or empty: all unbounded
+    band_rows: np.ndarray  # the rows at the front (bounded at G_c ℓ_k), indices among them, (b,)
+    band_segment: np.ndarray  # the crack-tip segment nearest each, (b,)
+
+
+class _Front(NamedTuple):
+    """The front rows of a step (f of them)."""
+
+    rows: _CutRows | None
+    info: FrontRows
+    keep: np.ndarray  # their samples, indices into the needle samples, (f,)
+    tets: np.ndarray  # the tet of each row's nearest crack-tip column (its sub-grid compliance), (f,)
+
+
+def _needle_samples(geometry: StepGeometry, entry_arc_length: float, spacing: float) -> _NeedleSamples | None:
+    """The needle sampled every d_c = ``spacing`` from ``entry_arc_length`` to the tip; None when the tip is
+    out (the entry is at the needle's length)."""
     length = geometry.needle_free.length
     start = max(0.0, min(entry_arc_length, length))
     if start >= length:
-        return None, FrontRows.empty()
+        return None
     count = max(int(np.ceil((length - start) / spacing)), 1)
     samples = np.linspace(start, length, count + 1)
-    needle_previous = geometry.needle_previous.points(samples)
-    needle_free = geometry.needle_free.points(samples)
-    blocks = []
-
-    front_previous = (
-        np.zeros((0, 3)) if strip is None else strip.front.positions(geometry.tissue_previous, tets)
-    )
     # The inserted length each sample stands for: [s − Δ/2, s + Δ/2] ∩ [entry, L].
     step = samples[1] - samples[0] if samples.size > 1 else spacing
     shares = np.clip(
@@ -293,167 +380,210 @@ def strip_cut_block(
         0.0,
         None,
     )
-    slide_limits = np.zeros(0)
-    band_rows, band_segment = np.zeros(0, np.int64), np.zeros(0, np.int64)
-    slide_count = 0
-    slide_anchor = None
-    slide_tets = np.zeros(0, dtype=np.int64)
-    front_keep = np.zeros(0, dtype=np.int64)
-    front_tets = np.zeros(0, np.int64)
-    if cut.triangle_count:
-        surface_previous = cut.deformed_points(geometry.tissue_previous, tets)
-        found = cut.closest_points(needle_previous, surface_previous)
-        normals_previous = cut.interpolated_normals(surface_previous, found.triangle, found.barycentric)
-        offset = needle_previous - found.closest
-        in_plane = offset - np.einsum("ij,ij->i", offset, normals_previous)[:, None] * normals_previous
-        compression = np.zeros(needle_previous.shape[0])
-        if strip is not None and subgrid_compliance is not None and np.isfinite(front_strength):
-            # The crack tip lies behind the needle by its front rows' compression C λ ≤ C(d_c) G_c d_c
-            # (crack_tip_compression), so the last layer lies up to d_c plus that behind it.
-            near = cut.triangles[found.triangle, np.argmax(found.barycentric, axis=1)]
-            lateral = np.asarray(subgrid_compliance[0], dtype=float)[cut.tet_indices[near]]
-            compression = lateral * float(front_strength) * spacing
-        reach = spacing + compression if strip is not None else 0.0
-        inside = np.flatnonzero(found.inside | (np.linalg.norm(in_plane, axis=1) <= reach))
-        if inside.size:
-            triangle, weights = found.triangle[inside], found.barycentric[inside]
-            surface_free = cut.deformed_points(geometry.tissue_free, tets)
-            normals = cut.interpolated_normals(surface_free, triangle, weights)
-            anchor = np.einsum("qv,qvj->qj", weights, surface_free[cut.triangles[triangle]])
-            nodes, node_weights = _surface_point_nodes(cut, tets, triangle, weights)
-            slide_anchor = (nodes, node_weights, samples[inside], normals, anchor)
-            nearest = cut.triangles[triangle, np.argmax(weights, axis=1)]
-            slide_tets = cut.tet_indices[nearest]
-            blocks.append(
-                (
-                    {
-                        TISSUE: point_rows(nodes, node_weights, normals, geometry.tissue_dof_count),
-                        NEEDLE: needle_rows(geometry.needle_free, samples[inside], normals),
-                    },
-                    np.einsum("ij,ij->i", normals, needle_free[inside] - anchor),
-                    normals,
-                    anchor,
-                    np.full(inside.size, BILATERAL),
-                    np.full(inside.size, CUT_SLIDE),
-                )
-            )
-            slide_count = inside.size
-            # At the front (within 1.5 d_c of the crack tip) the needle has uncut tissue on every side but the
-            # cut's: pushed out of the cut's plane it cuts through at G_c per unit
-            # length as it does ahead, so those sliding rows carry at most G_c ℓ_k (a needle whose stroke
-            # turns then turns the cut; held by unbounded rows there, an L-shaped stroke dragged the tissue
-            # sideways, 7.3 N against 3.6 N).
-            slide_limits = np.full(inside.size, np.inf)
-            if np.isfinite(front_strength) and front_previous.shape[0] >= 2:
-                segment, parameter, _ = _closest_on_polyline(needle_previous[inside], front_previous)
-                nearest_tip = (1.0 - parameter)[:, None] * front_previous[segment] + parameter[:, None] * (
-                    front_previous[segment + 1]
-                )
-                # (Not widened by the front's compression: so widened, the band took in every sliding row of
-                # the liver's rigid needle, whose crack tip lies 2.8 mm behind it, and the area the crack tip
-                # swept came out 230, 361, 203 mm² for d_c = 0.5, 1, 2 mm, against 199, 200, 203 mm² as it
-                # is.)
-                band = np.flatnonzero(
-                    (np.linalg.norm(needle_previous[inside] - nearest_tip, axis=1) <= 1.5 * spacing)
-                    & (shares[inside] > 1e-9 * step)
-                )
-                slide_limits[band] = float(front_strength) * shares[inside][band]
-                band_rows, band_segment = band, segment[band]
+    return _NeedleSamples(
+        samples,
+        shares,
+        step,
+        geometry.needle_previous.points(samples),
+        geometry.needle_free.points(samples),
+    )
 
-    front_info = FrontRows.empty()
-    if front_previous.shape[0] >= 2:
-        segment, parameter, interior = _closest_on_polyline(needle_previous, front_previous)
-        keep = np.flatnonzero(interior & (shares > 1e-9 * step))
-        if keep.size:
-            tangents = geometry.needle_free.tangents(samples[keep])
-            lateral = cut_direction - (tangents @ cut_direction)[:, None] * tangents
-            norms = np.linalg.norm(lateral, axis=1)
-            usable = norms > _MIN_NORMAL_COMPONENT
-            keep, lateral, norms = keep[usable], lateral[usable], norms[usable]
-        if keep.size:
-            directions = -lateral / norms[:, None]
-            seg, t = segment[keep], parameter[keep]
-            front_free = strip.front.positions(geometry.tissue_free, tets)
-            anchor = (1.0 - t)[:, None] * front_free[seg] + t[:, None] * front_free[seg + 1]
-            nodes = np.concatenate(
-                [tets[strip.front.tet_indices[seg]], tets[strip.front.tet_indices[seg + 1]]], 1
-            )
-            node_weights = np.concatenate(
-                [
-                    (1.0 - t)[:, None] * strip.front.barycentric[seg],
-                    t[:, None] * strip.front.barycentric[seg + 1],
-                ],
-                1,
-            )
-            blocks.append(
-                (
-                    {
-                        TISSUE: point_rows(nodes, node_weights, directions, geometry.tissue_dof_count),
-                        NEEDLE: needle_rows(geometry.needle_free, samples[keep], directions),
-                    },
-                    np.einsum("ij,ij->i", directions, needle_free[keep] - anchor),
-                    directions,
-                    anchor,
-                    np.full(keep.size, UNILATERAL),
-                    np.full(keep.size, CUT_BORDER),
-                )
-            )
-            front_info = FrontRows(
-                slide_count + np.arange(keep.size), seg, t, samples[keep], directions, band_rows, band_segment
-            )
-            front_keep = keep
-            front_tets = strip.front.tet_indices[np.where(t < 0.5, seg, seg + 1)]
-    if front_info.rows.size == 0 and band_rows.size:
-        front_info = FrontRows(
-            np.zeros(0, np.int64),
-            np.zeros(0, np.int64),
-            np.zeros(0),
-            np.zeros(0),
-            np.zeros((0, 3)),
-            band_rows,
-            band_segment,
+
+def _sliding_rows(
+    cut,
+    strip,
+    geometry: StepGeometry,
+    samples: _NeedleSamples,
+    front_previous: np.ndarray,
+    *,
+    spacing: float,
+    front_strength: float,
+    subgrid_compliance: tuple[np.ndarray, np.ndarray] | None,
+) -> _Sliding:
+    """The sliding rows (see :func:`strip_cut_block`): the samples in the cut, or beside its border within
+    reach of the crack tip, held on the surface along its normal; bounded at G_c ℓ_k at the front."""
+    none = _Sliding(
+        None, None, 0, np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    )
+    if not cut.triangle_count:
+        return none
+    tets = geometry.mesh_tets
+    needle_previous = samples.previous
+    surface_previous = cut.deformed_points(geometry.tissue_previous, tets)
+    found = cut.closest_points(needle_previous, surface_previous)
+    normals_previous = cut.interpolated_normals(surface_previous, found.triangle, found.barycentric)
+    offset = needle_previous - found.closest
+    in_plane = offset - np.einsum("ij,ij->i", offset, normals_previous)[:, None] * normals_previous
+    compression = np.zeros(needle_previous.shape[0])
+    if strip is not None and subgrid_compliance is not None and np.isfinite(front_strength):
+        # The crack tip lies behind the needle by its front rows' compression C λ ≤ C(d_c) G_c d_c
+        # (crack_tip_compression), so the last layer lies up to d_c plus that behind it.
+        near = cut.triangles[found.triangle, np.argmax(found.barycentric, axis=1)]
+        lateral = np.asarray(subgrid_compliance[0], dtype=float)[cut.tet_indices[near]]
+        compression = lateral * float(front_strength) * spacing
+    reach = spacing + compression if strip is not None else 0.0
+    inside = np.flatnonzero(found.inside | (np.linalg.norm(in_plane, axis=1) <= reach))
+    if not inside.size:
+        return none
+    triangle, weights = found.triangle[inside], found.barycentric[inside]
+    surface_free = cut.deformed_points(geometry.tissue_free, tets)
+    normals = cut.interpolated_normals(surface_free, triangle, weights)
+    anchor = np.einsum("qv,qvj->qj", weights, surface_free[cut.triangles[triangle]])
+    nodes, node_weights = _surface_point_nodes(cut, tets, triangle, weights)
+    arcs = samples.arc_lengths[inside]
+    nearest = cut.triangles[triangle, np.argmax(weights, axis=1)]
+    rows = _CutRows(
+        point_rows(nodes, node_weights, normals, geometry.tissue_dof_count),
+        needle_rows(geometry.needle_free, arcs, normals),
+        np.einsum("ij,ij->i", normals, samples.free[inside] - anchor),
+        normals,
+        anchor,
+        np.full(inside.size, BILATERAL),
+        np.full(inside.size, CUT_SLIDE),
+    )
+    # At the front (within 1.5 d_c of the crack tip) the needle has uncut tissue on every side but the
+    # cut's: pushed out of the cut's plane it cuts through at G_c per unit length as it does ahead, so those
+    # sliding rows carry at most G_c ℓ_k (a needle whose stroke turns then turns the cut; held by unbounded
+    # rows there, an L-shaped stroke dragged the tissue sideways, 7.3 N against 3.6 N).
+    limits = np.full(inside.size, np.inf)
+    band_rows, band_segment = none.band_rows, none.band_segment
+    if np.isfinite(front_strength) and front_previous.shape[0] >= 2:
+        segment, parameter, _ = _closest_on_polyline(needle_previous[inside], front_previous)
+        nearest_tip = (1.0 - parameter)[:, None] * front_previous[segment] + parameter[:, None] * (
+            front_previous[segment + 1]
         )
-    if not blocks:
-        return None, front_info
-    friction_count = 0
-    if friction_coefficient > 0.0 and slide_anchor is not None:
-        nodes, node_weights, arcs, normals, anchor = slide_anchor
-        axial = geometry.needle_free.tangents(arcs)
-        across = np.cross(normals, axial)
-        across /= np.linalg.norm(across, axis=1, keepdims=True)
-        tangents = np.concatenate([axial, across])
-        previous = np.einsum("qk,qkj->qj", node_weights, geometry.tissue_previous[nodes])
-        friction = friction_rows(
-            geometry,
-            tissue_nodes=np.concatenate([nodes, nodes]),
-            tissue_weights=np.concatenate([node_weights, node_weights]),
-            arc_lengths=np.concatenate([arcs, arcs]),
-            tangents=tangents,
-            tissue_free_points=np.concatenate([anchor, anchor]),
-            tissue_previous_points=np.concatenate([previous, previous]),
+        # (Not widened by the front's compression: so widened, the band took in every sliding row of the
+        # liver's rigid needle, whose crack tip lies 2.8 mm behind it, and the area the crack tip swept came
+        # out 230, 361, 203 mm² for d_c = 0.5, 1, 2 mm, against 199, 200, 203 mm² as it is.)
+        band = np.flatnonzero(
+            (np.linalg.norm(needle_previous[inside] - nearest_tip, axis=1) <= 1.5 * spacing)
+            & (samples.shares[inside] > 1e-9 * samples.step)
         )
-        friction_count = tangents.shape[0]
-        blocks.append(
-            (
-                friction.jacobians,
-                friction.free_gap,
-                tangents,
-                np.concatenate([anchor, anchor]),
-                np.full(friction_count, FRICTION),
-                np.full(friction_count, CUT_SLIDE),
-            )
-        )
+        limits[band] = float(front_strength) * samples.shares[inside][band]
+        band_rows, band_segment = band, segment[band]
+    return _Sliding(
+        rows,
+        _SlideAnchor(nodes, node_weights, arcs, normals, anchor),
+        inside.size,
+        cut.tet_indices[nearest],
+        limits,
+        band_rows,
+        band_segment,
+    )
+
+
+def _front_rows(
+    strip,
+    geometry: StepGeometry,
+    samples: _NeedleSamples,
+    front_previous: np.ndarray,
+    cut_direction: np.ndarray,
+    sliding: _Sliding,
+) -> _Front:
+    """The front rows (see :func:`strip_cut_block`): the samples against the crack tip, along −ĉ normal to
+    the needle; they follow the sliding rows in the block."""
+    empty = np.zeros(0, np.int64)
+    info = FrontRows.empty()
+    if sliding.band_rows.size:
+        info = replace(info, band_rows=sliding.band_rows, band_segment=sliding.band_segment)
+    if front_previous.shape[0] < 2:
+        return _Front(None, info, empty, empty)
+    segment, parameter, interior = _closest_on_polyline(samples.previous, front_previous)
+    keep = np.flatnonzero(interior & (samples.shares > 1e-9 * samples.step))
+    if keep.size:
+        tangents = geometry.needle_free.tangents(samples.arc_lengths[keep])
+        lateral = cut_direction - (tangents @ cut_direction)[:, None] * tangents
+        norms = np.linalg.norm(lateral, axis=1)
+        usable = norms > _MIN_NORMAL_COMPONENT
+        keep, lateral, norms = keep[usable], lateral[usable], norms[usable]
+    if not keep.size:
+        return _Front(None, info, empty, empty)
+    tets = geometry.mesh_tets
+    directions = -lateral / norms[:, None]
+    seg, t = segment[keep], parameter[keep]
+    front_free = strip.front.positions(geometry.tissue_free, tets)
+    anchor = (1.0 - t)[:, None] * front_free[seg] + t[:, None] * front_free[seg + 1]
+    nodes = np.concatenate([tets[strip.front.tet_indices[seg]], tets[strip.front.tet_indices[seg + 1]]], 1)
+    node_weights = np.concatenate(
+        [(1.0 - t)[:, None] * strip.front.barycentric[seg], t[:, None] * strip.front.barycentric[seg + 1]], 1
+    )
+    arcs = samples.arc_lengths[keep]
+    rows = _CutRows(
+        point_rows(nodes, node_weights, directions, geometry.tissue_dof_count),
+        needle_rows(geometry.needle_free, arcs, directions),
+        np.einsum("ij,ij->i", directions, samples.free[keep] - anchor),
+        directions,
+        anchor,
+        np.full(keep.size, UNILATERAL),
+        np.full(keep.size, CUT_BORDER),
+    )
+    info = FrontRows(
+        sliding.count + np.arange(keep.size),
+        seg,
+        t,
+        arcs,
+        directions,
+        sliding.band_rows,
+        sliding.band_segment,
+    )
+    return _Front(rows, info, keep, strip.front.tet_indices[np.where(t < 0.5, seg, seg + 1)])
+
+
+def _cut_friction_rows(geometry: StepGeometry, anchor: _SlideAnchor) -> _CutRows:
+    """Two friction rows per sliding row, in the surface: along the needle, then across it."""
+    axial = geometry.needle_free.tangents(anchor.arc_lengths)
+    across = np.cross(anchor.normals, axial)
+    across /= np.linalg.norm(across, axis=1, keepdims=True)
+    tangents = np.concatenate([axial, across])
+    nodes, weights, arcs, points = anchor.nodes, anchor.weights, anchor.arc_lengths, anchor.points
+    previous = np.einsum("qk,qkj->qj", weights, geometry.tissue_previous[nodes])
+    friction = friction_rows(
+        geometry,
+        tissue_nodes=np.concatenate([nodes, nodes]),
+        tissue_weights=np.concatenate([weights, weights]),
+        arc_lengths=np.concatenate([arcs, arcs]),
+        tangents=tangents,
+        tissue_free_points=np.concatenate([points, points]),
+        tissue_previous_points=np.concatenate([previous, previous]),
+    )
+    count = tangents.shape[0]
+    return _CutRows(
+        friction.jacobians[TISSUE],
+        friction.jacobians.get(NEEDLE),
+        friction.free_gap,
+        tangents,
+        np.concatenate([points, points]),
+        np.full(count, FRICTION),
+        np.full(count, CUT_SLIDE),
+    )
+
+
+def _cut_block(
+    sliding: _Sliding,
+    front: _Front,
+    friction: _CutRows | None,
+    shares: np.ndarray,
+    *,
+    front_strength: float,
+    friction_coefficient: float,
+    subgrid_compliance: tuple[np.ndarray, np.ndarray] | None,
+    spacing: float,
+) -> RowBlock:
+    """The block of :func:`strip_cut_block`: sliding, front and friction rows, with their force limits,
+    friction groups, sub-grid compliance and roles (``shares``: the inserted length of each needle sample)."""
+    blocks = [rows for rows in (sliding.rows, front.rows, friction) if rows is not None]
+    friction_count = 0 if friction is None else friction.free_gap.size
     limits = np.concatenate(
         [
-            slide_limits if slide_limits.size else np.full(slide_count, np.inf),
-            float(front_strength) * shares[front_keep],
+            sliding.limits if sliding.limits.size else np.full(sliding.count, np.inf),
+            float(front_strength) * shares[front.keep],
             np.full(friction_count, np.inf),
         ]
     )
-    first_friction = slide_count + front_info.rows.size
+    first_friction = sliding.count + front.info.rows.size
     groups = {}
     if friction_count:
-        pair = np.arange(slide_count)
+        pair = np.arange(sliding.count)
         groups = dict(
             group_rows=first_friction + np.arange(friction_count),
             group_offsets=np.arange(friction_count + 1),
@@ -461,23 +591,28 @@ def strip_cut_block(
             group_coefficient=np.full(friction_count, float(friction_coefficient)),
         )
     block = RowBlock(
-        jacobians=stack_jacobians([b[0] for b in blocks]),
-        free_gap=np.concatenate([b[1] for b in blocks]),
-        kind=np.concatenate([b[4] for b in blocks]).astype(np.int8),
-        source=np.concatenate([b[5] for b in blocks]).astype(np.int8),
-        points=np.concatenate([b[3] for b in blocks]),
-        directions=np.concatenate([b[2] for b in blocks]),
+        jacobians=stack_jacobians([{TISSUE: b.tissue_jacobian, NEEDLE: b.needle_jacobian} for b in blocks]),
+        free_gap=np.concatenate([b.free_gap for b in blocks]),
+        kind=np.concatenate([b.kind for b in blocks]).astype(np.int8),
+        source=np.concatenate([b.source for b in blocks]).astype(np.int8),
+        points=np.concatenate([b.points for b in blocks]),
+        directions=np.concatenate([b.directions for b in blocks]),
         force_limit=limits if np.any(np.isfinite(limits)) else np.zeros(0),
         compliance_diagonal=_cut_compliance(
-            subgrid_compliance, slide_tets, front_tets, shares[front_keep], spacing, friction_count > 0
+            subgrid_compliance,
+            sliding.tets,
+            front.tets,
+            shares[front.keep],
+            spacing,
+            friction_count > 0,
         ),
         role=np.concatenate(
             [
-                np.full(slide_count, SLIDING),
-                np.full(front_keep.size, FRONT),
+                np.full(sliding.count, SLIDING),
+                np.full(front.keep.size, FRONT),
                 np.full(friction_count, CUT_FRICTION),
             ]
         ).astype(np.int8),
         **groups,
     )
-    return block, front_info
+    return block

@@ -11,6 +11,7 @@ a centreline model does not see (our extension; with a zero preload this is the 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,7 +33,60 @@ from refsim.constraints.rows import (
 )
 from refsim.constraints.step_geometry import StepGeometry
 
-__all__ = ["InsertionPath", "insertion_block", "grow_path", "points_beyond_tip", "point_row_metadata"]
+if TYPE_CHECKING:  # coupling.py builds on this module
+    from refsim.constraints.coupling import RingLayout
+
+__all__ = [
+    "InsertionPath",
+    "PointRings",
+    "insertion_block",
+    "grow_path",
+    "points_beyond_tip",
+    "point_row_metadata",
+]
+
+
+@dataclass(frozen=True)
+class PointRings:
+    """The coupling ring each insertion point's rows were last built on (the ring coupling), one per point.
+
+    A point keeps its ring while the needle's tangent at it stays within 1e-3 rad of ``tangents``
+    (:meth:`refsim.simulation.detection.Detector.insertion_rows`); the rings travel with the points, so the
+    rows of a step depend on its state only.
+
+    Attributes
+    ----------
+    layout : The rings (:class:`refsim.constraints.coupling.RingLayout`), q points each: tets (p, q),
+        barycentric (p, q, 4), mesh size and radius [m] (p,); a point without a ring yet has tets −1 and NaN.
+    tangents : The needle's unit tangent each ring was built normal to, shape (p, 3); NaN for a point without
+        a ring yet.
+    """
+
+    layout: RingLayout
+    tangents: np.ndarray
+
+    @property
+    def point_count(self) -> int:
+        return int(self.tangents.shape[0])
+
+    def subset(self, keep: np.ndarray) -> PointRings:
+        """The rings of the points ``keep`` selects (bool (p,) or indices)."""
+        return PointRings(self.layout.subset(keep), self.tangents[keep])
+
+    def padded(self, count: int) -> PointRings:
+        """The same rings followed by ``count`` points without one."""
+        layout = self.layout
+        per_ring = layout.tets.shape[1]
+        return PointRings(
+            replace(
+                layout,
+                tets=np.concatenate([layout.tets, np.full((count, per_ring), -1, dtype=layout.tets.dtype)]),
+                barycentric=np.concatenate([layout.barycentric, np.full((count, per_ring, 4), np.nan)]),
+                mesh_size=np.concatenate([layout.mesh_size, np.full(count, np.nan)]),
+                radius=np.concatenate([layout.radius, np.full(count, np.nan)]),
+            ),
+            np.concatenate([self.tangents, np.full((count, 3), np.nan)]),
+        )
 
 
 @dataclass(frozen=True)
@@ -52,6 +106,8 @@ class InsertionPath:
         annulus is unstretched (:func:`refsim.constraints.friction.stick_offsets`), shape (p,); NaN where
         unset (a new point, or one that slipped at its last solve: the next step places it from ``stretch``).
     stretch : The annulus' axial stretch −C λ at the point's last solve [m], shape (p,) (0 for a new point).
+    rings : The ring coupling's ring of each point (:class:`PointRings`), None before any was built (and with
+        the paper's coupling).
     """
 
     tets: np.ndarray
@@ -61,6 +117,7 @@ class InsertionPath:
     stuck: np.ndarray | None = None
     anchors: np.ndarray | None = None
     stretch: np.ndarray | None = None
+    rings: PointRings | None = None
 
     def __post_init__(self) -> None:
         count = self.tets.shape[0]
@@ -72,6 +129,8 @@ class InsertionPath:
             object.__setattr__(self, "anchors", np.full(count, np.nan))
         if self.stretch is None:
             object.__setattr__(self, "stretch", np.zeros(count))
+        if self.rings is not None and self.rings.point_count != count:
+            raise ValueError(f"rings for {self.rings.point_count} points on a path of {count} points")
 
     @classmethod
     def empty(cls) -> InsertionPath:
@@ -83,6 +142,10 @@ class InsertionPath:
         multipliers = np.asarray(multipliers, dtype=float).reshape(self.point_count, -1)
         stored[:, : multipliers.shape[1]] = multipliers
         return replace(self, multipliers=stored)
+
+    def with_rings(self, rings: PointRings) -> InsertionPath:
+        """The same points with the rings their rows were built on (one per point)."""
+        return replace(self, rings=rings)
 
     def with_stuck(self, stuck: np.ndarray) -> InsertionPath:
         """The same points with their stick state (bool (p,)) after a solve."""
@@ -114,6 +177,7 @@ class InsertionPath:
             np.concatenate([self.stuck, np.ones(len(tets), dtype=bool)]),
             np.concatenate([self.anchors, np.full(len(tets), np.nan)]),
             np.concatenate([self.stretch, np.zeros(len(tets))]),
+            None if self.rings is None else self.rings.padded(len(tets)),
         )
 
     def subset(self, keep: np.ndarray) -> InsertionPath:
@@ -126,6 +190,7 @@ class InsertionPath:
             self.stuck[keep],
             self.anchors[keep],
             self.stretch[keep],
+            None if self.rings is None else self.rings.subset(keep),
         )
 
 

@@ -25,7 +25,12 @@ solver factories scikit-fem passes to ``solve``), chosen for the tissue by the s
     is not the current one (on cube_cut it moves forces markedly).
 
 Binding a strategy to a body (:meth:`bind`) gives a :class:`BodyCompliance` that keeps what lives across steps
-(the analysis, the stale or rest factor); its :meth:`BodyCompliance.step` takes a step system and returns a
+(the analysis, the stale or rest factor). What changes with the run is state: the refreshed strategy's stale
+factor is a :class:`StaleFactor` (the matrix it factorised and its age in steps) that the run's state carries
+(:meth:`BodyCompliance.carried`, :meth:`BodyCompliance.resume`: a body resumed from a carried factor
+factorises its matrix again, which gives the same factor, so a restarted run has the uninterrupted run's
+bits). The rest is a memo of the body's model (the rest factor, the symbolic analysis) or of one step (W's
+columns for rows H, kept by value); its :meth:`BodyCompliance.step` takes a step system and returns a
 :class:`StepCompliance` with ``free_displacement``, :meth:`~StepCompliance.delassus` (W for rows H given as a
 scipy CSR matrix of shape (rows, dof_count)) and :meth:`~StepCompliance.correction` (A⁻¹ Hᵀ λ). Every fast
 strategy can also compute the exact answer in the same step (``against_exact=True``) and report its errors in
@@ -47,6 +52,7 @@ __all__ = [
     "STRATEGIES",
     "STRATEGY_VARIANTS",
     "W_UPDATES",
+    "StaleFactor",
     "StepSystem",
     "StepCompliance",
     "BodyCompliance",
@@ -218,6 +224,20 @@ def pcg(
     return (x[:, 0] if single else x), iterations, float(relative.max(initial=0.0))
 
 
+@dataclass(frozen=True, eq=False)
+class StaleFactor:
+    """What the refreshed strategy carries from step to step (part of a run's state).
+
+    Attributes
+    ----------
+    matrix : The effective stiffness A on the free DoFs it last factorised [N/m], CSR (f, f); never modified.
+    age : Steps taken with that factor, ≥ 1 (it is factorised again when ``age`` reaches ``refresh_every``).
+    """
+
+    matrix: sp.csr_matrix
+    age: int
+
+
 class StepCompliance:
     """The compliance of one body at one step: its free motion, W for rows, and the correction.
 
@@ -251,7 +271,7 @@ class StepCompliance:
         self.report = report
         self._columns = columns  # (used free positions) -> A⁻¹ E on the free DoFs, shape (f, u)
         self._exact = exact  # an exact StepCompliance for the error report, or None
-        self._cache_key = None
+        self._cache_key = None  # the CSR arrays of the rows H the cache was computed for (a copy)
         self._cache = None
         if exact is not None:
             report["free_motion_error"] = float(
@@ -274,11 +294,14 @@ class StepCompliance:
         return self.system.constrained_dofs
 
     def _influence(self, jacobian: sp.csr_matrix):
-        """Used free DoFs of H (positions among the free DoFs), H restricted to them, and A⁻¹ E on them."""
-        if self._cache_key is jacobian:
-            return self._cache
-        key = jacobian
+        """Used free DoFs of H (positions among the free DoFs), H restricted to them, and A⁻¹ E on them.
+
+        A memo of the last H by value (W and the correction of one step share it): a copy of H's CSR arrays is
+        the key, so rows changed in place or rebuilt equal give what a fresh computation gives."""
         jacobian = sp.csr_matrix(jacobian)
+        key = (jacobian.shape, jacobian.indptr.copy(), jacobian.indices.copy(), jacobian.data.copy())
+        if self._cache_key is not None and _same_rows(self._cache_key, key):
+            return self._cache
         if jacobian.shape[1] != self.system.dof_count:
             raise ValueError(
                 f"rows must have {self.system.dof_count} columns (DoFs), got {jacobian.shape[1]}"
@@ -396,8 +419,19 @@ class StepCompliance:
         return out
 
 
+def _same_rows(first: tuple, second: tuple) -> bool:
+    """Whether two keys of :meth:`StepCompliance._influence` (shape, indptr, indices, data) are equal."""
+    if first[0] != second[0]:
+        return False
+    return all(np.array_equal(a, b) for a, b in zip(first[1:], second[1:], strict=True))
+
+
 class BodyCompliance:
-    """A strategy bound to one body for a run: holds the factor(s) that live across steps."""
+    """A strategy bound to one body for a run: holds the factor(s) that live across steps.
+
+    What a step changes is returned by :meth:`carried` and taken back by :meth:`resume`, so that the run's
+    state holds it; what a body keeps besides is a memo of its model (and ``steps``, a count no result
+    reads)."""
 
     def __init__(self, strategy) -> None:
         self.strategy = strategy
@@ -405,6 +439,13 @@ class BodyCompliance:
         self._exact = (
             _ExactBody(strategy.linear_solver) if getattr(strategy, "against_exact", False) else None
         )
+
+    def carried(self) -> StaleFactor | None:
+        """What the next step depends on besides the model: None (the exact and precomputed strategies)."""
+        return None
+
+    def resume(self, carried: StaleFactor | None) -> None:
+        """Continue from ``carried`` (:meth:`carried` of some earlier step, or None: a run's start)."""
 
     def step(self, system: StepSystem) -> StepCompliance:
         """The compliance of this step's system (advances the strategy's step counter)."""
@@ -486,6 +527,21 @@ class _RefreshedBody(BodyCompliance):
         self._solver = make_linear_solver(strategy.linear_solver)
         self._age = None
         self._factored = None  # the matrix of the stale factor
+
+    def carried(self) -> StaleFactor | None:
+        """The stale factor's matrix and age; None before the first step."""
+        return None if self._age is None else StaleFactor(self._factored, self._age)
+
+    def resume(self, carried: StaleFactor | None) -> None:
+        """Continue from a carried factor: its matrix factorised again (unless it is the one held) and its
+        age; None refactorises at the next step."""
+        if carried is None:
+            self._age = self._factored = None
+            return
+        if carried.matrix is not self._factored:
+            self._solver.factorise(carried.matrix)
+            self._factored = carried.matrix
+        self._age = carried.age
 
     def _step(self, system: StepSystem, exact) -> StepCompliance:
         strategy = self.strategy

@@ -39,7 +39,7 @@ from refsim.constraints.coupling import (
     tip_cutting_block,
 )
 from refsim.constraints.cut import FrontRows, inserted_arc, strip_cut_block
-from refsim.constraints.insertion import InsertionPath
+from refsim.constraints.insertion import InsertionPath, PointRings
 from refsim.geometry import SurfaceProjector, TetLocator
 from refsim.scene import Scene
 from refsim.simulation.state import Phase, SimulationState
@@ -60,12 +60,15 @@ class Detection:
     front : Where the front rows press on the crack tip (cutting phase); their indices are into ``rows``.
     insertion_points : The path points whose insertion rows are in ``rows``, in row order, shape (p,) (each
         row's own point is ``rows.point``, an index into the path).
+    rings : The coupling rings those rows were built on, one per point of the path (the step's path carries
+        them on, :meth:`refsim.constraints.InsertionPath.with_rings`); None when no ring rows were built.
     """
 
     rows: RowBlock
     contact: SurfaceContact | None = None
     front: FrontRows = field(default_factory=FrontRows.empty)
     insertion_points: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    rings: PointRings | None = None
 
 
 class Detector:
@@ -117,58 +120,45 @@ class Detector:
             )
         self.rest_positions = None if rest_positions is None else np.asarray(rest_positions, dtype=float)
         self.rest_locator = TetLocator(self.rest_positions, np.asarray(tets)) if self.ring else None
-        self._ring_cache = (
-            None  # (tets and creation steps (p, 2), tangents (p, 3), RingLayout) of the last step
-        )
         # Shaft samples before puncture every half mean tet size (the surface cannot bend between them).
         self.shaft_spacing = 0.01
         if rest_positions is not None and tets is not None:
             sizes = local_mesh_size(rest_positions, tets, np.arange(len(tets)))
             self.shaft_spacing = 0.5 * float(sizes.mean())
 
-    def _rings(self, path: InsertionPath, tangents: np.ndarray, mesh_tets: np.ndarray) -> RingLayout:
-        """The points' rings; a point keeps last step's ring while its tangent turned less than 1e-3 rad."""
-        cached = self._ring_cache
+    def _rings(self, path: InsertionPath, tangents: np.ndarray, mesh_tets: np.ndarray) -> PointRings:
+        """The points' rings, normal to ``tangents`` (p, 3): a point keeps the ring it carries
+        (``path.rings``) while its tangent turned less than 1e-3 rad from the one that ring was built on; the
+        others get new rings (all do when the new rings' point count differs from the carried ones')."""
+        carried = path.rings
         reuse = np.zeros(path.point_count, dtype=bool)
-        if cached is not None:
-            key, old_tangents, layout = cached
-            shared = min(len(key), path.point_count)
-            same = (key[:shared, 0] == path.tets[:shared]) & (key[:shared, 1] == path.created_step[:shared])
-            same &= np.einsum("ij,ij->i", old_tangents[:shared], tangents[:shared]) > RING_REUSE_COSINE
-            reuse[:shared] = same
+        if carried is not None:
+            reuse = np.einsum("ij,ij->i", carried.tangents, tangents) > RING_REUSE_COSINE  # NaN: no ring yet
         if reuse.all():
-            layout = cached[2].subset(np.arange(path.point_count))
+            return carried
+        common = dict(
+            rest_positions=self.rest_positions,
+            mesh_tets=mesh_tets,
+            locator=self.rest_locator,
+            needle_radius=self.needle_radius,
+        )
+        if not reuse.any():
+            return PointRings(RingLayout.around(path, tangents=tangents, **common), tangents.copy())
+        fresh = RingLayout.around(path.subset(~reuse), tangents=tangents[~reuse], **common)
+        if carried.layout.tets.shape[1] == fresh.tets.shape[1]:
+            layout = RingLayout.merged(carried.layout.subset(np.flatnonzero(reuse)), fresh, reuse)
         else:
-            fresh = RingLayout.around(
-                path.subset(~reuse),
-                rest_positions=self.rest_positions,
-                mesh_tets=mesh_tets,
-                locator=self.rest_locator,
-                tangents=tangents[~reuse],
-                needle_radius=self.needle_radius,
-            )
-            if reuse.any() and cached[2].tets.shape[1] == fresh.tets.shape[1]:
-                layout = RingLayout.merged(cached[2].subset(np.flatnonzero(reuse)), fresh, reuse)
-            else:
-                layout = RingLayout.around(
-                    path,
-                    rest_positions=self.rest_positions,
-                    mesh_tets=mesh_tets,
-                    locator=self.rest_locator,
-                    tangents=tangents,
-                    needle_radius=self.needle_radius,
-                )
-                reuse[:] = False
+            layout = RingLayout.around(path, tangents=tangents, **common)
+            reuse[:] = False
         kept_tangents = tangents.copy()
-        if cached is not None and reuse.any():
-            kept_tangents[reuse] = cached[1][np.flatnonzero(reuse)]
-        self._ring_cache = (np.stack([path.tets, path.created_step], axis=1), kept_tangents, layout)
-        return layout
+        kept_tangents[reuse] = carried.tangents[reuse]
+        return PointRings(layout, kept_tangents)
 
     def insertion_rows(
         self, path: InsertionPath, geometry: StepGeometry, *, finite_line: bool = False
-    ) -> RowBlock:
-        """The insertion points' rows: the ring coupling with its sub-grid compliance, or the paper's rows.
+    ) -> tuple[RowBlock, PointRings | None]:
+        """The insertion points' rows: the ring coupling with its sub-grid compliance, or the paper's rows;
+        and the rings they were built on (one per point of ``path``; None with the paper's coupling).
 
         ``finite_line``: the 3-D sub-grid compliance of the inserted line (insertion); false: the 2-D values,
         which the cut rows also use (while cutting: rows of both kinds along one needle must have the same
@@ -181,12 +171,15 @@ class Detector:
             path.stuck, static=spec.static_friction_coefficient, dynamic=spec.shaft_friction_coefficient
         )
         if not self.ring:
-            return insertion_block(path, geometry, friction_coefficient=friction, normal_preload=self.preload)
+            block = insertion_block(
+                path, geometry, friction_coefficient=friction, normal_preload=self.preload
+            )
+            return block, None
         centres_previous = path.positions(geometry.tissue_previous, geometry.mesh_tets)
         arc_lengths, _ = geometry.needle_previous.project(centres_previous)
         rings = self._rings(path, geometry.needle_previous.tangents(arc_lengths), geometry.mesh_tets)
         block = ring_insertion_block(
-            path, geometry, rings, friction_coefficient=friction, normal_preload=self.preload
+            path, geometry, rings.layout, friction_coefficient=friction, normal_preload=self.preload
         )
         # With finite_line, the 3-D sub-grid compliance of the inserted line, which starts at the free
         # surface.
@@ -195,11 +188,11 @@ class Detector:
             shear_modulus=self.shear_modulus,
             poisson_ratio=self.poisson_ratio,
             needle_radius=self.needle_radius,
-            mesh_size=rings.mesh_size,
+            mesh_size=rings.layout.mesh_size,
             spacing=spec.spacing,
             arc_lengths=arc_lengths if finite_line else None,
         )
-        return replace(block, compliance_diagonal=diagonal)
+        return replace(block, compliance_diagonal=diagonal), rings
 
     def tip_ring(self, state: SimulationState, geometry: StepGeometry) -> tuple[np.ndarray, np.ndarray]:
         """The tip cutting row's tissue side with the ring coupling: the ring of material points around the
@@ -225,6 +218,7 @@ class Detector:
         contact = None
         front = FrontRows.empty()
         insertion_points = np.zeros(0, dtype=np.int64)
+        rings = None
         if state.phase == Phase.APPROACH:
             projector = SurfaceProjector(geometry.tissue_free, self.faces)
             tip_direction = geometry.needle_free.tangents(np.array([geometry.needle_free.length]))[0]
@@ -258,7 +252,7 @@ class Detector:
                 # stroke).
                 points = points[:0]
             if points.size:
-                block = self.insertion_rows(
+                block, rings = self.insertion_rows(
                     state.path.subset(points),
                     geometry,
                     finite_line=spec.subgrid_line == "finite" and state.phase != Phase.CUTTING,
@@ -327,7 +321,7 @@ class Detector:
             rows = empty_block({TISSUE: geometry.tissue_dof_count, NEEDLE: self.needle_dof_count})
         else:
             rows = concatenate(blocks)
-        return Detection(rows, contact, front, insertion_points)
+        return Detection(rows, contact, front, insertion_points, rings)
 
 
 def _cut_compliance(

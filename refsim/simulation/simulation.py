@@ -18,8 +18,9 @@
 The bodies (:class:`~refsim.simulation.bodies.Body`: the tissue, then the needle) are a tuple, ``bodies``; the
 stages above loop over it. The scene, the models and the controls are static; a step takes a
 :class:`SimulationState` and returns a new one with the :class:`~refsim.simulation.records.StepRecord` of what
-it did. Nothing the scene does not declare is computed: a rigid needle has no beam solve, μ = 0 gives no
-friction rows, a scene without cutting never builds a cut.
+it did. A step is a function of its state: a new simulation of the same scene continued from a state gives the
+bits the uninterrupted run gives. Nothing the scene does not declare is computed: a rigid needle has no beam
+solve, μ = 0 gives no friction rows, a scene without cutting never builds a cut.
 """
 
 from __future__ import annotations
@@ -166,6 +167,7 @@ class Simulation:
         control = self.controls.at(time)
         timer.lap("motion")
 
+        self.tissue_compliance.resume(state.tissue_factor)
         free, systems = {}, {}
         for body in self.bodies:
             free[body.name], systems[body.name] = body.free_motion(getattr(state, body.name), control, dt)
@@ -192,11 +194,13 @@ class Simulation:
         self._check_finite(step, corrected, multipliers)
         timer.lap("correction")
 
+        path = state.path if detection.rings is None else state.path.with_rings(detection.rings)
         new_state = replace(
             state,
             step=step,
             time=time,
-            path=self._store_multipliers(state.path, detection, problem, multipliers),
+            path=self._store_multipliers(path, detection, problem, multipliers),
+            tissue_factor=self.tissue_compliance.carried(),
             **corrected,
         )
         needle_state = corrected[self.needle.name]
