@@ -179,7 +179,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         summary = run_scene(scene, output, overwrite=args.overwrite, progress=progress)
     finally:
         bar.close()
-    if summary.status in ("interrupted", "terminated", "hangup"):
+    if summary.stopped_by_signal:
         print(
             f"\nrefsim run: {summary.stop_reason}; {summary.steps_written} completed steps kept in {output}",
             file=sys.stderr,

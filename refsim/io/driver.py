@@ -20,6 +20,8 @@ SIGHUP (a closed terminal, a dropped ssh)      "hangup"              129
 SIGTERM                                        "terminated"          143
 ============================================  ====================  =========
 
+The table is :data:`refsim.simulation.summary.RUN_STATUSES`, the one definition the code reads.
+
 Bad input raises :class:`RunInputError` (exit code 2) before any file is written; so does a results file that
 another run is writing (its lock is held). A file that cannot be created because the disk is full raises
 :class:`RunWriteError` (exit code 3), with nothing written and an existing file untouched.
@@ -35,6 +37,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+
+from refsim.simulation.summary import RUN_STATUSES
 
 __all__ = [
     "EXIT_HANGUP",
@@ -52,8 +56,12 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-EXIT_OK, EXIT_INPUT, EXIT_NUMERICAL, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 2, 3, 130, 143
-EXIT_HANGUP = 129  # 128 + SIGHUP, the shell's convention
+EXIT_INPUT = 2  # bad input, before any file is written
+EXIT_OK = RUN_STATUSES["complete"].exit_code
+EXIT_NUMERICAL = RUN_STATUSES["numerical"].exit_code
+EXIT_INTERRUPTED = RUN_STATUSES["interrupted"].exit_code
+EXIT_TERMINATED = RUN_STATUSES["terminated"].exit_code
+EXIT_HANGUP = RUN_STATUSES["hangup"].exit_code  # 128 + SIGHUP, the shell's convention
 
 # : A tissue displacement beyond this many times the tissue's bounding-box diagonal is a diverging run: a
 # tissue : with fixed nodes cannot move that far (measured: an overflow moved it by 1e144 m with finite
@@ -240,14 +248,14 @@ def run_scene(
     handle_signals : In the main thread, turn SIGTERM and SIGHUP into a clean stop (exit codes 143 and 129)
         for the run's duration and make SIGINT raise KeyboardInterrupt (130); the previous handlers are
         restored afterwards. The signal ends this run and is reported in the summary, not re-raised: a caller
-        that runs several scenes in a loop must stop when ``summary.status`` is "interrupted", "terminated"
-        or "hangup" (the resolution study does).
+        that runs several scenes in a loop must stop when ``summary.stopped_by_signal`` (the resolution
+        study stops on any incomplete run).
 
     Returns
     -------
     RunSummary
-        Events, forces, solver health and timing, plus ``status`` ("complete", "numerical", "write_failed",
-        "interrupted", "terminated", "hangup"), ``exit_code`` (0, 3, 3, 130, 143, 129), ``stop_reason`` (""
+        Events, forces, solver health and timing, plus ``status`` and ``exit_code`` (a key of
+        :data:`~refsim.simulation.summary.RUN_STATUSES` and its code, the module's table), ``stop_reason`` (""
         when complete), ``complete`` and ``output``.
         The results file holds every completed step in every case.
 
@@ -310,29 +318,25 @@ def run_scene(
         if progress is not None:
             progress(record.step, total, record.phase)
 
-    status, code, reason = "complete", EXIT_OK, ""
+    status, reason = "complete", ""
     with _Signals(handle_signals):
         try:
             try:
                 simulation.run(steps=total, on_step=step_done)
             except KeyboardInterrupt:
-                status, code, reason = "interrupted", EXIT_INTERRUPTED, "interrupted by SIGINT"
+                status, reason = "interrupted", "interrupted by SIGINT"
             except _Terminated as stop:
                 if stop.signum == signal.SIGHUP:
-                    status, code, reason = (
-                        "hangup",
-                        EXIT_HANGUP,
-                        "interrupted by SIGHUP (the terminal closed)",
-                    )
+                    status, reason = "hangup", "interrupted by SIGHUP (the terminal closed)"
                 else:
-                    status, code, reason = "terminated", EXIT_TERMINATED, "interrupted by SIGTERM"
+                    status, reason = "terminated", "interrupted by SIGTERM"
             except OSError as error:
-                status, code = "write_failed", EXIT_NUMERICAL
+                status = "write_failed"
                 reason = writer.failure or f"writing the results failed: {error}"
             except Exception as error:  # noqa: BLE001 - every failure must close the file and say why
                 step = summary.steps + 1
                 message = _numerical_message(error, step)
-                status, code = "numerical", EXIT_NUMERICAL
+                status = "numerical"
                 if message is None:
                     logger.debug("run stopped by an unexpected error", exc_info=True)
                     message = f"step {step}: stopped by an internal error ({type(error).__name__}: {error})"
@@ -341,7 +345,7 @@ def run_scene(
             # Also reached on a second Ctrl-C during the handling above: the file is closed in every case.
             writer.close(complete=status == "complete", reason=reason)
     if writer.failure is not None and status != "write_failed":
-        status, code = "write_failed", EXIT_NUMERICAL
+        status = "write_failed"
         reason = f"{reason}; {writer.failure}" if reason else writer.failure
-    summary.finish(status=status, exit_code=code, stop_reason=reason, steps_written=writer.steps_completed)
+    summary.finish(status=status, stop_reason=reason, steps_written=writer.steps_completed)
     return summary
