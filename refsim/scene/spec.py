@@ -701,7 +701,17 @@ class BoundarySpec(_Validated):
         "and a header allowed",
     )
 
+    #: The keys each motion reads beyond the node selection (nodes, box, patch_point, patch_plane,
+    #: patch_distance, which every motion but none reads).
+    MOTION_KEYS = {
+        "none": (),
+        "periodic": ("amplitude", "period", "exponent", "phase"),
+        "file": ("file",),
+    }
+    SELECTION_KEYS = ("nodes", "box", "patch_point", "patch_plane", "patch_distance")
+
     def validate(self) -> None:
+        self._check_unused_keys()
         selections = [
             self.nodes is not None,
             self.box is not None,
@@ -730,6 +740,26 @@ class BoundarySpec(_Validated):
             raise FieldError("file", "motion = 'file' needs file, a CSV of t, dx, dy, dz")
         if self.motion == "periodic" and not np.any(np.asarray(self.amplitude, dtype=float)):
             raise FieldError("amplitude", "a periodic motion needs a non-zero amplitude [m]")
+
+    def _check_unused_keys(self) -> None:
+        """A key the chosen motion does not read, set to other than its default, is an error naming the
+        motion that reads it: ``file = ...`` without ``motion = "file"`` ran with no motion and no message.
+        The motion is not inferred from the keys: ``motion`` is the one choice, and a key left over from
+        another motion is as likely as a forgotten ``motion``."""
+        used = self.MOTION_KEYS[self.motion] + (self.SELECTION_KEYS if self.motion != "none" else ())
+        for field in dataclasses.fields(self):
+            name = field.name
+            if name == "motion" or name in used or getattr(self, name) == field.default:
+                continue
+            readers = [motion for motion, keys in self.MOTION_KEYS.items() if name in keys] or [
+                motion for motion in self.MOTION_KEYS if motion != "none"
+            ]
+            raise FieldError(
+                name,
+                f"{name} = {getattr(self, name)!r} is given but motion = {self.motion!r} does not read it: "
+                f"set motion = {' or '.join(repr(m) for m in readers)} to apply it, or remove {name}",
+                related=("motion",),
+            )
 
 
 @dataclass(frozen=True, kw_only=True)
