@@ -38,15 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from refsim.simulation.summary import RUN_STATUSES
-
 __all__ = [
-    "EXIT_HANGUP",
-    "EXIT_INPUT",
-    "EXIT_INTERRUPTED",
-    "EXIT_NUMERICAL",
-    "EXIT_OK",
-    "EXIT_TERMINATED",
     "RunInputError",
     "RunWriteError",
     "check_output_path",
@@ -55,13 +47,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-EXIT_INPUT = 2  # bad input, before any file is written
-EXIT_OK = RUN_STATUSES["complete"].exit_code
-EXIT_NUMERICAL = RUN_STATUSES["numerical"].exit_code
-EXIT_INTERRUPTED = RUN_STATUSES["interrupted"].exit_code
-EXIT_TERMINATED = RUN_STATUSES["terminated"].exit_code
-EXIT_HANGUP = RUN_STATUSES["hangup"].exit_code  # 128 + SIGHUP, the shell's convention
 
 # : A tissue displacement beyond this many times the tissue's bounding-box diagonal is a diverging run: a
 # tissue : with fixed nodes cannot move that far (measured: an overflow moved it by 1e144 m with finite

@@ -322,11 +322,6 @@ class ResultWriter:
         """Steps written to the file so far (buffered steps not included)."""
         return self._steps_completed
 
-    @property
-    def steps_buffered(self) -> int:
-        """Steps appended but not yet written."""
-        return len(self._pending)
-
     def close(self, *, complete: bool = True, reason: str = "") -> None:
         """Write the buffered steps and close the file.
 
