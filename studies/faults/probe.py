@@ -1,4 +1,4 @@
-"""Probe of bad inputs and faults (issues 10, 24, 25): run every kind, classify what refsim did, print the table.
+"""Probe of bad inputs and faults (issues 10, 24, 25): run every kind, classify what refsim did, print it.
 
 Each kind runs `refsim run` (or a small Python harness that injects a fault and then calls it) in a child
 process, on the paper's cube reduced to 3³ cells and a few steps, and is classified:
