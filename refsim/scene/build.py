@@ -653,6 +653,16 @@ def check_models(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
     - d_i larger than the mean mesh edge: insertion points skip elements.
     """
     bounds = np.stack([mesh.rest_positions.min(axis=0), mesh.rest_positions.max(axis=0)])
+    _warn_mesh_units(scene, bounds)
+    _check_needle_outside(scene, mesh, trajectory, bounds)
+    _warn_unreachable(scene, trajectory, bounds)
+    _warn_spacing_against_edges(scene, mesh)
+    if scene.trajectory.file is not None:  # the speed check of the scene needs the file's samples
+        _check_file_tip_speed(scene, trajectory)
+
+
+def _warn_mesh_units(scene: Scene, bounds: np.ndarray) -> None:
+    """Warn when the mesh size and the needle length differ by more than 30 times (other units?)."""
     extent = bounds[1] - bounds[0]
     needle = scene.needle
     where = scene.source
@@ -676,6 +686,13 @@ def check_models(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
             ratio if ratio > 1 else 1 / ratio,
             hint,
         )
+
+
+def _check_needle_outside(scene: Scene, mesh: TetMesh, trajectory: Trajectory, bounds: np.ndarray) -> None:
+    """Refuse a needle thicker than the tissue, or inside it at t = 0."""
+    extent = bounds[1] - bounds[0]
+    needle = scene.needle
+    where = scene.source
     smallest = float(extent.min())
     if 2.0 * needle.radius >= smallest:
         raise SceneError(
@@ -702,6 +719,13 @@ def check_models(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
             f"that "
             "the puncture is simulated; check mesh.scale if the mesh is in other units"
         )
+
+
+def _warn_unreachable(scene: Scene, trajectory: Trajectory, bounds: np.ndarray) -> None:
+    """Warn when the tip never comes within insertion.contact_distance of the mesh's bounding box (on the
+    waypoints and 20 points per segment)."""
+    needle = scene.needle
+    where = scene.source
     times = np.asarray(trajectory.times, dtype=float)
     tips = trajectory.base_positions + needle.length * trajectory.directions
     if times.size > 1:  # also the points between waypoints, at 20 per segment
@@ -726,6 +750,11 @@ def check_models(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
             where,
             float(np.linalg.norm(gaps, axis=1).min()),
         )
+
+
+def _warn_spacing_against_edges(scene: Scene, mesh: TetMesh) -> None:
+    """Warn when d_i is longer than the mean mesh edge (insertion points skip elements)."""
+    where = scene.source
     edges = (
         mesh.rest_positions[mesh.tets[:, [1, 2, 3, 2, 3, 3]]]
         - mesh.rest_positions[mesh.tets[:, [0, 0, 0, 1, 1, 2]]]
@@ -740,19 +769,23 @@ def check_models(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
             scene.insertion.spacing,
             mean_edge,
         )
-    if scene.trajectory.file is not None:  # the speed check of the scene needs the file's samples
-        speeds = np.linalg.norm(
-            np.diff(trajectory.base_positions, axis=0), axis=1
-        ) + needle.length * np.arccos(
-            np.clip(np.einsum("ij,ij->i", trajectory.directions[:-1], trajectory.directions[1:]), -1.0, 1.0)
-        )
-        if speeds.size:
-            speed = float((speeds / np.diff(times)).max())
-            if speed * scene.time.dt > scene.insertion.contact_distance:
-                raise SceneError(
-                    f"{where}: time.dt = {scene.time.dt!r} s: the needle tip moves up to "
-                    f"{speed * scene.time.dt:.3g} m "
-                    f"per step along trajectory.file, more than insertion.contact_distance = "
-                    f"{scene.insertion.contact_distance!r} m; use dt <= "
-                    f"{scene.insertion.contact_distance / speed:.3g} s"
-                )
+
+
+def _check_file_tip_speed(scene: Scene, trajectory: Trajectory) -> None:
+    """The tip's travel per step along a trajectory file within insertion.contact_distance."""
+    needle = scene.needle
+    where = scene.source
+    times = np.asarray(trajectory.times, dtype=float)
+    speeds = np.linalg.norm(np.diff(trajectory.base_positions, axis=0), axis=1) + needle.length * np.arccos(
+        np.clip(np.einsum("ij,ij->i", trajectory.directions[:-1], trajectory.directions[1:]), -1.0, 1.0)
+    )
+    if speeds.size:
+        speed = float((speeds / np.diff(times)).max())
+        if speed * scene.time.dt > scene.insertion.contact_distance:
+            raise SceneError(
+                f"{where}: time.dt = {scene.time.dt!r} s: the needle tip moves up to "
+                f"{speed * scene.time.dt:.3g} m "
+                f"per step along trajectory.file, more than insertion.contact_distance = "
+                f"{scene.insertion.contact_distance!r} m; use dt <= "
+                f"{scene.insertion.contact_distance / speed:.3g} s"
+            )
