@@ -106,6 +106,11 @@ class MeshSpec(_Validated):
                 )
         if self.file is not None and not self.file.strip():
             raise FieldError("file", "file = '': expected the path of a volume mesh file")
+        if np.any(np.abs(np.asarray(self.origin, dtype=float)) > LARGEST_COORDINATE):
+            raise FieldError(
+                "origin",
+                f"origin = {list(self.origin)!r}: expected coordinates within ±{LARGEST_COORDINATE:g} m",
+            )
         for face in self.fixed_faces:
             if face not in FACE_NAMES:
                 raise FieldError(
@@ -286,6 +291,11 @@ class TrajectorySpec(_Validated):
         check_directions(directions, "directions", times)
 
     def _validate_aim(self) -> None:
+        if np.any(np.abs(np.asarray(self.entry, dtype=float)) > LARGEST_COORDINATE):
+            raise FieldError(
+                "entry",
+                f"entry = {list(self.entry)!r}: expected coordinates within ±{LARGEST_COORDINATE:g} m",
+            )
         for name in ("base_positions", "directions"):
             if getattr(self, name) is not None:
                 raise FieldError(name, f"{name}: give either waypoints (times, ...) or entry (aim), not both")
@@ -888,9 +898,8 @@ def check_scene_lengths(scene: Scene, scale: float | None = None) -> None:
     ConsistencyError
         Naming the key, its value, the valid range and the scale it is relative to.
     """
-    scale = scene_scale(scene) if scale is None else scale
-    floor = resolvable_length(scale)
-    for section, key, value in scene_lengths(scene):
+    lengths = list(scene_lengths(scene))
+    for section, key, value in lengths:  # first: the scale below is made of lengths too
         if value > LARGEST_COORDINATE:
             raise ConsistencyError(
                 section,
@@ -899,6 +908,9 @@ def check_scene_lengths(scene: Scene, scale: float | None = None) -> None:
                 "length and coordinate of a scene; beyond it squares and products of lengths approach "
                 "float64's overflow)",
             )
+    scale = scene_scale(scene) if scale is None else scale
+    floor = resolvable_length(scale)
+    for section, key, value in lengths:
         if value < floor:
             raise ConsistencyError(
                 section,

@@ -178,3 +178,16 @@ def test_the_mesh_sets_the_scale_of_the_scene_lengths():
     floor = 1e3 * np.finfo(float).eps * 2000.0
     message = str(caught.value)
     assert "cube.toml: needle.radius = 1e-10 m" in message and f">= {floor:.3g} m" in message
+
+
+@pytest.mark.parametrize(
+    ("overrides", "fragment"),
+    [
+        (["trajectory.standoff=1e300"], "trajectory.standoff = 1e+300 m: expected a length <= 1000 m"),
+        (["mesh.origin=[0.0, 0.0, 1e300]"], "mesh.origin = [0.0, 0.0, 1e+300]: expected coordinates within"),
+    ],
+)
+def test_a_huge_length_or_coordinate_is_named_not_the_lengths_it_dwarfs(overrides, fragment):
+    """The bounds of lengths and coordinates are checked before the floor that is relative to them: a huge
+    value is named itself, not a normal length that looks short beside it."""
+    assert fragment in _message(*overrides)
