@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from refsim.constraints import FRICTION, UNILATERAL, find_surface_contact, penetration_block
+from refsim.constraints import (
+    FRICTION,
+    TISSUE,
+    UNILATERAL,
+    find_surface_contact,
+    penetration_block,
+)
 from refsim.geometry import SurfaceProjector
 from tests.constraints.conftest import rigid_needle, still_geometry
 
@@ -80,7 +86,7 @@ def test_tissue_jacobian_linearises_the_normal_and_slip_gaps(block):
     normal_gap = rows.directions[0] @ (tip - point)
     slip = -(point - contact.point)  # the tissue point moved, the needle did not
     change = np.concatenate([[normal_gap - rows.free_gap[0]], rows.directions[1:] @ slip - rows.free_gap[1:]])
-    np.testing.assert_allclose(rows.tissue_jacobian @ motion.ravel(), change, atol=1e-17)
+    np.testing.assert_allclose(rows.jacobians[TISSUE] @ motion.ravel(), change, atol=1e-17)
 
 
 def test_a_tip_inside_a_thin_layer_meets_the_face_it_came_through(block):
