@@ -179,7 +179,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         summary = run_scene(scene, output, overwrite=args.overwrite, progress=progress)
     finally:
         bar.close()
-    if summary.status in ("interrupted", "terminated", "hangup"):
+    if summary.stopped_by_signal:
         print(
             f"\nrefsim run: {summary.stop_reason}; {summary.steps_written} completed steps kept in {output}",
             file=sys.stderr,
@@ -538,7 +538,20 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="refsim", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="log at debug level")
     commands = parser.add_subparsers(dest="command", required=True)
+    _add_run_command(commands)
+    _add_verify_command(commands)
+    _add_bench_command(commands)
+    _add_render_command(commands)
+    _add_plot_command(commands)
+    _add_study_command(commands)
+    _add_export_command(commands)
+    _add_reference_command(commands)
+    _add_compare_command(commands)
+    return parser
 
+
+def _add_run_command(commands) -> None:
+    """`refsim run` and its arguments."""
     run = commands.add_parser("run", help="run a scene and write its HDF5 results")
     run.add_argument("scene", help="scene file (.toml) or built-in scene name (cube, cube_cut, ...)")
     run.add_argument("-o", "--output", required=True, help="results file (.h5)")
@@ -548,9 +561,15 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     run.set_defaults(handler=_cmd_run)
 
+
+def _add_verify_command(commands) -> None:
+    """`refsim verify` and its arguments."""
     verify = commands.add_parser("verify", help="run the verification cases and print their table")
     verify.set_defaults(handler=_cmd_verify)
 
+
+def _add_bench_command(commands) -> None:
+    """`refsim bench` and its arguments."""
     bench = commands.add_parser("bench", help="time a scene (the paper's Table 1) and the tissue model")
     bench.add_argument("scene", nargs="?", help="scene to time; without it, only the tissue model bench")
     bench.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override a scene value")
@@ -578,6 +597,9 @@ def _parser() -> argparse.ArgumentParser:
     )
     bench.set_defaults(handler=_cmd_bench)
 
+
+def _add_render_command(commands) -> None:
+    """`refsim render` and its arguments."""
     render = commands.add_parser("render", help="off-screen picture (or animation) of a results file")
     render.add_argument("result")
     render.add_argument("-o", "--output", help="picture to write (.png)")
@@ -605,11 +627,17 @@ def _parser() -> argparse.ArgumentParser:
     render.add_argument("--fps", type=float, default=10.0, help="animation: frames per second (default 10)")
     render.set_defaults(handler=_cmd_render)
 
+
+def _add_plot_command(commands) -> None:
+    """`refsim plot` and its arguments."""
     plot = commands.add_parser("plot", help="force on the needle base against depth and time")
     plot.add_argument("result")
     plot.add_argument("-o", "--output", required=True)
     plot.set_defaults(handler=_cmd_plot)
 
+
+def _add_study_command(commands) -> None:
+    """`refsim study` and its arguments."""
     study = commands.add_parser("study", help="parameter sweep on Dask (a LocalCluster, or --scheduler)")
     study.add_argument("target", help="study file (.toml), or a scene (file or built-in name) with --sweep")
     study.add_argument(
@@ -645,6 +673,9 @@ def _parser() -> argparse.ArgumentParser:
     study.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     study.set_defaults(handler=_cmd_study)
 
+
+def _add_export_command(commands) -> None:
+    """`refsim export` and its arguments."""
     export = commands.add_parser("export", help="ParaView sidecar, reference problems, force CSV of a result")
     export.add_argument("result")
     export.add_argument("--xdmf", action="store_true", help="write RESULT.xdmf beside the file (ParaView)")
@@ -664,6 +695,9 @@ def _parser() -> argparse.ArgumentParser:
     )
     export.set_defaults(handler=_cmd_export)
 
+
+def _add_reference_command(commands) -> None:
+    """`refsim reference` and its arguments."""
     reference = commands.add_parser("reference", help="the reference set: list its cases, build it, its page")
     reference.add_argument("action", choices=("list", "build", "page"), help="list the cases, build, or page")
     reference.add_argument("-o", "--output", help="build: the package folder; page: the page (.md)")
@@ -676,6 +710,9 @@ def _parser() -> argparse.ArgumentParser:
     reference.add_argument("--workers", type=int, help="LocalCluster worker processes (default: the cores)")
     reference.set_defaults(handler=_cmd_reference)
 
+
+def _add_compare_command(commands) -> None:
+    """`refsim compare` and its arguments."""
     compare = commands.add_parser(
         "compare", help="score another simulator's results against a reference case"
     )
@@ -684,7 +721,6 @@ def _parser() -> argparse.ArgumentParser:
     compare.add_argument("--reference", default="reference", help="the package folder (default ./reference)")
     compare.add_argument("-o", "--output", help="figure: their values over the reference band (.png)")
     compare.set_defaults(handler=_cmd_compare)
-    return parser
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -82,13 +82,3 @@ class HookeMaterial:
     def shear_modulus(self) -> float:
         """Shear modulus, the second Lamé parameter μ = E / (2 (1 + ν)) [Pa]."""
         return self.youngs_modulus / (2.0 * (1.0 + self.poisson_ratio))
-
-    @property
-    def bulk_modulus(self) -> float:
-        """Bulk modulus K = E / (3 (1 − 2ν)) [Pa]."""
-        return self.youngs_modulus / (3.0 * (1.0 - 2.0 * self.poisson_ratio))
-
-    @property
-    def p_wave_modulus(self) -> float:
-        """P-wave (constrained, oedometric) modulus λ + 2μ [Pa]: the stiffness of uniaxial strain."""
-        return self.lame_lambda + 2.0 * self.shear_modulus

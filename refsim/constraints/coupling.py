@@ -56,7 +56,6 @@ __all__ = [
     "LATERAL",
     "AXIAL",
     "COUPLINGS",
-    "LINE_EQUIVALENT_RADIUS_RANGE",
     "RING_EQUIVALENT_RADIUS",
     "RING_EQUIVALENT_RADIUS_SPREAD",
     "coupling_radius",
@@ -75,19 +74,12 @@ __all__ = [
     "shaft_friction_coefficients",
     "stuck_points",
     "tip_cutting_block",
-    "puncture_bounds",
-    "puncture_detected",
     "shaft_contact_block",
 ]
 
 LATERAL, AXIAL = 0, 1
 #: Scene values of ``insertion.coupling``: the well-posed ring coupling (default) and the paper's bare line.
 COUPLINGS = ("ring", "paper")
-
-#: Equivalent radius a_eq/h of the *bare* line (rows on the centreline) in Kuhn-split tets, (min, max) over
-#: where the line crosses the cells (through grid nodes … generic), d_i ≤ h/4; lateral and axial. Not used by
-#: the model (it is position dependent by a factor 2.5), reported by the calibration (docs/coupling.md).
-LINE_EQUIVALENT_RADIUS_RANGE = {"lateral": (0.28, 0.71), "axial": (0.20, 0.60)}
 
 # Calibrated equivalent radius a_c/h of a ring of radius ρ/h: refsim.verification.coupling.calibrate_rings
 # (a 32 × 32 × 2 box of Kuhn cells with the exact line-load field on its sides, d_i = h/4, mean over 4
@@ -763,24 +755,6 @@ def tip_cutting_block(
         role=np.array([TIP], dtype=np.int8),
     )
     return block, np.zeros(1), np.array([float(cutting_force)])
-
-
-def puncture_bounds(puncture_force: float, count: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Box bounds [0, f_p] of penetration rows: a Signorini contact whose force cannot exceed f_p.
-
-    Below f_p the row is a contact (δ ≥ 0 ⊥ λ ≥ 0); when the push would need more, λ = f_p and δ < 0: the tip
-    enters, within the step, at exactly f_p, whatever dt and speed.
-    """
-    if not (math.isfinite(puncture_force) and puncture_force > 0.0):
-        raise ValueError(f"insertion.puncture_force = {puncture_force!r} N; valid range (0, inf)")
-    return np.zeros(count), np.full(count, float(puncture_force))
-
-
-def puncture_detected(
-    multiplier: float, gap: float, puncture_force: float, *, relative_tolerance: float = 1e-3
-) -> bool:
-    """Whether a capped penetration row punctured: λ at its bound f_p (within the tolerance) and δ < 0."""
-    return bool(multiplier >= (1.0 - relative_tolerance) * puncture_force and gap < 0.0)
 
 
 # ------------------------------------------------------------------------ shaft contact before puncture (6)

@@ -144,11 +144,6 @@ class PardisoSolver:
         except Exception:  # noqa: BLE001 - freeing at interpreter exit must not raise
             pass
 
-    @property
-    def factor_nonzeros(self) -> int:
-        """Non-zeros of the Cholesky factor (after the analysis)."""
-        return int(self._iparm[17])
-
     def _call(self, phase: int, b: np.ndarray, x: np.ndarray, nrhs: int) -> None:
         error = ctypes.c_int32(0)
         i32 = ctypes.POINTER(ctypes.c_int32)

@@ -503,22 +503,6 @@ class NeedleModel:
 
         return StepSystem.from_matrices(matrix, rhs, base, increment[order], group_rotations=group_rotations)
 
-    def gravity_forces(self, gravity: np.ndarray) -> np.ndarray:
-        """External forces of gravity on the lumped masses [N], shape (dof_count,).
-
-        Parameters
-        ----------
-        gravity : Acceleration of gravity [m/s²], shape (3,).
-        """
-        gravity = np.asarray(gravity, dtype=float)
-        if gravity.shape != (3,):
-            raise ValueError(f"gravity must have shape (3,), got {gravity.shape}")
-        share = np.full(self.node_count, self.element_length)
-        share[[0, -1]] *= 0.5
-        out = np.zeros((self.node_count, 6))
-        out[:, :3] = (self.section.density * self.section.area * share)[:, None] * gravity
-        return out.ravel()
-
     # ------------------------------------------------------------------ centreline
     def _locate(self, arc_lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         s = np.atleast_1d(np.asarray(arc_lengths, dtype=float))

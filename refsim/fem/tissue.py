@@ -311,11 +311,6 @@ class TissueModel:
         """Rest element stiffness Kₑ [N/m], shape (tet_count, 12, 12), node-major local DoFs (read-only)."""
         return _read_only(self._element_stiffness)
 
-    @property
-    def total_mass(self) -> float:
-        """Total mass [kg]."""
-        return float(self.nodal_masses.sum())
-
     def rest_state(self) -> TissueState:
         """The state at rest: rest positions, zero velocities."""
         return TissueState(

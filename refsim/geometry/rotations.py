@@ -15,7 +15,6 @@ __all__ = [
     "rotation_matrix",
     "rotation_vector",
     "polar_rotation",
-    "polar_rotation_svd",
     "polar_rotation_one",
     "needle_rest_frame",
 ]
@@ -129,8 +128,8 @@ def polar_rotation_one(f: np.ndarray, out: np.ndarray) -> int:
 
     Scaled Newton iteration X ← ½ (γ X + γ⁻¹ X⁻ᵀ), γ = (‖X⁻¹‖_F / ‖X‖_F)^½ (Higham, Functions of Matrices,
     §8.6), from X₀ = F; it converges quadratically to R when det F > 0. When det F ≤ 0 (an inverted or flat
-    element) or without convergence in 30 iterations the SVD gives the closest proper rotation, as
-    :func:`polar_rotation_svd`.
+    element) or without convergence in 30 iterations the SVD gives the closest proper rotation
+    (R = P diag(1, 1, det(P Qᵀ)) Qᵀ for F = P Σ Qᵀ).
     """
     a00, a01, a02 = f[0, 0], f[0, 1], f[0, 2]
     a10, a11, a12 = f[1, 0], f[1, 1], f[1, 2]
@@ -224,7 +223,7 @@ def polar_rotation(deformation_gradients: np.ndarray) -> np.ndarray:
     """Rotation factor R of the polar decomposition F = R U, with det R = +1 (compiled scaled Newton).
 
     See :func:`polar_rotation_one`: scaled Newton when det F > 0, the SVD (closest proper rotation) otherwise.
-    Equal to :func:`polar_rotation_svd` to a few ε.
+    Equal to the batched SVD's rotation to a few ε (tests/fem/test_assembly.py).
 
     Parameters
     ----------
@@ -241,26 +240,6 @@ def polar_rotation(deformation_gradients: np.ndarray) -> np.ndarray:
     out = np.empty_like(flat)
     _polar_batch(flat, out)
     return out.reshape(f.shape)
-
-
-def polar_rotation_svd(deformation_gradients: np.ndarray) -> np.ndarray:
-    """Rotation factor R of the polar decomposition F = R U, with det R = +1, by batched SVD (the reference).
-
-    F = P Σ Qᵀ, R = P diag(1, 1, det(P Qᵀ)) Qᵀ, so that inverted elements (det F < 0) still give a proper
-    rotation (the closest one to F).
-
-    Parameters
-    ----------
-    deformation_gradients : Matrices F, shape (k, 3, 3).
-
-    Returns
-    -------
-    Rotation matrices, shape (k, 3, 3).
-    """
-    u, _, vt = np.linalg.svd(np.asarray(deformation_gradients, dtype=float))
-    det = np.linalg.det(u @ vt)
-    u[..., :, 2] *= det[..., None]
-    return u @ vt
 
 
 def needle_rest_frame(direction: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:

@@ -20,6 +20,8 @@ SIGHUP (a closed terminal, a dropped ssh)      "hangup"              129
 SIGTERM                                        "terminated"          143
 ============================================  ====================  =========
 
+The table is :data:`refsim.simulation.summary.RUN_STATUSES`, the one definition the code reads.
+
 Bad input raises :class:`RunInputError` (exit code 2) before any file is written; so does a results file that
 another run is writing (its lock is held). A file that cannot be created because the disk is full raises
 :class:`RunWriteError` (exit code 3), with nothing written and an existing file untouched.
@@ -37,12 +39,6 @@ from pathlib import Path
 import numpy as np
 
 __all__ = [
-    "EXIT_HANGUP",
-    "EXIT_INPUT",
-    "EXIT_INTERRUPTED",
-    "EXIT_NUMERICAL",
-    "EXIT_OK",
-    "EXIT_TERMINATED",
     "RunInputError",
     "RunWriteError",
     "check_output_path",
@@ -51,9 +47,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-EXIT_OK, EXIT_INPUT, EXIT_NUMERICAL, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 2, 3, 130, 143
-EXIT_HANGUP = 129  # 128 + SIGHUP, the shell's convention
 
 # : A tissue displacement beyond this many times the tissue's bounding-box diagonal is a diverging run: a
 # tissue : with fixed nodes cannot move that far (measured: an overflow moved it by 1e144 m with finite
@@ -240,14 +233,14 @@ def run_scene(
     handle_signals : In the main thread, turn SIGTERM and SIGHUP into a clean stop (exit codes 143 and 129)
         for the run's duration and make SIGINT raise KeyboardInterrupt (130); the previous handlers are
         restored afterwards. The signal ends this run and is reported in the summary, not re-raised: a caller
-        that runs several scenes in a loop must stop when ``summary.status`` is "interrupted", "terminated"
-        or "hangup" (the resolution study does).
+        that runs several scenes in a loop must stop when ``summary.stopped_by_signal`` (the resolution
+        study stops on any incomplete run).
 
     Returns
     -------
     RunSummary
-        Events, forces, solver health and timing, plus ``status`` ("complete", "numerical", "write_failed",
-        "interrupted", "terminated", "hangup"), ``exit_code`` (0, 3, 3, 130, 143, 129), ``stop_reason`` (""
+        Events, forces, solver health and timing, plus ``status`` and ``exit_code`` (a key of
+        :data:`~refsim.simulation.summary.RUN_STATUSES` and its code, the module's table), ``stop_reason`` (""
         when complete), ``complete`` and ``output``.
         The results file holds every completed step in every case.
 
@@ -259,7 +252,6 @@ def run_scene(
     RunWriteError
         The results file cannot be created (a full disk); nothing is written.
     """
-    from refsim.io.writer import DEFAULT_BUFFER_STEPS, ResultWriter, WriterLockedError
     from refsim.simulation import Simulation
     from refsim.simulation.summary import RunSummary
 
@@ -270,14 +262,37 @@ def run_scene(
         raise RunInputError(str(error)) from None
     total = scene.time.step_count if steps is None else int(steps)
     summary = RunSummary(total_steps=total, output=str(output))
-    rest = np.asarray(simulation.models.mesh.rest_positions)
-    size = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
+    writer = _open_writer(output, scene, simulation.models, overwrite=overwrite, buffer_steps=buffer_steps)
+    step_done = _StepSink(
+        writer, summary, simulation.models.mesh.rest_positions, total, on_step=on_step, progress=progress
+    )
+    with _Signals(handle_signals):
+        status, reason = _run_steps(simulation, total, step_done, summary, writer)
+    if writer.failure is not None and status != "write_failed":
+        status = "write_failed"
+        reason = f"{reason}; {writer.failure}" if reason else writer.failure
+    summary.finish(status=status, stop_reason=reason, steps_written=writer.steps_completed)
+    return summary
+
+
+def _open_writer(output: Path, scene, models, *, overwrite: bool, buffer_steps: int | None):
+    """The run's :class:`~refsim.io.writer.ResultWriter`, its folder created.
+
+    Raises
+    ------
+    RunInputError
+        Another run is writing the file (its lock is held: it is left alone), or the path cannot be created.
+    RunWriteError
+        A full disk: nothing written, an existing file untouched.
+    """
+    from refsim.io.writer import DEFAULT_BUFFER_STEPS, ResultWriter, WriterLockedError
+
     try:
         output.parent.mkdir(parents=True, exist_ok=True)
-        writer = ResultWriter(
+        return ResultWriter(
             output,
             scene,
-            simulation.models,
+            models,
             overwrite=overwrite,
             buffer_steps=DEFAULT_BUFFER_STEPS if buffer_steps is None else buffer_steps,
         )
@@ -288,14 +303,24 @@ def run_scene(
     except OSError as error:  # a full disk: nothing written, an existing file untouched
         raise RunWriteError(error.errno, error.strerror or str(error)) from None
 
-    written_cut = [None]
 
-    def step_done(state, record) -> None:
-        check_record(state, record, size=size, rest_positions=rest)
-        writer.append(record)
-        if state.cut is not None and state.cut is not written_cut[0]:
+class _StepSink:
+    """What happens after each step: the numerical checks, the buffered write (and the cut surface when it
+    changed), the summary, then the caller's ``on_step`` and ``progress``."""
+
+    def __init__(self, writer, summary, rest_positions, total: int, *, on_step=None, progress=None) -> None:
+        self.writer, self.summary, self.total = writer, summary, total
+        self.on_step, self.progress = on_step, progress
+        self.rest = np.asarray(rest_positions)
+        self.size = float(np.linalg.norm(self.rest.max(axis=0) - self.rest.min(axis=0)))
+        self.written_cut = None
+
+    def __call__(self, state, record) -> None:
+        check_record(state, record, size=self.size, rest_positions=self.rest)
+        self.writer.append(record)
+        if state.cut is not None and state.cut is not self.written_cut:
             cut = state.cut
-            writer.write_cut_surface(
+            self.writer.write_cut_surface(
                 cut.rest_points,
                 cut.created_step,
                 cut.triangles,
@@ -303,45 +328,40 @@ def run_scene(
                 tet_indices=cut.tet_indices,
                 barycentric=cut.barycentric,
             )
-            written_cut[0] = cut
-        summary.add(record)
-        if on_step is not None:
-            on_step(state, record)
-        if progress is not None:
-            progress(record.step, total, record.phase)
+            self.written_cut = cut
+        self.summary.add(record)
+        if self.on_step is not None:
+            self.on_step(state, record)
+        if self.progress is not None:
+            self.progress(record.step, self.total, record.phase)
 
-    status, code, reason = "complete", EXIT_OK, ""
-    with _Signals(handle_signals):
+
+def _run_steps(simulation, total: int, step_done, summary, writer) -> tuple[str, str]:
+    """Run the steps and close the file whatever stops them; return (status, stop reason) (a key of
+    RUN_STATUSES; the reason is "" when complete)."""
+    status, reason = "complete", ""
+    try:
         try:
-            try:
-                simulation.run(steps=total, on_step=step_done)
-            except KeyboardInterrupt:
-                status, code, reason = "interrupted", EXIT_INTERRUPTED, "interrupted by SIGINT"
-            except _Terminated as stop:
-                if stop.signum == signal.SIGHUP:
-                    status, code, reason = (
-                        "hangup",
-                        EXIT_HANGUP,
-                        "interrupted by SIGHUP (the terminal closed)",
-                    )
-                else:
-                    status, code, reason = "terminated", EXIT_TERMINATED, "interrupted by SIGTERM"
-            except OSError as error:
-                status, code = "write_failed", EXIT_NUMERICAL
-                reason = writer.failure or f"writing the results failed: {error}"
-            except Exception as error:  # noqa: BLE001 - every failure must close the file and say why
-                step = summary.steps + 1
-                message = _numerical_message(error, step)
-                status, code = "numerical", EXIT_NUMERICAL
-                if message is None:
-                    logger.debug("run stopped by an unexpected error", exc_info=True)
-                    message = f"step {step}: stopped by an internal error ({type(error).__name__}: {error})"
-                reason = message
-        finally:
-            # Also reached on a second Ctrl-C during the handling above: the file is closed in every case.
-            writer.close(complete=status == "complete", reason=reason)
-    if writer.failure is not None and status != "write_failed":
-        status, code = "write_failed", EXIT_NUMERICAL
-        reason = f"{reason}; {writer.failure}" if reason else writer.failure
-    summary.finish(status=status, exit_code=code, stop_reason=reason, steps_written=writer.steps_completed)
-    return summary
+            simulation.run(steps=total, on_step=step_done)
+        except KeyboardInterrupt:
+            status, reason = "interrupted", "interrupted by SIGINT"
+        except _Terminated as stop:
+            if stop.signum == signal.SIGHUP:
+                status, reason = "hangup", "interrupted by SIGHUP (the terminal closed)"
+            else:
+                status, reason = "terminated", "interrupted by SIGTERM"
+        except OSError as error:
+            status = "write_failed"
+            reason = writer.failure or f"writing the results failed: {error}"
+        except Exception as error:  # noqa: BLE001 - every failure must close the file and say why
+            step = summary.steps + 1
+            message = _numerical_message(error, step)
+            status = "numerical"
+            if message is None:
+                logger.debug("run stopped by an unexpected error", exc_info=True)
+                message = f"step {step}: stopped by an internal error ({type(error).__name__}: {error})"
+            reason = message
+    finally:
+        # Also reached on a second Ctrl-C during the handling above: the file is closed in every case.
+        writer.close(complete=status == "complete", reason=reason)
+    return status, reason

@@ -122,6 +122,59 @@ def write_fclib(problem, path, *, solution=None, title: str = "", description: s
     return path
 
 
+#: Units of the problem-set datasets (the others are dimensionless).
+_PROBLEM_UNITS = {
+    "compliance": "m/N",
+    "free_gap": "m",
+    "shaft_normal_preload": "N",
+    "box_lower": "N",
+    "box_upper": "N",
+}
+
+
+def _write_problem(handle, step: int, problem, multipliers, report, results, fields) -> None:
+    """One step's group of a problem set: the problem's arrays with units, its attributes (step, time, phase,
+    row kinds) and the exact solution (multipliers [N], gap [m], residual, solver report)."""
+    from refsim.solvers import natural_residual
+
+    index = results.index_of(step)
+    group = handle.create_group(f"problems/step_{step:07d}")
+    kinds = np.bincount(problem.row_kinds(), minlength=5)
+    group.attrs.update(
+        {
+            "step": step,
+            "time": float(results.time[index]),
+            "phase": str(results.phase_name[index]),
+            "name": problem.name,
+            "pure_contact": is_pure_contact(problem),
+            "kinds": json.dumps(
+                {
+                    name: int(count)
+                    for name, count in zip(
+                        ("bilateral", "unilateral", "contact", "shaft_friction", "box"),
+                        kinds,
+                        strict=False,
+                    )
+                }
+            ),
+        }
+    )
+    for name in fields:
+        dataset = group.create_dataset(name, data=np.asarray(getattr(problem, name)))
+        dataset.attrs["units"] = _PROBLEM_UNITS.get(name, "1")
+    solution = group.create_group("solution")
+    solution.create_dataset("multipliers", data=multipliers).attrs["units"] = "N"
+    solution.create_dataset("gap", data=problem.gap(multipliers)).attrs["units"] = "m"
+    solution.attrs.update(
+        {
+            "residual": float(natural_residual(problem, multipliers)),
+            "converged": bool(report.converged),
+            "solver": str(report.solver),
+            "seconds": float(report.seconds),
+        }
+    )
+
+
 def export_problems(
     results_path, output, *, fclib_folder=None, tolerance: float = 1e-10, backend: str = "clarabel"
 ) -> dict:
@@ -181,47 +234,7 @@ def export_problems(
         for step, problem in problems:
             multipliers, report = solve_exact(problem, tolerance=tolerance, backend=backend)
             index = results.index_of(step)
-            group = handle.create_group(f"problems/step_{step:07d}")
-            kinds = np.bincount(problem.row_kinds(), minlength=5)
-            group.attrs.update(
-                {
-                    "step": step,
-                    "time": float(results.time[index]),
-                    "phase": str(results.phase_name[index]),
-                    "name": problem.name,
-                    "pure_contact": is_pure_contact(problem),
-                    "kinds": json.dumps(
-                        {
-                            name: int(count)
-                            for name, count in zip(
-                                ("bilateral", "unilateral", "contact", "shaft_friction", "box"),
-                                kinds,
-                                strict=False,
-                            )
-                        }
-                    ),
-                }
-            )
-            for name in fields:
-                dataset = group.create_dataset(name, data=np.asarray(getattr(problem, name)))
-                dataset.attrs["units"] = {
-                    "compliance": "m/N",
-                    "free_gap": "m",
-                    "shaft_normal_preload": "N",
-                    "box_lower": "N",
-                    "box_upper": "N",
-                }.get(name, "1")
-            solution = group.create_group("solution")
-            solution.create_dataset("multipliers", data=multipliers).attrs["units"] = "N"
-            solution.create_dataset("gap", data=problem.gap(multipliers)).attrs["units"] = "m"
-            solution.attrs.update(
-                {
-                    "residual": float(natural_residual(problem, multipliers)),
-                    "converged": bool(report.converged),
-                    "solver": str(report.solver),
-                    "seconds": float(report.seconds),
-                }
-            )
+            _write_problem(handle, step, problem, multipliers, report, results, fields)
             if not report.converged:
                 unconverged.append(step)
             if fclib_folder is not None and is_pure_contact(problem):

@@ -444,31 +444,14 @@ def read_results(path) -> Results:
         }
         tissue_steps = _read(handle, schema.TISSUE["step"].path)
         tissue_count = int(np.count_nonzero(tissue_steps <= last_step))
-        event_steps = _read(handle, schema.EVENTS["step"].path)
-        event_count = int(np.count_nonzero(event_steps <= last_step))
-        event_data = {
-            name: _read(handle, spec.path, event_count)
-            for name, spec in schema.EVENTS.items()
-            if spec.path in handle  # events/force_per_length is absent from files of before it
-        }
-        law = json.loads(attributes.get("scene", "{}")).get("cutting", {}).get("law", "energy")
-        value, unit = _event_values(event_data, event_count, law)
-        events = tuple(
-            RecordedEvent(int(s), float(t), str(n), float(f), str(u))
-            for s, t, n, f, u in zip(
-                event_data["step"], event_data["time"], event_data["name"], value, unit, strict=False
-            )
-        )
+        scene = _scene_of(path, attributes)
+        events = _read_events(handle, last_step, scene.get("cutting", {}).get("law", "energy"))
         cut = None
         if "cut" in handle:
             cut_data = {
                 name: _read(handle, spec.path) for name, spec in schema.CUT.items() if spec.path in handle
             }
             cut = CutHistory(**cut_data)
-        try:
-            scene = json.loads(attributes.get("scene", "{}"))
-        except json.JSONDecodeError as error:
-            raise ResultsError(f"{path}: the root attribute 'scene' is not valid JSON ({error})") from None
         return Results(
             path=path,
             attributes=attributes,
@@ -508,18 +491,47 @@ def read_results(path) -> Results:
             phase_names=_names(handle[schema.STEPS["phase"].path]),
             stage_names=stage_names,
             events=events,
-            trajectory_samples=_read(handle, schema.STATIC["trajectory/samples"].path)
-            if schema.STATIC["trajectory/samples"].path in handle
-            else np.zeros((0, 7)),
-            boundary_nodes=_read(handle, schema.STATIC["tissue/boundary_nodes"].path)
-            if schema.STATIC["tissue/boundary_nodes"].path in handle
-            else np.zeros(0, dtype=np.int64),
+            trajectory_samples=_read_optional(handle, "trajectory/samples", np.zeros((0, 7))),
+            boundary_nodes=_read_optional(handle, "tissue/boundary_nodes", np.zeros(0, dtype=np.int64)),
             boundary_displacement=steps["boundary_displacement"]
             if "boundary_displacement" in steps
             else np.zeros((len(steps["step"]), 0, 3)),
             cut=cut,
             problem_steps=np.array(_problem_steps(handle, last_step), dtype=np.int64),
         )
+
+
+def _scene_of(path: Path, attributes: dict) -> dict:
+    """The scene stored in the root attribute ``scene`` (JSON; {} when absent)."""
+    try:
+        return json.loads(attributes.get("scene", "{}"))
+    except json.JSONDecodeError as error:
+        raise ResultsError(f"{path}: the root attribute 'scene' is not valid JSON ({error})") from None
+
+
+def _read_events(handle, last_step: int, law: str) -> tuple[RecordedEvent, ...]:
+    """The events of the completed steps (up to ``last_step``), with their triggering value and unit under
+    the scene's cutting ``law``."""
+    event_steps = _read(handle, schema.EVENTS["step"].path)
+    event_count = int(np.count_nonzero(event_steps <= last_step))
+    event_data = {
+        name: _read(handle, spec.path, event_count)
+        for name, spec in schema.EVENTS.items()
+        if spec.path in handle  # events/force_per_length is absent from files of before it
+    }
+    value, unit = _event_values(event_data, event_count, law)
+    return tuple(
+        RecordedEvent(int(s), float(t), str(n), float(f), str(u))
+        for s, t, n, f, u in zip(
+            event_data["step"], event_data["time"], event_data["name"], value, unit, strict=False
+        )
+    )
+
+
+def _read_optional(handle, name: str, default: np.ndarray) -> np.ndarray:
+    """A static dataset that files written before it lack (``default`` then)."""
+    path = schema.STATIC[name].path
+    return _read(handle, path) if path in handle else default
 
 
 def _problem_steps(handle, last_step: int) -> list[int]:

@@ -193,9 +193,6 @@ class ResultWriter:
         needle_rest_nodes=None,
         buffer_steps: int = DEFAULT_BUFFER_STEPS,
     ) -> None:
-        import h5py
-
-        from refsim import __version__
         from refsim.scene import scene_to_json
         from refsim.simulation.records import STAGES
 
@@ -224,89 +221,104 @@ class ResultWriter:
             self._rows_written = 0
             self.failure: str | None = None  # why writing stopped (a failed write), or None
 
-            mesh = models.mesh
-            rest_positions = np.asarray(mesh.rest_positions, dtype=np.float64)
-            rest_nodes = (
-                _initial_needle_nodes(scene, models)
-                if needle_rest_nodes is None
-                else np.asarray(needle_rest_nodes, dtype=np.float64)
-            )
-            self._boundary_nodes = np.asarray(getattr(models, "boundary_nodes", np.zeros(0)), dtype=np.int64)
-            self._sizes = {
-                "n": rest_positions.shape[0],
-                "k": rest_nodes.shape[0],
-                "stages": len(self._stages),
-                "b": max(self._boundary_nodes.size, 1),
-            }
+            static = self._static_arrays(scene, models, needle_rest_nodes)
             scene_json = scene_to_json(scene)
-            static = {
-                "tissue/rest_positions": rest_positions,
-                "tissue/tets": np.asarray(mesh.tets, dtype=np.int64),
-                "tissue/faces": np.asarray(mesh.boundary_faces, dtype=np.int64),
-                "tissue/fixed_nodes": np.asarray(models.tissue.fixed_nodes, dtype=np.int64),
-                "tissue/boundary_nodes": self._boundary_nodes,
-                "trajectory/samples": np.column_stack(
-                    [models.trajectory.times, models.trajectory.base_positions, models.trajectory.directions]
-                ).astype(np.float64),
-                "needle/rest_nodes": rest_nodes,
-            }
             self._check_static_space(static, len(scene_json))
-            temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.partial")
-            try:
-                self._file = h5py.File(temporary, "w")
-                try:
-                    attributes = self._file.attrs
-                    attributes["format"] = schema.FORMAT_NAME
-                    attributes["schema_version"] = schema.SCHEMA_VERSION
-                    attributes["refsim_version"] = __version__
-                    attributes["git_commit"] = git_commit()
-                    attributes["created"] = datetime.datetime.now(datetime.timezone.utc).isoformat(
-                        timespec="seconds"
-                    )
-                    attributes["scene"] = scene_json
-                    attributes["scene_name"] = scene.name
-                    attributes["linear_solver"] = json.dumps(_linear_solver(scene))
-                    attributes["threads"] = json.dumps(_threads())
-                    attributes["complete"] = False
-                    attributes["steps_completed"] = 0
-                    attributes["stop_reason"] = "running (or stopped without a reason: killed)"
-                    for name, value in static.items():
-                        self._write_fixed(schema.STATIC[name], value)
-                    for group in (
-                        schema.STEPS,
-                        schema.SOLVER,
-                        schema.TISSUE,
-                        schema.CONSTRAINTS,
-                        schema.EVENTS,
-                    ):
-                        for spec in group.values():
-                            self._create_growing(spec)
-                    self._datasets["steps/phase"].attrs["names"] = list(schema.PHASE_NAMES)
-                    self._datasets["steps/stage_seconds"].attrs["names"] = list(self._stages)
-                    self._set_code_names()
-                    self._append("constraints/offsets", np.zeros(1, dtype=np.int64))
-                    self._file.flush()
-                except BaseException:
-                    try:
-                        self._file.close()
-                    except OSError:
-                        pass
-                    raise
-                os.replace(temporary, self.path)  # only a file with its static part takes the name
-            except OSError as error:
-                temporary.unlink(missing_ok=True)
-                raise OSError(
-                    error.errno or errno.EIO,
-                    f"{self.path}: cannot write the results file's static part ({error}); nothing was "
-                    "written (an existing file is untouched)",
-                ) from None
-            except BaseException:
-                temporary.unlink(missing_ok=True)
-                raise
+            self._create_file(scene, scene_json, static)
         except BaseException:
             self._lock.release()
             raise
         logger.info("writing results to %s", self.path)
+
+    def _static_arrays(self, scene, models, needle_rest_nodes) -> dict:
+        """The static datasets {schema.STATIC name: array}; sets the dataset sizes of the growing ones."""
+        mesh = models.mesh
+        rest_positions = np.asarray(mesh.rest_positions, dtype=np.float64)
+        rest_nodes = (
+            _initial_needle_nodes(scene, models)
+            if needle_rest_nodes is None
+            else np.asarray(needle_rest_nodes, dtype=np.float64)
+        )
+        self._boundary_nodes = np.asarray(getattr(models, "boundary_nodes", np.zeros(0)), dtype=np.int64)
+        self._sizes = {
+            "n": rest_positions.shape[0],
+            "k": rest_nodes.shape[0],
+            "stages": len(self._stages),
+            "b": max(self._boundary_nodes.size, 1),
+        }
+        return {
+            "tissue/rest_positions": rest_positions,
+            "tissue/tets": np.asarray(mesh.tets, dtype=np.int64),
+            "tissue/faces": np.asarray(mesh.boundary_faces, dtype=np.int64),
+            "tissue/fixed_nodes": np.asarray(models.tissue.fixed_nodes, dtype=np.int64),
+            "tissue/boundary_nodes": self._boundary_nodes,
+            "trajectory/samples": np.column_stack(
+                [models.trajectory.times, models.trajectory.base_positions, models.trajectory.directions]
+            ).astype(np.float64),
+            "needle/rest_nodes": rest_nodes,
+        }
+
+    def _create_file(self, scene, scene_json: str, static: dict) -> None:
+        """Write the file's static part under a temporary name, then rename it into place: only a file with
+        its static part takes the name.
+
+        Raises
+        ------
+        OSError
+            Naming the path when the static part cannot be written (a full disk); nothing is left.
+        """
+        import h5py
+
+        temporary = self.path.with_name(f".{self.path.name}.{os.getpid()}.partial")
+        try:
+            self._file = h5py.File(temporary, "w")
+            try:
+                self._write_static_part(scene, scene_json, static)
+            except BaseException:
+                try:
+                    self._file.close()
+                except OSError:
+                    pass
+                raise
+            os.replace(temporary, self.path)  # only a file with its static part takes the name
+        except OSError as error:
+            temporary.unlink(missing_ok=True)
+            raise OSError(
+                error.errno or errno.EIO,
+                f"{self.path}: cannot write the results file's static part ({error}); nothing was "
+                "written (an existing file is untouched)",
+            ) from None
+        except BaseException:
+            temporary.unlink(missing_ok=True)
+            raise
+
+    def _write_static_part(self, scene, scene_json: str, static: dict) -> None:
+        """The root attributes, the static datasets and the empty growing datasets."""
+        from refsim import __version__
+
+        attributes = self._file.attrs
+        attributes["format"] = schema.FORMAT_NAME
+        attributes["schema_version"] = schema.SCHEMA_VERSION
+        attributes["refsim_version"] = __version__
+        attributes["git_commit"] = git_commit()
+        attributes["created"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+        attributes["scene"] = scene_json
+        attributes["scene_name"] = scene.name
+        attributes["linear_solver"] = json.dumps(_linear_solver(scene))
+        attributes["threads"] = json.dumps(_threads())
+        attributes["complete"] = False
+        attributes["steps_completed"] = 0
+        attributes["stop_reason"] = "running (or stopped without a reason: killed)"
+        for name, value in static.items():
+            self._write_fixed(schema.STATIC[name], value)
+        for group in (schema.STEPS, schema.SOLVER, schema.TISSUE, schema.CONSTRAINTS, schema.EVENTS):
+            for spec in group.values():
+                self._create_growing(spec)
+        self._datasets["steps/phase"].attrs["names"] = list(schema.PHASE_NAMES)
+        self._datasets["steps/stage_seconds"].attrs["names"] = list(self._stages)
+        self._set_code_names()
+        self._append("constraints/offsets", np.zeros(1, dtype=np.int64))
+        self._file.flush()
 
     # ------------------------------------------------------------------ context manager
 
@@ -321,11 +333,6 @@ class ResultWriter:
     def steps_completed(self) -> int:
         """Steps written to the file so far (buffered steps not included)."""
         return self._steps_completed
-
-    @property
-    def steps_buffered(self) -> int:
-        """Steps appended but not yet written."""
-        return len(self._pending)
 
     def close(self, *, complete: bool = True, reason: str = "") -> None:
         """Write the buffered steps and close the file.

@@ -136,22 +136,13 @@ def write_xdmf(results_path, output=None) -> Path:
     """
     import h5py
 
-    from refsim.io import read_results, schema
+    from refsim.io import read_results
 
     results_path = Path(results_path)
     results = read_results(results_path)  # validates the file; counts of completed steps
     output = xdmf_path(results_path) if output is None else Path(output)
     if output.resolve().parent != results_path.resolve().parent:
         raise ValueError(f"{output}: the XDMF sidecar must be in the folder of {results_path}")
-    file_name = results_path.name
-    steps = results.step_count
-    nodes, tets = results.rest_positions.shape[0], results.tets.shape[0]
-    needle_nodes = results.needle_rest_nodes.shape[0]
-    # The time list: rest (step 0), then every step; the tissue record shown at each (-1: rest).
-    step_numbers = np.concatenate([[0], results.step[:steps]]).astype(np.int64)
-    times = np.concatenate([[0.0], results.time[:steps]])
-    record_of = np.searchsorted(results.tissue_steps, step_numbers, side="right") - 1
-
     root = ET.Element("Xdmf", Version="3.0")
     domain = ET.SubElement(root, "Domain")
     with h5py.File(results_path, "a") as handle:
@@ -163,25 +154,56 @@ def write_xdmf(results_path, output=None) -> Path:
             "sidecar; rewritten by refsim.io.xdmf.write_xdmf; its datasets are listed in "
             "refsim.io.schema.XDMF and docs/results.md"
         )
+        sidecar = _Sidecar(handle, domain, results, results_path.name)
+        sidecar.needle()
+        fixed_path, record_paths = sidecar.tissue_records()
+        sidecar.cut()
+        sidecar.tissue(fixed_path, record_paths)  # last: meshio's TimeSeriesReader reads the last collection
+    ET.indent(root)
+    output.write_text(
+        '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n", encoding="utf-8"
+    )
+    return output
 
-        def stored(spec_key: str, step: int | None, data: np.ndarray) -> str:
-            spec = XDMF[spec_key]
-            name = spec.path if step is None else xdmf_path_of(spec, step)
-            dataset = handle.create_dataset(name, data=np.asarray(data, dtype=spec.dtype))
-            dataset.attrs["units"] = spec.unit
-            return dataset.name
 
-        # needle: a polyline at rest, then at every step
+class _Sidecar:
+    """The grids of one XDMF sidecar and the datasets of the results file's ``xdmf/`` group they read.
+
+    The time list is rest (step 0), then every completed step; ``record_of`` is the tissue record shown at
+    each (-1: rest).
+    """
+
+    def __init__(self, handle, domain, results, file_name: str) -> None:
+        self.handle, self.domain, self.results, self.file_name = handle, domain, results, file_name
+        steps = results.step_count
+        self.nodes, self.tets = results.rest_positions.shape[0], results.tets.shape[0]
+        self.step_numbers = np.concatenate([[0], results.step[:steps]]).astype(np.int64)
+        self.times = np.concatenate([[0.0], results.time[:steps]])
+        self.record_of = np.searchsorted(results.tissue_steps, self.step_numbers, side="right") - 1
+
+    def stored(self, spec_key: str, step: int | None, data: np.ndarray) -> str:
+        """Store a derived array (of XDMF[spec_key], for ``step``) with its unit; its HDF5 path."""
+        spec = XDMF[spec_key]
+        name = spec.path if step is None else xdmf_path_of(spec, step)
+        dataset = self.handle.create_dataset(name, data=np.asarray(data, dtype=spec.dtype))
+        dataset.attrs["units"] = spec.unit
+        return dataset.name
+
+    def needle(self) -> None:
+        """The needle: a polyline at rest, then at every step (views of steps/needle_positions)."""
+        from refsim.io import schema
+
+        needle_nodes = self.results.needle_rest_nodes.shape[0]
         needle = ET.SubElement(
-            domain, "Grid", Name="needle", GridType="Collection", CollectionType="Temporal"
+            self.domain, "Grid", Name="needle", GridType="Collection", CollectionType="Temporal"
         )
-        connectivity = stored("needle/polyline", None, np.arange(needle_nodes)[None])
-        for index, (step, time) in enumerate(zip(step_numbers, times, strict=True)):
+        connectivity = self.stored("needle/polyline", None, np.arange(needle_nodes)[None])
+        for index, (step, time) in enumerate(zip(self.step_numbers, self.times, strict=True)):
             if index == 0:
                 path = "/" + schema.STATIC["needle/rest_nodes"].path
             else:
                 path = _view(
-                    handle,
+                    self.handle,
                     xdmf_path_of(XDMF["needle/positions/NNNNNNN"], step),
                     schema.STEPS["needle_positions"].path,
                     index - 1,
@@ -193,22 +215,28 @@ def write_xdmf(results_path, output=None) -> Path:
                 grid,
                 "Polyline",
                 1,
-                file_name,
+                self.file_name,
                 connectivity,
                 (1, needle_nodes),
                 NodesPerElement=str(needle_nodes),
             )
-            _geometry(grid, file_name, path, (needle_nodes, 3))
-        # tissue records: views of the positions, displacement and constraint forces (derived)
+            _geometry(grid, self.file_name, path, (needle_nodes, 3))
+
+    def tissue_records(self) -> tuple[str, dict]:
+        """The fixed-node flags and, per tissue record (-1: rest), the paths of its positions (a view),
+        displacement and nodal constraint forces (derived)."""
+        from refsim.io import schema
+
+        results, nodes = self.results, self.nodes
         fixed = np.zeros(nodes, dtype=np.int8)
         fixed[results.fixed_nodes] = 1
-        fixed_path = stored("tissue/fixed", None, fixed)
+        fixed_path = self.stored("tissue/fixed", None, fixed)
         zeros = np.zeros((nodes, 3))
         record_paths = {
             -1: (
                 "/" + schema.STATIC["tissue/rest_positions"].path,
-                stored("tissue/displacement/NNNNNNN", 0, zeros),
-                stored("tissue/constraint_force/NNNNNNN", 0, zeros),
+                self.stored("tissue/displacement/NNNNNNN", 0, zeros),
+                self.stored("tissue/constraint_force/NNNNNNN", 0, zeros),
             )
         }
         for record, step in enumerate(results.tissue_steps):
@@ -216,15 +244,15 @@ def write_xdmf(results_path, output=None) -> Path:
             rows = results.constraints_at(int(step))
             record_paths[record] = (
                 _view(
-                    handle,
+                    self.handle,
                     xdmf_path_of(XDMF["tissue/positions/NNNNNNN"], step),
                     schema.TISSUE["positions"].path,
                     record,
                     (nodes, 3),
                     np.float64,
                 ),
-                stored("tissue/displacement/NNNNNNN", step, positions - results.rest_positions),
-                stored(
+                self.stored("tissue/displacement/NNNNNNN", step, positions - results.rest_positions),
+                self.stored(
                     "tissue/constraint_force/NNNNNNN",
                     step,
                     nodal_constraint_forces(
@@ -232,46 +260,58 @@ def write_xdmf(results_path, output=None) -> Path:
                     ),
                 ),
             )
-        # cut surface at every step from its first triangle
+        return fixed_path, record_paths
+
+    def cut(self) -> None:
+        """The cut surface at every step from its first triangle: its points deformed with each tissue
+        record, its triangles a view of the prefix existing at the step (a copy when out of order)."""
+        from refsim.io import schema
+
+        results, file_name = self.results, self.file_name
         cut = results.cut
-        if cut is not None and cut.triangles.shape[0] and cut.tet_indices is not None:
-            collection = ET.SubElement(
-                domain, "Grid", Name="cut", GridType="Collection", CollectionType="Temporal"
-            )
-            corners = results.tets[cut.tet_indices]  # (p, 4)
-            point_count = cut.points.shape[
-                0
-            ]  # every point: later ones are unused until their triangles exist
-            in_order = bool(np.all(np.diff(cut.triangle_step) >= 0))
-            counts = np.count_nonzero(cut.triangle_step[None, :] <= step_numbers[:, None], axis=1)
-            point_paths, triangle_paths = {-1: "/" + schema.CUT["points"].path}, {}
-            for step, time, record, count in zip(step_numbers, times, record_of, counts, strict=True):
-                if count == 0:
-                    continue
-                if record not in point_paths:
-                    deformed = np.einsum(
-                        "pk,pki->pi", cut.barycentric, results.tissue_positions[record][corners]
-                    )
-                    point_paths[record] = stored(
-                        "cut/points/NNNNNNN", int(results.tissue_steps[record]), deformed
-                    )
-                if count not in triangle_paths:
-                    name = xdmf_path_of(XDMF["cut/triangles/NNNNNNN"], step)
-                    if in_order:  # the triangles of the step are a prefix: a view
-                        triangle_paths[count] = _view(
-                            handle, name, schema.CUT["triangles"].path, slice(0, count), (count, 3), np.int64
-                        )
-                    else:
-                        existing = cut.triangles[cut.triangle_step <= step]
-                        triangle_paths[count] = stored("cut/triangles/NNNNNNN", step, existing)
-                grid = _grid(collection, f"cut_{int(step):07d}", time)
-                _topology(grid, "Triangle", int(count), file_name, triangle_paths[count], (int(count), 3))
-                _geometry(grid, file_name, point_paths[record], (point_count, 3))
-        # tissue last: meshio's TimeSeriesReader reads the last temporal collection
-        tissue = ET.SubElement(
-            domain, "Grid", Name="tissue", GridType="Collection", CollectionType="Temporal"
+        if cut is None or not cut.triangles.shape[0] or cut.tet_indices is None:
+            return
+        collection = ET.SubElement(
+            self.domain, "Grid", Name="cut", GridType="Collection", CollectionType="Temporal"
         )
-        for step, time, record in zip(step_numbers, times, record_of, strict=True):
+        corners = results.tets[cut.tet_indices]  # (p, 4)
+        point_count = cut.points.shape[0]  # every point: later ones are unused until their triangles exist
+        in_order = bool(np.all(np.diff(cut.triangle_step) >= 0))
+        counts = np.count_nonzero(cut.triangle_step[None, :] <= self.step_numbers[:, None], axis=1)
+        point_paths, triangle_paths = {-1: "/" + schema.CUT["points"].path}, {}
+        for step, time, record, count in zip(
+            self.step_numbers, self.times, self.record_of, counts, strict=True
+        ):
+            if count == 0:
+                continue
+            if record not in point_paths:
+                deformed = np.einsum("pk,pki->pi", cut.barycentric, results.tissue_positions[record][corners])
+                point_paths[record] = self.stored(
+                    "cut/points/NNNNNNN", int(results.tissue_steps[record]), deformed
+                )
+            if count not in triangle_paths:
+                name = xdmf_path_of(XDMF["cut/triangles/NNNNNNN"], step)
+                if in_order:  # the triangles of the step are a prefix: a view
+                    triangle_paths[count] = _view(
+                        self.handle, name, schema.CUT["triangles"].path, slice(0, count), (count, 3), np.int64
+                    )
+                else:
+                    existing = cut.triangles[cut.triangle_step <= step]
+                    triangle_paths[count] = self.stored("cut/triangles/NNNNNNN", step, existing)
+            grid = _grid(collection, f"cut_{int(step):07d}", time)
+            _topology(grid, "Triangle", int(count), file_name, triangle_paths[count], (int(count), 3))
+            _geometry(grid, file_name, point_paths[record], (point_count, 3))
+
+    def tissue(self, fixed_path: str, record_paths: dict) -> None:
+        """The tissue at every step: its tets on the record's positions, displacement, fixed flags and
+        constraint forces."""
+        from refsim.io import schema
+
+        nodes, tets, file_name = self.nodes, self.tets, self.file_name
+        tissue = ET.SubElement(
+            self.domain, "Grid", Name="tissue", GridType="Collection", CollectionType="Temporal"
+        )
+        for step, time, record in zip(self.step_numbers, self.times, self.record_of, strict=True):
             positions, displacement, force = record_paths[int(record)]
             grid = _grid(tissue, f"tissue_{step:07d}", time)
             _topology(
@@ -283,8 +323,3 @@ def write_xdmf(results_path, output=None) -> Path:
             )
             _attribute(grid, "fixed", "Node", "Scalar", file_name, fixed_path, (nodes,), np.int8)
             _attribute(grid, "constraint_force", "Node", "Vector", file_name, force, (nodes, 3), np.float64)
-    ET.indent(root)
-    output.write_text(
-        '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n", encoding="utf-8"
-    )
-    return output

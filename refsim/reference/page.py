@@ -115,14 +115,16 @@ linearly), scalars with `x` empty:
     indentation_force,0.00025,0.655
     puncture_force,,0.8
 
-A refsim results file (`.h5`) is read directly instead.
+A refsim results file (`.h5`) is read directly instead. From Python, `refsim.reference.write_their_csv(case,
+{quantity: values}, path)` writes this format for a case's sampling points.
 
 ## The data package
 
     DIR/manifest.json                      format, schema version, refsim version, git commit, command, level,
                                            per case: levels, h, seconds, quantities (methods,
                                            largest U/scale);
-                                           the SHA-256 of every file
+                                           the SHA-256 of every file (`refsim.reference.check_manifest(DIR)`
+                                           lists the files that differ or are missing)
     DIR/cases/NAME/reference.h5            answers (format "refsim-reference-case"): /h; /quantities/Q/{at,
                                            value, uncertainty, band, levels (L, k), order, gci, method}
     DIR/cases/NAME/reference.csv           the same as CSV (quantity, x, value, uncertainty, band, method,

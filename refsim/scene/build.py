@@ -17,7 +17,16 @@ from refsim.materials import HookeMaterial
 from refsim.mesh import TetMesh, box_mesh, read_mesh
 from refsim.scene.controls import Controls
 from refsim.scene.loader import SceneError
-from refsim.scene.spec import FACE_NAMES, MeshSpec, Scene
+from refsim.scene.spec import (
+    FACE_NAMES,
+    RESOLVED_DIGITS,
+    ConsistencyError,
+    MeshSpec,
+    Scene,
+    check_scene_lengths,
+    resolvable_length,
+    scene_scale,
+)
 from refsim.scene.trajectory import Trajectory, aimed, read_numeric_csv
 
 __all__ = [
@@ -29,6 +38,7 @@ __all__ = [
     "check_boundary_motion",
     "check_held",
     "check_insertion_spacing",
+    "check_mesh_lengths",
     "check_models",
     "check_time_resolution",
     "fixed_nodes",
@@ -254,6 +264,7 @@ def build_models(scene: Scene) -> SceneModels:
         mesh = build_mesh(scene.mesh, scene.base_directory)
     except ValueError as error:  # MeshError names the file and the defect
         raise SceneError(f"{scene.source}: mesh: {error}") from None
+    check_mesh_lengths(scene, mesh)
     moving = boundary_nodes(scene, mesh)
     held = np.union1d(_fixed_nodes_or_error(scene, mesh), moving)
     check_held(scene, mesh, held)
@@ -399,9 +410,20 @@ def build_controls(scene: Scene, models: SceneModels) -> Controls:
     return Controls(trajectory=models.trajectory, boundary=motion)
 
 
-#: Digits of a step's motion that the positions must keep: the tip's travel in one step must be at least
-#: 10**RESOLVED_DIGITS float64 epsilons of the largest coordinate, or the step's motion is lost in round-off.
-RESOLVED_DIGITS = 3
+def check_mesh_lengths(scene: Scene, mesh: TetMesh) -> None:
+    """The lengths of the scene against the largest coordinate including the mesh's
+    (:func:`refsim.scene.spec.check_scene_lengths`; a mesh file's coordinates are only known here).
+
+    Raises
+    ------
+    SceneError
+        Naming the file, the key, its value and the valid range.
+    """
+    scale = max(scene_scale(scene), float(np.abs(mesh.rest_positions).max()))
+    try:
+        check_scene_lengths(scene, scale)
+    except ConsistencyError as error:
+        raise SceneError(f"{scene.source}: {error.section}.{error}") from None
 
 
 def check_time_resolution(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
@@ -431,7 +453,7 @@ def check_time_resolution(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -
         float(np.abs(mesh.rest_positions).max()),
         float(np.abs(trajectory.base_positions).max()) + scene.needle.length,
     )
-    resolution = 10.0**RESOLVED_DIGITS * np.finfo(float).eps * largest
+    resolution = resolvable_length(largest)
     if speed * scene.time.dt < resolution:
         raise SceneError(
             f"{scene.source}: time.dt = {scene.time.dt!r} s: the needle tip moves at most "
@@ -444,6 +466,10 @@ def check_time_resolution(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -
 #: Constraint rows per insertion point: two bilateral rows normal to the needle and one shaft friction row
 #: (refsim.constraints.insertion).
 ROWS_PER_INSERTION_POINT = 3
+#: Constraint rows per cut sample (one every d_c of inserted needle in a cut): a sliding and a front row, and
+#: two friction rows when the cut faces have friction (refsim.constraints.cut.strip_cut_block).
+ROWS_PER_CUT_SAMPLE = 2
+ROWS_PER_CUT_SAMPLE_WITH_FRICTION = 4
 
 
 def _tip_travel(scene: Scene, trajectory: Trajectory) -> float:
@@ -460,17 +486,19 @@ def _tip_travel(scene: Scene, trajectory: Trajectory) -> float:
 
 
 def check_insertion_spacing(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
-    """The smallest insertion spacing d_i the machine can run: every insertion point adds
-    ROWS_PER_INSERTION_POINT constraint rows and the compliance W of the rows is a dense matrix of 8-byte
-    numbers, so the points the run can create (the inserted length over d_i) must leave W within the memory
-    available now. The inserted length is bounded by the needle's length, the tissue's size (bounding-box
-    diagonal) and the tip's path over the run.
+    """The smallest spacings d_i (insertion.spacing) and d_c (cutting.point_spacing) the machine can run:
+    every d_i of inserted needle adds ROWS_PER_INSERTION_POINT constraint rows, and, in a cut, every d_c adds
+    ROWS_PER_CUT_SAMPLE rows (ROWS_PER_CUT_SAMPLE_WITH_FRICTION with cutting.friction_coefficient > 0); the
+    compliance W of the rows is a dense matrix of 8-byte numbers, so the rows the run can create (the inserted
+    length over each spacing) must leave W within the memory available now. The inserted length is bounded
+    by the needle's length, the tissue's size (bounding-box diagonal) and the tip's path over the run.
 
     Raises
     ------
     SceneError
-        Naming insertion.spacing, the points and the memory W would need, the memory available and the
-        smallest d_i that fits.
+        Naming the spacing whose rows are the most (insertion.spacing or cutting.point_spacing), the rows and
+        the memory W would need, the memory available and the smallest value of that spacing that fits with
+        the other's rows.
     """
     free = available_memory()
     if free is None:
@@ -481,18 +509,27 @@ def check_insertion_spacing(scene: Scene, mesh: TetMesh, trajectory: Trajectory)
         float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0))),
         _tip_travel(scene, trajectory),
     )
-    points = inserted / scene.insertion.spacing + 1.0
-    rows = ROWS_PER_INSERTION_POINT * points
-    needed = 8.0 * rows**2
+    cutting = scene.cutting
+    per_cut = ROWS_PER_CUT_SAMPLE_WITH_FRICTION if cutting.friction_coefficient > 0.0 else ROWS_PER_CUT_SAMPLE
+    spacings = {
+        "insertion.spacing": (scene.insertion.spacing, ROWS_PER_INSERTION_POINT, "d_i", "insertion points")
+    }
+    if cutting.enabled:
+        spacings["cutting.point_spacing"] = (cutting.point_spacing, per_cut, "d_c", "cut samples")
+    rows = {key: per * (inserted / value + 1.0) for key, (value, per, _, _) in spacings.items()}
+    total = sum(rows.values())
+    needed = 8.0 * total**2
     if needed <= free:
         return
-    smallest = ROWS_PER_INSERTION_POINT * inserted / (np.sqrt(free / 8.0) - ROWS_PER_INSERTION_POINT)
+    key = max(rows, key=rows.get)
+    value, per, symbol, what = spacings[key]
+    room = np.sqrt(free / 8.0) - (total - rows[key]) - per  # rows left for this spacing's points beyond one
+    fits = f"use {key} >= {per * inserted / room:.3g} m" if room > 0.0 else "no value of it fits"
     raise SceneError(
-        f"{scene.source}: insertion.spacing = {scene.insertion.spacing!r} m (d_i): up to {points:.3g} "
-        f"insertion points along the {inserted:.3g} m the needle can enter (the least of needle.length, the "
-        f"tissue's size and the tip's path over the run), {ROWS_PER_INSERTION_POINT} constraint rows each, "
-        f"whose dense compliance matrix needs {needed / 2**30:.3g} GiB; {free / 2**30:.3g} GiB are "
-        f"available: use insertion.spacing >= {smallest:.3g} m"
+        f"{scene.source}: {key} = {value!r} m ({symbol}): up to {rows[key] / per:.3g} {what} along the "
+        f"{inserted:.3g} m the needle can enter (the least of needle.length, the tissue's size and the tip's "
+        f"path over the run), {per} constraint rows each, {total:.3g} rows in all, whose dense compliance "
+        f"matrix needs {needed / 2**30:.3g} GiB; {free / 2**30:.3g} GiB are available: {fits}"
     )
 
 
@@ -616,6 +653,16 @@ def check_models(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
     - d_i larger than the mean mesh edge: insertion points skip elements.
     """
     bounds = np.stack([mesh.rest_positions.min(axis=0), mesh.rest_positions.max(axis=0)])
+    _warn_mesh_units(scene, bounds)
+    _check_needle_outside(scene, mesh, trajectory, bounds)
+    _warn_unreachable(scene, trajectory, bounds)
+    _warn_spacing_against_edges(scene, mesh)
+    if scene.trajectory.file is not None:  # the speed check of the scene needs the file's samples
+        _check_file_tip_speed(scene, trajectory)
+
+
+def _warn_mesh_units(scene: Scene, bounds: np.ndarray) -> None:
+    """Warn when the mesh size and the needle length differ by more than 30 times (other units?)."""
     extent = bounds[1] - bounds[0]
     needle = scene.needle
     where = scene.source
@@ -639,6 +686,13 @@ def check_models(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
             ratio if ratio > 1 else 1 / ratio,
             hint,
         )
+
+
+def _check_needle_outside(scene: Scene, mesh: TetMesh, trajectory: Trajectory, bounds: np.ndarray) -> None:
+    """Refuse a needle thicker than the tissue, or inside it at t = 0."""
+    extent = bounds[1] - bounds[0]
+    needle = scene.needle
+    where = scene.source
     smallest = float(extent.min())
     if 2.0 * needle.radius >= smallest:
         raise SceneError(
@@ -665,6 +719,13 @@ def check_models(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
             f"that "
             "the puncture is simulated; check mesh.scale if the mesh is in other units"
         )
+
+
+def _warn_unreachable(scene: Scene, trajectory: Trajectory, bounds: np.ndarray) -> None:
+    """Warn when the tip never comes within insertion.contact_distance of the mesh's bounding box (on the
+    waypoints and 20 points per segment)."""
+    needle = scene.needle
+    where = scene.source
     times = np.asarray(trajectory.times, dtype=float)
     tips = trajectory.base_positions + needle.length * trajectory.directions
     if times.size > 1:  # also the points between waypoints, at 20 per segment
@@ -689,6 +750,11 @@ def check_models(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
             where,
             float(np.linalg.norm(gaps, axis=1).min()),
         )
+
+
+def _warn_spacing_against_edges(scene: Scene, mesh: TetMesh) -> None:
+    """Warn when d_i is longer than the mean mesh edge (insertion points skip elements)."""
+    where = scene.source
     edges = (
         mesh.rest_positions[mesh.tets[:, [1, 2, 3, 2, 3, 3]]]
         - mesh.rest_positions[mesh.tets[:, [0, 0, 0, 1, 1, 2]]]
@@ -703,19 +769,23 @@ def check_models(scene: Scene, mesh: TetMesh, trajectory: Trajectory) -> None:
             scene.insertion.spacing,
             mean_edge,
         )
-    if scene.trajectory.file is not None:  # the speed check of the scene needs the file's samples
-        speeds = np.linalg.norm(
-            np.diff(trajectory.base_positions, axis=0), axis=1
-        ) + needle.length * np.arccos(
-            np.clip(np.einsum("ij,ij->i", trajectory.directions[:-1], trajectory.directions[1:]), -1.0, 1.0)
-        )
-        if speeds.size:
-            speed = float((speeds / np.diff(times)).max())
-            if speed * scene.time.dt > scene.insertion.contact_distance:
-                raise SceneError(
-                    f"{where}: time.dt = {scene.time.dt!r} s: the needle tip moves up to "
-                    f"{speed * scene.time.dt:.3g} m "
-                    f"per step along trajectory.file, more than insertion.contact_distance = "
-                    f"{scene.insertion.contact_distance!r} m; use dt <= "
-                    f"{scene.insertion.contact_distance / speed:.3g} s"
-                )
+
+
+def _check_file_tip_speed(scene: Scene, trajectory: Trajectory) -> None:
+    """The tip's travel per step along a trajectory file within insertion.contact_distance."""
+    needle = scene.needle
+    where = scene.source
+    times = np.asarray(trajectory.times, dtype=float)
+    speeds = np.linalg.norm(np.diff(trajectory.base_positions, axis=0), axis=1) + needle.length * np.arccos(
+        np.clip(np.einsum("ij,ij->i", trajectory.directions[:-1], trajectory.directions[1:]), -1.0, 1.0)
+    )
+    if speeds.size:
+        speed = float((speeds / np.diff(times)).max())
+        if speed * scene.time.dt > scene.insertion.contact_distance:
+            raise SceneError(
+                f"{where}: time.dt = {scene.time.dt!r} s: the needle tip moves up to "
+                f"{speed * scene.time.dt:.3g} m "
+                f"per step along trajectory.file, more than insertion.contact_distance = "
+                f"{scene.insertion.contact_distance!r} m; use dt <= "
+                f"{scene.insertion.contact_distance / speed:.3g} s"
+            )

@@ -32,12 +32,21 @@ __all__ = [
     "BoundarySpec",
     "Scene",
     "FACE_NAMES",
+    "LARGEST_COORDINATE",
     "ConsistencyError",
     "check_consistency",
+    "check_scene_lengths",
     "max_tip_speed",
+    "resolvable_length",
+    "scene_scale",
 ]
 
 FACE_NAMES = ("xmin", "xmax", "ymin", "ymax", "zmin", "zmax")
+
+#: The largest coordinate and length of a scene [m]: a needle's base and every length of the scene
+#: (:func:`check_scene_lengths`) stay within it, so that products and squares of lengths (areas, second
+#: moments, squared distances) stay far from float64's overflow and underflow.
+LARGEST_COORDINATE = 1e3
 
 
 class _Validated:
@@ -98,6 +107,11 @@ class MeshSpec(_Validated):
                 )
         if self.file is not None and not self.file.strip():
             raise FieldError("file", "file = '': expected the path of a volume mesh file")
+        if np.any(np.abs(np.asarray(self.origin, dtype=float)) > LARGEST_COORDINATE):
+            raise FieldError(
+                "origin",
+                f"origin = {list(self.origin)!r}: expected coordinates within ±{LARGEST_COORDINATE:g} m",
+            )
         for face in self.fixed_faces:
             if face not in FACE_NAMES:
                 raise FieldError(
@@ -139,7 +153,14 @@ class NeedleSpec(_Validated):
     """The needle: co-rotational Timoshenko beams with 6-DoF nodes, or a rigid body driven by its base."""
 
     length: float = spec(unit="m", doc="needle length", low=0.0, high=10.0, low_open=True)
-    radius: float = spec(unit="m", doc="radius of the solid circular section", low=0.0, low_open=True)
+    radius: float = spec(
+        unit="m",
+        doc="radius of the solid circular section; a length of the scene (at least `resolvable_length` of "
+        "the scene's largest coordinate, or contact distances and the section are lost in round-off; "
+        "below the diameter of the tissue, checked with the mesh)",
+        low=0.0,
+        low_open=True,
+    )
     element_count: int = spec(unit="-", doc="number of beam elements", low=1, high=10000)
     youngs_modulus: float = spec(doc="Young's modulus E", **MATERIAL_LIMITS["youngs_modulus"])
     poisson_ratio: float = spec(doc="Poisson's ratio ν", **MATERIAL_LIMITS["poisson_ratio"])
@@ -263,12 +284,19 @@ class TrajectorySpec(_Validated):
             array = numbers_array(
                 name, value, (times.size, 3), f"{times.size} rows of 3 finite numbers (one per time)"
             )
-            if name == "base_positions" and np.any(np.abs(array) > 1e3):
-                raise FieldError(name, f"{name} = {value!r}: expected coordinates within ±1000 m")
+            if name == "base_positions" and np.any(np.abs(array) > LARGEST_COORDINATE):
+                raise FieldError(
+                    name, f"{name} = {value!r}: expected coordinates within ±{LARGEST_COORDINATE:g} m"
+                )
         directions = np.asarray(self.directions, dtype=float)
         check_directions(directions, "directions", times)
 
     def _validate_aim(self) -> None:
+        if np.any(np.abs(np.asarray(self.entry, dtype=float)) > LARGEST_COORDINATE):
+            raise FieldError(
+                "entry",
+                f"entry = {list(self.entry)!r}: expected coordinates within ±{LARGEST_COORDINATE:g} m",
+            )
         for name in ("base_positions", "directions"):
             if getattr(self, name) is not None:
                 raise FieldError(name, f"{name}: give either waypoints (times, ...) or entry (aim), not both")
@@ -722,7 +750,17 @@ class BoundarySpec(_Validated):
         "and a header allowed",
     )
 
+    #: The keys each motion reads beyond the node selection (nodes, box, patch_point, patch_plane,
+    #: patch_distance, which every motion but none reads).
+    MOTION_KEYS = {
+        "none": (),
+        "periodic": ("amplitude", "period", "exponent", "phase"),
+        "file": ("file",),
+    }
+    SELECTION_KEYS = ("nodes", "box", "patch_point", "patch_plane", "patch_distance")
+
     def validate(self) -> None:
+        self._check_unused_keys()
         selections = [
             self.nodes is not None,
             self.box is not None,
@@ -751,6 +789,26 @@ class BoundarySpec(_Validated):
             raise FieldError("file", "motion = 'file' needs file, a CSV of t, dx, dy, dz")
         if self.motion == "periodic" and not np.any(np.asarray(self.amplitude, dtype=float)):
             raise FieldError("amplitude", "a periodic motion needs a non-zero amplitude [m]")
+
+    def _check_unused_keys(self) -> None:
+        """A key the chosen motion does not read, set to other than its default, is an error naming the
+        motion that reads it: ``file = ...`` without ``motion = "file"`` ran with no motion and no message.
+        The motion is not inferred from the keys: ``motion`` is the one choice, and a key left over from
+        another motion is as likely as a forgotten ``motion``."""
+        used = self.MOTION_KEYS[self.motion] + (self.SELECTION_KEYS if self.motion != "none" else ())
+        for field in dataclasses.fields(self):
+            name = field.name
+            if name == "motion" or name in used or getattr(self, name) == field.default:
+                continue
+            readers = [motion for motion, keys in self.MOTION_KEYS.items() if name in keys] or [
+                motion for motion in self.MOTION_KEYS if motion != "none"
+            ]
+            raise FieldError(
+                name,
+                f"{name} = {getattr(self, name)!r} is given but motion = {self.motion!r} does not read it: "
+                f"set motion = {' or '.join(repr(m) for m in readers)} to apply it, or remove {name}",
+                related=("motion",),
+            )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -809,6 +867,100 @@ def max_tip_speed(trajectory: TrajectorySpec, needle_length: float) -> float | N
     return float(speeds.max())
 
 
+#: Digits of a length that positions must keep: a length of the scene (a spacing, a radius, a distance), or a
+#: step's motion, must be at least 10**RESOLVED_DIGITS float64 epsilons of the scene's largest coordinate.
+RESOLVED_DIGITS = 3
+
+
+def resolvable_length(scale: float) -> float:
+    """The shortest length [m] positions of magnitude up to ``scale`` [m] resolve: 10**RESOLVED_DIGITS float64
+    epsilons of ``scale``.
+
+    Added to a position of size ``scale``, a shorter length keeps fewer than RESOLVED_DIGITS of its digits (a
+    spacing of 1e-300 m between insertion or cut points makes points that coincide, a radius of 1e-300 m a
+    section whose area underflows to 0), and the ratio of a scene length to a shorter one (points per d_c) is
+    then beyond what any memory holds.
+    """
+    return 10.0**RESOLVED_DIGITS * float(np.finfo(float).eps) * float(scale)
+
+
+def _is_scene_length(field: dataclasses.Field) -> bool:
+    """A strictly positive length key (unit m, range (0, ...]): a length the geometry adds to positions or
+    divides lengths by."""
+    meta = field.metadata
+    return meta.get("unit") == "m" and meta.get("low") == 0.0 and bool(meta.get("low_open"))
+
+
+def scene_lengths(scene: Scene):
+    """Every length of the scene (section, key, value [m]): the strictly positive length keys of every
+    section, each item of a vector key, which are set."""
+    for section in SECTIONS:
+        part = getattr(scene, section)
+        for field in dataclasses.fields(part):
+            value = getattr(part, field.name)
+            if value is None or not _is_scene_length(field):
+                continue
+            for item in np.ravel(np.asarray(value, dtype=float)):
+                yield section, field.name, float(item)
+
+
+def scene_scale(scene: Scene) -> float:
+    """The scene's largest coordinate known without its mesh [m]: the needle's length, the box's far corner,
+    the trajectory's base positions (plus the needle) or aimed entry (plus standoff and needle). A mesh file's
+    coordinates are added when the mesh is read (refsim.scene.build)."""
+    scale = scene.needle.length
+    mesh = scene.mesh
+    if mesh.size is not None:
+        far = np.abs(np.asarray(mesh.origin, dtype=float)) + np.abs(np.asarray(mesh.size, dtype=float))
+        scale = max(scale, float(far.max()))
+    trajectory = scene.trajectory
+    if trajectory.base_positions is not None:
+        bases = np.abs(np.asarray(trajectory.base_positions, dtype=float))
+        scale = max(scale, float(bases.max()) + scene.needle.length)
+    if trajectory.entry is not None:
+        reach = float(np.abs(np.asarray(trajectory.entry, dtype=float)).max()) + trajectory.standoff
+        scale = max(scale, reach + scene.needle.length)
+    return scale
+
+
+def check_scene_lengths(scene: Scene, scale: float | None = None) -> None:
+    """Every length of the scene (:func:`scene_lengths`) at least :func:`resolvable_length` of the scene's
+    largest coordinate, and at most LARGEST_COORDINATE.
+
+    Parameters
+    ----------
+    scene : The scene.
+    scale : The largest coordinate [m]; :func:`scene_scale` by default (with the mesh: also its coordinates).
+
+    Raises
+    ------
+    ConsistencyError
+        Naming the key, its value, the valid range and the scale it is relative to.
+    """
+    lengths = list(scene_lengths(scene))
+    for section, key, value in lengths:  # first: the scale below is made of lengths too
+        if value > LARGEST_COORDINATE:
+            raise ConsistencyError(
+                section,
+                key,
+                message=f"{key} = {value!r} m: expected a length <= {LARGEST_COORDINATE:g} m (the largest "
+                "length and coordinate of a scene; beyond it squares and products of lengths approach "
+                "float64's overflow)",
+            )
+    scale = scene_scale(scene) if scale is None else scale
+    floor = resolvable_length(scale)
+    for section, key, value in lengths:
+        if value < floor:
+            raise ConsistencyError(
+                section,
+                key,
+                message=f"{key} = {value!r} m is below the shortest length the scene's positions resolve: "
+                f"expected a length >= {floor:.3g} m ({10**RESOLVED_DIGITS} float64 epsilons of the scene's "
+                f"largest coordinate, {scale:.3g} m); a shorter length is lost in round-off when added to "
+                "positions",
+            )
+
+
 def check_consistency(scene: Scene) -> None:
     """Checks across sections that need no mesh (the mesh-dependent ones are in `refsim.scene.build`).
 
@@ -817,7 +969,8 @@ def check_consistency(scene: Scene) -> None:
       can jump across the contact zone, and the puncture force is never measured (dt = 1 s gave 139 N instead
       of 3.5 N). Travel beyond d_i is allowed (several points per step are created) but logged as a warning;
     - the cut surface spacing d_c shorter than the needle;
-    - the channel's interference δ_r smaller than the needle's radius.
+    - the channel's interference δ_r smaller than the needle's radius;
+    - every length of the scene resolvable by its positions (:func:`check_scene_lengths`).
 
     Raises
     ------
@@ -827,6 +980,7 @@ def check_consistency(scene: Scene) -> None:
     import logging
 
     logger = logging.getLogger("refsim.scene")
+    check_scene_lengths(scene)
     mesh = scene.mesh
     if (
         not mesh.fixed_faces
@@ -932,6 +1086,11 @@ def scene_reference() -> str:
         "Generated by `refsim.scene.spec.scene_reference()`; `tests/scene/test_docs.py` checks this page is "
         "current.",
         "Every key is in SI units. A key without a default is required.",
+        "A length of the scene (a key in metres that must be > 0) must also be at least "
+        f"{10**RESOLVED_DIGITS} float64 epsilons of the scene's largest coordinate (mesh, needle and "
+        "trajectory; `refsim.scene.spec.resolvable_length`): a shorter length is lost in round-off when "
+        f"added to positions; and at most {LARGEST_COORDINATE:g} m. Its valid range says so with "
+        '"≥ ε-floor".',
         "",
     ]
     for section, cls in SECTIONS.items():
@@ -958,7 +1117,7 @@ def scene_reference() -> str:
                     or meta.get("length")
                 )
                 else "see meaning"
-            )
+            ) + (", ≥ ε-floor" if _is_scene_length(field) else "")
             lines.append(
                 f"| `{field.name}` | {meta.get('doc', '')} | {meta.get('unit', '') or '-'} | {default} | "
                 f"{valid} |"

@@ -8,7 +8,51 @@ import numpy as np
 
 from refsim.simulation.records import STAGES, StepRecord
 
-__all__ = ["PAPER_TABLE_1", "PaperPhase", "PhaseStatistics", "RunSummary", "event_value_text"]
+__all__ = [
+    "PAPER_TABLE_1",
+    "RUN_STATUSES",
+    "PaperPhase",
+    "PhaseStatistics",
+    "RunStatus",
+    "RunSummary",
+    "event_value_text",
+]
+
+
+@dataclass(frozen=True)
+class RunStatus:
+    """One way a run can end.
+
+    Attributes
+    ----------
+    name : ``RunSummary.status``.
+    exit_code : `refsim run`'s exit code.
+    cause : What stopped the run, in words.
+    """
+
+    name: str
+    exit_code: int
+    cause: str
+
+    @property
+    def by_signal(self) -> bool:
+        """A signal stopped the run (the exit code is 128 + its number, the shell's convention)."""
+        return self.exit_code > 128
+
+
+#: Every way a run ends, by ``RunSummary.status``: the one list the run driver (refsim.io.driver, whose
+#: docstring tabulates it; a test checks the table) and the summary read.
+RUN_STATUSES = {
+    status.name: status
+    for status in (
+        RunStatus("complete", 0, "nothing (finished)"),
+        RunStatus("numerical", 3, "non-finite or overflowing values, a singular matrix, a diverging solver"),
+        RunStatus("write_failed", 3, "a failed write (full disk)"),
+        RunStatus("interrupted", 130, "SIGINT (Ctrl-C)"),
+        RunStatus("hangup", 129, "SIGHUP (a closed terminal, a dropped ssh)"),
+        RunStatus("terminated", 143, "SIGTERM"),
+    )
+}
 
 
 @dataclass(frozen=True)
@@ -89,8 +133,8 @@ class RunSummary:
     first_cut_step: int | None = None
     total_steps: int | None = None  # steps the run was to make
     output: str = ""  # the results file
-    status: str = "running"  # complete, numerical, write_failed, interrupted, terminated (set by finish)
-    exit_code: int = 0  # 0, 3, 3, 130, 143 (refsim run's exit code)
+    status: str = "running"  # "running", then a key of RUN_STATUSES (set by finish)
+    exit_code: int = 0  # refsim run's exit code, RUN_STATUSES[status].exit_code
     stop_reason: str = ""  # why the run stopped early, "" when complete
     steps_written: int = 0  # steps readable in the results file
 
@@ -99,9 +143,24 @@ class RunSummary:
         """True when the run made all its steps and the file was closed normally."""
         return self.status == "complete"
 
-    def finish(self, *, status: str, exit_code: int, stop_reason: str, steps_written: int) -> None:
-        """Record how the run ended (called by the run driver, refsim.io.driver.run_scene)."""
-        self.status, self.exit_code, self.stop_reason = status, int(exit_code), stop_reason
+    @property
+    def stopped_by_signal(self) -> bool:
+        """True when a signal (SIGINT, SIGHUP, SIGTERM) stopped the run."""
+        status = RUN_STATUSES.get(self.status)
+        return status is not None and status.by_signal
+
+    def finish(self, *, status: str, stop_reason: str, steps_written: int) -> None:
+        """Record how the run ended (called by the run driver, refsim.io.driver.run_scene).
+
+        Parameters
+        ----------
+        status : A key of :data:`RUN_STATUSES`; the exit code is its ``exit_code``.
+        stop_reason : Why the run stopped early, "" when complete.
+        steps_written : Steps readable in the results file.
+        """
+        if status not in RUN_STATUSES:
+            raise ValueError(f"status = {status!r}: expected one of {', '.join(RUN_STATUSES)}")
+        self.status, self.exit_code, self.stop_reason = status, RUN_STATUSES[status].exit_code, stop_reason
         self.steps_written = int(steps_written)
 
     def add(self, record: StepRecord) -> None:

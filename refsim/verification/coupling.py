@@ -868,7 +868,6 @@ def _halton(index: int, base: int) -> float:
 #: Positions of the centreline in its cell (units of h) over which the surface coupling is averaged: the first
 #: eight points of the Halton sequence in bases 2 and 3 (spread over the cell, none on its symmetry points).
 SURFACE_POSITIONS = tuple((_halton(i, 2), _halton(i, 3)) for i in range(1, 9))
-SURFACE_CELLS_FINE = (32, 64, 128)  # the slow test's levels (h = 3.125, 1.5625, 0.78125 mm)
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,6 @@ __all__ = [
     "BOX_CELLS",
     "BOX_DEPTH",
     "BOX_SIZE",
-    "CUBE_CELLS",
     "CUBE_DEPTH",
     "box_surface_study",
     "cube_needle_stiffness",
@@ -32,7 +31,6 @@ __all__ = [
 
 
 # ------------------------------------------------------------------------- the cube, 3-D, under refinement
-CUBE_CELLS = (6, 12, 24)  # cells per axis of the clamped 100 mm cube (h = 16.7, 8.33, 4.17 mm)
 CUBE_DEPTH = 0.04  # [m], inserted length (the rows every d_i = 0.5 mm from the top face down)
 
 

@@ -1,4 +1,4 @@
-"""Probe of bad inputs and faults (issues 10, 25): run every kind, classify what refsim did, print the table.
+"""Probe of bad inputs and faults (issues 10, 24, 25): run every kind, classify what refsim did, print it.
 
 Each kind runs `refsim run` (or a small Python harness that injects a fault and then calls it) in a child
 process, on the paper's cube reduced to 3³ cells and a few steps, and is classified:
@@ -901,6 +901,57 @@ CASES = [
         argv=["export", "{dir}/out.h5", "--csv", "{dir}/force.csv"],
         setup=RUN_FIRST + "data = out.read_bytes(); out.write_bytes(data[: len(data) // 2])\n",
         fragments=("the file is truncated", "bytes of the"),
+    ),
+    # ---------------------------------------------------------------- lengths at the float edge, keys unused
+    Case(
+        "radius_underflow",
+        "needle radius 1e-300 m (its section underflows)",
+        s("needle.radius=1e-300; insertion.interference=0.0"),
+        fragments=("needle.radius", "round-off"),
+    ),
+    Case(
+        "radius_below_resolution",
+        "needle radius 1e-14 m (below what the positions resolve)",
+        s("needle.radius=1e-14; insertion.interference=0.0"),
+        fragments=("needle.radius", "expected a length >="),
+    ),
+    Case(
+        "cut_spacing_underflow",
+        "cutting.point_spacing = 1e-300 m",
+        s("cutting.point_spacing=1e-300"),
+        scene="cube_cut",
+        fragments=("cutting.point_spacing", "round-off"),
+    ),
+    Case(
+        "cut_spacing_memory",
+        "cutting.point_spacing = 1e-9 m (a cut of 1e5 samples per 0.1 mm)",
+        s("cutting.point_spacing=1e-9"),
+        scene="cube_cut",
+        fragments=("cutting.point_spacing", "GiB"),
+    ),
+    Case(
+        "contact_distance_overflow",
+        "insertion.contact_distance = 1e300 m",
+        s("insertion.contact_distance=1e300"),
+        fragments=("insertion.contact_distance", "1000 m"),
+    ),
+    Case(
+        "standoff_overflow",
+        "trajectory.standoff = 1e300 m",
+        s("trajectory.standoff=1e300"),
+        fragments=("trajectory.standoff",),
+    ),
+    Case(
+        "boundary_file_without_motion",
+        "[boundary] file = ... without motion = 'file' (ran with no motion)",
+        s('boundary.file="breathing.csv"'),
+        fragments=("boundary.file", "motion = 'file'"),
+    ),
+    Case(
+        "boundary_amplitude_without_motion",
+        "[boundary] amplitude without a motion",
+        s("boundary.amplitude=[0.0, 0.0, 0.01]"),
+        fragments=("boundary.amplitude", "motion = 'periodic'"),
     ),
 ]
 

@@ -96,3 +96,26 @@ def test_an_insertion_spacing_too_small_for_the_memory_is_refused(tmp_path, caps
     error = capsys.readouterr().err
     assert "insertion.spacing = 1e-07 m (d_i): up to 1.9e+05 insertion points along the 0.019 m" in error
     assert "needs 2.42e+03 GiB; 2 GiB are available: use insertion.spacing >= 3.48e-06 m" in error
+
+
+def test_a_cut_point_spacing_too_small_for_the_memory_is_refused(tmp_path, capsys, monkeypatch):
+    """d_c = 1e-7 m on cube_cut: every d_c of inserted needle adds a sliding and a front row (no cut-face
+    friction), so the rows of the cut (2 per d_c) outnumber the insertion rows (3 per d_i = 0.5 mm) and
+    W = 8 × rows² bytes is beyond 2 GiB: refused naming cutting.point_spacing. The smallest d_c given is the
+    one whose rows, with the insertion rows, fill exactly √(2 GiB / 8) rows."""
+    import numpy as np
+
+    import refsim.scene.build as build
+
+    free = 2 * 2**30
+    monkeypatch.setattr(build, "available_memory", lambda: free)
+    code = main(["run", "cube_cut", "-o", str(tmp_path / "run.h5"), "--set", "cutting.point_spacing=1e-7"])
+    assert code == 2
+    error = capsys.readouterr().err
+    assert "cutting.point_spacing = 1e-07 m (d_c): up to " in error and "cut samples along the " in error
+    inserted = float(error.split("cut samples along the ")[1].split(" m")[0])
+    smallest = float(error.split("use cutting.point_spacing >= ")[1].split(" m")[0])
+    insertion_rows = 3 * (inserted / 5e-4 + 1)
+    cut_rows = 2 * (inserted / smallest + 1)
+    assert insertion_rows + cut_rows == pytest.approx(np.sqrt(free / 8), rel=2e-3)  # 3 printed digits
+    assert not (tmp_path / "run.h5").exists()

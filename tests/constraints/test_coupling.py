@@ -17,6 +17,7 @@ from refsim.fem.tissue import TissueModel
 from refsim.geometry.search import TetLocator
 from refsim.materials import HookeMaterial
 from refsim.mesh.generators import box_mesh
+from refsim.simulation.events import PUNCTURE_TOLERANCE
 from refsim.solvers import ConstraintProblem, solve_exact, solve_gauss_seidel
 
 TISSUE = HookeMaterial(youngs_modulus=5.0e5, poisson_ratio=0.4, density=1000.0)
@@ -393,7 +394,9 @@ def test_puncture_force_is_f_p_for_any_dt_and_speed(dt, speed):
     system = model.step_system(np.broadcast_to(np.eye(3), (model.tet_count, 3, 3)), dt=1e3)
     w = system.compliance(rows)[0][0, 0]
     f_p = 0.8
-    lower, upper = coupling.puncture_bounds(f_p)
+    # The box RowBlock.problem makes of a unilateral row with force_limit f_p (the penetration row of
+    # refsim.constraints.penetration with insertion.puncture_within_step): 0 <= λ <= f_p.
+    lower, upper = np.zeros(1), np.full(1, f_p)
     capped_force = unilateral_force = None
     for step in range(1, 100000):
         free_gap = np.array([-speed * dt * step])  # the tip's position below the undeformed surface
@@ -406,7 +409,8 @@ def test_puncture_force_is_f_p_for_any_dt_and_speed(dt, speed):
         )
         force = solve_gauss_seidel(capped, tolerance=1e-12)[0][0]
         gap = w * force + free_gap[0]
-        if capped_force is None and coupling.puncture_detected(force, gap, f_p):
+        # The puncture test of refsim.simulation.events (EventRules._puncture): λ at f_p to its tolerance.
+        if capped_force is None and force >= f_p * (1.0 - PUNCTURE_TOLERANCE) and gap < 0.0:
             capped_force = force
         plain = ConstraintProblem(compliance=np.array([[w]]), free_gap=free_gap, unilateral=np.array([0]))
         plain_force = solve_gauss_seidel(plain, tolerance=1e-12)[0][0]

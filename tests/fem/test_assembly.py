@@ -7,12 +7,32 @@ import numpy as np
 import pytest
 
 from refsim.fem.tissue import TissueModel, TissueState
-from refsim.geometry.rotations import polar_rotation, polar_rotation_one, polar_rotation_svd, rotation_matrix
+from refsim.geometry.rotations import polar_rotation, polar_rotation_one, rotation_matrix
 from refsim.materials import HookeMaterial
 from refsim.mesh.generators import box_mesh
 
 EPS = np.finfo(float).eps
 MATERIAL = HookeMaterial(youngs_modulus=5.0e5, poisson_ratio=0.4, density=1000.0)
+
+
+def polar_rotation_svd(deformation_gradients: np.ndarray) -> np.ndarray:
+    """Rotation factor R of the polar decomposition F = R U, with det R = +1, by batched SVD (the reference).
+
+    F = P Σ Qᵀ, R = P diag(1, 1, det(P Qᵀ)) Qᵀ, so that inverted elements (det F < 0) still give a proper
+    rotation (the closest one to F).
+
+    Parameters
+    ----------
+    deformation_gradients : Matrices F, shape (k, 3, 3).
+
+    Returns
+    -------
+    Rotation matrices, shape (k, 3, 3).
+    """
+    u, _, vt = np.linalg.svd(np.asarray(deformation_gradients, dtype=float))
+    det = np.linalg.det(u @ vt)
+    u[..., :, 2] *= det[..., None]
+    return u @ vt
 
 
 def _orthogonality(r: np.ndarray) -> float:

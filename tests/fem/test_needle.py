@@ -193,8 +193,6 @@ def test_lumped_mass_totals():
     axial = model.direction
     rest_rotary = model.mass_matrix().toarray()[3:6, 3:6]
     assert axial @ rest_rotary @ axial == pytest.approx(s.density * s.polar_moment * model.element_length / 2)
-    gravity = model.gravity_forces(np.array([0.0, 0.0, -9.81])).reshape(-1, 6)
-    assert gravity[:, 2].sum() == pytest.approx(-9.81 * s.density * s.area * model.length, rel=1e-12)
 
 
 # ---------------------------------------------------------------- centreline

@@ -56,6 +56,26 @@ def test_signals_stop_the_run_and_keep_every_completed_step(tmp_path, number, st
     assert "SIGTERM" in results.stop_reason if number == signal.SIGTERM else "SIGINT" in results.stop_reason
 
 
+def test_the_status_table_is_the_one_the_code_reads():
+    """The module docstring's table of statuses and exit codes lists exactly RUN_STATUSES, and a status
+    outside it is refused (no run can end in an undocumented way)."""
+    import re
+
+    from refsim.io import driver
+    from refsim.simulation.summary import RUN_STATUSES, RunSummary
+
+    rows = dict(re.findall(r'"([a-z_]+)"\s+(\d+)\s*$', driver.__doc__, flags=re.MULTILINE))
+    assert {name: int(code) for name, code in rows.items()} == {
+        name: status.exit_code for name, status in RUN_STATUSES.items()
+    }
+    assert "hangup" in rows
+    with pytest.raises(ValueError, match="'killed'"):
+        RunSummary().finish(status="killed", stop_reason="", steps_written=0)
+    summary = RunSummary()
+    summary.finish(status="hangup", stop_reason="interrupted by SIGHUP", steps_written=3)
+    assert (summary.exit_code, summary.stopped_by_signal) == (129, True)
+
+
 def test_sigterm_from_outside_exits_143(tmp_path):
     """The command line in a child process, terminated by another process while it runs."""
     output = tmp_path / "run.h5"

@@ -164,3 +164,54 @@ def test_a_file_oscillating_faster_than_the_steps_is_refused(tmp_path):
     rows = [(t, 0.0, 0.0, 0.0 if i % 2 == 0 else 0.025) for i, t in enumerate(times)]
     with pytest.raises(SceneError, match=r"boundary.file: the motion changes faster than the steps"):
         _build(_file_motion(tmp_path, rows))
+
+
+def test_a_boundary_file_without_its_motion_is_refused():
+    """Issue 24 item 9: `[boundary] file = ...` with the default motion = "none" ran with no motion and no
+    message. Now the key is named with the motion that reads it, blamed on the override that gave it."""
+    with pytest.raises(SceneError) as caught:
+        load_scene("cube", [*SMALL, 'boundary.file="breathing.csv"'])
+    message = str(caught.value)
+    assert "override --set 'boundary.file=\"breathing.csv\"'" in message
+    assert "boundary.file = 'breathing.csv' is given but motion = 'none' does not read it" in message
+    assert "set motion = 'file'" in message
+
+
+@pytest.mark.parametrize(
+    ("overrides", "key", "readers"),
+    [
+        (
+            ['boundary.motion="periodic"', "boundary.box=[[0,0,0],[1,1,1]]", 'boundary.file="b.csv"'],
+            "file",
+            "'file'",
+        ),
+        (
+            [
+                'boundary.motion="file"',
+                "boundary.box=[[0,0,0],[1,1,1]]",
+                'boundary.file="b.csv"',
+                "boundary.period=2.0",
+            ],
+            "period",
+            "'periodic'",
+        ),
+        (["boundary.box=[[0,0,0],[1,1,1]]"], "box", "'periodic' or 'file'"),
+    ],
+)
+def test_a_boundary_key_the_chosen_motion_does_not_read_is_refused(overrides, key, readers):
+    with pytest.raises(SceneError) as caught:
+        load_scene("cube", [*SMALL, *overrides])
+    message = str(caught.value)
+    assert f"boundary.{key} = " in message and f"set motion = {readers}" in message
+
+
+def test_every_boundary_motion_lists_the_keys_it_reads():
+    import dataclasses
+
+    from refsim.scene.spec import BoundarySpec
+
+    motion = next(field for field in dataclasses.fields(BoundarySpec) if field.name == "motion")
+    assert set(BoundarySpec.MOTION_KEYS) == set(motion.metadata["choices"])
+    keys = {name for names in BoundarySpec.MOTION_KEYS.values() for name in names}
+    names = {field.name for field in dataclasses.fields(BoundarySpec)} - {"motion"}
+    assert keys | set(BoundarySpec.SELECTION_KEYS) == names

@@ -29,9 +29,12 @@ from refsim.verification import coupling, coupling_3d
 
 pytestmark = pytest.mark.slow
 
+SURFACE_CELLS_FINE = (32, 64, 128)  # levels of the plane-strain slab (h = 3.125, 1.5625, 0.78125 mm)
+CUBE_CELLS = (6, 12, 24)  # cells per axis of the clamped 100 mm cube (h = 16.7, 8.33, 4.17 mm)
+
 
 def _check(key):
-    coarse, medium, fine = (coupling_3d.cube_needle_stiffness(n)[key] for n in coupling_3d.CUBE_CELLS)
+    coarse, medium, fine = (coupling_3d.cube_needle_stiffness(n)[key] for n in CUBE_CELLS)
     order = observed_order(fine, medium, coarse, 2.0)
     print(f"\n{key}: K = {coarse:.1f}, {medium:.1f}, {fine:.1f} N/m, p = {order:.2f}")
     assert math.isfinite(order) and order >= 0.5
@@ -87,7 +90,7 @@ def test_8mm_needle_on_its_surface_converges_in_the_slab(kind):
     the default model lies, at every position, inside that GCI band
     (refsim.verification.coupling.surface_coupling_results).
     """
-    study = coupling.surface_coupling_study(kind, coupling.SURFACE_CELLS_FINE)
+    study = coupling.surface_coupling_study(kind, SURFACE_CELLS_FINE)
     result = study.convergence
     bare = ", ".join(f"{v:.5f}" for v in study.bare.mean(axis=1) / study.exact)
     print(
