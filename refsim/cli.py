@@ -1,4 +1,4 @@
-"""The `refsim` command line: run, verify, bench, render, plot, study, export.
+"""The `refsim` command line: run, verify, bench, render, plot, study, export, interactive.
 
 Exit codes: 0 success; 1 a verification case failed; 2 bad input (scene, file, option; nothing is written);
 3 the simulation stopped on a detected numerical problem or a failed write (the results file keeps every
@@ -543,6 +543,10 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--overwrite", action="store_true", help="replace an existing results file")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     run.set_defaults(handler=_cmd_run)
+
+    from refsim.interactive.command import add_parser as add_interactive  # argparse only: --help stays light
+
+    add_interactive(commands)
 
     verify = commands.add_parser("verify", help="run the verification cases and print their table")
     verify.set_defaults(handler=_cmd_verify)
