@@ -27,6 +27,8 @@ logger = logging.getLogger(__name__)
 
 #: Wall-clock window of the real-time factor [s].
 RATE_WINDOW = 1.0
+#: Steps kept in :attr:`InteractiveSession.force_history`.
+HISTORY_STEPS = 20_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -182,6 +184,8 @@ class InteractiveSession:
         self._written_cut = None
         self._wall = collections.deque()  # (wall clock [s], simulated time [s]) of the recent steps
         self.last_record = None
+        #: (time [s], |force on the needle| [N]) of the recent steps (the window's live plot)
+        self.force_history: collections.deque = collections.deque(maxlen=HISTORY_STEPS)
         self.finished = False
         self.status, self.stop_reason = "running", ""
 
@@ -225,6 +229,7 @@ class InteractiveSession:
             self._written_cut = cut
         self.summary.add(record)
         self.state, self.last_record = state, record
+        self.force_history.append((record.time, float(np.linalg.norm(record.needle_force))))
         now = clock.perf_counter()
         self._wall.append((now, record.time))
         while len(self._wall) > 2 and now - self._wall[0][0] > RATE_WINDOW:

@@ -8,7 +8,6 @@ one render), so keys, the pose stream and the steps share the main thread: VTK r
 
 from __future__ import annotations
 
-from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -63,8 +62,6 @@ class InteractiveWindow:
         self.key_step = float(key_step)
         self.key_angle = float(key_angle)
         self.colors = {"tissue": TISSUE_COLOR, "needle": NEEDLE_COLOR, "cut": CUT_COLOR}
-        self._history = deque()  # (time [s], |force| [N])
-        self._events: deque = deque(maxlen=3)
         self._cut_version = None
         scene = session.scene
         self.radius = float(scene.needle.radius)
@@ -76,15 +73,19 @@ class InteractiveWindow:
         self.plotter.set_background("white")
         positions = np.asarray(session.state.tissue.positions, dtype=float)
         self.surface = pv.PolyData(positions.copy(), _faces(mesh.boundary_faces))
-        self.plotter.add_mesh(
-            self.surface,
-            color=TISSUE_COLOR,
-            opacity=0.55,
-            show_edges=True,
-            edge_color="#8c6d62",
-            line_width=0.5,
-        )
-        self.plotter.add_mesh(self._needle_mesh(), color=NEEDLE_COLOR, smooth_shading=True, name="needle")
+        # Translucent tissue, to see the needle and the cut inside it; a translucent needle, which is drawn at
+        # its real radius and may be wider than the cut it would hide (as refsim render draws it).
+        self.actors = {
+            "tissue": self.plotter.add_mesh(
+                self.surface,
+                color=TISSUE_COLOR,
+                opacity=0.35,
+                show_edges=True,
+                edge_color="#8c6d62",
+                line_width=0.5,
+            )
+        }
+        self._draw_needle()
         self.status = self.plotter.add_text("", position="upper_left", font_size=10, color="black")
         help_text = "\n".join(
             [f"{key}: {action.label}" for key, action in KEYS.items()]
@@ -103,34 +104,37 @@ class InteractiveWindow:
 
     # ------------------------------------------------------------------ drawing
 
-    def _needle_mesh(self):
+    def _draw_needle(self) -> None:
         import pyvista as pv
 
         nodes = np.asarray(self.session.state.needle.positions, dtype=float)
-        return pv.lines_from_points(nodes).tube(radius=self.radius, n_sides=24, capping=True)
+        tube = pv.lines_from_points(nodes).tube(radius=self.radius, n_sides=24, capping=True)
+        self.actors["needle"] = self.plotter.add_mesh(
+            tube, color=self.colors["needle"], smooth_shading=True, opacity=0.6, name="needle", render=False
+        )
 
     def _focus(self) -> None:
+        """Look at the needle's starting tip (where the needle meets the tissue) from above the side, from a
+        distance of about the tissue's size."""
         rest = np.asarray(self.session.models.mesh.rest_positions)
-        centre = 0.5 * (rest.min(axis=0) + rest.max(axis=0))
         size = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
-        self.plotter.camera.focal_point = centre
-        self.plotter.camera.position = centre + size * np.array([1.4, -1.6, 1.1])
+        tip = np.asarray(self.session.state.needle.positions, dtype=float)[-1]
+        self.plotter.camera.focal_point = tip
+        self.plotter.camera.position = tip + size * np.array([0.55, -0.7, 0.35])
         self.plotter.camera.up = (0.0, 0.0, 1.0)
 
     def update(self) -> None:
         """Redraw from the session's current state (no render)."""
         state = self.session.state
         self.surface.points = np.asarray(state.tissue.positions, dtype=float)
-        self.plotter.add_mesh(
-            self._needle_mesh(), color=self.colors["needle"], smooth_shading=True, name="needle", render=False
-        )
+        self._draw_needle()
         cut = state.cut
         if cut is not None and cut.triangle_count and cut is not self._cut_version:
             import pyvista as pv
 
             points = cut.deformed_points(np.asarray(state.tissue.positions), self.tets)
             mesh = pv.PolyData(np.asarray(points, dtype=float), _faces(cut.triangles))
-            self.plotter.add_mesh(
+            self.actors["cut"] = self.plotter.add_mesh(
                 mesh,
                 color=self.colors["cut"],
                 show_edges=True,
@@ -141,8 +145,7 @@ class InteractiveWindow:
             self._cut_version = cut
         record = self.session.last_record
         force = np.zeros(3) if record is None else np.asarray(record.needle_force, dtype=float)
-        if record is not None:
-            self._events.extend(f"{event.name} (step {record.step})" for event in record.events)
+        events = [f"{name} (step {step})" for step, _, name, _, _ in self.session.summary.events[-3:]]
         rate = self.session.real_time_factor
         rate_text = "-" if not np.isfinite(rate) else f"{rate:.2f}"
         self.status.SetText(
@@ -150,25 +153,22 @@ class InteractiveWindow:
             f"t = {state.time:.3f} s   step {state.step}   {state.phase}\n"
             f"force on the needle {np.linalg.norm(force):.3f} N  "
             f"[{force[0]:+.3f}, {force[1]:+.3f}, {force[2]:+.3f}]\n"
-            f"real-time factor {rate_text}\n"
-            + ("events: " + ", ".join(self._events) if self._events else ""),
+            f"real-time factor {rate_text}\n" + ("events: " + ", ".join(events) if events else ""),
         )
-        self._plot_force(state.time, float(np.linalg.norm(force)))
+        self._plot_force()
 
-    def _plot_force(self, time: float, magnitude: float) -> None:
-        history = self._history
-        if history and history[-1][0] == time:
-            return
-        history.append((time, magnitude))
-        while history and history[0][0] < time - PLOT_SECONDS:
-            history.popleft()
+    def _plot_force(self) -> None:
+        history = self.session.force_history
         if len(history) < 2:
             return
         times, values = np.array(history).T
+        shown = times >= times[-1] - PLOT_SECONDS
+        times, values = times[shown], values[shown]
+        if times.size < 2:
+            return
         self.force_line.update(times, values)
-        top = max(float(values.max()) * 1.1, 0.1)
-        self.chart.x_range = [float(times[0]), max(float(times[-1]), float(times[0]) + 1e-6)]
-        self.chart.y_range = [0.0, top]
+        self.chart.x_range = [float(times[0]), float(times[-1])]
+        self.chart.y_range = [0.0, max(1.1 * float(values.max()), 0.1)]
 
     # ------------------------------------------------------------------ input
 

@@ -1,0 +1,176 @@
+"""The interactive window: an off-screen picture after a keyed insertion and lateral stroke shows the tissue,
+the needle and the cut; under Xvfb the command's real window, driven by a scripted pose stream, saves a
+picture
+that shows them too."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pyvista")
+
+from refsim.interactive.pacing import Pacer  # noqa: E402
+from refsim.interactive.pose import KEYS  # noqa: E402
+from refsim.interactive.session import InteractiveSession  # noqa: E402
+from refsim.scene import load_scene  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+#: The coarse cube_cut: puncture after about 5 steps at the keyed speed, the cut after the sideways keys.
+COARSE = ["mesh.cells=[4, 4, 4]"]
+
+
+def _image(plotter) -> np.ndarray:
+    plotter.render()
+    return np.asarray(plotter.screenshot(return_img=True), dtype=np.int16)
+
+
+def _pixels_of(window, name: str) -> np.ndarray:
+    """The pixels the actor ``name`` changes: a picture with it against one without it (so the test does not
+    depend on shading or blending), as a boolean mask (height, width)."""
+    shown = _image(window.plotter)
+    window.actors[name].SetVisibility(False)
+    hidden = _image(window.plotter)
+    window.actors[name].SetVisibility(True)
+    return np.abs(shown - hidden).sum(axis=2) > 30
+
+
+def _display_box(plotter, points: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Image (row, column) bounds of ``points`` [m] projected on the screen."""
+    import vtk
+
+    coordinate = vtk.vtkCoordinate()
+    coordinate.SetCoordinateSystemToWorld()
+    projected = []
+    for point in points:
+        coordinate.SetValue(*point)
+        x, y = coordinate.GetComputedDisplayValue(plotter.renderer)
+        projected.append((height - 1 - y, x))
+    projected = np.array(projected)
+    return projected.min(axis=0), projected.max(axis=0)
+
+
+@pytest.fixture(scope="module")
+def keyed_window(tmp_path_factory):
+    """A keyed session on the coarse cube_cut, drawn off-screen: 19 x Up (1 mm each along the needle), 45
+    steps (at 50 mm/s: 0.5 mm per step), 8 x Right (8 mm sideways), 30 steps."""
+    from refsim.interactive.window import InteractiveWindow
+
+    folder = tmp_path_factory.mktemp("window")
+    session = InteractiveSession(load_scene("cube_cut", COARSE), folder / "keyed.h5")
+    pacer = Pacer(session)
+    window = InteractiveWindow(session, pacer, off_screen=True, window_size=(900, 600))
+    for _ in range(19):
+        window.key(KEYS["Up"])
+    for _ in range(45):
+        session.step()
+    for _ in range(8):
+        window.key(KEYS["Right"])
+    for _ in range(30):
+        session.step()
+    window.update()
+    picture = window.save(folder / "keyed.png")
+    yield session, window, picture
+    pacer.finish()
+    window.close()
+
+
+def test_keys_drive_the_needle_through_puncture_and_cut(keyed_window):
+    session, _, _ = keyed_window
+    names = [name for _, _, name, _, _ in session.summary.events]
+    assert "puncture" in names and "cut_start" in names
+    # 19 mm down the needle (-z) and 8 mm along a = x for a needle along -z, both reached
+    start = np.array([0.00123, 0.00231, 0.422])
+    np.testing.assert_allclose(session.target.applied_base - start, [0.008, 0.0, -0.019], atol=1e-12)
+
+
+def test_the_picture_shows_tissue_needle_and_cut(keyed_window):
+    session, window, picture = keyed_window
+    assert picture.is_file() and picture.stat().st_size > 10_000
+    height = window.plotter.window_size[1]
+    for name in ("tissue", "needle", "cut"):
+        mask = _pixels_of(window, name)
+        assert mask.sum() > 300, f"the {name} changes only {mask.sum()} pixels"
+    # The needle's pixels lie where its nodes project (within a few pixels, the tube's radius aside).
+    needle = _pixels_of(window, "needle")
+    rows, columns = np.nonzero(needle)
+    low, high = _display_box(window.plotter, np.asarray(session.state.needle.positions), height)
+    margin = 40  # pixels: the tube's radius on screen is about 10
+    assert low[0] - margin <= np.median(rows) <= high[0] + margin
+    assert low[1] - margin <= np.median(columns) <= high[1] + margin
+    # The cut's pixels lie where the cut surface projects, and the cut makes them redder: its colour
+    # (214, 39, 40) takes away far more green than red from what lies behind it (tissue, needle, background).
+    cut = session.state.cut.deformed_points(session.state.tissue.positions, window.tets)
+    rows, columns = np.nonzero(_pixels_of(window, "cut"))
+    low, high = _display_box(window.plotter, cut, height)
+    assert low[0] - margin <= np.median(rows) <= high[0] + margin
+    assert low[1] - margin <= np.median(columns) <= high[1] + margin
+    shown = _image(window.plotter)[rows, columns]
+    window.actors["cut"].SetVisibility(False)
+    hidden = _image(window.plotter)[rows, columns]
+    window.actors["cut"].SetVisibility(True)
+    removed = hidden - shown  # per channel
+    assert np.median(removed[:, 1] - removed[:, 0]) > 20
+
+
+def _xvfb_skip_reason() -> str | None:
+    if shutil.which("Xvfb") is None:
+        return "Xvfb is not installed (apt-get install xvfb; .ci/run installs it when it can)"
+    return None
+
+
+@pytest.mark.skipif(_xvfb_skip_reason() is not None, reason=str(_xvfb_skip_reason()))
+def test_the_window_under_xvfb_driven_by_a_scripted_pose_stream(tmp_path):
+    """`refsim interactive` with its real window on an X server (Xvfb), a pose stream in real time: the
+    scripted client inserts the needle and moves it sideways, asks to stop; the window's picture shows the
+    tissue's, the needle's and the cut's colours."""
+    display = f":{90 + os.getpid() % 100}"
+    server = subprocess.Popen(["Xvfb", display, "-screen", "0", "1280x1024x24", "-nolisten", "tcp"])
+    try:
+        time.sleep(1.0)
+        env = {**os.environ, "DISPLAY": display, "PYTHONPATH": str(ROOT)}
+        env.pop("VTK_DEFAULT_OPENGL_WINDOW", None)
+        picture = tmp_path / "window.png"
+        command = [sys.executable, "-m", "refsim", "interactive", "cube_cut", "--set", COARSE[0]]
+        command += ["--socket", "0", "-o", str(tmp_path / "x.h5"), "--screenshot", str(picture)]
+        process = subprocess.Popen(
+            command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+        )
+        try:
+            line = process.stdout.readline()
+            assert "pose stream on" in line, process.stderr.read()
+            port = int(line.split(":")[1].split()[0])
+            with socket.create_connection(("127.0.0.1", port), timeout=60) as connection:
+                stream = connection.makefile("rw")
+                hello = json.loads(stream.readline())
+                base, direction = np.array(hello["base"]), hello["direction"]
+                poses = [base + [0.0, 0.0, -0.019]] * 60 + [base + [0.008, 0.0, -0.019]] * 60
+                for pose in poses:  # 10 ms apart, in real time: the window's timer steps the session
+                    stream.write(json.dumps({"base": list(pose), "direction": direction}) + "\n")
+                    stream.flush()
+                    time.sleep(0.02)
+                stream.write('{"stop": true}\n')
+                stream.flush()
+                replies = [json.loads(line) for line in stream]
+            out, err = process.communicate(timeout=300)
+        finally:
+            if process.poll() is None:
+                process.kill()
+        assert process.returncode == 0, err
+        assert replies[-1]["done"] and replies[-1]["status"] == "complete"
+        image = np.asarray(__import__("imageio").v3.imread(picture), dtype=np.int16)[..., :3]
+        red = (image[..., 0] - image[..., 1] > 80) & (image[..., 0] > 150)
+        dark = image.sum(axis=2) < 3 * 120
+        assert red.sum() > 100 and dark.sum() > 300
+    finally:
+        server.terminate()
+        server.wait(timeout=10)
