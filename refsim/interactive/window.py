@@ -2,12 +2,14 @@
 of the needle force and a text line with the phase, the force and the real-time factor; keys move the needle
 base (:data:`refsim.interactive.pose.KEYS`, space holds, q closes).
 
-The window steps the session from a repeating timer (every 15 ms: the due steps, at most 50 ms of them, then
-one render), so keys, the pose stream and the steps share the main thread: VTK renders only there.
+The window steps the session from a repeating timer (every 15 ms: the due steps, for at most 50 ms or the
+last render's time, then one render), so keys, the pose stream and the steps share the main thread: VTK
+renders only there.
 """
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -63,6 +65,7 @@ class InteractiveWindow:
         self.key_angle = float(key_angle)
         self.colors = {"tissue": TISSUE_COLOR, "needle": NEEDLE_COLOR, "cut": CUT_COLOR}
         self._cut_version = None
+        self._render_seconds = 0.0  # the last render's wall time [s]
         scene = session.scene
         self.radius = float(scene.needle.radius)
         mesh = session.models.mesh
@@ -177,26 +180,30 @@ class InteractiveWindow:
         self.session.target.key(action, distance=self.key_step, angle=self.key_angle)
 
     def tick(self) -> None:
-        """The timer's work: the due steps, then one render."""
-        if self.pacer.pump(budget=TICK_BUDGET):
+        """The timer's work: the due steps, then one render. The steps may take as long as the last render
+        did (at least :data:`TICK_BUDGET`), so a slow display (software OpenGL: 0.5 s per render measured
+        under Xvfb on a loaded machine) does not starve the simulation."""
+        if self.pacer.pump(budget=max(TICK_BUDGET, self._render_seconds)):
             self.update()
+            started = time.perf_counter()
             self.plotter.render()
+            self._render_seconds = time.perf_counter() - started
 
     def show(self, should_stop) -> None:
         """Open the window and step from its timer until it is closed, ``should_stop()`` or the pacer is
         done."""
         plotter = self.plotter
 
-        def on_timer(_step=None) -> None:
+        def on_timer(*_) -> None:
             if should_stop() or self.pacer.done:
-                plotter.iren.terminate_app() if plotter.iren is not None else None
+                plotter.iren.terminate_app()
                 return
             self.tick()
 
         plotter.show(interactive_update=True, auto_close=False)
         self.pacer.start_clock()
-        plotter.iren.add_timer_callback = getattr(plotter.iren, "add_timer_callback", None)
-        plotter.add_timer_event(max_steps=2**31 - 1, duration=TICK_MS, callback=on_timer)
+        plotter.iren.add_observer("TimerEvent", on_timer)
+        plotter.iren.create_timer(TICK_MS, repeating=True)
         plotter.iren.start()
 
     def save(self, path: Path) -> Path:
