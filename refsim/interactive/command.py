@@ -6,7 +6,10 @@ from __future__ import annotations
 import argparse
 import math
 
-__all__ = ["add_parser", "run_interactive"]
+__all__ = ["REACH", "add_parser", "run_interactive"]
+
+#: Largest accepted distance of a base position from the origin [m] (the bound of trajectory waypoints).
+REACH = 1e3
 
 
 def add_parser(commands) -> None:
@@ -94,23 +97,27 @@ def run_interactive(args: argparse.Namespace) -> int:
             raise ModuleNotFoundError("the interactive window needs pyvista", name="pyvista")
     scene = load_scene(args.scene, args.set or ())
     max_steps = None if args.duration is None else max(1, round(args.duration / scene.time.dt))
-    session = InteractiveSession(
-        scene,
-        Path(args.output),
-        overwrite=args.overwrite,
-        max_speed=args.max_speed,
-        max_turn=math.radians(args.max_turn),
-    )
     server = None
+    if args.socket is not None:  # bound before anything is written: a port in use is bad input
+        server = PoseServer(args.socket, host=args.host, reach=REACH, hello={}, on_pose=None)
+    try:
+        session = InteractiveSession(
+            scene,
+            Path(args.output),
+            overwrite=args.overwrite,
+            max_speed=args.max_speed,
+            max_turn=math.radians(args.max_turn),
+        )
+    except BaseException:
+        if server is not None:
+            server.close()
+        raise
     stop = threading.Event()
     try:
-        if args.socket is not None:
-            server = PoseServer(
-                args.socket,
-                host=args.host,
-                reach=session.reach,
-                on_pose=(lambda base, direction: None) if args.lockstep else session.target.set,
-                hello={
+        if server is not None:
+            server.on_pose = (lambda base, direction: None) if args.lockstep else session.target.set
+            server.hello.update(
+                {
                     "scene": scene.name,
                     "dt": session.dt,
                     "mode": "lockstep" if args.lockstep else "realtime",
@@ -118,8 +125,9 @@ def run_interactive(args: argparse.Namespace) -> int:
                     "base": session.target.applied_base.tolist(),
                     "direction": session.target.applied_direction.tolist(),
                     "max_speed": args.max_speed,
-                },
-            ).start()
+                }
+            )
+            server.start()
             print(
                 f"pose stream on {server.host}:{server.port} (newline-delimited JSON, docs/interactive.md)",
                 flush=True,
@@ -130,8 +138,9 @@ def run_interactive(args: argparse.Namespace) -> int:
         def request_stop(signum, frame) -> None:
             stop.set()
 
-        for number in (signal.SIGINT, signal.SIGTERM):
-            previous[number] = signal.signal(number, request_stop)
+        if threading.current_thread() is threading.main_thread():  # Ctrl-C, SIGTERM: a clean end
+            for number in (signal.SIGINT, signal.SIGTERM):
+                previous[number] = signal.signal(number, request_stop)
         try:
             if args.no_window:
                 _headless(pacer, server, stop, clock)
@@ -149,8 +158,8 @@ def run_interactive(args: argparse.Namespace) -> int:
                         stop.is_set() or (server is not None and server.stop_requested.is_set())
                     )
                 )
-                if args.screenshot:
-                    window.update()
+                if window.error is not None:  # a step failed inside the window's timer
+                    raise window.error
             pacer.finish()
             if not args.no_window:
                 if args.screenshot:

@@ -95,8 +95,9 @@ class PoseServer:
     ----------
     port : TCP port, 0 to 65535.
     reach : Largest accepted distance of a base position from the origin [m].
-    hello : Extra fields of the greeting (scene, dt, mode, ...).
-    on_pose : Called from the server thread with (base, direction) for every valid pose.
+    hello : Extra fields of the greeting (scene, dt, mode, ...); may be filled in before :meth:`start`.
+    on_pose : Called from the server thread with (base, direction) for every valid pose (None: nobody);
+        may be set before :meth:`start`.
     host : A loopback host name or address.
 
     Raises
@@ -249,7 +250,8 @@ class PoseServer:
         except PoseError as error:
             client.send({"error": f"{where}: {error}"})
             return
-        self.on_pose(np.asarray(base), np.asarray(direction))
+        if self.on_pose is not None:
+            self.on_pose(np.asarray(base), np.asarray(direction))
         self.poses.put((base, direction))
 
 

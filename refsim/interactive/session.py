@@ -167,7 +167,6 @@ class InteractiveSession:
         rest = np.asarray(self.models.mesh.rest_positions)
         self._rest = rest
         self._size = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
-        self.reach = 1e3  # [m] base positions beyond this are refused (TrajectorySpec's bound)
         try:
             self.output.parent.mkdir(parents=True, exist_ok=True)
             self.writer = ResultWriter(
@@ -252,7 +251,8 @@ class InteractiveSession:
         write the trajectory and replay of the completed steps."""
         from refsim.io.driver import EXIT_NUMERICAL
 
-        reason = f"step {self.state.step + 1}: {error}"
+        text = str(error) or type(error).__name__
+        reason = text if text.startswith("step ") else f"step {self.state.step + 1}: {text}"
         self._close(status="numerical", exit_code=EXIT_NUMERICAL, reason=reason)
 
     def finish(self) -> None:

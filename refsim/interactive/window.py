@@ -66,6 +66,7 @@ class InteractiveWindow:
         self.colors = {"tissue": TISSUE_COLOR, "needle": NEEDLE_COLOR, "cut": CUT_COLOR}
         self._cut_version = None
         self._render_seconds = 0.0  # the last render's wall time [s]
+        self.error: Exception | None = None  # what stopped the window's timer, if a step failed
         scene = session.scene
         self.radius = float(scene.needle.radius)
         mesh = session.models.mesh
@@ -183,7 +184,7 @@ class InteractiveWindow:
         """The timer's work: the due steps, then one render. The steps may take as long as the last render
         did (at least :data:`TICK_BUDGET`), so a slow display (software OpenGL: 0.5 s per render measured
         under Xvfb on a loaded machine) does not starve the simulation."""
-        if self.pacer.pump(budget=max(TICK_BUDGET, self._render_seconds)):
+        if self.pacer.pump(budget=max(TICK_BUDGET, self._render_seconds)):  # may raise: see show()
             self.update()
             started = time.perf_counter()
             self.plotter.render()
@@ -191,14 +192,18 @@ class InteractiveWindow:
 
     def show(self, should_stop) -> None:
         """Open the window and step from its timer until it is closed, ``should_stop()`` or the pacer is
-        done."""
+        done; a step that raised stops it too, the error kept in :attr:`error`."""
         plotter = self.plotter
 
         def on_timer(*_) -> None:
             if should_stop() or self.pacer.done:
                 plotter.iren.terminate_app()
                 return
-            self.tick()
+            try:
+                self.tick()
+            except Exception as error:  # noqa: BLE001 - VTK would print it and call the timer again
+                self.error = error
+                plotter.iren.terminate_app()
 
         plotter.show(interactive_update=True, auto_close=False)
         self.pacer.start_clock()
