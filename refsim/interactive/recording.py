@@ -3,11 +3,12 @@ results file, so that ``refsim run OUT.replay.toml`` reproduces the run.
 
 Bit-identical replay: the run's controls read the base pose from :class:`AppliedTrajectory`, which returns a
 stored sample exactly as :meth:`refsim.scene.trajectory.Trajectory.pose` returns it from the CSV (the base as
-stored, the direction divided by its norm). The CSV holds every number with ``repr`` (the shortest decimal
-that reads back to the same float64), the replay's steps fall on the same times (the same ``time + dt`` sums),
-and linear interpolation between two samples returns a sample exactly at its own time; the stored samples are
-the step times at which the pose changed and the two ends of every hold (interpolating between two equal
-samples returns them exactly).
+stored, the direction divided by its norm; every applied direction has a norm of exactly 1.0,
+:func:`refsim.interactive.pose.exact_unit`, so the CSV reader's normalisation returns it unchanged too). The
+CSV holds every number with ``repr`` (the shortest decimal that reads back to the same float64), the replay's
+steps fall on the same times (the same ``time + dt`` sums), and linear interpolation between two samples
+returns a sample exactly at its own time; the stored samples are the step times at which the pose changed and
+the two ends of every hold (interpolating between two equal samples returns them exactly).
 """
 
 from __future__ import annotations
