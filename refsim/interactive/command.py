@@ -65,6 +65,7 @@ def _positive(value: float | None, option: str, unit: str) -> None:
 
 def run_interactive(args: argparse.Namespace) -> int:
     """The handler of ``refsim interactive``; returns the exit code."""
+    import os
     import signal
     import threading
     import time as clock
@@ -95,6 +96,11 @@ def run_interactive(args: argparse.Namespace) -> int:
 
         if importlib.util.find_spec("pyvista") is None:  # the command line names the extra to install
             raise ModuleNotFoundError("the interactive window needs pyvista", name="pyvista")
+        if os.name == "posix" and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+            raise ValueError(
+                "the interactive window needs a display (DISPLAY is not set): run headless with --no-window "
+                "--socket PORT, or under a virtual display (xvfb-run refsim interactive ...)"
+            )
     scene = load_scene(args.scene, args.set or ())
     max_steps = None if args.duration is None else max(1, round(args.duration / scene.time.dt))
     server = None

@@ -243,3 +243,13 @@ def test_headless_needs_the_pose_stream(tmp_path):
     ]
     result = subprocess.run(command, capture_output=True, text=True, env=_environment())
     assert result.returncode == 2 and "--no-window needs the pose stream" in result.stderr
+
+
+def test_the_window_without_a_display_is_refused_with_the_ways_out(tmp_path):
+    environment = {
+        key: value for key, value in _environment().items() if key not in ("DISPLAY", "WAYLAND_DISPLAY")
+    }
+    command = [sys.executable, "-m", "refsim", "interactive", "cube", "-o", str(tmp_path / "x.h5")]
+    result = subprocess.run(command, capture_output=True, text=True, env=environment)
+    assert result.returncode == 2 and "needs a display" in result.stderr and "--no-window" in result.stderr
+    assert not (tmp_path / "x.h5").exists()

@@ -59,10 +59,18 @@ def _display_box(plotter, points: np.ndarray, height: int) -> tuple[np.ndarray, 
     return projected.min(axis=0), projected.max(axis=0)
 
 
+def _press(window, key: str) -> None:
+    """A key press as the window's interactor receives it from the keyboard (VTK's KeyPressEvent)."""
+    assert key in KEYS
+    interactor = window.plotter.iren.interactor
+    interactor.SetKeySym(key)
+    interactor.InvokeEvent("KeyPressEvent")
+
+
 @pytest.fixture(scope="module")
 def keyed_window(tmp_path_factory):
-    """A keyed session on the coarse cube_cut, drawn off-screen: 19 x Up (1 mm each along the needle), 45
-    steps (at 50 mm/s: 0.5 mm per step), 8 x Right (8 mm sideways), 30 steps."""
+    """A keyed session on the coarse cube_cut, drawn off-screen: 19 key presses Up (1 mm each along the
+    needle), 45 steps (at 50 mm/s: 0.5 mm per step), 8 presses Right (8 mm sideways), 30 steps."""
     from refsim.interactive.window import InteractiveWindow
 
     folder = tmp_path_factory.mktemp("window")
@@ -70,11 +78,11 @@ def keyed_window(tmp_path_factory):
     pacer = Pacer(session)
     window = InteractiveWindow(session, pacer, off_screen=True, window_size=(900, 600))
     for _ in range(19):
-        window.key(KEYS["Up"])
+        _press(window, "Up")
     for _ in range(45):
         session.step()
     for _ in range(8):
-        window.key(KEYS["Right"])
+        _press(window, "Right")
     for _ in range(30):
         session.step()
     window.update()
