@@ -18,7 +18,8 @@ Server to client, one JSON object per line:
 - when the session ends, ``{"done": true, "status": ..., "steps": ..., "output": ..., "replay": ...}``.
 
 The server thread only reads, checks and queues; the steps (and their replies) are taken by the session's
-thread.
+thread. A client that stops reading its replies is disconnected after :data:`SEND_TIMEOUT` seconds of
+blocked sending, so it cannot stall the simulation for the others.
 """
 
 from __future__ import annotations
@@ -42,6 +43,8 @@ logger = logging.getLogger(__name__)
 PROTOCOL_VERSION = 1
 #: Longest accepted message line [bytes] (a pose is under 200 bytes).
 MAX_LINE_BYTES = 65_536
+#: A client whose replies cannot be sent for this long (it stopped reading them) is disconnected [s].
+SEND_TIMEOUT = 5.0
 
 
 def check_loopback(host: str) -> None:
@@ -181,7 +184,7 @@ class PoseServer:
             connection, address = self._listener.accept()
         except BlockingIOError:
             return
-        connection.setblocking(True)
+        connection.settimeout(SEND_TIMEOUT)  # a client that stops reading cannot stall the steps
         connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # one small reply per step
         client = _Client(connection, address)
         with self._clients_lock:
