@@ -150,55 +150,144 @@ def _xvfb_skip_reason() -> str | None:
     return None
 
 
-@pytest.mark.skipif(_xvfb_skip_reason() is not None, reason=str(_xvfb_skip_reason()))
-def test_the_window_under_xvfb_driven_by_a_scripted_pose_stream(tmp_path):
-    """`refsim interactive` with its real window on an X server (Xvfb), a pose stream in real time: the
-    scripted client inserts the needle and moves it sideways, asks to stop; the window's picture shows the
-    tissue's, the needle's and the cut's colours."""
+@pytest.fixture(scope="module")
+def xvfb_display():
+    """A virtual X display for the module's window tests."""
     display = f":{90 + os.getpid() % 100}"
     server = subprocess.Popen(["Xvfb", display, "-screen", "0", "1280x1024x24", "-nolisten", "tcp"])
+    time.sleep(1.0)
+    yield display
+    server.terminate()
+    server.wait(timeout=10)
+
+
+def _start_window(display: str, tmp_path: Path, picture: Path):
+    """`refsim interactive` on the coarse cube_cut with its window on ``display`` and a pose stream (on which
+    the test reads the steps and asks to stop); returns the process and the connected stream."""
+    env = {**os.environ, "DISPLAY": display, "PYTHONPATH": str(ROOT)}
+    env.pop("VTK_DEFAULT_OPENGL_WINDOW", None)
+    command = [sys.executable, "-m", "refsim", "interactive", "cube_cut", "--set", COARSE[0]]
+    command += ["--socket", "0", "-o", str(tmp_path / "x.h5"), "--screenshot", str(picture)]
+    command += ["--max-speed", "0.2"]  # 2 mm per step: few steps on a slow software display
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    line = process.stdout.readline()
+    if "pose stream on" not in line:
+        process.kill()
+        pytest.fail(f"no pose stream: {line}{process.stderr.read()}")
+    port = int(line.split(":")[1].split()[0])
+    connection = socket.create_connection(("127.0.0.1", port), timeout=120)
+    return process, connection
+
+
+def _finish(process, connection) -> list[dict]:
+    """Ask the session to stop; return the replies after it, and wait for the command to exit 0."""
+    stream = connection.makefile("rw")
+    stream.write('{"stop": true}\n')
+    stream.flush()
+    replies = [json.loads(line) for line in stream]
+    connection.close()
+    out, err = process.communicate(timeout=300)
+    assert process.returncode == 0, out + err
+    assert replies and replies[-1].get("done") and replies[-1]["status"] == "complete", (
+        replies[-3:],
+        out,
+        err,
+    )
+    return replies
+
+
+def _until(stream, reached) -> list[str]:
+    """Read step replies until ``reached(reply)``; return the events seen."""
+    events = []
+    while True:
+        reply = json.loads(stream.readline())
+        assert "error" not in reply, reply
+        events += reply.get("events", [])
+        if "base" in reply and reached(reply):
+            return events
+
+
+def _hues(picture: Path) -> tuple[int, int, int]:
+    """Pixels of the cut's, the needle's and the tissue's hue in the picture.
+
+    Hues tell the three apart (the picture blends them: the cut lies behind the translucent tissue and
+    needle): the needle's grey-blue #5a6270 has blue above red, the tissue's #d9a38f red above blue with R - G
+    about 20 after blending with white, the cut's #d62728 R - G above 30 (measured 36 through both)."""
+    import imageio.v3 as iio
+
+    image = np.asarray(iio.imread(picture), dtype=np.int16)[..., :3]
+    red, green, blue = image[..., 0], image[..., 1], image[..., 2]
+    cut = red - green >= 30
+    return int(cut.sum()), int((blue - red >= 5).sum()), int(((red - blue >= 15) & ~cut).sum())
+
+
+@pytest.mark.skipif(_xvfb_skip_reason() is not None, reason=str(_xvfb_skip_reason()))
+def test_the_window_under_xvfb_driven_by_a_scripted_pose_stream(xvfb_display, tmp_path):
+    """The real window on an X server (Xvfb), a pose stream in real time: the scripted client inserts the
+    needle and moves it sideways (each pose held until reached), asks to stop; the window's picture shows the
+    tissue's, the needle's and the cut's colours."""
+    picture = tmp_path / "window.png"
+    process, connection = _start_window(xvfb_display, tmp_path, picture)
     try:
-        time.sleep(1.0)
-        env = {**os.environ, "DISPLAY": display, "PYTHONPATH": str(ROOT)}
-        env.pop("VTK_DEFAULT_OPENGL_WINDOW", None)
-        picture = tmp_path / "window.png"
-        command = [sys.executable, "-m", "refsim", "interactive", "cube_cut", "--set", COARSE[0]]
-        command += ["--socket", "0", "-o", str(tmp_path / "x.h5"), "--screenshot", str(picture)]
-        command += ["--max-speed", "0.2"]  # 2 mm per step: few steps on a slow software display
-        process = subprocess.Popen(
-            command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
-        )
-        try:
-            line = process.stdout.readline()
-            assert "pose stream on" in line, process.stderr.read()
-            port = int(line.split(":")[1].split()[0])
-            with socket.create_connection(("127.0.0.1", port), timeout=120) as connection:
-                stream = connection.makefile("rw")
-                hello = json.loads(stream.readline())
-                base, direction = np.array(hello["base"]), hello["direction"]
-                events = []
-                for target in (base + [0.0, 0.0, -0.019], base + [0.008, 0.0, -0.019]):
-                    events += _drive(stream, target, direction)
-                stream.write('{"stop": true}\n')
-                stream.flush()
-                replies = [json.loads(line) for line in stream]
-            out, err = process.communicate(timeout=300)
-        finally:
-            if process.poll() is None:
-                process.kill()
-        assert process.returncode == 0, err
-        assert replies[-1]["done"] and replies[-1]["status"] == "complete"
-        assert "puncture" in events and "cut_start" in events
-        image = np.asarray(__import__("imageio").v3.imread(picture), dtype=np.int16)[..., :3]
-        # Hues tell the three apart (the picture blends them: the cut lies behind the translucent tissue and
-        # needle): the needle's grey-blue #5a6270 has blue above red, the tissue's #d9a38f red above blue
-        # with R - G about 20 after blending with white, the cut's #d62728 R - G above 30 (measured 36
-        # through both).
-        red, green, blue = image[..., 0], image[..., 1], image[..., 2]
-        cut = red - green >= 30
-        needle = blue - red >= 5
-        tissue = (red - blue >= 15) & ~cut
-        assert cut.sum() > 500 and needle.sum() > 5_000 and tissue.sum() > 50_000
+        stream = connection.makefile("rw")
+        hello = json.loads(stream.readline())
+        base, direction = np.array(hello["base"]), hello["direction"]
+        events = []
+        for target in (base + [0.0, 0.0, -0.019], base + [0.008, 0.0, -0.019]):
+            stream.write(json.dumps({"base": target.tolist(), "direction": direction}) + "\n")
+            stream.flush()
+            events += _until(
+                stream, lambda reply, t=target: np.allclose(reply["base"], t, rtol=0.0, atol=1e-12)
+            )
+        _finish(process, connection)
     finally:
-        server.terminate()
-        server.wait(timeout=10)
+        if process.poll() is None:
+            process.kill()
+    assert "puncture" in events and "cut_start" in events
+    cut, needle, tissue = _hues(picture)
+    assert cut > 500 and needle > 5_000 and tissue > 50_000
+
+
+@pytest.mark.skipif(_xvfb_skip_reason() is not None, reason=str(_xvfb_skip_reason()))
+@pytest.mark.skipif(
+    shutil.which("xdotool") is None, reason="xdotool is not installed (apt-get install xdotool)"
+)
+def test_the_window_under_xvfb_driven_by_scripted_keys(xvfb_display, tmp_path):
+    """Real key presses (xdotool, through the X server) on the real window: 19 x Up and 8 x Right insert the
+    needle 19 mm and move it 8 mm sideways (a = +x for the cube's needle); the steps read on the stream show
+    the puncture and the cut, and the picture shows them."""
+    picture = tmp_path / "keys.png"
+    process, connection = _start_window(xvfb_display, tmp_path, picture)
+    env = {**os.environ, "DISPLAY": xvfb_display}
+    try:
+        stream = connection.makefile("rw")
+        base = np.array(json.loads(stream.readline())["base"])
+        window = ""
+        for _ in range(600):  # the window opens once the session is built (seconds on a loaded machine)
+            found = subprocess.run(
+                ["xdotool", "search", "--name", "refsim interactive"], capture_output=True, text=True, env=env
+            )
+            window = found.stdout.split()[0] if found.stdout.split() else ""
+            if window:
+                break
+            time.sleep(0.2)
+        assert window, "the window did not open"
+        subprocess.run(["xdotool", "windowfocus", "--sync", window], check=True, env=env)
+        events = []
+        for key, presses, target in (
+            ("Up", 19, base + [0.0, 0.0, -0.019]),
+            ("Right", 8, base + [0.008, 0.0, -0.019]),
+        ):
+            subprocess.run(
+                ["xdotool", "key", "--delay", "30", "--repeat", str(presses), key], check=True, env=env
+            )
+            events += _until(
+                stream, lambda reply, t=target: np.allclose(reply["base"], t, rtol=0.0, atol=1e-9)
+            )
+        _finish(process, connection)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert "puncture" in events and "cut_start" in events
+    cut, needle, tissue = _hues(picture)
+    assert cut > 500 and needle > 5_000 and tissue > 50_000
