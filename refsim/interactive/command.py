@@ -121,7 +121,8 @@ def run_interactive(args: argparse.Namespace) -> int:
     stop = threading.Event()
     try:
         if server is not None:
-            server.on_pose = (lambda base, direction: None) if args.lockstep else session.target.set
+            server.on_pose = None if args.lockstep else session.target.set
+            server.queue_poses = args.lockstep
             server.hello.update(
                 {
                     "scene": scene.name,

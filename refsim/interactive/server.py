@@ -130,7 +130,8 @@ class PoseServer:
         self.stop_requested = threading.Event()
         self.connected = threading.Event()  # a client connected (at least once)
         self.disconnected = threading.Event()  # every client that connected has left
-        self.poses: queue.Queue = queue.Queue()  # one entry per valid pose (lock-step mode reads it)
+        self.poses: queue.Queue = queue.Queue()  # one entry per valid pose, when queue_poses (lock step)
+        self.queue_poses = False  # lock step: each pose kept for its own step (real time: the latest wins)
         self._clients: dict[int, _Client] = {}
         self._clients_lock = threading.Lock()
         self._closing = threading.Event()
@@ -255,7 +256,8 @@ class PoseServer:
             return
         if self.on_pose is not None:
             self.on_pose(np.asarray(base), np.asarray(direction))
-        self.poses.put((base, direction))
+        if self.queue_poses:
+            self.poses.put((base, direction))
 
 
 def _refuse_constant(name: str):
