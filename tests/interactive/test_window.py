@@ -252,6 +252,7 @@ def test_the_window_under_xvfb_driven_by_a_scripted_pose_stream(xvfb_display, tm
 @pytest.mark.skipif(
     shutil.which("xdotool") is None, reason="xdotool is not installed (apt-get install xdotool)"
 )
+@pytest.mark.slow  # 75 s on a loaded 2-core machine: the software display renders a frame in about 0.5 s
 def test_the_window_under_xvfb_driven_by_scripted_keys(xvfb_display, tmp_path):
     """Real key presses (xdotool, through the X server) on the real window: 19 x Up and 8 x Right insert the
     needle 19 mm and move it 8 mm sideways (a = +x for the cube's needle); the steps read on the stream show
