@@ -1,4 +1,4 @@
-"""The `refsim` command line: run, verify, bench, render, plot, study, export.
+"""The `refsim` command line: run, verify, bench, render, plot, study, export, interactive.
 
 Exit codes: 0 success; 1 a verification case failed; 2 bad input (scene, file, option; nothing is written);
 3 the simulation stopped on a detected numerical problem or a failed write (the results file keeps every
@@ -539,6 +539,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log at debug level")
     commands = parser.add_subparsers(dest="command", required=True)
     _add_run_command(commands)
+    _add_interactive_command(commands)
     _add_verify_command(commands)
     _add_bench_command(commands)
     _add_render_command(commands)
@@ -560,6 +561,13 @@ def _add_run_command(commands) -> None:
     run.add_argument("--overwrite", action="store_true", help="replace an existing results file")
     run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     run.set_defaults(handler=_cmd_run)
+
+
+def _add_interactive_command(commands) -> None:
+    """`refsim interactive` (its parser lives with the command; argparse only, so --help stays light)."""
+    from refsim.interactive.command import add_parser
+
+    add_parser(commands)
 
 
 def _add_verify_command(commands) -> None:
