@@ -305,13 +305,16 @@ def test_bad_input_exits_2_naming_what_is_wrong(package, tmp_path, capsys):
     assert main(["compare", "insertion", str(bad), "--reference", str(folder)]) == EXIT_INPUT
     assert "no reference for case 'insertion'" in capsys.readouterr().err
     short = tmp_path / "short.csv"
+    at = load_case("puncture").quantity("indentation_force").at
     write_their_csv(
         load_case("puncture"),
-        {"indentation_force": [1, 2, 3, 4], "travel_at_puncture": 1e-3, "puncture_force": 0.8},
+        {"indentation_force": np.arange(1.0, len(at) + 1), "travel_at_puncture": 1e-3, "puncture_force": 0.8},
         short,
     )
-    text = short.read_text().replace("indentation_force,0.0003,4\n", "")
-    short.write_text(text)
+    # their curve stops before the reference's last sampling point
+    lines = short.read_text().splitlines(keepends=True)
+    last = max(i for i, line in enumerate(lines) if line.startswith("indentation_force,"))
+    short.write_text("".join(lines[:last] + lines[last + 1 :]))
     assert main(["compare", "puncture", str(short), "--reference", str(folder)]) == EXIT_INPUT
     assert "the reference samples it at" in capsys.readouterr().err
     assert main(["reference", "build", "--cases", "nope", "-o", str(tmp_path / "p")]) == EXIT_INPUT
