@@ -357,3 +357,21 @@ def test_case_files_are_validated(tmp_path):
         load_case(path)
     with pytest.raises(ValueError, match="has no level 'finest'"):
         load_case("puncture").level("finest")
+
+
+@pytest.mark.parametrize("name", case_names())
+def test_every_run_of_every_level_is_a_valid_scene(name):
+    """Each run of each level (the level's values of its keys over the case's scene) loads: the scene's
+    validation (a duration that is a whole number of steps, keys in range) holds before any cluster starts."""
+    case = load_case(name)
+    if case.runner != "scene":
+        return
+    for level in case.levels:
+        keys = case.level(level)
+        for index in range(len(keys[case.refine])):
+            overrides = [
+                f"{key}={[values[index]] * 3 if key == 'mesh.cells' else values[index]}"
+                for key, values in keys.items()
+            ]
+            scene = load_scene(case.scene_path, [*case.overrides, *overrides])
+            assert scene.time.dt == pytest.approx(keys["time.dt"][index], rel=1e-15)
