@@ -543,8 +543,9 @@ def build_reference(
             folder.mkdir(parents=True, exist_ok=True)
             if case.runner == "scene":
                 _drop_stale_runs(case, folder)
-                values, files, info = _run_scene_case(case, level, folder, client)
+                # the scene the runs are made from, before they are (an interrupted build keeps it)
                 shutil.copyfile(case.scene_path, folder / "scene.toml")
+                values, files, info = _run_scene_case(case, level, folder, client)
             else:
                 values, files, info = _run_cantilever_case(case, level)
             shutil.copyfile(case.path, folder / "case.toml")
