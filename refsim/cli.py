@@ -450,7 +450,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                 f"{per_step / reference_ms:.2f} of the SuperLU factorisation ({reference_ms:.2f} ms around "
                 f"this run)"
             )
-            print(summary.format_table())
+            print(summary.format_table(beside_paper=True))
+            print(
+                "paper: Perrusi, Baksic and Courtecuisse 2021, Table 1 (their C++ in SOFA, their machine, "
+                "Gauss-Seidel; penetration = our approach phase)"
+            )
             if summary.cut_points:
                 print(summary.format_cut())
         if args.against_exact:

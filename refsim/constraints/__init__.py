@@ -21,6 +21,7 @@ from refsim.constraints.rows import (
     INSERTION,
     LATERAL_FIRST,
     LATERAL_SECOND,
+    NEEDLE,
     NORMAL,
     PENETRATION,
     ROLE_NAMES,
@@ -30,12 +31,14 @@ from refsim.constraints.rows import (
     SOURCE_NAMES,
     TANGENT,
     TIP,
+    TISSUE,
     UNILATERAL,
     RowBlock,
     concatenate,
     empty_block,
     orthonormal_basis,
     point_rows,
+    stack_jacobians,
 )
 from refsim.constraints.step_geometry import StepGeometry
 
@@ -47,11 +50,13 @@ __all__ = [
     "FRONT",
     "LATERAL_FIRST",
     "LATERAL_SECOND",
+    "NEEDLE",
     "NORMAL",
     "ROLE_NAMES",
     "SLIDING",
     "TANGENT",
     "TIP",
+    "TISSUE",
     "CUT_BORDER",
     "CUT_SLIDE",
     "FRICTION",
@@ -82,4 +87,5 @@ __all__ = [
     "penetration_block",
     "points_beyond_tip",
     "point_rows",
+    "stack_jacobians",
 ]

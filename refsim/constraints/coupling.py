@@ -40,9 +40,11 @@ from refsim.constraints.rows import (
     BILATERAL,
     FRICTION,
     INSERTION,
+    NEEDLE,
     PENETRATION,
     SHAFT_CONTACT,
     TIP,
+    TISSUE,
     UNILATERAL,
     RowBlock,
     orthonormal_basis,
@@ -542,8 +544,10 @@ def ring_insertion_block(
     row_count = point_count * per_point
     base = np.arange(point_count) * per_point
     return RowBlock(
-        tissue_jacobian=point_rows(row_nodes, row_weights, flat_directions, geometry.tissue_dof_count),
-        needle_jacobian=needle_rows(geometry.needle_free, np.repeat(arc_lengths, per_point), flat_directions),
+        jacobians={
+            TISSUE: point_rows(row_nodes, row_weights, flat_directions, geometry.tissue_dof_count),
+            NEEDLE: needle_rows(geometry.needle_free, np.repeat(arc_lengths, per_point), flat_directions),
+        },
         free_gap=gaps.ravel(),
         kind=kinds.ravel(),
         source=np.full(row_count, INSERTION, dtype=np.int8),
@@ -749,8 +753,7 @@ def tip_cutting_block(
     )
     _, tissue_now = geometry.tissue_points(nodes, weights)
     block = RowBlock(
-        tissue_jacobian=rows.tissue_jacobian,
-        needle_jacobian=rows.needle_jacobian,
+        jacobians=rows.jacobians,
         free_gap=rows.free_gap,
         kind=np.array([UNILATERAL], dtype=np.int8),
         source=np.array([PENETRATION], dtype=np.int8),
@@ -840,8 +843,10 @@ def shaft_contact_block(
     gaps = np.einsum("ij,ij->i", normals, offsets)
     count = arc_lengths.size
     return RowBlock(
-        tissue_jacobian=point_rows(nodes, barycentric, normals, geometry.tissue_dof_count),
-        needle_jacobian=needle_rows(needle, arc_lengths, normals),
+        jacobians={
+            TISSUE: point_rows(nodes, barycentric, normals, geometry.tissue_dof_count),
+            NEEDLE: needle_rows(needle, arc_lengths, normals),
+        },
         free_gap=gaps,
         kind=np.full(count, UNILATERAL, dtype=np.int8),
         source=np.full(count, SHAFT_CONTACT, dtype=np.int8),

@@ -20,7 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 
 from refsim.constraints.friction import friction_rows
 from refsim.constraints.needle_geometry import needle_rows
@@ -31,10 +30,13 @@ from refsim.constraints.rows import (
     CUT_SLIDE,
     FRICTION,
     FRONT,
+    NEEDLE,
     SLIDING,
+    TISSUE,
     UNILATERAL,
     RowBlock,
     point_rows,
+    stack_jacobians,
 )
 from refsim.constraints.step_geometry import StepGeometry
 
@@ -324,8 +326,10 @@ def strip_cut_block(
             slide_tets = cut.tet_indices[nearest]
             blocks.append(
                 (
-                    point_rows(nodes, node_weights, normals, geometry.tissue_dof_count),
-                    needle_rows(geometry.needle_free, samples[inside], normals),
+                    {
+                        TISSUE: point_rows(nodes, node_weights, normals, geometry.tissue_dof_count),
+                        NEEDLE: needle_rows(geometry.needle_free, samples[inside], normals),
+                    },
                     np.einsum("ij,ij->i", normals, needle_free[inside] - anchor),
                     normals,
                     anchor,
@@ -383,8 +387,10 @@ def strip_cut_block(
             )
             blocks.append(
                 (
-                    point_rows(nodes, node_weights, directions, geometry.tissue_dof_count),
-                    needle_rows(geometry.needle_free, samples[keep], directions),
+                    {
+                        TISSUE: point_rows(nodes, node_weights, directions, geometry.tissue_dof_count),
+                        NEEDLE: needle_rows(geometry.needle_free, samples[keep], directions),
+                    },
                     np.einsum("ij,ij->i", directions, needle_free[keep] - anchor),
                     directions,
                     anchor,
@@ -429,8 +435,7 @@ def strip_cut_block(
         friction_count = tangents.shape[0]
         blocks.append(
             (
-                friction.tissue_jacobian,
-                friction.needle_jacobian,
+                friction.jacobians,
                 friction.free_gap,
                 tangents,
                 np.concatenate([anchor, anchor]),
@@ -438,7 +443,6 @@ def strip_cut_block(
                 np.full(friction_count, CUT_SLIDE),
             )
         )
-    rigid = blocks[0][1] is None
     limits = np.concatenate(
         [
             slide_limits if slide_limits.size else np.full(slide_count, np.inf),
@@ -457,13 +461,12 @@ def strip_cut_block(
             group_coefficient=np.full(friction_count, float(friction_coefficient)),
         )
     block = RowBlock(
-        tissue_jacobian=sp.vstack([b[0] for b in blocks], format="csr"),
-        needle_jacobian=None if rigid else sp.vstack([b[1] for b in blocks], format="csr"),
-        free_gap=np.concatenate([b[2] for b in blocks]),
-        kind=np.concatenate([b[5] for b in blocks]).astype(np.int8),
-        source=np.concatenate([b[6] for b in blocks]).astype(np.int8),
-        points=np.concatenate([b[4] for b in blocks]),
-        directions=np.concatenate([b[3] for b in blocks]),
+        jacobians=stack_jacobians([b[0] for b in blocks]),
+        free_gap=np.concatenate([b[1] for b in blocks]),
+        kind=np.concatenate([b[4] for b in blocks]).astype(np.int8),
+        source=np.concatenate([b[5] for b in blocks]).astype(np.int8),
+        points=np.concatenate([b[3] for b in blocks]),
+        directions=np.concatenate([b[2] for b in blocks]),
         force_limit=limits if np.any(np.isfinite(limits)) else np.zeros(0),
         compliance_diagonal=_cut_compliance(
             subgrid_compliance, slide_tets, front_tets, shares[front_keep], spacing, friction_count > 0

@@ -26,13 +26,14 @@ any friction on the cut surface.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
 from refsim.constraints.needle_geometry import needle_rows
-from refsim.constraints.rows import point_rows
+from refsim.constraints.rows import NEEDLE, TISSUE, point_rows
 from refsim.constraints.step_geometry import StepGeometry
 
 __all__ = ["FrictionRows", "friction_rows", "slip_gaps", "stick_offsets"]
@@ -105,14 +106,13 @@ class FrictionRows:
 
     Attributes
     ----------
-    tissue_jacobian : H_tissue, shape (r, 3·tissue_node_count).
-    needle_jacobian : H_needle, shape (r, needle DoFs), or None for a kinematic needle.
+    jacobians : H_b by body name (:class:`~refsim.constraints.rows.RowBlock`'s ``jacobians``): H_tissue of
+        shape (r, 3·tissue_node_count) and H_needle of shape (r, needle DoFs), none for a kinematic needle.
     free_gap : Slip over the step along each tangent [m], shape (r,).
     tangents : Unit tangent of each row, shape (r, 3).
     """
 
-    tissue_jacobian: sp.csr_matrix
-    needle_jacobian: sp.csr_matrix | None
+    jacobians: Mapping[str, sp.csr_matrix]
     free_gap: np.ndarray
     tangents: np.ndarray
 
@@ -159,8 +159,17 @@ def friction_rows(
     if offsets is not None:
         gaps = gaps + np.asarray(offsets, dtype=float).reshape(gaps.shape)
     return FrictionRows(
-        tissue_jacobian=point_rows(tissue_nodes, tissue_weights, tangents, geometry.tissue_dof_count),
-        needle_jacobian=needle_rows(geometry.needle_free, arc_lengths, tangents),
+        jacobians=_without_none(
+            {
+                TISSUE: point_rows(tissue_nodes, tissue_weights, tangents, geometry.tissue_dof_count),
+                NEEDLE: needle_rows(geometry.needle_free, arc_lengths, tangents),
+            }
+        ),
         free_gap=gaps,
         tangents=tangents,
     )
+
+
+def _without_none(jacobians: dict) -> dict:
+    """The Jacobians of the bodies that have DoFs (a kinematic needle's rows give None)."""
+    return {name: matrix for name, matrix in jacobians.items() if matrix is not None}

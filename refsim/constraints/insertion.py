@@ -13,7 +13,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-import scipy.sparse as sp
 
 from refsim.constraints.friction import friction_rows, stick_offsets
 from refsim.constraints.needle_geometry import NeedleGeometry, needle_rows
@@ -24,9 +23,12 @@ from refsim.constraints.rows import (
     INSERTION,
     LATERAL_FIRST,
     LATERAL_SECOND,
+    NEEDLE,
+    TISSUE,
     RowBlock,
     orthonormal_basis,
     point_rows,
+    stack_jacobians,
 )
 from refsim.constraints.step_geometry import StepGeometry
 
@@ -196,10 +198,10 @@ def insertion_block(
     ).ravel()
     lateral_nodes, lateral_weights = np.repeat(nodes, 2, axis=0), np.repeat(weights, 2, axis=0)
     lateral_arcs = np.repeat(arc_lengths, 2)
-    tissue_jacobian = point_rows(
-        lateral_nodes, lateral_weights, lateral_directions, geometry.tissue_dof_count
-    )
-    needle_jacobian = needle_rows(geometry.needle_free, lateral_arcs, lateral_directions)
+    jacobians = {
+        TISSUE: point_rows(lateral_nodes, lateral_weights, lateral_directions, geometry.tissue_dof_count),
+        NEEDLE: needle_rows(geometry.needle_free, lateral_arcs, lateral_directions),
+    }
     directions, gaps = lateral_directions, lateral_gaps
     kinds = np.full(2 * point_count, BILATERAL, dtype=np.int8)
     coefficients = np.broadcast_to(np.asarray(friction_coefficient, dtype=float), (point_count,))
@@ -221,17 +223,15 @@ def insertion_block(
             [np.arange(2 * point_count).reshape(-1, 2), 2 * point_count + np.arange(point_count)[:, None]],
             axis=1,
         ).ravel()
-        tissue_jacobian = sp.vstack([tissue_jacobian, friction.tissue_jacobian], format="csr")[order]
-        if needle_jacobian is not None:
-            needle_jacobian = sp.vstack([needle_jacobian, friction.needle_jacobian], format="csr")[order]
+        stacked = stack_jacobians([jacobians, friction.jacobians])
+        jacobians = {name: matrix[order] for name, matrix in stacked.items()}
         directions = np.concatenate([lateral_directions, tangents])[order]
         gaps = np.concatenate([lateral_gaps, friction.free_gap])[order]
         kinds = np.concatenate([kinds, np.full(point_count, FRICTION, dtype=np.int8)])[order]
     row_count = point_count * per_point
     base = np.arange(point_count) * per_point
     return RowBlock(
-        tissue_jacobian=tissue_jacobian,
-        needle_jacobian=needle_jacobian,
+        jacobians=jacobians,
         free_gap=gaps,
         kind=kinds,
         source=np.full(row_count, INSERTION, dtype=np.int8),

@@ -17,19 +17,21 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 
 from refsim.constraints.friction import friction_rows
 from refsim.constraints.needle_geometry import needle_rows
 from refsim.constraints.rows import (
     FRICTION,
+    NEEDLE,
     NORMAL,
     PENETRATION,
     TANGENT,
+    TISSUE,
     UNILATERAL,
     RowBlock,
     orthonormal_basis,
     point_rows,
+    stack_jacobians,
 )
 from refsim.constraints.step_geometry import StepGeometry
 from refsim.geometry import SurfaceProjector
@@ -206,8 +208,10 @@ def penetration_block(
     loaded_nodes, loaded_weights, loaded_point = contact.loaded()
     gap_normal = float(normal @ (tip_free - loaded_point))
     nodes, weights = loaded_nodes[None, :], loaded_weights[None, :]
-    normal_jacobian = point_rows(nodes, weights, normal[None, :], geometry.tissue_dof_count)
-    normal_needle = needle_rows(geometry.needle_free, tip_s, normal[None, :])
+    normal_jacobians = {
+        TISSUE: point_rows(nodes, weights, normal[None, :], geometry.tissue_dof_count),
+        NEEDLE: needle_rows(geometry.needle_free, tip_s, normal[None, :]),
+    }
     if friction_coefficient > 0.0:
         first, second = orthonormal_basis(normal[None, :])
         tangents = np.vstack([first, second])
@@ -225,12 +229,7 @@ def penetration_block(
         directions = np.vstack([normal, tangents])
         gaps = np.concatenate([[gap_normal], friction.free_gap])
         kinds = np.array([UNILATERAL, FRICTION, FRICTION], dtype=np.int8)
-        tissue_jacobian = sp.vstack([normal_jacobian, friction.tissue_jacobian], format="csr")
-        needle_jacobian = (
-            None
-            if normal_needle is None
-            else sp.vstack([normal_needle, friction.needle_jacobian], format="csr")
-        )
+        jacobians = stack_jacobians([normal_jacobians, friction.jacobians])
         contacts = np.array([[0, 1, 2]], dtype=np.int64)
         contact_friction = np.array([friction_coefficient])
         if puncture_force is not None:
@@ -245,7 +244,7 @@ def penetration_block(
         directions = normal[None, :]
         gaps = np.array([gap_normal])
         kinds = np.array([UNILATERAL], dtype=np.int8)
-        tissue_jacobian, needle_jacobian = normal_jacobian, normal_needle
+        jacobians = normal_jacobians
         contacts = np.zeros((0, 3), dtype=np.int64)
         contact_friction = np.zeros(0)
     row_count = len(gaps)
@@ -257,8 +256,7 @@ def penetration_block(
         limit[0] = float(puncture_force)
         capped = dict(force_limit=limit, **(groups if friction_coefficient > 0.0 else {}))
     return RowBlock(
-        tissue_jacobian=tissue_jacobian,
-        needle_jacobian=needle_jacobian,
+        jacobians=jacobians,
         free_gap=gaps,
         kind=kinds,
         source=np.full(row_count, PENETRATION, dtype=np.int8),

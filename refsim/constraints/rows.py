@@ -1,8 +1,10 @@
 """Constraint rows: one row of H per body for each atomic constraint, with its gap and its kind.
 
-A block of rows (:class:`RowBlock`) comes from one builder (penetration, insertion, cutting); blocks are
-concatenated into the rows of a step (:func:`concatenate`), which give the solver's
-:class:`~refsim.solvers.ConstraintProblem` once the compliance W = Σ_b H_b A_b⁻¹ H_bᵀ is known.
+A block of rows (:class:`RowBlock`) comes from one builder (penetration, insertion, cutting) and carries one
+Jacobian H_b per body it touches, by body name (:data:`TISSUE`, :data:`NEEDLE`; a kinematic body such as a
+rigid needle has no DoFs and no Jacobian); blocks are concatenated into the rows of a step
+(:func:`concatenate`), which give the solver's :class:`~refsim.solvers.ConstraintProblem` once the compliance
+W = Σ_b H_b A_b⁻¹ H_bᵀ is known.
 
 Sign convention: a row along the unit direction n measures δ = nᵀ(x_needle − x_tissue) [m]; its multiplier λ
 [N] pushes the needle along +n and the tissue along −n. Unilateral rows keep δ ≥ 0 (n points from the tissue
@@ -11,7 +13,9 @@ towards the needle); friction rows measure the relative tangential displacement 
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 
 import numpy as np
 import scipy.sparse as sp
@@ -19,6 +23,8 @@ import scipy.sparse as sp
 from refsim.solvers import ConstraintProblem
 
 __all__ = [
+    "TISSUE",
+    "NEEDLE",
     "BILATERAL",
     "UNILATERAL",
     "FRICTION",
@@ -45,7 +51,12 @@ __all__ = [
     "empty_block",
     "orthonormal_basis",
     "point_rows",
+    "stack_jacobians",
 ]
+
+#: The names of the bodies rows refer to (``RowBlock.jacobians`` keys, ``Body.name`` of the simulation's
+#: bodies).
+TISSUE, NEEDLE = "tissue", "needle"
 
 BILATERAL, UNILATERAL, FRICTION = 0, 1, 2
 ROW_KIND_NAMES = ("bilateral", "unilateral", "friction")
@@ -89,9 +100,10 @@ class RowBlock:
 
     Attributes
     ----------
-    tissue_jacobian : H_tissue, shape (row_count, 3·tissue_node_count).
-    needle_jacobian : H_needle, shape (row_count, 6·needle_node_count), or None for a rigid (kinematic)
-    needle.
+    jacobians : H_b of each body the rows touch, by body name (a read-only mapping): ``jacobians[TISSUE]``
+        of shape (row_count, 3·tissue_node_count), ``jacobians[NEEDLE]`` of shape
+        (row_count, 6·needle_node_count) for a flexible needle. A body without DoFs (a rigid, kinematic
+        needle) has no entry; a None value given at construction is dropped.
     free_gap : δ_free [m], shape (row_count,).
     kind : BILATERAL, UNILATERAL or FRICTION per row, shape (row_count,).
     source : PENETRATION, INSERTION, CUT_SLIDE, CUT_BORDER or SHAFT_CONTACT per row, shape (row_count,).
@@ -125,8 +137,7 @@ class RowBlock:
         other row, shape (row_count,) (empty: all NaN).
     """
 
-    tissue_jacobian: sp.csr_matrix
-    needle_jacobian: sp.csr_matrix | None
+    jacobians: Mapping[str, sp.csr_matrix]
     free_gap: np.ndarray
     kind: np.ndarray
     source: np.ndarray
@@ -150,6 +161,11 @@ class RowBlock:
 
     def __post_init__(self) -> None:
         rows = self.free_gap.shape[0]
+        jacobians = {name: matrix for name, matrix in dict(self.jacobians).items() if matrix is not None}
+        for name, matrix in jacobians.items():
+            if matrix.shape[0] != rows:
+                raise ValueError(f"the Jacobian of body {name!r} has {matrix.shape[0]} rows, expected {rows}")
+        object.__setattr__(self, "jacobians", MappingProxyType(jacobians))
         for name in ("role", "point", "anchor"):
             value = np.asarray(getattr(self, name))
             if value.size and value.shape != (rows,):
@@ -244,12 +260,11 @@ class RowBlock:
         }
 
 
-def empty_block(tissue_dof_count: int, needle_dof_count: int | None) -> RowBlock:
-    """A block without rows."""
-    needle = None if needle_dof_count is None else sp.csr_matrix((0, needle_dof_count))
+def empty_block(dof_counts: Mapping[str, int | None]) -> RowBlock:
+    """A block without rows, with an empty Jacobian for each body of ``dof_counts`` (body name -> DoF count;
+    None or 0 for a kinematic body, which gets none)."""
     return RowBlock(
-        tissue_jacobian=sp.csr_matrix((0, tissue_dof_count)),
-        needle_jacobian=needle,
+        jacobians={name: sp.csr_matrix((0, count)) for name, count in dof_counts.items() if count},
         free_gap=np.zeros(0),
         kind=np.zeros(0, dtype=np.int8),
         source=np.zeros(0, dtype=np.int8),
@@ -264,10 +279,8 @@ def concatenate(blocks: list[RowBlock]) -> RowBlock:
     if len(blocks) == 1:
         return blocks[0]
     offsets = np.concatenate([[0], np.cumsum([b.row_count for b in blocks])])
-    rigid = blocks[0].needle_jacobian is None
     return RowBlock(
-        tissue_jacobian=sp.vstack([b.tissue_jacobian for b in blocks], format="csr"),
-        needle_jacobian=None if rigid else sp.vstack([b.needle_jacobian for b in blocks], format="csr"),
+        jacobians=stack_jacobians([b.jacobians for b in blocks], [b.row_count for b in blocks]),
         free_gap=np.concatenate([b.free_gap for b in blocks]),
         kind=np.concatenate([b.kind for b in blocks]),
         source=np.concatenate([b.source for b in blocks]),
@@ -307,6 +320,48 @@ def concatenate(blocks: list[RowBlock]) -> RowBlock:
         point=np.concatenate([_points(b) for b in blocks]).astype(np.int64),
         anchor=np.concatenate([_anchors(b) for b in blocks]),
     )
+
+
+def stack_jacobians(
+    parts: list[Mapping[str, sp.csr_matrix]], row_counts: list[int] | None = None
+) -> dict[str, sp.csr_matrix]:
+    """Each body's Jacobian of stacked row sets, by body name.
+
+    Parameters
+    ----------
+    parts : The Jacobians of each row set (body name -> H_b, None or absent for a body the set does not
+        touch), in stacking order.
+    row_counts : Rows of each set; by default the rows of any Jacobian it has.
+
+    Returns
+    -------
+    Body name -> vertically stacked H_b (CSR) for every body of any part, in order of first appearance; a part
+    that lacks a body contributes zero rows of the width that body has elsewhere.
+    """
+    parts = [{name: h for name, h in part.items() if h is not None} for part in parts]
+    if row_counts is None:
+        row_counts = []
+        for part in parts:
+            if not part:
+                raise ValueError("a row set without any Jacobian needs its row count")
+            row_counts.append(next(iter(part.values())).shape[0])
+    widths: dict[str, int] = {}
+    for part in parts:
+        for name, matrix in part.items():
+            if widths.setdefault(name, matrix.shape[1]) != matrix.shape[1]:
+                raise ValueError(
+                    f"the Jacobians of body {name!r} have {widths[name]} and {matrix.shape[1]} columns"
+                )
+    return {
+        name: sp.vstack(
+            [
+                part.get(name, sp.csr_matrix((rows, width)))
+                for part, rows in zip(parts, row_counts, strict=True)
+            ],
+            format="csr",
+        )
+        for name, width in widths.items()
+    }
 
 
 def _roles(block: RowBlock) -> np.ndarray:

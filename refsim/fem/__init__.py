@@ -9,7 +9,7 @@ from refsim.fem.compliance import (
     StepSystem,
     make_strategy,
 )
-from refsim.fem.integration import ImplicitEulerSystem, effective_stiffness
+from refsim.fem.integration import effective_stiffness
 from refsim.fem.linear import linear_solver_info
 from refsim.fem.needle import NeedleModel, NeedleSection
 from refsim.fem.threads import hot_path_threads, thread_settings
@@ -17,7 +17,6 @@ from refsim.fem.tissue import TissueModel, TissueState
 
 __all__ = [
     "Exact",
-    "ImplicitEulerSystem",
     "NeedleModel",
     "NeedleSection",
     "Precomputed",

@@ -1,10 +1,11 @@
 """Compliance strategies as values: how a body's step system gives its free motion, W and its correction
 (layer 2).
 
-A body (the tissue, a flexible needle) assembles, at each step, its effective stiffness A = M/dt² + C/dt + K
-on its free DoFs (always the same sparsity pattern) and the right-hand side of the free motion (see
-:mod:`refsim.fem.integration`): a :class:`StepSystem`. A **strategy** is a plain value (like the solver
-factories scikit-fem passes to ``solve``), chosen by the scene key ``compliance.strategy``:
+Every deformable body (the tissue, a flexible needle) assembles, at each step, its effective stiffness
+A = M/dt² + C/dt + K on its free DoFs (always the same sparsity pattern) and the right-hand side of the free
+motion (see :mod:`refsim.fem.integration`): a :class:`StepSystem`. A **strategy** is a plain value (like the
+solver factories scikit-fem passes to ``solve``), chosen for the tissue by the scene key
+``compliance.strategy``; a flexible needle binds its own (exact, :mod:`refsim.simulation.needle_body`):
 
 ``Exact()``
     Factorises A every step (refsim's reference): free motion, W = H A⁻¹ Hᵀ and the correction A⁻¹ Hᵀ λ are
@@ -367,14 +368,14 @@ class StepCompliance:
         return out
 
     def compliance(self, jacobian: sp.spmatrix) -> tuple[np.ndarray, np.ndarray]:
-        """W and the responses A⁻¹ Hᵀ [m/N], dense (dof_count, rows) — the form :class:`ImplicitEulerSystem`
-        gives."""
+        """W and the responses A⁻¹ Hᵀ [m/N], dense (dof_count, rows), zero on the constrained DoFs: for a body
+        whose correction applies the responses itself (``responses @ λ``, the flexible needle)."""
         if self._solve is None:
             positions, restricted, influence, _ = self._influence(jacobian)
             responses = self.system.expand(influence @ restricted.T)
             return self.delassus(jacobian), responses
-        # The exact factor: the arithmetic of ImplicitEulerSystem.compliance, so that results stay
-        # bit-identical.
+        # The exact factor: the responses to unit loads on the DoFs the rows touch, combined by H (fewer
+        # solves when the rows outnumber those DoFs), else to Hᵀ itself; W = H (A⁻¹Hᵀ).
         jacobian = sp.csr_matrix(jacobian)
         row_count = jacobian.shape[0]
         used = np.unique(jacobian.indices)

@@ -34,7 +34,7 @@ import scipy.sparse.linalg as spla
 
 from refsim.fem.assembly import FreePattern, assemble_free_system
 from refsim.fem.compliance import BodyCompliance, Exact, StepCompliance, StepSystem
-from refsim.fem.integration import ImplicitEulerSystem, effective_stiffness
+from refsim.fem.integration import effective_stiffness
 from refsim.fem.threads import hot_path_threads
 from refsim.geometry.rotations import polar_rotation
 from refsim.materials import HookeMaterial
@@ -440,23 +440,25 @@ class TissueModel:
 
     # ---------------------------------------------------------------- time stepping
 
-    def step_system(self, rotations: np.ndarray, dt: float) -> ImplicitEulerSystem:
-        """Factorised effective stiffness A = M/dt² + C/dt + K of one implicit Euler step, fixed
-        DoFs eliminated.
+    def step_system(self, rotations: np.ndarray, dt: float) -> StepCompliance:
+        """The exact strategy's compliance of one implicit Euler step with the tangent of ``rotations``:
+        A = M/dt² + C/dt + K factorised, fixed DoFs eliminated (its ``compliance(H)`` gives W and A⁻¹Hᵀ, its
+        ``free_displacement`` the response to zero load).
 
         Parameters
         ----------
         rotations : Element rotations at the start of the step, shape (tet_count, 3, 3).
         dt : Time step [s].
         """
-        return ImplicitEulerSystem.build(
+        matrix = effective_stiffness(
             self.mass_matrix,
             self.tangent_stiffness(rotations),
             dt,
             rayleigh_mass=self.rayleigh_mass,
             rayleigh_stiffness=self.rayleigh_stiffness,
-            constrained_dofs=self.fixed_dofs,
         )
+        system = StepSystem.from_matrices(matrix, np.zeros(self.dof_count), self.fixed_dofs)
+        return Exact().bind().step(system)
 
     def assemble_step(
         self,

@@ -1,5 +1,6 @@
 """The time step loop (layer 5)."""
 
+from refsim.simulation.bodies import Body, TissueBody
 from refsim.simulation.needle_body import FlexibleNeedle, NeedleState, RigidNeedle
 from refsim.simulation.records import STAGES, Event, StepRecord
 from refsim.simulation.simulation import Simulation, SimulationError
@@ -7,6 +8,7 @@ from refsim.simulation.state import Phase, SimulationState
 
 __all__ = [
     "STAGES",
+    "Body",
     "Event",
     "FlexibleNeedle",
     "NeedleState",
@@ -16,4 +18,5 @@ __all__ = [
     "SimulationError",
     "SimulationState",
     "StepRecord",
+    "TissueBody",
 ]

@@ -13,6 +13,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from refsim.constraints import (
+    NEEDLE,
+    TISSUE,
     RowBlock,
     StepGeometry,
     SurfaceContact,
@@ -324,7 +326,7 @@ class Detector:
                 blocks.append(block)
             front = replace(front, rows=front.rows + offset, band_rows=front.band_rows + offset)
         if not blocks:
-            rows = empty_block(geometry.tissue_dof_count, self.needle_dof_count)
+            rows = empty_block({TISSUE: geometry.tissue_dof_count, NEEDLE: self.needle_dof_count})
         else:
             rows = concatenate(blocks)
         return Detection(rows, contact, front, insertion_points)

@@ -23,7 +23,8 @@
   released; approach (the cut stays)
 - phase: cutting; event: leave_cut; when: the needle is back behind the strip's first layer (the line it
   entered along) by more than d_c/2, along −ĉ; then: insertion points along the inserted needle every d_i
-  (intact tissue); insertion (the cut stays; a new cut may start)
+  where it lies in intact tissue (none in the cut: the part still in it slides in it); insertion (the cut
+  stays; a new cut may start)
 
 The cut surface itself grows in :mod:`refsim.cutting.growth` and :mod:`refsim.cutting.strip`.
 """
@@ -330,7 +331,8 @@ class EventRules:
 
     def _leave_cut(self, state, needle, positions):
         """The state after the needle left its cut backwards, into intact tissue: insertion points along the
-        inserted needle every d_i (material points where the needle now is), the insertion phase, the cut kept
+        inserted needle every d_i (material points where the needle now is) but none in the cut (the rule of
+        new points: a part of the needle still in its cut slides in it), the insertion phase, the cut kept
         (the needle may cut again: a new cut start). Event ``leave_cut``."""
         locator = TetLocator(positions, self.tets)
         spacing = self.insertion.spacing
@@ -339,6 +341,8 @@ class EventRules:
         tets, barycentric = locator.locate(needle.points(arcs))
         inside = tets >= 0
         path = InsertionPath.empty().appended(tets[inside], barycentric[inside], state.step)
+        if state.cut is not None and state.cut.triangle_count:
+            path = self._outside_cut(path, state, positions)
         events = [Event("leave_cut")]
         if path.point_count == 0:
             state = replace(state, phase=Phase.APPROACH, path=path, cut_strip=None, tip_tet=-1)

@@ -1,8 +1,11 @@
-"""The needle as a body of the time step: rigid (kinematic) or flexible (co-rotational beams).
+"""The needle as a body of the time step (:class:`refsim.simulation.bodies.Body`): rigid (kinematic) or
+flexible (co-rotational beams).
 
-A rigid needle follows its base exactly: its pose at the end of the step is the trajectory's, it adds nothing
-to the compliance and has no free-motion solve. A flexible needle is a beam model whose base node's six DoFs
-are prescribed by the trajectory; the rest moves by one Newton step of implicit Euler.
+A rigid needle follows its base exactly: its pose at the end of the step is the trajectory's, it has no DoFs,
+adds nothing to the compliance and its correction is its free state. A flexible needle is a beam model whose
+base node's six DoFs are prescribed by the trajectory; the rest moves by one Newton step of implicit Euler
+through its own bound compliance strategy (:mod:`refsim.fem.compliance`; the exact one with a direct
+factorisation by default: the needle is small and its A changes every step).
 """
 
 from __future__ import annotations
@@ -11,11 +14,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from refsim.constraints import BeamNeedleGeometry, RigidNeedleGeometry, orthonormal_basis
-from refsim.fem.integration import ImplicitEulerSystem
+from refsim.constraints import NEEDLE, BeamNeedleGeometry, RigidNeedleGeometry, orthonormal_basis
 from refsim.geometry import needle_rest_frame, rotation_matrix
+from refsim.scene.controls import ControlValues
 
-__all__ = ["NeedleState", "RigidNeedle", "FlexibleNeedle", "rotation_between"]
+__all__ = ["NeedleState", "RigidNeedle", "FlexibleNeedle", "NEEDLE_LINEAR_SOLVER", "rotation_between"]
+
+#: The flexible needle's linear solver: SuperLU in symmetric mode with the COLAMD ordering (a direct
+#: factorisation of its small banded A every step).
+NEEDLE_LINEAR_SOLVER = "superlu:COLAMD"
 
 
 @dataclass(frozen=True)
@@ -58,8 +65,9 @@ def _rest_frames(direction: np.ndarray, node_count: int) -> np.ndarray:
 
 
 class RigidNeedle:
-    """A rigid needle moved by its base: nodes on a straight line, no DoFs in the constraint problem."""
+    """A rigid needle moved by its base: nodes on a straight line, a kinematic body (no DoFs)."""
 
+    name = NEEDLE
     rigid = True
     dof_count = None
 
@@ -82,28 +90,47 @@ class RigidNeedle:
     def geometry(self, state: NeedleState) -> RigidNeedleGeometry:
         return RigidNeedleGeometry(state.base_position, state.direction, self.length)
 
-    def free_motion(self, state: NeedleState, base: np.ndarray, direction: np.ndarray, dt: float):
+    def free_motion(self, state: NeedleState, control: ControlValues, dt: float):
         """The pose at the end of the step (kinematic); no system to solve."""
-        moved = self.state_at(base, direction)
+        moved = self.state_at(control.base_position, control.direction)
         velocities = np.zeros_like(state.velocities)
         velocities[:, :3] = (moved.positions - state.positions) / dt
         return NeedleState(
             moved.positions, moved.frames, velocities, moved.base_position, moved.direction
         ), None
 
-    def correct(
-        self, previous: NeedleState, free: NeedleState, system, responses, multipliers, dt
-    ) -> NeedleState:
+    @staticmethod
+    def compliance(system, jacobian):
+        """Nothing: a kinematic body adds a zero block to W (rows its Jacobian has) and needs no responses."""
+        rows = 0 if jacobian is None else jacobian.shape[0]
+        return np.zeros((rows, rows)), None
+
+    @staticmethod
+    def correct(system, previous: NeedleState, free: NeedleState, responses, multipliers, dt) -> NeedleState:
+        """The free state: the constraint forces do not move a kinematic body."""
         return free
 
 
 class FlexibleNeedle:
-    """A flexible needle: co-rotational Timoshenko beams, base node driven by the trajectory."""
+    """A flexible needle: co-rotational Timoshenko beams, base node driven by the trajectory.
 
+    Parameters
+    ----------
+    model : The beam model (:class:`refsim.fem.needle.NeedleModel`).
+    rayleigh_mass, rayleigh_stiffness : Rayleigh α [1/s] and β [s].
+    compliance : Its bound compliance strategy; by default the exact one on :data:`NEEDLE_LINEAR_SOLVER`.
+    """
+
+    name = NEEDLE
     rigid = False
 
-    def __init__(self, model, *, rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0) -> None:
+    def __init__(
+        self, model, *, rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0, compliance=None
+    ) -> None:
+        from refsim.fem.compliance import Exact
+
         self.model = model
+        self.strategy = compliance if compliance is not None else Exact(NEEDLE_LINEAR_SOLVER).bind()
         self.length = float(model.length)
         self.rayleigh_mass = rayleigh_mass
         self.rayleigh_stiffness = rayleigh_stiffness
@@ -129,29 +156,36 @@ class FlexibleNeedle:
     def geometry(self, state: NeedleState) -> BeamNeedleGeometry:
         return BeamNeedleGeometry(self.model, state.positions, state.frames)
 
-    def free_motion(self, state: NeedleState, base: np.ndarray, direction: np.ndarray, dt: float):
-        """One Newton step of implicit Euler with the base's six DoFs prescribed by the trajectory."""
+    def free_motion(self, state: NeedleState, control: ControlValues, dt: float):
+        """One Newton step of implicit Euler with the base's six DoFs prescribed by the trajectory; the step
+        system is the needle's :class:`~refsim.fem.compliance.StepCompliance`."""
         model = self.model
-        forces = -model.internal_forces(state.positions, state.frames)
-        stiffness = model.tangent_stiffness(state.positions, state.frames)
-        base_dofs = np.asarray(model.base_dofs)
-        system = ImplicitEulerSystem.build(
-            self._mass,
-            stiffness,
-            dt,
-            rayleigh_mass=self.rayleigh_mass,
-            rayleigh_stiffness=self.rayleigh_stiffness,
-            constrained_dofs=base_dofs,
+        base, direction = control.base_position, control.direction
+        increment = np.concatenate([base - state.positions[0], rotation_between(state.direction, direction)])
+        system = self.strategy.step(
+            model.assemble_step(
+                state.positions,
+                state.frames,
+                state.velocities,
+                dt,
+                increment,
+                rayleigh_mass=self.rayleigh_mass,
+                rayleigh_stiffness=self.rayleigh_stiffness,
+                mass=self._mass,
+            )
         )
-        prescribed = np.concatenate([base - state.positions[0], rotation_between(state.direction, direction)])
-        order = np.argsort(base_dofs)  # constrained_dofs are sorted inside the system
-        delta = system.free_displacement(forces, state.velocities.ravel(), prescribed[order])
+        delta = system.free_displacement
         positions, frames = model.apply_increment(state.positions, state.frames, delta)
         free = NeedleState(positions, frames, delta.reshape(-1, 6) / dt, np.asarray(base, float), direction)
         return free, system
 
+    @staticmethod
+    def compliance(system, jacobian):
+        """W = H A⁻¹ Hᵀ [m/N] and the responses A⁻¹Hᵀ [m/N], dense (dof_count, rows)."""
+        return system.compliance(jacobian)
+
     def correct(
-        self, previous: NeedleState, free: NeedleState, system, responses, multipliers, dt
+        self, system, previous: NeedleState, free: NeedleState, responses, multipliers, dt
     ) -> NeedleState:
         """x = x_free + A⁻¹ Hᵀ λ, velocities from the whole step's increment."""
         if responses is None or multipliers.size == 0:

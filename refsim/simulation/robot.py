@@ -47,7 +47,7 @@ def target_motion(scene: Scene, target: np.ndarray, times: np.ndarray) -> np.nda
     history = np.zeros((step_times.size, 3))
     for index in range(1, step_times.size):  # the tissue's own steps (one solve each)
         control = controls.at(step_times[index])
-        free, system = body.free_motion(state, dt, control)
+        free, system = body.free_motion(state, control, dt)
         state = body.correct(system, state, free, None, np.zeros(0), dt)
         history[index] = barycentric[0] @ state.positions[nodes] - barycentric[0] @ mesh.rest_positions[nodes]
     return np.stack([np.interp(times, step_times, history[:, k]) for k in range(3)], axis=1)

@@ -2,21 +2,24 @@
 
 - stage: motion; what: the controls at t + dt: needle base pose, tissue boundary displacements; owner:
   `refsim.scene.controls`
-- stage: free_motion; what: one Newton step of implicit Euler per body, without constraint forces; owner:
-  `refsim.simulation.bodies`, `refsim.simulation.needle_body` (models in `refsim.fem`)
+- stage: free_motion; what: each body's free motion (one Newton step of implicit Euler through its compliance
+  strategy, or a kinematic pose), without constraint forces; owner: the bodies (`refsim.simulation.bodies`,
+  `refsim.simulation.needle_body`; models in `refsim.fem`)
 - stage: detection; what: rows of H from the free positions, by phase; owner: `refsim.simulation.detection`
   (builders in `refsim.constraints`)
-- stage: compliance; what: W = Σ_b H_b A_b⁻¹ H_bᵀ and the constraint problem; owner: the bodies' systems;
-  `RowBlock.problem`
+- stage: compliance; what: W = Σ_b H_b A_b⁻¹ H_bᵀ over the bodies the rows touch and the constraint problem;
+  owner: each body's `compliance`; `RowBlock.problem`
 - stage: solve; what: Gauss–Seidel or the exact solver; owner: `refsim.solvers`
-- stage: correction; what: x = x_free + A⁻¹ Hᵀ λ per body; a non-finite value stops the run; owner: the bodies
+- stage: correction; what: x_b = x_b,free + A_b⁻¹ H_bᵀ λ for each body; a non-finite value stops the run;
+  owner: each body's `correct`
 - stage: events; what: puncture, insertion points, retraction, withdrawal, cut start, tears; owner:
   `refsim.simulation.events` (cut growth in `refsim.cutting.growth`)
 
-The scene, the models and the controls are static; a step takes a :class:`SimulationState` and returns a new
-one with the :class:`~refsim.simulation.records.StepRecord` of what it did. Nothing the scene does not declare
-is computed: a rigid needle has no beam solve, μ = 0 gives no friction rows, a scene without cutting never
-builds a cut.
+The bodies (:class:`~refsim.simulation.bodies.Body`: the tissue, then the needle) are a tuple, ``bodies``; the
+stages above loop over it. The scene, the models and the controls are static; a step takes a
+:class:`SimulationState` and returns a new one with the :class:`~refsim.simulation.records.StepRecord` of what
+it did. Nothing the scene does not declare is computed: a rigid needle has no beam solve, μ = 0 gives no
+friction rows, a scene without cutting never builds a cut.
 """
 
 from __future__ import annotations
@@ -44,7 +47,7 @@ from refsim.fem.threads import hot_path_threads
 from refsim.scene import Scene
 from refsim.scene.build import SceneModels, build_controls, build_models
 from refsim.scene.controls import Controls
-from refsim.simulation.bodies import TissueBody
+from refsim.simulation.bodies import Body, TissueBody
 from refsim.simulation.detection import Detector
 from refsim.simulation.events import EventRules
 from refsim.simulation.needle_body import FlexibleNeedle, RigidNeedle
@@ -116,6 +119,8 @@ class Simulation:
             w_update=spec.w_update,
         ).bind()
         self.tissue_body = TissueBody(self.tissue, self.tissue_compliance)
+        #: Every body of the step, in the order W is summed: the tissue, then the needle.
+        self.bodies: tuple[Body, ...] = (self.tissue_body, self.needle)
         self.detector = Detector(
             scene, self.faces, self.needle.dof_count, self.models.mesh.rest_positions, self.tets
         )
@@ -161,46 +166,41 @@ class Simulation:
         control = self.controls.at(time)
         timer.lap("motion")
 
-        tissue_free, tissue_system = self.tissue_body.free_motion(state.tissue, dt, control)
-        needle_free, needle_system = self.needle.free_motion(
-            state.needle, control.base_position, control.direction, dt
-        )
+        free, systems = {}, {}
+        for body in self.bodies:
+            free[body.name], systems[body.name] = body.free_motion(getattr(state, body.name), control, dt)
         timer.lap("free_motion")
 
         geometry = StepGeometry(
             mesh_tets=self.tets,
             tissue_previous=state.tissue.positions,
-            tissue_free=tissue_free,
+            tissue_free=free[self.tissue_body.name].positions,
             needle_previous=self.needle.geometry(state.needle),
-            needle_free=self.needle.geometry(needle_free),
+            needle_free=self.needle.geometry(free[self.needle.name]),
         )
         detection = self.detector.detect(state, geometry)
         rows = detection.rows
         timer.lap("detection")
 
-        problem, tissue_responses, needle_responses = self._problem(rows, tissue_system, needle_system)
+        problem, responses = self._problem(rows, systems)
         timer.lap("compliance")
 
         multipliers, report = self._solve(problem, self._warm_start(state, detection))
         timer.lap("solve")
 
-        tissue_state = self.tissue_body.correct(
-            tissue_system, state.tissue, tissue_free, tissue_responses, multipliers, dt
-        )
-        needle_state = self.needle.correct(
-            state.needle, needle_free, needle_system, needle_responses, multipliers, dt
-        )
-        self._check_finite(step, tissue_state, needle_state, multipliers)
+        corrected = self._correct(state, free, systems, responses, multipliers)
+        self._check_finite(step, corrected, multipliers)
         timer.lap("correction")
 
         new_state = replace(
             state,
             step=step,
             time=time,
-            tissue=tissue_state,
-            needle=needle_state,
             path=self._store_multipliers(state.path, detection, problem, multipliers),
+            **corrected,
         )
+        needle_state = corrected[self.needle.name]
+        tissue_state = corrected[self.tissue_body.name]
         new_state, events = self.event_rules.apply(new_state, detection, multipliers)
         timer.lap("events")
 
@@ -253,17 +253,36 @@ class Simulation:
 
     # ------------------------------------------------------------------ stages
 
-    @staticmethod
-    def _problem(rows: RowBlock, tissue_system, needle_system):
-        """The constraint problem of the rows (W summed over both bodies) and each body's responses A⁻¹Hᵀ."""
+    def _problem(self, rows: RowBlock, systems: dict):
+        """The constraint problem of the rows, W = Σ_b H_b A_b⁻¹ H_bᵀ over the bodies with a Jacobian in
+        them (in the order of ``bodies``), and each body's responses by name (None: no rows on it)."""
+        responses = dict.fromkeys(body.name for body in self.bodies)
         if rows.row_count == 0:
-            return None, None, None
-        compliance, tissue_responses = TissueBody.compliance(tissue_system, rows.tissue_jacobian)
-        needle_responses = None
-        if rows.needle_jacobian is not None:
-            needle_compliance, needle_responses = needle_system.compliance(rows.needle_jacobian)
-            compliance = compliance + needle_compliance
-        return rows.problem(compliance), tissue_responses, needle_responses
+            return None, responses
+        compliance = None
+        for body in self.bodies:
+            jacobian = rows.jacobians.get(body.name)
+            if jacobian is None:
+                continue
+            part, responses[body.name] = body.compliance(systems[body.name], jacobian)
+            compliance = part if compliance is None else compliance + part
+        if compliance is None:
+            compliance = np.zeros((rows.row_count, rows.row_count))
+        return rows.problem(compliance), responses
+
+    def _correct(self, state: SimulationState, free: dict, systems: dict, responses: dict, multipliers):
+        """Each body's state after the constraint forces, by name: x_b = x_b,free + A_b⁻¹ H_bᵀ λ."""
+        return {
+            body.name: body.correct(
+                systems[body.name],
+                getattr(state, body.name),
+                free[body.name],
+                responses[body.name],
+                multipliers,
+                self.dt,
+            )
+            for body in self.bodies
+        }
 
     def _solve(self, problem, warm_start):
         if problem is None:
@@ -335,12 +354,9 @@ class Simulation:
         return path.with_stuck(stuck).with_anchors(anchors, stretch)
 
     @staticmethod
-    def _check_finite(step, tissue_state, needle_state, multipliers) -> None:
-        for name, array in (
-            ("tissue positions", tissue_state.positions),
-            ("needle positions", needle_state.positions),
-            ("constraint forces", multipliers),
-        ):
+    def _check_finite(step, states: dict, multipliers) -> None:
+        checked = [(f"{name} positions", body_state.positions) for name, body_state in states.items()]
+        for name, array in (*checked, ("constraint forces", multipliers)):
             if not np.all(np.isfinite(array)):
                 raise SimulationError(f"step {step}: non-finite {name} detected; the run stops here")
 

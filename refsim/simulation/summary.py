@@ -8,7 +8,31 @@ import numpy as np
 
 from refsim.simulation.records import STAGES, StepRecord
 
-__all__ = ["PhaseStatistics", "RunSummary", "event_value_text"]
+__all__ = ["PAPER_TABLE_1", "PaperPhase", "PhaseStatistics", "RunSummary", "event_value_text"]
+
+
+@dataclass(frozen=True)
+class PaperPhase:
+    """One row of the paper's Table 1 (Perrusi, Baksic and Courtecuisse 2021, the 10 cm cube, d_c = d_i =
+    0.5 mm, their C++ code in SOFA on their machine, Gauss–Seidel): atomic constraints, solving time [ms] and
+    its share of the step, total time per step [ms], and the mean Gauss–Seidel iterations given in the text
+    (NaN where the paper gives none)."""
+
+    name: str
+    constraints: int
+    solve_ms: float
+    share: float
+    total_ms: float
+    iterations: float = float("nan")
+
+
+#: The paper's Table 1 by our phase names (its "Penetration" is our approach phase: the tip's contact row).
+#: Iterations: "2.54 iterations during the insertion and 80 during the cutting phase" (section 5).
+PAPER_TABLE_1 = {
+    "approach": PaperPhase("penetration", 1, 2.0, 0.132, 15.1),
+    "insertion": PaperPhase("insertion", 36, 3.0, 0.194, 15.47, 2.54),
+    "cutting": PaperPhase("cutting", 12, 4.0, 0.243, 12.0, 80.0),
+}
 
 
 def event_value_text(value: float, unit: str) -> str:
@@ -147,8 +171,10 @@ class RunSummary:
             f"(includes compiling or loading the kernels), then {1e3 * later.mean():.2f} ms on average"
         )
 
-    def format_table(self) -> str:
-        """The paper's Table 1 for this run: per phase, rows, solving ms and share, total ms per step."""
+    def format_table(self, *, beside_paper: bool = False) -> str:
+        """The paper's Table 1 for this run: per phase, rows, solving ms and share, total ms per step; with
+        ``beside_paper``, each phase followed by the paper's row (:data:`PAPER_TABLE_1`) and the ratio of our
+        total per step to theirs."""
         header = (
             f"{'phase':<10} {'steps':>6} {'rows':>7} {'GS/solver it.':>13} {'solve ms':>9} {'share':>6} "
             f"{'total ms':>9}"
@@ -160,6 +186,13 @@ class RunSummary:
                 f"{phase:<10} {stats.steps:>6d} {stats.mean_rows:>7.1f} {stats.mean_iterations:>13.2f} "
                 f"{stats.solve_ms_per_step:>9.2f} {100 * share:>5.1f}% {stats.ms_per_step:>9.2f}"
             )
+            paper = PAPER_TABLE_1.get(phase) if beside_paper else None
+            if paper is not None:
+                lines.append(
+                    f"{'  paper':<10} {'':>6} {paper.constraints:>7d} {paper.iterations:>13.2f} "
+                    f"{paper.solve_ms:>9.2f} {100 * paper.share:>5.1f}% {paper.total_ms:>9.2f}"
+                    f"   ours/paper {stats.ms_per_step / paper.total_ms:.2f}"
+                )
         stage_totals = dict.fromkeys(STAGES, 0.0)
         for stats in self.phases.values():
             for stage, seconds in stats.stage_seconds.items():

@@ -24,7 +24,11 @@ Laws (codes in this order):
 
 Adding a law: one entry in :data:`LAWS` (its fields appear in ``ConstraintProblem``, its validation, the
 residual's per-law split and the HDF5 schema), its kernels here, and one branch in each dispatcher
-(:func:`block_arrays` and the ``_block_*`` dispatch functions).
+(:func:`block_arrays` and the ``_block_*`` dispatch functions). The kernels are the one definition of each
+law's mathematics: the vectorised Python forms beside them (the natural map of
+:mod:`refsim.solvers.residual`, the exact solver's bounds and cone-projection Jacobian) are tested against
+them on every law of the table and random inputs (``tests/solvers/test_law_definitions.py``), and so is the
+Jacobian kernel against finite differences of the map.
 """
 
 from __future__ import annotations

@@ -13,6 +13,7 @@ import functools
 import numpy as np
 import scipy.sparse as sp
 
+from refsim.constraints import TISSUE
 from refsim.fem.tissue import TissueModel
 from refsim.geometry.search import TetLocator
 from refsim.materials import HookeMaterial
@@ -134,7 +135,7 @@ def cube_needle_stiffness(
             out[("paper", radius, "lateral")], out[("paper", radius, "axial")] = paper_done
             continue
         if id(block) not in mesh_part:
-            dense = sp.csr_matrix(block.tissue_jacobian)[:, free].toarray()
+            dense = sp.csr_matrix(block.jacobians[TISSUE])[:, free].toarray()
             product = dense @ solver.solve(np.ascontiguousarray(dense.T))
             mesh_part[id(block)] = 0.5 * (product + product.T)
         compliance = mesh_part[id(block)]

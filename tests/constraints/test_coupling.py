@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from refsim.constraints import TISSUE as TISSUE_BODY
 from refsim.constraints import coupling
 from refsim.constraints.insertion import InsertionPath, insertion_block
 from refsim.constraints.needle_geometry import RigidNeedleGeometry
@@ -186,7 +187,7 @@ def test_ring_rows_measure_the_mean_ring_displacement_and_reduce_to_the_paper_ro
     # x_tissue)).
     t = np.array([1e-3, -2e-3, 0.5e-3])
     uniform = np.tile(t, model.node_count)
-    assert np.allclose(block.tissue_jacobian @ uniform, -block.directions @ t, atol=1e-15)
+    assert np.allclose(block.jacobians[TISSUE_BODY] @ uniform, -block.directions @ t, atol=1e-15)
     # Centreline points on the needle: the free gap is zero up to the ring's mean offset (a few ε).
     assert np.abs(block.free_gap).max() < 1e-12
     # One ring point at the centre gives exactly the paper's rows.
@@ -196,7 +197,7 @@ def test_ring_rows_measure_the_mean_ring_displacement_and_reduce_to_the_paper_ro
     )
     ring = coupling.ring_insertion_block(path, _geometry(model, needle), single, friction_coefficient=0.1)
     paper = insertion_block(path, _geometry(model, needle), friction_coefficient=0.1)
-    assert abs(ring.tissue_jacobian - paper.tissue_jacobian).max() < 1e-15
+    assert abs(ring.jacobians[TISSUE_BODY] - paper.jacobians[TISSUE_BODY]).max() < 1e-15
     assert np.allclose(ring.free_gap, paper.free_gap, atol=1e-15)
     assert np.array_equal(ring.shaft_pairs, paper.shaft_pairs)
     assert np.array_equal(ring.kind, paper.kind)
@@ -213,7 +214,7 @@ def _lateral_push(coupling_name, *, cells=4, angle_deg=30.0, spacing_ratio=0.1, 
         block = insertion_block(path, _geometry(model, needle), friction_coefficient=0.0)
         sizes = coupling.local_mesh_size(model.rest_positions, model.tets, path.tets)
     system = model.step_system(np.broadcast_to(np.eye(3), (model.tet_count, 3, 3)), dt=1e3)
-    compliance, _ = system.compliance(block.tissue_jacobian)
+    compliance, _ = system.compliance(block.jacobians[TISSUE_BODY])
     extra = coupling.subgrid_compliance(
         np.zeros(block.row_count, dtype=int),
         shear_modulus=G,
@@ -287,7 +288,7 @@ def test_pullout_force_grows_at_mu_2pi_r_p_per_metre_and_does_not_lock(solver):
     )
     block, sizes = _ring_rows(model, needle, centres, spacing, r, friction=mu, preload=preload)
     system = model.step_system(np.broadcast_to(np.eye(3), (model.tet_count, 3, 3)), dt=1e3)
-    compliance, _ = system.compliance(block.tissue_jacobian)
+    compliance, _ = system.compliance(block.jacobians[TISSUE_BODY])
     kinds = np.tile([coupling.LATERAL, coupling.LATERAL, coupling.AXIAL], len(centres))
     extra = coupling.subgrid_compliance(
         kinds,
@@ -356,7 +357,7 @@ def test_tip_cutting_row_sticks_below_and_cuts_at_f_cut():
         block, lower, upper = coupling.tip_cutting_block(
             geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0], cutting_force=f_cut
         )
-        compliance, _ = system.compliance(block.tissue_jacobian)
+        compliance, _ = system.compliance(block.jacobians[TISSUE_BODY])
         assert block.free_gap[0] == pytest.approx(-advance)
         problem = ConstraintProblem(
             compliance=compliance,

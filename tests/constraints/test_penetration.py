@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from refsim.constraints import FRICTION, UNILATERAL, find_surface_contact, penetration_block
+from refsim.constraints import (
+    FRICTION,
+    TISSUE,
+    UNILATERAL,
+    find_surface_contact,
+    penetration_block,
+)
 from refsim.geometry import SurfaceProjector
 from tests.constraints.conftest import rigid_needle, still_geometry
 
@@ -80,7 +86,7 @@ def test_tissue_jacobian_linearises_the_normal_and_slip_gaps(block):
     normal_gap = rows.directions[0] @ (tip - point)
     slip = -(point - contact.point)  # the tissue point moved, the needle did not
     change = np.concatenate([[normal_gap - rows.free_gap[0]], rows.directions[1:] @ slip - rows.free_gap[1:]])
-    np.testing.assert_allclose(rows.tissue_jacobian @ motion.ravel(), change, atol=1e-17)
+    np.testing.assert_allclose(rows.jacobians[TISSUE] @ motion.ravel(), change, atol=1e-17)
 
 
 def test_a_tip_inside_a_thin_layer_meets_the_face_it_came_through(block):
@@ -147,12 +153,12 @@ def test_a_flat_tip_spreads_its_row_over_its_face(block):
     needle = _needle(tip, direction)
     rows = penetration_block(contact, _geometry(block, needle), friction_coefficient=0.0)
     assert rows.row_count == 1 and rows.free_gap[0] == pytest.approx(5e-4, abs=1e-15)
-    touched = np.unique(rows.tissue_jacobian.indices // 3)
+    touched = np.unique(rows.jacobians[TISSUE].indices // 3)
     top = np.flatnonzero(np.isclose(block.rest_positions[:, 2], 0.02))
     assert touched.size > 3 and set(touched) <= set(top)  # more than one face's nodes, all on the top face
     lift = np.zeros_like(block.rest_positions)
     lift[:, 2] = 1e-4
-    assert (rows.tissue_jacobian @ lift.ravel())[0] == pytest.approx(-1e-4, rel=1e-12)
+    assert (rows.jacobians[TISSUE] @ lift.ravel())[0] == pytest.approx(-1e-4, rel=1e-12)
     tilt = np.zeros_like(block.rest_positions)
     tilt[:, 2] = 1e-3 * (block.rest_positions[:, 0] - tip[0]) - 2e-3 * (block.rest_positions[:, 1] - tip[1])
-    assert abs((rows.tissue_jacobian @ tilt.ravel())[0]) < 1e-18
+    assert abs((rows.jacobians[TISSUE] @ tilt.ravel())[0]) < 1e-18

@@ -138,11 +138,10 @@ def test_points_beyond_tip_after_withdrawal():
 def _two_rows(**fields):
     import scipy.sparse as sp
 
-    from refsim.constraints import UNILATERAL, RowBlock
+    from refsim.constraints import TISSUE, UNILATERAL, RowBlock
 
     return RowBlock(
-        tissue_jacobian=sp.csr_matrix(np.eye(2, 6)),
-        needle_jacobian=None,
+        jacobians={TISSUE: sp.csr_matrix(np.eye(2, 6))},
         free_gap=np.array([-1e-3, 2e-3]),
         kind=np.array([UNILATERAL, BILATERAL], dtype=np.int8),
         source=np.zeros(2, dtype=np.int8),
@@ -172,3 +171,35 @@ def test_force_limits_become_box_rows_and_compliance_diagonal_joins_the_diagonal
 def test_bad_limits_and_compliance_are_rejected(fields):
     with pytest.raises(ValueError):
         _two_rows(**fields)
+
+
+def test_jacobians_by_body_stack_and_a_block_without_a_body_gives_it_zero_rows():
+    from dataclasses import replace
+
+    import scipy.sparse as sp
+
+    from refsim.constraints import NEEDLE, TISSUE, empty_block
+
+    rng = np.random.default_rng(7)
+    tissue, needle = sp.csr_matrix(rng.standard_normal((2, 6))), sp.csr_matrix(rng.standard_normal((2, 12)))
+    both = _two_rows()
+    both = replace(both, jacobians={TISSUE: tissue, NEEDLE: needle})
+    tissue_only = _two_rows()  # a block that does not touch the needle (e.g. a second needle's rows)
+    stacked = concatenate([both, tissue_only])
+    assert list(stacked.jacobians) == [TISSUE, NEEDLE]
+    np.testing.assert_array_equal(stacked.jacobians[TISSUE].toarray()[:2], tissue.toarray())
+    np.testing.assert_array_equal(stacked.jacobians[TISSUE].toarray()[2:], np.eye(2, 6))
+    np.testing.assert_array_equal(stacked.jacobians[NEEDLE].toarray()[:2], needle.toarray())
+    np.testing.assert_array_equal(stacked.jacobians[NEEDLE].toarray()[2:], 0.0)
+    # A kinematic body (None, or no DoFs in empty_block) has no entry.
+    assert NEEDLE not in replace(both, jacobians={TISSUE: tissue, NEEDLE: None}).jacobians
+    assert set(empty_block({TISSUE: 6, NEEDLE: None}).jacobians) == {TISSUE}
+    assert empty_block({TISSUE: 6, NEEDLE: 12}).jacobians[NEEDLE].shape == (0, 12)
+    # The mapping is read-only, and Jacobians must match the rows and each other's widths.
+    with pytest.raises(TypeError):
+        stacked.jacobians[NEEDLE] = None
+    with pytest.raises(ValueError, match="3 rows, expected 2"):
+        replace(both, jacobians={TISSUE: sp.csr_matrix((3, 6))})
+    narrow = replace(both, jacobians={TISSUE: sp.csr_matrix((2, 5))})
+    with pytest.raises(ValueError, match="columns"):
+        concatenate([both, narrow])

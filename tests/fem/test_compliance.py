@@ -1,5 +1,5 @@
-"""Compliance strategies (refsim.fem.compliance): exact against today's ImplicitEulerSystem, Dirichlet motion
-of fixed nodes, refreshed and precomputed against exact with errors derived or measured."""
+"""Compliance strategies (refsim.fem.compliance): exact against dense LAPACK, Dirichlet motion of fixed nodes,
+refreshed and precomputed against exact with errors derived or measured, the needle's step system."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import scipy.sparse as sp
 
 from refsim.fem.compliance import Exact, Precomputed, Refreshed, StepSystem, make_strategy, pcg
-from refsim.fem.integration import ImplicitEulerSystem
+from refsim.fem.integration import effective_stiffness
 from refsim.fem.linear import available_linear_solvers
 from refsim.fem.tissue import TissueModel, TissueState
 from refsim.geometry.rotations import rotation_matrix
@@ -68,34 +68,34 @@ def dense_reference(model: TissueModel, state: TissueState, prescribed: np.ndarr
     return system, dense, inverse, system.expand(np.linalg.solve(dense, system.rhs), system.prescribed)
 
 
-def test_exact_strategy_is_bit_identical_to_implicit_euler_system(model):
-    # Today's path (issue 8): ImplicitEulerSystem with SuperLU/COLAMD; the exact strategy on the same solver
-    # and the NumPy assembly must give the same bits for the free motion and for (W, A⁻¹Hᵀ).
+def test_exact_strategy_matches_dense_lapack_and_its_fast_forms(model):
+    # The NumPy assembly on SuperLU/COLAMD and the compiled one (free_motion, default solver) against a dense
+    # LAPACK solve of the same reduced system: κ(A)·ε relative (κ measured).
     state = deformed(model)
-    rotations = model.element_rotations(state.positions)
-    legacy = model.step_system(rotations, DT)
-    forces = (model.external_forces() - model.internal_forces(state.positions, rotations)).ravel()
-    legacy_free = legacy.free_displacement(forces, state.velocities.ravel())
+    system, dense, inverse, expected = dense_reference(model, state)
+    kappa = np.linalg.cond(dense)
+    tolerance = 10 * kappa * EPS
     step = Exact(linear_solver="superlu:COLAMD").bind().step(model.assemble_step(state, DT, compiled=False))
-    np.testing.assert_array_equal(step.free_displacement, legacy_free)
-    # free_motion (compiled assembly, default solver) gives the same to round-off: κ(A)·ε relative.
-    kappa = np.linalg.cond(step.system.matrix.toarray())
+    scale = np.abs(expected).max()
+    assert np.abs(step.free_displacement - expected).max() <= tolerance * scale
     positions, velocities, _ = model.free_motion(state, DT)
     moved = (positions - state.positions).ravel()
-    assert np.abs(moved - legacy_free).max() <= 10 * kappa * EPS * np.abs(legacy_free).max()
+    assert np.abs(moved - expected).max() <= tolerance * scale
     # v = Δx/dt, and x₀ + Δx − x₀ is Δx to the round-off of the positions (ε max|x|).
     assert np.abs(velocities.ravel() - moved / DT).max() <= 2 * EPS * np.abs(positions).max() / DT
     jacobian = rows_on(model)
-    legacy_w, legacy_responses = legacy.compliance(jacobian)
     w, responses = step.compliance(jacobian)
-    np.testing.assert_array_equal(w, legacy_w)
-    np.testing.assert_array_equal(responses, legacy_responses)
-    # The fast forms agree with it to round-off: κ(A)·ε relative (κ measured).
+    full_inverse = system.expand(system.expand(inverse).T).T  # A⁻¹ on every DoF, zero on the fixed ones
+    reference_w = jacobian @ full_inverse @ jacobian.T
+    assert np.abs(w - reference_w).max() <= tolerance * np.abs(reference_w).max()
+    np.testing.assert_array_equal(w, w.T)
+    np.testing.assert_array_equal(responses[system.constrained_dofs], 0.0)
+    # The fast forms agree with it to round-off.
     lam = np.random.default_rng(2).standard_normal(jacobian.shape[0])
-    np.testing.assert_allclose(step.delassus(jacobian), w, rtol=0, atol=10 * kappa * EPS * np.abs(w).max())
+    np.testing.assert_allclose(step.delassus(jacobian), w, rtol=0, atol=tolerance * np.abs(w).max())
     correction = step.correction(jacobian, lam)
     reference = responses @ lam
-    assert np.abs(correction - reference).max() <= 10 * kappa * EPS * np.abs(reference).max()
+    assert np.abs(correction - reference).max() <= tolerance * np.abs(reference).max()
 
 
 @pytest.mark.parametrize("solver", available_linear_solvers())
@@ -230,19 +230,28 @@ def test_precomputed_is_exact_at_rest_and_under_a_rigid_rotation(model):
 
 
 def test_generic_step_system_serves_a_needle_like_body():
-    # The needle's ImplicitEulerSystem inputs (a chain, one end prescribed) through StepSystem.from_matrices.
+    # A chain with one end prescribed through StepSystem.from_matrices, against a dense solve of the full
+    # system with the prescribed value substituted (the reference).
     count = 12
     laplacian = sp.diags([-np.ones(count - 1), 2.0 * np.ones(count), -np.ones(count - 1)], [-1, 0, 1]).tocsr()
     mass, stiffness = sp.identity(count, format="csr") * 0.1, 50.0 * laplacian
-    legacy = ImplicitEulerSystem.build(mass, stiffness, DT, constrained_dofs=[0])
+    matrix = effective_stiffness(mass, stiffness, DT)
     rng = np.random.default_rng(3)
     forces, velocities = rng.standard_normal(count), rng.standard_normal(count)
-    expected = legacy.free_displacement(forces, velocities, np.array([0.01]))
-    system = StepSystem.from_matrices(legacy.matrix, forces + mass @ velocities / DT, [0], np.array([0.01]))
+    rhs = forces + mass @ velocities / DT
+    system = StepSystem.from_matrices(matrix, rhs, [0], np.array([0.01]))
     step = Exact(linear_solver="superlu:COLAMD").bind().step(system)
-    np.testing.assert_allclose(step.free_displacement, expected, rtol=1e-13, atol=1e-16)
+    dense = matrix.toarray()
+    expected = np.zeros(count)
+    expected[0] = 0.01
+    expected[1:] = np.linalg.solve(dense[1:, 1:], rhs[1:] - dense[1:, 0] * 0.01)
+    kappa = np.linalg.cond(dense[1:, 1:])
+    assert np.abs(step.free_displacement - expected).max() <= 10 * kappa * EPS * np.abs(expected).max()
     rows = sp.csr_matrix(rng.standard_normal((3, count)))
-    np.testing.assert_allclose(step.delassus(rows), legacy.compliance(rows)[0], rtol=1e-12)
+    inverse = np.zeros((count, count))
+    inverse[1:, 1:] = np.linalg.inv(dense[1:, 1:])
+    reference = rows @ inverse @ rows.T
+    assert np.abs(step.delassus(rows) - reference).max() <= 10 * kappa * EPS * np.abs(reference).max()
 
 
 def test_pcg_solves_columns_to_their_tolerance():
@@ -283,8 +292,9 @@ def test_every_strategy_variant_is_made_by_the_one_factory():
     assert make_strategy("refreshed", w_update="stale") == make_strategy("refreshed_stale")
 
 
-def test_needle_behind_the_interface_equals_its_implicit_euler_system():
-    # What refsim.simulation.needle_body.FlexibleNeedle does today, against NeedleModel.assemble_step + Exact.
+def test_needle_step_system_matches_a_dense_solve():
+    # NeedleModel.assemble_step + Exact (the flexible needle's path, refsim.simulation.needle_body) against a
+    # dense solve of A Δx = −f_int + (M/dt) v₀ with the base's six DoFs prescribed.
     from refsim.fem.needle import NeedleModel
 
     needle = NeedleModel(
@@ -295,26 +305,30 @@ def test_needle_behind_the_interface_equals_its_implicit_euler_system():
     velocities = 1e-3 * rng.standard_normal((needle.node_count, 6))
     increment = np.array([1e-4, 2e-4, 0.0, 0.0, 1e-3, -2e-3])
     mass = needle.mass_matrix()
-    legacy = ImplicitEulerSystem.build(
-        mass,
-        needle.tangent_stiffness(positions, frames),
-        DT,
-        rayleigh_mass=0.5,
-        rayleigh_stiffness=1e-3,
-        constrained_dofs=needle.base_dofs,
-    )
-    expected = legacy.free_displacement(
-        -needle.internal_forces(positions, frames), velocities.ravel(), increment
-    )
     system = needle.assemble_step(
         positions, frames, velocities, DT, increment, rayleigh_mass=0.5, rayleigh_stiffness=1e-3, mass=mass
     )
     step = Exact(linear_solver="superlu:COLAMD").bind().step(system)
-    np.testing.assert_array_equal(step.free_displacement, expected)
+    matrix = effective_stiffness(
+        mass, needle.tangent_stiffness(positions, frames), DT, rayleigh_mass=0.5, rayleigh_stiffness=1e-3
+    ).toarray()
+    rhs = -needle.internal_forces(positions, frames) + mass @ velocities.ravel() / DT
+    base = np.asarray(needle.base_dofs)
+    free = np.setdiff1d(np.arange(needle.dof_count), base)
+    expected = np.zeros(needle.dof_count)
+    expected[base] = increment
+    expected[free] = np.linalg.solve(
+        matrix[np.ix_(free, free)], rhs[free] - matrix[np.ix_(free, base)] @ increment
+    )
+    kappa = np.linalg.cond(matrix[np.ix_(free, free)])
+    assert np.abs(step.free_displacement - expected).max() <= 10 * kappa * EPS * np.abs(expected).max()
     rows = sp.csr_matrix(rng.standard_normal((4, needle.dof_count)))
-    kappa = np.linalg.cond(system.matrix.toarray())
-    w_legacy = legacy.compliance(rows)[0]
-    assert np.abs(step.delassus(rows) - w_legacy).max() <= 10 * kappa * EPS * np.abs(w_legacy).max()
+    inverse = np.zeros_like(matrix)
+    inverse[np.ix_(free, free)] = np.linalg.inv(matrix[np.ix_(free, free)])
+    reference = rows @ inverse @ rows.T
+    w, responses = step.compliance(rows)
+    assert np.abs(w - reference).max() <= 10 * kappa * EPS * np.abs(reference).max()
+    np.testing.assert_array_equal(responses[base], 0.0)
 
 
 def test_scene_keys_choose_the_strategy():
