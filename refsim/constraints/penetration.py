@@ -3,6 +3,13 @@
 While the tip is outside, the closest point of the tissue surface to the tip gives one unilateral row along
 the surface normal and, with a friction coefficient μ_p > 0, two friction rows in the tangent plane (a Coulomb
 contact). The tip punctures when the normal force reaches f_p (a force, not an impulse).
+
+A flat tip of radius a (``insertion.tip_radius`` > 0) is a flat punch: its rows act on the weighted mean of
+the surface points under a disc of sample points (``punch_disc``), weighted with the pressure of a rigid
+flat punch on a half-space, p(ρ) ∝ 1/√(a² − ρ²) (Sneddon 1946). In the continuum that pressure gives a uniform
+displacement δ under the disc, so the row's weighted mean displacement is δ and its force the punch's,
+F = 2 a E δ/(1 − ν²), a quantity with a limit under mesh refinement; a point load (a = 0, the paper's tip) has
+none in 3-D (its displacement is infinite in the continuum).
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ from refsim.constraints.rows import (
 from refsim.constraints.step_geometry import StepGeometry
 from refsim.geometry import SurfaceProjector
 
-__all__ = ["SurfaceContact", "find_surface_contact", "penetration_block"]
+__all__ = ["SurfaceContact", "find_surface_contact", "penetration_block", "punch_disc"]
 
 
 @dataclass(frozen=True)
@@ -41,9 +48,13 @@ class SurfaceContact:
     face : Index of the surface triangle.
     nodes : Its three tissue nodes, shape (3,).
     barycentric : Coordinates of the closest point in the triangle, shape (3,).
-    point : The closest point [m], shape (3,).
+    point : The closest point [m], shape (3,) (the entry point if the tip punctures).
     normal : Outward unit normal used for the row, shape (3,).
     gap : Signed distance of the tip along the normal [m] (negative inside).
+    area_nodes, area_weights : A flat tip's face: the nodes of the faces under every disc sample and their
+        barycentric coordinates times the sample's punch weight, shape (3 k,) each (the weights sum to 1);
+        None for a point tip.
+    area_point : The punch-weighted mean of the samples' surface points [m], shape (3,), or None.
     """
 
     face: int
@@ -52,10 +63,57 @@ class SurfaceContact:
     point: np.ndarray
     normal: np.ndarray
     gap: float
+    area_nodes: np.ndarray | None = None
+    area_weights: np.ndarray | None = None
+    area_point: np.ndarray | None = None
+
+    def loaded(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What the tip's rows act on: (nodes, weights, point), the face's closest point or the flat tip's
+        punch-weighted disc."""
+        if self.area_nodes is None:
+            return self.nodes, self.barycentric, self.point
+        return self.area_nodes, self.area_weights, self.area_point
+
+
+def punch_disc(radius: float, ring_count: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Sample points of a flat punch's disc and their weights, the pressure of a rigid punch.
+
+    The pressure of a rigid flat punch of radius a on a half-space is p(ρ) ∝ 1/√(a² − ρ²). With ρ = a sin θ
+    the load of the band between θ₀ and θ₁ is ∝ cos θ₀ − cos θ₁: the disc is cut into ``ring_count`` bands of
+    equal Δθ = π/(2 · ring_count), each a ring of radius a sin θ_mid carrying its band's exact load, sampled
+    by equally spaced points about a/ring_count apart (at least 6 a ring).
+
+    Parameters
+    ----------
+    radius : a [m], > 0.
+    ring_count : Number of rings, ≥ 1.
+
+    Returns
+    -------
+    (offsets, weights) : offsets in the disc's plane as (ρ cos φ, ρ sin φ), shape (k, 2); weights, shape (k,),
+        summing to 1.
+    """
+    if not (np.isfinite(radius) and radius > 0.0):
+        raise ValueError(f"insertion.tip_radius = {radius!r} m; valid range (0, inf) for a flat tip")
+    edges = np.linspace(0.0, 0.5 * np.pi, ring_count + 1)
+    band = np.cos(edges[:-1]) - np.cos(edges[1:])
+    rho = radius * np.sin(0.5 * (edges[:-1] + edges[1:]))
+    counts = np.maximum(6, np.ceil(2.0 * np.pi * rho * ring_count / radius)).astype(np.int64)
+    ring = np.repeat(np.arange(ring_count), counts)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    angle = 2.0 * np.pi * (np.arange(ring.size) - start[ring]) / counts[ring] + np.pi * ring / counts[ring]
+    offsets = rho[ring, None] * np.column_stack([np.cos(angle), np.sin(angle)])
+    weights = band[ring] / counts[ring]
+    return offsets, weights / weights.sum()
 
 
 def find_surface_contact(
-    projector, faces: np.ndarray, tip: np.ndarray, direction: np.ndarray | None = None
+    projector,
+    faces: np.ndarray,
+    tip: np.ndarray,
+    direction: np.ndarray | None = None,
+    *,
+    tip_radius: float = 0.0,
 ) -> SurfaceContact:
     """Closest surface point to the tip and the contact normal.
 
@@ -78,6 +136,10 @@ def find_surface_contact(
     faces : Surface triangles, shape (f, 3).
     tip : Tip position [m], shape (3,).
     direction : The needle's unit direction at the tip, shape (3,), or None (any face).
+    tip_radius : a [m]: 0 for a point tip; > 0 (with ``direction``) for a flat tip: the samples of
+        :func:`punch_disc` in the plane normal to ``direction`` through the tip are each projected on the
+        surface (their closest points), and the rows act on their punch-weighted mean (``area_*``); the
+        normal and the entry point are the centre's.
     """
     found = projector.closest(np.asarray(tip, dtype=float)[None, :])
     tip = np.asarray(tip, dtype=float)
@@ -99,6 +161,23 @@ def find_surface_contact(
     # Below 1e-9 m (far under any mesh size) the direction of the offset is round-off: use the face normal.
     normal = offset / distance if (outside and distance > 1e-9) else face_normal
     gap = distance if outside else -distance
+    if tip_radius > 0.0 and direction is not None:
+        offsets, weights = punch_disc(tip_radius)
+        first, second = orthonormal_basis(np.asarray(direction, dtype=float)[None, :])
+        samples = tip + offsets[:, :1] * first + offsets[:, 1:] * second
+        under = projector.closest(samples)
+        area_point = weights @ under.closest
+        return SurfaceContact(
+            face,
+            faces[face],
+            found.barycentric[0],
+            point,
+            normal,
+            float(normal @ (tip - area_point)),
+            area_nodes=np.asarray(faces)[under.face_index].ravel(),
+            area_weights=(under.barycentric * weights[:, None]).ravel(),
+            area_point=area_point,
+        )
     return SurfaceContact(face, faces[face], found.barycentric[0], point, normal, gap)
 
 
@@ -126,8 +205,9 @@ def penetration_block(
     tip_s = np.array([geometry.needle_free.length])
     tip_free = geometry.needle_free.points(tip_s)[0]
     normal = contact.normal
-    gap_normal = float(normal @ (tip_free - contact.point))
-    nodes, weights = contact.nodes[None, :], contact.barycentric[None, :]
+    loaded_nodes, loaded_weights, loaded_point = contact.loaded()
+    gap_normal = float(normal @ (tip_free - loaded_point))
+    nodes, weights = loaded_nodes[None, :], loaded_weights[None, :]
     normal_jacobians = {
         TISSUE: point_rows(nodes, weights, normal[None, :], geometry.tissue_dof_count),
         NEEDLE: needle_rows(geometry.needle_free, tip_s, normal[None, :]),
@@ -141,9 +221,9 @@ def penetration_block(
             tissue_weights=np.repeat(weights, 2, axis=0),
             arc_lengths=np.repeat(tip_s, 2),
             tangents=tangents,
-            tissue_free_points=np.repeat(contact.point[None, :], 2, axis=0),
+            tissue_free_points=np.repeat(loaded_point[None, :], 2, axis=0),
             tissue_previous_points=np.repeat(
-                (contact.barycentric @ geometry.tissue_previous[contact.nodes])[None, :], 2, axis=0
+                (loaded_weights @ geometry.tissue_previous[loaded_nodes])[None, :], 2, axis=0
             ),
         )
         directions = np.vstack([normal, tangents])
@@ -180,7 +260,7 @@ def penetration_block(
         free_gap=gaps,
         kind=kinds,
         source=np.full(row_count, PENETRATION, dtype=np.int8),
-        points=np.broadcast_to(contact.point, (row_count, 3)).copy(),
+        points=np.broadcast_to(loaded_point, (row_count, 3)).copy(),
         directions=directions,
         contacts=contacts,
         contact_friction=contact_friction,

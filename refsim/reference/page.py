@@ -35,20 +35,24 @@ Each case isolates one thing another implementation must get right, in the order
 
 - `cantilever`: the needle alone (beam stiffness, then geometric nonlinearity), with the elastica as a closed
   form;
-- `puncture`: the tip's unilateral contact on a deformable surface and the puncture event at f_p;
+- `puncture`: the tip's unilateral contact on a deformable surface (a flat tip acting over its face: the
+  flat punch, with Sneddon's stiffness as the half-space limit) and the puncture event at f_p;
 - `insertion`: the shaft's coupling along its axis: insertion constraints, Coulomb friction on the grip, the
   tip cutting force;
 - `lateral_push`: the shaft's coupling across its axis, the tissue's lateral stiffness around an inserted
   needle (the quantity that the 1-D needle in a 3-D mesh gets wrong first);
 - `laceration`, `laceration_paper_law`: the paper's cut: when it starts, the force while cutting, the area
-  cut, by the energy law (refsim's default) and by the paper's equation 3.
+  cut, by the energy law (refsim's default) and by the paper's equation 3;
+- `withdrawal`: the laceration followed by pulling the needle back out through its cut: the force while
+  pulling back, when the tip is out, and no force left once it is.
 
-Not in the set: withdrawal through a cut and the liver cases (breathing, flexible and rigid needle); their
-scenes exist (`refsim/scenes/`) but they have no case file yet.
+Not in the set: the liver cases (breathing, flexible and rigid needle); their scenes exist (`refsim/scenes/`)
+but they have no case file yet.
 
-Levels: `coarse` (2–4 cells: seconds a case; the default tests build it to check the machinery),
-`standard` (4–8 cells: the answers on this page, minutes on one machine), `fine` (8–16 cells, for a cluster;
-defined in the case files, not built for this page).
+Levels (each case's file gives its own cells; puncture's block is smaller, so its cells are finer):
+`coarse` (2–4 cells: seconds a case; the default tests build it to check the machinery), `standard` (4–8
+cells, puncture 8–16: the answers on this page, minutes on one machine), `fine` (8–16 cells, puncture 16–32:
+for a cluster; defined in the case files, not built for this page).
 
 ## Commands
 
@@ -60,9 +64,30 @@ defined in the case files, not built for this page).
 `build` runs each case's refinement sequence through the study machinery (`refsim.sweep.run_study`: one zipped
 sweep over the level's keys, every run an ordinary results file) on a Dask LocalCluster of `--workers`
 processes, or on a cluster with `--scheduler tcp://HOST:8786` (set-up in docs/studies.md, "Running on several
-machines": the package folder on a shared filesystem). Runs already complete in the folder are reused. The
-cantilever case is static and runs on the client. `compare` exits 0 when every quantity passes, 1 when one
-fails, 2 for bad input (an unknown case, a package without it, a CSV without the columns or quantities below).
+machines"). Runs already complete in the folder are reused. The cantilever case is static and runs on the
+client. `compare` exits 0 when every quantity passes, 1 when one fails, 2 for bad input (an unknown case, a
+package without it, a CSV without the columns or quantities below).
+
+### Building on several machines
+
+One machine builds `standard` (the time is in "This build" below); `fine` has about 8 times the cells and
+twice the steps of each run (16 times the work at least, more where the factorisation grows faster than the
+node count), so it is meant for a cluster. Every run of a level is one Dask task, and a case's runs are
+independent, so the build uses as many workers as a level has runs (3 per case):
+
+    # every machine: the same refsim (pip install -e ".[study]" of the same commit), and the package
+    # folder on a shared filesystem (NFS or similar) at the same path: workers write the run files, the
+    # client reads them
+    dask-scheduler --port 8786                                  # on one machine
+    OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 \
+        dask-worker tcp://SCHEDULER:8786 --nworkers auto --nthreads 1    # on every compute machine
+    refsim reference build -o /shared/refpkg --level fine --scheduler tcp://SCHEDULER:8786
+    refsim reference page --package /shared/refpkg -o docs/reference.md
+
+(`dask scheduler` / `dask worker` in recent Dask.) The client runs each case's study in turn; start it again
+after a lost worker or an interruption and only the missing runs are made (complete runs in the folder are
+reused), then it writes the answers, figures and manifest. Give only the address of a scheduler you started,
+on a network you control (docs/studies.md, "Security": whoever reaches it runs code as its workers' user).
 
 ## Running a case in another simulator
 

@@ -499,6 +499,15 @@ class InsertionSpec(_Validated):
         "added to each point's shaft Coulomb bound, with shaft_normal_force d_i",
         low=0.0,
     )
+    tip_radius: float = spec(
+        0.0,
+        unit="m",
+        doc="a: radius of a flat tip's face before puncture: the tip contact's row spreads its load over "
+        "the disc of radius a with the pressure of a rigid flat punch (Sneddon: its limit under refinement "
+        "is the punch's stiffness 2 a E δ/(1 − ν²) on a half-space); 0 (default): a point tip, the paper's "
+        "model",
+        low=0.0,
+    )
 
     def validate(self) -> None:
         for name in ("shaft_contact", "puncture_within_step"):

@@ -222,7 +222,9 @@ class Detector:
         if state.phase == Phase.APPROACH:
             projector = SurfaceProjector(geometry.tissue_free, self.faces)
             tip_direction = geometry.needle_free.tangents(np.array([geometry.needle_free.length]))[0]
-            contact = find_surface_contact(projector, self.faces, geometry.needle_free.tip, tip_direction)
+            contact = find_surface_contact(
+                projector, self.faces, geometry.needle_free.tip, tip_direction, tip_radius=spec.tip_radius
+            )
             if contact.gap < spec.contact_distance:
                 blocks.append(
                     penetration_block(

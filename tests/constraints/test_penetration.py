@@ -104,3 +104,61 @@ def test_a_tip_inside_a_thin_layer_meets_the_face_it_came_through(block):
     # A needle moving up meets the bottom face.
     up = find_surface_contact(projector, block.boundary_faces, np.asarray(tip), np.array([0.0, 0.0, 1.0]))
     np.testing.assert_allclose(up.normal, [0.0, 0.0, -1.0], atol=1e-12)
+
+
+# ---------------------------------------------------------------------- a flat tip (insertion.tip_radius)
+
+
+def test_punch_disc_carries_the_rigid_punch_pressure():
+    """The load inside radius ρ of a rigid flat punch of radius a (p ∝ 1/√(a² − ρ²), Sneddon 1946) is
+    1 − √(1 − ρ²/a²) of the total; the disc's rings carry it exactly at their band edges ρ = a sin θ_k."""
+    from refsim.constraints.penetration import punch_disc
+
+    radius, rings = 0.008, 8
+    offsets, weights = punch_disc(radius, rings)
+    rho = np.linalg.norm(offsets, axis=1)
+    assert weights.sum() == pytest.approx(1.0, abs=1e-14) and np.all(weights > 0.0)
+    assert np.all(rho < radius)
+    # the disc is balanced: its load has no moment about the centre (the punch's pressure is axisymmetric)
+    np.testing.assert_allclose(weights @ offsets, 0.0, atol=1e-15 * radius)
+    edges = radius * np.sin(np.linspace(0.0, 0.5 * np.pi, rings + 1)[1:])
+    for edge in edges:
+        inside = weights[rho < edge].sum()
+        assert inside == pytest.approx(1.0 - np.sqrt(1.0 - (edge / radius) ** 2), abs=1e-12)
+    with pytest.raises(ValueError, match="tip_radius"):
+        punch_disc(0.0)
+
+
+def test_a_point_tip_has_no_area(block):
+    contact = _contact(block, [0.0123, 0.0071, 0.0205])
+    assert contact.area_nodes is None
+    nodes, weights, point = contact.loaded()
+    assert nodes is contact.nodes and weights is contact.barycentric and point is contact.point
+
+
+def test_a_flat_tip_spreads_its_row_over_its_face(block):
+    """A tip of radius 4 mm 0.5 mm above the top face of the 20 mm block (2 x 2 cells: the disc covers parts
+    of all four top cells). The row measures the punch-weighted mean of the surface under the disc: a rigid
+    translation of the tissue along the normal moves it by exactly that translation, a tilt about the tip's
+    axis (zero mean by the disc's balance) not at all, and its gap is the tip's height."""
+    tip = np.array([0.0101, 0.0098, 0.0205])
+    direction = np.array([0.0, 0.0, -1.0])
+    projector = SurfaceProjector(block.rest_positions, block.boundary_faces)
+    contact = find_surface_contact(projector, block.boundary_faces, tip, direction, tip_radius=0.004)
+    assert contact.gap == pytest.approx(5e-4, abs=1e-15)
+    assert contact.area_weights.sum() == pytest.approx(1.0, abs=1e-14)
+    np.testing.assert_allclose(contact.area_point, [0.0101, 0.0098, 0.02], atol=1e-15)
+    # the entry point (if the tip punctures) is the centre's closest point
+    np.testing.assert_allclose(contact.point, [0.0101, 0.0098, 0.02], atol=1e-15)
+    needle = _needle(tip, direction)
+    rows = penetration_block(contact, _geometry(block, needle), friction_coefficient=0.0)
+    assert rows.row_count == 1 and rows.free_gap[0] == pytest.approx(5e-4, abs=1e-15)
+    touched = np.unique(rows.jacobians[TISSUE].indices // 3)
+    top = np.flatnonzero(np.isclose(block.rest_positions[:, 2], 0.02))
+    assert touched.size > 3 and set(touched) <= set(top)  # more than one face's nodes, all on the top face
+    lift = np.zeros_like(block.rest_positions)
+    lift[:, 2] = 1e-4
+    assert (rows.jacobians[TISSUE] @ lift.ravel())[0] == pytest.approx(-1e-4, rel=1e-12)
+    tilt = np.zeros_like(block.rest_positions)
+    tilt[:, 2] = 1e-3 * (block.rest_positions[:, 0] - tip[0]) - 2e-3 * (block.rest_positions[:, 1] - tip[1])
+    assert abs((rows.jacobians[TISSUE] @ tilt.ravel())[0]) < 1e-18

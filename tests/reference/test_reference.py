@@ -305,13 +305,16 @@ def test_bad_input_exits_2_naming_what_is_wrong(package, tmp_path, capsys):
     assert main(["compare", "insertion", str(bad), "--reference", str(folder)]) == EXIT_INPUT
     assert "no reference for case 'insertion'" in capsys.readouterr().err
     short = tmp_path / "short.csv"
+    at = load_case("puncture").quantity("indentation_force").at
     write_their_csv(
         load_case("puncture"),
-        {"indentation_force": [1, 2, 3, 4], "travel_at_puncture": 1e-3, "puncture_force": 0.8},
+        {"indentation_force": np.arange(1.0, len(at) + 1), "travel_at_puncture": 1e-3, "puncture_force": 0.8},
         short,
     )
-    text = short.read_text().replace("indentation_force,0.0003,4\n", "")
-    short.write_text(text)
+    # their curve stops before the reference's last sampling point
+    lines = short.read_text().splitlines(keepends=True)
+    last = max(i for i, line in enumerate(lines) if line.startswith("indentation_force,"))
+    short.write_text("".join(lines[:last] + lines[last + 1 :]))
     assert main(["compare", "puncture", str(short), "--reference", str(folder)]) == EXIT_INPUT
     assert "the reference samples it at" in capsys.readouterr().err
     assert main(["reference", "build", "--cases", "nope", "-o", str(tmp_path / "p")]) == EXIT_INPUT
@@ -354,3 +357,39 @@ def test_case_files_are_validated(tmp_path):
         load_case(path)
     with pytest.raises(ValueError, match="has no level 'finest'"):
         load_case("puncture").level("finest")
+
+
+@pytest.mark.parametrize("name", case_names())
+def test_every_run_of_every_level_is_a_valid_scene(name):
+    """Each run of each level (the level's values of its keys over the case's scene) loads: the scene's
+    validation (a duration that is a whole number of steps, keys in range) holds before any cluster starts."""
+    case = load_case(name)
+    if case.runner != "scene":
+        return
+    for level in case.levels:
+        keys = case.level(level)
+        for index in range(len(keys[case.refine])):
+            overrides = [
+                f"{key}={[values[index]] * 3 if key == 'mesh.cells' else values[index]}"
+                for key, values in keys.items()
+            ]
+            scene = load_scene(case.scene_path, [*case.overrides, *overrides])
+            assert scene.time.dt == pytest.approx(keys["time.dt"][index], rel=1e-15)
+
+
+def test_runs_of_a_changed_scene_are_not_reused(tmp_path):
+    """A study reuses runs by the scene's path and the overrides; the package's copy of the scene it was
+    built from tells a changed scene file, whose runs are then dropped (and kept when it is the same)."""
+    from refsim.reference.build import _drop_stale_runs
+
+    case = load_case("puncture")
+    folder = tmp_path / "puncture"
+    (folder / "study_runs").mkdir(parents=True)
+    (folder / "study_runs" / "run.h5").write_bytes(b"old run")
+    (folder / "study.h5").write_bytes(b"old study")
+    (folder / "scene.toml").write_bytes(case.scene_path.read_bytes())
+    _drop_stale_runs(case, folder)
+    assert (folder / "study_runs" / "run.h5").is_file() and (folder / "study.h5").is_file()
+    (folder / "scene.toml").write_bytes(case.scene_path.read_bytes().replace(b"0.04", b"0.05"))
+    _drop_stale_runs(case, folder)
+    assert not (folder / "study_runs").exists() and not (folder / "study.h5").exists()

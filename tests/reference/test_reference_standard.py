@@ -49,3 +49,29 @@ def test_paper_coupling_as_another_implementation(tmp_path):
     run_scene(load_scene(case.scene_path, [*overrides, 'insertion.coupling="paper"']), paper)
     item = next(c for c in compare("insertion", paper, folder) if c.quantity == "axial_force_depth")
     assert not np.any(item.passed)
+
+
+@pytest.mark.slow
+def test_withdrawal_releases_the_needle_through_its_cut(tmp_path):
+    """The withdrawal case at the coarse level (about a minute and a half on one core). The scene pulls the
+    base back 25 mm at 20 mm/s from t = 3.0 s after a 17 mm insertion, so the tip is back at the depth it
+    entered at about t = 3.85 s (the entry point moves with the tissue: within 0.1 s of it). Every level: a
+    lateral force while pulling back that falls as less needle is in the tissue, and exactly no force once the
+    needle is out (no row left: force_withdrawal is zero at t >= 4.0 s, so its answer there is exactly 0,
+    "converged")."""
+    from refsim.reference import load_case
+
+    folder = tmp_path / "reference"
+    build_reference(folder, level="coarse", cases=["withdrawal"], workers=1, command="slow test")
+    case = load_case("withdrawal")
+    answers = read_case_reference(folder, "withdrawal")["quantities"]
+    force = answers["force_withdrawal"]
+    at = np.asarray(case.quantity("force_withdrawal").at)
+    inside, out = at < 3.85, at >= 4.0
+    levels = np.asarray(force["levels"])
+    assert np.all(levels[:, inside] > 0.0)
+    assert np.all(np.diff(levels[:, inside], axis=1) < 0.0)
+    assert np.all(levels[:, out] == 0.0)
+    assert all(method == "converged" for method, o in zip(force["method"], out, strict=True) if o)
+    times = np.asarray(answers["time_at_withdrawal"]["levels"]).ravel()
+    assert np.all(np.abs(times - 3.85) < 0.1)
