@@ -358,9 +358,9 @@ class EventRules:
         )
         return state, events
 
-    def _extended(self, strip, needle, positions, locator, entry_arc):
-        """The strip with columns added below its deepest one down to the needle's tip, every d_c (``locator``
-        on ``positions``; ``entry_arc`` where the needle enters the tissue)."""
+    def _extended(self, strip, needle, positions, locator, entry_arc, step):
+        """The strip with a block of columns added below its deepest one at ``step`` down to the needle's tip,
+        every d_c (``locator`` on ``positions``; ``entry_arc`` where the needle enters the tissue)."""
         from refsim.cutting.strip import CutFront, locate_material_points
 
         spacing = self.cutting.point_spacing
@@ -376,7 +376,7 @@ class EventRules:
             return strip
         tets, barycentric = tets[:run], barycentric[:run]
         rest = np.einsum("pk,pkj->pj", barycentric, self.growth.rest_positions[self.tets[tets]])
-        return strip.extended(CutFront(rest, tets, barycentric), depths[:run])
+        return strip.extended(CutFront(rest, tets, barycentric), depths[:run], step)
 
     def _swept_direction(self, cut, strip, positions, needle, direction):
         """ĉ after a layer is laid: the mean of the old ĉ and of the direction the last layer moved in (its
@@ -416,7 +416,8 @@ class EventRules:
         if state.cut_strip is not None and state.cut is not None:
             # Moved back through its own cut and past the line it entered along (the strip's first layer, its
             # rear edge) by more than half a cut spacing: the needle is in intact tissue again.
-            rear = state.cut.deformed_points(positions, self.tets)[state.cut_strip.layers[0]]
+            first = state.cut_strip.layers[0]
+            rear = state.cut.deformed_points(positions, self.tets)[first[first >= 0]]
             _, on_needle = needle.project(rear)
             behind = float(((on_needle - rear) @ state.cut_direction).mean())
             if behind < -0.5 * cutting.point_spacing:
@@ -431,7 +432,8 @@ class EventRules:
             locator = TetLocator(positions, self.tets)
             entry_arc = inserted_arc(needle, locator, cutting.point_spacing)
             state = replace(
-                state, cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc)
+                state,
+                cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc, state.step),
             )
         front = detection.front
         if front.rows.size == 0 and (cutting.law != "energy" or front.band_rows.size == 0):
