@@ -171,6 +171,17 @@ class CutStrip:
         """Point indices of the layer laid last, shape (q,) (−1 for a column with no point yet)."""
         return self.layers[-1]
 
+    def rear_edge(self, cut: CutSurface, positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
+        """Where each column's crack tip started, in a tissue configuration [m], shape (q, 3): its first
+        point (the path for the strip's own columns), or for a column added below the strip and not laid
+        yet, the needle's line where it was added. The line the needle entered its cut along."""
+        first = self.layers[0]
+        rear = cut.deformed_points(positions, tets)[np.maximum(first, 0)]
+        waiting = first < 0
+        if np.any(waiting):
+            rear[waiting] = self._origins().positions(positions, tets)[waiting]
+        return rear
+
     def _births(self) -> np.ndarray:
         return np.zeros(self.column_count, dtype=np.int64) if self.births is None else self.births
 

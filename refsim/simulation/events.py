@@ -416,8 +416,7 @@ class EventRules:
         if state.cut_strip is not None and state.cut is not None:
             # Moved back through its own cut and past the line it entered along (the strip's first layer, its
             # rear edge) by more than half a cut spacing: the needle is in intact tissue again.
-            first = state.cut_strip.layers[0]
-            rear = state.cut.deformed_points(positions, self.tets)[first[first >= 0]]
+            rear = state.cut_strip.rear_edge(state.cut, positions, self.tets)
             _, on_needle = needle.project(rear)
             behind = float(((on_needle - rear) @ state.cut_direction).mean())
             if behind < -0.5 * cutting.point_spacing:
