@@ -8,14 +8,18 @@ step and ran to the wall of the tissue. Here the cut is a *strip* with an explic
 - **Columns** along the needle: the insertion path at the cut start, resampled every d_c (column j).
 - **Layers** across it: layer 0 is the path (the back border); each later layer is the front at the time it
   was laid. Consecutive layers are joined by two triangles per column pair, so the surface is a manifold
-  disc with no holes and no isolated points, whatever the mesh, the direction or the entry point.
+  disc with no holes, whatever the mesh, the direction or the entry point.
+- **Blocks** of columns added below the strip when the needle goes deeper while it cuts: each starts on the
+  needle's line (the tissue below the strip was not cut) and is laid like the strip, joined to its upper
+  neighbour by the layers laid after it was added (:class:`CutStrip`).
 - **The crack tip**: one material point per column (a tet and barycentric coordinates, kept in rest
   coordinates like every cut point, the paper's equation 4) where the tissue is cut up to. The front rows of
   the needle press on the crack tip. It advances where the needle pushes through it, in the direction it
   pushes (pulled back to rest coordinates through the local deformation gradient, F⁻¹u), and a new layer is
   laid at the crack tip once it is d_c ahead of the last one.
 
-So the cut extends only where the needle pushes on its front, within the region the needle sweeps.
+So the cut extends only where the needle pushes on its front, within the region the needle sweeps, and the
+surface is the region the crack tip swept, less than d_c behind it.
 """
 
 from __future__ import annotations
