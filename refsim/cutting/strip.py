@@ -176,9 +176,9 @@ class CutStrip:
         return self.layers[-1]
 
     def rear_edge(self, cut: CutSurface, positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
-        """Where each column's crack tip started, in a tissue configuration [m], shape (q, 3): its first
-        point (the path for the strip's own columns), or for a column added below the strip and not laid
-        yet, the needle's line where it was added. The line the needle entered its cut along."""
+        """Where each column's crack tip started, in a tissue configuration [m], shape (q, 3): the path for
+        the strip's own columns (layer 0), the needle's line where it was added for a column of a block added
+        below the strip. The line the needle entered its cut along, column by column."""
         first = self.layers[0]
         rear = cut.deformed_points(positions, tets)[np.maximum(first, 0)]
         waiting = first < 0
