@@ -8,14 +8,18 @@ step and ran to the wall of the tissue. Here the cut is a *strip* with an explic
 - **Columns** along the needle: the insertion path at the cut start, resampled every d_c (column j).
 - **Layers** across it: layer 0 is the path (the back border); each later layer is the front at the time it
   was laid. Consecutive layers are joined by two triangles per column pair, so the surface is a manifold
-  disc with no holes and no isolated points, whatever the mesh, the direction or the entry point.
+  disc with no holes, whatever the mesh, the direction or the entry point.
+- **Blocks** of columns added below the strip when the needle goes deeper while it cuts: each starts on the
+  needle's line (the tissue below the strip was not cut) and is laid like the strip, joined to its upper
+  neighbour by the layers laid after it was added (:class:`CutStrip`).
 - **The crack tip**: one material point per column (a tet and barycentric coordinates, kept in rest
   coordinates like every cut point, the paper's equation 4) where the tissue is cut up to. The front rows of
   the needle press on the crack tip. It advances where the needle pushes through it, in the direction it
   pushes (pulled back to rest coordinates through the local deformation gradient, F⁻¹u), and a new layer is
   laid at the crack tip once it is d_c ahead of the last one.
 
-So the cut extends only where the needle pushes on its front, within the region the needle sweeps.
+So the cut extends only where the needle pushes on its front, within the region the needle sweeps, and the
+surface is the region the crack tip swept, less than d_c behind it.
 """
 
 from __future__ import annotations
@@ -85,15 +89,20 @@ def locate_material_points(
     return found, barycentric, found >= 0
 
 
-def strip_triangles(back: np.ndarray, front: np.ndarray) -> np.ndarray:
+def strip_triangles(back: np.ndarray, front: np.ndarray, joined: np.ndarray | None = None) -> np.ndarray:
     """Triangles joining two layers of point indices column by column, shape (t, 3).
 
     Quad j is (back_j, back_j+1, front_j+1, front_j), split into (back_j, back_j+1, front_j) and
     (back_j+1, front_j+1, front_j); triangles with a repeated vertex (a column that did not advance) are left
-    out. Every triangle has the same winding, so the strip is oriented.
+    out, and so are quads with a column not laid yet (index −1) or not ``joined`` (shape (q − 1,), bool: which
+    column pairs are joined; all by default). Every triangle has the same winding, so the strip is oriented.
     """
-    a, b = back[:-1], back[1:]
-    c, d = front[1:], front[:-1]
+    back, front = np.asarray(back), np.asarray(front)
+    pairs = (back[:-1] >= 0) & (back[1:] >= 0) & (front[:-1] >= 0) & (front[1:] >= 0)
+    if joined is not None:
+        pairs &= np.asarray(joined, dtype=bool)
+    a, b = back[:-1][pairs], back[1:][pairs]
+    c, d = front[1:][pairs], front[:-1][pairs]
     first = np.stack([a, b, d], axis=1)
     second = np.stack([b, c, d], axis=1)
     triangles = np.concatenate([first, second])
@@ -129,18 +138,33 @@ class CutFront:
 class CutStrip:
     """The structure of the cut: which surface points form each layer, and the crack tip.
 
+    The strip is made of *blocks* of columns: its own, on the insertion path at the cut start, and one for
+    each time the needle went deeper while cutting (:meth:`extended`), whose first layer is the needle's line
+    below the strip when it was added (the tissue there had not been cut: the crack tip starts on it). Each
+    block is laid like the strip (a column's points from where its crack tip started to where it is), and two
+    neighbouring columns of different blocks are joined only by layers laid after the younger one was added,
+    so no triangle covers tissue below the strip that the crack tip has not swept.
+
     Attributes
     ----------
-    layers : Point indices into the `CutSurface`, shape (layer_count, column_count); row 0 is the path.
+    layers : Point indices into the `CutSurface`, shape (layer_count, column_count); row 0 is the path; −1
+        where a column has no point yet (a column added below the strip, before its first layer).
     front : The crack tip.
     depths : Depth of each column along the needle below the tissue surface at the cut start [m], shape
         (column_count,) (0 for the entry column): where on the needle each column's crack tip is taken to
         (:func:`refsim.cutting.growth.crack_tip_targets`).
+    origins : Where each column's crack tip started (the path, or the needle when the column was added), the
+        first point laid in a column, shape (column_count,) `CutFront`. None: the strip's front when the
+        strip is built (its own block only).
+    births : The step each column was added at, shape (column_count,) (0 for the strip's own columns). None:
+        all 0.
     """
 
     layers: np.ndarray
     front: CutFront
     depths: np.ndarray
+    origins: CutFront | None = None
+    births: np.ndarray | None = None
 
     @property
     def column_count(self) -> int:
@@ -148,58 +172,97 @@ class CutStrip:
 
     @property
     def last_layer(self) -> np.ndarray:
-        """Point indices of the layer laid last, shape (q,)."""
+        """Point indices of the layer laid last, shape (q,) (−1 for a column with no point yet)."""
         return self.layers[-1]
 
-    def with_front(self, front: CutFront) -> CutStrip:
-        return CutStrip(self.layers, front, self.depths)
+    def rear_edge(self, cut: CutSurface, positions: np.ndarray, tets: np.ndarray) -> np.ndarray:
+        """Where each column's crack tip started, in a tissue configuration [m], shape (q, 3): the path for
+        the strip's own columns (layer 0), the needle's line where it was added for a column of a block added
+        below the strip. The line the needle entered its cut along, column by column."""
+        first = self.layers[0]
+        rear = cut.deformed_points(positions, tets)[np.maximum(first, 0)]
+        waiting = first < 0
+        if np.any(waiting):
+            rear[waiting] = self._origins().positions(positions, tets)[waiting]
+        return rear
 
-    def extended(self, front: CutFront, depths: np.ndarray) -> CutStrip:
-        """The strip with columns added below its deepest one: their crack tip ``front`` (q points) at
-        ``depths`` (q,). Until a layer is laid they share the deepest column's points (no triangle: the
-        tissue below the strip has not been cut yet); the first layer joins them to it."""
+    def _births(self) -> np.ndarray:
+        return np.zeros(self.column_count, dtype=np.int64) if self.births is None else self.births
+
+    def _origins(self) -> CutFront:
+        return self.front if self.origins is None else self.origins
+
+    def with_front(self, front: CutFront) -> CutStrip:
+        return CutStrip(self.layers, front, self.depths, self._origins(), self._births())
+
+    def extended(self, front: CutFront, depths: np.ndarray, step: int = 0) -> CutStrip:
+        """The strip with a block of columns added below its deepest one at ``step``: their crack tip
+        ``front`` (q points, on the needle) at ``depths`` (q,). They have no point until their crack tip moves
+        (:meth:`lay`); their first layer is then where it started."""
         count = int(np.asarray(depths).size)
         if count == 0:
             return self
-        layers = np.hstack([self.layers, np.repeat(self.layers[:, -1:], count, axis=1)])
-        joined = CutFront(
-            np.concatenate([self.front.rest_points, front.rest_points]),
-            np.concatenate([self.front.tet_indices, front.tet_indices]),
-            np.concatenate([self.front.barycentric, front.barycentric]),
+        layers = np.hstack([self.layers, np.full((self.layers.shape[0], count), -1, dtype=self.layers.dtype)])
+
+        def joined(a: CutFront, b: CutFront) -> CutFront:
+            return CutFront(
+                np.concatenate([a.rest_points, b.rest_points]),
+                np.concatenate([a.tet_indices, b.tet_indices]),
+                np.concatenate([a.barycentric, b.barycentric]),
+            )
+
+        return CutStrip(
+            layers,
+            joined(self.front, front),
+            np.concatenate([self.depths, depths]),
+            joined(self._origins(), front),
+            np.concatenate([self._births(), np.full(count, step, dtype=np.int64)]),
         )
-        return CutStrip(layers, joined, np.concatenate([self.depths, depths]))
 
     def lay(self, cut: CutSurface, step: int, minimum_gap: float) -> tuple[CutSurface, CutStrip]:
         """Lay a layer at the crack tip when any column's tip is farther than ``minimum_gap`` [m] (rest) from
-        the last layer; columns whose tip has not moved reuse their last point. Returns the surface and strip
-        (unchanged when no column is due)."""
+        its last point (from where it started, for a column with no point yet); columns whose tip has not
+        moved keep their last point. A column with no point yet gets two: where its crack tip started (in the
+        last layer) and where it is; it is laid only with a neighbour it can be joined to (alone, its points
+        would join no triangle). Returns the surface and strip (unchanged when no column is due)."""
         last = self.last_layer
-        distance = np.linalg.norm(self.front.rest_points - cut.rest_points[last], axis=1)
-        # Columns added below the strip (`extended`) share their upper neighbour's point until they are laid;
-        # they neither call for a layer nor move without that neighbour (alone, their point would join no
-        # triangle).
-        fresh = np.zeros(last.size, dtype=bool)
-        fresh[1:] = last[1:] == last[:-1]
-        if not np.any((distance >= minimum_gap) & ~fresh):
+        origins, births = self._origins(), self._births()
+        pending = last < 0
+        behind = np.where(pending[:, None], origins.rest_points, cut.rest_points[np.maximum(last, 0)])
+        distance = np.linalg.norm(self.front.rest_points - behind, axis=1)
+        moved = distance >= 1e-3 * minimum_gap
+        # Two neighbours are joined by a layer when each one's back point was laid no earlier than the other
+        # column was added: the older column's points laid before a block was added border tissue below it
+        # that was not cut. A column laid now (its first point) counts as laid now.
+        created = np.where(pending, step, cut.created_step[np.maximum(last, 0)])
+        joined = (created[:-1] >= births[1:]) & (created[1:] >= births[:-1])
+        starting = pending & moved
+        partner = np.zeros(last.size, dtype=bool)
+        partner[:-1] |= joined & (starting[1:] | ~pending[1:])
+        partner[1:] |= joined & (starting[:-1] | ~pending[:-1])
+        starting &= partner
+        moved &= ~pending | starting
+        if not np.any((distance >= minimum_gap) & moved):
             return cut, self
         started = clock.perf_counter()
-        moved = distance >= 1e-3 * minimum_gap
-        if np.any(fresh):
-            run = int(np.flatnonzero(~fresh)[-1]) + 1  # the fresh columns are the strip's last ones
-            moved[run:] = np.logical_and.accumulate(moved[run:]) & moved[run - 1]
-        layer = last.copy()
-        layer[moved] = cut.point_count + np.arange(int(moved.sum()))
-        triangles = strip_triangles(last, layer)
+        back = last.copy()
+        start_count = int(starting.sum())
+        back[starting] = cut.point_count + np.arange(start_count)
+        layer = back.copy()
+        layer[moved] = cut.point_count + start_count + np.arange(int(moved.sum()))
+        triangles = strip_triangles(back, layer, joined)
         grown = append_points(
             cut,
-            self.front.rest_points[moved],
-            self.front.tet_indices[moved],
-            self.front.barycentric[moved],
+            np.concatenate([origins.rest_points[starting], self.front.rest_points[moved]]),
+            np.concatenate([origins.tet_indices[starting], self.front.tet_indices[moved]]),
+            np.concatenate([origins.barycentric[starting], self.front.barycentric[moved]]),
             step,
             triangles,
             seconds=clock.perf_counter() - started,
         )
-        return grown, CutStrip(np.vstack([self.layers, layer[None, :]]), self.front, self.depths)
+        layers = self.layers.copy()
+        layers[-1] = back
+        return grown, CutStrip(np.vstack([layers, layer[None, :]]), self.front, self.depths, origins, births)
 
 
 def append_points(

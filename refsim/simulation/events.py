@@ -343,9 +343,9 @@ class EventRules:
         )
         return state, events
 
-    def _extended(self, strip, needle, positions, locator, entry_arc):
-        """The strip with columns added below its deepest one down to the needle's tip, every d_c (``locator``
-        on ``positions``; ``entry_arc`` where the needle enters the tissue)."""
+    def _extended(self, strip, needle, positions, locator, entry_arc, step):
+        """The strip with a block of columns added below its deepest one at ``step`` down to the needle's tip,
+        every d_c (``locator`` on ``positions``; ``entry_arc`` where the needle enters the tissue)."""
         from refsim.cutting.strip import CutFront, locate_material_points
 
         spacing = self.cutting.point_spacing
@@ -361,7 +361,7 @@ class EventRules:
             return strip
         tets, barycentric = tets[:run], barycentric[:run]
         rest = np.einsum("pk,pkj->pj", barycentric, self.growth.rest_positions[self.tets[tets]])
-        return strip.extended(CutFront(rest, tets, barycentric), depths[:run])
+        return strip.extended(CutFront(rest, tets, barycentric), depths[:run], step)
 
     def _cutting(self, state, detection, multipliers):
         """Withdrawal through the cut, and the growth of the cut where the needle pushes through its front."""
@@ -377,7 +377,7 @@ class EventRules:
         if state.cut_strip is not None and state.cut is not None:
             # Moved back through its own cut and past the line it entered along (the strip's first layer, its
             # rear edge) by more than half a cut spacing: the needle is in intact tissue again.
-            rear = state.cut.deformed_points(positions, self.tets)[state.cut_strip.layers[0]]
+            rear = state.cut_strip.rear_edge(state.cut, positions, self.tets)
             _, on_needle = needle.project(rear)
             behind = float(((on_needle - rear) @ state.cut_direction).mean())
             if behind < -0.5 * cutting.point_spacing:
@@ -392,7 +392,8 @@ class EventRules:
             locator = TetLocator(positions, self.tets)
             entry_arc = inserted_arc(needle, locator, cutting.point_spacing)
             state = replace(
-                state, cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc)
+                state,
+                cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc, state.step),
             )
         rows = detection.rows
         grown = self.law.grow(

@@ -8,7 +8,7 @@ import pytest
 from refsim.cutting import CutGrowth
 from refsim.cutting.growth import advance_front, start_strip
 from refsim.cutting.metrics import surface_topology
-from refsim.cutting.strip import locate_material_points, strip_triangles
+from refsim.cutting.strip import CutStrip, locate_material_points, strip_triangles
 from refsim.geometry import TetLocator
 from refsim.mesh import box_mesh
 
@@ -97,9 +97,10 @@ def test_points_far_outside_are_outside(growth):
     assert not inside[0]
 
 
-def test_columns_added_below_the_strip_join_it_as_a_disc_when_laid(growth):
-    # A strip 8 columns deep (4 mm) cut 1 mm along x, then extended by 3 columns below it (the needle inserted
-    # deeper while cutting): nothing changes until the next layer, which joins the new columns to the strip.
+def _extended_strip(growth):
+    """A strip 8 columns deep (4 mm) cut 1 mm along x at steps 2 and 3, then extended at step 4 by a block of
+    3 columns below it, their crack tip on the needle's line 1 mm ahead of the path (the needle inserted
+    deeper while cutting)."""
     from refsim.cutting.strip import CutFront
 
     path = np.linspace([0.0041, 0.0063, 0.012], [0.0041, 0.0063, 0.008], 9)
@@ -115,18 +116,98 @@ def test_columns_added_below_the_strip_join_it_as_a_disc_when_laid(growth):
     )
     assert inside.all()
     extended = strip.extended(
-        CutFront(below, tets, barycentric), strip.depths[-1] + SPACING * np.arange(1, 4)
+        CutFront(below, tets, barycentric), strip.depths[-1] + SPACING * np.arange(1, 4), 4
     )
     assert extended.column_count == 12 and np.all(np.diff(extended.depths) > 0)
-    # Not due yet: the new columns alone do not lay a layer (their points would join no triangle).
-    same, unchanged = extended.lay(cut, 4, SPACING)
-    assert same is cut and unchanged.layers.shape == (3, 12)
-    moved = extended.with_front(
-        advance_front(growth, extended, np.full(12, SPACING), x, growth.rest_positions)
+    return cut, extended, below, x
+
+
+def _area(cut) -> float:
+    corners = cut.rest_points[cut.triangles]
+    return float(
+        0.5
+        * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum()
     )
+
+
+def _assert_manifold(cut) -> None:
+    """Each edge in at most two triangles, no degenerate triangle, no isolated point."""
+    topology = surface_topology(cut.triangles, cut.point_count)
+    assert topology.non_manifold_edges == 0 and topology.isolated_points == 0, topology
+    corners = cut.rest_points[cut.triangles]
+    doubled = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    assert doubled.min() > 1e-6 * SPACING**2
+
+
+def test_a_block_added_below_the_strip_is_laid_from_the_needle_line_even_when_the_strip_stands(growth):
+    # The strip stands (its crack tip does not move) while the block below it is cut 1.5 mm along x (the
+    # needle deeper, pushed sideways, the tissue moving under the upper part: an organ under breathing).
+    # The block is laid on its own: its first layer on the needle's line where it was added, its second at
+    # the crack tip; the tissue between the old strip's laid points and the block was not cut when they were
+    # laid, so no triangle joins them. Swept: 2 pairs × 1.5 mm × d_c.
+    cut, extended, below, x = _extended_strip(growth)
+    same, unchanged = extended.lay(cut, 5, SPACING)
+    assert same is cut and unchanged is extended  # nothing moved: nothing to lay
+    front = extended.front.rest_points.copy()
+    front[9:] += 3 * SPACING * x
+    moved = extended.with_front(
+        advance_front(growth, extended, np.r_[np.zeros(9), np.full(3, 3 * SPACING)], x, growth.rest_positions)
+    )
+    np.testing.assert_allclose(moved.front.rest_points, front, atol=1e-12)
     grown, laid = moved.lay(cut, 5, SPACING)
-    topology = surface_topology(grown.triangles, grown.point_count)
-    assert laid.layers.shape == (4, 12) and topology.is_disc, topology
-    assert (
-        grown.triangle_count == cut.triangle_count + 2 * 8 + 3
-    )  # a quad per old pair, a fan for the new columns
+    assert grown.point_count == cut.point_count + 6  # the block's first layer and its crack tip
+    np.testing.assert_allclose(grown.rest_points[cut.point_count : cut.point_count + 3], below, atol=1e-12)
+    np.testing.assert_allclose(grown.rest_points[cut.point_count + 3 :], front[9:], atol=1e-12)
+    new = grown.triangles[cut.triangle_count :]
+    assert new.shape == (4, 3) and np.all(new >= cut.point_count)  # nothing joins the old strip's points
+    np.testing.assert_allclose(_area(grown) - _area(cut), 2 * 3 * SPACING * SPACING, rtol=1e-9)
+    _assert_manifold(grown)
+    # Two pieces until the strip has points laid after the block was added (its points laid before border
+    # tissue below it that was not cut): the layer that moves it from them is not joined to the block, the
+    # next one is.
+    assert surface_topology(grown.triangles, grown.point_count).boundary_loops == 2
+    for step, pieces in ((6, 2), (7, 1)):
+        laid = laid.with_front(advance_front(growth, laid, np.full(12, SPACING), x, growth.rest_positions))
+        previous = grown
+        grown, laid = laid.lay(grown, step, SPACING)
+        _assert_manifold(grown)
+        assert surface_topology(grown.triangles, grown.point_count).boundary_loops == pieces
+    assert surface_topology(grown.triangles, grown.point_count).is_disc
+    across = grown.triangles[previous.triangle_count :]
+    assert across.shape == (2 * 11, 3)  # a quad per pair, the pair across the blocks included
+
+
+def test_a_lone_column_below_the_strip_waits_for_a_neighbour_it_can_join(growth):
+    # One column added below a standing strip and cut: alone, its points would join no triangle (the old
+    # strip's points were laid before it was added), so it is not laid until its neighbour is laid again.
+    from refsim.cutting.strip import CutFront
+
+    cut, extended, _, x = _extended_strip(growth)
+    single = CutStrip(
+        extended.layers[:, :10],
+        CutFront(
+            extended.front.rest_points[:10], extended.front.tet_indices[:10], extended.front.barycentric[:10]
+        ),
+        extended.depths[:10],
+        CutFront(
+            extended.origins.rest_points[:10],
+            extended.origins.tet_indices[:10],
+            extended.origins.barycentric[:10],
+        ),
+        extended.births[:10],
+    )
+    moved = single.with_front(
+        advance_front(growth, single, np.r_[np.zeros(9), 3 * SPACING], x, growth.rest_positions)
+    )
+    same, unchanged = moved.lay(cut, 5, SPACING)
+    assert same is cut and unchanged is moved
+    both = moved.with_front(
+        advance_front(growth, moved, np.r_[np.full(9, SPACING), 0.0], x, growth.rest_positions)
+    )
+    grown, laid = both.lay(cut, 6, SPACING)  # the strip moves from points laid before the column was added
+    assert laid.layers[-1, 9] < 0 and surface_topology(grown.triangles, grown.point_count).is_disc
+    again = laid.with_front(advance_front(growth, laid, np.full(10, SPACING), x, growth.rest_positions))
+    joined, laid = again.lay(grown, 7, SPACING)  # now it has a neighbour to join: its two layers, and a third
+    _assert_manifold(joined)
+    assert surface_topology(joined.triangles, joined.point_count).is_disc
+    assert laid.layers[-1, 9] >= 0 and laid.layers[-2, 9] >= 0
