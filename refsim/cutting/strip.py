@@ -186,6 +186,15 @@ class CutStrip:
             rear[waiting] = self._origins().positions(positions, tets)[waiting]
         return rear
 
+    def rest_rear_edge(self, cut: CutSurface) -> np.ndarray:
+        """The rear edge (:meth:`rear_edge`) in rest coordinates [m], shape (q, 3)."""
+        first = self.layers[0]
+        rear = cut.rest_points[np.maximum(first, 0)]
+        waiting = first < 0
+        if np.any(waiting):
+            rear[waiting] = self._origins().rest_points[waiting]
+        return rear
+
     def _births(self) -> np.ndarray:
         return np.zeros(self.column_count, dtype=np.int64) if self.births is None else self.births
 

@@ -30,12 +30,11 @@ def cut_area(state) -> tuple[float, float]:
         * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum()
     )
     last = strip.last_layer
-    fresh = np.zeros(last.size, dtype=bool)
-    fresh[1:] = last[1:] == last[:-1]
-    gap = np.linalg.norm((strip.front.rest_points - cut.rest_points[last])[:, [0, 2]], axis=1)
+    fresh = last < 0  # columns of a block added below the strip that have no point yet
+    gap = np.linalg.norm((strip.front.rest_points - cut.rest_points[np.maximum(last, 0)])[:, [0, 2]], axis=1)
     pair = ~fresh[:-1] & ~fresh[1:]
     ahead = float((0.5 * (gap[1:] + gap[:-1]) * np.abs(np.diff(strip.depths)))[pair].sum())
-    first = cut.rest_points[strip.layers[0]]
+    first = strip.rest_rear_edge(cut)
     advance = np.linalg.norm((strip.front.rest_points - first)[:, [0, 2]], axis=1)[~fresh]
     return float(laid) + ahead, float(advance.max()) if advance.size else 0.0
 

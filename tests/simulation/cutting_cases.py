@@ -137,7 +137,7 @@ class CuttingRun:
         cut, strip = self.state.cut, getattr(self.state, "cut_strip", None)
         if strip is None:
             return float(np.ptp(cut.rest_points @ self.cut_direction))
-        advance = (strip.front.rest_points - cut.rest_points[strip.layers[0]]) @ self.cut_direction
+        advance = (strip.front.rest_points - strip.rest_rear_edge(cut)) @ self.cut_direction
         return float(advance.max())
 
     cut_direction: np.ndarray | None = None
@@ -161,8 +161,8 @@ def watch_cut_blocks(simulation: Simulation) -> list:
     spectra = []
     build = simulation._problem
 
-    def problem(rows, tissue_system, needle_system):
-        built = build(rows, tissue_system, needle_system)
+    def problem(rows, systems):
+        built = build(rows, systems)
         cut = np.flatnonzero((rows.source == CUT_SLIDE) | (rows.source == CUT_BORDER))
         if built[0] is not None and cut.size:
             total = built[0].compliance[np.ix_(cut, cut)]
