@@ -249,11 +249,9 @@ class InteractiveSession:
     def fail(self, error: BaseException) -> None:
         """End the session after a step failed: close the file (complete = False, the reason stored) and
         write the trajectory and replay of the completed steps."""
-        from refsim.io.driver import EXIT_NUMERICAL
-
         text = str(error) or type(error).__name__
         reason = text if text.startswith("step ") else f"step {self.state.step + 1}: {text}"
-        self._close(status="numerical", exit_code=EXIT_NUMERICAL, reason=reason)
+        self._close(status="numerical", reason=reason)
 
     def finish(self) -> None:
         """End the session: a last step with the pose held records the tissue, then the files are written.
@@ -267,11 +265,11 @@ class InteractiveSession:
             logger.debug("the final step failed", exc_info=True)
             self.fail(error)
             return
-        self._close(status="complete", exit_code=0, reason="")
+        self._close(status="complete", reason="")
 
-    def _close(self, *, status: str, exit_code: int, reason: str) -> None:
-        from refsim.io.driver import EXIT_NUMERICAL
-
+    def _close(self, *, status: str, reason: str) -> None:
+        """Close the files with a status of :data:`~refsim.simulation.summary.RUN_STATUSES` (its exit code
+        is the summary's)."""
         if self.finished:
             return
         self.finished = True
@@ -279,7 +277,7 @@ class InteractiveSession:
         steps = self.state.step
         self.writer.close(complete=status == "complete", reason=reason)
         if self.writer.failure is not None and status != "write_failed":
-            status, exit_code = "write_failed", EXIT_NUMERICAL
+            status = "write_failed"
             reason = f"{reason}; {self.writer.failure}" if reason else self.writer.failure
         applied = self.applied
         if applied.last_time > self.state.time:
@@ -290,9 +288,7 @@ class InteractiveSession:
         self._store_applied(applied)
         self.status, self.stop_reason = status, reason
         self.summary.total_steps = steps
-        self.summary.finish(
-            status=status, exit_code=exit_code, stop_reason=reason, steps_written=self.writer.steps_completed
-        )
+        self.summary.finish(status=status, stop_reason=reason, steps_written=self.writer.steps_completed)
 
     def _store_applied(self, applied: AppliedTrajectory) -> None:
         """Replace the results file's ``trajectory/samples`` (the start pose when the writer opened it) by the
