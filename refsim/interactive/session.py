@@ -124,7 +124,7 @@ class InteractiveSession:
         max_turn: float = np.radians(30.0),
         buffer_steps: int | None = None,
     ) -> None:
-        from refsim.io.driver import RunInputError, check_output_path
+        from refsim.io.driver import RunInputError, StepSink, check_output_path
         from refsim.io.writer import DEFAULT_BUFFER_STEPS, ResultWriter, WriterLockedError
         from refsim.scene.build import build_controls, build_models
         from refsim.scene.controls import Controls
@@ -164,9 +164,6 @@ class InteractiveSession:
         self.tissue_every = self.scene.output.tissue_every
         self.state = self.simulation.initial_state()
         self.summary = RunSummary(total_steps=None, output=str(self.output))
-        rest = np.asarray(self.models.mesh.rest_positions)
-        self._rest = rest
-        self._size = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
         try:
             self.output.parent.mkdir(parents=True, exist_ok=True)
             self.writer = ResultWriter(
@@ -180,7 +177,7 @@ class InteractiveSession:
             raise RunInputError(str(error)) from None
         except (FileExistsError, IsADirectoryError, NotADirectoryError, PermissionError, ValueError) as error:
             raise RunInputError(f"{self.output}: cannot create the results file: {error}") from None
-        self._written_cut = None
+        self._record_step = StepSink(self.writer, self.summary, self.models.mesh.rest_positions, total=0)
         self._wall = collections.deque()  # (wall clock [s], simulated time [s]) of the recent steps
         self.last_record = None
         #: (time [s], |force on the needle| [N]) of the recent steps (the window's live plot)
@@ -202,8 +199,6 @@ class InteractiveSession:
         """One step at the pose the target allows (:meth:`PoseTarget.advance`); ``final`` records the
         tissue (the last step of a run). A numerical problem raises (the caller ends the session with
         :meth:`fail`)."""
-        from refsim.io.driver import check_record
-
         if self.finished:
             raise RuntimeError("the session is finished")
         time = self.state.time + self.dt
@@ -213,20 +208,7 @@ class InteractiveSession:
         state, record = self.simulation.step(
             self.state, record_tissue=final or index % self.tissue_every == 0
         )
-        check_record(state, record, size=self._size, rest_positions=self._rest)
-        self.writer.append(record)
-        if state.cut is not None and state.cut is not self._written_cut:
-            cut = state.cut
-            self.writer.write_cut_surface(
-                cut.rest_points,
-                cut.created_step,
-                cut.triangles,
-                cut.triangle_created_step,
-                tet_indices=cut.tet_indices,
-                barycentric=cut.barycentric,
-            )
-            self._written_cut = cut
-        self.summary.add(record)
+        self._record_step(state, record)
         self.state, self.last_record = state, record
         self.force_history.append((record.time, float(np.linalg.norm(record.needle_force))))
         now = clock.perf_counter()

@@ -41,6 +41,7 @@ import numpy as np
 __all__ = [
     "RunInputError",
     "RunWriteError",
+    "StepSink",
     "check_output_path",
     "check_record",
     "run_scene",
@@ -263,7 +264,7 @@ def run_scene(
     total = scene.time.step_count if steps is None else int(steps)
     summary = RunSummary(total_steps=total, output=str(output))
     writer = _open_writer(output, scene, simulation.models, overwrite=overwrite, buffer_steps=buffer_steps)
-    step_done = _StepSink(
+    step_done = StepSink(
         writer, summary, simulation.models.mesh.rest_positions, total, on_step=on_step, progress=progress
     )
     with _Signals(handle_signals):
@@ -304,9 +305,10 @@ def _open_writer(output: Path, scene, models, *, overwrite: bool, buffer_steps: 
         raise RunWriteError(error.errno, error.strerror or str(error)) from None
 
 
-class _StepSink:
-    """What happens after each step: the numerical checks, the buffered write (and the cut surface when it
-    changed), the summary, then the caller's ``on_step`` and ``progress``."""
+class StepSink:
+    """What happens after each step of a run that writes a results file: the numerical checks, the buffered
+    write (and the cut surface when it changed), the summary, then the caller's ``on_step`` and ``progress``.
+    Used by :func:`run_scene` and by any other driver of the steps (``refsim interactive``)."""
 
     def __init__(self, writer, summary, rest_positions, total: int, *, on_step=None, progress=None) -> None:
         self.writer, self.summary, self.total = writer, summary, total
