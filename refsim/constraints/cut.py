@@ -322,6 +322,22 @@ class _CutRows(NamedTuple):
     kind: np.ndarray  # (r,)
     source: np.ndarray  # (r,)
 
+    @classmethod
+    def between(cls, geometry, nodes, node_weights, directions, arcs, needle_points, anchor, kind, source):
+        """Rows along ``directions`` between tissue points (``nodes``/``node_weights``, at ``anchor`` in the
+        free positions) and the needle at arc lengths ``arcs`` (at ``needle_points``), all of one kind and
+        source: δ = nᵀ(x_needle − x_tissue)."""
+        count = directions.shape[0]
+        return cls(
+            point_rows(nodes, node_weights, directions, geometry.tissue_dof_count),
+            needle_rows(geometry.needle_free, arcs, directions),
+            np.einsum("ij,ij->i", directions, needle_points - anchor),
+            directions,
+            anchor,
+            np.full(count, kind),
+            np.full(count, source),
+        )
+
 
 class _NeedleSamples(NamedTuple):
     """The needle every d_c along its inserted length, from the entry to the tip (k samples)."""
@@ -432,14 +448,8 @@ def _sliding_rows(
     nodes, node_weights = _surface_point_nodes(cut, tets, triangle, weights)
     arcs = samples.arc_lengths[inside]
     nearest = cut.triangles[triangle, np.argmax(weights, axis=1)]
-    rows = _CutRows(
-        point_rows(nodes, node_weights, normals, geometry.tissue_dof_count),
-        needle_rows(geometry.needle_free, arcs, normals),
-        np.einsum("ij,ij->i", normals, samples.free[inside] - anchor),
-        normals,
-        anchor,
-        np.full(inside.size, BILATERAL),
-        np.full(inside.size, CUT_SLIDE),
+    rows = _CutRows.between(
+        geometry, nodes, node_weights, normals, arcs, samples.free[inside], anchor, BILATERAL, CUT_SLIDE
     )
     # At the front (within 1.5 d_c of the crack tip) the needle has uncut tissue on every side but the
     # cut's: pushed out of the cut's plane it cuts through at G_c per unit length as it does ahead, so those
@@ -508,14 +518,8 @@ def _front_rows(
         [(1.0 - t)[:, None] * strip.front.barycentric[seg], t[:, None] * strip.front.barycentric[seg + 1]], 1
     )
     arcs = samples.arc_lengths[keep]
-    rows = _CutRows(
-        point_rows(nodes, node_weights, directions, geometry.tissue_dof_count),
-        needle_rows(geometry.needle_free, arcs, directions),
-        np.einsum("ij,ij->i", directions, samples.free[keep] - anchor),
-        directions,
-        anchor,
-        np.full(keep.size, UNILATERAL),
-        np.full(keep.size, CUT_BORDER),
+    rows = _CutRows.between(
+        geometry, nodes, node_weights, directions, arcs, samples.free[keep], anchor, UNILATERAL, CUT_BORDER
     )
     info = FrontRows(
         sliding.count + np.arange(keep.size),
