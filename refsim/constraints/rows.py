@@ -14,7 +14,7 @@ towards the needle); friction rows measure the relative tangential displacement 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 
 import numpy as np
@@ -135,6 +135,8 @@ class RowBlock:
     anchor : For the axial friction rows of insertion points, the needle arc length [m] at which the point's
         sub-grid annulus is unstretched (its stick anchor, :mod:`refsim.constraints.friction`); NaN for every
         other row, shape (row_count,) (empty: all NaN).
+    instrument : The instrument each row belongs to (its index in the scene's instruments), shape
+        (row_count,) (empty: −1, no instrument named; the step sets it for every row it solves).
     """
 
     jacobians: Mapping[str, sp.csr_matrix]
@@ -158,6 +160,7 @@ class RowBlock:
     role: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int8))
     point: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     anchor: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    instrument: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     def __post_init__(self) -> None:
         rows = self.free_gap.shape[0]
@@ -166,7 +169,7 @@ class RowBlock:
             if matrix.shape[0] != rows:
                 raise ValueError(f"the Jacobian of body {name!r} has {matrix.shape[0]} rows, expected {rows}")
         object.__setattr__(self, "jacobians", MappingProxyType(jacobians))
-        for name in ("role", "point", "anchor"):
+        for name in ("role", "point", "anchor", "instrument"):
             value = np.asarray(getattr(self, name))
             if value.size and value.shape != (rows,):
                 raise ValueError(f"{name} must have shape ({rows},), got {value.shape}")
@@ -181,6 +184,25 @@ class RowBlock:
     def row_count(self) -> int:
         """Number of rows."""
         return int(self.free_gap.shape[0])
+
+    @staticmethod
+    def concatenate(blocks: list[RowBlock]) -> RowBlock:
+        """The blocks stacked in order, every per-row field kept (:func:`concatenate`)."""
+        return concatenate(blocks)
+
+    def of_instrument(self, index: int, body: str) -> RowBlock:
+        """The block with every row marked as instrument ``index``'s and the needle's Jacobian keyed by that
+        instrument's body name ``body`` (the builders key it :data:`NEEDLE`)."""
+        jacobians = dict(self.jacobians)
+        if body != NEEDLE and NEEDLE in jacobians:
+            jacobians[body] = jacobians.pop(NEEDLE)
+        return replace(self, jacobians=jacobians, instrument=np.full(self.row_count, index, dtype=np.int64))
+
+    @property
+    def instruments(self) -> np.ndarray:
+        """The instrument of each row, shape (row_count,) (the field, or −1 everywhere when it was left
+        empty)."""
+        return _instruments(self)
 
     @property
     def roles(self) -> np.ndarray:
@@ -274,7 +296,7 @@ def empty_block(dof_counts: Mapping[str, int | None]) -> RowBlock:
 
 
 def concatenate(blocks: list[RowBlock]) -> RowBlock:
-    """Stack blocks, offsetting their contact and shaft row indices."""
+    """Stack blocks, offsetting their contact, shaft and group row indices; every per-row field is kept."""
     blocks = [b for b in blocks if b is not None]
     if len(blocks) == 1:
         return blocks[0]
@@ -319,7 +341,15 @@ def concatenate(blocks: list[RowBlock]) -> RowBlock:
         role=np.concatenate([_roles(b) for b in blocks]).astype(np.int8),
         point=np.concatenate([_points(b) for b in blocks]).astype(np.int64),
         anchor=np.concatenate([_anchors(b) for b in blocks]),
+        instrument=np.concatenate([_instruments(b) for b in blocks]).astype(np.int64),
     )
+
+
+def _instruments(block: RowBlock) -> np.ndarray:
+    """The rows' instruments, shape (row_count,): −1 everywhere when the block left the field empty."""
+    if block.instrument.size == 0 and block.row_count:
+        return np.full(block.row_count, -1, dtype=np.int64)
+    return np.asarray(block.instrument, dtype=np.int64)
 
 
 def stack_jacobians(

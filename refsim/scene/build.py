@@ -32,6 +32,7 @@ from refsim.scene.trajectory import Trajectory, aimed, read_numeric_csv
 __all__ = [
     "SceneModels",
     "boundary_nodes",
+    "InstrumentModels",
     "build_controls",
     "build_models",
     "build_mesh",
@@ -62,6 +63,8 @@ class SceneModels:
     trajectory : Motion of the needle base.
     boundary_nodes : Tissue nodes a boundary motion moves (a subset of the tissue's fixed nodes), shape (b,);
         empty without a [boundary] motion.
+    instruments : Each instrument's models, in the scene's order (``needle`` and ``trajectory`` are the
+        first's); empty: one instrument, "needle", of ``scene.needle`` with ``needle`` and ``trajectory``.
     """
 
     mesh: TetMesh
@@ -69,6 +72,27 @@ class SceneModels:
     needle: object | None
     trajectory: Trajectory
     boundary_nodes: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    instruments: tuple = ()
+
+
+@dataclasses.dataclass(frozen=True)
+class InstrumentModels:
+    """The static models of one instrument.
+
+    Attributes
+    ----------
+    name : The instrument's name (its body's).
+    needle : Its needle's section and material (the scene's [needle] with the instrument's overrides).
+    model : Its beam model when flexible, else None.
+    trajectory : The motion of its base.
+    cuts : Whether it may cut.
+    """
+
+    name: str
+    needle: object
+    model: object | None
+    trajectory: Trajectory
+    cuts: bool
 
 
 #: Peak memory of a run per tetrahedron [bytes]: the marginal peak RSS of the cube scene (5 steps) between
@@ -314,7 +338,15 @@ def build_models(scene: Scene) -> SceneModels:
             base_position=base,
             direction=direction,
         )
-    return SceneModels(mesh=mesh, tissue=tissue, needle=needle, trajectory=trajectory, boundary_nodes=moving)
+    instruments = (InstrumentModels("needle", scene.needle, needle, trajectory, scene.cutting.enabled),)
+    return SceneModels(
+        mesh=mesh,
+        tissue=tissue,
+        needle=needle,
+        trajectory=trajectory,
+        boundary_nodes=moving,
+        instruments=instruments,
+    )
 
 
 def boundary_nodes(scene: Scene, mesh: TetMesh) -> np.ndarray:
@@ -385,8 +417,10 @@ def build_controls(scene: Scene, models: SceneModels) -> Controls:
     from refsim.scene.controls import PeriodicBoundaryMotion, SampledBoundaryMotion
 
     spec = scene.boundary
+    trajectories = tuple(instrument.trajectory for instrument in models.instruments)
+    trajectories = trajectories if len(trajectories) > 1 else ()
     if spec.motion == "none":
-        return Controls(trajectory=models.trajectory)
+        return Controls(trajectory=models.trajectory, trajectories=trajectories)
     if spec.motion == "periodic":
         motion = PeriodicBoundaryMotion(
             nodes=models.boundary_nodes,
@@ -407,7 +441,7 @@ def build_controls(scene: Scene, models: SceneModels) -> Controls:
         except ValueError as error:
             raise SceneError(f"{scene.source}: boundary.file: {error}") from None
     check_boundary_motion(scene, models.mesh, motion)
-    return Controls(trajectory=models.trajectory, boundary=motion)
+    return Controls(trajectory=models.trajectory, boundary=motion, trajectories=trajectories)
 
 
 def check_mesh_lengths(scene: Scene, mesh: TetMesh) -> None:

@@ -9,7 +9,7 @@ time and applies them as kinematic conditions (the needle's base node, the tissu
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -156,6 +156,8 @@ class ControlValues:
     direction : Unit needle direction (base to tip), shape (3,).
     boundary_nodes : Tissue nodes with a prescribed displacement, shape (k,) (empty without boundary motion).
     boundary_displacements : Their displacement from rest [m], shape (k, 3).
+    poses : With several instruments, each one's (base position, direction) in the scene's order; empty with
+        one (its pose is ``base_position`` and ``direction``).
     """
 
     time: float
@@ -163,6 +165,16 @@ class ControlValues:
     direction: np.ndarray
     boundary_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     boundary_displacements: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    poses: tuple = ()
+
+    def instrument(self, index: int) -> ControlValues:
+        """The values with instrument ``index``'s pose as the needle base pose (what its body reads)."""
+        if not self.poses:
+            if index != 0:
+                raise IndexError(f"the controls hold one instrument's pose, not instrument {index}'s")
+            return self
+        base, direction = self.poses[index]
+        return replace(self, base_position=base, direction=direction)
 
 
 @dataclass(frozen=True)
@@ -173,14 +185,20 @@ class Controls:
     ----------
     trajectory : Pose of the needle base against time.
     boundary : Tissue boundary motion, or None (the fixed nodes stay in place).
+    trajectories : With several instruments, every instrument's trajectory in the scene's order (the first is
+        ``trajectory``); empty with one.
     """
 
     trajectory: Trajectory
     boundary: BoundaryMotion | None = None
+    trajectories: tuple = ()
 
     def at(self, time: float) -> ControlValues:
         """Values of every control at ``time`` [s]."""
         base, direction = self.trajectory.pose(time)
+        poses = tuple(trajectory.pose(time) for trajectory in self.trajectories)
         if self.boundary is None:
-            return ControlValues(time, base, direction)
-        return ControlValues(time, base, direction, self.boundary.nodes, self.boundary.displacement(time))
+            return ControlValues(time, base, direction, poses=poses)
+        return ControlValues(
+            time, base, direction, self.boundary.nodes, self.boundary.displacement(time), poses=poses
+        )

@@ -42,7 +42,7 @@ from refsim.constraints.cut import FrontRows, inserted_arc, strip_cut_block
 from refsim.constraints.insertion import InsertionPath, PointRings
 from refsim.geometry import SurfaceProjector, TetLocator
 from refsim.scene import Scene
-from refsim.simulation.state import Phase, SimulationState
+from refsim.simulation.state import InstrumentState, Phase, SimulationState
 
 __all__ = ["Detection", "Detector"]
 
@@ -79,6 +79,8 @@ class Detector:
     scene : The validated scene.
     faces : Tissue surface triangles, shape (f, 3).
     needle_dof_count : DoFs of the needle in the constraint problem, None for a rigid needle.
+    needle : The instrument's needle section (``scene.needle`` by default).
+    cuts : Whether the instrument may cut (``scene.cutting.enabled`` by default).
     """
 
     def __init__(
@@ -88,20 +90,25 @@ class Detector:
         needle_dof_count: int | None,
         rest_positions: np.ndarray | None = None,
         tets: np.ndarray | None = None,
+        *,
+        needle=None,
+        cuts: bool | None = None,
     ) -> None:
+        needle = scene.needle if needle is None else needle
+        cuts = scene.cutting.enabled if cuts is None else cuts
         self.insertion = scene.insertion
         self.cutting = scene.cutting
-        self.law = scene.cutting.cutting_law if scene.cutting.enabled else None
+        self.law = scene.cutting.cutting_law if cuts else None
         self.faces = faces
         self.needle_dof_count = needle_dof_count
         self.cut_compliance = None
         if scene.cutting.enabled and rest_positions is not None and tets is not None:
-            self.cut_compliance = _cut_compliance(scene, rest_positions, tets)
+            self.cut_compliance = _cut_compliance(scene, rest_positions, tets, needle.radius)
         spec = scene.insertion
         tissue = scene.tissue
         self.shear_modulus = tissue.youngs_modulus / (2.0 * (1.0 + tissue.poisson_ratio))
         self.poisson_ratio = tissue.poisson_ratio
-        self.needle_radius = scene.needle.radius
+        self.needle_radius = needle.radius
         self.preload = spec.shaft_normal_force * spec.spacing
         if spec.interference > 0.0:
             self.preload += float(
@@ -194,7 +201,7 @@ class Detector:
         )
         return replace(block, compliance_diagonal=diagonal), rings
 
-    def tip_ring(self, state: SimulationState, geometry: StepGeometry) -> tuple[np.ndarray, np.ndarray]:
+    def tip_ring(self, state: InstrumentState, geometry: StepGeometry) -> tuple[np.ndarray, np.ndarray]:
         """The tip cutting row's tissue side with the ring coupling: the ring of material points around the
         tip's material point, normal to the needle at the tip (nodes and weights, shape (1, k) each)."""
         tip = InsertionPath(
@@ -211,8 +218,10 @@ class Detector:
         )
         return ring_weights(tip, rings, geometry.mesh_tets)
 
-    def detect(self, state: SimulationState, geometry: StepGeometry) -> Detection:
-        """The rows of the step that starts from ``state``, on the free positions of ``geometry``."""
+    def detect(self, world: SimulationState, state: InstrumentState, geometry: StepGeometry) -> Detection:
+        """The rows of one instrument (``state``) in the step that starts from ``world``, on the free
+        positions of ``geometry`` (the tissue's and that instrument's needle); the needle's Jacobian is keyed
+        :data:`NEEDLE`."""
         spec = self.insertion
         blocks: list[RowBlock] = []
         contact = None
@@ -276,7 +285,7 @@ class Detector:
                     tissue_weights=ring[1],
                 )
                 blocks.append(tip_block)
-        if state.phase == Phase.INSERTION and state.cut is not None and state.cut.triangle_count:
+        if state.phase == Phase.INSERTION and world.cut is not None and world.cut.triangle_count:
             # A needle inserted along an existing cut slides in it: the old cut's sliding rows (no crack tip).
             entry_arc_length = inserted_arc(
                 geometry.needle_previous,
@@ -284,7 +293,7 @@ class Detector:
                 self.cutting.point_spacing,
             )
             block, _ = strip_cut_block(
-                state.cut,
+                world.cut,
                 None,
                 geometry,
                 entry_arc_length=entry_arc_length,
@@ -306,7 +315,7 @@ class Detector:
             offset = sum(block.row_count for block in blocks)
             cutting = self.cutting
             block, front = strip_cut_block(
-                state.cut,
+                world.cut,
                 state.cut_strip,
                 geometry,
                 entry_arc_length=entry_arc_length,
@@ -327,7 +336,7 @@ class Detector:
 
 
 def _cut_compliance(
-    scene: Scene, rest_positions: np.ndarray, tets: np.ndarray
+    scene: Scene, rest_positions: np.ndarray, tets: np.ndarray, needle_radius: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sub-grid compliance of a cut row in each tet [m/N], (lateral, axial), shapes (tet_count,) each: the
     coupling's (:func:`refsim.constraints.coupling.subgrid_compliance`, the annulus between the needle and the
@@ -339,7 +348,7 @@ def _cut_compliance(
     common = dict(
         shear_modulus=tissue.youngs_modulus / (2.0 * (1.0 + tissue.poisson_ratio)),
         poisson_ratio=tissue.poisson_ratio,
-        needle_radius=scene.needle.radius,
+        needle_radius=needle_radius,
         mesh_size=size,
         spacing=scene.cutting.point_spacing,
     )

@@ -124,7 +124,7 @@ def locate_under_surface(positions: np.ndarray, tets: np.ndarray, points: np.nda
 
 
 class EventRules:
-    """The events of a scene, applied to the state after each step's correction.
+    """The events of one instrument of a scene, applied to the state after each step's correction.
 
     Parameters
     ----------
@@ -133,12 +133,16 @@ class EventRules:
     rest_positions : Tissue rest positions [m], shape (n, 3).
     deformation_gradients : Function of tissue positions (n, 3) giving F of every tet, shape (m, 3, 3).
     needle_geometry : Function of a needle state giving its centreline.
+    cuts : Whether the instrument may cut (``scene.cutting.enabled`` by default).
     """
 
-    def __init__(self, scene: Scene, tets, rest_positions, deformation_gradients, needle_geometry) -> None:
+    def __init__(
+        self, scene: Scene, tets, rest_positions, deformation_gradients, needle_geometry, *, cuts=None
+    ) -> None:
+        cuts = scene.cutting.enabled if cuts is None else cuts
         self.insertion = scene.insertion
         self.cutting = scene.cutting
-        self.law = scene.cutting.cutting_law if scene.cutting.enabled else None
+        self.law = scene.cutting.cutting_law if cuts else None
         self.tets = tets
         self.deformation_gradients = deformation_gradients
         self.needle_geometry = needle_geometry
@@ -150,7 +154,7 @@ class EventRules:
         )
         self._node_tets = incidence
         self.growth = None
-        if scene.cutting.enabled:
+        if cuts:
             cutting = scene.cutting
             self.growth = CutGrowth(
                 rest_positions=rest_positions,
@@ -159,24 +163,27 @@ class EventRules:
             )
 
     def apply(
-        self, state: SimulationState, detection: Detection, multipliers: np.ndarray
+        self, world: SimulationState, name: str, detection: Detection, multipliers: np.ndarray
     ) -> tuple[SimulationState, list[Event]]:
-        """The state after the step's events, and the events."""
+        """The state after the events of instrument ``name``, and the events: ``detection`` holds that
+        instrument's rows and ``multipliers`` their forces (the tissue's cut, which every instrument meets,
+        may change with them)."""
         events: list[Event] = []
+        state = world.instrument(name)
         rows = detection.rows
         if state.phase == Phase.APPROACH and rows.row_count:
-            state, events = self._puncture(state, detection, multipliers)
+            state, events = self._puncture(world, state, detection, multipliers)
         if state.phase == Phase.INSERTION and not events:
             # (Not in the step that punctures: the entry point is then at the tip, on either side by
             # round-off.)
-            state, more = self._insertion(state, detection, multipliers)
+            world, state, more = self._insertion(world, state, detection, multipliers)
             events.extend(more)
         elif state.phase == Phase.CUTTING:
-            state, more = self._cutting(state, detection, multipliers)
+            world, state, more = self._cutting(world, state, detection, multipliers)
             events.extend(more)
-        return state, events
+        return world.with_instrument(state), events
 
-    def _puncture(self, state, detection, multipliers):
+    def _puncture(self, world, state, detection, multipliers):
         rows = detection.rows
         normal_rows = np.flatnonzero((rows.source == PENETRATION) & (rows.kind == UNILATERAL))
         normal_force = float(multipliers[normal_rows].sum())
@@ -186,21 +193,21 @@ class EventRules:
         if normal_force < threshold:
             return state, []
         contact = detection.contact
-        positions = state.tissue.positions
+        positions = world.tissue.positions
         entry = contact.barycentric @ positions[contact.nodes]
         tets, barycentric = locate_under_surface(positions, self.tets, entry[None, :], inward=contact.normal)
         if tets[0] < 0:
             return state, []
-        path = InsertionPath.empty().appended(tets, barycentric, state.step)
+        path = InsertionPath.empty().appended(tets, barycentric, world.step)
         state = replace(
             state, phase=Phase.INSERTION, path=path, tip_tet=int(tets[0]), tip_barycentric=barycentric[0]
         )
         return state, [Event("puncture", normal_force)]
 
-    def _insertion(self, state, detection, multipliers):
+    def _insertion(self, world, state, detection, multipliers):
         rows = detection.rows
         events: list[Event] = []
-        positions = state.tissue.positions
+        positions = world.tissue.positions
         if self.growth is not None and rows.row_count:
             force_on_needle = shaft_lateral_force(
                 rows.source,
@@ -210,7 +217,7 @@ class EventRules:
                 without_entry=self.law.excludes_entry_point,
                 points=rows.points_of_rows,
             )
-            started = self._cut_starts(state, force_on_needle)
+            started = self._cut_starts(world, state, force_on_needle)
             if started is not None:
                 return started
         needle = self.needle_geometry(state.needle)
@@ -221,10 +228,10 @@ class EventRules:
             mesh_tets=self.tets,
             locator=LazyLocator(positions, self.tets),
             spacing=self.insertion.spacing,
-            step=state.step,
+            step=world.step,
         )
-        if added and state.cut is not None and state.cut.triangle_count:
-            path = self._outside_cut(path, state, positions)
+        if added and world.cut is not None and world.cut.triangle_count:
+            path = self._outside_cut(path, world, positions)
         # Ring coupling: the centre of a point is not tied to the needle (its ring is), so it drifts along the
         # needle with the tissue's strain; half a spacing of hysteresis keeps such drift from removing and
         # re-adding it.
@@ -241,7 +248,7 @@ class EventRules:
         if path.point_count == 0:
             state = replace(state, phase=Phase.APPROACH, tip_tet=-1, tip_barycentric=None)
             events.append(Event("withdrawal"))
-        return state, events
+        return world, state, events
 
     def locate_tip(self, positions: np.ndarray, tip: np.ndarray, hint: int) -> tuple[int, np.ndarray | None]:
         """The tet holding the tip and the tip's barycentric coordinates in it, (−1, None) outside the tissue.
@@ -266,14 +273,14 @@ class EventRules:
         found, barycentric = TetLocator(positions, self.tets).locate(tip[None, :])
         return (int(found[0]), barycentric[0]) if found[0] >= 0 else (-1, None)
 
-    def _outside_cut(self, path, state, positions):
+    def _outside_cut(self, path, world, positions):
         """The path without its new points that lie in the existing cut (projecting inside it, within d_c of
         it): a needle inserted along a cut slides in it (its sliding rows), it does not puncture the tissue
         there."""
-        new = np.flatnonzero(path.created_step == state.step)
+        new = np.flatnonzero(path.created_step == world.step)
         if new.size == 0:
             return path
-        cut = state.cut
+        cut = world.cut
         found = cut.closest_points(
             path.positions(positions, self.tets)[new], cut.deformed_points(positions, self.tets)
         )
@@ -286,10 +293,11 @@ class EventRules:
         keep[new[in_cut]] = False
         return path.subset(keep)
 
-    def _cut_starts(self, state, force_on_needle):
-        """The state and events of a cut start, or None when the law's criterion does not hold
-        (``CuttingLaw.cut_start``). The cut runs the way the needle pushes the tissue, ĉ = −t/‖t‖."""
-        positions = state.tissue.positions
+    def _cut_starts(self, world, state, force_on_needle):
+        """The states (the world's, with the cut, and the instrument's) and events of a cut start, or None
+        when the law's criterion does not hold (``CuttingLaw.cut_start``). The cut runs the way the needle
+        pushes the tissue, ĉ = −t/‖t‖."""
+        positions = world.tissue.positions
         path_points = state.path.positions(positions, self.tets)
         needle = self.needle_geometry(state.needle)
         inserted = needle.length - float(needle.project(path_points[:1])[0][0])
@@ -300,21 +308,21 @@ class EventRules:
             return None
         direction = -force_on_needle / float(np.linalg.norm(force_on_needle))
         cut, strip = start_strip(
-            self.growth, state.cut, path_points, direction, positions, state.step, extent=start.extent
+            self.growth, world.cut, path_points, direction, positions, world.step, extent=start.extent
         )
         if strip is None:
             return None
+        world = replace(world, cut=cut)
         state = replace(
             state,
             phase=Phase.CUTTING,
-            cut=cut,
             cut_direction=np.asarray(direction, dtype=float),
             cut_strip=strip,
             path=state.path.subset(self.law.kept_at_cut_start(state.path.point_count)),
         )
-        return state, [Event("cut_start", start.trigger, start.unit)]
+        return world, state, [Event("cut_start", start.trigger, start.unit)]
 
-    def _leave_cut(self, state, needle, positions):
+    def _leave_cut(self, world, state, needle, positions):
         """The state after the needle left its cut backwards, into intact tissue: insertion points along the
         inserted needle every d_i (material points where the needle now is) but none in the cut (the rule of
         new points: a part of the needle still in its cut slides in it), the insertion phase, the cut kept
@@ -325,13 +333,13 @@ class EventRules:
         arcs = np.arange(entry_arc, needle.length + 1e-12 * spacing, spacing)
         tets, barycentric = locator.locate(needle.points(arcs))
         inside = tets >= 0
-        path = InsertionPath.empty().appended(tets[inside], barycentric[inside], state.step)
-        if state.cut is not None and state.cut.triangle_count:
-            path = self._outside_cut(path, state, positions)
+        path = InsertionPath.empty().appended(tets[inside], barycentric[inside], world.step)
+        if world.cut is not None and world.cut.triangle_count:
+            path = self._outside_cut(path, world, positions)
         events = [Event("leave_cut")]
         if path.point_count == 0:
             state = replace(state, phase=Phase.APPROACH, path=path, cut_strip=None, tip_tet=-1)
-            return state, [*events, Event("withdrawal")]
+            return world, state, [*events, Event("withdrawal")]
         tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, -1)
         state = replace(
             state,
@@ -341,7 +349,7 @@ class EventRules:
             tip_tet=tip_tet,
             tip_barycentric=tip_barycentric,
         )
-        return state, events
+        return world, state, events
 
     def _extended(self, strip, needle, positions, locator, entry_arc, step):
         """The strip with a block of columns added below its deepest one at ``step`` down to the needle's tip,
@@ -363,25 +371,25 @@ class EventRules:
         rest = np.einsum("pk,pkj->pj", barycentric, self.growth.rest_positions[self.tets[tets]])
         return strip.extended(CutFront(rest, tets, barycentric), depths[:run], step)
 
-    def _cutting(self, state, detection, multipliers):
+    def _cutting(self, world, state, detection, multipliers):
         """Withdrawal through the cut, and the growth of the cut where the needle pushes through its front."""
-        positions = state.tissue.positions
+        positions = world.tissue.positions
         needle = self.needle_geometry(state.needle)
         entry = state.path.positions(positions, self.tets)
         if state.path.point_count == 0 or points_beyond_tip(state.path, entry, needle)[0]:
             # The tip is back above the entry point: every row is released; the tissue keeps its cut.
             state = replace(state, phase=Phase.APPROACH, path=InsertionPath.empty(), cut_strip=None)
-            return state, [Event("retraction"), Event("withdrawal")]
+            return world, state, [Event("retraction"), Event("withdrawal")]
         events: list[Event] = []
         cutting = self.cutting
-        if state.cut_strip is not None and state.cut is not None:
+        if state.cut_strip is not None and world.cut is not None:
             # Moved back through its own cut and past the line it entered along (the strip's first layer, its
             # rear edge) by more than half a cut spacing: the needle is in intact tissue again.
-            rear = state.cut_strip.rear_edge(state.cut, positions, self.tets)
+            rear = state.cut_strip.rear_edge(world.cut, positions, self.tets)
             _, on_needle = needle.project(rear)
             behind = float(((on_needle - rear) @ state.cut_direction).mean())
             if behind < -0.5 * cutting.point_spacing:
-                return self._leave_cut(state, needle, positions)
+                return self._leave_cut(world, state, needle, positions)
         locator, entry_arc = None, None
         if self.law.extends_down_shaft and state.cut_strip is not None:
             # A needle inserted deeper than the strip while it cuts: pushed sideways with the rest of the
@@ -393,17 +401,17 @@ class EventRules:
             entry_arc = inserted_arc(needle, locator, cutting.point_spacing)
             state = replace(
                 state,
-                cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc, state.step),
+                cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc, world.step),
             )
         rows = detection.rows
         grown = self.law.grow(
             FrontPush(
                 growth=self.growth,
-                cut=state.cut,
+                cut=world.cut,
                 strip=state.cut_strip,
                 direction=state.cut_direction,
                 positions=positions,
-                step=state.step,
+                step=world.step,
                 needle=needle,
                 front=detection.front,
                 multipliers=multipliers,
@@ -416,8 +424,9 @@ class EventRules:
             )
         )
         if grown is None:
-            return state, events
+            return world, state, events
         if grown.tear is not None:
             events.append(Event("tear", grown.tear))
-        state = replace(state, cut=grown.cut, cut_strip=grown.strip, cut_direction=grown.direction)
-        return state, events
+        world = replace(world, cut=grown.cut)
+        state = replace(state, cut_strip=grown.strip, cut_direction=grown.direction)
+        return world, state, events

@@ -67,11 +67,11 @@ def _rest_frames(direction: np.ndarray, node_count: int) -> np.ndarray:
 class RigidNeedle:
     """A rigid needle moved by its base: nodes on a straight line, a kinematic body (no DoFs)."""
 
-    name = NEEDLE
     rigid = True
     dof_count = None
 
-    def __init__(self, length: float, element_count: int) -> None:
+    def __init__(self, length: float, element_count: int, *, name: str = NEEDLE) -> None:
+        self.name = name  # the instrument's name: its state's and its Jacobian's key
         self.length = float(length)
         self.arc_lengths = np.linspace(0.0, self.length, element_count + 1)
 
@@ -119,15 +119,23 @@ class FlexibleNeedle:
     model : The beam model (:class:`refsim.fem.needle.NeedleModel`).
     rayleigh_mass, rayleigh_stiffness : Rayleigh α [1/s] and β [s].
     compliance : Its bound compliance strategy; by default the exact one on :data:`NEEDLE_LINEAR_SOLVER`.
+    name : The body's name (its instrument's): the key of its Jacobian in a row block.
     """
 
-    name = NEEDLE
     rigid = False
 
     def __init__(
-        self, model, *, rayleigh_mass: float = 0.0, rayleigh_stiffness: float = 0.0, compliance=None
+        self,
+        model,
+        *,
+        rayleigh_mass: float = 0.0,
+        rayleigh_stiffness: float = 0.0,
+        compliance=None,
+        name: str = NEEDLE,
     ) -> None:
         from refsim.fem.compliance import Exact
+
+        self.name = name  # the instrument's name: its state's and its Jacobian's key
 
         self.model = model
         self.strategy = compliance if compliance is not None else Exact(NEEDLE_LINEAR_SOLVER).bind()

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["EVENT_UNITS", "STAGES", "Event", "StepRecord"]
+__all__ = ["EVENT_UNITS", "STAGES", "Event", "InstrumentRecord", "StepRecord"]
 
 # The stages of one step, in order (DESIGN.md, "One time step"); their seconds are recorded every step.
 STAGES = ("motion", "free_motion", "detection", "compliance", "solve", "correction", "events")
@@ -34,8 +34,38 @@ class Event:
 
 
 @dataclass(frozen=True, kw_only=True)
+class InstrumentRecord:
+    """What one step did to one instrument.
+
+    Attributes
+    ----------
+    name : The instrument's name.
+    phase : Its phase after the step's events.
+    events : Its events of the step.
+    base_position : Its needle's base [m], (3,).
+    needle_positions : Its needle's nodes [m], (k, 3).
+    needle_frames : Its needle's frames, (k, 3, 3).
+    needle_force : Force of the tissue on its needle, Σ λ n over its rows [N], (3,).
+    insertion_point_count : Its insertion points after the step.
+    """
+
+    name: str
+    phase: str
+    events: tuple[Event, ...]
+    base_position: np.ndarray
+    needle_positions: np.ndarray
+    needle_frames: np.ndarray
+    needle_force: np.ndarray
+    insertion_point_count: int
+
+
+@dataclass(frozen=True, kw_only=True)
 class StepRecord:
     """One step, as recorded.
+
+    The needle fields (``phase``, ``events``, ``base_position``, ``needle_positions``, ``needle_frames``,
+    ``needle_force``, ``insertion_point_count``) are the first instrument's (the only one's in a
+    one-instrument scene); ``instruments`` holds every instrument's, in the scene's order.
 
     Attributes
     ----------
@@ -61,7 +91,10 @@ class StepRecord:
     boundary_displacements : Prescribed displacement from rest of the tissue's moving boundary nodes at the
         end of the step [m], (k, 3), or None without boundary motion.
     row_role : Role of each row (``refsim.constraints.ROLE_NAMES``), (r,).
-    row_point : Insertion point of each row (its index in the path, the entry is 0), −1 for others, (r,).
+    row_point : Insertion point of each row (its index in its instrument's path, the entry is 0), −1 for
+        others, (r,).
+    instruments : Every instrument's part of the step, in the scene's order.
+    row_instrument : The instrument of each row (its index in ``instruments``), (r,).
     """
 
     step: int
@@ -88,3 +121,5 @@ class StepRecord:
     boundary_displacements: np.ndarray | None = None
     row_role: np.ndarray | None = None
     row_point: np.ndarray | None = None
+    instruments: tuple[InstrumentRecord, ...] = ()
+    row_instrument: np.ndarray | None = None

@@ -46,13 +46,13 @@ from refsim.constraints.coupling import stuck_points
 from refsim.fem.compliance import make_strategy
 from refsim.fem.threads import hot_path_threads
 from refsim.scene import Scene
-from refsim.scene.build import SceneModels, build_controls, build_models
+from refsim.scene.build import InstrumentModels, SceneModels, build_controls, build_models
 from refsim.scene.controls import Controls
 from refsim.simulation.bodies import Body, TissueBody
 from refsim.simulation.detection import Detector
 from refsim.simulation.events import EventRules
-from refsim.simulation.needle_body import FlexibleNeedle, RigidNeedle
-from refsim.simulation.records import STAGES, StepRecord
+from refsim.simulation.instrument import Instrument
+from refsim.simulation.records import STAGES, InstrumentRecord, StepRecord
 from refsim.simulation.state import Phase, SimulationState
 from refsim.solvers import solve_exact, solve_gauss_seidel
 
@@ -103,14 +103,6 @@ class Simulation:
         self.tets = np.asarray(self.models.mesh.tets)
         self.faces = np.asarray(self.models.mesh.boundary_faces)
         self.tissue = self.models.tissue
-        if scene.needle.rigid:
-            self.needle = RigidNeedle(scene.needle.length, scene.needle.element_count)
-        else:
-            self.needle = FlexibleNeedle(
-                self.models.needle,
-                rayleigh_mass=scene.needle.rayleigh_mass,
-                rayleigh_stiffness=scene.needle.rayleigh_stiffness,
-            )
         self.dt = scene.time.dt
         spec = scene.compliance
         self.tissue_compliance = make_strategy(
@@ -120,31 +112,55 @@ class Simulation:
             w_update=spec.w_update,
         ).bind()
         self.tissue_body = TissueBody(self.tissue, self.tissue_compliance)
-        #: Every body of the step, in the order W is summed: the tissue, then the needle.
-        self.bodies: tuple[Body, ...] = (self.tissue_body, self.needle)
-        self.detector = Detector(
-            scene, self.faces, self.needle.dof_count, self.models.mesh.rest_positions, self.tets
+        instrument_models = self.models.instruments or (
+            InstrumentModels(
+                "needle", scene.needle, self.models.needle, self.models.trajectory, scene.cutting.enabled
+            ),
         )
-        self.event_rules = EventRules(
-            scene,
-            self.tets,
-            self.models.mesh.rest_positions,
-            self.tissue.deformation_gradients,
-            self.needle.geometry,
+        rest = self.models.mesh.rest_positions
+        #: The scene's instruments, in order: each with its body, controls, detector and event rules.
+        self.instruments: tuple[Instrument, ...] = tuple(
+            Instrument(index, models, scene, self.tissue, self.faces, self.tets, rest)
+            for index, models in enumerate(instrument_models)
         )
+        #: Every body of the step, in the order W is summed: the tissue, then each instrument's needle.
+        self.bodies: tuple[Body, ...] = (self.tissue_body, *(i.body for i in self.instruments))
+
+    @property
+    def sole(self) -> Instrument:
+        """The only instrument; a simulation of several raises (use ``instruments``)."""
+        if len(self.instruments) != 1:
+            names = ", ".join(instrument.name for instrument in self.instruments)
+            raise AttributeError(
+                f"the simulation has {len(self.instruments)} instruments ({names}): use instruments"
+            )
+        return self.instruments[0]
+
+    @property
+    def needle(self):
+        """The only instrument's needle body (one-instrument simulations only)."""
+        return self.sole.body
+
+    @property
+    def detector(self) -> Detector:
+        """The only instrument's detector (one-instrument simulations only)."""
+        return self.sole.detector
+
+    @property
+    def event_rules(self) -> EventRules:
+        """The only instrument's event rules (one-instrument simulations only)."""
+        return self.sole.event_rules
 
     # ------------------------------------------------------------------ state
 
     def initial_state(self) -> SimulationState:
-        """Tissue at rest, needle at the trajectory's first pose, tip outside."""
+        """Tissue at rest, each needle at its trajectory's first pose, tips outside."""
         control = self.controls.at(0.0)
         return SimulationState(
             step=0,
             time=0.0,
-            phase=Phase.APPROACH,
             tissue=self.tissue.rest_state(),
-            needle=self.needle.state_at(control.base_position, control.direction),
-            path=InsertionPath.empty(),
+            instruments=tuple(instrument.initial_state(control) for instrument in self.instruments),
         )
 
     # ------------------------------------------------------------------ step
@@ -169,62 +185,91 @@ class Simulation:
 
         self.tissue_compliance.resume(state.tissue_factor)
         free, systems = {}, {}
-        for body in self.bodies:
-            free[body.name], systems[body.name] = body.free_motion(getattr(state, body.name), control, dt)
+        tissue = self.tissue_body
+        free[tissue.name], systems[tissue.name] = tissue.free_motion(state.tissue, control, dt)
+        for instrument in self.instruments:
+            body = instrument.body
+            own = state.instrument(instrument.name).needle
+            free[body.name], systems[body.name] = body.free_motion(own, instrument.control(control), dt)
         timer.lap("free_motion")
 
-        geometry = StepGeometry(
-            mesh_tets=self.tets,
-            tissue_previous=state.tissue.positions,
-            tissue_free=free[self.tissue_body.name].positions,
-            needle_previous=self.needle.geometry(state.needle),
-            needle_free=self.needle.geometry(free[self.needle.name]),
-        )
-        detection = self.detector.detect(state, geometry)
-        rows = detection.rows
+        detections = []
+        for instrument in self.instruments:
+            body = instrument.body
+            geometry = StepGeometry(
+                mesh_tets=self.tets,
+                tissue_previous=state.tissue.positions,
+                tissue_free=free[tissue.name].positions,
+                needle_previous=body.geometry(state.instrument(instrument.name).needle),
+                needle_free=body.geometry(free[body.name]),
+            )
+            detections.append(instrument.detect(state, geometry))
+        rows = RowBlock.concatenate([detection.rows for detection in detections])
         timer.lap("detection")
 
         problem, responses = self._problem(rows, systems)
         timer.lap("compliance")
 
-        multipliers, report = self._solve(problem, self._warm_start(state, detection))
+        multipliers, report = self._solve(problem, self._warm_start(state, rows))
         timer.lap("solve")
 
         corrected = self._correct(state, free, systems, responses, multipliers)
         self._check_finite(step, corrected, multipliers)
         timer.lap("correction")
 
-        path = state.path if detection.rings is None else state.path.with_rings(detection.rings)
+        instruments = []
+        for instrument, detection in zip(self.instruments, detections, strict=True):
+            own = state.instrument(instrument.name)
+            path = own.path if detection.rings is None else own.path.with_rings(detection.rings)
+            path = self._store_multipliers(path, rows, instrument.index, problem, multipliers)
+            instruments.append(replace(own, needle=corrected[instrument.body.name], path=path))
         new_state = replace(
             state,
             step=step,
             time=time,
-            path=self._store_multipliers(path, detection, problem, multipliers),
+            tissue=corrected[tissue.name],
+            instruments=tuple(instruments),
             tissue_factor=self.tissue_compliance.carried(),
-            **corrected,
         )
-        needle_state = corrected[self.needle.name]
-        tissue_state = corrected[self.tissue_body.name]
-        new_state, events = self.event_rules.apply(new_state, detection, multipliers)
+        parts = []
+        for instrument, detection in zip(self.instruments, detections, strict=True):
+            mine = rows.instruments == instrument.index
+            new_state, events = instrument.event_rules.apply(
+                new_state, instrument.name, detection, multipliers[mine]
+            )
+            own = new_state.instrument(instrument.name)
+            parts.append(
+                InstrumentRecord(
+                    name=instrument.name,
+                    phase=str(own.phase),
+                    events=tuple(events),
+                    base_position=own.needle.base_position,
+                    needle_positions=own.needle.positions,
+                    needle_frames=own.needle.frames,
+                    needle_force=instrument.needle_force(rows, multipliers),
+                    insertion_point_count=own.path.point_count,
+                )
+            )
         timer.lap("events")
 
-        needle_force = (rows.directions * multipliers[:, None]).sum(axis=0) if rows.row_count else np.zeros(3)
+        tissue_state = new_state.tissue
+        first = parts[0]
         record = StepRecord(
             step=step,
             time=time,
-            phase=str(new_state.phase),
-            events=tuple(events),
-            base_position=needle_state.base_position,
-            needle_positions=needle_state.positions,
-            needle_frames=needle_state.frames,
+            phase=first.phase,
+            events=first.events,
+            base_position=first.base_position,
+            needle_positions=first.needle_positions,
+            needle_frames=first.needle_frames,
             tissue_positions=tissue_state.positions if record_tissue else None,
             row_kind=rows.kind,
             row_source=rows.source,
             row_points=rows.points,
             row_directions=rows.directions,
             row_forces=multipliers,
-            needle_force=needle_force,
-            insertion_point_count=new_state.path.point_count,
+            needle_force=first.needle_force,
+            insertion_point_count=first.insertion_point_count,
             solver=report,
             stage_seconds=timer.seconds,
             problem=problem if self.scene.output.record_problems else None,
@@ -234,6 +279,8 @@ class Simulation:
             boundary_displacements=control.boundary_displacements if control.boundary_nodes.size else None,
             row_role=rows.roles,
             row_point=rows.points_of_rows,
+            instruments=tuple(parts),
+            row_instrument=rows.instruments,
         )
         return new_state, record
 
@@ -279,7 +326,7 @@ class Simulation:
         return {
             body.name: body.correct(
                 systems[body.name],
-                getattr(state, body.name),
+                state.body_state(body.name),
                 free[body.name],
                 responses[body.name],
                 multipliers,
@@ -308,30 +355,36 @@ class Simulation:
             criterion=spec.criterion,
         )
 
-    def _warm_start(self, state: SimulationState, detection) -> np.ndarray:
-        """Last step's multipliers of the insertion points (they persist from step to step), zero
-        elsewhere."""
-        rows = detection.rows
+    def _warm_start(self, state: SimulationState, rows: RowBlock) -> np.ndarray:
+        """Last step's multipliers of each instrument's insertion points (they persist from step to step),
+        zero elsewhere; read from the rows' instrument, role and point fields."""
         warm = np.zeros(rows.row_count)
-        found, points, columns = _point_rows(rows)
-        if found.size:
-            warm[found] = state.path.multipliers[points, columns]
+        for instrument in self.instruments:
+            found, points, columns = _point_rows(rows, instrument.index)
+            if found.size:
+                warm[found] = state.instrument(instrument.name).path.multipliers[points, columns]
         return warm
 
     def _store_multipliers(
-        self, path: InsertionPath, detection, problem, multipliers: np.ndarray
+        self, path: InsertionPath, rows: RowBlock, index: int, problem, multipliers: np.ndarray
     ) -> InsertionPath:
-        """The path with each point's multipliers, stick state, stick anchor and annulus stretch after the
-        solve, read from the rows' roles and points (points without rows this step keep theirs)."""
-        rows = detection.rows
-        found, points, columns = _point_rows(rows)
+        """Instrument ``index``'s path with each point's multipliers, stick state, stick anchor and annulus
+        stretch after the solve, read from the rows' instrument, role and point fields (points without rows
+        this step keep theirs)."""
+        found, points, columns = _point_rows(rows, index)
         if found.size == 0:
             return path
         stored = np.array(path.multipliers, copy=True)
         stored[np.unique(points)] = 0.0
         stored[points, columns] = multipliers[found]
         path = path.with_multipliers(stored)
-        shaft = rows.shaft_rows[rows.source[rows.shaft_rows] == INSERTION] if rows.shaft_rows.size else []
+        shaft = (
+            rows.shaft_rows[
+                (rows.source[rows.shaft_rows] == INSERTION) & (rows.instruments[rows.shaft_rows] == index)
+            ]
+            if rows.shaft_rows.size
+            else []
+        )
         if len(shaft) == 0:
             return path
         # The stick state of each point for the next step's coefficient (μ_s when stuck, μ_d when slipping).
@@ -377,13 +430,15 @@ _ROLE_COLUMN = np.full(len(ROLE_NAMES), -1, dtype=np.int64)
 _ROLE_COLUMN[[LATERAL_FIRST, LATERAL_SECOND, AXIAL_FRICTION]] = (0, 1, 2)
 
 
-def _point_rows(rows: RowBlock) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The insertion points' rows: their indices, their points (into the path) and their columns in
-    ``InsertionPath.multipliers``, shape (k,) each."""
+def _point_rows(rows: RowBlock, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Instrument ``index``'s insertion points' rows: their indices, their points (into its path) and their
+    columns in ``InsertionPath.multipliers``, shape (k,) each."""
     if rows.row_count == 0:
         empty = np.zeros(0, dtype=np.int64)
         return empty, empty, empty
     columns = _ROLE_COLUMN[rows.roles]
     points = rows.points_of_rows
-    found = np.flatnonzero((rows.source == INSERTION) & (points >= 0) & (columns >= 0))
+    found = np.flatnonzero(
+        (rows.source == INSERTION) & (points >= 0) & (columns >= 0) & (rows.instruments == index)
+    )
     return found, points[found], columns[found]

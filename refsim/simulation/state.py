@@ -2,23 +2,23 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 
 import numpy as np
 
-from refsim.constraints import InsertionPath
+from refsim.constraints import TISSUE, InsertionPath
 from refsim.cutting import CutSurface
 from refsim.cutting.strip import CutStrip
 from refsim.fem.compliance import StaleFactor
 from refsim.fem.tissue import TissueState
 from refsim.simulation.needle_body import NeedleState
 
-__all__ = ["Phase", "SimulationState"]
+__all__ = ["InstrumentState", "Phase", "SimulationState"]
 
 
 class Phase(StrEnum):
-    """Phases of a needle's life (their values are the names stored in the results)."""
+    """Phases of an instrument's life (their values are the names stored in the results)."""
 
     APPROACH = "approach"  # the tip is outside: tip contact with the surface
     INSERTION = "insertion"  # after puncture: insertion points along the path
@@ -26,45 +26,120 @@ class Phase(StrEnum):
 
 
 @dataclass(frozen=True)
+class InstrumentState:
+    """Everything one instrument (today: a needle) changes during a run: its own story.
+
+    Attributes
+    ----------
+    name : The instrument's name (the scene's; its body's name: the key of its Jacobian in a row block).
+    phase : Its phase.
+    needle : Its needle's configuration.
+    path : Its insertion points (material points of the tissue), with the coupling ring each point's rows
+        were last built on (``InsertionPath.rings``).
+    cut_direction : ĉ, the unit direction its cut runs in the deformed state, shape (3,); None until it
+        starts cutting.
+    cut_strip : The structure of the cut it is making (its layers and crack tip); None outside its cutting
+        phase (a withdrawn needle leaves the cut surface behind).
+    tip_tet : The tissue tet its tip lies in after the step, −1 when the tip is outside the tissue (before
+        puncture, after an exit through a far face or a withdrawal).
+    tip_barycentric : The tip's barycentric coordinates in ``tip_tet``, shape (4,); None when outside.
+    """
+
+    name: str
+    phase: Phase
+    needle: NeedleState
+    path: InsertionPath
+    cut_direction: np.ndarray | None = None
+    cut_strip: CutStrip | None = None
+    tip_tet: int = -1
+    tip_barycentric: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
 class SimulationState:
-    """Everything that changes during a run.
+    """Everything that changes during a run: the tissue's part and each instrument's story.
 
     A step is a function of its state, the scene and the controls: a new :class:`refsim.simulation.Simulation`
     of the same scene continued from a state gives the bits of the run that made the state (what a simulation
-    keeps across steps is either carried here, like the insertion points' coupling rings in ``path`` and the
-    tissue's stale factor, or a memo of the scene's models).
+    keeps across steps is either carried here, like the insertion points' coupling rings in each instrument's
+    ``path`` and the tissue's stale factor, or a memo of the scene's models).
 
     Attributes
     ----------
     step : Steps done.
     time : Simulated time [s].
-    phase : The needle's phase.
     tissue : Tissue positions [m] and velocities [m/s], each (n, 3).
-    needle : Needle configuration.
-    path : Insertion points (material points of the tissue), with the coupling ring each point's rows were
-        last built on (``InsertionPath.rings``).
-    cut : The cut surface, None until the tissue is cut.
-    cut_direction : ĉ, the unit direction the cut runs in the deformed state, shape (3,); None until the cut
-        starts.
-    cut_strip : The structure of the cut the needle is making (its layers and crack tip); None outside the
-        cutting phase (a withdrawn needle leaves the cut surface behind).
-    tip_tet : The tissue tet the needle's tip lies in after the step, −1 when the tip is outside the tissue
-        (before puncture, after an exit through a far face or a withdrawal).
-    tip_barycentric : The tip's barycentric coordinates in ``tip_tet``, shape (4,); None when outside.
+    instruments : Each instrument's state, in the scene's order.
+    cut : The cut surface of the tissue, None until the tissue is cut. It belongs to the tissue: every
+        instrument's rows meet it.
     tissue_factor : The tissue compliance's stale factor (the refreshed strategy: the matrix A it last
         factorised and the steps since, :class:`refsim.fem.compliance.StaleFactor`); None for the strategies
         that carry nothing from step to step, and before the first step.
+
+    The one-instrument shortcuts ``phase``, ``needle``, ``path``, ``cut_direction``, ``cut_strip``,
+    ``tip_tet`` and ``tip_barycentric`` read the only instrument's fields; on a state with several instruments
+    they raise (use :meth:`instrument`).
     """
 
     step: int
     time: float
-    phase: Phase
     tissue: TissueState
-    needle: NeedleState
-    path: InsertionPath
+    instruments: tuple[InstrumentState, ...]
     cut: CutSurface | None = None
-    cut_direction: np.ndarray | None = None
-    cut_strip: CutStrip | None = None
-    tip_tet: int = -1
-    tip_barycentric: np.ndarray | None = None
     tissue_factor: StaleFactor | None = None
+
+    @property
+    def instrument_names(self) -> tuple[str, ...]:
+        """The instruments' names, in order."""
+        return tuple(instrument.name for instrument in self.instruments)
+
+    def instrument(self, name: str) -> InstrumentState:
+        """The state of the instrument called ``name``."""
+        for instrument in self.instruments:
+            if instrument.name == name:
+                return instrument
+        raise KeyError(
+            f"no instrument {name!r} in the state (instruments: {', '.join(self.instrument_names)})"
+        )
+
+    def with_instrument(self, instrument: InstrumentState) -> SimulationState:
+        """The state with ``instrument`` in place of the instrument of the same name."""
+        names = self.instrument_names
+        if instrument.name not in names:
+            raise KeyError(
+                f"no instrument {instrument.name!r} in the state (instruments: {', '.join(names)})"
+            )
+        instruments = tuple(
+            instrument if name == instrument.name else old
+            for name, old in zip(names, self.instruments, strict=True)
+        )
+        return replace(self, instruments=instruments)
+
+    def body_state(self, name: str):
+        """The state of the body called ``name``: the tissue's, or an instrument's needle."""
+        return self.tissue if name == TISSUE else self.instrument(name).needle
+
+    @property
+    def sole(self) -> InstrumentState:
+        """The only instrument's state; a state with several raises (name one: :meth:`instrument`)."""
+        if len(self.instruments) != 1:
+            raise AttributeError(
+                f"the state has {len(self.instruments)} instruments ({', '.join(self.instrument_names)}): "
+                "name one with state.instrument(name)"
+            )
+        return self.instruments[0]
+
+
+def _sole_field(name: str) -> property:
+    def read(self: SimulationState):
+        return getattr(self.sole, name)
+
+    read.__doc__ = (
+        f"The only instrument's ``{name}`` (one-instrument states only; see :attr:`SimulationState.sole`)."
+    )
+    return property(read)
+
+
+for _name in ("phase", "needle", "path", "cut_direction", "cut_strip", "tip_tet", "tip_barycentric"):
+    setattr(SimulationState, _name, _sole_field(_name))
+del _name
