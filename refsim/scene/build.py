@@ -307,38 +307,11 @@ def build_models(scene: Scene) -> SceneModels:
         gravity=tissue_spec.gravity,
     )
     report_fixed_set(scene, mesh, tissue.fixed_nodes)
-    if scene.trajectory.entry is not None:
-        try:
-            aim = aimed(scene.trajectory, mesh.rest_positions, mesh.boundary_faces, scene.needle.length)
-        except ValueError as error:
-            raise SceneError(f"{scene.source}: {error}") from None
-        load_logger.info("%s: %s", scene.source, aim.describe())
-        trajectory = aim.trajectory
-    else:
-        try:
-            trajectory = Trajectory.from_spec(scene.trajectory, scene.base_directory)
-        except ValueError as error:
-            raise SceneError(f"{scene.source}: trajectory.file: {error}") from None
-    check_models(scene, mesh, trajectory)
-    check_time_resolution(scene, mesh, trajectory)
-    check_insertion_spacing(scene, mesh, trajectory)
-    needle = None
-    if not scene.needle.rigid:
-        from refsim.fem.needle import NeedleModel  # only flexible needles need the beam model
-
-        base, direction = trajectory.pose(0.0)
-        spec = scene.needle
-        needle = NeedleModel(
-            length=spec.length,
-            radius=spec.radius,
-            element_count=spec.element_count,
-            youngs_modulus=spec.youngs_modulus,
-            poisson_ratio=spec.poisson_ratio,
-            density=spec.density,
-            base_position=base,
-            direction=direction,
-        )
-    instruments = (InstrumentModels("needle", scene.needle, needle, trajectory, scene.cutting.enabled),)
+    instruments = tuple(
+        _instrument_models(scene, mesh, index, spec) for index, spec in enumerate(scene.instrument_specs)
+    )
+    first = instruments[0]
+    needle, trajectory = first.model, first.trajectory
     return SceneModels(
         mesh=mesh,
         tissue=tissue,
@@ -347,6 +320,44 @@ def build_models(scene: Scene) -> SceneModels:
         boundary_nodes=moving,
         instruments=instruments,
     )
+
+
+def _instrument_models(scene: Scene, mesh: TetMesh, index: int, spec) -> InstrumentModels:
+    """One instrument's trajectory (aimed on the mesh, read from its file or its waypoints, checked against
+    the mesh) and, for a flexible needle, its beam model posed at the trajectory's first pose."""
+    where = f"instruments[{index}].trajectory" if scene.instruments else "trajectory"
+    if spec.trajectory.entry is not None:
+        try:
+            aim = aimed(spec.trajectory, mesh.rest_positions, mesh.boundary_faces, spec.needle.length)
+        except ValueError as error:
+            raise SceneError(f"{scene.source}: {error}") from None
+        load_logger.info("%s: %s", scene.source, aim.describe())
+        trajectory = aim.trajectory
+    else:
+        try:
+            trajectory = Trajectory.from_spec(spec.trajectory, scene.base_directory)
+        except ValueError as error:
+            raise SceneError(f"{scene.source}: {where}.file: {error}") from None
+    check_models(scene, mesh, trajectory)
+    check_time_resolution(scene, mesh, trajectory)
+    check_insertion_spacing(scene, mesh, trajectory)
+    model = None
+    if not spec.needle.rigid:
+        from refsim.fem.needle import NeedleModel  # only flexible needles need the beam model
+
+        base, direction = trajectory.pose(0.0)
+        needle = spec.needle
+        model = NeedleModel(
+            length=needle.length,
+            radius=needle.radius,
+            element_count=needle.element_count,
+            youngs_modulus=needle.youngs_modulus,
+            poisson_ratio=needle.poisson_ratio,
+            density=needle.density,
+            base_position=base,
+            direction=direction,
+        )
+    return InstrumentModels(spec.name, spec.needle, model, trajectory, bool(spec.cuts))
 
 
 def boundary_nodes(scene: Scene, mesh: TetMesh) -> np.ndarray:

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from refsim.scene.fields import FieldError, describe_field
-from refsim.scene.spec import SECTIONS, ConsistencyError, Scene
+from refsim.scene.spec import SECTIONS, ConsistencyError, InstrumentSpec, NeedleSpec, Scene, TrajectorySpec
 
 __all__ = ["SceneError", "load_scene", "scene_from_dict", "scene_to_json", "builtin_scenes", "parse_override"]
 
@@ -101,7 +101,7 @@ def scene_from_dict(
         Naming the file or the override, section.key, the value and what is allowed.
     """
     overrides = overrides or {}
-    unknown = sorted(set(data) - set(SECTIONS) - {"name"})
+    unknown = sorted(set(data) - set(SECTIONS) - {"name", "instruments"})
     if unknown:
         raise SceneError(f"{source}: unknown section or key {unknown[0]!r} (sections: {', '.join(SECTIONS)})")
     if not isinstance(data.get("name", ""), str):
@@ -109,6 +109,13 @@ def scene_from_dict(
     sections = {}
     for name, cls in SECTIONS.items():
         table = data.get(name)
+        if name == "trajectory" and "instruments" in data:
+            if table is not None:
+                raise SceneError(
+                    f"{source}: [trajectory] and [[instruments]] are both given: a scene has either one "
+                    "needle ([needle] and [trajectory]) or [[instruments]], each with its own trajectory"
+                )
+            continue
         if table is None:
             if name in ("output", "compliance", "boundary"):
                 table = {}
@@ -139,6 +146,9 @@ def scene_from_dict(
             ) from None
         except (ValueError, TypeError) as error:
             raise SceneError(f"{source}: [{name}] {error}") from None
+    if "instruments" in data:
+        sections["instruments"] = _instruments(data["instruments"], sections["needle"], source)
+        sections["trajectory"] = sections["instruments"][0].trajectory
     try:
         return Scene(
             name=data.get("name", Path(source).stem), source=source, base_directory=base_directory, **sections
@@ -148,6 +158,62 @@ def scene_from_dict(
             f"{_origin(source, overrides, error.section, error.key, error.related_keys)}: "
             f"{_qualified(error.section, error.key, str(error))}"
         ) from None
+
+
+def _built(cls, table: dict, where: str, source: str):
+    """``cls(**table)``, a bad value named as ``where.key`` with the file."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    for key in table:
+        if key not in fields:
+            raise SceneError(f"{source}: unknown key {where}.{key} (keys: {', '.join(fields)})")
+    try:
+        return cls(**{k: _tuples(v) for k, v in table.items()})
+    except FieldError as error:
+        raise SceneError(f"{source}: {where}.{error}") from None
+    except (ValueError, TypeError) as error:
+        raise SceneError(f"{source}: {where}: {error}") from None
+
+
+def _instruments(tables: Any, needle: NeedleSpec, source: str) -> tuple[InstrumentSpec, ...]:
+    """The [[instruments]] array: each table's name, cuts, trajectory sub-table and [needle] overrides."""
+    if not isinstance(tables, list) or not tables or not all(isinstance(t, dict) for t in tables):
+        raise SceneError(
+            f"{source}: instruments = {tables!r}: expected an array of tables [[instruments]] (at least "
+            "one), each with name and a [instruments.trajectory] sub-table"
+        )
+    needle_keys = {f.name for f in dataclasses.fields(NeedleSpec)}
+    allowed = ("name", "cuts", "trajectory", *needle_keys)
+    found = []
+    for index, table in enumerate(tables):
+        where = f"instruments[{index}]"
+        for key in table:
+            if key not in allowed:
+                raise SceneError(
+                    f"{source}: unknown key {where}.{key} (keys: name, cuts, trajectory and the keys of "
+                    f"[needle]: {', '.join(sorted(needle_keys))})"
+                )
+        for key in ("name", "trajectory"):
+            if key not in table:
+                raise SceneError(f"{source}: missing key {where}.{key}")
+        if not isinstance(table["trajectory"], dict):
+            raise SceneError(f"{source}: {where}.trajectory must be a table ([{where}.trajectory] keys)")
+        trajectory = _built(TrajectorySpec, table["trajectory"], f"{where}.trajectory", source)
+        overrides = {key: value for key, value in table.items() if key in needle_keys}
+        own_needle = _built(NeedleSpec, {**dataclasses.asdict(needle), **overrides}, where, source)
+        found.append(
+            _built(
+                InstrumentSpec,
+                {
+                    "name": table["name"],
+                    **({"cuts": table["cuts"]} if "cuts" in table else {}),
+                    "trajectory": trajectory,
+                    "needle": own_needle,
+                },
+                where,
+                source,
+            )
+        )
+    return tuple(found)
 
 
 def load_scene(path_or_name: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> Scene:

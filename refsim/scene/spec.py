@@ -30,6 +30,7 @@ __all__ = [
     "OutputSpec",
     "ComplianceSpec",
     "BoundarySpec",
+    "InstrumentSpec",
     "Scene",
     "FACE_NAMES",
     "LARGEST_COORDINATE",
@@ -820,9 +821,47 @@ class BoundarySpec(_Validated):
             )
 
 
+#: The name of the one instrument of a scene with [needle] and [trajectory] (no [[instruments]]).
+SOLE_INSTRUMENT = "needle"
+#: Names an instrument cannot take: the tissue's body name.
+RESERVED_NAMES = ("tissue",)
+_NAME_CHARACTERS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-")
+
+
+@dataclass(frozen=True, kw_only=True)
+class InstrumentSpec(_Validated):
+    """One instrument (a needle) of a scene with several: an array of tables ``[[instruments]]``, each with
+    its ``name``, its own ``trajectory`` sub-table (``[instruments.trajectory]``, the keys of [trajectory]),
+    optional overrides of any [needle] key (e.g. ``radius``, ``rigid``) and whether it may cut. A scene has
+    either [trajectory] (one instrument, named "needle") or [[instruments]], not both. The instruments meet
+    only through the tissue (its compliance couples their rows; the cut surface one makes is met by the
+    others' rows): needles do not touch each other. At most one instrument per scene may cut.
+    """
+
+    name: str = spec(
+        doc="the instrument's name: letters, digits, _ and -; unique in the scene; not 'tissue'; its results "
+        "are under instruments/<name>/ (the first instrument's at the one-needle paths)"
+    )
+    cuts: bool | None = spec(
+        None, doc="whether the instrument may cut (default: cutting.enabled); at most one per scene"
+    )
+    trajectory: TrajectorySpec | None = None
+    needle: NeedleSpec | None = None
+
+    def validate(self) -> None:
+        if not self.name or not set(self.name) <= _NAME_CHARACTERS:
+            raise FieldError("name", f"name = {self.name!r}: expected letters, digits, _ and - (not empty)")
+        if self.name in RESERVED_NAMES:
+            raise FieldError("name", f"name = {self.name!r}: the tissue's name; choose another")
+
+
 @dataclass(frozen=True, kw_only=True)
 class Scene:
-    """A whole scene. Built once, never mutated (STYLE.md pattern 6)."""
+    """A whole scene. Built once, never mutated (STYLE.md pattern 6).
+
+    ``instruments`` is empty for a scene of one needle ([needle] and [trajectory]); with [[instruments]] it
+    holds each one (its ``needle`` is [needle] with its overrides) and ``trajectory`` is the first one's.
+    """
 
     name: str
     mesh: MeshSpec
@@ -836,17 +875,52 @@ class Scene:
     output: OutputSpec = dataclasses.field(default_factory=OutputSpec)
     compliance: ComplianceSpec = dataclasses.field(default_factory=ComplianceSpec)
     boundary: BoundarySpec = dataclasses.field(default_factory=BoundarySpec)
+    instruments: tuple[InstrumentSpec, ...] = ()
     source: str = "<memory>"
     base_directory: str = "."
 
     def __post_init__(self) -> None:
         check_consistency(self)
 
+    @property
+    def instrument_specs(self) -> tuple[InstrumentSpec, ...]:
+        """Every instrument, resolved (its needle, its trajectory, whether it cuts), in order: the
+        [[instruments]], or the one needle "needle" of [needle] and [trajectory]."""
+        if not self.instruments:
+            return (
+                InstrumentSpec(
+                    name=SOLE_INSTRUMENT,
+                    cuts=self.cutting.enabled,
+                    trajectory=self.trajectory,
+                    needle=self.needle,
+                ),
+            )
+        return tuple(
+            dataclasses.replace(spec, cuts=self.cutting.enabled if spec.cuts is None else spec.cuts)
+            for spec in self.instruments
+        )
+
     def to_dict(self) -> dict:
         """The scene as plain data (TOML sections), for the results file and for overrides."""
         out: dict = {"name": self.name}
         for section in SECTIONS:
+            if section == "trajectory" and self.instruments:
+                continue
             out[section] = dataclasses.asdict(getattr(self, section))
+        if self.instruments:
+            out["instruments"] = [
+                {
+                    "name": spec.name,
+                    **({} if spec.cuts is None else {"cuts": spec.cuts}),
+                    **{
+                        key: value
+                        for key, value in dataclasses.asdict(spec.needle).items()
+                        if value != getattr(self.needle, key)
+                    },
+                    "trajectory": dataclasses.asdict(spec.trajectory),
+                }
+                for spec in self.instruments
+            ]
         return out
 
 
@@ -922,13 +996,15 @@ def scene_scale(scene: Scene) -> float:
     if mesh.size is not None:
         far = np.abs(np.asarray(mesh.origin, dtype=float)) + np.abs(np.asarray(mesh.size, dtype=float))
         scale = max(scale, float(far.max()))
-    trajectory = scene.trajectory
-    if trajectory.base_positions is not None:
-        bases = np.abs(np.asarray(trajectory.base_positions, dtype=float))
-        scale = max(scale, float(bases.max()) + scene.needle.length)
-    if trajectory.entry is not None:
-        reach = float(np.abs(np.asarray(trajectory.entry, dtype=float)).max()) + trajectory.standoff
-        scale = max(scale, reach + scene.needle.length)
+    for instrument in scene.instrument_specs:
+        trajectory, length = instrument.trajectory, instrument.needle.length
+        scale = max(scale, length)
+        if trajectory.base_positions is not None:
+            bases = np.abs(np.asarray(trajectory.base_positions, dtype=float))
+            scale = max(scale, float(bases.max()) + length)
+        if trajectory.entry is not None:
+            reach = float(np.abs(np.asarray(trajectory.entry, dtype=float)).max()) + trajectory.standoff
+            scale = max(scale, reach + length)
     return scale
 
 
@@ -970,6 +1046,34 @@ def check_scene_lengths(scene: Scene, scale: float | None = None) -> None:
             )
 
 
+def check_instruments(scene: Scene) -> None:
+    """Names unique; at most one instrument that cuts, and none unless cutting.enabled."""
+    seen: set[str] = set()
+    for index, instrument in enumerate(scene.instruments):
+        if instrument.name in seen:
+            raise ConsistencyError(
+                f"instruments[{index}]",
+                "name",
+                f"name = {instrument.name!r}: another instrument has this name; names must be unique",
+            )
+        seen.add(instrument.name)
+        if instrument.cuts and not scene.cutting.enabled:
+            raise ConsistencyError(
+                f"instruments[{index}]",
+                "cuts",
+                "cuts = true: cutting.enabled is false (enable cutting, or leave cuts out)",
+            )
+    cutting = [index for index, spec in enumerate(scene.instrument_specs) if spec.cuts]
+    if len(cutting) > 1:
+        raise ConsistencyError(
+            f"instruments[{cutting[1]}]",
+            "cuts",
+            f"cuts = true (default: cutting.enabled): instruments[{cutting[0]}] "
+            f"({scene.instrument_specs[cutting[0]].name!r}) already cuts; at most one instrument per scene "
+            "may cut (the cut surface holds one growing cut): set cuts = false on all but one",
+        )
+
+
 def check_consistency(scene: Scene) -> None:
     """Checks across sections that need no mesh (the mesh-dependent ones are in `refsim.scene.build`).
 
@@ -989,6 +1093,7 @@ def check_consistency(scene: Scene) -> None:
     import logging
 
     logger = logging.getLogger("refsim.scene")
+    check_instruments(scene)
     check_scene_lengths(scene)
     mesh = scene.mesh
     if (
@@ -1035,7 +1140,8 @@ def check_consistency(scene: Scene) -> None:
             message=f"point_spacing = {scene.cutting.point_spacing!r} m (d_c) is not shorter than "
             f"needle.length = {length!r} m",
         )
-    speed = max_tip_speed(scene.trajectory, length)
+    speeds = [max_tip_speed(each.trajectory, each.needle.length) for each in scene.instrument_specs]
+    speed = max((value for value in speeds if value is not None), default=None)
     if speed:
         travel = speed * scene.time.dt
         contact = scene.insertion.contact_distance
@@ -1102,7 +1208,7 @@ def scene_reference() -> str:
         '"≥ ε-floor".',
         "",
     ]
-    for section, cls in SECTIONS.items():
+    for section, cls in (*SECTIONS.items(), ("[instruments]", InstrumentSpec)):
         paragraphs = [" ".join(text.split()) for text in inspect.cleandoc(cls.__doc__ or "").split("\n\n")]
         lines += [
             f"## [{section}]",
@@ -1113,6 +1219,8 @@ def scene_reference() -> str:
         ]
         for field in dataclasses.fields(cls):
             meta = field.metadata
+            if "doc" not in meta:  # an instrument's trajectory and needle: the tables documented above
+                continue
             default = "required" if field.default is dataclasses.MISSING else repr(field.default)
             owner = law_of_key(field.name) if cls is CuttingSpec else None
             if owner is not None:  # a law's key: its law's default, under that law only
