@@ -132,6 +132,14 @@ def check_record(state, record, *, size: float, rest_positions: np.ndarray) -> N
         ("force on the needle [N]", record.needle_force),
         ("tissue positions [m]", state.tissue.positions),
         ("tissue velocities [m/s]", state.tissue.velocities),
+        *(
+            check
+            for part in tuple(getattr(record, "instruments", ()))[1:]
+            for check in (
+                (f"{part.name}'s needle positions [m]", part.needle_positions),
+                (f"force on {part.name}'s needle [N]", part.needle_force),
+            )
+        ),
     )
     for name, values in checks:
         values = np.asarray(values, dtype=float)
@@ -335,7 +343,9 @@ class StepSink:
         if self.on_step is not None:
             self.on_step(state, record)
         if self.progress is not None:
-            self.progress(record.step, self.total, record.phase)
+            parts = tuple(getattr(record, "instruments", ()))
+            phase = ", ".join(f"{p.name} {p.phase}" for p in parts) if len(parts) > 1 else record.phase
+            self.progress(record.step, self.total, phase)
 
 
 def _run_steps(simulation, total: int, step_done, summary, writer) -> tuple[str, str]:

@@ -10,7 +10,7 @@ Fletcher-32 checksum does not match (a bit flip on the disk or in a copy) gives 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -125,6 +125,12 @@ class Results:
     boundary_nodes : Nodes a boundary motion moves, (b,) (empty: none).
     boundary_displacement : Their prescribed displacement from rest after each step [m], (s, b, 3).
     trajectory_samples : The base trajectory the run used: t [s], x, y, z [m], dx, dy, dz, (w, 7).
+    instrument_names : The instruments, in the scene's order (one-needle files: ("needle",)). The needle
+        fields above (needle_rest_nodes, phase, base_position, needle_positions, needle_frames, needle_force,
+        insertion_point_count, events, trajectory_samples) are the first instrument's; :meth:`instrument`
+        gives each one's view, :attr:`instruments` all of them.
+    constraint_instrument : The instrument of each row, index into ``instrument_names``, (R,).
+    further : Each further instrument's needle fields, by name (read through :meth:`instrument`).
     """
 
     path: Path
@@ -168,6 +174,24 @@ class Results:
     boundary_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     boundary_displacement: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3)))
     trajectory_samples: np.ndarray = field(default_factory=lambda: np.zeros((0, 7)))
+    instrument_names: tuple = ("needle",)
+    constraint_instrument: np.ndarray | None = None
+    further: dict = field(default_factory=dict)
+
+    def instrument(self, name: str) -> Results:
+        """The run seen from one instrument: its needle fields in place of the first one's (tissue,
+        solver, constraints and cut are the run's), and only it in ``instrument_names``."""
+        if name not in self.instrument_names:
+            raise KeyError(
+                f"{self.path}: no instrument {name!r} (instruments: {', '.join(self.instrument_names)})"
+            )
+        own = self.further.get(name, {})
+        return replace(self, instrument_names=(name,), further={}, **own)
+
+    @property
+    def instruments(self) -> tuple[Results, ...]:
+        """Every instrument's view (:meth:`instrument`), in order."""
+        return tuple(self.instrument(name) for name in self.instrument_names)
 
     # ------------------------------------------------------------------ sizes
 
@@ -440,12 +464,14 @@ def read_results(path) -> Results:
         rows = {
             name: _read(handle, spec.path, row_count)
             for name, spec in schema.CONSTRAINTS.items()
-            if name != "offsets"
+            if name != "offsets" and spec.path in handle  # constraints/instrument: several instruments only
         }
         tissue_steps = _read(handle, schema.TISSUE["step"].path)
         tissue_count = int(np.count_nonzero(tissue_steps <= last_step))
         scene = _scene_of(path, attributes)
-        events = _read_events(handle, last_step, scene.get("cutting", {}).get("law", "energy"))
+        law = scene.get("cutting", {}).get("law", "energy")
+        events = _read_events(handle, last_step, law)
+        names, further = _read_instruments(handle, path, attributes, count, last_step, law)
         cut = None
         if "cut" in handle:
             cut_data = {
@@ -498,7 +524,47 @@ def read_results(path) -> Results:
             else np.zeros((len(steps["step"]), 0, 3)),
             cut=cut,
             problem_steps=np.array(_problem_steps(handle, last_step), dtype=np.int64),
+            instrument_names=names,
+            constraint_instrument=rows.get("instrument", np.zeros(row_count, dtype=np.int64)),
+            further=further,
         )
+
+
+def _read_instruments(handle, path: Path, attributes: dict, count: int, last_step: int, law: str):
+    """The instruments' names and each further one's needle fields (root attribute ``instruments``; a
+    one-needle file has none: its one instrument is "needle")."""
+    text = attributes.get("instruments")
+    if text is None:
+        return ("needle",), {}
+    try:
+        listed = [(str(item["name"]), str(item["location"])) for item in json.loads(text)]
+    except (json.JSONDecodeError, KeyError, TypeError) as error:
+        raise ResultsError(
+            f"{path}: the root attribute 'instruments' is not a list of {{name, location}} ({error})"
+        ) from None
+    further = {}
+    for name, location in listed[1:]:
+        steps = {
+            key: _read(handle, f"{location}/{schema.STEPS[key].path}", count)
+            for key in (
+                "phase",
+                "base_position",
+                "needle_positions",
+                "needle_frames",
+                "needle_force",
+                "insertion_point_count",
+            )
+        }
+        for spec in schema.INSTRUMENT_DATASETS.values():
+            _require(handle, path, f"{location}/{spec.path}")
+        steps["phase"] = steps["phase"].astype(np.int64)
+        further[name] = {
+            **steps,
+            "events": _read_events(handle, last_step, law, location=location),
+            "needle_rest_nodes": _read(handle, f"{location}/{schema.STATIC['needle/rest_nodes'].path}"),
+            "trajectory_samples": _read(handle, f"{location}/{schema.STATIC['trajectory/samples'].path}"),
+        }
+    return tuple(name for name, _ in listed), further
 
 
 def _scene_of(path: Path, attributes: dict) -> dict:
@@ -509,15 +575,16 @@ def _scene_of(path: Path, attributes: dict) -> dict:
         raise ResultsError(f"{path}: the root attribute 'scene' is not valid JSON ({error})") from None
 
 
-def _read_events(handle, last_step: int, law: str) -> tuple[RecordedEvent, ...]:
+def _read_events(handle, last_step: int, law: str, *, location: str = "") -> tuple[RecordedEvent, ...]:
     """The events of the completed steps (up to ``last_step``), with their triggering value and unit under
-    the scene's cutting ``law``."""
-    event_steps = _read(handle, schema.EVENTS["step"].path)
+    the scene's cutting ``law``; of the instrument at ``location`` ("" the first)."""
+    prefix = f"{location}/" if location else ""
+    event_steps = _read(handle, prefix + schema.EVENTS["step"].path)
     event_count = int(np.count_nonzero(event_steps <= last_step))
     event_data = {
-        name: _read(handle, spec.path, event_count)
+        name: _read(handle, prefix + spec.path, event_count)
         for name, spec in schema.EVENTS.items()
-        if spec.path in handle  # events/force_per_length is absent from files of before it
+        if prefix + spec.path in handle  # events/force_per_length is absent from files of before it
     }
     value, unit = _event_values(event_data, event_count, law)
     return tuple(

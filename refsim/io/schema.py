@@ -31,6 +31,9 @@ __all__ = [
     "EVENT_VALUE_DATASETS",
     "OPTIONAL_DATASETS",
     "CUT",
+    "INSTRUMENTS_GROUP",
+    "INSTRUMENT_DATASETS",
+    "instrument_location",
     "PROBLEM_FIELDS",
     "PROBLEMS_GROUP",
     "XDMF",
@@ -62,6 +65,9 @@ ROOT_ATTRIBUTES = {
     "scene_name": "the scene's name",
     "complete": "True once the run finished and the file was closed normally",
     "steps_completed": "number of steps fully written; the reader trusts this count, not dataset lengths",
+    "instruments": "only in a file of several instruments: JSON list of {name, location}, one per "
+    "instrument in the scene's order; the first one's location is \"\" (its datasets at the paths below), "
+    'each further one\'s "instruments/<name>" (the same names and shapes under it)',
     "stop_reason": "why the run stopped early (interrupted by SIGINT/SIGTERM, a numerical error, a failed "
     "write); "
     '"" for a complete run',
@@ -243,6 +249,14 @@ CONSTRAINTS = _specs(
             "unit direction n of each row (delta = n.(x_needle - x_tissue))",
         ),
         ("forces", "N", "float64", (), "multiplier lambda of each row"),
+        (
+            "instrument",
+            "1",
+            "int64",
+            (),
+            "only in a file of several instruments: the instrument of each row (index into the root "
+            "attribute `instruments`)",
+        ),
     ],
 )
 
@@ -274,7 +288,7 @@ EVENTS = _specs(
 )
 
 #: Datasets a file of the same schema version written before them lacks; the reader takes them as absent.
-OPTIONAL_DATASETS = frozenset({"events/force_per_length"})
+OPTIONAL_DATASETS = frozenset({"events/force_per_length", "constraints/instrument"})
 
 #: The dataset of ``events/`` holding an event's value, by the value's unit (refsim.simulation.records.Event's
 #: ``unit``): each dataset has one unit, so its ``units`` attribute is true for every entry.
@@ -393,6 +407,39 @@ def problem_group_name(step: int) -> str:
     return f"{PROBLEMS_GROUP}/step_{int(step):07d}"
 
 
+#: Where further instruments' datasets are: ``instruments/<name>/`` (the first instrument's are at the paths
+#: of a one-needle file).
+INSTRUMENTS_GROUP = "instruments"
+
+#: The datasets each instrument has (paths of a one-needle file): its per-step needle data, its events, its
+#: trajectory and its needle at t = 0. A further instrument writes them under its location.
+INSTRUMENT_DATASETS = {
+    spec.path: spec
+    for spec in (
+        *(
+            STEPS[name]
+            for name in (
+                "phase",
+                "base_position",
+                "needle_positions",
+                "needle_frames",
+                "needle_force",
+                "insertion_point_count",
+            )
+        ),
+        *EVENTS.values(),
+        STATIC["trajectory/samples"],
+        STATIC["needle/rest_nodes"],
+    )
+}
+
+
+def instrument_location(index: int, name: str) -> str:
+    """Where instrument ``index`` (called ``name``) keeps its datasets: "" for the first, else
+    ``instruments/<name>``."""
+    return "" if index == 0 else f"{INSTRUMENTS_GROUP}/{name}"
+
+
 def all_datasets() -> list[DatasetSpec]:
     """Every dataset of the schema, in documentation order."""
     groups = (STATIC, STEPS, SOLVER, TISSUE, CONSTRAINTS, EVENTS, CUT, PROBLEM_FIELDS)
@@ -473,6 +520,21 @@ def reference_markdown() -> str:
         "|---|---|---|---|---|",
     ]
     lines += [_row(spec) for spec in all_datasets()]
+    lines += [
+        "",
+        "## Several instruments",
+        "",
+        "A run of a scene with `[[instruments]]` writes the first instrument's needle data at the paths "
+        f"above and each further instrument's under `{INSTRUMENTS_GROUP}/<name>/`, with the same names "
+        "and shapes (k: that instrument's needle nodes); the root attribute `instruments` lists them in "
+        "order with their locations, and `constraints/instrument` says which instrument each row belongs "
+        "to. The tissue, the solver, the constraints and the cut are the run's (one problem per step for "
+        "every instrument). A one-needle file has neither. Each instrument's datasets:",
+        "",
+        "| path under the instrument's location | shape | dtype | unit | meaning |",
+        "|---|---|---|---|---|",
+    ]
+    lines += [_row(spec) for spec in INSTRUMENT_DATASETS.values()]
     lines += [
         "",
         f"## The `{XDMF_GROUP}/` group (ParaView sidecar)",

@@ -29,6 +29,7 @@ when it is read (:func:`refsim.io.reader.read_results` names the dataset).
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import errno
 import fcntl
@@ -143,14 +144,26 @@ def git_commit(directory: str | Path | None = None) -> str:
 
 def _initial_needle_nodes(scene, models) -> np.ndarray:
     """Needle nodes [m] at the trajectory's pose at t = 0, shape (k, 3)."""
+    return _instrument_rest_nodes(scene.needle, models.needle, models.trajectory)
+
+
+def _instrument_rest_nodes(needle_spec, model, trajectory) -> np.ndarray:
+    """An instrument's needle nodes [m] at its trajectory's pose at t = 0, shape (k, 3)."""
     from refsim.simulation.needle_body import FlexibleNeedle, RigidNeedle
 
-    base, direction = models.trajectory.pose(0.0)
-    if scene.needle.rigid or models.needle is None:
-        needle = RigidNeedle(scene.needle.length, scene.needle.element_count)
+    base, direction = trajectory.pose(0.0)
+    if needle_spec.rigid or model is None:
+        needle = RigidNeedle(needle_spec.length, needle_spec.element_count)
     else:
-        needle = FlexibleNeedle(models.needle)
+        needle = FlexibleNeedle(model)
     return np.asarray(needle.state_at(base, direction).positions, dtype=float)
+
+
+def _samples(trajectory) -> np.ndarray:
+    """A trajectory as the rows t, x, y, z, dx, dy, dz, shape (w, 7)."""
+    return np.column_stack([trajectory.times, trajectory.base_positions, trajectory.directions]).astype(
+        np.float64
+    )
 
 
 class ResultWriter:
@@ -222,6 +235,7 @@ class ResultWriter:
             self.failure: str | None = None  # why writing stopped (a failed write), or None
 
             static = self._static_arrays(scene, models, needle_rest_nodes)
+            self._further = self._further_instruments(scene, models)
             scene_json = scene_to_json(scene)
             self._check_static_space(static, len(scene_json))
             self._create_file(scene, scene_json, static)
@@ -252,11 +266,26 @@ class ResultWriter:
             "tissue/faces": np.asarray(mesh.boundary_faces, dtype=np.int64),
             "tissue/fixed_nodes": np.asarray(models.tissue.fixed_nodes, dtype=np.int64),
             "tissue/boundary_nodes": self._boundary_nodes,
-            "trajectory/samples": np.column_stack(
-                [models.trajectory.times, models.trajectory.base_positions, models.trajectory.directions]
-            ).astype(np.float64),
+            "trajectory/samples": _samples(models.trajectory),
             "needle/rest_nodes": rest_nodes,
         }
+
+    def _further_instruments(self, scene, models) -> list[tuple[str, str, dict]]:
+        """Each instrument after the first: its name, its location and its static arrays (by the one-needle
+        paths); sets each one's needle node count. Empty for a one-instrument run."""
+        further = []
+        instruments = tuple(getattr(models, "instruments", ()))
+        for index, instrument in enumerate(instruments[1:] if len(instruments) > 1 else (), start=1):
+            location = schema.instrument_location(index, instrument.name)
+            rest = _instrument_rest_nodes(instrument.needle, instrument.model, instrument.trajectory)
+            self._sizes[f"k:{location}"] = rest.shape[0]
+            static = {
+                schema.STATIC["trajectory/samples"].path: _samples(instrument.trajectory),
+                schema.STATIC["needle/rest_nodes"].path: rest,
+            }
+            further.append((instrument.name, location, static))
+        self._instrument_names = tuple(instrument.name for instrument in instruments) or ("needle",)
+        return further
 
     def _create_file(self, scene, scene_json: str, static: dict) -> None:
         """Write the file's static part under a temporary name, then rename it into place: only a file with
@@ -311,9 +340,24 @@ class ResultWriter:
         attributes["stop_reason"] = "running (or stopped without a reason: killed)"
         for name, value in static.items():
             self._write_fixed(schema.STATIC[name], value)
+        several = bool(self._further)
         for group in (schema.STEPS, schema.SOLVER, schema.TISSUE, schema.CONSTRAINTS, schema.EVENTS):
             for spec in group.values():
-                self._create_growing(spec)
+                if several or spec.path != schema.CONSTRAINTS["instrument"].path:
+                    self._create_growing(spec)
+        if several:
+            first = schema.instrument_location(0, self._instrument_names[0])
+            attributes["instruments"] = json.dumps(
+                [{"name": self._instrument_names[0], "location": first}]
+                + [{"name": name, "location": location} for name, location, _ in self._further]
+            )
+        for _, location, arrays in self._further:
+            for path, value in arrays.items():
+                self._write_fixed(_located(schema.INSTRUMENT_DATASETS[path], location), value)
+            for spec in schema.INSTRUMENT_DATASETS.values():
+                if spec.growing:
+                    self._create_growing(_located(spec, location), k=self._sizes[f"k:{location}"])
+            self._datasets[f"{location}/steps/phase"].attrs["names"] = list(schema.PHASE_NAMES)
         self._datasets["steps/phase"].attrs["names"] = list(schema.PHASE_NAMES)
         self._datasets["steps/stage_seconds"].attrs["names"] = list(self._stages)
         self._set_code_names()
@@ -433,14 +477,7 @@ class ResultWriter:
         values = {f"constraints/{name}": value for name, value in rows.items()}
         values["constraints/row_count"] = row_count
         if record.events:
-            values["events/step"] = np.full(len(record.events), record.step, dtype=np.int64)
-            values["events/time"] = np.full(len(record.events), record.time, dtype=np.float64)
-            values["events/name"] = np.array([event.name for event in record.events], dtype=object)
-            for unit, name in schema.EVENT_VALUE_DATASETS.items():  # each value in the dataset of its unit
-                values[f"events/{name}"] = np.array(
-                    [event.force if event.unit == unit else np.nan for event in record.events],
-                    dtype=np.float64,
-                )
+            values.update(self._event_values(record.events, record))
         if record.tissue_positions is not None:
             positions = self._check_shape("tissue_positions", record.tissue_positions, (self._sizes["n"], 3))
             values["tissue/step"] = np.array([record.step], dtype=np.int64)
@@ -448,6 +485,69 @@ class ResultWriter:
             values["tissue/positions"] = positions[None]
         values.update(self._solver_values(record.solver))
         values.update(self._step_arrays(record))
+        if self._further:
+            values.update(self._instrument_values(record, count=row_count))
+        return values
+
+    def _instrument_values(self, record, *, count: int) -> dict:
+        """The per-row instrument and each further instrument's step values, under its location."""
+        parts = tuple(getattr(record, "instruments", ()))
+        if len(parts) != len(self._further) + 1:
+            raise ValueError(
+                f"{self.path}: step {record.step} has {len(parts)} instruments, the file "
+                f"{len(self._further) + 1} ({', '.join(self._instrument_names)})"
+            )
+        values = {
+            schema.CONSTRAINTS["instrument"].path: self._check_shape(
+                "row_instrument", record.row_instrument, (count,), dtype=np.int64
+            )
+        }
+        for part, (name, location, _) in zip(parts[1:], self._further, strict=True):
+            if part.name != name:
+                raise ValueError(
+                    f"{self.path}: step {record.step}: instrument {part.name!r}, expected {name!r}"
+                )
+            arrays = self._needle_arrays(part, self._sizes[f"k:{location}"], record.step)
+            values.update({f"{location}/{path}": value for path, value in arrays.items()})
+            if part.events:
+                values.update(
+                    {
+                        f"{location}/{path}": value
+                        for path, value in self._event_values(part.events, record).items()
+                    }
+                )
+        return values
+
+    def _needle_arrays(self, part, k: int, step: int) -> dict:
+        """One instrument's per-step needle arrays (``part``: a record or an instrument's record), by the
+        one-needle paths."""
+        if part.phase not in schema.PHASE_NAMES:
+            raise ValueError(
+                f"{self.path}: step {step} has phase {part.phase!r}; "
+                f"the results schema knows {', '.join(schema.PHASE_NAMES)}"
+            )
+        values = {
+            "phase": np.array([schema.PHASE_NAMES.index(part.phase)], dtype=np.int8),
+            "base_position": self._check_shape("base_position", part.base_position, (3,))[None],
+            "needle_positions": self._check_shape("needle_positions", part.needle_positions, (k, 3))[None],
+            "needle_frames": self._check_shape("needle_frames", part.needle_frames, (k, 3, 3))[None],
+            "needle_force": self._check_shape("needle_force", part.needle_force, (3,))[None],
+            "insertion_point_count": np.array([part.insertion_point_count], dtype=np.int64),
+        }
+        return {schema.STEPS[name].path: value for name, value in values.items()}
+
+    @staticmethod
+    def _event_values(events, record) -> dict:
+        """The events' entries of ``events/``, by path."""
+        values = {
+            "events/step": np.full(len(events), record.step, dtype=np.int64),
+            "events/time": np.full(len(events), record.time, dtype=np.float64),
+            "events/name": np.array([event.name for event in events], dtype=object),
+        }
+        for unit, name in schema.EVENT_VALUE_DATASETS.items():  # each value in the dataset of its unit
+            values[f"events/{name}"] = np.array(
+                [event.force if event.unit == unit else np.nan for event in events], dtype=np.float64
+            )
         return values
 
     @staticmethod
@@ -658,8 +758,12 @@ class ResultWriter:
         )
         self._describe(dataset, spec)
 
-    def _create_growing(self, spec: DatasetSpec) -> None:
+    def _create_growing(self, spec: DatasetSpec, *, k: int | None = None) -> None:
         entry = self._entry_shape(spec)
+        if k is not None:  # a further instrument's needle: its own node count
+            entry = tuple(
+                k if size == "k" else value for size, value in zip(spec.entry_shape, entry, strict=True)
+            )
         chunk = (
             (1,)
             if spec.path == "tissue/positions"
@@ -734,27 +838,16 @@ class ResultWriter:
         return out
 
     def _step_arrays(self, record) -> dict:
-        k = self._sizes["k"]
-        if record.phase not in schema.PHASE_NAMES:
-            raise ValueError(
-                f"{self.path}: step {record.step} has phase {record.phase!r}; "
-                f"the results schema knows {', '.join(schema.PHASE_NAMES)}"
-            )
         unknown = set(record.stage_seconds) - set(self._stages)
         if unknown:
             raise ValueError(
                 f"{self.path}: step {record.step} times unknown stages {sorted(unknown)}; "
                 f"stages are {', '.join(self._stages)}"
             )
+        needle = self._needle_arrays(record, self._sizes["k"], record.step)
         values = {
             "step": np.array([record.step], dtype=np.int64),
             "time": np.array([record.time], dtype=np.float64),
-            "phase": np.array([schema.PHASE_NAMES.index(record.phase)], dtype=np.int8),
-            "base_position": self._check_shape("base_position", record.base_position, (3,))[None],
-            "needle_positions": self._check_shape("needle_positions", record.needle_positions, (k, 3))[None],
-            "needle_frames": self._check_shape("needle_frames", record.needle_frames, (k, 3, 3))[None],
-            "needle_force": self._check_shape("needle_force", record.needle_force, (3,))[None],
-            "insertion_point_count": np.array([record.insertion_point_count], dtype=np.int64),
             "cut_point_count": np.array([record.cut_point_count], dtype=np.int64),
             "cut_triangle_count": np.array([record.cut_triangle_count], dtype=np.int64),
             "triangulation_seconds": np.array([record.triangulation_seconds], dtype=np.float64),
@@ -763,7 +856,7 @@ class ResultWriter:
             ),
             "boundary_displacement": self._boundary_displacement(record)[None],
         }
-        return {schema.STEPS[name].path: value for name, value in values.items()}
+        return {**needle, **{schema.STEPS[name].path: value for name, value in values.items()}}
 
     def _boundary_displacement(self, record) -> np.ndarray:
         """The step's prescribed boundary displacement (b, 3) [m]; zeros (1, 3) without a boundary motion."""
@@ -779,6 +872,11 @@ class ResultWriter:
         group = self._file.create_group(group_path)
         group.attrs["step"] = int(step)
         write_problem_group(group, problem)
+
+
+def _located(spec: DatasetSpec, location: str) -> DatasetSpec:
+    """``spec`` under an instrument's location (``instruments/<name>/...``)."""
+    return dataclasses.replace(spec, path=f"{location}/{spec.path}") if location else spec
 
 
 def write_problem_group(group, problem) -> None:

@@ -137,6 +137,10 @@ class RunSummary:
     exit_code: int = 0  # refsim run's exit code, RUN_STATUSES[status].exit_code
     stop_reason: str = ""  # why the run stopped early, "" when complete
     steps_written: int = 0  # steps readable in the results file
+    # With several instruments: each event's instrument (parallel to events), and each instrument's peak
+    # force and its step, by name, in the scene's order (empty with one instrument).
+    event_instruments: list = field(default_factory=list)
+    instrument_peaks: dict = field(default_factory=dict)
 
     @property
     def complete(self) -> bool:
@@ -165,9 +169,20 @@ class RunSummary:
 
     def add(self, record: StepRecord) -> None:
         self.steps += 1
-        for event in record.events:
+        parts = tuple(getattr(record, "instruments", ()))
+        several = len(parts) > 1
+        for part in parts if several else ():
+            for event in part.events:
+                self.events.append((record.step, record.time, event.name, event.force, event.unit))
+                self.event_instruments.append(part.name)
+            force = float(np.linalg.norm(part.needle_force))
+            if force > self.instrument_peaks.get(part.name, (-1.0, 0))[0]:
+                self.instrument_peaks[part.name] = (force, record.step)
+        for event in () if several else record.events:
             self.events.append((record.step, record.time, event.name, event.force, event.unit))
-        stats = self.phases.setdefault(record.phase, PhaseStatistics())
+        # With several instruments a step's phase is every instrument's, in order ("cutting/insertion").
+        phase = "/".join(part.phase for part in parts) if several else record.phase
+        stats = self.phases.setdefault(phase, PhaseStatistics())
         stats.steps += 1
         stats.rows += int(record.row_forces.size)
         if record.solver is not None:
@@ -195,11 +210,19 @@ class RunSummary:
     def format(self) -> str:
         """Events, peak force, solver health and speed, as text."""
         lines = ["events:"]
+        owners = self.event_instruments or [""] * len(self.events)
         lines += [
-            f"  step {s:5d}  t = {t:.4f} s  {name}" + (f"  {_value_text(f, unit)}" if np.isfinite(f) else "")
-            for s, t, name, f, unit in self.events
+            f"  step {s:5d}  t = {t:.4f} s  {owner + ': ' if owner else ''}{name}"
+            + (f"  {_value_text(f, unit)}" if np.isfinite(f) else "")
+            for (s, t, name, f, unit), owner in zip(self.events, owners, strict=True)
         ] or ["  none"]
-        lines.append(f"peak force on the needle: {self.peak_force:.4g} N at step {self.peak_force_step}")
+        if self.instrument_peaks:
+            lines += [
+                f"peak force on {name}'s needle: {force:.4g} N at step {step}"
+                for name, (force, step) in self.instrument_peaks.items()
+            ]
+        else:
+            lines.append(f"peak force on the needle: {self.peak_force:.4g} N at step {self.peak_force_step}")
         lines.append(
             f"constraint solves not converged: {self.unconverged}; largest natural residual "
             f"{self.max_residual:.2e}"
