@@ -140,9 +140,11 @@ def force_panels(results) -> tuple[str, ...]:
     return ("time",)
 
 
-def force_figure(results):
+def force_figure(results, figure=None):
     """The figure of :func:`plot_result` for a :class:`refsim.io.Results` (a matplotlib Figure, Agg canvas):
-    the panels of :func:`force_panels`, an event table at the right, one legend below the panels.
+    the panels of :func:`force_panels`, an event table at the right, one legend below the panels. A run of
+    several instruments gets one such row per instrument (its own force, events and phases), in order.
+    ``figure``: draw one instrument's row into this (sub)figure.
 
     Raises
     ------
@@ -156,9 +158,18 @@ def force_figure(results):
 
     if results.step_count == 0:
         raise ValueError(f"{results.path}: the file holds no step to plot")
+    names = tuple(getattr(results, "instrument_names", ("needle",)))
+    if figure is None and len(names) > 1:
+        views = results.instruments
+        width = max(5.2 * len(force_panels(view)) + 3.6 for view in views)
+        figure = Figure(figsize=(width, 4.8 * len(views)), layout="constrained")
+        for view, part in zip(views, figure.subfigures(len(views), 1), strict=True):
+            force_figure(view, figure=part)
+        return figure
     axial, lateral = base_force_components(results)
     panels = force_panels(results)
-    figure = Figure(figsize=(5.2 * len(panels) + 3.6, 4.8), layout="constrained")
+    if figure is None:
+        figure = Figure(figsize=(5.2 * len(panels) + 3.6, 4.8), layout="constrained")
     grid = figure.add_gridspec(1, len(panels) + 1, width_ratios=[1.0] * len(panels) + [0.62])
     for column, panel in enumerate(panels):
         axis = figure.add_subplot(grid[0, column])
@@ -218,7 +229,8 @@ def force_figure(results):
     else:
         table.text(0.5, 0.9, "none", ha="center", va="top", transform=table.transAxes)
     status = "" if results.complete else "  (interrupted run)"
-    figure.suptitle(f"{results.scene_name}: force on the needle base{status}")
+    whose = "the needle" if len(names) == 1 and names[0] == "needle" else f"{names[0]}'s needle"
+    figure.suptitle(f"{results.scene_name}: force on {whose} base{status}")
     return figure
 
 
