@@ -150,6 +150,16 @@ class CameraView:
         return np.column_stack([(relative @ right) / (half * aspect), (relative @ up) / half])
 
 
+def needle_radius(scene: dict, name: str) -> float:
+    """The radius [m] of instrument ``name``'s needle in a stored scene (its [[instruments]] override, else
+    [needle]'s; 0 when absent)."""
+    radius = scene.get("needle", {}).get("radius", 0.0)
+    for instrument in scene.get("instruments", ()):
+        if instrument.get("name") == name:
+            radius = instrument.get("radius", radius)
+    return float(radius or 0.0)
+
+
 def _unit(vector: np.ndarray) -> np.ndarray:
     return vector / np.linalg.norm(vector)
 
@@ -386,13 +396,17 @@ def _draw_step(
     )
     legend.append(["tissue (deformed surface)", TISSUE_COLOR])
 
-    radius = float(results.scene.get("needle", {}).get("radius", 0.0) or 0.0)
-    needle_nodes = results.needle_positions[index]
-    drawn_radius = radius if radius > 0 else 1e-3 * float(np.ptp(results.rest_positions, axis=0).max())
-    needle = pv.lines_from_points(needle_nodes).tube(radius=drawn_radius, n_sides=32, capping=True)
-    # Translucent: the needle is drawn at its real radius and may be wider than the cut it would hide.
-    plotter.add_mesh(needle, color=NEEDLE_COLOR, smooth_shading=True, opacity=0.45, render=False)
-    legend.append([f"needle, r = {1e3 * radius:.2f} mm" if radius > 0 else "needle", NEEDLE_COLOR])
+    names = tuple(getattr(results, "instrument_names", ("needle",)))
+    views = results.instruments if len(names) > 1 else (results,)
+    for name, view in zip(names, views, strict=True):
+        radius = needle_radius(results.scene, name)
+        needle_nodes = view.needle_positions[index]
+        drawn_radius = radius if radius > 0 else 1e-3 * float(np.ptp(results.rest_positions, axis=0).max())
+        needle = pv.lines_from_points(needle_nodes).tube(radius=drawn_radius, n_sides=32, capping=True)
+        # Translucent: the needle is drawn at its real radius and may be wider than the cut it would hide.
+        plotter.add_mesh(needle, color=NEEDLE_COLOR, smooth_shading=True, opacity=0.45, render=False)
+        label = "needle" if len(names) == 1 else f"needle {name}"
+        legend.append([f"{label}, r = {1e3 * radius:.2f} mm" if radius > 0 else label, NEEDLE_COLOR])
 
     mark = max(0.35 * drawn_radius, 0.012 * view_size)
     rows = results.constraints_at(step)
@@ -448,10 +462,14 @@ def _draw_step(
         )
         legend.append([f"cut points ({cut_points.shape[0]})", CUT_COLOR])
 
-    phase = results.phase_names[results.phase[index]]
+    phase = f"{results.phase_names[results.phase[index]]} phase"
+    if len(views) > 1:  # each instrument's phase
+        phase = "\n".join(
+            f"{name}: {view.phase_names[view.phase[index]]}" for name, view in zip(names, views, strict=True)
+        )
     tissue_step = results.nearest_tissue_step(step) if results.tissue_steps.size else 0
     tissue_note = "" if tissue_step == step else f"\n(tissue of step {tissue_step})"
-    title = f"{results.scene_name}\nstep {step}, t = {results.time[index]:.3f} s\n{phase} phase{tissue_note}"
+    title = f"{results.scene_name}\nstep {step}, t = {results.time[index]:.3f} s\n{phase}{tissue_note}"
     return legend, title
 
 
@@ -628,6 +646,15 @@ def render_result(
     tissue_positions = results.tissue_positions_at(step)
     cut_points, cut_triangles = cut_surface_positions(results, step, tissue_positions)
     view_width = view_width_of(width)
+    others = None
+    if len(getattr(results, "instrument_names", ())) > 1 and isinstance(focus, str) and focus != "tissue":
+        # Every needle in the picture: the further instruments' focus points too.
+        others = np.concatenate(
+            [
+                focus_points(other, step, tissue_positions, cut_points, focus)
+                for other in results.instruments[1:]
+            ]
+        )
     view = frame_camera(
         results,
         step,
@@ -639,6 +666,7 @@ def render_result(
         zoom=zoom,
         focus=focus,
         aspect=view_width / height,
+        include=others,
     )
 
     prepare_offscreen()
