@@ -132,6 +132,12 @@ class InteractiveSession:
         from refsim.simulation import Simulation
         from refsim.simulation.summary import RunSummary
 
+        if scene.instruments:
+            names = ", ".join(spec.name for spec in scene.instruments)
+            raise RunInputError(
+                f"{scene.source}: refsim interactive steers one needle; this scene has [[instruments]] "
+                f"({names}): run it with refsim run"
+            )
         self.output = check_output_path(output, overwrite=overwrite)
         self.trajectory_path, self.replay_path = replay_paths(self.output)
         for path, what in ((self.trajectory_path, "trajectory file"), (self.replay_path, "replay scene")):
