@@ -214,3 +214,27 @@ def test_the_memo_of_w_is_keyed_on_the_rows_by_value(box):
     fresh = Exact().bind().step(system)
     assert np.array_equal(step.delassus(rows), fresh.delassus(rows))
     assert not np.array_equal(step.delassus(rows), before)
+
+
+def test_restart_of_two_needles_through_both_punctures_and_the_cut():
+    # Each instrument carries its own story (phase, path with its rings, cut strip, tip) in the state; the
+    # cut surface is the tissue's. Restarts: while the cutter inserts and the holder approaches, after the
+    # holder's puncture, and in the cutter's cut (tears follow).
+    import tomllib
+    from importlib import resources
+
+    from refsim.scene import scene_from_dict
+
+    data = tomllib.loads((resources.files("refsim") / "scenes" / "two_needles.toml").read_text("utf-8"))
+    data["mesh"]["cells"] = [4, 4, 4]
+    scene = scene_from_dict(data, source="two_needles.toml")
+    records = _check_restarts(scene, restarts=(60, 80, 206), total=215)
+    names = [
+        (record.step, part.name, event.name)
+        for record in records
+        for part in record.instruments
+        for event in part.events
+    ]
+    assert (21, "cutter", "puncture") in names and (71, "holder", "puncture") in names
+    assert any(name == "cut_start" and step < 206 for step, _, name in names)
+    assert any(name == "tear" and step > 206 for step, _, name in names)
