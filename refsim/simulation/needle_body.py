@@ -65,7 +65,8 @@ def _rest_frames(direction: np.ndarray, node_count: int) -> np.ndarray:
 
 
 class RigidNeedle:
-    """A rigid needle moved by its base: nodes on a straight line, a kinematic body (no DoFs)."""
+    """A rigid needle moved by its base: nodes on a straight line, a kinematic body (no DoFs); ``name`` is its
+    instrument's (the key of its state and of its rows' Jacobian)."""
 
     rigid = True
     dof_count = None

@@ -257,21 +257,22 @@ class RunSummary:
         """The paper's Table 1 for this run: per phase, rows, solving ms and share, total ms per step; with
         ``beside_paper``, each phase followed by the paper's row (:data:`PAPER_TABLE_1`) and the ratio of our
         total per step to theirs."""
+        width = max([10, *(len(phase) for phase in self.phases)])  # several instruments: "cutting/insertion"
         header = (
-            f"{'phase':<10} {'steps':>6} {'rows':>7} {'GS/solver it.':>13} {'solve ms':>9} {'share':>6} "
+            f"{'phase':<{width}} {'steps':>6} {'rows':>7} {'GS/solver it.':>13} {'solve ms':>9} {'share':>6} "
             f"{'total ms':>9}"
         )
         lines = [header, "-" * len(header)]
         for phase, stats in self.phases.items():
             share = stats.solve_ms_per_step / stats.ms_per_step if stats.steps else float("nan")
             lines.append(
-                f"{phase:<10} {stats.steps:>6d} {stats.mean_rows:>7.1f} {stats.mean_iterations:>13.2f} "
+                f"{phase:<{width}} {stats.steps:>6d} {stats.mean_rows:>7.1f} {stats.mean_iterations:>13.2f} "
                 f"{stats.solve_ms_per_step:>9.2f} {100 * share:>5.1f}% {stats.ms_per_step:>9.2f}"
             )
             paper = PAPER_TABLE_1.get(phase) if beside_paper else None
             if paper is not None:
                 lines.append(
-                    f"{'  paper':<10} {'':>6} {paper.constraints:>7d} {paper.iterations:>13.2f} "
+                    f"{'  paper':<{width}} {'':>6} {paper.constraints:>7d} {paper.iterations:>13.2f} "
                     f"{paper.solve_ms:>9.2f} {100 * paper.share:>5.1f}% {paper.total_ms:>9.2f}"
                     f"   ours/paper {stats.ms_per_step / paper.total_ms:.2f}"
                 )

@@ -203,3 +203,58 @@ def test_jacobians_by_body_stack_and_a_block_without_a_body_gives_it_zero_rows()
     narrow = replace(both, jacobians={TISSUE: sp.csr_matrix((2, 5))})
     with pytest.raises(ValueError, match="columns"):
         concatenate([both, narrow])
+
+
+def test_row_block_concatenate_keeps_every_per_row_field_of_each_instrument():
+    # Two instruments' rows in one block: each block marked with its instrument and its needle's Jacobian
+    # keyed by its body name (RowBlock.of_instrument); stacking keeps every per-row field in order, offsets
+    # the index fields, and gives each needle zero rows in the other's part.
+    import dataclasses
+
+    import scipy.sparse as sp
+
+    from refsim.constraints import AXIAL_FRICTION, LATERAL_FIRST, NEEDLE, TISSUE, RowBlock
+
+    rng = np.random.default_rng(3)
+
+    def block(seed: int):
+        rows = _two_rows(
+            force_limit=np.array([0.5 + seed, np.inf]),
+            compliance_diagonal=np.array([1e-4 * seed, 0.0]),
+            role=np.array([LATERAL_FIRST, AXIAL_FRICTION], dtype=np.int8),
+            point=np.array([seed, -1]),
+            anchor=np.array([np.nan, 0.01 * seed]),
+        )
+        needle = sp.csr_matrix(rng.standard_normal((2, 12)))
+        return dataclasses.replace(rows, jacobians={**rows.jacobians, NEEDLE: needle}), needle
+
+    (first, first_needle), (second, second_needle) = block(1), block(2)
+    stacked = RowBlock.concatenate([first.of_instrument(0, "cutter"), second.of_instrument(1, "holder")])
+    assert list(stacked.jacobians) == [TISSUE, "cutter", "holder"]
+    np.testing.assert_array_equal(stacked.instrument, [0, 0, 1, 1])
+    np.testing.assert_array_equal(stacked.instruments, [0, 0, 1, 1])
+    np.testing.assert_array_equal(
+        stacked.jacobians["cutter"].toarray(), np.vstack([first_needle.toarray(), np.zeros((2, 12))])
+    )
+    np.testing.assert_array_equal(
+        stacked.jacobians["holder"].toarray(), np.vstack([np.zeros((2, 12)), second_needle.toarray()])
+    )
+    for name in (
+        "free_gap",
+        "kind",
+        "source",
+        "points",
+        "directions",
+        "force_limit",
+        "compliance_diagonal",
+        "role",
+        "point",
+    ):
+        np.testing.assert_array_equal(
+            getattr(stacked, name), np.concatenate([getattr(first, name), getattr(second, name)]), name
+        )
+    np.testing.assert_array_equal(stacked.anchor, np.concatenate([first.anchor, second.anchor]))
+    # A block nobody marked has no instrument (−1), also after stacking with marked ones.
+    np.testing.assert_array_equal(
+        RowBlock.concatenate([first, second.of_instrument(1, "holder")]).instruments, [-1, -1, 1, 1]
+    )
