@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import h5py
 import numpy as np
+import pytest
 
 from refsim.interactive.pacing import Pacer
 from refsim.interactive.pose import KEYS
@@ -34,3 +35,11 @@ def test_a_keyed_flexible_session_replays_to_the_bit(tmp_path):
         for name in ("needle_force", "needle_positions", "needle_frames", "base_position", "phase"):
             assert np.array_equal(interactive[f"steps/{name}"][()], replay[f"steps/{name}"][()]), name
         assert np.array_equal(interactive["tissue/positions"][()], replay["tissue/positions"][()])
+
+
+def test_a_scene_of_several_instruments_is_refused_before_any_file(tmp_path):
+    from refsim.io.driver import RunInputError
+
+    with pytest.raises(RunInputError, match=r"steers one needle.*cutter, holder"):
+        InteractiveSession(load_scene("two_needles"), tmp_path / "two.h5")
+    assert not any(tmp_path.iterdir())
