@@ -253,8 +253,8 @@ def strip_cut_block(
     ----------
     cut : The `refsim.cutting.CutSurface`.
     strip : Its `refsim.cutting.strip.CutStrip`; None for a needle inserted along an existing cut (no crack
-        tip: sliding rows only, unbounded, for samples projecting inside it within d_c of it: beside an old
-        cut's border the tissue is intact, and a needle away from the cut is not in it).
+        tip: sliding rows only, unbounded, for samples projecting inside it: beside an old cut's border the
+        tissue is intact).
     geometry : The step's geometry.
     entry_arc_length : Arc length where the needle enters the tissue [m] (:func:`inserted_arc`); the samples
         run from there to the tip (none, and no rows, when it is the needle's length: the tip is out).
@@ -437,15 +437,8 @@ def _sliding_rows(
         near = cut.triangles[found.triangle, np.argmax(found.barycentric, axis=1)]
         lateral = np.asarray(subgrid_compliance[0], dtype=float)[cut.tet_indices[near]]
         compression = lateral * float(front_strength) * spacing
-    if strip is None:
-        # A needle inserted along an existing cut slides in it where it lies in it: its samples within d_c
-        # of the surface (the rule that keeps new insertion points out of a cut, refsim.simulation.events);
-        # a needle elsewhere in the tissue (another instrument, whose samples project inside a cut far from
-        # it) has none.
-        inside = np.flatnonzero(found.inside & (np.linalg.norm(offset, axis=1) <= spacing))
-    else:
-        reach = spacing + compression
-        inside = np.flatnonzero(found.inside | (np.linalg.norm(in_plane, axis=1) <= reach))
+    reach = spacing + compression if strip is not None else 0.0
+    inside = np.flatnonzero(found.inside | (np.linalg.norm(in_plane, axis=1) <= reach))
     if not inside.size:
         return none
     triangle, weights = found.triangle[inside], found.barycentric[inside]
