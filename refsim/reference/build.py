@@ -63,13 +63,14 @@ CSV_COLUMNS = (
 )
 
 
-def reference_value(spacings, values, formal_order: float) -> dict:
+def reference_value(spacings, values, formal_order: float, *, scale: float | None = None) -> dict:
     """The reference value of one quantity at one sampling point from its refinement sequence.
 
     The GCI follows Roy's rule (Oberkampf and Roy 2010, "Verification and Validation in Scientific Computing",
     section 8.7): when the observed order p is within 10 % of the formal order p_f, Fs = 1.25 and p; otherwise
     Fs = 3 and p̂ = min(max(0.5, p), p_f), so that an order far from the asymptotic one (a pre-asymptotic or
-    noisy sequence) widens the band instead of shrinking it.
+    noisy sequence) widens the band instead of shrinking it. A difference at round-off is not an observation
+    (:mod:`refsim.sweep.convergence`, floor δ = ROUNDOFF · scale).
 
     Parameters
     ----------
@@ -77,47 +78,60 @@ def reference_value(spacings, values, formal_order: float) -> dict:
     values : The quantity at each level, shape (L,).
     formal_order : p_f of the discretisation refined together (1 when the implicit Euler step is refined with
         the mesh, 2 for the static Timoshenko beam) [-].
+    scale : Magnitude the round-off floor is relative to (a curve's largest |value|, so that a sample near
+        zero is judged against the curve); max(|f1|, |f2|, |f3|) when None.
 
     Returns
     -------
     dict with ``value``, ``uncertainty`` (half-width U of the band, in the quantity's unit), ``method``,
-    ``order`` (observed), ``order_used``, ``safety_factor``, ``gci``:
+    ``order`` (observed; NaN where not observable), ``order_used``, ``safety_factor``, ``gci``:
 
     - "richardson": monotone over the three finest levels: the Richardson value with p̂, U = GCI |f1|,
       GCI = Fs |(f1 − f2)/f1| / (r21^p̂ − 1);
-    - "converged": f1 = f2: f1, U = 0;
-    - "spread": oscillatory or divergent: the finest value f1, U = |f1 − f2| (the spread of the last two
-      levels);
+    - "converged": converged to round-off (|f1 − f2| ≤ δ): f1, U = δ, no order (not observable);
+    - "oscillatory" (ε21/ε32 < 0) or "divergent" (differences not shrinking, or f3 = f2 ≠ f1): no order is
+      claimed; f1 with Roache's GCI for an order not observed: Fs = 3 at the formal order,
+      U = 3 |f1 − f2| / (r21^p_f − 1);
     - "missing": a level lacks the quantity: NaN.
     """
-    from refsim.sweep.convergence import convergence, grid_convergence_index, richardson
+    from refsim.sweep.convergence import convergence, grid_convergence_index, richardson, roundoff_floor
 
     h, f = np.asarray(spacings, dtype=float), np.asarray(values, dtype=float)
     nan = float("nan")
     answer = {"order": nan, "order_used": nan, "safety_factor": nan, "gci": nan}
     if not np.all(np.isfinite(f)):
         return {**answer, "value": nan, "uncertainty": nan, "method": "missing"}
-    result = convergence(h, f)
+    finest = f[np.argsort(h)[:3]]
+    noise = roundoff_floor(finest if scale is None or not math.isfinite(scale) else [scale])
+    result = convergence(h, f, noise=noise)
     f1, f2 = result.values[0], result.values[1]
-    if result.kind == "monotone" and f1 != 0.0:
+    if result.kind == "converged":
+        converged = {"value": f1, "uncertainty": result.uncertainty, "method": "converged", "gci": result.gci}
+        return {**answer, **converged}
+    if result.kind == "monotone":
         p = result.order
         if abs(p - formal_order) <= 0.1 * formal_order:
             used, factor = p, 1.25
         else:
             used, factor = min(max(0.5, p), formal_order), 3.0
+        method, value = "richardson", richardson(f1, f2, result.ratio_fine, used)
+    else:  # oscillatory or divergent: no order observed
+        p, used, factor = nan, float(formal_order), 3.0
+        method, value = result.kind, f1
+    uncertainty = factor * abs(f1 - f2) / (result.ratio_fine**used - 1.0)
+    gci = nan
+    if f1 != 0.0:
         gci = grid_convergence_index(f1, f2, result.ratio_fine, used, safety_factor=factor)
-        return {
-            "value": richardson(f1, f2, result.ratio_fine, used),
-            "uncertainty": gci * abs(f1),
-            "method": "richardson",
-            "order": p,
-            "order_used": used,
-            "safety_factor": factor,
-            "gci": gci,
-        }
-    if result.kind == "converged":
-        return {**answer, "value": f1, "uncertainty": 0.0, "method": "converged", "gci": 0.0}
-    return {**answer, "value": f1, "uncertainty": abs(f1 - f2), "method": "spread"}
+        uncertainty = gci * abs(f1)
+    return {
+        "value": value,
+        "uncertainty": uncertainty,
+        "method": method,
+        "order": p,
+        "order_used": used,
+        "safety_factor": factor,
+        "gci": gci,
+    }
 
 
 # ---------------------------------------------------------------------- running the levels
@@ -254,7 +268,12 @@ def _answers(case: Case, spacings: np.ndarray, values: list[dict]) -> dict:
     answers = {}
     for quantity in case.quantities:
         levels = np.array([np.atleast_1d(v[quantity.name]) for v in values], dtype=float)  # (L, k)
-        rows = [reference_value(spacings, levels[:, j], case.formal_order) for j in range(levels.shape[1])]
+        finite = np.abs(levels[np.isfinite(levels)])
+        magnitude = float(finite.max()) if finite.size else None
+        rows = [
+            reference_value(spacings, levels[:, j], case.formal_order, scale=magnitude)
+            for j in range(levels.shape[1])
+        ]
         value = np.array([r["value"] for r in rows])
         uncertainty = np.array([r["uncertainty"] for r in rows])
         finite = value[np.isfinite(value)]

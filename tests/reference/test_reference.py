@@ -5,6 +5,7 @@ coarse run, and on runs made 2 % stiffer on purpose, and its errors for bad inpu
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -26,6 +27,7 @@ from refsim.reference import (
 from refsim.reference.page import write_page
 from refsim.scene import load_scene
 from refsim.solvers import natural_residual
+from refsim.sweep.convergence import ROUNDOFF
 
 CASES = ["cantilever", "puncture"]
 
@@ -63,13 +65,30 @@ def test_reference_value_on_manufactured_sequences():
     # an order below 0.5 is used as 0.5: f = 1 + h^0.2
     answer = reference_value(h, 1.0 + h**0.2, formal_order=1.0)
     assert answer["order"] == pytest.approx(0.2, abs=1e-9) and answer["order_used"] == 0.5
-    # oscillatory: the finest value with the spread of the last two levels
-    answer = reference_value(h, np.array([1.3, 0.8, 1.1]), formal_order=1.0)
-    assert (
-        answer["method"] == "spread"
-        and answer["value"] == 1.1
-        and answer["uncertainty"] == pytest.approx(0.3)
-    )
+    # oscillatory: the finest value, no order claimed, Roache's GCI at the formal order with Fs = 3:
+    # f(h) = 1 + (-1)^k h² at h = 1/2, 1/4, 1/8 → f1 = 1 + 1/64, f2 = 1 - 1/16, U = 3 |f1 - f2| / (2² - 1)
+    signs = np.array([1.0, -1.0, 1.0])
+    oscillating = 1.0 + signs * h**2
+    answer = reference_value(h, oscillating, formal_order=2.0)
+    assert answer["method"] == "oscillatory" and math.isnan(answer["order"])
+    assert answer["value"] == oscillating[2] and answer["safety_factor"] == 3.0
+    assert answer["order_used"] == 2.0
+    assert answer["uncertainty"] == pytest.approx(3.0 * (1.0 / 64 + 1.0 / 16) / 3.0, rel=1e-12)
+    assert abs(answer["value"] - 1.0) <= answer["uncertainty"]  # the band holds the limit 1
+    # divergent (differences growing under refinement): the same rule
+    answer = reference_value(h, np.array([1.0, 1.1, 1.5]), formal_order=1.0)
+    assert answer["method"] == "divergent" and math.isnan(answer["order"])
+    assert answer["uncertainty"] == pytest.approx(3.0 * 0.4 / (2.0 - 1.0), rel=1e-12)
+    # converged to round-off: the finest two levels of f = 1 + h² made equal to within 2 ulp; the value is f1,
+    # its uncertainty the round-off floor δ = ROUNDOFF · scale, and no order (it would be ≈ 48 from the ulps)
+    rounded = 1.0 + h**2
+    rounded[2] = rounded[1] - 2.0 * np.spacing(rounded[1])
+    answer = reference_value(h, rounded, formal_order=2.0)
+    assert answer["method"] == "converged" and math.isnan(answer["order"])
+    assert answer["value"] == rounded[2] and answer["uncertainty"] == ROUNDOFF * rounded[0]
+    # against a curve's scale: a sample near zero judged against the curve's magnitude
+    answer = reference_value(h, np.array([3e-13, 1e-13, 2e-13]), formal_order=1.0, scale=1.0)
+    assert answer["method"] == "converged" and answer["uncertainty"] == ROUNDOFF
     assert reference_value(h, np.array([2.0, 1.0, 1.0]), formal_order=1.0)["method"] == "converged"
     assert reference_value(h, np.array([2.0, np.nan, 1.0]), formal_order=1.0)["method"] == "missing"
 
@@ -172,8 +191,8 @@ def test_page_is_written_from_the_package(package, tmp_path):
 def test_refsim_finest_run_passes(package, tmp_path):
     folder, _ = package
     finest = _run_files(folder, "puncture")[-1]
-    # The reference is f1 (spread, converged) or f1's Richardson value with |f1 - ref| = U/Fs (richardson,
-    # Fs >= 1.25): the finest run lies inside U.
+    # The reference is f1 (converged, oscillatory, divergent) or f1's Richardson value with |f1 - ref| = U/Fs
+    # (richardson, Fs >= 1.25): the finest run lies inside U.
     results = compare("puncture", finest, folder)
     assert all(item.all_passed for item in results)
     csv = write_their_csv(
