@@ -159,24 +159,6 @@ def _study(case: Case, level: str):
     )
 
 
-def _drop_stale_runs(case: Case, folder: Path) -> None:
-    """Remove a case's runs built from another version of its scene file.
-
-    A study reuses a complete run by its id, a hash of the scene's path and the run's overrides, not of the
-    scene file's content; the package keeps the scene it was built from (``scene.toml``), so a case whose
-    scene file changed since is run again instead of reusing runs of the old scene.
-    """
-    built = folder / "scene.toml"
-    if not built.is_file() or built.read_bytes() == Path(case.scene_path).read_bytes():
-        return
-    logging.getLogger("refsim.reference").warning(
-        "case %s: its scene file changed since the package was built; its runs are made again", case.name
-    )
-    shutil.rmtree(folder / "study_runs", ignore_errors=True)
-    (folder / "study.h5").unlink(missing_ok=True)
-    built.unlink()
-
-
 def _run_scene_case(case: Case, level: str, folder: Path, client) -> tuple[list[dict], list[str], dict]:
     """Run the levels on Dask; per level {quantity: values}, the run files (relative to ``folder``), study
     attributes."""
@@ -561,7 +543,6 @@ def build_reference(
             folder = output / "cases" / case.name
             folder.mkdir(parents=True, exist_ok=True)
             if case.runner == "scene":
-                _drop_stale_runs(case, folder)
                 # the scene the runs are made from, before they are (an interrupted build keeps it)
                 shutil.copyfile(case.scene_path, folder / "scene.toml")
                 values, files, info = _run_scene_case(case, level, folder, client)

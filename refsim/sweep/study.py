@@ -3,7 +3,10 @@
 The study file ``STUDY.h5`` indexes the runs, whose results files sit in the folder ``STUDY_runs/`` beside it
 (one ``<run id>.h5`` each, the id a hash of the scene and the run's overrides). It is rewritten (atomically)
 each time a run finishes, so an interrupted study keeps what it did; started again, it runs only the runs
-whose results file is missing or not ``complete``. Layout (also in ``docs/studies.md``):
+whose results file is missing, not ``complete``, or stale: a file is reused only when its content key
+(:func:`refsim.sweep.worker.run_key`: the resolved scene, refsim version and git commit it records) is the
+run's now, so an edited scene file, another ``--set`` or another refsim runs it again. Layout (also in
+``docs/studies.md``):
 
 - path: root attributes; meaning: ``format`` = "refsim-study", ``schema_version``, ``name``, ``scene``,
   ``combine``, ``study`` (the study as JSON), ``created``, ``refsim_version``, ``git_commit``, ``run_folder``,
@@ -47,7 +50,7 @@ import numpy as np
 from refsim.sweep.convergence import convergence, fitted_order
 from refsim.sweep.quantities import UNITS
 from refsim.sweep.spec import RunSpec, StudySpec
-from refsim.sweep.worker import BLAS_ENVIRONMENT, run_one
+from refsim.sweep.worker import BLAS_ENVIRONMENT, is_current, run_key, run_one
 
 __all__ = [
     "LOOPBACK",
@@ -224,6 +227,20 @@ def check_study_output(spec: StudySpec, output, *, overwrite: bool = False) -> P
     return output
 
 
+def _run_keys(spec: StudySpec, runs) -> dict:
+    """{run id: content key (:func:`refsim.sweep.worker.run_key`)}; None for a run whose scene does not load
+    (it is run, and its row says why it failed)."""
+    from refsim.scene import load_scene
+
+    keys = {}
+    for run in runs:
+        try:
+            keys[run.id] = run_key(load_scene(spec.scene, list(run.overrides)))
+        except (ValueError, OSError):
+            keys[run.id] = None
+    return keys
+
+
 def run_study(
     spec: StudySpec,
     output,
@@ -270,9 +287,8 @@ def run_study(
     reference = spec.reference_run()
     every = runs + ([reference] if reference is not None and reference.id not in {r.id for r in runs} else [])
     rows = {run.id: _pending(run) for run in every}
-    from refsim.sweep.worker import is_complete
-
-    missing = [run for run in every if not is_complete(folder / run.file_name)]
+    keys = _run_keys(spec, every)
+    missing = [run for run in every if not is_current(folder / run.file_name, keys[run.id])]
     done = [run for run in every if run not in missing]
     previous = _previous_timing(output)
     for (

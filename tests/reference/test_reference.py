@@ -394,21 +394,3 @@ def test_every_run_of_every_level_is_a_valid_scene(name):
             ]
             scene = load_scene(case.scene_path, [*case.overrides, *overrides])
             assert scene.time.dt == pytest.approx(keys["time.dt"][index], rel=1e-15)
-
-
-def test_runs_of_a_changed_scene_are_not_reused(tmp_path):
-    """A study reuses runs by the scene's path and the overrides; the package's copy of the scene it was
-    built from tells a changed scene file, whose runs are then dropped (and kept when it is the same)."""
-    from refsim.reference.build import _drop_stale_runs
-
-    case = load_case("puncture")
-    folder = tmp_path / "puncture"
-    (folder / "study_runs").mkdir(parents=True)
-    (folder / "study_runs" / "run.h5").write_bytes(b"old run")
-    (folder / "study.h5").write_bytes(b"old study")
-    (folder / "scene.toml").write_bytes(case.scene_path.read_bytes())
-    _drop_stale_runs(case, folder)
-    assert (folder / "study_runs" / "run.h5").is_file() and (folder / "study.h5").is_file()
-    (folder / "scene.toml").write_bytes(case.scene_path.read_bytes().replace(b"0.04", b"0.05"))
-    _drop_stale_runs(case, folder)
-    assert not (folder / "study_runs").exists() and not (folder / "study.h5").exists()
