@@ -13,8 +13,9 @@ It writes the versioned data package (layout in ``docs/reference.md``)::
     DIR/cases/NAME/case.toml, scene.toml   the specification, as built
     DIR/cases/NAME/study.h5, study_runs/   the study file and every run's results file
     DIR/cases/NAME/problems.h5, fclib/     20 of the finest run's constraint problems (evenly spaced steps)
-                                           with exact solutions; FCLib files for those whose rows are pure
-                                           frictional contact
+                                           with exact solutions; up to 10 FCLib files of the steps FCLib holds
+                                           (refsim.io.export.coulomb_contacts: the loaded tip contact before
+                                           puncture), evenly spaced
     DIR/figures/NAME.png                   each quantity against refinement, with the reference band
 """
 
@@ -391,22 +392,35 @@ def _figure(path: Path, case: Case, spacings, answers) -> None:
 
 #: Constraint problems kept per case: evenly spaced over the finest run's recorded steps.
 PROBLEM_STEPS = 20
+#: FCLib files kept per case: evenly spaced over the finest run's steps that FCLib's format holds.
+FCLIB_STEPS = 10
 
 
-def _export_problems(run_file: Path, folder: Path, count: int = PROBLEM_STEPS) -> dict:
+def _evenly(count: int, keep: int) -> np.ndarray:
+    """Indices of ``keep`` of ``count`` items, evenly spaced, first and last included (all when fewer)."""
+    if count == 0:
+        return np.zeros(0, dtype=int)
+    return np.unique(np.linspace(0, count - 1, min(keep, count)).round().astype(int))
+
+
+def _export_problems(
+    run_file: Path, folder: Path, count: int = PROBLEM_STEPS, fclib_count: int = FCLIB_STEPS
+):
     """Export the finest run's constraint problems with their exact solutions (refsim.io.export), keeping
-    ``count`` steps evenly spaced over the run: ``problems.h5`` and, for the kept steps whose rows are pure
-    frictional contact, FCLib files in ``fclib/``. Returns {count, recorded, fclib}."""
+    ``count`` steps evenly spaced over the run in ``problems.h5``, and ``fclib_count`` FCLib files in
+    ``fclib/`` evenly spaced over the steps FCLib's format holds (:func:`refsim.io.export.coulomb_contacts`;
+    chosen among those, not among the kept problems: they are the few steps before puncture). Returns
+    {count, recorded, fclib, fclib_steps}."""
     import h5py
 
     from refsim.io.export import export_problems
 
     full, fclib = folder / "problems_all.h5.tmp", folder / "fclib"
-    export_problems(run_file, full, fclib_folder=fclib)
+    shutil.rmtree(fclib, ignore_errors=True)
+    summary = export_problems(run_file, full, fclib_folder=fclib)
     with h5py.File(full, "r") as source:
         names = sorted(source["problems"])
-        picks = np.unique(np.linspace(0, len(names) - 1, min(count, len(names))).round().astype(int))
-        chosen = [names[i] for i in picks]
+        chosen = [names[i] for i in _evenly(len(names), count)]
         with h5py.File(folder / "problems.h5", "w") as target:
             target.attrs.update(dict(source.attrs))
             target.attrs["problem_count"] = len(chosen)
@@ -415,14 +429,19 @@ def _export_problems(run_file: Path, folder: Path, count: int = PROBLEM_STEPS) -
             for name in chosen:
                 source.copy(source[f"problems/{name}"], group, name=name)
     full.unlink()
-    kept = {f"{name}.hdf5" for name in chosen}
-    for path in fclib.glob("*.hdf5"):
-        if path.name not in kept:
-            path.unlink()
-    written = len(list(fclib.glob("*.hdf5")))
-    if written == 0 and fclib.is_dir():
+    files = sorted(summary["fclib"])
+    kept = [files[i] for i in _evenly(len(files), fclib_count)]
+    for path in set(files) - set(kept):
+        path.unlink()
+    if not kept and fclib.is_dir():
         fclib.rmdir()
-    return {"count": len(chosen), "recorded": len(names), "fclib": written}
+    return {
+        "count": len(chosen),
+        "recorded": len(names),
+        "fclib": len(kept),
+        "fclib_steps": [int(path.stem.split("_")[1]) for path in kept],
+        "fclib_holdable": len(files),
+    }
 
 
 def read_case_reference(folder, case_name: str) -> dict:

@@ -161,8 +161,11 @@ A refsim results file (`.h5`) is read directly instead. From Python, `refsim.ref
     DIR/cases/NAME/study.h5, study_runs/   the study file and each run's results file
     DIR/cases/NAME/problems.h5, fclib/     20 constraint problems of the finest run (steps evenly spaced)
                                            with their exact solutions (the problem-set format of
-                                           refsim/io/export.py); FCLib files for those whose rows are pure
-                                           frictional contact (none while the f_p cap is a box row)
+                                           refsim/io/export.py); fclib/: up to 10 steps FCLib's local
+                                           format holds (the tip contact before puncture, loaded, its f_p cap
+                                           inactive), evenly spaced, with FCLib's Coulomb cone on the step's
+                                           W, q, mu and the exact solution of that problem (each file's
+                                           /fclib_local/info/description says so)
     DIR/figures/NAME.png                   each quantity against refinement with the reference band
 """
 

@@ -129,6 +129,31 @@ def test_manifest_records_version_levels_and_checksums(package):
         target.write_bytes(original)
 
 
+def test_package_holds_fclib_problems_of_the_tip_contact(package):
+    """The puncture case's finest run: its loaded tip contacts before puncture are FCLib problems (Coulomb's
+    cone on the step's W, q, mu), kept evenly spaced; each reads back with its stored solution meeting FCLib's
+    error measure (Siconos' normalised natural map, which is refsim's natural_residual) to the export's
+    tolerance, 1e-10 (export_problems' default, solve_exact stops at it)."""
+    import h5py
+
+    from refsim.io.export import coulomb_contacts
+    from refsim.solvers.readers import read_fclib
+
+    folder, manifest = package
+    problems = manifest["cases"]["puncture"]["problems"]
+    assert problems["fclib"] == min(10, problems["fclib_holdable"]) > 0
+    files = sorted((folder / "cases" / "puncture" / "fclib").glob("*.hdf5"))
+    assert [int(p.stem.split("_")[1]) for p in files] == problems["fclib_steps"]
+    for path in files:
+        assert f"cases/puncture/fclib/{path.name}" in manifest["files"]
+        back = read_fclib(path)
+        with h5py.File(path, "r") as handle:
+            r = handle["solution/r"][()]
+        assert back.contacts.shape == (1, 3) and r[0] > 0.0
+        assert natural_residual(back, r) <= 1e-10
+        assert coulomb_contacts(back) is not None  # already pure contact: taken as is
+
+
 def test_answers_come_from_the_runs(package):
     folder, _ = package
     case = load_case("puncture")
