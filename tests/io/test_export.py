@@ -232,7 +232,14 @@ def test_coulomb_contacts_takes_only_what_fclib_holds():
         )
         is None
     )
-    two = {**tip, "group_offsets": [0, 2, 3], "group_members": [0, 2, 0]}
+    two = {
+        **tip,
+        "compliance": bigger,
+        "free_gap": np.zeros(4),
+        "unilateral": [3],
+        "group_offsets": [0, 2, 3],
+        "group_members": [0, 3, 0],
+    }
     assert coulomb_contacts(ConstraintProblem(**two)) is None
 
 
