@@ -547,61 +547,19 @@ def build_reference(
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "command": command or f"build_reference({str(output)!r}, level={level!r}, cases={names!r})",
     }
-    own = None
-    needs_cluster = any(case.runner == "scene" for case in loaded)
-    if client is None and needs_cluster:
-        from refsim.sweep.study import start_client
+    from refsim.sweep.study import start_client, stop_client
 
-        client, own = start_client(scheduler, workers)
-        own = (client, own)
+    own = client is None and any(case.runner == "scene" for case in loaded)
+    if own:
+        client, cluster = start_client(scheduler, workers)
     start = time.perf_counter()
     manifest_cases = {}
     try:
         for case in loaded:
-            case_start = time.perf_counter()
-            folder = output / "cases" / case.name
-            folder.mkdir(parents=True, exist_ok=True)
-            if case.runner == "scene":
-                # the scene the runs are made from, before they are (an interrupted build keeps it)
-                shutil.copyfile(case.scene_path, folder / "scene.toml")
-                values, files, info = _run_scene_case(case, level, folder, client)
-            else:
-                values, files, info = _run_cantilever_case(case, level)
-            shutil.copyfile(case.path, folder / "case.toml")
-            spacings = case.spacings(level)
-            answers = _answers(case, spacings, values)
-            _write_case_h5(folder / "reference.h5", case, level, spacings, answers, files, info, meta)
-            _write_case_csv(folder / "reference.csv", case, answers)
-            problems = _export_problems(folder / files[-1], folder) if files else None
-            if figures:
-                (output / "figures").mkdir(exist_ok=True)
-                _figure(output / "figures" / f"{case.name}.png", case, spacings, answers)
-            manifest_cases[case.name] = {
-                "title": case.title,
-                "runner": case.runner,
-                "refine": case.refine,
-                "formal_order": case.formal_order,
-                "levels": case.level(level),
-                "h": spacings.tolist(),
-                "seconds": time.perf_counter() - case_start,
-                "run_seconds": info["run_seconds"],
-                "problems": problems,
-                "quantities": {
-                    q.name: {
-                        "kind": q.kind,
-                        "unit": q.unit,
-                        "methods": sorted(set(answers[q.name]["method"])),
-                        "largest_relative_uncertainty": _largest_relative(answers[q.name]),
-                        "modelling_tolerance_relative": q.tolerance,
-                    }
-                    for q in case.quantities
-                },
-            }
+            manifest_cases[case.name] = _build_case(case, level, output, client, meta, figures)
     finally:
-        if own is not None:
-            own[0].close()
-            if own[1] is not None:
-                own[1].close()
+        if own:
+            stop_client(client, cluster)  # also removes a LocalCluster's scratch folder
     manifest = {
         "format": MANIFEST_FORMAT,
         "schema_version": SCHEMA_VERSION,
@@ -610,6 +568,56 @@ def build_reference(
         "seconds": time.perf_counter() - start,
         "cases": manifest_cases,
     }
+    _write_manifest(output, manifest)
+    return manifest
+
+
+def _build_case(case: Case, level: str, output: Path, client, meta: dict, figures: bool) -> dict:
+    """Run one case's levels, write its answers (HDF5, CSV), problems and figure into the package, and return
+    its manifest entry."""
+    case_start = time.perf_counter()
+    folder = output / "cases" / case.name
+    folder.mkdir(parents=True, exist_ok=True)
+    if case.runner == "scene":
+        # the scene the runs are made from, before they are (an interrupted build keeps it)
+        shutil.copyfile(case.scene_path, folder / "scene.toml")
+        values, files, info = _run_scene_case(case, level, folder, client)
+    else:
+        values, files, info = _run_cantilever_case(case, level)
+    shutil.copyfile(case.path, folder / "case.toml")
+    spacings = case.spacings(level)
+    answers = _answers(case, spacings, values)
+    _write_case_h5(folder / "reference.h5", case, level, spacings, answers, files, info, meta)
+    _write_case_csv(folder / "reference.csv", case, answers)
+    problems = _export_problems(folder / files[-1], folder) if files else None
+    if figures:
+        (output / "figures").mkdir(exist_ok=True)
+        _figure(output / "figures" / f"{case.name}.png", case, spacings, answers)
+    return {
+        "title": case.title,
+        "runner": case.runner,
+        "refine": case.refine,
+        "formal_order": case.formal_order,
+        "levels": case.level(level),
+        "h": spacings.tolist(),
+        "seconds": time.perf_counter() - case_start,
+        "run_seconds": info["run_seconds"],
+        "problems": problems,
+        "quantities": {
+            q.name: {
+                "kind": q.kind,
+                "unit": q.unit,
+                "methods": sorted(set(answers[q.name]["method"])),
+                "largest_relative_uncertainty": _largest_relative(answers[q.name]),
+                "modelling_tolerance_relative": q.tolerance,
+            }
+            for q in case.quantities
+        },
+    }
+
+
+def _write_manifest(output: Path, manifest: dict) -> None:
+    """Add the SHA-256 of every file of the package to ``manifest`` and write it (atomically)."""
     manifest["files"] = {
         str(path.relative_to(output)): _sha256(path)
         for path in sorted(output.rglob("*"))
@@ -620,7 +628,6 @@ def build_reference(
         json.dumps(manifest, indent=1, sort_keys=True, default=float) + "\n", encoding="utf-8"
     )
     temporary.replace(output / "manifest.json")
-    return manifest
 
 
 def _largest_relative(answer) -> float:
