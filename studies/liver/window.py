@@ -195,9 +195,8 @@ def main(argv=None) -> int:
             "ends": ends,
         }
         log(
-            f"window: {low:.2f} < G_c < {high:.2f} J/m² (the scenes' G_c = {chosen:g}: "
-            f"{100 * (chosen / low - 1):+.1f} % above the low end, "
-            f"{100 * (high / chosen - 1):+.1f} % to the high end)"
+            f"window: {low:.2f} < G_c < {high:.2f} J/m² (the scenes' G_c = {chosen:g}: the window reaches "
+            f"{100 * (1 - low / chosen):.1f} % below and {100 * (high / chosen - 1):.1f} % above it)"
         )
     _write(data, args)
     return 0
@@ -233,8 +232,8 @@ def page(data: dict) -> str:
             f"overrides: {', '.join(window['overrides']) or 'none'}): {centre:.1f} J/m² "
             f"± {100 * (high - low) / (high + low):.1f} % (geometric centre, ± half the width over the "
             f"mean). "
-            f"The scenes' G_c = {chosen:g} J/m² lies {100 * (chosen / low - 1):.1f} % above the low end and "
-            f"{100 * (1 - chosen / high):.1f} % below the high end.",
+            f"Around the scenes' G_c = {chosen:g} J/m² the window reaches "
+            f"{100 * (1 - low / chosen):.1f} % below and {100 * (high / chosen - 1):.1f} % above it.",
             "",
             "| scene | cuts at G_c = | does not cut at G_c = | runs |",
             "|---|---|---|---|",
