@@ -689,7 +689,9 @@ def _add_export_command(commands) -> None:
     export.add_argument("--xdmf", action="store_true", help="write RESULT.xdmf beside the file (ParaView)")
     export.add_argument("--problems", metavar="OUT.h5", help="recorded problems with exact solutions")
     export.add_argument(
-        "--fclib", metavar="FOLDER", help="with --problems: FCLib files of pure-contact steps"
+        "--fclib",
+        metavar="FOLDER",
+        help="with --problems: FCLib files of the steps FCLib can hold (the tip contact before puncture)",
     )
     export.add_argument("--csv", metavar="OUT.csv", help="needle force history")
     export.add_argument(

@@ -2,8 +2,8 @@
 
 - :func:`export_problems`: the constraint problem of every recorded step (a run with
   ``output.record_problems = true``) with its exact solution (:func:`refsim.solvers.solve_exact`), in the
-  problem-set format below; and, for the steps whose rows are pure frictional contact (3-D Coulomb contacts
-  only), one FCLib file each (:func:`write_fclib`).
+  problem-set format below; and, for the steps FCLib's local format can hold, one FCLib file each
+  (:func:`write_fclib`, :func:`coulomb_contacts`).
 - :func:`export_force_csv`: the needle force history as CSV.
 - :func:`export_vtu`: the deformed tissue (point data displacement [m], fixed, constraint_force [N]) and the
   cut surface at a recorded tissue step, or at every one with a ParaView collection (.pvd) each, as VTK
@@ -27,6 +27,18 @@ FCLib local file (one problem, Siconos' u = W r + q; FCLib's ``fclib_local`` lay
 ({m, n, nz = -1, nzmax, p, i, x}: CSC, int32 indices), ``/fclib_local/vectors/{q, mu}``,
 ``/fclib_local/spacedim`` = 3, ``/fclib_local/info/{title, description, math_info}``, and ``/solution/{r,
 u}``. Rows are reordered so that contact k holds rows 3k (normal), 3k + 1, 3k + 2 (tangents); r = λ, u = δ.
+
+What FCLib's local format holds: 3-D (or 2-D) Coulomb contacts only, u = W r + q with, per contact, r_n ≥ 0,
+‖r_t‖ ≤ μ r_n and De Saxcé's complementarity; no equality (bilateral) row, no box bound, no friction bounded
+by anything but its own contact's normal force. So the insertion rows (two bilateral lateral rows and a shaft
+friction row bounded by μ (‖λ_lateral‖ + the grip's preload)), the cut's sliding and front rows and the tip's
+cutting row cannot be written as FCLib problems (FCLib's global format adds equality rows, but its friction is
+still Coulomb's per contact, not a bound by other rows' forces plus a preload). The tip contact before
+puncture can (:func:`coulomb_contacts`): a normal row with two friction rows bounded by μ λ_n. refsim writes
+its normal as a box [0, f_p] (the puncture located within the step) and its friction as two independent bounds
+|λ_ti| ≤ μ λ_n (a pyramid); the FCLib file holds the same W, q and μ with Coulomb's cone and a plain
+unilateral normal, and its solution r is the exact solution of that problem. A step is written only when the
+cap is inactive at r (λ_n < f_p: the cap does not change the answer) and the contact carries load (r ≠ 0).
 """
 
 from __future__ import annotations
@@ -41,6 +53,7 @@ import numpy as np
 __all__ = [
     "PROBLEM_SET_FORMAT",
     "export_force_csv",
+    "coulomb_contacts",
     "export_vtu",
     "export_problems",
     "is_pure_contact",
@@ -61,6 +74,58 @@ def _problem_fields() -> list[str]:
 def is_pure_contact(problem) -> bool:
     """True when every row of ``problem`` belongs to a 3-D Coulomb contact (an FCLib local problem)."""
     return problem.row_count > 0 and problem.contacts.size == problem.row_count
+
+
+def coulomb_contacts(problem):
+    """The step's problem with FCLib's law: pure 3-D Coulomb contacts on the same W, δ_free and μ, or None.
+
+    A problem qualifies when it has no bilateral and no shaft (pair-form) rows, and its other rows are normal
+    rows (unilateral, or a box [0, cap] with cap > 0) each with exactly two friction rows bounded by μ |λ_n|
+    of that normal alone (group friction of one member, no preload, the same μ), or are contacts already.
+
+    Returns
+    -------
+    None, or (contact problem, caps): the :class:`refsim.solvers.ConstraintProblem` with ``contacts`` (k, 3)
+    (normal, tangent, tangent; rows in the step's numbering) and ``contact_friction`` (k,), and the cap of
+    each contact's normal [N], shape (k,) (inf for a unilateral normal, and for the contacts the problem had).
+    """
+    from refsim.solvers import ConstraintProblem
+
+    if problem.row_count == 0 or problem.bilateral.size or problem.shaft_friction.size:
+        return None
+    rows, offsets, members, coefficient, preload = problem.friction_groups()
+    if np.any(np.diff(offsets) != 1) or np.any(preload != 0.0):
+        return None
+    capped = (problem.box_lower == 0.0) & (problem.box_upper > 0.0)
+    if not np.all(capped):
+        return None
+    normals = np.concatenate([problem.unilateral, problem.box_rows])
+    caps = np.concatenate([np.full(problem.unilateral.size, np.inf), problem.box_upper])
+    owner = members  # the normal row bounding each friction row
+    if owner.size != 2 * normals.size or not np.all(np.isin(owner, normals)):
+        return None
+    pairs = np.argsort(owner, kind="stable").reshape(-1, 2)  # two friction rows per normal, by normal row
+    if np.any(owner[pairs[:, 0]] != owner[pairs[:, 1]]):
+        return None
+    mu = coefficient[pairs[:, 0]]
+    if np.any(coefficient[pairs[:, 1]] != mu):
+        return None
+    built = np.column_stack([owner[pairs[:, 0]], rows[pairs[:, 0]], rows[pairs[:, 1]]])
+    order = np.argsort(normals)
+    contacts = np.concatenate([problem.contacts.reshape(-1, 3), built])
+    covered = np.zeros(problem.row_count, dtype=int)
+    np.add.at(covered, contacts.reshape(-1), 1)
+    if np.any(covered != 1):
+        return None
+    contact_problem = ConstraintProblem(
+        compliance=problem.compliance,
+        free_gap=problem.free_gap,
+        contacts=contacts,
+        contact_friction=np.concatenate([problem.contact_friction, mu]),
+        name=f"{problem.name} (Coulomb contacts)" if problem.name else "Coulomb contacts",
+    )
+    all_caps = np.concatenate([np.full(problem.contacts.shape[0], np.inf), caps[order]])
+    return contact_problem, all_caps
 
 
 def write_fclib(problem, path, *, solution=None, title: str = "", description: str = "") -> Path:
@@ -237,20 +302,64 @@ def export_problems(
             _write_problem(handle, step, problem, multipliers, report, results, fields)
             if not report.converged:
                 unconverged.append(step)
-            if fclib_folder is not None and is_pure_contact(problem):
+            if fclib_folder is None:
+                continue
+            where = (
+                f"refsim needle-tissue problem: scene {results.scene_name}, step {step}, t = "
+                f"{results.time[index]:.4g} s, phase {results.phase_name[index]}, from {results_path.name}"
+            )
+            path = Path(fclib_folder) / f"step_{step:07d}.hdf5"
+            if is_pure_contact(problem):
+                description = (
+                    f"{where}; solution by solve_exact (natural residual "
+                    f"{natural_residual(problem, multipliers):.1e})"
+                )
                 written.append(
                     write_fclib(
                         problem,
-                        Path(fclib_folder) / f"step_{step:07d}.hdf5",
+                        path,
                         solution=multipliers,
                         title=f"{results.scene_name} step {step}",
-                        description=f"refsim needle-tissue problem: scene {results.scene_name}, step {step}, "
-                        f"t = {results.time[index]:.4g} s, phase {results.phase_name[index]}, from "
-                        f"{results_path.name}; solution by solve_exact (natural residual "
-                        f"{natural_residual(problem, multipliers):.1e})",
+                        description=description,
                     )
                 )
+            else:
+                fclib = _coulomb_fclib(problem, path, where, tolerance, backend, results.scene_name, step)
+                if fclib is not None:
+                    written.append(fclib)
     return {"problems": len(problems), "fclib": written, "unconverged": unconverged, "output": output}
+
+
+def _coulomb_fclib(problem, path, where, tolerance, backend, scene_name, step):
+    """Write the step's problem with FCLib's law (:func:`coulomb_contacts`) and its exact solution, when it
+    has that form, its solve converged, every cap is inactive at the solution and a contact carries load;
+    the path written, or None."""
+    from refsim.solvers import natural_residual, solve_exact
+
+    converted = coulomb_contacts(problem)
+    if converted is None:
+        return None
+    contact_problem, caps = converted
+    solution, report = solve_exact(contact_problem, tolerance=tolerance, backend=backend)
+    normal = solution[contact_problem.contacts[:, 0]]
+    if not report.converged or np.any(normal >= caps) or not np.any(solution != 0.0):
+        return None
+    capped = np.isfinite(caps)
+    cap_text = (
+        f"the step's normal rows are boxes [0, cap] (the puncture force), inactive here: r_n = "
+        f"{', '.join(f'{v:.6g}' for v in normal[capped])} N < cap "
+        f"{', '.join(f'{c:g}' for c in caps[capped])} N; "
+        if capped.any()
+        else ""
+    )
+    description = (
+        f"{where}; FCLib's Coulomb law on the step's W, q and mu: {cap_text}the step bounds each tangent "
+        f"row by mu r_n (a pyramid), this file by the cone; r solved for the cone by solve_exact (natural "
+        f"residual {natural_residual(contact_problem, solution):.1e})"
+    )
+    return write_fclib(
+        contact_problem, path, solution=solution, title=f"{scene_name} step {step}", description=description
+    )
 
 
 def read_problem_set(path) -> list[tuple[int, object, np.ndarray]]:

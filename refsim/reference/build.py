@@ -13,8 +13,9 @@ It writes the versioned data package (layout in ``docs/reference.md``)::
     DIR/cases/NAME/case.toml, scene.toml   the specification, as built
     DIR/cases/NAME/study.h5, study_runs/   the study file and every run's results file
     DIR/cases/NAME/problems.h5, fclib/     20 of the finest run's constraint problems (evenly spaced steps)
-                                           with exact solutions; FCLib files for those whose rows are pure
-                                           frictional contact
+                                           with exact solutions; up to 10 FCLib files of the steps FCLib holds
+                                           (refsim.io.export.coulomb_contacts: the loaded tip contact before
+                                           puncture), evenly spaced
     DIR/figures/NAME.png                   each quantity against refinement, with the reference band
 """
 
@@ -63,13 +64,14 @@ CSV_COLUMNS = (
 )
 
 
-def reference_value(spacings, values, formal_order: float) -> dict:
+def reference_value(spacings, values, formal_order: float, *, scale: float | None = None) -> dict:
     """The reference value of one quantity at one sampling point from its refinement sequence.
 
     The GCI follows Roy's rule (Oberkampf and Roy 2010, "Verification and Validation in Scientific Computing",
     section 8.7): when the observed order p is within 10 % of the formal order p_f, Fs = 1.25 and p; otherwise
     Fs = 3 and p̂ = min(max(0.5, p), p_f), so that an order far from the asymptotic one (a pre-asymptotic or
-    noisy sequence) widens the band instead of shrinking it.
+    noisy sequence) widens the band instead of shrinking it. A difference at round-off is not an observation
+    (:mod:`refsim.sweep.convergence`, floor δ = ROUNDOFF · scale).
 
     Parameters
     ----------
@@ -77,47 +79,60 @@ def reference_value(spacings, values, formal_order: float) -> dict:
     values : The quantity at each level, shape (L,).
     formal_order : p_f of the discretisation refined together (1 when the implicit Euler step is refined with
         the mesh, 2 for the static Timoshenko beam) [-].
+    scale : Magnitude the round-off floor is relative to (a curve's largest |value|, so that a sample near
+        zero is judged against the curve); max(|f1|, |f2|, |f3|) when None.
 
     Returns
     -------
     dict with ``value``, ``uncertainty`` (half-width U of the band, in the quantity's unit), ``method``,
-    ``order`` (observed), ``order_used``, ``safety_factor``, ``gci``:
+    ``order`` (observed; NaN where not observable), ``order_used``, ``safety_factor``, ``gci``:
 
     - "richardson": monotone over the three finest levels: the Richardson value with p̂, U = GCI |f1|,
       GCI = Fs |(f1 − f2)/f1| / (r21^p̂ − 1);
-    - "converged": f1 = f2: f1, U = 0;
-    - "spread": oscillatory or divergent: the finest value f1, U = |f1 − f2| (the spread of the last two
-      levels);
+    - "converged": converged to round-off (|f1 − f2| ≤ δ): f1, U = δ, no order (not observable);
+    - "oscillatory" (ε21/ε32 < 0) or "divergent" (differences not shrinking, or f3 = f2 ≠ f1): no order is
+      claimed; f1 with Roache's GCI for an order not observed: Fs = 3 at the formal order,
+      U = 3 |f1 − f2| / (r21^p_f − 1);
     - "missing": a level lacks the quantity: NaN.
     """
-    from refsim.sweep.convergence import convergence, grid_convergence_index, richardson
+    from refsim.sweep.convergence import convergence, grid_convergence_index, richardson, roundoff_floor
 
     h, f = np.asarray(spacings, dtype=float), np.asarray(values, dtype=float)
     nan = float("nan")
     answer = {"order": nan, "order_used": nan, "safety_factor": nan, "gci": nan}
     if not np.all(np.isfinite(f)):
         return {**answer, "value": nan, "uncertainty": nan, "method": "missing"}
-    result = convergence(h, f)
+    finest = f[np.argsort(h)[:3]]
+    noise = roundoff_floor(finest if scale is None or not math.isfinite(scale) else [scale])
+    result = convergence(h, f, noise=noise)
     f1, f2 = result.values[0], result.values[1]
-    if result.kind == "monotone" and f1 != 0.0:
+    if result.kind == "converged":
+        converged = {"value": f1, "uncertainty": result.uncertainty, "method": "converged", "gci": result.gci}
+        return {**answer, **converged}
+    if result.kind == "monotone":
         p = result.order
         if abs(p - formal_order) <= 0.1 * formal_order:
             used, factor = p, 1.25
         else:
             used, factor = min(max(0.5, p), formal_order), 3.0
+        method, value = "richardson", richardson(f1, f2, result.ratio_fine, used)
+    else:  # oscillatory or divergent: no order observed
+        p, used, factor = nan, float(formal_order), 3.0
+        method, value = result.kind, f1
+    uncertainty = factor * abs(f1 - f2) / (result.ratio_fine**used - 1.0)
+    gci = nan
+    if f1 != 0.0:
         gci = grid_convergence_index(f1, f2, result.ratio_fine, used, safety_factor=factor)
-        return {
-            "value": richardson(f1, f2, result.ratio_fine, used),
-            "uncertainty": gci * abs(f1),
-            "method": "richardson",
-            "order": p,
-            "order_used": used,
-            "safety_factor": factor,
-            "gci": gci,
-        }
-    if result.kind == "converged":
-        return {**answer, "value": f1, "uncertainty": 0.0, "method": "converged", "gci": 0.0}
-    return {**answer, "value": f1, "uncertainty": abs(f1 - f2), "method": "spread"}
+        uncertainty = gci * abs(f1)
+    return {
+        "value": value,
+        "uncertainty": uncertainty,
+        "method": method,
+        "order": p,
+        "order_used": used,
+        "safety_factor": factor,
+        "gci": gci,
+    }
 
 
 # ---------------------------------------------------------------------- running the levels
@@ -143,24 +158,6 @@ def _study(case: Case, level: str):
         quantities=tuple(q.source for q in case.quantities if q.source) or ("needle_force@end",),
         source=str(case.path),
     )
-
-
-def _drop_stale_runs(case: Case, folder: Path) -> None:
-    """Remove a case's runs built from another version of its scene file.
-
-    A study reuses a complete run by its id, a hash of the scene's path and the run's overrides, not of the
-    scene file's content; the package keeps the scene it was built from (``scene.toml``), so a case whose
-    scene file changed since is run again instead of reusing runs of the old scene.
-    """
-    built = folder / "scene.toml"
-    if not built.is_file() or built.read_bytes() == Path(case.scene_path).read_bytes():
-        return
-    logging.getLogger("refsim.reference").warning(
-        "case %s: its scene file changed since the package was built; its runs are made again", case.name
-    )
-    shutil.rmtree(folder / "study_runs", ignore_errors=True)
-    (folder / "study.h5").unlink(missing_ok=True)
-    built.unlink()
 
 
 def _run_scene_case(case: Case, level: str, folder: Path, client) -> tuple[list[dict], list[str], dict]:
@@ -254,7 +251,12 @@ def _answers(case: Case, spacings: np.ndarray, values: list[dict]) -> dict:
     answers = {}
     for quantity in case.quantities:
         levels = np.array([np.atleast_1d(v[quantity.name]) for v in values], dtype=float)  # (L, k)
-        rows = [reference_value(spacings, levels[:, j], case.formal_order) for j in range(levels.shape[1])]
+        finite = np.abs(levels[np.isfinite(levels)])
+        magnitude = float(finite.max()) if finite.size else None
+        rows = [
+            reference_value(spacings, levels[:, j], case.formal_order, scale=magnitude)
+            for j in range(levels.shape[1])
+        ]
         value = np.array([r["value"] for r in rows])
         uncertainty = np.array([r["uncertainty"] for r in rows])
         finite = value[np.isfinite(value)]
@@ -390,22 +392,35 @@ def _figure(path: Path, case: Case, spacings, answers) -> None:
 
 #: Constraint problems kept per case: evenly spaced over the finest run's recorded steps.
 PROBLEM_STEPS = 20
+#: FCLib files kept per case: evenly spaced over the finest run's steps that FCLib's format holds.
+FCLIB_STEPS = 10
 
 
-def _export_problems(run_file: Path, folder: Path, count: int = PROBLEM_STEPS) -> dict:
+def _evenly(count: int, keep: int) -> np.ndarray:
+    """Indices of ``keep`` of ``count`` items, evenly spaced, first and last included (all when fewer)."""
+    if count == 0:
+        return np.zeros(0, dtype=int)
+    return np.unique(np.linspace(0, count - 1, min(keep, count)).round().astype(int))
+
+
+def _export_problems(
+    run_file: Path, folder: Path, count: int = PROBLEM_STEPS, fclib_count: int = FCLIB_STEPS
+):
     """Export the finest run's constraint problems with their exact solutions (refsim.io.export), keeping
-    ``count`` steps evenly spaced over the run: ``problems.h5`` and, for the kept steps whose rows are pure
-    frictional contact, FCLib files in ``fclib/``. Returns {count, recorded, fclib}."""
+    ``count`` steps evenly spaced over the run in ``problems.h5``, and ``fclib_count`` FCLib files in
+    ``fclib/`` evenly spaced over the steps FCLib's format holds (:func:`refsim.io.export.coulomb_contacts`;
+    chosen among those, not among the kept problems: they are the few steps before puncture). Returns
+    {count, recorded, fclib, fclib_steps}."""
     import h5py
 
     from refsim.io.export import export_problems
 
     full, fclib = folder / "problems_all.h5.tmp", folder / "fclib"
-    export_problems(run_file, full, fclib_folder=fclib)
+    shutil.rmtree(fclib, ignore_errors=True)
+    summary = export_problems(run_file, full, fclib_folder=fclib)
     with h5py.File(full, "r") as source:
         names = sorted(source["problems"])
-        picks = np.unique(np.linspace(0, len(names) - 1, min(count, len(names))).round().astype(int))
-        chosen = [names[i] for i in picks]
+        chosen = [names[i] for i in _evenly(len(names), count)]
         with h5py.File(folder / "problems.h5", "w") as target:
             target.attrs.update(dict(source.attrs))
             target.attrs["problem_count"] = len(chosen)
@@ -414,14 +429,19 @@ def _export_problems(run_file: Path, folder: Path, count: int = PROBLEM_STEPS) -
             for name in chosen:
                 source.copy(source[f"problems/{name}"], group, name=name)
     full.unlink()
-    kept = {f"{name}.hdf5" for name in chosen}
-    for path in fclib.glob("*.hdf5"):
-        if path.name not in kept:
-            path.unlink()
-    written = len(list(fclib.glob("*.hdf5")))
-    if written == 0 and fclib.is_dir():
+    files = sorted(summary["fclib"])
+    kept = [files[i] for i in _evenly(len(files), fclib_count)]
+    for path in set(files) - set(kept):
+        path.unlink()
+    if not kept and fclib.is_dir():
         fclib.rmdir()
-    return {"count": len(chosen), "recorded": len(names), "fclib": written}
+    return {
+        "count": len(chosen),
+        "recorded": len(names),
+        "fclib": len(kept),
+        "fclib_steps": [int(path.stem.split("_")[1]) for path in kept],
+        "fclib_holdable": len(files),
+    }
 
 
 def read_case_reference(folder, case_name: str) -> dict:
@@ -527,62 +547,19 @@ def build_reference(
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "command": command or f"build_reference({str(output)!r}, level={level!r}, cases={names!r})",
     }
-    own = None
-    needs_cluster = any(case.runner == "scene" for case in loaded)
-    if client is None and needs_cluster:
-        from refsim.sweep.study import start_client
+    from refsim.sweep.study import start_client, stop_client
 
-        client, own = start_client(scheduler, workers)
-        own = (client, own)
+    own = client is None and any(case.runner == "scene" for case in loaded)
+    if own:
+        client, cluster = start_client(scheduler, workers)
     start = time.perf_counter()
     manifest_cases = {}
     try:
         for case in loaded:
-            case_start = time.perf_counter()
-            folder = output / "cases" / case.name
-            folder.mkdir(parents=True, exist_ok=True)
-            if case.runner == "scene":
-                _drop_stale_runs(case, folder)
-                # the scene the runs are made from, before they are (an interrupted build keeps it)
-                shutil.copyfile(case.scene_path, folder / "scene.toml")
-                values, files, info = _run_scene_case(case, level, folder, client)
-            else:
-                values, files, info = _run_cantilever_case(case, level)
-            shutil.copyfile(case.path, folder / "case.toml")
-            spacings = case.spacings(level)
-            answers = _answers(case, spacings, values)
-            _write_case_h5(folder / "reference.h5", case, level, spacings, answers, files, info, meta)
-            _write_case_csv(folder / "reference.csv", case, answers)
-            problems = _export_problems(folder / files[-1], folder) if files else None
-            if figures:
-                (output / "figures").mkdir(exist_ok=True)
-                _figure(output / "figures" / f"{case.name}.png", case, spacings, answers)
-            manifest_cases[case.name] = {
-                "title": case.title,
-                "runner": case.runner,
-                "refine": case.refine,
-                "formal_order": case.formal_order,
-                "levels": case.level(level),
-                "h": spacings.tolist(),
-                "seconds": time.perf_counter() - case_start,
-                "run_seconds": info["run_seconds"],
-                "problems": problems,
-                "quantities": {
-                    q.name: {
-                        "kind": q.kind,
-                        "unit": q.unit,
-                        "methods": sorted(set(answers[q.name]["method"])),
-                        "largest_relative_uncertainty": _largest_relative(answers[q.name]),
-                        "modelling_tolerance_relative": q.tolerance,
-                    }
-                    for q in case.quantities
-                },
-            }
+            manifest_cases[case.name] = _build_case(case, level, output, client, meta, figures)
     finally:
-        if own is not None:
-            own[0].close()
-            if own[1] is not None:
-                own[1].close()
+        if own:
+            stop_client(client, cluster)  # also removes a LocalCluster's scratch folder
     manifest = {
         "format": MANIFEST_FORMAT,
         "schema_version": SCHEMA_VERSION,
@@ -591,6 +568,56 @@ def build_reference(
         "seconds": time.perf_counter() - start,
         "cases": manifest_cases,
     }
+    _write_manifest(output, manifest)
+    return manifest
+
+
+def _build_case(case: Case, level: str, output: Path, client, meta: dict, figures: bool) -> dict:
+    """Run one case's levels, write its answers (HDF5, CSV), problems and figure into the package, and return
+    its manifest entry."""
+    case_start = time.perf_counter()
+    folder = output / "cases" / case.name
+    folder.mkdir(parents=True, exist_ok=True)
+    if case.runner == "scene":
+        # the scene the runs are made from, before they are (an interrupted build keeps it)
+        shutil.copyfile(case.scene_path, folder / "scene.toml")
+        values, files, info = _run_scene_case(case, level, folder, client)
+    else:
+        values, files, info = _run_cantilever_case(case, level)
+    shutil.copyfile(case.path, folder / "case.toml")
+    spacings = case.spacings(level)
+    answers = _answers(case, spacings, values)
+    _write_case_h5(folder / "reference.h5", case, level, spacings, answers, files, info, meta)
+    _write_case_csv(folder / "reference.csv", case, answers)
+    problems = _export_problems(folder / files[-1], folder) if files else None
+    if figures:
+        (output / "figures").mkdir(exist_ok=True)
+        _figure(output / "figures" / f"{case.name}.png", case, spacings, answers)
+    return {
+        "title": case.title,
+        "runner": case.runner,
+        "refine": case.refine,
+        "formal_order": case.formal_order,
+        "levels": case.level(level),
+        "h": spacings.tolist(),
+        "seconds": time.perf_counter() - case_start,
+        "run_seconds": info["run_seconds"],
+        "problems": problems,
+        "quantities": {
+            q.name: {
+                "kind": q.kind,
+                "unit": q.unit,
+                "methods": sorted(set(answers[q.name]["method"])),
+                "largest_relative_uncertainty": _largest_relative(answers[q.name]),
+                "modelling_tolerance_relative": q.tolerance,
+            }
+            for q in case.quantities
+        },
+    }
+
+
+def _write_manifest(output: Path, manifest: dict) -> None:
+    """Add the SHA-256 of every file of the package to ``manifest`` and write it (atomically)."""
     manifest["files"] = {
         str(path.relative_to(output)): _sha256(path)
         for path in sorted(output.rglob("*"))
@@ -601,7 +628,6 @@ def build_reference(
         json.dumps(manifest, indent=1, sort_keys=True, default=float) + "\n", encoding="utf-8"
     )
     temporary.replace(output / "manifest.json")
-    return manifest
 
 
 def _largest_relative(answer) -> float:

@@ -119,9 +119,12 @@ d_c and dt refined together, h = 1/cells; the exact solver at a natural residual
   with Roy's rule (Oberkampf and Roy 2010, section 8.7): Fs = 1.25 and p̂ = p when the observed order p is
   within 10 % of the formal order p_f (the case's `formal_order`: 1 where implicit Euler's dt is refined with
   the mesh, 2 for the static beam), otherwise Fs = 3 and p̂ = min(max(0.5, p), p_f);
-- `spread`: oscillatory or divergent (no asymptotic order observed): the finest value f1, U = |f1 − f2|, the
-  spread of the last two levels;
-- `converged`: f1 = f2: f1, U = 0.
+- `oscillatory` (ε21/ε32 < 0) or `divergent` (the differences do not shrink): no order is observed, none is
+  claimed: the finest value f1 with Roache's GCI for an unobserved order, Fs = 3 at the formal order,
+  U = 3·|f1 − f2|/(r21^p_f − 1);
+- `converged`: converged to round-off, |f1 − f2| ≤ δ with δ = 1e-12 times the quantity's largest |value|
+  (`refsim.sweep.convergence.ROUNDOFF`; a difference below it is round-off, not an observation): f1, U = δ,
+  order not observable.
 
 `compare` reports per sample the error in units of the uncertainty, |theirs − ref|/U, and passes a sample when
 |theirs − ref| ≤ U + T. T is the case's modelling tolerance: a stated fraction of the quantity's scale (its
@@ -158,14 +161,22 @@ A refsim results file (`.h5`) is read directly instead. From Python, `refsim.ref
     DIR/cases/NAME/study.h5, study_runs/   the study file and each run's results file
     DIR/cases/NAME/problems.h5, fclib/     20 constraint problems of the finest run (steps evenly spaced)
                                            with their exact solutions (the problem-set format of
-                                           refsim/io/export.py); FCLib files for those whose rows are pure
-                                           frictional contact (none while the f_p cap is a box row)
+                                           refsim/io/export.py); fclib/: up to 10 steps FCLib's local
+                                           format holds (the tip contact before puncture, loaded, its f_p cap
+                                           inactive), evenly spaced, with FCLib's Coulomb cone on the step's
+                                           W, q, mu and the exact solution of that problem (each file's
+                                           /fclib_local/info/description says so)
     DIR/figures/NAME.png                   each quantity against refinement with the reference band
 """
 
 
 def _format(value: float) -> str:
     return "—" if not math.isfinite(value) else f"{value:.5g}"
+
+
+def _order(value: float) -> str:
+    """An observed order, or "not observable" (round-off, oscillatory or divergent sequences)."""
+    return "not observable" if not math.isfinite(value) else f"{value:.5g}"
 
 
 def _case_section(case, reference: dict, manifest_case: dict, figure: str | None) -> list[str]:
@@ -200,7 +211,7 @@ def _case_section(case, reference: dict, manifest_case: dict, figure: str | None
             x = f"{at[j]:.4g} {quantity.x_unit}" if quantity.kind == "curve" else ""
             lines.append(
                 f"| {quantity.name} | {x} | {_format(value[j])} | {_format(u[j])} | {_format(band[j])} | "
-                f"{entry['method'][j]} | {_format(order[j])} | {_format(used[j])} | {quantity.unit} |"
+                f"{entry['method'][j]} | {_order(order[j])} | {_format(used[j])} | {quantity.unit} |"
             )
     lines += ["", "Quantities:", ""]
     for quantity in case.quantities:

@@ -12,9 +12,12 @@ r21 = h2/h1 > 1, r32 = h3/h2 > 1, ε21 = f2 − f1, ε32 = f3 − f2.
 - Grid convergence index (fine):     GCI = Fs |e21| / (r21^p − 1), e21 = (f1 − f2)/f1, Fs = 1.25 (three
   levels); the uncertainty band of f1 is ± GCI |f1|.
 
-The sequence is oscillatory when ε21/ε32 < 0, divergent when no positive order fits (for a constant ratio,
-|ε21| ≥ |ε32|), monotone otherwise; an order is reported for a monotone sequence only (NaN otherwise, with the
-type saying why).
+A difference is an observation only above the round-off floor δ = ROUNDOFF · max(|f1|, |f2|, |f3|) (or a
+floor the caller gives): with |ε21| ≤ δ the sequence has converged to round-off (f1, with δ as its
+uncertainty, and no order: the quotient of a round-off difference is noise, and ln of it gives any order at
+all); with |ε32| ≤ δ < |ε21| it is divergent. Otherwise it is oscillatory when ε21/ε32 < 0, divergent when no
+positive order fits (for a constant ratio, |ε21| ≥ |ε32|), monotone otherwise; an order is reported for a
+monotone sequence only (NaN otherwise, with the type saying why).
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 __all__ = [
+    "ROUNDOFF",
     "SAFETY_FACTOR",
     "ConvergenceResult",
     "convergence",
@@ -37,6 +41,18 @@ __all__ = [
 #: Roache's safety factor of the GCI for a three-level study.
 SAFETY_FACTOR = 1.25
 
+#: Relative round-off floor of a quantity computed by a run: differences below ROUNDOFF times the values'
+#: magnitude are not resolved. A run accumulates the round-off of thousands of steps of float64
+#: (ε = 2.2e-16), and quantities that are differences of positions (a stroke, a depth) lose a further factor
+#: of position/difference to cancellation; 1e-12 is about 4500 ε.
+ROUNDOFF = 1e-12
+
+
+def roundoff_floor(values, scale: float | None = None) -> float:
+    """The absolute round-off floor ROUNDOFF · (``scale`` or max |values|), in the values' unit."""
+    magnitude = float(np.max(np.abs(values))) if scale is None else abs(float(scale))
+    return ROUNDOFF * magnitude
+
 
 @dataclass(frozen=True)
 class ConvergenceResult:
@@ -47,11 +63,13 @@ class ConvergenceResult:
     spacings : h1, h2, h3 (finest first), in the unit of the refinement measure.
     values : f1, f2, f3, in the quantity's unit.
     ratio_fine, ratio_coarse : r21 = h2/h1 and r32 = h3/h2 [-].
-    kind : "monotone", "oscillatory", "divergent" or "converged" (ε21 = 0: f1 = f2 to round-off).
-    order : Observed order p [-]; NaN unless monotone.
-    extrapolated : Richardson-extrapolated value f_ext; NaN unless monotone.
-    gci : Grid convergence index of the finest level, relative [-]; NaN unless monotone.
-    uncertainty : GCI |f1|, the half-width of the uncertainty band of f1, in the quantity's unit.
+    kind : "monotone", "oscillatory", "divergent" or "converged" (|ε21| ≤ δ: f1 = f2 to round-off).
+    order : Observed order p [-]; NaN unless monotone (not observable otherwise).
+    extrapolated : Richardson-extrapolated value f_ext; f1 when converged; NaN otherwise.
+    gci : Grid convergence index of the finest level, relative [-]; δ/|f1| when converged; NaN otherwise.
+    uncertainty : GCI |f1|, the half-width of the uncertainty band of f1, in the quantity's unit; δ when
+        converged.
+    noise : The round-off floor δ used, in the quantity's unit.
     """
 
     spacings: tuple
@@ -63,6 +81,7 @@ class ConvergenceResult:
     extrapolated: float
     gci: float
     uncertainty: float
+    noise: float = 0.0
 
     def as_dict(self) -> dict:
         """Plain data (for JSON and the study file)."""
@@ -85,6 +104,7 @@ def observed_order(
     *,
     tolerance: float = 1e-12,
     max_iterations: int = 200,
+    noise: float | None = None,
 ) -> float:
     """Observed order of convergence from three levels.
 
@@ -95,10 +115,12 @@ def observed_order(
     ratio_coarse : r32 = h3/h2 > 1; ``ratio`` when None (constant refinement ratio, closed form).
     tolerance : Stop the fixed point when p changes by less than this (any ratios).
     max_iterations : Fixed-point iterations allowed (any ratios).
+    noise : Round-off floor δ of the differences (absolute); ROUNDOFF · max |f| when None.
 
     Returns
     -------
-    p [-]; NaN when the sequence is oscillatory (ε21/ε32 < 0), divergent (no positive p) or ε21 = 0.
+    p [-]; NaN when the sequence is oscillatory (ε21/ε32 < 0), divergent (no positive p), or a difference is
+    at round-off (|ε21| ≤ δ or |ε32| ≤ δ: no order is observable).
 
     Raises
     ------
@@ -110,8 +132,9 @@ def observed_order(
     values = np.array([fine, medium, coarse], dtype=float)
     if not np.all(np.isfinite(values)):
         raise ValueError(f"values {values.tolist()}: expected finite numbers")
+    floor = roundoff_floor(values) if noise is None else float(noise)
     e21, e32 = medium - fine, coarse - medium
-    if e21 == 0.0 or e32 == 0.0 or e32 / e21 <= 0.0:  # converged to round-off, or oscillatory
+    if abs(e21) <= floor or abs(e32) <= floor or e32 / e21 <= 0.0:  # at round-off, or oscillatory
         return float("nan")
     quotient = e32 / e21
     if r32 == r21:
@@ -153,13 +176,14 @@ def grid_convergence_index(
     return float(safety_factor * abs((fine - medium) / fine) / (r**order - 1.0))
 
 
-def convergence(spacings, values) -> ConvergenceResult:
+def convergence(spacings, values, noise: float | None = None) -> ConvergenceResult:
     """Observed order, extrapolated value and GCI from the three finest levels of a sweep.
 
     Parameters
     ----------
     spacings : Refinement measure h of each level (any order), shape (L,), L ≥ 3, positive and distinct.
     values : Quantity at each level, shape (L,), finite.
+    noise : Round-off floor δ (absolute, in the values' unit); ROUNDOFF · max(|f1|, |f2|, |f3|) when None.
 
     Raises
     ------
@@ -182,15 +206,19 @@ def convergence(spacings, values) -> ConvergenceResult:
         raise ValueError(f"spacings {h.tolist()}: the three finest must be distinct")
     r21, r32 = h2 / h1, h3 / h2
     e21, e32 = f2 - f1, f3 - f2
+    floor = roundoff_floor((f1, f2, f3)) if noise is None else float(noise)
+    if not (math.isfinite(floor) and floor >= 0.0):
+        raise ValueError(f"noise = {noise!r}: expected a finite number ≥ 0")
     nan = float("nan")
     order = extrapolated = gci = uncertainty = nan
-    if e21 == 0.0:
+    if abs(e21) <= floor:
         kind = "converged"
-        extrapolated, gci, uncertainty = float(f1), 0.0, 0.0
-    elif e32 == 0.0 or e21 / e32 < 0.0:
-        kind = "oscillatory" if e32 != 0.0 else "divergent"
+        extrapolated, uncertainty = float(f1), floor
+        gci = floor / abs(f1) if f1 != 0.0 else nan
+    elif abs(e32) <= floor or e21 / e32 < 0.0:
+        kind = "oscillatory" if abs(e32) > floor else "divergent"
     else:
-        order = observed_order(f1, f2, f3, r21, r32)
+        order = observed_order(f1, f2, f3, r21, r32, noise=floor)
         kind = "monotone" if math.isfinite(order) else "divergent"
     if kind == "monotone":
         extrapolated = richardson(f1, f2, r21, order)
@@ -207,6 +235,7 @@ def convergence(spacings, values) -> ConvergenceResult:
         extrapolated=float(extrapolated),
         gci=float(gci),
         uncertainty=float(uncertainty),
+        noise=float(floor),
     )
 
 

@@ -3,7 +3,10 @@
 The study file ``STUDY.h5`` indexes the runs, whose results files sit in the folder ``STUDY_runs/`` beside it
 (one ``<run id>.h5`` each, the id a hash of the scene and the run's overrides). It is rewritten (atomically)
 each time a run finishes, so an interrupted study keeps what it did; started again, it runs only the runs
-whose results file is missing or not ``complete``. Layout (also in ``docs/studies.md``):
+whose results file is missing, not ``complete``, or stale: a file is reused only when its content key
+(:func:`refsim.sweep.worker.run_key`: the resolved scene, refsim version and git commit it records) is the
+run's now, so an edited scene file, another ``--set`` or another refsim runs it again. Layout (also in
+``docs/studies.md``):
 
 - path: root attributes; meaning: ``format`` = "refsim-study", ``schema_version``, ``name``, ``scene``,
   ``combine``, ``study`` (the study as JSON), ``created``, ``refsim_version``, ``git_commit``, ``run_folder``,
@@ -26,7 +29,8 @@ whose results file is missing or not ``complete``. Layout (also in ``docs/studie
   scalars
 - path: ``convergence/<column>``; shape: (C,); meaning: one row per (key, quantity, group of fixed values):
   ``key``, ``quantity``, ``group``, ``kind``, ``order``, ``extrapolated``, ``gci``, ``uncertainty``,
-  ``ratio_fine``, ``ratio_coarse``, ``h`` (C, 3), ``f`` (C, 3), ``fitted_order``, ``levels``
+  ``ratio_fine``, ``ratio_coarse``, ``h`` (C, 3), ``f`` (C, 3), ``fitted_order``, ``levels``, ``noise`` (the
+  round-off floor δ below which a difference is not an observation)
 """
 
 from __future__ import annotations
@@ -47,7 +51,7 @@ import numpy as np
 from refsim.sweep.convergence import convergence, fitted_order
 from refsim.sweep.quantities import UNITS
 from refsim.sweep.spec import RunSpec, StudySpec
-from refsim.sweep.worker import BLAS_ENVIRONMENT, run_one
+from refsim.sweep.worker import BLAS_ENVIRONMENT, is_current, run_key, run_one
 
 __all__ = [
     "LOOPBACK",
@@ -224,6 +228,20 @@ def check_study_output(spec: StudySpec, output, *, overwrite: bool = False) -> P
     return output
 
 
+def _run_keys(spec: StudySpec, runs) -> dict:
+    """{run id: content key (:func:`refsim.sweep.worker.run_key`)}; None for a run whose scene does not load
+    (it is run, and its row says why it failed)."""
+    from refsim.scene import load_scene
+
+    keys = {}
+    for run in runs:
+        try:
+            keys[run.id] = run_key(load_scene(spec.scene, list(run.overrides)))
+        except (ValueError, OSError):
+            keys[run.id] = None
+    return keys
+
+
 def run_study(
     spec: StudySpec,
     output,
@@ -270,67 +288,87 @@ def run_study(
     reference = spec.reference_run()
     every = runs + ([reference] if reference is not None and reference.id not in {r.id for r in runs} else [])
     rows = {run.id: _pending(run) for run in every}
-    from refsim.sweep.worker import is_complete
-
-    missing = [run for run in every if not is_complete(folder / run.file_name)]
+    keys = _run_keys(spec, every)
+    missing = [run for run in every if not is_current(folder / run.file_name, keys[run.id])]
     done = [run for run in every if run not in missing]
     previous = _previous_timing(output)
-    for (
-        run
-    ) in done:  # reused: quantities read here, nothing is run again; timings kept from the last study file
+    # reused: quantities read here, nothing is run again; timings kept from the last study file
+    for run in done:
         rows[run.id] = run_one(spec.scene, run.overrides, str(folder / run.file_name), spec.quantities)
         rows[run.id].update(previous.get(run.id, {}))
     _write(spec, output, runs, reference, rows)
     if missing:
-        from tqdm import tqdm
-
-        own = client is None
-        if own:
-            client, cluster = start_client(scheduler, workers)
-        bar = tqdm(
-            total=len(every),
-            initial=len(done),
-            desc=f"study {spec.name}",
-            unit="run",
-            disable=not progress,
-            file=sys.stderr,
+        _run_missing(
+            spec,
+            output,
+            runs,
+            reference,
+            missing,
+            rows,
+            client=client,
+            scheduler=scheduler,
+            workers=workers,
+            progress=progress,
+            warm_up=warm_up,
         )
-        try:
-            from distributed import as_completed
-
-            futures = {
-                client.submit(
-                    run_one,
-                    spec.scene,
-                    run.overrides,
-                    str(folder / run.file_name),
-                    spec.quantities,
-                    warm_up,
-                    key=f"run-{spec.name}-{run.id}",
-                    pure=False,
-                ): run
-                for run in missing
-            }
-            for future in as_completed(futures):
-                run = futures[future]
-                try:
-                    rows[run.id] = future.result()
-                except Exception as error:  # the worker died (killed, out of memory)
-                    rows[run.id] = {
-                        **_pending(run),
-                        "status": "failed",
-                        "error": f"{type(error).__name__}: {error}",
-                    }
-                bar.update(1)
-                if rows[run.id]["status"] != "complete":
-                    bar.write(f"run {run.id} ({run.label}): {rows[run.id]['status']} {rows[run.id]['error']}")
-                _write(spec, output, runs, reference, rows)
-        finally:
-            bar.close()
-            if own:
-                stop_client(client, cluster)
     _write(spec, output, runs, reference, rows, final=True)
     return read_study(output)
+
+
+def _run_missing(
+    spec, output, runs, reference, missing, rows, *, client, scheduler, workers, progress, warm_up
+) -> None:
+    """Run ``missing`` on Dask (``client``, or a cluster started here and stopped after), filling ``rows`` and
+    rewriting the study file as each run finishes; a worker that dies makes its run's row "failed"."""
+    from tqdm import tqdm
+
+    folder, total = run_folder(output), len(rows)
+
+    own = client is None
+    if own:
+        client, cluster = start_client(scheduler, workers)
+    bar = tqdm(
+        total=total,
+        initial=total - len(missing),
+        desc=f"study {spec.name}",
+        unit="run",
+        disable=not progress,
+        file=sys.stderr,
+    )
+    try:
+        from distributed import as_completed
+
+        futures = {
+            client.submit(
+                run_one,
+                spec.scene,
+                run.overrides,
+                str(folder / run.file_name),
+                spec.quantities,
+                warm_up,
+                key=f"run-{spec.name}-{run.id}",
+                pure=False,
+            ): run
+            for run in missing
+        }
+        for future in as_completed(futures):
+            run = futures[future]
+            try:
+                rows[run.id] = future.result()
+            except Exception as error:  # the worker died (killed, out of memory)
+                rows[run.id] = {
+                    **_pending(run),
+                    "status": "failed",
+                    "error": f"{type(error).__name__}: {error}",
+                }
+            bar.update(1)
+            if rows[run.id]["status"] != "complete":
+                bar.write(f"run {run.id} ({run.label}): {rows[run.id]['status']} {rows[run.id]['error']}")
+            _write(spec, output, runs, reference, rows)
+    finally:
+        bar.close()
+        if own:
+            stop_client(client, cluster)
 
 
 # ---------------------------------------------------------------------- the study file
@@ -462,79 +500,97 @@ def _write(spec, output: Path, runs, reference, rows, *, final: bool = False) ->
                 "final": bool(final),
             }
         )
-        group = handle.create_group("runs")
-        _strings(group, "id", [run.id for run in runs])
-        _strings(group, "label", [run.label for run in runs])
-        _strings(group, "file", [f"{folder.name}/{run.file_name}" for run in runs])
-        _strings(group, "overrides", ["\n".join(run.overrides) for run in runs])
-        _strings(group, "status", statuses)
-        _strings(group, "error", [rows[run.id]["error"] for run in runs])
-        _strings(group, "worker", [rows[run.id]["worker"] for run in runs])
-        for name, unit in (("ms_per_step", "ms"), ("cpu_ms_per_step", "ms"), ("seconds", "s")):
-            group.create_dataset(
-                name, data=np.array([rows[run.id].get(name, np.nan) for run in runs], dtype=float)
-            )
-            group[name].attrs["units"] = unit
-        group.create_dataset("steps", data=np.array([rows[run.id]["steps"] for run in runs], dtype=np.int64))
-        for sweep in spec.sweeps:
-            values = [run.values.get(sweep.key) for run in runs]
-            if all(isinstance(v, (int, float)) and not isinstance(v, bool) or v is None for v in values):
-                group.create_dataset(
-                    f"values/{sweep.key}",
-                    data=np.array([np.nan if v is None else v for v in values], dtype=float),
-                )
-            else:
-                _strings(group, f"values/{sweep.key}", ["" if v is None else json.dumps(v) for v in values])
-            group.create_dataset(
-                f"spacing/{sweep.key}",
-                data=np.array([np.nan if v is None else sweep.spacing(v) for v in values], dtype=float),
-            )
-            group[f"spacing/{sweep.key}"].attrs["measure"] = sweep.measure
-        for name in spec.quantities:
-            dataset = group.create_dataset(
-                f"quantities/{name}",
-                data=np.array([rows[run.id]["quantities"].get(name, np.nan) for run in runs], dtype=float),
-            )
-            dataset.attrs["units"] = UNITS.get(name.partition("@")[0], "")
+        _write_runs(handle.create_group("runs"), spec, folder, runs, rows, statuses)
         if final:
             for name, values in _errors(spec, folder, runs, reference, rows).items():
-                group.create_dataset(f"errors/{name}", data=values).attrs["units"] = "1"
+                handle.create_dataset(f"runs/errors/{name}", data=values).attrs["units"] = "1"
         if reference is not None:
-            ref = handle.create_group("reference")
-            ref.attrs.update(
-                {
-                    "label": reference.label,
-                    "id": reference.id,
-                    "file": f"{folder.name}/{reference.file_name}",
-                    "status": rows[reference.id]["status"],
-                    "error": rows[reference.id]["error"],
-                    "ms_per_step": rows[reference.id]["ms_per_step"],
-                    "cpu_ms_per_step": rows[reference.id].get("cpu_ms_per_step", np.nan),
-                }
-            )
-            for name in spec.quantities:
-                ref.create_dataset(
-                    f"quantities/{name}", data=rows[reference.id]["quantities"].get(name, np.nan)
-                )
+            _write_reference(handle.create_group("reference"), spec, folder, reference, rows)
         table = convergence_rows(spec, runs, rows)
         if table:
-            conv = handle.create_group("convergence")
-            for column in ("key", "quantity", "group", "kind"):
-                _strings(conv, column, [row[column] for row in table])
-            for column in (
-                "order",
-                "extrapolated",
-                "gci",
-                "uncertainty",
-                "ratio_fine",
-                "ratio_coarse",
-                "fitted_order",
-            ):
-                conv.create_dataset(column, data=np.array([row[column] for row in table], dtype=float))
-            conv.create_dataset("levels", data=np.array([row["levels"] for row in table], dtype=np.int64))
-            conv.create_dataset("h", data=np.array([row["spacings"] for row in table], dtype=float))
-            conv.create_dataset("f", data=np.array([row["values"] for row in table], dtype=float))
+            _write_convergence(handle.create_group("convergence"), table)
     os.replace(temporary, output)
+
+
+def _write_runs(group, spec, folder: Path, runs, rows, statuses) -> None:
+    """The study file's ``runs`` group: one entry per run (ids, labels, files, status, timings, swept values
+    with their spacing, quantities)."""
+    _strings(group, "id", [run.id for run in runs])
+    _strings(group, "label", [run.label for run in runs])
+    _strings(group, "file", [f"{folder.name}/{run.file_name}" for run in runs])
+    _strings(group, "overrides", ["\n".join(run.overrides) for run in runs])
+    _strings(group, "status", statuses)
+    _strings(group, "error", [rows[run.id]["error"] for run in runs])
+    _strings(group, "worker", [rows[run.id]["worker"] for run in runs])
+    for name, unit in (("ms_per_step", "ms"), ("cpu_ms_per_step", "ms"), ("seconds", "s")):
+        group.create_dataset(
+            name, data=np.array([rows[run.id].get(name, np.nan) for run in runs], dtype=float)
+        )
+        group[name].attrs["units"] = unit
+    group.create_dataset("steps", data=np.array([rows[run.id]["steps"] for run in runs], dtype=np.int64))
+    for sweep in spec.sweeps:
+        values = [run.values.get(sweep.key) for run in runs]
+        if all(isinstance(v, (int, float)) and not isinstance(v, bool) or v is None for v in values):
+            group.create_dataset(
+                f"values/{sweep.key}",
+                data=np.array([np.nan if v is None else v for v in values], dtype=float),
+            )
+        else:
+            _strings(group, f"values/{sweep.key}", ["" if v is None else json.dumps(v) for v in values])
+        group.create_dataset(
+            f"spacing/{sweep.key}",
+            data=np.array([np.nan if v is None else sweep.spacing(v) for v in values], dtype=float),
+        )
+        group[f"spacing/{sweep.key}"].attrs["measure"] = sweep.measure
+    for name in spec.quantities:
+        dataset = group.create_dataset(
+            f"quantities/{name}",
+            data=np.array([rows[run.id]["quantities"].get(name, np.nan) for run in runs], dtype=float),
+        )
+        dataset.attrs["units"] = UNITS.get(name.partition("@")[0], "")
+
+
+def _write_reference(group, spec, folder: Path, reference, rows) -> None:
+    """The study file's ``reference`` group: the reference run's status, timing and quantities."""
+    row = rows[reference.id]
+    group.attrs.update(
+        {
+            "label": reference.label,
+            "id": reference.id,
+            "file": f"{folder.name}/{reference.file_name}",
+            "status": row["status"],
+            "error": row["error"],
+            "ms_per_step": row["ms_per_step"],
+            "cpu_ms_per_step": row.get("cpu_ms_per_step", np.nan),
+        }
+    )
+    for name in spec.quantities:
+        group.create_dataset(f"quantities/{name}", data=row["quantities"].get(name, np.nan))
+
+
+#: Float columns of the study file's ``convergence`` group (fields of
+#: :class:`refsim.sweep.convergence.ConvergenceResult`, and the fitted order).
+_CONVERGENCE_COLUMNS = (
+    "order",
+    "extrapolated",
+    "gci",
+    "uncertainty",
+    "ratio_fine",
+    "ratio_coarse",
+    "fitted_order",
+    "noise",
+)
+
+
+def _write_convergence(group, table: list) -> None:
+    """The study file's ``convergence`` group: one row per (key, quantity, group of fixed values)."""
+    for column in ("key", "quantity", "group", "kind"):
+        _strings(group, column, [row[column] for row in table])
+    for column in _CONVERGENCE_COLUMNS:
+        group.create_dataset(column, data=np.array([row[column] for row in table], dtype=float))
+    group.create_dataset("levels", data=np.array([row["levels"] for row in table], dtype=np.int64))
+    group.create_dataset("h", data=np.array([row["spacings"] for row in table], dtype=float))
+    group.create_dataset("f", data=np.array([row["values"] for row in table], dtype=float))
 
 
 def read_study(path) -> dict:

@@ -5,6 +5,9 @@
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import json
 import os
 import socket
 import time
@@ -13,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["BLAS_ENVIRONMENT", "is_complete", "run_one", "run_scene"]
+__all__ = ["BLAS_ENVIRONMENT", "is_complete", "is_current", "run_key", "run_one", "run_scene"]
 
 # : Environment that gives each worker one BLAS / OpenMP thread (workers = cores, so threads would
 # oversubscribe).
@@ -68,6 +71,55 @@ def is_complete(path) -> bool:
         return False
 
 
+def _key(scene_json: str, version: str, commit: str) -> str:
+    text = json.dumps({"scene": scene_json, "refsim_version": version, "git_commit": commit}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def _code_version() -> tuple[str, str]:
+    from refsim import __version__
+    from refsim.io import git_commit
+
+    return __version__, git_commit()
+
+
+def run_key(scene) -> str:
+    """The content key of a run: SHA-256 of what its results depend on and its results file records, the
+    resolved scene (``refsim.scene.scene_to_json``: the scene file's content with the overrides applied) and
+    the code that runs it (refsim version and git commit of this process).
+
+    A study reuses a results file only when its key is this one (:func:`is_current`): an edited scene file,
+    another ``--set`` or another refsim makes the run again, whatever the file's name.
+    """
+    from refsim.scene import scene_to_json
+
+    return _key(scene_to_json(scene), *_code_version())
+
+
+def file_key(path) -> str | None:
+    """The content key of a complete results file from the attributes it records (scene, refsim_version,
+    git_commit); None when the file is missing, unreadable or not complete."""
+    import h5py
+
+    if not is_complete(path):
+        return None
+    try:
+        with h5py.File(path, "r") as handle:
+            attributes = handle.attrs
+            texts = [attributes.get(name, "") for name in ("scene", "refsim_version", "git_commit")]
+    except OSError:
+        return None
+    texts = [t.decode() if isinstance(t, bytes) else str(t) for t in texts]
+    return _key(*texts)
+
+
+def is_current(path, key: str | None) -> bool:
+    """True when ``path`` is a complete results file of the run whose content key is ``key``
+    (:func:`run_key`); False for a missing, incomplete or stale file, and when ``key`` is None."""
+    return key is not None and file_key(path) == key
+
+
 def _ms_per_step(results) -> float:
     if results.step_count == 0:
         return float("nan")
@@ -111,7 +163,8 @@ def _warm_up() -> None:
 
 
 def run_one(scene: str, overrides: tuple, output: str, quantities: tuple, warm_up: bool = False) -> dict:
-    """Run one study point on this process (a Dask task) unless its results file is already complete.
+    """Run one study point on this process (a Dask task) unless its results file is complete and current
+    (:func:`is_current`: the same resolved scene and code).
 
     Parameters
     ----------
@@ -145,10 +198,10 @@ def run_one(scene: str, overrides: tuple, output: str, quantities: tuple, warm_u
     }
     output = Path(output)
     try:
-        if not is_complete(output):
-            from refsim.scene import load_scene
+        from refsim.scene import load_scene
 
-            scene_spec = load_scene(scene, list(overrides))
+        scene_spec = load_scene(scene, list(overrides))
+        if not is_current(output, run_key(scene_spec)):
             if warm_up:
                 _warm_up()
             start = time.perf_counter()

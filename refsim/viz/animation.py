@@ -86,9 +86,6 @@ def animate_result(
     ValueError
         For an unknown extension, ``every`` < 1, ``fps`` <= 0, or a file without steps.
     """
-    import imageio.v2 as imageio
-
-    from refsim.geometry import TetLocator
     from refsim.io import read_results
 
     output = Path(output)
@@ -102,14 +99,30 @@ def animate_result(
     results = read_results(path)
     if results.step_count == 0:
         raise ValueError(f"{results.path}: the file holds no step to animate")
-    steps = animation_steps(results.step, every)
+    states, view = _frames_and_camera(
+        results,
+        animation_steps(results.step, every),
+        camera=camera,
+        view_up=view_up,
+        zoom=zoom,
+        focus=focus,
+        aspect=view_width_of(width) / height,
+    )
+    _write_frames(output, results, states, view, fps=fps, size=(width, height), tissue_opacity=tissue_opacity)
+    logger.info("animated %d frames of %s to %s", len(states), results.path, output)
+    return output
+
+
+def _frames_and_camera(results, steps, *, camera, view_up, zoom, focus, aspect):
+    """The shown steps' states (step, tissue positions, cut points, cut triangles) and the one camera for all
+    frames: the last step's framing, holding what every frame focuses on."""
+    from refsim.geometry import TetLocator
 
     locator = TetLocator(results.rest_positions, results.tets)
     states = []
     for step in steps:
         tissue = results.tissue_positions_at(int(step))
         states.append((int(step), tissue, *cut_surface_positions(results, int(step), tissue)))
-    # One camera for all frames: the last step's framing, holding what every frame focuses on.
     together = np.concatenate([focus_points(results, s, t, c, "auto", locator) for s, t, c, _ in states])
     last, tissue, cut_points, cut_triangles = states[-1]
     view = frame_camera(
@@ -122,14 +135,21 @@ def animate_result(
         view_up=view_up,
         zoom=zoom,
         focus=focus,
-        aspect=view_width_of(width) / height,
+        aspect=aspect,
         locator=locator,
         include=together if focus == "auto" else None,
     )
+    return states, view
+
+
+def _write_frames(output: Path, results, states, view, *, fps: float, size, tissue_opacity: float) -> None:
+    """Draw each state off screen with the fixed camera and append it to the GIF or MP4 ``output``."""
+    import imageio.v2 as imageio
 
     prepare_offscreen()
     import pyvista as pv
 
+    width, height = size
     view_size = float(np.linalg.norm(view.position - view.focal_point)) * np.tan(np.radians(_VIEW_ANGLE) / 2)
     output.parent.mkdir(parents=True, exist_ok=True)
     if output.suffix.lower() == ".gif":
@@ -152,5 +172,3 @@ def animate_result(
     finally:
         plotter.close()
         writer.close()
-    logger.info("animated %d frames of %s to %s", len(states), results.path, output)
-    return output

@@ -27,9 +27,12 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--scene", default="liver_rigid", help="a liver scene (its tissue and boundary motion)"
     )
+    parser.add_argument(
+        "--set", dest="overrides", action="append", default=[], help="section.key=value, as refsim run --set"
+    )
     args = parser.parse_args(argv)
     # The scene reads the file we are writing: load it with a placeholder straight trajectory.
-    scene = _scene_without_trajectory(args.scene)
+    scene = _scene_without_trajectory(args.scene, args.overrides)
     trajectory = compensating_trajectory(
         scene,
         target=TARGET,
@@ -59,13 +62,29 @@ def main(argv=None) -> int:
     return 0
 
 
-def _scene_without_trajectory(name: str):
-    """The scene with a straight placeholder trajectory instead of the file being written (the tissue
-    simulation does not use the needle)."""
+def write_robot(path: Path, scene: str = "liver_rigid", overrides=()) -> Path:
+    """Write the robot's motion for ``scene`` with ``overrides`` (its tissue and breathing) to ``path``."""
+    from refsim.simulation.robot import compensating_trajectory, write_trajectory_csv
+
+    trajectory = compensating_trajectory(
+        _scene_without_trajectory(scene, overrides),
+        target=TARGET,
+        direction=DIRECTION,
+        start_gap=START_GAP,
+        depth=DEPTH,
+        speed=SPEED,
+        sample_count=401,
+    )
+    return write_trajectory_csv(trajectory, path)
+
+
+def _scene_without_trajectory(name: str, overrides=()):
+    """The scene (with ``section.key=value`` overrides) with a straight placeholder trajectory instead of the
+    file being written (the tissue simulation does not use the needle)."""
     import tomllib
     from importlib import resources
 
-    from refsim.scene.loader import scene_from_dict
+    from refsim.scene.loader import parse_override, scene_from_dict
 
     path = (
         Path(name)
@@ -73,6 +92,9 @@ def _scene_without_trajectory(name: str):
         else Path(str(resources.files("refsim") / "scenes" / f"{name}.toml"))
     )
     data = tomllib.loads(path.read_text(encoding="utf-8"))
+    for text in overrides:
+        section, key, value = parse_override(text)
+        data.setdefault(section, {})[key] = value
     base = (TARGET - (DEPTH + START_GAP) * DIRECTION - 0.12 * DIRECTION).tolist()
     data["trajectory"] = {
         "times": [0.0, 1.0],

@@ -6,7 +6,8 @@ interest is the cut criterion's load, the largest shaft lateral force per insert
 (the energy law cuts when q reaches G_c). The critical modulus E_c(a) is where q(E) = G_c, interpolated in
 log E; a clinician reads it as "needles stiffer than E_c tear the liver at this breathing amplitude".
 
-    python studies/liver_stiffness/run.py [--output studies/liver_stiffness/output] [--quick]
+    python studies/liver_stiffness/run.py [--output DIR] [--quick] [--workers N] [--amplitudes MM ...]
+        [--moduli GPA ...]
 
 Writes summary.json (a row per run: amplitude, E, q_max, the step of q_max, ms per step) and the run's HDF5
 files; plot.py draws docs/figures/liver_stiffness.png. Runs on 2 processes, one BLAS thread each.
@@ -83,10 +84,15 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--output", type=Path, default=ROOT / "studies" / "liver_stiffness" / "output")
     parser.add_argument("--quick", action="store_true", help="2 amplitudes x 3 moduli")
+    parser.add_argument("--workers", type=int, default=2, help="processes (one BLAS thread each)")
+    parser.add_argument("--amplitudes", type=float, nargs="+", help="breathing amplitudes [mm]")
+    parser.add_argument("--moduli", type=float, nargs="+", help="needle moduli [GPa]")
     args = parser.parse_args(argv)
     args.output.mkdir(parents=True, exist_ok=True)
     amplitudes = [0.010, 0.020] if args.quick else [0.010, 0.015, 0.020]
     moduli = [25e9, 100e9, 400e9] if args.quick else [25e9, 50e9, 100e9, 200e9, 400e9]
+    amplitudes = [a * 1e-3 for a in args.amplitudes] if args.amplitudes else amplitudes
+    moduli = [e * 1e9 for e in args.moduli] if args.moduli else moduli
     import make_trajectory
 
     from refsim.simulation.robot import compensating_trajectory, write_trajectory_csv
@@ -109,16 +115,21 @@ def main(argv=None) -> int:
         path = write_trajectory_csv(trajectory, args.output / f"robot_{amplitude * 1e3:g}mm.csv")
         jobs += [(amplitude, modulus, str(path), str(args.output)) for modulus in moduli]
     started = time.perf_counter()
-    with ProcessPoolExecutor(max_workers=2) as pool:
+    with ProcessPoolExecutor(max_workers=args.workers) as pool:
         rows = list(pool.map(one_run, *zip(*jobs, strict=False)))
-    summary = {"rows": rows, "wall_seconds": time.perf_counter() - started, "workers": 2, "blas_threads": 1}
+    summary = {
+        "rows": rows,
+        "wall_seconds": time.perf_counter() - started,
+        "workers": args.workers,
+        "blas_threads": 1,
+    }
     (args.output / "summary.json").write_text(json.dumps(summary, indent=1))
     for row in rows:
         print(
             f"a = {row['amplitude'] * 1e3:4.0f} mm  E = {row['youngs_modulus'] / 1e9:5.0f} GPa  "
             f"q_max = {row['q_max']:6.1f} N/m (step {row['step']})  {row['ms_per_step']:.0f} ms/step"
         )
-    print(f"{len(rows)} runs in {summary['wall_seconds']:.0f} s on 2 workers")
+    print(f"{len(rows)} runs in {summary['wall_seconds']:.0f} s on {args.workers} workers")
     return 0
 
 

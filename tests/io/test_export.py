@@ -12,6 +12,7 @@ import pytest
 from refsim.cli import main
 from refsim.io import read_problems, read_results
 from refsim.io.export import (
+    coulomb_contacts,
     export_force_csv,
     export_problems,
     is_pure_contact,
@@ -127,6 +128,152 @@ def test_fclib_reorders_scattered_contacts(tmp_path):
     back = read_fclib(write_fclib(problem, tmp_path / "p.hdf5"))
     assert np.array_equal(back.compliance, problem.compliance[np.ix_([5, 0, 3, 1, 4, 2], [5, 0, 3, 1, 4, 2])])
     assert np.array_equal(back.free_gap, problem.free_gap[[5, 0, 3, 1, 4, 2]])
+
+
+@pytest.fixture(scope="module")
+def capped(tmp_path_factory):
+    """The same cube with the scene's default tip (puncture located within the step): before puncture the
+    tip's normal row is a box [0, f_p] and its two friction rows are bounded by μ λ_n each."""
+    path = tmp_path_factory.mktemp("export_capped") / "cube.h5"
+    overrides = ["mesh.cells=[2, 2, 2]", "time.duration=0.3", "output.record_problems=true"]
+    assert main(["run", "cube", "-o", str(path), "-q", *[a for o in overrides for a in ("--set", o)]]) == 0
+    return path
+
+
+def _fclib_error(path) -> float:
+    """FCLib's error of the file's stored solution, read with h5py and scipy alone (Siconos'
+    fc3d_compute_error as ../shared/data/solver-problems/README states it): u = W r + q; per contact
+    e = r − P_K(r − u − μ ‖u_t‖ e_n), K the cone ‖r_t‖ ≤ μ r_n; error ‖e‖₂ / max(‖q‖, ‖r‖, ‖u‖)."""
+    import scipy.sparse as sparse
+
+    with h5py.File(path, "r") as handle:
+        w = handle["fclib_local/W"]
+        assert int(w["nz"][0]) == -1  # CSC
+        size = int(w["m"][0])
+        matrix = sparse.csc_matrix((w["x"][()], w["i"][()], w["p"][()]), shape=(size, size))
+        q, mu = handle["fclib_local/vectors/q"][()], handle["fclib_local/vectors/mu"][()]
+        assert int(handle["fclib_local/spacedim"][0]) == 3
+        r = handle["solution/r"][()]
+    u = matrix @ r + q
+    rc, uc = r.reshape(-1, 3), u.reshape(-1, 3)
+    shifted = rc - uc
+    shifted[:, 0] -= mu * np.linalg.norm(uc[:, 1:], axis=1)
+    # projection onto the cone ‖t‖ ≤ μ n (inside, polar cone to 0, else onto the boundary)
+    n, t = shifted[:, 0], shifted[:, 1:]
+    tn = np.linalg.norm(t, axis=1)
+    projected = np.zeros_like(shifted)
+    inside = tn <= mu * n
+    projected[inside] = shifted[inside]
+    boundary = ~inside & (mu * tn > -n)
+    normal = (n[boundary] + mu[boundary] * tn[boundary]) / (1.0 + mu[boundary] ** 2)
+    projected[boundary, 0] = normal
+    projected[boundary, 1:] = (mu[boundary] * normal / tn[boundary])[:, None] * t[boundary]
+    error = np.linalg.norm((rc - projected).ravel())
+    return float(error / max(np.linalg.norm(q), np.linalg.norm(r), np.linalg.norm(u)))
+
+
+def test_capped_tip_contact_is_written_to_fclib_and_its_solution_meets_fclibs_error(capped, tmp_path):
+    """The default tip before puncture: its FCLib files read back and their stored solutions meet FCLib's
+    own error measure to the tolerance the export asked of solve_exact (1e-10: the measure is the same
+    normalised natural map refsim's residual uses, so the solver's stopping test bounds it)."""
+    tolerance = 1e-10
+    summary = export_problems(
+        capped, tmp_path / "set.h5", fclib_folder=tmp_path / "fclib", tolerance=tolerance
+    )
+    problems = dict(read_problems(capped))
+    results = read_results(capped)
+    assert not any(is_pure_contact(p) for p in problems.values())  # none was pure contact before
+    assert len(summary["fclib"]) > 0
+    for path in summary["fclib"]:
+        step = int(path.stem.split("_")[1])
+        problem = problems[step]
+        assert results.phase_name[results.index_of(step)] == "approach"
+        assert problem.box_rows.size == 1 and problem.bilateral.size == 0  # the tip: a box normal [0, f_p]
+        error = _fclib_error(path)
+        assert error <= tolerance, (path.name, error)
+        back = read_fclib(path)  # our own reader agrees on the data
+        normal = int(problem.box_rows[0])
+        with h5py.File(path, "r") as handle:
+            r = handle["solution/r"][()]
+            assert "inactive here" in handle["fclib_local/info/description"][()].decode()
+        assert (
+            back.free_gap[0] == problem.free_gap[normal]
+            and back.compliance[0, 0] == problem.compliance[normal, normal]
+        )
+        assert 0.0 < r[0] < problem.box_upper[0]  # loaded, below the cap f_p
+    # the insertion steps (bilateral and shaft rows) are not written
+    written = {int(p.stem.split("_")[1]) for p in summary["fclib"]}
+    assert all(problems[s].bilateral.size == 0 for s in written)
+
+
+def test_coulomb_contacts_takes_only_what_fclib_holds():
+    w = np.eye(3) + 0.1
+    tip = {
+        "compliance": w,
+        "free_gap": np.array([-1e-3, 2e-4, 0.0]),
+        "group_friction": [1, 2],
+        "group_offsets": [0, 1, 2],
+        "group_members": [0, 0],
+        "group_friction_coefficient": [0.3, 0.3],
+        "box_rows": [0],
+        "box_lower": [0.0],
+        "box_upper": [0.8],
+    }
+    contact, caps = coulomb_contacts(ConstraintProblem(**tip))
+    assert contact.contacts.tolist() == [[0, 1, 2]] and contact.contact_friction.tolist() == [0.3]
+    assert caps.tolist() == [0.8]
+    # a preload, two friction coefficients, a bilateral row, a friction row bounded by two rows: not FCLib's
+    assert coulomb_contacts(ConstraintProblem(**{**tip, "group_preload": [0.1, 0.1]})) is None
+    assert coulomb_contacts(ConstraintProblem(**{**tip, "group_friction_coefficient": [0.3, 0.2]})) is None
+    bigger = np.eye(4) + 0.1
+    assert (
+        coulomb_contacts(
+            ConstraintProblem(**{**tip, "compliance": bigger, "free_gap": np.zeros(4), "bilateral": [3]})
+        )
+        is None
+    )
+    two = {
+        **tip,
+        "compliance": bigger,
+        "free_gap": np.zeros(4),
+        "unilateral": [3],
+        "group_offsets": [0, 2, 3],
+        "group_members": [0, 3, 0],
+    }
+    assert coulomb_contacts(ConstraintProblem(**two)) is None
+
+
+def test_an_active_cap_is_not_written(tmp_path):
+    from refsim.io.export import _coulomb_fclib
+
+    # pushed 1 mm into a unit compliance: the uncapped normal force would be 1e-3 / W_nn; a cap below it binds
+    problem = ConstraintProblem(
+        compliance=np.eye(3) * 1e-3,
+        free_gap=np.array([-1e-3, 0.0, 0.0]),
+        group_friction=[1, 2],
+        group_offsets=[0, 1, 2],
+        group_members=[0, 0],
+        group_friction_coefficient=[0.3, 0.3],
+        box_rows=[0],
+        box_lower=[0.0],
+        box_upper=[0.5],
+    )
+    assert _coulomb_fclib(problem, tmp_path / "a.hdf5", "test", 1e-10, "clarabel", "s", 1) is None
+    uncapped = ConstraintProblem(
+        compliance=np.eye(3) * 1e-3,
+        free_gap=np.array([-1e-3, 0.0, 0.0]),
+        group_friction=[1, 2],
+        group_offsets=[0, 1, 2],
+        group_members=[0, 0],
+        group_friction_coefficient=[0.3, 0.3],
+        box_rows=[0],
+        box_lower=[0.0],
+        box_upper=[2.0],
+    )
+    path = _coulomb_fclib(uncapped, tmp_path / "b.hdf5", "test", 1e-10, "clarabel", "s", 1)
+    assert path is not None and _fclib_error(path) <= 1e-10
+    with h5py.File(path, "r") as handle:
+        assert handle["solution/r"][0] == pytest.approx(1.0, rel=1e-9)  # λ_n = 1e-3 m / 1e-3 m/N = 1 N
 
 
 def test_force_csv(recorded, tmp_path):

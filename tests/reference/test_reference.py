@@ -5,6 +5,7 @@ coarse run, and on runs made 2 % stiffer on purpose, and its errors for bad inpu
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -26,6 +27,7 @@ from refsim.reference import (
 from refsim.reference.page import write_page
 from refsim.scene import load_scene
 from refsim.solvers import natural_residual
+from refsim.sweep.convergence import ROUNDOFF
 
 CASES = ["cantilever", "puncture"]
 
@@ -63,13 +65,30 @@ def test_reference_value_on_manufactured_sequences():
     # an order below 0.5 is used as 0.5: f = 1 + h^0.2
     answer = reference_value(h, 1.0 + h**0.2, formal_order=1.0)
     assert answer["order"] == pytest.approx(0.2, abs=1e-9) and answer["order_used"] == 0.5
-    # oscillatory: the finest value with the spread of the last two levels
-    answer = reference_value(h, np.array([1.3, 0.8, 1.1]), formal_order=1.0)
-    assert (
-        answer["method"] == "spread"
-        and answer["value"] == 1.1
-        and answer["uncertainty"] == pytest.approx(0.3)
-    )
+    # oscillatory: the finest value, no order claimed, Roache's GCI at the formal order with Fs = 3:
+    # f(h) = 1 + (-1)^k h² at h = 1/2, 1/4, 1/8 → f1 = 1 + 1/64, f2 = 1 - 1/16, U = 3 |f1 - f2| / (2² - 1)
+    signs = np.array([1.0, -1.0, 1.0])
+    oscillating = 1.0 + signs * h**2
+    answer = reference_value(h, oscillating, formal_order=2.0)
+    assert answer["method"] == "oscillatory" and math.isnan(answer["order"])
+    assert answer["value"] == oscillating[2] and answer["safety_factor"] == 3.0
+    assert answer["order_used"] == 2.0
+    assert answer["uncertainty"] == pytest.approx(3.0 * (1.0 / 64 + 1.0 / 16) / 3.0, rel=1e-12)
+    assert abs(answer["value"] - 1.0) <= answer["uncertainty"]  # the band holds the limit 1
+    # divergent (differences growing under refinement): the same rule
+    answer = reference_value(h, np.array([1.0, 1.1, 1.5]), formal_order=1.0)
+    assert answer["method"] == "divergent" and math.isnan(answer["order"])
+    assert answer["uncertainty"] == pytest.approx(3.0 * 0.4 / (2.0 - 1.0), rel=1e-12)
+    # converged to round-off: the finest two levels of f = 1 + h² made equal to within 2 ulp; the value is f1,
+    # its uncertainty the round-off floor δ = ROUNDOFF · scale, and no order (it would be ≈ 48 from the ulps)
+    rounded = 1.0 + h**2
+    rounded[2] = rounded[1] - 2.0 * np.spacing(rounded[1])
+    answer = reference_value(h, rounded, formal_order=2.0)
+    assert answer["method"] == "converged" and math.isnan(answer["order"])
+    assert answer["value"] == rounded[2] and answer["uncertainty"] == ROUNDOFF * rounded[0]
+    # against a curve's scale: a sample near zero judged against the curve's magnitude
+    answer = reference_value(h, np.array([3e-13, 1e-13, 2e-13]), formal_order=1.0, scale=1.0)
+    assert answer["method"] == "converged" and answer["uncertainty"] == ROUNDOFF
     assert reference_value(h, np.array([2.0, 1.0, 1.0]), formal_order=1.0)["method"] == "converged"
     assert reference_value(h, np.array([2.0, np.nan, 1.0]), formal_order=1.0)["method"] == "missing"
 
@@ -108,6 +127,31 @@ def test_manifest_records_version_levels_and_checksums(package):
         assert check_manifest(folder) == ["cases/puncture/reference.csv"]
     finally:
         target.write_bytes(original)
+
+
+def test_package_holds_fclib_problems_of_the_tip_contact(package):
+    """The puncture case's finest run: its loaded tip contacts before puncture are FCLib problems (Coulomb's
+    cone on the step's W, q, mu), kept evenly spaced; each reads back with its stored solution meeting FCLib's
+    error measure (Siconos' normalised natural map, which is refsim's natural_residual) to the export's
+    tolerance, 1e-10 (export_problems' default, solve_exact stops at it)."""
+    import h5py
+
+    from refsim.io.export import coulomb_contacts
+    from refsim.solvers.readers import read_fclib
+
+    folder, manifest = package
+    problems = manifest["cases"]["puncture"]["problems"]
+    assert problems["fclib"] == min(10, problems["fclib_holdable"]) > 0
+    files = sorted((folder / "cases" / "puncture" / "fclib").glob("*.hdf5"))
+    assert [int(p.stem.split("_")[1]) for p in files] == problems["fclib_steps"]
+    for path in files:
+        assert f"cases/puncture/fclib/{path.name}" in manifest["files"]
+        back = read_fclib(path)
+        with h5py.File(path, "r") as handle:
+            r = handle["solution/r"][()]
+        assert back.contacts.shape == (1, 3) and r[0] > 0.0
+        assert natural_residual(back, r) <= 1e-10
+        assert coulomb_contacts(back) is not None  # already pure contact: taken as is
 
 
 def test_answers_come_from_the_runs(package):
@@ -172,8 +216,8 @@ def test_page_is_written_from_the_package(package, tmp_path):
 def test_refsim_finest_run_passes(package, tmp_path):
     folder, _ = package
     finest = _run_files(folder, "puncture")[-1]
-    # The reference is f1 (spread, converged) or f1's Richardson value with |f1 - ref| = U/Fs (richardson,
-    # Fs >= 1.25): the finest run lies inside U.
+    # The reference is f1 (converged, oscillatory, divergent) or f1's Richardson value with |f1 - ref| = U/Fs
+    # (richardson, Fs >= 1.25): the finest run lies inside U.
     results = compare("puncture", finest, folder)
     assert all(item.all_passed for item in results)
     csv = write_their_csv(
@@ -375,21 +419,3 @@ def test_every_run_of_every_level_is_a_valid_scene(name):
             ]
             scene = load_scene(case.scene_path, [*case.overrides, *overrides])
             assert scene.time.dt == pytest.approx(keys["time.dt"][index], rel=1e-15)
-
-
-def test_runs_of_a_changed_scene_are_not_reused(tmp_path):
-    """A study reuses runs by the scene's path and the overrides; the package's copy of the scene it was
-    built from tells a changed scene file, whose runs are then dropped (and kept when it is the same)."""
-    from refsim.reference.build import _drop_stale_runs
-
-    case = load_case("puncture")
-    folder = tmp_path / "puncture"
-    (folder / "study_runs").mkdir(parents=True)
-    (folder / "study_runs" / "run.h5").write_bytes(b"old run")
-    (folder / "study.h5").write_bytes(b"old study")
-    (folder / "scene.toml").write_bytes(case.scene_path.read_bytes())
-    _drop_stale_runs(case, folder)
-    assert (folder / "study_runs" / "run.h5").is_file() and (folder / "study.h5").is_file()
-    (folder / "scene.toml").write_bytes(case.scene_path.read_bytes().replace(b"0.04", b"0.05"))
-    _drop_stale_runs(case, folder)
-    assert not (folder / "study_runs").exists() and not (folder / "study.h5").exists()

@@ -32,6 +32,24 @@ def test_the_liver_scenes_load_with_their_robot_trajectory_and_breathing(name):
     assert scene.needle.length == pytest.approx(0.12) and not scene.needle.rigid
 
 
+@pytest.mark.parametrize("name", ["liver_rigid", "liver_flexible"])
+def test_the_liver_scenes_take_their_tissue_breathing_and_toughness_inside_the_cited_ranges(name):
+    # The ranges the scene files cite: G_c 76-225 J/m² (needle insertion and blade cutting of liver), E
+    # between
+    # healthy-liver elastography (about 5 kPa) and in vivo indentation at surgical strains (270 kPa), ν from
+    # Chui et al. (0.43 ± 0.16, 0.47 ± 0.15), liver superior-inferior breathing 10-25 mm (AAPM TG-76), a quiet
+    # breathing period of 3-5 s; and both scenes share them.
+    scene, other = load_scene(name), load_scene("liver_flexible" if name == "liver_rigid" else "liver_rigid")
+    assert 76.0 <= scene.cutting.fracture_energy <= 225.0
+    assert WINDOW[0] < scene.cutting.fracture_energy < WINDOW[1]
+    assert 5e3 <= scene.tissue.youngs_modulus <= 270e3
+    assert 0.43 - 0.16 <= scene.tissue.poisson_ratio < 0.5
+    assert 0.010 <= np.linalg.norm(scene.boundary.amplitude) <= 0.025
+    assert 3.0 <= scene.boundary.period <= 5.0
+    for section in ("tissue", "boundary", "cutting", "insertion", "trajectory", "time"):
+        assert getattr(scene, section) == getattr(other, section), section
+
+
 @pytest.mark.skipif(not SOFA_LIVER.is_file(), reason=f"shared organ meshes absent ({SOFA_LIVER})")
 def test_sofa_liver_runs_with_the_same_boundary_section():
     import tomllib
@@ -85,19 +103,55 @@ def _deflection(record, direction) -> float:
     return float(np.linalg.norm(offset - along[:, None] * direction, axis=1).max())
 
 
+# The window of G_c over which the paper's outcome holds, bisected by studies/liver/window.py to 0.25 %
+# (docs/liver_window.md): the flexible needle cuts below WINDOW[0], the rigid one does not cut above
+# WINDOW[1].
+WINDOW = (81.09, 130.86)
+# 1 %: four times the bisection's bracket (0.25 %), so the assertions hold wherever in its bracket the
+# threshold lies.
+INSIDE = 0.01
+
+
+def _cuts(name: str, fracture_energy: float) -> bool:
+    """Whether the scene ``name`` at G_c = ``fracture_energy`` cuts (the run stops at its cut start)."""
+    simulation = Simulation(load_scene(name, [f"cutting.fracture_energy={fracture_energy!r}"]))
+    state = simulation.initial_state()
+    for _ in range(simulation.scene.time.step_count):
+        state, record = simulation.step(state, record_tissue=False)
+        if any(e.name == "cut_start" for e in record.events):
+            return True
+    return False
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("end", ["low", "high"])
+def test_the_outcome_holds_at_both_ends_of_the_window(end):
+    # The paper's liver result over the stated window: at each end, just inside, the flexible needle does
+    # not cut and the rigid one does; just outside the end, the needle that sets it changes its outcome.
+    low, high = WINDOW
+    if end == "low":
+        assert not _cuts("liver_flexible", low * (1 + INSIDE))
+        assert _cuts("liver_flexible", low * (1 - INSIDE))
+        assert _cuts("liver_rigid", low * (1 + INSIDE))
+    else:
+        assert _cuts("liver_rigid", high * (1 - INSIDE))
+        assert not _cuts("liver_rigid", high * (1 + INSIDE))
+        assert not _cuts("liver_flexible", high * (1 - INSIDE))
+
+
 @pytest.mark.slow
 def test_the_flexible_needle_bends_and_does_not_cut_the_rigid_one_cuts():
-    # The paper's liver result (section 5, Figure 2). The margins of the criterion (the shaft's largest
-    # lateral load per inserted length against G_c = 45 J/m²) are in the scene files; measured 50.4 and 39.7
-    # N/m. The rigid needle's cut block is well posed on every cutting step (tests/simulation/test_cutting.py,
-    # assert_cut_block_is_positive_definite) and Gauss–Seidel converges on every step: before the front rows
-    # had their compliance it stopped at its 1,000-sweep cap on 54 of the 502 cutting steps (docs/liver.md).
+    # The paper's liver result (section 5, Figure 2) at the scenes' G_c = 105 J/m², inside the window above
+    # (docs/liver.md). The rigid needle's cut block is well posed on every cutting step
+    # (tests/simulation/test_cutting.py, assert_cut_block_is_positive_definite) and Gauss–Seidel converges on
+    # every step.
     from tests.simulation.cutting_cases import watch_cut_blocks
     from tests.simulation.test_cutting import assert_cut_block_is_positive_definite
 
     runs = {}
     for name in ("liver_flexible", "liver_rigid"):
         simulation = Simulation(load_scene(name))
+        assert WINDOW[0] < simulation.scene.cutting.fracture_energy < WINDOW[1]
         spectra = watch_cut_blocks(simulation)
         records = []
         simulation.run(on_step=lambda s, r, records=records: records.append(r))

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from refsim.sweep import convergence, fitted_order, grid_convergence_index, observed_order, richardson
+from refsim.sweep.convergence import ROUNDOFF
 
 
 def _sequence(h, limit=2.0, constant=0.7, order=2.0, higher=0.0):
@@ -78,7 +79,32 @@ def test_oscillatory_divergent_converged():
     assert convergence([1, 2, 4], [1.0, 1.5, 1.6]).kind == "divergent"
     assert convergence([1, 2.5, 3], [1.0, 1.5, 1.5001]).kind == "divergent"  # unequal ratios, no p > 0
     converged = convergence([1, 2, 4], [3.0, 3.0, 3.5])
-    assert converged.kind == "converged" and converged.extrapolated == 3.0 and converged.gci == 0.0
+    assert converged.kind == "converged" and converged.extrapolated == 3.0
+    # its uncertainty is the round-off floor δ = ROUNDOFF · max |f| (here 3.5e-12), not zero
+    assert converged.uncertainty == converged.noise == ROUNDOFF * 3.5
+    assert converged.gci == pytest.approx(ROUNDOFF * 3.5 / 3.0, rel=1e-15)
+
+
+def test_a_difference_at_round_off_gives_no_order():
+    # f(h) = 1 + h² at h = 1/8, 1/4, 1/2 with the finest two levels made equal to within a few ulp: the order
+    # from ln(ε32/ε21) would be ln(0.1875/4.4e-16)/ln 2 ≈ 48, a number of the round-off, not of the scheme.
+    h = np.array([0.125, 0.25, 0.5])
+    f = 1.0 + h**2
+    f[0] = f[1] - 2.0 * np.spacing(f[1])
+    assert math.isfinite(math.log((f[2] - f[1]) / (f[1] - f[0])) / math.log(2.0))  # the order it used to give
+    result = convergence(h, f)
+    assert result.kind == "converged" and math.isnan(result.order)
+    assert result.extrapolated == f[0] and result.uncertainty == ROUNDOFF * f[2]
+    assert math.isnan(observed_order(f[0], f[1], f[2], 2.0))
+    # the same sequence with the floor set below the difference: an observation again (monotone, p ≈ 48)
+    assert convergence(h, f, noise=0.0).kind == "monotone"
+    # the coarse difference at round-off with the fine one not: no order either (divergent)
+    g = np.array([1.0 + 1e-6, 1.0, 1.0 + 1e-14])
+    assert convergence(h, g).kind == "divergent" and math.isnan(convergence(h, g).order)
+    # the exact quadratic, well above the floor, still gives p = 2
+    assert convergence(h, 1.0 + h**2).order == pytest.approx(2.0, abs=1e-12)
+    with pytest.raises(ValueError, match="noise"):
+        convergence(h, f, noise=-1.0)
 
 
 def test_fitted_order_over_all_levels():

@@ -3,11 +3,14 @@ resuming."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import h5py
 import numpy as np
 import pytest
 
 from refsim.cli import main
+from refsim.scene import load_scene
 from refsim.sweep import load_study, read_study, run_study
 from refsim.sweep.study import run_folder
 
@@ -85,6 +88,60 @@ def test_resume_runs_only_what_is_missing(study):
     assert sorted(p.name for p in run_folder(output).glob("*.h5")) == sorted(
         p.name for p in files[:3] + [output.parent / read_study(output)["reference"]["file"]]
     )
+
+
+def test_runs_are_reused_by_content_not_by_path(tmp_path):
+    """A study reuses a complete run only when the resolved scene and the code version its results file
+    records are the run's now: an unchanged scene file is reused, an edited one (same path, same overrides,
+    same run id) is run again, and so is a file recorded by another git commit."""
+    from refsim.sweep import StudySpec, Sweep
+    from refsim.sweep.study import start_client, stop_client
+    from refsim.sweep.worker import file_key, is_current, run_key
+
+    text = (Path(__file__).parents[2] / "refsim" / "scenes" / "cube.toml").read_text()
+    scene = tmp_path / "cube.toml"
+    scene.write_text(text)
+    spec = StudySpec(
+        name="content",
+        scene=str(scene),
+        sweeps=(Sweep("insertion.spacing", (2e-3,), "none"),),
+        overrides=tuple(BASE),
+        quantities=("needle_force@end",),
+    )
+    output = tmp_path / "content.h5"
+    path = run_folder(output) / spec.runs()[0].file_name
+
+    def created() -> tuple:
+        """(modification time [ns], the scene the file records): a reused file is read, never written."""
+        with h5py.File(path, "r") as handle:
+            recorded = handle.attrs["scene"]
+        return path.stat().st_mtime_ns, recorded
+
+    client, cluster = start_client(None, 1)
+    try:
+        run_study(spec, output, client=client, progress=False, warm_up=False)
+        first, recorded = created()
+        assert "500000.0" in recorded
+        key = run_key(load_scene(str(scene), list(spec.runs()[0].overrides)))
+        assert file_key(path) == key and is_current(path, key)
+        # unchanged: reused (the same file, not written again)
+        run_study(spec, output, client=client, progress=False, warm_up=False)
+        assert created()[0] == first
+        # the scene file edited in place (E = 500 kPa → 600 kPa): the same run id, run again on the new scene
+        scene.write_text(text.replace("youngs_modulus = 500e3", "youngs_modulus = 600e3"))
+        assert not is_current(path, run_key(load_scene(str(scene), list(spec.runs()[0].overrides))))
+        runs = run_study(spec, output, client=client, progress=False, warm_up=False)["runs"]
+        second, recorded = created()
+        assert second != first and "600000.0" in recorded and "500000.0" not in recorded
+        assert runs["status"] == ["complete"] and np.isfinite(runs["seconds"][0])
+        # a file recorded by another commit of refsim: stale, run again
+        with h5py.File(path, "a") as handle:
+            handle.attrs["git_commit"] = "0" * 40
+        second = created()[0]
+        run_study(spec, output, client=client, progress=False, warm_up=False)
+        assert created()[0] != second
+    finally:
+        stop_client(client, cluster)
 
 
 def test_command_line_sweeps(tmp_path):
