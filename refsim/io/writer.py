@@ -311,7 +311,14 @@ class ResultWriter:
         attributes["stop_reason"] = "running (or stopped without a reason: killed)"
         for name, value in static.items():
             self._write_fixed(schema.STATIC[name], value)
-        for group in (schema.STEPS, schema.SOLVER, schema.TISSUE, schema.CONSTRAINTS, schema.EVENTS):
+        for group in (
+            schema.STEPS,
+            schema.SOLVER,
+            schema.TISSUE,
+            schema.CONSTRAINTS,
+            schema.EVENTS,
+            schema.CRITERIA,
+        ):
             for spec in group.values():
                 self._create_growing(spec)
         self._datasets["steps/phase"].attrs["names"] = list(schema.PHASE_NAMES)
@@ -441,6 +448,8 @@ class ResultWriter:
                     [event.force if event.unit == unit else np.nan for event in record.events],
                     dtype=np.float64,
                 )
+        if record.criteria:
+            values.update(_criteria_values(record.step, record.criteria))
         if record.tissue_positions is not None:
             positions = self._check_shape("tissue_positions", record.tissue_positions, (self._sizes["n"], 3))
             values["tissue/step"] = np.array([record.step], dtype=np.int64)
@@ -491,7 +500,14 @@ class ResultWriter:
         static part: its arrays, the attributes, the metadata of every dataset and the margin."""
         dataset_count = len(static) + sum(
             len(group)
-            for group in (schema.STEPS, schema.SOLVER, schema.TISSUE, schema.CONSTRAINTS, schema.EVENTS)
+            for group in (
+                schema.STEPS,
+                schema.SOLVER,
+                schema.TISSUE,
+                schema.CONSTRAINTS,
+                schema.EVENTS,
+                schema.CRITERIA,
+            )
         )
         needed = (
             sum(np.asarray(value).nbytes for value in static.values())
@@ -663,7 +679,11 @@ class ResultWriter:
         chunk = (
             (1,)
             if spec.path == "tissue/positions"
-            else ((_CHUNK_ROWS,) if spec.path.split("/")[0] in ("constraints", "events") else (_CHUNK_STEPS,))
+            else (
+                (_CHUNK_ROWS,)
+                if spec.path.split("/")[0] in ("constraints", "events", "criteria")
+                else (_CHUNK_STEPS,)
+            )
         )
         dataset = self._file.create_dataset(
             spec.path,
@@ -815,3 +835,15 @@ def _threads() -> list:
     from refsim.fem.threads import thread_settings
 
     return thread_settings()
+
+
+def _criteria_values(step: int, criteria) -> dict:
+    """The entries one step adds to ``criteria/`` (refsim.simulation.margins.Criterion of each)."""
+    return {
+        "criteria/step": np.full(len(criteria), step, dtype=np.int64),
+        "criteria/name": np.array([c.name for c in criteria], dtype=object),
+        "criteria/value": np.array([c.value for c in criteria], dtype=np.float64),
+        "criteria/threshold": np.array([c.threshold for c in criteria], dtype=np.float64),
+        "criteria/accuracy": np.array([c.accuracy for c in criteria], dtype=np.float64),
+        "criteria/unit": np.array([c.unit for c in criteria], dtype=object),
+    }

@@ -52,6 +52,7 @@ from refsim.cutting.laws import FrontPush
 from refsim.geometry import TetLocator
 from refsim.scene import Scene
 from refsim.simulation.detection import Detection
+from refsim.simulation.margins import MarginWatch
 from refsim.simulation.records import Event
 from refsim.simulation.state import Phase, SimulationState
 
@@ -149,6 +150,8 @@ class EventRules:
             shape=(int(tets.max()) + 1, tets.shape[0]),
         )
         self._node_tets = incidence
+        #: The criteria each step's events compare, with their margins (refsim.simulation.margins).
+        self.margins = MarginWatch(scene.solver.tolerance)
         self.growth = None
         if scene.cutting.enabled:
             cutting = scene.cutting
@@ -180,6 +183,7 @@ class EventRules:
         rows = detection.rows
         normal_rows = np.flatnonzero((rows.source == PENETRATION) & (rows.kind == UNILATERAL))
         normal_force = float(multipliers[normal_rows].sum())
+        self.margins.puncture(normal_rows, self.insertion.puncture_force)
         # A capped normal row (insertion.puncture_within_step) reaches f_p to the solver's tolerance, not
         # beyond.
         threshold = self.insertion.puncture_force * (1.0 - PUNCTURE_TOLERANCE)
@@ -293,6 +297,7 @@ class EventRules:
         path_points = state.path.positions(positions, self.tets)
         needle = self.needle_geometry(state.needle)
         inserted = needle.length - float(needle.project(path_points[:1])[0][0])
+        self.margins.cut_start(self.law, force_on_needle, inserted, state.path.point_count)
         start = self.law.cut_start(
             force_on_needle, inserted_length=inserted, point_count=state.path.point_count
         )
@@ -396,6 +401,7 @@ class EventRules:
                 cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc, state.step),
             )
         rows = detection.rows
+        self.margins.tear(self.law, detection.front.rows)
         grown = self.law.grow(
             FrontPush(
                 growth=self.growth,

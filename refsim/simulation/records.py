@@ -62,6 +62,8 @@ class StepRecord:
         end of the step [m], (k, 3), or None without boundary motion.
     row_role : Role of each row (``refsim.constraints.ROLE_NAMES``), (r,).
     row_point : Insertion point of each row (its index in the path, the entry is 0), −1 for others, (r,).
+    criteria : The criteria the step's events compared, with threshold and accuracy
+        (``refsim.simulation.margins.Criterion``).
     """
 
     step: int
@@ -88,3 +90,4 @@ class StepRecord:
     boundary_displacements: np.ndarray | None = None
     row_role: np.ndarray | None = None
     row_point: np.ndarray | None = None
+    criteria: tuple = ()

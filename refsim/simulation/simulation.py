@@ -205,6 +205,7 @@ class Simulation:
         )
         needle_state = corrected[self.needle.name]
         tissue_state = corrected[self.tissue_body.name]
+        self.event_rules.margins.begin(problem, rows, multipliers, report)
         new_state, events = self.event_rules.apply(new_state, detection, multipliers)
         timer.lap("events")
 
@@ -234,6 +235,7 @@ class Simulation:
             boundary_displacements=control.boundary_displacements if control.boundary_nodes.size else None,
             row_role=rows.roles,
             row_point=rows.points_of_rows,
+            criteria=self.event_rules.margins.taken(),
         )
         return new_state, record
 

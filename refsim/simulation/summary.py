@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from refsim.simulation.margins import CriterionSeries, assess
 from refsim.simulation.records import STAGES, StepRecord
 
 __all__ = [
@@ -121,6 +122,7 @@ class RunSummary:
     """Running aggregate of step records; feed it with :meth:`add`."""
 
     events: list = field(default_factory=list)
+    criteria: list = field(default_factory=list)  # (step, Criterion) the events compared
     phases: dict = field(default_factory=dict)
     peak_force: float = 0.0
     peak_force_step: int = 0
@@ -167,6 +169,7 @@ class RunSummary:
         self.steps += 1
         for event in record.events:
             self.events.append((record.step, record.time, event.name, event.force, event.unit))
+        self.criteria.extend((record.step, criterion) for criterion in record.criteria)
         stats = self.phases.setdefault(record.phase, PhaseStatistics())
         stats.steps += 1
         stats.rows += int(record.row_forces.size)
@@ -188,6 +191,20 @@ class RunSummary:
         if force > self.peak_force:
             self.peak_force, self.peak_force_step = force, record.step
 
+    def event_margins(self) -> list:
+        """Each event's margin (``refsim.simulation.margins.assess`` on the criteria of the run)."""
+        series = CriterionSeries.of([step for step, _ in self.criteria], [c for _, c in self.criteria])
+        return assess([(step, name) for step, _, name, _, _ in self.events], series)
+
+    def format_margins(self) -> list[str]:
+        """The event margins as text lines (none when no event has a criterion)."""
+        margins = self.event_margins()
+        if not margins:
+            return []
+        knife = sum(margin.knife_edge for margin in margins)
+        head = f"event margins (criterion against threshold, solver accuracy; {knife} knife-edge):"
+        return [head, *(f"  {margin.text()}" for margin in margins)]
+
     @property
     def seconds(self) -> float:
         return sum(sum(p.stage_seconds.values()) for p in self.phases.values())
@@ -199,6 +216,7 @@ class RunSummary:
             f"  step {s:5d}  t = {t:.4f} s  {name}" + (f"  {_value_text(f, unit)}" if np.isfinite(f) else "")
             for s, t, name, f, unit in self.events
         ] or ["  none"]
+        lines += self.format_margins()
         lines.append(f"peak force on the needle: {self.peak_force:.4g} N at step {self.peak_force_step}")
         lines.append(
             f"constraint solves not converged: {self.unconverged}; largest natural residual "
