@@ -41,9 +41,10 @@ Knife-edge
 A criterion is *within* its accuracy at a step when |value − threshold| ≤ accuracy. For an event at step k:
 the steps it could move earlier are the consecutive steps k−1, k−2, … (of the same phase) at which any
 criterion feeding it was within its accuracy (the event's own, or the tip's stick/slip decision for a
-puncture); one step later when its own criterion was within its accuracy at k. An event that could move
-:data:`KNIFE_EDGE_STEPS` steps or more is flagged knife-edge; the count is a window, not a prediction: inside
-it, two solvers that both meet the tolerance may place the event at different steps.
+puncture); one step later when its own criterion was within its accuracy at k (a lower bound: after the event
+its criterion is no longer evaluated, so how much later it could have fired is not known). An event that could
+move :data:`KNIFE_EDGE_STEPS` steps or more is flagged knife-edge; the count is a window, not a prediction:
+inside it, two solvers that both meet the tolerance may place the event at different steps.
 """
 
 from __future__ import annotations
@@ -299,7 +300,8 @@ class EventMargin:
     step : The event's step. name : The event.
     at_event, before : Its own criterion at the event step and at the step before (None: not evaluated).
     earlier : Consecutive steps before the event at which a criterion feeding it was within its accuracy.
-    later : 1 when its own criterion was within its accuracy at the event step, else 0.
+    later : 1 when its own criterion was within its accuracy at the event step, else 0 (a lower bound: the
+        criterion is not evaluated after the event).
     feeding : The criteria found within their accuracy in those steps (e.g. ``("tip_slip",)``).
     """
 

@@ -34,8 +34,12 @@ def figure(summary: dict) -> None:
     import numpy as np
 
     labels = list(summary)
-    fig, axes = plt.subplots(1, len(labels), figsize=(4.2 * len(labels), 3.8), squeeze=False)
-    for axis, label in zip(axes[0], labels, strict=True):
+    columns = min(4, len(labels))
+    rows = -(-len(labels) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(4.2 * columns, 3.4 * rows), squeeze=False)
+    for axis in axes.ravel()[len(labels) :]:
+        axis.set_visible(False)
+    for axis, label in zip(axes.ravel(), labels, strict=False):
         runs = summary[label]["runs"]
         tolerances = sorted({run["tolerance"] for run in runs}, reverse=True)
         for run in runs:
@@ -57,7 +61,7 @@ def figure(summary: dict) -> None:
                 )
         axis.set_xticks(np.arange(len(tolerances)), [f"{t:g}" for t in tolerances])
         axis.set_xlabel("solver tolerance")
-        axis.set_ylabel("event step (bars: steps it could move)")
+        axis.set_ylabel("event step (bars: window)")
         axis.set_title(label)
         handles, names = axis.get_legend_handles_labels()
         unique = dict(zip(names, handles, strict=True))

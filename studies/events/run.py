@@ -17,7 +17,8 @@ Scenarios (each small enough to run the whole sweep on one core):
   edge of stick.
 - ``liver_tilted_±x``, ``liver_tilted_±z``: liver_rigid on the coarse phantom (its breathing kept), the needle
   tilted 33.5° from the anterior face's normal at the robot's entry point towards ±x or ±z, μ_p = 0.7,
-  inserted at 20 mm/s for 0.8 s.
+  inserted at 20 mm/s for 0.8 s; ``liver_slow_tilted_…``: the same entries pressed in at 4 mm/s from 0.1 mm
+  before the face for 1 s, so that the tip's contact loads over tens of steps before the puncture.
 
     python studies/events/run.py [--output studies/events/output] [--quick]
 
@@ -88,8 +89,9 @@ def cube_tilted_overrides(mu: float) -> list[str]:
     ]
 
 
-def liver_trajectory(path: Path, towards) -> None:
-    """A straight tilted insertion into the coarse phantom at the robot's entry point, as a CSV file."""
+def liver_trajectory(path: Path, towards, *, speed: float = 0.02, gap: float = 0.002, duration=0.8) -> None:
+    """A straight tilted insertion into the coarse phantom at the robot's entry point, the tip ``gap`` [m]
+    before the face at t = 0 and moving at ``speed`` [m/s] for ``duration`` [s], as a CSV file."""
     from refsim.geometry.closest import closest_points_on_triangles, triangle_normals
     from refsim.scene import load_scene
     from refsim.scene.build import build_models
@@ -106,8 +108,8 @@ def liver_trajectory(path: Path, towards) -> None:
     entry = closest[face]
     normal = triangle_normals(triangles[face : face + 1])[0]
     direction = _tilted(normal, THETA, towards)
-    times = np.linspace(0.0, 0.8, 17)
-    tips = entry[None] + (-0.002 + 0.02 * times)[:, None] * direction
+    times = np.linspace(0.0, duration, 17)
+    tips = entry[None] + (-gap + speed * times)[:, None] * direction
     bases = tips - scene.needle.length * direction
     rows = np.column_stack([times, bases, np.repeat(direction[None], len(times), axis=0)])
     header = "tilted entry of studies/events/run.py\n\nt,x,y,z,dx,dy,dz"
@@ -117,10 +119,10 @@ def liver_trajectory(path: Path, towards) -> None:
     path.write_text(text)
 
 
-def liver_overrides(trajectory: Path) -> list[str]:
+def liver_overrides(trajectory: Path, duration: float = 0.8) -> list[str]:
     return [
         f"trajectory.file={json.dumps(str(trajectory))}",
-        "time.duration=0.8",
+        f"time.duration={duration!r}",
         f"insertion.surface_friction_coefficient={MU!r}",
     ]
 
@@ -207,12 +209,21 @@ def main() -> None:
     for name, towards in LIVER_TILTS.items():
         trajectories[name] = args.output / f"liver_tilted_{name}.csv"
         liver_trajectory(trajectories[name], towards)
+        trajectories[f"slow_{name}"] = args.output / f"liver_slow_tilted_{name}.csv"
+        liver_trajectory(trajectories[f"slow_{name}"], towards, speed=0.004, gap=1e-4, duration=1.0)
     scenarios = {
         "cube_cut": ("cube_cut", cube_cut_overrides),
         "cube_tilted": ("cube", lambda: cube_tilted_overrides(MU)),
         "cube_stick_limit": ("cube", lambda: cube_tilted_overrides(stick_limit_mu())),
         **{
             f"liver_tilted_{name}": ("liver_rigid", lambda name=name: liver_overrides(trajectories[name]))
+            for name in LIVER_TILTS
+        },
+        **{
+            f"liver_slow_tilted_{name}": (
+                "liver_rigid",
+                lambda name=name: liver_overrides(trajectories[f"slow_{name}"], 1.0),
+            )
             for name in LIVER_TILTS
         },
     }
