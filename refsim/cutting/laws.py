@@ -104,12 +104,17 @@ class FrontGrowth:
     ----------
     cut : The cut surface. strip : Its strip. direction : ĉ, unit, shape (3,).
     tear : The front's load that laid a new layer [N] (event ``tear``), None when no layer was laid.
+    layer_distance : How far the crack tip was from the last layer before laying [m] (rest; a layer is laid
+        when it reaches ``layer_spacing``), None when the law lays layers otherwise (paper law).
+    layer_spacing : That distance's threshold [m] (d_c), None with it.
     """
 
     cut: Any
     strip: Any
     direction: np.ndarray
     tear: float | None
+    layer_distance: float | None = None
+    layer_spacing: float | None = None
 
 
 class CuttingLaw:
@@ -270,14 +275,16 @@ class EnergyLaw(CuttingLaw):
         moved = strip.with_front(
             move_front(push.growth, strip, columns[ahead], targets[ahead], positions, locator=push.locator)
         )
+        distance = moved.layer_distance(push.cut, push.step, spacing)
         cut, laid = moved.lay(push.cut, push.step, spacing)
         if laid.layers.shape[0] == strip.layers.shape[0]:
-            return FrontGrowth(cut, laid, push.direction, None)
+            return FrontGrowth(cut, laid, push.direction, None, distance, spacing)
         load = float(push.multipliers[front.rows].sum()) + float(
             np.abs(push.multipliers[front.band_rows]).sum()
         )
         points = cut.deformed_points(positions, push.growth.tets)
-        return FrontGrowth(cut, laid, swept_direction(points, laid, needle, push.direction), load)
+        direction = swept_direction(points, laid, needle, push.direction)
+        return FrontGrowth(cut, laid, direction, load, distance, spacing)
 
 
 @dataclass(frozen=True)

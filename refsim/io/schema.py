@@ -287,7 +287,7 @@ CRITERIA = _specs(
             (),
             "criterion: puncture (tip normal force vs f_p), tip_slip (tip friction ratio vs mu_p), "
             "cut_start (the law's cut-start load vs its threshold), tear (crack front's strongest row vs its "
-            "threshold)",
+            "threshold), layer (energy law: the crack tip's distance from the last layer vs d_c)",
         ),
         ("value", "criteria/unit", "float64", (), "the quantity the event compares, in criteria/unit"),
         ("threshold", "criteria/unit", "float64", (), "what it is compared with, in criteria/unit"),
@@ -299,7 +299,7 @@ CRITERIA = _specs(
             "how far the value can be from the exact solution's at the solver's tolerance, in criteria/unit "
             "(|value - threshold| <= accuracy: within the solver's accuracy of the threshold)",
         ),
-        ("unit", "1", "str", (), 'unit of value, threshold and accuracy: "N", "N/m" or "1"'),
+        ("unit", "1", "str", (), 'unit of value, threshold and accuracy: "N", "N/m", "m" or "1"'),
     ],
 )
 

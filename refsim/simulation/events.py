@@ -423,6 +423,7 @@ class EventRules:
         )
         if grown is None:
             return state, events
+        self.margins.layer(grown)
         if grown.tear is not None:
             events.append(Event("tear", grown.tear))
         state = replace(state, cut=grown.cut, cut_strip=grown.strip, cut_direction=grown.direction)

@@ -20,6 +20,10 @@ The criteria
   paper law ‖t‖/n_i against f_c; `refsim.cutting.laws.CuttingLaw.cut_start_load`).
 - ``tear`` [N or -]: the crack front's strongest row (paper law: its force against f_t; energy law: its force
   over its strength G_c ℓ_k against 1; `CuttingLaw.front_load`).
+- ``layer`` [m] (energy law: what lays a new layer, the event ``tear``; the ``tear`` criterion feeds it): how
+  far the crack tip moved from the last layer (rest), against d_c (`refsim.cutting.strip.CutStrip.lay`),
+  recorded in the steps where the crack tip moved. Its accuracy is the gap's, τ D [m] (the crack tip follows
+  the needle and the rows' compression, both resolved to the rows' gap accuracy, first order).
 
 The geometric events (new insertion points, exit, retraction, withdrawal, leave_cut) compare lengths of the
 corrected positions; they carry no criterion here.
@@ -70,11 +74,12 @@ __all__ = [
 #: An event that could move this many steps or more is flagged knife-edge.
 KNIFE_EDGE_STEPS = 2
 
-#: The criteria that decide each event: its own first, then those feeding it.
+#: The criteria that decide each event, in order: its own is the first evaluated at the event's step (a tear
+#: of the energy law is decided by ``layer``, one of the paper law by ``tear``), the others feed it.
 CRITERIA_OF_EVENT = {
     "puncture": ("puncture", "tip_slip"),
     "cut_start": ("cut_start",),
-    "tear": ("tear",),
+    "tear": ("layer", "tear"),
 }
 
 
@@ -89,7 +94,7 @@ class Criterion:
     threshold : What it is compared with, in ``unit``.
     accuracy : How far the value can be from the exact solution's when the solve meets its tolerance, in
         ``unit``, ≥ 0 (module docstring).
-    unit : "N", "N/m" or "1".
+    unit : "N", "N/m", "m" or "1".
     """
 
     name: str
@@ -224,6 +229,14 @@ class MarginWatch:
         value, threshold, divisor, unit = load
         self._criteria.append(Criterion("tear", value, threshold, self._accuracy(rows) / divisor, unit))
 
+    def layer(self, growth) -> None:
+        """How far the crack tip was from the last layer against d_c (``FrontGrowth.layer_distance``, energy
+        law: a layer, event ``tear``, is laid when it reaches d_c), to the gap's accuracy τ D [m]."""
+        if self._problem is None or growth.layer_distance is None:
+            return
+        distance, spacing = float(growth.layer_distance), float(growth.layer_spacing)
+        self._criteria.append(Criterion("layer", distance, spacing, self._bound, "m"))
+
     def demands(self, rows: np.ndarray) -> np.ndarray:
         """The force each of ``rows`` asks for [N], shape (|rows|,): λ, plus −δ/W_ii where the row is held at
         its upper bound with its gap open below zero (the cap's excess)."""
@@ -357,7 +370,7 @@ def assess(events, series: CriterionSeries) -> list[EventMargin]:
         criteria = CRITERIA_OF_EVENT.get(name)
         if criteria is None:
             continue
-        own = criteria[0]
+        own = next((c for c in criteria if series.at(c, step) is not None), criteria[0])
         at_event, before = series.at(own, step), series.at(own, step - 1)
         evaluated = series.evaluated_steps(own)
         within = {criterion: set(series.within_steps(criterion).tolist()) for criterion in criteria}
