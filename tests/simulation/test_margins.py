@@ -149,3 +149,17 @@ def test_tilted_entry_at_the_stick_limit_is_flagged_knife_edge(theta):
     assert margin.earlier >= KNIFE_EDGE_STEPS and set(
         range(margin.step - margin.earlier, margin.step)
     ) <= set(within.tolist())
+
+
+def test_a_tear_is_read_on_the_criterion_its_law_decides_it_by():
+    # Energy law: a tear is a new layer, laid when the crack tip is d_c from the last one ('layer', fed by the
+    # front's force, 'tear'); paper law: the front's force alone ('tear'). The event's own criterion is the
+    # first of CRITERIA_OF_EVENT["tear"] evaluated at its step.
+    layer = [Criterion("layer", 0.9e-3, 1e-3, 1e-9, "m"), Criterion("layer", 1.2e-3, 1e-3, 1e-9, "m")]
+    front = [Criterion("tear", 1.3, 1.0, 1e-4, "1"), Criterion("tear", 1.3, 1.0, 1e-4, "1")]
+    series = CriterionSeries.of([4, 5, 4, 5], [*layer, *front])
+    (margin,) = assess([(5, "tear")], series)
+    assert margin.at_event.name == "layer" and margin.before.value == 0.9e-3 and not margin.knife_edge
+    series = CriterionSeries.of([4, 5], front)
+    (margin,) = assess([(5, "tear")], series)
+    assert margin.at_event.name == "tear" and margin.at_event.value == 1.3
