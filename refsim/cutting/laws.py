@@ -104,12 +104,17 @@ class FrontGrowth:
     ----------
     cut : The cut surface. strip : Its strip. direction : ĉ, unit, shape (3,).
     tear : The front's load that laid a new layer [N] (event ``tear``), None when no layer was laid.
+    layer_distance : How far the crack tip was from the last layer before laying [m] (rest; a layer is laid
+        when it reaches ``layer_spacing``), None when the law lays layers otherwise (paper law).
+    layer_spacing : That distance's threshold [m] (d_c), None with it.
     """
 
     cut: Any
     strip: Any
     direction: np.ndarray
     tear: float | None
+    layer_distance: float | None = None
+    layer_spacing: float | None = None
 
 
 class CuttingLaw:
@@ -142,6 +147,19 @@ class CuttingLaw:
         """The cut start under the shaft's lateral load t [N], shape (3,), or None when the criterion does not
         hold. ``inserted_length`` [m] is the needle's length below the entry point, ``point_count`` the
         insertion points n_i."""
+        raise NotImplementedError
+
+    def cut_start_load(
+        self, lateral_force: np.ndarray, *, inserted_length: float, point_count: int
+    ) -> tuple[float, float, float, str]:
+        """What :meth:`cut_start` compares: (value, threshold, divisor, unit), value = ‖t‖ / divisor in
+        ``unit`` (the margin of the event, `refsim.simulation.margins`)."""
+        raise NotImplementedError
+
+    def front_load(self, forces: np.ndarray, limits: np.ndarray) -> tuple[float, float, float, str] | None:
+        """What the crack front's growth compares, for the front rows' forces and force limits [N], shape
+        (f,): (value, threshold, divisor, unit) of its strongest row, the value a force over ``divisor``; None
+        without front rows."""
         raise NotImplementedError
 
     def kept_at_cut_start(self, point_count: int) -> np.ndarray:
@@ -189,6 +207,21 @@ class EnergyLaw(CuttingLaw):
         if inserted_length <= 0.0 or magnitude < self.fracture_energy * inserted_length:
             return None
         return CutStart(magnitude / inserted_length, self.cut_start_unit, 0.0)
+
+    def cut_start_load(self, lateral_force, *, inserted_length, point_count):
+        """‖t‖ / L_in against G_c [N/m]."""
+        length = max(float(inserted_length), 0.0)
+        magnitude = float(np.linalg.norm(lateral_force))
+        value = magnitude / length if length > 0.0 else 0.0
+        return value, self.fracture_energy, length, self.cut_start_unit
+
+    def front_load(self, forces, limits):
+        """The strongest front row's force over its strength G_c ℓ_k, against 1 (it gives way at 1)."""
+        if np.size(forces) == 0:
+            return None
+        ratios = np.asarray(forces) / np.asarray(limits)
+        strongest = int(np.argmax(ratios))
+        return float(ratios[strongest]), 1.0, float(np.asarray(limits)[strongest]), "1"
 
     def kept_at_cut_start(self, point_count):
         """The entry point (withdrawal: the tip back above it) and the strip's deepest point; neither has rows
@@ -242,14 +275,16 @@ class EnergyLaw(CuttingLaw):
         moved = strip.with_front(
             move_front(push.growth, strip, columns[ahead], targets[ahead], positions, locator=push.locator)
         )
+        distance = moved.layer_distance(push.cut, push.step, spacing)
         cut, laid = moved.lay(push.cut, push.step, spacing)
         if laid.layers.shape[0] == strip.layers.shape[0]:
-            return FrontGrowth(cut, laid, push.direction, None)
+            return FrontGrowth(cut, laid, push.direction, None, distance, spacing)
         load = float(push.multipliers[front.rows].sum()) + float(
             np.abs(push.multipliers[front.band_rows]).sum()
         )
         points = cut.deformed_points(positions, push.growth.tets)
-        return FrontGrowth(cut, laid, swept_direction(points, laid, needle, push.direction), load)
+        direction = swept_direction(points, laid, needle, push.direction)
+        return FrontGrowth(cut, laid, direction, load, distance, spacing)
 
 
 @dataclass(frozen=True)
@@ -285,6 +320,18 @@ class PaperLaw(CuttingLaw):
         if not (point_count > 0 and magnitude > point_count * self.cutting_force):
             return None
         return CutStart(magnitude / point_count, self.cut_start_unit, self.extent)
+
+    def cut_start_load(self, lateral_force, *, inserted_length, point_count):
+        """‖t‖ / n_i against f_c [N]."""
+        magnitude = float(np.linalg.norm(lateral_force))
+        value = magnitude / point_count if point_count > 0 else 0.0
+        return value, self.cutting_force, float(max(point_count, 0)), self.cut_start_unit
+
+    def front_load(self, forces, limits):
+        """The strongest front row's force against f_t [N]."""
+        if np.size(forces) == 0:
+            return None
+        return float(np.max(forces)), self.tearing_force, 1.0, "N"
 
     def kept_at_cut_start(self, point_count):
         """The entry point (withdrawal: the tip back above it)."""

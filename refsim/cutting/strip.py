@@ -234,23 +234,7 @@ class CutStrip:
         moved keep their last point. A column with no point yet gets two: where its crack tip started (in the
         last layer) and where it is; it is laid only with a neighbour it can be joined to (alone, its points
         would join no triangle). Returns the surface and strip (unchanged when no column is due)."""
-        last = self.last_layer
-        origins, births = self._origins(), self._births()
-        pending = last < 0
-        behind = np.where(pending[:, None], origins.rest_points, cut.rest_points[np.maximum(last, 0)])
-        distance = np.linalg.norm(self.front.rest_points - behind, axis=1)
-        moved = distance >= 1e-3 * minimum_gap
-        # Two neighbours are joined by a layer when each one's back point was laid no earlier than the other
-        # column was added: the older column's points laid before a block was added border tissue below it
-        # that was not cut. A column laid now (its first point) counts as laid now.
-        created = np.where(pending, step, cut.created_step[np.maximum(last, 0)])
-        joined = (created[:-1] >= births[1:]) & (created[1:] >= births[:-1])
-        starting = pending & moved
-        partner = np.zeros(last.size, dtype=bool)
-        partner[:-1] |= joined & (starting[1:] | ~pending[1:])
-        partner[1:] |= joined & (starting[:-1] | ~pending[:-1])
-        starting &= partner
-        moved &= ~pending | starting
+        last, origins, pending, distance, moved, starting, joined = self._due(cut, step, minimum_gap)
         if not np.any((distance >= minimum_gap) & moved):
             return cut, self
         started = clock.perf_counter()
@@ -271,7 +255,37 @@ class CutStrip:
         )
         layers = self.layers.copy()
         layers[-1] = back
+        births = self._births()
         return grown, CutStrip(np.vstack([layers, layer[None, :]]), self.front, self.depths, origins, births)
+
+    def layer_distance(self, cut: CutSurface, step: int, minimum_gap: float) -> float:
+        """How far the crack tip is from the last layer [m] (rest): the largest distance over the columns
+        :meth:`lay` would lay (it lays a layer when this reaches ``minimum_gap``), 0 when none moved."""
+        _, _, _, distance, moved, _, _ = self._due(cut, step, minimum_gap)
+        return float(distance[moved].max()) if np.any(moved) else 0.0
+
+    def _due(self, cut: CutSurface, step: int, minimum_gap: float):
+        """What :meth:`lay` decides on: the last layer, the origins, the columns with no point yet, each
+        column's distance from its last point [m], the columns that moved, those starting, the joined
+        neighbours."""
+        last = self.last_layer
+        origins, births = self._origins(), self._births()
+        pending = last < 0
+        behind = np.where(pending[:, None], origins.rest_points, cut.rest_points[np.maximum(last, 0)])
+        distance = np.linalg.norm(self.front.rest_points - behind, axis=1)
+        moved = distance >= 1e-3 * minimum_gap
+        # Two neighbours are joined by a layer when each one's back point was laid no earlier than the other
+        # column was added: the older column's points laid before a block was added border tissue below it
+        # that was not cut. A column laid now (its first point) counts as laid now.
+        created = np.where(pending, step, cut.created_step[np.maximum(last, 0)])
+        joined = (created[:-1] >= births[1:]) & (created[1:] >= births[:-1])
+        starting = pending & moved
+        partner = np.zeros(last.size, dtype=bool)
+        partner[:-1] |= joined & (starting[1:] | ~pending[1:])
+        partner[1:] |= joined & (starting[:-1] | ~pending[:-1])
+        starting &= partner
+        moved &= ~pending | starting
+        return last, origins, pending, distance, moved, starting, joined
 
 
 def append_points(

@@ -18,6 +18,7 @@ import numpy as np
 
 from refsim.cutting.laws import CUTTING_LAWS
 from refsim.io import schema
+from refsim.simulation.margins import CriterionSeries, EventMargin, assess
 
 __all__ = [
     "CutHistory",
@@ -121,6 +122,8 @@ class Results:
     constraint_forces : [N], (R,).
     kind_names, source_names, phase_names, stage_names : Names of the codes.
     events : Events in order of occurrence.
+    criteria : The criteria the events compared, every step (``refsim.simulation.margins.CriterionSeries``;
+        empty for files written before ``criteria/``); :meth:`event_margins` reads each event's margin.
     cut : The cut surface history, or None when the run cut nothing.
     boundary_nodes : Nodes a boundary motion moves, (b,) (empty: none).
     boundary_displacement : Their prescribed displacement from rest after each step [m], (s, b, 3).
@@ -169,6 +172,7 @@ class Results:
     phase_names: tuple
     stage_names: tuple
     events: tuple = ()
+    criteria: CriterionSeries | None = None
     cut: CutHistory | None = None
     problem_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     boundary_nodes: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
@@ -262,6 +266,13 @@ class Results:
             return self.rest_positions
         nearest = self.nearest_tissue_step(step)
         return self.tissue_positions[int(np.flatnonzero(self.tissue_steps == nearest)[0])]
+
+    def event_margins(self) -> list[EventMargin]:
+        """The margin of each event with a criterion (its criterion at the event step and the step before,
+        how many steps it could move, the knife-edge flag; ``refsim.simulation.margins.assess``)."""
+        if self.criteria is None:
+            return []
+        return assess([(event.step, event.name) for event in self.events], self.criteria)
 
     def events_named(self, name: str) -> list[RecordedEvent]:
         """The events called ``name`` (e.g. "puncture", "tear")."""
@@ -472,6 +483,7 @@ def read_results(path) -> Results:
         law = scene.get("cutting", {}).get("law", "energy")
         events = _read_events(handle, last_step, law)
         names, further = _read_instruments(handle, path, attributes, count, last_step, law)
+        criteria = _read_criteria(handle, last_step)
         cut = None
         if "cut" in handle:
             cut_data = {
@@ -517,6 +529,7 @@ def read_results(path) -> Results:
             phase_names=_names(handle[schema.STEPS["phase"].path]),
             stage_names=stage_names,
             events=events,
+            criteria=criteria,
             trajectory_samples=_read_optional(handle, "trajectory/samples", np.zeros((0, 7))),
             boundary_nodes=_read_optional(handle, "tissue/boundary_nodes", np.zeros(0, dtype=np.int64)),
             boundary_displacement=steps["boundary_displacement"]
@@ -561,6 +574,7 @@ def _read_instruments(handle, path: Path, attributes: dict, count: int, last_ste
         further[name] = {
             **steps,
             "events": _read_events(handle, last_step, law, location=location),
+            "criteria": _read_criteria(handle, last_step, location=location),
             "needle_rest_nodes": _read(handle, f"{location}/{schema.STATIC['needle/rest_nodes'].path}"),
             "trajectory_samples": _read(handle, f"{location}/{schema.STATIC['trajectory/samples'].path}"),
         }
@@ -651,3 +665,15 @@ def read_problem_group(group, *, default_name: str = ""):
         ) from None
     name = _plain(group.attrs.get("name", "")) or default_name
     return ConstraintProblem(**fields, name=name)
+
+
+def _read_criteria(handle, last_step: int, *, location: str = "") -> CriterionSeries | None:
+    """The criteria of the completed steps (up to ``last_step``), None for a file without ``criteria/``;
+    ``location``: a further instrument's (``instruments/<name>``)."""
+    prefix = f"{location}/" if location else ""
+    if prefix + schema.CRITERIA["step"].path not in handle:
+        return None
+    steps = _read(handle, prefix + schema.CRITERIA["step"].path)
+    count = int(np.count_nonzero(steps <= last_step))
+    data = {name: _read(handle, prefix + spec.path, count) for name, spec in schema.CRITERIA.items()}
+    return CriterionSeries(**data)

@@ -29,6 +29,7 @@ __all__ = [
     "CONSTRAINTS",
     "EVENTS",
     "EVENT_VALUE_DATASETS",
+    "CRITERIA",
     "OPTIONAL_DATASETS",
     "CUT",
     "INSTRUMENTS_GROUP",
@@ -287,8 +288,39 @@ EVENTS = _specs(
     ],
 )
 
+#: The criteria the events compared, one entry per criterion and step, in step order
+#: (refsim.simulation.margins: what each criterion is, its accuracy, and how an event's margin is read).
+CRITERIA = _specs(
+    "criteria",
+    [
+        ("step", "1", "int64", (), "step at whose end the criterion was evaluated"),
+        (
+            "name",
+            "1",
+            "str",
+            (),
+            "criterion: puncture (tip normal force vs f_p), tip_slip (tip friction ratio vs mu_p), "
+            "cut_start (the law's cut-start load vs its threshold), tear (crack front's strongest row vs its "
+            "threshold), layer (energy law: the crack tip's distance from the last layer vs d_c)",
+        ),
+        ("value", "criteria/unit", "float64", (), "the quantity the event compares, in criteria/unit"),
+        ("threshold", "criteria/unit", "float64", (), "what it is compared with, in criteria/unit"),
+        (
+            "accuracy",
+            "criteria/unit",
+            "float64",
+            (),
+            "how far the value can be from the exact solution's at the solver's tolerance, in criteria/unit "
+            "(|value - threshold| <= accuracy: within the solver's accuracy of the threshold)",
+        ),
+        ("unit", "1", "str", (), 'unit of value, threshold and accuracy: "N", "N/m", "m" or "1"'),
+    ],
+)
+
 #: Datasets a file of the same schema version written before them lacks; the reader takes them as absent.
-OPTIONAL_DATASETS = frozenset({"events/force_per_length", "constraints/instrument"})
+OPTIONAL_DATASETS = frozenset(
+    {"events/force_per_length", "constraints/instrument", *(spec.path for spec in CRITERIA.values())}
+)
 
 #: The dataset of ``events/`` holding an event's value, by the value's unit (refsim.simulation.records.Event's
 #: ``unit``): each dataset has one unit, so its ``units`` attribute is true for every entry.
@@ -428,6 +460,7 @@ INSTRUMENT_DATASETS = {
             )
         ),
         *EVENTS.values(),
+        *CRITERIA.values(),
         STATIC["trajectory/samples"],
         STATIC["needle/rest_nodes"],
     )
@@ -442,7 +475,7 @@ def instrument_location(index: int, name: str) -> str:
 
 def all_datasets() -> list[DatasetSpec]:
     """Every dataset of the schema, in documentation order."""
-    groups = (STATIC, STEPS, SOLVER, TISSUE, CONSTRAINTS, EVENTS, CUT, PROBLEM_FIELDS)
+    groups = (STATIC, STEPS, SOLVER, TISSUE, CONSTRAINTS, EVENTS, CRITERIA, CUT, PROBLEM_FIELDS)
     return [spec for group in groups for spec in group.values()]
 
 

@@ -341,7 +341,14 @@ class ResultWriter:
         for name, value in static.items():
             self._write_fixed(schema.STATIC[name], value)
         several = bool(self._further)
-        for group in (schema.STEPS, schema.SOLVER, schema.TISSUE, schema.CONSTRAINTS, schema.EVENTS):
+        for group in (
+            schema.STEPS,
+            schema.SOLVER,
+            schema.TISSUE,
+            schema.CONSTRAINTS,
+            schema.EVENTS,
+            schema.CRITERIA,
+        ):
             for spec in group.values():
                 if several or spec.path != schema.CONSTRAINTS["instrument"].path:
                     self._create_growing(spec)
@@ -478,6 +485,8 @@ class ResultWriter:
         values["constraints/row_count"] = row_count
         if record.events:
             values.update(self._event_values(record.events, record))
+        if record.criteria:
+            values.update(_criteria_values(record.step, record.criteria))
         if record.tissue_positions is not None:
             positions = self._check_shape("tissue_positions", record.tissue_positions, (self._sizes["n"], 3))
             values["tissue/step"] = np.array([record.step], dtype=np.int64)
@@ -514,6 +523,13 @@ class ResultWriter:
                     {
                         f"{location}/{path}": value
                         for path, value in self._event_values(part.events, record).items()
+                    }
+                )
+            if part.criteria:
+                values.update(
+                    {
+                        f"{location}/{path}": value
+                        for path, value in _criteria_values(record.step, part.criteria).items()
                     }
                 )
         return values
@@ -591,7 +607,14 @@ class ResultWriter:
         static part: its arrays, the attributes, the metadata of every dataset and the margin."""
         dataset_count = len(static) + sum(
             len(group)
-            for group in (schema.STEPS, schema.SOLVER, schema.TISSUE, schema.CONSTRAINTS, schema.EVENTS)
+            for group in (
+                schema.STEPS,
+                schema.SOLVER,
+                schema.TISSUE,
+                schema.CONSTRAINTS,
+                schema.EVENTS,
+                schema.CRITERIA,
+            )
         )
         needed = (
             sum(np.asarray(value).nbytes for value in static.values())
@@ -767,7 +790,11 @@ class ResultWriter:
         chunk = (
             (1,)
             if spec.path == "tissue/positions"
-            else ((_CHUNK_ROWS,) if spec.path.split("/")[0] in ("constraints", "events") else (_CHUNK_STEPS,))
+            else (
+                (_CHUNK_ROWS,)
+                if spec.path.split("/")[0] in ("constraints", "events", "criteria")
+                else (_CHUNK_STEPS,)
+            )
         )
         dataset = self._file.create_dataset(
             spec.path,
@@ -913,3 +940,15 @@ def _threads() -> list:
     from refsim.fem.threads import thread_settings
 
     return thread_settings()
+
+
+def _criteria_values(step: int, criteria) -> dict:
+    """The entries one step adds to ``criteria/`` (refsim.simulation.margins.Criterion of each)."""
+    return {
+        "criteria/step": np.full(len(criteria), step, dtype=np.int64),
+        "criteria/name": np.array([c.name for c in criteria], dtype=object),
+        "criteria/value": np.array([c.value for c in criteria], dtype=np.float64),
+        "criteria/threshold": np.array([c.threshold for c in criteria], dtype=np.float64),
+        "criteria/accuracy": np.array([c.accuracy for c in criteria], dtype=np.float64),
+        "criteria/unit": np.array([c.unit for c in criteria], dtype=object),
+    }

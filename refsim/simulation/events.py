@@ -52,6 +52,7 @@ from refsim.cutting.laws import FrontPush
 from refsim.geometry import TetLocator
 from refsim.scene import Scene
 from refsim.simulation.detection import Detection
+from refsim.simulation.margins import MarginWatch
 from refsim.simulation.records import Event
 from refsim.simulation.state import Phase, SimulationState
 
@@ -153,6 +154,8 @@ class EventRules:
             shape=(int(tets.max()) + 1, tets.shape[0]),
         )
         self._node_tets = incidence
+        #: The criteria each step's events compare, with their margins (refsim.simulation.margins).
+        self.margins = MarginWatch(scene.solver.tolerance)
         self.growth = None
         if cuts:
             cutting = scene.cutting
@@ -187,6 +190,7 @@ class EventRules:
         rows = detection.rows
         normal_rows = np.flatnonzero((rows.source == PENETRATION) & (rows.kind == UNILATERAL))
         normal_force = float(multipliers[normal_rows].sum())
+        self.margins.puncture(normal_rows, self.insertion.puncture_force)
         # A capped normal row (insertion.puncture_within_step) reaches f_p to the solver's tolerance, not
         # beyond.
         threshold = self.insertion.puncture_force * (1.0 - PUNCTURE_TOLERANCE)
@@ -301,6 +305,7 @@ class EventRules:
         path_points = state.path.positions(positions, self.tets)
         needle = self.needle_geometry(state.needle)
         inserted = needle.length - float(needle.project(path_points[:1])[0][0])
+        self.margins.cut_start(self.law, force_on_needle, inserted, state.path.point_count)
         start = self.law.cut_start(
             force_on_needle, inserted_length=inserted, point_count=state.path.point_count
         )
@@ -404,6 +409,7 @@ class EventRules:
                 cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc, world.step),
             )
         rows = detection.rows
+        self.margins.tear(self.law, detection.front.rows)
         grown = self.law.grow(
             FrontPush(
                 growth=self.growth,
@@ -425,6 +431,7 @@ class EventRules:
         )
         if grown is None:
             return world, state, events
+        self.margins.layer(grown)
         if grown.tear is not None:
             events.append(Event("tear", grown.tear))
         world = replace(world, cut=grown.cut)

@@ -47,6 +47,8 @@ class InstrumentRecord:
     needle_frames : Its needle's frames, (k, 3, 3).
     needle_force : Force of the tissue on its needle, Σ λ n over its rows [N], (3,).
     insertion_point_count : Its insertion points after the step.
+    criteria : The criteria its events compared, with threshold and accuracy
+        (``refsim.simulation.margins.Criterion``).
     """
 
     name: str
@@ -57,6 +59,7 @@ class InstrumentRecord:
     needle_frames: np.ndarray
     needle_force: np.ndarray
     insertion_point_count: int
+    criteria: tuple = ()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -95,6 +98,7 @@ class StepRecord:
         others, (r,).
     instruments : Every instrument's part of the step, in the scene's order.
     row_instrument : The instrument of each row (its index in ``instruments``), (r,).
+    criteria : The first instrument's criteria (its ``InstrumentRecord.criteria``).
     """
 
     step: int
@@ -123,3 +127,4 @@ class StepRecord:
     row_point: np.ndarray | None = None
     instruments: tuple[InstrumentRecord, ...] = ()
     row_instrument: np.ndarray | None = None
+    criteria: tuple = ()

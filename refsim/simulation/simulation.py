@@ -234,6 +234,7 @@ class Simulation:
         parts = []
         for instrument, detection in zip(self.instruments, detections, strict=True):
             mine = rows.instruments == instrument.index
+            instrument.event_rules.margins.begin(problem, rows, multipliers, report, own=mine)
             new_state, events = instrument.event_rules.apply(
                 new_state, instrument.name, detection, multipliers[mine]
             )
@@ -248,6 +249,7 @@ class Simulation:
                     needle_frames=own.needle.frames,
                     needle_force=instrument.needle_force(rows, multipliers),
                     insertion_point_count=own.path.point_count,
+                    criteria=instrument.event_rules.margins.taken(),
                 )
             )
         timer.lap("events")
@@ -281,6 +283,7 @@ class Simulation:
             row_point=rows.points_of_rows,
             instruments=tuple(parts),
             row_instrument=rows.instruments,
+            criteria=first.criteria,
         )
         return new_state, record
 

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from refsim.simulation.margins import CriterionSeries, assess
 from refsim.simulation.records import STAGES, StepRecord
 
 __all__ = [
@@ -121,6 +122,7 @@ class RunSummary:
     """Running aggregate of step records; feed it with :meth:`add`."""
 
     events: list = field(default_factory=list)
+    criteria: list = field(default_factory=list)  # (step, instrument name or "", Criterion) compared
     phases: dict = field(default_factory=dict)
     peak_force: float = 0.0
     peak_force_step: int = 0
@@ -180,6 +182,10 @@ class RunSummary:
                 self.instrument_peaks[part.name] = (force, record.step)
         for event in () if several else record.events:
             self.events.append((record.step, record.time, event.name, event.force, event.unit))
+        for part in parts if several else ():
+            self.criteria.extend((record.step, part.name, criterion) for criterion in part.criteria)
+        for criterion in () if several else record.criteria:
+            self.criteria.append((record.step, "", criterion))
         # With several instruments a step's phase is every instrument's, in order ("cutting/insertion").
         phase = "/".join(part.phase for part in parts) if several else record.phase
         stats = self.phases.setdefault(phase, PhaseStatistics())
@@ -203,6 +209,31 @@ class RunSummary:
         if force > self.peak_force:
             self.peak_force, self.peak_force_step = force, record.step
 
+    def event_margins(self) -> list:
+        """Each event's margin (``refsim.simulation.margins.assess`` on the criteria of the run), in event
+        order; with several instruments each event is assessed on its own instrument's criteria."""
+        return [margin for _, margin in self._owned_margins()]
+
+    def _owned_margins(self) -> list[tuple[str, object]]:
+        """(instrument name, margin) of each event with a criterion; the name is "" for a one-needle run."""
+        owners = self.event_instruments or [""] * len(self.events)
+        owned = []
+        for owner in dict.fromkeys(owners):
+            mine = [(step, c) for step, name, c in self.criteria if name == owner]
+            series = CriterionSeries.of([step for step, _ in mine], [c for _, c in mine])
+            events = [(e[0], e[2]) for e, o in zip(self.events, owners, strict=True) if o == owner]
+            owned += [(owner, margin) for margin in assess(events, series)]
+        return sorted(owned, key=lambda item: item[1].step)
+
+    def format_margins(self) -> list[str]:
+        """The event margins as text lines (none when no event has a criterion)."""
+        owned = self._owned_margins()
+        if not owned:
+            return []
+        knife = sum(margin.knife_edge for _, margin in owned)
+        head = f"event margins (criterion against threshold, solver accuracy; {knife} knife-edge):"
+        return [head, *(f"  {owner + ': ' if owner else ''}{margin.text()}" for owner, margin in owned)]
+
     @property
     def seconds(self) -> float:
         return sum(sum(p.stage_seconds.values()) for p in self.phases.values())
@@ -216,6 +247,7 @@ class RunSummary:
             + (f"  {_value_text(f, unit)}" if np.isfinite(f) else "")
             for (s, t, name, f, unit), owner in zip(self.events, owners, strict=True)
         ] or ["  none"]
+        lines += self.format_margins()
         if self.instrument_peaks:
             lines += [
                 f"peak force on {name}'s needle: {force:.4g} N at step {step}"

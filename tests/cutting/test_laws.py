@@ -218,3 +218,31 @@ def test_no_code_outside_the_laws_compares_a_law_name():
         if comparison.search(line)
     ]
     assert not found, found
+
+
+@pytest.mark.parametrize("law", [EnergyLaw(fracture_energy=200.0), PaperLaw(cutting_force=1.0)], ids=str)
+def test_cut_start_load_is_what_cut_start_compares(law):
+    # The event margin reads the law's cut-start load (refsim.simulation.margins): its value crosses its
+    # threshold exactly where cut_start starts the cut (energy law: ‖t‖ ≥ G_c L_in at 200 N/m over 20 mm,
+    # 4 N; paper law: ‖t‖ > n_i f_c over 5 points, 5 N), and the value is the load cut_start reports.
+    length, points = 0.02, 5
+    critical = 200.0 * length if isinstance(law, EnergyLaw) else 1.0 * points
+    for scale in (0.5, 0.999, 1.001, 2.0):
+        force = np.array([0.0, scale * critical, 0.0])
+        load = law.cut_start_load(force, inserted_length=length, point_count=points)
+        value, threshold, divisor, unit = load
+        start = law.cut_start(force, inserted_length=length, point_count=points)
+        assert (start is not None) == (value >= threshold) and unit == law.cut_start_unit
+        assert value * divisor == pytest.approx(np.linalg.norm(force))
+        if start is not None:
+            assert start.trigger == pytest.approx(value)
+
+
+def test_front_load_is_the_strongest_row_against_its_threshold():
+    # Paper law: the strongest front row's force against f_t (grow tears when it reaches f_t); energy law:
+    # the strongest force over its strength G_c ℓ_k against 1 (a row gives way at its strength).
+    forces, limits = np.array([0.2, 0.9, 0.5]), np.array([1.0, 1.0, 0.4])
+    assert PaperLaw(tearing_force=0.8).front_load(forces, limits) == (0.9, 0.8, 1.0, "N")
+    value, threshold, divisor, unit = EnergyLaw().front_load(forces, limits)
+    assert (value, threshold, divisor, unit) == (1.25, 1.0, 0.4, "1")
+    assert PaperLaw().front_load(np.zeros(0), np.zeros(0)) is None

@@ -196,3 +196,25 @@ def test_two_runs_give_the_same_file(tmp_path):
                 assert first[name][key] == second[name][key], key
         else:
             np.testing.assert_array_equal(first[name], second[name], err_msg=name)
+
+
+def test_criteria_round_trip(short_run):
+    # Every criterion the events compared (refsim.simulation.margins) is read back as written, and the
+    # reader's event margins are those the run's summary gives from the records.
+    from refsim.simulation.summary import RunSummary
+
+    path, records, _ = short_run
+    results = read_results(path)
+    written = [(r.step, c) for r in records for c in r.criteria]
+    assert written, "the short run compares no criterion"
+    series = results.criteria
+    np.testing.assert_array_equal(series.step, [step for step, _ in written])
+    assert list(series.name) == [c.name for _, c in written]
+    assert list(series.unit) == [c.unit for _, c in written]
+    for field in ("value", "threshold", "accuracy"):
+        np.testing.assert_array_equal(getattr(series, field), [getattr(c, field) for _, c in written])
+    summary = RunSummary()
+    for record in records:
+        summary.add(record)
+    assert results.event_margins() == summary.event_margins()
+    assert [m.name for m in results.event_margins()] == ["puncture"]
