@@ -49,6 +49,7 @@ from refsim.constraints.cut import crack_tip_compression, inserted_arc
 from refsim.cutting import CutGrowth
 from refsim.cutting.growth import start_strip
 from refsim.cutting.laws import FrontPush
+from refsim.cutting.strip import recorded_surface
 from refsim.geometry import TetLocator
 from refsim.scene import Scene
 from refsim.simulation.detection import Detection
@@ -319,6 +320,8 @@ class EventRules:
         inserted needle every d_i (material points where the needle now is) but none in the cut (the rule of
         new points: a part of the needle still in its cut slides in it), the insertion phase, the cut kept
         (the needle may cut again: a new cut start). Event ``leave_cut``."""
+        # The cut the strip leaves reaches its crack tip.
+        state = replace(state, cut=recorded_surface(state.cut, state.cut_strip, state.step))
         locator = TetLocator(positions, self.tets)
         spacing = self.insertion.spacing
         entry_arc = inserted_arc(needle, locator, spacing)
@@ -369,8 +372,15 @@ class EventRules:
         needle = self.needle_geometry(state.needle)
         entry = state.path.positions(positions, self.tets)
         if state.path.point_count == 0 or points_beyond_tip(state.path, entry, needle)[0]:
-            # The tip is back above the entry point: every row is released; the tissue keeps its cut.
-            state = replace(state, phase=Phase.APPROACH, path=InsertionPath.empty(), cut_strip=None)
+            # The tip is back above the entry point: every row is released; the tissue keeps its cut, up to
+            # the crack tip.
+            state = replace(
+                state,
+                phase=Phase.APPROACH,
+                path=InsertionPath.empty(),
+                cut=recorded_surface(state.cut, state.cut_strip, state.step),
+                cut_strip=None,
+            )
             return state, [Event("retraction"), Event("withdrawal")]
         events: list[Event] = []
         cutting = self.cutting
@@ -413,6 +423,7 @@ class EventRules:
                 compression=lambda given_rows, given, columns: crack_tip_compression(
                     rows, multipliers, given_rows, given, columns
                 ),
+                compliance=rows.compliance_diagonal,
             )
         )
         if grown is None:
