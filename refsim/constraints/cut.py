@@ -111,8 +111,6 @@ class FrontRows:
         of the step [m], shapes (f,), (b,): the same needle point (arc length) against the same material
         point of the tissue, so δ_end − δ_start is how far the needle moved through the tissue along the row
         over the step.
-    previous_needle_points, band_previous_needle_points : The rows' needle points at the start of the step
-        [m], shapes (f, 3), (b, 3): how far the needle itself moved along each row over the step.
     """
 
     rows: np.ndarray
@@ -128,8 +126,6 @@ class FrontRows:
     band_weights: np.ndarray = field(default_factory=lambda: np.zeros((0, 12)))
     previous_gaps: np.ndarray = field(default_factory=lambda: np.zeros(0))
     band_previous_gaps: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    previous_needle_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    band_previous_needle_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @classmethod
     def empty(cls) -> FrontRows:
@@ -534,7 +530,6 @@ def _front_rows(
             band_nodes=anchor.nodes[band],
             band_weights=anchor.weights[band],
             band_previous_gaps=np.einsum("ij,ij->i", anchor.normals[band], needle_previous - tissue_previous),
-            band_previous_needle_points=needle_previous,
         )
     if front_previous.shape[0] < 2:
         return _Front(None, info, empty, empty)
@@ -570,7 +565,6 @@ def _front_rows(
         arc_lengths=arcs,
         directions=directions,
         previous_gaps=np.einsum("ij,ij->i", directions, samples.previous[keep] - anchor_previous),
-        previous_needle_points=samples.previous[keep],
     )
     return _Front(rows, info, keep, strip.front.tet_indices[np.where(t < 0.5, seg, seg + 1)])
 

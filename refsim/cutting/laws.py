@@ -221,12 +221,14 @@ class EnergyLaw(CuttingLaw):
         """Where the front gave way, and by how much [m].
 
         A front row gave way where it is at its strength G_c ℓ_k with the needle through the crack tip beyond
-        its compression (r < 0, :meth:`residuals`). It cut by how far the needle moved into the front over
-        the step, at most −r: the needle's own motion along the row (so a needle moving along its own axis
-        cuts nothing), less what the tissue's own motion carried the crack tip away (the needle's point
-        against the tissue's material point, δ_start − δ_end); a crack tip carried into the needle by the
-        tissue is not cut by it. Likewise a sliding row at the front at its limit, with the needle gone on
-        the way the row pushes against: its slip out of the cut's plane over the step, at most |r|.
+        its compression (r < 0, :meth:`residuals`). It cut by how far the needle moved into the front
+        relative to the tissue over the step, at most −r: the same needle point (arc length) against the same
+        material point of the crack tip at the start and the end of the step, δ_start − δ_end. The advance is
+        thus the needle's motion through the tissue, whatever dt, and a needle and tissue moving together
+        (a breathing organ carrying both) cut nothing; a row left at its strength with r < 0 by a hair (the
+        load a stroke left, or a needle sliding along a kinked crack-tip polyline) moves no column. Likewise a
+        sliding row at the front at its limit, with the needle gone on the way the row pushes against: its
+        slip out of the cut's plane relative to the tissue over the step, at most |r|.
 
         Returns
         -------
@@ -236,28 +238,15 @@ class EnergyLaw(CuttingLaw):
         front_residual, band_residual = self.residuals(push)
         tips = push.strip.front.positions(push.positions, push.growth.tets)
         at_limit = multipliers[front.rows] >= (1.0 - LIMIT_TOLERANCE) * limit[front.rows]
-        pushed = -np.einsum(
-            "ij,ij->i", front.directions, needle.points(front.arc_lengths) - front.previous_needle_points
-        )
         relative = np.asarray(front.previous_gaps) - front.gaps(tips, needle)
-        cut = np.minimum(np.minimum(-front_residual, pushed), relative)
+        cut = np.minimum(-front_residual, relative)
         over = np.where(at_limit & (front_residual < 0.0), np.clip(cut, 0.0, None), 0.0)
         band = front.band_rows
         sideways = np.abs(multipliers[band]) >= (1.0 - LIMIT_TOLERANCE) * limit[band]
         sideways &= band_residual * multipliers[band] < 0.0
         way = np.sign(band_residual)
-        band_pushed = (
-            way
-            * np.einsum(
-                "ij,ij->i",
-                front.band_directions,
-                needle.points(front.band_arc_lengths) - front.band_previous_needle_points,
-            )
-            if band.size
-            else np.zeros(0)
-        )
         band_relative = way * (front.band_gaps(push.positions, needle) - np.asarray(front.band_previous_gaps))
-        slid = np.minimum(np.minimum(np.abs(band_residual), band_pushed), band_relative)
+        slid = np.minimum(np.abs(band_residual), band_relative)
         slip = np.where(sideways, np.clip(slid, 0.0, None), 0.0)
         return over, slip
 

@@ -13,7 +13,8 @@
 - phase: insertion; event: cut_start; when: energy law: ‖t‖ ≥ G_c L_in; paper law (equation 3): ‖t‖ > n_i f_c;
   then: a strip on the path; cutting, the entry point kept
 - phase: cutting; event: (crack advance); when: energy law: a front row at its strength G_c ℓ_k and the needle
-  past the crack tip, or a sliding row at the front at G_c ℓ_k; then: the crack tip advances to the needle
+  through the crack tip, or a sliding row at the front at G_c ℓ_k; then: the crack tip advances towards the
+  needle by the needle's motion into the front relative to the tissue over the step
 - phase: cutting; event: (extension); when: energy law: the needle inserted d_c deeper than the strip; then:
   columns added below the strip
 - phase: cutting; event: tear; when: energy law: a new layer laid (the crack tip d_c past the last); paper
