@@ -104,6 +104,13 @@ class FrontRows:
     band_rows : The sliding rows at the front (bounded at G_c ℓ_k: the needle cuts out of the plane there when
         they give way), indices in the block, shape (b,).
     band_segment : The crack-tip segment nearest each of them, shape (b,).
+    band_arc_lengths : Their needle points [m], shape (b,).
+    band_directions : Their directions (the cut surface's normal), shape (b, 3).
+    band_nodes, band_weights : Their tissue points on the cut surface: nodes and weights, shapes (b, 12).
+    previous_gaps, band_previous_gaps : δ of each front row and of each sliding row at the front at the start
+        of the step [m], shapes (f,), (b,): the same needle point (arc length) against the same material
+        point of the tissue, so δ_end − δ_start is how far the needle moved through the tissue along the row
+        over the step.
     """
 
     rows: np.ndarray
@@ -113,10 +120,24 @@ class FrontRows:
     directions: np.ndarray
     band_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     band_segment: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    band_arc_lengths: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    band_directions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    band_nodes: np.ndarray = field(default_factory=lambda: np.zeros((0, 12), np.int64))
+    band_weights: np.ndarray = field(default_factory=lambda: np.zeros((0, 12)))
+    previous_gaps: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    band_previous_gaps: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @classmethod
     def empty(cls) -> FrontRows:
         return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros((0, 3)))
+
+    def band_gaps(self, tissue_positions: np.ndarray, needle) -> np.ndarray:
+        """δ = nᵀ(x_needle − x_tissue) of each sliding row at the front in a configuration of both bodies
+        [m], shape (b,)."""
+        if self.band_rows.size == 0:
+            return np.zeros(0)
+        tissue = np.einsum("qk,qkj->qj", self.band_weights, tissue_positions[self.band_nodes])
+        return np.einsum("ij,ij->i", self.band_directions, needle.points(self.band_arc_lengths) - tissue)
 
     def gaps(self, front_points: np.ndarray, needle) -> np.ndarray:
         """δ = nᵀ(x_needle − x_tip) of each row for crack-tip points (q, 3) and a needle centreline [m],
@@ -495,7 +516,21 @@ def _front_rows(
     empty = np.zeros(0, np.int64)
     info = FrontRows.empty()
     if sliding.band_rows.size:
-        info = replace(info, band_rows=sliding.band_rows, band_segment=sliding.band_segment)
+        band, anchor = sliding.band_rows, sliding.anchor
+        tissue_previous = np.einsum(
+            "qk,qkj->qj", anchor.weights[band], geometry.tissue_previous[anchor.nodes[band]]
+        )
+        needle_previous = geometry.needle_previous.points(anchor.arc_lengths[band])
+        info = replace(
+            info,
+            band_rows=band,
+            band_segment=sliding.band_segment,
+            band_arc_lengths=anchor.arc_lengths[band],
+            band_directions=anchor.normals[band],
+            band_nodes=anchor.nodes[band],
+            band_weights=anchor.weights[band],
+            band_previous_gaps=np.einsum("ij,ij->i", anchor.normals[band], needle_previous - tissue_previous),
+        )
     if front_previous.shape[0] < 2:
         return _Front(None, info, empty, empty)
     segment, parameter, interior = _closest_on_polyline(samples.previous, front_previous)
@@ -518,17 +553,18 @@ def _front_rows(
         [(1.0 - t)[:, None] * strip.front.barycentric[seg], t[:, None] * strip.front.barycentric[seg + 1]], 1
     )
     arcs = samples.arc_lengths[keep]
+    anchor_previous = (1.0 - t)[:, None] * front_previous[seg] + t[:, None] * front_previous[seg + 1]
     rows = _CutRows.between(
         geometry, nodes, node_weights, directions, arcs, samples.free[keep], anchor, UNILATERAL, CUT_BORDER
     )
-    info = FrontRows(
-        sliding.count + np.arange(keep.size),
-        seg,
-        t,
-        arcs,
-        directions,
-        sliding.band_rows,
-        sliding.band_segment,
+    info = replace(
+        info,
+        rows=sliding.count + np.arange(keep.size),
+        segment=seg,
+        parameter=t,
+        arc_lengths=arcs,
+        directions=directions,
+        previous_gaps=np.einsum("ij,ij->i", directions, samples.previous[keep] - anchor_previous),
     )
     return _Front(rows, info, keep, strip.front.tet_indices[np.where(t < 0.5, seg, seg + 1)])
 

@@ -183,8 +183,16 @@ def crack_tip_targets(strip, needle, entry_arc: float, columns: np.ndarray, spac
     """
     arcs = entry_arc + np.asarray(strip.depths)[columns]
     # Half a column spacing of slack: the tissue surface moves along the needle while it cuts (the entry arc
-    # moves with it) and the deepest column, at the tip at the cut start, must not stop for a hair.
-    return needle.points(np.minimum(arcs, needle.length)), arcs <= needle.length + 0.5 * spacing
+    # moves with it) and the deepest column, at the tip at the cut start, must not stop for a hair. A column
+    # in that slack below the tip is taken to the needle's line extended past the tip at its own depth, not
+    # to the tip point: sent to the tip, it moved up along the needle by the slack whenever it was moved.
+    length = needle.length
+    targets = needle.points(np.minimum(arcs, length))
+    below = arcs > length
+    if np.any(below):
+        tangent = needle.tangents(np.array([length]))[0]
+        targets[below] += (arcs[below] - length)[:, None] * tangent
+    return targets, arcs <= length + 0.5 * spacing
 
 
 def move_front(

@@ -33,6 +33,7 @@ __all__ = [
     "FrontGrowth",
     "FrontPush",
     "PaperLaw",
+    "column_mean",
     "law_of_key",
     "swept_direction",
 ]
@@ -79,6 +80,8 @@ class FrontPush:
     locator : Tet locator on ``positions`` (energy law), None if not built.
     compression : ``(given_rows, given, columns) -> (c, 3)``: the compliant rows' compression C λ at the
         columns a row gave way next to [m] (`refsim.constraints.cut.crack_tip_compression`).
+    compliance : The rows' added compliance C [m/N], shape (r,) (``RowBlock.compliance_diagonal``; empty:
+        none).
     """
 
     growth: CutGrowth
@@ -94,6 +97,7 @@ class FrontPush:
     entry_arc: float | None = None
     locator: Any = None
     compression: Callable | None = None
+    compliance: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass(frozen=True)
@@ -228,44 +232,101 @@ class EnergyLaw(CuttingLaw):
         while cutting."""
         return np.array([0] if point_count < 2 else [0, point_count - 1])
 
+    def residuals(self, push: FrontPush) -> tuple[np.ndarray, np.ndarray]:
+        """The front rows' and the sliding rows' at the front solved residual r = δ + C λ at the step's end
+        [m], shapes (f,), (b,): δ = nᵀ(x_needle − x_tissue) on the material points the rows hold, less the
+        compression C λ their compliance allows. A row that holds has r = 0 (to the solve's accuracy); a row
+        at its limit has r ≠ 0 by how far the needle went through the tissue beyond that compression, along
+        its direction: the needle's motion relative to the material point, so the tissue's own deformation
+        (which carries the crack tip with it) counts for nothing."""
+        front, multipliers = push.front, push.multipliers
+        compliance = np.asarray(push.compliance, dtype=float)
+
+        def compressed(rows):
+            return compliance[rows] * multipliers[rows] if compliance.size else np.zeros(rows.size)
+
+        tips = push.strip.front.positions(push.positions, push.growth.tets)
+        front_residual = front.gaps(tips, push.needle) + compressed(front.rows)
+        band_residual = front.band_gaps(push.positions, push.needle) + compressed(front.band_rows)
+        return front_residual, band_residual
+
     def given_way(self, push: FrontPush) -> tuple[np.ndarray, np.ndarray]:
-        """Where the front gave way: each front row's overshoot past the crack tip [m] (0 where it holds; it
-        gave way at its strength G_c ℓ_k with the needle past the crack tip), shape (f,), and which sliding
-        rows at the front reached their limit (the needle cuts out of the cut's plane there), shape (b,)."""
-        front, multipliers, limit = push.front, push.multipliers, push.force_limit
-        forces = multipliers[front.rows]
-        gaps = front.gaps(push.strip.front.positions(push.positions, push.growth.tets), push.needle)
-        over = np.where((forces >= (1.0 - LIMIT_TOLERANCE) * limit[front.rows]) & (gaps < 0.0), -gaps, 0.0)
+        """Where the front gave way, and by how much [m].
+
+        A front row gave way where it is at its strength G_c ℓ_k with the needle through the crack tip beyond
+        its compression (r < 0, :meth:`residuals`). It cut by how far the needle moved into the front
+        relative to the tissue over the step, at most −r: the same needle point (arc length) against the same
+        material point of the crack tip at the start and the end of the step, δ_start − δ_end. The advance is
+        thus the needle's motion through the tissue, whatever dt, and a needle and tissue moving together
+        (a breathing organ carrying both) cut nothing; a row left at its strength with r < 0 by a hair (the
+        load a stroke left, or a needle sliding along a kinked crack-tip polyline) moves no column. Likewise a
+        sliding row at the front at its limit, with the needle gone on the way the row pushes against: its
+        slip out of the cut's plane relative to the tissue over the step, at most |r|.
+
+        Returns
+        -------
+        (over (f,), slip (b,)) : ≥ 0, 0 where the row holds.
+        """
+        front, multipliers, limit, needle = push.front, push.multipliers, push.force_limit, push.needle
+        front_residual, band_residual = self.residuals(push)
+        tips = push.strip.front.positions(push.positions, push.growth.tets)
+        at_limit = multipliers[front.rows] >= (1.0 - LIMIT_TOLERANCE) * limit[front.rows]
+        relative = np.asarray(front.previous_gaps) - front.gaps(tips, needle)
+        cut = np.minimum(-front_residual, relative)
+        over = np.where(at_limit & (front_residual < 0.0), np.clip(cut, 0.0, None), 0.0)
         band = front.band_rows
         sideways = np.abs(multipliers[band]) >= (1.0 - LIMIT_TOLERANCE) * limit[band]
-        return over, sideways
+        sideways &= band_residual * multipliers[band] < 0.0
+        way = np.sign(band_residual)
+        band_relative = way * (front.band_gaps(push.positions, needle) - np.asarray(front.band_previous_gaps))
+        slid = np.minimum(np.abs(band_residual), band_relative)
+        slip = np.where(sideways, np.clip(slid, 0.0, None), 0.0)
+        return over, slip
 
     def grow(self, push):
-        """The crack tip moves to the needle next to every row that gave way; a new layer (event ``tear``) is
-        laid once the crack tip is d_c past the last, and ĉ turns half-way to the layer's swept direction."""
+        """The crack tip moves towards the needle next to every row that gave way, by how far the needle went
+        through the tissue there beyond the rows' compression (so a needle moving along its own axis moves
+        no column, and the advance does not depend on the step); a new layer (event ``tear``) is laid once
+        the crack tip is d_c past the last, and ĉ turns half-way to the layer's swept direction."""
         front, strip, positions = push.front, push.strip, push.positions
         if front.rows.size == 0 and front.band_rows.size == 0:
             return None
-        over, sideways = self.given_way(push)
-        if not (np.any(over > 0.0) or np.any(sideways)):
+        over, slip = self.given_way(push)
+        if not (np.any(over > 0.0) or np.any(slip > 0.0)):
             return None
         spacing = push.growth.point_spacing
-        # Each column next to a row that gave way (a front row, or a sliding row at the front) moves to the
-        # needle at its own depth below the tissue surface (moving the ends of a row's segment by the row's
-        # overshoot carries a lagging column's overshoot to its neighbour).
-        given = np.concatenate([front.segment[over > 0.0], front.band_segment[sideways]])
+        # Each column next to a row that gave way (a front row, or a sliding row at the front) moves towards
+        # the needle at its own depth below the tissue surface (moving the ends of a row's segment by the
+        # row's overshoot carries a lagging column's overshoot to its neighbour).
+        front_given, band_given = over > 0.0, slip > 0.0
+        given = np.concatenate([front.segment[front_given], front.band_segment[band_given]])
         columns = np.unique(np.concatenate([given, given + 1]))
         tips = strip.front.positions(positions, push.growth.tets)[columns]
         targets, reached = crack_tip_targets(strip, push.needle, push.entry_arc, columns, spacing)
         # The material point in contact with the needle: the centreline plus the compliant rows' compression
         # C λ along their direction, so the rows keep their force as the crack tip moves.
-        given_rows = np.concatenate([front.rows[over > 0.0], front.band_rows[sideways]])
+        given_rows = np.concatenate([front.rows[front_given], front.band_rows[band_given]])
         targets = targets + push.compression(given_rows, given, columns)
+        # How far the needle went through the tissue at each column (its rows' residuals along their
+        # directions): the column moves towards its target by that much along it, at most to the target.
+        _, band_residual = self.residuals(push)
+        penetration = column_mean(
+            columns, front.segment[front_given], -over[front_given, None] * front.directions[front_given]
+        ) + column_mean(
+            columns,
+            front.band_segment[band_given],
+            (np.sign(band_residual) * slip)[band_given, None] * front.band_directions[band_given],
+        )
+        motion = targets - tips
+        along = np.einsum("ij,ij->i", motion, penetration)
+        reach = np.einsum("ij,ij->i", penetration, penetration)
+        scale = np.where(along > reach, reach / np.where(along > reach, along, 1.0), 1.0)
+        motion = np.where((along > 0.0)[:, None], scale[:, None] * motion, 0.0)
+        targets = tips + motion
         needle = push.needle
         tangents = needle.tangents(needle.project(targets)[0])
         across = push.direction - (tangents @ push.direction)[:, None] * tangents
         across /= np.linalg.norm(across, axis=1, keepdims=True)
-        motion = targets - tips
         distance = np.linalg.norm(motion, axis=1)
         # Forward, or sideways (a turning stroke): anything but back into the cut (within 60° of ĉ's opposite:
         # the needle has moved back from the crack tip, and there is nothing to cut).
@@ -366,6 +427,20 @@ def law_of_key(key: str) -> str | None:
         if key in law.keys:
             return name
     return None
+
+
+def column_mean(columns: np.ndarray, segments: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """The mean of ``vectors`` (shape (k, 3), one per row on crack-tip segment ``segments`` (k,), which ends
+    at columns s and s + 1) at each of ``columns`` (sorted, holding every such end), shape (c, 3); 0 at a
+    column no row ends at."""
+    out = np.zeros((columns.size, 3))
+    if segments.size == 0:
+        return out
+    where = np.searchsorted(columns, np.concatenate([segments, segments + 1]))
+    counts = np.zeros(columns.size)
+    np.add.at(out, where, np.concatenate([vectors, vectors]))
+    np.add.at(counts, where, 1.0)
+    return out / np.maximum(counts, 1.0)[:, None]
 
 
 def swept_direction(points: np.ndarray, strip, needle, direction: np.ndarray) -> np.ndarray:

@@ -32,7 +32,7 @@ import numpy as np
 from refsim.cutting.surface import CutSurface, TriangulationReport
 from refsim.geometry import TetLocator
 
-__all__ = ["CutFront", "CutStrip", "locate_material_points", "strip_triangles"]
+__all__ = ["CutFront", "CutStrip", "locate_material_points", "recorded_surface", "strip_triangles"]
 
 # A point outside every tet by at most this much in barycentric coordinates is kept in the nearest tet (points
 # on the tissue surface: the entry point, by round-off); farther ones are outside the tissue.
@@ -286,6 +286,28 @@ class CutStrip:
         starting &= partner
         moved &= ~pending | starting
         return last, origins, pending, distance, moved, starting, joined
+
+
+#: A crack-tip column closer than this to its last laid point, relative to the cut's size, has not moved (for
+#: :func:`recorded_surface`): far below any length of a scene, far above round-off.
+_TIP_RESOLUTION = 1e-9
+
+
+def recorded_surface(cut: CutSurface | None, strip: CutStrip | None, step: int) -> CutSurface | None:
+    """The cut surface as far as the model has cut: ``cut`` with a layer laid at the crack tip where it has
+    moved past the last layer (:meth:`CutStrip.lay` with no minimum gap), its points and triangles stamped
+    ``step``. What the results file, the pictures and the cut-extent figures hold: the rows of the next step
+    read ``cut`` and the crack tip itself (the sliding rows reach d_c past the last layer, the front rows
+    press on the crack tip), so the recorded surface is the region the model treats as cut. ``cut`` itself
+    when there is no strip (no cut running) or no column moved."""
+    if cut is None or strip is None or cut.point_count == 0:
+        return cut
+    size = float(np.ptp(cut.rest_points, axis=0).max()) if cut.point_count > 1 else 0.0
+    size = max(size, float(np.ptp(strip.front.rest_points, axis=0).max()))
+    if size <= 0.0:
+        return cut
+    grown, _ = strip.lay(cut, step, _TIP_RESOLUTION * size * 1e3)
+    return grown
 
 
 def append_points(

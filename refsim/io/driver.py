@@ -34,6 +34,7 @@ import os
 import signal
 import threading
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -323,13 +324,30 @@ class StepSink:
         self.on_step, self.progress = on_step, progress
         self.rest = np.asarray(rest_positions)
         self.size = float(np.linalg.norm(self.rest.max(axis=0) - self.rest.min(axis=0)))
-        self.written_cut = None
+        self.written_cut, self.recorded = None, None
 
     def __call__(self, state, record) -> None:
         check_record(state, record, size=self.size, rest_positions=self.rest)
+        # The cut as far as the model has cut: the laid layers and the crack tip (recorded_surface), in the
+        # file's surface and in the step's counts alike.
+        strips = tuple(own.cut_strip for own in state.instruments if own.cut_strip is not None)
+        changed = state.cut is not None and (
+            self.written_cut is None
+            or state.cut is not self.written_cut[0]
+            or len(strips) != len(self.written_cut[1])
+            or any(a is not b for a, b in zip(strips, self.written_cut[1], strict=False))
+        )
+        if changed:
+            from refsim.cutting.strip import recorded_surface
+
+            self.recorded = state.cut
+            for strip in strips:  # to each cutting instrument's crack tip
+                self.recorded = recorded_surface(self.recorded, strip, record.step)
+        cut = self.recorded if state.cut is not None else None
+        if cut is not None and cut is not state.cut:
+            record = replace(record, cut_point_count=cut.point_count, cut_triangle_count=cut.triangle_count)
         self.writer.append(record)
-        if state.cut is not None and state.cut is not self.written_cut:
-            cut = state.cut
+        if changed:
             self.writer.write_cut_surface(
                 cut.rest_points,
                 cut.created_step,
@@ -338,7 +356,7 @@ class StepSink:
                 tet_indices=cut.tet_indices,
                 barycentric=cut.barycentric,
             )
-            self.written_cut = cut
+            self.written_cut = (state.cut, strips)
         self.summary.add(record)
         if self.on_step is not None:
             self.on_step(state, record)

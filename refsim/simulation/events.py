@@ -13,7 +13,8 @@
 - phase: insertion; event: cut_start; when: energy law: ‖t‖ ≥ G_c L_in; paper law (equation 3): ‖t‖ > n_i f_c;
   then: a strip on the path; cutting, the entry point kept
 - phase: cutting; event: (crack advance); when: energy law: a front row at its strength G_c ℓ_k and the needle
-  past the crack tip, or a sliding row at the front at G_c ℓ_k; then: the crack tip advances to the needle
+  through the crack tip, or a sliding row at the front at G_c ℓ_k; then: the crack tip advances towards the
+  needle by the needle's motion into the front relative to the tissue over the step
 - phase: cutting; event: (extension); when: energy law: the needle inserted d_c deeper than the strip; then:
   columns added below the strip
 - phase: cutting; event: tear; when: energy law: a new layer laid (the crack tip d_c past the last); paper
@@ -49,6 +50,7 @@ from refsim.constraints.cut import crack_tip_compression, inserted_arc
 from refsim.cutting import CutGrowth
 from refsim.cutting.growth import start_strip
 from refsim.cutting.laws import FrontPush
+from refsim.cutting.strip import recorded_surface
 from refsim.geometry import TetLocator
 from refsim.scene import Scene
 from refsim.simulation.detection import Detection
@@ -332,6 +334,8 @@ class EventRules:
         inserted needle every d_i (material points where the needle now is) but none in the cut (the rule of
         new points: a part of the needle still in its cut slides in it), the insertion phase, the cut kept
         (the needle may cut again: a new cut start). Event ``leave_cut``."""
+        # The cut the strip leaves reaches its crack tip.
+        world = replace(world, cut=recorded_surface(world.cut, state.cut_strip, world.step))
         locator = TetLocator(positions, self.tets)
         spacing = self.insertion.spacing
         entry_arc = inserted_arc(needle, locator, spacing)
@@ -382,7 +386,9 @@ class EventRules:
         needle = self.needle_geometry(state.needle)
         entry = state.path.positions(positions, self.tets)
         if state.path.point_count == 0 or points_beyond_tip(state.path, entry, needle)[0]:
-            # The tip is back above the entry point: every row is released; the tissue keeps its cut.
+            # The tip is back above the entry point: every row is released; the tissue keeps its cut, up to
+            # the crack tip.
+            world = replace(world, cut=recorded_surface(world.cut, state.cut_strip, world.step))
             state = replace(state, phase=Phase.APPROACH, path=InsertionPath.empty(), cut_strip=None)
             return world, state, [Event("retraction"), Event("withdrawal")]
         events: list[Event] = []
@@ -427,6 +433,7 @@ class EventRules:
                 compression=lambda given_rows, given, columns: crack_tip_compression(
                     rows, multipliers, given_rows, given, columns
                 ),
+                compliance=rows.compliance_diagonal,
             )
         )
         if grown is None:

@@ -4,16 +4,17 @@
 
 Runs the scene and, for each strip (each cut start), compares at the last step it exists:
 
-- the recorded surface (`state.cut`: the triangles, what the results file holds): its area and the deepest of
-  its points, depth measured along the strip's first layer (the insertion path at the cut start) from its
-  entry column, rest coordinates;
+- the laid surface (`state.cut`: the triangles the rows read) and the written one (what the results file
+  holds: the laid surface and a layer at the crack tip, `refsim.cutting.strip.recorded_surface`): their areas
+  and the deepest of their points, depth measured along the strip's first layer (the insertion path at the cut
+  start) from its entry column, rest coordinates;
 - the region the crack tip has swept: for each pair of neighbouring columns, the quad from where their crack
   tips were when the younger of the two was added (the path for the strip's own columns, the needle for those
   added below it) to where they are now; its area, and the deepest column whose crack tip advanced more than
   d_c/10 from where it started.
 
-The difference of the areas is at most what lies between the last layer and the crack tip (up to d_c per
-unit depth) when the recorded surface is the swept region.
+The laid area lags the swept one by what lies between the last layer and the crack tip (up to d_c per unit
+depth); the written one is the swept region.
 """
 
 from __future__ import annotations
@@ -63,17 +64,26 @@ class SweptRegion:
     def depth(self, points) -> np.ndarray:
         return (points - self.axis_origin) @ self.axis
 
-    def measure(self, strip, cut, spacing: float) -> dict:
+    def measure(self, strip, cut, spacing: float, step: int) -> dict:
+        from refsim.cutting.strip import recorded_surface
+
         tips = strip.front.rest_points
         swept = 0.5 * np.linalg.norm(np.cross(tips[1:] - self.start_a, tips[:-1] - self.start_b), axis=1)
         advance = np.linalg.norm(tips - self.first, axis=1)
         advanced = advance > 0.1 * spacing
         triangles = cut.triangles[cut.triangle_created_step >= self.since]
         used = np.unique(triangles)
+        written = recorded_surface(cut, strip, step)
+        written_triangles = written.triangles[written.triangle_created_step >= self.since]
+        written_used = np.unique(written_triangles)
         return {
-            "recorded area [mm²]": triangle_area(cut, triangles) * 1e6,
+            "laid area [mm²]": triangle_area(cut, triangles) * 1e6,
+            "written area [mm²]": triangle_area(written, written_triangles) * 1e6,
             "swept area [mm²]": float(swept.sum()) * 1e6,
-            "recorded depth [mm]": float(self.depth(cut.rest_points[used]).max()) * 1e3 if used.size else 0.0,
+            "laid depth [mm]": float(self.depth(cut.rest_points[used]).max()) * 1e3 if used.size else 0.0,
+            "written depth [mm]": (
+                float(self.depth(written.rest_points[written_used]).max()) * 1e3 if written_used.size else 0.0
+            ),
             "swept depth [mm]": float(self.depth(tips[advanced]).max()) * 1e3 if advanced.any() else 0.0,
             "columns": int(tips.shape[0]),
             "columns advanced": int(advanced.sum()),
@@ -110,7 +120,7 @@ def main(argv=None) -> int:
         if region is None:
             region, strip_count = SweptRegion(state.step), strip_count + 1
         region.update(strip, state.cut)
-        result = region.measure(strip, state.cut, spacing)
+        result = region.measure(strip, state.cut, spacing, state.step)
         result["step"] = state.step
     if region is not None:
         report()

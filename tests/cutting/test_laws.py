@@ -80,19 +80,54 @@ def test_what_each_law_keeps_at_the_cut_start():
 # ------------------------------------------------------------------------------------ the crack front
 
 
+# The hand-made front: the cut runs along +x (ĉ); each front row's direction is −ĉ (back into the cut); every
+# needle point is at the origin at the end of the step (see _push for where it and the crack tip started).
+C_HAT = np.array([1.0, 0.0, 0.0])
+
+
 @dataclass
 class _Front:
     """Front rows on hand-made gaps (duck-typed `FrontRows`): front rows, their segments, sliding rows at the
-    front and theirs."""
+    front and theirs, with the gaps at the start and at the end of the step."""
 
     rows: np.ndarray
     segment: np.ndarray
     gap_values: np.ndarray
+    previous_gaps: np.ndarray
     band_rows: np.ndarray
     band_segment: np.ndarray
+    band_gap_values: np.ndarray
+    band_previous_gaps: np.ndarray
+
+    @property
+    def directions(self):
+        return np.tile(-C_HAT, (self.rows.size, 1))
+
+    @property
+    def arc_lengths(self):
+        return np.zeros(self.rows.size)
+
+    @property
+    def band_directions(self):
+        return np.tile([0.0, 1.0, 0.0], (self.band_rows.size, 1))
+
+    @property
+    def band_arc_lengths(self):
+        return np.zeros(self.band_rows.size)
 
     def gaps(self, crack_tips, needle):
         return self.gap_values
+
+    def band_gaps(self, positions, needle):
+        return self.band_gap_values
+
+
+class _Needle:
+    """A needle whose every point is at the origin at the end of the step."""
+
+    @staticmethod
+    def points(arcs):
+        return np.zeros((np.size(arcs), 3))
 
 
 class _Strip:
@@ -108,41 +143,129 @@ class _Growth:
     point_spacing: float = 1e-3
 
 
-def _push(forces, limits, gaps, band_forces=(), band_limits=()):
+def _push(
+    forces,
+    limits,
+    gaps,
+    band_forces=(),
+    band_limits=(),
+    *,
+    pushed=1.0,
+    carried=0.0,
+    compliance=None,
+    band_gaps=None,
+    band_pushed=0.0,
+):
+    """A front after a step: front rows with ``forces``, ``limits`` and end gaps ``gaps`` [m], whose needle
+    point moved ``pushed`` [m] into the front (along ĉ) over the step while the tissue carried the crack tip
+    ``carried`` [m] along ĉ (so δ fell by pushed − carried); sliding rows at the front along +y with
+    ``band_forces``, ``band_limits``, end gaps ``band_gaps``, the needle moved ``band_pushed`` along +y
+    relative to the tissue. ``compliance``: the rows' C [m/N] (None: none)."""
     forces, band_forces = np.asarray(forces, float), np.asarray(band_forces, float)
     f, b = forces.size, band_forces.size
-    front = _Front(np.arange(f), np.arange(f), np.asarray(gaps, float), np.arange(f, f + b), np.arange(b))
+    gaps = np.asarray(gaps, float)
+    band_gaps = np.zeros(b) if band_gaps is None else np.asarray(band_gaps, float)
+    front = _Front(
+        np.arange(f),
+        np.arange(f),
+        gaps,
+        gaps + (pushed - carried),
+        np.arange(f, f + b),
+        np.arange(b),
+        band_gaps,
+        band_gaps - band_pushed,
+    )
     return FrontPush(
         growth=_Growth(np.zeros((1, 4), dtype=np.int64)),
         cut=None,
         strip=_Strip(),
-        direction=np.array([1.0, 0.0, 0.0]),
+        direction=C_HAT,
         positions=np.zeros((4, 3)),
         step=0,
-        needle=None,
+        needle=_Needle(),
         front=front,
         multipliers=np.concatenate([forces, band_forces]),
         force_limit=np.concatenate([np.asarray(limits, float), np.asarray(band_limits, float)]),
+        compliance=np.zeros(0) if compliance is None else np.full(f + b, float(compliance)),
     )
 
 
 def test_energy_front_gives_way_at_its_strength_with_the_needle_past_the_crack_tip():
     # A front row of segment length ℓ_k carries at most G_c ℓ_k; it gave way where λ ≥ (1 − tol) G_c ℓ_k
     # (tol = LIMIT_TOLERANCE: the solve's accuracy) and the needle is past the crack tip (gap < 0); its
-    # overshoot is −gap.
+    # overshoot is −gap (the needle moved farther than that into the front over the step).
     limit = 200.0 * 0.5e-3
     forces = [limit, limit * (1 - LIMIT_TOLERANCE), limit * (1 - 10 * LIMIT_TOLERANCE), limit]
     gaps = [-2e-4, -3e-4, -4e-4, 1e-5]
-    over, sideways = EnergyLaw().given_way(_push(forces, [limit] * 4, gaps))
+    over, slip = EnergyLaw().given_way(_push(forces, [limit] * 4, gaps))
     assert over.tolist() == [2e-4, 3e-4, 0.0, 0.0]
-    assert sideways.size == 0
+    assert slip.size == 0
+
+
+def test_a_front_left_at_its_strength_is_not_cut_without_motion():
+    # The front at its strength with the needle a hair through the crack tip (the load a stroke left: the
+    # row at G_c ℓ_k, δ below its compression by round-off or by the crack-tip polyline's kinks a needle
+    # moving along its own axis slides along), but the needle did not move into the front relative to the
+    # tissue: nothing is cut, however many steps.
+    limit = 0.1
+    push = _push([limit, limit], [limit, limit], [-2e-6, -3e-9], pushed=0.0)
+    over, _ = EnergyLaw().given_way(push)
+    assert over.tolist() == [0.0, 0.0]
+    assert EnergyLaw().grow(push) is None
+
+
+def test_the_cut_is_the_needles_motion_relative_to_the_tissue():
+    # Galilean: the tissue carrying the crack tip onto a needle that stood still (carried < 0) is the needle
+    # moving into the front, as much as the needle moving by that much into a tissue that stood still; a
+    # needle and a crack tip moving together (a breathing organ carrying both) cut nothing.
+    limit = 0.1
+    law = EnergyLaw()
+    onto = law.given_way(_push([limit], [limit], [-8e-6], pushed=0.0, carried=-5e-6))[0]
+    into = law.given_way(_push([limit], [limit], [-8e-6], pushed=5e-6, carried=0.0))[0]
+    together = law.given_way(_push([limit], [limit], [-8e-6], pushed=5e-6, carried=5e-6))[0]
+    assert onto.tolist() == into.tolist() == [5e-6]
+    assert together.tolist() == [0.0]
+
+
+@pytest.mark.parametrize(
+    ("pushed", "carried", "cut"), [(1e-4, 0.0, 1e-4), (1e-4, 3e-5, 7e-5), (1e-3, 0.0, 4e-4)]
+)
+def test_the_front_is_cut_by_the_needles_motion_into_it_less_what_the_tissue_carried(pushed, carried, cut):
+    # The needle moved ``pushed`` along ĉ; the tissue carried the crack tip ``carried`` ahead of it: the cut
+    # is pushed − carried, at most how far the needle is through the crack tip (−gap = 4e-4 m).
+    limit = 0.1
+    over, _ = EnergyLaw().given_way(_push([limit], [limit], [-4e-4], pushed=pushed, carried=carried))
+    assert over[0] == pytest.approx(cut, rel=1e-12)
+
+
+def test_a_compliant_front_row_cuts_only_beyond_its_compression():
+    # A compliant row (C) at its limit holds the needle at δ = −C λ (the annulus the mesh does not resolve,
+    # compressed): that is no cut; the needle through the crack tip beyond it cuts the difference.
+    limit, compliance = 0.1, 2e-5
+    held = -compliance * limit
+    assert EnergyLaw().given_way(_push([limit], [limit], [held], compliance=compliance))[0].tolist() == [0.0]
+    over, _ = EnergyLaw().given_way(_push([limit], [limit], [held - 3e-6], compliance=compliance))
+    assert over[0] == pytest.approx(3e-6, rel=1e-9)
 
 
 def test_energy_front_gives_way_sideways_where_a_sliding_row_at_the_front_reaches_its_limit():
+    # A sliding row at the front at its limit, the needle gone on out of the plane the way the row pushes
+    # against (λ < 0 pushes the needle along −y; it went +y): its slip is how far it went, at most |r|.
     limit = 0.1
-    push = _push([0.0], [limit], [1e-4], band_forces=[-limit, 0.5 * limit], band_limits=[limit, limit])
-    over, sideways = EnergyLaw().given_way(push)
-    assert over.tolist() == [0.0] and sideways.tolist() == [True, False]
+    push = _push(
+        [0.0],
+        [limit],
+        [1e-4],
+        band_forces=[-limit, 0.5 * limit, -limit],
+        band_limits=[limit] * 3,
+        band_gaps=[2e-5, 3e-5, 2e-5],
+        band_pushed=5e-5,
+    )
+    over, slip = EnergyLaw().given_way(push)
+    assert over.tolist() == [0.0] and slip.tolist() == [2e-5, 0.0, 2e-5]
+    # The same with the needle still: no slip.
+    still = _push([0.0], [limit], [1e-4], band_forces=[-limit], band_limits=[limit], band_gaps=[2e-5])
+    assert EnergyLaw().given_way(still)[1].tolist() == [0.0]
 
 
 def test_energy_front_that_holds_does_not_grow():

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from refsim.constraints.needle_geometry import RigidNeedleGeometry
 from refsim.cutting import CutGrowth
-from refsim.cutting.growth import advance_front, start_strip
+from refsim.cutting.growth import advance_front, crack_tip_targets, start_strip
 from refsim.cutting.metrics import surface_topology
 from refsim.cutting.strip import CutStrip, locate_material_points, strip_triangles
 from refsim.geometry import TetLocator
@@ -211,3 +212,17 @@ def test_a_lone_column_below_the_strip_waits_for_a_neighbour_it_can_join(growth)
     _assert_manifold(joined)
     assert surface_topology(joined.triangles, joined.point_count).is_disc
     assert laid.layers[-1, 9] >= 0 and laid.layers[-2, 9] >= 0
+
+
+def test_a_column_just_below_the_tip_is_taken_to_the_needles_line_at_its_own_depth():
+    # Columns at depths 0, 1, 2, 2.8, 3.6 mm below the tissue surface; a vertical needle 2.5 mm in (its tip at
+    # z = 0, the surface at z = 2.5 mm). A column within half a spacing (0.5 mm) below the tip is reached, on
+    # the needle's line at its own depth (z = −0.3 mm): not at the tip point, which would move it up along
+    # the needle; one deeper is not reached.
+    spacing = 1e-3
+    strip = type("Strip", (), {"depths": np.array([0.0, 1.0, 2.0, 2.8, 3.6]) * 1e-3})()
+    needle = RigidNeedleGeometry(np.array([0.0, 0.0, 0.05]), np.array([0.0, 0.0, -1.0]), 0.05)
+    targets, reached = crack_tip_targets(strip, needle, 0.0475, np.arange(5), spacing)
+    np.testing.assert_allclose(targets[:4, 2], [2.5e-3, 1.5e-3, 0.5e-3, -0.3e-3], atol=1e-15)
+    np.testing.assert_allclose(targets[:, :2], 0.0, atol=0.0)
+    assert reached.tolist() == [True, True, True, True, False]
