@@ -10,7 +10,7 @@ import numpy as np
 from refsim.constraints import InsertionPath
 from refsim.cutting import CutSurface
 from refsim.cutting.strip import CutStrip
-from refsim.fem.compliance import StaleFactor
+from refsim.fem.compliance import PartialSolveMarks, StaleFactor
 from refsim.fem.tissue import TissueState
 from refsim.simulation.needle_body import NeedleState
 
@@ -51,9 +51,11 @@ class SimulationState:
     tip_tet : The tissue tet the needle's tip lies in after the step, −1 when the tip is outside the tissue
         (before puncture, after an exit through a far face or a withdrawal).
     tip_barycentric : The tip's barycentric coordinates in ``tip_tet``, shape (4,); None when outside.
-    tissue_factor : The tissue compliance's stale factor (the refreshed strategy: the matrix A it last
-        factorised and the steps since, :class:`refsim.fem.compliance.StaleFactor`); None for the strategies
-        that carry nothing from step to step, and before the first step.
+    tissue_factor : What the tissue compliance carries from step to step: the refreshed strategy's stale
+        factor (the matrix A it last factorised and the steps since,
+        :class:`refsim.fem.compliance.StaleFactor`), or the exact strategy's partial-solve marks on PARDISO
+        (the DoFs its analysis marked, :class:`refsim.fem.compliance.PartialSolveMarks`); None for the
+        strategies that carry nothing, and before the first step.
     """
 
     step: int
@@ -67,4 +69,4 @@ class SimulationState:
     cut_strip: CutStrip | None = None
     tip_tet: int = -1
     tip_barycentric: np.ndarray | None = None
-    tissue_factor: StaleFactor | None = None
+    tissue_factor: StaleFactor | PartialSolveMarks | None = None
