@@ -1,12 +1,16 @@
 """Spatial search on tetrahedral meshes and triangle surfaces: point location and closest surface points.
 
-Both searches use KD-trees (scipy's cKDTree) on element centroids, one tree per class of bounding radius
-(radii within a factor two), so a graded mesh does not make every query look at the largest elements' reach.
 An element's bounding radius is the largest distance from its centroid to its vertices; since the distance to
 the centroid is convex, every point of the element lies within that radius. Candidate pairs (query, element)
-come from ball queries, are pruned by the element's own radius, and are evaluated in one vectorised call; the
-best candidate of each query is picked with a lexicographic sort. There is no Python loop over queries or
-elements, only over radius classes and over chunks of queries (to bound memory).
+come from a spatial index, are pruned by the element's own radius, and are evaluated in one vectorised call;
+the best candidate of each query is picked with a lexicographic sort, so the answer does not depend on the
+index (any index giving every element whose grown bounding sphere holds the point gives the same bits).
+Point location uses a compiled uniform grid of the tets' bounding spheres, grown for tolerances up to 1e-6
+(:class:`refsim.geometry.grid.BoxGrid`: cheap to build, which matters for the locators built on a deformed
+mesh during a step); larger tolerances and the closest surface points use KD-trees (scipy's cKDTree) on
+element centroids, one tree per class of bounding radius (radii within a factor two), so a graded mesh does
+not make every query look at the largest elements' reach. There is no Python loop over queries or elements,
+only over radius classes and over chunks of queries (to bound memory).
 """
 
 from __future__ import annotations
