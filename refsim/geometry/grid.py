@@ -31,24 +31,13 @@ class BoxGrid:
     """
 
     def __init__(self, lower: np.ndarray, upper: np.ndarray) -> None:
-        lower = np.ascontiguousarray(lower, dtype=float)
-        upper = np.ascontiguousarray(upper, dtype=float)
-        count = lower.shape[0]
-        self.origin = lower.min(axis=0) if count else np.zeros(3)
-        extent = (upper.max(axis=0) - self.origin) if count else np.ones(3)
-        edge = float(np.mean(upper[:, 0] - lower[:, 0])) * _CELL_PER_BOX if count else 1.0
-        edge = max(edge, float(extent.max()) * 1e-9, np.finfo(float).tiny)
-        while True:
-            dims = np.floor(extent / edge).astype(np.int64) + 1
-            if int(np.prod(dims)) <= _MAX_CELLS_PER_BOX * max(count, 1):
-                break
-            edge *= 1.5
-        self.edge = edge
-        self.dims = dims
-        self.lower, self.upper = lower, upper
-        first = np.clip(np.floor((lower - self.origin) / edge).astype(np.int64), 0, dims - 1)
-        last = np.clip(np.floor((upper - self.origin) / edge).astype(np.int64), 0, dims - 1)
-        self.offsets, self.items = _register(first, last, dims)
+        self.lower = np.ascontiguousarray(lower, dtype=float)
+        self.upper = np.ascontiguousarray(upper, dtype=float)
+        if self.lower.shape != self.upper.shape or self.lower.ndim != 2 or self.lower.shape[1] != 3:
+            raise ValueError(f"lower and upper must have one shape (m, 3), got {lower.shape}, {upper.shape}")
+        self.origin, self.edge, self.dims, self.offsets, self.items = _build(
+            self.lower, self.upper, _CELL_PER_BOX, _MAX_CELLS_PER_BOX
+        )
 
     def pairs(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every (point, box) with the point inside the closed box, as two index arrays (any order)."""
@@ -88,6 +77,47 @@ def _tet_spheres(positions, tets):  # pragma: no cover - compiled
                 largest = distance
         radii[t] = largest
     return centroids, radii
+
+
+@numba.njit(cache=True)
+def _build(lower, upper, cell_per_box, max_cells_per_box):  # pragma: no cover - compiled
+    count = lower.shape[0]
+    origin = np.zeros(3)
+    extent = np.ones(3)
+    edge = 1.0
+    if count:
+        width = 0.0
+        for axis in range(3):
+            low, high = lower[0, axis], upper[0, axis]
+            for box in range(1, count):
+                low = min(low, lower[box, axis])
+                high = max(high, upper[box, axis])
+            origin[axis], extent[axis] = low, high - low
+        for box in range(count):
+            width += upper[box, 0] - lower[box, 0]
+        edge = width / count * cell_per_box
+    edge = max(edge, extent.max() * 1e-9, 1e-300)
+    dims = np.ones(3, dtype=np.int64)
+    while True:
+        cells = 1
+        for axis in range(3):
+            dims[axis] = np.int64(np.floor(extent[axis] / edge)) + 1
+            cells *= dims[axis]
+        if cells <= max_cells_per_box * max(count, 1):
+            break
+        edge *= 1.5
+    first = np.empty((count, 3), dtype=np.int64)
+    last = np.empty((count, 3), dtype=np.int64)
+    for box in range(count):
+        for axis in range(3):
+            first[box, axis] = min(
+                max(np.int64(np.floor((lower[box, axis] - origin[axis]) / edge)), 0), dims[axis] - 1
+            )
+            last[box, axis] = min(
+                max(np.int64(np.floor((upper[box, axis] - origin[axis]) / edge)), 0), dims[axis] - 1
+            )
+    offsets, items = _register(first, last, dims)
+    return origin, edge, dims, offsets, items
 
 
 @numba.njit(cache=True)
