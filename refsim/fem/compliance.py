@@ -521,17 +521,13 @@ class _ExactBody(BodyCompliance):
         self._solver.mark(carried.positions if isinstance(carried, PartialSolveMarks) else None)
 
     def _inverse_block(self, system: StepSystem, positions: np.ndarray) -> np.ndarray:
-        """(A⁻¹)_uu on ``positions``; when they are not all marked, the analysis marks them with their
-        neighbours in A's graph (a needle moving by less than one element keeps its marks) and the matrix is
-        factorised again."""
+        """(A⁻¹)_uu on ``positions``; when they are not the marked ones, the analysis marks exactly them and
+        the matrix is factorised again. Exactly those: the partial solve's work and the ordering's fill grow
+        with the marked set (docs/speed.md)."""
         solver = self._solver
         marked = solver.marked
-        if marked is None or not np.all(np.isin(positions, marked, assume_unique=True)):
-            indptr = system.matrix.indptr
-            starts, counts = indptr[positions], indptr[positions + 1] - indptr[positions]
-            within = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-            neighbours = system.matrix.indices[np.repeat(starts, counts) + within]
-            solver.mark(np.union1d(positions, neighbours))
+        if marked is None or not np.array_equal(positions, marked):
+            solver.mark(positions)
         return solver.inverse_block(positions)
 
     def _step(self, system: StepSystem, exact) -> StepCompliance:
