@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from refsim.constraints.friction import friction_rows
+from refsim.constraints.friction import friction_gaps, friction_rows
 from refsim.constraints.insertion import axial_offsets, point_row_metadata
 from refsim.constraints.needle_geometry import needle_rows
 from refsim.constraints.rows import (
@@ -454,7 +454,8 @@ def ring_weights(path, rings: RingLayout, mesh_tets: np.ndarray) -> tuple[np.nda
     if per_ring > 1:
         if per_ring % 2:
             raise ValueError(f"ring point count {per_ring} must be even (antipodal pairs)")
-        inside &= np.roll(inside, per_ring // 2, axis=1)
+        half = per_ring // 2  # the antipode; np.roll(inside, half, axis=1) by slices (np.roll costs more)
+        inside &= np.concatenate((inside[:, half:], inside[:, :half]), axis=1)
     counts = inside.sum(axis=1)
     use_centre = counts == 0
     all_tets = np.concatenate([path.tets[:, None], np.where(inside, ring_tets, 0)], axis=1)  # (p, q + 1)
@@ -519,16 +520,16 @@ def ring_insertion_block(
     anchors = None
     if with_friction:
         offsets, anchors = axial_offsets(path, geometry, arc_lengths, tissue_point_previous)
-        friction = friction_rows(
+        directions[:, 2] = tangents
+        # the gaps of friction_rows; the Jacobians of all the rows are built below
+        gaps[:, 2] = friction_gaps(
             geometry,
-            tissue_nodes=nodes,
-            tissue_weights=weights,
             arc_lengths=arc_lengths,
             tangents=tangents,
+            tissue_free=tissue_point_free,
+            tissue_previous=tissue_point_previous,
             offsets=offsets,
         )
-        directions[:, 2] = tangents
-        gaps[:, 2] = friction.free_gap
         kinds[:, 2] = FRICTION
     flat_directions = directions.reshape(-1, 3)
     row_nodes = np.repeat(nodes, per_point, axis=0)

@@ -36,7 +36,7 @@ from refsim.constraints.needle_geometry import needle_rows
 from refsim.constraints.rows import NEEDLE, TISSUE, point_rows
 from refsim.constraints.step_geometry import StepGeometry
 
-__all__ = ["FrictionRows", "friction_rows", "slip_gaps", "stick_offsets"]
+__all__ = ["FrictionRows", "friction_gaps", "friction_rows", "slip_gaps", "stick_offsets"]
 
 
 def stick_offsets(
@@ -149,15 +149,14 @@ def friction_rows(
         free = np.asarray(tissue_free_points, dtype=float).reshape(-1, 3)
     if tissue_previous_points is not None:
         previous = np.asarray(tissue_previous_points, dtype=float).reshape(-1, 3)
-    gaps = slip_gaps(
-        tangents,
-        needle_free=geometry.needle_free.points(arc_lengths),
-        needle_previous=geometry.needle_previous.points(arc_lengths),
+    gaps = friction_gaps(
+        geometry,
+        arc_lengths=arc_lengths,
+        tangents=tangents,
         tissue_free=free,
         tissue_previous=previous,
+        offsets=offsets,
     )
-    if offsets is not None:
-        gaps = gaps + np.asarray(offsets, dtype=float).reshape(gaps.shape)
     return FrictionRows(
         jacobians=_without_none(
             {
@@ -168,6 +167,41 @@ def friction_rows(
         free_gap=gaps,
         tangents=tangents,
     )
+
+
+def friction_gaps(
+    geometry: StepGeometry,
+    *,
+    arc_lengths: np.ndarray,
+    tangents: np.ndarray,
+    tissue_free: np.ndarray,
+    tissue_previous: np.ndarray,
+    offsets: np.ndarray | None = None,
+) -> np.ndarray:
+    """The free gaps of :func:`friction_rows` alone [m], shape (r,), for a builder that makes the rows'
+    Jacobians itself: the slip over the step along each tangent, plus the offset from the stick anchor.
+
+    Parameters
+    ----------
+    geometry : The step's geometry.
+    arc_lengths : The needle point of each row (arc length from the base [m]), shape (r,).
+    tangents : Unit tangent of each row, shape (r, 3).
+    tissue_free, tissue_previous : The tissue point of each row after free motion and at the start of the
+        step [m], shape (r, 3) each.
+    offsets : As in :func:`friction_rows`.
+    """
+    tangents = np.asarray(tangents, dtype=float).reshape(-1, 3)
+    arc_lengths = np.asarray(arc_lengths, dtype=float)
+    gaps = slip_gaps(
+        tangents,
+        needle_free=geometry.needle_free.points(arc_lengths),
+        needle_previous=geometry.needle_previous.points(arc_lengths),
+        tissue_free=tissue_free,
+        tissue_previous=tissue_previous,
+    )
+    if offsets is not None:
+        gaps = gaps + np.asarray(offsets, dtype=float).reshape(gaps.shape)
+    return gaps
 
 
 def _without_none(jacobians: dict) -> dict:

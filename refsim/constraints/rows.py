@@ -243,8 +243,11 @@ class RowBlock:
         box_lower = np.where(self.kind[boxed] == UNILATERAL, 0.0, -limit[boxed])
         box_upper = limit[boxed]
         if boxed.size:
-            bilateral = np.setdiff1d(bilateral, boxed)
-            unilateral = np.setdiff1d(unilateral, boxed)
+            # the index sets are sorted and unique: dropping the boxed rows keeps what np.setdiff1d returns
+            in_box = np.zeros(self.row_count, dtype=bool)
+            in_box[boxed] = True
+            bilateral = bilateral[~in_box[bilateral]]
+            unilateral = unilateral[~in_box[unilateral]]
         return ConstraintProblem(
             compliance=compliance,
             free_gap=self.free_gap,

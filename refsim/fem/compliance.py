@@ -53,6 +53,7 @@ __all__ = [
     "STRATEGY_VARIANTS",
     "W_UPDATES",
     "StaleFactor",
+    "PartialSolveMarks",
     "StepSystem",
     "StepCompliance",
     "BodyCompliance",
@@ -238,6 +239,22 @@ class StaleFactor:
     age: int
 
 
+@dataclass(frozen=True, eq=False)
+class PartialSolveMarks:
+    """What the exact strategy on PARDISO carries from step to step (part of a run's state): the free-DoF
+    positions its analysis marked for partial solves.
+
+    PARDISO's fill-reducing ordering, hence the factor's round-off, depends on the marked positions; carrying
+    them makes a step a function of its state (a restarted run analyses with the same marks).
+
+    Attributes
+    ----------
+    positions : Sorted positions among the free DoFs, shape (k,), int64; read-only.
+    """
+
+    positions: np.ndarray
+
+
 class StepCompliance:
     """The compliance of one body at one step: its free motion, W for rows, and the correction.
 
@@ -261,8 +278,12 @@ class StepCompliance:
         block: Callable | None = None,
         apply: Callable | None = None,
         half_solve: Callable | None = None,
+        inverse_block: Callable | None = None,
     ):
         self.system = system
+        # positions -> (A⁻¹)_uu, the block of the inverse on the DoFs the rows touch, by a partial solve of
+        # the exact factor (exact strategy with PARDISO only); preferred over the forward half
+        self._inverse_block = inverse_block
         self._half = half_solve  # B -> Y with YᵀY = Bᵀ A⁻¹ B (the factor's forward half), exact strategy only
         self._block = block  # (positions, influence) -> E_uᵀ A⁻¹ E_u, (u, u); influence[positions] by default
         self._apply = apply  # (free load, first guess) -> A⁻¹ load; influence @ (H_uᵀ λ) by default
@@ -314,6 +335,13 @@ class StepCompliance:
         restricted = jacobian[:, used].toarray()  # (rows, u): constrained DoFs do not move
         exact = self._solve is not None and self._block is None and self._apply is None
         rows = restricted.shape[0]
+        if exact and used.size and self._inverse_block is not None:
+            # W = H_u (A⁻¹)_uu H_uᵀ from the block of the inverse on the u DoFs the rows touch, one partial
+            # solve (the unit loads E_u, only the components on the marked DoFs computed); the correction then
+            # solves the one load H_uᵀλ.
+            half = ("block", self._inverse_block(positions))
+            self._cache_key, self._cache = key, (positions, restricted, None, half)
+            return self._cache
         if exact and used.size and (self._half is not None or rows < used.size):
             # The exact factor: min(rows, u) right-hand sides, the rows' loads H_uᵀ when there are fewer rows
             # than DoFs touched (the ring coupling's rows spread over many tets), else the unit loads E_u.
@@ -344,7 +372,9 @@ class StepCompliance:
         positions, restricted, influence, half = self._influence(jacobian)
         if half is not None:
             form, values = half
-            if form == "rows":
+            if form == "block":
+                compliance = restricted @ values @ restricted.T
+            elif form == "rows":
                 compliance = values.T @ values
             elif form == "units":
                 compliance = restricted @ (values.T @ values) @ restricted.T
@@ -437,7 +467,9 @@ class BodyCompliance:
         self.strategy = strategy
         self.steps = 0
         self._exact = (
-            _ExactBody(strategy.linear_solver) if getattr(strategy, "against_exact", False) else None
+            _ExactBody(strategy.linear_solver, partial=False)
+            if getattr(strategy, "against_exact", False)
+            else None
         )
 
     def carried(self) -> StaleFactor | None:
@@ -463,11 +495,40 @@ class BodyCompliance:
 
 
 class _ExactBody(BodyCompliance):
-    def __init__(self, linear_solver: str) -> None:
+    def __init__(self, linear_solver: str, *, partial: bool = True) -> None:
         self.strategy = None
         self.steps = 0
         self._exact = None
         self._solver = make_linear_solver(linear_solver)
+        # W by partial solves where the solver has them (PARDISO); an error-report twin (partial=False) keeps
+        # the plain analysis, so that its bits depend on no history
+        self._partial = partial and hasattr(self._solver, "inverse_block")
+
+    def carried(self) -> PartialSolveMarks | None:
+        """The positions the factor's analysis marked for partial solves; None when none are (or no partial
+        solves)."""
+        if not self._partial or self._solver.marked is None:
+            return None
+        marks = self._solver.marked.copy()
+        marks.setflags(write=False)
+        return PartialSolveMarks(marks)
+
+    def resume(self, carried: PartialSolveMarks | None) -> None:
+        """Continue with the marks of ``carried`` (None: a plain analysis); the analysis runs again only when
+        they differ from the solver's."""
+        if not self._partial:
+            return
+        self._solver.mark(carried.positions if isinstance(carried, PartialSolveMarks) else None)
+
+    def _inverse_block(self, system: StepSystem, positions: np.ndarray) -> np.ndarray:
+        """(A⁻¹)_uu on ``positions``; when they are not the marked ones, the analysis marks exactly them and
+        the matrix is factorised again. Exactly those: the partial solve's work and the ordering's fill grow
+        with the marked set (docs/speed.md)."""
+        solver = self._solver
+        marked = solver.marked
+        if marked is None or not np.array_equal(positions, marked):
+            solver.mark(positions)
+        return solver.inverse_block(positions)
 
     def _step(self, system: StepSystem, exact) -> StepCompliance:
         self._solver.factorise(system.matrix)
@@ -488,6 +549,9 @@ class _ExactBody(BodyCompliance):
             exact,
             solver.solve,
             half_solve=getattr(solver, "half_solve", None),
+            inverse_block=(
+                (lambda positions: self._inverse_block(system, positions)) if self._partial else None
+            ),
         )
 
 

@@ -130,6 +130,9 @@ class PardisoSolver:
         self._iparm[9] = 13  # pivot perturbation 1e-13 (not used for SPD)
         self._iparm[17] = -1  # report nnz(L)
         self._iparm[34] = 1  # zero-based indices
+        self._iparm_input = self._iparm.copy()  # phase 11 writes outputs into iparm: restored before each
+        self._marked = None  # sorted positions marked for partial solves (iparm[30] = 1) by the analysis
+        self._perm = np.zeros(1, dtype=np.int32)
         self._pattern_key = None
         self._pattern_arrays = None
         self._upper = None  # positions in the full CSR data of the upper-triangle entries
@@ -148,7 +151,7 @@ class PardisoSolver:
         error = ctypes.c_int32(0)
         i32 = ctypes.POINTER(ctypes.c_int32)
         f64 = ctypes.POINTER(ctypes.c_double)
-        perm = np.zeros(1, dtype=np.int32)
+        perm = self._perm
         self._pardiso(
             self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
             ctypes.byref(ctypes.c_int32(1)),
@@ -194,13 +197,74 @@ class PardisoSolver:
             self._n = matrix.shape[0]
             self._ia = upper.indptr.astype(np.int32)
             self._ja = upper.indices.astype(np.int32)
+            if self._marked is not None and (self._marked.size and self._marked[-1] >= self._n):
+                self._marked = None  # marked for another matrix
             self._a = np.ascontiguousarray(matrix.data[self._upper], dtype=float)
-            self._call(11, np.zeros(1), np.zeros(1), 1)
+            self._analyse()
             self._pattern_key = key
         else:
             self._a = np.ascontiguousarray(matrix.data[self._upper], dtype=float)
         self._call(22, np.zeros(1), np.zeros(1), 1)
         self._factorised = True
+
+    def _analyse(self) -> None:
+        """Phase 11 on the current pattern: plain, or for partial solves on the marked positions."""
+        self._iparm[:] = self._iparm_input
+        if self._marked is None:
+            self._perm = np.zeros(1, dtype=np.int32)
+        else:
+            self._perm = np.zeros(self._n, dtype=np.int32)
+            self._perm[self._marked] = 1
+            self._iparm[30] = 1
+        self._call(11, np.zeros(1), np.zeros(1), 1)
+        self._iparm[30] = 0  # full solves unless a partial one asks
+
+    @property
+    def marked(self) -> np.ndarray | None:
+        """The positions the analysis marked for :meth:`inverse_block` (sorted), or None."""
+        return self._marked
+
+    def mark(self, positions: np.ndarray | None) -> None:
+        """Analyse for partial solves on ``positions`` (sorted, unique; None: a plain analysis).
+
+        The fill-reducing ordering, hence the factor's round-off, depends on the marked positions: the
+        factor and every solve are a function of (pattern, values, marked positions). When the marks change
+        on a factorised matrix, it is analysed and factorised again (same values)."""
+        if positions is not None:
+            positions = np.asarray(positions, dtype=np.int64)
+        same = (positions is None and self._marked is None) or (
+            positions is not None and self._marked is not None and np.array_equal(positions, self._marked)
+        )
+        if same:
+            return
+        self._marked = None if positions is None else positions.copy()
+        if self._n and self._pattern_key is not None:
+            self._analyse()
+            if self._factorised:
+                self._call(22, np.zeros(1), np.zeros(1), 1)
+
+    def inverse_block(self, positions: np.ndarray) -> np.ndarray:
+        """(A⁻¹)[positions][:, positions], shape (u, u), by one partial solve (oneMKL iparm[30] = 1): the
+        right-hand sides are the unit loads on ``positions`` and only the marked components of the
+        solutions are computed, so the work follows the elimination tree's paths from those positions, not
+        the whole factor. ``positions`` (sorted) must lie among :attr:`marked`."""
+        if not self._factorised:
+            raise LinearSolverError("pardiso: solve before factorise")
+        positions = np.asarray(positions, dtype=np.int64)
+        if self._marked is None or not np.all(np.isin(positions, self._marked)):
+            raise ValueError("inverse_block: the positions must be marked first (mark)")
+        count = positions.size
+        if count == 0:
+            return np.zeros((0, 0))
+        loads = np.zeros((self._n, count), order="F")
+        loads[positions, np.arange(count)] = 1.0
+        out = np.zeros_like(loads, order="F")
+        self._iparm[30] = 1
+        try:
+            self._call(33, loads, out, count)
+        finally:
+            self._iparm[30] = 0
+        return out[positions]
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """A⁻¹ rhs for rhs of shape (n,) or (n, k)."""

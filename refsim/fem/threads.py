@@ -10,6 +10,7 @@ code around refsim keeps its threads.
 from __future__ import annotations
 
 import contextlib
+import threading
 from functools import lru_cache
 
 __all__ = ["hot_path_threads", "thread_settings"]
@@ -25,13 +26,27 @@ def _controller():
     return ThreadpoolController()
 
 
+_active = threading.local()  # the limit set by the innermost enclosing block of this thread, if any
+
+
 @contextlib.contextmanager
 def hot_path_threads(threads: int = 1):
-    """Limit every BLAS / OpenMP thread pool to ``threads`` inside the block (restored on exit; ~15 µs)."""
+    """Limit every BLAS / OpenMP thread pool to ``threads`` inside the block (restored on exit).
+
+    Setting the limit costs tens of µs (threadpoolctl visits every pool twice); a block nested in one that
+    already set the same limit (a body's stage inside ``Simulation.step``) does nothing."""
     if not isinstance(threads, int) or threads < 1:
         raise ValueError(f"threads must be an integer >= 1, got {threads!r}")
-    with _controller().limit(limits=threads):
+    outer = getattr(_active, "threads", None)
+    if outer == threads:
         yield
+        return
+    _active.threads = threads
+    try:
+        with _controller().limit(limits=threads):
+            yield
+    finally:
+        _active.threads = outer
 
 
 def thread_settings() -> list[dict]:

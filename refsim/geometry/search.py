@@ -1,12 +1,16 @@
 """Spatial search on tetrahedral meshes and triangle surfaces: point location and closest surface points.
 
-Both searches use KD-trees (scipy's cKDTree) on element centroids, one tree per class of bounding radius
-(radii within a factor two), so a graded mesh does not make every query look at the largest elements' reach.
 An element's bounding radius is the largest distance from its centroid to its vertices; since the distance to
 the centroid is convex, every point of the element lies within that radius. Candidate pairs (query, element)
-come from ball queries, are pruned by the element's own radius, and are evaluated in one vectorised call; the
-best candidate of each query is picked with a lexicographic sort. There is no Python loop over queries or
-elements, only over radius classes and over chunks of queries (to bound memory).
+come from a spatial index, are pruned by the element's own radius, and are evaluated in one vectorised call;
+the best candidate of each query is picked with a lexicographic sort, so the answer does not depend on the
+index (any index giving every element whose grown bounding sphere holds the point gives the same bits).
+Point location uses a compiled uniform grid of the tets' bounding spheres, grown for tolerances up to 1e-6
+(:class:`refsim.geometry.grid.BoxGrid`: cheap to build, which matters for the locators built on a deformed
+mesh during a step); larger tolerances and the closest surface points use KD-trees (scipy's cKDTree) on
+element centroids, one tree per class of bounding radius (radii within a factor two), so a graded mesh does
+not make every query look at the largest elements' reach. There is no Python loop over queries or elements,
+only over radius classes and over chunks of queries (to bound memory).
 """
 
 from __future__ import annotations
@@ -26,6 +30,9 @@ __all__ = ["ClosestSurfacePoints", "SurfaceProjector", "TetLocator", "tet_bounda
 _CHUNK = 4096
 # Relative slack on bounding radii, far above the round-off of centroid distances (~1e-16).
 _RADIUS_SLACK = 1e-9
+# TetLocator's grid holds each tet's bounding sphere grown for tolerances up to this (larger ones use the
+# KD-trees); the ring points of the coupling are located with 1e-6.
+_GRID_TOLERANCE = 1e-6
 # Faces of a tetrahedron (v0, v1, v2, v3) in the order opposite v0, v1, v2, v3, and the opposite node.
 _TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
 
@@ -137,10 +144,11 @@ class TetLocator:
 
     def __init__(self, positions: np.ndarray, tets: np.ndarray):
         self.positions, self.tets = _check_elements(positions, tets, 4, "tets")
-        self.tet_vertices = self.positions[self.tets]  # (m, 4, 3)
-        self.centroids = self.tet_vertices.mean(axis=1)
-        radii = np.linalg.norm(self.tet_vertices - self.centroids[:, None, :], axis=2).max(axis=1)
-        self._index = _RadiusClasses(self.centroids, radii)
+        from refsim.geometry.grid import tet_spheres
+
+        self.centroids, self._radii = tet_spheres(self.positions, self.tets)
+        self._grid = None  # BoxGrid of the grown bounding spheres (tolerance <= _GRID_TOLERANCE), when used
+        self._classes = None  # KD-trees per radius class (larger tolerances), on first use
         self._surface: tuple[SurfaceProjector, np.ndarray] | None = None
 
     def locate(self, points: np.ndarray, *, tolerance: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
@@ -168,14 +176,33 @@ class TetLocator:
             barycentric[chunk][found] = coordinates
         return tet_index, barycentric
 
+    @property
+    def tet_vertices(self) -> np.ndarray:
+        """The vertices of every tet [m], shape (m, 4, 3)."""
+        return self.positions[self.tets]
+
+    def _candidates(self, points: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+        """Pairs (query, tet) holding every pair with a centroid distance <= (1 + 6 tol + slack) × the tet's
+        bounding radius (more are pruned by the caller)."""
+        if tolerance <= _GRID_TOLERANCE:
+            if self._grid is None:
+                from refsim.geometry.grid import BoxGrid  # numba: imported on first use
+
+                grown = self._radii * (1.0 + 6.0 * _GRID_TOLERANCE + 2.0 * _RADIUS_SLACK)
+                self._grid = BoxGrid(self.centroids - grown[:, None], self.centroids + grown[:, None])
+            return self._grid.pairs(points)
+        if self._classes is None:
+            self._classes = _RadiusClasses(self.centroids, self._radii)
+        return self._classes.pairs(points, 6.0 * tolerance * self._radii.max())
+
     def _locate_chunk(self, points: np.ndarray, tolerance: float) -> tuple:
         # Barycentric coordinates >= −tol imply a centroid distance <= (1 + 6 tol) × bounding radius.
         reach_factor = 1.0 + 6.0 * tolerance + _RADIUS_SLACK
-        queries, tets = self._index.pairs(points, 6.0 * tolerance * self._index.radii.max())
+        queries, tets = self._candidates(points, tolerance)
         distance = np.linalg.norm(points[queries] - self.centroids[tets], axis=1)
-        keep = distance <= self._index.radii[tets] * reach_factor
+        keep = distance <= self._radii[tets] * reach_factor
         queries, tets = queries[keep], tets[keep]
-        coordinates = tet_barycentric(points[queries], self.tet_vertices[tets])
+        coordinates = tet_barycentric(points[queries], self.positions[self.tets[tets]])
         smallest = coordinates.min(axis=1)
         inside = smallest >= -tolerance
         queries, tets, coordinates, smallest = (

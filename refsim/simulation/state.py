@@ -10,7 +10,7 @@ import numpy as np
 from refsim.constraints import TISSUE, InsertionPath
 from refsim.cutting import CutSurface
 from refsim.cutting.strip import CutStrip
-from refsim.fem.compliance import StaleFactor
+from refsim.fem.compliance import PartialSolveMarks, StaleFactor
 from refsim.fem.tissue import TissueState
 from refsim.simulation.needle_body import NeedleState
 
@@ -72,9 +72,11 @@ class SimulationState:
     instruments : Each instrument's state, in the scene's order.
     cut : The cut surface of the tissue, None until the tissue is cut. It belongs to the tissue: every
         instrument's rows meet it.
-    tissue_factor : The tissue compliance's stale factor (the refreshed strategy: the matrix A it last
-        factorised and the steps since, :class:`refsim.fem.compliance.StaleFactor`); None for the strategies
-        that carry nothing from step to step, and before the first step.
+    tissue_factor : What the tissue compliance carries from step to step: the refreshed strategy's stale
+        factor (the matrix A it last factorised and the steps since,
+        :class:`refsim.fem.compliance.StaleFactor`), or the exact strategy's partial-solve marks on PARDISO
+        (the DoFs its analysis marked, :class:`refsim.fem.compliance.PartialSolveMarks`); None for the
+        strategies that carry nothing, and before the first step.
 
     The one-instrument shortcuts ``phase``, ``needle``, ``path``, ``cut_direction``, ``cut_strip``,
     ``tip_tet`` and ``tip_barycentric`` read the only instrument's fields; on a state with several instruments
@@ -86,7 +88,7 @@ class SimulationState:
     tissue: TissueState
     instruments: tuple[InstrumentState, ...]
     cut: CutSurface | None = None
-    tissue_factor: StaleFactor | None = None
+    tissue_factor: StaleFactor | PartialSolveMarks | None = None
 
     @property
     def instrument_names(self) -> tuple[str, ...]:

@@ -116,3 +116,38 @@ def test_stick_offsets_place_unset_anchors_at_the_annulus_stretch():
     )
     np.testing.assert_allclose(offsets, [3e-4 + 0.0005, -2e-5], atol=1e-15)
     np.testing.assert_allclose(anchors, [0.0105, 0.020 - 3e-4 - 2e-5], atol=1e-15)
+
+
+def test_friction_gaps_alone_are_the_gaps_of_the_rows(block):
+    # A builder that makes the Jacobians itself (the ring coupling) takes the gaps alone: the same bits.
+    from refsim.constraints.friction import friction_gaps
+
+    rng = np.random.default_rng(8)
+    points = np.array([[0.0111, 0.0092, 0.015], [0.0111, 0.0092, 0.011]])
+    tets, bary = TetLocator(block.rest_positions, block.tets).locate(points)
+    previous = rigid_needle([0.0111, 0.0092, 0.005], [0.0, 0.0, -1.0])
+    free = rigid_needle([0.0112, 0.0091, 0.0047], [0.0, 0.0, -1.0])
+    moved = block.rest_positions + 1e-5 * rng.normal(size=block.rest_positions.shape)
+    geometry = still_geometry(block, previous, needle_free=free, tissue_free=moved)
+    arcs, _ = previous.project(points)
+    tangents = np.broadcast_to([0.0, 0.0, -1.0], (2, 3))
+    offsets = np.array([1e-4, -2e-4])
+    nodes = block.tets[tets]
+    rows = friction_rows(
+        geometry,
+        tissue_nodes=nodes,
+        tissue_weights=bary,
+        arc_lengths=arcs,
+        tangents=tangents,
+        offsets=offsets,
+    )
+    tissue_previous, tissue_free = geometry.tissue_points(nodes, bary)
+    gaps = friction_gaps(
+        geometry,
+        arc_lengths=arcs,
+        tangents=tangents,
+        tissue_free=tissue_free,
+        tissue_previous=tissue_previous,
+        offsets=offsets,
+    )
+    np.testing.assert_array_equal(gaps, rows.free_gap)

@@ -132,8 +132,9 @@ def crowded_rows(model: TissueModel, count: int = 30, seed: int = 3) -> sp.csr_m
 @pytest.mark.parametrize("layout", ["spread", "crowded"])
 @pytest.mark.parametrize("solver", available_linear_solvers())
 def test_exact_delassus_and_correction_for_few_or_many_rows(model, solver, layout):
-    # Fewer rows than DoFs touched (solved for the rows' loads) or more (for the unit loads), with the
-    # factor's forward half when the solver has one (PARDISO): W and A⁻¹Hᵀλ equal the dense solve to κ(A)·ε.
+    # Fewer rows than DoFs touched or more: with PARDISO W comes from the block of A⁻¹ on the DoFs touched
+    # (a partial solve), otherwise from the rows' or the unit loads; W and A⁻¹Hᵀλ equal the dense solve to
+    # κ(A)·ε.
     state = deformed(model)
     system, dense, inverse, _ = dense_reference(model, state)
     step = Exact(linear_solver=solver).bind().step(system)
@@ -147,6 +148,34 @@ def test_exact_delassus_and_correction_for_few_or_many_rows(model, solver, layou
     lam = np.random.default_rng(4).standard_normal(jacobian.shape[0])
     reference = system.expand(inverse @ (h.T @ lam))
     assert np.abs(step.correction(jacobian, lam) - reference).max() <= bound * np.abs(reference).max()
+
+
+def test_exact_body_carries_its_partial_solve_marks_and_a_resumed_body_gives_the_same_bits(model):
+    if "pardiso" not in available_linear_solvers():
+        pytest.skip("partial solves need pardiso")
+    from refsim.fem.compliance import PartialSolveMarks
+
+    jacobian = rows_on(model, count=6)
+    first, second = deformed(model, seed=0), deformed(model, seed=5)
+    body = Exact(linear_solver="pardiso").bind()
+    assert body.carried() is None  # nothing marked before any rows
+    step = body.step(model.assemble_step(first, 0.01))
+    step.delassus(jacobian)
+    carried = body.carried()
+    assert isinstance(carried, PartialSolveMarks)
+    used = np.flatnonzero(np.isin(step.free_dofs, jacobian.indices))
+    np.testing.assert_array_equal(carried.positions, used)  # exactly the DoFs the rows touch
+    lam = np.linspace(-1.0, 1.0, jacobian.shape[0])
+
+    def next_step(compliance):
+        step = compliance.step(model.assemble_step(second, 0.01))
+        return step.free_displacement, step.delassus(jacobian), step.correction(jacobian, lam)
+
+    uninterrupted = next_step(body)
+    resumed_body = Exact(linear_solver="pardiso").bind()
+    resumed_body.resume(carried)
+    for a, b in zip(uninterrupted, next_step(resumed_body), strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_fixed_node_displacements_are_a_dirichlet_condition(model):

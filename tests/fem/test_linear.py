@@ -104,3 +104,47 @@ def test_unavailable_or_unknown_backends_are_named():
     if "cholmod" not in available_linear_solvers():
         with pytest.raises(LinearSolverError, match="cholmod"):
             make_linear_solver("cholmod")
+
+
+def test_pardiso_inverse_block_equals_the_dense_inverse_on_marked_positions():
+    if "pardiso" not in available_linear_solvers():
+        pytest.skip("pardiso not available on this machine")
+    matrix = spd_matrix(343, 2, shift=0.2)
+    dense = matrix.toarray()
+    inverse = np.linalg.inv(dense)
+    # Backward-stable solves: relative forward error ≲ κ(A) ε (Higham, Accuracy and Stability, ch. 7, 10).
+    bound = 10 * np.linalg.cond(dense) * EPS * np.abs(inverse).max()
+    solver = make_linear_solver("pardiso")
+    solver.factorise(matrix)  # plain analysis first: marking later analyses and factorises again
+    for positions, marks in (
+        (np.array([3, 40, 41, 200]), np.array([3, 7, 40, 41, 99, 200, 300])),  # marks a superset
+        (np.array([10, 11, 12]), np.array([10, 11, 12])),  # marks moved: a new analysis
+    ):
+        solver.mark(marks)
+        np.testing.assert_array_equal(solver.marked, marks)
+        block = solver.inverse_block(positions)
+        np.testing.assert_allclose(block, inverse[np.ix_(positions, positions)], rtol=0, atol=bound)
+        # full solves stay full after a partial one
+        rhs = np.linspace(-1.0, 1.0, matrix.shape[0])
+        np.testing.assert_allclose(solver.solve(rhs), inverse @ rhs, rtol=0, atol=bound * matrix.shape[0])
+    with pytest.raises(ValueError, match="marked"):
+        solver.inverse_block(np.array([0]))
+
+
+def test_pardiso_factor_is_a_function_of_the_marks_not_of_their_history():
+    # What makes a restarted run's bits those of the uninterrupted run (the marks are carried in the state).
+    if "pardiso" not in available_linear_solvers():
+        pytest.skip("pardiso not available on this machine")
+    first, second = spd_matrix(216, 3), spd_matrix(216, 4)
+    marks = np.array([5, 6, 7, 100])
+    rhs = np.arange(216, dtype=float)
+    travelled = make_linear_solver("pardiso")
+    travelled.factorise(first)
+    travelled.mark(np.array([1, 2]))
+    travelled.mark(marks)
+    travelled.factorise(second)
+    fresh = make_linear_solver("pardiso")
+    fresh.mark(marks)
+    fresh.factorise(second)
+    np.testing.assert_array_equal(travelled.solve(rhs), fresh.solve(rhs))
+    np.testing.assert_array_equal(travelled.inverse_block(marks), fresh.inverse_block(marks))

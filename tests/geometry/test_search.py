@@ -14,6 +14,8 @@ from refsim.geometry import (
     tet_barycentric,
     tet_boundary_faces,
 )
+from refsim.geometry.grid import tet_spheres
+from refsim.geometry.search import _RadiusClasses
 from refsim.mesh import box_mesh
 
 OFFSETS = [-1e-12, 0.0, 1e-12]
@@ -84,7 +86,34 @@ def test_locate_matches_brute_force_and_delaunay_on_graded_mesh(graded):
     clear = (tet_index >= 0) & (np.nan_to_num(barycentric, nan=-1.0).min(axis=1) > 1e-9)
     clear |= tet_index < 0
     np.testing.assert_array_equal(tet_index[clear], delaunay.find_simplex(points[clear]))
-    assert len(locator._index.classes) > 2  # the mesh really is graded
+    assert len(_RadiusClasses(locator.centroids, locator._radii).classes) > 2  # the mesh really is graded
+
+
+@pytest.mark.parametrize("tolerance", [0.0, 1e-12, 1e-6])
+def test_grid_candidates_give_the_kd_trees_answer_bit_for_bit(graded, tolerance):
+    # Tolerances up to 1e-6 take the grid, larger ones the KD-trees per radius class; both hold every tet
+    # whose grown bounding sphere holds the point, so the answers (tet, barycentric) are the same bits.
+    delaunay, locator = graded
+    rng = np.random.default_rng(5)
+    points = np.concatenate(
+        [rng.uniform(size=(150, 3)) ** 3, delaunay.points[:40], rng.uniform(-0.2, 1.2, size=(30, 3))]
+    )
+    kd = TetLocator(delaunay.points, delaunay.simplices)
+    kd._candidates = lambda p, t: _RadiusClasses(kd.centroids, kd._radii).pairs(p, 6.0 * t * kd._radii.max())
+    for got, expected in zip(
+        locator.locate(points, tolerance=tolerance), kd.locate(points, tolerance=tolerance), strict=True
+    ):
+        np.testing.assert_array_equal(got, expected)
+
+
+def test_tet_spheres_are_the_numpy_centroids_and_radii(graded):
+    delaunay, _ = graded
+    vertices = delaunay.points[delaunay.simplices]
+    centroids = vertices.mean(axis=1)
+    radii = np.linalg.norm(vertices - centroids[:, None, :], axis=2).max(axis=1)
+    got = tet_spheres(delaunay.points, delaunay.simplices)
+    np.testing.assert_array_equal(got[0], centroids)
+    np.testing.assert_array_equal(got[1], radii)
 
 
 @pytest.mark.parametrize("tolerance", [0.0, 1e-12])

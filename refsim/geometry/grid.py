@@ -1,0 +1,191 @@
+"""A uniform grid over axis-aligned boxes, compiled (numba): the candidate pairs (point, box) of a point
+location (layer 0).
+
+Each box is registered in every cell it overlaps (one pass to count, one to fill: a CSR list of boxes per
+cell); a query visits the one cell of each point and keeps the boxes that contain the point. Building and
+querying are linear in the boxes and the points, with no Python loop over either (a KD-tree per radius class,
+the former index of :class:`refsim.geometry.TetLocator`, cost more to build than the few points located on a
+deformed mesh at each step).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from refsim.kernel_cache import numba
+
+__all__ = ["BoxGrid", "tet_spheres"]
+
+# The cell edge is this many times the mean box width (along x).
+_CELL_PER_BOX = 1.0
+# At most this many cells per box overall (a coarser grid above).
+_MAX_CELLS_PER_BOX = 8
+
+
+class BoxGrid:
+    """Boxes on a uniform grid; :meth:`pairs` gives every (point, box) with the point inside the box.
+
+    Parameters
+    ----------
+    lower, upper : Box corners [m], shape (m, 3) each, lower ≤ upper.
+    """
+
+    def __init__(self, lower: np.ndarray, upper: np.ndarray) -> None:
+        self.lower = np.ascontiguousarray(lower, dtype=float)
+        self.upper = np.ascontiguousarray(upper, dtype=float)
+        if self.lower.shape != self.upper.shape or self.lower.ndim != 2 or self.lower.shape[1] != 3:
+            raise ValueError(f"lower and upper must have one shape (m, 3), got {lower.shape}, {upper.shape}")
+        self.origin, self.edge, self.dims, self.offsets, self.items = _build(
+            self.lower, self.upper, _CELL_PER_BOX, _MAX_CELLS_PER_BOX
+        )
+
+    def pairs(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every (point, box) with the point inside the closed box, as two index arrays (any order)."""
+        points = np.ascontiguousarray(points, dtype=float)
+        return _query(
+            points, self.origin, self.edge, self.dims, self.offsets, self.items, self.lower, self.upper
+        )
+
+
+def tet_spheres(positions: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centroid [m] and bounding radius [m] (the largest centroid–vertex distance) of each tet, shapes (m, 3)
+    and (m,): the bits of ``positions[tets].mean(axis=1)`` and of the NumPy norm of the vertices' offsets, in
+    one compiled pass."""
+    positions = np.ascontiguousarray(positions, dtype=float)
+    return _tet_spheres(positions, np.ascontiguousarray(tets, dtype=np.int64))
+
+
+@numba.njit(cache=True)
+def _tet_spheres(positions, tets):  # pragma: no cover - compiled
+    count = tets.shape[0]
+    centroids = np.empty((count, 3))
+    radii = np.empty(count)
+    for t in range(count):
+        for axis in range(3):
+            total = positions[tets[t, 0], axis]
+            for corner in range(1, 4):
+                total += positions[tets[t, corner], axis]
+            centroids[t, axis] = total / 4.0
+        largest = -np.inf
+        for corner in range(4):
+            squares = 0.0
+            for axis in range(3):
+                offset = positions[tets[t, corner], axis] - centroids[t, axis]
+                squares += offset * offset
+            distance = np.sqrt(squares)
+            if distance > largest or np.isnan(distance):
+                largest = distance
+        radii[t] = largest
+    return centroids, radii
+
+
+@numba.njit(cache=True)
+def _build(lower, upper, cell_per_box, max_cells_per_box):  # pragma: no cover - compiled
+    count = lower.shape[0]
+    origin = np.zeros(3)
+    extent = np.ones(3)
+    edge = 1.0
+    if count:
+        width = 0.0
+        for axis in range(3):
+            low, high = lower[0, axis], upper[0, axis]
+            for box in range(1, count):
+                low = min(low, lower[box, axis])
+                high = max(high, upper[box, axis])
+            origin[axis], extent[axis] = low, high - low
+        for box in range(count):
+            width += upper[box, 0] - lower[box, 0]
+        edge = width / count * cell_per_box
+    edge = max(edge, extent.max() * 1e-9, 1e-300)
+    dims = np.ones(3, dtype=np.int64)
+    while True:
+        cells = 1
+        for axis in range(3):
+            dims[axis] = np.int64(np.floor(extent[axis] / edge)) + 1
+            cells *= dims[axis]
+        if cells <= max_cells_per_box * max(count, 1):
+            break
+        edge *= 1.5
+    first = np.empty((count, 3), dtype=np.int64)
+    last = np.empty((count, 3), dtype=np.int64)
+    for box in range(count):
+        for axis in range(3):
+            first[box, axis] = min(
+                max(np.int64(np.floor((lower[box, axis] - origin[axis]) / edge)), 0), dims[axis] - 1
+            )
+            last[box, axis] = min(
+                max(np.int64(np.floor((upper[box, axis] - origin[axis]) / edge)), 0), dims[axis] - 1
+            )
+    offsets, items = _register(first, last, dims)
+    return origin, edge, dims, offsets, items
+
+
+@numba.njit(cache=True)
+def _register(first, last, dims):  # pragma: no cover - compiled
+    cells = dims[0] * dims[1] * dims[2]
+    counts = np.zeros(cells + 1, dtype=np.int64)
+    for box in range(first.shape[0]):
+        for i in range(first[box, 0], last[box, 0] + 1):
+            for j in range(first[box, 1], last[box, 1] + 1):
+                for k in range(first[box, 2], last[box, 2] + 1):
+                    counts[(i * dims[1] + j) * dims[2] + k + 1] += 1
+    offsets = np.cumsum(counts)
+    items = np.empty(offsets[-1], dtype=np.int64)
+    filled = offsets[:-1].copy()
+    for box in range(first.shape[0]):
+        for i in range(first[box, 0], last[box, 0] + 1):
+            for j in range(first[box, 1], last[box, 1] + 1):
+                for k in range(first[box, 2], last[box, 2] + 1):
+                    cell = (i * dims[1] + j) * dims[2] + k
+                    items[filled[cell]] = box
+                    filled[cell] += 1
+    return offsets, items
+
+
+@numba.njit(cache=True)
+def _cell_of(point, origin, edge, dims):  # pragma: no cover - compiled
+    cell = 0
+    for axis in range(3):
+        index = np.floor((point[axis] - origin[axis]) / edge)
+        if not (index >= 0.0 and index < dims[axis]):
+            return -1
+        cell = cell * dims[axis] + np.int64(index)
+    return cell
+
+
+@numba.njit(cache=True)
+def _query(points, origin, edge, dims, offsets, items, lower, upper):  # pragma: no cover - compiled
+    found = np.zeros(points.shape[0] + 1, dtype=np.int64)
+    for q in range(points.shape[0]):
+        cell = _cell_of(points[q], origin, edge, dims)
+        if cell < 0:
+            continue
+        for slot in range(offsets[cell], offsets[cell + 1]):
+            box = items[slot]
+            inside = True
+            for axis in range(3):
+                if not (lower[box, axis] <= points[q, axis] <= upper[box, axis]):
+                    inside = False
+                    break
+            if inside:
+                found[q + 1] += 1
+    starts = np.cumsum(found)
+    queries = np.empty(starts[-1], dtype=np.int64)
+    boxes = np.empty(starts[-1], dtype=np.int64)
+    for q in range(points.shape[0]):
+        cell = _cell_of(points[q], origin, edge, dims)
+        if cell < 0:
+            continue
+        at = starts[q]
+        for slot in range(offsets[cell], offsets[cell + 1]):
+            box = items[slot]
+            inside = True
+            for axis in range(3):
+                if not (lower[box, axis] <= points[q, axis] <= upper[box, axis]):
+                    inside = False
+                    break
+            if inside:
+                queries[at] = q
+                boxes[at] = box
+                at += 1
+    return queries, boxes
