@@ -303,11 +303,11 @@ CRITERIA = _specs(
             "cut_start (the law's cut-start load vs its threshold), tear (crack front's strongest row vs its "
             "threshold), layer (energy law: the crack tip's distance from the last layer vs d_c)",
         ),
-        ("value", "criteria/unit", "float64", (), "the quantity the event compares, in criteria/unit"),
-        ("threshold", "criteria/unit", "float64", (), "what it is compared with, in criteria/unit"),
+        ("value", "-", "float64", (), "the quantity the event compares, in the entry's criteria/unit"),
+        ("threshold", "-", "float64", (), "what it is compared with, in the entry's criteria/unit"),
         (
             "accuracy",
-            "criteria/unit",
+            "-",
             "float64",
             (),
             "how far the value can be from the exact solution's at the solver's tolerance, in criteria/unit "

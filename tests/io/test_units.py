@@ -21,7 +21,8 @@ from refsim.simulation.records import EVENT_UNITS, Event
 from refsim.simulation.summary import RunSummary, event_value_text
 
 #: Units a dataset may carry: SI units and their products, "1" for counts, indices and codes, "-" for mixed
-#: columns (trajectory samples, whose meaning names each column's unit).
+#: columns (trajectory samples, whose meaning names each column's unit; criteria values, whose unit is each
+#: entry's criteria/unit).
 KNOWN_UNITS = {"m", "N", "s", "1", "-", "m/N", "N/m", "m^2", "N/m^2", "Pa", "kg/m^3", "1/s", "m/s"}
 
 
