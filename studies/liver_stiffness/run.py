@@ -29,10 +29,11 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "studies" / "liver"))
 
 
-def shaft_load(records, states, tets) -> tuple[float, int]:
+def shaft_load(records, states, tets, needle_geometry) -> tuple[float, int]:
     """Largest ‖t‖ / L_in over the run [N/m] and its step: t the insertion rows' lateral force without the
-    entry point's rows (the energy law's cut-start load), L_in the inserted length (> 1 cm, below which the
-    load per length is the surface's)."""
+    entry point's rows (the energy law's cut-start load), L_in the needle's length below the entry point as
+    the cut-start event measures it (EventRules._cut_starts), over L_in > 1 cm (below it the load per length
+    is the surface's)."""
     from refsim.simulation.events import shaft_lateral_force
 
     best, at = 0.0, -1
@@ -42,9 +43,9 @@ def shaft_load(records, states, tets) -> tuple[float, int]:
         force = shaft_lateral_force(
             record.row_source, record.row_kind, record.row_directions, record.row_forces, without_entry=True
         )
-        needle_tip = record.needle_positions[-1]
-        entry = state.path.positions(state.tissue.positions, tets)[0]
-        length = float(np.linalg.norm(needle_tip - entry))
+        entry = state.path.positions(state.tissue.positions, tets)[:1]
+        needle = needle_geometry(state.needle)
+        length = needle.length - float(needle.project(entry)[0][0])
         if length > 0.01 and np.linalg.norm(force) / length > best:
             best, at = float(np.linalg.norm(force) / length), record.step
     return best, at
@@ -69,7 +70,7 @@ def one_run(amplitude: float, modulus: float, trajectory: str, output: str) -> d
     started = time.perf_counter()
     simulation.run(on_step=lambda s, r: (records.append(r), states.append(s)))
     seconds = time.perf_counter() - started
-    load, step = shaft_load(records, states, simulation.tets)
+    load, step = shaft_load(records, states, simulation.tets, simulation.event_rules.needle_geometry)
     return {
         "amplitude": amplitude,
         "youngs_modulus": modulus,
