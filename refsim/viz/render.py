@@ -29,6 +29,9 @@ logger = logging.getLogger(__name__)
 
 TISSUE_COLOR = "#d9a38f"
 NEEDLE_COLOR = "#5a6270"
+#: One colour per instrument, in the scene's order (the first is NEEDLE_COLOR; the list repeats past its end),
+#: none of them the tissue's, the insertion points', the cut's or the boundary's.
+NEEDLE_COLORS = (NEEDLE_COLOR, "#b8860b", "#00707a", "#8b4513", "#222222")
 INSERTION_COLOR = "#1f77b4"
 CUT_COLOR = "#d62728"
 FIXED_COLOR = "#2a6f3f"
@@ -398,15 +401,16 @@ def _draw_step(
 
     names = tuple(getattr(results, "instrument_names", ("needle",)))
     views = results.instruments if len(names) > 1 else (results,)
-    for name, view in zip(names, views, strict=True):
+    for number, (name, view) in enumerate(zip(names, views, strict=True)):
+        color = NEEDLE_COLORS[number % len(NEEDLE_COLORS)]
         radius = needle_radius(results.scene, name)
         needle_nodes = view.needle_positions[index]
         drawn_radius = radius if radius > 0 else 1e-3 * float(np.ptp(results.rest_positions, axis=0).max())
         needle = pv.lines_from_points(needle_nodes).tube(radius=drawn_radius, n_sides=32, capping=True)
         # Translucent: the needle is drawn at its real radius and may be wider than the cut it would hide.
-        plotter.add_mesh(needle, color=NEEDLE_COLOR, smooth_shading=True, opacity=0.45, render=False)
+        plotter.add_mesh(needle, color=color, smooth_shading=True, opacity=0.45, render=False)
         label = "needle" if len(names) == 1 else f"needle {name}"
-        legend.append([f"{label}, r = {1e3 * radius:.2f} mm" if radius > 0 else label, NEEDLE_COLOR])
+        legend.append([f"{label}, r = {1e3 * radius:.2f} mm" if radius > 0 else label, color])
 
     mark = max(0.35 * drawn_radius, 0.012 * view_size)
     rows = results.constraints_at(step)
