@@ -39,7 +39,9 @@ __all__ = [
     "PROBLEMS_GROUP",
     "XDMF",
     "XDMF_GROUP",
+    "XDMF_INSTRUMENT_DATASETS",
     "problem_group_name",
+    "xdmf_instrument_path",
     "xdmf_path_of",
     "all_datasets",
     "numpy_dtype",
@@ -429,9 +431,27 @@ XDMF = _specs(
 )
 
 
+#: The ``xdmf/`` datasets each instrument has (paths of a one-needle file): its needle's polyline and views
+#: of its positions. A further instrument's are under ``xdmf/instruments/<name>/`` with the same names
+#: (:func:`xdmf_instrument_path`), views of its own ``instruments/<name>/steps/needle_positions``.
+XDMF_INSTRUMENT_DATASETS = {
+    spec.path: spec for spec in (XDMF["needle/polyline"], XDMF["needle/positions/NNNNNNN"])
+}
+
+
 def xdmf_path_of(spec: DatasetSpec, step: int) -> str:
     """Path of the ``xdmf/`` dataset ``spec`` (one of :data:`XDMF`) for ``step`` (NNNNNNN replaced)."""
     return spec.path.replace("NNNNNNN", f"{int(step):07d}")
+
+
+def xdmf_instrument_path(spec: DatasetSpec, index: int, name: str, step: int | None = None) -> str:
+    """Path of instrument ``index``'s (called ``name``) ``xdmf/`` dataset ``spec`` (one of
+    :data:`XDMF_INSTRUMENT_DATASETS`), for ``step`` when per step: the one-needle path for the first,
+    ``xdmf/instruments/<name>/...`` for a further one."""
+    path = spec.path if step is None else xdmf_path_of(spec, step)
+    if index == 0:
+        return path
+    return f"{XDMF_GROUP}/{instrument_location(index, name)}/{path[len(XDMF_GROUP) + 1 :]}"
 
 
 def problem_group_name(step: int) -> str:
@@ -589,6 +609,19 @@ def reference_markdown() -> str:
         "|---|---|---|---|---|",
     ]
     lines += [_row(spec) for spec in XDMF.values()]
+    lines += [
+        "",
+        "A file of several instruments has one needle collection per instrument in the sidecar, named by "
+        "the instrument (a one-needle file's is `needle`), before the cut and the tissue. The first "
+        "instrument's datasets are at the paths above; each further instrument's are under "
+        f"`{XDMF_GROUP}/{INSTRUMENTS_GROUP}/<name>/`, views of its own "
+        f"`{INSTRUMENTS_GROUP}/<name>/{STEPS['needle_positions'].path}`. The tissue's `constraint_force` "
+        "is the force of every instrument's rows. Each instrument's datasets:",
+        "",
+        "| path under the instrument's location | shape | dtype | unit | meaning |",
+        "|---|---|---|---|---|",
+    ]
+    lines += [_row(spec) for spec in XDMF_INSTRUMENT_DATASETS.values()]
     return "\n".join(lines)
 
 

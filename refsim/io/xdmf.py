@@ -155,7 +155,7 @@ def write_xdmf(results_path, output=None) -> Path:
             "refsim.io.schema.XDMF and docs/results.md"
         )
         sidecar = _Sidecar(handle, domain, results, results_path.name)
-        sidecar.needle()
+        sidecar.needles()
         fixed_path, record_paths = sidecar.tissue_records()
         sidecar.cut()
         sidecar.tissue(fixed_path, record_paths)  # last: meshio's TimeSeriesReader reads the last collection
@@ -181,36 +181,51 @@ class _Sidecar:
         self.times = np.concatenate([[0.0], results.time[:steps]])
         self.record_of = np.searchsorted(results.tissue_steps, self.step_numbers, side="right") - 1
 
-    def stored(self, spec_key: str, step: int | None, data: np.ndarray) -> str:
-        """Store a derived array (of XDMF[spec_key], for ``step``) with its unit; its HDF5 path."""
+    def stored(self, spec_key: str, step: int | None, data: np.ndarray, path: str | None = None) -> str:
+        """Store a derived array (of XDMF[spec_key], for ``step``; at ``path`` when given) with its unit;
+        its HDF5 path."""
         spec = XDMF[spec_key]
-        name = spec.path if step is None else xdmf_path_of(spec, step)
+        name = path if path is not None else (spec.path if step is None else xdmf_path_of(spec, step))
         dataset = self.handle.create_dataset(name, data=np.asarray(data, dtype=spec.dtype))
         dataset.attrs["units"] = spec.unit
         return dataset.name
 
-    def needle(self) -> None:
-        """The needle: a polyline at rest, then at every step (views of steps/needle_positions)."""
+    def needles(self) -> None:
+        """Every instrument's needle: a polyline at rest, then at every step (views of its
+        steps/needle_positions), one temporal collection named by the instrument."""
+        for index, name in enumerate(self.results.instrument_names):
+            self.needle(index, name)
+
+    def needle(self, index: int, name: str) -> None:
+        """The needle of instrument ``index`` (called ``name``): its datasets at the instrument's location."""
         from refsim.io import schema
 
-        needle_nodes = self.results.needle_rest_nodes.shape[0]
+        location = schema.instrument_location(index, name)
+        prefix = location + "/" if location else ""
+        needle_nodes = self.results.instrument(name).needle_rest_nodes.shape[0]
+
+        def path_of(key: str, step: int | None) -> str:
+            return schema.xdmf_instrument_path(XDMF[key], index, name, step)
+
         needle = ET.SubElement(
-            self.domain, "Grid", Name="needle", GridType="Collection", CollectionType="Temporal"
+            self.domain, "Grid", Name=name, GridType="Collection", CollectionType="Temporal"
         )
-        connectivity = self.stored("needle/polyline", None, np.arange(needle_nodes)[None])
-        for index, (step, time) in enumerate(zip(self.step_numbers, self.times, strict=True)):
-            if index == 0:
-                path = "/" + schema.STATIC["needle/rest_nodes"].path
+        connectivity = self.stored(
+            "needle/polyline", None, np.arange(needle_nodes)[None], path=path_of("needle/polyline", None)
+        )
+        for step_index, (step, time) in enumerate(zip(self.step_numbers, self.times, strict=True)):
+            if step_index == 0:
+                path = "/" + prefix + schema.STATIC["needle/rest_nodes"].path
             else:
                 path = _view(
                     self.handle,
-                    xdmf_path_of(XDMF["needle/positions/NNNNNNN"], step),
-                    schema.STEPS["needle_positions"].path,
-                    index - 1,
+                    path_of("needle/positions/NNNNNNN", step),
+                    prefix + schema.STEPS["needle_positions"].path,
+                    step_index - 1,
                     (needle_nodes, 3),
                     np.float64,
                 )
-            grid = _grid(needle, f"needle_{step:07d}", time)
+            grid = _grid(needle, f"{name}_{step:07d}", time)
             _topology(
                 grid,
                 "Polyline",
