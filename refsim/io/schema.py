@@ -415,9 +415,9 @@ XDMF = _specs(
             "N",
             "float64",
             ("n", 3),
-            "force of the needle on the tissue at recorded step NNNNNNN, each row's -lambda n spread on the "
-            "nodes of the tet holding its point by barycentric weights (its sum is -steps/needle_force); "
-            "derived, stored (point data `constraint_force`)",
+            "force of the needles on the tissue at recorded step NNNNNNN, each row's -lambda n spread on the "
+            "nodes of the tet holding its point by barycentric weights (its sum is minus every instrument's "
+            "steps/needle_force summed); derived, stored (point data `constraint_force`)",
         ),
         (
             "tissue/fixed",
@@ -592,18 +592,17 @@ def reference_markdown() -> str:
         "",
         f"## The `{XDMF_GROUP}/` group (ParaView sidecar)",
         "",
-        "`refsim.io.xdmf.write_xdmf` (called by `refsim run`, by every run of a study and by `refsim export "
-        "RESULT.h5 "
-        "--xdmf`) writes `RESULT.xdmf` beside the file and this group into it; it replaces the group when "
-        "run again. The sidecar holds three temporal collections (needle, cut, tissue) on one sorted time "
-        "list, rest (t = 0) and the end of every step; between two recorded tissue steps the tissue and the "
-        "cut show the last record. The tissue carries the point data `displacement` [m], `fixed` and "
-        "`constraint_force` [N]. NNNNNNN is a step number (7 digits). Views are HDF5 virtual datasets onto "
-        "one entry of a per-step dataset (no data copied); stored are the derived arrays (deformed cut "
-        "points, displacement, nodal constraint forces) of each recorded tissue step. The group's attribute "
-        "`description` says the same. `refsim export RESULT.h5 --vtu STEP` (or `last`, or `all` with a "
-        "`.pvd` series) writes the tissue and the cut of recorded steps as `.vtu` files with the same point "
-        "data.",
+        "`refsim.io.xdmf.write_xdmf` (called by `refsim run`, by every run of a study and by "
+        "`refsim export RESULT.h5 --xdmf`) writes `RESULT.xdmf` beside the file and this group into it; it "
+        "replaces the group when run again. The sidecar holds temporal collections (one needle per "
+        "instrument, the cut, the tissue) on one sorted time list, rest (t = 0) and the end of every step; "
+        "between two recorded tissue steps the tissue and the cut show the last record. The tissue carries "
+        "the point data `displacement` [m], `fixed` and `constraint_force` [N]. NNNNNNN is a step number "
+        "(7 digits). Views are HDF5 virtual datasets onto one entry of a per-step dataset (no data copied); "
+        "stored are the derived arrays (deformed cut points, displacement, nodal constraint forces) of each "
+        "recorded tissue step. The group's attribute `description` says the same. `refsim export RESULT.h5 "
+        "--vtu STEP` (or `last`, or `all` with a `.pvd` series) writes the tissue and the cut of recorded "
+        "steps as `.vtu` files with the same point data.",
         "",
         "| path | shape | dtype | unit | meaning |",
         "|---|---|---|---|---|",

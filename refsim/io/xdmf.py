@@ -1,20 +1,23 @@
 """An XDMF 3 sidecar beside a results file, so that ParaView opens it directly (File > Open > RESULT.xdmf,
 reader "XDMF Reader").
 
-The sidecar has three temporal collections in one domain, on one sorted time list: t = 0 (rest) and the end
-of every step.
+The sidecar has temporal collections in one domain, on one sorted time list: t = 0 (rest) and the end of
+every step.
 
-- ``needle``: the needle centreline as a polyline (``scene/needle/rest_nodes`` at t = 0, then
-  ``steps/needle_positions``);
+- one per instrument, named by it (``needle`` in a one-needle file), in the scene's order: its needle
+  centreline as a polyline (``scene/needle/rest_nodes`` at t = 0, then ``steps/needle_positions``, both at
+  the instrument's location: ``instruments/<name>/`` for a further instrument; its views and polyline in
+  ``xdmf/instruments/<name>/needle/``, the first one's in ``xdmf/needle/``);
 - ``cut`` (when the run cut): the cut surface triangles existing at each step, from the first step that has
   one, its rest points mapped to the deformed tissue by their tets and barycentric coordinates (equation 4 of
   the paper);
 - ``tissue``: the tetrahedra, with point data ``displacement`` [m] (from rest), ``fixed`` (1 for a clamped
-  node) and ``constraint_force`` [N] (the force of the needle on the tissue, spread on the nodes).
+  node) and ``constraint_force`` [N] (the force of every instrument's needle on the tissue, spread on the
+  nodes).
 
 The tissue is recorded every ``output.tissue_every`` steps: between two records the tissue and the cut show
 the last recorded state (``output.tissue_every = 1`` for every step). Every collection has a grid at every
-time of the list, so VTK's XDMF reader (ParaView's) lists the times sorted and shows all three at each.
+time of the list, so VTK's XDMF reader (ParaView's) lists the times sorted and shows them all at each.
 
 The heavy data is not copied: each per-step array is an HDF5 virtual dataset (a view, no data) in the group
 ``xdmf/`` of the results file that maps onto one entry of the per-step dataset, and the XDMF points at it as
@@ -98,12 +101,13 @@ def _attribute(grid, name: str, center: str, kind: str, file_name: str, path: st
 def nodal_constraint_forces(
     positions: np.ndarray, tets: np.ndarray, points: np.ndarray, directions: np.ndarray, forces: np.ndarray
 ) -> np.ndarray:
-    """The force of the needle on the tissue at the nodes [N], shape (n, 3).
+    """The force of the needles on the tissue at the nodes [N], shape (n, 3).
 
     Each constraint row pushes the tissue along −n with its multiplier λ (refsim.constraints.rows); its force
     −λ n is spread on the four nodes of the tet holding its tissue-side point in the tissue at ``positions``
     (n, 3) [m] by the point's barycentric coordinates (the point clamped to the closest tet when it lies
-    just outside), so the nodal forces sum to −Σ λ n, the opposite of steps/needle_force.
+    just outside), so the nodal forces sum to −Σ λ n, the opposite of the sum of every instrument's
+    steps/needle_force.
 
     Parameters
     ----------

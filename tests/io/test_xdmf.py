@@ -263,3 +263,21 @@ def test_vtk_reads_every_needle(two_needle_run):
     for name in results.instrument_names:
         points = vtk_to_numpy(named[name].GetPoints().GetData())
         np.testing.assert_array_equal(points, results.instrument(name).needle_positions[index])
+
+
+def test_constraint_force_is_every_instruments(two_needle_run):
+    """At a recorded step the tissue's nodal constraint forces sum to minus the sum of every instrument's
+    force on its needle (Newton's third law; the barycentric weights of each row sum to 1, so only
+    round-off of the order of 1e-12 of the rows' total |lambda| separates the two)."""
+    results = read_results(two_needle_run)
+    with meshio.xdmf.TimeSeriesReader(xdmf_path(two_needle_run)) as reader:
+        reader.read_points_cells()
+        step = int(results.tissue_steps[-1])
+        index = int(np.flatnonzero(results.step == step)[0])
+        _, point_data, _ = reader.read_data(index + 1)  # time 0 is rest
+    forces = [results.instrument(name).needle_force[index] for name in results.instrument_names]
+    assert all(np.linalg.norm(force) > 0 for force in forces)  # both needles press on the tissue
+    scale = np.abs(results.constraints_at(step).forces).sum()
+    np.testing.assert_allclose(
+        point_data["constraint_force"].sum(axis=0), -np.sum(forces, axis=0), rtol=0, atol=1e-12 * scale
+    )
