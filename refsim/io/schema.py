@@ -611,13 +611,14 @@ def reference_markdown() -> str:
     lines += [
         "",
         "A file of several instruments has one needle collection per instrument in the sidecar, named by "
-        "the instrument (a one-needle file's is `needle`), before the cut and the tissue. The first "
-        "instrument's datasets are at the paths above; each further instrument's are under "
-        f"`{XDMF_GROUP}/{INSTRUMENTS_GROUP}/<name>/`, views of its own "
+        "the instrument (a one-needle file's is `needle`), before the cut and the tissue. Each instrument "
+        "has the datasets below: the first at these paths, each further one with the leading "
+        f"`{XDMF_GROUP}/` replaced by `{XDMF_GROUP}/{INSTRUMENTS_GROUP}/<name>/` (e.g. "
+        f"`{xdmf_instrument_path(XDMF['needle/polyline'], 1, '<name>')}`), views of its own "
         f"`{INSTRUMENTS_GROUP}/<name>/{STEPS['needle_positions'].path}`. The tissue's `constraint_force` "
-        "is the force of every instrument's rows. Each instrument's datasets:",
+        "is the force of every instrument's rows.",
         "",
-        "| path under the instrument's location | shape | dtype | unit | meaning |",
+        "| path (first instrument) | shape | dtype | unit | meaning |",
         "|---|---|---|---|---|",
     ]
     lines += [_row(spec) for spec in XDMF_INSTRUMENT_DATASETS.values()]
