@@ -281,3 +281,20 @@ def test_constraint_force_is_every_instruments(two_needle_run):
     np.testing.assert_allclose(
         point_data["constraint_force"].sum(axis=0), -np.sum(forces, axis=0), rtol=0, atol=1e-12 * scale
     )
+
+
+def test_one_needle_sidecar_keeps_its_names(cut_run):
+    """A one-needle file's sidecar is the same as before several instruments: collections needle, cut and
+    tissue in this order, the needle's grids named needle_NNNNNNN and its datasets at xdmf/needle/."""
+    from xml.etree import ElementTree as ET
+
+    results = read_results(cut_run)
+    assert results.instrument_names == ("needle",)
+    domain = ET.parse(xdmf_path(cut_run)).getroot().find("Domain")
+    assert [grid.get("Name") for grid in domain] == ["needle", "cut", "tissue"]
+    needle = list(domain[0])
+    assert [grid.get("Name") for grid in needle] == [f"needle_{s:07d}" for s in [0, *results.step]]
+    assert _item(needle[0], "Topology").text == f"{cut_run.name}:/xdmf/needle/polyline"
+    assert _item(needle[0], "Geometry").text == f"{cut_run.name}:/scene/needle/rest_nodes"
+    step = int(results.step[-1])
+    assert _item(needle[-1], "Geometry").text == f"{cut_run.name}:/xdmf/needle/positions/{step:07d}"
