@@ -39,7 +39,9 @@ __all__ = [
     "PROBLEMS_GROUP",
     "XDMF",
     "XDMF_GROUP",
+    "XDMF_INSTRUMENT_DATASETS",
     "problem_group_name",
+    "xdmf_instrument_path",
     "xdmf_path_of",
     "all_datasets",
     "numpy_dtype",
@@ -413,9 +415,9 @@ XDMF = _specs(
             "N",
             "float64",
             ("n", 3),
-            "force of the needle on the tissue at recorded step NNNNNNN, each row's -lambda n spread on the "
-            "nodes of the tet holding its point by barycentric weights (its sum is -steps/needle_force); "
-            "derived, stored (point data `constraint_force`)",
+            "force of the needles on the tissue at recorded step NNNNNNN, each row's -lambda n spread on the "
+            "nodes of the tet holding its point by barycentric weights (its sum is minus every instrument's "
+            "steps/needle_force summed); derived, stored (point data `constraint_force`)",
         ),
         (
             "tissue/fixed",
@@ -429,9 +431,27 @@ XDMF = _specs(
 )
 
 
+#: The ``xdmf/`` datasets each instrument has (paths of a one-needle file): its needle's polyline and views
+#: of its positions. A further instrument's are under ``xdmf/instruments/<name>/`` with the same names
+#: (:func:`xdmf_instrument_path`), views of its own ``instruments/<name>/steps/needle_positions``.
+XDMF_INSTRUMENT_DATASETS = {
+    spec.path: spec for spec in (XDMF["needle/polyline"], XDMF["needle/positions/NNNNNNN"])
+}
+
+
 def xdmf_path_of(spec: DatasetSpec, step: int) -> str:
     """Path of the ``xdmf/`` dataset ``spec`` (one of :data:`XDMF`) for ``step`` (NNNNNNN replaced)."""
     return spec.path.replace("NNNNNNN", f"{int(step):07d}")
+
+
+def xdmf_instrument_path(spec: DatasetSpec, index: int, name: str, step: int | None = None) -> str:
+    """Path of instrument ``index``'s (called ``name``) ``xdmf/`` dataset ``spec`` (one of
+    :data:`XDMF_INSTRUMENT_DATASETS`), for ``step`` when per step: the one-needle path for the first,
+    ``xdmf/instruments/<name>/...`` for a further one."""
+    path = spec.path if step is None else xdmf_path_of(spec, step)
+    if index == 0:
+        return path
+    return f"{XDMF_GROUP}/{instrument_location(index, name)}/{path[len(XDMF_GROUP) + 1 :]}"
 
 
 def problem_group_name(step: int) -> str:
@@ -572,23 +592,36 @@ def reference_markdown() -> str:
         "",
         f"## The `{XDMF_GROUP}/` group (ParaView sidecar)",
         "",
-        "`refsim.io.xdmf.write_xdmf` (called by `refsim run`, by every run of a study and by `refsim export "
-        "RESULT.h5 "
-        "--xdmf`) writes `RESULT.xdmf` beside the file and this group into it; it replaces the group when "
-        "run again. The sidecar holds three temporal collections (needle, cut, tissue) on one sorted time "
-        "list, rest (t = 0) and the end of every step; between two recorded tissue steps the tissue and the "
-        "cut show the last record. The tissue carries the point data `displacement` [m], `fixed` and "
-        "`constraint_force` [N]. NNNNNNN is a step number (7 digits). Views are HDF5 virtual datasets onto "
-        "one entry of a per-step dataset (no data copied); stored are the derived arrays (deformed cut "
-        "points, displacement, nodal constraint forces) of each recorded tissue step. The group's attribute "
-        "`description` says the same. `refsim export RESULT.h5 --vtu STEP` (or `last`, or `all` with a "
-        "`.pvd` series) writes the tissue and the cut of recorded steps as `.vtu` files with the same point "
-        "data.",
+        "`refsim.io.xdmf.write_xdmf` (called by `refsim run`, by every run of a study and by "
+        "`refsim export RESULT.h5 --xdmf`) writes `RESULT.xdmf` beside the file and this group into it; it "
+        "replaces the group when run again. The sidecar holds temporal collections (one needle per "
+        "instrument, the cut, the tissue) on one sorted time list, rest (t = 0) and the end of every step; "
+        "between two recorded tissue steps the tissue and the cut show the last record. The tissue carries "
+        "the point data `displacement` [m], `fixed` and `constraint_force` [N]. NNNNNNN is a step number "
+        "(7 digits). Views are HDF5 virtual datasets onto one entry of a per-step dataset (no data copied); "
+        "stored are the derived arrays (deformed cut points, displacement, nodal constraint forces) of each "
+        "recorded tissue step. The group's attribute `description` says the same. `refsim export RESULT.h5 "
+        "--vtu STEP` (or `last`, or `all` with a `.pvd` series) writes the tissue and the cut of recorded "
+        "steps as `.vtu` files with the same point data.",
         "",
         "| path | shape | dtype | unit | meaning |",
         "|---|---|---|---|---|",
     ]
     lines += [_row(spec) for spec in XDMF.values()]
+    lines += [
+        "",
+        "A file of several instruments has one needle collection per instrument in the sidecar, named by "
+        "the instrument (a one-needle file's is `needle`), before the cut and the tissue. Each instrument "
+        "has the datasets below: the first at these paths, each further one with the leading "
+        f"`{XDMF_GROUP}/` replaced by `{XDMF_GROUP}/{INSTRUMENTS_GROUP}/<name>/` (e.g. "
+        f"`{xdmf_instrument_path(XDMF['needle/polyline'], 1, '<name>')}`), views of its own "
+        f"`{INSTRUMENTS_GROUP}/<name>/{STEPS['needle_positions'].path}`. The tissue's `constraint_force` "
+        "is the force of every instrument's rows.",
+        "",
+        "| path (first instrument) | shape | dtype | unit | meaning |",
+        "|---|---|---|---|---|",
+    ]
+    lines += [_row(spec) for spec in XDMF_INSTRUMENT_DATASETS.values()]
     return "\n".join(lines)
 
 

@@ -1,20 +1,23 @@
 """An XDMF 3 sidecar beside a results file, so that ParaView opens it directly (File > Open > RESULT.xdmf,
 reader "XDMF Reader").
 
-The sidecar has three temporal collections in one domain, on one sorted time list: t = 0 (rest) and the end
-of every step.
+The sidecar has temporal collections in one domain, on one sorted time list: t = 0 (rest) and the end of
+every step.
 
-- ``needle``: the needle centreline as a polyline (``scene/needle/rest_nodes`` at t = 0, then
-  ``steps/needle_positions``);
+- one per instrument, named by it (``needle`` in a one-needle file), in the scene's order: its needle
+  centreline as a polyline (``scene/needle/rest_nodes`` at t = 0, then ``steps/needle_positions``, both at
+  the instrument's location: ``instruments/<name>/`` for a further instrument; its views and polyline in
+  ``xdmf/instruments/<name>/needle/``, the first one's in ``xdmf/needle/``);
 - ``cut`` (when the run cut): the cut surface triangles existing at each step, from the first step that has
   one, its rest points mapped to the deformed tissue by their tets and barycentric coordinates (equation 4 of
   the paper);
 - ``tissue``: the tetrahedra, with point data ``displacement`` [m] (from rest), ``fixed`` (1 for a clamped
-  node) and ``constraint_force`` [N] (the force of the needle on the tissue, spread on the nodes).
+  node) and ``constraint_force`` [N] (the force of every instrument's needle on the tissue, spread on the
+  nodes).
 
 The tissue is recorded every ``output.tissue_every`` steps: between two records the tissue and the cut show
 the last recorded state (``output.tissue_every = 1`` for every step). Every collection has a grid at every
-time of the list, so VTK's XDMF reader (ParaView's) lists the times sorted and shows all three at each.
+time of the list, so VTK's XDMF reader (ParaView's) lists the times sorted and shows them all at each.
 
 The heavy data is not copied: each per-step array is an HDF5 virtual dataset (a view, no data) in the group
 ``xdmf/`` of the results file that maps onto one entry of the per-step dataset, and the XDMF points at it as
@@ -98,12 +101,13 @@ def _attribute(grid, name: str, center: str, kind: str, file_name: str, path: st
 def nodal_constraint_forces(
     positions: np.ndarray, tets: np.ndarray, points: np.ndarray, directions: np.ndarray, forces: np.ndarray
 ) -> np.ndarray:
-    """The force of the needle on the tissue at the nodes [N], shape (n, 3).
+    """The force of the needles on the tissue at the nodes [N], shape (n, 3).
 
     Each constraint row pushes the tissue along −n with its multiplier λ (refsim.constraints.rows); its force
     −λ n is spread on the four nodes of the tet holding its tissue-side point in the tissue at ``positions``
     (n, 3) [m] by the point's barycentric coordinates (the point clamped to the closest tet when it lies
-    just outside), so the nodal forces sum to −Σ λ n, the opposite of steps/needle_force.
+    just outside), so the nodal forces sum to −Σ λ n, the opposite of the sum of every instrument's
+    steps/needle_force.
 
     Parameters
     ----------
@@ -155,7 +159,7 @@ def write_xdmf(results_path, output=None) -> Path:
             "refsim.io.schema.XDMF and docs/results.md"
         )
         sidecar = _Sidecar(handle, domain, results, results_path.name)
-        sidecar.needle()
+        sidecar.needles()
         fixed_path, record_paths = sidecar.tissue_records()
         sidecar.cut()
         sidecar.tissue(fixed_path, record_paths)  # last: meshio's TimeSeriesReader reads the last collection
@@ -181,36 +185,51 @@ class _Sidecar:
         self.times = np.concatenate([[0.0], results.time[:steps]])
         self.record_of = np.searchsorted(results.tissue_steps, self.step_numbers, side="right") - 1
 
-    def stored(self, spec_key: str, step: int | None, data: np.ndarray) -> str:
-        """Store a derived array (of XDMF[spec_key], for ``step``) with its unit; its HDF5 path."""
+    def stored(self, spec_key: str, step: int | None, data: np.ndarray, path: str | None = None) -> str:
+        """Store a derived array (of XDMF[spec_key], for ``step``; at ``path`` when given) with its unit;
+        its HDF5 path."""
         spec = XDMF[spec_key]
-        name = spec.path if step is None else xdmf_path_of(spec, step)
+        name = path if path is not None else (spec.path if step is None else xdmf_path_of(spec, step))
         dataset = self.handle.create_dataset(name, data=np.asarray(data, dtype=spec.dtype))
         dataset.attrs["units"] = spec.unit
         return dataset.name
 
-    def needle(self) -> None:
-        """The needle: a polyline at rest, then at every step (views of steps/needle_positions)."""
+    def needles(self) -> None:
+        """Every instrument's needle: a polyline at rest, then at every step (views of its
+        steps/needle_positions), one temporal collection named by the instrument."""
+        for index, name in enumerate(self.results.instrument_names):
+            self.needle(index, name)
+
+    def needle(self, index: int, name: str) -> None:
+        """The needle of instrument ``index`` (called ``name``): its datasets at the instrument's location."""
         from refsim.io import schema
 
-        needle_nodes = self.results.needle_rest_nodes.shape[0]
+        location = schema.instrument_location(index, name)
+        prefix = location + "/" if location else ""
+        needle_nodes = self.results.instrument(name).needle_rest_nodes.shape[0]
+
+        def path_of(key: str, step: int | None) -> str:
+            return schema.xdmf_instrument_path(XDMF[key], index, name, step)
+
         needle = ET.SubElement(
-            self.domain, "Grid", Name="needle", GridType="Collection", CollectionType="Temporal"
+            self.domain, "Grid", Name=name, GridType="Collection", CollectionType="Temporal"
         )
-        connectivity = self.stored("needle/polyline", None, np.arange(needle_nodes)[None])
-        for index, (step, time) in enumerate(zip(self.step_numbers, self.times, strict=True)):
-            if index == 0:
-                path = "/" + schema.STATIC["needle/rest_nodes"].path
+        connectivity = self.stored(
+            "needle/polyline", None, np.arange(needle_nodes)[None], path=path_of("needle/polyline", None)
+        )
+        for step_index, (step, time) in enumerate(zip(self.step_numbers, self.times, strict=True)):
+            if step_index == 0:
+                path = "/" + prefix + schema.STATIC["needle/rest_nodes"].path
             else:
                 path = _view(
                     self.handle,
-                    xdmf_path_of(XDMF["needle/positions/NNNNNNN"], step),
-                    schema.STEPS["needle_positions"].path,
-                    index - 1,
+                    path_of("needle/positions/NNNNNNN", step),
+                    prefix + schema.STEPS["needle_positions"].path,
+                    step_index - 1,
                     (needle_nodes, 3),
                     np.float64,
                 )
-            grid = _grid(needle, f"needle_{step:07d}", time)
+            grid = _grid(needle, f"{name}_{step:07d}", time)
             _topology(
                 grid,
                 "Polyline",

@@ -823,8 +823,9 @@ class BoundarySpec(_Validated):
 
 #: The name of the one instrument of a scene with [needle] and [trajectory] (no [[instruments]]).
 SOLE_INSTRUMENT = "needle"
-#: Names an instrument cannot take: the tissue's body name.
-RESERVED_NAMES = ("tissue",)
+#: Names an instrument cannot take: the tissue's body name and the other collections of the XDMF sidecar
+#: (refsim.io.xdmf names each instrument's needle collection by the instrument).
+RESERVED_NAMES = ("tissue", "cut")
 _NAME_CHARACTERS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-")
 
 
@@ -839,8 +840,8 @@ class InstrumentSpec(_Validated):
     """
 
     name: str = spec(
-        doc="the instrument's name: letters, digits, _ and -; unique in the scene; not 'tissue'; its results "
-        "are under instruments/<name>/ (the first instrument's at the one-needle paths)"
+        doc="the instrument's name: letters, digits, _ and -; unique in the scene; not 'tissue' or 'cut';"
+        " its results are under instruments/<name>/ (the first instrument's at the one-needle paths)"
     )
     cuts: bool | None = spec(
         None, doc="whether the instrument may cut (default: cutting.enabled); at most one per scene"
@@ -852,7 +853,11 @@ class InstrumentSpec(_Validated):
         if not self.name or not set(self.name) <= _NAME_CHARACTERS:
             raise FieldError("name", f"name = {self.name!r}: expected letters, digits, _ and - (not empty)")
         if self.name in RESERVED_NAMES:
-            raise FieldError("name", f"name = {self.name!r}: the tissue's name; choose another")
+            raise FieldError(
+                "name",
+                f"name = {self.name!r}: reserved ({', '.join(RESERVED_NAMES)} name the tissue and the cut); "
+                "choose another",
+            )
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -61,6 +61,7 @@ def _changed(change) -> dict:
     [
         (lambda d: d["instruments"][1].update(name="cutter"), ["instruments[1].name", "'cutter'", "unique"]),
         (lambda d: d["instruments"][0].update(name="tissue"), ["instruments[0].name", "'tissue'"]),
+        (lambda d: d["instruments"][1].update(name="cut"), ["instruments[1].name", "'cut'", "reserved"]),
         (lambda d: d["instruments"][0].update(name="a/b"), ["instruments[0].name", "'a/b'", "letters"]),
         (lambda d: d.update(trajectory=d["instruments"][0]["trajectory"]), ["[trajectory] and [["]),
         (lambda d: d["instruments"][1].pop("cuts"), ["instruments[1].cuts", "at most one instrument"]),
