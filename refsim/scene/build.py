@@ -15,7 +15,8 @@ import numpy as np
 from refsim.fem.tissue import TissueModel
 from refsim.materials import HookeMaterial
 from refsim.mesh import TetMesh, box_mesh, read_mesh
-from refsim.scene.controls import Controls
+from refsim.scene.controls import BOUNDARY_MOTIONS, Controls, read_displacement_csv
+from refsim.scene.fields import FieldError
 from refsim.scene.loader import SceneError
 from refsim.scene.spec import (
     FACE_NAMES,
@@ -27,7 +28,7 @@ from refsim.scene.spec import (
     resolvable_length,
     scene_scale,
 )
-from refsim.scene.trajectory import Trajectory, aimed, read_numeric_csv
+from refsim.scene.trajectory import Trajectory, aimed
 
 __all__ = [
     "SceneModels",
@@ -406,51 +407,18 @@ def boundary_nodes(scene: Scene, mesh: TetMesh) -> np.ndarray:
     return np.asarray(nodes, dtype=np.int64)
 
 
-def read_displacement_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """A displacement history: columns t, dx, dy, dz [s, m]; '#' comment lines and one header line allowed.
-
-    Returns
-    -------
-    (times (w,), displacements (w, 3)).
-
-    Raises
-    ------
-    ValueError
-        Naming the file and the defect.
-    """
-    data = read_numeric_csv(path, ("t", "dx", "dy", "dz"), "boundary motion")
-    return data[:, 0], data[:, 1:]
-
-
 def build_controls(scene: Scene, models: SceneModels) -> Controls:
     """The controls of a scene: the needle base trajectory and, when the scene declares one, the tissue
     boundary motion of ``models.boundary_nodes``."""
-    from refsim.scene.controls import PeriodicBoundaryMotion, SampledBoundaryMotion
-
     spec = scene.boundary
     trajectories = tuple(instrument.trajectory for instrument in models.instruments)
     trajectories = trajectories if len(trajectories) > 1 else ()
     if spec.motion == "none":
         return Controls(trajectory=models.trajectory, trajectories=trajectories)
-    if spec.motion == "periodic":
-        motion = PeriodicBoundaryMotion(
-            nodes=models.boundary_nodes,
-            amplitude=spec.amplitude,
-            period=spec.period,
-            exponent=spec.exponent,
-            phase=spec.phase,
-        )
-    else:
-        path = Path(spec.file)
-        if not path.is_absolute():
-            path = Path(scene.base_directory) / path
-        try:
-            times, displacements = read_displacement_csv(path)
-            motion = SampledBoundaryMotion(
-                nodes=models.boundary_nodes, times=times, displacements=displacements
-            )
-        except ValueError as error:
-            raise SceneError(f"{scene.source}: boundary.file: {error}") from None
+    try:
+        motion = BOUNDARY_MOTIONS[spec.motion].from_section(spec, models.boundary_nodes, scene.base_directory)
+    except FieldError as error:
+        raise SceneError(f"{scene.source}: boundary.{error.key}: {error}") from None
     check_boundary_motion(scene, models.mesh, motion)
     return Controls(trajectory=models.trajectory, boundary=motion, trajectories=trajectories)
 

@@ -10,23 +10,33 @@ time and applies them as kinematic conditions (the needle's base node, the tissu
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Protocol
+from pathlib import Path
+from typing import TYPE_CHECKING, ClassVar, Protocol
 
 import numpy as np
 
-from refsim.scene.trajectory import Trajectory
+from refsim.scene.fields import FieldError
+
+if TYPE_CHECKING:  # the scene's spec reads BOUNDARY_MOTIONS, and trajectory.py imports the spec
+    from refsim.scene.trajectory import Trajectory
 
 __all__ = [
+    "BOUNDARY_MOTIONS",
     "BoundaryMotion",
     "ControlValues",
     "Controls",
     "PeriodicBoundaryMotion",
     "SampledBoundaryMotion",
+    "read_displacement_csv",
 ]
 
 
 class BoundaryMotion(Protocol):
-    """Prescribed displacement from the rest position of chosen tissue nodes."""
+    """Prescribed displacement from the rest position of chosen tissue nodes.
+
+    A motion a scene can choose also has ``name`` (the value of ``boundary.motion``), ``keys`` (the keys of
+    ``[boundary]`` it reads beyond the node selection) and ``from_section(section, nodes, base_directory)``,
+    and is listed in :data:`BOUNDARY_MOTIONS`."""
 
     nodes: np.ndarray
 
@@ -66,11 +76,25 @@ class PeriodicBoundaryMotion:
     phase : φ [rad], finite.
     """
 
+    name: ClassVar[str] = "periodic"
+    keys: ClassVar[tuple[str, ...]] = ("amplitude", "period", "exponent", "phase")
+
     nodes: np.ndarray
     amplitude: np.ndarray
     period: float
     exponent: int = 1
     phase: float = 0.0
+
+    @classmethod
+    def from_section(cls, section, nodes: np.ndarray, base_directory: str) -> PeriodicBoundaryMotion:
+        """The motion of a scene's ``[boundary]`` section (``BoundarySpec``) on ``nodes``."""
+        return cls(
+            nodes=nodes,
+            amplitude=section.amplitude,
+            period=section.period,
+            exponent=section.exponent,
+            phase=section.phase,
+        )
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "nodes", _checked_nodes(self.nodes))
@@ -116,9 +140,25 @@ class SampledBoundaryMotion:
     displacements : Displacement at each sample [m], shape (w, 3), zero at t = 0.
     """
 
+    name: ClassVar[str] = "file"
+    keys: ClassVar[tuple[str, ...]] = ("file",)
+
     nodes: np.ndarray
     times: np.ndarray
     displacements: np.ndarray
+
+    @classmethod
+    def from_section(cls, section, nodes: np.ndarray, base_directory: str) -> SampledBoundaryMotion:
+        """The motion of the CSV file ``section.file`` (relative to ``base_directory``) on ``nodes``; a bad
+        file is a :class:`~refsim.scene.fields.FieldError` of the key ``file``."""
+        path = Path(section.file)
+        if not path.is_absolute():
+            path = Path(base_directory) / path
+        try:
+            times, displacements = read_displacement_csv(path)
+            return cls(nodes=nodes, times=times, displacements=displacements)
+        except ValueError as error:
+            raise FieldError("file", str(error)) from None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "nodes", _checked_nodes(self.nodes))
@@ -143,6 +183,30 @@ class SampledBoundaryMotion:
         """The displacement shared by every moving node at each of ``times`` [s] [m], (len(times), 3)."""
         times = np.asarray(times, dtype=float)
         return np.stack([np.interp(times, self.times, self.displacements[:, k]) for k in range(3)], axis=1)
+
+
+#: The boundary motions a scene can choose, by name (``boundary.motion``; "none" is no motion).
+BOUNDARY_MOTIONS: dict[str, type] = {
+    motion.name: motion for motion in (PeriodicBoundaryMotion, SampledBoundaryMotion)
+}
+
+
+def read_displacement_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A displacement history: columns t, dx, dy, dz [s, m]; '#' comment lines and one header line allowed.
+
+    Returns
+    -------
+    (times (w,), displacements (w, 3)).
+
+    Raises
+    ------
+    ValueError
+        Naming the file and the defect.
+    """
+    from refsim.scene.trajectory import read_numeric_csv
+
+    data = read_numeric_csv(path, ("t", "dx", "dy", "dz"), "boundary motion")
+    return data[:, 0], data[:, 1:]
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ import numpy as np
 from refsim.cutting.laws import CUTTING_LAWS, CuttingLaw, law_of_key
 from refsim.fem.compliance import STRATEGIES, W_UPDATES
 from refsim.materials import MATERIAL_LIMITS
+from refsim.scene.controls import BOUNDARY_MOTIONS
 from refsim.scene.fields import FieldError, check_fields, spec
 
 __all__ = [
@@ -718,7 +719,7 @@ class BoundarySpec(_Validated):
         "none",
         doc="none; periodic: d(t) = a (1 − cos^{2n}(π t/T − φ)) offset to 0 at t = 0 (Lujan et al. 1999); "
         "file: displacement samples t, dx, dy, dz from a CSV file",
-        choices=("none", "periodic", "file"),
+        choices=("none", *BOUNDARY_MOTIONS),
     )
     nodes: tuple | None = spec(None, doc="indices of the moving nodes", low=0, integer=True)
     box: tuple | None = spec(
@@ -762,11 +763,7 @@ class BoundarySpec(_Validated):
 
     #: The keys each motion reads beyond the node selection (nodes, box, patch_point, patch_plane,
     #: patch_distance, which every motion but none reads).
-    MOTION_KEYS = {
-        "none": (),
-        "periodic": ("amplitude", "period", "exponent", "phase"),
-        "file": ("file",),
-    }
+    MOTION_KEYS = {"none": ()} | {name: motion.keys for name, motion in BOUNDARY_MOTIONS.items()}
     SELECTION_KEYS = ("nodes", "box", "patch_point", "patch_plane", "patch_distance")
 
     def validate(self) -> None:
