@@ -155,6 +155,10 @@ def _figure(study: dict, path: Path) -> None:
                 top.axhspan(
                     f1 - row["uncertainty"], f1 + row["uncertainty"], color="C1", alpha=0.2, label="f1 ± GCI"
                 )
+            if row["kind"] == "converged":  # agreed to round-off: show the value, not a 1e-12 band
+                span = max(1e-3 * abs(f1), row["uncertainty"], 1e-300)
+                top.set_ylim(f1 - span, f1 + span)
+            top.ticklabel_format(axis="y", useOffset=False)
             top.legend(fontsize=7)
         if row is not None and row["kind"] == "monotone":
             error = np.abs(f[keep] - row["extrapolated"])
