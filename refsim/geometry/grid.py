@@ -154,6 +154,14 @@ def _cell_of(point, origin, edge, dims):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
+def _in_box(point, lower, upper):  # pragma: no cover - compiled
+    for axis in range(3):
+        if not (lower[axis] <= point[axis] <= upper[axis]):
+            return False
+    return True
+
+
+@numba.njit(cache=True)
 def _query(points, origin, edge, dims, offsets, items, lower, upper):  # pragma: no cover - compiled
     found = np.zeros(points.shape[0] + 1, dtype=np.int64)
     for q in range(points.shape[0]):
@@ -162,12 +170,7 @@ def _query(points, origin, edge, dims, offsets, items, lower, upper):  # pragma:
             continue
         for slot in range(offsets[cell], offsets[cell + 1]):
             box = items[slot]
-            inside = True
-            for axis in range(3):
-                if not (lower[box, axis] <= points[q, axis] <= upper[box, axis]):
-                    inside = False
-                    break
-            if inside:
+            if _in_box(points[q], lower[box], upper[box]):
                 found[q + 1] += 1
     starts = np.cumsum(found)
     queries = np.empty(starts[-1], dtype=np.int64)
@@ -179,12 +182,7 @@ def _query(points, origin, edge, dims, offsets, items, lower, upper):  # pragma:
         at = starts[q]
         for slot in range(offsets[cell], offsets[cell + 1]):
             box = items[slot]
-            inside = True
-            for axis in range(3):
-                if not (lower[box, axis] <= points[q, axis] <= upper[box, axis]):
-                    inside = False
-                    break
-            if inside:
+            if _in_box(points[q], lower[box], upper[box]):
                 queries[at] = q
                 boxes[at] = box
                 at += 1

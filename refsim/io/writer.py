@@ -49,6 +49,16 @@ __all__ = ["FileLock", "ResultWriter", "WriterLockedError", "git_commit"]
 
 logger = logging.getLogger(__name__)
 
+#: The schema's groups of datasets that grow by one entry (or one ragged block) per step.
+_GROWING_GROUPS = (
+    schema.STEPS,
+    schema.SOLVER,
+    schema.TISSUE,
+    schema.CONSTRAINTS,
+    schema.EVENTS,
+    schema.CRITERIA,
+)
+
 _CHUNK_STEPS = 64  # steps per chunk of the small per-step datasets
 _CHUNK_ROWS = 1024  # rows per chunk of the ragged constraint and event datasets
 #: Steps buffered before a block is written (ResultWriter(buffer_steps=...)).
@@ -341,14 +351,7 @@ class ResultWriter:
         for name, value in static.items():
             self._write_fixed(schema.STATIC[name], value)
         several = bool(self._further)
-        for group in (
-            schema.STEPS,
-            schema.SOLVER,
-            schema.TISSUE,
-            schema.CONSTRAINTS,
-            schema.EVENTS,
-            schema.CRITERIA,
-        ):
+        for group in _GROWING_GROUPS:
             for spec in group.values():
                 if several or spec.path != schema.CONSTRAINTS["instrument"].path:
                     self._create_growing(spec)
@@ -605,17 +608,7 @@ class ResultWriter:
     def _check_static_space(self, static: dict, attribute_bytes: int) -> None:
         """Refuse (OSError ENOSPC, naming the path and the sizes) when the file system lacks room for the
         static part: its arrays, the attributes, the metadata of every dataset and the margin."""
-        dataset_count = len(static) + sum(
-            len(group)
-            for group in (
-                schema.STEPS,
-                schema.SOLVER,
-                schema.TISSUE,
-                schema.CONSTRAINTS,
-                schema.EVENTS,
-                schema.CRITERIA,
-            )
-        )
+        dataset_count = len(static) + sum(len(group) for group in _GROWING_GROUPS)
         needed = (
             sum(np.asarray(value).nbytes for value in static.values())
             + attribute_bytes
