@@ -38,7 +38,7 @@ import scipy.linalg
 import scipy.sparse as sparse
 
 from refsim.solvers.gauss_seidel import solve_gauss_seidel
-from refsim.solvers.laws import LAW_NAMES
+from refsim.solvers.laws import LAW_NAMES, LAWS
 from refsim.solvers.lemke import lemke_applicable, solve_lemke
 from refsim.solvers.newton import (
     ETA_MAX,
@@ -140,17 +140,13 @@ def _scaling(problem: ConstraintProblem, symmetric: np.ndarray) -> _Scaling:
 
 
 def _bounds(problem: ConstraintProblem, multipliers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Lower and upper bounds [N] of every row for the current shaft pair forces (±inf when none)."""
+    """Lower and upper bounds [N] of every row for the current group forces (±inf when none): each law's
+    ``bounds`` of :data:`~refsim.solvers.laws.LAWS`."""
     lower = np.full(problem.row_count, -np.inf)
     upper = np.full(problem.row_count, np.inf)
-    lower[problem.unilateral] = 0.0
-    lower[problem.box_rows] = problem.box_lower
-    upper[problem.box_rows] = problem.box_upper
-    rows = problem.friction_groups()[0]
-    if len(rows):
-        bound = problem.friction_bounds(multipliers)
-        lower[rows] = -bound
-        upper[rows] = bound
+    for law in LAWS:
+        if law.bounds is not None:
+            law.bounds(problem, multipliers, lower, upper)
     return lower, upper
 
 
@@ -253,32 +249,6 @@ def _solve_cone(problem, hessian, linear, lower, upper, options) -> tuple[np.nda
     return x, str(solution.status)
 
 
-def _cone_projection_jacobian(points: np.ndarray, mu: np.ndarray) -> np.ndarray:
-    """Jacobian of the projection onto K = {‖x_t‖ ≤ μ x_n} at ``points`` (k, 3); shape (k, 3, 3)."""
-    normal = points[:, 0]
-    tangent = points[:, 1:]
-    norm = np.linalg.norm(tangent, axis=1)
-    inside = norm <= mu * normal
-    polar = ~inside & (mu * norm <= -normal)
-    boundary = ~inside & ~polar
-    jacobian = np.zeros((len(points), 3, 3))
-    jacobian[inside] = np.eye(3)
-    if boundary.any():
-        m = mu[boundary]
-        t = np.maximum(norm[boundary], 1e-300)
-        direction = tangent[boundary] / t[:, None]
-        ray = np.column_stack([np.ones(m.size), m[:, None] * direction])  # (1, μ ŵ)
-        height = (normal[boundary] + m * t) / (1.0 + m * m)
-        # d/dz_n: ray / (1 + μ²); d/dz_t: μ ray ŵᵀ / (1 + μ²) + height (0, μ (I − ŵŵᵀ) / t)
-        block = np.zeros((m.size, 3, 3))
-        block[:, :, 0] = ray / (1.0 + m * m)[:, None]
-        block[:, :, 1:] = (m / (1.0 + m * m))[:, None, None] * ray[:, :, None] * direction[:, None, :]
-        projector = np.eye(2)[None] - direction[:, :, None] * direction[:, None, :]
-        block[:, 1:, 1:] += (height * m / t)[:, None, None] * projector
-        jacobian[boundary] = block
-    return jacobian
-
-
 def _newton_step(
     problem: ConstraintProblem, multipliers: np.ndarray, weight: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -294,45 +264,9 @@ def _newton_step(
     weighted = weight * gap
     gap_jacobian = problem.compliance.copy()
     projection = np.zeros((n, n))
-    rows = problem.bilateral
-    projection[rows, rows] = 1.0
-    rows = problem.unilateral
-    projection[rows, rows] = (multipliers[rows] - weighted[rows] > 0.0).astype(float)
-    rows = problem.box_rows
-    z = multipliers[rows] - weighted[rows]
-    projection[rows, rows] = ((z > problem.box_lower) & (z < problem.box_upper)).astype(float)
     bound_term = np.zeros((n, n))
-    rows, offsets, members, coefficient, _ = problem.friction_groups()
-    if len(rows):
-        sizes = np.diff(offsets)
-        owner = np.repeat(np.arange(rows.size), sizes)
-        member_force = multipliers[members]
-        group_norm = np.sqrt(np.bincount(owner, weights=member_force**2, minlength=rows.size))
-        bound = problem.friction_bounds(multipliers)  # the preload is constant: ∂b/∂λ is the group term only
-        z = multipliers[rows] - weighted[rows]
-        inside = np.abs(z) < bound
-        projection[rows, rows] = inside.astype(float)
-        slope = np.where(
-            (~inside & (group_norm > 0.0))[owner],
-            (np.sign(z) * coefficient)[owner] * member_force / np.maximum(group_norm, 1e-300)[owner],
-            0.0,
-        )
-        np.add.at(bound_term, (rows[owner], members), slope)
-    if len(problem.contacts):
-        contacts = problem.contacts
-        mu = problem.contact_friction
-        local_gap = gap[contacts]
-        slip = np.linalg.norm(local_gap[:, 1:], axis=1)
-        modified = local_gap.copy()
-        modified[:, 0] += mu * slip
-        slip_direction = local_gap[:, 1:] / np.maximum(slip, 1e-300)[:, None]
-        normal_rows = contacts[:, 0]
-        gap_jacobian[normal_rows] += (
-            mu[:, None, None] * slip_direction[:, :, None] * problem.compliance[contacts[:, 1:]]
-        ).sum(axis=1)
-        modified *= weight[contacts]
-        blocks = _cone_projection_jacobian(multipliers[contacts] - modified, mu)
-        projection[contacts[:, :, None], contacts[:, None, :]] = blocks
+    for law in LAWS:  # each law writes its own rows (laws.py: the Python form of jacobian_blocks)
+        law.projection(problem, multipliers, gap, weighted, weight, projection, gap_jacobian, bound_term)
     jacobian = np.eye(n) - projection + projection @ (weight[:, None] * gap_jacobian) - bound_term
     # QR with column pivoting (LAPACK gelsy): rank-revealing like the SVD, several times faster
     direction = scipy.linalg.lstsq(jacobian, -error, cond=1e-14, lapack_driver="gelsy", check_finite=False)[0]

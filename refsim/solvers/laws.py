@@ -51,8 +51,13 @@ __all__ = [
     "LAW_NAMES",
     "Law",
     "UNILATERAL",
+    "assemble_blocks",
     "block_arrays",
+    "cone_projection_jacobian",
+    "law_arrays",
     "problem_field_specs",
+    "project_friction_cone",
+    "scale_arrays",
 ]
 
 
@@ -100,6 +105,15 @@ class Law:
     fields : The problem fields of this law; the "rows" fields list its rows.
     statement : The law in one line.
     validate : Extra checks beyond the per-field ones, called with the problem and a fail(message) callback.
+    natural_map : The law's vectorised natural map, ``(problem, λ, δ, ρδ, ρ or None, error)``: writes
+        e = λ − Π(λ − ρ δ̂) (bilateral: e = ρ δ) on the law's rows into ``error`` (the Python form of
+        :func:`natural_map_blocks`, :func:`refsim.solvers.residual.natural_map_error` loops over the table).
+    bounds : ``(problem, λ, lower, upper)``: writes the law's box lower ≤ λ ≤ upper on its rows (the exact
+        solver's QP bounds); None for a law without one (bilateral: free; contact: a cone, not a box).
+    projection : ``(problem, λ, δ, ρδ, ρ, D_Π, ∂δ̂/∂λ, ∂Π/∂b ∂b/∂λ)``: writes the law's rows of the
+        projection's generalised Jacobian D_Π, of the modified gap's derivative (starting as W) and of the
+        bound term, all (n, n), for the exact solver's least-squares Newton step (the Python form of
+        :func:`jacobian_blocks`).
     """
 
     name: str
@@ -108,6 +122,9 @@ class Law:
     fields: tuple[FieldSpec, ...]
     statement: str
     validate: Callable | None = None
+    natural_map: Callable | None = None
+    bounds: Callable | None = None
+    projection: Callable | None = None
 
     @property
     def row_fields(self) -> tuple[str, ...]:
@@ -179,6 +196,174 @@ def _check_box(problem, fail) -> None:
         )
 
 
+# ---------------------------------------------------------------------- the laws: vectorised Python forms
+# One natural map, box bounds and projection Jacobian per law (the fields of its Law entry); each is tested
+# against the law's compiled kernels below on random inputs (tests/solvers/test_law_definitions.py).
+def project_friction_cone(points: np.ndarray, friction_coefficient: np.ndarray) -> np.ndarray:
+    """Euclidean projection onto the Coulomb cones K = {‖x_t‖ ≤ μ x_n}.
+
+    Parameters
+    ----------
+    points : Points (normal, tangent 1, tangent 2) [N], shape (k, 3).
+    friction_coefficient : Friction coefficient μ of each cone [-], shape (k,).
+
+    Returns
+    -------
+    Projected points [N], shape (k, 3).
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    mu = np.asarray(friction_coefficient, dtype=np.float64).reshape(-1)
+    normal = points[:, 0]
+    tangent = points[:, 1:]
+    tangent_norm = np.linalg.norm(tangent, axis=1)
+    inside = tangent_norm <= mu * normal
+    polar = mu * tangent_norm <= -normal
+    projected_normal = np.maximum((normal + mu * tangent_norm) / (1.0 + mu * mu), 0.0)
+    safe_norm = np.where(tangent_norm > 0.0, tangent_norm, 1.0)
+    direction = tangent / safe_norm[:, None]
+    result = np.empty_like(points)
+    result[:, 0] = projected_normal
+    result[:, 1:] = (mu * projected_normal)[:, None] * direction
+    result[inside] = points[inside]
+    result[polar & ~inside] = 0.0
+    return result
+
+
+def cone_projection_jacobian(points: np.ndarray, mu: np.ndarray) -> np.ndarray:
+    """Jacobian of the projection onto K = {‖x_t‖ ≤ μ x_n} at ``points`` (k, 3); shape (k, 3, 3)."""
+    normal = points[:, 0]
+    tangent = points[:, 1:]
+    norm = np.linalg.norm(tangent, axis=1)
+    inside = norm <= mu * normal
+    polar = ~inside & (mu * norm <= -normal)
+    boundary = ~inside & ~polar
+    jacobian = np.zeros((len(points), 3, 3))
+    jacobian[inside] = np.eye(3)
+    if boundary.any():
+        m = mu[boundary]
+        t = np.maximum(norm[boundary], 1e-300)
+        direction = tangent[boundary] / t[:, None]
+        ray = np.column_stack([np.ones(m.size), m[:, None] * direction])  # (1, μ ŵ)
+        height = (normal[boundary] + m * t) / (1.0 + m * m)
+        # d/dz_n: ray / (1 + μ²); d/dz_t: μ ray ŵᵀ / (1 + μ²) + height (0, μ (I − ŵŵᵀ) / t)
+        block = np.zeros((m.size, 3, 3))
+        block[:, :, 0] = ray / (1.0 + m * m)[:, None]
+        block[:, :, 1:] = (m / (1.0 + m * m))[:, None, None] * ray[:, :, None] * direction[:, None, :]
+        projector = np.eye(2)[None] - direction[:, :, None] * direction[:, None, :]
+        block[:, 1:, 1:] += (height * m / t)[:, None, None] * projector
+        jacobian[boundary] = block
+    return jacobian
+
+
+def _bilateral_map(problem, multipliers, gap, weighted, gap_weight, error) -> None:
+    rows = problem.bilateral
+    error[rows] = weighted[rows]
+
+
+def _unilateral_map(problem, multipliers, gap, weighted, gap_weight, error) -> None:
+    rows = problem.unilateral
+    error[rows] = multipliers[rows] - np.maximum(0.0, multipliers[rows] - weighted[rows])
+
+
+def _contact_map(problem, multipliers, gap, weighted, gap_weight, error) -> None:
+    if len(problem.contacts):
+        contacts = problem.contacts
+        mu = problem.contact_friction
+        local_gap = gap[contacts]
+        modified = local_gap.copy()
+        modified[:, 0] += mu * np.linalg.norm(local_gap[:, 1:], axis=1)
+        if gap_weight is not None:
+            modified *= gap_weight[contacts]
+        local_force = multipliers[contacts]
+        error[contacts] = local_force - project_friction_cone(local_force - modified, mu)
+
+
+def _group_map(problem, multipliers, gap, weighted, gap_weight, error) -> None:
+    rows = problem.friction_groups()[0]
+    if len(rows):
+        bound = problem.friction_bounds(multipliers)
+        error[rows] = multipliers[rows] - np.clip(multipliers[rows] - weighted[rows], -bound, bound)
+
+
+def _box_map(problem, multipliers, gap, weighted, gap_weight, error) -> None:
+    rows = problem.box_rows
+    error[rows] = multipliers[rows] - np.clip(
+        multipliers[rows] - weighted[rows], problem.box_lower, problem.box_upper
+    )
+
+
+def _unilateral_bounds(problem, multipliers, lower, upper) -> None:
+    lower[problem.unilateral] = 0.0
+
+
+def _group_bounds(problem, multipliers, lower, upper) -> None:
+    rows = problem.friction_groups()[0]
+    if len(rows):
+        bound = problem.friction_bounds(multipliers)
+        lower[rows] = -bound
+        upper[rows] = bound
+
+
+def _box_bounds(problem, multipliers, lower, upper) -> None:
+    lower[problem.box_rows] = problem.box_lower
+    upper[problem.box_rows] = problem.box_upper
+
+
+def _bilateral_projection(problem, multipliers, gap, weighted, weight, projection, gap_jacobian, bound_term):
+    rows = problem.bilateral
+    projection[rows, rows] = 1.0
+
+
+def _unilateral_projection(problem, multipliers, gap, weighted, weight, projection, gap_jacobian, bound_term):
+    rows = problem.unilateral
+    projection[rows, rows] = (multipliers[rows] - weighted[rows] > 0.0).astype(float)
+
+
+def _contact_projection(problem, multipliers, gap, weighted, weight, projection, gap_jacobian, bound_term):
+    if not len(problem.contacts):
+        return
+    contacts = problem.contacts
+    mu = problem.contact_friction
+    local_gap = gap[contacts]
+    slip = np.linalg.norm(local_gap[:, 1:], axis=1)
+    modified = local_gap.copy()
+    modified[:, 0] += mu * slip
+    slip_direction = local_gap[:, 1:] / np.maximum(slip, 1e-300)[:, None]
+    normal_rows = contacts[:, 0]
+    gap_jacobian[normal_rows] += (
+        mu[:, None, None] * slip_direction[:, :, None] * problem.compliance[contacts[:, 1:]]
+    ).sum(axis=1)
+    modified *= weight[contacts]
+    blocks = cone_projection_jacobian(multipliers[contacts] - modified, mu)
+    projection[contacts[:, :, None], contacts[:, None, :]] = blocks
+
+
+def _group_projection(problem, multipliers, gap, weighted, weight, projection, gap_jacobian, bound_term):
+    rows, offsets, members, coefficient, _ = problem.friction_groups()
+    if not len(rows):
+        return
+    sizes = np.diff(offsets)
+    owner = np.repeat(np.arange(rows.size), sizes)
+    member_force = multipliers[members]
+    group_norm = np.sqrt(np.bincount(owner, weights=member_force**2, minlength=rows.size))
+    bound = problem.friction_bounds(multipliers)  # the preload is constant: ∂b/∂λ is the group term only
+    z = multipliers[rows] - weighted[rows]
+    inside = np.abs(z) < bound
+    projection[rows, rows] = inside.astype(float)
+    slope = np.where(
+        (~inside & (group_norm > 0.0))[owner],
+        (np.sign(z) * coefficient)[owner] * member_force / np.maximum(group_norm, 1e-300)[owner],
+        0.0,
+    )
+    np.add.at(bound_term, (rows[owner], members), slope)
+
+
+def _box_projection(problem, multipliers, gap, weighted, weight, projection, gap_jacobian, bound_term):
+    rows = problem.box_rows
+    z = multipliers[rows] - weighted[rows]
+    projection[rows, rows] = ((z > problem.box_lower) & (z < problem.box_upper)).astype(float)
+
+
 #: The law table. Field order here is the keyword order of ConstraintProblem and of the problem schema.
 LAWS: tuple[Law, ...] = (
     Law(
@@ -187,6 +372,8 @@ LAWS: tuple[Law, ...] = (
         1,
         (FieldSpec("bilateral", "1", "int64", ("?",), "bilateral rows", "rows"),),
         "δ = 0, λ free",
+        natural_map=_bilateral_map,
+        projection=_bilateral_projection,
     ),
     Law(
         "unilateral",
@@ -194,6 +381,9 @@ LAWS: tuple[Law, ...] = (
         1,
         (FieldSpec("unilateral", "1", "int64", ("?",), "unilateral (Signorini) rows", "rows"),),
         "0 ≤ δ ⊥ λ ≥ 0 (Signorini)",
+        natural_map=_unilateral_map,
+        bounds=_unilateral_bounds,
+        projection=_unilateral_projection,
     ),
     Law(
         "contact",
@@ -214,6 +404,8 @@ LAWS: tuple[Law, ...] = (
             ),
         ),
         "‖λ_t‖ ≤ μ λ_n, De Saxcé complementarity (3-D Coulomb cone)",
+        natural_map=_contact_map,
+        projection=_contact_projection,
     ),
     Law(
         "group_friction",
@@ -297,6 +489,9 @@ LAWS: tuple[Law, ...] = (
         ),
         "|λ_s| ≤ μ (‖λ_G‖ + p), stick inside, slip at the bound opposing δ_s",
         _check_groups,
+        natural_map=_group_map,
+        bounds=_group_bounds,
+        projection=_group_projection,
     ),
     Law(
         "box",
@@ -325,6 +520,9 @@ LAWS: tuple[Law, ...] = (
         ),
         "lower ≤ λ ≤ upper; δ = 0 inside, δ ≥ 0 at lower, δ ≤ 0 at upper (Siconos' relay)",
         _check_box,
+        natural_map=_box_map,
+        bounds=_box_bounds,
+        projection=_box_projection,
     ),
 )
 
@@ -340,6 +538,7 @@ _DATA_FIELDS = (
 )
 
 assert all(law.code == index for index, law in enumerate(LAWS)), "law codes must be their table index"
+assert all(law.natural_map and law.projection for law in LAWS), "every law has its natural map and projection"
 
 
 def problem_field_specs() -> tuple[FieldSpec, ...]:
@@ -406,10 +605,24 @@ def merge_friction_groups(
     return rows, offsets, members, coefficient, preload
 
 
-_NO_INDEX = np.zeros(0, dtype=np.int64)
-_NO_VALUE = np.zeros(0)
-_NO_INDEX.setflags(write=False)
-_NO_VALUE.setflags(write=False)
+def law_arrays(problem) -> tuple:
+    """The problem's law fields as one tuple, in the order of :data:`LAW_FIELDS` (the table's): the one packed
+    argument of the compiled set-up :func:`assemble_blocks` (a new law's fields join it by its entry)."""
+    return tuple(getattr(problem, spec.name) for spec in LAW_FIELDS)
+
+
+def _law_setup(problem) -> tuple:
+    """:func:`assemble_blocks` of the problem, computed once and cached on it (the problem is immutable:
+    frozen, read-only arrays)."""
+    cached = problem.__dict__.get("_block_arrays")
+    if cached is not None:
+        return cached
+    kind, row, param, members, scaling = assemble_blocks(law_arrays(problem))
+    result = (kind, row, param, np.ascontiguousarray(members, dtype=np.int64), scaling)
+    for array in result[:4] + scaling:
+        array.setflags(write=False)
+    object.__setattr__(problem, "_block_arrays", result)
+    return result
 
 
 def block_arrays(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -424,50 +637,55 @@ def block_arrays(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
     params : Parameters, shape (b, 2): (μ, 0) contact, (μ, p) group friction, (lower, upper) box, else zeros.
     members : Group members, shape (g,).
     """
-    cached = problem.__dict__.get("_block_arrays")
-    if cached is not None:  # the problem is immutable (frozen, read-only arrays): compute once
-        return cached
-    if len(problem.shaft_friction) or len(problem.group_friction):
-        f_rows, f_offsets, members, f_mu, f_preload = friction_groups(problem)
-    else:  # no group friction: skip the merging
-        f_rows = f_offsets = members = _NO_INDEX
-        f_mu = f_preload = _NO_VALUE
-    kind, row, param = _assemble_blocks(
-        problem.bilateral,
-        problem.unilateral,
-        problem.box_rows,
-        problem.box_lower,
-        problem.box_upper,
-        f_rows,
-        f_offsets,
-        f_mu,
-        f_preload,
-        problem.contacts,
-        problem.contact_friction,
-    )
-    result = (kind, row, param, np.ascontiguousarray(members, dtype=np.int64))
-    for array in result:
-        array.setflags(write=False)
-    object.__setattr__(problem, "_block_arrays", result)
-    return result
+    return _law_setup(problem)[:4]
+
+
+def scale_arrays(problem) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What the data scales of :func:`refsim.solvers.residual.data_scales` read of the laws: (contact rows
+    (k, 3), whose weights are averaged; lower and upper fixed bounds, whose finite values are forces of the
+    data; group friction coefficients and preloads (m,), whose products μ p are too). Cached with
+    :func:`block_arrays`."""
+    return _law_setup(problem)[4]
 
 
 @numba.njit(cache=True)
-def _assemble_blocks(
-    bilateral,
-    unilateral,
-    box,
-    box_lower,
-    box_upper,
-    f_rows,
-    f_offsets,
-    f_mu,
-    f_preload,
-    contacts,
-    contact_friction,
-):
-    """(kinds, rows, params) of :func:`block_arrays` in one compiled pass: the laws in code order, then sorted
-    by first row (first rows are distinct: every row belongs to one law)."""
+def assemble_blocks(fields):
+    """(kinds, rows, params, members) of :func:`block_arrays` and the data of :func:`scale_arrays`, in one
+    compiled pass from the packed law fields of :func:`law_arrays`: group friction's two forms merged, the
+    laws in code order, then sorted by first row (first rows are distinct: every row belongs to one law)."""
+    (
+        bilateral,
+        unilateral,
+        contacts,
+        contact_friction,
+        shaft_friction,
+        shaft_pairs,
+        shaft_coefficient,
+        shaft_preload,
+        group_friction,
+        group_offsets,
+        group_members,
+        group_coefficient,
+        group_preload,
+        box,
+        box_lower,
+        box_upper,
+    ) = fields
+    if shaft_friction.shape[0] or group_friction.shape[0]:
+        f_rows, f_offsets, members, f_mu, f_preload = merge_friction_groups(
+            shaft_friction,
+            shaft_pairs,
+            shaft_coefficient,
+            shaft_preload,
+            group_friction,
+            group_offsets,
+            group_members,
+            group_coefficient,
+            group_preload,
+        )
+    else:  # no group friction: skip the merging
+        f_rows = f_offsets = members = np.zeros(0, dtype=np.int64)
+        f_mu = f_preload = np.zeros(0)
     counts = (bilateral.shape[0], unilateral.shape[0], box.shape[0], f_rows.shape[0], contacts.shape[0])
     total = counts[0] + counts[1] + counts[2] + counts[3] + counts[4]
     kind = np.empty(total, dtype=np.int64)
@@ -503,13 +721,14 @@ def _assemble_blocks(
         row[b, 2] = contacts[i, 2]
         param[b, 0] = contact_friction[i]
         b += 1
+    scaling = (contacts, box_lower, box_upper, f_mu, f_preload)
     ordered = True
     for i in range(1, total):
         if row[i, 0] <= row[i - 1, 0]:
             ordered = False
             break
     if ordered:
-        return kind, row, param
+        return kind, row, param, members, scaling
     order = np.argsort(row[:, 0])
     sorted_kind = np.empty_like(kind)
     sorted_row = np.empty_like(row)
@@ -518,7 +737,7 @@ def _assemble_blocks(
         sorted_kind[i] = kind[order[i]]
         sorted_row[i] = row[order[i]]
         sorted_param[i] = param[order[i]]
-    return sorted_kind, sorted_row, sorted_param
+    return sorted_kind, sorted_row, sorted_param, members, scaling
 
 
 @numba.njit(cache=True)

@@ -40,11 +40,11 @@ from refsim.solvers.gauss_seidel import _data_from_error, _data_residual, _resid
 from refsim.solvers.laws import (
     CONTACT,
     GROUP_FRICTION,
-    _assemble_blocks,
+    assemble_blocks,
     block_arrays,
     gauss_seidel_sweep,
     jacobian_blocks,
-    merge_friction_groups,
+    law_arrays,
     natural_map_blocks,
     relative_asymmetry,
 )
@@ -675,22 +675,7 @@ def _fresh_outcome(
     outcome = _dense_newton_fresh(
         compliance,
         free_gap,
-        p.bilateral,
-        p.unilateral,
-        p.box_rows,
-        p.box_lower,
-        p.box_upper,
-        p.contacts,
-        p.contact_friction,
-        p.shaft_friction,
-        p.shaft_pairs,
-        p.shaft_friction_coefficient,
-        p.shaft_normal_preload,
-        p.group_friction,
-        p.group_offsets,
-        p.group_members,
-        p.group_friction_coefficient,
-        p.group_preload,
+        law_arrays(p),
         multipliers,
         float(tolerance),
         int(max_iterations),
@@ -715,8 +700,8 @@ def _solve_dense_fresh(
     problem, multipliers, tolerance, max_iterations, eta_max, line_search_memory, stall_iterations, presweeps
 ) -> NewtonResult:
     """:func:`_solve_dense_compiled` for a fresh problem (nothing cached on it): the set-up of
-    :func:`~refsim.solvers.laws.block_arrays` (group friction merged by
-    :func:`~refsim.solvers.laws.merge_friction_groups`) and :func:`~refsim.solvers.residual.data_scales`,
+    :func:`~refsim.solvers.laws.block_arrays` (:func:`~refsim.solvers.laws.assemble_blocks` on the packed law
+    fields) and :func:`~refsim.solvers.residual.data_scales`,
     ‖δ_free‖, W's asymmetry (cached on the problem for :meth:`ConstraintProblem.asymmetry`) and the kernel's
     buffers in the same compiled call as the kernel (the same compiled operations in the same order, so the
     same numbers bit for bit; one dispatch instead of four, no array allocated in Python)."""
@@ -737,22 +722,7 @@ def _solve_dense_fresh(
 def _dense_newton_fresh(
     compliance,
     free_gap,
-    bilateral,
-    unilateral,
-    box,
-    box_lower,
-    box_upper,
-    contacts,
-    contact_friction,
-    shaft_friction,
-    shaft_pairs,
-    shaft_coefficient,
-    shaft_preload,
-    group_friction,
-    group_offsets,
-    group_members,
-    group_coefficient,
-    group_preload,
+    fields,
     multipliers,
     tolerance,
     max_iterations,
@@ -761,40 +731,15 @@ def _dense_newton_fresh(
     stall_iterations,
     presweeps,
 ):
-    """The set-up of a fresh problem (block arrays, data scales, ‖δ_free‖, W's asymmetry), then
-    :func:`_dense_newton` (W and δ_free C-contiguous). Returns (best λ, the history, iterations, reason,
-    line-search failures, fallback sweeps, pre-sweeps, best natural and data residual, the report's natural
-    and data residual, W's relative asymmetry): scalars rather than arrays, which cost more to return to
-    Python."""
-    if shaft_friction.shape[0] or group_friction.shape[0]:
-        f_rows, f_offsets, members, f_mu, f_preload = merge_friction_groups(
-            shaft_friction,
-            shaft_pairs,
-            shaft_coefficient,
-            shaft_preload,
-            group_friction,
-            group_offsets,
-            group_members,
-            group_coefficient,
-            group_preload,
-        )
-    else:  # as block_arrays and data_scales: no merging
-        f_rows = f_offsets = members = np.zeros(0, dtype=np.int64)
-        f_mu = f_preload = np.zeros(0)
-    kinds, rows, params = _assemble_blocks(
-        bilateral,
-        unilateral,
-        box,
-        box_lower,
-        box_upper,
-        f_rows,
-        f_offsets,
-        f_mu,
-        f_preload,
-        contacts,
-        contact_friction,
+    """The set-up of a fresh problem (block arrays and data scales from its packed law fields ``fields`` of
+    :func:`~refsim.solvers.laws.law_arrays`, ‖δ_free‖, W's asymmetry), then :func:`_dense_newton` (W and
+    δ_free C-contiguous). Returns (best λ, the history, iterations, reason, line-search failures, fallback
+    sweeps, pre-sweeps, best natural and data residual, the report's natural and data residual, W's relative
+    asymmetry): scalars rather than arrays, which cost more to return to Python."""
+    kinds, rows, params, members, scaling = assemble_blocks(fields)
+    weight, force_scale = _scales(
+        compliance, free_gap, scaling[0], scaling[1], scaling[2], scaling[3], scaling[4]
     )
-    weight, force_scale = _scales(compliance, free_gap, contacts, box_lower, box_upper, f_mu, f_preload)
     free_norm = np.sqrt(np.dot(free_gap, free_gap))  # the dot product of solve_newton's layered path
     history = np.empty(max_iterations + 1)
     counts = np.zeros(5, dtype=np.int64)

@@ -25,7 +25,14 @@ from __future__ import annotations
 import numpy as np
 
 from refsim.kernel_cache import numba
-from refsim.solvers.laws import LAW_NAMES, block_arrays, natural_map_blocks
+from refsim.solvers.laws import (
+    LAW_NAMES,
+    LAWS,
+    block_arrays,
+    natural_map_blocks,
+    project_friction_cone,
+    scale_arrays,
+)
 from refsim.solvers.problem import ConstraintProblem
 
 __all__ = [
@@ -37,36 +44,6 @@ __all__ = [
     "natural_residual_by_kind",
     "project_friction_cone",
 ]
-
-
-def project_friction_cone(points: np.ndarray, friction_coefficient: np.ndarray) -> np.ndarray:
-    """Euclidean projection onto the Coulomb cones K = {‖x_t‖ ≤ μ x_n}.
-
-    Parameters
-    ----------
-    points : Points (normal, tangent 1, tangent 2) [N], shape (k, 3).
-    friction_coefficient : Friction coefficient μ of each cone [-], shape (k,).
-
-    Returns
-    -------
-    Projected points [N], shape (k, 3).
-    """
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    mu = np.asarray(friction_coefficient, dtype=np.float64).reshape(-1)
-    normal = points[:, 0]
-    tangent = points[:, 1:]
-    tangent_norm = np.linalg.norm(tangent, axis=1)
-    inside = tangent_norm <= mu * normal
-    polar = mu * tangent_norm <= -normal
-    projected_normal = np.maximum((normal + mu * tangent_norm) / (1.0 + mu * mu), 0.0)
-    safe_norm = np.where(tangent_norm > 0.0, tangent_norm, 1.0)
-    direction = tangent / safe_norm[:, None]
-    result = np.empty_like(points)
-    result[:, 0] = projected_normal
-    result[:, 1:] = (mu * projected_normal)[:, None] * direction
-    result[inside] = points[inside]
-    result[polar & ~inside] = 0.0
-    return result
 
 
 def natural_map_error(
@@ -91,28 +68,8 @@ def natural_map_error(
     gap = problem.compliance @ multipliers + problem.free_gap
     weighted = gap if gap_weight is None else gap_weight * gap
     error = np.zeros(problem.row_count)
-    rows = problem.bilateral
-    error[rows] = weighted[rows]
-    rows = problem.unilateral
-    error[rows] = multipliers[rows] - np.maximum(0.0, multipliers[rows] - weighted[rows])
-    if len(problem.contacts):
-        contacts = problem.contacts
-        mu = problem.contact_friction
-        local_gap = gap[contacts]
-        modified = local_gap.copy()
-        modified[:, 0] += mu * np.linalg.norm(local_gap[:, 1:], axis=1)
-        if gap_weight is not None:
-            modified *= gap_weight[contacts]
-        local_force = multipliers[contacts]
-        error[contacts] = local_force - project_friction_cone(local_force - modified, mu)
-    rows = problem.friction_groups()[0]
-    if len(rows):
-        bound = problem.friction_bounds(multipliers)
-        error[rows] = multipliers[rows] - np.clip(multipliers[rows] - weighted[rows], -bound, bound)
-    rows = problem.box_rows
-    error[rows] = multipliers[rows] - np.clip(
-        multipliers[rows] - weighted[rows], problem.box_lower, problem.box_upper
-    )
+    for law in LAWS:  # each law writes its own rows (laws.py: the Python form of natural_map_blocks)
+        law.natural_map(problem, multipliers, gap, weighted, gap_weight, error)
     return error, gap
 
 
@@ -263,18 +220,9 @@ def data_scales(problem: ConstraintProblem) -> tuple[np.ndarray, float]:
     cached = problem.__dict__.get("_data_scales")
     if cached is not None:  # the problem is immutable: compute once
         return cached
-    if len(problem.shaft_friction) or len(problem.group_friction):
-        _, _, _, coefficient, preload = problem.friction_groups()
-    else:
-        coefficient = preload = _NO_VALUE
+    contacts, lower, upper, coefficient, preload = scale_arrays(problem)
     weight, scale = _scales(
-        problem.compliance,
-        problem.free_gap,
-        problem.contacts,
-        problem.box_lower,
-        problem.box_upper,
-        coefficient,
-        preload,
+        problem.compliance, problem.free_gap, contacts, lower, upper, coefficient, preload
     )
     weight.setflags(write=False)
     result = (weight, float(scale))
@@ -282,13 +230,10 @@ def data_scales(problem: ConstraintProblem) -> tuple[np.ndarray, float]:
     return result
 
 
-_NO_VALUE = np.zeros(0)
-_NO_VALUE.setflags(write=False)
-
-
 @numba.njit(cache=True)
-def _scales(compliance, free_gap, contacts, box_lower, box_upper, coefficient, preload):
-    """(ρ, F_data) of :func:`data_scales` in one compiled pass (the same operations in the same order)."""
+def _scales(compliance, free_gap, contacts, lower, upper, coefficient, preload):
+    """(ρ, F_data) of :func:`data_scales` in one compiled pass from the laws' :func:`scale_arrays` (contact
+    rows, fixed lower and upper bounds, group friction coefficients and preloads)."""
     n = free_gap.shape[0]
     largest = 0.0
     if n:
@@ -308,15 +253,15 @@ def _scales(compliance, free_gap, contacts, box_lower, box_upper, coefficient, p
         safe[contacts[c, 2]] = mean
     weight = 1.0 / safe
     scale = _compiled_norm(weight * free_gap)
-    count = box_lower.shape[0]
+    count = lower.shape[0] + upper.shape[0]
     if count:
-        bounds = np.empty(2 * count)
+        bounds = np.empty(count)
         kept = 0
-        for value in box_lower:
+        for value in lower:
             if np.isfinite(value):
                 bounds[kept] = value
                 kept += 1
-        for value in box_upper:
+        for value in upper:
             if np.isfinite(value):
                 bounds[kept] = value
                 kept += 1
