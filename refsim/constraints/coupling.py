@@ -34,7 +34,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from refsim.constraints.friction import friction_gaps, friction_rows
-from refsim.constraints.insertion import axial_offsets, point_row_metadata
+from refsim.constraints.insertion import (
+    InsertionOptions,
+    _friction_of,
+    axial_offsets,
+    point_row_metadata,
+    shaft_friction_coefficients,
+)
 from refsim.constraints.needle_geometry import needle_rows
 from refsim.constraints.rows import (
     BILATERAL,
@@ -473,8 +479,9 @@ def ring_insertion_block(
     geometry: StepGeometry,
     rings: RingLayout,
     *,
-    friction_coefficient: float | np.ndarray,
+    friction_coefficient: float | np.ndarray | None = None,
     normal_preload: np.ndarray | float = 0.0,
+    options: InsertionOptions | None = None,
 ) -> RowBlock:
     """Rows of the insertion points, each averaging the tissue over its ring (see module docstring).
 
@@ -490,10 +497,14 @@ def ring_insertion_block(
     geometry : The step's geometry.
     rings : Their rings (:meth:`RingLayout.around`), q points each, q even or 1.
     friction_coefficient : μ_i ≥ 0, scalar or one per point, shape (p,) (static or dynamic,
-        :func:`shaft_friction_coefficients`); the friction rows exist when any is > 0.
+        :func:`shaft_friction_coefficients`); the friction rows exist when any is > 0. None: from
+        ``options``.
+    options : The scene's ``[insertion]`` keys the builders read
+        (:class:`refsim.constraints.insertion.InsertionOptions`).
     normal_preload : Normal force added in each point's Coulomb bound [N], scalar or shape (p,), ≥ 0
         (:func:`grip_preload`).
     """
+    friction_coefficient = _friction_of(path, friction_coefficient, options)
     point_count = path.point_count
     preload = np.broadcast_to(np.asarray(normal_preload, dtype=float), (point_count,))
     if np.any(~np.isfinite(preload)) or np.any(preload < 0.0):
@@ -663,22 +674,6 @@ def grip_preload(
 
 # ------------------------------------------------------------------ friction, tip cutting force, puncture
 # (3–5)
-def shaft_friction_coefficients(stuck: np.ndarray, *, static: float, dynamic: float) -> np.ndarray:
-    """Per-point shaft friction coefficient: μ_s where the point stuck at the last step, μ_d where it slipped.
-
-    Parameters
-    ----------
-    stuck : Whether each point was inside its Coulomb bound at the last solve, bool shape (p,) (new points:
-        True, they start stuck).
-    static, dynamic : μ_s ≥ μ_d ≥ 0.
-    """
-    if not (math.isfinite(static) and math.isfinite(dynamic) and static >= dynamic >= 0.0):
-        raise ValueError(
-            f"friction coefficients static = {static!r}, dynamic = {dynamic!r}; valid: static >= dynamic >= 0"
-        )
-    return np.where(np.asarray(stuck, dtype=bool), static, dynamic)
-
-
 def stuck_points(
     multipliers: np.ndarray,
     bounds: np.ndarray,

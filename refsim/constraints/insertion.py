@@ -10,6 +10,8 @@ a centreline model does not see (our extension; with a zero preload this is the 
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
@@ -37,9 +39,11 @@ if TYPE_CHECKING:  # coupling.py builds on this module
     from refsim.constraints.coupling import RingLayout
 
 __all__ = [
+    "InsertionOptions",
     "InsertionPath",
     "PointRings",
     "insertion_block",
+    "shaft_friction_coefficients",
     "grow_path",
     "points_beyond_tip",
     "point_row_metadata",
@@ -225,17 +229,73 @@ def axial_offsets(path: InsertionPath, geometry: StepGeometry, arc_lengths, tiss
     )
 
 
+def shaft_friction_coefficients(stuck: np.ndarray, *, static: float, dynamic: float) -> np.ndarray:
+    """Per-point shaft friction coefficient: μ_s where the point stuck at the last step, μ_d where it slipped.
+
+    Parameters
+    ----------
+    stuck : Whether each point was inside its Coulomb bound at the last solve, bool shape (p,) (new points:
+        True, they start stuck).
+    static, dynamic : μ_s ≥ μ_d ≥ 0.
+    """
+    if not (math.isfinite(static) and math.isfinite(dynamic) and static >= dynamic >= 0.0):
+        raise ValueError(
+            f"friction coefficients static = {static!r}, dynamic = {dynamic!r}; valid: static >= dynamic >= 0"
+        )
+    return np.where(np.asarray(stuck, dtype=bool), static, dynamic)
+
+
+@dataclass(frozen=True)
+class InsertionOptions:
+    """The scene's ``[insertion]`` keys the insertion row builders read (:func:`insertion_block`,
+    :func:`refsim.constraints.coupling.ring_insertion_block`), as one typed object built from the section by
+    its field names (:meth:`from_section`): a key a builder reads is a field of the scene's section
+    (``refsim.scene.spec.InsertionSpec``), a field of the same name here and the code that reads it; the
+    detector passes the object as it is.
+
+    Attributes
+    ----------
+    static_friction_coefficient : μ_s of a point that stuck at the last solve [-].
+    shaft_friction_coefficient : μ_i (dynamic) of a point that slipped [-].
+    """
+
+    static_friction_coefficient: float = 0.0
+    shaft_friction_coefficient: float = 0.0
+
+    @classmethod
+    def from_section(cls, section) -> InsertionOptions:
+        """The options from a scene section (any object with attributes of the options' field names)."""
+        return cls(**{field.name: getattr(section, field.name) for field in dataclasses.fields(cls)})
+
+    def friction(self, path: InsertionPath) -> np.ndarray:
+        """μ of each point of ``path``: μ_s where it stuck at the last solve, μ_i where it slipped, (p,)."""
+        return shaft_friction_coefficients(
+            path.stuck, static=self.static_friction_coefficient, dynamic=self.shaft_friction_coefficient
+        )
+
+
+def _friction_of(path: InsertionPath, friction_coefficient, options: InsertionOptions | None):
+    """The builders' μ_i: ``friction_coefficient`` when given, else the options' per-point value."""
+    if friction_coefficient is not None:
+        return friction_coefficient
+    if options is None:
+        raise TypeError("give friction_coefficient or options (InsertionOptions)")
+    return options.friction(path)
+
+
 def insertion_block(
     path: InsertionPath,
     geometry: StepGeometry,
     *,
-    friction_coefficient: float | np.ndarray,
+    friction_coefficient: float | np.ndarray | None = None,
     normal_preload: float = 0.0,
+    options: InsertionOptions | None = None,
 ) -> RowBlock:
     """Rows of the insertion points: per point two bilateral rows and, when μ_i > 0, one shaft friction row.
 
     ``friction_coefficient``: μ_i, a scalar or one per point, shape (p,) (static or dynamic,
-    :func:`refsim.constraints.coupling.shaft_friction_coefficients`); the friction rows exist when any is > 0.
+    :func:`shaft_friction_coefficients`); the friction rows exist when any is > 0. None: from ``options``
+    (:meth:`InsertionOptions.friction`), the scene's ``[insertion]`` keys.
 
     ``normal_preload`` [N] (≥ 0, finite) is added to the norm of each point's two lateral forces in its
     Coulomb bound: μ_i (‖(λ_b1, λ_b2)‖ + normal_preload); the scene sets it to shaft_normal_force × d_i.
@@ -248,6 +308,7 @@ def insertion_block(
     """
     if not (np.isfinite(normal_preload) and normal_preload >= 0.0):
         raise ValueError(f"normal_preload = {normal_preload!r} N; valid range [0, inf)")
+    friction_coefficient = _friction_of(path, friction_coefficient, options)
     point_count = path.point_count
     nodes = geometry.mesh_tets[path.tets]
     weights = path.barycentric

@@ -8,9 +8,12 @@
   points, a first surface reaching d_t beyond the path, and tears of d_t along ĉ when a front row's force
   reaches f_t.
 
-A law holds its own parameters (the scene keys of ``CuttingLaw.keys``) and answers every question the
-detection and the events ask of the cut; nothing outside this module compares a law's name. The scene builds
-the law (`refsim.scene.spec.CuttingSpec.cutting_law`), and only the chosen law's keys may be set.
+A law holds its own parameters and answers every question the detection and the events ask of the cut;
+nothing outside this module compares a law's name. Each parameter is a dataclass field declared with
+:func:`law_key` (default, unit, valid range, meaning): it is a scene key of ``[cutting]``
+(``CuttingLaw.keys``), and the scene's ``CuttingSpec`` has one field per declared key, generated from these
+declarations. The scene builds the law (`refsim.scene.spec.CuttingSpec.cutting_law`), and only the chosen
+law's keys may be set.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ __all__ = [
     "FrontPush",
     "PaperLaw",
     "column_mean",
+    "law_key",
     "law_of_key",
     "swept_direction",
 ]
@@ -41,6 +45,23 @@ __all__ = [
 #: Relative tolerance of "a row at its force limit" for the crack front's rows (G_c ℓ_k) and the sliding rows
 #: at the front: a row that gave way carries its limit to the solve's accuracy (≤ 1e-8), far inside 1e-6.
 LIMIT_TOLERANCE = 1e-6
+
+
+def law_key(
+    default: float,
+    *,
+    unit: str,
+    doc: str,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    high_open: bool = False,
+):
+    """A law parameter: a dataclass field declaring its scene key of ``[cutting]`` (default, unit, the valid
+    range low..high, open or closed at each end, and a one-line meaning); the scene validates the chosen
+    law's keys from these (the metadata of ``refsim.scene.fields.spec``)."""
+    metadata = dict(unit=unit, doc=doc, low=low, high=high, low_open=low_open, high_open=high_open)
+    return dataclasses.field(default=default, metadata=metadata)
 
 
 @dataclass(frozen=True)
@@ -127,7 +148,8 @@ class CuttingLaw:
     Class attributes
     ----------------
     name : The law's name (the value of ``cutting.law``).
-    keys : The scene keys of ``[cutting]`` that belong to this law only (its parameters).
+    keys : The scene keys of ``[cutting]`` that belong to this law only: its dataclass fields, each declared
+        by :func:`law_key` (set when the law is listed in :data:`CUTTING_LAWS`).
     excludes_entry_point : Whether the cut-start load leaves out the entry point's rows (at the free surface
         they also carry the surface's reaction to an oblique entry, a load no shaft cuts with).
     rows_while_cutting : Whether the path's points keep their insertion rows while cutting.
@@ -192,13 +214,19 @@ class EnergyLaw(CuttingLaw):
     """
 
     name: ClassVar[str] = "energy"
-    keys: ClassVar[tuple[str, ...]] = ("fracture_energy",)
     excludes_entry_point: ClassVar[bool] = True
     rows_while_cutting: ClassVar[bool] = False
     extends_down_shaft: ClassVar[bool] = True
     cut_start_unit: ClassVar[str] = "N/m"
 
-    fracture_energy: float = 200.0
+    fracture_energy: float = law_key(
+        200.0,
+        unit="J/m^2",
+        doc="G_c: energy per unit area of new cut, the lateral force per unit length of needle that cuts "
+        "(liver about 76–225 J/m², Azar and Hayward 2008)",
+        low=0.0,
+        low_open=True,
+    )
 
     @property
     def front_strength(self) -> float:
@@ -361,15 +389,32 @@ class PaperLaw(CuttingLaw):
     """
 
     name: ClassVar[str] = "paper"
-    keys: ClassVar[tuple[str, ...]] = ("cutting_force", "tearing_force", "extent")
     excludes_entry_point: ClassVar[bool] = False
     rows_while_cutting: ClassVar[bool] = True
     extends_down_shaft: ClassVar[bool] = False
     cut_start_unit: ClassVar[str] = "N"
 
-    cutting_force: float = 1.0
-    tearing_force: float = 1.0
-    extent: float = 1e-3
+    cutting_force: float = law_key(
+        1.0,
+        unit="N",
+        doc="f_c: mean lateral force per insertion constraint that starts the cut (default: the paper's "
+        "value)",
+        low=0.0,
+    )
+    tearing_force: float = law_key(
+        1.0,
+        unit="N",
+        doc="f_t: front row force that extends the cut by d_t (default: the paper's value)",
+        low=0.0,
+    )
+    extent: float = law_key(
+        1e-3,
+        unit="m",
+        doc="d_t: extent of the first cut surface beyond the path, and of each tear (the paper gives no "
+        "value)",
+        low=0.0,
+        low_open=True,
+    )
 
     @property
     def front_strength(self) -> float:
@@ -417,8 +462,16 @@ class PaperLaw(CuttingLaw):
         return FrontGrowth(cut, strip, push.direction, strongest)
 
 
+def _listed(*laws: type[CuttingLaw]) -> dict[str, type[CuttingLaw]]:
+    """The laws by name, each with ``keys``: its declared parameters (fields with :func:`law_key`
+    metadata)."""
+    for law in laws:
+        law.keys = tuple(field.name for field in dataclasses.fields(law) if "doc" in field.metadata)
+    return {law.name: law for law in laws}
+
+
 #: The laws by name (the choices of ``cutting.law``).
-CUTTING_LAWS: dict[str, type[CuttingLaw]] = {law.name: law for law in (EnergyLaw, PaperLaw)}
+CUTTING_LAWS: dict[str, type[CuttingLaw]] = _listed(EnergyLaw, PaperLaw)
 
 
 def law_of_key(key: str) -> str | None:

@@ -108,10 +108,13 @@ class Results:
     complete : False when the run was interrupted.
     rest_positions : Tissue rest positions [m], (n, 3). tets : (m, 4). faces : boundary triangles, (f, 3).
     fixed_nodes : Clamped tissue nodes, (c,). needle_rest_nodes : Needle nodes at t = 0 [m], (k, 3).
-    step : Step indices, (s,). time : [s], (s,). phase : phase codes into ``phase_names``, (s,).
-    base_position : [m], (s, 3). needle_positions : [m], (s, k, 3). needle_frames : (s, k, 3, 3).
-    needle_force : Force of the tissue on the needle [N], (s, 3).
-    insertion_point_count, cut_point_count, cut_triangle_count : (s,). triangulation_seconds : [s], (s,).
+    step : Step indices, (s,). time : [s], (s,).
+    quantities : The first instrument's step quantities, by name: one per row of
+        :data:`refsim.io.schema.INSTRUMENT_STEP_QUANTITIES`, (s,) + its shape, each also an attribute of
+        its name: phase (codes into ``phase_names``), (s,); base_position [m], (s, 3); needle_positions
+        [m], (s, k, 3); needle_frames (s, k, 3, 3); needle_force, the force of the tissue on the needle [N],
+        (s, 3); insertion_point_count (s,).
+    cut_point_count, cut_triangle_count : (s,). triangulation_seconds : [s], (s,).
     stage_seconds : Seconds of each stage, name -> (s,).
     solver : Solver report arrays: iterations (s,) (-1 no solve), residual (s,) (NaN), converged (s,) int8
         (1, 0, -1 no solve), seconds [s], increment [m], name, message.
@@ -129,8 +132,8 @@ class Results:
     boundary_displacement : Their prescribed displacement from rest after each step [m], (s, b, 3).
     trajectory_samples : The base trajectory the run used: t [s], x, y, z [m], dx, dy, dz, (w, 7).
     instrument_names : The instruments, in the scene's order (one-needle files: ("needle",)). The needle
-        fields above (needle_rest_nodes, phase, base_position, needle_positions, needle_frames, needle_force,
-        insertion_point_count, events, trajectory_samples) are the first instrument's; :meth:`instrument`
+        fields above (needle_rest_nodes, the step quantities, events, criteria, trajectory_samples) are the
+        first instrument's; :meth:`instrument`
         gives each one's view, :attr:`instruments` all of them.
     constraint_instrument : The instrument of each row, index into ``instrument_names``, (R,).
     further : Each further instrument's needle fields, by name (read through :meth:`instrument`).
@@ -147,12 +150,6 @@ class Results:
     needle_rest_nodes: np.ndarray
     step: np.ndarray
     time: np.ndarray
-    phase: np.ndarray
-    base_position: np.ndarray
-    needle_positions: np.ndarray
-    needle_frames: np.ndarray
-    needle_force: np.ndarray
-    insertion_point_count: np.ndarray
     cut_point_count: np.ndarray
     cut_triangle_count: np.ndarray
     triangulation_seconds: np.ndarray
@@ -181,6 +178,14 @@ class Results:
     instrument_names: tuple = ("needle",)
     constraint_instrument: np.ndarray | None = None
     further: dict = field(default_factory=dict)
+    quantities: dict = field(default_factory=dict)
+
+    def __getattr__(self, name: str):
+        # called only for names that are not fields: the step quantities by name (results.needle_force)
+        quantities = self.__dict__.get("quantities")
+        if quantities is not None and name in quantities:
+            return quantities[name]
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     def instrument(self, name: str) -> Results:
         """The run seen from one instrument: its needle fields in place of the first one's (tissue,
@@ -502,12 +507,7 @@ def read_results(path) -> Results:
             needle_rest_nodes=_read(handle, schema.STATIC["needle/rest_nodes"].path),
             step=steps["step"],
             time=steps["time"],
-            phase=steps["phase"].astype(np.int64),
-            base_position=steps["base_position"],
-            needle_positions=steps["needle_positions"],
-            needle_frames=steps["needle_frames"],
-            needle_force=steps["needle_force"],
-            insertion_point_count=steps["insertion_point_count"],
+            quantities=_quantities(steps),
             cut_point_count=steps["cut_point_count"],
             cut_triangle_count=steps["cut_triangle_count"],
             triangulation_seconds=steps["triangulation_seconds"],
@@ -558,27 +558,28 @@ def _read_instruments(handle, path: Path, attributes: dict, count: int, last_ste
     further = {}
     for name, location in listed[1:]:
         steps = {
-            key: _read(handle, f"{location}/{schema.STEPS[key].path}", count)
-            for key in (
-                "phase",
-                "base_position",
-                "needle_positions",
-                "needle_frames",
-                "needle_force",
-                "insertion_point_count",
-            )
+            quantity.name: _read(handle, f"{location}/{schema.STEPS[quantity.name].path}", count)
+            for quantity in schema.INSTRUMENT_STEP_QUANTITIES
         }
         for spec in schema.INSTRUMENT_DATASETS.values():
             _require(handle, path, f"{location}/{spec.path}")
-        steps["phase"] = steps["phase"].astype(np.int64)
         further[name] = {
-            **steps,
+            "quantities": _quantities(steps),
             "events": _read_events(handle, last_step, law, location=location),
             "criteria": _read_criteria(handle, last_step, location=location),
             "needle_rest_nodes": _read(handle, f"{location}/{schema.STATIC['needle/rest_nodes'].path}"),
             "trajectory_samples": _read(handle, f"{location}/{schema.STATIC['trajectory/samples'].path}"),
         }
     return tuple(name for name, _ in listed), further
+
+
+def _quantities(steps: dict) -> dict:
+    """The step quantities of :data:`~refsim.io.schema.INSTRUMENT_STEP_QUANTITIES` from the read ``steps``
+    arrays, by name (coded ones as int64 codes)."""
+    return {
+        quantity.name: steps[quantity.name].astype(np.int64) if quantity.codes else steps[quantity.name]
+        for quantity in schema.INSTRUMENT_STEP_QUANTITIES
+    }
 
 
 def _scene_of(path: Path, attributes: dict) -> dict:

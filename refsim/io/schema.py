@@ -34,6 +34,8 @@ __all__ = [
     "CUT",
     "INSTRUMENTS_GROUP",
     "INSTRUMENT_DATASETS",
+    "INSTRUMENT_STEP_QUANTITIES",
+    "StepQuantity",
     "instrument_location",
     "PROBLEM_FIELDS",
     "PROBLEMS_GROUP",
@@ -147,24 +149,78 @@ STATIC = _specs(
     growing=False,
 )
 
+
+@dataclass(frozen=True)
+class StepQuantity:
+    """One quantity every instrument records each step: the dataset ``steps/<name>`` (a further instrument's
+    under its location, :data:`INSTRUMENT_DATASETS`), the ``Results`` attribute ``<name>`` ((s,) + shape) and
+    the attribute of ``refsim.simulation.records.InstrumentRecord`` it is written from (which
+    ``StepRecord`` reads from its first instrument). Writer, reader and the instrument datasets loop over
+    :data:`INSTRUMENT_STEP_QUANTITIES`.
+
+    Attributes
+    ----------
+    name : Dataset name under ``steps/`` and the ``Results`` attribute.
+    unit, dtype, entry_shape, meaning : As in :class:`DatasetSpec` ("k": the instrument's needle nodes).
+    attribute : The ``InstrumentRecord`` attribute holding the step's value.
+    codes : For a coded quantity, the names its integer codes index (its dataset's attribute ``names``); the
+        record holds the name, the file and ``Results`` the code.
+    """
+
+    name: str
+    unit: str
+    dtype: str
+    entry_shape: tuple
+    meaning: str
+    attribute: str
+    codes: tuple = ()
+
+    def row(self) -> tuple:
+        """(name, unit, dtype, entry_shape, meaning): its row of :data:`STEPS`."""
+        return (self.name, self.unit, self.dtype, self.entry_shape, self.meaning)
+
+
+#: The per-instrument step quantities, in the order of their datasets in ``steps/``.
+INSTRUMENT_STEP_QUANTITIES = (
+    StepQuantity(
+        "phase",
+        "1",
+        "int8",
+        (),
+        "phase after the step's events; code into the attribute `names`",
+        "phase",
+        PHASE_NAMES,
+    ),
+    StepQuantity("base_position", "m", "float64", (3,), "needle base position", "base_position"),
+    StepQuantity("needle_positions", "m", "float64", ("k", 3), "needle node positions", "needle_positions"),
+    StepQuantity(
+        "needle_frames",
+        "1",
+        "float64",
+        ("k", 3, 3),
+        "needle node frames (rotation matrices)",
+        "needle_frames",
+    ),
+    StepQuantity(
+        "needle_force",
+        "N",
+        "float64",
+        (3,),
+        "force of the tissue on the needle, sum of multiplier x direction",
+        "needle_force",
+    ),
+    StepQuantity(
+        "insertion_point_count", "1", "int64", (), "insertion points after the step", "insertion_point_count"
+    ),
+)
+
 #: One entry per step.
 STEPS = _specs(
     "steps",
     [
         ("step", "1", "int64", (), "step index, from 1"),
         ("time", "s", "float64", (), "time at the end of the step"),
-        ("phase", "1", "int8", (), "phase after the step's events; code into the attribute `names`"),
-        ("base_position", "m", "float64", (3,), "needle base position"),
-        ("needle_positions", "m", "float64", ("k", 3), "needle node positions"),
-        ("needle_frames", "1", "float64", ("k", 3, 3), "needle node frames (rotation matrices)"),
-        (
-            "needle_force",
-            "N",
-            "float64",
-            (3,),
-            "force of the tissue on the needle, sum of multiplier x direction",
-        ),
-        ("insertion_point_count", "1", "int64", (), "insertion points after the step"),
+        *(quantity.row() for quantity in INSTRUMENT_STEP_QUANTITIES),
         ("cut_point_count", "1", "int64", (), "cut surface points after the step"),
         ("cut_triangle_count", "1", "int64", (), "cut surface triangles after the step"),
         ("triangulation_seconds", "s", "float64", (), "wall-clock time of the cut triangulation in the step"),
@@ -468,17 +524,7 @@ INSTRUMENTS_GROUP = "instruments"
 INSTRUMENT_DATASETS = {
     spec.path: spec
     for spec in (
-        *(
-            STEPS[name]
-            for name in (
-                "phase",
-                "base_position",
-                "needle_positions",
-                "needle_frames",
-                "needle_force",
-                "insertion_point_count",
-            )
-        ),
+        *(STEPS[quantity.name] for quantity in INSTRUMENT_STEP_QUANTITIES),
         *EVENTS.values(),
         *CRITERIA.values(),
         STATIC["trajectory/samples"],

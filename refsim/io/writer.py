@@ -367,8 +367,13 @@ class ResultWriter:
             for spec in schema.INSTRUMENT_DATASETS.values():
                 if spec.growing:
                     self._create_growing(_located(spec, location), k=self._sizes[f"k:{location}"])
-            self._datasets[f"{location}/steps/phase"].attrs["names"] = list(schema.PHASE_NAMES)
-        self._datasets["steps/phase"].attrs["names"] = list(schema.PHASE_NAMES)
+        for quantity in schema.INSTRUMENT_STEP_QUANTITIES:  # coded quantities name their codes
+            if quantity.codes:
+                path = schema.STEPS[quantity.name].path
+                for location in ("", *(location for _, location, _ in self._further)):
+                    self._datasets[f"{location}/{path}" if location else path].attrs["names"] = list(
+                        quantity.codes
+                    )
         self._datasets["steps/stage_seconds"].attrs["names"] = list(self._stages)
         self._set_code_names()
         self._append("constraints/offsets", np.zeros(1, dtype=np.int64))
@@ -538,22 +543,22 @@ class ResultWriter:
         return values
 
     def _needle_arrays(self, part, k: int, step: int) -> dict:
-        """One instrument's per-step needle arrays (``part``: a record or an instrument's record), by the
-        one-needle paths."""
-        if part.phase not in schema.PHASE_NAMES:
-            raise ValueError(
-                f"{self.path}: step {step} has phase {part.phase!r}; "
-                f"the results schema knows {', '.join(schema.PHASE_NAMES)}"
-            )
-        values = {
-            "phase": np.array([schema.PHASE_NAMES.index(part.phase)], dtype=np.int8),
-            "base_position": self._check_shape("base_position", part.base_position, (3,))[None],
-            "needle_positions": self._check_shape("needle_positions", part.needle_positions, (k, 3))[None],
-            "needle_frames": self._check_shape("needle_frames", part.needle_frames, (k, 3, 3))[None],
-            "needle_force": self._check_shape("needle_force", part.needle_force, (3,))[None],
-            "insertion_point_count": np.array([part.insertion_point_count], dtype=np.int64),
-        }
-        return {schema.STEPS[name].path: value for name, value in values.items()}
+        """One instrument's per-step arrays (``part``: its ``InstrumentRecord``), by the one-needle paths:
+        each quantity of :data:`~refsim.io.schema.INSTRUMENT_STEP_QUANTITIES` from its record attribute."""
+        values = {}
+        for quantity in schema.INSTRUMENT_STEP_QUANTITIES:
+            value = getattr(part, quantity.attribute)
+            if quantity.codes:
+                if value not in quantity.codes:
+                    raise ValueError(
+                        f"{self.path}: step {step} has {quantity.attribute} {value!r}; "
+                        f"the results schema knows {', '.join(quantity.codes)}"
+                    )
+                value = quantity.codes.index(value)
+            shape = tuple(k if size == "k" else size for size in quantity.entry_shape)
+            array = self._check_shape(quantity.attribute, value, shape, dtype=np.dtype(quantity.dtype))
+            values[schema.STEPS[quantity.name].path] = array[None]
+        return values
 
     @staticmethod
     def _event_values(events, record) -> dict:
@@ -864,7 +869,7 @@ class ResultWriter:
                 f"{self.path}: step {record.step} times unknown stages {sorted(unknown)}; "
                 f"stages are {', '.join(self._stages)}"
             )
-        needle = self._needle_arrays(record, self._sizes["k"], record.step)
+        needle = self._needle_arrays(record.instruments[0], self._sizes["k"], record.step)
         values = {
             "step": np.array([record.step], dtype=np.int64),
             "time": np.array([record.time], dtype=np.float64),

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, ClassVar, Protocol
 
 import numpy as np
 
-from refsim.scene.fields import FieldError
+from refsim.scene.fields import FieldError, spec
 
 if TYPE_CHECKING:  # the scene's spec reads BOUNDARY_MOTIONS, and trajectory.py imports the spec
     from refsim.scene.trajectory import Trajectory
@@ -35,8 +35,10 @@ class BoundaryMotion(Protocol):
     """Prescribed displacement from the rest position of chosen tissue nodes.
 
     A motion a scene can choose also has ``name`` (the value of ``boundary.motion``), ``keys`` (the keys of
-    ``[boundary]`` it reads beyond the node selection) and ``from_section(section, nodes, base_directory)``,
-    and is listed in :data:`BOUNDARY_MOTIONS`."""
+    ``[boundary]`` it reads beyond the node selection, each declared as name -> (annotation, field of
+    ``refsim.scene.fields.spec``): the scene's ``BoundarySpec`` has a field generated from each, and a key
+    several motions read is declared once and the same field object listed by each) and
+    ``from_section(section, nodes, base_directory)``, and is listed in :data:`BOUNDARY_MOTIONS`."""
 
     nodes: np.ndarray
 
@@ -77,7 +79,46 @@ class PeriodicBoundaryMotion:
     """
 
     name: ClassVar[str] = "periodic"
-    keys: ClassVar[tuple[str, ...]] = ("amplitude", "period", "exponent", "phase")
+    #: The ``[boundary]`` keys it reads: name -> (annotation, field with its default, unit, range, meaning).
+    keys: ClassVar[dict] = {
+        "amplitude": (
+            "tuple",
+            spec(
+                (0.0, 0.0, 0.0),
+                unit="m",
+                doc="a: the displacement at the peak of a periodic motion (also at most the tissue's size, "
+                "checked with the mesh)",
+                low=-1e3,
+                high=1e3,
+                length=3,
+            ),
+        ),
+        "period": (
+            "float",
+            spec(
+                4.0,
+                unit="s",
+                doc="T: period of a periodic motion (breathing: about 4 s)",
+                low=0.0,
+                low_open=True,
+            ),
+        ),
+        "exponent": (
+            "int",
+            spec(
+                1,
+                unit="-",
+                doc="n of cos^{2n}: 1 a sine squared, larger for a longer exhale plateau",
+                low=1,
+                high=10,
+                integer=True,
+            ),
+        ),
+        "phase": (
+            "float",
+            spec(0.0, unit="rad", doc="φ: phase of a periodic motion", low=-10.0, high=10.0),
+        ),
+    }
 
     nodes: np.ndarray
     amplitude: np.ndarray
@@ -141,7 +182,17 @@ class SampledBoundaryMotion:
     """
 
     name: ClassVar[str] = "file"
-    keys: ClassVar[tuple[str, ...]] = ("file",)
+    #: The ``[boundary]`` keys it reads: name -> (annotation, field with its default, unit, range, meaning).
+    keys: ClassVar[dict] = {
+        "file": (
+            "str | None",
+            spec(
+                None,
+                doc="CSV of displacement samples (t, dx, dy, dz [s, m]), relative to the scene file; '#' "
+                "comments and a header allowed",
+            ),
+        ),
+    }
 
     nodes: np.ndarray
     times: np.ndarray

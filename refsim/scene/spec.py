@@ -540,8 +540,42 @@ class InsertionSpec(_Validated):
         return self.shaft_static_friction_coefficient or self.shaft_friction_coefficient
 
 
+def _declared_section(base: type, declared: list[tuple[str, str, dataclasses.Field]]) -> type:
+    """The section's dataclass: ``base`` (named ``_Name``) with one field per key its choices declare
+    ``(name, annotation, field with spec metadata)``, named ``Name``; a key declared twice (a key several
+    choices read) must be the same declaration."""
+    fields: dict[str, tuple[str, str, dataclasses.Field]] = {}
+    for name, annotation, field in declared:
+        if name in fields and fields[name][2] is not field:
+            raise TypeError(f"{base.__name__}: the key {name!r} is declared twice, differently")
+        fields.setdefault(name, (name, annotation, field))
+    section = dataclasses.make_dataclass(
+        base.__name__.lstrip("_"),
+        list(fields.values()),
+        bases=(base,),
+        frozen=True,
+        kw_only=True,
+        namespace={"__module__": base.__module__, "__doc__": base.__doc__},
+    )
+    section.__qualname__ = section.__name__
+    return section
+
+
+def _cutting_law_keys() -> list[tuple[str, str, dataclasses.Field]]:
+    """One ``[cutting]`` field per key a cutting law declares (``refsim.cutting.laws.law_key``): unset (none)
+    by default, its range and unit from the declaration; the chosen law's left-out keys take its defaults."""
+    declared = []
+    for name, law in CUTTING_LAWS.items():
+        for field in dataclasses.fields(law):
+            if field.name in law.keys:
+                meta = dict(field.metadata)
+                doc = f"{meta.pop('doc')}; {name} law only"
+                declared.append((field.name, f"{field.type} | None", spec(None, doc=doc, **meta)))
+    return declared
+
+
 @dataclass(frozen=True, kw_only=True)
-class CuttingSpec(_Validated):
+class _CuttingSpec(_Validated):
     """Laceration (paper, section 4): cut law, criteria and cut surface resolution.
 
     The law (`refsim.cutting.laws`) holds its own keys: `fracture_energy` belongs to the energy law,
@@ -557,14 +591,6 @@ class CuttingSpec(_Validated):
         "insertion point, tears of d_t at a front row force f_t)",
         choices=tuple(CUTTING_LAWS),
     )
-    fracture_energy: float | None = spec(
-        None,
-        unit="J/m^2",
-        doc="G_c: energy per unit area of new cut, the lateral force per unit length of needle that cuts "
-        "(liver about 76–225 J/m², Azar and Hayward 2008); energy law only",
-        low=0.0,
-        low_open=True,
-    )
     friction_coefficient: float = spec(
         0.0,
         unit="-",
@@ -572,29 +598,8 @@ class CuttingSpec(_Validated):
         low=0.0,
         high=10.0,
     )
-    cutting_force: float | None = spec(
-        None,
-        unit="N",
-        doc="f_c: mean lateral force per insertion constraint that starts the cut; paper law only "
-        "(default: the paper's value)",
-        low=0.0,
-    )
-    tearing_force: float | None = spec(
-        None,
-        unit="N",
-        doc="f_t: front row force that extends the cut by d_t; paper law only (default: the paper's value)",
-        low=0.0,
-    )
     point_spacing: float = spec(
         unit="m", doc="d_c: distance between points of the cut surface", low=0.0, low_open=True
-    )
-    extent: float | None = spec(
-        None,
-        unit="m",
-        doc="d_t: extent of the first cut surface beyond the path, and of each tear; paper law only "
-        "(the paper gives no value)",
-        low=0.0,
-        low_open=True,
     )
 
     def validate(self) -> None:
@@ -623,6 +628,10 @@ class CuttingSpec(_Validated):
         """The chosen law with its parameters (`refsim.cutting.laws`)."""
         law = CUTTING_LAWS[self.law]
         return law(**{key: getattr(self, key) for key in law.keys})
+
+
+#: ``[cutting]``: the common keys, then each law's own keys, generated from the laws' declarations.
+CuttingSpec = _declared_section(_CuttingSpec, _cutting_law_keys())
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -711,7 +720,7 @@ class ComplianceSpec(_Validated):
 
 
 @dataclass(frozen=True, kw_only=True)
-class BoundarySpec(_Validated):
+class _BoundarySpec(_Validated):
     """A tissue boundary motion (breathing, a moving support): chosen nodes follow a prescribed displacement;
     optional section."""
 
@@ -734,36 +743,11 @@ class BoundarySpec(_Validated):
     patch_distance: float = spec(
         0.0, unit="m", doc="distance of a surface patch from its point or plane", low=0.0
     )
-    amplitude: tuple = spec(
-        (0.0, 0.0, 0.0),
-        unit="m",
-        doc="a: the displacement at the peak of a periodic motion (also at most the tissue's size, checked "
-        "with the mesh)",
-        low=-1e3,
-        high=1e3,
-        length=3,
-    )
-    period: float = spec(
-        4.0, unit="s", doc="T: period of a periodic motion (breathing: about 4 s)", low=0.0, low_open=True
-    )
-    exponent: int = spec(
-        1,
-        unit="-",
-        doc="n of cos^{2n}: 1 a sine squared, larger for a longer exhale plateau",
-        low=1,
-        high=10,
-        integer=True,
-    )
-    phase: float = spec(0.0, unit="rad", doc="φ: phase of a periodic motion", low=-10.0, high=10.0)
-    file: str | None = spec(
-        None,
-        doc="CSV of displacement samples (t, dx, dy, dz [s, m]), relative to the scene file; '#' comments "
-        "and a header allowed",
-    )
 
     #: The keys each motion reads beyond the node selection (nodes, box, patch_point, patch_plane,
-    #: patch_distance, which every motion but none reads).
-    MOTION_KEYS = {"none": ()} | {name: motion.keys for name, motion in BOUNDARY_MOTIONS.items()}
+    #: patch_distance, which every motion but none reads): the keys it declares (``keys``), each a field of
+    #: the section generated from that declaration.
+    MOTION_KEYS = {"none": ()} | {name: tuple(motion.keys) for name, motion in BOUNDARY_MOTIONS.items()}
     SELECTION_KEYS = ("nodes", "box", "patch_point", "patch_plane", "patch_distance")
 
     def validate(self) -> None:
@@ -824,6 +808,18 @@ SOLE_INSTRUMENT = "needle"
 #: (refsim.io.xdmf names each instrument's needle collection by the instrument).
 RESERVED_NAMES = ("tissue", "cut")
 _NAME_CHARACTERS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-")
+
+
+#: ``[boundary]``: the node selection, then each motion's keys, generated from the motions' declarations
+#: (``keys`` of each class of ``BOUNDARY_MOTIONS``: name -> (annotation, field)).
+BoundarySpec = _declared_section(
+    _BoundarySpec,
+    [
+        (name, annotation, field)
+        for motion in BOUNDARY_MOTIONS.values()
+        for name, (annotation, field) in motion.keys.items()
+    ],
+)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -34,12 +34,11 @@ from refsim.constraints.coupling import (
     ring_insertion_block,
     ring_weights,
     shaft_contact_block,
-    shaft_friction_coefficients,
     subgrid_compliance,
     tip_cutting_block,
 )
 from refsim.constraints.cut import FrontRows, inserted_arc, strip_cut_block
-from refsim.constraints.insertion import InsertionPath, PointRings
+from refsim.constraints.insertion import InsertionOptions, InsertionPath, PointRings
 from refsim.geometry import SurfaceProjector, TetLocator
 from refsim.scene import Scene
 from refsim.simulation.state import InstrumentState, Phase, SimulationState
@@ -97,6 +96,7 @@ class Detector:
         needle = scene.needle if needle is None else needle
         cuts = scene.cutting.enabled if cuts is None else cuts
         self.insertion = scene.insertion
+        self.options = InsertionOptions.from_section(scene.insertion)  # what the row builders read
         self.cutting = scene.cutting
         self.law = scene.cutting.cutting_law if cuts else None
         self.faces = faces
@@ -173,20 +173,14 @@ class Detector:
         cuts 2.3 mm of its 5 mm stroke).
         """
         spec = self.insertion
-        # μ_s for the points that stuck at the last solve, μ_i (dynamic) for those that slipped.
-        friction = shaft_friction_coefficients(
-            path.stuck, static=spec.static_friction_coefficient, dynamic=spec.shaft_friction_coefficient
-        )
         if not self.ring:
-            block = insertion_block(
-                path, geometry, friction_coefficient=friction, normal_preload=self.preload
-            )
+            block = insertion_block(path, geometry, normal_preload=self.preload, options=self.options)
             return block, None
         centres_previous = path.positions(geometry.tissue_previous, geometry.mesh_tets)
         arc_lengths, _ = geometry.needle_previous.project(centres_previous)
         rings = self._rings(path, geometry.needle_previous.tangents(arc_lengths), geometry.mesh_tets)
         block = ring_insertion_block(
-            path, geometry, rings.layout, friction_coefficient=friction, normal_preload=self.preload
+            path, geometry, rings.layout, normal_preload=self.preload, options=self.options
         )
         # With finite_line, the 3-D sub-grid compliance of the inserted line, which starts at the free
         # surface.

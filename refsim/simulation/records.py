@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -62,30 +62,29 @@ class InstrumentRecord:
     criteria: tuple = ()
 
 
+#: The first instrument's fields a StepRecord reads through (every InstrumentRecord field but its name).
+_FIRST_INSTRUMENT_FIELDS = frozenset(name for name in InstrumentRecord.__dataclass_fields__ if name != "name")
+
+
 @dataclass(frozen=True, kw_only=True)
 class StepRecord:
     """One step, as recorded.
 
-    The needle fields (``phase``, ``events``, ``base_position``, ``needle_positions``, ``needle_frames``,
-    ``needle_force``, ``insertion_point_count``) are the first instrument's (the only one's in a
-    one-instrument scene); ``instruments`` holds every instrument's, in the scene's order.
+    Every field of :class:`InstrumentRecord` but its name (``phase``, ``events``, ``base_position``,
+    ``needle_positions``, ``needle_frames``, ``needle_force``, ``insertion_point_count``, ``criteria``, and
+    any field added there) reads as the first instrument's (the only one's in a one-instrument scene):
+    ``record.needle_force`` is ``record.instruments[0].needle_force``. ``instruments`` holds every
+    instrument's, in the scene's order; :meth:`with_first` replaces first-instrument fields.
 
     Attributes
     ----------
     step : Step index, from 1.
     time : Time at the end of the step [s].
-    phase : "approach", "insertion" or "cutting" (after the step's events).
-    events : Events of the step.
-    base_position : Needle base [m], (3,).
-    needle_positions : Needle nodes [m], (k, 3).
-    needle_frames : Needle frames, (k, 3, 3).
     tissue_positions : Tissue nodes [m], (n, 3), or None when not recorded this step.
     row_kind, row_source : Kind (0 bilateral, 1 unilateral, 2 friction) and source of each row, (r,).
     row_points : Tissue-side point of each row [m], (r, 3).
     row_directions : Row directions, (r, 3).
     row_forces : Multipliers λ [N], (r,).
-    needle_force : Force of the tissue on the needle, Σ λ n [N], (3,).
-    insertion_point_count : Insertion points after the step.
     solver : Report of the constraint solve (iterations, residual, converged, seconds, ...), or None.
     stage_seconds : Seconds spent in each stage of STAGES.
     problem : The step's constraint problem when recorded, else None.
@@ -96,27 +95,20 @@ class StepRecord:
     row_role : Role of each row (``refsim.constraints.ROLE_NAMES``), (r,).
     row_point : Insertion point of each row (its index in its instrument's path, the entry is 0), −1 for
         others, (r,).
-    instruments : Every instrument's part of the step, in the scene's order.
+    instruments : Every instrument's part of the step, in the scene's order (at least one).
     row_instrument : The instrument of each row (its index in ``instruments``), (r,).
-    criteria : The first instrument's criteria (its ``InstrumentRecord.criteria``).
     """
 
     step: int
     time: float
-    phase: str
-    events: tuple[Event, ...]
-    base_position: np.ndarray
-    needle_positions: np.ndarray
-    needle_frames: np.ndarray
     tissue_positions: np.ndarray | None
     row_kind: np.ndarray
     row_source: np.ndarray
     row_points: np.ndarray
     row_directions: np.ndarray
     row_forces: np.ndarray
-    needle_force: np.ndarray
-    insertion_point_count: int
     solver: object | None
+    instruments: tuple[InstrumentRecord, ...]
     stage_seconds: dict = field(default_factory=dict)
     problem: object | None = None
     cut_point_count: int = 0
@@ -125,6 +117,17 @@ class StepRecord:
     boundary_displacements: np.ndarray | None = None
     row_role: np.ndarray | None = None
     row_point: np.ndarray | None = None
-    instruments: tuple[InstrumentRecord, ...] = ()
     row_instrument: np.ndarray | None = None
-    criteria: tuple = ()
+
+    def __getattr__(self, name: str):
+        # called only for names that are not fields: the first instrument's fields read through
+        if name in _FIRST_INSTRUMENT_FIELDS:
+            instruments = self.__dict__.get("instruments")
+            if instruments:
+                return getattr(instruments[0], name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    def with_first(self, **changes) -> StepRecord:
+        """The record with fields of its first instrument replaced (``needle_force=...``)."""
+        first = replace(self.instruments[0], **changes)
+        return replace(self, instruments=(first, *self.instruments[1:]))

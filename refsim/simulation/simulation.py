@@ -255,23 +255,15 @@ class Simulation:
         timer.lap("events")
 
         tissue_state = new_state.tissue
-        first = parts[0]
         record = StepRecord(
             step=step,
             time=time,
-            phase=first.phase,
-            events=first.events,
-            base_position=first.base_position,
-            needle_positions=first.needle_positions,
-            needle_frames=first.needle_frames,
             tissue_positions=tissue_state.positions if record_tissue else None,
             row_kind=rows.kind,
             row_source=rows.source,
             row_points=rows.points,
             row_directions=rows.directions,
             row_forces=multipliers,
-            needle_force=first.needle_force,
-            insertion_point_count=first.insertion_point_count,
             solver=report,
             stage_seconds=timer.seconds,
             problem=problem if self.scene.output.record_problems else None,
@@ -283,7 +275,6 @@ class Simulation:
             row_point=rows.points_of_rows,
             instruments=tuple(parts),
             row_instrument=rows.instruments,
-            criteria=first.criteria,
         )
         return new_state, record
 

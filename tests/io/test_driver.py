@@ -145,13 +145,11 @@ def test_singular_factorisation_is_reported_with_exit_3(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("value", [np.nan, np.inf, 1e200])
 def test_non_finite_and_overflowing_values_stop_the_run(tmp_path, monkeypatch, value):
-    import dataclasses
-
     def poisoned(self, state, original, **kwargs):
         new_state, record = original(self, state, **kwargs)
         force = record.needle_force.copy()
         force[0] = value
-        return new_state, dataclasses.replace(record, needle_force=force)
+        return new_state, record.with_first(needle_force=force)
 
     _poisoned_step(monkeypatch, 9, poisoned)
     summary = run_scene(_scene(), tmp_path / "run.h5")

@@ -3,7 +3,6 @@ wrong shapes, bad files and unsupported schema versions (complements test_result
 
 from __future__ import annotations
 
-import dataclasses
 import datetime
 import json
 
@@ -260,7 +259,7 @@ def test_append_rejects_a_record_of_the_wrong_shape(tmp_path, run):
     scene, simulation, _, records = run
     with ResultWriter(tmp_path / "bad.h5", scene, simulation.models) as writer:
         with pytest.raises(ValueError, match="needle_positions has shape"):
-            writer.append(dataclasses.replace(records[0], needle_positions=np.zeros((3, 3))))
+            writer.append(records[0].with_first(needle_positions=np.zeros((3, 3))))
 
 
 def test_bad_files_give_clear_errors(tmp_path):
