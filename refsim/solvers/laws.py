@@ -22,13 +22,16 @@ Laws (codes in this order):
    forms may be used in one problem and are solved as one law.
 4. ``box``: lower ≤ λ ≤ upper with δ = 0 strictly inside, δ ≥ 0 at the lower and δ ≤ 0 at the upper bound.
 
-Adding a law: one entry in :data:`LAWS` (its fields appear in ``ConstraintProblem``, its validation, the
-residual's per-law split and the HDF5 schema), its kernels here, and one branch in each dispatcher
-(:func:`block_arrays` and the ``_block_*`` dispatch functions). The kernels are the one definition of each
-law's mathematics: the vectorised Python forms beside them (the natural map of
-:mod:`refsim.solvers.residual`, the exact solver's bounds and cone-projection Jacobian) are tested against
-them on every law of the table and random inputs (``tests/solvers/test_law_definitions.py``), and so is the
-Jacobian kernel against finite differences of the map.
+Adding a law is this module only: one entry in :data:`LAWS` (its fields appear in ``ConstraintProblem``, its
+validation, the residual's per-law split, the HDF5 schema and the packed argument :func:`law_arrays` of the
+compiled set-up), its vectorised Python forms (``natural_map``, ``bounds``, ``projection`` of its entry: the
+natural map of :mod:`refsim.solvers.residual` and the exact solver's QP bounds and least-squares Newton step
+loop over the table), its blocks in :func:`assemble_blocks` (and its fixed bounds in the data scales'
+:func:`scale_arrays`), and its branch in each compiled kernel (:func:`natural_map_blocks`,
+:func:`gauss_seidel_sweep`, :func:`jacobian_blocks`). The kernels are the one definition of each law's
+mathematics: the Python forms are tested against them on every law of the table and random inputs
+(``tests/solvers/test_law_definitions.py``), and so is the Jacobian kernel against finite differences of the
+map.
 """
 
 from __future__ import annotations

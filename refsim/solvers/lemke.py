@@ -28,6 +28,7 @@ import numpy as np
 import scipy.linalg
 
 from refsim.kernel_cache import numba
+from refsim.solvers.laws import BILATERAL, LAWS, UNILATERAL
 from refsim.solvers.problem import ConstraintProblem
 
 __all__ = ["LemkeResult", "lemke_applicable", "solve_lemke", "solve_lcp_lemke"]
@@ -47,14 +48,10 @@ class LemkeResult:
 
 
 def lemke_applicable(problem: ConstraintProblem) -> bool:
-    """True for problems of bilateral and unilateral rows only (an LCP or an MLCP)."""
-    return (
-        len(problem.contacts) == 0
-        and len(problem.box_rows) == 0
-        and len(problem.shaft_friction) == 0
-        and len(problem.group_friction) == 0
-        and len(problem.unilateral) > 0
-    )
+    """True for problems of bilateral and unilateral rows only, some unilateral (an LCP or an MLCP): no row of
+    any other law of the table."""
+    others = (law for law in LAWS if law.code not in (BILATERAL, UNILATERAL))
+    return len(problem.unilateral) > 0 and not any(len(law.rows_of(problem)) for law in others)
 
 
 @numba.njit(cache=True)

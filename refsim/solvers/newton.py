@@ -199,6 +199,152 @@ def _presweep(
 
 
 @numba.njit(cache=True)
+def _workspace(n, blocks, memory_length, member_count):
+    """The dense Newton kernel's work arrays: every float one a view into one allocation, every int one into
+    another (an allocation costs about 0.1 µs in compiled code, and a small problem needs some thirty of
+    them). Returns (15 vectors (n,): unit (ones), error, scratch, gap, best, candidate, candidate gap,
+    direction, right-hand side, values, reduced right-hand side, sweep point, sweep gap, start, LU output;
+    2 matrices (n, n): Jacobian, work; local and gap factors (blocks, 3, 3); merit memory (memory_length,);
+    bound values (member_count,), zeros; position and active (n,) int64; pivots (n,))."""
+    floats = np.empty(15 * n + 2 * n * n + 18 * blocks + memory_length + member_count)
+    ints = np.empty(2 * n, dtype=np.int64)
+    vectors = floats[: 15 * n].reshape((15, n))
+    vectors[0] = 1.0
+    at = 15 * n
+    matrices = floats[at : at + 2 * n * n].reshape((2, n, n))
+    at += 2 * n * n
+    local = floats[at : at + 9 * blocks].reshape((blocks, 3, 3))
+    gap_factor = floats[at + 9 * blocks : at + 18 * blocks].reshape((blocks, 3, 3))
+    at += 18 * blocks
+    memory = floats[at : at + memory_length]
+    bound_values = floats[at + memory_length :]
+    bound_values[:] = 0.0
+    pivots = np.empty(n, dtype=PIVOT_DTYPE)
+    return vectors, matrices, local, gap_factor, memory, bound_values, ints[:n], ints[n:], pivots
+
+
+@numba.njit(cache=True)
+def _direction(
+    jacobian,
+    rhs,
+    kinds,
+    rows,
+    members,
+    local,
+    gap_factor,
+    bound_values,
+    position,
+    direction,
+    work,
+    values,
+    active,
+    reduced_rhs,
+    pivots,
+    lu_out,
+    limit,
+    unregularised,
+):
+    """The Newton direction d of J d = rhs: the reduced solve (:func:`_reduced_direction_into` into
+    ``direction``), an LU when it fails, and on an exactly singular unregularised J (a zero pivot) the
+    minimum-norm least-squares step. Returns (d, ok: finite and no longer than ``limit``, 1 when the
+    least-squares step was taken else 0).
+
+    A factorised J whose step is absurdly long (nearly singular) goes to the regularised step of the next
+    iteration (an LU, not an SVD). Measured (best of 7, one thread, method="auto", cold): there the
+    least-squares step was rejected as too long as well on Rover1040 / 1041 / 3865 (93-98 -> 65-67 us without
+    it) and did not help GMP6 (2.7 -> 1.1 ms); PD_mlcp, which its least-squares steps answer, has an exactly
+    singular J."""
+    ok = _reduced_direction_into(
+        jacobian,
+        rhs,
+        kinds,
+        rows,
+        members,
+        local,
+        gap_factor,
+        bound_values,
+        position,
+        direction,
+        work,
+        values,
+        active,
+        reduced_rhs,
+        pivots,
+    )
+    factored = True
+    if not ok:
+        direction, ok = _lu_direction_into(jacobian, rhs, work, lu_out, pivots)
+        factored = ok
+    ok = ok and _finite_and_short(direction, limit)
+    if unregularised and not factored:
+        direction = np.linalg.lstsq(jacobian, rhs, 1e-12)[0]
+        return direction, _finite_and_short(direction, limit), 1
+    return direction, ok, 0
+
+
+@numba.njit(cache=True)
+def _line_search(
+    compliance,
+    free_gap,
+    kinds,
+    rows,
+    params,
+    members,
+    weight,
+    multipliers,
+    direction,
+    theta,
+    reference,
+    candidate,
+    candidate_gap,
+    error,
+):
+    """The non-monotone Armijo backtracking from λ along d: the first step 1, 1/2, ... ≥ 2⁻¹² whose merit
+    θ(λ + s d) ≤ reference − 1e-4 s 2θ. The candidate, its gap and its natural-map error are left in the
+    buffers. Returns (accepted, the last candidate's θ)."""
+    n = multipliers.shape[0]
+    step = 1.0
+    candidate_theta = theta
+    while step >= 2.0**-12:
+        for i in range(n):
+            candidate[i] = multipliers[i] + step * direction[i]
+        _gap_into(compliance, candidate, free_gap, candidate_gap)
+        natural_map_blocks(kinds, rows, params, members, candidate, candidate_gap, weight, error)
+        candidate_theta = 0.5 * np.dot(error, error)
+        if candidate_theta <= reference - 1e-4 * step * 2.0 * theta:
+            return True, candidate_theta
+        step *= 0.5
+    return False, candidate_theta
+
+
+@numba.njit(cache=True)
+def _fallback_sweeps(
+    compliance,
+    transposed,
+    diagonal,
+    free_gap,
+    kinds,
+    rows,
+    params,
+    members,
+    weight,
+    multipliers,
+    candidate,
+    candidate_gap,
+    error,
+):
+    """The line search's fallback: ten projected Gauss–Seidel sweeps from λ into the candidate buffers (its
+    gap recomputed after them, its natural-map error into ``error``); returns its merit θ."""
+    candidate[:] = multipliers
+    _gap_into(compliance, candidate, free_gap, candidate_gap)
+    for _ in range(10):
+        gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, candidate, candidate_gap, 1.0)
+    _gap_into(compliance, candidate, free_gap, candidate_gap)
+    natural_map_blocks(kinds, rows, params, members, candidate, candidate_gap, weight, error)
+    return 0.5 * np.dot(error, error)
+
+
+@numba.njit(cache=True)
 def _dense_newton(
     compliance,
     free_gap,
@@ -232,40 +378,14 @@ def _dense_newton(
     ``final`` the natural and data residual of the answer as :func:`refsim.solvers.residuals` computes them.
     """
     n = free_gap.shape[0]
-    blocks = kinds.shape[0]
-    memory_length = max(memory_size, 1)
-    # every float work array is a view into one allocation, every int one into another (an allocation costs
-    # about 0.1 µs in compiled code, and a small problem needs some thirty of them); the answer is copied out
-    floats = np.empty(15 * n + 2 * n * n + 18 * blocks + memory_length + members.shape[0])
-    ints = np.empty(2 * n, dtype=np.int64)
-    unit, error, scratch = floats[:n], floats[n : 2 * n], floats[2 * n : 3 * n]
-    unit[:] = 1.0
-    gap, best, candidate, candidate_gap = (
-        floats[3 * n : 4 * n],
-        floats[4 * n : 5 * n],
-        floats[5 * n : 6 * n],
-        floats[6 * n : 7 * n],
+    vectors, matrices, local, gap_factor, memory, bound_values, position, active, pivots = _workspace(
+        n, kinds.shape[0], max(memory_size, 1), members.shape[0]
     )
-    direction_buffer, rhs, values, reduced_rhs = (
-        floats[7 * n : 8 * n],
-        floats[8 * n : 9 * n],
-        floats[9 * n : 10 * n],
-        floats[10 * n : 11 * n],
-    )
-    sweep_point, sweep_gap, start = floats[11 * n : 12 * n], floats[12 * n : 13 * n], floats[13 * n : 14 * n]
-    lu_out = floats[14 * n : 15 * n]
-    at = 15 * n
-    jacobian = floats[at : at + n * n].reshape((n, n))
-    work = floats[at + n * n : at + 2 * n * n].reshape((n, n))  # the reduced system (_reduced_direction_into)
-    at += 2 * n * n
-    local = floats[at : at + 9 * blocks].reshape((blocks, 3, 3))
-    gap_factor = floats[at + 9 * blocks : at + 18 * blocks].reshape((blocks, 3, 3))
-    at += 18 * blocks
-    memory = floats[at : at + memory_length]
-    bound_values = floats[at + memory_length :]
-    bound_values[:] = 0.0
-    position, active = ints[:n], ints[n:]
-    pivots = np.empty(n, dtype=PIVOT_DTYPE)
+    unit, error, scratch, gap, best = vectors[0], vectors[1], vectors[2], vectors[3], vectors[4]
+    candidate, candidate_gap, direction_buffer, rhs = vectors[5], vectors[6], vectors[7], vectors[8]
+    values, reduced_rhs, sweep_point, sweep_gap = vectors[9], vectors[10], vectors[11], vectors[12]
+    start, lu_out = vectors[13], vectors[14]
+    jacobian, work = matrices[0], matrices[1]  # work: the reduced system (_reduced_direction_into)
     transposed = np.empty((0, 0))
     diagonal = np.empty(0)
     start[:] = multipliers  # the caller's array is not written
@@ -345,8 +465,7 @@ def _dense_newton(
         limit = 1e4 * max(np.sqrt(np.dot(multipliers, multipliers)), force_scale)
         for i in range(n):
             rhs[i] = -error[i]
-        direction = direction_buffer  # (the LU paths may have returned another array last time)
-        ok = _reduced_direction_into(
+        direction, ok, singular = _direction(
             jacobian,
             rhs,
             kinds,
@@ -356,28 +475,17 @@ def _dense_newton(
             gap_factor,
             bound_values,
             position,
-            direction,
+            direction_buffer,
             work,
             values,
             active,
             reduced_rhs,
             pivots,
+            lu_out,
+            limit,
+            level == 0,
         )
-        factored = True
-        if not ok:
-            direction, ok = _lu_direction_into(jacobian, rhs, work, lu_out, pivots)
-            factored = ok
-        ok = ok and _finite_and_short(direction, limit)
-        if level == 0 and not factored:
-            # exactly singular J (a zero pivot): the minimum-norm least-squares step instead. A factorised J
-            # whose step is absurdly long (nearly singular) goes to the regularised step of the next iteration
-            # (an LU, not an SVD). Measured (best of 7, one thread, method="auto", cold): there the
-            # least-squares step was rejected as too long as well on Rover1040 / 1041 / 3865 (93-98 -> 65-67
-            # us without it) and did not help GMP6 (2.7 -> 1.1 ms); PD_mlcp, which its least-squares steps
-            # answer, has an exactly singular J.
-            direction = np.linalg.lstsq(jacobian, rhs, 1e-12)[0]
-            singular_steps += 1
-            ok = _finite_and_short(direction, limit)
+        singular_steps += singular
         if not ok:
             failures += 1
             consecutive += 1
@@ -389,19 +497,22 @@ def _dense_newton(
         reference = memory[0]
         for k in range(1, min(stored, memory_size)):
             reference = max(reference, memory[k])
-        step = 1.0
-        accepted = False
-        candidate_theta = theta
-        while step >= 2.0**-12:
-            for i in range(n):
-                candidate[i] = multipliers[i] + step * direction[i]
-            _gap_into(compliance, candidate, free_gap, candidate_gap)
-            natural_map_blocks(kinds, rows, params, members, candidate, candidate_gap, weight, error)
-            candidate_theta = 0.5 * np.dot(error, error)
-            if candidate_theta <= reference - 1e-4 * step * 2.0 * theta:
-                accepted = True
-                break
-            step *= 0.5
+        accepted, candidate_theta = _line_search(
+            compliance,
+            free_gap,
+            kinds,
+            rows,
+            params,
+            members,
+            weight,
+            multipliers,
+            direction,
+            theta,
+            reference,
+            candidate,
+            candidate_gap,
+            error,
+        )
         stop = False
         if not accepted:
             failures += 1
@@ -410,15 +521,21 @@ def _dense_newton(
             level = min(level + 1, 8)
             if transposed.shape[0] == 0:
                 transposed, diagonal = _sweep_arrays(compliance)
-            candidate[:] = multipliers
-            _gap_into(compliance, candidate, free_gap, candidate_gap)
-            for _ in range(10):
-                gauss_seidel_sweep(
-                    transposed, diagonal, kinds, rows, params, members, candidate, candidate_gap, 1.0
-                )
-            _gap_into(compliance, candidate, free_gap, candidate_gap)
-            natural_map_blocks(kinds, rows, params, members, candidate, candidate_gap, weight, error)
-            candidate_theta = 0.5 * np.dot(error, error)
+            candidate_theta = _fallback_sweeps(
+                compliance,
+                transposed,
+                diagonal,
+                free_gap,
+                kinds,
+                rows,
+                params,
+                members,
+                weight,
+                multipliers,
+                candidate,
+                candidate_gap,
+                error,
+            )
             stop = consecutive > 8
         else:
             consecutive = 0
@@ -937,6 +1054,48 @@ def solve_newton(
             stall_iterations,
             presweeps,
         )
+    return _solve_layered(
+        problem,
+        (kinds, rows, params, members),
+        (weight, force_scale, free_gap, free_norm, data_scale),
+        multipliers,
+        start,
+        tolerance=tolerance,
+        max_iterations=max_iterations,
+        sparse_above=sparse_above,
+        eta_max=eta_max,
+        time_limit=time_limit,
+        line_search_memory=line_search_memory,
+        minimum_norm=minimum_norm,
+        stall_iterations=stall_iterations,
+        presweeps=presweeps,
+    )
+
+
+def _solve_layered(
+    problem: ConstraintProblem,
+    blocks: tuple,
+    scales: tuple,
+    multipliers: np.ndarray,
+    start: float,
+    *,
+    tolerance: float,
+    max_iterations: int,
+    sparse_above: int,
+    eta_max: float,
+    time_limit: float,
+    line_search_memory: int,
+    minimum_norm: bool,
+    stall_iterations: int,
+    presweeps: int,
+) -> NewtonResult:
+    """The Newton iteration of :func:`solve_newton` in Python over :class:`_Operator` (sparse storage, a time
+    limit or minimum-norm steps): ``blocks`` (kinds, rows, params, members) of
+    :func:`~refsim.solvers.laws.block_arrays`, ``scales`` (ρ, F_data, δ_free, ‖δ_free‖, the data residual's
+    scale), ``multipliers`` the start, ``start`` the solve's perf_counter start."""
+    kinds, rows, params, members = blocks
+    weight, force_scale, free_gap, free_norm, data_scale = scales
+    n = problem.row_count
     unit = np.ones(n)
     operator = _Operator(problem, kinds, rows, members, sparse_above)
     error = np.empty(n)

@@ -36,7 +36,7 @@ from run import external_problems, shared_problems  # noqa: E402
 
 from refsim.solvers import solve_exact  # noqa: E402
 from refsim.solvers.exact import _AUTO_STALL, _presweep_budget  # noqa: E402
-from refsim.solvers.laws import block_arrays  # noqa: E402
+from refsim.solvers.laws import block_arrays, law_arrays  # noqa: E402
 from refsim.solvers.newton import _dense_newton_fresh, solve_newton  # noqa: E402
 from refsim.solvers.residual import data_scales  # noqa: E402
 
@@ -61,22 +61,7 @@ def compiled_call(problem) -> None:
     _dense_newton_fresh(
         p.compliance,
         p.free_gap,
-        p.bilateral,
-        p.unilateral,
-        p.box_rows,
-        p.box_lower,
-        p.box_upper,
-        p.contacts,
-        p.contact_friction,
-        p.shaft_friction,
-        p.shaft_pairs,
-        p.shaft_friction_coefficient,
-        p.shaft_normal_preload,
-        p.group_friction,
-        p.group_offsets,
-        p.group_members,
-        p.group_friction_coefficient,
-        p.group_preload,
+        law_arrays(p),
         np.zeros(p.row_count),
         TOLERANCE,
         100,
