@@ -224,14 +224,7 @@ def solve_gauss_seidel(
     multipliers : λ [N], shape (row_count,).
     report : :class:`~refsim.solvers.SolverReport` with the natural residual recomputed from scratch.
     """
-    if not (np.isfinite(tolerance) and tolerance >= 0.0):
-        raise ValueError(f"tolerance = {tolerance!r}; valid range [0, inf)")
-    if int(max_iterations) != max_iterations or max_iterations < 1:
-        raise ValueError(f"max_iterations = {max_iterations!r}; valid range: integers >= 1")
-    if not (0.0 < relaxation < 2.0):
-        raise ValueError(f"relaxation = {relaxation!r}; valid range (0, 2)")
-    if criterion not in _STOP_MODES:
-        raise ValueError(f"criterion = {criterion!r}; valid values 'residual', 'increment', 'strict'")
+    _check_arguments(tolerance, max_iterations, relaxation, criterion)
     start = time.perf_counter()
     row_count = problem.row_count
     multipliers = (
@@ -284,23 +277,88 @@ def solve_gauss_seidel(
         force_history,
     )
     overflow = status == 2 or not np.all(np.isfinite(multipliers))
-    if overflow:
-        residual = data = float("inf")
-        converged = growing = False
-    else:
-        residual, data = residuals(problem, multipliers)
-        if criterion == "strict":
-            met = bool(residual <= tolerance and data <= tolerance)
-        elif criterion == "residual":
-            met = bool(residual <= tolerance)
-        else:
-            met = status == 1
-        # a criterion met while the data residual stays above the tolerance and ‖λ‖ grows is divergence
-        growing = data > tolerance and _growing_without_progress(
-            data_history[:iterations], force_history[:iterations]
-        )
-        converged = met and not growing
+    residual, data, converged, growing = _verdict(
+        problem,
+        multipliers,
+        overflow,
+        status,
+        criterion,
+        tolerance,
+        data_history[:iterations],
+        force_history[:iterations],
+    )
     seconds = time.perf_counter() - start
+    message = _message(
+        problem,
+        overflow,
+        growing,
+        converged,
+        criterion,
+        iterations,
+        residual,
+        data,
+        increment,
+        diagonal,
+        force_history,
+    )
+    return multipliers, SolverReport(
+        solver="gauss_seidel",
+        iterations=int(iterations),
+        residual=residual,
+        converged=bool(converged),
+        seconds=seconds,
+        message=message,
+        increment=float(increment),
+        history=history[:iterations].copy(),
+        data_residual=float(data),
+        diverged=bool(overflow or growing),
+        path="gauss_seidel",
+    )
+
+
+def _check_arguments(tolerance: float, max_iterations: int, relaxation: float, criterion: str) -> None:
+    """The arguments of :func:`solve_gauss_seidel`, each named with its valid range on error."""
+    if not (np.isfinite(tolerance) and tolerance >= 0.0):
+        raise ValueError(f"tolerance = {tolerance!r}; valid range [0, inf)")
+    if int(max_iterations) != max_iterations or max_iterations < 1:
+        raise ValueError(f"max_iterations = {max_iterations!r}; valid range: integers >= 1")
+    if not (0.0 < relaxation < 2.0):
+        raise ValueError(f"relaxation = {relaxation!r}; valid range (0, 2)")
+    if criterion not in _STOP_MODES:
+        raise ValueError(f"criterion = {criterion!r}; valid values 'residual', 'increment', 'strict'")
+
+
+def _verdict(problem, multipliers, overflow, status, criterion, tolerance, data_history, force_history):
+    """(natural residual, data residual, converged, growing) of the swept multipliers: the criterion met,
+    unless the data residual stays above the tolerance while ‖λ‖ grows (divergence); inf and not converged
+    after an overflow."""
+    if overflow:
+        return float("inf"), float("inf"), False, False
+    residual, data = residuals(problem, multipliers)
+    if criterion == "strict":
+        met = bool(residual <= tolerance and data <= tolerance)
+    elif criterion == "residual":
+        met = bool(residual <= tolerance)
+    else:
+        met = status == 1
+    growing = data > tolerance and _growing_without_progress(data_history, force_history)
+    return residual, data, met and not growing, growing
+
+
+def _message(
+    problem,
+    overflow,
+    growing,
+    converged,
+    criterion,
+    iterations,
+    residual,
+    data,
+    increment,
+    diagonal,
+    force_history,
+) -> str:
+    """The report's message (logged at INFO when the solve did not converge)."""
     if overflow:
         message = (
             f"diverged after {iterations} sweeps: multipliers overflow (Gauss-Seidel needs a W with a "
@@ -315,7 +373,7 @@ def solve_gauss_seidel(
         )
         logger.info("Gauss-Seidel %s: %s", problem.name or "problem", message)
     elif converged:
-        message = f"{criterion} criterion met after {iterations} sweeps"
+        return f"{criterion} criterion met after {iterations} sweeps"
     else:
         zero_rows = int(np.count_nonzero(diagonal == 0.0))
         message = (
@@ -325,16 +383,4 @@ def solve_gauss_seidel(
             + ")"
         )
         logger.info("Gauss-Seidel %s: %s", problem.name or "problem", message)
-    return multipliers, SolverReport(
-        solver="gauss_seidel",
-        iterations=int(iterations),
-        residual=residual,
-        converged=bool(converged),
-        seconds=seconds,
-        message=message,
-        increment=float(increment),
-        history=history[:iterations].copy(),
-        data_residual=float(data),
-        diverged=bool(overflow or growing),
-        path="gauss_seidel",
-    )
+    return message

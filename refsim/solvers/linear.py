@@ -181,9 +181,45 @@ def _reduced_direction_into(
     ``position`` (n,) gets each row's index in A (−1 for E).
     """
     n = rhs.shape[0]
-    blocks = kinds.shape[0]
+    m = _partition(kinds, rows, local, gap_factor, position, active)
+    if m < 0:
+        return False
+    _explicit_values(jacobian, rhs, kinds, rows, members, bound_values, position, values)
+    if m > 0:
+        ok, solution = _solve_reduced(
+            jacobian,
+            rhs,
+            kinds,
+            rows,
+            members,
+            bound_values,
+            position,
+            active,
+            m,
+            values,
+            work,
+            reduced_rhs,
+            pivots,
+        )
+        if not ok:
+            return False
+        for a in range(m):
+            direction[active[a]] = solution[a]
+    for i in range(n):
+        if position[i] < 0:
+            direction[i] = values[i]
+    _explicit_directions(jacobian, kinds, rows, members, bound_values, position, values, direction)
+    return True
+
+
+@numba.njit(cache=True)
+def _partition(kinds, rows, local, gap_factor, position, active):
+    """The explicit rows E (blocks whose projection is constant: N_b = I, M_b = 0) and the rest A:
+    ``position`` gets each row's index in A (−1 for E), ``active`` A's rows in order; returns |A|, or −1
+    when no row is explicit."""
+    n = position.shape[0]
     count = 0
-    for b in range(blocks):
+    for b in range(kinds.shape[0]):
         size = 3 if kinds[b] == CONTACT else 1
         constant = True
         for i in range(size):
@@ -195,7 +231,7 @@ def _reduced_direction_into(
         if constant:
             count += size
     if count == 0:
-        return False
+        return -1
     m = 0
     for i in range(n):
         if position[i] == 0:
@@ -204,10 +240,18 @@ def _reduced_direction_into(
             m += 1
         else:
             position[i] = -1
+    return m
+
+
+@numba.njit(cache=True)
+def _explicit_values(jacobian, rhs, kinds, rows, members, bound_values, position, values):
+    """c of the explicit rows into ``values``: rhs_j / J_jj, plus for a slipping friction row its explicit
+    members' terms g_k rhs_{G_k} / J_{G_k G_k}, over J_ii."""
+    n = rhs.shape[0]
     for i in range(n):
         if position[i] < 0:
             values[i] = rhs[i] / jacobian[i, i]
-    for b in range(blocks):  # slipping friction rows: their members' contributions
+    for b in range(kinds.shape[0]):  # slipping friction rows: their members' contributions
         if kinds[b] != GROUP_FRICTION:
             continue
         row = rows[b, 0]
@@ -219,51 +263,61 @@ def _reduced_direction_into(
             if bound_values[k] != 0.0 and position[member] < 0:
                 value += bound_values[k] * rhs[member] / jacobian[member, member]
         values[row] = value / jacobian[row, row]
-    if m > 0:
-        # the reduced matrix A in a contiguous (m, m) part of ``work``: as A (C order) for the compiled
-        # elimination, as Aᵀ (A in Fortran order) for LAPACK's gesv, so that neither copies it again
-        lapack = m >= SMALL_LU_BELOW
-        reduced = work.reshape(-1)[: m * m].reshape((m, m))
-        for a in range(m):
-            source = active[a]
-            total = rhs[source]
-            if lapack:
-                for c in range(m):
-                    reduced[c, a] = jacobian[source, active[c]]
-            else:
-                for c in range(m):
-                    reduced[a, c] = jacobian[source, active[c]]
-            for i in range(n):
-                if position[i] < 0:
-                    total -= jacobian[source, i] * values[i]
-            reduced_rhs[a] = total
-        for b in range(blocks):
-            if kinds[b] != GROUP_FRICTION:
-                continue
-            row = rows[b, 0]
-            if position[row] >= 0:
-                continue
-            for k in range(rows[b, 1], rows[b, 2]):
-                column = position[members[k]]
-                if bound_values[k] != 0.0 and column >= 0:
-                    coupling = bound_values[k] / jacobian[row, row]
-                    for a in range(m):
-                        if lapack:
-                            reduced[column, a] += jacobian[active[a], row] * coupling
-                        else:
-                            reduced[a, column] += jacobian[active[a], row] * coupling
-        solution = reduced_rhs[:m]  # in place: the work arrays get the factors and the solution
+
+
+@numba.njit(cache=True)
+def _solve_reduced(
+    jacobian, rhs, kinds, rows, members, bound_values, position, active, m, values, work, reduced_rhs, pivots
+):
+    """d_A of the reduced system (J_AA + Σ_{i ∈ E} J_{A i} (g / J_ii)ᵀ) d_A = rhs_A − J_AE c, solved in place
+    in ``work`` and ``reduced_rhs``: (False, _) when it is singular or its solution not finite, else (True,
+    d_A)."""
+    n = rhs.shape[0]
+    # the reduced matrix A in a contiguous (m, m) part of ``work``: as A (C order) for the compiled
+    # elimination, as Aᵀ (A in Fortran order) for LAPACK's gesv, so that neither copies it again
+    lapack = m >= SMALL_LU_BELOW
+    reduced = work.reshape(-1)[: m * m].reshape((m, m))
+    for a in range(m):
+        source = active[a]
+        total = rhs[source]
         if lapack:
-            if not (_gesv_inplace(reduced, solution, pivots) and np.all(np.isfinite(solution))):
-                return False
-        elif not _small_lu_inplace(reduced, solution):
-            return False
-        for a in range(m):
-            direction[active[a]] = solution[a]
-    for i in range(n):
-        if position[i] < 0:
-            direction[i] = values[i]
-    for b in range(blocks):
+            for c in range(m):
+                reduced[c, a] = jacobian[source, active[c]]
+        else:
+            for c in range(m):
+                reduced[a, c] = jacobian[source, active[c]]
+        for i in range(n):
+            if position[i] < 0:
+                total -= jacobian[source, i] * values[i]
+        reduced_rhs[a] = total
+    for b in range(kinds.shape[0]):
+        if kinds[b] != GROUP_FRICTION:
+            continue
+        row = rows[b, 0]
+        if position[row] >= 0:
+            continue
+        for k in range(rows[b, 1], rows[b, 2]):
+            column = position[members[k]]
+            if bound_values[k] != 0.0 and column >= 0:
+                coupling = bound_values[k] / jacobian[row, row]
+                for a in range(m):
+                    if lapack:
+                        reduced[column, a] += jacobian[active[a], row] * coupling
+                    else:
+                        reduced[a, column] += jacobian[active[a], row] * coupling
+    solution = reduced_rhs[:m]  # in place: the work arrays get the factors and the solution
+    if lapack:
+        if not (_gesv_inplace(reduced, solution, pivots) and np.all(np.isfinite(solution))):
+            return False, solution
+    elif not _small_lu_inplace(reduced, solution):
+        return False, solution
+    return True, solution
+
+
+@numba.njit(cache=True)
+def _explicit_directions(jacobian, kinds, rows, members, bound_values, position, values, direction):
+    """d of a slipping friction row: c_i plus its members in A, Σ (g_k / J_ii) d_{G_k}."""
+    for b in range(kinds.shape[0]):
         if kinds[b] != GROUP_FRICTION:
             continue
         row = rows[b, 0]
@@ -275,4 +329,3 @@ def _reduced_direction_into(
             if bound_values[k] != 0.0 and position[member] >= 0:
                 value += bound_values[k] * direction[member] / jacobian[row, row]
         direction[row] = value
-    return True
