@@ -47,11 +47,16 @@ class LemkeResult:
         self.message = message
 
 
+#: The row fields of every law of the table but bilateral and unilateral.
+_OTHER_ROW_FIELDS = tuple(
+    name for law in LAWS if law.code not in (BILATERAL, UNILATERAL) for name in law.row_fields
+)
+
+
 def lemke_applicable(problem: ConstraintProblem) -> bool:
     """True for problems of bilateral and unilateral rows only, some unilateral (an LCP or an MLCP): no row of
     any other law of the table."""
-    others = (law for law in LAWS if law.code not in (BILATERAL, UNILATERAL))
-    return len(problem.unilateral) > 0 and not any(len(law.rows_of(problem)) for law in others)
+    return len(problem.unilateral) > 0 and not any(len(getattr(problem, name)) for name in _OTHER_ROW_FIELDS)
 
 
 @numba.njit(cache=True)
