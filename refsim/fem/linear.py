@@ -7,7 +7,9 @@ elimination tree) is done once, and each step only refactorises numerically.
 Backends, in the order of :func:`default_linear_solver`:
 
 ``"pardiso"``
-    Intel oneMKL PARDISO through the ``pypardiso`` wheel (x86-64 only; it brings the ``mkl`` wheel): real SPD
+    Intel oneMKL PARDISO (x86-64 only), called through ctypes in oneMKL's runtime library ``mkl_rt``, which
+    the ``mkl`` wheel installs (the ``pypardiso`` dependency brings it; refsim does not import pypardiso, whose
+    import searches all of ``sys.prefix`` for the library: :func:`_mkl_runtime_candidates`): real SPD
     (mtype 2), upper triangle, zero-based. Phase 11 (analysis) once per pattern, phase 22 (numeric Cholesky)
     per step, phase 33 (solve) per right-hand side block.
 ``"cholmod"``
@@ -335,21 +337,71 @@ class CholmodSolver:
         return {"name": self.name}
 
 
+#: The environment variable naming oneMKL's runtime library, as pypardiso reads it.
+MKL_RT_VARIABLE = "PYPARDISO_MKL_RT"
+
+
+def _mkl_runtime_candidates() -> list[str]:
+    """Paths of oneMKL's runtime library ``mkl_rt`` to try, in order: ``$PYPARDISO_MKL_RT``, then the library
+    folders of the ``mkl`` wheel (``sys.prefix/lib``, the user base's ``lib``; ``Library/bin`` on Windows), then
+    the wheel's own file list, then the system's library search (``ctypes.util.find_library``).
+
+    Only those folders are listed, not searched recursively (pypardiso's search globs all of ``sys.prefix``:
+    seconds)."""
+    import glob
+    import site
+    import sys
+
+    override = os.environ.get(MKL_RT_VARIABLE, "").strip()
+    if override:
+        return [override]
+    found = []
+    for base in dict.fromkeys((sys.prefix, site.USER_BASE)):
+        for folder in ("lib", os.path.join("Library", "bin")):
+            names = glob.glob(os.path.join(glob.escape(os.path.join(base, folder)), "*mkl_rt*"))
+            found += sorted((name for name in names if _is_shared_library(name)), key=len)
+    if found:
+        return found
+    try:
+        files = importlib.metadata.files("mkl") or []
+    except importlib.metadata.PackageNotFoundError:
+        files = []
+    found = [str(entry.locate()) for entry in files if "mkl_rt" in entry.name and _is_shared_library(entry.name)]
+    if found:
+        return sorted(found, key=len)
+    import ctypes.util
+
+    system = ctypes.util.find_library("mkl_rt")
+    return [system] if system else []
+
+
+def _is_shared_library(name: str) -> bool:
+    base = os.path.basename(name)
+    return ".so" in base or base.endswith((".dll", ".dylib"))
+
+
 @lru_cache(maxsize=1)
 def _pardiso_function():
-    """oneMKL's ``pardiso`` entry point, found through pypardiso's search for ``mkl_rt``."""
+    """oneMKL's ``pardiso`` entry point from the ``mkl_rt`` library (:func:`_mkl_runtime_candidates`), loaded
+    once per process."""
     if platform.machine().lower() not in ("x86_64", "amd64"):
         raise LinearSolverError(
             f"pardiso: oneMKL wheels exist for x86-64 only, this machine is {platform.machine()}"
         )
-    try:
-        import pypardiso
-    except ImportError as error:
-        raise LinearSolverError(f"pardiso: pypardiso does not import here ({error})") from None
-    try:
-        library = pypardiso.PyPardisoSolver().libmkl
-    except (ImportError, OSError) as error:
-        raise LinearSolverError(f"pardiso: the mkl_rt library was not found ({error})") from None
+    candidates = _mkl_runtime_candidates()
+    library, failures = None, []
+    for path in candidates:
+        try:
+            library = ctypes.CDLL(path)
+            break
+        except OSError as error:
+            failures.append(f"{path}: {error}")
+    if library is None:
+        tried = "; ".join(failures) if failures else "no file named *mkl_rt* found"
+        raise LinearSolverError(
+            f"pardiso: oneMKL's runtime library mkl_rt did not load ({tried}); install the mkl wheel "
+            f"(pip install pypardiso) or set {MKL_RT_VARIABLE} to the library's path"
+        )
     function = library.pardiso
     i32 = ctypes.POINTER(ctypes.c_int32)
     function.argtypes = [
