@@ -8,8 +8,8 @@ Backends, in the order of :func:`default_linear_solver`:
 
 ``"pardiso"``
     Intel oneMKL PARDISO (x86-64 only), called through ctypes in oneMKL's runtime library ``mkl_rt``, which
-    the ``mkl`` wheel installs (the ``pypardiso`` dependency brings it; refsim does not import pypardiso, whose
-    import searches all of ``sys.prefix`` for the library: :func:`_mkl_runtime_candidates`): real SPD
+    the ``mkl`` wheel installs (the ``pypardiso`` dependency brings it; refsim does not import pypardiso,
+    whose import searches all of ``sys.prefix`` for the library: :func:`_mkl_runtime_candidates`): real SPD
     (mtype 2), upper triangle, zero-based. Phase 11 (analysis) once per pattern, phase 22 (numeric Cholesky)
     per step, phase 33 (solve) per right-hand side block.
 ``"cholmod"``
@@ -78,6 +78,7 @@ class SuperLUSolver:
     """
 
     name = "superlu"
+    storage = "full"  # it factorises what it is given: A in full storage
 
     def __init__(self, ordering: str = DEFAULT_SUPERLU_ORDERING) -> None:
         if ordering not in SUPERLU_ORDERINGS:
@@ -119,6 +120,7 @@ class PardisoSolver:
     """
 
     name = "pardiso"
+    storage = "upper"  # it reads A's upper triangle only: full storage or the upper triangle alone will do
     _MTYPE = 2  # real symmetric positive definite
 
     def __init__(self, ordering: int = 2) -> None:
@@ -137,7 +139,7 @@ class PardisoSolver:
         self._perm = np.zeros(1, dtype=np.int32)
         self._pattern_key = None
         self._pattern_arrays = None
-        self._upper = None  # positions in the full CSR data of the upper-triangle entries
+        self._upper = None  # positions in the CSR data of the upper-triangle entries (None: all of them)
         self._ia = self._ja = self._a = None
         self._n = 0
         self._factorised = False
@@ -178,8 +180,9 @@ class PardisoSolver:
             )
 
     def factorise(self, matrix: sp.spmatrix) -> None:
-        """Factorise A (symmetric positive definite, full storage); the analysis runs when the pattern is
-        new."""
+        """Factorise A (symmetric positive definite, full storage or its upper triangle alone: only the upper
+        triangle is read); the analysis runs when the pattern is new. An upper triangle alone is read in
+        place (no copy): its values must not change before the next factorisation."""
         matrix = _check_square(matrix)
         last = self._pattern_arrays
         if last is not None and last[0] is matrix.indptr and last[1] is matrix.indices:
@@ -193,7 +196,8 @@ class PardisoSolver:
                 self._call(-1, np.zeros(1), np.zeros(1), 1)
                 self._pt[:] = 0
             rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
-            self._upper = np.flatnonzero(matrix.indices >= rows)
+            upper_entries = np.flatnonzero(matrix.indices >= rows)
+            self._upper = None if upper_entries.size == matrix.nnz else upper_entries
             upper = sp.triu(matrix, format="csr")
             upper.sort_indices()
             self._n = matrix.shape[0]
@@ -201,13 +205,19 @@ class PardisoSolver:
             self._ja = upper.indices.astype(np.int32)
             if self._marked is not None and (self._marked.size and self._marked[-1] >= self._n):
                 self._marked = None  # marked for another matrix
-            self._a = np.ascontiguousarray(matrix.data[self._upper], dtype=float)
+            self._a = self._upper_values(matrix)
             self._analyse()
             self._pattern_key = key
         else:
-            self._a = np.ascontiguousarray(matrix.data[self._upper], dtype=float)
+            self._a = self._upper_values(matrix)
         self._call(22, np.zeros(1), np.zeros(1), 1)
         self._factorised = True
+
+    def _upper_values(self, matrix: sp.csr_matrix) -> np.ndarray:
+        """The values of A's upper triangle in PARDISO's order: the data itself when it holds nothing else."""
+        if self._upper is None:
+            return np.ascontiguousarray(matrix.data, dtype=float)
+        return np.ascontiguousarray(matrix.data[self._upper], dtype=float)
 
     def _analyse(self) -> None:
         """Phase 11 on the current pattern: plain, or for partial solves on the marked positions."""
@@ -311,6 +321,7 @@ class CholmodSolver:
     """CHOLMOD (scikit-sparse): symbolic analysis once per pattern, numeric Cholesky per step."""
 
     name = "cholmod"
+    storage = "full"
 
     def __init__(self) -> None:
         try:
@@ -342,9 +353,9 @@ MKL_RT_VARIABLE = "PYPARDISO_MKL_RT"
 
 
 def _mkl_runtime_candidates() -> list[str]:
-    """Paths of oneMKL's runtime library ``mkl_rt`` to try, in order: ``$PYPARDISO_MKL_RT``, then the library
-    folders of the ``mkl`` wheel (``sys.prefix/lib``, the user base's ``lib``; ``Library/bin`` on Windows), then
-    the wheel's own file list, then the system's library search (``ctypes.util.find_library``).
+    """Paths of oneMKL's runtime library ``mkl_rt`` to try, in order: ``$PYPARDISO_MKL_RT``, then the
+    library folders of the ``mkl`` wheel (``sys.prefix/lib``, the user base's ``lib``; ``Library/bin`` on
+    Windows), then the wheel's own file list, then the system's library search (``ctypes.util.find_library``).
 
     Only those folders are listed, not searched recursively (pypardiso's search globs all of ``sys.prefix``:
     seconds)."""
@@ -366,7 +377,9 @@ def _mkl_runtime_candidates() -> list[str]:
         files = importlib.metadata.files("mkl") or []
     except importlib.metadata.PackageNotFoundError:
         files = []
-    found = [str(entry.locate()) for entry in files if "mkl_rt" in entry.name and _is_shared_library(entry.name)]
+    found = [
+        str(entry.locate()) for entry in files if "mkl_rt" in entry.name and _is_shared_library(entry.name)
+    ]
     if found:
         return sorted(found, key=len)
     import ctypes.util
