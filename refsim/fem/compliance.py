@@ -158,6 +158,15 @@ class StepSystem:
         reduced.sort_indices()
         return cls(n, free, constrained, reduced, reduced_rhs, values, **callables)
 
+    def full_matrix(self) -> sp.csr_matrix:
+        """A on the free DoFs in full storage: ``matrix`` itself, or a new matrix mirrored from its upper
+        triangle when ``upper_triangle``."""
+        if not self.upper_triangle:
+            return self.matrix
+        full = (self.matrix + sp.triu(self.matrix, k=1).T).tocsr()
+        full.sort_indices()
+        return full
+
     def expand(self, free_values: np.ndarray, constrained_values: np.ndarray | None = None) -> np.ndarray:
         """A DoF vector (dof_count,) (or (dof_count, k)) from its free part, constrained part zero unless
         given."""

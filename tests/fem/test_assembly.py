@@ -140,6 +140,9 @@ def test_upper_storage_is_the_full_matrix_upper_triangle_bit_for_bit(model):
     assert np.all(columns >= rows)
     np.testing.assert_array_equal(upper.matrix.toarray(), np.triu(full.matrix.toarray()))
     np.testing.assert_array_equal(upper.rhs, full.rhs)
+    mirrored = np.triu(full.matrix.toarray()) + np.triu(full.matrix.toarray(), 1).T
+    np.testing.assert_array_equal(upper.full_matrix().toarray(), mirrored)
+    assert full.full_matrix() is full.matrix
     # the full storage is symmetric to round-off (the diagonal blocks' two triangles are computed apart)
     dense = full.matrix.toarray()
     assert np.abs(dense - dense.T).max() <= 8 * EPS * np.abs(dense).max()
