@@ -110,6 +110,11 @@ class SuperLUSolver:
         return {"name": self.name, "ordering": self.ordering}
 
 
+_ONE, _ZERO = ctypes.c_int32(1), ctypes.c_int32(0)
+_MTYPE_SPD = ctypes.c_int32(2)  # PARDISO's matrix type: real symmetric positive definite
+_UNUSED = np.zeros(1)  # what an unused array argument points to
+
+
 class PardisoSolver:
     """oneMKL PARDISO, real symmetric positive definite: analysis once per pattern, numeric refactorisation
     per step.
@@ -121,7 +126,6 @@ class PardisoSolver:
 
     name = "pardiso"
     storage = "upper"  # it reads A's upper triangle only: full storage or the upper triangle alone will do
-    _MTYPE = 2  # real symmetric positive definite
 
     def __init__(self, ordering: int = 2) -> None:
         self._pardiso = _pardiso_function()
@@ -143,35 +147,42 @@ class PardisoSolver:
         self._ia = self._ja = self._a = None
         self._n = 0
         self._factorised = False
+        self._pt_address, self._iparm_address = self._pt.ctypes.data, self._iparm.ctypes.data
+        self._perm_address = self._perm.ctypes.data
+        self._a_address = self._ia_address = self._ja_address = _UNUSED.ctypes.data
 
     def __del__(self) -> None:
         try:
             if self._n:
-                self._call(-1, np.zeros(1), np.zeros(1), 1)
+                self._call(-1)
         except Exception:  # noqa: BLE001 - freeing at interpreter exit must not raise
             pass
 
-    def _call(self, phase: int, b: np.ndarray, x: np.ndarray, nrhs: int) -> None:
+    def _call(
+        self, phase: int, b: np.ndarray | None = None, x: np.ndarray | None = None, nrhs: int = 1
+    ) -> None:
+        """One call of ``pardiso``; b, x: the right-hand sides and the solutions of a solve phase (Fortran
+        order), unused otherwise.
+
+        Arrays go by address, taken once for those that live across calls (``.ctypes.data_as`` costs about
+        10 µs an array, and a call passes eight)."""
         error = ctypes.c_int32(0)
-        i32 = ctypes.POINTER(ctypes.c_int32)
-        f64 = ctypes.POINTER(ctypes.c_double)
-        perm = self._perm
         self._pardiso(
-            self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
-            ctypes.byref(ctypes.c_int32(1)),
-            ctypes.byref(ctypes.c_int32(1)),
-            ctypes.byref(ctypes.c_int32(self._MTYPE)),
+            self._pt_address,
+            ctypes.byref(_ONE),
+            ctypes.byref(_ONE),
+            ctypes.byref(_MTYPE_SPD),
             ctypes.byref(ctypes.c_int32(phase)),
             ctypes.byref(ctypes.c_int32(self._n)),
-            (self._a if self._a is not None else np.zeros(1)).ctypes.data_as(f64),
-            (self._ia if self._ia is not None else np.zeros(1, np.int32)).ctypes.data_as(i32),
-            (self._ja if self._ja is not None else np.zeros(1, np.int32)).ctypes.data_as(i32),
-            perm.ctypes.data_as(i32),
+            self._a_address,
+            self._ia_address,
+            self._ja_address,
+            self._perm_address,
             ctypes.byref(ctypes.c_int32(nrhs)),
-            self._iparm.ctypes.data_as(i32),
-            ctypes.byref(ctypes.c_int32(0)),
-            b.ctypes.data_as(f64),
-            x.ctypes.data_as(f64),
+            self._iparm_address,
+            ctypes.byref(_ZERO),
+            _UNUSED.ctypes.data if b is None else b.ctypes.data,
+            _UNUSED.ctypes.data if x is None else x.ctypes.data,
             ctypes.byref(error),
         )
         if error.value != 0:
@@ -193,7 +204,7 @@ class PardisoSolver:
         self._pattern_arrays = (matrix.indptr, matrix.indices)
         if key != self._pattern_key:
             if self._n:
-                self._call(-1, np.zeros(1), np.zeros(1), 1)
+                self._call(-1)
                 self._pt[:] = 0
             rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
             upper_entries = np.flatnonzero(matrix.indices >= rows)
@@ -203,21 +214,24 @@ class PardisoSolver:
             self._n = matrix.shape[0]
             self._ia = upper.indptr.astype(np.int32)
             self._ja = upper.indices.astype(np.int32)
+            self._ia_address, self._ja_address = self._ia.ctypes.data, self._ja.ctypes.data
             if self._marked is not None and (self._marked.size and self._marked[-1] >= self._n):
                 self._marked = None  # marked for another matrix
-            self._a = self._upper_values(matrix)
+            self._set_values(matrix)
             self._analyse()
             self._pattern_key = key
         else:
-            self._a = self._upper_values(matrix)
-        self._call(22, np.zeros(1), np.zeros(1), 1)
+            self._set_values(matrix)
+        self._call(22)
         self._factorised = True
 
-    def _upper_values(self, matrix: sp.csr_matrix) -> np.ndarray:
+    def _set_values(self, matrix: sp.csr_matrix) -> None:
         """The values of A's upper triangle in PARDISO's order: the data itself when it holds nothing else."""
         if self._upper is None:
-            return np.ascontiguousarray(matrix.data, dtype=float)
-        return np.ascontiguousarray(matrix.data[self._upper], dtype=float)
+            self._a = np.ascontiguousarray(matrix.data, dtype=float)
+        else:
+            self._a = np.ascontiguousarray(matrix.data[self._upper], dtype=float)
+        self._a_address = self._a.ctypes.data
 
     def _analyse(self) -> None:
         """Phase 11 on the current pattern: plain, or for partial solves on the marked positions."""
@@ -228,7 +242,8 @@ class PardisoSolver:
             self._perm = np.zeros(self._n, dtype=np.int32)
             self._perm[self._marked] = 1
             self._iparm[30] = 1
-        self._call(11, np.zeros(1), np.zeros(1), 1)
+        self._perm_address = self._perm.ctypes.data
+        self._call(11)
         self._iparm[30] = 0  # full solves unless a partial one asks
 
     @property
@@ -253,7 +268,7 @@ class PardisoSolver:
         if self._n and self._pattern_key is not None:
             self._analyse()
             if self._factorised:
-                self._call(22, np.zeros(1), np.zeros(1), 1)
+                self._call(22)
 
     def inverse_block(self, positions: np.ndarray) -> np.ndarray:
         """(A⁻¹)[positions][:, positions], shape (u, u), by one partial solve (oneMKL iparm[30] = 1): the
@@ -416,25 +431,7 @@ def _pardiso_function():
             f"(pip install pypardiso) or set {MKL_RT_VARIABLE} to the library's path"
         )
     function = library.pardiso
-    i32 = ctypes.POINTER(ctypes.c_int32)
-    function.argtypes = [
-        ctypes.POINTER(ctypes.c_int64),
-        i32,
-        i32,
-        i32,
-        i32,
-        i32,
-        ctypes.c_void_p,
-        i32,
-        i32,
-        i32,
-        i32,
-        i32,
-        i32,
-        ctypes.c_void_p,
-        ctypes.c_void_p,
-        i32,
-    ]
+    function.argtypes = [ctypes.c_void_p] * 16  # addresses (arrays) and byref(c_int32) (scalars)
     function.restype = None
     return function
 
