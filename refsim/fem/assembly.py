@@ -95,10 +95,12 @@ class FreePattern:
         self.upper_positions = np.flatnonzero(self.indices >= rows)
         to_upper = np.full(self.nnz + 1, -1, dtype=np.int64)  # the last: "no free entry"
         to_upper[self.upper_positions] = np.arange(self.upper_positions.size)
-        kept = self.indices[self.upper_positions]
-        self.upper_indptr = np.zeros(f + 1, dtype=np.int64)
-        np.cumsum(np.bincount(rows[self.upper_positions], minlength=f), out=self.upper_indptr[1:])
-        self.upper_indices = kept.astype(np.int64)
+        # the index dtype of the full pattern (SciPy's int32 for any pattern that fits): a CSR matrix made on
+        # these arrays takes them as they are, with no copy at each step
+        upper_indptr = np.zeros(f + 1, dtype=np.int64)
+        np.cumsum(np.bincount(rows[self.upper_positions], minlength=f), out=upper_indptr[1:])
+        self.upper_indptr = upper_indptr.astype(self.indptr.dtype)
+        self.upper_indices = self.indices[self.upper_positions]
         self.upper_nnz = self.upper_positions.size
         direct, mirrored = _BLOCK_ENTRIES
         first = combined[:, direct]

@@ -110,6 +110,14 @@ class SuperLUSolver:
         return {"name": self.name, "ordering": self.ordering}
 
 
+def _same_memory(first: np.ndarray, second: np.ndarray) -> bool:
+    """Whether two arrays are the same elements of the same memory (an array and a view of it in full)."""
+    one, other = first.__array_interface__, second.__array_interface__
+    return (
+        one["data"] == other["data"] and one["shape"] == other["shape"] and one["strides"] == other["strides"]
+    )
+
+
 _ONE, _ZERO = ctypes.c_int32(1), ctypes.c_int32(0)
 _MTYPE_SPD = ctypes.c_int32(2)  # PARDISO's matrix type: real symmetric positive definite
 _UNUSED = np.zeros(1)  # what an unused array argument points to
@@ -196,8 +204,13 @@ class PardisoSolver:
         place (no copy): its values must not change before the next factorisation."""
         matrix = _check_square(matrix)
         last = self._pattern_arrays
-        if last is not None and last[0] is matrix.indptr and last[1] is matrix.indices:
-            # The very arrays of last time (one FreePattern per run; held here, so they cannot be recycled).
+        if (
+            last is not None
+            and _same_memory(last[0], matrix.indptr)
+            and _same_memory(last[1], matrix.indices)
+        ):
+            # The very arrays of last time (one FreePattern per run; SciPy hands out views of them, and they
+            # are held here, so that their memory cannot be recycled).
             key = self._pattern_key
         else:
             key = (matrix.shape[0], matrix.nnz, hash(matrix.indptr.tobytes()), hash(matrix.indices.tobytes()))

@@ -279,6 +279,7 @@ class TissueModel:
             blocks = element_mass[:, :, :, None, None] * eye  # (tet_count, 4, 4, 3, 3)
             self.mass_matrix = self._assemble(blocks.ravel())
         self.rest_stiffness = self.tangent_stiffness(np.broadcast_to(np.eye(3), (tet_count, 3, 3)))
+        self._gravity_forces = _read_only(self.external_forces().ravel())  # f_ext of every step, (dof_count,)
         logger.debug(
             "tissue model: %d nodes, %d tets, %d fixed nodes, stiffness nnz %d",
             node_count,
@@ -523,7 +524,7 @@ class TissueModel:
             1.0 + self.rayleigh_stiffness / dt,
             upper=upper_triangle,
         )
-        rhs = self.external_forces().ravel() - internal + (self.mass_matrix @ velocities.ravel()) / dt
+        rhs = self._gravity_forces - internal + (self.mass_matrix @ velocities.ravel()) / dt
         reduced = rhs[pattern.free_dofs]
         if prescribed is not None and prescribed.size:
             reduced = reduced - pattern.coupling(coupling_data) @ prescribed
