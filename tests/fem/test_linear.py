@@ -184,3 +184,28 @@ def test_a_missing_mkl_runtime_is_named(monkeypatch, tmp_path):
     finally:
         monkeypatch.delenv(MKL_RT_VARIABLE)
         _pardiso_function.cache_clear()
+
+
+def test_pardiso_analyses_a_pattern_once(monkeypatch):
+    # One analysis for every matrix made on the same pattern arrays (SciPy hands out views of them, so they are
+    # recognised by their memory), and one more for a pattern with other values in new arrays.
+    if "pardiso" not in available_linear_solvers():
+        pytest.skip("pardiso not available on this machine")
+    solver = make_linear_solver("pardiso")
+    analyses = []
+    original = solver._analyse
+    monkeypatch.setattr(solver, "_analyse", lambda: (analyses.append(1), original())[1])
+    full = spd_matrix(125, 5)
+    base = sp.triu(full, format="csr")  # the upper triangle alone: what PARDISO reads
+    expected = np.linalg.solve(full.toarray(), np.ones(125))
+    bound = 10 * np.linalg.cond(full.toarray()) * EPS  # backward-stable solve (Higham, ch. 7)
+    for scale in (1.0, 2.0, 4.0):
+        matrix = sp.csr_matrix((base.data * scale, base.indices, base.indptr), shape=base.shape, copy=False)
+        solver.factorise(matrix)
+        np.testing.assert_allclose(
+            solver.solve(np.ones(125)) * scale, expected, rtol=0, atol=bound * np.abs(expected).max()
+        )
+    assert len(analyses) == 1
+    other = spd_matrix(125, 6)
+    solver.factorise(other)  # full storage, another pattern
+    assert len(analyses) == 2
