@@ -187,8 +187,8 @@ def test_a_missing_mkl_runtime_is_named(monkeypatch, tmp_path):
 
 
 def test_pardiso_analyses_a_pattern_once(monkeypatch):
-    # One analysis for every matrix made on the same pattern arrays (SciPy hands out views of them, so they are
-    # recognised by their memory), and one more for a pattern with other values in new arrays.
+    # One analysis for every matrix made on the same pattern arrays (SciPy hands out views of them, so they
+    # are recognised by their memory), and one more for another pattern.
     if "pardiso" not in available_linear_solvers():
         pytest.skip("pardiso not available on this machine")
     solver = make_linear_solver("pardiso")
