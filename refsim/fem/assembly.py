@@ -3,17 +3,21 @@ DoFs.
 
 One pass over the tets computes, per element, F = Ds Dm⁻¹, its polar rotation R (scaled Newton,
 :func:`refsim.geometry.rotations.polar_rotation_one`), the local displacement u = Rᵀ x − X (centred, as in
-:meth:`TissueModel.internal_forces`), the internal force R Kₑ u and the blocks s · R Kₑ_ab Rᵀ of the tangent,
-and adds them straight into
+:meth:`TissueModel.internal_forces`), the internal force R Kₑ u and the 10 distinct 3 × 3 blocks
+s · R Kₑ_ab Rᵀ (a ≤ b) of the tangent (Kₑ is symmetric, so block (b, a) is block (a, b)ᵀ), and adds them
+straight into
 
 * the ``data`` of A_ff = (M/dt² + C/dt + K)_ff, a CSR matrix whose pattern is built once (free DoFs only, the
-  fixed ones eliminated), through a precomputed slot of each of the 144 entries of each tet (−1 when the row
-  or the column is constrained);
+  fixed ones eliminated): either its **upper triangle** (what PARDISO reads, for a symmetric matrix; each
+  block entry lands in at most one upper entry: 78 additions per tet) or the full matrix (what SuperLU,
+  CHOLMOD and the fast strategies' products need: 144), through a precomputed slot of each block entry (−1
+  when it has no place there);
 * the ``data`` of the coupling A_fc (free rows, constrained columns), for prescribed displacements;
 * the internal force vector.
 
-No Python loop over elements; the result equals the NumPy/scikit-fem assembly of :class:`TissueModel` to
-round-off (tests/fem/test_assembly.py).
+Both storages hold the same numbers (the upper one is the full one's upper triangle, bit for bit). No Python
+loop over elements; the result equals the NumPy/scikit-fem assembly of :class:`TissueModel` to round-off
+(tests/fem/test_assembly.py).
 """
 
 from __future__ import annotations
@@ -68,6 +72,7 @@ class FreePattern:
             raise ValueError("the stiffness pattern is too large for int32 slots")
         self.slots = combined.reshape(-1, 144).astype(np.int32)
         self.nnz, self.coupling_nnz = free_free.nnz, free_fixed.nnz
+        self._upper_pattern(combined.reshape(-1, 144))
         mass = sp.csr_matrix(mass_matrix)
         mass_ff = mass[self.free_dofs][:, self.free_dofs].tocsr()
         mass_ff.sort_indices()
@@ -75,6 +80,39 @@ class FreePattern:
         mass_fc = mass[self.free_dofs][:, self.constrained_dofs].tocsr()
         mass_fc.sort_indices()
         self.mass_coupling_data = self._on_pattern(mass_fc, self.coupling_indptr, self.coupling_indices)
+        self.mass_upper_data = self.mass_data[self.upper_positions]
+
+    def _upper_pattern(self, combined: np.ndarray) -> None:
+        """The upper triangle of A_ff (its pattern, where its entries sit in the full data) and the slot of
+        each of the 90 block entries (a ≤ b, i, j) of every tet in it.
+
+        A block entry (a, b, i, j) is the value of the full entries (3n_a + i, 3n_b + j) and, for a < b,
+        (3n_b + j, 3n_a + i): at most one of them is an upper entry of A_ff or an entry of A_fc (a tet's nodes
+        are distinct, and a DoF is either free or constrained); that one is its slot (k ≥ 0 upper entry k,
+        k ≤ −2 coupling entry −k − 2, −1 none)."""
+        f = self.free_dofs.size
+        rows = np.repeat(np.arange(f), np.diff(self.indptr))
+        self.upper_positions = np.flatnonzero(self.indices >= rows)
+        to_upper = np.full(self.nnz + 1, -1, dtype=np.int64)  # the last: "no free entry"
+        to_upper[self.upper_positions] = np.arange(self.upper_positions.size)
+        # the index dtype of the full pattern (SciPy's int32 for any pattern that fits): a CSR matrix made on
+        # these arrays takes them as they are, with no copy at each step
+        upper_indptr = np.zeros(f + 1, dtype=np.int64)
+        np.cumsum(np.bincount(rows[self.upper_positions], minlength=f), out=upper_indptr[1:])
+        self.upper_indptr = upper_indptr.astype(self.indptr.dtype)
+        self.upper_indices = self.indices[self.upper_positions]
+        self.upper_nnz = self.upper_positions.size
+        direct, mirrored = _BLOCK_ENTRIES
+        first = combined[:, direct]
+        second = np.where(mirrored >= 0, combined[:, np.maximum(mirrored, 0)], -1)
+        slots = np.full(first.shape, -1, dtype=np.int64)
+        for candidate in (first, second):
+            upper = to_upper[np.where(candidate >= 0, candidate, self.nnz)]
+            target = np.where(upper >= 0, upper, np.where(candidate <= -2, candidate, -1))
+            if np.any((slots != -1) & (target != -1)):
+                raise ValueError("a block entry has two places in the upper storage")  # cannot happen
+            slots = np.where(target != -1, target, slots)
+        self.upper_slots = slots.astype(np.int32)
 
     @staticmethod
     def _on_pattern(matrix: sp.csr_matrix, indptr: np.ndarray, indices: np.ndarray) -> np.ndarray:
@@ -100,6 +138,13 @@ class FreePattern:
         out.has_sorted_indices = True
         return out
 
+    def upper_matrix(self, data: np.ndarray) -> sp.csr_matrix:
+        """The upper triangle of A_ff (diagonal included) as a CSR matrix (no copy of ``data``)."""
+        f = self.free_dofs.size
+        out = sp.csr_matrix((data, self.upper_indices, self.upper_indptr), shape=(f, f), copy=False)
+        out.has_sorted_indices = True
+        return out
+
     def coupling(self, data: np.ndarray) -> sp.csr_matrix:
         """A_fc as a CSR matrix (free rows, constrained columns)."""
         out = sp.csr_matrix(
@@ -111,6 +156,28 @@ class FreePattern:
         return out
 
 
+def _block_entries() -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """Where the 90 distinct block entries (a ≤ b, i, j), in the kernel's order, sit among a tet's 144 full
+    entries (a, b, i, j) (index (4a + b)·9 + 3i + j): the direct one (a, b, i, j), its mirror (b, a, j, i) for
+    a < b (−1 for a diagonal block, whose entries are each computed), and for each full entry the block entry
+    that gives its value."""
+    direct, mirrored, source = [], [], np.zeros(144, dtype=np.int64)
+    for a in range(4):
+        for b in range(a, 4):
+            for i in range(3):
+                for j in range(3):
+                    source[(4 * a + b) * 9 + 3 * i + j] = len(direct)
+                    if b != a:
+                        source[(4 * b + a) * 9 + 3 * j + i] = len(direct)
+                    direct.append((4 * a + b) * 9 + 3 * i + j)
+                    mirrored.append((4 * b + a) * 9 + 3 * j + i if b != a else -1)
+    return (np.array(direct), np.array(mirrored)), source
+
+
+_BLOCK_ENTRIES, _FULL_SOURCE = _block_entries()
+_UPPER_SOURCE = np.arange(90, dtype=np.int64)
+
+
 @numba.njit(cache=True)
 def _assemble(
     positions,
@@ -120,6 +187,7 @@ def _assemble(
     stiffness,
     stiffness_factor,
     slots,
+    source,
     data,
     coupling_data,
     forces,
@@ -133,6 +201,8 @@ def _assemble(
     u = np.empty(12)
     fl = np.empty(12)
     kr = np.empty((3, 3))
+    blocks = np.empty(90)
+    entries = slots.shape[1]
     for e in range(tet_count):
         n0 = tets[e, 0]
         for c in range(3):
@@ -174,7 +244,8 @@ def _assemble(
                 for k in range(3):
                     s += r[i, k] * fl[3 * a + k]
                 forces[3 * node + i] += s
-        # tangent blocks R K_ab Rᵀ, scaled, into the slots; Kₑ is symmetric, so block (b, a) is block (a, b)ᵀ
+        # the 10 distinct tangent blocks s · R K_ab Rᵀ (a ≤ b), entry (a, b, i, j) at blocks[9m + 3i + j]
+        m = 0
         for a in range(4):
             for b in range(a, 4):
                 for i in range(3):
@@ -183,25 +254,20 @@ def _assemble(
                         for k in range(3):
                             s += stiffness[e, 3 * a + i, 3 * b + k] * r[j, k]
                         kr[i, j] = s  # K_ab Rᵀ
-                upper = (a * 4 + b) * 9
-                lower = (b * 4 + a) * 9
                 for i in range(3):
                     for j in range(3):
                         s = 0.0
                         for k in range(3):
                             s += r[i, k] * kr[k, j]
-                        s *= stiffness_factor
-                        slot = slots[e, upper + 3 * i + j]
-                        if slot >= 0:
-                            data[slot] += s
-                        elif slot <= -2:
-                            coupling_data[-slot - 2] += s
-                        if b != a:
-                            slot = slots[e, lower + 3 * j + i]
-                            if slot >= 0:
-                                data[slot] += s
-                            elif slot <= -2:
-                                coupling_data[-slot - 2] += s
+                        blocks[9 * m + 3 * i + j] = s * stiffness_factor
+                m += 1
+        # into the slots: entry c of the storage's per-tet list takes block entry source[c]
+        for c in range(entries):
+            slot = slots[e, c]
+            if slot >= 0:
+                data[slot] += blocks[source[c]]
+            elif slot <= -2:
+                coupling_data[-slot - 2] += blocks[source[c]]
 
 
 def assemble_free_system(
@@ -213,6 +279,8 @@ def assemble_free_system(
     stiffness: np.ndarray,
     mass_factor: float,
     stiffness_factor: float,
+    *,
+    upper: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Rotations, internal forces and the data of A_ff and A_fc in one compiled pass.
 
@@ -223,15 +291,24 @@ def assemble_free_system(
     tets : Node indices, shape (tet_count, 4), int64.
     rest_edges_inverse : Dm⁻¹ per tet, shape (tet_count, 3, 3).
     centred_rest : Rest positions relative to each tet's centroid [m], shape (tet_count, 4, 3).
-    stiffness : Kₑ [N/m], shape (tet_count, 12, 12), node-major local DoFs.
+    stiffness : Kₑ [N/m], shape (tet_count, 12, 12), node-major local DoFs; C-contiguous (one tet's 144
+        entries together: the kernel reads them tet by tet).
     mass_factor : 1/dt² + α/dt [1/s²].
     stiffness_factor : 1 + β/dt.
+    upper : Assemble only the upper triangle of A_ff (:meth:`FreePattern.upper_matrix`'s data); the full
+        matrix (:meth:`FreePattern.matrix`) by default.
 
     Returns
     -------
-    A_ff data (pattern order), A_fc data, internal forces [N] (dof_count,), rotations (tet_count, 3, 3).
+    A_ff data (pattern order, full or upper), A_fc data, internal forces [N] (dof_count,), rotations
+    (tet_count, 3, 3).
     """
-    data = mass_factor * pattern.mass_data
+    if upper:
+        data = mass_factor * pattern.mass_upper_data
+        slots, source = pattern.upper_slots, _UPPER_SOURCE
+    else:
+        data = mass_factor * pattern.mass_data
+        slots, source = pattern.slots, _FULL_SOURCE
     coupling = mass_factor * pattern.mass_coupling_data
     forces = np.zeros(pattern.dof_count)
     rotations = np.empty((tets.shape[0], 3, 3))
@@ -240,9 +317,10 @@ def assemble_free_system(
         tets,
         rest_edges_inverse,
         centred_rest,
-        stiffness,
+        np.ascontiguousarray(stiffness),
         float(stiffness_factor),
-        pattern.slots,
+        slots,
+        source,
         data,
         coupling,
         forces,

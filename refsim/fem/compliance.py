@@ -90,8 +90,8 @@ class StepSystem:
     dof_count : Number of DoFs of the body.
     free_dofs : Unconstrained DoFs, sorted, shape (f,).
     constrained_dofs : Fixed or prescribed DoFs, sorted, shape (c,).
-    matrix : A on the free DoFs [N/m], sparse CSR (f, f), symmetric positive definite, full storage, the same
-        pattern at every step of a run.
+    matrix : A on the free DoFs [N/m], sparse CSR (f, f), symmetric positive definite, full storage (or its
+        upper triangle when ``upper_triangle``), the same pattern at every step of a run.
     rhs : Right-hand side of the free motion on the free DoFs [N], f_ext − f_int(x₀) + (M/dt) v₀ − A_fc Δx_c,
         shape (f,).
     prescribed : Δx on the constrained DoFs over the step [m], shape (c,) (zero for fixed DoFs).
@@ -99,6 +99,8 @@ class StepSystem:
         precomputed strategy's R); None if the body has none.
     rest_matrix : Callable returning A at the rest shape on the free DoFs (same pattern); None if the body has
     none.
+    upper_triangle : ``matrix`` holds only A's upper triangle (diagonal included): what a body assembles for a
+        strategy whose ``matrix_storage`` is "upper" (:class:`BodyCompliance`).
     """
 
     dof_count: int
@@ -109,6 +111,7 @@ class StepSystem:
     prescribed: np.ndarray
     group_rotations: Callable[[], np.ndarray] | None = None
     rest_matrix: Callable[[], sp.csr_matrix] | None = None
+    upper_triangle: bool = False
 
     @classmethod
     def from_matrices(
@@ -154,6 +157,15 @@ class StepSystem:
         reduced = matrix[free][:, free].tocsr()
         reduced.sort_indices()
         return cls(n, free, constrained, reduced, reduced_rhs, values, **callables)
+
+    def full_matrix(self) -> sp.csr_matrix:
+        """A on the free DoFs in full storage: ``matrix`` itself, or a new matrix mirrored from its upper
+        triangle when ``upper_triangle``."""
+        if not self.upper_triangle:
+            return self.matrix
+        full = (self.matrix + sp.triu(self.matrix, k=1).T).tocsr()
+        full.sort_indices()
+        return full
 
     def expand(self, free_values: np.ndarray, constrained_values: np.ndarray | None = None) -> np.ndarray:
         """A DoF vector (dof_count,) (or (dof_count, k)) from its free part, constrained part zero unless
@@ -461,7 +473,12 @@ class BodyCompliance:
 
     What a step changes is returned by :meth:`carried` and taken back by :meth:`resume`, so that the run's
     state holds it; what a body keeps besides is a memo of its model (and ``steps``, a count no result
-    reads)."""
+    reads).
+
+    ``matrix_storage`` is what its steps read of ``StepSystem.matrix``: "full", or "upper" when the upper
+    triangle is enough (the exact strategy on PARDISO), so that the body may assemble only that."""
+
+    matrix_storage = "full"
 
     def __init__(self, strategy) -> None:
         self.strategy = strategy
@@ -485,6 +502,10 @@ class BodyCompliance:
             return self._counted_step(system)
 
     def _counted_step(self, system: StepSystem) -> StepCompliance:
+        if system.upper_triangle and self.matrix_storage != "upper":
+            raise ValueError(
+                "this strategy reads A in full storage; the system holds its upper triangle only"
+            )
         exact = self._exact.step(system) if self._exact is not None else None
         result = self._step(system, exact)
         self.steps += 1
@@ -503,6 +524,7 @@ class _ExactBody(BodyCompliance):
         # W by partial solves where the solver has them (PARDISO); an error-report twin (partial=False) keeps
         # the plain analysis, so that its bits depend on no history
         self._partial = partial and hasattr(self._solver, "inverse_block")
+        self.matrix_storage = getattr(self._solver, "storage", "full")
 
     def carried(self) -> PartialSolveMarks | None:
         """The positions the factor's analysis marked for partial solves; None when none are (or no partial

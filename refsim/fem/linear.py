@@ -7,7 +7,9 @@ elimination tree) is done once, and each step only refactorises numerically.
 Backends, in the order of :func:`default_linear_solver`:
 
 ``"pardiso"``
-    Intel oneMKL PARDISO through the ``pypardiso`` wheel (x86-64 only; it brings the ``mkl`` wheel): real SPD
+    Intel oneMKL PARDISO (x86-64 only), called through ctypes in oneMKL's runtime library ``mkl_rt``, which
+    the ``mkl`` wheel installs (the ``pypardiso`` dependency brings it; refsim does not import pypardiso,
+    whose import searches all of ``sys.prefix`` for the library: :func:`_mkl_runtime_candidates`): real SPD
     (mtype 2), upper triangle, zero-based. Phase 11 (analysis) once per pattern, phase 22 (numeric Cholesky)
     per step, phase 33 (solve) per right-hand side block.
 ``"cholmod"``
@@ -76,6 +78,7 @@ class SuperLUSolver:
     """
 
     name = "superlu"
+    storage = "full"  # it factorises what it is given: A in full storage
 
     def __init__(self, ordering: str = DEFAULT_SUPERLU_ORDERING) -> None:
         if ordering not in SUPERLU_ORDERINGS:
@@ -107,6 +110,19 @@ class SuperLUSolver:
         return {"name": self.name, "ordering": self.ordering}
 
 
+def _same_memory(first: np.ndarray, second: np.ndarray) -> bool:
+    """Whether two arrays are the same elements of the same memory (an array and a view of it in full)."""
+    one, other = first.__array_interface__, second.__array_interface__
+    return (
+        one["data"] == other["data"] and one["shape"] == other["shape"] and one["strides"] == other["strides"]
+    )
+
+
+_ONE, _ZERO = ctypes.c_int32(1), ctypes.c_int32(0)
+_MTYPE_SPD = ctypes.c_int32(2)  # PARDISO's matrix type: real symmetric positive definite
+_UNUSED = np.zeros(1)  # what an unused array argument points to
+
+
 class PardisoSolver:
     """oneMKL PARDISO, real symmetric positive definite: analysis once per pattern, numeric refactorisation
     per step.
@@ -117,7 +133,7 @@ class PardisoSolver:
     """
 
     name = "pardiso"
-    _MTYPE = 2  # real symmetric positive definite
+    storage = "upper"  # it reads A's upper triangle only: full storage or the upper triangle alone will do
 
     def __init__(self, ordering: int = 2) -> None:
         self._pardiso = _pardiso_function()
@@ -135,39 +151,46 @@ class PardisoSolver:
         self._perm = np.zeros(1, dtype=np.int32)
         self._pattern_key = None
         self._pattern_arrays = None
-        self._upper = None  # positions in the full CSR data of the upper-triangle entries
+        self._upper = None  # positions in the CSR data of the upper-triangle entries (None: all of them)
         self._ia = self._ja = self._a = None
         self._n = 0
         self._factorised = False
+        self._pt_address, self._iparm_address = self._pt.ctypes.data, self._iparm.ctypes.data
+        self._perm_address = self._perm.ctypes.data
+        self._a_address = self._ia_address = self._ja_address = _UNUSED.ctypes.data
 
     def __del__(self) -> None:
         try:
             if self._n:
-                self._call(-1, np.zeros(1), np.zeros(1), 1)
+                self._call(-1)
         except Exception:  # noqa: BLE001 - freeing at interpreter exit must not raise
             pass
 
-    def _call(self, phase: int, b: np.ndarray, x: np.ndarray, nrhs: int) -> None:
+    def _call(
+        self, phase: int, b: np.ndarray | None = None, x: np.ndarray | None = None, nrhs: int = 1
+    ) -> None:
+        """One call of ``pardiso``; b, x: the right-hand sides and the solutions of a solve phase (Fortran
+        order), unused otherwise.
+
+        Arrays go by address, taken once for those that live across calls (``.ctypes.data_as`` costs about
+        10 µs an array, and a call passes eight)."""
         error = ctypes.c_int32(0)
-        i32 = ctypes.POINTER(ctypes.c_int32)
-        f64 = ctypes.POINTER(ctypes.c_double)
-        perm = self._perm
         self._pardiso(
-            self._pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
-            ctypes.byref(ctypes.c_int32(1)),
-            ctypes.byref(ctypes.c_int32(1)),
-            ctypes.byref(ctypes.c_int32(self._MTYPE)),
+            self._pt_address,
+            ctypes.byref(_ONE),
+            ctypes.byref(_ONE),
+            ctypes.byref(_MTYPE_SPD),
             ctypes.byref(ctypes.c_int32(phase)),
             ctypes.byref(ctypes.c_int32(self._n)),
-            (self._a if self._a is not None else np.zeros(1)).ctypes.data_as(f64),
-            (self._ia if self._ia is not None else np.zeros(1, np.int32)).ctypes.data_as(i32),
-            (self._ja if self._ja is not None else np.zeros(1, np.int32)).ctypes.data_as(i32),
-            perm.ctypes.data_as(i32),
+            self._a_address,
+            self._ia_address,
+            self._ja_address,
+            self._perm_address,
             ctypes.byref(ctypes.c_int32(nrhs)),
-            self._iparm.ctypes.data_as(i32),
-            ctypes.byref(ctypes.c_int32(0)),
-            b.ctypes.data_as(f64),
-            x.ctypes.data_as(f64),
+            self._iparm_address,
+            ctypes.byref(_ZERO),
+            _UNUSED.ctypes.data if b is None else b.ctypes.data,
+            _UNUSED.ctypes.data if x is None else x.ctypes.data,
             ctypes.byref(error),
         )
         if error.value != 0:
@@ -176,36 +199,52 @@ class PardisoSolver:
             )
 
     def factorise(self, matrix: sp.spmatrix) -> None:
-        """Factorise A (symmetric positive definite, full storage); the analysis runs when the pattern is
-        new."""
+        """Factorise A (symmetric positive definite, full storage or its upper triangle alone: only the upper
+        triangle is read); the analysis runs when the pattern is new. An upper triangle alone is read in
+        place (no copy): its values must not change before the next factorisation."""
         matrix = _check_square(matrix)
         last = self._pattern_arrays
-        if last is not None and last[0] is matrix.indptr and last[1] is matrix.indices:
-            # The very arrays of last time (one FreePattern per run; held here, so they cannot be recycled).
+        if (
+            last is not None
+            and _same_memory(last[0], matrix.indptr)
+            and _same_memory(last[1], matrix.indices)
+        ):
+            # The very arrays of last time (one FreePattern per run; SciPy hands out views of them, and they
+            # are held here, so that their memory cannot be recycled).
             key = self._pattern_key
         else:
             key = (matrix.shape[0], matrix.nnz, hash(matrix.indptr.tobytes()), hash(matrix.indices.tobytes()))
         self._pattern_arrays = (matrix.indptr, matrix.indices)
         if key != self._pattern_key:
             if self._n:
-                self._call(-1, np.zeros(1), np.zeros(1), 1)
+                self._call(-1)
                 self._pt[:] = 0
             rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
-            self._upper = np.flatnonzero(matrix.indices >= rows)
+            upper_entries = np.flatnonzero(matrix.indices >= rows)
+            self._upper = None if upper_entries.size == matrix.nnz else upper_entries
             upper = sp.triu(matrix, format="csr")
             upper.sort_indices()
             self._n = matrix.shape[0]
             self._ia = upper.indptr.astype(np.int32)
             self._ja = upper.indices.astype(np.int32)
+            self._ia_address, self._ja_address = self._ia.ctypes.data, self._ja.ctypes.data
             if self._marked is not None and (self._marked.size and self._marked[-1] >= self._n):
                 self._marked = None  # marked for another matrix
-            self._a = np.ascontiguousarray(matrix.data[self._upper], dtype=float)
+            self._set_values(matrix)
             self._analyse()
             self._pattern_key = key
         else:
-            self._a = np.ascontiguousarray(matrix.data[self._upper], dtype=float)
-        self._call(22, np.zeros(1), np.zeros(1), 1)
+            self._set_values(matrix)
+        self._call(22)
         self._factorised = True
+
+    def _set_values(self, matrix: sp.csr_matrix) -> None:
+        """The values of A's upper triangle in PARDISO's order: the data itself when it holds nothing else."""
+        if self._upper is None:
+            self._a = np.ascontiguousarray(matrix.data, dtype=float)
+        else:
+            self._a = np.ascontiguousarray(matrix.data[self._upper], dtype=float)
+        self._a_address = self._a.ctypes.data
 
     def _analyse(self) -> None:
         """Phase 11 on the current pattern: plain, or for partial solves on the marked positions."""
@@ -216,7 +255,8 @@ class PardisoSolver:
             self._perm = np.zeros(self._n, dtype=np.int32)
             self._perm[self._marked] = 1
             self._iparm[30] = 1
-        self._call(11, np.zeros(1), np.zeros(1), 1)
+        self._perm_address = self._perm.ctypes.data
+        self._call(11)
         self._iparm[30] = 0  # full solves unless a partial one asks
 
     @property
@@ -241,7 +281,7 @@ class PardisoSolver:
         if self._n and self._pattern_key is not None:
             self._analyse()
             if self._factorised:
-                self._call(22, np.zeros(1), np.zeros(1), 1)
+                self._call(22)
 
     def inverse_block(self, positions: np.ndarray) -> np.ndarray:
         """(A⁻¹)[positions][:, positions], shape (u, u), by one partial solve (oneMKL iparm[30] = 1): the
@@ -309,6 +349,7 @@ class CholmodSolver:
     """CHOLMOD (scikit-sparse): symbolic analysis once per pattern, numeric Cholesky per step."""
 
     name = "cholmod"
+    storage = "full"
 
     def __init__(self) -> None:
         try:
@@ -335,41 +376,75 @@ class CholmodSolver:
         return {"name": self.name}
 
 
+#: The environment variable naming oneMKL's runtime library, as pypardiso reads it.
+MKL_RT_VARIABLE = "PYPARDISO_MKL_RT"
+
+
+def _mkl_runtime_candidates() -> list[str]:
+    """Paths of oneMKL's runtime library ``mkl_rt`` to try, in order: ``$PYPARDISO_MKL_RT``, then the
+    library folders of the ``mkl`` wheel (``sys.prefix/lib``, the user base's ``lib``; ``Library/bin`` on
+    Windows), then the wheel's own file list, then the system's library search (``ctypes.util.find_library``).
+
+    Only those folders are listed, not searched recursively (pypardiso's search globs all of ``sys.prefix``:
+    seconds)."""
+    import glob
+    import site
+    import sys
+
+    override = os.environ.get(MKL_RT_VARIABLE, "").strip()
+    if override:
+        return [override]
+    found = []
+    for base in dict.fromkeys((sys.prefix, site.USER_BASE)):
+        for folder in ("lib", os.path.join("Library", "bin")):
+            names = glob.glob(os.path.join(glob.escape(os.path.join(base, folder)), "*mkl_rt*"))
+            found += sorted((name for name in names if _is_shared_library(name)), key=len)
+    if found:
+        return found
+    try:
+        files = importlib.metadata.files("mkl") or []
+    except importlib.metadata.PackageNotFoundError:
+        files = []
+    found = [
+        str(entry.locate()) for entry in files if "mkl_rt" in entry.name and _is_shared_library(entry.name)
+    ]
+    if found:
+        return sorted(found, key=len)
+    import ctypes.util
+
+    system = ctypes.util.find_library("mkl_rt")
+    return [system] if system else []
+
+
+def _is_shared_library(name: str) -> bool:
+    base = os.path.basename(name)
+    return ".so" in base or base.endswith((".dll", ".dylib"))
+
+
 @lru_cache(maxsize=1)
 def _pardiso_function():
-    """oneMKL's ``pardiso`` entry point, found through pypardiso's search for ``mkl_rt``."""
+    """oneMKL's ``pardiso`` entry point from the ``mkl_rt`` library (:func:`_mkl_runtime_candidates`), loaded
+    once per process."""
     if platform.machine().lower() not in ("x86_64", "amd64"):
         raise LinearSolverError(
             f"pardiso: oneMKL wheels exist for x86-64 only, this machine is {platform.machine()}"
         )
-    try:
-        import pypardiso
-    except ImportError as error:
-        raise LinearSolverError(f"pardiso: pypardiso does not import here ({error})") from None
-    try:
-        library = pypardiso.PyPardisoSolver().libmkl
-    except (ImportError, OSError) as error:
-        raise LinearSolverError(f"pardiso: the mkl_rt library was not found ({error})") from None
+    candidates = _mkl_runtime_candidates()
+    library, failures = None, []
+    for path in candidates:
+        try:
+            library = ctypes.CDLL(path)
+            break
+        except OSError as error:
+            failures.append(f"{path}: {error}")
+    if library is None:
+        tried = "; ".join(failures) if failures else "no file named *mkl_rt* found"
+        raise LinearSolverError(
+            f"pardiso: oneMKL's runtime library mkl_rt did not load ({tried}); install the mkl wheel "
+            f"(pip install pypardiso) or set {MKL_RT_VARIABLE} to the library's path"
+        )
     function = library.pardiso
-    i32 = ctypes.POINTER(ctypes.c_int32)
-    function.argtypes = [
-        ctypes.POINTER(ctypes.c_int64),
-        i32,
-        i32,
-        i32,
-        i32,
-        i32,
-        ctypes.c_void_p,
-        i32,
-        i32,
-        i32,
-        i32,
-        i32,
-        i32,
-        ctypes.c_void_p,
-        ctypes.c_void_p,
-        i32,
-    ]
+    function.argtypes = [ctypes.c_void_p] * 16  # addresses (arrays) and byref(c_int32) (scalars)
     function.restype = None
     return function
 

@@ -262,6 +262,9 @@ class TissueModel:
             stiffness.reshape(tet_count, 4, 3, 4, 3).transpose(0, 1, 3, 2, 4)
         )
         self._element_stiffness = stiffness
+        # The compiled assembly reads one tet's 144 entries together; scikit-fem's array has the tet index
+        # fastest (each entry of one tet on another cache line).
+        self._element_stiffness_rows = np.ascontiguousarray(stiffness)
         self._element_dofs = (3 * tets[:, :, None] + _LOCAL_COMPONENTS).reshape(tet_count, 12)
         self._build_pattern()
 
@@ -276,6 +279,7 @@ class TissueModel:
             blocks = element_mass[:, :, :, None, None] * eye  # (tet_count, 4, 4, 3, 3)
             self.mass_matrix = self._assemble(blocks.ravel())
         self.rest_stiffness = self.tangent_stiffness(np.broadcast_to(np.eye(3), (tet_count, 3, 3)))
+        self._gravity_forces = _read_only(self.external_forces().ravel())  # f_ext of every step, (dof_count,)
         logger.debug(
             "tissue model: %d nodes, %d tets, %d fixed nodes, stiffness nnz %d",
             node_count,
@@ -462,6 +466,7 @@ class TissueModel:
         *,
         fixed_displacements: np.ndarray | None = None,
         compiled: bool = True,
+        upper_triangle: bool = False,
     ) -> StepSystem:
         """The step system of the compliance strategies: A on the free DoFs and the free motion's right-hand
         side.
@@ -478,6 +483,8 @@ class TissueModel:
         compiled : Co-rotation and assembly in one compiled pass into the fixed free-DoF pattern
             (:mod:`refsim.fem.assembly`, default); False: the NumPy path (batched products, then elimination),
             equal to round-off and bit-identical to refsim before the compiled path.
+        upper_triangle : A's upper triangle only (``StepSystem.upper_triangle``; compiled path only), for a
+            linear solver that reads nothing else (PARDISO); the full matrix by default.
         """
         if not dt > 0.0:
             raise ValueError(f"dt must be > 0 s, got {dt!r}")
@@ -485,6 +492,8 @@ class TissueModel:
         velocities = np.asarray(state.velocities, dtype=float)
         prescribed = self._prescribed(fixed_displacements)
         if not compiled:
+            if upper_triangle:
+                raise ValueError("upper_triangle needs the compiled assembly (compiled=True)")
             rotations = self.element_rotations(positions)
             forces = self.external_forces() - self.internal_forces(positions, rotations)
             matrix = effective_stiffness(
@@ -510,11 +519,12 @@ class TissueModel:
             self.tets,
             self._rest_edges_inverse,
             self._centred_rest,
-            self._element_stiffness,
+            self._element_stiffness_rows,
             1.0 / dt**2 + self.rayleigh_mass / dt,
             1.0 + self.rayleigh_stiffness / dt,
+            upper=upper_triangle,
         )
-        rhs = self.external_forces().ravel() - internal + (self.mass_matrix @ velocities.ravel()) / dt
+        rhs = self._gravity_forces - internal + (self.mass_matrix @ velocities.ravel()) / dt
         reduced = rhs[pattern.free_dofs]
         if prescribed is not None and prescribed.size:
             reduced = reduced - pattern.coupling(coupling_data) @ prescribed
@@ -524,11 +534,12 @@ class TissueModel:
             self.dof_count,
             pattern.free_dofs,
             pattern.constrained_dofs,
-            pattern.matrix(data),
+            pattern.upper_matrix(data) if upper_triangle else pattern.matrix(data),
             reduced,
             prescribed,
             group_rotations=lambda: self.node_rotations(rotations),
             rest_matrix=lambda: self._rest_effective_stiffness(dt),
+            upper_triangle=upper_triangle,
         )
 
     @property
@@ -618,8 +629,12 @@ class TissueModel:
         positions = self._checked_positions(state.positions)
         if compliance is None:
             compliance = Exact().bind()
+        # A's upper triangle is all a strategy reads whose only use of it is PARDISO's factorisation
+        upper = getattr(compliance, "matrix_storage", "full") == "upper"
         with hot_path_threads():
-            system = self.assemble_step(state, dt, fixed_displacements=fixed_displacements)
+            system = self.assemble_step(
+                state, dt, fixed_displacements=fixed_displacements, upper_triangle=upper
+            )
             step = compliance.step(system)
         displacement = step.free_displacement.reshape(self.node_count, 3)
         return positions + displacement, displacement / dt, step

@@ -176,34 +176,16 @@ class Simulation:
             return self._step(state, record_tissue=record_tissue)
 
     def _step(self, state: SimulationState, *, record_tissue: bool) -> tuple[SimulationState, StepRecord]:
-        dt = self.dt
+        """The stages in order, each timed (``StepRecord.stage_seconds``)."""
         timer = _StageTimer()
-        time = state.time + dt
-        step = state.step + 1
+        step, time = state.step + 1, state.time + self.dt
         control = self.controls.at(time)
         timer.lap("motion")
 
-        self.tissue_compliance.resume(state.tissue_factor)
-        free, systems = {}, {}
-        tissue = self.tissue_body
-        free[tissue.name], systems[tissue.name] = tissue.free_motion(state.tissue, control, dt)
-        for instrument in self.instruments:
-            body = instrument.body
-            own = state.instrument(instrument.name).needle
-            free[body.name], systems[body.name] = body.free_motion(own, instrument.control(control), dt)
+        free, systems = self._free_motion(state, control)
         timer.lap("free_motion")
 
-        detections = []
-        for instrument in self.instruments:
-            body = instrument.body
-            geometry = StepGeometry(
-                mesh_tets=self.tets,
-                tissue_previous=state.tissue.positions,
-                tissue_free=free[tissue.name].positions,
-                needle_previous=body.geometry(state.instrument(instrument.name).needle),
-                needle_free=body.geometry(free[body.name]),
-            )
-            detections.append(instrument.detect(state, geometry))
+        detections = self._detect(state, free)
         rows = RowBlock.concatenate([detection.rows for detection in detections])
         timer.lap("detection")
 
@@ -217,64 +199,12 @@ class Simulation:
         self._check_finite(step, corrected, multipliers)
         timer.lap("correction")
 
-        instruments = []
-        for instrument, detection in zip(self.instruments, detections, strict=True):
-            own = state.instrument(instrument.name)
-            path = own.path if detection.rings is None else own.path.with_rings(detection.rings)
-            path = self._store_multipliers(path, rows, instrument.index, problem, multipliers)
-            instruments.append(replace(own, needle=corrected[instrument.body.name], path=path))
-        new_state = replace(
-            state,
-            step=step,
-            time=time,
-            tissue=corrected[tissue.name],
-            instruments=tuple(instruments),
-            tissue_factor=self.tissue_compliance.carried(),
-        )
-        parts = []
-        for instrument, detection in zip(self.instruments, detections, strict=True):
-            mine = rows.instruments == instrument.index
-            instrument.event_rules.margins.begin(problem, rows, multipliers, report, own=mine)
-            new_state, events = instrument.event_rules.apply(
-                new_state, instrument.name, detection, multipliers[mine]
-            )
-            own = new_state.instrument(instrument.name)
-            parts.append(
-                InstrumentRecord(
-                    name=instrument.name,
-                    phase=str(own.phase),
-                    events=tuple(events),
-                    base_position=own.needle.base_position,
-                    needle_positions=own.needle.positions,
-                    needle_frames=own.needle.frames,
-                    needle_force=instrument.needle_force(rows, multipliers),
-                    insertion_point_count=own.path.point_count,
-                    criteria=instrument.event_rules.margins.taken(),
-                )
-            )
+        new_state = self._advanced(state, step, time, corrected, detections, rows, problem, multipliers)
+        new_state, parts = self._events(new_state, detections, rows, problem, multipliers, report)
         timer.lap("events")
 
-        tissue_state = new_state.tissue
-        record = StepRecord(
-            step=step,
-            time=time,
-            tissue_positions=tissue_state.positions if record_tissue else None,
-            row_kind=rows.kind,
-            row_source=rows.source,
-            row_points=rows.points,
-            row_directions=rows.directions,
-            row_forces=multipliers,
-            solver=report,
-            stage_seconds=timer.seconds,
-            problem=problem if self.scene.output.record_problems else None,
-            cut_point_count=0 if new_state.cut is None else new_state.cut.point_count,
-            cut_triangle_count=0 if new_state.cut is None else new_state.cut.triangle_count,
-            triangulation_seconds=_triangulation_seconds(state.cut, new_state.cut),
-            boundary_displacements=control.boundary_displacements if control.boundary_nodes.size else None,
-            row_role=rows.roles,
-            row_point=rows.points_of_rows,
-            instruments=tuple(parts),
-            row_instrument=rows.instruments,
+        record = self._record(
+            state, new_state, control, rows, problem, multipliers, report, parts, timer.seconds, record_tissue
         )
         return new_state, record
 
@@ -297,6 +227,106 @@ class Simulation:
         return state
 
     # ------------------------------------------------------------------ stages
+
+    def _free_motion(self, state: SimulationState, control) -> tuple[dict, dict]:
+        """Each body's free state and step system, by name: the tissue (from the carried factor state), then
+        each instrument's needle at its own controls."""
+        self.tissue_compliance.resume(state.tissue_factor)
+        tissue = self.tissue_body
+        free_tissue, tissue_system = tissue.free_motion(state.tissue, control, self.dt)
+        free, systems = {tissue.name: free_tissue}, {tissue.name: tissue_system}
+        for instrument in self.instruments:
+            body = instrument.body
+            own = state.instrument(instrument.name).needle
+            free[body.name], systems[body.name] = body.free_motion(own, instrument.control(control), self.dt)
+        return free, systems
+
+    def _detect(self, state: SimulationState, free: dict) -> list:
+        """Each instrument's detection (rows by its phase) on the step's geometry: the tissue and its needle
+        at the start of the step and after free motion."""
+        detections = []
+        for instrument in self.instruments:
+            body = instrument.body
+            geometry = StepGeometry(
+                mesh_tets=self.tets,
+                tissue_previous=state.tissue.positions,
+                tissue_free=free[self.tissue_body.name].positions,
+                needle_previous=body.geometry(state.instrument(instrument.name).needle),
+                needle_free=body.geometry(free[body.name]),
+            )
+            detections.append(instrument.detect(state, geometry))
+        return detections
+
+    def _advanced(
+        self, state, step: int, time: float, corrected: dict, detections, rows, problem, multipliers
+    ) -> SimulationState:
+        """The state after the correction, before the events: each body's corrected state, each instrument's
+        path with its rings and its points' multipliers, the tissue factor's carried state."""
+        instruments = []
+        for instrument, detection in zip(self.instruments, detections, strict=True):
+            own = state.instrument(instrument.name)
+            path = own.path if detection.rings is None else own.path.with_rings(detection.rings)
+            path = self._store_multipliers(path, rows, instrument.index, problem, multipliers)
+            instruments.append(replace(own, needle=corrected[instrument.body.name], path=path))
+        return replace(
+            state,
+            step=step,
+            time=time,
+            tissue=corrected[self.tissue_body.name],
+            instruments=tuple(instruments),
+            tissue_factor=self.tissue_compliance.carried(),
+        )
+
+    def _events(
+        self, state: SimulationState, detections, rows, problem, multipliers, report
+    ) -> tuple[SimulationState, list[InstrumentRecord]]:
+        """Each instrument's events in order, on its own rows and multipliers, and its record."""
+        parts = []
+        for instrument, detection in zip(self.instruments, detections, strict=True):
+            mine = rows.instruments == instrument.index
+            instrument.event_rules.margins.begin(problem, rows, multipliers, report, own=mine)
+            state, events = instrument.event_rules.apply(state, instrument.name, detection, multipliers[mine])
+            own = state.instrument(instrument.name)
+            parts.append(
+                InstrumentRecord(
+                    name=instrument.name,
+                    phase=str(own.phase),
+                    events=tuple(events),
+                    base_position=own.needle.base_position,
+                    needle_positions=own.needle.positions,
+                    needle_frames=own.needle.frames,
+                    needle_force=instrument.needle_force(rows, multipliers),
+                    insertion_point_count=own.path.point_count,
+                    criteria=instrument.event_rules.margins.taken(),
+                )
+            )
+        return state, parts
+
+    def _record(
+        self, state, new_state, control, rows, problem, multipliers, report, parts, seconds, record_tissue
+    ) -> StepRecord:
+        """What the step did: its rows and multipliers, each instrument's record, the stage times, the cut's size, the tissue when asked."""
+        return StepRecord(
+            step=new_state.step,
+            time=new_state.time,
+            tissue_positions=new_state.tissue.positions if record_tissue else None,
+            row_kind=rows.kind,
+            row_source=rows.source,
+            row_points=rows.points,
+            row_directions=rows.directions,
+            row_forces=multipliers,
+            solver=report,
+            stage_seconds=seconds,
+            problem=problem if self.scene.output.record_problems else None,
+            cut_point_count=0 if new_state.cut is None else new_state.cut.point_count,
+            cut_triangle_count=0 if new_state.cut is None else new_state.cut.triangle_count,
+            triangulation_seconds=_triangulation_seconds(state.cut, new_state.cut),
+            boundary_displacements=control.boundary_displacements if control.boundary_nodes.size else None,
+            row_role=rows.roles,
+            row_point=rows.points_of_rows,
+            instruments=tuple(parts),
+            row_instrument=rows.instruments,
+        )
 
     def _problem(self, rows: RowBlock, systems: dict):
         """The constraint problem of the rows, W = Σ_b H_b A_b⁻¹ H_bᵀ over the bodies with a Jacobian in

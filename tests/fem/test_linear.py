@@ -5,6 +5,8 @@ choice."""
 from __future__ import annotations
 
 import platform
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -12,7 +14,9 @@ import scipy.sparse as sp
 
 from refsim.fem.linear import (
     ENVIRONMENT_VARIABLE,
+    MKL_RT_VARIABLE,
     LinearSolverError,
+    _pardiso_function,
     available_linear_solvers,
     default_linear_solver,
     linear_solver_info,
@@ -148,3 +152,60 @@ def test_pardiso_factor_is_a_function_of_the_marks_not_of_their_history():
     fresh.factorise(second)
     np.testing.assert_array_equal(travelled.solve(rhs), fresh.solve(rhs))
     np.testing.assert_array_equal(travelled.inverse_block(marks), fresh.inverse_block(marks))
+
+
+def test_pardiso_loads_mkl_without_pypardiso():
+    # oneMKL's runtime is found in the mkl wheel's library folder, not through pypardiso (whose import builds
+    # a solver that globs all of sys.prefix, and does it again on first use): a PARDISO factorisation in a
+    # fresh interpreter imports no pypardiso.
+    if "pardiso" not in available_linear_solvers():
+        pytest.skip("pardiso not available on this machine")
+    code = (
+        "import sys, numpy as np, scipy.sparse as sp\n"
+        "from refsim.fem.linear import make_linear_solver\n"
+        "solver = make_linear_solver('pardiso')\n"
+        "solver.factorise(sp.identity(4, format='csr') * 2.0)\n"
+        "assert np.allclose(solver.solve(np.ones(4)), 0.5)\n"
+        "print('pypardiso' in sys.modules)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip().splitlines()[-1] == "False"
+
+
+def test_a_missing_mkl_runtime_is_named(monkeypatch, tmp_path):
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        pytest.skip("oneMKL wheels are x86-64 only")
+    missing = tmp_path / "libmkl_rt.so.3"
+    monkeypatch.setenv(MKL_RT_VARIABLE, str(missing))
+    _pardiso_function.cache_clear()
+    try:
+        with pytest.raises(LinearSolverError, match=f"{missing}.*{MKL_RT_VARIABLE}"):
+            make_linear_solver("pardiso")
+    finally:
+        monkeypatch.delenv(MKL_RT_VARIABLE)
+        _pardiso_function.cache_clear()
+
+
+def test_pardiso_analyses_a_pattern_once(monkeypatch):
+    # One analysis for every matrix made on the same pattern arrays (SciPy hands out views of them, so they
+    # are recognised by their memory), and one more for another pattern.
+    if "pardiso" not in available_linear_solvers():
+        pytest.skip("pardiso not available on this machine")
+    solver = make_linear_solver("pardiso")
+    analyses = []
+    original = solver._analyse
+    monkeypatch.setattr(solver, "_analyse", lambda: (analyses.append(1), original())[1])
+    full = spd_matrix(125, 5)
+    base = sp.triu(full, format="csr")  # the upper triangle alone: what PARDISO reads
+    expected = np.linalg.solve(full.toarray(), np.ones(125))
+    bound = 10 * np.linalg.cond(full.toarray()) * EPS  # backward-stable solve (Higham, ch. 7)
+    for scale in (1.0, 2.0, 4.0):
+        matrix = sp.csr_matrix((base.data * scale, base.indices, base.indptr), shape=base.shape, copy=False)
+        solver.factorise(matrix)
+        np.testing.assert_allclose(
+            solver.solve(np.ones(125)) * scale, expected, rtol=0, atol=bound * np.abs(expected).max()
+        )
+    assert len(analyses) == 1
+    other = spd_matrix(125, 6)
+    solver.factorise(other)  # full storage, another pattern
+    assert len(analyses) == 2

@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from refsim.fem.compliance import Exact, Refreshed
+from refsim.fem.linear import available_linear_solvers
 from refsim.fem.tissue import TissueModel, TissueState, element_mass_matrices, element_stiffness_matrices
 from refsim.geometry.rotations import rotation_matrix
 from refsim.materials import HookeMaterial
@@ -389,3 +391,23 @@ def test_bad_meshes_are_named(cube):
         cube.internal_forces(np.zeros((3, 3)), cube.element_rotations(cube.rest_positions))
     with pytest.raises(ValueError, match="velocities"):
         TissueState(positions=cube.rest_positions, velocities=np.zeros((2, 3)))
+
+
+@pytest.mark.parametrize("solver", available_linear_solvers())
+def test_free_motion_assembles_what_the_strategy_reads(cube, solver):
+    # The exact strategy on PARDISO reads A's upper triangle only, so the free motion assembles only that;
+    # the factor is the one of the full matrix (PARDISO takes the same upper numbers from it): same bits.
+    rest = cube.rest_positions
+    state = TissueState(positions=rest + 1e-3 * np.sin(50.0 * rest), velocities=0.05 * np.cos(20.0 * rest))
+    positions, _, step = cube.free_motion(state, 0.01, compliance=Exact(linear_solver=solver).bind())
+    assert step.system.upper_triangle == (solver == "pardiso")
+    full = Exact(linear_solver=solver).bind().step(cube.assemble_step(state, 0.01))
+    np.testing.assert_array_equal(
+        positions, rest + 1e-3 * np.sin(50.0 * rest) + full.free_displacement.reshape(-1, 3)
+    )
+    # a strategy that multiplies by A (PCG) keeps the full storage, and refuses the upper triangle alone
+    _, _, refreshed = cube.free_motion(state, 0.01, compliance=Refreshed(linear_solver=solver).bind())
+    assert not refreshed.system.upper_triangle
+    upper = cube.assemble_step(state, 0.01, upper_triangle=True)
+    with pytest.raises(ValueError, match="upper triangle"):
+        Refreshed(linear_solver=solver).bind().step(upper)

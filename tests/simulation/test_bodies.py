@@ -74,7 +74,7 @@ def block(jacobians: dict) -> RowBlock:
 def dense_inverse(step) -> tuple[np.ndarray, float]:
     """A⁻¹ on every DoF of the body (zero on the constrained ones) by LAPACK, and κ(A) on the free DoFs."""
     system = step.system
-    matrix = system.matrix.toarray()
+    matrix = system.full_matrix().toarray()
     inverse = np.zeros((system.dof_count, system.dof_count))
     inverse[np.ix_(system.free_dofs, system.free_dofs)] = np.linalg.inv(matrix)
     return inverse, float(np.linalg.cond(matrix))
