@@ -14,7 +14,7 @@ import numpy as np
 
 from refsim.kernel_cache import numba
 
-__all__ = ["BoxGrid", "tet_spheres"]
+__all__ = ["BoxGrid", "locate_in_tets", "tet_spheres"]
 
 # The cell edge is this many times the mean box width (along x).
 _CELL_PER_BOX = 1.0
@@ -45,6 +45,123 @@ class BoxGrid:
         return _query(
             points, self.origin, self.edge, self.dims, self.offsets, self.items, self.lower, self.upper
         )
+
+
+def locate_in_tets(
+    grid: BoxGrid,
+    points: np.ndarray,
+    positions: np.ndarray,
+    tets: np.ndarray,
+    centroids: np.ndarray,
+    radii: np.ndarray,
+    *,
+    tolerance: float,
+    reach_factor: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Point location over the tets' boxes of ``grid``, in one compiled pass per point (layer 0).
+
+    For each point: the tets whose box holds it, those within ``reach_factor`` × their bounding radius of
+    their centroid, their barycentric coordinates (the sub-volume formula of
+    :func:`refsim.geometry.barycentric.tet_barycentric`, same operations in the same order), and, among those
+    whose smallest coordinate is ≥ −``tolerance``, the one whose smallest coordinate is largest (ties: the
+    lowest tet index). The same bits as :meth:`refsim.geometry.TetLocator.locate`'s vectorised path
+    (``tests/geometry/test_search.py``), without its many small arrays: a step locates a few points (the
+    tip's ring, new insertion points) and NumPy's per-call cost dominated.
+
+    Returns
+    -------
+    (tet_index (q,), −1 outside; barycentric (q, 4), NaN outside).
+    """
+    points = np.ascontiguousarray(points, dtype=float)
+    return _locate(
+        points,
+        grid.origin,
+        grid.edge,
+        grid.dims,
+        grid.offsets,
+        grid.items,
+        grid.lower,
+        grid.upper,
+        np.ascontiguousarray(centroids, dtype=float),
+        np.ascontiguousarray(radii, dtype=float),
+        np.ascontiguousarray(positions, dtype=float),
+        np.ascontiguousarray(tets, dtype=np.int64),
+        float(tolerance),
+        float(reach_factor),
+    )
+
+
+# Sub-tetrahedron i replaces vertex i by the point (index 4): refsim.geometry.barycentric._REPLACED.
+_REPLACED = np.array([[4, 1, 2, 3], [4, 0, 3, 2], [4, 0, 1, 3], [4, 0, 2, 1]], dtype=np.int64)
+
+
+@numba.njit(cache=True)
+def _barycentric_into(point, positions, tet, replaced, out):  # pragma: no cover - compiled
+    """tet_barycentric of one point, written into ``out`` (4,): the sub-volumes (edge vectors from the point,
+    the triple product as e₀ · (e₁ × e₂), /6) over their sum, NaN for a zero sum; the operations of the
+    vectorised function in its order (tests/geometry/test_search.py holds the two to the same bits)."""
+    corners = np.empty((5, 3))
+    for corner in range(4):
+        for axis in range(3):
+            corners[corner, axis] = positions[tet[corner], axis]
+    for axis in range(3):
+        corners[4, axis] = point[axis]
+    volumes = np.empty(4)
+    for sub in range(4):
+        origin = corners[replaced[sub, 0]]
+        a = corners[replaced[sub, 1]] - origin
+        b = corners[replaced[sub, 2]] - origin
+        c = corners[replaced[sub, 3]] - origin
+        cross0 = b[1] * c[2] - b[2] * c[1]
+        cross1 = b[2] * c[0] - b[0] * c[2]
+        cross2 = b[0] * c[1] - b[1] * c[0]
+        # NumPy's einsum of three products sums (p₀ + p₂) + p₁ (its paired inner loop): the same here.
+        triple = (a[0] * cross0 + a[2] * cross2) + a[1] * cross1
+        volumes[sub] = triple / 6.0
+    total = volumes[0] + volumes[1] + volumes[2] + volumes[3]
+    for sub in range(4):
+        out[sub] = volumes[sub] / total if total != 0.0 else np.nan
+
+
+@numba.njit(cache=True)
+def _locate(
+    points, origin, edge, dims, offsets, items, lower, upper, centroids, radii, positions, tets, tolerance, reach
+):  # pragma: no cover - compiled
+    count = points.shape[0]
+    found = np.full(count, -1, dtype=np.int64)
+    barycentric = np.full((count, 4), np.nan)
+    coordinates = np.empty(4)
+    for q in range(count):
+        point = points[q]
+        cell = _cell_of(point, origin, edge, dims)
+        if cell < 0:
+            continue
+        best = -1
+        best_smallest = 0.0
+        for slot in range(offsets[cell], offsets[cell + 1]):
+            tet = items[slot]
+            if not _in_box(point, lower[tet], upper[tet]):
+                continue
+            squares = 0.0
+            for axis in range(3):
+                offset = point[axis] - centroids[tet, axis]
+                squares += offset * offset
+            if not np.sqrt(squares) <= radii[tet] * reach:
+                continue
+            _barycentric_into(point, positions, tets[tet], _REPLACED, coordinates)
+            smallest = coordinates[0]
+            for corner in range(1, 4):
+                value = coordinates[corner]
+                if value < smallest or np.isnan(value):
+                    smallest = value
+            if not smallest >= -tolerance:
+                continue
+            if best < 0 or smallest > best_smallest or (smallest == best_smallest and tet < best):
+                best = tet
+                best_smallest = smallest
+                barycentric[q] = coordinates
+        found[q] = best
+    return found, barycentric
 
 
 def tet_spheres(positions: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

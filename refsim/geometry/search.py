@@ -167,6 +167,24 @@ class TetLocator:
         if not (np.isfinite(tolerance) and tolerance >= 0.0):
             raise ValueError(f"tolerance must be finite and >= 0, got {tolerance}")
         points = _check_points(points)
+        if tolerance <= _GRID_TOLERANCE:
+            from refsim.geometry.grid import locate_in_tets  # numba: imported on first use
+
+            return locate_in_tets(
+                self._box_grid(),
+                points,
+                self.positions,
+                self.tets,
+                self.centroids,
+                self._radii,
+                tolerance=tolerance,
+                reach_factor=1.0 + 6.0 * tolerance + _RADIUS_SLACK,
+            )
+        return self._locate_vectorised(points, tolerance)
+
+    def _locate_vectorised(self, points: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+        """``locate`` by candidate pairs evaluated in vectorised chunks (any tolerance; ``locate`` uses it
+        above 1e-6, the compiled pass below, which gives the same bits)."""
         tet_index = np.full(points.shape[0], -1, dtype=np.int64)
         barycentric = np.full((points.shape[0], 4), np.nan)
         for start in range(0, points.shape[0], _CHUNK):
@@ -185,15 +203,20 @@ class TetLocator:
         """Pairs (query, tet) holding every pair with a centroid distance <= (1 + 6 tol + slack) × the tet's
         bounding radius (more are pruned by the caller)."""
         if tolerance <= _GRID_TOLERANCE:
-            if self._grid is None:
-                from refsim.geometry.grid import BoxGrid  # numba: imported on first use
-
-                grown = self._radii * (1.0 + 6.0 * _GRID_TOLERANCE + 2.0 * _RADIUS_SLACK)
-                self._grid = BoxGrid(self.centroids - grown[:, None], self.centroids + grown[:, None])
-            return self._grid.pairs(points)
+            return self._box_grid().pairs(points)
         if self._classes is None:
             self._classes = _RadiusClasses(self.centroids, self._radii)
         return self._classes.pairs(points, 6.0 * tolerance * self._radii.max())
+
+    def _box_grid(self):
+        """The compiled grid of the tets' bounding spheres grown for tolerances up to 1e-6, built on first
+        use."""
+        if self._grid is None:
+            from refsim.geometry.grid import BoxGrid  # numba: imported on first use
+
+            grown = self._radii * (1.0 + 6.0 * _GRID_TOLERANCE + 2.0 * _RADIUS_SLACK)
+            self._grid = BoxGrid(self.centroids - grown[:, None], self.centroids + grown[:, None])
+        return self._grid
 
     def _locate_chunk(self, points: np.ndarray, tolerance: float) -> tuple:
         # Barycentric coordinates >= −tol imply a centroid distance <= (1 + 6 tol) × bounding radius.

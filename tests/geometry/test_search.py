@@ -101,9 +101,34 @@ def test_grid_candidates_give_the_kd_trees_answer_bit_for_bit(graded, tolerance)
     kd = TetLocator(delaunay.points, delaunay.simplices)
     kd._candidates = lambda p, t: _RadiusClasses(kd.centroids, kd._radii).pairs(p, 6.0 * t * kd._radii.max())
     for got, expected in zip(
-        locator.locate(points, tolerance=tolerance), kd.locate(points, tolerance=tolerance), strict=True
+        locator._locate_vectorised(points, tolerance),
+        kd._locate_vectorised(points, tolerance),
+        strict=True,
     ):
         np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("tolerance", [0.0, 1e-12, 1e-6])
+def test_compiled_location_gives_the_vectorised_answer_bit_for_bit(graded, box, tolerance):
+    # locate's compiled pass (tolerances up to 1e-6) repeats tet_barycentric's operations in its order and
+    # the lexicographic choice of the vectorised path (largest smallest coordinate, then lowest tet): the same
+    # tets and the same bits, on a graded mesh and on the box's vertices, edges and faces (ties).
+    rng = np.random.default_rng(11)
+    delaunay, locator = graded
+    mesh, box_locator = box
+    positions, tets = mesh.rest_positions, mesh.tets
+    cases = [
+        (locator, np.concatenate([rng.uniform(size=(300, 3)) ** 3, delaunay.points[:60]])),
+        (locator, rng.uniform(-0.2, 1.2, size=(100, 3))),
+        (box_locator, np.concatenate([positions, positions[tets[:, 1:]].mean(axis=1)])),
+        (box_locator, rng.uniform(-0.1, 1.1, size=(200, 3))),
+    ]
+    for which, points in cases:
+        got = which.locate(points, tolerance=tolerance)
+        expected = which._locate_vectorised(points, tolerance)
+        assert np.count_nonzero(expected[0] >= 0) > 0.2 * points.shape[0]  # many points are inside
+        np.testing.assert_array_equal(got[0], expected[0])
+        np.testing.assert_array_equal(got[1], expected[1])
 
 
 def test_tet_spheres_are_the_numpy_centroids_and_radii(graded):
