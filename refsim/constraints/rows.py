@@ -470,6 +470,8 @@ def point_rows(
     """Rows of H for points interpolated from mesh nodes, projected on directions.
 
     Row i is ``sign · Σ_k weights[i, k] · directions[i]ᵀ`` on the three DoFs of node ``node_indices[i, k]``.
+    The entries are made and summed in compiled passes, in the order SciPy's COO-to-CSR conversion sums them
+    (:mod:`refsim.constraints.kernels`): the matrix is that conversion's, bit for bit.
 
     Parameters
     ----------
@@ -479,6 +481,43 @@ def point_rows(
     dof_count : 3 · node_count.
     sign : −1 for the tissue side of the convention δ = nᵀ(x_needle − x_tissue).
     """
+    node_indices = np.ascontiguousarray(node_indices, dtype=np.int64)
+    row_count, per_point = node_indices.shape
+    width = 3 * per_point
+    if row_count == 0 or per_point == 0 or max(row_count * width, dof_count) >= 2**31:
+        return _point_rows_coo(node_indices, weights, directions, dof_count, sign=sign)
+    from refsim.constraints.kernels import row_entries, summed_rows  # numba: imported on first use
+
+    columns, values, pattern, firsts = row_entries(
+        node_indices,
+        np.ascontiguousarray(weights, dtype=float),
+        np.ascontiguousarray(directions, dtype=float),
+        float(sign),
+    )
+    # The permutation SciPy's row sort applies to each distinct pattern: sort a probe whose data are the
+    # entries' positions (the sort compares columns only; SciPy sorts every row or, when all are sorted, none).
+    probe = sp.csr_matrix(
+        (
+            np.tile(np.arange(width, dtype=float), firsts.size),
+            columns[firsts].ravel(),
+            np.arange(0, (firsts.size + 1) * width, width, dtype=np.int32),
+        ),
+        shape=(firsts.size, dof_count),
+    )
+    probe.sort_indices()
+    order = probe.data.astype(np.int64).reshape(firsts.size, width)
+    data, indices, indptr = summed_rows(columns, values, order, pattern)
+    matrix = sp.csr_matrix((data, indices, indptr), shape=(row_count, dof_count))
+    matrix.has_sorted_indices = True
+    matrix.has_canonical_format = True
+    return matrix
+
+
+def _point_rows_coo(
+    node_indices: np.ndarray, weights: np.ndarray, directions: np.ndarray, dof_count: int, *, sign: float
+) -> sp.csr_matrix:
+    """:func:`point_rows` through SciPy's COO matrix (the reference of the compiled path's bits; used for
+    empty blocks and index ranges beyond int32)."""
     node_indices = np.asarray(node_indices, dtype=np.int64)
     row_count, per_point = node_indices.shape
     values = sign * weights[:, :, None] * directions[:, None, :]  # (r, p, 3)
