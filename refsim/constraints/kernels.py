@@ -79,3 +79,35 @@ def summed_rows(columns, values, order, pattern_slot):  # pragma: no cover - com
             count += 1
         indptr[row + 1] = count
     return data[:count].copy(), indices[:count].copy(), indptr
+
+
+@numba.njit(cache=True)
+def basis_of(tangents):  # pragma: no cover - compiled
+    """:func:`refsim.constraints.rows.orthonormal_basis` in one pass: the helper axis is the first world
+    axis of smallest |t_i|, first = helper × t / ‖helper × t‖, second = t × first; each cross product's
+    component is a₁b₂ − a₂b₁ (NumPy's order) and the norm sums its squares left to right (NumPy's reduction
+    over three), so the bits are NumPy's."""
+    count = tangents.shape[0]
+    first = np.empty((count, 3))
+    second = np.empty((count, 3))
+    helper = np.zeros(3)
+    for row in range(count):
+        t = tangents[row]
+        axis = 0
+        smallest = abs(t[0])
+        for candidate in range(1, 3):
+            if abs(t[candidate]) < smallest:
+                smallest = abs(t[candidate])
+                axis = candidate
+        helper[:] = 0.0
+        helper[axis] = 1.0
+        f0 = helper[1] * t[2] - helper[2] * t[1]
+        f1 = helper[2] * t[0] - helper[0] * t[2]
+        f2 = helper[0] * t[1] - helper[1] * t[0]
+        norm = np.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
+        f0, f1, f2 = f0 / norm, f1 / norm, f2 / norm
+        first[row, 0], first[row, 1], first[row, 2] = f0, f1, f2
+        second[row, 0] = t[1] * f2 - t[2] * f1
+        second[row, 1] = t[2] * f0 - t[0] * f2
+        second[row, 2] = t[0] * f1 - t[1] * f0
+    return first, second

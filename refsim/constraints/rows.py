@@ -450,7 +450,16 @@ def orthonormal_basis(tangents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     -------
     (first, second) : shape (k, 3) each; (first, second, tangent) is right-handed.
     """
-    tangents = np.asarray(tangents, dtype=float).reshape(-1, 3)
+    tangents = np.ascontiguousarray(tangents, dtype=float).reshape(-1, 3)
+    if np.all(np.isfinite(tangents)):
+        from refsim.constraints.kernels import basis_of  # numba: imported on first use
+
+        return basis_of(tangents)
+    return _orthonormal_basis_numpy(tangents)
+
+
+def _orthonormal_basis_numpy(tangents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`orthonormal_basis` in NumPy (the compiled pass's reference; tangents with NaN)."""
     # The helper axis is the world axis least aligned with the tangent.
     helper = np.eye(3)[np.argmin(np.abs(tangents), axis=1)]
     first = np.cross(helper, tangents)

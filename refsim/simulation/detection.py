@@ -129,9 +129,11 @@ class Detector:
         self.rest_locator = TetLocator(self.rest_positions, np.asarray(tets)) if self.ring else None
         # Shaft samples before puncture every half mean tet size (the surface cannot bend between them).
         self.shaft_spacing = 0.01
+        #: The local mesh size of every rest tet [m] (local_mesh_size), for the rings' radii.
+        self.tet_sizes = None
         if rest_positions is not None and tets is not None:
-            sizes = local_mesh_size(rest_positions, tets, np.arange(len(tets)))
-            self.shaft_spacing = 0.5 * float(sizes.mean())
+            self.tet_sizes = local_mesh_size(rest_positions, tets, np.arange(len(tets)))
+            self.shaft_spacing = 0.5 * float(self.tet_sizes.mean())
 
     def _rings(self, path: InsertionPath, tangents: np.ndarray, mesh_tets: np.ndarray) -> PointRings:
         """The points' rings, normal to ``tangents`` (p, 3): a point keeps the ring it carries
@@ -148,6 +150,7 @@ class Detector:
             mesh_tets=mesh_tets,
             locator=self.rest_locator,
             needle_radius=self.needle_radius,
+            tet_sizes=self.tet_sizes,
         )
         if not reuse.any():
             return PointRings(RingLayout.around(path, tangents=tangents, **common), tangents.copy())
@@ -215,6 +218,7 @@ class Detector:
             locator=self.rest_locator,
             tangents=tangent,
             needle_radius=self.needle_radius,
+            tet_sizes=self.tet_sizes,
         )
         return ring_weights(tip, rings, geometry.mesh_tets)
 

@@ -18,7 +18,7 @@ from refsim.constraints import (
     point_rows,
     points_beyond_tip,
 )
-from refsim.constraints.rows import _point_rows_coo
+from refsim.constraints.rows import _orthonormal_basis_numpy, _point_rows_coo
 from refsim.geometry import TetLocator
 from refsim.mesh import box_mesh
 
@@ -34,6 +34,20 @@ def test_orthonormal_basis(tangent):
     frame = np.stack([first[0], second[0], t[0]], axis=1)
     np.testing.assert_allclose(frame.T @ frame, np.eye(3), atol=1e-15)
     assert np.linalg.det(frame) == pytest.approx(1.0, abs=1e-14)
+
+
+def test_orthonormal_basis_compiled_is_numpys_bit_for_bit():
+    # Random directions, axis ties (|t_i| equal: the first smallest axis is the helper) and signed zeros.
+    rng = np.random.default_rng(3)
+    tangents = rng.standard_normal((2000, 3)) * 10.0 ** rng.integers(-6, 1, size=(2000, 3))
+    ties = np.array([[1, 1, 0], [1, 1, 1], [0, 0, 1], [-0.0, 0.0, -1], [1, -1, 1e-300], [0.6, 0.0, -0.8]])
+    tangents = np.concatenate([tangents, ties])
+    tangents /= np.linalg.norm(tangents, axis=1, keepdims=True)
+    got = orthonormal_basis(tangents)
+    expected = _orthonormal_basis_numpy(tangents)
+    for a, b in zip(got, expected, strict=True):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(np.signbit(a), np.signbit(b))
 
 
 def test_point_rows_linearise_the_gap_exactly():
