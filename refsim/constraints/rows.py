@@ -386,15 +386,41 @@ def stack_jacobians(
                     f"the Jacobians of body {name!r} have {widths[name]} and {matrix.shape[1]} columns"
                 )
     return {
-        name: sp.vstack(
+        name: _stack_csr([part.get(name) for part in parts], row_counts, width)
+        for name, width in widths.items()
+    }
+
+
+def _stack_csr(matrices: list[sp.csr_matrix | None], row_counts: list[int], width: int) -> sp.csr_matrix:
+    """CSR matrices stacked vertically (None: that many empty rows), their data and indices concatenated as
+    ``sp.vstack(..., format="csr")`` does (no arithmetic: the same bits), without its per-call checks."""
+    if any(m is not None and m.format != "csr" for m in matrices):
+        return sp.vstack(
             [
-                part.get(name, sp.csr_matrix((rows, width)))
-                for part, rows in zip(parts, row_counts, strict=True)
+                sp.csr_matrix((rows, width)) if m is None else m
+                for m, rows in zip(matrices, row_counts, strict=True)
             ],
             format="csr",
         )
-        for name, width in widths.items()
-    }
+    present = [m for m in matrices if m is not None]
+    total_rows = int(sum(row_counts))
+    nnz = sum(m.nnz for m in present)
+    index_dtype = np.int32 if max(nnz, total_rows, width) < 2**31 - 1 else np.int64
+    pointers = [np.zeros(1, dtype=index_dtype)]
+    offset = 0
+    for matrix, rows in zip(matrices, row_counts, strict=True):
+        if matrix is None:
+            pointers.append(np.full(rows, offset, dtype=index_dtype))
+            continue
+        pointers.append((matrix.indptr[1:] + offset).astype(index_dtype))
+        offset += matrix.nnz
+    data = np.concatenate([m.data[: m.nnz] for m in present]) if present else np.zeros(0)
+    indices = (
+        np.concatenate([m.indices[: m.nnz] for m in present]).astype(index_dtype, copy=False)
+        if present
+        else np.zeros(0, dtype=index_dtype)
+    )
+    return sp.csr_matrix((data, indices, np.concatenate(pointers)), shape=(total_rows, width))
 
 
 def _roles(block: RowBlock) -> np.ndarray:

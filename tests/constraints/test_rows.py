@@ -18,7 +18,7 @@ from refsim.constraints import (
     point_rows,
     points_beyond_tip,
 )
-from refsim.constraints.rows import _orthonormal_basis_numpy, _point_rows_coo
+from refsim.constraints.rows import _orthonormal_basis_numpy, _point_rows_coo, stack_jacobians
 from refsim.geometry import TetLocator
 from refsim.mesh import box_mesh
 
@@ -266,6 +266,33 @@ def test_jacobians_by_body_stack_and_a_block_without_a_body_gives_it_zero_rows()
     narrow = replace(both, jacobians={TISSUE: sp.csr_matrix((2, 5))})
     with pytest.raises(ValueError, match="columns"):
         concatenate([both, narrow])
+
+
+def test_stacked_jacobians_are_scipys_vstack():
+    # The stacking concatenates data, indices and pointers as sp.vstack does: equal arrays, equal dtypes,
+    # with blocks lacking a body (zero rows), empty blocks and duplicate-free canonical parts.
+    import scipy.sparse as sp
+
+    from refsim.constraints import NEEDLE, TISSUE
+
+    rng = np.random.default_rng(4)
+    parts = [
+        {TISSUE: sp.random(5, 30, density=0.2, format="csr", random_state=1)},
+        {TISSUE: sp.csr_matrix((0, 30))},
+        {NEEDLE: sp.random(3, 12, density=0.5, format="csr", random_state=2)},
+        {TISSUE: sp.csr_matrix(rng.standard_normal((2, 30))), NEEDLE: sp.csr_matrix((2, 12))},
+    ]
+    counts = [5, 0, 3, 2]
+    got = stack_jacobians(parts, counts)
+    for name, width in ((TISSUE, 30), (NEEDLE, 12)):
+        expected = sp.vstack(
+            [part.get(name, sp.csr_matrix((rows, width))) for part, rows in zip(parts, counts, strict=True)],
+            format="csr",
+        )
+        for field in ("data", "indices", "indptr"):
+            np.testing.assert_array_equal(getattr(got[name], field), getattr(expected, field))
+            assert getattr(got[name], field).dtype == getattr(expected, field).dtype
+        assert got[name].shape == expected.shape
 
 
 def test_row_block_concatenate_keeps_every_per_row_field_of_each_instrument():
