@@ -414,8 +414,9 @@ class RingLayout:
 
         ``locator`` locates points in the *rest* mesh (a :class:`refsim.geometry.TetLocator` on the rest
         positions), so the ring points are material points, like the centres. The point count q is the largest
-        :func:`ring_count` over the path (arc spacing ≤ h/2 everywhere). ``tet_sizes``: :func:`local_mesh_size`
-        of every tet (m,), computed once by the caller (the same bits); None: computed for the path's tets.
+        :func:`ring_count` over the path (arc spacing ≤ h/2 everywhere). ``tet_sizes``: the
+        :func:`local_mesh_size` of every tet (m,), computed once by the caller (the same bits); None: computed
+        for the path's tets.
         """
         centres = path.positions(rest_positions, mesh_tets)
         if tet_sizes is None:

@@ -530,7 +530,8 @@ def point_rows(
         float(sign),
     )
     # The permutation SciPy's row sort applies to each distinct pattern: sort a probe whose data are the
-    # entries' positions (the sort compares columns only; SciPy sorts every row or, when all are sorted, none).
+    # entries' positions (the sort compares columns only; SciPy sorts every row, or none when all are
+    # sorted).
     probe = sp.csr_matrix(
         (
             np.tile(np.arange(width, dtype=float), firsts.size),

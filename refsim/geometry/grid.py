@@ -124,9 +124,22 @@ def _barycentric_into(point, positions, tet, replaced, out):  # pragma: no cover
 
 
 @numba.njit(cache=True)
-def _locate(
-    points, origin, edge, dims, offsets, items, lower, upper, centroids, radii, positions, tets, tolerance, reach
-):  # pragma: no cover - compiled
+def _locate(  # pragma: no cover - compiled
+    points,
+    origin,
+    edge,
+    dims,
+    offsets,
+    items,
+    lower,
+    upper,
+    centroids,
+    radii,
+    positions,
+    tets,
+    tolerance,
+    reach,
+):
     count = points.shape[0]
     found = np.full(count, -1, dtype=np.int64)
     barycentric = np.full((count, 4), np.nan)
