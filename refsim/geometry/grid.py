@@ -14,7 +14,7 @@ import numpy as np
 
 from refsim.kernel_cache import numba
 
-__all__ = ["BoxGrid", "locate_in_tets", "tet_spheres"]
+__all__ = ["BoxGrid", "locate_in_tets", "surface_candidates", "tet_spheres"]
 
 # The cell edge is this many times the mean box width (along x).
 _CELL_PER_BOX = 1.0
@@ -175,6 +175,65 @@ def _locate(  # pragma: no cover - compiled
                 barycentric[q] = coordinates
         found[q] = best
     return found, barycentric
+
+
+def surface_candidates(
+    points: np.ndarray, triangles: np.ndarray, centroids: np.ndarray, radii: np.ndarray, slack: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (query, face) that can hold each query's closest surface point, by one compiled pass over every
+    face per query (for few queries on small surfaces: no index to build).
+
+    The bound U of a query is its distance to the nearest vertex (a point of the surface, so U ≥ the distance
+    to the surface); a face is kept when ‖p − c‖ − r ≤ U (1 + slack) + slack r (c its centroid, r its bounding
+    radius), which every face at the surface's distance meets: the closest point chosen from these pairs is
+    the one any index giving such a superset gives (:class:`refsim.geometry.SurfaceProjector`).
+    """
+    return _surface_candidates(
+        np.ascontiguousarray(points, dtype=float),
+        np.ascontiguousarray(triangles, dtype=float),
+        np.ascontiguousarray(centroids, dtype=float),
+        np.ascontiguousarray(radii, dtype=float),
+        float(slack),
+    )
+
+
+@numba.njit(cache=True)
+def _surface_candidates(points, triangles, centroids, radii, slack):  # pragma: no cover - compiled
+    count, faces = points.shape[0], triangles.shape[0]
+    bounds = np.full(count, np.inf)
+    for q in range(count):
+        for face in range(faces):
+            for corner in range(3):
+                squares = 0.0
+                for axis in range(3):
+                    offset = points[q, axis] - triangles[face, corner, axis]
+                    squares += offset * offset
+                bounds[q] = min(bounds[q], np.sqrt(squares))
+    kept = np.zeros(count + 1, dtype=np.int64)
+    for q in range(count):
+        for face in range(faces):
+            if _surface_face_kept(points[q], centroids[face], radii[face], bounds[q], slack):
+                kept[q + 1] += 1
+    starts = np.cumsum(kept)
+    queries = np.empty(starts[-1], dtype=np.int64)
+    chosen = np.empty(starts[-1], dtype=np.int64)
+    for q in range(count):
+        at = starts[q]
+        for face in range(faces):
+            if _surface_face_kept(points[q], centroids[face], radii[face], bounds[q], slack):
+                queries[at] = q
+                chosen[at] = face
+                at += 1
+    return queries, chosen
+
+
+@numba.njit(cache=True)
+def _surface_face_kept(point, centroid, radius, bound, slack):  # pragma: no cover - compiled
+    squares = 0.0
+    for axis in range(3):
+        offset = point[axis] - centroid[axis]
+        squares += offset * offset
+    return np.sqrt(squares) - radius <= bound * (1.0 + slack) + slack * radius
 
 
 def tet_spheres(positions: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

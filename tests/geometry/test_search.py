@@ -11,6 +11,7 @@ from refsim.geometry import (
     SurfaceProjector,
     TetLocator,
     closest_points_on_triangles,
+    search,
     tet_barycentric,
     tet_boundary_faces,
 )
@@ -258,6 +259,49 @@ def test_projector_matches_brute_force(graded):
     )
     assert result.barycentric.min() >= 0.0
     np.testing.assert_allclose(np.linalg.norm(result.normal, axis=1), 1.0, atol=1e-14)
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e-12, 0.05])
+def test_projector_scan_and_kd_trees_give_the_same_bits(graded, box, offset):
+    # Small queries scan every face (compiled), large ones use KD-trees; both keep every face that can hold
+    # the closest point, so face, barycentric coordinates and closest point are the same bits, ties included
+    # (the box's vertices and edges are equidistant from several faces).
+    rng = np.random.default_rng(9)
+    delaunay, _ = graded
+    mesh, _ = box
+    box_points = mesh.rest_positions[mesh.boundary_nodes]
+    cases = [
+        (
+            delaunay.points,
+            tet_boundary_faces(delaunay.simplices, delaunay.points)[0],
+            rng.uniform(-0.3, 1.3, (80, 3)),
+        ),
+        (
+            mesh.rest_positions,
+            mesh.boundary_faces,
+            box_points + offset * rng.standard_normal(box_points.shape),
+        ),
+    ]
+    for positions, faces, points in cases:
+        projector = SurfaceProjector(positions, faces)
+        scanned = projector._closest_chunk(points)
+        queries, candidates = projector._indexed_candidates(points)
+        indexed = _closest_of_pairs(projector, points, queries, candidates)
+        for got, expected in zip(scanned, indexed, strict=True):
+            np.testing.assert_array_equal(got, expected)
+        assert projector.faces.shape[0] * points.shape[0] <= search._SCAN_PAIRS  # the scan was taken
+
+
+def _closest_of_pairs(projector, points, queries, faces):
+    """The projector's choice among candidate pairs (its _closest_chunk after the search)."""
+    closest, coordinates = closest_points_on_triangles(points[queries], projector.triangles[faces])
+    distance2 = np.sum((closest - points[queries]) ** 2, axis=1)
+    order = np.lexsort((faces, distance2, queries))
+    found, best = search._first_per_query(queries, order)
+    face_index = np.zeros(points.shape[0], dtype=np.int64)
+    barycentric = np.zeros((points.shape[0], 3))
+    face_index[found], barycentric[found] = faces[best], coordinates[best]
+    return face_index, barycentric
 
 
 @pytest.mark.parametrize("offset", OFFSETS)
