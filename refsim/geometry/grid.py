@@ -184,9 +184,11 @@ def surface_candidates(
     face per query (for few queries on small surfaces: no index to build).
 
     The bound U of a query is its distance to the nearest vertex (a point of the surface, so U ≥ the distance
-    to the surface); a face is kept when ‖p − c‖ − r ≤ U (1 + slack) + slack r (c its centroid, r its bounding
-    radius), which every face at the surface's distance meets: the closest point chosen from these pairs is
-    the one any index giving such a superset gives (:class:`refsim.geometry.SurfaceProjector`).
+    to the surface), then the smallest distance to the faces that bound leaves (Ericson's closest point,
+    computed here for the bound only); a face is kept when ‖p − c‖ − r ≤ U (1 + slack) + slack r (c its
+    centroid, r its bounding radius), which every face at the surface's distance meets: the closest point
+    chosen from these pairs is the one any index giving such a superset gives
+    (:class:`refsim.geometry.SurfaceProjector`).
     """
     return _surface_candidates(
         np.ascontiguousarray(points, dtype=float),
@@ -209,6 +211,12 @@ def _surface_candidates(points, triangles, centroids, radii, slack):  # pragma: 
                     offset = points[q, axis] - triangles[face, corner, axis]
                     squares += offset * offset
                 bounds[q] = min(bounds[q], np.sqrt(squares))
+    for q in range(count):
+        tighter = bounds[q]
+        for face in range(faces):
+            if _surface_face_kept(points[q], centroids[face], radii[face], bounds[q], slack):
+                tighter = min(tighter, _triangle_distance(points[q], triangles[face]))
+        bounds[q] = tighter
     kept = np.zeros(count + 1, dtype=np.int64)
     for q in range(count):
         for face in range(faces):
@@ -225,6 +233,47 @@ def _surface_candidates(points, triangles, centroids, radii, slack):  # pragma: 
                 chosen[at] = face
                 at += 1
     return queries, chosen
+
+
+@numba.njit(cache=True)
+def _triangle_distance(point, triangle):  # pragma: no cover - compiled
+    """Distance from a point to a triangle (Ericson's regions; a bound only, so degenerate triangles fall
+    back to their nearest vertex, a point of the triangle)."""
+    ax, ay, az = triangle[0, 0], triangle[0, 1], triangle[0, 2]
+    abx, aby, abz = triangle[1, 0] - ax, triangle[1, 1] - ay, triangle[1, 2] - az
+    acx, acy, acz = triangle[2, 0] - ax, triangle[2, 1] - ay, triangle[2, 2] - az
+    apx, apy, apz = point[0] - ax, point[1] - ay, point[2] - az
+    bpx, bpy, bpz = apx - abx, apy - aby, apz - abz
+    cpx, cpy, cpz = apx - acx, apy - acy, apz - acz
+    d1, d2 = abx * apx + aby * apy + abz * apz, acx * apx + acy * apy + acz * apz
+    d3, d4 = abx * bpx + aby * bpy + abz * bpz, acx * bpx + acy * bpy + acz * bpz
+    d5, d6 = abx * cpx + aby * cpy + abz * cpz, acx * cpx + acy * cpy + acz * cpz
+    vc, vb, va = d1 * d4 - d3 * d2, d5 * d2 - d1 * d6, d3 * d6 - d5 * d4
+    v, w = 0.0, 0.0  # the closest point is a + v ab + w ac
+    if d1 <= 0.0 and d2 <= 0.0:
+        pass
+    elif d3 >= 0.0 and d4 <= d3:
+        v = 1.0
+    elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0 and d1 - d3 > 0.0:
+        v = d1 / (d1 - d3)
+    elif d6 >= 0.0 and d5 <= d6:
+        w = 1.0
+    elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0 and d2 - d6 > 0.0:
+        w = d2 / (d2 - d6)
+    elif va <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0 and (d4 - d3) + (d5 - d6) > 0.0:
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        v = 1.0 - w
+    elif va + vb + vc != 0.0 and np.isfinite(va + vb + vc):
+        v, w = vb / (va + vb + vc), vc / (va + vb + vc)
+    else:
+        a2 = apx * apx + apy * apy + apz * apz
+        b2 = bpx * bpx + bpy * bpy + bpz * bpz
+        c2 = cpx * cpx + cpy * cpy + cpz * cpz
+        return np.sqrt(min(a2, b2, c2))
+    x = apx - v * abx - w * acx
+    y = apy - v * aby - w * acy
+    z = apz - v * abz - w * acz
+    return np.sqrt(x * x + y * y + z * z)
 
 
 @numba.njit(cache=True)

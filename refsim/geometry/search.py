@@ -316,10 +316,17 @@ class SurfaceProjector:
         self.positions, self.faces = _check_elements(positions, faces, 3, "faces")
         self.triangles = self.positions[self.faces]  # (f, 3, 3)
         self.centroids = self.triangles.mean(axis=1)
-        self.normals = triangle_normals(self.triangles)
         self.radii = np.linalg.norm(self.triangles - self.centroids[:, None, :], axis=2).max(axis=1)
+        self._normals: np.ndarray | None = None
         self._tree: cKDTree | None = None  # the KD-trees, built on the first query too large for the scan
         self._index: _RadiusClasses | None = None
+
+    @property
+    def normals(self) -> np.ndarray:
+        """Unit outward normal of every face, shape (f, 3) (computed on first use)."""
+        if self._normals is None:
+            self._normals = triangle_normals(self.triangles)
+        return self._normals
 
     def closest(self, points: np.ndarray) -> ClosestSurfacePoints:
         """Closest point on the surface to each query point.
@@ -341,7 +348,10 @@ class SurfaceProjector:
             face_index[chunk], barycentric[chunk] = self._closest_chunk(points[chunk])
         closest = np.einsum("qk,qki->qi", barycentric, self.triangles[face_index])
         distance = np.linalg.norm(points - closest, axis=1)
-        return ClosestSurfacePoints(face_index, closest, barycentric, distance, self.normals[face_index])
+        # The chosen faces' normals only (row by row: the bits of all the faces' normals, indexed).
+        return ClosestSurfacePoints(
+            face_index, closest, barycentric, distance, triangle_normals(self.triangles[face_index])
+        )
 
     def _closest_chunk(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         count = points.shape[0]

@@ -347,3 +347,13 @@ def test_property_projector_and_locator_against_brute_force(points, seed):
     np.testing.assert_array_equal(
         tet_index, _brute_force_locate(points, delaunay.points, delaunay.simplices, 1e-12)
     )
+
+
+def test_projector_normals_of_the_chosen_faces_are_the_faces_normals(graded):
+    # closest() computes the normals of the chosen faces only; they are the rows of the faces' normals.
+    delaunay, _ = graded
+    faces, _ = tet_boundary_faces(delaunay.simplices, delaunay.points)
+    projector = SurfaceProjector(delaunay.points, faces)
+    points = np.random.default_rng(12).uniform(-0.3, 1.3, size=(60, 3))
+    result = projector.closest(points)
+    np.testing.assert_array_equal(result.normal, projector.normals[result.face_index])
