@@ -336,12 +336,16 @@ class Detector:
         the entry point's projection, which a tilted needle pushed sideways leaves above the tissue) to the
         tip, on the start-of-step state. ``state`` None: a needle inserted along an existing cut slides in it
         (sliding rows, no crack tip, no friction); else the instrument's own cut strip while it cuts, with its
-        crack-tip front (indices into the returned block)."""
-        entry_arc_length = inserted_arc(
-            geometry.needle_previous,
-            TetLocator(geometry.tissue_previous, geometry.mesh_tets),
-            self.cutting.point_spacing,
-        )
+        crack-tip front (indices into the returned block). Where the needle enters the tissue is the state's
+        ``entry_arc`` when the last step's events located it on this configuration."""
+        if state is not None and state.entry_arc is not None:
+            entry_arc_length = state.entry_arc
+        else:
+            entry_arc_length = inserted_arc(
+                geometry.needle_previous,
+                TetLocator(geometry.tissue_previous, geometry.mesh_tets),
+                self.cutting.point_spacing,
+            )
         if state is None:
             return strip_cut_block(
                 world.cut,
