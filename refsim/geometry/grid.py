@@ -178,17 +178,24 @@ def _locate(  # pragma: no cover - compiled
 
 
 def surface_candidates(
-    points: np.ndarray, triangles: np.ndarray, centroids: np.ndarray, radii: np.ndarray, slack: float
+    points: np.ndarray,
+    triangles: np.ndarray,
+    centroids: np.ndarray,
+    radii: np.ndarray,
+    slack: float,
+    thin: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pairs (query, face) that can hold each query's closest surface point, by one compiled pass over every
     face per query (for few queries on small surfaces: no index to build).
 
     The bound U of a query is its distance to the nearest vertex (a point of the surface, so U ≥ the distance
-    to the surface), then the smallest distance to the faces that bound leaves (Ericson's closest point,
-    computed here for the bound only); a face is kept when ‖p − c‖ − r ≤ U (1 + slack) + slack r (c its
-    centroid, r its bounding radius), which every face at the surface's distance meets: the closest point
-    chosen from these pairs is the one any index giving such a superset gives
-    (:class:`refsim.geometry.SurfaceProjector`).
+    to the surface). The faces whose bounding sphere comes within U (‖p − c‖ − r ≤ U (1 + slack) + slack r, c
+    the centroid, r the bounding radius) get their distance d_f by Ericson's method here, and D is the least:
+    a regular face is kept when d_f ≤ D (1 + slack) + slack r (its distance is exact to round-off, so the
+    closest faces and their ties are kept), a thin one (NumPy's careful path, ``thin`` with a factor 10 of
+    margin) when its sphere comes within D. Every face that can hold the closest point is kept, so the
+    closest point chosen from these pairs is the one any index giving such a superset gives
+    (:class:`refsim.geometry.SurfaceProjector`), with one or two exact evaluations per query.
     """
     return _surface_candidates(
         np.ascontiguousarray(points, dtype=float),
@@ -196,43 +203,65 @@ def surface_candidates(
         np.ascontiguousarray(centroids, dtype=float),
         np.ascontiguousarray(radii, dtype=float),
         float(slack),
+        float(thin),
     )
 
 
 @numba.njit(cache=True)
-def _surface_candidates(points, triangles, centroids, radii, slack):  # pragma: no cover - compiled
+def _surface_candidates(points, triangles, centroids, radii, slack, thin):  # pragma: no cover - compiled
     count, faces = points.shape[0], triangles.shape[0]
-    bounds = np.full(count, np.inf)
+    # Thin faces (NumPy's careful path, with a factor 10 of margin) are kept on their sphere test only.
+    is_thin = np.empty(faces, dtype=np.bool_)
+    for face in range(faces):
+        t = triangles[face]
+        e1 = t[1] - t[0]
+        e2 = t[2] - t[0]
+        e3 = t[0] - t[2]
+        n0 = e1[1] * e2[2] - e1[2] * e2[1]
+        n1 = e1[2] * e2[0] - e1[0] * e2[2]
+        n2 = e1[0] * e2[1] - e1[1] * e2[0]
+        area2 = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        e4 = t[2] - t[1]
+        longest2 = max(np.dot(e1, e1), np.dot(e4, e4), np.dot(e3, e3))
+        is_thin[face] = not (area2 >= 10.0 * thin * longest2)
+    keep = np.zeros((count, faces), dtype=np.bool_)
+    distances = np.full(faces, np.inf)
+    total = 0
     for q in range(count):
+        bound = np.inf
         for face in range(faces):
             for corner in range(3):
                 squares = 0.0
                 for axis in range(3):
                     offset = points[q, axis] - triangles[face, corner, axis]
                     squares += offset * offset
-                bounds[q] = min(bounds[q], np.sqrt(squares))
-    for q in range(count):
-        tighter = bounds[q]
+                bound = min(bound, np.sqrt(squares))
+        nearest = bound
         for face in range(faces):
-            if _surface_face_kept(points[q], centroids[face], radii[face], bounds[q], slack):
-                tighter = min(tighter, _triangle_distance(points[q], triangles[face]))
-        bounds[q] = tighter
-    kept = np.zeros(count + 1, dtype=np.int64)
+            distances[face] = np.inf
+            if _surface_face_kept(points[q], centroids[face], radii[face], bound, slack):
+                distances[face] = _triangle_distance(points[q], triangles[face])
+                nearest = min(nearest, distances[face])
+        for face in range(faces):
+            if not np.isfinite(distances[face]):
+                continue
+            if is_thin[face]:
+                chosen = _surface_face_kept(points[q], centroids[face], radii[face], nearest, slack)
+            else:
+                chosen = distances[face] <= nearest * (1.0 + slack) + slack * radii[face]
+            if chosen:
+                keep[q, face] = True
+                total += 1
+    queries = np.empty(total, dtype=np.int64)
+    chosen_faces = np.empty(total, dtype=np.int64)
+    at = 0
     for q in range(count):
         for face in range(faces):
-            if _surface_face_kept(points[q], centroids[face], radii[face], bounds[q], slack):
-                kept[q + 1] += 1
-    starts = np.cumsum(kept)
-    queries = np.empty(starts[-1], dtype=np.int64)
-    chosen = np.empty(starts[-1], dtype=np.int64)
-    for q in range(count):
-        at = starts[q]
-        for face in range(faces):
-            if _surface_face_kept(points[q], centroids[face], radii[face], bounds[q], slack):
+            if keep[q, face]:
                 queries[at] = q
-                chosen[at] = face
+                chosen_faces[at] = face
                 at += 1
-    return queries, chosen
+    return queries, chosen_faces
 
 
 @numba.njit(cache=True)

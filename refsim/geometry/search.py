@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from refsim.geometry.barycentric import tet_barycentric
-from refsim.geometry.closest import closest_points_on_triangles, triangle_normals
+from refsim.geometry.closest import _THIN_AREA, closest_points_on_triangles, triangle_normals
 
 __all__ = ["ClosestSurfacePoints", "SurfaceProjector", "TetLocator", "tet_boundary_faces"]
 
@@ -359,7 +359,7 @@ class SurfaceProjector:
             from refsim.geometry.grid import surface_candidates  # numba: imported on first use
 
             queries, faces = surface_candidates(
-                points, self.triangles, self.centroids, self.radii, _RADIUS_SLACK
+                points, self.triangles, self.centroids, self.radii, _RADIUS_SLACK, _THIN_AREA
             )
         else:
             queries, faces = self._indexed_candidates(points)

@@ -282,6 +282,10 @@ def test_projector_scan_and_kd_trees_give_the_same_bits(graded, box, offset):
             box_points + offset * rng.standard_normal(box_points.shape),
         ),
     ]
+    # A soup of slivers and degenerate triangles (NumPy's careful path): nearly collinear vertices.
+    sliver_positions = rng.uniform(size=(40, 3)) * np.array([1.0, 1e-7, 1e-9])
+    sliver_faces = rng.integers(0, 40, size=(120, 3))
+    cases.append((sliver_positions, sliver_faces, rng.uniform(-0.1, 1.1, (60, 3)) * [1.0, 1e-6, 1e-6]))
     for positions, faces, points in cases:
         projector = SurfaceProjector(positions, faces)
         scanned = projector._closest_chunk(points)
