@@ -414,15 +414,21 @@ class RingLayout:
         locator,
         tangents: np.ndarray,
         needle_radius: float,
+        tet_sizes: np.ndarray | None = None,
     ) -> RingLayout:
         """Rings around the rest positions of the path's points, normal to ``tangents`` (p, 3).
 
         ``locator`` locates points in the *rest* mesh (a :class:`refsim.geometry.TetLocator` on the rest
         positions), so the ring points are material points, like the centres. The point count q is the largest
-        :func:`ring_count` over the path (arc spacing ≤ h/2 everywhere).
+        :func:`ring_count` over the path (arc spacing ≤ h/2 everywhere). ``tet_sizes``: the
+        :func:`local_mesh_size` of every tet (m,), computed once by the caller (the same bits); None: computed
+        for the path's tets.
         """
         centres = path.positions(rest_positions, mesh_tets)
-        sizes = local_mesh_size(rest_positions, mesh_tets, path.tets)
+        if tet_sizes is None:
+            sizes = local_mesh_size(rest_positions, mesh_tets, path.tets)
+        else:
+            sizes = tet_sizes[path.tets]
         radius = coupling_radius(needle_radius, sizes)
         count = ring_count(float((radius / sizes).max()), 1.0)
         points = ring_points(centres, tangents, radius, count)

@@ -386,15 +386,41 @@ def stack_jacobians(
                     f"the Jacobians of body {name!r} have {widths[name]} and {matrix.shape[1]} columns"
                 )
     return {
-        name: sp.vstack(
+        name: _stack_csr([part.get(name) for part in parts], row_counts, width)
+        for name, width in widths.items()
+    }
+
+
+def _stack_csr(matrices: list[sp.csr_matrix | None], row_counts: list[int], width: int) -> sp.csr_matrix:
+    """CSR matrices stacked vertically (None: that many empty rows), their data and indices concatenated as
+    ``sp.vstack(..., format="csr")`` does (no arithmetic: the same bits), without its per-call checks."""
+    if any(m is not None and m.format != "csr" for m in matrices):
+        return sp.vstack(
             [
-                part.get(name, sp.csr_matrix((rows, width)))
-                for part, rows in zip(parts, row_counts, strict=True)
+                sp.csr_matrix((rows, width)) if m is None else m
+                for m, rows in zip(matrices, row_counts, strict=True)
             ],
             format="csr",
         )
-        for name, width in widths.items()
-    }
+    present = [m for m in matrices if m is not None]
+    total_rows = int(sum(row_counts))
+    nnz = sum(m.nnz for m in present)
+    index_dtype = np.int32 if max(nnz, total_rows, width) < 2**31 - 1 else np.int64
+    pointers = [np.zeros(1, dtype=index_dtype)]
+    offset = 0
+    for matrix, rows in zip(matrices, row_counts, strict=True):
+        if matrix is None:
+            pointers.append(np.full(rows, offset, dtype=index_dtype))
+            continue
+        pointers.append((matrix.indptr[1:] + offset).astype(index_dtype))
+        offset += matrix.nnz
+    data = np.concatenate([m.data[: m.nnz] for m in present]) if present else np.zeros(0)
+    indices = (
+        np.concatenate([m.indices[: m.nnz] for m in present]).astype(index_dtype, copy=False)
+        if present
+        else np.zeros(0, dtype=index_dtype)
+    )
+    return sp.csr_matrix((data, indices, np.concatenate(pointers)), shape=(total_rows, width))
 
 
 def _roles(block: RowBlock) -> np.ndarray:
@@ -450,7 +476,16 @@ def orthonormal_basis(tangents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     -------
     (first, second) : shape (k, 3) each; (first, second, tangent) is right-handed.
     """
-    tangents = np.asarray(tangents, dtype=float).reshape(-1, 3)
+    tangents = np.ascontiguousarray(tangents, dtype=float).reshape(-1, 3)
+    if np.all(np.isfinite(tangents)):
+        from refsim.constraints.kernels import basis_of  # numba: imported on first use
+
+        return basis_of(tangents)
+    return _orthonormal_basis_numpy(tangents)
+
+
+def _orthonormal_basis_numpy(tangents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`orthonormal_basis` in NumPy (the compiled pass's reference; tangents with NaN)."""
     # The helper axis is the world axis least aligned with the tangent.
     helper = np.eye(3)[np.argmin(np.abs(tangents), axis=1)]
     first = np.cross(helper, tangents)
@@ -470,6 +505,8 @@ def point_rows(
     """Rows of H for points interpolated from mesh nodes, projected on directions.
 
     Row i is ``sign · Σ_k weights[i, k] · directions[i]ᵀ`` on the three DoFs of node ``node_indices[i, k]``.
+    The entries are made and summed in compiled passes, in the order SciPy's COO-to-CSR conversion sums them
+    (:mod:`refsim.constraints.kernels`): the matrix is that conversion's, bit for bit.
 
     Parameters
     ----------
@@ -479,6 +516,44 @@ def point_rows(
     dof_count : 3 · node_count.
     sign : −1 for the tissue side of the convention δ = nᵀ(x_needle − x_tissue).
     """
+    node_indices = np.ascontiguousarray(node_indices, dtype=np.int64)
+    row_count, per_point = node_indices.shape
+    width = 3 * per_point
+    if row_count == 0 or per_point == 0 or max(row_count * width, dof_count) >= 2**31:
+        return _point_rows_coo(node_indices, weights, directions, dof_count, sign=sign)
+    from refsim.constraints.kernels import row_entries, summed_rows  # numba: imported on first use
+
+    columns, values, pattern, firsts = row_entries(
+        node_indices,
+        np.ascontiguousarray(weights, dtype=float),
+        np.ascontiguousarray(directions, dtype=float),
+        float(sign),
+    )
+    # The permutation SciPy's row sort applies to each distinct pattern: sort a probe whose data are the
+    # entries' positions (the sort compares columns only; SciPy sorts every row, or none when all are
+    # sorted).
+    probe = sp.csr_matrix(
+        (
+            np.tile(np.arange(width, dtype=float), firsts.size),
+            columns[firsts].ravel(),
+            np.arange(0, (firsts.size + 1) * width, width, dtype=np.int32),
+        ),
+        shape=(firsts.size, dof_count),
+    )
+    probe.sort_indices()
+    order = probe.data.astype(np.int64).reshape(firsts.size, width)
+    data, indices, indptr = summed_rows(columns, values, order, pattern)
+    matrix = sp.csr_matrix((data, indices, indptr), shape=(row_count, dof_count))
+    matrix.has_sorted_indices = True
+    matrix.has_canonical_format = True
+    return matrix
+
+
+def _point_rows_coo(
+    node_indices: np.ndarray, weights: np.ndarray, directions: np.ndarray, dof_count: int, *, sign: float
+) -> sp.csr_matrix:
+    """:func:`point_rows` through SciPy's COO matrix (the reference of the compiled path's bits; used for
+    empty blocks and index ranges beyond int32)."""
     node_indices = np.asarray(node_indices, dtype=np.int64)
     row_count, per_point = node_indices.shape
     values = sign * weights[:, :, None] * directions[:, None, :]  # (r, p, 3)

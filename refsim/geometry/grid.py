@@ -14,7 +14,7 @@ import numpy as np
 
 from refsim.kernel_cache import numba
 
-__all__ = ["BoxGrid", "tet_spheres"]
+__all__ = ["BoxGrid", "locate_in_tets", "surface_candidates", "tet_spheres"]
 
 # The cell edge is this many times the mean box width (along x).
 _CELL_PER_BOX = 1.0
@@ -45,6 +45,273 @@ class BoxGrid:
         return _query(
             points, self.origin, self.edge, self.dims, self.offsets, self.items, self.lower, self.upper
         )
+
+
+def locate_in_tets(
+    grid: BoxGrid,
+    points: np.ndarray,
+    positions: np.ndarray,
+    tets: np.ndarray,
+    centroids: np.ndarray,
+    radii: np.ndarray,
+    *,
+    tolerance: float,
+    reach_factor: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Point location over the tets' boxes of ``grid``, in one compiled pass per point (layer 0).
+
+    For each point: the tets whose box holds it, those within ``reach_factor`` × their bounding radius of
+    their centroid, their barycentric coordinates (the sub-volume formula of
+    :func:`refsim.geometry.barycentric.tet_barycentric`, same operations in the same order), and, among those
+    whose smallest coordinate is ≥ −``tolerance``, the one whose smallest coordinate is largest (ties: the
+    lowest tet index). The same bits as :meth:`refsim.geometry.TetLocator.locate`'s vectorised path
+    (``tests/geometry/test_search.py``), without its many small arrays: a step locates a few points (the
+    tip's ring, new insertion points) and NumPy's per-call cost dominated.
+
+    Returns
+    -------
+    (tet_index (q,), −1 outside; barycentric (q, 4), NaN outside).
+    """
+    points = np.ascontiguousarray(points, dtype=float)
+    return _locate(
+        points,
+        grid.origin,
+        grid.edge,
+        grid.dims,
+        grid.offsets,
+        grid.items,
+        grid.lower,
+        grid.upper,
+        np.ascontiguousarray(centroids, dtype=float),
+        np.ascontiguousarray(radii, dtype=float),
+        np.ascontiguousarray(positions, dtype=float),
+        np.ascontiguousarray(tets, dtype=np.int64),
+        float(tolerance),
+        float(reach_factor),
+    )
+
+
+# Sub-tetrahedron i replaces vertex i by the point (index 4): refsim.geometry.barycentric._REPLACED.
+_REPLACED = np.array([[4, 1, 2, 3], [4, 0, 3, 2], [4, 0, 1, 3], [4, 0, 2, 1]], dtype=np.int64)
+
+
+@numba.njit(cache=True)
+def _barycentric_into(point, positions, tet, replaced, out):  # pragma: no cover - compiled
+    """tet_barycentric of one point, written into ``out`` (4,): the sub-volumes (edge vectors from the point,
+    the triple product as e₀ · (e₁ × e₂), /6) over their sum, NaN for a zero sum; the operations of the
+    vectorised function in its order (tests/geometry/test_search.py holds the two to the same bits)."""
+    corners = np.empty((5, 3))
+    for corner in range(4):
+        for axis in range(3):
+            corners[corner, axis] = positions[tet[corner], axis]
+    for axis in range(3):
+        corners[4, axis] = point[axis]
+    volumes = np.empty(4)
+    for sub in range(4):
+        origin = corners[replaced[sub, 0]]
+        a = corners[replaced[sub, 1]] - origin
+        b = corners[replaced[sub, 2]] - origin
+        c = corners[replaced[sub, 3]] - origin
+        cross0 = b[1] * c[2] - b[2] * c[1]
+        cross1 = b[2] * c[0] - b[0] * c[2]
+        cross2 = b[0] * c[1] - b[1] * c[0]
+        # NumPy's einsum of three products sums (p₀ + p₂) + p₁ (its paired inner loop): the same here.
+        triple = (a[0] * cross0 + a[2] * cross2) + a[1] * cross1
+        volumes[sub] = triple / 6.0
+    total = volumes[0] + volumes[1] + volumes[2] + volumes[3]
+    for sub in range(4):
+        out[sub] = volumes[sub] / total if total != 0.0 else np.nan
+
+
+@numba.njit(cache=True)
+def _locate(  # pragma: no cover - compiled
+    points,
+    origin,
+    edge,
+    dims,
+    offsets,
+    items,
+    lower,
+    upper,
+    centroids,
+    radii,
+    positions,
+    tets,
+    tolerance,
+    reach,
+):
+    count = points.shape[0]
+    found = np.full(count, -1, dtype=np.int64)
+    barycentric = np.full((count, 4), np.nan)
+    coordinates = np.empty(4)
+    for q in range(count):
+        point = points[q]
+        cell = _cell_of(point, origin, edge, dims)
+        if cell < 0:
+            continue
+        best = -1
+        best_smallest = 0.0
+        for slot in range(offsets[cell], offsets[cell + 1]):
+            tet = items[slot]
+            if not _in_box(point, lower[tet], upper[tet]):
+                continue
+            squares = 0.0
+            for axis in range(3):
+                offset = point[axis] - centroids[tet, axis]
+                squares += offset * offset
+            if not np.sqrt(squares) <= radii[tet] * reach:
+                continue
+            _barycentric_into(point, positions, tets[tet], _REPLACED, coordinates)
+            smallest = coordinates[0]
+            for corner in range(1, 4):
+                value = coordinates[corner]
+                if value < smallest or np.isnan(value):
+                    smallest = value
+            if not smallest >= -tolerance:
+                continue
+            if best < 0 or smallest > best_smallest or (smallest == best_smallest and tet < best):
+                best = tet
+                best_smallest = smallest
+                barycentric[q] = coordinates
+        found[q] = best
+    return found, barycentric
+
+
+def surface_candidates(
+    points: np.ndarray,
+    triangles: np.ndarray,
+    centroids: np.ndarray,
+    radii: np.ndarray,
+    slack: float,
+    thin: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (query, face) that can hold each query's closest surface point, by one compiled pass over every
+    face per query (for few queries on small surfaces: no index to build).
+
+    The bound U of a query is its distance to the nearest vertex (a point of the surface, so U ≥ the distance
+    to the surface). The faces whose bounding sphere comes within U (‖p − c‖ − r ≤ U (1 + slack) + slack r, c
+    the centroid, r the bounding radius) get their distance d_f by Ericson's method here, and D is the least:
+    a regular face is kept when d_f ≤ D (1 + slack) + slack r (its distance is exact to round-off, so the
+    closest faces and their ties are kept), a thin one (NumPy's careful path, ``thin`` with a factor 10 of
+    margin) when its sphere comes within D. Every face that can hold the closest point is kept, so the
+    closest point chosen from these pairs is the one any index giving such a superset gives
+    (:class:`refsim.geometry.SurfaceProjector`), with one or two exact evaluations per query.
+    """
+    return _surface_candidates(
+        np.ascontiguousarray(points, dtype=float),
+        np.ascontiguousarray(triangles, dtype=float),
+        np.ascontiguousarray(centroids, dtype=float),
+        np.ascontiguousarray(radii, dtype=float),
+        float(slack),
+        float(thin),
+    )
+
+
+@numba.njit(cache=True)
+def _surface_candidates(points, triangles, centroids, radii, slack, thin):  # pragma: no cover - compiled
+    count, faces = points.shape[0], triangles.shape[0]
+    # Thin faces (NumPy's careful path, with a factor 10 of margin) are kept on their sphere test only.
+    is_thin = np.empty(faces, dtype=np.bool_)
+    for face in range(faces):
+        t = triangles[face]
+        e1 = t[1] - t[0]
+        e2 = t[2] - t[0]
+        e3 = t[0] - t[2]
+        n0 = e1[1] * e2[2] - e1[2] * e2[1]
+        n1 = e1[2] * e2[0] - e1[0] * e2[2]
+        n2 = e1[0] * e2[1] - e1[1] * e2[0]
+        area2 = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        e4 = t[2] - t[1]
+        longest2 = max(np.dot(e1, e1), np.dot(e4, e4), np.dot(e3, e3))
+        is_thin[face] = not (area2 >= 10.0 * thin * longest2)
+    keep = np.zeros((count, faces), dtype=np.bool_)
+    distances = np.full(faces, np.inf)
+    total = 0
+    for q in range(count):
+        bound = np.inf
+        for face in range(faces):
+            for corner in range(3):
+                squares = 0.0
+                for axis in range(3):
+                    offset = points[q, axis] - triangles[face, corner, axis]
+                    squares += offset * offset
+                bound = min(bound, np.sqrt(squares))
+        nearest = bound
+        for face in range(faces):
+            distances[face] = np.inf
+            if _surface_face_kept(points[q], centroids[face], radii[face], bound, slack):
+                distances[face] = _triangle_distance(points[q], triangles[face])
+                nearest = min(nearest, distances[face])
+        for face in range(faces):
+            if not np.isfinite(distances[face]):
+                continue
+            if is_thin[face]:
+                chosen = _surface_face_kept(points[q], centroids[face], radii[face], nearest, slack)
+            else:
+                chosen = distances[face] <= nearest * (1.0 + slack) + slack * radii[face]
+            if chosen:
+                keep[q, face] = True
+                total += 1
+    queries = np.empty(total, dtype=np.int64)
+    chosen_faces = np.empty(total, dtype=np.int64)
+    at = 0
+    for q in range(count):
+        for face in range(faces):
+            if keep[q, face]:
+                queries[at] = q
+                chosen_faces[at] = face
+                at += 1
+    return queries, chosen_faces
+
+
+@numba.njit(cache=True)
+def _triangle_distance(point, triangle):  # pragma: no cover - compiled
+    """Distance from a point to a triangle (Ericson's regions; a bound only, so degenerate triangles fall
+    back to their nearest vertex, a point of the triangle)."""
+    ax, ay, az = triangle[0, 0], triangle[0, 1], triangle[0, 2]
+    abx, aby, abz = triangle[1, 0] - ax, triangle[1, 1] - ay, triangle[1, 2] - az
+    acx, acy, acz = triangle[2, 0] - ax, triangle[2, 1] - ay, triangle[2, 2] - az
+    apx, apy, apz = point[0] - ax, point[1] - ay, point[2] - az
+    bpx, bpy, bpz = apx - abx, apy - aby, apz - abz
+    cpx, cpy, cpz = apx - acx, apy - acy, apz - acz
+    d1, d2 = abx * apx + aby * apy + abz * apz, acx * apx + acy * apy + acz * apz
+    d3, d4 = abx * bpx + aby * bpy + abz * bpz, acx * bpx + acy * bpy + acz * bpz
+    d5, d6 = abx * cpx + aby * cpy + abz * cpz, acx * cpx + acy * cpy + acz * cpz
+    vc, vb, va = d1 * d4 - d3 * d2, d5 * d2 - d1 * d6, d3 * d6 - d5 * d4
+    v, w = 0.0, 0.0  # the closest point is a + v ab + w ac
+    if d1 <= 0.0 and d2 <= 0.0:
+        pass
+    elif d3 >= 0.0 and d4 <= d3:
+        v = 1.0
+    elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0 and d1 - d3 > 0.0:
+        v = d1 / (d1 - d3)
+    elif d6 >= 0.0 and d5 <= d6:
+        w = 1.0
+    elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0 and d2 - d6 > 0.0:
+        w = d2 / (d2 - d6)
+    elif va <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0 and (d4 - d3) + (d5 - d6) > 0.0:
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        v = 1.0 - w
+    elif va + vb + vc != 0.0 and np.isfinite(va + vb + vc):
+        v, w = vb / (va + vb + vc), vc / (va + vb + vc)
+    else:
+        a2 = apx * apx + apy * apy + apz * apz
+        b2 = bpx * bpx + bpy * bpy + bpz * bpz
+        c2 = cpx * cpx + cpy * cpy + cpz * cpz
+        return np.sqrt(min(a2, b2, c2))
+    x = apx - v * abx - w * acx
+    y = apy - v * aby - w * acy
+    z = apz - v * abz - w * acz
+    return np.sqrt(x * x + y * y + z * z)
+
+
+@numba.njit(cache=True)
+def _surface_face_kept(point, centroid, radius, bound, slack):  # pragma: no cover - compiled
+    squares = 0.0
+    for axis in range(3):
+        offset = point[axis] - centroid[axis]
+        squares += offset * offset
+    return np.sqrt(squares) - radius <= bound * (1.0 + slack) + slack * radius
 
 
 def tet_spheres(positions: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from refsim.geometry.barycentric import tet_barycentric
-from refsim.geometry.closest import closest_points_on_triangles, triangle_normals
+from refsim.geometry.closest import _THIN_AREA, closest_points_on_triangles, triangle_normals
 
 __all__ = ["ClosestSurfacePoints", "SurfaceProjector", "TetLocator", "tet_boundary_faces"]
 
@@ -33,6 +33,10 @@ _RADIUS_SLACK = 1e-9
 # TetLocator's grid holds each tet's bounding sphere grown for tolerances up to this (larger ones use the
 # KD-trees); the ring points of the coupling are located with 1e-6.
 _GRID_TOLERANCE = 1e-6
+# SurfaceProjector scans every face for each query (compiled, no index to build) up to this many pairs
+# (queries × faces) per chunk; beyond, it builds KD-trees. A step's queries (the tip and shaft samples on the
+# tissue's surface, the needle's samples on the cut) are far below.
+_SCAN_PAIRS = 200_000
 # Faces of a tetrahedron (v0, v1, v2, v3) in the order opposite v0, v1, v2, v3, and the opposite node.
 _TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
 
@@ -167,6 +171,24 @@ class TetLocator:
         if not (np.isfinite(tolerance) and tolerance >= 0.0):
             raise ValueError(f"tolerance must be finite and >= 0, got {tolerance}")
         points = _check_points(points)
+        if tolerance <= _GRID_TOLERANCE:
+            from refsim.geometry.grid import locate_in_tets  # numba: imported on first use
+
+            return locate_in_tets(
+                self._box_grid(),
+                points,
+                self.positions,
+                self.tets,
+                self.centroids,
+                self._radii,
+                tolerance=tolerance,
+                reach_factor=1.0 + 6.0 * tolerance + _RADIUS_SLACK,
+            )
+        return self._locate_vectorised(points, tolerance)
+
+    def _locate_vectorised(self, points: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+        """``locate`` by candidate pairs evaluated in vectorised chunks (any tolerance; ``locate`` uses it
+        above 1e-6, the compiled pass below, which gives the same bits)."""
         tet_index = np.full(points.shape[0], -1, dtype=np.int64)
         barycentric = np.full((points.shape[0], 4), np.nan)
         for start in range(0, points.shape[0], _CHUNK):
@@ -185,15 +207,20 @@ class TetLocator:
         """Pairs (query, tet) holding every pair with a centroid distance <= (1 + 6 tol + slack) × the tet's
         bounding radius (more are pruned by the caller)."""
         if tolerance <= _GRID_TOLERANCE:
-            if self._grid is None:
-                from refsim.geometry.grid import BoxGrid  # numba: imported on first use
-
-                grown = self._radii * (1.0 + 6.0 * _GRID_TOLERANCE + 2.0 * _RADIUS_SLACK)
-                self._grid = BoxGrid(self.centroids - grown[:, None], self.centroids + grown[:, None])
-            return self._grid.pairs(points)
+            return self._box_grid().pairs(points)
         if self._classes is None:
             self._classes = _RadiusClasses(self.centroids, self._radii)
         return self._classes.pairs(points, 6.0 * tolerance * self._radii.max())
+
+    def _box_grid(self):
+        """The compiled grid of the tets' bounding spheres grown for tolerances up to 1e-6, built on first
+        use."""
+        if self._grid is None:
+            from refsim.geometry.grid import BoxGrid  # numba: imported on first use
+
+            grown = self._radii * (1.0 + 6.0 * _GRID_TOLERANCE + 2.0 * _RADIUS_SLACK)
+            self._grid = BoxGrid(self.centroids - grown[:, None], self.centroids + grown[:, None])
+        return self._grid
 
     def _locate_chunk(self, points: np.ndarray, tolerance: float) -> tuple:
         # Barycentric coordinates >= −tol imply a centroid distance <= (1 + 6 tol) × bounding radius.
@@ -277,19 +304,29 @@ class SurfaceProjector:
 
     Notes
     -----
-    For each query the nearest face centroids give an upper bound U on the distance to the surface; only faces
-    whose centroid is within U plus their bounding radius can hold the closest point, and those are evaluated
-    exactly (Ericson's method). Ties in distance go to the lowest face index.
+    For each query an upper bound U on the distance to the surface (a compiled scan of every vertex for few
+    queries × faces, :func:`refsim.geometry.grid.surface_candidates`; else the exact distances to the faces of
+    the nearest centroids, from KD-trees built on first use); only faces whose centroid is within U plus their
+    bounding radius can hold the closest point, and those are evaluated exactly (Ericson's method). Ties in
+    distance go to the lowest face index. Both searches keep every face that can hold the closest point, so
+    they give the same bits.
     """
 
     def __init__(self, positions: np.ndarray, faces: np.ndarray):
         self.positions, self.faces = _check_elements(positions, faces, 3, "faces")
         self.triangles = self.positions[self.faces]  # (f, 3, 3)
         self.centroids = self.triangles.mean(axis=1)
-        self.normals = triangle_normals(self.triangles)
-        radii = np.linalg.norm(self.triangles - self.centroids[:, None, :], axis=2).max(axis=1)
-        self._tree = cKDTree(self.centroids)
-        self._index = _RadiusClasses(self.centroids, radii)
+        self.radii = np.linalg.norm(self.triangles - self.centroids[:, None, :], axis=2).max(axis=1)
+        self._normals: np.ndarray | None = None
+        self._tree: cKDTree | None = None  # the KD-trees, built on the first query too large for the scan
+        self._index: _RadiusClasses | None = None
+
+    @property
+    def normals(self) -> np.ndarray:
+        """Unit outward normal of every face, shape (f, 3) (computed on first use)."""
+        if self._normals is None:
+            self._normals = triangle_normals(self.triangles)
+        return self._normals
 
     def closest(self, points: np.ndarray) -> ClosestSurfacePoints:
         """Closest point on the surface to each query point.
@@ -311,9 +348,36 @@ class SurfaceProjector:
             face_index[chunk], barycentric[chunk] = self._closest_chunk(points[chunk])
         closest = np.einsum("qk,qki->qi", barycentric, self.triangles[face_index])
         distance = np.linalg.norm(points - closest, axis=1)
-        return ClosestSurfacePoints(face_index, closest, barycentric, distance, self.normals[face_index])
+        # The chosen faces' normals only (row by row: the bits of all the faces' normals, indexed).
+        return ClosestSurfacePoints(
+            face_index, closest, barycentric, distance, triangle_normals(self.triangles[face_index])
+        )
 
     def _closest_chunk(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        count = points.shape[0]
+        if count * self.faces.shape[0] <= _SCAN_PAIRS:
+            from refsim.geometry.grid import surface_candidates  # numba: imported on first use
+
+            queries, faces = surface_candidates(
+                points, self.triangles, self.centroids, self.radii, _RADIUS_SLACK, _THIN_AREA
+            )
+        else:
+            queries, faces = self._indexed_candidates(points)
+        closest, coordinates = closest_points_on_triangles(points[queries], self.triangles[faces])
+        distance2 = np.sum((closest - points[queries]) ** 2, axis=1)
+        order = np.lexsort((faces, distance2, queries))
+        found, best = _first_per_query(queries, order)
+        face_index = np.zeros(count, dtype=np.int64)
+        barycentric = np.zeros((count, 3))
+        face_index[found], barycentric[found] = faces[best], coordinates[best]
+        return face_index, barycentric
+
+    def _indexed_candidates(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pairs (query, face) that can hold each query's closest point, from the KD-trees: the bound is the
+        nearest of the exact distances to the faces of the 4 nearest centroids."""
+        if self._tree is None:
+            self._tree = cKDTree(self.centroids)
+            self._index = _RadiusClasses(self.centroids, self.radii)
         count = points.shape[0]
         neighbours = min(4, self.faces.shape[0])
         _, nearest = self._tree.query(points, k=neighbours)
@@ -324,14 +388,6 @@ class SurfaceProjector:
         bound = np.linalg.norm(candidates - np.repeat(points, neighbours, axis=0), axis=1)
         bound = bound.reshape(count, neighbours).min(axis=1)  # upper bound on the distance to the surface
         queries, faces = self._index.pairs(points, bound)
-        lower = np.linalg.norm(points[queries] - self.centroids[faces], axis=1) - self._index.radii[faces]
-        keep = lower <= bound[queries] * (1.0 + _RADIUS_SLACK) + _RADIUS_SLACK * self._index.radii[faces]
-        queries, faces = queries[keep], faces[keep]
-        closest, coordinates = closest_points_on_triangles(points[queries], self.triangles[faces])
-        distance2 = np.sum((closest - points[queries]) ** 2, axis=1)
-        order = np.lexsort((faces, distance2, queries))
-        found, best = _first_per_query(queries, order)
-        face_index = np.zeros(count, dtype=np.int64)
-        barycentric = np.zeros((count, 3))
-        face_index[found], barycentric[found] = faces[best], coordinates[best]
-        return face_index, barycentric
+        lower = np.linalg.norm(points[queries] - self.centroids[faces], axis=1) - self.radii[faces]
+        keep = lower <= bound[queries] * (1.0 + _RADIUS_SLACK) + _RADIUS_SLACK * self.radii[faces]
+        return queries[keep], faces[keep]

@@ -129,9 +129,11 @@ class Detector:
         self.rest_locator = TetLocator(self.rest_positions, np.asarray(tets)) if self.ring else None
         # Shaft samples before puncture every half mean tet size (the surface cannot bend between them).
         self.shaft_spacing = 0.01
+        #: The local mesh size of every rest tet [m] (local_mesh_size), for the rings' radii.
+        self.tet_sizes = None
         if rest_positions is not None and tets is not None:
-            sizes = local_mesh_size(rest_positions, tets, np.arange(len(tets)))
-            self.shaft_spacing = 0.5 * float(sizes.mean())
+            self.tet_sizes = local_mesh_size(rest_positions, tets, np.arange(len(tets)))
+            self.shaft_spacing = 0.5 * float(self.tet_sizes.mean())
 
     def _rings(self, path: InsertionPath, tangents: np.ndarray, mesh_tets: np.ndarray) -> PointRings:
         """The points' rings, normal to ``tangents`` (p, 3): a point keeps the ring it carries
@@ -148,6 +150,7 @@ class Detector:
             mesh_tets=mesh_tets,
             locator=self.rest_locator,
             needle_radius=self.needle_radius,
+            tet_sizes=self.tet_sizes,
         )
         if not reuse.any():
             return PointRings(RingLayout.around(path, tangents=tangents, **common), tangents.copy())
@@ -209,116 +212,34 @@ class Detector:
             locator=self.rest_locator,
             tangents=tangent,
             needle_radius=self.needle_radius,
+            tet_sizes=self.tet_sizes,
         )
         return ring_weights(tip, rings, geometry.mesh_tets)
 
     def detect(self, world: SimulationState, state: InstrumentState, geometry: StepGeometry) -> Detection:
         """The rows of one instrument (``state``) in the step that starts from ``world``, on the free
         positions of ``geometry`` (the tissue's and that instrument's needle); the needle's Jacobian is keyed
-        :data:`NEEDLE`."""
-        spec = self.insertion
+        :data:`NEEDLE`. The blocks, in row order: the phase's own rows (approach: the tip's contact and the
+        shaft's; insertion and cutting: the insertion points' and the tip's cutting row), then the rows of an
+        existing cut (insertion) or of the cut being made (cutting)."""
         blocks: list[RowBlock] = []
         contact = None
         front = FrontRows.empty()
         insertion_points = np.zeros(0, dtype=np.int64)
         rings = None
         if state.phase == Phase.APPROACH:
-            projector = SurfaceProjector(geometry.tissue_free, self.faces)
-            tip_direction = geometry.needle_free.tangents(np.array([geometry.needle_free.length]))[0]
-            contact = find_surface_contact(
-                projector, self.faces, geometry.needle_free.tip, tip_direction, tip_radius=spec.tip_radius
-            )
-            if contact.gap < spec.contact_distance:
-                blocks.append(
-                    penetration_block(
-                        contact,
-                        geometry,
-                        friction_coefficient=spec.surface_friction_coefficient,
-                        puncture_force=spec.puncture_force if spec.puncture_within_step else None,
-                    )
-                )
-            if spec.shaft_contact:
-                shaft = shaft_contact_block(
-                    geometry,
-                    projector,
-                    self.faces,
-                    spacing=self.shaft_spacing,
-                    contact_distance=spec.contact_distance,
-                    tip_clearance=2.0 * spec.contact_distance,
-                )
-                if shaft is not None:
-                    blocks.append(shaft)
+            contact, approach = self.approach_rows(geometry)
+            blocks.extend(approach)
         elif state.path.point_count:
-            points = np.arange(state.path.point_count)
-            if state.phase == Phase.CUTTING and not self.law.rows_while_cutting:
-                # The cut holds the needle along the strip (sliding rows, crack tip; the strip extends down
-                # the shaft when the needle goes deeper); the path's points kept at the cut start
-                # (CuttingLaw.kept_at_cut_start) have no rows (anchored, they would drag the tissue along the
-                # stroke).
-                points = points[:0]
-            if points.size:
-                block, rings = self.insertion_rows(
-                    state.path.subset(points),
-                    geometry,
-                    finite_line=spec.subgrid_line == "finite" and state.phase != Phase.CUTTING,
-                )
-                # The rows' points, from indices into the subset to indices into the path.
-                owner = block.points_of_rows
-                blocks.append(replace(block, point=np.where(owner >= 0, points[np.maximum(owner, 0)], -1)))
-                insertion_points = points
-            if spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION and state.tip_tet >= 0:
-                # The tip's cutting row, against the tissue's material point at the tip (the tip inside the
-                # tissue: none once it has left it through a face).
-                ring = self.tip_ring(state, geometry) if self.ring else (None, None)
-                tip_block, _, _ = tip_cutting_block(
-                    geometry,
-                    tip_tet=state.tip_tet,
-                    tip_barycentric=state.tip_barycentric,
-                    cutting_force=spec.tip_cutting_force,
-                    tissue_nodes=ring[0],
-                    tissue_weights=ring[1],
-                )
-                blocks.append(tip_block)
+            block, insertion_points, rings = self.path_rows(state, geometry)
+            blocks.extend(b for b in (block, self.tip_row(state, geometry)) if b is not None)
         if state.phase == Phase.INSERTION and world.cut is not None and world.cut.triangle_count:
-            # A needle inserted along an existing cut slides in it: the old cut's sliding rows (no crack tip).
-            entry_arc_length = inserted_arc(
-                geometry.needle_previous,
-                TetLocator(geometry.tissue_previous, geometry.mesh_tets),
-                self.cutting.point_spacing,
-            )
-            block, _ = strip_cut_block(
-                world.cut,
-                None,
-                geometry,
-                entry_arc_length=entry_arc_length,
-                spacing=self.cutting.point_spacing,
-                cut_direction=np.zeros(3),
-                subgrid_compliance=self.cut_compliance,
-            )
+            block, _ = self.cut_rows(world, None, geometry)
             if block is not None:
                 blocks.append(block)
         if state.phase == Phase.CUTTING and state.cut_strip is not None:
-            # The inserted part of the needle: from where it enters the tissue (not the entry point's
-            # projection, which a tilted needle pushed sideways leaves above the tissue) to the tip, on the
-            # start-of-step state.
-            entry_arc_length = inserted_arc(
-                geometry.needle_previous,
-                TetLocator(geometry.tissue_previous, geometry.mesh_tets),
-                self.cutting.point_spacing,
-            )
             offset = sum(block.row_count for block in blocks)
-            cutting = self.cutting
-            block, front = strip_cut_block(
-                world.cut,
-                state.cut_strip,
-                geometry,
-                entry_arc_length=entry_arc_length,
-                spacing=cutting.point_spacing,
-                cut_direction=state.cut_direction,
-                front_strength=self.law.front_strength,
-                friction_coefficient=cutting.friction_coefficient,
-                subgrid_compliance=self.cut_compliance,
-            )
+            block, front = self.cut_rows(world, state, geometry)
             if block is not None:
                 blocks.append(block)
             front = replace(front, rows=front.rows + offset, band_rows=front.band_rows + offset)
@@ -327,6 +248,119 @@ class Detector:
         else:
             rows = concatenate(blocks)
         return Detection(rows, contact, front, insertion_points, rings)
+
+    def approach_rows(self, geometry: StepGeometry) -> tuple[SurfaceContact, list[RowBlock]]:
+        """Before puncture: the tip's closest surface point and, in order, its contact rows (when within the
+        contact distance) and the shaft's contact rows (``insertion.shaft_contact``, when any sample is near
+        the surface)."""
+        spec = self.insertion
+        blocks = []
+        projector = SurfaceProjector(geometry.tissue_free, self.faces)
+        tip_direction = geometry.needle_free.tangents(np.array([geometry.needle_free.length]))[0]
+        contact = find_surface_contact(
+            projector, self.faces, geometry.needle_free.tip, tip_direction, tip_radius=spec.tip_radius
+        )
+        if contact.gap < spec.contact_distance:
+            blocks.append(
+                penetration_block(
+                    contact,
+                    geometry,
+                    friction_coefficient=spec.surface_friction_coefficient,
+                    puncture_force=spec.puncture_force if spec.puncture_within_step else None,
+                )
+            )
+        if spec.shaft_contact:
+            shaft = shaft_contact_block(
+                geometry,
+                projector,
+                self.faces,
+                spacing=self.shaft_spacing,
+                contact_distance=spec.contact_distance,
+                tip_clearance=2.0 * spec.contact_distance,
+            )
+            if shaft is not None:
+                blocks.append(shaft)
+        return contact, blocks
+
+    def path_rows(
+        self, state: InstrumentState, geometry: StepGeometry
+    ) -> tuple[RowBlock | None, np.ndarray, PointRings | None]:
+        """The rows of the instrument's insertion points (their ``point`` field indexing its path), the
+        points that have rows and the rings the rows were built on; no rows while cutting under a law whose
+        cut holds the needle alone (``rows_while_cutting`` false)."""
+        points = np.arange(state.path.point_count)
+        if state.phase == Phase.CUTTING and not self.law.rows_while_cutting:
+            # The cut holds the needle along the strip (sliding rows, crack tip; the strip extends down the
+            # shaft when the needle goes deeper); the path's points kept at the cut start
+            # (CuttingLaw.kept_at_cut_start) have no rows (anchored, they would drag the tissue along the
+            # stroke).
+            return None, points[:0], None
+        block, rings = self.insertion_rows(
+            state.path.subset(points),
+            geometry,
+            finite_line=self.insertion.subgrid_line == "finite" and state.phase != Phase.CUTTING,
+        )
+        # The rows' points, from indices into the subset to indices into the path.
+        owner = block.points_of_rows
+        block = replace(block, point=np.where(owner >= 0, points[np.maximum(owner, 0)], -1))
+        return block, points, rings
+
+    def tip_row(self, state: InstrumentState, geometry: StepGeometry) -> RowBlock | None:
+        """The tip's cutting row after puncture (``insertion.tip_cutting_force`` > 0), against the tissue's
+        material point at the tip (its ring with the ring coupling); none outside insertion or once the tip
+        has left the tissue through a face."""
+        spec = self.insertion
+        if not (spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION and state.tip_tet >= 0):
+            return None
+        ring = self.tip_ring(state, geometry) if self.ring else (None, None)
+        block, _, _ = tip_cutting_block(
+            geometry,
+            tip_tet=state.tip_tet,
+            tip_barycentric=state.tip_barycentric,
+            cutting_force=spec.tip_cutting_force,
+            tissue_nodes=ring[0],
+            tissue_weights=ring[1],
+        )
+        return block
+
+    def cut_rows(
+        self, world: SimulationState, state: InstrumentState | None, geometry: StepGeometry
+    ) -> tuple[RowBlock | None, FrontRows]:
+        """The cut surface's rows along the inserted part of the needle, from where it enters the tissue (not
+        the entry point's projection, which a tilted needle pushed sideways leaves above the tissue) to the
+        tip, on the start-of-step state. ``state`` None: a needle inserted along an existing cut slides in it
+        (sliding rows, no crack tip, no friction); else the instrument's own cut strip while it cuts, with its
+        crack-tip front (indices into the returned block). Where the needle enters the tissue is the state's
+        ``entry_arc`` when the last step's events located it on this configuration."""
+        if state is not None and state.entry_arc is not None:
+            entry_arc_length = state.entry_arc
+        else:
+            entry_arc_length = inserted_arc(
+                geometry.needle_previous,
+                TetLocator(geometry.tissue_previous, geometry.mesh_tets),
+                self.cutting.point_spacing,
+            )
+        if state is None:
+            return strip_cut_block(
+                world.cut,
+                None,
+                geometry,
+                entry_arc_length=entry_arc_length,
+                spacing=self.cutting.point_spacing,
+                cut_direction=np.zeros(3),
+                subgrid_compliance=self.cut_compliance,
+            )
+        return strip_cut_block(
+            world.cut,
+            state.cut_strip,
+            geometry,
+            entry_arc_length=entry_arc_length,
+            spacing=self.cutting.point_spacing,
+            cut_direction=state.cut_direction,
+            front_strength=self.law.front_strength,
+            friction_coefficient=self.cutting.friction_coefficient,
+            subgrid_compliance=self.cut_compliance,
+        )
 
 
 def _cut_compliance(

@@ -175,6 +175,8 @@ class EventRules:
         may change with them)."""
         events: list[Event] = []
         state = world.instrument(name)
+        if state.entry_arc is not None:  # located on the last step's configuration
+            state = replace(state, entry_arc=None)
         rows = detection.rows
         if state.phase == Phase.APPROACH and rows.row_count:
             state, events = self._puncture(world, state, detection, multipliers)
@@ -413,6 +415,7 @@ class EventRules:
             state = replace(
                 state,
                 cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc, world.step),
+                entry_arc=entry_arc,
             )
         rows = detection.rows
         self.margins.tear(self.law, detection.front.rows)

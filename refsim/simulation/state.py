@@ -43,6 +43,10 @@ class InstrumentState:
     tip_tet : The tissue tet its tip lies in after the step, −1 when the tip is outside the tissue (before
         puncture, after an exit through a far face or a withdrawal).
     tip_barycentric : The tip's barycentric coordinates in ``tip_tet``, shape (4,); None when outside.
+    entry_arc : Where its needle enters the tissue in this state's configuration [m] (the arc length of
+        :func:`refsim.constraints.cut.inserted_arc` at the cut's spacing), when the step's events located it
+        (cutting, the strip extending down the shaft); None otherwise. The next step's cut rows, built on this
+        configuration, read it instead of locating the needle again (the same inputs: the same bits).
     """
 
     name: str
@@ -53,6 +57,7 @@ class InstrumentState:
     cut_strip: CutStrip | None = None
     tip_tet: int = -1
     tip_barycentric: np.ndarray | None = None
+    entry_arc: float | None = None
 
 
 @dataclass(frozen=True)

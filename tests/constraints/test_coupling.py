@@ -132,6 +132,32 @@ def test_ring_count_spacing_and_local_mesh_size():
     assert np.allclose(h, 0.0125)
 
 
+def test_ring_layout_from_precomputed_tet_sizes_is_the_same_bits():
+    # The detector computes every tet's h once (RingLayout.around's tet_sizes); NumPy's det is evaluated per
+    # matrix, so the sizes of a subset are the subset of the sizes, and the rings are the same bits.
+    rng = np.random.default_rng(2)
+    mesh = box_mesh(size=(0.1, 0.1, 0.1), cells=(6, 6, 6))
+    rest = np.asarray(mesh.rest_positions) + rng.normal(scale=1e-3, size=mesh.rest_positions.shape)
+    tets = np.asarray(mesh.tets)
+    every = coupling.local_mesh_size(rest, tets, np.arange(len(tets)))
+    picked = rng.integers(0, len(tets), size=30)
+    path = InsertionPath(picked, rng.dirichlet(np.ones(4), size=30), np.zeros(30, dtype=np.int64))
+    tangents = rng.standard_normal((30, 3))
+    tangents /= np.linalg.norm(tangents, axis=1, keepdims=True)
+    common = dict(
+        rest_positions=rest,
+        mesh_tets=tets,
+        locator=TetLocator(rest, tets),
+        tangents=tangents,
+        needle_radius=1e-3,
+    )
+    fresh = coupling.RingLayout.around(path, **common)
+    cached = coupling.RingLayout.around(path, tet_sizes=every, **common)
+    for name in ("tets", "barycentric", "mesh_size", "radius"):
+        np.testing.assert_array_equal(getattr(cached, name), getattr(fresh, name))
+    assert np.count_nonzero(fresh.tets >= 0) > fresh.tets.size // 2
+
+
 # ----------------------------------------------------------------------------------------------- ring rows
 def _needle_in_box(cells=4, angle_deg=30.0, spacing_ratio=0.1, depth=0.06):
     mesh = box_mesh(size=(0.1, 0.1, 0.1), cells=(cells, cells, cells), origin=(-0.05, -0.05, 0.0))

@@ -18,6 +18,7 @@ from refsim.constraints import (
     point_rows,
     points_beyond_tip,
 )
+from refsim.constraints.rows import _orthonormal_basis_numpy, _point_rows_coo, stack_jacobians
 from refsim.geometry import TetLocator
 from refsim.mesh import box_mesh
 
@@ -33,6 +34,20 @@ def test_orthonormal_basis(tangent):
     frame = np.stack([first[0], second[0], t[0]], axis=1)
     np.testing.assert_allclose(frame.T @ frame, np.eye(3), atol=1e-15)
     assert np.linalg.det(frame) == pytest.approx(1.0, abs=1e-14)
+
+
+def test_orthonormal_basis_compiled_is_numpys_bit_for_bit():
+    # Random directions, axis ties (|t_i| equal: the first smallest axis is the helper) and signed zeros.
+    rng = np.random.default_rng(3)
+    tangents = rng.standard_normal((2000, 3)) * 10.0 ** rng.integers(-6, 1, size=(2000, 3))
+    ties = np.array([[1, 1, 0], [1, 1, 1], [0, 0, 1], [-0.0, 0.0, -1], [1, -1, 1e-300], [0.6, 0.0, -0.8]])
+    tangents = np.concatenate([tangents, ties])
+    tangents /= np.linalg.norm(tangents, axis=1, keepdims=True)
+    got = orthonormal_basis(tangents)
+    expected = _orthonormal_basis_numpy(tangents)
+    for a, b in zip(got, expected, strict=True):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(np.signbit(a), np.signbit(b))
 
 
 def test_point_rows_linearise_the_gap_exactly():
@@ -52,6 +67,54 @@ def test_point_rows_linearise_the_gap_exactly():
     jacobian = point_rows(nodes, weights, directions, 3 * node_count)
     step = 1e-3 * rng.normal(size=(node_count, 3))
     np.testing.assert_allclose(jacobian @ step.ravel(), gap(positions + step) - gap(positions), atol=1e-14)
+
+
+def _ring_like_rows(rng, points, per_point, nodes, repeats):
+    """Rows as a ring coupling makes them: ``repeats`` rows per point on the same nodes (many shared, so
+    each row has columns repeated three or more times), weights summing to one, unit directions."""
+    node_rows = np.repeat(rng.integers(0, nodes, size=(points, per_point)), repeats, axis=0)
+    weights = np.repeat(rng.dirichlet(np.ones(per_point), size=points), repeats, axis=0)
+    directions = rng.standard_normal((points * repeats, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    return node_rows, weights, directions
+
+
+@pytest.mark.parametrize(
+    ("points", "per_point", "nodes", "repeats"),
+    [(26, 68, 60, 3), (26, 68, 729, 2), (5, 4, 30, 1), (1, 36, 10, 1), (40, 4, 2000, 3)],
+)
+def test_point_rows_are_the_coo_conversion_bit_for_bit(points, per_point, nodes, repeats):
+    # SciPy sums a row's equal columns in the order its unstable row sort leaves them; the compiled path
+    # sums in that same order (a probe sorted per distinct pattern), so data, indices and pointers are equal.
+    rng = np.random.default_rng(per_point + nodes)
+    node_rows, weights, directions = _ring_like_rows(rng, points, per_point, nodes, repeats)
+    dof_count = 3 * nodes
+    got = point_rows(node_rows, weights, directions, dof_count)
+    expected = _point_rows_coo(node_rows, weights, directions, dof_count, sign=-1.0)
+    assert got.shape == expected.shape
+    np.testing.assert_array_equal(got.indptr, expected.indptr)
+    np.testing.assert_array_equal(got.indices, expected.indices)
+    np.testing.assert_array_equal(got.data, expected.data)
+    assert got.indices.dtype == expected.indices.dtype and got.indptr.dtype == expected.indptr.dtype
+    if (points, per_point, nodes) == (26, 68, 60):
+        # The order matters: summing each column's entries in input order (a stable sort) changes bits.
+        stable = np.zeros((len(node_rows), dof_count))
+        for row, (row_nodes, row_weights, n) in enumerate(zip(node_rows, weights, directions, strict=True)):
+            for node, weight in zip(row_nodes, row_weights, strict=True):
+                stable[row, 3 * node : 3 * node + 3] += -weight * n
+        assert not np.array_equal(stable, expected.toarray())
+
+
+def test_point_rows_already_sorted_are_summed_in_input_order():
+    # Rows whose columns are all non-decreasing are not sorted by SciPy (it checks first): equal columns are
+    # summed in input order, which the compiled path keeps.
+    nodes = np.array([[0, 0, 0, 1], [2, 2, 3, 3]])
+    weights = np.array([[0.1, 0.7, 1e-17, 0.2], [0.3, 0.3, 0.3, 0.1]])
+    directions = np.array([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8]])
+    got = point_rows(nodes, weights, directions, 12)
+    expected = _point_rows_coo(nodes, weights, directions, 12, sign=-1.0)
+    np.testing.assert_array_equal(got.toarray(), expected.toarray())
+    np.testing.assert_array_equal(got.indices, expected.indices)
 
 
 def test_concatenate_offsets_contacts_and_shaft_rows():
@@ -203,6 +266,33 @@ def test_jacobians_by_body_stack_and_a_block_without_a_body_gives_it_zero_rows()
     narrow = replace(both, jacobians={TISSUE: sp.csr_matrix((2, 5))})
     with pytest.raises(ValueError, match="columns"):
         concatenate([both, narrow])
+
+
+def test_stacked_jacobians_are_scipys_vstack():
+    # The stacking concatenates data, indices and pointers as sp.vstack does: equal arrays, equal dtypes,
+    # with blocks lacking a body (zero rows), empty blocks and duplicate-free canonical parts.
+    import scipy.sparse as sp
+
+    from refsim.constraints import NEEDLE, TISSUE
+
+    rng = np.random.default_rng(4)
+    parts = [
+        {TISSUE: sp.random(5, 30, density=0.2, format="csr", random_state=1)},
+        {TISSUE: sp.csr_matrix((0, 30))},
+        {NEEDLE: sp.random(3, 12, density=0.5, format="csr", random_state=2)},
+        {TISSUE: sp.csr_matrix(rng.standard_normal((2, 30))), NEEDLE: sp.csr_matrix((2, 12))},
+    ]
+    counts = [5, 0, 3, 2]
+    got = stack_jacobians(parts, counts)
+    for name, width in ((TISSUE, 30), (NEEDLE, 12)):
+        expected = sp.vstack(
+            [part.get(name, sp.csr_matrix((rows, width))) for part, rows in zip(parts, counts, strict=True)],
+            format="csr",
+        )
+        for field in ("data", "indices", "indptr"):
+            np.testing.assert_array_equal(getattr(got[name], field), getattr(expected, field))
+            assert getattr(got[name], field).dtype == getattr(expected, field).dtype
+        assert got[name].shape == expected.shape
 
 
 def test_row_block_concatenate_keeps_every_per_row_field_of_each_instrument():

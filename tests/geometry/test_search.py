@@ -11,6 +11,7 @@ from refsim.geometry import (
     SurfaceProjector,
     TetLocator,
     closest_points_on_triangles,
+    search,
     tet_barycentric,
     tet_boundary_faces,
 )
@@ -101,9 +102,34 @@ def test_grid_candidates_give_the_kd_trees_answer_bit_for_bit(graded, tolerance)
     kd = TetLocator(delaunay.points, delaunay.simplices)
     kd._candidates = lambda p, t: _RadiusClasses(kd.centroids, kd._radii).pairs(p, 6.0 * t * kd._radii.max())
     for got, expected in zip(
-        locator.locate(points, tolerance=tolerance), kd.locate(points, tolerance=tolerance), strict=True
+        locator._locate_vectorised(points, tolerance),
+        kd._locate_vectorised(points, tolerance),
+        strict=True,
     ):
         np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("tolerance", [0.0, 1e-12, 1e-6])
+def test_compiled_location_gives_the_vectorised_answer_bit_for_bit(graded, box, tolerance):
+    # locate's compiled pass (tolerances up to 1e-6) repeats tet_barycentric's operations in its order and
+    # the lexicographic choice of the vectorised path (largest smallest coordinate, then lowest tet): the same
+    # tets and the same bits, on a graded mesh and on the box's vertices, edges and faces (ties).
+    rng = np.random.default_rng(11)
+    delaunay, locator = graded
+    mesh, box_locator = box
+    positions, tets = mesh.rest_positions, mesh.tets
+    cases = [
+        (locator, np.concatenate([rng.uniform(size=(300, 3)) ** 3, delaunay.points[:60]])),
+        (locator, rng.uniform(-0.2, 1.2, size=(100, 3))),
+        (box_locator, np.concatenate([positions, positions[tets[:, 1:]].mean(axis=1)])),
+        (box_locator, rng.uniform(-0.1, 1.1, size=(200, 3))),
+    ]
+    for which, points in cases:
+        got = which.locate(points, tolerance=tolerance)
+        expected = which._locate_vectorised(points, tolerance)
+        assert np.count_nonzero(expected[0] >= 0) > 0.2 * points.shape[0]  # many points are inside
+        np.testing.assert_array_equal(got[0], expected[0])
+        np.testing.assert_array_equal(got[1], expected[1])
 
 
 def test_tet_spheres_are_the_numpy_centroids_and_radii(graded):
@@ -235,6 +261,53 @@ def test_projector_matches_brute_force(graded):
     np.testing.assert_allclose(np.linalg.norm(result.normal, axis=1), 1.0, atol=1e-14)
 
 
+@pytest.mark.parametrize("offset", [0.0, 1e-12, 0.05])
+def test_projector_scan_and_kd_trees_give_the_same_bits(graded, box, offset):
+    # Small queries scan every face (compiled), large ones use KD-trees; both keep every face that can hold
+    # the closest point, so face, barycentric coordinates and closest point are the same bits, ties included
+    # (the box's vertices and edges are equidistant from several faces).
+    rng = np.random.default_rng(9)
+    delaunay, _ = graded
+    mesh, _ = box
+    box_points = mesh.rest_positions[mesh.boundary_nodes]
+    cases = [
+        (
+            delaunay.points,
+            tet_boundary_faces(delaunay.simplices, delaunay.points)[0],
+            rng.uniform(-0.3, 1.3, (80, 3)),
+        ),
+        (
+            mesh.rest_positions,
+            mesh.boundary_faces,
+            box_points + offset * rng.standard_normal(box_points.shape),
+        ),
+    ]
+    # A soup of slivers and degenerate triangles (NumPy's careful path): nearly collinear vertices.
+    sliver_positions = rng.uniform(size=(40, 3)) * np.array([1.0, 1e-7, 1e-9])
+    sliver_faces = rng.integers(0, 40, size=(120, 3))
+    cases.append((sliver_positions, sliver_faces, rng.uniform(-0.1, 1.1, (60, 3)) * [1.0, 1e-6, 1e-6]))
+    for positions, faces, points in cases:
+        projector = SurfaceProjector(positions, faces)
+        scanned = projector._closest_chunk(points)
+        queries, candidates = projector._indexed_candidates(points)
+        indexed = _closest_of_pairs(projector, points, queries, candidates)
+        for got, expected in zip(scanned, indexed, strict=True):
+            np.testing.assert_array_equal(got, expected)
+        assert projector.faces.shape[0] * points.shape[0] <= search._SCAN_PAIRS  # the scan was taken
+
+
+def _closest_of_pairs(projector, points, queries, faces):
+    """The projector's choice among candidate pairs (its _closest_chunk after the search)."""
+    closest, coordinates = closest_points_on_triangles(points[queries], projector.triangles[faces])
+    distance2 = np.sum((closest - points[queries]) ** 2, axis=1)
+    order = np.lexsort((faces, distance2, queries))
+    found, best = search._first_per_query(queries, order)
+    face_index = np.zeros(points.shape[0], dtype=np.int64)
+    barycentric = np.zeros((points.shape[0], 3))
+    face_index[found], barycentric[found] = faces[best], coordinates[best]
+    return face_index, barycentric
+
+
 @pytest.mark.parametrize("offset", OFFSETS)
 def test_projector_on_box_vertices_edges_faces(box, offset):
     mesh, _ = box
@@ -278,3 +351,13 @@ def test_property_projector_and_locator_against_brute_force(points, seed):
     np.testing.assert_array_equal(
         tet_index, _brute_force_locate(points, delaunay.points, delaunay.simplices, 1e-12)
     )
+
+
+def test_projector_normals_of_the_chosen_faces_are_the_faces_normals(graded):
+    # closest() computes the normals of the chosen faces only; they are the rows of the faces' normals.
+    delaunay, _ = graded
+    faces, _ = tet_boundary_faces(delaunay.simplices, delaunay.points)
+    projector = SurfaceProjector(delaunay.points, faces)
+    points = np.random.default_rng(12).uniform(-0.3, 1.3, size=(60, 3))
+    result = projector.closest(points)
+    np.testing.assert_array_equal(result.normal, projector.normals[result.face_index])
