@@ -462,6 +462,7 @@ class TissueModel:
         *,
         fixed_displacements: np.ndarray | None = None,
         compiled: bool = True,
+        matrix_free: bool = False,
     ) -> StepSystem:
         """The step system of the compliance strategies: A on the free DoFs and the free motion's right-hand
         side.
@@ -478,12 +479,41 @@ class TissueModel:
         compiled : Co-rotation and assembly in one compiled pass into the fixed free-DoF pattern
             (:mod:`refsim.fem.assembly`, default); False: the NumPy path (batched products, then elimination),
             equal to round-off and bit-identical to refsim before the compiled path.
+        matrix_free : No A: the system's ``operator`` applies it (:mod:`refsim.fem.corotated_matvec`, the
+            fast compliance strategy's free motion by CG).
         """
         if not dt > 0.0:
             raise ValueError(f"dt must be > 0 s, got {dt!r}")
         positions = self._checked_positions(state.positions)
         velocities = np.asarray(state.velocities, dtype=float)
         prescribed = self._prescribed(fixed_displacements)
+        if matrix_free:
+            from refsim.fem.corotated_matvec import Elements, matrix_free_step
+
+            pattern = self.free_pattern
+            material = self.material
+            return matrix_free_step(
+                dof_count=self.dof_count,
+                free_dofs=pattern.free_dofs,
+                constrained_dofs=pattern.constrained_dofs,
+                positions=positions,
+                velocities=velocities,
+                elements=Elements(
+                    self.tets,
+                    self._rest_edges_inverse,
+                    self.element_volumes,
+                    material.lame_lambda,
+                    material.shear_modulus,
+                ),
+                mass_matrix=self.mass_matrix,
+                external_forces=self.external_forces(),
+                mass_factor=1.0 / dt**2 + self.rayleigh_mass / dt,
+                stiffness_factor=1.0 + self.rayleigh_stiffness / dt,
+                dt=dt,
+                prescribed=prescribed,
+                group_rotations=self.node_rotations,
+                rest_matrix=lambda: self._rest_effective_stiffness(dt),
+            )
         if not compiled:
             rotations = self.element_rotations(positions)
             forces = self.external_forces() - self.internal_forces(positions, rotations)
@@ -619,7 +649,12 @@ class TissueModel:
         if compliance is None:
             compliance = Exact().bind()
         with hot_path_threads():
-            system = self.assemble_step(state, dt, fixed_displacements=fixed_displacements)
+            system = self.assemble_step(
+                state,
+                dt,
+                fixed_displacements=fixed_displacements,
+                matrix_free=getattr(compliance, "matrix_free", False),
+            )
             step = compliance.step(system)
         displacement = step.free_displacement.reshape(self.node_count, 3)
         return positions + displacement, displacement / dt, step
