@@ -100,8 +100,8 @@ class StepSystem:
         precomputed strategy's R); None if the body has none.
     rest_matrix : Callable returning A at the rest shape on the free DoFs (same pattern); None if the body has
     none.
-    operator : Callable v ↦ A v on the free DoFs (shape (f,) or (f, k)) when ``matrix`` is None (a system built
-        without a matrix for the fast strategy, :mod:`refsim.fem.corotated_matvec`); None otherwise.
+    operator : Callable v ↦ A v on the free DoFs (shape (f,) or (f, k)) when ``matrix`` is None (a system
+        built without a matrix for the fast strategy, :mod:`refsim.fem.corotated_matvec`); None otherwise.
     """
 
     dof_count: int
@@ -853,16 +853,16 @@ class _FastBody(BodyCompliance):
         self._solver.factorise(system.rest_matrix())
         self._groups = system.free_dofs.reshape(-1, 3)[:, 0] // 3
         self._size = system.free_dofs.size
-        # C₀ = A₀⁻¹ column blocks, one (f, 3) block per free node, solved the first time a row touches the node:
-        # ``_slot[g]`` is its block in ``_store`` (-1: not yet)
+        # C₀ = A₀⁻¹ column blocks, one (f, 3) block per free node, solved the first time a row touches the
+        # node: ``_slot[g]`` is its block in ``_store`` (-1: not yet)
         self._slot = np.full(self._groups.size, -1, dtype=np.int64)
         self._store = np.zeros((self._size, 0))
         self._filled = 0
         self._ready = True
 
     def _rest_blocks(self, groups: np.ndarray) -> np.ndarray:
-        """The columns of ``_store`` holding C₀ E_g for the free node groups ``groups`` (sorted, unique), shape
-        (3 · groups.size,), solving the blocks not held yet.
+        """The columns of ``_store`` holding C₀ E_g for the free node groups ``groups`` (sorted, unique),
+        shape (3 · groups.size,), solving the blocks not held yet.
 
         Each node's block is one (f, 3) solve of the rest factor, done once per run whatever else is asked
         with it, so the memo's bits depend on no history (a restarted run computes the same blocks)."""

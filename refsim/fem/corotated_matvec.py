@@ -30,7 +30,9 @@ __all__ = ["Elements", "CorotatedOperator", "corotate", "stiffness_product", "ma
 
 
 @numba.njit(cache=True)
-def _stress_forces(h, r, rest_edges_inverse, e, volume, lame, shear, tets, out, c, scale, p):  # pragma: no cover
+def _stress_forces(
+    h, r, rest_edges_inverse, e, volume, lame, shear, tets, out, c, scale, p
+):  # pragma: no cover
     # P1 forces of the gradient h = Σ_a w_a ⊗ ∇φ_a (3 × 3) in the frame r: G = rᵀ h, ε = sym G − shift,
     # σ = λ tr ε I + 2μ ε, f_a = V r σ ∇φ_a added into out[3 · node + i, c] (times scale)
     g00 = r[0, 0] * h[0, 0] + r[1, 0] * h[1, 0] + r[2, 0] * h[2, 0]
