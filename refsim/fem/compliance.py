@@ -929,10 +929,8 @@ class _FastBody(BodyCompliance):
             if groups.size == 0:
                 return np.zeros_like(load)
             local = np.einsum("gji,gjk->gik", rotations[groups], grouped[groups]).reshape(3 * groups.size, -1)
-            columns = self._rest_blocks(groups)
-            weights = np.zeros((3 * self._filled, local.shape[1]))
-            weights[columns] = local
-            rest = (self._store[:, : 3 * self._filled] @ weights).reshape(rotations.shape[0], 3, -1)
+            # only the load's node blocks, in node order: the product's bits then depend on no history
+            rest = (self._store[:, self._rest_blocks(groups)] @ local).reshape(rotations.shape[0], 3, -1)
             out = np.einsum("gij,gjk->gik", rotations, rest)
             return out.reshape(load.shape)
 
