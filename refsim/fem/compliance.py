@@ -23,6 +23,14 @@ solver factories scikit-fem passes to ``solve``), chosen for the tissue by the s
     rotated per node, W = H R C₀ Rᵀ Hᵀ with R block-diagonal (one rotation per 3-DoF group). The free motion
     is CG on the current A preconditioned by the rest factor. For comparison and large interactive runs: its W
     is not the current one (on cube_cut it moves forces markedly).
+``Fast()``
+    The same W and correction as ``Precomputed`` without assembling or factorising any matrix during the run
+    (the rest factor once): the body builds its step system with an operator v ↦ A v applied per tet
+    (:mod:`refsim.fem.corotated_matvec`) instead of A, the free motion is CG on that operator preconditioned
+    by the rotated rest compliance R C₀ Rᵀ (whose answer alone usually meets the tolerance), and C₀'s columns
+    are solved per node the first time a row touches the node, then kept (a memo of the model: one (f, 3)
+    solve per node, so its bits depend on no history). Its error against exact is W's: exact for rigid
+    motions of the rest shape, bounded by ‖H‖² ‖A⁻¹‖ ‖Ã⁻¹‖ ‖A − Ã‖ (Ã = R A₀ Rᵀ) when the tissue deforms.
 
 Binding a strategy to a body (:meth:`bind`) gives a :class:`BodyCompliance` that keeps what lives across steps
 (the analysis, the stale or rest factor). What changes with the run is state: the refreshed strategy's stale
