@@ -32,7 +32,14 @@ from refsim.fem.compliance import StepSystem
 from refsim.geometry.rotations import polar_rotation_one
 from refsim.kernel_cache import numba
 
-__all__ = ["Elements", "CorotatedOperator", "corotate", "stiffness_product", "matrix_free_step"]
+__all__ = [
+    "Elements",
+    "CorotatedOperator",
+    "corotate",
+    "stiffness_product",
+    "node_rotations",
+    "matrix_free_step",
+]
 
 
 @numba.njit(cache=True)
@@ -116,6 +123,27 @@ def _stiffness_product(
                         + w2 * rest_edges_inverse[e, 2, j]
                     )
             _stress_forces(h, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, out, c, 0.0, p)
+
+
+@numba.njit(cache=True)
+def _node_rotations(tets, rotations, out):  # pragma: no cover - compiled
+    summed = np.zeros((out.shape[0], 3, 3))
+    for e in range(tets.shape[0]):
+        for a in range(4):
+            node = tets[e, a]
+            for i in range(3):
+                for j in range(3):
+                    summed[node, i, j] += rotations[e, i, j]
+    for node in range(out.shape[0]):
+        polar_rotation_one(summed[node], out[node])
+
+
+def node_rotations(tets: np.ndarray, rotations: np.ndarray, node_count: int) -> np.ndarray:
+    """One rotation per node, the polar rotation of the sum of its tets' rotations (as
+    :meth:`refsim.fem.tissue.TissueModel.node_rotations`), compiled; shape (node_count, 3, 3)."""
+    out = np.empty((node_count, 3, 3))
+    _node_rotations(tets, np.ascontiguousarray(rotations), out)
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -250,14 +278,13 @@ def matrix_free_step(
     stiffness_factor: float,
     dt: float,
     prescribed: np.ndarray | None,
-    group_rotations: Callable[[np.ndarray], np.ndarray],
     rest_matrix: Callable[[], sp.csr_matrix],
 ) -> StepSystem:
     """The step system of :meth:`refsim.fem.tissue.TissueModel.assemble_step` with an operator instead of a
     matrix (``matrix`` None, ``operator`` v ↦ A_ff v).
 
     rhs = f_ext − f_int(x₀) + (M/dt) v₀ − A_fc Δx_c, the coupling applied through the operator on the
-    prescribed increments; ``group_rotations`` maps the element rotations to one rotation per node.
+    prescribed increments; its ``group_rotations`` are :func:`node_rotations`.
     """
     forces, rotations = corotate(positions, elements)
     operator = CorotatedOperator(
@@ -279,7 +306,7 @@ def matrix_free_step(
         None,
         reduced,
         prescribed,
-        group_rotations=lambda: group_rotations(rotations),
+        group_rotations=lambda: node_rotations(elements.tets, rotations, dof_count // 3),
         rest_matrix=rest_matrix,
         operator=operator,
     )

@@ -511,7 +511,6 @@ class TissueModel:
                 stiffness_factor=1.0 + self.rayleigh_stiffness / dt,
                 dt=dt,
                 prescribed=prescribed,
-                group_rotations=self.node_rotations,
                 rest_matrix=lambda: self._rest_effective_stiffness(dt),
             )
         if not compiled:
