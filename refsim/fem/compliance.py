@@ -954,9 +954,9 @@ class Fast:
     Parameters
     ----------
     tolerance, max_iterations : Of the free motion's PCG (relative residual; iteration cap). The free motion's
-        relative error is then at most κ(P⁻¹A) · tolerance with P⁻¹ = R C₀ Rᵀ close to A⁻¹: 1e-4 keeps it two
-        orders below W's own error on a deformed tissue (about 1 %), and on the medium liver takes 1.2 CG
-        iterations per step against 2.1 for 1e-6 with the same forces (refsim bench --against-exact).
+        relative error is then at most κ(A) · tolerance (a worst case). 1e-4: on the medium liver 1.2 CG
+        iterations per step against 2.1 for 1e-6, and the needle forces of cube_cut and the medium liver move
+        by less than 1e-6 N between 1e-6 and 1e-4, far below W's own error (refsim bench --against-exact).
     linear_solver : The rest factor's solver, as for :class:`Exact`.
     against_exact : As for :class:`Refreshed` (the step system is then assembled, for the exact twin).
     """
@@ -1006,7 +1006,8 @@ def make_strategy(
     refresh_every : Of :class:`Refreshed`.
     linear_solver : "auto", "pardiso", "cholmod" or "superlu".
     against_exact : Report errors against exact each step (fast strategies only; ignored by exact).
-    tolerance : PCG tolerance of the fast strategies.
+    tolerance : PCG tolerance of the refreshed and precomputed strategies (the fast one keeps its own,
+        :attr:`Fast.tolerance`).
     w_update : Of :class:`Refreshed` (its ``compliance_update``), one of :data:`W_UPDATES`; None: the
         variant's, else "pcg". A variant's update and another ``w_update`` together are an error.
     """
