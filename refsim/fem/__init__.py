@@ -3,6 +3,7 @@ compliance strategies and the sparse solvers behind them."""
 
 from refsim.fem.compliance import (
     Exact,
+    Fast,
     Precomputed,
     Refreshed,
     StepCompliance,
@@ -17,6 +18,7 @@ from refsim.fem.tissue import TissueModel, TissueState
 
 __all__ = [
     "Exact",
+    "Fast",
     "NeedleModel",
     "NeedleSection",
     "Precomputed",

@@ -467,6 +467,7 @@ class TissueModel:
         fixed_displacements: np.ndarray | None = None,
         compiled: bool = True,
         upper_triangle: bool = False,
+        matrix_free: bool = False,
     ) -> StepSystem:
         """The step system of the compliance strategies: A on the free DoFs and the free motion's right-hand
         side.
@@ -485,12 +486,40 @@ class TissueModel:
             equal to round-off and bit-identical to refsim before the compiled path.
         upper_triangle : A's upper triangle only (``StepSystem.upper_triangle``; compiled path only), for a
             linear solver that reads nothing else (PARDISO); the full matrix by default.
+        matrix_free : No A: the system's ``operator`` applies it (:mod:`refsim.fem.corotated_matvec`, the
+            fast compliance strategy's free motion by CG).
         """
         if not dt > 0.0:
             raise ValueError(f"dt must be > 0 s, got {dt!r}")
         positions = self._checked_positions(state.positions)
         velocities = np.asarray(state.velocities, dtype=float)
         prescribed = self._prescribed(fixed_displacements)
+        if matrix_free:
+            from refsim.fem.corotated_matvec import Elements, matrix_free_step
+
+            pattern = self.free_pattern
+            material = self.material
+            return matrix_free_step(
+                dof_count=self.dof_count,
+                free_dofs=pattern.free_dofs,
+                constrained_dofs=pattern.constrained_dofs,
+                positions=positions,
+                velocities=velocities,
+                elements=Elements(
+                    self.tets,
+                    self._rest_edges_inverse,
+                    self.element_volumes,
+                    material.lame_lambda,
+                    material.shear_modulus,
+                ),
+                mass_matrix=self.mass_matrix,
+                external_forces=self.external_forces(),
+                mass_factor=1.0 / dt**2 + self.rayleigh_mass / dt,
+                stiffness_factor=1.0 + self.rayleigh_stiffness / dt,
+                dt=dt,
+                prescribed=prescribed,
+                rest_matrix=lambda: self._rest_effective_stiffness(dt),
+            )
         if not compiled:
             if upper_triangle:
                 raise ValueError("upper_triangle needs the compiled assembly (compiled=True)")
@@ -633,7 +662,11 @@ class TissueModel:
         upper = getattr(compliance, "matrix_storage", "full") == "upper"
         with hot_path_threads():
             system = self.assemble_step(
-                state, dt, fixed_displacements=fixed_displacements, upper_triangle=upper
+                state,
+                dt,
+                fixed_displacements=fixed_displacements,
+                upper_triangle=upper,
+                matrix_free=getattr(compliance, "matrix_free", False),
             )
             step = compliance.step(system)
         displacement = step.free_displacement.reshape(self.node_count, 3)

@@ -692,7 +692,9 @@ class ComplianceSpec(_Validated):
         "exact",
         doc="exact: factorise every step; refreshed: factorise every refresh_every steps, free motion and "
         "W's columns "
-        "by PCG on the current matrix; precomputed: the rest compliance rotated per node (SOFA-like)",
+        "by PCG on the current matrix; precomputed: the rest compliance rotated per node (SOFA-like); fast: "
+        "no matrix assembled or factorised during the run, W and the correction from the rest compliance "
+        "rotated per node, free motion by CG on the co-rotated operator (docs/speed.md)",
         choices=STRATEGIES,
     )
     refresh_every: int = spec(

@@ -8,7 +8,8 @@ the uninterrupted run's bit for bit (``np.array_equal``, NaN equal to NaN); only
 out.
 The restart steps sit where something carried across steps is in use: the insertion points' coupling rings
 (reused while the needle's tangent turns less than 1e-3 rad: a flexible needle turns a little every step), the
-refreshed compliance strategy's stale factor (restarted part way between two factorisations), and the cut
+refreshed compliance strategy's stale factor (restarted part way between two factorisations), the fast
+strategy's memo of rest compliance blocks, and the cut
 (restarted just before the cut starts and after it, with tears in the steps that follow).
 """
 
@@ -131,6 +132,15 @@ def test_restart_between_factorisations_of_the_refreshed_strategy(cube_scene):
     _check_restarts(scene, restarts=(18, 26), total=30, watch=states.append)
     # Factorised at steps 1, 5, 9, ...: both restarts carry a factor used for 2 steps already.
     assert [states[step - 1].tissue_factor.age for step in (18, 26)] == [2, 2]
+
+
+def test_restart_of_the_fast_strategy_recomputes_its_node_blocks_with_the_same_bits(cube_scene):
+    # The fast strategy carries nothing: its C₀ node blocks are a memo of the model, each solved alone the
+    # first time a row touches its node, so a restarted run (which solves only the blocks it needs from then
+    # on) has the uninterrupted run's bits.
+    scene = cube_scene(*COARSE, 'compliance.strategy="fast"')
+    records = _check_restarts(scene, restarts=(18, 30), total=34)
+    assert _events(records)["puncture"] == [21]
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,312 @@
+"""The tissue's step system without a matrix: co-rotation, internal forces and A·v compiled (numba) per tet.
+
+The fast compliance strategy (:class:`refsim.fem.compliance.Fast`) neither assembles nor factorises A = M/dt²
++ C/dt + K during a run: its free motion is conjugate gradients, which only needs products A v. One pass over
+the tets (:func:`corotate`) computes per element F = Ds Dm⁻¹, its polar rotation R
+(:func:`refsim.geometry.rotations.polar_rotation_one`, as :mod:`refsim.fem.assembly`) and the internal force;
+a product (:func:`stiffness_product`) is another pass, and
+
+    A v = (1/dt² + α/dt) M v + (1 + β/dt) K v        (Rayleigh C = α M + β K, refsim.fem.integration).
+
+Neither reads the 12 × 12 element matrices. A P1 tet has constant shape-function gradients ∇φ_a (the rows of
+Dm⁻¹, ∇φ_0 = −Σ of them) and its stiffness is Kₑ = V Bᵀ D B exactly (scikit-fem's one-point rule), so for
+nodal vectors w_a
+
+    Kₑ w = (V σ(ε) ∇φ_a)_a,   ε = sym(Σ_a w_a ⊗ ∇φ_a),   σ = λ tr ε I + 2μ ε,
+
+and the co-rotated force R Kₑ (Rᵀ x − X) is V R σ ∇φ_a with ε = sym(Rᵀ F) − I (Σ_a X_a ⊗ ∇φ_a = I); the
+product R Kₑ Rᵀ v the same with ε = sym(Rᵀ Σ_a v_a ⊗ ∇φ_a). That is about 100 multiply-adds and 10 numbers
+read per tet instead of 144 and 144. Both equal the assembled system to round-off
+(tests/fem/test_corotated_matvec.py).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from refsim.fem.compliance import StepSystem
+from refsim.geometry.rotations import polar_rotation_one
+from refsim.kernel_cache import numba
+
+__all__ = [
+    "Elements",
+    "CorotatedOperator",
+    "corotate",
+    "stiffness_product",
+    "node_rotations",
+    "matrix_free_step",
+]
+
+
+@numba.njit(cache=True)
+def _stress_forces(
+    h, r, rest_edges_inverse, e, volume, lame, shear, tets, out, c, scale, p
+):  # pragma: no cover
+    # P1 forces of the gradient h = Σ_a w_a ⊗ ∇φ_a (3 × 3) in the frame r: G = rᵀ h, ε = sym G − shift,
+    # σ = λ tr ε I + 2μ ε, f_a = V r σ ∇φ_a added into out[3 · node + i, c] (times scale)
+    g00 = r[0, 0] * h[0, 0] + r[1, 0] * h[1, 0] + r[2, 0] * h[2, 0]
+    g01 = r[0, 0] * h[0, 1] + r[1, 0] * h[1, 1] + r[2, 0] * h[2, 1]
+    g02 = r[0, 0] * h[0, 2] + r[1, 0] * h[1, 2] + r[2, 0] * h[2, 2]
+    g10 = r[0, 1] * h[0, 0] + r[1, 1] * h[1, 0] + r[2, 1] * h[2, 0]
+    g11 = r[0, 1] * h[0, 1] + r[1, 1] * h[1, 1] + r[2, 1] * h[2, 1]
+    g12 = r[0, 1] * h[0, 2] + r[1, 1] * h[1, 2] + r[2, 1] * h[2, 2]
+    g20 = r[0, 2] * h[0, 0] + r[1, 2] * h[1, 0] + r[2, 2] * h[2, 0]
+    g21 = r[0, 2] * h[0, 1] + r[1, 2] * h[1, 1] + r[2, 2] * h[2, 1]
+    g22 = r[0, 2] * h[0, 2] + r[1, 2] * h[1, 2] + r[2, 2] * h[2, 2]
+    e00, e11, e22 = g00 - scale, g11 - scale, g22 - scale
+    e01, e02, e12 = 0.5 * (g01 + g10), 0.5 * (g02 + g20), 0.5 * (g12 + g21)
+    trace = lame * (e00 + e11 + e22)
+    s00, s11, s22 = trace + 2.0 * shear * e00, trace + 2.0 * shear * e11, trace + 2.0 * shear * e22
+    s01, s02, s12 = 2.0 * shear * e01, 2.0 * shear * e02, 2.0 * shear * e12
+    for i in range(3):
+        p[i, 0] = volume * (r[i, 0] * s00 + r[i, 1] * s01 + r[i, 2] * s02)
+        p[i, 1] = volume * (r[i, 0] * s01 + r[i, 1] * s11 + r[i, 2] * s12)
+        p[i, 2] = volume * (r[i, 0] * s02 + r[i, 1] * s12 + r[i, 2] * s22)
+    n0 = tets[e, 0]
+    for a in range(3):
+        node = tets[e, a + 1]
+        d0, d1, d2 = rest_edges_inverse[e, a, 0], rest_edges_inverse[e, a, 1], rest_edges_inverse[e, a, 2]
+        for i in range(3):
+            value = p[i, 0] * d0 + p[i, 1] * d1 + p[i, 2] * d2
+            out[3 * node + i, c] += value
+            out[3 * n0 + i, c] -= value
+
+
+@numba.njit(cache=True)
+def _corotate(
+    positions, tets, rest_edges_inverse, volumes, lame, shear, forces, rotations
+):  # pragma: no cover - compiled
+    f = np.empty((3, 3))
+    ds = np.empty((3, 3))
+    r = np.empty((3, 3))
+    p = np.empty((3, 3))
+    for e in range(tets.shape[0]):
+        n0 = tets[e, 0]
+        for c in range(3):
+            for i in range(3):
+                ds[i, c] = positions[tets[e, c + 1], i] - positions[n0, i]
+        for i in range(3):
+            for j in range(3):
+                s = 0.0
+                for k in range(3):
+                    s += ds[i, k] * rest_edges_inverse[e, k, j]
+                f[i, j] = s
+        polar_rotation_one(f, r)
+        rotations[e, :, :] = r
+        # ε = sym(Rᵀ F) − I: the co-rotated strain of u = Rᵀ x − X (F = Σ_a x_a ⊗ ∇φ_a, I = Σ_a X_a ⊗ ∇φ_a)
+        _stress_forces(f, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, forces, 0, 1.0, p)
+
+
+@numba.njit(cache=True)
+def _stiffness_product(
+    vectors, tets, rest_edges_inverse, volumes, lame, shear, rotations, out
+):  # pragma: no cover - compiled
+    h = np.empty((3, 3))
+    p = np.empty((3, 3))
+    for e in range(tets.shape[0]):
+        n0 = tets[e, 0]
+        r = rotations[e]
+        for c in range(vectors.shape[1]):
+            # h = Σ_a v_a ⊗ ∇φ_a = Σ_a (v_a − v_0) ⊗ (Dm⁻¹ row a − 1)
+            for i in range(3):
+                w0 = vectors[3 * tets[e, 1] + i, c] - vectors[3 * n0 + i, c]
+                w1 = vectors[3 * tets[e, 2] + i, c] - vectors[3 * n0 + i, c]
+                w2 = vectors[3 * tets[e, 3] + i, c] - vectors[3 * n0 + i, c]
+                for j in range(3):
+                    h[i, j] = (
+                        w0 * rest_edges_inverse[e, 0, j]
+                        + w1 * rest_edges_inverse[e, 1, j]
+                        + w2 * rest_edges_inverse[e, 2, j]
+                    )
+            _stress_forces(h, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, out, c, 0.0, p)
+
+
+@numba.njit(cache=True)
+def _node_rotations(tets, rotations, out):  # pragma: no cover - compiled
+    summed = np.zeros((out.shape[0], 3, 3))
+    for e in range(tets.shape[0]):
+        for a in range(4):
+            node = tets[e, a]
+            for i in range(3):
+                for j in range(3):
+                    summed[node, i, j] += rotations[e, i, j]
+    for node in range(out.shape[0]):
+        polar_rotation_one(summed[node], out[node])
+
+
+def node_rotations(tets: np.ndarray, rotations: np.ndarray, node_count: int) -> np.ndarray:
+    """One rotation per node, the polar rotation of the sum of its tets' rotations (as
+    :meth:`refsim.fem.tissue.TissueModel.node_rotations`), compiled; shape (node_count, 3, 3)."""
+    out = np.empty((node_count, 3, 3))
+    _node_rotations(tets, np.ascontiguousarray(rotations), out)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Elements:
+    """What the kernels read of a mesh of P1 tets with an isotropic Hooke material.
+
+    Attributes
+    ----------
+    tets : Node indices, shape (tet_count, 4), int64.
+    rest_edges_inverse : Dm⁻¹ per tet, Dm = [X1−X0, X2−X0, X3−X0], shape (tet_count, 3, 3): its row a is
+        ∇φ_{a+1} (and ∇φ_0 = −Σ of the rows).
+    volumes : Rest volumes [m³], shape (tet_count,).
+    lame : λ [Pa].
+    shear : μ [Pa].
+    """
+
+    tets: np.ndarray
+    rest_edges_inverse: np.ndarray
+    volumes: np.ndarray
+    lame: float
+    shear: float
+
+
+def corotate(positions: np.ndarray, elements: Elements) -> tuple[np.ndarray, np.ndarray]:
+    """Polar rotations and co-rotated internal forces of every tet, in one compiled pass.
+
+    f_a = V R σ ∇φ_a with σ = λ tr ε I + 2μ ε, ε = sym(Rᵀ F) − I: the force R Kₑ (Rᵀ x − X) of the P1 element
+    (Kₑ = V Bᵀ D B, the one-point rule being exact), without Kₑ.
+
+    Parameters
+    ----------
+    positions : Node positions [m], shape (node_count, 3).
+    elements : The tets and their material (:class:`Elements`).
+
+    Returns
+    -------
+    Internal forces [N], shape (3 · node_count,), and rotations, shape (tet_count, 3, 3).
+    """
+    positions = np.ascontiguousarray(positions, dtype=float)
+    forces = np.zeros((positions.size, 1))
+    rotations = np.empty((elements.tets.shape[0], 3, 3))
+    _corotate(
+        positions,
+        elements.tets,
+        elements.rest_edges_inverse,
+        elements.volumes,
+        float(elements.lame),
+        float(elements.shear),
+        forces,
+        rotations,
+    )
+    return forces[:, 0], rotations
+
+
+def stiffness_product(vectors: np.ndarray, elements: Elements, rotations: np.ndarray) -> np.ndarray:
+    """K v = Σₑ Rₑ Kₑ Rₑᵀ vₑ [N] for DoF vectors v [m] of shape (dof_count,) or (dof_count, k)."""
+    vectors = np.asarray(vectors, dtype=float)
+    single = vectors.ndim == 1
+    block = np.ascontiguousarray(vectors[:, None] if single else vectors)
+    out = np.zeros_like(block)
+    _stiffness_product(
+        block,
+        elements.tets,
+        elements.rest_edges_inverse,
+        elements.volumes,
+        float(elements.lame),
+        float(elements.shear),
+        rotations,
+        out,
+    )
+    return out[:, 0] if single else out
+
+
+class CorotatedOperator:
+    """v ↦ A v on the free DoFs, A = mass_factor · M + stiffness_factor · K(R) without assembling A.
+
+    Parameters
+    ----------
+    dof_count : DoFs of the body.
+    free_dofs : Free DoFs, sorted, shape (f,).
+    elements : The tets and their material (:class:`Elements`).
+    rotations : Element rotations, shape (tet_count, 3, 3).
+    mass_matrix : M [kg] on every DoF, sparse (diagonal when lumped).
+    mass_factor : 1/dt² + α/dt [1/s²].
+    stiffness_factor : 1 + β/dt.
+    """
+
+    def __init__(
+        self,
+        dof_count: int,
+        free_dofs: np.ndarray,
+        elements: Elements,
+        rotations: np.ndarray,
+        mass_matrix: sp.spmatrix,
+        mass_factor: float,
+        stiffness_factor: float,
+    ) -> None:
+        self.dof_count = dof_count
+        self.free_dofs = free_dofs
+        self.elements = elements
+        self.rotations = rotations
+        self.mass = sp.csr_matrix(mass_matrix)
+        self.mass_factor = float(mass_factor)
+        self.stiffness_factor = float(stiffness_factor)
+
+    def full(self, vectors: np.ndarray) -> np.ndarray:
+        """A v on every DoF for v on every DoF, shape (dof_count,) or (dof_count, k)."""
+        out = stiffness_product(vectors, self.elements, self.rotations)
+        out *= self.stiffness_factor
+        out += self.mass_factor * (self.mass @ vectors)
+        return out
+
+    def __call__(self, vectors: np.ndarray) -> np.ndarray:
+        """A_ff v for v on the free DoFs, shape (f,) or (f, k)."""
+        vectors = np.asarray(vectors, dtype=float)
+        full = np.zeros((self.dof_count,) + vectors.shape[1:])
+        full[self.free_dofs] = vectors
+        return self.full(full)[self.free_dofs]
+
+
+def matrix_free_step(
+    *,
+    dof_count: int,
+    free_dofs: np.ndarray,
+    constrained_dofs: np.ndarray,
+    positions: np.ndarray,
+    velocities: np.ndarray,
+    elements: Elements,
+    mass_matrix: sp.spmatrix,
+    external_forces: np.ndarray,
+    mass_factor: float,
+    stiffness_factor: float,
+    dt: float,
+    prescribed: np.ndarray | None,
+    rest_matrix: Callable[[], sp.csr_matrix],
+) -> StepSystem:
+    """The step system of :meth:`refsim.fem.tissue.TissueModel.assemble_step` with an operator instead of a
+    matrix (``matrix`` None, ``operator`` v ↦ A_ff v).
+
+    rhs = f_ext − f_int(x₀) + (M/dt) v₀ − A_fc Δx_c, the coupling applied through the operator on the
+    prescribed increments; its ``group_rotations`` are :func:`node_rotations`.
+    """
+    forces, rotations = corotate(positions, elements)
+    operator = CorotatedOperator(
+        dof_count, free_dofs, elements, rotations, mass_matrix, mass_factor, stiffness_factor
+    )
+    rhs = np.asarray(external_forces, dtype=float).ravel() - forces
+    rhs += (operator.mass @ np.asarray(velocities, dtype=float).ravel()) / dt
+    reduced = rhs[free_dofs]
+    if prescribed is not None and prescribed.size:
+        increments = np.zeros(dof_count)
+        increments[constrained_dofs] = prescribed
+        reduced = reduced - operator.full(increments)[free_dofs]
+    else:
+        prescribed = np.zeros(constrained_dofs.size)
+    return StepSystem(
+        dof_count,
+        free_dofs,
+        constrained_dofs,
+        None,
+        reduced,
+        prescribed,
+        group_rotations=lambda: node_rotations(elements.tets, rotations, dof_count // 3),
+        rest_matrix=rest_matrix,
+        operator=operator,
+    )

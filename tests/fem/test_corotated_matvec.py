@@ -1,0 +1,100 @@
+"""The matrix-free step system (refsim.fem.corotated_matvec) against the assembled one of TissueModel."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from refsim.fem.corotated_matvec import Elements, corotate, stiffness_product
+from refsim.fem.tissue import TissueModel, TissueState
+from refsim.geometry.rotations import rotation_matrix
+from refsim.materials import HookeMaterial
+from refsim.mesh.generators import box_mesh
+
+EPS = np.finfo(float).eps
+DT = 0.01
+
+
+@pytest.fixture(scope="module")
+def model() -> TissueModel:
+    mesh = box_mesh(size=(0.1, 0.08, 0.06), cells=(3, 3, 2))
+    rest = np.asarray(mesh.rest_positions, dtype=float)
+    return TissueModel(
+        rest,
+        np.asarray(mesh.tets),
+        HookeMaterial(youngs_modulus=5.0e5, poisson_ratio=0.4, density=1000.0),
+        rayleigh_mass=1.0,
+        rayleigh_stiffness=0.01,
+        fixed_nodes=np.flatnonzero(rest[:, 2] < 1e-12),
+        gravity=(0.0, 0.0, -9.81),
+    )
+
+
+def elements(model: TissueModel) -> Elements:
+    material = model.material
+    return Elements(
+        model.tets,
+        model._rest_edges_inverse,
+        model.element_volumes,
+        material.lame_lambda,
+        material.shear_modulus,
+    )
+
+
+def deformed(model: TissueModel) -> TissueState:
+    rest = model.rest_positions
+    positions = rest + 0.01 * np.sin(30.0 * rest)
+    positions[model.fixed_nodes] = rest[model.fixed_nodes]
+    return TissueState(positions=positions, velocities=0.05 * np.cos(10.0 * rest))
+
+
+def roundoff_bound(model: TissueModel, magnitudes: np.ndarray) -> np.ndarray:
+    """k ε |A| |v| per entry: both paths sum the same products of one node's tets in different orders; a sum
+    of k products differs from the exact one by at most k ε Σ|terms| (Higham, Accuracy and Stability, §3.1),
+    k = 12 local entries × 9 rotation products per tet of the busiest node."""
+    tets_per_node = np.bincount(model.tets.ravel()).max()
+    return 12 * 9 * tets_per_node * EPS * magnitudes
+
+
+def test_operator_and_rhs_equal_the_assembled_system(model):
+    state = deformed(model)
+    drive = np.tile([2e-4, -1e-4, 3e-4], (model.fixed_nodes.size, 1))
+    assembled = model.assemble_step(state, DT, fixed_displacements=drive)
+    free = model.assemble_step(state, DT, fixed_displacements=drive, matrix_free=True)
+    assert free.matrix is None
+    np.testing.assert_array_equal(free.free_dofs, assembled.free_dofs)
+    np.testing.assert_array_equal(free.prescribed, assembled.prescribed)
+    vectors = np.random.default_rng(0).standard_normal((assembled.free_dofs.size, 3))
+    expected = assembled.matrix @ vectors
+    bound = roundoff_bound(model, abs(assembled.matrix) @ np.abs(vectors))
+    assert np.all(np.abs(free.operator(vectors) - expected) <= bound)
+    assert np.all(np.abs(free.product(vectors[:, 0]) - expected[:, 0]) <= bound[:, 0])
+    # rhs = f_ext − f_int + (M/dt) v₀ − A_fc Δx_c: the same force terms and coupling, summed differently.
+    scale = np.abs(assembled.rhs).max()
+    assert np.abs(free.rhs - assembled.rhs).max() <= roundoff_bound(model, scale)
+    np.testing.assert_allclose(free.group_rotations(), assembled.group_rotations(), rtol=0, atol=16 * EPS)
+
+
+def test_internal_forces_and_rotations_equal_the_element_stiffness_form(model):
+    # f = R Kₑ (Rᵀx − X) with scikit-fem's Kₑ (TissueModel.internal_forces) against V R σ ∇φ.
+    positions = deformed(model).positions
+    forces, rotations = corotate(positions, elements(model))
+    expected_rotations = model.element_rotations(positions)
+    np.testing.assert_allclose(rotations, expected_rotations, rtol=0, atol=16 * EPS)
+    expected = model.internal_forces(positions, expected_rotations).ravel()
+    assert np.abs(forces - expected).max() <= roundoff_bound(model, np.abs(expected).max())
+
+
+def test_a_rigid_motion_has_no_internal_force_and_a_rotated_stiffness(model):
+    # Rigid rotation Q and translation: F = Q, R = Q, ε = 0 so f = 0; K(Q) v = Q K₀ Qᵀ v (co-rotation).
+    rotation = rotation_matrix(np.array([[0.4, -0.3, 0.6]]))[0]
+    rest = model.rest_positions
+    forces, rotations = corotate(rest @ rotation.T + np.array([0.01, -0.02, 0.03]), elements(model))
+    np.testing.assert_allclose(rotations, np.broadcast_to(rotation, rotations.shape), rtol=0, atol=16 * EPS)
+    stiffness_scale = np.abs(model.rest_stiffness).max() * np.abs(rest).max()
+    assert np.abs(forces).max() <= roundoff_bound(model, stiffness_scale)
+    vectors = np.random.default_rng(1).standard_normal((model.node_count, 3))
+    turned = stiffness_product((vectors @ rotation.T).ravel(), elements(model), rotations).reshape(-1, 3)
+    expected = (model.rest_stiffness @ vectors.ravel()).reshape(-1, 3) @ rotation.T
+    bound = roundoff_bound(model, (abs(model.rest_stiffness) @ np.abs(vectors.ravel())).max())
+    assert np.abs(turned - expected).max() <= bound
