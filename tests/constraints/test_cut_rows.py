@@ -185,6 +185,6 @@ def test_a_needle_crossing_the_cuts_plane_slides_only_where_it_is_on_it(planar_s
     slide = rows.source == CUT_SLIDE
     distances = np.abs(rows.points[slide][:, 1] - 0.0063)
     assert np.all(np.abs(rows.free_gap[slide]) <= SPACING + 1e-12)
-    # Samples every d_c from y = 1 mm: the plane at 6.3 mm has those at 5.9, 6.4, (6.9 is 0.6 mm off) within d_c.
+    # Samples every d_c from y = 1 mm: two are within d_c of the plane y = 6.3 mm (y = 6.0 and 6.5 mm).
     assert np.count_nonzero(slide) == 2, rows.free_gap[slide]
     np.testing.assert_allclose(distances, 0.0, atol=1e-12)  # anchored on the plane
