@@ -556,15 +556,11 @@ def export_vtu(results_path, step: str | int, folder=None) -> list[Path]:
 
 
 def _needle_radii(scene: dict, names: tuple) -> list[float]:
-    """Each instrument's needle radius [m] from the scene dict: [needle], with an instrument's own
-    ``needle`` overrides ([[instruments]])."""
-    base = dict(scene.get("needle") or {})
+    """Each instrument's needle radius [m] from the scene dict: [needle]'s, or its [[instruments]] table's
+    own ``radius`` (NaN when neither is stored)."""
+    radius = float((scene.get("needle") or {}).get("radius", np.nan))
     tables = {table.get("name"): table for table in scene.get("instruments") or ()}
-    radii = []
-    for name in names:
-        needle = {**base, **(tables.get(name, {}).get("needle") or {})}
-        radii.append(float(needle.get("radius", np.nan)))
-    return radii
+    return [float(tables.get(name, {}).get("radius", radius)) for name in names]
 
 
 def _needle_series(results):

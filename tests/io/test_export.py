@@ -439,7 +439,7 @@ def test_vtu_needle_radius_is_each_instruments_own():
 
     scene = {
         "needle": {"radius": 0.008, "length": 0.32},
-        "instruments": [{"name": "a"}, {"name": "b", "needle": {"radius": 0.0005}}],
+        "instruments": [{"name": "a"}, {"name": "b", "radius": 0.0005}],
     }
     assert _needle_radii(scene, ("a", "b")) == [0.008, 0.0005]
     assert _needle_radii({"needle": {"radius": 0.001}}, ("needle",)) == [0.001]
