@@ -52,6 +52,7 @@ from refsim.simulation.bodies import Body, TissueBody
 from refsim.simulation.detection import Detector
 from refsim.simulation.events import EventRules
 from refsim.simulation.instrument import Instrument
+from refsim.simulation.margins import problem_scale
 from refsim.simulation.records import STAGES, InstrumentRecord, StepRecord
 from refsim.simulation.state import Phase, SimulationState
 from refsim.solvers import solve_exact, solve_gauss_seidel
@@ -232,9 +233,10 @@ class Simulation:
             tissue_factor=self.tissue_compliance.carried(),
         )
         parts = []
+        scale = None if problem is None else problem_scale(problem, multipliers)  # one product by W per step
         for instrument, detection in zip(self.instruments, detections, strict=True):
             mine = rows.instruments == instrument.index
-            instrument.event_rules.margins.begin(problem, rows, multipliers, report, own=mine)
+            instrument.event_rules.margins.begin(problem, rows, multipliers, report, own=mine, scale=scale)
             new_state, events = instrument.event_rules.apply(
                 new_state, instrument.name, detection, multipliers[mine]
             )
