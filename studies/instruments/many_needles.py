@@ -4,8 +4,8 @@ per extra needle per step (the least-squares slope over N).
 
     PYTHONPATH=. python studies/instruments/many_needles.py [--counts 1 2 5 10 20] [--cells 8] [--write N OUT]
 
-Each needle is the paper's needle section with an 18 G radius (0.6 mm; the paper's 8 mm needle 1 cm apart would
-overlap its neighbours' rings), entered 5 mm apart on a grid off the mesh's lines, its tip 2 mm above the top
+Each needle is the paper's needle section with an 18 G radius (0.6 mm; the paper's 8 mm needles 5 mm apart
+would overlap), entered 5 mm apart on a grid off the mesh's lines, its tip 2 mm above the top
 face, pushed 12 mm deep at 10 mm/s (1.4 s), every needle at once. `--write N OUT.toml` writes the scene of N
 needles (for `refsim bench OUT.toml`). Timings are wall clock of one process: compare the counts of ONE run.
 """
