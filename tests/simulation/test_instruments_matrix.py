@@ -340,3 +340,27 @@ def test_every_step_with_five_needles_is_solved_to_the_tolerance():
             assert change <= bound + 1e-12 * np.linalg.norm(directions.T @ exact), (record.step, index)
         forces += 1
     assert checked >= 20 and forces >= 10, (checked, forces)
+
+
+@pytest.mark.slow
+def test_a_needle_beside_anothers_cut_is_held_by_intact_tissue():
+    # two_needles (coarse, 4 cells): the cutter cuts the plane y = 2.31 mm over x in [-19.8, -11.8] mm; a
+    # third needle (r = 1 mm) enters 3 mm beside that plane, inside its extent, once the cut is made (2.8 s),
+    # and goes 8 mm deep. Every sample of it projects inside the cut but none is on it (3 mm > d_c): it gets
+    # insertion points and never a sliding row (before, every inserted sample got one, pulling it 3 mm onto
+    # the plane).
+    from refsim.constraints import CUT_SLIDE
+
+    data = tomllib.loads((resources.files("refsim") / "scenes" / "two_needles.toml").read_text("utf-8"))
+    data["mesh"]["cells"] = [4, 4, 4]
+    data["time"]["duration"] = 3.8
+    stops = [(0.0, -STANDOFF), (2.8, -STANDOFF), (3.8, 0.008)]
+    data["instruments"].append(_needle("beside", -0.0157, 0.00231 + 0.003, stops, radius=0.001))
+    simulation, state, records = _run(data, "beside.toml")
+    _check_every_instrument(simulation, records)
+    assert state.cut is not None and state.cut.triangle_count
+    beside = [r for r in records if r.instruments[2].phase == "insertion"]
+    assert len(beside) >= 30
+    for record in beside:
+        assert not np.any((record.row_instrument == 2) & (record.row_source == CUT_SLIDE)), record.step
+    assert state.instrument("beside").path.point_count >= 10
