@@ -295,9 +295,15 @@ def test_gauss_seidel_and_exact_agree_with_five_needles(five, five_exact):
     _check_agreement(five, five_exact)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("case", ["mixed", "entries", "withdraw"])
-def test_gauss_seidel_and_exact_agree_on_every_case(case, request):
+@pytest.mark.parametrize(
+    "case",
+    [
+        pytest.param("mixed", marks=pytest.mark.slow),
+        "entries",
+        pytest.param("withdraw", marks=pytest.mark.slow),
+    ],
+)
+def test_gauss_seidel_and_exact_agree_on_every_case(case):
     build = {"mixed": _mixed, "entries": _entries, "withdraw": _withdraw}[case]
     _check_agreement(_run(build()), _run(build("exact")))
 
