@@ -697,8 +697,8 @@ def _add_export_command(commands) -> None:
     export.add_argument(
         "--vtu",
         metavar="STEP",
-        help="deformed tissue and cut surface at a recorded tissue step (a step number, last, or all: every "
-        "recorded step with a .pvd series) as .vtu files",
+        help="deformed tissue, cut surface and every instrument's needle at a recorded tissue step (a step "
+        "number, last, or all: every recorded step with a .pvd series) as .vtu files",
     )
     export.add_argument(
         "--vtu-folder", metavar="FOLDER", help="with --vtu: where to write (default: beside RESULT)"

@@ -4,8 +4,9 @@
   t = Σ n_i^φ λ_i^φ is the lateral force of the tissue on the needle; the paper starts the cut when
   ‖t‖ > n_i · f_c. The default law starts it when ‖t‖ ≥ G_c L_in (a force per unit inserted length, so the
   start does not depend on d_i or the mesh). The cut runs the way the needle pushes the tissue, ĉ = −t/‖t‖.
-- Sliding rows (φ_c): every needle sample (every d_c along the inserted length) whose projection falls inside
-  the cut surface gets one bilateral row along the surface normal at its closest point.
+- Sliding rows (φ_c): every needle sample (every d_c along the inserted length) on the cut surface (its
+  projection inside it, and within d_c of it along its normal) gets one bilateral row along the surface
+  normal at its closest point.
 - Front rows (χ_c): every needle sample against the crack tip, along −ĉ normal to the needle, so the needle
   stays behind the crack tip; their strength G_c × (the needle length each row stands for) makes the needle
   cut through at G_c per unit length (the energy law), or, unbounded, they tear the cut by d_t when one
@@ -21,7 +22,6 @@ from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
-import scipy.sparse as sp
 
 from refsim.constraints.friction import friction_rows
 from refsim.constraints.needle_geometry import needle_rows
@@ -37,8 +37,8 @@ from refsim.constraints.rows import (
     TISSUE,
     UNILATERAL,
     RowBlock,
+    concatenate,
     point_rows,
-    stack_jacobians,
 )
 from refsim.constraints.step_geometry import StepGeometry
 
@@ -258,10 +258,12 @@ def strip_cut_block(
     is decided on the state at the start of the step (a consistent state: the one the previous correction
     produced); their gaps are linearised at the free positions.
 
-    - Sliding (bilateral): every sample whose projection falls inside the cut surface, or beyond its border by
-      at most d_c in its plane, plus the front rows' compression C(d_c) G_c d_c when they are compliant (the
-      crack tip is at the needle, less that compression, the last layer up to d_c behind it: the tissue
-      between them is cut, and without these rows the needle drifted off the plane there, 2 µm on cube_cut),
+    - Sliding (bilateral): every sample on the cut surface: within d_c of it along its normal (further
+      away, a sample is in intact tissue, whatever its projection: another needle beside the cut or
+      crossing its plane), and projecting inside it or beyond its border by at most d_c in its plane, plus
+      the front rows' compression C(d_c) G_c d_c when they are compliant (the crack tip is at the needle,
+      less that compression, the last layer up to d_c behind it: the tissue between them is cut, and
+      without these rows the needle drifted off the plane there, 2 µm on cube_cut),
       along the surface's normal at its closest point (area-weighted vertex normals interpolated: a sliver's
       own normal is arbitrary), anchored at that point's barycentric coordinates: the needle stays on the cut
       wherever it lies in it.
@@ -274,8 +276,8 @@ def strip_cut_block(
     ----------
     cut : The `refsim.cutting.CutSurface`.
     strip : Its `refsim.cutting.strip.CutStrip`; None for a needle inserted along an existing cut (no crack
-        tip: sliding rows only, unbounded, for samples projecting inside it: beside an old cut's border the
-        tissue is intact).
+        tip: sliding rows only, unbounded, for samples on it projecting inside it: beside an old cut's border
+        the tissue is intact).
     geometry : The step's geometry.
     entry_arc_length : Arc length where the needle enters the tissue [m] (:func:`inserted_arc`); the samples
         run from there to the tip (none, and no rows, when it is the needle's length: the tip is out).
@@ -332,32 +334,24 @@ def strip_cut_block(
     return block, front.info
 
 
-class _CutRows(NamedTuple):
-    """One kind of the cut block's rows, r of them (the fields of :class:`RowBlock` they fill)."""
-
-    tissue_jacobian: sp.csr_matrix  # (r, tissue DoFs)
-    needle_jacobian: sp.csr_matrix | None  # (r, needle DoFs); None for a rigid needle
-    free_gap: np.ndarray  # δ at the free positions [m], (r,)
-    directions: np.ndarray  # (r, 3)
-    points: np.ndarray  # the tissue-side points at the free positions [m], (r, 3)
-    kind: np.ndarray  # (r,)
-    source: np.ndarray  # (r,)
-
-    @classmethod
-    def between(cls, geometry, nodes, node_weights, directions, arcs, needle_points, anchor, kind, source):
-        """Rows along ``directions`` between tissue points (``nodes``/``node_weights``, at ``anchor`` in the
-        free positions) and the needle at arc lengths ``arcs`` (at ``needle_points``), all of one kind and
-        source: δ = nᵀ(x_needle − x_tissue)."""
-        count = directions.shape[0]
-        return cls(
-            point_rows(nodes, node_weights, directions, geometry.tissue_dof_count),
-            needle_rows(geometry.needle_free, arcs, directions),
-            np.einsum("ij,ij->i", directions, needle_points - anchor),
-            directions,
-            anchor,
-            np.full(count, kind),
-            np.full(count, source),
-        )
+def _cut_rows(geometry, nodes, node_weights, directions, arcs, needle_points, anchor, *, kind, source, role):
+    """Rows along ``directions`` between tissue points (``nodes``/``node_weights``, at ``anchor`` in the
+    free positions) and the needle at arc lengths ``arcs`` (at ``needle_points``), all of one kind, source and
+    role: δ = nᵀ(x_needle − x_tissue). A :class:`RowBlock` (its Jacobians by body, no needle one for a rigid
+    needle), each row saying what it is."""
+    count = directions.shape[0]
+    return RowBlock(
+        jacobians={
+            TISSUE: point_rows(nodes, node_weights, directions, geometry.tissue_dof_count),
+            NEEDLE: needle_rows(geometry.needle_free, arcs, directions),
+        },
+        free_gap=np.einsum("ij,ij->i", directions, needle_points - anchor),
+        kind=np.full(count, kind, dtype=np.int8),
+        source=np.full(count, source, dtype=np.int8),
+        points=anchor,
+        directions=directions,
+        role=np.full(count, role, dtype=np.int8),
+    )
 
 
 class _NeedleSamples(NamedTuple):
@@ -383,7 +377,7 @@ class _SlideAnchor(NamedTuple):
 class _Sliding(NamedTuple):
     """The sliding rows of a step (s of them) and what the front and friction rows need of them."""
 
-    rows: _CutRows | None
+    rows: RowBlock | None  # SLIDING rows
     anchor: _SlideAnchor | None
     count: int  # s
     tets: np.ndarray  # the tet of each row's nearest cut point (its sub-grid compliance), (s,)
@@ -395,7 +389,7 @@ class _Sliding(NamedTuple):
 class _Front(NamedTuple):
     """The front rows of a step (f of them)."""
 
-    rows: _CutRows | None
+    rows: RowBlock | None  # FRONT rows
     info: FrontRows
     keep: np.ndarray  # their samples, indices into the needle samples, (f,)
     tets: np.ndarray  # the tet of each row's nearest crack-tip column (its sub-grid compliance), (f,)
@@ -459,7 +453,13 @@ def _sliding_rows(
         lateral = np.asarray(subgrid_compliance[0], dtype=float)[cut.tet_indices[near]]
         compression = lateral * float(front_strength) * spacing
     reach = spacing + compression if strip is not None else 0.0
-    inside = np.flatnonzero(found.inside | (np.linalg.norm(in_plane, axis=1) <= reach))
+    # ON the surface: within d_c of it along its normal (the rule of new insertion points, which a needle
+    # gets only outside the cut, refsim.simulation.events). A sample that merely projects inside the cut
+    # from further away (another needle beside the cut, or crossing its plane) is in intact tissue: held
+    # there, its bilateral row pulled it onto the cut's plane.
+    across = np.abs(np.einsum("ij,ij->i", offset, normals_previous))
+    on_surface = (found.inside | (np.linalg.norm(in_plane, axis=1) <= reach)) & (across <= spacing)
+    inside = np.flatnonzero(on_surface)
     if not inside.size:
         return none
     triangle, weights = found.triangle[inside], found.barycentric[inside]
@@ -469,8 +469,17 @@ def _sliding_rows(
     nodes, node_weights = _surface_point_nodes(cut, tets, triangle, weights)
     arcs = samples.arc_lengths[inside]
     nearest = cut.triangles[triangle, np.argmax(weights, axis=1)]
-    rows = _CutRows.between(
-        geometry, nodes, node_weights, normals, arcs, samples.free[inside], anchor, BILATERAL, CUT_SLIDE
+    rows = _cut_rows(
+        geometry,
+        nodes,
+        node_weights,
+        normals,
+        arcs,
+        samples.free[inside],
+        anchor,
+        kind=BILATERAL,
+        source=CUT_SLIDE,
+        role=SLIDING,
     )
     # At the front (within 1.5 d_c of the crack tip) the needle has uncut tissue on every side but the
     # cut's: pushed out of the cut's plane it cuts through at G_c per unit length as it does ahead, so those
@@ -554,8 +563,17 @@ def _front_rows(
     )
     arcs = samples.arc_lengths[keep]
     anchor_previous = (1.0 - t)[:, None] * front_previous[seg] + t[:, None] * front_previous[seg + 1]
-    rows = _CutRows.between(
-        geometry, nodes, node_weights, directions, arcs, samples.free[keep], anchor, UNILATERAL, CUT_BORDER
+    rows = _cut_rows(
+        geometry,
+        nodes,
+        node_weights,
+        directions,
+        arcs,
+        samples.free[keep],
+        anchor,
+        kind=UNILATERAL,
+        source=CUT_BORDER,
+        role=FRONT,
     )
     info = replace(
         info,
@@ -569,7 +587,7 @@ def _front_rows(
     return _Front(rows, info, keep, strip.front.tet_indices[np.where(t < 0.5, seg, seg + 1)])
 
 
-def _cut_friction_rows(geometry: StepGeometry, anchor: _SlideAnchor) -> _CutRows:
+def _cut_friction_rows(geometry: StepGeometry, anchor: _SlideAnchor) -> RowBlock:
     """Two friction rows per sliding row, in the surface: along the needle, then across it."""
     axial = geometry.needle_free.tangents(anchor.arc_lengths)
     across = np.cross(anchor.normals, axial)
@@ -587,21 +605,21 @@ def _cut_friction_rows(geometry: StepGeometry, anchor: _SlideAnchor) -> _CutRows
         tissue_previous_points=np.concatenate([previous, previous]),
     )
     count = tangents.shape[0]
-    return _CutRows(
-        friction.jacobians[TISSUE],
-        friction.jacobians.get(NEEDLE),
-        friction.free_gap,
-        tangents,
-        np.concatenate([points, points]),
-        np.full(count, FRICTION),
-        np.full(count, CUT_SLIDE),
+    return RowBlock(
+        jacobians={TISSUE: friction.jacobians[TISSUE], NEEDLE: friction.jacobians.get(NEEDLE)},
+        free_gap=friction.free_gap,
+        kind=np.full(count, FRICTION, dtype=np.int8),
+        source=np.full(count, CUT_SLIDE, dtype=np.int8),
+        points=np.concatenate([points, points]),
+        directions=tangents,
+        role=np.full(count, CUT_FRICTION, dtype=np.int8),
     )
 
 
 def _cut_block(
     sliding: _Sliding,
     front: _Front,
-    friction: _CutRows | None,
+    friction: RowBlock | None,
     shares: np.ndarray,
     *,
     front_strength: float,
@@ -611,8 +629,8 @@ def _cut_block(
 ) -> RowBlock:
     """The block of :func:`strip_cut_block`: sliding, front and friction rows, with their force limits,
     friction groups, sub-grid compliance and roles (``shares``: the inserted length of each needle sample)."""
-    blocks = [rows for rows in (sliding.rows, front.rows, friction) if rows is not None]
-    friction_count = 0 if friction is None else friction.free_gap.size
+    rows = concatenate([sliding.rows, front.rows, friction])  # each row's kind, source and role kept
+    friction_count = 0 if friction is None else friction.row_count
     limits = np.concatenate(
         [
             sliding.limits if sliding.limits.size else np.full(sliding.count, np.inf),
@@ -630,13 +648,8 @@ def _cut_block(
             group_members=np.concatenate([pair, pair]),
             group_coefficient=np.full(friction_count, float(friction_coefficient)),
         )
-    block = RowBlock(
-        jacobians=stack_jacobians([{TISSUE: b.tissue_jacobian, NEEDLE: b.needle_jacobian} for b in blocks]),
-        free_gap=np.concatenate([b.free_gap for b in blocks]),
-        kind=np.concatenate([b.kind for b in blocks]).astype(np.int8),
-        source=np.concatenate([b.source for b in blocks]).astype(np.int8),
-        points=np.concatenate([b.points for b in blocks]),
-        directions=np.concatenate([b.directions for b in blocks]),
+    block = replace(
+        rows,
         force_limit=limits if np.any(np.isfinite(limits)) else np.zeros(0),
         compliance_diagonal=_cut_compliance(
             subgrid_compliance,
@@ -646,13 +659,6 @@ def _cut_block(
             spacing,
             friction_count > 0,
         ),
-        role=np.concatenate(
-            [
-                np.full(sliding.count, SLIDING),
-                np.full(front.keep.size, FRONT),
-                np.full(friction_count, CUT_FRICTION),
-            ]
-        ).astype(np.int8),
         **groups,
     )
     return block

@@ -64,17 +64,67 @@ def _positive(value: float | None, option: str, unit: str) -> None:
 
 
 def run_interactive(args: argparse.Namespace) -> int:
-    """The handler of ``refsim interactive``; returns the exit code."""
-    import os
-    import signal
+    """The handler of ``refsim interactive``; returns the exit code: the options checked, the pose server
+    bound, the session opened, driven (window or headless) until a stop, closed, and reported."""
     import threading
-    import time as clock
     from pathlib import Path
 
     from refsim.interactive.pacing import Pacer
-    from refsim.interactive.server import PoseServer, check_loopback
+    from refsim.interactive.server import PoseServer
     from refsim.interactive.session import InteractiveSession
     from refsim.scene import load_scene
+
+    _check_options(args)
+    scene = load_scene(args.scene, args.set or ())
+    max_steps = None if args.duration is None else max(1, round(args.duration / scene.time.dt))
+    server = None
+    if args.socket is not None:  # bound before anything is written: a port in use is bad input
+        server = PoseServer(args.socket, host=args.host, reach=REACH, hello={}, on_pose=None)
+    try:
+        session = InteractiveSession(
+            scene,
+            Path(args.output),
+            overwrite=args.overwrite,
+            max_speed=args.max_speed,
+            max_turn=math.radians(args.max_turn),
+        )
+    except BaseException:
+        if server is not None:
+            server.close()
+        raise
+    stop = threading.Event()
+    try:
+        if server is not None:
+            _serve(args, scene, session, server)
+        pacer = Pacer(session, server, lockstep=args.lockstep, max_steps=max_steps)
+        _drive(args, session, pacer, server, stop)
+    except Exception as error:  # noqa: BLE001 - a failed step: the file is closed, the reason stored
+        if session.finished:
+            raise
+        session.fail(error)
+    finally:
+        if not session.finished:
+            session.fail(RuntimeError("stopped"))
+        if server is not None:
+            server.close(
+                {
+                    "done": True,
+                    "status": session.status,
+                    "steps": session.state.step,
+                    "output": str(session.output),
+                    "replay": str(session.replay_path),
+                    "reason": session.stop_reason,
+                }
+            )
+    return _report(scene, session)
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """Bad options and a missing window (pyvista, a display) as errors naming the option, before anything
+    is opened."""
+    import os
+
+    from refsim.interactive.server import check_loopback
 
     for value, option, unit in (
         (args.duration, "--duration", "s"),
@@ -101,99 +151,77 @@ def run_interactive(args: argparse.Namespace) -> int:
                 "the interactive window needs a display (DISPLAY is not set): run headless with --no-window "
                 "--socket PORT, or under a virtual display (xvfb-run refsim interactive ...)"
             )
-    scene = load_scene(args.scene, args.set or ())
-    max_steps = None if args.duration is None else max(1, round(args.duration / scene.time.dt))
-    server = None
-    if args.socket is not None:  # bound before anything is written: a port in use is bad input
-        server = PoseServer(args.socket, host=args.host, reach=REACH, hello={}, on_pose=None)
+
+
+def _serve(args: argparse.Namespace, scene, session, server) -> None:
+    """Start the pose stream: poses to the session's target (or queued, lockstep), the hello message."""
+    server.on_pose = None if args.lockstep else session.target.set
+    server.queue_poses = args.lockstep
+    server.hello.update(
+        {
+            "scene": scene.name,
+            "dt": session.dt,
+            "mode": "lockstep" if args.lockstep else "realtime",
+            "needle_length": scene.needle.length,
+            "base": session.target.applied_base.tolist(),
+            "direction": session.target.applied_direction.tolist(),
+            "max_speed": args.max_speed,
+        }
+    )
+    server.start()
+    print(
+        f"pose stream on {server.host}:{server.port} (newline-delimited JSON, docs/interactive.md)",
+        flush=True,
+    )
+
+
+def _drive(args: argparse.Namespace, session, pacer, server, stop) -> None:
+    """Step the session in the window or headless until a stop (Ctrl-C and SIGTERM set ``stop`` meanwhile),
+    then finish it; the window's screenshot when asked."""
+    import signal
+    import threading
+    import time as clock
+    from pathlib import Path
+
+    previous = {}
+
+    def request_stop(signum, frame) -> None:
+        stop.set()
+
+    if threading.current_thread() is threading.main_thread():  # Ctrl-C, SIGTERM: a clean end
+        for number in (signal.SIGINT, signal.SIGTERM):
+            previous[number] = signal.signal(number, request_stop)
     try:
-        session = InteractiveSession(
-            scene,
-            Path(args.output),
-            overwrite=args.overwrite,
-            max_speed=args.max_speed,
-            max_turn=math.radians(args.max_turn),
-        )
-    except BaseException:
-        if server is not None:
-            server.close()
-        raise
-    stop = threading.Event()
-    try:
-        if server is not None:
-            server.on_pose = None if args.lockstep else session.target.set
-            server.queue_poses = args.lockstep
-            server.hello.update(
-                {
-                    "scene": scene.name,
-                    "dt": session.dt,
-                    "mode": "lockstep" if args.lockstep else "realtime",
-                    "needle_length": scene.needle.length,
-                    "base": session.target.applied_base.tolist(),
-                    "direction": session.target.applied_direction.tolist(),
-                    "max_speed": args.max_speed,
-                }
+        if args.no_window:
+            _headless(pacer, server, stop, clock)
+        else:
+            from refsim.interactive.window import InteractiveWindow
+
+            window = InteractiveWindow(
+                session,
+                pacer,
+                key_step=args.key_step * 1e-3,
+                key_angle=math.radians(args.key_angle),
             )
-            server.start()
-            print(
-                f"pose stream on {server.host}:{server.port} (newline-delimited JSON, docs/interactive.md)",
-                flush=True,
+            window.show(
+                should_stop=lambda: stop.is_set() or (server is not None and server.stop_requested.is_set())
             )
-        pacer = Pacer(session, server, lockstep=args.lockstep, max_steps=max_steps)
-        previous = {}
-
-        def request_stop(signum, frame) -> None:
-            stop.set()
-
-        if threading.current_thread() is threading.main_thread():  # Ctrl-C, SIGTERM: a clean end
-            for number in (signal.SIGINT, signal.SIGTERM):
-                previous[number] = signal.signal(number, request_stop)
-        try:
-            if args.no_window:
-                _headless(pacer, server, stop, clock)
-            else:
-                from refsim.interactive.window import InteractiveWindow
-
-                window = InteractiveWindow(
-                    session,
-                    pacer,
-                    key_step=args.key_step * 1e-3,
-                    key_angle=math.radians(args.key_angle),
-                )
-                window.show(
-                    should_stop=lambda: (
-                        stop.is_set() or (server is not None and server.stop_requested.is_set())
-                    )
-                )
-                if window.error is not None:  # a step failed inside the window's timer
-                    raise window.error
-            pacer.finish()
-            if not args.no_window:
-                if args.screenshot:
-                    window.update()
-                    print(f"wrote {window.save(Path(args.screenshot))}")
-                window.close()
-        finally:
-            for number, handler in previous.items():
-                signal.signal(number, handler)
-    except Exception as error:  # noqa: BLE001 - a failed step: the file is closed, the reason stored
-        if session.finished:
-            raise
-        session.fail(error)
+            if window.error is not None:  # a step failed inside the window's timer
+                raise window.error
+        pacer.finish()
+        if not args.no_window:
+            if args.screenshot:
+                window.update()
+                print(f"wrote {window.save(Path(args.screenshot))}")
+            window.close()
     finally:
-        if not session.finished:
-            session.fail(RuntimeError("stopped"))
-        if server is not None:
-            server.close(
-                {
-                    "done": True,
-                    "status": session.status,
-                    "steps": session.state.step,
-                    "output": str(session.output),
-                    "replay": str(session.replay_path),
-                    "reason": session.stop_reason,
-                }
-            )
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+
+
+def _report(scene, session) -> int:
+    """Print where the session went (results, ParaView sidecar, trajectory, replay) and its summary; the
+    exit code."""
     summary = session.summary
     print(f"scene {scene.name} ({scene.source}) -> {session.output}")
     if session.status != "write_failed":  # the ParaView sidecar, as `refsim run` writes it

@@ -5,9 +5,10 @@
   problem-set format below; and, for the steps FCLib's local format can hold, one FCLib file each
   (:func:`write_fclib`, :func:`coulomb_contacts`).
 - :func:`export_force_csv`: the needle force history as CSV.
-- :func:`export_vtu`: the deformed tissue (point data displacement [m], fixed, constraint_force [N]) and the
-  cut surface at a recorded tissue step, or at every one with a ParaView collection (.pvd) each, as VTK
-  unstructured grids (.vtu) that ParaView, VTK and ``meshio.read`` open alone.
+- :func:`export_vtu`: the deformed tissue (point data displacement [m], fixed, constraint_force [N]), the
+  cut surface and every instrument's needle (its centreline as a polyline; point data radius [m] and
+  displacement [m]) at a recorded tissue step, or at every one with a ParaView collection (.pvd) each, as
+  VTK unstructured grids (.vtu) that ParaView, VTK and ``meshio.read`` open alone.
 
 Problem-set file (HDF5, ``format = "refsim-problem-set"``, ``schema_version = 1``)::
 
@@ -470,16 +471,20 @@ def export_vtu(results_path, step: str | int, folder=None) -> list[Path]:
     ----------
     results_path : The results file (.h5).
     step : A recorded tissue step (``tissue/step``), "last", or "all" (every recorded step, and a ParaView
-        collection file per object, ``STEM_tissue.pvd`` and ``STEM_cut.pvd``, with the times).
+        collection file per object, ``STEM_tissue.pvd``, ``STEM_cut.pvd`` and ``STEM_NAME.pvd`` per
+        instrument, with the times).
     folder : Where to write; the results file's folder by default.
 
     Returns
     -------
     The files written: ``STEM_tissue_NNNNNNN.vtu`` (tetrahedra at the deformed positions [m]; point data
     ``displacement`` [m] from rest, ``fixed`` (1 for a clamped node), ``constraint_force`` [N], the force
-    of the needle on the tissue spread on the nodes, refsim.io.xdmf.nodal_constraint_forces) and, when
+    of every needle on the tissue spread on the nodes, refsim.io.xdmf.nodal_constraint_forces); when
     triangles of the cut exist at the step, ``STEM_cut_NNNNNNN.vtu`` (those triangles, every cut point
-    mapped into the deformed tissue by equation 4; point data ``created_step``).
+    mapped into the deformed tissue by equation 4; point data ``created_step``); and for each instrument,
+    named by it (``needle`` in a one-needle file; "tissue" and "cut" are reserved instrument names),
+    ``STEM_NAME_NNNNNNN.vtu``: its needle's nodes at the step [m] joined by line segments, point data
+    ``radius`` [m] (its needle's, for a tube filter) and ``displacement`` [m] from its nodes at t = 0.
 
     Raises
     ------
@@ -500,7 +505,8 @@ def export_vtu(results_path, step: str | int, folder=None) -> list[Path]:
     fixed = np.zeros(results.rest_positions.shape[0], dtype=np.int8)
     fixed[results.fixed_nodes] = 1
     cut = results.cut
-    written, series = [], {"tissue": [], "cut": []}
+    needles = _needle_series(results)
+    written, series = [], {"tissue": [], "cut": [], **{name: [] for name in results.instrument_names}}
     for index in indices:
         number = int(results.tissue_steps[index])
         time = float(results.tissue_times[index])
@@ -521,6 +527,11 @@ def export_vtu(results_path, step: str | int, folder=None) -> list[Path]:
         _write_whole(path, lambda temporary, mesh=tissue: meshio.write(temporary, mesh, file_format="vtu"))
         written.append(path)
         series["tissue"].append((time, path))
+        for name, mesh in needles(number):
+            path = folder / f"{stem}_{name}_{number:07d}.vtu"
+            _write_whole(path, lambda temporary, mesh=mesh: meshio.write(temporary, mesh, file_format="vtu"))
+            written.append(path)
+            series[name].append((time, path))
         if cut is None or cut.tet_indices is None:
             continue
         existing = cut.triangle_step <= number
@@ -542,6 +553,45 @@ def export_vtu(results_path, step: str | int, folder=None) -> list[Path]:
             if entries:
                 written.append(_write_pvd(folder / f"{stem}_{name}.pvd", entries))
     return written
+
+
+def _needle_radii(scene: dict, names: tuple) -> list[float]:
+    """Each instrument's needle radius [m] from the scene dict: [needle]'s, or its [[instruments]] table's
+    own ``radius`` (NaN when neither is stored)."""
+    radius = float((scene.get("needle") or {}).get("radius", np.nan))
+    tables = {table.get("name"): table for table in scene.get("instruments") or ()}
+    return [float(tables.get(name, {}).get("radius", radius)) for name in names]
+
+
+def _needle_series(results):
+    """A function of a step number giving every instrument's needle at that step as (name, meshio.Mesh):
+    its nodes (``steps/needle_positions`` of the step; at step 0, ``needle_rest_nodes``) joined by line
+    segments."""
+    import meshio
+
+    views = results.instruments
+    radii = _needle_radii(results.scene, results.instrument_names)
+
+    def at(number: int) -> list:
+        meshes = []
+        where = np.flatnonzero(results.step == number)
+        for view, radius in zip(views, radii, strict=True):
+            rest = view.needle_rest_nodes
+            nodes = view.needle_positions[int(where[0])] if where.size else rest
+            segments = np.stack([np.arange(rest.shape[0] - 1), np.arange(1, rest.shape[0])], axis=1)
+            meshes.append(
+                (
+                    view.instrument_names[0],
+                    meshio.Mesh(
+                        nodes,
+                        [("line", segments)],
+                        point_data={"radius": np.full(rest.shape[0], radius), "displacement": nodes - rest},
+                    ),
+                )
+            )
+        return meshes
+
+    return at
 
 
 def _write_pvd(path: Path, entries: list) -> Path:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from refsim.constraints.coupling_models import COUPLING_MODELS, Coupling
 from refsim.cutting.laws import CUTTING_LAWS, CuttingLaw, law_of_key
 from refsim.fem.compliance import STRATEGIES, W_UPDATES
 from refsim.materials import MATERIAL_LIMITS
@@ -460,7 +461,7 @@ class InsertionSpec(_Validated):
         doc="needle-tissue coupling: 'ring' (well posed: rows average the tissue over a ring of radius "
         "max(r, h) and "
         "carry the sub-grid compliance of the annulus, docs/coupling.md) or 'paper' (rows on the centreline)",
-        choices=("ring", "paper"),
+        choices=tuple(COUPLING_MODELS),
     )
     subgrid_line: str = spec(
         "infinite",
@@ -538,6 +539,11 @@ class InsertionSpec(_Validated):
     def static_friction_coefficient(self) -> float:
         """μ_s of the shaft: the static key, or μ_i when it is 0."""
         return self.shaft_static_friction_coefficient or self.shaft_friction_coefficient
+
+    @property
+    def coupling_model(self) -> Coupling:
+        """The chosen coupling with its parameters (`refsim.constraints.coupling_models`)."""
+        return COUPLING_MODELS[self.coupling]()
 
 
 def _declared_section(base: type, declared: list[tuple[str, str, dataclasses.Field]]) -> type:

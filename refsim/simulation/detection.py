@@ -120,10 +120,12 @@ class Detector:
                     spacing=spec.spacing,
                 )
             )
-        self.ring = spec.coupling == "ring"
+        self.coupling = spec.coupling_model
+        self.ring = self.coupling.rings
         if self.ring and (rest_positions is None or tets is None):
             raise ValueError(
-                "insertion.coupling = 'ring' needs the rest mesh (rest_positions and tets) in Detector"
+                f"insertion.coupling = {self.coupling.name!r} needs the rest mesh (rest_positions and tets) "
+                "in Detector"
             )
         self.rest_positions = None if rest_positions is None else np.asarray(rest_positions, dtype=float)
         self.rest_locator = TetLocator(self.rest_positions, np.asarray(tets)) if self.ring else None

@@ -144,6 +144,7 @@ class EventRules:
     ) -> None:
         cuts = scene.cutting.enabled if cuts is None else cuts
         self.insertion = scene.insertion
+        self.coupling = scene.insertion.coupling_model
         self.cutting = scene.cutting
         self.law = scene.cutting.cutting_law if cuts else None
         self.tets = tets
@@ -240,10 +241,8 @@ class EventRules:
         )
         if added and world.cut is not None and world.cut.triangle_count:
             path = self._outside_cut(path, world, positions)
-        # Ring coupling: the centre of a point is not tied to the needle (its ring is), so it drifts along the
-        # needle with the tissue's strain; half a spacing of hysteresis keeps such drift from removing and
-        # re-adding it.
-        margin = 0.5 * self.insertion.spacing if self.insertion.coupling == "ring" else 0.0
+        # The coupling's release margin (the ring's hysteresis: its points' centres drift along the needle).
+        margin = self.coupling.retraction_margin(self.insertion.spacing)
         beyond = points_beyond_tip(path, path.positions(positions, self.tets), needle, margin)
         if np.any(beyond):
             path = path.subset(~beyond)

@@ -152,11 +152,21 @@ class MarginWatch:
     _own_rows: np.ndarray | None = None
     _criteria: list = field(default_factory=list)
 
-    def begin(self, problem, rows, multipliers: np.ndarray, report, own: np.ndarray | None = None) -> None:
+    def begin(
+        self,
+        problem,
+        rows,
+        multipliers: np.ndarray,
+        report,
+        own: np.ndarray | None = None,
+        scale: float | None = None,
+    ) -> None:
         """Start a step: its constraint problem (None without rows), its rows (``RowBlock``), multipliers [N],
         solver report and which rows are this instrument's (``own``, a mask over the rows; all by default).
         The problem holds every instrument's rows; the rows an event names are indices into its instrument's
-        own rows, mapped here to the problem's."""
+        own rows, mapped here to the problem's. ``scale``: the problem's :func:`problem_scale`, computed once
+        per step for every instrument (a product by the whole W: per instrument, its cost grew as the cube of
+        the instrument count); computed here when None."""
         self._criteria = []
         self._problem, self._rows, self._multipliers = problem, rows, multipliers
         count = 0 if problem is None else problem.row_count
@@ -167,7 +177,7 @@ class MarginWatch:
             return
         reached = float(getattr(report, "residual", 0.0))
         tolerance = max(self.tolerance, reached if np.isfinite(reached) else np.inf)
-        self._bound = tolerance * problem_scale(problem, multipliers)
+        self._bound = tolerance * (problem_scale(problem, multipliers) if scale is None else scale)
 
     def taken(self) -> tuple[Criterion, ...]:
         """The step's criteria, in the order the events compared them."""

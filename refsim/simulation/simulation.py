@@ -52,6 +52,7 @@ from refsim.simulation.bodies import Body, TissueBody
 from refsim.simulation.detection import Detector
 from refsim.simulation.events import EventRules
 from refsim.simulation.instrument import Instrument
+from refsim.simulation.margins import problem_scale
 from refsim.simulation.records import STAGES, InstrumentRecord, StepRecord
 from refsim.simulation.state import Phase, SimulationState
 from refsim.solvers import solve_exact, solve_gauss_seidel
@@ -282,9 +283,10 @@ class Simulation:
     ) -> tuple[SimulationState, list[InstrumentRecord]]:
         """Each instrument's events in order, on its own rows and multipliers, and its record."""
         parts = []
+        scale = None if problem is None else problem_scale(problem, multipliers)  # one product by W per step
         for instrument, detection in zip(self.instruments, detections, strict=True):
             mine = rows.instruments == instrument.index
-            instrument.event_rules.margins.begin(problem, rows, multipliers, report, own=mine)
+            instrument.event_rules.margins.begin(problem, rows, multipliers, report, own=mine, scale=scale)
             state, events = instrument.event_rules.apply(state, instrument.name, detection, multipliers[mine])
             own = state.instrument(instrument.name)
             parts.append(
@@ -305,7 +307,8 @@ class Simulation:
     def _record(
         self, state, new_state, control, rows, problem, multipliers, report, parts, seconds, record_tissue
     ) -> StepRecord:
-        """What the step did: its rows and multipliers, each instrument's record, the stage times, the cut's size, the tissue when asked."""
+        """What the step did: its rows and multipliers, each instrument's record, the stage times, the cut's
+        size, the tissue when asked."""
         return StepRecord(
             step=new_state.step,
             time=new_state.time,

@@ -379,13 +379,25 @@ class _Style:
 
 def _draw_step(
     plotter, results, step: int, tissue_positions, cut_points, cut_triangles, view_size: float, style: _Style
-) -> None:
+) -> tuple[list, str]:
     """Add the actors of one step to a plotter (see :func:`render_result`), without rendering (the screenshot
     renders once). Returns the legend ([label, colour] rows) and the title of the picture's margin."""
+    index = results.index_of(step)
+    legend: list = []
+    _draw_tissue(plotter, results, tissue_positions, style, legend)
+    drawn_radius = _draw_needles(plotter, results, index, legend)
+    mark = max(0.35 * drawn_radius, 0.012 * view_size)
+    _draw_insertion_points(plotter, results, step, mark, legend)
+    if style.show_fixed:
+        _draw_fixed_nodes(plotter, results, tissue_positions, mark, style, legend)
+    _draw_cut(plotter, cut_points, cut_triangles, legend)
+    return legend, _title(results, step, index)
+
+
+def _draw_tissue(plotter, results, tissue_positions, style: _Style, legend: list) -> None:
+    """The deformed tissue surface, translucent with its edges."""
     import pyvista as pv
 
-    index = results.index_of(step)
-    legend = []
     surface = pv.PolyData(tissue_positions, triangle_cells(results.faces))
     plotter.add_mesh(
         surface,
@@ -399,8 +411,20 @@ def _draw_step(
     )
     legend.append(["tissue (deformed surface)", TISSUE_COLOR])
 
+
+def _instrument_views(results) -> tuple[tuple, tuple]:
+    """The instruments' names and their views of the results (the results themselves for one needle)."""
     names = tuple(getattr(results, "instrument_names", ("needle",)))
-    views = results.instruments if len(names) > 1 else (results,)
+    return names, (results.instruments if len(names) > 1 else (results,))
+
+
+def _draw_needles(plotter, results, index: int, legend: list) -> float:
+    """Every instrument's needle at step ``index`` as a translucent tube at its real radius, one colour each;
+    returns the last one's drawn radius [m] (the markers' scale)."""
+    import pyvista as pv
+
+    names, views = _instrument_views(results)
+    drawn_radius = 0.0
     for number, (name, view) in enumerate(zip(names, views, strict=True)):
         color = NEEDLE_COLORS[number % len(NEEDLE_COLORS)]
         radius = needle_radius(results.scene, name)
@@ -411,42 +435,58 @@ def _draw_step(
         plotter.add_mesh(needle, color=color, smooth_shading=True, opacity=0.45, render=False)
         label = "needle" if len(names) == 1 else f"needle {name}"
         legend.append([f"{label}, r = {1e3 * radius:.2f} mm" if radius > 0 else label, color])
+    return drawn_radius
 
-    mark = max(0.35 * drawn_radius, 0.012 * view_size)
+
+def _draw_insertion_points(plotter, results, step: int, mark: float, legend: list) -> None:
+    """The tissue-side points of the step's insertion rows as spheres of radius ``mark``."""
+    import pyvista as pv
+
     rows = results.constraints_at(step)
-    if "insertion" in results.source_names:
-        insertion = np.unique(rows.points[rows.source == results.source_names.index("insertion")], axis=0)
-        if insertion.size:
-            spheres = pv.PolyData(insertion).glyph(geom=pv.Sphere(radius=mark), scale=False, orient=False)
-            plotter.add_mesh(spheres, color=INSERTION_COLOR, smooth_shading=True, render=False)
-            legend.append([f"insertion points ({insertion.shape[0]})", INSERTION_COLOR])
+    if "insertion" not in results.source_names:
+        return
+    insertion = np.unique(rows.points[rows.source == results.source_names.index("insertion")], axis=0)
+    if insertion.size:
+        spheres = pv.PolyData(insertion).glyph(geom=pv.Sphere(radius=mark), scale=False, orient=False)
+        plotter.add_mesh(spheres, color=INSERTION_COLOR, smooth_shading=True, render=False)
+        legend.append([f"insertion points ({insertion.shape[0]})", INSERTION_COLOR])
+
+
+def _draw_fixed_nodes(plotter, results, tissue_positions, mark: float, style: _Style, legend: list) -> None:
+    """The fixed nodes as cubes and, when they move, a few arrows of their prescribed displacement (scaled,
+    the scale in the legend)."""
+    import pyvista as pv
 
     fixed = np.asarray(results.fixed_nodes, dtype=np.int64)
-    if style.show_fixed and fixed.size:
-        cubes = pv.PolyData(tissue_positions[fixed]).glyph(
-            geom=pv.Cube(x_length=1.4 * mark, y_length=1.4 * mark, z_length=1.4 * mark),
-            scale=False,
-            orient=False,
+    if not fixed.size:
+        return
+    cubes = pv.PolyData(tissue_positions[fixed]).glyph(
+        geom=pv.Cube(x_length=1.4 * mark, y_length=1.4 * mark, z_length=1.4 * mark),
+        scale=False,
+        orient=False,
+    )
+    plotter.add_mesh(cubes, color=FIXED_COLOR, render=False)
+    legend.append([f"fixed nodes ({fixed.size})", FIXED_COLOR])
+    motion = _fixed_motion(results, tissue_positions)
+    largest = float(np.linalg.norm(motion, axis=1).max())
+    if style.show_motion and largest > 1e-9:
+        # Small and few, so that they show the motion without hiding the tissue or the cut.
+        scale = 0.06 * float(np.ptp(tissue_positions, axis=0).max()) / largest
+        shown = np.linspace(0, fixed.size - 1, min(fixed.size, 16)).astype(np.int64)
+        arrows = pv.PolyData(tissue_positions[fixed[shown]])
+        arrows["motion"] = motion[shown] * scale
+        plotter.add_mesh(
+            arrows.glyph(orient="motion", scale="motion", factor=1.0, geom=pv.Arrow()),
+            color=MOTION_COLOR,
+            opacity=0.6,
+            render=False,
         )
-        plotter.add_mesh(cubes, color=FIXED_COLOR, render=False)
-        legend.append([f"fixed nodes ({fixed.size})", FIXED_COLOR])
-        motion = _fixed_motion(results, tissue_positions)
-        largest = float(np.linalg.norm(motion, axis=1).max())
-        if style.show_motion and largest > 1e-9:
-            # Small and few, so that they show the motion without hiding the tissue or the cut.
-            scale = 0.06 * float(np.ptp(tissue_positions, axis=0).max()) / largest
-            shown = np.linspace(0, fixed.size - 1, min(fixed.size, 16)).astype(np.int64)
-            arrows = pv.PolyData(tissue_positions[fixed[shown]])
-            arrows["motion"] = motion[shown] * scale
-            plotter.add_mesh(
-                arrows.glyph(orient="motion", scale="motion", factor=1.0, geom=pv.Arrow()),
-                color=MOTION_COLOR,
-                opacity=0.6,
-                render=False,
-            )
-            legend.append(
-                [f"boundary motion\n(max {1e3 * largest:.2f} mm, drawn x{scale:.3g})", MOTION_COLOR]
-            )
+        legend.append([f"boundary motion\n(max {1e3 * largest:.2f} mm, drawn x{scale:.3g})", MOTION_COLOR])
+
+
+def _draw_cut(plotter, cut_points, cut_triangles, legend: list) -> None:
+    """The cut surface (its triangles, or its points before any triangle)."""
+    import pyvista as pv
 
     if cut_triangles.size:
         cut = pv.PolyData(cut_points, triangle_cells(cut_triangles))
@@ -466,6 +506,10 @@ def _draw_step(
         )
         legend.append([f"cut points ({cut_points.shape[0]})", CUT_COLOR])
 
+
+def _title(results, step: int, index: int) -> str:
+    """The picture's title: scene, step and time, each instrument's phase, the tissue step shown."""
+    names, views = _instrument_views(results)
     phase = f"{results.phase_names[results.phase[index]]} phase"
     if len(views) > 1:  # each instrument's phase
         phase = "\n".join(
@@ -473,8 +517,7 @@ def _draw_step(
         )
     tissue_step = results.nearest_tissue_step(step) if results.tissue_steps.size else 0
     tissue_note = "" if tissue_step == step else f"\n(tissue of step {tissue_step})"
-    title = f"{results.scene_name}\nstep {step}, t = {results.time[index]:.3f} s\n{phase}{tissue_note}"
-    return legend, title
+    return f"{results.scene_name}\nstep {step}, t = {results.time[index]:.3f} s\n{phase}{tissue_note}"
 
 
 def _distance_to_segment(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
@@ -650,16 +693,7 @@ def render_result(
     tissue_positions = results.tissue_positions_at(step)
     cut_points, cut_triangles = cut_surface_positions(results, step, tissue_positions)
     view_width = view_width_of(width)
-    others = None
-    if len(getattr(results, "instrument_names", ())) > 1 and isinstance(focus, str) and focus != "tissue":
-        # Every needle in the picture: the further instruments' focus points too.
-        others = np.concatenate(
-            [
-                focus_points(other, step, tissue_positions, cut_points, focus)
-                for other in results.instruments[1:]
-            ]
-        )
-    view = frame_camera(
+    view = _frame_every_needle(
         results,
         step,
         tissue_positions,
@@ -670,31 +704,17 @@ def render_result(
         zoom=zoom,
         focus=focus,
         aspect=view_width / height,
-        include=others,
     )
-
-    prepare_offscreen()
-    import pyvista as pv
-
-    view_size = float(np.linalg.norm(view.position - view.focal_point)) * np.tan(np.radians(_VIEW_ANGLE) / 2)
-    plotter = pv.Plotter(off_screen=True, window_size=[view_width, height])
-    try:
-        plotter.set_background("white")
-        legend, title = _draw_step(
-            plotter,
-            results,
-            step,
-            tissue_positions,
-            cut_points,
-            cut_triangles,
-            view_size,
-            _Style(tissue_opacity),
-        )
-        _apply_camera(plotter, view)
-        plotter.render()
-        image = plotter.screenshot(return_img=True)
-    finally:
-        plotter.close()
+    image, legend, title = _screenshot(
+        results,
+        step,
+        tissue_positions,
+        cut_points,
+        cut_triangles,
+        view,
+        (view_width, height),
+        _Style(tissue_opacity),
+    )
     import imageio.v3 as iio
 
     output_png = Path(output_png)
@@ -702,3 +722,40 @@ def render_result(
     iio.imwrite(output_png, compose_picture(image, legend, title, view, (width, height)))
     logger.info("rendered step %d of %s to %s", step, results.path, output_png)
     return output_png
+
+
+def _frame_every_needle(results, step: int, tissue_positions, cut_points, cut_triangles, *, focus, **framing):
+    """:func:`frame_camera` with every instrument's needle in the picture (the further instruments' focus
+    points included, unless the focus is the tissue or given as a point)."""
+    others = None
+    if len(getattr(results, "instrument_names", ())) > 1 and isinstance(focus, str) and focus != "tissue":
+        others = np.concatenate(
+            [
+                focus_points(other, step, tissue_positions, cut_points, focus)
+                for other in results.instruments[1:]
+            ]
+        )
+    return frame_camera(
+        results, step, tissue_positions, cut_points, cut_triangles, focus=focus, include=others, **framing
+    )
+
+
+def _screenshot(results, step, tissue_positions, cut_points, cut_triangles, view, size, style: _Style):
+    """The step drawn off-screen through ``view`` in a window of ``size`` (width, height): the image, the
+    legend and the title (:func:`_draw_step`)."""
+    prepare_offscreen()
+    import pyvista as pv
+
+    view_size = float(np.linalg.norm(view.position - view.focal_point)) * np.tan(np.radians(_VIEW_ANGLE) / 2)
+    plotter = pv.Plotter(off_screen=True, window_size=list(size))
+    try:
+        plotter.set_background("white")
+        legend, title = _draw_step(
+            plotter, results, step, tissue_positions, cut_points, cut_triangles, view_size, style
+        )
+        _apply_camera(plotter, view)
+        plotter.render()
+        image = plotter.screenshot(return_img=True)
+    finally:
+        plotter.close()
+    return image, legend, title

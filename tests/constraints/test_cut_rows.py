@@ -141,3 +141,50 @@ def test_friction_on_the_cut_faces_is_bounded_by_each_sliding_row(planar_strip):
     np.testing.assert_allclose(np.abs(rows.free_gap[across]), 1e-4, atol=1e-12)
     problem = rows.problem(np.eye(rows.row_count))
     np.testing.assert_array_equal(problem.group_friction, friction)
+
+
+def _other_needle_rows(planar_strip, needle, inserted):
+    """The rows of a needle inserted along the existing cut (no strip of its own: sliding rows only)."""
+    mesh, cut, _ = planar_strip
+    return strip_cut_block(
+        cut,
+        None,
+        still_geometry(mesh, needle),
+        entry_arc_length=needle.length - inserted,
+        spacing=SPACING,
+        cut_direction=np.zeros(3),
+    )
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.4e-3])
+def test_another_needle_on_the_cut_slides_in_it(planar_strip, offset):
+    # A second needle within d_c of the cut's plane (y = 6.3 mm), inside its extent, 7.5 mm inserted: every
+    # sample on the cut holds it on it.
+    needle = rigid_needle([0.0051, 0.0063 + offset, 0.0045], [0.0, 0.0, -1.0], length=0.02)
+    rows, _ = _other_needle_rows(planar_strip, needle, 0.0075)
+    slide = rows.source == CUT_SLIDE
+    assert np.count_nonzero(slide) == 16 and np.all(rows.kind[slide] == BILATERAL)
+    np.testing.assert_allclose(np.abs(rows.free_gap[slide]), offset, atol=1e-12)
+
+
+@pytest.mark.parametrize("offset", [0.6e-3, 3e-3])
+def test_a_needle_beside_the_cut_gets_no_sliding_row(planar_strip, offset):
+    # Parallel to the cut's plane, further than d_c = 0.5 mm from it, every sample projects inside the cut:
+    # it is in intact tissue (it gets insertion points there, refsim.simulation.events), so no row pulls it
+    # onto the plane (before: 16 bilateral rows with gaps of `offset`).
+    needle = rigid_needle([0.0051, 0.0063 + offset, 0.0045], [0.0, 0.0, -1.0], length=0.02)
+    rows, _ = _other_needle_rows(planar_strip, needle, 0.0075)
+    assert rows is None
+
+
+def test_a_needle_crossing_the_cuts_plane_slides_only_where_it_is_on_it(planar_strip):
+    # A needle along +y through the cut's plane at x = 5.1 mm, z = 8 mm, from y = 1 mm to 11 mm: its samples
+    # project inside the cut all along, but only those within d_c of the plane are on the cut.
+    needle = rigid_needle([0.0051, 0.011, 0.008], [0.0, 1.0, 0.0], length=0.02)
+    rows, _ = _other_needle_rows(planar_strip, needle, 0.010)
+    slide = rows.source == CUT_SLIDE
+    distances = np.abs(rows.points[slide][:, 1] - 0.0063)
+    assert np.all(np.abs(rows.free_gap[slide]) <= SPACING + 1e-12)
+    # Samples every d_c from y = 1 mm: two are within d_c of the plane y = 6.3 mm (y = 6.0 and 6.5 mm).
+    assert np.count_nonzero(slide) == 2, rows.free_gap[slide]
+    np.testing.assert_allclose(distances, 0.0, atol=1e-12)  # anchored on the plane

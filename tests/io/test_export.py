@@ -391,3 +391,55 @@ def test_vtu_of_an_unrecorded_step_exits_2_and_writes_nothing(cut_run, tmp_path,
     error = capsys.readouterr().err
     assert "--vtu 17: not a recorded tissue step" in error and "25, 50" in error
     assert not (tmp_path / "out").exists()
+
+
+def test_vtu_writes_every_instruments_needle_at_the_step(two_needle_run, tmp_path):
+    """Each instrument's needle at a recorded tissue step, read back with VTK's XML reader: its points are
+    that instrument's steps/needle_positions of the step, joined node to node by line segments, its
+    displacement is from its nodes at t = 0 and its radius is its needle's; `all` adds one .pvd per
+    instrument with the tissue's times."""
+    from xml.etree import ElementTree as ET
+
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    from refsim.io.export import export_vtu
+
+    results = read_results(two_needle_run)
+    files = export_vtu(two_needle_run, "all", tmp_path)
+    assert results.instrument_names == ("cutter", "holder")
+    for view in results.instruments:
+        (name,) = view.instrument_names
+        for number in results.tissue_steps:
+            points, grid, arrays = _vtk_grid(tmp_path / f"two_{name}_{int(number):07d}.vtu")
+            nodes = view.needle_positions[results.index_of(int(number))]
+            np.testing.assert_array_equal(points, nodes)
+            np.testing.assert_array_equal(arrays["displacement"], nodes - view.needle_rest_nodes)
+            np.testing.assert_array_equal(
+                arrays["radius"], np.full(len(nodes), results.scene["needle"]["radius"])
+            )
+            segments = vtk_to_numpy(grid.GetCells().GetConnectivityArray()).reshape(-1, 2)
+            np.testing.assert_array_equal(
+                segments, np.stack([np.arange(len(nodes) - 1), np.arange(1, len(nodes))], 1)
+            )
+        collection = ET.parse(tmp_path / f"two_{name}.pvd").getroot().find("Collection")
+        np.testing.assert_array_equal(
+            [float(item.get("timestep")) for item in collection], results.tissue_times
+        )
+    # The two needles are apart (4 cm between their entries), not one needle written twice.
+    first, second = (
+        _vtk_grid(tmp_path / f"two_{n}_{int(results.tissue_steps[-1]):07d}.vtu")[0]
+        for n in ("cutter", "holder")
+    )
+    assert np.linalg.norm(first - second, axis=1).min() > 0.03
+    assert sorted(tmp_path.iterdir()) == sorted(files)
+
+
+def test_vtu_needle_radius_is_each_instruments_own():
+    from refsim.io.export import _needle_radii
+
+    scene = {
+        "needle": {"radius": 0.008, "length": 0.32},
+        "instruments": [{"name": "a"}, {"name": "b", "radius": 0.0005}],
+    }
+    assert _needle_radii(scene, ("a", "b")) == [0.008, 0.0005]
+    assert _needle_radii({"needle": {"radius": 0.001}}, ("needle",)) == [0.001]
