@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 import scipy.sparse as sp
 
-from refsim.constraints.friction import friction_rows
+from refsim.constraints.friction import FaceStretch, friction_rows
 from refsim.constraints.needle_geometry import needle_rows
 from refsim.constraints.rows import (
     BILATERAL,
@@ -111,6 +111,9 @@ class FrontRows:
         of the step [m], shapes (f,), (b,): the same needle point (arc length) against the same material
         point of the tissue, so δ_end − δ_start is how far the needle moved through the tissue along the row
         over the step.
+    slide_arc_lengths : The needle point of every sliding row [m], shape (s,), in the block's order (their
+        friction rows follow it: along the needle for each, then across for each).
+    slide_nodes, slide_weights : Their tissue points on the cut surface: nodes and weights, shapes (s, 12).
     """
 
     rows: np.ndarray
@@ -126,6 +129,9 @@ class FrontRows:
     band_weights: np.ndarray = field(default_factory=lambda: np.zeros((0, 12)))
     previous_gaps: np.ndarray = field(default_factory=lambda: np.zeros(0))
     band_previous_gaps: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    slide_arc_lengths: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    slide_nodes: np.ndarray = field(default_factory=lambda: np.zeros((0, 12), np.int64))
+    slide_weights: np.ndarray = field(default_factory=lambda: np.zeros((0, 12)))
 
     @classmethod
     def empty(cls) -> FrontRows:
@@ -251,6 +257,7 @@ def strip_cut_block(
     front_strength: float = np.inf,
     friction_coefficient: float = 0.0,
     subgrid_compliance: tuple[np.ndarray, np.ndarray] | None = None,
+    face_stretch: FaceStretch | None = None,
 ) -> tuple[RowBlock | None, FrontRows]:
     """Sliding rows on the cut and front rows on its crack tip, for a strip cut (:mod:`refsim.cutting.strip`).
 
@@ -292,6 +299,10 @@ def strip_cut_block(
         own size): added to each sliding row (lateral) and to its friction rows (axial along the needle,
         lateral across), after the tet of the row's nearest cut point. It makes the sliding rows' multipliers
         unique (d_c ≪ h puts many rows on one triangle). None: no compliance added.
+    face_stretch : The friction rows' stick anchors after the last solve
+        (`refsim.constraints.friction.FaceStretch`, kept by the events from ``FrontRows.slide_arc_lengths``,
+        ``slide_nodes``, ``slide_weights``): each friction row starts from its relative position measured
+        from them, so a row that sticks keeps its load; None: from zero.
 
     Rows are ordered: sliding rows, then front rows, then the friction rows (two per sliding row).
     """
@@ -318,7 +329,7 @@ def strip_cut_block(
         return None, front.info
     friction = None
     if friction_coefficient > 0.0 and sliding.anchor is not None:
-        friction = _cut_friction_rows(geometry, sliding.anchor)
+        friction = _cut_friction_rows(geometry, sliding.anchor, face_stretch)
     block = _cut_block(
         sliding,
         front,
@@ -329,7 +340,13 @@ def strip_cut_block(
         subgrid_compliance=subgrid_compliance,
         spacing=spacing,
     )
-    return block, front.info
+    info = front.info
+    if sliding.anchor is not None:
+        anchor = sliding.anchor
+        info = replace(
+            info, slide_arc_lengths=anchor.arc_lengths, slide_nodes=anchor.nodes, slide_weights=anchor.weights
+        )
+    return block, info
 
 
 class _CutRows(NamedTuple):
@@ -569,8 +586,9 @@ def _front_rows(
     return _Front(rows, info, keep, strip.front.tet_indices[np.where(t < 0.5, seg, seg + 1)])
 
 
-def _cut_friction_rows(geometry: StepGeometry, anchor: _SlideAnchor) -> _CutRows:
-    """Two friction rows per sliding row, in the surface: along the needle, then across it."""
+def _cut_friction_rows(geometry: StepGeometry, anchor: _SlideAnchor, stretch: FaceStretch | None) -> _CutRows:
+    """Two friction rows per sliding row, in the surface: along the needle, then across it, each from its
+    relative position measured from the stick anchors of the last solve (``stretch``; none: from zero)."""
     axial = geometry.needle_free.tangents(anchor.arc_lengths)
     across = np.cross(anchor.normals, axial)
     across /= np.linalg.norm(across, axis=1, keepdims=True)
@@ -585,6 +603,11 @@ def _cut_friction_rows(geometry: StepGeometry, anchor: _SlideAnchor) -> _CutRows
         tangents=tangents,
         tissue_free_points=np.concatenate([points, points]),
         tissue_previous_points=np.concatenate([previous, previous]),
+        offsets=None
+        if stretch is None
+        else stretch.offsets(
+            np.concatenate([arcs, arcs]), tangents, geometry.needle_previous, geometry.tissue_previous
+        ),
     )
     count = tangents.shape[0]
     return _CutRows(

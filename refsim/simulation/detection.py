@@ -324,6 +324,7 @@ class Detector:
                 front_strength=self.law.front_strength,
                 friction_coefficient=cutting.friction_coefficient,
                 subgrid_compliance=self.cut_compliance,
+                face_stretch=state.cut_face_stretch,
             )
             if block is not None:
                 blocks.append(block)

@@ -39,14 +39,17 @@ import scipy.sparse as sp
 
 from refsim.constraints import (
     BILATERAL,
+    CUT_FRICTION,
     INSERTION,
     PENETRATION,
+    SLIDING,
     UNILATERAL,
     InsertionPath,
     grow_path,
     points_beyond_tip,
 )
 from refsim.constraints.cut import crack_tip_compression, inserted_arc
+from refsim.constraints.friction import FaceStretch
 from refsim.cutting import CutGrowth
 from refsim.cutting.growth import start_strip
 from refsim.cutting.laws import FrontPush
@@ -96,6 +99,10 @@ def shaft_lateral_force(
 PUNCTURE_TOLERANCE = 1e-6
 #: Barycentric tolerance of the tip's location among the tets around its last one (the locator's default).
 TIP_TOLERANCE = 1e-12
+
+#: A cut face's friction row sticks when its force is below its bound by more than this fraction of it (far
+#: above the solve's 10⁻⁸, as for the shaft's rows: `refsim.constraints.coupling.stuck_points`).
+STICK_TOLERANCE = 1e-3
 
 
 class LazyLocator:
@@ -186,6 +193,19 @@ class EventRules:
         elif state.phase == Phase.CUTTING:
             world, state, more = self._cutting(world, state, detection, multipliers)
             events.extend(more)
+        stretch = None
+        if state.phase == Phase.CUTTING and self.cutting.friction_coefficient > 0.0:
+            stretch = _face_stretch(
+                state.cut_face_stretch,
+                detection,
+                multipliers,
+                self.cutting.friction_coefficient,
+                self.needle_geometry(state.needle),
+                world.tissue.positions,
+                self.cutting.point_spacing,
+            )
+        if stretch is not None or state.cut_face_stretch is not None:
+            state = replace(state, cut_face_stretch=stretch)
         return world.with_instrument(state), events
 
     def _puncture(self, world, state, detection, multipliers):
@@ -444,3 +464,31 @@ class EventRules:
         world = replace(world, cut=grown.cut)
         state = replace(state, cut_strip=grown.strip, cut_direction=grown.direction)
         return world, state, events
+
+
+def _face_stretch(
+    previous, detection: Detection, multipliers: np.ndarray, coefficient: float, needle, positions, spacing
+):
+    """The cut faces' friction rows' stick anchors after the step's solve (the next step's rows start from
+    them: `refsim.constraints.friction.FaceStretch`), None without such rows. A row sticks when its force is
+    below its bound μ_c |λ| by more than 10⁻³ of it (far above the solve's 10⁻⁸; as the shaft's rows,
+    `refsim.constraints.coupling.stuck_points`)."""
+    rows, front = detection.rows, detection.front
+    friction, sliding = rows.rows_of(CUT_FRICTION), rows.rows_of(SLIDING)
+    arcs = front.slide_arc_lengths
+    if friction.size == 0 or friction.size != 2 * arcs.size or sliding.size != arcs.size:
+        return None
+    bound = coefficient * np.abs(np.concatenate([multipliers[sliding], multipliers[sliding]]))
+    return FaceStretch.after_solve(
+        previous,
+        arc_lengths=arcs,
+        nodes=front.slide_nodes,
+        weights=front.slide_weights,
+        tangents=rows.directions[friction],
+        compliance=rows.problem_compliance_diagonal()[friction],
+        multipliers=multipliers[friction],
+        stuck=np.abs(multipliers[friction]) < (1.0 - STICK_TOLERANCE) * bound,
+        needle=needle,
+        tissue_positions=positions,
+        tolerance=1e-9 * spacing,
+    )

@@ -8,6 +8,7 @@ from enum import StrEnum
 import numpy as np
 
 from refsim.constraints import TISSUE, InsertionPath
+from refsim.constraints.friction import FaceStretch
 from refsim.cutting import CutSurface
 from refsim.cutting.strip import CutStrip
 from refsim.fem.compliance import PartialSolveMarks, StaleFactor
@@ -43,6 +44,8 @@ class InstrumentState:
     tip_tet : The tissue tet its tip lies in after the step, −1 when the tip is outside the tissue (before
         puncture, after an exit through a far face or a withdrawal).
     tip_barycentric : The tip's barycentric coordinates in ``tip_tet``, shape (4,); None when outside.
+    cut_face_stretch : The annulus stretch under its friction rows on the cut faces at the last solve
+        (`refsim.constraints.friction.FaceStretch`), the next step's rows start from it; None without them.
     """
 
     name: str
@@ -53,6 +56,7 @@ class InstrumentState:
     cut_strip: CutStrip | None = None
     tip_tet: int = -1
     tip_barycentric: np.ndarray | None = None
+    cut_face_stretch: FaceStretch | None = None
 
 
 @dataclass(frozen=True)
