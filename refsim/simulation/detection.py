@@ -38,7 +38,7 @@ from refsim.constraints.coupling import (
     subgrid_compliance,
     tip_cutting_block,
 )
-from refsim.constraints.cut import FrontRows, inserted_arc, strip_cut_block
+from refsim.constraints.cut import FrontRows, inserted_span, strip_cut_block
 from refsim.constraints.insertion import InsertionPath, PointRings
 from refsim.geometry import SurfaceProjector, TetLocator
 from refsim.scene import Scene
@@ -287,7 +287,7 @@ class Detector:
                 blocks.append(tip_block)
         if state.phase == Phase.INSERTION and world.cut is not None and world.cut.triangle_count:
             # A needle inserted along an existing cut slides in it: the old cut's sliding rows (no crack tip).
-            entry_arc_length = inserted_arc(
+            entry_arc_length, exit_arc_length = inserted_span(
                 geometry.needle_previous,
                 TetLocator(geometry.tissue_previous, geometry.mesh_tets),
                 self.cutting.point_spacing,
@@ -300,6 +300,7 @@ class Detector:
                 spacing=self.cutting.point_spacing,
                 cut_direction=np.zeros(3),
                 subgrid_compliance=self.cut_compliance,
+                exit_arc_length=exit_arc_length,
             )
             if block is not None:
                 blocks.append(block)
@@ -307,7 +308,7 @@ class Detector:
             # The inserted part of the needle: from where it enters the tissue (not the entry point's
             # projection, which a tilted needle pushed sideways leaves above the tissue) to the tip, on the
             # start-of-step state.
-            entry_arc_length = inserted_arc(
+            entry_arc_length, exit_arc_length = inserted_span(
                 geometry.needle_previous,
                 TetLocator(geometry.tissue_previous, geometry.mesh_tets),
                 self.cutting.point_spacing,
@@ -325,6 +326,7 @@ class Detector:
                 friction_coefficient=cutting.friction_coefficient,
                 subgrid_compliance=self.cut_compliance,
                 face_stretch=state.cut_face_stretch,
+                exit_arc_length=exit_arc_length,
             )
             if block is not None:
                 blocks.append(block)

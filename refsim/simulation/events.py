@@ -22,6 +22,9 @@
   direction)
 - phase: cutting; event: retraction, withdrawal; when: the entry point beyond the tip; then: every row
   released; approach (the cut stays)
+- phase: cutting; event: exit; when: the tip, inside the tissue at the step's start, lies in no tet at its
+  end; then: the cut rows run along the part of the needle in the tissue, from its entry to where it
+  leaves through the far face
 - phase: cutting; event: leave_cut; when: the needle is back behind the strip's first layer (the line it
   entered along) by more than d_c/2, along −ĉ; then: insertion points along the inserted needle every d_i
   where it lies in intact tissue (none in the cut: the part still in it slides in it); insertion (the cut
@@ -48,7 +51,7 @@ from refsim.constraints import (
     grow_path,
     points_beyond_tip,
 )
-from refsim.constraints.cut import crack_tip_compression, inserted_arc
+from refsim.constraints.cut import crack_tip_compression, inserted_arc, inserted_span
 from refsim.constraints.friction import FaceStretch
 from refsim.cutting import CutGrowth
 from refsim.cutting.growth import start_strip
@@ -326,7 +329,11 @@ class EventRules:
         positions = world.tissue.positions
         path_points = state.path.positions(positions, self.tets)
         needle = self.needle_geometry(state.needle)
-        inserted = needle.length - float(needle.project(path_points[:1])[0][0])
+        end = needle.length
+        if state.tip_tet < 0:
+            # The tip out of a far face: the shaft cuts along the part in the tissue only.
+            _, end = inserted_span(needle, TetLocator(positions, self.tets), self.cutting.point_spacing)
+        inserted = end - float(needle.project(path_points[:1])[0][0])
         self.margins.cut_start(self.law, force_on_needle, inserted, state.path.point_count)
         start = self.law.cut_start(
             force_on_needle, inserted_length=inserted, point_count=state.path.point_count
@@ -413,6 +420,12 @@ class EventRules:
             return world, state, [Event("retraction"), Event("withdrawal")]
         events: list[Event] = []
         cutting = self.cutting
+        # The tip's material state, as in insertion: leaving through a far face is the event exit (the needle
+        # still cuts along the part in the tissue).
+        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet)
+        if state.tip_tet >= 0 and tip_tet < 0:
+            events.append(Event("exit"))
+        state = replace(state, tip_tet=tip_tet, tip_barycentric=tip_barycentric)
         if state.cut_strip is not None and world.cut is not None:
             # Moved back through its own cut and past the line it entered along (the strip's first layer, its
             # rear edge) by more than half a cut spacing: the needle is in intact tissue again.
@@ -420,7 +433,8 @@ class EventRules:
             _, on_needle = needle.project(rear)
             behind = float(((on_needle - rear) @ state.cut_direction).mean())
             if behind < -0.5 * cutting.point_spacing:
-                return self._leave_cut(world, state, needle, positions)
+                world, state, more = self._leave_cut(world, state, needle, positions)
+                return world, state, [*events, *more]
         locator, entry_arc = None, None
         if self.law.extends_down_shaft and state.cut_strip is not None:
             # A needle inserted deeper than the strip while it cuts: pushed sideways with the rest of the

@@ -459,3 +459,119 @@ def test_a_needle_held_in_its_cut_keeps_its_friction_load_for_a_second(dt):
     assert np.ptp(friction, axis=0).max() <= tolerance * np.linalg.norm(friction[0]), np.ptp(friction, axis=0)
     assert np.ptp(total, axis=0).max() <= tolerance * np.linalg.norm(total[0]), np.ptp(total, axis=0)
     assert not any(e.name == "tear" for r in hold for e in r.events)
+
+
+def _components(triangles: np.ndarray) -> list[np.ndarray]:
+    """The triangles of each connected piece of a triangle mesh (sharing an edge), as index arrays."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    edges = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, edge_id = np.unique(edges, axis=0, return_inverse=True)
+    owner = np.repeat(np.arange(triangles.shape[0]), 3)
+    incidence = coo_matrix((np.ones(owner.size), (owner, edge_id.ravel())))
+    count, labels = connected_components(incidence @ incidence.T, directed=False)
+    return [np.flatnonzero(labels == k) for k in range(count)]
+
+
+def test_a_second_cut_after_an_exit_is_a_second_surface_in_the_rows_the_file_and_the_pictures(tmp_path):
+    # cube_cut on 4³ cells: inserted 12 mm, cut 4 mm along +x, pulled out (withdrawal), moved 25 mm along x
+    # in the air, inserted 12 mm again and cut 4 mm along +y. Expected: puncture, cut_start, withdrawal,
+    # puncture, cut_start in that order; the results file's cut (what `refsim render` and the cut-area
+    # figures read) is two separate discs, each where its cut ran: the first along x from the first path,
+    # the second along y from the second (a disc each: one border loop, χ = 1), each of area between
+    # (stroke − d_c)(depth − d_c) and (stroke + d_c)(depth + d_c) (the crack tip lags the needle by less
+    # than d_c/2 and the strip spans the inserted depth within d_c); the step counts match the file; the
+    # picture's surface at the end holds every point of both.
+    from refsim.cutting.metrics import surface_topology
+    from refsim.io.driver import run_scene
+    from refsim.io.reader import read_results
+    from refsim.sweep.quantities import triangle_areas
+    from refsim.viz.render import cut_surface_positions
+
+    x0, y0, x1 = 0.00123, 0.00231, 0.02623
+    times = [0.0, 0.7, 0.8, 1.2, 1.3, 2.05, 2.55, 3.25, 3.35, 3.75, 3.85]
+    knots = [(x0, y0, 0.422), (x0, y0, 0.408), (x0, y0, 0.408), (x0 + 0.004, y0, 0.408)]
+    knots += [(x0 + 0.004, y0, 0.408), (x0 + 0.004, y0, 0.423), (x1, y0, 0.423), (x1, y0, 0.408)]
+    knots += [(x1, y0, 0.408), (x1, y0 + 0.004, 0.408), (x1, y0 + 0.004, 0.408)]
+    scene = load_scene(
+        "cube_cut",
+        [
+            "mesh.cells=[4, 4, 4]",
+            f"trajectory.times={times!r}",
+            "trajectory.base_positions=[" + ", ".join(f"[{x!r}, {y!r}, {z!r}]" for x, y, z in knots) + "]",
+            "trajectory.directions=[" + ", ".join(["[0, 0, -1]"] * len(times)) + "]",
+            f"time.duration={times[-1]}",
+        ],
+    )
+    path = tmp_path / "two_cuts.h5"
+    run_scene(scene, path, handle_signals=False)
+    results = read_results(path)
+    order = [e.name for e in results.events if e.name in ("puncture", "cut_start", "withdrawal")]
+    assert order == ["puncture", "cut_start", "withdrawal", "puncture", "cut_start"], order
+    cut = results.cut
+    assert int(results.cut_point_count[-1]) == cut.points.shape[0]
+    topology = surface_topology(cut.triangles, cut.points.shape[0])
+    assert topology.isolated_points == 0 and topology.non_manifold_edges == 0
+    assert topology.boundary_loops == 2 and topology.euler_characteristic == 2, topology
+    d_c, depth, stroke = scene.cutting.point_spacing, 0.012, 0.004
+    pieces = sorted(_components(cut.triangles), key=lambda t: cut.points[cut.triangles[t]][..., 0].mean())
+    assert len(pieces) == 2
+    for piece, (start, along) in zip(pieces, [((x0, y0), 0), ((x1, y0), 1)], strict=True):
+        corners = cut.points[cut.triangles[piece]].reshape(-1, 3)
+        across = 1 - along
+        assert np.abs(corners[:, across] - start[across]).max() <= d_c  # in its own plane
+        reach = corners[:, along].max() - start[along]
+        assert stroke - d_c <= reach <= stroke + d_c, reach
+        area = triangle_areas(cut.points, cut.triangles[piece]).sum()
+        assert (stroke - d_c) * (depth - d_c) <= area <= (stroke + d_c) * (depth + d_c), area
+    shown, triangles = cut_surface_positions(results, int(results.step[-1]), results.rest_positions)
+    assert shown.shape[0] == cut.points.shape[0] and triangles.shape[0] == cut.triangles.shape[0]
+
+
+# An 8 mm slab as for the thin layer above, cut with G_c = 20 J/m² (the 0.5 mm needle cuts after a short
+# stroke): inserted 6 mm, moved 3 mm along +x (the cut starts), then 3 mm further along +x while going 6 mm
+# deeper (the tip leaves through the far face at about 2 mm of it), then held.
+SLAB_CUT_TIMES = [0.0, 0.8, 1.1, 1.4, 2.0, 2.3]
+SLAB_CUT_KNOTS = [(0.00123, -0.002), (0.00123, 0.006), (0.00123, 0.006), (0.00423, 0.006)]
+SLAB_CUT_KNOTS += [(0.00723, 0.012), (0.00723, 0.012)]
+
+
+@pytest.mark.parametrize("solver", ["gauss_seidel", pytest.param("exact", marks=pytest.mark.slow)], ids=str)
+def test_a_needle_leaving_through_the_far_face_while_cutting_keeps_cutting_the_layer(solver):
+    # Expected: the event exit once, while cutting; afterwards the cut rows run along the part of the needle
+    # in the slab (entry to far face), so the tissue pushes the needle back (−x) at G_c per unit length of
+    # that part (Griffith, as in any stroke: within the rows' coverage L − 3 d_c and L + d_c, L the slab's
+    # thickness along the needle) and the crack tip follows the needle to within the lag of a stroke
+    # (d_c/2). Before, the rows ended at the tip: once it left, the needle crossed intact tissue with no
+    # force.
+    bases = [[x, 0.00231, TOP - depth + NEEDLE_LENGTH] for x, depth in SLAB_CUT_KNOTS]
+    scene = load_scene(
+        "cube_cut",
+        [
+            *SLAB,
+            *SOLVERS[solver],
+            "cutting.fracture_energy=20",
+            f"trajectory.times={SLAB_CUT_TIMES!r}",
+            f"trajectory.base_positions={bases!r}",
+            "trajectory.directions=[" + ", ".join(["[0, 0, -1]"] * len(SLAB_CUT_TIMES)) + "]",
+            f"time.duration={SLAB_CUT_TIMES[-1]}",
+        ],
+    )
+    simulation = Simulation(scene)
+    records, tips = [], []
+    simulation.run(
+        on_step=lambda state, record: (
+            records.append(record),
+            tips.append(None if state.cut_strip is None else state.cut_strip.front.rest_points[:, 0].mean()),
+        )
+    )
+    exits = [r for r in records if any(e.name == "exit" for e in r.events)]
+    assert len(exits) == 1 and exits[0].phase == "cutting"
+    g_c, d_c = scene.cutting.fracture_energy, scene.cutting.point_spacing
+    thickness = TOP - SLAB_BOTTOM
+    after = [(r, tip) for r, tip in zip(records, tips, strict=True) if r.step > exits[0].step + 2]
+    assert after
+    for record, tip in after:
+        assert g_c * (thickness - 3 * d_c) <= -record.needle_force[0] <= g_c * (thickness + d_c), record.step
+        assert 0.0 <= record.needle_positions[-1, 0] - tip <= 0.5 * d_c, (record.step, tip)
