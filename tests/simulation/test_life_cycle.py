@@ -1,8 +1,34 @@
-"""The needle's whole life on small cubes (issue 24): insert, hold, pull back, exit, re-enter.
+"""The needle's whole life on small cubes (issue 24): insert, hold, pull back, cut, exit, re-enter.
 
-Each test runs the paper's cube scene on a 4³ box (the built-in cube's needle, grip and tip cutting force)
-with a short trajectory, and asserts what the model must do at that stage of the needle's life, with its
-reference stated beside it.
+Each test runs the paper's cube scene (or cube_cut) on a 4³ box (or an 8 mm slab) with a short trajectory,
+and asserts what the model must do at that stage of the needle's life, with its reference stated beside it.
+
+The life-cycle matrix (stage: where it is tested; the cases beyond the first of each list are @slow):
+
+- insert, hold 1 s at dt = 1, 5, 20 ms (the shaft's stick): ``test_a_held_needle_keeps_its_friction_load_...``
+  (rigid, flexible);
+- insert, hold, pull back out, move in the air, re-insert elsewhere: ``test_insert_hold_withdraw_and_...``
+  (entry on a face, an edge, a vertex; 0° and 30°; rigid and flexible; Gauss–Seidel and exact);
+- cross a thin layer, punctures on its faces: ``test_a_thin_layer_is_crossed_...`` (0°, 30°; both solvers;
+  rigid, flexible; entry on a face or a vertex);
+- cut, then back through the cut and beyond into intact tissue: ``test_back_through_the_cut_...`` (both
+  solvers; rigid, flexible), tilted: ``tests/simulation/test_leave_cut.py``;
+- cut, hold 1 s in the cut with friction on its faces: ``test_a_needle_held_in_its_cut_keeps_...`` (dt = 1,
+  5, 20 ms);
+- cut, then pull straight out: ``test_a_needle_pulled_straight_out_after_a_stroke_cuts_by_...`` (rigid at
+  dt = 5, 10, 20 ms; flexible at 10, 20 ms), the stroke's advance at those dt:
+  ``test_a_lateral_stroke_keeps_cutting_by_its_stroke_at_any_dt``;
+- cut, exit through the far face while cutting: ``test_a_needle_leaving_through_the_far_face_...`` (both
+  solvers; rigid, flexible);
+- cut, withdraw, re-insert elsewhere and cut again: ``test_a_second_cut_after_an_exit_is_a_second_...``
+  (file, render, areas), and on 6³ cells ``test_cutting.py::test_the_whole_life_of_a_needle``;
+- re-insert along the cut: ``tests/simulation/test_cutting.py::test_reinsertion_along_an_existing_cut_...``
+  (vertical, rigid, Gauss–Seidel only);
+- cut over directions, tilts, entries on an edge or a vertex, flexible: the matrix of
+  ``tests/simulation/test_cutting.py`` (Gauss–Seidel, and against the exact solver on eight cases).
+
+Not covered yet: the re-insertion along a cut tilted, flexible or with the exact solver; the thin layer and
+the far-face exit with a tilted needle and an entry on an edge; the held needle tilted.
 """
 
 from __future__ import annotations
@@ -18,6 +44,13 @@ from refsim.simulation import Simulation
 ENTRY = (0.00123, 0.00231)
 NEEDLE_LENGTH = 0.32
 TOP = 0.1
+
+
+# Entries on the 4³ cube's top face (grid lines every 25 mm): inside a surface triangle, on a grid edge, at a
+# grid vertex; the second insertion enters 25 mm further along x, at the same kind of place.
+ENTRIES = {"face": (0.00123, 0.00231), "edge": (0.0, 0.00231), "vertex": (0.0, 0.0)}
+DIRECTIONS = {"0deg": (0.0, 0.0, -1.0), "30deg": (0.5, 0.0, -0.8660254037844386)}
+NEEDLES = {"rigid": (), "flexible": ("needle.rigid=false",)}
 
 
 def _trajectory(times, depths, direction=(0.0, 0.0, -1.0), entry=ENTRY):
@@ -50,14 +83,17 @@ def _shaft_force(record) -> float:
     return float((record.row_forces[axial] * record.row_directions[axial, 2]).sum())
 
 
+@pytest.mark.parametrize("needle", ["rigid", pytest.param("flexible", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("dt", [pytest.param(0.001, marks=pytest.mark.slow), 0.005, 0.02])
-def test_a_held_needle_keeps_its_friction_load_for_a_second(dt):
+def test_a_held_needle_keeps_its_friction_load_for_a_second(dt, needle):
     # Inserted 8 mm at 20 mm/s, stopped at 0.5 s, held 1.1 s. Reference: an elastic body held by Coulomb
     # stick at rest is in static equilibrium, so the load the insertion left stays (no viscous law in the
     # model relaxes it); only the damping transient after the stop (β = 0.01 s) moves it, so it is read from
     # 0.1 s after the stop. Tolerance: each solve returns λ within its relative tolerance τ; kept from step
     # to step, n steps of such errors move the force by at most n τ |F|.
-    scene, records = _run(f"time.dt={dt}", *_trajectory([0.0, 0.5, 1.6], [-0.002, 0.008, 0.008]))
+    scene, records = _run(
+        f"time.dt={dt}", *NEEDLES[needle], *_trajectory([0.0, 0.5, 1.6], [-0.002, 0.008, 0.008])
+    )
     hold = [r for r in records if r.time >= 0.6 - 1e-9]
     shaft = np.array([_shaft_force(r) for r in hold])
     total = np.array([r.needle_force[2] for r in hold])
@@ -81,17 +117,22 @@ SLAB = (
 SOLVERS = {"gauss_seidel": (), "exact": ('solver.method="exact"',)}
 
 
+@pytest.mark.parametrize("entry", ["face", pytest.param("vertex", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("needle", ["rigid", pytest.param("flexible", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("solver", ["gauss_seidel", pytest.param("exact", marks=pytest.mark.slow)], ids=str)
 @pytest.mark.parametrize(
     "direction", [(0.0, 0.0, -1.0), (0.5, 0.0, -0.8660254037844386)], ids=["0deg", "30deg"]
 )
-def test_a_thin_layer_is_crossed_with_entry_and_exit_punctures_on_its_faces(direction, solver):
+def test_a_thin_layer_is_crossed_with_entry_and_exit_punctures_on_its_faces(direction, solver, needle, entry):
     # The tip travels 16 mm along the needle through the 8 mm slab, then rests 0.4 s in the air below it.
     # Expected: one puncture with the tip at the top face (the face it approaches), one exit with the tip at
     # the bottom face, the tip's cutting row while the tip is in the tissue and never after the exit (the
     # tissue has nothing left to cut), insertion points across the whole thickness.
     scene, records = _run(
-        *SLAB, *SOLVERS[solver], *_trajectory([0.0, 1.6, 2.0], [-0.002, 0.014, 0.014], direction)
+        *SLAB,
+        *SOLVERS[solver],
+        *NEEDLES[needle],
+        *_trajectory([0.0, 1.6, 2.0], [-0.002, 0.014, 0.014], direction, entry=ENTRIES[entry]),
     )
     steps = {
         name: [r for r in records if any(e.name == name for e in r.events)] for name in ("puncture", "exit")
@@ -130,8 +171,9 @@ def test_a_straight_insertion_has_no_lateral_force_from_the_tip_row():
     assert lateral <= 0.01 * abs(last.needle_force[2]), (last.needle_force, lateral)
 
 
+@pytest.mark.parametrize("needle", ["rigid", pytest.param("flexible", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("solver", ["gauss_seidel", pytest.param("exact", marks=pytest.mark.slow)], ids=str)
-def test_back_through_the_cut_and_beyond_the_entry_the_needle_meets_intact_tissue(solver):
+def test_back_through_the_cut_and_beyond_the_entry_the_needle_meets_intact_tissue(solver, needle):
     # cube_cut on 4³ cells: inserted 17 mm, cut 8 mm along +x, then moved back 14 mm: through its own cut
     # (nothing to cut there) and 6 mm beyond the line it entered along, into intact tissue. Expected: the
     # needle leaves its cut behind the entry line (within half a cut spacing plus a step's travel), starts a
@@ -154,6 +196,7 @@ def test_back_through_the_cut_and_beyond_the_entry_the_needle_meets_intact_tissu
             "trajectory.directions=[" + ", ".join(["[0, 0, -1]"] * len(times)) + "]",
             f"time.duration={times[-1]}",
             *SOLVERS[solver],
+            *NEEDLES[needle],
         ],
     )
     records = []
@@ -203,11 +246,6 @@ def _path_overrides(knots, direction):
     )
 
 
-# Entries on the 4³ cube's top face (grid lines every 25 mm): inside a surface triangle, on a grid edge, at a
-# grid vertex; the second insertion enters 25 mm further along x, at the same kind of place.
-ENTRIES = {"face": (0.00123, 0.00231), "edge": (0.0, 0.00231), "vertex": (0.0, 0.0)}
-DIRECTIONS = {"0deg": (0.0, 0.0, -1.0), "30deg": (0.5, 0.0, -0.8660254037844386)}
-NEEDLES = {"rigid": (), "flexible": ("needle.rigid=false",)}
 LIFE = [
     pytest.param(entry, direction, needle, solver, marks=[pytest.mark.slow] if slow else [])
     for entry in ENTRIES
@@ -537,8 +575,9 @@ SLAB_CUT_KNOTS = [(0.00123, -0.002), (0.00123, 0.006), (0.00123, 0.006), (0.0042
 SLAB_CUT_KNOTS += [(0.00723, 0.012), (0.00723, 0.012)]
 
 
+@pytest.mark.parametrize("needle", ["rigid", pytest.param("flexible", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("solver", ["gauss_seidel", pytest.param("exact", marks=pytest.mark.slow)], ids=str)
-def test_a_needle_leaving_through_the_far_face_while_cutting_keeps_cutting_the_layer(solver):
+def test_a_needle_leaving_through_the_far_face_while_cutting_keeps_cutting_the_layer(solver, needle):
     # Expected: the event exit once, while cutting; afterwards the cut rows run along the part of the needle
     # in the slab (entry to far face), so the tissue pushes the needle back (−x) at G_c per unit length of
     # that part (Griffith, as in any stroke: within the rows' coverage L − 3 d_c and L + d_c, L the slab's
@@ -551,6 +590,7 @@ def test_a_needle_leaving_through_the_far_face_while_cutting_keeps_cutting_the_l
         [
             *SLAB,
             *SOLVERS[solver],
+            *NEEDLES[needle],
             "cutting.fracture_energy=20",
             f"trajectory.times={SLAB_CUT_TIMES!r}",
             f"trajectory.base_positions={bases!r}",
