@@ -23,8 +23,9 @@
 - phase: cutting; event: retraction, withdrawal; when: the entry point beyond the tip; then: every row
   released; approach (the cut stays)
 - phase: cutting; event: exit; when: the tip, inside the tissue at the step's start, lies in no tet at its
-  end; then: the cut rows run along the part of the needle in the tissue, from its entry to where it
-  leaves through the far face
+  end, having moved forward through the tissue (along the needle, relative to its material point); then:
+  the cut rows run along the part of the needle in the tissue, from its entry to where it leaves through
+  the far face
 - phase: cutting; event: leave_cut; when: the needle is back behind the strip's first layer (the line it
   entered along) by more than d_c/2, along −ĉ; then: insertion points along the inserted needle every d_i
   where it lies in intact tissue (none in the cut: the part still in it slides in it); insertion (the cut
@@ -421,10 +422,14 @@ class EventRules:
         events: list[Event] = []
         cutting = self.cutting
         # The tip's material state, as in insertion: leaving through a far face is the event exit (the needle
-        # still cuts along the part in the tissue).
+        # still cuts along the part in the tissue). Only forward through the tissue: a tip pulled back out
+        # through the face it entered by (on the step before the entry point is beyond it) is a withdrawal.
         tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet)
-        if state.tip_tet >= 0 and tip_tet < 0:
-            events.append(Event("exit"))
+        if state.tip_tet >= 0 and tip_tet < 0 and state.tip_barycentric is not None:
+            where = state.tip_barycentric @ positions[self.tets[state.tip_tet]]
+            tangent = needle.tangents(np.array([needle.length]))[0]
+            if float((needle.tip - where) @ tangent) > 0.0:
+                events.append(Event("exit"))
         state = replace(state, tip_tet=tip_tet, tip_barycentric=tip_barycentric)
         if state.cut_strip is not None and world.cut is not None:
             # Moved back through its own cut and past the line it entered along (the strip's first layer, its
