@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from refsim.constraints.friction import friction_rows
+from refsim.constraints.friction import FaceStretch, friction_rows
 from refsim.constraints.needle_geometry import needle_rows
 from refsim.constraints.rows import (
     BILATERAL,
@@ -42,38 +42,64 @@ from refsim.constraints.rows import (
 )
 from refsim.constraints.step_geometry import StepGeometry
 
-__all__ = ["FrontRows", "crack_tip_compression", "cut_criterion", "inserted_arc", "strip_cut_block"]
+__all__ = [
+    "FrontRows",
+    "crack_tip_compression",
+    "cut_criterion",
+    "inserted_arc",
+    "inserted_span",
+    "strip_cut_block",
+]
 
 # Border points whose inward direction has less than this component normal to the needle are ends of the
 # strip (their inward direction runs along the shaft): they would only block the axial motion. cos(60°).
 _MIN_NORMAL_COMPONENT = 0.5
 
 
-def inserted_arc(needle, locator, spacing: float, *, refinement: int = 16) -> float:
-    """Arc length [m] where the needle enters the tissue: the smallest s such that the centreline from s to
-    the tip lies in the tissue mesh (``locator``, a `refsim.geometry.TetLocator` on the configuration of
-    ``needle``), to ``spacing / refinement``; the needle's length when the tip is outside.
+def inserted_span(needle, locator, spacing: float, *, refinement: int = 16) -> tuple[float, float]:
+    """Arc lengths [m] where the needle enters the tissue and where its inserted part ends: the centreline
+    from the entry to the end lies in the tissue mesh (``locator``, a `refsim.geometry.TetLocator` on the
+    configuration of ``needle``), each to ``spacing / refinement``. The end is the tip while the tip is in
+    the tissue, else where the centreline leaves it through a far face (the part beyond, in the air, is not
+    inserted); (length, length) when no sample of the needle lies in the tissue.
 
     This, not the projection of the entry point, bounds the inserted part of the needle while it cuts: a
     tilted needle pushed sideways moves away from its entry point along the tissue surface, and the entry
     point's projection then lies up to stroke × tan(tilt) above the tissue (2.2 mm for a 30° needle and a 5 mm
-    stroke; rows placed there pulled the needle onto the tissue surface: 10.8 N against 3.6 N).
+    stroke; rows placed there pulled the needle onto the tissue surface: 10.8 N against 3.6 N). And a needle
+    through a layer, its tip out of its far face, still cuts along the layer's thickness (ended at the tip,
+    the span was empty once the tip left, and the needle crossed intact tissue with no force).
     """
     length = needle.length
     arcs = np.arange(length, -0.5 * spacing, -spacing)  # from the tip to the base, every spacing
     found, _ = locator.locate(needle.points(np.clip(arcs, 0.0, length)))
-    outside = np.flatnonzero(found < 0)
+    inside = found >= 0
+    end = float(length)
+    if not inside[0]:
+        deepest = np.flatnonzero(inside)
+        if deepest.size == 0:
+            return end, end
+        last = int(deepest[0])  # the deepest sample in the tissue; the one before it (deeper) is out
+        fine = np.linspace(max(arcs[last], 0.0), arcs[last - 1], refinement + 1)
+        located, _ = locator.locate(needle.points(fine))
+        out = np.flatnonzero(located < 0)
+        end = float(fine[max(int(out[0]) - 1, 0)]) if out.size else float(arcs[last - 1])
+        arcs, inside = arcs[last:], inside[last:]
+    outside = np.flatnonzero(~inside)
     if outside.size == 0:
-        return 0.0
+        return 0.0, end
     first = int(outside[0])
-    if first == 0:
-        return float(length)
     # Refine between the first sample outside and the last inside.
     fine = np.linspace(max(arcs[first], 0.0), arcs[first - 1], refinement + 1)
     found, _ = locator.locate(needle.points(fine))
     outside_fine = np.flatnonzero(found < 0)
     lead = int(outside_fine[-1]) + 1 if outside_fine.size else 0
-    return float(fine[min(lead, refinement)])
+    return float(fine[min(lead, refinement)]), end
+
+
+def inserted_arc(needle, locator, spacing: float, *, refinement: int = 16) -> float:
+    """Arc length [m] where the needle enters the tissue (:func:`inserted_span`'s first value)."""
+    return inserted_span(needle, locator, spacing, refinement=refinement)[0]
 
 
 def cut_criterion(lateral_force: np.ndarray, point_count: int, cutting_force: float) -> bool:
@@ -111,6 +137,9 @@ class FrontRows:
         of the step [m], shapes (f,), (b,): the same needle point (arc length) against the same material
         point of the tissue, so δ_end − δ_start is how far the needle moved through the tissue along the row
         over the step.
+    slide_arc_lengths : The needle point of every sliding row [m], shape (s,), in the block's order (their
+        friction rows follow it: along the needle for each, then across for each).
+    slide_nodes, slide_weights : Their tissue points on the cut surface: nodes and weights, shapes (s, 12).
     """
 
     rows: np.ndarray
@@ -126,6 +155,9 @@ class FrontRows:
     band_weights: np.ndarray = field(default_factory=lambda: np.zeros((0, 12)))
     previous_gaps: np.ndarray = field(default_factory=lambda: np.zeros(0))
     band_previous_gaps: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    slide_arc_lengths: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    slide_nodes: np.ndarray = field(default_factory=lambda: np.zeros((0, 12), np.int64))
+    slide_weights: np.ndarray = field(default_factory=lambda: np.zeros((0, 12)))
 
     @classmethod
     def empty(cls) -> FrontRows:
@@ -251,6 +283,8 @@ def strip_cut_block(
     front_strength: float = np.inf,
     friction_coefficient: float = 0.0,
     subgrid_compliance: tuple[np.ndarray, np.ndarray] | None = None,
+    face_stretch: FaceStretch | None = None,
+    exit_arc_length: float | None = None,
 ) -> tuple[RowBlock | None, FrontRows]:
     """Sliding rows on the cut and front rows on its crack tip, for a strip cut (:mod:`refsim.cutting.strip`).
 
@@ -294,10 +328,16 @@ def strip_cut_block(
         own size): added to each sliding row (lateral) and to its friction rows (axial along the needle,
         lateral across), after the tet of the row's nearest cut point. It makes the sliding rows' multipliers
         unique (d_c ≪ h puts many rows on one triangle). None: no compliance added.
+    face_stretch : The friction rows' stick anchors after the last solve
+        (`refsim.constraints.friction.FaceStretch`, kept by the events from ``FrontRows.slide_arc_lengths``,
+        ``slide_nodes``, ``slide_weights``): each friction row starts from its relative position measured
+        from them, so a row that sticks keeps its load; None: from zero.
+    exit_arc_length : Arc length where the inserted part ends [m] (:func:`inserted_span`): the tip (None), or
+        where the needle leaves the tissue through a far face; the samples end there.
 
     Rows are ordered: sliding rows, then front rows, then the friction rows (two per sliding row).
     """
-    samples = _needle_samples(geometry, entry_arc_length, spacing)
+    samples = _needle_samples(geometry, entry_arc_length, spacing, exit_arc_length)
     if samples is None:
         return None, FrontRows.empty()
     front_previous = (
@@ -320,7 +360,7 @@ def strip_cut_block(
         return None, front.info
     friction = None
     if friction_coefficient > 0.0 and sliding.anchor is not None:
-        friction = _cut_friction_rows(geometry, sliding.anchor)
+        friction = _cut_friction_rows(geometry, sliding.anchor, face_stretch)
     block = _cut_block(
         sliding,
         front,
@@ -331,7 +371,13 @@ def strip_cut_block(
         subgrid_compliance=subgrid_compliance,
         spacing=spacing,
     )
-    return block, front.info
+    info = front.info
+    if sliding.anchor is not None:
+        anchor = sliding.anchor
+        info = replace(
+            info, slide_arc_lengths=anchor.arc_lengths, slide_nodes=anchor.nodes, slide_weights=anchor.weights
+        )
+    return block, info
 
 
 def _cut_rows(geometry, nodes, node_weights, directions, arcs, needle_points, anchor, *, kind, source, role):
@@ -395,10 +441,12 @@ class _Front(NamedTuple):
     tets: np.ndarray  # the tet of each row's nearest crack-tip column (its sub-grid compliance), (f,)
 
 
-def _needle_samples(geometry: StepGeometry, entry_arc_length: float, spacing: float) -> _NeedleSamples | None:
-    """The needle sampled every d_c = ``spacing`` from ``entry_arc_length`` to the tip; None when the tip is
-    out (the entry is at the needle's length)."""
-    length = geometry.needle_free.length
+def _needle_samples(
+    geometry: StepGeometry, entry_arc_length: float, spacing: float, exit_arc_length: float | None = None
+) -> _NeedleSamples | None:
+    """The needle sampled every d_c = ``spacing`` from ``entry_arc_length`` to ``exit_arc_length`` (the tip
+    when None); None when nothing lies between them (the tip is out: the entry is at the needle's length)."""
+    length = geometry.needle_free.length if exit_arc_length is None else float(exit_arc_length)
     start = max(0.0, min(entry_arc_length, length))
     if start >= length:
         return None
@@ -587,8 +635,9 @@ def _front_rows(
     return _Front(rows, info, keep, strip.front.tet_indices[np.where(t < 0.5, seg, seg + 1)])
 
 
-def _cut_friction_rows(geometry: StepGeometry, anchor: _SlideAnchor) -> RowBlock:
-    """Two friction rows per sliding row, in the surface: along the needle, then across it."""
+def _cut_friction_rows(geometry: StepGeometry, anchor: _SlideAnchor, stretch: FaceStretch | None) -> RowBlock:
+    """Two friction rows per sliding row, in the surface: along the needle, then across it, each from its
+    relative position measured from the stick anchors of the last solve (``stretch``; none: from zero)."""
     axial = geometry.needle_free.tangents(anchor.arc_lengths)
     across = np.cross(anchor.normals, axial)
     across /= np.linalg.norm(across, axis=1, keepdims=True)
@@ -603,6 +652,11 @@ def _cut_friction_rows(geometry: StepGeometry, anchor: _SlideAnchor) -> RowBlock
         tangents=tangents,
         tissue_free_points=np.concatenate([points, points]),
         tissue_previous_points=np.concatenate([previous, previous]),
+        offsets=None
+        if stretch is None
+        else stretch.offsets(
+            np.concatenate([arcs, arcs]), tangents, geometry.needle_previous, geometry.tissue_previous
+        ),
     )
     count = tangents.shape[0]
     return RowBlock(

@@ -36,7 +36,7 @@ from refsim.constraints.needle_geometry import needle_rows
 from refsim.constraints.rows import NEEDLE, TISSUE, point_rows
 from refsim.constraints.step_geometry import StepGeometry
 
-__all__ = ["FrictionRows", "friction_gaps", "friction_rows", "slip_gaps", "stick_offsets"]
+__all__ = ["FaceStretch", "FrictionRows", "friction_gaps", "friction_rows", "slip_gaps", "stick_offsets"]
 
 
 def stick_offsets(
@@ -76,6 +76,113 @@ def stick_offsets(
     unset = ~np.isfinite(anchors)
     resolved = np.where(unset, arc_lengths - off_line + np.asarray(stretch, dtype=float), anchors)
     return off_line + resolved - arc_lengths, resolved
+
+
+@dataclass(frozen=True)
+class FaceStretch:
+    """Stick anchors of friction rows that are built anew every step (the cut faces' rows, re-anchored at the
+    needle's closest point on the cut each step), kept along the needle from one solve to the next step.
+
+    A friction row with the sub-grid compliance C in series with its Coulomb stick holds the needle's surface
+    still on the tissue while the mesh-resolved relative position is −C λ (the annulus stretched). A row
+    re-anchored each step at the needle's foot forgets that position: measured over the step alone (D = 0) a
+    stuck row slips by C λ every step, and a held needle's friction decays by W/(W + C) per step whatever dt.
+    As the shaft's rows (:func:`stick_offsets`), these rows start from their relative position D measured
+    from a stick anchor: for the point at needle arc length s, a tissue material point P (on the cut) and a
+    vector a, the stretch is e = x_needle(s) − x_P + a and a row along t starts from D = tᵀe (e interpolated
+    along the needle between the points kept, 0 beyond them). After a solve (:meth:`after_solve`) a row that
+    sticks keeps its anchor, so D is the needle's motion on the tissue measured from positions (a solve's
+    error is not carried on); a row that slipped, or a point new at that arc length, gets its anchor placed
+    so that D equals its annulus stretch −C λ (the slip moved the anchor, the elastic stretch stays).
+
+    Attributes
+    ----------
+    arc_lengths : The points' needle arc lengths [m], increasing, shape (k,).
+    nodes, weights : Their tissue material points P: nodes and weights, shapes (k, w).
+    anchors : a [m], shape (k, 3).
+    """
+
+    arc_lengths: np.ndarray
+    nodes: np.ndarray
+    weights: np.ndarray
+    anchors: np.ndarray
+
+    def stretch(self, needle, tissue_positions: np.ndarray) -> np.ndarray:
+        """e = x_needle(s) − x_P + a of each point in a configuration of both bodies [m], shape (k, 3)."""
+        tissue = np.einsum("kw,kwj->kj", self.weights, tissue_positions[self.nodes])
+        return needle.points(self.arc_lengths) - tissue + self.anchors
+
+    def offsets(self, arc_lengths, tangents, needle, tissue_positions) -> np.ndarray:
+        """D = tᵀe of rows at ``arc_lengths`` [m] (shape (r,)) along ``tangents`` (shape (r, 3)) at the start
+        of the step (``needle``, ``tissue_positions``), e interpolated along the needle (0 beyond the points)
+        [m], shape (r,)."""
+        stretch = self.stretch(needle, tissue_positions)
+        arcs = np.asarray(arc_lengths, dtype=float)
+        along = np.stack(
+            [np.interp(arcs, self.arc_lengths, stretch[:, k], left=0.0, right=0.0) for k in range(3)], axis=1
+        )
+        return np.einsum("ij,ij->i", np.asarray(tangents, dtype=float), along)
+
+    @classmethod
+    def after_solve(
+        cls,
+        previous: FaceStretch | None,
+        *,
+        arc_lengths: np.ndarray,
+        nodes: np.ndarray,
+        weights: np.ndarray,
+        tangents: np.ndarray,
+        compliance: np.ndarray,
+        multipliers: np.ndarray,
+        stuck: np.ndarray,
+        needle,
+        tissue_positions: np.ndarray,
+        tolerance: float,
+    ) -> FaceStretch | None:
+        """The anchors after a solve of the step's rows, None without rows.
+
+        Parameters
+        ----------
+        previous : The anchors the step's rows started from (None: none).
+        arc_lengths : The step's points [m], shape (k,); ``nodes``, ``weights`` their tissue material points.
+        tangents, compliance, multipliers, stuck : The rows' tangents (shape (m k, 3)), added compliances C
+            [m/N], multipliers λ [N] and whether each stuck (shape (m k,)), m rows per point given point-major
+            by kind (every point's first row, then every point's second, ...).
+        needle, tissue_positions : The configuration at the step's end.
+        tolerance : Arc lengths closer than this [m] are the same point.
+        """
+        arcs = np.asarray(arc_lengths, dtype=float)
+        count = arcs.size
+        if count == 0:
+            return None
+        nodes, weights = np.array(nodes, copy=True), np.array(weights, dtype=float, copy=True)
+        tangents = np.asarray(tangents, dtype=float).reshape(-1, count, 3)
+        target = -(np.asarray(compliance, dtype=float) * np.asarray(multipliers, dtype=float)).reshape(
+            -1, count
+        )
+        stuck = np.asarray(stuck, dtype=bool).reshape(-1, count)
+        anchors = np.zeros((count, 3))
+        kept = np.zeros(count, dtype=bool)
+        if previous is not None and previous.arc_lengths.size:
+            where = np.clip(np.searchsorted(previous.arc_lengths, arcs), 1, previous.arc_lengths.size) - 1
+            near = np.stack([where, np.minimum(where + 1, previous.arc_lengths.size - 1)], axis=1)
+            closest = near[
+                np.arange(count), np.argmin(np.abs(previous.arc_lengths[near] - arcs[:, None]), axis=1)
+            ]
+            kept = np.abs(previous.arc_lengths[closest] - arcs) <= tolerance
+            nodes[kept] = previous.nodes[closest[kept]]
+            weights[kept] = previous.weights[closest[kept]]
+            anchors[kept] = previous.anchors[closest[kept]]
+        tissue = np.einsum("kw,kwj->kj", weights, tissue_positions[nodes])
+        stretch = needle.points(arcs) - tissue + anchors
+        for kind in range(tangents.shape[0]):  # the rows of a point (2: along the needle, across it)
+            t = tangents[kind]
+            reset = ~(stuck[kind] & kept)
+            change = target[kind] - np.einsum("kj,kj->k", t, stretch)
+            anchors[reset] += change[reset, None] * t[reset]
+            stretch[reset] += change[reset, None] * t[reset]
+        order = np.argsort(arcs, kind="stable")
+        return cls(arcs[order], nodes[order], weights[order], anchors[order])
 
 
 def slip_gaps(

@@ -37,7 +37,7 @@ from refsim.constraints.coupling import (
     subgrid_compliance,
     tip_cutting_block,
 )
-from refsim.constraints.cut import FrontRows, inserted_arc, strip_cut_block
+from refsim.constraints.cut import FrontRows, inserted_span, strip_cut_block
 from refsim.constraints.insertion import InsertionOptions, InsertionPath, PointRings
 from refsim.geometry import SurfaceProjector, TetLocator
 from refsim.scene import Scene
@@ -332,12 +332,13 @@ class Detector:
         the entry point's projection, which a tilted needle pushed sideways leaves above the tissue) to the
         tip, on the start-of-step state. ``state`` None: a needle inserted along an existing cut slides in it
         (sliding rows, no crack tip, no friction); else the instrument's own cut strip while it cuts, with its
-        crack-tip front (indices into the returned block). Where the needle enters the tissue is the state's
-        ``entry_arc`` when the last step's events located it on this configuration."""
-        if state is not None and state.entry_arc is not None:
-            entry_arc_length = state.entry_arc
+        crack-tip front (indices into the returned block). Where the needle enters the tissue and where its
+        inserted part ends are the state's ``entry_span`` when the last step's events located them on this
+        configuration."""
+        if state is not None and state.entry_span is not None:
+            entry_arc_length, exit_arc_length = state.entry_span
         else:
-            entry_arc_length = inserted_arc(
+            entry_arc_length, exit_arc_length = inserted_span(
                 geometry.needle_previous,
                 TetLocator(geometry.tissue_previous, geometry.mesh_tets),
                 self.cutting.point_spacing,
@@ -351,6 +352,7 @@ class Detector:
                 spacing=self.cutting.point_spacing,
                 cut_direction=np.zeros(3),
                 subgrid_compliance=self.cut_compliance,
+                exit_arc_length=exit_arc_length,
             )
         return strip_cut_block(
             world.cut,
@@ -362,6 +364,8 @@ class Detector:
             front_strength=self.law.front_strength,
             friction_coefficient=self.cutting.friction_coefficient,
             subgrid_compliance=self.cut_compliance,
+            face_stretch=state.cut_face_stretch,
+            exit_arc_length=exit_arc_length,
         )
 
 

@@ -22,6 +22,10 @@
   direction)
 - phase: cutting; event: retraction, withdrawal; when: the entry point beyond the tip; then: every row
   released; approach (the cut stays)
+- phase: cutting; event: exit; when: the tip, inside the tissue at the step's start, lies in no tet at its
+  end, having moved forward through the tissue (along the needle, relative to its material point); then:
+  the cut rows run along the part of the needle in the tissue, from its entry to where it leaves through
+  the far face
 - phase: cutting; event: leave_cut; when: the needle is back behind the strip's first layer (the line it
   entered along) by more than d_c/2, along −ĉ; then: insertion points along the inserted needle every d_i
   where it lies in intact tissue (none in the cut: the part still in it slides in it); insertion (the cut
@@ -39,14 +43,17 @@ import scipy.sparse as sp
 
 from refsim.constraints import (
     BILATERAL,
+    CUT_FRICTION,
     INSERTION,
     PENETRATION,
+    SLIDING,
     UNILATERAL,
     InsertionPath,
     grow_path,
     points_beyond_tip,
 )
-from refsim.constraints.cut import crack_tip_compression, inserted_arc
+from refsim.constraints.cut import crack_tip_compression, inserted_arc, inserted_span
+from refsim.constraints.friction import FaceStretch
 from refsim.cutting import CutGrowth
 from refsim.cutting.growth import start_strip
 from refsim.cutting.laws import FrontPush
@@ -96,6 +103,10 @@ def shaft_lateral_force(
 PUNCTURE_TOLERANCE = 1e-6
 #: Barycentric tolerance of the tip's location among the tets around its last one (the locator's default).
 TIP_TOLERANCE = 1e-12
+
+#: A cut face's friction row sticks when its force is below its bound by more than this fraction of it (far
+#: above the solve's 10⁻⁸, as for the shaft's rows: `refsim.constraints.coupling.stuck_points`).
+STICK_TOLERANCE = 1e-3
 
 
 class LazyLocator:
@@ -176,8 +187,8 @@ class EventRules:
         may change with them)."""
         events: list[Event] = []
         state = world.instrument(name)
-        if state.entry_arc is not None:  # located on the last step's configuration
-            state = replace(state, entry_arc=None)
+        if state.entry_span is not None:  # located on the last step's configuration
+            state = replace(state, entry_span=None)
         rows = detection.rows
         if state.phase == Phase.APPROACH and rows.row_count:
             state, events = self._puncture(world, state, detection, multipliers)
@@ -189,6 +200,19 @@ class EventRules:
         elif state.phase == Phase.CUTTING:
             world, state, more = self._cutting(world, state, detection, multipliers)
             events.extend(more)
+        stretch = None
+        if state.phase == Phase.CUTTING and self.cutting.friction_coefficient > 0.0:
+            stretch = _face_stretch(
+                state.cut_face_stretch,
+                detection,
+                multipliers,
+                self.cutting.friction_coefficient,
+                self.needle_geometry(state.needle),
+                world.tissue.positions,
+                self.cutting.point_spacing,
+            )
+        if stretch is not None or state.cut_face_stretch is not None:
+            state = replace(state, cut_face_stretch=stretch)
         return world.with_instrument(state), events
 
     def _puncture(self, world, state, detection, multipliers):
@@ -307,7 +331,11 @@ class EventRules:
         positions = world.tissue.positions
         path_points = state.path.positions(positions, self.tets)
         needle = self.needle_geometry(state.needle)
-        inserted = needle.length - float(needle.project(path_points[:1])[0][0])
+        end = needle.length
+        if state.tip_tet < 0:
+            # The tip out of a far face: the shaft cuts along the part in the tissue only.
+            _, end = inserted_span(needle, TetLocator(positions, self.tets), self.cutting.point_spacing)
+        inserted = end - float(needle.project(path_points[:1])[0][0])
         self.margins.cut_start(self.law, force_on_needle, inserted, state.path.point_count)
         start = self.law.cut_start(
             force_on_needle, inserted_length=inserted, point_count=state.path.point_count
@@ -394,6 +422,16 @@ class EventRules:
             return world, state, [Event("retraction"), Event("withdrawal")]
         events: list[Event] = []
         cutting = self.cutting
+        # The tip's material state, as in insertion: leaving through a far face is the event exit (the needle
+        # still cuts along the part in the tissue). Only forward through the tissue: a tip pulled back out
+        # through the face it entered by (on the step before the entry point is beyond it) is a withdrawal.
+        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet)
+        if state.tip_tet >= 0 and tip_tet < 0 and state.tip_barycentric is not None:
+            where = state.tip_barycentric @ positions[self.tets[state.tip_tet]]
+            tangent = needle.tangents(np.array([needle.length]))[0]
+            if float((needle.tip - where) @ tangent) > 0.0:
+                events.append(Event("exit"))
+        state = replace(state, tip_tet=tip_tet, tip_barycentric=tip_barycentric)
         if state.cut_strip is not None and world.cut is not None:
             # Moved back through its own cut and past the line it entered along (the strip's first layer, its
             # rear edge) by more than half a cut spacing: the needle is in intact tissue again.
@@ -401,7 +439,8 @@ class EventRules:
             _, on_needle = needle.project(rear)
             behind = float(((on_needle - rear) @ state.cut_direction).mean())
             if behind < -0.5 * cutting.point_spacing:
-                return self._leave_cut(world, state, needle, positions)
+                world, state, more = self._leave_cut(world, state, needle, positions)
+                return world, state, [*events, *more]
         locator, entry_arc = None, None
         if self.law.extends_down_shaft and state.cut_strip is not None:
             # A needle inserted deeper than the strip while it cuts: pushed sideways with the rest of the
@@ -410,11 +449,11 @@ class EventRules:
             # every d_c to the tip, its crack tip at the needle (insertion points there, anchored in uncut
             # tissue, would drag it sideways).
             locator = TetLocator(positions, self.tets)
-            entry_arc = inserted_arc(needle, locator, cutting.point_spacing)
+            entry_arc, end = inserted_span(needle, locator, cutting.point_spacing)
             state = replace(
                 state,
                 cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc, world.step),
-                entry_arc=entry_arc,
+                entry_span=(entry_arc, end),
             )
         rows = detection.rows
         self.margins.tear(self.law, detection.front.rows)
@@ -446,3 +485,31 @@ class EventRules:
         world = replace(world, cut=grown.cut)
         state = replace(state, cut_strip=grown.strip, cut_direction=grown.direction)
         return world, state, events
+
+
+def _face_stretch(
+    previous, detection: Detection, multipliers: np.ndarray, coefficient: float, needle, positions, spacing
+):
+    """The cut faces' friction rows' stick anchors after the step's solve (the next step's rows start from
+    them: `refsim.constraints.friction.FaceStretch`), None without such rows. A row sticks when its force is
+    below its bound μ_c |λ| by more than 10⁻³ of it (far above the solve's 10⁻⁸; as the shaft's rows,
+    `refsim.constraints.coupling.stuck_points`)."""
+    rows, front = detection.rows, detection.front
+    friction, sliding = rows.rows_of(CUT_FRICTION), rows.rows_of(SLIDING)
+    arcs = front.slide_arc_lengths
+    if friction.size == 0 or friction.size != 2 * arcs.size or sliding.size != arcs.size:
+        return None
+    bound = coefficient * np.abs(np.concatenate([multipliers[sliding], multipliers[sliding]]))
+    return FaceStretch.after_solve(
+        previous,
+        arc_lengths=arcs,
+        nodes=front.slide_nodes,
+        weights=front.slide_weights,
+        tangents=rows.directions[friction],
+        compliance=rows.problem_compliance_diagonal()[friction],
+        multipliers=multipliers[friction],
+        stuck=np.abs(multipliers[friction]) < (1.0 - STICK_TOLERANCE) * bound,
+        needle=needle,
+        tissue_positions=positions,
+        tolerance=1e-9 * spacing,
+    )

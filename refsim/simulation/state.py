@@ -8,6 +8,7 @@ from enum import StrEnum
 import numpy as np
 
 from refsim.constraints import TISSUE, InsertionPath
+from refsim.constraints.friction import FaceStretch
 from refsim.cutting import CutSurface
 from refsim.cutting.strip import CutStrip
 from refsim.fem.compliance import PartialSolveMarks, StaleFactor
@@ -43,10 +44,13 @@ class InstrumentState:
     tip_tet : The tissue tet its tip lies in after the step, −1 when the tip is outside the tissue (before
         puncture, after an exit through a far face or a withdrawal).
     tip_barycentric : The tip's barycentric coordinates in ``tip_tet``, shape (4,); None when outside.
-    entry_arc : Where its needle enters the tissue in this state's configuration [m] (the arc length of
-        :func:`refsim.constraints.cut.inserted_arc` at the cut's spacing), when the step's events located it
+    entry_span : Where its needle enters the tissue and where its inserted part ends in this state's
+        configuration [m] (the arc lengths of :func:`refsim.constraints.cut.inserted_span` at the cut's
+        spacing), when the step's events located them
         (cutting, the strip extending down the shaft); None otherwise. The next step's cut rows, built on this
         configuration, read it instead of locating the needle again (the same inputs: the same bits).
+    cut_face_stretch : The annulus stretch under its friction rows on the cut faces at the last solve
+        (`refsim.constraints.friction.FaceStretch`), the next step's rows start from it; None without them.
     """
 
     name: str
@@ -57,7 +61,8 @@ class InstrumentState:
     cut_strip: CutStrip | None = None
     tip_tet: int = -1
     tip_barycentric: np.ndarray | None = None
-    entry_arc: float | None = None
+    entry_span: tuple[float, float] | None = None
+    cut_face_stretch: FaceStretch | None = None
 
 
 @dataclass(frozen=True)
