@@ -163,3 +163,39 @@ def test_a_tear_is_read_on_the_criterion_its_law_decides_it_by():
     series = CriterionSeries.of([4, 5], front)
     (margin,) = assess([(5, "tear")], series)
     assert margin.at_event.name == "tear" and margin.at_event.value == 1.3
+
+
+def test_an_undecided_crack_tip_advance_widens_the_layer_margin():
+    # Energy law: the layer distance sums the crack tip's advances since the last layer. A tear at step 75
+    # whose distance was 9.6 µm short of d_c = 1 mm at step 74 (the liver_tilted_+z pattern), with the
+    # distance's own accuracy 3 nm, is not a knife edge when every advance was decided; when the advance of
+    # step 73 (0.3 mm) was within its accuracy of the give-way threshold, another solver may not have made
+    # it, and the tear can move: the distance at 73 and 74 lies within the undecided 0.3 mm of d_c.
+    steps = [72, 73, 74, 75]
+    distances = [0.4e-3, 0.7e-3, 0.99043e-3, 1.35e-3]
+    layer = [Criterion("layer", d, 1e-3, 3e-9, "m") for d in distances]
+
+    def margin(advance_at_73: float):
+        advances = [Criterion("advance", v, 1.0, 1e-7, "1") for v in (1.5, advance_at_73, 1.4, 1.6)]
+        series = CriterionSeries.of(steps + steps, layer + advances)
+        (tear,) = assess([(75, "tear")], series)
+        return tear
+
+    decided = margin(1.2)
+    assert (decided.earlier, decided.later, decided.knife_edge) == (0, 0, False)
+    undecided = margin(1.0 + 5e-8)
+    assert undecided.before.accuracy == pytest.approx(3e-9 + 0.3e-3)
+    assert undecided.earlier == 2 and undecided.knife_edge
+    assert undecided.feeding == ("advance", "layer")
+
+
+def test_an_advance_before_the_last_tear_does_not_widen_the_next_one():
+    # The distance restarts at each layer: an undecided advance before the previous tear (step 71) moved
+    # that tear, not the next one, whose distance it does not contain.
+    steps = [70, 71, 72, 73]
+    layer = [Criterion("layer", d, 1e-3, 3e-9, "m") for d in (0.6e-3, 1.1e-3, 0.5e-3, 1.05e-3)]
+    advances = [Criterion("advance", v, 1.0, 1e-7, "1") for v in (1.0, 1.3, 1.3, 1.3)]
+    series = CriterionSeries.of(steps + steps, layer + advances)
+    first, second = assess([(71, "tear"), (73, "tear")], series)
+    assert first.before.accuracy == pytest.approx(3e-9 + 0.6e-3)
+    assert second.before.accuracy == pytest.approx(3e-9) and not second.knife_edge
