@@ -199,3 +199,30 @@ def test_an_advance_before_the_last_tear_does_not_widen_the_next_one():
     first, second = assess([(71, "tear"), (73, "tear")], series)
     assert first.before.accuracy == pytest.approx(3e-9 + 0.6e-3)
     assert second.before.accuracy == pytest.approx(3e-9) and not second.knife_edge
+
+
+def test_watch_records_the_front_row_nearest_its_give_way_decision():
+    # Energy law, two front rows with strength G_c ℓ = 1 N, W = diag(1e-2, 1e-2) m/N: row 0 held at its
+    # strength with the needle 0.02 m through (it asks for 1 + 0.02/0.01 = 3 N: it gave way, far from the
+    # decision), row 1 at 0.99 N with its gap closed (it holds, 1 % below). The 'tear' criterion is the
+    # strongest (3, against 1); 'advance' the nearest to its decision relative to its accuracy: row 1, 0.99
+    # against 1, accuracy (ε_λ + τ D / W_11) / 1 N.
+    from refsim.cutting.laws import EnergyLaw
+
+    problem = ConstraintProblem(
+        compliance=np.diag([1e-2, 1e-2]),
+        free_gap=np.array([-0.03, -0.0099]),
+        box_rows=np.array([0, 1]),
+        box_lower=np.array([0.0, 0.0]),
+        box_upper=np.array([1.0, 1.0]),
+    )
+    watch = MarginWatch(1e-6)
+    watch.begin(problem, None, np.array([1.0, 0.99]), None)
+    watch.tear(EnergyLaw(fracture_energy=1000.0), np.array([0, 1]))
+    tear, advance = watch.taken()
+    assert (tear.name, advance.name) == ("tear", "advance")
+    assert tear.value == pytest.approx(3.0) and advance.value == pytest.approx(0.99)
+    bound = 1e-6 * float(np.linalg.norm([1.0, 0.99]))  # τ D, D = ‖λ‖ here
+    epsilon = force_accuracy(problem.compliance, np.array([0, 1]), bound)
+    assert advance.accuracy == pytest.approx(epsilon + bound / 1e-2)
+    assert advance.threshold == 1.0 and not advance.within
