@@ -1,6 +1,7 @@
 """Why the liver outcome depends on the phantom: the decisive load, measured on each mesh (issue 24, item 8).
 
-    PYTHONPATH=. python studies/liver/mesh_load.py [--fine 0.006] [--ring 0.018] [--duration 1.45]
+    PYTHONPATH=. python studies/liver/mesh_load.py [--fine 0.006] [--free] [--ring 0.018] [--duration 1.45]
+        [--set section.key=value ...] [--output output/mesh_load.json]
 
 The outcome is decided by the cut-start criterion alone, ‖t‖ ≥ G_c L_in with t the shaft's lateral load
 through the insertion points (the entry point left out): no cut row exists before it, so the cut rows'
@@ -12,8 +13,10 @@ to the target the robot follows (the displacement that loads the needle), and, w
 with the coupling ring's radius held at that value on every mesh (ρ_c = max(r, h, ring), the sub-grid
 annulus with it), which separates what the mesh resolves from what the sub-grid term models.
 
-Meshes: the shipped coarse (20 mm) and medium (9 mm) phantoms, and with ``--fine SIZE`` one generated at that
-size (needs gmsh). Writes output/mesh_load.json. One process, one BLAS thread.
+``--set boundary.patch_distance=0.02`` gives the diagnostic of docs/liver.md (the breathing patch shrunk
+so that the needle's entry lies outside it). Meshes: the shipped coarse (20 mm) and medium (9 mm) phantoms,
+and with ``--fine SIZE`` one generated at that size (needs gmsh). Writes output/mesh_load.json. One process,
+one BLAS thread.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ DEPTH = 0.08
 DEPTHS = np.array([2, 5, 10, 15, 20, 25, 30]) * 1e-3  # below the nominal entry, along the needle
 
 
-def run_load(mesh_file: str, duration: float) -> dict:
+def run_load(mesh_file: str, duration: float, overrides=()) -> dict:
     """The largest ‖t‖/L_in of liver_flexible on ``mesh_file`` (cutting never starts) and the load profile
     along the needle at that step."""
     from refsim.constraints import BILATERAL, INSERTION
@@ -50,6 +53,7 @@ def run_load(mesh_file: str, duration: float) -> dict:
             f"time.duration={duration!r}",
             'trajectory.file="liver_robot.csv"',
             "cutting.fracture_energy=1e9",
+            *overrides,
         ],
     )
     simulation = Simulation(scene)
@@ -87,9 +91,9 @@ def run_load(mesh_file: str, duration: float) -> dict:
     return best
 
 
-def free_motion(mesh_file: str, duration: float) -> list[float]:
-    """The tissue's motion (no needle) across the needle at ``DEPTHS`` below the entry, relative to the target,
-    at the end of ``duration`` [m] (|x, z|), by the scene's own time stepping (as
+def free_motion(mesh_file: str, duration: float, overrides=()) -> list[float]:
+    """The tissue's motion (no needle) across the needle at ``DEPTHS`` below the entry, relative to the
+    target, at the end of ``duration`` [m] (|x, z|), by the scene's own time stepping (as
     `refsim.simulation.robot.target_motion`, for several points at once)."""
     from refsim.geometry import TetLocator
     from refsim.scene import load_scene
@@ -102,6 +106,7 @@ def free_motion(mesh_file: str, duration: float) -> list[float]:
             f"mesh.file={json.dumps(mesh_file)}",
             f"time.duration={duration!r}",
             'trajectory.file="liver_robot.csv"',
+            *overrides,
         ],
     )
     models = build_models(scene)
@@ -127,6 +132,9 @@ def main(argv=None) -> int:
         "--duration", type=float, default=1.45, help="[s]; the first inhale's peak is at 1.4 s"
     )
     parser.add_argument("--free", action="store_true", help="also the tissue's own motion along the needle")
+    parser.add_argument(
+        "--set", dest="overrides", action="append", default=[], help="section.key=value (both needles' scene)"
+    )
     parser.add_argument("--output", type=Path, default=OUTPUT / "mesh_load.json")
     args = parser.parse_args(argv)
     meshes = {
@@ -143,7 +151,7 @@ def main(argv=None) -> int:
         meshes[f"generated ({1e3 * args.fine:g} mm)"] = str(path)
     data = json.loads(args.output.read_text()) if args.output.is_file() else {}
     for label, mesh_file in meshes.items():
-        run = run_load(mesh_file, args.duration)
+        run = run_load(mesh_file, args.duration, args.overrides)
         data.setdefault("default", {})[label] = run
         print(
             f"{label}: largest ‖t‖/L_in {run['load']:.2f} N/m at t = {run['time']:.2f} s, "
@@ -151,7 +159,7 @@ def main(argv=None) -> int:
             flush=True,
         )
         if args.free:
-            data.setdefault("free_motion", {})[label] = free_motion(mesh_file, args.duration)
+            data.setdefault("free_motion", {})[label] = free_motion(mesh_file, args.duration, args.overrides)
             print(
                 f"  tissue across the needle, relative to the target [mm]: "
                 f"{np.round(1e3 * np.array(data['free_motion'][label]), 3).tolist()}",
@@ -169,7 +177,7 @@ def main(argv=None) -> int:
         coupling.coupling_radius = held  # the ring and its sub-grid annulus read it
         try:
             for label, mesh_file in meshes.items():
-                run = run_load(mesh_file, args.duration)
+                run = run_load(mesh_file, args.duration, args.overrides)
                 data.setdefault(f"ring {1e3 * args.ring:g} mm", {})[label] = run
                 print(f"{label}, ring held at {1e3 * args.ring:g} mm: {run['load']:.2f} N/m", flush=True)
                 args.output.write_text(json.dumps(data, indent=1))
