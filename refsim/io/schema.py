@@ -359,7 +359,9 @@ CRITERIA = _specs(
             (),
             "criterion: puncture (tip normal force vs f_p), tip_slip (tip friction ratio vs mu_p), "
             "cut_start (the law's cut-start load vs its threshold), tear (crack front's strongest row vs its "
-            "threshold), layer (energy law: the crack tip's distance from the last layer vs d_c)",
+            "threshold), advance (energy law: the front row nearest its give-way decision, its force asked "
+            "for over its strength vs 1), layer (energy law: the crack tip's distance from the last layer "
+            "vs d_c)",
         ),
         ("value", "-", "float64", (), "the quantity the event compares, in the entry's criteria/unit"),
         ("threshold", "-", "float64", (), "what it is compared with, in the entry's criteria/unit"),

@@ -20,10 +20,19 @@ The criteria
   paper law ‖t‖/n_i against f_c; `refsim.cutting.laws.CuttingLaw.cut_start_load`).
 - ``tear`` [N or -]: the crack front's strongest row (paper law: its force against f_t; energy law: its force
   over its strength G_c ℓ_k against 1; `CuttingLaw.front_load`).
-- ``layer`` [m] (energy law: what lays a new layer, the event ``tear``; the ``tear`` criterion feeds it): how
+- ``advance`` [-] (energy law: whether the crack tip advances in a step; it feeds ``layer``): each front row
+  gives way when it is at its strength G_c ℓ_k with the needle through the crack tip (`EnergyLaw.given_way`),
+  which is its demand over its strength (:meth:`MarginWatch.demands`) exceeding 1; the criterion is the row
+  whose decision is nearest its threshold relative to its accuracy ((ε_λ + τ D / W_ii) / (G_c ℓ_k)),
+  recorded every cutting step with front rows.
+- ``layer`` [m] (energy law: what lays a new layer, the event ``tear``; ``tear`` and ``advance`` feed it): how
   far the crack tip moved from the last layer (rest), against d_c (`refsim.cutting.strip.CutStrip.lay`),
-  recorded in the steps where the crack tip moved. Its accuracy is the gap's, τ D [m] (the crack tip follows
-  the needle and the rows' compression, both resolved to the rows' gap accuracy, first order).
+  recorded in the steps where the crack tip moved. Its accuracy within the step is the gap's, τ D [m] (the
+  crack tip follows the needle and the rows' compression, both resolved to the rows' gap accuracy, first
+  order). The distance sums the crack tip's advances since the last layer, so :func:`assess` reads it with
+  the advances of those steps whose ``advance`` decision was within its accuracy added to that accuracy (an
+  advance another solver may not have made, or made larger: the crack tip's position, hence the tear's step,
+  is then not decided by the tolerance).
 
 The geometric events (new insertion points, exit, retraction, withdrawal, leave_cut) compare lengths of the
 corrected positions; they carry no criterion here.
@@ -79,7 +88,7 @@ KNIFE_EDGE_STEPS = 2
 CRITERIA_OF_EVENT = {
     "puncture": ("puncture", "tip_slip"),
     "cut_start": ("cut_start",),
-    "tear": ("layer", "tear"),
+    "tear": ("layer", "tear", "advance"),
 }
 
 
@@ -245,7 +254,24 @@ class MarginWatch:
         if load is None:
             return
         value, threshold, divisor, unit = load
-        self._criteria.append(Criterion("tear", value, threshold, self._accuracy(rows) / divisor, unit))
+        accuracy = self._accuracy(rows)
+        self._criteria.append(Criterion("tear", value, threshold, accuracy / divisor, unit))
+        if unit == "1":  # a law whose rows give way at their strength (energy): each row's own decision
+            self._criteria.append(self._advance(rows, limits[rows], accuracy))
+
+    def _advance(self, rows: np.ndarray, limits: np.ndarray, accuracy: float) -> Criterion:
+        """The ``advance`` criterion of the front ``rows`` (problem indices) with force limits ``limits``
+        [N]: the row whose give-way decision (demand over limit against 1) is nearest its threshold relative
+        to its accuracy ((ε_λ + τ D / W_ii) / limit), ``accuracy`` being ε_λ of the rows [N]."""
+        finite = np.isfinite(limits) & (limits > 0.0)
+        if not np.any(finite):
+            return Criterion("advance", 0.0, 1.0, 0.0, "1")
+        rows, limits = rows[finite], limits[finite]
+        ratios = self.demands(rows) / limits
+        diagonal = self._problem.compliance[rows, rows]
+        accuracies = (accuracy + self._bound / diagonal) / limits
+        nearest = int(np.argmin(np.abs(ratios - 1.0) / np.maximum(accuracies, np.finfo(float).tiny)))
+        return Criterion("advance", float(ratios[nearest]), 1.0, float(accuracies[nearest]), "1")
 
     def layer(self, growth) -> None:
         """How far the crack tip was from the last layer against d_c (``FrontGrowth.layer_distance``, energy
@@ -383,6 +409,7 @@ def assess(events, series: CriterionSeries) -> list[EventMargin]:
     series : The run's criteria.
     """
     margins = []
+    last_tear = None
     for step, name in events:
         step, name = int(step), str(name)
         criteria = CRITERIA_OF_EVENT.get(name)
@@ -392,6 +419,15 @@ def assess(events, series: CriterionSeries) -> list[EventMargin]:
         at_event, before = series.at(own, step), series.at(own, step - 1)
         evaluated = series.evaluated_steps(own)
         within = {criterion: set(series.within_steps(criterion).tolist()) for criterion in criteria}
+        if own == "layer":
+            undecided = _undecided_advance(series, last_tear, step)
+            within["layer"] = _layer_within(series, undecided)
+            at_event, before = (
+                None if c is None else _widened(c, undecided.get(s, 0.0))
+                for c, s in ((at_event, step), (before, step - 1))
+            )
+        if name == "tear":
+            last_tear = step
         earlier, fed = 0, set()
         candidate = step - 1
         while candidate in evaluated:
@@ -404,3 +440,33 @@ def assess(events, series: CriterionSeries) -> list[EventMargin]:
         later = int(at_event is not None and at_event.within)
         margins.append(EventMargin(step, name, at_event, before, earlier, later, tuple(sorted(fed))))
     return margins
+
+
+def _undecided_advance(series: CriterionSeries, after: int | None, until: int) -> dict[int, float]:
+    """The crack tip's advances the solve did not decide, summed: for every step s in (after, until] where
+    ``layer`` was evaluated, the sum of the advances (growth of the layer distance over the step, [m]) of the
+    steps up to s whose ``advance`` decision was within its accuracy."""
+    chosen = (series.name == "layer") & (series.step <= until)
+    if after is not None:
+        chosen &= series.step > after
+    steps, distances = series.step[chosen], series.value[chosen]
+    order = np.argsort(steps, kind="stable")
+    steps, distances = steps[order], distances[order]
+    advances = np.maximum(np.diff(distances, prepend=0.0), 0.0)
+    undecided = np.isin(steps, series.within_steps("advance"))
+    return dict(zip(steps.tolist(), np.cumsum(np.where(undecided, advances, 0.0)).tolist(), strict=True))
+
+
+def _layer_within(series: CriterionSeries, undecided: dict[int, float]) -> set[int]:
+    """The steps at which ``layer`` was within its accuracy widened by the undecided advances."""
+    chosen = np.flatnonzero(series.name == "layer")
+    widened = series.accuracy[chosen] + np.array([undecided.get(int(s), 0.0) for s in series.step[chosen]])
+    hits = np.abs(series.value[chosen] - series.threshold[chosen]) <= widened
+    return set(series.step[chosen][hits].tolist())
+
+
+def _widened(criterion: Criterion, extra: float) -> Criterion:
+    """``criterion`` with ``extra`` added to its accuracy."""
+    return Criterion(
+        criterion.name, criterion.value, criterion.threshold, criterion.accuracy + extra, criterion.unit
+    )

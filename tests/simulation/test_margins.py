@@ -163,3 +163,66 @@ def test_a_tear_is_read_on_the_criterion_its_law_decides_it_by():
     series = CriterionSeries.of([4, 5], front)
     (margin,) = assess([(5, "tear")], series)
     assert margin.at_event.name == "tear" and margin.at_event.value == 1.3
+
+
+def test_an_undecided_crack_tip_advance_widens_the_layer_margin():
+    # Energy law: the layer distance sums the crack tip's advances since the last layer. A tear at step 75
+    # whose distance was 9.6 µm short of d_c = 1 mm at step 74 (the liver_tilted_+z pattern), with the
+    # distance's own accuracy 3 nm, is not a knife edge when every advance was decided; when the advance of
+    # step 73 (0.3 mm) was within its accuracy of the give-way threshold, another solver may not have made
+    # it, and the tear can move: the distance at 73 and 74 lies within the undecided 0.3 mm of d_c.
+    steps = [72, 73, 74, 75]
+    distances = [0.4e-3, 0.7e-3, 0.99043e-3, 1.35e-3]
+    layer = [Criterion("layer", d, 1e-3, 3e-9, "m") for d in distances]
+
+    def margin(advance_at_73: float):
+        advances = [Criterion("advance", v, 1.0, 1e-7, "1") for v in (1.5, advance_at_73, 1.4, 1.6)]
+        series = CriterionSeries.of(steps + steps, layer + advances)
+        (tear,) = assess([(75, "tear")], series)
+        return tear
+
+    decided = margin(1.2)
+    assert (decided.earlier, decided.later, decided.knife_edge) == (0, 0, False)
+    undecided = margin(1.0 + 5e-8)
+    assert undecided.before.accuracy == pytest.approx(3e-9 + 0.3e-3)
+    assert undecided.earlier == 2 and undecided.knife_edge
+    assert undecided.feeding == ("advance", "layer")
+
+
+def test_an_advance_before_the_last_tear_does_not_widen_the_next_one():
+    # The distance restarts at each layer: an undecided advance before the previous tear (step 71) moved
+    # that tear, not the next one, whose distance it does not contain.
+    steps = [70, 71, 72, 73]
+    layer = [Criterion("layer", d, 1e-3, 3e-9, "m") for d in (0.6e-3, 1.1e-3, 0.5e-3, 1.05e-3)]
+    advances = [Criterion("advance", v, 1.0, 1e-7, "1") for v in (1.0, 1.3, 1.3, 1.3)]
+    series = CriterionSeries.of(steps + steps, layer + advances)
+    first, second = assess([(71, "tear"), (73, "tear")], series)
+    assert first.before.accuracy == pytest.approx(3e-9 + 0.6e-3)
+    assert second.before.accuracy == pytest.approx(3e-9) and not second.knife_edge
+
+
+def test_watch_records_the_front_row_nearest_its_give_way_decision():
+    # Energy law, two front rows with strength G_c ℓ = 1 N, W = diag(1e-2, 1e-2) m/N: row 0 held at its
+    # strength with the needle 0.02 m through (it asks for 1 + 0.02/0.01 = 3 N: it gave way, far from the
+    # decision), row 1 at 0.99 N with its gap closed (it holds, 1 % below). The 'tear' criterion is the
+    # strongest (3, against 1); 'advance' the nearest to its decision relative to its accuracy: row 1, 0.99
+    # against 1, accuracy (ε_λ + τ D / W_11) / 1 N.
+    from refsim.cutting.laws import EnergyLaw
+
+    problem = ConstraintProblem(
+        compliance=np.diag([1e-2, 1e-2]),
+        free_gap=np.array([-0.03, -0.0099]),
+        box_rows=np.array([0, 1]),
+        box_lower=np.array([0.0, 0.0]),
+        box_upper=np.array([1.0, 1.0]),
+    )
+    watch = MarginWatch(1e-6)
+    watch.begin(problem, None, np.array([1.0, 0.99]), None)
+    watch.tear(EnergyLaw(fracture_energy=1000.0), np.array([0, 1]))
+    tear, advance = watch.taken()
+    assert (tear.name, advance.name) == ("tear", "advance")
+    assert tear.value == pytest.approx(3.0) and advance.value == pytest.approx(0.99)
+    bound = 1e-6 * float(np.linalg.norm([1.0, 0.99]))  # τ D, D = ‖λ‖ here
+    epsilon = force_accuracy(problem.compliance, np.array([0, 1]), bound)
+    assert advance.accuracy == pytest.approx(epsilon + bound / 1e-2)
+    assert advance.threshold == 1.0 and not advance.within
