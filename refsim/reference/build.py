@@ -144,7 +144,7 @@ def _study(case: Case, level: str):
     keys = case.level(level)
     count = len(keys[case.refine])
     sweeps = [
-        Sweep(key, tuple(values), "inverse" if key == case.refine else "value")
+        Sweep(key, tuple(values), case.measure if key == case.refine else "value")
         for key, values in keys.items()
     ]
     # only the finest run records its constraint problems (exported with exact solutions)
