@@ -259,9 +259,7 @@ def _quantity(path: Path, index: int, table: dict) -> Quantity:
         return Quantity(kind="scalar", x=table["x"], event=str(table["event"]), **common)
     if "event" in table:
         return Quantity(kind="scalar", event=str(table["event"]), **common)
-    return _fail(
-        path, where, "expected y and x (a curve), source, x and event, or event alone (a scalar)"
-    )
+    return _fail(path, where, "expected y and x (a curve), source, x and event, or event alone (a scalar)")
 
 
 def load_case(name_or_path) -> Case:
@@ -326,7 +324,7 @@ def load_case(name_or_path) -> Case:
             _fail(
                 path,
                 f"[levels] {level}",
-                f"{head['refine']} = {keys[head['refine']]}: expected positive and {expected} (coarsest first)",
+                f"{head['refine']} = {keys[head['refine']]}: expected positive, {expected} (coarsest first)",
             )
     quantities = tuple(_quantity(path, i, t) for i, t in enumerate(data.get("quantity", [])))
     if not quantities:
