@@ -83,3 +83,28 @@ def test_withdrawal_releases_the_needle_through_its_cut(tmp_path):
     assert all(method == "converged" for method, o in zip(force["method"], out, strict=True) if o)
     times = np.asarray(answers["time_at_withdrawal"]["levels"]).ravel()
     assert np.all(np.abs(times - 3.85) < 0.1)
+
+
+@pytest.mark.slow
+def test_liver_cases_build_at_the_coarse_level(tmp_path):
+    """Both liver cases at the coarse level (6 runs of 6 s of breathing): the package holds each scene with
+    its mesh and trajectory, every force sample has an answer, and per run the cut start time is given exactly
+    when the run cuts (``cuts`` is 1 or 0, and cut_start_time finite where it is 1)."""
+    from refsim.scene import load_scene
+
+    folder = tmp_path / "reference"
+    names = ["liver_rigid", "liver_flexible"]
+    build_reference(folder, level="coarse", cases=names, workers=1, command="slow test")
+    assert check_manifest(folder) == []
+    for name in names:
+        case_folder = folder / "cases" / name
+        assert load_scene(case_folder / "scene.toml").mesh.file == "liver_phantom_coarse.vtu"
+        assert (case_folder / "liver_robot.csv").is_file()
+        answers = read_case_reference(folder, name)["quantities"]
+        for quantity in ("needle_force_time", "lateral_force_time"):
+            assert np.all(np.isfinite(answers[quantity]["levels"])), (name, quantity)
+        cuts = np.asarray(answers["cuts"]["levels"]).ravel()
+        assert set(cuts.tolist()) <= {0.0, 1.0}
+        if "cut_start_time" in answers:
+            start = np.asarray(answers["cut_start_time"]["levels"]).ravel()
+            np.testing.assert_array_equal(np.isfinite(start), cuts == 1.0)
