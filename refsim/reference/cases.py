@@ -39,6 +39,7 @@ materials, needle, trajectory and every parameter, in SI units, commented). Case
     name = "travel_at_puncture"
     x = "base_travel"
     event = "puncture"
+    crossing = true                # optional: where the event's criterion met its threshold (between steps)
     [[quantity]]                   # ... or whether an event happens: 1 when it does, 0 when not
     name = "cuts"
     event = "cut_start"
@@ -114,6 +115,10 @@ class Quantity:
     source : A study quantity name (refsim.sweep.quantities) for a scalar read by the study machinery.
     event : Event name for a scalar abscissa at the event (with ``x``), or for whether it happens (1 or 0,
         without ``x``).
+    crossing : For an abscissa at an event: read where the event's criterion (the run's ``criteria/``, e.g.
+        the cut-start load against its threshold) reached its threshold, interpolated linearly between the
+        step before the event and the event's step, instead of at the event's step (which snaps the event to
+        the time grid: an error of up to one step that is not smooth in h).
     window : (t0, t1) [s]: the steps a curve is read from; None for all.
     until : Event before whose first step a curve stops; "" for none.
     tolerance : Modelling tolerance relative to the quantity's scale [-].
@@ -130,6 +135,7 @@ class Quantity:
     x: str = ""
     source: str = ""
     event: str = ""
+    crossing: bool = False
     window: tuple | None = None
     until: str = ""
     tolerance: float = 0.01
@@ -208,6 +214,7 @@ def _quantity(path: Path, index: int, table: dict) -> Quantity:
         "description",
         "source",
         "event",
+        "crossing",
         "closed_form",
     }
     unknown = sorted(set(table) - known)
@@ -256,7 +263,10 @@ def _quantity(path: Path, index: int, table: dict) -> Quantity:
     if "x" in table and "event" in table:
         if table["x"] not in ABSCISSAE:
             _fail(path, where, f"x = {table['x']!r}: expected one of {', '.join(ABSCISSAE)}")
-        return Quantity(kind="scalar", x=table["x"], event=str(table["event"]), **common)
+        crossing = table.get("crossing", False)
+        if not isinstance(crossing, bool):
+            _fail(path, where, f"crossing = {crossing!r}: expected true or false")
+        return Quantity(kind="scalar", x=table["x"], event=str(table["event"]), crossing=crossing, **common)
     if "event" in table:
         return Quantity(kind="scalar", event=str(table["event"]), **common)
     return _fail(path, where, "expected y and x (a curve), source, x and event, or event alone (a scalar)")
@@ -396,6 +406,41 @@ def _steps(results, quantity: Quantity) -> np.ndarray:
     return keep
 
 
+def event_crossing(results, event: str, abscissa: np.ndarray) -> float:
+    """The abscissa at which the first ``event``'s criterion reached its threshold: linear in the criterion's
+    value between the step before the event and the event's step, from the run's ``criteria/``; the abscissa
+    at the event's step when the criterion was not evaluated at the step before; NaN without the event.
+
+    Raises
+    ------
+    ValueError
+        When the run records no criterion ``event`` (naming the file): the crossing cannot be read.
+    """
+    found = results.events_named(event)
+    if not found:
+        return math.nan
+    step = found[0].step
+    at_event = float(abscissa[results.index_of(step)])
+    criteria = results.criteria
+    rows = np.zeros(0, dtype=int)
+    if criteria is not None:
+        rows = np.flatnonzero((np.asarray(criteria.name) == event) & (np.asarray(criteria.step) <= step))
+    if rows.size == 0 or int(criteria.step[rows[-1]]) != step:
+        raise ValueError(
+            f"{results.path}: no criterion {event!r} recorded at the step of the event {event!r}; its "
+            "crossing cannot be read (crossing = true needs the run's criteria/)"
+        )
+    if rows.size < 2 or int(criteria.step[rows[-2]]) != step - 1 or results.step[0] > step - 1:
+        return at_event
+    before, after = float(criteria.value[rows[-2]]), float(criteria.value[rows[-1]])
+    threshold = float(criteria.threshold[rows[-1]])
+    if not before < threshold <= after:
+        return at_event
+    fraction = (threshold - before) / (after - before)
+    previous = float(abscissa[results.index_of(step - 1)])
+    return previous + fraction * (at_event - previous)
+
+
 def sample_curve(x: np.ndarray, y: np.ndarray, at, *, where: str, width: float = 0.0) -> np.ndarray:
     """y interpolated linearly at the points ``at`` of a non-decreasing abscissa x; NaN outside x's range.
 
@@ -456,6 +501,10 @@ def results_values(case: Case, results) -> dict[str, np.ndarray]:
             out[quantity.name] = np.asarray(study_quantity(results, quantity.source), dtype=float)
         elif not quantity.x:
             out[quantity.name] = np.asarray(1.0 if results.events_named(quantity.event) else 0.0)
+        elif quantity.crossing:
+            out[quantity.name] = np.asarray(
+                event_crossing(results, quantity.event, _abscissa(results, quantity.x))
+            )
         else:
             found = results.events_named(quantity.event)
             value = math.nan

@@ -128,7 +128,10 @@ on a network you control (docs/studies.md, "Security": whoever reaches it runs c
    window divided by the width): a force that grows by one insertion point every d_i, or drops at each tear,
    is a staircase or a saw-tooth whose point samples land on a step at one level and between two at the
    next; its mean over a window is smooth in h. A scalar read at an event is the abscissa at its first step
-   (none: NaN); an event alone (`cuts`) is 1 when it happens in the run and 0 when not.
+   (none: NaN), or, with `crossing = true`, where the event's criterion (the tip force against f_p, the
+   cut-start load against its threshold) reached its threshold, interpolated linearly between the step
+   before the event and the event's step: the event's step alone snaps it to the time grid, an error of up
+   to one step that is not smooth in h. An event alone (`cuts`) is 1 when it happens in the run, 0 when not.
 3. Write one CSV (format below) and run `refsim compare CASE THEIR.csv --reference DIR -o FIG.png`.
 
 ## The uncertainty and the pass band
