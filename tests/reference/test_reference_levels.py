@@ -126,3 +126,46 @@ def test_case_file_keys_of_levels_and_windows_are_validated(tmp_path):
     case = load_case(path)
     assert case.quantity("cuts").kind == "scalar" and not case.quantity("cuts").x
     assert math.isclose(case.spacings("c")[0], 0.5)
+
+
+class _Run:
+    """What event_crossing reads of a run: steps 0..9, an abscissa 0.1·step, a criterion 0.5·step with
+    threshold 2.2 from step 1 on (crossed between steps 4 and 5), the event at step 5."""
+
+    path = "run.h5"
+    step = np.arange(10)
+
+    def __init__(self, criteria=True):
+        from refsim.simulation.margins import CriterionSeries
+
+        steps = np.arange(1, 10)
+        self.criteria = None
+        if criteria:
+            self.criteria = CriterionSeries(
+                step=steps,
+                name=np.array(["cut_start"] * steps.size, dtype=object),
+                value=0.5 * steps,
+                threshold=np.full(steps.size, 2.2),
+                accuracy=np.zeros(steps.size),
+                unit=np.array(["N"] * steps.size, dtype=object),
+            )
+
+    def events_named(self, name):
+        from types import SimpleNamespace
+
+        return [SimpleNamespace(step=5, name=name)] if name == "cut_start" else []
+
+    def index_of(self, step):
+        return int(step)
+
+
+def test_event_crossing_interpolates_the_criterion_between_steps():
+    """The criterion 0.5·step reaches 2.2 at step 4.4: the abscissa 0.1·step is 0.44 there, where the event's
+    step alone would give 0.5; no event: NaN; no criterion recorded: an error naming the file."""
+    from refsim.reference.cases import event_crossing
+
+    abscissa = 0.1 * np.arange(10)
+    assert event_crossing(_Run(), "cut_start", abscissa) == pytest.approx(0.44, abs=1e-12)
+    assert math.isnan(event_crossing(_Run(), "tear", abscissa))
+    with pytest.raises(ValueError, match="run.h5: no criterion 'cut_start' recorded"):
+        event_crossing(_Run(criteria=False), "cut_start", abscissa)
