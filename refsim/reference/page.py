@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from refsim.reference.build import read_case_reference
-from refsim.reference.cases import load_case
+from refsim.reference.cases import case_names, load_case
 
 __all__ = ["write_page"]
 
@@ -79,10 +79,12 @@ package without it, a CSV without the columns or quantities below).
 
 ### Building on several machines
 
-One machine builds `standard` (the time is in "This build" below); `fine` has about 8 times the cells and
-twice the steps of each run (16 times the work at least, more where the factorisation grows faster than the
-node count), so it is meant for a cluster. Every run of a level is one Dask task, and a case's runs are
-independent, so the build uses as many workers as a level has runs (3 per case):
+One machine builds `standard` (its time is in "This build" below: the worker time of the runs, and the
+build's own time, on one worker); the cube cases' `fine` level has (21/9)³ ≈ 13 times the cells and 2.3 times
+the steps of the finest standard run (30 times its work at least, more where the factorisation grows faster
+than the node count), the puncture's 8 times the cells and twice the steps, so it is meant for a cluster.
+Every run of a level is one Dask task, and a case's runs are independent, so the build uses as many workers
+as a level has runs (3 per case):
 
     # every machine: the same refsim (pip install -e ".[study]" of the same commit), and the package
     # folder on a shared filesystem (NFS or similar) at the same path: workers write the run files, the
@@ -300,6 +302,13 @@ def write_page(package, output) -> Path:
                 f"| {name} | {quantity} | {', '.join(row['methods'])} | "
                 f"{_format(row['largest_relative_uncertainty'])} | {row['modelling_tolerance_relative']:g} |"
             )
+    absent = [name for name in case_names() if name not in manifest["cases"]]
+    if absent:
+        lines += [
+            "",
+            f"Not in this build: {', '.join(f'`{name}`' for name in absent)} (build them with "
+            "`refsim reference build --cases NAME ...`; their set-up is in their case files).",
+        ]
     lines.append("")
     for name, manifest_case in manifest["cases"].items():
         case = load_case(name)
