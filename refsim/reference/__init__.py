@@ -6,7 +6,15 @@ page. The cases are plain TOML files in ``refsim/reference/cases/`` (:mod:`refsi
 """
 
 from refsim.reference.build import build_reference, check_manifest, read_case_reference, reference_value
-from refsim.reference.cases import Case, Quantity, case_names, case_values, load_case, results_values
+from refsim.reference.cases import (
+    Case,
+    Quantity,
+    case_names,
+    case_values,
+    load_case,
+    results_values,
+    sample_curve,
+)
 from refsim.reference.compare import Comparison, compare, format_comparison, read_their_csv, write_their_csv
 
 __all__ = [
@@ -24,5 +32,6 @@ __all__ = [
     "read_their_csv",
     "reference_value",
     "results_values",
+    "sample_curve",
     "write_their_csv",
 ]

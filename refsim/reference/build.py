@@ -144,7 +144,7 @@ def _study(case: Case, level: str):
     keys = case.level(level)
     count = len(keys[case.refine])
     sweeps = [
-        Sweep(key, tuple(values), "inverse" if key == case.refine else "value")
+        Sweep(key, tuple(values), case.measure if key == case.refine else "value")
         for key, values in keys.items()
     ]
     # only the finest run records its constraint problems (exported with exact solutions)
@@ -572,6 +572,30 @@ def build_reference(
     return manifest
 
 
+#: Scene keys that name a file, relative to the scene's folder (copied into the package with the scene).
+SCENE_FILES = (("mesh", "file"), ("trajectory", "file"), ("boundary", "file"))
+
+
+def _copy_scene(scene_path: Path, folder: Path) -> list[str]:
+    """Copy the scene to ``folder/scene.toml`` with the files it names (a mesh, a trajectory, a boundary
+    motion; :data:`SCENE_FILES`) beside it, its paths rewritten to the copies' names; returns those names."""
+    import tomllib
+
+    text = scene_path.read_text(encoding="utf-8")
+    data = tomllib.loads(text)
+    copied = []
+    for section, key in SCENE_FILES:
+        name = data.get(section, {}).get(key)
+        if not name:
+            continue
+        source = Path(name) if Path(name).is_absolute() else scene_path.parent / name
+        shutil.copyfile(source, folder / source.name)
+        text = text.replace(f'"{name}"', f'"{source.name}"')
+        copied.append(source.name)
+    (folder / "scene.toml").write_text(text, encoding="utf-8")
+    return copied
+
+
 def _build_case(case: Case, level: str, output: Path, client, meta: dict, figures: bool) -> dict:
     """Run one case's levels, write its answers (HDF5, CSV), problems and figure into the package, and return
     its manifest entry."""
@@ -580,7 +604,7 @@ def _build_case(case: Case, level: str, output: Path, client, meta: dict, figure
     folder.mkdir(parents=True, exist_ok=True)
     if case.runner == "scene":
         # the scene the runs are made from, before they are (an interrupted build keeps it)
-        shutil.copyfile(case.scene_path, folder / "scene.toml")
+        _copy_scene(case.scene_path, folder)
         values, files, info = _run_scene_case(case, level, folder, client)
     else:
         values, files, info = _run_cantilever_case(case, level)

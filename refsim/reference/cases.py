@@ -11,7 +11,8 @@ materials, needle, trajectory and every parameter, in SI units, commented). Case
     set = ["section.key=value"]    # optional: overrides of the scene for every run (a variant of a scene)
     why = "..."                    # why another implementation needs this case
     setup = "..."                  # the set-up in words, enough to build it without refsim
-    refine = "mesh.cells"          # the key whose value gives the refinement measure h = 1/value
+    refine = "mesh.cells"          # the key whose value gives the refinement measure h
+    measure = "inverse"            # optional: h = 1/value (a count, the default) or "value" (h = value: dt)
     formal_order = 1               # order of the discretisation refined together (1: implicit Euler's dt)
     note = "..."                   # optional: what the answers show about the model (for the page)
 
@@ -23,6 +24,7 @@ materials, needle, trajectory and every parameter, in SI units, commented). Case
     y = "axial_force"              # see CURVE_VALUES
     x = "base_travel"              # see ABSCISSAE
     at = [0.24e-3, 0.26e-3]
+    width = 2e-3                   # optional: each sample is the mean of y over [at - width/2, at + width/2]
     window = [t0, t1]              # optional: only the steps with t0 <= time <= t1 [s]
     until = "puncture"             # optional: only the steps before the first such event
     unit = "N"
@@ -33,13 +35,21 @@ materials, needle, trajectory and every parameter, in SI units, commented). Case
     [[quantity]]                   # a scalar: a study quantity (refsim.sweep.quantities) ...
     name = "puncture_force"
     source = "puncture_force"
-    [[quantity]]                   # ... or an abscissa at the first step of an event
+    [[quantity]]                   # ... or an abscissa at the first step of an event (NaN without one)
     name = "travel_at_puncture"
     x = "base_travel"
     event = "puncture"
+    crossing = true                # optional: where the event's criterion met its threshold (between steps)
+    [[quantity]]                   # ... or whether an event happens: 1 when it does, 0 when not
+    name = "cuts"
+    event = "cut_start"
 
 Abscissae and curve values are read per step from a results file (:class:`refsim.io.Results`); a curve is
-sampled by linear interpolation in its abscissa over the selected steps, which must not decrease.
+sampled by linear interpolation in its abscissa over the selected steps, which must not decrease. With
+``width`` each sample is the mean of that piecewise-linear curve over a window of the abscissa
+(:func:`sample_curve`): a quantity smooth in h where the curve is a staircase or a saw-tooth whose steps are
+set by the discretisation (a friction force growing by one insertion point every d_i of depth, a cut force
+dropping at each tear), so that a point sample would land on a step at one level and between two at the next.
 """
 
 from __future__ import annotations
@@ -61,6 +71,7 @@ __all__ = [
     "case_values",
     "load_case",
     "results_values",
+    "sample_curve",
 ]
 
 #: Abscissae of curves [unit]: base travel along the initial needle axis, tip depth below the entry point,
@@ -70,6 +81,8 @@ ABSCISSAE = {"base_travel": "m", "tip_depth": "m", "lateral_stroke": "m", "time"
 #: cut surface area in rest coordinates.
 CURVE_VALUES = {"axial_force": "N", "lateral_force": "N", "needle_force": "N", "cut_area": "m^2"}
 RUNNERS = ("scene", "cantilever")
+#: How the refined key's value gives the refinement measure h (refsim.sweep.Sweep's measures).
+MEASURES = ("inverse", "value")
 
 
 def _folder():
@@ -95,10 +108,17 @@ class Quantity:
     kind : "curve" (values at the abscissae ``at``) or "scalar".
     unit, x_unit : Units of the values and of the abscissa ("" for a scalar).
     at : Sampling points of a curve, in ``x_unit``, shape (k,); empty for a scalar.
+    width : Averaging window of a curve's samples, in ``x_unit``: each is the mean of the curve over
+        [at − width/2, at + width/2]; 0 for a point sample.
     y, x : Curve value and abscissa names (:data:`CURVE_VALUES`, :data:`ABSCISSAE`); a scalar read at an event
         has ``x`` and ``event``.
     source : A study quantity name (refsim.sweep.quantities) for a scalar read by the study machinery.
-    event : Event name for a scalar abscissa at the event.
+    event : Event name for a scalar abscissa at the event (with ``x``), or for whether it happens (1 or 0,
+        without ``x``).
+    crossing : For an abscissa at an event: read where the event's criterion (the run's ``criteria/``, e.g.
+        the cut-start load against its threshold) reached its threshold, interpolated linearly between the
+        step before the event and the event's step, instead of at the event's step (which snaps the event to
+        the time grid: an error of up to one step that is not smooth in h).
     window : (t0, t1) [s]: the steps a curve is read from; None for all.
     until : Event before whose first step a curve stops; "" for none.
     tolerance : Modelling tolerance relative to the quantity's scale [-].
@@ -110,10 +130,12 @@ class Quantity:
     unit: str
     x_unit: str = ""
     at: tuple = ()
+    width: float = 0.0
     y: str = ""
     x: str = ""
     source: str = ""
     event: str = ""
+    crossing: bool = False
     window: tuple | None = None
     until: str = ""
     tolerance: float = 0.01
@@ -140,6 +162,7 @@ class Case:
     overrides: tuple = ()
     cantilever: dict = field(default_factory=dict)
     note: str = ""
+    measure: str = "inverse"
 
     def level(self, level: str) -> dict:
         """{key: values} of a level.
@@ -156,8 +179,10 @@ class Case:
         return self.levels[level]
 
     def spacings(self, level: str) -> np.ndarray:
-        """Refinement measure h = 1/value of the refined key at each run of a level, shape (L,)."""
-        return 1.0 / np.asarray(self.level(level)[self.refine], dtype=float)
+        """Refinement measure h of each run of a level (1/value of the refined key, or its value for
+        ``measure = "value"``), shape (L,)."""
+        values = np.asarray(self.level(level)[self.refine], dtype=float)
+        return values if self.measure == "value" else 1.0 / values
 
     def quantity(self, name: str) -> Quantity:
         """The quantity called ``name``; a ValueError naming the known ones otherwise."""
@@ -179,6 +204,7 @@ def _quantity(path: Path, index: int, table: dict) -> Quantity:
         "y",
         "x",
         "at",
+        "width",
         "window",
         "until",
         "unit",
@@ -188,6 +214,7 @@ def _quantity(path: Path, index: int, table: dict) -> Quantity:
         "description",
         "source",
         "event",
+        "crossing",
         "closed_form",
     }
     unknown = sorted(set(table) - known)
@@ -217,10 +244,14 @@ def _quantity(path: Path, index: int, table: dict) -> Quantity:
         window = table.get("window")
         if window is not None and (len(window) != 2 or not window[0] < window[1]):
             _fail(path, where, f"window = {window!r}: expected [t0, t1] with t0 < t1 [s]")
+        width = table.get("width", 0.0)
+        if not (isinstance(width, (int, float)) and math.isfinite(width) and width >= 0.0):
+            _fail(path, where, f"width = {width!r}: expected an averaging window >= 0 in the abscissa's unit")
         return Quantity(
             kind="curve",
             x_unit=str(table.get("x_unit", ABSCISSAE[table["x"]])),
             at=tuple(float(v) for v in at),
+            width=float(width),
             y=table["y"],
             x=table["x"],
             window=None if window is None else (float(window[0]), float(window[1])),
@@ -232,8 +263,13 @@ def _quantity(path: Path, index: int, table: dict) -> Quantity:
     if "x" in table and "event" in table:
         if table["x"] not in ABSCISSAE:
             _fail(path, where, f"x = {table['x']!r}: expected one of {', '.join(ABSCISSAE)}")
-        return Quantity(kind="scalar", x=table["x"], event=str(table["event"]), **common)
-    return _fail(path, where, "expected y and x (a curve), source (a scalar) or x and event (a scalar)")
+        crossing = table.get("crossing", False)
+        if not isinstance(crossing, bool):
+            _fail(path, where, f"crossing = {crossing!r}: expected true or false")
+        return Quantity(kind="scalar", x=table["x"], event=str(table["event"]), crossing=crossing, **common)
+    if "event" in table:
+        return Quantity(kind="scalar", event=str(table["event"]), **common)
+    return _fail(path, where, "expected y and x (a curve), source, x and event, or event alone (a scalar)")
 
 
 def load_case(name_or_path) -> Case:
@@ -271,6 +307,9 @@ def load_case(name_or_path) -> Case:
         scene_path = (path.parent / head["scene"]).resolve()
         if not scene_path.is_file():
             _fail(path, "[case] scene", f"{scene_path}: no such scene file")
+    measure = str(head.get("measure", "inverse"))
+    if measure not in MEASURES:
+        _fail(path, "[case] measure", f"{measure!r}: expected one of {', '.join(MEASURES)}")
     formal_order = head["formal_order"]
     if not (isinstance(formal_order, (int, float)) and 0.0 < formal_order <= 4.0):
         _fail(path, "[case] formal_order", f"{formal_order!r}: expected a number in (0, 4]")
@@ -289,9 +328,13 @@ def load_case(name_or_path) -> Case:
                 f"expected at least three values of {head['refine']!r} and as many of every other key",
             )
         refined = np.asarray(keys[head["refine"]], dtype=float)
-        if np.any(np.diff(refined) <= 0.0):
+        spacing = refined if measure == "value" else 1.0 / refined
+        if not np.all(refined > 0.0) or np.any(np.diff(spacing) >= 0.0):
+            expected = "decreasing" if measure == "value" else "increasing"
             _fail(
-                path, f"[levels] {level}", f"{head['refine']} = {keys[head['refine']]}: expected increasing"
+                path,
+                f"[levels] {level}",
+                f"{head['refine']} = {keys[head['refine']]}: expected positive, {expected} (coarsest first)",
             )
     quantities = tuple(_quantity(path, i, t) for i, t in enumerate(data.get("quantity", [])))
     if not quantities:
@@ -311,6 +354,7 @@ def load_case(name_or_path) -> Case:
         overrides=tuple(overrides),
         cantilever=dict(data.get("cantilever", {})),
         note=" ".join(str(head.get("note", "")).split()),
+        measure=measure,
     )
 
 
@@ -362,8 +406,47 @@ def _steps(results, quantity: Quantity) -> np.ndarray:
     return keep
 
 
-def sample_curve(x: np.ndarray, y: np.ndarray, at, *, where: str) -> np.ndarray:
+def event_crossing(results, event: str, abscissa: np.ndarray) -> float:
+    """The abscissa at which the first ``event``'s criterion reached its threshold: linear in the criterion's
+    value between the step before the event and the event's step, from the run's ``criteria/``; the abscissa
+    at the event's step when the criterion was not evaluated at the step before; NaN without the event.
+
+    Raises
+    ------
+    ValueError
+        When the run records no criterion ``event`` (naming the file): the crossing cannot be read.
+    """
+    found = results.events_named(event)
+    if not found:
+        return math.nan
+    step = found[0].step
+    at_event = float(abscissa[results.index_of(step)])
+    criteria = results.criteria
+    rows = np.zeros(0, dtype=int)
+    if criteria is not None:
+        rows = np.flatnonzero((np.asarray(criteria.name) == event) & (np.asarray(criteria.step) <= step))
+    if rows.size == 0 or int(criteria.step[rows[-1]]) != step:
+        raise ValueError(
+            f"{results.path}: no criterion {event!r} recorded at the step of the event {event!r}; its "
+            "crossing cannot be read (crossing = true needs the run's criteria/)"
+        )
+    if rows.size < 2 or int(criteria.step[rows[-2]]) != step - 1 or results.step[0] > step - 1:
+        return at_event
+    before, after = float(criteria.value[rows[-2]]), float(criteria.value[rows[-1]])
+    threshold = float(criteria.threshold[rows[-1]])
+    if not before < threshold <= after:
+        return at_event
+    fraction = (threshold - before) / (after - before)
+    previous = float(abscissa[results.index_of(step - 1)])
+    return previous + fraction * (at_event - previous)
+
+
+def sample_curve(x: np.ndarray, y: np.ndarray, at, *, where: str, width: float = 0.0) -> np.ndarray:
     """y interpolated linearly at the points ``at`` of a non-decreasing abscissa x; NaN outside x's range.
+
+    With ``width`` > 0 each sample is the mean of the piecewise-linear curve over [at − width/2,
+    at + width/2] (its exact integral, the trapezoid rule on the curve's own points and the window's ends,
+    divided by ``width``); NaN where the window leaves x's range.
 
     Raises
     ------
@@ -378,8 +461,23 @@ def sample_curve(x: np.ndarray, y: np.ndarray, at, *, where: str) -> np.ndarray:
     scale = max(np.max(np.abs(x)), np.finfo(float).tiny)
     if np.any(np.diff(x) < -1e-9 * scale):
         raise ValueError(f"{where}: the abscissa decreases; expected a non-decreasing abscissa")
-    values = np.interp(at, x, y)
-    values[(at < x[0] - 1e-12 * scale) | (at > x[-1] + 1e-12 * scale)] = np.nan
+    if width > 0.0:
+        low, high = at - 0.5 * width, at + 0.5 * width
+        # the curve's cumulative integral at its points; at any s it is that at the point before plus the
+        # trapezoid from that point to s (y linear in between)
+        cumulative = np.concatenate([[0.0], np.cumsum(0.5 * (y[1:] + y[:-1]) * np.diff(x))])
+
+        def integral(s):
+            index = np.clip(np.searchsorted(x, s, side="right") - 1, 0, x.size - 2)
+            ys = np.interp(s, x, y)
+            return cumulative[index] + 0.5 * (y[index] + ys) * (s - x[index])
+
+        values = (integral(high) - integral(low)) / width
+        outside = (low < x[0] - 1e-12 * scale) | (high > x[-1] + 1e-12 * scale)
+    else:
+        values = np.interp(at, x, y)
+        outside = (at < x[0] - 1e-12 * scale) | (at > x[-1] + 1e-12 * scale)
+    values[outside] = np.nan
     return values
 
 
@@ -397,9 +495,16 @@ def results_values(case: Case, results) -> dict[str, np.ndarray]:
                 _curve_value(results, quantity.y)[keep],
                 quantity.at,
                 where=f"{results.path}: case {case.name}, quantity {quantity.name}",
+                width=quantity.width,
             )
         elif quantity.source:
             out[quantity.name] = np.asarray(study_quantity(results, quantity.source), dtype=float)
+        elif not quantity.x:
+            out[quantity.name] = np.asarray(1.0 if results.events_named(quantity.event) else 0.0)
+        elif quantity.crossing:
+            out[quantity.name] = np.asarray(
+                event_crossing(results, quantity.event, _abscissa(results, quantity.x))
+            )
         else:
             found = results.events_named(quantity.event)
             value = math.nan

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from refsim.reference.build import read_case_reference
-from refsim.reference.cases import load_case
+from refsim.reference.cases import case_names, load_case
 
 __all__ = ["write_page"]
 
@@ -22,7 +22,8 @@ A handful of cases that another implementation (a SOFA plugin, a GPU or haptic s
 refsim, run in its own code and score against refsim's converged answers with `refsim compare`. Each case is
 two plain TOML files in `refsim/reference/cases/`: `NAME.toml` (what it checks, its set-up in words, its
 refinement levels, its quantities with their sampling points, units and modelling tolerances) and
-`NAME.scene.toml` (an ordinary refsim scene with every value in SI units and a comment on each). Code:
+`NAME.scene.toml` (an ordinary refsim scene with every value in SI units and a comment on each; the liver
+cases use the scenes of `refsim/scenes/`, their mesh and trajectory files copied into the package). Code:
 `refsim.reference` (DESIGN.md layer 6, above the study machinery it runs on).
 
 This page is generated from a built package by `refsim reference page --package DIR -o docs/reference.md`; its
@@ -44,15 +45,23 @@ Each case isolates one thing another implementation must get right, in the order
 - `laceration`, `laceration_paper_law`: the paper's cut: when it starts, the force while cutting, the area
   cut, by the energy law (refsim's default) and by the paper's equation 3;
 - `withdrawal`: the laceration followed by pulling the needle back out through its cut: the force while
-  pulling back, when the tip is out, and no force left once it is.
+  pulling back, when the tip is out, and no force left once it is;
+- `liver_rigid`, `liver_flexible`: the paper's liver with breathing and a robot-held beam needle, stiff
+  (it cuts) and flexible (it does not): the force at stated times, whether and when the cut starts, on an
+  unstructured organ mesh with a moving support.
 
-Not in the set: the liver cases (breathing, flexible and rigid needle); their scenes exist (`refsim/scenes/`)
-but they have no case file yet.
-
-Levels (each case's file gives its own cells; puncture's block is smaller, so its cells are finer):
-`coarse` (2–4 cells: seconds a case; the default tests build it to check the machinery), `standard` (4–8
-cells, puncture 8–16: the answers on this page, minutes on one machine), `fine` (8–16 cells, puncture 16–32:
-for a cluster; defined in the case files, not built for this page).
+Levels (each case's file gives its own, with a comment saying why): `coarse` (seconds to a minute a run: the
+tests build it to check the machinery), `standard` (the answers on this page, one machine), `fine` (for a
+cluster; defined in the case files, not built for this page). The cube cases refine mesh, d_i, d_c and dt
+together on odd cell counts, 3/5/7, 5/7/9 and 13/17/21 cells, with d_i = d_c = 6.8 mm/cells and dt =
+0.05 s/cells: the 17 mm insertion is then n + 1/2 insertion spacings deep at every level (the last point half
+a spacing above the tip), so the shaft's force, which grows by one point every d_i of depth, has the same
+phase at every level, and every waypoint of the trajectory falls on a step. The standard level's h (20 to
+11 mm) is above the needle's radius (8 mm) and the fine level's (7.7 to 4.8 mm) below it: each level stays
+in one regime of the ring coupling (docs/coupling.md: rows on a ring of radius max(r, h)). The paper's law
+holds d_i = d_c (they are parameters of its law). The puncture block (4 cm) refines 2–4, 8/12/16 and
+16/24/32 cells. The liver cases keep their organ mesh (the geometry) and refine dt with d_i, d_c and the
+needle's beam elements (h = dt).
 
 ## Commands
 
@@ -70,10 +79,12 @@ package without it, a CSV without the columns or quantities below).
 
 ### Building on several machines
 
-One machine builds `standard` (the time is in "This build" below); `fine` has about 8 times the cells and
-twice the steps of each run (16 times the work at least, more where the factorisation grows faster than the
-node count), so it is meant for a cluster. Every run of a level is one Dask task, and a case's runs are
-independent, so the build uses as many workers as a level has runs (3 per case):
+One machine builds `standard` (its time is in "This build" below: the worker time of the runs, and the
+build's own time, on one worker); the cube cases' `fine` level has (21/9)³ ≈ 13 times the cells and 2.3 times
+the steps of the finest standard run (30 times its work at least, more where the factorisation grows faster
+than the node count), the puncture's 8 times the cells and twice the steps, so it is meant for a cluster.
+Every run of a level is one Dask task, and a case's runs are independent, so the build uses as many workers
+as a level has runs (3 per case):
 
     # every machine: the same refsim (pip install -e ".[study]" of the same commit), and the package
     # folder on a shared filesystem (NFS or similar) at the same path: workers write the run files, the
@@ -84,7 +95,15 @@ independent, so the build uses as many workers as a level has runs (3 per case):
     refsim reference build -o /shared/refpkg --level fine --scheduler tcp://SCHEDULER:8786
     refsim reference page --package /shared/refpkg -o docs/reference.md
 
-(`dask scheduler` / `dask worker` in recent Dask.) The client runs each case's study in turn; start it again
+On one machine, a scheduler and two worker processes on the loopback interface run a build the same way
+(the package folder is then simply local):
+
+    dask scheduler --host 127.0.0.1 --port 8786 &
+    OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 \
+        dask worker tcp://127.0.0.1:8786 --nworkers 2 --nthreads 1 &
+    refsim reference build -o /tmp/refpkg --level coarse --scheduler tcp://127.0.0.1:8786
+
+(`dask-scheduler` / `dask-worker` in older Dask.) The client runs each case's study in turn; start it again
 after a lost worker or an interruption and only the missing runs are made (complete runs in the folder are
 reused), then it writes the answers, figures and manifest. Give only the address of a scheduler you started,
 on a network you control (docs/studies.md, "Security": whoever reaches it runs code as its workers' user).
@@ -106,14 +125,22 @@ on a network you control (docs/studies.md, "Security": whoever reaches it runs c
      positive when the tissue resists insertion; `lateral_force` [N]: the norm of the rest;
    - `cut_area` [m²]: the area of the cut surface in the tissue's rest configuration.
    A curve is read over the steps of its window (`window = [t0, t1]` in the case file) or before an event
-   (`until`), sampled at its `at` points by linear interpolation.
+   (`until`), sampled at its `at` points by linear interpolation; a quantity with a `width` is, at each
+   point, the mean of that piecewise-linear curve over [at − width/2, at + width/2] (its integral over the
+   window divided by the width): a force that grows by one insertion point every d_i, or drops at each tear,
+   is a staircase or a saw-tooth whose point samples land on a step at one level and between two at the
+   next; its mean over a window is smooth in h. A scalar read at an event is the abscissa at its first step
+   (none: NaN), or, with `crossing = true`, where the event's criterion (the tip force against f_p, the
+   cut-start load against its threshold) reached its threshold, interpolated linearly between the step
+   before the event and the event's step: the event's step alone snaps it to the time grid, an error of up
+   to one step that is not smooth in h. An event alone (`cuts`) is 1 when it happens in the run, 0 when not.
 3. Write one CSV (format below) and run `refsim compare CASE THEIR.csv --reference DIR -o FIG.png`.
 
 ## The uncertainty and the pass band
 
 Each quantity at each sampling point gets its reference value from the case's refinement sequence (mesh, d_i,
-d_c and dt refined together, h = 1/cells; the exact solver at a natural residual of 1e-10), with
-`refsim.sweep.convergence` on the three finest levels:
+d_c and dt refined together, h = 1/cells, or h = dt for the liver; the exact solver at a natural residual of
+1e-10), with `refsim.sweep.convergence` on the three finest levels:
 
 - `richardson`: monotone convergence: the Richardson value, U = GCI·|f1|, GCI = Fs·|(f1 − f2)/f1|/(r21^p̂ − 1)
   with Roy's rule (Oberkampf and Roy 2010, section 8.7): Fs = 1.25 and p̂ = p when the observed order p is
@@ -136,7 +163,8 @@ against its scale has no converged answer at the built level: its band says so, 
 
 One row per sample, a header with the columns `quantity`, `x`, `value` (other columns are ignored), SI units
 as in the tables below; curves at any abscissae covering the reference's sampling points (interpolated
-linearly), scalars with `x` empty:
+linearly; for a quantity with a `width`, the window means at the sampling points, computed from their curve:
+`refsim.reference.sample_curve(x, y, at, width=w, where=...)` does it), scalars with `x` empty:
 
     quantity,x,value
     indentation_force,0.00020,0.512
@@ -179,16 +207,24 @@ def _order(value: float) -> str:
     return "not observable" if not math.isfinite(value) else f"{value:.5g}"
 
 
+def _scene_name(path: Path) -> str:
+    """The scene's path relative to the repository (``refsim/...``) when it is refsim's, else its name."""
+    import refsim
+
+    root = Path(refsim.__file__).resolve().parent
+    try:
+        return "refsim/" + path.resolve().relative_to(root).as_posix()
+    except ValueError:
+        return path.name
+
+
 def _case_section(case, reference: dict, manifest_case: dict, figure: str | None) -> list[str]:
     lines = [f"## {case.name}: {case.title}", "", f"**Why.** {case.why}", "", f"**Set-up.** {case.setup}", ""]
     if case.note:
         lines += [f"**Note.** {case.note}", ""]
     if case.runner == "scene":
         changed = "".join(f", with `{text}`" for text in case.overrides)
-        lines.append(
-            f"Scene file: `refsim/reference/cases/{case.scene_path.name}`{changed}; "
-            f"case file: `{case.path.name}`."
-        )
+        lines.append(f"Scene file: `{_scene_name(case.scene_path)}`{changed}; case file: `{case.path.name}`.")
     else:
         lines.append(f"Case file: `{case.path.name}` (solved statically, `refsim.verification.needle`).")
     levels = manifest_case["levels"]
@@ -218,9 +254,10 @@ def _case_section(case, reference: dict, manifest_case: dict, figure: str | None
         entry = reference["quantities"][quantity.name]
         text = f"- `{quantity.name}` [{quantity.unit}]: {quantity.description}."
         if quantity.kind == "curve":
-            text += (
-                f" Sampled at {quantity.x} = {', '.join(f'{v:g}' for v in quantity.at)} {quantity.x_unit}."
-            )
+            text += f" Sampled at {quantity.x} = {', '.join(f'{v:g}' for v in quantity.at)} {quantity.x_unit}"
+            if quantity.width:
+                text += f", each the mean over {quantity.width:g} {quantity.x_unit} around the point"
+            text += "."
         text += f" T = {100 * quantity.tolerance:g} % of its scale: {quantity.tolerance_note}."
         if quantity.closed_form:
             text += f" Cross-check: {quantity.closed_form}"
@@ -265,6 +302,13 @@ def write_page(package, output) -> Path:
                 f"| {name} | {quantity} | {', '.join(row['methods'])} | "
                 f"{_format(row['largest_relative_uncertainty'])} | {row['modelling_tolerance_relative']:g} |"
             )
+    absent = [name for name in case_names() if name not in manifest["cases"]]
+    if absent:
+        lines += [
+            "",
+            f"Not in this build: {', '.join(f'`{name}`' for name in absent)} (build them with "
+            "`refsim reference build --cases NAME ...`; their set-up is in their case files).",
+        ]
     lines.append("")
     for name, manifest_case in manifest["cases"].items():
         case = load_case(name)

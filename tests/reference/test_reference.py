@@ -182,6 +182,24 @@ def test_cantilever_answers_bracket_the_closed_forms(package):
         ), name
 
 
+def test_whether_an_event_happens_is_read_from_the_run(package, tmp_path):
+    """A scalar of an event alone is 1 when the run has the event, 0 when not: the puncture case's finest
+    coarse run punctures (its travel_at_puncture is finite) and never cuts (no cutting in its scene)."""
+    folder, _ = package
+    finest = _run_files(folder, "puncture")[-1]
+    scene = load_case("puncture").scene_path
+    path = tmp_path / "events.toml"
+    path.write_text(
+        f'[case]\ntitle = "t"\nwhy = "w"\nsetup = "s"\nscene = "{scene}"\nrefine = "mesh.cells"\n'
+        'formal_order = 1\n[levels]\ncoarse = { "mesh.cells" = [2, 3, 4] }\n'
+        '[[quantity]]\nname = "punctures"\nunit = "1"\nevent = "puncture"\n'
+        '[[quantity]]\nname = "cuts"\nunit = "1"\nevent = "cut_start"\n'
+    )
+    values = case_values(load_case(path), finest)
+    assert math.isfinite(float(case_values(load_case("puncture"), finest)["travel_at_puncture"]))
+    assert float(values["punctures"]) == 1.0 and float(values["cuts"]) == 0.0
+
+
 def test_csv_round_trip(package, tmp_path):
     folder, _ = package
     for name in CASES:
