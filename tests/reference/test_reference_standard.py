@@ -85,6 +85,7 @@ def test_withdrawal_releases_the_needle_through_its_cut(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(3600)  # 6 runs of 6 s of breathing and the problem export: about 15 min on a loaded core
 def test_liver_cases_build_at_the_coarse_level(tmp_path):
     """Both liver cases at the coarse level (6 runs of 6 s of breathing): the package holds each scene with
     its mesh and trajectory, every force sample has an answer, and per run the cut start time is given exactly
