@@ -4,9 +4,9 @@
   t = Σ n_i^φ λ_i^φ is the lateral force of the tissue on the needle; the paper starts the cut when
   ‖t‖ > n_i · f_c. The default law starts it when ‖t‖ ≥ G_c L_in (a force per unit inserted length, so the
   start does not depend on d_i or the mesh). The cut runs the way the needle pushes the tissue, ĉ = −t/‖t‖.
-- Sliding rows (φ_c): every needle sample (every d_c along the inserted length) on the cut surface (its
-  projection inside it, and within d_c of it along its normal) gets one bilateral row along the surface
-  normal at its closest point.
+- Sliding rows (φ_c): every needle sample (every d_c along the inserted length) whose projection falls inside
+  the cut surface gets one bilateral row along the surface normal at its closest point; a needle meeting a
+  cut it is not cutting only where the sample is also within d_c of the surface along its normal.
 - Front rows (χ_c): every needle sample against the crack tip, along −ĉ normal to the needle, so the needle
   stays behind the crack tip; their strength G_c × (the needle length each row stands for) makes the needle
   cut through at G_c per unit length (the energy law), or, unbounded, they tear the cut by d_t when one
@@ -292,15 +292,15 @@ def strip_cut_block(
     is decided on the state at the start of the step (a consistent state: the one the previous correction
     produced); their gaps are linearised at the free positions.
 
-    - Sliding (bilateral): every sample on the cut surface: within d_c of it along its normal (further
-      away, a sample is in intact tissue, whatever its projection: another needle beside the cut or
-      crossing its plane), and projecting inside it or beyond its border by at most d_c in its plane, plus
-      the front rows' compression C(d_c) G_c d_c when they are compliant (the crack tip is at the needle,
-      less that compression, the last layer up to d_c behind it: the tissue between them is cut, and
-      without these rows the needle drifted off the plane there, 2 µm on cube_cut),
-      along the surface's normal at its closest point (area-weighted vertex normals interpolated: a sliver's
-      own normal is arbitrary), anchored at that point's barycentric coordinates: the needle stays on the cut
-      wherever it lies in it.
+    - Sliding (bilateral): every sample on the cut surface, projecting inside it or beyond its border by
+      at most d_c in its plane, plus the front rows' compression C(d_c) G_c d_c when they are compliant (the
+      crack tip is at the needle, less that compression, the last layer up to d_c behind it: the tissue
+      between them is cut, and without these rows the needle drifted off the plane there, 2 µm on
+      cube_cut), along the surface's normal at its closest point (area-weighted vertex normals
+      interpolated: a sliver's own normal is arbitrary), anchored at that point's barycentric coordinates:
+      the needle stays on the cut wherever it lies in it. For a needle meeting a cut it is not cutting
+      (``strip`` None), only a sample within d_c of the surface along its normal: further away it is in
+      intact tissue, whatever its projection (another needle beside the cut, or crossing its plane).
     - Front (unilateral): every sample against the closest point of the crack-tip polyline, along
       n = −(ĉ normal to the needle): the needle stays behind the crack tip. With ``front_strength`` finite
       (the fracture law: G_c), each row gives way at G_c ℓ_k, ℓ_k the inserted length its sample stands for
@@ -501,12 +501,15 @@ def _sliding_rows(
         lateral = np.asarray(subgrid_compliance[0], dtype=float)[cut.tet_indices[near]]
         compression = lateral * float(front_strength) * spacing
     reach = spacing + compression if strip is not None else 0.0
-    # ON the surface: within d_c of it along its normal (the rule of new insertion points, which a needle
-    # gets only outside the cut, refsim.simulation.events). A sample that merely projects inside the cut
-    # from further away (another needle beside the cut, or crossing its plane) is in intact tissue: held
-    # there, its bilateral row pulled it onto the cut's plane.
-    across = np.abs(np.einsum("ij,ij->i", offset, normals_previous))
-    on_surface = (found.inside | (np.linalg.norm(in_plane, axis=1) <= reach)) & (across <= spacing)
+    # A needle meeting a cut it is not cutting (another needle's, or its own old one) slides in it only ON
+    # the surface: within d_c of it along its normal (the rule of new insertion points, which a needle gets
+    # only outside the cut, refsim.simulation.events). A sample that merely projects inside the cut from
+    # further away (beside the cut, or crossing its plane) is in intact tissue: held there, its bilateral row
+    # pulled it onto the cut's plane. The needle cutting the strip made the surface it projects onto: all its
+    # samples that project inside it (or within reach of the crack tip) are held on it.
+    on_surface = found.inside | (np.linalg.norm(in_plane, axis=1) <= reach)
+    if strip is None:
+        on_surface &= np.abs(np.einsum("ij,ij->i", offset, normals_previous)) <= spacing
     inside = np.flatnonzero(on_surface)
     if not inside.size:
         return none
