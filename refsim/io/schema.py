@@ -649,8 +649,9 @@ def reference_markdown() -> str:
         "(7 digits). Views are HDF5 virtual datasets onto one entry of a per-step dataset (no data copied); "
         "stored are the derived arrays (deformed cut points, displacement, nodal constraint forces) of each "
         "recorded tissue step. The group's attribute `description` says the same. `refsim export RESULT.h5 "
-        "--vtu STEP` (or `last`, or `all` with a `.pvd` series) writes the tissue and the cut of recorded "
-        "steps as `.vtu` files with the same point data.",
+        "--vtu STEP` (or `last`, or `all` with a `.pvd` series) writes the tissue, the cut and every needle "
+        "(its centreline, `STEM_<name>_NNNNNNN.vtu`) of recorded steps as `.vtu` files with the same point "
+        "data.",
         "",
         "| path | shape | dtype | unit | meaning |",
         "|---|---|---|---|---|",
