@@ -200,6 +200,7 @@ class _Signals:
     def __init__(self, enabled: bool) -> None:
         self.enabled = enabled and threading.current_thread() is threading.main_thread()
         self.previous: dict = {}
+        self.received: int | None = None  # the terminating signal, once one has arrived
 
     def __enter__(self) -> _Signals:
         if self.enabled:
@@ -209,9 +210,16 @@ class _Signals:
                 self.previous[signal.SIGHUP] = signal.signal(signal.SIGHUP, self._terminate)
         return self
 
-    @staticmethod
-    def _terminate(signum, frame) -> None:
+    def _terminate(self, signum, frame) -> None:
+        self.received = signum
         raise _Terminated(signum)
+
+    def check(self) -> None:
+        """Raise the terminating signal again if one arrived and its exception was swallowed: Python runs a
+        signal handler between any two bytecodes, also inside a weakref callback or a finaliser, where an
+        exception is printed as "ignored" and dropped (the run would then go on to its end)."""
+        if self.received is not None:
+            raise _Terminated(self.received)
 
     def __exit__(self, *exc) -> None:
         for number, handler in self.previous.items():
@@ -276,8 +284,13 @@ def run_scene(
     step_done = StepSink(
         writer, summary, simulation.models.mesh.rest_positions, total, on_step=on_step, progress=progress
     )
-    with _Signals(handle_signals):
-        status, reason = _run_steps(simulation, total, step_done, summary, writer)
+    with _Signals(handle_signals) as signals:
+
+        def step_checked(state, record) -> None:
+            step_done(state, record)
+            signals.check()
+
+        status, reason = _run_steps(simulation, total, step_checked, summary, writer)
     if writer.failure is not None and status != "write_failed":
         status = "write_failed"
         reason = f"{reason}; {writer.failure}" if reason else writer.failure

@@ -269,3 +269,26 @@ def test_bad_input_writes_nothing(tmp_path):
     with pytest.raises(RunInputError, match="inside the tissue"):
         run_scene(scene, tmp_path / "run.h5")
     assert not (tmp_path / "run.h5").exists()
+
+
+def test_a_sigterm_whose_exception_is_swallowed_still_stops_the_run(tmp_path, monkeypatch):
+    """Python runs a signal handler between any two bytecodes, also inside a weakref callback or a finaliser,
+    where the handler's exception is printed as "ignored" and dropped: the run must stop all the same, after
+    the step in which the signal arrived, and say it was terminated."""
+    import signal
+
+    def swallowed(self, state, original, **kwargs):
+        result = original(self, state, **kwargs)
+        try:  # what a weakref callback does with an exception
+            signal.raise_signal(signal.SIGTERM)
+            for _ in range(1000):  # the handler runs at the next bytecode boundary
+                pass
+        except BaseException:  # noqa: BLE001 - the swallowing under test
+            pass
+        return result
+
+    _poisoned_step(monkeypatch, 5, swallowed)
+    summary = run_scene(_scene(), tmp_path / "run.h5")
+    assert summary.status == "terminated" and "SIGTERM" in summary.stop_reason
+    results = read_results(tmp_path / "run.h5")
+    assert not results.complete and results.step_count == 5
