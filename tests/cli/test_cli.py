@@ -69,6 +69,8 @@ def test_run_writes_results_and_summary(tmp_path):
         assert int(results.attrs["steps_completed"]) == 40
 
 
+# slow: runs every verification case (about 11 s); each case has its own test in tests/verification/.
+@pytest.mark.slow
 def test_verify_prints_the_table_and_passes():
     process = _refsim("verify")
     assert process.returncode == 0, process.stdout + process.stderr

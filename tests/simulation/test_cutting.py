@@ -505,6 +505,9 @@ def test_a_needle_inserted_deeper_while_cutting_extends_the_cut_along_its_shaft(
     assert checked >= 3
 
 
+# slow: the whole cube_cut scene with both solvers (about 11 s); the parametrised
+# test_gauss_seidel_and_exact_agree_on_the_events compares both solvers on small cutting cases by default.
+@pytest.mark.slow
 def test_cube_cut_forces_do_not_depend_on_the_solver():
     # The built-in cube_cut, whole (insertion, stroke, then the hold after it): both solvers solve every step
     # to a natural residual of 1e-8, so the needle forces of the two runs agree to a thousandth of the peak,

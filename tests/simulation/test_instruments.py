@@ -103,6 +103,9 @@ def test_both_needles_puncture_at_f_p_insert_and_one_cuts(two):
     assert state.cut is not None and state.cut.triangle_count
 
 
+# slow: the exact solver over the whole two-needle run (about 20 s alone); the instrument matrix's
+# test_gauss_seidel_and_exact_agree_on_every_case compares both solvers on small cases in the default suite.
+@pytest.mark.slow
 def test_gauss_seidel_and_exact_agree_on_the_whole_two_needle_run(two, two_exact):
     # As for one needle (tests/simulation/test_cutting.py, test_gauss_seidel_and_exact_agree_on_the_events):
     # each solver converged to the natural residual 1e-8 on a positive definite problem finds the same
