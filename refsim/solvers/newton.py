@@ -29,6 +29,7 @@ import math
 import time
 import warnings
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg
@@ -50,6 +51,7 @@ from refsim.solvers.laws import (
 )
 from refsim.solvers.linear import (
     PIVOT_DTYPE,
+    DirectionWork,
     _dense_jacobian,
     _gesv,
     _lu_direction_into,
@@ -198,14 +200,37 @@ def _presweep(
     return swept, best_value, False, np.nan, np.nan, False
 
 
+class _IterateWork(NamedTuple):
+    """The Newton kernel's own vectors, shape (n,) each (the direction's are a :class:`DirectionWork`)."""
+
+    #: ones: the unit weights of the residual kernels
+    unit: np.ndarray
+    #: the natural map F(λ) of the iterate (and, after a line search, of its last candidate)
+    error: np.ndarray
+    #: the residual kernels' work vector
+    scratch: np.ndarray
+    #: δ of the iterate (swaps with ``candidate_gap`` on each accepted step)
+    gap: np.ndarray
+    #: the best point found
+    best: np.ndarray
+    #: the line search's candidate (swaps with the iterate on each accepted step)
+    candidate: np.ndarray
+    #: δ of the candidate
+    candidate_gap: np.ndarray
+    #: the pre-sweeps' point
+    sweep_point: np.ndarray
+    #: the pre-sweeps' gap
+    sweep_gap: np.ndarray
+    #: the start, then the iterate (the caller's array is not written)
+    start: np.ndarray
+
+
 @numba.njit(cache=True)
 def _workspace(n, blocks, memory_length, member_count):
     """The dense Newton kernel's work arrays: every float one a view into one allocation, every int one into
     another (an allocation costs about 0.1 µs in compiled code, and a small problem needs some thirty of
-    them). Returns (15 vectors (n,): unit (ones), error, scratch, gap, best, candidate, candidate gap,
-    direction, right-hand side, values, reduced right-hand side, sweep point, sweep gap, start, LU output;
-    2 matrices (n, n): Jacobian, work; local and gap factors (blocks, 3, 3); merit memory (memory_length,);
-    bound values (member_count,), zeros; position and active (n,) int64; pivots (n,))."""
+    them). Returns (the iterate's vectors, an :class:`_IterateWork`; the merit memory (memory_length,); the
+    direction's arrays, a :class:`DirectionWork` with ``bound_values`` zeros)."""
     floats = np.empty(15 * n + 2 * n * n + 18 * blocks + memory_length + member_count)
     ints = np.empty(2 * n, dtype=np.int64)
     vectors = floats[: 15 * n].reshape((15, n))
@@ -220,66 +245,97 @@ def _workspace(n, blocks, memory_length, member_count):
     bound_values = floats[at + memory_length :]
     bound_values[:] = 0.0
     pivots = np.empty(n, dtype=PIVOT_DTYPE)
-    return vectors, matrices, local, gap_factor, memory, bound_values, ints[:n], ints[n:], pivots
+    iterate = _IterateWork(
+        vectors[0],
+        vectors[1],
+        vectors[2],
+        vectors[3],
+        vectors[4],
+        vectors[5],
+        vectors[6],
+        vectors[11],
+        vectors[12],
+        vectors[13],
+    )
+    direction = DirectionWork(
+        matrices[0],
+        vectors[8],
+        local,
+        gap_factor,
+        bound_values,
+        ints[:n],
+        ints[n:],
+        vectors[9],
+        vectors[10],
+        matrices[1],
+        pivots,
+        vectors[14],
+        vectors[7],
+    )
+    return iterate, memory, direction
 
 
 @numba.njit(cache=True)
-def _direction(
-    jacobian,
-    rhs,
-    kinds,
-    rows,
-    members,
-    local,
-    gap_factor,
-    bound_values,
-    position,
-    direction,
-    work,
-    values,
-    active,
-    reduced_rhs,
-    pivots,
-    lu_out,
-    limit,
-    unregularised,
-):
-    """The Newton direction d of J d = rhs: the reduced solve (:func:`_reduced_direction_into` into
-    ``direction``), an LU when it fails, and on an exactly singular unregularised J (a zero pivot) the
-    minimum-norm least-squares step. Returns (d, ok: finite and no longer than ``limit``, 1 when the
-    least-squares step was taken else 0).
+def _direction(kinds, rows, members, work, limit, unregularised):
+    """The Newton direction d of J d = rhs (``work``, a :class:`DirectionWork`): the reduced solve
+    (:func:`_reduced_direction_into` into ``work.direction``), an LU when it fails, and on an exactly
+    singular unregularised J (a zero pivot) the minimum-norm least-squares step. Returns (d, ok: finite and
+    no longer than ``limit``, 1 when the least-squares step was taken else 0).
 
     A factorised J whose step is absurdly long (nearly singular) goes to the regularised step of the next
     iteration (an LU, not an SVD). Measured (best of 7, one thread, method="auto", cold): there the
     least-squares step was rejected as too long as well on Rover1040 / 1041 / 3865 (93-98 -> 65-67 us without
     it) and did not help GMP6 (2.7 -> 1.1 ms); PD_mlcp, which its least-squares steps answer, has an exactly
     singular J."""
-    ok = _reduced_direction_into(
-        jacobian,
-        rhs,
-        kinds,
-        rows,
-        members,
-        local,
-        gap_factor,
-        bound_values,
-        position,
-        direction,
-        work,
-        values,
-        active,
-        reduced_rhs,
-        pivots,
-    )
+    direction = work.direction
+    ok = _reduced_direction_into(kinds, rows, members, work)
     factored = True
     if not ok:
-        direction, ok = _lu_direction_into(jacobian, rhs, work, lu_out, pivots)
+        direction, ok = _lu_direction_into(work.jacobian, work.rhs, work.factors, work.lu_out, work.pivots)
         factored = ok
     ok = ok and _finite_and_short(direction, limit)
     if unregularised and not factored:
-        direction = np.linalg.lstsq(jacobian, rhs, 1e-12)[0]
+        direction = np.linalg.lstsq(work.jacobian, work.rhs, 1e-12)[0]
         return direction, _finite_and_short(direction, limit), 1
     return direction, ok, 0
+
+
+@numba.njit(cache=True, inline="always")  # a stage of _dense_newton, inlined: no compile of its own
+def _newton_direction(
+    compliance,
+    kinds,
+    rows,
+    params,
+    members,
+    weight,
+    multipliers,
+    gap,
+    error,
+    theta,
+    force_scale,
+    eta_max,
+    level,
+    work,
+):
+    """One iteration's linear stage: the Jacobian blocks at λ, J + η I assembled dense (η = 0 at level 0,
+    else min(η_max, ‖F‖/F_data) 10^(level−1), at least 1e-14) and the direction of J d = −F
+    (:func:`_direction`, steps longer than 1e4 max(‖λ‖, F_data) rejected). Returns what :func:`_direction`
+    returns."""
+    n = multipliers.shape[0]
+    jacobian_blocks(
+        kinds, rows, params, members, multipliers, gap, weight, work.local, work.gap_factor, work.bound_values
+    )
+    relative = np.sqrt(2.0 * theta) / force_scale
+    eta = 0.0
+    if level > 0:
+        eta = max(min(eta_max, relative) * 10.0 ** (level - 1), 1e-14)
+    _dense_jacobian(
+        compliance, kinds, rows, work.local, work.gap_factor, members, work.bound_values, eta, work.jacobian
+    )
+    limit = 1e4 * max(np.sqrt(np.dot(multipliers, multipliers)), force_scale)
+    for i in range(n):
+        work.rhs[i] = -error[i]
+    return _direction(kinds, rows, members, work, limit, level == 0)
 
 
 @numba.njit(cache=True)
@@ -344,6 +400,134 @@ def _fallback_sweeps(
     return 0.5 * np.dot(error, error)
 
 
+@numba.njit(cache=True, inline="always")  # a stage of _dense_newton, inlined: no compile of its own
+def _start(
+    compliance,
+    free_gap,
+    kinds,
+    rows,
+    params,
+    members,
+    weight,
+    free_norm,
+    data_scale,
+    multipliers,
+    tolerance,
+    presweeps,
+    work,
+):
+    """The start of :func:`_dense_newton`: the merit θ, natural and data residual of the start λ
+    (``multipliers``, ``work.start``; ``work.gap`` and ``work.error`` get its gap and natural map,
+    ``work.best`` the start), then up to ``presweeps`` Gauss–Seidel sweeps (:func:`_presweep`), whose point
+    replaces the start when they improve it. Returns (θ, residual, data residual, max of both, pre-sweeps
+    taken, Wᵀ and the sweeps' diagonal (empty when no sweep was taken))."""
+    gap, error, scratch, unit, best = work.gap, work.error, work.scratch, work.unit, work.best
+    transposed = np.empty((0, 0))
+    diagonal = np.empty(0)
+    _gap_into(compliance, multipliers, free_gap, gap)
+    natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error)
+    theta = 0.5 * np.dot(error, error)
+    residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, scratch, unit)
+    data = _data_from_error(scratch, data_scale)  # the error _residual left in scratch
+    best_value = max(residual, data)
+    best[:] = multipliers
+    swept = 0
+    if presweeps > 0 and not (residual <= tolerance and data <= tolerance):
+        transposed, diagonal = _sweep_arrays(compliance)
+        swept, value, replaced, residual_swept, data_swept, done = _presweep(
+            compliance,
+            transposed,
+            diagonal,
+            free_gap,
+            kinds,
+            rows,
+            params,
+            members,
+            free_norm,
+            data_scale,
+            best,
+            best_value,
+            tolerance,
+            presweeps,
+            scratch,
+            unit,
+            work.sweep_point,
+            work.sweep_gap,
+        )
+        if (
+            replaced
+        ):  # start Newton from the swept point (its residuals as computed here, on a gap from scratch)
+            multipliers[:] = best
+            residual = residual_swept
+            data = data_swept
+            best_value = value
+            if not done:  # Newton's merit at the new start (not needed when the sweeps solved the problem)
+                _gap_into(compliance, multipliers, free_gap, gap)
+                natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error)
+                theta = 0.5 * np.dot(error, error)
+    return theta, residual, data, best_value, swept, transposed, diagonal
+
+
+@numba.njit(cache=True, inline="always")  # a stage of _dense_newton, inlined: no compile of its own
+def _next_point(
+    compliance,
+    free_gap,
+    kinds,
+    rows,
+    params,
+    members,
+    weight,
+    multipliers,
+    direction,
+    theta,
+    reference,
+    transposed,
+    diagonal,
+    candidate,
+    candidate_gap,
+    error,
+):
+    """The candidate after λ: the line search along d (:func:`_line_search`), or when it fails ten
+    Gauss–Seidel sweeps from λ (:func:`_fallback_sweeps`; Wᵀ and the diagonal made on first use). The
+    candidate, its gap and natural map are left in ``candidate``, ``candidate_gap`` and ``error``. Returns
+    (accepted, the candidate's θ, Wᵀ, diagonal)."""
+    accepted, candidate_theta = _line_search(
+        compliance,
+        free_gap,
+        kinds,
+        rows,
+        params,
+        members,
+        weight,
+        multipliers,
+        direction,
+        theta,
+        reference,
+        candidate,
+        candidate_gap,
+        error,
+    )
+    if not accepted:
+        if transposed.shape[0] == 0:
+            transposed, diagonal = _sweep_arrays(compliance)
+        candidate_theta = _fallback_sweeps(
+            compliance,
+            transposed,
+            diagonal,
+            free_gap,
+            kinds,
+            rows,
+            params,
+            members,
+            weight,
+            multipliers,
+            candidate,
+            candidate_gap,
+            error,
+        )
+    return accepted, candidate_theta, transposed, diagonal
+
+
 @numba.njit(cache=True)
 def _dense_newton(
     compliance,
@@ -371,71 +555,38 @@ def _dense_newton(
     Gauss–Seidel fallback; no Python call per iteration). ``multipliers`` is the start on entry and the best
     point on exit; ``history`` (max_iterations + 1,) gets the residual after each iteration.
 
-    First up to ``presweeps`` projected Gauss–Seidel sweeps (:func:`_presweep`), kept when they improve the
-    start. Returns (iterations, residual, data residual, reason): reason 0 converged, 1 iteration cap, 2 the
-    regularised Jacobian could not be factorised, 3 the line search failed 9 times in a row, 4 stalled.
-    ``counts`` gets (line-search failures, fallback sweeps, least-squares steps, history length, pre-sweeps),
-    ``final`` the natural and data residual of the answer as :func:`refsim.solvers.residuals` computes them.
+    Its stages: the start with up to ``presweeps`` projected Gauss–Seidel sweeps (:func:`_start`), then per
+    iteration the direction (:func:`_newton_direction`), the next point (:func:`_next_point`) and the
+    bookkeeping here (regularisation level, best point, history, stop reasons). Returns (iterations, residual,
+    data residual, reason): reason 0 converged, 1 iteration cap, 2 the regularised Jacobian could not be
+    factorised, 3 the line search failed 9 times in a row, 4 stalled. ``counts`` gets (line-search failures,
+    fallback sweeps, least-squares steps, history length, pre-sweeps), ``final`` the natural and data
+    residual of the answer as :func:`refsim.solvers.residuals` computes them.
     """
     n = free_gap.shape[0]
-    vectors, matrices, local, gap_factor, memory, bound_values, position, active, pivots = _workspace(
-        n, kinds.shape[0], max(memory_size, 1), members.shape[0]
+    work, memory, linear = _workspace(n, kinds.shape[0], max(memory_size, 1), members.shape[0])
+    unit, error, scratch, best = work.unit, work.error, work.scratch, work.best
+    work.start[:] = multipliers  # the caller's array is not written
+    multipliers = work.start
+    theta, residual, data, best_value, swept, transposed, diagonal = _start(
+        compliance,
+        free_gap,
+        kinds,
+        rows,
+        params,
+        members,
+        weight,
+        free_norm,
+        data_scale,
+        multipliers,
+        tolerance,
+        presweeps,
+        work,
     )
-    unit, error, scratch, gap, best = vectors[0], vectors[1], vectors[2], vectors[3], vectors[4]
-    candidate, candidate_gap, direction_buffer, rhs = vectors[5], vectors[6], vectors[7], vectors[8]
-    values, reduced_rhs, sweep_point, sweep_gap = vectors[9], vectors[10], vectors[11], vectors[12]
-    start, lu_out = vectors[13], vectors[14]
-    jacobian, work = matrices[0], matrices[1]  # work: the reduced system (_reduced_direction_into)
-    transposed = np.empty((0, 0))
-    diagonal = np.empty(0)
-    start[:] = multipliers  # the caller's array is not written
-    multipliers = start
-    _gap_into(compliance, multipliers, free_gap, gap)
-    natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error)
-    theta = 0.5 * np.dot(error, error)
-    residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, scratch, unit)
-    data = _data_from_error(scratch, data_scale)  # the error _residual left in scratch
-    best_value = max(residual, data)
-    best[:] = multipliers
     best_residual = residual
     best_data = data
-    swept = 0
-    if presweeps > 0 and not (residual <= tolerance and data <= tolerance):
-        transposed, diagonal = _sweep_arrays(compliance)
-        swept, value, replaced, residual_swept, data_swept, done = _presweep(
-            compliance,
-            transposed,
-            diagonal,
-            free_gap,
-            kinds,
-            rows,
-            params,
-            members,
-            free_norm,
-            data_scale,
-            best,
-            best_value,
-            tolerance,
-            presweeps,
-            scratch,
-            unit,
-            sweep_point,
-            sweep_gap,
-        )
-        if (
-            replaced
-        ):  # start Newton from the swept point (its residuals as computed here, on a gap from scratch)
-            multipliers[:] = best
-            residual = residual_swept
-            data = data_swept
-            best_value = value
-            best_residual = residual
-            best_data = data
-            if not done:  # Newton's merit at the new start (not needed when the sweeps solved the problem)
-                _gap_into(compliance, multipliers, free_gap, gap)
-                natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error)
-                theta = 0.5 * np.dot(error, error)
     # multipliers / gap and candidate / candidate_gap swap roles on each accepted step
+    gap, candidate, candidate_gap = work.gap, work.candidate, work.candidate_gap
     memory[0] = theta
     stored = 1
     history[0] = residual
@@ -454,36 +605,21 @@ def _dense_newton(
             reason = 1
             break
         iterations += 1
-        jacobian_blocks(
-            kinds, rows, params, members, multipliers, gap, weight, local, gap_factor, bound_values
-        )
-        relative = np.sqrt(2.0 * theta) / force_scale
-        eta = 0.0
-        if level > 0:
-            eta = max(min(eta_max, relative) * 10.0 ** (level - 1), 1e-14)
-        _dense_jacobian(compliance, kinds, rows, local, gap_factor, members, bound_values, eta, jacobian)
-        limit = 1e4 * max(np.sqrt(np.dot(multipliers, multipliers)), force_scale)
-        for i in range(n):
-            rhs[i] = -error[i]
-        direction, ok, singular = _direction(
-            jacobian,
-            rhs,
+        direction, ok, singular = _newton_direction(
+            compliance,
             kinds,
             rows,
+            params,
             members,
-            local,
-            gap_factor,
-            bound_values,
-            position,
-            direction_buffer,
-            work,
-            values,
-            active,
-            reduced_rhs,
-            pivots,
-            lu_out,
-            limit,
-            level == 0,
+            weight,
+            multipliers,
+            gap,
+            error,
+            theta,
+            force_scale,
+            eta_max,
+            level,
+            linear,
         )
         singular_steps += singular
         if not ok:
@@ -497,7 +633,7 @@ def _dense_newton(
         reference = memory[0]
         for k in range(1, min(stored, memory_size)):
             reference = max(reference, memory[k])
-        accepted, candidate_theta = _line_search(
+        accepted, candidate_theta, transposed, diagonal = _next_point(
             compliance,
             free_gap,
             kinds,
@@ -509,6 +645,8 @@ def _dense_newton(
             direction,
             theta,
             reference,
+            transposed,
+            diagonal,
             candidate,
             candidate_gap,
             error,
@@ -519,23 +657,6 @@ def _dense_newton(
             consecutive += 1
             fallback += 10
             level = min(level + 1, 8)
-            if transposed.shape[0] == 0:
-                transposed, diagonal = _sweep_arrays(compliance)
-            candidate_theta = _fallback_sweeps(
-                compliance,
-                transposed,
-                diagonal,
-                free_gap,
-                kinds,
-                rows,
-                params,
-                members,
-                weight,
-                multipliers,
-                candidate,
-                candidate_gap,
-                error,
-            )
             stop = consecutive > 8
         else:
             consecutive = 0
@@ -1072,6 +1193,127 @@ def solve_newton(
     )
 
 
+class _LayeredMaps:
+    """The maps of the Python Newton iteration (:func:`_solve_layered`) over an :class:`_Operator`: the merit
+    θ = ½‖F‖², the natural and data residuals, Gauss–Seidel sweeps, and the direction of a step. ``error``
+    (n,) holds F of the last point :meth:`merit` was taken at."""
+
+    def __init__(self, problem: ConstraintProblem, blocks: tuple, scales: tuple, sparse_above: int):
+        kinds, rows, params, members = blocks
+        self.problem = problem
+        self.blocks = blocks
+        self.weight, self.force_scale, self.free_gap, self.free_norm, self.data_scale = scales
+        n = problem.row_count
+        self.unit = np.ones(n)
+        self.operator = _Operator(problem, kinds, rows, members, sparse_above)
+        self.error = np.empty(n)
+        self.scratch = np.empty(n)
+        self.local = np.empty((kinds.size, 3, 3))
+        self.gap_factor = np.empty((kinds.size, 3, 3))
+        self.bound_values = np.zeros(members.size)
+        self._transposed = None
+        self._diagonal = None
+
+    def merit(self, force):
+        """(θ(λ), δ(λ)); F(λ) into ``error``."""
+        gap = self.operator.gap(force, self.free_gap)
+        natural_map_blocks(*self.blocks, force, gap, self.weight, self.error)
+        return 0.5 * float(self.error @ self.error), gap
+
+    def residuals(self, force, gap):
+        """(natural residual, data residual) of λ with its gap."""
+        return (
+            _residual(*self.blocks, force, gap, self.free_norm, self.scratch, self.unit),
+            _data_residual(*self.blocks, force, gap, self.unit, self.data_scale, self.scratch),
+        )
+
+    def sweeps(self, force, count):
+        """``count`` projected Gauss–Seidel sweeps from a copy of λ (Wᵀ and its diagonal made on first
+        use)."""
+        if self._transposed is None:
+            compliance = self.problem.compliance
+            self._transposed = np.array(compliance.T, order="C", copy=True)
+            self._diagonal = np.diag(compliance).copy()
+            floor = 1e-14 * max(float(np.abs(self._diagonal).max()), np.finfo(float).tiny)
+            self._diagonal[self._diagonal <= floor] = 0.0
+        force = force.copy()
+        gap = self.operator.gap(force, self.free_gap)
+        for _ in range(count):
+            gauss_seidel_sweep(self._transposed, self._diagonal, *self.blocks, force, gap, 1.0)
+        return force
+
+    def presweeps(self, multipliers, theta, gap, residual, data, tolerance, presweeps):
+        """Up to ``presweeps`` Gauss–Seidel sweeps from λ (:func:`_presweep`); returns (λ, θ, δ, residual,
+        data residual, sweeps taken), the swept point's when it replaced the start."""
+        if not presweeps > 0 or (residual <= tolerance and data <= tolerance):
+            return multipliers, theta, gap, residual, data, 0
+        compliance = np.ascontiguousarray(self.problem.compliance)
+        start_point = multipliers.copy()
+        n = multipliers.size
+        swept, _, replaced, _, _, _ = _presweep(
+            compliance,
+            *_sweep_arrays(compliance),
+            self.free_gap,
+            *self.blocks,
+            self.free_norm,
+            self.data_scale,
+            start_point,
+            max(residual, data),
+            float(tolerance),
+            int(presweeps),
+            self.scratch,
+            self.unit,
+            np.empty(n),
+            np.empty(n),
+        )
+        if replaced:  # the residuals again on this path's own gap (sparse storage: another product)
+            multipliers = start_point
+            theta, gap = self.merit(multipliers)
+            residual, data = self.residuals(multipliers, gap)
+        return multipliers, theta, gap, residual, data, swept
+
+    def direction(self, multipliers, gap, theta, level, eta_max, minimum_norm):
+        """The step of (J + η I) d = −F at λ (η as in :func:`_newton_direction`): a least-squares step when
+        asked (dense, level 0) or when the dense J is exactly singular at level 0, else an LU. Returns (d, or
+        None when it failed or is not finite or longer than 1e4 max(‖λ‖, F_data); 1 when an unasked
+        least-squares step was taken else 0)."""
+        operator = self.operator
+        jacobian_blocks(
+            *self.blocks, multipliers, gap, self.weight, self.local, self.gap_factor, self.bound_values
+        )
+        relative = np.sqrt(2.0 * theta) / self.force_scale
+        eta = 0.0 if level == 0 else max(min(eta_max, relative) * 10.0 ** (level - 1), 1e-14)
+        if level == 0 and operator.sparse is None and minimum_norm:
+            operator.assemble(self.local, self.gap_factor, self.bound_values, 0.0)
+            direction = operator.least_squares(-self.error)
+        else:
+            solve = operator.factorize(self.local, self.gap_factor, self.bound_values, eta)
+            direction = None if solve is None else solve(-self.error)
+        limit = 1e4 * max(np.linalg.norm(multipliers), self.force_scale)
+        # an exactly singular dense J (no LU): the least-squares (rank-revealing QR) step instead; a direction
+        # far longer than the forces in play (a nearly singular J) is regularised next iteration, as in the
+        # compiled kernel (see _dense_newton)
+        singular = 0
+        if level == 0 and not minimum_norm and operator.sparse is None and direction is None:
+            direction = operator.least_squares(-self.error)
+            singular = 1
+        if direction is None or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) > limit:
+            return None, singular
+        return direction, singular
+
+    def line_search(self, multipliers, direction, theta, reference):
+        """The non-monotone Armijo backtracking of :func:`_line_search`: (accepted, candidate, its θ, its
+        gap)."""
+        step = 1.0
+        while step >= 2.0**-12:
+            candidate = multipliers + step * direction
+            candidate_theta, candidate_gap = self.merit(candidate)
+            if candidate_theta <= reference - 1e-4 * step * 2.0 * theta:
+                return True, candidate, candidate_theta, candidate_gap
+            step *= 0.5
+        return False, candidate, candidate_theta, candidate_gap
+
+
 def _solve_layered(
     problem: ConstraintProblem,
     blocks: tuple,
@@ -1092,74 +1334,15 @@ def _solve_layered(
     """The Newton iteration of :func:`solve_newton` in Python over :class:`_Operator` (sparse storage, a time
     limit or minimum-norm steps): ``blocks`` (kinds, rows, params, members) of
     :func:`~refsim.solvers.laws.block_arrays`, ``scales`` (ρ, F_data, δ_free, ‖δ_free‖, the data residual's
-    scale), ``multipliers`` the start, ``start`` the solve's perf_counter start."""
-    kinds, rows, params, members = blocks
-    weight, force_scale, free_gap, free_norm, data_scale = scales
-    n = problem.row_count
-    unit = np.ones(n)
-    operator = _Operator(problem, kinds, rows, members, sparse_above)
-    error = np.empty(n)
-    scratch = np.empty(n)
-    local = np.empty((kinds.size, 3, 3))
-    gap_factor = np.empty((kinds.size, 3, 3))
-    bound_values = np.zeros(members.size)
-
-    def merit(force):
-        gap = operator.gap(force, free_gap)
-        natural_map_blocks(kinds, rows, params, members, force, gap, weight, error)
-        return 0.5 * float(error @ error), gap
-
-    def residuals(force, gap):
-        return (
-            _residual(kinds, rows, params, members, force, gap, free_norm, scratch, unit),
-            _data_residual(kinds, rows, params, members, force, gap, unit, data_scale, scratch),
-        )
-
-    transposed = None
-    diagonal = None
-
-    def sweeps(force, count):
-        nonlocal transposed, diagonal
-        if transposed is None:
-            transposed = np.array(problem.compliance.T, order="C", copy=True)
-            diagonal = np.diag(problem.compliance).copy()
-            floor = 1e-14 * max(float(np.abs(diagonal).max()), np.finfo(float).tiny)
-            diagonal[diagonal <= floor] = 0.0
-        force = force.copy()
-        gap = operator.gap(force, free_gap)
-        for _ in range(count):
-            gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, force, gap, 1.0)
-        return force
-
-    theta, gap = merit(multipliers)
-    residual, data = residuals(multipliers, gap)
-    swept = 0
-    if presweeps > 0 and not (residual <= tolerance and data <= tolerance):
-        compliance = np.ascontiguousarray(problem.compliance)
-        start_point = multipliers.copy()
-        swept, _, replaced, _, _, _ = _presweep(
-            compliance,
-            *_sweep_arrays(compliance),
-            free_gap,
-            kinds,
-            rows,
-            params,
-            members,
-            free_norm,
-            data_scale,
-            start_point,
-            max(residual, data),
-            float(tolerance),
-            int(presweeps),
-            scratch,
-            unit,
-            np.empty(n),
-            np.empty(n),
-        )
-        if replaced:  # the residuals again on this path's own gap (sparse storage: another product)
-            multipliers = start_point
-            theta, gap = merit(multipliers)
-            residual, data = residuals(multipliers, gap)
+    scale), ``multipliers`` the start, ``start`` the solve's perf_counter start. Its stages are the methods of
+    :class:`_LayeredMaps` (pre-sweeps, direction, line search); this loop keeps the regularisation level, the
+    best point, the history and the stop reasons."""
+    maps = _LayeredMaps(problem, blocks, scales, sparse_above)
+    theta, gap = maps.merit(multipliers)
+    residual, data = maps.residuals(multipliers, gap)
+    multipliers, theta, gap, residual, data, swept = maps.presweeps(
+        multipliers, theta, gap, residual, data, tolerance, presweeps
+    )
     best = (max(residual, data), multipliers.copy(), residual, data)
     memory = [theta]
     history = [residual]
@@ -1176,26 +1359,9 @@ def _solve_layered(
             message = f"time limit {time_limit:.1f} s reached"
             break
         iterations += 1
-        jacobian_blocks(
-            kinds, rows, params, members, multipliers, gap, weight, local, gap_factor, bound_values
-        )
-        relative = np.sqrt(2.0 * theta) / force_scale
-        eta = 0.0 if level == 0 else max(min(eta_max, relative) * 10.0 ** (level - 1), 1e-14)
-        if level == 0 and operator.sparse is None and minimum_norm:
-            operator.assemble(local, gap_factor, bound_values, 0.0)
-            direction = operator.least_squares(-error)
-            solve = None
-        else:
-            solve = operator.factorize(local, gap_factor, bound_values, eta)
-            direction = None if solve is None else solve(-error)
-        limit = 1e4 * max(np.linalg.norm(multipliers), force_scale)
-        # an exactly singular dense J (no LU): the least-squares (rank-revealing QR) step instead; a direction
-        # far longer than the forces in play (a nearly singular J) is regularised next iteration, as in the
-        # compiled kernel (see _dense_newton)
-        if level == 0 and not minimum_norm and operator.sparse is None and direction is None:
-            direction = operator.least_squares(-error)
-            singular_steps += 1
-        if direction is None or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) > limit:
+        direction, singular = maps.direction(multipliers, gap, theta, level, eta_max, minimum_norm)
+        singular_steps += singular
+        if direction is None:
             failures += 1
             consecutive += 1
             level = min(level + 1, 8)
@@ -1204,27 +1370,21 @@ def _solve_layered(
                 break
             continue
         reference = max(memory[-int(line_search_memory) :])
-        step = 1.0
-        accepted = False
-        while step >= 2.0**-12:
-            candidate = multipliers + step * direction
-            candidate_theta, candidate_gap = merit(candidate)
-            if candidate_theta <= reference - 1e-4 * step * 2.0 * theta:
-                accepted = True
-                break
-            step *= 0.5
+        accepted, candidate, candidate_theta, candidate_gap = maps.line_search(
+            multipliers, direction, theta, reference
+        )
         if not accepted:
             # fallback: projected Gauss-Seidel sweeps from the current point, more regularisation next time
             failures += 1
             consecutive += 1
             fallback += 10
             level = min(level + 1, 8)
-            candidate = sweeps(multipliers, 10)
-            candidate_theta, candidate_gap = merit(candidate)
+            candidate = maps.sweeps(multipliers, 10)
+            candidate_theta, candidate_gap = maps.merit(candidate)
             if consecutive > 8:
                 message = f"line search failed {consecutive} times in a row"
                 multipliers, theta, gap = candidate, candidate_theta, candidate_gap
-                residual, data = residuals(multipliers, gap)
+                residual, data = maps.residuals(multipliers, gap)
                 if max(residual, data) < best[0]:
                     best = (max(residual, data), multipliers.copy(), residual, data)
                 break
@@ -1233,7 +1393,7 @@ def _solve_layered(
             level = max(level - 1, 0)
         multipliers, theta, gap = candidate, candidate_theta, candidate_gap
         memory.append(theta)
-        residual, data = residuals(multipliers, gap)
+        residual, data = maps.residuals(multipliers, gap)
         history.append(residual)
         if max(residual, data) < 0.5 * best[0]:
             since_progress = 0
@@ -1258,7 +1418,7 @@ def _solve_layered(
         residual=float(residual),
         data_residual=float(data),
         message=message,
-        storage=operator.storage,
+        storage=maps.operator.storage,
         history=np.array(history),
         line_search_failures=failures,
         fallback_sweeps=fallback,
