@@ -375,7 +375,7 @@ def test_small_lu_solve_reports_a_singular_matrix():
 
 def test_barely_improving_presweeps_leave_newtons_start():
     """Pre-sweeps abandoned by their rate rule without halving the start's residual
-    (newton._KEEP_SWEPT) are dropped: Newton then runs from the start exactly as without pre-sweeps
+    (newton_kernel._KEEP_SWEPT) are dropped: Newton then runs from the start exactly as without pre-sweeps
     (same bits). The bilateral chain W = tridiag(−1, 2 + 1e-6, −1), n = 60: Gauss–Seidel contracts by
     cos²(π/61) ≈ 0.9973 per sweep."""
     n = 60
