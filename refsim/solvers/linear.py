@@ -1,15 +1,52 @@
 """The linear systems of a dense Newton step, in compiled code: the generalised Jacobian J = N + M W − G
 assembled dense (:func:`_dense_jacobian`), its explicit rows eliminated (:func:`_reduced_direction_into`), and
 the LU solves of what is left (a compiled elimination below :data:`SMALL_LU_BELOW` rows, LAPACK gesv in place
-above). Used by the Newton kernel of :mod:`refsim.solvers.newton`.
+above). Used by the Newton kernel of :mod:`refsim.solvers.newton`, which allocates the work arrays of a
+direction once per solve and passes them as one :class:`DirectionWork`.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
 from refsim.kernel_cache import numba
 from refsim.solvers.laws import CONTACT, GROUP_FRICTION
+
+
+class DirectionWork(NamedTuple):
+    """The arrays of one Newton direction (J + η I) d = rhs, allocated once per solve and overwritten at each
+    iteration (n rows, ``blocks`` law blocks, ``member_count`` group members). numba passes it to compiled
+    code as one typed tuple."""
+
+    #: J + η I, shape (n, n)
+    jacobian: np.ndarray
+    #: the right-hand side −F(λ), shape (n,)
+    rhs: np.ndarray
+    #: N's blocks, shape (blocks, 3, 3)
+    local: np.ndarray
+    #: M's blocks (the gap factor of M W), shape (blocks, 3, 3)
+    gap_factor: np.ndarray
+    #: G's entries ∂b/∂λ of the group bounds, shape (member_count,)
+    bound_values: np.ndarray
+    #: each row's index in the rows kept A (−1 for an explicit row), shape (n,) int64
+    position: np.ndarray
+    #: A's rows in order, shape (n,) int64
+    active: np.ndarray
+    #: c of the explicit rows, shape (n,)
+    values: np.ndarray
+    #: the reduced right-hand side, then d_A, shape (n,)
+    reduced_rhs: np.ndarray
+    #: the matrix an LU factorises in place (a copy of J, or the reduced matrix), shape (n, n) C-contiguous
+    factors: np.ndarray
+    #: LU pivots, shape (n,) of :data:`PIVOT_DTYPE`
+    pivots: np.ndarray
+    #: the full LU's solution, shape (n,)
+    lu_out: np.ndarray
+    #: the reduced solve's direction d, shape (n,)
+    direction: np.ndarray
+
 
 #: Dense systems with fewer rows than this are solved by the compiled elimination :func:`_small_lu_inplace`.
 SMALL_LU_BELOW = 24
@@ -148,27 +185,10 @@ def _lu_direction_into(jacobian, rhs, work, out, pivots):
 
 
 @numba.njit(cache=True)
-def _reduced_direction_into(
-    jacobian,
-    rhs,
-    kinds,
-    rows,
-    members,
-    local,
-    gap_factor,
-    bound_values,
-    position,
-    direction,
-    work,
-    values,
-    active,
-    reduced_rhs,
-    pivots,
-):
-    """J d = rhs with the explicit rows eliminated; returns False when no row is explicit or the reduced
-    matrix is singular (the caller then solves the full system). ``work`` (n, n) C-contiguous, ``values``
-    (n,), ``active`` (n,) int64, ``reduced_rhs`` (n,) and ``pivots`` (n,) of :data:`PIVOT_DTYPE` are work
-    arrays (the Newton kernel allocates them once).
+def _reduced_direction_into(kinds, rows, members, work):
+    """J d = rhs (``work.jacobian``, ``work.rhs``, a :class:`DirectionWork`) with the explicit rows
+    eliminated, d into ``work.direction``; returns False when no row is explicit or the reduced matrix is
+    singular (the caller then solves the full system).
 
     A block is explicit where its projection is constant (N_b = I, M_b = 0: a separated unilateral row or
     contact, a slipping friction row, a box row at a bound): its row i reads J_ii d_i − Σ_k g_k d_{G_k} =
@@ -178,37 +198,30 @@ def _reduced_direction_into(
     rhs_{G_k} / J_{G_k G_k}) / J_ii, and (J_AA + Σ_{i ∈ E} J_{A i} (g / J_ii)ᵀ) d_A = rhs_A − J_AE c: an LU of
     |A| rows instead of n (the cube's insertion steps: the shaft friction rows slip, |A| = 2n/3, about a third
     of the LU's cost).
-    ``position`` (n,) gets each row's index in A (−1 for E).
+    ``work.position`` (n,) gets each row's index in A (−1 for E).
     """
+    jacobian, rhs, position, values, direction = (
+        work.jacobian,
+        work.rhs,
+        work.position,
+        work.values,
+        work.direction,
+    )
     n = rhs.shape[0]
-    m = _partition(kinds, rows, local, gap_factor, position, active)
+    m = _partition(kinds, rows, work.local, work.gap_factor, position, work.active)
     if m < 0:
         return False
-    _explicit_values(jacobian, rhs, kinds, rows, members, bound_values, position, values)
+    _explicit_values(jacobian, rhs, kinds, rows, members, work.bound_values, position, values)
     if m > 0:
-        ok, solution = _solve_reduced(
-            jacobian,
-            rhs,
-            kinds,
-            rows,
-            members,
-            bound_values,
-            position,
-            active,
-            m,
-            values,
-            work,
-            reduced_rhs,
-            pivots,
-        )
+        ok, solution = _solve_reduced(kinds, rows, members, work, m)
         if not ok:
             return False
         for a in range(m):
-            direction[active[a]] = solution[a]
+            direction[work.active[a]] = solution[a]
     for i in range(n):
         if position[i] < 0:
             direction[i] = values[i]
-    _explicit_directions(jacobian, kinds, rows, members, bound_values, position, values, direction)
+    _explicit_directions(jacobian, kinds, rows, members, work.bound_values, position, values, direction)
     return True
 
 
@@ -266,17 +279,23 @@ def _explicit_values(jacobian, rhs, kinds, rows, members, bound_values, position
 
 
 @numba.njit(cache=True)
-def _solve_reduced(
-    jacobian, rhs, kinds, rows, members, bound_values, position, active, m, values, work, reduced_rhs, pivots
-):
-    """d_A of the reduced system (J_AA + Σ_{i ∈ E} J_{A i} (g / J_ii)ᵀ) d_A = rhs_A − J_AE c, solved in place
-    in ``work`` and ``reduced_rhs``: (False, _) when it is singular or its solution not finite, else (True,
-    d_A)."""
+def _solve_reduced(kinds, rows, members, work, m):
+    """d_A of the reduced system (J_AA + Σ_{i ∈ E} J_{A i} (g / J_ii)ᵀ) d_A = rhs_A − J_AE c (|A| = ``m``),
+    solved in place in ``work.factors`` and ``work.reduced_rhs`` (a :class:`DirectionWork`): (False, _) when
+    it is singular or its solution not finite, else (True, d_A)."""
+    jacobian, rhs, bound_values, position, active = (
+        work.jacobian,
+        work.rhs,
+        work.bound_values,
+        work.position,
+        work.active,
+    )
+    values, reduced_rhs, pivots = work.values, work.reduced_rhs, work.pivots
     n = rhs.shape[0]
     # the reduced matrix A in a contiguous (m, m) part of ``work``: as A (C order) for the compiled
     # elimination, as Aᵀ (A in Fortran order) for LAPACK's gesv, so that neither copies it again
     lapack = m >= SMALL_LU_BELOW
-    reduced = work.reshape(-1)[: m * m].reshape((m, m))
+    reduced = work.factors.reshape(-1)[: m * m].reshape((m, m))
     for a in range(m):
         source = active[a]
         total = rhs[source]

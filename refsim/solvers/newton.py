@@ -18,9 +18,12 @@ Globalisation: a non-monotone Armijo line search on θ = ½‖F‖² (Grippo, La
 by default); when it fails, a few projected Gauss–Seidel sweeps are taken instead and η is raised; after
 repeated failures the method stops and says so (the caller then falls back to the cone route). Stops as soon
 as the natural residual and the data residual (:mod:`refsim.solvers.residual`) are at most the tolerance. With
-``presweeps`` > 0, projected Gauss–Seidel sweeps come first (:func:`_presweep`: at most that many, stopped
-when their observed rate cannot reach the tolerance in time) and Newton starts from the swept point when it at
-least halves the start's residual (:data:`_KEEP_SWEPT`).
+``presweeps`` > 0, projected Gauss–Seidel sweeps come first (:func:`~refsim.solvers.newton_kernel._presweep`:
+at most that many, stopped when their observed rate cannot reach the tolerance in time) and Newton starts from
+the swept point when it at least halves the start's residual
+(:data:`~refsim.solvers.newton_kernel._KEEP_SWEPT`). Dense problems run every iteration in the compiled kernel
+of :mod:`refsim.solvers.newton_kernel`; sparse storage, a time limit or minimum-norm steps run the same
+iteration in Python (:func:`_solve_layered`).
 """
 
 from __future__ import annotations
@@ -35,28 +38,28 @@ import scipy.linalg
 import scipy.sparse as sparse
 import scipy.sparse.linalg as sparse_linalg
 
-from refsim.kernel_cache import numba
-from refsim.solvers.gauss_seidel import _data_from_error, _data_residual, _residual
+from refsim.solvers.gauss_seidel import _data_residual, _residual
 from refsim.solvers.laws import (
     CONTACT,
     GROUP_FRICTION,
-    assemble_blocks,
     block_arrays,
     gauss_seidel_sweep,
     jacobian_blocks,
     law_arrays,
     natural_map_blocks,
-    relative_asymmetry,
 )
 from refsim.solvers.linear import (
-    PIVOT_DTYPE,
     _dense_jacobian,
     _gesv,
-    _lu_direction_into,
-    _reduced_direction_into,
+)
+from refsim.solvers.newton_kernel import (
+    _dense_newton,
+    _dense_newton_fresh,
+    _presweep,
+    _sweep_arrays,
 )
 from refsim.solvers.problem import ConstraintProblem
-from refsim.solvers.residual import _gap_into, _residual_pair, _scales, data_scales
+from refsim.solvers.residual import data_scales
 
 __all__ = ["NewtonResult", "solve_newton"]
 
@@ -74,12 +77,6 @@ _COMPILED_SOLVE_BELOW = 120
 # compiled : call for the set-up (block arrays, data scales, W's asymmetry) and the dense kernel
 #: (:func:`_dense_newton_fresh`).
 _FRESH_BELOW = 120
-#: Pre-sweeps abandoned by their rate rule leave Newton's start unchanged unless they at least multiplied its
-#: max(natural, data residual) by this. Measured on the 106 benchmark problems from a cold start: a point the
-#: sweeps barely improved is no better a Newton start (OneObject-i1028-138, 0.92 of the start's residual after
-#: 3 sweeps: 16 Newton iterations from it, 11 from the start; relay1, 0.97: not converged in 10 from it,
-#: converged from the start), where a halving one is (LMGC_100: 1.5e-8 after 72 sweeps, 4 iterations).
-_KEEP_SWEPT = 0.5
 
 
 @dataclass(slots=True)
@@ -100,485 +97,6 @@ class NewtonResult:
     report_residuals: tuple | None = None
     #: Gauss-Seidel sweeps taken before the first Newton iteration (``presweeps``)
     presweeps: int = 0
-
-
-@numba.njit(cache=True)
-def _finite_and_short(direction, limit):
-    total = 0.0
-    for value in direction:
-        if not np.isfinite(value):
-            return False
-        total += value * value
-    return np.sqrt(total) <= limit
-
-
-@numba.njit(cache=True)
-def _sweep_arrays(compliance):
-    """Wᵀ (C order) and the diagonal with entries ≤ 1e-14 max|W_jj| set to 0, as Gauss–Seidel takes them."""
-    n = compliance.shape[0]
-    transposed = np.ascontiguousarray(compliance.T)
-    diagonal = np.diag(compliance).copy()
-    floor = 1e-14 * max(np.abs(diagonal).max(), 2.2250738585072014e-308)
-    for i in range(n):
-        if diagonal[i] <= floor:
-            diagonal[i] = 0.0
-    return transposed, diagonal
-
-
-@numba.njit(cache=True)
-def _presweep(
-    compliance,
-    transposed,
-    diagonal,
-    free_gap,
-    kinds,
-    rows,
-    params,
-    members,
-    free_norm,
-    data_scale,
-    best,
-    best_value,
-    tolerance,
-    budget,
-    scratch,
-    unit,
-    candidate,
-    gap,
-):
-    """Projected Gauss–Seidel sweeps from ``best`` (the start), at most ``budget``, while their observed rate
-    can reach the tolerance within the budget: stops when the natural and data residual are both ≤ the
-    tolerance (checked on the sweeps' incremental gap, then confirmed on the gap recomputed from scratch), or
-    when r_k / r_(k-2), taken as the square of a linear rate, predicts more sweeps than are left (or does not
-    fall). ``best`` gets the best point of the sweeps when they converged, or when it at least halves the
-    start's ``best_value`` (judged on a gap from scratch: :data:`_KEEP_SWEPT`); returns (sweeps, the
-    max(natural, data residual) of ``best`` on exit, whether ``best`` was replaced, its natural and data
-    residual then (on the gap from scratch: what the caller would compute again; NaN when not replaced),
-    whether they meet the tolerance)."""
-    candidate[:] = best  # ``candidate`` and ``gap`` (n,): work arrays
-    _gap_into(compliance, candidate, free_gap, gap)
-    values = np.empty(budget)
-    swept = budget
-    for k in range(budget):
-        gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, candidate, gap, 1.0)
-        residual = _residual(kinds, rows, params, members, candidate, gap, free_norm, scratch, unit)
-        data = _data_from_error(scratch, data_scale)
-        value = max(residual, data)
-        values[k] = value
-        if not np.isfinite(value):
-            swept = k + 1
-            break
-        if residual <= tolerance and data <= tolerance:
-            _gap_into(compliance, candidate, free_gap, gap)  # confirmed on a gap without the sweeps' drift
-            residual = _residual(kinds, rows, params, members, candidate, gap, free_norm, scratch, unit)
-            data = _data_from_error(scratch, data_scale)
-            if residual <= tolerance and data <= tolerance:
-                best[:] = candidate
-                return k + 1, max(residual, data), True, residual, data, True
-        if k >= 2:
-            ratio = value / values[k - 2]
-            # sweeps still needed at rate √ratio: 2 log(tol / value) / log(ratio)
-            if not ratio < 1.0 or 2.0 * np.log(tolerance / value) / np.log(ratio) > budget - k - 1:
-                swept = k + 1
-                break
-    if np.all(np.isfinite(candidate)):
-        _gap_into(compliance, candidate, free_gap, gap)
-        residual = _residual(kinds, rows, params, members, candidate, gap, free_norm, scratch, unit)
-        data = _data_from_error(scratch, data_scale)
-        if max(residual, data) <= _KEEP_SWEPT * best_value:
-            best[:] = candidate
-            return (
-                swept,
-                max(residual, data),
-                True,
-                residual,
-                data,
-                residual <= tolerance and data <= tolerance,
-            )
-    return swept, best_value, False, np.nan, np.nan, False
-
-
-@numba.njit(cache=True)
-def _workspace(n, blocks, memory_length, member_count):
-    """The dense Newton kernel's work arrays: every float one a view into one allocation, every int one into
-    another (an allocation costs about 0.1 µs in compiled code, and a small problem needs some thirty of
-    them). Returns (15 vectors (n,): unit (ones), error, scratch, gap, best, candidate, candidate gap,
-    direction, right-hand side, values, reduced right-hand side, sweep point, sweep gap, start, LU output;
-    2 matrices (n, n): Jacobian, work; local and gap factors (blocks, 3, 3); merit memory (memory_length,);
-    bound values (member_count,), zeros; position and active (n,) int64; pivots (n,))."""
-    floats = np.empty(15 * n + 2 * n * n + 18 * blocks + memory_length + member_count)
-    ints = np.empty(2 * n, dtype=np.int64)
-    vectors = floats[: 15 * n].reshape((15, n))
-    vectors[0] = 1.0
-    at = 15 * n
-    matrices = floats[at : at + 2 * n * n].reshape((2, n, n))
-    at += 2 * n * n
-    local = floats[at : at + 9 * blocks].reshape((blocks, 3, 3))
-    gap_factor = floats[at + 9 * blocks : at + 18 * blocks].reshape((blocks, 3, 3))
-    at += 18 * blocks
-    memory = floats[at : at + memory_length]
-    bound_values = floats[at + memory_length :]
-    bound_values[:] = 0.0
-    pivots = np.empty(n, dtype=PIVOT_DTYPE)
-    return vectors, matrices, local, gap_factor, memory, bound_values, ints[:n], ints[n:], pivots
-
-
-@numba.njit(cache=True)
-def _direction(
-    jacobian,
-    rhs,
-    kinds,
-    rows,
-    members,
-    local,
-    gap_factor,
-    bound_values,
-    position,
-    direction,
-    work,
-    values,
-    active,
-    reduced_rhs,
-    pivots,
-    lu_out,
-    limit,
-    unregularised,
-):
-    """The Newton direction d of J d = rhs: the reduced solve (:func:`_reduced_direction_into` into
-    ``direction``), an LU when it fails, and on an exactly singular unregularised J (a zero pivot) the
-    minimum-norm least-squares step. Returns (d, ok: finite and no longer than ``limit``, 1 when the
-    least-squares step was taken else 0).
-
-    A factorised J whose step is absurdly long (nearly singular) goes to the regularised step of the next
-    iteration (an LU, not an SVD). Measured (best of 7, one thread, method="auto", cold): there the
-    least-squares step was rejected as too long as well on Rover1040 / 1041 / 3865 (93-98 -> 65-67 us without
-    it) and did not help GMP6 (2.7 -> 1.1 ms); PD_mlcp, which its least-squares steps answer, has an exactly
-    singular J."""
-    ok = _reduced_direction_into(
-        jacobian,
-        rhs,
-        kinds,
-        rows,
-        members,
-        local,
-        gap_factor,
-        bound_values,
-        position,
-        direction,
-        work,
-        values,
-        active,
-        reduced_rhs,
-        pivots,
-    )
-    factored = True
-    if not ok:
-        direction, ok = _lu_direction_into(jacobian, rhs, work, lu_out, pivots)
-        factored = ok
-    ok = ok and _finite_and_short(direction, limit)
-    if unregularised and not factored:
-        direction = np.linalg.lstsq(jacobian, rhs, 1e-12)[0]
-        return direction, _finite_and_short(direction, limit), 1
-    return direction, ok, 0
-
-
-@numba.njit(cache=True)
-def _line_search(
-    compliance,
-    free_gap,
-    kinds,
-    rows,
-    params,
-    members,
-    weight,
-    multipliers,
-    direction,
-    theta,
-    reference,
-    candidate,
-    candidate_gap,
-    error,
-):
-    """The non-monotone Armijo backtracking from λ along d: the first step 1, 1/2, ... ≥ 2⁻¹² whose merit
-    θ(λ + s d) ≤ reference − 1e-4 s 2θ. The candidate, its gap and its natural-map error are left in the
-    buffers. Returns (accepted, the last candidate's θ)."""
-    n = multipliers.shape[0]
-    step = 1.0
-    candidate_theta = theta
-    while step >= 2.0**-12:
-        for i in range(n):
-            candidate[i] = multipliers[i] + step * direction[i]
-        _gap_into(compliance, candidate, free_gap, candidate_gap)
-        natural_map_blocks(kinds, rows, params, members, candidate, candidate_gap, weight, error)
-        candidate_theta = 0.5 * np.dot(error, error)
-        if candidate_theta <= reference - 1e-4 * step * 2.0 * theta:
-            return True, candidate_theta
-        step *= 0.5
-    return False, candidate_theta
-
-
-@numba.njit(cache=True)
-def _fallback_sweeps(
-    compliance,
-    transposed,
-    diagonal,
-    free_gap,
-    kinds,
-    rows,
-    params,
-    members,
-    weight,
-    multipliers,
-    candidate,
-    candidate_gap,
-    error,
-):
-    """The line search's fallback: ten projected Gauss–Seidel sweeps from λ into the candidate buffers (its
-    gap recomputed after them, its natural-map error into ``error``); returns its merit θ."""
-    candidate[:] = multipliers
-    _gap_into(compliance, candidate, free_gap, candidate_gap)
-    for _ in range(10):
-        gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, candidate, candidate_gap, 1.0)
-    _gap_into(compliance, candidate, free_gap, candidate_gap)
-    natural_map_blocks(kinds, rows, params, members, candidate, candidate_gap, weight, error)
-    return 0.5 * np.dot(error, error)
-
-
-@numba.njit(cache=True)
-def _dense_newton(
-    compliance,
-    free_gap,
-    kinds,
-    rows,
-    params,
-    members,
-    weight,
-    free_norm,
-    data_scale,
-    force_scale,
-    multipliers,
-    tolerance,
-    max_iterations,
-    eta_max,
-    memory_size,
-    stall_iterations,
-    presweeps,
-    history,
-    counts,
-    final,
-):
-    """The dense Newton iteration of :func:`solve_newton` in compiled code (the same steps, line search and
-    Gauss–Seidel fallback; no Python call per iteration). ``multipliers`` is the start on entry and the best
-    point on exit; ``history`` (max_iterations + 1,) gets the residual after each iteration.
-
-    First up to ``presweeps`` projected Gauss–Seidel sweeps (:func:`_presweep`), kept when they improve the
-    start. Returns (iterations, residual, data residual, reason): reason 0 converged, 1 iteration cap, 2 the
-    regularised Jacobian could not be factorised, 3 the line search failed 9 times in a row, 4 stalled.
-    ``counts`` gets (line-search failures, fallback sweeps, least-squares steps, history length, pre-sweeps),
-    ``final`` the natural and data residual of the answer as :func:`refsim.solvers.residuals` computes them.
-    """
-    n = free_gap.shape[0]
-    vectors, matrices, local, gap_factor, memory, bound_values, position, active, pivots = _workspace(
-        n, kinds.shape[0], max(memory_size, 1), members.shape[0]
-    )
-    unit, error, scratch, gap, best = vectors[0], vectors[1], vectors[2], vectors[3], vectors[4]
-    candidate, candidate_gap, direction_buffer, rhs = vectors[5], vectors[6], vectors[7], vectors[8]
-    values, reduced_rhs, sweep_point, sweep_gap = vectors[9], vectors[10], vectors[11], vectors[12]
-    start, lu_out = vectors[13], vectors[14]
-    jacobian, work = matrices[0], matrices[1]  # work: the reduced system (_reduced_direction_into)
-    transposed = np.empty((0, 0))
-    diagonal = np.empty(0)
-    start[:] = multipliers  # the caller's array is not written
-    multipliers = start
-    _gap_into(compliance, multipliers, free_gap, gap)
-    natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error)
-    theta = 0.5 * np.dot(error, error)
-    residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, scratch, unit)
-    data = _data_from_error(scratch, data_scale)  # the error _residual left in scratch
-    best_value = max(residual, data)
-    best[:] = multipliers
-    best_residual = residual
-    best_data = data
-    swept = 0
-    if presweeps > 0 and not (residual <= tolerance and data <= tolerance):
-        transposed, diagonal = _sweep_arrays(compliance)
-        swept, value, replaced, residual_swept, data_swept, done = _presweep(
-            compliance,
-            transposed,
-            diagonal,
-            free_gap,
-            kinds,
-            rows,
-            params,
-            members,
-            free_norm,
-            data_scale,
-            best,
-            best_value,
-            tolerance,
-            presweeps,
-            scratch,
-            unit,
-            sweep_point,
-            sweep_gap,
-        )
-        if (
-            replaced
-        ):  # start Newton from the swept point (its residuals as computed here, on a gap from scratch)
-            multipliers[:] = best
-            residual = residual_swept
-            data = data_swept
-            best_value = value
-            best_residual = residual
-            best_data = data
-            if not done:  # Newton's merit at the new start (not needed when the sweeps solved the problem)
-                _gap_into(compliance, multipliers, free_gap, gap)
-                natural_map_blocks(kinds, rows, params, members, multipliers, gap, weight, error)
-                theta = 0.5 * np.dot(error, error)
-    # multipliers / gap and candidate / candidate_gap swap roles on each accepted step
-    memory[0] = theta
-    stored = 1
-    history[0] = residual
-    recorded = 1
-    failures = 0
-    consecutive = 0
-    fallback = 0
-    singular_steps = 0
-    since_progress = 0
-    level = 0
-    iterations = 0
-    reason = 0
-    converged = residual <= tolerance and data <= tolerance
-    while not converged:
-        if iterations >= max_iterations:
-            reason = 1
-            break
-        iterations += 1
-        jacobian_blocks(
-            kinds, rows, params, members, multipliers, gap, weight, local, gap_factor, bound_values
-        )
-        relative = np.sqrt(2.0 * theta) / force_scale
-        eta = 0.0
-        if level > 0:
-            eta = max(min(eta_max, relative) * 10.0 ** (level - 1), 1e-14)
-        _dense_jacobian(compliance, kinds, rows, local, gap_factor, members, bound_values, eta, jacobian)
-        limit = 1e4 * max(np.sqrt(np.dot(multipliers, multipliers)), force_scale)
-        for i in range(n):
-            rhs[i] = -error[i]
-        direction, ok, singular = _direction(
-            jacobian,
-            rhs,
-            kinds,
-            rows,
-            members,
-            local,
-            gap_factor,
-            bound_values,
-            position,
-            direction_buffer,
-            work,
-            values,
-            active,
-            reduced_rhs,
-            pivots,
-            lu_out,
-            limit,
-            level == 0,
-        )
-        singular_steps += singular
-        if not ok:
-            failures += 1
-            consecutive += 1
-            level = min(level + 1, 8)
-            if consecutive > 8:
-                reason = 2
-                break
-            continue
-        reference = memory[0]
-        for k in range(1, min(stored, memory_size)):
-            reference = max(reference, memory[k])
-        accepted, candidate_theta = _line_search(
-            compliance,
-            free_gap,
-            kinds,
-            rows,
-            params,
-            members,
-            weight,
-            multipliers,
-            direction,
-            theta,
-            reference,
-            candidate,
-            candidate_gap,
-            error,
-        )
-        stop = False
-        if not accepted:
-            failures += 1
-            consecutive += 1
-            fallback += 10
-            level = min(level + 1, 8)
-            if transposed.shape[0] == 0:
-                transposed, diagonal = _sweep_arrays(compliance)
-            candidate_theta = _fallback_sweeps(
-                compliance,
-                transposed,
-                diagonal,
-                free_gap,
-                kinds,
-                rows,
-                params,
-                members,
-                weight,
-                multipliers,
-                candidate,
-                candidate_gap,
-                error,
-            )
-            stop = consecutive > 8
-        else:
-            consecutive = 0
-            level = max(level - 1, 0)
-        # the candidate becomes the iterate: the two pairs of buffers swap roles
-        multipliers, candidate = candidate, multipliers
-        gap, candidate_gap = candidate_gap, gap
-        theta = candidate_theta
-        residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, scratch, unit)
-        data = _data_from_error(scratch, data_scale)  # the error _residual left in scratch
-        if stop:
-            if max(residual, data) < best_value:
-                best_value = max(residual, data)
-                best[:] = multipliers
-                best_residual = residual
-                best_data = data
-            reason = 3
-            break
-        memory[stored % memory_size] = theta
-        stored += 1
-        history[recorded] = residual
-        recorded += 1
-        if max(residual, data) < 0.5 * best_value:
-            since_progress = 0
-        else:
-            since_progress += 1
-        if max(residual, data) < best_value:
-            best_value = max(residual, data)
-            best[:] = multipliers
-            best_residual = residual
-            best_data = data
-        converged = residual <= tolerance and data <= tolerance
-        if not converged and since_progress >= stall_iterations:
-            reason = 4
-            break
-    counts[0] = failures
-    counts[1] = fallback
-    counts[2] = singular_steps
-    counts[3] = recorded
-    counts[4] = swept
-    # the report's residuals of the answer, by the kernel of refsim.solvers.natural_residual / data_residual
-    final[0], final[1] = _residual_pair(compliance, free_gap, kinds, rows, params, members, best, force_scale)
-    return best.copy(), iterations, best_residual, best_data, reason
 
 
 class _Operator:
@@ -835,72 +353,6 @@ def _solve_dense_fresh(
     return _newton_result(*outcome[:-1], tolerance, max_iterations, stall_iterations)
 
 
-@numba.njit(cache=True)
-def _dense_newton_fresh(
-    compliance,
-    free_gap,
-    fields,
-    multipliers,
-    tolerance,
-    max_iterations,
-    eta_max,
-    memory_size,
-    stall_iterations,
-    presweeps,
-):
-    """The set-up of a fresh problem (block arrays and data scales from its packed law fields ``fields`` of
-    :func:`~refsim.solvers.laws.law_arrays`, ‖δ_free‖, W's asymmetry), then :func:`_dense_newton` (W and
-    δ_free C-contiguous). Returns (best λ, the history, iterations, reason, line-search failures, fallback
-    sweeps, pre-sweeps, best natural and data residual, the report's natural and data residual, W's relative
-    asymmetry): scalars rather than arrays, which cost more to return to Python."""
-    kinds, rows, params, members, scaling = assemble_blocks(fields)
-    weight, force_scale = _scales(
-        compliance, free_gap, scaling[0], scaling[1], scaling[2], scaling[3], scaling[4]
-    )
-    free_norm = np.sqrt(np.dot(free_gap, free_gap))  # the dot product of solve_newton's layered path
-    history = np.empty(max_iterations + 1)
-    counts = np.zeros(5, dtype=np.int64)
-    final = np.empty(2)
-    asymmetry = relative_asymmetry(compliance)
-    data_scale = max(free_norm, force_scale)
-    best, iterations, residual, data, reason = _dense_newton(
-        compliance,
-        free_gap,
-        kinds,
-        rows,
-        params,
-        members,
-        weight,
-        free_norm,
-        data_scale,
-        force_scale,
-        multipliers,
-        tolerance,
-        max_iterations,
-        eta_max,
-        memory_size,
-        stall_iterations,
-        presweeps,
-        history,
-        counts,
-        final,
-    )
-    return (
-        best,
-        history[: counts[3]].copy(),
-        iterations,
-        reason,
-        counts[0],
-        counts[1],
-        counts[4],
-        residual,
-        data,
-        final[0],
-        final[1],
-        asymmetry,
-    )
-
-
 def _newton_result(
     best,
     history,
@@ -1072,6 +524,127 @@ def solve_newton(
     )
 
 
+class _LayeredMaps:
+    """The maps of the Python Newton iteration (:func:`_solve_layered`) over an :class:`_Operator`: the merit
+    θ = ½‖F‖², the natural and data residuals, Gauss–Seidel sweeps, and the direction of a step. ``error``
+    (n,) holds F of the last point :meth:`merit` was taken at."""
+
+    def __init__(self, problem: ConstraintProblem, blocks: tuple, scales: tuple, sparse_above: int):
+        kinds, rows, params, members = blocks
+        self.problem = problem
+        self.blocks = blocks
+        self.weight, self.force_scale, self.free_gap, self.free_norm, self.data_scale = scales
+        n = problem.row_count
+        self.unit = np.ones(n)
+        self.operator = _Operator(problem, kinds, rows, members, sparse_above)
+        self.error = np.empty(n)
+        self.scratch = np.empty(n)
+        self.local = np.empty((kinds.size, 3, 3))
+        self.gap_factor = np.empty((kinds.size, 3, 3))
+        self.bound_values = np.zeros(members.size)
+        self._transposed = None
+        self._diagonal = None
+
+    def merit(self, force):
+        """(θ(λ), δ(λ)); F(λ) into ``error``."""
+        gap = self.operator.gap(force, self.free_gap)
+        natural_map_blocks(*self.blocks, force, gap, self.weight, self.error)
+        return 0.5 * float(self.error @ self.error), gap
+
+    def residuals(self, force, gap):
+        """(natural residual, data residual) of λ with its gap."""
+        return (
+            _residual(*self.blocks, force, gap, self.free_norm, self.scratch, self.unit),
+            _data_residual(*self.blocks, force, gap, self.unit, self.data_scale, self.scratch),
+        )
+
+    def sweeps(self, force, count):
+        """``count`` projected Gauss–Seidel sweeps from a copy of λ (Wᵀ and its diagonal made on first
+        use)."""
+        if self._transposed is None:
+            compliance = self.problem.compliance
+            self._transposed = np.array(compliance.T, order="C", copy=True)
+            self._diagonal = np.diag(compliance).copy()
+            floor = 1e-14 * max(float(np.abs(self._diagonal).max()), np.finfo(float).tiny)
+            self._diagonal[self._diagonal <= floor] = 0.0
+        force = force.copy()
+        gap = self.operator.gap(force, self.free_gap)
+        for _ in range(count):
+            gauss_seidel_sweep(self._transposed, self._diagonal, *self.blocks, force, gap, 1.0)
+        return force
+
+    def presweeps(self, multipliers, theta, gap, residual, data, tolerance, presweeps):
+        """Up to ``presweeps`` Gauss–Seidel sweeps from λ (:func:`_presweep`); returns (λ, θ, δ, residual,
+        data residual, sweeps taken), the swept point's when it replaced the start."""
+        if not presweeps > 0 or (residual <= tolerance and data <= tolerance):
+            return multipliers, theta, gap, residual, data, 0
+        compliance = np.ascontiguousarray(self.problem.compliance)
+        start_point = multipliers.copy()
+        n = multipliers.size
+        swept, _, replaced, _, _, _ = _presweep(
+            compliance,
+            *_sweep_arrays(compliance),
+            self.free_gap,
+            *self.blocks,
+            self.free_norm,
+            self.data_scale,
+            start_point,
+            max(residual, data),
+            float(tolerance),
+            int(presweeps),
+            self.scratch,
+            self.unit,
+            np.empty(n),
+            np.empty(n),
+        )
+        if replaced:  # the residuals again on this path's own gap (sparse storage: another product)
+            multipliers = start_point
+            theta, gap = self.merit(multipliers)
+            residual, data = self.residuals(multipliers, gap)
+        return multipliers, theta, gap, residual, data, swept
+
+    def direction(self, multipliers, gap, theta, level, eta_max, minimum_norm):
+        """The step of (J + η I) d = −F at λ (η as in :func:`_newton_direction`): a least-squares step when
+        asked (dense, level 0) or when the dense J is exactly singular at level 0, else an LU. Returns (d, or
+        None when it failed or is not finite or longer than 1e4 max(‖λ‖, F_data); 1 when an unasked
+        least-squares step was taken else 0)."""
+        operator = self.operator
+        jacobian_blocks(
+            *self.blocks, multipliers, gap, self.weight, self.local, self.gap_factor, self.bound_values
+        )
+        relative = np.sqrt(2.0 * theta) / self.force_scale
+        eta = 0.0 if level == 0 else max(min(eta_max, relative) * 10.0 ** (level - 1), 1e-14)
+        if level == 0 and operator.sparse is None and minimum_norm:
+            operator.assemble(self.local, self.gap_factor, self.bound_values, 0.0)
+            direction = operator.least_squares(-self.error)
+        else:
+            solve = operator.factorize(self.local, self.gap_factor, self.bound_values, eta)
+            direction = None if solve is None else solve(-self.error)
+        limit = 1e4 * max(np.linalg.norm(multipliers), self.force_scale)
+        # an exactly singular dense J (no LU): the least-squares (rank-revealing QR) step instead; a direction
+        # far longer than the forces in play (a nearly singular J) is regularised next iteration, as in the
+        # compiled kernel (see _dense_newton)
+        singular = 0
+        if level == 0 and not minimum_norm and operator.sparse is None and direction is None:
+            direction = operator.least_squares(-self.error)
+            singular = 1
+        if direction is None or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) > limit:
+            return None, singular
+        return direction, singular
+
+    def line_search(self, multipliers, direction, theta, reference):
+        """The non-monotone Armijo backtracking of :func:`_line_search`: (accepted, candidate, its θ, its
+        gap)."""
+        step = 1.0
+        while step >= 2.0**-12:
+            candidate = multipliers + step * direction
+            candidate_theta, candidate_gap = self.merit(candidate)
+            if candidate_theta <= reference - 1e-4 * step * 2.0 * theta:
+                return True, candidate, candidate_theta, candidate_gap
+            step *= 0.5
+        return False, candidate, candidate_theta, candidate_gap
+
+
 def _solve_layered(
     problem: ConstraintProblem,
     blocks: tuple,
@@ -1092,74 +665,15 @@ def _solve_layered(
     """The Newton iteration of :func:`solve_newton` in Python over :class:`_Operator` (sparse storage, a time
     limit or minimum-norm steps): ``blocks`` (kinds, rows, params, members) of
     :func:`~refsim.solvers.laws.block_arrays`, ``scales`` (ρ, F_data, δ_free, ‖δ_free‖, the data residual's
-    scale), ``multipliers`` the start, ``start`` the solve's perf_counter start."""
-    kinds, rows, params, members = blocks
-    weight, force_scale, free_gap, free_norm, data_scale = scales
-    n = problem.row_count
-    unit = np.ones(n)
-    operator = _Operator(problem, kinds, rows, members, sparse_above)
-    error = np.empty(n)
-    scratch = np.empty(n)
-    local = np.empty((kinds.size, 3, 3))
-    gap_factor = np.empty((kinds.size, 3, 3))
-    bound_values = np.zeros(members.size)
-
-    def merit(force):
-        gap = operator.gap(force, free_gap)
-        natural_map_blocks(kinds, rows, params, members, force, gap, weight, error)
-        return 0.5 * float(error @ error), gap
-
-    def residuals(force, gap):
-        return (
-            _residual(kinds, rows, params, members, force, gap, free_norm, scratch, unit),
-            _data_residual(kinds, rows, params, members, force, gap, unit, data_scale, scratch),
-        )
-
-    transposed = None
-    diagonal = None
-
-    def sweeps(force, count):
-        nonlocal transposed, diagonal
-        if transposed is None:
-            transposed = np.array(problem.compliance.T, order="C", copy=True)
-            diagonal = np.diag(problem.compliance).copy()
-            floor = 1e-14 * max(float(np.abs(diagonal).max()), np.finfo(float).tiny)
-            diagonal[diagonal <= floor] = 0.0
-        force = force.copy()
-        gap = operator.gap(force, free_gap)
-        for _ in range(count):
-            gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, force, gap, 1.0)
-        return force
-
-    theta, gap = merit(multipliers)
-    residual, data = residuals(multipliers, gap)
-    swept = 0
-    if presweeps > 0 and not (residual <= tolerance and data <= tolerance):
-        compliance = np.ascontiguousarray(problem.compliance)
-        start_point = multipliers.copy()
-        swept, _, replaced, _, _, _ = _presweep(
-            compliance,
-            *_sweep_arrays(compliance),
-            free_gap,
-            kinds,
-            rows,
-            params,
-            members,
-            free_norm,
-            data_scale,
-            start_point,
-            max(residual, data),
-            float(tolerance),
-            int(presweeps),
-            scratch,
-            unit,
-            np.empty(n),
-            np.empty(n),
-        )
-        if replaced:  # the residuals again on this path's own gap (sparse storage: another product)
-            multipliers = start_point
-            theta, gap = merit(multipliers)
-            residual, data = residuals(multipliers, gap)
+    scale), ``multipliers`` the start, ``start`` the solve's perf_counter start. Its stages are the methods of
+    :class:`_LayeredMaps` (pre-sweeps, direction, line search); this loop keeps the regularisation level, the
+    best point, the history and the stop reasons."""
+    maps = _LayeredMaps(problem, blocks, scales, sparse_above)
+    theta, gap = maps.merit(multipliers)
+    residual, data = maps.residuals(multipliers, gap)
+    multipliers, theta, gap, residual, data, swept = maps.presweeps(
+        multipliers, theta, gap, residual, data, tolerance, presweeps
+    )
     best = (max(residual, data), multipliers.copy(), residual, data)
     memory = [theta]
     history = [residual]
@@ -1176,26 +690,9 @@ def _solve_layered(
             message = f"time limit {time_limit:.1f} s reached"
             break
         iterations += 1
-        jacobian_blocks(
-            kinds, rows, params, members, multipliers, gap, weight, local, gap_factor, bound_values
-        )
-        relative = np.sqrt(2.0 * theta) / force_scale
-        eta = 0.0 if level == 0 else max(min(eta_max, relative) * 10.0 ** (level - 1), 1e-14)
-        if level == 0 and operator.sparse is None and minimum_norm:
-            operator.assemble(local, gap_factor, bound_values, 0.0)
-            direction = operator.least_squares(-error)
-            solve = None
-        else:
-            solve = operator.factorize(local, gap_factor, bound_values, eta)
-            direction = None if solve is None else solve(-error)
-        limit = 1e4 * max(np.linalg.norm(multipliers), force_scale)
-        # an exactly singular dense J (no LU): the least-squares (rank-revealing QR) step instead; a direction
-        # far longer than the forces in play (a nearly singular J) is regularised next iteration, as in the
-        # compiled kernel (see _dense_newton)
-        if level == 0 and not minimum_norm and operator.sparse is None and direction is None:
-            direction = operator.least_squares(-error)
-            singular_steps += 1
-        if direction is None or not np.all(np.isfinite(direction)) or np.linalg.norm(direction) > limit:
+        direction, singular = maps.direction(multipliers, gap, theta, level, eta_max, minimum_norm)
+        singular_steps += singular
+        if direction is None:
             failures += 1
             consecutive += 1
             level = min(level + 1, 8)
@@ -1204,27 +701,21 @@ def _solve_layered(
                 break
             continue
         reference = max(memory[-int(line_search_memory) :])
-        step = 1.0
-        accepted = False
-        while step >= 2.0**-12:
-            candidate = multipliers + step * direction
-            candidate_theta, candidate_gap = merit(candidate)
-            if candidate_theta <= reference - 1e-4 * step * 2.0 * theta:
-                accepted = True
-                break
-            step *= 0.5
+        accepted, candidate, candidate_theta, candidate_gap = maps.line_search(
+            multipliers, direction, theta, reference
+        )
         if not accepted:
             # fallback: projected Gauss-Seidel sweeps from the current point, more regularisation next time
             failures += 1
             consecutive += 1
             fallback += 10
             level = min(level + 1, 8)
-            candidate = sweeps(multipliers, 10)
-            candidate_theta, candidate_gap = merit(candidate)
+            candidate = maps.sweeps(multipliers, 10)
+            candidate_theta, candidate_gap = maps.merit(candidate)
             if consecutive > 8:
                 message = f"line search failed {consecutive} times in a row"
                 multipliers, theta, gap = candidate, candidate_theta, candidate_gap
-                residual, data = residuals(multipliers, gap)
+                residual, data = maps.residuals(multipliers, gap)
                 if max(residual, data) < best[0]:
                     best = (max(residual, data), multipliers.copy(), residual, data)
                 break
@@ -1233,7 +724,7 @@ def _solve_layered(
             level = max(level - 1, 0)
         multipliers, theta, gap = candidate, candidate_theta, candidate_gap
         memory.append(theta)
-        residual, data = residuals(multipliers, gap)
+        residual, data = maps.residuals(multipliers, gap)
         history.append(residual)
         if max(residual, data) < 0.5 * best[0]:
             since_progress = 0
@@ -1258,7 +749,7 @@ def _solve_layered(
         residual=float(residual),
         data_residual=float(data),
         message=message,
-        storage=operator.storage,
+        storage=maps.operator.storage,
         history=np.array(history),
         line_search_failures=failures,
         fallback_sweeps=fallback,

@@ -18,7 +18,8 @@ from refsim.fem.tissue import TissueModel
 from refsim.geometry.search import TetLocator
 from refsim.materials import HookeMaterial
 from refsim.mesh.generators import box_mesh
-from refsim.verification.coupling import NEEDLE_PAPER, NEEDLE_THIN, PAPER_TISSUE, SURFACE_POSITIONS
+from refsim.verification.coupling_problems import NEEDLE_PAPER, NEEDLE_THIN, PAPER_TISSUE
+from refsim.verification.coupling_surface import SURFACE_POSITIONS
 
 __all__ = [
     "BOX_CELLS",

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from refsim.solvers import laws
-from refsim.solvers.exact import _bounds
+from refsim.solvers.cone import cone_bounds as _bounds
 from refsim.solvers.laws import cone_projection_jacobian, project_friction_cone
 from refsim.solvers.residual import natural_map_error
 

@@ -287,7 +287,7 @@ def test_reduced_direction_equals_the_full_solve(seed, eta):
     """The Newton step with the explicit rows (separated, slipping, at a bound) eliminated solves the same
     system: reference np.linalg.solve of the full J + ηI; tolerance 1e3 ε cond(J)."""
     from refsim.solvers.laws import block_arrays, jacobian_blocks
-    from refsim.solvers.linear import PIVOT_DTYPE, _dense_jacobian, _reduced_direction_into
+    from refsim.solvers.linear import PIVOT_DTYPE, DirectionWork, _dense_jacobian, _reduced_direction_into
     from refsim.solvers.residual import data_scales
 
     rng = np.random.default_rng(seed)
@@ -306,24 +306,22 @@ def test_reduced_direction_equals_the_full_solve(seed, eta):
         _dense_jacobian(problem.compliance, kinds, rows, local, factor, members, bounds, eta, jacobian)
         rhs = rng.normal(size=n)
         direction = np.empty(n)
-        position = np.empty(n, dtype=np.int64)
-        ok = _reduced_direction_into(
-            jacobian,
-            rhs,
-            kinds,
-            rows,
-            members,
-            local,
-            factor,
-            bounds,
-            position,
-            direction,
-            np.empty((n, n)),
-            np.empty(n),
-            np.empty(n, dtype=np.int64),
-            np.empty(n),
-            np.empty(n, dtype=PIVOT_DTYPE),
+        work = DirectionWork(
+            jacobian=jacobian,
+            rhs=rhs,
+            local=local,
+            gap_factor=factor,
+            bound_values=bounds,
+            position=np.empty(n, dtype=np.int64),
+            active=np.empty(n, dtype=np.int64),
+            values=np.empty(n),
+            reduced_rhs=np.empty(n),
+            factors=np.empty((n, n)),
+            pivots=np.empty(n, dtype=PIVOT_DTYPE),
+            lu_out=np.empty(n),
+            direction=direction,
         )
+        ok = _reduced_direction_into(kinds, rows, members, work)
         condition = np.linalg.cond(jacobian)
         if not ok or condition > 1e8:
             continue
@@ -376,9 +374,10 @@ def test_small_lu_solve_reports_a_singular_matrix():
 
 
 def test_barely_improving_presweeps_leave_newtons_start():
-    """Pre-sweeps abandoned by their rate rule without halving the start's residual (newton._KEEP_SWEPT) are
-    dropped: Newton then runs from the start exactly as without pre-sweeps (same bits). The bilateral chain
-    W = tridiag(−1, 2 + 1e-6, −1), n = 60: Gauss–Seidel contracts by cos²(π/61) ≈ 0.9973 per sweep."""
+    """Pre-sweeps abandoned by their rate rule without halving the start's residual
+    (newton_kernel._KEEP_SWEPT) are dropped: Newton then runs from the start exactly as without pre-sweeps
+    (same bits). The bilateral chain W = tridiag(−1, 2 + 1e-6, −1), n = 60: Gauss–Seidel contracts by
+    cos²(π/61) ≈ 0.9973 per sweep."""
     n = 60
     compliance = (2.0 + 1e-6) * np.eye(n) - np.eye(n, k=1) - np.eye(n, k=-1)
     problem = ConstraintProblem(

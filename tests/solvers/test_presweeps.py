@@ -1,5 +1,6 @@
-"""The exact solver's Gauss–Seidel pre-sweeps (``method="auto"``, :func:`refsim.solvers.newton._presweep`) and
-the compiled set-up (:func:`refsim.solvers.laws.block_arrays`, :func:`refsim.solvers.residual.data_scales`).
+"""The exact solver's Gauss–Seidel pre-sweeps (``method="auto"``,
+:func:`refsim.solvers.newton_kernel._presweep`) and the compiled set-up
+(:func:`refsim.solvers.laws.block_arrays`, :func:`refsim.solvers.residual.data_scales`).
 
 The pre-sweeps must not change what the exact solver guarantees: every answer meets both residuals on the
 problem as given, the report's residuals are those of the answer, and where the solution is unique the answer
