@@ -28,7 +28,7 @@ import scipy.sparse as sp
 from refsim.geometry.rotations import polar_rotation_one
 from refsim.kernel_cache import numba
 
-__all__ = ["FreePattern", "assemble_free_system"]
+__all__ = ["FreePattern", "assemble_free_system", "deformation_rotation"]
 
 
 class FreePattern:
@@ -179,6 +179,25 @@ _UPPER_SOURCE = np.arange(90, dtype=np.int64)
 
 
 @numba.njit(cache=True)
+def deformation_rotation(positions, tets, rest_edges_inverse, e, f, ds, r):  # pragma: no cover - compiled
+    """Tet ``e``'s deformation gradient F = Ds Dm⁻¹ into ``f`` (Ds = [x₁−x₀, x₂−x₀, x₃−x₀] into ``ds``)
+    and its polar rotation (:func:`refsim.geometry.rotations.polar_rotation_one`) into ``r``: the
+    co-rotation of the assembly (:func:`assemble_free_system`) and of the fast mode's pass
+    (:mod:`refsim.fem.corotated_matvec`)."""
+    n0 = tets[e, 0]
+    for c in range(3):
+        for i in range(3):
+            ds[i, c] = positions[tets[e, c + 1], i] - positions[n0, i]
+    for i in range(3):
+        for j in range(3):
+            s = 0.0
+            for k in range(3):
+                s += ds[i, k] * rest_edges_inverse[e, k, j]
+            f[i, j] = s
+    polar_rotation_one(f, r)
+
+
+@numba.njit(cache=True)
 def _assemble(
     positions,
     tets,
@@ -204,17 +223,7 @@ def _assemble(
     blocks = np.empty(90)
     entries = slots.shape[1]
     for e in range(tet_count):
-        n0 = tets[e, 0]
-        for c in range(3):
-            for i in range(3):
-                ds[i, c] = positions[tets[e, c + 1], i] - positions[n0, i]
-        for i in range(3):
-            for j in range(3):
-                s = 0.0
-                for k in range(3):
-                    s += ds[i, k] * rest_edges_inverse[e, k, j]
-                f[i, j] = s
-        polar_rotation_one(f, r)
+        deformation_rotation(positions, tets, rest_edges_inverse, e, f, ds, r)
         rotations[e, :, :] = r
         # centred element positions and u_a = Rᵀ x_a − X_a
         for i in range(3):

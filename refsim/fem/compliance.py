@@ -96,6 +96,22 @@ def _times_diagonal(matrix: sp.spmatrix, vectors: np.ndarray) -> np.ndarray:
     return diagonal * vectors if vectors.ndim == 1 else diagonal[:, None] * vectors
 
 
+def _rotate_nodes(rotations: np.ndarray, values: np.ndarray, *, transpose: bool = False) -> np.ndarray:
+    """R v (Rᵀ v when ``transpose``) for values on whole 3-DoF groups, R block-diagonal with one rotation per
+    group: rotations (g, 3, 3), values (3g,) or (3g, k), the result of the same shape. The per-node rotation
+    of the precomputed and fast strategies (their R C₀ Rᵀ)."""
+    grouped = values.reshape(rotations.shape[0], 3, -1)
+    turned = np.einsum("gji,gjk->gik" if transpose else "gij,gjk->gik", rotations, grouped)
+    return turned.reshape(values.shape)
+
+
+def _rotate_node_block(rotations: np.ndarray, block: np.ndarray) -> np.ndarray:
+    """R_s B R_sᵀ for a square block B on whole 3-DoF groups (rotations (g, 3, 3), B (3g, 3g)): its rows' node
+    blocks rotated, then its columns'."""
+    left = _rotate_nodes(rotations, block)
+    return _rotate_nodes(rotations, left.T).T
+
+
 @dataclass(eq=False)
 class StepSystem:
     """What a body assembles at one step for the compliance strategies.
@@ -834,10 +850,8 @@ class _PrecomputedBody(BodyCompliance):
             unit = np.zeros((size, positions.size))
             unit[positions, np.arange(positions.size)] = 1.0
             loads = np.zeros_like(unit)
-            blocks = unit[support].reshape(groups.size, 3, -1)
-            loads[support] = np.einsum("gji,gjk->gik", rotations[groups], blocks).reshape(support.size, -1)
-            rest = self._rest_columns(loads, support).reshape(-1, 3, positions.size)
-            return np.einsum("gij,gjk->gik", rotations, rest).reshape(size, positions.size)
+            loads[support] = _rotate_nodes(rotations[groups], unit[support], transpose=True)
+            return _rotate_nodes(rotations, self._rest_columns(loads, support))
 
         return StepCompliance(system, free, columns, report, exact)
 
@@ -930,10 +944,7 @@ class _FastBody(BodyCompliance):
 
         def warped(load: np.ndarray) -> np.ndarray:
             # R C₀ Rᵀ load: the rest compliance in each node's rotated frame
-            block = load.reshape(rotations.shape[0], 3, -1)
-            rest = solver.solve(np.einsum("gji,gjk->gik", rotations, block).reshape(load.shape))
-            local = rest.reshape(block.shape)
-            return np.einsum("gij,gjk->gik", rotations, local).reshape(load.shape)
+            return _rotate_nodes(rotations, solver.solve(_rotate_nodes(rotations, load, transpose=True)))
 
         free, iterations, residual = pcg(
             system.product,
@@ -951,14 +962,11 @@ class _FastBody(BodyCompliance):
             support = (3 * groups[:, None] + np.arange(3)).ravel()
             columns = self._rest_blocks(groups)  # (solves the new blocks, which may grow the store)
             block = self._store[np.ix_(support, columns)]  # C₀ on the support
-            turned = rotations[groups]
-            size = support.size
-            # R_s C₀ R_sᵀ, R_s block-diagonal: rotate the rows' node blocks, then the columns'
-            left = np.einsum("gij,gjk->gik", turned, block.reshape(groups.size, 3, size)).reshape(size, size)
-            right = np.einsum("gij,kgj->kgi", turned, left.reshape(size, groups.size, 3)).reshape(size, size)
+            # R_s C₀ R_sᵀ, R_s block-diagonal
+            rotated = _rotate_node_block(rotations[groups], block)
             where = np.searchsorted(support, positions)
             report["rest_blocks_solved"] = self._filled - before
-            return right[np.ix_(where, where)]
+            return rotated[np.ix_(where, where)]
 
         def apply(load):
             # R C₀ Rᵀ load for a load on few nodes (the correction's Hᵀλ), from the same C₀ blocks
@@ -967,11 +975,12 @@ class _FastBody(BodyCompliance):
             groups = np.flatnonzero(np.any(grouped != 0.0, axis=(1, 2)))
             if groups.size == 0:
                 return np.zeros_like(load)
-            local = np.einsum("gji,gjk->gik", rotations[groups], grouped[groups]).reshape(3 * groups.size, -1)
+            local = _rotate_nodes(
+                rotations[groups], grouped[groups].reshape(3 * groups.size, -1), transpose=True
+            )
             # only the load's node blocks, in node order: the product's bits then depend on no history
-            rest = (self._store[:, self._rest_blocks(groups)] @ local).reshape(rotations.shape[0], 3, -1)
-            out = np.einsum("gij,gjk->gik", rotations, rest)
-            return out.reshape(load.shape)
+            rest = self._store[:, self._rest_blocks(groups)] @ local
+            return _rotate_nodes(rotations, rest).reshape(load.shape)
 
         return StepCompliance(system, free, None, report, exact, apply, inverse_block=inverse_block)
 
