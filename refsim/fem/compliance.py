@@ -382,7 +382,8 @@ class StepCompliance:
             raise ValueError(
                 f"rows must have {self.system.dof_count} columns (DoFs), got {jacobian.shape[1]}"
             )
-        used = np.unique(jacobian.indices)
+        # the DoFs the rows touch, sorted (np.unique's answer, in time linear in the DoFs)
+        used = np.flatnonzero(np.bincount(jacobian.indices, minlength=jacobian.shape[1]))
         positions = np.searchsorted(self.system.free_dofs, used)
         positions = np.minimum(positions, self.system.free_dofs.size - 1)
         on_free = self.system.free_dofs[positions] == used
