@@ -334,11 +334,15 @@ class StepCompliance:
         apply: Callable | None = None,
         half_solve: Callable | None = None,
         inverse_block: Callable | None = None,
+        marked_solve: Callable | None = None,
     ):
         self.system = system
         # positions -> (A⁻¹)_uu, the block of the inverse on the DoFs the rows touch, by a partial solve of
         # the exact factor (exact strategy with PARDISO only); preferred over the forward half
         self._inverse_block = inverse_block
+        # load -> A⁻¹ load for a load on the positions inverse_block was last given (the correction's H_uᵀλ):
+        # a solve whose forward half follows the elimination tree from them only, the same bits as _solve
+        self._marked_solve = marked_solve
         self._half = half_solve  # B -> Y with YᵀY = Bᵀ A⁻¹ B (the factor's forward half), exact strategy only
         self._block = block  # (positions, influence) -> E_uᵀ A⁻¹ E_u, (u, u); influence[positions] by default
         self._apply = apply  # (free load, first guess) -> A⁻¹ load; influence @ (H_uᵀ λ) by default
@@ -464,7 +468,8 @@ class StepCompliance:
         else:
             load = np.zeros(self.system.free_dofs.size)
             load[positions] = weights
-            free = self._solve(load)
+            sparse = half[0] == "block" and self._marked_solve is not None
+            free = self._marked_solve(load) if sparse else self._solve(load)
         if self._apply is not None and positions.size:
             load = np.zeros(self.system.free_dofs.size)
             np.add.at(load, positions, weights)
@@ -618,6 +623,7 @@ class _ExactBody(BodyCompliance):
             inverse_block=(
                 (lambda positions: self._inverse_block(system, positions)) if self._partial else None
             ),
+            marked_solve=solver.solve_marked if self._partial else None,
         )
 
 

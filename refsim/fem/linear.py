@@ -324,6 +324,30 @@ class PardisoSolver:
             loads[positions, columns] = 0.0
         return out[positions]
 
+    def solve_marked(self, rhs: np.ndarray) -> np.ndarray:
+        """A⁻¹ rhs for a rhs of shape (n,) that is zero off the :attr:`marked` positions, every component of
+        the solution computed (oneMKL iparm[30] = 2: the forward substitution follows the elimination tree
+        from the marked positions only, the backward one is whole). Equal to :meth:`solve` bit for bit (the
+        skipped work is on zeros); about half its time on the cube's matrix."""
+        if not self._factorised:
+            raise LinearSolverError("pardiso: solve before factorise")
+        rhs = np.asarray(rhs, dtype=float)
+        if rhs.shape != (self._n,):
+            raise ValueError(f"rhs must have shape ({self._n},), got {rhs.shape}")
+        marked = self._marked
+        if marked is None:
+            return self.solve(rhs)
+        if np.count_nonzero(rhs) != np.count_nonzero(rhs[marked]):
+            raise ValueError("solve_marked: the rhs has non-zeros off the marked positions")
+        b = np.ascontiguousarray(rhs)
+        x = np.zeros(self._n)
+        self._iparm[30] = 2
+        try:
+            self._call(33, b, x, 1)
+        finally:
+            self._iparm[30] = 0
+        return x
+
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """A⁻¹ rhs for rhs of shape (n,) or (n, k)."""
         if not self._factorised:
