@@ -96,6 +96,22 @@ def _times_diagonal(matrix: sp.spmatrix, vectors: np.ndarray) -> np.ndarray:
     return diagonal * vectors if vectors.ndim == 1 else diagonal[:, None] * vectors
 
 
+def _rotate_nodes(rotations: np.ndarray, values: np.ndarray, *, transpose: bool = False) -> np.ndarray:
+    """R v (Rᵀ v when ``transpose``) for values on whole 3-DoF groups, R block-diagonal with one rotation per
+    group: rotations (g, 3, 3), values (3g,) or (3g, k), the result of the same shape. The per-node rotation
+    of the precomputed and fast strategies (their R C₀ Rᵀ)."""
+    grouped = values.reshape(rotations.shape[0], 3, -1)
+    turned = np.einsum("gji,gjk->gik" if transpose else "gij,gjk->gik", rotations, grouped)
+    return turned.reshape(values.shape)
+
+
+def _rotate_node_block(rotations: np.ndarray, block: np.ndarray) -> np.ndarray:
+    """R_s B R_sᵀ for a square block B on whole 3-DoF groups (rotations (g, 3, 3), B (3g, 3g)): its rows' node
+    blocks rotated, then its columns'."""
+    left = _rotate_nodes(rotations, block)
+    return _rotate_nodes(rotations, left.T).T
+
+
 @dataclass(eq=False)
 class StepSystem:
     """What a body assembles at one step for the compliance strategies.
@@ -318,11 +334,15 @@ class StepCompliance:
         apply: Callable | None = None,
         half_solve: Callable | None = None,
         inverse_block: Callable | None = None,
+        marked_solve: Callable | None = None,
     ):
         self.system = system
         # positions -> (A⁻¹)_uu, the block of the inverse on the DoFs the rows touch, by a partial solve of
         # the exact factor (exact strategy with PARDISO only); preferred over the forward half
         self._inverse_block = inverse_block
+        # load -> A⁻¹ load for a load on the positions inverse_block was last given (the correction's H_uᵀλ):
+        # a solve whose forward half follows the elimination tree from them only, the same bits as _solve
+        self._marked_solve = marked_solve
         self._half = half_solve  # B -> Y with YᵀY = Bᵀ A⁻¹ B (the factor's forward half), exact strategy only
         self._block = block  # (positions, influence) -> E_uᵀ A⁻¹ E_u, (u, u); influence[positions] by default
         self._apply = apply  # (free load, first guess) -> A⁻¹ load; influence @ (H_uᵀ λ) by default
@@ -366,7 +386,8 @@ class StepCompliance:
             raise ValueError(
                 f"rows must have {self.system.dof_count} columns (DoFs), got {jacobian.shape[1]}"
             )
-        used = np.unique(jacobian.indices)
+        # the DoFs the rows touch, sorted (np.unique's answer, in time linear in the DoFs)
+        used = np.flatnonzero(np.bincount(jacobian.indices, minlength=jacobian.shape[1]))
         positions = np.searchsorted(self.system.free_dofs, used)
         positions = np.minimum(positions, self.system.free_dofs.size - 1)
         on_free = self.system.free_dofs[positions] == used
@@ -447,7 +468,8 @@ class StepCompliance:
         else:
             load = np.zeros(self.system.free_dofs.size)
             load[positions] = weights
-            free = self._solve(load)
+            sparse = half[0] == "block" and self._marked_solve is not None
+            free = self._marked_solve(load) if sparse else self._solve(load)
         if self._apply is not None and positions.size:
             load = np.zeros(self.system.free_dofs.size)
             np.add.at(load, positions, weights)
@@ -601,6 +623,7 @@ class _ExactBody(BodyCompliance):
             inverse_block=(
                 (lambda positions: self._inverse_block(system, positions)) if self._partial else None
             ),
+            marked_solve=solver.solve_marked if self._partial else None,
         )
 
 
@@ -834,10 +857,8 @@ class _PrecomputedBody(BodyCompliance):
             unit = np.zeros((size, positions.size))
             unit[positions, np.arange(positions.size)] = 1.0
             loads = np.zeros_like(unit)
-            blocks = unit[support].reshape(groups.size, 3, -1)
-            loads[support] = np.einsum("gji,gjk->gik", rotations[groups], blocks).reshape(support.size, -1)
-            rest = self._rest_columns(loads, support).reshape(-1, 3, positions.size)
-            return np.einsum("gij,gjk->gik", rotations, rest).reshape(size, positions.size)
+            loads[support] = _rotate_nodes(rotations[groups], unit[support], transpose=True)
+            return _rotate_nodes(rotations, self._rest_columns(loads, support))
 
         return StepCompliance(system, free, columns, report, exact)
 
@@ -930,10 +951,7 @@ class _FastBody(BodyCompliance):
 
         def warped(load: np.ndarray) -> np.ndarray:
             # R C₀ Rᵀ load: the rest compliance in each node's rotated frame
-            block = load.reshape(rotations.shape[0], 3, -1)
-            rest = solver.solve(np.einsum("gji,gjk->gik", rotations, block).reshape(load.shape))
-            local = rest.reshape(block.shape)
-            return np.einsum("gij,gjk->gik", rotations, local).reshape(load.shape)
+            return _rotate_nodes(rotations, solver.solve(_rotate_nodes(rotations, load, transpose=True)))
 
         free, iterations, residual = pcg(
             system.product,
@@ -951,14 +969,11 @@ class _FastBody(BodyCompliance):
             support = (3 * groups[:, None] + np.arange(3)).ravel()
             columns = self._rest_blocks(groups)  # (solves the new blocks, which may grow the store)
             block = self._store[np.ix_(support, columns)]  # C₀ on the support
-            turned = rotations[groups]
-            size = support.size
-            # R_s C₀ R_sᵀ, R_s block-diagonal: rotate the rows' node blocks, then the columns'
-            left = np.einsum("gij,gjk->gik", turned, block.reshape(groups.size, 3, size)).reshape(size, size)
-            right = np.einsum("gij,kgj->kgi", turned, left.reshape(size, groups.size, 3)).reshape(size, size)
+            # R_s C₀ R_sᵀ, R_s block-diagonal
+            rotated = _rotate_node_block(rotations[groups], block)
             where = np.searchsorted(support, positions)
             report["rest_blocks_solved"] = self._filled - before
-            return right[np.ix_(where, where)]
+            return rotated[np.ix_(where, where)]
 
         def apply(load):
             # R C₀ Rᵀ load for a load on few nodes (the correction's Hᵀλ), from the same C₀ blocks
@@ -967,11 +982,12 @@ class _FastBody(BodyCompliance):
             groups = np.flatnonzero(np.any(grouped != 0.0, axis=(1, 2)))
             if groups.size == 0:
                 return np.zeros_like(load)
-            local = np.einsum("gji,gjk->gik", rotations[groups], grouped[groups]).reshape(3 * groups.size, -1)
+            local = _rotate_nodes(
+                rotations[groups], grouped[groups].reshape(3 * groups.size, -1), transpose=True
+            )
             # only the load's node blocks, in node order: the product's bits then depend on no history
-            rest = (self._store[:, self._rest_blocks(groups)] @ local).reshape(rotations.shape[0], 3, -1)
-            out = np.einsum("gij,gjk->gik", rotations, rest)
-            return out.reshape(load.shape)
+            rest = self._store[:, self._rest_blocks(groups)] @ local
+            return _rotate_nodes(rotations, rest).reshape(load.shape)
 
         return StepCompliance(system, free, None, report, exact, apply, inverse_block=inverse_block)
 

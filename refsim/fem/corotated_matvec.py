@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from refsim.fem.assembly import deformation_rotation
 from refsim.fem.compliance import StepSystem
 from refsim.geometry.rotations import polar_rotation_one
 from refsim.kernel_cache import numba
@@ -85,17 +86,7 @@ def _corotate(
     r = np.empty((3, 3))
     p = np.empty((3, 3))
     for e in range(tets.shape[0]):
-        n0 = tets[e, 0]
-        for c in range(3):
-            for i in range(3):
-                ds[i, c] = positions[tets[e, c + 1], i] - positions[n0, i]
-        for i in range(3):
-            for j in range(3):
-                s = 0.0
-                for k in range(3):
-                    s += ds[i, k] * rest_edges_inverse[e, k, j]
-                f[i, j] = s
-        polar_rotation_one(f, r)
+        deformation_rotation(positions, tets, rest_edges_inverse, e, f, ds, r)
         rotations[e, :, :] = r
         # ε = sym(Rᵀ F) − I: the co-rotated strain of u = Rᵀ x − X (F = Σ_a x_a ⊗ ∇φ_a, I = Σ_a X_a ⊗ ∇φ_a)
         _stress_forces(f, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, forces, 0, 1.0, p)

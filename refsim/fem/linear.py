@@ -118,6 +118,13 @@ def _same_memory(first: np.ndarray, second: np.ndarray) -> bool:
     )
 
 
+def _all_among(values: np.ndarray, sorted_set: np.ndarray) -> bool:
+    """Whether every one of ``values`` is in ``sorted_set`` (sorted, unique)."""
+    where = np.searchsorted(sorted_set, values)
+    inside = where < sorted_set.size
+    return bool(np.all(inside) and np.array_equal(sorted_set[where], values))
+
+
 _ONE, _ZERO = ctypes.c_int32(1), ctypes.c_int32(0)
 _MTYPE_SPD = ctypes.c_int32(2)  # PARDISO's matrix type: real symmetric positive definite
 _UNUSED = np.zeros(1)  # what an unused array argument points to
@@ -148,6 +155,7 @@ class PardisoSolver:
         self._iparm[34] = 1  # zero-based indices
         self._iparm_input = self._iparm.copy()  # phase 11 writes outputs into iparm: restored before each
         self._marked = None  # sorted positions marked for partial solves (iparm[30] = 1) by the analysis
+        self._unit_buffers = None  # (loads, solutions) of the last partial solve, reused (inverse_block)
         self._perm = np.zeros(1, dtype=np.int32)
         self._pattern_key = None
         self._pattern_arrays = None
@@ -291,20 +299,54 @@ class PardisoSolver:
         if not self._factorised:
             raise LinearSolverError("pardiso: solve before factorise")
         positions = np.asarray(positions, dtype=np.int64)
-        if self._marked is None or not np.all(np.isin(positions, self._marked)):
+        marked = self._marked
+        if marked is None or not _all_among(positions, marked):
             raise ValueError("inverse_block: the positions must be marked first (mark)")
         count = positions.size
         if count == 0:
             return np.zeros((0, 0))
-        loads = np.zeros((self._n, count), order="F")
-        loads[positions, np.arange(count)] = 1.0
-        out = np.zeros_like(loads, order="F")
+        # The (n, count) loads and solutions are kept from call to call (fresh ones cost more in page faults
+        # than the partial solve's arithmetic); the loads are zero outside the unit entries, set and reset
+        # here, and only the marked rows of the solutions are read.
+        if self._unit_buffers is None or self._unit_buffers[0].shape != (self._n, count):
+            self._unit_buffers = (
+                np.zeros((self._n, count), order="F"),
+                np.zeros((self._n, count), order="F"),
+            )
+        loads, out = self._unit_buffers
+        columns = np.arange(count)
+        loads[positions, columns] = 1.0
         self._iparm[30] = 1
         try:
             self._call(33, loads, out, count)
         finally:
             self._iparm[30] = 0
+            loads[positions, columns] = 0.0
         return out[positions]
+
+    def solve_marked(self, rhs: np.ndarray) -> np.ndarray:
+        """A⁻¹ rhs for a rhs of shape (n,) that is zero off the :attr:`marked` positions, every component of
+        the solution computed (oneMKL iparm[30] = 2: the forward substitution follows the elimination tree
+        from the marked positions only, the backward one is whole). Equal to :meth:`solve` bit for bit (the
+        skipped work is on zeros); about half its time on the cube's matrix."""
+        if not self._factorised:
+            raise LinearSolverError("pardiso: solve before factorise")
+        rhs = np.asarray(rhs, dtype=float)
+        if rhs.shape != (self._n,):
+            raise ValueError(f"rhs must have shape ({self._n},), got {rhs.shape}")
+        marked = self._marked
+        if marked is None:
+            return self.solve(rhs)
+        if np.count_nonzero(rhs) != np.count_nonzero(rhs[marked]):
+            raise ValueError("solve_marked: the rhs has non-zeros off the marked positions")
+        b = np.ascontiguousarray(rhs)
+        x = np.zeros(self._n)
+        self._iparm[30] = 2
+        try:
+            self._call(33, b, x, 1)
+        finally:
+            self._iparm[30] = 0
+        return x
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """A⁻¹ rhs for rhs of shape (n,) or (n, k)."""

@@ -154,6 +154,49 @@ def test_pardiso_factor_is_a_function_of_the_marks_not_of_their_history():
     np.testing.assert_array_equal(travelled.inverse_block(marks), fresh.inverse_block(marks))
 
 
+def test_pardiso_partial_solve_depends_on_no_earlier_one():
+    # inverse_block keeps its (n, k) load and solution arrays from call to call: a block must not see the
+    # loads or solutions of the calls before it (the same count of positions reuses them, another count not).
+    if "pardiso" not in available_linear_solvers():
+        pytest.skip("pardiso not available on this machine")
+    matrix = spd_matrix(216, 5)
+    marks = np.array([2, 3, 50, 51, 120, 180, 181])
+    travelled, fresh = make_linear_solver("pardiso"), make_linear_solver("pardiso")
+    for solver in (travelled, fresh):
+        solver.mark(marks)
+        solver.factorise(matrix)
+    for positions in (
+        np.array([2, 3, 50]),
+        np.array([120, 180, 181]),
+        np.array([3, 51]),
+        np.array([2, 3, 50]),
+    ):
+        expected = make_linear_solver("pardiso")
+        expected.mark(marks)
+        expected.factorise(matrix)
+        np.testing.assert_array_equal(travelled.inverse_block(positions), expected.inverse_block(positions))
+    np.testing.assert_array_equal(travelled.inverse_block(marks), fresh.inverse_block(marks))
+
+
+def test_pardiso_solve_of_a_load_on_the_marks_equals_the_full_solve():
+    # solve_marked skips the forward substitution's work on zeros only: the same bits as solve
+    if "pardiso" not in available_linear_solvers():
+        pytest.skip("pardiso not available on this machine")
+    matrix = spd_matrix(343, 6)
+    marks = np.array([4, 5, 6, 170, 171, 300])
+    solver = make_linear_solver("pardiso")
+    solver.mark(marks)
+    solver.factorise(matrix)
+    load = np.zeros(343)
+    load[marks] = np.random.default_rng(7).standard_normal(marks.size)
+    np.testing.assert_array_equal(solver.solve_marked(load), solver.solve(load))
+    load[[4, 300]] = 0.0  # a load on part of the marks
+    np.testing.assert_array_equal(solver.solve_marked(load), solver.solve(load))
+    load[10] = 1.0
+    with pytest.raises(ValueError, match="off the marked"):
+        solver.solve_marked(load)
+
+
 def test_pardiso_loads_mkl_without_pypardiso():
     # oneMKL's runtime is found in the mkl wheel's library folder, not through pypardiso (whose import builds
     # a solver that globs all of sys.prefix, and does it again on first use): a PARDISO factorisation in a
