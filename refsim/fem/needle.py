@@ -64,6 +64,8 @@ logger = logging.getLogger(__name__)
 # ε·(node_count)/h ≈ 1e-10 relative for translations; the same step [rad] for rotations.
 _TANGENT_STEP = 1e-5
 _PROJECTION_NEWTON_ITERATIONS = 3
+#: Needle configurations whose element kinematics a model keeps (`NeedleModel._element_kinematics`).
+_KINEMATICS_MEMO = 4
 
 
 def _positive(name: str, value: float) -> float:
@@ -516,12 +518,44 @@ class NeedleModel:
         elements = np.minimum(np.floor(scaled).astype(np.int64), self.element_count - 1)
         return elements, scaled - elements
 
+    @cached_property
+    def _kinematics_memo(self) -> dict:
+        return {}
+
+    def _element_kinematics(self, positions: np.ndarray, frames: np.ndarray) -> dict[str, np.ndarray]:
+        """`local_deformations` of every element in the configuration (positions, frames), read-only.
+
+        A step evaluates the centreline of the same few configurations (the needle at the start of the step
+        and after free motion) many times (points, tangents, projections, Jacobians); the element kinematics
+        of the last :data:`_KINEMATICS_MEMO` configurations are kept, keyed by the configuration's bytes, so a
+        repeated evaluation gathers them instead of computing them again (the same function of the same
+        inputs: the same bits)."""
+        key = (positions.tobytes(), frames.tobytes())
+        memo = self._kinematics_memo
+        found = memo.get(key)
+        if found is None:
+            found = local_deformations(*self._ends(positions, frames), self._rest_lengths)
+            for value in found.values():
+                value.setflags(write=False)
+            while len(memo) >= _KINEMATICS_MEMO:
+                memo.pop(next(iter(memo)), None)
+            memo[key] = found
+        return found
+
     def _centreline(self, positions, frames, arc_lengths, *, jacobian: bool):
         positions, frames = self._check_state(positions, frames)
         elements, xi = self._locate(arc_lengths)
-        # Element kinematics once per element, then gathered per query point.
-        per_element = local_deformations(*self._ends(positions, frames), self._rest_lengths)
-        local = {key: value[elements] for key, value in per_element.items()}
+        # Element kinematics once per element (and configuration), then gathered per query point.
+        per_element = self._element_kinematics(positions, frames)
+        needed = (
+            ("deformations", "element_frames", "jacobian", "spin_jacobian")
+            if jacobian
+            else (
+                "deformations",
+                "element_frames",
+            )
+        )
+        local = {key: per_element[key][elements] for key in needed}
         d, rot = local["deformations"], local["element_frames"]
         shapes, slopes = hermite_shapes(xi)
         l0 = self.element_length
