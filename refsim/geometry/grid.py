@@ -204,8 +204,9 @@ def surface_candidates(
     the centroid, r the bounding radius) get their distance d_f by Ericson's method here, and D is the least:
     a regular face is kept when d_f ≤ D (1 + slack) + slack r (its distance is exact to round-off, so the
     closest faces and their ties are kept), a thin one (NumPy's careful path, ``thin`` with a factor
-    :data:`_THIN_MARGIN` of margin) when its sphere comes within D. Every face that can hold the closest point is kept, so the
-    closest point chosen from these pairs is the one any index giving such a superset gives
+    :data:`_THIN_MARGIN` of margin) when its sphere comes within D. Every face that can hold the closest
+    point is kept, so the closest point chosen from these pairs is the one any index giving such a superset
+    gives
     (:class:`refsim.geometry.SurfaceProjector`), with one or two exact evaluations per query.
     """
     return _surface_candidates(

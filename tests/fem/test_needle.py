@@ -307,8 +307,8 @@ def test_project_on_centreline_recovers_known_closest_points():
 
 def test_centreline_memo_is_keyed_by_the_configuration_not_the_arrays():
     # The element kinematics kept per configuration (NeedleModel._element_kinematics) give the bits a model
-    # without a memo computes, for several configurations evaluated in turn, and an array changed in place is a
-    # new configuration.
+    # without a memo computes, for several configurations evaluated in turn, and an array changed in place
+    # is a new configuration.
     model = _model()
     configurations = [_deformed(model, seed=seed) for seed in range(6)]  # more than the memo keeps
     arcs = np.linspace(0.0, model.length, 23)
