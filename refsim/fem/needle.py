@@ -527,9 +527,9 @@ class NeedleModel:
 
         A step evaluates the centreline of the same few configurations (the needle at the start of the step
         and after free motion) many times (points, tangents, projections, Jacobians); the element kinematics
-        of the last :data:`_KINEMATICS_MEMO` configurations are kept, keyed by the configuration's bytes, so a
-        repeated evaluation gathers them instead of computing them again (the same function of the same
-        inputs: the same bits)."""
+        of the last :data:`_KINEMATICS_MEMO` configurations are kept (with the projection's polyline,
+        :meth:`_polyline`), keyed by the configuration's bytes, so a repeated evaluation gathers them
+        instead of computing them again (the same function of the same inputs: the same bits)."""
         key = (positions.tobytes(), frames.tobytes())
         memo = self._kinematics_memo
         found = memo.get(key)
@@ -540,6 +540,23 @@ class NeedleModel:
             while len(memo) >= _KINEMATICS_MEMO:
                 memo.pop(next(iter(memo)), None)
             memo[key] = found
+        return found
+
+    def _polyline(
+        self, positions: np.ndarray, frames: np.ndarray, samples_per_element: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The projection's search polyline: its rest arc lengths (``samples_per_element`` segments per
+        element) and centreline points, kept with the configuration's element kinematics (read-only)."""
+        positions, frames = self._check_state(positions, frames)
+        kinematics = self._element_kinematics(positions, frames)
+        key = f"polyline {samples_per_element}"
+        found = kinematics.get(key)
+        if found is None:
+            samples = np.linspace(0.0, self.length, self.element_count * samples_per_element + 1)
+            found = (samples, self.centreline_points(positions, frames, samples))
+            for value in found:
+                value.setflags(write=False)
+            kinematics[key] = found
         return found
 
     def _centreline(self, positions, frames, arc_lengths, *, jacobian: bool):
@@ -667,8 +684,7 @@ class NeedleModel:
             raise ValueError(f"points must have shape (q, 3), got {points.shape}")
         if samples_per_element < 1:
             raise ValueError(f"samples_per_element must be >= 1, got {samples_per_element!r}")
-        samples = np.linspace(0.0, self.length, self.element_count * samples_per_element + 1)
-        polyline = self.centreline_points(positions, frames, samples)
+        samples, polyline = self._polyline(positions, frames, samples_per_element)
         start, segment = polyline[:-1], np.diff(polyline, axis=0)  # (S, 3)
         relative = points[:, None, :] - start[None]  # (q, S, 3)
         t = np.clip(

@@ -321,6 +321,13 @@ def test_centreline_memo_is_keyed_by_the_configuration_not_the_arrays():
             model.centreline_jacobian(positions, frames, arcs).toarray(),
             fresh.centreline_jacobian(positions, frames, arcs).toarray(),
         )
+        queries = model.centreline_points(positions, frames, arcs) + 1e-3
+        for got, expected in zip(
+            model.project_on_centreline(positions, frames, queries),
+            fresh.project_on_centreline(positions, frames, queries),
+            strict=True,
+        ):
+            np.testing.assert_array_equal(got, expected)
     positions, frames = configurations[0]
     before = model.centreline_points(positions, frames, arcs)
     positions[3] += 1e-3
