@@ -201,9 +201,7 @@ class CutSurface:
         """
         corners = points[self.triangles]
         face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        vertex = np.zeros_like(points)
-        for k in range(3):  # the three corners of every triangle, vectorised over the triangles
-            np.add.at(vertex, self.triangles[:, k], face)
+        vertex = _vertex_sums(self.triangles, face, points.shape[0])
         vertex /= np.maximum(np.linalg.norm(vertex, axis=1, keepdims=True), 1e-300)
         normals = np.einsum("qv,qvj->qj", weights, vertex[self.triangles[triangle]])
         return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
@@ -272,6 +270,18 @@ class CutSurface:
         position = np.clip(np.searchsorted(keys[order], query), 0, keys.size - 1)
         found = keys[order][position] == query
         return np.where(found, uses[order][position], 0)
+
+
+def _vertex_sums(triangles: np.ndarray, face: np.ndarray, point_count: int) -> np.ndarray:
+    """Σ over the triangles at each vertex of their ``face`` vectors, shape (point_count, 3): the sums
+    ``np.add.at(vertex, triangles[:, k], face)`` makes for k = 0, 1, 2 (each vertex's terms added in that
+    order, from zero), by one ``np.bincount`` per axis over the corners in the same order (the same
+    additions: the same bits; ``np.add.at`` costs several times more)."""
+    corners = np.asarray(triangles, dtype=np.int64).T.ravel()  # corner 0 of every triangle, then 1, then 2
+    terms = np.concatenate([face, face, face])
+    return np.column_stack(
+        [np.bincount(corners, weights=terms[:, axis], minlength=point_count) for axis in range(3)]
+    )
 
 
 def _plane_barycentric(points: np.ndarray, corners: np.ndarray) -> np.ndarray:

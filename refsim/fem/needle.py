@@ -64,6 +64,8 @@ logger = logging.getLogger(__name__)
 # ε·(node_count)/h ≈ 1e-10 relative for translations; the same step [rad] for rotations.
 _TANGENT_STEP = 1e-5
 _PROJECTION_NEWTON_ITERATIONS = 3
+#: Needle configurations whose element kinematics a model keeps (`NeedleModel._element_kinematics`).
+_KINEMATICS_MEMO = 4
 
 
 def _positive(name: str, value: float) -> float:
@@ -516,12 +518,61 @@ class NeedleModel:
         elements = np.minimum(np.floor(scaled).astype(np.int64), self.element_count - 1)
         return elements, scaled - elements
 
+    @cached_property
+    def _kinematics_memo(self) -> dict:
+        return {}
+
+    def _element_kinematics(self, positions: np.ndarray, frames: np.ndarray) -> dict[str, np.ndarray]:
+        """`local_deformations` of every element in the configuration (positions, frames), read-only.
+
+        A step evaluates the centreline of the same few configurations (the needle at the start of the step
+        and after free motion) many times (points, tangents, projections, Jacobians); the element kinematics
+        of the last :data:`_KINEMATICS_MEMO` configurations are kept (with the projection's polyline,
+        :meth:`_polyline`), keyed by the configuration's bytes, so a repeated evaluation gathers them
+        instead of computing them again (the same function of the same inputs: the same bits)."""
+        key = (positions.tobytes(), frames.tobytes())
+        memo = self._kinematics_memo
+        found = memo.get(key)
+        if found is None:
+            found = local_deformations(*self._ends(positions, frames), self._rest_lengths)
+            for value in found.values():
+                value.setflags(write=False)
+            while len(memo) >= _KINEMATICS_MEMO:
+                memo.pop(next(iter(memo)), None)
+            memo[key] = found
+        return found
+
+    def _polyline(
+        self, positions: np.ndarray, frames: np.ndarray, samples_per_element: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The projection's search polyline: its rest arc lengths (``samples_per_element`` segments per
+        element) and centreline points, kept with the configuration's element kinematics (read-only)."""
+        positions, frames = self._check_state(positions, frames)
+        kinematics = self._element_kinematics(positions, frames)
+        key = f"polyline {samples_per_element}"
+        found = kinematics.get(key)
+        if found is None:
+            samples = np.linspace(0.0, self.length, self.element_count * samples_per_element + 1)
+            found = (samples, self.centreline_points(positions, frames, samples))
+            for value in found:
+                value.setflags(write=False)
+            kinematics[key] = found
+        return found
+
     def _centreline(self, positions, frames, arc_lengths, *, jacobian: bool):
         positions, frames = self._check_state(positions, frames)
         elements, xi = self._locate(arc_lengths)
-        # Element kinematics once per element, then gathered per query point.
-        per_element = local_deformations(*self._ends(positions, frames), self._rest_lengths)
-        local = {key: value[elements] for key, value in per_element.items()}
+        # Element kinematics once per element (and configuration), then gathered per query point.
+        per_element = self._element_kinematics(positions, frames)
+        needed = (
+            ("deformations", "element_frames", "jacobian", "spin_jacobian")
+            if jacobian
+            else (
+                "deformations",
+                "element_frames",
+            )
+        )
+        local = {key: per_element[key][elements] for key in needed}
         d, rot = local["deformations"], local["element_frames"]
         shapes, slopes = hermite_shapes(xi)
         l0 = self.element_length
@@ -633,8 +684,7 @@ class NeedleModel:
             raise ValueError(f"points must have shape (q, 3), got {points.shape}")
         if samples_per_element < 1:
             raise ValueError(f"samples_per_element must be >= 1, got {samples_per_element!r}")
-        samples = np.linspace(0.0, self.length, self.element_count * samples_per_element + 1)
-        polyline = self.centreline_points(positions, frames, samples)
+        samples, polyline = self._polyline(positions, frames, samples_per_element)
         start, segment = polyline[:-1], np.diff(polyline, axis=0)  # (S, 3)
         relative = points[:, None, :] - start[None]  # (q, S, 3)
         t = np.clip(

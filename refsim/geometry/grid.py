@@ -177,6 +177,17 @@ def _locate(  # pragma: no cover - compiled
     return found, barycentric
 
 
+#: Faces with |ab × ac| < _THIN_MARGIN · thin · (longest edge)² are thin for the candidate scan: a margin over
+#: NumPy's test (`refsim.geometry.closest`), whose |ab × ac| and longest edge differ from this pass's in their
+#: last bits only. Every face NumPy evaluates by Ericson's formulas (|ab × ac| ≥ thin L²) has Ericson's
+#: distance here exact to about ε L / thin² (2e-14 L), far inside the slack's 1e-9 r, so those faces can be
+#: kept by their distance; the margin must only keep NumPy's thin faces on their sphere test. A factor 10
+#: made every well-shaped face thin (a right isosceles face has |ab × ac| / L² = 0.5, an equilateral one
+#: 0.87) and kept the whole cap of faces within D of a query (about 100 faces per shaft sample above the
+#: cube) for NumPy's exact evaluation.
+_THIN_MARGIN = 2.0
+
+
 def surface_candidates(
     points: np.ndarray,
     triangles: np.ndarray,
@@ -192,9 +203,10 @@ def surface_candidates(
     to the surface). The faces whose bounding sphere comes within U (‖p − c‖ − r ≤ U (1 + slack) + slack r, c
     the centroid, r the bounding radius) get their distance d_f by Ericson's method here, and D is the least:
     a regular face is kept when d_f ≤ D (1 + slack) + slack r (its distance is exact to round-off, so the
-    closest faces and their ties are kept), a thin one (NumPy's careful path, ``thin`` with a factor 10 of
-    margin) when its sphere comes within D. Every face that can hold the closest point is kept, so the
-    closest point chosen from these pairs is the one any index giving such a superset gives
+    closest faces and their ties are kept), a thin one (NumPy's careful path, ``thin`` with a factor
+    :data:`_THIN_MARGIN` of margin) when its sphere comes within D. Every face that can hold the closest
+    point is kept, so the closest point chosen from these pairs is the one any index giving such a superset
+    gives
     (:class:`refsim.geometry.SurfaceProjector`), with one or two exact evaluations per query.
     """
     return _surface_candidates(
@@ -210,7 +222,9 @@ def surface_candidates(
 @numba.njit(cache=True)
 def _surface_candidates(points, triangles, centroids, radii, slack, thin):  # pragma: no cover - compiled
     count, faces = points.shape[0], triangles.shape[0]
-    # Thin faces (NumPy's careful path, with a factor 10 of margin) are kept on their sphere test only.
+    margin = _THIN_MARGIN
+    # Thin faces (NumPy's careful path, with a factor _THIN_MARGIN of margin) are kept on their sphere test
+    # only.
     is_thin = np.empty(faces, dtype=np.bool_)
     for face in range(faces):
         t = triangles[face]
@@ -223,7 +237,7 @@ def _surface_candidates(points, triangles, centroids, radii, slack, thin):  # pr
         area2 = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
         e4 = t[2] - t[1]
         longest2 = max(np.dot(e1, e1), np.dot(e4, e4), np.dot(e3, e3))
-        is_thin[face] = not (area2 >= 10.0 * thin * longest2)
+        is_thin[face] = not (area2 >= margin * thin * longest2)
     keep = np.zeros((count, faces), dtype=np.bool_)
     distances = np.full(faces, np.inf)
     total = 0

@@ -303,3 +303,34 @@ def test_project_on_centreline_recovers_known_closest_points():
     arc, closest, distance = model.project_on_centreline(positions, frames, outside)
     assert np.allclose(arc, [model.length, 0.0], atol=0)
     assert np.allclose(distance, 0.01, atol=1e-12)
+
+
+def test_centreline_memo_is_keyed_by_the_configuration_not_the_arrays():
+    # The element kinematics kept per configuration (NeedleModel._element_kinematics) give the bits a model
+    # without a memo computes, for several configurations evaluated in turn, and an array changed in place
+    # is a new configuration.
+    model = _model()
+    configurations = [_deformed(model, seed=seed) for seed in range(6)]  # more than the memo keeps
+    arcs = np.linspace(0.0, model.length, 23)
+    for positions, frames in [*configurations, *configurations[::-1]]:
+        fresh = _model()
+        np.testing.assert_array_equal(
+            model.centreline_points(positions, frames, arcs), fresh.centreline_points(positions, frames, arcs)
+        )
+        np.testing.assert_array_equal(
+            model.centreline_jacobian(positions, frames, arcs).toarray(),
+            fresh.centreline_jacobian(positions, frames, arcs).toarray(),
+        )
+        queries = model.centreline_points(positions, frames, arcs) + 1e-3
+        for got, expected in zip(
+            model.project_on_centreline(positions, frames, queries),
+            fresh.project_on_centreline(positions, frames, queries),
+            strict=True,
+        ):
+            np.testing.assert_array_equal(got, expected)
+    positions, frames = configurations[0]
+    before = model.centreline_points(positions, frames, arcs)
+    positions[3] += 1e-3
+    after = model.centreline_points(positions, frames, arcs)
+    np.testing.assert_array_equal(after, _model().centreline_points(positions, frames, arcs))
+    assert not np.array_equal(before, after)

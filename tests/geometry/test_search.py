@@ -296,6 +296,29 @@ def test_projector_scan_and_kd_trees_give_the_same_bits(graded, box, offset):
         assert projector.faces.shape[0] * points.shape[0] <= search._SCAN_PAIRS  # the scan was taken
 
 
+def test_scan_keeps_only_the_nearest_faces_of_well_shaped_surfaces(box):
+    # The scan evaluates well-shaped faces (|ab × ac| ≥ thin L², NumPy's Ericson path) by their distance and
+    # keeps the nearest and its ties only: above the box's top, at most the faces around one grid vertex (8),
+    # not the cap of faces within the distance (the whole top at this height).
+    from refsim.geometry.closest import _THIN_AREA
+    from refsim.geometry.grid import surface_candidates
+
+    mesh, _ = box
+    projector = SurfaceProjector(mesh.rest_positions, mesh.boundary_faces)
+    rng = np.random.default_rng(4)
+    points = np.column_stack([rng.uniform(0.0, 1.0, (40, 2)), np.full(40, 1.5)])
+    queries, faces = surface_candidates(
+        points, projector.triangles, projector.centroids, projector.radii, search._RADIUS_SLACK, _THIN_AREA
+    )
+    counts = np.bincount(queries, minlength=points.shape[0])
+    assert counts.min() >= 1 and counts.max() <= 8
+    scanned = projector._closest_chunk(points)
+    every_pair = np.nonzero(np.ones((points.shape[0], projector.faces.shape[0]), dtype=bool))
+    expected = _closest_of_pairs(projector, points, *every_pair)  # brute force over every face
+    for got, want in zip(scanned, expected, strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
 def _closest_of_pairs(projector, points, queries, faces):
     """The projector's choice among candidate pairs (its _closest_chunk after the search)."""
     closest, coordinates = closest_points_on_triangles(points[queries], projector.triangles[faces])
