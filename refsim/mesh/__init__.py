@@ -11,7 +11,7 @@ from refsim.mesh.phantom import (
     liver_phantom_path,
     mesh_quality,
 )
-from refsim.mesh.selection import surface_patch
+from refsim.mesh.selection import facing_surface, surface_patch
 from refsim.mesh.surface import boundary_faces, is_closed_surface, surface_edges
 from refsim.mesh.tetmesh import TetMesh
 from refsim.mesh.validation import MeshError, validate_mesh
@@ -23,6 +23,7 @@ __all__ = [
     "liver_phantom",
     "liver_phantom_path",
     "mesh_quality",
+    "facing_surface",
     "surface_patch",
     "MeshError",
     "TetMesh",

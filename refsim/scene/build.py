@@ -384,6 +384,11 @@ def boundary_nodes(scene: Scene, mesh: TetMesh) -> np.ndarray:
         box = np.asarray(spec.box, dtype=float)
         nodes = np.flatnonzero(np.all((rest >= box[0]) & (rest <= box[1]), axis=1))
         key = "box"
+    elif spec.facing is not None:
+        from refsim.mesh.selection import facing_surface
+
+        nodes = facing_surface(rest, mesh.boundary_faces, direction=spec.facing, angle=spec.facing_angle)
+        key = "facing"
     else:
         from refsim.mesh.selection import surface_patch
 

@@ -714,12 +714,36 @@ class _BoundarySpec(_Validated):
     patch_distance: float = spec(
         0.0, unit="m", doc="distance of a surface patch from its point or plane", low=0.0
     )
+    facing: tuple | None = spec(
+        None,
+        unit="-",
+        doc="surface nodes whose outward normal lies within facing_angle of this direction move (a face of "
+        "the organ, e.g. [0, 0, 1] its superior face)",
+        length=3,
+    )
+    facing_angle: float | None = spec(
+        None,
+        unit="deg",
+        doc="largest angle between a facing node's outward normal and facing",
+        low=0.0,
+        high=180.0,
+        low_open=True,
+        high_open=True,
+    )
 
     #: The keys each motion reads beyond the node selection (nodes, box, patch_point, patch_plane,
-    #: patch_distance, which every motion but none reads): the keys it declares (``keys``), each a field of
-    #: the section generated from that declaration.
+    #: patch_distance, facing, facing_angle, which every motion but none reads): the keys it declares
+    #: (``keys``), each a field of the section generated from that declaration.
     MOTION_KEYS = {"none": ()} | {name: tuple(motion.keys) for name, motion in BOUNDARY_MOTIONS.items()}
-    SELECTION_KEYS = ("nodes", "box", "patch_point", "patch_plane", "patch_distance")
+    SELECTION_KEYS = (
+        "nodes",
+        "box",
+        "patch_point",
+        "patch_plane",
+        "patch_distance",
+        "facing",
+        "facing_angle",
+    )
 
     def validate(self) -> None:
         self._check_unused_keys()
@@ -728,12 +752,20 @@ class _BoundarySpec(_Validated):
             self.box is not None,
             self.patch_point is not None,
             self.patch_plane is not None,
+            self.facing is not None,
         ]
         if self.motion == "none":
             return
         if sum(selections) != 1:
             raise FieldError(
-                "nodes", "a boundary motion needs exactly one of nodes, box, patch_point, patch_plane"
+                "nodes", "a boundary motion needs exactly one of nodes, box, patch_point, patch_plane, facing"
+            )
+        if self.facing is not None and not np.any(np.asarray(self.facing, dtype=float)):
+            raise FieldError("facing", f"facing = {list(self.facing)!r}: the direction is zero")
+        if (self.facing is None) != (self.facing_angle is None):
+            raise FieldError(
+                "facing_angle" if self.facing is not None else "facing",
+                "a facing selection needs both facing (a direction) and facing_angle (degrees)",
             )
         if self.box is not None:
             box = numbers_array("box", self.box, (2, 3), "[[xmin, ymin, zmin], [xmax, ymax, zmax]] [m]")

@@ -13,10 +13,9 @@ to the target the robot follows (the displacement that loads the needle), and, w
 with the coupling ring's radius held at that value on every mesh (ρ_c = max(r, h, ring), the sub-grid
 annulus with it), which separates what the mesh resolves from what the sub-grid term models.
 
-``--set boundary.patch_distance=0.02`` gives the diagnostic of docs/liver.md (the breathing patch shrunk
-so that the needle's entry lies outside it). Meshes: the shipped coarse (20 mm) and medium (9 mm) phantoms,
-and with ``--fine SIZE`` one generated at that size (needs gmsh). Writes output/mesh_load.json. One process,
-one BLAS thread.
+``--set`` changes the scene (e.g. the breathing's ``boundary.facing_angle``). Meshes: the shipped coarse
+(20 mm) and medium (9 mm) phantoms, and with ``--fine SIZE`` one generated at that size (needs gmsh). Writes
+output/mesh_load.json. One process, one BLAS thread.
 """
 
 from __future__ import annotations

@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
+#: The published G_c of liver the scenes cite [J/m²] (refsim/scenes/liver_rigid.toml).
+PUBLISHED = (76.0, 225.0)
 
 
 def critical_modulus(moduli: np.ndarray, loads: np.ndarray, threshold: float) -> float:
@@ -46,7 +48,8 @@ def main(argv=None) -> int:
         loads = np.array([r["q_max"] for r in mine])
         left.semilogx(moduli / 1e9, loads, "o-", label=f"a = {amplitude * 1e3:g} mm")
         critical.append(critical_modulus(moduli, loads, g_c))
-    left.axhline(g_c, color="k", ls="--", label=f"G_c = {g_c:g} J/m²")
+    left.axhline(g_c, color="k", ls="--", label=f"G_c = {g_c:g} J/m² (the scenes)")
+    left.axhspan(*PUBLISHED, color="0.9", zorder=0, label="published G_c of liver")
     from matplotlib.ticker import NullFormatter, ScalarFormatter
 
     left.set_xticks(sorted({r["youngs_modulus"] / 1e9 for r in rows}))
@@ -55,10 +58,25 @@ def main(argv=None) -> int:
     left.set_xlabel("needle modulus E [GPa]")
     left.set_ylabel("largest shaft load per length q [N/m]")
     left.legend()
-    right.plot(np.array(amplitudes) * 1e3, np.array(critical) / 1e9, "s-")
-    right.set_xlabel("breathing amplitude [mm]")
-    right.set_ylabel("critical modulus E_c [GPa]")
     right.set_title("needles stiffer than E_c cut")
+    if np.any(np.isfinite(critical)):
+        right.plot(np.array(amplitudes) * 1e3, np.array(critical) / 1e9, "s-")
+        right.set_xlabel("breathing amplitude [mm]")
+        right.set_ylabel("critical modulus E_c [GPa]")
+    else:  # no modulus reaches G_c: say so instead of an empty axis
+        largest = max(rows, key=lambda r: r["q_max"])
+        right.axis("off")
+        right.text(
+            0.5,
+            0.5,
+            f"no critical modulus up to {max(r['youngs_modulus'] for r in rows) / 1e9:g} GPa\n"
+            f"at any amplitude: the largest load is {largest['q_max']:.1f} N/m\n"
+            f"(a = {largest['amplitude'] * 1e3:g} mm, E = {largest['youngs_modulus'] / 1e9:g} GPa),\n"
+            f"below G_c = {g_c:g} J/m²",
+            ha="center",
+            va="center",
+            transform=right.transAxes,
+        )
     figure.tight_layout()
     out = ROOT / "docs" / "figures" / "liver_stiffness.png"
     figure.savefig(out, dpi=120)

@@ -115,6 +115,14 @@ def test_a_scene_file_boundary_section_moves_the_tissue_and_the_results_record_i
             ],
             "patch_distance",
         ),
+        (
+            ['boundary.motion="periodic"', "boundary.facing=[0, 0, 0]", "boundary.facing_angle=45"],
+            "facing.*direction is zero",
+        ),
+        (['boundary.motion="periodic"', "boundary.facing=[0, 0, 1]"], "facing_angle"),
+        (['boundary.motion="periodic"', "boundary.nodes=[0]", "boundary.facing_angle=45"], "facing"),
+        (['boundary.motion="periodic"', "boundary.facing=[0, 0, 1]", "boundary.facing_angle=180"], "180"),
+        (['boundary.motion="periodic"', "boundary.facing=[0, 1]", "boundary.facing_angle=45"], "facing"),
     ],
 )
 def test_bad_boundary_sections_are_refused_naming_the_key(overrides, message):
@@ -138,3 +146,49 @@ def test_a_selection_that_catches_no_node_is_refused():
     )
     with pytest.raises(SceneError, match="boundary.box selects no node"):
         Simulation(scene)
+
+
+@pytest.mark.parametrize("direction, axis, side", [([0, 0, -1], 2, "min"), ([1, 0, 0], 0, "max")])
+def test_a_facing_selection_takes_the_face_turned_towards_its_direction(direction, axis, side):
+    # facing = d, facing_angle = 30°: the surface nodes whose outward normal is within 30° of d. On a 4×4×4
+    # cube the nodes inside a face have that face's normal (angle 0), a node of another face or of the
+    # opposite one is at 90° or 180°; a node on the face's rim has a mean of two or three faces' normals
+    # (weighted by the areas of its triangles), which may fall on either side of 30°. So: the 3×3 nodes
+    # inside the face are all taken, and nothing off the face is.
+    scene = load_scene(
+        "cube",
+        [
+            "mesh.cells=[4,4,4]",
+            'boundary.motion="periodic"',
+            "boundary.amplitude=[0, 0, 1e-3]",
+            f"boundary.facing={direction}",
+            "boundary.facing_angle=30",
+        ],
+    )
+    simulation = Simulation(scene)
+    rest = simulation.models.mesh.rest_positions
+    nodes = simulation.controls.boundary.nodes
+    face = getattr(rest[:, axis], side)()
+    lower, upper = rest.min(axis=0), rest.max(axis=0)
+    others = [k for k in range(3) if k != axis]
+    inside = (
+        np.isclose(rest[:, axis], face)
+        & np.all(rest[:, others] > lower[others] + 1e-9, axis=1)
+        & np.all(rest[:, others] < upper[others] - 1e-9, axis=1)
+    )
+    assert np.all(np.isclose(rest[nodes, axis], face))
+    assert set(np.flatnonzero(inside)) <= set(nodes.tolist()) and inside.sum() == 9
+
+
+def test_facing_surface_refuses_bad_values_naming_them():
+    from refsim.mesh import box_mesh, facing_surface
+
+    mesh = box_mesh(size=(0.01, 0.01, 0.01), cells=(2, 2, 2))
+    for arguments, message in [
+        (dict(direction=(0, 0, 0), angle=45.0), "direction is zero"),
+        (dict(direction=(0, 0, 1), angle=0.0), "angle = 0.0"),
+        (dict(direction=(0, 0, 1), angle=float("nan")), "angle = nan"),
+        (dict(direction=(0, 1), angle=45.0), "direction"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            facing_surface(mesh.rest_positions, mesh.boundary_faces, **arguments)
