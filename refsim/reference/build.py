@@ -6,8 +6,10 @@
 quantity at each sampling point a reference value with an uncertainty (:func:`reference_value`).
 It writes the versioned data package (layout in ``docs/reference.md``)::
 
-    DIR/manifest.json                      format, refsim version, git commit, command, level, cases (levels,
-                                           quantities, worst uncertainty), seconds, SHA-256 of every file
+    DIR/manifest.json                      format, refsim version, git commit (provenance), numerics digest
+                                           (what the runs are keyed by: refsim.sweep.worker.numerics_digest),
+                                           command, level, cases (levels, quantities, worst uncertainty),
+                                           seconds, SHA-256 of every file
     DIR/cases/NAME/reference.h5            the answers (format "refsim-reference-case")
     DIR/cases/NAME/reference.csv           the same as CSV (the columns ``refsim compare`` reads, and more)
     DIR/cases/NAME/case.toml, scene.toml   the specification, as built
@@ -534,6 +536,7 @@ def build_reference(
     """
     from refsim import __version__
     from refsim.io import git_commit
+    from refsim.sweep.worker import numerics_digest
 
     names = list(cases) if cases else case_names()
     loaded = [load_case(name) for name in names]
@@ -544,6 +547,7 @@ def build_reference(
     meta = {
         "refsim_version": __version__,
         "git_commit": git_commit(),
+        "numerics_digest": numerics_digest(),
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "command": command or f"build_reference({str(output)!r}, level={level!r}, cases={names!r})",
     }

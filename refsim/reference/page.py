@@ -289,7 +289,10 @@ def write_page(package, output) -> Path:
     lines = [INTRODUCTION, "## This build", ""]
     lines += [
         f"Level `{manifest['level']}`, refsim {manifest['refsim_version']}, "
-        f"commit `{manifest['git_commit']}`, built {manifest['created']} with `{manifest['command']}`: "
+        f"commit `{manifest['git_commit']}`, "
+        f"numerics digest `{manifest.get('numerics_digest', 'unrecorded')}` "
+        f"(the runs are keyed by it, not by the commit), built {manifest['created']} with "
+        f"`{manifest['command']}`: "
         f"{sum(c['run_seconds'] for c in manifest['cases'].values()):.0f} s of worker time for the runs "
         f"(this invocation {manifest['seconds']:.0f} s; runs already complete in the folder are reused).",
         "",

@@ -101,6 +101,9 @@ def test_manifest_records_version_levels_and_checksums(package):
     written = json.loads((folder / "manifest.json").read_text())
     assert written["format"] == "refsim-reference" and written["level"] == "coarse"
     assert written["refsim_version"] and written["git_commit"] and written["command"] == "test"
+    from refsim.sweep.worker import numerics_digest
+
+    assert written["numerics_digest"] == numerics_digest()  # what the runs are keyed by
     assert set(written["cases"]) == set(CASES)
     assert written["cases"]["puncture"]["levels"]["mesh.cells"] == [2, 3, 4]
     for case in CASES:
