@@ -41,6 +41,7 @@ __all__ = [
     "MANIFEST_FORMAT",
     "build_reference",
     "check_manifest",
+    "convergence_status",
     "read_case_reference",
     "reference_value",
 ]
@@ -135,6 +136,36 @@ def reference_value(spacings, values, formal_order: float, *, scale: float | Non
         "safety_factor": factor,
         "gci": gci,
     }
+
+
+#: What a sample's answer says about its convergence, best first (:func:`convergence_status`).
+STATUSES = ("converged", "asymptotic", "pre-asymptotic", "not converged", "missing")
+
+
+def convergence_status(method: str, safety_factor: float) -> str:
+    """What a sample's answer (:func:`reference_value`) says about its convergence, for the page:
+
+    - "converged": to round-off (method "converged");
+    - "asymptotic": Richardson with the observed order within 10 % of the formal one (Fs = 1.25): the levels
+      are in the asymptotic range and U is a demonstrated band;
+    - "pre-asymptotic": Richardson with an observed order far from the formal one (Fs = 3): monotone, but not
+      shown to be asymptotic; U is Roy's conservative estimate;
+    - "not converged": oscillatory or divergent, no order observed: U is Roache's estimate at the formal
+      order, not a band the levels demonstrate;
+    - "missing": a level lacks the quantity.
+    """
+    if method == "converged":
+        return "converged"
+    if method == "richardson":
+        return "asymptotic" if safety_factor < 2.0 else "pre-asymptotic"
+    if method in ("oscillatory", "divergent"):
+        return "not converged"
+    return "missing"
+
+
+def worst_status(statuses) -> str:
+    """The least converged of some statuses (:data:`STATUSES`)."""
+    return max(statuses, key=STATUSES.index)
 
 
 # ---------------------------------------------------------------------- running the levels
@@ -486,6 +517,7 @@ def read_case_reference(folder, case_name: str) -> dict:
             entry = {k: plain(v) for k, v in group.attrs.items()}
             for key in ("at", "value", "uncertainty", "band", "levels", "order", "order_used", "gci"):
                 entry[key] = group[key][()]
+            entry["safety_factor"] = group["safety_factor"][()]
             entry["method"] = [plain(v) for v in group["method"][()]]
             quantities[name] = entry
         out["quantities"] = quantities
@@ -636,6 +668,10 @@ def _build_case(case: Case, level: str, output: Path, client, meta: dict, figure
                 "kind": q.kind,
                 "unit": q.unit,
                 "methods": sorted(set(answers[q.name]["method"])),
+                "status": worst_status(
+                    convergence_status(m, f)
+                    for m, f in zip(answers[q.name]["method"], answers[q.name]["safety_factor"], strict=True)
+                ),
                 "largest_relative_uncertainty": _largest_relative(answers[q.name]),
                 "modelling_tolerance_relative": q.tolerance,
             }

@@ -93,6 +93,28 @@ def test_reference_value_on_manufactured_sequences():
     assert reference_value(h, np.array([2.0, np.nan, 1.0]), formal_order=1.0)["method"] == "missing"
 
 
+def test_convergence_status_says_what_the_levels_show():
+    """Per sample: asymptotic only when the observed order is the formal one (Roy's Fs = 1.25), pre-asymptotic
+    for a monotone sequence at another order (Fs = 3), not converged without an order, converged at round-off;
+    a quantity is as converged as its least converged sample."""
+    from refsim.reference.build import convergence_status, worst_status
+
+    h = np.array([0.5, 0.25, 0.125])
+
+    def status(values, order):
+        answer = reference_value(h, np.asarray(values, dtype=float), formal_order=order)
+        return convergence_status(answer["method"], answer["safety_factor"])
+
+    assert status(1.0 + h, 1.0) == "asymptotic"
+    assert status(1.0 + h**0.5, 1.0) == "pre-asymptotic"  # the puncture's kind: monotone at the wrong order
+    assert status(1.0 + np.array([1.0, -1.0, 1.0]) * h, 1.0) == "not converged"
+    assert status([1.0, 1.1, 1.5], 1.0) == "not converged"
+    assert status([2.0, 1.0, 1.0], 1.0) == "converged"
+    assert status([2.0, np.nan, 1.0], 1.0) == "missing"
+    assert worst_status(["converged", "not converged", "asymptotic"]) == "not converged"
+    assert worst_status(["asymptotic", "pre-asymptotic"]) == "pre-asymptotic"
+
+
 # ---------------------------------------------------------------------- the package
 
 
@@ -228,6 +250,12 @@ def test_page_is_written_from_the_package(package, tmp_path):
     reference = read_case_reference(folder, "cantilever")
     value = reference["quantities"]["deflection_small"]["value"][0]
     assert "## cantilever:" in text and "## puncture:" in text and f"{value:.5g}" in text
+    # every quantity's convergence is stated in the summary, and the digest the runs are keyed by
+    manifest = json.loads((folder / "manifest.json").read_text())
+    for name, case in manifest["cases"].items():
+        for quantity, row in case["quantities"].items():
+            assert f"| {name} | {quantity} | {', '.join(row['methods'])} | {row['status']} |" in text
+    assert manifest["numerics_digest"] in text and manifest["git_commit"] in text
     assert (tmp_path / "docs" / "figures" / "reference" / "puncture.png").is_file()
 
 
