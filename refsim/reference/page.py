@@ -27,8 +27,13 @@ cases use the scenes of `refsim/scenes/`, their mesh and trajectory files copied
 `refsim.reference` (DESIGN.md layer 6, above the study machinery it runs on).
 
 This page is generated from a built package by `refsim reference page --package DIR -o docs/reference.md`; its
-numbers hold for the code and the level of that build (below). The physics is changing (friction, tip force,
-thin layers, withdrawal): rebuild the package and this page after such a change.
+numbers hold for the code and the level of that build (below): its commit, and the digest of refsim's
+numerics source its runs are keyed by (`refsim.sweep.worker.numerics_digest`: every source and data file of
+the package but the command line, figures, viewer, study machinery, reference set, verification problems and
+results readers; docs/studies.md, "Resuming"). A build in a folder that already holds complete runs reuses
+those whose resolved scene, named files and numerics digest are the same, whatever the commit: a commit that
+changes only documentation or tests runs nothing again. After a change to the physics, rebuild the package and
+this page.
 
 ## The set, and why these cases
 
@@ -185,8 +190,9 @@ A refsim results file (`.h5`) is read directly instead. From Python, `refsim.ref
 
 ## The data package
 
-    DIR/manifest.json                      format, schema version, refsim version, git commit, command, level,
-                                           per case: levels, h, seconds, quantities (methods,
+    DIR/manifest.json                      format, schema version, refsim version, git commit (provenance),
+                                           numerics digest (what the runs are keyed by), command, level,
+                                           per case: levels, h, seconds, quantities (methods, convergence,
                                            largest U/scale);
                                            the SHA-256 of every file (`refsim.reference.check_manifest(DIR)`
                                            lists the files that differ or are missing)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -468,3 +469,15 @@ def test_every_run_of_every_level_is_a_valid_scene(name):
             ]
             scene = load_scene(case.scene_path, [*case.overrides, *overrides])
             assert scene.time.dt == pytest.approx(keys["time.dt"][index], rel=1e-15)
+
+
+def test_the_published_page_is_generated_by_this_code():
+    """docs/reference.md is written by refsim.reference.page: its fixed text is the generator's (an edit to
+    either without regenerating fails here), and it names the commit and the numerics digest of its build."""
+    import re
+
+    from refsim.reference.page import INTRODUCTION
+
+    text = (Path(__file__).parents[2] / "docs" / "reference.md").read_text(encoding="utf-8")
+    assert text.startswith(INTRODUCTION)
+    assert re.search(r"commit `[0-9a-f]{40}`, numerics digest `[0-9a-f]{64}`", text)
