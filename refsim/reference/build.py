@@ -448,6 +448,9 @@ def _export_problems(
 
     from refsim.io.export import export_problems
 
+    reused = _exported_problems(run_file, folder)
+    if reused is not None:
+        return reused
     full, fclib = folder / "problems_all.h5.tmp", folder / "fclib"
     shutil.rmtree(fclib, ignore_errors=True)
     summary = export_problems(run_file, full, fclib_folder=fclib)
@@ -468,12 +471,47 @@ def _export_problems(
         path.unlink()
     if not kept and fclib.is_dir():
         fclib.rmdir()
+    with h5py.File(folder / "problems.h5", "a") as target:
+        target.attrs["recorded_steps"] = len(names)
+        target.attrs["fclib_holdable"] = len(files)
     return {
         "count": len(chosen),
         "recorded": len(names),
         "fclib": len(kept),
         "fclib_steps": [int(path.stem.split("_")[1]) for path in kept],
         "fclib_holdable": len(files),
+    }
+
+
+def _exported_problems(run_file: Path, folder: Path) -> dict | None:
+    """The summary of the problems already exported from ``run_file`` into ``folder`` (a build run again
+    over complete runs: the export, which solves every recorded problem exactly, is the longest part of it),
+    or None when they must be exported: no ``problems.h5``, one exported from another file, or older than
+    the run file (the run was made again since). ``fclib_holdable`` is None for a file written before it was
+    recorded."""
+    import h5py
+
+    path = folder / "problems.h5"
+    if not path.is_file() or path.stat().st_mtime < Path(run_file).stat().st_mtime:
+        return None
+    try:
+        with h5py.File(path, "r") as handle:
+            attributes = dict(handle.attrs)
+    except OSError:
+        return None
+    if str(attributes.get("source", "")) != str(run_file):
+        return None
+    recorded = attributes.get("recorded_steps")
+    if recorded is None:  # "20 of the 710 recorded steps, evenly spaced"
+        recorded = int(str(attributes.get("selection", "")).split(" of the ")[1].split()[0])
+    kept = sorted((folder / "fclib").glob("*.hdf5")) if (folder / "fclib").is_dir() else []
+    holdable = attributes.get("fclib_holdable")
+    return {
+        "count": int(attributes["problem_count"]),
+        "recorded": int(recorded),
+        "fclib": len(kept),
+        "fclib_steps": [int(path.stem.split("_")[1]) for path in kept],
+        "fclib_holdable": None if holdable is None else int(holdable),
     }
 
 

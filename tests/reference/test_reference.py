@@ -481,3 +481,17 @@ def test_the_published_page_is_generated_by_this_code():
     text = (Path(__file__).parents[2] / "docs" / "reference.md").read_text(encoding="utf-8")
     assert text.startswith(INTRODUCTION)
     assert re.search(r"commit `[0-9a-f]{40}`, numerics digest `[0-9a-f]{64}`", text)
+
+
+def test_a_build_over_complete_runs_reuses_them_and_their_problems(package, tmp_path):
+    """Built again in the same folder, the case's runs are reused (same content key) and so is the export of
+    the finest run's problems (the longest part of a build over complete runs): problems.h5 is not written
+    again and the manifest says the same of it; the answers are the same."""
+    folder, manifest = package
+    problems = folder / "cases" / "puncture" / "problems.h5"
+    written = problems.stat().st_mtime_ns
+    again = build_reference(folder, level="coarse", cases=CASES, workers=1, command="test")
+    assert problems.stat().st_mtime_ns == written
+    assert again["cases"]["puncture"]["problems"] == manifest["cases"]["puncture"]["problems"]
+    for case in CASES:
+        assert again["cases"][case]["quantities"] == manifest["cases"][case]["quantities"]
