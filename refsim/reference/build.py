@@ -6,8 +6,10 @@
 quantity at each sampling point a reference value with an uncertainty (:func:`reference_value`).
 It writes the versioned data package (layout in ``docs/reference.md``)::
 
-    DIR/manifest.json                      format, refsim version, git commit, command, level, cases (levels,
-                                           quantities, worst uncertainty), seconds, SHA-256 of every file
+    DIR/manifest.json                      format, refsim version, git commit (provenance), numerics digest
+                                           (what the runs are keyed by: refsim.sweep.worker.numerics_digest),
+                                           command, level, cases (levels, quantities, worst uncertainty),
+                                           seconds, SHA-256 of every file
     DIR/cases/NAME/reference.h5            the answers (format "refsim-reference-case")
     DIR/cases/NAME/reference.csv           the same as CSV (the columns ``refsim compare`` reads, and more)
     DIR/cases/NAME/case.toml, scene.toml   the specification, as built
@@ -39,6 +41,7 @@ __all__ = [
     "MANIFEST_FORMAT",
     "build_reference",
     "check_manifest",
+    "convergence_status",
     "read_case_reference",
     "reference_value",
 ]
@@ -133,6 +136,36 @@ def reference_value(spacings, values, formal_order: float, *, scale: float | Non
         "safety_factor": factor,
         "gci": gci,
     }
+
+
+#: What a sample's answer says about its convergence, best first (:func:`convergence_status`).
+STATUSES = ("converged", "asymptotic", "pre-asymptotic", "not converged", "missing")
+
+
+def convergence_status(method: str, safety_factor: float) -> str:
+    """What a sample's answer (:func:`reference_value`) says about its convergence, for the page:
+
+    - "converged": to round-off (method "converged");
+    - "asymptotic": Richardson with the observed order within 10 % of the formal one (Fs = 1.25): the levels
+      are in the asymptotic range and U is a demonstrated band;
+    - "pre-asymptotic": Richardson with an observed order far from the formal one (Fs = 3): monotone, but not
+      shown to be asymptotic; U is Roy's conservative estimate;
+    - "not converged": oscillatory or divergent, no order observed: U is Roache's estimate at the formal
+      order, not a band the levels demonstrate;
+    - "missing": a level lacks the quantity.
+    """
+    if method == "converged":
+        return "converged"
+    if method == "richardson":
+        return "asymptotic" if safety_factor < 2.0 else "pre-asymptotic"
+    if method in ("oscillatory", "divergent"):
+        return "not converged"
+    return "missing"
+
+
+def worst_status(statuses) -> str:
+    """The least converged of some statuses (:data:`STATUSES`)."""
+    return max(statuses, key=STATUSES.index)
 
 
 # ---------------------------------------------------------------------- running the levels
@@ -415,6 +448,9 @@ def _export_problems(
 
     from refsim.io.export import export_problems
 
+    reused = _exported_problems(run_file, folder)
+    if reused is not None:
+        return reused
     full, fclib = folder / "problems_all.h5.tmp", folder / "fclib"
     shutil.rmtree(fclib, ignore_errors=True)
     summary = export_problems(run_file, full, fclib_folder=fclib)
@@ -435,12 +471,47 @@ def _export_problems(
         path.unlink()
     if not kept and fclib.is_dir():
         fclib.rmdir()
+    with h5py.File(folder / "problems.h5", "a") as target:
+        target.attrs["recorded_steps"] = len(names)
+        target.attrs["fclib_holdable"] = len(files)
     return {
         "count": len(chosen),
         "recorded": len(names),
         "fclib": len(kept),
         "fclib_steps": [int(path.stem.split("_")[1]) for path in kept],
         "fclib_holdable": len(files),
+    }
+
+
+def _exported_problems(run_file: Path, folder: Path) -> dict | None:
+    """The summary of the problems already exported from ``run_file`` into ``folder`` (a build run again
+    over complete runs: the export, which solves every recorded problem exactly, is the longest part of it),
+    or None when they must be exported: no ``problems.h5``, one exported from another file, or older than
+    the run file (the run was made again since). ``fclib_holdable`` is None for a file written before it was
+    recorded."""
+    import h5py
+
+    path = folder / "problems.h5"
+    if not path.is_file() or path.stat().st_mtime < Path(run_file).stat().st_mtime:
+        return None
+    try:
+        with h5py.File(path, "r") as handle:
+            attributes = dict(handle.attrs)
+    except OSError:
+        return None
+    if str(attributes.get("source", "")) != str(run_file):
+        return None
+    recorded = attributes.get("recorded_steps")
+    if recorded is None:  # "20 of the 710 recorded steps, evenly spaced"
+        recorded = int(str(attributes.get("selection", "")).split(" of the ")[1].split()[0])
+    kept = sorted((folder / "fclib").glob("*.hdf5")) if (folder / "fclib").is_dir() else []
+    holdable = attributes.get("fclib_holdable")
+    return {
+        "count": int(attributes["problem_count"]),
+        "recorded": int(recorded),
+        "fclib": len(kept),
+        "fclib_steps": [int(path.stem.split("_")[1]) for path in kept],
+        "fclib_holdable": None if holdable is None else int(holdable),
     }
 
 
@@ -484,6 +555,7 @@ def read_case_reference(folder, case_name: str) -> dict:
             entry = {k: plain(v) for k, v in group.attrs.items()}
             for key in ("at", "value", "uncertainty", "band", "levels", "order", "order_used", "gci"):
                 entry[key] = group[key][()]
+            entry["safety_factor"] = group["safety_factor"][()]
             entry["method"] = [plain(v) for v in group["method"][()]]
             quantities[name] = entry
         out["quantities"] = quantities
@@ -534,6 +606,7 @@ def build_reference(
     """
     from refsim import __version__
     from refsim.io import git_commit
+    from refsim.sweep.worker import numerics_digest
 
     names = list(cases) if cases else case_names()
     loaded = [load_case(name) for name in names]
@@ -544,6 +617,7 @@ def build_reference(
     meta = {
         "refsim_version": __version__,
         "git_commit": git_commit(),
+        "numerics_digest": numerics_digest(),
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "command": command or f"build_reference({str(output)!r}, level={level!r}, cases={names!r})",
     }
@@ -632,6 +706,10 @@ def _build_case(case: Case, level: str, output: Path, client, meta: dict, figure
                 "kind": q.kind,
                 "unit": q.unit,
                 "methods": sorted(set(answers[q.name]["method"])),
+                "status": worst_status(
+                    convergence_status(m, f)
+                    for m, f in zip(answers[q.name]["method"], answers[q.name]["safety_factor"], strict=True)
+                ),
                 "largest_relative_uncertainty": _largest_relative(answers[q.name]),
                 "modelling_tolerance_relative": q.tolerance,
             }

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from refsim.reference.build import read_case_reference
+from refsim.reference.build import convergence_status, read_case_reference
 from refsim.reference.cases import case_names, load_case
 
 __all__ = ["write_page"]
@@ -27,8 +27,13 @@ cases use the scenes of `refsim/scenes/`, their mesh and trajectory files copied
 `refsim.reference` (DESIGN.md layer 6, above the study machinery it runs on).
 
 This page is generated from a built package by `refsim reference page --package DIR -o docs/reference.md`; its
-numbers hold for the code and the level of that build (below). The physics is changing (friction, tip force,
-thin layers, withdrawal): rebuild the package and this page after such a change.
+numbers hold for the code and the level of that build (below): its commit, and the digest of refsim's
+numerics source its runs are keyed by (`refsim.sweep.worker.numerics_digest`: every source and data file of
+the package but the command line, figures, viewer, study machinery, reference set, verification problems and
+results readers; docs/studies.md, "Resuming"). A build in a folder that already holds complete runs reuses
+those whose resolved scene, named files and numerics digest are the same, whatever the commit: a commit that
+changes only documentation or tests runs nothing again. After a change to the physics, rebuild the package and
+this page.
 
 ## The set, and why these cases
 
@@ -159,6 +164,15 @@ largest |ref| over the samples), for what the specification leaves open between 
 (each quantity's note says what). A quantity passes when all its samples do. A quantity whose U is large
 against its scale has no converged answer at the built level: its band says so, and so does the table.
 
+The column `convergence` says, per sample (and, in the summary, for the least converged sample of each
+quantity), what the levels show: `converged` (to round-off), `asymptotic` (Richardson, the observed order
+within 10 % of the formal one: U is a band the levels demonstrate), `pre-asymptotic` (monotone, but the
+observed order is far from the formal one: the levels are not shown to be in the asymptotic range and U is
+Roy's conservative Fs = 3 estimate, not a demonstrated band), `not converged` (oscillatory or divergent: no
+order, U is Roache's estimate at the formal order; the value is the finest level's and the band is a guess of
+its error, not a converged answer). A quantity that is not `asymptotic` or `converged` has no converged
+answer at the built level; the fine level (on a cluster) is what would give one.
+
 ## Their results: the CSV format
 
 One row per sample, a header with the columns `quantity`, `x`, `value` (other columns are ignored), SI units
@@ -176,8 +190,9 @@ A refsim results file (`.h5`) is read directly instead. From Python, `refsim.ref
 
 ## The data package
 
-    DIR/manifest.json                      format, schema version, refsim version, git commit, command, level,
-                                           per case: levels, h, seconds, quantities (methods,
+    DIR/manifest.json                      format, schema version, refsim version, git commit (provenance),
+                                           numerics digest (what the runs are keyed by), command, level,
+                                           per case: levels, h, seconds, quantities (methods, convergence,
                                            largest U/scale);
                                            the SHA-256 of every file (`refsim.reference.check_manifest(DIR)`
                                            lists the files that differ or are missing)
@@ -235,19 +250,22 @@ def _case_section(case, reference: dict, manifest_case: dict, figure: str | None
         "",
         f"Run time: {manifest_case['run_seconds']:.1f} s (the sum over the levels' runs).",
         "",
-        "| quantity | x | reference | U | U + T | method | observed order | order used | unit |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| quantity | x | reference | U | U + T | method | convergence | observed order | order used "
+        "| unit |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for quantity in case.quantities:
         entry = reference["quantities"][quantity.name]
         at = np.atleast_1d(entry["at"])
         value, u, band = (np.atleast_1d(entry[k]) for k in ("value", "uncertainty", "band"))
         order, used = np.atleast_1d(entry["order"]), np.atleast_1d(entry["order_used"])
+        factor = np.atleast_1d(entry["safety_factor"])
         for j in range(value.size):
             x = f"{at[j]:.4g} {quantity.x_unit}" if quantity.kind == "curve" else ""
             lines.append(
                 f"| {quantity.name} | {x} | {_format(value[j])} | {_format(u[j])} | {_format(band[j])} | "
-                f"{entry['method'][j]} | {_order(order[j])} | {_format(used[j])} | {quantity.unit} |"
+                f"{entry['method'][j]} | {convergence_status(entry['method'][j], factor[j])} | "
+                f"{_order(order[j])} | {_format(used[j])} | {quantity.unit} |"
             )
     lines += ["", "Quantities:", ""]
     for quantity in case.quantities:
@@ -289,17 +307,20 @@ def write_page(package, output) -> Path:
     lines = [INTRODUCTION, "## This build", ""]
     lines += [
         f"Level `{manifest['level']}`, refsim {manifest['refsim_version']}, "
-        f"commit `{manifest['git_commit']}`, built {manifest['created']} with `{manifest['command']}`: "
+        f"commit `{manifest['git_commit']}`, "
+        f"numerics digest `{manifest.get('numerics_digest', 'unrecorded')}` "
+        f"(the runs are keyed by it, not by the commit), built {manifest['created']} with "
+        f"`{manifest['command']}`: "
         f"{sum(c['run_seconds'] for c in manifest['cases'].values()):.0f} s of worker time for the runs "
         f"(this invocation {manifest['seconds']:.0f} s; runs already complete in the folder are reused).",
         "",
-        "| case | quantity | method | largest U / scale | T / scale |",
-        "|---|---|---|---|---|",
+        "| case | quantity | method | convergence | largest U / scale | T / scale |",
+        "|---|---|---|---|---|---|",
     ]
     for name, case in manifest["cases"].items():
         for quantity, row in case["quantities"].items():
             lines.append(
-                f"| {name} | {quantity} | {', '.join(row['methods'])} | "
+                f"| {name} | {quantity} | {', '.join(row['methods'])} | {row.get('status', '—')} | "
                 f"{_format(row['largest_relative_uncertainty'])} | {row['modelling_tolerance_relative']:g} |"
             )
     absent = [name for name in case_names() if name not in manifest["cases"]]

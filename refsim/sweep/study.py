@@ -4,8 +4,10 @@ The study file ``STUDY.h5`` indexes the runs, whose results files sit in the fol
 (one ``<run id>.h5`` each, the id a hash of the scene and the run's overrides). It is rewritten (atomically)
 each time a run finishes, so an interrupted study keeps what it did; started again, it runs only the runs
 whose results file is missing, not ``complete``, or stale: a file is reused only when its content key
-(:func:`refsim.sweep.worker.run_key`: the resolved scene, refsim version and git commit it records) is the
-run's now, so an edited scene file, another ``--set`` or another refsim runs it again. Layout (also in
+(:func:`refsim.sweep.worker.run_key`: the resolved scene, the files it names, the refsim version and the
+digest of the numerics source, :func:`refsim.sweep.worker.numerics_digest`) is the run's now, so an edited
+scene file or mesh, another ``--set`` or changed numerics run it again, and a commit that changes only
+documentation, tests or the study machinery reruns nothing. Layout (also in
 ``docs/studies.md``):
 
 - path: root attributes; meaning: ``format`` = "refsim-study", ``schema_version``, ``name``, ``scene``,

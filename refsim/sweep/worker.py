@@ -16,7 +16,18 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["BLAS_ENVIRONMENT", "is_complete", "is_current", "run_key", "run_one", "run_scene"]
+__all__ = [
+    "BLAS_ENVIRONMENT",
+    "NUMERICS_EXCLUDED",
+    "file_key",
+    "is_complete",
+    "is_current",
+    "numerics_digest",
+    "numerics_files",
+    "run_key",
+    "run_one",
+    "run_scene",
+]
 
 # : Environment that gives each worker one BLAS / OpenMP thread (workers = cores, so threads would
 # oversubscribe).
@@ -71,47 +82,142 @@ def is_complete(path) -> bool:
         return False
 
 
-def _key(scene_json: str, version: str, commit: str) -> str:
-    text = json.dumps({"scene": scene_json, "refsim_version": version, "git_commit": commit}, sort_keys=True)
-    return hashlib.sha256(text.encode()).hexdigest()
+#: What the numerics digest (:func:`numerics_digest`) leaves out, relative to the refsim package: the code
+#: that does not compute a run's numbers. The command line and the entry point (cli.py, __main__.py), the
+#: figures and pages (viz/), the interactive viewer (interactive/), the study machinery that schedules runs
+#: and reads their quantities afterwards (sweep/), the reference set that reads them (reference/), the
+#: verification problems (verification/: checks of the model, not called by a run), and the readers and
+#: exporters of a finished results file (io/reader.py, io/export.py, io/xdmf.py). Everything else under
+#: refsim/ is numerics (the scene loader, meshes, elements, constraints, cutting, solvers, the simulation
+#: loop, the run driver and the results writer, and the package data a scene names: built-in scenes,
+#: meshes, trajectories): a file added anywhere else counts, so a new module errs towards running again,
+#: never towards a stale reuse.
+NUMERICS_EXCLUDED = (
+    "cli.py",
+    "__main__.py",
+    "viz",
+    "interactive",
+    "sweep",
+    "reference",
+    "verification",
+    "io/reader.py",
+    "io/export.py",
+    "io/xdmf.py",
+)
+#: Suffixes of the files the numerics digest reads (source and the package data a run reads).
+NUMERICS_SUFFIXES = (".py", ".toml", ".csv", ".vtu", ".msh")
+
+
+def _excluded(relative: str) -> bool:
+    return any(relative == name or relative.startswith(name + "/") for name in NUMERICS_EXCLUDED)
+
+
+def numerics_files(package=None) -> list[Path]:
+    """The files of the refsim package whose content the numbers of a run depend on (sorted): every file with
+    a suffix of :data:`NUMERICS_SUFFIXES` under ``package`` (the installed refsim package's folder by
+    default) but those :data:`NUMERICS_EXCLUDED` names, and no ``__pycache__``."""
+    root = Path(__file__).resolve().parents[1] if package is None else Path(package)
+    files = []
+    for path in sorted(root.rglob("*")):
+        relative = path.relative_to(root).as_posix()
+        if (
+            path.is_file()
+            and path.suffix in NUMERICS_SUFFIXES
+            and "__pycache__" not in path.parts
+            and not _excluded(relative)
+        ):
+            files.append(path)
+    return files
+
+
+def numerics_digest(package=None) -> str:
+    """SHA-256 over the relative names and contents of :func:`numerics_files` of ``package`` (the installed
+    refsim by default): the code and data that compute a run's numbers. A change to the documentation, the
+    tests, the studies, the command line, the figures or the study machinery leaves it unchanged; a change to
+    any numerics file changes it."""
+    root = Path(__file__).resolve().parents[1] if package is None else Path(package)
+    digest = hashlib.sha256()
+    for path in numerics_files(root):
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0")
+        digest.update(hashlib.sha256(path.read_bytes()).digest())
+    return digest.hexdigest()
 
 
 @functools.lru_cache(maxsize=1)
 def _code_version() -> tuple[str, str]:
     from refsim import __version__
-    from refsim.io import git_commit
 
-    return __version__, git_commit()
+    return __version__, numerics_digest()
+
+
+#: Scene sections whose ``file`` key names a file the run reads (relative to the scene file's folder).
+SCENE_FILE_SECTIONS = ("mesh", "trajectory", "boundary")
+
+
+def _named_files(scene) -> dict:
+    """{section: SHA-256 of the file the scene's section names} for the files a run reads (a mesh, a
+    trajectory, a boundary motion); "missing" for one that is not there (the run then fails on its own)."""
+    data = scene.to_dict()
+    folder = Path(scene.source).parent if scene.source else Path.cwd()
+    digests = {}
+    for section in SCENE_FILE_SECTIONS:
+        name = (data.get(section) or {}).get("file")
+        if not name:
+            continue
+        path = Path(name) if Path(name).is_absolute() else folder / name
+        digests[section] = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else "missing"
+    return digests
 
 
 def run_key(scene) -> str:
-    """The content key of a run: SHA-256 of what its results depend on and its results file records, the
-    resolved scene (``refsim.scene.scene_to_json``: the scene file's content with the overrides applied) and
-    the code that runs it (refsim version and git commit of this process).
+    """The content key of a run: SHA-256 of what its numbers depend on, the resolved scene (its content with
+    the overrides applied, ``Scene.to_dict``; not the path of the scene file), the content of the files it
+    names (mesh, trajectory, boundary motion), the refsim version and the numerics digest of the code that
+    runs it (:func:`numerics_digest`). Not the git commit: a commit that changes only documentation, tests or
+    the study machinery reuses every run (the commit stays in the results file as provenance).
 
-    A study reuses a results file only when its key is this one (:func:`is_current`): an edited scene file,
-    another ``--set`` or another refsim makes the run again, whatever the file's name.
+    A study reuses a results file only when the key it records (root attribute ``run_key``, written by
+    :func:`run_one` once the run is complete) is this one (:func:`is_current`): an edited scene file or mesh,
+    another ``--set`` or a change to the numerics makes the run again, whatever the file's name.
     """
     from refsim.scene import scene_to_json
 
-    return _key(scene_to_json(scene), *_code_version())
+    scene_json = json.loads(scene_to_json(scene))
+    scene_json.pop("source", None)
+    version, numerics = _code_version()
+    text = json.dumps(
+        {"scene": scene_json, "files": _named_files(scene), "refsim_version": version, "numerics": numerics},
+        sort_keys=True,
+    )
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def file_key(path) -> str | None:
-    """The content key of a complete results file from the attributes it records (scene, refsim_version,
-    git_commit); None when the file is missing, unreadable or not complete."""
+    """The content key a complete results file records (root attribute ``run_key``, :func:`run_key` of the
+    run that wrote it); None when the file is missing, unreadable, not complete or has no key (a file written
+    outside a study)."""
     import h5py
 
     if not is_complete(path):
         return None
     try:
         with h5py.File(path, "r") as handle:
-            attributes = handle.attrs
-            texts = [attributes.get(name, "") for name in ("scene", "refsim_version", "git_commit")]
+            key = handle.attrs.get("run_key")
     except OSError:
         return None
-    texts = [t.decode() if isinstance(t, bytes) else str(t) for t in texts]
-    return _key(*texts)
+    if key is None:
+        return None
+    return key.decode() if isinstance(key, bytes) else str(key)
+
+
+def _stamp(path, key: str) -> None:
+    """Record a complete run's content key and numerics digest in its results file (root attributes
+    ``run_key``, ``numerics_digest``)."""
+    import h5py
+
+    with h5py.File(path, "a") as handle:
+        handle.attrs["run_key"] = key
+        handle.attrs["numerics_digest"] = _code_version()[1]
 
 
 def is_current(path, key: str | None) -> bool:
@@ -201,7 +307,8 @@ def run_one(scene: str, overrides: tuple, output: str, quantities: tuple, warm_u
         from refsim.scene import load_scene
 
         scene_spec = load_scene(scene, list(overrides))
-        if not is_current(output, run_key(scene_spec)):
+        key = run_key(scene_spec)
+        if not is_current(output, key):
             if warm_up:
                 _warm_up()
             start = time.perf_counter()
@@ -217,6 +324,8 @@ def run_one(scene: str, overrides: tuple, output: str, quantities: tuple, warm_u
                 row["cpu_ms_per_step"] = 1e3 * (cpu[-1] - cpu[0]) / (len(cpu) - 1)
             if not summary.complete:
                 row["error"] = f"{summary.status}: {summary.stop_reason}"
+            else:
+                _stamp(output, key)
         row.update(describe(output, quantities))
         complete = row.pop("complete")
         row["status"] = "complete" if complete else ("failed" if row["error"] else "incomplete")

@@ -188,3 +188,31 @@ def test_a_needle_crossing_the_cuts_plane_slides_only_where_it_is_on_it(planar_s
     # Samples every d_c from y = 1 mm: two are within d_c of the plane y = 6.3 mm (y = 6.0 and 6.5 mm).
     assert np.count_nonzero(slide) == 2, rows.free_gap[slide]
     np.testing.assert_allclose(distances, 0.0, atol=1e-12)  # anchored on the plane
+
+
+def test_a_sample_within_half_a_spacing_beyond_an_end_of_the_crack_tip_faces_its_end():
+    """The needle's end samples (at the entry point, at the tip) stand for half a spacing of the inserted
+    length each. Once the needle has moved along its axis (pulled back through its cut) the entry sample lies
+    on the deformed surface, about 10 um above the surface column the cut laid earlier: with the reach of
+    half a spacing it still projects onto the crack tip's end (its front row holds its share, G_c d_c / 2);
+    with the round-off tolerance alone it did not, and the row came and went from step to step (the
+    withdrawal case). Beyond half a spacing a sample does not face the crack tip."""
+    from refsim.constraints.cut import _closest_on_polyline
+
+    d_c = 1.36e-3
+    polyline = np.array([[0.0, 0.0, -1e-5 - k * d_c] for k in range(5)])  # top column 10 um below z = 0
+    points = np.array(
+        [
+            [1e-4, 0.0, 0.0],  # the entry sample: 10 um above the top column
+            [1e-4, 0.0, -2.0 * d_c],  # interior
+            [1e-4, 0.0, 0.49 * d_c],  # just within half a spacing above
+            [1e-4, 0.0, 0.6 * d_c],  # beyond it
+            [1e-4, 0.0, -4.0 * d_c - 1e-5 - 0.4 * d_c],  # within half a spacing below the deep end
+            [1e-4, 0.0, -4.0 * d_c - 1e-5 - 0.6 * d_c],  # beyond it
+        ]
+    )
+    _, _, interior = _closest_on_polyline(points, polyline, reach=0.5 * d_c)
+    assert interior.tolist() == [True, True, True, False, True, False]
+    _, parameter, strict = _closest_on_polyline(points, polyline)
+    assert strict.tolist() == [False, True, False, False, False, False]
+    assert parameter[0] == 0.0  # clamped onto the end column

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -93,6 +94,28 @@ def test_reference_value_on_manufactured_sequences():
     assert reference_value(h, np.array([2.0, np.nan, 1.0]), formal_order=1.0)["method"] == "missing"
 
 
+def test_convergence_status_says_what_the_levels_show():
+    """Per sample: asymptotic only when the observed order is the formal one (Roy's Fs = 1.25), pre-asymptotic
+    for a monotone sequence at another order (Fs = 3), not converged without an order, converged at round-off;
+    a quantity is as converged as its least converged sample."""
+    from refsim.reference.build import convergence_status, worst_status
+
+    h = np.array([0.5, 0.25, 0.125])
+
+    def status(values, order):
+        answer = reference_value(h, np.asarray(values, dtype=float), formal_order=order)
+        return convergence_status(answer["method"], answer["safety_factor"])
+
+    assert status(1.0 + h, 1.0) == "asymptotic"
+    assert status(1.0 + h**0.5, 1.0) == "pre-asymptotic"  # the puncture's kind: monotone at the wrong order
+    assert status(1.0 + np.array([1.0, -1.0, 1.0]) * h, 1.0) == "not converged"
+    assert status([1.0, 1.1, 1.5], 1.0) == "not converged"
+    assert status([2.0, 1.0, 1.0], 1.0) == "converged"
+    assert status([2.0, np.nan, 1.0], 1.0) == "missing"
+    assert worst_status(["converged", "not converged", "asymptotic"]) == "not converged"
+    assert worst_status(["asymptotic", "pre-asymptotic"]) == "pre-asymptotic"
+
+
 # ---------------------------------------------------------------------- the package
 
 
@@ -101,6 +124,9 @@ def test_manifest_records_version_levels_and_checksums(package):
     written = json.loads((folder / "manifest.json").read_text())
     assert written["format"] == "refsim-reference" and written["level"] == "coarse"
     assert written["refsim_version"] and written["git_commit"] and written["command"] == "test"
+    from refsim.sweep.worker import numerics_digest
+
+    assert written["numerics_digest"] == numerics_digest()  # what the runs are keyed by
     assert set(written["cases"]) == set(CASES)
     assert written["cases"]["puncture"]["levels"]["mesh.cells"] == [2, 3, 4]
     for case in CASES:
@@ -225,6 +251,12 @@ def test_page_is_written_from_the_package(package, tmp_path):
     reference = read_case_reference(folder, "cantilever")
     value = reference["quantities"]["deflection_small"]["value"][0]
     assert "## cantilever:" in text and "## puncture:" in text and f"{value:.5g}" in text
+    # every quantity's convergence is stated in the summary, and the digest the runs are keyed by
+    manifest = json.loads((folder / "manifest.json").read_text())
+    for name, case in manifest["cases"].items():
+        for quantity, row in case["quantities"].items():
+            assert f"| {name} | {quantity} | {', '.join(row['methods'])} | {row['status']} |" in text
+    assert manifest["numerics_digest"] in text and manifest["git_commit"] in text
     assert (tmp_path / "docs" / "figures" / "reference" / "puncture.png").is_file()
 
 
@@ -437,3 +469,29 @@ def test_every_run_of_every_level_is_a_valid_scene(name):
             ]
             scene = load_scene(case.scene_path, [*case.overrides, *overrides])
             assert scene.time.dt == pytest.approx(keys["time.dt"][index], rel=1e-15)
+
+
+def test_the_published_page_is_generated_by_this_code():
+    """docs/reference.md is written by refsim.reference.page: its fixed text is the generator's (an edit to
+    either without regenerating fails here), and it names the commit and the numerics digest of its build."""
+    import re
+
+    from refsim.reference.page import INTRODUCTION
+
+    text = (Path(__file__).parents[2] / "docs" / "reference.md").read_text(encoding="utf-8")
+    assert text.startswith(INTRODUCTION)
+    assert re.search(r"commit `[0-9a-f]{40}`, numerics digest `[0-9a-f]{64}`", text)
+
+
+def test_a_build_over_complete_runs_reuses_them_and_their_problems(package, tmp_path):
+    """Built again in the same folder, the case's runs are reused (same content key) and so is the export of
+    the finest run's problems (the longest part of a build over complete runs): problems.h5 is not written
+    again and the manifest says the same of it; the answers are the same."""
+    folder, manifest = package
+    problems = folder / "cases" / "puncture" / "problems.h5"
+    written = problems.stat().st_mtime_ns
+    again = build_reference(folder, level="coarse", cases=CASES, workers=1, command="test")
+    assert problems.stat().st_mtime_ns == written
+    assert again["cases"]["puncture"]["problems"] == manifest["cases"]["puncture"]["problems"]
+    for case in CASES:
+        assert again["cases"][case]["quantities"] == manifest["cases"][case]["quantities"]

@@ -82,6 +82,25 @@ def test_withdrawal_releases_the_needle_through_its_cut(tmp_path):
     assert all(method == "converged" for method, o in zip(force["method"], out, strict=True) if o)
     times = np.asarray(answers["time_at_withdrawal"]["levels"]).ravel()
     assert np.all(np.abs(times - 3.85) < 0.1)
+    # While pulling back, the front rows hold the needle with G_c per unit length still in the cut at every
+    # step: |F/G_c - tip depth| <= d_c / 4 while the tip is more than 2 d_c deep (measured at 5 cells: 0.08
+    # to 0.14 d_c). Before the entry sample's front row reached the crack tip's end (refsim.constraints.cut,
+    # _front_rows) it dropped out at 65, 19 and 63 % of the steps at 5, 7 and 9 cells, F/G_c down to 0.81 d_c
+    # below the depth, and the 7-cell level sat 0.05 to 0.07 N above the others.
+    from refsim.io import read_results
+
+    g_c = 200.0
+    runs = sorted((folder / "cases" / "withdrawal").glob("study_runs/*.h5"))
+    assert len(runs) == 3
+    for run in runs:
+        results = read_results(run)
+        d_c = results.scene["cutting"]["point_spacing"]
+        time, depth = results.time, results.tip_depth()
+        force = np.linalg.norm(results.needle_force, axis=1)
+        pulling = (time > 3.02) & (time < 3.8) & (depth > 2.0 * d_c)
+        assert pulling.sum() > 10
+        gap = force[pulling] / g_c - depth[pulling]
+        assert np.all(np.abs(gap) <= 0.25 * d_c), (run.name, gap.min() / d_c, gap.max() / d_c)
 
 
 @pytest.mark.slow

@@ -91,9 +91,10 @@ def test_resume_runs_only_what_is_missing(study):
 
 
 def test_runs_are_reused_by_content_not_by_path(tmp_path):
-    """A study reuses a complete run only when the resolved scene and the code version its results file
-    records are the run's now: an unchanged scene file is reused, an edited one (same path, same overrides,
-    same run id) is run again, and so is a file recorded by another git commit."""
+    """A study reuses a complete run only when the content key its results file records (resolved scene, the
+    files it names, numerics digest) is the run's now: an unchanged scene file is reused, an edited one (same
+    path, same overrides, same run id) is run again, a file of another git commit with the same numerics is
+    reused, and a file of other numerics is run again."""
     from refsim.sweep import StudySpec, Sweep
     from refsim.sweep.study import start_client, stop_client
     from refsim.sweep.worker import file_key, is_current, run_key
@@ -134,12 +135,19 @@ def test_runs_are_reused_by_content_not_by_path(tmp_path):
         second, recorded = created()
         assert second != first and "600000.0" in recorded and "500000.0" not in recorded
         assert runs["status"] == ["complete"] and np.isfinite(runs["seconds"][0])
-        # a file recorded by another commit of refsim: stale, run again
+        # a file recorded by another commit whose numerics are the same (a docs or tests commit): reused
         with h5py.File(path, "a") as handle:
             handle.attrs["git_commit"] = "0" * 40
         second = created()[0]
         run_study(spec, output, client=client, progress=False, warm_up=False)
+        assert created()[0] == second
+        # a file whose key is another numerics digest's: stale, run again
+        with h5py.File(path, "a") as handle:
+            handle.attrs["run_key"] = "0" * 64
+        second = created()[0]
+        run_study(spec, output, client=client, progress=False, warm_up=False)
         assert created()[0] != second
+        assert file_key(path) == run_key(load_scene(str(scene), list(spec.runs()[0].overrides)))
     finally:
         stop_client(client, cluster)
 
@@ -175,3 +183,51 @@ def test_bad_command_line_is_an_input_error(tmp_path, capsys):
     assert "--sweep" in capsys.readouterr().err
     assert main(["study", "cube", "--sweep", "insertion.nokey=1,2", "-o", str(tmp_path / "x.h5")]) == 2
     assert "has no key 'nokey'" in capsys.readouterr().err
+
+
+def test_the_run_key_follows_the_numerics_not_the_docs_or_tests(tmp_path):
+    """The numerics digest of a copy of the refsim checkout: editing a docs page, a test, the command line, a
+    figure module or the study machinery leaves it (and so every run key) unchanged; editing a numerics source
+    file (a solver, an element) or a built-in scene changes it."""
+    import shutil
+
+    from refsim.sweep.worker import numerics_digest, numerics_files
+
+    source = Path(__file__).parents[2]
+    checkout = tmp_path / "checkout"
+    shutil.copytree(source / "refsim", checkout / "refsim", ignore=shutil.ignore_patterns("__pycache__"))
+    (checkout / "docs").mkdir()
+    (checkout / "docs" / "reference.md").write_text("# page\n")
+    (checkout / "tests").mkdir()
+    (checkout / "tests" / "test_x.py").write_text("def test_x():\n    pass\n")
+    package = checkout / "refsim"
+    names = {p.relative_to(package).as_posix() for p in numerics_files(package)}
+    expected = {
+        "fem/tissue.py",
+        "simulation/simulation.py",
+        "io/writer.py",
+        "io/driver.py",
+        "scenes/cube.toml",
+    }
+    assert expected | {"mesh/data/liver_phantom_coarse.vtu", "solvers/__init__.py"} <= names
+    assert not any(n.startswith(("viz/", "sweep/", "reference/", "cli.py")) for n in names)
+    before = numerics_digest(package)
+    assert before == numerics_digest(source / "refsim")
+    for edited in (
+        "docs/reference.md",
+        "tests/test_x.py",
+        "refsim/cli.py",
+        "refsim/viz/__init__.py",
+        "refsim/sweep/study.py",
+        "refsim/reference/page.py",
+    ):
+        with open(checkout / edited, "a") as handle:
+            handle.write("\n# an edit\n")
+        assert numerics_digest(package) == before, edited
+    for edited in ("refsim/solvers/__init__.py", "refsim/fem/__init__.py", "refsim/scenes/cube.toml"):
+        path = checkout / edited
+        text = path.read_text()
+        path.write_text(text + "\n# an edit\n")
+        assert numerics_digest(package) != before, edited
+        path.write_text(text)
+        assert numerics_digest(package) == before, edited
