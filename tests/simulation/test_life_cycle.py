@@ -6,11 +6,11 @@ and asserts what the model must do at that stage of the needle's life, with its 
 The life-cycle matrix (stage: where it is tested; the cases beyond the first of each list are @slow):
 
 - insert, hold 1 s at dt = 1, 5, 20 ms (the shaft's stick): ``test_a_held_needle_keeps_its_friction_load_...``
-  (rigid);
+  (vertical and 30°; rigid and flexible);
 - insert, hold, pull back out, move in the air, re-insert elsewhere: ``test_insert_hold_withdraw_and_...``
   (entry on a face, an edge, a vertex; 0° and 30°; rigid and flexible; Gauss–Seidel and exact);
-- cross a thin layer, punctures on its faces: ``test_a_thin_layer_is_crossed_...`` (0°, 30°; both solvers;
-  rigid);
+- cross a thin layer, punctures on its faces: ``test_a_thin_layer_is_crossed_...`` (entry on a face, an edge,
+  a vertex; 0° and 30°; rigid and flexible; Gauss–Seidel, and exact on the vertex entries);
 - cut, then back through the cut and beyond into intact tissue: ``test_back_through_the_cut_...`` (both
   solvers; rigid, flexible), tilted: ``tests/simulation/test_leave_cut.py``;
 - cut, hold 1 s in the cut with friction on its faces: ``test_a_needle_held_in_its_cut_keeps_...`` (dt = 1,
@@ -18,18 +18,19 @@ The life-cycle matrix (stage: where it is tested; the cases beyond the first of 
 - cut, then pull straight out: ``test_a_needle_pulled_straight_out_after_a_stroke_cuts_by_...`` (rigid at
   dt = 5, 10, 20 ms; flexible at 10, 20 ms), the stroke's advance at those dt:
   ``test_a_lateral_stroke_keeps_cutting_by_its_stroke_at_any_dt``;
-- cut, exit through the far face while cutting: ``test_a_needle_leaving_through_the_far_face_...`` (both
-  solvers; rigid: the slab's 0.5 mm flexible needle bends and never starts a cut, 1.3 N/m against G_c = 20);
+- cut, exit through the far face while cutting: ``test_a_needle_leaving_through_the_far_face_...`` (vertical
+  and 30°; both solvers; rigid: the slab's 0.5 mm flexible needle bends and never starts a cut, 1.3 N/m
+  against G_c = 20);
 - cut, withdraw, re-insert elsewhere and cut again: ``test_a_second_cut_after_an_exit_is_a_second_...``
   (file, render, areas), and on 6³ cells ``test_cutting.py::test_the_whole_life_of_a_needle``;
-- re-insert along the cut: ``tests/simulation/test_cutting.py::test_reinsertion_along_an_existing_cut_...``
-  (vertical, rigid, Gauss–Seidel only);
+- re-insert along the cut: ``test_reinsertion_along_a_cut_slides_in_it`` (vertical and 30°, the cut's plane
+  holding the needle; rigid and flexible; Gauss–Seidel and exact), and on 6³ cells
+  ``tests/simulation/test_cutting.py::test_reinsertion_along_an_existing_cut_...``;
 - cut over directions, tilts, entries on an edge or a vertex, flexible: the matrix of
   ``tests/simulation/test_cutting.py`` (Gauss–Seidel, and against the exact solver on eight cases).
 
-Not covered yet: the re-insertion along a cut tilted, flexible or with the exact solver; the thin layer with
-a flexible needle (its 30° entry on a vertex fails, not examined) or an entry on an edge or a vertex; the
-far-face exit while cutting tilted or flexible; the held needle tilted or flexible.
+Not covered: a flexible needle whose tip slid along the surface before the puncture (a short one, which
+can push f_p while sliding): docs/coupling.md, "Limits".
 """
 
 from __future__ import annotations
