@@ -144,7 +144,7 @@ SOLVERS = {"gauss_seidel": (), "exact": ('solver.method="exact"',)}
 
 
 # A flexible needle on the slab grips the surface with its tip (μ_p = 0.7 > tan 30°): with the scene's
-# μ_p = 0.1 the 32 cm needle of 0.5 mm radius tilted 30° slides along the surface (its tip 27 mm along it
+# μ_p = 0.1 the 32 cm needle of 0.5 mm radius tilted 30° slides along the surface (its tip 26 mm along it
 # at a normal force of 0.02 N, far below f_p: it bends instead of pushing; its buckling load π²EI/(4L²) is
 # 0.12 N) and never punctures, which is the physics of a slender needle on a slippery surface.
 LAYER_NEEDLES = {
