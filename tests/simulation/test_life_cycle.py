@@ -30,8 +30,9 @@ The life-cycle matrix (stage: where it is tested; the cases beyond the first of 
   ``tests/simulation/test_cutting.py`` (Gauss–Seidel, and against the exact solver on eight cases).
 
 Known to fail (strict xfail, @slow): a flexible needle whose tip slid along the surface before the puncture
-(a short one, which can push f_p while sliding) springs through a thin layer in the puncture step:
-``test_a_flexible_needle_that_slid_on_the_surface_...``, docs/coupling.md, "Limits".
+(a short one, which can push f_p while sliding) is punctured on a thin layer's far face, from outside, and
+springs through the layer in the puncture step: ``test_a_flexible_needle_that_slid_on_the_surface_...``,
+docs/coupling.md, "Limits".
 """
 
 from __future__ import annotations
