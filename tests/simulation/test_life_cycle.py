@@ -31,7 +31,7 @@ The life-cycle matrix (stage: where it is tested; the cases beyond the first of 
 
 Known to fail (strict xfail, @slow): a flexible needle whose tip slid along the surface before the puncture
 (a short one, which can push f_p while sliding) is punctured on a thin layer's far face, from outside, and
-springs through the layer in the puncture step: ``test_a_flexible_needle_that_slid_on_the_surface_...``,
+springs through the layer in the puncture step: ``test_a_flexible_needle_that_slid_on_a_thin_layer_...``,
 docs/coupling.md, "Limits".
 """
 
@@ -225,11 +225,12 @@ def test_a_thin_layer_is_crossed_with_entry_and_exit_punctures_on_its_faces(
     reason="the contact is found at the free tip and the puncture step lets a bent needle spring through "
     "(docs/coupling.md, Limits)",
 )
-def test_a_flexible_needle_that_slid_on_the_surface_crosses_a_thin_layer_with_one_puncture():
+def test_a_flexible_needle_that_slid_on_a_thin_layer_punctures_it_once_on_its_near_face():
     # The slab of the thin-layer test, a flexible needle 8 cm long (r = 0.5 mm) tilted 30° with the scene's
     # μ_p = 0.1: its tip slides 14 mm along the top face while the needle bends and its normal force rises
-    # to f_p. Expected, as for any crossing: one puncture with the tip at the top face (within the step's
-    # travel and the indentation), one exit at the bottom face. Measured: the contact, found at the free tip
+    # to f_p. Expected: one puncture, with the tip at the top face (within the step's travel and the
+    # indentation), not through the layer (whether the bent needle then crosses it is not asserted: with the
+    # fix tried in docs/coupling.md it holds its tip 2 mm deep). Measured: the contact, found at the free tip
     # (the bent needle straightened, 8.9 mm from the tip), is on the bottom face from outside at step 107,
     # the puncture is declared there with the tip at z = 92.1 mm, the entry point is retracted the next step
     # (withdrawal) and a second puncture is declared with the tip 1.9 mm under the top face.
@@ -241,8 +242,7 @@ def test_a_flexible_needle_that_slid_on_the_surface_crosses_a_thin_layer_with_on
         *_trajectory([0.0, 1.6, 2.0], [-0.002, 0.014, 0.014], DIRECTIONS["30deg"], length=length),
     )
     punctures = [r for r in records if any(e.name == "puncture" for e in r.events)]
-    exits = [r for r in records if any(e.name == "exit" for e in r.events)]
-    assert len(punctures) == 1 and len(exits) == 1, ([r.step for r in punctures], [r.step for r in exits])
+    assert len(punctures) == 1, [r.step for r in punctures]
     travel = 0.01 * scene.time.dt
     assert abs(punctures[0].needle_positions[-1, 2] - TOP) <= 0.5e-3 + travel
 
