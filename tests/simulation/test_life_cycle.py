@@ -6,11 +6,11 @@ and asserts what the model must do at that stage of the needle's life, with its 
 The life-cycle matrix (stage: where it is tested; the cases beyond the first of each list are @slow):
 
 - insert, hold 1 s at dt = 1, 5, 20 ms (the shaft's stick): ``test_a_held_needle_keeps_its_friction_load_...``
-  (rigid);
+  (vertical and 30°; rigid and flexible);
 - insert, hold, pull back out, move in the air, re-insert elsewhere: ``test_insert_hold_withdraw_and_...``
   (entry on a face, an edge, a vertex; 0° and 30°; rigid and flexible; Gauss–Seidel and exact);
-- cross a thin layer, punctures on its faces: ``test_a_thin_layer_is_crossed_...`` (0°, 30°; both solvers;
-  rigid);
+- cross a thin layer, punctures on its faces: ``test_a_thin_layer_is_crossed_...`` (entry on a face, an edge,
+  a vertex; 0° and 30°; rigid and flexible; Gauss–Seidel, and exact on the vertex entries);
 - cut, then back through the cut and beyond into intact tissue: ``test_back_through_the_cut_...`` (both
   solvers; rigid, flexible), tilted: ``tests/simulation/test_leave_cut.py``;
 - cut, hold 1 s in the cut with friction on its faces: ``test_a_needle_held_in_its_cut_keeps_...`` (dt = 1,
@@ -18,18 +18,21 @@ The life-cycle matrix (stage: where it is tested; the cases beyond the first of 
 - cut, then pull straight out: ``test_a_needle_pulled_straight_out_after_a_stroke_cuts_by_...`` (rigid at
   dt = 5, 10, 20 ms; flexible at 10, 20 ms), the stroke's advance at those dt:
   ``test_a_lateral_stroke_keeps_cutting_by_its_stroke_at_any_dt``;
-- cut, exit through the far face while cutting: ``test_a_needle_leaving_through_the_far_face_...`` (both
-  solvers; rigid: the slab's 0.5 mm flexible needle bends and never starts a cut, 1.3 N/m against G_c = 20);
+- cut, exit through the far face while cutting: ``test_a_needle_leaving_through_the_far_face_...`` (vertical
+  and 30°; both solvers; rigid: the slab's 0.5 mm flexible needle bends and never starts a cut, 1.3 N/m
+  against G_c = 20);
 - cut, withdraw, re-insert elsewhere and cut again: ``test_a_second_cut_after_an_exit_is_a_second_...``
   (file, render, areas), and on 6³ cells ``test_cutting.py::test_the_whole_life_of_a_needle``;
-- re-insert along the cut: ``tests/simulation/test_cutting.py::test_reinsertion_along_an_existing_cut_...``
-  (vertical, rigid, Gauss–Seidel only);
+- re-insert along the cut: ``test_reinsertion_along_a_cut_slides_in_it`` (vertical and 30°, the cut's plane
+  holding the needle; rigid and flexible; Gauss–Seidel and exact), and on 6³ cells
+  ``tests/simulation/test_cutting.py::test_reinsertion_along_an_existing_cut_...``;
 - cut over directions, tilts, entries on an edge or a vertex, flexible: the matrix of
   ``tests/simulation/test_cutting.py`` (Gauss–Seidel, and against the exact solver on eight cases).
 
-Not covered yet: the re-insertion along a cut tilted, flexible or with the exact solver; the thin layer with
-a flexible needle (its 30° entry on a vertex fails, not examined) or an entry on an edge or a vertex; the
-far-face exit while cutting tilted or flexible; the held needle tilted or flexible.
+Known to fail (strict xfail, @slow): a flexible needle whose tip slid along the surface before the puncture
+(a short one, which can push f_p while sliding) is punctured on a thin layer's far face, from outside, and
+springs through the layer in the puncture step: ``test_a_flexible_needle_that_slid_on_a_thin_layer_...``,
+docs/coupling.md, "Limits".
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from refsim.constraints import AXIAL_FRICTION, CUT_FRICTION, SLIDING, TIP
+from refsim.constraints import AXIAL_FRICTION, CUT_FRICTION, CUT_SLIDE, SLIDING, TIP
 from refsim.scene import load_scene
 from refsim.simulation import Simulation
 
@@ -54,14 +57,15 @@ DIRECTIONS = {"0deg": (0.0, 0.0, -1.0), "30deg": (0.5, 0.0, -0.8660254037844386)
 NEEDLES = {"rigid": (), "flexible": ("needle.rigid=false",)}
 
 
-def _trajectory(times, depths, direction=(0.0, 0.0, -1.0), entry=ENTRY):
+def _trajectory(times, depths, direction=(0.0, 0.0, -1.0), entry=ENTRY, length=NEEDLE_LENGTH):
     """Overrides of a straight trajectory: the tip at ``depths`` [m] below the top face at ``times`` [s]
-    (negative: above it), along ``direction``, through ``entry`` on the top face."""
+    (negative: above it), along ``direction``, through ``entry`` on the top face, for a needle of ``length``
+    [m] (the scene's needle.length)."""
     direction = np.asarray(direction, dtype=float)
     direction /= np.linalg.norm(direction)
     top = np.array([entry[0], entry[1], TOP])
     tips = [top + d * direction for d in depths]
-    bases = [tip - NEEDLE_LENGTH * direction for tip in tips]
+    bases = [tip - length * direction for tip in tips]
     fmt = lambda v: "[" + ", ".join(repr(float(x)) for x in v) + "]"  # noqa: E731
     return (
         f"trajectory.times={fmt(times)}",
@@ -78,28 +82,55 @@ def _run(*overrides):
     return scene, records
 
 
-def _shaft_force(record) -> float:
-    """The axial friction rows' force on the needle along z [N]."""
+def _axial_shaft_force(record, axis) -> float:
+    """The axial friction rows' force on the needle along ``axis`` [N]."""
     axial = record.row_role == AXIAL_FRICTION
-    return float((record.row_forces[axial] * record.row_directions[axial, 2]).sum())
+    return float((record.row_forces[axial] * (record.row_directions[axial] @ axis)).sum())
 
 
-@pytest.mark.parametrize("dt", [pytest.param(0.001, marks=pytest.mark.slow), 0.005, 0.02])
-def test_a_held_needle_keeps_its_friction_load_for_a_second(dt):
-    # Inserted 8 mm at 20 mm/s, stopped at 0.5 s, held 1.1 s. Reference: an elastic body held by Coulomb
-    # stick at rest is in static equilibrium, so the load the insertion left stays (no viscous law in the
-    # model relaxes it); only the damping transient after the stop (β = 0.01 s) moves it, so it is read from
-    # 0.1 s after the stop. Tolerance: each solve returns λ within its relative tolerance τ; kept from step
-    # to step, n steps of such errors move the force by at most n τ |F|.
-    scene, records = _run(f"time.dt={dt}", *_trajectory([0.0, 0.5, 1.6], [-0.002, 0.008, 0.008]))
-    hold = [r for r in records if r.time >= 0.6 - 1e-9]
-    shaft = np.array([_shaft_force(r) for r in hold])
-    total = np.array([r.needle_force[2] for r in hold])
+HELD = [
+    pytest.param(dt, direction, needle, marks=[pytest.mark.slow] if slow else [])
+    for dt, direction, needle, slow in [
+        (0.001, "0deg", "rigid", True),
+        (0.005, "0deg", "rigid", False),
+        (0.02, "0deg", "rigid", False),
+        (0.02, "30deg", "rigid", False),
+        (0.005, "30deg", "rigid", True),
+        (0.001, "30deg", "rigid", True),
+        (0.02, "0deg", "flexible", True),
+        (0.005, "0deg", "flexible", True),
+        (0.001, "0deg", "flexible", True),
+        (0.02, "30deg", "flexible", True),
+        (0.005, "30deg", "flexible", True),
+        (0.001, "30deg", "flexible", True),
+    ]
+]
+
+
+@pytest.mark.parametrize(("dt", "direction", "needle"), HELD)
+def test_a_held_needle_keeps_its_friction_load_for_a_second(dt, direction, needle):
+    # Inserted 8 mm at 20 mm/s along the needle (vertical or 30° from it), stopped at 0.5 s, held 1.3 s.
+    # Reference: an elastic body held by Coulomb stick at rest is in static equilibrium, so the load the
+    # insertion left stays (no viscous law in the model relaxes it); only the damping transient after the
+    # stop moves it: it decays by β/(β + dt) per step (implicit Euler, Rayleigh β = 0.01 s; a flexible
+    # needle's bending settles with the tissue), below 1e-7 of itself 0.3 s after the stop at every dt here,
+    # so the force is read over the last second (measured on the 30° needle at dt = 20 ms: 5.7e-7 N of
+    # 0.0519 N between 0.12 and 0.14 s after the stop, 1e-11 N from 0.26 s on). Tolerance: each solve returns
+    # λ within its relative tolerance τ; kept from step to step, n steps of such errors move the force by at
+    # most n τ |F|.
+    axis = np.asarray(DIRECTIONS[direction]) / np.linalg.norm(DIRECTIONS[direction])
+    scene, records = _run(
+        f"time.dt={dt}", *NEEDLES[needle], *_trajectory([0.0, 0.5, 1.8], [-0.002, 0.008, 0.008], axis)
+    )
+    hold = [r for r in records if r.time >= 0.8 - 1e-9]
+    shaft = np.array([_axial_shaft_force(r, -axis) for r in hold])
+    total = np.array([r.needle_force for r in hold])
     assert all(r.phase == "insertion" for r in hold)
-    assert shaft[0] > 0.01  # the grip's friction held, resisting the insertion (+z)
+    assert shaft[0] > 0.01  # the grip's friction held, resisting the insertion (along −axis)
     tolerance = len(hold) * scene.solver.tolerance
     assert np.ptp(shaft) <= tolerance * abs(shaft[0]), (np.ptp(shaft), shaft[0])
-    assert np.ptp(total) <= tolerance * abs(total[0]), (np.ptp(total), total[0])
+    spread = np.ptp(total, axis=0).max()
+    assert spread <= tolerance * np.linalg.norm(total[0]), (spread, total[0])
 
 
 # An 8 mm slab (4 × 4 × 2 cells) held on its sides, top face at z = 0.1 m, bottom at 0.092 m, and a thin
@@ -115,24 +146,60 @@ SLAB = (
 SOLVERS = {"gauss_seidel": (), "exact": ('solver.method="exact"',)}
 
 
-@pytest.mark.parametrize("solver", ["gauss_seidel", pytest.param("exact", marks=pytest.mark.slow)], ids=str)
-@pytest.mark.parametrize(
-    "direction", [(0.0, 0.0, -1.0), (0.5, 0.0, -0.8660254037844386)], ids=["0deg", "30deg"]
-)
-def test_a_thin_layer_is_crossed_with_entry_and_exit_punctures_on_its_faces(direction, solver):
-    # The tip travels 16 mm along the needle through the 8 mm slab, then rests 0.4 s in the air below it.
-    # Expected: one puncture with the tip at the top face (the face it approaches), one exit with the tip at
-    # the bottom face, the tip's cutting row while the tip is in the tissue and never after the exit (the
-    # tissue has nothing left to cut), insertion points across the whole thickness.
+# A flexible needle on the slab grips the surface with its tip (μ_p = 0.7 > tan 30°): with the scene's
+# μ_p = 0.1 the 32 cm needle of 0.5 mm radius tilted 30° slides along the surface (its tip 26 mm along it
+# at a normal force of 0.02 N, far below f_p: it bends instead of pushing; its buckling load π²EI/(4L²) is
+# 0.12 N) and never punctures, which is the physics of a slender needle on a slippery surface.
+LAYER_NEEDLES = {
+    "rigid": (),
+    "flexible": ("needle.rigid=false", "insertion.surface_friction_coefficient=0.7"),
+}
+LAYER = [
+    pytest.param(entry, direction, needle, solver, dt, marks=[pytest.mark.slow] if slow else [])
+    for entry, direction, needle, solver, dt, slow in [
+        ("face", "0deg", "rigid", "gauss_seidel", 0.01, False),
+        ("face", "30deg", "rigid", "gauss_seidel", 0.01, False),
+        ("vertex", "30deg", "rigid", "gauss_seidel", 0.02, False),
+        ("edge", "30deg", "flexible", "gauss_seidel", 0.02, True),
+        *[
+            (entry, direction, needle, solver, 0.02, True)
+            for entry in ENTRIES
+            for direction in DIRECTIONS
+            for needle in LAYER_NEEDLES
+            for solver in SOLVERS
+            if (entry, direction, needle, solver)
+            not in [
+                ("vertex", "30deg", "rigid", "gauss_seidel"),
+                ("edge", "30deg", "flexible", "gauss_seidel"),
+            ]
+            and (solver == "gauss_seidel" or entry == "vertex")
+        ],
+    ]
+]
+
+
+@pytest.mark.parametrize(("entry", "direction", "needle", "solver", "dt"), LAYER)
+def test_a_thin_layer_is_crossed_with_entry_and_exit_punctures_on_its_faces(
+    entry, direction, needle, solver, dt
+):
+    # The tip travels 16 mm along the needle at 10 mm/s through the 8 mm slab, entering inside a surface
+    # triangle, on a grid edge or at a grid vertex, then rests 0.4 s in the air below it. Expected: one
+    # puncture with the tip at the top face (the face it approaches), one exit with the tip at the bottom
+    # face, the tip's cutting row while the tip is in the tissue and never after the exit (the tissue has
+    # nothing left to cut), insertion points across the whole thickness.
+    x, y = ENTRIES[entry]
+    direction = DIRECTIONS[direction]
     scene, records = _run(
         *SLAB,
         *SOLVERS[solver],
-        *_trajectory([0.0, 1.6, 2.0], [-0.002, 0.014, 0.014], direction),
+        *LAYER_NEEDLES[needle],
+        f"time.dt={dt}",
+        *_trajectory([0.0, 1.6, 2.0], [-0.002, 0.014, 0.014], direction, entry=(x, y)),
     )
     steps = {
         name: [r for r in records if any(e.name == name for e in r.events)] for name in ("puncture", "exit")
     }
-    assert len(steps["puncture"]) == 1 and len(steps["exit"]) == 1
+    assert len(steps["puncture"]) == 1 and len(steps["exit"]) == 1, steps
     punctured, exited = steps["puncture"][0], steps["exit"][0]
     spacing = scene.insertion.spacing
     # The tip within the step's travel plus the surface's indentation of the face (measured ≤ 0.3 mm).
@@ -150,6 +217,34 @@ def test_a_thin_layer_is_crossed_with_entry_and_exit_punctures_on_its_faces(dire
     # (measured 0.04–0.07 N), far below the tip's f_cut = 0.5 N it carried when the tip row outlived the exit.
     axis = np.asarray(direction) / np.linalg.norm(direction)
     assert abs(records[-1].needle_force @ axis) < 0.25 * scene.insertion.tip_cutting_force
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="the contact is found at the free tip and the puncture step lets a bent needle spring through "
+    "(docs/coupling.md, Limits)",
+)
+def test_a_flexible_needle_that_slid_on_a_thin_layer_punctures_it_once_on_its_near_face():
+    # The slab of the thin-layer test, a flexible needle 8 cm long (r = 0.5 mm) tilted 30° with the scene's
+    # μ_p = 0.1: its tip slides 14 mm along the top face while the needle bends and its normal force rises
+    # to f_p. Expected: one puncture, with the tip at the top face (within the step's travel and the
+    # indentation), not through the layer (whether the bent needle then crosses it is not asserted: with the
+    # fix tried in docs/coupling.md it holds its tip 2 mm deep). Measured: the contact, found at the free tip
+    # (the bent needle straightened, 8.9 mm from the tip), is on the bottom face from outside at step 107,
+    # the puncture is declared there with the tip at z = 92.1 mm, the entry point is retracted the next step
+    # (withdrawal) and a second puncture is declared with the tip 1.9 mm under the top face.
+    length = 0.08
+    scene, records = _run(
+        *SLAB,
+        "needle.rigid=false",
+        f"needle.length={length}",
+        *_trajectory([0.0, 1.6, 2.0], [-0.002, 0.014, 0.014], DIRECTIONS["30deg"], length=length),
+    )
+    punctures = [r for r in records if any(e.name == "puncture" for e in r.events)]
+    assert len(punctures) == 1, [r.step for r in punctures]
+    travel = 0.01 * scene.time.dt
+    assert abs(punctures[0].needle_positions[-1, 2] - TOP) <= 0.5e-3 + travel
 
 
 def test_a_straight_insertion_has_no_lateral_force_from_the_tip_row():
@@ -563,32 +658,45 @@ def test_a_second_cut_after_an_exit_is_a_second_surface_in_the_rows_the_file_and
 
 
 # An 8 mm slab as for the thin layer above, cut with G_c = 20 J/m² (the 0.5 mm needle cuts after a short
-# stroke): inserted 6 mm, moved 3 mm along +x (the cut starts), then 3 mm further along +x while going 6 mm
-# deeper (the tip leaves through the far face at about 2 mm of it), then held.
+# stroke): inserted 6 mm along the needle, moved 3 mm sideways (the cut starts), then 3 mm further sideways
+# while going 6 mm deeper along the needle (the tip leaves through the far face), then held. The vertical
+# needle moves along +x, the 30° one (tilted in the xz plane) along +y, normal to it.
 SLAB_CUT_TIMES = [0.0, 0.8, 1.1, 1.4, 2.0, 2.3]
-SLAB_CUT_KNOTS = [(0.00123, -0.002), (0.00123, 0.006), (0.00123, 0.006), (0.00423, 0.006)]
-SLAB_CUT_KNOTS += [(0.00723, 0.012), (0.00723, 0.012)]
+SLAB_CUT_KNOTS = [(0.0, -0.002), (0.0, 0.006), (0.0, 0.006), (0.003, 0.006), (0.006, 0.012), (0.006, 0.012)]
+SLAB_CUT = [
+    pytest.param(direction, solver, dt, marks=[pytest.mark.slow] if slow else [])
+    for direction, solver, dt, slow in [
+        ("0deg", "gauss_seidel", 0.01, False),
+        ("30deg", "gauss_seidel", 0.02, False),
+        ("0deg", "exact", 0.01, True),
+        ("30deg", "exact", 0.01, True),
+    ]
+]
 
 
-@pytest.mark.parametrize("solver", ["gauss_seidel", pytest.param("exact", marks=pytest.mark.slow)], ids=str)
-def test_a_needle_leaving_through_the_far_face_while_cutting_keeps_cutting_the_layer(solver):
+@pytest.mark.parametrize(("direction", "solver", "dt"), SLAB_CUT)
+def test_a_needle_leaving_through_the_far_face_while_cutting_keeps_cutting_the_layer(direction, solver, dt):
     # Expected: the event exit once, while cutting; afterwards the cut rows run along the part of the needle
-    # in the slab (entry to far face), so the tissue pushes the needle back (−x) at G_c per unit length of
-    # that part (Griffith, as in any stroke: within the rows' coverage L − 3 d_c and L + d_c, L the slab's
-    # thickness along the needle) and the crack tip follows the needle to within the lag of a stroke
-    # (d_c/2). Before, the rows ended at the tip: once it left, the needle crossed intact tissue with no
-    # force.
-    bases = [[x, 0.00231, TOP - depth + NEEDLE_LENGTH] for x, depth in SLAB_CUT_KNOTS]
+    # in the slab (entry to far face), so the tissue pushes the needle back (against the stroke) at G_c per
+    # unit length of that part (Griffith, as in any stroke: within the rows' coverage L − 3 d_c and L + d_c,
+    # L the slab's thickness along the needle) and the crack tip follows the needle to within the lag of a
+    # stroke (d_c/2). Before, the rows ended at the tip: once it left, the needle crossed intact tissue with
+    # no force.
+    axis = np.asarray(DIRECTIONS[direction])
+    stroke = np.array([1.0, 0.0, 0.0]) if direction == "0deg" else np.array([0.0, 1.0, 0.0])
+    x0, y0 = 0.00123, 0.00231
+    knots = [
+        (t, (x0 + s * stroke[0], y0 + s * stroke[1]), depth)
+        for t, (s, depth) in zip(SLAB_CUT_TIMES, SLAB_CUT_KNOTS, strict=True)
+    ]
     scene = load_scene(
         "cube_cut",
         [
             *SLAB,
             *SOLVERS[solver],
+            f"time.dt={dt}",
             "cutting.fracture_energy=20",
-            f"trajectory.times={SLAB_CUT_TIMES!r}",
-            f"trajectory.base_positions={bases!r}",
-            "trajectory.directions=[" + ", ".join(["[0, 0, -1]"] * len(SLAB_CUT_TIMES)) + "]",
-            f"time.duration={SLAB_CUT_TIMES[-1]}",
+            *_path_overrides(knots, axis),
         ],
     )
     simulation = Simulation(scene)
@@ -596,15 +704,88 @@ def test_a_needle_leaving_through_the_far_face_while_cutting_keeps_cutting_the_l
     simulation.run(
         on_step=lambda state, record: (
             records.append(record),
-            tips.append(None if state.cut_strip is None else state.cut_strip.front.rest_points[:, 0].mean()),
+            tips.append(None if state.cut_strip is None else state.cut_strip.front.rest_points.mean(axis=0)),
         )
     )
     exits = [r for r in records if any(e.name == "exit" for e in r.events)]
     assert len(exits) == 1 and exits[0].phase == "cutting"
     g_c, d_c = scene.cutting.fracture_energy, scene.cutting.point_spacing
-    thickness = TOP - SLAB_BOTTOM
+    thickness = (TOP - SLAB_BOTTOM) / abs(axis[2])
     after = [(r, tip) for r, tip in zip(records, tips, strict=True) if r.step > exits[0].step + 2]
     assert after
     for record, tip in after:
-        assert g_c * (thickness - 3 * d_c) <= -record.needle_force[0] <= g_c * (thickness + d_c), record.step
-        assert 0.0 <= record.needle_positions[-1, 0] - tip <= 0.5 * d_c, (record.step, tip)
+        pushed = -float(record.needle_force @ stroke)
+        assert g_c * (thickness - 3 * d_c) <= pushed <= g_c * (thickness + d_c), (record.step, pushed)
+        lag = float((record.needle_positions[-1] - tip) @ stroke)
+        assert 0.0 <= lag <= 0.5 * d_c, (record.step, lag)
+
+
+REINSERTION = [
+    pytest.param(direction, needle, solver, marks=[pytest.mark.slow] if slow else [])
+    for direction, needle, solver, slow in [
+        ("30deg", "rigid", "gauss_seidel", False),
+        ("0deg", "rigid", "exact", True),
+        ("30deg", "rigid", "exact", True),
+        ("0deg", "flexible", "gauss_seidel", True),
+        ("30deg", "flexible", "gauss_seidel", True),
+    ]
+]
+
+
+@pytest.mark.parametrize(("direction", "needle", "solver"), REINSERTION)
+def test_reinsertion_along_a_cut_slides_in_it(direction, needle, solver):
+    # cube_cut on 4³ cells: inserted 14 mm along the needle (vertical, or 30° from vertical in the xz plane),
+    # cut 5 mm along +y (normal to the needle: the cut's plane holds the needle's direction), pulled out
+    # along the needle, moved back in the air above the middle of the cut and inserted 10 mm along the same
+    # direction, in the cut's plane. Expected (docs/cutting.md, "The whole life of a needle"): puncture,
+    # cut start, withdrawal, puncture again (the surface mesh is not opened); after it the needle slides in
+    # the old cut: sliding rows every step, no insertion point but the entry point (the tissue there is
+    # cut), no new cut, and every sample of the inserted needle that projects inside the cut lies on it
+    # within 0.1 d_c (the sliding rows' C λ and the linearisation over a step: measured ≤ 20 µm).
+    axis = np.asarray(DIRECTIONS[direction])
+    x0, y0 = 0.00123, 0.00231
+    knots = [
+        (0.0, (x0, y0), -0.002),
+        (0.8, (x0, y0), 0.014),
+        (1.3, (x0, y0 + 0.005), 0.014),
+        (2.1, (x0, y0 + 0.005), -0.002),
+        (2.3, (x0, y0 + 0.0025), -0.002),
+        (2.9, (x0, y0 + 0.0025), 0.010),
+        (3.0, (x0, y0 + 0.0025), 0.010),
+    ]
+    scene = load_scene(
+        "cube_cut",
+        [
+            "mesh.cells=[4, 4, 4]",
+            "time.dt=0.02",
+            *SOLVERS[solver],
+            *NEEDLES[needle],
+            *_path_overrides(knots, axis),
+        ],
+    )
+    simulation = Simulation(scene)
+    records, states = [], []
+    simulation.run(on_step=lambda state, record: (records.append(record), states.append(state)))
+    names = [e.name for r in records for e in r.events if e.name in ("puncture", "cut_start", "withdrawal")]
+    assert names == ["puncture", "cut_start", "withdrawal", "puncture"], names
+    again = [r.step for r in records if any(e.name == "puncture" for e in r.events)][1]
+    d_c = scene.cutting.point_spacing
+    later = [(r, s) for r, s in zip(records, states, strict=True) if r.step > again + 2]
+    assert later
+    for record, state in later:
+        assert record.phase == "insertion" and state.path.point_count == 1, (
+            record.step,
+            state.path.point_count,
+        )
+        assert np.any(record.row_source == CUT_SLIDE), record.step
+        needle = simulation.needle.geometry(state.needle)
+        entry = float(needle.project(state.path.positions(state.tissue.positions, simulation.tets)[:1])[0][0])
+        samples = needle.points(np.linspace(entry, needle.length, 10))
+        found = state.cut.closest_points(
+            samples, state.cut.deformed_points(state.tissue.positions, simulation.tets)
+        )
+        distance = np.linalg.norm(samples - found.closest, axis=1)
+        assert np.count_nonzero(found.inside) >= 5 and np.all(distance[found.inside] <= 0.1 * d_c), (
+            record.step,
+            distance,
+        )
