@@ -162,17 +162,41 @@ class PardisoSolver:
         self._upper = None  # positions in the CSR data of the upper-triangle entries (None: all of them)
         self._ia = self._ja = self._a = None
         self._n = 0
+        self._analysed = False  # the handle holds an analysis (phase 11 ran; phase -1 not since)
         self._factorised = False
+        self._released = False  # release() ran and no factorise since
         self._pt_address, self._iparm_address = self._pt.ctypes.data, self._iparm.ctypes.data
         self._perm_address = self._perm.ctypes.data
         self._a_address = self._ia_address = self._ja_address = _UNUSED.ctypes.data
 
     def __del__(self) -> None:
         try:
-            if self._n:
-                self._call(-1)
+            self.release()
         except Exception:  # noqa: BLE001 - freeing at interpreter exit must not raise
             pass
+
+    def release(self) -> None:
+        """Free oneMKL's memory of the handle (phase -1) and forget the pattern, factor and marks: a solve
+        afterwards raises :class:`LinearSolverError`; :meth:`factorise` starts again from a new analysis.
+        Releasing twice is harmless (the handle is freed once)."""
+        self._release_handle()
+        self._pattern_key = self._pattern_arrays = None
+        self._upper = None
+        self._ia = self._ja = self._a = None
+        self._a_address = self._ia_address = self._ja_address = _UNUSED.ctypes.data
+        self._marked = None
+        self._unit_buffers = None
+        self._n = 0
+        self._released = True
+
+    def _release_handle(self) -> None:
+        """Phase -1 on an analysed handle, then a zeroed ``pt`` (what a first analysis expects)."""
+        if self._analysed:
+            self._analysed = self._factorised = False
+            try:
+                self._call(-1)
+            finally:
+                self._pt[:] = 0
 
     def _call(
         self, phase: int, b: np.ndarray | None = None, x: np.ndarray | None = None, nrhs: int = 1
@@ -224,9 +248,6 @@ class PardisoSolver:
             key = (matrix.shape[0], matrix.nnz, hash(matrix.indptr.tobytes()), hash(matrix.indices.tobytes()))
         self._pattern_arrays = (matrix.indptr, matrix.indices)
         if key != self._pattern_key:
-            if self._n:
-                self._call(-1)
-                self._pt[:] = 0
             rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
             upper_entries = np.flatnonzero(matrix.indices >= rows)
             self._upper = None if upper_entries.size == matrix.nnz else upper_entries
@@ -245,6 +266,7 @@ class PardisoSolver:
             self._set_values(matrix)
         self._call(22)
         self._factorised = True
+        self._released = False
 
     def _set_values(self, matrix: sp.csr_matrix) -> None:
         """The values of A's upper triangle in PARDISO's order: the data itself when it holds nothing else."""
@@ -255,7 +277,13 @@ class PardisoSolver:
         self._a_address = self._a.ctypes.data
 
     def _analyse(self) -> None:
-        """Phase 11 on the current pattern: plain, or for partial solves on the marked positions."""
+        """Phase 11 on the current pattern: plain, or for partial solves on the marked positions.
+
+        Always on a fresh handle: an analysed one is released first (phase -1). oneMKL's phase 11 on a handle
+        it has analysed before corrupts the C heap after a marked (iparm[30] = 1), then a plain, then a
+        marked analysis ("munmap_chunk(): invalid pointer", "free(): invalid size": a second run of a
+        simulation, whose first step goes back to the plain analysis), even with every array kept alive."""
+        self._release_handle()
         self._iparm[:] = self._iparm_input
         if self._marked is None:
             self._perm = np.zeros(1, dtype=np.int32)
@@ -265,7 +293,14 @@ class PardisoSolver:
             self._iparm[30] = 1
         self._perm_address = self._perm.ctypes.data
         self._call(11)
+        self._analysed = True
         self._iparm[30] = 0  # full solves unless a partial one asks
+
+    def _unfactorised(self) -> LinearSolverError:
+        """The error of a solve without a factor: never factorised, or released since."""
+        if self._released:
+            return LinearSolverError("pardiso: solve after release (factorise the matrix again first)")
+        return LinearSolverError("pardiso: solve before factorise")
 
     @property
     def marked(self) -> np.ndarray | None:
@@ -287,9 +322,11 @@ class PardisoSolver:
             return
         self._marked = None if positions is None else positions.copy()
         if self._n and self._pattern_key is not None:
+            factorised = self._factorised
             self._analyse()
-            if self._factorised:
+            if factorised:
                 self._call(22)
+                self._factorised = True
 
     def inverse_block(self, positions: np.ndarray) -> np.ndarray:
         """(A⁻¹)[positions][:, positions], shape (u, u), by one partial solve (oneMKL iparm[30] = 1): the
@@ -297,7 +334,7 @@ class PardisoSolver:
         solutions are computed, so the work follows the elimination tree's paths from those positions, not
         the whole factor. ``positions`` (sorted) must lie among :attr:`marked`."""
         if not self._factorised:
-            raise LinearSolverError("pardiso: solve before factorise")
+            raise self._unfactorised()
         positions = np.asarray(positions, dtype=np.int64)
         marked = self._marked
         if marked is None or not _all_among(positions, marked):
@@ -330,7 +367,7 @@ class PardisoSolver:
         from the marked positions only, the backward one is whole). Equal to :meth:`solve` bit for bit (the
         skipped work is on zeros); about half its time on the cube's matrix."""
         if not self._factorised:
-            raise LinearSolverError("pardiso: solve before factorise")
+            raise self._unfactorised()
         rhs = np.asarray(rhs, dtype=float)
         if rhs.shape != (self._n,):
             raise ValueError(f"rhs must have shape ({self._n},), got {rhs.shape}")
@@ -351,7 +388,7 @@ class PardisoSolver:
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """A⁻¹ rhs for rhs of shape (n,) or (n, k)."""
         if not self._factorised:
-            raise LinearSolverError("pardiso: solve before factorise")
+            raise self._unfactorised()
         rhs = np.asarray(rhs, dtype=float)
         if rhs.shape[0] != self._n:
             raise ValueError(f"rhs has {rhs.shape[0]} rows, the matrix {self._n}")
@@ -368,7 +405,7 @@ class PardisoSolver:
         rhs of shape (n, k); half the work of :meth:`solve` for a compliance rhsᵀ A⁻¹ rhs.
         """
         if not self._factorised:
-            raise LinearSolverError("pardiso: solve before factorise")
+            raise self._unfactorised()
         rhs = np.asarray(rhs, dtype=float)
         if rhs.ndim != 2 or rhs.shape[0] != self._n:
             raise ValueError(f"rhs must have shape ({self._n}, k), got {rhs.shape}")

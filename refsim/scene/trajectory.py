@@ -51,6 +51,14 @@ class Trajectory:
         direction = np.array([np.interp(time, self.times, self.directions[:, k]) for k in range(3)])
         return base, direction / np.linalg.norm(direction)
 
+    def poses(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Base positions [m] (m, 3) and unit directions (m, 3) at ``times`` [s] (m,): :meth:`pose` at every
+        time in one call, with its bits (the same interpolation, the norms by the same dot product)."""
+        times = np.asarray(times, dtype=float)
+        base = np.stack([np.interp(times, self.times, self.base_positions[:, k]) for k in range(3)], axis=1)
+        direction = np.stack([np.interp(times, self.times, self.directions[:, k]) for k in range(3)], axis=1)
+        return base, direction / np.sqrt(np.vecdot(direction, direction))[:, None]
+
 
 def read_numeric_csv(path: Path, columns: tuple[str, ...], what: str) -> np.ndarray:
     """Rows of numbers from a CSV file with the given columns, shape (rows, len(columns)).

@@ -252,3 +252,59 @@ def test_pardiso_analyses_a_pattern_once(monkeypatch):
     other = spd_matrix(125, 6)
     solver.factorise(other)  # full storage, another pattern
     assert len(analyses) == 2
+
+
+def test_pardiso_analysed_again_after_a_plain_analysis_does_not_corrupt_the_heap():
+    # A marked analysis, a plain one, a marked one again on one handle: what a second run of a simulation
+    # does (its first step resumes without marks). Re-analysing a handle in place aborted the process
+    # ("munmap_chunk(): invalid pointer"); the child must exit cleanly and give a fresh solver's bits.
+    if "pardiso" not in available_linear_solvers():
+        pytest.skip("pardiso not available on this machine")
+    code = (
+        "import numpy as np\n"
+        "from refsim.fem.linear import make_linear_solver\n"
+        "from tests.fem.test_linear import spd_matrix\n"
+        "matrix, marks, other = spd_matrix(343, 8), np.array([3, 4, 100, 200]), np.array([10, 11])\n"
+        "solver = make_linear_solver('pardiso')\n"
+        "solver.factorise(matrix)\n"
+        "for positions in (marks, None, marks, other, None, marks):\n"
+        "    solver.mark(positions)\n"
+        "    if positions is not None:\n"
+        "        solver.inverse_block(positions)\n"
+        "fresh = make_linear_solver('pardiso')\n"
+        "fresh.mark(marks)\n"
+        "fresh.factorise(matrix)\n"
+        "load = np.zeros(343)\n"
+        "load[marks] = 1.0\n"
+        "print(np.array_equal(solver.inverse_block(marks), fresh.inverse_block(marks)),\n"
+        "      np.array_equal(solver.solve_marked(load), fresh.solve_marked(load)))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["True", "True"]
+
+
+def test_a_released_pardiso_solver_refuses_to_solve_and_can_start_again():
+    if "pardiso" not in available_linear_solvers():
+        pytest.skip("pardiso not available on this machine")
+    matrix, marks = spd_matrix(216, 9), np.array([1, 2, 90])
+    rhs = np.arange(216, dtype=float)
+    solver = make_linear_solver("pardiso")
+    solver.mark(marks)
+    solver.factorise(matrix)
+    solver.release()
+    solver.release()  # the handle is freed once
+    load = np.zeros(216)
+    for use in (
+        lambda: solver.solve(rhs),
+        lambda: solver.half_solve(rhs[:, None]),
+        lambda: solver.inverse_block(marks),
+        lambda: solver.solve_marked(load),
+    ):
+        with pytest.raises(LinearSolverError, match="after release"):
+            use()
+    assert solver.marked is None
+    solver.factorise(matrix)  # a new analysis, plain: a fresh solver's bits
+    fresh = make_linear_solver("pardiso")
+    fresh.factorise(matrix)
+    np.testing.assert_array_equal(solver.solve(rhs), fresh.solve(rhs))

@@ -7,11 +7,13 @@ from __future__ import annotations
 import dataclasses
 import logging
 
+import numpy as np
 import pytest
 
 from refsim.scene import SceneError, load_scene
-from refsim.scene.build import build_models
+from refsim.scene.build import _warn_unreachable, build_models
 from refsim.scene.spec import SECTIONS
+from refsim.scene.trajectory import Trajectory
 
 SMALL = ["mesh.cells=[3, 3, 3]", "time.duration=0.1"]
 
@@ -191,3 +193,48 @@ def test_a_huge_length_or_coordinate_is_named_not_the_lengths_it_dwarfs(override
     """The bounds of lengths and coordinates are checked before the floor that is relative to them: a huge
     value is named itself, not a normal length that looks short beside it."""
     assert fragment in _message(*overrides)
+
+
+def _closest_tip_gap_one_pose_at_a_time(scene, trajectory, bounds) -> float:
+    """The tip's closest distance to the bounding box, as the check computed it before it was vectorised:
+    the waypoints and 20 points a segment, one ``Trajectory.pose`` call each."""
+    length = scene.needle.length
+    tips = list(trajectory.base_positions + length * trajectory.directions)
+    times = trajectory.times
+    for i in range(times.size - 1):
+        for t in times[i] + np.linspace(0.0, 1.0, 21) * (times[i + 1] - times[i]):
+            base, direction = trajectory.pose(t)
+            tips.append(base + length * direction)
+    gaps = np.maximum(np.maximum(bounds[0] - np.array(tips), np.array(tips) - bounds[1]), 0.0)
+    return float(np.linalg.norm(gaps, axis=1).min())
+
+
+def test_a_tip_that_never_reaches_the_tissue_warns_as_the_pose_by_pose_check(caplog):
+    # The needle turns about its base from +x to +y; halfway, its tip passes L (1, 1, 0)/√2, which only the
+    # points between the waypoints see. A box there is reached (no warning); moved out along the diagonal
+    # by 3 reaches, it is not, and the warning names the pose-by-pose check's closest distance.
+    scene = load_scene("cube", SMALL)
+    length = scene.needle.length
+    reach = scene.insertion.contact_distance + scene.needle.radius
+    trajectory = Trajectory(
+        np.array([0.0, 1.0, 1.5]), np.zeros((3, 3)), np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 1.0, 0]])
+    )
+    base, direction = trajectory.poses(np.linspace(0.0, 1.5, 31))
+    for k, t in enumerate(np.linspace(0.0, 1.5, 31)):
+        assert np.array_equal(base[k], trajectory.pose(t)[0])
+        assert np.array_equal(direction[k], trajectory.pose(t)[1])
+    middle = length * np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0)
+    half = np.full(3, 0.5 * reach)
+    diagonal = np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0)
+    for shift, warns in ((0.0, False), (3.0 * reach, True)):
+        bounds = np.stack([middle - half, middle + half]) + shift * diagonal
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="refsim.scene"):
+            _warn_unreachable(scene, trajectory, bounds)
+        found = [r.getMessage() for r in caplog.records if "never comes within" in r.getMessage()]
+        if not warns:
+            assert found == []
+            continue
+        closest = _closest_tip_gap_one_pose_at_a_time(scene, trajectory, bounds)
+        assert closest > reach
+        assert len(found) == 1 and f"(closest {closest:.3g} m from its bounding box)" in found[0]
