@@ -179,13 +179,20 @@ def test_a_file_that_is_not_hdf5_says_so(tmp_path):
 
 
 def test_sighup_stops_the_run_like_sigterm(tmp_path):
+    """A terminal that closes stops the run like SIGTERM. The test sets SIGHUP's default disposition first:
+    a test process started under ``nohup`` (or by a runner that ignores SIGHUP) inherits SIGHUP ignored,
+    which the run rightly leaves ignored (the next test), and the run would then complete."""
+
     def send(state, record):
         if record.step == 4:
             os.kill(os.getpid(), signal.SIGHUP)
 
-    previous = signal.getsignal(signal.SIGHUP)
-    summary = run_scene(_scene(), tmp_path / "run.h5", on_step=send)
-    assert signal.getsignal(signal.SIGHUP) is previous
+    inherited = signal.signal(signal.SIGHUP, signal.SIG_DFL)
+    try:
+        summary = run_scene(_scene(), tmp_path / "run.h5", on_step=send)
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_DFL
+    finally:
+        signal.signal(signal.SIGHUP, inherited)
     assert (summary.status, summary.exit_code) == ("hangup", 129)
     results = read_results(tmp_path / "run.h5")
     assert not results.complete and results.step_count == 4 and "SIGHUP" in results.stop_reason
