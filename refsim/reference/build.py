@@ -385,6 +385,11 @@ def _write_case_csv(path: Path, case: Case, answers) -> None:
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
+def _level_label(case: Case, h: float) -> str:
+    """One level's legend: its refined value (h = dt) or the count it is the reciprocal of (h = 1/cells)."""
+    return f"h = {h:.3g}" if case.measure == "value" else f"h = 1/{1 / h:.3g}"
+
+
 def _figure(path: Path, case: Case, spacings, answers) -> None:
     import matplotlib
 
@@ -398,7 +403,7 @@ def _figure(path: Path, case: Case, spacings, answers) -> None:
         if quantity.kind == "curve":
             x = answer["at"]
             for row, h in zip(answer["levels"], spacings, strict=True):
-                axis.plot(x, row, "o-", ms=3, lw=0.8, label=f"h = 1/{1 / h:.3g}")
+                axis.plot(x, row, "o-", ms=3, lw=0.8, label=_level_label(case, h))
             value, band, u = answer["value"], answer["band"], answer["uncertainty"]
             axis.fill_between(x, value - band, value + band, color="0.85", label="reference ± (U + T)")
             axis.fill_between(x, value - u, value + u, color="0.6", label="reference ± U")
@@ -411,9 +416,15 @@ def _figure(path: Path, case: Case, spacings, answers) -> None:
             axis.axhspan(value - u, value + u, color="0.6", label="reference ± U")
             axis.axhline(value, color="k", lw=1.2, label="reference")
             axis.set_xlim(0.0, 1.1 * float(np.max(spacings)))
-            axis.set_xlabel(f"h = 1/{case.refine}")
+            axis.set_xlabel(f"h = {case.refine}" if case.measure == "value" else f"h = 1/{case.refine}")
+            levels = answer["levels"][:, 0]
+            scale = max(abs(float(value)), 1e-300)
+            if max(float(np.ptp(levels)), float(band)) < 1e-9 * scale:
+                # a converged answer (an event that happens, a threshold): on the answer's own scale, not on
+                # an axis of its round-off
+                axis.set_ylim(value - 0.1 * scale, value + 0.1 * scale)
         axis.set_title(quantity.name, fontsize=9)
-        axis.ticklabel_format(axis="both", style="sci", scilimits=(-2, 3))
+        axis.ticklabel_format(axis="both", style="sci", scilimits=(-2, 3), useOffset=False)
         axis.tick_params(labelsize=7)
         axis.set_ylabel(f"[{quantity.unit}]")
         axis.legend(fontsize=6)
