@@ -1,0 +1,583 @@
+"""The compliance strategies (exact, refreshed, precomputed, fast), each a factory and the body it binds to:
+how A⁻¹ is applied for a step's free motion, W and correction (:mod:`refsim.fem.compliance`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from refsim.fem.compliance.system import (
+    PartialSolveMarks,
+    StaleFactor,
+    StepCompliance,
+    StepSystem,
+    _rotate_node_block,
+    _rotate_nodes,
+    pcg,
+)
+from refsim.fem.linear import make_linear_solver
+from refsim.fem.threads import hot_path_threads
+
+#: How the refreshed strategy updates W between factorisations (:class:`Refreshed`'s ``compliance_update``, a
+#: scene's ``compliance.w_update``); the first is the default.
+W_UPDATES = ("pcg", "first_order", "stale")
+
+
+class BodyCompliance:
+    """A strategy bound to one body for a run: holds the factor(s) that live across steps.
+
+    What a step changes is returned by :meth:`carried` and taken back by :meth:`resume`, so that the run's
+    state holds it; what a body keeps besides is a memo of its model (and ``steps``, a count no result
+    reads).
+
+    ``matrix_storage`` is what its steps read of ``StepSystem.matrix``: "full", or "upper" when the upper
+    triangle is enough (the exact strategy on PARDISO), so that the body may assemble only that."""
+
+    matrix_storage = "full"
+
+    def __init__(self, strategy) -> None:
+        self.strategy = strategy
+        self.steps = 0
+        self._exact = (
+            _ExactBody(strategy.linear_solver, partial=False)
+            if getattr(strategy, "against_exact", False)
+            else None
+        )
+
+    def carried(self) -> StaleFactor | None:
+        """What the next step depends on besides the model: None (the exact and precomputed strategies)."""
+        return None
+
+    def resume(self, carried: StaleFactor | None) -> None:
+        """Continue from ``carried`` (:meth:`carried` of some earlier step, or None: a run's start)."""
+
+    def step(self, system: StepSystem) -> StepCompliance:
+        """The compliance of this step's system (advances the strategy's step counter)."""
+        with hot_path_threads():
+            return self._counted_step(system)
+
+    def _counted_step(self, system: StepSystem) -> StepCompliance:
+        if system.upper_triangle and self.matrix_storage != "upper":
+            raise ValueError(
+                "this strategy reads A in full storage; the system holds its upper triangle only"
+            )
+        exact = self._exact.step(system) if self._exact is not None else None
+        result = self._step(system, exact)
+        self.steps += 1
+        return result
+
+    def _step(self, system: StepSystem, exact) -> StepCompliance:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+class _ExactBody(BodyCompliance):
+    def __init__(self, linear_solver: str, *, partial: bool = True) -> None:
+        self.strategy = None
+        self.steps = 0
+        self._exact = None
+        self._solver = make_linear_solver(linear_solver)
+        # W by partial solves where the solver has them (PARDISO); an error-report twin (partial=False) keeps
+        # the plain analysis, so that its bits depend on no history
+        self._partial = partial and hasattr(self._solver, "inverse_block")
+        self.matrix_storage = getattr(self._solver, "storage", "full")
+
+    def carried(self) -> PartialSolveMarks | None:
+        """The positions the factor's analysis marked for partial solves; None when none are (or no partial
+        solves)."""
+        if not self._partial or self._solver.marked is None:
+            return None
+        marks = self._solver.marked.copy()
+        marks.setflags(write=False)
+        return PartialSolveMarks(marks)
+
+    def resume(self, carried: PartialSolveMarks | None) -> None:
+        """Continue with the marks of ``carried`` (None: a plain analysis); the analysis runs again only when
+        they differ from the solver's."""
+        if not self._partial:
+            return
+        self._solver.mark(carried.positions if isinstance(carried, PartialSolveMarks) else None)
+
+    def _inverse_block(self, system: StepSystem, positions: np.ndarray) -> np.ndarray:
+        """(A⁻¹)_uu on ``positions``; when they are not the marked ones, the analysis marks exactly them and
+        the matrix is factorised again. Exactly those: the partial solve's work and the ordering's fill grow
+        with the marked set (docs/speed.md)."""
+        solver = self._solver
+        marked = solver.marked
+        if marked is None or not np.array_equal(positions, marked):
+            solver.mark(positions)
+        return solver.inverse_block(positions)
+
+    def _step(self, system: StepSystem, exact) -> StepCompliance:
+        self._solver.factorise(system.matrix)
+        solver = self._solver
+        free = solver.solve(system.rhs)
+        size = system.free_dofs.size
+
+        def columns(positions):
+            unit = np.zeros((size, positions.size))
+            unit[positions, np.arange(positions.size)] = 1.0
+            return solver.solve(unit)
+
+        return StepCompliance(
+            system,
+            free,
+            columns,
+            {"refactorised": True},
+            exact,
+            solver.solve,
+            half_solve=getattr(solver, "half_solve", None),
+            inverse_block=(
+                (lambda positions: self._inverse_block(system, positions)) if self._partial else None
+            ),
+            marked_solve=solver.solve_marked if self._partial else None,
+        )
+
+
+def _check_common(linear_solver: str, against_exact: bool) -> None:
+    if not isinstance(linear_solver, str):
+        raise ValueError(f"linear_solver must be a string, got {linear_solver!r}")
+    if not isinstance(against_exact, bool):
+        raise ValueError(f"against_exact must be true or false, got {against_exact!r}")
+
+
+@dataclass(frozen=True)
+class Exact:
+    """Refactorise every step (the reference).
+
+    Parameters
+    ----------
+    linear_solver : "auto" (default: :func:`refsim.fem.linear.default_linear_solver`), "pardiso", "cholmod" or
+        "superlu".
+    """
+
+    linear_solver: str = "auto"
+    name: str = field(default="exact", init=False)
+
+    @classmethod
+    def configured(
+        cls, *, refresh_every: int, linear_solver: str, against_exact: bool, tolerance: float, w_update: str
+    ) -> Exact:
+        """From a scene's ``compliance`` section (make_strategy): the keys this strategy reads."""
+        return cls(linear_solver=linear_solver)
+
+    def __post_init__(self) -> None:
+        _check_common(self.linear_solver, False)
+
+    def bind(self) -> BodyCompliance:
+        """A fresh per-body, per-run compliance."""
+        body = _ExactBody(self.linear_solver)
+        body.strategy = self
+        return body
+
+
+class _RefreshedBody(BodyCompliance):
+    def __init__(self, strategy: Refreshed) -> None:
+        super().__init__(strategy)
+        self._solver = make_linear_solver(strategy.linear_solver)
+        self._age = None
+        self._factored = None  # the matrix of the stale factor
+
+    def carried(self) -> StaleFactor | None:
+        """The stale factor's matrix and age; None before the first step."""
+        return None if self._age is None else StaleFactor(self._factored, self._age)
+
+    def resume(self, carried: StaleFactor | None) -> None:
+        """Continue from a carried factor: its matrix factorised again (unless it is the one held) and its
+        age; None refactorises at the next step."""
+        if carried is None:
+            self._age = self._factored = None
+            return
+        if carried.matrix is not self._factored:
+            self._solver.factorise(carried.matrix)
+            self._factored = carried.matrix
+        self._age = carried.age
+
+    def _step(self, system: StepSystem, exact) -> StepCompliance:
+        strategy = self.strategy
+        refactorised = self._age is None or self._age >= strategy.refresh_every
+        if refactorised:
+            self._solver.factorise(system.matrix)
+            self._factored = system.matrix.copy()
+            self._age = 0
+        self._age += 1
+        solver, matrix = self._solver, system.matrix
+        if refactorised:
+            free, iterations, residual = solver.solve(system.rhs), 0, 0.0
+        else:
+            free, iterations, residual = pcg(
+                matrix.dot,
+                solver.solve,
+                system.rhs,
+                tolerance=strategy.tolerance,
+                max_iterations=strategy.max_iterations,
+            )
+        report = {"refactorised": refactorised, "pcg_iterations": iterations, "pcg_residual": residual}
+        size = system.free_dofs.size
+
+        def columns(positions):
+            unit = np.zeros((size, positions.size))
+            unit[positions, np.arange(positions.size)] = 1.0
+            if refactorised or strategy.compliance_update in ("stale", "first_order"):
+                return solver.solve(unit)
+            solution, column_iterations, column_residual = pcg(
+                matrix.dot,
+                solver.solve,
+                unit,
+                tolerance=strategy.tolerance,
+                max_iterations=strategy.max_iterations,
+            )
+            report["column_pcg_iterations"] = column_iterations
+            report["column_pcg_residual"] = column_residual
+            return solution
+
+        block = apply = None
+        if strategy.compliance_update == "first_order" and not refactorised:
+            change = _difference(matrix, self._factored)
+
+            def block(positions, influence):
+                # A⁻¹ = A₀⁻¹ − A₀⁻¹ ΔA A₀⁻¹ + O(‖A₀⁻¹ΔA‖²): E_uᵀA⁻¹E_u ≈ Z₀[u] − Z₀ᵀ ΔA Z₀, Z₀ = A₀⁻¹ E_u.
+                first = influence[positions] - influence.T @ (change @ influence)
+                return 0.5 * (first + first.T)
+
+            def apply(load, start):
+                solution, load_iterations, _ = pcg(
+                    matrix.dot,
+                    solver.solve,
+                    load,
+                    tolerance=strategy.tolerance,
+                    max_iterations=strategy.max_iterations,
+                    start=start,
+                )
+                report["correction_pcg_iterations"] = load_iterations
+                return solution
+
+        return StepCompliance(system, free, columns, report, exact, block=block, apply=apply)
+
+
+def _difference(matrix: sp.csr_matrix, reference: sp.csr_matrix) -> sp.csr_matrix:
+    """matrix − reference, on their common pattern when they share it (the usual case: one pattern per
+    run)."""
+    if (
+        matrix.shape == reference.shape
+        and matrix.nnz == reference.nnz
+        and np.array_equal(matrix.indptr, reference.indptr)
+        and np.array_equal(matrix.indices, reference.indices)
+    ):
+        return sp.csr_matrix(
+            (matrix.data - reference.data, matrix.indices, matrix.indptr), shape=matrix.shape
+        )
+    return (matrix - reference).tocsr()
+
+
+@dataclass(frozen=True)
+class Refreshed:
+    """Factorise every ``refresh_every`` steps; free motion (and by default W's columns) by PCG on the current
+    A.
+
+    Parameters
+    ----------
+    refresh_every : Steps between factorisations, ≥ 1 (1 is the exact strategy with extra CG checks).
+    tolerance : Relative residual of the PCG solves, in (0, 1).
+    max_iterations : PCG iteration cap per solve, ≥ 1.
+    compliance_update : "pcg" (W's columns solved on the current A to ``tolerance``), "stale" (the stale
+        factor's W and correction) or "first_order" (W corrected to first order, W ≈ H(Z₀ − Z₀ᵀ(A − A₀)Z₀)Hᵀ
+        with Z₀ = A₀⁻¹E_u from the stale factor, error O(‖A₀⁻¹(A − A₀)‖²) relative; the correction by PCG to
+        ``tolerance``).
+    linear_solver : As for :class:`Exact`.
+    against_exact : Also compute the exact answer each step and report the errors (for benchmarks).
+    """
+
+    refresh_every: int = 10
+    tolerance: float = 1e-10
+    max_iterations: int = 200
+    compliance_update: str = "pcg"
+    linear_solver: str = "auto"
+    against_exact: bool = False
+    name: str = field(default="refreshed", init=False)
+
+    @classmethod
+    def configured(
+        cls, *, refresh_every: int, linear_solver: str, against_exact: bool, tolerance: float, w_update: str
+    ) -> Refreshed:
+        """From a scene's ``compliance`` section (make_strategy): the keys this strategy reads."""
+        return cls(
+            refresh_every=refresh_every,
+            tolerance=tolerance,
+            linear_solver=linear_solver,
+            against_exact=against_exact,
+            compliance_update=w_update,
+        )
+
+    def __post_init__(self) -> None:
+        _check_common(self.linear_solver, self.against_exact)
+        if (
+            not isinstance(self.refresh_every, int)
+            or isinstance(self.refresh_every, bool)
+            or self.refresh_every < 1
+        ):
+            raise ValueError(f"refresh_every = {self.refresh_every!r}: expected an integer >= 1")
+        if not (0.0 < self.tolerance < 1.0):
+            raise ValueError(f"tolerance = {self.tolerance!r}: expected a number in (0, 1)")
+        if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
+            raise ValueError(f"max_iterations = {self.max_iterations!r}: expected an integer >= 1")
+        if self.compliance_update not in W_UPDATES:
+            raise ValueError(
+                f"compliance_update = {self.compliance_update!r}: expected one of {', '.join(W_UPDATES)}"
+            )
+
+    def bind(self) -> BodyCompliance:
+        """A fresh per-body, per-run compliance."""
+        return _RefreshedBody(self)
+
+
+class _PrecomputedBody(BodyCompliance):
+    def __init__(self, strategy: Precomputed) -> None:
+        super().__init__(strategy)
+        self._solver = make_linear_solver(strategy.linear_solver)
+        self._dense = None
+        self._ready = False
+
+    def _prepare(self, system: StepSystem) -> None:
+        if system.rest_matrix is None or system.group_rotations is None:
+            raise ValueError(
+                "the precomputed strategy needs a body with a rest matrix and per-node rotations"
+            )
+        if (
+            system.dof_count % 3
+            or np.any(np.diff(system.free_dofs.reshape(-1, 3), axis=1) != 1)
+            or np.any(system.free_dofs.reshape(-1, 3)[:, 0] % 3)
+        ):
+            raise ValueError("the precomputed strategy needs whole 3-DoF groups free or constrained")
+        self._solver.factorise(system.rest_matrix())
+        size = system.free_dofs.size
+        if size <= self.strategy.dense_limit:
+            self._dense = self._solver.solve(np.eye(size))
+        self._groups = system.free_dofs.reshape(-1, 3)[:, 0] // 3
+        self._ready = True
+
+    def _rest_columns(self, loads: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """C₀ applied to loads supported on the free positions ``positions``, shape (f, k)."""
+        if self._dense is not None:
+            return self._dense[:, positions] @ loads[positions]
+        return self._solver.solve(loads)
+
+    def _step(self, system: StepSystem, exact) -> StepCompliance:
+        if not self._ready:
+            self._prepare(system)
+        strategy = self.strategy
+        free, iterations, residual = pcg(
+            system.matrix.dot,
+            self._solver.solve,
+            system.rhs,
+            tolerance=strategy.tolerance,
+            max_iterations=strategy.max_iterations,
+        )
+        report = {"refactorised": False, "pcg_iterations": iterations, "pcg_residual": residual}
+        rotations = system.group_rotations()[self._groups]  # (f/3, 3, 3), one per free node
+        size = system.free_dofs.size
+
+        def columns(positions):
+            # Rᵀ e_j: only the 3-DoF groups of the used DoFs carry a load.
+            groups = np.unique(positions // 3)
+            support = (3 * groups[:, None] + np.arange(3)).ravel()
+            unit = np.zeros((size, positions.size))
+            unit[positions, np.arange(positions.size)] = 1.0
+            loads = np.zeros_like(unit)
+            loads[support] = _rotate_nodes(rotations[groups], unit[support], transpose=True)
+            return _rotate_nodes(rotations, self._rest_columns(loads, support))
+
+        return StepCompliance(system, free, columns, report, exact)
+
+
+@dataclass(frozen=True)
+class Precomputed:
+    """The rest compliance rotated per node (SOFA's precomputed constraint correction); free motion by PCG.
+
+    Parameters
+    ----------
+    tolerance, max_iterations : Of the free motion's PCG (preconditioned by the rest factor).
+    dense_limit : Largest free DoF count for which C₀ is stored dense (f² · 8 bytes).
+    linear_solver, against_exact : As for :class:`Refreshed`.
+    """
+
+    tolerance: float = 1e-10
+    max_iterations: int = 500
+    dense_limit: int = 4000
+    linear_solver: str = "auto"
+    against_exact: bool = False
+    name: str = field(default="precomputed", init=False)
+
+    @classmethod
+    def configured(
+        cls, *, refresh_every: int, linear_solver: str, against_exact: bool, tolerance: float, w_update: str
+    ) -> Precomputed:
+        """From a scene's ``compliance`` section (make_strategy): the keys this strategy reads."""
+        return cls(tolerance=tolerance, linear_solver=linear_solver, against_exact=against_exact)
+
+    def __post_init__(self) -> None:
+        _check_common(self.linear_solver, self.against_exact)
+        if not (0.0 < self.tolerance < 1.0):
+            raise ValueError(f"tolerance = {self.tolerance!r}: expected a number in (0, 1)")
+        if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
+            raise ValueError(f"max_iterations = {self.max_iterations!r}: expected an integer >= 1")
+
+    def bind(self) -> BodyCompliance:
+        """A fresh per-body, per-run compliance."""
+        return _PrecomputedBody(self)
+
+
+class _FastBody(BodyCompliance):
+    def __init__(self, strategy: Fast) -> None:
+        super().__init__(strategy)
+        self._solver = make_linear_solver(strategy.linear_solver)
+        # without the error report, the tissue builds its step system with an operator and no matrix
+        self.matrix_free = not strategy.against_exact
+        self._ready = False
+
+    def _prepare(self, system: StepSystem) -> None:
+        if system.rest_matrix is None or system.group_rotations is None:
+            raise ValueError("the fast strategy needs a body with a rest matrix and per-node rotations")
+        if (
+            system.dof_count % 3
+            or np.any(np.diff(system.free_dofs.reshape(-1, 3), axis=1) != 1)
+            or np.any(system.free_dofs.reshape(-1, 3)[:, 0] % 3)
+        ):
+            raise ValueError("the fast strategy needs whole 3-DoF groups free or constrained")
+        self._solver.factorise(system.rest_matrix())
+        self._groups = system.free_dofs.reshape(-1, 3)[:, 0] // 3
+        self._size = system.free_dofs.size
+        # C₀ = A₀⁻¹ column blocks, one (f, 3) block per free node, solved the first time a row touches the
+        # node: ``_slot[g]`` is its block in ``_store`` (-1: not yet)
+        self._slot = np.full(self._groups.size, -1, dtype=np.int64)
+        self._store = np.zeros((self._size, 0))
+        self._filled = 0
+        self._ready = True
+
+    def _rest_blocks(self, groups: np.ndarray) -> np.ndarray:
+        """The columns of ``_store`` holding C₀ E_g for the free node groups ``groups`` (sorted, unique),
+        shape (3 · groups.size,), solving the blocks not held yet.
+
+        Each node's block is one (f, 3) solve of the rest factor, done once per run whatever else is asked
+        with it, so the memo's bits depend on no history (a restarted run computes the same blocks)."""
+        missing = groups[self._slot[groups] < 0]
+        if missing.size:
+            needed = 3 * (self._filled + missing.size)
+            if needed > self._store.shape[1]:
+                grown = np.zeros((self._size, max(needed, 2 * self._store.shape[1])))
+                grown[:, : 3 * self._filled] = self._store[:, : 3 * self._filled]
+                self._store = grown
+            unit = np.zeros((self._size, 3))
+            for group in missing:  # each node once per run (the memo's bits: one solve per node)
+                unit[3 * group : 3 * group + 3] = np.eye(3)
+                self._store[:, 3 * self._filled : 3 * self._filled + 3] = self._solver.solve(unit)
+                unit[3 * group : 3 * group + 3] = 0.0
+                self._slot[group] = self._filled
+                self._filled += 1
+        return (3 * self._slot[groups][:, None] + np.arange(3)).ravel()
+
+    def _step(self, system: StepSystem, exact) -> StepCompliance:
+        if not self._ready:
+            self._prepare(system)
+        strategy = self.strategy
+        rotations = system.group_rotations()[self._groups]  # (f/3, 3, 3), one per free node
+        solver = self._solver
+
+        def warped(load: np.ndarray) -> np.ndarray:
+            # R C₀ Rᵀ load: the rest compliance in each node's rotated frame
+            return _rotate_nodes(rotations, solver.solve(_rotate_nodes(rotations, load, transpose=True)))
+
+        free, iterations, residual = pcg(
+            system.product,
+            warped,
+            system.rhs,
+            tolerance=strategy.tolerance,
+            max_iterations=strategy.max_iterations,
+        )
+        report = {"refactorised": False, "pcg_iterations": iterations, "pcg_residual": residual}
+        before = self._filled
+
+        def inverse_block(positions):
+            # (R C₀ Rᵀ)_uu from the C₀ blocks of the nodes the rows touch
+            groups = np.unique(positions // 3)
+            support = (3 * groups[:, None] + np.arange(3)).ravel()
+            columns = self._rest_blocks(groups)  # (solves the new blocks, which may grow the store)
+            block = self._store[np.ix_(support, columns)]  # C₀ on the support
+            # R_s C₀ R_sᵀ, R_s block-diagonal
+            rotated = _rotate_node_block(rotations[groups], block)
+            where = np.searchsorted(support, positions)
+            report["rest_blocks_solved"] = self._filled - before
+            return rotated[np.ix_(where, where)]
+
+        def apply(load):
+            # R C₀ Rᵀ load for a load on few nodes (the correction's Hᵀλ), from the same C₀ blocks
+            load = np.asarray(load, dtype=float)
+            grouped = load.reshape(rotations.shape[0], 3, -1)
+            groups = np.flatnonzero(np.any(grouped != 0.0, axis=(1, 2)))
+            if groups.size == 0:
+                return np.zeros_like(load)
+            local = _rotate_nodes(
+                rotations[groups], grouped[groups].reshape(3 * groups.size, -1), transpose=True
+            )
+            # only the load's node blocks, in node order: the product's bits then depend on no history
+            rest = self._store[:, self._rest_blocks(groups)] @ local
+            return _rotate_nodes(rotations, rest).reshape(load.shape)
+
+        return StepCompliance(system, free, None, report, exact, apply, inverse_block=inverse_block)
+
+
+@dataclass(frozen=True)
+class Fast:
+    """No matrix assembled or factorised during the run: the rest compliance rotated per node for W and the
+    correction, free motion by CG on the current A applied per tet, preconditioned by the same rotated rest
+    compliance.
+
+    Parameters
+    ----------
+    tolerance, max_iterations : Of the free motion's PCG (relative residual; iteration cap). The free motion's
+        relative error is then at most κ(A) · tolerance (a worst case). 1e-4: on the medium liver 1.2 CG
+        iterations per step against 2.1 for 1e-6, with the same needle-force error against exact (cube_cut:
+        4.24e-2 N at 1e-6, 1e-4 and 1e-2; medium liver: 2.2e-5 and 2.3e-5 N): W's error dominates.
+    linear_solver : The rest factor's solver, as for :class:`Exact`.
+    against_exact : As for :class:`Refreshed` (the step system is then assembled, for the exact twin).
+    """
+
+    tolerance: float = 1e-4
+    max_iterations: int = 200
+    linear_solver: str = "auto"
+    against_exact: bool = False
+    name: str = field(default="fast", init=False)
+
+    @classmethod
+    def configured(
+        cls, *, refresh_every: int, linear_solver: str, against_exact: bool, tolerance: float, w_update: str
+    ) -> Fast:
+        """From a scene's ``compliance`` section (make_strategy): the keys this strategy reads."""
+        return cls(linear_solver=linear_solver, against_exact=against_exact)
+
+    def __post_init__(self) -> None:
+        _check_common(self.linear_solver, self.against_exact)
+        if not (0.0 < self.tolerance < 1.0):
+            raise ValueError(f"tolerance = {self.tolerance!r}: expected a number in (0, 1)")
+        if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
+            raise ValueError(f"max_iterations = {self.max_iterations!r}: expected an integer >= 1")
+
+    def bind(self) -> BodyCompliance:
+        """A fresh per-body, per-run compliance."""
+        return _FastBody(self)
+
+
+#: The compliance strategies by name (a scene's ``compliance.strategy``): a new strategy is its class here.
+STRATEGY_CLASSES = {strategy.name: strategy for strategy in (Exact, Refreshed, Precomputed, Fast)}
+#: Their names.
+STRATEGIES = tuple(STRATEGY_CLASSES)
+#: Every strategy with each of its W updates, by the names benchmarks use: "refreshed" with the default
+#: update, "refreshed_<update>" with another.
+STRATEGY_VARIANTS = tuple(
+    variant
+    for name in STRATEGIES
+    for variant in (
+        (name, *(f"{name}_{update}" for update in W_UPDATES[1:])) if name == Refreshed.name else (name,)
+    )
+)
