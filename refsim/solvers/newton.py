@@ -53,6 +53,7 @@ from refsim.solvers.linear import (
     _gesv,
 )
 from refsim.solvers.newton_kernel import (
+    NewtonProblem,
     _dense_newton,
     _dense_newton_fresh,
     _presweep,
@@ -264,7 +265,7 @@ def _solve_dense_compiled(
 ) -> NewtonResult:
     """solve_newton on dense storage, every iteration in the compiled kernel :func:`_dense_newton`."""
     compliance, history, counts, final = _kernel_buffers(problem, max_iterations, 2)
-    outcome = _dense_newton(
+    kernel_problem = NewtonProblem(
         compliance,
         free_gap,
         kinds,
@@ -275,6 +276,9 @@ def _solve_dense_compiled(
         float(free_norm),
         float(data_scale),
         float(force_scale),
+    )
+    outcome = _dense_newton(
+        kernel_problem,
         multipliers,
         float(tolerance),
         int(max_iterations),
@@ -581,13 +585,18 @@ class _LayeredMaps:
         compliance = np.ascontiguousarray(self.problem.compliance)
         start_point = multipliers.copy()
         n = multipliers.size
-        swept, _, replaced, _, _, _ = _presweep(
+        kernel_problem = NewtonProblem(
             compliance,
-            *_sweep_arrays(compliance),
             self.free_gap,
             *self.blocks,
-            self.free_norm,
-            self.data_scale,
+            self.weight,
+            float(self.free_norm),
+            float(self.data_scale),
+            float(self.force_scale),
+        )
+        swept, _, replaced, _, _, _ = _presweep(
+            kernel_problem,
+            *_sweep_arrays(compliance),
             start_point,
             max(residual, data),
             float(tolerance),

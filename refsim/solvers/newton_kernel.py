@@ -3,9 +3,10 @@ numba call (no Python call per iteration), in named stages: the start with its G
 (:func:`_start`, :func:`_presweep`), the direction of each step (:func:`_newton_direction`: Jacobian blocks,
 J + η I, the reduced or full solve of :mod:`refsim.solvers.linear`), the next point (:func:`_next_point`:
 line search or fallback sweeps) and the bookkeeping of :func:`_dense_newton`; and the set-up of a fresh
-problem in the same call (:func:`_dense_newton_fresh`). Its work arrays are allocated once per solve
-(:func:`_workspace`) and handed down as two named tuples, :class:`_IterateWork` and
-:class:`~refsim.solvers.linear.DirectionWork`. The method is described in :mod:`refsim.solvers.newton`.
+problem in the same call (:func:`_dense_newton_fresh`). The problem goes down the stages as one named tuple,
+:class:`NewtonProblem`; the work arrays are allocated once per solve (:func:`_workspace`) and handed down as
+two more, :class:`_IterateWork` and :class:`~refsim.solvers.linear.DirectionWork`. The method is described
+in :mod:`refsim.solvers.newton`.
 """
 
 from __future__ import annotations
@@ -42,6 +43,33 @@ __all__: list[str] = []  # internal to refsim.solvers.newton
 _KEEP_SWEPT = 0.5
 
 
+class NewtonProblem(NamedTuple):
+    """The constraint problem as every stage of the kernel reads it: W, δ_free, the law blocks of
+    :func:`~refsim.solvers.laws.assemble_blocks` and the scales of :func:`~refsim.solvers.residual._scales`
+    (one tuple handed down, so that no stage takes these by position)."""
+
+    #: W, C-contiguous (n, n)
+    compliance: np.ndarray
+    #: δ_free (n,)
+    free_gap: np.ndarray
+    #: the law of each block
+    kinds: np.ndarray
+    #: each block's rows
+    rows: np.ndarray
+    #: each block's law parameters
+    params: np.ndarray
+    #: the rows each block's bound depends on
+    members: np.ndarray
+    #: the natural map's weight per row
+    weight: np.ndarray
+    #: ‖δ_free‖
+    free_norm: float
+    #: the data residual's scale, max(‖δ_free‖, F_data)
+    data_scale: float
+    #: F_data, the forces' scale
+    force_scale: float
+
+
 @numba.njit(cache=True)
 def _finite_and_short(direction, limit):
     total = 0.0
@@ -67,16 +95,9 @@ def _sweep_arrays(compliance):
 
 @numba.njit(cache=True)
 def _presweep(
-    compliance,
+    problem,
     transposed,
     diagonal,
-    free_gap,
-    kinds,
-    rows,
-    params,
-    members,
-    free_norm,
-    data_scale,
     best,
     best_value,
     tolerance,
@@ -95,6 +116,13 @@ def _presweep(
     max(natural, data residual) of ``best`` on exit, whether ``best`` was replaced, its natural and data
     residual then (on the gap from scratch: what the caller would compute again; NaN when not replaced),
     whether they meet the tolerance)."""
+    compliance, free_gap, free_norm, data_scale = (
+        problem.compliance,
+        problem.free_gap,
+        problem.free_norm,
+        problem.data_scale,
+    )
+    kinds, rows, params, members = problem.kinds, problem.rows, problem.params, problem.members
     candidate[:] = best  # ``candidate`` and ``gap`` (n,): work arrays
     _gap_into(compliance, candidate, free_gap, gap)
     values = np.empty(budget)
@@ -239,36 +267,39 @@ def _direction(kinds, rows, members, work, limit, unregularised):
 
 
 @numba.njit(cache=True, inline="always")  # a stage of _dense_newton, inlined: no compile of its own
-def _newton_direction(
-    compliance,
-    kinds,
-    rows,
-    params,
-    members,
-    weight,
-    multipliers,
-    gap,
-    error,
-    theta,
-    force_scale,
-    eta_max,
-    level,
-    work,
-):
+def _newton_direction(problem, multipliers, gap, error, theta, eta_max, level, work):
     """One iteration's linear stage: the Jacobian blocks at λ, J + η I assembled dense (η = 0 at level 0,
     else min(η_max, ‖F‖/F_data) 10^(level−1), at least 1e-14) and the direction of J d = −F
     (:func:`_direction`, steps longer than 1e4 max(‖λ‖, F_data) rejected). Returns what :func:`_direction`
     returns."""
+    kinds, rows, members, force_scale = problem.kinds, problem.rows, problem.members, problem.force_scale
     n = multipliers.shape[0]
     jacobian_blocks(
-        kinds, rows, params, members, multipliers, gap, weight, work.local, work.gap_factor, work.bound_values
+        kinds,
+        rows,
+        problem.params,
+        members,
+        multipliers,
+        gap,
+        problem.weight,
+        work.local,
+        work.gap_factor,
+        work.bound_values,
     )
     relative = np.sqrt(2.0 * theta) / force_scale
     eta = 0.0
     if level > 0:
         eta = max(min(eta_max, relative) * 10.0 ** (level - 1), 1e-14)
     _dense_jacobian(
-        compliance, kinds, rows, work.local, work.gap_factor, members, work.bound_values, eta, work.jacobian
+        problem.compliance,
+        kinds,
+        rows,
+        work.local,
+        work.gap_factor,
+        members,
+        work.bound_values,
+        eta,
+        work.jacobian,
     )
     limit = 1e4 * max(np.sqrt(np.dot(multipliers, multipliers)), force_scale)
     for i in range(n):
@@ -277,22 +308,7 @@ def _newton_direction(
 
 
 @numba.njit(cache=True)
-def _line_search(
-    compliance,
-    free_gap,
-    kinds,
-    rows,
-    params,
-    members,
-    weight,
-    multipliers,
-    direction,
-    theta,
-    reference,
-    candidate,
-    candidate_gap,
-    error,
-):
+def _line_search(problem, multipliers, direction, theta, reference, candidate, candidate_gap, error):
     """The non-monotone Armijo backtracking from λ along d: the first step 1, 1/2, ... ≥ 2⁻¹² whose merit
     θ(λ + s d) ≤ reference − 1e-4 s 2θ. The candidate, its gap and its natural-map error are left in the
     buffers. Returns (accepted, the last candidate's θ)."""
@@ -302,8 +318,17 @@ def _line_search(
     while step >= 2.0**-12:
         for i in range(n):
             candidate[i] = multipliers[i] + step * direction[i]
-        _gap_into(compliance, candidate, free_gap, candidate_gap)
-        natural_map_blocks(kinds, rows, params, members, candidate, candidate_gap, weight, error)
+        _gap_into(problem.compliance, candidate, problem.free_gap, candidate_gap)
+        natural_map_blocks(
+            problem.kinds,
+            problem.rows,
+            problem.params,
+            problem.members,
+            candidate,
+            candidate_gap,
+            problem.weight,
+            error,
+        )
         candidate_theta = 0.5 * np.dot(error, error)
         if candidate_theta <= reference - 1e-4 * step * 2.0 * theta:
             return True, candidate_theta
@@ -312,23 +337,11 @@ def _line_search(
 
 
 @numba.njit(cache=True)
-def _fallback_sweeps(
-    compliance,
-    transposed,
-    diagonal,
-    free_gap,
-    kinds,
-    rows,
-    params,
-    members,
-    weight,
-    multipliers,
-    candidate,
-    candidate_gap,
-    error,
-):
+def _fallback_sweeps(problem, transposed, diagonal, multipliers, candidate, candidate_gap, error):
     """The line search's fallback: ten projected Gauss–Seidel sweeps from λ into the candidate buffers (its
     gap recomputed after them, its natural-map error into ``error``); returns its merit θ."""
+    compliance, free_gap, weight = problem.compliance, problem.free_gap, problem.weight
+    kinds, rows, params, members = problem.kinds, problem.rows, problem.params, problem.members
     candidate[:] = multipliers
     _gap_into(compliance, candidate, free_gap, candidate_gap)
     for _ in range(10):
@@ -339,27 +352,16 @@ def _fallback_sweeps(
 
 
 @numba.njit(cache=True, inline="always")  # a stage of _dense_newton, inlined: no compile of its own
-def _start(
-    compliance,
-    free_gap,
-    kinds,
-    rows,
-    params,
-    members,
-    weight,
-    free_norm,
-    data_scale,
-    multipliers,
-    tolerance,
-    presweeps,
-    work,
-):
+def _start(problem, multipliers, tolerance, presweeps, work):
     """The start of :func:`_dense_newton`: the merit θ, natural and data residual of the start λ
     (``multipliers``, ``work.start``; ``work.gap`` and ``work.error`` get its gap and natural map,
     ``work.best`` the start), then up to ``presweeps`` Gauss–Seidel sweeps (:func:`_presweep`), whose point
     replaces the start when they improve it. Returns (θ, residual, data residual, max of both, pre-sweeps
     taken, Wᵀ and the sweeps' diagonal (empty when no sweep was taken))."""
     gap, error, scratch, unit, best = work.gap, work.error, work.scratch, work.unit, work.best
+    compliance, free_gap, weight = problem.compliance, problem.free_gap, problem.weight
+    kinds, rows, params, members = problem.kinds, problem.rows, problem.params, problem.members
+    free_norm, data_scale = problem.free_norm, problem.data_scale
     transposed = np.empty((0, 0))
     diagonal = np.empty(0)
     _gap_into(compliance, multipliers, free_gap, gap)
@@ -373,16 +375,9 @@ def _start(
     if presweeps > 0 and not (residual <= tolerance and data <= tolerance):
         transposed, diagonal = _sweep_arrays(compliance)
         swept, value, replaced, residual_swept, data_swept, done = _presweep(
-            compliance,
+            problem,
             transposed,
             diagonal,
-            free_gap,
-            kinds,
-            rows,
-            params,
-            members,
-            free_norm,
-            data_scale,
             best,
             best_value,
             tolerance,
@@ -408,35 +403,14 @@ def _start(
 
 @numba.njit(cache=True, inline="always")  # a stage of _dense_newton, inlined: no compile of its own
 def _next_point(
-    compliance,
-    free_gap,
-    kinds,
-    rows,
-    params,
-    members,
-    weight,
-    multipliers,
-    direction,
-    theta,
-    reference,
-    transposed,
-    diagonal,
-    candidate,
-    candidate_gap,
-    error,
+    problem, multipliers, direction, theta, reference, transposed, diagonal, candidate, candidate_gap, error
 ):
     """The candidate after λ: the line search along d (:func:`_line_search`), or when it fails ten
     Gauss–Seidel sweeps from λ (:func:`_fallback_sweeps`; Wᵀ and the diagonal made on first use). The
     candidate, its gap and natural map are left in ``candidate``, ``candidate_gap`` and ``error``. Returns
     (accepted, the candidate's θ, Wᵀ, diagonal)."""
     accepted, candidate_theta = _line_search(
-        compliance,
-        free_gap,
-        kinds,
-        rows,
-        params,
-        members,
-        weight,
+        problem,
         multipliers,
         direction,
         theta,
@@ -447,17 +421,11 @@ def _next_point(
     )
     if not accepted:
         if transposed.shape[0] == 0:
-            transposed, diagonal = _sweep_arrays(compliance)
+            transposed, diagonal = _sweep_arrays(problem.compliance)
         candidate_theta = _fallback_sweeps(
-            compliance,
+            problem,
             transposed,
             diagonal,
-            free_gap,
-            kinds,
-            rows,
-            params,
-            members,
-            weight,
             multipliers,
             candidate,
             candidate_gap,
@@ -468,16 +436,7 @@ def _next_point(
 
 @numba.njit(cache=True)
 def _dense_newton(
-    compliance,
-    free_gap,
-    kinds,
-    rows,
-    params,
-    members,
-    weight,
-    free_norm,
-    data_scale,
-    force_scale,
+    problem,
     multipliers,
     tolerance,
     max_iterations,
@@ -489,7 +448,8 @@ def _dense_newton(
     counts,
     final,
 ):
-    """The dense Newton iteration of :func:`solve_newton` in compiled code (the same steps, line search and
+    """The dense Newton iteration of :func:`solve_newton` in compiled code on ``problem`` (a
+    :class:`NewtonProblem`) (the same steps, line search and
     Gauss–Seidel fallback; no Python call per iteration). ``multipliers`` is the start on entry and the best
     point on exit; ``history`` (max_iterations + 1,) gets the residual after each iteration.
 
@@ -501,25 +461,14 @@ def _dense_newton(
     fallback sweeps, least-squares steps, history length, pre-sweeps), ``final`` the natural and data
     residual of the answer as :func:`refsim.solvers.residuals` computes them.
     """
-    n = free_gap.shape[0]
+    kinds, rows, params, members = problem.kinds, problem.rows, problem.params, problem.members
+    n = problem.free_gap.shape[0]
     work, memory, linear = _workspace(n, kinds.shape[0], max(memory_size, 1), members.shape[0])
     unit, error, scratch, best = work.unit, work.error, work.scratch, work.best
     work.start[:] = multipliers  # the caller's array is not written
     multipliers = work.start
     theta, residual, data, best_value, swept, transposed, diagonal = _start(
-        compliance,
-        free_gap,
-        kinds,
-        rows,
-        params,
-        members,
-        weight,
-        free_norm,
-        data_scale,
-        multipliers,
-        tolerance,
-        presweeps,
-        work,
+        problem, multipliers, tolerance, presweeps, work
     )
     best_residual = residual
     best_data = data
@@ -544,20 +493,7 @@ def _dense_newton(
             break
         iterations += 1
         direction, ok, singular = _newton_direction(
-            compliance,
-            kinds,
-            rows,
-            params,
-            members,
-            weight,
-            multipliers,
-            gap,
-            error,
-            theta,
-            force_scale,
-            eta_max,
-            level,
-            linear,
+            problem, multipliers, gap, error, theta, eta_max, level, linear
         )
         singular_steps += singular
         if not ok:
@@ -572,13 +508,7 @@ def _dense_newton(
         for k in range(1, min(stored, memory_size)):
             reference = max(reference, memory[k])
         accepted, candidate_theta, transposed, diagonal = _next_point(
-            compliance,
-            free_gap,
-            kinds,
-            rows,
-            params,
-            members,
-            weight,
+            problem,
             multipliers,
             direction,
             theta,
@@ -603,8 +533,8 @@ def _dense_newton(
         multipliers, candidate = candidate, multipliers
         gap, candidate_gap = candidate_gap, gap
         theta = candidate_theta
-        residual = _residual(kinds, rows, params, members, multipliers, gap, free_norm, scratch, unit)
-        data = _data_from_error(scratch, data_scale)  # the error _residual left in scratch
+        residual = _residual(kinds, rows, params, members, multipliers, gap, problem.free_norm, scratch, unit)
+        data = _data_from_error(scratch, problem.data_scale)  # the error _residual left in scratch
         if stop:
             if max(residual, data) < best_value:
                 best_value = max(residual, data)
@@ -636,7 +566,9 @@ def _dense_newton(
     counts[3] = recorded
     counts[4] = swept
     # the report's residuals of the answer, by the kernel of refsim.solvers.natural_residual / data_residual
-    final[0], final[1] = _residual_pair(compliance, free_gap, kinds, rows, params, members, best, force_scale)
+    final[0], final[1] = _residual_pair(
+        problem.compliance, problem.free_gap, kinds, rows, params, members, best, problem.force_scale
+    )
     return best.copy(), iterations, best_residual, best_data, reason
 
 
@@ -668,17 +600,11 @@ def _dense_newton_fresh(
     final = np.empty(2)
     asymmetry = relative_asymmetry(compliance)
     data_scale = max(free_norm, force_scale)
+    problem = NewtonProblem(
+        compliance, free_gap, kinds, rows, params, members, weight, free_norm, data_scale, force_scale
+    )
     best, iterations, residual, data, reason = _dense_newton(
-        compliance,
-        free_gap,
-        kinds,
-        rows,
-        params,
-        members,
-        weight,
-        free_norm,
-        data_scale,
-        force_scale,
+        problem,
         multipliers,
         tolerance,
         max_iterations,
