@@ -185,7 +185,12 @@ class Detector:
         arc_lengths, _ = geometry.needle_previous.project(centres_previous)
         rings = self._rings(path, geometry.needle_previous.tangents(arc_lengths), geometry.mesh_tets)
         block = ring_insertion_block(
-            path, geometry, rings.layout, normal_preload=self.preload, options=self.options
+            path,
+            geometry,
+            rings.layout,
+            normal_preload=self.preload,
+            options=self.options,
+            arc_lengths=arc_lengths,
         )
         # With finite_line, the 3-D sub-grid compliance of the inserted line, which starts at the free
         # surface.
