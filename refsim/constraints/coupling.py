@@ -484,7 +484,8 @@ def ring_weights(path, rings: RingLayout, mesh_tets: np.ndarray) -> tuple[np.nda
 
 
 def _ring_weights_numpy(path, rings: RingLayout, mesh_tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`ring_weights` in NumPy (the compiled pass's reference, ``tests/constraints/test_coupling.py``)."""
+    """:func:`ring_weights` in NumPy (the compiled pass's reference in
+    ``tests/constraints/test_coupling.py``)."""
     point_count = path.point_count
     ring_tets = np.asarray(rings.tets, dtype=np.int64)
     per_ring = ring_tets.shape[1]

@@ -20,7 +20,9 @@ _LARGEST = np.finfo(np.float64).max
 
 
 @numba.njit(cache=True)
-def ring_nodes_weights(centre_tets, centre_barycentric, ring_tets, ring_barycentric, mesh_tets):  # pragma: no cover
+def ring_nodes_weights(
+    centre_tets, centre_barycentric, ring_tets, ring_barycentric, mesh_tets
+):  # pragma: no cover
     """Nodes and weights of ring-averaged rows, shapes (p, 4 (q + 1)) each (q even or 1).
 
     Column block 0 is the centre, weight 1 when no ring point is kept, else 0; block 1 + k the ring point k,

@@ -110,9 +110,15 @@ def _barycentric_into(point, positions, tet, replaced, out, corners, volumes):  
     for sub in range(4):
         o, i, j, k = replaced[sub, 0], replaced[sub, 1], replaced[sub, 2], replaced[sub, 3]
         # The edge vectors a, b, c from the point, component by component (no temporary arrays).
-        a0, a1, a2 = corners[i, 0] - corners[o, 0], corners[i, 1] - corners[o, 1], corners[i, 2] - corners[o, 2]
-        b0, b1, b2 = corners[j, 0] - corners[o, 0], corners[j, 1] - corners[o, 1], corners[j, 2] - corners[o, 2]
-        c0, c1, c2 = corners[k, 0] - corners[o, 0], corners[k, 1] - corners[o, 1], corners[k, 2] - corners[o, 2]
+        a0 = corners[i, 0] - corners[o, 0]
+        a1 = corners[i, 1] - corners[o, 1]
+        a2 = corners[i, 2] - corners[o, 2]
+        b0 = corners[j, 0] - corners[o, 0]
+        b1 = corners[j, 1] - corners[o, 1]
+        b2 = corners[j, 2] - corners[o, 2]
+        c0 = corners[k, 0] - corners[o, 0]
+        c1 = corners[k, 1] - corners[o, 1]
+        c2 = corners[k, 2] - corners[o, 2]
         cross0 = b1 * c2 - b2 * c1
         cross1 = b2 * c0 - b0 * c2
         cross2 = b0 * c1 - b1 * c0
