@@ -14,7 +14,7 @@ import numpy as np
 
 from refsim.kernel_cache import numba
 
-__all__ = ["BoxGrid", "locate_in_tets", "surface_candidates", "tet_spheres"]
+__all__ = ["BoxGrid", "locate_in_tets", "surface_candidates", "tet_spheres", "triangle_spheres"]
 
 # The cell edge is this many times the mean box width (along x).
 _CELL_PER_BOX = 1.0
@@ -343,6 +343,35 @@ def tet_spheres(positions: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np
     one compiled pass."""
     positions = np.ascontiguousarray(positions, dtype=float)
     return _tet_spheres(positions, np.ascontiguousarray(tets, dtype=np.int64))
+
+
+def triangle_spheres(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centroid [m] and bounding radius [m] (the largest centroid–vertex distance) of each triangle (f, 3, 3),
+    shapes (f, 3) and (f,): the bits of ``triangles.mean(axis=1)`` and of the NumPy norm of the vertices'
+    offsets, in one compiled pass (:class:`refsim.geometry.SurfaceProjector` is built on a deformed surface
+    at each query of a step)."""
+    return _triangle_spheres(np.ascontiguousarray(triangles, dtype=float))
+
+
+@numba.njit(cache=True)
+def _triangle_spheres(triangles):  # pragma: no cover - compiled
+    count = triangles.shape[0]
+    centroids = np.empty((count, 3))
+    radii = np.empty(count)
+    for t in range(count):
+        for axis in range(3):
+            centroids[t, axis] = (triangles[t, 0, axis] + triangles[t, 1, axis] + triangles[t, 2, axis]) / 3.0
+        largest = -np.inf
+        for corner in range(3):
+            squares = 0.0
+            for axis in range(3):
+                offset = triangles[t, corner, axis] - centroids[t, axis]
+                squares += offset * offset
+            distance = np.sqrt(squares)
+            if distance > largest or np.isnan(distance):
+                largest = distance
+        radii[t] = largest
+    return centroids, radii
 
 
 @numba.njit(cache=True)
