@@ -28,6 +28,7 @@ Functions of plain arrays: the builder of the rows (``ring_insertion_block``) fo
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -358,11 +359,19 @@ def ring_points(
         return centres[:, None, :].copy()
     first, second = orthonormal_basis(tangents)
     radius = np.broadcast_to(np.asarray(radius, dtype=float), (centres.shape[0],))
-    angles = 2.0 * math.pi * (np.arange(count) + 0.5) / count
-    offsets = radius[:, None, None] * (
-        np.cos(angles)[None, :, None] * first[:, None, :] + np.sin(angles)[None, :, None] * second[:, None, :]
-    )
+    cosines, sines = _ring_angles(count)
+    offsets = radius[:, None, None] * (cosines * first[:, None, :] + sines * second[:, None, :])
     return centres[:, None, :] + offsets
+
+
+@functools.lru_cache(maxsize=64)
+def _ring_angles(count: int) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of a ring's angles 2π (k + ½) / count, shapes (1, count, 1) each (read-only): a function
+    of the count alone, computed once per count."""
+    angles = 2.0 * math.pi * (np.arange(count) + 0.5) / count
+    cosines, sines = np.cos(angles)[None, :, None], np.sin(angles)[None, :, None]
+    cosines.flags.writeable = sines.flags.writeable = False
+    return cosines, sines
 
 
 @dataclass(frozen=True)
@@ -459,14 +468,30 @@ def ring_weights(path, rings: RingLayout, mesh_tets: np.ndarray) -> tuple[np.nda
     -------
     (nodes, weights) : shape (p, 4 (q + 1)) each; Σ weights = 1 per point.
     """
+    ring_tets = np.ascontiguousarray(rings.tets, dtype=np.int64)
+    per_ring = ring_tets.shape[1]
+    if per_ring > 1 and per_ring % 2:
+        raise ValueError(f"ring point count {per_ring} must be even (antipodal pairs)")
+    from refsim.constraints.coupling_kernels import ring_nodes_weights  # numba: imported on first use
+
+    return ring_nodes_weights(
+        np.ascontiguousarray(path.tets, dtype=np.int64),
+        np.ascontiguousarray(path.barycentric, dtype=float),
+        ring_tets,
+        np.ascontiguousarray(rings.barycentric, dtype=float),
+        np.ascontiguousarray(mesh_tets),
+    )
+
+
+def _ring_weights_numpy(path, rings: RingLayout, mesh_tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`ring_weights` in NumPy (the compiled pass's reference in
+    ``tests/constraints/test_coupling.py``)."""
     point_count = path.point_count
     ring_tets = np.asarray(rings.tets, dtype=np.int64)
     per_ring = ring_tets.shape[1]
     inside = ring_tets >= 0
     if per_ring > 1:
-        if per_ring % 2:
-            raise ValueError(f"ring point count {per_ring} must be even (antipodal pairs)")
-        half = per_ring // 2  # the antipode; np.roll(inside, half, axis=1) by slices (np.roll costs more)
+        half = per_ring // 2  # the antipode
         inside &= np.concatenate((inside[:, half:], inside[:, :half]), axis=1)
     counts = inside.sum(axis=1)
     use_centre = counts == 0
@@ -488,6 +513,7 @@ def ring_insertion_block(
     friction_coefficient: float | np.ndarray | None = None,
     normal_preload: np.ndarray | float = 0.0,
     options: InsertionOptions | None = None,
+    arc_lengths: np.ndarray | None = None,
 ) -> RowBlock:
     """Rows of the insertion points, each averaging the tissue over its ring (see module docstring).
 
@@ -509,6 +535,9 @@ def ring_insertion_block(
         (:class:`refsim.constraints.insertion.InsertionOptions`).
     normal_preload : Normal force added in each point's Coulomb bound [N], scalar or shape (p,), ≥ 0
         (:func:`grip_preload`).
+    arc_lengths : The points' arc lengths on the needle at the start of the step [m], shape (p,): the
+        projections of their centres there (``needle_previous.project``), when the caller has them; None:
+        computed here.
     """
     friction_coefficient = _friction_of(path, friction_coefficient, options)
     point_count = path.point_count
@@ -517,8 +546,9 @@ def ring_insertion_block(
         raise ValueError(f"normal_preload = {normal_preload!r} N; valid range [0, inf)")
     nodes, weights = ring_weights(path, rings, geometry.mesh_tets)
     tissue_point_previous, tissue_point_free = geometry.tissue_points(nodes, weights)
-    centre_previous, _ = geometry.tissue_points(geometry.mesh_tets[path.tets], path.barycentric)
-    arc_lengths, _ = geometry.needle_previous.project(centre_previous)
+    if arc_lengths is None:
+        centre_previous = path.positions(geometry.tissue_previous, geometry.mesh_tets)
+        arc_lengths, _ = geometry.needle_previous.project(centre_previous)
     needle_point_free = geometry.needle_free.points(arc_lengths)
     tangents = geometry.needle_free.tangents(arc_lengths)
     first, second = orthonormal_basis(tangents)

@@ -529,24 +529,47 @@ def point_rows(
         np.ascontiguousarray(directions, dtype=float),
         float(sign),
     )
-    # The permutation SciPy's row sort applies to each distinct pattern: sort a probe whose data are the
-    # entries' positions (the sort compares columns only; SciPy sorts every row, or none when all are
-    # sorted).
-    probe = sp.csr_matrix(
-        (
-            np.tile(np.arange(width, dtype=float), firsts.size),
-            columns[firsts].ravel(),
-            np.arange(0, (firsts.size + 1) * width, width, dtype=np.int32),
-        ),
-        shape=(firsts.size, dof_count),
-    )
-    probe.sort_indices()
-    order = probe.data.astype(np.int64).reshape(firsts.size, width)
+    order = _sort_order(columns[firsts], dof_count)
     data, indices, indptr = summed_rows(columns, values, order, pattern)
     matrix = sp.csr_matrix((data, indices, indptr), shape=(row_count, dof_count))
     matrix.has_sorted_indices = True
     matrix.has_canonical_format = True
     return matrix
+
+
+#: The permutations of :func:`_sort_order` by their patterns (at most _SORT_ORDERS_KEPT sets kept).
+_SORT_ORDERS: dict[tuple, np.ndarray] = {}
+_SORT_ORDERS_KEPT = 64
+
+
+def _sort_order(patterns: np.ndarray, dof_count: int) -> np.ndarray:
+    """The permutation SciPy's row sort applies to each distinct pattern (its columns, (u, w) int32), shape
+    (u, w): sort a probe whose data are the entries' positions (the sort compares columns only; SciPy sorts
+    every row, or none when all are sorted).
+
+    The permutation is a function of the patterns alone (std::sort is deterministic), so it is kept by their
+    bytes: the rows of a step's insertion points have the patterns of the last step while their rings and
+    the tets of their material points do not change."""
+    key = (patterns.shape, patterns.tobytes())
+    order = _SORT_ORDERS.get(key)
+    if order is not None:
+        return order
+    count, width = patterns.shape
+    probe = sp.csr_matrix(
+        (
+            np.tile(np.arange(width, dtype=float), count),
+            patterns.ravel(),
+            np.arange(0, (count + 1) * width, width, dtype=np.int32),
+        ),
+        shape=(count, dof_count),
+    )
+    probe.sort_indices()
+    # (left writable: a read-only array is another type for the compiled sum, compiled again)
+    order = probe.data.astype(np.int64).reshape(count, width)
+    if len(_SORT_ORDERS) >= _SORT_ORDERS_KEPT:
+        _SORT_ORDERS.clear()
+    _SORT_ORDERS[key] = order
+    return order
 
 
 def _point_rows_coo(

@@ -119,6 +119,26 @@ def closest_points_on_triangles(points: np.ndarray, triangles: np.ndarray) -> tu
     triangles = np.asarray(triangles, dtype=float)
     if triangles.shape != (points.shape[0], 3, 3):
         raise ValueError(f"triangles must have shape ({points.shape[0]}, 3, 3), got {triangles.shape}")
+    from refsim.geometry.closest_kernel import ericson_regular  # numba: imported on first use
+
+    # Ericson's coordinates on the regular triangles, compiled (the bits of _ericson_path); they are
+    # non-negative in every region in exact arithmetic, anything else is round-off: those pairs and the thin
+    # triangles take the candidate path.
+    barycentric, area2, settled = ericson_regular(
+        np.ascontiguousarray(points), np.ascontiguousarray(triangles), _THIN_AREA
+    )
+    careful = ~settled
+    if np.any(careful):
+        with_face = area2[careful] > 0.0
+        barycentric[careful] = _candidate_barycentric(points[careful], triangles[careful], with_face)
+    closest = np.einsum("qk,qki->qi", barycentric, triangles)
+    return closest, barycentric
+
+
+def _ericson_path(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The regular triangles' part of :func:`closest_points_on_triangles` in NumPy (the compiled
+    :func:`refsim.geometry.closest_kernel.ericson_regular`'s reference): barycentric coordinates (q, 3),
+    zero where not settled, |ab × ac| (q,) and whether Ericson's formulas settled each pair (q,)."""
     barycentric = np.zeros((points.shape[0], 3))
     longest2 = _longest_edge_squared(triangles)
     area2 = np.linalg.norm(
@@ -126,16 +146,11 @@ def closest_points_on_triangles(points: np.ndarray, triangles: np.ndarray) -> tu
     )
     regular = area2 >= _THIN_AREA * longest2
     ericson = _ericson_barycentric(points[regular], triangles[regular])
-    # Ericson's coordinates are non-negative in every region in exact arithmetic; anything else is round-off.
     trusted = np.all(np.isfinite(ericson), axis=1) & np.all(ericson >= 0.0, axis=1)
-    barycentric[np.flatnonzero(regular)[trusted]] = ericson[trusted]
-    careful = ~regular
-    careful[np.flatnonzero(regular)[~trusted]] = True
-    if np.any(careful):
-        with_face = area2[careful] > 0.0
-        barycentric[careful] = _candidate_barycentric(points[careful], triangles[careful], with_face)
-    closest = np.einsum("qk,qki->qi", barycentric, triangles)
-    return closest, barycentric
+    settled = np.zeros(points.shape[0], dtype=bool)
+    settled[np.flatnonzero(regular)[trusted]] = True
+    barycentric[settled] = ericson[trusted]
+    return barycentric, area2, settled
 
 
 def _ericson_barycentric(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:

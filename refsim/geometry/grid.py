@@ -14,7 +14,7 @@ import numpy as np
 
 from refsim.kernel_cache import numba
 
-__all__ = ["BoxGrid", "locate_in_tets", "surface_candidates", "tet_spheres"]
+__all__ = ["BoxGrid", "locate_in_tets", "surface_candidates", "tet_spheres", "triangle_spheres"]
 
 # The cell edge is this many times the mean box width (along x).
 _CELL_PER_BOX = 1.0
@@ -96,27 +96,34 @@ _REPLACED = np.array([[4, 1, 2, 3], [4, 0, 3, 2], [4, 0, 1, 3], [4, 0, 2, 1]], d
 
 
 @numba.njit(cache=True)
-def _barycentric_into(point, positions, tet, replaced, out):  # pragma: no cover - compiled
+def _barycentric_into(point, positions, tet, replaced, out, corners, volumes):  # pragma: no cover - compiled
     """tet_barycentric of one point, written into ``out`` (4,): the sub-volumes (edge vectors from the point,
     the triple product as e₀ · (e₁ × e₂), /6) over their sum, NaN for a zero sum; the operations of the
-    vectorised function in its order (tests/geometry/test_search.py holds the two to the same bits)."""
-    corners = np.empty((5, 3))
+    vectorised function in its order (tests/geometry/test_search.py holds the two to the same bits).
+    ``corners`` (5, 3) and ``volumes`` (4,) are scratch arrays (allocated once per query batch: an
+    allocation per candidate tet cost more than its arithmetic)."""
     for corner in range(4):
         for axis in range(3):
             corners[corner, axis] = positions[tet[corner], axis]
     for axis in range(3):
         corners[4, axis] = point[axis]
-    volumes = np.empty(4)
     for sub in range(4):
-        origin = corners[replaced[sub, 0]]
-        a = corners[replaced[sub, 1]] - origin
-        b = corners[replaced[sub, 2]] - origin
-        c = corners[replaced[sub, 3]] - origin
-        cross0 = b[1] * c[2] - b[2] * c[1]
-        cross1 = b[2] * c[0] - b[0] * c[2]
-        cross2 = b[0] * c[1] - b[1] * c[0]
+        o, i, j, k = replaced[sub, 0], replaced[sub, 1], replaced[sub, 2], replaced[sub, 3]
+        # The edge vectors a, b, c from the point, component by component (no temporary arrays).
+        a0 = corners[i, 0] - corners[o, 0]
+        a1 = corners[i, 1] - corners[o, 1]
+        a2 = corners[i, 2] - corners[o, 2]
+        b0 = corners[j, 0] - corners[o, 0]
+        b1 = corners[j, 1] - corners[o, 1]
+        b2 = corners[j, 2] - corners[o, 2]
+        c0 = corners[k, 0] - corners[o, 0]
+        c1 = corners[k, 1] - corners[o, 1]
+        c2 = corners[k, 2] - corners[o, 2]
+        cross0 = b1 * c2 - b2 * c1
+        cross1 = b2 * c0 - b0 * c2
+        cross2 = b0 * c1 - b1 * c0
         # NumPy's einsum of three products sums (p₀ + p₂) + p₁ (its paired inner loop): the same here.
-        triple = (a[0] * cross0 + a[2] * cross2) + a[1] * cross1
+        triple = (a0 * cross0 + a2 * cross2) + a1 * cross1
         volumes[sub] = triple / 6.0
     total = volumes[0] + volumes[1] + volumes[2] + volumes[3]
     for sub in range(4):
@@ -144,6 +151,8 @@ def _locate(  # pragma: no cover - compiled
     found = np.full(count, -1, dtype=np.int64)
     barycentric = np.full((count, 4), np.nan)
     coordinates = np.empty(4)
+    corners = np.empty((5, 3))
+    volumes = np.empty(4)
     for q in range(count):
         point = points[q]
         cell = _cell_of(point, origin, edge, dims)
@@ -161,7 +170,7 @@ def _locate(  # pragma: no cover - compiled
                 squares += offset * offset
             if not np.sqrt(squares) <= radii[tet] * reach:
                 continue
-            _barycentric_into(point, positions, tets[tet], _REPLACED, coordinates)
+            _barycentric_into(point, positions, tets[tet], _REPLACED, coordinates, corners, volumes)
             smallest = coordinates[0]
             for corner in range(1, 4):
                 value = coordinates[corner]
@@ -334,6 +343,35 @@ def tet_spheres(positions: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np
     one compiled pass."""
     positions = np.ascontiguousarray(positions, dtype=float)
     return _tet_spheres(positions, np.ascontiguousarray(tets, dtype=np.int64))
+
+
+def triangle_spheres(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centroid [m] and bounding radius [m] (the largest centroid–vertex distance) of each triangle (f, 3, 3),
+    shapes (f, 3) and (f,): the bits of ``triangles.mean(axis=1)`` and of the NumPy norm of the vertices'
+    offsets, in one compiled pass (:class:`refsim.geometry.SurfaceProjector` is built on a deformed surface
+    at each query of a step)."""
+    return _triangle_spheres(np.ascontiguousarray(triangles, dtype=float))
+
+
+@numba.njit(cache=True)
+def _triangle_spheres(triangles):  # pragma: no cover - compiled
+    count = triangles.shape[0]
+    centroids = np.empty((count, 3))
+    radii = np.empty(count)
+    for t in range(count):
+        for axis in range(3):
+            centroids[t, axis] = (triangles[t, 0, axis] + triangles[t, 1, axis] + triangles[t, 2, axis]) / 3.0
+        largest = -np.inf
+        for corner in range(3):
+            squares = 0.0
+            for axis in range(3):
+                offset = triangles[t, corner, axis] - centroids[t, axis]
+                squares += offset * offset
+            distance = np.sqrt(squares)
+            if distance > largest or np.isnan(distance):
+                largest = distance
+        radii[t] = largest
+    return centroids, radii
 
 
 @numba.njit(cache=True)

@@ -315,8 +315,10 @@ class SurfaceProjector:
     def __init__(self, positions: np.ndarray, faces: np.ndarray):
         self.positions, self.faces = _check_elements(positions, faces, 3, "faces")
         self.triangles = self.positions[self.faces]  # (f, 3, 3)
-        self.centroids = self.triangles.mean(axis=1)
-        self.radii = np.linalg.norm(self.triangles - self.centroids[:, None, :], axis=2).max(axis=1)
+        from refsim.geometry.grid import triangle_spheres  # numba: imported on first use
+
+        # triangles.mean(axis=1) and the largest norm of the vertices' offsets, compiled (the same bits)
+        self.centroids, self.radii = triangle_spheres(self.triangles)
         self._normals: np.ndarray | None = None
         self._tree: cKDTree | None = None  # the KD-trees, built on the first query too large for the scan
         self._index: _RadiusClasses | None = None

@@ -129,6 +129,8 @@ class Detector:
             )
         self.rest_positions = None if rest_positions is None else np.asarray(rest_positions, dtype=float)
         self.rest_locator = TetLocator(self.rest_positions, np.asarray(tets)) if self.ring else None
+        #: The last 2-D sub-grid compliance of insertion rows, by the bytes of its inputs (_compliance).
+        self._compliance_memo: tuple[tuple[bytes, bytes], np.ndarray] | None = None
         # Shaft samples before puncture every half mean tet size (the surface cannot bend between them).
         self.shaft_spacing = 0.01
         #: The local mesh size of every rest tet [m] (local_mesh_size), for the rings' radii.
@@ -177,7 +179,6 @@ class Detector:
         stiffness model; with the 3-D value on the insertion rows only, cube_cut's needle is held, 27.8 N, and
         cuts 2.3 mm of its 5 mm stroke).
         """
-        spec = self.insertion
         if not self.ring:
             block = insertion_block(path, geometry, normal_preload=self.preload, options=self.options)
             return block, None
@@ -185,20 +186,42 @@ class Detector:
         arc_lengths, _ = geometry.needle_previous.project(centres_previous)
         rings = self._rings(path, geometry.needle_previous.tangents(arc_lengths), geometry.mesh_tets)
         block = ring_insertion_block(
-            path, geometry, rings.layout, normal_preload=self.preload, options=self.options
+            path,
+            geometry,
+            rings.layout,
+            normal_preload=self.preload,
+            options=self.options,
+            arc_lengths=arc_lengths,
         )
         # With finite_line, the 3-D sub-grid compliance of the inserted line, which starts at the free
         # surface.
+        diagonal = self._compliance(block, rings.layout.mesh_size, arc_lengths if finite_line else None)
+        return replace(block, compliance_diagonal=diagonal), rings
+
+    def _compliance(
+        self, block: RowBlock, mesh_size: np.ndarray, arc_lengths: np.ndarray | None
+    ) -> np.ndarray:
+        """The sub-grid compliance of the insertion rows ``block`` on points of ``mesh_size``
+        (:func:`insertion_compliance`). Without ``arc_lengths`` (the 2-D values) it is a function of the rows'
+        kinds and of ``mesh_size`` alone, which change only when a point is added or removed or gets a new
+        ring: the last result is kept with their bytes, and a copy of it given again for the same bytes."""
+        key = None
+        if arc_lengths is None:
+            key = (block.kind.tobytes(), np.asarray(mesh_size, dtype=float).tobytes())
+            if self._compliance_memo is not None and self._compliance_memo[0] == key:
+                return self._compliance_memo[1].copy()
         diagonal = insertion_compliance(
             block,
             shear_modulus=self.shear_modulus,
             poisson_ratio=self.poisson_ratio,
             needle_radius=self.needle_radius,
-            mesh_size=rings.layout.mesh_size,
-            spacing=spec.spacing,
-            arc_lengths=arc_lengths if finite_line else None,
+            mesh_size=mesh_size,
+            spacing=self.insertion.spacing,
+            arc_lengths=arc_lengths,
         )
-        return replace(block, compliance_diagonal=diagonal), rings
+        if key is not None:
+            self._compliance_memo = (key, diagonal.copy())
+        return diagonal
 
     def tip_ring(self, state: InstrumentState, geometry: StepGeometry) -> tuple[np.ndarray, np.ndarray]:
         """The tip cutting row's tissue side with the ring coupling: the ring of material points around the
@@ -297,14 +320,13 @@ class Detector:
             # (CuttingLaw.kept_at_cut_start) have no rows (anchored, they would drag the tissue along the
             # stroke).
             return None, points[:0], None
+        # Every point of the path has rows: the builders' ``point`` field (each row's index among the points
+        # they were given) is its index in the path.
         block, rings = self.insertion_rows(
-            state.path.subset(points),
+            state.path,
             geometry,
             finite_line=self.insertion.subgrid_line == "finite" and state.phase != Phase.CUTTING,
         )
-        # The rows' points, from indices into the subset to indices into the path.
-        owner = block.points_of_rows
-        block = replace(block, point=np.where(owner >= 0, points[np.maximum(owner, 0)], -1))
         return block, points, rings
 
     def tip_row(self, state: InstrumentState, geometry: StepGeometry) -> RowBlock | None:

@@ -168,6 +168,8 @@ class EventRules:
             shape=(int(tets.max()) + 1, tets.shape[0]),
         )
         self._node_tets = incidence
+        # tet → the tets sharing a node with it (sorted), filled on first use per tet: the tip's candidates
+        self._around: dict[int, np.ndarray] = {}
         #: The criteria each step's events compare, with their margins (refsim.simulation.margins).
         self.margins = MarginWatch(scene.solver.tolerance)
         self.growth = None
@@ -289,9 +291,7 @@ class EventRules:
         """
         tip = np.asarray(tip, dtype=float)
         if hint >= 0:
-            nodes, incidence = self.tets[hint], self._node_tets
-            spans = zip(incidence.indptr[nodes], incidence.indptr[nodes + 1], strict=True)
-            candidates = np.unique(np.concatenate([incidence.indices[a:b] for a, b in spans]))
+            candidates = self._tets_around(hint)
             corners = positions[self.tets[candidates]]  # (c, 4, 3)
             edges = np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1))  # (c, 3, 3)
             valid = np.abs(np.linalg.det(edges)) > 0.0
@@ -303,6 +303,18 @@ class EventRules:
                 return int(candidates[valid][best]), barycentric[best]
         found, barycentric = TetLocator(positions, self.tets).locate(tip[None, :])
         return (int(found[0]), barycentric[0]) if found[0] >= 0 else (-1, None)
+
+    def _tets_around(self, tet: int) -> np.ndarray:
+        """The tets sharing a node with ``tet``, sorted (``tet`` among them): a function of the mesh's
+        topology, which no event changes (a cut separates material points, not tets), kept per tet."""
+        around = self._around.get(tet)
+        if around is None:
+            nodes, incidence = self.tets[tet], self._node_tets
+            spans = zip(incidence.indptr[nodes], incidence.indptr[nodes + 1], strict=True)
+            around = np.unique(np.concatenate([incidence.indices[a:b] for a, b in spans]))
+            around.flags.writeable = False
+            self._around[tet] = around
+        return around
 
     def _outside_cut(self, path, world, positions):
         """The path without its new points that lie in the existing cut (projecting inside it, within d_c of

@@ -631,3 +631,60 @@ def test_insertion_compliance_of_a_finite_line_is_smaller_at_its_ends():
     lateral = finite[0::3]
     # The tip end (no mirror) is the most compliant deficit; the surface end sees the line's mirror image.
     assert lateral[-1] < lateral[len(lateral) // 2] and lateral[-1] < lateral[0]
+
+
+# ------------------------------------------------------------------- the compiled ring weights and caches
+def test_ring_weights_compiled_are_numpys_bit_for_bit():
+    # The compiled pass makes the NumPy reference's products (share × coordinate, the share a float division)
+    # in its order: nodes and weights equal bit for bit, rings cut by the surface (points outside, NaN
+    # coordinates, antipodes dropped) and rings wholly outside (the centre alone) included.
+    rng = np.random.default_rng(5)
+    mesh = box_mesh(size=(0.1, 0.1, 0.1), cells=(5, 5, 5))
+    rest, tets = np.asarray(mesh.rest_positions), np.asarray(mesh.tets)
+    count = 40
+    picked = rng.integers(0, len(tets), size=count)
+    path = InsertionPath(picked, rng.dirichlet(np.ones(4), size=count), np.zeros(count, dtype=np.int64))
+    tangents = rng.standard_normal((count, 3))
+    tangents /= np.linalg.norm(tangents, axis=1, keepdims=True)
+    layout = coupling.RingLayout.around(
+        path,
+        rest_positions=rest,
+        mesh_tets=tets,
+        locator=TetLocator(rest, tets),
+        tangents=tangents,
+        needle_radius=0.03,  # rings of radius 3 cm in a 10 cm box: many points outside
+    )
+    ring_tets = layout.tets.copy()
+    ring_tets[0] = -1  # a ring wholly outside: its centre carries the row
+    layout = coupling.RingLayout(ring_tets, layout.barycentric, layout.mesh_size, layout.radius)
+    inside = ring_tets >= 0
+    assert 0 < np.count_nonzero(inside) < inside.size  # some points outside, some inside
+    got = coupling.ring_weights(path, layout, tets)
+    expected = coupling._ring_weights_numpy(path, layout, tets)
+    for a, b in zip(got, expected, strict=True):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        np.testing.assert_array_equal(a, b)
+    assert np.array_equal(np.signbit(got[1]), np.signbit(expected[1]))  # the zeros' signs too
+    np.testing.assert_allclose(got[1].sum(axis=1), 1.0, rtol=1e-12)  # Σ weights = 1 per point
+
+
+def test_ring_insertion_block_with_the_callers_arc_lengths_is_the_same_bits():
+    # The detector projects the points' centres once and hands their arc lengths to the block builder.
+    model, needle, centres, spacing, h = _needle_in_box()
+    path = _path(model, centres)
+    geometry = _geometry(model, needle, model.rest_positions + 1e-4)
+    rings = coupling.RingLayout.around(
+        path,
+        rest_positions=model.rest_positions,
+        mesh_tets=model.tets,
+        locator=TetLocator(model.rest_positions, model.tets),
+        tangents=needle.tangents(np.zeros(len(centres))),
+        needle_radius=1e-3,
+    )
+    arc_lengths, _ = needle.project(path.positions(geometry.tissue_previous, model.tets))
+    common = dict(friction_coefficient=0.2, normal_preload=0.01)
+    own = coupling.ring_insertion_block(path, geometry, rings, **common)
+    given = coupling.ring_insertion_block(path, geometry, rings, arc_lengths=arc_lengths, **common)
+    np.testing.assert_array_equal(own.free_gap, given.free_gap)
+    assert (own.jacobians[TISSUE_BODY] != given.jacobians[TISSUE_BODY]).nnz == 0
+    np.testing.assert_array_equal(own.anchor, given.anchor)

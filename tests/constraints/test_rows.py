@@ -348,3 +348,29 @@ def test_row_block_concatenate_keeps_every_per_row_field_of_each_instrument():
     np.testing.assert_array_equal(
         RowBlock.concatenate([first, second.of_instrument(1, "holder")]).instruments, [-1, -1, 1, 1]
     )
+
+
+def test_point_rows_sort_orders_kept_by_pattern_give_the_fresh_bits():
+    # The probe's permutation is kept per set of row patterns: the same patterns with other weights and
+    # directions reuse it, other patterns (a changed node) get their own; each is the COO conversion's bits,
+    # from an empty store and from a filled one.
+    from refsim.constraints import rows as rows_module
+
+    rng = np.random.default_rng(11)
+    node_rows, weights, directions = _ring_like_rows(rng, 12, 36, 50, 3)
+    other_weights, other_directions = rng.random(weights.shape), rng.standard_normal(directions.shape)
+    changed = node_rows.copy()
+    changed[4, 7] = (changed[4, 7] + 1) % 50
+    rows_module._SORT_ORDERS.clear()
+    for nodes, w, n in (
+        (node_rows, weights, directions),
+        (node_rows, other_weights, other_directions),
+        (changed, weights, directions),
+        (node_rows, weights, directions),
+    ):
+        got = point_rows(nodes, w, n, 150)
+        expected = _point_rows_coo(nodes, w, n, 150, sign=-1.0)
+        np.testing.assert_array_equal(got.indptr, expected.indptr)
+        np.testing.assert_array_equal(got.indices, expected.indices)
+        np.testing.assert_array_equal(got.data, expected.data)
+    assert len(rows_module._SORT_ORDERS) == 2  # the two pattern sets

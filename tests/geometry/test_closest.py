@@ -299,3 +299,31 @@ def test_property_thin_triangles_match_exact_arithmetic(triangle, point, u, v):
             1.0 + np.abs(triangle).max() + np.abs(query).max()
         )
         assert barycentric.min() >= 0.0
+
+
+@pytest.mark.parametrize("kind", ["random", "thin", "grid", "near_faces"])
+def test_compiled_ericson_is_numpys_bit_for_bit(kind):
+    # The compiled pass repeats the NumPy path's operations in its order (cross product, einsum's order of
+    # three products, the norm's sum, Ericson's tests): the same coordinates, areas and settled pairs, for
+    # well-shaped, thin (left to the candidate path) and grid-aligned triangles (ties in the region tests).
+    from refsim.geometry.closest import _THIN_AREA, _ericson_path
+    from refsim.geometry.closest_kernel import ericson_regular
+
+    rng = np.random.default_rng(["random", "thin", "grid", "near_faces"].index(kind))
+    count, scale = 20_000, 10.0 ** rng.uniform(-3, 1)
+    triangles = rng.standard_normal((count, 3, 3)) * scale
+    points = rng.standard_normal((count, 3)) * scale
+    if kind == "thin":
+        along = triangles[:, 0] + (triangles[:, 1] - triangles[:, 0]) * rng.random((count, 1))
+        triangles[:, 2] = along + rng.standard_normal((count, 3)) * scale * 10.0 ** rng.uniform(
+            -9, 0, (count, 1)
+        )
+    if kind == "grid":
+        triangles, points = np.round(triangles / scale * 4), np.round(points / scale * 4)
+    if kind == "near_faces":
+        points = triangles.mean(axis=1) + rng.standard_normal((count, 3)) * scale * 1e-3
+    expected = _ericson_path(points, triangles)
+    got = ericson_regular(points, triangles, _THIN_AREA)
+    for a, b in zip(got, expected, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert 0 < np.count_nonzero(expected[2]) and (kind != "thin" or not np.all(expected[2]))

@@ -15,7 +15,7 @@ from refsim.geometry import (
     tet_barycentric,
     tet_boundary_faces,
 )
-from refsim.geometry.grid import tet_spheres
+from refsim.geometry.grid import tet_spheres, triangle_spheres
 from refsim.geometry.search import _RadiusClasses
 from refsim.mesh import box_mesh
 
@@ -140,6 +140,23 @@ def test_tet_spheres_are_the_numpy_centroids_and_radii(graded):
     got = tet_spheres(delaunay.points, delaunay.simplices)
     np.testing.assert_array_equal(got[0], centroids)
     np.testing.assert_array_equal(got[1], radii)
+
+
+def test_triangle_spheres_are_the_numpy_centroids_and_radii(graded):
+    # SurfaceProjector's centroids and bounding radii, compiled: the bits of its former NumPy expressions,
+    # on the graded mesh's boundary and on random triangles far from the origin (round-off in the offsets).
+    delaunay, _ = graded
+    faces, _ = tet_boundary_faces(delaunay.simplices, delaunay.points)
+    rng = np.random.default_rng(3)
+    for triangles in (
+        delaunay.points[faces],
+        rng.standard_normal((5000, 3, 3)) * 1e-3 + rng.standard_normal(3) * 10.0,
+    ):
+        centroids = triangles.mean(axis=1)
+        radii = np.linalg.norm(triangles - centroids[:, None, :], axis=2).max(axis=1)
+        got = triangle_spheres(triangles)
+        np.testing.assert_array_equal(got[0], centroids)
+        np.testing.assert_array_equal(got[1], radii)
 
 
 @pytest.mark.parametrize("tolerance", [0.0, 1e-12])
