@@ -681,8 +681,9 @@ class ComplianceSpec(_Validated):
         "auto",
         doc="sparse solver: auto (PARDISO where its wheel installs, else CHOLMOD if importable, else "
         "SuperLU; "
-        "$REFSIM_LINEAR_SOLVER overrides auto), or one of pardiso, cholmod, superlu",
-        choices=("auto", "pardiso", "cholmod", "superlu"),
+        "$REFSIM_LINEAR_SOLVER overrides auto), or one of pardiso, supernodal (refsim's own supernodal "
+        "Cholesky), cholmod, superlu",
+        choices=("auto", "pardiso", "supernodal", "cholmod", "superlu"),
     )
 
     def validate(self) -> None:
