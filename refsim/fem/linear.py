@@ -572,8 +572,6 @@ class SupernodalSolver:
         """(A⁻¹)[positions][:, positions] = Yᵀ Y with Y = L⁻¹ P E (E the unit loads on ``positions``), the
         forward solves restricted to the supernodes on the elimination-tree paths from the marked positions
         (the only rows of Y that are not zero). ``positions`` (sorted) must lie among :attr:`marked`."""
-        from refsim.fem.supernodal import _forward_compact
-
         factor = self._factorised()
         positions = np.asarray(positions, dtype=np.int64)
         marked = self._marked
@@ -581,27 +579,12 @@ class SupernodalSolver:
             raise ValueError("inverse_block: the positions must be marked first (mark)")
         if positions.size == 0:
             return np.zeros((0, 0))
-        supernodes, compact, columns = self._marked_paths()
-        y = np.zeros((columns, positions.size))
-        y[compact[factor.inverse[positions]], np.arange(positions.size)] = 1.0
-        _forward_compact(
-            factor.values,
-            factor.first,
-            factor.row_start,
-            factor.rows,
-            factor.value_start,
-            supernodes,
-            compact,
-            y,
-        )
-        return y.T @ y
+        return factor.inverse_block(positions, self._marked_paths())
 
     def solve_marked(self, rhs: np.ndarray) -> np.ndarray:
         """A⁻¹ rhs for a rhs of shape (n,) that is zero off the :attr:`marked` positions: the forward
         substitution visits the supernodes on the marked positions' etree paths only, the backward one all.
         Equal to :meth:`solve` bit for bit (the skipped work is on zeros)."""
-        from refsim.fem.supernodal import _backward, _forward
-
         factor = self._factorised()
         rhs = np.asarray(rhs, dtype=float)
         if rhs.shape != (factor.n,):
@@ -611,15 +594,7 @@ class SupernodalSolver:
             return self.solve(rhs)
         if np.count_nonzero(rhs) != np.count_nonzero(rhs[marked]):
             raise ValueError("solve_marked: the rhs has non-zeros off the marked positions")
-        supernodes = self._marked_paths()[0]
-        y = rhs[factor.permutation].reshape(-1, 1)
-        _forward(
-            factor.values, factor.first, factor.row_start, factor.rows, factor.value_start, supernodes, y
-        )
-        _backward(factor.values, factor.first, factor.row_start, factor.rows, factor.value_start, y)
-        out = np.empty(factor.n)
-        out[factor.permutation] = y[:, 0]
-        return out
+        return factor.solve(rhs, self._marked_paths()[0])
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """A⁻¹ rhs for rhs of shape (n,) or (n, k)."""

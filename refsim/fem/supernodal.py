@@ -53,6 +53,7 @@ def _bind_blas():
         "dpotrf": ("scipy.linalg.cython_lapack", 5),
         "dtrsm": ("scipy.linalg.cython_blas", 11),
         "dsyrk": ("scipy.linalg.cython_blas", 10),
+        "dgemm": ("scipy.linalg.cython_blas", 13),
     }
     functions = {}
     for name, (module, arguments) in routines.items():
@@ -63,7 +64,7 @@ def _bind_blas():
 
 
 _BLAS = _bind_blas()
-_dpotrf, _dtrsm, _dsyrk = _BLAS["dpotrf"], _BLAS["dtrsm"], _BLAS["dsyrk"]
+_dpotrf, _dtrsm, _dsyrk, _dgemm = _BLAS["dpotrf"], _BLAS["dtrsm"], _BLAS["dsyrk"], _BLAS["dgemm"]
 
 #: Relaxed amalgamation: a child supernode is merged into its parent when the merged supernode has at most
 #: ``columns`` columns and its explicit zeros are at most ``fraction`` of its entries; (columns, fraction)
@@ -71,7 +72,7 @@ _dpotrf, _dtrsm, _dsyrk = _BLAS["dpotrf"], _BLAS["dtrsm"], _BLAS["dsyrk"]
 RELAXATION = ((4, 1.0), (16, 0.8), (48, 0.1), (np.inf, 0.05))
 
 # Characters and scalars the BLAS calls read through pointers (cells of the factor's argument arrays).
-_LOWER, _RIGHT, _TRANSPOSE, _NON_UNIT, _NO_TRANSPOSE = (ord(c) for c in "LRTNN")
+_LOWER, _RIGHT, _TRANSPOSE, _NON_UNIT, _LEFT = (ord(c) for c in "LRTNL")
 
 
 # ---------------------------------------------------------------------------------------------- symbolic
@@ -375,72 +376,122 @@ def _factorise(
 
 
 @numba.njit(cache=True)
-def _forward(lx, first, row_start, rows, value_start, order, y):
-    """y ← L⁻¹ y over the supernodes ``order`` (increasing), y of shape (n, k) C-ordered, permuted."""
+def _forward(lx, first, row_start, rows, value_start, order, index, y, work, cells):
+    """y ← L⁻¹ y over the supernodes ``order`` (increasing; the others are skipped: their part of y must be
+    zero), y of shape (u, k) C-ordered, row index[i] for column i of L (the identity for a whole solve, a
+    compact numbering of the columns of ``order`` for a partial one). Per supernode: its own rows of y
+    gathered into ``work`` (column-major, leading dimension its height), ``dtrsm`` on them, ``dgemm`` of the
+    rows below, added back into y."""
     k = y.shape[1]
+    ints = cells.view(np.int32)
+    base_int = cells.ctypes.data
+    chars = base_int + 32
+    lower, left, no = chars, chars + 4, chars + 3
+    one, zero = base_int + 64, base_int + 72
+    lx_address = lx.ctypes.data
+    work_address = work.ctypes.data
+    ints[5] = k
     for q in range(order.size):
         s = order[q]
-        width = first[s + 1] - first[s]
+        f = first[s]
+        width = first[s + 1] - f
         height = row_start[s + 1] - row_start[s]
-        base = value_start[s]
-        for j in range(width):
-            column = base + j * height
-            target = first[s] + j
-            pivot = lx[column + j]
-            for c in range(k):
-                y[target, c] /= pivot
-            for i in range(j + 1, height):
-                factor = lx[column + i]
-                row = rows[row_start[s] + i]
-                for c in range(k):
-                    y[row, c] -= factor * y[target, c]
+        m = height - width
+        block = lx_address + 8 * value_start[s]
+        for c in range(k):
+            for i in range(width):
+                work[i + c * height] = y[index[f + i], c]
+        ints[0] = width
+        ints[1] = height
+        ints[2] = m
+        _dtrsm(
+            left, lower, no, no, base_int, base_int + 20, one, block, base_int + 4, work_address, base_int + 4
+        )
+        for c in range(k):
+            for i in range(width):
+                y[index[f + i], c] = work[i + c * height]
+        if m == 0:
+            continue
+        _dgemm(
+            no,
+            no,
+            base_int + 8,
+            base_int + 20,
+            base_int,
+            one,
+            block + 8 * width,
+            base_int + 4,
+            work_address,
+            base_int + 4,
+            zero,
+            work_address + 8 * width,
+            base_int + 4,
+        )
+        start = row_start[s] + width
+        for c in range(k):
+            for i in range(m):
+                y[index[rows[start + i]], c] -= work[width + i + c * height]
 
 
 @numba.njit(cache=True)
-def _backward(lx, first, row_start, rows, value_start, y):
-    """y ← L⁻ᵀ y, y of shape (n, k) C-ordered, permuted."""
+def _backward(lx, first, row_start, rows, value_start, y, work, cells):
+    """y ← L⁻ᵀ y, y of shape (n, k) C-ordered, in the factor's order: per supernode (last first) its rows
+    gathered into ``work``, ``dgemm`` of the rows below (transposed) subtracted from its own, ``dtrsm``
+    (transposed), its own rows written back."""
     k = y.shape[1]
-    total = np.zeros(k)
+    ints = cells.view(np.int32)
+    base_int = cells.ctypes.data
+    chars = base_int + 32
+    lower, left, transpose, no = chars, chars + 4, chars + 2, chars + 3
+    one, minus_one = base_int + 64, base_int + 56
+    lx_address = lx.ctypes.data
+    work_address = work.ctypes.data
+    ints[5] = k
     for s in range(first.size - 2, -1, -1):
-        width = first[s + 1] - first[s]
+        f = first[s]
+        width = first[s + 1] - f
         height = row_start[s + 1] - row_start[s]
-        base = value_start[s]
-        for j in range(width - 1, -1, -1):
-            column = base + j * height
-            target = first[s] + j
-            for c in range(k):
-                total[c] = y[target, c]
-            for i in range(j + 1, height):
-                factor = lx[column + i]
-                row = rows[row_start[s] + i]
-                for c in range(k):
-                    total[c] -= factor * y[row, c]
-            pivot = lx[column + j]
-            for c in range(k):
-                y[target, c] = total[c] / pivot
-
-
-@numba.njit(cache=True)
-def _forward_compact(lx, first, row_start, rows, value_start, order, compact, y):
-    """y ← L⁻¹ y restricted to the supernodes ``order`` whose columns are closed under the etree's parent:
-    y of shape (u, k), row compact[i] for column i."""
-    k = y.shape[1]
-    for q in range(order.size):
-        s = order[q]
-        width = first[s + 1] - first[s]
-        height = row_start[s + 1] - row_start[s]
-        base = value_start[s]
-        for j in range(width):
-            column = base + j * height
-            target = compact[first[s] + j]
-            pivot = lx[column + j]
-            for c in range(k):
-                y[target, c] /= pivot
-            for i in range(j + 1, height):
-                factor = lx[column + i]
-                row = compact[rows[row_start[s] + i]]
-                for c in range(k):
-                    y[row, c] -= factor * y[target, c]
+        m = height - width
+        block = lx_address + 8 * value_start[s]
+        start = row_start[s]
+        for c in range(k):
+            for i in range(height):
+                work[i + c * height] = y[rows[start + i], c]
+        ints[0] = width
+        ints[1] = height
+        ints[2] = m
+        if m > 0:
+            _dgemm(
+                transpose,
+                no,
+                base_int,
+                base_int + 20,
+                base_int + 8,
+                minus_one,
+                block + 8 * width,
+                base_int + 4,
+                work_address + 8 * width,
+                base_int + 4,
+                one,
+                work_address,
+                base_int + 4,
+            )
+        _dtrsm(
+            left,
+            lower,
+            transpose,
+            no,
+            base_int,
+            base_int + 20,
+            one,
+            block,
+            base_int + 4,
+            work_address,
+            base_int + 4,
+        )
+        for c in range(k):
+            for i in range(width):
+                y[f + i, c] = work[i + c * height]
 
 
 class SymbolicFactor:
@@ -508,9 +559,12 @@ class SymbolicFactor:
         self.values = np.zeros(self.value_start[-1])
         self._work = np.zeros(max(int((below**2).max(initial=0)), 1))
         self._cells = np.zeros(10)
-        self._cells.view(np.uint8)[32:36] = [_LOWER, _RIGHT, _TRANSPOSE, _NON_UNIT]
-        self._cells[8], self._cells[9] = 1.0, 0.0
+        self._cells.view(np.uint8)[32:37] = [_LOWER, _RIGHT, _TRANSPOSE, _NON_UNIT, _LEFT]
+        self._cells[7], self._cells[8], self._cells[9] = -1.0, 1.0, 0.0
         self._all = np.arange(first.size - 1, dtype=np.int64)
+        self._identity = np.arange(n, dtype=np.int64)
+        self._height = int(heights.max(initial=1))
+        self._solve_work = np.empty(self._height)
         self.factorised = False
 
     @staticmethod
@@ -561,11 +615,31 @@ class SymbolicFactor:
                 "the matrix is not positive definite"
             )
 
-    def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """A⁻¹ rhs, rhs of shape (n,) or (n, k)."""
+    def _workspace(self, columns: int) -> np.ndarray:
+        """The solves' per-supernode workspace for ``columns`` right-hand sides."""
+        if self._solve_work.size < self._height * columns:
+            self._solve_work = np.empty(self._height * columns)
+        return self._solve_work
+
+    def solve(self, rhs: np.ndarray, supernodes: np.ndarray | None = None) -> np.ndarray:
+        """A⁻¹ rhs, rhs of shape (n,) or (n, k); ``supernodes``: those the forward substitution visits (the
+        etree paths of rhs's non-zeros, :meth:`paths`), all by default."""
         y = np.ascontiguousarray(rhs[self.permutation], dtype=float).reshape(self.n, -1)
-        _forward(self.values, self.first, self.row_start, self.rows, self.value_start, self._all, y)
-        _backward(self.values, self.first, self.row_start, self.rows, self.value_start, y)
+        work = self._workspace(y.shape[1])
+        order = self._all if supernodes is None else supernodes
+        _forward(
+            self.values,
+            self.first,
+            self.row_start,
+            self.rows,
+            self.value_start,
+            order,
+            self._identity,
+            y,
+            work,
+            self._cells,
+        )
+        _backward(self.values, self.first, self.row_start, self.rows, self.value_start, y, work, self._cells)
         out = np.empty_like(y)
         out[self.permutation] = y
         return out.reshape(rhs.shape)
@@ -573,8 +647,41 @@ class SymbolicFactor:
     def forward(self, rhs: np.ndarray) -> np.ndarray:
         """Y = L⁻¹ P rhs (rows in the factor's order), rhs of shape (n, k): Yᵀ Y = rhsᵀ A⁻¹ rhs."""
         y = np.ascontiguousarray(rhs[self.permutation], dtype=float)
-        _forward(self.values, self.first, self.row_start, self.rows, self.value_start, self._all, y)
+        work = self._workspace(y.shape[1])
+        _forward(
+            self.values,
+            self.first,
+            self.row_start,
+            self.rows,
+            self.value_start,
+            self._all,
+            self._identity,
+            y,
+            work,
+            self._cells,
+        )
         return y
+
+    def inverse_block(self, positions: np.ndarray, paths) -> np.ndarray:
+        """(A⁻¹)[positions][:, positions] = Yᵀ Y, Y = L⁻¹ P E on the columns of ``paths`` (:meth:`paths` of a
+        superset of ``positions``), the only rows of Y that are not zero."""
+        supernodes, compact, columns = paths
+        y = np.zeros((columns, positions.size))
+        y[compact[self.inverse[positions]], np.arange(positions.size)] = 1.0
+        work = self._workspace(positions.size)
+        _forward(
+            self.values,
+            self.first,
+            self.row_start,
+            self.rows,
+            self.value_start,
+            supernodes,
+            compact,
+            y,
+            work,
+            self._cells,
+        )
+        return y.T @ y
 
     def paths(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """The supernodes on the elimination-tree paths from ``positions`` (original numbering) to the roots,
