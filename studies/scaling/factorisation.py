@@ -5,7 +5,9 @@ For each matrix (the cube's step matrix at 8, 12 and 16 cells per axis, the medi
 solvers are analysed once, then their numeric factorisations are timed alternately (``--rounds`` rounds of
 one factorisation each), so that a loaded machine slows both alike: read the ratios of one run. Also: the
 supernodal solver with fundamental supernodes only (no relaxed amalgamation) and with SuperLU's
-minimum-degree ordering, the SuperLU reference of ``refsim bench``, and the analysis (symbolic) times.
+minimum-degree ordering, the SuperLU reference of ``refsim bench``, the analysis (symbolic) times, and the
+solves of a step (a full solve, the partial inverse block on 21 marked DoFs, the solve of a load on them)
+against PARDISO's, marked alike.
 
 Run: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 python studies/scaling/factorisation.py``
 """
@@ -50,6 +52,11 @@ def liver_model() -> TissueModel:
     )
 
 
+def _reference(key: str) -> str:
+    """What a timing is compared with: PARDISO's phase 22 for a factorisation, PARDISO's own for a solve."""
+    return key.split()[0] + " pardiso" if " " in key else "pardiso22"
+
+
 def measure(name: str, matrix: sp.csr_matrix, rounds: int) -> dict:
     upper = sp.triu(matrix, format="csr")
     upper.sort_indices()
@@ -65,12 +72,30 @@ def measure(name: str, matrix: sp.csr_matrix, rounds: int) -> dict:
     fundamental = SymbolicFactor(upper, order, relaxation=())
     degree = SymbolicFactor(upper, minimum_degree)
     superlu = SuperLUSolver("COLAMD")
+    # the solves a step makes: the free motion's, W's partial inverse block on 21 DoFs (7 nodes) and the
+    # correction's solve of a load on them
+    supernodal = SupernodalSolver()
+    supernodal.factorise(upper)
+    marks = np.arange(matrix.shape[0] // 2, matrix.shape[0] // 2 + 21)
+    rhs = np.linspace(-1.0, 1.0, matrix.shape[0])
+    load = np.zeros(matrix.shape[0])
+    load[marks] = 1.0
+    marked_pardiso = PardisoSolver()
+    for solver in (supernodal, marked_pardiso):
+        solver.mark(marks)
+        solver.factorise(upper)
     candidates = {
         "pardiso22": lambda: pardiso._call(22),
         "supernodal": lambda: relaxed.factorise(upper.data),
         "fundamental": lambda: fundamental.factorise(upper.data),
         "supernodal_mmd": lambda: degree.factorise(upper.data),
         "superlu_colamd": lambda: superlu.factorise(matrix),
+        "solve pardiso": lambda: marked_pardiso.solve(rhs),
+        "solve supernodal": lambda: supernodal.solve(rhs),
+        "block21 pardiso": lambda: marked_pardiso.inverse_block(marks),
+        "block21 supernodal": lambda: supernodal.inverse_block(marks),
+        "marked pardiso": lambda: marked_pardiso.solve_marked(load),
+        "marked supernodal": lambda: supernodal.solve_marked(load),
     }
     times = {key: [] for key in candidates}
     for _ in range(rounds):
@@ -79,6 +104,11 @@ def measure(name: str, matrix: sp.csr_matrix, rounds: int) -> dict:
             run()
             times[key].append(time.perf_counter() - start)
     best = {key: 1e3 * min(values) for key, values in times.items()}
+    # the median over rounds of each round's ratio to its reference (paired: one round's calls share the
+    # machine's load of that moment)
+    paired = {
+        key: float(np.median(np.divide(values, times[_reference(key)]))) for key, values in times.items()
+    }
     median = {key: 1e3 * float(np.median(values)) for key, values in times.items()}
     return {
         "matrix": name,
@@ -93,6 +123,7 @@ def measure(name: str, matrix: sp.csr_matrix, rounds: int) -> dict:
         "pardiso_analysis_ms": 1e3 * pardiso_analysis,
         "best": best,
         "median": median,
+        "paired": paired,
     }
 
 
@@ -121,9 +152,11 @@ def main() -> None:
                 f"{row['analysis_ms']:.1f} ms (pardiso phase 11 {row['pardiso_analysis_ms']:.1f} ms)"
             )
             for key in best:
+                reference = _reference(key)
                 print(
-                    f"    {key:16s} best {best[key]:8.3f} ms  median {median[key]:8.3f} ms  "
-                    f"best/pardiso22 {best[key] / best['pardiso22']:.2f}"
+                    f"    {key:18s} best {best[key]:8.3f} ms  median {median[key]:8.3f} ms  "
+                    f"best/{reference} {best[key] / best[reference]:.2f}  "
+                    f"median of the rounds' ratios {row['paired'][key]:.2f}"
                 )
 
 
