@@ -37,6 +37,7 @@ __all__ = [
     "Elements",
     "CorotatedOperator",
     "corotate",
+    "corotate_with_nodes",
     "stiffness_product",
     "node_rotations",
     "matrix_free_step",
@@ -117,6 +118,65 @@ def _stiffness_product(
 
 
 @numba.njit(cache=True)
+def _corotate_with_nodes(
+    positions, tets, rest_edges_inverse, volumes, lame, shear, forces, rotations, node_rotations
+):  # pragma: no cover - compiled
+    # _corotate and _node_rotations in one pass over the tets: the same sums in the same order (the same bits)
+    f = np.empty((3, 3))
+    ds = np.empty((3, 3))
+    r = np.empty((3, 3))
+    p = np.empty((3, 3))
+    summed = np.zeros((node_rotations.shape[0], 3, 3))
+    for e in range(tets.shape[0]):
+        deformation_rotation(positions, tets, rest_edges_inverse, e, f, ds, r)
+        rotations[e, :, :] = r
+        _stress_forces(f, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, forces, 0, 1.0, p)
+        for a in range(4):
+            node = tets[e, a]
+            for i in range(3):
+                for j in range(3):
+                    summed[node, i, j] += r[i, j]
+    for node in range(node_rotations.shape[0]):
+        polar_rotation_one(summed[node], node_rotations[node])
+
+
+@numba.njit(cache=True)
+def _free_product(
+    vectors, positions, tets, rest_edges_inverse, volumes, lame, shear, rotations, masses, factors, full, out
+):  # pragma: no cover - compiled
+    # A_ff v for v on the free DoFs: positions[d] is DoF d's row among the free DoFs (-1: constrained, v = 0
+    # there); full (dof_count, k) is scratch; masses the lumped mass per free DoF; factors (mass, stiffness).
+    # The sums of stiffness_product and CorotatedOperator.full in their order (the same bits).
+    full[:, :] = 0.0
+    h = np.empty((3, 3))
+    p = np.empty((3, 3))
+    w = np.empty((4, 3))
+    for e in range(tets.shape[0]):
+        r = rotations[e]
+        for c in range(vectors.shape[1]):
+            for a in range(4):
+                for i in range(3):
+                    row = positions[3 * tets[e, a] + i]
+                    w[a, i] = vectors[row, c] if row >= 0 else 0.0
+            for i in range(3):
+                w0 = w[1, i] - w[0, i]
+                w1 = w[2, i] - w[0, i]
+                w2 = w[3, i] - w[0, i]
+                for j in range(3):
+                    h[i, j] = (
+                        w0 * rest_edges_inverse[e, 0, j]
+                        + w1 * rest_edges_inverse[e, 1, j]
+                        + w2 * rest_edges_inverse[e, 2, j]
+                    )
+            _stress_forces(h, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, full, c, 0.0, p)
+    for d in range(positions.shape[0]):
+        row = positions[d]
+        if row >= 0:
+            for c in range(vectors.shape[1]):
+                out[row, c] = full[d, c] * factors[1] + factors[0] * (masses[row] * vectors[row, c])
+
+
+@numba.njit(cache=True)
 def _node_rotations(tets, rotations, out):  # pragma: no cover - compiled
     summed = np.zeros((out.shape[0], 3, 3))
     for e in range(tets.shape[0]):
@@ -189,6 +249,30 @@ def corotate(positions: np.ndarray, elements: Elements) -> tuple[np.ndarray, np.
     return forces[:, 0], rotations
 
 
+def corotate_with_nodes(
+    positions: np.ndarray, elements: Elements
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`corotate` and :func:`node_rotations` in one compiled pass over the tets (the same bits as the
+    two calls): internal forces (3 · node_count,), tet rotations (tet_count, 3, 3) and node rotations
+    (node_count, 3, 3)."""
+    positions = np.ascontiguousarray(positions, dtype=float)
+    forces = np.zeros((positions.size, 1))
+    rotations = np.empty((elements.tets.shape[0], 3, 3))
+    nodes = np.empty((positions.shape[0], 3, 3))
+    _corotate_with_nodes(
+        positions,
+        elements.tets,
+        elements.rest_edges_inverse,
+        elements.volumes,
+        float(elements.lame),
+        float(elements.shear),
+        forces,
+        rotations,
+        nodes,
+    )
+    return forces[:, 0], rotations, nodes
+
+
 def stiffness_product(vectors: np.ndarray, elements: Elements, rotations: np.ndarray) -> np.ndarray:
     """K v = Σₑ Rₑ Kₑ Rₑᵀ vₑ [N] for DoF vectors v [m] of shape (dof_count,) or (dof_count, k)."""
     vectors = np.asarray(vectors, dtype=float)
@@ -239,6 +323,16 @@ class CorotatedOperator:
         self.mass = sp.csr_matrix(mass_matrix)
         self.mass_factor = float(mass_factor)
         self.stiffness_factor = float(stiffness_factor)
+        # A lumped (diagonal) mass: A_ff v in one compiled pass on the free DoFs (_free_product), without
+        # spreading v onto every DoF and back; else through ``full``.
+        mass = self.mass
+        diagonal = mass.nnz == dof_count and np.array_equal(mass.indices, np.arange(dof_count))
+        diagonal = diagonal and np.array_equal(mass.indptr, np.arange(dof_count + 1))
+        self._masses = mass.data[free_dofs] if diagonal else None
+        self._positions = np.full(dof_count, -1, dtype=np.int64)
+        self._positions[free_dofs] = np.arange(free_dofs.size)
+        self._factors = np.array([self.mass_factor, self.stiffness_factor])
+        self._scratch = {}
 
     def full(self, vectors: np.ndarray) -> np.ndarray:
         """A v on every DoF for v on every DoF, shape (dof_count,) or (dof_count, k)."""
@@ -250,9 +344,32 @@ class CorotatedOperator:
     def __call__(self, vectors: np.ndarray) -> np.ndarray:
         """A_ff v for v on the free DoFs, shape (f,) or (f, k)."""
         vectors = np.asarray(vectors, dtype=float)
-        full = np.zeros((self.dof_count,) + vectors.shape[1:])
-        full[self.free_dofs] = vectors
-        return self.full(full)[self.free_dofs]
+        if self._masses is None:
+            full = np.zeros((self.dof_count,) + vectors.shape[1:])
+            full[self.free_dofs] = vectors
+            return self.full(full)[self.free_dofs]
+        single = vectors.ndim == 1
+        block = np.ascontiguousarray(vectors[:, None] if single else vectors)
+        columns = block.shape[1]
+        if columns not in self._scratch:
+            self._scratch[columns] = np.empty((self.dof_count, columns))
+        out = np.empty_like(block)
+        elements = self.elements
+        _free_product(
+            block,
+            self._positions,
+            elements.tets,
+            elements.rest_edges_inverse,
+            elements.volumes,
+            float(elements.lame),
+            float(elements.shear),
+            self.rotations,
+            self._masses,
+            self._factors,
+            self._scratch[columns],
+            out,
+        )
+        return out[:, 0] if single else out
 
 
 def matrix_free_step(
@@ -277,7 +394,8 @@ def matrix_free_step(
     rhs = f_ext − f_int(x₀) + (M/dt) v₀ − A_fc Δx_c, the coupling applied through the operator on the
     prescribed increments; its ``group_rotations`` are :func:`node_rotations`.
     """
-    forces, rotations = corotate(positions, elements)
+    forces, rotations, nodes = corotate_with_nodes(positions, elements)
+    nodes.setflags(write=False)
     operator = CorotatedOperator(
         dof_count, free_dofs, elements, rotations, mass_matrix, mass_factor, stiffness_factor
     )
@@ -297,7 +415,7 @@ def matrix_free_step(
         None,
         reduced,
         prescribed,
-        group_rotations=lambda: node_rotations(elements.tets, rotations, dof_count // 3),
+        group_rotations=lambda: nodes,
         rest_matrix=rest_matrix,
         operator=operator,
     )

@@ -58,13 +58,21 @@ from refsim.fem.compliance.bodies import (
     Precomputed,
     Refreshed,
 )
-from refsim.fem.compliance.system import PartialSolveMarks, StaleFactor, StepCompliance, StepSystem, pcg
+from refsim.fem.compliance.system import (
+    FreeMotionStart,
+    PartialSolveMarks,
+    StaleFactor,
+    StepCompliance,
+    StepSystem,
+    pcg,
+)
 
 __all__ = [
     "STRATEGIES",
     "STRATEGY_VARIANTS",
     "W_UPDATES",
     "StaleFactor",
+    "FreeMotionStart",
     "PartialSolveMarks",
     "StepSystem",
     "StepCompliance",

@@ -28,13 +28,6 @@ def _rotate_nodes(rotations: np.ndarray, values: np.ndarray, *, transpose: bool 
     return turned.reshape(values.shape)
 
 
-def _rotate_node_block(rotations: np.ndarray, block: np.ndarray) -> np.ndarray:
-    """R_s B R_sᵀ for a square block B on whole 3-DoF groups (rotations (g, 3, 3), B (3g, 3g)): its rows' node
-    blocks rotated, then its columns'."""
-    left = _rotate_nodes(rotations, block)
-    return _rotate_nodes(rotations, left.T).T
-
-
 @dataclass(eq=False)
 class StepSystem:
     """What a body assembles at one step for the compliance strategies.
@@ -215,6 +208,19 @@ class StaleFactor:
 
     matrix: sp.csr_matrix
     age: int
+
+
+@dataclass(frozen=True, eq=False)
+class FreeMotionStart:
+    """What the fast strategy carries from step to step (part of a run's state): its last free displacement,
+    the first iterate of the next free motion's conjugate gradients.
+
+    Attributes
+    ----------
+    displacement : Δx_free on the free DoFs of the last step [m], shape (f,); read-only.
+    """
+
+    displacement: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
