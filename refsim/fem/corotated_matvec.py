@@ -292,6 +292,28 @@ def stiffness_product(vectors: np.ndarray, elements: Elements, rotations: np.nda
     return out[:, 0] if single else out
 
 
+_LAYOUT: list = [None, None, None]  # the last (mass matrix, free DoFs) and their layout (a one-entry memo)
+
+
+def _layout(mass_matrix: sp.spmatrix, free_dofs: np.ndarray, dof_count: int) -> tuple:
+    """What the operator of a model reads at every step, computed once per model: M as CSR, the lumped mass
+    per free DoF (None when M is not diagonal: A_ff v then goes through :meth:`CorotatedOperator.full`), each
+    DoF's row among the free DoFs (-1: constrained).
+
+    Kept for the last (mass matrix, free DoFs) pair, by identity: both are the model's own arrays, held here
+    (so no other object can take their identity) and never modified."""
+    if _LAYOUT[0] is mass_matrix and _LAYOUT[1] is free_dofs:
+        return _LAYOUT[2]
+    mass = sp.csr_matrix(mass_matrix)
+    diagonal = mass.nnz == dof_count and np.array_equal(mass.indices, np.arange(dof_count))
+    diagonal = diagonal and np.array_equal(mass.indptr, np.arange(dof_count + 1))
+    positions = np.full(dof_count, -1, dtype=np.int64)
+    positions[free_dofs] = np.arange(free_dofs.size)
+    layout = (mass, mass.data[free_dofs] if diagonal else None, positions)
+    _LAYOUT[:] = [mass_matrix, free_dofs, layout]
+    return layout
+
+
 class CorotatedOperator:
     """v ↦ A v on the free DoFs, A = mass_factor · M + stiffness_factor · K(R) without assembling A.
 
@@ -320,19 +342,11 @@ class CorotatedOperator:
         self.free_dofs = free_dofs
         self.elements = elements
         self.rotations = rotations
-        self.mass = sp.csr_matrix(mass_matrix)
         self.mass_factor = float(mass_factor)
         self.stiffness_factor = float(stiffness_factor)
-        # A lumped (diagonal) mass: A_ff v in one compiled pass on the free DoFs (_free_product), without
-        # spreading v onto every DoF and back; else through ``full``.
-        mass = self.mass
-        diagonal = mass.nnz == dof_count and np.array_equal(mass.indices, np.arange(dof_count))
-        diagonal = diagonal and np.array_equal(mass.indptr, np.arange(dof_count + 1))
-        self._masses = mass.data[free_dofs] if diagonal else None
-        self._positions = np.full(dof_count, -1, dtype=np.int64)
-        self._positions[free_dofs] = np.arange(free_dofs.size)
+        self.mass, self._masses, self._positions = _layout(mass_matrix, free_dofs, dof_count)
+        self._scratch = {}  # (dof_count, k) arrays of _free_product, by k
         self._factors = np.array([self.mass_factor, self.stiffness_factor])
-        self._scratch = {}
 
     def full(self, vectors: np.ndarray) -> np.ndarray:
         """A v on every DoF for v on every DoF, shape (dof_count,) or (dof_count, k)."""
