@@ -118,17 +118,75 @@ def _stiffness_product(
 
 
 @numba.njit(cache=True)
+def _rotation(f, out):  # pragma: no cover - compiled
+    # The rotation of F = R U by polar_rotation_one's scaled Newton iteration X ← ½ (γ X + γ⁻¹ X⁻ᵀ), stopped
+    # once ‖ΔX‖_F < 1e-10 instead of 1e-15: near R the iteration is unscaled Newton, whose next error is
+    # ≤ ½ ‖X⁻¹‖ ‖X − R‖² ≈ ½ ‖ΔX‖² < 1e-20 (Higham, Functions of Matrices, §8.3), below round-off, so the
+    # answer is R to round-off one iteration sooner (3 iterations instead of 4 on the cube). Anything else
+    # (det F ≤ 0, no convergence) goes to polar_rotation_one, which gives the SVD's rotation.
+    a00, a01, a02 = f[0, 0], f[0, 1], f[0, 2]
+    a10, a11, a12 = f[1, 0], f[1, 1], f[1, 2]
+    a20, a21, a22 = f[2, 0], f[2, 1], f[2, 2]
+    scale = a00 * a00 + a01 * a01 + a02 * a02 + a10 * a10 + a11 * a11 + a12 * a12
+    scale += a20 * a20 + a21 * a21 + a22 * a22
+    det = a00 * (a11 * a22 - a12 * a21) - a01 * (a10 * a22 - a12 * a20) + a02 * (a10 * a21 - a11 * a20)
+    if not (det > 1e-14 * scale**1.5):
+        polar_rotation_one(f, out)
+        return
+    scaled = True
+    for _ in range(30):
+        c00, c01, c02 = a11 * a22 - a12 * a21, a12 * a20 - a10 * a22, a10 * a21 - a11 * a20
+        c10, c11, c12 = a02 * a21 - a01 * a22, a00 * a22 - a02 * a20, a01 * a20 - a00 * a21
+        c20, c21, c22 = a01 * a12 - a02 * a11, a02 * a10 - a00 * a12, a00 * a11 - a01 * a10
+        det = a00 * c00 + a01 * c01 + a02 * c02
+        if not (det > 0.0):
+            break
+        g, h = 0.5, 0.5 / det
+        if scaled:
+            norm = a00 * a00 + a01 * a01 + a02 * a02 + a10 * a10 + a11 * a11 + a12 * a12
+            norm += a20 * a20 + a21 * a21 + a22 * a22
+            inverse = c00 * c00 + c01 * c01 + c02 * c02 + c10 * c10 + c11 * c11 + c12 * c12
+            inverse = (inverse + c20 * c20 + c21 * c21 + c22 * c22) / (det * det)
+            gamma = (inverse / norm) ** 0.25
+            g, h = 0.5 * gamma, 0.5 / (gamma * det)
+        b00, b01, b02 = g * a00 + h * c00, g * a01 + h * c01, g * a02 + h * c02
+        b10, b11, b12 = g * a10 + h * c10, g * a11 + h * c11, g * a12 + h * c12
+        b20, b21, b22 = g * a20 + h * c20, g * a21 + h * c21, g * a22 + h * c22
+        change = (b00 - a00) ** 2 + (b01 - a01) ** 2 + (b02 - a02) ** 2 + (b10 - a10) ** 2
+        change += (b11 - a11) ** 2 + (b12 - a12) ** 2 + (b20 - a20) ** 2 + (b21 - a21) ** 2
+        change += (b22 - a22) ** 2
+        a00, a01, a02, a10, a11, a12, a20, a21, a22 = b00, b01, b02, b10, b11, b12, b20, b21, b22
+        if change < 1e-6:
+            scaled = False
+        if change < 1e-20:
+            out[0, 0], out[0, 1], out[0, 2] = a00, a01, a02
+            out[1, 0], out[1, 1], out[1, 2] = a10, a11, a12
+            out[2, 0], out[2, 1], out[2, 2] = a20, a21, a22
+            return
+    polar_rotation_one(f, out)
+
+
+@numba.njit(cache=True)
 def _corotate_with_nodes(
     positions, tets, rest_edges_inverse, volumes, lame, shear, forces, rotations, node_rotations
 ):  # pragma: no cover - compiled
-    # _corotate and _node_rotations in one pass over the tets: the same sums in the same order (the same bits)
+    # _corotate and _node_rotations in one pass over the tets (the same sums in the same order), each rotation
+    # by _rotation: equal to them to round-off
     f = np.empty((3, 3))
     ds = np.empty((3, 3))
     r = np.empty((3, 3))
     p = np.empty((3, 3))
     summed = np.zeros((node_rotations.shape[0], 3, 3))
     for e in range(tets.shape[0]):
-        deformation_rotation(positions, tets, rest_edges_inverse, e, f, ds, r)
+        n0 = tets[e, 0]
+        for c in range(3):
+            for i in range(3):
+                ds[i, c] = positions[tets[e, c + 1], i] - positions[n0, i]
+        for i in range(3):
+            for j in range(3):
+                f[i, j] = ds[i, 0] * rest_edges_inverse[e, 0, j] + ds[i, 1] * rest_edges_inverse[e, 1, j]
+                f[i, j] += ds[i, 2] * rest_edges_inverse[e, 2, j]
+        _rotation(f, r)
         rotations[e, :, :] = r
         _stress_forces(f, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, forces, 0, 1.0, p)
         for a in range(4):
@@ -137,7 +195,7 @@ def _corotate_with_nodes(
                 for j in range(3):
                     summed[node, i, j] += r[i, j]
     for node in range(node_rotations.shape[0]):
-        polar_rotation_one(summed[node], node_rotations[node])
+        _rotation(summed[node], node_rotations[node])
 
 
 @numba.njit(cache=True)
@@ -252,9 +310,10 @@ def corotate(positions: np.ndarray, elements: Elements) -> tuple[np.ndarray, np.
 def corotate_with_nodes(
     positions: np.ndarray, elements: Elements
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`corotate` and :func:`node_rotations` in one compiled pass over the tets (the same bits as the
-    two calls): internal forces (3 · node_count,), tet rotations (tet_count, 3, 3) and node rotations
-    (node_count, 3, 3)."""
+    """:func:`corotate` and :func:`node_rotations` in one compiled pass over the tets, equal to the two calls
+    to round-off (its polar iteration stops one iteration sooner, once the next step is below round-off):
+    internal forces (3 · node_count,), tet rotations (tet_count, 3, 3) and node rotations (node_count, 3, 3).
+    """
     positions = np.ascontiguousarray(positions, dtype=float)
     forces = np.zeros((positions.size, 1))
     rotations = np.empty((elements.tets.shape[0], 3, 3))

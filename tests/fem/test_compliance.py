@@ -11,6 +11,7 @@ from refsim.fem.compliance import (
     STRATEGIES,
     Exact,
     Fast,
+    FreeMotionStart,
     Precomputed,
     Refreshed,
     StepSystem,
@@ -345,6 +346,42 @@ def test_fast_node_blocks_are_the_same_whatever_was_asked_before(model):
     later = earlier.step(model.assemble_step(state, DT, matrix_free=True)).delassus(second)
     fresh = Fast().bind().step(model.assemble_step(state, DT, matrix_free=True)).delassus(second)
     np.testing.assert_array_equal(later, fresh)
+    # the correction sums the blocks in node order, not in the order they were solved: the same bits too
+    lam = np.linspace(-1.0, 2.0, second.shape[0])
+    fresh_step = Fast().bind().step(model.assemble_step(state, DT, matrix_free=True))
+    later_step = earlier.step(model.assemble_step(state, DT, matrix_free=True))
+    np.testing.assert_array_equal(later_step.correction(second, lam), fresh_step.correction(second, lam))
+
+
+def test_fast_warm_start_meets_the_same_tolerance_as_a_cold_start(model):
+    # The free motion's CG starts from the last step's free displacement (carried, FreeMotionStart) instead of
+    # R C₀ Rᵀ b. Both stop at ‖b − A x‖ ≤ tol ‖b‖, so each is within κ(A) tol of the dense answer and of each
+    # other (2 κ(A) tol, relative), whatever the start.
+    first, second = deformed(model, 0.01), deformed(model, 0.012)
+    warm = Fast().bind()
+    warm.step(model.assemble_step(first, DT, matrix_free=True))
+    carried = warm.carried()
+    assert isinstance(carried, FreeMotionStart) and not carried.displacement.flags.writeable
+    warm_step = warm.step(model.assemble_step(second, DT, matrix_free=True))
+    cold = Fast().bind()
+    cold.resume(None)
+    cold_step = cold.step(model.assemble_step(second, DT, matrix_free=True))
+    system, dense, _, expected = dense_reference(model, second)
+    kappa = np.linalg.cond(dense)
+    tolerance = warm.strategy.tolerance
+    for step in (warm_step, cold_step):
+        assert step.report["pcg_residual"] <= tolerance
+        assert np.linalg.norm(step.free_displacement - expected) <= kappa * tolerance * np.linalg.norm(
+            expected
+        )
+    difference = np.linalg.norm(warm_step.free_displacement - cold_step.free_displacement)
+    assert difference <= 2 * kappa * tolerance * np.linalg.norm(expected)
+    # resumed from the same carried start, a fresh body gives the same bits (a restarted run)
+    resumed = Fast().bind()
+    resumed.resume(carried)
+    again = resumed.step(model.assemble_step(second, DT, matrix_free=True))
+    np.testing.assert_array_equal(again.free_displacement, warm_step.free_displacement)
+    assert not np.array_equal(again.free_displacement, cold_step.free_displacement)
 
 
 def test_fast_is_a_strategy_of_the_scene_key():
