@@ -120,10 +120,11 @@ def _stiffness_product(
 @numba.njit(cache=True)
 def _rotation(f, out):  # pragma: no cover - compiled
     # The rotation of F = R U by polar_rotation_one's scaled Newton iteration X ← ½ (γ X + γ⁻¹ X⁻ᵀ), stopped
-    # once ‖ΔX‖_F < 1e-10 instead of 1e-15: near R the iteration is unscaled Newton, whose next error is
-    # ≤ ½ ‖X⁻¹‖ ‖X − R‖² ≈ ½ ‖ΔX‖² < 1e-20 (Higham, Functions of Matrices, §8.3), below round-off, so the
-    # answer is R to round-off one iteration sooner (3 iterations instead of 4 on the cube). Anything else
-    # (det F ≤ 0, no convergence) goes to polar_rotation_one, which gives the SVD's rotation.
+    # once ‖ΔX‖_F < 1e-8 instead of 1e-15: near R the iteration is unscaled Newton, whose next error is
+    # ≤ ½ ‖X⁻¹‖ ‖X − R‖² ≈ ½ ‖X⁻¹‖ ‖ΔX‖² < ½ ‖X⁻¹‖ 1e-16 (Higham, Functions of Matrices, §8.3): round-off for
+    # a tet that is not crushed (‖X⁻¹‖ = 1/σ_min(F)), so the answer is R to round-off one iteration sooner (2
+    # iterations instead of 3 for most tets of the cube). Anything else (det F ≤ 0, no convergence) goes to
+    # polar_rotation_one, which gives the SVD's rotation.
     a00, a01, a02 = f[0, 0], f[0, 1], f[0, 2]
     a10, a11, a12 = f[1, 0], f[1, 1], f[1, 2]
     a20, a21, a22 = f[2, 0], f[2, 1], f[2, 2]
@@ -158,7 +159,7 @@ def _rotation(f, out):  # pragma: no cover - compiled
         a00, a01, a02, a10, a11, a12, a20, a21, a22 = b00, b01, b02, b10, b11, b12, b20, b21, b22
         if change < 1e-6:
             scaled = False
-        if change < 1e-20:
+        if change < 1e-16:
             out[0, 0], out[0, 1], out[0, 2] = a00, a01, a02
             out[1, 0], out[1, 1], out[1, 2] = a10, a11, a12
             out[2, 0], out[2, 1], out[2, 2] = a20, a21, a22

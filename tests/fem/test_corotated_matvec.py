@@ -108,7 +108,7 @@ def test_a_rigid_motion_has_no_internal_force_and_a_rotated_stiffness(model):
 
 def test_one_pass_corotation_equals_the_two_passes(model):
     # corotate_with_nodes: the tets' rotations and forces and the nodes' rotations in one pass, its polar
-    # iteration stopped once the next Newton step is below round-off (‖ΔX‖ < 1e-10, next error ≈ ½‖ΔX‖²): the
+    # iteration stopped once the next Newton step is below round-off (‖ΔX‖ < 1e-8, next error ≈ ½‖ΔX‖²): the
     # rotations within a few ε of polar_rotation_one's, the forces within the product bound.
     positions = deformed(model).positions
     forces, rotations, nodes = corotate_with_nodes(positions, elements(model))
