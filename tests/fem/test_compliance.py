@@ -577,3 +577,30 @@ def test_every_strategy_moves_prescribed_nodes_exactly(model, strategy):
         tau = max(step.report.get("pcg_residual", 0.0), 10 * EPS)
         assert np.linalg.norm(step.free_displacement - reference) <= kappa * tau * np.linalg.norm(reference)
         state = TissueState(positions=positions, velocities=(positions - state.positions) / DT)
+
+
+def test_rows_restricted_to_their_dofs_are_scipys_numbers():
+    # W and the correction read H on the DoFs it touches as a dense block: the entries copied into place for
+    # a canonical CSR, SciPy's column slicing otherwise (duplicates summed); both the bits of
+    # H[:, used].toarray(), the sign of explicit zeros included (toarray sums into zeros).
+    from refsim.fem.compliance.system import _dense_columns
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        matrix = sp.random(12, 40, density=0.25, format="csr", random_state=rng)
+        matrix.data[::5] = -0.0
+        columns = np.sort(rng.choice(40, 15, replace=False))
+        expected = matrix[:, columns].toarray()
+        got = _dense_columns(matrix, columns)
+        np.testing.assert_array_equal(got, expected)
+        np.testing.assert_array_equal(np.signbit(got), np.signbit(expected))
+        duplicated = sp.csr_matrix(
+            (
+                np.r_[matrix.data, 0.5],
+                np.r_[matrix.indices, columns[0]],
+                np.r_[matrix.indptr[:-1], matrix.nnz + 1],
+            ),
+            shape=matrix.shape,
+        )
+        assert not duplicated.has_canonical_format
+        np.testing.assert_array_equal(_dense_columns(duplicated, columns), duplicated[:, columns].toarray())

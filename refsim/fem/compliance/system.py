@@ -308,9 +308,10 @@ class StepCompliance:
         A memo of the last H by value (W and the correction of one step share it): a copy of H's CSR arrays is
         the key, so rows changed in place or rebuilt equal give what a fresh computation gives."""
         jacobian = sp.csr_matrix(jacobian)
-        key = (jacobian.shape, jacobian.indptr.copy(), jacobian.indices.copy(), jacobian.data.copy())
-        if self._cache_key is not None and _same_rows(self._cache_key, key):
+        arrays = (jacobian.shape, jacobian.indptr, jacobian.indices, jacobian.data)
+        if self._cache_key is not None and _same_rows(self._cache_key, arrays):
             return self._cache
+        key = (jacobian.shape, jacobian.indptr.copy(), jacobian.indices.copy(), jacobian.data.copy())
         if jacobian.shape[1] != self.system.dof_count:
             raise ValueError(
                 f"rows must have {self.system.dof_count} columns (DoFs), got {jacobian.shape[1]}"
@@ -321,7 +322,7 @@ class StepCompliance:
         positions = np.minimum(positions, self.system.free_dofs.size - 1)
         on_free = self.system.free_dofs[positions] == used
         used, positions = used[on_free], positions[on_free]
-        restricted = jacobian[:, used].toarray()  # (rows, u): constrained DoFs do not move
+        restricted = _dense_columns(jacobian, used)  # (rows, u): constrained DoFs do not move
         exact = self._solve is not None and self._block is None and self._apply is None
         rows = restricted.shape[0]
         if exact and used.size and self._inverse_block is not None:
@@ -437,6 +438,22 @@ class StepCompliance:
             return out
         out[self.system.free_dofs] = self._solve(np.ascontiguousarray(rhs[self.system.free_dofs]))
         return out
+
+
+def _dense_columns(matrix: sp.csr_matrix, columns: np.ndarray) -> np.ndarray:
+    """``matrix[:, columns].toarray()`` for sorted, distinct ``columns``: the entries copied into place when
+    the CSR is canonical (sorted indices, no duplicates: the same numbers, without SciPy's column slicing),
+    else SciPy's answer (which sums duplicates)."""
+    if not matrix.has_canonical_format:
+        return matrix[:, columns].toarray()
+    where = np.full(matrix.shape[1], -1, dtype=np.int64)
+    where[columns] = np.arange(columns.size)
+    out = np.zeros((matrix.shape[0], columns.size))
+    column = where[matrix.indices]
+    keep = column >= 0
+    rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
+    out[rows[keep], column[keep]] = matrix.data[keep] + 0.0  # (as toarray's sum into zeros: -0.0 becomes 0.0)
+    return out
 
 
 def _same_rows(first: tuple, second: tuple) -> bool:
