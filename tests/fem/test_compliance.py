@@ -354,18 +354,20 @@ def test_fast_node_blocks_are_the_same_whatever_was_asked_before(model):
 
 
 def test_fast_warm_start_meets_the_same_tolerance_as_a_cold_start(model):
-    # The free motion's CG starts from the last step's free displacement (carried, FreeMotionStart) instead of
+    # The free motion's CG starts from the last step's free displacement (carried, FreeMotionStart) or from
     # R C₀ Rᵀ b. Both stop at ‖b − A x‖ ≤ tol ‖b‖, so each is within κ(A) tol of the dense answer and of each
     # other (2 κ(A) tol, relative), whatever the start.
     first, second = deformed(model, 0.01), deformed(model, 0.012)
+    previous = Fast().bind().step(model.assemble_step(first, DT, matrix_free=True))
+    start = previous.free_displacement[previous.free_dofs]
+    start.setflags(write=False)
     warm = Fast().bind()
-    warm.step(model.assemble_step(first, DT, matrix_free=True))
-    carried = warm.carried()
-    assert isinstance(carried, FreeMotionStart) and not carried.displacement.flags.writeable
+    warm.resume(FreeMotionStart(start, cold=False))
     warm_step = warm.step(model.assemble_step(second, DT, matrix_free=True))
     cold = Fast().bind()
-    cold.resume(None)
+    cold.resume(FreeMotionStart(start, cold=True))
     cold_step = cold.step(model.assemble_step(second, DT, matrix_free=True))
+    assert warm_step.report["pcg_warm_start"] and not cold_step.report["pcg_warm_start"]
     system, dense, _, expected = dense_reference(model, second)
     kappa = np.linalg.cond(dense)
     tolerance = warm.strategy.tolerance
@@ -376,12 +378,34 @@ def test_fast_warm_start_meets_the_same_tolerance_as_a_cold_start(model):
         )
     difference = np.linalg.norm(warm_step.free_displacement - cold_step.free_displacement)
     assert difference <= 2 * kappa * tolerance * np.linalg.norm(expected)
+    assert not np.array_equal(warm_step.free_displacement, cold_step.free_displacement)
     # resumed from the same carried start, a fresh body gives the same bits (a restarted run)
-    resumed = Fast().bind()
-    resumed.resume(carried)
-    again = resumed.step(model.assemble_step(second, DT, matrix_free=True))
-    np.testing.assert_array_equal(again.free_displacement, warm_step.free_displacement)
-    assert not np.array_equal(again.free_displacement, cold_step.free_displacement)
+    again = Fast().bind()
+    again.resume(FreeMotionStart(start, cold=False))
+    repeated = again.step(model.assemble_step(second, DT, matrix_free=True))
+    np.testing.assert_array_equal(repeated.free_displacement, warm_step.free_displacement)
+
+
+def test_fast_start_policy(model):
+    # R C₀ Rᵀ b while it meets the tolerance alone; after it needed an iteration, the last free displacement,
+    # R C₀ Rᵀ b tried again after COLD_RETRY such steps. What the next step does is in the carried state.
+    from refsim.fem.compliance.bodies import COLD_RETRY
+
+    state = deformed(model, 0.01)
+    body = Fast().bind()
+    first = body.step(model.assemble_step(state, DT, matrix_free=True))
+    carried = body.carried()
+    assert not first.report["pcg_warm_start"] and carried.age == 0
+    assert carried.cold == (first.report["pcg_iterations"] == 0)
+    body.resume(FreeMotionStart(carried.displacement, cold=False, age=COLD_RETRY - 2))
+    step = body.step(model.assemble_step(state, DT, matrix_free=True))
+    assert step.report["pcg_warm_start"]
+    assert body.carried().cold is False and body.carried().age == COLD_RETRY - 1
+    step = body.step(model.assemble_step(state, DT, matrix_free=True))
+    assert step.report["pcg_warm_start"] and body.carried().cold is True and body.carried().age == 0
+    step = body.step(model.assemble_step(state, DT, matrix_free=True))
+    assert not step.report["pcg_warm_start"]
+    assert body.carried().cold == (step.report["pcg_iterations"] == 0)
 
 
 def test_fast_is_a_strategy_of_the_scene_key():

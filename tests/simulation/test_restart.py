@@ -143,13 +143,17 @@ def test_restart_of_the_fast_strategy_recomputes_its_node_blocks_with_the_same_b
     # restarted run (which solves only the blocks it needs from then on) has the uninterrupted run's bits.
     scene = cube_scene(*COARSE, 'compliance.strategy="fast"')
     states = []
-    records = _check_restarts(scene, restarts=(18, 30), total=34, watch=states.append)
+    records = _check_restarts(scene, restarts=(18, 26, 30), total=34, watch=states.append)
     assert _events(records)["puncture"] == [21]
-    for step in (18, 30):
+    for step in (18, 26, 30):
         carried = states[step - 1].tissue_factor
         assert isinstance(carried, FreeMotionStart)
         assert not carried.displacement.flags.writeable
         assert np.abs(carried.displacement).max() > 0.0
+    # restarted before either kind of start: from the last free displacement part way (26) and from R C₀ Rᵀ b
+    # when it met the tolerance alone (18) or is tried again (30)
+    assert [states[step - 1].tissue_factor.cold for step in (18, 26, 30)] == [True, False, True]
+    assert states[25].tissue_factor.age > 0
 
 
 @pytest.fixture(scope="module")

@@ -428,6 +428,10 @@ class Precomputed:
         return _PrecomputedBody(self)
 
 
+#: Steps the fast strategy's free motion starts from the last free displacement before trying R C₀ Rᵀ b again.
+COLD_RETRY = 8
+
+
 class _FastBody(BodyCompliance):
     def __init__(self, strategy: Fast) -> None:
         super().__init__(strategy)
@@ -435,15 +439,15 @@ class _FastBody(BodyCompliance):
         # without the error report, the tissue builds its step system with an operator and no matrix
         self.matrix_free = not strategy.against_exact
         self._ready = False
-        self._start = None  # the last step's free displacement on the free DoFs: the next CG's first iterate
+        self._carried = None  # FreeMotionStart: the last free displacement and how the next CG starts
 
     def carried(self) -> FreeMotionStart | None:
-        """The last free displacement (the next free motion's first iterate); None before the first step."""
-        return None if self._start is None else FreeMotionStart(self._start)
+        """The last free displacement and the next free motion's start; None before the first step."""
+        return self._carried
 
     def resume(self, carried: FreeMotionStart | None) -> None:
         """Continue from ``carried`` (None: the next free motion starts from R C₀ Rᵀ b, as a run's first)."""
-        self._start = None if carried is None else carried.displacement
+        self._carried = carried
 
     def _prepare(self, system: StepSystem) -> None:
         if system.rest_matrix is None or system.group_rotations is None:
@@ -503,17 +507,33 @@ class _FastBody(BodyCompliance):
             turn_nodes(rotations, solver.solve(turned), False, out)
             return out
 
+        carried = self._carried
+        warm = carried is not None and not carried.cold
         free, iterations, residual = _warm_pcg(
             system.product,
             warped,
             system.rhs,
-            self._start,
+            carried.displacement if warm else None,
             tolerance=strategy.tolerance,
             max_iterations=strategy.max_iterations,
         )
-        self._start = free.copy()
-        self._start.setflags(write=False)
-        report = {"refactorised": False, "pcg_iterations": iterations, "pcg_residual": residual}
+        # The next start: R C₀ Rᵀ b again while it meets the tolerance alone (one solve and one product, the
+        # least a step can cost); else the last free displacement (one solve fewer per step when an iteration
+        # is needed anyway), R C₀ Rᵀ b being tried again every COLD_RETRY steps.
+        if warm:
+            age = carried.age + 1
+            cold = age >= COLD_RETRY
+        else:
+            age, cold = 0, iterations == 0
+        displacement = free.copy()
+        displacement.setflags(write=False)
+        self._carried = FreeMotionStart(displacement, cold, 0 if cold else age)
+        report = {
+            "refactorised": False,
+            "pcg_iterations": iterations,
+            "pcg_residual": residual,
+            "pcg_warm_start": warm,
+        }
         before = self._filled
 
         def inverse_block(positions):

@@ -212,15 +212,21 @@ class StaleFactor:
 
 @dataclass(frozen=True, eq=False)
 class FreeMotionStart:
-    """What the fast strategy carries from step to step (part of a run's state): its last free displacement,
-    the first iterate of the next free motion's conjugate gradients.
+    """What the fast strategy carries from step to step (part of a run's state): its last free displacement
+    and where the next free motion's conjugate gradients start.
 
     Attributes
     ----------
     displacement : Δx_free on the free DoFs of the last step [m], shape (f,); read-only.
+    cold : The next CG starts from R C₀ Rᵀ b (True: it met the tolerance alone at its last try) or from
+        ``displacement`` (False).
+    age : Steps started from the last free displacement since R C₀ Rᵀ b was last tried (it is tried again
+        after ``COLD_RETRY`` of them).
     """
 
     displacement: np.ndarray
+    cold: bool = False
+    age: int = 0
 
 
 @dataclass(frozen=True, eq=False)
