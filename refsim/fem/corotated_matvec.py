@@ -131,7 +131,7 @@ def _rotation(f, out):  # pragma: no cover - compiled
     scale = a00 * a00 + a01 * a01 + a02 * a02 + a10 * a10 + a11 * a11 + a12 * a12
     scale += a20 * a20 + a21 * a21 + a22 * a22
     det = a00 * (a11 * a22 - a12 * a21) - a01 * (a10 * a22 - a12 * a20) + a02 * (a10 * a21 - a11 * a20)
-    if not (det > 1e-14 * scale**1.5):
+    if not (det > 1e-14 * (scale * np.sqrt(scale))):
         polar_rotation_one(f, out)
         return
     scaled = True
@@ -148,7 +148,7 @@ def _rotation(f, out):  # pragma: no cover - compiled
             norm += a20 * a20 + a21 * a21 + a22 * a22
             inverse = c00 * c00 + c01 * c01 + c02 * c02 + c10 * c10 + c11 * c11 + c12 * c12
             inverse = (inverse + c20 * c20 + c21 * c21 + c22 * c22) / (det * det)
-            gamma = (inverse / norm) ** 0.25
+            gamma = np.sqrt(np.sqrt(inverse / norm))
             g, h = 0.5 * gamma, 0.5 / (gamma * det)
         b00, b01, b02 = g * a00 + h * c00, g * a01 + h * c01, g * a02 + h * c02
         b10, b11, b12 = g * a10 + h * c10, g * a11 + h * c11, g * a12 + h * c12
