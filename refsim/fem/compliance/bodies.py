@@ -620,7 +620,9 @@ def _warm_pcg(
 class Fast:
     """No matrix assembled or factorised during the run: the rest compliance rotated per node for W and the
     correction, free motion by CG on the current A applied per tet, preconditioned by the same rotated rest
-    compliance.
+    compliance and started from its answer R C₀ Rᵀ b while that alone meets the tolerance, else from the last
+    free displacement (carried, :class:`refsim.fem.compliance.FreeMotionStart`; R C₀ Rᵀ b is tried again every
+    :data:`COLD_RETRY` steps).
 
     Parameters
     ----------
