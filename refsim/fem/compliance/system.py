@@ -252,9 +252,10 @@ class StepCompliance:
     ----------
     system : The step system it was made from.
     free_displacement : Δx_free [m], shape (dof_count,), equal to ``prescribed`` on the constrained DoFs.
-    report : What the strategy did this step (``refactorised``, ``pcg_iterations``, ``pcg_residual``, and with
-        ``against_exact`` the errors ``free_motion_error`` [m], ``compliance_error`` (relative, Frobenius) and
-        ``correction_error`` [m]).
+    report : What the strategy did this step (``refactorised``, ``pcg_iterations``, ``pcg_residual``; the fast
+        strategy's ``pcg_warm_start``, whether its CG started from the last free displacement, and
+        ``rest_blocks_solved``; and with ``against_exact`` the errors ``free_motion_error`` [m],
+        ``compliance_error`` (relative, Frobenius) and ``correction_error`` [m]).
     """
 
     def __init__(
