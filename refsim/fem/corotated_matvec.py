@@ -37,6 +37,7 @@ __all__ = [
     "Elements",
     "CorotatedOperator",
     "corotate",
+    "corotate_with_nodes",
     "stiffness_product",
     "node_rotations",
     "matrix_free_step",
@@ -117,6 +118,124 @@ def _stiffness_product(
 
 
 @numba.njit(cache=True)
+def _rotation(f, out):  # pragma: no cover - compiled
+    # The rotation of F = R U by polar_rotation_one's scaled Newton iteration X ← ½ (γ X + γ⁻¹ X⁻ᵀ), stopped
+    # once ‖ΔX‖_F < 1e-8 instead of 1e-15: near R the iteration is unscaled Newton, whose next error is
+    # ≤ ½ ‖X⁻¹‖ ‖X − R‖² ≈ ½ ‖X⁻¹‖ ‖ΔX‖² < ½ ‖X⁻¹‖ 1e-16 (Higham, Functions of Matrices, §8.3): round-off for
+    # a tet that is not crushed (‖X⁻¹‖ = 1/σ_min(F)), so the answer is R to round-off one iteration sooner (2
+    # iterations instead of 3 for most tets of the cube). Anything else (det F ≤ 0, no convergence) goes to
+    # polar_rotation_one, which gives the SVD's rotation.
+    a00, a01, a02 = f[0, 0], f[0, 1], f[0, 2]
+    a10, a11, a12 = f[1, 0], f[1, 1], f[1, 2]
+    a20, a21, a22 = f[2, 0], f[2, 1], f[2, 2]
+    scale = a00 * a00 + a01 * a01 + a02 * a02 + a10 * a10 + a11 * a11 + a12 * a12
+    scale += a20 * a20 + a21 * a21 + a22 * a22
+    det = a00 * (a11 * a22 - a12 * a21) - a01 * (a10 * a22 - a12 * a20) + a02 * (a10 * a21 - a11 * a20)
+    if not (det > 1e-14 * (scale * np.sqrt(scale))):
+        polar_rotation_one(f, out)
+        return
+    scaled = True
+    for _ in range(30):
+        c00, c01, c02 = a11 * a22 - a12 * a21, a12 * a20 - a10 * a22, a10 * a21 - a11 * a20
+        c10, c11, c12 = a02 * a21 - a01 * a22, a00 * a22 - a02 * a20, a01 * a20 - a00 * a21
+        c20, c21, c22 = a01 * a12 - a02 * a11, a02 * a10 - a00 * a12, a00 * a11 - a01 * a10
+        det = a00 * c00 + a01 * c01 + a02 * c02
+        if not (det > 0.0):
+            break
+        g, h = 0.5, 0.5 / det
+        if scaled:
+            norm = a00 * a00 + a01 * a01 + a02 * a02 + a10 * a10 + a11 * a11 + a12 * a12
+            norm += a20 * a20 + a21 * a21 + a22 * a22
+            inverse = c00 * c00 + c01 * c01 + c02 * c02 + c10 * c10 + c11 * c11 + c12 * c12
+            inverse = (inverse + c20 * c20 + c21 * c21 + c22 * c22) / (det * det)
+            gamma = np.sqrt(np.sqrt(inverse / norm))
+            g, h = 0.5 * gamma, 0.5 / (gamma * det)
+        b00, b01, b02 = g * a00 + h * c00, g * a01 + h * c01, g * a02 + h * c02
+        b10, b11, b12 = g * a10 + h * c10, g * a11 + h * c11, g * a12 + h * c12
+        b20, b21, b22 = g * a20 + h * c20, g * a21 + h * c21, g * a22 + h * c22
+        change = (b00 - a00) ** 2 + (b01 - a01) ** 2 + (b02 - a02) ** 2 + (b10 - a10) ** 2
+        change += (b11 - a11) ** 2 + (b12 - a12) ** 2 + (b20 - a20) ** 2 + (b21 - a21) ** 2
+        change += (b22 - a22) ** 2
+        a00, a01, a02, a10, a11, a12, a20, a21, a22 = b00, b01, b02, b10, b11, b12, b20, b21, b22
+        if change < 1e-6:
+            scaled = False
+        if change < 1e-16:
+            out[0, 0], out[0, 1], out[0, 2] = a00, a01, a02
+            out[1, 0], out[1, 1], out[1, 2] = a10, a11, a12
+            out[2, 0], out[2, 1], out[2, 2] = a20, a21, a22
+            return
+    polar_rotation_one(f, out)
+
+
+@numba.njit(cache=True)
+def _corotate_with_nodes(
+    positions, tets, rest_edges_inverse, volumes, lame, shear, forces, rotations, node_rotations
+):  # pragma: no cover - compiled
+    # _corotate and _node_rotations in one pass over the tets (the same sums in the same order), each rotation
+    # by _rotation: equal to them to round-off
+    f = np.empty((3, 3))
+    ds = np.empty((3, 3))
+    r = np.empty((3, 3))
+    p = np.empty((3, 3))
+    summed = np.zeros((node_rotations.shape[0], 3, 3))
+    for e in range(tets.shape[0]):
+        n0 = tets[e, 0]
+        for c in range(3):
+            for i in range(3):
+                ds[i, c] = positions[tets[e, c + 1], i] - positions[n0, i]
+        for i in range(3):
+            for j in range(3):
+                f[i, j] = ds[i, 0] * rest_edges_inverse[e, 0, j] + ds[i, 1] * rest_edges_inverse[e, 1, j]
+                f[i, j] += ds[i, 2] * rest_edges_inverse[e, 2, j]
+        _rotation(f, r)
+        rotations[e, :, :] = r
+        _stress_forces(f, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, forces, 0, 1.0, p)
+        for a in range(4):
+            node = tets[e, a]
+            for i in range(3):
+                for j in range(3):
+                    summed[node, i, j] += r[i, j]
+    for node in range(node_rotations.shape[0]):
+        _rotation(summed[node], node_rotations[node])
+
+
+@numba.njit(cache=True)
+def _free_product(
+    vectors, positions, tets, rest_edges_inverse, volumes, lame, shear, rotations, masses, factors, full, out
+):  # pragma: no cover - compiled
+    # A_ff v for v on the free DoFs: positions[d] is DoF d's row among the free DoFs (-1: constrained, v = 0
+    # there); full (dof_count, k) is scratch; masses the lumped mass per free DoF; factors (mass, stiffness).
+    # The sums of stiffness_product and CorotatedOperator.full in their order (the same bits).
+    full[:, :] = 0.0
+    h = np.empty((3, 3))
+    p = np.empty((3, 3))
+    w = np.empty((4, 3))
+    for e in range(tets.shape[0]):
+        r = rotations[e]
+        for c in range(vectors.shape[1]):
+            for a in range(4):
+                for i in range(3):
+                    row = positions[3 * tets[e, a] + i]
+                    w[a, i] = vectors[row, c] if row >= 0 else 0.0
+            for i in range(3):
+                w0 = w[1, i] - w[0, i]
+                w1 = w[2, i] - w[0, i]
+                w2 = w[3, i] - w[0, i]
+                for j in range(3):
+                    h[i, j] = (
+                        w0 * rest_edges_inverse[e, 0, j]
+                        + w1 * rest_edges_inverse[e, 1, j]
+                        + w2 * rest_edges_inverse[e, 2, j]
+                    )
+            _stress_forces(h, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, full, c, 0.0, p)
+    for d in range(positions.shape[0]):
+        row = positions[d]
+        if row >= 0:
+            for c in range(vectors.shape[1]):
+                out[row, c] = full[d, c] * factors[1] + factors[0] * (masses[row] * vectors[row, c])
+
+
+@numba.njit(cache=True)
 def _node_rotations(tets, rotations, out):  # pragma: no cover - compiled
     summed = np.zeros((out.shape[0], 3, 3))
     for e in range(tets.shape[0]):
@@ -189,6 +308,31 @@ def corotate(positions: np.ndarray, elements: Elements) -> tuple[np.ndarray, np.
     return forces[:, 0], rotations
 
 
+def corotate_with_nodes(
+    positions: np.ndarray, elements: Elements
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`corotate` and :func:`node_rotations` in one compiled pass over the tets, equal to the two calls
+    to round-off (its polar iteration stops one iteration sooner, once the next step is below round-off):
+    internal forces (3 · node_count,), tet rotations (tet_count, 3, 3) and node rotations (node_count, 3, 3).
+    """
+    positions = np.ascontiguousarray(positions, dtype=float)
+    forces = np.zeros((positions.size, 1))
+    rotations = np.empty((elements.tets.shape[0], 3, 3))
+    nodes = np.empty((positions.shape[0], 3, 3))
+    _corotate_with_nodes(
+        positions,
+        elements.tets,
+        elements.rest_edges_inverse,
+        elements.volumes,
+        float(elements.lame),
+        float(elements.shear),
+        forces,
+        rotations,
+        nodes,
+    )
+    return forces[:, 0], rotations, nodes
+
+
 def stiffness_product(vectors: np.ndarray, elements: Elements, rotations: np.ndarray) -> np.ndarray:
     """K v = Σₑ Rₑ Kₑ Rₑᵀ vₑ [N] for DoF vectors v [m] of shape (dof_count,) or (dof_count, k)."""
     vectors = np.asarray(vectors, dtype=float)
@@ -206,6 +350,28 @@ def stiffness_product(vectors: np.ndarray, elements: Elements, rotations: np.nda
         out,
     )
     return out[:, 0] if single else out
+
+
+_LAYOUT: list = [None, None, None]  # the last (mass matrix, free DoFs) and their layout (a one-entry memo)
+
+
+def _layout(mass_matrix: sp.spmatrix, free_dofs: np.ndarray, dof_count: int) -> tuple:
+    """What the operator of a model reads at every step, computed once per model: M as CSR, the lumped mass
+    per free DoF (None when M is not diagonal: A_ff v then goes through :meth:`CorotatedOperator.full`), each
+    DoF's row among the free DoFs (-1: constrained).
+
+    Kept for the last (mass matrix, free DoFs) pair, by identity: both are the model's own arrays, held here
+    (so no other object can take their identity) and never modified."""
+    if _LAYOUT[0] is mass_matrix and _LAYOUT[1] is free_dofs:
+        return _LAYOUT[2]
+    mass = sp.csr_matrix(mass_matrix)
+    diagonal = mass.nnz == dof_count and np.array_equal(mass.indices, np.arange(dof_count))
+    diagonal = diagonal and np.array_equal(mass.indptr, np.arange(dof_count + 1))
+    positions = np.full(dof_count, -1, dtype=np.int64)
+    positions[free_dofs] = np.arange(free_dofs.size)
+    layout = (mass, mass.data[free_dofs] if diagonal else None, positions)
+    _LAYOUT[:] = [mass_matrix, free_dofs, layout]
+    return layout
 
 
 class CorotatedOperator:
@@ -236,9 +402,11 @@ class CorotatedOperator:
         self.free_dofs = free_dofs
         self.elements = elements
         self.rotations = rotations
-        self.mass = sp.csr_matrix(mass_matrix)
         self.mass_factor = float(mass_factor)
         self.stiffness_factor = float(stiffness_factor)
+        self.mass, self._masses, self._positions = _layout(mass_matrix, free_dofs, dof_count)
+        self._scratch = {}  # (dof_count, k) arrays of _free_product, by k
+        self._factors = np.array([self.mass_factor, self.stiffness_factor])
 
     def full(self, vectors: np.ndarray) -> np.ndarray:
         """A v on every DoF for v on every DoF, shape (dof_count,) or (dof_count, k)."""
@@ -250,9 +418,32 @@ class CorotatedOperator:
     def __call__(self, vectors: np.ndarray) -> np.ndarray:
         """A_ff v for v on the free DoFs, shape (f,) or (f, k)."""
         vectors = np.asarray(vectors, dtype=float)
-        full = np.zeros((self.dof_count,) + vectors.shape[1:])
-        full[self.free_dofs] = vectors
-        return self.full(full)[self.free_dofs]
+        if self._masses is None:
+            full = np.zeros((self.dof_count,) + vectors.shape[1:])
+            full[self.free_dofs] = vectors
+            return self.full(full)[self.free_dofs]
+        single = vectors.ndim == 1
+        block = np.ascontiguousarray(vectors[:, None] if single else vectors)
+        columns = block.shape[1]
+        if columns not in self._scratch:
+            self._scratch[columns] = np.empty((self.dof_count, columns))
+        out = np.empty_like(block)
+        elements = self.elements
+        _free_product(
+            block,
+            self._positions,
+            elements.tets,
+            elements.rest_edges_inverse,
+            elements.volumes,
+            float(elements.lame),
+            float(elements.shear),
+            self.rotations,
+            self._masses,
+            self._factors,
+            self._scratch[columns],
+            out,
+        )
+        return out[:, 0] if single else out
 
 
 def matrix_free_step(
@@ -277,7 +468,8 @@ def matrix_free_step(
     rhs = f_ext − f_int(x₀) + (M/dt) v₀ − A_fc Δx_c, the coupling applied through the operator on the
     prescribed increments; its ``group_rotations`` are :func:`node_rotations`.
     """
-    forces, rotations = corotate(positions, elements)
+    forces, rotations, nodes = corotate_with_nodes(positions, elements)
+    nodes.setflags(write=False)
     operator = CorotatedOperator(
         dof_count, free_dofs, elements, rotations, mass_matrix, mass_factor, stiffness_factor
     )
@@ -297,7 +489,7 @@ def matrix_free_step(
         None,
         reduced,
         prescribed,
-        group_rotations=lambda: node_rotations(elements.tets, rotations, dof_count // 3),
+        group_rotations=lambda: nodes,
         rest_matrix=rest_matrix,
         operator=operator,
     )

@@ -11,7 +11,7 @@ from refsim.constraints import TISSUE, InsertionPath
 from refsim.constraints.friction import FaceStretch
 from refsim.cutting import CutSurface
 from refsim.cutting.strip import CutStrip
-from refsim.fem.compliance import PartialSolveMarks, StaleFactor
+from refsim.fem.compliance import FreeMotionStart, PartialSolveMarks, StaleFactor
 from refsim.fem.tissue import TissueState
 from refsim.simulation.needle_body import NeedleState
 
@@ -85,8 +85,10 @@ class SimulationState:
     tissue_factor : What the tissue compliance carries from step to step: the refreshed strategy's stale
         factor (the matrix A it last factorised and the steps since,
         :class:`refsim.fem.compliance.StaleFactor`), or the exact strategy's partial-solve marks on PARDISO
-        (the DoFs its analysis marked, :class:`refsim.fem.compliance.PartialSolveMarks`); None for the
-        strategies that carry nothing, and before the first step.
+        (the DoFs its analysis marked, :class:`refsim.fem.compliance.PartialSolveMarks`), or the fast
+        strategy's last free displacement (its next conjugate gradients' first iterate,
+        :class:`refsim.fem.compliance.FreeMotionStart`); None for the strategies that carry nothing, and
+        before the first step.
 
     The one-instrument shortcuts ``phase``, ``needle``, ``path``, ``cut_direction``, ``cut_strip``,
     ``tip_tet`` and ``tip_barycentric`` read the only instrument's fields; on a state with several instruments
@@ -98,7 +100,7 @@ class SimulationState:
     tissue: TissueState
     instruments: tuple[InstrumentState, ...]
     cut: CutSurface | None = None
-    tissue_factor: StaleFactor | PartialSolveMarks | None = None
+    tissue_factor: StaleFactor | PartialSolveMarks | FreeMotionStart | None = None
 
     @property
     def instrument_names(self) -> tuple[str, ...]:

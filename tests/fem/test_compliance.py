@@ -11,6 +11,7 @@ from refsim.fem.compliance import (
     STRATEGIES,
     Exact,
     Fast,
+    FreeMotionStart,
     Precomputed,
     Refreshed,
     StepSystem,
@@ -345,6 +346,66 @@ def test_fast_node_blocks_are_the_same_whatever_was_asked_before(model):
     later = earlier.step(model.assemble_step(state, DT, matrix_free=True)).delassus(second)
     fresh = Fast().bind().step(model.assemble_step(state, DT, matrix_free=True)).delassus(second)
     np.testing.assert_array_equal(later, fresh)
+    # the correction sums the blocks in node order, not in the order they were solved: the same bits too
+    lam = np.linspace(-1.0, 2.0, second.shape[0])
+    fresh_step = Fast().bind().step(model.assemble_step(state, DT, matrix_free=True))
+    later_step = earlier.step(model.assemble_step(state, DT, matrix_free=True))
+    np.testing.assert_array_equal(later_step.correction(second, lam), fresh_step.correction(second, lam))
+
+
+def test_fast_warm_start_meets_the_same_tolerance_as_a_cold_start(model):
+    # The free motion's CG starts from the last step's free displacement (carried, FreeMotionStart) or from
+    # R C₀ Rᵀ b. Both stop at ‖b − A x‖ ≤ tol ‖b‖, so each is within κ(A) tol of the dense answer and of each
+    # other (2 κ(A) tol, relative), whatever the start.
+    first, second = deformed(model, 0.01), deformed(model, 0.012)
+    previous = Fast().bind().step(model.assemble_step(first, DT, matrix_free=True))
+    start = previous.free_displacement[previous.free_dofs]
+    start.setflags(write=False)
+    warm = Fast().bind()
+    warm.resume(FreeMotionStart(start, cold=False))
+    warm_step = warm.step(model.assemble_step(second, DT, matrix_free=True))
+    cold = Fast().bind()
+    cold.resume(FreeMotionStart(start, cold=True))
+    cold_step = cold.step(model.assemble_step(second, DT, matrix_free=True))
+    assert warm_step.report["pcg_warm_start"] and not cold_step.report["pcg_warm_start"]
+    system, dense, _, expected = dense_reference(model, second)
+    kappa = np.linalg.cond(dense)
+    tolerance = warm.strategy.tolerance
+    for step in (warm_step, cold_step):
+        assert step.report["pcg_residual"] <= tolerance
+        assert np.linalg.norm(step.free_displacement - expected) <= kappa * tolerance * np.linalg.norm(
+            expected
+        )
+    difference = np.linalg.norm(warm_step.free_displacement - cold_step.free_displacement)
+    assert difference <= 2 * kappa * tolerance * np.linalg.norm(expected)
+    assert not np.array_equal(warm_step.free_displacement, cold_step.free_displacement)
+    # resumed from the same carried start, a fresh body gives the same bits (a restarted run)
+    again = Fast().bind()
+    again.resume(FreeMotionStart(start, cold=False))
+    repeated = again.step(model.assemble_step(second, DT, matrix_free=True))
+    np.testing.assert_array_equal(repeated.free_displacement, warm_step.free_displacement)
+
+
+def test_fast_start_policy(model):
+    # R C₀ Rᵀ b while it meets the tolerance alone; after it needed an iteration, the last free displacement,
+    # R C₀ Rᵀ b tried again after COLD_RETRY such steps. What the next step does is in the carried state.
+    from refsim.fem.compliance.bodies import COLD_RETRY
+
+    state = deformed(model, 0.01)
+    body = Fast().bind()
+    first = body.step(model.assemble_step(state, DT, matrix_free=True))
+    carried = body.carried()
+    assert not first.report["pcg_warm_start"] and carried.age == 0
+    assert carried.cold == (first.report["pcg_iterations"] == 0)
+    body.resume(FreeMotionStart(carried.displacement, cold=False, age=COLD_RETRY - 2))
+    step = body.step(model.assemble_step(state, DT, matrix_free=True))
+    assert step.report["pcg_warm_start"]
+    assert body.carried().cold is False and body.carried().age == COLD_RETRY - 1
+    step = body.step(model.assemble_step(state, DT, matrix_free=True))
+    assert step.report["pcg_warm_start"] and body.carried().cold is True and body.carried().age == 0
+    step = body.step(model.assemble_step(state, DT, matrix_free=True))
+    assert not step.report["pcg_warm_start"]
+    assert body.carried().cold == (step.report["pcg_iterations"] == 0)
 
 
 def test_fast_is_a_strategy_of_the_scene_key():
@@ -540,3 +601,30 @@ def test_every_strategy_moves_prescribed_nodes_exactly(model, strategy):
         tau = max(step.report.get("pcg_residual", 0.0), 10 * EPS)
         assert np.linalg.norm(step.free_displacement - reference) <= kappa * tau * np.linalg.norm(reference)
         state = TissueState(positions=positions, velocities=(positions - state.positions) / DT)
+
+
+def test_rows_restricted_to_their_dofs_are_scipys_numbers():
+    # W and the correction read H on the DoFs it touches as a dense block: the entries copied into place for
+    # a canonical CSR, SciPy's column slicing otherwise (duplicates summed); both the bits of
+    # H[:, used].toarray(), the sign of explicit zeros included (toarray sums into zeros).
+    from refsim.fem.compliance.system import _dense_columns
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        matrix = sp.random(12, 40, density=0.25, format="csr", random_state=rng)
+        matrix.data[::5] = -0.0
+        columns = np.sort(rng.choice(40, 15, replace=False))
+        expected = matrix[:, columns].toarray()
+        got = _dense_columns(matrix, columns)
+        np.testing.assert_array_equal(got, expected)
+        np.testing.assert_array_equal(np.signbit(got), np.signbit(expected))
+        duplicated = sp.csr_matrix(
+            (
+                np.r_[matrix.data, 0.5],
+                np.r_[matrix.indices, columns[0]],
+                np.r_[matrix.indptr[:-1], matrix.nnz + 1],
+            ),
+            shape=matrix.shape,
+        )
+        assert not duplicated.has_canonical_format
+        np.testing.assert_array_equal(_dense_columns(duplicated, columns), duplicated[:, columns].toarray())

@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from refsim.fem.corotated_matvec import Elements, corotate, stiffness_product
+from refsim.fem.corotated_matvec import (
+    Elements,
+    corotate,
+    corotate_with_nodes,
+    node_rotations,
+    stiffness_product,
+)
 from refsim.fem.tissue import TissueModel, TissueState
 from refsim.geometry.rotations import rotation_matrix
 from refsim.materials import HookeMaterial
@@ -98,3 +104,22 @@ def test_a_rigid_motion_has_no_internal_force_and_a_rotated_stiffness(model):
     expected = (model.rest_stiffness @ vectors.ravel()).reshape(-1, 3) @ rotation.T
     bound = roundoff_bound(model, (abs(model.rest_stiffness) @ np.abs(vectors.ravel())).max())
     assert np.abs(turned - expected).max() <= bound
+
+
+def test_one_pass_corotation_equals_the_two_passes(model):
+    # corotate_with_nodes: the tets' rotations and forces and the nodes' rotations in one pass, its polar
+    # iteration stopped once the next Newton step is below round-off (‖ΔX‖ < 1e-8, next error ≈ ½‖ΔX‖²): the
+    # rotations within a few ε of polar_rotation_one's, the forces within the product bound.
+    positions = deformed(model).positions
+    forces, rotations, nodes = corotate_with_nodes(positions, elements(model))
+    expected_forces, expected_rotations = corotate(positions, elements(model))
+    np.testing.assert_allclose(rotations, expected_rotations, rtol=0, atol=16 * EPS)
+    expected_nodes = node_rotations(model.tets, expected_rotations, model.node_count)
+    np.testing.assert_allclose(nodes, expected_nodes, rtol=0, atol=16 * EPS)
+    assert np.abs(forces - expected_forces).max() <= roundoff_bound(model, np.abs(expected_forces).max())
+    np.testing.assert_allclose(
+        np.einsum("nij,nkj->nik", nodes, nodes),
+        np.broadcast_to(np.eye(3), nodes.shape),
+        rtol=0,
+        atol=16 * EPS,
+    )

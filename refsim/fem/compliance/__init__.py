@@ -27,14 +27,17 @@ solver factories scikit-fem passes to ``solve``), chosen for the tissue by the s
     The same W and correction as ``Precomputed`` without assembling or factorising any matrix during the run
     (the rest factor once): the body builds its step system with an operator v ↦ A v applied per tet
     (:mod:`refsim.fem.corotated_matvec`) instead of A, the free motion is CG on that operator preconditioned
-    by the rotated rest compliance R C₀ Rᵀ (whose answer alone usually meets the tolerance), and C₀'s columns
+    by the rotated rest compliance R C₀ Rᵀ, started from R C₀ Rᵀ b while that alone meets the tolerance, else
+    from the last free displacement (a :class:`FreeMotionStart` the run's state carries), and C₀'s columns
     are solved per node the first time a row touches the node, then kept (a memo of the model: one (f, 3)
-    solve per node, so its bits depend on no history). Its error against exact is W's: exact for rigid
+    solve per node, applied by the compiled kernels of :mod:`refsim.fem.compliance.kernels` in node order,
+    so its bits depend on no history). Its error against exact is W's: exact for rigid
     motions of the rest shape, bounded by ‖H‖² ‖A⁻¹‖ ‖Ã⁻¹‖ ‖A − Ã‖ (Ã = R A₀ Rᵀ) when the tissue deforms.
 
 Binding a strategy to a body (:meth:`bind`) gives a :class:`BodyCompliance` that keeps what lives across steps
 (the analysis, the stale or rest factor). What changes with the run is state: the refreshed strategy's stale
-factor is a :class:`StaleFactor` (the matrix it factorised and its age in steps) that the run's state carries
+factor is a :class:`StaleFactor` (the matrix it factorised and its age in steps), the fast strategy's start a
+:class:`FreeMotionStart`, that the run's state carries
 (:meth:`BodyCompliance.carried`, :meth:`BodyCompliance.resume`: a body resumed from a carried factor
 factorises its matrix again, which gives the same factor, so a restarted run has the uninterrupted run's
 bits). The rest is a memo of the body's model (the rest factor, the symbolic analysis) or of one step (W's
@@ -58,13 +61,21 @@ from refsim.fem.compliance.bodies import (
     Precomputed,
     Refreshed,
 )
-from refsim.fem.compliance.system import PartialSolveMarks, StaleFactor, StepCompliance, StepSystem, pcg
+from refsim.fem.compliance.system import (
+    FreeMotionStart,
+    PartialSolveMarks,
+    StaleFactor,
+    StepCompliance,
+    StepSystem,
+    pcg,
+)
 
 __all__ = [
     "STRATEGIES",
     "STRATEGY_VARIANTS",
     "W_UPDATES",
     "StaleFactor",
+    "FreeMotionStart",
     "PartialSolveMarks",
     "StepSystem",
     "StepCompliance",

@@ -9,11 +9,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from refsim.fem.compliance.system import (
+    FreeMotionStart,
     PartialSolveMarks,
     StaleFactor,
     StepCompliance,
     StepSystem,
-    _rotate_node_block,
     _rotate_nodes,
     pcg,
 )
@@ -428,6 +428,10 @@ class Precomputed:
         return _PrecomputedBody(self)
 
 
+#: Steps the fast strategy's free motion starts from the last free displacement before trying R C₀ Rᵀ b again.
+COLD_RETRY = 8
+
+
 class _FastBody(BodyCompliance):
     def __init__(self, strategy: Fast) -> None:
         super().__init__(strategy)
@@ -435,6 +439,15 @@ class _FastBody(BodyCompliance):
         # without the error report, the tissue builds its step system with an operator and no matrix
         self.matrix_free = not strategy.against_exact
         self._ready = False
+        self._carried = None  # FreeMotionStart: the last free displacement and how the next CG starts
+
+    def carried(self) -> FreeMotionStart | None:
+        """The last free displacement and the next free motion's start; None before the first step."""
+        return self._carried
+
+    def resume(self, carried: FreeMotionStart | None) -> None:
+        """Continue from ``carried`` (None: the next free motion starts from R C₀ Rᵀ b, as a run's first)."""
+        self._carried = carried
 
     def _prepare(self, system: StepSystem) -> None:
         if system.rest_matrix is None or system.group_rotations is None:
@@ -448,90 +461,168 @@ class _FastBody(BodyCompliance):
         self._solver.factorise(system.rest_matrix())
         self._groups = system.free_dofs.reshape(-1, 3)[:, 0] // 3
         self._size = system.free_dofs.size
-        # C₀ = A₀⁻¹ column blocks, one (f, 3) block per free node, solved the first time a row touches the
-        # node: ``_slot[g]`` is its block in ``_store`` (-1: not yet)
+        # C₀ = A₀⁻¹ column blocks, one per free node, solved the first time a row touches the node and stored
+        # transposed (refsim.fem.compliance.kernels): ``_slot[g]`` is its block in ``_rows`` (-1: not yet)
         self._slot = np.full(self._groups.size, -1, dtype=np.int64)
-        self._store = np.zeros((self._size, 0))
+        self._rows = np.zeros((0, self._size))
         self._filled = 0
         self._ready = True
 
-    def _rest_blocks(self, groups: np.ndarray) -> np.ndarray:
-        """The columns of ``_store`` holding C₀ E_g for the free node groups ``groups`` (sorted, unique),
-        shape (3 · groups.size,), solving the blocks not held yet.
+    def _rest_blocks(self, groups: np.ndarray) -> None:
+        """Solve the C₀ blocks of the free node groups ``groups`` not held yet.
 
         Each node's block is one (f, 3) solve of the rest factor, done once per run whatever else is asked
         with it, so the memo's bits depend on no history (a restarted run computes the same blocks)."""
         missing = groups[self._slot[groups] < 0]
-        if missing.size:
-            needed = 3 * (self._filled + missing.size)
-            if needed > self._store.shape[1]:
-                grown = np.zeros((self._size, max(needed, 2 * self._store.shape[1])))
-                grown[:, : 3 * self._filled] = self._store[:, : 3 * self._filled]
-                self._store = grown
-            unit = np.zeros((self._size, 3))
-            for group in missing:  # each node once per run (the memo's bits: one solve per node)
-                unit[3 * group : 3 * group + 3] = np.eye(3)
-                self._store[:, 3 * self._filled : 3 * self._filled + 3] = self._solver.solve(unit)
-                unit[3 * group : 3 * group + 3] = 0.0
-                self._slot[group] = self._filled
-                self._filled += 1
-        return (3 * self._slot[groups][:, None] + np.arange(3)).ravel()
+        if not missing.size:
+            return
+        needed = 3 * (self._filled + missing.size)
+        if needed > self._rows.shape[0]:
+            grown = np.zeros((max(needed, 2 * self._rows.shape[0]), self._size))
+            grown[: 3 * self._filled] = self._rows[: 3 * self._filled]
+            self._rows = grown
+        unit = np.zeros((self._size, 3))
+        for group in missing:  # each node once per run (the memo's bits: one solve per node)
+            unit[3 * group : 3 * group + 3] = np.eye(3)
+            self._rows[3 * self._filled : 3 * self._filled + 3] = self._solver.solve(unit).T
+            unit[3 * group : 3 * group + 3] = 0.0
+            self._slot[group] = self._filled
+            self._filled += 1
 
     def _step(self, system: StepSystem, exact) -> StepCompliance:
+        from refsim.fem.compliance.kernels import rotated_apply, rotated_block, turn_nodes
+
         if not self._ready:
             self._prepare(system)
         strategy = self.strategy
-        rotations = system.group_rotations()[self._groups]  # (f/3, 3, 3), one per free node
-        solver = self._solver
+        # (f/3, 3, 3), one per free node
+        rotations = np.ascontiguousarray(system.group_rotations()[self._groups])
+        solver, size = self._solver, self._size
+        turned = np.empty(size)
 
         def warped(load: np.ndarray) -> np.ndarray:
             # R C₀ Rᵀ load: the rest compliance in each node's rotated frame
-            return _rotate_nodes(rotations, solver.solve(_rotate_nodes(rotations, load, transpose=True)))
+            turn_nodes(rotations, load, True, turned)
+            out = np.empty(size)
+            turn_nodes(rotations, solver.solve(turned), False, out)
+            return out
 
-        free, iterations, residual = pcg(
+        carried = self._carried
+        warm = carried is not None and not carried.cold
+        free, iterations, residual = _warm_pcg(
             system.product,
             warped,
             system.rhs,
+            carried.displacement if warm else None,
             tolerance=strategy.tolerance,
             max_iterations=strategy.max_iterations,
         )
-        report = {"refactorised": False, "pcg_iterations": iterations, "pcg_residual": residual}
+        # The next start: R C₀ Rᵀ b again while it meets the tolerance alone (one solve and one product, the
+        # least a step can cost); else the last free displacement (one solve fewer per step when an iteration
+        # is needed anyway), R C₀ Rᵀ b being tried again every COLD_RETRY steps.
+        if warm:
+            age = carried.age + 1
+            cold = age >= COLD_RETRY
+        else:
+            age, cold = 0, iterations == 0
+        displacement = free.copy()
+        displacement.setflags(write=False)
+        self._carried = FreeMotionStart(displacement, cold, 0 if cold else age)
+        report = {
+            "refactorised": False,
+            "pcg_iterations": iterations,
+            "pcg_residual": residual,
+            "pcg_warm_start": warm,
+        }
         before = self._filled
 
         def inverse_block(positions):
-            # (R C₀ Rᵀ)_uu from the C₀ blocks of the nodes the rows touch
+            # (R C₀ Rᵀ)_uu from the C₀ blocks of the nodes the rows touch (positions sorted)
             groups = np.unique(positions // 3)
-            support = (3 * groups[:, None] + np.arange(3)).ravel()
-            columns = self._rest_blocks(groups)  # (solves the new blocks, which may grow the store)
-            block = self._store[np.ix_(support, columns)]  # C₀ on the support
-            # R_s C₀ R_sᵀ, R_s block-diagonal
-            rotated = _rotate_node_block(rotations[groups], block)
-            where = np.searchsorted(support, positions)
+            self._rest_blocks(groups)
+            block = np.empty((3 * groups.size, 3 * groups.size))
+            rotated_block(self._rows, self._slot, groups, rotations, block)
             report["rest_blocks_solved"] = self._filled - before
-            return rotated[np.ix_(where, where)]
+            if positions.size == block.shape[0]:  # whole nodes: the support itself
+                return block
+            support = (3 * groups[:, None] + np.arange(3)).ravel()
+            where = np.searchsorted(support, positions)
+            return block[np.ix_(where, where)]
 
         def apply(load):
             # R C₀ Rᵀ load for a load on few nodes (the correction's Hᵀλ), from the same C₀ blocks
             load = np.asarray(load, dtype=float)
-            grouped = load.reshape(rotations.shape[0], 3, -1)
-            groups = np.flatnonzero(np.any(grouped != 0.0, axis=(1, 2)))
-            if groups.size == 0:
-                return np.zeros_like(load)
-            local = _rotate_nodes(
-                rotations[groups], grouped[groups].reshape(3 * groups.size, -1), transpose=True
-            )
-            # only the load's node blocks, in node order: the product's bits then depend on no history
-            rest = self._store[:, self._rest_blocks(groups)] @ local
-            return _rotate_nodes(rotations, rest).reshape(load.shape)
+            if load.ndim == 2:
+                return np.column_stack([apply(column) for column in load.T]).reshape(load.shape)
+            groups = np.flatnonzero(np.any(load.reshape(-1, 3) != 0.0, axis=1))
+            out = np.zeros(size)
+            if groups.size:
+                self._rest_blocks(groups)
+                load = np.ascontiguousarray(load)
+                rotated_apply(self._rows, self._slot, groups, rotations, load, turned, out)
+            return out
 
         return StepCompliance(system, free, None, report, exact, apply, inverse_block=inverse_block)
+
+
+def _warm_pcg(
+    product,
+    preconditioner,
+    rhs: np.ndarray,
+    start: np.ndarray | None,
+    *,
+    tolerance: float,
+    max_iterations: int,
+) -> tuple[np.ndarray, int, float]:
+    """Preconditioned CG on one right-hand side b (f,) to ‖b − A x‖₂ ≤ tolerance ‖b‖₂, from ``start`` (the
+    last step's answer) when given, else from P⁻¹ b.
+
+    A start whose residual exceeds ‖b‖ (a step that changed the load) is replaced by 0, whose first iteration
+    is P⁻¹ b scaled to its A-norm optimum. Returns x, iterations, the relative residual reached."""
+    norm_b = float(np.sqrt(rhs @ rhs))
+    norm_b = norm_b if norm_b > 0.0 else 1.0
+    if start is None:
+        x = preconditioner(rhs)
+        r = rhs - product(x)
+    else:
+        x = np.array(start, dtype=float)
+        r = rhs - product(x)
+        if float(np.sqrt(r @ r)) > norm_b:
+            x = np.zeros_like(rhs)
+            r = np.array(rhs, dtype=float)
+    relative = float(np.sqrt(r @ r)) / norm_b
+    iterations = 0
+    if relative > tolerance and max_iterations > 0:
+        z = preconditioner(r)
+        p = z.copy()
+        rz = float(r @ z)
+        while iterations < max_iterations:
+            ap = product(p)
+            pap = float(p @ ap)
+            if not pap > 0.0:
+                break
+            alpha = rz / pap
+            x += alpha * p
+            r -= alpha * ap
+            iterations += 1
+            relative = float(np.sqrt(r @ r)) / norm_b
+            if relative <= tolerance:
+                break
+            z = preconditioner(r)
+            rz_new = float(r @ z)
+            p *= rz_new / rz if rz > 0.0 else 0.0
+            p += z
+            rz = rz_new
+    return x, iterations, relative
 
 
 @dataclass(frozen=True)
 class Fast:
     """No matrix assembled or factorised during the run: the rest compliance rotated per node for W and the
     correction, free motion by CG on the current A applied per tet, preconditioned by the same rotated rest
-    compliance.
+    compliance and started from its answer R C₀ Rᵀ b while that alone meets the tolerance, else from the last
+    free displacement (carried, :class:`refsim.fem.compliance.FreeMotionStart`; R C₀ Rᵀ b is tried again every
+    :data:`COLD_RETRY` steps).
 
     Parameters
     ----------

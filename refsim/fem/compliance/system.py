@@ -28,13 +28,6 @@ def _rotate_nodes(rotations: np.ndarray, values: np.ndarray, *, transpose: bool 
     return turned.reshape(values.shape)
 
 
-def _rotate_node_block(rotations: np.ndarray, block: np.ndarray) -> np.ndarray:
-    """R_s B R_sᵀ for a square block B on whole 3-DoF groups (rotations (g, 3, 3), B (3g, 3g)): its rows' node
-    blocks rotated, then its columns'."""
-    left = _rotate_nodes(rotations, block)
-    return _rotate_nodes(rotations, left.T).T
-
-
 @dataclass(eq=False)
 class StepSystem:
     """What a body assembles at one step for the compliance strategies.
@@ -218,6 +211,25 @@ class StaleFactor:
 
 
 @dataclass(frozen=True, eq=False)
+class FreeMotionStart:
+    """What the fast strategy carries from step to step (part of a run's state): its last free displacement
+    and where the next free motion's conjugate gradients start.
+
+    Attributes
+    ----------
+    displacement : Δx_free on the free DoFs of the last step [m], shape (f,); read-only.
+    cold : The next CG starts from R C₀ Rᵀ b (True: it met the tolerance alone at its last try) or from
+        ``displacement`` (False).
+    age : Steps started from the last free displacement since R C₀ Rᵀ b was last tried (it is tried again
+        after ``COLD_RETRY`` of them).
+    """
+
+    displacement: np.ndarray
+    cold: bool = False
+    age: int = 0
+
+
+@dataclass(frozen=True, eq=False)
 class PartialSolveMarks:
     """What the exact strategy on PARDISO carries from step to step (part of a run's state): the free-DoF
     positions its analysis marked for partial solves.
@@ -240,9 +252,10 @@ class StepCompliance:
     ----------
     system : The step system it was made from.
     free_displacement : Δx_free [m], shape (dof_count,), equal to ``prescribed`` on the constrained DoFs.
-    report : What the strategy did this step (``refactorised``, ``pcg_iterations``, ``pcg_residual``, and with
-        ``against_exact`` the errors ``free_motion_error`` [m], ``compliance_error`` (relative, Frobenius) and
-        ``correction_error`` [m]).
+    report : What the strategy did this step (``refactorised``, ``pcg_iterations``, ``pcg_residual``; the fast
+        strategy's ``pcg_warm_start``, whether its CG started from the last free displacement, and
+        ``rest_blocks_solved``; and with ``against_exact`` the errors ``free_motion_error`` [m],
+        ``compliance_error`` (relative, Frobenius) and ``correction_error`` [m]).
     """
 
     def __init__(
@@ -302,9 +315,10 @@ class StepCompliance:
         A memo of the last H by value (W and the correction of one step share it): a copy of H's CSR arrays is
         the key, so rows changed in place or rebuilt equal give what a fresh computation gives."""
         jacobian = sp.csr_matrix(jacobian)
-        key = (jacobian.shape, jacobian.indptr.copy(), jacobian.indices.copy(), jacobian.data.copy())
-        if self._cache_key is not None and _same_rows(self._cache_key, key):
+        arrays = (jacobian.shape, jacobian.indptr, jacobian.indices, jacobian.data)
+        if self._cache_key is not None and _same_rows(self._cache_key, arrays):
             return self._cache
+        key = (jacobian.shape, jacobian.indptr.copy(), jacobian.indices.copy(), jacobian.data.copy())
         if jacobian.shape[1] != self.system.dof_count:
             raise ValueError(
                 f"rows must have {self.system.dof_count} columns (DoFs), got {jacobian.shape[1]}"
@@ -315,7 +329,7 @@ class StepCompliance:
         positions = np.minimum(positions, self.system.free_dofs.size - 1)
         on_free = self.system.free_dofs[positions] == used
         used, positions = used[on_free], positions[on_free]
-        restricted = jacobian[:, used].toarray()  # (rows, u): constrained DoFs do not move
+        restricted = _dense_columns(jacobian, used)  # (rows, u): constrained DoFs do not move
         exact = self._solve is not None and self._block is None and self._apply is None
         rows = restricted.shape[0]
         if exact and used.size and self._inverse_block is not None:
@@ -431,6 +445,22 @@ class StepCompliance:
             return out
         out[self.system.free_dofs] = self._solve(np.ascontiguousarray(rhs[self.system.free_dofs]))
         return out
+
+
+def _dense_columns(matrix: sp.csr_matrix, columns: np.ndarray) -> np.ndarray:
+    """``matrix[:, columns].toarray()`` for sorted, distinct ``columns``: the entries copied into place when
+    the CSR is canonical (sorted indices, no duplicates: the same numbers, without SciPy's column slicing),
+    else SciPy's answer (which sums duplicates)."""
+    if not matrix.has_canonical_format:
+        return matrix[:, columns].toarray()
+    where = np.full(matrix.shape[1], -1, dtype=np.int64)
+    where[columns] = np.arange(columns.size)
+    out = np.zeros((matrix.shape[0], columns.size))
+    column = where[matrix.indices]
+    keep = column >= 0
+    rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
+    out[rows[keep], column[keep]] = matrix.data[keep] + 0.0  # (as toarray's sum into zeros: -0.0 becomes 0.0)
+    return out
 
 
 def _same_rows(first: tuple, second: tuple) -> bool:
