@@ -699,9 +699,9 @@ def reference_markdown() -> str:
         "peak; `criteria/` holds the criteria the events were decided on (the give-way solve's). "
         "`Results.profile_force` is the force profile users plot: the event's force where a step has one, "
         "else the end force; `refsim plot`, the run summary's peak force, the sweep quantities "
-        "`needle_force@EVENT` (and its axial and lateral parts) and the reference set's force curves read it. "
-        "A plain tip contact (`insertion.puncture_within_step = false`) holds the tip to the step's end: its "
-        "puncture is decided after the step, which records no within-step event.",
+        "`needle_force@EVENT` (and its axial and lateral parts) and the reference set's force curves read "
+        "it. A plain tip contact (`insertion.puncture_within_step = false`) holds the tip to the step's "
+        "end: its puncture is decided after the step, which records no within-step event.",
         "",
         f"Files of schema version 1 have no `steps/event_*`: `read_results` gives them as NaN. That version "
         f"solved the puncture step once, so its `steps/needle_force` and constraint rows there are the "

@@ -51,6 +51,8 @@ class WithinStep:
         needle bent against the surface, those carry the bending the give-way releases).
     tip_force : Force of the tip's contact rows on the needle at the give-way (normal f_p and friction) [N],
         (3,).
+    normal_force : The tip contact's normal force at the give-way, Σ λ over its normal rows [N] (f_p to the
+        solve's accuracy; in the results file, the puncture event's ``events/force``).
     point : Where the event happened: the tissue-side point of the tip contact, on the surface, where the tip
         is when the contact gives way [m], (3,).
     """
@@ -59,6 +61,7 @@ class WithinStep:
     needle_force: np.ndarray
     tip_force: np.ndarray
     point: np.ndarray
+    normal_force: float = float("nan")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -104,9 +107,10 @@ class StepRecord:
 
     Every field of :class:`InstrumentRecord` but its name (``phase``, ``events``, ``base_position``,
     ``needle_positions``, ``needle_frames``, ``needle_force``, ``insertion_point_count``, ``criteria``,
-    ``within_step``, and any field added there) reads as the first instrument's (the only one's in a one-instrument scene):
-    ``record.needle_force`` is ``record.instruments[0].needle_force``. ``instruments`` holds every
-    instrument's, in the scene's order; :meth:`with_first` replaces first-instrument fields.
+    ``within_step``, and any field added there) reads as the first instrument's (the only one's in a
+    one-instrument scene): ``record.needle_force`` is ``record.instruments[0].needle_force``.
+    ``instruments`` holds every instrument's, in the scene's order; :meth:`with_first` replaces
+    first-instrument fields.
 
     Attributes
     ----------

@@ -207,13 +207,13 @@ class Simulation:
             timer.lap("correction")
 
             new_state = self._advanced(start, step, time, corrected, detections, rows, problem, multipliers)
-            new_state, parts = self._events(new_state, detections, rows, problem, multipliers, report, settled)
+            new_state, parts = self._events(
+                new_state, detections, rows, problem, multipliers, report, settled
+            )
             timer.lap("events")
 
             gave_way = {
-                part.name: part
-                for part in parts
-                if part.name not in settled and part.within_step is not None
+                part.name: part for part in parts if part.name not in settled and part.within_step is not None
             }
             if not gave_way:
                 break
@@ -314,7 +314,9 @@ class Simulation:
             earlier = settled.get(instrument.name)
             events, criteria, within = (), (), None
             if earlier is None:
-                instrument.event_rules.margins.begin(problem, rows, multipliers, report, own=mine, scale=scale)
+                instrument.event_rules.margins.begin(
+                    problem, rows, multipliers, report, own=mine, scale=scale
+                )
                 state, events = instrument.event_rules.apply(
                     state, instrument.name, detection, multipliers[mine]
                 )
@@ -356,6 +358,7 @@ class Simulation:
             needle_force=instrument.needle_force(rows, multipliers),
             tip_force=(rows.directions[tip] * multipliers[tip, None]).sum(axis=0),
             point=np.array(rows.points[normal[0]]),
+            normal_force=float(multipliers[normal].sum()),
         )
 
     def _record(

@@ -1,6 +1,6 @@
-"""The within-step event in the results file (schema version 2, docs/results.md "A step's end and its within-step
-event"): written from the step record, read back, NaN in the other steps; a version-1 file (without it) is
-still read, by its stated rule."""
+"""The within-step event in the results file (schema version 2, docs/results.md "A step's end and its
+within-step event"): written from the step record, read back, NaN in the other steps; a version-1 file
+(without it) is still read, by its stated rule."""
 
 from __future__ import annotations
 

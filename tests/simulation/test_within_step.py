@@ -1,6 +1,6 @@
-"""The puncture step's two states (docs/coupling.md, "The puncture step"; docs/results.md): the capped tip contact
-gives way at f_p inside the step, the step is solved again with the insertion phase's rows, and its record holds
-both: the give-way (``StepRecord.within_step``) and the end of the step (every other field)."""
+"""The puncture step's two states (docs/coupling.md, "The puncture step"; docs/results.md): the capped tip
+contact gives way at f_p inside the step, the step is solved again with the insertion phase's rows, and its
+record holds both: the give-way (``StepRecord.within_step``) and the end of the step (every other field)."""
 
 from __future__ import annotations
 
