@@ -230,6 +230,16 @@ def force_figure(results, figure=None):
         cells.scale(1.0, 1.3)
     else:
         table.text(0.5, 0.9, "none", ha="center", va="top", transform=table.transAxes)
+    if np.isfinite(results.event_needle_force).all(axis=1).any():
+        table.text(
+            0.5,
+            0.02,
+            "puncture step: the force at the\ntip contact's give-way in the step",
+            ha="center",
+            va="bottom",
+            fontsize=7.5,
+            transform=table.transAxes,
+        )
     status = "" if results.complete else "  (interrupted run)"
     whose = "the needle" if len(names) == 1 and names[0] == "needle" else f"{names[0]}'s needle"
     figure.suptitle(f"{results.scene_name}: force on {whose} base{status}")
