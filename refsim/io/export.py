@@ -409,17 +409,22 @@ FORCE_COLUMNS = (
     "base_x_m",
     "base_y_m",
     "base_z_m",
+    "event_force_x_N",
+    "event_force_y_N",
+    "event_force_z_N",
 )
 
 
 def export_force_csv(results_path, output) -> Path:
     """Write the needle force history of a results file as CSV (columns :data:`FORCE_COLUMNS`; the force of
-    the tissue on the needle, its axial component along the base segment and the lateral norm, the tip depth
-    from the puncture point, NaN before a puncture)."""
+    the tissue on the needle at the end of each step, its axial component along the base segment and the
+    lateral norm, the tip depth from the puncture point, NaN before a puncture; and the force at a
+    within-step event, the puncture's give-way (``steps/event_needle_force``: the force profile's peak), NaN
+    in the other steps)."""
     from refsim.io.reader import read_results
 
     results = read_results(results_path)
-    axial, lateral = results.axial_lateral_force()
+    axial, lateral = results.axial_lateral_force(results.needle_force)
     depth = results.tip_depth()
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
@@ -435,6 +440,7 @@ def export_force_csv(results_path, output) -> Path:
             f"{lateral[i]:.9g}",
             f"{depth[i]:.9g}",
             *(f"{v:.9g}" for v in results.base_position[i]),
+            *(f"{v:.9g}" for v in results.event_needle_force[i]),
         ]
         lines.append(",".join(values))
     output.write_text("\n".join(lines) + "\n", encoding="utf-8")

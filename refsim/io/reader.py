@@ -113,7 +113,10 @@ class Results:
         :data:`refsim.io.schema.INSTRUMENT_STEP_QUANTITIES`, (s,) + its shape, each also an attribute of
         its name: phase (codes into ``phase_names``), (s,); base_position [m], (s, 3); needle_positions
         [m], (s, k, 3); needle_frames (s, k, 3, 3); needle_force, the force of the tissue on the needle [N],
-        (s, 3); insertion_point_count (s,).
+        (s, 3), at the end of each step; insertion_point_count (s,); the state at a within-step event
+        (the puncture's give-way), NaN in the other steps and in files of schema version 1:
+        event_needle_force [N] (s, 3), event_tip_force [N] (s, 3), event_point [m] (s, 3).
+        :attr:`profile_force` is the force profile (the give-way where a step has one).
     cut_point_count, cut_triangle_count : (s,). triangulation_seconds : [s], (s,).
     stage_seconds : Seconds of each stage, name -> (s,).
     solver : Solver report arrays: iterations (s,) (-1 no solve), residual (s,) (NaN), converged (s,) int8
@@ -294,13 +297,27 @@ class Results:
         segment = nodes[:, 1] - nodes[:, 0] if at == "base" else nodes[:, -1] - nodes[:, -2]
         return segment / np.linalg.norm(segment, axis=1, keepdims=True)
 
+    @property
+    def profile_force(self) -> np.ndarray:
+        """The force of the tissue on the needle as its profile is read [N], (s, 3): in a step with a
+        within-step event (the puncture's give-way of the tip contact at f_p), the force at the event
+        (``event_needle_force``, the profile's peak); in every other step, the end-of-step force
+        (``needle_force``). A file of schema version 1 has no event quantities: its ``needle_force`` is
+        read, which at its puncture steps is the give-way's (that version solved the step once)."""
+        event = self.event_needle_force
+        return np.where(np.isfinite(event).all(axis=1)[:, None], event, self.needle_force)
+
     def puncture_point(self) -> np.ndarray | None:
-        """Where the needle entered the tissue [m], (3,): the tissue-side point of the penetration row of the
-        first puncture step (the closest surface point to the tip), or None when the needle never
-        punctured."""
+        """Where the needle entered the tissue [m], (3,): the tip contact's surface point at the first
+        puncture (the closest surface point to the tip when the contact gave way: ``event_point``, or the
+        tissue-side point of the step's penetration row when the step records no within-step event), or
+        None when the needle never punctured."""
         punctures = self.events_named("puncture")
         if not punctures:
             return None
+        point = self.event_point[self.index_of(punctures[0].step)]
+        if np.all(np.isfinite(point)):
+            return point.copy()
         rows = self.constraints_at(punctures[0].step)
         if "penetration" in self.source_names:
             penetration = rows.source == self.source_names.index("penetration")
@@ -317,12 +334,15 @@ class Results:
         tip = self.needle_positions[:, -1]
         return np.einsum("ij,ij->i", tip - entry, self.needle_axis(at="tip"))
 
-    def axial_lateral_force(self) -> tuple[np.ndarray, np.ndarray]:
-        """Force of the tissue on the needle split along the base segment's axis t [N]: the axial component
-        F·t (negative when the tissue resists insertion), (s,), and the lateral norm ‖F − (F·t) t‖, (s,)."""
+    def axial_lateral_force(self, force: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """A force on the needle per step, (s, 3) (by default the force profile, :attr:`profile_force`: the
+        give-way in a puncture step), split along the base segment's axis t at the step's end [N]: the axial
+        component F·t (negative when the tissue resists insertion), (s,), and the lateral norm
+        ‖F − (F·t) t‖, (s,)."""
         axis = self.needle_axis(at="base")
-        axial = np.einsum("ij,ij->i", self.needle_force, axis)
-        lateral = np.linalg.norm(self.needle_force - axial[:, None] * axis, axis=1)
+        force = self.profile_force if force is None else np.asarray(force)
+        axial = np.einsum("ij,ij->i", force, axis)
+        lateral = np.linalg.norm(force - axial[:, None] * axis, axis=1)
         return axial, lateral
 
 
@@ -470,11 +490,13 @@ def read_results(path) -> Results:
         row_count = int(offsets[-1])
         last_step = int(_read(handle, schema.STEPS["step"].path, count)[-1]) if count else 0
 
+        quantities = {quantity.name for quantity in schema.INSTRUMENT_STEP_QUANTITIES}
         steps = {
             name: _read(handle, spec.path, count)
             for name, spec in schema.STEPS.items()
-            if spec.path in handle or name != "boundary_displacement"
+            if name not in quantities and (spec.path in handle or name != "boundary_displacement")
         }  # files before the boundary motion
+        steps.update(_step_quantities(handle, "", count))
         stage_names = _names(handle[schema.STEPS["stage_seconds"].path])
         solver = {name: _read(handle, spec.path, count) for name, spec in schema.SOLVER.items()}
         rows = {
@@ -557,12 +579,10 @@ def _read_instruments(handle, path: Path, attributes: dict, count: int, last_ste
         ) from None
     further = {}
     for name, location in listed[1:]:
-        steps = {
-            quantity.name: _read(handle, f"{location}/{schema.STEPS[quantity.name].path}", count)
-            for quantity in schema.INSTRUMENT_STEP_QUANTITIES
-        }
+        steps = _step_quantities(handle, location, count)
         for spec in schema.INSTRUMENT_DATASETS.values():
-            _require(handle, path, f"{location}/{spec.path}")
+            if spec.path not in schema.OPTIONAL_DATASETS:
+                _require(handle, path, f"{location}/{spec.path}")
         further[name] = {
             "quantities": _quantities(steps),
             "events": _read_events(handle, last_step, law, location=location),
@@ -571,6 +591,20 @@ def _read_instruments(handle, path: Path, attributes: dict, count: int, last_ste
             "trajectory_samples": _read(handle, f"{location}/{schema.STATIC['trajectory/samples'].path}"),
         }
     return tuple(name for name, _ in listed), further
+
+
+def _step_quantities(handle, location: str, count: int) -> dict:
+    """An instrument's step quantities as stored (``location``: "" for the first instrument), by name; one
+    added after the file's schema version (``StepQuantity.since``), absent from it, is NaN at every step."""
+    prefix = f"{location}/" if location else ""
+    values = {}
+    for quantity in schema.INSTRUMENT_STEP_QUANTITIES:
+        path = prefix + schema.STEPS[quantity.name].path
+        if path in handle or quantity.since == 1:
+            values[quantity.name] = _read(handle, path, count)
+        else:
+            values[quantity.name] = np.full((count, *quantity.entry_shape), np.nan)
+    return values
 
 
 def _quantities(steps: dict) -> dict:

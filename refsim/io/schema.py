@@ -35,6 +35,7 @@ __all__ = [
     "INSTRUMENTS_GROUP",
     "INSTRUMENT_DATASETS",
     "INSTRUMENT_STEP_QUANTITIES",
+    "WITHIN_STEP_QUANTITIES",
     "StepQuantity",
     "instrument_location",
     "PROBLEM_FIELDS",
@@ -51,10 +52,15 @@ __all__ = [
 
 #: Value of the root attribute ``format``: what marks an HDF5 file as a refsim results file.
 FORMAT_NAME = "refsim-results"
-#: Version of the layout written by this code (root attribute ``schema_version``).
-SCHEMA_VERSION = 1
-#: Versions the reader understands.
-SUPPORTED_SCHEMA_VERSIONS = (1,)
+#: Version of the layout written by this code (root attribute ``schema_version``). 2: the within-step event
+#: quantities (``steps/event_*``, :data:`WITHIN_STEP_QUANTITIES`), and a puncture step's other quantities
+#: are its end state (the step solved again after the tip contact gave way).
+SCHEMA_VERSION = 2
+#: Versions the reader understands. A version-1 file has no ``steps/event_*``: the reader gives them as NaN
+#: (no within-step state recorded), and its puncture step's ``steps/needle_force`` and constraint rows are
+#: the give-way's (version 1 solved that step once, ending it at the give-way), which is what
+#: ``Results.profile_force`` reads for it.
+SUPPORTED_SCHEMA_VERSIONS = (1, 2)
 
 #: Phase names, in the order of the int8 codes of ``steps/phase``.
 PHASE_NAMES = ("approach", "insertion", "cutting")
@@ -162,9 +168,12 @@ class StepQuantity:
     ----------
     name : Dataset name under ``steps/`` and the ``Results`` attribute.
     unit, dtype, entry_shape, meaning : As in :class:`DatasetSpec` ("k": the instrument's needle nodes).
-    attribute : The ``InstrumentRecord`` attribute holding the step's value.
+    attribute : The ``InstrumentRecord`` attribute holding the step's value (a dotted path into a field that
+        may be None: the step's value is then NaN).
     codes : For a coded quantity, the names its integer codes index (its dataset's attribute ``names``); the
         record holds the name, the file and ``Results`` the code.
+    since : The schema version that added it: a file of an older version lacks it, and the reader gives it
+        as NaN.
     """
 
     name: str
@@ -174,6 +183,17 @@ class StepQuantity:
     meaning: str
     attribute: str
     codes: tuple = ()
+    since: int = 1
+
+    def value(self, record):
+        """Its value in ``record`` (an ``InstrumentRecord``): the attribute, a dotted path read through
+        (``within_step.needle_force``); NaN of its shape when a step has none (the path meets None)."""
+        value = record
+        for name in self.attribute.split("."):
+            value = getattr(value, name)
+            if value is None:
+                return np.full(self.entry_shape, np.nan)
+        return value
 
     def row(self) -> tuple:
         """(name, unit, dtype, entry_shape, meaning): its row of :data:`STEPS`."""
@@ -213,6 +233,43 @@ INSTRUMENT_STEP_QUANTITIES = (
         "insertion_point_count", "1", "int64", (), "insertion points after the step", "insertion_point_count"
     ),
 )
+
+#: The state at an event located inside the step (refsim.simulation.records.WithinStep: the puncture through
+#: the capped tip contact, at its give-way), NaN in the steps without one; the step's other quantities are its
+#: end state.
+WITHIN_STEP_QUANTITIES = (
+    StepQuantity(
+        "event_needle_force",
+        "N",
+        "float64",
+        (3,),
+        "force of the tissue on the needle in the solve that located a within-step event (the puncture "
+        "step's give-way of the tip contact at f_p: the force profile's peak); NaN in steps without one",
+        "within_step.needle_force",
+        since=2,
+    ),
+    StepQuantity(
+        "event_tip_force",
+        "N",
+        "float64",
+        (3,),
+        "force of the tip's contact rows on the needle at that event (normal f_p and friction); NaN in "
+        "steps without one",
+        "within_step.tip_force",
+        since=2,
+    ),
+    StepQuantity(
+        "event_point",
+        "m",
+        "float64",
+        (3,),
+        "where that event happened: the tip contact's surface point, where the tip is at the give-way; NaN "
+        "in steps without one",
+        "within_step.point",
+        since=2,
+    ),
+)
+INSTRUMENT_STEP_QUANTITIES = INSTRUMENT_STEP_QUANTITIES + WITHIN_STEP_QUANTITIES
 
 #: One entry per step.
 STEPS = _specs(
@@ -377,9 +434,15 @@ CRITERIA = _specs(
     ],
 )
 
-#: Datasets a file of the same schema version written before them lacks; the reader takes them as absent.
+#: Datasets an older file may lack (one of the same schema version written before them, or of an older
+#: version: a step quantity's ``since``); the reader takes them as absent.
 OPTIONAL_DATASETS = frozenset(
-    {"events/force_per_length", "constraints/instrument", *(spec.path for spec in CRITERIA.values())}
+    {
+        "events/force_per_length",
+        "constraints/instrument",
+        *(spec.path for spec in CRITERIA.values()),
+        *(STEPS[quantity.name].path for quantity in INSTRUMENT_STEP_QUANTITIES if quantity.since > 1),
+    }
 )
 
 #: The dataset of ``events/`` holding an event's value, by the value's unit (refsim.simulation.records.Event's
@@ -622,6 +685,29 @@ def reference_markdown() -> str:
     ]
     lines += [_row(spec) for spec in all_datasets()]
     lines += [
+        "",
+        "## A step's end and its within-step event",
+        "",
+        "Every per-step dataset holds the step's end state: what the next step starts from (positions, "
+        "`steps/needle_force`, the constraint rows and their multipliers, the solver's report). A step in "
+        "which an event happens inside the step also holds the state at that event, in `steps/event_*` (NaN "
+        "in the other steps). The one such event is the puncture through the capped tip contact "
+        "(`insertion.puncture_within_step`): its solve ends with the contact at f_p, giving way; the step is "
+        "then solved again from its start with the insertion phase's rows (the entry point's, the tip's "
+        "cutting row), which hold the tip for the rest of the step, and the step's rows, forces, solver "
+        "report and recorded problem (`output.record_problems`) are that second solve's. "
+        "`steps/event_needle_force` is the force of the give-way solve, the force profile's peak; "
+        "`criteria/` holds the criteria the events were decided on (the give-way solve's). "
+        "`Results.profile_force` is the force profile users plot: the event's force where a step has one, "
+        "else the end force; `refsim plot`, the run summary's peak force, the sweep quantities "
+        "`needle_force@EVENT` (and its axial and lateral parts) and the reference set's force curves read "
+        "it. A plain tip contact (`insertion.puncture_within_step = false`) holds the tip to the step's "
+        "end: its puncture is decided after the step, which records no within-step event.",
+        "",
+        f"Files of schema version 1 have no `steps/event_*`: `read_results` gives them as NaN. That version "
+        f"solved the puncture step once, so its `steps/needle_force` and constraint rows there are the "
+        f"give-way's, which `Results.profile_force` reads. The reader reads versions "
+        f"{', '.join(map(str, SUPPORTED_SCHEMA_VERSIONS))}.",
         "",
         "## Several instruments",
         "",

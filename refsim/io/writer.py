@@ -547,7 +547,7 @@ class ResultWriter:
         each quantity of :data:`~refsim.io.schema.INSTRUMENT_STEP_QUANTITIES` from its record attribute."""
         values = {}
         for quantity in schema.INSTRUMENT_STEP_QUANTITIES:
-            value = getattr(part, quantity.attribute)
+            value = quantity.value(part)
             if quantity.codes:
                 if value not in quantity.codes:
                     raise ValueError(

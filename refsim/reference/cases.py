@@ -389,7 +389,7 @@ def _curve_value(results, name: str) -> np.ndarray:
             area = area[: results.step_count]
         return area
     if name == "needle_force":
-        return np.linalg.norm(results.needle_force, axis=1)
+        return np.linalg.norm(results.profile_force, axis=1)
     axial, lateral = results.axial_lateral_force()
     return -axial if name == "axial_force" else lateral
 

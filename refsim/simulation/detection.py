@@ -277,15 +277,24 @@ class Detector:
     def approach_rows(self, geometry: StepGeometry) -> tuple[SurfaceContact, list[RowBlock]]:
         """Before puncture: the tip's closest surface point and, in order, its contact rows (when within the
         contact distance) and the shaft's contact rows (``insertion.shaft_contact``, when any sample is near
-        the surface)."""
+        the surface).
+
+        The surface point is the one closest to the needle's tip where the needle is: at its free tip for a
+        rigid needle (its kinematic pose is where the step puts it), at its start-of-step tip for a
+        deformable one, whose free motion has no contact in it (a needle bent against the surface
+        straightens in it, and its free tip can lie millimetres from the tip, beyond a thin layer's far
+        face). The row's gap is the free tip's along that point's normal (the linearised step); the rows
+        exist when either tip is within the contact distance."""
         spec = self.insertion
         blocks = []
         projector = SurfaceProjector(geometry.tissue_free, self.faces)
-        tip_direction = geometry.needle_free.tangents(np.array([geometry.needle_free.length]))[0]
+        needle = geometry.needle_free if self.needle_dof_count is None else geometry.needle_previous
+        tip_direction = needle.tangents(np.array([needle.length]))[0]
         contact = find_surface_contact(
-            projector, self.faces, geometry.needle_free.tip, tip_direction, tip_radius=spec.tip_radius
+            projector, self.faces, needle.tip, tip_direction, tip_radius=spec.tip_radius
         )
-        if contact.gap < spec.contact_distance:
+        free_gap = float(contact.normal @ (geometry.needle_free.tip - contact.point))
+        if min(contact.gap, free_gap) < spec.contact_distance:
             blocks.append(
                 penetration_block(
                     contact,

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-__all__ = ["EVENT_UNITS", "STAGES", "Event", "InstrumentRecord", "StepRecord"]
+__all__ = ["EVENT_UNITS", "STAGES", "Event", "InstrumentRecord", "StepRecord", "WithinStep"]
 
 # The stages of one step, in order (DESIGN.md, "One time step"); their seconds are recorded every step.
 STAGES = ("motion", "free_motion", "detection", "compliance", "solve", "correction", "events")
@@ -34,6 +34,37 @@ class Event:
 
 
 @dataclass(frozen=True, kw_only=True)
+class WithinStep:
+    """An instrument at an event located inside its step, from the solve that located it.
+
+    The one such event is the puncture through a capped tip contact (``insertion.puncture_within_step``): the
+    solve that locates it ends with the contact at f_p, giving way, and the rest of the step's motion without
+    it; the step is then solved again from its start with the insertion phase's rows (the entry point's, the
+    tip's cutting row: :class:`refsim.simulation.Simulation`), and the step's record is the end of that second
+    solve. This is the give-way: the peak of the force profile.
+
+    Attributes
+    ----------
+    event : The event's name ("puncture").
+    needle_force : Force of the tissue on the needle in the solve that located the event, Σ λ n over the
+        instrument's rows [N], (3,): the tip contact at f_p with the other rows' forces of that solve (for a
+        needle bent against the surface, those carry the bending the give-way releases).
+    tip_force : Force of the tip's contact rows on the needle at the give-way (normal f_p and friction) [N],
+        (3,).
+    normal_force : The tip contact's normal force at the give-way, Σ λ over its normal rows [N] (f_p to the
+        solve's accuracy; in the results file, the puncture event's ``events/force``).
+    point : Where the event happened: the tissue-side point of the tip contact, on the surface, where the tip
+        is when the contact gives way [m], (3,).
+    """
+
+    event: str
+    needle_force: np.ndarray
+    tip_force: np.ndarray
+    point: np.ndarray
+    normal_force: float = float("nan")
+
+
+@dataclass(frozen=True, kw_only=True)
 class InstrumentRecord:
     """What one step did to one instrument.
 
@@ -48,7 +79,10 @@ class InstrumentRecord:
     needle_force : Force of the tissue on its needle, Σ λ n over its rows [N], (3,).
     insertion_point_count : Its insertion points after the step.
     criteria : The criteria its events compared, with threshold and accuracy
-        (``refsim.simulation.margins.Criterion``).
+        (``refsim.simulation.margins.Criterion``); in a step solved twice, those of the solve its events were
+        decided on.
+    within_step : Its state at an event located inside the step (:class:`WithinStep`), or None. The fields
+        above are the end of the step (what the next step starts from).
     """
 
     name: str
@@ -60,6 +94,7 @@ class InstrumentRecord:
     needle_force: np.ndarray
     insertion_point_count: int
     criteria: tuple = ()
+    within_step: WithinStep | None = None
 
 
 #: The first instrument's fields a StepRecord reads through (every InstrumentRecord field but its name).
@@ -71,10 +106,11 @@ class StepRecord:
     """One step, as recorded.
 
     Every field of :class:`InstrumentRecord` but its name (``phase``, ``events``, ``base_position``,
-    ``needle_positions``, ``needle_frames``, ``needle_force``, ``insertion_point_count``, ``criteria``, and
-    any field added there) reads as the first instrument's (the only one's in a one-instrument scene):
-    ``record.needle_force`` is ``record.instruments[0].needle_force``. ``instruments`` holds every
-    instrument's, in the scene's order; :meth:`with_first` replaces first-instrument fields.
+    ``needle_positions``, ``needle_frames``, ``needle_force``, ``insertion_point_count``, ``criteria``,
+    ``within_step``, and any field added there) reads as the first instrument's (the only one's in a
+    one-instrument scene): ``record.needle_force`` is ``record.instruments[0].needle_force``.
+    ``instruments`` holds every instrument's, in the scene's order; :meth:`with_first` replaces
+    first-instrument fields.
 
     Attributes
     ----------

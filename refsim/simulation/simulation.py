@@ -37,7 +37,9 @@ from refsim.constraints import (
     INSERTION,
     LATERAL_FIRST,
     LATERAL_SECOND,
+    PENETRATION,
     ROLE_NAMES,
+    UNILATERAL,
     InsertionPath,
     RowBlock,
     StepGeometry,
@@ -53,7 +55,7 @@ from refsim.simulation.detection import Detector
 from refsim.simulation.events import EventRules
 from refsim.simulation.instrument import Instrument
 from refsim.simulation.margins import problem_scale
-from refsim.simulation.records import STAGES, InstrumentRecord, StepRecord
+from refsim.simulation.records import STAGES, InstrumentRecord, StepRecord, WithinStep
 from refsim.simulation.state import Phase, SimulationState
 from refsim.solvers import solve_exact, solve_gauss_seidel
 
@@ -186,23 +188,43 @@ class Simulation:
         free, systems = self._free_motion(state, control)
         timer.lap("free_motion")
 
-        detections = self._detect(state, free)
-        rows = RowBlock.concatenate([detection.rows for detection in detections])
-        timer.lap("detection")
+        # The step's solve; solved again from its start while an instrument's event gave way inside it (a
+        # capped tip contact reaching f_p): its next solve has that instrument's rows after the event.
+        start, settled = state, {}
+        while True:
+            detections = self._detect(start, free)
+            rows = RowBlock.concatenate([detection.rows for detection in detections])
+            timer.lap("detection")
 
-        problem, responses = self._problem(rows, systems)
-        timer.lap("compliance")
+            problem, responses = self._problem(rows, systems)
+            timer.lap("compliance")
 
-        multipliers, report = self._solve(problem, self._warm_start(state, rows))
-        timer.lap("solve")
+            multipliers, report = self._solve(problem, self._warm_start(start, rows))
+            timer.lap("solve")
 
-        corrected = self._correct(state, free, systems, responses, multipliers)
-        self._check_finite(step, corrected, multipliers)
-        timer.lap("correction")
+            corrected = self._correct(start, free, systems, responses, multipliers)
+            self._check_finite(step, corrected, multipliers)
+            timer.lap("correction")
 
-        new_state = self._advanced(state, step, time, corrected, detections, rows, problem, multipliers)
-        new_state, parts = self._events(new_state, detections, rows, problem, multipliers, report)
-        timer.lap("events")
+            new_state = self._advanced(start, step, time, corrected, detections, rows, problem, multipliers)
+            new_state, parts = self._events(
+                new_state, detections, rows, problem, multipliers, report, settled
+            )
+            timer.lap("events")
+
+            gave_way = {
+                part.name: part for part in parts if part.name not in settled and part.within_step is not None
+            }
+            if not gave_way:
+                break
+            settled.update(gave_way)
+            start = replace(
+                state,
+                instruments=tuple(
+                    replace(new_state.instrument(own.name), needle=own.needle) if own.name in settled else own
+                    for own in state.instruments
+                ),
+            )
 
         record = self._record(
             state, new_state, control, rows, problem, multipliers, report, parts, timer.seconds, record_tissue
@@ -279,15 +301,29 @@ class Simulation:
         )
 
     def _events(
-        self, state: SimulationState, detections, rows, problem, multipliers, report
+        self, state: SimulationState, detections, rows, problem, multipliers, report, settled: dict
     ) -> tuple[SimulationState, list[InstrumentRecord]]:
-        """Each instrument's events in order, on its own rows and multipliers, and its record."""
+        """Each instrument's events in order, on its own rows and multipliers, and its record. An instrument
+        in ``settled`` (by name: its record from the solve in which an event gave way inside the step) has
+        had its events: its record keeps their events, criteria and within-step state, with its end state
+        from this solve."""
         parts = []
         scale = None if problem is None else problem_scale(problem, multipliers)  # one product by W per step
         for instrument, detection in zip(self.instruments, detections, strict=True):
             mine = rows.instruments == instrument.index
-            instrument.event_rules.margins.begin(problem, rows, multipliers, report, own=mine, scale=scale)
-            state, events = instrument.event_rules.apply(state, instrument.name, detection, multipliers[mine])
+            earlier = settled.get(instrument.name)
+            events, criteria, within = (), (), None
+            if earlier is None:
+                instrument.event_rules.margins.begin(
+                    problem, rows, multipliers, report, own=mine, scale=scale
+                )
+                state, events = instrument.event_rules.apply(
+                    state, instrument.name, detection, multipliers[mine]
+                )
+                criteria = instrument.event_rules.margins.taken()
+                within = self._within_step(instrument, rows, multipliers, events)
+            else:
+                events, criteria, within = earlier.events, earlier.criteria, earlier.within_step
             own = state.instrument(instrument.name)
             parts.append(
                 InstrumentRecord(
@@ -299,10 +335,31 @@ class Simulation:
                     needle_frames=own.needle.frames,
                     needle_force=instrument.needle_force(rows, multipliers),
                     insertion_point_count=own.path.point_count,
-                    criteria=instrument.event_rules.margins.taken(),
+                    criteria=criteria,
+                    within_step=within,
                 )
             )
         return state, parts
+
+    @staticmethod
+    def _within_step(instrument, rows, multipliers, events) -> WithinStep | None:
+        """The instrument's state at a puncture through its capped tip contact (the contact gave way at f_p
+        inside the step), or None: no puncture, or a plain contact, which holds the tip to the step's end."""
+        if not any(event.name == "puncture" for event in events):
+            return None
+        mine = rows.instruments == instrument.index
+        normal = np.flatnonzero(mine & (rows.source == PENETRATION) & (rows.kind == UNILATERAL))
+        limits = rows.force_limit if rows.force_limit.size else np.full(rows.row_count, np.inf)
+        if normal.size == 0 or not np.all(np.isfinite(limits[normal])):
+            return None
+        tip = mine & (rows.source == PENETRATION)
+        return WithinStep(
+            event="puncture",
+            needle_force=instrument.needle_force(rows, multipliers),
+            tip_force=(rows.directions[tip] * multipliers[tip, None]).sum(axis=0),
+            point=np.array(rows.points[normal[0]]),
+            normal_force=float(multipliers[normal].sum()),
+        )
 
     def _record(
         self, state, new_state, control, rows, problem, multipliers, report, parts, seconds, record_tissue

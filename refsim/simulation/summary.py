@@ -117,6 +117,19 @@ class PhaseStatistics:
         return 1e3 * self.stage_seconds["solve"] / self.steps if self.steps else float("nan")
 
 
+#: What the peak force reads, said under it.
+PEAK_READS = "over every step's end and, in a puncture step, the tip contact's give-way within it"
+
+
+def _profile_force(part) -> float:
+    """The largest ‖force on the needle‖ one step's record (an ``InstrumentRecord``, or a ``StepRecord`` for
+    its first instrument) holds: the end of the step's and, at a within-step event (the puncture's give-way),
+    the force there."""
+    force = float(np.linalg.norm(part.needle_force))
+    within = part.within_step
+    return force if within is None else max(force, float(np.linalg.norm(within.needle_force)))
+
+
 @dataclass
 class RunSummary:
     """Running aggregate of step records; feed it with :meth:`add`."""
@@ -177,7 +190,7 @@ class RunSummary:
             for event in part.events:
                 self.events.append((record.step, record.time, event.name, event.force, event.unit))
                 self.event_instruments.append(part.name)
-            force = float(np.linalg.norm(part.needle_force))
+            force = _profile_force(part)
             if force > self.instrument_peaks.get(part.name, (-1.0, 0))[0]:
                 self.instrument_peaks[part.name] = (force, record.step)
         for event in () if several else record.events:
@@ -205,7 +218,7 @@ class RunSummary:
         if record.cut_point_count and self.first_cut_step is None:
             self.first_cut_step = record.step
         self.cut_points, self.cut_triangles = record.cut_point_count, record.cut_triangle_count
-        force = float(np.linalg.norm(record.needle_force))
+        force = _profile_force(record)
         if force > self.peak_force:
             self.peak_force, self.peak_force_step = force, record.step
 
@@ -255,6 +268,7 @@ class RunSummary:
             ]
         else:
             lines.append(f"peak force on the needle: {self.peak_force:.4g} N at step {self.peak_force_step}")
+        lines.append(f"  ({PEAK_READS})")
         lines.append(
             f"constraint solves not converged: {self.unconverged}; largest natural residual "
             f"{self.max_residual:.2e}"

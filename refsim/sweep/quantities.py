@@ -3,9 +3,11 @@
 A name is ``quantity`` or ``quantity@argument``:
 
 - name: ``needle_force@EVENT``; meaning: ‖force of the tissue on the needle‖ at the first step of event EVENT
-  (puncture, cut_start, tear, ...), at ``end`` (the last step) or at ``t=SECONDS`` (the nearest step); unit: N
+  (puncture, cut_start, tear, ...), at ``end`` (the last step) or at ``t=SECONDS`` (the nearest step), as the
+  force profile reads it (``Results.profile_force``: at a puncture through the capped tip contact, the force
+  at its give-way within the step, not the step's end); unit: N
 - name: ``axial_force@EVENT``, ``lateral_force@EVENT``; meaning: its component along the base segment (minus
-  sign: resisting insertion is positive) and the norm of the rest; unit: N
+  sign: resisting insertion is positive) and the norm of the rest, of the same force; unit: N
 - name: ``puncture_force``; meaning: the force that triggered the puncture event; unit: N
 - name: ``time@EVENT``; meaning: time at the end of the step of the first EVENT (a multiple of the time step);
   unit: s
@@ -49,7 +51,7 @@ def _event_index(results, event: str) -> int | None:
 
 def _needle_force(results, event: str = "end") -> float:
     index = _event_index(results, event)
-    return float("nan") if index is None else float(np.linalg.norm(results.needle_force[index]))
+    return float("nan") if index is None else float(np.linalg.norm(results.profile_force[index]))
 
 
 def _axial_force(results, event: str = "end") -> float:

@@ -1,7 +1,9 @@
 """Force plots of a run with matplotlib (Agg backend, no display), read from the results file only.
 
 The force shown is the force on the needle base, taken quasi-statically as the opposite of the force of the
-tissue on the needle (``steps/needle_force`` = Σ λ n): F_base = −F. It is split along the unit direction t of
+tissue on the needle: F_base = −F, with F the force profile (``Results.profile_force``: each step's end force,
+``steps/needle_force`` = Σ λ n, except in a puncture step, where it is the force at the tip contact's give-way
+within the step, ``steps/event_needle_force``, the profile's peak). It is split along the unit direction t of
 the base segment (base towards tip): axial F_base·t (positive when the tissue resists insertion) and lateral
 ‖F_base − (F_base·t) t‖.
 """
@@ -228,6 +230,16 @@ def force_figure(results, figure=None):
         cells.scale(1.0, 1.3)
     else:
         table.text(0.5, 0.9, "none", ha="center", va="top", transform=table.transAxes)
+    if np.isfinite(results.event_needle_force).all(axis=1).any():
+        table.text(
+            0.5,
+            0.02,
+            "puncture step: the force at the\ntip contact's give-way in the step",
+            ha="center",
+            va="bottom",
+            fontsize=7.5,
+            transform=table.transAxes,
+        )
     status = "" if results.complete else "  (interrupted run)"
     whose = "the needle" if len(names) == 1 and names[0] == "needle" else f"{names[0]}'s needle"
     figure.suptitle(f"{results.scene_name}: force on {whose} base{status}")

@@ -542,10 +542,14 @@ def test_cube_insertion_profile_rise_puncture_cut_and_friction(cube_scene):
     )
     records = []
     Simulation(scene).run(on_step=lambda s, r: records.append(r))
-    axial = np.array([r.needle_force[2] for r in records])
+    # The force profile: each step's end force, and in the puncture step the give-way within it.
+    axial = np.array(
+        [(r.needle_force if r.within_step is None else r.within_step.needle_force)[2] for r in records]
+    )
     puncture = [(r.step, e.force) for r in records for e in r.events if e.name == "puncture"]
     assert len(puncture) == 1 and puncture[0][1] == pytest.approx(scene.insertion.puncture_force, rel=1e-2)
     assert axial[: puncture[0][0]].max() <= scene.insertion.puncture_force * (1 + 1e-2)
+    assert axial[puncture[0][0] - 1] == pytest.approx(scene.insertion.puncture_force, rel=1e-2)  # the peak
     # Steady insertion: from 5 mm past puncture to the end of the motion (the base stops at t = 1.9 s).
     times = np.array([r.time for r in records])
     speed = 0.01

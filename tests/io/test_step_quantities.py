@@ -4,11 +4,13 @@ is a ``steps/`` dataset of every instrument with the row's unit, dtype and shape
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from refsim.io import schema
-from refsim.simulation.records import InstrumentRecord, StepRecord
+from refsim.simulation.records import InstrumentRecord, StepRecord, WithinStep
 
 
 def test_every_step_quantity_is_an_instrument_dataset_of_its_row():
@@ -20,9 +22,29 @@ def test_every_step_quantity_is_an_instrument_dataset_of_its_row():
             quantity.dtype,
             quantity.entry_shape,
         )
-        assert quantity.attribute in InstrumentRecord.__dataclass_fields__
+        first, *rest = quantity.attribute.split(".")
+        assert first in InstrumentRecord.__dataclass_fields__
+        if rest:  # read through the within-step state, which a step may not have
+            assert rest == [rest[0]] and rest[0] in WithinStep.__dataclass_fields__
     names = [quantity.name for quantity in schema.INSTRUMENT_STEP_QUANTITIES]
     assert len(set(names)) == len(names)
+
+
+def test_a_within_step_quantity_is_nan_in_a_step_without_the_event_and_its_value_in_one():
+    # Reference: schema.WITHIN_STEP_QUANTITIES (NaN in steps without a within-step event).
+    part = _part("needle", 0.5)
+    within = WithinStep(
+        event="puncture",
+        needle_force=np.array([0.0, 0.0, 0.8]),
+        tip_force=np.array([0.0, 0.1, 0.8]),
+        point=np.array([0.0, 0.0, 0.1]),
+    )
+    held = replace(part, within_step=within)
+    for quantity in schema.WITHIN_STEP_QUANTITIES:
+        assert quantity.since == 2
+        assert np.isnan(quantity.value(part)).all() and quantity.value(part).shape == quantity.entry_shape
+        field = quantity.attribute.split(".")[1]
+        assert quantity.value(held) is getattr(within, field)
 
 
 def _part(name: str, force: float) -> InstrumentRecord:

@@ -23,6 +23,10 @@ def _run(scene):
 
 
 def _tip_normal_force(record) -> float:
+    """The tip contact's normal force in the step: at its give-way in the puncture step (the step's end has
+    no tip contact), else its rows' at the step's end."""
+    if record.within_step is not None:
+        return record.within_step.normal_force
     rows = (record.row_source == PENETRATION) & (record.row_kind == UNILATERAL)
     return float(record.row_forces[rows].sum()) if np.any(rows) else 0.0
 

@@ -24,6 +24,7 @@ def _results(**extra):
         time=0.01 * steps,
         step_count=4,
         needle_force=forces,
+        profile_force=forces,
         base_position=base,
         needle_rest_nodes=np.array([[0.0, 0, 0.4], [0, 0, 0.3]]),
         rest_positions=rest,
