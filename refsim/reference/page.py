@@ -66,9 +66,7 @@ phase at every level, and every waypoint of the trajectory falls on a step. The 
 in one regime of the ring coupling (docs/coupling.md: rows on a ring of radius max(r, h)). The paper's law
 holds d_i = d_c (they are parameters of its law). The puncture block (4 cm) refines 2–4, 8/12/16 and
 16/24/32 cells. The liver cases keep their organ mesh (the geometry) and refine dt with d_i, d_c and the
-needle's beam elements (h = dt, d_i = d_c = dt × 0.1 m/s): their answers' error is that of d_i and d_c (the
-shaft's friction grows by one insertion point every d_i, the cut by one tear of d_c), dt's is ten times
-smaller (liver_rigid's note gives the measurement); liver_rigid's standard level starts at d_c = 1 mm.
+needle's beam elements (h = dt).
 
 ## Commands
 
