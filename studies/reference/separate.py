@@ -1,5 +1,5 @@
-"""Which refined parameter carries a reference case's error: runs that refine one of dt, d_i = d_c and the mesh
-at a time, read with the case's own quantities.
+"""Which refined parameter carries a reference case's error: runs that refine one of dt, d_i = d_c and the
+mesh at a time, read with the case's own quantities.
 
     python studies/reference/separate.py CASE RESULT.h5 [RESULT.h5 ...]
 
