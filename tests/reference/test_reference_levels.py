@@ -169,3 +169,22 @@ def test_event_crossing_interpolates_the_criterion_between_steps():
     assert math.isnan(event_crossing(_Run(), "tear", abscissa))
     with pytest.raises(ValueError, match="run.h5: no criterion 'cut_start' recorded"):
         event_crossing(_Run(criteria=False), "cut_start", abscissa)
+
+
+def test_a_curve_read_until_an_event_has_no_window_across_it():
+    """A curve read ``until`` an event (liver_rigid's forces before the cut) keeps the steps before the
+    event's first step (steps 0 to 4 of the run above, time 0.1·step): a window inside them is the curve's
+    mean (y = time, linear: its mean is its value at the window's centre); a window that reaches the event's
+    step has no sample (NaN), so a level whose event falls inside a window cannot mix the two sides of it."""
+    from refsim.reference.cases import Quantity, _steps, sample_curve
+
+    class Run(_Run):
+        step_count = 10
+        time = 0.1 * np.arange(10)
+
+    quantity = Quantity(name="f", kind="curve", unit="N", x="time", y="needle_force", until="cut_start")
+    keep = _steps(Run(), quantity)
+    np.testing.assert_array_equal(np.flatnonzero(keep), np.arange(5))
+    values = sample_curve(Run.time[keep], Run.time[keep], [0.2, 0.45], where="run.h5", width=0.1)
+    assert values[0] == pytest.approx(0.2, abs=1e-12)
+    assert math.isnan(values[1])
