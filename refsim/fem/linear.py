@@ -1,4 +1,4 @@
-"""Sparse symmetric positive definite solvers: refsim's supernodal Cholesky, PARDISO, CHOLMOD or SuperLU
+"""Sparse symmetric positive definite solvers: PARDISO, refsim's supernodal Cholesky, CHOLMOD or SuperLU
 (layer 2).
 
 Every body's effective stiffness A = M/dt² + C/dt + K keeps one sparsity pattern for a whole run (the free
@@ -7,19 +7,21 @@ elimination tree) is done once, and each step only refactorises numerically.
 
 Backends, in the order of :func:`default_linear_solver`:
 
-``"supernodal"``
-    refsim's own supernodal Cholesky (:mod:`refsim.fem.supernodal`: numba loops around the BLAS and LAPACK
-    that SciPy ships), upper triangle read. Its fill-reducing ordering is PARDISO's METIS nested dissection
-    (read from a PARDISO analysis) where oneMKL loads, else SuperLU's minimum degree of A + Aᵀ
-    (``supernodal:metis`` / ``supernodal:minimum-degree`` force one). Analysis once per pattern, numeric
-    factorisation per step; partial solves for W (:meth:`SupernodalSolver.inverse_block`) follow the
-    elimination tree's paths from the marked positions, and its factor does not depend on the marks.
 ``"pardiso"``
     Intel oneMKL PARDISO (x86-64 only), called through ctypes in oneMKL's runtime library ``mkl_rt``, which
     the ``mkl`` wheel installs (the ``pypardiso`` dependency brings it; refsim does not import pypardiso,
     whose import searches all of ``sys.prefix`` for the library: :func:`_mkl_runtime_candidates`): real SPD
     (mtype 2), upper triangle, zero-based. Phase 11 (analysis) once per pattern, phase 22 (numeric Cholesky)
     per step, phase 33 (solve) per right-hand side block.
+``"supernodal"``
+    refsim's own supernodal Cholesky (:mod:`refsim.fem.supernodal`: numba loops around the BLAS and LAPACK
+    that SciPy ships), upper triangle read. Its fill-reducing ordering is PARDISO's METIS nested dissection
+    (read from a PARDISO analysis) where oneMKL loads, else SuperLU's minimum degree of A + Aᵀ
+    (``supernodal:metis`` / ``supernodal:minimum-degree`` force one). Analysis once per pattern, numeric
+    factorisation per step; partial solves for W (:meth:`SupernodalSolver.inverse_block`) follow the
+    elimination tree's paths from the marked positions, and its factor does not depend on the marks. Its
+    numeric factorisation is faster than PARDISO's on this project's matrices, its partial solves slower:
+    per step neither wins (docs/speed.md), so it comes second, and first where oneMKL does not load.
 ``"cholmod"``
     CHOLMOD (scikit-sparse), only when it imports: it has no wheel here and needs a system SuiteSparse.
     Symbolic analysis once, ``cholesky_inplace`` per step.
@@ -29,7 +31,7 @@ Backends, in the order of :func:`default_linear_solver`:
     what refsim used before). SuperLU has no separate symbolic phase in SciPy: each step orders and
     factorises.
 
-The choice is forced by ``REFSIM_LINEAR_SOLVER=supernodal|pardiso|cholmod|superlu`` (or a scene's
+The choice is forced by ``REFSIM_LINEAR_SOLVER=pardiso|supernodal|cholmod|superlu`` (or a scene's
 ``compliance.linear_solver`` key through :func:`make_linear_solver`); :func:`linear_solver_info` returns the
 choice and the versions for the results file.
 """
@@ -60,7 +62,7 @@ __all__ = [
     "linear_solver_info",
 ]
 
-LINEAR_SOLVERS = ("supernodal", "pardiso", "cholmod", "superlu")
+LINEAR_SOLVERS = ("pardiso", "supernodal", "cholmod", "superlu")
 ENVIRONMENT_VARIABLE = "REFSIM_LINEAR_SOLVER"
 SUPERLU_ORDERINGS = ("MMD_AT_PLUS_A", "COLAMD", "MMD_ATA", "NATURAL")
 DEFAULT_SUPERLU_ORDERING = "MMD_AT_PLUS_A"

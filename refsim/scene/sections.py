@@ -679,10 +679,9 @@ class ComplianceSpec(_Validated):
     )
     linear_solver: str = spec(
         "auto",
-        doc="sparse solver: auto (refsim's own supernodal Cholesky, with PARDISO's METIS ordering where "
-        "oneMKL loads; $REFSIM_LINEAR_SOLVER overrides auto), or one of supernodal, pardiso, cholmod, "
-        "superlu",
-        choices=("auto", "supernodal", "pardiso", "cholmod", "superlu"),
+        doc="sparse solver: auto (PARDISO where its wheel installs, else refsim's own supernodal Cholesky; "
+        "$REFSIM_LINEAR_SOLVER overrides auto), or one of pardiso, supernodal, cholmod, superlu",
+        choices=("auto", "pardiso", "supernodal", "cholmod", "superlu"),
     )
 
     def validate(self) -> None:
