@@ -6,7 +6,7 @@ mesh at a time, read with the case's own quantities.
 prints, per results file, its dt, d_i, d_c and mesh cells, the case's quantities (refsim.reference: the
 sampled curves, the event abscissae located by their criterion's crossing) and its events (how many tears,
 when the needle left its cut). Runs for liver_rigid (the case's overrides, then one parameter at a time from
-the standard level's d_i = d_c = 0.5 mm, dt = 0.005 s, 24 beam elements)::
+d_i = d_c = 0.5 mm, dt = 0.005 s, 24 beam elements)::
 
     B='--set solver.method="exact" --set solver.tolerance=1e-10 --set cutting.fracture_energy=30.5'
     refsim run liver_rigid $B --set time.dt=0.01 --set insertion.spacing=0.0005 \\

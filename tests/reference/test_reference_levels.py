@@ -172,7 +172,7 @@ def test_event_crossing_interpolates_the_criterion_between_steps():
 
 
 def test_a_curve_read_until_an_event_has_no_window_across_it():
-    """A curve read ``until`` an event (liver_rigid's forces before the cut) keeps the steps before the
+    """A curve read ``until`` an event (a force before the cut starts) keeps the steps before the
     event's first step (steps 0 to 4 of the run above, time 0.1·step): a window inside them is the curve's
     mean (y = time, linear: its mean is its value at the window's centre); a window that reaches the event's
     step has no sample (NaN), so a level whose event falls inside a window cannot mix the two sides of it."""
