@@ -242,9 +242,16 @@ def _write_problem(handle, step: int, problem, multipliers, report, results, fie
 
 
 def export_problems(
-    results_path, output, *, fclib_folder=None, tolerance: float = 1e-10, backend: str = "clarabel"
+    results_path,
+    output,
+    *,
+    fclib_folder=None,
+    tolerance: float = 1e-10,
+    backend: str = "clarabel",
+    steps=None,
+    fclib_steps=None,
 ) -> dict:
-    """Export every recorded constraint problem of a results file with its exact solution.
+    """Export the recorded constraint problems of a results file with their exact solutions.
 
     Parameters
     ----------
@@ -254,11 +261,15 @@ def export_problems(
     None.
     tolerance : Natural residual the exact solver is asked for.
     backend : QP backend of the exact solver.
+    steps : The recorded steps written to ``output`` (an iterable of step numbers); every recorded step when
+    None.
+    fclib_steps : The recorded steps tried for FCLib files; ``steps`` when None. Only the steps of ``steps``
+    and ``fclib_steps`` are read and solved.
 
     Returns
     -------
-    dict: ``problems`` (count), ``fclib`` (paths written), ``unconverged`` (steps whose exact solve missed the
-    tolerance; they are exported with their best multipliers and ``converged = False``).
+    dict: ``problems`` (count written), ``fclib`` (paths written), ``unconverged`` (written steps whose exact
+    solve missed the tolerance; they are exported with their best multipliers and ``converged = False``).
 
     Raises
     ------
@@ -273,12 +284,21 @@ def export_problems(
 
     results_path = Path(results_path)
     results = read_results(results_path)
-    problems = read_problems(results_path)
-    if not problems:
+    recorded = {int(step) for step in results.problem_steps}
+    if not recorded:
         raise ValueError(
             f"{results_path}: no recorded constraint problems; run the scene with "
             "--set output.record_problems=true"
         )
+    written_steps = recorded if steps is None else {int(step) for step in steps}
+    fclib_wanted = written_steps if fclib_steps is None else {int(step) for step in fclib_steps}
+    missing = sorted((written_steps | fclib_wanted) - recorded)
+    if missing:
+        raise ValueError(
+            f"{results_path}: no recorded constraint problem at step(s) {missing[:5]}"
+            f"{' ...' if len(missing) > 5 else ''} (recorded: steps {min(recorded)} to {max(recorded)})"
+        )
+    problems = read_problems(results_path, steps=written_steps | fclib_wanted)
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
     fields = _problem_fields()
@@ -294,16 +314,21 @@ def export_problems(
                 "git_commit": git_commit(),
                 "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                 "solver": f"refsim.solvers.solve_exact(tolerance={tolerance:g}, backend={backend!r})",
-                "problem_count": len(problems),
+                "problem_count": len(written_steps),
             }
         )
         for step, problem in problems:
+            written_here = step in written_steps
+            tried = fclib_folder is not None and step in fclib_wanted
+            if not (written_here or tried):
+                continue
             multipliers, report = solve_exact(problem, tolerance=tolerance, backend=backend)
             index = results.index_of(step)
-            _write_problem(handle, step, problem, multipliers, report, results, fields)
-            if not report.converged:
-                unconverged.append(step)
-            if fclib_folder is None:
+            if written_here:
+                _write_problem(handle, step, problem, multipliers, report, results, fields)
+                if not report.converged:
+                    unconverged.append(step)
+            if not tried:
                 continue
             where = (
                 f"refsim needle-tissue problem: scene {results.scene_name}, step {step}, t = "
@@ -328,7 +353,7 @@ def export_problems(
                 fclib = _coulomb_fclib(problem, path, where, tolerance, backend, results.scene_name, step)
                 if fclib is not None:
                     written.append(fclib)
-    return {"problems": len(problems), "fclib": written, "unconverged": unconverged, "output": output}
+    return {"problems": len(written_steps), "fclib": written, "unconverged": unconverged, "output": output}
 
 
 def _coulomb_fclib(problem, path, where, tolerance, backend, scene_name, step):

@@ -457,25 +457,29 @@ def _export_problems(
     {count, recorded, fclib, fclib_steps}."""
     import h5py
 
-    from refsim.io.export import export_problems
+    from refsim.io.export import coulomb_contacts, export_problems, is_pure_contact
+    from refsim.io.reader import read_problems, read_results
 
     reused = _exported_problems(run_file, folder)
     if reused is not None:
         return reused
-    full, fclib = folder / "problems_all.h5.tmp", folder / "fclib"
+    fclib = folder / "fclib"
     shutil.rmtree(fclib, ignore_errors=True)
-    summary = export_problems(run_file, full, fclib_folder=fclib)
-    with h5py.File(full, "r") as source:
-        names = sorted(source["problems"])
-        chosen = [names[i] for i in _evenly(len(names), count)]
-        with h5py.File(folder / "problems.h5", "w") as target:
-            target.attrs.update(dict(source.attrs))
-            target.attrs["problem_count"] = len(chosen)
-            target.attrs["selection"] = f"{len(chosen)} of the {len(names)} recorded steps, evenly spaced"
-            group = target.create_group("problems")
-            for name in chosen:
-                source.copy(source[f"problems/{name}"], group, name=name)
-    full.unlink()
+    # Only the kept steps are solved (a fine run records thousands): the problems evenly spaced over the
+    # recorded steps, and for FCLib the steps whose rows have its form (structure alone, no solve), of
+    # which the export keeps those it can write (a loaded contact, every cap inactive at the solution).
+    names = [int(step) for step in read_results(run_file).problem_steps]
+    chosen = [names[i] for i in _evenly(len(names), count)]
+    holdable_form = []
+    for start in range(0, len(names), 200):  # read in batches: a fine run's W's do not fit in memory at once
+        for step, problem in read_problems(run_file, steps=names[start : start + 200]):
+            if is_pure_contact(problem) or coulomb_contacts(problem) is not None:
+                holdable_form.append(step)
+    partial = folder / "problems.h5.tmp"
+    summary = export_problems(run_file, partial, fclib_folder=fclib, steps=chosen, fclib_steps=holdable_form)
+    with h5py.File(partial, "a") as target:
+        target.attrs["selection"] = f"{len(chosen)} of the {len(names)} recorded steps, evenly spaced"
+    partial.replace(folder / "problems.h5")
     files = sorted(summary["fclib"])
     kept = [files[i] for i in _evenly(len(files), fclib_count)]
     for path in set(files) - set(kept):

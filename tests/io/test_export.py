@@ -91,6 +91,33 @@ def test_problem_set_holds_every_problem_with_its_exact_solution(recorded, tmp_p
         assert group["compliance"].attrs["units"] == "m/N" and "phase" in group.attrs
 
 
+def test_a_selection_of_steps_is_what_the_full_export_writes_for_them(recorded, tmp_path):
+    # The reference build keeps 20 of a run's thousands of problems: exporting only those (and trying FCLib
+    # only on the steps of its form) must write for each the same problem and solution as the full export,
+    # and solve nothing else.
+    full = export_problems(recorded, tmp_path / "all.h5", fclib_folder=tmp_path / "fclib_all")
+    steps = [step for step, _ in read_problems(recorded)]
+    chosen, tried = steps[1::3], steps[:4]
+    part = export_problems(
+        recorded, tmp_path / "part.h5", fclib_folder=tmp_path / "fclib_part", steps=chosen, fclib_steps=tried
+    )
+    assert part["problems"] == len(chosen) < full["problems"]
+    everything = {
+        step: (problem, solution) for step, problem, solution in read_problem_set(tmp_path / "all.h5")
+    }
+    exported = read_problem_set(tmp_path / "part.h5")
+    assert [step for step, _, _ in exported] == chosen
+    for step, problem, solution in exported:
+        _same_problem(problem, everything[step][0])
+        assert np.array_equal(solution, everything[step][1])
+    expected = [path.name for path in full["fclib"] if int(path.stem.split("_")[1]) in tried]
+    assert [path.name for path in part["fclib"]] == expected and expected
+    with h5py.File(tmp_path / "part.h5", "r") as handle:
+        assert handle.attrs["problem_count"] == len(chosen)
+    with pytest.raises(ValueError, match="no recorded constraint problem at step"):
+        export_problems(recorded, tmp_path / "bad.h5", steps=[steps[-1] + 1000])
+
+
 def test_fclib_files_round_trip_through_our_reader(recorded, tmp_path):
     summary = export_problems(recorded, tmp_path / "set.h5", fclib_folder=tmp_path / "fclib")
     pure = [(step, p) for step, p in read_problems(recorded) if is_pure_contact(p)]
