@@ -133,9 +133,12 @@ def test_the_puncture_appears_at_the_puncture_force(lockstep_session):
     assert len(punctures) == 1
     puncture = punctures[0]
     # The tip reaches the surface after 20 steps (2 mm); the puncture caps the tip's normal force at
-    # insertion.puncture_force = 0.8 N (docs/architecture.md, "Choices"): it pushes the needle back (+z).
+    # insertion.puncture_force = 0.8 N (docs/architecture.md, "Choices"), where the contact gives way. The
+    # reply carries the end of the step (docs/interactive.md): the tip then held by its cutting row at
+    # insertion.tip_cutting_force = 0.5 N, with the entry point's friction on top, pushing the needle back
+    # (+z), below the give-way's f_p.
     assert 20 <= puncture["step"] <= 30
-    assert abs(puncture["force"][2] - 0.8) <= 1e-6 * 0.8
+    assert 0.5 * (1 - 1e-6) <= puncture["force"][2] < 0.8
     assert puncture["phase"] == "insertion" and replies[-1]["phase"] == "insertion"
 
 
