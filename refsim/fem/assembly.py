@@ -28,7 +28,7 @@ import scipy.sparse as sp
 from refsim.geometry.rotations import polar_rotation_one
 from refsim.kernel_cache import numba
 
-__all__ = ["FreePattern", "assemble_free_system", "deformation_rotation"]
+__all__ = ["FreePattern", "assemble_free_system", "deformation_gradient", "deformation_rotation"]
 
 
 class FreePattern:
@@ -179,10 +179,9 @@ _UPPER_SOURCE = np.arange(90, dtype=np.int64)
 
 
 @numba.njit(cache=True)
-def deformation_rotation(positions, tets, rest_edges_inverse, e, f, ds, r):  # pragma: no cover - compiled
-    """Tet ``e``'s deformation gradient F = Ds Dm⁻¹ into ``f`` (Ds = [x₁−x₀, x₂−x₀, x₃−x₀] into ``ds``)
-    and its polar rotation (:func:`refsim.geometry.rotations.polar_rotation_one`) into ``r``: the
-    co-rotation of the assembly (:func:`assemble_free_system`) and of the fast mode's pass
+def deformation_gradient(positions, tets, rest_edges_inverse, e, f, ds):  # pragma: no cover - compiled
+    """Tet ``e``'s deformation gradient F = Ds Dm⁻¹ into ``f`` (Ds = [x₁−x₀, x₂−x₀, x₃−x₀] into ``ds``): the
+    co-rotation's first half in the assembly (:func:`assemble_free_system`) and in the fast mode's passes
     (:mod:`refsim.fem.corotated_matvec`)."""
     n0 = tets[e, 0]
     for c in range(3):
@@ -194,6 +193,13 @@ def deformation_rotation(positions, tets, rest_edges_inverse, e, f, ds, r):  # p
             for k in range(3):
                 s += ds[i, k] * rest_edges_inverse[e, k, j]
             f[i, j] = s
+
+
+@numba.njit(cache=True)
+def deformation_rotation(positions, tets, rest_edges_inverse, e, f, ds, r):  # pragma: no cover - compiled
+    """Tet ``e``'s deformation gradient (:func:`deformation_gradient`) into ``f`` and its polar rotation
+    (:func:`refsim.geometry.rotations.polar_rotation_one`) into ``r``."""
+    deformation_gradient(positions, tets, rest_edges_inverse, e, f, ds)
     polar_rotation_one(f, r)
 
 

@@ -56,21 +56,27 @@ def _best_ms(function: Callable[[], object], repeats: int) -> tuple[float, objec
     return 1e3 * best, result
 
 
+def bench_model(mesh, fixed_nodes: np.ndarray) -> TissueModel:
+    """The benches' tissue on ``mesh`` (rest_positions, tets): the cube's material, Rayleigh damping and
+    gravity, ``fixed_nodes`` held."""
+    return TissueModel(
+        np.asarray(mesh.rest_positions, dtype=float),
+        np.asarray(mesh.tets),
+        _MATERIAL,
+        rayleigh_mass=1.0,
+        rayleigh_stiffness=0.01,
+        fixed_nodes=np.asarray(fixed_nodes),
+        gravity=(0.0, 0.0, -9.81),
+    )
+
+
 def cube_model(cells: int) -> TissueModel:
     """The paper's cube with ``cells`` hexahedra per axis, bottom face fixed."""
     from refsim.mesh.generators import box_mesh
 
     mesh = box_mesh(size=(_CUBE_SIZE,) * 3, cells=(cells,) * 3, origin=(0.0, 0.0, 0.0))
     rest = np.asarray(mesh.rest_positions, dtype=float)
-    return TissueModel(
-        rest,
-        np.asarray(mesh.tets),
-        _MATERIAL,
-        rayleigh_mass=1.0,
-        rayleigh_stiffness=0.01,
-        fixed_nodes=np.flatnonzero(rest[:, 2] < 1e-9 * _CUBE_SIZE),
-        gravity=(0.0, 0.0, -9.81),
-    )
+    return bench_model(mesh, np.flatnonzero(rest[:, 2] < 1e-9 * _CUBE_SIZE))
 
 
 def _rows(model: TissueModel, nodes: int = 7) -> sp.csr_matrix:

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from refsim.fem.assembly import deformation_rotation
+from refsim.fem.assembly import deformation_gradient, deformation_rotation
 from refsim.fem.compliance import StepSystem
 from refsim.geometry.rotations import polar_rotation_one
 from refsim.kernel_cache import numba
@@ -179,14 +179,7 @@ def _corotate_with_nodes(
     p = np.empty((3, 3))
     summed = np.zeros((node_rotations.shape[0], 3, 3))
     for e in range(tets.shape[0]):
-        n0 = tets[e, 0]
-        for c in range(3):
-            for i in range(3):
-                ds[i, c] = positions[tets[e, c + 1], i] - positions[n0, i]
-        for i in range(3):
-            for j in range(3):
-                f[i, j] = ds[i, 0] * rest_edges_inverse[e, 0, j] + ds[i, 1] * rest_edges_inverse[e, 1, j]
-                f[i, j] += ds[i, 2] * rest_edges_inverse[e, 2, j]
+        deformation_gradient(positions, tets, rest_edges_inverse, e, f, ds)
         _rotation(f, r)
         rotations[e, :, :] = r
         _stress_forces(f, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, forces, 0, 1.0, p)

@@ -136,6 +136,17 @@ def _all_among(values: np.ndarray, sorted_set: np.ndarray) -> bool:
     return bool(np.all(inside) and np.array_equal(sorted_set[where], values))
 
 
+def _marked_rhs(rhs: np.ndarray, size: int, marked: np.ndarray | None) -> np.ndarray:
+    """The right-hand side of a solve_marked, checked: shape (size,), zero off the ``marked`` positions
+    (not checked when there are none: the caller solves whole)."""
+    rhs = np.asarray(rhs, dtype=float)
+    if rhs.shape != (size,):
+        raise ValueError(f"rhs must have shape ({size},), got {rhs.shape}")
+    if marked is not None and np.count_nonzero(rhs) != np.count_nonzero(rhs[marked]):
+        raise ValueError("solve_marked: the rhs has non-zeros off the marked positions")
+    return rhs
+
+
 _ONE, _ZERO = ctypes.c_int32(1), ctypes.c_int32(0)
 _MTYPE_SPD = ctypes.c_int32(2)  # PARDISO's matrix type: real symmetric positive definite
 _UNUSED = np.zeros(1)  # what an unused array argument points to
@@ -406,14 +417,9 @@ class PardisoSolver:
         skipped work is on zeros); about half its time on the cube's matrix."""
         if not self._factorised:
             raise self._unfactorised()
-        rhs = np.asarray(rhs, dtype=float)
-        if rhs.shape != (self._n,):
-            raise ValueError(f"rhs must have shape ({self._n},), got {rhs.shape}")
-        marked = self._marked
-        if marked is None:
+        rhs = _marked_rhs(rhs, self._n, self._marked)
+        if self._marked is None:
             return self.solve(rhs)
-        if np.count_nonzero(rhs) != np.count_nonzero(rhs[marked]):
-            raise ValueError("solve_marked: the rhs has non-zeros off the marked positions")
         b = np.ascontiguousarray(rhs)
         x = np.zeros(self._n)
         self._iparm[30] = 2
@@ -596,14 +602,9 @@ class SupernodalSolver:
         substitution visits the supernodes on the marked positions' etree paths only, the backward one all.
         Equal to :meth:`solve` bit for bit (the skipped work is on zeros)."""
         factor = self._factorised()
-        rhs = np.asarray(rhs, dtype=float)
-        if rhs.shape != (factor.n,):
-            raise ValueError(f"rhs must have shape ({factor.n},), got {rhs.shape}")
-        marked = self._marked
-        if marked is None:
+        rhs = _marked_rhs(rhs, factor.n, self._marked)
+        if self._marked is None:
             return self.solve(rhs)
-        if np.count_nonzero(rhs) != np.count_nonzero(rhs[marked]):
-            raise ValueError("solve_marked: the rhs has non-zeros off the marked positions")
         return factor.solve(rhs, self._marked_paths()[0])
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:

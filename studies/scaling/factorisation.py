@@ -20,7 +20,7 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-from refsim.fem.bench import _DT, _MATERIAL, cube_model
+from refsim.fem.bench import _DT, bench_model, cube_model
 from refsim.fem.linear import PardisoSolver, SuperLUSolver, SupernodalSolver
 from refsim.fem.supernodal import SymbolicFactor
 from refsim.fem.threads import hot_path_threads, thread_settings
@@ -41,15 +41,7 @@ def liver_model() -> TissueModel:
     mesh = liver_phantom("medium")
     rest = np.asarray(mesh.rest_positions, dtype=float)
     low = rest[:, 2].min() + 0.1 * np.ptp(rest[:, 2])
-    return TissueModel(
-        rest,
-        np.asarray(mesh.tets),
-        _MATERIAL,
-        rayleigh_mass=1.0,
-        rayleigh_stiffness=0.01,
-        fixed_nodes=np.flatnonzero(rest[:, 2] < low),
-        gravity=(0.0, 0.0, -9.81),
-    )
+    return bench_model(mesh, np.flatnonzero(rest[:, 2] < low))
 
 
 def _reference(key: str) -> str:
