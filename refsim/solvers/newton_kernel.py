@@ -448,18 +448,18 @@ def _dense_newton(
     counts,
     final,
 ):
-    """The dense Newton iteration of :func:`solve_newton` in compiled code on ``problem`` (a
-    :class:`NewtonProblem`) (the same steps, line search and
+    """The dense Newton iteration of :func:`solve_newton` in compiled code, on ``problem``, a
+    :class:`NewtonProblem` (the same steps, line search and
     Gauss–Seidel fallback; no Python call per iteration). ``multipliers`` is the start on entry and the best
     point on exit; ``history`` (max_iterations + 1,) gets the residual after each iteration.
 
     Its stages: the start with up to ``presweeps`` projected Gauss–Seidel sweeps (:func:`_start`), then per
     iteration the direction (:func:`_newton_direction`), the next point (:func:`_next_point`) and the
-    bookkeeping here (regularisation level, best point, history, stop reasons). Returns (iterations, residual,
-    data residual, reason): reason 0 converged, 1 iteration cap, 2 the regularised Jacobian could not be
-    factorised, 3 the line search failed 9 times in a row, 4 stalled. ``counts`` gets (line-search failures,
-    fallback sweeps, least-squares steps, history length, pre-sweeps), ``final`` the natural and data
-    residual of the answer as :func:`refsim.solvers.residuals` computes them.
+    bookkeeping here (regularisation level, best point, history, stop reasons). Returns (the best λ,
+    iterations, its residual, its data residual, reason): reason 0 converged, 1 iteration cap, 2 the
+    regularised Jacobian could not be factorised, 3 the line search failed 9 times in a row, 4 stalled.
+    ``counts`` gets (line-search failures, fallback sweeps, least-squares steps, history length, pre-sweeps),
+    ``final`` the natural and data residual of the answer as :func:`refsim.solvers.residuals` computes them.
     """
     kinds, rows, params, members = problem.kinds, problem.rows, problem.params, problem.members
     n = problem.free_gap.shape[0]

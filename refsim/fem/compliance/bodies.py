@@ -142,6 +142,14 @@ def _check_common(linear_solver: str, against_exact: bool) -> None:
         raise ValueError(f"against_exact must be true or false, got {against_exact!r}")
 
 
+def _check_iterative(tolerance: float, max_iterations: int) -> None:
+    """The PCG settings of the iterating strategies: a relative tolerance in (0, 1), an iteration cap ≥ 1."""
+    if not (0.0 < tolerance < 1.0):
+        raise ValueError(f"tolerance = {tolerance!r}: expected a number in (0, 1)")
+    if not isinstance(max_iterations, int) or max_iterations < 1:
+        raise ValueError(f"max_iterations = {max_iterations!r}: expected an integer >= 1")
+
+
 @dataclass(frozen=True)
 class Exact:
     """Refactorise every step (the reference).
@@ -318,10 +326,7 @@ class Refreshed:
             or self.refresh_every < 1
         ):
             raise ValueError(f"refresh_every = {self.refresh_every!r}: expected an integer >= 1")
-        if not (0.0 < self.tolerance < 1.0):
-            raise ValueError(f"tolerance = {self.tolerance!r}: expected a number in (0, 1)")
-        if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
-            raise ValueError(f"max_iterations = {self.max_iterations!r}: expected an integer >= 1")
+        _check_iterative(self.tolerance, self.max_iterations)
         if self.compliance_update not in W_UPDATES:
             raise ValueError(
                 f"compliance_update = {self.compliance_update!r}: expected one of {', '.join(W_UPDATES)}"
@@ -418,10 +423,7 @@ class Precomputed:
 
     def __post_init__(self) -> None:
         _check_common(self.linear_solver, self.against_exact)
-        if not (0.0 < self.tolerance < 1.0):
-            raise ValueError(f"tolerance = {self.tolerance!r}: expected a number in (0, 1)")
-        if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
-            raise ValueError(f"max_iterations = {self.max_iterations!r}: expected an integer >= 1")
+        _check_iterative(self.tolerance, self.max_iterations)
 
     def bind(self) -> BodyCompliance:
         """A fresh per-body, per-run compliance."""
@@ -649,10 +651,7 @@ class Fast:
 
     def __post_init__(self) -> None:
         _check_common(self.linear_solver, self.against_exact)
-        if not (0.0 < self.tolerance < 1.0):
-            raise ValueError(f"tolerance = {self.tolerance!r}: expected a number in (0, 1)")
-        if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
-            raise ValueError(f"max_iterations = {self.max_iterations!r}: expected an integer >= 1")
+        _check_iterative(self.tolerance, self.max_iterations)
 
     def bind(self) -> BodyCompliance:
         """A fresh per-body, per-run compliance."""
