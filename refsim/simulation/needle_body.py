@@ -75,13 +75,27 @@ class RigidNeedle:
         self.name = name  # the instrument's name: its state's and its Jacobian's key
         self.length = float(length)
         self.arc_lengths = np.linspace(0.0, self.length, element_count + 1)
+        self._frames_key, self._frames = None, None  # the last direction's bytes and its nodes' frames
+
+    def _frames_along(self, direction: np.ndarray) -> np.ndarray:
+        """Every node's frame along ``direction`` (:func:`_rest_frames`), a fresh copy; computed again only
+        when the direction's bytes change (a trajectory keeps its direction over many steps)."""
+        direction = np.asarray(direction, dtype=float)
+        key = direction.tobytes() if direction.shape == (3,) else None
+        if key is None or key != self._frames_key:
+            frames = _rest_frames(direction, self.arc_lengths.size)
+            if key is None:
+                return frames
+            frames.setflags(write=False)
+            self._frames_key, self._frames = key, frames
+        return self._frames.copy()
 
     def state_at(
         self, base: np.ndarray, direction: np.ndarray, velocities: np.ndarray | None = None
     ) -> NeedleState:
         """The needle posed at ``base`` along ``direction``."""
         positions = base + self.arc_lengths[:, None] * direction
-        frames = _rest_frames(direction, self.arc_lengths.size)
+        frames = self._frames_along(direction)
         if velocities is None:
             velocities = np.zeros((self.arc_lengths.size, 6))
         return NeedleState(

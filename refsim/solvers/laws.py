@@ -108,6 +108,9 @@ class Law:
     fields : The problem fields of this law; the "rows" fields list its rows.
     statement : The law in one line.
     validate : Extra checks beyond the per-field ones, called with the problem and a fail(message) callback.
+    validate_rows : Extra checks that read only the row-index fields ("rows", "members", "offsets") and the row
+        count, called as ``validate``; a problem whose index fields equal those of the last one validated
+        skips them with the other checks of its rows (:class:`~refsim.solvers.ConstraintProblem`).
     natural_map : The law's vectorised natural map, ``(problem, λ, δ, ρδ, ρ or None, error)``: writes
         e = λ − Π(λ − ρ δ̂) (bilateral: e = ρ δ) on the law's rows into ``error`` (the Python form of
         :func:`natural_map_blocks`, :func:`refsim.solvers.residual.natural_map_error` loops over the table).
@@ -128,6 +131,7 @@ class Law:
     natural_map: Callable | None = None
     bounds: Callable | None = None
     projection: Callable | None = None
+    validate_rows: Callable | None = None
 
     @property
     def row_fields(self) -> tuple[str, ...]:
@@ -144,7 +148,7 @@ BILATERAL, UNILATERAL, CONTACT, GROUP_FRICTION, BOX = 0, 1, 2, 3, 4
 
 
 def _check_groups(problem, fail) -> None:
-    """Offsets of the group form and the pair form of group friction."""
+    """Offsets of the group form and the pair form of group friction (row-index fields only)."""
     rows = problem.group_friction
     offsets = problem.group_offsets
     members = problem.group_members
@@ -491,7 +495,7 @@ LAWS: tuple[Law, ...] = (
             ),
         ),
         "|λ_s| ≤ μ (‖λ_G‖ + p), stick inside, slip at the bound opposing δ_s",
-        _check_groups,
+        validate_rows=_check_groups,
         natural_map=_group_map,
         bounds=_group_bounds,
         projection=_group_projection,

@@ -16,6 +16,20 @@ from refsim.solvers.laws import LAW_FIELDS, LAW_NAMES, LAWS, all_finite, frictio
 __all__ = ["ConstraintProblem", "LAW_NAMES"]
 
 
+#: The fields holding row indices (the rows of each law, the groups' members and offsets), in keyword order.
+_INDEX_FIELDS = tuple(spec for spec in LAW_FIELDS if spec.role in ("rows", "members", "offsets"))
+
+#: The last (row count and index fields' bytes, their validated read-only int64 copies) of a problem whose
+#: rows passed every check of its rows: a time step's rows keep their index sets over many steps, and a
+#: problem with the same ones takes these copies (read-only, so shared) instead of checking them again.
+_LAST_ROWS: tuple = (None, None)
+
+
+def _remember_rows(key: tuple, fields: dict) -> None:
+    global _LAST_ROWS
+    _LAST_ROWS = (key, fields)
+
+
 def _law_fields(cls):
     """Add one keyword field per law field of the table (defaults: empty arrays), then ``name``."""
     annotations = {"compliance": np.ndarray, "free_gap": np.ndarray}
@@ -69,7 +83,43 @@ class ConstraintProblem:
         object.__setattr__(
             self, "_row_count", row_count
         )  # read by every solve (the property is on hot paths)
+        key = self._rows_key(row_count)
+        last = _LAST_ROWS  # (key, validated index fields) of the last problem whose rows were checked
+        if key is not None and last[0] == key:
+            # The same index fields as the last problem validated: its checked read-only copies, its checks
+            for name, value in last[1].items():
+                object.__setattr__(self, name, value)
+        else:
+            self._validate_index_fields(row_count)
         for spec in LAW_FIELDS:
+            if spec.role in ("coefficient", "preload", "bound"):
+                count = len(getattr(self, spec.per))
+                self._set(spec.name, self._parameters(spec, count))
+        if not (key is not None and last[0] == key):
+            self._validate_coverage()
+            for law in LAWS:
+                if law.validate_rows is not None:
+                    law.validate_rows(self, self._fail)
+            if key is not None:
+                _remember_rows(key, {spec.name: getattr(self, spec.name) for spec in _INDEX_FIELDS})
+        for law in LAWS:
+            if law.validate is not None:
+                law.validate(self, self._fail)
+
+    def _rows_key(self, row_count: int) -> tuple | None:
+        """The row count and the index fields' dtypes, shapes and bytes (None when one is not an integer
+        array)."""
+        parts = [row_count]
+        for spec in _INDEX_FIELDS:
+            value = getattr(self, spec.name)
+            if not isinstance(value, np.ndarray) or value.dtype.kind not in "iu":
+                return None
+            parts.append((value.dtype.str, value.shape, value.tobytes()))
+        return tuple(parts)
+
+    def _validate_index_fields(self, row_count: int) -> None:
+        """Row indices within [0, row_count) of the laws' shapes, offsets one-dimensional; int64 copies."""
+        for spec in _INDEX_FIELDS:
             if spec.role in ("rows", "members"):
                 self._set(
                     spec.name,
@@ -77,16 +127,8 @@ class ConstraintProblem:
                         spec.name, getattr(self, spec.name), (-1,) + tuple(spec.entry_shape[1:]), row_count
                     ),
                 )
-            elif spec.role == "offsets":
+            else:
                 self._set(spec.name, self._offsets(spec.name, getattr(self, spec.name)))
-        for spec in LAW_FIELDS:
-            if spec.role in ("coefficient", "preload", "bound"):
-                count = len(getattr(self, spec.per))
-                self._set(spec.name, self._parameters(spec, count))
-        self._validate_coverage()
-        for law in LAWS:
-            if law.validate is not None:
-                law.validate(self, self._fail)
 
     # ------------------------------------------------------------------ helpers of validation
     def _fail(self, message: str) -> None:
@@ -145,12 +187,11 @@ class ConstraintProblem:
         value = getattr(self, spec.name)
         if spec.role == "preload" and np.size(value) == 0:
             return np.zeros(count)
-        array = self._float_array(
-            spec.name,
-            np.atleast_1d(np.asarray(value, dtype=object)) if np.size(value) else np.zeros(0),
-            ndim=1,
-            allow_inf=spec.role == "bound",
-        )
+        if isinstance(value, np.ndarray) and value.dtype == np.float64 and value.ndim:
+            given = value  # what the object-array round trip below would give
+        else:
+            given = np.atleast_1d(np.asarray(value, dtype=object)) if np.size(value) else np.zeros(0)
+        array = self._float_array(spec.name, given, ndim=1, allow_inf=spec.role == "bound")
         if array.shape != (count,):
             self._fail(f"{spec.name} has shape {array.shape}, expected ({count},), one per {spec.per} entry")
         if spec.role != "bound" and (array < 0).any():

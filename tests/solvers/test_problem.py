@@ -113,3 +113,41 @@ def test_multiplier_checks_and_asymmetry():
 def test_empty_problem():
     problem = ConstraintProblem(compliance=np.zeros((0, 0)), free_gap=np.zeros(0))
     assert problem.row_count == 0
+
+
+def test_rows_checked_once_are_shared_and_values_still_checked():
+    # Index fields equal to the last validated problem's skip their checks and share its read-only copies;
+    # the values (coefficients, bounds) are checked every time, and other rows are checked again.
+    rows = dict(
+        bilateral=np.array([0, 1]),
+        shaft_friction=np.array([2]),
+        shaft_pairs=np.array([[0, 1]]),
+        unilateral=np.array([3]),
+        box_rows=np.zeros(0, dtype=np.int64),
+    )
+    first = ConstraintProblem(
+        compliance=np.eye(4), free_gap=np.zeros(4), shaft_friction_coefficient=np.array([0.3]), **rows
+    )
+    second = ConstraintProblem(
+        compliance=2.0 * np.eye(4), free_gap=np.ones(4), shaft_friction_coefficient=np.array([0.5]), **rows
+    )
+    assert second.bilateral is first.bilateral and not second.bilateral.flags.writeable
+    assert second.shaft_friction_coefficient[0] == 0.5 and second.compliance[0, 0] == 2.0
+    with pytest.raises(ValueError, match="shaft_friction_coefficient has a negative"):
+        ConstraintProblem(
+            compliance=np.eye(4), free_gap=np.zeros(4), shaft_friction_coefficient=np.array([-0.3]), **rows
+        )
+    with pytest.raises(ValueError, match="has shape"):
+        ConstraintProblem(
+            compliance=np.eye(4), free_gap=np.zeros(4), shaft_friction_coefficient=np.array([0.3, 0.1]), **rows
+        )
+    clash = dict(rows, unilateral=np.array([1]))  # row 1 twice, row 3 in no law
+    with pytest.raises(ValueError, match="listed as bilateral and again as unilateral"):
+        ConstraintProblem(
+            compliance=np.eye(4), free_gap=np.zeros(4), shaft_friction_coefficient=np.array([0.3]), **clash
+        )
+    third = ConstraintProblem(
+        compliance=np.eye(4), free_gap=np.zeros(4), shaft_friction_coefficient=np.array([0.3]), **rows
+    )
+    assert third.bilateral is first.bilateral  # a failed problem is not remembered
+    np.testing.assert_array_equal(third.row_kinds(), first.row_kinds())
