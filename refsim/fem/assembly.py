@@ -229,7 +229,9 @@ def _assemble(
     entries = slots.shape[1]
     for e in range(tet_count):
         deformation_rotation(positions, tets, rest_edges_inverse, e, f, ds, r)
-        rotations[e, :, :] = r
+        for i in range(3):  # element by element: a slice assignment costs more than the copy here
+            for j in range(3):
+                rotations[e, i, j] = r[i, j]
         # centred element positions and u_a = Rᵀ x_a − X_a
         for i in range(3):
             mean = 0.25 * (

@@ -88,7 +88,9 @@ def _corotate(
     p = np.empty((3, 3))
     for e in range(tets.shape[0]):
         deformation_rotation(positions, tets, rest_edges_inverse, e, f, ds, r)
-        rotations[e, :, :] = r
+        for i in range(3):  # element by element: a slice assignment costs more than the copy here
+            for j in range(3):
+                rotations[e, i, j] = r[i, j]
         # ε = sym(Rᵀ F) − I: the co-rotated strain of u = Rᵀ x − X (F = Σ_a x_a ⊗ ∇φ_a, I = Σ_a X_a ⊗ ∇φ_a)
         _stress_forces(f, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, forces, 0, 1.0, p)
 
@@ -181,7 +183,9 @@ def _corotate_with_nodes(
     for e in range(tets.shape[0]):
         deformation_gradient(positions, tets, rest_edges_inverse, e, f, ds)
         _rotation(f, r)
-        rotations[e, :, :] = r
+        for i in range(3):  # element by element: a slice assignment costs more than the copy here
+            for j in range(3):
+                rotations[e, i, j] = r[i, j]
         _stress_forces(f, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, forces, 0, 1.0, p)
         for a in range(4):
             node = tets[e, a]

@@ -603,10 +603,23 @@ def test_every_strategy_moves_prescribed_nodes_exactly(model, strategy):
         state = TissueState(positions=positions, velocities=(positions - state.positions) / DT)
 
 
+def _dense_columns_numpy(matrix, columns):
+    # the NumPy form of the compiled copy (scatter_columns) for a canonical CSR
+    where = np.full(matrix.shape[1], -1, dtype=np.int64)
+    where[columns] = np.arange(columns.size)
+    out = np.zeros((matrix.shape[0], columns.size))
+    column = where[matrix.indices]
+    keep = column >= 0
+    rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
+    out[rows[keep], column[keep]] = matrix.data[keep] + 0.0
+    return out
+
+
 def test_rows_restricted_to_their_dofs_are_scipys_numbers():
     # W and the correction read H on the DoFs it touches as a dense block: the entries copied into place for
-    # a canonical CSR, SciPy's column slicing otherwise (duplicates summed); both the bits of
-    # H[:, used].toarray(), the sign of explicit zeros included (toarray sums into zeros).
+    # a canonical CSR (one compiled pass), SciPy's column slicing otherwise (duplicates summed); both the bits
+    # of H[:, used].toarray() and of the NumPy form, the sign of explicit zeros included (toarray sums into
+    # zeros).
     from refsim.fem.compliance.system import _dense_columns
 
     rng = np.random.default_rng(3)
@@ -618,6 +631,8 @@ def test_rows_restricted_to_their_dofs_are_scipys_numbers():
         got = _dense_columns(matrix, columns)
         np.testing.assert_array_equal(got, expected)
         np.testing.assert_array_equal(np.signbit(got), np.signbit(expected))
+        np.testing.assert_array_equal(np.signbit(got), np.signbit(_dense_columns_numpy(matrix, columns)))
+        np.testing.assert_array_equal(got, _dense_columns_numpy(matrix, columns))
         duplicated = sp.csr_matrix(
             (
                 np.r_[matrix.data, 0.5],

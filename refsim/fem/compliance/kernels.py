@@ -16,6 +16,18 @@ from refsim.kernel_cache import numba
 
 
 @numba.njit(cache=True)
+def scatter_columns(indptr, indices, data, where, out):  # pragma: no cover - compiled
+    """out[row, where[column]] = value + 0.0 for each entry of a canonical CSR (indptr, indices, data) whose
+    column has ``where`` ≥ 0 (out zero beforehand; + 0.0 as toarray's sum into zeros: −0.0 becomes 0.0): the
+    dense columns of the rows that W and the correction read (:meth:`StepCompliance._influence`)."""
+    for row in range(indptr.size - 1):
+        for k in range(indptr[row], indptr[row + 1]):
+            column = where[indices[k]]
+            if column >= 0:
+                out[row, column] = data[k] + 0.0
+
+
+@numba.njit(cache=True)
 def turn_nodes(rotations, values, transpose, out):  # pragma: no cover - compiled
     """out = R v (Rᵀ v when ``transpose``) for v on every free node, rotations (g, 3, 3), v and out (3g,)."""
     for g in range(rotations.shape[0]):

@@ -449,17 +449,17 @@ class StepCompliance:
 
 def _dense_columns(matrix: sp.csr_matrix, columns: np.ndarray) -> np.ndarray:
     """``matrix[:, columns].toarray()`` for sorted, distinct ``columns``: the entries copied into place when
-    the CSR is canonical (sorted indices, no duplicates: the same numbers, without SciPy's column slicing),
-    else SciPy's answer (which sums duplicates)."""
+    the CSR is canonical (sorted indices, no duplicates: the same numbers, without SciPy's column slicing;
+    one compiled pass, :func:`refsim.fem.compliance.kernels.scatter_columns`), else SciPy's answer (which sums
+    duplicates)."""
     if not matrix.has_canonical_format:
         return matrix[:, columns].toarray()
+    from refsim.fem.compliance.kernels import scatter_columns
+
     where = np.full(matrix.shape[1], -1, dtype=np.int64)
     where[columns] = np.arange(columns.size)
     out = np.zeros((matrix.shape[0], columns.size))
-    column = where[matrix.indices]
-    keep = column >= 0
-    rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
-    out[rows[keep], column[keep]] = matrix.data[keep] + 0.0  # (as toarray's sum into zeros: -0.0 becomes 0.0)
+    scatter_columns(matrix.indptr, matrix.indices, matrix.data, where, out)
     return out
 
 
