@@ -108,8 +108,8 @@ class Law:
     fields : The problem fields of this law; the "rows" fields list its rows.
     statement : The law in one line.
     validate : Extra checks beyond the per-field ones, called with the problem and a fail(message) callback.
-    validate_rows : Extra checks that read only the row-index fields ("rows", "members", "offsets") and the row
-        count, called as ``validate``; a problem whose index fields equal those of the last one validated
+    validate_rows : Extra checks that read only the row-index fields ("rows", "members", "offsets") and the
+        row count, called as ``validate``; a problem whose index fields equal those of the last one validated
         skips them with the other checks of its rows (:class:`~refsim.solvers.ConstraintProblem`).
     natural_map : The law's vectorised natural map, ``(problem, λ, δ, ρδ, ρ or None, error)``: writes
         e = λ − Π(λ − ρ δ̂) (bilateral: e = ρ δ) on the law's rows into ``error`` (the Python form of

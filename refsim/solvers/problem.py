@@ -85,7 +85,8 @@ class ConstraintProblem:
         )  # read by every solve (the property is on hot paths)
         key = self._rows_key(row_count)
         last = _LAST_ROWS  # (key, validated index fields) of the last problem whose rows were checked
-        if key is not None and last[0] == key:
+        checked = key is not None and last[0] == key
+        if checked:
             # The same index fields as the last problem validated: its checked read-only copies, its checks
             for name, value in last[1].items():
                 object.__setattr__(self, name, value)
@@ -95,7 +96,7 @@ class ConstraintProblem:
             if spec.role in ("coefficient", "preload", "bound"):
                 count = len(getattr(self, spec.per))
                 self._set(spec.name, self._parameters(spec, count))
-        if not (key is not None and last[0] == key):
+        if not checked:
             self._validate_coverage()
             for law in LAWS:
                 if law.validate_rows is not None:

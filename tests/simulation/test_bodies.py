@@ -187,3 +187,26 @@ def test_a_non_finite_body_state_stops_the_run_naming_the_body(rigid):
     rigid._check_finite(3, free, np.zeros(2))  # finite: nothing raised
     with pytest.raises(SimulationError, match="non-finite constraint forces"):
         rigid._check_finite(3, free, np.array([0.0, np.inf]))
+
+
+def test_a_rigid_needles_frames_follow_its_direction():
+    # The nodes' frames are kept for the last direction: each pose gets the rest frame of its own direction,
+    # as a fresh array of its own.
+    from refsim.geometry import needle_rest_frame
+
+    needle = RigidNeedle(0.1, 4)
+    base = np.zeros(3)
+    along_z = needle.state_at(base, np.array([0.0, 0.0, -1.0]))
+    tilted_direction = np.array([0.6, 0.0, -0.8])
+    tilted = needle.state_at(base, tilted_direction)
+    again = needle.state_at(base + 1e-3, tilted_direction)
+    poses = ((along_z, [0.0, 0.0, -1.0]), (tilted, tilted_direction), (again, tilted_direction))
+    for state, direction in poses:
+        expected = needle_rest_frame(np.asarray(direction))
+        assert state.frames.shape == (5, 3, 3)
+        np.testing.assert_array_equal(state.frames, np.broadcast_to(expected, (5, 3, 3)))
+    assert again.frames is not tilted.frames and again.frames.flags.writeable
+    again.frames[0] = 0.0  # a caller's copy: the next pose is not touched
+    np.testing.assert_array_equal(needle.state_at(base, tilted_direction).frames, tilted.frames)
+    with pytest.raises(ValueError):
+        needle.state_at(base, np.zeros(3))

@@ -138,9 +138,8 @@ def test_rows_checked_once_are_shared_and_values_still_checked():
             compliance=np.eye(4), free_gap=np.zeros(4), shaft_friction_coefficient=np.array([-0.3]), **rows
         )
     with pytest.raises(ValueError, match="has shape"):
-        ConstraintProblem(
-            compliance=np.eye(4), free_gap=np.zeros(4), shaft_friction_coefficient=np.array([0.3, 0.1]), **rows
-        )
+        two = np.array([0.3, 0.1])  # one coefficient per shaft row: one too many
+        ConstraintProblem(compliance=np.eye(4), free_gap=np.zeros(4), shaft_friction_coefficient=two, **rows)
     clash = dict(rows, unilateral=np.array([1]))  # row 1 twice, row 3 in no law
     with pytest.raises(ValueError, match="listed as bilateral and again as unilateral"):
         ConstraintProblem(
