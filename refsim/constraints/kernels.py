@@ -92,11 +92,10 @@ def basis_of(tangents):  # pragma: no cover - compiled
 def summation_plan(columns, order, pattern_slot):  # pragma: no cover - compiled
     """How SciPy's conversion sums the entries of rows with these columns (sorted by ``order``, one
     permutation per distinct pattern, equal columns summed in that order), without the values: for each
-    entry in summation order
-    its weight (an index into ``weights.ravel()``, (r, p)) and its direction component (an index into
-    ``directions.ravel()``, (r, 3)), shapes (r · 3p,) each; the start of each sum among them, shape
-    (nnz + 1,); and the CSR ``indices`` (nnz,) and ``indptr`` (r + 1,), int32. A function of the columns
-    alone (the entries' pattern), so it serves every call whose rows have those columns
+    entry in summation order its weight (an index into ``weights.ravel()``, (r, p)) and its direction
+    component (an index into ``directions.ravel()``, (r, 3)), shapes (r · 3p,) each; the start of each sum
+    among them, shape (nnz + 1,); and the CSR ``indices`` (nnz,) and ``indptr`` (r + 1,), int32. A function
+    of the columns alone (the entries' pattern), so it serves every call whose rows have those columns
     (:func:`planned_rows`)."""
     rows, width = columns.shape
     per_point = width // 3
@@ -114,7 +113,7 @@ def summation_plan(columns, order, pattern_slot):  # pragma: no cover - compiled
             column = columns[row, permutation[slot]]
             starts[count] = at
             while slot < width and columns[row, permutation[slot]] == column:
-                entry = permutation[slot]  # COO order: node k = entry // 3, axis entry % 3
+                entry = permutation[slot]  # COO order: node k = entry // 3, component entry % 3
                 weight_at[at] = row * per_point + entry // 3
                 direction_at[at] = row * 3 + entry % 3
                 at += 1
@@ -142,3 +141,20 @@ def planned_rows(weights, directions, sign, weight_at, direction_at, starts):  #
             total += (sign * flat_weights[weight_at[at]]) * flat_directions[direction_at[at]]
         data[entry] = total
     return data
+
+
+@numba.njit(cache=True)
+def interpolated_points(weights, positions, nodes):  # pragma: no cover - compiled
+    """Σ_k w_ik x_(nodes_ik), shape (q, 3): ``np.einsum("qk,qkj->qj", weights, positions[nodes])`` without
+    the gathered (q, k, 3) array. einsum sums each output's k products left to right into a zeroed output
+    (its reduction loop: the products accumulated from 0, then added to the output's 0), and so does this
+    pass: the same bits (``tests/constraints/test_rows.py``)."""
+    count, per_point = weights.shape
+    out = np.empty((count, 3))
+    for row in range(count):
+        for axis in range(3):
+            total = 0.0
+            for k in range(per_point):
+                total += weights[row, k] * positions[nodes[row, k], axis]
+            out[row, axis] = 0.0 + total
+    return out

@@ -605,20 +605,22 @@ def trusted_csr(
 #: SciPy's default ``maxprint`` of a matrix (what its constructors set).
 _MAXPRINT = sp.csr_matrix((0, 0)).maxprint
 
-#: The plans of :func:`_summation_plan` by their nodes (at most _PLANS_KEPT kept).
-_PLANS: dict[tuple, tuple[np.ndarray, ...]] = {}
+#: The plans of :func:`_summation_plan`, by the nodes' shape, the DoF count and the nodes' first and last
+#: entries (each with the nodes it was made for: a list per key, at most _PLANS_KEPT plans in all).
+_PLANS: dict[tuple, list[tuple[np.ndarray, tuple[np.ndarray, ...]]]] = {}
 _PLANS_KEPT = 32
 
 
 def _summation_plan(node_indices: np.ndarray, dof_count: int):
     """The summation plan of :func:`point_rows` for rows on ``node_indices`` (r, p) int64
-    (:func:`refsim.constraints.kernels.summation_plan`): a function of the nodes alone, kept by their bytes
-    (a step's insertion points have the last step's nodes while their rings do not change, the tip's ring
-    while it stays in the same tets)."""
-    key = (node_indices.shape, dof_count, node_indices.tobytes())
-    plan = _PLANS.get(key)
-    if plan is not None:
-        return plan
+    (:func:`refsim.constraints.kernels.summation_plan`): a function of the nodes alone, kept with them and
+    found again by comparing them (a step's insertion points have the last step's nodes while their rings do
+    not change, the tip's ring while it stays in the same tets; comparing costs less than hashing them)."""
+    key = (node_indices.shape, dof_count, int(node_indices[0, 0]), int(node_indices[-1, -1]))
+    kept = _PLANS.get(key, ())
+    for nodes, plan in kept:
+        if np.array_equal(nodes, node_indices):
+            return plan
     from refsim.constraints.kernels import row_entries, summation_plan  # numba: imported on first use
 
     row_count, per_point = node_indices.shape
@@ -627,9 +629,9 @@ def _summation_plan(node_indices: np.ndarray, dof_count: int):
     )
     order = _sort_order(columns[firsts], dof_count)
     plan = summation_plan(columns, order, pattern)
-    if len(_PLANS) >= _PLANS_KEPT:
+    if sum(len(plans) for plans in _PLANS.values()) >= _PLANS_KEPT:
         _PLANS.clear()
-    _PLANS[key] = plan
+    _PLANS.setdefault(key, []).append((node_indices.copy(), plan))
     return plan
 
 

@@ -378,7 +378,7 @@ def test_point_rows_sort_orders_kept_by_pattern_give_the_fresh_bits():
         np.testing.assert_array_equal(got.indices, expected.indices)
         np.testing.assert_array_equal(got.data, expected.data)
     assert len(rows_module._SORT_ORDERS) == 2  # the two pattern sets
-    assert len(rows_module._PLANS) == 2  # and their summation plans
+    assert sum(len(plans) for plans in rows_module._PLANS.values()) == 2  # and their summation plans
 
 
 def test_point_rows_keep_explicit_zeros_as_the_coo_conversion_does():
@@ -453,3 +453,23 @@ def test_trusted_csr_is_the_checked_constructors_matrix():
     np.testing.assert_array_equal(stacked, sp.vstack([checked, checked]).toarray())
     np.testing.assert_array_equal(fast[[1, 3]].toarray(), checked[[1, 3]].toarray())
     assert repr(fast) == repr(checked)
+
+
+def test_interpolated_points_are_einsums_bits():
+    # The compiled interpolation of material points against its NumPy reference, np.einsum("qk,qkj->qj"),
+    # on ring-sized and tet-sized rows with zeros, signed zeros and mixed magnitudes: the same bits.
+    from refsim.constraints.kernels import interpolated_points
+
+    rng = np.random.default_rng(17)
+    for trial in range(120):
+        count = int(rng.integers(0, 30))
+        per_point = (1, 3, 4, 12, 36, 68)[trial % 6]
+        positions = rng.standard_normal((300, 3)) * 10.0 ** float(rng.integers(-4, 2))
+        nodes = rng.integers(0, 300, size=(count, per_point))
+        weights = rng.standard_normal((count, per_point))
+        weights[rng.random(weights.shape) < 0.2] = 0.0
+        weights[rng.random(weights.shape) < 0.05] = -0.0
+        expected = np.einsum("qk,qkj->qj", weights, positions[nodes])
+        got = interpolated_points(weights, positions, nodes)
+        np.testing.assert_array_equal(got, expected)
+        np.testing.assert_array_equal(np.signbit(got), np.signbit(expected))
