@@ -330,57 +330,76 @@ def concatenate(blocks: list[RowBlock]) -> RowBlock:
     blocks = [b for b in blocks if b is not None]
     if len(blocks) == 1:
         return blocks[0]
-    counts = [b.row_count for b in blocks]
+    fields = [b.__dict__ for b in blocks]
+    counts = [f["free_gap"].shape[0] for f in fields]
     offsets = [0]
     for count in counts[:-1]:
         offsets.append(offsets[-1] + count)
+    total = offsets[-1] + counts[-1]
 
     def joined(name: str) -> np.ndarray:
-        return np.concatenate([getattr(b, name) for b in blocks])
+        return np.concatenate([f[name] for f in fields])
 
-    def shifted(name: str, by: list[int], empty_shape: tuple[int, ...]) -> np.ndarray:
-        """The blocks' index field ``name`` plus each block's offset, int64 (the blocks without any left
-        out: they add nothing)."""
-        parts = [getattr(b, name) + o for b, o in zip(blocks, by, strict=True) if getattr(b, name).size]
+    def shifted(name: str, empty_shape: tuple[int, ...]) -> np.ndarray:
+        """The blocks' row-index field ``name`` plus each block's row offset, int64 (the blocks without any
+        left out: they add nothing)."""
+        parts = [f[name] + o for f, o in zip(fields, offsets, strict=True) if f[name].size]
         if not parts:
             return np.zeros(empty_shape, dtype=np.int64)
         return np.concatenate(parts).astype(np.int64, copy=False)
 
-    member_offsets = [0]
-    for block in blocks[:-1]:
-        member_offsets.append(member_offsets[-1] + block.group_members.size)
-    group_offsets = [np.zeros(1, dtype=np.int64)] + [
-        b.group_offsets[1:] + m
-        for b, m in zip(blocks, member_offsets, strict=True)
-        if b.group_offsets.size > 1
-    ]
-    fields = dict(
-        jacobians=stack_jacobians([b.jacobians for b in blocks], counts),
+    def per_row(name: str, fill, dtype) -> np.ndarray:
+        """A per-row field, each block's own or ``fill`` for the rows of a block that left it empty (the
+        blocks' ``_roles``, ``_points``, ... in one pass: the same values)."""
+        if all(f[name].size == count for f, count in zip(fields, counts, strict=True)):
+            return np.concatenate([f[name] for f in fields]).astype(dtype, copy=False)
+        out = np.empty(total, dtype=dtype)
+        for f, o, count in zip(fields, offsets, counts, strict=True):
+            out[o : o + count] = f[name] if f[name].size else fill
+        return out
+
+    grouped = any(f["group_rows"].size or f["group_members"].size for f in fields)
+    if grouped:
+        member_offsets = [0]
+        for f in fields[:-1]:
+            member_offsets.append(member_offsets[-1] + f["group_members"].size)
+        group_offsets = np.concatenate(
+            [np.zeros(1, dtype=np.int64)]
+            + [
+                f["group_offsets"][1:] + m
+                for f, m in zip(fields, member_offsets, strict=True)
+                if f["group_offsets"].size > 1
+            ]
+        ).astype(np.int64, copy=False)
+    else:
+        group_offsets = np.zeros(1, dtype=np.int64)
+    roles = [_roles(b) for b in blocks]
+    stacked = dict(
+        jacobians=MappingProxyType(stack_jacobians([f["jacobians"] for f in fields], counts)),
         free_gap=joined("free_gap"),
         kind=joined("kind"),
         source=joined("source"),
         points=joined("points"),
         directions=joined("directions"),
-        contacts=shifted("contacts", offsets, (0, 3)),
+        contacts=shifted("contacts", (0, 3)),
         contact_friction=joined("contact_friction"),
-        shaft_rows=shifted("shaft_rows", offsets, (0,)),
-        shaft_pairs=shifted("shaft_pairs", offsets, (0, 2)),
+        shaft_rows=shifted("shaft_rows", (0,)),
+        shaft_pairs=shifted("shaft_pairs", (0, 2)),
         shaft_friction_coefficient=joined("shaft_friction_coefficient"),
         shaft_normal_preload=np.concatenate([_shaft_preload(b) for b in blocks]),
-        force_limit=np.concatenate([_force_limit(b) for b in blocks]),
-        compliance_diagonal=np.concatenate([_compliance_diagonal(b) for b in blocks]),
-        group_rows=shifted("group_rows", offsets, (0,)),
-        group_members=shifted("group_members", offsets, (0,)),
-        group_offsets=np.concatenate(group_offsets).astype(np.int64, copy=False),
+        force_limit=per_row("force_limit", np.inf, float),
+        compliance_diagonal=per_row("compliance_diagonal", 0.0, float),
+        group_rows=shifted("group_rows", (0,)),
+        group_members=shifted("group_members", (0,)),
+        group_offsets=group_offsets,
         group_coefficient=joined("group_coefficient"),
-        role=np.concatenate([_roles(b) for b in blocks]).astype(np.int8, copy=False),
-        point=np.concatenate([_points(b) for b in blocks]).astype(np.int64, copy=False),
-        anchor=np.concatenate([_anchors(b) for b in blocks]),
-        instrument=np.concatenate([_instruments(b) for b in blocks]).astype(np.int64, copy=False),
+        role=np.concatenate(roles).astype(np.int8, copy=False),
+        point=per_row("point", -1, np.int64),
+        anchor=per_row("anchor", np.nan, float),
+        instrument=per_row("instrument", -1, np.int64),
     )
     block = object.__new__(RowBlock)
-    block.__dict__.update(fields)
-    block.__dict__["jacobians"] = MappingProxyType(fields["jacobians"])
+    block.__dict__.update(stacked)
     return block
 
 
@@ -606,7 +625,7 @@ def trusted_csr(
 _MAXPRINT = sp.csr_matrix((0, 0)).maxprint
 
 #: The plans of :func:`_summation_plan`, by the nodes' shape, the DoF count and the nodes' first and last
-#: entries (each with the nodes it was made for: a list per key, at most _PLANS_KEPT plans in all).
+#: columns (each with the nodes it was made for: a list per key, at most _PLANS_KEPT plans in all).
 _PLANS: dict[tuple, list[tuple[np.ndarray, tuple[np.ndarray, ...]]]] = {}
 _PLANS_KEPT = 32
 
@@ -616,7 +635,7 @@ def _summation_plan(node_indices: np.ndarray, dof_count: int):
     (:func:`refsim.constraints.kernels.summation_plan`): a function of the nodes alone, kept with them and
     found again by comparing them (a step's insertion points have the last step's nodes while their rings do
     not change, the tip's ring while it stays in the same tets; comparing costs less than hashing them)."""
-    key = (node_indices.shape, dof_count, int(node_indices[0, 0]), int(node_indices[-1, -1]))
+    key = (node_indices.shape, dof_count, node_indices[:, 0].tobytes(), node_indices[:, -1].tobytes())
     kept = _PLANS.get(key, ())
     for nodes, plan in kept:
         if np.array_equal(nodes, node_indices):
