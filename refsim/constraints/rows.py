@@ -586,16 +586,17 @@ def point_rows(
         return _point_rows_coo(node_indices, weights, directions, dof_count, sign=sign)
     from refsim.constraints.kernels import planned_rows  # numba: imported on first use
 
-    weight_at, direction_at, starts, indices, indptr = _summation_plan(node_indices, dof_count)
-    data = planned_rows(
-        np.ascontiguousarray(weights, dtype=float),
-        np.ascontiguousarray(directions, dtype=float),
-        float(sign),
-        weight_at,
-        direction_at,
-        starts,
-    )
-    return trusted_csr(data, indices.copy(), indptr.copy(), (row_count, dof_count))
+    entry = _summation_plan(node_indices, dof_count)
+    weight_at, direction_at, starts, indices, indptr = entry.plan
+    weights = np.ascontiguousarray(weights, dtype=float)
+    directions = np.ascontiguousarray(directions, dtype=float)
+    # The same inputs, bit for bit, give the same data: kept with the plan (an insertion point's rows while
+    # its ring and the needle's direction do not change)
+    inputs = (weights.tobytes(), directions.tobytes(), float(sign))
+    if entry.inputs != inputs:
+        entry.data = planned_rows(weights, directions, float(sign), weight_at, direction_at, starts)
+        entry.inputs = inputs
+    return trusted_csr(entry.data.copy(), indices.copy(), indptr.copy(), (row_count, dof_count))
 
 
 def trusted_csr(
@@ -624,22 +625,35 @@ def trusted_csr(
 #: SciPy's default ``maxprint`` of a matrix (what its constructors set).
 _MAXPRINT = sp.csr_matrix((0, 0)).maxprint
 
+
+class _PlanEntry:
+    """A summation plan (:func:`refsim.constraints.kernels.summation_plan`) with the nodes it was made for,
+    and the data of the last call on it with the bytes of that call's inputs (weights, directions, sign)."""
+
+    __slots__ = ("nodes", "plan", "inputs", "data")
+
+    def __init__(self, nodes: np.ndarray, plan: tuple[np.ndarray, ...]) -> None:
+        self.nodes, self.plan = nodes, plan
+        self.inputs: tuple | None = None
+        self.data: np.ndarray | None = None
+
+
 #: The plans of :func:`_summation_plan`, by the nodes' shape, the DoF count and the nodes' first and last
-#: columns (each with the nodes it was made for: a list per key, at most _PLANS_KEPT plans in all).
-_PLANS: dict[tuple, list[tuple[np.ndarray, tuple[np.ndarray, ...]]]] = {}
+#: columns (a list per key, at most _PLANS_KEPT plans in all).
+_PLANS: dict[tuple, list[_PlanEntry]] = {}
 _PLANS_KEPT = 32
 
 
-def _summation_plan(node_indices: np.ndarray, dof_count: int):
+def _summation_plan(node_indices: np.ndarray, dof_count: int) -> _PlanEntry:
     """The summation plan of :func:`point_rows` for rows on ``node_indices`` (r, p) int64
     (:func:`refsim.constraints.kernels.summation_plan`): a function of the nodes alone, kept with them and
     found again by comparing them (a step's insertion points have the last step's nodes while their rings do
     not change, the tip's ring while it stays in the same tets; comparing costs less than hashing them)."""
     key = (node_indices.shape, dof_count, node_indices[:, 0].tobytes(), node_indices[:, -1].tobytes())
     kept = _PLANS.get(key, ())
-    for nodes, plan in kept:
-        if np.array_equal(nodes, node_indices):
-            return plan
+    for entry in kept:
+        if np.array_equal(entry.nodes, node_indices):
+            return entry
     from refsim.constraints.kernels import row_entries, summation_plan  # numba: imported on first use
 
     row_count, per_point = node_indices.shape
@@ -647,11 +661,11 @@ def _summation_plan(node_indices: np.ndarray, dof_count: int):
         node_indices, np.zeros((row_count, per_point)), np.zeros((row_count, 3)), 1.0
     )
     order = _sort_order(columns[firsts], dof_count)
-    plan = summation_plan(columns, order, pattern)
-    if sum(len(plans) for plans in _PLANS.values()) >= _PLANS_KEPT:
+    entry = _PlanEntry(node_indices.copy(), summation_plan(columns, order, pattern))
+    if sum(len(entries) for entries in _PLANS.values()) >= _PLANS_KEPT:
         _PLANS.clear()
-    _PLANS.setdefault(key, []).append((node_indices.copy(), plan))
-    return plan
+    _PLANS.setdefault(key, []).append(entry)
+    return entry
 
 
 #: The permutations of :func:`_sort_order` by their patterns (at most _SORT_ORDERS_KEPT sets kept).

@@ -473,3 +473,29 @@ def test_interpolated_points_are_einsums_bits():
         got = interpolated_points(weights, positions, nodes)
         np.testing.assert_array_equal(got, expected)
         np.testing.assert_array_equal(np.signbit(got), np.signbit(expected))
+
+
+def test_point_rows_kept_data_answer_only_for_the_same_bits():
+    # The data of the last call on a plan is kept with its inputs' bytes: the same inputs give it again (a
+    # copy: the matrices share no data), other weights or directions, even a zero of the other sign, give
+    # their own data, each the COO conversion's.
+    from refsim.constraints import rows as rows_module
+
+    rows_module._PLANS.clear()
+    nodes = np.array([[0, 1, 1, 2], [3, 3, 0, 0]])
+    weights = np.array([[0.0, 0.5, 0.25, 0.25], [0.5, 0.5, 0.0, 0.0]])
+    negative_zero = weights.copy()
+    negative_zero[weights == 0.0] = -0.0
+    directions = np.array([[1.0, 0.0, 0.0], [0.0, -0.6, 0.8]])
+    first = point_rows(nodes, weights, directions, 12)
+    again = point_rows(nodes, weights, directions, 12)
+    assert again.data is not first.data
+    np.testing.assert_array_equal(again.data, first.data)
+    for w, n in ((negative_zero, directions), (weights, -directions), (weights, directions)):
+        got = point_rows(nodes, w, n, 12)
+        expected = _point_rows_coo(nodes, w, n, 12, sign=-1.0)
+        np.testing.assert_array_equal(got.data, expected.data)
+        np.testing.assert_array_equal(np.signbit(got.data), np.signbit(expected.data))
+    assert not np.array_equal(
+        np.signbit(point_rows(nodes, negative_zero, directions, 12).data), np.signbit(first.data)
+    )
