@@ -41,6 +41,7 @@ from refsim.constraints.rows import (
     point_rows,
 )
 from refsim.constraints.step_geometry import StepGeometry
+from refsim.geometry.closest import cross_rows
 
 __all__ = [
     "FrontRows",
@@ -652,7 +653,7 @@ def _cut_friction_rows(geometry: StepGeometry, anchor: _SlideAnchor, stretch: Fa
     """Two friction rows per sliding row, in the surface: along the needle, then across it, each from its
     relative position measured from the stick anchors of the last solve (``stretch``; none: from zero)."""
     axial = geometry.needle_free.tangents(anchor.arc_lengths)
-    across = np.cross(anchor.normals, axial)
+    across = cross_rows(np.asarray(anchor.normals, dtype=float), np.asarray(axial, dtype=float))
     across /= np.linalg.norm(across, axis=1, keepdims=True)
     tangents = np.concatenate([axial, across])
     nodes, weights, arcs, points = anchor.nodes, anchor.weights, anchor.arc_lengths, anchor.points

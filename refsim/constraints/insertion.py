@@ -169,7 +169,12 @@ class InsertionPath:
 
     def positions(self, tissue_positions: np.ndarray, mesh_tets: np.ndarray) -> np.ndarray:
         """Point positions [m] in a tissue configuration, shape (p, 3)."""
-        return np.einsum("pk,pkj->pj", self.barycentric, tissue_positions[mesh_tets[self.tets]])
+        from refsim.constraints.kernels import interpolated_points  # numba: imported on first use
+
+        # np.einsum("pk,pkj->pj", barycentric, tissue_positions[mesh_tets[tets]])'s bits, compiled
+        return interpolated_points(
+            np.asarray(self.barycentric, dtype=float), np.asarray(tissue_positions), mesh_tets[self.tets]
+        )
 
     def appended(self, tets: np.ndarray, barycentric: np.ndarray, step: int) -> InsertionPath:
         """A path with points added at its end."""

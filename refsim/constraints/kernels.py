@@ -6,9 +6,11 @@ a COO matrix, SciPy converts it to CSR keeping each row's entries in input order
 columns in the sorted order (``csr_sum_duplicates``). A ring-averaged row has 4 (q + 1) nodes, many shared,
 so that order decides the last bits of H. Here the entries are made in one compiled pass, SciPy sorts only a
 probe per distinct row pattern (its data the entries' positions, so its result is the permutation std::sort
-applied: the sort compares columns only), and the compiled pass sums the duplicates in that order. The
-result is the COO path's matrix bit for bit (``tests/constraints/test_rows.py``) without its many small
-arrays.
+applied: the sort compares columns only). What is summed with what, in which order, and the CSR structure
+are then a function of the rows' nodes alone (:func:`summation_plan`), kept while the nodes repeat (an
+insertion point's ring, the tip's tets); each call makes the entries and sums them by that plan in one
+compiled pass (:func:`planned_rows`). The result is the COO path's matrix bit for bit
+(``tests/constraints/test_rows.py``) without its many small arrays.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import numpy as np
 
 from refsim.kernel_cache import numba
 
-__all__ = ["row_entries", "summed_rows"]
+__all__ = ["row_entries", "summation_plan", "planned_rows", "basis_of"]
 
 
 @numba.njit(cache=True)
@@ -55,33 +57,6 @@ def row_entries(node_indices, weights, directions, sign):  # pragma: no cover - 
 
 
 @numba.njit(cache=True)
-def summed_rows(columns, values, order, pattern_slot):  # pragma: no cover - compiled
-    """CSR arrays (data, indices, indptr) of the rows with equal columns summed in the order ``order``
-    ((u, 3p) positions, one per distinct pattern; row i uses ``order[pattern_slot[i]]``), each sum left to
-    right as csr_sum_duplicates does."""
-    rows, width = columns.shape
-    data = np.empty(rows * width)
-    indices = np.empty(rows * width, dtype=np.int32)
-    indptr = np.zeros(rows + 1, dtype=np.int32)
-    count = 0
-    for row in range(rows):
-        permutation = order[pattern_slot[row]]
-        slot = 0
-        while slot < width:
-            column = columns[row, permutation[slot]]
-            total = values[row, permutation[slot]]
-            slot += 1
-            while slot < width and columns[row, permutation[slot]] == column:
-                total += values[row, permutation[slot]]
-                slot += 1
-            indices[count] = column
-            data[count] = total
-            count += 1
-        indptr[row + 1] = count
-    return data[:count].copy(), indices[:count].copy(), indptr
-
-
-@numba.njit(cache=True)
 def basis_of(tangents):  # pragma: no cover - compiled
     """:func:`refsim.constraints.rows.orthonormal_basis` in one pass: the helper axis is the first world
     axis of smallest |t_i|, first = helper × t / ‖helper × t‖, second = t × first; each cross product's
@@ -111,3 +86,75 @@ def basis_of(tangents):  # pragma: no cover - compiled
         second[row, 1] = t[2] * f0 - t[0] * f2
         second[row, 2] = t[0] * f1 - t[1] * f0
     return first, second
+
+
+@numba.njit(cache=True)
+def summation_plan(columns, order, pattern_slot):  # pragma: no cover - compiled
+    """How SciPy's conversion sums the entries of rows with these columns (sorted by ``order``, one
+    permutation per distinct pattern, equal columns summed in that order), without the values: for each
+    entry in summation order its weight (an index into ``weights.ravel()``, (r, p)) and its direction
+    component (an index into ``directions.ravel()``, (r, 3)), shapes (r · 3p,) each; the start of each sum
+    among them, shape (nnz + 1,); and the CSR ``indices`` (nnz,) and ``indptr`` (r + 1,), int32. A function
+    of the columns alone (the entries' pattern), so it serves every call whose rows have those columns
+    (:func:`planned_rows`)."""
+    rows, width = columns.shape
+    per_point = width // 3
+    weight_at = np.empty(rows * width, dtype=np.int64)
+    direction_at = np.empty(rows * width, dtype=np.int64)
+    starts = np.empty(rows * width + 1, dtype=np.int64)
+    indices = np.empty(rows * width, dtype=np.int32)
+    indptr = np.zeros(rows + 1, dtype=np.int32)
+    count = 0
+    at = 0
+    for row in range(rows):
+        permutation = order[pattern_slot[row]]
+        slot = 0
+        while slot < width:
+            column = columns[row, permutation[slot]]
+            starts[count] = at
+            while slot < width and columns[row, permutation[slot]] == column:
+                entry = permutation[slot]  # COO order: node k = entry // 3, component entry % 3
+                weight_at[at] = row * per_point + entry // 3
+                direction_at[at] = row * 3 + entry % 3
+                at += 1
+                slot += 1
+            indices[count] = column
+            count += 1
+        indptr[row + 1] = count
+    starts[count] = at
+    return weight_at, direction_at, starts[: count + 1].copy(), indices[:count].copy(), indptr
+
+
+@numba.njit(cache=True)
+def planned_rows(weights, directions, sign, weight_at, direction_at, starts):  # pragma: no cover - compiled
+    """The CSR ``data`` of the rows by a :func:`summation_plan`: each entry ``(sign · w_k) · n_a`` made as
+    :func:`row_entries` makes it, the entries of each sum added left to right in the plan's order (the
+    operations of SciPy's ``csr_sum_duplicates`` on those entries, in its order: the same bits)."""
+    flat_weights = weights.ravel()
+    flat_directions = directions.ravel()
+    count = starts.size - 1
+    data = np.empty(count)
+    for entry in range(count):
+        first = starts[entry]
+        total = (sign * flat_weights[weight_at[first]]) * flat_directions[direction_at[first]]
+        for at in range(first + 1, starts[entry + 1]):
+            total += (sign * flat_weights[weight_at[at]]) * flat_directions[direction_at[at]]
+        data[entry] = total
+    return data
+
+
+@numba.njit(cache=True)
+def interpolated_points(weights, positions, nodes):  # pragma: no cover - compiled
+    """Σ_k w_ik x_(nodes_ik), shape (q, 3): ``np.einsum("qk,qkj->qj", weights, positions[nodes])`` without
+    the gathered (q, k, 3) array. einsum sums each output's k products left to right into a zeroed output
+    (its reduction loop: the products accumulated from 0, then added to the output's 0), and so does this
+    pass: the same bits (``tests/constraints/test_rows.py``)."""
+    count, per_point = weights.shape
+    out = np.empty((count, 3))
+    for row in range(count):
+        for axis in range(3):
+            total = 0.0
+            for k in range(per_point):
+                total += weights[row, k] * positions[nodes[row, k], axis]
+            out[row, axis] = 0.0 + total
+    return out

@@ -14,7 +14,7 @@ towards the needle); friction rows measure the relative tangential displacement 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from types import MappingProxyType
 
 import numpy as np
@@ -176,9 +176,7 @@ class RowBlock:
         limit = np.asarray(self.force_limit, dtype=float)
         if limit.size and (limit.shape != (rows,) or np.any(~(limit > 0.0))):
             raise ValueError(f"force_limit must have shape ({rows},) with values in (0, inf], got {limit!r}")
-        added = np.asarray(self.compliance_diagonal, dtype=float)
-        if added.size and (added.shape != (rows,) or np.any(~np.isfinite(added)) or np.any(added < 0.0)):
-            raise ValueError(f"compliance_diagonal must have shape ({rows},) with finite values >= 0 [m/N]")
+        _check_compliance_diagonal(np.asarray(self.compliance_diagonal, dtype=float), rows)
 
     @property
     def row_count(self) -> int:
@@ -196,7 +194,14 @@ class RowBlock:
         jacobians = dict(self.jacobians)
         if body != NEEDLE and NEEDLE in jacobians:
             jacobians[body] = jacobians.pop(NEEDLE)
-        return replace(self, jacobians=jacobians, instrument=np.full(self.row_count, index, dtype=np.int64))
+        # the other fields are this valid block's, the instrument field has the rows' shape: no checks again
+        return _replaced(self, jacobians=jacobians, instrument=np.full(self.row_count, index, dtype=np.int64))
+
+    def with_compliance_diagonal(self, compliance_diagonal: np.ndarray) -> RowBlock:
+        """The block with that ``compliance_diagonal`` (checked as the constructor checks it; the other
+        fields, this valid block's, are not checked again)."""
+        _check_compliance_diagonal(np.asarray(compliance_diagonal, dtype=float), self.row_count)
+        return _replaced(self, compliance_diagonal=compliance_diagonal)
 
     @property
     def instruments(self) -> np.ndarray:
@@ -298,54 +303,104 @@ def empty_block(dof_counts: Mapping[str, int | None]) -> RowBlock:
     )
 
 
+def _check_compliance_diagonal(added: np.ndarray, rows: int) -> None:
+    if added.size and (added.shape != (rows,) or np.any(~np.isfinite(added)) or np.any(added < 0.0)):
+        raise ValueError(f"compliance_diagonal must have shape ({rows},) with finite values >= 0 [m/N]")
+
+
+def _replaced(block: RowBlock, **changes) -> RowBlock:
+    """``dataclasses.replace(block, **changes)`` without :meth:`RowBlock.__post_init__`'s checks, for changes
+    known valid (fields of valid blocks, or checked by the caller); a ``jacobians`` change is stored as the
+    constructor stores it (read-only, None values dropped)."""
+    new = object.__new__(RowBlock)
+    new.__dict__.update(block.__dict__)
+    new.__dict__.update(changes)
+    if "jacobians" in changes:
+        new.__dict__["jacobians"] = MappingProxyType(
+            {name: matrix for name, matrix in dict(changes["jacobians"]).items() if matrix is not None}
+        )
+    return new
+
+
 def concatenate(blocks: list[RowBlock]) -> RowBlock:
-    """Stack blocks, offsetting their contact, shaft and group row indices; every per-row field is kept."""
+    """Stack blocks, offsetting their contact, shaft and group row indices; every per-row field is kept.
+
+    Stacked from valid blocks, the result is valid by construction (every per-row field has the stacked row
+    count, the index fields point at the stacked rows): it is not checked again."""
     blocks = [b for b in blocks if b is not None]
     if len(blocks) == 1:
         return blocks[0]
-    offsets = np.concatenate([[0], np.cumsum([b.row_count for b in blocks])])
-    return RowBlock(
-        jacobians=stack_jacobians([b.jacobians for b in blocks], [b.row_count for b in blocks]),
-        free_gap=np.concatenate([b.free_gap for b in blocks]),
-        kind=np.concatenate([b.kind for b in blocks]),
-        source=np.concatenate([b.source for b in blocks]),
-        points=np.concatenate([b.points for b in blocks]),
-        directions=np.concatenate([b.directions for b in blocks]),
-        contacts=np.concatenate([b.contacts + o for b, o in zip(blocks, offsets, strict=False)]).astype(
-            np.int64
-        ),
-        contact_friction=np.concatenate([b.contact_friction for b in blocks]),
-        shaft_rows=np.concatenate([b.shaft_rows + o for b, o in zip(blocks, offsets, strict=False)]).astype(
-            np.int64
-        ),
-        shaft_pairs=np.concatenate([b.shaft_pairs + o for b, o in zip(blocks, offsets, strict=False)]).astype(
-            np.int64
-        ),
-        shaft_friction_coefficient=np.concatenate([b.shaft_friction_coefficient for b in blocks]),
-        shaft_normal_preload=np.concatenate([_shaft_preload(b) for b in blocks]),
-        force_limit=np.concatenate([_force_limit(b) for b in blocks]),
-        compliance_diagonal=np.concatenate([_compliance_diagonal(b) for b in blocks]),
-        group_rows=np.concatenate([b.group_rows + o for b, o in zip(blocks, offsets, strict=False)]).astype(
-            np.int64
-        ),
-        group_members=np.concatenate(
-            [b.group_members + o for b, o in zip(blocks, offsets, strict=False)]
-        ).astype(np.int64),
-        group_offsets=np.concatenate(
-            [[0]]
+    fields = [b.__dict__ for b in blocks]
+    counts = [f["free_gap"].shape[0] for f in fields]
+    offsets = [0]
+    for count in counts[:-1]:
+        offsets.append(offsets[-1] + count)
+    total = offsets[-1] + counts[-1]
+
+    def joined(name: str) -> np.ndarray:
+        return np.concatenate([f[name] for f in fields])
+
+    def shifted(name: str, empty_shape: tuple[int, ...]) -> np.ndarray:
+        """The blocks' row-index field ``name`` plus each block's row offset, int64 (the blocks without any
+        left out: they add nothing)."""
+        parts = [f[name] + o for f, o in zip(fields, offsets, strict=True) if f[name].size]
+        if not parts:
+            return np.zeros(empty_shape, dtype=np.int64)
+        return np.concatenate(parts).astype(np.int64, copy=False)
+
+    def per_row(name: str, fill, dtype) -> np.ndarray:
+        """A per-row field, each block's own or ``fill`` for the rows of a block that left it empty (the
+        blocks' ``_roles``, ``_points``, ... in one pass: the same values)."""
+        if all(f[name].size == count for f, count in zip(fields, counts, strict=True)):
+            return np.concatenate([f[name] for f in fields]).astype(dtype, copy=False)
+        out = np.empty(total, dtype=dtype)
+        for f, o, count in zip(fields, offsets, counts, strict=True):
+            out[o : o + count] = f[name] if f[name].size else fill
+        return out
+
+    grouped = any(f["group_rows"].size or f["group_members"].size for f in fields)
+    if grouped:
+        member_offsets = [0]
+        for f in fields[:-1]:
+            member_offsets.append(member_offsets[-1] + f["group_members"].size)
+        group_offsets = np.concatenate(
+            [np.zeros(1, dtype=np.int64)]
             + [
-                b.group_offsets[1:] + m
-                for b, m in zip(
-                    blocks, np.cumsum([0] + [b.group_members.size for b in blocks])[:-1], strict=False
-                )
+                f["group_offsets"][1:] + m
+                for f, m in zip(fields, member_offsets, strict=True)
+                if f["group_offsets"].size > 1
             ]
-        ).astype(np.int64),
-        group_coefficient=np.concatenate([b.group_coefficient for b in blocks]),
-        role=np.concatenate([_roles(b) for b in blocks]).astype(np.int8),
-        point=np.concatenate([_points(b) for b in blocks]).astype(np.int64),
-        anchor=np.concatenate([_anchors(b) for b in blocks]),
-        instrument=np.concatenate([_instruments(b) for b in blocks]).astype(np.int64),
+        ).astype(np.int64, copy=False)
+    else:
+        group_offsets = np.zeros(1, dtype=np.int64)
+    roles = [_roles(b) for b in blocks]
+    stacked = dict(
+        jacobians=MappingProxyType(stack_jacobians([f["jacobians"] for f in fields], counts)),
+        free_gap=joined("free_gap"),
+        kind=joined("kind"),
+        source=joined("source"),
+        points=joined("points"),
+        directions=joined("directions"),
+        contacts=shifted("contacts", (0, 3)),
+        contact_friction=joined("contact_friction"),
+        shaft_rows=shifted("shaft_rows", (0,)),
+        shaft_pairs=shifted("shaft_pairs", (0, 2)),
+        shaft_friction_coefficient=joined("shaft_friction_coefficient"),
+        shaft_normal_preload=np.concatenate([_shaft_preload(b) for b in blocks]),
+        force_limit=per_row("force_limit", np.inf, float),
+        compliance_diagonal=per_row("compliance_diagonal", 0.0, float),
+        group_rows=shifted("group_rows", (0,)),
+        group_members=shifted("group_members", (0,)),
+        group_offsets=group_offsets,
+        group_coefficient=joined("group_coefficient"),
+        role=np.concatenate(roles).astype(np.int8, copy=False),
+        point=per_row("point", -1, np.int64),
+        anchor=per_row("anchor", np.nan, float),
+        instrument=per_row("instrument", -1, np.int64),
     )
+    block = object.__new__(RowBlock)
+    block.__dict__.update(stacked)
+    return block
 
 
 def _instruments(block: RowBlock) -> np.ndarray:
@@ -420,7 +475,15 @@ def _stack_csr(matrices: list[sp.csr_matrix | None], row_counts: list[int], widt
         if present
         else np.zeros(0, dtype=index_dtype)
     )
-    return sp.csr_matrix((data, indices, np.concatenate(pointers)), shape=(total_rows, width))
+    # (the parts' arrays stacked: a valid CSR matrix, canonical when every part is)
+    canonical = all(_canonical(m) for m in present)
+    return trusted_csr(data, indices, np.concatenate(pointers), (total_rows, width), canonical=canonical)
+
+
+def _canonical(matrix: sp.csr_matrix) -> bool:
+    """Whether a CSR matrix is known canonical (sorted, duplicate-free indices) without computing it: its
+    flag as set (or computed before); False when never set."""
+    return bool(getattr(matrix, "_has_canonical_format", False))
 
 
 def _roles(block: RowBlock) -> np.ndarray:
@@ -521,20 +584,88 @@ def point_rows(
     width = 3 * per_point
     if row_count == 0 or per_point == 0 or max(row_count * width, dof_count) >= 2**31:
         return _point_rows_coo(node_indices, weights, directions, dof_count, sign=sign)
-    from refsim.constraints.kernels import row_entries, summed_rows  # numba: imported on first use
+    from refsim.constraints.kernels import planned_rows  # numba: imported on first use
 
-    columns, values, pattern, firsts = row_entries(
-        node_indices,
-        np.ascontiguousarray(weights, dtype=float),
-        np.ascontiguousarray(directions, dtype=float),
-        float(sign),
+    entry = _summation_plan(node_indices, dof_count)
+    weight_at, direction_at, starts, indices, indptr = entry.plan
+    weights = np.ascontiguousarray(weights, dtype=float)
+    directions = np.ascontiguousarray(directions, dtype=float)
+    # The same inputs, bit for bit, give the same data: kept with the plan (an insertion point's rows while
+    # its ring and the needle's direction do not change)
+    inputs = (weights.tobytes(), directions.tobytes(), float(sign))
+    if entry.inputs != inputs:
+        entry.data = planned_rows(weights, directions, float(sign), weight_at, direction_at, starts)
+        entry.inputs = inputs
+    return trusted_csr(entry.data.copy(), indices.copy(), indptr.copy(), (row_count, dof_count))
+
+
+def trusted_csr(
+    data: np.ndarray,
+    indices: np.ndarray,
+    indptr: np.ndarray,
+    shape: tuple[int, int],
+    *,
+    canonical: bool = True,
+):
+    """A CSR matrix from arrays known to be a valid one (float64 data, int32 or int64 indices and pointers of
+    one dtype), without SciPy's checks of its ``(data, indices, indptr)`` constructor (tens of µs per call, a
+    few calls per step): the attributes that constructor sets, set directly
+    (``tests/constraints/test_rows.py`` holds it to the checked constructor). ``canonical``: the indices are
+    known sorted and duplicate-free (flagged so); False leaves SciPy to find out when asked."""
+    matrix = sp.csr_matrix.__new__(sp.csr_matrix)
+    matrix._shape = (int(shape[0]), int(shape[1]))
+    matrix.maxprint = _MAXPRINT
+    matrix.data, matrix.indices, matrix.indptr = data, indices, indptr
+    if canonical:
+        matrix.has_sorted_indices = True
+        matrix.has_canonical_format = True
+    return matrix
+
+
+#: SciPy's default ``maxprint`` of a matrix (what its constructors set).
+_MAXPRINT = sp.csr_matrix((0, 0)).maxprint
+
+
+class _PlanEntry:
+    """A summation plan (:func:`refsim.constraints.kernels.summation_plan`) with the nodes it was made for,
+    and the data of the last call on it with the bytes of that call's inputs (weights, directions, sign)."""
+
+    __slots__ = ("nodes", "plan", "inputs", "data")
+
+    def __init__(self, nodes: np.ndarray, plan: tuple[np.ndarray, ...]) -> None:
+        self.nodes, self.plan = nodes, plan
+        self.inputs: tuple | None = None
+        self.data: np.ndarray | None = None
+
+
+#: The plans of :func:`_summation_plan`, by the nodes' shape, the DoF count and the nodes' first and last
+#: columns (a list per key, at most _PLANS_KEPT plans in all).
+_PLANS: dict[tuple, list[_PlanEntry]] = {}
+_PLANS_KEPT = 32
+
+
+def _summation_plan(node_indices: np.ndarray, dof_count: int) -> _PlanEntry:
+    """The summation plan of :func:`point_rows` for rows on ``node_indices`` (r, p) int64
+    (:func:`refsim.constraints.kernels.summation_plan`): a function of the nodes alone, kept with them and
+    found again by comparing them (a step's insertion points have the last step's nodes while their rings do
+    not change, the tip's ring while it stays in the same tets; comparing costs less than hashing them)."""
+    key = (node_indices.shape, dof_count, node_indices[:, 0].tobytes(), node_indices[:, -1].tobytes())
+    kept = _PLANS.get(key, ())
+    for entry in kept:
+        if np.array_equal(entry.nodes, node_indices):
+            return entry
+    from refsim.constraints.kernels import row_entries, summation_plan  # numba: imported on first use
+
+    row_count, per_point = node_indices.shape
+    columns, _, pattern, firsts = row_entries(
+        node_indices, np.zeros((row_count, per_point)), np.zeros((row_count, 3)), 1.0
     )
     order = _sort_order(columns[firsts], dof_count)
-    data, indices, indptr = summed_rows(columns, values, order, pattern)
-    matrix = sp.csr_matrix((data, indices, indptr), shape=(row_count, dof_count))
-    matrix.has_sorted_indices = True
-    matrix.has_canonical_format = True
-    return matrix
+    entry = _PlanEntry(node_indices.copy(), summation_plan(columns, order, pattern))
+    if sum(len(entries) for entries in _PLANS.values()) >= _PLANS_KEPT:
+        _PLANS.clear()
+    _PLANS.setdefault(key, []).append(entry)
+    return entry
 
 
 #: The permutations of :func:`_sort_order` by their patterns (at most _SORT_ORDERS_KEPT sets kept).

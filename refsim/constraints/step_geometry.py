@@ -50,6 +50,12 @@ class StepGeometry:
         nodes : Nodes of each point, shape (q, p).
         weights : Their weights (barycentric coordinates), shape (q, p).
         """
-        previous = np.einsum("qk,qkj->qj", weights, self.tissue_previous[nodes])
-        free = np.einsum("qk,qkj->qj", weights, self.tissue_free[nodes])
-        return previous, free
+        from refsim.constraints.kernels import interpolated_points  # numba: imported on first use
+
+        # np.einsum("qk,qkj->qj", weights, positions[nodes])'s bits, compiled
+        weights = np.asarray(weights, dtype=float)
+        nodes = np.asarray(nodes)
+        return (
+            interpolated_points(weights, self.tissue_previous, nodes),
+            interpolated_points(weights, self.tissue_free, nodes),
+        )

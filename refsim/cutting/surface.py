@@ -14,6 +14,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from refsim.geometry.closest import cross_rows
+
 __all__ = ["CutSurface", "ClosestCutPoints", "TriangulationReport"]
 
 # A projection is inside a triangle when its smallest barycentric coordinate is >= −_INSIDE_TOLERANCE, and a
@@ -200,7 +202,7 @@ class CutSurface:
         tip) has an arbitrary normal of its own; it weighs nothing in its vertices' normals.
         """
         corners = points[self.triangles]
-        face = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        face = cross_rows(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
         vertex = _vertex_sums(self.triangles, face, points.shape[0])
         vertex /= np.maximum(np.linalg.norm(vertex, axis=1, keepdims=True), 1e-300)
         normals = np.einsum("qv,qvj->qj", weights, vertex[self.triangles[triangle]])

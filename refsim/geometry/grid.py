@@ -251,14 +251,17 @@ def _surface_candidates(points, triangles, centroids, radii, slack, thin):  # pr
     distances = np.full(faces, np.inf)
     total = 0
     for q in range(count):
-        bound = np.inf
+        # the nearest vertex's distance: the root of the least square (the root is monotonic and correctly
+        # rounded, so this is the least of the roots, one root per query instead of one per vertex)
+        least = np.inf
         for face in range(faces):
             for corner in range(3):
                 squares = 0.0
                 for axis in range(3):
                     offset = points[q, axis] - triangles[face, corner, axis]
                     squares += offset * offset
-                bound = min(bound, np.sqrt(squares))
+                least = min(least, squares)
+        bound = np.sqrt(least)
         nearest = bound
         for face in range(faces):
             distances[face] = np.inf
@@ -334,7 +337,13 @@ def _surface_face_kept(point, centroid, radius, bound, slack):  # pragma: no cov
     for axis in range(3):
         offset = point[axis] - centroid[axis]
         squares += offset * offset
-    return np.sqrt(squares) - radius <= bound * (1.0 + slack) + slack * radius
+    limit = bound * (1.0 + slack) + slack * radius
+    # A face whose centroid lies farther than (limit + radius) (1 + 1e-9) fails the test below by far more
+    # than its round-off: it is dropped without the root (most faces of a scan).
+    reach = (limit + radius) * (1.0 + 1e-9)
+    if squares > reach * reach:
+        return False
+    return np.sqrt(squares) - radius <= limit
 
 
 def tet_spheres(positions: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -196,7 +196,7 @@ class Detector:
         # With finite_line, the 3-D sub-grid compliance of the inserted line, which starts at the free
         # surface.
         diagonal = self._compliance(block, rings.layout.mesh_size, arc_lengths if finite_line else None)
-        return replace(block, compliance_diagonal=diagonal), rings
+        return block.with_compliance_diagonal(diagonal), rings
 
     def _compliance(
         self, block: RowBlock, mesh_size: np.ndarray, arc_lengths: np.ndarray | None

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from refsim.constraints import (
     BILATERAL,
@@ -362,6 +365,7 @@ def test_point_rows_sort_orders_kept_by_pattern_give_the_fresh_bits():
     changed = node_rows.copy()
     changed[4, 7] = (changed[4, 7] + 1) % 50
     rows_module._SORT_ORDERS.clear()
+    rows_module._PLANS.clear()
     for nodes, w, n in (
         (node_rows, weights, directions),
         (node_rows, other_weights, other_directions),
@@ -374,3 +378,124 @@ def test_point_rows_sort_orders_kept_by_pattern_give_the_fresh_bits():
         np.testing.assert_array_equal(got.indices, expected.indices)
         np.testing.assert_array_equal(got.data, expected.data)
     assert len(rows_module._SORT_ORDERS) == 2  # the two pattern sets
+    assert sum(len(plans) for plans in rows_module._PLANS.values()) == 2  # and their summation plans
+
+
+def test_point_rows_keep_explicit_zeros_as_the_coo_conversion_does():
+    # Ring points outside the tissue have weight 0 (and a ring's entries can cancel exactly): SciPy's
+    # conversion keeps those entries as stored zeros, and so does the planned sum (same indices, same data,
+    # signed zeros included).
+    nodes = np.array([[0, 1, 1, 2], [3, 3, 0, 0]])
+    weights = np.array([[0.0, 0.5, -0.5, 0.0], [0.0, 0.0, 0.25, 0.75]])
+    directions = np.array([[1.0, 0.0, 0.0], [0.0, -0.6, 0.8]])
+    got = point_rows(nodes, weights, directions, 12)
+    expected = _point_rows_coo(nodes, weights, directions, 12, sign=-1.0)
+    np.testing.assert_array_equal(got.indptr, expected.indptr)
+    np.testing.assert_array_equal(got.indices, expected.indices)
+    np.testing.assert_array_equal(got.data, expected.data)
+    np.testing.assert_array_equal(np.signbit(got.data), np.signbit(expected.data))
+    assert np.count_nonzero(got.data == 0.0) > 0 and got.nnz == expected.nnz
+
+
+def test_summation_plan_kernels_match_their_numpy_reference():
+    # The plan (positions of the entries in summation order, the start of each sum, indices, indptr) and the
+    # planned sums against NumPy: a stable argsort per row of the probe's permutation, runs of equal columns.
+    from refsim.constraints import rows as rows_module
+    from refsim.constraints.kernels import planned_rows, row_entries, summation_plan
+
+    rng = np.random.default_rng(5)
+    node_rows, weights, directions = _ring_like_rows(rng, 9, 20, 30, 3)
+    columns, values, pattern, firsts = row_entries(node_rows, weights, directions, -1.0)
+    order = rows_module._sort_order(columns[firsts], 90)
+    weight_at, direction_at, starts, indices, indptr = summation_plan(columns, order, pattern)
+    width = columns.shape[1]
+    expected_positions, expected_starts, expected_indices, expected_indptr = [], [0], [], [0]
+    for row in range(columns.shape[0]):
+        permutation = order[pattern[row]]
+        sorted_columns = columns[row, permutation]
+        assert np.all(np.diff(sorted_columns) >= 0)
+        expected_positions.extend(row * width + permutation)
+        breaks = np.flatnonzero(np.diff(sorted_columns)) + 1
+        expected_starts.extend(row * width + np.append(breaks, width))
+        expected_indices.extend(sorted_columns[np.append(0, breaks)])
+        expected_indptr.append(len(expected_indices))
+    expected_positions = np.array(expected_positions)
+    rows_of, slots = np.divmod(expected_positions, width)
+    np.testing.assert_array_equal(weight_at, rows_of * (width // 3) + slots // 3)
+    np.testing.assert_array_equal(direction_at, rows_of * 3 + slots % 3)
+    np.testing.assert_array_equal(starts, expected_starts)
+    np.testing.assert_array_equal(indices, expected_indices)
+    np.testing.assert_array_equal(indptr, expected_indptr)
+    data = planned_rows(weights, directions, -1.0, weight_at, direction_at, starts)
+    flat = values.ravel()[expected_positions]
+    expected_data = [
+        functools.reduce(lambda a, b: a + b, flat[s:e]) for s, e in zip(starts[:-1], starts[1:], strict=True)
+    ]
+    np.testing.assert_array_equal(data, expected_data)
+
+
+def test_trusted_csr_is_the_checked_constructors_matrix():
+    # The unchecked construction sets what SciPy's (data, indices, indptr) constructor sets: the same class,
+    # shape, arrays and flags, and it behaves as that matrix in the operations the step uses.
+    from refsim.constraints.rows import trusted_csr
+
+    checked = sp.random(7, 40, density=0.2, format="csr", random_state=3)
+    checked.sum_duplicates()
+    fast = trusted_csr(checked.data.copy(), checked.indices.copy(), checked.indptr.copy(), checked.shape)
+    assert type(fast) is type(checked) and fast.format == "csr" and fast.shape == checked.shape
+    assert fast.has_sorted_indices and fast.has_canonical_format and fast.maxprint == checked.maxprint
+    assert fast.indices.dtype == checked.indices.dtype and fast.indptr.dtype == checked.indptr.dtype
+    fast.check_format(full_check=True)
+    vector = np.arange(40.0)
+    np.testing.assert_array_equal(fast @ vector, checked @ vector)
+    np.testing.assert_array_equal(fast.T.toarray(), checked.T.toarray())
+    stacked = sp.vstack([fast, checked]).toarray()
+    np.testing.assert_array_equal(stacked, sp.vstack([checked, checked]).toarray())
+    np.testing.assert_array_equal(fast[[1, 3]].toarray(), checked[[1, 3]].toarray())
+    assert repr(fast) == repr(checked)
+
+
+def test_interpolated_points_are_einsums_bits():
+    # The compiled interpolation of material points against its NumPy reference, np.einsum("qk,qkj->qj"),
+    # on ring-sized and tet-sized rows with zeros, signed zeros and mixed magnitudes: the same bits.
+    from refsim.constraints.kernels import interpolated_points
+
+    rng = np.random.default_rng(17)
+    for trial in range(120):
+        count = int(rng.integers(0, 30))
+        per_point = (1, 3, 4, 12, 36, 68)[trial % 6]
+        positions = rng.standard_normal((300, 3)) * 10.0 ** float(rng.integers(-4, 2))
+        nodes = rng.integers(0, 300, size=(count, per_point))
+        weights = rng.standard_normal((count, per_point))
+        weights[rng.random(weights.shape) < 0.2] = 0.0
+        weights[rng.random(weights.shape) < 0.05] = -0.0
+        expected = np.einsum("qk,qkj->qj", weights, positions[nodes])
+        got = interpolated_points(weights, positions, nodes)
+        np.testing.assert_array_equal(got, expected)
+        np.testing.assert_array_equal(np.signbit(got), np.signbit(expected))
+
+
+def test_point_rows_kept_data_answer_only_for_the_same_bits():
+    # The data of the last call on a plan is kept with its inputs' bytes: the same inputs give it again (a
+    # copy: the matrices share no data), other weights or directions, even a zero of the other sign, give
+    # their own data, each the COO conversion's.
+    from refsim.constraints import rows as rows_module
+
+    rows_module._PLANS.clear()
+    nodes = np.array([[0, 1, 1, 2], [3, 3, 0, 0]])
+    weights = np.array([[0.0, 0.5, 0.25, 0.25], [0.5, 0.5, 0.0, 0.0]])
+    negative_zero = weights.copy()
+    negative_zero[weights == 0.0] = -0.0
+    directions = np.array([[1.0, 0.0, 0.0], [0.0, -0.6, 0.8]])
+    first = point_rows(nodes, weights, directions, 12)
+    again = point_rows(nodes, weights, directions, 12)
+    assert again.data is not first.data
+    np.testing.assert_array_equal(again.data, first.data)
+    for w, n in ((negative_zero, directions), (weights, -directions), (weights, directions)):
+        got = point_rows(nodes, w, n, 12)
+        expected = _point_rows_coo(nodes, w, n, 12, sign=-1.0)
+        np.testing.assert_array_equal(got.data, expected.data)
+        np.testing.assert_array_equal(np.signbit(got.data), np.signbit(expected.data))
+    assert not np.array_equal(
+        np.signbit(point_rows(nodes, negative_zero, directions, 12).data), np.signbit(first.data)
+    )

@@ -1,7 +1,8 @@
 """The detection's and the events' kept values (refsim.simulation.detection, refsim.simulation.events,
 refsim.constraints.rows, refsim.constraints.coupling) change no bit of a run.
 
-What is kept between steps: the probe sort of each set of row patterns (``rows._SORT_ORDERS``), the 2-D
+What is kept between steps: the probe sort of each set of row patterns (``rows._SORT_ORDERS``) and the
+summation plan of each set of rows' nodes (``rows._PLANS``), the 2-D
 sub-grid compliance of the last insertion rows (``Detector._compliance``, by the bytes of the rows' kinds
 and the points' mesh sizes), the tets around each tet the tip was in (``EventRules._tets_around``) and the
 ring angles per point count (``coupling._ring_angles``). Each is a function of its key alone; a run whose
@@ -55,6 +56,7 @@ def _cut_sideways():
 def _forget(simulation: Simulation) -> None:
     """Empty every store of kept values."""
     rows_module._SORT_ORDERS.clear()
+    rows_module._PLANS.clear()
     coupling._ring_angles.cache_clear()
     for instrument in simulation.instruments:
         instrument.detector._compliance_memo = None
