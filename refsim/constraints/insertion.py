@@ -145,23 +145,33 @@ class InsertionPath:
         stored = np.zeros((self.point_count, 3))
         multipliers = np.asarray(multipliers, dtype=float).reshape(self.point_count, -1)
         stored[:, : multipliers.shape[1]] = multipliers
-        return replace(self, multipliers=stored)
+        return self._with(multipliers=stored)
 
     def with_rings(self, rings: PointRings) -> InsertionPath:
         """The same points with the rings their rows were built on (one per point)."""
-        return replace(self, rings=rings)
+        if rings is not None and rings.point_count != self.point_count:
+            raise ValueError(f"rings for {rings.point_count} points on a path of {self.point_count} points")
+        return self._with(rings=rings)
 
     def with_stuck(self, stuck: np.ndarray) -> InsertionPath:
         """The same points with their stick state (bool (p,)) after a solve."""
-        return replace(self, stuck=np.asarray(stuck, dtype=bool).reshape(self.point_count))
+        return self._with(stuck=np.asarray(stuck, dtype=bool).reshape(self.point_count))
 
     def with_anchors(self, anchors: np.ndarray, stretch: np.ndarray) -> InsertionPath:
         """The same points with their stick anchors [m] (NaN: unset) and annulus stretches [m], (p,) each."""
-        return replace(
-            self,
+        return self._with(
             anchors=np.asarray(anchors, dtype=float).reshape(self.point_count),
             stretch=np.asarray(stretch, dtype=float).reshape(self.point_count),
         )
+
+    def _with(self, **changes) -> InsertionPath:
+        """The path with per-point fields replaced by arrays of its point count (the callers shape them):
+        ``dataclasses.replace`` without its pass through ``__init__`` and ``__post_init__``, whose defaults
+        this path already has (a few per step)."""
+        new = object.__new__(InsertionPath)
+        new.__dict__.update(self.__dict__)
+        new.__dict__.update(changes)
+        return new
 
     @property
     def point_count(self) -> int:
@@ -415,7 +425,4 @@ def points_beyond_tip(
     (p,)."""
     if path.point_count == 0:
         return np.zeros(0, dtype=bool)
-    tip_s = np.array([needle.length])
-    tip = needle.points(tip_s)[0]
-    tangent = needle.tangents(tip_s)[0]
-    return (points - tip) @ tangent > margin
+    return (points - needle.tip) @ needle.tip_tangent > margin
