@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import time as clock
 from collections.abc import Callable
+
 import numpy as np
 
 from refsim.constraints import (
@@ -458,7 +459,9 @@ class Simulation:
         read once per solve, by the warm start and by the storing of the multipliers."""
         return tuple(_point_rows(rows, instrument.index) for instrument in self.instruments)
 
-    def _warm_start(self, state: SimulationState, rows: RowBlock, point_rows: tuple | None = None) -> np.ndarray:
+    def _warm_start(
+        self, state: SimulationState, rows: RowBlock, point_rows: tuple | None = None
+    ) -> np.ndarray:
         """Last step's multipliers of each instrument's insertion points (they persist from step to step),
         zero elsewhere; read from the rows' instrument, role and point fields (``point_rows``:
         :meth:`_point_rows` of ``rows``, computed here when None)."""

@@ -19,9 +19,10 @@ __all__ = ["InstrumentState", "Phase", "SimulationState", "evolved"]
 
 
 def evolved(instance, **changes):
-    """``dataclasses.replace`` for the run's frozen dataclasses without ``__post_init__`` (``InstrumentState``,
-    ``SimulationState``): a copy of the instance's fields with ``changes`` in place (field names only), without
-    ``replace``'s per-field pass through ``__init__`` (8 µs for an instrument's state, several per step)."""
+    """``dataclasses.replace`` for the run's frozen dataclasses without ``__post_init__``
+    (``InstrumentState``, ``SimulationState``): a copy of the instance's fields with ``changes`` in place
+    (field names only), without ``replace``'s per-field pass through ``__init__`` (8 µs for an instrument's
+    state, several per step)."""
     cls = type(instance)
     if not changes.keys() <= cls.__dataclass_fields__.keys():
         unknown = sorted(changes.keys() - cls.__dataclass_fields__.keys())
