@@ -390,6 +390,7 @@ def grow_path(
     locator,
     spacing: float,
     step: int,
+    points: np.ndarray | None = None,
 ) -> tuple[InsertionPath, int]:
     """Add points behind the tip so that no two consecutive points are farther apart than ``spacing``.
 
@@ -397,13 +398,16 @@ def grow_path(
     from the last point to the tip every d_i (several in one step when the tip moved more than d_i), located
     in the current deformed tissue. Points that fall outside the tissue are not added.
 
+    ``points``: the path's points in this configuration (``path.positions(tissue_positions, mesh_tets)``),
+    when the caller has them.
+
     Returns
     -------
     (path, added) : The new path and the number of points added.
     """
     if path.point_count == 0:
         return path, 0
-    positions = path.positions(tissue_positions, mesh_tets)
+    positions = path.positions(tissue_positions, mesh_tets) if points is None else points
     if np.min(np.linalg.norm(positions - tip, axis=1)) <= spacing:
         return path, 0
     last = positions[-1]

@@ -265,6 +265,7 @@ class EventRules:
             started = self._cut_starts(world, state, force_on_needle, needle, locator)
             if started is not None:
                 return started
+        points = state.path.positions(positions, self.tets)
         path, added = grow_path(
             state.path,
             tip=needle.tip,
@@ -273,12 +274,15 @@ class EventRules:
             locator=locator,
             spacing=self.insertion.spacing,
             step=world.step,
+            points=points,
         )
         if added and world.cut is not None and world.cut.triangle_count:
             path = self._outside_cut(path, world, positions)
+        if path is not state.path:
+            points = path.positions(positions, self.tets)
         # The coupling's release margin (the ring's hysteresis: its points' centres drift along the needle).
         margin = self.coupling.retraction_margin(self.insertion.spacing)
-        beyond = points_beyond_tip(path, path.positions(positions, self.tets), needle, margin)
+        beyond = points_beyond_tip(path, points, needle, margin)
         if np.any(beyond):
             path = path.subset(~beyond)
             events.append(Event("retraction"))
