@@ -490,7 +490,7 @@ class Simulation:
         if found.size == 0:
             return path
         stored = np.array(path.multipliers, copy=True)
-        stored[np.unique(points)] = 0.0
+        stored[points] = 0.0  # (a point's every column, once per row: the same zeros)
         stored[points, columns] = multipliers[found]
         path = path.with_multipliers(stored)
         if rows.shaft_rows.size == 0:
