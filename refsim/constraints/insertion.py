@@ -145,23 +145,33 @@ class InsertionPath:
         stored = np.zeros((self.point_count, 3))
         multipliers = np.asarray(multipliers, dtype=float).reshape(self.point_count, -1)
         stored[:, : multipliers.shape[1]] = multipliers
-        return replace(self, multipliers=stored)
+        return self._with(multipliers=stored)
 
     def with_rings(self, rings: PointRings) -> InsertionPath:
         """The same points with the rings their rows were built on (one per point)."""
-        return replace(self, rings=rings)
+        if rings is not None and rings.point_count != self.point_count:
+            raise ValueError(f"rings for {rings.point_count} points on a path of {self.point_count} points")
+        return self._with(rings=rings)
 
     def with_stuck(self, stuck: np.ndarray) -> InsertionPath:
         """The same points with their stick state (bool (p,)) after a solve."""
-        return replace(self, stuck=np.asarray(stuck, dtype=bool).reshape(self.point_count))
+        return self._with(stuck=np.asarray(stuck, dtype=bool).reshape(self.point_count))
 
     def with_anchors(self, anchors: np.ndarray, stretch: np.ndarray) -> InsertionPath:
         """The same points with their stick anchors [m] (NaN: unset) and annulus stretches [m], (p,) each."""
-        return replace(
-            self,
+        return self._with(
             anchors=np.asarray(anchors, dtype=float).reshape(self.point_count),
             stretch=np.asarray(stretch, dtype=float).reshape(self.point_count),
         )
+
+    def _with(self, **changes) -> InsertionPath:
+        """The path with per-point fields replaced by arrays of its point count (the callers shape them):
+        ``dataclasses.replace`` without its pass through ``__init__`` and ``__post_init__``, whose defaults
+        this path already has (a few per step)."""
+        new = object.__new__(InsertionPath)
+        new.__dict__.update(self.__dict__)
+        new.__dict__.update(changes)
+        return new
 
     @property
     def point_count(self) -> int:
@@ -385,6 +395,7 @@ def grow_path(
     locator,
     spacing: float,
     step: int,
+    points: np.ndarray | None = None,
 ) -> tuple[InsertionPath, int]:
     """Add points behind the tip so that no two consecutive points are farther apart than ``spacing``.
 
@@ -392,13 +403,16 @@ def grow_path(
     from the last point to the tip every d_i (several in one step when the tip moved more than d_i), located
     in the current deformed tissue. Points that fall outside the tissue are not added.
 
+    ``points``: the path's points in this configuration (``path.positions(tissue_positions, mesh_tets)``),
+    when the caller has them.
+
     Returns
     -------
     (path, added) : The new path and the number of points added.
     """
     if path.point_count == 0:
         return path, 0
-    positions = path.positions(tissue_positions, mesh_tets)
+    positions = path.positions(tissue_positions, mesh_tets) if points is None else points
     if np.min(np.linalg.norm(positions - tip, axis=1)) <= spacing:
         return path, 0
     last = positions[-1]
@@ -420,7 +434,4 @@ def points_beyond_tip(
     (p,)."""
     if path.point_count == 0:
         return np.zeros(0, dtype=bool)
-    tip_s = np.array([needle.length])
-    tip = needle.points(tip_s)[0]
-    tangent = needle.tangents(tip_s)[0]
-    return (points - tip) @ tangent > margin
+    return (points - needle.tip) @ needle.tip_tangent > margin

@@ -8,6 +8,7 @@ Jacobian maps the 6 DoFs of each node to centreline points.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Protocol
 
 import numpy as np
@@ -20,6 +21,14 @@ class NeedleGeometry(Protocol):
     """What the constraint builders need from a needle in one configuration."""
 
     length: float
+
+    @property
+    def tip(self) -> np.ndarray:
+        """The tip, the centreline point at arc length ``length`` [m], shape (3,)."""
+
+    @property
+    def tip_tangent(self) -> np.ndarray:
+        """The unit tangent at the tip, shape (3,)."""
 
     def points(self, arc_lengths: np.ndarray) -> np.ndarray:
         """Centreline points [m] at arc lengths [m] from the base, shape (q, 3)."""
@@ -46,6 +55,11 @@ class RigidNeedleGeometry:
     def tip(self) -> np.ndarray:
         """Tip position [m], shape (3,)."""
         return self.base + self.length * self.direction
+
+    @property
+    def tip_tangent(self) -> np.ndarray:
+        """Unit tangent at the tip, shape (3,)."""
+        return self.tangents(np.array([self.length]))[0]
 
     def points(self, arc_lengths: np.ndarray) -> np.ndarray:
         return self.base + np.asarray(arc_lengths, dtype=float)[:, None] * self.direction
@@ -81,9 +95,19 @@ class BeamNeedleGeometry:
     def length(self) -> float:
         return float(self.model.length)
 
-    @property
+    @cached_property
     def tip(self) -> np.ndarray:
-        return self.points(np.array([self.length]))[0]
+        """Tip position [m], shape (3,) (kept: the events read it several times per step; read-only)."""
+        tip = self.points(np.array([self.length]))[0]
+        tip.setflags(write=False)
+        return tip
+
+    @cached_property
+    def tip_tangent(self) -> np.ndarray:
+        """Unit tangent at the tip, shape (3,) (kept, read-only)."""
+        tangent = self.tangents(np.array([self.length]))[0]
+        tangent.setflags(write=False)
+        return tangent
 
     def points(self, arc_lengths: np.ndarray) -> np.ndarray:
         return self.model.centreline_points(self.positions, self.frames, np.asarray(arc_lengths, dtype=float))

@@ -260,25 +260,35 @@ class EnergyLaw(CuttingLaw):
         while cutting."""
         return np.array([0] if point_count < 2 else [0, point_count - 1])
 
-    def residuals(self, push: FrontPush) -> tuple[np.ndarray, np.ndarray]:
+    @staticmethod
+    def _at_end(push: FrontPush) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The crack tip's points (q, 3), the front rows' gaps (f,) and the sliding rows' at the front (b,) at
+        the step's end [m]: what :meth:`residuals`, :meth:`given_way` and :meth:`grow` read, computed once
+        per push."""
+        front = push.front
+        tips = push.strip.front.positions(push.positions, push.growth.tets)
+        return tips, front.gaps(tips, push.needle), front.band_gaps(push.positions, push.needle)
+
+    def residuals(self, push: FrontPush, at_end=None) -> tuple[np.ndarray, np.ndarray]:
         """The front rows' and the sliding rows' at the front solved residual r = δ + C λ at the step's end
         [m], shapes (f,), (b,): δ = nᵀ(x_needle − x_tissue) on the material points the rows hold, less the
         compression C λ their compliance allows. A row that holds has r = 0 (to the solve's accuracy); a row
         at its limit has r ≠ 0 by how far the needle went through the tissue beyond that compression, along
         its direction: the needle's motion relative to the material point, so the tissue's own deformation
-        (which carries the crack tip with it) counts for nothing."""
+        (which carries the crack tip with it) counts for nothing. ``at_end``: :meth:`_at_end` of the push,
+        computed here when None."""
         front, multipliers = push.front, push.multipliers
         compliance = np.asarray(push.compliance, dtype=float)
 
         def compressed(rows):
             return compliance[rows] * multipliers[rows] if compliance.size else np.zeros(rows.size)
 
-        tips = push.strip.front.positions(push.positions, push.growth.tets)
-        front_residual = front.gaps(tips, push.needle) + compressed(front.rows)
-        band_residual = front.band_gaps(push.positions, push.needle) + compressed(front.band_rows)
+        _, front_gaps, band_gaps = self._at_end(push) if at_end is None else at_end
+        front_residual = front_gaps + compressed(front.rows)
+        band_residual = band_gaps + compressed(front.band_rows)
         return front_residual, band_residual
 
-    def given_way(self, push: FrontPush) -> tuple[np.ndarray, np.ndarray]:
+    def given_way(self, push: FrontPush, at_end=None) -> tuple[np.ndarray, np.ndarray]:
         """Where the front gave way, and by how much [m].
 
         A front row gave way where it is at its strength G_c ℓ_k with the needle through the crack tip beyond
@@ -293,20 +303,22 @@ class EnergyLaw(CuttingLaw):
 
         Returns
         -------
-        (over (f,), slip (b,)) : ≥ 0, 0 where the row holds.
+        (over (f,), slip (b,)) : ≥ 0, 0 where the row holds (``at_end``: :meth:`_at_end` of the push,
+        computed here when None).
         """
-        front, multipliers, limit, needle = push.front, push.multipliers, push.force_limit, push.needle
-        front_residual, band_residual = self.residuals(push)
-        tips = push.strip.front.positions(push.positions, push.growth.tets)
+        front, multipliers, limit = push.front, push.multipliers, push.force_limit
+        at_end = self._at_end(push) if at_end is None else at_end
+        _, front_gaps, band_gaps = at_end
+        front_residual, band_residual = self.residuals(push, at_end)
         at_limit = multipliers[front.rows] >= (1.0 - LIMIT_TOLERANCE) * limit[front.rows]
-        relative = np.asarray(front.previous_gaps) - front.gaps(tips, needle)
+        relative = np.asarray(front.previous_gaps) - front_gaps
         cut = np.minimum(-front_residual, relative)
         over = np.where(at_limit & (front_residual < 0.0), np.clip(cut, 0.0, None), 0.0)
         band = front.band_rows
         sideways = np.abs(multipliers[band]) >= (1.0 - LIMIT_TOLERANCE) * limit[band]
         sideways &= band_residual * multipliers[band] < 0.0
         way = np.sign(band_residual)
-        band_relative = way * (front.band_gaps(push.positions, needle) - np.asarray(front.band_previous_gaps))
+        band_relative = way * (band_gaps - np.asarray(front.band_previous_gaps))
         slid = np.minimum(np.abs(band_residual), band_relative)
         slip = np.where(sideways, np.clip(slid, 0.0, None), 0.0)
         return over, slip
@@ -319,7 +331,8 @@ class EnergyLaw(CuttingLaw):
         front, strip, positions = push.front, push.strip, push.positions
         if front.rows.size == 0 and front.band_rows.size == 0:
             return None
-        over, slip = self.given_way(push)
+        at_end = self._at_end(push)
+        over, slip = self.given_way(push, at_end)
         if not (np.any(over > 0.0) or np.any(slip > 0.0)):
             return None
         spacing = push.growth.point_spacing
@@ -329,7 +342,7 @@ class EnergyLaw(CuttingLaw):
         front_given, band_given = over > 0.0, slip > 0.0
         given = np.concatenate([front.segment[front_given], front.band_segment[band_given]])
         columns = np.unique(np.concatenate([given, given + 1]))
-        tips = strip.front.positions(positions, push.growth.tets)[columns]
+        tips = at_end[0][columns]
         targets, reached = crack_tip_targets(strip, push.needle, push.entry_arc, columns, spacing)
         # The material point in contact with the needle: the centreline plus the compliant rows' compression
         # C λ along their direction, so the rows keep their force as the crack tip moves.
@@ -337,7 +350,7 @@ class EnergyLaw(CuttingLaw):
         targets = targets + push.compression(given_rows, given, columns)
         # How far the needle went through the tissue at each column (its rows' residuals along their
         # directions): the column moves towards its target by that much along it, at most to the target.
-        _, band_residual = self.residuals(push)
+        _, band_residual = self.residuals(push, at_end)
         penetration = column_mean(
             columns, front.segment[front_given], -over[front_given, None] * front.directions[front_given]
         ) + column_mean(
@@ -364,8 +377,9 @@ class EnergyLaw(CuttingLaw):
         moved = strip.with_front(
             move_front(push.growth, strip, columns[ahead], targets[ahead], positions, locator=push.locator)
         )
-        distance = moved.layer_distance(push.cut, push.step, spacing)
-        cut, laid = moved.lay(push.cut, push.step, spacing)
+        due = moved.due(push.cut, push.step, spacing)  # what both read: computed once
+        distance = moved.layer_distance(push.cut, push.step, spacing, due=due)
+        cut, laid = moved.lay(push.cut, push.step, spacing, due=due)
         if laid.layers.shape[0] == strip.layers.shape[0]:
             return FrontGrowth(cut, laid, push.direction, None, distance, spacing)
         load = float(push.multipliers[front.rows].sum()) + float(

@@ -228,13 +228,15 @@ class CutStrip:
             np.concatenate([self._births(), np.full(count, step, dtype=np.int64)]),
         )
 
-    def lay(self, cut: CutSurface, step: int, minimum_gap: float) -> tuple[CutSurface, CutStrip]:
+    def lay(self, cut: CutSurface, step: int, minimum_gap: float, *, due=None) -> tuple[CutSurface, CutStrip]:
         """Lay a layer at the crack tip when any column's tip is farther than ``minimum_gap`` [m] (rest) from
         its last point (from where it started, for a column with no point yet); columns whose tip has not
         moved keep their last point. A column with no point yet gets two: where its crack tip started (in the
         last layer) and where it is; it is laid only with a neighbour it can be joined to (alone, its points
-        would join no triangle). Returns the surface and strip (unchanged when no column is due)."""
-        last, origins, pending, distance, moved, starting, joined = self._due(cut, step, minimum_gap)
+        would join no triangle). Returns the surface and strip (unchanged when no column is due). ``due``:
+        :meth:`due` of the same arguments, when the caller has it."""
+        due = self.due(cut, step, minimum_gap) if due is None else due
+        last, origins, pending, distance, moved, starting, joined = due
         if not np.any((distance >= minimum_gap) & moved):
             return cut, self
         started = clock.perf_counter()
@@ -258,16 +260,18 @@ class CutStrip:
         births = self._births()
         return grown, CutStrip(np.vstack([layers, layer[None, :]]), self.front, self.depths, origins, births)
 
-    def layer_distance(self, cut: CutSurface, step: int, minimum_gap: float) -> float:
+    def layer_distance(self, cut: CutSurface, step: int, minimum_gap: float, *, due=None) -> float:
         """How far the crack tip is from the last layer [m] (rest): the largest distance over the columns
-        :meth:`lay` would lay (it lays a layer when this reaches ``minimum_gap``), 0 when none moved."""
-        _, _, _, distance, moved, _, _ = self._due(cut, step, minimum_gap)
+        :meth:`lay` would lay (it lays a layer when this reaches ``minimum_gap``), 0 when none moved
+        (``due``: :meth:`due` of the same arguments, when the caller has it)."""
+        due = self.due(cut, step, minimum_gap) if due is None else due
+        _, _, _, distance, moved, _, _ = due
         return float(distance[moved].max()) if np.any(moved) else 0.0
 
-    def _due(self, cut: CutSurface, step: int, minimum_gap: float):
+    def due(self, cut: CutSurface, step: int, minimum_gap: float):
         """What :meth:`lay` decides on: the last layer, the origins, the columns with no point yet, each
         column's distance from its last point [m], the columns that moved, those starting, the joined
-        neighbours."""
+        neighbours (read-only to callers; :meth:`layer_distance` and :meth:`lay` share it)."""
         last = self.last_layer
         origins, births = self._origins(), self._births()
         pending = last < 0

@@ -36,8 +36,6 @@ The cut surface itself grows in :mod:`refsim.cutting.growth` and :mod:`refsim.cu
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import scipy.sparse as sp
 
@@ -63,7 +61,7 @@ from refsim.scene import Scene
 from refsim.simulation.detection import Detection
 from refsim.simulation.margins import MarginWatch
 from refsim.simulation.records import Event
-from refsim.simulation.state import Phase, SimulationState
+from refsim.simulation.state import Phase, SimulationState, evolved
 
 __all__ = ["EventRules", "LazyLocator", "locate_under_surface", "shaft_lateral_force"]
 
@@ -110,15 +108,22 @@ STICK_TOLERANCE = 1e-3
 
 
 class LazyLocator:
-    """Builds the tet locator on first use (most steps add no insertion point)."""
+    """The tet locator of one tissue configuration, built on first use (most steps locate nothing beyond the
+    tip's neighbourhood); the events of a step share one, on the step's corrected positions."""
 
     def __init__(self, positions: np.ndarray, tets: np.ndarray) -> None:
         self._positions, self._tets, self._locator = positions, tets, None
 
-    def locate(self, points: np.ndarray):
+    @property
+    def locator(self) -> TetLocator:
+        """The locator (built now if not yet)."""
         if self._locator is None:
             self._locator = TetLocator(self._positions, self._tets)
-        return self._locator.locate(points)
+        return self._locator
+
+    def locate(self, points: np.ndarray, **options):
+        """`refsim.geometry.TetLocator.locate` on the configuration."""
+        return self.locator.locate(points, **options)
 
 
 def locate_under_surface(positions: np.ndarray, tets: np.ndarray, points: np.ndarray, *, inward: np.ndarray):
@@ -170,6 +175,8 @@ class EventRules:
         self._node_tets = incidence
         # tet → the tets sharing a node with it (sorted), filled on first use per tet: the tip's candidates
         self._around: dict[int, np.ndarray] = {}
+        # tet → the nodes of those tets, (c, 4), kept with them
+        self._around_nodes: dict[int, np.ndarray] = {}
         #: The criteria each step's events compare, with their margins (refsim.simulation.margins).
         self.margins = MarginWatch(scene.solver.tolerance)
         self.growth = None
@@ -190,17 +197,19 @@ class EventRules:
         events: list[Event] = []
         state = world.instrument(name)
         if state.entry_span is not None:  # located on the last step's configuration
-            state = replace(state, entry_span=None)
+            state = evolved(state, entry_span=None)
         rows = detection.rows
+        # One locator of the step's configuration for every event that needs one (built when first used).
+        locator = LazyLocator(world.tissue.positions, self.tets)
         if state.phase == Phase.APPROACH and rows.row_count:
             state, events = self._puncture(world, state, detection, multipliers)
         if state.phase == Phase.INSERTION and not events:
             # (Not in the step that punctures: the entry point is then at the tip, on either side by
             # round-off.)
-            world, state, more = self._insertion(world, state, detection, multipliers)
+            world, state, more = self._insertion(world, state, detection, multipliers, locator)
             events.extend(more)
         elif state.phase == Phase.CUTTING:
-            world, state, more = self._cutting(world, state, detection, multipliers)
+            world, state, more = self._cutting(world, state, detection, multipliers, locator)
             events.extend(more)
         stretch = None
         if state.phase == Phase.CUTTING and self.cutting.friction_coefficient > 0.0:
@@ -214,7 +223,7 @@ class EventRules:
                 self.cutting.point_spacing,
             )
         if stretch is not None or state.cut_face_stretch is not None:
-            state = replace(state, cut_face_stretch=stretch)
+            state = evolved(state, cut_face_stretch=stretch)
         return world.with_instrument(state), events
 
     def _puncture(self, world, state, detection, multipliers):
@@ -234,15 +243,16 @@ class EventRules:
         if tets[0] < 0:
             return state, []
         path = InsertionPath.empty().appended(tets, barycentric, world.step)
-        state = replace(
+        state = evolved(
             state, phase=Phase.INSERTION, path=path, tip_tet=int(tets[0]), tip_barycentric=barycentric[0]
         )
         return state, [Event("puncture", normal_force)]
 
-    def _insertion(self, world, state, detection, multipliers):
+    def _insertion(self, world, state, detection, multipliers, locator: LazyLocator):
         rows = detection.rows
         events: list[Event] = []
         positions = world.tissue.positions
+        needle = self.needle_geometry(state.needle)
         if self.growth is not None and rows.row_count:
             force_on_needle = shaft_lateral_force(
                 rows.source,
@@ -252,68 +262,87 @@ class EventRules:
                 without_entry=self.law.excludes_entry_point,
                 points=rows.points_of_rows,
             )
-            started = self._cut_starts(world, state, force_on_needle)
+            started = self._cut_starts(world, state, force_on_needle, needle, locator)
             if started is not None:
                 return started
-        needle = self.needle_geometry(state.needle)
+        points = state.path.positions(positions, self.tets)
         path, added = grow_path(
             state.path,
             tip=needle.tip,
             tissue_positions=positions,
             mesh_tets=self.tets,
-            locator=LazyLocator(positions, self.tets),
+            locator=locator,
             spacing=self.insertion.spacing,
             step=world.step,
+            points=points,
         )
         if added and world.cut is not None and world.cut.triangle_count:
             path = self._outside_cut(path, world, positions)
+        if path is not state.path:
+            points = path.positions(positions, self.tets)
         # The coupling's release margin (the ring's hysteresis: its points' centres drift along the needle).
         margin = self.coupling.retraction_margin(self.insertion.spacing)
-        beyond = points_beyond_tip(path, path.positions(positions, self.tets), needle, margin)
+        beyond = points_beyond_tip(path, points, needle, margin)
         if np.any(beyond):
             path = path.subset(~beyond)
             events.append(Event("retraction"))
         # The tip's material state: the tet it lies in, or outside (it left the tissue through a face).
-        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet)
+        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet, locator)
         if state.tip_tet >= 0 and tip_tet < 0 and path.point_count:
             events.append(Event("exit"))
-        state = replace(state, path=path, tip_tet=tip_tet, tip_barycentric=tip_barycentric)
+        state = evolved(state, path=path, tip_tet=tip_tet, tip_barycentric=tip_barycentric)
         if path.point_count == 0:
-            state = replace(state, phase=Phase.APPROACH, tip_tet=-1, tip_barycentric=None)
+            state = evolved(state, phase=Phase.APPROACH, tip_tet=-1, tip_barycentric=None)
             events.append(Event("withdrawal"))
         return world, state, events
 
-    def locate_tip(self, positions: np.ndarray, tip: np.ndarray, hint: int) -> tuple[int, np.ndarray | None]:
+    def locate_tip(
+        self, positions: np.ndarray, tip: np.ndarray, hint: int, locator: LazyLocator | None = None
+    ) -> tuple[int, np.ndarray | None]:
         """The tet holding the tip and the tip's barycentric coordinates in it, (−1, None) outside the tissue.
 
         The tets around ``hint`` (the tip's last tet: those sharing a node with it) are tried first, the whole
-        mesh when the tip is not among them.
+        mesh when the tip is not among them (``locator``: the step's, on ``positions``; one is built when
+        None). Among the candidates, those whose edge matrix is singular (a degenerate tet: a zero pivot of
+        its LU factors, where ``np.linalg.det`` is 0) are left out: the candidates are solved in one batch,
+        each matrix on its own (the same bits in any batch), and only a batch that meets a singular matrix is
+        solved again without them.
         """
         tip = np.asarray(tip, dtype=float)
         if hint >= 0:
             candidates = self._tets_around(hint)
-            corners = positions[self.tets[candidates]]  # (c, 4, 3)
+            corners = positions[self._around_nodes[hint]]  # (c, 4, 3)
             edges = np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1))  # (c, 3, 3)
-            valid = np.abs(np.linalg.det(edges)) > 0.0
-            local = np.linalg.solve(edges[valid], (tip - corners[valid, 0])[:, :, None])[:, :, 0]
+            try:
+                local = np.linalg.solve(edges, (tip - corners[:, 0])[:, :, None])[:, :, 0]
+            except np.linalg.LinAlgError:
+                valid = np.abs(np.linalg.det(edges)) > 0.0
+                candidates = candidates[valid]
+                local = np.linalg.solve(edges[valid], (tip - corners[valid, 0])[:, :, None])[:, :, 0]
             barycentric = np.concatenate([1.0 - local.sum(axis=1, keepdims=True), local], axis=1)
-            inside = np.flatnonzero(barycentric.min(axis=1) >= -TIP_TOLERANCE)
+            smallest = barycentric.min(axis=1)
+            inside = np.flatnonzero(smallest >= -TIP_TOLERANCE)
             if inside.size:
-                best = inside[np.argmax(barycentric[inside].min(axis=1))]
-                return int(candidates[valid][best]), barycentric[best]
-        found, barycentric = TetLocator(positions, self.tets).locate(tip[None, :])
+                best = inside[np.argmax(smallest[inside])]
+                return int(candidates[best]), barycentric[best]
+        locator = LazyLocator(positions, self.tets) if locator is None else locator
+        found, barycentric = locator.locate(tip[None, :])
         return (int(found[0]), barycentric[0]) if found[0] >= 0 else (-1, None)
 
     def _tets_around(self, tet: int) -> np.ndarray:
         """The tets sharing a node with ``tet``, sorted (``tet`` among them): a function of the mesh's
-        topology, which no event changes (a cut separates material points, not tets), kept per tet."""
+        topology, which no event changes (a cut separates material points, not tets), kept per tet with
+        their nodes (``_around_nodes``, (c, 4))."""
         around = self._around.get(tet)
-        if around is None:
+        if around is None or tet not in self._around_nodes:
             nodes, incidence = self.tets[tet], self._node_tets
             spans = zip(incidence.indptr[nodes], incidence.indptr[nodes + 1], strict=True)
             around = np.unique(np.concatenate([incidence.indices[a:b] for a, b in spans]))
             around.flags.writeable = False
+            around_nodes = np.asarray(self.tets)[around]
+            around_nodes.flags.writeable = False
             self._around[tet] = around
+            self._around_nodes[tet] = around_nodes
         return around
 
     def _outside_cut(self, path, world, positions):
@@ -336,17 +365,16 @@ class EventRules:
         keep[new[in_cut]] = False
         return path.subset(keep)
 
-    def _cut_starts(self, world, state, force_on_needle):
+    def _cut_starts(self, world, state, force_on_needle, needle, locator: LazyLocator):
         """The states (the world's, with the cut, and the instrument's) and events of a cut start, or None
         when the law's criterion does not hold (``CuttingLaw.cut_start``). The cut runs the way the needle
-        pushes the tissue, ĉ = −t/‖t‖."""
+        pushes the tissue, ĉ = −t/‖t‖ (``needle``: the instrument's geometry, ``locator``: the step's)."""
         positions = world.tissue.positions
         path_points = state.path.positions(positions, self.tets)
-        needle = self.needle_geometry(state.needle)
         end = needle.length
         if state.tip_tet < 0:
             # The tip out of a far face: the shaft cuts along the part in the tissue only.
-            _, end = inserted_span(needle, TetLocator(positions, self.tets), self.cutting.point_spacing)
+            _, end = inserted_span(needle, locator, self.cutting.point_spacing)
         inserted = end - float(needle.project(path_points[:1])[0][0])
         self.margins.cut_start(self.law, force_on_needle, inserted, state.path.point_count)
         start = self.law.cut_start(
@@ -360,8 +388,8 @@ class EventRules:
         )
         if strip is None:
             return None
-        world = replace(world, cut=cut)
-        state = replace(
+        world = evolved(world, cut=cut)
+        state = evolved(
             state,
             phase=Phase.CUTTING,
             cut_direction=np.asarray(direction, dtype=float),
@@ -370,14 +398,13 @@ class EventRules:
         )
         return world, state, [Event("cut_start", start.trigger, start.unit)]
 
-    def _leave_cut(self, world, state, needle, positions):
+    def _leave_cut(self, world, state, needle, positions, locator: LazyLocator):
         """The state after the needle left its cut backwards, into intact tissue: insertion points along the
         inserted needle every d_i (material points where the needle now is) but none in the cut (the rule of
         new points: a part of the needle still in its cut slides in it), the insertion phase, the cut kept
         (the needle may cut again: a new cut start). Event ``leave_cut``."""
         # The cut the strip leaves reaches its crack tip.
-        world = replace(world, cut=recorded_surface(world.cut, state.cut_strip, world.step))
-        locator = TetLocator(positions, self.tets)
+        world = evolved(world, cut=recorded_surface(world.cut, state.cut_strip, world.step))
         spacing = self.insertion.spacing
         entry_arc = inserted_arc(needle, locator, spacing)
         arcs = np.arange(entry_arc, needle.length + 1e-12 * spacing, spacing)
@@ -388,10 +415,10 @@ class EventRules:
             path = self._outside_cut(path, world, positions)
         events = [Event("leave_cut")]
         if path.point_count == 0:
-            state = replace(state, phase=Phase.APPROACH, path=path, cut_strip=None, tip_tet=-1)
+            state = evolved(state, phase=Phase.APPROACH, path=path, cut_strip=None, tip_tet=-1)
             return world, state, [*events, Event("withdrawal")]
-        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, -1)
-        state = replace(
+        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, -1, locator)
+        state = evolved(
             state,
             phase=Phase.INSERTION,
             path=path,
@@ -421,7 +448,7 @@ class EventRules:
         rest = np.einsum("pk,pkj->pj", barycentric, self.growth.rest_positions[self.tets[tets]])
         return strip.extended(CutFront(rest, tets, barycentric), depths[:run], step)
 
-    def _cutting(self, world, state, detection, multipliers):
+    def _cutting(self, world, state, detection, multipliers, step_locator: LazyLocator):
         """Withdrawal through the cut, and the growth of the cut where the needle pushes through its front."""
         positions = world.tissue.positions
         needle = self.needle_geometry(state.needle)
@@ -429,21 +456,21 @@ class EventRules:
         if state.path.point_count == 0 or points_beyond_tip(state.path, entry, needle)[0]:
             # The tip is back above the entry point: every row is released; the tissue keeps its cut, up to
             # the crack tip.
-            world = replace(world, cut=recorded_surface(world.cut, state.cut_strip, world.step))
-            state = replace(state, phase=Phase.APPROACH, path=InsertionPath.empty(), cut_strip=None)
+            world = evolved(world, cut=recorded_surface(world.cut, state.cut_strip, world.step))
+            state = evolved(state, phase=Phase.APPROACH, path=InsertionPath.empty(), cut_strip=None)
             return world, state, [Event("retraction"), Event("withdrawal")]
         events: list[Event] = []
         cutting = self.cutting
         # The tip's material state, as in insertion: leaving through a far face is the event exit (the needle
         # still cuts along the part in the tissue). Only forward through the tissue: a tip pulled back out
         # through the face it entered by (on the step before the entry point is beyond it) is a withdrawal.
-        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet)
+        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet, step_locator)
         if state.tip_tet >= 0 and tip_tet < 0 and state.tip_barycentric is not None:
             where = state.tip_barycentric @ positions[self.tets[state.tip_tet]]
-            tangent = needle.tangents(np.array([needle.length]))[0]
+            tangent = needle.tip_tangent
             if float((needle.tip - where) @ tangent) > 0.0:
                 events.append(Event("exit"))
-        state = replace(state, tip_tet=tip_tet, tip_barycentric=tip_barycentric)
+        state = evolved(state, tip_tet=tip_tet, tip_barycentric=tip_barycentric)
         if state.cut_strip is not None and world.cut is not None:
             # Moved back through its own cut and past the line it entered along (the strip's first layer, its
             # rear edge) by more than half a cut spacing: the needle is in intact tissue again.
@@ -451,7 +478,7 @@ class EventRules:
             _, on_needle = needle.project(rear)
             behind = float(((on_needle - rear) @ state.cut_direction).mean())
             if behind < -0.5 * cutting.point_spacing:
-                world, state, more = self._leave_cut(world, state, needle, positions)
+                world, state, more = self._leave_cut(world, state, needle, positions, step_locator)
                 return world, state, [*events, *more]
         locator, entry_arc = None, None
         if self.law.extends_down_shaft and state.cut_strip is not None:
@@ -460,9 +487,9 @@ class EventRules:
             # not depend on where along the shaft the load is), so the strip extends down along it, a column
             # every d_c to the tip, its crack tip at the needle (insertion points there, anchored in uncut
             # tissue, would drag it sideways).
-            locator = TetLocator(positions, self.tets)
+            locator = step_locator.locator
             entry_arc, end = inserted_span(needle, locator, cutting.point_spacing)
-            state = replace(
+            state = evolved(
                 state,
                 cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc, world.step),
                 entry_span=(entry_arc, end),
@@ -494,8 +521,8 @@ class EventRules:
         self.margins.layer(grown)
         if grown.tear is not None:
             events.append(Event("tear", grown.tear))
-        world = replace(world, cut=grown.cut)
-        state = replace(state, cut_strip=grown.strip, cut_direction=grown.direction)
+        world = evolved(world, cut=grown.cut)
+        state = evolved(state, cut_strip=grown.strip, cut_direction=grown.direction)
         return world, state, events
 
 

@@ -288,7 +288,9 @@ class MarginWatch:
         rows = np.asarray(rows, dtype=np.int64)
         gap = problem.compliance[rows] @ multipliers + problem.free_gap[rows]
         diagonal = problem.compliance[rows, rows]
-        capped = np.isin(rows, problem.box_rows)
+        capped = np.zeros(problem.row_count, dtype=bool)
+        capped[np.asarray(problem.box_rows, dtype=np.int64)] = True
+        capped = capped[rows]
         return multipliers[rows] + np.where(capped, np.maximum(-gap, 0.0) / diagonal, 0.0)
 
 

@@ -28,7 +28,6 @@ from __future__ import annotations
 import logging
 import time as clock
 from collections.abc import Callable
-from dataclasses import replace
 
 import numpy as np
 
@@ -56,7 +55,7 @@ from refsim.simulation.events import EventRules
 from refsim.simulation.instrument import Instrument
 from refsim.simulation.margins import problem_scale
 from refsim.simulation.records import STAGES, InstrumentRecord, StepRecord, WithinStep
-from refsim.simulation.state import Phase, SimulationState
+from refsim.simulation.state import Phase, SimulationState, evolved
 from refsim.solvers import solve_exact, solve_gauss_seidel
 
 __all__ = ["Simulation", "SimulationState", "SimulationError", "Phase"]
@@ -194,19 +193,22 @@ class Simulation:
         while True:
             detections = self._detect(start, free)
             rows = RowBlock.concatenate([detection.rows for detection in detections])
+            point_rows = self._point_rows(rows)
             timer.lap("detection")
 
             problem, responses = self._problem(rows, systems)
             timer.lap("compliance")
 
-            multipliers, report = self._solve(problem, self._warm_start(start, rows))
+            multipliers, report = self._solve(problem, self._warm_start(start, rows, point_rows))
             timer.lap("solve")
 
             corrected = self._correct(start, free, systems, responses, multipliers)
             self._check_finite(step, corrected, multipliers)
             timer.lap("correction")
 
-            new_state = self._advanced(start, step, time, corrected, detections, rows, problem, multipliers)
+            new_state = self._advanced(
+                start, step, time, corrected, detections, rows, problem, multipliers, point_rows
+            )
             new_state, parts = self._events(
                 new_state, detections, rows, problem, multipliers, report, settled
             )
@@ -218,10 +220,10 @@ class Simulation:
             if not gave_way:
                 break
             settled.update(gave_way)
-            start = replace(
+            start = evolved(
                 state,
                 instruments=tuple(
-                    replace(new_state.instrument(own.name), needle=own.needle) if own.name in settled else own
+                    evolved(new_state.instrument(own.name), needle=own.needle) if own.name in settled else own
                     for own in state.instruments
                 ),
             )
@@ -281,17 +283,30 @@ class Simulation:
         return detections
 
     def _advanced(
-        self, state, step: int, time: float, corrected: dict, detections, rows, problem, multipliers
+        self,
+        state,
+        step: int,
+        time: float,
+        corrected: dict,
+        detections,
+        rows,
+        problem,
+        multipliers,
+        point_rows: tuple | None = None,
     ) -> SimulationState:
         """The state after the correction, before the events: each body's corrected state, each instrument's
-        path with its rings and its points' multipliers, the tissue factor's carried state."""
+        path with its rings and its points' multipliers, the tissue factor's carried state. ``point_rows``:
+        :meth:`_point_rows` of ``rows`` (computed here when None)."""
+        point_rows = self._point_rows(rows) if point_rows is None else point_rows
         instruments = []
         for instrument, detection in zip(self.instruments, detections, strict=True):
             own = state.instrument(instrument.name)
             path = own.path if detection.rings is None else own.path.with_rings(detection.rings)
-            path = self._store_multipliers(path, rows, instrument.index, problem, multipliers)
-            instruments.append(replace(own, needle=corrected[instrument.body.name], path=path))
-        return replace(
+            path = self._store_multipliers(
+                path, rows, instrument.index, problem, multipliers, point_rows[instrument.index]
+            )
+            instruments.append(evolved(own, needle=corrected[instrument.body.name], path=path))
+        return evolved(
             state,
             step=step,
             time=time,
@@ -439,40 +454,53 @@ class Simulation:
             criterion=spec.criterion,
         )
 
-    def _warm_start(self, state: SimulationState, rows: RowBlock) -> np.ndarray:
+    def _point_rows(self, rows: RowBlock) -> tuple:
+        """Each instrument's insertion points' rows in ``rows`` (:func:`_point_rows`), by instrument index:
+        read once per solve, by the warm start and by the storing of the multipliers."""
+        return tuple(_point_rows(rows, instrument.index) for instrument in self.instruments)
+
+    def _warm_start(
+        self, state: SimulationState, rows: RowBlock, point_rows: tuple | None = None
+    ) -> np.ndarray:
         """Last step's multipliers of each instrument's insertion points (they persist from step to step),
-        zero elsewhere; read from the rows' instrument, role and point fields."""
+        zero elsewhere; read from the rows' instrument, role and point fields (``point_rows``:
+        :meth:`_point_rows` of ``rows``, computed here when None)."""
+        point_rows = self._point_rows(rows) if point_rows is None else point_rows
         warm = np.zeros(rows.row_count)
         for instrument in self.instruments:
-            found, points, columns = _point_rows(rows, instrument.index)
+            found, points, columns = point_rows[instrument.index]
             if found.size:
                 warm[found] = state.instrument(instrument.name).path.multipliers[points, columns]
         return warm
 
     def _store_multipliers(
-        self, path: InsertionPath, rows: RowBlock, index: int, problem, multipliers: np.ndarray
+        self,
+        path: InsertionPath,
+        rows: RowBlock,
+        index: int,
+        problem,
+        multipliers: np.ndarray,
+        point_rows: tuple | None = None,
     ) -> InsertionPath:
         """Instrument ``index``'s path with each point's multipliers, stick state, stick anchor and annulus
         stretch after the solve, read from the rows' instrument, role and point fields (points without rows
-        this step keep theirs)."""
-        found, points, columns = _point_rows(rows, index)
+        this step keep theirs; ``point_rows``: :func:`_point_rows` of the instrument, computed here when
+        None)."""
+        found, points, columns = _point_rows(rows, index) if point_rows is None else point_rows
         if found.size == 0:
             return path
         stored = np.array(path.multipliers, copy=True)
-        stored[np.unique(points)] = 0.0
+        stored[points] = 0.0  # (a point's every column, once per row: the same zeros)
         stored[points, columns] = multipliers[found]
         path = path.with_multipliers(stored)
-        shaft = (
-            rows.shaft_rows[
-                (rows.source[rows.shaft_rows] == INSERTION) & (rows.instruments[rows.shaft_rows] == index)
-            ]
-            if rows.shaft_rows.size
-            else []
-        )
-        if len(shaft) == 0:
+        if rows.shaft_rows.size == 0:
+            return path
+        # The instrument's shaft rows (row indices are unique: the mask selects them in shaft-row order).
+        selected = (rows.source[rows.shaft_rows] == INSERTION) & (rows.instruments[rows.shaft_rows] == index)
+        shaft = rows.shaft_rows[selected]
+        if shaft.size == 0:
             return path
         # The stick state of each point for the next step's coefficient (μ_s when stuck, μ_d when slipping).
-        selected = np.isin(rows.shaft_rows, shaft)
         pairs = rows.shaft_pairs[selected]
         bounds = rows.shaft_friction_coefficient[selected] * (
             np.linalg.norm(multipliers[pairs], axis=1) + rows.shaft_normal_preload[selected]

@@ -61,6 +61,7 @@ def _forget(simulation: Simulation) -> None:
     for instrument in simulation.instruments:
         instrument.detector._compliance_memo = None
         instrument.event_rules._around.clear()
+        instrument.event_rules._around_nodes.clear()
 
 
 def _run(scene, forget: bool):
