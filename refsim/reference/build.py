@@ -6,10 +6,17 @@
 quantity at each sampling point a reference value with an uncertainty (:func:`reference_value`).
 It writes the versioned data package (layout in ``docs/reference.md``)::
 
-    DIR/manifest.json                      format, refsim version, git commit (provenance), numerics digest
-                                           (what the runs are keyed by: refsim.sweep.worker.numerics_digest),
-                                           command, level, cases (levels, quantities, worst uncertainty),
-                                           seconds, SHA-256 of every file
+    DIR/manifest.json                      format, schema version, the last build's refsim version, git
+                                           commit, numerics digest (what the runs are keyed by:
+                                           refsim.sweep.worker.numerics_digest), command, level and seconds;
+                                           per case: its level, its own build's provenance (the same fields:
+                                           cases are built one invocation at a time), levels, quantities
+                                           (worst uncertainty); SHA-256 of every file
+
+A build into a folder that holds a package adds its cases to it: the cases it builds replace theirs (at the
+level it builds), the others stay with the provenance of the build that made them. So one package can hold
+each case at the finest level it was built at (``refsim reference build -o DIR --level fine --cases ...``
+over a ``standard`` package), and says so per case.
     DIR/cases/NAME/reference.h5            the answers (format "refsim-reference-case")
     DIR/cases/NAME/reference.csv           the same as CSV (the columns ``refsim compare`` reads, and more)
     DIR/cases/NAME/case.toml, scene.toml   the specification, as built
@@ -39,6 +46,7 @@ from refsim.reference.cases import Case, case_names, case_values, load_case
 __all__ = [
     "CASE_FORMAT",
     "MANIFEST_FORMAT",
+    "PROVENANCE",
     "build_reference",
     "check_manifest",
     "convergence_status",
@@ -50,7 +58,7 @@ logger = logging.getLogger(__name__)
 
 CASE_FORMAT = "refsim-reference-case"
 MANIFEST_FORMAT = "refsim-reference"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: each case carries its level and its build's provenance (a package grows by case)
 #: Columns of a case's reference.csv (``refsim compare`` reads quantity, x, value; the rest is for people).
 CSV_COLUMNS = (
     "quantity",
@@ -600,12 +608,14 @@ def build_reference(
     command: str = "",
     figures: bool = True,
 ) -> dict:
-    """Build the reference set at a level into the folder ``output`` and return its manifest.
+    """Build the reference set (or some of its cases) at a level into the folder ``output`` and return the
+    package's manifest: a folder that already holds a package keeps the cases this build does not make.
 
     Parameters
     ----------
     output : Package folder (created; runs already complete inside it are reused, like a study's).
-    level : "coarse" (seconds per case: the machinery) or "standard" (the published answers).
+    level : "coarse" (seconds per case: the machinery), "standard" (one machine) or "fine" (a cluster, or
+        one machine for some cases: docs/reference.md).
     cases : Case names (all built-in cases when None).
     scheduler, workers, client : Where the runs go (:func:`refsim.sweep.run_study`): a Dask scheduler address,
         or a LocalCluster of ``workers`` processes, or an open ``distributed.Client``.
@@ -615,7 +625,8 @@ def build_reference(
     Raises
     ------
     ValueError
-        For an unknown case or level, before anything runs.
+        For an unknown case or level, or a folder whose manifest.json is not a reference package's, before
+        anything runs.
     RuntimeError
         When a run of a case did not complete (naming it).
     """
@@ -638,27 +649,69 @@ def build_reference(
     }
     from refsim.sweep.study import start_client, stop_client
 
+    kept = _kept_cases(output, names)
     own = client is None and any(case.runner == "scene" for case in loaded)
     if own:
         client, cluster = start_client(scheduler, workers)
     start = time.perf_counter()
-    manifest_cases = {}
+    built = {}
     try:
         for case in loaded:
-            manifest_cases[case.name] = _build_case(case, level, output, client, meta, figures)
+            built[case.name] = {
+                **_build_case(case, level, output, client, meta, figures),
+                "level": level,
+                "build": dict(meta),
+            }
     finally:
         if own:
             stop_client(client, cluster)  # also removes a LocalCluster's scratch folder
+    every = {**kept, **built}
+    order = {name: index for index, name in enumerate(case_names())}
     manifest = {
         "format": MANIFEST_FORMAT,
         "schema_version": SCHEMA_VERSION,
         "level": level,
         **meta,
         "seconds": time.perf_counter() - start,
-        "cases": manifest_cases,
+        "cases": {name: every[name] for name in sorted(every, key=lambda n: (order.get(n, len(order)), n))},
     }
     _write_manifest(output, manifest)
     return manifest
+
+
+def _kept_cases(output: Path, building) -> dict:
+    """The manifest entries of the cases a package in ``output`` already holds and this build does not make
+    (their answers still in the folder), each with its level and its build's provenance (a schema-1
+    manifest's, which has them once for all its cases); {} for a folder without a package.
+
+    Raises
+    ------
+    ValueError
+        When ``output`` holds a manifest.json that is not a reference package's (naming it).
+    """
+    path = output / "manifest.json"
+    if not path.is_file():
+        return {}
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as error:
+        raise ValueError(f"{path}: not a readable reference manifest ({error})") from error
+    if manifest.get("format") != MANIFEST_FORMAT or manifest.get("schema_version") not in (1, SCHEMA_VERSION):
+        raise ValueError(
+            f"{path}: format {manifest.get('format')!r}, schema version {manifest.get('schema_version')!r}; "
+            f"a reference package is {MANIFEST_FORMAT!r}, schema 1 or {SCHEMA_VERSION}"
+        )
+    provenance = {key: manifest.get(key) for key in PROVENANCE}
+    kept = {}
+    for name, entry in manifest.get("cases", {}).items():
+        if name in building or not (output / "cases" / name / "reference.h5").is_file():
+            continue
+        kept[name] = {"level": manifest.get("level"), "build": provenance, **entry}
+    return kept
+
+
+#: The fields of a build's provenance (the manifest's top level, and each case's "build").
+PROVENANCE = ("refsim_version", "git_commit", "numerics_digest", "created", "command")
 
 
 #: Scene keys that name a file, relative to the scene's folder (copied into the package with the scene).

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from refsim.reference.build import convergence_status, read_case_reference
+from refsim.reference.build import PROVENANCE, convergence_status, read_case_reference
 from refsim.reference.cases import case_names, load_case
 
 __all__ = ["write_page"]
@@ -27,12 +27,15 @@ cases use the scenes of `refsim/scenes/`, their mesh and trajectory files copied
 `refsim.reference` (DESIGN.md layer 6, above the study machinery it runs on).
 
 This page is generated from a built package by `refsim reference page --package DIR -o docs/reference.md`; its
-numbers hold for the code and the level of that build (below): its commit, and the digest of refsim's
+numbers hold for the code and the level of each case's build (below): its commit, and the digest of refsim's
 numerics source its runs are keyed by (`refsim.sweep.worker.numerics_digest`: every source and data file of
 the package but the command line, figures, viewer, study machinery, reference set, verification problems and
 results readers; docs/studies.md, "Resuming"). A build in a folder that already holds complete runs reuses
 those whose resolved scene, named files and numerics digest are the same, whatever the commit: a commit that
-changes only documentation or tests runs nothing again. After a change to the physics, rebuild the package and
+changes only documentation or tests runs nothing again. A build into a folder that holds a package adds its
+cases to it and keeps the others with the provenance of the build that made them, so a package can hold some
+cases at a finer level than the rest (`refsim reference build -o DIR --level fine --cases NAME ...` over a
+`standard` package); the tables say each case's level. After a change to the physics, rebuild the package and
 this page.
 
 ## The set, and why these cases
@@ -190,10 +193,11 @@ A refsim results file (`.h5`) is read directly instead. From Python, `refsim.ref
 
 ## The data package
 
-    DIR/manifest.json                      format, schema version, refsim version, git commit (provenance),
-                                           numerics digest (what the runs are keyed by), command, level,
-                                           per case: levels, h, seconds, quantities (methods, convergence,
-                                           largest U/scale);
+    DIR/manifest.json                      format, schema version (2), the last build's refsim version,
+                                           git commit, numerics digest (what the runs are keyed by),
+                                           command, level; per case: its level and its build's provenance
+                                           ("build": the same fields), levels, h, seconds, quantities
+                                           (methods, convergence, largest U/scale);
                                            the SHA-256 of every file (`refsim.reference.check_manifest(DIR)`
                                            lists the files that differ or are missing)
     DIR/cases/NAME/reference.h5            answers (format "refsim-reference-case"): /h; /quantities/Q/{at,
@@ -233,7 +237,7 @@ def _scene_name(path: Path) -> str:
         return path.name
 
 
-def _case_section(case, reference: dict, manifest_case: dict, figure: str | None) -> list[str]:
+def _case_section(case, reference: dict, manifest_case: dict, level: str, figure: str | None) -> list[str]:
     lines = [f"## {case.name}: {case.title}", "", f"**Why.** {case.why}", "", f"**Set-up.** {case.setup}", ""]
     if case.note:
         lines += [f"**Note.** {case.note}", ""]
@@ -248,7 +252,8 @@ def _case_section(case, reference: dict, manifest_case: dict, figure: str | None
         lines.append(f"| {index + 1} | " + " | ".join(str(v[index]) for v in levels.values()) + " |")
     lines += [
         "",
-        f"Run time: {manifest_case['run_seconds']:.1f} s (the sum over the levels' runs).",
+        f"Built at the `{level}` level; run time: {manifest_case['run_seconds']:.1f} s (the sum over the "
+        "levels' runs).",
         "",
         "| quantity | x | reference | U | U + T | method | convergence | observed order | order used "
         "| unit |",
@@ -287,6 +292,45 @@ def _case_section(case, reference: dict, manifest_case: dict, figure: str | None
     return lines + [""]
 
 
+def _case_level(manifest: dict, case: dict) -> str:
+    """A case's level (schema 2 records it per case; schema 1 once for the package)."""
+    return case.get("level", manifest["level"])
+
+
+def _builds(manifest: dict) -> list[str]:
+    """One paragraph per build that made some of the package's cases (a package grows case by case): its
+    level, refsim version, commit, numerics digest, date, command, its cases and their worker time."""
+    groups: dict[tuple, list[str]] = {}
+    for name, case in manifest["cases"].items():
+        build = case.get("build") or {key: manifest.get(key) for key in PROVENANCE}
+        key = (_case_level(manifest, case), *(build.get(field) for field in PROVENANCE))
+        groups.setdefault(key, []).append(name)
+    lines = []
+    if len(groups) > 1:
+        lines += [
+            f"The package was built by {len(groups)} invocations, each of some of its cases (a build into a "
+            "package adds its cases to it and keeps the others, with the provenance of the build that made "
+            "them):",
+            "",
+        ]
+    for (level, version, commit, digest, created, command), names in groups.items():
+        seconds = sum(manifest["cases"][name]["run_seconds"] for name in names)
+        cases = ", ".join(f"`{name}`" for name in names)
+        lines.append(
+            ("- " if len(groups) > 1 else "")
+            + f"Level `{level}`, refsim {version}, commit `{commit}`, numerics digest `{digest or 'unrecorded'}` "
+            f"(the runs are keyed by it, not by the commit), built {created} with `{command}`: "
+            f"{seconds:.0f} s of worker time for the runs of {cases}"
+            + (
+                f" (the last invocation took {manifest['seconds']:.0f} s; runs already complete in the folder "
+                "are reused)."
+                if len(groups) == 1
+                else "."
+            )
+        )
+    return lines
+
+
 def write_page(package, output) -> Path:
     """Write the page from the package folder ``package``; figures are copied to ``figures/reference/``
     beside the page. Returns the page's path.
@@ -305,22 +349,17 @@ def write_page(package, output) -> Path:
     manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
     figures = output.parent / "figures" / "reference"
     lines = [INTRODUCTION, "## This build", ""]
+    lines += _builds(manifest)
     lines += [
-        f"Level `{manifest['level']}`, refsim {manifest['refsim_version']}, "
-        f"commit `{manifest['git_commit']}`, "
-        f"numerics digest `{manifest.get('numerics_digest', 'unrecorded')}` "
-        f"(the runs are keyed by it, not by the commit), built {manifest['created']} with "
-        f"`{manifest['command']}`: "
-        f"{sum(c['run_seconds'] for c in manifest['cases'].values()):.0f} s of worker time for the runs "
-        f"(this invocation {manifest['seconds']:.0f} s; runs already complete in the folder are reused).",
         "",
-        "| case | quantity | method | convergence | largest U / scale | T / scale |",
-        "|---|---|---|---|---|---|",
+        "| case | level | quantity | method | convergence | largest U / scale | T / scale |",
+        "|---|---|---|---|---|---|---|",
     ]
     for name, case in manifest["cases"].items():
         for quantity, row in case["quantities"].items():
             lines.append(
-                f"| {name} | {quantity} | {', '.join(row['methods'])} | {row.get('status', '—')} | "
+                f"| {name} | {_case_level(manifest, case)} | {quantity} | {', '.join(row['methods'])} | "
+                f"{row.get('status', '—')} | "
                 f"{_format(row['largest_relative_uncertainty'])} | {row['modelling_tolerance_relative']:g} |"
             )
     absent = [name for name in case_names() if name not in manifest["cases"]]
@@ -339,7 +378,9 @@ def write_page(package, output) -> Path:
             figures.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(source, figures / f"{name}.png")
             figure = f"figures/reference/{name}.png"
-        lines += _case_section(case, read_case_reference(package, name), manifest_case, figure)
+        lines += _case_section(
+            case, read_case_reference(package, name), manifest_case, _case_level(manifest, manifest_case), figure
+        )
     output.parent.mkdir(parents=True, exist_ok=True)
     output.write_text("\n".join(lines), encoding="utf-8")
     return output

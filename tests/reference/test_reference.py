@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -255,7 +256,10 @@ def test_page_is_written_from_the_package(package, tmp_path):
     manifest = json.loads((folder / "manifest.json").read_text())
     for name, case in manifest["cases"].items():
         for quantity, row in case["quantities"].items():
-            assert f"| {name} | {quantity} | {', '.join(row['methods'])} | {row['status']} |" in text
+            assert (
+                f"| {name} | {case['level']} | {quantity} | {', '.join(row['methods'])} | {row['status']} |"
+                in text
+            )
     assert manifest["numerics_digest"] in text and manifest["git_commit"] in text
     assert (tmp_path / "docs" / "figures" / "reference" / "puncture.png").is_file()
 
@@ -495,3 +499,34 @@ def test_a_build_over_complete_runs_reuses_them_and_their_problems(package, tmp_
     assert again["cases"]["puncture"]["problems"] == manifest["cases"]["puncture"]["problems"]
     for case in CASES:
         assert again["cases"][case]["quantities"] == manifest["cases"][case]["quantities"]
+
+
+def test_a_build_into_a_package_adds_its_cases_and_keeps_the_others(package, tmp_path):
+    """A package grows case by case: a build of one case at another level into it replaces that case (its
+    level and provenance recorded per case) and keeps the others with their own build's provenance; the page
+    says each case's level and the checksums cover every file."""
+    folder, manifest = package
+    grown = tmp_path / "package"
+    shutil.copytree(folder, grown)
+    again = build_reference(grown, level="standard", cases=["cantilever"], workers=1, command="grow")
+    assert list(again["cases"]) == CASES  # the set's order, not the build's
+    assert again["cases"]["cantilever"]["level"] == "standard"
+    assert again["cases"]["cantilever"]["build"]["command"] == "grow"
+    assert again["cases"]["cantilever"]["levels"]["needle.element_count"] == [8, 16, 32]
+    kept = again["cases"]["puncture"]
+    assert kept["level"] == "coarse" and kept["build"]["command"] == "test"
+    assert kept["quantities"] == manifest["cases"]["puncture"]["quantities"]
+    assert check_manifest(grown) == []
+    assert read_case_reference(grown, "cantilever")["attributes"]["level"] == "standard"
+    text = write_page(grown, tmp_path / "docs" / "reference.md").read_text()
+    assert "built by 2 invocations" in text and "with `grow`" in text and "with `test`" in text
+    assert "| cantilever | standard | deflection_small |" in text
+    assert "| puncture | coarse | indentation_force |" in text
+    assert "Built at the `standard` level" in text and "Built at the `coarse` level" in text
+
+
+def test_a_folder_with_another_manifest_is_refused_before_anything_runs(tmp_path):
+    (tmp_path / "manifest.json").write_text(json.dumps({"format": "something-else"}))
+    with pytest.raises(ValueError, match="not a reference package|something-else"):
+        build_reference(tmp_path, level="coarse", cases=["cantilever"], workers=1)
+    assert not (tmp_path / "cases").exists()
