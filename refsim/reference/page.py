@@ -316,17 +316,16 @@ def _builds(manifest: dict) -> list[str]:
     for (level, version, commit, digest, created, command), names in groups.items():
         seconds = sum(manifest["cases"][name]["run_seconds"] for name in names)
         cases = ", ".join(f"`{name}`" for name in names)
+        last = (
+            f" (the last invocation took {manifest['seconds']:.0f} s; runs already complete in the folder "
+            "are reused)."
+        )
         lines.append(
             ("- " if len(groups) > 1 else "")
-            + f"Level `{level}`, refsim {version}, commit `{commit}`, numerics digest `{digest or 'unrecorded'}` "
-            f"(the runs are keyed by it, not by the commit), built {created} with `{command}`: "
-            f"{seconds:.0f} s of worker time for the runs of {cases}"
-            + (
-                f" (the last invocation took {manifest['seconds']:.0f} s; runs already complete in the folder "
-                "are reused)."
-                if len(groups) == 1
-                else "."
-            )
+            + f"Level `{level}`, refsim {version}, commit `{commit}`, numerics digest "
+            f"`{digest or 'unrecorded'}` (the runs are keyed by it, not by the commit), built {created} with "
+            f"`{command}`: {seconds:.0f} s of worker time for the runs of {cases}"
+            + (last if len(groups) == 1 else ".")
         )
     return lines
 
@@ -378,9 +377,8 @@ def write_page(package, output) -> Path:
             figures.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(source, figures / f"{name}.png")
             figure = f"figures/reference/{name}.png"
-        lines += _case_section(
-            case, read_case_reference(package, name), manifest_case, _case_level(manifest, manifest_case), figure
-        )
+        level = _case_level(manifest, manifest_case)
+        lines += _case_section(case, read_case_reference(package, name), manifest_case, level, figure)
     output.parent.mkdir(parents=True, exist_ok=True)
     output.write_text("\n".join(lines), encoding="utf-8")
     return output

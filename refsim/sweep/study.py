@@ -201,7 +201,9 @@ def stop_client(client, cluster) -> None:
 def check_study_output(spec: StudySpec, output, *, overwrite: bool = False) -> Path:
     """Check the study file's path before anything runs.
 
-    An existing study file of the same study (same name and scene) is resumed: its complete runs are kept.
+    An existing study file of the same study (same name, and the same scene: the same path, or a scene file
+    with the same bytes, so that a study moved with its scene to another folder or machine resumes) is
+    resumed: its complete runs are kept.
     Any other existing file (another study's, a run's results file, anything) is replaced only with
     ``overwrite``.
 
@@ -221,13 +223,33 @@ def check_study_output(spec: StudySpec, output, *, overwrite: bool = False) -> P
         raise ValueError(
             f"{output}: exists and is not a refsim study file ({error}); pass --overwrite to replace it"
         ) from None
-    if attributes.get("name") != spec.name or attributes.get("scene") != spec.scene:
+    if attributes.get("name") != spec.name or not _same_scene(attributes, spec.scene):
         raise ValueError(
             f"{output}: holds another study (name {attributes.get('name')!r}, scene "
             f"{attributes.get('scene')!r}; this one: {spec.name!r}, {spec.scene!r}); pass --overwrite to "
             "replace it, or choose another -o"
         )
     return output
+
+
+def _scene_digest(path) -> str:
+    """SHA-256 of a scene file's bytes ("" when it cannot be read)."""
+    import hashlib
+
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return ""
+
+
+def _same_scene(attributes: dict, scene: str) -> bool:
+    """Whether a study file's scene is ``scene``: the same path, or the same bytes (the digest the file
+    records, or, in a file from before it recorded one, the bytes of the file at its recorded path)."""
+    if attributes.get("scene") == scene:
+        return True
+    mine = _scene_digest(scene)
+    recorded = attributes.get("scene_sha256") or _scene_digest(attributes.get("scene", ""))
+    return bool(mine) and recorded == mine
 
 
 def _run_keys(spec: StudySpec, runs) -> dict:
@@ -489,6 +511,7 @@ def _write(spec, output: Path, runs, reference, rows, *, final: bool = False) ->
                 "schema_version": STUDY_SCHEMA_VERSION,
                 "name": spec.name,
                 "scene": spec.scene,
+                "scene_sha256": _scene_digest(spec.scene),
                 "combine": spec.combine,
                 "study": spec.to_json(),
                 "created": created or now,

@@ -60,6 +60,37 @@ def test_an_existing_output_that_is_not_this_study_is_refused(tmp_path):
     assert results.read_bytes() == b"a run's results"
 
 
+def test_a_study_moved_with_its_scene_resumes_and_another_scene_is_refused(tmp_path):
+    """The same study is the same name and the same scene: the same path, or a scene file with the same bytes
+    (a package moved to another folder or machine resumes), recorded as the scene's SHA-256; a scene with
+    other bytes at another path is another study."""
+    first, moved, changed = (tmp_path / name for name in ("first", "moved", "changed"))
+    for folder, text in ((first, "# a scene\n"), (moved, "# a scene\n"), (changed, "# another scene\n")):
+        folder.mkdir()
+        (folder / "scene.toml").write_text(text)
+    spec = study_from_options(str(first / "scene.toml"), ["insertion.spacing=1e-3,2e-3"])
+    output = tmp_path / "study.h5"
+    with h5py.File(output, "w") as handle:
+        handle.attrs.update(
+            {
+                "format": "refsim-study",
+                "name": spec.name,
+                "scene": str(first / "scene.toml"),
+                "scene_sha256": study_module._scene_digest(first / "scene.toml"),
+            }
+        )
+        handle.create_group("runs")
+    (first / "scene.toml").unlink()  # the study's first folder is gone: only the recorded digest is left
+    for folder, resumed in ((moved, True), (changed, False)):
+        other = study_from_options(str(folder / "scene.toml"), ["insertion.spacing=1e-3,2e-3"])
+        assert other.name == spec.name
+        if resumed:
+            assert check_study_output(other, output) == output
+        else:
+            with pytest.raises(ValueError, match="holds another study"):
+                check_study_output(other, output)
+
+
 @pytest.mark.parametrize("workers", ["-1", "0", str(4 * (os.cpu_count() or 1) + 1)])
 def test_a_worker_count_out_of_range_is_bad_input(tmp_path, capsys, workers):
     """--workers -1 used to hang."""
