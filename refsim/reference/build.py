@@ -205,8 +205,16 @@ def _run_scene_case(case: Case, level: str, folder: Path, client) -> tuple[list[
     """Run the levels on Dask; per level {quantity: values}, the run files (relative to ``folder``), study
     attributes."""
     from refsim.sweep import run_study
+    from refsim.sweep.study import check_study_output
 
-    study = run_study(_study(case, level), folder / "study.h5", client=client, progress=False, warm_up=False)
+    spec, output = _study(case, level), folder / "study.h5"
+    try:
+        check_study_output(spec, output)
+    except ValueError:
+        # the case at another level (or an unreadable study file): its study is replaced by this level's; the
+        # run files stay in study_runs/ (reused if that level is built again)
+        output.unlink()
+    study = run_study(spec, output, client=client, progress=False, warm_up=False)
     runs = study["runs"]
     failed = [
         f"{label}: {error}"

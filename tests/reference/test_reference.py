@@ -9,6 +9,7 @@ import math
 import shutil
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 
@@ -523,6 +524,16 @@ def test_a_build_into_a_package_adds_its_cases_and_keeps_the_others(package, tmp
     assert "| cantilever | standard | deflection_small |" in text
     assert "| puncture | coarse | indentation_force |" in text
     assert "Built at the `standard` level" in text and "Built at the `coarse` level" in text
+    # a case built over its study file of another level replaces that file and reuses the complete runs
+    study = grown / "cases" / "puncture" / "study.h5"
+    with h5py.File(study, "a") as handle:
+        handle.attrs["name"] = "puncture_fine"
+    runs = sorted((grown / "cases" / "puncture" / "study_runs").glob("*.h5"))
+    stamps = [path.stat().st_mtime_ns for path in runs]
+    build_reference(grown, level="coarse", cases=["puncture"], workers=1, command="again")
+    assert [path.stat().st_mtime_ns for path in runs] == stamps
+    with h5py.File(study, "r") as handle:
+        assert handle.attrs["name"] == "puncture_coarse"
 
 
 def test_a_folder_with_another_manifest_is_refused_before_anything_runs(tmp_path):
