@@ -59,8 +59,9 @@ Each case isolates one thing another implementation must get right, in the order
   unstructured organ mesh with a moving support.
 
 Levels (each case's file gives its own, with a comment saying why): `coarse` (seconds to a minute a run: the
-tests build it to check the machinery), `standard` (the answers on this page, one machine), `fine` (for a
-cluster; defined in the case files, not built for this page). The cube cases refine mesh, d_i, d_c and dt
+tests build it to check the machinery), `standard` (one machine, an hour), `fine` (a cluster's, or hours of
+one machine per cube case; this page's `laceration` and `lateral_push` are built at it, every other case at
+`standard`: the tables give each case's level). The cube cases refine mesh, d_i, d_c and dt
 together on odd cell counts, 3/5/7, 5/7/9 and 13/17/21 cells, with d_i = d_c = 6.8 mm/cells and dt =
 0.05 s/cells: the 17 mm insertion is then n + 1/2 insertion spacings deep at every level (the last point half
 a spacing above the tip), so the shaft's force, which grows by one point every d_i of depth, has the same
@@ -88,9 +89,14 @@ package without it, a CSV without the columns or quantities below).
 ### Building on several machines
 
 One machine builds `standard` (its time is in "This build" below: the worker time of the runs, and the
-build's own time, on one worker); the cube cases' `fine` level has (21/9)³ ≈ 13 times the cells and 2.3 times
-the steps of the finest standard run (30 times its work at least, more where the factorisation grows faster
-than the node count), the puncture's 8 times the cells and twice the steps, so it is meant for a cluster.
+build's own time, on one worker). The cube cases' `fine` level has (21/9)³ ≈ 13 times the cells and 2.3
+times the steps of the finest standard run, and the factorisation grows faster than the node count: measured
+on one worker of the 2-core machine this page was built on (the other core busy), the fine levels of
+`laceration` took 186, 720 and 3044 s (13, 17, 21 cells: 66 minutes) and of `lateral_push` 53, 273 and
+1061 s (23 minutes), against 5 to 40 s for their standard runs; the finest run is 77 % of a case's time. So
+one machine builds a cube case's fine level in under about an hour and a half (the five cube cases in several
+hours), and the puncture's fine level (8 times the cells of its finest standard run, 32³ cells, 107,000
+free DoFs, 600 steps) is meant for a cluster.
 Every run of a level is one Dask task, and a case's runs are independent, so the build uses as many workers
 as a level has runs (3 per case):
 
@@ -174,7 +180,7 @@ observed order is far from the formal one: the levels are not shown to be in the
 Roy's conservative Fs = 3 estimate, not a demonstrated band), `not converged` (oscillatory or divergent: no
 order, U is Roache's estimate at the formal order; the value is the finest level's and the band is a guess of
 its error, not a converged answer). A quantity that is not `asymptotic` or `converged` has no converged
-answer at the built level; the fine level (on a cluster) is what would give one.
+answer at the built level; a finer level is what would give one.
 
 ## Their results: the CSV format
 

@@ -202,8 +202,10 @@ def check_study_output(spec: StudySpec, output, *, overwrite: bool = False) -> P
     """Check the study file's path before anything runs.
 
     An existing study file of the same study (same name, and the same scene: the same path, or a scene file
-    with the same bytes, so that a study moved with its scene to another folder or machine resumes) is
-    resumed: its complete runs are kept.
+    with the same bytes at another path, as in a checkout of the same commit elsewhere) is resumed: its
+    complete runs are kept. (A run's file is named by the scene's path and its overrides,
+    :class:`refsim.sweep.spec.RunSpec`, so the runs of a scene at another path are made again, into the same
+    study file.)
     Any other existing file (another study's, a run's results file, anything) is replaced only with
     ``overwrite``.
 

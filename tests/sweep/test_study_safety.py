@@ -62,8 +62,8 @@ def test_an_existing_output_that_is_not_this_study_is_refused(tmp_path):
 
 def test_a_study_moved_with_its_scene_resumes_and_another_scene_is_refused(tmp_path):
     """The same study is the same name and the same scene: the same path, or a scene file with the same bytes
-    (a package moved to another folder or machine resumes), recorded as the scene's SHA-256; a scene with
-    other bytes at another path is another study."""
+    (a package's case scene in another checkout), recorded as the scene's SHA-256; a scene with other bytes at
+    another path is another study."""
     first, moved, changed = (tmp_path / name for name in ("first", "moved", "changed"))
     for folder, text in ((first, "# a scene\n"), (moved, "# a scene\n"), (changed, "# another scene\n")):
         folder.mkdir()
