@@ -91,11 +91,11 @@ package without it, a CSV without the columns or quantities below).
 One machine builds `standard` (its time is in "This build" below: the worker time of the runs, and the
 build's own time, on one worker). The cube cases' `fine` level has (21/9)³ ≈ 13 times the cells and 2.3
 times the steps of the finest standard run, and the factorisation grows faster than the node count: measured
-on one worker of the 2-core machine this page was built on (the other core busy), the fine levels of
-`laceration` took 186, 720 and 3044 s (13, 17, 21 cells: 66 minutes) and of `lateral_push` 53, 273 and
-1061 s (23 minutes), against 5 to 40 s for their standard runs; the finest run is 77 % of a case's time. So
-one machine builds a cube case's fine level in under about an hour and a half (the five cube cases in several
-hours), and the puncture's fine level (8 times the cells of its finest standard run, 32³ cells, 107,000
+on one worker of the 2-core machine this page was built on, the fine levels of `laceration` took 74, 286 and
+1098 s (13, 17, 21 cells: 24 minutes) and of `lateral_push` 53, 273 and 1061 s (23 minutes, beside other
+jobs), against 5 to 40 s for their standard runs; the finest run is three quarters of a case's time. So one
+machine builds a cube case's fine level in about half an hour (the five cube cases in about three hours),
+and the puncture's fine level (8 times the cells of its finest standard run: 32³ cells, about 105,000
 free DoFs, 600 steps) is meant for a cluster.
 Every run of a level is one Dask task, and a case's runs are independent, so the build uses as many workers
 as a level has runs (3 per case):
