@@ -125,7 +125,8 @@ class InteractiveSession:
         buffer_steps: int | None = None,
     ) -> None:
         from refsim.io.driver import RunInputError, StepSink, check_output_path
-        from refsim.io.writer import DEFAULT_BUFFER_STEPS, ResultWriter, WriterLockedError
+        from refsim.io.filelock import WriterLockedError
+        from refsim.io.writer import DEFAULT_BUFFER_STEPS, ResultWriter
         from refsim.scene.build import build_controls, build_models
         from refsim.scene.controls import Controls
         from refsim.scene.spec import TrajectorySpec

@@ -4,6 +4,7 @@ The layout (paths, units, meanings) lives in :mod:`refsim.io.schema` and is docu
 h5py is imported only when a file is opened.
 """
 
+from refsim.io.provenance import git_commit
 from refsim.io.reader import (
     CutHistory,
     RecordedEvent,
@@ -14,7 +15,7 @@ from refsim.io.reader import (
     read_results,
 )
 from refsim.io.schema import FORMAT_NAME, SCHEMA_VERSION
-from refsim.io.writer import ResultWriter, git_commit
+from refsim.io.writer import ResultWriter
 
 __all__ = [
     "FORMAT_NAME",

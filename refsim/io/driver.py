@@ -308,7 +308,8 @@ def _open_writer(output: Path, scene, models, *, overwrite: bool, buffer_steps: 
     RunWriteError
         A full disk: nothing written, an existing file untouched.
     """
-    from refsim.io.writer import DEFAULT_BUFFER_STEPS, ResultWriter, WriterLockedError
+    from refsim.io.filelock import WriterLockedError
+    from refsim.io.writer import DEFAULT_BUFFER_STEPS, ResultWriter
 
     try:
         output.parent.mkdir(parents=True, exist_ok=True)

@@ -278,8 +278,8 @@ def export_problems(
     """
     import h5py
 
+    from refsim.io.provenance import git_commit
     from refsim.io.reader import read_problems, read_results
-    from refsim.io.writer import git_commit
     from refsim.solvers import natural_residual, solve_exact
 
     results_path = Path(results_path)

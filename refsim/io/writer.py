@@ -32,17 +32,17 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import errno
-import fcntl
 import json
 import logging
 import os
 import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
 
 from refsim.io import schema
+from refsim.io.filelock import FileLock, WriterLockedError
+from refsim.io.provenance import git_commit
 from refsim.io.schema import DatasetSpec
 
 __all__ = ["FileLock", "ResultWriter", "WriterLockedError", "git_commit"]
@@ -68,88 +68,6 @@ _SPACE_MARGIN = 64 * 1024
 # Bytes of HDF5 metadata per dataset (object header, chunk index, attributes) counted in the static part's
 # estimate: an object header with two attributes and a v1 B-tree node is 2-5 kB; 8 kB is a bound.
 _METADATA_PER_DATASET = 8 * 1024
-
-
-class WriterLockedError(FileExistsError):
-    """Another process holds the lock of a results file (it is writing it); nothing was touched."""
-
-    def __str__(self) -> str:
-        return str(self.strerror)
-
-
-class FileLock:
-    """An exclusive advisory lock (``fcntl.flock``) on ``.<name>.lock`` beside ``path``, for one writer.
-
-    The lock file holds the pid of the holder. Taking it never blocks: a held lock raises
-    :class:`WriterLockedError` naming the path and the holder. :meth:`release` unlinks the lock file while
-    still holding it; a process that opened the old file meanwhile sees that its inode is no longer the
-    path's and tries again, so two processes never both believe they hold the lock.
-
-    Parameters
-    ----------
-    path : The file the lock protects.
-    """
-
-    def __init__(self, path) -> None:
-        self.path = Path(path)
-        self.lock_path = self.path.with_name(f".{self.path.name}.lock")
-        self._fd: int | None = None
-        for _ in range(10):
-            fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:
-                holder = os.pread(fd, 64, 0).decode("ascii", "replace").strip() or "unknown"
-                os.close(fd)
-                raise WriterLockedError(
-                    errno.EBUSY,
-                    f"{self.path}: another process (pid {holder}) is writing this file (its lock "
-                    f"{self.lock_path.name} is held); wait for it to finish or choose another path",
-                ) from None
-            try:
-                same = os.fstat(fd).st_ino == os.stat(self.lock_path).st_ino
-            except FileNotFoundError:
-                same = False
-            if same:
-                os.ftruncate(fd, 0)
-                os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-                self._fd = fd
-                return
-            os.close(fd)  # released and unlinked by its holder meanwhile: take the new one
-        raise WriterLockedError(errno.EBUSY, f"{self.path}: cannot take the lock {self.lock_path.name}")
-
-    def release(self) -> None:
-        """Unlink the lock file and release the lock (idempotent)."""
-        if self._fd is None:
-            return
-        try:
-            self.lock_path.unlink(missing_ok=True)
-        finally:
-            os.close(self._fd)
-            self._fd = None
-
-
-def git_commit(directory: str | Path | None = None) -> str:
-    """The commit checked out where refsim lives (``git rev-parse HEAD``), or "unknown" outside a checkout.
-
-    Parameters
-    ----------
-    directory : Where to ask git; the refsim package's directory by default.
-    """
-    directory = Path(__file__).resolve().parent if directory is None else Path(directory)
-    try:
-        result = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            cwd=directory,
-            capture_output=True,
-            text=True,
-            timeout=10,
-            check=False,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    commit = result.stdout.strip()
-    return commit if result.returncode == 0 and commit else "unknown"
 
 
 def _initial_needle_nodes(scene, models) -> np.ndarray:

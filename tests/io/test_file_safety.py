@@ -19,8 +19,8 @@ import pytest
 
 from refsim.io import read_results
 from refsim.io.driver import RunInputError, RunWriteError, run_scene
+from refsim.io.filelock import FileLock
 from refsim.io.reader import ResultsError
-from refsim.io.writer import FileLock
 from refsim.scene import load_scene
 
 SMALL = ["mesh.cells=[3, 3, 3]", "time.duration=0.1", "output.tissue_every=2"]  # 10 steps
@@ -68,7 +68,7 @@ def test_the_lock_is_exclusive_between_processes(tmp_path):
     lock = FileLock(path)
     try:
         code = (
-            "import sys\nfrom refsim.io.writer import FileLock, WriterLockedError\n"
+            "import sys\nfrom refsim.io.filelock import FileLock, WriterLockedError\n"
             f"try:\n    FileLock({str(path)!r})\nexcept WriterLockedError as e:\n    print(e); sys.exit(7)\n"
         )
         child = subprocess.run(
