@@ -204,11 +204,15 @@ class _Signals:
 
     def __enter__(self) -> _Signals:
         if self.enabled:
-            self.previous[signal.SIGINT] = signal.signal(signal.SIGINT, signal.default_int_handler)
+            self.previous[signal.SIGINT] = signal.signal(signal.SIGINT, self._interrupt)
             self.previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, self._terminate)
             if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # `nohup refsim run`: keep running
                 self.previous[signal.SIGHUP] = signal.signal(signal.SIGHUP, self._terminate)
         return self
+
+    def _interrupt(self, signum, frame) -> None:
+        self.received = signum
+        raise KeyboardInterrupt
 
     def _terminate(self, signum, frame) -> None:
         self.received = signum
@@ -218,6 +222,8 @@ class _Signals:
         """Raise the terminating signal again if one arrived and its exception was swallowed: Python runs a
         signal handler between any two bytecodes, also inside a weakref callback or a finaliser, where an
         exception is printed as "ignored" and dropped (the run would then go on to its end)."""
+        if self.received == signal.SIGINT:
+            raise KeyboardInterrupt
         if self.received is not None:
             raise _Terminated(self.received)
 
@@ -290,7 +296,7 @@ def run_scene(
             step_done(state, record)
             signals.check()
 
-        status, reason = _run_steps(simulation, total, step_checked, summary, writer)
+        status, reason = _run_steps(simulation, total, step_checked, summary, writer, signals=signals)
     if writer.failure is not None and status != "write_failed":
         status = "write_failed"
         reason = f"{reason}; {writer.failure}" if reason else writer.failure
@@ -380,31 +386,60 @@ class StepSink:
             self.progress(record.step, self.total, phase)
 
 
-def _run_steps(simulation, total: int, step_done, summary, writer) -> tuple[str, str]:
+_SIGNAL_STOPS = {
+    signal.SIGINT: ("interrupted", "interrupted by SIGINT"),
+    signal.SIGTERM: ("terminated", "interrupted by SIGTERM"),
+    signal.SIGHUP: ("hangup", "interrupted by SIGHUP (the terminal closed)"),
+}
+
+
+def _signal_behind(error: BaseException, signals: _Signals | None) -> int | None:
+    """The signal that stopped the run when ``error`` is its exception or was raised because of it, else None.
+
+    A signal handler runs between any two bytecodes, also while compiled code calls back into the interpreter
+    (a Numba dispatcher typing its arguments): its exception then surfaces as another one (``SystemError: ...
+    returned a result with an exception set``) with the signal's exception as its context. The chain of causes
+    and contexts is followed, and a signal recorded by the run's handlers counts as well."""
+    seen: set[int] = set()
+    link: BaseException | None = error
+    while link is not None and id(link) not in seen:
+        seen.add(id(link))
+        if isinstance(link, KeyboardInterrupt):
+            return signal.SIGINT
+        if isinstance(link, _Terminated):
+            return link.signum
+        link = link.__cause__ or link.__context__
+    return None if signals is None else signals.received
+
+
+def _run_steps(simulation, total: int, step_done, summary, writer, *, signals=None) -> tuple[str, str]:
     """Run the steps and close the file whatever stops them; return (status, stop reason) (a key of
-    RUN_STATUSES; the reason is "" when complete)."""
+    RUN_STATUSES; the reason is "" when complete). ``signals`` (the run's :class:`_Signals`) tells a failure
+    caused by a signal from any other."""
     status, reason = "complete", ""
     try:
         try:
             simulation.run(steps=total, on_step=step_done)
-        except KeyboardInterrupt:
-            status, reason = "interrupted", "interrupted by SIGINT"
-        except _Terminated as stop:
-            if stop.signum == signal.SIGHUP:
-                status, reason = "hangup", "interrupted by SIGHUP (the terminal closed)"
-            else:
-                status, reason = "terminated", "interrupted by SIGTERM"
+        except (KeyboardInterrupt, _Terminated) as stop:
+            status, reason = _SIGNAL_STOPS[_signal_behind(stop, None)]
         except OSError as error:
-            status = "write_failed"
-            reason = writer.failure or f"writing the results failed: {error}"
+            number = _signal_behind(error, signals)
+            if number is not None:
+                status, reason = _SIGNAL_STOPS[number]
+            else:
+                status = "write_failed"
+                reason = writer.failure or f"writing the results failed: {error}"
         except Exception as error:  # noqa: BLE001 - every failure must close the file and say why
-            step = summary.steps + 1
-            message = _numerical_message(error, step)
-            status = "numerical"
-            if message is None:
-                logger.debug("run stopped by an unexpected error", exc_info=True)
-                message = f"step {step}: stopped by an internal error ({type(error).__name__}: {error})"
-            reason = message
+            number = _signal_behind(error, signals)
+            if number is not None:
+                status, reason = _SIGNAL_STOPS[number]
+            else:
+                step = summary.steps + 1
+                status = "numerical"
+                reason = _numerical_message(error, step)
+                if reason is None:
+                    logger.debug("run stopped by an unexpected error", exc_info=True)
+                    reason = f"step {step}: stopped by an internal error ({type(error).__name__}: {error})"
     finally:
         # Also reached on a second Ctrl-C during the handling above: the file is closed in every case.
         writer.close(complete=status == "complete", reason=reason)

@@ -56,6 +56,45 @@ def test_signals_stop_the_run_and_keep_every_completed_step(tmp_path, number, st
     assert "SIGTERM" in results.stop_reason if number == signal.SIGTERM else "SIGINT" in results.stop_reason
 
 
+@pytest.mark.parametrize(
+    ("number", "status", "code"),
+    [
+        (signal.SIGTERM, "terminated", 143),
+        (signal.SIGINT, "interrupted", 130),
+        (signal.SIGHUP, "hangup", 129),
+    ],
+)
+@pytest.mark.parametrize("chained", [True, False])
+def test_a_signal_seen_through_another_error_stops_as_that_signal(tmp_path, number, status, code, chained):
+    """A signal whose handler runs while compiled code calls back into the interpreter surfaces as another
+    error: Numba's dispatcher raises ``SystemError: ... returned a result with an exception set`` with the
+    signal's exception as its context (seen on a SIGTERM sent by another process). The run still ends as
+    that signal says (status, exit code, reason), never as an internal error; also when the signal's own
+    exception was dropped and an unrelated one surfaced (``chained=False``)."""
+
+    def send(state, record):
+        if record.step != 7:
+            return
+        try:
+            os.kill(os.getpid(), number)
+            for _ in range(1000):  # the handler runs at one of these bytecodes
+                pass
+        except BaseException:  # noqa: BLE001 - the signal's exception, turned into another error
+            if chained:
+                # as the dispatcher does: the signal's exception is the context, not the cause
+                raise SystemError("CPUDispatcher(<function _locate>) returned a result with an exception set")  # noqa: B904
+        raise RuntimeError("an unrelated failure, raised with no link to the signal")
+
+    if number == signal.SIGHUP and signal.getsignal(signal.SIGHUP) is signal.SIG_IGN:
+        pytest.skip("SIGHUP is ignored in this process (nohup): the driver keeps running on it by design")
+    summary = run_scene(_scene(), tmp_path / "run.h5", on_step=send)
+    assert (summary.status, summary.exit_code) == (status, code), summary.stop_reason
+    results = read_results(tmp_path / "run.h5")
+    assert not results.complete and results.step_count == 7
+    assert "internal error" not in results.stop_reason
+    assert signal.Signals(number).name in results.stop_reason
+
+
 def test_the_status_table_is_the_one_the_code_reads():
     """The module docstring's table of statuses and exit codes lists exactly RUN_STATUSES, and a status
     outside it is refused (no run can end in an undocumented way)."""
