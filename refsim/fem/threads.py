@@ -29,18 +29,27 @@ def _controller():
 _active = threading.local()  # the limit set by the innermost enclosing block of this thread, if any
 
 
-@contextlib.contextmanager
+#: The block of a nested call that finds its limit set: it does nothing (reusable and reentrant).
+_NESTED = contextlib.nullcontext()
+
+
 def hot_path_threads(threads: int = 1):
     """Limit every BLAS / OpenMP thread pool to ``threads`` inside the block (restored on exit).
 
     Setting the limit costs tens of µs (threadpoolctl visits every pool twice); a block nested in one that
-    already set the same limit (a body's stage inside ``Simulation.step``) does nothing."""
+    already set the same limit (a body's stage inside ``Simulation.step``) does nothing (an empty context
+    manager, without the generator of a limiting block)."""
     if not isinstance(threads, int) or threads < 1:
         raise ValueError(f"threads must be an integer >= 1, got {threads!r}")
+    if getattr(_active, "threads", None) == threads:
+        return _NESTED
+    return _limited(threads)
+
+
+@contextlib.contextmanager
+def _limited(threads: int):
+    """The block of :func:`hot_path_threads` that sets the limit (and restores the enclosing one on exit)."""
     outer = getattr(_active, "threads", None)
-    if outer == threads:
-        yield
-        return
     _active.threads = threads
     try:
         with _controller().limit(limits=threads):

@@ -497,12 +497,12 @@ class TissueModel:
         if matrix_free:
             from refsim.fem.corotated_matvec import Elements, matrix_free_step
 
-            pattern = self.free_pattern
+            free_dofs, constrained_dofs = self.free_and_constrained_dofs
             material = self.material
             return matrix_free_step(
                 dof_count=self.dof_count,
-                free_dofs=pattern.free_dofs,
-                constrained_dofs=pattern.constrained_dofs,
+                free_dofs=free_dofs,
+                constrained_dofs=constrained_dofs,
                 positions=positions,
                 velocities=velocities,
                 elements=Elements(
@@ -570,6 +570,17 @@ class TissueModel:
             rest_matrix=lambda: self._rest_effective_stiffness(dt),
             upper_triangle=upper_triangle,
         )
+
+    @property
+    def free_and_constrained_dofs(self) -> tuple[np.ndarray, np.ndarray]:
+        """The free DoFs and the constrained (fixed) DoFs, sorted, int64 (the arrays of :attr:`free_pattern`
+        when it is built; else computed once, without the pattern, which a matrix-free step never reads)."""
+        if hasattr(self, "_free_pattern"):
+            return self._free_pattern.free_dofs, self._free_pattern.constrained_dofs
+        if not hasattr(self, "_free_and_constrained"):
+            constrained = np.asarray(self.fixed_dofs, dtype=np.int64)
+            self._free_and_constrained = (np.setdiff1d(np.arange(self.dof_count), constrained), constrained)
+        return self._free_and_constrained
 
     @property
     def free_pattern(self) -> FreePattern:

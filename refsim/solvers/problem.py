@@ -186,8 +186,8 @@ class ConstraintProblem:
 
     def _parameters(self, spec, count: int) -> np.ndarray:
         value = getattr(self, spec.name)
-        if spec.role == "preload" and np.size(value) == 0:
-            return np.zeros(count)
+        if (spec.role == "preload" or count == 0) and np.size(value) == 0:
+            return np.zeros(count)  # (what the checks below return for an empty value of no entries)
         if isinstance(value, np.ndarray) and value.dtype == np.float64 and value.ndim:
             given = value  # what the object-array round trip below would give
         else:

@@ -314,7 +314,8 @@ class StepCompliance:
 
         A memo of the last H by value (W and the correction of one step share it): a copy of H's CSR arrays is
         the key, so rows changed in place or rebuilt equal give what a fresh computation gives."""
-        jacobian = sp.csr_matrix(jacobian)
+        if type(jacobian) is not sp.csr_matrix:  # (a CSR matrix is read as it is: no new wrapper)
+            jacobian = sp.csr_matrix(jacobian)
         arrays = (jacobian.shape, jacobian.indptr, jacobian.indices, jacobian.data)
         if self._cache_key is not None and _same_rows(self._cache_key, arrays):
             return self._cache
