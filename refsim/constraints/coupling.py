@@ -772,10 +772,18 @@ def tip_cutting_block(
     if tissue_nodes is not None and tissue_weights is not None:
         nodes = np.asarray(tissue_nodes).reshape(1, -1)
         weights = np.asarray(tissue_weights, dtype=float).reshape(1, -1)
+    # the tissue point at the start of the step and after free motion, interpolated once for the row's gap
+    # and its point
+    tissue_before, tissue_now = geometry.tissue_points(nodes, weights)
     rows = friction_rows(
-        geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=tip_s, tangents=direction
+        geometry,
+        tissue_nodes=nodes,
+        tissue_weights=weights,
+        arc_lengths=tip_s,
+        tangents=direction,
+        tissue_free_points=tissue_now,
+        tissue_previous_points=tissue_before,
     )
-    _, tissue_now = geometry.tissue_points(nodes, weights)
     block = RowBlock(
         jacobians=rows.jacobians,
         free_gap=rows.free_gap,

@@ -539,8 +539,10 @@ class _FastBody(BodyCompliance):
         before = self._filled
 
         def inverse_block(positions):
-            # (R C₀ Rᵀ)_uu from the C₀ blocks of the nodes the rows touch (positions sorted)
-            groups = np.unique(positions // 3)
+            # (R C₀ Rᵀ)_uu from the C₀ blocks of the nodes the rows touch (positions sorted, and so their
+            # nodes: np.unique's answer is each run's first)
+            nodes = positions // 3
+            groups = nodes[np.flatnonzero(np.diff(nodes, prepend=-1))]
             self._rest_blocks(groups)
             block = np.empty((3 * groups.size, 3 * groups.size))
             rotated_block(self._rows, self._slot, groups, rotations, block)
