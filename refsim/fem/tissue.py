@@ -499,21 +499,28 @@ class TissueModel:
 
             free_dofs, constrained_dofs = self.free_and_constrained_dofs
             material = self.material
+            elements = getattr(self, "_elements", (None, None))
+            if elements[0] is not material:  # what the kernels read, made once per material
+                elements = (
+                    material,
+                    Elements(
+                        self.tets,
+                        self._rest_edges_inverse,
+                        self.element_volumes,
+                        material.lame_lambda,
+                        material.shear_modulus,
+                    ),
+                )
+                self._elements = elements
             return matrix_free_step(
                 dof_count=self.dof_count,
                 free_dofs=free_dofs,
                 constrained_dofs=constrained_dofs,
                 positions=positions,
                 velocities=velocities,
-                elements=Elements(
-                    self.tets,
-                    self._rest_edges_inverse,
-                    self.element_volumes,
-                    material.lame_lambda,
-                    material.shear_modulus,
-                ),
+                elements=elements[1],
                 mass_matrix=self.mass_matrix,
-                external_forces=self.external_forces(),
+                external_forces=self._gravity_forces,
                 mass_factor=1.0 / dt**2 + self.rayleigh_mass / dt,
                 stiffness_factor=1.0 + self.rayleigh_stiffness / dt,
                 dt=dt,
