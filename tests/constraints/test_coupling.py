@@ -10,6 +10,7 @@ import pytest
 
 from refsim.constraints import TISSUE as TISSUE_BODY
 from refsim.constraints import coupling
+from refsim.constraints.friction import friction_rows
 from refsim.constraints.insertion import InsertionPath, insertion_block
 from refsim.constraints.needle_geometry import RigidNeedleGeometry
 from refsim.constraints.step_geometry import StepGeometry
@@ -402,6 +403,38 @@ def test_tip_cutting_row_sticks_below_and_cuts_at_f_cut():
                 assert force == pytest.approx(f_cut, rel=1e-9)
             else:
                 assert force == pytest.approx(0.0, abs=1e-12)
+
+
+def test_tip_cutting_row_is_the_friction_row_of_the_tip_point():
+    # The block's gap, Jacobians and point are friction_rows' on the tip's material point (interpolated once
+    # by the block for its gap and its point).
+    model, needle, centres, spacing, h = _needle_in_box(cells=4, angle_deg=10.0)
+    rest = model.rest_positions
+    tet, bary = TetLocator(rest, model.tets).locate(centres[-1][None])
+    moved = RigidNeedleGeometry(base=needle.base, direction=needle.direction, length=needle.length)
+    ahead = RigidNeedleGeometry(
+        base=moved.base + 1e-4 * moved.direction, direction=moved.direction, length=moved.length
+    )
+    free = rest + 1e-4 * np.sin(40.0 * rest)
+    geometry = StepGeometry(
+        mesh_tets=model.tets, tissue_previous=rest, tissue_free=free, needle_previous=moved, needle_free=ahead
+    )
+    block, _, _ = coupling.tip_cutting_block(
+        geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0], cutting_force=0.5
+    )
+    tip_s = np.array([moved.length])
+    nodes, weights = model.tets[[int(tet[0])]], bary[0].reshape(1, 4)
+    rows = friction_rows(
+        geometry,
+        tissue_nodes=nodes,
+        tissue_weights=weights,
+        arc_lengths=tip_s,
+        tangents=-ahead.tangents(tip_s),
+    )
+    np.testing.assert_array_equal(block.free_gap, rows.free_gap)
+    for name, matrix in rows.jacobians.items():
+        np.testing.assert_array_equal(block.jacobians[name].toarray(), matrix.toarray())
+    np.testing.assert_array_equal(block.points, geometry.tissue_points(nodes, weights)[1])
 
 
 # --------------------------------------------------------------------------- puncture within the step (5)

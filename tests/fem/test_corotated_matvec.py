@@ -81,6 +81,30 @@ def test_operator_and_rhs_equal_the_assembled_system(model):
     np.testing.assert_allclose(free.group_rotations(), assembled.group_rotations(), rtol=0, atol=16 * EPS)
 
 
+def test_the_matrix_free_step_builds_no_pattern_and_has_its_dofs():
+    # A fresh model: the matrix-free step reads the free and constrained DoFs, never A's pattern; they are the
+    # arrays the pattern has once it is built (and then the pattern's own).
+    mesh = box_mesh(size=(0.1, 0.08, 0.06), cells=(2, 2, 2))
+    rest = np.asarray(mesh.rest_positions, dtype=float)
+    fresh = TissueModel(
+        rest,
+        np.asarray(mesh.tets),
+        HookeMaterial(youngs_modulus=5.0e5, poisson_ratio=0.4, density=1000.0),
+        fixed_nodes=np.flatnonzero(rest[:, 2] < 1e-12),
+    )
+    state = deformed(fresh)
+    first = fresh.assemble_step(state, DT, matrix_free=True)
+    assert not hasattr(fresh, "_free_pattern")
+    second = fresh.assemble_step(state, DT, matrix_free=True)
+    assert second.free_dofs is first.free_dofs  # computed once per model
+    np.testing.assert_array_equal(second.rhs, first.rhs)
+    pattern = fresh.free_pattern
+    np.testing.assert_array_equal(first.free_dofs, pattern.free_dofs)
+    np.testing.assert_array_equal(first.constrained_dofs, pattern.constrained_dofs)
+    assert first.free_dofs.dtype == pattern.free_dofs.dtype == np.int64
+    assert fresh.free_and_constrained_dofs[0] is pattern.free_dofs
+
+
 def test_internal_forces_and_rotations_equal_the_element_stiffness_form(model):
     # f = R Kₑ (Rᵀx − X) with scikit-fem's Kₑ (TissueModel.internal_forces) against V R σ ∇φ.
     positions = deformed(model).positions

@@ -30,3 +30,6 @@ def test_bad_thread_counts_are_refused():
         with pytest.raises(ValueError, match="threads must be"):
             with hot_path_threads(bad):
                 pass
+        with hot_path_threads(1), pytest.raises(ValueError, match="threads must be"):  # nested too
+            with hot_path_threads(bad):
+                pass
