@@ -744,6 +744,7 @@ def tip_cutting_block(
     cutting_force: float,
     tissue_nodes: np.ndarray | None = None,
     tissue_weights: np.ndarray | None = None,
+    ahead: bool = False,
 ) -> tuple[RowBlock, np.ndarray, np.ndarray]:
     """The tip's cutting row after puncture: one row along the needle at the tip, its force in [0, f_cut].
 
@@ -757,6 +758,12 @@ def tip_cutting_block(
     material point alone, the ring around the tip with the ring coupling (:func:`ring_weights`): a point
     load on one material point among ring-averaged rows pushes the mesh asymmetrically, and the lateral
     rows then carry a lateral force a straight symmetric insertion does not have.
+
+    ``ahead``: the material point is the end of the channel the tip has cut, ahead of the tip (a tip moved
+    back along its channel): the row's gap starts from the tip's distance to it along the needle at the
+    step's start, e = nᵀ(x_tip − x_point) ≥ 0, so the tip moves forward freely through its channel and
+    cuts (at f_cut) only beyond its end. Without it the point is where the tip is (e = 0 up to round-off),
+    and the gap is the relative displacement over the step alone.
 
     Returns
     -------
@@ -772,8 +779,17 @@ def tip_cutting_block(
     if tissue_nodes is not None and tissue_weights is not None:
         nodes = np.asarray(tissue_nodes).reshape(1, -1)
         weights = np.asarray(tissue_weights, dtype=float).reshape(1, -1)
+    offsets = None
+    if ahead:
+        previous, _ = geometry.tissue_points(nodes, weights)
+        offsets = np.einsum("ij,ij->i", direction, geometry.needle_previous.points(tip_s) - previous)
     rows = friction_rows(
-        geometry, tissue_nodes=nodes, tissue_weights=weights, arc_lengths=tip_s, tangents=direction
+        geometry,
+        tissue_nodes=nodes,
+        tissue_weights=weights,
+        arc_lengths=tip_s,
+        tangents=direction,
+        offsets=offsets,
     )
     _, tissue_now = geometry.tissue_points(nodes, weights)
     block = RowBlock(

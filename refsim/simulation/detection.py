@@ -223,11 +223,15 @@ class Detector:
             self._compliance_memo = (key, diagonal.copy())
         return diagonal
 
-    def tip_ring(self, state: InstrumentState, geometry: StepGeometry) -> tuple[np.ndarray, np.ndarray]:
+    def tip_ring(
+        self, state: InstrumentState, geometry: StepGeometry, point: tuple[int, np.ndarray] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The tip cutting row's tissue side with the ring coupling: the ring of material points around the
-        tip's material point, normal to the needle at the tip (nodes and weights, shape (1, k) each)."""
+        tip's material point (or ``point``: a tet and barycentric coordinates), normal to the needle at the
+        tip (nodes and weights, shape (1, k) each)."""
+        tet, barycentric = (state.tip_tet, state.tip_barycentric) if point is None else point
         tip = InsertionPath(
-            np.array([state.tip_tet]), np.asarray(state.tip_barycentric).reshape(1, 4), np.zeros(1, np.int64)
+            np.array([tet]), np.asarray(barycentric).reshape(1, 4), np.zeros(1, np.int64)
         )
         tangent = geometry.needle_previous.tangents(np.array([geometry.needle_previous.length]))
         rings = RingLayout.around(
@@ -340,19 +344,25 @@ class Detector:
 
     def tip_row(self, state: InstrumentState, geometry: StepGeometry) -> RowBlock | None:
         """The tip's cutting row after puncture (``insertion.tip_cutting_force`` > 0), against the tissue's
-        material point at the tip (its ring with the ring coupling); none outside insertion or once the tip
-        has left the tissue through a face."""
+        material point at the tip (its ring with the ring coupling), or at the end of the channel the tip
+        has cut while the tip lies behind it (``InstrumentState.channel_end``: the row then holds the
+        tip's distance to it, and the tip cuts only beyond it); none outside insertion or once the tip has
+        left the tissue through a face."""
         spec = self.insertion
         if not (spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION and state.tip_tet >= 0):
             return None
-        ring = self.tip_ring(state, geometry) if self.ring else (None, None)
+        tet, barycentric = (state.tip_tet, state.tip_barycentric)
+        if state.channel_end is not None:
+            tet, barycentric = state.channel_end
+        ring = self.tip_ring(state, geometry, (tet, barycentric)) if self.ring else (None, None)
         block, _, _ = tip_cutting_block(
             geometry,
-            tip_tet=state.tip_tet,
-            tip_barycentric=state.tip_barycentric,
+            tip_tet=tet,
+            tip_barycentric=barycentric,
             cutting_force=spec.tip_cutting_force,
             tissue_nodes=ring[0],
             tissue_weights=ring[1],
+            ahead=state.channel_end is not None,
         )
         return block
 
