@@ -346,14 +346,17 @@ class Detector:
         """The tip's cutting row after puncture (``insertion.tip_cutting_force`` > 0), against the tissue's
         material point at the tip (its ring with the ring coupling), or at the end of the channel the tip
         has cut while the tip lies behind it (``InstrumentState.channel_end``: the row then holds the
-        tip's distance to it, and the tip cuts only beyond it); none outside insertion or once the tip has
-        left the tissue through a face."""
+        tip's distance to it, and the tip cuts only beyond it); none outside insertion, while the tip is
+        outside the tissue, or once its channel runs through the tissue (the tip left through a far face:
+        moved back into the tissue, it meets no tissue left to cut on that path)."""
         spec = self.insertion
         if not (spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION and state.tip_tet >= 0):
             return None
         tet, barycentric = (state.tip_tet, state.tip_barycentric)
         if state.channel_end is not None:
             tet, barycentric = state.channel_end
+            if tet < 0:  # cut through to a far face (events.THROUGH): nothing left to cut on this path
+                return None
         ring = self.tip_ring(state, geometry, (tet, barycentric)) if self.ring else (None, None)
         block, _, _ = tip_cutting_block(
             geometry,

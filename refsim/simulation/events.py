@@ -112,6 +112,11 @@ TIP_TOLERANCE = 1e-12
 #: more than this fraction of d_i along the needle (far above round-off, far below any length of the scene).
 CHANNEL_TOLERANCE = 1e-6
 
+#: The channel end of a tip that cut through the tissue and left it through a far face (the event exit):
+#: the tissue along its channel is cut through, and its tip's cutting row does not come back while the
+#: needle stays on that path (``InstrumentState.channel_end``).
+THROUGH = (-1, None)
+
 #: A cut face's friction row sticks when its force is below its bound by more than this fraction of it (far
 #: above the solve's 10⁻⁸, as for the shaft's rows: `refsim.constraints.coupling.stuck_points`).
 STICK_TOLERANCE = 1e-3
@@ -298,9 +303,10 @@ class EventRules:
             events.append(Event("retraction"))
         # The tip's material state: the tet it lies in, or outside (it left the tissue through a face).
         tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet, locator)
+        channel_end = self._channel_end(state, positions, needle, tip_tet)
         if path.point_count and self._exits(state, positions, needle, tip_tet):
             events.append(Event("exit"))
-        channel_end = self._channel_end(state, positions, needle, tip_tet)
+            channel_end = THROUGH
         state = evolved(
             state, path=path, tip_tet=tip_tet, tip_barycentric=tip_barycentric, channel_end=channel_end
         )
@@ -326,13 +332,15 @@ class EventRules:
 
         The end is the deepest material point the tip reached: the tip's own (its material point at the
         step's start) while it advances or rests there, kept once the tip lies behind it along the needle
-        (moved back along its channel) until the tip reaches it again, and kept when the tip leaves
-        through a far face (the channel then runs to that face, within a step's travel). The tissue behind
-        it is already cut: a needle pushed in again along its channel meets the channel's friction alone
-        until its tip is at the end (Okamura, Simone and O'Leary, IEEE TBME 51(10), 2004, measured the
-        friction of a needle re-inserted into its own hole with no cutting force).
+        (moved back along its channel) until the tip reaches it again. The tissue behind it is already cut:
+        a needle pushed in again along its channel meets the channel's friction alone until its tip is at
+        the end (Okamura, Simone and O'Leary, IEEE TBME 51(10), 2004, measured the friction of a needle
+        re-inserted into its own hole with no cutting force). A channel the tip cut through to a far face
+        (the event exit, :data:`THROUGH`) has no end: it stays so until the needle is withdrawn.
         """
         end = state.channel_end
+        if end is not None and end[0] < 0:
+            return end
         if end is None and state.tip_tet >= 0:
             end = (state.tip_tet, state.tip_barycentric)
         if end is None or tip_tet < 0:
