@@ -744,7 +744,7 @@ def tip_cutting_block(
     cutting_force: float,
     tissue_nodes: np.ndarray | None = None,
     tissue_weights: np.ndarray | None = None,
-    ahead: bool = False,
+    ahead: float | None = None,
 ) -> tuple[RowBlock, np.ndarray, np.ndarray]:
     """The tip's cutting row after puncture: one row along the needle at the tip, its force in [0, f_cut].
 
@@ -759,11 +759,12 @@ def tip_cutting_block(
     load on one material point among ring-averaged rows pushes the mesh asymmetrically, and the lateral
     rows then carry a lateral force a straight symmetric insertion does not have.
 
-    ``ahead``: the material point is the end of the channel the tip has cut, ahead of the tip (a tip moved
-    back along its channel): the row's gap starts from the tip's distance to it along the needle at the
-    step's start, e = nᵀ(x_tip − x_point) ≥ 0, so the tip moves forward freely through its channel and
-    cuts (at f_cut) only beyond its end. Without it the point is where the tip is (e = 0 up to round-off),
-    and the gap is the relative displacement over the step alone.
+    ``ahead`` [m]: the material point is the end of the channel the tip has cut, this far ahead of the tip
+    along the needle at the step's start (a tip moved back along its channel; the caller measures it from
+    the material point itself, e = tᵀ(x_point − x_tip), not from the ring, whose points around the tip are
+    displaced less by its load): the row's gap starts from it, so the tip moves forward freely through its
+    channel and cuts (at f_cut) only beyond its end. None: the point is where the tip is (e = 0 up to
+    round-off), and the gap is the relative displacement over the step alone.
 
     Returns
     -------
@@ -779,10 +780,7 @@ def tip_cutting_block(
     if tissue_nodes is not None and tissue_weights is not None:
         nodes = np.asarray(tissue_nodes).reshape(1, -1)
         weights = np.asarray(tissue_weights, dtype=float).reshape(1, -1)
-    offsets = None
-    if ahead:
-        previous, _ = geometry.tissue_points(nodes, weights)
-        offsets = np.einsum("ij,ij->i", direction, geometry.needle_previous.points(tip_s) - previous)
+    offsets = None if ahead is None else np.array([float(ahead)])
     rows = friction_rows(
         geometry,
         tissue_nodes=nodes,

@@ -353,10 +353,14 @@ class Detector:
         if not (spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION and state.tip_tet >= 0):
             return None
         tet, barycentric = (state.tip_tet, state.tip_barycentric)
+        ahead = None
         if state.channel_end is not None:
             tet, barycentric = state.channel_end
             if tet < 0:  # cut through to a far face (events.THROUGH): nothing left to cut on this path
                 return None
+            end = np.asarray(barycentric) @ geometry.tissue_previous[geometry.mesh_tets[tet]]
+            needle = geometry.needle_previous
+            ahead = float((end - needle.tip) @ needle.tip_tangent)
         ring = self.tip_ring(state, geometry, (tet, barycentric)) if self.ring else (None, None)
         block, _, _ = tip_cutting_block(
             geometry,
@@ -365,7 +369,7 @@ class Detector:
             cutting_force=spec.tip_cutting_force,
             tissue_nodes=ring[0],
             tissue_weights=ring[1],
-            ahead=state.channel_end is not None,
+            ahead=ahead,
         )
         return block
 

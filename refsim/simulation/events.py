@@ -51,6 +51,7 @@ from refsim.constraints import (
     INSERTION,
     PENETRATION,
     SLIDING,
+    TIP,
     UNILATERAL,
     InsertionPath,
     grow_path,
@@ -107,10 +108,6 @@ def shaft_lateral_force(
 PUNCTURE_TOLERANCE = 1e-6
 #: Barycentric tolerance of the tip's location among the tets around its last one (the locator's default).
 TIP_TOLERANCE = 1e-12
-
-#: The tip lies behind its material point, which then stays the end of its channel, when it is behind it by
-#: more than this fraction of d_i along the needle (far above round-off, far below any length of the scene).
-CHANNEL_TOLERANCE = 1e-6
 
 #: The channel end of a tip that cut through the tissue and left it through a far face (the event exit):
 #: the tissue along its channel is cut through, and its tip's cutting row does not come back while the
@@ -303,7 +300,7 @@ class EventRules:
             events.append(Event("retraction"))
         # The tip's material state: the tet it lies in, or outside (it left the tissue through a face).
         tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet, locator)
-        channel_end = self._channel_end(state, positions, needle, tip_tet)
+        channel_end = self._channel_end(state, positions, needle, tip_tet, rows, multipliers)
         if path.point_count and self._exits(state, positions, needle, tip_tet):
             events.append(Event("exit"))
             channel_end = THROUGH
@@ -326,13 +323,16 @@ class EventRules:
         where = state.tip_barycentric @ positions[self.tets[state.tip_tet]]
         return float((needle.tip - where) @ needle.tip_tangent) > 0.0
 
-    def _channel_end(self, state, positions, needle, tip_tet: int) -> tuple[int, np.ndarray] | None:
+    def _channel_end(self, state, positions, needle, tip_tet: int, rows, multipliers):
         """The end of the channel the tip has cut (``InstrumentState.channel_end``) after a step whose tip
-        lies in ``tip_tet`` (−1: outside), on the step's corrected ``positions`` and ``needle``.
+        lies in ``tip_tet`` (−1: outside), on the step's corrected ``positions`` and ``needle``, with the
+        step's ``rows`` and ``multipliers``.
 
         The end is the deepest material point the tip reached: the tip's own (its material point at the
-        step's start) while it advances or rests there, kept once the tip lies behind it along the needle
-        (moved back along its channel) until the tip reaches it again. The tissue behind it is already cut:
+        step's start) while it cuts (its row at f_cut) or rests there, kept once the tip, its row below f_cut
+        (it did not cut: moved back, or stuck), lies behind it along the needle, until the tip reaches it
+        again. A tip at rest whose row stays at f_cut keeps its own point (the tissue's transient may move
+        it by round-off either way). The tissue behind the end is already cut:
         a needle pushed in again along its channel meets the channel's friction alone until its tip is at
         the end (Okamura, Simone and O'Leary, IEEE TBME 51(10), 2004, measured the friction of a needle
         re-inserted into its own hole with no cutting force). A channel the tip cut through to a far face
@@ -341,15 +341,18 @@ class EventRules:
         end = state.channel_end
         if end is not None and end[0] < 0:
             return end
-        if end is None and state.tip_tet >= 0:
+        if end is None:
+            if state.tip_tet < 0 or self.insertion.tip_cutting_force <= 0.0:
+                return None
+            tip_rows = rows.rows_of(TIP)
+            strength = (1.0 - STICK_TOLERANCE) * self.insertion.tip_cutting_force
+            if tip_rows.size == 0 or float(multipliers[tip_rows].sum()) >= strength:
+                return None  # it cut (or had no row): its own point is the end
             end = (state.tip_tet, state.tip_barycentric)
-        if end is None or tip_tet < 0:
+        if tip_tet < 0:
             return end
         where = end[1] @ positions[self.tets[end[0]]]
-        behind = float((where - needle.tip) @ needle.tip_tangent)
-        # A tip at rest at its own material point is behind it by round-off only: it stays the end.
-        threshold = 0.0 if state.channel_end is not None else CHANNEL_TOLERANCE * self.insertion.spacing
-        return end if behind > threshold else None
+        return end if float((where - needle.tip) @ needle.tip_tangent) > 0.0 else None
 
     def locate_tip(
         self, positions: np.ndarray, tip: np.ndarray, hint: int, locator: LazyLocator | None = None

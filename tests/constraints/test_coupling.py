@@ -429,7 +429,7 @@ def test_tip_cutting_row_at_a_channel_end_ahead_frees_the_tip_up_to_it():
             ),
         )
         block, lower, upper = coupling.tip_cutting_block(
-            geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0], cutting_force=f_cut, ahead=True
+            geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0], cutting_force=f_cut, ahead=back
         )
         assert block.free_gap[0] == pytest.approx(back - advance, rel=1e-9)
         plain, _, _ = coupling.tip_cutting_block(
