@@ -230,9 +230,7 @@ class Detector:
         tip's material point (or ``point``: a tet and barycentric coordinates), normal to the needle at the
         tip (nodes and weights, shape (1, k) each)."""
         tet, barycentric = (state.tip_tet, state.tip_barycentric) if point is None else point
-        tip = InsertionPath(
-            np.array([tet]), np.asarray(barycentric).reshape(1, 4), np.zeros(1, np.int64)
-        )
+        tip = InsertionPath(np.array([tet]), np.asarray(barycentric).reshape(1, 4), np.zeros(1, np.int64))
         tangent = geometry.needle_previous.tangents(np.array([geometry.needle_previous.length]))
         rings = RingLayout.around(
             tip,

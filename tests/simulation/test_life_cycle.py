@@ -809,7 +809,9 @@ VARIANTS = {**SOLVERS, "fast": ('compliance.strategy="fast"',)}
 
 
 @pytest.mark.parametrize(("direction", "needle", "variant"), CHANNEL)
-def test_a_needle_pushed_in_again_along_its_channel_cuts_only_beyond_its_deepest_point(direction, needle, variant):
+def test_a_needle_pushed_in_again_along_its_channel_cuts_only_beyond_its_deepest_point(
+    direction, needle, variant
+):
     # The cube on 4³ cells at dt = 20 ms: inserted 6 mm along the needle at 20 mm/s, pulled back 4 mm, pushed
     # in again to 10 mm. Reference: the tissue behind the deepest point the tip reached is already cut, so a
     # needle pushed in again along its own channel meets the channel's friction alone until its tip is
@@ -860,7 +862,8 @@ def test_a_needle_moved_back_into_a_layer_it_crossed_meets_only_friction_in_its_
     assert any(r.needle_positions[-1, 2] > SLAB_BOTTOM + 0.002 for r in after)  # the tip back in the layer
     assert not any(np.any(r.row_role == TIP) for r in after)
     f_cut = scene.insertion.tip_cutting_force
-    assert all(abs(r.needle_force[2]) < 0.25 * f_cut for r in after), max(abs(r.needle_force[2]) for r in after)
+    along = [abs(r.needle_force[2]) for r in after]
+    assert max(along) < 0.25 * f_cut, max(along)
 
 
 WITHDRAWN = [
