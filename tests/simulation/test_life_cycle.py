@@ -31,7 +31,9 @@ The life-cycle matrix (stage: where it is tested; the cases beyond the first of 
 - reverse at depth: insert, pull back part of the way, push in again beyond the first depth:
   ``test_a_needle_pushed_in_again_along_its_channel_cuts_only_beyond_its_deepest_point`` (vertical and 30°;
   rigid and flexible; Gauss–Seidel, exact, the fast compliance); through a thin layer, back into it and out
-  again: ``test_a_needle_moved_back_into_a_layer_it_crossed_meets_only_friction_in_its_channel``;
+  again: ``test_a_needle_moved_back_into_a_layer_it_crossed_meets_only_friction_in_its_channel``; the fast
+  compliance's events through a reversal, a withdrawal and a second insertion against the exact strategy's:
+  ``tests/simulation/test_fast_mode.py``;
 - pull straight back out through the entry face: ``test_a_needle_pulled_back_out_is_withdrawn_not_exited``
   (vertical and 30°; both solvers; rigid and flexible);
 - a flexible needle whose tip slid along a thin layer before the puncture (a short one, which can push f_p
@@ -796,40 +798,44 @@ def test_reinsertion_along_a_cut_slides_in_it(direction, needle, solver):
 
 
 CHANNEL = [
-    pytest.param(direction, needle, variant, marks=[pytest.mark.slow] if slow else [])
-    for direction, needle, variant, slow in [
-        ("0deg", "rigid", "gauss_seidel", False),
-        ("30deg", "rigid", "exact", False),
-        ("30deg", "rigid", "fast", False),
-        ("30deg", "flexible", "gauss_seidel", True),
-        ("0deg", "flexible", "exact", True),
+    pytest.param(direction, needle, variant, dt, marks=[pytest.mark.slow] if slow else [])
+    for direction, needle, variant, dt, slow in [
+        ("0deg", "rigid", "gauss_seidel", 0.02, False),
+        ("0deg", "rigid", "gauss_seidel", 0.005, False),
+        ("30deg", "rigid", "exact", 0.02, False),
+        ("30deg", "rigid", "fast", 0.02, False),
+        ("30deg", "flexible", "gauss_seidel", 0.02, True),
+        ("0deg", "flexible", "exact", 0.02, True),
+        ("30deg", "rigid", "gauss_seidel", 0.001, True),
     ]
 ]
 VARIANTS = {**SOLVERS, "fast": ('compliance.strategy="fast"',)}
 
 
-@pytest.mark.parametrize(("direction", "needle", "variant"), CHANNEL)
+@pytest.mark.parametrize(("direction", "needle", "variant", "dt"), CHANNEL)
 def test_a_needle_pushed_in_again_along_its_channel_cuts_only_beyond_its_deepest_point(
-    direction, needle, variant
+    direction, needle, variant, dt
 ):
-    # The cube on 4³ cells at dt = 20 ms: inserted 6 mm along the needle at 20 mm/s, pulled back 4 mm, pushed
-    # in again to 10 mm. Reference: the tissue behind the deepest point the tip reached is already cut, so a
-    # needle pushed in again along its own channel meets the channel's friction alone until its tip is
-    # there, and the tip's cutting force f_cut only beyond it (Okamura, Simone and O'Leary, IEEE TBME 51(10),
-    # 2004, measured the friction of a needle re-inserted into its own hole: no cutting force). Before, the
-    # tip's row acted wherever the tip was: f_cut = 0.5 N again through the whole channel (15 times the
-    # friction here). Expected: the tip's row at f_cut while the tip cuts (first insertion, and beyond 6 mm
-    # by more than a step's travel), free (0) on the way back and in the channel (up to 6 mm less a step's
-    # travel), where the force along the needle is the shaft's friction alone, which changes sign with the
-    # motion (resisting it).
+    # The cube on 4³ cells at dt = 1, 5 or 20 ms: inserted 6 mm along the needle at 20 mm/s, pulled back
+    # 4 mm, pushed in again to 10 mm. Reference: the tissue behind the deepest point the tip reached is
+    # already cut, so a needle pushed in again along its own channel meets the channel's friction alone
+    # until its tip is there, and the tip's cutting force f_cut only beyond it (Okamura, Simone and O'Leary,
+    # IEEE TBME 51(10), 2004, measured the friction of a needle re-inserted into its own hole: no cutting
+    # force). Before, the tip's row acted wherever the tip was: f_cut = 0.5 N again through the whole
+    # channel (15 times the friction here). Expected: the tip's row at f_cut while the tip cuts (first
+    # insertion, and beyond 6 mm by more than a step's travel), free (0) on the way back and in the channel
+    # (up to 6 mm less a step's travel), where the force along the needle is the shaft's friction alone,
+    # which changes sign with the motion (resisting it).
     axis = np.asarray(DIRECTIONS[direction]) / np.linalg.norm(DIRECTIONS[direction])
     knots = [(0.0, ENTRY, -0.002), (0.4, ENTRY, 0.006), (0.6, ENTRY, 0.002), (1.0, ENTRY, 0.010)]
-    scene, records = _run("time.dt=0.02", *NEEDLES[needle], *VARIANTS[variant], *_path_overrides(knots, axis))
-    f_cut, travel = scene.insertion.tip_cutting_force, 0.02 * 0.02
+    scene, records = _run(
+        f"time.dt={dt}", *NEEDLES[needle], *VARIANTS[variant], *_path_overrides(knots, axis)
+    )
+    f_cut, travel = scene.insertion.tip_cutting_force, 0.02 * dt
     depth = lambda r: float((r.needle_positions[-1] - np.array([*ENTRY, TOP])) @ axis)  # noqa: E731
     tip = lambda r: float(r.row_forces[r.row_role == TIP].sum())  # noqa: E731
     first = [r for r in records if 0.1 < r.time <= 0.4 + 1e-9 and r.phase == "insertion"]
-    back = [r for r in records if 0.4 + 2 * 0.02 < r.time <= 0.6 + 1e-9]
+    back = [r for r in records if 0.4 + 2 * dt < r.time <= 0.6 + 1e-9]
     channel = [r for r in records if r.time > 0.6 + 1e-9 and depth(r) <= 0.006 - travel]
     beyond = [r for r in records if r.time > 0.6 + 1e-9 and depth(r) >= 0.006 + 2 * travel]
     assert first and back and channel and beyond
