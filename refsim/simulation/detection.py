@@ -343,8 +343,9 @@ class Detector:
     def tip_row(self, state: InstrumentState, geometry: StepGeometry) -> RowBlock | None:
         """The tip's cutting row after puncture (``insertion.tip_cutting_force`` > 0), against the tissue's
         material point at the tip (its ring with the ring coupling), or at the end of the channel the tip
-        has cut while the tip lies behind it (``InstrumentState.channel_end``: the row then holds the
-        tip's distance to it, and the tip cuts only beyond it); none outside insertion, while the tip is
+        has cut while the tip lies behind it on the needle's line, within the needle's radius of it
+        (``InstrumentState.channel_end``: the row then holds the tip's distance to it, and the tip cuts only
+        beyond it); none outside insertion, while the tip is
         outside the tissue, or once its channel runs through the tissue (the tip left through a far face:
         moved back into the tissue, it meets no tissue left to cut on that path)."""
         spec = self.insertion
@@ -358,7 +359,12 @@ class Detector:
                 return None
             end = np.asarray(barycentric) @ geometry.tissue_previous[geometry.mesh_tets[tet]]
             needle = geometry.needle_previous
-            ahead = float((end - needle.tip) @ needle.tip_tangent)
+            offset = end - needle.tip
+            ahead = float(offset @ needle.tip_tangent)
+            if np.linalg.norm(offset - ahead * needle.tip_tangent) > self.needle_radius:
+                # Turned out of its channel (the channel's end off the needle's line by more than its
+                # radius): the tip meets intact tissue, its own material point's.
+                tet, barycentric, ahead = state.tip_tet, state.tip_barycentric, None
         ring = self.tip_ring(state, geometry, (tet, barycentric)) if self.ring else (None, None)
         block, _, _ = tip_cutting_block(
             geometry,

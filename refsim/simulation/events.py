@@ -6,10 +6,11 @@
   every d_i behind the tip, but none in an existing cut
 - phase: insertion; event: (tip location); when: every step; then: the tip's material point (its tet and
   barycentric coordinates) is stored in the state; the tip's cutting row exists while the tip lies in a tet
-- phase: insertion; event: (channel end); when: the tip lies behind the deepest material point it reached
-  (moved back along its channel), or left through a far face; then: that point is kept as the channel's end
-  and the tip's cutting row acts there, from the tip's distance to it: the tip moves freely through its own
-  channel and cuts again only beyond its end
+- phase: insertion; event: (channel end); when: the tip's row below f_cut (it did not cut) and the tip
+  behind the deepest material point it reached (moved back along its channel); then: that point is kept as
+  the channel's end and the tip's cutting row acts there, from the tip's distance to it: the tip moves
+  freely through its own channel and cuts again only beyond its end; after an exit the channel runs
+  through the tissue and the tip has no row on that path
 - phase: insertion; event: exit; when: the tip, inside the tissue at the step's start, lies in no tet at its
   end, having moved forward through the tissue (along the needle, relative to its material point: a tip
   pulled back out through its entry face is a withdrawal); then: no tip row from the next step; the shaft
@@ -329,25 +330,26 @@ class EventRules:
         step's ``rows`` and ``multipliers``.
 
         The end is the deepest material point the tip reached: the tip's own (its material point at the
-        step's start) while it cuts (its row at f_cut) or rests there, kept once the tip, its row below f_cut
-        (it did not cut: moved back, or stuck), lies behind it along the needle, until the tip reaches it
-        again. A tip at rest whose row stays at f_cut keeps its own point (the tissue's transient may move
-        it by round-off either way). The tissue behind the end is already cut:
-        a needle pushed in again along its channel meets the channel's friction alone until its tip is at
-        the end (Okamura, Simone and O'Leary, IEEE TBME 51(10), 2004, measured the friction of a needle
-        re-inserted into its own hole with no cutting force). A channel the tip cut through to a far face
-        (the event exit, :data:`THROUGH`) has no end: it stays so until the needle is withdrawn.
+        step's start) while it cuts (its row at f_cut) or rests there, kept while the tip, its row below f_cut
+        (it did not cut: moved back, or stuck), lies behind it along the needle; a tip that cut in the step
+        (at the end, or turned out of its channel into intact tissue) has its own point as the end again,
+        and so has a tip at rest whose row stays at f_cut (the tissue's transient may move it by round-off
+        either way). The tissue behind the end is already cut: a needle pushed in again along its channel
+        meets the channel's friction alone until its tip is at the end (Okamura, Simone and O'Leary, IEEE
+        TBME 51(10), 2004, measured the friction of a needle re-inserted into its own hole with no cutting
+        force). A channel the tip cut through to a far face (the event exit, :data:`THROUGH`) has no end: it
+        stays so until the needle is withdrawn.
         """
         end = state.channel_end
         if end is not None and end[0] < 0:
             return end
+        if state.tip_tet < 0 or self.insertion.tip_cutting_force <= 0.0:
+            return None
+        tip_rows = rows.rows_of(TIP)
+        strength = (1.0 - STICK_TOLERANCE) * self.insertion.tip_cutting_force
+        if tip_rows.size == 0 or float(multipliers[tip_rows].sum()) >= strength:
+            return None  # it cut (or had no row): its own point is the end
         if end is None:
-            if state.tip_tet < 0 or self.insertion.tip_cutting_force <= 0.0:
-                return None
-            tip_rows = rows.rows_of(TIP)
-            strength = (1.0 - STICK_TOLERANCE) * self.insertion.tip_cutting_force
-            if tip_rows.size == 0 or float(multipliers[tip_rows].sum()) >= strength:
-                return None  # it cut (or had no row): its own point is the end
             end = (state.tip_tet, state.tip_barycentric)
         if tip_tet < 0:
             return end

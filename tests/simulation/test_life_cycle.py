@@ -31,7 +31,9 @@ The life-cycle matrix (stage: where it is tested; the cases beyond the first of 
 - reverse at depth: insert, pull back part of the way, push in again beyond the first depth:
   ``test_a_needle_pushed_in_again_along_its_channel_cuts_only_beyond_its_deepest_point`` (vertical and 30°;
   rigid and flexible; Gauss–Seidel, exact, the fast compliance); through a thin layer, back into it and out
-  again: ``test_a_needle_moved_back_into_a_layer_it_crossed_meets_only_friction_in_its_channel``; the fast
+  again: ``test_a_needle_moved_back_into_a_layer_it_crossed_meets_only_friction_in_its_channel``; pulled
+  back, turned 20° and pushed into intact tissue beside its channel:
+  ``test_a_needle_steered_out_of_its_channel_cuts_the_intact_tissue_beside_it``; the fast
   compliance's events through a reversal, a withdrawal and a second insertion against the exact strategy's:
   ``tests/simulation/test_fast_mode.py``;
 - pull straight back out through the entry face: ``test_a_needle_pulled_back_out_is_withdrawn_not_exited``
@@ -895,3 +897,38 @@ def test_a_needle_pulled_back_out_is_withdrawn_not_exited(direction, needle, sol
     assert names == ["puncture", "withdrawal"], names
     out = next(r.step for r in records if any(e.name == "withdrawal" for e in r.events))
     assert all(not np.any(r.needle_force) for r in records if r.step > out)
+
+
+def test_a_needle_steered_out_of_its_channel_cuts_the_intact_tissue_beside_it():
+    # The cube on 4³ cells, a needle 4 cm long of 0.5 mm radius: inserted 6 mm vertically, pulled back to
+    # 3 mm, turned 20° about its tip (in the xz plane) and pushed 6 mm along its new direction. Expected:
+    # wherever the tip is farther than the needle's radius from the line of its first channel, the tissue it
+    # meets is intact, and it cuts there at f_cut (the end of the first channel, 1 mm off the new line, is
+    # not where this tip's channel ends); before it reaches the first channel's end it moves freely only
+    # through that channel.
+    entry = np.array([*ENTRY, TOP])
+    down, turned = (
+        np.array([0.0, 0.0, -1.0]),
+        np.array([np.sin(np.radians(20.0)), 0.0, -np.cos(np.radians(20.0))]),
+    )
+    length = 0.04
+    tips = [(0.0, -0.002, down), (0.3, 0.006, down), (0.45, 0.003, down), (0.65, 0.003, turned)]
+    poses = [(t, entry + depth * down, d) for t, depth, d in tips] + [
+        (0.95, entry + 0.003 * down + 0.006 * turned, turned)
+    ]
+    fmt = lambda v: "[" + ", ".join(repr(float(c)) for c in v) + "]"  # noqa: E731
+    scene, records = _run(
+        "time.dt=0.005",
+        "needle.radius=0.0005",
+        f"needle.length={length}",
+        f"trajectory.times={fmt([t for t, _, _ in poses])}",
+        "trajectory.base_positions=[" + ", ".join(fmt(tip - length * d) for _, tip, d in poses) + "]",
+        "trajectory.directions=[" + ", ".join(fmt(d) for _, _, d in poses) + "]",
+        f"time.duration={poses[-1][0]}",
+    )
+    f_cut, radius = scene.insertion.tip_cutting_force, scene.needle.radius
+    off = [r for r in records if np.linalg.norm(r.needle_positions[-1, :2] - entry[:2]) > radius]
+    assert len(off) > 20
+    assert all(float(r.row_forces[r.row_role == TIP].sum()) == pytest.approx(f_cut, rel=1e-5) for r in off)
+    back = [r for r in records if 0.3 + 0.01 < r.time <= 0.45 + 1e-9]
+    assert back and all(not np.any(r.row_forces[r.row_role == TIP]) for r in back)
