@@ -744,6 +744,7 @@ def tip_cutting_block(
     cutting_force: float,
     tissue_nodes: np.ndarray | None = None,
     tissue_weights: np.ndarray | None = None,
+    ahead: float | None = None,
 ) -> tuple[RowBlock, np.ndarray, np.ndarray]:
     """The tip's cutting row after puncture: one row along the needle at the tip, its force in [0, f_cut].
 
@@ -757,6 +758,13 @@ def tip_cutting_block(
     material point alone, the ring around the tip with the ring coupling (:func:`ring_weights`): a point
     load on one material point among ring-averaged rows pushes the mesh asymmetrically, and the lateral
     rows then carry a lateral force a straight symmetric insertion does not have.
+
+    ``ahead`` [m]: the material point is the end of the channel the tip has cut, this far ahead of the tip
+    along the needle at the step's start (a tip moved back along its channel; the caller measures it from
+    the material point itself, e = tᵀ(x_point − x_tip), not from the ring, whose points around the tip are
+    displaced less by its load): the row's gap starts from it, so the tip moves forward freely through its
+    channel and cuts (at f_cut) only beyond its end. None: the point is where the tip is (e = 0 up to
+    round-off), and the gap is the relative displacement over the step alone.
 
     Returns
     -------
@@ -775,6 +783,7 @@ def tip_cutting_block(
     # the tissue point at the start of the step and after free motion, interpolated once for the row's gap
     # and its point
     tissue_before, tissue_now = geometry.tissue_points(nodes, weights)
+    offsets = None if ahead is None else np.array([float(ahead)])
     rows = friction_rows(
         geometry,
         tissue_nodes=nodes,
@@ -783,6 +792,7 @@ def tip_cutting_block(
         tangents=direction,
         tissue_free_points=tissue_now,
         tissue_previous_points=tissue_before,
+        offsets=offsets,
     )
     block = RowBlock(
         jacobians=rows.jacobians,

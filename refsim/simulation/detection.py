@@ -223,12 +223,14 @@ class Detector:
             self._compliance_memo = (key, diagonal.copy())
         return diagonal
 
-    def tip_ring(self, state: InstrumentState, geometry: StepGeometry) -> tuple[np.ndarray, np.ndarray]:
+    def tip_ring(
+        self, state: InstrumentState, geometry: StepGeometry, point: tuple[int, np.ndarray] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The tip cutting row's tissue side with the ring coupling: the ring of material points around the
-        tip's material point, normal to the needle at the tip (nodes and weights, shape (1, k) each)."""
-        tip = InsertionPath(
-            np.array([state.tip_tet]), np.asarray(state.tip_barycentric).reshape(1, 4), np.zeros(1, np.int64)
-        )
+        tip's material point (or ``point``: a tet and barycentric coordinates), normal to the needle at the
+        tip (nodes and weights, shape (1, k) each)."""
+        tet, barycentric = (state.tip_tet, state.tip_barycentric) if point is None else point
+        tip = InsertionPath(np.array([tet]), np.asarray(barycentric).reshape(1, 4), np.zeros(1, np.int64))
         tangent = geometry.needle_previous.tangents(np.array([geometry.needle_previous.length]))
         rings = RingLayout.around(
             tip,
@@ -340,19 +342,38 @@ class Detector:
 
     def tip_row(self, state: InstrumentState, geometry: StepGeometry) -> RowBlock | None:
         """The tip's cutting row after puncture (``insertion.tip_cutting_force`` > 0), against the tissue's
-        material point at the tip (its ring with the ring coupling); none outside insertion or once the tip
-        has left the tissue through a face."""
+        material point at the tip (its ring with the ring coupling), or at the end of the channel the tip
+        has cut while the tip lies behind it on the needle's line, within the needle's radius of it
+        (``InstrumentState.channel_end``: the row then holds the tip's distance to it, and the tip cuts only
+        beyond it); none outside insertion, while the tip is
+        outside the tissue, or once its channel runs through the tissue (the tip left through a far face:
+        moved back into the tissue, it meets no tissue left to cut on that path)."""
         spec = self.insertion
         if not (spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION and state.tip_tet >= 0):
             return None
-        ring = self.tip_ring(state, geometry) if self.ring else (None, None)
+        tet, barycentric = (state.tip_tet, state.tip_barycentric)
+        ahead = None
+        if state.channel_end is not None:
+            tet, barycentric = state.channel_end
+            if tet < 0:  # cut through to a far face (events.THROUGH): nothing left to cut on this path
+                return None
+            end = np.asarray(barycentric) @ geometry.tissue_previous[geometry.mesh_tets[tet]]
+            needle = geometry.needle_previous
+            offset = end - needle.tip
+            ahead = float(offset @ needle.tip_tangent)
+            if np.linalg.norm(offset - ahead * needle.tip_tangent) > self.needle_radius:
+                # Turned out of its channel (the channel's end off the needle's line by more than its
+                # radius): the tip meets intact tissue, its own material point's.
+                tet, barycentric, ahead = state.tip_tet, state.tip_barycentric, None
+        ring = self.tip_ring(state, geometry, (tet, barycentric)) if self.ring else (None, None)
         block, _, _ = tip_cutting_block(
             geometry,
-            tip_tet=state.tip_tet,
-            tip_barycentric=state.tip_barycentric,
+            tip_tet=tet,
+            tip_barycentric=barycentric,
             cutting_force=spec.tip_cutting_force,
             tissue_nodes=ring[0],
             tissue_weights=ring[1],
+            ahead=ahead,
         )
         return block
 

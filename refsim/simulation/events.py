@@ -6,8 +6,15 @@
   every d_i behind the tip, but none in an existing cut
 - phase: insertion; event: (tip location); when: every step; then: the tip's material point (its tet and
   barycentric coordinates) is stored in the state; the tip's cutting row exists while the tip lies in a tet
+- phase: insertion; event: (channel end); when: the tip's row below f_cut (it did not cut) and the tip
+  behind the deepest material point it reached (moved back along its channel); then: that point is kept as
+  the channel's end and the tip's cutting row acts there, from the tip's distance to it: the tip moves
+  freely through its own channel and cuts again only beyond its end; after an exit the channel runs
+  through the tissue and the tip has no row on that path
 - phase: insertion; event: exit; when: the tip, inside the tissue at the step's start, lies in no tet at its
-  end (it left through a far face); then: no tip row from the next step; the shaft keeps its points
+  end, having moved forward through the tissue (along the needle, relative to its material point: a tip
+  pulled back out through its entry face is a withdrawal); then: no tip row from the next step; the shaft
+  keeps its points
 - phase: insertion; event: retraction; when: points lie beyond the tip; then: they are removed
 - phase: insertion; event: withdrawal; when: no point is left; then: approach
 - phase: insertion; event: cut_start; when: energy law: ‖t‖ ≥ G_c L_in; paper law (equation 3): ‖t‖ > n_i f_c;
@@ -45,6 +52,7 @@ from refsim.constraints import (
     INSERTION,
     PENETRATION,
     SLIDING,
+    TIP,
     UNILATERAL,
     InsertionPath,
     grow_path,
@@ -101,6 +109,11 @@ def shaft_lateral_force(
 PUNCTURE_TOLERANCE = 1e-6
 #: Barycentric tolerance of the tip's location among the tets around its last one (the locator's default).
 TIP_TOLERANCE = 1e-12
+
+#: The channel end of a tip that cut through the tissue and left it through a far face (the event exit):
+#: the tissue along its channel is cut through, and its tip's cutting row does not come back while the
+#: needle stays on that path (``InstrumentState.channel_end``).
+THROUGH = (-1, None)
 
 #: A cut face's friction row sticks when its force is below its bound by more than this fraction of it (far
 #: above the solve's 10⁻⁸, as for the shaft's rows: `refsim.constraints.coupling.stuck_points`).
@@ -288,13 +301,60 @@ class EventRules:
             events.append(Event("retraction"))
         # The tip's material state: the tet it lies in, or outside (it left the tissue through a face).
         tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet, locator)
-        if state.tip_tet >= 0 and tip_tet < 0 and path.point_count:
+        channel_end = self._channel_end(state, positions, needle, tip_tet, rows, multipliers)
+        if path.point_count and self._exits(state, positions, needle, tip_tet):
             events.append(Event("exit"))
-        state = evolved(state, path=path, tip_tet=tip_tet, tip_barycentric=tip_barycentric)
+            channel_end = THROUGH
+        state = evolved(
+            state, path=path, tip_tet=tip_tet, tip_barycentric=tip_barycentric, channel_end=channel_end
+        )
         if path.point_count == 0:
-            state = evolved(state, phase=Phase.APPROACH, tip_tet=-1, tip_barycentric=None)
+            state = evolved(state, phase=Phase.APPROACH, tip_tet=-1, tip_barycentric=None, channel_end=None)
             events.append(Event("withdrawal"))
         return world, state, events
+
+    def _exits(self, state, positions, needle, tip_tet: int) -> bool:
+        """Whether the tip, inside the tissue at the step's start (``state``), left it through a far face in
+        the step: it lies in no tet now (``tip_tet`` −1, on the corrected ``positions``) and moved forward
+        through the tissue (along the needle, relative to its material point at the step's start). A tip
+        pulled back out through the face it entered by (in the step before its last insertion point is
+        released, the ring's release margin behind it) is a withdrawal, not an exit."""
+        if not (state.tip_tet >= 0 and tip_tet < 0 and state.tip_barycentric is not None):
+            return False
+        where = state.tip_barycentric @ positions[self.tets[state.tip_tet]]
+        return float((needle.tip - where) @ needle.tip_tangent) > 0.0
+
+    def _channel_end(self, state, positions, needle, tip_tet: int, rows, multipliers):
+        """The end of the channel the tip has cut (``InstrumentState.channel_end``) after a step whose tip
+        lies in ``tip_tet`` (−1: outside), on the step's corrected ``positions`` and ``needle``, with the
+        step's ``rows`` and ``multipliers``.
+
+        The end is the deepest material point the tip reached: the tip's own (its material point at the
+        step's start) while it cuts (its row at f_cut) or rests there, kept while the tip, its row below f_cut
+        (it did not cut: moved back, or stuck), lies behind it along the needle; a tip that cut in the step
+        (at the end, or turned out of its channel into intact tissue) has its own point as the end again,
+        and so has a tip at rest whose row stays at f_cut (the tissue's transient may move it by round-off
+        either way). The tissue behind the end is already cut: a needle pushed in again along its channel
+        meets the channel's friction alone until its tip is at the end (Okamura, Simone and O'Leary, IEEE
+        TBME 51(10), 2004, measured the friction of a needle re-inserted into its own hole with no cutting
+        force). A channel the tip cut through to a far face (the event exit, :data:`THROUGH`) has no end: it
+        stays so until the needle is withdrawn.
+        """
+        end = state.channel_end
+        if end is not None and end[0] < 0:
+            return end
+        if state.tip_tet < 0 or self.insertion.tip_cutting_force <= 0.0:
+            return None
+        tip_rows = rows.rows_of(TIP)
+        strength = (1.0 - STICK_TOLERANCE) * self.insertion.tip_cutting_force
+        if tip_rows.size == 0 or float(multipliers[tip_rows].sum()) >= strength:
+            return None  # it cut (or had no row): its own point is the end
+        if end is None:
+            end = (state.tip_tet, state.tip_barycentric)
+        if tip_tet < 0:
+            return end
+        where = end[1] @ positions[self.tets[end[0]]]
+        return end if float((where - needle.tip) @ needle.tip_tangent) > 0.0 else None
 
     def locate_tip(
         self, positions: np.ndarray, tip: np.ndarray, hint: int, locator: LazyLocator | None = None
@@ -395,6 +455,7 @@ class EventRules:
             cut_direction=np.asarray(direction, dtype=float),
             cut_strip=strip,
             path=state.path.subset(self.law.kept_at_cut_start(state.path.point_count)),
+            channel_end=None,
         )
         return world, state, [Event("cut_start", start.trigger, start.unit)]
 
@@ -415,7 +476,9 @@ class EventRules:
             path = self._outside_cut(path, world, positions)
         events = [Event("leave_cut")]
         if path.point_count == 0:
-            state = evolved(state, phase=Phase.APPROACH, path=path, cut_strip=None, tip_tet=-1)
+            state = evolved(
+                state, phase=Phase.APPROACH, path=path, cut_strip=None, tip_tet=-1, channel_end=None
+            )
             return world, state, [*events, Event("withdrawal")]
         tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, -1, locator)
         state = evolved(
@@ -425,6 +488,7 @@ class EventRules:
             cut_strip=None,
             tip_tet=tip_tet,
             tip_barycentric=tip_barycentric,
+            channel_end=None,
         )
         return world, state, events
 
@@ -457,7 +521,9 @@ class EventRules:
             # The tip is back above the entry point: every row is released; the tissue keeps its cut, up to
             # the crack tip.
             world = evolved(world, cut=recorded_surface(world.cut, state.cut_strip, world.step))
-            state = evolved(state, phase=Phase.APPROACH, path=InsertionPath.empty(), cut_strip=None)
+            state = evolved(
+                state, phase=Phase.APPROACH, path=InsertionPath.empty(), cut_strip=None, channel_end=None
+            )
             return world, state, [Event("retraction"), Event("withdrawal")]
         events: list[Event] = []
         cutting = self.cutting
@@ -465,11 +531,8 @@ class EventRules:
         # still cuts along the part in the tissue). Only forward through the tissue: a tip pulled back out
         # through the face it entered by (on the step before the entry point is beyond it) is a withdrawal.
         tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet, step_locator)
-        if state.tip_tet >= 0 and tip_tet < 0 and state.tip_barycentric is not None:
-            where = state.tip_barycentric @ positions[self.tets[state.tip_tet]]
-            tangent = needle.tip_tangent
-            if float((needle.tip - where) @ tangent) > 0.0:
-                events.append(Event("exit"))
+        if self._exits(state, positions, needle, tip_tet):
+            events.append(Event("exit"))
         state = evolved(state, tip_tet=tip_tet, tip_barycentric=tip_barycentric)
         if state.cut_strip is not None and world.cut is not None:
             # Moved back through its own cut and past the line it entered along (the strip's first layer, its

@@ -59,6 +59,11 @@ class InstrumentState:
     tip_tet : The tissue tet its tip lies in after the step, −1 when the tip is outside the tissue (before
         puncture, after an exit through a far face or a withdrawal).
     tip_barycentric : The tip's barycentric coordinates in ``tip_tet``, shape (4,); None when outside.
+    channel_end : The end of the channel its tip has cut in insertion, while the tip lies behind it (moved
+        back along the channel): that material point's tet and barycentric coordinates, shape (4,); the
+        tip's cutting row acts there, so that the tip cuts again only beyond it. None while the tip is at
+        the channel's end (its own material point is the end); (−1, None) once the tip has cut through to
+        a far face (the event exit: no tip row on this path until the needle is withdrawn).
     entry_span : Where its needle enters the tissue and where its inserted part ends in this state's
         configuration [m] (the arc lengths of :func:`refsim.constraints.cut.inserted_span` at the cut's
         spacing), when the step's events located them
@@ -76,6 +81,7 @@ class InstrumentState:
     cut_strip: CutStrip | None = None
     tip_tet: int = -1
     tip_barycentric: np.ndarray | None = None
+    channel_end: tuple[int, np.ndarray | None] | None = None
     entry_span: tuple[float, float] | None = None
     cut_face_stretch: FaceStretch | None = None
 

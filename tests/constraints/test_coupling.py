@@ -437,6 +437,50 @@ def test_tip_cutting_row_is_the_friction_row_of_the_tip_point():
     np.testing.assert_array_equal(block.points, geometry.tissue_points(nodes, weights)[1])
 
 
+def test_tip_cutting_row_at_a_channel_end_ahead_frees_the_tip_up_to_it():
+    # The row at the end of the channel the tip cut, 1 mm ahead of a tip moved back (``ahead``): its gap
+    # starts from the tip's distance to that point along the needle, so the tip advances 0.6 mm freely
+    # (λ = 0, gap 0.4 mm left) and 1.5 mm only by cutting the 0.5 mm beyond the end (λ = f_cut); the row of
+    # the tip's own material point (no ``ahead``, the point where the tip is) measures the advance alone.
+    model, needle, centres, spacing, h = _needle_in_box(cells=4, angle_deg=0.0)
+    rest = model.rest_positions
+    back = 1e-3
+    tet, bary = TetLocator(rest, model.tets).locate(needle.tip[None])
+    moved = RigidNeedleGeometry(
+        base=needle.base - back * needle.direction, direction=needle.direction, length=needle.length
+    )
+    system = model.step_system(np.broadcast_to(np.eye(3), (model.tet_count, 3, 3)), dt=1e3)
+    f_cut = 0.5
+    for advance, expected in ((0.6e-3, 0.0), (1.5e-3, f_cut)):
+        geometry = StepGeometry(
+            mesh_tets=model.tets,
+            tissue_previous=rest,
+            tissue_free=rest,
+            needle_previous=moved,
+            needle_free=RigidNeedleGeometry(
+                base=moved.base + advance * moved.direction, direction=moved.direction, length=moved.length
+            ),
+        )
+        block, lower, upper = coupling.tip_cutting_block(
+            geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0], cutting_force=f_cut, ahead=back
+        )
+        assert block.free_gap[0] == pytest.approx(back - advance, rel=1e-9)
+        plain, _, _ = coupling.tip_cutting_block(
+            geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0], cutting_force=f_cut
+        )
+        assert plain.free_gap[0] == pytest.approx(-advance, rel=1e-9)
+        compliance, _ = system.compliance(block.jacobians[TISSUE_BODY])
+        problem = ConstraintProblem(
+            compliance=compliance,
+            free_gap=block.free_gap,
+            box_rows=np.array([0]),
+            box_lower=lower,
+            box_upper=upper,
+        )
+        for solver in (solve_gauss_seidel, solve_exact):
+            assert solver(problem, tolerance=1e-12)[0][0] == pytest.approx(expected, abs=1e-12, rel=1e-9)
+
+
 # --------------------------------------------------------------------------- puncture within the step (5)
 @pytest.mark.parametrize("dt", [1e-3, 1e-2, 5e-2])
 @pytest.mark.parametrize("speed", [1e-3, 1e-2, 5e-2])

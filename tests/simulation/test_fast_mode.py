@@ -39,3 +39,32 @@ def test_fast_mode_has_the_exact_events_and_forces_within_two_percent_of_the_pea
     # It is an approximation: the forces are not the exact ones (a strategy that silently fell back to exact
     # would pass the bound above).
     assert error > 1e-9 * peak
+
+
+def test_fast_mode_has_the_exact_events_through_a_reversal_a_withdrawal_and_a_second_insertion(cube_scene):
+    # The life beyond the insertion (tests/simulation/test_life_cycle.py): tilted 30° in the xz plane,
+    # inserted 6 mm along the needle at dt = 20 ms, pulled back 4 mm (its tip back along its channel),
+    # pushed in to 8 mm (the tip cuts again beyond 6 mm), pulled out to 2 mm above the surface, moved 25 mm
+    # along x in the air and inserted 6 mm again. Expected as above: the exact strategy's events at the same
+    # steps (puncture, retractions, withdrawal, the second puncture) and forces within 2 % of the peak.
+    axis = np.array([0.5, 0.0, -np.sqrt(3.0) / 2.0])
+    entry = np.array([0.00123, 0.00231, 0.1])
+    knots = [(0.0, 0.0, -0.002), (0.4, 0.0, 0.006), (0.6, 0.0, 0.002), (0.9, 0.0, 0.008), (1.4, 0.0, -0.002)]
+    knots += [(1.8, 0.025, -0.002), (2.2, 0.025, 0.006)]
+    bases = [entry + [shift, 0.0, 0.0] + (depth - 0.32) * axis for _, shift, depth in knots]
+    fmt = lambda v: "[" + ", ".join(repr(float(c)) for c in v) + "]"  # noqa: E731
+    path = (
+        "mesh.cells=[4, 4, 4]",
+        "time.dt=0.02",
+        f"trajectory.times={fmt([t for t, _, _ in knots])}",
+        "trajectory.base_positions=[" + ", ".join(fmt(b) for b in bases) + "]",
+        "trajectory.directions=[" + ", ".join(fmt(axis) for _ in knots) + "]",
+        f"time.duration={knots[-1][0]}",
+    )
+    exact_forces, exact_events = _run(cube_scene(*path))
+    fast_forces, fast_events = _run(cube_scene(*path, 'compliance.strategy="fast"'))
+    names = [name for _, name in exact_events if name != "retraction"]
+    assert names == ["puncture", "withdrawal", "puncture"], names
+    assert fast_events == exact_events
+    peak = np.linalg.norm(exact_forces, axis=1).max()
+    assert np.linalg.norm(fast_forces - exact_forces, axis=1).max() <= 0.02 * peak
