@@ -718,8 +718,8 @@ def channel_preload(grip: float, lateral_previous: np.ndarray) -> np.ndarray | f
     pressure around the needle (p₀ + F/(π r d_i) cos θ, whose magnitude integrates to g while it stays ≥ 0):
     the normal force is g until the lateral load opens the channel behind the needle, and the lateral force
     alone beyond (the paper's law, g = 0). Adding the two counted the lateral load twice; on the ring
-    coupling's lateral multipliers, which carry the mesh's lateral error of a straight insertion and grow under
-    refinement, that doubled count grew the shaft friction with the mesh (docs/coupling.md).
+    coupling's lateral multipliers, which carry the mesh's lateral error of a straight insertion and grow
+    under refinement, that doubled count grew the shaft friction with the mesh (docs/coupling.md).
 
     The solvers' law keeps its additive form: ‖λ_lat‖ is the point's lateral force at its last solve
     (``lateral_previous``, shape (p,), 0 for a new point), so the bound is μ max(g, ‖λ_lat‖) to the change of

@@ -2,13 +2,13 @@
 interference pressure around the needle, it does not add to it (refsim.constraints.coupling.channel_preload).
 
 Reference: the reference case ``insertion`` (the paper's 8 mm needle, δ_r = 20 µm, μ = 0.1, f_cut = 0.5 N)
-refined as its levels are (d_i = 6.8 mm/cells, dt = 0.05 s/cells). Every point slips during the insertion, so
-the shaft's friction is μ g n (g = 2π r p₀ d_i, Lamé's p₀ = 2 G δ_r / r; n the points), the Coulomb force of the
-grip. Its lateral multipliers are the mesh's lateral error of a straight symmetric insertion: the norm of
-their sum over the points grows under refinement (μ Σ‖λ_lat‖ at 8 mm deep: 0.4 %, 0.6 %, 1.0 % of the friction
-on 5, 7, 9 cells; per metre of shaft 0.18, 0.26, 0.46, 0.81, 1.44, 2.87 N/m on 5 … 17 cells). Counted in the
-bound on top of the grip (μ (‖λ_lat‖ + g), before), they made the shaft friction grow with the mesh and the
-fine level of the case diverge.
+refined as its levels are (d_i = 6.8 mm/cells, dt = 0.05 s/cells). Every point slips during the insertion,
+so the shaft's friction is μ g n (g = 2π r p₀ d_i, Lamé's p₀ = 2 G δ_r / r; n the points), the Coulomb force
+of the grip. Its lateral multipliers are the mesh's lateral error of a straight symmetric insertion: the sum
+of their norms grows under refinement (μ Σ‖λ_lat‖ at 8 mm deep: 0.4 %, 0.6 %, 1.0 % of the friction on 5, 7,
+9 cells; Σ‖λ_lat‖ per metre of shaft 0.18, 0.26, 0.46, 0.81, 1.44, 2.87 N/m on 5 … 17 cells). Counted in
+the bound on top of the grip (μ (‖λ_lat‖ + g), before), they made the shaft friction grow with the mesh and
+the fine level of the case diverge.
 """
 
 from __future__ import annotations
