@@ -78,6 +78,7 @@ __all__ = [
     "insertion_compliance",
     "interference_pressure",
     "grip_preload",
+    "channel_preload",
     "shaft_friction_coefficients",
     "stuck_points",
     "tip_cutting_block",
@@ -706,6 +707,27 @@ def grip_preload(
         outer_radius=outer_radius,
     )
     return 2.0 * math.pi * radius * pressure * spacing
+
+
+def channel_preload(grip: float, lateral_previous: np.ndarray) -> np.ndarray | float:
+    """The preload p of each point's shaft Coulomb bound μ (‖λ_lat‖ + p) [N] that makes its normal force the
+    grip's while the channel stays closed: p = max(g − ‖λ_lat‖, 0), so the bound is μ max(g, ‖λ_lat‖).
+
+    The grip g = 2π r p₀ d_i (:func:`grip_preload`) is the resultant of the channel's interference pressure
+    p₀ over the point's length; a lateral force F on the point does not add to it but redistributes the
+    pressure around the needle (p₀ + F/(π r d_i) cos θ, whose magnitude integrates to g while it stays ≥ 0):
+    the normal force is g until the lateral load opens the channel behind the needle, and the lateral force
+    alone beyond (the paper's law, g = 0). Adding the two counted the lateral load twice; on the ring
+    coupling's lateral multipliers, which carry the mesh's lateral error of a straight insertion and grow
+    under refinement, that doubled count grew the shaft friction with the mesh (docs/coupling.md).
+
+    The solvers' law keeps its additive form: ‖λ_lat‖ is the point's lateral force at its last solve
+    (``lateral_previous``, shape (p,), 0 for a new point), so the bound is μ max(g, ‖λ_lat‖) to the change of
+    the lateral force over one step. g = 0 gives 0 (the paper's law) whatever the lateral forces.
+    """
+    if grip == 0.0:
+        return grip
+    return np.maximum(grip - np.asarray(lateral_previous, dtype=float), 0.0)
 
 
 # ------------------------------------------------------------------ friction, tip cutting force, puncture

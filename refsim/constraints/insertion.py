@@ -303,7 +303,7 @@ def insertion_block(
     geometry: StepGeometry,
     *,
     friction_coefficient: float | np.ndarray | None = None,
-    normal_preload: float = 0.0,
+    normal_preload: float | np.ndarray = 0.0,
     options: InsertionOptions | None = None,
 ) -> RowBlock:
     """Rows of the insertion points: per point two bilateral rows and, when μ_i > 0, one shaft friction row.
@@ -312,8 +312,9 @@ def insertion_block(
     :func:`shaft_friction_coefficients`); the friction rows exist when any is > 0. None: from ``options``
     (:meth:`InsertionOptions.friction`), the scene's ``[insertion]`` keys.
 
-    ``normal_preload`` [N] (≥ 0, finite) is added to the norm of each point's two lateral forces in its
-    Coulomb bound: μ_i (‖(λ_b1, λ_b2)‖ + normal_preload); the scene sets it to shaft_normal_force × d_i.
+    ``normal_preload`` [N] (≥ 0, finite; a scalar or one per point, shape (p,)) is added to the norm of each
+    point's two lateral forces in its Coulomb bound: μ_i (‖(λ_b1, λ_b2)‖ + normal_preload); the detector sets
+    it from the grip (:func:`refsim.constraints.coupling.channel_preload`).
 
     The needle point of each tissue point is its projection on the needle at the start of the step (a material
     point of the needle for this step); the friction row (built by
@@ -321,10 +322,11 @@ def insertion_block(
     position from its stick anchor (``path.anchors``, :func:`refsim.constraints.friction.stick_offsets`).
     Rows are ordered point by point: (lateral 1, lateral 2[, axial]), and carry their roles and points.
     """
-    if not (np.isfinite(normal_preload) and normal_preload >= 0.0):
-        raise ValueError(f"normal_preload = {normal_preload!r} N; valid range [0, inf)")
     friction_coefficient = _friction_of(path, friction_coefficient, options)
     point_count = path.point_count
+    preload = np.broadcast_to(np.asarray(normal_preload, dtype=float), (point_count,))
+    if np.any(~np.isfinite(preload)) or np.any(preload < 0.0):
+        raise ValueError(f"normal_preload = {normal_preload!r} N; valid range [0, inf)")
     nodes = geometry.mesh_tets[path.tets]
     weights = path.barycentric
     tissue_point_previous, tissue_point_free = geometry.tissue_points(nodes, weights)
@@ -381,7 +383,7 @@ def insertion_block(
         shaft_rows=(base + 2) if with_friction else np.zeros(0, dtype=np.int64),
         shaft_pairs=np.stack([base, base + 1], axis=1) if with_friction else np.zeros((0, 2), dtype=np.int64),
         shaft_friction_coefficient=coefficients.copy() if with_friction else np.zeros(0),
-        shaft_normal_preload=np.full(point_count if with_friction else 0, float(normal_preload)),
+        shaft_normal_preload=preload.copy() if with_friction else np.zeros(0),
         **point_row_metadata(point_count, with_friction, anchors),
     )
 

@@ -441,10 +441,9 @@ class InsertionSpec(_Validated):
         0.0,
         unit="N/m",
         doc="radial force per unit inserted length of the tissue on the needle (its grip, which the "
-        "centreline "
-        "rows do not see), added to the lateral forces in the shaft Coulomb bound: preload f d_i per "
-        "insertion "
-        "point; 0 gives the paper's model",
+        "centreline rows do not see): with the interference's, the grip g = f d_i of each insertion point, "
+        "whose shaft Coulomb bound is μ max(g, ‖λ_lateral‖) (a lateral force redistributes a closed "
+        "channel's pressure, it does not add to it); 0 gives the paper's model",
         low=0.0,
     )
     contact_distance: float = spec(
@@ -495,8 +494,8 @@ class InsertionSpec(_Validated):
         0.0,
         unit="m",
         doc="δ_r: radial interference of the needle in its channel; the grip 2π r p₀ d_i (Lamé, p₀ = 2G "
-        "δ_r/r) is "
-        "added to each point's shaft Coulomb bound, with shaft_normal_force d_i",
+        "δ_r/r), with shaft_normal_force d_i, is the normal force of each point's shaft Coulomb bound while "
+        "its lateral force is smaller (μ max(grip, ‖λ_lateral‖))",
         low=0.0,
     )
     tip_radius: float = spec(

@@ -28,6 +28,7 @@ from refsim.constraints.coupling import (
     AXIAL,
     LATERAL,
     RingLayout,
+    channel_preload,
     grip_preload,
     insertion_compliance,
     local_mesh_size,
@@ -179,8 +180,10 @@ class Detector:
         stiffness model; with the 3-D value on the insertion rows only, cube_cut's needle is held, 27.8 N, and
         cuts 2.3 mm of its 5 mm stroke).
         """
+        # The grip's part of each point's Coulomb bound, less its last lateral force (a closed channel).
+        preload = channel_preload(self.preload, np.hypot(path.multipliers[:, 0], path.multipliers[:, 1]))
         if not self.ring:
-            block = insertion_block(path, geometry, normal_preload=self.preload, options=self.options)
+            block = insertion_block(path, geometry, normal_preload=preload, options=self.options)
             return block, None
         centres_previous = path.positions(geometry.tissue_previous, geometry.mesh_tets)
         arc_lengths, _ = geometry.needle_previous.project(centres_previous)
@@ -189,7 +192,7 @@ class Detector:
             path,
             geometry,
             rings.layout,
-            normal_preload=self.preload,
+            normal_preload=preload,
             options=self.options,
             arc_lengths=arc_lengths,
         )
