@@ -140,6 +140,11 @@ class InsertionPath:
     def empty(cls) -> InsertionPath:
         return cls(np.zeros(0, dtype=np.int64), np.zeros((0, 4)), np.zeros(0, dtype=np.int64))
 
+    @property
+    def lateral_forces(self) -> np.ndarray:
+        """Each point's lateral force at its last solve, ‖(λ_lateral 1, λ_lateral 2)‖ [N], shape (p,)."""
+        return np.hypot(self.multipliers[:, 0], self.multipliers[:, 1])
+
     def with_multipliers(self, multipliers: np.ndarray) -> InsertionPath:
         """The same points with their last multipliers [N], shape (p, k), k ≤ 3 (missing columns are zero)."""
         stored = np.zeros((self.point_count, 3))

@@ -181,7 +181,7 @@ class Detector:
         cuts 2.3 mm of its 5 mm stroke).
         """
         # The grip's part of each point's Coulomb bound, less its last lateral force (a closed channel).
-        preload = channel_preload(self.preload, np.hypot(path.multipliers[:, 0], path.multipliers[:, 1]))
+        preload = channel_preload(self.preload, path.lateral_forces)
         if not self.ring:
             block = insertion_block(path, geometry, normal_preload=preload, options=self.options)
             return block, None

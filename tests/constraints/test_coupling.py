@@ -362,6 +362,21 @@ def test_static_then_dynamic_friction_coefficients():
         coupling.shaft_friction_coefficients(stuck, static=0.1, dynamic=0.2)
 
 
+def _tip_row_forces(system, block, lower, upper) -> tuple[float, list[float]]:
+    """The tip's one box row: its compliance W₀₀ [m/N] and its force [N] by Gauss–Seidel and by the exact
+    solver (tolerance 1e-12)."""
+    compliance, _ = system.compliance(block.jacobians[TISSUE_BODY])
+    problem = ConstraintProblem(
+        compliance=compliance,
+        free_gap=block.free_gap,
+        box_rows=np.array([0]),
+        box_lower=lower,
+        box_upper=upper,
+    )
+    forces = [solver(problem, tolerance=1e-12)[0][0] for solver in (solve_gauss_seidel, solve_exact)]
+    return float(compliance[0, 0]), forces
+
+
 # ------------------------------------------------------------------------------- tip cutting force (item 4)
 def test_tip_cutting_row_sticks_below_and_cuts_at_f_cut():
     model, needle, centres, spacing, h = _needle_in_box(cells=4, angle_deg=0.0)
@@ -385,20 +400,12 @@ def test_tip_cutting_row_sticks_below_and_cuts_at_f_cut():
         block, lower, upper = coupling.tip_cutting_block(
             geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0], cutting_force=f_cut
         )
-        compliance, _ = system.compliance(block.jacobians[TISSUE_BODY])
         assert block.free_gap[0] == pytest.approx(-advance)
-        problem = ConstraintProblem(
-            compliance=compliance,
-            free_gap=block.free_gap,
-            box_rows=np.array([0]),
-            box_lower=lower,
-            box_upper=upper,
-        )
-        for solver in (solve_gauss_seidel, solve_exact):
-            force = solver(problem, tolerance=1e-12)[0][0]
+        compliance, forces = _tip_row_forces(system, block, lower, upper)
+        for force in forces:
             if expected_state == "stick":
                 assert 0.0 < force < f_cut
-                assert force == pytest.approx(advance / compliance[0, 0], rel=1e-6)
+                assert force == pytest.approx(advance / compliance, rel=1e-6)
             elif expected_state == "cut":
                 assert force == pytest.approx(f_cut, rel=1e-9)
             else:
@@ -469,16 +476,8 @@ def test_tip_cutting_row_at_a_channel_end_ahead_frees_the_tip_up_to_it():
             geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0], cutting_force=f_cut
         )
         assert plain.free_gap[0] == pytest.approx(-advance, rel=1e-9)
-        compliance, _ = system.compliance(block.jacobians[TISSUE_BODY])
-        problem = ConstraintProblem(
-            compliance=compliance,
-            free_gap=block.free_gap,
-            box_rows=np.array([0]),
-            box_lower=lower,
-            box_upper=upper,
-        )
-        for solver in (solve_gauss_seidel, solve_exact):
-            assert solver(problem, tolerance=1e-12)[0][0] == pytest.approx(expected, abs=1e-12, rel=1e-9)
+        for force in _tip_row_forces(system, block, lower, upper)[1]:
+            assert force == pytest.approx(expected, abs=1e-12, rel=1e-9)
 
 
 # --------------------------------------------------------------------------- puncture within the step (5)
