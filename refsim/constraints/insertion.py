@@ -319,7 +319,7 @@ def insertion_block(
 
     ``normal_preload`` [N] (≥ 0, finite; a scalar or one per point, shape (p,)) is added to the norm of each
     point's two lateral forces in its Coulomb bound: μ_i (‖(λ_b1, λ_b2)‖ + normal_preload); the detector sets
-    it from the grip (:func:`refsim.constraints.coupling.channel_preload`).
+    it from the grip (:func:`refsim.constraints.channel.channel_preload`).
 
     The needle point of each tissue point is its projection on the needle at the start of the step (a material
     point of the needle for this step); the friction row (built by

@@ -24,19 +24,16 @@ from refsim.constraints import (
     insertion_block,
     penetration_block,
 )
+from refsim.constraints.channel import channel_preload, grip_preload, shaft_contact_block, tip_cutting_block
 from refsim.constraints.coupling import (
     AXIAL,
     LATERAL,
     RingLayout,
-    channel_preload,
-    grip_preload,
     insertion_compliance,
     local_mesh_size,
     ring_insertion_block,
     ring_weights,
-    shaft_contact_block,
     subgrid_compliance,
-    tip_cutting_block,
 )
 from refsim.constraints.cut import FrontRows, inserted_span, strip_cut_block
 from refsim.constraints.insertion import InsertionOptions, InsertionPath, PointRings

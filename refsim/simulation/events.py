@@ -116,7 +116,7 @@ TIP_TOLERANCE = 1e-12
 THROUGH = (-1, None)
 
 #: A cut face's friction row sticks when its force is below its bound by more than this fraction of it (far
-#: above the solve's 10⁻⁸, as for the shaft's rows: `refsim.constraints.coupling.stuck_points`).
+#: above the solve's 10⁻⁸, as for the shaft's rows: `refsim.constraints.channel.stuck_points`).
 STICK_TOLERANCE = 1e-3
 
 
@@ -595,7 +595,7 @@ def _face_stretch(
     """The cut faces' friction rows' stick anchors after the step's solve (the next step's rows start from
     them: `refsim.constraints.friction.FaceStretch`), None without such rows. A row sticks when its force is
     below its bound μ_c |λ| by more than 10⁻³ of it (far above the solve's 10⁻⁸; as the shaft's rows,
-    `refsim.constraints.coupling.stuck_points`)."""
+    `refsim.constraints.channel.stuck_points`)."""
     rows, front = detection.rows, detection.front
     friction, sliding = rows.rows_of(CUT_FRICTION), rows.rows_of(SLIDING)
     arcs = front.slide_arc_lengths

@@ -43,7 +43,7 @@ from refsim.constraints import (
     RowBlock,
     StepGeometry,
 )
-from refsim.constraints.coupling import stuck_points
+from refsim.constraints.channel import stuck_points
 from refsim.fem.compliance import make_strategy
 from refsim.fem.threads import hot_path_threads
 from refsim.scene import Scene

@@ -13,7 +13,7 @@ import math
 import numpy as np
 import scipy.sparse as sp
 
-from refsim.constraints.coupling import interference_pressure
+from refsim.constraints.channel import interference_pressure
 from refsim.fem.tissue import TissueModel
 from refsim.materials import HookeMaterial
 from refsim.solvers import ConstraintProblem, solve_exact, solve_gauss_seidel

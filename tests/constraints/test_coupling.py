@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from refsim.constraints import TISSUE as TISSUE_BODY
-from refsim.constraints import coupling
+from refsim.constraints import channel, coupling
 from refsim.constraints.friction import friction_rows
 from refsim.constraints.insertion import InsertionPath, insertion_block
 from refsim.constraints.needle_geometry import RigidNeedleGeometry
@@ -292,17 +292,17 @@ def test_interference_pressure_is_lame_with_a_clamped_outer_surface():
     # u_r = A ρ + B/ρ: u_r(r) = δ, u_r(R) = 0, solved here as a 2 × 2 system; p = −σ_rr(r).
     a_coef, b_coef = np.linalg.solve([[r, 1 / r], [outer, 1 / outer]], [delta, 0.0])
     sigma_rr = 2 * (lam + G) * a_coef - 2 * G * b_coef / r**2
-    p = coupling.interference_pressure(
+    p = channel.interference_pressure(
         shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta, outer_radius=outer
     )
     assert p == pytest.approx(-sigma_rr, rel=1e-12)
-    infinite = coupling.interference_pressure(shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta)
+    infinite = channel.interference_pressure(shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta)
     assert infinite == pytest.approx(2 * G * delta / r, rel=1e-12)
-    assert coupling.grip_preload(
+    assert channel.grip_preload(
         shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta, spacing=5e-4
     ) == pytest.approx(2 * math.pi * r * infinite * 5e-4)
     with pytest.raises(ValueError, match="interference"):
-        coupling.interference_pressure(shear_modulus=G, poisson_ratio=NU, radius=r, interference=r)
+        channel.interference_pressure(shear_modulus=G, poisson_ratio=NU, radius=r, interference=r)
 
 
 @pytest.mark.parametrize("solver", [solve_gauss_seidel, solve_exact], ids=["gauss_seidel", "exact"])
@@ -311,7 +311,7 @@ def test_pullout_force_grows_at_mu_2pi_r_p_per_metre_and_does_not_lock(solver):
     # μ 2π r p₀ d_i, so F / L = μ 2π r p₀ whatever the mesh (no lateral load, no inflation).
     r, delta, mu = 0.8e-3, 0.05e-3, 0.2
     model, needle, centres, spacing, h = _needle_in_box(cells=4, angle_deg=30.0, spacing_ratio=0.25)
-    preload = coupling.grip_preload(
+    preload = channel.grip_preload(
         shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta, spacing=spacing
     )
     block, sizes = _ring_rows(model, needle, centres, spacing, r, friction=mu, preload=preload)
@@ -340,7 +340,7 @@ def test_pullout_force_grows_at_mu_2pi_r_p_per_metre_and_does_not_lock(solver):
     )
     multipliers, _ = solver(problem, tolerance=1e-10)
     length = len(centres) * spacing
-    pressure = coupling.interference_pressure(shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta)
+    pressure = channel.interference_pressure(shear_modulus=G, poisson_ratio=NU, radius=r, interference=delta)
     lateral = np.linalg.norm(multipliers[block.shaft_pairs], axis=1)
     axial = np.abs(multipliers[block.shaft_rows])
     # Every point slips at its bound μ (‖λ_lateral‖ + 2π r p₀ d_i): no lock, the needle moves (δ_s ≠ 0).
@@ -355,7 +355,7 @@ def test_pullout_force_grows_at_mu_2pi_r_p_per_metre_and_does_not_lock(solver):
 
 
 def test_static_then_dynamic_friction_coefficients():
-    stuck = coupling.stuck_points(np.array([0.5, 1.0, -1.0]), np.array([1.0, 1.0, 1.0]))
+    stuck = channel.stuck_points(np.array([0.5, 1.0, -1.0]), np.array([1.0, 1.0, 1.0]))
     assert stuck.tolist() == [True, False, False]
     assert coupling.shaft_friction_coefficients(stuck, static=0.3, dynamic=0.2).tolist() == [0.3, 0.2, 0.2]
     with pytest.raises(ValueError, match="static"):
@@ -397,7 +397,7 @@ def test_tip_cutting_row_sticks_below_and_cuts_at_f_cut():
             needle_previous=moved,
             needle_free=ahead,
         )
-        block, lower, upper = coupling.tip_cutting_block(
+        block, lower, upper = channel.tip_cutting_block(
             geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0], cutting_force=f_cut
         )
         assert block.free_gap[0] == pytest.approx(-advance)
@@ -426,7 +426,7 @@ def test_tip_cutting_row_is_the_friction_row_of_the_tip_point():
     geometry = StepGeometry(
         mesh_tets=model.tets, tissue_previous=rest, tissue_free=free, needle_previous=moved, needle_free=ahead
     )
-    block, _, _ = coupling.tip_cutting_block(
+    block, _, _ = channel.tip_cutting_block(
         geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0], cutting_force=0.5
     )
     tip_s = np.array([moved.length])
@@ -468,11 +468,11 @@ def test_tip_cutting_row_at_a_channel_end_ahead_frees_the_tip_up_to_it():
                 base=moved.base + advance * moved.direction, direction=moved.direction, length=moved.length
             ),
         )
-        block, lower, upper = coupling.tip_cutting_block(
+        block, lower, upper = channel.tip_cutting_block(
             geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0], cutting_force=f_cut, ahead=back
         )
         assert block.free_gap[0] == pytest.approx(back - advance, rel=1e-9)
-        plain, _, _ = coupling.tip_cutting_block(
+        plain, _, _ = channel.tip_cutting_block(
             geometry, tip_tet=int(tet[0]), tip_barycentric=bary[0], cutting_force=f_cut
         )
         assert plain.free_gap[0] == pytest.approx(-advance, rel=1e-9)
@@ -639,7 +639,7 @@ def test_cube_insertion_profile_rise_puncture_cut_and_friction(cube_scene):
         * 2
         * math.pi
         * r
-        * coupling.interference_pressure(shear_modulus=g, poisson_ratio=nu, radius=r, interference=delta)
+        * channel.interference_pressure(shear_modulus=g, poisson_ratio=nu, radius=r, interference=delta)
     )
     # Measured 5.8 % above: points are placed every d_i in the dragged (deformed) tissue, so a little more
     # than one per d_i of needle, each with the grip 2π r p₀ d_i (μ Σ‖λ_lat‖ adds 0.1 %); 10 % bounds that.

@@ -1,5 +1,5 @@
 """The grip of a closed channel is the normal force of its shaft friction: a lateral force redistributes the
-interference pressure around the needle, it does not add to it (refsim.constraints.coupling.channel_preload).
+interference pressure around the needle, it does not add to it (refsim.constraints.channel.channel_preload).
 
 Reference: the reference case ``insertion`` (the paper's 8 mm needle, δ_r = 20 µm, μ = 0.1, f_cut = 0.5 N)
 refined as its levels are (d_i = 6.8 mm/cells, dt = 0.05 s/cells). Every point slips during the insertion,
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from refsim.constraints import AXIAL_FRICTION, LATERAL_FIRST, LATERAL_SECOND
-from refsim.constraints.coupling import channel_preload
+from refsim.constraints.channel import channel_preload
 from refsim.scene import load_scene
 from refsim.simulation import Simulation
 

@@ -2,7 +2,7 @@
 force, one that slips carries μ_d times it.
 
 Closed form: a thin needle with an interference grip and no lateral load, so each point's normal force is the
-grip 2π r p₀ d_i (p₀ from Lamé, :func:`refsim.constraints.coupling.grip_preload`). Inserted, held (every point
+grip 2π r p₀ d_i (p₀ from Lamé, :func:`refsim.constraints.channel.grip_preload`). Inserted, held (every point
 stuck, the tissue keeping the friction load the insertion left), then pulled out: the axial force jumps to
 μ_s n 2π r p₀ d_i on the first step of the pull (every point stuck, each gives way at its static bound) and
 drops to μ_d n 2π r p₀ d_i from the next (every point slips), n the points coupled in that step.
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from refsim.constraints import BILATERAL, FRICTION, INSERTION
-from refsim.constraints.coupling import grip_preload
+from refsim.constraints.channel import grip_preload
 from refsim.scene.fields import FieldError
 from refsim.simulation import Simulation
 
