@@ -150,6 +150,38 @@ def _write_failed(path: Path, what: str, error: OSError, *partial: Path):
     return OSError(error.errno, message)
 
 
+def _results_input(path, command: str) -> Path:
+    """The results file a command reads, checked before anything is written (a missing, truncated or
+    non-refsim file is bad input, named); a run that did not complete is said so on stderr, with its reason
+    and the steps it kept."""
+    from refsim.io.reader import results_status
+
+    path = Path(path)
+    complete, steps, reason = results_status(path)
+    if not complete:
+        why = reason or "no stop reason recorded: the run may still be writing it, or was killed"
+        print(
+            f"refsim {command}: note: {path} holds a run that did not complete ({why}); its {steps} "
+            "completed steps are used",
+            file=sys.stderr,
+        )
+    return path
+
+
+def _output_path(path, result: Path, what: str, suffixes: tuple[str, ...] | None = None) -> Path:
+    """An output of a command that reads the results file ``result``, checked before anything is written: its
+    suffix (one of ``suffixes``), not the results file itself (writing it would destroy the run), and a path
+    that can be created (:func:`refsim.io.driver.check_output_path`)."""
+    from refsim.io.driver import check_output_path
+
+    path = Path(path)
+    if suffixes is not None and path.suffix.lower() not in suffixes:
+        raise ValueError(f"{path}: the {what} must be a file ending in {', '.join(suffixes)}")
+    if path.resolve() == result.resolve():
+        raise ValueError(f"{path}: is the results file being read; give another path for the {what}")
+    return check_output_path(path, overwrite=True, what=what)
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from refsim.io.driver import check_output_path, run_scene
     from refsim.scene import load_scene
@@ -279,11 +311,18 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from refsim.io.export import export_force_csv, export_problems, export_vtu
     from refsim.io.xdmf import write_xdmf
 
-    result = Path(args.result)
     if not (args.xdmf or args.problems or args.csv or args.vtu):
         raise ValueError(
             "refsim export: choose at least one of --xdmf, --vtu STEP, --problems OUT.h5, --csv OUT.csv"
         )
+    result = _results_input(args.result, "export")
+    if args.problems:
+        _output_path(args.problems, result, "problem set")
+    if args.csv:
+        _output_path(args.csv, result, "force CSV")
+    for folder, option in ((args.vtu_folder, "--vtu-folder"), (args.fclib, "--fclib")):
+        if folder is not None and Path(folder).exists() and not Path(folder).is_dir():
+            raise ValueError(f"{option} {folder}: is a file, not a folder")
     if args.vtu:
         files = export_vtu(result, args.vtu, args.vtu_folder)
         print(
@@ -363,18 +402,24 @@ def _cmd_reference(args: argparse.Namespace) -> int:
 
 def _cmd_compare(args: argparse.Namespace) -> int:
     """`refsim compare CASE THEIR.csv`: their results against the reference; exit 1 when a quantity fails."""
+    from refsim.io.driver import check_output_path
     from refsim.reference import compare, format_comparison
     from refsim.reference.compare import comparison_figure
 
     figure = None
-    if args.output:
+    if args.output:  # checked before the comparison, not after it
         figure = Path(args.output)
         if figure.suffix.lower() not in _FIGURE_SUFFIXES:
             raise ValueError(f"-o {figure}: expected a picture file ending in {', '.join(_FIGURE_SUFFIXES)}")
+        check_output_path(figure, overwrite=True, what="figure")
     comparisons = compare(args.case, args.theirs, args.reference)
     print(format_comparison(args.case, comparisons))
     if figure is not None:
-        print(f"wrote {comparison_figure(figure, args.case, comparisons)}")
+        figure.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            print(f"wrote {comparison_figure(figure, args.case, comparisons)}")
+        except OSError as error:
+            raise _write_failed(figure, "figure", error) from None
     return 0 if all(item.all_passed for item in comparisons) else EXIT_FAILED
 
 
@@ -516,6 +561,13 @@ def _cmd_render(args: argparse.Namespace) -> int:
     require_extra("viz", "this command", ("pyvista", "imageio") if args.animate else ("pyvista",))
     from refsim.viz import animate_result, render_result
 
+    if not (args.output or args.animate):
+        raise ValueError("refsim render needs -o FIG.png, --animate OUT.gif|.mp4, or both")
+    result = _results_input(args.result, "render")
+    if args.output:
+        _output_path(args.output, result, "picture", _FIGURE_SUFFIXES)
+    if args.animate:
+        _output_path(args.animate, result, "animation", (".gif", ".mp4"))
     framing = {"camera": args.camera, "view_up": args.view_up, "zoom": args.zoom, "focus": args.focus}
     if args.animate:
         animate_result(Path(args.result), Path(args.animate), every=args.every, fps=args.fps, **framing)
@@ -523,16 +575,18 @@ def _cmd_render(args: argparse.Namespace) -> int:
     if args.output:
         render_result(Path(args.result), Path(args.output), step=args.step, **framing)
         print(f"wrote {args.output}")
-    if not (args.output or args.animate):
-        raise ValueError("refsim render needs -o FIG.png, --animate OUT.gif|.mp4, or both")
     return 0
 
 
 def _cmd_plot(args: argparse.Namespace) -> int:
     require_extra("viz", "this command", ("matplotlib",))
+    from matplotlib.figure import Figure
+
     from refsim.viz import plot_result
 
-    plot_result(Path(args.result), Path(args.output))
+    result = _results_input(args.result, "plot")
+    formats = tuple(f".{name}" for name in Figure().canvas.get_supported_filetypes())
+    plot_result(result, _output_path(args.output, result, "plot", formats))
     print(f"wrote {args.output}")
     return 0
 

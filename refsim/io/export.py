@@ -44,6 +44,7 @@ cap is inactive at r (λ_n < f_p: the cap does not change the answer) and the co
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime
 import json
@@ -303,7 +304,10 @@ def export_problems(
     output.parent.mkdir(parents=True, exist_ok=True)
     fields = _problem_fields()
     written, unconverged = [], []
-    with h5py.File(output, "w") as handle:
+    # written under a temporary name, renamed once complete: an interrupted export (the exact solves take
+    # time) or a failed write leaves no half-written problem set
+    temporary = output.with_name(f".{output.name}.partial")
+    with _renamed_when_complete(temporary, output), h5py.File(temporary, "w") as handle:
         handle.attrs.update(
             {
                 "format": PROBLEM_SET_FORMAT,
@@ -468,7 +472,7 @@ def export_force_csv(results_path, output) -> Path:
             *(f"{v:.9g}" for v in results.event_needle_force[i]),
         ]
         lines.append(",".join(values))
-    output.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    _write_whole(output, lambda temporary: temporary.write_text("\n".join(lines) + "\n", encoding="utf-8"))
     return output
 
 
@@ -632,6 +636,19 @@ def _write_pvd(path: Path, entries: list) -> Path:
     lines += ["  </Collection>", "</VTKFile>"]
     _write_whole(path, lambda temporary: temporary.write_text("\n".join(lines) + "\n", encoding="utf-8"))
     return path
+
+
+@contextlib.contextmanager
+def _renamed_when_complete(temporary: Path, path: Path):
+    """The block writes ``temporary``; renamed onto ``path`` when the block completes, removed when it
+    raises (an exception or an interrupt): no partial file is left at ``path``."""
+    import os
+
+    try:
+        yield temporary
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
 
 
 def _write_whole(path: Path, write) -> None:

@@ -29,6 +29,7 @@ __all__ = [
     "read_problem_group",
     "read_problems",
     "read_results",
+    "results_status",
 ]
 
 
@@ -463,6 +464,17 @@ def _require(handle, path: Path, dataset_path: str):
     if dataset_path not in handle:
         raise ResultsError(f"{path}: dataset {dataset_path!r} is missing; the file is damaged or incomplete")
     return handle[dataset_path]
+
+
+def results_status(path) -> tuple[bool, int, str]:
+    """Whether the run of a results file completed, its completed steps and why it stopped ("" when no reason
+    is recorded: a run still being written, or killed), from the root attributes; the file is checked as
+    :func:`read_results` opens it (a missing, truncated, non-HDF5 or non-refsim file raises, naming it)."""
+    path, handle, attributes = _open(path)
+    with handle:
+        _require(handle, path, schema.STEPS["step"].path)
+        count = _steps_completed(handle, path, attributes)
+    return bool(attributes.get("complete", False)), count, str(attributes.get("stop_reason", "") or "")
 
 
 def read_results(path) -> Results:

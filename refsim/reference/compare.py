@@ -21,6 +21,7 @@ passes when every sample does.
 from __future__ import annotations
 
 import csv
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,43 +86,57 @@ def read_their_csv(path, case) -> dict[str, np.ndarray]:
         unknown or missing quantity, a curve that does not cover the sampling points.
     """
     path = Path(path)
-    try:
-        handle = open(path, newline="", encoding="utf-8")
+    if path.is_dir():
+        raise ValueError(f"{path}: is a directory; expected their results as a CSV file")
+    try:  # utf-8-sig: a spreadsheet's CSV may start with a byte-order mark
+        text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise ValueError(f"{path}: no such file") from None
-    with handle:
-        reader = csv.DictReader(handle)
-        header = [h.strip() for h in (reader.fieldnames or [])]
-        missing = [c for c in REQUIRED_COLUMNS if c not in header]
-        if missing:
+    except UnicodeDecodeError as error:
+        raise ValueError(f"{path}: not a text (UTF-8) CSV file: {error}") from None
+    reader = csv.DictReader(io.StringIO(text, newline=""))
+    header = [h.strip() for h in (reader.fieldnames or [])]
+    missing = [c for c in REQUIRED_COLUMNS if c not in header]
+    if missing:
+        raise ValueError(
+            f"{path}: missing column {missing[0]!r}; the header must hold the columns "
+            f"{', '.join(REQUIRED_COLUMNS)} (found: {', '.join(header) or 'nothing'})"
+        )
+    reader.fieldnames = header
+    rows: dict[str, list] = {}
+    known = {q.name: q for q in case.quantities}
+    for line, row in enumerate(reader, start=2):
+        name = (row.get("quantity") or "").strip()
+        if name not in known:
             raise ValueError(
-                f"{path}: missing column {missing[0]!r}; the header must hold the columns "
-                f"{', '.join(REQUIRED_COLUMNS)} (found: {', '.join(header) or 'nothing'})"
+                f"{path}: line {line}, column quantity: {name!r} is not a quantity of case {case.name!r} "
+                f"(quantities: {', '.join(known)})"
             )
-        reader.fieldnames = header
-        rows: dict[str, list] = {}
-        known = {q.name: q for q in case.quantities}
-        for line, row in enumerate(reader, start=2):
-            name = (row.get("quantity") or "").strip()
-            if name not in known:
-                raise ValueError(
-                    f"{path}: line {line}, column quantity: {name!r} is not a quantity of case {case.name!r} "
-                    f"(quantities: {', '.join(known)})"
-                )
-            try:
-                value = float(row["value"])
-                x = float(row["x"]) if (row.get("x") or "").strip() else math.nan
-            except (TypeError, ValueError):
-                raise ValueError(
-                    f"{path}: line {line}: x = {row.get('x')!r}, value = {row.get('value')!r}: "
-                    "expected numbers (x empty for a scalar)"
-                ) from None
-            if known[name].kind == "curve" and not math.isfinite(x):
-                raise ValueError(
-                    f"{path}: line {line}, column x: empty for the curve {name!r}; expected its abscissa "
-                    f"{known[name].x} [{known[name].x_unit}]"
-                )
-            rows.setdefault(name, []).append((x, value))
+        try:
+            value = float(row["value"])
+            x = float(row["x"]) if (row.get("x") or "").strip() else math.nan
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"{path}: line {line}: x = {row.get('x')!r}, value = {row.get('value')!r}: "
+                "expected numbers (x empty for a scalar)"
+            ) from None
+        if not math.isfinite(value):
+            raise ValueError(
+                f"{path}: line {line}, column value: {row['value'].strip()!r}: expected a finite number"
+            )
+        x_text = (row.get("x") or "").strip()
+        if known[name].kind == "curve" and not x_text:
+            raise ValueError(
+                f"{path}: line {line}, column x: empty for the curve {name!r}; expected its abscissa "
+                f"{known[name].x} [{known[name].x_unit}]"
+            )
+        if known[name].kind == "curve" and not math.isfinite(x):
+            raise ValueError(f"{path}: line {line}, column x: {x_text!r}: expected a finite number")
+        if known[name].kind == "scalar" and x_text:
+            raise ValueError(
+                f"{path}: line {line}, column x: {x_text!r} for the scalar {name!r}; expected x empty"
+            )
+        rows.setdefault(name, []).append((x, value))
     absent = [name for name in known if name not in rows]
     if absent:
         raise ValueError(
