@@ -371,14 +371,22 @@ def _cmd_reference(args: argparse.Namespace) -> int:
             print(f"{name:<22} {case.title}  (levels: {', '.join(case.levels)})")
         return 0
     if args.action == "page":
+        from refsim.io.driver import check_output_path
         from refsim.reference.page import write_page
 
+        if args.package is None or args.output is None:
+            raise ValueError(
+                "refsim reference page: give the package folder (--package DIR) and the page (-o PAGE.md)"
+            )
+        check_output_path(args.output, overwrite=True, what="page")
         print(f"wrote {write_page(args.package, args.output)}")
         return 0
     from refsim.reference import build_reference
 
     if args.output is None:
         raise ValueError("refsim reference build: give the package folder with -o DIR")
+    if Path(args.output).exists() and not Path(args.output).is_dir():
+        raise ValueError(f"-o {args.output}: is a file; expected the package folder")
     manifest = build_reference(
         args.output,
         level=args.level,

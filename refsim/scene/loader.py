@@ -29,6 +29,8 @@ def builtin_scenes() -> list[str]:
 def _resolve(path_or_name: str | Path) -> Path:
     path = Path(path_or_name)
     if path.suffix == ".toml" or path.exists():
+        if path.is_dir():
+            raise SceneError(f"{path}: is a directory; expected a scene file (.toml) or a built-in scene")
         if not path.is_file():
             raise SceneError(f"{path}: scene file not found")
         return path

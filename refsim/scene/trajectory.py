@@ -63,33 +63,62 @@ class Trajectory:
 def read_numeric_csv(path: Path, columns: tuple[str, ...], what: str) -> np.ndarray:
     """Rows of numbers from a CSV file with the given columns, shape (rows, len(columns)).
 
-    '#' comment lines anywhere (before the header too) and one header line are allowed.
+    '#' comment lines anywhere (before the header too) and one header line are allowed; the header, when
+    there is one, must name ``columns`` in their order (case and a unit in brackets, "t [s]", aside): the
+    values are read by position.
 
     Raises
     ------
     ValueError
-        Naming the file and the defect (missing, not numbers, wrong column count, non-finite values).
+        Naming the file and the defect (missing, not text, a header naming other columns, a line that is not
+        numbers (its line number in the file), wrong column count, non-finite values).
     """
     if not path.is_file():
         raise ValueError(f"{path}: {what} file not found")
-    lines = [
-        line
-        for line in path.read_text(encoding="utf-8").splitlines()
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as error:
+        raise ValueError(f"{path}: not a text (UTF-8) CSV file: {error}") from None
+    numbered = [
+        (number, line)
+        for number, line in enumerate(text.splitlines(), start=1)
         if line.strip() and not line.lstrip().startswith("#")
     ]
-    try:
-        data = np.loadtxt(lines, delimiter=",", ndmin=2)
-    except ValueError:
-        try:
-            data = np.loadtxt(lines[1:], delimiter=",", ndmin=2)
-        except ValueError as error:
-            raise ValueError(f"{path}: cannot read the {what} as numbers: {error}") from None
     names = ", ".join(columns)
-    if data.shape[0] == 0 or data.shape[1] != len(columns):
-        raise ValueError(f"{path}: expected rows of {len(columns)} columns {names}; got shape {data.shape}")
+    if numbered and not _is_numeric_row(numbered[0][1]):
+        number, header = numbered.pop(0)
+        found = tuple(item.split("[")[0].split("(")[0].strip().lower() for item in header.split(","))
+        if found != columns:
+            raise ValueError(
+                f"{path}: line {number}: header {header.strip()!r}: expected the columns {names}, in this "
+                "order (the values are read by position)"
+            )
+    for number, line in numbered:
+        if not _is_numeric_row(line) or line.count(",") != len(columns) - 1:
+            raise ValueError(
+                f"{path}: line {number}: {line.strip()[:80]!r}: expected {len(columns)} numbers separated by "
+                f"commas ({names})"
+            )
+    rows = [line for _, line in numbered]
+    data = np.loadtxt(rows, delimiter=",", ndmin=2) if rows else np.zeros((0, len(columns)))
+    if data.shape[0] == 0:
+        raise ValueError(f"{path}: no rows of numbers; expected rows of {len(columns)} columns {names}")
+    if data.shape[1] != len(columns):
+        raise ValueError(f"{path}: expected rows of {len(columns)} columns {names}; got {data.shape[1]}")
     if not np.all(np.isfinite(data)):
-        raise ValueError(f"{path}: non-finite values in the {what}")
+        row = int(np.flatnonzero(~np.all(np.isfinite(data), axis=1))[0])
+        raise ValueError(f"{path}: line {numbered[row][0]}: non-finite values in the {what}")
     return data
+
+
+def _is_numeric_row(line: str) -> bool:
+    """Whether every comma-separated item of ``line`` is a number (the rows' count is checked after)."""
+    try:
+        for item in line.split(","):
+            float(item)
+    except ValueError:
+        return False
+    return True
 
 
 def read_trajectory_csv(path: Path) -> Trajectory:

@@ -268,6 +268,20 @@ def _run_keys(spec: StudySpec, runs) -> dict:
     return keys
 
 
+def _no_scene_loads(spec: StudySpec, run: RunSpec) -> None:
+    """Raise the load error of ``run``'s scene, for a study none of whose runs has a scene that loads (a bad
+    scene or override shared by every run): bad input, refused before anything is written or started. A study
+    where only some runs do not load runs the others; their rows say why the rest failed."""
+    from refsim.scene import load_scene
+
+    try:
+        load_scene(spec.scene, list(run.overrides))
+    except (ValueError, OSError) as error:
+        raise ValueError(
+            f"{spec.source}: no run of study {spec.name!r} has a scene that loads; run {run.label!r}: {error}"
+        ) from None
+
+
 def run_study(
     spec: StudySpec,
     output,
@@ -303,18 +317,20 @@ def run_study(
     ------
     ValueError
         An existing output that is not this study's (without ``overwrite``), ``workers`` out of range, an
-        unreachable ``scheduler``; before anything runs.
+        unreachable ``scheduler``, a study none of whose runs has a scene that loads; before anything runs.
     """
     output = check_study_output(spec, Path(output).resolve(), overwrite=overwrite)
     if client is None and not scheduler:
         _check_workers(workers)
-    folder = run_folder(output)
-    folder.mkdir(parents=True, exist_ok=True)
     runs = spec.runs()
     reference = spec.reference_run()
     every = runs + ([reference] if reference is not None and reference.id not in {r.id for r in runs} else [])
-    rows = {run.id: _pending(run) for run in every}
     keys = _run_keys(spec, every)
+    if every and all(key is None for key in keys.values()):
+        _no_scene_loads(spec, every[0])
+    folder = run_folder(output)
+    folder.mkdir(parents=True, exist_ok=True)
+    rows = {run.id: _pending(run) for run in every}
     missing = [run for run in every if not is_current(folder / run.file_name, keys[run.id])]
     done = [run for run in every if run not in missing]
     previous = _previous_timing(output)
