@@ -211,10 +211,16 @@ class _Signals:
         return self
 
     def _interrupt(self, signum, frame) -> None:
+        if self.received is not None:  # the run is already stopping (see _terminate)
+            return
         self.received = signum
         raise KeyboardInterrupt
 
     def _terminate(self, signum, frame) -> None:
+        # A second signal (an impatient second Ctrl-C) is ignored once the run is stopping: raised while the
+        # writer closes the file, it would abort the close and lose the buffered steps and the stop reason.
+        if self.received is not None:
+            return
         self.received = signum
         raise _Terminated(signum)
 
@@ -441,6 +447,6 @@ def _run_steps(simulation, total: int, step_done, summary, writer, *, signals=No
                     logger.debug("run stopped by an unexpected error", exc_info=True)
                     reason = f"step {step}: stopped by an internal error ({type(error).__name__}: {error})"
     finally:
-        # Also reached on a second Ctrl-C during the handling above: the file is closed in every case.
+        # A signal after the first is ignored (_Signals), so nothing interrupts the close.
         writer.close(complete=status == "complete", reason=reason)
     return status, reason

@@ -56,6 +56,31 @@ def test_signals_stop_the_run_and_keep_every_completed_step(tmp_path, number, st
     assert "SIGTERM" in results.stop_reason if number == signal.SIGTERM else "SIGINT" in results.stop_reason
 
 
+@pytest.mark.parametrize("second", [signal.SIGINT, signal.SIGTERM])
+def test_a_second_signal_while_the_file_closes_loses_nothing(tmp_path, monkeypatch, second):
+    """An impatient second Ctrl-C (or a SIGTERM) that arrives while the writer closes the file is ignored:
+    before, it aborted the close, and the file lost its buffered steps and said "running (or ... killed)"."""
+    from refsim.io.writer import ResultWriter
+
+    close = ResultWriter.close
+
+    def signalled_close(self, *args, **kwargs):
+        os.kill(os.getpid(), second)  # delivered in the main thread, inside the close
+        return close(self, *args, **kwargs)
+
+    monkeypatch.setattr(ResultWriter, "close", signalled_close)
+
+    def send(state, record):
+        if record.step == 7:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    summary = run_scene(_scene(), tmp_path / "run.h5", on_step=send)
+    assert (summary.status, summary.exit_code) == ("interrupted", 130)
+    results = read_results(tmp_path / "run.h5")
+    assert not results.complete and results.step_count == summary.steps_written == 7
+    assert results.stop_reason == "interrupted by SIGINT"
+
+
 @pytest.mark.parametrize(
     ("number", "status", "code"),
     [
