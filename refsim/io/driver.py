@@ -116,6 +116,32 @@ def check_output_path(path: str | Path, *, overwrite: bool, what: str = "results
     return path
 
 
+def _check_not_an_input(output: Path, scene) -> None:
+    """Refuse a results path that is one of the run's input files (the scene file, mesh.file, a trajectory
+    file, boundary.file): with --overwrite it was replaced by the results.
+
+    Raises
+    ------
+    RunInputError
+        Naming the path and the input it is.
+    """
+    base = Path(scene.base_directory)
+    files = [("mesh.file", scene.mesh.file), ("boundary.file", getattr(scene.boundary, "file", None))]
+    files += [
+        (f"trajectory.file of instrument {spec.name!r}", spec.trajectory.file)
+        for spec in scene.instrument_specs
+    ]
+    inputs = [(what, base / name) for what, name in files if name is not None]  # relative to the scene file
+    if scene.source != "<memory>":
+        inputs.append(("the scene file", Path(scene.source)))
+    target = output.resolve()
+    for what, path in inputs:
+        if path.resolve() == target:
+            raise RunInputError(
+                f"{output}: is {what} of this run ({path}); give another path for the results file"
+            )
+
+
 def check_record(state, record, *, size: float, rest_positions: np.ndarray) -> None:
     """Stop on a numerical problem visible in a step: non-finite or overflowing values, a diverging tissue, a
     solver that reports divergence or a non-finite residual.
@@ -286,6 +312,7 @@ def run_scene(
     from refsim.simulation.summary import RunSummary
 
     output = check_output_path(output_path, overwrite=overwrite)
+    _check_not_an_input(output, scene)
     try:
         simulation = Simulation(scene)  # every input error surfaces here, before any file is written
     except (ValueError, OSError) as error:

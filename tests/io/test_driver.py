@@ -335,6 +335,23 @@ def test_bad_input_writes_nothing(tmp_path):
     assert not (tmp_path / "run.h5").exists()
 
 
+@pytest.mark.parametrize("target", ["scene.toml", "robot.csv"])
+def test_the_results_path_may_not_be_an_input_of_the_run(tmp_path, target):
+    """`refsim run scene.toml -o scene.toml --overwrite` (or -o its trajectory CSV) replaced the input by the
+    results; now bad input naming the file, which is left byte for byte."""
+    text = Path(load_scene("cube").source).read_text()
+    start, end = text.index("[trajectory]"), text.index("[time]")
+    (tmp_path / "scene.toml").write_text(text[:start] + '[trajectory]\nfile = "robot.csv"\n\n' + text[end:])
+    (tmp_path / "robot.csv").write_text(
+        "t,x,y,z,dx,dy,dz\n0,0.00123,0.00231,0.422,0,0,-1\n1.9,0.00123,0.00231,0.403,0,0,-1\n"
+    )
+    before = (tmp_path / target).read_bytes()
+    scene = load_scene(tmp_path / "scene.toml", SMALL)
+    with pytest.raises(RunInputError, match=f"{target}: is .* of this run"):
+        run_scene(scene, tmp_path / target, overwrite=True)
+    assert (tmp_path / target).read_bytes() == before
+
+
 def test_a_sigterm_whose_exception_is_swallowed_still_stops_the_run(tmp_path, monkeypatch):
     """Python runs a signal handler between any two bytecodes, also inside a weakref callback or a finaliser,
     where the handler's exception is printed as "ignored" and dropped: the run must stop all the same, after
