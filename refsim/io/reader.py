@@ -394,6 +394,16 @@ def _open_failure(path: Path, error: OSError) -> str:
             "it, so no step can be recovered from this copy: copy the whole file again from where the run "
             "wrote it, or run the scene again"
         )
+    if "unable to lock file" in text:  # a run is writing it (HDF5's lock), not damage
+        try:
+            holder = path.with_name(f".{path.name}.lock").read_text(encoding="ascii").strip()
+        except (OSError, UnicodeDecodeError):
+            holder = ""
+        who = f"process {holder}" if holder.isdigit() else "another process"
+        return (
+            f"{path}: {who} is writing this file (a run in progress holds its HDF5 lock); read it once that "
+            "run ends (Ctrl-C or SIGTERM stops a run and keeps every completed step)"
+        )
     with path.open("rb") as stream:
         head = stream.read(8)
     if head != b"\x89HDF\r\n\x1a\n":

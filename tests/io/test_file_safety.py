@@ -168,6 +168,31 @@ def test_a_truncated_file_says_so_with_its_sizes(tmp_path, finished):
         read_results(path)
 
 
+def test_a_file_a_run_is_writing_is_not_called_damaged(tmp_path, finished):
+    """Reading a file while a run writes it (the run holds HDF5's lock and refsim's): before, "damaged";
+    now the writer's pid and that the file can be read once the run ends."""
+    path = _copy(finished, tmp_path / "run.h5")
+    lock = FileLock(path)
+    handle = h5py.File(path, "a")  # held as the run's writer holds it
+    try:
+        code = (
+            "from refsim.io import read_results\n"
+            f"try:\n    read_results({str(path)!r})\nexcept ValueError as e:\n    print(e)\n"
+        )
+        child = subprocess.run(
+            [sys.executable, "-c", code],
+            capture_output=True,
+            text=True,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+        )
+    finally:
+        handle.close()
+        lock.release()
+    assert f"process {os.getpid()} is writing this file" in child.stdout, child.stdout + child.stderr
+    assert "damaged" not in child.stdout
+    assert read_results(path).complete
+
+
 def test_a_file_that_is_not_hdf5_says_so(tmp_path):
     path = tmp_path / "text.h5"
     path.write_text("hello")
