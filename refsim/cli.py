@@ -472,6 +472,13 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     for variant in args.strategies or ():  # before any timing
         strategy_variant(variant)
+    if args.tissue or not args.scene:  # the scaling table's cubes, before any timing (mesh.cells' range)
+        from refsim.scene.build import check_memory
+
+        for cells in args.cells:
+            if not 1 <= cells <= 256:
+                raise ValueError(f"--cells {cells}: expected cells per axis of the cube, in [1, 256]")
+            check_memory(6 * cells**3, "--cells", cells)
     print("\n".join(bench.header_lines()))
     reference_ms = None
     if args.scene:

@@ -132,6 +132,9 @@ def test_an_interrupted_problem_export_leaves_no_file(tmp_path, monkeypatch, cap
         (["reference", "build", "-o", "{file}"], ["is a file; expected the package folder"]),
         (["compare", "puncture", "{file}", "-o", "{file}/figure.png"], ["is a file, not a folder"]),
         (["run", "{dir}", "-o", "{dir}/run.h5"], ["is a directory; expected a scene file"]),
+        # before: the strategy table ran, then an internal error (MemoryError)
+        (["bench", "--cells", "2000"], ["--cells 2000", "in [1, 256]"]),
+        (["bench", "--cells", "8", "256"], ["--cells = 256", "tetrahedra need about"]),
     ],
 )
 def test_missing_options_and_wrong_kinds_of_path_are_named(tmp_path, capsys, arguments, fragments):
