@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
@@ -152,11 +153,15 @@ def _write_frames(output: Path, results, states, view, *, fps: float, size, tiss
     width, height = size
     view_size = float(np.linalg.norm(view.position - view.focal_point)) * np.tan(np.radians(_VIEW_ANGLE) / 2)
     output.parent.mkdir(parents=True, exist_ok=True)
+    # the frames go to a temporary name (same suffix: it picks the format), renamed once every frame is in: an
+    # interrupted or failed animation leaves no partial file at ``output``
+    temporary = output.with_name(f".{output.stem}.partial{output.suffix}")
     if output.suffix.lower() == ".gif":
-        writer = imageio.get_writer(output, mode="I", duration=1000.0 / fps, loop=0)
+        writer = imageio.get_writer(temporary, mode="I", duration=1000.0 / fps, loop=0)
     else:
-        writer = imageio.get_writer(output, format="FFMPEG", mode="I", fps=fps, macro_block_size=16)
+        writer = imageio.get_writer(temporary, format="FFMPEG", mode="I", fps=fps, macro_block_size=16)
     plotter = pv.Plotter(off_screen=True, window_size=[view_width_of(width), height])
+    completed = False
     try:
         plotter.set_background("white")
         for step, tissue, cut_points, cut_triangles in states:
@@ -169,6 +174,11 @@ def _write_frames(output: Path, results, states, view, *, fps: float, size, tiss
             image = plotter.screenshot(return_img=True)
             writer.append_data(compose_picture(image, legend, title, view, (width, height)))
             plotter.clear()
+        completed = True
     finally:
         plotter.close()
         writer.close()
+        if completed:
+            os.replace(temporary, output)
+        else:
+            temporary.unlink(missing_ok=True)

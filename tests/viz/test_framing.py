@@ -215,6 +215,26 @@ def test_mp4_animation_has_steps_over_k_frames(insertion_file, tmp_path):
         reader.close()
 
 
+def test_an_interrupted_animation_leaves_no_file(insertion_file, tmp_path, monkeypatch):
+    """The frames go to a temporary name renamed once every frame is in: Ctrl-C after the second frame leaves
+    nothing (before: a GIF of two frames at the path)."""
+    import refsim.viz.animation as animation
+
+    compose = animation.compose_picture
+    calls = []
+
+    def interrupted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return compose(*args, **kwargs)
+
+    monkeypatch.setattr(animation, "compose_picture", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        animate_result(insertion_file, tmp_path / "run.gif", every=10, window_size=(320, 240))
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_animation_rejects_an_unknown_format(insertion_file, tmp_path):
     with pytest.raises(ValueError, match="avi"):
         animate_result(insertion_file, tmp_path / "run.avi")
