@@ -311,6 +311,12 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from refsim.io.export import export_force_csv, export_problems, export_vtu
     from refsim.io.xdmf import write_xdmf
 
+    for option, value, needs, given in (
+        ("--fclib", args.fclib, "--problems", args.problems),
+        ("--vtu-folder", args.vtu_folder, "--vtu", args.vtu),
+    ):
+        if value is not None and not given:
+            raise ValueError(f"refsim export: {option} {value} goes with {needs}; it does nothing alone")
     if not (args.xdmf or args.problems or args.csv or args.vtu):
         raise ValueError(
             "refsim export: choose at least one of --xdmf, --vtu STEP, --problems OUT.h5, --csv OUT.csv"

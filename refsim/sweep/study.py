@@ -268,17 +268,25 @@ def _run_keys(spec: StudySpec, runs) -> dict:
     return keys
 
 
-def _no_scene_loads(spec: StudySpec, run: RunSpec) -> None:
-    """Raise the load error of ``run``'s scene, for a study none of whose runs has a scene that loads (a bad
-    scene or override shared by every run): bad input, refused before anything is written or started. A study
-    where only some runs do not load runs the others; their rows say why the rest failed."""
+def _check_shared_scene(spec: StudySpec, keys: dict) -> None:
+    """Refuse a study whose scene, with the overrides every run shares, does not load while none of its runs
+    does either (a scene that does not exist, a shared override that is refused): bad input, before anything
+    is written or started. A study whose runs fail on their own values runs (the others); their rows say why.
+
+    Raises
+    ------
+    ValueError
+        Naming the study's source and the scene's load error.
+    """
     from refsim.scene import load_scene
 
+    if not keys or any(key is not None for key in keys.values()):
+        return
     try:
-        load_scene(spec.scene, list(run.overrides))
+        load_scene(spec.scene, list(spec.overrides))
     except (ValueError, OSError) as error:
         raise ValueError(
-            f"{spec.source}: no run of study {spec.name!r} has a scene that loads; run {run.label!r}: {error}"
+            f"{spec.source}: the scene of study {spec.name!r} does not load (no run can): {error}"
         ) from None
 
 
@@ -317,7 +325,8 @@ def run_study(
     ------
     ValueError
         An existing output that is not this study's (without ``overwrite``), ``workers`` out of range, an
-        unreachable ``scheduler``, a study none of whose runs has a scene that loads; before anything runs.
+        unreachable ``scheduler``, a scene that does not load with the shared overrides (and no run's does);
+        before anything runs.
     """
     output = check_study_output(spec, Path(output).resolve(), overwrite=overwrite)
     if client is None and not scheduler:
@@ -326,8 +335,7 @@ def run_study(
     reference = spec.reference_run()
     every = runs + ([reference] if reference is not None and reference.id not in {r.id for r in runs} else [])
     keys = _run_keys(spec, every)
-    if every and all(key is None for key in keys.values()):
-        _no_scene_loads(spec, every[0])
+    _check_shared_scene(spec, keys)
     folder = run_folder(output)
     folder.mkdir(parents=True, exist_ok=True)
     rows = {run.id: _pending(run) for run in every}

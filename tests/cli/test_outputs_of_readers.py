@@ -42,6 +42,11 @@ def results(tmp_path_factory):
             ["--vtu-folder", "is a file, not a folder"],
         ),
         (["export", "{run}", "--csv", "{dir}"], ["is a directory", "force CSV"]),
+        (
+            ["export", "{run}", "--csv", "{dir}/f.csv", "--fclib", "{dir}"],
+            ["--fclib", "goes with --problems"],
+        ),
+        (["export", "{run}", "--xdmf", "--vtu-folder", "{dir}"], ["--vtu-folder", "goes with --vtu"]),
         (["plot", "{run}", "-o", "{run}"], ["the plot must be a file ending in", ".png", ".pdf"]),
         (["plot", "{run}", "-o", "{dir}"], ["the plot must be a file ending in"]),  # before: wrote DIR.png
         (["plot", "{run}", "-o", "{dir}/forces.txt"], ["forces.txt", "the plot must be a file ending in"]),
