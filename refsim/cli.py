@@ -426,6 +426,8 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         if figure.suffix.lower() not in _FIGURE_SUFFIXES:
             raise ValueError(f"-o {figure}: expected a picture file ending in {', '.join(_FIGURE_SUFFIXES)}")
         check_output_path(figure, overwrite=True, what="figure")
+    if Path(args.theirs).suffix.lower() in (".h5", ".hdf5"):  # a refsim run: checked, incomplete said so
+        _results_input(args.theirs, "compare")
     comparisons = compare(args.case, args.theirs, args.reference)
     print(format_comparison(args.case, comparisons))
     if figure is not None:
