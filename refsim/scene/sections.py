@@ -369,8 +369,12 @@ def numbers_array(name: str, value, shape: tuple, expected: str) -> np.ndarray:
         raise FieldError(name, f"{name} = {value!r}: expected {expected}")
     if not np.all(np.isfinite(array)):
         raise FieldError(name, f"{name} = {value!r}: expected finite numbers ({expected})")
-    if any(isinstance(item, bool) for item in np.asarray(value, dtype=object).ravel()):
+    items = np.asarray(value, dtype=object).ravel()
+    if any(isinstance(item, bool) for item in items):
         raise FieldError(name, f"{name} = {value!r}: expected numbers, not true/false ({expected})")
+    text = next((item for item in items if isinstance(item, str)), None)
+    if text is not None:  # numpy reads "0.5" as 0.5; a string in a numeric key is refused everywhere else
+        raise FieldError(name, f"{name} = {value!r}: expected numbers, not the string {text!r} ({expected})")
     return array
 
 
