@@ -194,8 +194,10 @@ linearly; for a quantity with a `width`, the window means at the sampling points
     indentation_force,0.00025,0.655
     puncture_force,,0.8
 
-A refsim results file (`.h5`) is read directly instead. From Python, `refsim.reference.write_their_csv(case,
-{quantity: values}, path)` writes this format for a case's sampling points.
+Every value and every curve's `x` must be a finite number and a scalar's `x` empty; a defect is named with its
+line and column. A UTF-8 byte-order mark (a spreadsheet's export) is read. A refsim results file (`.h5`) is
+read directly instead. From Python, `refsim.reference.write_their_csv(case, {quantity: values}, path)` writes
+this format for a case's sampling points.
 
 ## The data package
 
