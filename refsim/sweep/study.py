@@ -217,6 +217,9 @@ def check_study_output(spec: StudySpec, output, *, overwrite: bool = False) -> P
     output = Path(output)
     if output.is_dir():
         raise ValueError(f"{output}: is a directory; expected the path of the study file (.h5)")
+    for what, name in (("the study's scene file", spec.scene), ("the study file (.toml)", spec.source)):
+        if output.exists() and Path(name).is_file() and output.resolve() == Path(name).resolve():
+            raise ValueError(f"{output}: is {what}; give another path for the study file (.h5)")
     if not output.exists() or overwrite:
         return output
     try:

@@ -6,6 +6,7 @@ named: tests/sweep/test_study_safety.py)."""
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 
@@ -35,3 +36,24 @@ def test_a_study_none_of_whose_runs_loads_is_refused_before_anything(tmp_path, c
     for fragment in fragments:
         assert fragment in error
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_study_file_may_not_be_the_scene_or_the_study_toml(tmp_path, capsys):
+    """`-o` naming the scene file or the study's own .toml, with --overwrite: before, replaced by the study
+    file."""
+    from refsim.scene import load_scene
+
+    scene = tmp_path / "scene.toml"
+    scene.write_text(Path(load_scene("cube").source).read_text())
+    study = tmp_path / "study.toml"
+    study.write_text('name = "s"\nscene = "scene.toml"\n[[sweep]]\nkey = "time.dt"\nvalues = [0.01, 0.02]\n')
+    before = {path: path.read_bytes() for path in (scene, study)}
+    for arguments, what in (
+        ([str(scene), "--sweep", "time.dt=0.01,0.02", "-o", str(scene)], "the study's scene file"),
+        ([str(study), "-o", str(study)], "the study file (.toml)"),
+        ([str(study), "-o", str(scene)], "the study's scene file"),
+    ):
+        assert main(["study", *arguments, "--overwrite", "-q"]) == EXIT_INPUT
+        assert f": is {what}; give another path" in capsys.readouterr().err
+    assert {path: path.read_bytes() for path in (scene, study)} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.toml", "study.toml"]
