@@ -104,7 +104,8 @@ def test_a_needle_reinserted_into_its_hole_meets_its_channel_friction_alone(dire
     scene, records = _run(
         f"time.dt={dt}", *NEEDLES[needle], *VARIANTS[variant], *_reinsertion(DIRECTIONS[direction])
     )
-    assert _named(records, "puncture", "withdrawal", "reentry", "exit") == ["puncture", "withdrawal", "reentry"]
+    names = _named(records, "puncture", "withdrawal", "reentry", "exit")
+    assert names == ["puncture", "withdrawal", "reentry"], names
     f_cut, travel = scene.insertion.tip_cutting_force, 0.02 * dt
     depth = lambda r: float((r.needle_positions[-1] - np.array([*ENTRY, TOP])) @ axis)  # noqa: E731
     entered = next(r.step for r in records if any(e.name == "reentry" for e in r.events))
@@ -198,9 +199,8 @@ def test_another_needle_reenters_the_hole():
     simulation.run(on_step=lambda state, record: records.append(record))
 
     def events(name):
-        return [
-            (r.step, e.name) for r in records for part in r.instruments if part.name == name for e in part.events
-        ]
+        parts = [(r.step, part) for r in records for part in r.instruments if part.name == name]
+        return [(step, e.name) for step, part in parts for e in part.events]
 
     first = [name for _, name in events("first") if name in ("puncture", "withdrawal", "reentry")]
     second = [name for _, name in events("second") if name in ("puncture", "withdrawal", "reentry")]
@@ -235,3 +235,36 @@ def test_restart_between_withdrawal_and_reentry():
     entered = next(r.step for r in records if any(e.name == "reentry" for e in r.events))
     assert withdrawn < 46 < entered
     assert len(states[45].channels) == 1 and states[45].phase == "approach"
+
+
+def test_a_hole_is_found_in_rest_coordinates_wherever_the_tissue_moved():
+    # The hole belongs to the tissue's material: the tissue moved 12 mm along x since it was made (a
+    # breathing organ), so the hole now lies 12 mm from where it was made. Expected: a tip above the moved
+    # hole meets it (its closest surface point's rest position lies at the hole's rest entry); a tip above
+    # the place the hole was made, now 12 mm (1.5 needle radii) beside it in the tissue's material, meets
+    # intact surface. Compared in the deformed configuration, both answers would be the other way round.
+    from refsim.constraints import find_surface_contact
+    from refsim.geometry import SurfaceProjector
+    from refsim.simulation.events import locate_under_surface
+    from refsim.simulation.state import Channel
+
+    simulation = Simulation(load_scene("cube", ["mesh.cells=[4, 4, 4]"]))
+    rest, tets, faces = simulation.models.mesh.rest_positions, simulation.tets, simulation.faces
+    entry = np.array([[*ENTRY, TOP]])
+    tet, barycentric = locate_under_surface(rest, tets, entry, inward=np.array([0.0, 0.0, -1.0]))
+    radius = simulation.scene.needle.radius
+    hole = Channel(int(tet[0]), barycentric[0], (int(tet[0]), barycentric[0]), radius, 1)
+    shift = np.array([1.5 * radius, 0.0, 0.0])
+    moved = rest + shift
+    projector, down = SurfaceProjector(moved, faces), np.array([0.0, 0.0, -1.0])
+    detector = simulation.detector
+
+    def found(tip):
+        contact = find_surface_contact(projector, faces, tip, down)
+        return detector.hole(contact, (hole,), tets)
+
+    assert found(entry[0] + shift + [0.0, 0.0, 0.001]) is hole
+    assert found(entry[0] + [0.0, 0.0, 0.001]) is None
+    # Within the radius of the moved entry, and not beyond it.
+    assert found(entry[0] + shift + [0.9 * radius, 0.0, 0.001]) is hole
+    assert found(entry[0] + shift + [0.0, 1.1 * radius, 0.001]) is None
