@@ -1,6 +1,7 @@
 """Detection: the rows of one step from the free positions, by phase (DESIGN.md, step 3).
 
-- approach: the tip against the closest surface point (penetration), when within the contact distance;
+- approach: the tip against the closest surface point (penetration), when within the contact distance and
+  not in a hole of the tissue (``SimulationState.channels``);
 - insertion: the insertion points along the path;
 - cutting: the entry point's rows, and the sliding and border rows of the cut surface.
 """
@@ -292,7 +293,9 @@ class Detector:
 
         A tip within the contact distance whose closest surface point lies in a hole (:meth:`hole`) has no
         contact rows: there is no surface to push there (the tissue is open), and the tip enters the hole's
-        channel without puncture (the events' ``reentry``).
+        channel without puncture (the events' ``reentry``, on the first step after which the tip lies in a
+        tet). The shaft's rows stay: its samples end two contact distances behind the tip, out of the
+        tissue when the tip enters.
 
         The surface point is the one closest to the needle's tip where the needle is: at its free tip for a
         rigid needle (its kinematic pose is where the step puts it), at its start-of-step tip for a
@@ -309,10 +312,9 @@ class Detector:
             projector, self.faces, needle.tip, tip_direction, tip_radius=spec.tip_radius
         )
         free_gap = float(contact.normal @ (geometry.needle_free.tip - contact.point))
-        hole = None
-        if min(contact.gap, free_gap) < spec.contact_distance:
-            hole = self.hole(contact, channels, geometry.mesh_tets)
-        if hole is None and min(contact.gap, free_gap) < spec.contact_distance:
+        near = min(contact.gap, free_gap) < spec.contact_distance
+        hole = self.hole(contact, channels, geometry.mesh_tets) if near else None
+        if near and hole is None:
             blocks.append(
                 penetration_block(
                     contact,
