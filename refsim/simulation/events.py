@@ -230,7 +230,7 @@ class EventRules:
         if state.phase == Phase.APPROACH and rows.row_count:
             state, events = self._puncture(world, state, detection, multipliers)
         if state.phase == Phase.APPROACH and detection.hole is not None:
-            state, events = self._reentry(world, state, detection.hole, locator)
+            state, events = self._reentry(world, state, detection, locator)
         if state.phase == Phase.INSERTION and not events:
             # (Not in the step that punctures or re-enters: the entry point is then at the tip, or the tip
             # just past the surface.)
@@ -276,14 +276,22 @@ class EventRules:
         )
         return state, [Event("puncture", normal_force)]
 
-    def _reentry(self, world, state, hole: Channel, locator: LazyLocator):
-        """A tip that met the surface within a hole of the tissue (``hole``: the step's detection found its
-        closest surface point there and built no tip contact) and lies in a tet after the step has entered
-        the hole's channel: the insertion phase, with the hole's entry point as its first insertion point and
-        its end as the channel's end (the tip's cutting row frees the tip up to it; a channel cut through has
-        no tip row). No puncture: the surface is already open there. Event ``reentry``."""
+    def _reentry(self, world, state, detection: Detection, locator: LazyLocator):
+        """A tip that met the surface within a hole of the tissue (``detection.hole``: the step's detection
+        found its closest surface point there and built no tip contact) and lies in a tet after the step has
+        entered the hole's channel: the insertion phase, with the hole's entry point as its first insertion
+        point and its end as the channel's end (the tip's cutting row frees the tip up to it; a channel cut
+        through has no tip row). No puncture: the surface is already open there. Event ``reentry``.
+
+        The tip is located (in the whole mesh) only once it is past the tangent plane of its surface point
+        on the step's positions: a tip still above it is outside."""
+        hole, contact = detection.hole, detection.contact
+        positions = world.tissue.positions
         needle = self.needle_geometry(state.needle)
-        tip_tet, tip_barycentric = self.locate_tip(world.tissue.positions, needle.tip, -1, locator)
+        surface = np.asarray(contact.barycentric) @ positions[np.asarray(contact.nodes)]
+        if float((needle.tip - surface) @ contact.normal) > 0.0:
+            return state, []
+        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, -1, locator)
         if tip_tet < 0:
             return state, []
         path = InsertionPath.empty().appended(
