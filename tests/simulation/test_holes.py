@@ -109,6 +109,8 @@ def test_a_needle_reinserted_into_its_hole_meets_its_channel_friction_alone(dire
     f_cut, travel = scene.insertion.tip_cutting_force, 0.02 * dt
     depth = lambda r: float((r.needle_positions[-1] - np.array([*ENTRY, TOP])) @ axis)  # noqa: E731
     entered = next(r.step for r in records if any(e.name == "reentry" for e in r.events))
+    # No capped contact in a hole: the re-entry step is not solved again (no within-step event).
+    assert records[entered - 1].instruments[0].within_step is None
     again = [r for r in records if r.step > entered]
     channel = [r for r in again if depth(r) <= DEPTH - travel]
     beyond = [r for r in again if depth(r) >= DEPTH + 2 * travel]
