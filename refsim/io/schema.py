@@ -382,7 +382,7 @@ EVENTS = _specs(
     [
         ("step", "1", "int64", (), "step of the event"),
         ("time", "s", "float64", (), "time at the end of that step"),
-        ("name", "1", "str", (), "puncture, cut_start, tear, retraction, withdrawal, ..."),
+        ("name", "1", "str", (), "puncture, reentry, cut_start, tear, retraction, withdrawal, ..."),
         (
             "force",
             "N",

@@ -1,6 +1,7 @@
 """Detection: the rows of one step from the free positions, by phase (DESIGN.md, step 3).
 
-- approach: the tip against the closest surface point (penetration), when within the contact distance;
+- approach: the tip against the closest surface point (penetration), when within the contact distance and
+  not in a hole of the tissue (``SimulationState.channels``);
 - insertion: the insertion points along the path;
 - cutting: the entry point's rows, and the sliding and border rows of the cut surface.
 """
@@ -39,7 +40,7 @@ from refsim.constraints.cut import FrontRows, inserted_span, strip_cut_block
 from refsim.constraints.insertion import InsertionOptions, InsertionPath, PointRings
 from refsim.geometry import SurfaceProjector, TetLocator
 from refsim.scene import Scene
-from refsim.simulation.state import InstrumentState, Phase, SimulationState
+from refsim.simulation.state import Channel, InstrumentState, Phase, SimulationState
 
 __all__ = ["Detection", "Detector"]
 
@@ -59,6 +60,8 @@ class Detection:
         row's own point is ``rows.point``, an index into the path).
     rings : The coupling rings those rows were built on, one per point of the path (the step's path carries
         them on, :meth:`refsim.constraints.InsertionPath.with_rings`); None when no ring rows were built.
+    hole : The tissue's channel whose hole the tip meets (approach: its closest surface point, within the
+        contact distance, lies in the hole), which then has no tip contact; None elsewhere.
     """
 
     rows: RowBlock
@@ -66,6 +69,7 @@ class Detection:
     front: FrontRows = field(default_factory=FrontRows.empty)
     insertion_points: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     rings: PointRings | None = None
+    hole: Channel | None = None
 
 
 class Detector:
@@ -131,6 +135,9 @@ class Detector:
         self._compliance_memo: tuple[tuple[bytes, bytes], np.ndarray] | None = None
         # Shaft samples before puncture every half mean tet size (the surface cannot bend between them).
         self.shaft_spacing = 0.01
+        #: The last channels of the tissue the holes were read from, with their entries' rest positions (h, 3)
+        #: and radii (h,) (_hole).
+        self._holes_memo: tuple[tuple[Channel, ...], np.ndarray, np.ndarray] | None = None
         #: The local mesh size of every rest tet [m] (local_mesh_size), for the rings' radii.
         self.tet_sizes = None
         if rest_positions is not None and tets is not None:
@@ -254,8 +261,9 @@ class Detector:
         front = FrontRows.empty()
         insertion_points = np.zeros(0, dtype=np.int64)
         rings = None
+        hole = None
         if state.phase == Phase.APPROACH:
-            contact, approach = self.approach_rows(geometry)
+            contact, approach, hole = self.approach_rows(geometry, world.channels)
             blocks.extend(approach)
         elif state.path.point_count:
             block, insertion_points, rings = self.path_rows(state, geometry)
@@ -274,12 +282,20 @@ class Detector:
             rows = empty_block({TISSUE: geometry.tissue_dof_count, NEEDLE: self.needle_dof_count})
         else:
             rows = concatenate(blocks)
-        return Detection(rows, contact, front, insertion_points, rings)
+        return Detection(rows, contact, front, insertion_points, rings, hole)
 
-    def approach_rows(self, geometry: StepGeometry) -> tuple[SurfaceContact, list[RowBlock]]:
-        """Before puncture: the tip's closest surface point and, in order, its contact rows (when within the
+    def approach_rows(
+        self, geometry: StepGeometry, channels: tuple[Channel, ...] = ()
+    ) -> tuple[SurfaceContact, list[RowBlock], Channel | None]:
+        """Before puncture: the tip's closest surface point, in order its contact rows (when within the
         contact distance) and the shaft's contact rows (``insertion.shaft_contact``, when any sample is near
-        the surface).
+        the surface), and the hole of ``channels`` (the tissue's) the tip meets.
+
+        A tip within the contact distance whose closest surface point lies in a hole (:meth:`hole`) has no
+        contact rows: there is no surface to push there (the tissue is open), and the tip enters the hole's
+        channel without puncture (the events' ``reentry``, on the first step after which the tip lies in a
+        tet). The shaft's rows stay: its samples end two contact distances behind the tip, out of the
+        tissue when the tip enters.
 
         The surface point is the one closest to the needle's tip where the needle is: at its free tip for a
         rigid needle (its kinematic pose is where the step puts it), at its start-of-step tip for a
@@ -296,7 +312,9 @@ class Detector:
             projector, self.faces, needle.tip, tip_direction, tip_radius=spec.tip_radius
         )
         free_gap = float(contact.normal @ (geometry.needle_free.tip - contact.point))
-        if min(contact.gap, free_gap) < spec.contact_distance:
+        near = min(contact.gap, free_gap) < spec.contact_distance
+        hole = self.hole(contact, channels, geometry.mesh_tets) if near else None
+        if near and hole is None:
             blocks.append(
                 penetration_block(
                     contact,
@@ -316,7 +334,32 @@ class Detector:
             )
             if shaft is not None:
                 blocks.append(shaft)
-        return contact, blocks
+        return contact, blocks, hole
+
+    def hole(
+        self, contact: SurfaceContact, channels: tuple[Channel, ...], mesh_tets: np.ndarray
+    ) -> Channel | None:
+        """The channel of ``channels`` whose hole holds the surface point of ``contact``, None when none does.
+
+        Compared in rest coordinates (the tissue may have moved or deformed since the hole was made): the
+        contact point's rest position (its surface triangle's barycentric coordinates on the rest nodes) lies
+        in a hole when it is within the hole's radius of the rest position of its channel's entry point; of
+        several, the nearest entry's."""
+        if not channels or self.rest_positions is None:
+            return None
+        memo = self._holes_memo
+        if memo is None or memo[0] is not channels:
+            tets = np.array([channel.entry_tet for channel in channels])
+            barycentric = np.array([channel.entry_barycentric for channel in channels])
+            entries = np.einsum("hk,hkj->hj", barycentric, self.rest_positions[np.asarray(mesh_tets)[tets]])
+            memo = self._holes_memo = (channels, entries, np.array([channel.radius for channel in channels]))
+        _, entries, radii = memo
+        point = np.asarray(contact.barycentric) @ self.rest_positions[np.asarray(contact.nodes)]
+        distance = np.linalg.norm(entries - point, axis=1)
+        inside = np.flatnonzero(distance <= radii)
+        if inside.size == 0:
+            return None
+        return channels[int(inside[np.argmin(distance[inside])])]
 
     def path_rows(
         self, state: InstrumentState, geometry: StepGeometry

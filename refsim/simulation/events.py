@@ -2,6 +2,11 @@
 
 - phase: approach; event: puncture; when: tip normal force ≥ f_p; then: the entry point is the first insertion
   point; insertion
+- phase: approach; event: reentry; when: the tip's closest surface point lies in a hole of the tissue
+  (``SimulationState.channels``: within the hole's radius of its entry point, in rest coordinates), where
+  the tip has no contact rows, and the tip lies in a tet after the step; then: the hole's entry point is the
+  first insertion point and its channel's end the channel end (no puncture: the surface is open there, and
+  the tip cuts only beyond the end; a channel cut through has no tip row); insertion
 - phase: insertion; event: (new points); when: the tip is farther than d_i from every point; then: points
   every d_i behind the tip, but none in an existing cut
 - phase: insertion; event: (tip location); when: every step; then: the tip's material point (its tet and
@@ -16,7 +21,8 @@
   pulled back out through its entry face is a withdrawal); then: no tip row from the next step; the shaft
   keeps its points
 - phase: insertion; event: retraction; when: points lie beyond the tip; then: they are removed
-- phase: insertion; event: withdrawal; when: no point is left; then: approach
+- phase: insertion; event: withdrawal; when: no point is left; then: approach; the tissue keeps the channel
+  (``Channel``: its entry point, its end, the needle's radius), replacing the record of the hole it re-entered
 - phase: insertion; event: cut_start; when: energy law: ‖t‖ ≥ G_c L_in; paper law (equation 3): ‖t‖ > n_i f_c;
   then: a strip on the path; cutting, the entry point kept
 - phase: cutting; event: (crack advance); when: energy law: a front row at its strength G_c ℓ_k and the needle
@@ -28,7 +34,8 @@
   law: a front row's force ≥ f_t; then: the surface grows (energy law: ĉ turns half-way to the layer's swept
   direction)
 - phase: cutting; event: retraction, withdrawal; when: the entry point beyond the tip; then: every row
-  released; approach (the cut stays)
+  released; approach (the cut stays, and no hole is recorded: the cut is what the tissue keeps there, and a
+  needle inserted along it punctures the surface, which the cut does not open, and slides in it)
 - phase: cutting; event: exit; when: the tip, inside the tissue at the step's start, lies in no tet at its
   end, having moved forward through the tissue (along the needle, relative to its material point); then:
   the cut rows run along the part of the needle in the tissue, from its entry to where it leaves through
@@ -69,9 +76,9 @@ from refsim.scene import Scene
 from refsim.simulation.detection import Detection
 from refsim.simulation.margins import MarginWatch
 from refsim.simulation.records import Event
-from refsim.simulation.state import Phase, SimulationState, evolved
+from refsim.simulation.state import THROUGH, Channel, Phase, SimulationState, evolved
 
-__all__ = ["EventRules", "LazyLocator", "locate_under_surface", "shaft_lateral_force"]
+__all__ = ["THROUGH", "EventRules", "LazyLocator", "locate_under_surface", "shaft_lateral_force"]
 
 
 def shaft_lateral_force(
@@ -109,11 +116,6 @@ def shaft_lateral_force(
 PUNCTURE_TOLERANCE = 1e-6
 #: Barycentric tolerance of the tip's location among the tets around its last one (the locator's default).
 TIP_TOLERANCE = 1e-12
-
-#: The channel end of a tip that cut through the tissue and left it through a far face (the event exit):
-#: the tissue along its channel is cut through, and its tip's cutting row does not come back while the
-#: needle stays on that path (``InstrumentState.channel_end``).
-THROUGH = (-1, None)
 
 #: A cut face's friction row sticks when its force is below its bound by more than this fraction of it (far
 #: above the solve's 10⁻⁸, as for the shaft's rows: `refsim.constraints.channel.stuck_points`).
@@ -166,12 +168,23 @@ class EventRules:
     deformation_gradients : Function of tissue positions (n, 3) giving F of every tet, shape (m, 3, 3).
     needle_geometry : Function of a needle state giving its centreline.
     cuts : Whether the instrument may cut (``scene.cutting.enabled`` by default).
+    needle_radius : Its needle's radius [m] (``scene.needle.radius`` by default): the radius of the holes
+        it leaves (``Channel.radius``).
     """
 
     def __init__(
-        self, scene: Scene, tets, rest_positions, deformation_gradients, needle_geometry, *, cuts=None
+        self,
+        scene: Scene,
+        tets,
+        rest_positions,
+        deformation_gradients,
+        needle_geometry,
+        *,
+        cuts=None,
+        needle_radius: float | None = None,
     ) -> None:
         cuts = scene.cutting.enabled if cuts is None else cuts
+        self.needle_radius = float(scene.needle.radius if needle_radius is None else needle_radius)
         self.insertion = scene.insertion
         self.coupling = scene.insertion.coupling_model
         self.cutting = scene.cutting
@@ -216,9 +229,11 @@ class EventRules:
         locator = LazyLocator(world.tissue.positions, self.tets)
         if state.phase == Phase.APPROACH and rows.row_count:
             state, events = self._puncture(world, state, detection, multipliers)
+        if state.phase == Phase.APPROACH and detection.hole is not None:
+            state, events = self._reentry(world, state, detection, locator)
         if state.phase == Phase.INSERTION and not events:
-            # (Not in the step that punctures: the entry point is then at the tip, on either side by
-            # round-off.)
+            # (Not in the step that punctures or re-enters: the entry point is then at the tip, or the tip
+            # just past the surface.)
             world, state, more = self._insertion(world, state, detection, multipliers, locator)
             events.extend(more)
         elif state.phase == Phase.CUTTING:
@@ -260,6 +275,59 @@ class EventRules:
             state, phase=Phase.INSERTION, path=path, tip_tet=int(tets[0]), tip_barycentric=barycentric[0]
         )
         return state, [Event("puncture", normal_force)]
+
+    def _reentry(self, world, state, detection: Detection, locator: LazyLocator):
+        """A tip that met the surface within a hole of the tissue (``detection.hole``: the step's detection
+        found its closest surface point there and built no tip contact) and lies in a tet after the step has
+        entered the hole's channel: the insertion phase, with the hole's entry point as its first insertion
+        point and its end as the channel's end (the tip's cutting row frees the tip up to it; a channel cut
+        through has no tip row). No puncture: the surface is already open there. Event ``reentry``.
+
+        The tip is located (in the whole mesh) only once it is past the tangent plane of its surface point
+        on the step's positions: a tip still above it is outside."""
+        hole, contact = detection.hole, detection.contact
+        positions = world.tissue.positions
+        needle = self.needle_geometry(state.needle)
+        surface = np.asarray(contact.barycentric) @ positions[np.asarray(contact.nodes)]
+        if float((needle.tip - surface) @ contact.normal) > 0.0:
+            return state, []
+        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, -1, locator)
+        if tip_tet < 0:
+            return state, []
+        path = InsertionPath.empty().appended(
+            np.array([hole.entry_tet]), np.asarray(hole.entry_barycentric).reshape(1, 4), world.step
+        )
+        state = evolved(
+            state,
+            phase=Phase.INSERTION,
+            path=path,
+            tip_tet=tip_tet,
+            tip_barycentric=tip_barycentric,
+            channel_end=hole.end,
+        )
+        return state, [Event("reentry")]
+
+    def _left_channels(self, world, state, channel_end) -> tuple[Channel, ...]:
+        """The tissue's channels after instrument ``state`` (at the step's start, in insertion) left the
+        tissue in the step, its channel's end being ``channel_end`` after the step's events: its channel
+        added, entering at its path's first point (the puncture's, or the hole's it re-entered, whose record
+        it replaces) and ending at the deepest material point its tip reached (``channel_end``; without a
+        tip cutting force, where no row reads it, the tip's last material point, or the entry's)."""
+        if state.path.point_count == 0:
+            return world.channels
+        end = channel_end
+        if end is None and state.tip_tet >= 0:
+            end = (state.tip_tet, state.tip_barycentric)
+        elif end is None:
+            end = (int(state.path.tets[0]), state.path.barycentric[0])
+        channel = Channel(
+            entry_tet=int(state.path.tets[0]),
+            entry_barycentric=np.array(state.path.barycentric[0], copy=True),
+            end=end,
+            radius=self.needle_radius,
+            step=world.step,
+        )
+        return (*(kept for kept in world.channels if not kept.same_entry(channel)), channel)
 
     def _insertion(self, world, state, detection, multipliers, locator: LazyLocator):
         rows = detection.rows
@@ -305,12 +373,17 @@ class EventRules:
         if path.point_count and self._exits(state, positions, needle, tip_tet):
             events.append(Event("exit"))
             channel_end = THROUGH
+        if path.point_count == 0:
+            # The needle left the tissue: its channel stays in it (a hole in its surface, the cut tissue
+            # behind it), which any needle may enter again.
+            world = evolved(world, channels=self._left_channels(world, state, channel_end))
+            state = evolved(
+                state, phase=Phase.APPROACH, path=path, tip_tet=-1, tip_barycentric=None, channel_end=None
+            )
+            return world, state, [*events, Event("withdrawal")]
         state = evolved(
             state, path=path, tip_tet=tip_tet, tip_barycentric=tip_barycentric, channel_end=channel_end
         )
-        if path.point_count == 0:
-            state = evolved(state, phase=Phase.APPROACH, tip_tet=-1, tip_barycentric=None, channel_end=None)
-            events.append(Event("withdrawal"))
         return world, state, events
 
     def _exits(self, state, positions, needle, tip_tet: int) -> bool:
@@ -338,13 +411,17 @@ class EventRules:
         meets the channel's friction alone until its tip is at the end (Okamura, Simone and O'Leary, IEEE
         TBME 51(10), 2004, measured the friction of a needle re-inserted into its own hole with no cutting
         force). A channel the tip cut through to a far face (the event exit, :data:`THROUGH`) has no end: it
-        stays so until the needle is withdrawn.
+        stays so until the needle is withdrawn. A tip pulled back out through its entry face (a point still
+        kept, the ring's release margin) keeps the end too. On withdrawal the end is the channel's in the
+        tissue's record (``Channel.end``), and a needle re-entering the hole starts from it.
         """
         end = state.channel_end
         if end is not None and end[0] < 0:
             return end
-        if state.tip_tet < 0 or self.insertion.tip_cutting_force <= 0.0:
+        if self.insertion.tip_cutting_force <= 0.0:
             return None
+        if state.tip_tet < 0:
+            return end  # pulled back out through its entry face, a point still kept: the channel stays
         tip_rows = rows.rows_of(TIP)
         strength = (1.0 - STICK_TOLERANCE) * self.insertion.tip_cutting_force
         if tip_rows.size == 0 or float(multipliers[tip_rows].sum()) >= strength:

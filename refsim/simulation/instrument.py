@@ -55,7 +55,13 @@ class Instrument:
             scene, faces, self.body.dof_count, rest_positions, tets, needle=spec, cuts=self.cuts
         )
         self.event_rules = EventRules(
-            scene, tets, rest_positions, tissue.deformation_gradients, self.body.geometry, cuts=self.cuts
+            scene,
+            tets,
+            rest_positions,
+            tissue.deformation_gradients,
+            self.body.geometry,
+            cuts=self.cuts,
+            needle_radius=spec.radius,
         )
 
     def control(self, control: ControlValues) -> ControlValues:
@@ -77,7 +83,12 @@ class Instrument:
         detection = self.detector.detect(world, world.instrument(self.name), geometry)
         rows: RowBlock = detection.rows.of_instrument(self.index, self.body.name)
         return Detection(
-            rows, detection.contact, detection.front, detection.insertion_points, detection.rings
+            rows,
+            detection.contact,
+            detection.front,
+            detection.insertion_points,
+            detection.rings,
+            detection.hole,
         )
 
     def needle_force(self, rows: RowBlock, multipliers: np.ndarray) -> np.ndarray:

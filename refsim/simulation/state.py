@@ -15,7 +15,7 @@ from refsim.fem.compliance import FreeMotionStart, PartialSolveMarks, StaleFacto
 from refsim.fem.tissue import TissueState
 from refsim.simulation.needle_body import NeedleState
 
-__all__ = ["InstrumentState", "Phase", "SimulationState", "evolved"]
+__all__ = ["THROUGH", "Channel", "InstrumentState", "Phase", "SimulationState", "evolved"]
 
 
 def evolved(instance, **changes):
@@ -41,6 +41,43 @@ class Phase(StrEnum):
     CUTTING = "cutting"  # after the cut start: the entry point, sliding and border rows of the cut
 
 
+#: The end of a channel cut through the tissue to a far face (the event exit): no material point ends it, and
+#: a tip on its path has no cutting row (``InstrumentState.channel_end``, ``Channel.end``).
+THROUGH = (-1, None)
+
+
+@dataclass(frozen=True)
+class Channel:
+    """A channel a needle cut into the tissue and left: a hole in its surface and the cut tissue behind it.
+
+    It belongs to the tissue (``SimulationState.channels``), like the cut surface: it outlives the needle
+    that made it, and every instrument meets it. Its points are material points (a tet and barycentric
+    coordinates), so it moves with the tissue; the hole is found in rest coordinates (its entry's rest
+    position), whatever the tissue's deformation since.
+
+    Attributes
+    ----------
+    entry_tet, entry_barycentric : The entry material point (the path's first point, where the needle
+        punctured), shape (4,) for the coordinates.
+    end : The deepest material point its tip reached (tet, barycentric coordinates (4,)), or
+        :data:`THROUGH` when the tip cut through to a far face; the form of ``InstrumentState.channel_end``.
+    radius : The radius of the needle that made it [m]: the hole's radius at the surface.
+    step : The step at which the needle left it.
+    """
+
+    entry_tet: int
+    entry_barycentric: np.ndarray
+    end: tuple[int, np.ndarray | None]
+    radius: float
+    step: int
+
+    def same_entry(self, other: Channel) -> bool:
+        """Whether ``other`` enters the tissue at this channel's entry point (a needle re-entered it)."""
+        return self.entry_tet == other.entry_tet and np.array_equal(
+            self.entry_barycentric, other.entry_barycentric
+        )
+
+
 @dataclass(frozen=True)
 class InstrumentState:
     """Everything one instrument (today: a needle) changes during a run: its own story.
@@ -62,8 +99,9 @@ class InstrumentState:
     channel_end : The end of the channel its tip has cut in insertion, while the tip lies behind it (moved
         back along the channel): that material point's tet and barycentric coordinates, shape (4,); the
         tip's cutting row acts there, so that the tip cuts again only beyond it. None while the tip is at
-        the channel's end (its own material point is the end); (−1, None) once the tip has cut through to
-        a far face (the event exit: no tip row on this path until the needle is withdrawn).
+        the channel's end (its own material point is the end); :data:`THROUGH` once the tip has cut through
+        to a far face (the event exit: no tip row on this path until the needle is withdrawn). A needle that
+        re-enters a channel of the tissue (``SimulationState.channels``) starts with that channel's end.
     entry_span : Where its needle enters the tissue and where its inserted part ends in this state's
         configuration [m] (the arc lengths of :func:`refsim.constraints.cut.inserted_span` at the cut's
         spacing), when the step's events located them
@@ -103,6 +141,10 @@ class SimulationState:
     instruments : Each instrument's state, in the scene's order.
     cut : The cut surface of the tissue, None until the tissue is cut. It belongs to the tissue: every
         instrument's rows meet it.
+    channels : The channels needles cut and left (:class:`Channel`, withdrawn from insertion), in the order
+        they were left; one per hole (a needle that re-entered a hole and left it again replaces its record).
+        They belong to the tissue: a needle of any instrument whose tip meets the surface within a hole
+        enters it without puncture (the event reentry) and cuts only beyond the channel's end.
     tissue_factor : What the tissue compliance carries from step to step: the refreshed strategy's stale
         factor (the matrix A it last factorised and the steps since,
         :class:`refsim.fem.compliance.StaleFactor`), or the exact strategy's partial-solve marks on PARDISO
@@ -121,6 +163,7 @@ class SimulationState:
     tissue: TissueState
     instruments: tuple[InstrumentState, ...]
     cut: CutSurface | None = None
+    channels: tuple[Channel, ...] = ()
     tissue_factor: StaleFactor | PartialSolveMarks | FreeMotionStart | None = None
 
     @property

@@ -35,6 +35,7 @@ EVENT_STYLES = {
     "tear": ("#ff7f0e", ":"),
     "retraction": ("#9467bd", ":"),
     "withdrawal": ("#8c564b", "--"),
+    "reentry": ("#17becf", "--"),
 }
 
 

@@ -4,11 +4,13 @@ refsim.constraints.rows, refsim.constraints.coupling) change no bit of a run.
 What is kept between steps: the probe sort of each set of row patterns (``rows._SORT_ORDERS``) and the
 summation plan of each set of rows' nodes (``rows._PLANS``), the 2-D
 sub-grid compliance of the last insertion rows (``Detector._compliance``, by the bytes of the rows' kinds
-and the points' mesh sizes), the tets around each tet the tip was in (``EventRules._tets_around``) and the
-ring angles per point count (``coupling._ring_angles``). Each is a function of its key alone; a run whose
+and the points' mesh sizes), the tets around each tet the tip was in (``EventRules._tets_around``), the
+ring angles per point count (``coupling._ring_angles``) and the rest entries of the tissue's holes
+(``Detector._holes_memo``, by the channels' tuple). Each is a function of its key alone; a run whose
 every store is emptied before each step must give the same bits as one that keeps them, through a puncture,
-insertion (points added), a withdrawal out of the tissue and a second puncture (points removed, the rings
-and patterns of a new path), and through a cut (cube_cut: its rows, the cut surface changing every step).
+insertion (points added), a withdrawal out of the tissue and a re-entry into its hole (points removed, a
+hole kept, the rings and patterns of a new path), and through a cut (cube_cut: its rows, the cut surface
+changing every step).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ LENGTH = 0.32
 
 def _in_out_in(entry=(0.00123, 0.00231)):
     """Overrides of the 4³ cube: the tip 2 mm above the top face, 8 mm in, back 1 mm above it (withdrawal),
-    6 mm in again (a second puncture)."""
+    6 mm in again through the same hole (a re-entry)."""
     times, depths = [0.0, 0.8, 1.2, 1.6], [-0.002, 0.008, -0.001, 0.006]
     fmt = lambda v: "[" + ", ".join(repr(float(x)) for x in v) + "]"  # noqa: E731
     bases = [[entry[0], entry[1], TOP - d + LENGTH] for d in depths]
@@ -60,6 +62,7 @@ def _forget(simulation: Simulation) -> None:
     coupling._ring_angles.cache_clear()
     for instrument in simulation.instruments:
         instrument.detector._compliance_memo = None
+        instrument.detector._holes_memo = None
         instrument.event_rules._around.clear()
         instrument.event_rules._around_nodes.clear()
 
@@ -79,7 +82,7 @@ def _run(scene, forget: bool):
 @pytest.mark.parametrize(
     ("name", "overrides", "expected"),
     [
-        ("cube", _in_out_in(), {"puncture": 2, "withdrawal": 1}),
+        ("cube", _in_out_in(), {"puncture": 1, "withdrawal": 1, "reentry": 1}),
         ("cube_cut", _cut_sideways(), {"puncture": 1, "cut_start": 1}),
     ],
 )

@@ -36,6 +36,9 @@ The life-cycle matrix (stage: where it is tested; the cases beyond the first of 
   ``test_a_needle_steered_out_of_its_channel_cuts_the_intact_tissue_beside_it``; the fast
   compliance's events through a reversal, a withdrawal and a second insertion against the exact strategy's:
   ``tests/simulation/test_fast_mode.py``;
+- withdraw and re-insert through the same hole (the tissue keeps the channel; event ``reentry``, no second
+  puncture, no tip cutting force up to the old depth), beside it, through a layer, by a second needle,
+  across a restart: ``tests/simulation/test_holes.py``;
 - pull straight back out through the entry face: ``test_a_needle_pulled_back_out_is_withdrawn_not_exited``
   (vertical and 30°; both solvers; rigid and flexible);
 - a flexible needle whose tip slid along a thin layer before the puncture (a short one, which can push f_p

@@ -1,0 +1,272 @@
+"""The tissue remembers the holes and channels needles leave in it (``SimulationState.channels``).
+
+A needle inserted, pulled all the way back out and pushed in again through the same hole along the same line
+meets the channel's friction alone, with no puncture and no tip cutting force, until its tip passes the old
+channel's deepest point (Okamura, Simone and O'Leary, IEEE TBME 51(10), 2004, measured exactly this: no
+puncture peak and no cutting force on re-insertion into the same hole). Each test runs the cube on 4³ cells
+(or the 8 mm slab of the thin-layer tests) with a short trajectory (the helpers of ``test_life_cycle.py``).
+
+The matrix (the cases beyond the first of each list are @slow):
+
+- insert 6 mm, withdraw, re-insert to 10 mm through the same hole:
+  ``test_a_needle_reinserted_into_its_hole_meets_its_channel_friction_alone`` (vertical and 30°; rigid and
+  flexible; Gauss–Seidel, exact, the fast compliance);
+- the same, the second needle entering 2 needle radii beside the hole: punctures at f_p
+  (``test_a_needle_beside_a_hole_punctures_the_surface``);
+- a hole through a thin layer (the needle left it through the far face): re-entered, no tip row at all
+  (``test_a_channel_cut_through_a_layer_has_no_tip_row_when_reentered``);
+- another instrument re-enters the hole the first one left (``test_another_needle_reenters_the_hole``);
+- a run continued from a state saved between the withdrawal and the re-entry gives the uninterrupted bits
+  (``test_restart_between_withdrawal_and_reentry``).
+"""
+
+from __future__ import annotations
+
+import tomllib
+from importlib import resources
+
+import numpy as np
+import pytest
+
+from refsim.constraints import TIP
+from refsim.scene import load_scene, scene_from_dict
+from refsim.simulation import Simulation
+from tests.simulation.test_life_cycle import (
+    DIRECTIONS,
+    ENTRY,
+    NEEDLES,
+    SLAB,
+    SLAB_BOTTOM,
+    SOLVERS,
+    TOP,
+    _path_overrides,
+    _run,
+)
+from tests.simulation.test_restart import _check_restarts
+
+VARIANTS = {**SOLVERS, "fast": ('compliance.strategy="fast"',)}
+DEPTH = 0.006  # the first insertion's depth along the needle [m]
+
+
+def _reinsertion(direction, entry_again=ENTRY):
+    """Knots: inserted 6 mm along the needle at 15 mm/s, held 0.1 s, pulled out to 2 mm above the surface,
+    held 0.3 s in the air (moved to ``entry_again`` there), pushed in to 10 mm at 20 mm/s."""
+    return _path_overrides(
+        [
+            (0.0, ENTRY, -0.002),
+            (0.4, ENTRY, DEPTH),
+            (0.5, ENTRY, DEPTH),
+            (0.9, ENTRY, -0.002),
+            (1.2, entry_again, -0.002),
+            (1.8, entry_again, 0.010),
+        ],
+        direction,
+    )
+
+
+def _named(records, *names):
+    return [e.name for r in records for e in r.events if e.name in names]
+
+
+def _tip(record) -> float:
+    return float(record.row_forces[record.row_role == TIP].sum())
+
+
+REINSERTED = [
+    pytest.param(direction, needle, variant, marks=[pytest.mark.slow] if slow else [])
+    for direction, needle, variant, slow in [
+        ("0deg", "rigid", "gauss_seidel", False),
+        ("30deg", "rigid", "exact", False),
+        ("30deg", "rigid", "gauss_seidel", True),
+        ("0deg", "rigid", "exact", True),
+        ("0deg", "rigid", "fast", True),
+        ("30deg", "rigid", "fast", False),
+        ("0deg", "flexible", "gauss_seidel", True),
+        ("30deg", "flexible", "gauss_seidel", True),
+        ("0deg", "flexible", "exact", True),
+        ("30deg", "flexible", "exact", True),
+    ]
+]
+
+
+@pytest.mark.parametrize(("direction", "needle", "variant"), REINSERTED)
+def test_a_needle_reinserted_into_its_hole_meets_its_channel_friction_alone(direction, needle, variant):
+    # The cube on 4³ cells at dt = 20 ms (knots of _reinsertion). Reference (Okamura et al. 2004): the
+    # capsule is torn at the hole and the channel behind it is cut, so the needle pushed in again through
+    # its hole meets the channel's friction alone up to the old depth, and the tip's cutting force f_cut only
+    # beyond it. Before, the tissue forgot the hole on withdrawal: a second puncture at f_p at the old entry
+    # and f_cut again from the surface down. Expected: puncture, withdrawal, reentry (no second puncture);
+    # after the re-entry the tip's row free (0) while the tip is in the old channel (up to 6 mm less a step's
+    # travel) and at f_cut beyond 6 mm by two steps' travel; the force along the needle in the channel the
+    # shaft's friction alone (below f_cut / 4), resisting the insertion.
+    axis = np.asarray(DIRECTIONS[direction]) / np.linalg.norm(DIRECTIONS[direction])
+    dt = 0.02
+    scene, records = _run(
+        f"time.dt={dt}", *NEEDLES[needle], *VARIANTS[variant], *_reinsertion(DIRECTIONS[direction])
+    )
+    names = _named(records, "puncture", "withdrawal", "reentry", "exit")
+    assert names == ["puncture", "withdrawal", "reentry"], names
+    f_cut, travel = scene.insertion.tip_cutting_force, 0.02 * dt
+    depth = lambda r: float((r.needle_positions[-1] - np.array([*ENTRY, TOP])) @ axis)  # noqa: E731
+    entered = next(r.step for r in records if any(e.name == "reentry" for e in r.events))
+    # No capped contact in a hole: the re-entry step is not solved again (no within-step event).
+    assert records[entered - 1].instruments[0].within_step is None
+    again = [r for r in records if r.step > entered]
+    channel = [r for r in again if depth(r) <= DEPTH - travel]
+    beyond = [r for r in again if depth(r) >= DEPTH + 2 * travel]
+    assert len(channel) >= 10 and len(beyond) >= 5
+    assert all(r.phase == "insertion" for r in again)
+    assert all(_tip(r) <= 1e-6 * f_cut for r in channel), [(depth(r), _tip(r)) for r in channel]
+    assert all(_tip(r) == pytest.approx(f_cut, rel=1e-5) for r in beyond), [_tip(r) for r in beyond]
+    pushed = np.array([r.needle_force @ axis for r in channel])
+    assert np.all(pushed <= 0.0) and np.all(-pushed < 0.25 * f_cut), pushed
+    assert np.any(pushed < 0.0)
+    # The shaft's insertion points are laid again down the channel.
+    assert channel[-1].insertion_point_count >= 0.5 * (DEPTH - 2 * travel) / scene.insertion.spacing
+
+
+def test_a_needle_beside_a_hole_punctures_the_surface():
+    # As above, vertical, but re-inserted 2 needle radii (16 mm) beside the hole along x: the surface there
+    # is intact. Expected: a second puncture at f_p (the capped tip contact), no reentry, and the tip cutting
+    # at f_cut from the puncture on.
+    scene = load_scene("cube", ["mesh.cells=[4, 4, 4]"])
+    beside = (ENTRY[0] + 2 * scene.needle.radius, ENTRY[1])
+    scene, records = _run("time.dt=0.02", *_reinsertion(DIRECTIONS["0deg"], beside))
+    punctures = [(r, e) for r in records for e in r.events if e.name == "puncture"]
+    assert _named(records, "puncture", "withdrawal", "reentry") == ["puncture", "withdrawal", "puncture"]
+    for _, event in punctures:
+        assert event.force == pytest.approx(scene.insertion.puncture_force, rel=1e-6)
+    second = punctures[1][0].step
+    later = [r for r in records if r.step > second + 1]
+    assert later and all(_tip(r) == pytest.approx(scene.insertion.tip_cutting_force, rel=1e-5) for r in later)
+
+
+def test_a_channel_cut_through_a_layer_has_no_tip_row_when_reentered():
+    # The 8 mm slab at dt = 10 ms: crossed at 20 mm/s to 11 mm (the tip 3 mm out through the far face),
+    # pulled back out to 2 mm above the top face, pushed through again to 11 mm. Reference: the layer is cut
+    # through along the channel (Okamura et al. 2004), so the re-entered needle meets neither a puncture nor
+    # a tip cutting force, only the shaft's friction. Expected: puncture, exit, withdrawal, reentry, exit; no
+    # tip row after the re-entry; the force along the needle below f_cut / 4 (the friction).
+    knots = [
+        (0.0, ENTRY, -0.002),
+        (0.65, ENTRY, 0.011),
+        (1.3, ENTRY, -0.002),
+        (1.4, ENTRY, -0.002),
+        (2.05, ENTRY, 0.011),
+    ]
+    scene, records = _run(*SLAB, "time.dt=0.01", *_path_overrides(knots, (0.0, 0.0, -1.0)))
+    names = _named(records, "puncture", "exit", "withdrawal", "reentry")
+    assert names == ["puncture", "exit", "withdrawal", "reentry", "exit"], names
+    entered = next(r.step for r in records if any(e.name == "reentry" for e in r.events))
+    after = [r for r in records if r.step >= entered]
+    assert any(SLAB_BOTTOM < r.needle_positions[-1, 2] < TOP - 0.002 for r in after)  # the tip in the layer
+    assert not any(np.any(r.row_role == TIP) for r in after)
+    along = [abs(r.needle_force[2]) for r in after]
+    assert max(along) < 0.25 * scene.insertion.tip_cutting_force, max(along)
+
+
+def _instrument(name, knots, direction=(0.0, 0.0, -1.0)):
+    """An [[instruments]] table of the cube's needle through ``knots`` (as _path_overrides')."""
+    direction = np.asarray(direction, dtype=float)
+    length = 0.32
+    return {
+        "name": name,
+        "cuts": False,
+        "trajectory": {
+            "times": [t for t, _, _ in knots],
+            "base_positions": [
+                [float(c) for c in np.array([x, y, TOP]) + (d - length) * direction] for _, (x, y), d in knots
+            ],
+            "directions": [[float(c) for c in direction] for _ in knots],
+        },
+    }
+
+
+def test_another_needle_reenters_the_hole():
+    # Two needles of the cube's on 4³ cells (refsim/scenes/two_needles.toml's tissue): "first" inserts 6 mm
+    # and is pulled back out to 2 mm above the surface; "second" waits 4 mm above the same hole and is then
+    # pushed to 10 mm along the same line (needles do not touch each other). The hole belongs to the tissue:
+    # expected, the first punctures and is withdrawn, the second re-enters (no puncture) and meets no tip
+    # cutting force up to the first's depth, f_cut beyond it.
+    data = tomllib.loads((resources.files("refsim") / "scenes" / "two_needles.toml").read_text("utf-8"))
+    data["mesh"]["cells"] = [4, 4, 4]
+    data["time"].update(dt=0.02, duration=1.6)
+    data["cutting"]["enabled"] = False
+    data["instruments"] = [
+        _instrument("first", [(0.0, ENTRY, -0.002), (0.4, ENTRY, DEPTH), (0.8, ENTRY, -0.002)]),
+        _instrument("second", [(0.0, ENTRY, -0.004), (1.0, ENTRY, -0.004), (1.6, ENTRY, 0.010)]),
+    ]
+    simulation = Simulation(scene_from_dict(data, source="two_needles.toml"))
+    records = []
+    simulation.run(on_step=lambda state, record: records.append(record))
+
+    def events(name):
+        parts = [(r.step, part) for r in records for part in r.instruments if part.name == name]
+        return [(step, e.name) for step, part in parts for e in part.events]
+
+    first = [name for _, name in events("first") if name in ("puncture", "withdrawal", "reentry")]
+    second = [name for _, name in events("second") if name in ("puncture", "withdrawal", "reentry")]
+    assert first == ["puncture", "withdrawal"] and second == ["reentry"], (first, second)
+    f_cut = simulation.scene.insertion.tip_cutting_force
+    index = next(i for i, instrument in enumerate(simulation.instruments) if instrument.name == "second")
+
+    def tip(record):
+        mine = (record.row_role == TIP) & (record.row_instrument == index)
+        return float(record.row_forces[mine].sum())
+
+    def depth(record):
+        part = next(part for part in record.instruments if part.name == "second")
+        return float(TOP - part.needle_positions[-1, 2])
+
+    entered = next(step for step, name in events("second") if name == "reentry")
+    channel = [r for r in records if r.step > entered and depth(r) <= DEPTH - 0.0004]
+    beyond = [r for r in records if r.step > entered and depth(r) >= DEPTH + 0.0008]
+    assert channel and beyond
+    assert all(tip(r) <= 1e-6 * f_cut for r in channel)
+    assert all(tip(r) == pytest.approx(f_cut, rel=1e-5) for r in beyond)
+
+
+def test_restart_between_withdrawal_and_reentry():
+    # A step is a function of its state: the tissue's channels are carried in it, so a run continued from a
+    # state saved after the withdrawal (step 46, the needle in the air) re-enters the hole at the step the
+    # uninterrupted run does, with its bits.
+    scene = load_scene("cube", ["mesh.cells=[4, 4, 4]", "time.dt=0.02", *_reinsertion(DIRECTIONS["0deg"])])
+    states = []
+    records = _check_restarts(scene, restarts=(46,), total=72, watch=states.append)
+    withdrawn = next(r.step for r in records if any(e.name == "withdrawal" for e in r.events))
+    entered = next(r.step for r in records if any(e.name == "reentry" for e in r.events))
+    assert withdrawn < 46 < entered
+    assert len(states[45].channels) == 1 and states[45].phase == "approach"
+
+
+def test_a_hole_is_found_in_rest_coordinates_wherever_the_tissue_moved():
+    # The hole belongs to the tissue's material: the tissue moved 12 mm along x since it was made (a
+    # breathing organ), so the hole now lies 12 mm from where it was made. Expected: a tip above the moved
+    # hole meets it (its closest surface point's rest position lies at the hole's rest entry); a tip above
+    # the place the hole was made, now 12 mm (1.5 needle radii) beside it in the tissue's material, meets
+    # intact surface. Compared in the deformed configuration, both answers would be the other way round.
+    from refsim.constraints import find_surface_contact
+    from refsim.geometry import SurfaceProjector
+    from refsim.simulation.events import locate_under_surface
+    from refsim.simulation.state import Channel
+
+    simulation = Simulation(load_scene("cube", ["mesh.cells=[4, 4, 4]"]))
+    rest, tets, faces = simulation.models.mesh.rest_positions, simulation.tets, simulation.faces
+    entry = np.array([[*ENTRY, TOP]])
+    tet, barycentric = locate_under_surface(rest, tets, entry, inward=np.array([0.0, 0.0, -1.0]))
+    radius = simulation.scene.needle.radius
+    hole = Channel(int(tet[0]), barycentric[0], (int(tet[0]), barycentric[0]), radius, 1)
+    shift = np.array([1.5 * radius, 0.0, 0.0])
+    moved = rest + shift
+    projector, down = SurfaceProjector(moved, faces), np.array([0.0, 0.0, -1.0])
+    detector = simulation.detector
+
+    def found(tip):
+        contact = find_surface_contact(projector, faces, tip, down)
+        return detector.hole(contact, (hole,), tets)
+
+    assert found(entry[0] + shift + [0.0, 0.0, 0.001]) is hole
+    assert found(entry[0] + [0.0, 0.0, 0.001]) is None
+    # Within the radius of the moved entry, and not beyond it.
+    assert found(entry[0] + shift + [0.9 * radius, 0.0, 0.001]) is hole
+    assert found(entry[0] + shift + [0.0, 1.1 * radius, 0.001]) is None
