@@ -190,6 +190,39 @@ def test_path_has_no_gaps_whatever_the_tip_speed(moves_per_step):
     assert abs(path.point_count - (depth // spacing + 1)) <= 1
 
 
+@pytest.mark.parametrize("offset", [-1e-12, 0.0, 1e-12, -1e-9])
+def test_a_tip_a_whole_spacing_deep_lays_its_point_whatever_the_round_off(offset):
+    # A tip stopped a whole number of spacings below its entry (a scene's design depth) must get its point in
+    # every run: the distance to the last point is d_i up to the solver's last digits (GS and exact once
+    # differed by one point on cube_cut). SPACING_TOLERANCE = 1e-6 of d_i: offsets of 1e-12 and 1e-9 of d_i
+    # (round-off, a solve to 1e-8 of the displacement) all lay the point; one of 1e-5 d_i short does not.
+    from refsim.constraints.insertion import SPACING_TOLERANCE
+
+    mesh = box_mesh(size=(0.02, 0.02, 0.02), cells=(3, 3, 3))
+    spacing = 1e-3
+    start = np.array([0.0101, 0.0093, 0.0199])
+    locator = TetLocator(mesh.rest_positions, mesh.tets)
+
+    def grown(depth):
+        tets, bary = locator.locate(start[None, :])
+        path = InsertionPath.empty().appended(tets, bary, 0)
+        path, added = grow_path(
+            path,
+            tip=start - np.array([0.0, 0.0, depth]),
+            tissue_positions=mesh.rest_positions,
+            mesh_tets=mesh.tets,
+            locator=locator,
+            spacing=spacing,
+            step=1,
+        )
+        return path, added
+
+    path, added = grown(2 * spacing * (1.0 + offset))
+    assert added == 2 and path.point_count == 3
+    _, short = grown(spacing * (1.0 - 10 * SPACING_TOLERANCE))
+    assert short == 0
+
+
 def test_points_beyond_tip_after_withdrawal():
     needle = RigidNeedleGeometry(
         np.array([0.0, 0.0, 0.1]), np.array([0.0, 0.0, -1.0]), 0.05
