@@ -389,17 +389,17 @@ class Detector:
         has cut while the tip lies behind it on the needle's line, within the needle's radius of it
         (``InstrumentState.channel_end``: the row then holds the tip's distance to it, and the tip cuts only
         beyond it); none outside insertion, while the tip is
-        outside the tissue, or once its channel runs through the tissue (the tip left through a far face:
-        moved back into the tissue, it meets no tissue left to cut on that path)."""
+        outside the tissue, or while it lies on the line of a channel cut through the tissue (the tip left
+        through a far face: moved back into the tissue along that line, it meets no tissue left to cut;
+        turned off it, it cuts intact tissue)."""
         spec = self.insertion
         if not (spec.tip_cutting_force > 0.0 and state.phase == Phase.INSERTION and state.tip_tet >= 0):
             return None
         tet, barycentric = (state.tip_tet, state.tip_barycentric)
         ahead = None
-        if state.channel_end is not None:
-            tet, barycentric = state.channel_end
-            if tet < 0:  # cut through to a far face (events.THROUGH): nothing left to cut on this path
-                return None
+        channel_end = state.channel_end
+        if channel_end is not None:
+            tet, barycentric = channel_end.tet, channel_end.barycentric
             end = np.asarray(barycentric) @ geometry.tissue_previous[geometry.mesh_tets[tet]]
             needle = geometry.needle_previous
             offset = end - needle.tip
@@ -408,6 +408,8 @@ class Detector:
                 # Turned out of its channel (the channel's end off the needle's line by more than its
                 # radius): the tip meets intact tissue, its own material point's.
                 tet, barycentric, ahead = state.tip_tet, state.tip_barycentric, None
+            elif channel_end.through:  # on the line of a channel cut through to a far face: nothing to cut
+                return None
         ring = self.tip_ring(state, geometry, (tet, barycentric)) if self.ring else (None, None)
         block, _, _ = tip_cutting_block(
             geometry,

@@ -76,9 +76,9 @@ from refsim.scene import Scene
 from refsim.simulation.detection import Detection
 from refsim.simulation.margins import MarginWatch
 from refsim.simulation.records import Event
-from refsim.simulation.state import THROUGH, Channel, Phase, SimulationState, evolved
+from refsim.simulation.state import Channel, ChannelEnd, Phase, SimulationState, evolved
 
-__all__ = ["THROUGH", "EventRules", "LazyLocator", "locate_under_surface", "shaft_lateral_force"]
+__all__ = ["EventRules", "LazyLocator", "locate_under_surface", "shaft_lateral_force"]
 
 
 def shaft_lateral_force(
@@ -317,9 +317,9 @@ class EventRules:
             return world.channels
         end = channel_end
         if end is None and state.tip_tet >= 0:
-            end = (state.tip_tet, state.tip_barycentric)
+            end = ChannelEnd(state.tip_tet, state.tip_barycentric)
         elif end is None:
-            end = (int(state.path.tets[0]), state.path.barycentric[0])
+            end = ChannelEnd(int(state.path.tets[0]), state.path.barycentric[0])
         channel = Channel(
             entry_tet=int(state.path.tets[0]),
             entry_barycentric=np.array(state.path.barycentric[0], copy=True),
@@ -372,7 +372,8 @@ class EventRules:
         channel_end = self._channel_end(state, positions, needle, tip_tet, rows, multipliers)
         if path.point_count and self._exits(state, positions, needle, tip_tet):
             events.append(Event("exit"))
-            channel_end = THROUGH
+            # Cut through to the far face: the channel's line ends at the tip's last material point inside.
+            channel_end = ChannelEnd(state.tip_tet, state.tip_barycentric, through=True)
         if path.point_count == 0:
             # The needle left the tissue: its channel stays in it (a hole in its surface, the cut tissue
             # behind it), which any needle may enter again.
@@ -410,27 +411,31 @@ class EventRules:
         either way). The tissue behind the end is already cut: a needle pushed in again along its channel
         meets the channel's friction alone until its tip is at the end (Okamura, Simone and O'Leary, IEEE
         TBME 51(10), 2004, measured the friction of a needle re-inserted into its own hole with no cutting
-        force). A channel the tip cut through to a far face (the event exit, :data:`THROUGH`) has no end: it
-        stays so until the needle is withdrawn. A tip pulled back out through its entry face (a point still
-        kept, the ring's release margin) keeps the end too. On withdrawal the end is the channel's in the
-        tissue's record (``Channel.end``), and a needle re-entering the hole starts from it.
+        force). A channel the tip cut through to a far face (the event exit) ends at the tip's last material
+        point inside, marked through: it stays so until the needle is withdrawn, or until its tip cuts again
+        (turned out of that channel's line into intact tissue: then its own point is the end). A tip pulled
+        back out through its entry face (a point still kept, the ring's release margin) keeps the end too. On
+        withdrawal the end is the channel's in the tissue's record (``Channel.end``), and a needle
+        re-entering the hole starts from it.
         """
         end = state.channel_end
-        if end is not None and end[0] < 0:
-            return end
         if self.insertion.tip_cutting_force <= 0.0:
-            return None
+            return end if end is not None and end.through else None
         if state.tip_tet < 0:
             return end  # pulled back out through its entry face, a point still kept: the channel stays
         tip_rows = rows.rows_of(TIP)
         strength = (1.0 - STICK_TOLERANCE) * self.insertion.tip_cutting_force
+        if end is not None and end.through:
+            # On the through channel's line the tip has no row; off it, a row at f_cut cut intact tissue.
+            cut = tip_rows.size > 0 and float(multipliers[tip_rows].sum()) >= strength
+            return None if cut else end
         if tip_rows.size == 0 or float(multipliers[tip_rows].sum()) >= strength:
             return None  # it cut (or had no row): its own point is the end
         if end is None:
-            end = (state.tip_tet, state.tip_barycentric)
+            end = ChannelEnd(state.tip_tet, state.tip_barycentric)
         if tip_tet < 0:
             return end
-        where = end[1] @ positions[self.tets[end[0]]]
+        where = end.barycentric @ positions[self.tets[end.tet]]
         return end if float((where - needle.tip) @ needle.tip_tangent) > 0.0 else None
 
     def locate_tip(

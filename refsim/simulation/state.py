@@ -15,7 +15,7 @@ from refsim.fem.compliance import FreeMotionStart, PartialSolveMarks, StaleFacto
 from refsim.fem.tissue import TissueState
 from refsim.simulation.needle_body import NeedleState
 
-__all__ = ["THROUGH", "Channel", "InstrumentState", "Phase", "SimulationState", "evolved"]
+__all__ = ["Channel", "ChannelEnd", "InstrumentState", "Phase", "SimulationState", "evolved"]
 
 
 def evolved(instance, **changes):
@@ -41,9 +41,24 @@ class Phase(StrEnum):
     CUTTING = "cutting"  # after the cut start: the entry point, sliding and border rows of the cut
 
 
-#: The end of a channel cut through the tissue to a far face (the event exit): no material point ends it, and
-#: a tip on its path has no cutting row (``InstrumentState.channel_end``, ``Channel.end``).
-THROUGH = (-1, None)
+@dataclass(frozen=True)
+class ChannelEnd:
+    """Where a channel a tip cut ends: a material point of the tissue (``InstrumentState.channel_end``,
+    ``Channel.end``).
+
+    Attributes
+    ----------
+    tet, barycentric : The material point: the deepest point the tip reached, or, for a channel cut through
+        to a far face (the event exit), the tip's last material point inside the tissue before it left;
+        barycentric shape (4,).
+    through : Whether the channel runs through the tissue to a far face: a tip on its line has nothing left
+        to cut (no cutting row); off its line (the point farther than the needle's radius from the needle's
+        line: turned out of the channel) it cuts intact tissue.
+    """
+
+    tet: int
+    barycentric: np.ndarray
+    through: bool = False
 
 
 @dataclass(frozen=True)
@@ -59,15 +74,15 @@ class Channel:
     ----------
     entry_tet, entry_barycentric : The entry material point (the path's first point, where the needle
         punctured), shape (4,) for the coordinates.
-    end : The deepest material point its tip reached (tet, barycentric coordinates (4,)), or
-        :data:`THROUGH` when the tip cut through to a far face; the form of ``InstrumentState.channel_end``.
+    end : Where it ends (:class:`ChannelEnd`): the deepest material point its tip reached, or the tip's last
+        material point inside the tissue, marked through, when the tip cut through to a far face.
     radius : The radius of the needle that made it [m]: the hole's radius at the surface.
     step : The step at which the needle left it.
     """
 
     entry_tet: int
     entry_barycentric: np.ndarray
-    end: tuple[int, np.ndarray | None]
+    end: ChannelEnd
     radius: float
     step: int
 
@@ -97,10 +112,10 @@ class InstrumentState:
         puncture, after an exit through a far face or a withdrawal).
     tip_barycentric : The tip's barycentric coordinates in ``tip_tet``, shape (4,); None when outside.
     channel_end : The end of the channel its tip has cut in insertion, while the tip lies behind it (moved
-        back along the channel): that material point's tet and barycentric coordinates, shape (4,); the
-        tip's cutting row acts there, so that the tip cuts again only beyond it. None while the tip is at
-        the channel's end (its own material point is the end); :data:`THROUGH` once the tip has cut through
-        to a far face (the event exit: no tip row on this path until the needle is withdrawn). A needle that
+        back along the channel): that material point (:class:`ChannelEnd`); the tip's cutting row acts
+        there, so that the tip cuts again only beyond it. None while the tip is at the channel's end (its own
+        material point is the end); marked through once the tip has cut through to a far face (the event
+        exit: no tip row while the needle stays on that channel's line, until it is withdrawn). A needle that
         re-enters a channel of the tissue (``SimulationState.channels``) starts with that channel's end.
     entry_span : Where its needle enters the tissue and where its inserted part ends in this state's
         configuration [m] (the arc lengths of :func:`refsim.constraints.cut.inserted_span` at the cut's
@@ -119,7 +134,7 @@ class InstrumentState:
     cut_strip: CutStrip | None = None
     tip_tet: int = -1
     tip_barycentric: np.ndarray | None = None
-    channel_end: tuple[int, np.ndarray | None] | None = None
+    channel_end: ChannelEnd | None = None
     entry_span: tuple[float, float] | None = None
     cut_face_stretch: FaceStretch | None = None
 

@@ -15,6 +15,8 @@ The matrix (the cases beyond the first of each list are @slow):
   (``test_a_needle_beside_a_hole_punctures_the_surface``);
 - a hole through a thin layer (the needle left it through the far face): re-entered, no tip row at all
   (``test_a_channel_cut_through_a_layer_has_no_tip_row_when_reentered``);
+- that hole re-entered at 30° from its line: the tip cuts the intact layer at f_cut
+  (``test_a_channel_cut_through_a_layer_re_entered_at_another_angle_cuts_the_intact_tissue``);
 - another instrument re-enters the hole the first one left (``test_another_needle_reenters_the_hole``);
 - a run continued from a state saved between the withdrawal and the re-entry gives the uninterrupted bits
   (``test_restart_between_withdrawal_and_reentry``).
@@ -270,3 +272,46 @@ def test_a_hole_is_found_in_rest_coordinates_wherever_the_tissue_moved():
     # Within the radius of the moved entry, and not beyond it.
     assert found(entry[0] + shift + [0.9 * radius, 0.0, 0.001]) is hole
     assert found(entry[0] + shift + [0.0, 1.1 * radius, 0.001]) is None
+
+
+def test_a_channel_cut_through_a_layer_re_entered_at_another_angle_cuts_the_intact_tissue():
+    # The 8 mm slab at dt = 10 ms: crossed vertically to 11 mm (out through the far face), pulled back out to
+    # 10 mm above the top face, turned to 30° in the air and pushed in again through the same hole, 6 mm
+    # along the needle (5.2 mm deep: inside the layer). Reference: the tissue is cut along the vertical
+    # channel only; on the turned line the layer is intact beyond the hole, so the tip cuts it at f_cut (the
+    # channel's exit point lies 8 sin 30° = 4 mm off the needle's line, 8 times its 0.5 mm radius).
+    # Expected: puncture, exit, withdrawal, reentry; after the re-entry the tip has a row, and it reaches
+    # f_cut (a through channel once had no end point, and its re-entered needle no tip row on any line).
+    tilted = np.asarray(DIRECTIONS["30deg"]) / np.linalg.norm(DIRECTIONS["30deg"])
+    vertical = np.array([0.0, 0.0, -1.0])
+    top = np.array([*ENTRY, TOP])
+    # Turned about the tip, 10 mm above the hole, 5° per 0.4 s (slow enough for the tip's
+    # speed check on the base's motion; the base's chord keeps the tip within 0.5 mm).
+    turns = [
+        (1.5 + 0.4 * k, np.array([np.sin(a), 0.0, -np.cos(a)]), -0.010)
+        for k, a in enumerate(np.radians(np.arange(0, 31, 5)))
+    ]
+    knots = [
+        (0.0, vertical, -0.002),
+        (0.65, vertical, 0.011),
+        (1.3, vertical, -0.010),
+        *turns,
+        (4.3, tilted, -0.002),
+        (4.7, tilted, 0.006),
+    ]
+    fmt = lambda v: "[" + ", ".join(repr(float(c)) for c in v) + "]"  # noqa: E731
+    bases = [top + (d - 0.32) * axis for _, axis, d in knots]
+    overrides = (
+        f"trajectory.times={fmt([t for t, _, _ in knots])}",
+        "trajectory.base_positions=[" + ", ".join(fmt(b) for b in bases) + "]",
+        "trajectory.directions=[" + ", ".join(fmt(axis) for _, axis, _ in knots) + "]",
+        f"time.duration={knots[-1][0]}",
+    )
+    scene, records = _run(*SLAB, "time.dt=0.01", *overrides)
+    names = _named(records, "puncture", "exit", "withdrawal", "reentry")
+    assert names == ["puncture", "exit", "withdrawal", "reentry"], names
+    entered = next(r.step for r in records if any(e.name == "reentry" for e in r.events))
+    tip = [_tip(r) for r in records if r.step > entered]
+    assert any(np.any(r.row_role == TIP) for r in records if r.step > entered)
+    f_cut = scene.insertion.tip_cutting_force
+    assert max(tip) >= (1.0 - 1e-3) * f_cut, (max(tip), f_cut)
