@@ -169,16 +169,17 @@ def _results_input(path, command: str) -> Path:
 
 
 def _output_path(path, result: Path, what: str, suffixes: tuple[str, ...] | None = None) -> Path:
-    """An output of a command that reads the results file ``result``, checked before anything is written: its
-    suffix (one of ``suffixes``), not the results file itself (writing it would destroy the run), and a path
-    that can be created (:func:`refsim.io.driver.check_output_path`)."""
+    """An output of a command beside the results file ``result`` (one that reads it, or ``run``'s figure),
+    checked before anything is written: its suffix (one of ``suffixes``), not the results file itself
+    (writing it would destroy the run), and a path that can be created
+    (:func:`refsim.io.driver.check_output_path`)."""
     from refsim.io.driver import check_output_path
 
     path = Path(path)
     if suffixes is not None and path.suffix.lower() not in suffixes:
         raise ValueError(f"{path}: the {what} must be a file ending in {', '.join(suffixes)}")
     if path.resolve() == result.resolve():
-        raise ValueError(f"{path}: is the results file being read; give another path for the {what}")
+        raise ValueError(f"{path}: is the results file; give another path for the {what}")
     return check_output_path(path, overwrite=True, what=what)
 
 
@@ -192,15 +193,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     output = check_output_path(args.output, overwrite=args.overwrite)
     figure = None
     if args.figure:  # checked before the run, not after it
-        figure = Path(args.figure)
         require_extra("viz", "--figure", ("pyvista", "matplotlib"))
-        if figure.suffix.lower() not in _FIGURE_SUFFIXES:
-            raise ValueError(
-                f"--figure {figure}: expected a picture file ending in {', '.join(_FIGURE_SUFFIXES)}"
-            )
-        if figure.resolve() == output.resolve():
-            raise ValueError(f"--figure {figure}: is the results file (-o)")
-        check_output_path(figure, overwrite=True, what="figure")
+        figure = _output_path(args.figure, output, "--figure picture", _FIGURE_SUFFIXES)
     bar = _progress_bar(scene.time.step_count, enabled=not args.quiet)
 
     def progress(done: int, total: int, phase: str) -> None:

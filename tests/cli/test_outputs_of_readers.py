@@ -35,8 +35,8 @@ def results(tmp_path_factory):
 @pytest.mark.parametrize(
     ("arguments", "fragments"),
     [
-        (["export", "{run}", "--csv", "{run}"], ["is the results file being read", "force CSV"]),
-        (["export", "{run}", "--problems", "{run}"], ["is the results file being read", "problem set"]),
+        (["export", "{run}", "--csv", "{run}"], ["is the results file", "force CSV"]),
+        (["export", "{run}", "--problems", "{run}"], ["is the results file", "problem set"]),
         (
             ["export", "{run}", "--vtu", "last", "--vtu-folder", "{run}"],
             ["--vtu-folder", "is a file, not a folder"],

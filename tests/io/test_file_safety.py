@@ -62,6 +62,12 @@ def test_a_second_writer_is_refused_before_anything_is_truncated(tmp_path, finis
     assert run_scene(_scene(), path, overwrite=True).complete  # once released, the path can be written
 
 
+def _python(code: str) -> subprocess.CompletedProcess:
+    """``code`` run by another Python process on this tree (its output captured as text)."""
+    environment = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=environment)
+
+
 def test_the_lock_is_exclusive_between_processes(tmp_path):
     """flock locks are per open file: a child process cannot take a lock this process holds."""
     path = tmp_path / "run.h5"
@@ -71,12 +77,7 @@ def test_the_lock_is_exclusive_between_processes(tmp_path):
             "import sys\nfrom refsim.io.filelock import FileLock, WriterLockedError\n"
             f"try:\n    FileLock({str(path)!r})\nexcept WriterLockedError as e:\n    print(e); sys.exit(7)\n"
         )
-        child = subprocess.run(
-            [sys.executable, "-c", code],
-            capture_output=True,
-            text=True,
-            env={**os.environ, "PYTHONPATH": str(ROOT)},
-        )
+        child = _python(code)
         assert child.returncode == 7, child.stderr
         assert str(os.getpid()) in child.stdout
     finally:
@@ -179,12 +180,7 @@ def test_a_file_a_run_is_writing_is_not_called_damaged(tmp_path, finished):
             "from refsim.io import read_results\n"
             f"try:\n    read_results({str(path)!r})\nexcept ValueError as e:\n    print(e)\n"
         )
-        child = subprocess.run(
-            [sys.executable, "-c", code],
-            capture_output=True,
-            text=True,
-            env={**os.environ, "PYTHONPATH": str(ROOT)},
-        )
+        child = _python(code)
     finally:
         handle.close()
         lock.release()

@@ -10,7 +10,8 @@ The matrix (the cases beyond the first of each list are @slow):
 
 - insert 6 mm, withdraw, re-insert to 10 mm through the same hole:
   ``test_a_needle_reinserted_into_its_hole_meets_its_channel_friction_alone`` (vertical and 30°; rigid and
-  flexible; Gauss–Seidel, exact, the fast compliance);
+  flexible; Gauss–Seidel, exact, the fast compliance; the entry inside a surface triangle, on a mesh edge,
+  at a mesh vertex);
 - the same, the second needle entering 2 needle radii beside the hole: punctures at f_p
   (``test_a_needle_beside_a_hole_punctures_the_surface``);
 - a hole through a thin layer (the needle left it through the far face): re-entered, no tip row at all
@@ -32,9 +33,10 @@ import pytest
 
 from refsim.constraints import TIP
 from refsim.scene import load_scene, scene_from_dict
-from refsim.simulation import Simulation
+from refsim.simulation import Phase, Simulation
 from tests.simulation.test_life_cycle import (
     DIRECTIONS,
+    ENTRIES,
     ENTRY,
     NEEDLES,
     SLAB,
@@ -50,15 +52,17 @@ VARIANTS = {**SOLVERS, "fast": ('compliance.strategy="fast"',)}
 DEPTH = 0.006  # the first insertion's depth along the needle [m]
 
 
-def _reinsertion(direction, entry_again=ENTRY):
-    """Knots: inserted 6 mm along the needle at 15 mm/s, held 0.1 s, pulled out to 2 mm above the surface,
-    held 0.3 s in the air (moved to ``entry_again`` there), pushed in to 10 mm at 20 mm/s."""
+def _reinsertion(direction, entry_again=None, entry=ENTRY):
+    """Knots: inserted 6 mm along the needle at 15 mm/s through ``entry`` on the top face, held 0.1 s, pulled
+    out to 2 mm above the surface, held 0.3 s in the air (moved to ``entry_again`` there, ``entry`` when
+    None), pushed in to 10 mm at 20 mm/s."""
+    entry_again = entry if entry_again is None else entry_again
     return _path_overrides(
         [
-            (0.0, ENTRY, -0.002),
-            (0.4, ENTRY, DEPTH),
-            (0.5, ENTRY, DEPTH),
-            (0.9, ENTRY, -0.002),
+            (0.0, entry, -0.002),
+            (0.4, entry, DEPTH),
+            (0.5, entry, DEPTH),
+            (0.9, entry, -0.002),
             (1.2, entry_again, -0.002),
             (1.8, entry_again, 0.010),
         ],
@@ -74,25 +78,33 @@ def _tip(record) -> float:
     return float(record.row_forces[record.row_role == TIP].sum())
 
 
+# (direction, needle, variant, entry on the top face, slow). The entries on a mesh edge and at a mesh vertex
+# put the closest surface point on an edge or a vertex of the surface (ENTRIES of test_life_cycle.py).
 REINSERTED = [
-    pytest.param(direction, needle, variant, marks=[pytest.mark.slow] if slow else [])
-    for direction, needle, variant, slow in [
-        ("0deg", "rigid", "gauss_seidel", False),
-        ("30deg", "rigid", "exact", False),
-        ("30deg", "rigid", "gauss_seidel", True),
-        ("0deg", "rigid", "exact", True),
-        ("0deg", "rigid", "fast", True),
-        ("30deg", "rigid", "fast", False),
-        ("0deg", "flexible", "gauss_seidel", True),
-        ("30deg", "flexible", "gauss_seidel", True),
-        ("0deg", "flexible", "exact", True),
-        ("30deg", "flexible", "exact", True),
+    pytest.param(direction, needle, variant, entry, marks=[pytest.mark.slow] if slow else [])
+    for direction, needle, variant, entry, slow in [
+        ("0deg", "rigid", "gauss_seidel", "face", False),
+        ("30deg", "rigid", "exact", "face", False),
+        ("30deg", "rigid", "gauss_seidel", "face", True),
+        ("0deg", "rigid", "exact", "face", True),
+        ("0deg", "rigid", "fast", "face", True),
+        ("30deg", "rigid", "fast", "face", False),
+        ("0deg", "flexible", "gauss_seidel", "face", True),
+        ("30deg", "flexible", "gauss_seidel", "face", True),
+        ("0deg", "flexible", "exact", "face", True),
+        ("30deg", "flexible", "exact", "face", True),
+        ("0deg", "rigid", "gauss_seidel", "edge", True),
+        ("30deg", "rigid", "gauss_seidel", "edge", True),
+        ("0deg", "rigid", "gauss_seidel", "vertex", True),
+        ("30deg", "rigid", "gauss_seidel", "vertex", True),
     ]
 ]
 
 
-@pytest.mark.parametrize(("direction", "needle", "variant"), REINSERTED)
-def test_a_needle_reinserted_into_its_hole_meets_its_channel_friction_alone(direction, needle, variant):
+@pytest.mark.parametrize(("direction", "needle", "variant", "entry"), REINSERTED)
+def test_a_needle_reinserted_into_its_hole_meets_its_channel_friction_alone(
+    direction, needle, variant, entry
+):
     # The cube on 4³ cells at dt = 20 ms (knots of _reinsertion). Reference (Okamura et al. 2004): the
     # capsule is torn at the hole and the channel behind it is cut, so the needle pushed in again through
     # its hole meets the channel's friction alone up to the old depth, and the tip's cutting force f_cut only
@@ -104,12 +116,15 @@ def test_a_needle_reinserted_into_its_hole_meets_its_channel_friction_alone(dire
     axis = np.asarray(DIRECTIONS[direction]) / np.linalg.norm(DIRECTIONS[direction])
     dt = 0.02
     scene, records = _run(
-        f"time.dt={dt}", *NEEDLES[needle], *VARIANTS[variant], *_reinsertion(DIRECTIONS[direction])
+        f"time.dt={dt}",
+        *NEEDLES[needle],
+        *VARIANTS[variant],
+        *_reinsertion(DIRECTIONS[direction], entry=ENTRIES[entry]),
     )
     names = _named(records, "puncture", "withdrawal", "reentry", "exit")
     assert names == ["puncture", "withdrawal", "reentry"], names
     f_cut, travel = scene.insertion.tip_cutting_force, 0.02 * dt
-    depth = lambda r: float((r.needle_positions[-1] - np.array([*ENTRY, TOP])) @ axis)  # noqa: E731
+    depth = lambda r: float((r.needle_positions[-1] - np.array([*ENTRIES[entry], TOP])) @ axis)  # noqa: E731
     entered = next(r.step for r in records if any(e.name == "reentry" for e in r.events))
     # No capped contact in a hole: the re-entry step is not solved again (no within-step event).
     assert records[entered - 1].instruments[0].within_step is None
@@ -117,7 +132,7 @@ def test_a_needle_reinserted_into_its_hole_meets_its_channel_friction_alone(dire
     channel = [r for r in again if depth(r) <= DEPTH - travel]
     beyond = [r for r in again if depth(r) >= DEPTH + 2 * travel]
     assert len(channel) >= 10 and len(beyond) >= 5
-    assert all(r.phase == "insertion" for r in again)
+    assert all(r.phase == Phase.INSERTION for r in again)
     assert all(_tip(r) <= 1e-6 * f_cut for r in channel), [(depth(r), _tip(r)) for r in channel]
     assert all(_tip(r) == pytest.approx(f_cut, rel=1e-5) for r in beyond), [_tip(r) for r in beyond]
     pushed = np.array([r.needle_force @ axis for r in channel])
