@@ -32,6 +32,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import sys
 import threading
 from collections.abc import Callable
 from dataclasses import replace
@@ -227,9 +228,20 @@ class _Signals:
         self.enabled = enabled and threading.current_thread() is threading.main_thread()
         self.previous: dict = {}
         self.received: int | None = None  # the terminating signal, once one has arrived
+        self._unraisable_hook = None
+
+    def _unraisable(self, unraisable) -> None:
+        """``sys.unraisablehook`` during the run: the signal's own exception, raised by its handler inside a
+        weakref callback or a finaliser and dropped there, is not printed as an "ignored" traceback (the
+        signal is recorded, and :meth:`check` raises it again in the run's loop); anything else goes to the
+        previous hook."""
+        own = isinstance(unraisable.exc_value, (_Terminated, KeyboardInterrupt)) and self.received is not None
+        if not own:
+            self._unraisable_hook(unraisable)
 
     def __enter__(self) -> _Signals:
         if self.enabled:
+            self._unraisable_hook, sys.unraisablehook = sys.unraisablehook, self._unraisable
             self.previous[signal.SIGINT] = signal.signal(signal.SIGINT, self._interrupt)
             self.previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, self._terminate)
             if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:  # `nohup refsim run`: keep running
@@ -262,6 +274,8 @@ class _Signals:
     def __exit__(self, *exc) -> None:
         for number, handler in self.previous.items():
             signal.signal(number, handler)
+        if self._unraisable_hook is not None:
+            sys.unraisablehook, self._unraisable_hook = self._unraisable_hook, None
 
 
 def run_scene(
