@@ -680,6 +680,17 @@ class ComplianceSpec(_Validated):
         "--against-exact",
         choices=W_UPDATES,
     )
+    tolerance: float | None = spec(
+        None,
+        unit="-",
+        doc="relative residual ‖b − A x‖/‖b‖ at which the iterative strategies' PCG stops: refreshed and "
+        "precomputed (free motion and W's columns; unset: 1e-10), fast (free motion; unset: 1e-2); the "
+        "exact strategy solves directly and does not read it",
+        low=0.0,
+        high=1.0,
+        low_open=True,
+        high_open=True,
+    )
     linear_solver: str = spec(
         "auto",
         doc="sparse solver: auto (PARDISO where its wheel installs, else refsim's own supernodal Cholesky; "

@@ -111,6 +111,7 @@ class Simulation:
             spec.strategy,
             refresh_every=spec.refresh_every,
             linear_solver=spec.linear_solver,
+            tolerance=spec.tolerance,
             w_update=spec.w_update,
         ).bind()
         self.tissue_body = TissueBody(self.tissue, self.tissue_compliance)

@@ -18,6 +18,7 @@ from refsim.fem.compliance import (
     make_strategy,
     pcg,
 )
+from refsim.fem.compliance.bodies import STRATEGY_CLASSES
 from refsim.fem.integration import effective_stiffness
 from refsim.fem.linear import available_linear_solvers
 from refsim.fem.tissue import TissueModel, TissueState
@@ -415,6 +416,37 @@ def test_fast_is_a_strategy_of_the_scene_key():
     assert Fast().bind().matrix_free is True
     with pytest.raises(ValueError, match="tolerance"):
         Fast(tolerance=0.0)
+
+
+def test_a_scene_tolerance_reaches_the_iterating_strategies_and_none_keeps_their_own():
+    from refsim.scene import load_scene
+    from refsim.simulation import Simulation
+
+    for name in ("refreshed", "precomputed", "fast"):
+        assert make_strategy(name, tolerance=3e-3).tolerance == 3e-3
+        assert make_strategy(name).tolerance == STRATEGY_CLASSES[name].tolerance
+    assert make_strategy("exact", tolerance=3e-3) == Exact()  # solves directly: nothing to stop
+    scene = load_scene("cube", ['compliance.strategy="fast"', "compliance.tolerance=3e-3"])
+    assert Simulation(scene).tissue_compliance.strategy.tolerance == 3e-3
+    for bad in ("0.0", "1.0", "-1e-3"):
+        with pytest.raises(ValueError, match="compliance.tolerance"):
+            load_scene("cube", [f"compliance.tolerance={bad}"])
+
+
+def test_the_fast_free_motion_stops_at_its_tolerance_whichever_it_is(model):
+    # The relative residual ‖b − A x‖/‖b‖ of the free motion, computed again here from the assembled matrix
+    # (the reference), is at most the tolerance (to round-off), and a looser tolerance takes no more work.
+    state = deformed(model, 0.01)
+    system, dense, _, _ = dense_reference(model, state)
+    iterations = {}
+    for tolerance in (1e-1, 1e-2, 1e-4, 1e-8):
+        step = Fast(tolerance=tolerance).bind().step(model.assemble_step(state, DT, matrix_free=True))
+        free = step.free_displacement[system.free_dofs]
+        relative = np.linalg.norm(system.rhs - dense @ free) / np.linalg.norm(system.rhs)
+        assert relative <= tolerance * (1 + 1e-6)
+        iterations[tolerance] = step.report["pcg_iterations"]
+    assert iterations[1e-1] <= iterations[1e-2] <= iterations[1e-4] <= iterations[1e-8]
+    assert iterations[1e-8] > iterations[1e-1]  # the tolerance decides the work
 
 
 def test_generic_step_system_serves_a_needle_like_body():

@@ -105,7 +105,7 @@ def make_strategy(
     refresh_every: int = 10,
     linear_solver: str = "auto",
     against_exact: bool = False,
-    tolerance: float = 1e-10,
+    tolerance: float | None = None,
     w_update: str | None = None,
 ):
     """The one factory of compliance strategies: a scene's ``compliance`` section, or a benchmark's variant.
@@ -117,8 +117,8 @@ def make_strategy(
     refresh_every : Of :class:`Refreshed`.
     linear_solver : "auto", "pardiso", "cholmod" or "superlu".
     against_exact : Report errors against exact each step (fast strategies only; ignored by exact).
-    tolerance : PCG tolerance of the refreshed and precomputed strategies (the fast one keeps its own,
-        :attr:`Fast.tolerance`).
+    tolerance : Relative residual at which the PCG of the iterating strategies (refreshed, precomputed, fast)
+        stops; None: each strategy's own default (its class's ``tolerance``). The exact strategy ignores it.
     w_update : Of :class:`Refreshed` (its ``compliance_update``), one of :data:`W_UPDATES`; None: the
         variant's, else "pcg". A variant's update and another ``w_update`` together are an error.
     """

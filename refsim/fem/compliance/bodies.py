@@ -165,7 +165,13 @@ class Exact:
 
     @classmethod
     def configured(
-        cls, *, refresh_every: int, linear_solver: str, against_exact: bool, tolerance: float, w_update: str
+        cls,
+        *,
+        refresh_every: int,
+        linear_solver: str,
+        against_exact: bool,
+        tolerance: float | None,
+        w_update: str,
     ) -> Exact:
         """From a scene's ``compliance`` section (make_strategy): the keys this strategy reads."""
         return cls(linear_solver=linear_solver)
@@ -307,12 +313,18 @@ class Refreshed:
 
     @classmethod
     def configured(
-        cls, *, refresh_every: int, linear_solver: str, against_exact: bool, tolerance: float, w_update: str
+        cls,
+        *,
+        refresh_every: int,
+        linear_solver: str,
+        against_exact: bool,
+        tolerance: float | None,
+        w_update: str,
     ) -> Refreshed:
         """From a scene's ``compliance`` section (make_strategy): the keys this strategy reads."""
         return cls(
             refresh_every=refresh_every,
-            tolerance=tolerance,
+            tolerance=cls.tolerance if tolerance is None else tolerance,
             linear_solver=linear_solver,
             against_exact=against_exact,
             compliance_update=w_update,
@@ -416,10 +428,20 @@ class Precomputed:
 
     @classmethod
     def configured(
-        cls, *, refresh_every: int, linear_solver: str, against_exact: bool, tolerance: float, w_update: str
+        cls,
+        *,
+        refresh_every: int,
+        linear_solver: str,
+        against_exact: bool,
+        tolerance: float | None,
+        w_update: str,
     ) -> Precomputed:
         """From a scene's ``compliance`` section (make_strategy): the keys this strategy reads."""
-        return cls(tolerance=tolerance, linear_solver=linear_solver, against_exact=against_exact)
+        return cls(
+            tolerance=cls.tolerance if tolerance is None else tolerance,
+            linear_solver=linear_solver,
+            against_exact=against_exact,
+        )
 
     def __post_init__(self) -> None:
         _check_common(self.linear_solver, self.against_exact)
@@ -630,15 +652,17 @@ class Fast:
 
     Parameters
     ----------
-    tolerance, max_iterations : Of the free motion's PCG (relative residual; iteration cap). The free motion's
-        relative error is then at most κ(A) · tolerance (a worst case). 1e-4: on the medium liver 1.2 CG
-        iterations per step against 2.1 for 1e-6, with the same needle-force error against exact (cube_cut:
-        4.24e-2 N at 1e-6, 1e-4 and 1e-2; medium liver: 2.2e-5 and 2.3e-5 N): W's error dominates.
+    tolerance, max_iterations : Of the free motion's PCG (relative residual ‖b − A x‖/‖b‖; iteration cap); a
+        scene's ``compliance.tolerance`` sets the first. The free motion's relative error is then at most
+        κ(A) · tolerance (a worst case), and what it leaves is not lost: the residual force is in the next
+        step's right-hand side, so a state at rest is the exact one. 1e-2: where R C₀ Rᵀ b alone meets it
+        (most steps), a step costs one rest-factor solve and one product; the needle force against the exact
+        run is the same as at 1e-4 on the built-in scenes (docs/speed.md, "What it costs in accuracy").
     linear_solver : The rest factor's solver, as for :class:`Exact`.
     against_exact : As for :class:`Refreshed` (the step system is then assembled, for the exact twin).
     """
 
-    tolerance: float = 1e-4
+    tolerance: float = 1e-2
     max_iterations: int = 200
     linear_solver: str = "auto"
     against_exact: bool = False
@@ -646,10 +670,20 @@ class Fast:
 
     @classmethod
     def configured(
-        cls, *, refresh_every: int, linear_solver: str, against_exact: bool, tolerance: float, w_update: str
+        cls,
+        *,
+        refresh_every: int,
+        linear_solver: str,
+        against_exact: bool,
+        tolerance: float | None,
+        w_update: str,
     ) -> Fast:
         """From a scene's ``compliance`` section (make_strategy): the keys this strategy reads."""
-        return cls(linear_solver=linear_solver, against_exact=against_exact)
+        return cls(
+            tolerance=cls.tolerance if tolerance is None else tolerance,
+            linear_solver=linear_solver,
+            against_exact=against_exact,
+        )
 
     def __post_init__(self) -> None:
         _check_common(self.linear_solver, self.against_exact)
