@@ -184,13 +184,13 @@ def _output_path(path, result: Path, what: str, suffixes: tuple[str, ...] | None
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from refsim.io.driver import check_output_path, run_scene
+    from refsim.io.driver import check_results_path, run_scene
     from refsim.scene import load_scene
 
     if not args.quiet:  # the load report: the fixed set, an aimed insertion (refsim.scene.build)
         logging.getLogger("refsim.scene.load").setLevel(logging.INFO)
     scene = load_scene(args.scene, args.set or ())
-    output = check_output_path(args.output, overwrite=args.overwrite)
+    output = check_results_path(args.output, overwrite=args.overwrite, scene=scene)
     figure = None
     if args.figure:  # checked before the run, not after it
         require_extra("viz", "--figure", ("pyvista", "matplotlib"))
@@ -474,6 +474,15 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     for variant in args.strategies or ():  # before any timing
         strategy_variant(variant)
+    if args.scene:
+        from refsim.scene.loader import check_overrides
+
+        for section, key in check_overrides(args.set or ()):
+            if section == "compliance" and key in ("strategy", "w_update"):
+                raise ValueError(
+                    f"--set compliance.{key}: refsim bench sets it for each of --strategies; name the "
+                    f"strategies there (e.g. --strategies exact fast refreshed_stale)"
+                )
     if args.tissue or not args.scene:  # the scaling table's cubes, before any timing (mesh.cells' range)
         from refsim.scene.build import check_memory
 
@@ -830,6 +839,10 @@ def _handle(args: argparse.Namespace) -> int:
     from refsim.io.driver import RunWriteError
 
     try:
+        if getattr(args, "set", None):  # every command's --set: each key once
+            from refsim.scene.loader import check_overrides
+
+            check_overrides(args.set)
         return args.handler(args)
     except RunWriteError as error:  # a full disk: nothing half-written is left
         print(f"refsim {args.command}: error: {error}", file=sys.stderr)

@@ -124,7 +124,7 @@ class InteractiveSession:
         max_turn: float = np.radians(30.0),
         buffer_steps: int | None = None,
     ) -> None:
-        from refsim.io.driver import RunInputError, StepSink, check_output_path
+        from refsim.io.driver import RunInputError, StepSink, check_output_path, check_results_path
         from refsim.io.filelock import WriterLockedError
         from refsim.io.writer import DEFAULT_BUFFER_STEPS, ResultWriter
         from refsim.scene.build import build_controls, build_models
@@ -139,7 +139,7 @@ class InteractiveSession:
                 f"{scene.source}: refsim interactive steers one needle; this scene has [[instruments]] "
                 f"({names}): run it with refsim run"
             )
-        self.output = check_output_path(output, overwrite=overwrite)
+        self.output = check_results_path(output, overwrite=overwrite, scene=scene)
         self.trajectory_path, self.replay_path = replay_paths(self.output)
         for path, what in ((self.trajectory_path, "trajectory file"), (self.replay_path, "replay scene")):
             check_output_path(path, overwrite=overwrite, what=what)

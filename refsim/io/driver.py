@@ -117,6 +117,31 @@ def check_output_path(path: str | Path, *, overwrite: bool, what: str = "results
     return path
 
 
+#: The suffixes of a results file (HDF5); its XDMF sidecar is the same path with ``.xdmf``.
+RESULTS_SUFFIXES = (".h5", ".hdf5")
+
+
+def check_results_path(path: str | Path, *, overwrite: bool, scene=None) -> Path:
+    """Check the path of a run's results file before anything runs: :func:`check_output_path`, not one of
+    ``scene``'s input files (when given), and an HDF5 suffix (another one would be overwritten by the
+    ParaView sidecar written beside it with ``.xdmf``, or mistaken for another format).
+
+    Raises
+    ------
+    RunInputError
+        Naming the path and what is wrong with it.
+    """
+    path = check_output_path(path, overwrite=overwrite)
+    if scene is not None:
+        _check_not_an_input(path, scene)
+    if path.suffix.lower() not in RESULTS_SUFFIXES:
+        raise RunInputError(
+            f"{path}: a results file is HDF5 and must end in {' or '.join(RESULTS_SUFFIXES)} (its ParaView "
+            f"sidecar is written beside it with .xdmf)"
+        )
+    return path
+
+
 def _check_not_an_input(output: Path, scene) -> None:
     """Refuse a results path that is one of the run's input files (the scene file, mesh.file, a trajectory
     file, boundary.file): with --overwrite it was replaced by the results.
@@ -325,8 +350,7 @@ def run_scene(
     from refsim.simulation import Simulation
     from refsim.simulation.summary import RunSummary
 
-    output = check_output_path(output_path, overwrite=overwrite)
-    _check_not_an_input(output, scene)
+    output = check_results_path(output_path, overwrite=overwrite, scene=scene)
     try:
         simulation = Simulation(scene)  # every input error surfaces here, before any file is written
     except (ValueError, OSError) as error:

@@ -69,6 +69,29 @@ def parse_override(text: str) -> tuple[str, str, Any]:
     return section, key, value
 
 
+def check_overrides(texts) -> dict[tuple[str, str], str]:
+    """The command line's ``--set`` overrides, each key once: ``{(section, key): text}``.
+
+    A key given twice is ambiguous (one of the two values would be dropped without a word), so it is an error
+    naming both.
+
+    Raises
+    ------
+    SceneError
+        A malformed override (:func:`parse_override`), or a key given twice.
+    """
+    seen: dict[tuple[str, str], str] = {}
+    for text in texts:
+        section, key, _ = parse_override(text)
+        if (section, key) in seen:
+            raise SceneError(
+                f"override --set {text!r}: {section}.{key} is already set by --set {seen[(section, key)]!r}; "
+                "give each key once"
+            )
+        seen[(section, key)] = text
+    return seen
+
+
 def _origin(source: str, overrides: dict, section: str, key: str | None, related=()) -> str:
     """Who gave the value of section.key (or of a related key the check involves): the ``--set`` override when
     there is one, else the file."""

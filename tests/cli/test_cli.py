@@ -38,6 +38,38 @@ def test_bad_input_exits_2_names_the_problem_and_writes_nothing(tmp_path, capsys
     assert not output.exists()
 
 
+@pytest.mark.parametrize("name", ["result.xdmf", "result.csv", "result", "result.vtu"])
+def test_a_results_file_not_named_as_hdf5_exits_2_and_nothing_is_written(tmp_path, capsys, name):
+    # With out.xdmf the ParaView sidecar (the results path with .xdmf) would replace the HDF5 results.
+    output = tmp_path / name
+    code = main(["run", "cube", "-o", str(output), "--set", "time.duration=0.02"])
+    error = capsys.readouterr().err
+    assert code == 2 and name in error and ".h5 or .hdf5" in error and "Traceback" not in error
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "command", [["run", "cube"], ["bench", "cube"], ["interactive", "cube", "--no-window"]], ids=str
+)
+def test_a_key_set_twice_on_the_command_line_exits_2_naming_both(tmp_path, capsys, command):
+    # One of the two values would be dropped without a word.
+    output = tmp_path / "result.h5"
+    arguments = [*command, "--set", "needle.radius=0.001", "--set", "needle.radius = 0.002"]
+    if command[0] != "bench":
+        arguments += ["-o", str(output)]
+    code = main(arguments)
+    error = capsys.readouterr().err
+    assert code == 2 and "needle.radius=0.001" in error and "needle.radius = 0.002" in error
+    assert "give each key once" in error and "Traceback" not in error
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bench_refuses_a_strategy_set_beside_its_strategies(capsys):
+    code = main(["bench", "cube", "--strategies", "exact", "fast", "--set", 'compliance.strategy="fast"'])
+    error = capsys.readouterr().err
+    assert code == 2 and "--set compliance.strategy" in error and "--strategies" in error
+
+
 def test_bad_mesh_file_is_named(tmp_path, capsys):
     scene = Path(__file__).resolve().parents[2] / "refsim" / "scenes" / "cube.toml"
     text = scene.read_text().replace('generator = "box"', f'file = "{tmp_path / "broken.msh"}"')
