@@ -311,6 +311,7 @@ def build_models(scene: Scene) -> SceneModels:
     instruments = tuple(
         _instrument_models(scene, mesh, index, spec) for index, spec in enumerate(scene.instrument_specs)
     )
+    check_instruments_apart(scene, instruments)
     first = instruments[0]
     needle, trajectory = first.model, first.trajectory
     return SceneModels(
@@ -321,6 +322,73 @@ def build_models(scene: Scene) -> SceneModels:
         boundary_nodes=moving,
         instruments=instruments,
     )
+
+
+#: Most times at which :func:`check_instruments_apart` compares two commanded shafts: every step's end up to
+#: this count, else this many evenly spaced times; each trajectory's waypoint times are added in every case.
+APART_SAMPLES = 20_000
+
+
+def check_instruments_apart(scene: Scene, instruments) -> None:
+    """No two instruments' commanded shafts (the straight segment from the base along the direction, the
+    needle's length; the radius around it) come closer than the sum of their radii at any step's end or
+    waypoint: refsim models no contact between instruments, so such a scene would have two needles pass
+    through each other without a word.
+
+    Raises
+    ------
+    SceneError
+        Naming both instruments, the time, the distance of their axes and the sum of their radii.
+    """
+    if len(instruments) < 2:
+        return
+    steps = scene.time.step_count
+    if steps <= APART_SAMPLES:
+        times = scene.time.dt * np.arange(steps + 1)
+    else:
+        times = np.linspace(0.0, scene.time.duration, APART_SAMPLES + 1)
+    knots = np.concatenate([instrument.trajectory.times for instrument in instruments])
+    times = np.unique(np.concatenate([times, knots[knots <= scene.time.duration]]))
+    shafts = []
+    for instrument in instruments:
+        base, direction = instrument.trajectory.poses(times)
+        shafts.append((base, instrument.needle.length * direction, instrument.needle.radius))
+    for i in range(len(instruments)):
+        for j in range(i + 1, len(instruments)):
+            (p, u, r_i), (q, v, r_j) = shafts[i], shafts[j]
+            distance = segment_distances(p, u, q, v)
+            closest = int(np.argmin(distance))
+            if distance[closest] < r_i + r_j:
+                raise SceneError(
+                    f"{scene.source}: instruments {instruments[i].name!r} and {instruments[j].name!r} "
+                    f"overlap at t = {times[closest]:.6g} s: the axes of their shafts are "
+                    f"{distance[closest]:.3g} m apart, less than the sum of their radii {r_i + r_j:.3g} m "
+                    "(refsim models no contact between instruments: move their trajectories apart)"
+                )
+
+
+def segment_distances(p: np.ndarray, u: np.ndarray, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Distances between the segments p + s u and q + t v (s, t in [0, 1]), row by row, shapes (m, 3) → (m,).
+
+    The closest pair minimises |p + s u − q − t v|² over the unit square: the interior stationary point when
+    the segments are not parallel and it lies inside, else the least of the four edges (one parameter held at
+    0 or 1, the other clamped), which is where a convex quadratic's minimum over a square lies otherwise."""
+    w = p - q
+    a, b, c = np.vecdot(u, u), np.vecdot(u, v), np.vecdot(v, v)
+    d, e = np.vecdot(u, w), np.vecdot(v, w)
+    det = a * c - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(det > 1e-12 * a * c, (b * e - c * d) / det, -1.0)
+        t = np.where(det > 1e-12 * a * c, (a * e - b * d) / det, -1.0)
+    inside = (s >= 0.0) & (s <= 1.0) & (t >= 0.0) & (t <= 1.0)
+    best = np.where(inside, np.linalg.norm(w + s[:, None] * u - t[:, None] * v, axis=1), np.inf)
+    for fixed_s in (0.0, 1.0):  # s held, t clamped
+        t_edge = np.clip((e + fixed_s * b) / c, 0.0, 1.0)
+        best = np.minimum(best, np.linalg.norm(w + fixed_s * u - t_edge[:, None] * v, axis=1))
+    for fixed_t in (0.0, 1.0):  # t held, s clamped
+        s_edge = np.clip((fixed_t * b - d) / a, 0.0, 1.0)
+        best = np.minimum(best, np.linalg.norm(w + s_edge[:, None] * u - fixed_t * v, axis=1))
+    return best
 
 
 def _instrument_models(scene: Scene, mesh: TetMesh, index: int, spec) -> InstrumentModels:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import tomllib
 from importlib import resources
 
+import numpy as np
 import pytest
 
 from refsim.cli import main
@@ -98,3 +99,52 @@ def test_the_cli_exits_2_on_a_bad_instrument(tmp_path, capsys):
     error = capsys.readouterr().err
     assert code == 2 and "instruments[1].name" in error and "Traceback" not in error
     assert not output.exists()
+
+
+def test_segment_distances_against_a_dense_search():
+    # Reference: the least distance over a 801 × 801 grid of (s, t), which is at most the true minimum plus
+    # half a grid step along each segment (|u| h/2 + |v| h/2), and never below it.
+    from refsim.scene.build import segment_distances
+
+    rng = np.random.default_rng(7)
+    m = 40
+    p, u, q, v = (rng.standard_normal((m, 3)) for _ in range(4))
+    u[:5] = 2.0 * v[:5]  # parallel
+    q[5:10] = p[5:10] + 0.3 * u[5:10]  # crossing (distance 0 where the segments meet)
+    v[5:10] = rng.standard_normal((5, 3))
+    p[10:12], u[10:12] = q[10:12], v[10:12]  # the same segment
+    got = segment_distances(p, u, q, v)
+    grid = np.linspace(0.0, 1.0, 801)
+    h = grid[1] - grid[0]
+    for k in range(m):
+        a = p[k][None, None, :] + grid[:, None, None] * u[k]
+        b = q[k][None, None, :] + grid[None, :, None] * v[k]
+        brute = np.linalg.norm(a - b, axis=-1).min()
+        assert got[k] <= brute + 1e-12
+        assert got[k] >= brute - 0.5 * h * (np.linalg.norm(u[k]) + np.linalg.norm(v[k])) - 1e-12
+    np.testing.assert_allclose(got[10:12], 0.0, atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    ("holder_x", "radius", "overlap"),
+    [(0.02123, 0.008, False), (-0.01977, 0.008, True), (-0.00377, 0.008, True), (-0.00377, 0.002, False)],
+)
+def test_instruments_whose_shafts_overlap_are_refused(holder_x, radius, overlap):
+    # two_needles with the holder moved in x: onto the cutter's line (the same spot), or within the cutter's
+    # stroke (the cutter reaches x = -1.177 cm at 2.8 s: 0.8 cm from x = -0.377 cm, less than 2 × 0.8 cm, but
+    # more than two 2 mm radii).
+    from refsim.scene.build import build_models
+
+    data = _two_needles()
+    data["needle"]["radius"] = radius
+    trajectory = data["instruments"][1]["trajectory"]
+    trajectory["base_positions"] = [[holder_x, *position[1:]] for position in trajectory["base_positions"]]
+    scene = scene_from_dict(data, source="two.toml")
+    if not overlap:
+        assert len(build_models(scene).instruments) == 2
+        return
+    with pytest.raises(SceneError) as raised:
+        build_models(scene)
+    message = str(raised.value)
+    for fragment in ("two.toml", "'cutter'", "'holder'", "overlap", "sum of their radii"):
+        assert fragment in message, message
