@@ -200,18 +200,25 @@ def _instrument(name, knots, direction=(0.0, 0.0, -1.0)):
 
 
 def test_another_needle_reenters_the_hole():
-    # Two needles of the cube's on 4³ cells (refsim/scenes/two_needles.toml's tissue): "first" inserts 6 mm
-    # and is pulled back out to 2 mm above the surface; "second" waits 4 mm above the same hole and is then
-    # pushed to 10 mm along the same line (needles do not touch each other). The hole belongs to the tissue:
-    # expected, the first punctures and is withdrawn, the second re-enters (no puncture) and meets no tip
-    # cutting force up to the first's depth, f_cut beyond it.
+    # Two needles of the cube's on 4³ cells (refsim/scenes/two_needles.toml's tissue): "first" inserts 6 mm,
+    # is pulled back out to 2 mm above the surface and moved 20 mm aside; "second" waits 4 mm above the
+    # surface 20 mm to the other side, moves over the hole once the first has left it and is pushed to 10 mm
+    # along the first's line (their shafts stay more than the sum of their radii apart: refsim models no
+    # contact between instruments). The hole belongs to the tissue: expected, the first punctures and is
+    # withdrawn, the second re-enters (no puncture) and meets no tip cutting force up to the first's depth,
+    # f_cut beyond it.
     data = tomllib.loads((resources.files("refsim") / "scenes" / "two_needles.toml").read_text("utf-8"))
     data["mesh"]["cells"] = [4, 4, 4]
-    data["time"].update(dt=0.02, duration=1.6)
+    data["time"].update(dt=0.02, duration=2.0)
     data["cutting"]["enabled"] = False
+    left, right = (ENTRY[0] - 0.02, ENTRY[1]), (ENTRY[0] + 0.02, ENTRY[1])
     data["instruments"] = [
-        _instrument("first", [(0.0, ENTRY, -0.002), (0.4, ENTRY, DEPTH), (0.8, ENTRY, -0.002)]),
-        _instrument("second", [(0.0, ENTRY, -0.004), (1.0, ENTRY, -0.004), (1.6, ENTRY, 0.010)]),
+        _instrument(
+            "first", [(0.0, ENTRY, -0.002), (0.4, ENTRY, DEPTH), (0.8, ENTRY, -0.002), (1.1, right, -0.002)]
+        ),
+        _instrument(
+            "second", [(0.0, left, -0.004), (1.1, left, -0.004), (1.4, ENTRY, -0.004), (2.0, ENTRY, 0.010)]
+        ),
     ]
     simulation = Simulation(scene_from_dict(data, source="two_needles.toml"))
     records = []

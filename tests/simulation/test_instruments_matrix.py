@@ -356,12 +356,15 @@ def test_a_needle_beside_anothers_cut_is_held_by_intact_tissue():
     # third needle (r = 1 mm) enters 3 mm beside that plane, inside its extent, once the cut is made (2.8 s),
     # and goes 8 mm deep. Every sample of it projects inside the cut but none is on it (3 mm > d_c): it gets
     # insertion points and never a sliding row (before, every inserted sample got one, pulling it 3 mm onto
-    # the plane).
+    # the plane). The cutter is given a 1 mm radius too: at the scene's 8 mm its shaft would pass through the
+    # third needle's, which a scene may not ask for (refsim models no contact between instruments).
     from refsim.constraints import CUT_SLIDE
 
     data = tomllib.loads((resources.files("refsim") / "scenes" / "two_needles.toml").read_text("utf-8"))
     data["mesh"]["cells"] = [4, 4, 4]
     data["time"]["duration"] = 3.8
+    cutter = next(table for table in data["instruments"] if table["name"] == "cutter")
+    cutter["radius"] = 0.001
     stops = [(0.0, -STANDOFF), (2.8, -STANDOFF), (3.8, 0.008)]
     data["instruments"].append(_needle("beside", -0.0157, 0.00231 + 0.003, stops, radius=0.001))
     simulation, state, records = _run(data, "beside.toml")
