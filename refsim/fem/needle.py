@@ -45,6 +45,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
+from refsim.fem import needle_kernels
 from refsim.fem.beam_element import (
     LOCAL_REDUCED_DOFS,
     beam_element_forces,
@@ -360,7 +361,8 @@ class NeedleModel:
         """
         positions, frames = self._check_state(positions, frames)
         forces, _ = self._element_forces(positions, frames)
-        return np.bincount(self._element_dofs.ravel(), weights=forces.ravel(), minlength=self.dof_count)
+        # np.bincount(self._element_dofs.ravel(), weights=forces.ravel()), compiled: the same sums in order
+        return needle_kernels.assemble_forces(forces, self.dof_count)
 
     def strain_energy(self, positions: np.ndarray, frames: np.ndarray) -> float:
         """Strain energy U [J] of the co-rotational model."""
@@ -510,6 +512,9 @@ class NeedleModel:
         s = np.atleast_1d(np.asarray(arc_lengths, dtype=float))
         if s.ndim != 1:
             raise ValueError(f"arc_lengths must have shape (q,), got {s.shape}")
+        found = needle_kernels.locate(s, self.length, self.element_length, self.element_count)
+        if found is not None:
+            return found
         slack = 1e-9 * self.length
         if np.any(~np.isfinite(s)) or np.any(s < -slack) or np.any(s > self.length + slack):
             bad = s[~np.isfinite(s) | (s < -slack) | (s > self.length + slack)][0]
@@ -560,6 +565,22 @@ class NeedleModel:
         return found
 
     def _centreline(self, positions, frames, arc_lengths, *, jacobian: bool):
+        """Points, dp/ds, elements and (``jacobian``) J at rest arc lengths: one compiled kernel over the
+        configuration's element kinematics (:func:`refsim.fem.needle_kernels.centreline`, the bits of
+        :meth:`_centreline_reference`)."""
+        positions, frames = self._check_state(positions, frames)
+        elements, xi = self._locate(arc_lengths)
+        per_element = self._element_kinematics(positions, frames)
+        points, derivatives, jac = needle_kernels.centreline(
+            positions, per_element, elements, xi, self.element_length, jacobian=jacobian
+        )
+        out = {"points": points, "derivatives": derivatives, "elements": elements}
+        if jacobian:
+            out["jacobian"] = jac
+        return out
+
+    def _centreline_reference(self, positions, frames, arc_lengths, *, jacobian: bool):
+        """:meth:`_centreline` in NumPy: the reference its compiled kernel is held to (tests)."""
         positions, frames = self._check_state(positions, frames)
         elements, xi = self._locate(arc_lengths)
         # Element kinematics once per element (and configuration), then gathered per query point.
@@ -685,6 +706,26 @@ class NeedleModel:
         if samples_per_element < 1:
             raise ValueError(f"samples_per_element must be >= 1, got {samples_per_element!r}")
         samples, polyline = self._polyline(positions, frames, samples_per_element)
+        positions, frames = self._check_state(positions, frames)
+        found = needle_kernels.project(
+            positions,
+            self._element_kinematics(positions, frames),
+            samples,
+            polyline,
+            points,
+            self.length,
+            self.element_length,
+            self.element_count,
+            _PROJECTION_NEWTON_ITERATIONS,
+        )
+        if found is not None:
+            return found
+        # an invalid arc length on the way (not finite): the NumPy code raises its error
+        return self._project_reference(positions, frames, points, samples, polyline)
+
+    def _project_reference(self, positions, frames, points, samples, polyline):
+        """The closest points of :meth:`project_on_centreline` in NumPy, on its polyline: the reference its
+        compiled kernel is held to (tests), and the code that raises on an invalid arc length."""
         start, segment = polyline[:-1], np.diff(polyline, axis=0)  # (S, 3)
         relative = points[:, None, :] - start[None]  # (q, S, 3)
         t = np.clip(
@@ -693,13 +734,13 @@ class NeedleModel:
         gaps = relative - t[..., None] * segment[None]
         best = np.argmin(np.einsum("qsi,qsi->qs", gaps, gaps), axis=1)
         arc = samples[best] + t[np.arange(points.shape[0]), best] * (samples[best + 1] - samples[best])
-        current = self._centreline(positions, frames, arc, jacobian=False)
+        current = self._centreline_reference(positions, frames, arc, jacobian=False)
         closest, tangent = current["points"], current["derivatives"]
         distance = np.linalg.norm(points - closest, axis=-1)
         for _ in range(_PROJECTION_NEWTON_ITERATIONS):
             step = np.einsum("qi,qi->q", points - closest, tangent) / np.einsum("qi,qi->q", tangent, tangent)
             trial = np.clip(arc + step, 0.0, self.length)
-            data = self._centreline(positions, frames, trial, jacobian=False)
+            data = self._centreline_reference(positions, frames, trial, jacobian=False)
             trial_distance = np.linalg.norm(points - data["points"], axis=-1)
             better = trial_distance < distance
             arc = np.where(better, trial, arc)
