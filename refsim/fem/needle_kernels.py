@@ -73,7 +73,7 @@ def matmul_fused() -> bool:
     return bool(product != 0.0)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _dot3(a0, a1, a2, b0, b1, b2, fused):
     """Σ a_k b_k as one row-by-column sum of NumPy's 3 × 3 ``@`` (see :func:`matmul_fused`)."""
     if fused:
@@ -81,7 +81,7 @@ def _dot3(a0, a1, a2, b0, b1, b2, fused):
     return ((0.0 + a0 * b0) + a1 * b1) + a2 * b2
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _lanes2(a0, a1, a2, b0, b1, b2):
     """``einsum`` over a contiguous axis of 3: (a₀b₀ + a₂b₂) + a₁b₁, added to zero."""
     even = (0.0 + a0 * b0) + a2 * b2
@@ -89,12 +89,12 @@ def _lanes2(a0, a1, a2, b0, b1, b2):
     return 0.0 + (even + odd)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _norm3(x0, x1, x2):
     return np.sqrt((x0 * x0 + x1 * x1) + x2 * x2)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _frames_kernel(xa, xb, qa, qb, frames, lengths, mean):
     """Co-rotational element frames (`corotational_frames`); returns 1 if an element has zero length, 2 if a
     chord is parallel to its mean axis (after every element is done, as the NumPy checks), else 0."""
@@ -134,7 +134,7 @@ def _frames_kernel(xa, xb, qa, qb, frames, lengths, mean):
     return 0
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _clipped_cosine(rel):
     """½ (trace − 1) clipped to [−1, 1] (NaN kept), as `rotation_vector`."""
     c = 0.5 * (((rel[0, 0] + rel[1, 1]) + rel[2, 2]) - 1.0)
@@ -145,7 +145,7 @@ def _clipped_cosine(rel):
     return c
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _relative_kernel(frames, qa, qb, rel_a, rel_b, cos_a, cos_b):
     """R_eᵀ Q of both ends (``einsum("mji,mjk->mik")``) and the cosines of their angles (`rotation_vector`:
     ½ (trace − 1) clipped to [−1, 1])."""
@@ -163,7 +163,7 @@ def _relative_kernel(frames, qa, qb, rel_a, rel_b, cos_a, cos_b):
         cos_b[e] = _clipped_cosine(rel_b[e])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _rotation_vector_one(rel, theta, out):
     """`rotation_vector` of one matrix from its angle θ (arccos of its clipped cosine, from NumPy); False when
     θ is within 1e-3 of π (the NumPy code's other branch)."""
@@ -179,7 +179,7 @@ def _rotation_vector_one(rel, theta, out):
     return not (theta > _NEAR_PI)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _left_jacobian_inverse_one(t0, t1, t2, out):
     """`left_jacobian_inverse` of one rotation vector, (3, 3) into ``out``."""
     theta = _norm3(t0, t1, t2)
@@ -194,7 +194,7 @@ def _left_jacobian_inverse_one(t0, t1, t2, out):
     return k, coefficient
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _add_axis_spin(spin, e, offset, q, e30, e31, e32, twice):
     """spin[e, 0, offset:offset + 3] += (Q[:, 1] × e3) / (2 q₂), NumPy's cross and division."""
     s0, s1, s2 = q[e, 0, 1], q[e, 1, 1], q[e, 2, 1]
@@ -203,7 +203,7 @@ def _add_axis_spin(spin, e, offset, q, e30, e31, e32, twice):
     spin[e, 0, offset + 2] += (s0 * e31 - s1 * e30) / twice
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _deformations_kernel(
     frames, lengths, mean, qa, qb, rel_a, rel_b, theta_a, theta_b, rest_lengths, fused, d, jac, spin
 ):
@@ -316,7 +316,7 @@ def element_kinematics(xa, xb, qa, qb, rest_lengths):
     }
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _forces_kernel(d, jac, stiffness, forces, energies):
     """f = Bᵀ K₇ d (``einsum("mij,mj->mi")`` then ``einsum("mij,mi->mj")``) and ½ dᵀ K₇ d per element."""
     m = d.shape[0]
@@ -356,7 +356,7 @@ def element_forces(kinematics, reduced_stiffness):
     return forces, energies
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _assemble_forces_kernel(forces, total):
     """``np.bincount`` of the element forces on their DoFs (6 e + k), in element order, into zeros."""
     for e in range(forces.shape[0]):
@@ -371,7 +371,7 @@ def assemble_forces(forces, dof_count):
     return total
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _clip(x, low, high):
     """``np.clip`` of one float: NaN kept, else max then min as NumPy's (``a > b ? a : b``, so −0 → +0)."""
     if np.isnan(x):
@@ -380,7 +380,7 @@ def _clip(x, low, high):
     return x if x < high else high
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _locate_one(s, length, element_length, last):
     """`NeedleModel._locate` of one valid arc length: (element, ξ)."""
     clipped = _clip(s, 0.0, length)
@@ -389,7 +389,7 @@ def _locate_one(s, length, element_length, last):
     return element, scaled - element
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _locate_kernel(s, length, element_length, last, elements, xi):
     """`NeedleModel._locate` on valid arc lengths; False (nothing written to trust) if one is not."""
     slack = 1e-9 * length
@@ -412,7 +412,7 @@ def locate(arc_lengths, length, element_length, element_count):
     return elements, xi
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _point_one(positions, d, rot, e, x, l0, point, derivative, offset):
     """Centreline point, dp/ds and the rotated deflection (offset) at element e, local coordinate x."""
     h0 = x * ((1.0 - x) * (1.0 - x))
@@ -431,7 +431,7 @@ def _point_one(positions, d, rot, e, x, l0, point, derivative, offset):
         derivative[i] = (chord + _lanes2(rot[e, i, 0], rot[e, i, 1], rot[e, i, 2], 0.0, dv, dw)) / l0
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _centreline_kernel(positions, d, rot, b, spin, elements, xi, l0, jacobian, fused, points, derivatives, jac):
     """`NeedleModel._centreline` at located points: points, derivatives and (``jacobian``) J, zeroed in."""
     offset = np.empty(3)
@@ -490,13 +490,13 @@ def centreline(positions, kinematics, elements, xi, element_length, *, jacobian)
     return points, derivatives, jac
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _valid_arc(value, length):
     slack = 1e-9 * length
     return np.isfinite(value) and value >= -slack and value <= length + slack
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _project_kernel(
     positions, d, rot, samples, polyline, points, length, l0, last, iterations, arc_out, closest_out, distance_out
 ):
