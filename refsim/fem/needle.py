@@ -315,7 +315,12 @@ class NeedleModel:
         delta = np.asarray(delta, dtype=float)
         if delta.shape != (self.dof_count,):
             raise ValueError(f"delta must have shape ({self.dof_count},), got {delta.shape}")
-        per_node = delta.reshape(self.node_count, 6)
+        # positions + Δu, rotation_matrix(Δθ) @ frames per node: one compiled kernel with their bits
+        return needle_kernels.apply_increment(positions, frames, delta)
+
+    def _apply_increment_reference(self, positions, frames, delta):
+        """:meth:`apply_increment` in NumPy: the reference its kernel is held to (tests)."""
+        per_node = np.asarray(delta, dtype=float).reshape(self.node_count, 6)
         return positions + per_node[:, :3], rotation_matrix(per_node[:, 3:]) @ frames
 
     # ------------------------------------------------------------------ elements
@@ -389,15 +394,28 @@ class NeedleModel:
         positions, frames = self._check_state(positions, frames)
         if kind == "corotated":
             rotations = self.element_frames(positions, frames)
-            block = np.zeros((self.element_count, 12, 12))
-            for i in range(4):  # the four 3×3 diagonal blocks of the 12×12 rotation
-                block[:, 3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = rotations
-            matrices = block @ self.element_stiffness @ np.swapaxes(block, 1, 2)
+            indptr, indices, scatter = self._pattern
+            # block @ element_stiffness @ blockᵀ per element, summed into the pattern: one compiled kernel
+            # with the bits of _corotated_reference
+            data = needle_kernels.corotated_stiffness_data(
+                rotations, self.element_stiffness, scatter, indices.size
+            )
+            return sp.csr_matrix(
+                (data, indices.copy(), indptr.copy()), shape=(self.dof_count, self.dof_count)
+            )
         elif kind == "consistent":
             matrices = self._consistent_element_tangents(positions, frames)
         else:
             raise ValueError(f"kind must be 'corotated' or 'consistent', got {kind!r}")
         return self._assemble(matrices)
+
+    def _corotated_reference(self, positions: np.ndarray, frames: np.ndarray) -> sp.csr_matrix:
+        """The co-rotated tangent in NumPy: the reference of :meth:`tangent_stiffness`' kernel (tests)."""
+        rotations = self.element_frames(positions, frames)
+        block = np.zeros((self.element_count, 12, 12))
+        for i in range(4):  # the four 3×3 diagonal blocks of the 12×12 rotation
+            block[:, 3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = rotations
+        return self._assemble(block @ self.element_stiffness @ np.swapaxes(block, 1, 2))
 
     def _consistent_element_tangents(self, positions: np.ndarray, frames: np.ndarray) -> np.ndarray:
         m = self.element_count

@@ -578,3 +578,85 @@ def project(positions, kinematics, samples, polyline, points, length, element_le
         distance,
     )
     return (arc, closest, distance) if ok else None
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _corotated_kernel(rotations, stiffness, scatter, fused, data):
+    """`NeedleModel.tangent_stiffness` ("corotated"): R_e K_e R_eᵀ per element, R_e = diag(R, R, R, R), as
+    NumPy's two stacked 12 × 12 ``@`` (every term of each sum, zeros included), then ``np.bincount`` of the
+    element matrices into the CSR data through ``scatter``."""
+    block = np.zeros((12, 12))
+    left = np.empty((12, 12))
+    index = 0
+    for e in range(rotations.shape[0]):
+        for b in range(4):
+            for i in range(3):
+                for j in range(3):
+                    block[3 * b + i, 3 * b + j] = rotations[e, i, j]
+        for i in range(12):
+            for j in range(12):
+                total = 0.0
+                for k in range(12):
+                    if fused:
+                        total = _fma(block[i, k], stiffness[k, j], total)
+                    else:
+                        total = total + block[i, k] * stiffness[k, j]
+                left[i, j] = total
+        for i in range(12):
+            for j in range(12):
+                total = 0.0
+                for k in range(12):
+                    if fused:
+                        total = _fma(left[i, k], block[j, k], total)
+                    else:
+                        total = total + left[i, k] * block[j, k]
+                data[scatter[index]] += total
+                index += 1
+
+
+def corotated_stiffness_data(rotations, stiffness, scatter, size):
+    """The CSR data of the assembled co-rotated tangent (see `_corotated_kernel`), shape (size,)."""
+    data = np.zeros(size)
+    _corotated_kernel(rotations, stiffness, scatter, matmul_fused(), data)
+    return data
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _increment_kernel(positions, frames, delta, fused, new_positions, new_frames):
+    """`NeedleModel.apply_increment`: x + Δu and `rotation_matrix`(Δθ) @ Q per node (Rodrigues' formula with
+    its series below 1e-4 rad, k @ k and the product as NumPy's stacked ``@``)."""
+    rotation = np.empty((3, 3))
+    k = np.empty((3, 3))
+    for n in range(positions.shape[0]):
+        for i in range(3):
+            new_positions[n, i] = positions[n, i] + delta[6 * n + i]
+        t0, t1, t2 = delta[6 * n + 3], delta[6 * n + 4], delta[6 * n + 5]
+        theta = _norm3(t0, t1, t2)
+        theta2 = theta * theta
+        if theta < _ROTATION_SMALL_ANGLE:
+            a = (1.0 - theta2 / 6.0) + theta2 * theta2 / 120.0
+            b = (0.5 - theta2 / 24.0) + theta2 * theta2 / 720.0
+        else:
+            a = np.sin(theta) / theta
+            b = (1.0 - np.cos(theta)) / (theta * theta)
+        k[0, 0], k[0, 1], k[0, 2] = 0.0, -t2, t1
+        k[1, 0], k[1, 1], k[1, 2] = t2, 0.0, -t0
+        k[2, 0], k[2, 1], k[2, 2] = -t1, t0, 0.0
+        for i in range(3):
+            for j in range(3):
+                kk = _dot3(k[i, 0], k[i, 1], k[i, 2], k[0, j], k[1, j], k[2, j], fused)
+                identity = 1.0 if i == j else 0.0
+                rotation[i, j] = (identity + a * k[i, j]) + b * kk
+        for i in range(3):
+            for j in range(3):
+                new_frames[n, i, j] = _dot3(
+                    rotation[i, 0], rotation[i, 1], rotation[i, 2], frames[n, 0, j], frames[n, 1, j], frames[n, 2, j], fused
+                )
+
+
+def apply_increment(positions, frames, delta):
+    """New positions and frames after a DoF increment (see `_increment_kernel`)."""
+    new_positions = np.empty(positions.shape)
+    new_frames = np.empty(frames.shape)
+    _increment_kernel(positions, frames, delta, matmul_fused(), new_positions, new_frames)
+    return new_positions, new_frames

@@ -202,3 +202,28 @@ def test_closest_point_of_a_non_finite_point_raises_the_numpy_error():
     positions, frames = model.rest_state()
     with pytest.raises(ValueError, match="arc lengths must lie in"):
         model.project_on_centreline(positions, frames, np.array([[np.nan, 0.0, 0.0]]))
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_corotated_tangent_has_the_numpy_bits(kind):
+    model = _model()
+    positions, frames = _configuration(model, kind, seed=8)
+    got = model.tangent_stiffness(positions, frames)
+    expected = model._corotated_reference(positions, frames)
+    assert _same_bits(got.indptr, expected.indptr) and _same_bits(got.indices, expected.indices)
+    assert _same_bits(got.data, expected.data)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("scale", [0.0, 1e-6, 1e-4, 0.3, 2.0])
+def test_increment_has_the_numpy_bits(kind, scale):
+    # Rotation increments below, at and above the series' 1e-4 rad, and zero.
+    model = _model()
+    positions, frames = _configuration(model, kind, seed=9)
+    delta = np.random.default_rng(10).normal(size=model.dof_count) * scale
+    got = model.apply_increment(positions, frames, delta)
+    expected = model._apply_increment_reference(positions, frames, delta)
+    for a, b in zip(got, expected):
+        assert _same_bits(a, b)
+    with pytest.raises(ValueError, match="delta must have shape"):
+        model.apply_increment(positions, frames, delta[:-1])
