@@ -169,15 +169,13 @@ def corotational_frames(
 
 def _element_shapes(positions_a, positions_b, frames_a, frames_b, rest_lengths=None) -> bool:
     """Whether the arguments are the kernels' (m, 3) and (m, 3, 3) float arrays (else the NumPy code runs)."""
-    arrays = (positions_a, positions_b, frames_a, frames_b)
-    if not all(isinstance(a, np.ndarray) and a.dtype == np.float64 for a in arrays):
+    try:
+        m = positions_a.shape[0]
+        shapes = positions_a.shape == positions_b.shape == (m, 3) and frames_a.shape == frames_b.shape == (m, 3, 3)
+        floats = positions_a.dtype == positions_b.dtype == frames_a.dtype == frames_b.dtype == np.float64
+    except (AttributeError, IndexError):
         return False
-    m = positions_a.shape[0] if positions_a.ndim == 2 else -1
-    if m < 1 or positions_a.shape != (m, 3) or positions_b.shape != (m, 3):
-        return False
-    if frames_a.shape != (m, 3, 3) or frames_b.shape != (m, 3, 3):
-        return False
-    return rest_lengths is None or np.shape(rest_lengths) in ((m,), ())
+    return m >= 1 and shapes and floats and (rest_lengths is None or np.shape(rest_lengths) in ((m,), ()))
 
 
 def corotational_frames_reference(

@@ -513,10 +513,10 @@ class NeedleModel:
             raise ValueError(f"base_increment must have shape (6,), got {increment.shape}")
         base = np.asarray(self.base_dofs)
         order = np.argsort(base)
-        rhs = (
-            np.asarray(forces, dtype=float)
-            + (sp.csr_matrix(mass) @ np.asarray(velocities, float).ravel()) / dt
-        )
+        # M v₀ by SciPy's CSR product (a CSR mass, the flexible needle's kept one, is used as it is: the same
+        # product as on its csr_matrix copy)
+        mass_csr = mass if isinstance(mass, sp.csr_matrix) else sp.csr_matrix(mass)
+        rhs = np.asarray(forces, dtype=float) + (mass_csr @ np.asarray(velocities, float).ravel()) / dt
         rest = np.broadcast_to(self.rest_frame, frames.shape)
 
         def group_rotations() -> np.ndarray:
