@@ -160,7 +160,9 @@ def corotational_frames(
     """
     if not _element_shapes(positions_a, positions_b, frames_a, frames_b):
         return corotational_frames_reference(positions_a, positions_b, frames_a, frames_b)
-    frames, lengths, mean, status = needle_kernels.element_frames(positions_a, positions_b, frames_a, frames_b)
+    frames, lengths, mean, status = needle_kernels.element_frames(
+        positions_a, positions_b, frames_a, frames_b
+    )
     if status:
         # a degenerate element: the NumPy code raises its error
         return corotational_frames_reference(positions_a, positions_b, frames_a, frames_b)
@@ -171,7 +173,11 @@ def _element_shapes(positions_a, positions_b, frames_a, frames_b, rest_lengths=N
     """Whether the arguments are the kernels' (m, 3) and (m, 3, 3) float arrays (else the NumPy code runs)."""
     try:
         m = positions_a.shape[0]
-        shapes = positions_a.shape == positions_b.shape == (m, 3) and frames_a.shape == frames_b.shape == (m, 3, 3)
+        shapes = positions_a.shape == positions_b.shape == (m, 3) and frames_a.shape == frames_b.shape == (
+            m,
+            3,
+            3,
+        )
         floats = positions_a.dtype == positions_b.dtype == frames_a.dtype == frames_b.dtype == np.float64
     except (AttributeError, IndexError):
         return False
@@ -267,7 +273,9 @@ def local_deformations_reference(
     R_e (m, 3, 3); ``chord_lengths`` l [m] (m,); ``spin_jacobian`` W = ∂(w₁, w₂, w₃)/∂p (m, 3, 12), the
     element frame's spin in its own axes.
     """
-    element_frames, lengths, mean_axes = corotational_frames_reference(positions_a, positions_b, frames_a, frames_b)
+    element_frames, lengths, mean_axes = corotational_frames_reference(
+        positions_a, positions_b, frames_a, frames_b
+    )
     m = lengths.size
     e1, e2, e3 = element_frames[:, :, 0], element_frames[:, :, 1], element_frames[:, :, 2]
     rel_a = np.einsum("mji,mjk->mik", element_frames, frames_a)

@@ -11,7 +11,8 @@ of the NumPy expression it replaces in their order, so that it gives the same bi
   ``"qij,qj->qi"``, ``"mij,mj->mi"``) sums in two lanes, the even terms and the odd terms each from zero
   left to right, then the two lanes, then adds the result to the zeroed output (:func:`_lanes2`);
 - an ``einsum`` whose summed index is not the contiguous one of both (``"mji,mjk->mik"``, ``"mij,mi->mj"``,
-  ``"qk,qkj->qj"``, ``"mi,mi->m"`` on a column of the element frames) adds its products into the zeroed output left to right;
+  ``"qk,qkj->qj"``, ``"mi,mi->m"`` on a column of the element frames) adds its products into the zeroed
+  output left to right;
 - a stacked 3 × 3 ``@`` goes to the BLAS ``dgemm`` of NumPy's OpenBLAS, which on processors with FMA sums
   with fused multiply-adds from zero (:data:`matmul_fused` probes which on first use; :func:`_dot3`);
 - ``np.linalg.norm`` over a last axis of 3 sums the squares left to right; ``np.cross`` is the difference of
@@ -180,18 +181,22 @@ def _rotation_vector_one(rel, theta, out):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _left_jacobian_inverse_one(t0, t1, t2, out):
-    """`left_jacobian_inverse` of one rotation vector, (3, 3) into ``out``."""
+def _left_jacobian_inverse_one(t0, t1, t2, k, fused, out):
+    """`left_jacobian_inverse` of one rotation vector: I − ½ K + c K², K = skew(θ) (into the scratch ``k``),
+    K² as NumPy's stacked ``@``; (3, 3) into ``out``."""
     theta = _norm3(t0, t1, t2)
     if theta < _JACOBIAN_SMALL_ANGLE:
         coefficient = 1.0 / 12.0 + theta * theta / 720.0
     else:
         coefficient = 1.0 / (theta * theta) - (1.0 + np.cos(theta)) / ((2.0 * theta) * np.sin(theta))
-    k = np.empty((3, 3))
     k[0, 0], k[0, 1], k[0, 2] = 0.0, -t2, t1
     k[1, 0], k[1, 1], k[1, 2] = t2, 0.0, -t0
     k[2, 0], k[2, 1], k[2, 2] = -t1, t0, 0.0
-    return k, coefficient
+    for i in range(3):
+        for j in range(3):
+            kk = _dot3(k[i, 0], k[i, 1], k[i, 2], k[0, j], k[1, j], k[2, j], fused)
+            identity = 1.0 if i == j else 0.0
+            out[i, j] = (identity - 0.5 * k[i, j]) + coefficient * kk
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -213,6 +218,7 @@ def _deformations_kernel(
     rotation = np.empty(3)
     local = np.empty((3, 12))
     inverse = np.empty((3, 3))
+    skew = np.empty((3, 3))
     for e in range(m):
         length = lengths[e]
         e10, e11, e12 = frames[e, 0, 0], frames[e, 1, 0], frames[e, 2, 0]
@@ -251,16 +257,17 @@ def _deformations_kernel(
                     local[r, j] = -spin[e, r, j]
                 for c in range(3):
                     local[r, column + c] += frames[e, c, r]
-            k, coefficient = _left_jacobian_inverse_one(t0, t1, t2, inverse)
-            for i in range(3):
-                for j in range(3):
-                    kk = _dot3(k[i, 0], k[i, 1], k[i, 2], k[0, j], k[1, j], k[2, j], fused)
-                    identity = 1.0 if i == j else 0.0
-                    inverse[i, j] = (identity - 0.5 * k[i, j]) + coefficient * kk
+            _left_jacobian_inverse_one(t0, t1, t2, skew, fused, inverse)
             for i in range(3):
                 for j in range(12):
                     jac[e, 1 + 3 * end + i, j] = _dot3(
-                        inverse[i, 0], inverse[i, 1], inverse[i, 2], local[0, j], local[1, j], local[2, j], fused
+                        inverse[i, 0],
+                        inverse[i, 1],
+                        inverse[i, 2],
+                        local[0, j],
+                        local[1, j],
+                        local[2, j],
+                        fused,
                     )
     return True
 
@@ -365,7 +372,7 @@ def _assemble_forces_kernel(forces, total):
 
 
 def assemble_forces(forces, dof_count):
-    """The element forces summed on the DoFs as `NeedleModel.internal_forces`' bincount, shape (dof_count,)."""
+    """The element forces summed on the DoFs (6 e + k) as a bincount, in element order, shape (dof_count,)."""
     total = np.zeros(dof_count)
     _assemble_forces_kernel(forces, total)
     return total
@@ -432,7 +439,9 @@ def _point_one(positions, d, rot, e, x, l0, point, derivative, offset):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _centreline_kernel(positions, d, rot, b, spin, elements, xi, l0, jacobian, fused, points, derivatives, jac):
+def _centreline_kernel(
+    positions, d, rot, b, spin, elements, xi, l0, jacobian, fused, points, derivatives, jac
+):
     """`NeedleModel._centreline` at located points: points, derivatives and (``jacobian``) J, zeroed in."""
     offset = np.empty(3)
     left = np.empty((3, 3))
@@ -457,17 +466,21 @@ def _centreline_kernel(positions, d, rot, b, spin, elements, xi, l0, jacobian, f
             left[2, j] = _dot3(-o1, o0, 0.0, r0, r1, r2, fused)
         for i in range(3):
             for j in range(12):
-                jac[q, i, j] -= _dot3(left[i, 0], left[i, 1], left[i, 2], spin[e, 0, j], spin[e, 1, j], spin[e, 2, j], fused)
+                jac[q, i, j] -= _dot3(
+                    left[i, 0], left[i, 1], left[i, 2], spin[e, 0, j], spin[e, 1, j], spin[e, 2, j], fused
+                )
         for j in range(12):
             rows[1, j] = l0 * ((0.0 + h0 * b[e, 3, j]) + h1 * b[e, 6, j])
             rows[2, j] = -l0 * ((0.0 + h0 * b[e, 2, j]) + h1 * b[e, 5, j])
         for i in range(3):
             for j in range(12):
-                jac[q, i, j] += _dot3(rot[e, i, 0], rot[e, i, 1], rot[e, i, 2], rows[0, j], rows[1, j], rows[2, j], fused)
+                jac[q, i, j] += _dot3(
+                    rot[e, i, 0], rot[e, i, 1], rot[e, i, 2], rows[0, j], rows[1, j], rows[2, j], fused
+                )
 
 
 def centreline(positions, kinematics, elements, xi, element_length, *, jacobian):
-    """Points, dp/ds and (``jacobian``) J of the centreline at located points (see `NeedleModel._centreline`)."""
+    """Points, dp/ds and (``jacobian``) J of the centreline at located points (`NeedleModel._centreline`)."""
     q = elements.size
     points = np.empty((q, 3))
     derivatives = np.empty((q, 3))
@@ -498,7 +511,19 @@ def _valid_arc(value, length):
 
 @numba.njit(cache=True, error_model="numpy")
 def _project_kernel(
-    positions, d, rot, samples, polyline, points, length, l0, last, iterations, arc_out, closest_out, distance_out
+    positions,
+    d,
+    rot,
+    samples,
+    polyline,
+    points,
+    length,
+    l0,
+    last,
+    iterations,
+    arc_out,
+    closest_out,
+    distance_out,
 ):
     """`NeedleModel.project_on_centreline`: the polyline search, then Gauss–Newton on the curve; False if an
     arc length it would evaluate is invalid (the NumPy code then raises its error)."""
@@ -508,7 +533,9 @@ def _project_kernel(
     for s in range(count):
         for i in range(3):
             segments[s, i] = polyline[s + 1, i] - polyline[s, i]
-        squared[s] = _lanes2(segments[s, 0], segments[s, 1], segments[s, 2], segments[s, 0], segments[s, 1], segments[s, 2])
+        squared[s] = _lanes2(
+            segments[s, 0], segments[s, 1], segments[s, 2], segments[s, 0], segments[s, 1], segments[s, 2]
+        )
     closest = np.empty(3)
     tangent = np.empty(3)
     trial_point = np.empty(3)
@@ -555,7 +582,9 @@ def _project_kernel(
     return True
 
 
-def project(positions, kinematics, samples, polyline, points, length, element_length, element_count, iterations):
+def project(
+    positions, kinematics, samples, polyline, points, length, element_length, element_count, iterations
+):
     """`NeedleModel.project_on_centreline` on its polyline: (arc lengths, closest points, distances), or None
     where the NumPy code must answer (an invalid arc length: it raises)."""
     q = points.shape[0]
@@ -650,7 +679,13 @@ def _increment_kernel(positions, frames, delta, fused, new_positions, new_frames
         for i in range(3):
             for j in range(3):
                 new_frames[n, i, j] = _dot3(
-                    rotation[i, 0], rotation[i, 1], rotation[i, 2], frames[n, 0, j], frames[n, 1, j], frames[n, 2, j], fused
+                    rotation[i, 0],
+                    rotation[i, 1],
+                    rotation[i, 2],
+                    frames[n, 0, j],
+                    frames[n, 1, j],
+                    frames[n, 2, j],
+                    fused,
                 )
 
 

@@ -36,7 +36,9 @@ def _configuration(model, kind, seed=0):
         return positions, frames
     rng = np.random.default_rng(seed)
     if kind == "rigid":
-        delta = np.tile(np.concatenate([rng.normal(size=3) * 1e-3, rng.normal(size=3) * 0.3]), model.node_count)
+        delta = np.tile(
+            np.concatenate([rng.normal(size=3) * 1e-3, rng.normal(size=3) * 0.3]), model.node_count
+        )
         return model.apply_increment(positions, frames, delta)
     scale = {"slightly bent": 1e-4, "bent": 0.3}[kind]
     delta = rng.normal(size=(model.node_count, 6)) * np.array([scale * 1e-2] * 3 + [scale] * 3)
@@ -77,12 +79,17 @@ def test_element_kinematics_and_forces_have_the_numpy_bits(kind, seed):
     assert got.keys() == expected.keys()
     for key in expected:
         assert _same_bits(got[key], expected[key]), key
-    for a, b in zip(beam_element.corotational_frames(*ends), beam_element.corotational_frames_reference(*ends)):
+    for a, b in zip(
+        beam_element.corotational_frames(*ends),
+        beam_element.corotational_frames_reference(*ends),
+        strict=True,
+    ):
         assert _same_bits(a, b)
     stiffness = model._reduced_stiffness
     for a, b in zip(
         beam_element.beam_element_forces(*ends, rest, stiffness),
         beam_element.beam_element_forces_reference(*ends, rest, stiffness),
+        strict=True,
     ):
         assert _same_bits(a, b)
 
@@ -105,6 +112,7 @@ def test_element_kinematics_on_random_elements():
         for x, y in zip(
             beam_element.beam_element_forces(a, b, qa, qb, rest, k7),
             beam_element.beam_element_forces_reference(a, b, qa, qb, rest, k7),
+            strict=True,
         ):
             assert _same_bits(x, y)
 
@@ -191,7 +199,7 @@ def test_closest_points_have_the_numpy_bits(kind, samples_per_element):
     got = model.project_on_centreline(positions, frames, points, samples_per_element=samples_per_element)
     samples, polyline = model._polyline(positions, frames, samples_per_element)
     expected = model._project_reference(positions, frames, points, samples, polyline)
-    for a, b in zip(got, expected):
+    for a, b in zip(got, expected, strict=True):
         assert _same_bits(a, b)
     empty = model.project_on_centreline(positions, frames, np.zeros((0, 3)))
     assert [a.shape for a in empty] == [(0,), (0, 3), (0,)]
@@ -223,7 +231,7 @@ def test_increment_has_the_numpy_bits(kind, scale):
     delta = np.random.default_rng(10).normal(size=model.dof_count) * scale
     got = model.apply_increment(positions, frames, delta)
     expected = model._apply_increment_reference(positions, frames, delta)
-    for a, b in zip(got, expected):
+    for a, b in zip(got, expected, strict=True):
         assert _same_bits(a, b)
     with pytest.raises(ValueError, match="delta must have shape"):
         model.apply_increment(positions, frames, delta[:-1])
