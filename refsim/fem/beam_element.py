@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from refsim.fem import needle_kernels
 from refsim.geometry.rotations import rotation_vector, skew
 
 __all__ = [
@@ -48,8 +49,11 @@ __all__ = [
     "timoshenko_stiffness",
     "left_jacobian_inverse",
     "corotational_frames",
+    "corotational_frames_reference",
     "local_deformations",
+    "local_deformations_reference",
     "beam_element_forces",
+    "beam_element_forces_reference",
     "hermite_shapes",
 ]
 
@@ -140,7 +144,51 @@ def left_jacobian_inverse(rotation_vectors: np.ndarray) -> np.ndarray:
 def corotational_frames(
     positions_a: np.ndarray, positions_b: np.ndarray, frames_a: np.ndarray, frames_b: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Co-rotational element frames (Crisfield 1990; Battini & Pacoste 2002).
+    """Co-rotational element frames (Crisfield 1990; Battini & Pacoste 2002); a compiled kernel
+    (:mod:`refsim.fem.needle_kernels`) with the bits of :func:`corotational_frames_reference`.
+
+    Parameters
+    ----------
+    positions_a, positions_b : End node positions [m], shape (m, 3).
+    frames_a, frames_b : End node frames (columns = material axes, world coordinates), shape (m, 3, 3).
+
+    Returns
+    -------
+    element_frames : R_e = [e1, e2, e3] as columns, shape (m, 3, 3).
+    chord_lengths : Current lengths l [m], shape (m,).
+    mean_axes : q = ½ (Q_a[:, 1] + Q_b[:, 1]), shape (m, 3).
+    """
+    if not _element_shapes(positions_a, positions_b, frames_a, frames_b):
+        return corotational_frames_reference(positions_a, positions_b, frames_a, frames_b)
+    frames, lengths, mean, status = needle_kernels.element_frames(
+        positions_a, positions_b, frames_a, frames_b
+    )
+    if status:
+        # a degenerate element: the NumPy code raises its error
+        return corotational_frames_reference(positions_a, positions_b, frames_a, frames_b)
+    return frames, lengths, mean
+
+
+def _element_shapes(positions_a, positions_b, frames_a, frames_b, rest_lengths=None) -> bool:
+    """Whether the arguments are the kernels' (m, 3) and (m, 3, 3) float arrays (else the NumPy code runs)."""
+    try:
+        m = positions_a.shape[0]
+        shapes = positions_a.shape == positions_b.shape == (m, 3) and frames_a.shape == frames_b.shape == (
+            m,
+            3,
+            3,
+        )
+        floats = positions_a.dtype == positions_b.dtype == frames_a.dtype == frames_b.dtype == np.float64
+    except (AttributeError, IndexError):
+        return False
+    return m >= 1 and shapes and floats and (rest_lengths is None or np.shape(rest_lengths) in ((m,), ()))
+
+
+def corotational_frames_reference(
+    positions_a: np.ndarray, positions_b: np.ndarray, frames_a: np.ndarray, frames_b: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Co-rotational element frames (Crisfield 1990; Battini & Pacoste 2002), in NumPy: the reference of
+    :func:`corotational_frames`' compiled kernel.
 
     Parameters
     ----------
@@ -177,6 +225,40 @@ def local_deformations(
 ) -> dict[str, np.ndarray]:
     """Local deformations d = [ū, θ̄_a, θ̄_b] and their derivative B with respect to the 12 element DoFs.
 
+    Element DoFs p = [x_a (3), θ_a (3), x_b (3), θ_b (3)], rotations as world-frame increments. Compiled
+    kernels (:mod:`refsim.fem.needle_kernels`) with the bits of :func:`local_deformations_reference`, which
+    answers for a relative rotation within 1e-3 rad of π and raises for a degenerate element.
+
+    Parameters
+    ----------
+    positions_a, positions_b : End node positions [m], shape (m, 3).
+    frames_a, frames_b : End node frames, shape (m, 3, 3).
+    rest_lengths : Rest lengths l₀ [m], shape (m,).
+
+    Returns
+    -------
+    Dictionary with ``deformations`` d [m, rad] (m, 7); ``jacobian`` B = ∂d/∂p (m, 7, 12); ``element_frames``
+    R_e (m, 3, 3); ``chord_lengths`` l [m] (m,); ``spin_jacobian`` W = ∂(w₁, w₂, w₃)/∂p (m, 3, 12), the
+    element frame's spin in its own axes.
+    """
+    found = None
+    if _element_shapes(positions_a, positions_b, frames_a, frames_b, rest_lengths):
+        found = needle_kernels.element_kinematics(positions_a, positions_b, frames_a, frames_b, rest_lengths)
+    if found is None:
+        return local_deformations_reference(positions_a, positions_b, frames_a, frames_b, rest_lengths)
+    return found
+
+
+def local_deformations_reference(
+    positions_a: np.ndarray,
+    positions_b: np.ndarray,
+    frames_a: np.ndarray,
+    frames_b: np.ndarray,
+    rest_lengths: np.ndarray,
+) -> dict[str, np.ndarray]:
+    """Local deformations d = [ū, θ̄_a, θ̄_b] and their derivative B with respect to the 12 element DoFs, in
+    NumPy: the reference of :func:`local_deformations`' compiled kernels (and their answer near θ̄ = π).
+
     Element DoFs p = [x_a (3), θ_a (3), x_b (3), θ_b (3)], rotations as world-frame increments.
 
     Parameters
@@ -191,7 +273,9 @@ def local_deformations(
     R_e (m, 3, 3); ``chord_lengths`` l [m] (m,); ``spin_jacobian`` W = ∂(w₁, w₂, w₃)/∂p (m, 3, 12), the
     element frame's spin in its own axes.
     """
-    element_frames, lengths, mean_axes = corotational_frames(positions_a, positions_b, frames_a, frames_b)
+    element_frames, lengths, mean_axes = corotational_frames_reference(
+        positions_a, positions_b, frames_a, frames_b
+    )
     m = lengths.size
     e1, e2, e3 = element_frames[:, :, 0], element_frames[:, :, 1], element_frames[:, :, 2]
     rel_a = np.einsum("mji,mjk->mik", element_frames, frames_a)
@@ -238,7 +322,9 @@ def beam_element_forces(
     rest_lengths: np.ndarray,
     reduced_stiffness: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Consistent co-rotational internal forces f = Bᵀ K₇ d of each element, and its strain energy.
+    """Consistent co-rotational internal forces f = Bᵀ K₇ d of each element, and its strain energy; compiled
+    (:func:`local_deformations`, then one kernel for both products), with the bits of
+    :func:`beam_element_forces_reference`.
 
     Parameters
     ----------
@@ -253,6 +339,40 @@ def beam_element_forces(
     energies : Strain energies ½ dᵀ K₇ d [J], shape (m,).
     """
     local = local_deformations(positions_a, positions_b, frames_a, frames_b, rest_lengths)
+    stiffness = np.asarray(reduced_stiffness)
+    m = local["deformations"].shape[0]
+    if stiffness.shape != (m, 7, 7) or stiffness.dtype != np.float64:
+        d = local["deformations"]
+        local_forces = np.einsum("mij,mj->mi", reduced_stiffness, d)
+        forces = np.einsum("mij,mi->mj", local["jacobian"], local_forces)
+        return forces, 0.5 * np.einsum("mi,mi->m", d, local_forces)
+    return needle_kernels.element_forces(local, stiffness)
+
+
+def beam_element_forces_reference(
+    positions_a: np.ndarray,
+    positions_b: np.ndarray,
+    frames_a: np.ndarray,
+    frames_b: np.ndarray,
+    rest_lengths: np.ndarray,
+    reduced_stiffness: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Consistent co-rotational internal forces f = Bᵀ K₇ d of each element, and its strain energy, in NumPy:
+    the reference of :func:`beam_element_forces`' compiled kernel.
+
+    Parameters
+    ----------
+    positions_a, positions_b : End node positions [m], shape (m, 3).
+    frames_a, frames_b : End node frames, shape (m, 3, 3).
+    rest_lengths : Rest lengths l₀ [m], shape (m,).
+    reduced_stiffness : K₇, the block of the local stiffness on d = [ū, θ̄_a, θ̄_b], shape (m, 7, 7).
+
+    Returns
+    -------
+    forces : Internal forces [N] and moments [N·m] on p = [x_a, θ_a, x_b, θ_b], world frame, shape (m, 12).
+    energies : Strain energies ½ dᵀ K₇ d [J], shape (m,).
+    """
+    local = local_deformations_reference(positions_a, positions_b, frames_a, frames_b, rest_lengths)
     d = local["deformations"]
     local_forces = np.einsum("mij,mj->mi", reduced_stiffness, d)
     forces = np.einsum("mij,mi->mj", local["jacobian"], local_forces)

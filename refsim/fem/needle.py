@@ -45,6 +45,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 
+from refsim.fem import needle_kernels
 from refsim.fem.beam_element import (
     LOCAL_REDUCED_DOFS,
     beam_element_forces,
@@ -314,7 +315,12 @@ class NeedleModel:
         delta = np.asarray(delta, dtype=float)
         if delta.shape != (self.dof_count,):
             raise ValueError(f"delta must have shape ({self.dof_count},), got {delta.shape}")
-        per_node = delta.reshape(self.node_count, 6)
+        # positions + Δu, rotation_matrix(Δθ) @ frames per node: one compiled kernel with their bits
+        return needle_kernels.apply_increment(positions, frames, delta)
+
+    def _apply_increment_reference(self, positions, frames, delta):
+        """:meth:`apply_increment` in NumPy: the reference its kernel is held to (tests)."""
+        per_node = np.asarray(delta, dtype=float).reshape(self.node_count, 6)
         return positions + per_node[:, :3], rotation_matrix(per_node[:, 3:]) @ frames
 
     # ------------------------------------------------------------------ elements
@@ -360,7 +366,8 @@ class NeedleModel:
         """
         positions, frames = self._check_state(positions, frames)
         forces, _ = self._element_forces(positions, frames)
-        return np.bincount(self._element_dofs.ravel(), weights=forces.ravel(), minlength=self.dof_count)
+        # np.bincount(self._element_dofs.ravel(), weights=forces.ravel()), compiled: the same sums in order
+        return needle_kernels.assemble_forces(forces, self.dof_count)
 
     def strain_energy(self, positions: np.ndarray, frames: np.ndarray) -> float:
         """Strain energy U [J] of the co-rotational model."""
@@ -387,15 +394,28 @@ class NeedleModel:
         positions, frames = self._check_state(positions, frames)
         if kind == "corotated":
             rotations = self.element_frames(positions, frames)
-            block = np.zeros((self.element_count, 12, 12))
-            for i in range(4):  # the four 3×3 diagonal blocks of the 12×12 rotation
-                block[:, 3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = rotations
-            matrices = block @ self.element_stiffness @ np.swapaxes(block, 1, 2)
+            indptr, indices, scatter = self._pattern
+            # block @ element_stiffness @ blockᵀ per element, summed into the pattern: one compiled kernel
+            # with the bits of _corotated_reference
+            data = needle_kernels.corotated_stiffness_data(
+                rotations, self.element_stiffness, scatter, indices.size
+            )
+            return sp.csr_matrix(
+                (data, indices.copy(), indptr.copy()), shape=(self.dof_count, self.dof_count)
+            )
         elif kind == "consistent":
             matrices = self._consistent_element_tangents(positions, frames)
         else:
             raise ValueError(f"kind must be 'corotated' or 'consistent', got {kind!r}")
         return self._assemble(matrices)
+
+    def _corotated_reference(self, positions: np.ndarray, frames: np.ndarray) -> sp.csr_matrix:
+        """The co-rotated tangent in NumPy: the reference of :meth:`tangent_stiffness`' kernel (tests)."""
+        rotations = self.element_frames(positions, frames)
+        block = np.zeros((self.element_count, 12, 12))
+        for i in range(4):  # the four 3×3 diagonal blocks of the 12×12 rotation
+            block[:, 3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = rotations
+        return self._assemble(block @ self.element_stiffness @ np.swapaxes(block, 1, 2))
 
     def _consistent_element_tangents(self, positions: np.ndarray, frames: np.ndarray) -> np.ndarray:
         m = self.element_count
@@ -493,10 +513,10 @@ class NeedleModel:
             raise ValueError(f"base_increment must have shape (6,), got {increment.shape}")
         base = np.asarray(self.base_dofs)
         order = np.argsort(base)
-        rhs = (
-            np.asarray(forces, dtype=float)
-            + (sp.csr_matrix(mass) @ np.asarray(velocities, float).ravel()) / dt
-        )
+        # M v₀ by SciPy's CSR product (a CSR mass, the flexible needle's kept one, is used as it is: the same
+        # product as on its csr_matrix copy)
+        mass_csr = mass if isinstance(mass, sp.csr_matrix) else sp.csr_matrix(mass)
+        rhs = np.asarray(forces, dtype=float) + (mass_csr @ np.asarray(velocities, float).ravel()) / dt
         rest = np.broadcast_to(self.rest_frame, frames.shape)
 
         def group_rotations() -> np.ndarray:
@@ -510,6 +530,9 @@ class NeedleModel:
         s = np.atleast_1d(np.asarray(arc_lengths, dtype=float))
         if s.ndim != 1:
             raise ValueError(f"arc_lengths must have shape (q,), got {s.shape}")
+        found = needle_kernels.locate(s, self.length, self.element_length, self.element_count)
+        if found is not None:
+            return found
         slack = 1e-9 * self.length
         if np.any(~np.isfinite(s)) or np.any(s < -slack) or np.any(s > self.length + slack):
             bad = s[~np.isfinite(s) | (s < -slack) | (s > self.length + slack)][0]
@@ -560,6 +583,22 @@ class NeedleModel:
         return found
 
     def _centreline(self, positions, frames, arc_lengths, *, jacobian: bool):
+        """Points, dp/ds, elements and (``jacobian``) J at rest arc lengths: one compiled kernel over the
+        configuration's element kinematics (:func:`refsim.fem.needle_kernels.centreline`, the bits of
+        :meth:`_centreline_reference`)."""
+        positions, frames = self._check_state(positions, frames)
+        elements, xi = self._locate(arc_lengths)
+        per_element = self._element_kinematics(positions, frames)
+        points, derivatives, jac = needle_kernels.centreline(
+            positions, per_element, elements, xi, self.element_length, jacobian=jacobian
+        )
+        out = {"points": points, "derivatives": derivatives, "elements": elements}
+        if jacobian:
+            out["jacobian"] = jac
+        return out
+
+    def _centreline_reference(self, positions, frames, arc_lengths, *, jacobian: bool):
+        """:meth:`_centreline` in NumPy: the reference its compiled kernel is held to (tests)."""
         positions, frames = self._check_state(positions, frames)
         elements, xi = self._locate(arc_lengths)
         # Element kinematics once per element (and configuration), then gathered per query point.
@@ -685,6 +724,26 @@ class NeedleModel:
         if samples_per_element < 1:
             raise ValueError(f"samples_per_element must be >= 1, got {samples_per_element!r}")
         samples, polyline = self._polyline(positions, frames, samples_per_element)
+        positions, frames = self._check_state(positions, frames)
+        found = needle_kernels.project(
+            positions,
+            self._element_kinematics(positions, frames),
+            samples,
+            polyline,
+            points,
+            self.length,
+            self.element_length,
+            self.element_count,
+            _PROJECTION_NEWTON_ITERATIONS,
+        )
+        if found is not None:
+            return found
+        # an invalid arc length on the way (not finite): the NumPy code raises its error
+        return self._project_reference(positions, frames, points, samples, polyline)
+
+    def _project_reference(self, positions, frames, points, samples, polyline):
+        """The closest points of :meth:`project_on_centreline` in NumPy, on its polyline: the reference its
+        compiled kernel is held to (tests), and the code that raises on an invalid arc length."""
         start, segment = polyline[:-1], np.diff(polyline, axis=0)  # (S, 3)
         relative = points[:, None, :] - start[None]  # (q, S, 3)
         t = np.clip(
@@ -693,13 +752,13 @@ class NeedleModel:
         gaps = relative - t[..., None] * segment[None]
         best = np.argmin(np.einsum("qsi,qsi->qs", gaps, gaps), axis=1)
         arc = samples[best] + t[np.arange(points.shape[0]), best] * (samples[best + 1] - samples[best])
-        current = self._centreline(positions, frames, arc, jacobian=False)
+        current = self._centreline_reference(positions, frames, arc, jacobian=False)
         closest, tangent = current["points"], current["derivatives"]
         distance = np.linalg.norm(points - closest, axis=-1)
         for _ in range(_PROJECTION_NEWTON_ITERATIONS):
             step = np.einsum("qi,qi->q", points - closest, tangent) / np.einsum("qi,qi->q", tangent, tangent)
             trial = np.clip(arc + step, 0.0, self.length)
-            data = self._centreline(positions, frames, trial, jacobian=False)
+            data = self._centreline_reference(positions, frames, trial, jacobian=False)
             trial_distance = np.linalg.norm(points - data["points"], axis=-1)
             better = trial_distance < distance
             arc = np.where(better, trial, arc)
