@@ -52,6 +52,7 @@ from refsim.constraints.rows import (
     RowBlock,
     orthonormal_basis,
     point_rows,
+    trusted_block,
 )
 from refsim.constraints.step_geometry import StepGeometry
 
@@ -532,8 +533,8 @@ def ring_insertion_block(
     """
     friction_coefficient = _friction_of(path, friction_coefficient, options)
     point_count = path.point_count
-    preload = np.broadcast_to(np.asarray(normal_preload, dtype=float), (point_count,))
-    if np.any(~np.isfinite(preload)) or np.any(preload < 0.0):
+    preload = _per_point(normal_preload, point_count)
+    if not _within_zero_to_inf(preload):
         raise ValueError(f"normal_preload = {normal_preload!r} N; valid range [0, inf)")
     nodes, weights = ring_weights(path, rings, geometry.mesh_tets)
     tissue_point_previous, tissue_point_free = geometry.tissue_points(nodes, weights)
@@ -544,10 +545,11 @@ def ring_insertion_block(
     tangents = geometry.needle_free.tangents(arc_lengths)
     first, second = orthonormal_basis(tangents)
     offset = needle_point_free - tissue_point_free
-    coefficients = np.broadcast_to(np.asarray(friction_coefficient, dtype=float), (point_count,))
-    if np.any(~np.isfinite(coefficients)) or np.any(coefficients < 0.0):
+    given = np.asarray(friction_coefficient, dtype=float)
+    coefficients = _per_point(given, point_count)
+    if not _within_zero_to_inf(coefficients):
         raise ValueError(f"friction_coefficient = {friction_coefficient!r}; valid range [0, inf)")
-    with_friction = bool(np.any(np.asarray(friction_coefficient, dtype=float) > 0.0))
+    with_friction = bool((given > 0.0).any())
     per_point = 3 if with_friction else 2
     directions = np.empty((point_count, per_point, 3))
     directions[:, 0], directions[:, 1] = first, second
@@ -574,7 +576,8 @@ def ring_insertion_block(
     row_weights = np.repeat(weights, per_point, axis=0)
     row_count = point_count * per_point
     base = np.arange(point_count) * per_point
-    return RowBlock(
+    # every field built here with the block's row count, the preloads and coefficients checked above
+    return trusted_block(
         jacobians={
             TISSUE: point_rows(row_nodes, row_weights, flat_directions, geometry.tissue_dof_count),
             NEEDLE: needle_rows(geometry.needle_free, np.repeat(arc_lengths, per_point), flat_directions),
@@ -590,6 +593,22 @@ def ring_insertion_block(
         shaft_normal_preload=preload.copy() if with_friction else np.zeros(0),
         **point_row_metadata(point_count, with_friction, anchors),
     )
+
+
+def _per_point(value, point_count: int) -> np.ndarray:
+    """``np.broadcast_to(np.asarray(value, dtype=float), (point_count,))``'s values (read them only): a scalar
+    filled in, an array of that shape as it is."""
+    value = np.asarray(value, dtype=float)
+    if value.ndim == 0:
+        return np.full(point_count, value)
+    if value.shape == (point_count,):
+        return value
+    return np.broadcast_to(value, (point_count,))
+
+
+def _within_zero_to_inf(values: np.ndarray) -> bool:
+    """Whether every value is finite and ≥ 0 (NaN is not: its comparisons are false)."""
+    return values.size == 0 or bool(values.min() >= 0.0 and values.max() < np.inf)
 
 
 def insertion_compliance(

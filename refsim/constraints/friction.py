@@ -251,7 +251,9 @@ def friction_rows(
     """
     tangents = np.asarray(tangents, dtype=float).reshape(-1, 3)
     arc_lengths = np.asarray(arc_lengths, dtype=float)
-    previous, free = geometry.tissue_points(tissue_nodes, tissue_weights)
+    if tissue_free_points is None or tissue_previous_points is None:
+        # (interpolated only when the caller lacks one of them: a given pair replaces both)
+        previous, free = geometry.tissue_points(tissue_nodes, tissue_weights)
     if tissue_free_points is not None:
         free = np.asarray(tissue_free_points, dtype=float).reshape(-1, 3)
     if tissue_previous_points is not None:
