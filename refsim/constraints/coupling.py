@@ -350,6 +350,35 @@ def ring_points(
     if count == 1:
         return centres[:, None, :].copy()
     first, second = orthonormal_basis(tangents)
+    radius = np.asarray(radius, dtype=float)
+    radius = (
+        np.full(centres.shape[0], radius)
+        if radius.ndim == 0
+        else np.broadcast_to(radius, (centres.shape[0],))
+    )
+    from refsim.constraints.coupling_kernels import ring_point_positions  # numba: imported on first use
+
+    # _ring_points_numpy's bits in one compiled pass
+    cosines, sines = _ring_angles(count)
+    return ring_point_positions(
+        np.ascontiguousarray(centres),
+        np.ascontiguousarray(first),
+        np.ascontiguousarray(second),
+        np.ascontiguousarray(radius),
+        cosines.ravel(),
+        sines.ravel(),
+    )
+
+
+def _ring_points_numpy(
+    centres: np.ndarray, tangents: np.ndarray, radius: np.ndarray | float, count: int
+) -> np.ndarray:
+    """:func:`ring_points` in NumPy (the compiled pass's reference in
+    ``tests/constraints/test_coupling.py``)."""
+    centres = np.asarray(centres, dtype=float).reshape(-1, 3)
+    if count == 1:
+        return centres[:, None, :].copy()
+    first, second = orthonormal_basis(tangents)
     radius = np.broadcast_to(np.asarray(radius, dtype=float), (centres.shape[0],))
     cosines, sines = _ring_angles(count)
     offsets = radius[:, None, None] * (cosines * first[:, None, :] + sines * second[:, None, :])

@@ -323,7 +323,9 @@ def trusted_block(**values) -> RowBlock:
 
 #: (name, default factory) of RowBlock's fields that have a default, in field order (trusted_block).
 _FIELD_FACTORIES = tuple(
-    (spec.name, spec.default_factory) for spec in dataclass_fields(RowBlock) if spec.default_factory is not MISSING
+    (spec.name, spec.default_factory)
+    for spec in dataclass_fields(RowBlock)
+    if spec.default_factory is not MISSING
 )
 
 
