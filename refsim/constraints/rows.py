@@ -242,7 +242,19 @@ class RowBlock:
         sets = self.index_sets()
         added = _compliance_diagonal(self)
         if added.any():
-            compliance = compliance + np.diag(added)
+            square = (added.size, added.size)
+            if (
+                isinstance(compliance, np.ndarray)
+                and compliance.dtype == np.float64
+                and compliance.shape == square
+            ):
+                # compliance + np.diag(added)'s bits without the dense diagonal: every entry plus +0.0, the
+                # diagonal's plus its added compliance
+                diagonal = np.diag(compliance) + added
+                compliance = compliance + 0.0
+                np.fill_diagonal(compliance, diagonal)
+            else:
+                compliance = compliance + np.diag(added)
         limit = _force_limit(self)
         boxed = np.flatnonzero(np.isfinite(limit))
         bilateral, unilateral = sets["bilateral"], sets["unilateral"]

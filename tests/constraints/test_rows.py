@@ -567,3 +567,19 @@ def test_point_rows_kept_data_answer_only_for_the_same_bits():
     assert not np.array_equal(
         np.signbit(point_rows(nodes, negative_zero, directions, 12).data), np.signbit(first.data)
     )
+
+
+def test_problem_adds_the_compliance_diagonal_with_the_dense_sums_bits():
+    # W + diag(c) without the dense diagonal: the same bits, a −0.0 off the diagonal turned +0.0 as the sum
+    # with diag's zeros turns it; a float32 W or a non-square one takes the dense sum itself.
+    rng = np.random.default_rng(3)
+    added = np.array([1e-3, 0.0])
+    block = _two_rows(compliance_diagonal=added)
+    for compliance in (rng.standard_normal((2, 2)), np.array([[1.0, -0.0], [-0.0, 2.0]])):
+        expected = compliance + np.diag(added)
+        got = block.problem(compliance).compliance
+        assert np.array_equal(got, expected) and np.array_equal(np.signbit(got), np.signbit(expected))
+    single = rng.standard_normal((2, 2)).astype(np.float32)
+    np.testing.assert_array_equal(block.problem(single).compliance, single + np.diag(added))
+    with pytest.raises(ValueError):
+        block.problem(np.ones((2, 3)))
