@@ -351,11 +351,12 @@ def ring_points(
         return centres[:, None, :].copy()
     first, second = orthonormal_basis(tangents)
     radius = np.asarray(radius, dtype=float)
-    radius = (
-        np.full(centres.shape[0], radius)
-        if radius.ndim == 0
-        else np.broadcast_to(radius, (centres.shape[0],))
-    )
+    if radius.shape != (centres.shape[0],):
+        radius = (
+            np.full(centres.shape[0], radius)
+            if radius.ndim == 0
+            else np.broadcast_to(radius, (centres.shape[0],))
+        )
     from refsim.constraints.coupling_kernels import ring_point_positions  # numba: imported on first use
 
     # _ring_points_numpy's bits in one compiled pass
@@ -535,6 +536,7 @@ def ring_insertion_block(
     normal_preload: np.ndarray | float = 0.0,
     options: InsertionOptions | None = None,
     arc_lengths: np.ndarray | None = None,
+    previous_tangents: np.ndarray | None = None,
 ) -> RowBlock:
     """Rows of the insertion points, each averaging the tissue over its ring (see module docstring).
 
@@ -559,6 +561,8 @@ def ring_insertion_block(
     arc_lengths : The points' arc lengths on the needle at the start of the step [m], shape (p,): the
         projections of their centres there (``needle_previous.project``), when the caller has them; None:
         computed here.
+    previous_tangents : The needle's unit tangents at ``arc_lengths`` at the start of the step, shape (p, 3),
+        when the caller has them (``needle_previous.tangents(arc_lengths)``); None: computed here if needed.
     """
     friction_coefficient = _friction_of(path, friction_coefficient, options)
     point_count = path.point_count
@@ -588,7 +592,16 @@ def ring_insertion_block(
     kinds = np.full((point_count, per_point), BILATERAL, dtype=np.int8)
     anchors = None
     if with_friction:
-        offsets, anchors = axial_offsets(path, geometry, arc_lengths, tissue_point_previous)
+        # the needle's points at the start of the step, read by the anchors' offsets and the friction gaps
+        needle_point_previous = geometry.needle_previous.points(arc_lengths)
+        offsets, anchors = axial_offsets(
+            path,
+            geometry,
+            arc_lengths,
+            tissue_point_previous,
+            needle_points=needle_point_previous,
+            tangents=previous_tangents,
+        )
         directions[:, 2] = tangents
         # the gaps of friction_rows; the Jacobians of all the rows are built below
         gaps[:, 2] = friction_gaps(
@@ -598,6 +611,8 @@ def ring_insertion_block(
             tissue_free=tissue_point_free,
             tissue_previous=tissue_point_previous,
             offsets=offsets,
+            needle_free_points=needle_point_free,
+            needle_previous_points=needle_point_previous,
         )
         kinds[:, 2] = FRICTION
     flat_directions = directions.reshape(-1, 3)
