@@ -24,6 +24,7 @@ from refsim.constraints.rows import (
     UNILATERAL,
     RowBlock,
     point_rows,
+    trusted_block,
 )
 from refsim.constraints.step_geometry import StepGeometry
 
@@ -205,7 +206,8 @@ def tip_cutting_block(
         tissue_previous_points=tissue_before,
         offsets=offsets,
     )
-    block = RowBlock(
+    # one row in every field, its force limit f_cut checked above
+    block = trusted_block(
         jacobians=rows.jacobians,
         free_gap=rows.free_gap,
         kind=np.array([UNILATERAL], dtype=np.int8),

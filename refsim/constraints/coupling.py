@@ -52,6 +52,7 @@ from refsim.constraints.rows import (
     RowBlock,
     orthonormal_basis,
     point_rows,
+    trusted_block,
 )
 from refsim.constraints.step_geometry import StepGeometry
 
@@ -349,6 +350,36 @@ def ring_points(
     if count == 1:
         return centres[:, None, :].copy()
     first, second = orthonormal_basis(tangents)
+    radius = np.asarray(radius, dtype=float)
+    if radius.shape != (centres.shape[0],):
+        radius = (
+            np.full(centres.shape[0], radius)
+            if radius.ndim == 0
+            else np.broadcast_to(radius, (centres.shape[0],))
+        )
+    from refsim.constraints.coupling_kernels import ring_point_positions  # numba: imported on first use
+
+    # _ring_points_numpy's bits in one compiled pass
+    cosines, sines = _ring_angles(count)
+    return ring_point_positions(
+        np.ascontiguousarray(centres),
+        np.ascontiguousarray(first),
+        np.ascontiguousarray(second),
+        np.ascontiguousarray(radius),
+        cosines.ravel(),
+        sines.ravel(),
+    )
+
+
+def _ring_points_numpy(
+    centres: np.ndarray, tangents: np.ndarray, radius: np.ndarray | float, count: int
+) -> np.ndarray:
+    """:func:`ring_points` in NumPy (the compiled pass's reference in
+    ``tests/constraints/test_coupling.py``)."""
+    centres = np.asarray(centres, dtype=float).reshape(-1, 3)
+    if count == 1:
+        return centres[:, None, :].copy()
+    first, second = orthonormal_basis(tangents)
     radius = np.broadcast_to(np.asarray(radius, dtype=float), (centres.shape[0],))
     cosines, sines = _ring_angles(count)
     offsets = radius[:, None, None] * (cosines * first[:, None, :] + sines * second[:, None, :])
@@ -505,6 +536,7 @@ def ring_insertion_block(
     normal_preload: np.ndarray | float = 0.0,
     options: InsertionOptions | None = None,
     arc_lengths: np.ndarray | None = None,
+    previous_tangents: np.ndarray | None = None,
 ) -> RowBlock:
     """Rows of the insertion points, each averaging the tissue over its ring (see module docstring).
 
@@ -529,11 +561,13 @@ def ring_insertion_block(
     arc_lengths : The points' arc lengths on the needle at the start of the step [m], shape (p,): the
         projections of their centres there (``needle_previous.project``), when the caller has them; None:
         computed here.
+    previous_tangents : The needle's unit tangents at ``arc_lengths`` at the start of the step, shape (p, 3),
+        when the caller has them (``needle_previous.tangents(arc_lengths)``); None: computed here if needed.
     """
     friction_coefficient = _friction_of(path, friction_coefficient, options)
     point_count = path.point_count
-    preload = np.broadcast_to(np.asarray(normal_preload, dtype=float), (point_count,))
-    if np.any(~np.isfinite(preload)) or np.any(preload < 0.0):
+    preload = _per_point(normal_preload, point_count)
+    if not _within_zero_to_inf(preload):
         raise ValueError(f"normal_preload = {normal_preload!r} N; valid range [0, inf)")
     nodes, weights = ring_weights(path, rings, geometry.mesh_tets)
     tissue_point_previous, tissue_point_free = geometry.tissue_points(nodes, weights)
@@ -544,10 +578,11 @@ def ring_insertion_block(
     tangents = geometry.needle_free.tangents(arc_lengths)
     first, second = orthonormal_basis(tangents)
     offset = needle_point_free - tissue_point_free
-    coefficients = np.broadcast_to(np.asarray(friction_coefficient, dtype=float), (point_count,))
-    if np.any(~np.isfinite(coefficients)) or np.any(coefficients < 0.0):
+    given = np.asarray(friction_coefficient, dtype=float)
+    coefficients = _per_point(given, point_count)
+    if not _within_zero_to_inf(coefficients):
         raise ValueError(f"friction_coefficient = {friction_coefficient!r}; valid range [0, inf)")
-    with_friction = bool(np.any(np.asarray(friction_coefficient, dtype=float) > 0.0))
+    with_friction = bool((given > 0.0).any())
     per_point = 3 if with_friction else 2
     directions = np.empty((point_count, per_point, 3))
     directions[:, 0], directions[:, 1] = first, second
@@ -557,7 +592,16 @@ def ring_insertion_block(
     kinds = np.full((point_count, per_point), BILATERAL, dtype=np.int8)
     anchors = None
     if with_friction:
-        offsets, anchors = axial_offsets(path, geometry, arc_lengths, tissue_point_previous)
+        # the needle's points at the start of the step, read by the anchors' offsets and the friction gaps
+        needle_point_previous = geometry.needle_previous.points(arc_lengths)
+        offsets, anchors = axial_offsets(
+            path,
+            geometry,
+            arc_lengths,
+            tissue_point_previous,
+            needle_points=needle_point_previous,
+            tangents=previous_tangents,
+        )
         directions[:, 2] = tangents
         # the gaps of friction_rows; the Jacobians of all the rows are built below
         gaps[:, 2] = friction_gaps(
@@ -567,6 +611,8 @@ def ring_insertion_block(
             tissue_free=tissue_point_free,
             tissue_previous=tissue_point_previous,
             offsets=offsets,
+            needle_free_points=needle_point_free,
+            needle_previous_points=needle_point_previous,
         )
         kinds[:, 2] = FRICTION
     flat_directions = directions.reshape(-1, 3)
@@ -574,7 +620,8 @@ def ring_insertion_block(
     row_weights = np.repeat(weights, per_point, axis=0)
     row_count = point_count * per_point
     base = np.arange(point_count) * per_point
-    return RowBlock(
+    # every field built here with the block's row count, the preloads and coefficients checked above
+    return trusted_block(
         jacobians={
             TISSUE: point_rows(row_nodes, row_weights, flat_directions, geometry.tissue_dof_count),
             NEEDLE: needle_rows(geometry.needle_free, np.repeat(arc_lengths, per_point), flat_directions),
@@ -590,6 +637,22 @@ def ring_insertion_block(
         shaft_normal_preload=preload.copy() if with_friction else np.zeros(0),
         **point_row_metadata(point_count, with_friction, anchors),
     )
+
+
+def _per_point(value, point_count: int) -> np.ndarray:
+    """``np.broadcast_to(np.asarray(value, dtype=float), (point_count,))``'s values (read them only): a scalar
+    filled in, an array of that shape as it is."""
+    value = np.asarray(value, dtype=float)
+    if value.ndim == 0:
+        return np.full(point_count, value)
+    if value.shape == (point_count,):
+        return value
+    return np.broadcast_to(value, (point_count,))
+
+
+def _within_zero_to_inf(values: np.ndarray) -> bool:
+    """Whether every value is finite and ≥ 0 (NaN is not: its comparisons are false)."""
+    return values.size == 0 or bool(values.min() >= 0.0 and values.max() < np.inf)
 
 
 def insertion_compliance(

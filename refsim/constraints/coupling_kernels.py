@@ -1,4 +1,4 @@
-"""Compiled parts of the ring coupling (numba): the tissue side of ring-averaged rows.
+"""Compiled parts of the ring coupling (numba): the tissue side of ring-averaged rows, the rings' points.
 
 :func:`refsim.constraints.coupling.ring_weights` gives each insertion point's nodes and weights, the mean of
 its ring points' interpolations. A step builds them for every insertion point and for the tip's ring; in
@@ -13,7 +13,7 @@ import numpy as np
 
 from refsim.kernel_cache import numba
 
-__all__ = ["ring_nodes_weights"]
+__all__ = ["ring_nodes_weights", "ring_point_positions"]
 
 # np.nan_to_num's replacement of +inf and −inf (float64's largest and smallest finite values).
 _LARGEST = np.finfo(np.float64).max
@@ -64,3 +64,24 @@ def ring_nodes_weights(
                 nodes[p, 4 * (k + 1) + c] = mesh_tets[tet, c]
                 weights[p, 4 * (k + 1) + c] = share * value
     return nodes, weights
+
+
+@numba.njit(cache=True)
+def ring_point_positions(centres, first, second, radius, cosines, sines):  # pragma: no cover
+    """Points of rings around centres [m], shape (p, q, 3): centre + ρ (cos θ_k e₁ + sin θ_k e₂), each
+    component computed as NumPy's broadcast expression ``centres[:, None] + radius[:, None, None] *
+    (cosines * first[:, None] + sines * second[:, None])`` computes it, in that order (the same bits;
+    :func:`refsim.constraints.coupling.ring_points`).
+
+    centres, first, second : shape (p, 3). radius : shape (p,). cosines, sines : shape (q,).
+    """
+    points = centres.shape[0]
+    count = cosines.shape[0]
+    out = np.empty((points, count, 3))
+    for p in range(points):
+        for k in range(count):
+            for j in range(3):
+                out[p, k, j] = centres[p, j] + radius[p] * (
+                    cosines[k] * first[p, j] + sines[k] * second[p, j]
+                )
+    return out

@@ -251,7 +251,9 @@ def friction_rows(
     """
     tangents = np.asarray(tangents, dtype=float).reshape(-1, 3)
     arc_lengths = np.asarray(arc_lengths, dtype=float)
-    previous, free = geometry.tissue_points(tissue_nodes, tissue_weights)
+    if tissue_free_points is None or tissue_previous_points is None:
+        # (interpolated only when the caller lacks one of them: a given pair replaces both)
+        previous, free = geometry.tissue_points(tissue_nodes, tissue_weights)
     if tissue_free_points is not None:
         free = np.asarray(tissue_free_points, dtype=float).reshape(-1, 3)
     if tissue_previous_points is not None:
@@ -284,6 +286,8 @@ def friction_gaps(
     tissue_free: np.ndarray,
     tissue_previous: np.ndarray,
     offsets: np.ndarray | None = None,
+    needle_free_points: np.ndarray | None = None,
+    needle_previous_points: np.ndarray | None = None,
 ) -> np.ndarray:
     """The free gaps of :func:`friction_rows` alone [m], shape (r,), for a builder that makes the rows'
     Jacobians itself: the slip over the step along each tangent, plus the offset from the stick anchor.
@@ -296,13 +300,19 @@ def friction_gaps(
     tissue_free, tissue_previous : The tissue point of each row after free motion and at the start of the
         step [m], shape (r, 3) each.
     offsets : As in :func:`friction_rows`.
+    needle_free_points, needle_previous_points : The needle's points at ``arc_lengths`` after free motion and
+        at the start of the step [m], shape (r, 3), when the caller has them; else computed here.
     """
     tangents = np.asarray(tangents, dtype=float).reshape(-1, 3)
     arc_lengths = np.asarray(arc_lengths, dtype=float)
+    if needle_free_points is None:
+        needle_free_points = geometry.needle_free.points(arc_lengths)
+    if needle_previous_points is None:
+        needle_previous_points = geometry.needle_previous.points(arc_lengths)
     gaps = slip_gaps(
         tangents,
-        needle_free=geometry.needle_free.points(arc_lengths),
-        needle_previous=geometry.needle_previous.points(arc_lengths),
+        needle_free=needle_free_points,
+        needle_previous=needle_previous_points,
         tissue_free=tissue_free,
         tissue_previous=tissue_previous,
     )

@@ -234,15 +234,24 @@ def point_row_metadata(point_count: int, with_friction: bool, anchors: np.ndarra
     )
 
 
-def axial_offsets(path: InsertionPath, geometry: StepGeometry, arc_lengths, tissue_points_previous):
+def axial_offsets(
+    path: InsertionPath,
+    geometry: StepGeometry,
+    arc_lengths,
+    tissue_points_previous,
+    *,
+    needle_points: np.ndarray | None = None,
+    tangents: np.ndarray | None = None,
+):
     """The stick offsets D [m] and anchors s_a [m] of the points' axial rows at the start of the step, (p,)
     each (:func:`refsim.constraints.friction.stick_offsets`; ``tissue_points_previous`` (p, 3) the rows'
-    tissue points at the start of the step)."""
+    tissue points at the start of the step; ``needle_points``, ``tangents``: the needle's points and unit
+    tangents at ``arc_lengths`` at the start of the step when the caller has them, else computed here)."""
     needle = geometry.needle_previous
     return stick_offsets(
         arc_lengths,
-        needle_points=needle.points(arc_lengths),
-        tangents=needle.tangents(arc_lengths),
+        needle_points=needle.points(arc_lengths) if needle_points is None else needle_points,
+        tangents=needle.tangents(arc_lengths) if tangents is None else tangents,
         tissue_points=tissue_points_previous,
         anchors=path.anchors,
         stretch=path.stretch,

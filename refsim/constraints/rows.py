@@ -14,7 +14,8 @@ towards the needle); friction rows measure the relative tangential displacement 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field
+from dataclasses import fields as dataclass_fields
 from types import MappingProxyType
 
 import numpy as np
@@ -174,7 +175,7 @@ class RowBlock:
             if value.size and value.shape != (rows,):
                 raise ValueError(f"{name} must have shape ({rows},), got {value.shape}")
         limit = np.asarray(self.force_limit, dtype=float)
-        if limit.size and (limit.shape != (rows,) or np.any(~(limit > 0.0))):
+        if limit.size and (limit.shape != (rows,) or not limit.min() > 0.0):  # (NaN's min: NaN, not > 0)
             raise ValueError(f"force_limit must have shape ({rows},) with values in (0, inf], got {limit!r}")
         _check_compliance_diagonal(np.asarray(self.compliance_diagonal, dtype=float), rows)
 
@@ -240,8 +241,20 @@ class RowBlock:
         shape (row_count, row_count): the one place where row kinds become solver laws."""
         sets = self.index_sets()
         added = _compliance_diagonal(self)
-        if np.any(added):
-            compliance = compliance + np.diag(added)
+        if added.any():
+            square = (added.size, added.size)
+            if (
+                isinstance(compliance, np.ndarray)
+                and compliance.dtype == np.float64
+                and compliance.shape == square
+            ):
+                # compliance + np.diag(added)'s bits without the dense diagonal: every entry plus +0.0, the
+                # diagonal's plus its added compliance
+                diagonal = np.diag(compliance) + added
+                compliance = compliance + 0.0
+                np.fill_diagonal(compliance, diagonal)
+            else:
+                compliance = compliance + np.diag(added)
         limit = _force_limit(self)
         boxed = np.flatnonzero(np.isfinite(limit))
         bilateral, unilateral = sets["bilateral"], sets["unilateral"]
@@ -303,8 +316,34 @@ def empty_block(dof_counts: Mapping[str, int | None]) -> RowBlock:
     )
 
 
+def trusted_block(**values) -> RowBlock:
+    """``RowBlock(**values)`` without :meth:`RowBlock.__post_init__`'s checks, for a builder whose fields are
+    valid by construction (every per-row field built with the block's row count, force limits and added
+    compliance checked by the builder or left empty): the same object, the Jacobians stored as the
+    constructor stores them (read-only, None values dropped), the omitted fields their defaults."""
+    block = object.__new__(RowBlock)
+    state = block.__dict__
+    for name, factory in _FIELD_FACTORIES:
+        if name not in values:
+            state[name] = factory()
+    state.update(values)
+    state["jacobians"] = MappingProxyType(
+        {name: matrix for name, matrix in dict(values["jacobians"]).items() if matrix is not None}
+    )
+    return block
+
+
+#: (name, default factory) of RowBlock's fields that have a default, in field order (trusted_block).
+_FIELD_FACTORIES = tuple(
+    (spec.name, spec.default_factory)
+    for spec in dataclass_fields(RowBlock)
+    if spec.default_factory is not MISSING
+)
+
+
 def _check_compliance_diagonal(added: np.ndarray, rows: int) -> None:
-    if added.size and (added.shape != (rows,) or np.any(~np.isfinite(added)) or np.any(added < 0.0)):
+    # (finite and >= 0: a NaN makes the min NaN, which fails the comparison)
+    if added.size and (added.shape != (rows,) or not (added.min() >= 0.0 and added.max() < np.inf)):
         raise ValueError(f"compliance_diagonal must have shape ({rows},) with finite values >= 0 [m/N]")
 
 

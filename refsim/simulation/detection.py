@@ -72,6 +72,20 @@ class Detection:
     hole: Channel | None = None
 
 
+def _no_front() -> FrontRows:
+    """The front of a detection without front rows: empty, its arrays read-only (shared by every such
+    detection: nothing can change it)."""
+    front = FrontRows.empty()
+    for value in vars(front).values():
+        if isinstance(value, np.ndarray):
+            value.flags.writeable = False
+    return front
+
+
+#: The front of every detection without front rows (:func:`_no_front`).
+_NO_FRONT = _no_front()
+
+
 class Detector:
     """Builds the rows of each step for a scene.
 
@@ -191,7 +205,8 @@ class Detector:
             return block, None
         centres_previous = path.positions(geometry.tissue_previous, geometry.mesh_tets)
         arc_lengths, _ = geometry.needle_previous.project(centres_previous)
-        rings = self._rings(path, geometry.needle_previous.tangents(arc_lengths), geometry.mesh_tets)
+        tangents = geometry.needle_previous.tangents(arc_lengths)  # the rings' normals and the anchors' axes
+        rings = self._rings(path, tangents, geometry.mesh_tets)
         block = ring_insertion_block(
             path,
             geometry,
@@ -199,6 +214,7 @@ class Detector:
             normal_preload=preload,
             options=self.options,
             arc_lengths=arc_lengths,
+            previous_tangents=tangents,
         )
         # With finite_line, the 3-D sub-grid compliance of the inserted line, which starts at the free
         # surface.
@@ -258,7 +274,7 @@ class Detector:
         existing cut (insertion) or of the cut being made (cutting)."""
         blocks: list[RowBlock] = []
         contact = None
-        front = FrontRows.empty()
+        front = _NO_FRONT
         insertion_points = np.zeros(0, dtype=np.int64)
         rings = None
         hole = None

@@ -334,6 +334,8 @@ class EventRules:
         events: list[Event] = []
         positions = world.tissue.positions
         needle = self.needle_geometry(state.needle)
+        # the path's points on the step's configuration, read by the cut start's test and the growth below
+        points = state.path.positions(positions, self.tets)
         if self.growth is not None and rows.row_count:
             force_on_needle = shaft_lateral_force(
                 rows.source,
@@ -343,10 +345,9 @@ class EventRules:
                 without_entry=self.law.excludes_entry_point,
                 points=rows.points_of_rows,
             )
-            started = self._cut_starts(world, state, force_on_needle, needle, locator)
+            started = self._cut_starts(world, state, force_on_needle, needle, locator, points)
             if started is not None:
                 return started
-        points = state.path.positions(positions, self.tets)
         path, added = grow_path(
             state.path,
             tip=needle.tip,
@@ -364,7 +365,7 @@ class EventRules:
         # The coupling's release margin (the ring's hysteresis: its points' centres drift along the needle).
         margin = self.coupling.retraction_margin(self.insertion.spacing)
         beyond = points_beyond_tip(path, points, needle, margin)
-        if np.any(beyond):
+        if beyond.any():
             path = path.subset(~beyond)
             events.append(Event("retraction"))
         # The tip's material state: the tet it lies in, or outside (it left the tissue through a face).
@@ -507,12 +508,14 @@ class EventRules:
         keep[new[in_cut]] = False
         return path.subset(keep)
 
-    def _cut_starts(self, world, state, force_on_needle, needle, locator: LazyLocator):
+    def _cut_starts(self, world, state, force_on_needle, needle, locator: LazyLocator, path_points=None):
         """The states (the world's, with the cut, and the instrument's) and events of a cut start, or None
         when the law's criterion does not hold (``CuttingLaw.cut_start``). The cut runs the way the needle
-        pushes the tissue, ĉ = −t/‖t‖ (``needle``: the instrument's geometry, ``locator``: the step's)."""
+        pushes the tissue, ĉ = −t/‖t‖ (``needle``: the instrument's geometry, ``locator``: the step's;
+        ``path_points``: the path's points on the world's tissue positions, computed here when None)."""
         positions = world.tissue.positions
-        path_points = state.path.positions(positions, self.tets)
+        if path_points is None:
+            path_points = state.path.positions(positions, self.tets)
         end = needle.length
         if state.tip_tet < 0:
             # The tip out of a far face: the shaft cuts along the part in the tissue only.

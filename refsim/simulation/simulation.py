@@ -490,10 +490,11 @@ class Simulation:
         found, points, columns = _point_rows(rows, index) if point_rows is None else point_rows
         if found.size == 0:
             return path
-        stored = np.array(path.multipliers, copy=True)
+        stored = np.array(path.multipliers, dtype=float, copy=True)
         stored[points] = 0.0  # (a point's every column, once per row: the same zeros)
         stored[points, columns] = multipliers[found]
-        path = path.with_multipliers(stored)
+        # (the path's own (p, 3) float array, updated: what with_multipliers would store, without its copy)
+        path = path._with(multipliers=stored)
         if rows.shaft_rows.size == 0:
             return path
         # The instrument's shaft rows (row indices are unique: the mask selects them in shaft-row order).
@@ -512,16 +513,17 @@ class Simulation:
         stuck_now = stuck_points(
             multipliers[shaft], bounds, slips=slips, rest_slip=REST_SLIP * self.scene.insertion.spacing
         )
-        stuck = np.array(path.stuck, copy=True)
+        stuck = np.array(path.stuck, dtype=bool, copy=True)
         stuck[owners] = stuck_now
         # A stuck point keeps its anchor; one that slipped gets it placed anew at the next step, from the
         # annulus' stretch −C λ (refsim.constraints.friction).
         added = rows.problem_compliance_diagonal()[shaft]
-        anchors = np.array(path.anchors, copy=True)
-        stretch = np.array(path.stretch, copy=True)
+        anchors = np.array(path.anchors, dtype=float, copy=True)
+        stretch = np.array(path.stretch, dtype=float, copy=True)
         anchors[owners] = np.where(stuck_now, rows.anchors[shaft], np.nan)
         stretch[owners] = -added * multipliers[shaft]
-        return path.with_stuck(stuck).with_anchors(anchors, stretch)
+        # the path's own per-point arrays, updated: with_stuck and with_anchors' values, one copy of the path
+        return path._with(stuck=stuck, anchors=anchors, stretch=stretch)
 
     @staticmethod
     def _check_finite(step, states: dict, multipliers) -> None:

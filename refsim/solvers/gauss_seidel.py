@@ -34,7 +34,7 @@ import time
 import numpy as np
 
 from refsim.kernel_cache import numba
-from refsim.solvers.laws import CONTACT, block_arrays, gauss_seidel_sweep, natural_map_blocks
+from refsim.solvers.laws import CONTACT, all_finite, block_arrays, gauss_seidel_sweep, natural_map_blocks
 from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.report import SolverReport
 from refsim.solvers.residual import data_scales, residuals
@@ -253,9 +253,10 @@ def solve_gauss_seidel(
     weight = np.ones(row_count)
     data_scale = max(float(np.linalg.norm(problem.free_gap)), data_scales(problem)[1])
     gap = compliance @ multipliers + problem.free_gap
-    history = np.full(int(max_iterations), np.nan)
-    data_history = np.full(int(max_iterations), np.nan)
-    force_history = np.full(int(max_iterations), np.nan)
+    # (the sweeps write entry i of each history at sweep i; only the first `iterations` entries are read)
+    history = np.empty(int(max_iterations))
+    data_history = np.empty(int(max_iterations))
+    force_history = np.empty(int(max_iterations))
     iterations, increment, status = _gauss_seidel(
         transposed,
         np.array(problem.free_gap, copy=True),
@@ -276,7 +277,7 @@ def solve_gauss_seidel(
         data_history,
         force_history,
     )
-    overflow = status == 2 or not np.all(np.isfinite(multipliers))
+    overflow = status == 2 or not all_finite(multipliers)
     residual, data, converged, growing = _verdict(
         problem,
         multipliers,

@@ -188,6 +188,13 @@ class ConstraintProblem:
         value = getattr(self, spec.name)
         if (spec.role == "preload" or count == 0) and np.size(value) == 0:
             return np.zeros(count)  # (what the checks below return for an empty value of no entries)
+        if isinstance(value, np.ndarray) and value.dtype == np.float64 and value.shape == (count,):
+            # The usual case (the rows' float64 arrays), checked by two reductions: a bound may be ±inf but
+            # not NaN, any other value finite and >= 0 (a NaN makes min and max NaN, failing each test).
+            # Anything else is sent through the checks below, which name it.
+            low, high = value.min(), value.max()
+            if (low == low) if spec.role == "bound" else (low >= 0.0 and high < np.inf):
+                return value.copy()
         if isinstance(value, np.ndarray) and value.dtype == np.float64 and value.ndim:
             given = value  # what the object-array round trip below would give
         else:

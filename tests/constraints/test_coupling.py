@@ -768,3 +768,50 @@ def test_ring_insertion_block_with_the_callers_arc_lengths_is_the_same_bits():
     np.testing.assert_array_equal(own.free_gap, given.free_gap)
     assert (own.jacobians[TISSUE_BODY] != given.jacobians[TISSUE_BODY]).nnz == 0
     np.testing.assert_array_equal(own.anchor, given.anchor)
+
+
+@pytest.mark.parametrize("count", [1, 4, 12])
+def test_ring_points_compiled_are_numpys_bit_for_bit(count):
+    # The compiled pass computes centre + ρ (cos θ e₁ + sin θ e₂) in NumPy's broadcast order: the same bits,
+    # for one radius per point or one for all, and for tangents with a NaN (NumPy's basis then).
+    rng = np.random.default_rng(11)
+    centres = rng.standard_normal((30, 3))
+    tangents = rng.standard_normal((30, 3))
+    tangents /= np.linalg.norm(tangents, axis=1, keepdims=True)
+    for radius in (rng.uniform(1e-4, 1e-2, size=30), 3e-3, np.array([2e-3])):
+        got = coupling.ring_points(centres, tangents, radius, count)
+        expected = coupling._ring_points_numpy(centres, tangents, radius, count)
+        assert got.shape == expected.shape == (30, count, 3)
+        assert np.array_equal(got, expected)
+    tangents[3] = np.nan
+    got = coupling.ring_points(centres, tangents, 3e-3, count)
+    assert np.array_equal(got, coupling._ring_points_numpy(centres, tangents, 3e-3, count), equal_nan=True)
+
+
+def test_ring_insertion_block_still_names_a_bad_preload_or_coefficient():
+    # The builder's own checks of its arguments (the block itself is built without RowBlock's checks).
+    model, needle, centres, spacing, h = _needle_in_box()
+    path = _path(model, centres)
+    geometry = _geometry(model, needle, model.rest_positions + 1e-4)
+    rings = coupling.RingLayout.around(
+        path,
+        rest_positions=model.rest_positions,
+        mesh_tets=model.tets,
+        locator=TetLocator(model.rest_positions, model.tets),
+        tangents=needle.tangents(np.zeros(len(centres))),
+        needle_radius=1e-3,
+    )
+    for bad in (-1.0, np.nan, np.inf, np.full(len(centres), -0.5)):
+        with pytest.raises(ValueError, match="normal_preload"):
+            coupling.ring_insertion_block(path, geometry, rings, friction_coefficient=0.2, normal_preload=bad)
+        with pytest.raises(ValueError, match="friction_coefficient"):
+            coupling.ring_insertion_block(path, geometry, rings, friction_coefficient=bad)
+    block = coupling.ring_insertion_block(
+        path, geometry, rings, friction_coefficient=0.2, normal_preload=0.01
+    )
+    checked = type(block)(**{name: getattr(block, name) for name in block.__dataclass_fields__})
+    for name in block.__dataclass_fields__:
+        if name != "jacobians":
+            assert np.array_equal(getattr(block, name), getattr(checked, name), equal_nan=True), name
+    assert block.row_count == 3 * len(centres)
+    np.testing.assert_array_equal(block.shaft_normal_preload, 0.01)

@@ -21,7 +21,13 @@ from refsim.constraints import (
     point_rows,
     points_beyond_tip,
 )
-from refsim.constraints.rows import _orthonormal_basis_numpy, _point_rows_coo, stack_jacobians
+from refsim.constraints.rows import (
+    RowBlock,
+    _orthonormal_basis_numpy,
+    _point_rows_coo,
+    stack_jacobians,
+    trusted_block,
+)
 from refsim.geometry import TetLocator
 from refsim.mesh import box_mesh
 
@@ -265,11 +271,40 @@ def test_force_limits_become_box_rows_and_compliance_diagonal_joins_the_diagonal
 
 
 @pytest.mark.parametrize(
-    "fields", [dict(force_limit=np.array([0.0, 1.0])), dict(compliance_diagonal=np.array([-1.0, 0.0]))]
+    "fields",
+    [
+        dict(force_limit=np.array([0.0, 1.0])),
+        dict(force_limit=np.array([1.0, -np.inf])),
+        dict(force_limit=np.array([np.nan, 1.0])),
+        dict(force_limit=np.array([1.0, 2.0, 3.0])),
+        dict(compliance_diagonal=np.array([-1.0, 0.0])),
+        dict(compliance_diagonal=np.array([0.0, np.nan])),
+        dict(compliance_diagonal=np.array([np.inf, 0.0])),
+        dict(compliance_diagonal=np.array([0.0])),
+    ],
 )
 def test_bad_limits_and_compliance_are_rejected(fields):
     with pytest.raises(ValueError):
         _two_rows(**fields)
+    if "compliance_diagonal" in fields:
+        with pytest.raises(ValueError, match="compliance_diagonal"):
+            _two_rows().with_compliance_diagonal(fields["compliance_diagonal"])
+
+
+def test_trusted_block_is_the_checked_constructors_block():
+    # The builders whose fields are valid by construction skip RowBlock's checks: the same fields, the
+    # Jacobians stored read-only without None values, the omitted fields their defaults (fresh arrays).
+    checked = _two_rows(force_limit=np.array([0.8, np.inf]), compliance_diagonal=np.array([1e-3, 0.0]))
+    given = {name: getattr(checked, name) for name in ("free_gap", "kind", "source", "points", "directions")}
+    given.update(force_limit=checked.force_limit, compliance_diagonal=checked.compliance_diagonal)
+    trusted = trusted_block(jacobians={**checked.jacobians, "other": None}, **given)
+    assert type(trusted) is RowBlock and type(trusted.jacobians) is type(checked.jacobians)
+    assert set(trusted.jacobians) == set(checked.jacobians)
+    for name in checked.__dataclass_fields__:
+        if name != "jacobians":
+            a, b = getattr(trusted, name), getattr(checked, name)
+            assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True), name
+    assert trusted.contacts is not trusted_block(jacobians={}, **given).contacts  # defaults not shared
 
 
 def test_jacobians_by_body_stack_and_a_block_without_a_body_gives_it_zero_rows():
@@ -532,3 +567,19 @@ def test_point_rows_kept_data_answer_only_for_the_same_bits():
     assert not np.array_equal(
         np.signbit(point_rows(nodes, negative_zero, directions, 12).data), np.signbit(first.data)
     )
+
+
+def test_problem_adds_the_compliance_diagonal_with_the_dense_sums_bits():
+    # W + diag(c) without the dense diagonal: the same bits, a −0.0 off the diagonal turned +0.0 as the sum
+    # with diag's zeros turns it; a float32 W or a non-square one takes the dense sum itself.
+    rng = np.random.default_rng(3)
+    added = np.array([1e-3, 0.0])
+    block = _two_rows(compliance_diagonal=added)
+    for compliance in (rng.standard_normal((2, 2)), np.array([[1.0, -0.0], [-0.0, 2.0]])):
+        expected = compliance + np.diag(added)
+        got = block.problem(compliance).compliance
+        assert np.array_equal(got, expected) and np.array_equal(np.signbit(got), np.signbit(expected))
+    single = rng.standard_normal((2, 2)).astype(np.float32)
+    np.testing.assert_array_equal(block.problem(single).compliance, single + np.diag(added))
+    with pytest.raises(ValueError):
+        block.problem(np.ones((2, 3)))

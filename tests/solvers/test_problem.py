@@ -55,6 +55,12 @@ def test_inputs_are_copied():
         (dict(unilateral=[4]), "outside [0, 4)"),
         (dict(unilateral=[3.5]), "integer"),
         (dict(shaft_friction_coefficient=[-0.1]), "negative coefficient"),
+        # float64 arrays of the right shape (the rows' own, checked by min and max first) are still named
+        (dict(shaft_friction_coefficient=np.array([-0.1])), "negative coefficient"),
+        (dict(shaft_friction_coefficient=np.array([np.nan])), "non-finite"),
+        (dict(shaft_friction_coefficient=np.array([np.inf])), "non-finite"),
+        (dict(shaft_normal_preload=np.array([-np.inf])), "non-finite"),
+        (dict(shaft_normal_preload=np.array([-1.0])), "negative value"),
         (dict(shaft_friction_coefficient=[0.1, 0.2]), "expected (1,)"),
         (dict(shaft_pairs=[[0, 3]], unilateral=[3]), "must be bilateral"),
         (dict(shaft_pairs=np.zeros((0, 2))), "one pair per row"),
@@ -99,6 +105,14 @@ def test_contact_and_box_validation():
             contact_friction=[0.5],
             unilateral=[2],
         )
+
+
+def test_float64_box_bounds_may_be_infinite_but_not_nan():
+    common = dict(compliance=np.eye(2), free_gap=np.zeros(2), box_rows=[0, 1])
+    good = ConstraintProblem(box_lower=np.array([-np.inf, -1.0]), box_upper=np.array([np.inf, 2.0]), **common)
+    np.testing.assert_array_equal(good.box_upper, [np.inf, 2.0])
+    with pytest.raises(ValueError, match="box_lower has a non-finite value nan"):
+        ConstraintProblem(box_lower=np.array([np.nan, -1.0]), box_upper=np.array([1.0, 1.0]), **common)
 
 
 def test_multiplier_checks_and_asymmetry():

@@ -468,4 +468,8 @@ def _same_rows(first: tuple, second: tuple) -> bool:
     """Whether two keys of :meth:`StepCompliance._influence` (shape, indptr, indices, data) are equal."""
     if first[0] != second[0]:
         return False
-    return all(np.array_equal(a, b) for a, b in zip(first[1:], second[1:], strict=True))
+    # np.array_equal's test (same shape, every entry ==) without its conversions: the keys hold arrays
+    for a, b in zip(first[1:], second[1:], strict=True):
+        if a.shape != b.shape or not (a == b).all():
+            return False
+    return True
