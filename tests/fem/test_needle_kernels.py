@@ -11,9 +11,27 @@ from refsim.geometry import rotations
 from refsim.geometry.rotations import rotation_matrix
 
 
+def _einsum_two_lanes() -> bool:
+    """Whether this NumPy's ``einsum`` sums a contiguous axis of 3 in two lanes, (p₀ + p₂) + p₁ (the order the
+    kernels repeat; NumPy's wheels built for SSE2/x86-64-v2 do). 1 + 2⁻⁶⁰ − 1 is 2⁻⁶⁰ in that order, 0 left
+    to right."""
+    a = np.array([[1.0, 2.0**-60, -1.0]])
+    return bool(np.einsum("mi,mi->m", a, np.ones_like(a))[0] != 0.0)
+
+
+TWO_LANES = _einsum_two_lanes()
+
+
 def _same_bits(a, b) -> bool:
+    """The bits of the NumPy code; on a NumPy that sums in another order (another SIMD width), agreement to
+    rounding: 1e-12 of the result's largest entry (a dozen sums of a dozen terms, each within 1e-16)."""
     a, b = np.asarray(a), np.asarray(b)
-    return a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes()
+    if a.shape != b.shape or a.dtype != b.dtype:
+        return False
+    if TWO_LANES or a.tobytes() == b.tobytes():
+        return a.tobytes() == b.tobytes()
+    scale = float(np.max(np.abs(b), initial=0.0))
+    return bool(np.allclose(a, b, rtol=0.0, atol=1e-12 * max(scale, np.finfo(float).tiny)))
 
 
 def _model(element_count=12):

@@ -3,6 +3,8 @@ the mesh-quality measures on tetrahedra of known angles; the surface patch selec
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -17,7 +19,7 @@ from refsim.mesh import (
     read_mesh,
     surface_patch,
 )
-from refsim.mesh.phantom import liver_cross_section
+from refsim.mesh.phantom import liver_cross_section, phantom_quality_problems
 
 RESOLUTIONS = tuple(LIVER_PHANTOM_RESOLUTIONS)
 
@@ -109,13 +111,17 @@ def test_visceral_face_is_concave(phantom):
     assert not _inside(phantom, np.array([[x, 0.0, chord + 0.004]]))[0]
 
 
-def test_quality_thresholds(phantom):
-    # Chosen thresholds (not derived): dihedral angles in [10°, 160°], a radius ratio above 0.15 everywhere,
-    # above 0.5 for 95 % of the tets (Delaunay meshes after optimisation; a sliver has ρ -> 0).
+def test_quality_thresholds(phantom, request):
+    # Chosen thresholds (not derived): no sliver (PHANTOM_QUALITY: dihedral angles in (10°, 160°), a radius
+    # ratio above 0.15 everywhere; a sliver has ρ -> 0), which the generator checks and meets by meshing the
+    # tips finer; the shipped files also have a radius ratio above 0.5 for 95 % of their tets (a property of
+    # those files, not of every Gmsh run: coarse meshes of this thin organ have 0.40-0.59 there).
     quality = mesh_quality(phantom)
+    assert phantom_quality_problems(quality) == []
     assert quality.min_dihedral > 10.0 and quality.max_dihedral < 160.0
     assert quality.radius_ratio.min() > 0.15
-    assert np.quantile(quality.radius_ratio, 0.05) > 0.5
+    if request.node.callspec.params["phantom"] != "generated":
+        assert np.quantile(quality.radius_ratio, 0.05) > 0.5
     assert quality.radius_ratio.shape == (phantom.tet_count,)
     assert "dihedral angles" in quality.format()
 
@@ -161,9 +167,29 @@ def test_generation_matches_the_shipped_mesh_in_size_and_resolution(generated):
     area = np.linalg.norm(_face_normals(shipped), axis=1).sum() / 2
     bound = area * 0.02**2 / (8 * 0.05)
     assert abs(generated.volumes.sum() - shipped.volumes.sum()) < bound
-    # The same target size gives the same resolution: tets scale as V / h³; the mesher's choices at one h
+
+    # The same target size gives the same resolution away from the tips (the generator meshes the 10 mm at
+    # each tip finer, which the shipped files were not): tets scale as V / h³; the mesher's choices at one h
     # moved the count by 11 % between two machines (1,931 against 1,735), while ±30 % is h changed by 9 %.
-    assert 0.7 < generated.tet_count / shipped.tet_count < 1.3
+    def middle(mesh):
+        centres = mesh.rest_positions[mesh.tets].mean(axis=1)
+        return int(np.count_nonzero(np.abs(centres[:, 0]) < 0.09))
+
+    assert 0.7 < middle(generated) / middle(shipped) < 1.3
+
+
+def test_generation_refines_the_tips_until_the_quality_is_met_or_says_why(monkeypatch):
+    # An unreachable quality (every radius ratio above 0.99: only regular tets) makes every tip size fail:
+    # the error names Gmsh's version, the size and each try's shortfall, instead of returning a poor mesh.
+    pytest.importorskip("gmsh", reason="regenerating the phantom needs the optional gmsh package")
+    from refsim.mesh import phantom as module
+
+    monkeypatch.setattr(module, "PHANTOM_QUALITY", {**module.PHANTOM_QUALITY, "min_radius_ratio": 0.99})
+    monkeypatch.setattr(module, "_TIP_SIZES_MM", (4.0, 3.0))
+    with pytest.raises(RuntimeError, match=r"gmsh 4\.\S+ did not mesh .* mesh_size = 0\.02 m") as error:
+        module.generate_liver_phantom(0.02)
+    assert re.search(r"tip size 4 mm: [^;]*least radius ratio 0\.\d+, expected above 0\.99", str(error.value))
+    assert re.search(r"tip size 3 mm: [^;]*least radius ratio 0\.\d+, expected above 0\.99", str(error.value))
 
 
 def _face_normals(mesh: TetMesh) -> np.ndarray:
