@@ -22,7 +22,9 @@
   keeps its points
 - phase: insertion; event: retraction; when: points lie beyond the tip; then: they are removed
 - phase: insertion; event: withdrawal; when: no point is left; then: approach; the tissue keeps the channel
-  (``Channel``: its entry point, its end, the needle's radius), replacing the record of the hole it re-entered
+  (``Channel``: its entry point, its end, the needle's radius), replacing the record of the hole it
+  re-entered; a channel cut through to a far face is kept from both holes (the exit's record enters at the
+  channel's end and runs through to its entry)
 - phase: insertion; event: cut_start; when: energy law: ‖t‖ ≥ G_c L_in; paper law (equation 3): ‖t‖ > n_i f_c;
   then: a strip on the path; cutting, the entry point kept
 - phase: cutting; event: (crack advance); when: energy law: a front row at its strength G_c ℓ_k and the needle
@@ -312,7 +314,9 @@ class EventRules:
         tissue in the step, its channel's end being ``channel_end`` after the step's events: its channel
         added, entering at its path's first point (the puncture's, or the hole's it re-entered, whose record
         it replaces) and ending at the deepest material point its tip reached (``channel_end``; without a
-        tip cutting force, where no row reads it, the tip's last material point, or the entry's)."""
+        tip cutting force, where no row reads it, the tip's last material point, or the entry's). A channel
+        cut through to a far face (its end marked through) is recorded from both of its holes: also entering
+        at its end (the tip's last material point inside) and running through to its entry."""
         if state.path.point_count == 0:
             return world.channels
         end = channel_end
@@ -327,7 +331,21 @@ class EventRules:
             radius=self.needle_radius,
             step=world.step,
         )
-        return (*(kept for kept in world.channels if not kept.same_entry(channel)), channel)
+        made = [channel]
+        if end.through:
+            # Cut through to a far face: the exit is a hole too, and the channel seen from it runs through to
+            # the entry (a needle entering from that side meets the same cut line, from its other end).
+            made.append(
+                Channel(
+                    entry_tet=end.tet,
+                    entry_barycentric=np.array(end.barycentric, copy=True),
+                    end=ChannelEnd(channel.entry_tet, channel.entry_barycentric, through=True),
+                    radius=self.needle_radius,
+                    step=world.step,
+                )
+            )
+        kept = (old for old in world.channels if not any(old.same_entry(new) for new in made))
+        return (*kept, *made)
 
     def _insertion(self, world, state, detection, multipliers, locator: LazyLocator):
         rows = detection.rows

@@ -18,6 +18,8 @@ The matrix (the cases beyond the first of each list are @slow):
   (``test_a_channel_cut_through_a_layer_has_no_tip_row_when_reentered``);
 - that hole re-entered at 30° from its line: the tip cuts the intact layer at f_cut
   (``test_a_channel_cut_through_a_layer_re_entered_at_another_angle_cuts_the_intact_tissue``);
+- that layer entered from its far face through the exit hole by another needle: no puncture, no tip row
+  (``test_a_layer_cut_through_is_entered_from_its_far_face_through_the_exit_hole``);
 - another instrument re-enters the hole the first one left (``test_another_needle_reenters_the_hole``);
 - a run continued from a state saved between the withdrawal and the re-entry gives the uninterrupted bits
   (``test_restart_between_withdrawal_and_reentry``).
@@ -41,6 +43,7 @@ from tests.simulation.test_life_cycle import (
     NEEDLES,
     SLAB,
     SLAB_BOTTOM,
+    SLAB_SIDES,
     SOLVERS,
     TOP,
     _path_overrides,
@@ -211,6 +214,7 @@ def test_another_needle_reenters_the_hole():
     data["mesh"]["cells"] = [4, 4, 4]
     data["time"].update(dt=0.02, duration=2.0)
     data["cutting"]["enabled"] = False
+    data["insertion"]["tip_cutting_force"] = 0.5  # the cube's f_cut (two_needles has none)
     left, right = (ENTRY[0] - 0.02, ENTRY[1]), (ENTRY[0] + 0.02, ENTRY[1])
     data["instruments"] = [
         _instrument(
@@ -232,6 +236,7 @@ def test_another_needle_reenters_the_hole():
     second = [name for _, name in events("second") if name in ("puncture", "withdrawal", "reentry")]
     assert first == ["puncture", "withdrawal"] and second == ["reentry"], (first, second)
     f_cut = simulation.scene.insertion.tip_cutting_force
+    assert f_cut > 0.0
     index = next(i for i, instrument in enumerate(simulation.instruments) if instrument.name == "second")
 
     def tip(record):
@@ -248,6 +253,67 @@ def test_another_needle_reenters_the_hole():
     assert channel and beyond
     assert all(tip(r) <= 1e-6 * f_cut for r in channel)
     assert all(tip(r) == pytest.approx(f_cut, rel=1e-5) for r in beyond)
+
+
+def test_a_layer_cut_through_is_entered_from_its_far_face_through_the_exit_hole():
+    # The 8 mm slab (side faces clamped, both faces free) at dt = 10 ms: "first" crosses it downwards at
+    # 20 mm/s to 11 mm (its tip 3 mm out through the bottom face) and is pulled back out above the top face;
+    # "second" points up, waits 4 mm below the bottom face 20 mm aside, moves under the exit once the first
+    # has left the layer and is pushed up 5 mm into the layer. Reference: the layer is cut through along the
+    # first's line (Okamura et al. 2004), so its exit is a hole as its entry is: the second needle meets no
+    # puncture there and no tip cutting force on that line, only the shaft's friction. Expected: first
+    # puncture, exit, withdrawal; second reentry alone; no tip row of the second; its force along the needle
+    # below f_cut / 4. (Before, only the entry was a hole: the second punctured the bottom face at f_p and cut
+    # at f_cut.)
+    data = tomllib.loads((resources.files("refsim") / "scenes" / "two_needles.toml").read_text("utf-8"))
+    data["mesh"].update(
+        cells=[4, 4, 2], size=[0.1, 0.1, 0.008], origin=[-0.05, -0.05, SLAB_BOTTOM], fixed_faces=SLAB_SIDES
+    )
+    data["needle"]["radius"] = 0.0005
+    data["time"].update(dt=0.01, duration=2.2)
+    data["cutting"]["enabled"] = False
+    data["insertion"]["tip_cutting_force"] = 0.5  # the cube's f_cut (two_needles has none)
+    aside = (ENTRY[0] - 0.02, ENTRY[1])
+    below = SLAB_BOTTOM - TOP  # the tip at the bottom face, as a depth along +z from the top face [m]
+    data["instruments"] = [
+        _instrument("first", [(0.0, ENTRY, -0.002), (0.65, ENTRY, 0.011), (1.3, ENTRY, -0.002)]),
+        _instrument(
+            "second",
+            [
+                (0.0, aside, below - 0.004),
+                (1.3, aside, below - 0.004),
+                (1.6, ENTRY, below - 0.004),
+                (2.05, ENTRY, below + 0.005),
+                (2.2, ENTRY, below + 0.005),
+            ],
+            direction=(0.0, 0.0, 1.0),
+        ),
+    ]
+    simulation = Simulation(scene_from_dict(data, source="slab.toml"))
+    records = []
+    simulation.run(on_step=lambda state, record: records.append(record))
+
+    def events(name):
+        parts = [(r.step, part) for r in records for part in r.instruments if part.name == name]
+        return [e.name for _, part in parts for e in part.events if e.name in NAMED]
+
+    assert events("first") == ["puncture", "exit", "withdrawal"], events("first")
+    assert events("second") == ["reentry"], events("second")
+    f_cut = simulation.scene.insertion.tip_cutting_force
+    index = next(i for i, instrument in enumerate(simulation.instruments) if instrument.name == "second")
+    second = [
+        (r, next(part for part in r.instruments if part.name == "second")) for r in records if r.step > 0
+    ]
+    inside = [(r, part) for r, part in second if part.phase == Phase.INSERTION]
+    assert any(
+        part.needle_positions[-1, 2] > SLAB_BOTTOM + 0.004 for _, part in inside
+    )  # 4 mm into the layer
+    assert not any(np.any((r.row_role == TIP) & (r.row_instrument == index)) for r, _ in inside)
+    along = [abs(part.needle_force[2]) for _, part in inside]
+    assert max(along) < 0.25 * f_cut, max(along)
+
+
+NAMED = ("puncture", "exit", "withdrawal", "reentry")
 
 
 def test_restart_between_withdrawal_and_reentry():

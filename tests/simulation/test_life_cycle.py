@@ -147,11 +147,12 @@ def test_a_held_needle_keeps_its_friction_load_for_a_second(dt, direction, needl
 # An 8 mm slab (4 × 4 × 2 cells) held on its sides, top face at z = 0.1 m, bottom at 0.092 m, and a thin
 # needle (r = 0.5 mm: the cube's 8 mm needle is not thinner than the slab).
 SLAB_BOTTOM = 0.092
+SLAB_SIDES = ["xmin", "xmax", "ymin", "ymax"]
 SLAB = (
     "mesh.cells=[4, 4, 2]",
     "mesh.size=[0.1, 0.1, 0.008]",
     f"mesh.origin=[-0.05, -0.05, {SLAB_BOTTOM}]",
-    'mesh.fixed_faces=["xmin", "xmax", "ymin", "ymax"]',
+    f"mesh.fixed_faces={SLAB_SIDES}".replace("'", '"'),
     "needle.radius=0.0005",
 )
 SOLVERS = {"gauss_seidel": (), "exact": ('solver.method="exact"',)}
