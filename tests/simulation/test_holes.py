@@ -19,7 +19,8 @@ The matrix (the cases beyond the first of each list are @slow):
 - that hole re-entered at 30° from its line: the tip cuts the intact layer at f_cut
   (``test_a_channel_cut_through_a_layer_re_entered_at_another_angle_cuts_the_intact_tissue``);
 - that layer entered from its far face through the exit hole by another needle: no puncture, no tip row
-  (``test_a_layer_cut_through_is_entered_from_its_far_face_through_the_exit_hole``);
+  (``test_a_layer_cut_through_is_entered_from_its_far_face_through_the_exit_hole``: vertical and 30°,
+  Gauss–Seidel and exact);
 - another instrument re-enters the hole the first one left (``test_another_needle_reenters_the_hole``);
 - a run continued from a state saved between the withdrawal and the re-entry gives the uninterrupted bits
   (``test_restart_between_withdrawal_and_reentry``).
@@ -255,16 +256,29 @@ def test_another_needle_reenters_the_hole():
     assert all(tip(r) == pytest.approx(f_cut, rel=1e-5) for r in beyond)
 
 
-def test_a_layer_cut_through_is_entered_from_its_far_face_through_the_exit_hole():
-    # The 8 mm slab (side faces clamped, both faces free) at dt = 10 ms: "first" crosses it downwards at
-    # 20 mm/s to 11 mm (its tip 3 mm out through the bottom face) and is pulled back out above the top face;
-    # "second" points up, waits 4 mm below the bottom face 20 mm aside, moves under the exit once the first
-    # has left the layer and is pushed up 5 mm into the layer. Reference: the layer is cut through along the
-    # first's line (Okamura et al. 2004), so its exit is a hole as its entry is: the second needle meets no
-    # puncture there and no tip cutting force on that line, only the shaft's friction. Expected: first
-    # puncture, exit, withdrawal; second reentry alone; no tip row of the second; its force along the needle
-    # below f_cut / 4. (Before, only the entry was a hole: the second punctured the bottom face at f_p and cut
-    # at f_cut.)
+FAR_FACE = [
+    pytest.param(direction, solver, marks=[pytest.mark.slow] if slow else [])
+    for direction, solver, slow in [
+        ("0deg", (), False),
+        ("30deg", (), False),
+        ("0deg", SOLVERS["exact"], True),
+    ]
+]
+
+
+@pytest.mark.parametrize(("direction", "solver"), FAR_FACE)
+def test_a_layer_cut_through_is_entered_from_its_far_face_through_the_exit_hole(direction, solver):
+    # The 8 mm slab (side faces clamped, both faces free) at dt = 10 ms: "first" crosses it along
+    # ``direction`` (vertical, or 30° from it) at 20 mm/s until its tip is 3 mm past the bottom face and is
+    # pulled back out above the top face; "second" points back up that line, waits 4 mm beyond the exit
+    # 20 mm aside, moves onto the line once the first has left the layer and is pushed 5 mm into the layer
+    # along it. Reference: the layer is cut through along the first's line (Okamura et al. 2004), so its
+    # exit is a hole as its entry is: the second needle meets no puncture there and no tip cutting force on
+    # that line, only the shaft's friction. Expected: first puncture, exit, withdrawal; second reentry alone;
+    # no tip row of the second; its force along the needle below f_cut / 4. (Before, only the entry was a
+    # hole: the second punctured the bottom face at f_p and cut at f_cut.)
+    axis = np.asarray(DIRECTIONS[direction]) / np.linalg.norm(DIRECTIONS[direction])
+    through = (TOP - SLAB_BOTTOM) / -axis[2]  # the channel's length along the line [m]
     data = tomllib.loads((resources.files("refsim") / "scenes" / "two_needles.toml").read_text("utf-8"))
     data["mesh"].update(
         cells=[4, 4, 2], size=[0.1, 0.1, 0.008], origin=[-0.05, -0.05, SLAB_BOTTOM], fixed_faces=SLAB_SIDES
@@ -273,20 +287,18 @@ def test_a_layer_cut_through_is_entered_from_its_far_face_through_the_exit_hole(
     data["time"].update(dt=0.01, duration=2.2)
     data["cutting"]["enabled"] = False
     data["insertion"]["tip_cutting_force"] = 0.5  # the cube's f_cut (two_needles has none)
+    if solver:
+        data["solver"]["method"] = "exact"
     aside = (ENTRY[0] - 0.02, ENTRY[1])
-    below = SLAB_BOTTOM - TOP  # the tip at the bottom face, as a depth along +z from the top face [m]
+    beyond, inside = -(through + 0.004), -(through - 0.005)  # the second's tip along -axis from the entry
     data["instruments"] = [
-        _instrument("first", [(0.0, ENTRY, -0.002), (0.65, ENTRY, 0.011), (1.3, ENTRY, -0.002)]),
+        _instrument(
+            "first", [(0.0, ENTRY, -0.002), (0.65, ENTRY, through + 0.003), (1.3, ENTRY, -0.002)], axis
+        ),
         _instrument(
             "second",
-            [
-                (0.0, aside, below - 0.004),
-                (1.3, aside, below - 0.004),
-                (1.6, ENTRY, below - 0.004),
-                (2.05, ENTRY, below + 0.005),
-                (2.2, ENTRY, below + 0.005),
-            ],
-            direction=(0.0, 0.0, 1.0),
+            [(0.0, aside, beyond), (1.3, aside, beyond), (1.6, ENTRY, beyond), (2.05, ENTRY, inside)],
+            -axis,
         ),
     ]
     simulation = Simulation(scene_from_dict(data, source="slab.toml"))
@@ -301,15 +313,11 @@ def test_a_layer_cut_through_is_entered_from_its_far_face_through_the_exit_hole(
     assert events("second") == ["reentry"], events("second")
     f_cut = simulation.scene.insertion.tip_cutting_force
     index = next(i for i, instrument in enumerate(simulation.instruments) if instrument.name == "second")
-    second = [
-        (r, next(part for part in r.instruments if part.name == "second")) for r in records if r.step > 0
-    ]
-    inside = [(r, part) for r, part in second if part.phase == Phase.INSERTION]
-    assert any(
-        part.needle_positions[-1, 2] > SLAB_BOTTOM + 0.004 for _, part in inside
-    )  # 4 mm into the layer
-    assert not any(np.any((r.row_role == TIP) & (r.row_instrument == index)) for r, _ in inside)
-    along = [abs(part.needle_force[2]) for _, part in inside]
+    second = [(r, next(part for part in r.instruments if part.name == "second")) for r in records]
+    entered = [(r, part) for r, part in second if part.phase == Phase.INSERTION]
+    assert any(part.needle_positions[-1, 2] > SLAB_BOTTOM + 0.004 for _, part in entered)  # 4 mm in
+    assert not any(np.any((r.row_role == TIP) & (r.row_instrument == index)) for r, _ in entered)
+    along = [abs(part.needle_force @ axis) for _, part in entered]
     assert max(along) < 0.25 * f_cut, max(along)
 
 
