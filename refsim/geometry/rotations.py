@@ -111,14 +111,68 @@ def rotation_vector(matrices: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, fastmath=False)
-def _polar_svd(f: np.ndarray, out: np.ndarray) -> None:
-    u, _, vt = np.linalg.svd(f)
-    r = u @ vt
-    if np.linalg.det(r) < 0.0:
+def _closest_rotation(f: np.ndarray, out: np.ndarray) -> None:
+    """The proper rotation R maximising tr(Rᵀ F), into ``out``: R = P diag(1, 1, det(P Qᵀ)) Qᵀ for F = P Σ Qᵀ
+    (the closest rotation to F in the Frobenius norm), computed without an SVD (numba's LAPACK wrappers take
+    seconds to compile) as Horn's quaternion: tr(R(q)ᵀ F) = qᵀ K q for a unit quaternion q, K the symmetric
+    4 × 4 matrix below, so q is K's eigenvector of largest eigenvalue (Horn, J. Opt. Soc. Am. A 4(4), 1987),
+    found by cyclic Jacobi rotations (to round-off: the off-diagonal mass below 1e-32 of K's)."""
+    k = np.empty((4, 4))
+    k[0, 0] = f[0, 0] + f[1, 1] + f[2, 2]
+    k[1, 1] = f[0, 0] - f[1, 1] - f[2, 2]
+    k[2, 2] = -f[0, 0] + f[1, 1] - f[2, 2]
+    k[3, 3] = -f[0, 0] - f[1, 1] + f[2, 2]
+    k[0, 1] = k[1, 0] = f[2, 1] - f[1, 2]
+    k[0, 2] = k[2, 0] = f[0, 2] - f[2, 0]
+    k[0, 3] = k[3, 0] = f[1, 0] - f[0, 1]
+    k[1, 2] = k[2, 1] = f[0, 1] + f[1, 0]
+    k[1, 3] = k[3, 1] = f[0, 2] + f[2, 0]
+    k[2, 3] = k[3, 2] = f[1, 2] + f[2, 1]
+    v = np.eye(4)
+    total = 0.0
+    for i in range(4):
+        for j in range(4):
+            total += k[i, j] * k[i, j]
+    for _ in range(50):
+        off = 0.0
         for i in range(3):
-            u[i, 2] = -u[i, 2]
-        r = u @ vt
-    out[:, :] = r
+            for j in range(i + 1, 4):
+                off += k[i, j] * k[i, j]
+        if off <= 1e-32 * total:
+            break
+        for p in range(3):
+            for q in range(p + 1, 4):
+                if k[p, q] == 0.0:
+                    continue
+                theta = (k[q, q] - k[p, p]) / (2.0 * k[p, q])
+                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                c = 1.0 / np.sqrt(t * t + 1.0)
+                sn = t * c
+                for r in range(4):  # K ← K J (columns p, q)
+                    kp, kq = k[r, p], k[r, q]
+                    k[r, p], k[r, q] = c * kp - sn * kq, sn * kp + c * kq
+                for r in range(4):  # K ← Jᵀ K (rows p, q)
+                    kp, kq = k[p, r], k[q, r]
+                    k[p, r], k[q, r] = c * kp - sn * kq, sn * kp + c * kq
+                for r in range(4):  # V ← V J
+                    vp, vq = v[r, p], v[r, q]
+                    v[r, p], v[r, q] = c * vp - sn * vq, sn * vp + c * vq
+    best = 0
+    for i in range(1, 4):
+        if k[i, i] > k[best, best]:
+            best = i
+    w, x, y, z = v[0, best], v[1, best], v[2, best], v[3, best]
+    norm = np.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w / norm, x / norm, y / norm, z / norm
+    out[0, 0] = w * w + x * x - y * y - z * z
+    out[0, 1] = 2.0 * (x * y - w * z)
+    out[0, 2] = 2.0 * (x * z + w * y)
+    out[1, 0] = 2.0 * (x * y + w * z)
+    out[1, 1] = w * w - x * x + y * y - z * z
+    out[1, 2] = 2.0 * (y * z - w * x)
+    out[2, 0] = 2.0 * (x * z - w * y)
+    out[2, 1] = 2.0 * (y * z + w * x)
+    out[2, 2] = w * w - x * x - y * y + z * z
 
 
 @numba.njit(cache=True, fastmath=False)
@@ -128,8 +182,8 @@ def polar_rotation_one(f: np.ndarray, out: np.ndarray) -> int:
 
     Scaled Newton iteration X ← ½ (γ X + γ⁻¹ X⁻ᵀ), γ = (‖X⁻¹‖_F / ‖X‖_F)^½ (Higham, Functions of Matrices,
     §8.6), from X₀ = F; it converges quadratically to R when det F > 0. When det F ≤ 0 (an inverted or flat
-    element) or without convergence in 30 iterations the SVD gives the closest proper rotation
-    (R = P diag(1, 1, det(P Qᵀ)) Qᵀ for F = P Σ Qᵀ).
+    element) or without convergence in 30 iterations it takes the closest proper rotation
+    (R = P diag(1, 1, det(P Qᵀ)) Qᵀ for F = P Σ Qᵀ; computed by :func:`_closest_rotation`, without LAPACK).
     """
     a00, a01, a02 = f[0, 0], f[0, 1], f[0, 2]
     a10, a11, a12 = f[1, 0], f[1, 1], f[1, 2]
@@ -147,7 +201,7 @@ def polar_rotation_one(f: np.ndarray, out: np.ndarray) -> int:
         + a22 * a22
     )
     if not (det > 1e-14 * scale**1.5):
-        _polar_svd(f, out)
+        _closest_rotation(f, out)
         return -1
     scaled = True
     for iteration in range(30):
@@ -209,7 +263,7 @@ def polar_rotation_one(f: np.ndarray, out: np.ndarray) -> int:
             out[1, 0], out[1, 1], out[1, 2] = a10, a11, a12
             out[2, 0], out[2, 1], out[2, 2] = a20, a21, a22
             return iteration + 1
-    _polar_svd(f, out)
+    _closest_rotation(f, out)
     return -1
 
 

@@ -57,3 +57,36 @@ def test_polar_rotation_of_inverted_gradient_is_proper_and_closest():
     best = np.linalg.norm(gradients - result, axis=(1, 2))
     trials = np.linalg.norm(gradients[:, None] - others[None], axis=(2, 3))
     assert np.all(best[:, None] <= trials + 1e-12)
+
+
+def test_closest_rotation_is_the_svd_s_proper_rotation_to_its_conditioning():
+    # Reference: R = P diag(1, 1, det(P Qᵀ)) Qᵀ for F = P Σ Qᵀ (the maximiser of tr(Rᵀ F) over SO(3), Kabsch /
+    # Umeyama), computed by NumPy's SVD. R's sensitivity to a perturbation of F is 1 / (σ₂ + d σ₃) with
+    # d = sign det F (the smallest sum of two singular values that a rotation mixes), so the two computations,
+    # each within a few ε of their F, agree to 64 ε (σ₁ / (σ₂ + d σ₃)) at most: general, inverted and nearly
+    # flat F, 3,000 each, and the degenerate ones (zero, flat, a reflection).
+    from refsim.geometry.rotations import _closest_rotation
+
+    EPS = np.finfo(float).eps
+
+    def reference(f):
+        u, _, vt = np.linalg.svd(f)
+        if np.linalg.det(u @ vt) < 0.0:
+            u[:, 2] *= -1.0
+        return u @ vt
+
+    rng = np.random.default_rng(7)
+    out = np.empty((3, 3))
+    for scale in (0.3, 1.0, 3.0):
+        for index in range(3000):
+            f = np.eye(3) + scale * rng.standard_normal((3, 3))
+            if index % 2:
+                f[:, 0] *= -1.0  # inverted
+            sigma = np.linalg.svd(f, compute_uv=False)
+            gap = sigma[1] + np.sign(np.linalg.det(f)) * sigma[2]
+            _closest_rotation(f, out)
+            assert np.abs(out - reference(f)).max() <= 64 * EPS * sigma[0] / gap
+            assert np.abs(out @ out.T - np.eye(3)).max() <= 8 * EPS and np.linalg.det(out) > 0.0
+    for f in (np.zeros((3, 3)), np.diag([1.0, 1.0, 0.0]), np.diag([2.0, 1.0, -0.5])):
+        _closest_rotation(f, out)
+        np.testing.assert_allclose(out, reference(f), rtol=0, atol=8 * EPS)
