@@ -448,23 +448,11 @@ def _cmd_verify(args: argparse.Namespace) -> int:
 
 
 def _run_for_bench(scene):
-    """Run a scene, keeping what the strategy comparison needs: summary, tissue positions, needle force,
-    events."""
+    """Run a scene, keeping what the strategy comparison needs (``run_and_keep``)."""
     from refsim.simulation import Simulation
-    from refsim.simulation.summary import RunSummary
+    from refsim.simulation.summary import run_and_keep
 
-    simulation = Simulation(scene)
-    summary = RunSummary()
-    kept = {"tissue_positions": [], "needle_force": [], "events": []}
-
-    def on_step(state, record):
-        summary.add(record)
-        kept["tissue_positions"].append(state.tissue.positions)
-        kept["needle_force"].append(record.needle_force)
-        kept["events"].extend((record.step, event.name) for event in record.events)
-
-    simulation.run(on_step=on_step)
-    return summary, kept
+    return run_and_keep(Simulation(scene))
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:

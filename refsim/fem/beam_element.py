@@ -342,10 +342,7 @@ def beam_element_forces(
     stiffness = np.asarray(reduced_stiffness)
     m = local["deformations"].shape[0]
     if stiffness.shape != (m, 7, 7) or stiffness.dtype != np.float64:
-        d = local["deformations"]
-        local_forces = np.einsum("mij,mj->mi", reduced_stiffness, d)
-        forces = np.einsum("mij,mi->mj", local["jacobian"], local_forces)
-        return forces, 0.5 * np.einsum("mi,mi->m", d, local_forces)
+        return _forces_of(local, reduced_stiffness)
     return needle_kernels.element_forces(local, stiffness)
 
 
@@ -373,6 +370,12 @@ def beam_element_forces_reference(
     energies : Strain energies ½ dᵀ K₇ d [J], shape (m,).
     """
     local = local_deformations_reference(positions_a, positions_b, frames_a, frames_b, rest_lengths)
+    return _forces_of(local, reduced_stiffness)
+
+
+def _forces_of(local: dict, reduced_stiffness: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """f = Bᵀ K₇ d [N, N·m], shape (m, 12), and ½ dᵀ K₇ d [J], shape (m,), from the element kinematics
+    ``local`` (:func:`local_deformations`) in NumPy."""
     d = local["deformations"]
     local_forces = np.einsum("mij,mj->mi", reduced_stiffness, d)
     forces = np.einsum("mij,mi->mj", local["jacobian"], local_forces)

@@ -17,6 +17,7 @@ __all__ = [
     "RunStatus",
     "RunSummary",
     "event_value_text",
+    "run_and_keep",
 ]
 
 
@@ -334,3 +335,21 @@ class RunSummary:
                 )
             )
         return "\n".join(lines)
+
+
+def run_and_keep(simulation) -> tuple[RunSummary, dict]:
+    """Run ``simulation`` (a :class:`refsim.simulation.Simulation`) to its end, keeping what a comparison of
+    two runs of a scene needs (``refsim.fem.bench.compare_runs``): its summary, and ``{"tissue_positions":
+    [(n, 3) positions [m] per step], "needle_force": [(3,) force [N] per step], "events": [(step, name),
+    ...]}``."""
+    summary = RunSummary()
+    kept = {"tissue_positions": [], "needle_force": [], "events": []}
+
+    def on_step(state, record):
+        summary.add(record)
+        kept["tissue_positions"].append(state.tissue.positions)
+        kept["needle_force"].append(record.needle_force)
+        kept["events"].extend((record.step, event.name) for event in record.events)
+
+    simulation.run(on_step=on_step)
+    return summary, kept

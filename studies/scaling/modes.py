@@ -45,20 +45,11 @@ MODES = ("exact", "fast")
 def _run(scene) -> dict:
     """One run: process CPU time and wall time per step, stage CPU ms per step, what the comparison needs."""
     from refsim.simulation import Simulation
-    from refsim.simulation.summary import RunSummary
+    from refsim.simulation.summary import run_and_keep
 
     simulation = Simulation(scene)
-    summary = RunSummary()
-    kept = {"tissue_positions": [], "needle_force": [], "events": []}
-
-    def on_step(state, record):
-        summary.add(record)
-        kept["tissue_positions"].append(state.tissue.positions)
-        kept["needle_force"].append(record.needle_force)
-        kept["events"].extend((record.step, event.name) for event in record.events)
-
     cpu, wall = time.process_time(), time.perf_counter()
-    simulation.run(on_step=on_step)
+    summary, kept = run_and_keep(simulation)
     cpu, wall = time.process_time() - cpu, time.perf_counter() - wall
     stages = dict.fromkeys(summary.phases and next(iter(summary.phases.values())).stage_seconds, 0.0)
     for phase in summary.phases.values():

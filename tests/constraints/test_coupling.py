@@ -192,16 +192,21 @@ def _path(model, centres):
     return InsertionPath(tets, bary, np.zeros(len(tets), dtype=np.int64))
 
 
-def _ring_rows(model, needle, centres, spacing, needle_radius, friction=0.0, preload=0.0):
-    path = _path(model, centres)
-    rings = coupling.RingLayout.around(
+def _rings(model, needle, path, needle_radius):
+    """The coupling rings of ``path``'s points (the needle's tangent at its base)."""
+    return coupling.RingLayout.around(
         path,
         rest_positions=model.rest_positions,
         mesh_tets=model.tets,
         locator=TetLocator(model.rest_positions, model.tets),
-        tangents=needle.tangents(np.zeros(len(centres))),
+        tangents=needle.tangents(np.zeros(path.point_count)),
         needle_radius=needle_radius,
     )
+
+
+def _ring_rows(model, needle, centres, spacing, needle_radius, friction=0.0, preload=0.0):
+    path = _path(model, centres)
+    rings = _rings(model, needle, path, needle_radius)
     block = coupling.ring_insertion_block(
         path, _geometry(model, needle), rings, friction_coefficient=friction, normal_preload=preload
     )
@@ -753,14 +758,7 @@ def test_ring_insertion_block_with_the_callers_arc_lengths_is_the_same_bits():
     model, needle, centres, spacing, h = _needle_in_box()
     path = _path(model, centres)
     geometry = _geometry(model, needle, model.rest_positions + 1e-4)
-    rings = coupling.RingLayout.around(
-        path,
-        rest_positions=model.rest_positions,
-        mesh_tets=model.tets,
-        locator=TetLocator(model.rest_positions, model.tets),
-        tangents=needle.tangents(np.zeros(len(centres))),
-        needle_radius=1e-3,
-    )
+    rings = _rings(model, needle, path, 1e-3)
     arc_lengths, _ = needle.project(path.positions(geometry.tissue_previous, model.tets))
     common = dict(friction_coefficient=0.2, normal_preload=0.01)
     own = coupling.ring_insertion_block(path, geometry, rings, **common)
@@ -793,14 +791,7 @@ def test_ring_insertion_block_still_names_a_bad_preload_or_coefficient():
     model, needle, centres, spacing, h = _needle_in_box()
     path = _path(model, centres)
     geometry = _geometry(model, needle, model.rest_positions + 1e-4)
-    rings = coupling.RingLayout.around(
-        path,
-        rest_positions=model.rest_positions,
-        mesh_tets=model.tets,
-        locator=TetLocator(model.rest_positions, model.tets),
-        tangents=needle.tangents(np.zeros(len(centres))),
-        needle_radius=1e-3,
-    )
+    rings = _rings(model, needle, path, 1e-3)
     for bad in (-1.0, np.nan, np.inf, np.full(len(centres), -0.5)):
         with pytest.raises(ValueError, match="normal_preload"):
             coupling.ring_insertion_block(path, geometry, rings, friction_coefficient=0.2, normal_preload=bad)
