@@ -21,8 +21,9 @@ import os
 from pathlib import Path
 
 import numba
+import numpy as np
 
-__all__ = ["numba", "numba_cache_directory", "source_digest"]
+__all__ = ["numba", "numba_cache_directory", "readonly", "source_digest"]
 
 _PACKAGE = Path(__file__).resolve().parent
 
@@ -46,6 +47,16 @@ def numba_cache_directory() -> Path:
     cache; old ones can be deleted at any time no refsim process runs."""
     base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     return base / "refsim" / "numba" / source_digest()
+
+
+def readonly(array: np.ndarray) -> np.ndarray:
+    """A read-only view of ``array`` (no copy). numba compiles a kernel once per argument type, and a
+    read-only array is another type than a writable one: an input that callers pass either way (the rest
+    positions are read-only, a deformed configuration is not) goes through this, so that the kernel is
+    compiled once, not twice."""
+    view = array.view()
+    view.flags.writeable = False
+    return view
 
 
 def _configure() -> None:

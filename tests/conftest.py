@@ -34,6 +34,10 @@ settings.register_profile(
 )
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
+# A `refsim run` in a test starts no process compiling kernels beside it (refsim.kernel_warmup): the suite's
+# workers already use the cores.
+os.environ.setdefault("REFSIM_BACKGROUND_COMPILE", "0")
+
 
 def shared_data() -> Path:
     """The shared external data folder (`../shared/data`, or $REFSIM_SHARED_DATA)."""

@@ -185,11 +185,11 @@ class InsertionPath:
     def positions(self, tissue_positions: np.ndarray, mesh_tets: np.ndarray) -> np.ndarray:
         """Point positions [m] in a tissue configuration, shape (p, 3)."""
         from refsim.constraints.kernels import interpolated_points  # numba: imported on first use
+        from refsim.kernel_cache import readonly
 
         # np.einsum("pk,pkj->pj", barycentric, tissue_positions[mesh_tets[tets]])'s bits, compiled
-        return interpolated_points(
-            np.asarray(self.barycentric, dtype=float), np.asarray(tissue_positions), mesh_tets[self.tets]
-        )
+        positions = readonly(np.asarray(tissue_positions))
+        return interpolated_points(np.asarray(self.barycentric, dtype=float), positions, mesh_tets[self.tets])
 
     def appended(self, tets: np.ndarray, barycentric: np.ndarray, step: int) -> InsertionPath:
         """A path with points added at its end."""

@@ -694,10 +694,11 @@ def _summation_plan(node_indices: np.ndarray, dof_count: int) -> _PlanEntry:
         if np.array_equal(entry.nodes, node_indices):
             return entry
     from refsim.constraints.kernels import row_entries, summation_plan  # numba: imported on first use
+    from refsim.kernel_cache import readonly
 
     row_count, per_point = node_indices.shape
     columns, _, pattern, firsts = row_entries(
-        node_indices, np.zeros((row_count, per_point)), np.zeros((row_count, 3)), 1.0
+        readonly(node_indices), np.zeros((row_count, per_point)), np.zeros((row_count, 3)), 1.0
     )
     order = _sort_order(columns[firsts], dof_count)
     entry = _PlanEntry(node_indices.copy(), summation_plan(columns, order, pattern))

@@ -51,11 +51,12 @@ class StepGeometry:
         weights : Their weights (barycentric coordinates), shape (q, p).
         """
         from refsim.constraints.kernels import interpolated_points  # numba: imported on first use
+        from refsim.kernel_cache import readonly
 
         # np.einsum("qk,qkj->qj", weights, positions[nodes])'s bits, compiled
         weights = np.asarray(weights, dtype=float)
         nodes = np.asarray(nodes)
         return (
-            interpolated_points(weights, self.tissue_previous, nodes),
-            interpolated_points(weights, self.tissue_free, nodes),
+            interpolated_points(weights, readonly(self.tissue_previous), nodes),
+            interpolated_points(weights, readonly(self.tissue_free), nodes),
         )

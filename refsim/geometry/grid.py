@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from refsim.kernel_cache import numba
+from refsim.kernel_cache import numba, readonly
 
 __all__ = ["BoxGrid", "locate_in_tets", "surface_candidates", "tet_spheres", "triangle_spheres"]
 
@@ -84,7 +84,7 @@ def locate_in_tets(
         grid.upper,
         np.ascontiguousarray(centroids, dtype=float),
         np.ascontiguousarray(radii, dtype=float),
-        np.ascontiguousarray(positions, dtype=float),
+        readonly(np.ascontiguousarray(positions, dtype=float)),
         np.ascontiguousarray(tets, dtype=np.int64),
         float(tolerance),
         float(reach_factor),
@@ -350,7 +350,7 @@ def tet_spheres(positions: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np
     """Centroid [m] and bounding radius [m] (the largest centroid–vertex distance) of each tet, shapes (m, 3)
     and (m,): the bits of ``positions[tets].mean(axis=1)`` and of the NumPy norm of the vertices' offsets, in
     one compiled pass."""
-    positions = np.ascontiguousarray(positions, dtype=float)
+    positions = readonly(np.ascontiguousarray(positions, dtype=float))
     return _tet_spheres(positions, np.ascontiguousarray(tets, dtype=np.int64))
 
 

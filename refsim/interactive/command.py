@@ -72,10 +72,12 @@ def run_interactive(args: argparse.Namespace) -> int:
     from refsim.interactive.pacing import Pacer
     from refsim.interactive.server import PoseServer
     from refsim.interactive.session import InteractiveSession
+    from refsim.kernel_warmup import start_background_compilation
     from refsim.scene import load_scene
 
     _check_options(args)
     scene = load_scene(args.scene, args.set or ())
+    start_background_compilation()  # after a fresh install: the kernels on the second core too
     max_steps = None if args.duration is None else max(1, round(args.duration / scene.time.dt))
     server = None
     if args.socket is not None:  # bound before anything is written: a port in use is bad input
