@@ -33,6 +33,7 @@ from refsim.constraints.rows import (
     FRICTION,
     FRONT,
     NEEDLE,
+    ROLE_NAMES,
     SLIDING,
     TISSUE,
     UNILATERAL,
@@ -163,6 +164,31 @@ class FrontRows:
     @classmethod
     def empty(cls) -> FrontRows:
         return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros((0, 3)))
+
+    def located_in(self, block: RowBlock, rows: RowBlock) -> FrontRows:
+        """These rows, given as indices into ``block`` (the strip's block, :func:`strip_cut_block`), as
+        indices into ``rows``: a stack of blocks that holds ``block`` (``RowBlock.concatenate`` keeps each
+        block's rows, their roles and their order). Found by role, not by where the block sits in the stack:
+        the front rows are the stack's FRONT rows and the sliding rows at the front among its SLIDING rows,
+        each at the same rank as in ``block``.
+
+        Raises
+        ------
+        ValueError
+            When the stack's FRONT or SLIDING rows are not exactly ``block``'s (another block with rows of
+            those roles: which row is which could not be told).
+        """
+        ranked = []
+        for indices, role in ((self.rows, FRONT), (self.band_rows, SLIDING)):
+            own = np.flatnonzero(block.roles == role)
+            stacked = np.flatnonzero(rows.roles == role)
+            if own.size != stacked.size:
+                raise ValueError(
+                    f"front rows: the stack holds {stacked.size} rows of role {ROLE_NAMES[role]}, the "
+                    f"strip's block {own.size}: the stack's rows of that role must all be the block's"
+                )
+            ranked.append(stacked[np.searchsorted(own, indices)])
+        return replace(self, rows=ranked[0], band_rows=ranked[1])
 
     def band_gaps(self, tissue_positions: np.ndarray, needle) -> np.ndarray:
         """δ = nᵀ(x_needle − x_tissue) of each sliding row at the front in a configuration of both bodies

@@ -9,7 +9,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -288,16 +288,17 @@ class Detector:
             block, _ = self.cut_rows(world, None, geometry)
             if block is not None:
                 blocks.append(block)
+        strip_block = None
         if state.phase == Phase.CUTTING and state.cut_strip is not None:
-            offset = sum(block.row_count for block in blocks)
-            block, front = self.cut_rows(world, state, geometry)
-            if block is not None:
-                blocks.append(block)
-            front = replace(front, rows=front.rows + offset, band_rows=front.band_rows + offset)
+            strip_block, front = self.cut_rows(world, state, geometry)
+            if strip_block is not None:
+                blocks.append(strip_block)
         if not blocks:
             rows = empty_block({TISSUE: geometry.tissue_dof_count, NEEDLE: self.needle_dof_count})
         else:
             rows = concatenate(blocks)
+        if strip_block is not None:  # the front rows' indices into the stack, found by their roles
+            front = front.located_in(strip_block, rows)
         return Detection(rows, contact, front, insertion_points, rings, hole)
 
     def approach_rows(

@@ -40,6 +40,72 @@ def step_times(runs) -> tuple[np.ndarray, str]:
     return np.asarray(runs["ms_per_step"], dtype=float), "ms per step (mean wall time)"
 
 
+def place_labels(axis, labels, xs, ys, *, avoid=(), fontsize: float = 6.0) -> list:
+    """Label each point (xs[i], ys[i]) with labels[i], placing each label where it overlaps no other
+    label, no marker, nor the artists of ``avoid`` (the legend), and stays inside the axes: the first free
+    place among offsets tried nearest first (beside the point, then further away with a thin leader line).
+    Labels are placed from the most crowded point out. Returns the annotations."""
+    from matplotlib.transforms import Bbox
+
+    figure = axis.figure
+    figure.canvas.draw()
+    renderer = figure.canvas.get_renderer()
+    to_points = 72.0 / figure.dpi
+    frame = axis.get_window_extent(renderer)
+    centres = axis.transData.transform(np.column_stack([xs, ys]))
+    marker = 4.0 / to_points * 0.75  # a 6-point marker's half width [px], and a little
+    taken = [Bbox.from_extents(x - marker, y - marker, x + marker, y + marker) for x, y in centres]
+    taken += [artist.get_window_extent(renderer) for artist in avoid]
+    sizes = []
+    for label in labels:
+        probe = axis.text(0.0, 0.0, label, fontsize=fontsize)
+        extent = probe.get_window_extent(renderer)
+        sizes.append((extent.width, extent.height))
+        probe.remove()
+    crowding = [np.sum(np.hypot(*(centres - c).T) < 40.0) for c in centres]
+    annotations = []
+    for i in sorted(range(len(labels)), key=lambda k: -crowding[k]):
+        width, height = sizes[i]
+        x, y = centres[i]
+        chosen = None
+        for distance in (3.0, 9.0, 16.0, 26.0, 40.0, 60.0):
+            for dx, dy in (
+                (distance, distance - 2.0),
+                (distance, -distance - height + 2.0),
+                (-distance - width, distance - 2.0),
+                (-distance - width, -distance - height + 2.0),
+                (-0.5 * width, distance + 2.0),
+                (-0.5 * width, -distance - height - 2.0),
+                (distance + 2.0, -0.5 * height),
+                (-distance - width - 2.0, -0.5 * height),
+            ):
+                box = Bbox.from_bounds(x + dx, y + dy, width, height)
+                inside = frame.containsx(box.x0) and frame.containsx(box.x1)
+                inside &= frame.containsy(box.y0) and frame.containsy(box.y1)
+                if inside and not any(box.overlaps(other) for other in taken):
+                    chosen = (dx, dy, distance)
+                    break
+            if chosen is not None:
+                break
+        if chosen is None:  # no free place: beside the point, as before
+            chosen = (3.0, 3.0, 3.0)
+        dx, dy, distance = chosen
+        taken.append(Bbox.from_bounds(x + dx, y + dy, width, height))
+        annotations.append(
+            axis.annotate(
+                labels[i],
+                (xs[i], ys[i]),
+                xytext=(dx * to_points, dy * to_points),
+                textcoords="offset points",
+                fontsize=fontsize,
+                ha="left",
+                va="bottom",
+                arrowprops=None if distance < 9.0 else {"arrowstyle": "-", "lw": 0.4, "color": "0.4"},
+            )
+        )
+    return annotations
+
+
 def _figure(study: dict, path: Path) -> None:
     import matplotlib
 
@@ -64,10 +130,6 @@ def _figure(study: dict, path: Path) -> None:
         if not members:
             continue
         axis.loglog(times[members], shown[members], markers[number % len(markers)], label=family, ms=6)
-        for i in members:
-            axis.annotate(
-                runs["label"][i], (times[i], shown[i]), fontsize=6, xytext=(3, 3), textcoords="offset points"
-            )
     front = pareto_front(times, errors)
     axis.loglog(times[front], shown[front], "k-", lw=0.8, alpha=0.6, label="Pareto front")
     reference = study["reference"]
@@ -89,8 +151,12 @@ def _figure(study: dict, path: Path) -> None:
         fontsize=10,
     )
     axis.grid(True, which="both", alpha=0.3)
-    axis.legend(fontsize=7)
+    legend = axis.legend(fontsize=7)
     figure.tight_layout()
+    shown_runs = np.flatnonzero(valid)
+    place_labels(
+        axis, [runs["label"][i] for i in shown_runs], times[shown_runs], shown[shown_runs], avoid=[legend]
+    )
     figure.savefig(path, dpi=110)
     plt.close(figure)
 

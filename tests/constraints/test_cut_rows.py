@@ -216,3 +216,33 @@ def test_a_sample_within_half_a_spacing_beyond_an_end_of_the_crack_tip_faces_its
     _, parameter, strict = _closest_on_polyline(points, polyline)
     assert strict.tolist() == [False, True, False, False, False, False]
     assert parameter[0] == 0.0  # clamped onto the end column
+
+
+def test_front_rows_are_found_in_a_stack_by_their_roles_wherever_the_block_sits(planar_strip):
+    """The front rows and the sliding rows at the front are named by their indices in the strip's block;
+    in a stack of blocks (an instrument's rows: insertion points and tip before the cut's, or any order)
+    they are the stack's rows of roles FRONT and SLIDING at the same ranks."""
+    from dataclasses import replace
+
+    from refsim.constraints.rows import NORMAL, PENETRATION, concatenate
+
+    needle = rigid_needle([0.0058, 0.0063, 0.0045], [0.0, 0.0, -1.0], length=0.02)
+    block, front = _rows(planar_strip, needle, strength=200.0)
+    # 0.3 mm behind the crack tip: front rows, and sliding rows within 1.5 d_c of the tip (the band)
+    assert front.rows.size and front.band_rows.size
+    count = block.row_count
+    head = replace(  # other rows, of other roles, with gaps of their own
+        block,
+        free_gap=block.free_gap + 1.0,
+        source=np.full(count, PENETRATION, dtype=np.int8),
+        role=np.full(count, NORMAL, dtype=np.int8),
+    )
+    for stack in (concatenate([head, block]), concatenate([block, head]), concatenate([head, block, head])):
+        found = front.located_in(block, stack)
+        for name in ("free_gap", "force_limit"):
+            np.testing.assert_array_equal(getattr(stack, name)[found.rows], getattr(block, name)[front.rows])
+            np.testing.assert_array_equal(
+                getattr(stack, name)[found.band_rows], getattr(block, name)[front.band_rows]
+            )
+    with pytest.raises(ValueError, match="role front"):
+        front.located_in(block, concatenate([block, block]))  # two strips' rows: which is which is unknown

@@ -54,6 +54,36 @@ def test_pareto_front():
     assert front.tolist() == [0, 1, 3]
 
 
+def test_pareto_labels_overlap_neither_each_other_nor_the_markers():
+    """A crowded cluster (the cube_cut study's options near the exact mode's time): every label is placed
+    inside the axes where it covers no other label and no marker."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    xs = np.array([24.4, 24.7, 24.68, 26.2, 25.9, 27.3, 25.0, 25.1, 24.8, 25.7, 11.0, 11.2])
+    ys = np.array(
+        [1.1e-3, 3.5e-2, 4.2e-2, 5.8e-2, 6.3e-2, 2.9e-1, 3.6e-4, 8.1e-4, 1.6e-6, 1.6e-6, 2.4e-4, 2.5e-4]
+    )
+    labels = [f"option {i}" for i in range(xs.size)]
+    figure, axis = plt.subplots(figsize=(6.4, 4.6))
+    axis.loglog(xs, ys, "o", ms=6)
+    figure.tight_layout()
+    annotations = _load("pareto", "plot").place_labels(axis, labels, xs, ys)
+    figure.canvas.draw()
+    renderer = figure.canvas.get_renderer()
+    boxes = [annotation.get_window_extent(renderer) for annotation in annotations]
+    assert len(boxes) == xs.size
+    frame = axis.get_window_extent(renderer)
+    centres = axis.transData.transform(np.column_stack([xs, ys]))
+    for k, box in enumerate(boxes):
+        assert frame.x0 <= box.x0 and box.x1 <= frame.x1 and frame.y0 <= box.y0 and box.y1 <= frame.y1
+        assert not any(box.overlaps(other) for other in boxes[k + 1 :])
+        assert not any(box.contains(x, y) for x, y in centres)
+    plt.close(figure)
+
+
 def test_pareto_options_are_data():
     run = _load("pareto", "run")
     table = run.options()
