@@ -157,6 +157,7 @@ class RunSummary:
     # force and its step, by name, in the scene's order (empty with one instrument).
     event_instruments: list = field(default_factory=list)
     instrument_peaks: dict = field(default_factory=dict)
+    step_times: list = field(default_factory=list)  # (step, its time: its stages' sum [s]) of each step
 
     @property
     def complete(self) -> bool:
@@ -214,6 +215,7 @@ class RunSummary:
                 self.max_residual = max(self.max_residual, float(record.solver.residual))
         for stage, seconds in record.stage_seconds.items():
             stats.stage_seconds[stage] += seconds
+        self.step_times.append((record.step, sum(record.stage_seconds.values())))
         if record.triangulation_seconds > 0.0:
             self.triangulations.append((record.step, record.triangulation_seconds))
         if record.cut_point_count and self.first_cut_step is None:
@@ -334,7 +336,24 @@ class RunSummary:
                     f"{stage} {1e3 * seconds / self.steps:.2f}" for stage, seconds in stage_totals.items()
                 )
             )
+        if self.step_times:
+            lines.append(self.format_step_times())
         return "\n".join(lines)
+
+    def format_step_times(self) -> str:
+        """The spread of the steps' times, what a real-time loop meets (its frame budget is per step, not
+        on average): median, 95th percentile and slowest step, and the steps over the paper's frame time."""
+        milliseconds = 1e3 * np.asarray([seconds for _, seconds in self.step_times], dtype=float)
+        slowest = int(np.argmax(milliseconds))
+        slowest_step = self.step_times[slowest][0]
+        budget = PAPER_TABLE_1["insertion"].total_ms
+        over = int(np.count_nonzero(milliseconds > budget))
+        return (
+            f"ms per step: median {np.median(milliseconds):.2f}, 95th percentile "
+            f"{np.percentile(milliseconds, 95):.2f}, slowest {milliseconds[slowest]:.2f} "
+            f"(step {slowest_step}); "
+            f"{over} of {milliseconds.size} steps over {budget:.2f} ms (the paper's insertion step)"
+        )
 
 
 def run_and_keep(simulation) -> tuple[RunSummary, dict]:

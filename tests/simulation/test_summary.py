@@ -37,3 +37,17 @@ def test_the_table_prints_each_phase_beside_the_paper_with_the_ratio():
     assert "15.10" in paper_lines[0] and "ours/paper 2.00" in paper_lines[0]
     assert "15.47" in paper_lines[1] and "ours/paper 0.50" in paper_lines[1]
     assert "paper" not in summary.format_table()
+
+
+def test_the_step_times_spread_names_the_slowest_step_and_the_steps_over_the_frame_budget():
+    # 100 steps: 98 of 10 ms, one of 20 ms (step 31) and one of 50 ms (step 7); the paper's insertion step
+    # (15.47 ms) is the budget: 2 steps over it; the 95th percentile of that set is 10 ms (numpy's linear
+    # interpolation between the 95th and 96th sorted values, both 10 ms).
+    summary = RunSummary()
+    summary.step_times = [(step, 0.010) for step in range(1, 101)]
+    summary.step_times[6] = (7, 0.050)
+    summary.step_times[30] = (31, 0.020)
+    line = summary.format_step_times()
+    assert "median 10.00" in line and "95th percentile 10.00" in line
+    assert "slowest 50.00 (step 7)" in line
+    assert "2 of 100 steps over 15.47 ms" in line
