@@ -21,7 +21,8 @@ fresh recording)::
     NUMBA_CACHE_DIR=$(mktemp -d) python -m refsim.kernel_warmup --record cube
 
 Switches: ``REFSIM_BACKGROUND_COMPILE=0`` starts no process (the test suite sets it: its workers already use
-the cores); no process either on a single core, with ``NUMBA_DISABLE_JIT=1``, or when the list is empty.
+the cores); no process either on a single core, with ``NUMBA_DISABLE_JIT=1``, when the list is empty, or
+when the cache folder cannot be written.
 """
 
 from __future__ import annotations
@@ -139,8 +140,8 @@ def start_background_compilation(manifest: Path | None = None) -> subprocess.Pop
     if not load_manifest(manifest):
         return None
     folder = _cache_folder()
-    if folder is None or (folder / DONE_MARKER).exists():
-        return None
+    if folder is None or (folder / DONE_MARKER).exists() or not os.access(folder, os.W_OK):
+        return None  # no cache, already filled, or one this user cannot write (nothing would be kept)
     command = [sys.executable, "-m", "refsim.kernel_warmup"]
     if manifest is not None:
         command += ["--manifest", str(manifest)]

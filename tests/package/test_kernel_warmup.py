@@ -78,6 +78,9 @@ def test_no_process_when_the_cache_is_marked_done_or_the_switch_is_off(tmp_path,
     (tmp_path / DONE_MARKER).unlink()
     monkeypatch.setattr(kernel_warmup, "_cores", lambda: 1)
     assert kernel_warmup.start_background_compilation() is None
+    monkeypatch.setattr(kernel_warmup, "_cores", lambda: 2)
+    monkeypatch.setattr(kernel_warmup, "_cache_folder", lambda: tmp_path / "missing")  # cannot be written
+    assert kernel_warmup.start_background_compilation() is None
     assert kernel_warmup._started is None
 
 
@@ -95,3 +98,20 @@ def test_the_list_is_what_the_main_jobs_run_compiles(tmp_path, monkeypatch):
     recorded = {tuple(entry) for entry in json.loads(done.stdout.strip().splitlines()[-1])}
     listed = {(entry["module"], entry["name"], entry["signature"]) for entry in load_manifest()}
     assert recorded == listed
+
+
+def test_a_run_on_an_empty_cache_starts_one_process_that_marks_the_cache(tmp_path, monkeypatch):
+    manifest = tmp_path / "kernels.json"
+    manifest.write_text(json.dumps({"scene": "test", "kernels": [_ALL_FINITE]}))
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    monkeypatch.setattr(kernel_warmup, "_started", None)
+    monkeypatch.setattr(kernel_warmup, "_cache_folder", lambda: cache)
+    monkeypatch.setattr(kernel_warmup, "_cores", lambda: 2)
+    monkeypatch.setenv("REFSIM_BACKGROUND_COMPILE", "1")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))  # the process's cache: the same folder
+    process = kernel_warmup.start_background_compilation(manifest)
+    assert process is not None
+    assert kernel_warmup.start_background_compilation(manifest) is None  # at most one per process
+    assert process.wait(timeout=600) == 0
+    assert (cache / DONE_MARKER).is_file()
