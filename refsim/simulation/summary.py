@@ -340,18 +340,19 @@ class RunSummary:
             lines.append(self.format_step_times())
         return "\n".join(lines)
 
-    def format_step_times(self) -> str:
+    def format_step_times(self, slowest: int = 5) -> str:
         """The spread of the steps' times, what a real-time loop meets (its frame budget is per step, not
-        on average): median, 95th percentile and slowest step, and the steps over the paper's frame time."""
+        on average): median, 95th percentile, the ``slowest`` slowest steps (the first, which analyses and
+        first uses the kernels, and the rare costly ones: a re-analysis, a first cut) and the steps over the
+        paper's frame time."""
         milliseconds = 1e3 * np.asarray([seconds for _, seconds in self.step_times], dtype=float)
-        slowest = int(np.argmax(milliseconds))
-        slowest_step = self.step_times[slowest][0]
+        worst = np.argsort(-milliseconds, kind="stable")[:slowest]
         budget = PAPER_TABLE_1["insertion"].total_ms
         over = int(np.count_nonzero(milliseconds > budget))
+        listed = ", ".join(f"{milliseconds[k]:.2f} (step {self.step_times[k][0]})" for k in worst)
         return (
             f"ms per step: median {np.median(milliseconds):.2f}, 95th percentile "
-            f"{np.percentile(milliseconds, 95):.2f}, slowest {milliseconds[slowest]:.2f} "
-            f"(step {slowest_step}); "
+            f"{np.percentile(milliseconds, 95):.2f}, slowest {listed}; "
             f"{over} of {milliseconds.size} steps over {budget:.2f} ms (the paper's insertion step)"
         )
 

@@ -49,5 +49,5 @@ def test_the_step_times_spread_names_the_slowest_step_and_the_steps_over_the_fra
     summary.step_times[30] = (31, 0.020)
     line = summary.format_step_times()
     assert "median 10.00" in line and "95th percentile 10.00" in line
-    assert "slowest 50.00 (step 7)" in line
+    assert "slowest 50.00 (step 7), 20.00 (step 31), 10.00 (step 1), 10.00 (step 2), 10.00 (step 3);" in line
     assert "2 of 100 steps over 15.47 ms" in line
