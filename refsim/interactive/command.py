@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import math
 
-__all__ = ["REACH", "add_parser", "run_interactive"]
+__all__ = ["REACH", "add_parser", "run_interactive", "x_display_error"]
 
 #: Largest accepted distance of a base position from the origin [m] (the bound of trajectory waypoints).
 REACH = 1e3
@@ -153,6 +153,44 @@ def _check_options(args: argparse.Namespace) -> None:
                 "the interactive window needs a display (DISPLAY is not set): run headless with --no-window "
                 "--socket PORT, or under a virtual display (xvfb-run refsim interactive ...)"
             )
+        unreachable = x_display_error()
+        if unreachable is not None:  # VTK would only warn, and the window's event loop end at once
+            raise ValueError(
+                f"the interactive window needs a display: {unreachable}; run headless with --no-window "
+                "--socket PORT, or under a virtual display (xvfb-run refsim interactive ...)"
+            )
+
+
+_X_CONNECTIONS: dict = {}  # DISPLAY -> the open probe connection, kept for the process's life
+
+
+def x_display_error() -> str | None:
+    """Why the X server named by ``$DISPLAY`` cannot be reached (``XOpenDisplay`` of libX11 fails), or None:
+    reached, or not checkable here (no DISPLAY, no libX11: another platform, a Wayland-only session).
+
+    A connection that succeeds is kept open until the process exits: closing it would leave a server without
+    other clients (a bare Xvfb) to reset, refusing connections for a moment, the window's own among them."""
+    import ctypes
+    import ctypes.util
+    import os
+
+    display = os.environ.get("DISPLAY")
+    if display in _X_CONNECTIONS:
+        return None
+    name = ctypes.util.find_library("X11") if display else None
+    if name is None:
+        return None
+    try:
+        library = ctypes.CDLL(name)
+    except OSError:
+        return None
+    library.XOpenDisplay.restype = ctypes.c_void_p
+    library.XOpenDisplay.argtypes = [ctypes.c_char_p]
+    handle = library.XOpenDisplay(display.encode())
+    if not handle:
+        return f"cannot connect to the X server of DISPLAY={display}"
+    _X_CONNECTIONS[display] = handle
+    return None
 
 
 def _serve(args: argparse.Namespace, scene, session, server) -> None:

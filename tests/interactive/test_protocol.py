@@ -6,6 +6,7 @@ written beside the results reproduces the interactive run's datasets to the bit.
 
 from __future__ import annotations
 
+import ctypes.util
 import json
 import os
 import socket
@@ -255,4 +256,19 @@ def test_the_window_without_a_display_is_refused_with_the_ways_out(tmp_path):
     command = [sys.executable, "-m", "refsim", "interactive", "cube", "-o", str(tmp_path / "x.h5")]
     result = subprocess.run(command, capture_output=True, text=True, env=environment)
     assert result.returncode == 2 and "needs a display" in result.stderr and "--no-window" in result.stderr
+    assert not (tmp_path / "x.h5").exists()
+
+
+@pytest.mark.skipif(ctypes.util.find_library("X11") is None, reason="libX11 absent: no X display to check")
+def test_the_window_on_a_display_nobody_serves_is_refused_naming_it(tmp_path):
+    """DISPLAY set to a display no X server serves: VTK would only warn and the session end after one step
+    with exit code 0; the command refuses it before any work, naming the display."""
+    environment = {key: value for key, value in _environment().items() if key != "WAYLAND_DISPLAY"}
+    environment["DISPLAY"] = ":4711"  # no server: display numbers that high are not in use here
+    command = [sys.executable, "-m", "refsim", "interactive", "cube", "-o", str(tmp_path / "x.h5")]
+    result = subprocess.run(command, capture_output=True, text=True, env=environment)
+    assert result.returncode == 2, result.stderr
+    assert (
+        "cannot connect to the X server of DISPLAY=:4711" in result.stderr and "--no-window" in result.stderr
+    )
     assert not (tmp_path / "x.h5").exists()

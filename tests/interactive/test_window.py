@@ -153,9 +153,25 @@ def _xvfb_skip_reason() -> str | None:
 @pytest.fixture(scope="module")
 def xvfb_display():
     """A virtual X display for the module's window tests."""
+    from refsim.interactive.command import x_display_error
+
     display = f":{90 + os.getpid() % 100}"
-    server = subprocess.Popen(["Xvfb", display, "-screen", "0", "1280x1024x24", "-nolisten", "tcp"])
-    time.sleep(1.0)
+    # -noreset: a server whose last client disconnects resets, refusing connections for a moment (a window
+    # started then got no display)
+    server = subprocess.Popen(
+        ["Xvfb", display, "-screen", "0", "1280x1024x24", "-nolisten", "tcp", "-noreset"]
+    )
+    # Until the server accepts connections (a fixed second was too short on a loaded machine: the window got
+    # no display and its session ended after one step).
+    deadline = time.monotonic() + 60.0
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("DISPLAY", display)
+        while x_display_error() is not None and server.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        reason = x_display_error()
+    if reason is not None:
+        server.terminate()
+        pytest.fail(f"Xvfb {display} did not start within 60 s: {reason}")
     yield display
     server.terminate()
     server.wait(timeout=10)
@@ -200,7 +216,10 @@ def _until(stream, reached) -> list[str]:
     """Read step replies until ``reached(reply)``; return the events seen."""
     events = []
     while True:
-        reply = json.loads(stream.readline())
+        line = stream.readline()
+        if not line:
+            raise EOFError("the session closed the pose stream")
+        reply = json.loads(line)
         assert "error" not in reply, reply
         events += reply.get("events", [])
         if "base" in reply and reached(reply):
@@ -240,6 +259,10 @@ def test_the_window_under_xvfb_driven_by_a_scripted_pose_stream(xvfb_display, tm
                 stream, lambda reply, t=target: np.allclose(reply["base"], t, rtol=0.0, atol=1e-12)
             )
         _finish(process, connection)
+    except EOFError as error:
+        process.kill()
+        out, err = process.communicate(timeout=60)
+        pytest.fail(f"{error} before the poses were reached:\n{out[-3000:]}\n{err[-3000:]}")
     finally:
         if process.poll() is None:
             process.kill()
