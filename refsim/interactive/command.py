@@ -76,8 +76,10 @@ def run_interactive(args: argparse.Namespace) -> int:
     from refsim.scene import load_scene
 
     _check_options(args)
+    # After a fresh install, the kernels on the second core too (refsim.kernel_warmup), from before the
+    # scene's loading, as `refsim run` does; stopped at exit, bad input included.
+    start_background_compilation()
     scene = load_scene(args.scene, args.set or ())
-    start_background_compilation()  # after a fresh install: the kernels on the second core too
     max_steps = None if args.duration is None else max(1, round(args.duration / scene.time.dt))
     server = None
     if args.socket is not None:  # bound before anything is written: a port in use is bad input

@@ -43,10 +43,13 @@ def test_the_step_times_spread_names_the_slowest_step_and_the_steps_over_the_fra
     # 100 steps: 98 of 10 ms, one of 20 ms (step 31) and one of 50 ms (step 7); the paper's insertion step
     # (15.47 ms) is the budget: 2 steps over it; the 95th percentile of that set is 10 ms (numpy's linear
     # interpolation between the 95th and 96th sorted values, both 10 ms).
+    from array import array
+
     summary = RunSummary()
-    summary.step_times = [(step, 0.010) for step in range(1, 101)]
-    summary.step_times[6] = (7, 0.050)
-    summary.step_times[30] = (31, 0.020)
+    summary.step_numbers = array("q", range(1, 101))
+    summary.step_seconds = array("d", [0.010] * 100)
+    summary.step_seconds[6] = 0.050  # step 7
+    summary.step_seconds[30] = 0.020  # step 31
     line = summary.format_step_times()
     assert "median 10.00" in line and "95th percentile 10.00" in line
     assert "slowest 50.00 (step 7), 20.00 (step 31), 10.00 (step 1), 10.00 (step 2), 10.00 (step 3);" in line
