@@ -218,18 +218,11 @@ def _closest_on_polyline(
     """Closest segment, parameter t ∈ [0, 1] and whether the projection is interior (not clamped beyond an
     end of the polyline by more than ``reach`` [m], or than END_TOLERANCE of the end segment's length when
     that is larger), for each point; shapes (k,), (k,), (k,)."""
-    start, end = polyline[:-1], polyline[1:]
-    along = end - start  # (s, 3)
+    from refsim.geometry.surface_kernels import polyline_closest  # numba: imported on first use
+
+    segment, t, raw_t = polyline_closest(points, polyline)
+    along = polyline[1:] - polyline[:-1]  # (s, 3)
     lengths = np.einsum("sj,sj->s", along, along)
-    raw = np.einsum("ksj,sj->ks", points[:, None, :] - start[None], along) / np.where(
-        lengths > 0, lengths, 1.0
-    )
-    t = np.clip(raw, 0.0, 1.0)
-    nearest = start[None] + t[..., None] * along[None]
-    distance = np.linalg.norm(points[:, None, :] - nearest, axis=2)
-    segment = np.argmin(distance, axis=1)
-    rows = np.arange(points.shape[0])
-    raw_t = raw[rows, segment]
     # A point that projects onto an end within a thousandth of the end segment's length counts as interior:
     # the crack tip's end columns are laid at the needle's tip and at the tissue surface, so the end samples
     # project onto the polyline's ends by construction, and a tolerance at round-off (1e-9) made their rows
@@ -240,7 +233,7 @@ def _closest_on_polyline(
     first = max(END_TOLERANCE, reach / segment_lengths[0]) if segment_lengths[0] > 0 else END_TOLERANCE
     last = max(END_TOLERANCE, reach / segment_lengths[-1]) if segment_lengths[-1] > 0 else END_TOLERANCE
     interior = ~(((segment == 0) & (raw_t < -first)) | ((segment == along.shape[0] - 1) & (raw_t > 1 + last)))
-    return segment, t[rows, segment], interior
+    return segment, t, interior
 
 
 def _cut_compliance(

@@ -14,8 +14,6 @@ from typing import NamedTuple
 
 import numpy as np
 
-from refsim.geometry.closest import cross_rows
-
 __all__ = ["CutSurface", "ClosestCutPoints", "TriangulationReport"]
 
 # A projection is inside a triangle when its smallest barycentric coordinate is >= −_INSIDE_TOLERANCE, and a
@@ -158,8 +156,20 @@ class CutSurface:
         return directed[single[np.argsort(keys[single], kind="stable")]]
 
     def border_points(self) -> np.ndarray:
-        """Sorted indices of the points on border edges, shape (b,) (points in no triangle excluded)."""
-        return np.unique(self.border_edges())
+        """Sorted indices of the points on border edges, shape (b,) (points in no triangle excluded);
+        read-only."""
+        return self._border_points
+
+    @functools.cached_property
+    def _border_points(self) -> np.ndarray:
+        return _readonly(np.unique(self.border_edges()))
+
+    @functools.cached_property
+    def _edge_lookup(self) -> tuple[np.ndarray, np.ndarray]:
+        """The undirected edge keys of ``_edges`` sorted, and their use counts in that order."""
+        _, keys, uses = self._edges
+        order = np.argsort(keys, kind="stable")
+        return keys[order], uses[order]
 
     # -- deformed state ------------------------------------------------------------------------------
 
@@ -201,10 +211,9 @@ class CutSurface:
         A sliver (three nearly collinear points, where the cut's border follows a straight path of the needle
         tip) has an arbitrary normal of its own; it weighs nothing in its vertices' normals.
         """
-        corners = points[self.triangles]
-        face = cross_rows(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        vertex = _vertex_sums(self.triangles, face, points.shape[0])
-        vertex /= np.maximum(np.linalg.norm(vertex, axis=1, keepdims=True), 1e-300)
+        from refsim.geometry.surface_kernels import vertex_normals  # numba: imported on first use
+
+        vertex = vertex_normals(points, self.triangles)
         normals = np.einsum("qv,qvj->qj", weights, vertex[self.triangles[triangle]])
         return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
 
@@ -240,15 +249,16 @@ class CutSurface:
             raise ValueError(
                 "the cut surface has no triangle yet: check triangle_count before closest_points"
             )
-        found = SurfaceProjector(deformed_points, self.triangles).closest(points)
         queries = np.asarray(points, dtype=float)
-        corners = deformed_points[self.triangles[found.face_index]]  # (q, 3, 3)
+        face_index, barycentric = SurfaceProjector(deformed_points, self.triangles).closest_faces(queries)
+        corners = deformed_points[self.triangles[face_index]]  # (q, 3, 3)
+        closest = np.einsum("qk,qki->qi", barycentric, corners)
         projected = _plane_barycentric(queries, corners)
         inside = np.all(projected >= -_INSIDE_TOLERANCE, axis=1)
         # Clamped to an edge shared by two triangles, or to a vertex off the border: still inside the surface.
-        on_feature = found.barycentric <= _INSIDE_TOLERANCE
+        on_feature = barycentric <= _INSIDE_TOLERANCE
         zeros = on_feature.sum(axis=1)
-        local = self.triangles[found.face_index]
+        local = self.triangles[face_index]
         on_edge = ~inside & (zeros == 1)
         if np.any(on_edge):
             opposite = np.argmax(on_feature[on_edge], axis=1)
@@ -262,28 +272,15 @@ class CutSurface:
                 np.arange(int(on_vertex.sum())), np.argmax(~on_feature[on_vertex], axis=1)
             ]
             inside[on_vertex] = ~np.isin(vertex, self.border_points())
-        return ClosestCutPoints(found.face_index, found.closest, found.barycentric, inside)
+        return ClosestCutPoints(face_index, closest, barycentric, inside)
 
     def _edge_uses(self, start: np.ndarray, end: np.ndarray) -> np.ndarray:
         """Number of triangles using each undirected edge (start, end), shape (e,)."""
-        _, keys, uses = self._edges
-        order = np.argsort(keys, kind="stable")
+        keys, uses = self._edge_lookup
         query = np.minimum(start, end) * max(self.point_count, 1) + np.maximum(start, end)
-        position = np.clip(np.searchsorted(keys[order], query), 0, keys.size - 1)
-        found = keys[order][position] == query
-        return np.where(found, uses[order][position], 0)
-
-
-def _vertex_sums(triangles: np.ndarray, face: np.ndarray, point_count: int) -> np.ndarray:
-    """Σ over the triangles at each vertex of their ``face`` vectors, shape (point_count, 3): the sums
-    ``np.add.at(vertex, triangles[:, k], face)`` makes for k = 0, 1, 2 (each vertex's terms added in that
-    order, from zero), by one ``np.bincount`` per axis over the corners in the same order (the same
-    additions: the same bits; ``np.add.at`` costs several times more)."""
-    corners = np.asarray(triangles, dtype=np.int64).T.ravel()  # corner 0 of every triangle, then 1, then 2
-    terms = np.concatenate([face, face, face])
-    return np.column_stack(
-        [np.bincount(corners, weights=terms[:, axis], minlength=point_count) for axis in range(3)]
-    )
+        position = np.clip(np.searchsorted(keys, query), 0, keys.size - 1)
+        found = keys[position] == query
+        return np.where(found, uses[position], 0)
 
 
 def _plane_barycentric(points: np.ndarray, corners: np.ndarray) -> np.ndarray:

@@ -236,31 +236,38 @@ def _surface_candidates(points, triangles, centroids, radii, slack, thin):  # pr
     # only.
     is_thin = np.empty(faces, dtype=np.bool_)
     for face in range(faces):
-        t = triangles[face]
-        e1 = t[1] - t[0]
-        e2 = t[2] - t[0]
-        e3 = t[0] - t[2]
-        n0 = e1[1] * e2[2] - e1[2] * e2[1]
-        n1 = e1[2] * e2[0] - e1[0] * e2[2]
-        n2 = e1[0] * e2[1] - e1[1] * e2[0]
+        # in scalars: slices of a row allocate small arrays, which cost more than this arithmetic
+        ax, ay, az = triangles[face, 0, 0], triangles[face, 0, 1], triangles[face, 0, 2]
+        bx, by, bz = triangles[face, 1, 0], triangles[face, 1, 1], triangles[face, 1, 2]
+        cx, cy, cz = triangles[face, 2, 0], triangles[face, 2, 1], triangles[face, 2, 2]
+        e1x, e1y, e1z = bx - ax, by - ay, bz - az
+        e2x, e2y, e2z = cx - ax, cy - ay, cz - az
+        e3x, e3y, e3z = ax - cx, ay - cy, az - cz
+        e4x, e4y, e4z = cx - bx, cy - by, cz - bz
+        n0 = e1y * e2z - e1z * e2y
+        n1 = e1z * e2x - e1x * e2z
+        n2 = e1x * e2y - e1y * e2x
         area2 = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-        e4 = t[2] - t[1]
-        longest2 = max(np.dot(e1, e1), np.dot(e4, e4), np.dot(e3, e3))
+        longest2 = max(
+            e1x * e1x + e1y * e1y + e1z * e1z,
+            e4x * e4x + e4y * e4y + e4z * e4z,
+            e3x * e3x + e3y * e3y + e3z * e3z,
+        )
         is_thin[face] = not (area2 >= margin * thin * longest2)
     keep = np.zeros((count, faces), dtype=np.bool_)
     distances = np.full(faces, np.inf)
     total = 0
     for q in range(count):
+        px, py, pz = points[q, 0], points[q, 1], points[q, 2]
         # the nearest vertex's distance: the root of the least square (the root is monotonic and correctly
         # rounded, so this is the least of the roots, one root per query instead of one per vertex)
         least = np.inf
         for face in range(faces):
             for corner in range(3):
-                squares = 0.0
-                for axis in range(3):
-                    offset = points[q, axis] - triangles[face, corner, axis]
-                    squares += offset * offset
-                least = min(least, squares)
+                ox = px - triangles[face, corner, 0]
+                oy = py - triangles[face, corner, 1]
+                oz = pz - triangles[face, corner, 2]
+                least = min(least, ox * ox + oy * oy + oz * oz)
         bound = np.sqrt(least)
         nearest = bound
         for face in range(faces):

@@ -342,18 +342,25 @@ class SurfaceProjector:
         The face, closest point, barycentric coordinates, distance and face normal of each query point.
         """
         points = _check_points(points)
-        count = points.shape[0]
-        face_index = np.zeros(count, dtype=np.int64)
-        barycentric = np.zeros((count, 3))
-        for start in range(0, count, _CHUNK):
-            chunk = slice(start, start + _CHUNK)
-            face_index[chunk], barycentric[chunk] = self._closest_chunk(points[chunk])
+        face_index, barycentric = self.closest_faces(points)
         closest = np.einsum("qk,qki->qi", barycentric, self.triangles[face_index])
         distance = np.linalg.norm(points - closest, axis=1)
         # The chosen faces' normals only (row by row: the bits of all the faces' normals, indexed).
         return ClosestSurfacePoints(
             face_index, closest, barycentric, distance, triangle_normals(self.triangles[face_index])
         )
+
+    def closest_faces(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The face holding each query point's closest point and its barycentric coordinates there, shapes
+        (q,), (q, 3): what :meth:`closest` finds, without the points, distances and normals it derives."""
+        points = _check_points(points)
+        count = points.shape[0]
+        face_index = np.zeros(count, dtype=np.int64)
+        barycentric = np.zeros((count, 3))
+        for start in range(0, count, _CHUNK):
+            chunk = slice(start, start + _CHUNK)
+            face_index[chunk], barycentric[chunk] = self._closest_chunk(points[chunk])
+        return face_index, barycentric
 
     def _closest_chunk(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         count = points.shape[0]

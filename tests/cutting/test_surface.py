@@ -225,18 +225,3 @@ def test_closest_point_on_an_interior_ridge_edge_is_inside():
     _, closest, _, inside = surface.closest_points(queries, surface.rest_points)
     np.testing.assert_allclose(closest, [[3 * SPACING, 2.5 * SPACING, 0], [3 * SPACING, 0, 0]], atol=1e-15)
     assert inside.tolist() == [True, False]
-
-
-def test_vertex_sums_are_the_sequential_sums_bit_for_bit():
-    # interpolated_normals sums each vertex's face vectors by bincount in the order np.add.at adds them
-    # (corner 0 of every triangle, then 1, then 2): the same additions, so the same bits, here on vectors of
-    # mixed magnitudes where another order would round differently.
-    from refsim.cutting.surface import _vertex_sums
-
-    rng = np.random.default_rng(3)
-    triangles = rng.integers(0, 30, size=(200, 3))
-    face = rng.standard_normal((200, 3)) * 10.0 ** rng.uniform(-8, 8, size=(200, 1))
-    expected = np.zeros((35, 3))
-    for k in range(3):
-        np.add.at(expected, triangles[:, k], face)
-    np.testing.assert_array_equal(_vertex_sums(triangles, face, 35), expected)
