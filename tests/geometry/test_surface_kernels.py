@@ -25,7 +25,8 @@ def _numpy_vertex_normals(points, triangles):
 def _numpy_polyline_closest(points, polyline):
     start, along = polyline[:-1], polyline[1:] - polyline[:-1]
     lengths = np.einsum("sj,sj->s", along, along)
-    raw = np.einsum("ksj,sj->ks", points[:, None, :] - start[None], along) / np.where(lengths > 0, lengths, 1.0)
+    offsets = points[:, None, :] - start[None]
+    raw = np.einsum("ksj,sj->ks", offsets, along) / np.where(lengths > 0, lengths, 1.0)
     t = np.clip(raw, 0.0, 1.0)
     distance = np.linalg.norm(points[:, None, :] - (start[None] + t[..., None] * along[None]), axis=2)
     segment = np.argmin(distance, axis=1)
@@ -53,8 +54,9 @@ def test_polyline_closest_is_numpys_bits(seed):
     if polyline.shape[0] > 3:
         polyline[2] = polyline[1]  # a zero-length segment
     points = polyline.mean(axis=0) + rng.standard_normal((int(rng.integers(1, 50)), 3)) * 3e-3
-    for got, expected in zip(polyline_closest(points, polyline), _numpy_polyline_closest(points, polyline)):
-        np.testing.assert_array_equal(got, expected)
+    expected = _numpy_polyline_closest(points, polyline)
+    for got, reference in zip(polyline_closest(points, polyline), expected, strict=True):
+        np.testing.assert_array_equal(got, reference)
 
 
 def test_polyline_closest_takes_the_first_of_equal_distances():
