@@ -262,6 +262,16 @@ def shaft_contact_block(
         return None
     arc_lengths = np.arange(0.5 * spacing, end, spacing)
     samples = needle.points(arc_lengths)
+    # A sample farther than the contact distance from the box of the surface's vertices is outside the surface
+    # and farther than that from it: it gets no row, and its closest point is not searched (most of a needle
+    # held above the tissue).
+    lower, upper = projector.bounds
+    beyond = np.maximum(np.maximum(lower - samples, samples - upper), 0.0)
+    reach = contact_distance * (1.0 + 1e-9)  # a margin over the round-off of both distances
+    candidate = np.einsum("ij,ij->i", beyond, beyond) < reach * reach
+    if not np.any(candidate):
+        return None
+    arc_lengths, samples = arc_lengths[candidate], samples[candidate]
     found = projector.closest(samples)
     offsets = samples - found.closest
     distance = np.linalg.norm(offsets, axis=1)

@@ -320,8 +320,17 @@ class SurfaceProjector:
         # triangles.mean(axis=1) and the largest norm of the vertices' offsets, compiled (the same bits)
         self.centroids, self.radii = triangle_spheres(self.triangles)
         self._normals: np.ndarray | None = None
+        self._bounds: tuple[np.ndarray, np.ndarray] | None = None
         self._tree: cKDTree | None = None  # the KD-trees, built on the first query too large for the scan
         self._index: _RadiusClasses | None = None
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The axis-aligned box of the faces' vertices [m]: lower and upper corners, shapes (3,), (3,)."""
+        if self._bounds is None:
+            vertices = self.triangles.reshape(-1, 3)
+            self._bounds = (vertices.min(axis=0), vertices.max(axis=0))
+        return self._bounds
 
     @property
     def normals(self) -> np.ndarray:

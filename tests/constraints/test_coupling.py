@@ -580,6 +580,53 @@ def test_shaft_contact_keeps_a_tilted_needle_out_of_the_tissue(cube_scene):
     assert np.linalg.norm(records[-1].needle_force) > 1.0  # the shaft carries the load (more than f_p)
 
 
+def test_shaft_samples_far_from_the_surfaces_box_are_skipped_without_changing_the_rows(
+    cube_scene, monkeypatch
+):
+    # The shaft's samples farther than the contact distance from the box of the surface's vertices are not
+    # projected (they can be neither under the surface nor within the contact distance of it). Reference: the
+    # same block built with the box taken as all of space, every sample projected; over the lowered shaft's
+    # whole run (far, near, pressing on the edge) the two blocks are the same arrays, bit for bit.
+    from refsim.geometry import SurfaceProjector
+    from refsim.simulation import detection
+
+    built = channel.shaft_contact_block
+    compared = []
+
+    projected = {"bounded": 0, "unbounded": 0}
+
+    class Counted(SurfaceProjector):
+        kind = "bounded"
+
+        def closest(self, points):
+            projected[self.kind] += len(points)
+            return super().closest(points)
+
+    class Unbounded(Counted):
+        kind = "unbounded"
+
+        @property
+        def bounds(self):
+            return np.full(3, -np.inf), np.full(3, np.inf)
+
+    def both(geometry, projector, faces, **options):
+        block = built(geometry, Counted(projector.positions, faces), faces, **options)
+        reference = built(geometry, Unbounded(projector.positions, faces), faces, **options)
+        assert (block is None) == (reference is None)
+        if block is not None:
+            for name in ("free_gap", "points", "directions", "kind", "source"):
+                np.testing.assert_array_equal(getattr(block, name), getattr(reference, name))
+            for body, jacobian in block.jacobians.items():
+                assert (jacobian != reference.jacobians[body]).nnz == 0
+        compared.append(block is not None)
+        return block
+
+    monkeypatch.setattr(detection, "shaft_contact_block", both)
+    _lowered_shaft(cube_scene, shaft_contact=True)
+    assert len(compared) == 50 and 0 < sum(compared) < 50  # steps with and without shaft rows
+    assert projected["bounded"] < 0.5 * projected["unbounded"]  # most samples were skipped
+
+
 # ---------------------------------------------------------------------- puncture in the step, wired (item 5)
 @pytest.mark.parametrize(
     ("dt", "speed"), [(0.001, 0.01), (0.01, 0.01), (0.05, 0.01), (0.01, 0.05), (0.02, 0.002)]
