@@ -25,6 +25,29 @@ def _dot(x0, x1, x2, y0, y1, y2):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, error_model="numpy")
+def triangle_shape(triangles, index):  # pragma: no cover - compiled
+    """|ab × ac| and the longest edge squared of triangle ``index`` of ``triangles`` (t, 3, 3): NumPy's thin
+    test's two quantities (`refsim.geometry.closest`), in its operations and order."""
+    ax, ay, az = triangles[index, 0, 0], triangles[index, 0, 1], triangles[index, 0, 2]
+    bx, by, bz = triangles[index, 1, 0], triangles[index, 1, 1], triangles[index, 1, 2]
+    cx, cy, cz = triangles[index, 2, 0], triangles[index, 2, 1], triangles[index, 2, 2]
+    # the longest edge squared: edges b − a, c − b, a − c
+    e0x, e0y, e0z = bx - ax, by - ay, bz - az
+    e1x, e1y, e1z = cx - bx, cy - by, cz - bz
+    e2x, e2y, e2z = ax - cx, ay - cy, az - cz
+    longest = max(
+        _dot(e0x, e0y, e0z, e0x, e0y, e0z),
+        _dot(e1x, e1y, e1z, e1x, e1y, e1z),
+        _dot(e2x, e2y, e2z, e2x, e2y, e2z),
+    )
+    acx, acy, acz = cx - ax, cy - ay, cz - az
+    n0 = e0y * acz - e0z * acy
+    n1 = e0z * acx - e0x * acz
+    n2 = e0x * acy - e0y * acx
+    return np.sqrt(n0 * n0 + n1 * n1 + n2 * n2), longest
+
+
+@numba.njit(cache=True, error_model="numpy")
 def ericson_regular(points, triangles, thin_area):  # pragma: no cover - compiled
     """Barycentric coordinates (q, 3) of the closest points on the triangles (one per point), |ab × ac| (q,)
     and whether each pair was settled here (q,): a regular triangle (|ab × ac| ≥ thin_area × longest edge²)
@@ -34,26 +57,14 @@ def ericson_regular(points, triangles, thin_area):  # pragma: no cover - compile
     area = np.empty(count)
     settled = np.zeros(count, dtype=np.bool_)
     for q in range(count):
+        area[q], longest = triangle_shape(triangles, q)
+        if not area[q] >= thin_area * longest:
+            continue
         ax, ay, az = triangles[q, 0, 0], triangles[q, 0, 1], triangles[q, 0, 2]
         bx, by, bz = triangles[q, 1, 0], triangles[q, 1, 1], triangles[q, 1, 2]
         cx, cy, cz = triangles[q, 2, 0], triangles[q, 2, 1], triangles[q, 2, 2]
-        # the longest edge squared: edges b − a, c − b, a − c
-        e0x, e0y, e0z = bx - ax, by - ay, bz - az
-        e1x, e1y, e1z = cx - bx, cy - by, cz - bz
-        e2x, e2y, e2z = ax - cx, ay - cy, az - cz
-        longest = max(
-            _dot(e0x, e0y, e0z, e0x, e0y, e0z),
-            _dot(e1x, e1y, e1z, e1x, e1y, e1z),
-            _dot(e2x, e2y, e2z, e2x, e2y, e2z),
-        )
         abx, aby, abz = bx - ax, by - ay, bz - az
         acx, acy, acz = cx - ax, cy - ay, cz - az
-        n0 = aby * acz - abz * acy
-        n1 = abz * acx - abx * acz
-        n2 = abx * acy - aby * acx
-        area[q] = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-        if not area[q] >= thin_area * longest:
-            continue
         px, py, pz = points[q, 0], points[q, 1], points[q, 2]
         apx, apy, apz = px - ax, py - ay, pz - az
         bpx, bpy, bpz = px - bx, py - by, pz - bz

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from refsim.geometry.closest_kernel import triangle_shape
 from refsim.kernel_cache import numba, readonly
 
 __all__ = ["BoxGrid", "locate_in_tets", "surface_candidates", "tet_spheres", "triangle_spheres"]
@@ -187,8 +188,9 @@ def _locate(  # pragma: no cover - compiled
 
 
 #: Faces with |ab × ac| < _THIN_MARGIN · thin · (longest edge)² are thin for the candidate scan: a margin over
-#: NumPy's test (`refsim.geometry.closest`), whose |ab × ac| and longest edge differ from this pass's in their
-#: last bits only. Every face NumPy evaluates by Ericson's formulas (|ab × ac| ≥ thin L²) has Ericson's
+#: NumPy's test (`refsim.geometry.closest`), whose |ab × ac| and longest edge this pass computes by the same
+#: operations (`refsim.geometry.closest_kernel.triangle_shape`). Every face NumPy evaluates by Ericson's
+#: formulas (|ab × ac| ≥ thin L²) has Ericson's
 #: distance here exact to about ε L / thin² (2e-14 L), far inside the slack's 1e-9 r, so those faces can be
 #: kept by their distance; the margin must only keep NumPy's thin faces on their sphere test. A factor 10
 #: made every well-shaped face thin (a right isosceles face has |ab × ac| / L² = 0.5, an equilateral one
@@ -236,23 +238,7 @@ def _surface_candidates(points, triangles, centroids, radii, slack, thin):  # pr
     # only.
     is_thin = np.empty(faces, dtype=np.bool_)
     for face in range(faces):
-        # in scalars: slices of a row allocate small arrays, which cost more than this arithmetic
-        ax, ay, az = triangles[face, 0, 0], triangles[face, 0, 1], triangles[face, 0, 2]
-        bx, by, bz = triangles[face, 1, 0], triangles[face, 1, 1], triangles[face, 1, 2]
-        cx, cy, cz = triangles[face, 2, 0], triangles[face, 2, 1], triangles[face, 2, 2]
-        e1x, e1y, e1z = bx - ax, by - ay, bz - az
-        e2x, e2y, e2z = cx - ax, cy - ay, cz - az
-        e3x, e3y, e3z = ax - cx, ay - cy, az - cz
-        e4x, e4y, e4z = cx - bx, cy - by, cz - bz
-        n0 = e1y * e2z - e1z * e2y
-        n1 = e1z * e2x - e1x * e2z
-        n2 = e1x * e2y - e1y * e2x
-        area2 = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-        longest2 = max(
-            e1x * e1x + e1y * e1y + e1z * e1z,
-            e4x * e4x + e4y * e4y + e4z * e4z,
-            e3x * e3x + e3y * e3y + e3z * e3z,
-        )
+        area2, longest2 = triangle_shape(triangles, face)  # NumPy's two quantities, its bits
         is_thin[face] = not (area2 >= margin * thin * longest2)
     keep = np.zeros((count, faces), dtype=np.bool_)
     distances = np.full(faces, np.inf)
