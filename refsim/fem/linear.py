@@ -97,18 +97,34 @@ class SuperLUSolver:
         self.ordering = ordering
         self._factor = None
         self._size = 0
+        self._pattern = None  # (indptr, indices) of the factor held, copied
+        self._values = FactorisedValues()  # its values
 
     def factorise(self, matrix: sp.spmatrix) -> None:
-        """Factorise A (symmetric positive definite, full storage), replacing the previous factor."""
+        """Factorise A (symmetric positive definite, full storage), replacing the previous factor (kept when
+        A is the matrix it factorised, bit for bit)."""
         csc = sp.csc_matrix(matrix)
         if csc.shape[0] != csc.shape[1]:
             raise ValueError(f"matrix must be square, got shape {csc.shape}")
+        pattern = self._pattern
+        if (
+            self._factor is not None
+            and pattern is not None
+            and np.array_equal(pattern[0], csc.indptr)
+            and np.array_equal(pattern[1], csc.indices)
+            and self._values.unchanged(csc.data)
+        ):
+            return
+        self._factor, self._pattern = None, None
+        self._values.forget()
         # A is SPD: no pivoting off the diagonal (SuperLU's symmetric mode), which also halves the cost of a
         # solve.
         self._factor = spla.splu(
             csc, permc_spec=self.ordering, diag_pivot_thresh=0.0, options={"SymmetricMode": True}
         )
         self._size = csc.shape[0]
+        self._pattern = (csc.indptr.copy(), csc.indices.copy())
+        self._values.keep(csc.data)
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """A⁻¹ rhs for rhs of shape (n,) or (n, k)."""
@@ -117,8 +133,41 @@ class SuperLUSolver:
         return self._factor.solve(np.ascontiguousarray(rhs, dtype=float))
 
     @property
+    def factorisations(self) -> int:
+        """Numeric factorisations made (a factorisation of the values held keeps the factor: not counted)."""
+        return self._values.factorisations
+
+    @property
     def description(self) -> dict:
         return {"name": self.name, "ordering": self.ordering}
+
+
+class FactorisedValues:
+    """A copy of the values of the matrix a solver factorised last: a factorisation asked for the same
+    values, bit for bit, keeps the factor (a tissue at rest assembles the same matrix step after step, and the
+    factor of the same values is the same factor). ``factorisations`` counts the numeric factorisations."""
+
+    def __init__(self) -> None:
+        self._values: np.ndarray | None = None
+        self.factorisations = 0
+
+    def unchanged(self, values: np.ndarray) -> bool:
+        """Whether ``values`` are those kept, bit for bit (a NaN never is)."""
+        kept = self._values
+        return kept is not None and kept.shape == values.shape and bool(np.array_equal(kept, values))
+
+    def keep(self, values: np.ndarray) -> None:
+        """A numeric factorisation of ``values`` was made: copy them (into the last copy's memory when the
+        size is the same)."""
+        if self._values is None or self._values.shape != values.shape:
+            self._values = np.array(values, dtype=float)
+        else:
+            np.copyto(self._values, values)
+        self.factorisations += 1
+
+    def forget(self) -> None:
+        """No factor is held (released, or a new pattern): the next factorisation is made."""
+        self._values = None
 
 
 def _same_memory(first: np.ndarray, second: np.ndarray) -> bool:
@@ -187,6 +236,7 @@ class PardisoSolver:
         self._analysed = False  # the handle holds an analysis (phase 11 ran; phase -1 not since)
         self._factorised = False
         self._released = False  # release() ran and no factorise since
+        self._values = FactorisedValues()  # the values of the factor held
         self._pt_address, self._iparm_address = self._pt.ctypes.data, self._iparm.ctypes.data
         self._perm_address = self._perm.ctypes.data
         self._a_address = self._ia_address = self._ja_address = _UNUSED.ctypes.data
@@ -209,6 +259,7 @@ class PardisoSolver:
         self._marked = None
         self._unit_buffers = None
         self._n = 0
+        self._values.forget()
         self._released = True
 
     def _release_handle(self) -> None:
@@ -285,18 +336,29 @@ class PardisoSolver:
             self._analyse()
             self._pattern_key = key
         else:
-            self._set_values(matrix)
-        self._call(22)
-        self._factorised = True
+            unchanged = self._factorised and self._values.unchanged(self._set_values(matrix))
+            if unchanged:  # the factor held is this matrix's, bit for bit
+                return
+        self._numeric()
         self._released = False
 
-    def _set_values(self, matrix: sp.csr_matrix) -> None:
-        """The values of A's upper triangle in PARDISO's order: the data itself when it holds nothing else."""
+    def _numeric(self) -> None:
+        """Phase 22 on the values set: the factor held afterwards, or none if it fails."""
+        self._factorised = False
+        self._values.forget()
+        self._call(22)
+        self._values.keep(self._a)
+        self._factorised = True
+
+    def _set_values(self, matrix: sp.csr_matrix) -> np.ndarray:
+        """The values of A's upper triangle in PARDISO's order (the data itself when it holds nothing else),
+        passed from now on; returned."""
         if self._upper is None:
             self._a = np.ascontiguousarray(matrix.data, dtype=float)
         else:
             self._a = np.ascontiguousarray(matrix.data[self._upper], dtype=float)
         self._a_address = self._a.ctypes.data
+        return self._a
 
     def _analyse(self) -> None:
         """Phase 11 on the current pattern: plain, or for partial solves on the marked positions.
@@ -374,8 +436,7 @@ class PardisoSolver:
             factorised = self._factorised
             self._analyse()
             if factorised:
-                self._call(22)
-                self._factorised = True
+                self._numeric()
 
     def inverse_block(self, positions: np.ndarray) -> np.ndarray:
         """(A⁻¹)[positions][:, positions], shape (u, u), by one partial solve (oneMKL iparm[30] = 1): the
@@ -461,6 +522,11 @@ class PardisoSolver:
         return np.ascontiguousarray(y)
 
     @property
+    def factorisations(self) -> int:
+        """Numeric factorisations made (a factorisation of the values held keeps the factor: not counted)."""
+        return self._values.factorisations
+
+    @property
     def description(self) -> dict:
         return {
             "name": self.name,
@@ -500,6 +566,7 @@ class SupernodalSolver:
         self._pattern_arrays = None
         self._marked = None
         self._paths = None  # (supernodes, compact, columns) of the marked positions' etree paths
+        self._values = FactorisedValues()  # the values of the factor held
         self._released = False
 
     def release(self) -> None:
@@ -508,6 +575,7 @@ class SupernodalSolver:
         self._pattern_key = self._pattern_arrays = None
         self._marked = None
         self._paths = None
+        self._values.forget()
         self._released = True
 
     def _order(self, matrix: sp.csr_matrix) -> np.ndarray:
@@ -553,10 +621,15 @@ class SupernodalSolver:
             if self._marked is not None and self._marked.size and self._marked[-1] >= matrix.shape[0]:
                 self._marked = None  # marked for another matrix
             self._paths = None
+            self._values.forget()
+        elif self._factor.factorised and self._values.unchanged(matrix.data):
+            return  # the factor held is this matrix's, bit for bit
         try:
             self._factor.factorise(matrix.data)
         except NotPositiveDefinite as error:
+            self._values.forget()
             raise LinearSolverError(f"supernodal: {error}") from None
+        self._values.keep(matrix.data)
         self._released = False
 
     def _factorised(self):
@@ -626,6 +699,11 @@ class SupernodalSolver:
         if rhs.shape[1] == 0:
             return np.zeros_like(rhs)
         return factor.forward(rhs)
+
+    @property
+    def factorisations(self) -> int:
+        """Numeric factorisations made (a factorisation of the values held keeps the factor: not counted)."""
+        return self._values.factorisations
 
     @property
     def description(self) -> dict:

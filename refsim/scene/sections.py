@@ -662,9 +662,9 @@ class ComplianceSpec(_Validated):
 
     strategy: str = spec(
         "exact",
-        doc="exact: factorise every step; refreshed: factorise every refresh_every steps, free motion and "
-        "W's columns "
-        "by PCG on the current matrix; precomputed: the rest compliance rotated per node (SOFA-like); fast: "
+        doc="exact: factorise every step (the factor is kept while A is unchanged, bit for bit); refreshed: "
+        "factorise every refresh_every steps, free motion and W's columns by PCG on the current matrix; "
+        "precomputed: the rest compliance rotated per node (SOFA-like); fast: "
         "no matrix assembled or factorised during the run, W and the correction from the rest compliance "
         "rotated per node, free motion by CG on the co-rotated operator (docs/speed.md)",
         choices=STRATEGIES,

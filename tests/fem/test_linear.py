@@ -69,6 +69,47 @@ def test_solver_equals_a_fresh_dense_factorisation(name):
         )
 
 
+@pytest.mark.parametrize("name", SOLVERS)
+@pytest.mark.parametrize("storage", ["full", "upper"])
+def test_a_factorisation_of_the_same_values_keeps_the_factor(name, storage):
+    # A tissue at rest assembles the same matrix step after step: the factor of the same values is the same
+    # factor, so a solver keeps it. Asserted: no numeric factorisation for the same values in new arrays, the
+    # same solution bit for bit; a factorisation for one entry changed, for values changed in place in the
+    # very arrays factorised (the copy kept is compared, not the caller's memory), and after a release.
+    solver = make_linear_solver(name)
+    if storage == "upper" and getattr(solver, "storage", "full") != "upper":
+        pytest.skip(f"{name} reads A in full storage")
+    full = spd_matrix(125, 3)
+    matrix = sp.triu(full, format="csr") if storage == "upper" else full
+    rhs = np.random.default_rng(1).standard_normal(125)
+    solver.factorise(matrix)
+    first, count = solver.solve(rhs), solver.factorisations
+    assert count == 1
+    again = sp.csr_matrix((matrix.data.copy(), matrix.indices, matrix.indptr), shape=matrix.shape)
+    solver.factorise(again)
+    assert solver.factorisations == count
+    assert np.array_equal(solver.solve(rhs), first)
+    bumped = (full + sp.diags(np.eye(125)[7])).tocsr()  # one diagonal entry more: the same pattern, SPD
+    changed = sp.triu(bumped, format="csr") if storage == "upper" else bumped
+    assert np.array_equal(changed.indices, matrix.indices)
+    solver.factorise(changed)
+    assert solver.factorisations == count + 1
+    assert not np.array_equal(solver.solve(rhs), first)
+    scaled = again.copy()
+    solver.factorise(scaled)
+    assert solver.factorisations == count + 2
+    scaled.data *= 2.0  # in place, in the arrays just factorised
+    solver.factorise(scaled)
+    assert solver.factorisations == count + 3
+    bound = 10 * np.linalg.cond(full.toarray()) * EPS  # backward-stable solve (Higham, ch. 7)
+    expected = np.linalg.solve(2.0 * full.toarray(), rhs)
+    np.testing.assert_allclose(solver.solve(rhs), expected, rtol=0, atol=bound * np.abs(expected).max())
+    if hasattr(solver, "release"):
+        solver.release()
+        solver.factorise(scaled)
+        assert solver.factorisations == count + 4
+
+
 @pytest.mark.skipif(
     platform.machine().lower() not in ("x86_64", "amd64"), reason="oneMKL wheels are x86-64 only"
 )

@@ -9,7 +9,8 @@ solver factories scikit-fem passes to ``solve``), chosen for the tissue by the s
 
 ``Exact()``
     Factorises A every step (refsim's reference): free motion, W = H A⁻¹ Hᵀ and the correction A⁻¹ Hᵀ λ are
-    those of a fresh factorisation, to round-off.
+    those of a fresh factorisation, to round-off. A step whose A is the last one, bit for bit (a tissue at
+    rest), keeps its factor: the same factor, so the same bits.
 ``Refreshed(refresh_every=10, tolerance=1e-10)``
     Factorises A every ``refresh_every`` steps only. The free motion solves the *current* A by conjugate
     gradients preconditioned by the stale factor, to a relative residual ``tolerance``. W and the correction:
