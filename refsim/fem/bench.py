@@ -96,8 +96,8 @@ def superlu_reference_ms(model: TissueModel, repeats: int = 3) -> float:
     state = TissueState(positions=model.rest_positions, velocities=np.zeros_like(model.rest_positions))
     with hot_path_threads():
         matrix = model.assemble_step(state, _DT).matrix
-        solver = SuperLUSolver("COLAMD")
-        return _best_ms(lambda: solver.factorise(matrix), repeats)[0]
+        # a new solver each time: one that factorised these values keeps its factor (refsim.fem.linear)
+        return _best_ms(lambda: SuperLUSolver("COLAMD").factorise(matrix), repeats)[0]
 
 
 def _run_strategy(

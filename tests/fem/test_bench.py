@@ -44,3 +44,16 @@ def test_strategy_bench_measures_errors_against_exact():
     scaling = bench_scaling((2, 3), steps=2, refresh_every=2)
     assert [row["cells_per_axis"] for row in scaling] == [2, 3]
     assert scaling[1]["free_dofs"] > scaling[0]["free_dofs"]
+
+
+def test_the_superlu_reference_times_a_factorisation_at_every_repeat(monkeypatch):
+    # Every ratio of `refsim bench` is to this time: each repeat must factorise (a solver keeps the factor of
+    # the values it factorised last, so reusing one would time a comparison of arrays).
+    import refsim.fem.linear as linear
+    from refsim.fem.bench import cube_model, superlu_reference_ms
+
+    calls = []
+    original = linear.spla.splu
+    monkeypatch.setattr(linear.spla, "splu", lambda *a, **k: (calls.append(1), original(*a, **k))[1])
+    superlu_reference_ms(cube_model(4), repeats=3)
+    assert len(calls) == 3
