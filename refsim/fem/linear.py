@@ -306,7 +306,8 @@ class PardisoSolver:
     def factorise(self, matrix: sp.spmatrix) -> None:
         """Factorise A (symmetric positive definite, full storage or its upper triangle alone: only the upper
         triangle is read); the analysis runs when the pattern is new. An upper triangle alone is read in
-        place (no copy): its values must not change before the next factorisation."""
+        place (no copy): its values must not change before the next factorisation. The values factorised
+        last, bit for bit, keep the factor (:class:`FactorisedValues`)."""
         matrix = _check_square(matrix)
         last = self._pattern_arrays
         if (
@@ -601,7 +602,8 @@ class SupernodalSolver:
 
     def factorise(self, matrix: sp.spmatrix) -> None:
         """Factorise A (symmetric positive definite; full storage or its upper triangle alone: only the upper
-        triangle is read); the analysis runs when the pattern is new."""
+        triangle is read); the analysis runs when the pattern is new. The values factorised last, bit for bit,
+        keep the factor (:class:`FactorisedValues`)."""
         from refsim.fem.supernodal import NotPositiveDefinite, SymbolicFactor
 
         matrix = _check_square(matrix)
