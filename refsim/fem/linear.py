@@ -237,6 +237,7 @@ class PardisoSolver:
         self._factorised = False
         self._released = False  # release() ran and no factorise since
         self._values = FactorisedValues()  # the values of the factor held
+        self.analyses = 0  # phase-11 analyses made (a new pattern, or new partial-solve marks)
         self._pt_address, self._iparm_address = self._pt.ctypes.data, self._iparm.ctypes.data
         self._perm_address = self._perm.ctypes.data
         self._a_address = self._ia_address = self._ja_address = _UNUSED.ctypes.data
@@ -378,6 +379,7 @@ class PardisoSolver:
             self._iparm[30] = 1
         self._perm_address = self._perm.ctypes.data
         self._call(11)
+        self.analyses += 1
         self._analysed = True
         self._iparm[30] = 0  # full solves unless a partial one asks
 
@@ -568,6 +570,7 @@ class SupernodalSolver:
         self._marked = None
         self._paths = None  # (supernodes, compact, columns) of the marked positions' etree paths
         self._values = FactorisedValues()  # the values of the factor held
+        self.analyses = 0  # analyses made (one per new pattern)
         self._released = False
 
     def release(self) -> None:
@@ -619,6 +622,7 @@ class SupernodalSolver:
         self._pattern_arrays = (matrix.indptr, matrix.indices)
         if key != self._pattern_key or self._factor is None:
             self._factor = SymbolicFactor(matrix, self._order(matrix))
+            self.analyses += 1
             self._pattern_key = key
             if self._marked is not None and self._marked.size and self._marked[-1] >= matrix.shape[0]:
                 self._marked = None  # marked for another matrix

@@ -371,6 +371,7 @@ def run_scene(
     if writer.failure is not None and status != "write_failed":
         status = "write_failed"
         reason = f"{reason}; {writer.failure}" if reason else writer.failure
+    summary.tissue_linear_counts = simulation.tissue_compliance.linear_counts()
     summary.finish(status=status, stop_reason=reason, steps_written=writer.steps_completed)
     return summary
 

@@ -161,6 +161,8 @@ class RunSummary:
     # Each step's number and time (its stages' sum [s]): 16 bytes a step (interactive sessions run for hours)
     step_numbers: array = field(default_factory=lambda: array("q"))
     step_seconds: array = field(default_factory=lambda: array("d"))
+    # The tissue's linear solver in this run: (numeric factorisations, analyses or None), None when unknown
+    tissue_linear_counts: tuple | None = None
 
     @property
     def complete(self) -> bool:
@@ -342,7 +344,19 @@ class RunSummary:
             )
         if self.step_seconds:
             lines.append(self.format_step_times())
+        if self.tissue_linear_counts is not None and self.steps:
+            lines.append(self.format_linear_counts())
         return "\n".join(lines)
+
+    def format_linear_counts(self) -> str:
+        """How often the tissue's linear solver factorised and analysed in the run: the factor is kept while
+        the matrix is unchanged (a tissue at rest), and an analysis (a new pattern, or PARDISO's new
+        partial-solve marks) costs a step about a factorisation and an analysis more."""
+        factorisations, analyses = self.tissue_linear_counts
+        text = f"tissue matrix: {factorisations} numeric factorisation{'' if factorisations == 1 else 's'}"
+        if analyses is not None:
+            text += f" and {analyses} analys{'is' if analyses == 1 else 'es'}"
+        return text + f" in {self.steps} steps"
 
     def format_step_times(self, slowest: int = 5) -> str:
         """The spread of the steps' times, what a real-time loop meets (its frame budget is per step, not
@@ -376,4 +390,5 @@ def run_and_keep(simulation) -> tuple[RunSummary, dict]:
         kept["events"].extend((record.step, event.name) for event in record.events)
 
     simulation.run(on_step=on_step)
+    summary.tissue_linear_counts = simulation.tissue_compliance.linear_counts()
     return summary, kept

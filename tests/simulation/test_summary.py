@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import pytest
 
+from refsim.fem.linear import available_linear_solvers
+from refsim.scene import load_scene
+from refsim.simulation import Simulation
 from refsim.simulation.records import STAGES
-from refsim.simulation.summary import PAPER_TABLE_1, PhaseStatistics, RunSummary
+from refsim.simulation.summary import PAPER_TABLE_1, PhaseStatistics, RunSummary, run_and_keep
 
 
 def test_the_paper_rows_are_the_published_table():
@@ -54,3 +57,39 @@ def test_the_step_times_spread_names_the_slowest_step_and_the_steps_over_the_fra
     assert "median 10.00" in line and "95th percentile 10.00" in line
     assert "slowest 50.00 (step 7), 20.00 (step 31), 10.00 (step 1), 10.00 (step 2), 10.00 (step 3);" in line
     assert "2 of 100 steps over 15.47 ms" in line
+
+
+@pytest.mark.parametrize("solver", available_linear_solvers())
+def test_a_tissue_at_rest_is_factorised_once_and_the_summary_says_so(solver):
+    # The needle stays 2 cm above the 4³ cube for 10 steps: no row touches the tissue, which is at rest
+    # (no gravity), so every step assembles the same matrix and the exact strategy's solver keeps its factor
+    # (refsim.fem.linear.FactorisedValues). The count comes from the solver itself; the summary prints it.
+    base = [0.00123, 0.00231, 0.1 + 0.02 + 0.32]
+    scene = load_scene(
+        "cube",
+        [
+            "mesh.cells=[4, 4, 4]",
+            f"compliance.linear_solver={solver!r}",
+            "trajectory.times=[0.0, 0.1]",
+            f"trajectory.base_positions=[{base}, {base}]",
+            "trajectory.directions=[[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]]",
+            "time.duration=0.1",
+        ],
+    )
+    summary, _ = run_and_keep(Simulation(scene))
+    assert summary.steps == 10
+    factorisations, analyses = summary.tissue_linear_counts
+    assert factorisations == 1
+    assert analyses in (1, None)  # SuperLU orders at each factorisation: no separate analysis to count
+    line = summary.format_table().splitlines()[-1]
+    assert line.startswith("tissue matrix: 1 numeric factorisation") and line.endswith("in 10 steps")
+
+
+def test_the_linear_counts_line_is_absent_when_the_solver_does_not_count():
+    summary = RunSummary()
+    summary.steps = 3
+    assert "tissue matrix" not in summary.format_table()
+    summary.tissue_linear_counts = (5, None)
+    assert summary.format_table().splitlines()[-1] == "tissue matrix: 5 numeric factorisations in 3 steps"
+    summary.tissue_linear_counts = (5, 2)
+    assert summary.format_table().endswith("5 numeric factorisations and 2 analyses in 3 steps")

@@ -50,6 +50,16 @@ class BodyCompliance:
         """What the next step depends on besides the model: None (the exact and precomputed strategies)."""
         return None
 
+    def linear_counts(self) -> tuple[int, int | None] | None:
+        """(numeric factorisations, analyses) its linear solver made for this body's steps in this process
+        (not an error-report twin's); analyses None where each factorisation orders anew (SuperLU); None
+        without a solver that counts."""
+        solver = getattr(self, "_solver", None)
+        factorisations = getattr(solver, "factorisations", None)
+        if factorisations is None:
+            return None
+        return int(factorisations), getattr(solver, "analyses", None)
+
     def resume(self, carried: StaleFactor | None) -> None:
         """Continue from ``carried`` (:meth:`carried` of some earlier step, or None: a run's start)."""
 
