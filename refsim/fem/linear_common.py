@@ -1,0 +1,76 @@
+"""What refsim's sparse SPD solvers share (:mod:`refsim.fem.linear`, :mod:`refsim.fem.pardiso`): their error,
+the checks of a matrix and of a partial solve's right-hand side, and the copy of the values a factor was made
+from (:class:`FactorisedValues`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+__all__ = ["FactorisedValues", "LinearSolverError"]
+
+
+class LinearSolverError(RuntimeError):
+    """A linear solver is not available here or failed (the message names which and why)."""
+
+
+def _check_square(matrix: sp.spmatrix) -> sp.csr_matrix:
+    matrix = sp.csr_matrix(matrix)
+    if matrix.shape[0] != matrix.shape[1] or matrix.shape[0] == 0:
+        raise ValueError(f"matrix must be square and non-empty, got shape {matrix.shape}")
+    matrix.sort_indices()
+    return matrix
+
+
+class FactorisedValues:
+    """A copy of the values of the matrix a solver factorised last: a factorisation asked for the same
+    values, bit for bit, keeps the factor (a tissue at rest assembles the same matrix step after step, and the
+    factor of the same values is the same factor). ``factorisations`` counts the numeric factorisations."""
+
+    def __init__(self) -> None:
+        self._values: np.ndarray | None = None
+        self.factorisations = 0
+
+    def unchanged(self, values: np.ndarray) -> bool:
+        """Whether ``values`` are those kept, bit for bit (a NaN never is)."""
+        kept = self._values
+        return kept is not None and kept.shape == values.shape and bool(np.array_equal(kept, values))
+
+    def keep(self, values: np.ndarray) -> None:
+        """A numeric factorisation of ``values`` was made: copy them (into the last copy's memory when the
+        size is the same)."""
+        if self._values is None or self._values.shape != values.shape:
+            self._values = np.array(values, dtype=float)
+        else:
+            np.copyto(self._values, values)
+        self.factorisations += 1
+
+    def forget(self) -> None:
+        """No factor is held (released, or a new pattern): the next factorisation is made."""
+        self._values = None
+
+
+def _same_memory(first: np.ndarray, second: np.ndarray) -> bool:
+    """Whether two arrays are the same elements of the same memory (an array and a view of it in full)."""
+    one, other = first.__array_interface__, second.__array_interface__
+    return (
+        one["data"] == other["data"] and one["shape"] == other["shape"] and one["strides"] == other["strides"]
+    )
+
+
+def _all_among(values: np.ndarray, sorted_set: np.ndarray) -> bool:
+    """Whether every one of ``values`` is in ``sorted_set`` (sorted, unique)."""
+    where = np.searchsorted(sorted_set, values)
+    inside = where < sorted_set.size
+    return bool(np.all(inside) and np.array_equal(sorted_set[where], values))
+
+
+def _marked_rhs(rhs: np.ndarray, size: int, marked: np.ndarray | None) -> np.ndarray:
+    """The right-hand side of a solve_marked, checked: shape (size,), zero off the ``marked`` positions
+    (not checked when there are none: the caller solves whole)."""
+    rhs = np.asarray(rhs, dtype=float)
+    if rhs.shape != (size,):
+        raise ValueError(f"rhs must have shape ({size},), got {rhs.shape}")
+    if marked is not None and np.count_nonzero(rhs) != np.count_nonzero(rhs[marked]):
+        raise ValueError("solve_marked: the rhs has non-zeros off the marked positions")
+    return rhs
