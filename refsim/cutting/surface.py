@@ -243,6 +243,7 @@ class CutSurface:
             If the surface has no triangle yet, or on bad shapes.
         """
         from refsim.geometry.search import SurfaceProjector
+        from refsim.geometry.surface_kernels import inside_surface  # numba: imported on first use
 
         deformed_points = self._check_surface_points(deformed_points)
         if self.triangle_count == 0:
@@ -251,14 +252,33 @@ class CutSurface:
             )
         queries = np.asarray(points, dtype=float)
         face_index, barycentric = SurfaceProjector(deformed_points, self.triangles).closest_faces(queries)
-        corners = deformed_points[self.triangles[face_index]]  # (q, 3, 3)
+        local = self.triangles[face_index]
+        corners = deformed_points[local]  # (q, 3, 3)
         closest = np.einsum("qk,qki->qi", barycentric, corners)
+        # Inside: the projection on the triangle's plane is; or the point is clamped to an edge shared by two
+        # triangles, or to a vertex off the border (one compiled pass, the bits of _inside_reference).
+        keys, uses = self._edge_lookup
+        inside = inside_surface(
+            queries,
+            corners,
+            barycentric,
+            local,
+            _INSIDE_TOLERANCE,
+            keys,
+            uses,
+            max(self.point_count, 1),
+            self.border_points(),
+        )
+        return ClosestCutPoints(face_index, closest, barycentric, inside)
+
+    def _inside_reference(
+        self, queries: np.ndarray, corners: np.ndarray, barycentric: np.ndarray, local: np.ndarray
+    ) -> np.ndarray:
+        """:func:`refsim.geometry.surface_kernels.inside_surface` in NumPy: its reference (tests)."""
         projected = _plane_barycentric(queries, corners)
         inside = np.all(projected >= -_INSIDE_TOLERANCE, axis=1)
-        # Clamped to an edge shared by two triangles, or to a vertex off the border: still inside the surface.
         on_feature = barycentric <= _INSIDE_TOLERANCE
         zeros = on_feature.sum(axis=1)
-        local = self.triangles[face_index]
         on_edge = ~inside & (zeros == 1)
         if np.any(on_edge):
             opposite = np.argmax(on_feature[on_edge], axis=1)
@@ -272,7 +292,7 @@ class CutSurface:
                 np.arange(int(on_vertex.sum())), np.argmax(~on_feature[on_vertex], axis=1)
             ]
             inside[on_vertex] = ~np.isin(vertex, self.border_points())
-        return ClosestCutPoints(face_index, closest, barycentric, inside)
+        return inside
 
     def _edge_uses(self, start: np.ndarray, end: np.ndarray) -> np.ndarray:
         """Number of triangles using each undirected edge (start, end), shape (e,)."""

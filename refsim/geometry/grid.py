@@ -12,10 +12,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from refsim.geometry.closest_kernel import triangle_shape
+from refsim.geometry.closest_kernel import ericson_regular, triangle_shape
 from refsim.kernel_cache import numba, readonly
 
-__all__ = ["BoxGrid", "locate_in_tets", "surface_candidates", "tet_spheres", "triangle_spheres"]
+__all__ = [
+    "BoxGrid",
+    "closest_faces_scan",
+    "locate_in_tets",
+    "surface_candidates",
+    "tet_spheres",
+    "triangle_spheres",
+]
 
 # The cell edge is this many times the mean box width (along x).
 _CELL_PER_BOX = 1.0
@@ -281,6 +288,79 @@ def _surface_candidates(points, triangles, centroids, radii, slack, thin):  # pr
                 chosen_faces[at] = face
                 at += 1
     return queries, chosen_faces
+
+
+def closest_faces_scan(
+    points: np.ndarray,
+    triangles: np.ndarray,
+    centroids: np.ndarray,
+    radii: np.ndarray,
+    slack: float,
+    thin: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The closest face of each query and its barycentric coordinates there, for few queries on a small
+    surface, in one compiled pass: :func:`surface_candidates`' pairs, Ericson's coordinates on each
+    (:func:`refsim.geometry.closest_kernel.ericson_regular`), and per query the pair of least squared
+    distance, ties to the lowest face; shapes (q,), (q, 3), and (q,) whether each query was settled here.
+
+    A query is settled when every one of its pairs is (a regular triangle, finite non-negative coordinates);
+    the others (a thin candidate face) are left to the NumPy path, with zeros here. Where settled, the answer
+    is the NumPy path's bit for bit: the closest point Σ b_k t_k summed as ``np.einsum("qk,qki->qi")`` does,
+    ((b₀t₀ + b₁t₁) + b₂t₂), the squared distance as ``np.sum(d ** 2, axis=1)``, ((d₀² + d₁²) + d₂²), and the
+    choice as ``np.lexsort((faces, distance2, queries))``'s first per query
+    (:meth:`refsim.geometry.SurfaceProjector.closest_faces`; ``tests/geometry/test_search.py``).
+    """
+    return _closest_faces_scan(
+        np.ascontiguousarray(points, dtype=float),
+        np.ascontiguousarray(triangles, dtype=float),
+        np.ascontiguousarray(centroids, dtype=float),
+        np.ascontiguousarray(radii, dtype=float),
+        float(slack),
+        float(thin),
+    )
+
+
+@numba.njit(cache=True)
+def _closest_faces_scan(points, triangles, centroids, radii, slack, thin):  # pragma: no cover - compiled
+    queries, faces = _surface_candidates(points, triangles, centroids, radii, slack, thin)
+    pairs = queries.shape[0]
+    pair_points = np.empty((pairs, 3))
+    pair_triangles = np.empty((pairs, 3, 3))
+    for i in range(pairs):
+        for axis in range(3):
+            pair_points[i, axis] = points[queries[i], axis]
+            for corner in range(3):
+                pair_triangles[i, corner, axis] = triangles[faces[i], corner, axis]
+    barycentric, _, settled = ericson_regular(pair_points, pair_triangles, thin)
+    count = points.shape[0]
+    face_index = np.zeros(count, dtype=np.int64)
+    coordinates = np.zeros((count, 3))
+    least = np.full(count, np.inf)
+    found = np.zeros(count, dtype=np.bool_)
+    done = np.ones(count, dtype=np.bool_)
+    for i in range(pairs):  # by query, faces ascending (surface_candidates' order): a tie keeps the first
+        q = queries[i]
+        if not settled[i]:
+            done[q] = False
+            continue
+        u, v, w = barycentric[i, 0], barycentric[i, 1], barycentric[i, 2]
+        squares = 0.0
+        for axis in range(3):
+            closest = (u * pair_triangles[i, 0, axis] + v * pair_triangles[i, 1, axis]) + w * pair_triangles[
+                i, 2, axis
+            ]
+            offset = closest - pair_points[i, axis]
+            squares = squares + offset * offset if axis else offset * offset
+        if not found[q] or squares < least[q]:
+            found[q] = True
+            least[q] = squares
+            face_index[q] = faces[i]
+            coordinates[q, 0], coordinates[q, 1], coordinates[q, 2] = u, v, w
+    for q in range(count):
+        if not done[q]:
+            face_index[q] = 0
+            coordinates[q, 0], coordinates[q, 1], coordinates[q, 2] = 0.0, 0.0, 0.0
+    return face_index, coordinates, done
 
 
 @numba.njit(cache=True)

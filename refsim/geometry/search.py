@@ -372,8 +372,26 @@ class SurfaceProjector:
         return face_index, barycentric
 
     def _closest_chunk(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if points.shape[0] * self.faces.shape[0] <= _SCAN_PAIRS:
+            from refsim.geometry.grid import closest_faces_scan  # numba: imported on first use
+
+            # one compiled pass for the queries whose candidates are all regular faces (the bits of the
+            # NumPy path below); a query with a thin candidate takes that path
+            face_index, barycentric, settled = closest_faces_scan(
+                points, self.triangles, self.centroids, self.radii, _RADIUS_SLACK, _THIN_AREA
+            )
+            if not settled.all():
+                careful = np.flatnonzero(~settled)
+                face_index[careful], barycentric[careful] = self._closest_pairs(points[careful])
+            return face_index, barycentric
+        return self._closest_pairs(points, indexed=True)
+
+    def _closest_pairs(self, points: np.ndarray, *, indexed: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """The closest face of each query from its candidate pairs in NumPy (the careful path for thin
+        triangles included): the pairs from the scan (:func:`refsim.geometry.grid.surface_candidates`), or
+        from the KD-trees when ``indexed``."""
         count = points.shape[0]
-        if count * self.faces.shape[0] <= _SCAN_PAIRS:
+        if not indexed:
             from refsim.geometry.grid import surface_candidates  # numba: imported on first use
 
             queries, faces = surface_candidates(

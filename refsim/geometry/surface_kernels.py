@@ -1,9 +1,10 @@
-"""Compiled passes over small surfaces and polylines (numba): the cut surface's vertex normals and the closest
-points of a polyline, evaluated for a few dozen needle samples every cutting step.
+"""Compiled passes over small surfaces and polylines (numba): the cut surface's vertex normals, whether a
+closest point lies inside an open surface, and the closest points of a polyline, evaluated for a few dozen
+needle samples every cutting step.
 
 Each does the operations of its NumPy reference in the same order and gives its bits
-(``tests/geometry/test_surface_kernels.py``): NumPy's cost there was its many small arrays, not its
-arithmetic.
+(``tests/geometry/test_surface_kernels.py``; the inside test against ``CutSurface._inside_reference`` in
+``tests/cutting/test_surface.py``): NumPy's cost there was its many small arrays, not its arithmetic.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import numpy as np
 
 from refsim.kernel_cache import numba
 
-__all__ = ["polyline_closest", "vertex_normals"]
+__all__ = ["inside_surface", "polyline_closest", "vertex_normals"]
 
 
 def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -55,6 +56,122 @@ def _vertex_normals(points, triangles):  # pragma: no cover - compiled
         for axis in range(3):
             summed[vertex, axis] /= length
     return summed
+
+
+def inside_surface(
+    points: np.ndarray,
+    corners: np.ndarray,
+    barycentric: np.ndarray,
+    local: np.ndarray,
+    tolerance: float,
+    edge_keys: np.ndarray,
+    edge_uses: np.ndarray,
+    key_base: int,
+    border_points: np.ndarray,
+) -> np.ndarray:
+    """Whether each query projects inside an open triangle surface, from its closest point, shape (q,) bool
+    (:meth:`refsim.cutting.CutSurface.closest_points`).
+
+    Inside when the orthogonal projection on the closest triangle's plane has all three barycentric
+    coordinates ≥ −``tolerance`` (non-finite ones count as −∞); else, a closest point on an edge (one
+    coordinate ≤ ``tolerance``) is inside when the edge is used by two triangles, one at a vertex (two) when
+    the vertex is not on the border.
+
+    Parameters
+    ----------
+    points : Query points [m], shape (q, 3).
+    corners : The closest triangles' vertices [m], shape (q, 3, 3).
+    barycentric : The closest points' barycentric coordinates there, shape (q, 3).
+    local : The closest triangles' vertex indices, shape (q, 3).
+    tolerance : Tolerance on barycentric coordinates.
+    edge_keys : Undirected edge keys min·key_base + max, sorted, shape (e,); ``edge_uses`` their triangle
+        counts, shape (e,).
+    key_base : max(point_count, 1).
+    border_points : The border's vertices, sorted, shape (b,).
+    """
+    return _inside_surface(
+        np.ascontiguousarray(points, dtype=float),
+        np.ascontiguousarray(corners, dtype=float),
+        np.ascontiguousarray(barycentric, dtype=float),
+        np.ascontiguousarray(local, dtype=np.int64),
+        float(tolerance),
+        np.ascontiguousarray(edge_keys, dtype=np.int64),
+        np.ascontiguousarray(edge_uses),
+        int(key_base),
+        np.ascontiguousarray(border_points, dtype=np.int64),
+    )
+
+
+@numba.njit(cache=True)
+def _dot3(x0, x1, x2, y0, y1, y2):  # pragma: no cover - compiled
+    # np.einsum("qi,qi->q") over three components: (p₀ + p₂) + p₁
+    return (x0 * y0 + x2 * y2) + x1 * y1
+
+
+@numba.njit(cache=True)
+def _sorted_index(values, key):  # pragma: no cover - compiled
+    # np.clip(np.searchsorted(values, key), 0, len - 1)
+    position = np.searchsorted(values, key)
+    return min(max(position, 0), values.shape[0] - 1)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _inside_surface(
+    points, corners, barycentric, local, tolerance, edge_keys, edge_uses, key_base, border_points
+):  # pragma: no cover - compiled
+    count = points.shape[0]
+    inside = np.empty(count, dtype=np.bool_)
+    for q in range(count):
+        # the projection's coordinates on the triangle's plane: refsim.cutting.surface._plane_barycentric's
+        # operations in its order
+        ax, ay, az = corners[q, 0, 0], corners[q, 0, 1], corners[q, 0, 2]
+        v0x, v0y, v0z = corners[q, 1, 0] - ax, corners[q, 1, 1] - ay, corners[q, 1, 2] - az
+        v1x, v1y, v1z = corners[q, 2, 0] - ax, corners[q, 2, 1] - ay, corners[q, 2, 2] - az
+        v2x, v2y, v2z = points[q, 0] - ax, points[q, 1] - ay, points[q, 2] - az
+        d00 = _dot3(v0x, v0y, v0z, v0x, v0y, v0z)
+        d01 = _dot3(v0x, v0y, v0z, v1x, v1y, v1z)
+        d11 = _dot3(v1x, v1y, v1z, v1x, v1y, v1z)
+        d20 = _dot3(v2x, v2y, v2z, v0x, v0y, v0z)
+        d21 = _dot3(v2x, v2y, v2z, v1x, v1y, v1z)
+        denominator = d00 * d11 - d01 * d01
+        v = (d11 * d20 - d01 * d21) / denominator
+        w = (d00 * d21 - d01 * d20) / denominator
+        u = 1.0 - v - w
+        projected_inside = True
+        for value in (u, v, w):
+            if not np.isfinite(value) or not value >= -tolerance:
+                projected_inside = False
+        if projected_inside:
+            inside[q] = True
+            continue
+        zeros = 0
+        first_zero, first_nonzero = -1, -1
+        for k in range(3):
+            if barycentric[q, k] <= tolerance:
+                zeros += 1
+                if first_zero < 0:
+                    first_zero = k
+            elif first_nonzero < 0:
+                first_nonzero = k
+        if zeros == 1:  # on the edge opposite the zero coordinate: inside when two triangles share it
+            start, end = local[q, (first_zero + 1) % 3], local[q, (first_zero + 2) % 3]
+            key = min(start, end) * key_base + max(start, end)
+            if edge_keys.shape[0] == 0:
+                inside[q] = False
+                continue
+            position = _sorted_index(edge_keys, key)
+            uses = edge_uses[position] if edge_keys[position] == key else 0
+            inside[q] = uses >= 2
+        elif zeros == 2:  # at the vertex of the non-zero coordinate: inside off the border
+            vertex = local[q, first_nonzero]
+            if border_points.shape[0] == 0:
+                inside[q] = True
+                continue
+            position = _sorted_index(border_points, vertex)
+            inside[q] = border_points[position] != vertex
+        else:
+            inside[q] = False
+    return inside
 
 
 def polyline_closest(points: np.ndarray, polyline: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -225,3 +225,36 @@ def test_closest_point_on_an_interior_ridge_edge_is_inside():
     _, closest, _, inside = surface.closest_points(queries, surface.rest_points)
     np.testing.assert_allclose(closest, [[3 * SPACING, 2.5 * SPACING, 0], [3 * SPACING, 0, 0]], atol=1e-15)
     assert inside.tolist() == [True, False]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_inside_is_the_numpy_reference_bit_for_bit_on_edges_and_vertices(seed):
+    # Reference: CutSurface._inside_reference, the NumPy evaluation (plane coordinates, then the edge-use and
+    # border-vertex lookups) that the compiled pass (refsim.geometry.surface_kernels.inside_surface) does in
+    # the same operations and order, so the tolerance is zero. A twisted pyramid sheet puts closest points
+    # on interior and border edges and at interior and border vertices; queries snapped to the sheet's
+    # vertices and edge midpoints (then lifted) reach each branch, and the test checks that they did.
+    rng = np.random.default_rng(300 + seed)
+    i, j = np.meshgrid(np.arange(5), np.arange(7), indexing="ij")
+    x, y = j.reshape(-1) * SPACING, i.reshape(-1) * SPACING
+    slopes = np.tan(np.radians(rng.uniform(5, 40, 2)))
+    z = -slopes[0] * np.abs(x - 3 * SPACING) - slopes[1] * np.abs(y - 2 * SPACING)  # a peak at node 17
+    z += rng.uniform(-0.1, 0.1) * x * y / SPACING
+    points = np.column_stack([x, y, z])
+    triangles = grid_triangles(np.arange(35).reshape(5, 7))
+    surface = append_points(
+        CutSurface.empty(), points, np.zeros(35, int), np.full((35, 4), 0.25), 0, triangles
+    )
+    edges = surface.triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    anchors = np.concatenate([points, points[edges].mean(axis=1), rng.uniform(-1, 7, (40, 3)) * SPACING])
+    queries = anchors + rng.normal(0.0, 0.6 * SPACING, anchors.shape) * [0.05, 0.05, 1.0]
+    found = surface.closest_points(queries, points)
+    local = surface.triangles[found.triangle]
+    reference = surface._inside_reference(queries, points[local], found.barycentric, local)
+    np.testing.assert_array_equal(found.inside, reference)
+    zeros = (found.barycentric <= 1e-9).sum(axis=1)
+    plane_inside = surface._inside_reference(queries, points[local], np.ones_like(found.barycentric), local)
+    for branch in (1, 2):  # closest point on an edge, at a vertex: decided by the lookups, both ways
+        decided = ~plane_inside & (zeros == branch)
+        assert found.inside[decided].any() and not found.inside[decided].all()
+    assert found.inside.any() and not found.inside.all()

@@ -313,6 +313,44 @@ def test_projector_scan_and_kd_trees_give_the_same_bits(graded, box, offset):
         assert projector.faces.shape[0] * points.shape[0] <= search._SCAN_PAIRS  # the scan was taken
 
 
+def test_compiled_scan_is_the_numpy_pairs_answer_and_leaves_thin_candidates_to_it(box):
+    # Reference: SurfaceProjector._closest_pairs, the NumPy path (Ericson's coordinates, the careful path for
+    # thin triangles, np.lexsort of the squared distances, ties to the lowest face). The compiled scan
+    # (refsim.geometry.grid.closest_faces_scan) settles the queries whose candidates are all regular in the
+    # same operations and order, so the tolerance is zero; a query with a thin candidate goes to the NumPy
+    # path. The box's top with a fan of slivers glued to one corner has both kinds of query, and ties (its
+    # vertices and edges).
+    from refsim.geometry.grid import closest_faces_scan
+
+    rng = np.random.default_rng(11)
+    mesh, _ = box
+    top = mesh.boundary_faces[np.all(mesh.rest_positions[mesh.boundary_faces][:, :, 2] == 1.0, axis=1)]
+    count = mesh.rest_positions.shape[0]
+    slivers = rng.uniform(size=(10, 3)) * [1e-7, 1.0, 1e-9] + [1.0, 0.0, 1.0]
+    positions = np.concatenate([mesh.rest_positions, slivers])
+    fan = np.column_stack([count + np.arange(9), count + np.arange(1, 10), np.full(9, count)])
+    faces = np.concatenate([top, fan])
+    grid = rng.integers(0, 5, (60, 2)) / np.array([4.0, 3.0])
+    points = np.concatenate(
+        [
+            np.column_stack([grid + rng.choice([0.0, 1e-12], grid.shape), 1.0 + rng.uniform(0, 0.3, 60)]),
+            rng.uniform([0.9, -0.1, 0.9], [1.1, 1.1, 1.1], (40, 3)),
+        ]
+    )
+    projector = SurfaceProjector(positions, faces)
+    _, _, settled = closest_faces_scan(
+        points,
+        projector.triangles,
+        projector.centroids,
+        projector.radii,
+        search._RADIUS_SLACK,
+        search._THIN_AREA,
+    )
+    assert settled.any() and not settled.all()
+    for got, expected in zip(projector._closest_chunk(points), projector._closest_pairs(points), strict=True):
+        np.testing.assert_array_equal(got, expected)
+
+
 def test_scan_keeps_only_the_nearest_faces_of_well_shaped_surfaces(box):
     # The scan evaluates well-shaped faces (|ab × ac| ≥ thin L², NumPy's Ericson path) by their distance and
     # keeps the nearest and its ties only: above the box's top, at most the faces around one grid vertex (8),
