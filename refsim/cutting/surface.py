@@ -251,7 +251,9 @@ class CutSurface:
                 "the cut surface has no triangle yet: check triangle_count before closest_points"
             )
         queries = np.asarray(points, dtype=float)
-        face_index, barycentric = SurfaceProjector(deformed_points, self.triangles).closest_faces(queries)
+        face_index, barycentric = SurfaceProjector(deformed_points, self.triangles).closest_faces(
+            queries, compiled_choice=True
+        )
         local = self.triangles[face_index]
         corners = deformed_points[local]  # (q, 3, 3)
         closest = np.einsum("qk,qki->qi", barycentric, corners)

@@ -299,46 +299,40 @@ def closest_faces_scan(
     thin: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The closest face of each query and its barycentric coordinates there, for few queries on a small
-    surface, in one compiled pass: :func:`surface_candidates`' pairs, Ericson's coordinates on each
+    surface: :func:`surface_candidates`' pairs, Ericson's coordinates on each
     (:func:`refsim.geometry.closest_kernel.ericson_regular`), and per query the pair of least squared
-    distance, ties to the lowest face; shapes (q,), (q, 3), and (q,) whether each query was settled here.
+    distance, ties to the lowest face (one compiled pass, :func:`_nearest_pairs`); shapes (q,), (q, 3), and
+    (q,) whether each query was settled here.
 
     A query is settled when every one of its pairs is (a regular triangle, finite non-negative coordinates);
     the others (a thin candidate face) are left to the NumPy path, with zeros here. Where settled, the answer
     is the NumPy path's bit for bit: the closest point Σ b_k t_k summed as ``np.einsum("qk,qki->qi")`` does,
     ((b₀t₀ + b₁t₁) + b₂t₂), the squared distance as ``np.sum(d ** 2, axis=1)``, ((d₀² + d₁²) + d₂²), and the
     choice as ``np.lexsort((faces, distance2, queries))``'s first per query
-    (:meth:`refsim.geometry.SurfaceProjector.closest_faces`; ``tests/geometry/test_search.py``).
+    (:meth:`refsim.geometry.SurfaceProjector.closest_faces`; ``tests/geometry/test_search.py``). The three
+    kernels stay separate compiled functions (one calling the others would compile them again inside it:
+    seconds more of a fresh install's first run).
     """
-    return _closest_faces_scan(
-        np.ascontiguousarray(points, dtype=float),
-        np.ascontiguousarray(triangles, dtype=float),
-        np.ascontiguousarray(centroids, dtype=float),
-        np.ascontiguousarray(radii, dtype=float),
-        float(slack),
-        float(thin),
-    )
+    points = np.ascontiguousarray(points, dtype=float)
+    triangles = np.ascontiguousarray(triangles, dtype=float)
+    queries, faces = surface_candidates(points, triangles, centroids, radii, slack, thin)
+    pair_points, pair_triangles = points[queries], triangles[faces]
+    barycentric, _, settled = ericson_regular(pair_points, pair_triangles, float(thin))
+    return _nearest_pairs(queries, faces, barycentric, settled, pair_points, pair_triangles, points.shape[0])
 
 
 @numba.njit(cache=True)
-def _closest_faces_scan(points, triangles, centroids, radii, slack, thin):  # pragma: no cover - compiled
-    queries, faces = _surface_candidates(points, triangles, centroids, radii, slack, thin)
-    pairs = queries.shape[0]
-    pair_points = np.empty((pairs, 3))
-    pair_triangles = np.empty((pairs, 3, 3))
-    for i in range(pairs):
-        for axis in range(3):
-            pair_points[i, axis] = points[queries[i], axis]
-            for corner in range(3):
-                pair_triangles[i, corner, axis] = triangles[faces[i], corner, axis]
-    barycentric, _, settled = ericson_regular(pair_points, pair_triangles, thin)
-    count = points.shape[0]
+def _nearest_pairs(
+    queries, faces, barycentric, settled, pair_points, pair_triangles, count
+):  # pragma: no cover - compiled
     face_index = np.zeros(count, dtype=np.int64)
     coordinates = np.zeros((count, 3))
     least = np.full(count, np.inf)
     found = np.zeros(count, dtype=np.bool_)
     done = np.ones(count, dtype=np.bool_)
-    for i in range(pairs):  # by query, faces ascending (surface_candidates' order): a tie keeps the first
+    for i in range(
+        queries.shape[0]
+    ):  # by query, faces ascending (surface_candidates' order): a tie keeps the first
         q = queries[i]
         if not settled[i]:
             done[q] = False

@@ -359,24 +359,34 @@ class SurfaceProjector:
             face_index, closest, barycentric, distance, triangle_normals(self.triangles[face_index])
         )
 
-    def closest_faces(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def closest_faces(
+        self, points: np.ndarray, *, compiled_choice: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The face holding each query point's closest point and its barycentric coordinates there, shapes
-        (q,), (q, 3): what :meth:`closest` finds, without the points, distances and normals it derives."""
+        (q,), (q, 3): what :meth:`closest` finds, without the points, distances and normals it derives.
+
+        ``compiled_choice``: for few queries (the scan), Ericson's coordinates and the choice of the nearest
+        pair in compiled passes (:func:`refsim.geometry.grid.closest_faces_scan`), the same bits as the
+        NumPy path; for a caller at every step of a run (the needle on its cut), whose cost was that path's
+        NumPy calls. Off, a run that never asks compiles nothing more (a fresh install's first run)."""
         points = _check_points(points)
         count = points.shape[0]
         face_index = np.zeros(count, dtype=np.int64)
         barycentric = np.zeros((count, 3))
         for start in range(0, count, _CHUNK):
             chunk = slice(start, start + _CHUNK)
-            face_index[chunk], barycentric[chunk] = self._closest_chunk(points[chunk])
+            face_index[chunk], barycentric[chunk] = self._closest_chunk(points[chunk], compiled_choice)
         return face_index, barycentric
 
-    def _closest_chunk(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        if points.shape[0] * self.faces.shape[0] <= _SCAN_PAIRS:
+    def _closest_chunk(
+        self, points: np.ndarray, compiled_choice: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
+        scan = points.shape[0] * self.faces.shape[0] <= _SCAN_PAIRS
+        if scan and compiled_choice:
             from refsim.geometry.grid import closest_faces_scan  # numba: imported on first use
 
-            # one compiled pass for the queries whose candidates are all regular faces (the bits of the
-            # NumPy path below); a query with a thin candidate takes that path
+            # the queries whose candidates are all regular faces (the bits of the NumPy path below); a query
+            # with a thin candidate takes that path
             face_index, barycentric, settled = closest_faces_scan(
                 points, self.triangles, self.centroids, self.radii, _RADIUS_SLACK, _THIN_AREA
             )
@@ -384,7 +394,7 @@ class SurfaceProjector:
                 careful = np.flatnonzero(~settled)
                 face_index[careful], barycentric[careful] = self._closest_pairs(points[careful])
             return face_index, barycentric
-        return self._closest_pairs(points, indexed=True)
+        return self._closest_pairs(points, indexed=not scan)
 
     def _closest_pairs(self, points: np.ndarray, *, indexed: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """The closest face of each query from its candidate pairs in NumPy (the careful path for thin

@@ -347,7 +347,8 @@ def test_compiled_scan_is_the_numpy_pairs_answer_and_leaves_thin_candidates_to_i
         search._THIN_AREA,
     )
     assert settled.any() and not settled.all()
-    for got, expected in zip(projector._closest_chunk(points), projector._closest_pairs(points), strict=True):
+    compiled = projector.closest_faces(points, compiled_choice=True)
+    for got, expected in zip(compiled, projector._closest_pairs(points), strict=True):
         np.testing.assert_array_equal(got, expected)
 
 
