@@ -33,6 +33,10 @@ _RADIUS_SLACK = 1e-9
 # TetLocator's grid holds each tet's bounding sphere grown for tolerances up to this (larger ones use the
 # KD-trees); the ring points of the coupling are located with 1e-6.
 _GRID_TOLERANCE = 1e-6
+# A locator of a sequence of configurations grows its grid's boxes by this fraction of each tet's grown
+# radius, and the next configuration's locator takes that grid over while every tet's box lies in its box
+# there (on cube_cut one grid serves every step from 0.05 up; a larger margin only adds candidates).
+_REUSE_MARGIN = 0.25
 # SurfaceProjector scans every face for each query (compiled, no index to build) up to this many pairs
 # (queries × faces) per chunk; beyond, it builds KD-trees. A step's queries (the tip and shaft samples on the
 # tissue's surface, the needle's samples on the cut) are far below.
@@ -123,6 +127,11 @@ class _RadiusClasses:
         return np.concatenate(queries), np.concatenate(elements)
 
 
+def _boxes_within(centroids: np.ndarray, radii: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> bool:
+    """Whether every box centroid ± radius lies in the box (lower, upper) of the same index."""
+    return bool(np.all(centroids - radii[:, None] >= lower) and np.all(centroids + radii[:, None] <= upper))
+
+
 def _first_per_query(queries: np.ndarray, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Given pair indices sorted by query then preference, the first pair of each query and its query."""
     sorted_queries = queries[order]
@@ -138,6 +147,10 @@ class TetLocator:
     ----------
     positions : Node positions [m], shape (node_count, 3); rest or deformed.
     tets : Node indices of the tetrahedra, shape (tet_count, 4); non-degenerate, any orientation.
+    previous : The locator of the same tets on an earlier configuration (the last step's), or None: its grid
+        of the tets' boxes is taken over while every tet's box still lies in its box there (the answers are
+        those of a grid built now, bit for bit); a locator given one builds its own grid with room to spare
+        (_REUSE_MARGIN) for the next.
 
     Notes
     -----
@@ -146,12 +159,22 @@ class TetLocator:
     coordinate is largest, ties going to the lowest tetrahedron index.
     """
 
-    def __init__(self, positions: np.ndarray, tets: np.ndarray):
+    def __init__(self, positions: np.ndarray, tets: np.ndarray, *, previous: TetLocator | None = None):
         self.positions, self.tets = _check_elements(positions, tets, 4, "tets")
         from refsim.geometry.grid import tet_spheres
 
         self.centroids, self._radii = tet_spheres(self.positions, self.tets)
         self._grid = None  # BoxGrid of the grown bounding spheres (tolerance <= _GRID_TOLERANCE), when used
+        # With ``previous`` (a locator of the same tets on an earlier configuration: a sequence of
+        # configurations, one per step) the grid is built with room to spare (_REUSE_MARGIN) and taken over
+        # from ``previous`` while every tet's box still lies in its box there (:meth:`_box_grid`).
+        self._reusable = previous is not None
+        self._previous_grid = None
+        if previous is not None and previous._reusable:
+            grid = previous._grid if previous._grid is not None else previous._previous_grid
+            if grid is not None and previous.tets.shape == self.tets.shape:
+                if np.array_equal(previous.tets, self.tets):
+                    self._previous_grid = grid
         self._classes = None  # KD-trees per radius class (larger tolerances), on first use
         self._surface: tuple[SurfaceProjector, np.ndarray] | None = None
 
@@ -213,12 +236,26 @@ class TetLocator:
         return self._classes.pairs(points, 6.0 * tolerance * self._radii.max())
 
     def _box_grid(self):
-        """The compiled grid of the tets' bounding spheres grown for tolerances up to 1e-6, built on first
-        use."""
+        """The compiled grid of boxes around the tets' bounding spheres grown for tolerances up to 1e-6, built
+        on first use, or taken over from the previous configuration's locator.
+
+        A grid only proposes candidates: a point is then tested against each candidate tet's current sphere
+        and barycentric coordinates, and the choice among the tets that hold it does not depend on their
+        order. A grid whose every box contains the tet's current box therefore gives the answer of a grid
+        built now, bit for bit. A locator given a ``previous`` one grows its boxes by _REUSE_MARGIN of the
+        grown radius and takes over ``previous``'s grid while every tet's box lies in it (a tissue whose tets
+        each moved less than that margin since the grid was built)."""
         if self._grid is None:
+            grown = self._radii * (1.0 + 6.0 * _GRID_TOLERANCE + 2.0 * _RADIUS_SLACK)
+            previous = self._previous_grid
+            self._previous_grid = None
+            if previous is not None and _boxes_within(self.centroids, grown, previous.lower, previous.upper):
+                self._grid = previous
+                return self._grid
             from refsim.geometry.grid import BoxGrid  # numba: imported on first use
 
-            grown = self._radii * (1.0 + 6.0 * _GRID_TOLERANCE + 2.0 * _RADIUS_SLACK)
+            if self._reusable:
+                grown = grown * (1.0 + _REUSE_MARGIN)
             self._grid = BoxGrid(self.centroids - grown[:, None], self.centroids + grown[:, None])
         return self._grid
 

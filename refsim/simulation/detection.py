@@ -152,6 +152,9 @@ class Detector:
         #: The last channels of the tissue the holes were read from, with their entries' rest positions (h, 3)
         #: and radii (h,) (_hole).
         self._holes_memo: tuple[tuple[Channel, ...], np.ndarray, np.ndarray] | None = None
+        # the last step's start-of-step locator of the cut rows (a needle meeting another's cut), whose grid
+        # the next one takes over while the tets move little (refsim.geometry.TetLocator)
+        self._cut_locator: TetLocator | None = None
         #: The local mesh size of every rest tet [m] (local_mesh_size), for the rings' radii.
         self.tet_sizes = None
         if rest_positions is not None and tets is not None:
@@ -452,10 +455,10 @@ class Detector:
         if state is not None and state.entry_span is not None:
             entry_arc_length, exit_arc_length = state.entry_span
         else:
+            locator = TetLocator(geometry.tissue_previous, geometry.mesh_tets, previous=self._cut_locator)
+            self._cut_locator = locator
             entry_arc_length, exit_arc_length = inserted_span(
-                geometry.needle_previous,
-                TetLocator(geometry.tissue_previous, geometry.mesh_tets),
-                self.cutting.point_spacing,
+                geometry.needle_previous, locator, self.cutting.point_spacing
             )
         if state is None:
             return strip_cut_block(

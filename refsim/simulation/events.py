@@ -128,14 +128,20 @@ class LazyLocator:
     """The tet locator of one tissue configuration, built on first use (most steps locate nothing beyond the
     tip's neighbourhood); the events of a step share one, on the step's corrected positions."""
 
-    def __init__(self, positions: np.ndarray, tets: np.ndarray) -> None:
-        self._positions, self._tets, self._locator = positions, tets, None
+    def __init__(self, positions: np.ndarray, tets: np.ndarray, previous: TetLocator | None = None) -> None:
+        self._positions, self._tets, self._locator, self._previous = positions, tets, None, previous
 
     @property
     def locator(self) -> TetLocator:
-        """The locator (built now if not yet)."""
+        """The locator (built now if not yet; its grid taken over from ``previous``, the locator of an
+        earlier step, while the tets have moved little: `refsim.geometry.TetLocator`)."""
         if self._locator is None:
-            self._locator = TetLocator(self._positions, self._tets)
+            self._locator = TetLocator(self._positions, self._tets, previous=self._previous)
+        return self._locator
+
+    @property
+    def built(self) -> TetLocator | None:
+        """The locator if it was built, else None."""
         return self._locator
 
     def locate(self, points: np.ndarray, **options):
@@ -205,6 +211,8 @@ class EventRules:
         self._around: dict[int, np.ndarray] = {}
         # tet → the nodes of those tets, (c, 4), kept with them
         self._around_nodes: dict[int, np.ndarray] = {}
+        # the last step's deformed-mesh locator, whose grid the next one takes over while the tets move little
+        self._last_locator: TetLocator | None = None
         #: The criteria each step's events compare, with their margins (refsim.simulation.margins).
         self.margins = MarginWatch(scene.solver.tolerance)
         self.growth = None
@@ -228,7 +236,7 @@ class EventRules:
             state = evolved(state, entry_span=None)
         rows = detection.rows
         # One locator of the step's configuration for every event that needs one (built when first used).
-        locator = LazyLocator(world.tissue.positions, self.tets)
+        locator = LazyLocator(world.tissue.positions, self.tets, previous=self._last_locator)
         if state.phase == Phase.APPROACH and rows.row_count:
             state, events = self._puncture(world, state, detection, multipliers)
         if state.phase == Phase.APPROACH and detection.hole is not None:
@@ -254,6 +262,8 @@ class EventRules:
             )
         if stretch is not None or state.cut_face_stretch is not None:
             state = evolved(state, cut_face_stretch=stretch)
+        if locator.built is not None:
+            self._last_locator = locator.built
         return world.with_instrument(state), events
 
     def _puncture(self, world, state, detection, multipliers):

@@ -440,3 +440,39 @@ def test_projector_normals_of_the_chosen_faces_are_the_faces_normals(graded):
     points = np.random.default_rng(12).uniform(-0.3, 1.3, size=(60, 3))
     result = projector.closest(points)
     np.testing.assert_array_equal(result.normal, projector.normals[result.face_index])
+
+
+def test_a_locator_takes_over_the_previous_configurations_grid_and_gives_a_fresh_locators_bits(box):
+    # Reference: a TetLocator built on the configuration alone. A locator given the previous configuration's
+    # locator takes that grid over while every tet's box lies in its box there (the boxes only propose
+    # candidates; each is tested on the current configuration and the choice does not depend on their
+    # order), so the answers are a fresh locator's bit for bit. Small moves (well within the margin) keep
+    # the grid; a move of a node by more than the margin, or other tets, build a new one.
+    mesh, _ = box
+    rng = np.random.default_rng(21)
+    rest = mesh.rest_positions
+    size = 0.25  # the box's element size along x (4 cells)
+    points = np.concatenate(
+        [rng.uniform(-0.05, 1.05, (300, 3)), rest[rng.integers(0, rest.shape[0], 40)]]  # nodes: ties
+    )
+    previous = TetLocator(rest, mesh.tets, previous=None)
+    previous.locate(points)
+    grids = []
+    positions = rest.copy()
+    for step in range(6):
+        positions = positions + rng.normal(0.0, 1e-4 * size, positions.shape)
+        if step == 4:
+            positions[13] += [1.5, 0.0, 0.0]  # one node moves by far more than the margin (radii 0.36-0.42)
+        locator = TetLocator(positions, mesh.tets, previous=previous)
+        for got, expected in zip(
+            locator.locate(points), TetLocator(positions, mesh.tets).locate(points), strict=True
+        ):
+            np.testing.assert_array_equal(got, expected)
+        grids.append(locator._grid)
+        previous = locator
+    assert grids[1] is grids[0] and grids[3] is grids[0]  # taken over (the first chained locator built it)
+    assert grids[4] is not grids[3]  # the large move: a new grid
+    assert grids[5] is grids[4]
+    other = TetLocator(positions, mesh.tets[::-1].copy(), previous=previous)
+    other.locate(points[:5])
+    assert other._grid is not grids[5]  # other tets: never taken over

@@ -6,7 +6,9 @@ summation plan of each set of rows' nodes (``rows._PLANS``), the 2-D
 sub-grid compliance of the last insertion rows (``Detector._compliance``, by the bytes of the rows' kinds
 and the points' mesh sizes), the tets around each tet the tip was in (``EventRules._tets_around``), the
 ring angles per point count (``coupling._ring_angles``) and the rest entries of the tissue's holes
-(``Detector._holes_memo``, by the channels' tuple). Each is a function of its key alone; a run whose
+(``Detector._holes_memo``, by the channels' tuple), and the last deformed-mesh locators, whose grid of the
+tets' boxes the next step's locator takes over while each tet's box still lies in its box there
+(``EventRules._last_locator``, ``Detector._cut_locator``). Each is a function of its key alone; a run whose
 every store is emptied before each step must give the same bits as one that keeps them, through a puncture,
 insertion (points added), a withdrawal out of the tissue and a re-entry into its hole (points removed, a
 hole kept, the rings and patterns of a new path), and through a cut (cube_cut: its rows, the cut surface
@@ -63,6 +65,8 @@ def _forget(simulation: Simulation) -> None:
     for instrument in simulation.instruments:
         instrument.detector._compliance_memo = None
         instrument.detector._holes_memo = None
+        instrument.detector._cut_locator = None
+        instrument.event_rules._last_locator = None
         instrument.event_rules._around.clear()
         instrument.event_rules._around_nodes.clear()
 
