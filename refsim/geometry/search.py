@@ -35,7 +35,7 @@ _RADIUS_SLACK = 1e-9
 _GRID_TOLERANCE = 1e-6
 # A locator of a sequence of configurations grows its grid's boxes by this fraction of each tet's grown
 # radius, and the next configuration's locator takes that grid over while every tet's box lies in its box
-# there (on cube_cut one grid serves every step from 0.05 up; a larger margin only adds candidates).
+# there (a larger margin keeps a grid through larger motions and adds candidates to every query).
 _REUSE_MARGIN = 0.25
 # SurfaceProjector scans every face for each query (compiled, no index to build) up to this many pairs
 # (queries × faces) per chunk; beyond, it builds KD-trees. A step's queries (the tip and shaft samples on the
