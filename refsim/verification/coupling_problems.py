@@ -17,7 +17,6 @@ import math
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from refsim.constraints.coupling import (
     coupling_radius,
@@ -184,6 +183,26 @@ def _interpolation_rows(
     return matrix
 
 
+class _Factor:
+    """An SPD matrix factorised by refsim's linear solver (:func:`refsim.fem.linear.make_linear_solver`:
+    PARDISO where oneMKL loads, else the supernodal Cholesky), one thread: W = P K⁻¹ Pᵀ solves hundreds of
+    right-hand sides at once, which these solve by dense blocks (SuperLU's solve goes column by column)."""
+
+    def __init__(self, matrix: sp.spmatrix) -> None:
+        from refsim.fem.linear import make_linear_solver
+        from refsim.fem.threads import hot_path_threads
+
+        self._threads = hot_path_threads
+        self._solver = make_linear_solver()
+        with hot_path_threads():
+            self._solver.factorise(sp.csr_matrix(matrix))
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """K⁻¹ rhs, rhs of shape (n,) or (n, k)."""
+        with self._threads():
+            return self._solver.solve(np.ascontiguousarray(rhs, dtype=float))
+
+
 class SlabResponse:
     """Tissue response of a slab with Dirichlet DoFs: W = P K_ff⁻¹ Pᵀ and the rows' values of a boundary
     field.
@@ -215,7 +234,7 @@ class SlabResponse:
         free = np.setdiff1d(np.arange(dof_count), fixed)
         data = np.zeros(dof_count)
         data[:] = values
-        factor = spla.splu(stiffness[free][:, free].tocsc())
+        factor = _Factor(stiffness[free][:, free])
         lifted = np.zeros(dof_count)
         lifted[fixed] = data[fixed]
         lifted[free] = factor.solve(-(stiffness[free][:, fixed] @ data[fixed]))
@@ -332,7 +351,7 @@ def _disc_slab_system(kind: str, outer: float, cells: int, layers: int, material
     fixed = np.unique(np.concatenate([slab_dofs(rim, [0, 1, 2]), slab_dofs(faces, face_components)]))
     free = np.setdiff1d(np.arange(model.dof_count), fixed)
     stiffness = model.rest_stiffness.tocsr()
-    return model, free, spla.splu(stiffness[free][:, free].tocsc())
+    return model, free, _Factor(stiffness[free][:, free])
 
 
 @functools.lru_cache(maxsize=256)
