@@ -49,6 +49,7 @@ import scipy.sparse.linalg as spla
 
 from refsim.fem.linear_common import (
     FactorisedValues,
+    KeepsFactor,
     LinearSolverError,
     _all_among,
     _check_square,
@@ -79,7 +80,7 @@ SUPERLU_ORDERINGS = ("MMD_AT_PLUS_A", "COLAMD", "MMD_ATA", "NATURAL")
 DEFAULT_SUPERLU_ORDERING = "MMD_AT_PLUS_A"
 
 
-class SuperLUSolver:
+class SuperLUSolver(KeepsFactor):
     """SuperLU (SciPy) in symmetric mode with a fill-reducing ordering.
 
     Parameters
@@ -132,11 +133,6 @@ class SuperLUSolver:
         return self._factor.solve(np.ascontiguousarray(rhs, dtype=float))
 
     @property
-    def factorisations(self) -> int:
-        """Numeric factorisations made (a factorisation of the values held keeps the factor: not counted)."""
-        return self._values.factorisations
-
-    @property
     def description(self) -> dict:
         return {"name": self.name, "ordering": self.ordering}
 
@@ -144,7 +140,7 @@ class SuperLUSolver:
 SUPERNODAL_ORDERINGS = ("auto", "metis", "minimum-degree")
 
 
-class SupernodalSolver:
+class SupernodalSolver(KeepsFactor):
     """refsim's own supernodal Cholesky (:mod:`refsim.fem.supernodal`): analysis once per pattern, numeric
     factorisation per step in compiled loops and SciPy's BLAS / LAPACK, one thread.
 
@@ -309,11 +305,6 @@ class SupernodalSolver:
         if rhs.shape[1] == 0:
             return np.zeros_like(rhs)
         return factor.forward(rhs)
-
-    @property
-    def factorisations(self) -> int:
-        """Numeric factorisations made (a factorisation of the values held keeps the factor: not counted)."""
-        return self._values.factorisations
 
     @property
     def description(self) -> dict:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["FactorisedValues", "LinearSolverError"]
+__all__ = ["FactorisedValues", "KeepsFactor", "LinearSolverError"]
 
 
 class LinearSolverError(RuntimeError):
@@ -48,6 +48,17 @@ class FactorisedValues:
     def forget(self) -> None:
         """No factor is held (released, or a new pattern): the next factorisation is made."""
         self._values = None
+
+
+class KeepsFactor:
+    """What a solver holding its values in ``self._values`` (:class:`FactorisedValues`) reports of them."""
+
+    _values: FactorisedValues
+
+    @property
+    def factorisations(self) -> int:
+        """Numeric factorisations made (a factorisation of the values held keeps the factor: not counted)."""
+        return self._values.factorisations
 
 
 def _same_memory(first: np.ndarray, second: np.ndarray) -> bool:

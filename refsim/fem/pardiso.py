@@ -16,6 +16,7 @@ import scipy.sparse as sp
 
 from refsim.fem.linear_common import (
     FactorisedValues,
+    KeepsFactor,
     LinearSolverError,
     _all_among,
     _check_square,
@@ -31,7 +32,7 @@ _MTYPE_SPD = ctypes.c_int32(2)  # PARDISO's matrix type: real symmetric positive
 _UNUSED = np.zeros(1)  # what an unused array argument points to
 
 
-class PardisoSolver:
+class PardisoSolver(KeepsFactor):
     """oneMKL PARDISO, real symmetric positive definite: analysis once per pattern, numeric refactorisation
     per step.
 
@@ -353,11 +354,6 @@ class PardisoSolver:
         y = np.zeros_like(b, order="F")
         self._call(331, b, y, rhs.shape[1])
         return np.ascontiguousarray(y)
-
-    @property
-    def factorisations(self) -> int:
-        """Numeric factorisations made (a factorisation of the values held keeps the factor: not counted)."""
-        return self._values.factorisations
 
     @property
     def description(self) -> dict:

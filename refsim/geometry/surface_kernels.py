@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from refsim.geometry.closest_kernel import _dot  # np.einsum("qi,qi->q")'s order: (p₀ + p₂) + p₁
 from refsim.kernel_cache import numba
 
 __all__ = ["inside_surface", "polyline_closest", "vertex_normals"]
@@ -103,12 +104,6 @@ def inside_surface(
 
 
 @numba.njit(cache=True)
-def _dot3(x0, x1, x2, y0, y1, y2):  # pragma: no cover - compiled
-    # np.einsum("qi,qi->q") over three components: (p₀ + p₂) + p₁
-    return (x0 * y0 + x2 * y2) + x1 * y1
-
-
-@numba.njit(cache=True)
 def _sorted_index(values, key):  # pragma: no cover - compiled
     # np.clip(np.searchsorted(values, key), 0, len - 1)
     position = np.searchsorted(values, key)
@@ -128,11 +123,11 @@ def _inside_surface(
         v0x, v0y, v0z = corners[q, 1, 0] - ax, corners[q, 1, 1] - ay, corners[q, 1, 2] - az
         v1x, v1y, v1z = corners[q, 2, 0] - ax, corners[q, 2, 1] - ay, corners[q, 2, 2] - az
         v2x, v2y, v2z = points[q, 0] - ax, points[q, 1] - ay, points[q, 2] - az
-        d00 = _dot3(v0x, v0y, v0z, v0x, v0y, v0z)
-        d01 = _dot3(v0x, v0y, v0z, v1x, v1y, v1z)
-        d11 = _dot3(v1x, v1y, v1z, v1x, v1y, v1z)
-        d20 = _dot3(v2x, v2y, v2z, v0x, v0y, v0z)
-        d21 = _dot3(v2x, v2y, v2z, v1x, v1y, v1z)
+        d00 = _dot(v0x, v0y, v0z, v0x, v0y, v0z)
+        d01 = _dot(v0x, v0y, v0z, v1x, v1y, v1z)
+        d11 = _dot(v1x, v1y, v1z, v1x, v1y, v1z)
+        d20 = _dot(v2x, v2y, v2z, v0x, v0y, v0z)
+        d21 = _dot(v2x, v2y, v2z, v1x, v1y, v1z)
         denominator = d00 * d11 - d01 * d01
         v = (d11 * d20 - d01 * d21) / denominator
         w = (d00 * d21 - d01 * d20) / denominator
