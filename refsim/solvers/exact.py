@@ -190,7 +190,7 @@ def _before_newton(problem, method: str, tolerance: float, symmetry_tolerance: f
     need be convex); (answer or None, asymmetry, Lemke's note).
 
     The asymmetry is needed before any solve here; else it comes after Newton, whose compiled set-up computes
-    it on small fresh problems (one call: see refsim.solvers.newton._solve_dense_fresh).
+    it on dense problems (one call: see refsim.solvers.newton._solve_dense_fresh).
     """
     asymmetry = problem.asymmetry()
     note = _asymmetry_note(asymmetry, symmetry_tolerance)
@@ -239,7 +239,7 @@ def _newton_route(
     presweeps = _presweep_budget(problem.row_count) if method == "auto" else 0
     stall = _AUTO_STALL if method == "auto" else _NEWTON_STALL
     if takes_fresh_path(problem):
-        # the one compiled call of small fresh problems; when it converged (as the report measures it),
+        # the one compiled call of dense problems; when it converged (as the report measures it),
         # the report straight from its outcome (what the general code below gives, without its layers: a
         # 3-row problem's whole solve is some 20 µs, of which these layers took about 5)
         start_point = np.zeros(problem.row_count) if warm_start is None else np.array(warm_start, np.float64)

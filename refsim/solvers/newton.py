@@ -54,7 +54,6 @@ from refsim.solvers.linear import (
 )
 from refsim.solvers.newton_kernel import (
     NewtonProblem,
-    _dense_newton,
     _dense_newton_fresh,
     _presweep,
     _sweep_arrays,
@@ -74,10 +73,6 @@ LINE_SEARCH_MEMORY = 3
 SPARSE_DENSITY = 0.15
 #: Dense problems up to this many rows solve J d = −F in compiled code (no SciPy call overhead).
 _COMPILED_SOLVE_BELOW = 120
-# : Fresh problems (nothing cached; every law, group friction included) with fewer rows than this take one
-# compiled : call for the set-up (block arrays, data scales, W's asymmetry) and the dense kernel
-#: (:func:`_dense_newton_fresh`).
-_FRESH_BELOW = 120
 
 
 @dataclass(slots=True)
@@ -235,70 +230,12 @@ def _dense_storage(problem: ConstraintProblem, sparse_above: int) -> bool:
     return n <= sparse_above or np.count_nonzero(problem.compliance) > SPARSE_DENSITY * n * n
 
 
-def _kernel_buffers(problem: ConstraintProblem, max_iterations: int, finals: int):
-    """(C-contiguous W, history (max_iterations + 1,), counts (5,) int64, final (finals,)) for the dense
-    kernels."""
-    compliance = problem.compliance
-    if not compliance.flags.c_contiguous:
-        compliance = np.ascontiguousarray(compliance)
-    return compliance, np.empty(int(max_iterations) + 1), np.zeros(5, dtype=np.int64), np.empty(finals)
-
-
-def _solve_dense_compiled(
-    problem,
-    kinds,
-    rows,
-    params,
-    members,
-    weight,
-    free_gap,
-    free_norm,
-    data_scale,
-    force_scale,
-    multipliers,
-    tolerance,
-    max_iterations,
-    eta_max,
-    line_search_memory,
-    stall_iterations,
-    presweeps,
-) -> NewtonResult:
-    """solve_newton on dense storage, every iteration in the compiled kernel :func:`_dense_newton`."""
-    compliance, history, counts, final = _kernel_buffers(problem, max_iterations, 2)
-    kernel_problem = NewtonProblem(
-        compliance,
-        free_gap,
-        kinds,
-        rows,
-        params,
-        members,
-        weight,
-        float(free_norm),
-        float(data_scale),
-        float(force_scale),
-    )
-    outcome = _dense_newton(
-        kernel_problem,
-        multipliers,
-        float(tolerance),
-        int(max_iterations),
-        float(eta_max),
-        int(line_search_memory),
-        int(stall_iterations),
-        int(presweeps),
-        history,
-        counts,
-        final,
-    )
-    return _dense_result(outcome, history, counts, final, tolerance, max_iterations, stall_iterations)
-
-
-def takes_fresh_path(problem: ConstraintProblem) -> bool:
-    """True when :func:`solve_newton` with its default storage options solves ``problem`` by the one compiled
-    call of :func:`_solve_dense_fresh` (fewer than :data:`_FRESH_BELOW` rows, nothing cached on the
-    problem)."""
-    cached = problem.__dict__
-    return problem.row_count < _FRESH_BELOW and "_block_arrays" not in cached and "_data_scales" not in cached
+def takes_fresh_path(problem: ConstraintProblem, sparse_above: int = SPARSE_ABOVE) -> bool:
+    """True when :func:`solve_newton` (without ``minimum_norm`` or ``time_limit``) solves ``problem`` by the
+    one compiled call of :func:`_solve_dense_fresh`: whenever W is stored dense (:func:`_dense_storage`),
+    whatever is cached on the problem (the call sets the problem up itself, as
+    :func:`~refsim.solvers.laws.block_arrays` and :func:`~refsim.solvers.residual.data_scales` do)."""
+    return _dense_storage(problem, sparse_above)
 
 
 def _fresh_outcome(
@@ -338,12 +275,14 @@ def converged_message(iterations: int, presweeps: int) -> str:
 def _solve_dense_fresh(
     problem, multipliers, tolerance, max_iterations, eta_max, line_search_memory, stall_iterations, presweeps
 ) -> NewtonResult:
-    """:func:`_solve_dense_compiled` for a fresh problem (nothing cached on it): the set-up of
+    """solve_newton on dense storage: one compiled call (:func:`_dense_newton_fresh`) for the set-up that
     :func:`~refsim.solvers.laws.block_arrays` (:func:`~refsim.solvers.laws.assemble_blocks` on the packed law
-    fields) and :func:`~refsim.solvers.residual.data_scales`,
-    ‖δ_free‖, W's asymmetry (cached on the problem for :meth:`ConstraintProblem.asymmetry`) and the kernel's
-    buffers in the same compiled call as the kernel (the same compiled operations in the same order, so the
-    same numbers bit for bit; one dispatch instead of four, no array allocated in Python)."""
+    fields) and :func:`~refsim.solvers.residual.data_scales` make, ‖δ_free‖, W's asymmetry (cached on the
+    problem for :meth:`ConstraintProblem.asymmetry`), the kernel's buffers and every Newton iteration
+    (:func:`~refsim.solvers.newton_kernel._dense_newton`: no Python call per iteration). What is cached on the
+    problem is not read: the kernel recomputes the same set-up by the same compiled operations, bit for bit,
+    so a solve is one dispatch and the dense Newton iteration is one compiled entry point (its compilation,
+    the longest of refsim's, is paid once per cache, not once per way of reaching it)."""
     outcome = _fresh_outcome(
         problem,
         multipliers,
@@ -401,31 +340,6 @@ def _newton_result(
     )
 
 
-def _dense_result(
-    outcome, history, counts, final, tolerance, max_iterations, stall_iterations
-) -> NewtonResult:
-    """The NewtonResult of a compiled dense solve from the kernel's buffers."""
-    best, iterations, residual, data, reason = outcome
-    failures, fallback, _, recorded, swept = counts.tolist()
-    natural, data_final = final.tolist()  # Python floats, as the fresh kernel returns them
-    return _newton_result(
-        best,
-        history[:recorded].copy(),
-        iterations,
-        reason,
-        failures,
-        fallback,
-        swept,
-        residual,
-        data,
-        natural,
-        data_final,
-        tolerance,
-        max_iterations,
-        stall_iterations,
-    )
-
-
 def solve_newton(
     problem: ConstraintProblem,
     *,
@@ -464,12 +378,12 @@ def solve_newton(
     """
     start = time.perf_counter()
     n = problem.row_count
-    if n <= sparse_above and not minimum_norm and not math.isfinite(time_limit) and takes_fresh_path(problem):
-        multipliers = (
-            np.zeros(n)
-            if warm_start is None
-            else np.array(problem.check_multipliers(warm_start), dtype=np.float64)
-        )
+    multipliers = (
+        np.zeros(n)
+        if warm_start is None
+        else np.array(problem.check_multipliers(warm_start), dtype=np.float64)
+    )
+    if not minimum_norm and not math.isfinite(time_limit) and takes_fresh_path(problem, sparse_above):
         return _solve_dense_fresh(
             problem,
             multipliers,
@@ -485,31 +399,6 @@ def solve_newton(
     free_gap = np.ascontiguousarray(problem.free_gap)
     free_norm = math.sqrt(float(free_gap.dot(free_gap)))  # np.linalg.norm's own formula, without its overhead
     data_scale = max(free_norm, force_scale)
-    multipliers = (
-        np.zeros(n)
-        if warm_start is None
-        else np.array(problem.check_multipliers(warm_start), dtype=np.float64)
-    )
-    if not minimum_norm and not math.isfinite(time_limit) and _dense_storage(problem, sparse_above):
-        return _solve_dense_compiled(
-            problem,
-            kinds,
-            rows,
-            params,
-            members,
-            weight,
-            free_gap,
-            free_norm,
-            data_scale,
-            force_scale,
-            multipliers,
-            tolerance,
-            max_iterations,
-            eta_max,
-            line_search_memory,
-            stall_iterations,
-            presweeps,
-        )
     return _solve_layered(
         problem,
         (kinds, rows, params, members),

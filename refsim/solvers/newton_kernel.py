@@ -2,8 +2,9 @@
 numba call (no Python call per iteration), in named stages: the start with its Gauss–Seidel pre-sweeps
 (:func:`_start`, :func:`_presweep`), the direction of each step (:func:`_newton_direction`: Jacobian blocks,
 J + η I, the reduced or full solve of :mod:`refsim.solvers.linear`), the next point (:func:`_next_point`:
-line search or fallback sweeps) and the bookkeeping of :func:`_dense_newton`; and the set-up of a fresh
-problem in the same call (:func:`_dense_newton_fresh`). The problem goes down the stages as one named tuple,
+line search or fallback sweeps) and the bookkeeping of :func:`_dense_newton`; and the set-up of the problem
+in the same call (:func:`_dense_newton_fresh`, the one entry point Python calls: each entry point compiles
+the whole iteration again inside it). The problem goes down the stages as one named tuple,
 :class:`NewtonProblem`; the work arrays are allocated once per solve (:func:`_workspace`) and handed down as
 two more, :class:`_IterateWork` and :class:`~refsim.solvers.linear.DirectionWork`. The method is described
 in :mod:`refsim.solvers.newton`.

@@ -1,10 +1,11 @@
-"""The one-call compiled path of small fresh problems (refsim.solvers.newton._solve_dense_fresh) against the
-layered path of before (set-up by block_arrays / data_scales, asymmetry by ConstraintProblem.asymmetry, then
-the kernel): the same multipliers and the same report, bit for bit.
+"""The one compiled call of dense problems (refsim.solvers.newton._solve_dense_fresh: the set-up, W's
+asymmetry and every Newton iteration in _dense_newton_fresh) answers a problem the same, bit for bit, whatever
+is cached on it: a fresh copy, and a copy whose set-up caches (block_arrays, data_scales) were filled first,
+as a Gauss–Seidel solve of the same problem fills them (the ground-truth workflow: solve_gauss_seidel, then
+solve_exact on the same problem).
 
-Reference: the layered path, taken on a copy whose set-up caches are filled first (the fresh path is only for
-problems with nothing cached). Both call the same compiled functions in the same order, so no tolerance:
-equality of the bytes of λ, of the history and of every report field but the wall-clock time.
+Reference: the solve of the fresh copy. The call recomputes the set-up by the same compiled operations, so no
+tolerance: equality of the bytes of λ, of the history and of every report field but the wall-clock time.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import pytest
 
 from refsim.solvers import ConstraintProblem, solve_exact
 from refsim.solvers.laws import block_arrays, friction_groups
-from refsim.solvers.newton import _FRESH_BELOW, solve_newton
+from refsim.solvers.newton import SPARSE_ABOVE, solve_newton
 from refsim.solvers.residual import data_scales, residuals
 
 from .conftest import planted_problem
@@ -176,11 +177,21 @@ def test_group_friction_takes_the_fresh_path():
         assert "_block_arrays" not in copy.__dict__ and "_asymmetry" in copy.__dict__
 
 
-def test_large_problems_keep_the_layered_path():
-    large, _, _ = planted_problem(np.random.default_rng(5), contacts=_FRESH_BELOW // 3 + 1)
-    copy = dataclasses.replace(large)
-    solve_newton(copy, tolerance=1e-8, max_iterations=2)
-    assert "_block_arrays" in copy.__dict__
+def test_large_dense_problems_take_the_one_call_and_sparse_ones_the_layered_path():
+    # above 120 rows too, and with the set-up cached: one compiled entry point for every dense solve
+    large, _, _ = planted_problem(np.random.default_rng(5), contacts=41)  # 123 rows
+    for copy in (dataclasses.replace(large), _layered(large)):
+        cached = "_block_arrays" in copy.__dict__
+        solve_newton(copy, tolerance=1e-8, max_iterations=2)
+        assert ("_block_arrays" in copy.__dict__) == cached  # the call did not set the problem up in Python
+        assert "_asymmetry" in copy.__dict__
+    _assert_identical(large, tolerance=1e-8, method="auto")
+    # sparse storage (more than SPARSE_ABOVE rows, W diagonal): the layered path, set up in Python
+    rows = SPARSE_ABOVE + 3
+    sparse = ConstraintProblem(compliance=np.eye(rows), free_gap=-np.ones(rows), bilateral=np.arange(rows))
+    result = solve_newton(sparse, tolerance=1e-8)
+    assert result.storage == "sparse" and result.converged and "_block_arrays" in sparse.__dict__
+    assert np.allclose(result.multipliers, 1.0, rtol=0.0, atol=1e-8)  # W λ + δ_free = 0: λ = 1
 
 
 def test_friction_groups_merge_both_forms():
@@ -212,7 +223,7 @@ def test_friction_groups_merge_both_forms():
 
 
 def test_fresh_path_on_the_shared_problems(problems_root):
-    """Every shared problem below _FRESH_BELOW rows (the floor study's 22 contact problems among them)."""
+    """Every shared problem of dense storage (the floor study's 22 contact problems among them)."""
     import importlib.util
     from pathlib import Path
 
@@ -220,7 +231,7 @@ def test_fresh_path_on_the_shared_problems(problems_root):
     spec = importlib.util.spec_from_file_location("solver_study_run_fresh", path)
     run = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(run)
-    problems = [p for _, p in run.external_problems(problems_root) if 0 < p.row_count < _FRESH_BELOW]
+    problems = [p for _, p in run.external_problems(problems_root) if 0 < p.row_count <= SPARSE_ABOVE]
     assert len(problems) >= 22
     for problem in problems:
         for method in ("auto", "newton"):
