@@ -736,14 +736,26 @@ def assemble_blocks(fields):
             break
     if ordered:
         return kind, row, param, members, scaling
-    order = np.argsort(row[:, 0])
-    sorted_kind = np.empty_like(kind)
-    sorted_row = np.empty_like(row)
-    sorted_param = np.empty_like(param)
+    # The first rows are distinct row indices: each block is placed by its first row (a counting sort, the
+    # order any sort gives; numba's argsort compiled for seconds longer than the rest of this function).
+    last = 0
     for i in range(total):
-        sorted_kind[i] = kind[order[i]]
-        sorted_row[i] = row[order[i]]
-        sorted_param[i] = param[order[i]]
+        last = max(last, row[i, 0])
+    block_at = np.full(last + 1, -1, dtype=np.int64)
+    for i in range(total):
+        block_at[row[i, 0]] = i
+    sorted_kind = np.empty(total, dtype=np.int64)
+    sorted_row = np.empty((total, 3), dtype=np.int64)
+    sorted_param = np.empty((total, 2))
+    b = 0
+    for first in range(last + 1):
+        i = block_at[first]
+        if i < 0:
+            continue
+        sorted_kind[b] = kind[i]
+        sorted_row[b, 0], sorted_row[b, 1], sorted_row[b, 2] = row[i, 0], row[i, 1], row[i, 2]
+        sorted_param[b, 0], sorted_param[b, 1] = param[i, 0], param[i, 1]
+        b += 1
     return sorted_kind, sorted_row, sorted_param, members, scaling
 
 

@@ -118,6 +118,48 @@ def test_blocks_are_sorted_by_row_and_cover_every_row():
     np.testing.assert_array_equal(params[5], [0.3, 2.0])
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_blocks_of_scattered_laws_are_sorted_by_their_first_row(seed):
+    # Reference: each law's blocks written out from the problem's fields, then Python's sort by first row
+    # (first rows are distinct); the compiled pass must give the same blocks, fields and all, in that order.
+    rng = np.random.default_rng(seed)
+    rows = rng.permutation(21)
+    contacts, bilateral, unilateral = rows[:6].reshape(2, 3), rows[6:12], rows[12:16]
+    box, group = rows[16:19], rows[19:21]
+    problem = ConstraintProblem(
+        compliance=np.eye(21),
+        free_gap=np.ones(21),
+        bilateral=bilateral,
+        unilateral=unilateral,
+        contacts=contacts,
+        contact_friction=[0.3, 0.5],
+        box_rows=box,
+        box_lower=[-1.0, -2.0, -3.0],
+        box_upper=[1.0, 2.0, 3.0],
+        group_friction=group,
+        group_offsets=[0, 2, 3],
+        group_members=unilateral[:3],
+        group_friction_coefficient=[0.4, 0.6],
+        group_preload=[0.1, 0.2],
+    )
+    lower, upper, mu_c = [-1.0, -2.0, -3.0], [1.0, 2.0, 3.0], [0.3, 0.5]
+    ends, mu_g, preload = [(0, 2), (2, 3)], [0.4, 0.6], [0.1, 0.2]
+    expected = (
+        [(row, 0, (row, 0, 0), (0.0, 0.0)) for row in bilateral]
+        + [(row, 1, (row, 0, 0), (0.0, 0.0)) for row in unilateral]
+        + [(box[k], 4, (box[k], 0, 0), (lower[k], upper[k])) for k in range(3)]
+        + [(group[k], 3, (group[k], *ends[k]), (mu_g[k], preload[k])) for k in range(2)]
+        + [(contacts[k, 0], 2, tuple(contacts[k]), (mu_c[k], 0.0)) for k in range(2)]
+    )
+    expected.sort(key=lambda block: block[0])
+    kinds, blocks, params, members = block_arrays(problem)
+    assert [LAW_NAMES[k] for k in kinds] == [LAW_NAMES[e[1]] for e in expected]
+    np.testing.assert_array_equal(blocks, [e[2] for e in expected])
+    np.testing.assert_array_equal(params, [e[3] for e in expected])
+    np.testing.assert_array_equal(members, unilateral[:3])
+    assert kinds.dtype == blocks.dtype == np.int64 and params.dtype == np.float64
+
+
 @pytest.mark.parametrize(
     ("overrides", "words"),
     [
