@@ -54,7 +54,6 @@ from refsim.fem.linear_common import (
     _all_among,
     _check_square,
     _marked_rhs,
-    _same_memory,
 )
 from refsim.fem.pardiso import MKL_RT_VARIABLE, PardisoSolver, _pardiso_function
 
@@ -210,16 +209,7 @@ class SupernodalSolver(KeepsFactor):
         from refsim.fem.supernodal import NotPositiveDefinite, SymbolicFactor
 
         matrix = _check_square(matrix)
-        last = self._pattern_arrays
-        if (
-            last is not None
-            and _same_memory(last[0], matrix.indptr)
-            and _same_memory(last[1], matrix.indices)
-        ):
-            key = self._pattern_key  # the very arrays of last time (see PardisoSolver.factorise)
-        else:
-            key = (matrix.shape[0], matrix.nnz, hash(matrix.indptr.tobytes()), hash(matrix.indices.tobytes()))
-        self._pattern_arrays = (matrix.indptr, matrix.indices)
+        key = self._pattern(matrix)
         if key != self._pattern_key or self._factor is None:
             self._factor = SymbolicFactor(matrix, self._order(matrix))
             self.analyses += 1

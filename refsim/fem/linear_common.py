@@ -54,11 +54,27 @@ class KeepsFactor:
     """What a solver holding its values in ``self._values`` (:class:`FactorisedValues`) reports of them."""
 
     _values: FactorisedValues
+    _pattern_key: tuple | None
+    _pattern_arrays: tuple | None
 
     @property
     def factorisations(self) -> int:
         """Numeric factorisations made (a factorisation of the values held keeps the factor: not counted)."""
         return self._values.factorisations
+
+    def _pattern(self, matrix: sp.spmatrix) -> tuple:
+        """The key of ``matrix``'s sparsity pattern (size, non-zeros, digests of its index arrays), compared
+        with ``self._pattern_key`` of the last analysis: taken from it, without the digests, when ``matrix``
+        holds the very index arrays of last time (one FreePattern per run; SciPy hands out views of them, and
+        they are held in ``self._pattern_arrays``, so that their memory cannot be recycled)."""
+        last = self._pattern_arrays
+        same = last is not None and _same_memory(last[0], matrix.indptr)
+        if same and _same_memory(last[1], matrix.indices):
+            key = self._pattern_key
+        else:
+            key = (matrix.shape[0], matrix.nnz, hash(matrix.indptr.tobytes()), hash(matrix.indices.tobytes()))
+        self._pattern_arrays = (matrix.indptr, matrix.indices)
+        return key
 
 
 def _same_memory(first: np.ndarray, second: np.ndarray) -> bool:

@@ -21,7 +21,6 @@ from refsim.fem.linear_common import (
     _all_among,
     _check_square,
     _marked_rhs,
-    _same_memory,
 )
 
 __all__ = ["MKL_RT_VARIABLE", "PardisoSolver"]
@@ -141,18 +140,7 @@ class PardisoSolver(KeepsFactor):
         place (no copy): its values must not change before the next factorisation. The values factorised
         last, bit for bit, keep the factor (:class:`FactorisedValues`)."""
         matrix = _check_square(matrix)
-        last = self._pattern_arrays
-        if (
-            last is not None
-            and _same_memory(last[0], matrix.indptr)
-            and _same_memory(last[1], matrix.indices)
-        ):
-            # The very arrays of last time (one FreePattern per run; SciPy hands out views of them, and they
-            # are held here, so that their memory cannot be recycled).
-            key = self._pattern_key
-        else:
-            key = (matrix.shape[0], matrix.nnz, hash(matrix.indptr.tobytes()), hash(matrix.indices.tobytes()))
-        self._pattern_arrays = (matrix.indptr, matrix.indices)
+        key = self._pattern(matrix)
         if key != self._pattern_key:
             rows = np.repeat(np.arange(matrix.shape[0]), np.diff(matrix.indptr))
             upper_entries = np.flatnonzero(matrix.indices >= rows)
