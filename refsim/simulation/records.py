@@ -6,7 +6,15 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-__all__ = ["EVENT_UNITS", "STAGES", "Event", "InstrumentRecord", "StepRecord", "WithinStep"]
+__all__ = [
+    "EVENT_UNITS",
+    "STAGES",
+    "STEP_SOLVED_AGAIN",
+    "Event",
+    "InstrumentRecord",
+    "StepRecord",
+    "WithinStep",
+]
 
 # The stages of one step, in order (DESIGN.md, "One time step"); their seconds are recorded every step.
 STAGES = ("motion", "free_motion", "detection", "compliance", "solve", "correction", "events")
@@ -16,6 +24,15 @@ STAGES = ("motion", "free_motion", "detection", "compliance", "solve", "correcti
 #: (:data:`refsim.io.schema.EVENT_VALUE_DATASETS`): a force, or a force per unit length (the energy law's cut
 #: start compares the lateral force per inserted length with G_c).
 EVENT_UNITS = ("N", "N/m")
+
+
+#: Events after which their step is solved again from its start, every instrument's events of the first solve
+#: standing, with the rows after them (`refsim.simulation.Simulation`): each is crossed inside the step and
+#: changes what holds the needle, so the rows chosen at the step's start would carry the step to its end with
+#: a force the event has ended. The cut start (the insertion rows give way to the cut's, which hold the needle
+#: at the cut's force) and the withdrawal (the tip is out of the tissue: nothing holds the needle). The
+#: puncture through a capped tip contact is solved again too, located inside the step (:class:`WithinStep`).
+STEP_SOLVED_AGAIN = frozenset({"cut_start", "withdrawal"})
 
 
 @dataclass(frozen=True)
@@ -32,6 +49,11 @@ class Event:
         if self.unit not in EVENT_UNITS:
             raise ValueError(f"event {self.name!r}: unit {self.unit!r} is not one of {EVENT_UNITS}")
 
+    @property
+    def solves_step_again(self) -> bool:
+        """Whether its step is solved again with the rows after it (:data:`STEP_SOLVED_AGAIN`)."""
+        return self.name in STEP_SOLVED_AGAIN
+
 
 @dataclass(frozen=True, kw_only=True)
 class WithinStep:
@@ -41,7 +63,8 @@ class WithinStep:
     solve that locates it ends with the contact at f_p, giving way, and the rest of the step's motion without
     it; the step is then solved again from its start with the insertion phase's rows (the entry point's, the
     tip's cutting row: :class:`refsim.simulation.Simulation`), and the step's record is the end of that second
-    solve. This is the give-way: the peak of the force profile.
+    solve. This is the give-way: the peak of the force profile. (The events of :data:`STEP_SOLVED_AGAIN` also
+    solve their step again but locate no state inside it: their step records the second solve's end only.)
 
     Attributes
     ----------

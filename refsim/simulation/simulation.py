@@ -189,7 +189,10 @@ class Simulation:
         timer.lap("free_motion")
 
         # The step's solve; solved again from its start while an instrument's event gave way inside it (a
-        # capped tip contact reaching f_p): its next solve has that instrument's rows after the event.
+        # capped tip contact reaching f_p: its next solve has that instrument's rows after the event), or
+        # after an event of STEP_SOLVED_AGAIN (a cut start, a withdrawal: every instrument's events of that
+        # solve stand; its next solve has their rows after them, with the tissue's cut and channels as they
+        # left them).
         start, settled = state, {}
         while True:
             detections = self._detect(start, free)
@@ -215,9 +218,13 @@ class Simulation:
             )
             timer.lap("events")
 
-            gave_way = {
-                part.name: part for part in parts if part.name not in settled and part.within_step is not None
-            }
+            unsettled = [part for part in parts if part.name not in settled]
+            # Such an event is crossed inside the step: decided after it alone, the step would end with the
+            # rows chosen at its start (the insertion rows' force above the cut's by the lateral load one step
+            # adds; rows holding a needle already out of the tissue). docs/cutting.md, "When the cut start
+            # and the withdrawal take effect".
+            again = any(event.solves_step_again for part in unsettled for event in part.events)
+            gave_way = {part.name: part for part in unsettled if again or part.within_step is not None}
             if not gave_way:
                 break
             settled.update(gave_way)
@@ -228,6 +235,8 @@ class Simulation:
                     for own in state.instruments
                 ),
             )
+            if again:
+                start = evolved(start, cut=new_state.cut, channels=new_state.channels)
 
         record = self._record(
             state, new_state, control, rows, problem, multipliers, report, parts, timer.seconds, record_tissue
