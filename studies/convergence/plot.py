@@ -64,11 +64,11 @@ NOTES = {
         "weights at both ends (a rectangle rule), whose error is O(d_i); `tests/sweep/"
         "test_insertion_spacing_order.py` asserts p = 1 ± 0.1 on 4 and 6 cells and two entry points (slow). "
         "`needle_force@cut_start` and `lateral_stroke@cut_start` are read at the first step where the "
-        "lateral "
-        "load per inserted length reaches G_c; the stroke advances 0.1 mm per step, so both are quantised by "
-        "the step (the force lies between G_c L and G_c L plus one step's load increment) and converge only "
-        "with dt: an order in d_i is not defined for them. The quantities after the cut start inherit that "
-        "quantisation (and the tears, discrete events)."
+        "lateral load per inserted length reaches G_c, a step solved again with the cut's rows "
+        '(docs/cutting.md, "When the cut start and the withdrawal take effect"): its force lies between '
+        "the step before's and G_c L. The stroke advances 0.1 mm per step, so both are quantised by the step "
+        "and converge only with dt: an order in d_i is not defined for them. The quantities after the cut "
+        "start inherit that quantisation (and the tears, discrete events)."
     ),
     "cube_cut_point_spacing": (
         "d_c acts only after the cut start: the quantities before it are the same in every run (converged). "
