@@ -102,11 +102,7 @@ class _Operator:
         compliance = problem.compliance
         n = problem.row_count
         self.dense = compliance
-        self.sparse = None
-        if n > sparse_above:
-            nonzero = np.count_nonzero(compliance)
-            if nonzero <= SPARSE_DENSITY * n * n:
-                self.sparse = sparse.csr_matrix(compliance)
+        self.sparse = None if takes_fresh_path(problem, sparse_above) else sparse.csr_matrix(compliance)
         self.kinds, self.rows, self.members = kinds, rows, members
         self.n = n
         if self.sparse is not None:
@@ -224,18 +220,14 @@ _REASONS = (
 )
 
 
-def _dense_storage(problem: ConstraintProblem, sparse_above: int) -> bool:
-    """True when :class:`_Operator` would store W dense (small, or more than 15 % non-zero)."""
+def takes_fresh_path(problem: ConstraintProblem, sparse_above: int = SPARSE_ABOVE) -> bool:
+    """Whether W is stored dense (at most ``sparse_above`` rows, or more than :data:`SPARSE_DENSITY` of it
+    non-zero; else sparse, :class:`_Operator`): then :func:`solve_newton` (without ``minimum_norm`` or
+    ``time_limit``) solves ``problem`` by the one compiled call of :func:`_solve_dense_fresh`, whatever is
+    cached on the problem (the call sets the problem up itself, as :func:`~refsim.solvers.laws.block_arrays`
+    and :func:`~refsim.solvers.residual.data_scales` do)."""
     n = problem.row_count
     return n <= sparse_above or np.count_nonzero(problem.compliance) > SPARSE_DENSITY * n * n
-
-
-def takes_fresh_path(problem: ConstraintProblem, sparse_above: int = SPARSE_ABOVE) -> bool:
-    """True when :func:`solve_newton` (without ``minimum_norm`` or ``time_limit``) solves ``problem`` by the
-    one compiled call of :func:`_solve_dense_fresh`: whenever W is stored dense (:func:`_dense_storage`),
-    whatever is cached on the problem (the call sets the problem up itself, as
-    :func:`~refsim.solvers.laws.block_arrays` and :func:`~refsim.solvers.residual.data_scales` do)."""
-    return _dense_storage(problem, sparse_above)
 
 
 def _fresh_outcome(
