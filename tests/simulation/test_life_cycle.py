@@ -533,11 +533,19 @@ def test_a_lateral_stroke_keeps_cutting_by_its_stroke_at_any_dt():
 # The cut start over what makes its step's load: a lateral stroke (the base 8 mm along +x at 10 mm/s) at
 # dt = 10, 20, 50 ms, and a tilt about the fixed base (10°/s: the inserted part, 0.3 m below the base, moves
 # sideways at about 50 mm/s, a step's load five times the stroke's).
-CUT_START = [("stroke", 0.01), ("stroke", 0.02), ("stroke", 0.05), ("tilt", 0.01)]
+# The beam needle (bending as the push builds) and the exact solver on one stroke each.
+CUT_START = [
+    ("stroke", 0.01, "rigid", "gauss_seidel"),
+    ("stroke", 0.02, "rigid", "gauss_seidel"),
+    ("stroke", 0.05, "rigid", "gauss_seidel"),
+    ("tilt", 0.01, "rigid", "gauss_seidel"),
+    ("stroke", 0.02, "flexible", "gauss_seidel"),
+    ("stroke", 0.05, "rigid", "exact"),
+]
 
 
-@pytest.mark.parametrize(("push", "dt"), CUT_START)
-def test_the_cut_start_is_solved_inside_its_step_at_the_cut_force(push, dt):
+@pytest.mark.parametrize(("push", "dt", "needle", "solver"), CUT_START)
+def test_the_cut_start_is_solved_inside_its_step_at_the_cut_force(push, dt, needle, solver):
     # Reference: the energy law's cut holds the needle at G_c per unit inserted length (front rows at their
     # strength G_c ℓ_k, Σ ℓ_k = L_in), and the cut starts when the insertion rows' lateral load reaches
     # G_c L_in. The step that crosses it is solved again from its start with the cut's rows
@@ -548,7 +556,7 @@ def test_the_cut_start_is_solved_inside_its_step_at_the_cut_force(push, dt):
     # cells: 3.61, 4.34, 4.38 N for the stroke at these dt, 7.8 N for the tilt, against 3.40 N).
     if push == "stroke":
         times, knots = PULL_TIMES[:5], PULL_KNOTS[:5]
-        _, records = _cube_cut(knots, times, f"time.dt={dt}")
+        _, records = _cube_cut(knots, times, f"time.dt={dt}", *NEEDLES[needle], *SOLVERS[solver])
     else:
         tilted = np.deg2rad(10.0)
         direction = [float(np.sin(tilted)), 0.0, float(-np.cos(tilted))]
@@ -562,6 +570,8 @@ def test_the_cut_start_is_solved_inside_its_step_at_the_cut_force(push, dt):
                 f"trajectory.directions=[[0, 0, -1], [0, 0, -1], [0, 0, -1], {direction}]",
                 "time.duration=2.6",
                 f"time.dt={dt}",
+                *NEEDLES[needle],
+                *SOLVERS[solver],
             ],
         )
         records = []
@@ -575,8 +585,10 @@ def test_the_cut_start_is_solved_inside_its_step_at_the_cut_force(push, dt):
     assert force[start - 1] <= force[start] <= following.max() * (1.0 + 1e-6), force[start - 1 : start + 11]
 
 
-@pytest.mark.parametrize("law", ["energy", "paper"])
-def test_a_needle_pulled_out_of_its_cut_holds_no_force_from_the_step_it_leaves(law):
+@pytest.mark.parametrize(
+    ("law", "needle"), [("energy", "rigid"), ("paper", "rigid"), ("paper", "flexible")], ids=str
+)
+def test_a_needle_pulled_out_of_its_cut_holds_no_force_from_the_step_it_leaves(law, needle):
     # cube_cut on 4³ cells: inserted 17 mm, a 5 mm stroke along +x, held, then pulled straight up until the
     # tip is 2 mm above the top face. Reference: once the tip is out of the tissue nothing holds the needle
     # (its rows are released: event withdrawal, phase approach), so the force of the tissue on it is zero at
@@ -587,7 +599,7 @@ def test_a_needle_pulled_out_of_its_cut_holds_no_force_from_the_step_it_leaves(l
     times = [0.0, 1.9, 2.0, 2.5, 2.6, 3.8, 4.0]
     knots = [(0.00123, 0.422), (0.00123, 0.403), (0.00123, 0.403), (0.00623, 0.403), (0.00623, 0.403)]
     knots += [(0.00623, 0.424), (0.00623, 0.424)]
-    _, records = _cube_cut(knots, times, f'cutting.law="{law}"')
+    _, records = _cube_cut(knots, times, f'cutting.law="{law}"', *NEEDLES[needle])
     names = [e.name for r in records for e in r.events if e.name in ("cut_start", "withdrawal", "exit")]
     assert names == ["cut_start", "withdrawal"], names
     out = next(i for i, r in enumerate(records) if any(e.name == "withdrawal" for e in r.events))
