@@ -702,9 +702,11 @@ def reference_markdown() -> str:
         "else the end force; `refsim plot`, the run summary's peak force, the sweep quantities "
         "`needle_force@EVENT` (and its axial and lateral parts) and the reference set's force curves read "
         "it. A plain tip contact (`insertion.puncture_within_step = false`) holds the tip to the step's "
-        "end: its puncture is decided after the step, which records no within-step event. A cut start and "
-        "a withdrawal also solve their step again from its start, with the rows after the step's events "
-        "(docs/cutting.md), and record no within-step event: the step's datasets are the second solve's, "
+        "end: its puncture is decided after the step, which records no within-step event. The events that "
+        "change what holds the needle (a cut start, leaving the cut, a re-entry into a hole, a withdrawal, "
+        "an exit through a far face, a retraction: `STEP_SOLVED_AGAIN`) also solve their step again from its "
+        'start, with the rows after the step\'s events (docs/cutting.md, "When an event takes effect"), '
+        "and record no within-step event: the step's datasets are the second solve's, "
         "its `criteria/` the first solve's, on which the events were decided.",
         "",
         f"Files of schema version 1 have no `steps/event_*`: `read_results` gives them as NaN. That version "

@@ -221,8 +221,8 @@ class Simulation:
             unsettled = [part for part in parts if part.name not in settled]
             # Such an event is crossed inside the step: decided after it alone, the step would end with the
             # rows chosen at its start (the insertion rows' force above the cut's by the lateral load one step
-            # adds; rows holding a needle already out of the tissue). docs/cutting.md, "When the cut start
-            # and the withdrawal take effect".
+            # adds; rows holding a needle already out of the tissue, a tip row on a tip out through a far
+            # face). docs/cutting.md, "When an event takes effect".
             again = any(event.solves_step_again for part in unsettled for event in part.events)
             gave_way = {part.name: part for part in unsettled if again or part.within_step is not None}
             if not gave_way:

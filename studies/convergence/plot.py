@@ -65,7 +65,7 @@ NOTES = {
         "test_insertion_spacing_order.py` asserts p = 1 ± 0.1 on 4 and 6 cells and two entry points (slow). "
         "`needle_force@cut_start` and `lateral_stroke@cut_start` are read at the first step where the "
         "lateral load per inserted length reaches G_c, a step solved again with the cut's rows "
-        '(docs/cutting.md, "When the cut start and the withdrawal take effect"): its force lies between '
+        '(docs/cutting.md, "When an event takes effect"): its force lies between '
         "the step before's and G_c L. The stroke advances 0.1 mm per step, so both are quantised by the step "
         "and converge only with dt: an order in d_i is not defined for them. The quantities after the cut "
         "start inherit that quantisation (and the tears, discrete events)."

@@ -49,6 +49,7 @@ from tests.simulation.test_life_cycle import (
     TOP,
     _path_overrides,
     _run,
+    assert_each_step_ends_with_the_rows_of_its_end_state,
 )
 from tests.simulation.test_restart import _check_restarts
 
@@ -130,8 +131,10 @@ def test_a_needle_reinserted_into_its_hole_meets_its_channel_friction_alone(
     f_cut, travel = scene.insertion.tip_cutting_force, 0.02 * dt
     depth = lambda r: float((r.needle_positions[-1] - np.array([*ENTRIES[entry], TOP])) @ axis)  # noqa: E731
     entered = next(r.step for r in records if any(e.name == "reentry" for e in r.events))
-    # No capped contact in a hole: the re-entry step is not solved again (no within-step event).
+    # No capped contact in a hole, so no event located inside the step; the re-entry's step is solved again
+    # with the channel's rows (STEP_SOLVED_AGAIN): the needle in the hole at its end is held from that step.
     assert records[entered - 1].instruments[0].within_step is None
+    assert_each_step_ends_with_the_rows_of_its_end_state(records)
     again = [r for r in records if r.step > entered]
     channel = [r for r in again if depth(r) <= DEPTH - travel]
     beyond = [r for r in again if depth(r) >= DEPTH + 2 * travel]
@@ -184,6 +187,7 @@ def test_a_channel_cut_through_a_layer_has_no_tip_row_when_reentered():
     assert not any(np.any(r.row_role == TIP) for r in after)
     along = [abs(r.needle_force[2]) for r in after]
     assert max(along) < 0.25 * scene.insertion.tip_cutting_force, max(along)
+    assert_each_step_ends_with_the_rows_of_its_end_state(records)
 
 
 def _instrument(name, knots, direction=(0.0, 0.0, -1.0)):

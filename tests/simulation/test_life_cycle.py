@@ -51,9 +51,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from refsim.constraints import AXIAL_FRICTION, CUT_FRICTION, CUT_SLIDE, SLIDING, TIP
+from refsim.constraints import AXIAL_FRICTION, CUT_FRICTION, CUT_SLIDE, FRONT, NORMAL, SLIDING, TANGENT, TIP
 from refsim.scene import load_scene
-from refsim.simulation import Simulation
+from refsim.simulation import Phase, Simulation
 
 # The cube's entry (off the grid lines) and its needle: the tip starts 2 mm above the top face (z = 0.1 m).
 ENTRY = (0.00123, 0.00231)
@@ -91,6 +91,35 @@ def _run(*overrides):
     records = []
     Simulation(scene).run(on_step=lambda state, record: records.append(record))
     return scene, records
+
+
+def assert_each_step_ends_with_the_rows_of_its_end_state(records) -> None:
+    """Every step of a one-needle run ends with the rows its state after the step's events calls for.
+
+    An event crossed inside a step that changes what holds the needle (``STEP_SOLVED_AGAIN``) solves the step
+    again with the rows after it, so no record holds rows its own end state has ended (docs/cutting.md, "When
+    an event takes effect"): in the approach phase only the tip's contact rows; no crack-front row outside the
+    cutting phase (after leave_cut); no row of an insertion point the step removed (retraction: the rows'
+    point indices below the points kept); no tip row from the step of an exit through a far face until the
+    needle enters the tissue again; and rows holding the needle from the step of a re-entry into a hole. Each
+    failed on the runs of this module before those events solved their step again (the retraction's removed
+    points on every retraction step, the exit's tip row at f_cut, the re-entry's step free of rows, the
+    leave_cut step's front rows)."""
+    exited = False
+    for record in records:
+        names = {event.name for event in record.events}
+        exited = (exited and not names & {"puncture", "reentry", "withdrawal"}) or "exit" in names
+        roles, points = record.row_role, record.row_point
+        where = (record.step, sorted(names), record.phase)
+        if record.phase == Phase.APPROACH:
+            assert np.isin(roles, (NORMAL, TANGENT)).all(), where
+        if record.phase != Phase.CUTTING:
+            assert not np.any(roles == FRONT), where
+        assert not np.any(points >= record.insertion_point_count), (*where, points.max())
+        if exited:
+            assert not np.any(roles == TIP), where
+        if "reentry" in names:
+            assert np.any(points >= 0), where
 
 
 def _axial_shaft_force(record, axis) -> float:
@@ -197,8 +226,9 @@ def test_a_thin_layer_is_crossed_with_entry_and_exit_punctures_on_its_faces(
     # The tip travels 16 mm along the needle at 10 mm/s through the 8 mm slab, entering inside a surface
     # triangle, on a grid edge or at a grid vertex, then rests 0.4 s in the air below it. Expected: one
     # puncture with the tip at the top face (the face it approaches), one exit with the tip at the bottom
-    # face, the tip's cutting row while the tip is in the tissue and never after the exit (the tissue has
-    # nothing left to cut), insertion points across the whole thickness.
+    # face, the tip's cutting row while the tip is in the tissue and never from the exit's step on (the tissue
+    # has nothing left to cut; before the exit solved its step again, that step ended with the row at f_cut),
+    # insertion points across the whole thickness.
     x, y = ENTRIES[entry]
     direction = DIRECTIONS[direction]
     scene, records = _run(
@@ -219,10 +249,11 @@ def test_a_thin_layer_is_crossed_with_entry_and_exit_punctures_on_its_faces(
     assert abs(punctured.needle_positions[-1, 2] - TOP) <= 0.5e-3 + travel
     assert abs(exited.needle_positions[-1, 2] - SLAB_BOTTOM) <= 0.5e-3 + travel
     inside = [r for r in records if punctured.step + 5 <= r.step < exited.step]
-    after = [r for r in records if r.step > exited.step]
+    after = [r for r in records if r.step >= exited.step]  # the exit's step is solved again without it
     assert inside and after
     assert all(np.count_nonzero(r.row_role == TIP) == 1 for r in inside)
     assert not any(np.count_nonzero(r.row_role == TIP) for r in after)
+    assert_each_step_ends_with_the_rows_of_its_end_state(records)
     thickness_along = (TOP - SLAB_BOTTOM) / abs(direction[2])
     assert max(r.insertion_point_count for r in records) >= 0.8 * thickness_along / spacing
     # At rest in the air the needle keeps only the shaft's rows: the force along it is their friction
@@ -306,6 +337,7 @@ def test_back_through_the_cut_and_beyond_the_entry_the_needle_meets_intact_tissu
     named = lambda name: [r for r in records if any(e.name == name for e in r.events)]  # noqa: E731
     left = named("leave_cut")
     assert len(left) == 1 and len(named("cut_start")) == 2
+    assert_each_step_ends_with_the_rows_of_its_end_state(records)
     d_c = scene.cutting.point_spacing
     travel = 0.01 * scene.time.dt  # 10 mm/s
     entry_x = xs[0]
@@ -798,6 +830,7 @@ def test_a_needle_leaving_through_the_far_face_while_cutting_keeps_cutting_the_l
     )
     exits = [r for r in records if any(e.name == "exit" for e in r.events)]
     assert len(exits) == 1 and exits[0].phase == "cutting"
+    assert_each_step_ends_with_the_rows_of_its_end_state(records)
     g_c, d_c = scene.cutting.fracture_energy, scene.cutting.point_spacing
     thickness = (TOP - SLAB_BOTTOM) / abs(axis[2])
     after = [(r, tip) for r, tip in zip(records, tips, strict=True) if r.step > exits[0].step + 2]
@@ -947,12 +980,13 @@ def test_a_needle_moved_back_into_a_layer_it_crossed_meets_only_friction_in_its_
     names = [e.name for r in records for e in r.events if e.name in ("puncture", "exit", "withdrawal")]
     assert names == ["puncture", "exit", "exit"], names
     exited = next(r.step for r in records if any(e.name == "exit" for e in r.events))
-    after = [r for r in records if r.step > exited]
+    after = [r for r in records if r.step >= exited]
     assert any(r.needle_positions[-1, 2] > SLAB_BOTTOM + 0.002 for r in after)  # the tip back in the layer
     assert not any(np.any(r.row_role == TIP) for r in after)
     f_cut = scene.insertion.tip_cutting_force
     along = [abs(r.needle_force[2]) for r in after]
     assert max(along) < 0.25 * f_cut, max(along)
+    assert_each_step_ends_with_the_rows_of_its_end_state(records)
 
 
 WITHDRAWN = [
@@ -979,6 +1013,7 @@ def test_a_needle_pulled_back_out_is_withdrawn_not_exited(direction, needle, sol
     assert names == ["puncture", "withdrawal"], names
     out = next(r.step for r in records if any(e.name == "withdrawal" for e in r.events))
     assert all(not np.any(r.needle_force) for r in records if r.step >= out)
+    assert_each_step_ends_with_the_rows_of_its_end_state(records)
 
 
 def test_a_needle_steered_out_of_its_channel_cuts_the_intact_tissue_beside_it():
