@@ -43,8 +43,8 @@ The life-cycle matrix (stage: where it is tested; the cases beyond the first of 
   (vertical and 30°; both solvers; rigid and flexible);
 - every step's rows against its end state (an event that changes what holds the needle solves its step
   again: no step ends with the rows of a retracted point, an exited tip, a left crack front, nor free after a
-  re-entry): ``assert_each_step_ends_with_the_rows_of_its_end_state``, over the pull-back, the thin layer, back
-  through the cut, the exit while cutting, the move back into a layer, and the re-entries of
+  re-entry): ``assert_each_step_ends_with_the_rows_of_its_end_state``, over the pull-back, the thin layer,
+  back through the cut, the exit while cutting, the move back into a layer, and the re-entries of
   ``tests/simulation/test_holes.py``;
 - a flexible needle whose tip slid along a thin layer before the puncture (a short one, which can push f_p
   while sliding): one puncture on the near face, the tip held in the layer through the puncture step
