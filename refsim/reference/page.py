@@ -60,17 +60,17 @@ Each case isolates one thing another implementation must get right, in the order
 
 Levels (each case's file gives its own, with a comment saying why): `coarse` (seconds to a minute a run: the
 tests build it to check the machinery), `standard` (one machine, an hour), `fine` (a cluster's, or hours of
-one machine per cube case; this page's `laceration` and `lateral_push` are built at it, every other case at
-`standard`: the tables give each case's level). The cube cases refine mesh, d_i, d_c and dt
-together on odd cell counts, 3/5/7, 5/7/9 and 13/17/21 cells, with d_i = d_c = 6.8 mm/cells and dt =
-0.05 s/cells: the 17 mm insertion is then n + 1/2 insertion spacings deep at every level (the last point half
-a spacing above the tip), so the shaft's force, which grows by one point every d_i of depth, has the same
-phase at every level, and every waypoint of the trajectory falls on a step. The standard level's h (20 to
-11 mm) is above the needle's radius (8 mm) and the fine level's (7.7 to 4.8 mm) below it: each level stays
-in one regime of the ring coupling (docs/coupling.md: rows on a ring of radius max(r, h)). The paper's law
-holds d_i = d_c (they are parameters of its law). The puncture block (4 cm) refines 2–4, 8/12/16 and
-16/24/32 cells. The liver cases keep their organ mesh (the geometry) and refine dt with d_i, d_c and the
-needle's beam elements (h = dt).
+one machine per cube case; `laceration` and `lateral_push` are meant to be built at it, the other cases at
+`standard`: the tables give the level each case of this page was built at). The cube cases refine mesh, d_i,
+d_c and dt together on odd cell counts, 3/5/7, 5/7/9 and 13/17/21 cells, with d_i = d_c = 6.8 mm/cells and dt
+= 0.05 s/cells: the 17 mm insertion is then n + 1/2 insertion spacings deep at every level (the last point
+half a spacing above the tip), so the shaft's force, which grows by one point every d_i of depth, has the same
+phase at every level, and every waypoint of the trajectory falls on a step. The standard level's h (20 to 11
+mm) is above the needle's radius (8 mm) and the fine level's (7.7 to 4.8 mm) below it: each level stays in one
+regime of the ring coupling (docs/coupling.md: rows on a ring of radius max(r, h)). The paper's law holds d_i
+= d_c (they are parameters of its law). The puncture block (4 cm) refines 2–4, 8/12/16 and 16/24/32 cells. The
+liver cases keep their organ mesh (the geometry) and refine dt with d_i, d_c and the needle's beam elements (h
+= dt).
 
 ## Commands
 
