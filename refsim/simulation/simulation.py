@@ -190,9 +190,9 @@ class Simulation:
 
         # The step's solve; solved again from its start while an instrument's event gave way inside it (a
         # capped tip contact reaching f_p: its next solve has that instrument's rows after the event), or
-        # after an event of STEP_SOLVED_AGAIN (a cut start, a withdrawal: every instrument's events of that
-        # solve stand; its next solve has their rows after them, with the tissue's cut and channels as they
-        # left them).
+        # after an event of STEP_SOLVED_AGAIN (one that changes what holds the needle: every instrument's
+        # events of that solve stand; its next solve has their rows after them, with the tissue's cut and
+        # channels as they left them).
         start, settled = state, {}
         while True:
             detections = self._detect(start, free)
