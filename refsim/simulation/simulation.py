@@ -250,15 +250,19 @@ class Simulation:
         on_step: Callable[[SimulationState, StepRecord], None] | None = None,
         state: SimulationState | None = None,
     ) -> SimulationState:
-        """Run ``steps`` steps (the scene's duration by default), calling ``on_step`` after each."""
+        """Run ``steps`` steps (the scene's duration by default), calling ``on_step`` after each.
+
+        BLAS and OpenMP run on one thread for the whole loop, ``on_step`` included (one limit set for the run
+        instead of one per step, as :meth:`step` does alone); the caller's setting is restored after it."""
         state = self.initial_state() if state is None else state
         total = self.scene.time.step_count if steps is None else steps
         every = self.scene.output.tissue_every
-        for index in range(1, total + 1):
-            record_tissue = index % every == 0 or index == total
-            state, record = self.step(state, record_tissue=record_tissue)
-            if on_step is not None:
-                on_step(state, record)
+        with hot_path_threads(1):
+            for index in range(1, total + 1):
+                record_tissue = index % every == 0 or index == total
+                state, record = self.step(state, record_tissue=record_tissue)
+                if on_step is not None:
+                    on_step(state, record)
         return state
 
     # ------------------------------------------------------------------ stages

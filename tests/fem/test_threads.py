@@ -33,3 +33,17 @@ def test_bad_thread_counts_are_refused():
         with hot_path_threads(1), pytest.raises(ValueError, match="threads must be"):  # nested too
             with hot_path_threads(bad):
                 pass
+
+
+def test_a_run_holds_one_thread_through_its_steps_and_callbacks_and_restores_the_callers_setting():
+    from refsim.simulation import Simulation
+    from tests.conftest import cube_scene
+
+    simulation = Simulation(cube_scene("mesh.cells=[2,2,2]", "time.duration=0.03"))
+    seen = []
+    with _controller().limit(limits=2):  # the caller's setting: two threads, so that the limit shows
+        before = _counts()
+        simulation.run(on_step=lambda state, record: seen.append(_counts()))
+        assert _counts() == before
+    assert len(seen) == simulation.scene.time.step_count
+    assert all(count == 1 for counts in seen for count in counts)
