@@ -25,8 +25,10 @@
   (``Channel``: its entry point, its end, the needle's radius), replacing the record of the hole it
   re-entered; a channel cut through to a far face is kept from both holes (the exit's record enters at the
   channel's end and runs through to its entry)
-- phase: insertion; event: cut_start; when: energy law: ‖t‖ ≥ G_c L_in; paper law (equation 3): ‖t‖ > n_i f_c;
-  then: a strip on the path; cutting, the entry point kept
+- phase: insertion; event: cut_start; when: energy law: ‖t‖ ≥ G_c L_in; paper law (equation 3): ‖t‖ > n_i f_c,
+  t the lateral load of the insertion points' rows and of the faces' rows of a cut the needle lies along;
+  then: a strip on the path (along a cut: on the inserted needle, its first layer d_c ahead); cutting, the
+  entry point kept
 - phase: cutting; event: (crack advance); when: energy law: a front row at its strength G_c ℓ_k and the needle
   through the crack tip, or a sliding row at the front at G_c ℓ_k; then: the crack tip advances towards the
   needle by the needle's motion into the front relative to the tissue over the step
@@ -42,6 +44,9 @@
   end, having moved forward through the tissue (along the needle, relative to its material point); then:
   the cut rows run along the part of the needle in the tissue, from its entry to where it leaves through
   the far face
+- phase: cutting; event: cut_start; when: the needle more than 1.5 d_c behind its crack tip along ĉ and the
+  load of its cut's faces' rows meets the law's cut start (energy law: ‖t_f‖ ≥ G_c L_in); then: the strip
+  recorded up to its crack tip, a new strip on the inserted needle, ĉ = −t_f/‖t_f‖, its first layer d_c ahead
 - phase: cutting; event: leave_cut; when: the needle is back behind the strip's first layer (the line it
   entered along) by more than d_c/2, along −ĉ; then: insertion points along the inserted needle every d_i
   where it lies in intact tissue (none in the cut: the part still in it slides in it); insertion (the cut
@@ -373,7 +378,11 @@ class EventRules:
                 without_entry=self.law.excludes_entry_point,
                 points=rows.points_of_rows,
             )
-            started = self._cut_starts(world, state, force_on_needle, needle, locator, points)
+            # A needle along an existing cut: its faces' rows hold it there, their load part of t alike.
+            faces = rows.rows_of(SLIDING)
+            started = self._cut_starts(
+                world, state, force_on_needle, needle, locator, points, faces=(rows, multipliers, faces)
+            )
             if started is not None:
                 return started
         path, added = grow_path(
@@ -536,28 +545,58 @@ class EventRules:
         keep[new[in_cut]] = False
         return path.subset(keep)
 
-    def _cut_starts(self, world, state, force_on_needle, needle, locator: LazyLocator, path_points=None):
+    def _cut_starts(
+        self, world, state, force_on_needle, needle, locator: LazyLocator, path_points=None, faces=None
+    ):
         """The states (the world's, with the cut, and the instrument's) and events of a cut start, or None
         when the law's criterion does not hold (``CuttingLaw.cut_start``). The cut runs the way the needle
         pushes the tissue, ĉ = −t/‖t‖ (``needle``: the instrument's geometry, ``locator``: the step's;
-        ``path_points``: the path's points on the world's tissue positions, computed here when None)."""
+        ``path_points``: the path's points on the world's tissue positions, computed here when None).
+
+        ``faces``: (rows, multipliers, indices) of the faces' rows of an existing cut the needle lies along
+        (its SLIDING rows), or None. Their load is part of t (the tissue behind a face resists the needle as
+        the insertion points' tissue does, :meth:`_face_cut_start`), and with them the cut starts on the
+        inserted needle (the insertion points leave out its part in the old cut), its first layer d_c ahead,
+        so that the old cut's faces, which hold the needle on their plane, do not hold it against the new
+        cut's direction."""
         positions = world.tissue.positions
         if path_points is None:
             path_points = state.path.positions(positions, self.tets)
-        end = needle.length
-        if state.tip_tet < 0:
-            # The tip out of a far face: the shaft cuts along the part in the tissue only.
-            _, end = inserted_span(needle, locator, self.cutting.point_spacing)
-        inserted = end - float(needle.project(path_points[:1])[0][0])
-        self.margins.cut_start(self.law, force_on_needle, inserted, state.path.point_count)
+        along_cut = faces is not None and faces[2].size > 0
+        spacing = self.cutting.point_spacing
+        if along_cut:
+            rows, multipliers, indices = faces
+            lateral = np.flatnonzero((rows.source == INSERTION) & (rows.kind == BILATERAL))
+            if self.law.excludes_entry_point:
+                lateral = lateral[rows.points_of_rows[lateral] != 0]
+            force_on_needle = force_on_needle + (rows.directions[indices] * multipliers[indices, None]).sum(
+                axis=0
+            )
+            entry_arc, end = inserted_span(needle, locator, spacing)
+            inserted = end - entry_arc
+            margin_rows = np.concatenate([lateral, indices])
+        else:
+            end = needle.length
+            if state.tip_tet < 0:
+                # The tip out of a far face: the shaft cuts along the part in the tissue only.
+                _, end = inserted_span(needle, locator, spacing)
+            inserted = end - float(needle.project(path_points[:1])[0][0])
+            margin_rows = None
+        self.margins.cut_start(self.law, force_on_needle, inserted, state.path.point_count, rows=margin_rows)
         start = self.law.cut_start(
             force_on_needle, inserted_length=inserted, point_count=state.path.point_count
         )
         if start is None:
             return None
         direction = -force_on_needle / float(np.linalg.norm(force_on_needle))
+        extent = start.extent
+        if along_cut:
+            path_points = needle.points(
+                np.linspace(entry_arc, end, max(int(np.ceil(inserted / spacing)), 1) + 1)
+            )
+            extent = max(extent, spacing)
         cut, strip = start_strip(
-            self.growth, world.cut, path_points, direction, positions, world.step, extent=start.extent
+            self.growth, world.cut, path_points, direction, positions, world.step, extent=extent
         )
         if strip is None:
             return None
@@ -656,6 +695,11 @@ class EventRules:
             if behind < -0.5 * cutting.point_spacing:
                 world, state, more = self._leave_cut(world, state, needle, positions, step_locator)
                 return world, state, [*events, *more]
+        if state.cut_strip is not None:
+            pressed = self._face_cut_start(world, state, detection.rows, multipliers, needle, step_locator)
+            if pressed is not None:
+                world, state, more = pressed
+                return world, state, [*events, *more]
         locator, entry_arc = None, None
         if self.law.extends_down_shaft and state.cut_strip is not None:
             # A needle inserted deeper than the strip while it cuts: pushed sideways with the rest of the
@@ -700,6 +744,49 @@ class EventRules:
         world = evolved(world, cut=grown.cut)
         state = evolved(state, cut_strip=grown.strip, cut_direction=grown.direction)
         return world, state, events
+
+    def _face_cut_start(self, world, state, rows, multipliers, needle, step_locator: LazyLocator):
+        """A needle pressed against the faces of its cut: the states and the event of a new cut, or None.
+
+        The faces' rows (the cut's SLIDING rows) hold the needle in its cut's plane; the load they carry
+        is the tissue behind a face resisting the needle, as the insertion points' lateral rows are for a
+        needle in intact tissue, so the law's cut start holds for it alike (energy law: ‖t_f‖ ≥ G_c L_in,
+        t_f = Σ n λ over the faces' rows, L_in the inserted length). A needle pushed at its crack tip cuts
+        through the front (``CuttingLaw.grow``); one pushed sideways away from it (moved back into its cut,
+        then out of its plane) meets only the faces. Then the strip is recorded up to its crack tip and a
+        new one starts on the inserted needle, the way it pushes (ĉ = −t_f/‖t_f‖, as at a cut start).
+        Event ``cut_start``, which solves its step again (``STEP_SOLVED_AGAIN``)."""
+        faces = rows.rows_of(SLIDING)
+        if faces.size == 0:
+            return None
+        spacing = self.cutting.point_spacing
+        positions = world.tissue.positions
+        # Away from the crack tip: behind it (along −ĉ) by more than a layer and a half (a face start's first
+        # layer, d_c, and the half spacing leave_cut allows); nearer, the front's rows take the push and turn
+        # the cut (CuttingLaw.grow).
+        tip = state.cut_strip.front.positions(positions, self.tets)
+        _, on_needle = needle.project(tip)
+        if float(((on_needle - tip) @ state.cut_direction).mean()) >= -1.5 * spacing:
+            return None
+        load = (rows.directions[faces] * multipliers[faces, None]).sum(axis=0)
+        entry_arc, end = inserted_span(needle, step_locator.locator, spacing)
+        inserted = end - entry_arc
+        self.margins.cut_start(self.law, load, inserted, state.path.point_count, rows=faces)
+        start = self.law.cut_start(load, inserted_length=inserted, point_count=state.path.point_count)
+        if start is None:
+            return None
+        recorded = recorded_surface(world.cut, state.cut_strip, world.step)
+        line = needle.points(np.linspace(entry_arc, end, max(int(np.ceil(inserted / spacing)), 1) + 1))
+        direction = -load / float(np.linalg.norm(load))
+        cut, strip = start_strip(
+            self.growth, recorded, line, direction, positions, world.step, extent=max(start.extent, spacing)
+        )
+        if strip is None:
+            return None
+        state = evolved(
+            state, cut_direction=np.asarray(direction, dtype=float), cut_strip=strip, channel_end=None
+        )
+        return evolved(world, cut=cut), state, [Event("cut_start", start.trigger, start.unit)]
 
 
 def _face_stretch(

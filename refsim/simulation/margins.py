@@ -222,20 +222,32 @@ class MarginWatch:
         accuracy = (tangent_accuracy + ratio * normal_accuracy) / normal
         self._criteria.append(Criterion("tip_slip", ratio, coefficient, accuracy, "1"))
 
-    def cut_start(self, law, lateral_force: np.ndarray, inserted_length: float, point_count: int) -> None:
+    def cut_start(
+        self,
+        law,
+        lateral_force: np.ndarray,
+        inserted_length: float,
+        point_count: int,
+        rows: np.ndarray | None = None,
+    ) -> None:
         """The ``law``'s cut-start load (``CuttingLaw.cut_start_load``) for the shaft's lateral force t [N],
         shape (3,), over the insertion points' lateral rows (the entry point's left out where the law leaves
-        it out, as `refsim.simulation.events.shaft_lateral_force` does)."""
+        it out, as `refsim.simulation.events.shaft_lateral_force` does), or over ``rows`` (indices into the
+        instrument's own rows: the cut faces' rows of a needle pressed against them) when given."""
         if self._problem is None:
             return
         value, threshold, divisor, unit = law.cut_start_load(
             lateral_force, inserted_length=inserted_length, point_count=point_count
         )
-        rows = self._rows
-        lateral = (rows.source == INSERTION) & (rows.kind == BILATERAL) & self._own
-        if law.excludes_entry_point:
-            lateral &= rows.points_of_rows != 0
-        lateral = np.flatnonzero(lateral)
+        if rows is None:
+            rows = self._rows
+            lateral = (rows.source == INSERTION) & (rows.kind == BILATERAL) & self._own
+            if law.excludes_entry_point:
+                lateral &= rows.points_of_rows != 0
+            lateral = np.flatnonzero(lateral)
+        else:
+            lateral = self._own_rows[np.asarray(rows, dtype=np.int64)]
+            rows = self._rows
         spread = float(np.linalg.norm(rows.directions[lateral], ord=2)) if lateral.size else 0.0
         accuracy = spread * self._accuracy(lateral) / divisor if divisor > 0.0 else np.inf
         self._criteria.append(Criterion("cut_start", value, threshold, accuracy, unit))
