@@ -26,7 +26,8 @@
   re-entered; a channel cut through to a far face is kept from both holes (the exit's record enters at the
   channel's end and runs through to its entry)
 - phase: insertion; event: cut_start; when: energy law: ‖t‖ ≥ G_c L_in; paper law (equation 3): ‖t‖ > n_i f_c,
-  t the lateral load of the insertion points' rows and of the faces' rows of a cut the needle lies along;
+  t the lateral load of the insertion points' rows (energy law: and of the faces' rows of a cut the needle
+  lies along);
   then: a strip on the path (along a cut: on the inserted needle, its first layer d_c ahead); cutting, the
   entry point kept
 - phase: cutting; event: (crack advance); when: energy law: a front row at its strength G_c ℓ_k and the needle
@@ -44,8 +45,8 @@
   end, having moved forward through the tissue (along the needle, relative to its material point); then:
   the cut rows run along the part of the needle in the tissue, from its entry to where it leaves through
   the far face
-- phase: cutting; event: cut_start; when: the needle more than 1.5 d_c behind its crack tip along ĉ and the
-  load of its cut's faces' rows meets the law's cut start (energy law: ‖t_f‖ ≥ G_c L_in); then: the strip
+- phase: cutting; event: cut_start; when: energy law: the needle more than 1.5 d_c behind its crack tip along
+  ĉ and the load of its cut's faces' rows meets the cut start, ‖t_f‖ ≥ G_c L_in; then: the strip
   recorded up to its crack tip, a new strip on the inserted needle, ĉ = −t_f/‖t_f‖, its first layer d_c ahead
 - phase: cutting; event: leave_cut; when: the needle is back behind the strip's first layer (the line it
   entered along) by more than d_c/2, along −ĉ; then: insertion points along the inserted needle every d_i
@@ -378,10 +379,17 @@ class EventRules:
                 without_entry=self.law.excludes_entry_point,
                 points=rows.points_of_rows,
             )
-            # A needle along an existing cut: its faces' rows hold it there, their load part of t alike.
-            faces = rows.rows_of(SLIDING)
+            # A needle along an existing cut: its faces' rows hold it there, their load part of t alike (a law
+            # whose front gives way: the paper's never does, nor do the faces).
+            faces = rows.rows_of(SLIDING) if np.isfinite(self.law.front_strength) else None
             started = self._cut_starts(
-                world, state, force_on_needle, needle, locator, points, faces=(rows, multipliers, faces)
+                world,
+                state,
+                force_on_needle,
+                needle,
+                locator,
+                points,
+                faces=None if faces is None else (rows, multipliers, faces),
             )
             if started is not None:
                 return started
@@ -755,9 +763,11 @@ class EventRules:
         through the front (``CuttingLaw.grow``); one pushed sideways away from it (moved back into its cut,
         then out of its plane) meets only the faces. Then the strip is recorded up to its crack tip and a
         new one starts on the inserted needle, the way it pushes (ĉ = −t_f/‖t_f‖, as at a cut start).
-        Event ``cut_start``, which solves its step again (``STEP_SOLVED_AGAIN``)."""
+        Event ``cut_start``, which solves its step again (``STEP_SOLVED_AGAIN``). Under a law whose front
+        never gives way (the paper's: ``front_strength`` infinite) the faces do not either: None."""
         faces = rows.rows_of(SLIDING)
-        if faces.size == 0:
+        if faces.size == 0 or not np.isfinite(self.law.front_strength):
+            # (the paper's law: its front's rows never give way, nor do the faces)
             return None
         spacing = self.cutting.point_spacing
         positions = world.tissue.positions
