@@ -62,9 +62,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from refsim.constraints import (
-    BILATERAL,
     CUT_FRICTION,
-    INSERTION,
     PENETRATION,
     SLIDING,
     TIP,
@@ -82,7 +80,7 @@ from refsim.cutting.strip import recorded_surface
 from refsim.geometry import TetLocator
 from refsim.scene import Scene
 from refsim.simulation.detection import Detection
-from refsim.simulation.margins import MarginWatch
+from refsim.simulation.margins import MarginWatch, shaft_lateral_rows
 from refsim.simulation.records import Event
 from refsim.simulation.state import Channel, ChannelEnd, Phase, SimulationState, evolved
 
@@ -106,15 +104,10 @@ def shaft_lateral_force(
         for other rows), shape (r,). None (results files, which do not store it): the insertion rows are
         taken in path order with the entry's two lateral rows first.
     """
-    source = np.asarray(source)
-    insertion = source == INSERTION
-    lateral = insertion & (np.asarray(kind) == BILATERAL)
     if points is not None:
-        if without_entry:
-            lateral &= np.asarray(points) != 0
-        lateral = np.flatnonzero(lateral)
+        lateral = shaft_lateral_rows(source, kind, points, without_entry)
     else:
-        lateral = np.flatnonzero(lateral)
+        lateral = shaft_lateral_rows(source, kind, None, False)
         if without_entry:
             lateral = lateral[2:]
     return (np.asarray(directions)[lateral] * np.asarray(forces)[lateral, None]).sum(axis=0)
@@ -574,9 +567,9 @@ class EventRules:
         spacing = self.cutting.point_spacing
         if along_cut:
             rows, multipliers, indices = faces
-            lateral = np.flatnonzero((rows.source == INSERTION) & (rows.kind == BILATERAL))
-            if self.law.excludes_entry_point:
-                lateral = lateral[rows.points_of_rows[lateral] != 0]
+            lateral = shaft_lateral_rows(
+                rows.source, rows.kind, rows.points_of_rows, self.law.excludes_entry_point
+            )
             force_on_needle = force_on_needle + (rows.directions[indices] * multipliers[indices, None]).sum(
                 axis=0
             )
@@ -599,9 +592,7 @@ class EventRules:
         direction = -force_on_needle / float(np.linalg.norm(force_on_needle))
         extent = start.extent
         if along_cut:
-            path_points = needle.points(
-                np.linspace(entry_arc, end, max(int(np.ceil(inserted / spacing)), 1) + 1)
-            )
+            path_points = _inserted_line(needle, entry_arc, end, spacing)
             extent = max(extent, spacing)
         cut, strip = start_strip(
             self.growth, world.cut, path_points, direction, positions, world.step, extent=extent
@@ -786,7 +777,7 @@ class EventRules:
         if start is None:
             return None
         recorded = recorded_surface(world.cut, state.cut_strip, world.step)
-        line = needle.points(np.linspace(entry_arc, end, max(int(np.ceil(inserted / spacing)), 1) + 1))
+        line = _inserted_line(needle, entry_arc, end, spacing)
         direction = -load / float(np.linalg.norm(load))
         cut, strip = start_strip(
             self.growth, recorded, line, direction, positions, world.step, extent=max(start.extent, spacing)
@@ -797,6 +788,13 @@ class EventRules:
             state, cut_direction=np.asarray(direction, dtype=float), cut_strip=strip, channel_end=None
         )
         return evolved(world, cut=cut), state, [Event("cut_start", start.trigger, start.unit)]
+
+
+def _inserted_line(needle, entry_arc: float, end: float, spacing: float) -> np.ndarray:
+    """The needle's centreline between arc lengths ``entry_arc`` and ``end`` [m], points at most ``spacing``
+    apart, ends included, shape (k, 3), k ≥ 2: the line a cut started against a cut's faces runs on."""
+    count = max(int(np.ceil((end - entry_arc) / spacing)), 1) + 1
+    return needle.points(np.linspace(entry_arc, end, count))
 
 
 def _face_stretch(

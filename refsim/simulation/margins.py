@@ -92,6 +92,19 @@ CRITERIA_OF_EVENT = {
 }
 
 
+def shaft_lateral_rows(source, kind, points, without_entry: bool, mask=None) -> np.ndarray:
+    """Indices of the insertion points' lateral (bilateral) rows, the cut-start load's rows, shape (k,):
+    ``source``, ``kind``, ``points`` (each row's insertion point, the entry is 0) per row; ``without_entry``
+    leaves the entry point's rows out (``CuttingLaw.excludes_entry_point``); ``mask`` (bool per row) keeps
+    only those rows when given."""
+    lateral = (np.asarray(source) == INSERTION) & (np.asarray(kind) == BILATERAL)
+    if without_entry:
+        lateral &= np.asarray(points) != 0
+    if mask is not None:
+        lateral &= mask
+    return np.flatnonzero(lateral)
+
+
 @dataclass(frozen=True)
 class Criterion:
     """A criterion an event compares, as evaluated at the end of one step.
@@ -240,14 +253,16 @@ class MarginWatch:
             lateral_force, inserted_length=inserted_length, point_count=point_count
         )
         if rows is None:
-            rows = self._rows
-            lateral = (rows.source == INSERTION) & (rows.kind == BILATERAL) & self._own
-            if law.excludes_entry_point:
-                lateral &= rows.points_of_rows != 0
-            lateral = np.flatnonzero(lateral)
+            lateral = shaft_lateral_rows(
+                self._rows.source,
+                self._rows.kind,
+                self._rows.points_of_rows,
+                law.excludes_entry_point,
+                self._own,
+            )
         else:
             lateral = self._own_rows[np.asarray(rows, dtype=np.int64)]
-            rows = self._rows
+        rows = self._rows
         spread = float(np.linalg.norm(rows.directions[lateral], ord=2)) if lateral.size else 0.0
         accuracy = spread * self._accuracy(lateral) / divisor if divisor > 0.0 else np.inf
         self._criteria.append(Criterion("cut_start", value, threshold, accuracy, unit))

@@ -1093,7 +1093,7 @@ def test_a_needle_moved_back_into_its_cut_and_pushed_out_of_its_plane_cuts_at_th
 
 
 def _moved_back_and_pushed_out_of_plane(*overrides):
-    """The run of the test above: records, states, scene and G_c L_in of the energy law [N]."""
+    """The run of the test above: records, states, scene and G_c L_in [N]."""
     # cube_cut on 4³ cells: inserted 17 mm at x = 1.23 mm, a stroke of 8 mm along +x (a cut in the xz plane),
     # back 4 mm along −x into the cut's interior (4 mm behind its crack tip), then 6 mm along +y, normal to
     # the cut's plane. Reference: the energy law, a needle cuts intact tissue at G_c per unit inserted length
@@ -1114,6 +1114,14 @@ def _moved_back_and_pushed_out_of_plane(*overrides):
         (4.1, entry + depth * down + [0.004, 0.006, 0.0]),
         (4.3, entry + depth * down + [0.004, 0.006, 0.0]),
     ]
+    records, states, scene = _vertical_run_on_cube_cut(tips, *overrides)
+    return records, states, scene, scene.cutting.fracture_energy * depth
+
+
+def _vertical_run_on_cube_cut(tips, *overrides):
+    """cube_cut on 4³ cells with a vertical needle whose tip passes the (time [s], tip [m]) waypoints
+    ``tips``: the records, states and scene."""
+    down = np.array([0.0, 0.0, -1.0])
     fmt = lambda v: "[" + ", ".join(repr(float(c)) for c in v) + "]"  # noqa: E731
     bases = ", ".join(fmt(tip - NEEDLE_LENGTH * down) for _, tip in tips)
     scene = load_scene(
@@ -1124,17 +1132,12 @@ def _moved_back_and_pushed_out_of_plane(*overrides):
             f"trajectory.times={fmt([t for t, _ in tips])}",
             f"trajectory.base_positions=[{bases}]",
             "trajectory.directions=[" + ", ".join(fmt(down) for _ in tips) + "]",
-            "time.duration=4.3",
+            f"time.duration={tips[-1][0]}",
         ],
     )
     records, states = [], []
     Simulation(scene).run(on_step=lambda state, record: (records.append(record), states.append(state)))
-    return (
-        records,
-        states,
-        scene,
-        scene.cutting.fracture_energy * depth if scene.cutting.law == "energy" else None,
-    )
+    return records, states, scene
 
 
 def test_a_needle_reinserted_along_a_cut_and_pushed_out_of_its_plane_cuts_at_the_fracture_energy():
@@ -1145,7 +1148,6 @@ def test_a_needle_reinserted_along_a_cut_and_pushed_out_of_its_plane_cuts_at_the
     # faces' load took part in t, the faces held it to 6.4 N (2.7 G_c L_in) until insertion points off the
     # cut started a cut, whose step the old faces held at 18.4 N.
     entry = np.array([0.00123, 0.00231, TOP])
-    down = np.array([0.0, 0.0, -1.0])
     tips = [
         (0.0, entry + [0.0, 0.0, 0.002]),
         (1.9, entry + [0.0, 0.0, -0.017]),
@@ -1159,22 +1161,9 @@ def test_a_needle_reinserted_along_a_cut_and_pushed_out_of_its_plane_cuts_at_the
         (5.9, entry + [0.004, 0.006, -0.012]),
         (6.0, entry + [0.004, 0.006, -0.012]),
     ]
-    fmt = lambda v: "[" + ", ".join(repr(float(c)) for c in v) + "]"  # noqa: E731
-    bases = ", ".join(fmt(tip - NEEDLE_LENGTH * down) for _, tip in tips)
-    scene = load_scene(
-        "cube_cut",
-        [
-            "mesh.cells=[4, 4, 4]",
-            f"trajectory.times={fmt([t for t, _ in tips])}",
-            f"trajectory.base_positions=[{bases}]",
-            "trajectory.directions=[" + ", ".join(fmt(down) for _ in tips) + "]",
-            "time.duration=6.0",
-        ],
-    )
-    records, states = [], []
-    Simulation(scene).run(on_step=lambda state, record: (records.append(record), states.append(state)))
+    records, states, scene = _vertical_run_on_cube_cut(tips)
     assert_each_step_ends_with_the_rows_of_its_end_state(records)
-    g_c_l = scene.cutting.fracture_energy * 0.012
+    g_c_l = scene.cutting.fracture_energy * 0.012  # G_c [N/m] times L_in [m]
     reinserted = [r for r in records if 5.2 <= r.time <= 5.3]
     assert reinserted and all(r.phase == Phase.INSERTION for r in reinserted)
     assert all(np.any(r.row_role == SLIDING) for r in reinserted)  # the old cut's faces hold it
