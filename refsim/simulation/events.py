@@ -45,9 +45,10 @@
   end, having moved forward through the tissue (along the needle, relative to its material point); then:
   the cut rows run along the part of the needle in the tissue, from its entry to where it leaves through
   the far face
-- phase: cutting; event: cut_start; when: energy law: the needle more than 1.5 d_c behind its crack tip along
-  ĉ and the load of its cut's faces' rows meets the cut start, ‖t_f‖ ≥ G_c L_in; then: the strip
-  recorded up to its crack tip, a new strip on the inserted needle, ĉ = −t_f/‖t_f‖, its first layer d_c ahead
+- phase: cutting; event: cut_start; when: energy law: the load of its cut's faces' rows away from the crack
+  tip (beyond the band of 1.5 d_c where they give way at G_c ℓ_k) meets the cut start for the inserted length
+  they hold, ‖t_h‖ ≥ G_c L_h; then: the strip recorded up to its crack tip, a new strip on the inserted
+  needle, ĉ = −t_h/‖t_h‖, its first layer d_c ahead
 - phase: cutting; event: leave_cut; when: the needle is back behind the strip's first layer (the line it
   entered along) by more than d_c/2, along −ĉ; then: insertion points along the inserted needle every d_i
   where it lies in intact tissue (none in the cut: the part still in it slides in it); insertion (the cut
@@ -749,33 +750,37 @@ class EventRules:
 
         The faces' rows (the cut's SLIDING rows) hold the needle in its cut's plane; the load they carry
         is the tissue behind a face resisting the needle, as the insertion points' lateral rows are for a
-        needle in intact tissue, so the law's cut start holds for it alike (energy law: ‖t_f‖ ≥ G_c L_in,
-        t_f = Σ n λ over the faces' rows, L_in the inserted length). A needle pushed at its crack tip cuts
-        through the front (``CuttingLaw.grow``); one pushed sideways away from it (moved back into its cut,
-        then out of its plane) meets only the faces. Then the strip is recorded up to its crack tip and a
-        new one starts on the inserted needle, the way it pushes (ĉ = −t_f/‖t_f‖, as at a cut start).
-        Event ``cut_start``, which solves its step again (``STEP_SOLVED_AGAIN``). Under a law whose front
-        never gives way (the paper's: ``front_strength`` infinite) the faces do not either: None."""
+        needle in intact tissue, so the law's cut start holds for it alike. Near the crack tip (within
+        1.5 d_c of it: the band of :func:`refsim.constraints.cut.strip_cut_block`) the faces' rows already
+        give way at G_c ℓ_k each, the front's strength, and the front's growth turns the cut
+        (``CuttingLaw.grow``); the others are unbounded. So the criterion reads those others, the *held*
+        faces: ‖t_h‖ ≥ G_c L_h (energy law), t_h = Σ n λ over the held faces' rows and L_h the inserted
+        length less the band's (Σ ℓ_k over the band's rows, their limits over G_c). A needle at its crack
+        tip has no held faces; one moved back into its cut, or whose shaft turned away from its crack tip,
+        has. Then the strip is recorded up to its crack tip and a new one starts on the inserted needle, the
+        way it pushes (ĉ = −t_h/‖t_h‖, as at a cut start), its first layer d_c ahead (the new strip's faces
+        are then within its band, so they do not start another at once). Event ``cut_start``, which solves its
+        step again (``STEP_SOLVED_AGAIN``). Under a law whose front never gives way (the paper's:
+        ``front_strength`` infinite) the faces do not either: None."""
         faces = rows.rows_of(SLIDING)
-        if faces.size == 0 or not np.isfinite(self.law.front_strength):
+        strength = float(self.law.front_strength)
+        if faces.size == 0 or not np.isfinite(strength):
             # (the paper's law: its front's rows never give way, nor do the faces)
             return None
-        spacing = self.cutting.point_spacing
-        positions = world.tissue.positions
-        # Away from the crack tip: behind it (along −ĉ) by more than a layer and a half (a face start's first
-        # layer, d_c, and the half spacing leave_cut allows); nearer, the front's rows take the push and turn
-        # the cut (CuttingLaw.grow).
-        tip = state.cut_strip.front.positions(positions, self.tets)
-        _, on_needle = needle.project(tip)
-        if float(((on_needle - tip) @ state.cut_direction).mean()) >= -1.5 * spacing:
+        limits = rows.force_limit[faces] if rows.force_limit.size else np.full(faces.size, np.inf)
+        band = np.isfinite(limits)
+        held = faces[~band]
+        if held.size == 0:
             return None
-        load = (rows.directions[faces] * multipliers[faces, None]).sum(axis=0)
+        spacing = self.cutting.point_spacing
+        load = (rows.directions[held] * multipliers[held, None]).sum(axis=0)
         entry_arc, end = inserted_span(needle, step_locator.locator, spacing)
-        inserted = end - entry_arc
-        self.margins.cut_start(self.law, load, inserted, state.path.point_count, rows=faces)
-        start = self.law.cut_start(load, inserted_length=inserted, point_count=state.path.point_count)
+        length = (end - entry_arc) - float(limits[band].sum()) / strength
+        self.margins.cut_start(self.law, load, length, state.path.point_count, rows=held)
+        start = self.law.cut_start(load, inserted_length=length, point_count=state.path.point_count)
         if start is None:
             return None
+        positions = world.tissue.positions
         recorded = recorded_surface(world.cut, state.cut_strip, world.step)
         line = _inserted_line(needle, entry_arc, end, spacing)
         direction = -load / float(np.linalg.norm(load))
