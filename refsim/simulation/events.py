@@ -3,10 +3,11 @@
 - phase: approach; event: puncture; when: tip normal force ≥ f_p; then: the entry point is the first insertion
   point; insertion
 - phase: approach; event: reentry; when: the tip's closest surface point lies in a hole of the tissue
-  (``SimulationState.channels``: within the hole's radius of its entry point, in rest coordinates), where
-  the tip has no contact rows, and the tip lies in a tet after the step; then: the hole's entry point is the
-  first insertion point and its channel's end the channel end (no puncture: the surface is open there, and
-  the tip cuts only beyond the end; a channel cut through has no tip row); insertion
+  (``SimulationState.channels``: within the hole's radius of its entry point, in rest coordinates), where the
+  tip has no contact rows, and the tip lies in a tet after the step; then: where the needle meets the surface
+  (within the hole) is the first insertion point and the hole's channel's end the channel end (no puncture:
+  the surface is open there, and the tip cuts only beyond the end; a channel cut through has no tip row);
+  insertion
 - phase: insertion; event: (new points); when: the tip is farther than d_i from every point; then: points
   every d_i behind the tip, but none in an existing cut
 - phase: insertion; event: (tip location); when: every step; then: the tip's material point (its tet and
@@ -289,11 +290,12 @@ class EventRules:
         return state, [Event("puncture", normal_force)]
 
     def _reentry(self, world, state, detection: Detection, locator: LazyLocator):
-        """A tip that met the surface within a hole of the tissue (``detection.hole``: the step's detection
-        found its closest surface point there and built no tip contact) and lies in a tet after the step has
-        entered the hole's channel: the insertion phase, with the hole's entry point as its first insertion
-        point and its end as the channel's end (the tip's cutting row frees the tip up to it; a channel cut
-        through has no tip row). No puncture: the surface is already open there. Event ``reentry``.
+        """A tip that met the surface within a hole of the tissue (``detection.hole``: the step's
+        detection found its closest surface point there and built no tip contact) and lies in a tet after the
+        step has entered the hole's channel: the insertion phase, with where the tip met the surface (within
+        the hole) as its first insertion point and the hole's end as the channel's end (the tip's cutting row
+        frees the tip up to it; a channel cut through has no tip row). No puncture: the surface is already
+        open there. Event ``reentry``.
 
         The tip is located (in the whole mesh) only once it is past the tangent plane of its surface point
         on the step's positions: a tip still above it is outside."""
@@ -306,9 +308,16 @@ class EventRules:
         tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, -1, locator)
         if tip_tet < 0:
             return state, []
-        path = InsertionPath.empty().appended(
-            np.array([hole.entry_tet]), np.asarray(hole.entry_barycentric).reshape(1, 4), world.step
+        # The needle enters where it meets the surface: the hole is open over its radius, so a needle
+        # entering it off the old entry point is not pulled back to that point (anchored there, the entry
+        # point's rows, which the energy law's cut start leaves out, held a needle re-entering 0.1-0.3 mm deep
+        # and off its old axis with 10-12 N).
+        tets, barycentric = locate_under_surface(
+            positions, self.tets, surface[None, :], inward=contact.normal
         )
+        if tets[0] < 0:
+            tets, barycentric = np.array([hole.entry_tet]), np.asarray(hole.entry_barycentric).reshape(1, 4)
+        path = InsertionPath.empty().appended(tets, barycentric, world.step)
         state = evolved(
             state,
             phase=Phase.INSERTION,
@@ -322,10 +331,11 @@ class EventRules:
     def _left_channels(self, world, state, channel_end) -> tuple[Channel, ...]:
         """The tissue's channels after instrument ``state`` (at the step's start, in insertion) left the
         tissue in the step, its channel's end being ``channel_end`` after the step's events: its channel
-        added, entering at its path's first point (the puncture's, or the hole's it re-entered, whose record
-        it replaces) and ending at the deepest material point its tip reached (``channel_end``; without a
-        tip cutting force, where no row reads it, the tip's last material point, or the entry's). A channel
-        cut through to a far face (its end marked through) is recorded from both of its holes: also entering
+        added, entering at its path's first point (the puncture's, or the re-entry's: where the needle met
+        the surface in the hole; it replaces the hole's record when that is the same point) and ending at the
+        deepest material point its tip reached (``channel_end``; without a tip cutting force, where no row
+        reads it, the tip's last material point, or the entry's). A channel cut through to a far face (its
+        end marked through) is recorded from both of its holes: also entering
         at its end (the tip's last material point inside) and running through to its entry."""
         if state.path.point_count == 0:
             return world.channels

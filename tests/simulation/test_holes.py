@@ -13,7 +13,9 @@ The matrix (the cases beyond the first of each list are @slow):
   flexible; Gauss–Seidel, exact, the fast compliance; the entry inside a surface triangle, on a mesh edge,
   at a mesh vertex);
 - the same, the second needle entering 2 needle radii beside the hole: punctures at f_p
-  (``test_a_needle_beside_a_hole_punctures_the_surface``);
+  (``test_a_needle_beside_a_hole_punctures_the_surface``); entering 2 or 6 mm beside its old entry, within
+  the hole: enters where it meets the surface, not pulled back to the old entry point
+  (``test_a_needle_reentering_its_hole_off_its_old_axis_is_not_pulled_back_to_it``, rigid; flexible @slow);
 - a hole through a thin layer (the needle left it through the far face): re-entered, no tip row at all
   (``test_a_channel_cut_through_a_layer_has_no_tip_row_when_reentered``);
 - that hole re-entered at 30° from its line: the tip cuts the intact layer at f_cut
@@ -163,6 +165,31 @@ def test_a_needle_beside_a_hole_punctures_the_surface():
     second = punctures[1][0].step
     later = [r for r in records if r.step > second + 1]
     assert later and all(_tip(r) == pytest.approx(scene.insertion.tip_cutting_force, rel=1e-5) for r in later)
+
+
+OFF_AXIS = [
+    pytest.param(0.002, "rigid", id="2mm-rigid"),
+    pytest.param(0.006, "rigid", id="6mm-rigid"),
+    pytest.param(0.002, "flexible", id="2mm-flexible", marks=pytest.mark.slow),
+    pytest.param(0.006, "flexible", id="6mm-flexible", marks=pytest.mark.slow),
+]
+
+
+@pytest.mark.parametrize(("offset", "needle"), OFF_AXIS)
+def test_a_needle_reentering_its_hole_off_its_old_axis_is_not_pulled_back_to_it(offset, needle):
+    # As the first test, vertical, but re-inserted `offset` beside the old entry along x, within the hole's
+    # radius (the needle's, 8 mm). Reference: the surface is open over the hole, so the needle enters where
+    # it meets it (no puncture) and has no tissue to push aside there: its lateral force is the channel's
+    # friction's, as on its old axis (2.4 mN at 0 offset). When the re-entry's first insertion point was the
+    # old entry point, its rows pulled the needle back to it, the energy law's cut start leaving them out:
+    # 2.9 N at 2 mm and 16.5 N at 6 mm, to the end of the run.
+    scene, records = _run(
+        "time.dt=0.02", *NEEDLES[needle], *_reinsertion(DIRECTIONS["0deg"], (ENTRY[0] + offset, ENTRY[1]))
+    )
+    assert _named(records, "puncture", "withdrawal", "reentry") == ["puncture", "withdrawal", "reentry"]
+    entered = next(r.step for r in records if any(e.name == "reentry" for e in r.events))
+    lateral = [float(np.linalg.norm(r.needle_force[:2])) for r in records if r.step >= entered]
+    assert max(lateral) < 0.05 * scene.insertion.puncture_force, lateral
 
 
 def test_a_channel_cut_through_a_layer_has_no_tip_row_when_reentered():
