@@ -310,8 +310,7 @@ class EventRules:
             return state, []
         # The needle enters where it meets the surface: the hole is open over its radius, so a needle
         # entering it off the old entry point is not pulled back to that point (anchored there, the entry
-        # point's rows, which the energy law's cut start leaves out, held a needle re-entering 0.1-0.3 mm deep
-        # and off its old axis with 10-12 N).
+        # point's rows, which the energy law's cut start leaves out, would hold it with no limit).
         tets, barycentric = locate_under_surface(
             positions, self.tets, surface[None, :], inward=contact.normal
         )
