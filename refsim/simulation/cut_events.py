@@ -1,0 +1,328 @@
+"""The cutting phase's events of an instrument (layer 4): what :class:`refsim.simulation.events.EventRules`
+does once the needle cuts, and the cut starts of the insertion phase.
+
+- the cut start, from the insertion points' lateral load (and the faces' of a cut the needle lies along):
+  :meth:`CutEventRules._cut_starts`;
+- the cut's growth where the needle pushes through its front, the strip's extension down a needle inserted
+  deeper, the withdrawal through the cut: :meth:`CutEventRules._cutting`;
+- the needle back out of its cut into intact tissue (``leave_cut``): :meth:`CutEventRules._leave_cut`;
+- a new cut started by the load of its cut's faces away from the crack tip:
+  :meth:`CutEventRules._face_cut_start`;
+- the stick anchors of the cut faces' friction rows after each solve: :func:`face_stretch`.
+
+The table of every event, its phase, criterion and effect is the docstring of :mod:`refsim.simulation.events`.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from refsim.constraints import CUT_FRICTION, SLIDING, InsertionPath, points_beyond_tip
+from refsim.constraints.cut import crack_tip_compression, inserted_arc, inserted_span
+from refsim.constraints.friction import FaceStretch
+from refsim.cutting.growth import start_strip
+from refsim.cutting.laws import FrontPush
+from refsim.cutting.strip import recorded_surface
+from refsim.simulation.detection import Detection
+from refsim.simulation.margins import shaft_lateral_rows
+from refsim.simulation.records import Event
+from refsim.simulation.state import Phase, evolved
+
+if TYPE_CHECKING:
+    from refsim.simulation.events import LazyLocator
+
+__all__ = ["STICK_TOLERANCE", "CutEventRules", "face_stretch"]
+
+#: A cut face's friction row sticks when its force is below its bound by more than this fraction of it (far
+#: above the solve's 10⁻⁸, as for the shaft's rows: `refsim.constraints.channel.stuck_points`).
+STICK_TOLERANCE = 1e-3
+
+
+class CutEventRules:
+    """The cutting phase's rules, a part of :class:`refsim.simulation.events.EventRules` (which holds the
+    scene's parts they read: ``cutting``, ``law``, ``growth``, ``margins``, ``tets``, ``insertion``, the
+    needle's geometry, the tip's location and the path's points outside a cut)."""
+
+    def _cut_starts(
+        self, world, state, force_on_needle, needle, locator: LazyLocator, path_points=None, faces=None
+    ):
+        """The states (the world's, with the cut, and the instrument's) and events of a cut start, or None
+        when the law's criterion does not hold (``CuttingLaw.cut_start``). The cut runs the way the needle
+        pushes the tissue, ĉ = −t/‖t‖ (``needle``: the instrument's geometry, ``locator``: the step's;
+        ``path_points``: the path's points on the world's tissue positions, computed here when None).
+
+        ``faces``: (rows, multipliers, indices) of the faces' rows of an existing cut the needle lies along
+        (its SLIDING rows), or None. Their load is part of t (the tissue behind a face resists the needle as
+        the insertion points' tissue does, :meth:`_face_cut_start`), and with them the cut starts on the
+        inserted needle (the insertion points leave out its part in the old cut), its first layer d_c ahead,
+        so that the old cut's faces, which hold the needle on their plane, do not hold it against the new
+        cut's direction."""
+        positions = world.tissue.positions
+        if path_points is None:
+            path_points = state.path.positions(positions, self.tets)
+        along_cut = faces is not None and faces[2].size > 0
+        spacing = self.cutting.point_spacing
+        if along_cut:
+            rows, multipliers, indices = faces
+            lateral = shaft_lateral_rows(
+                rows.source, rows.kind, rows.points_of_rows, self.law.excludes_entry_point
+            )
+            force_on_needle = force_on_needle + (rows.directions[indices] * multipliers[indices, None]).sum(
+                axis=0
+            )
+            entry_arc, end = inserted_span(needle, locator, spacing)
+            inserted = end - entry_arc
+            margin_rows = np.concatenate([lateral, indices])
+        else:
+            end = needle.length
+            if state.tip_tet < 0:
+                # The tip out of a far face: the shaft cuts along the part in the tissue only.
+                _, end = inserted_span(needle, locator, spacing)
+            inserted = end - float(needle.project(path_points[:1])[0][0])
+            margin_rows = None
+        self.margins.cut_start(self.law, force_on_needle, inserted, state.path.point_count, rows=margin_rows)
+        start = self.law.cut_start(
+            force_on_needle, inserted_length=inserted, point_count=state.path.point_count
+        )
+        if start is None:
+            return None
+        direction = -force_on_needle / float(np.linalg.norm(force_on_needle))
+        extent = start.extent
+        if along_cut:
+            path_points = _inserted_line(needle, entry_arc, end, spacing)
+            extent = max(extent, spacing)
+        cut, strip = start_strip(
+            self.growth, world.cut, path_points, direction, positions, world.step, extent=extent
+        )
+        if strip is None:
+            return None
+        world = evolved(world, cut=cut)
+        state = evolved(
+            state,
+            phase=Phase.CUTTING,
+            cut_direction=np.asarray(direction, dtype=float),
+            cut_strip=strip,
+            path=state.path.subset(self.law.kept_at_cut_start(state.path.point_count)),
+            channel_end=None,
+        )
+        return world, state, [Event("cut_start", start.trigger, start.unit)]
+
+    def _leave_cut(self, world, state, needle, positions, locator: LazyLocator):
+        """The state after the needle left its cut backwards, into intact tissue: insertion points along the
+        inserted needle every d_i (material points where the needle now is) but none in the cut (the rule of
+        new points: a part of the needle still in its cut slides in it), the insertion phase, the cut kept
+        (the needle may cut again: a new cut start). Event ``leave_cut``."""
+        # The cut the strip leaves reaches its crack tip.
+        world = evolved(world, cut=recorded_surface(world.cut, state.cut_strip, world.step))
+        spacing = self.insertion.spacing
+        entry_arc = inserted_arc(needle, locator, spacing)
+        arcs = np.arange(entry_arc, needle.length + 1e-12 * spacing, spacing)
+        tets, barycentric = locator.locate(needle.points(arcs))
+        inside = tets >= 0
+        path = InsertionPath.empty().appended(tets[inside], barycentric[inside], world.step)
+        if world.cut is not None and world.cut.triangle_count:
+            path = self._outside_cut(path, world, positions)
+        events = [Event("leave_cut")]
+        if path.point_count == 0:
+            state = evolved(
+                state, phase=Phase.APPROACH, path=path, cut_strip=None, tip_tet=-1, channel_end=None
+            )
+            return world, state, [*events, Event("withdrawal")]
+        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, -1, locator)
+        state = evolved(
+            state,
+            phase=Phase.INSERTION,
+            path=path,
+            cut_strip=None,
+            tip_tet=tip_tet,
+            tip_barycentric=tip_barycentric,
+            channel_end=None,
+        )
+        return world, state, events
+
+    def _extended(self, strip, needle, positions, locator, entry_arc, step):
+        """The strip with a block of columns added below its deepest one at ``step`` down to the needle's tip,
+        every d_c (``locator`` on ``positions``; ``entry_arc`` where the needle enters the tissue)."""
+        from refsim.cutting.strip import CutFront, locate_material_points
+
+        spacing = self.cutting.point_spacing
+        count = int(np.floor((needle.length - entry_arc - strip.depths[-1]) / spacing + 1e-9))
+        if count <= 0:
+            return strip
+        depths = strip.depths[-1] + spacing * np.arange(1, count + 1)
+        tets, barycentric, inside = locate_material_points(
+            locator, positions, self.tets, needle.points(entry_arc + depths), snap_distance=0.5 * spacing
+        )
+        run = int(np.cumprod(inside).sum())  # down to the first point outside the tissue
+        if run == 0:
+            return strip
+        tets, barycentric = tets[:run], barycentric[:run]
+        rest = np.einsum("pk,pkj->pj", barycentric, self.growth.rest_positions[self.tets[tets]])
+        return strip.extended(CutFront(rest, tets, barycentric), depths[:run], step)
+
+    def _cutting(self, world, state, detection, multipliers, step_locator: LazyLocator):
+        """Withdrawal through the cut, and the growth of the cut where the needle pushes through its front."""
+        positions = world.tissue.positions
+        needle = self.needle_geometry(state.needle)
+        entry = state.path.positions(positions, self.tets)
+        if state.path.point_count == 0 or points_beyond_tip(state.path, entry, needle)[0]:
+            # The tip is back above the entry point: every row is released; the tissue keeps its cut, up to
+            # the crack tip.
+            world = evolved(world, cut=recorded_surface(world.cut, state.cut_strip, world.step))
+            state = evolved(
+                state, phase=Phase.APPROACH, path=InsertionPath.empty(), cut_strip=None, channel_end=None
+            )
+            return world, state, [Event("retraction"), Event("withdrawal")]
+        events: list[Event] = []
+        cutting = self.cutting
+        # The tip's material state, as in insertion: leaving through a far face is the event exit (the needle
+        # still cuts along the part in the tissue). Only forward through the tissue: a tip pulled back out
+        # through the face it entered by (on the step before the entry point is beyond it) is a withdrawal.
+        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet, step_locator)
+        if self._exits(state, positions, needle, tip_tet):
+            events.append(Event("exit"))
+        state = evolved(state, tip_tet=tip_tet, tip_barycentric=tip_barycentric)
+        if state.cut_strip is not None and world.cut is not None:
+            # Moved back through its own cut and past the line it entered along (the strip's first layer, its
+            # rear edge) by more than half a cut spacing: the needle is in intact tissue again.
+            rear = state.cut_strip.rear_edge(world.cut, positions, self.tets)
+            _, on_needle = needle.project(rear)
+            behind = float(((on_needle - rear) @ state.cut_direction).mean())
+            if behind < -0.5 * cutting.point_spacing:
+                world, state, more = self._leave_cut(world, state, needle, positions, step_locator)
+                return world, state, [*events, *more]
+        if state.cut_strip is not None:
+            pressed = self._face_cut_start(world, state, detection.rows, multipliers, needle, step_locator)
+            if pressed is not None:
+                world, state, more = pressed
+                return world, state, [*events, *more]
+        locator, entry_arc = None, None
+        if self.law.extends_down_shaft and state.cut_strip is not None:
+            # A needle inserted deeper than the strip while it cuts: pushed sideways with the rest of the
+            # shaft, its part below the strip cuts at G_c per unit length like the rest (the energy law does
+            # not depend on where along the shaft the load is), so the strip extends down along it, a column
+            # every d_c to the tip, its crack tip at the needle (insertion points there, anchored in uncut
+            # tissue, would drag it sideways).
+            locator = step_locator.locator
+            entry_arc, end = inserted_span(needle, locator, cutting.point_spacing)
+            state = evolved(
+                state,
+                cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc, world.step),
+                entry_span=(entry_arc, end),
+            )
+        rows = detection.rows
+        self.margins.tear(self.law, detection.front.rows)
+        grown = self.law.grow(
+            FrontPush(
+                growth=self.growth,
+                cut=world.cut,
+                strip=state.cut_strip,
+                direction=state.cut_direction,
+                positions=positions,
+                step=world.step,
+                needle=needle,
+                front=detection.front,
+                multipliers=multipliers,
+                force_limit=rows.force_limit,
+                entry_arc=entry_arc,
+                locator=locator,
+                compression=lambda given_rows, given, columns: crack_tip_compression(
+                    rows, multipliers, given_rows, given, columns
+                ),
+                compliance=rows.compliance_diagonal,
+            )
+        )
+        if grown is None:
+            return world, state, events
+        self.margins.layer(grown)
+        if grown.tear is not None:
+            events.append(Event("tear", grown.tear))
+        world = evolved(world, cut=grown.cut)
+        state = evolved(state, cut_strip=grown.strip, cut_direction=grown.direction)
+        return world, state, events
+
+    def _face_cut_start(self, world, state, rows, multipliers, needle, step_locator: LazyLocator):
+        """A needle pressed against the faces of its cut: the states and the event of a new cut, or None.
+
+        The faces' rows (the cut's SLIDING rows) hold the needle in its cut's plane; the load they carry
+        is the tissue behind a face resisting the needle, as the insertion points' lateral rows are for a
+        needle in intact tissue, so the law's cut start holds for it alike. Near the crack tip (within
+        1.5 d_c of it: the band of :func:`refsim.constraints.cut.strip_cut_block`) the faces' rows already
+        give way at G_c ℓ_k each, the front's strength, and the front's growth turns the cut
+        (``CuttingLaw.grow``); the others are unbounded. So the criterion reads those others, the *held*
+        faces: ‖t_h‖ ≥ G_c L_h (energy law), t_h = Σ n λ over the held faces' rows and L_h the inserted
+        length less the band's (Σ ℓ_k over the band's rows, their limits over G_c). A needle at its crack
+        tip has no held faces; one moved back into its cut, or whose shaft turned away from its crack tip,
+        has. Then the strip is recorded up to its crack tip and a new one starts on the inserted needle, the
+        way it pushes (ĉ = −t_h/‖t_h‖, as at a cut start), its first layer d_c ahead (the new strip's faces
+        are then within its band, so they do not start another at once). Event ``cut_start``, which solves its
+        step again (``STEP_SOLVED_AGAIN``). Under a law whose front never gives way (the paper's:
+        ``front_strength`` infinite) the faces do not either: None."""
+        faces = rows.rows_of(SLIDING)
+        strength = float(self.law.front_strength)
+        if faces.size == 0 or not np.isfinite(strength):
+            # (the paper's law: its front's rows never give way, nor do the faces)
+            return None
+        limits = rows.force_limit[faces] if rows.force_limit.size else np.full(faces.size, np.inf)
+        band = np.isfinite(limits)
+        held = faces[~band]
+        if held.size == 0:
+            return None
+        spacing = self.cutting.point_spacing
+        load = (rows.directions[held] * multipliers[held, None]).sum(axis=0)
+        entry_arc, end = inserted_span(needle, step_locator.locator, spacing)
+        length = (end - entry_arc) - float(limits[band].sum()) / strength
+        self.margins.cut_start(self.law, load, length, state.path.point_count, rows=held)
+        start = self.law.cut_start(load, inserted_length=length, point_count=state.path.point_count)
+        if start is None:
+            return None
+        positions = world.tissue.positions
+        recorded = recorded_surface(world.cut, state.cut_strip, world.step)
+        line = _inserted_line(needle, entry_arc, end, spacing)
+        direction = -load / float(np.linalg.norm(load))
+        cut, strip = start_strip(
+            self.growth, recorded, line, direction, positions, world.step, extent=max(start.extent, spacing)
+        )
+        if strip is None:
+            return None
+        state = evolved(
+            state, cut_direction=np.asarray(direction, dtype=float), cut_strip=strip, channel_end=None
+        )
+        return evolved(world, cut=cut), state, [Event("cut_start", start.trigger, start.unit)]
+
+
+def _inserted_line(needle, entry_arc: float, end: float, spacing: float) -> np.ndarray:
+    """The needle's centreline between arc lengths ``entry_arc`` and ``end`` [m], points at most ``spacing``
+    apart, ends included, shape (k, 3), k ≥ 2: the line a cut started against a cut's faces runs on."""
+    count = max(int(np.ceil((end - entry_arc) / spacing)), 1) + 1
+    return needle.points(np.linspace(entry_arc, end, count))
+
+
+def face_stretch(
+    previous, detection: Detection, multipliers: np.ndarray, coefficient: float, needle, positions, spacing
+):
+    """The cut faces' friction rows' stick anchors after the step's solve (the next step's rows start from
+    them: `refsim.constraints.friction.FaceStretch`), None without such rows. A row sticks when its force is
+    below its bound μ_c |λ| by more than 10⁻³ of it (far above the solve's 10⁻⁸; as the shaft's rows,
+    `refsim.constraints.channel.stuck_points`)."""
+    rows, front = detection.rows, detection.front
+    friction, sliding = rows.rows_of(CUT_FRICTION), rows.rows_of(SLIDING)
+    arcs = front.slide_arc_lengths
+    if friction.size == 0 or friction.size != 2 * arcs.size or sliding.size != arcs.size:
+        return None
+    bound = coefficient * np.abs(np.concatenate([multipliers[sliding], multipliers[sliding]]))
+    return FaceStretch.after_solve(
+        previous,
+        arc_lengths=arcs,
+        nodes=front.slide_nodes,
+        weights=front.slide_weights,
+        tangents=rows.directions[friction],
+        compliance=rows.problem_compliance_diagonal()[friction],
+        multipliers=multipliers[friction],
+        stuck=np.abs(multipliers[friction]) < (1.0 - STICK_TOLERANCE) * bound,
+        needle=needle,
+        tissue_positions=positions,
+        tolerance=1e-9 * spacing,
+    )
