@@ -78,6 +78,7 @@ def start_strip(
     step: int,
     *,
     extent: float,
+    beyond: np.ndarray | None = None,
 ):
     """A new strip on the insertion path: columns every d_c along it, swept along ĉ by ``extent`` (0: the
     crack tip starts on the path, as the energy law wants; d_t for the paper's initial surface).
@@ -91,6 +92,10 @@ def start_strip(
     positions : Tissue positions [m], shape (n, 3).
     step : The step.
     extent : How far the first surface reaches along ĉ [m], ≥ 0.
+    beyond : Where the columns go on to past the path's last point [m], shape (3,) (the needle's end in the
+        tissue), or None. Columns every d_c from the path's last point, the path's own columns unchanged; a
+        gap of less than d_c/2 is left (no column that close to the last one) unless the path alone gives
+        fewer than two columns.
 
     Returns
     -------
@@ -109,6 +114,10 @@ def start_strip(
     cut = CutSurface.empty() if cut is None else cut
     spacing = growth.point_spacing
     columns = resample_polyline(path_points, spacing)
+    if beyond is not None:
+        gap = float(np.linalg.norm(np.asarray(beyond, dtype=float) - columns[-1]))
+        if gap >= 0.5 * spacing or (len(columns) < 2 and gap > 1e-9 * spacing):
+            columns = np.vstack([columns, resample_polyline(np.stack([columns[-1], beyond]), spacing)[1:]])
     depths = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(columns, axis=0), axis=1))])
     layer_count = 1 if extent <= 0.0 else max(int(np.ceil(extent / spacing - 1e-9)), 1) + 1
     offsets = np.linspace(0.0, extent, layer_count) if layer_count > 1 else np.zeros(1)

@@ -150,8 +150,9 @@ class CuttingLaw:
     name : The law's name (the value of ``cutting.law``).
     keys : The scene keys of ``[cutting]`` that belong to this law only: its dataclass fields, each declared
         by :func:`law_key` (set when the law is listed in :data:`CUTTING_LAWS`).
-    excludes_entry_point : Whether the cut-start load leaves out the entry point's rows (at the free surface
-        they also carry the surface's reaction to an oblique entry, a load no shaft cuts with).
+    excludes_entry_point : Whether the cut-start load leaves out the entry point's rows up to f_p (at the
+        free surface they also carry the surface's reaction to an oblique entry, a load no shaft cuts with:
+        `refsim.simulation.events.shaft_lateral_force`).
     rows_while_cutting : Whether the path's points keep their insertion rows while cutting.
     extends_down_shaft : Whether the strip extends down a needle inserted deeper than it while cutting.
     cut_start_unit : The unit of the load a cut start reports, "N/m" or "N".
@@ -234,7 +235,7 @@ class EnergyLaw(CuttingLaw):
 
     def cut_start(self, lateral_force, *, inserted_length, point_count):
         """‖t‖ ≥ G_c L_in: the lateral load per unit inserted length reaches G_c. The first surface is the
-        path itself (extent 0)."""
+        inserted needle itself (extent 0)."""
         magnitude = float(np.linalg.norm(lateral_force))
         if inserted_length <= 0.0 or magnitude < self.fracture_energy * inserted_length:
             return None

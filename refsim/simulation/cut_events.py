@@ -80,8 +80,16 @@ class CutEventRules:
             if state.tip_tet < 0:
                 # The tip out of a far face: the shaft cuts along the part in the tissue only.
                 _, end = inserted_span(needle, locator, spacing)
-            inserted = end - float(needle.project(path_points[:1])[0][0])
+            arcs = needle.project(path_points[[0, -1]])[0]
+            inserted = end - float(arcs[0])
             margin_rows = None
+            # The cut runs on the whole inserted needle, L_in of it: the path's points reach the tip only to
+            # within d_i (a needle less deep than d_i has its entry point alone). The line goes on as the
+            # needle does, from the deepest point kept where it is beside the needle (the tissue's
+            # compression under the lateral load sets the material point the needle's own axis is in apart
+            # from the path's: 0.2 mm on the 4³ cube_cut).
+            reach = needle.points(np.array([arcs[1], end]))
+            beyond = path_points[-1] + reach[1] - reach[0]
         self.margins.cut_start(self.law, force_on_needle, inserted, state.path.point_count, rows=margin_rows)
         start = self.law.cut_start(
             force_on_needle, inserted_length=inserted, point_count=state.path.point_count
@@ -94,7 +102,14 @@ class CutEventRules:
             path_points = _inserted_line(needle, entry_arc, end, spacing)
             extent = max(extent, spacing)
         cut, strip = start_strip(
-            self.growth, world.cut, path_points, direction, positions, world.step, extent=extent
+            self.growth,
+            world.cut,
+            path_points,
+            direction,
+            positions,
+            world.step,
+            extent=extent,
+            beyond=None if along_cut else beyond,
         )
         if strip is None:
             return None

@@ -88,7 +88,14 @@ __all__ = ["EventRules", "LazyLocator", "locate_under_surface", "shaft_lateral_f
 
 
 def shaft_lateral_force(
-    source, kind, directions, forces, *, without_entry: bool, points: np.ndarray | None = None
+    source,
+    kind,
+    directions,
+    forces,
+    *,
+    without_entry: bool,
+    surface_allowance: float,
+    points: np.ndarray | None = None,
 ) -> np.ndarray:
     """The lateral force of the tissue on the needle through its insertion points, t = Σ n λ over their
     bilateral rows [N], shape (3,) (the cut-start load).
@@ -97,20 +104,32 @@ def shaft_lateral_force(
     ----------
     source, kind : Source and kind of each row, shape (r,).
     directions : Row directions, shape (r, 3). forces : Multipliers [N], shape (r,).
-    without_entry : Leave out the entry point's rows: at the free surface they also carry the surface's
-        reaction to an oblique entry, a load no shaft cuts with (the law says whether:
-        ``CuttingLaw.excludes_entry_point``).
+    without_entry : Leave out the entry point's rows up to ``surface_allowance`` (the law says whether:
+        ``CuttingLaw.excludes_entry_point``): at the free surface they also carry the surface's reaction to
+        an oblique entry, a load no shaft cuts with, which is at most what the surface held the tip with
+        before it gave way, f_p. Their load e counts by its part beyond the allowance,
+        e (1 − a/‖e‖) when ‖e‖ > a: the needle's lateral load is then bounded by a + the law's shaft
+        strength, also when the entry point carries it all (a needle less than d_i deep).
+    surface_allowance : a [N], ≥ 0: the scene's f_p (inf: the entry point's rows never count).
     points : The insertion point of each row (``RowBlock.point``: its index in the path, the entry is 0, −1
         for other rows), shape (r,). None (results files, which do not store it): the insertion rows are
         taken in path order with the entry's two lateral rows first.
     """
+    directions, forces = np.asarray(directions), np.asarray(forces)
+    lateral = shaft_lateral_rows(source, kind, points if points is not None else None, False)
     if points is not None:
-        lateral = shaft_lateral_rows(source, kind, points, without_entry)
+        entry = np.asarray(points)[lateral] == 0
     else:
-        lateral = shaft_lateral_rows(source, kind, None, False)
-        if without_entry:
-            lateral = lateral[2:]
-    return (np.asarray(directions)[lateral] * np.asarray(forces)[lateral, None]).sum(axis=0)
+        entry = np.arange(lateral.size) < 2
+    loads = directions[lateral] * forces[lateral, None]
+    if not without_entry:
+        return loads.sum(axis=0)
+    shaft = loads[~entry].sum(axis=0)
+    surface = loads[entry].sum(axis=0)
+    magnitude = float(np.linalg.norm(surface))
+    if magnitude > surface_allowance:
+        shaft = shaft + surface * (1.0 - surface_allowance / magnitude)
+    return shaft
 
 
 #: Relative tolerance on f_p of the puncture test (a capped row carries f_p to the solve's accuracy).
@@ -374,6 +393,7 @@ class EventRules(CutEventRules):
                 rows.directions,
                 multipliers,
                 without_entry=self.law.excludes_entry_point,
+                surface_allowance=self.insertion.puncture_force,
                 points=rows.points_of_rows,
             )
             # A needle along an existing cut: its faces' rows hold it there, their load part of t alike (a law

@@ -6,7 +6,9 @@ the fast tissue compliance, Gauss–Seidel or the exact constraint solver, a til
 entry inside a surface triangle, on a grid edge or at a grid vertex, and 3–5 segments between waypoints that
 insert, pull back (above the surface too), move the needle's line sideways, turn it by up to 20° and hold.
 Every waypoint time is a whole number of steps, the tip moves at most 20 mm/s, and each segment keeps the
-scene's own check on the tip's travel per step, so a life is never refused.
+scene's own check on the tip's travel per step, so a life is never refused. A life of the "model" family
+(:data:`FAMILIES`) also draws the mesh (3³ to 8³ cells, stretched tets), d_i, d_c, f_p, G_c and the friction
+coefficients (:data:`MODEL_CHOICES`).
 
 :func:`life_violations` checks what must hold at every step of any life, whatever the needle does:
 
@@ -21,7 +23,8 @@ scene's own check on the tip's travel per step, so a life is never refused.
   and the tissue's damping (Rayleigh β = 0.01 s: a fifth of the lateral force at a stroke's start, scene
   notes). The factor 2 is room for those; the faults this invariant was written for held the needle at 3–15
   times the bound (the faces of a cut without a limit; a needle re-entering its hole off its axis, pulled
-  back to the hole's old entry point).
+  back to the hole's old entry point), and 4–25 times (a needle less deep than d_i, held by its entry
+  point's rows alone, which the cut start left out).
 
 Used by ``tests/simulation/test_random_life_cycles.py`` (a few seeds by default, many in the slow set) and by
 ``studies/lifecycle/run.py`` (any range of seeds, with a report per seed).
@@ -37,6 +40,19 @@ __all__ = ["Life", "Violation", "draw_life", "end_state_violations", "inserted_l
 
 SCENE = "cube_cut"
 CELLS = (4, 4, 4)
+#: The families of lives :func:`draw_life` draws from: "cube" on the 4³ cube with the scene's model values;
+#: "model" also draws the mesh and the model's values a user sets (:data:`MODEL_CHOICES`).
+FAMILIES = ("cube", "model")
+#: What a life of the "model" family draws from, each value with the same chance: the cells per axis (cubic
+#: and stretched tets), d_i and d_c [m], f_p [N], G_c [J/m²] and the friction coefficients (surface, shaft).
+MODEL_CHOICES = {
+    "cells": ((3, 3, 3), (4, 4, 4), (5, 5, 5), (6, 6, 6), (8, 8, 8), (4, 4, 8), (6, 6, 3)),
+    "spacing": (0.25e-3, 0.5e-3, 1e-3, 2e-3),
+    "point_spacing": (0.25e-3, 0.5e-3, 1e-3, 2e-3),
+    "puncture_force": (0.4, 0.8, 1.6),
+    "fracture_energy": (100.0, 200.0, 400.0),
+    "friction": (0.0, 0.1, 0.2),
+}
 #: The time steps a life draws from [s].
 TIME_STEPS = (0.005, 0.01, 0.02)
 #: The tip's largest speed [m/s].
@@ -56,6 +72,9 @@ class Life:
     Attributes
     ----------
     seed : The seed it was drawn from.
+    family : Its family (:data:`FAMILIES`).
+    model : What the "model" family drew (cells, spacing, point_spacing, puncture_force, fracture_energy,
+        friction; :data:`MODEL_CHOICES`); empty for the "cube" family (4³ cells, the scene's values).
     dt : The time step [s].
     rigid, fast, exact_solver : A rigid needle (else a beam), the fast compliance (else exact), the exact
         constraint solver (else Gauss–Seidel).
@@ -77,6 +96,8 @@ class Life:
     entry: tuple[float, float]
     waypoints: tuple[dict, ...]
     overrides: tuple[str, ...] = field(repr=False)
+    family: str = "cube"
+    model: tuple[tuple[str, object], ...] = ()
 
     def scene(self):
         """The scene of this life."""
@@ -87,8 +108,10 @@ class Life:
     def describe(self) -> str:
         """One line: the life's parameters and its waypoints (for a failing test's message)."""
         kinds = " ".join(f"{w['kind']}@{w['time']:g}s:{1e3 * w['depth']:.1f}mm" for w in self.waypoints[1:])
+        model = "".join(f"{key} {value}, " for key, value in self.model)
         return (
-            f"seed {self.seed}: dt {self.dt:g} s, {'rigid' if self.rigid else 'flexible'}, "
+            f"{self.family} seed {self.seed}: {model}dt {self.dt:g} s, "
+            f"{'rigid' if self.rigid else 'flexible'}, "
             f"{'fast' if self.fast else 'exact'} compliance, "
             f"{'exact' if self.exact_solver else 'gauss_seidel'} solver, "
             f"tilt {self.tilt_deg:.1f} deg; {kinds}"
@@ -122,23 +145,43 @@ def _fmt(values) -> str:
     return "[" + ", ".join(repr(float(v)) for v in values) + "]"
 
 
-def draw_life(seed: int) -> Life:
-    """One random needle life on cube_cut (4³ cells), from ``numpy.random.default_rng(seed)``.
+def draw_life(seed: int, family: str = "cube") -> Life:
+    """One random needle life on cube_cut, from ``numpy.random.default_rng(seed)``.
+
+    ``family`` "cube": on 4³ cells with the scene's model values; "model": the mesh's cells, d_i, d_c, f_p,
+    G_c and the friction coefficients drawn too (:data:`MODEL_CHOICES`, from ``default_rng([seed, 1])``, so
+    that the trajectory's draws are those of the same seed in the "cube" family).
 
     The run (2.5–5 s, at least 2 s) is split at random among the segments; each moving segment draws what it
     does within its share of time: the tip's path at most 20 mm/s, a turn and the line's sideways motion
     within the scene's check on the tip's travel per step (the base's speed plus the needle's length times
-    its turning rate, within 80 % of the contact distance per step). The cube's grid lines on its top face
-    are at −25, 0 and 25 mm (4 cells on 100 mm)."""
+    its turning rate, within 80 % of the contact distance per step). An entry on a grid edge or at a grid
+    vertex is on the mesh's grid lines of the top face (at −25, 0 and 25 mm on 4 cells)."""
     from refsim.scene import load_scene
 
-    base_scene = load_scene(SCENE, [f"mesh.cells=[{', '.join(str(c) for c in CELLS)}]"])
+    if family not in FAMILIES:
+        raise ValueError(f"family {family!r} is not one of {', '.join(FAMILIES)}")
+    cells, model, model_overrides = CELLS, {}, []
+    if family == "model":
+        drawn = np.random.default_rng([seed, 1])
+        model = {key: choices[int(drawn.integers(len(choices)))] for key, choices in MODEL_CHOICES.items()}
+        cells = model["cells"]
+        model_overrides = [
+            f"insertion.spacing={model['spacing']!r}",
+            f"cutting.point_spacing={model['point_spacing']!r}",
+            f"insertion.puncture_force={model['puncture_force']!r}",
+            f"cutting.fracture_energy={model['fracture_energy']!r}",
+            f"insertion.surface_friction_coefficient={model['friction']!r}",
+            f"insertion.shaft_friction_coefficient={model['friction']!r}",
+        ]
+    cells_override = f"mesh.cells=[{', '.join(str(c) for c in cells)}]"
+    base_scene = load_scene(SCENE, [cells_override])
     length = float(base_scene.needle.length)
     contact = float(base_scene.insertion.contact_distance)
     top = float(base_scene.mesh.origin[2] + base_scene.mesh.size[2])
     size = np.asarray(base_scene.mesh.size, dtype=float)
     origin = np.asarray(base_scene.mesh.origin, dtype=float)
-    grid = origin[0] + size[0] * np.arange(1, CELLS[0]) / CELLS[0]
+    grids = [origin[k] + size[k] * np.arange(1, cells[k]) / cells[k] for k in range(2)]
 
     rng = np.random.default_rng(seed)
     dt = float(rng.choice(TIME_STEPS))
@@ -152,9 +195,9 @@ def draw_life(seed: int) -> Life:
     entry = rng.uniform(-0.015, 0.015, size=2)
     where = rng.random()
     if where < 0.1:  # on a grid edge
-        entry[0] = float(rng.choice(grid))
+        entry[0] = float(rng.choice(grids[0]))
     elif where < 0.15:  # at a grid vertex
-        entry = np.array([rng.choice(grid), rng.choice(grid)], dtype=float)
+        entry = np.array([rng.choice(grids[0]), rng.choice(grids[1])], dtype=float)
     count = int(rng.integers(4, 7))
     total = float(rng.uniform(2.5, 5.0))
     shares = np.maximum(rng.dirichlet(np.full(count - 1, 2.0)) * total, 0.3)
@@ -216,7 +259,8 @@ def draw_life(seed: int) -> Life:
     end_steps = max(steps, int(np.ceil(2.0 / dt - 1e-9)))  # at least 2 s: a final hold
     bases = [w["anchor"] + (w["depth"] - length) * w["direction"] for w in waypoints]
     overrides = [
-        f"mesh.cells=[{', '.join(str(c) for c in CELLS)}]",
+        cells_override,
+        *model_overrides,
         f"time.dt={dt!r}",
         f"time.duration={round(end_steps * dt, 10)!r}",
         f"trajectory.times={_fmt([w['time'] for w in waypoints])}",
@@ -240,6 +284,8 @@ def draw_life(seed: int) -> Life:
         entry=(float(entry[0]), float(entry[1])),
         waypoints=tuple(waypoints),
         overrides=tuple(overrides),
+        family=family,
+        model=tuple(model.items()),
     )
 
 

@@ -1,9 +1,11 @@
-"""Random needle lives on cube_cut (4³ cells): run a range of seeds, check every step of each against the
-invariants of `refsim.verification.life_cycles`, write one JSON line per seed and print a table.
+"""Random needle lives on cube_cut (4³ cells; ``--family model`` draws the mesh and the model's values too):
+run a range of seeds, check every step of each against the invariants of `refsim.verification.life_cycles`,
+write one JSON line per seed and print a table.
 
     OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 \\
         python studies/lifecycle/run.py --seeds 0 200 [--workers 2] [--out studies/lifecycle/results.jsonl]
     python studies/lifecycle/run.py --trace 1124 [--steps 220 240]   # one seed, step by step
+    python studies/lifecycle/run.py --family model --seeds 0 200   # the mesh and the model's values drawn too
 
 ``--seeds A B`` runs seeds A, A+1, ..., B−1; ``--resume`` keeps the seeds the output file already holds;
 ``--budget-minutes M`` starts no seed after M minutes (one worker). Each line holds the life's parameters and
@@ -57,14 +59,14 @@ def _run(life, on_record=None):
     return scene, records, error
 
 
-def run_seed(seed: int) -> dict:
-    """Draw, run and check one seed: its JSON line as a dict."""
+def run_seed(seed: int, family: str = "cube") -> dict:
+    """Draw, run and check one seed of ``family``: its JSON line as a dict."""
     import numpy as np
 
     from refsim.verification.life_cycles import draw_life, inserted_length, life_violations
 
     logging.getLogger("refsim").setLevel(logging.ERROR)  # the scene's notes on fast needles, every life
-    life = draw_life(seed)
+    life = draw_life(seed, family)
     started = time.perf_counter()
     scene, records, error = _run(life)
     seconds = time.perf_counter() - started
@@ -85,6 +87,7 @@ def run_seed(seed: int) -> dict:
     status = "error" if error else ("violation" if violations else "ok")
     return {
         "seed": seed,
+        "family": family,
         "status": status,
         "life": life.describe(),
         "overrides": list(life.overrides),
@@ -132,14 +135,14 @@ def summary(lines: list[dict]) -> str:
     return "\n".join(rows)
 
 
-def trace(seed: int, steps: tuple[int, int] | None) -> None:
+def trace(seed: int, steps: tuple[int, int] | None, family: str = "cube") -> None:
     """Run one seed and print each step (within ``steps``): phase, events, force and the load of each row
     role."""
     import numpy as np
 
     from refsim.verification.life_cycles import draw_life, life_violations
 
-    life = draw_life(seed)
+    life = draw_life(seed, family)
     print(life.describe())
     print("overrides:", json.dumps(list(life.overrides)))
 
@@ -166,23 +169,32 @@ def trace(seed: int, steps: tuple[int, int] | None) -> None:
 
 
 def main(argv=None) -> int:
+    from refsim.verification.life_cycles import FAMILIES
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs=2, metavar=("FIRST", "STOP"), default=(0, 40))
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--out", type=Path, default=Path(__file__).with_name("results.jsonl"))
     parser.add_argument("--resume", action="store_true", help="keep the seeds already in --out")
     parser.add_argument("--budget-minutes", type=float, default=float("inf"), help="start no seed after this")
+    parser.add_argument(
+        "--family",
+        choices=FAMILIES,
+        default="cube",
+        help="the lives' family (refsim.verification.life_cycles)",
+    )
     parser.add_argument("--trace", type=int, metavar="SEED", help="run one seed step by step")
     parser.add_argument("--steps", type=int, nargs=2, metavar=("FROM", "TO"), help="with --trace")
     args = parser.parse_args(argv)
     if args.trace is not None:
-        trace(args.trace, tuple(args.steps) if args.steps else None)
+        trace(args.trace, tuple(args.steps) if args.steps else None, args.family)
         return 0
     begun = time.perf_counter()
     seeds = list(range(*args.seeds))
     kept = []
     if args.resume and args.out.exists():
         kept = [json.loads(text) for text in args.out.read_text().splitlines() if text.strip()]
+        kept = [line for line in kept if line.get("family", "cube") == args.family]
     done = {line["seed"] for line in kept}
     todo = [seed for seed in seeds if seed not in done]
     lines = [line for line in kept if line["seed"] in seeds]
@@ -197,14 +209,14 @@ def main(argv=None) -> int:
 
         if args.workers > 1:
             with ProcessPoolExecutor(max_workers=args.workers) as pool:
-                for future in as_completed([pool.submit(run_seed, seed) for seed in todo]):
+                for future in as_completed([pool.submit(run_seed, seed, args.family) for seed in todo]):
                     write(future.result())
         else:
             for seed in todo:
                 if time.perf_counter() - begun > 60.0 * args.budget_minutes:
                     print(f"budget of {args.budget_minutes} min spent: stopped before seed {seed}")
                     break
-                write(run_seed(seed))
+                write(run_seed(seed, args.family))
     print(summary(lines))
     return 1 if any(line["status"] != "ok" for line in lines) else 0
 

@@ -40,6 +40,7 @@ def largest_load(path: str) -> tuple[float, int]:
             results.constraint_directions[rows],
             results.constraint_forces[rows],
             without_entry=True,
+            surface_allowance=float(results.scene["insertion"]["puncture_force"]),
         )
         length = float((tips[index] - tips[first - 1]) @ axes[index])
         if length > 0.01 and np.linalg.norm(force) / length > best:

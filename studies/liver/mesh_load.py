@@ -65,7 +65,13 @@ def run_load(mesh_file: str, duration: float, overrides=()) -> dict:
             continue
         source, kind = np.asarray(record.row_source), np.asarray(record.row_kind)
         force = shaft_lateral_force(
-            source, kind, record.row_directions, record.row_forces, without_entry=True
+            source,
+            kind,
+            record.row_directions,
+            record.row_forces,
+            without_entry=True,
+            surface_allowance=scene.insertion.puncture_force,
+            points=record.row_point,
         )
         entry = state.path.positions(state.tissue.positions, simulation.tets)[:1]
         needle = simulation.event_rules.needle_geometry(state.needle)

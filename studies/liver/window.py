@@ -91,6 +91,8 @@ def run_outcome(name: str, overrides: list[str], fracture_energy: float, directo
                 record.row_directions,
                 record.row_forces,
                 without_entry=True,
+                surface_allowance=scene.insertion.puncture_force,
+                points=record.row_point,
             )
             rules = simulation.event_rules
             entry = state.path.positions(state.tissue.positions, simulation.tets)[:1]

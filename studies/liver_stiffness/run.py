@@ -29,11 +29,11 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "studies" / "liver"))
 
 
-def shaft_load(records, states, tets, needle_geometry) -> tuple[float, int]:
+def shaft_load(records, states, tets, needle_geometry, puncture_force: float) -> tuple[float, int]:
     """Largest ‖t‖ / L_in over the run [N/m] and its step: t the insertion rows' lateral force without the
     entry point's rows (the energy law's cut-start load), L_in the needle's length below the entry point as
     the cut-start event measures it (EventRules._cut_starts), over L_in > 1 cm (below it the load per length
-    is the surface's)."""
+    is the surface's); ``puncture_force``: the scene's f_p, the entry point's allowance."""
     from refsim.simulation.events import shaft_lateral_force
 
     best, at = 0.0, -1
@@ -41,7 +41,13 @@ def shaft_load(records, states, tets, needle_geometry) -> tuple[float, int]:
         if state.path.point_count == 0 or state.phase != "insertion":
             continue
         force = shaft_lateral_force(
-            record.row_source, record.row_kind, record.row_directions, record.row_forces, without_entry=True
+            record.row_source,
+            record.row_kind,
+            record.row_directions,
+            record.row_forces,
+            without_entry=True,
+            surface_allowance=puncture_force,
+            points=record.row_point,
         )
         entry = state.path.positions(state.tissue.positions, tets)[:1]
         needle = needle_geometry(state.needle)
@@ -70,7 +76,13 @@ def one_run(amplitude: float, modulus: float, trajectory: str, output: str) -> d
     started = time.perf_counter()
     simulation.run(on_step=lambda s, r: (records.append(r), states.append(s)))
     seconds = time.perf_counter() - started
-    load, step = shaft_load(records, states, simulation.tets, simulation.event_rules.needle_geometry)
+    load, step = shaft_load(
+        records,
+        states,
+        simulation.tets,
+        simulation.event_rules.needle_geometry,
+        scene.insertion.puncture_force,
+    )
     return {
         "amplitude": amplitude,
         "youngs_modulus": modulus,

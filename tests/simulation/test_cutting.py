@@ -21,8 +21,9 @@ def reference():
     return run_case(CuttingCase(overrides=EXACT))
 
 
-def _lateral_force(record, *, without_entry=True) -> np.ndarray:
-    # The energy law's load leaves out the entry point's rows; the paper's equation 3 counts every point.
+def _lateral_force(record, *, without_entry=True, surface_allowance=0.8) -> np.ndarray:
+    # The energy law's load leaves out the entry point's rows up to f_p (cube_cut's 0.8 N, the cases' scene);
+    # the paper's equation 3 counts every point.
     from refsim.simulation.events import shaft_lateral_force
 
     return shaft_lateral_force(
@@ -31,6 +32,8 @@ def _lateral_force(record, *, without_entry=True) -> np.ndarray:
         record.row_directions,
         record.row_forces,
         without_entry=without_entry,
+        surface_allowance=surface_allowance,
+        points=record.row_point,
     )
 
 

@@ -53,6 +53,9 @@ The life-cycle matrix (stage: where it is tested; the cases beyond the first of 
   back, move sideways, turn and hold), every step against the invariants of
   :mod:`refsim.verification.life_cycles` (finite, rows of the end state, no force without rows, the force
   within twice f_p + G_c L_in): ``tests/simulation/test_random_life_cycles.py`` (6 seeds; 194 @slow);
+- a needle less deep than d_i (its entry point alone holds it) pushed sideways: a cut start at f_p + G_c L_in,
+  the entry point's rows bounded as the shaft's: ``test_a_needle_less_deep_than_d_i_pushed_sideways_...``
+  (d_i = 0.5 and 2 mm; 0° and 20°; rigid and flexible; both solvers);
 - a flexible needle whose tip slid along a thin layer before the puncture (a short one, which can push f_p
   while sliding): one puncture on the near face, the tip held in the layer through the puncture step
   (@slow): ``test_a_flexible_needle_that_slid_on_a_thin_layer_...``.
@@ -1210,3 +1213,64 @@ def test_a_needle_moved_back_obliquely_beside_its_crack_tip_and_held_keeps_a_ste
     held = [np.linalg.norm(r.needle_force) for r in records if r.time > inserted + 0.76]
     assert max(after) <= np.sqrt(2.0) * g_c_l
     assert max(held) - min(held) <= 1e-2 * g_c_l
+
+
+SHALLOW = [
+    pytest.param(2e-3, 1.5e-3, 0.0, "rigid", "gauss_seidel", id="di2mm-1.5mm-0deg"),
+    pytest.param(2e-3, 1.5e-3, 20.0, "rigid", "gauss_seidel", id="di2mm-1.5mm-20deg"),
+    pytest.param(0.5e-3, 0.3e-3, 0.0, "rigid", "gauss_seidel", id="di0.5mm-0.3mm-0deg"),
+    pytest.param(2e-3, 1.5e-3, 0.0, "flexible", "gauss_seidel", id="flexible", marks=pytest.mark.slow),
+    pytest.param(2e-3, 1.5e-3, 20.0, "rigid", "exact", id="exact", marks=pytest.mark.slow),
+]
+
+
+@pytest.mark.parametrize(("spacing", "depth", "tilt", "needle", "solver"), SHALLOW)
+def test_a_needle_less_deep_than_d_i_pushed_sideways_starts_a_cut_at_the_surface_and_shaft_strength(
+    spacing, depth, tilt, needle, solver
+):
+    # cube_cut on 4³ cells with insertion.spacing = d_i: inserted `depth` (< d_i: its entry point is its only
+    # insertion point) at `tilt` from the vertical, then its line moved 4 mm along +y (across the tilt's
+    # plane) in 0.4 s and held. Found by the random lives of the "model" family (seed 16: 10.1 N, 25 times
+    # f_p + G_c L_in). Reference: the laws bound what holds the needle laterally, the surface by f_p (what it
+    # held the tip with before it gave way: the entry point's rows carry the surface's reaction to the
+    # entry up to it) and the shaft by G_c L_in (the energy law's cut start), so the lateral load is at most
+    # f_p + G_c L_in and the whole force at most √(1 + μ²) times that with the shaft's friction μ. Before the
+    # entry point's load beyond f_p took part in the cut start, it held the needle with no limit until a
+    # second insertion point came: 4.3 N (3.9 times the bound) at d_i = 2 mm.
+    direction = np.array([np.sin(np.radians(tilt)), 0.0, -np.cos(np.radians(tilt))])
+    entry = np.array([0.00123, 0.00231, TOP])
+    along = depth / abs(direction[2])  # the needle's length below the top face
+    tip = entry + along * direction
+    moved = tip + [0.0, 0.004, 0.0]
+    inserted = round((0.002 + depth) / 0.01, 2) + 0.1  # at about 10 mm/s
+    waypoints = [
+        (0.0, entry - 0.002 / abs(direction[2]) * direction),
+        (inserted, tip),
+        (inserted + 0.1, tip),
+        (inserted + 0.5, moved),
+        (inserted + 0.7, moved),
+    ]
+    fmt = lambda v: "[" + ", ".join(repr(float(c)) for c in v) + "]"  # noqa: E731
+    scene = load_scene(
+        "cube_cut",
+        [
+            "mesh.cells=[4, 4, 4]",
+            f"insertion.spacing={spacing!r}",
+            f'solver.method="{solver}"',
+            *NEEDLES[needle],
+            f"trajectory.times={fmt([round(t, 2) for t, _ in waypoints])}",
+            "trajectory.base_positions=["
+            + ", ".join(fmt(p - NEEDLE_LENGTH * direction) for _, p in waypoints)
+            + "]",
+            "trajectory.directions=[" + ", ".join(fmt(direction) for _ in waypoints) + "]",
+            f"time.duration={round(waypoints[-1][0], 2)}",
+        ],
+    )
+    records = []
+    Simulation(scene).run(on_step=lambda state, record: records.append(record))
+    assert_each_step_ends_with_the_rows_of_its_end_state(records)
+    friction = scene.insertion.shaft_friction_coefficient
+    bound = scene.insertion.puncture_force + scene.cutting.fracture_energy * along
+    starts = [r for r in records if any(e.name == "cut_start" for e in r.events)]
+    assert starts and starts[0].time < inserted + 0.5  # during the push
+    assert max(np.linalg.norm(r.needle_force) for r in records) <= np.sqrt(1.0 + friction**2) * bound
