@@ -8,14 +8,17 @@ insert, pull back (above the surface too), move the needle's line sideways, turn
 Every waypoint time is a whole number of steps, the tip moves at most 20 mm/s, and each segment keeps the
 scene's own check on the tip's travel per step, so a life is never refused. A life of the "model" family
 (:data:`FAMILIES`) also draws the mesh (3³ to 8³ cells, stretched tets), d_i, d_c, f_p, G_c and the friction
-coefficients (:data:`MODEL_CHOICES`).
+coefficients (:data:`MODEL_CHOICES`); one of the "two" family runs a second needle beside the first in
+the same tissue, which holds and does not cut (its own trajectory drawn alike, kept apart from the first's
+by the scene's own check), and each needle is checked on its own rows and events.
 
 :func:`life_violations` checks what must hold at every step of any life, whatever the needle does:
 
 - ``finite``: the tissue positions (when recorded), the needle's positions, its force and the rows' forces;
 - ``rows``: the step ends with the rows of its end state (:func:`end_state_violations`);
 - ``force_without_rows``: no force on the needle in a step without rows;
-- ``force_bound``: ‖F‖ ≤ 2 (f_p + G_c L_in) at every step, L_in the needle's length inside the undeformed
+- ``force_bound`` (a needle that cuts; one that does not is held by its shaft without a law's limit, by
+  design): ‖F‖ ≤ 2 (f_p + G_c L_in) at every step, L_in the needle's length inside the undeformed
   cube. Reference: the laws bound what the tissue can hold the needle with — its
   tip's contact gives way at f_p, the front's and the cut faces' rows (and the cut start that replaces faces
   which hold) at G_c per unit inserted length, and the friction (μ = 0.1) adds a tenth of its normal load —
@@ -41,8 +44,15 @@ __all__ = ["Life", "Violation", "draw_life", "end_state_violations", "inserted_l
 SCENE = "cube_cut"
 CELLS = (4, 4, 4)
 #: The families of lives :func:`draw_life` draws from: "cube" on the 4³ cube with the scene's model values;
-#: "model" also draws the mesh and the model's values a user sets (:data:`MODEL_CHOICES`).
-FAMILIES = ("cube", "model")
+#: "model" also draws the mesh and the model's values a user sets (:data:`MODEL_CHOICES`); "two" draws a
+#: second needle's life beside the first in the same tissue, one that holds and does not cut (a scene cuts
+#: with one instrument at most), entering about 30 mm from it (:data:`TWO_SHIFT`).
+FAMILIES = ("cube", "model", "two")
+#: The "two" family: each needle's entry is this far off the middle along x [m] (the cutter's to −x, the
+#: holder's to +x), both needles' radius [m] (thin, so that they pass each other), the holder's draws tried.
+TWO_SHIFT = 0.015
+TWO_RADIUS = 0.002
+TWO_ATTEMPTS = 50
 #: What a life of the "model" family draws from, each value with the same chance: the cells per axis (cubic
 #: and stretched tets), d_i and d_c [m], f_p [N], G_c [J/m²] and the friction coefficients (surface, shaft).
 MODEL_CHOICES = {
@@ -74,7 +84,9 @@ class Life:
     seed : The seed it was drawn from.
     family : Its family (:data:`FAMILIES`).
     model : What the "model" family drew (cells, spacing, point_spacing, puncture_force, fracture_energy,
-        friction; :data:`MODEL_CHOICES`); empty for the "cube" family (4³ cells, the scene's values).
+        friction; :data:`MODEL_CHOICES`); empty for the other families (4³ cells, the scene's values).
+    second : The "two" family's second needle (it holds, it does not cut): its waypoints as ``waypoints``;
+        empty for the other families.
     dt : The time step [s].
     rigid, fast, exact_solver : A rigid needle (else a beam), the fast compliance (else exact), the exact
         constraint solver (else Gauss–Seidel).
@@ -98,16 +110,33 @@ class Life:
     overrides: tuple[str, ...] = field(repr=False)
     family: str = "cube"
     model: tuple[tuple[str, object], ...] = ()
+    second: tuple[dict, ...] = ()
 
     def scene(self):
-        """The scene of this life."""
+        """The scene of this life: :data:`SCENE` with its overrides, and for the "two" family its needle as
+        the first of two instruments ("cutter", which cuts, and "holder", which does not)."""
         from refsim.scene import load_scene
+        from refsim.scene.loader import scene_from_dict
 
-        return load_scene(SCENE, list(self.overrides))
+        scene = load_scene(SCENE, list(self.overrides))
+        if not self.second:
+            return scene
+        data = scene.to_dict()
+        first = data.pop("trajectory")
+        second = dict(first, **_trajectory(self.second, float(scene.needle.length)))
+        data["instruments"] = [
+            {"name": "cutter", "cuts": True, "trajectory": first},
+            {"name": "holder", "cuts": False, "trajectory": second},
+        ]
+        return scene_from_dict(data, source=f"{self.family} life {self.seed}")
 
     def describe(self) -> str:
         """One line: the life's parameters and its waypoints (for a failing test's message)."""
         kinds = " ".join(f"{w['kind']}@{w['time']:g}s:{1e3 * w['depth']:.1f}mm" for w in self.waypoints[1:])
+        if self.second:
+            kinds += "; holder " + " ".join(
+                f"{w['kind']}@{w['time']:g}s:{1e3 * w['depth']:.1f}mm" for w in self.second[1:]
+            )
         model = "".join(f"{key} {value}, " for key, value in self.model)
         return (
             f"{self.family} seed {self.seed}: {model}dt {self.dt:g} s, "
@@ -120,16 +149,21 @@ class Life:
 
 @dataclass(frozen=True)
 class Violation:
-    """An invariant a step broke: its name, the step, its time [s], the phase and what was measured."""
+    """An invariant a step broke: its name, the step, its time [s], the phase, what was measured and the
+    instrument (its name in a scene of several, else empty)."""
 
     invariant: str
     step: int
     time: float
     phase: str
     detail: str
+    instrument: str = ""
 
     def __str__(self) -> str:
-        return f"{self.invariant} at step {self.step} (t = {self.time:g} s, {self.phase}): {self.detail}"
+        where = f"{self.instrument}: " if self.instrument else ""
+        return (
+            f"{where}{self.invariant} at step {self.step} (t = {self.time:g} s, {self.phase}): {self.detail}"
+        )
 
 
 def _rotate(vector: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
@@ -145,54 +179,28 @@ def _fmt(values) -> str:
     return "[" + ", ".join(repr(float(v)) for v in values) + "]"
 
 
-def draw_life(seed: int, family: str = "cube") -> Life:
-    """One random needle life on cube_cut, from ``numpy.random.default_rng(seed)``.
+def _trajectory(waypoints, length: float) -> dict:
+    """A [trajectory] table's waypoints (times, base_positions, directions) for a needle of ``length`` [m]
+    whose tip is at each waypoint's depth along its direction below where its line crosses the top face."""
+    return {
+        "times": tuple(float(w["time"]) for w in waypoints),
+        "base_positions": tuple(
+            tuple(float(v) for v in w["anchor"] + (w["depth"] - length) * w["direction"]) for w in waypoints
+        ),
+        "directions": tuple(tuple(float(v) for v in w["direction"]) for w in waypoints),
+    }
 
-    ``family`` "cube": on 4³ cells with the scene's model values; "model": the mesh's cells, d_i, d_c, f_p,
-    G_c and the friction coefficients drawn too (:data:`MODEL_CHOICES`, from ``default_rng([seed, 1])``, so
-    that the trajectory's draws are those of the same seed in the "cube" family).
 
-    The run (2.5–5 s, at least 2 s) is split at random among the segments; each moving segment draws what it
-    does within its share of time: the tip's path at most 20 mm/s, a turn and the line's sideways motion
-    within the scene's check on the tip's travel per step (the base's speed plus the needle's length times
-    its turning rate, within 80 % of the contact distance per step). An entry on a grid edge or at a grid
-    vertex is on the mesh's grid lines of the top face (at −25, 0 and 25 mm on 4 cells)."""
-    from refsim.scene import load_scene
-
-    if family not in FAMILIES:
-        raise ValueError(f"family {family!r} is not one of {', '.join(FAMILIES)}")
-    cells, model, model_overrides = CELLS, {}, []
-    if family == "model":
-        drawn = np.random.default_rng([seed, 1])
-        model = {key: choices[int(drawn.integers(len(choices)))] for key, choices in MODEL_CHOICES.items()}
-        cells = model["cells"]
-        model_overrides = [
-            f"insertion.spacing={model['spacing']!r}",
-            f"cutting.point_spacing={model['point_spacing']!r}",
-            f"insertion.puncture_force={model['puncture_force']!r}",
-            f"cutting.fracture_energy={model['fracture_energy']!r}",
-            f"insertion.surface_friction_coefficient={model['friction']!r}",
-            f"insertion.shaft_friction_coefficient={model['friction']!r}",
-        ]
-    cells_override = f"mesh.cells=[{', '.join(str(c) for c in cells)}]"
-    base_scene = load_scene(SCENE, [cells_override])
-    length = float(base_scene.needle.length)
-    contact = float(base_scene.insertion.contact_distance)
-    top = float(base_scene.mesh.origin[2] + base_scene.mesh.size[2])
-    size = np.asarray(base_scene.mesh.size, dtype=float)
-    origin = np.asarray(base_scene.mesh.origin, dtype=float)
-    grids = [origin[k] + size[k] * np.arange(1, cells[k]) / cells[k] for k in range(2)]
-
-    rng = np.random.default_rng(seed)
-    dt = float(rng.choice(TIME_STEPS))
-    rigid = bool(rng.random() < 0.6)
-    fast = bool(rng.random() < 0.3)
-    exact_solver = bool(rng.random() < 0.25)
+def _draw_needle(rng, geometry: dict, dt: float, shift: float) -> tuple[float, float, np.ndarray, list, int]:
+    """One needle's life from ``rng`` (:func:`draw_life`): (tilt [°], azimuth [°], entry (x, y) [m],
+    waypoints, its steps). ``geometry``: the needle's length, the contact distance, the top face's height
+    and the top face's grid lines per axis [m]; ``shift``: added to the entry's x [m] (off the grid lines)."""
+    length, contact, top, grids = (geometry[key] for key in ("length", "contact", "top", "grids"))
     tilt = float(rng.uniform(0.0, 35.0))
     azimuth = float(rng.uniform(0.0, 360.0))
     t, a = np.radians(tilt), np.radians(azimuth)
     direction = np.array([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), -np.cos(t)])
-    entry = rng.uniform(-0.015, 0.015, size=2)
+    entry = rng.uniform(-0.015, 0.015, size=2) + [shift, 0.0]
     where = rng.random()
     if where < 0.1:  # on a grid edge
         entry[0] = float(rng.choice(grids[0]))
@@ -256,6 +264,55 @@ def draw_life(seed: int, family: str = "cube") -> Life:
                 "direction": direction,
             }
         )
+    return tilt, azimuth, entry, waypoints, steps
+
+
+def draw_life(seed: int, family: str = "cube") -> Life:
+    """One random needle life on cube_cut, from ``numpy.random.default_rng(seed)``.
+
+    ``family`` "cube": on 4³ cells with the scene's model values; "model": the mesh's cells, d_i, d_c, f_p,
+    G_c and the friction coefficients drawn too (:data:`MODEL_CHOICES`, from ``default_rng([seed, 1])``, so
+    that the trajectory's draws are those of the same seed in the "cube" family).
+
+    The run (2.5–5 s, at least 2 s) is split at random among the segments; each moving segment draws what it
+    does within its share of time: the tip's path at most 20 mm/s, a turn and the line's sideways motion
+    within the scene's check on the tip's travel per step (the base's speed plus the needle's length times
+    its turning rate, within 80 % of the contact distance per step). An entry on a grid edge or at a grid
+    vertex is on the mesh's grid lines of the top face (at −25, 0 and 25 mm on 4 cells)."""
+    from refsim.scene import load_scene
+
+    if family not in FAMILIES:
+        raise ValueError(f"family {family!r} is not one of {', '.join(FAMILIES)}")
+    cells, model, model_overrides = CELLS, {}, []
+    if family == "model":
+        drawn = np.random.default_rng([seed, 1])
+        model = {key: choices[int(drawn.integers(len(choices)))] for key, choices in MODEL_CHOICES.items()}
+        cells = model["cells"]
+        model_overrides = [
+            f"insertion.spacing={model['spacing']!r}",
+            f"cutting.point_spacing={model['point_spacing']!r}",
+            f"insertion.puncture_force={model['puncture_force']!r}",
+            f"cutting.fracture_energy={model['fracture_energy']!r}",
+            f"insertion.surface_friction_coefficient={model['friction']!r}",
+            f"insertion.shaft_friction_coefficient={model['friction']!r}",
+        ]
+    cells_override = f"mesh.cells=[{', '.join(str(c) for c in cells)}]"
+    base_scene = load_scene(SCENE, [cells_override])
+    length = float(base_scene.needle.length)
+    contact = float(base_scene.insertion.contact_distance)
+    top = float(base_scene.mesh.origin[2] + base_scene.mesh.size[2])
+    size = np.asarray(base_scene.mesh.size, dtype=float)
+    origin = np.asarray(base_scene.mesh.origin, dtype=float)
+    grids = [origin[k] + size[k] * np.arange(1, cells[k]) / cells[k] for k in range(2)]
+
+    rng = np.random.default_rng(seed)
+    dt = float(rng.choice(TIME_STEPS))
+    rigid = bool(rng.random() < 0.6)
+    fast = bool(rng.random() < 0.3)
+    exact_solver = bool(rng.random() < 0.25)
+    geometry = {"length": length, "contact": contact, "top": top, "grids": grids}
+    shift = -TWO_SHIFT if family == "two" else 0.0
+    tilt, azimuth, entry, waypoints, steps = _draw_needle(rng, geometry, dt, shift)
     end_steps = max(steps, int(np.ceil(2.0 / dt - 1e-9)))  # at least 2 s: a final hold
     bases = [w["anchor"] + (w["depth"] - length) * w["direction"] for w in waypoints]
     overrides = [
@@ -273,7 +330,9 @@ def draw_life(seed: int, family: str = "cube") -> Life:
         overrides.append("compliance.strategy=fast")
     if exact_solver:
         overrides.append('solver.method="exact"')
-    return Life(
+    if family == "two":
+        overrides.append(f"needle.radius={TWO_RADIUS!r}")
+    life = Life(
         seed=seed,
         dt=dt,
         rigid=rigid,
@@ -287,10 +346,46 @@ def draw_life(seed: int, family: str = "cube") -> Life:
         family=family,
         model=tuple(model.items()),
     )
+    return life if family != "two" else _with_holder(life, seed, geometry, steps)
 
 
-def end_state_violations(records) -> list[tuple[str, int]]:
-    """The steps of a one-needle run that do not end with the rows of their end state: (check, step) pairs.
+def _with_holder(life: Life, seed: int, geometry: dict, steps: int) -> Life:
+    """``life`` with a second needle that holds (the "two" family), drawn from ``default_rng([seed, 2,
+    attempt])`` until the scene's own check keeps the two shafts apart (refsim models no contact between
+    instruments) over the whole run, at most :data:`TWO_ATTEMPTS` attempts."""
+    import dataclasses
+
+    from refsim.scene.build import build_models
+    from refsim.scene.loader import SceneError
+
+    for attempt in range(TWO_ATTEMPTS):
+        second, second_steps = _draw_needle(
+            np.random.default_rng([seed, 2, attempt]), geometry, life.dt, TWO_SHIFT
+        )[3:]
+        end = max(steps, second_steps, int(np.ceil(2.0 / life.dt - 1e-9)))
+        overrides = [o for o in life.overrides if not o.startswith("time.duration=")]
+        overrides.append(f"time.duration={round(end * life.dt, 10)!r}")
+        candidate = dataclasses.replace(life, overrides=tuple(overrides), second=tuple(second))
+        try:
+            build_models(candidate.scene())
+        except SceneError as error:
+            if "overlap" not in str(error):
+                raise
+            continue
+        return candidate
+    raise ValueError(f"seed {seed}: no holder's life kept apart from the cutter's in {TWO_ATTEMPTS} attempts")
+
+
+def _rows_of(record, instrument: int) -> np.ndarray | slice:
+    """The rows of ``instrument`` (its index in the scene's order) in ``record``: a mask, or every row."""
+    if record.row_instrument is None or len(record.instruments) == 1:
+        return slice(None)
+    return np.asarray(record.row_instrument) == instrument
+
+
+def end_state_violations(records, instrument: int = 0) -> list[tuple[str, int]]:
+    """The steps of a run that do not end with the rows of their end state for ``instrument`` (its index in
+    the scene's order; the needle of a one-needle scene is 0): (check, step) pairs.
 
     An event crossed inside a step that changes what holds the needle (``STEP_SOLVED_AGAIN``) solves the step
     again with the rows after it, so no record holds rows its own end state has ended (docs/cutting.md, "When
@@ -299,20 +394,22 @@ def end_state_violations(records) -> list[tuple[str, int]]:
     ``removed_point_rows`` (no row of an insertion point the step removed: the rows' point indices below the
     points kept), ``tip_after_exit`` (no tip row from the step of an exit through a far face until the
     needle enters the tissue again) and ``reentry_without_rows`` (rows holding the needle from the step of a
-    re-entry into a hole)."""
+    re-entry into a hole). Each reads the instrument's own rows, phase and events."""
     from refsim.constraints import FRONT, NORMAL, TANGENT, TIP
     from refsim.simulation import Phase
 
     found = []
     exited = False
     for record in records:
-        names = {event.name for event in record.events}
+        own = record.instruments[instrument]
+        names = {event.name for event in own.events}
         exited = (exited and not names & {"puncture", "reentry", "withdrawal"}) or "exit" in names
-        roles, points = record.row_role, record.row_point
+        rows = _rows_of(record, instrument)
+        roles, points = np.asarray(record.row_role)[rows], np.asarray(record.row_point)[rows]
         checks = (
-            ("approach_rows", record.phase == Phase.APPROACH and not np.isin(roles, (NORMAL, TANGENT)).all()),
-            ("front_outside_cutting", record.phase != Phase.CUTTING and bool(np.any(roles == FRONT))),
-            ("removed_point_rows", bool(np.any(points >= record.insertion_point_count))),
+            ("approach_rows", own.phase == Phase.APPROACH and not np.isin(roles, (NORMAL, TANGENT)).all()),
+            ("front_outside_cutting", own.phase != Phase.CUTTING and bool(np.any(roles == FRONT))),
+            ("removed_point_rows", bool(np.any(points >= own.insertion_point_count))),
             ("tip_after_exit", exited and bool(np.any(roles == TIP))),
             ("reentry_without_rows", "reentry" in names and not np.any(points >= 0)),
         )
@@ -335,40 +432,53 @@ def inserted_length(needle_positions: np.ndarray, lower: np.ndarray, upper: np.n
 
 
 def life_violations(records, scene) -> list[Violation]:
-    """The first violation of each invariant (module docstring) over the ``records`` of a one-needle run of
-    ``scene``, in the order found; empty when every step keeps them all."""
+    """The first violation of each invariant (module docstring) for each instrument over the ``records`` of
+    a run of ``scene``, in the order found; empty when every step keeps them all. The force bound is checked
+    for the instruments that cut (one that does not is held by its shaft with no law's limit, by design)."""
     lower = np.asarray(scene.mesh.origin, dtype=float)
     upper = lower + np.asarray(scene.mesh.size, dtype=float)
     fracture_energy = float(scene.cutting.fracture_energy)
     puncture = float(scene.insertion.puncture_force)
-    first: dict[str, Violation] = {}
+    specs = scene.instrument_specs
+    first: dict[tuple[str, int], Violation] = {}
 
-    def note(name, record, detail):
-        if name not in first:
-            first[name] = Violation(name, int(record.step), float(record.time), str(record.phase), detail)
+    def note(name, index, record, detail):
+        if (name, index) not in first:
+            own = record.instruments[index]
+            label = specs[index].name if len(specs) > 1 else ""
+            first[(name, index)] = Violation(
+                name, int(record.step), float(record.time), str(own.phase), detail, label
+            )
 
     for record in records:
-        arrays = [("needle_positions", record.needle_positions), ("needle_force", record.needle_force)]
-        arrays.append(("row_forces", record.row_forces))
-        if record.tissue_positions is not None:
-            arrays.append(("tissue_positions", record.tissue_positions))
-        bad = [name for name, values in arrays if not np.all(np.isfinite(np.asarray(values)))]
-        if bad:
-            note("finite", record, "not finite: " + ", ".join(bad))
-            continue
-        force = float(np.linalg.norm(record.needle_force))
-        if np.size(record.row_forces) == 0 and force > NO_ROW_FORCE:
-            note("force_without_rows", record, f"{force:.3g} N on the needle, no rows")
-        inside = inserted_length(np.asarray(record.needle_positions), lower, upper)
-        bound = BOUND_FACTOR * (puncture + fracture_energy * inside)
-        if force > bound:
-            note(
-                "force_bound",
-                record,
-                f"{force:.3f} N > {bound:.3f} N = {BOUND_FACTOR:g} (f_p + G_c L_in), "
-                f"L_in = {1e3 * inside:.2f} mm",
-            )
+        row_forces = np.asarray(record.row_forces)
+        tissue_bad = record.tissue_positions is not None and not np.all(np.isfinite(record.tissue_positions))
+        for index, spec in enumerate(specs):
+            own = record.instruments[index]
+            arrays = [("needle_positions", own.needle_positions), ("needle_force", own.needle_force)]
+            arrays.append(("row_forces", row_forces[_rows_of(record, index)]))
+            bad = [name for name, values in arrays if not np.all(np.isfinite(np.asarray(values)))]
+            bad += ["tissue_positions"] if tissue_bad else []
+            if bad:
+                note("finite", index, record, "not finite: " + ", ".join(bad))
+                continue
+            force = float(np.linalg.norm(own.needle_force))
+            if row_forces[_rows_of(record, index)].size == 0 and force > NO_ROW_FORCE:
+                note("force_without_rows", index, record, f"{force:.3g} N on the needle, no rows")
+            if not spec.cuts:
+                continue
+            inside = inserted_length(np.asarray(own.needle_positions), lower, upper)
+            bound = BOUND_FACTOR * (puncture + fracture_energy * inside)
+            if force > bound:
+                note(
+                    "force_bound",
+                    index,
+                    record,
+                    f"{force:.3f} N > {bound:.3f} N = {BOUND_FACTOR:g} (f_p + G_c L_in), "
+                    f"L_in = {1e3 * inside:.2f} mm",
+                )
     by_step = {int(record.step): record for record in records}
-    for check, step in end_state_violations(records):
-        note("rows", by_step[step], check)
+    for index in range(len(specs)):
+        for check, step in end_state_violations(records, index):
+            note("rows", index, by_step[step], check)
     return list(first.values())

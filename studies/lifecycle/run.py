@@ -1,6 +1,7 @@
-"""Random needle lives on cube_cut (4³ cells; ``--family model`` draws the mesh and the model's values too):
-run a range of seeds, check every step of each against the invariants of `refsim.verification.life_cycles`,
-write one JSON line per seed and print a table.
+"""Random needle lives on cube_cut (4³ cells; ``--family model`` draws the mesh and the model's values too,
+``--family two`` a second needle that holds beside the one that cuts): run a range of seeds, check every step
+of each against the invariants of `refsim.verification.life_cycles`, write one JSON line per seed and print a
+table.
 
     OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 \\
         python studies/lifecycle/run.py --seeds 0 200 [--workers 2] [--out studies/lifecycle/results.jsonl]

@@ -9,7 +9,9 @@ finite states, every step ending with the rows of its end state, no force withou
 within twice what the laws let the tissue hold it with, f_p + G_c L_in. Seeds 0–5 run by default (seed 0 held
 its needle at 3.2 times f_p + G_c L_in, 13.3 N, when the faces of a cut near its crack tip had no limit); the
 slow set runs seeds 6–199. The "model" family also draws the mesh (3³ to 8³ cells, stretched tets), d_i, d_c,
-f_p, G_c and the friction coefficients: six seeds by default, the rest of 0–199 in the slow set.
+f_p, G_c and the friction coefficients: six seeds by default, the rest of 0–199 in the slow set. The "two"
+family runs a second needle beside the first, one that holds and does not cut, each checked on its own rows
+and events (the force bound on the one that cuts): four seeds by default, the rest of 0–99 in the slow set.
 """
 
 from __future__ import annotations
@@ -26,11 +28,16 @@ SLOW_SEEDS = range(6, 200)
 # 16, 25 times f_p + G_c L_in); seeds 2-5 are short lives of other meshes.
 MODEL_SEEDS = (2, 3, 4, 5, 7, 16)
 MODEL_SLOW_SEEDS = [seed for seed in range(0, 200) if seed not in MODEL_SEEDS]
+# The "two" family (a second needle that holds, beside the cutter, in the same tissue): four seeds by default.
+TWO_SEEDS = (2, 3, 4, 5)
+TWO_SLOW_SEEDS = [seed for seed in range(0, 100) if seed not in TWO_SEEDS]
 LIVES = [
     *(("cube", seed) for seed in DEFAULT_SEEDS),
     *(pytest.param("cube", seed, marks=pytest.mark.slow) for seed in SLOW_SEEDS),
     *(("model", seed) for seed in MODEL_SEEDS),
     *(pytest.param("model", seed, marks=pytest.mark.slow) for seed in MODEL_SLOW_SEEDS),
+    *(("two", seed) for seed in TWO_SEEDS),
+    *(pytest.param("two", seed, marks=pytest.mark.slow) for seed in TWO_SLOW_SEEDS),
 ]
 
 
@@ -63,6 +70,13 @@ def test_a_life_is_drawn_the_same_from_its_seed_and_differs_between_seeds():
     }
     with pytest.raises(ValueError, match="family"):
         draw_life(3, "sphere")
+    # A life of the "two" family: the cutter's needle is the one-needle life's, and a holder beside it that
+    # the scene's own check keeps apart from it over the whole run.
+    two = draw_life(3, "two")
+    scene = two.scene()
+    specs = [(spec.name, spec.cuts) for spec in scene.instrument_specs]
+    assert specs == [("cutter", True), ("holder", False)]
+    assert two.second and two.second[-1]["time"] <= scene.time.duration
     # Every waypoint time is a whole number of steps (the scene refuses others).
     for life in (first, other):
         for waypoint in life.waypoints:
