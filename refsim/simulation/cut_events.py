@@ -66,9 +66,8 @@ class CutEventRules:
         spacing = self.cutting.point_spacing
         if along_cut:
             rows, multipliers, indices = faces
-            lateral = shaft_lateral_rows(
-                rows.source, rows.kind, rows.points_of_rows, self.law.excludes_entry_point
-            )
+            # the criterion's accuracy over every lateral row (the entry point's load may count beyond f_p)
+            lateral = shaft_lateral_rows(rows.source, rows.kind, rows.points_of_rows, False)
             force_on_needle = force_on_needle + (rows.directions[indices] * multipliers[indices, None]).sum(
                 axis=0
             )

@@ -244,9 +244,10 @@ class MarginWatch:
         rows: np.ndarray | None = None,
     ) -> None:
         """The ``law``'s cut-start load (``CuttingLaw.cut_start_load``) for the shaft's lateral force t [N],
-        shape (3,), over the insertion points' lateral rows (the entry point's left out where the law leaves
-        it out, as `refsim.simulation.events.shaft_lateral_force` does), or over ``rows`` (indices into the
-        instrument's own rows: the cut faces' rows of a needle pressed against them) when given."""
+        shape (3,), its accuracy over the insertion points' lateral rows, the entry point's included (a law
+        that leaves them out counts their load beyond f_p, `refsim.simulation.events.shaft_lateral_force`: the
+        bound holds either way), or over ``rows`` (indices into the instrument's own rows: the cut faces' rows
+        of a needle pressed against them) when given."""
         if self._problem is None:
             return
         value, threshold, divisor, unit = law.cut_start_load(
@@ -254,11 +255,7 @@ class MarginWatch:
         )
         if rows is None:
             lateral = shaft_lateral_rows(
-                self._rows.source,
-                self._rows.kind,
-                self._rows.points_of_rows,
-                law.excludes_entry_point,
-                self._own,
+                self._rows.source, self._rows.kind, self._rows.points_of_rows, False, self._own
             )
         else:
             lateral = self._own_rows[np.asarray(rows, dtype=np.int64)]
