@@ -7,8 +7,9 @@ entry inside a surface triangle, on a grid edge or at a grid vertex, and 3–5 s
 insert, pull back (above the surface too), move the needle's line sideways, turn it by up to 20° and hold.
 Every waypoint time is a whole number of steps, the tip moves at most 20 mm/s, and each segment keeps the
 scene's own check on the tip's travel per step, so a life is never refused. A life of the "model" family
-(:data:`FAMILIES`) also draws the mesh (3³ to 8³ cells, stretched tets), d_i, d_c, f_p, G_c and the friction
-coefficients (:data:`MODEL_CHOICES`); one of the "two" family runs a second needle beside the first in
+(:data:`FAMILIES`) also draws the mesh (3³ to 8³ cells, stretched tets), d_i, d_c, f_p, G_c, the friction
+coefficients, the needle's radius and the tissue's thickness (a 20 mm layer, which a needle leaves through
+its far face; :data:`MODEL_CHOICES`); one of the "two" family runs a second needle beside the first in
 the same tissue, which holds and does not cut (its own trajectory drawn alike, kept apart from the first's
 by the scene's own check), and each needle is checked on its own rows and events.
 
@@ -54,7 +55,8 @@ TWO_SHIFT = 0.015
 TWO_RADIUS = 0.002
 TWO_ATTEMPTS = 50
 #: What a life of the "model" family draws from, each value with the same chance: the cells per axis (cubic
-#: and stretched tets), d_i and d_c [m], f_p [N], G_c [J/m²] and the friction coefficients (surface, shaft).
+#: and stretched tets), d_i and d_c [m], f_p [N], G_c [J/m²], the friction coefficients (surface, shaft), the
+#: needle's radius [m] and the tissue's thickness [m] (a third of the lives on a 20 mm layer).
 MODEL_CHOICES = {
     "cells": ((3, 3, 3), (4, 4, 4), (5, 5, 5), (6, 6, 6), (8, 8, 8), (4, 4, 8), (6, 6, 3)),
     "spacing": (0.25e-3, 0.5e-3, 1e-3, 2e-3),
@@ -62,7 +64,12 @@ MODEL_CHOICES = {
     "puncture_force": (0.4, 0.8, 1.6),
     "fracture_energy": (100.0, 200.0, 400.0),
     "friction": (0.0, 0.1, 0.2),
+    "radius": (0.5e-3, 2e-3, 8e-3),
+    "thickness": (0.1, 0.1, 0.02),
 }
+#: A tissue thinner than the cube (``thickness`` < 0.1 m) is a layer with the cube's top face, held on its
+#: sides (a needle can leave it through its far face and come back), with this many cells across it at least.
+LAYER_CELLS = 2
 #: The time steps a life draws from [s].
 TIME_STEPS = (0.005, 0.01, 0.02)
 #: The tip's largest speed [m/s].
@@ -288,7 +295,12 @@ def draw_life(seed: int, family: str = "cube") -> Life:
         drawn = np.random.default_rng([seed, 1])
         model = {key: choices[int(drawn.integers(len(choices)))] for key, choices in MODEL_CHOICES.items()}
         cells = model["cells"]
+        thickness = model["thickness"]
+        if thickness < 0.1:
+            cells = (*cells[:2], max(LAYER_CELLS, round(cells[2] * thickness / 0.1)))
+            model["cells"] = cells
         model_overrides = [
+            f"needle.radius={model['radius']!r}",
             f"insertion.spacing={model['spacing']!r}",
             f"cutting.point_spacing={model['point_spacing']!r}",
             f"insertion.puncture_force={model['puncture_force']!r}",
@@ -296,8 +308,14 @@ def draw_life(seed: int, family: str = "cube") -> Life:
             f"insertion.surface_friction_coefficient={model['friction']!r}",
             f"insertion.shaft_friction_coefficient={model['friction']!r}",
         ]
+        if thickness < 0.1:
+            model_overrides += [
+                f"mesh.size=[0.1, 0.1, {thickness!r}]",
+                f"mesh.origin=[-0.05, -0.05, {0.1 - thickness!r}]",
+                'mesh.fixed_faces=["xmin", "xmax", "ymin", "ymax"]',
+            ]
     cells_override = f"mesh.cells=[{', '.join(str(c) for c in cells)}]"
-    base_scene = load_scene(SCENE, [cells_override])
+    base_scene = load_scene(SCENE, [cells_override, *model_overrides])
     length = float(base_scene.needle.length)
     contact = float(base_scene.insertion.contact_distance)
     top = float(base_scene.mesh.origin[2] + base_scene.mesh.size[2])
