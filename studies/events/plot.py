@@ -26,6 +26,18 @@ def _first_margins(run: dict) -> dict:
     return first
 
 
+def _shown(override: str) -> str:
+    """An override as the page shows it: a trajectory file under the repository by its path from the
+    repository's root (the run gave the absolute path of the machine it ran on)."""
+    key, _, value = override.partition("=")
+    if key != "trajectory.file":
+        return override
+    path = Path(json.loads(value))
+    if "studies" in path.parts:
+        path = Path(*path.parts[len(path.parts) - path.parts[::-1].index("studies") - 1 :])
+    return f"{key}={json.dumps(str(path))}"
+
+
 def figure(summary: dict) -> None:
     import matplotlib
 
@@ -89,7 +101,7 @@ def page(summary: dict) -> str:
     ]
     for label, scenario in summary.items():
         lines += [f"## {label}", "", f"Scene `{scenario['scene']}` with:", "", "```"]
-        lines += scenario["overrides"]
+        lines += [_shown(override) for override in scenario["overrides"]]
         lines += ["```", ""]
         lines += [
             "| solver | tolerance | events (step name) | unconverged solves | largest residual | seconds |",
