@@ -64,6 +64,7 @@ class CutEventRules:
             path_points = state.path.positions(positions, self.tets)
         along_cut = faces is not None and faces[2].size > 0
         spacing = self.cutting.point_spacing
+        beyond = None  # where the first surface's columns go on to past the path's last point
         if along_cut:
             rows, multipliers, indices = faces
             # the criterion's accuracy over every lateral row (the entry point's load may count beyond f_p)
@@ -88,7 +89,7 @@ class CutEventRules:
             # compression under the lateral load sets the material point the needle's own axis is in apart
             # from the path's: 0.2 mm on the 4³ cube_cut).
             reach = needle.points(np.array([arcs[1], end]))
-            beyond = path_points[-1] + reach[1] - reach[0]
+            beyond = path_points[-1] + reach[1] - reach[0] if end > arcs[1] else None
         self.margins.cut_start(self.law, force_on_needle, inserted, state.path.point_count, rows=margin_rows)
         start = self.law.cut_start(
             force_on_needle, inserted_length=inserted, point_count=state.path.point_count
@@ -108,7 +109,7 @@ class CutEventRules:
             positions,
             world.step,
             extent=extent,
-            beyond=None if along_cut else beyond,
+            beyond=beyond,
         )
         if strip is None:
             return None
