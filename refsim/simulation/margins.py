@@ -136,6 +136,18 @@ class Criterion:
         return bool(abs(self.margin) <= self.accuracy)
 
 
+def _over(numerator, diagonal) -> np.ndarray:
+    """numerator / W_ii elementwise, for a compliance diagonal W_ii ≥ 0: a row with no compliance (W_ii = 0:
+    every node it moves is held) answers ±inf to a non-zero numerator (a rigid row asks for any force) and
+    0 to zero, without a division by zero."""
+    numerator = np.asarray(numerator, dtype=float)
+    diagonal = np.asarray(diagonal, dtype=float)
+    numerator, diagonal = np.broadcast_arrays(numerator, diagonal)
+    out = np.where(numerator == 0.0, 0.0, np.copysign(np.inf, numerator))
+    np.divide(numerator, diagonal, out=out, where=diagonal > 0.0)
+    return out
+
+
 def problem_scale(problem, multipliers: np.ndarray) -> float:
     """D = max(‖δ_free‖, ‖λ‖, ‖δ‖), the natural residual's scale (`refsim.solvers.residual`)."""
     gap = problem.compliance @ multipliers + problem.free_gap
@@ -226,12 +238,14 @@ class MarginWatch:
         if tangent_rows.size == 0 or normal <= normal_accuracy:
             return  # no friction, or a contact not resolved as closed: no stick/slip to decide
         coefficient = _tangent_coefficient(problem, tangent_rows)
-        trial = multipliers[tangent_rows] - gap[tangent_rows] / diagonal[tangent_rows]
+        trial = multipliers[tangent_rows] - _over(gap[tangent_rows], diagonal[tangent_rows])
         disc = np.isin(tangent_rows, np.asarray(problem.contacts).ravel())
         tangential = float(np.linalg.norm(trial)) if np.all(disc) else float(np.abs(trial).max())
         ratio = tangential / normal
         # ε of the trial force: its λ_t and its δ_t / W_tt, each to the residual's bound.
-        tangent_accuracy = self._accuracy(tangent_rows) + self._bound / float(diagonal[tangent_rows].min())
+        tangent_accuracy = self._accuracy(tangent_rows) + float(
+            _over(self._bound, diagonal[tangent_rows].min())
+        )
         accuracy = (tangent_accuracy + ratio * normal_accuracy) / normal
         self._criteria.append(Criterion("tip_slip", ratio, coefficient, accuracy, "1"))
 
@@ -293,7 +307,7 @@ class MarginWatch:
         rows, limits = rows[finite], limits[finite]
         ratios = self.demands(rows) / limits
         diagonal = self._problem.compliance[rows, rows]
-        accuracies = (accuracy + self._bound / diagonal) / limits
+        accuracies = (accuracy + _over(np.full(rows.size, self._bound), diagonal)) / limits
         nearest = int(np.argmin(np.abs(ratios - 1.0) / np.maximum(accuracies, np.finfo(float).tiny)))
         return Criterion("advance", float(ratios[nearest]), 1.0, float(accuracies[nearest]), "1")
 
@@ -315,7 +329,7 @@ class MarginWatch:
         capped = np.zeros(problem.row_count, dtype=bool)
         capped[np.asarray(problem.box_rows, dtype=np.int64)] = True
         capped = capped[rows]
-        return multipliers[rows] + np.where(capped, np.maximum(-gap, 0.0) / diagonal, 0.0)
+        return multipliers[rows] + np.where(capped, _over(np.maximum(-gap, 0.0), diagonal), 0.0)
 
 
 def _tangent_coefficient(problem, rows: np.ndarray) -> float:

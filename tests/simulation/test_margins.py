@@ -91,6 +91,31 @@ def test_watch_reads_a_capped_puncture_row_as_the_force_it_asks_for():
     assert criterion.accuracy == pytest.approx(1e-6 * 1.0 / 1e-2)
 
 
+def test_watch_reads_a_capped_row_on_held_nodes_as_asking_for_any_force(recwarn):
+    # A normal row with no compliance (W = 0: every node it moves is held, a needle pressed on the clamped
+    # part of an organ) held at its cap f_p = 1 N with its gap below zero asks for any force: the demand is
+    # +inf (above f_p: the tip goes through), and a row with a closed gap asks for its own force; neither
+    # divides by zero (the liver's random lives warned of a division by zero and read NaN).
+    class Rows:
+        source = np.array([0])
+        kind = np.array([1])
+
+    for free_gap, demand in ((-0.03, np.inf), (0.0, 1.0)):
+        problem = ConstraintProblem(
+            compliance=np.array([[0.0]]),
+            free_gap=np.array([free_gap]),
+            box_rows=np.array([0]),
+            box_lower=np.array([0.0]),
+            box_upper=np.array([1.0]),
+        )
+        watch = MarginWatch(1e-6)
+        watch.begin(problem, Rows(), np.array([1.0]), None)
+        watch.puncture(np.array([0]), 1.0)
+        (criterion,) = watch.taken()
+        assert criterion.value == demand
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+
+
 def test_assess_counts_the_steps_within_accuracy_before_the_event():
     # A criterion within its accuracy of the threshold at steps 7, 8, 9 (and not at 6) before an event at
     # step 10 whose own value is beyond it: it could have fired 3 steps earlier, none later.
