@@ -77,10 +77,14 @@ class CutEventRules:
             margin_rows = np.concatenate([lateral, indices])
         else:
             end = needle.length
-            if state.tip_tet < 0:
-                # The tip out of a far face: the shaft cuts along the part in the tissue only.
-                _, end = inserted_span(needle, locator, spacing)
             arcs = needle.project(path_points[[0, -1]])[0]
+            if state.tip_tet < 0:
+                # The tip out of a far face: the shaft cuts along the part in the tissue only; where no
+                # sample of its centreline is in the tissue (it passes beside a sliver whose insertion
+                # points still hold it), along the part the insertion points hold.
+                _, end = inserted_span(needle, locator, spacing)
+                if end >= needle.length:
+                    end = float(needle.project(path_points)[0].max())
             inserted = end - float(arcs[0])
             margin_rows = None
             # The cut runs on the whole inserted needle, L_in of it: the path's points reach the tip only to

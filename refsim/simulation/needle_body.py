@@ -23,6 +23,10 @@ __all__ = ["NeedleState", "RigidNeedle", "FlexibleNeedle", "NEEDLE_LINEAR_SOLVER
 #: The flexible needle's linear solver: SuperLU in symmetric mode with the COLAMD ordering (a direct
 #: factorisation of its small banded A every step).
 NEEDLE_LINEAR_SOLVER = "superlu:COLAMD"
+#: An element of the flexible needle stretched or shortened by more than this (its chord against its rest
+#: length) ends the run: a steel needle yields below 1 %, so such a state is a step whose one Newton step
+#: diverged, not a deformation (:meth:`FlexibleNeedle.diverged`).
+DIVERGED_STRAIN = 0.1
 
 
 @dataclass(frozen=True)
@@ -178,6 +182,27 @@ class FlexibleNeedle:
 
     def geometry(self, state: NeedleState) -> BeamNeedleGeometry:
         return BeamNeedleGeometry(self.model, state.positions, state.frames)
+
+    def diverged(self, state: NeedleState) -> str | None:
+        """What says the step that gave ``state`` diverged, or None: an element's chord off its rest length by
+        more than :data:`DIVERGED_STRAIN` (one Newton step of implicit Euler does not follow rotations that
+        large in one step: a slender needle buckling under its tip's load, whose critical load is Euler's
+        π² E I / (4 L²), the base clamped)."""
+        chords = np.linalg.norm(np.diff(state.positions, axis=0), axis=1)
+        strain = np.abs(chords / self.model.element_length - 1.0)
+        worst = int(np.argmax(strain))
+        if not strain[worst] > DIVERGED_STRAIN:
+            return None
+        section = self.model.section
+        critical = np.pi**2 * section.youngs_modulus * section.second_moment / (4.0 * self.length**2)
+        return (
+            f"the needle {self.name!r} diverged: its element {worst} is {100.0 * strain[worst]:.3g} % off "
+            f"its rest length (more than {100.0 * DIVERGED_STRAIN:g} %; a steel needle yields below 1 %), "
+            "which one Newton step of implicit Euler gives when the needle turns too far in one step, as a "
+            f"slender needle buckling under its tip's load does (Euler's critical load {critical:.3g} N for "
+            "this needle, its base clamped): use a smaller time.dt, or a stiffer needle (needle.radius) or a "
+            "rigid one (needle.rigid = true)"
+        )
 
     def free_motion(self, state: NeedleState, control: ControlValues, dt: float):
         """One Newton step of implicit Euler with the base's six DoFs prescribed by the trajectory; the step

@@ -208,6 +208,7 @@ class Simulation:
 
             corrected = self._correct(start, free, systems, responses, multipliers)
             self._check_finite(step, corrected, multipliers)
+            self._check_converged(step, corrected)
             timer.lap("correction")
 
             new_state = self._advanced(
@@ -537,6 +538,14 @@ class Simulation:
         stretch[owners] = -added * multipliers[shaft]
         # the path's own per-point arrays, updated: with_stuck and with_anchors' values, one copy of the path
         return path._with(stuck=stuck, anchors=anchors, stretch=stretch)
+
+    def _check_converged(self, step, states: dict) -> None:
+        """Stop where a body says its step diverged (a body's ``diverged(state)``: the flexible needle's)."""
+        for body in self.bodies:
+            diverged = getattr(body, "diverged", None)
+            message = diverged(states[body.name]) if diverged is not None else None
+            if message:
+                raise SimulationError(f"step {step}: {message}; the run stops here")
 
     @staticmethod
     def _check_finite(step, states: dict, multipliers) -> None:

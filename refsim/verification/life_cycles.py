@@ -19,8 +19,11 @@ by the scene's own check), and each needle is checked on its own rows and events
 - ``rows``: the step ends with the rows of its end state (:func:`end_state_violations`);
 - ``force_without_rows``: no force on the needle in a step without rows;
 - ``force_bound`` (a needle that cuts; one that does not is held by its shaft without a law's limit, by
-  design): ‖F‖ ≤ 2 (f_p + G_c L_in) at every step, L_in the needle's length inside the undeformed
-  cube. Reference: the laws bound what the tissue can hold the needle with — its
+  design): ‖F‖ ≤ 2 (f_p + G_c L_in) at every step, L_in the needle's length inside the tissue (the
+  undeformed cube; an organ's mesh as deformed at the step). Not at a step whose load is on the approach's
+  shaft contact (rows keeping the needle's side out of the surface before a puncture): no law limits those
+  (docs/coupling.md, "Shaft contact before puncture"), a known limit the study reports on its own
+  (:func:`shaft_contact_loads`). Reference: the laws bound what the tissue can hold the needle with — its
   tip's contact gives way at f_p, the front's and the cut faces' rows (and the cut start that replaces faces
   which hold) at G_c per unit inserted length, and the friction (μ = 0.1) adds a tenth of its normal load —
   so f_p + G_c L_in bounds the force the tissue holds the needle with, less the elastic transients of a turn
@@ -40,20 +43,36 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Life", "Violation", "draw_life", "end_state_violations", "inserted_length", "life_violations"]
+__all__ = [
+    "Life",
+    "Violation",
+    "draw_life",
+    "end_state_violations",
+    "inserted_length",
+    "inserted_lengths",
+    "life_violations",
+    "shaft_contact_loads",
+]
 
 SCENE = "cube_cut"
 CELLS = (4, 4, 4)
 #: The families of lives :func:`draw_life` draws from: "cube" on the 4³ cube with the scene's model values;
 #: "model" also draws the mesh and the model's values a user sets (:data:`MODEL_CHOICES`); "two" draws a
 #: second needle's life beside the first in the same tissue, one that holds and does not cut (a scene cuts
-#: with one instrument at most), entering about 30 mm from it (:data:`TWO_SHIFT`).
-FAMILIES = ("cube", "model", "two")
+#: with one instrument at most), entering about 30 mm from it (:data:`TWO_SHIFT`); "liver" the same kind of
+#: life on the liver scene (an unstructured organ that breathes under the needle), entering at a random point
+#: of its surface, its segments in the tangent plane's frame there.
+FAMILIES = ("cube", "model", "two", "liver")
 #: The "two" family: each needle's entry is this far off the middle along x [m] (the cutter's to −x, the
 #: holder's to +x), both needles' radius [m] (thin, so that they pass each other), the holder's draws tried.
 TWO_SHIFT = 0.015
 TWO_RADIUS = 0.002
 TWO_ATTEMPTS = 50
+#: The "liver" family: the scene (the paper's liver with breathing), how far a sideways move takes the line's
+#: crossing of the tangent plane at the entry [m], and the entry points tried (one whose start lies outside).
+LIVER_SCENE = "liver_rigid"
+LIVER_CLIP = 0.01
+LIVER_ATTEMPTS = 50
 #: What a life of the "model" family draws from, each value with the same chance: the cells per axis (cubic
 #: and stretched tets), d_i and d_c [m], f_p [N], G_c [J/m²], the friction coefficients (surface, shaft), the
 #: needle's radius [m] and the tissue's thickness [m] (a third of the lives on a 20 mm layer).
@@ -94,6 +113,8 @@ class Life:
         friction; :data:`MODEL_CHOICES`); empty for the other families (4³ cells, the scene's values).
     second : The "two" family's second needle (it holds, it does not cut): its waypoints as ``waypoints``;
         empty for the other families.
+    scene_name : The built-in scene it runs (:data:`LIVER_SCENE` for the "liver" family, whose waypoints
+        are in the world's frame and set the trajectory, else :data:`SCENE`).
     dt : The time step [s].
     rigid, fast, exact_solver : A rigid needle (else a beam), the fast compliance (else exact), the exact
         constraint solver (else Gauss–Seidel).
@@ -118,6 +139,7 @@ class Life:
     family: str = "cube"
     model: tuple[tuple[str, object], ...] = ()
     second: tuple[dict, ...] = ()
+    scene_name: str = SCENE
 
     def scene(self):
         """The scene of this life: :data:`SCENE` with its overrides, and for the "two" family its needle as
@@ -125,7 +147,13 @@ class Life:
         from refsim.scene import load_scene
         from refsim.scene.loader import scene_from_dict
 
-        scene = load_scene(SCENE, list(self.overrides))
+        scene = load_scene(self.scene_name, list(self.overrides))
+        if self.scene_name != SCENE:
+            data = scene.to_dict()
+            data["trajectory"] = _trajectory(self.waypoints, float(scene.needle.length))
+            return scene_from_dict(
+                data, source=f"{self.family} life {self.seed}", base_directory=str(_scenes_directory())
+            )
         if not self.second:
             return scene
         data = scene.to_dict()
@@ -186,6 +214,15 @@ def _fmt(values) -> str:
     return "[" + ", ".join(repr(float(v)) for v in values) + "]"
 
 
+def _scenes_directory():
+    """The folder of the built-in scenes (a scene's relative paths are read from it)."""
+    from pathlib import Path
+
+    import refsim
+
+    return Path(refsim.__file__).resolve().parent / "scenes"
+
+
 def _trajectory(waypoints, length: float) -> dict:
     """A [trajectory] table's waypoints (times, base_positions, directions) for a needle of ``length`` [m]
     whose tip is at each waypoint's depth along its direction below where its line crosses the top face."""
@@ -201,13 +238,17 @@ def _trajectory(waypoints, length: float) -> dict:
 def _draw_needle(rng, geometry: dict, dt: float, shift: float) -> tuple[float, float, np.ndarray, list, int]:
     """One needle's life from ``rng`` (:func:`draw_life`): (tilt [°], azimuth [°], entry (x, y) [m],
     waypoints, its steps). ``geometry``: the needle's length, the contact distance, the top face's height
-    and the top face's grid lines per axis [m]; ``shift``: added to the entry's x [m] (off the grid lines)."""
+    and the top face's grid lines per axis [m], and optionally ``spread`` (the entry's spread about the
+    middle, a share of ±15 mm, 1 by default) and ``clip`` (how far sideways moves take the line's crossing of
+    the top face from the middle, 35 mm by default); ``shift``: added to the entry's x [m] (off the grid
+    lines)."""
     length, contact, top, grids = (geometry[key] for key in ("length", "contact", "top", "grids"))
+    spread, clip = geometry.get("spread", 1.0), geometry.get("clip", 0.035)
     tilt = float(rng.uniform(0.0, 35.0))
     azimuth = float(rng.uniform(0.0, 360.0))
     t, a = np.radians(tilt), np.radians(azimuth)
     direction = np.array([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), -np.cos(t)])
-    entry = rng.uniform(-0.015, 0.015, size=2) + [shift, 0.0]
+    entry = rng.uniform(-0.015, 0.015, size=2) * spread + [shift, 0.0]
     where = rng.random()
     if where < 0.1:  # on a grid edge
         entry[0] = float(rng.choice(grids[0]))
@@ -251,7 +292,7 @@ def _draw_needle(rng, geometry: dict, dt: float, shift: float) -> tuple[float, f
             if index >= 2 or rng.random() < 0.3:
                 offset = rng.normal(0.0, 4e-3, size=2)
                 offset *= min(1.0, 0.5 * left / max(float(np.linalg.norm(offset)), 1e-12))
-                anchor[:2] = np.clip(anchor[:2] + offset, -0.035, 0.035)
+                anchor[:2] = np.clip(anchor[:2] + offset, -clip, clip)
                 left -= float(np.linalg.norm(anchor[:2] - previous["anchor"][:2]))
             target = float(rng.uniform(3e-3, 50e-3)) if index == 1 else float(rng.uniform(-6e-3, 50e-3))
             depth = float(np.clip(target, previous["depth"] - left, previous["depth"] + left))
@@ -314,6 +355,8 @@ def draw_life(seed: int, family: str = "cube") -> Life:
                 f"mesh.origin=[-0.05, -0.05, {0.1 - thickness!r}]",
                 'mesh.fixed_faces=["xmin", "xmax", "ymin", "ymax"]',
             ]
+    if family == "liver":
+        return _liver_life(seed)
     cells_override = f"mesh.cells=[{', '.join(str(c) for c in cells)}]"
     base_scene = load_scene(SCENE, [cells_override, *model_overrides])
     length = float(base_scene.needle.length)
@@ -365,6 +408,91 @@ def draw_life(seed: int, family: str = "cube") -> Life:
         model=tuple(model.items()),
     )
     return life if family != "two" else _with_holder(life, seed, geometry, steps)
+
+
+def _liver_life(seed: int) -> Life:
+    """A life of the "liver" family (:func:`draw_life`): the needle's draws of the "cube" family from
+    ``default_rng(seed)`` in a local frame whose top face is the tangent plane at the entry (a side of the
+    local frame's top face is the organ's outward normal), the entry an area-weighted random point of the
+    organ's surface from ``default_rng([seed, 3, attempt])``, the first whose start (the tip 1-6 mm out
+    along the needle) lies outside the organ."""
+    from refsim.geometry.search import TetLocator
+    from refsim.scene import load_scene
+    from refsim.scene.build import build_models
+
+    base_scene = load_scene(LIVER_SCENE)
+    mesh = build_models(base_scene).mesh
+    rest, faces = np.asarray(mesh.rest_positions, dtype=float), np.asarray(mesh.boundary_faces)
+    corners = rest[faces]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    areas = np.linalg.norm(normals, axis=1)
+    normals /= areas[:, None]
+    outward = np.sign(np.einsum("ij,ij->i", normals, corners.mean(axis=1) - rest.mean(axis=0)))
+    locator = TetLocator(rest, np.asarray(mesh.tets))
+
+    rng = np.random.default_rng(seed)
+    dt = float(rng.choice(TIME_STEPS))
+    rigid = bool(rng.random() < 0.6)
+    fast = bool(rng.random() < 0.3)
+    exact_solver = bool(rng.random() < 0.25)
+    geometry = {
+        "length": float(base_scene.needle.length),
+        "contact": float(base_scene.insertion.contact_distance),
+        "top": 0.0,
+        "grids": [np.zeros(1), np.zeros(1)],
+        "spread": 0.0,
+        "clip": LIVER_CLIP,
+    }
+    tilt, azimuth, _, local, steps = _draw_needle(rng, geometry, dt, 0.0)
+    for attempt in range(LIVER_ATTEMPTS):
+        pick = np.random.default_rng([seed, 3, attempt])
+        face = int(pick.choice(len(faces), p=areas / areas.sum()))
+        u, v = pick.random(2)
+        u, v = (1.0 - u, 1.0 - v) if u + v > 1.0 else (u, v)
+        origin = (
+            corners[face, 0]
+            + u * (corners[face, 1] - corners[face, 0])
+            + v * (corners[face, 2] - corners[face, 0])
+        )
+        normal = outward[face] * normals[face]
+        first = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+        first /= np.linalg.norm(first)
+        frame = np.column_stack([first, np.cross(normal, first), normal])  # local x, y, z in the world
+        waypoints = [
+            dict(w, anchor=origin + frame @ w["anchor"], direction=frame @ w["direction"]) for w in local
+        ]
+        start = waypoints[0]["anchor"] + waypoints[0]["depth"] * waypoints[0]["direction"]
+        if locator.locate(start[None])[0][0] < 0:
+            break
+    else:
+        raise ValueError(
+            f"seed {seed}: no entry of the liver in {LIVER_ATTEMPTS} attempts whose start is outside"
+        )
+    end_steps = max(steps, int(np.ceil(2.0 / dt - 1e-9)))
+    overrides = [
+        f"time.dt={dt!r}",
+        f"time.duration={round(end_steps * dt, 10)!r}",
+        f"needle.rigid={'true' if rigid else 'false'}",
+        "output.tissue_every=1",
+    ]
+    if fast:
+        overrides.append("compliance.strategy=fast")
+    if exact_solver:
+        overrides.append('solver.method="exact"')
+    return Life(
+        seed=seed,
+        dt=dt,
+        rigid=rigid,
+        fast=fast,
+        exact_solver=exact_solver,
+        tilt_deg=tilt,
+        azimuth_deg=azimuth,
+        entry=(float(origin[0]), float(origin[1])),
+        waypoints=tuple(waypoints),
+        overrides=tuple(overrides),
+        family="liver",
+        scene_name=LIVER_SCENE,
+    )
 
 
 def _with_holder(life: Life, seed: int, geometry: dict, steps: int) -> Life:
@@ -438,6 +566,14 @@ def end_state_violations(records, instrument: int = 0) -> list[tuple[str, int]]:
 def inserted_length(needle_positions: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> float:
     """The needle's length inside the box [lower, upper] [m] (the undeformed tissue), its polyline
     ``needle_positions`` (k, 3) sampled every 0.1 mm or finer."""
+    return _length_inside(
+        needle_positions, lambda points: np.all((points > lower) & (points < upper), axis=1)
+    )
+
+
+def _length_inside(needle_positions: np.ndarray, inside) -> float:
+    """The length of the polyline ``needle_positions`` (k, 3) [m] whose samples (every 0.1 mm or finer)
+    ``inside`` (points (q, 3) → bool (q,)) says are in the tissue."""
     start, end = needle_positions[:-1], needle_positions[1:]
     lengths = np.linalg.norm(end - start, axis=1)
     count = max(int(np.ceil(lengths.max() / 1e-4)), 2) if lengths.size else 0
@@ -445,20 +581,67 @@ def inserted_length(needle_positions: np.ndarray, lower: np.ndarray, upper: np.n
         return 0.0
     s = (np.arange(count) + 0.5) / count
     points = start[:, None, :] + s[None, :, None] * (end - start)[:, None, :]
-    inside = np.all((points > lower) & (points < upper), axis=2)
-    return float((lengths * inside.mean(axis=1)).sum())
+    mask = np.asarray(inside(points.reshape(-1, 3))).reshape(len(start), count)
+    return float((lengths * mask.mean(axis=1)).sum())
+
+
+def inserted_lengths(records, scene, instrument: int = 0) -> np.ndarray:
+    """L_in of ``instrument`` at each record [m]: its needle's length inside the tissue, the undeformed box of
+    a box mesh (the cube's), the deformed mesh of the step otherwise, the needle's radius around it (an organ
+    that moves, whose thin parts the centreline may pass beside while the rows hold the needle: the records
+    must hold the tissue's positions, ``output.tissue_every = 1``; NaN where they do not)."""
+    if scene.mesh.generator == "box":
+        lower = np.asarray(scene.mesh.origin, dtype=float)
+        upper = lower + np.asarray(scene.mesh.size, dtype=float)
+        return np.array(
+            [
+                inserted_length(np.asarray(r.instruments[instrument].needle_positions), lower, upper)
+                for r in records
+            ]
+        )
+    from refsim.geometry.search import TetLocator
+    from refsim.scene.build import build_models
+
+    tets = np.asarray(build_models(scene).mesh.tets)
+    radius = float(scene.instrument_specs[instrument].needle.radius)
+    lengths, locator = [], None
+    for record in records:
+        if record.tissue_positions is None:
+            lengths.append(np.nan)
+            continue
+        locator = TetLocator(np.asarray(record.tissue_positions), tets, previous=locator)
+        needle = np.asarray(record.instruments[instrument].needle_positions)
+        lengths.append(
+            _length_inside(needle, lambda points, found=locator: found.locate_nearest(points)[2] <= radius)
+        )
+    return np.asarray(lengths, dtype=float)
+
+
+def shaft_contact_loads(records, instrument: int = 0) -> np.ndarray:
+    """The load of ``instrument``'s shaft-contact rows at each record [N] (‖Σ n λ‖ over the rows of source
+    ``shaft_contact``: the approach's rows that keep the needle's side out of the surface)."""
+    from refsim.constraints import SHAFT_CONTACT
+
+    loads = []
+    for record in records:
+        rows = _rows_of(record, instrument)
+        source = np.asarray(record.row_source)[rows]
+        chosen = source == SHAFT_CONTACT
+        forces = np.asarray(record.row_forces)[rows][chosen]
+        directions = np.asarray(record.row_directions)[rows][chosen]
+        loads.append(float(np.linalg.norm(forces @ directions)) if chosen.any() else 0.0)
+    return np.asarray(loads)
 
 
 def life_violations(records, scene) -> list[Violation]:
     """The first violation of each invariant (module docstring) for each instrument over the ``records`` of
     a run of ``scene``, in the order found; empty when every step keeps them all. The force bound is checked
     for the instruments that cut (one that does not is held by its shaft with no law's limit, by design)."""
-    lower = np.asarray(scene.mesh.origin, dtype=float)
-    upper = lower + np.asarray(scene.mesh.size, dtype=float)
     fracture_energy = float(scene.cutting.fracture_energy)
     puncture = float(scene.insertion.puncture_force)
     specs = scene.instrument_specs
     first: dict[tuple[str, int], Violation] = {}
+    inside = {index: inserted_lengths(records, scene, index) for index, spec in enumerate(specs) if spec.cuts}
 
     def note(name, index, record, detail):
         if (name, index) not in first:
@@ -468,7 +651,8 @@ def life_violations(records, scene) -> list[Violation]:
                 name, int(record.step), float(record.time), str(own.phase), detail, label
             )
 
-    for record in records:
+    shaft = {index: shaft_contact_loads(records, index) for index in inside}
+    for position, record in enumerate(records):
         row_forces = np.asarray(record.row_forces)
         tissue_bad = record.tissue_positions is not None and not np.all(np.isfinite(record.tissue_positions))
         for index, spec in enumerate(specs):
@@ -485,15 +669,17 @@ def life_violations(records, scene) -> list[Violation]:
                 note("force_without_rows", index, record, f"{force:.3g} N on the needle, no rows")
             if not spec.cuts:
                 continue
-            inside = inserted_length(np.asarray(own.needle_positions), lower, upper)
-            bound = BOUND_FACTOR * (puncture + fracture_energy * inside)
+            length = inside[index][position]
+            if not np.isfinite(length) or shaft[index][position] > NO_ROW_FORCE:
+                continue
+            bound = BOUND_FACTOR * (puncture + fracture_energy * length)
             if force > bound:
                 note(
                     "force_bound",
                     index,
                     record,
                     f"{force:.3f} N > {bound:.3f} N = {BOUND_FACTOR:g} (f_p + G_c L_in), "
-                    f"L_in = {1e3 * inside:.2f} mm",
+                    f"L_in = {1e3 * length:.2f} mm",
                 )
     by_step = {int(record.step): record for record in records}
     for index in range(len(specs)):

@@ -189,6 +189,26 @@ def test_a_non_finite_body_state_stops_the_run_naming_the_body(rigid):
         rigid._check_finite(3, free, np.array([0.0, np.inf]))
 
 
+def test_a_diverged_flexible_needle_stops_the_run_naming_it(flexible):
+    # Reference: a steel needle yields below 1 % of axial strain, so an element's chord 20 % off its rest
+    # length is a step whose one Newton step diverged (DIVERGED_STRAIN = 10 %), and 5 % is not stopped.
+    from dataclasses import replace
+
+    from refsim.simulation import SimulationError
+
+    _, free, _ = free_motion(flexible)
+    flexible._check_converged(3, free)  # as it is: nothing raised
+    for stretch, stops in ((0.2, True), (0.05, False)):
+        positions = free[NEEDLE].positions.copy()
+        positions[-1] += stretch * (positions[-1] - positions[-2])  # the last element's chord by `stretch`
+        states = {**free, NEEDLE: replace(free[NEEDLE], positions=positions)}
+        if stops:
+            with pytest.raises(SimulationError, match=r"step 3: the needle 'needle' diverged: its element"):
+                flexible._check_converged(3, states)
+        else:
+            flexible._check_converged(3, states)
+
+
 def test_a_rigid_needles_frames_follow_its_direction():
     # The nodes' frames are kept for the last direction: each pose gets the rest frame of its own direction,
     # as a fresh array of its own.
