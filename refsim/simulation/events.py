@@ -116,7 +116,7 @@ def shaft_lateral_force(
         taken in path order with the entry's two lateral rows first.
     """
     directions, forces = np.asarray(directions), np.asarray(forces)
-    lateral = shaft_lateral_rows(source, kind, points if points is not None else None, False)
+    lateral = shaft_lateral_rows(source, kind, points, False)
     if points is not None:
         entry = np.asarray(points)[lateral] == 0
     else:
