@@ -235,6 +235,29 @@ def _trajectory(waypoints, length: float) -> dict:
     }
 
 
+def _draw_run(rng) -> tuple[float, bool, bool, bool]:
+    """The run's settings, the first draws of every family from ``rng``: (dt [s], rigid needle, fast
+    compliance, exact solver)."""
+    dt = float(rng.choice(TIME_STEPS))
+    return dt, bool(rng.random() < 0.6), bool(rng.random() < 0.3), bool(rng.random() < 0.25)
+
+
+def _run_overrides(dt: float, steps: int, rigid: bool, fast: bool, exact_solver: bool) -> list[str]:
+    """The overrides of the run's settings: dt, a duration of ``steps`` steps and at least 2 s (a final
+    hold), the needle, the compliance and the solver."""
+    steps = max(steps, int(np.ceil(2.0 / dt - 1e-9)))
+    overrides = [
+        f"time.dt={dt!r}",
+        f"time.duration={round(steps * dt, 10)!r}",
+        f"needle.rigid={'true' if rigid else 'false'}",
+    ]
+    if fast:
+        overrides.append("compliance.strategy=fast")
+    if exact_solver:
+        overrides.append('solver.method="exact"')
+    return overrides
+
+
 def _draw_needle(rng, geometry: dict, dt: float, shift: float) -> tuple[float, float, np.ndarray, list, int]:
     """One needle's life from ``rng`` (:func:`draw_life`): (tilt [°], azimuth [°], entry (x, y) [m],
     waypoints, its steps). ``geometry``: the needle's length, the contact distance, the top face's height
@@ -367,30 +390,19 @@ def draw_life(seed: int, family: str = "cube") -> Life:
     grids = [origin[k] + size[k] * np.arange(1, cells[k]) / cells[k] for k in range(2)]
 
     rng = np.random.default_rng(seed)
-    dt = float(rng.choice(TIME_STEPS))
-    rigid = bool(rng.random() < 0.6)
-    fast = bool(rng.random() < 0.3)
-    exact_solver = bool(rng.random() < 0.25)
+    dt, rigid, fast, exact_solver = _draw_run(rng)
     geometry = {"length": length, "contact": contact, "top": top, "grids": grids}
     shift = -TWO_SHIFT if family == "two" else 0.0
     tilt, azimuth, entry, waypoints, steps = _draw_needle(rng, geometry, dt, shift)
-    end_steps = max(steps, int(np.ceil(2.0 / dt - 1e-9)))  # at least 2 s: a final hold
     bases = [w["anchor"] + (w["depth"] - length) * w["direction"] for w in waypoints]
     overrides = [
         cells_override,
         *model_overrides,
-        f"time.dt={dt!r}",
-        f"time.duration={round(end_steps * dt, 10)!r}",
+        *_run_overrides(dt, steps, rigid, fast, exact_solver),
         f"trajectory.times={_fmt([w['time'] for w in waypoints])}",
         "trajectory.base_positions=[" + ", ".join(_fmt(b) for b in bases) + "]",
         "trajectory.directions=[" + ", ".join(_fmt(w["direction"]) for w in waypoints) + "]",
     ]
-    if not rigid:
-        overrides.append("needle.rigid=false")
-    if fast:
-        overrides.append("compliance.strategy=fast")
-    if exact_solver:
-        overrides.append('solver.method="exact"')
     if family == "two":
         overrides.append(f"needle.radius={TWO_RADIUS!r}")
     life = Life(
@@ -431,10 +443,7 @@ def _liver_life(seed: int) -> Life:
     locator = TetLocator(rest, np.asarray(mesh.tets))
 
     rng = np.random.default_rng(seed)
-    dt = float(rng.choice(TIME_STEPS))
-    rigid = bool(rng.random() < 0.6)
-    fast = bool(rng.random() < 0.3)
-    exact_solver = bool(rng.random() < 0.25)
+    dt, rigid, fast, exact_solver = _draw_run(rng)
     geometry = {
         "length": float(base_scene.needle.length),
         "contact": float(base_scene.insertion.contact_distance),
@@ -468,17 +477,7 @@ def _liver_life(seed: int) -> Life:
         raise ValueError(
             f"seed {seed}: no entry of the liver in {LIVER_ATTEMPTS} attempts whose start is outside"
         )
-    end_steps = max(steps, int(np.ceil(2.0 / dt - 1e-9)))
-    overrides = [
-        f"time.dt={dt!r}",
-        f"time.duration={round(end_steps * dt, 10)!r}",
-        f"needle.rigid={'true' if rigid else 'false'}",
-        "output.tissue_every=1",
-    ]
-    if fast:
-        overrides.append("compliance.strategy=fast")
-    if exact_solver:
-        overrides.append('solver.method="exact"')
+    overrides = [*_run_overrides(dt, steps, rigid, fast, exact_solver), "output.tissue_every=1"]
     return Life(
         seed=seed,
         dt=dt,
@@ -508,7 +507,7 @@ def _with_holder(life: Life, seed: int, geometry: dict, steps: int) -> Life:
         second, second_steps = _draw_needle(
             np.random.default_rng([seed, 2, attempt]), geometry, life.dt, TWO_SHIFT
         )[3:]
-        end = max(steps, second_steps, int(np.ceil(2.0 / life.dt - 1e-9)))
+        end = max(steps, second_steps, int(np.ceil(2.0 / life.dt - 1e-9)))  # as _run_overrides
         overrides = [o for o in life.overrides if not o.startswith("time.duration=")]
         overrides.append(f"time.duration={round(end * life.dt, 10)!r}")
         candidate = dataclasses.replace(life, overrides=tuple(overrides), second=tuple(second))
