@@ -54,13 +54,13 @@ __all__ = [
 FORMAT_NAME = "refsim-results"
 #: Version of the layout written by this code (root attribute ``schema_version``). 2: the within-step event
 #: quantities (``steps/event_*``, :data:`WITHIN_STEP_QUANTITIES`), and a puncture step's other quantities
-#: are its end state (the step solved again after the tip contact gave way).
-SCHEMA_VERSION = 2
+#: are its end state (the step solved again after the tip contact gave way). 3: ``steps/needle_strain``.
+SCHEMA_VERSION = 3
 #: Versions the reader understands. A version-1 file has no ``steps/event_*``: the reader gives them as NaN
 #: (no within-step state recorded), and its puncture step's ``steps/needle_force`` and constraint rows are
 #: the give-way's (version 1 solved that step once, ending it at the give-way), which is what
-#: ``Results.profile_force`` reads for it.
-SUPPORTED_SCHEMA_VERSIONS = (1, 2)
+#: ``Results.profile_force`` reads for it. A file of version 1 or 2 has no ``steps/needle_strain`` (NaN).
+SUPPORTED_SCHEMA_VERSIONS = (1, 2, 3)
 
 #: Phase names, in the order of the int8 codes of ``steps/phase``.
 PHASE_NAMES = ("approach", "insertion", "cutting")
@@ -231,6 +231,17 @@ INSTRUMENT_STEP_QUANTITIES = (
     ),
     StepQuantity(
         "insertion_point_count", "1", "int64", (), "insertion points after the step", "insertion_point_count"
+    ),
+    StepQuantity(
+        "needle_strain",
+        "1",
+        "float64",
+        (),
+        "largest strain of the needle's element chords after the step, |chord / rest length - 1| (0 for a "
+        "rigid needle): the error of the step's one Newton iteration on the beam (a needle's axial strain is "
+        "about 1e-6; above 0.01 the run warns, above 0.1 it stops)",
+        "needle_strain",
+        since=3,
     ),
 )
 
@@ -711,7 +722,8 @@ def reference_markdown() -> str:
         "",
         f"Files of schema version 1 have no `steps/event_*`: `read_results` gives them as NaN. That version "
         f"solved the puncture step once, so its `steps/needle_force` and constraint rows there are the "
-        f"give-way's, which `Results.profile_force` reads. The reader reads versions "
+        f"give-way's, which `Results.profile_force` reads. Files of schema versions 1 and 2 have no "
+        f"`steps/needle_strain` (NaN). The reader reads versions "
         f"{', '.join(map(str, SUPPORTED_SCHEMA_VERSIONS))}.",
         "",
         "## Several instruments",

@@ -18,7 +18,15 @@ from refsim.constraints import NEEDLE, BeamNeedleGeometry, RigidNeedleGeometry, 
 from refsim.geometry import needle_rest_frame, rotation_matrix
 from refsim.scene.controls import ControlValues
 
-__all__ = ["NeedleState", "RigidNeedle", "FlexibleNeedle", "NEEDLE_LINEAR_SOLVER", "rotation_between"]
+__all__ = [
+    "NeedleState",
+    "RigidNeedle",
+    "FlexibleNeedle",
+    "NEEDLE_LINEAR_SOLVER",
+    "DIVERGED_STRAIN",
+    "STRAIN_WARNING",
+    "rotation_between",
+]
 
 #: The flexible needle's linear solver: SuperLU in symmetric mode with the COLAMD ordering (a direct
 #: factorisation of its small banded A every step).
@@ -27,6 +35,12 @@ NEEDLE_LINEAR_SOLVER = "superlu:COLAMD"
 #: length) ends the run: a steel needle yields below 1 %, so such a state is a step whose one Newton step
 #: diverged, not a deformation (:meth:`FlexibleNeedle.diverged`).
 DIVERGED_STRAIN = 0.1
+#: An element stretched or shortened by more than this (and at most :data:`DIVERGED_STRAIN`) gives a warning
+#: and stays in the run: the yield strain of a steel needle, which no elastic needle reaches (the axial strain
+#: of a needle of radius 0.5 mm under 1 N is 6e-6; the built-in flexible scenes stay below 4e-6), so the
+#: chord's change is the error of the step's one Newton iteration, which did not follow the needle's rotation
+#: (:meth:`FlexibleNeedle.element_strain`, recorded each step as ``steps/needle_strain``).
+STRAIN_WARNING = 0.01
 
 
 @dataclass(frozen=True)
@@ -109,6 +123,11 @@ class RigidNeedle:
     def geometry(self, state: NeedleState) -> RigidNeedleGeometry:
         return RigidNeedleGeometry(state.base_position, state.direction, self.length)
 
+    @staticmethod
+    def element_strain(state: NeedleState) -> tuple[float, int]:
+        """(0, 0): a rigid needle keeps its shape (:meth:`FlexibleNeedle.element_strain`)."""
+        return 0.0, 0
+
     def free_motion(self, state: NeedleState, control: ControlValues, dt: float):
         """The pose at the end of the step (kinematic); no system to solve."""
         moved = self.state_at(control.base_position, control.direction)
@@ -183,25 +202,53 @@ class FlexibleNeedle:
     def geometry(self, state: NeedleState) -> BeamNeedleGeometry:
         return BeamNeedleGeometry(self.model, state.positions, state.frames)
 
+    def element_strain(self, state: NeedleState) -> tuple[float, int]:
+        """The largest strain of an element's chord, |‖x_{e+1} − x_e‖ / ℓ_e − 1| (ℓ_e its rest length), and
+        that element. A needle's true axial strain is of the order of 1e-6 (steel, 1 N); what exceeds it is
+        the error of the step's one Newton iteration of implicit Euler, which linearises the beam's rotation
+        over the step (:data:`STRAIN_WARNING`, :data:`DIVERGED_STRAIN`)."""
+        chords = np.linalg.norm(np.diff(state.positions, axis=0), axis=1)
+        strain = np.abs(chords / self.model.element_length - 1.0)
+        worst = int(np.argmax(strain))
+        return float(strain[worst]), worst
+
+    def _critical_load(self) -> float:
+        """Euler's critical load of the needle, its base clamped and its tip free: π² E I / (4 L²) [N]."""
+        section = self.model.section
+        return float(np.pi**2 * section.youngs_modulus * section.second_moment / (4.0 * self.length**2))
+
     def diverged(self, state: NeedleState) -> str | None:
         """What says the step that gave ``state`` diverged, or None: an element's chord off its rest length by
         more than :data:`DIVERGED_STRAIN` (one Newton step of implicit Euler does not follow rotations that
         large in one step: a slender needle buckling under its tip's load, whose critical load is Euler's
         π² E I / (4 L²), the base clamped)."""
-        chords = np.linalg.norm(np.diff(state.positions, axis=0), axis=1)
-        strain = np.abs(chords / self.model.element_length - 1.0)
-        worst = int(np.argmax(strain))
-        if not strain[worst] > DIVERGED_STRAIN:
+        strain, worst = self.element_strain(state)
+        if not strain > DIVERGED_STRAIN:
             return None
-        section = self.model.section
-        critical = np.pi**2 * section.youngs_modulus * section.second_moment / (4.0 * self.length**2)
         return (
-            f"the needle {self.name!r} diverged: its element {worst} is {100.0 * strain[worst]:.3g} % off "
+            f"the needle {self.name!r} diverged: its element {worst} is {100.0 * strain:.3g} % off "
             f"its rest length (more than {100.0 * DIVERGED_STRAIN:g} %; a steel needle yields below 1 %), "
             "which one Newton step of implicit Euler gives when the needle turns too far in one step, as a "
-            f"slender needle buckling under its tip's load does (Euler's critical load {critical:.3g} N for "
-            "this needle, its base clamped): use a smaller time.dt, or a stiffer needle (needle.radius) or a "
-            "rigid one (needle.rigid = true)"
+            f"slender needle buckling under its tip's load does (Euler's critical load "
+            f"{self._critical_load():.3g} N for this needle, its base clamped): use a smaller time.dt, or a "
+            "stiffer needle (needle.radius) or a rigid one (needle.rigid = true)"
+        )
+
+    def strained(self, state: NeedleState) -> str | None:
+        """What says the step that gave ``state`` left the beam model's range without diverging, or None: an
+        element's chord off its rest length by more than :data:`STRAIN_WARNING` (at most
+        :data:`DIVERGED_STRAIN`, which :meth:`diverged` reports)."""
+        strain, worst = self.element_strain(state)
+        if not STRAIN_WARNING < strain <= DIVERGED_STRAIN:
+            return None
+        return (
+            f"the element {worst} of the needle {self.name!r} is {100.0 * strain:.3g} % off its rest "
+            f"length (more than {100.0 * STRAIN_WARNING:g} %, the yield strain of steel, which no elastic "
+            "needle reaches): the step's one Newton iteration of implicit Euler did not follow the needle's "
+            "rotation, and its shape and forces are off by as much (a slender needle turning fast or "
+            f"buckling; Euler's critical load {self._critical_load():.3g} N for this needle, its base "
+            "clamped). The run goes on; each step's largest strain is in steps/needle_strain. Use a smaller "
+            "time.dt, or a stiffer needle (needle.radius)"
         )
 
     def free_motion(self, state: NeedleState, control: ControlValues, dt: float):

@@ -106,6 +106,9 @@ class InstrumentRecord:
     needle_frames : Its needle's frames, (k, 3, 3).
     needle_force : Force of the tissue on its needle, Σ λ n over its rows [N], (3,).
     insertion_point_count : Its insertion points after the step.
+    needle_strain : The largest strain of its needle's element chords after the step, |chord / rest length −
+        1| (0 for a rigid needle): a needle's true axial strain is of the order of 1e-6, so this is the error
+        of the step's one Newton iteration (``refsim.simulation.needle_body.STRAIN_WARNING``).
     criteria : The criteria its events compared, with threshold and accuracy
         (``refsim.simulation.margins.Criterion``); in a step solved twice, those of the solve its events were
         decided on.
@@ -121,6 +124,7 @@ class InstrumentRecord:
     needle_frames: np.ndarray
     needle_force: np.ndarray
     insertion_point_count: int
+    needle_strain: float = 0.0
     criteria: tuple = ()
     within_step: WithinStep | None = None
 

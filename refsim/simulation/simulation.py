@@ -128,6 +128,8 @@ class Simulation:
         )
         #: Every body of the step, in the order W is summed: the tissue, then each instrument's needle.
         self.bodies: tuple[Body, ...] = (self.tissue_body, *(i.body for i in self.instruments))
+        #: The instruments whose needle left its model's range in a step (warned once each: _warn_strained).
+        self._strained: set[str] = set()
 
     @property
     def sole(self) -> Instrument:
@@ -239,6 +241,7 @@ class Simulation:
             if again:
                 start = evolved(start, cut=new_state.cut, channels=new_state.channels)
 
+        self._warn_strained(step, new_state)
         record = self._record(
             state, new_state, control, rows, problem, multipliers, report, parts, timer.seconds, record_tissue
         )
@@ -365,6 +368,7 @@ class Simulation:
                     needle_frames=own.needle.frames,
                     needle_force=instrument.needle_force(rows, multipliers),
                     insertion_point_count=own.path.point_count,
+                    needle_strain=instrument.body.element_strain(own.needle)[0],
                     criteria=criteria,
                     within_step=within,
                 )
@@ -546,6 +550,20 @@ class Simulation:
             message = diverged(states[body.name]) if diverged is not None else None
             if message:
                 raise SimulationError(f"step {step}: {message}; the run stops here")
+
+    def _warn_strained(self, step: int, state: SimulationState) -> None:
+        """Warn (logging), once per needle, where its step left the beam model's range without diverging (a
+        body's ``strained(state)``: the flexible needle's element strain above
+        ``refsim.simulation.needle_body.STRAIN_WARNING``); the value is recorded every step
+        (``InstrumentRecord.needle_strain``)."""
+        for instrument in self.instruments:
+            strained = getattr(instrument.body, "strained", None)
+            if strained is None or instrument.name in self._strained:
+                continue
+            message = strained(state.instrument(instrument.name).needle)
+            if message:
+                self._strained.add(instrument.name)
+                logger.warning("step %d: %s", step, message)
 
     @staticmethod
     def _check_finite(step, states: dict, multipliers) -> None:

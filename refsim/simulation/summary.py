@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from refsim.simulation.margins import CriterionSeries, assess
+from refsim.simulation.needle_body import STRAIN_WARNING
 from refsim.simulation.records import STAGES, StepRecord
 
 __all__ = [
@@ -158,6 +159,9 @@ class RunSummary:
     # force and its step, by name, in the scene's order (empty with one instrument).
     event_instruments: list = field(default_factory=list)
     instrument_peaks: dict = field(default_factory=dict)
+    # Each needle's largest element strain over the run and its step, by instrument name (a rigid needle's is
+    # 0: not listed; InstrumentRecord.needle_strain)
+    needle_strains: dict = field(default_factory=dict)
     # Each step's number and time (its stages' sum [s]): 16 bytes a step (interactive sessions run for hours)
     step_numbers: array = field(default_factory=lambda: array("q"))
     step_seconds: array = field(default_factory=lambda: array("d"))
@@ -202,6 +206,10 @@ class RunSummary:
                 self.instrument_peaks[part.name] = (force, record.step)
         for event in () if several else record.events:
             self.events.append((record.step, record.time, event.name, event.force, event.unit))
+        for part in parts:
+            strain = float(getattr(part, "needle_strain", 0.0))
+            if strain > self.needle_strains.get(part.name, (0.0, 0))[0]:
+                self.needle_strains[part.name] = (strain, record.step)
         for part in parts if several else ():
             self.criteria.extend((record.step, part.name, criterion) for criterion in part.criteria)
         for criterion in () if several else record.criteria:
@@ -278,6 +286,7 @@ class RunSummary:
         else:
             lines.append(f"peak force on the needle: {self.peak_force:.4g} N at step {self.peak_force_step}")
         lines.append(f"  ({PEAK_READS})")
+        lines += self.format_strains()
         lines.append(
             f"constraint solves not converged: {self.unconverged}; largest natural residual "
             f"{self.max_residual:.2e}"
@@ -292,6 +301,20 @@ class RunSummary:
         if self.cut_points:
             lines.append(self.format_cut())
         return "\n".join(lines)
+
+    def format_strains(self) -> list[str]:
+        """Each flexible needle's largest element strain (``InstrumentRecord.needle_strain``), flagged above
+        ``STRAIN_WARNING``; no line for rigid needles."""
+        lines = []
+        for name, (strain, step) in self.needle_strains.items():
+            line = f"largest element strain of {name}'s beam: {strain:.2g} at step {step}"
+            if strain > STRAIN_WARNING:
+                line += (
+                    f" (above {STRAIN_WARNING:g}, the yield strain of steel: the step's one Newton iteration "
+                    "did not follow the needle's rotation; use a smaller time.dt)"
+                )
+            lines.append(line)
+        return lines
 
     def format_cut(self) -> str:
         """Cut surface at the end, and how often and how long the triangulation ran."""

@@ -103,6 +103,10 @@ def run_seed(seed: int, family: str = "cube") -> dict:
         "peak_ratio": round(peak_ratio, 4),
         "peak_ratio_step": ratio_step,
         "shaft_contact_peak": round(float(shaft.max()) if shaft.size else 0.0, 4),
+        # every instrument's largest element strain (0 for rigid needles; InstrumentRecord.needle_strain)
+        "needle_strain_peak": max(
+            (float(part.needle_strain) for record in records for part in record.instruments), default=0.0
+        ),
         "events": dict(Counter(e.name for r in records for e in r.events)),
         "violations": violations,
         "error": error,
@@ -112,6 +116,8 @@ def run_seed(seed: int, family: str = "cube") -> dict:
 
 def summary(lines: list[dict]) -> str:
     """One row per seed, then the totals."""
+    from refsim.simulation.needle_body import STRAIN_WARNING
+
     header = (
         f"{'seed':>5} {'status':<9} {'steps':>5} {'peak N':>7} {'ratio':>6} {'s':>6}  events / violations"
     )
@@ -145,6 +151,12 @@ def summary(lines: list[dict]) -> str:
         rows.append(
             f"shaft contact before a puncture (no law's limit): {pressed} lives, "
             f"largest load {max(shaft):.3g} N"
+        )
+        strains = [line.get("needle_strain_peak", 0.0) for line in lines]
+        beyond = sum(value > STRAIN_WARNING for value in strains)
+        rows.append(
+            f"flexible needles' largest element strain: {max(strains):.2g} ({beyond} lives above "
+            f"{STRAIN_WARNING:g}, the run's warning)"
         )
     return "\n".join(rows)
 

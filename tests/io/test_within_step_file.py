@@ -45,7 +45,7 @@ def written(tmp_path_factory):
 def test_the_within_step_state_is_written_read_back_and_nan_elsewhere(written):
     path, records = written
     results = read_results(path)
-    assert results.attributes["schema_version"] == schema.SCHEMA_VERSION == 2
+    assert results.attributes["schema_version"] == schema.SCHEMA_VERSION == 3
     (index,) = [i for i, r in enumerate(records) if r.within_step is not None]
     within = records[index].within_step
     np.testing.assert_array_equal(results.event_needle_force[index], within.needle_force)
@@ -83,13 +83,30 @@ def test_a_version_1_file_is_read_with_nan_event_quantities_and_its_needle_force
     assert results.puncture_point() is not None
 
 
+def test_the_needle_strain_is_written_each_step_and_nan_in_a_version_2_file(written, tmp_path):
+    # Reference: InstrumentRecord.needle_strain (0 for this rigid needle) written as steps/needle_strain
+    # (schema version 3); a version-2 file lacks the dataset and reads it as NaN (StepQuantity.since).
+    path, records = written
+    results = read_results(path)
+    np.testing.assert_array_equal(results.needle_strain, [r.needle_strain for r in records])
+    assert not results.needle_strain.any()
+    old = tmp_path / "version2.h5"
+    shutil.copy(path, old)
+    with h5py.File(old, "r+") as handle:
+        del handle[schema.STEPS["needle_strain"].path]
+        handle.attrs["schema_version"] = 2
+    older = read_results(old)
+    assert older.needle_strain.shape == (older.step_count,) and np.isnan(older.needle_strain).all()
+    np.testing.assert_array_equal(older.needle_force, results.needle_force)
+
+
 def test_a_file_of_a_newer_version_is_refused_by_name(written, tmp_path):
     path, _ = written
     newer = tmp_path / "newer.h5"
     shutil.copy(path, newer)
     with h5py.File(newer, "r+") as handle:
         handle.attrs["schema_version"] = schema.SCHEMA_VERSION + 1
-    with pytest.raises(ResultsError, match="schema version 3 is not supported"):
+    with pytest.raises(ResultsError, match="schema version 4 is not supported"):
         read_results(newer)
 
 

@@ -209,6 +209,41 @@ def test_a_diverged_flexible_needle_stops_the_run_naming_it(flexible):
             flexible._check_converged(3, states)
 
 
+def test_a_strained_flexible_needle_is_measured_and_warned_once(flexible, caplog):
+    # Reference: the chord strain |‖x_{e+1} − x_e‖ / ℓ_e − 1| of a stretched element is the stretch itself;
+    # between STRAIN_WARNING (1 %, the yield strain of steel) and DIVERGED_STRAIN (10 %) the run goes on with
+    # one warning per needle; below 1 % nothing is said; a rigid needle's strain is 0.
+    from dataclasses import replace
+
+    from refsim.simulation.needle_body import DIVERGED_STRAIN, STRAIN_WARNING
+
+    body = flexible.needle
+    _, free, _ = free_motion(flexible)
+    assert body.element_strain(free[NEEDLE])[0] < 1e-6
+    assert RigidNeedle(0.1, 4).element_strain(free[NEEDLE]) == (0.0, 0)
+    for stretch, warned in ((0.5 * STRAIN_WARNING, False), (0.05, True), (2.0 * DIVERGED_STRAIN, False)):
+        positions = free[NEEDLE].positions.copy()
+        positions[-1] += stretch * (positions[-1] - positions[-2])  # the last element's chord by `stretch`
+        state = replace(free[NEEDLE], positions=positions)
+        strain, element = body.element_strain(state)
+        assert strain == pytest.approx(stretch, rel=1e-6) and element == positions.shape[0] - 2
+        message = body.strained(state)
+        assert (message is not None) == warned  # above DIVERGED_STRAIN, diverged() speaks instead
+        if warned:
+            assert "smaller time.dt" in message and "steps/needle_strain" in message
+    positions = free[NEEDLE].positions.copy()
+    positions[-1] += 0.05 * (positions[-1] - positions[-2])
+    stretched = replace(free[NEEDLE], positions=positions)
+    world = flexible.initial_state()
+    world = replace(world, instruments=(replace(world.instruments[0], needle=stretched),))
+    flexible._strained.clear()  # the module's simulation: warned by no other test
+    with caplog.at_level("WARNING", logger="refsim.simulation.simulation"):
+        flexible._warn_strained(7, world)
+        flexible._warn_strained(8, world)
+    warnings = [r.getMessage() for r in caplog.records if "off its rest length" in r.getMessage()]
+    assert len(warnings) == 1 and warnings[0].startswith("step 7: the element")
+
+
 def test_a_rigid_needles_frames_follow_its_direction():
     # The nodes' frames are kept for the last direction: each pose gets the rest frame of its own direction,
     # as a fresh array of its own.
