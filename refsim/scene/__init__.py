@@ -9,6 +9,7 @@ from refsim.scene.controls import (
     SampledBoundaryMotion,
 )
 from refsim.scene.loader import (
+    InstrumentsOverlap,
     SceneError,
     builtin_scenes,
     load_scene,
@@ -42,6 +43,7 @@ __all__ = [
     "OutputSpec",
     "Scene",
     "SceneError",
+    "InstrumentsOverlap",
     "SolverSpec",
     "TimeSpec",
     "TissueSpec",

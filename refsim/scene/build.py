@@ -17,7 +17,7 @@ from refsim.materials import HookeMaterial
 from refsim.mesh import TetMesh, box_mesh, read_mesh
 from refsim.scene.controls import BOUNDARY_MOTIONS, Controls, read_displacement_csv
 from refsim.scene.fields import FieldError
-from refsim.scene.loader import SceneError
+from refsim.scene.loader import InstrumentsOverlap, SceneError
 from refsim.scene.spec import (
     FACE_NAMES,
     RESOLVED_DIGITS,
@@ -337,8 +337,9 @@ def check_instruments_apart(scene: Scene, instruments) -> None:
 
     Raises
     ------
-    SceneError
-        Naming both instruments, the time, the distance of their axes and the sum of their radii.
+    InstrumentsOverlap
+        A :class:`SceneError` naming both instruments, the time, the distance of their axes and the sum of
+        their radii.
     """
     if len(instruments) < 2:
         return
@@ -359,7 +360,7 @@ def check_instruments_apart(scene: Scene, instruments) -> None:
             distance = segment_distances(p, u, q, v)
             closest = int(np.argmin(distance))
             if distance[closest] < r_i + r_j:
-                raise SceneError(
+                raise InstrumentsOverlap(
                     f"{scene.source}: instruments {instruments[i].name!r} and {instruments[j].name!r} "
                     f"overlap at t = {times[closest]:.6g} s: the axes of their shafts are "
                     f"{distance[closest]:.3g} m apart, less than the sum of their radii {r_i + r_j:.3g} m "

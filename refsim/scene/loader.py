@@ -20,6 +20,12 @@ class SceneError(ValueError):
     allowed."""
 
 
+class InstrumentsOverlap(SceneError):
+    """Two instruments' commanded shafts come closer than the sum of their radii
+    (:func:`refsim.scene.build.check_instruments_apart`): a :class:`SceneError` a caller drawing trajectories
+    can tell from the others by its type (and draw again)."""
+
+
 def builtin_scenes() -> list[str]:
     """Names of the scenes shipped in ``refsim/scenes/`` (usable as ``refsim run NAME``)."""
     folder = resources.files("refsim") / "scenes"

@@ -501,7 +501,7 @@ def _with_holder(life: Life, seed: int, geometry: dict, steps: int) -> Life:
     import dataclasses
 
     from refsim.scene.build import build_models
-    from refsim.scene.loader import SceneError
+    from refsim.scene.loader import InstrumentsOverlap
 
     for attempt in range(TWO_ATTEMPTS):
         second, second_steps = _draw_needle(
@@ -513,9 +513,7 @@ def _with_holder(life: Life, seed: int, geometry: dict, steps: int) -> Life:
         candidate = dataclasses.replace(life, overrides=tuple(overrides), second=tuple(second))
         try:
             build_models(candidate.scene())
-        except SceneError as error:
-            if "overlap" not in str(error):
-                raise
+        except InstrumentsOverlap:
             continue
         return candidate
     raise ValueError(f"seed {seed}: no holder's life kept apart from the cutter's in {TWO_ATTEMPTS} attempts")

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from refsim.cli import main
-from refsim.scene import SceneError, load_scene, scene_from_dict
+from refsim.scene import InstrumentsOverlap, SceneError, load_scene, scene_from_dict
 
 
 def _two_needles() -> dict:
@@ -143,8 +143,9 @@ def test_instruments_whose_shafts_overlap_are_refused(holder_x, radius, overlap)
     if not overlap:
         assert len(build_models(scene).instruments) == 2
         return
-    with pytest.raises(SceneError) as raised:
+    with pytest.raises(InstrumentsOverlap) as raised:  # a SceneError of its own type
         build_models(scene)
+    assert isinstance(raised.value, SceneError)
     message = str(raised.value)
     for fragment in ("two.toml", "'cutter'", "'holder'", "overlap", "sum of their radii"):
         assert fragment in message, message
