@@ -147,3 +147,45 @@ def test_one_pass_corotation_equals_the_two_passes(model):
         rtol=0,
         atol=16 * EPS,
     )
+
+
+@pytest.mark.parametrize(
+    ("regime", "strain"),
+    [("small strain", 1e-3), ("moderate strain", 0.1), ("large strain", 0.6), ("scaled rotation", 0.0)],
+)
+def test_the_fast_pass_polar_rotation_is_the_svd_rotation_in_every_regime(regime, strain):
+    # Reference: the rotation of F = R U is P Qᵀ for F = P Σ Qᵀ (det F > 0; Higham, Functions of Matrices,
+    # §8.1), here from LAPACK's SVD, and polar_rotation_one (the exact mode's, iterated to 1e-15).
+    # _rotation takes the Newton–Schulz iteration from F / (‖F‖_F / √3) when ‖X₀ᵀX₀ − I‖_F ≤ ½ (small and
+    # moderate strains, and a rotation scaled by any λ > 0: X₀ is then R), the scaled Newton iteration
+    # otherwise, the SVD's rotation for det F ≤ 0: every answer orthogonal to a few ε (the iterations stop
+    # once the next update is below round-off), within 16 ε·κ(F) of polar_rotation_one's and within 64 ε·κ(F)
+    # of the SVD's (the SVD's own rotation is off by up to about 25 ε·κ(F): both iterations measured so on
+    # 2,000 samples per strain).
+    from refsim.fem.corotated_matvec import _rotation
+    from refsim.geometry.rotations import polar_rotation_one
+
+    rng = np.random.default_rng(7)
+    rotations = rotation_matrix(rng.uniform(-np.pi, np.pi, (200, 3)))
+    if regime == "scaled rotation":
+        gradients = rng.uniform(0.05, 20.0, (200, 1, 1)) * rotations
+    else:
+        stretch = np.eye(3) + strain * rng.uniform(-1.0, 1.0, (200, 3, 3))
+        stretch = 0.5 * (stretch + stretch.transpose(0, 2, 1))
+        stretch = stretch[np.linalg.det(stretch) > 0.0][:100]
+        gradients = rotations[: stretch.shape[0]] @ stretch
+    out, reference = np.empty((3, 3)), np.empty((3, 3))
+    for gradient in gradients:
+        left, values, right = np.linalg.svd(gradient)
+        expected = left @ right
+        assert np.linalg.det(expected) > 0.0
+        _rotation(np.ascontiguousarray(gradient), out)
+        polar_rotation_one(np.ascontiguousarray(gradient), reference)
+        np.testing.assert_allclose(out.T @ out, np.eye(3), rtol=0, atol=8 * EPS)
+        condition = values[0] / values[-1]
+        np.testing.assert_allclose(out, reference, rtol=0, atol=16 * EPS * condition)
+        np.testing.assert_allclose(out, expected, rtol=0, atol=64 * EPS * condition)
+    # An inverted tet (det F < 0): the closest proper rotation, P diag(1, 1, −1) Qᵀ.
+    flipped = rotations[0] @ np.diag([1.2, 0.9, -0.8])
+    _rotation(np.ascontiguousarray(flipped), out)
+    np.testing.assert_allclose(out, rotations[0], rtol=0, atol=16 * EPS)
