@@ -36,10 +36,11 @@ NEEDLE_LINEAR_SOLVER = "superlu:COLAMD"
 #: diverged, not a deformation (:meth:`FlexibleNeedle.diverged`).
 DIVERGED_STRAIN = 0.1
 #: An element stretched or shortened by more than this (and at most :data:`DIVERGED_STRAIN`) gives a warning
-#: and stays in the run: the yield strain of a steel needle, which no elastic needle reaches (the axial strain
-#: of a needle of radius 0.5 mm under 1 N is 6e-6; the built-in flexible scenes stay below 4e-6), so the
-#: chord's change is the error of the step's one Newton iteration, which did not follow the needle's rotation
-#: (:meth:`FlexibleNeedle.element_strain`, recorded each step as ``steps/needle_strain``).
+#: and stays in the run: beyond the yield strain of a steel needle (0.2–0.5 %), which no elastic needle
+#: reaches (the axial strain of a needle of radius 0.5 mm under 1 N is 6e-6; the built-in flexible scenes stay
+#: below 4e-6), so the chord's change is the error of the step's one Newton iteration, which did not follow
+#: the needle's rotation (:meth:`FlexibleNeedle.element_strain`, recorded each step as
+#: ``steps/needle_strain``).
 STRAIN_WARNING = 0.01
 
 
@@ -243,10 +244,10 @@ class FlexibleNeedle:
             return None
         return (
             f"the element {worst} of the needle {self.name!r} is {100.0 * strain:.3g} % off its rest "
-            f"length (more than {100.0 * STRAIN_WARNING:g} %, the yield strain of steel, which no elastic "
-            "needle reaches): the step's one Newton iteration of implicit Euler did not follow the needle's "
-            "rotation, and its shape and forces are off by as much (a slender needle turning fast or "
-            f"buckling; Euler's critical load {self._critical_load():.3g} N for this needle, its base "
+            f"length (more than {100.0 * STRAIN_WARNING:g} %, beyond the yield strain of steel, which no "
+            "elastic needle reaches): the step's one Newton iteration of implicit Euler did not follow the "
+            "needle's rotation, and its shape and forces are off by as much (a slender needle turning fast "
+            f"or buckling; Euler's critical load {self._critical_load():.3g} N for this needle, its base "
             "clamped). The run goes on; each step's largest strain is in steps/needle_strain. Use a smaller "
             "time.dt, or a stiffer needle (needle.radius)"
         )

@@ -310,8 +310,8 @@ class RunSummary:
             line = f"largest element strain of {name}'s beam: {strain:.2g} at step {step}"
             if strain > STRAIN_WARNING:
                 line += (
-                    f" (above {STRAIN_WARNING:g}, the yield strain of steel: the step's one Newton iteration "
-                    "did not follow the needle's rotation; use a smaller time.dt)"
+                    f" (above {STRAIN_WARNING:g}, beyond the yield strain of steel: the step's one Newton "
+                    "iteration did not follow the needle's rotation; use a smaller time.dt)"
                 )
             lines.append(line)
         return lines

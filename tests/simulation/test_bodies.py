@@ -211,8 +211,8 @@ def test_a_diverged_flexible_needle_stops_the_run_naming_it(flexible):
 
 def test_a_strained_flexible_needle_is_measured_and_warned_once(flexible, caplog):
     # Reference: the chord strain |‖x_{e+1} − x_e‖ / ℓ_e − 1| of a stretched element is the stretch itself;
-    # between STRAIN_WARNING (1 %, the yield strain of steel) and DIVERGED_STRAIN (10 %) the run goes on with
-    # one warning per needle; below 1 % nothing is said; a rigid needle's strain is 0.
+    # between STRAIN_WARNING (1 %, beyond steel's yield strain) and DIVERGED_STRAIN (10 %) the run goes on
+    # with one warning per needle; below 1 % nothing is said; a rigid needle's strain is 0.
     from dataclasses import replace
 
     from refsim.simulation.needle_body import DIVERGED_STRAIN, STRAIN_WARNING
