@@ -286,10 +286,15 @@ class EventRules(CutEventRules):
         normal_force = float(multipliers[normal_rows].sum())
         self.margins.puncture(normal_rows, self.insertion.puncture_force)
         # A capped normal row (insertion.puncture_within_step) reaches f_p to the solver's tolerance, not
-        # beyond.
+        # beyond. A tip pressed into tissue that cannot move (held nodes, a rigid needle: zero compliance, its
+        # gap below zero) asks for more than any force: the surface gives way there as anywhere once f_p is
+        # reached, whatever multiplier the unsolvable row was left with (margins.held_rows).
         threshold = self.insertion.puncture_force * (1.0 - PUNCTURE_TOLERANCE)
-        if normal_force < threshold:
+        held = bool(self.margins.held(normal_rows).any())
+        if normal_force < threshold and not held:
             return state, []
+        if held:
+            normal_force = max(normal_force, float(self.insertion.puncture_force))
         contact = detection.contact
         positions = world.tissue.positions
         entry = contact.barycentric @ positions[contact.nodes]

@@ -66,7 +66,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from refsim.constraints import BILATERAL, FRICTION, INSERTION, PENETRATION
+from refsim.constraints import BILATERAL, FRICTION, INSERTION, PENETRATION, UNILATERAL
 
 __all__ = [
     "CRITERIA_OF_EVENT",
@@ -77,6 +77,7 @@ __all__ = [
     "MarginWatch",
     "assess",
     "force_accuracy",
+    "held_rows",
     "problem_scale",
 ]
 
@@ -155,6 +156,27 @@ def problem_scale(problem, multipliers: np.ndarray) -> float:
     return float(scale) if scale > 0.0 else 1.0
 
 
+def held_rows(rows, problem) -> np.ndarray:
+    """The rows of ``rows`` (a ``RowBlock``, or anything with its ``kind``) that no force can satisfy in
+    ``problem`` (the step's constraint problem, its rows in that order), shape (row_count,) bool: a zero
+    compliance W_ii (at most 1e-14 of the largest diagonal, as Gauss-Seidel's floor: the row moves a rigid
+    needle and held tissue nodes only, so no multiplier changes its gap) with its free gap violated (below
+    zero for a unilateral row, not zero for a bilateral one). Friction rows are left out (their gap is a
+    slip, not a violation)."""
+    gap = problem.free_gap
+    violated = ((rows.kind == UNILATERAL) & (gap < 0.0)) | ((rows.kind == BILATERAL) & (gap != 0.0))
+    return zero_compliance(problem) & violated
+
+
+def zero_compliance(problem) -> np.ndarray:
+    """The rows of ``problem`` whose compliance W_ii is zero (at most 1e-14 of the largest diagonal, as
+    Gauss-Seidel's floor), shape (row_count,) bool: their multipliers change no gap."""
+    diagonal = np.diag(problem.compliance)
+    if diagonal.size == 0:
+        return np.zeros(0, dtype=bool)
+    return diagonal <= 1e-14 * max(float(np.abs(diagonal).max()), np.finfo(float).tiny)
+
+
 def force_accuracy(compliance: np.ndarray, rows: np.ndarray, residual_bound: float) -> float:
     """ε_λ = ‖e‖ max(1, 1/σ_min(W_BB)) [N]: the accuracy of the forces of ``rows`` (B) for a natural-map
     error ‖e‖ ≤ ``residual_bound`` (τ D), W the problem's compliance [m/N]."""
@@ -229,11 +251,15 @@ class MarginWatch:
         tangent_rows = np.flatnonzero((rows.source == PENETRATION) & (rows.kind == FRICTION) & self._own)
         gap = problem.compliance @ multipliers + problem.free_gap
         diagonal = np.diag(problem.compliance)
+        held = bool(self.held(normal_rows).any())
         normal_rows = self._own_rows[np.asarray(normal_rows, dtype=np.int64)]
         normal = float(multipliers[normal_rows].sum())
         # The force the contact asks for: above f_p where the cap holds the row at f_p, the tip through.
-        demand = float(self.demands(normal_rows).sum())
-        normal_accuracy = self._accuracy(normal_rows)
+        # A contact of zero compliance is decided whatever the solver's accuracy: held (held_rows: no force
+        # closes its gap), it asks for more than any force; open (its gap above zero), for none.
+        demand = np.inf if held else float(self.demands(normal_rows).sum())
+        rigid = bool(zero_compliance(problem)[normal_rows].all())
+        normal_accuracy = 0.0 if rigid else self._accuracy(normal_rows)
         self._criteria.append(Criterion("puncture", demand, float(puncture_force), normal_accuracy, "N"))
         if tangent_rows.size == 0 or normal <= normal_accuracy:
             return  # no friction, or a contact not resolved as closed: no stick/slip to decide
@@ -318,6 +344,15 @@ class MarginWatch:
             return
         distance, spacing = float(growth.layer_distance), float(growth.layer_spacing)
         self._criteria.append(Criterion("layer", distance, spacing, self._bound, "m"))
+
+    def held(self, rows: np.ndarray) -> np.ndarray:
+        """Which of this instrument's ``rows`` (indices into its own rows) no force can satisfy this step
+        (:func:`held_rows`: zero compliance, gap violated; a rigid needle pressed on held tissue), shape
+        (|rows|,) bool."""
+        rows = np.asarray(rows, dtype=np.int64)
+        if self._problem is None or rows.size == 0:
+            return np.zeros(rows.size, dtype=bool)
+        return held_rows(self._rows, self._problem)[self._own_rows[rows]]
 
     def demands(self, rows: np.ndarray) -> np.ndarray:
         """The force each of ``rows`` asks for [N], shape (|rows|,): λ, plus −δ/W_ii where the row is held at

@@ -38,6 +38,7 @@ from refsim.constraints import (
     LATERAL_SECOND,
     PENETRATION,
     ROLE_NAMES,
+    SOURCE_NAMES,
     UNILATERAL,
     InsertionPath,
     RowBlock,
@@ -53,7 +54,7 @@ from refsim.simulation.bodies import Body, TissueBody
 from refsim.simulation.detection import Detector
 from refsim.simulation.events import EventRules
 from refsim.simulation.instrument import Instrument
-from refsim.simulation.margins import problem_scale
+from refsim.simulation.margins import held_rows, problem_scale
 from refsim.simulation.records import STAGES, InstrumentRecord, StepRecord, WithinStep
 from refsim.simulation.state import Phase, SimulationState, evolved
 from refsim.solvers import solve_exact, solve_gauss_seidel
@@ -130,6 +131,8 @@ class Simulation:
         self.bodies: tuple[Body, ...] = (self.tissue_body, *(i.body for i in self.instruments))
         #: The instruments whose needle left its model's range in a step (warned once each: _warn_strained).
         self._strained: set[str] = set()
+        #: Whether a constraint solve of this simulation did not converge yet (warned once: _warn_unsolved).
+        self._unsolved = False
 
     @property
     def sole(self) -> Instrument:
@@ -242,6 +245,7 @@ class Simulation:
                 start = evolved(start, cut=new_state.cut, channels=new_state.channels)
 
         self._warn_strained(step, new_state)
+        self._warn_unsolved(step, rows, problem, report)
         record = self._record(
             state, new_state, control, rows, problem, multipliers, report, parts, timer.seconds, record_tissue
         )
@@ -564,6 +568,39 @@ class Simulation:
             if message:
                 self._strained.add(instrument.name)
                 logger.warning("step %d: %s", step, message)
+
+    def _warn_unsolved(self, step: int, rows: RowBlock, problem, report) -> None:
+        """Warn (logging), once per simulation, at the first step whose constraint solve did not converge,
+        naming the rows no force can satisfy when there are some (:func:`held_rows`: a rigid needle driven
+        into held tissue); the run goes on and its summary counts such steps."""
+        if self._unsolved or problem is None or report is None or report.converged:
+            return
+        self._unsolved = True
+        text = (
+            f"step {step}: the constraint solve did not converge (natural residual {report.residual:.3g}, "
+            f"tolerance {self.scene.solver.tolerance:g})"
+        )
+        held = held_rows(rows, problem)
+        if held.any():
+            owners = sorted({int(i) for i in rows.instruments[held]})
+            names = ", ".join(
+                repr(self.instruments[i].name) for i in owners if 0 <= i < len(self.instruments)
+            )
+            sources = ", ".join(sorted({SOURCE_NAMES[int(k)] for k in rows.source[held]}))
+            depth = 1e3 * float(np.abs(problem.free_gap[held]).max())
+            count = int(held.sum())
+            rows_text = f"{count} row" if count == 1 else f"{count} rows"
+            verb = "holds" if count == 1 else "hold"
+            text += (
+                f": {rows_text} of the needle {names or '(unknown)'} ({sources}) {verb} it against tissue "
+                "that cannot move (compliance 0: a rigid needle and held tissue nodes only), with a gap of "
+                f"up to {depth:.3g} mm that no force can close: the trajectory drives the needle into the "
+                "tissue's fixed region (mesh.fixed_faces, mesh.fixed_box, mesh.fixed_nodes or the boundary "
+                "motion's nodes). Those rows' forces, and this step's, are not a solution"
+            )
+        logger.warning(
+            "%s; the run goes on, and its summary counts the steps whose solve did not converge", text
+        )
 
     @staticmethod
     def _check_finite(step, states: dict, multipliers) -> None:

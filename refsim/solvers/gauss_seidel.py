@@ -18,8 +18,11 @@ Blocks (the kernels are in :mod:`refsim.solvers.laws`, one per law of the table)
   its preload p;
 - box row: λ ← clip(λ − ω δ / W_ii, lower, upper).
 
-A row whose diagonal W_ii is zero (below 1e-14 of the largest diagonal) or negative cannot be solved alone:
-its multiplier is only projected onto its admissible set, and the residual tells whether the problem was
+A row whose diagonal W_ii is zero (below 1e-14 of the largest diagonal) or negative moves no gap by its own
+force: it takes the update's limit as W_ii → 0+, the bound of its admissible set that its gap pushes it to (a
+box row with δ < 0 at its upper bound, a friction row at its bound opposing δ, a unilateral or contact row
+with δ > 0 at 0: the law's solution for that row), and keeps its multiplier where that bound is infinite (a
+violated unilateral or bilateral row, which no force satisfies); the residual tells whether the problem was
 solved.
 The stopping test is the natural residual (see :mod:`refsim.solvers.residual`); SOFA's increment measure
 Σ_j |W_jj Δλ_j| of the last sweep is reported too, and ``criterion="increment"`` stops on it as SOFA does

@@ -883,6 +883,8 @@ def gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, multi
             normal_force = multipliers[row]
             if diagonal[row] > 0.0:
                 normal_force -= relaxation * gap[row] / diagonal[row]
+            elif gap[row] > 0.0:  # no compliance, open: the update's limit as W_ii → 0+ (below)
+                normal_force = 0.0
             if normal_force <= 0.0:
                 increment += _apply(transposed, diagonal, multipliers, gap, row, 0.0)
                 increment += _apply(transposed, diagonal, multipliers, gap, tangent1, 0.0)
@@ -907,6 +909,13 @@ def gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, multi
         force = multipliers[row]
         if diagonal[row] > 0.0:
             force -= relaxation * gap[row] / diagonal[row]
+        elif gap[row] != 0.0:
+            # A row of no compliance (W_ii zero: its force moves no gap) has the update's limit as W_ii → 0+:
+            # the bound its gap pushes it to (a box row held at its upper bound with δ < 0, a friction row
+            # slipping at its bound, a unilateral row open at 0), the law's own solution there; where that
+            # bound is infinite (a unilateral or bilateral row violated) no force satisfies the row and λ
+            # stays as it is.
+            force = np.inf if gap[row] < 0.0 else -np.inf
         if kind == UNILATERAL:
             force = max(force, 0.0)
         elif kind == GROUP_FRICTION:
@@ -914,6 +923,8 @@ def gauss_seidel_sweep(transposed, diagonal, kinds, rows, params, members, multi
             force = min(max(force, -bound), bound)
         elif kind == BOX:
             force = min(max(force, params[b, 0]), params[b, 1])
+        if not np.isfinite(force):
+            force = multipliers[row]
         increment += _apply(transposed, diagonal, multipliers, gap, row, force)
     return increment
 

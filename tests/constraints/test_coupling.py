@@ -530,8 +530,9 @@ def test_puncture_force_is_f_p_for_any_dt_and_speed(dt, speed):
 
 
 # ----------------------------------------------------------------------- shaft contact before puncture (6)
-def _lowered_shaft(cube_scene, shaft_contact):
-    """A needle 80° from vertical, tip beyond the cube's +x face, lowered 20 mm onto the top face's edge."""
+def _lowered_shaft(cube_scene, shaft_contact, *overrides):
+    """A needle 80° from vertical, tip beyond the cube's +x face, lowered 20 mm onto the top face's edge
+    (``overrides``: further scene values)."""
     from refsim.simulation import Simulation
 
     tilt = math.radians(80.0)
@@ -552,6 +553,7 @@ def _lowered_shaft(cube_scene, shaft_contact):
         f"trajectory.base_positions=[{vector(base)}, {vector(lowered)}]",
         f"trajectory.directions=[{d}, {d}]",
         f"insertion.shaft_contact={str(shaft_contact).lower()}",
+        *overrides,
     )
     simulation = Simulation(scene)
     records = []
@@ -578,6 +580,86 @@ def test_shaft_contact_keeps_a_tilted_needle_out_of_the_tissue(cube_scene):
     assert all(r.phase == "approach" for r in records)
     assert not any(e.name == "puncture" for r in records for e in r.events)
     assert np.linalg.norm(records[-1].needle_force) > 1.0  # the shaft carries the load (more than f_p)
+
+
+def test_a_rigid_needle_pressed_on_held_tissue_is_named_when_its_solve_fails(cube_scene, caplog):
+    # The same lowered shaft with the cube's top face held too: its shaft contact rows move a rigid needle and
+    # held nodes only (W_ii = 0), so no force closes their gap and the solve cannot converge (natural residual
+    # 1: nothing the solver does changes the gap). The run goes on (its summary counts those steps) and says
+    # once, at the first such step, which rows and why; the run whose top face is free converges and says
+    # nothing.
+    import logging
+
+    with caplog.at_level(logging.WARNING, logger="refsim.simulation.simulation"):
+        records, _ = _lowered_shaft(cube_scene, True, 'mesh.fixed_faces=["zmin", "zmax"]')
+    unsolved = [r for r in records if r.solver is not None and not r.solver.converged]
+    assert unsolved and all(r.phase == "approach" for r in records)
+    messages = [r.getMessage() for r in caplog.records if "did not converge" in r.getMessage()]
+    assert len(messages) == 1, messages
+    assert messages[0].startswith(f"step {unsolved[0].step}: the constraint solve did not converge")
+    for fragment in ("of the needle 'needle' (shaft_contact)", "compliance 0", "fixed region", "goes on"):
+        assert fragment in messages[0], messages[0]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="refsim.simulation.simulation"):
+        records, _ = _lowered_shaft(cube_scene, True)
+    assert all(r.solver.converged for r in records if r.solver is not None)
+    assert not [r for r in caplog.records if "did not converge" in r.getMessage()]
+
+
+@pytest.mark.parametrize("within_step", [True, False])
+def test_a_rigid_needle_punctures_held_tissue_at_f_p_where_it_crosses_its_surface(cube_scene, within_step):
+    # The cube with its top face held too, the vertical rigid needle: the tip's contact rows move held nodes
+    # only (W_ii = 0), so no force holds the tip and the surface gives way as it does at f_p elsewhere. The
+    # capped contact (puncture within the step) is held at its cap f_p by the law (a box row with δ < 0 at its
+    # upper bound) and the step is solved again after it: every solve converges. The plain contact asks for
+    # more than any force (margins.held_rows) and, holding the tip to the step's end by definition, leaves
+    # that one step's solve unconverged. Either way the puncture comes in the step the tip crosses the
+    # surface, at f_p, its margin exact. Before, the tip never punctured: 41 of 50 steps unconverged, no
+    # force, the needle through the surface.
+    scene = cube_scene(
+        "mesh.cells=[4, 4, 4]",
+        'mesh.fixed_faces=["zmin", "zmax"]',
+        "time.duration=0.6",
+        f"insertion.puncture_within_step={str(within_step).lower()}",
+    )
+    from refsim.simulation import Simulation
+    from refsim.simulation.summary import RunSummary
+
+    records, summary = [], RunSummary()
+
+    def kept(state, record):
+        records.append(record)
+        summary.add(record)
+
+    Simulation(scene).run(on_step=kept)
+    top = float(scene.mesh.origin[2] + scene.mesh.size[2])
+    crossing = next(r.step for r in records if r.needle_positions[-1][2] < top)
+    punctures = [(r.step, e) for r in records for e in r.events if e.name == "puncture"]
+    assert len(punctures) == 1
+    step, event = punctures[0]
+    assert step == crossing
+    assert event.force == pytest.approx(scene.insertion.puncture_force, rel=1e-6)
+    unconverged = [r.step for r in records if r.solver is not None and not r.solver.converged]
+    assert unconverged == ([] if within_step else [step])
+    (margin,) = summary.event_margins()
+    assert margin.at_event.accuracy == 0.0 and margin.at_event.value == np.inf and not margin.knife_edge
+
+
+def test_held_rows_are_the_violated_rows_of_zero_compliance():
+    # Reference: a row whose compliance W_ii is zero changes no gap whatever its force, so a unilateral row
+    # with δ_free < 0 or a bilateral one with δ_free ≠ 0 cannot be satisfied; with W_ii > 0, or a gap already
+    # admissible, or a friction row, it can.
+    from types import SimpleNamespace
+
+    from refsim.constraints import BILATERAL, FRICTION, UNILATERAL
+    from refsim.simulation.margins import held_rows
+
+    kinds = np.array([UNILATERAL, UNILATERAL, UNILATERAL, BILATERAL, BILATERAL, FRICTION])
+    gaps = np.array([-1e-4, 1e-4, -1e-4, 2e-5, 0.0, -1e-4])
+    compliance = np.diag([0.0, 0.0, 1e-3, 0.0, 0.0, 0.0])
+    rows = SimpleNamespace(kind=kinds)
+    problem = SimpleNamespace(compliance=compliance, free_gap=gaps)
+    np.testing.assert_array_equal(held_rows(rows, problem), [True, False, False, True, False, False])
 
 
 def test_shaft_samples_far_from_the_surfaces_box_are_skipped_without_changing_the_rows(

@@ -109,6 +109,33 @@ def test_zero_diagonal_rows_do_not_crash():
     assert not report.converged and "zero diagonal" in report.message
 
 
+def test_rows_of_no_compliance_take_the_bound_their_gap_pushes_them_to():
+    # Reference: the law of a row whose W_ii (and so its whole row of W) is zero, λ = Π(λ − δ) with δ fixed:
+    # a box row is at its upper bound when δ < 0 and at its lower one when δ > 0, a group friction row at the
+    # bound opposing δ (a capped tip contact pressed on held tissue by a rigid needle; a friction row on
+    # it). Gauss–Seidel's update λ − δ/W_ii has that limit as W_ii → 0+; the exact solver finds the same.
+    from refsim.solvers import solve_exact
+
+    problem = ConstraintProblem(
+        compliance=np.diag([1.0, 0.0, 0.0, 0.0]),
+        free_gap=[-1.0, -2e-4, 3e-4, 5e-5],
+        unilateral=[0],
+        box_rows=[1, 2],
+        box_lower=[0.0, -0.25],
+        box_upper=[0.8, 0.5],
+        group_friction=[3],
+        group_offsets=[0, 1],
+        group_members=[0],
+        group_friction_coefficient=[0.3],
+        group_preload=[0.0],
+    )
+    multipliers, report = solve_gauss_seidel(problem, tolerance=1e-12)
+    assert report.converged, report.message
+    np.testing.assert_allclose(multipliers, [1.0, 0.8, -0.25, -0.3], rtol=0, atol=1e-12)
+    exact, exact_report = solve_exact(problem, tolerance=1e-10)
+    np.testing.assert_allclose(exact, multipliers, rtol=0, atol=1e-6)
+
+
 def test_divergence_is_reported():
     # a non-monotone LCP (negative diagonal coupling) on which Gauss–Seidel blows up
     problem = ConstraintProblem(
