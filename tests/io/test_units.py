@@ -87,7 +87,9 @@ def _spec_of(path: str):
         for spec in group.values():
             if spec.path == path:
                 return spec
-    return {spec.path: spec for spec in (*schema.EVENTS.values(), *schema.CUT.values())}.get(path)
+    return {
+        spec.path: spec for spec in (*schema.EVENTS.values(), *schema.CRITERIA.values(), *schema.CUT.values())
+    }.get(path)
 
 
 @pytest.mark.slow
