@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from refsim.fem.assembly import deformation_gradient, deformation_rotation
+from refsim.fem.assembly import deformation_rotation
 from refsim.fem.compliance import StepSystem
 from refsim.geometry.rotations import polar_rotation_one
 from refsim.kernel_cache import numba
@@ -44,38 +44,130 @@ __all__ = [
 ]
 
 
-@numba.njit(cache=True)
-def _stress_forces(
-    h, r, rest_edges_inverse, e, volume, lame, shear, tets, out, c, scale, p
-):  # pragma: no cover
-    # P1 forces of the gradient h = Σ_a w_a ⊗ ∇φ_a (3 × 3) in the frame r: G = rᵀ h, ε = sym G − shift,
-    # σ = λ tr ε I + 2μ ε, f_a = V r σ ∇φ_a added into out[3 · node + i, c] (times scale)
-    g00 = r[0, 0] * h[0, 0] + r[1, 0] * h[1, 0] + r[2, 0] * h[2, 0]
-    g01 = r[0, 0] * h[0, 1] + r[1, 0] * h[1, 1] + r[2, 0] * h[2, 1]
-    g02 = r[0, 0] * h[0, 2] + r[1, 0] * h[1, 2] + r[2, 0] * h[2, 2]
-    g10 = r[0, 1] * h[0, 0] + r[1, 1] * h[1, 0] + r[2, 1] * h[2, 0]
-    g11 = r[0, 1] * h[0, 1] + r[1, 1] * h[1, 1] + r[2, 1] * h[2, 1]
-    g12 = r[0, 1] * h[0, 2] + r[1, 1] * h[1, 2] + r[2, 1] * h[2, 2]
-    g20 = r[0, 2] * h[0, 0] + r[1, 2] * h[1, 0] + r[2, 2] * h[2, 0]
-    g21 = r[0, 2] * h[0, 1] + r[1, 2] * h[1, 1] + r[2, 2] * h[2, 1]
-    g22 = r[0, 2] * h[0, 2] + r[1, 2] * h[1, 2] + r[2, 2] * h[2, 2]
-    e00, e11, e22 = g00 - scale, g11 - scale, g22 - scale
+# A tet's 3 × 3 matrices go between the kernels below as 9-tuples of their entries, row by row (r: a
+# rotation, h: a gradient Σ_a w_a ⊗ ∇φ_a, p: V r σ): kept in registers from the tet's positions to its
+# forces, where (3, 3) scratch arrays went through memory (a store into one may alias the next array read).
+
+
+@numba.njit(cache=True, inline="always")
+def _first_piola(r, h, shift, volume, lame, shear):  # pragma: no cover - compiled
+    # V r σ for the gradient h in the frame r: G = rᵀ h, ε = sym G − shift I, σ = λ tr ε I + 2μ ε
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
+    h00, h01, h02, h10, h11, h12, h20, h21, h22 = h
+    g00 = r00 * h00 + r10 * h10 + r20 * h20
+    g01 = r00 * h01 + r10 * h11 + r20 * h21
+    g02 = r00 * h02 + r10 * h12 + r20 * h22
+    g10 = r01 * h00 + r11 * h10 + r21 * h20
+    g11 = r01 * h01 + r11 * h11 + r21 * h21
+    g12 = r01 * h02 + r11 * h12 + r21 * h22
+    g20 = r02 * h00 + r12 * h10 + r22 * h20
+    g21 = r02 * h01 + r12 * h11 + r22 * h21
+    g22 = r02 * h02 + r12 * h12 + r22 * h22
+    e00, e11, e22 = g00 - shift, g11 - shift, g22 - shift
     e01, e02, e12 = 0.5 * (g01 + g10), 0.5 * (g02 + g20), 0.5 * (g12 + g21)
     trace = lame * (e00 + e11 + e22)
     s00, s11, s22 = trace + 2.0 * shear * e00, trace + 2.0 * shear * e11, trace + 2.0 * shear * e22
     s01, s02, s12 = 2.0 * shear * e01, 2.0 * shear * e02, 2.0 * shear * e12
-    for i in range(3):
-        p[i, 0] = volume * (r[i, 0] * s00 + r[i, 1] * s01 + r[i, 2] * s02)
-        p[i, 1] = volume * (r[i, 0] * s01 + r[i, 1] * s11 + r[i, 2] * s12)
-        p[i, 2] = volume * (r[i, 0] * s02 + r[i, 1] * s12 + r[i, 2] * s22)
+    return (
+        volume * (r00 * s00 + r01 * s01 + r02 * s02),
+        volume * (r00 * s01 + r01 * s11 + r02 * s12),
+        volume * (r00 * s02 + r01 * s12 + r02 * s22),
+        volume * (r10 * s00 + r11 * s01 + r12 * s02),
+        volume * (r10 * s01 + r11 * s11 + r12 * s12),
+        volume * (r10 * s02 + r11 * s12 + r12 * s22),
+        volume * (r20 * s00 + r21 * s01 + r22 * s02),
+        volume * (r20 * s01 + r21 * s11 + r22 * s12),
+        volume * (r20 * s02 + r21 * s12 + r22 * s22),
+    )
+
+
+@numba.njit(cache=True, inline="always")
+def _element_forces(
+    out, c, tets, rest_edges_inverse, e, r, h, shift, volume, lame, shear
+):  # pragma: no cover - compiled
+    # P1 forces of the gradient h in the frame r, f_a = V r σ ∇φ_a (∇φ_a: row a of Dm⁻¹, a = 1..3; node 0
+    # takes minus their sum), added into out[3 · node + i, c] node by node, each value to n0 right after it
+    p00, p01, p02, p10, p11, p12, p20, p21, p22 = _first_piola(r, h, shift, volume, lame, shear)
     n0 = tets[e, 0]
     for a in range(3):
         node = tets[e, a + 1]
         d0, d1, d2 = rest_edges_inverse[e, a, 0], rest_edges_inverse[e, a, 1], rest_edges_inverse[e, a, 2]
-        for i in range(3):
-            value = p[i, 0] * d0 + p[i, 1] * d1 + p[i, 2] * d2
-            out[3 * node + i, c] += value
-            out[3 * n0 + i, c] -= value
+        value = p00 * d0 + p01 * d1 + p02 * d2
+        out[3 * node, c] += value
+        out[3 * n0, c] -= value
+        value = p10 * d0 + p11 * d1 + p12 * d2
+        out[3 * node + 1, c] += value
+        out[3 * n0 + 1, c] -= value
+        value = p20 * d0 + p21 * d1 + p22 * d2
+        out[3 * node + 2, c] += value
+        out[3 * n0 + 2, c] -= value
+
+
+@numba.njit(cache=True, inline="always")
+def _gradient(rest_edges_inverse, e, start, w):  # pragma: no cover - compiled
+    # Σ_a w_a ⊗ ∇φ_a = W Dm⁻¹ for the edge differences W = [w₁−w₀, w₂−w₀, w₃−w₀] (w: W's entries), each sum
+    # from ``start``: 0.0 makes deformation_gradient's sums, −0.0 (the identity of addition) the products'
+    w00, w01, w02, w10, w11, w12, w20, w21, w22 = w
+    m00, m01, m02 = rest_edges_inverse[e, 0, 0], rest_edges_inverse[e, 0, 1], rest_edges_inverse[e, 0, 2]
+    m10, m11, m12 = rest_edges_inverse[e, 1, 0], rest_edges_inverse[e, 1, 1], rest_edges_inverse[e, 1, 2]
+    m20, m21, m22 = rest_edges_inverse[e, 2, 0], rest_edges_inverse[e, 2, 1], rest_edges_inverse[e, 2, 2]
+    return (
+        start + w00 * m00 + w01 * m10 + w02 * m20,
+        start + w00 * m01 + w01 * m11 + w02 * m21,
+        start + w00 * m02 + w01 * m12 + w02 * m22,
+        start + w10 * m00 + w11 * m10 + w12 * m20,
+        start + w10 * m01 + w11 * m11 + w12 * m21,
+        start + w10 * m02 + w11 * m12 + w12 * m22,
+        start + w20 * m00 + w21 * m10 + w22 * m20,
+        start + w20 * m01 + w21 * m11 + w22 * m21,
+        start + w20 * m02 + w21 * m12 + w22 * m22,
+    )
+
+
+@numba.njit(cache=True, inline="always")
+def _entries(matrix):  # pragma: no cover - compiled
+    # a (3, 3) array's entries, row by row
+    return (
+        matrix[0, 0], matrix[0, 1], matrix[0, 2],
+        matrix[1, 0], matrix[1, 1], matrix[1, 2],
+        matrix[2, 0], matrix[2, 1], matrix[2, 2],
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, inline="always")
+def _edges(vectors, c, n0, n1, n2, n3):  # pragma: no cover - compiled
+    # W = [w₁−w₀, w₂−w₀, w₃−w₀] of the nodal vectors vectors[3 · node + i, c] (entries row by row)
+    x0, y0, z0 = vectors[3 * n0, c], vectors[3 * n0 + 1, c], vectors[3 * n0 + 2, c]
+    return (
+        vectors[3 * n1, c] - x0, vectors[3 * n2, c] - x0, vectors[3 * n3, c] - x0,
+        vectors[3 * n1 + 1, c] - y0, vectors[3 * n2 + 1, c] - y0, vectors[3 * n3 + 1, c] - y0,
+        vectors[3 * n1 + 2, c] - z0, vectors[3 * n2 + 2, c] - z0, vectors[3 * n3 + 2, c] - z0,
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, inline="always")
+def _free_edges(vectors, positions, c, n0, n1, n2, n3):  # pragma: no cover - compiled
+    # _edges of v given on the free DoFs (positions[d]: DoF d's row there, -1 on a constrained DoF, v = 0)
+    x0 = _free(vectors, positions, 3 * n0, c)
+    y0 = _free(vectors, positions, 3 * n0 + 1, c)
+    z0 = _free(vectors, positions, 3 * n0 + 2, c)
+    return (
+        _free(vectors, positions, 3 * n1, c) - x0,
+        _free(vectors, positions, 3 * n2, c) - x0,
+        _free(vectors, positions, 3 * n3, c) - x0,
+        _free(vectors, positions, 3 * n1 + 1, c) - y0,
+        _free(vectors, positions, 3 * n2 + 1, c) - y0,
+        _free(vectors, positions, 3 * n3 + 1, c) - y0,
+        _free(vectors, positions, 3 * n1 + 2, c) - z0,
+        _free(vectors, positions, 3 * n2 + 2, c) - z0,
+        _free(vectors, positions, 3 * n3 + 2, c) - z0,
+    )
+
+
+@numba.njit(cache=True, inline="always")
+def _free(vectors, positions, dof, c):  # pragma: no cover - compiled
+    row = positions[dof]
+    return vectors[row, c] if row >= 0 else 0.0
 
 
 @numba.njit(cache=True)
@@ -85,42 +177,38 @@ def _corotate(
     f = np.empty((3, 3))
     ds = np.empty((3, 3))
     r = np.empty((3, 3))
-    p = np.empty((3, 3))
     for e in range(tets.shape[0]):
         deformation_rotation(positions, tets, rest_edges_inverse, e, f, ds, r)
         for i in range(3):  # element by element: a slice assignment costs more than the copy here
             for j in range(3):
                 rotations[e, i, j] = r[i, j]
         # ε = sym(Rᵀ F) − I: the co-rotated strain of u = Rᵀ x − X (F = Σ_a x_a ⊗ ∇φ_a, I = Σ_a X_a ⊗ ∇φ_a)
-        _stress_forces(f, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, forces, 0, 1.0, p)
+        _element_forces(
+            forces, 0, tets, rest_edges_inverse, e, _entries(r), _entries(f), 1.0, volumes[e], lame, shear
+        )
 
 
 @numba.njit(cache=True)
 def _stiffness_product(
     vectors, tets, rest_edges_inverse, volumes, lame, shear, rotations, out
 ):  # pragma: no cover - compiled
-    h = np.empty((3, 3))
-    p = np.empty((3, 3))
     for e in range(tets.shape[0]):
-        n0 = tets[e, 0]
-        r = rotations[e]
+        n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+        r = _entries(rotations[e])
         for c in range(vectors.shape[1]):
             # h = Σ_a v_a ⊗ ∇φ_a = Σ_a (v_a − v_0) ⊗ (Dm⁻¹ row a − 1)
-            for i in range(3):
-                w0 = vectors[3 * tets[e, 1] + i, c] - vectors[3 * n0 + i, c]
-                w1 = vectors[3 * tets[e, 2] + i, c] - vectors[3 * n0 + i, c]
-                w2 = vectors[3 * tets[e, 3] + i, c] - vectors[3 * n0 + i, c]
-                for j in range(3):
-                    h[i, j] = (
-                        w0 * rest_edges_inverse[e, 0, j]
-                        + w1 * rest_edges_inverse[e, 1, j]
-                        + w2 * rest_edges_inverse[e, 2, j]
-                    )
-            _stress_forces(h, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, out, c, 0.0, p)
+            h = _gradient(rest_edges_inverse, e, -0.0, _edges(vectors, c, n0, n1, n2, n3))
+            _element_forces(out, c, tets, rest_edges_inverse, e, r, h, 0.0, volumes[e], lame, shear)
 
 
 @numba.njit(cache=True)
 def _rotation(f, out):  # pragma: no cover - compiled
+    # The rotation of F = R U into out (_rotation_of on F's entries).
+    _rotation_of(_entries(f), out)
+
+
+@numba.njit(cache=True, inline="always")
+def _rotation_of(f, out):  # pragma: no cover - compiled
     # The rotation of F = R U. F's polar factor is that of X₀ = F / s for any s > 0; with s = ‖F‖_F / √3 (1
     # for a rotation, λ for a rotation scaled by λ, the node rotations' sum divided by its count) a tet that
     # is not crushed has E₀ = X₀ᵀX₀ − I small, and then the Newton–Schulz iteration
@@ -132,14 +220,12 @@ def _rotation(f, out):  # pragma: no cover - compiled
     # (‖E₀‖_F > ½, or no convergence) takes the scaled Newton iteration
     # X ← ½ (γ X + γ⁻¹ X⁻ᵀ), stopped once ‖ΔX‖_F < 1e-8 (next error ≤ ½ ‖X⁻¹‖ ‖ΔX‖²), and what that does not
     # settle (det F ≤ 0, no convergence) goes to polar_rotation_one, which gives the SVD's rotation.
-    a00, a01, a02 = f[0, 0], f[0, 1], f[0, 2]
-    a10, a11, a12 = f[1, 0], f[1, 1], f[1, 2]
-    a20, a21, a22 = f[2, 0], f[2, 1], f[2, 2]
+    a00, a01, a02, a10, a11, a12, a20, a21, a22 = f
     scale = a00 * a00 + a01 * a01 + a02 * a02 + a10 * a10 + a11 * a11 + a12 * a12
     scale += a20 * a20 + a21 * a21 + a22 * a22
     det = a00 * (a11 * a22 - a12 * a21) - a01 * (a10 * a22 - a12 * a20) + a02 * (a10 * a21 - a11 * a20)
     if not (det > 1e-14 * (scale * np.sqrt(scale))):
-        polar_rotation_one(f, out)
+        _polar_of(f, out)
         return
     if _newton_schulz(a00, a01, a02, a10, a11, a12, a20, a21, a22, np.sqrt(3.0 / scale), out):
         return
@@ -173,7 +259,16 @@ def _rotation(f, out):  # pragma: no cover - compiled
             out[1, 0], out[1, 1], out[1, 2] = a10, a11, a12
             out[2, 0], out[2, 1], out[2, 2] = a20, a21, a22
             return
-    polar_rotation_one(f, out)
+    _polar_of(f, out)
+
+
+@numba.njit(cache=True)
+def _polar_of(f, out):  # pragma: no cover - compiled
+    # polar_rotation_one of F given by its entries (the cases _rotation_of leaves to it)
+    matrix = np.empty((3, 3))
+    matrix[0, 0], matrix[0, 1], matrix[0, 2], matrix[1, 0], matrix[1, 1], matrix[1, 2] = f[:6]
+    matrix[2, 0], matrix[2, 1], matrix[2, 2] = f[6:]
+    polar_rotation_one(matrix, out)
 
 
 @numba.njit(cache=True, inline="always")
@@ -227,23 +322,30 @@ def _corotate_with_nodes(
 ):  # pragma: no cover - compiled
     # _corotate and _node_rotations in one pass over the tets (the same sums in the same order), each rotation
     # by _rotation (the nodes' from the sum of their tets' rotations): equal to them to round-off
-    f = np.empty((3, 3))
-    ds = np.empty((3, 3))
-    r = np.empty((3, 3))
-    p = np.empty((3, 3))
+    out = np.empty((3, 3))
     summed = np.zeros((node_rotations.shape[0], 3, 3))
+    flat = positions.reshape(-1, 1)  # (3 · node_count, 1): the layout of _edges
     for e in range(tets.shape[0]):
-        deformation_gradient(positions, tets, rest_edges_inverse, e, f, ds)
-        _rotation(f, r)
-        for i in range(3):  # element by element: a slice assignment costs more than the copy here
-            for j in range(3):
-                rotations[e, i, j] = r[i, j]
-        _stress_forces(f, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, forces, 0, 1.0, p)
+        n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+        f = _gradient(rest_edges_inverse, e, 0.0, _edges(flat, 0, n0, n1, n2, n3))
+        _rotation_of(f, out)
+        r = _entries(out)
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
+        rotations[e, 0, 0], rotations[e, 0, 1], rotations[e, 0, 2] = r00, r01, r02
+        rotations[e, 1, 0], rotations[e, 1, 1], rotations[e, 1, 2] = r10, r11, r12
+        rotations[e, 2, 0], rotations[e, 2, 1], rotations[e, 2, 2] = r20, r21, r22
+        _element_forces(forces, 0, tets, rest_edges_inverse, e, r, f, 1.0, volumes[e], lame, shear)
         for a in range(4):
             node = tets[e, a]
-            for i in range(3):
-                for j in range(3):
-                    summed[node, i, j] += r[i, j]
+            summed[node, 0, 0] += r00
+            summed[node, 0, 1] += r01
+            summed[node, 0, 2] += r02
+            summed[node, 1, 0] += r10
+            summed[node, 1, 1] += r11
+            summed[node, 1, 2] += r12
+            summed[node, 2, 0] += r20
+            summed[node, 2, 1] += r21
+            summed[node, 2, 2] += r22
     for node in range(node_rotations.shape[0]):
         _rotation(summed[node], node_rotations[node])
 
@@ -256,27 +358,17 @@ def _free_product(
     # there); full (dof_count, k) is scratch; masses the lumped mass per free DoF; factors (mass, stiffness).
     # The sums of stiffness_product and CorotatedOperator.full in their order (the same bits).
     full[:, :] = 0.0
-    h = np.empty((3, 3))
-    p = np.empty((3, 3))
-    w = np.empty((4, 3))
+    columns = vectors.shape[1]
     for e in range(tets.shape[0]):
-        r = rotations[e]
-        for c in range(vectors.shape[1]):
-            for a in range(4):
-                for i in range(3):
-                    row = positions[3 * tets[e, a] + i]
-                    w[a, i] = vectors[row, c] if row >= 0 else 0.0
-            for i in range(3):
-                w0 = w[1, i] - w[0, i]
-                w1 = w[2, i] - w[0, i]
-                w2 = w[3, i] - w[0, i]
-                for j in range(3):
-                    h[i, j] = (
-                        w0 * rest_edges_inverse[e, 0, j]
-                        + w1 * rest_edges_inverse[e, 1, j]
-                        + w2 * rest_edges_inverse[e, 2, j]
-                    )
-            _stress_forces(h, r, rest_edges_inverse, e, volumes[e], lame, shear, tets, full, c, 0.0, p)
+        n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
+        r = _entries(rotations[e])
+        if columns == 1:  # (the free motion's product: its column index a constant for the compiler)
+            h = _gradient(rest_edges_inverse, e, -0.0, _free_edges(vectors, positions, 0, n0, n1, n2, n3))
+            _element_forces(full, 0, tets, rest_edges_inverse, e, r, h, 0.0, volumes[e], lame, shear)
+            continue
+        for c in range(columns):
+            h = _gradient(rest_edges_inverse, e, -0.0, _free_edges(vectors, positions, c, n0, n1, n2, n3))
+            _element_forces(full, c, tets, rest_edges_inverse, e, r, h, 0.0, volumes[e], lame, shear)
     for d in range(positions.shape[0]):
         row = positions[d]
         if row >= 0:
