@@ -207,7 +207,7 @@ def _rotation(f, out):  # pragma: no cover - compiled
     _rotation_of(_entries(f), out)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _rotation_of(f, out):  # pragma: no cover - compiled
     # The rotation of F = R U. F's polar factor is that of X₀ = F / s for any s > 0; with s = ‖F‖_F / √3 (1
     # for a rotation, λ for a rotation scaled by λ, the node rotations' sum divided by its count) a tet that
@@ -362,10 +362,6 @@ def _free_product(
     for e in range(tets.shape[0]):
         n0, n1, n2, n3 = tets[e, 0], tets[e, 1], tets[e, 2], tets[e, 3]
         r = _entries(rotations[e])
-        if columns == 1:  # (the free motion's product: its column index a constant for the compiler)
-            h = _gradient(rest_edges_inverse, e, -0.0, _free_edges(vectors, positions, 0, n0, n1, n2, n3))
-            _element_forces(full, 0, tets, rest_edges_inverse, e, r, h, 0.0, volumes[e], lame, shear)
-            continue
         for c in range(columns):
             h = _gradient(rest_edges_inverse, e, -0.0, _free_edges(vectors, positions, c, n0, n1, n2, n3))
             _element_forces(full, c, tets, rest_edges_inverse, e, r, h, 0.0, volumes[e], lame, shear)
