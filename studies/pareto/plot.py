@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import tomllib
 from pathlib import Path
 
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
+OPTIONS = HERE / "options.toml"  # (run.py's option table: the families' order)
 
 
 def pareto_front(times, errors) -> np.ndarray:
@@ -123,13 +125,25 @@ def _figure(study: dict, path: Path) -> None:
     shown = np.where(errors > 0, errors, floor)  # an error of exactly 0 is drawn at the floor
     figure, axis = plt.subplots(figsize=(6.4, 4.6))
     markers = "osD^v<>p*hX"
-    for number, family in enumerate(dict.fromkeys(families.get(label, "other") for label in runs["label"])):
+    # A family's marker and colour by its place in options.toml (then the study's other families), the same
+    # in every scene's figure whichever families that scene has.
+    listed = [option["family"] for option in tomllib.loads(OPTIONS.read_text(encoding="utf-8"))["option"]]
+    styles = {family: number for number, family in enumerate(dict.fromkeys([*listed, *families.values()]))}
+    for family in dict.fromkeys(families.get(label, "other") for label in runs["label"]):
         members = [
             i for i, label in enumerate(runs["label"]) if families.get(label, "other") == family and valid[i]
         ]
         if not members:
             continue
-        axis.loglog(times[members], shown[members], markers[number % len(markers)], label=family, ms=6)
+        number = styles.setdefault(family, len(styles))
+        axis.loglog(
+            times[members],
+            shown[members],
+            markers[number % len(markers)],
+            color=f"C{number % 10}",
+            label=family,
+            ms=6,
+        )
     front = pareto_front(times, errors)
     axis.loglog(times[front], shown[front], "k-", lw=0.8, alpha=0.6, label="Pareto front")
     reference = study["reference"]
