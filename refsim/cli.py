@@ -493,7 +493,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             f"reference: one SuperLU (COLAMD) factorisation of the cube's matrix, this run: "
             f"{reference_ms:.2f} ms"
         )
-        runs = {}
+        runs, step_ms = {}, {}
         for strategy in strategies:
             key, update = strategy_variant(strategy)
             overrides = [*(args.set or ()), f'compliance.strategy="{key}"', f'compliance.w_update="{update}"']
@@ -508,6 +508,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             reference_ms = 0.5 * (before + bench.superlu_reference_ms(bench.cube_model(8)))
             runs[strategy] = kept
             per_step = 1e3 * summary.seconds / max(summary.steps, 1)
+            step_ms[strategy] = per_step
             print(
                 f"\nscene {scene.name}, compliance {strategy} (w_update {update}, refresh_every "
                 f"{scene.compliance.refresh_every}): "
@@ -524,13 +525,17 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             if summary.cut_points:
                 print(summary.format_cut())
         if args.against_exact:
-            print("\nerrors against exact (same scene): positions [m], needle force [N], events")
+            print(
+                "\nagainst exact (same scene): time per step (wall, each run above), positions [m], needle "
+                "force [N], events"
+            )
             for strategy, kept in runs.items():
                 if strategy == "exact":
                     continue
                 errors = bench.compare_runs(runs["exact"], kept)
                 print(
-                    f"  {strategy:<12} position {errors['position_error']:.3e} m, force "
+                    f"  {strategy:<12} time {step_ms[strategy] / step_ms['exact']:.2f} of the exact step, "
+                    f"position {errors['position_error']:.3e} m, force "
                     f"{errors['force_error']:.3e} N "
                     f"(peak {errors['peak_force']:.4g} N), events "
                     f"{'same' if errors['same_events'] else 'DIFFER: '}"

@@ -70,6 +70,26 @@ def test_bench_refuses_a_strategy_set_beside_its_strategies(capsys):
     assert code == 2 and "--set compliance.strategy" in error and "--strategies" in error
 
 
+def test_bench_against_exact_gives_each_strategys_time_as_a_share_of_the_exact_step(capsys):
+    # Issue 26's measure of the fast mode (its step against the exact one, side by side): the share printed
+    # beside the errors is the ratio of the two runs' times per step printed above it (each to 0.01 ms, the
+    # share to 0.01).
+    import re
+
+    code = main(
+        ["bench", "cube", "--strategies", "fast", "--against-exact"]
+        + ["--set", "mesh.cells=[2, 2, 2]", "--set", "time.duration=0.2"]
+    )
+    out = capsys.readouterr().out
+    assert code == 0
+    times = dict(re.findall(r"compliance (\w+) \(.*?; ([0-9.]+) ms per step", out))
+    share = re.search(r"^  fast +time ([0-9.]+) of the exact step, position", out, re.MULTILINE)
+    assert set(times) == {"exact", "fast"} and share is not None
+    exact, fast = float(times["exact"]), float(times["fast"])
+    rounding = 0.005 + fast / exact * (0.005 / exact + 0.005 / fast)
+    assert abs(float(share.group(1)) - fast / exact) <= rounding
+
+
 def test_bad_mesh_file_is_named(tmp_path, capsys):
     scene = Path(__file__).resolve().parents[2] / "refsim" / "scenes" / "cube.toml"
     text = scene.read_text().replace('generator = "box"', f'file = "{tmp_path / "broken.msh"}"')
