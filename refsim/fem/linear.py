@@ -350,13 +350,15 @@ def available_linear_solvers() -> tuple[str, ...]:
     return tuple(name for name in LINEAR_SOLVERS if _available(name))
 
 
-def _construct(name: str):
+def _construct(name: str, precision: str = "double"):
+    if precision not in ("double", "single"):
+        raise ValueError(f"precision {precision!r}: expected 'double' or 'single'")
     if name.startswith("superlu:"):
         return SuperLUSolver(name.split(":", 1)[1].upper())
     if name.startswith("supernodal:"):
         return SupernodalSolver(name.split(":", 1)[1].lower())
     if name == "pardiso":
-        return PardisoSolver()
+        return PardisoSolver(precision=precision)
     if name == "supernodal":
         return SupernodalSolver()
     if name == "cholmod":
@@ -378,8 +380,12 @@ def default_linear_solver() -> str:
     return available_linear_solvers()[0]
 
 
-def make_linear_solver(name: str | None = None):
+def make_linear_solver(name: str | None = None, *, precision: str = "double"):
     """A new solver instance of backend ``name`` ("auto" or None: :func:`default_linear_solver`).
+
+    ``precision="single"``: a factor in float32 where the backend has one (PARDISO; the others factorise in
+    double precision whatever is asked), for a factor used as a preconditioner or an approximation whose own
+    error is far above float32's round-off (the fast mode's rest factor). Values and solutions are float64.
 
     ``"superlu:ORDERING"`` picks SuperLU's column ordering (e.g. ``superlu:COLAMD``, refsim's former choice).
 
@@ -390,7 +396,7 @@ def make_linear_solver(name: str | None = None):
     """
     if name is None or name == "auto":
         name = default_linear_solver()
-    return _construct(name)
+    return _construct(name, precision)
 
 
 def _version(distribution: str) -> str | None:

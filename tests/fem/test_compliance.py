@@ -299,21 +299,30 @@ def warped_reference(model: TissueModel, state: TissueState, system: StepSystem)
     return blocks @ rest_inverse @ blocks.T
 
 
-def test_fast_w_and_correction_are_the_rotated_rest_compliance(model):
-    # W = H R C₀ Rᵀ Hᵀ and Δx = R C₀ Rᵀ Hᵀ λ from the C₀ node blocks, against the dense Ã⁻¹: κ(A₀) ε.
+def rest_epsilon(body) -> float:
+    """The unit round-off of a fast body's rest factor (single precision where the solver has it)."""
+    return float(np.finfo(np.float32 if body.rest_precision == "single" else np.float64).eps)
+
+
+@pytest.mark.parametrize("precision", ["single", "double"])
+def test_fast_w_and_correction_are_the_rotated_rest_compliance(model, precision):
+    # W = H R C₀ Rᵀ Hᵀ and Δx = R C₀ Rᵀ Hᵀ λ from the C₀ node blocks, against the dense Ã⁻¹: κ(A₀) ε, ε the
+    # rest factor's unit round-off (backward-stable solves, Higham ch. 7, 10).
     state = deformed(model, 0.02)
     jacobian = rows_on(model, 8)
-    step = Fast().bind().step(model.assemble_step(state, DT, matrix_free=True))
+    body = Fast(rest_precision=precision).bind()
+    step = body.step(model.assemble_step(state, DT, matrix_free=True))
     reference_system = model.assemble_step(state, DT)
     warped = warped_reference(model, state, reference_system)
     h = jacobian[:, reference_system.free_dofs].toarray()
     kappa = np.linalg.cond(reference_system.rest_matrix().toarray())
+    epsilon = rest_epsilon(body)
     expected = h @ warped @ h.T
-    assert np.abs(step.delassus(jacobian) - expected).max() <= 10 * kappa * EPS * np.abs(expected).max()
+    assert np.abs(step.delassus(jacobian) - expected).max() <= 10 * kappa * epsilon * np.abs(expected).max()
     lam = np.linspace(-1.0, 2.0, jacobian.shape[0])
     correction = reference_system.expand(warped @ (h.T @ lam))
     assert np.abs(step.correction(jacobian, lam) - correction).max() <= (
-        10 * kappa * EPS * np.abs(correction).max()
+        10 * kappa * epsilon * np.abs(correction).max()
     )
     # one block per free node the rows touch (the fixed ones do not move)
     touched = np.setdiff1d(jacobian.indices // 3, model.fixed_nodes)
@@ -330,10 +339,11 @@ def test_fast_is_exact_under_a_rigid_rotation_and_bounded_when_deformed(model):
     )
     jacobian = rows_on(unfixed)
     state = TissueState(positions=rest @ rotation.T, velocities=np.zeros_like(rest))
-    step = Fast(against_exact=True).bind().step(unfixed.assemble_step(state, DT))
+    rigid = Fast(against_exact=True).bind()
+    step = rigid.step(unfixed.assemble_step(state, DT))
     step.delassus(jacobian)
     kappa = np.linalg.cond(step.system.matrix.toarray())
-    assert step.report["compliance_error"] <= 10 * kappa * EPS
+    assert step.report["compliance_error"] <= 10 * kappa * rest_epsilon(rigid)
     # Deformed: A = Ã + E with Ã = R A₀ Rᵀ; A⁻¹ − Ã⁻¹ = A⁻¹ (Ã − A) Ã⁻¹ exactly, so
     # ‖W − W̃‖₂ ≤ ‖H‖₂² ‖A⁻¹‖₂ ‖Ã⁻¹‖₂ ‖A − Ã‖₂ (all computed densely here).
     state = deformed(model, 0.02)

@@ -176,6 +176,47 @@ def test_pardiso_inverse_block_equals_the_dense_inverse_on_marked_positions():
         solver.inverse_block(np.array([0]))
 
 
+def test_pardiso_in_single_precision_solves_to_float32s_bound_in_every_phase():
+    # precision="single" (the fast mode's rest factor): the factor and the solves in float32, float64 in and
+    # out. Backward-stable solves: relative forward error ≲ κ(A) ε₃₂ (Higham, ch. 7, 10), where the double
+    # factor's is κ(A) ε₆₄; the float32 one is measured above float64's bound (it is in single precision).
+    if "pardiso" not in available_linear_solvers():
+        pytest.skip("pardiso not available on this machine")
+    matrix = spd_matrix(343, 3, shift=0.2)
+    dense = matrix.toarray()
+    inverse = np.linalg.inv(dense)
+    condition = np.linalg.cond(dense)
+    bound = 10 * condition * np.finfo(np.float32).eps
+    single = make_linear_solver("pardiso", precision="single")
+    single.factorise(matrix)
+    rng = np.random.default_rng(3)
+    rhs = rng.standard_normal((matrix.shape[0], 4))
+    expected = inverse @ rhs
+    for given, wanted in ((rhs, expected), (rhs[:, 0], expected[:, 0])):
+        solved = single.solve(given)
+        assert solved.dtype == np.float64 and solved.shape == wanted.shape
+        error = np.abs(solved - wanted).max() / np.abs(wanted).max()
+        assert 10 * condition * EPS < error <= bound
+    half = single.half_solve(rhs)  # Yᵀ Y = rhsᵀ A⁻¹ rhs
+    assert half.dtype == np.float64
+    compliance = rhs.T @ expected
+    assert np.abs(half.T @ half - compliance).max() <= bound * np.abs(compliance).max()
+    positions, marks = np.array([3, 40, 41]), np.array([3, 7, 40, 41])
+    single.mark(marks)
+    block = single.inverse_block(positions)
+    assert block.dtype == np.float64
+    reference = inverse[np.ix_(positions, positions)]
+    assert np.abs(block - reference).max() <= bound * np.abs(inverse).max()
+    load = np.zeros(matrix.shape[0])
+    load[marks] = rng.standard_normal(marks.size)
+    marked = single.solve_marked(load)
+    assert marked.dtype == np.float64
+    assert np.abs(marked - inverse @ load).max() <= bound * np.abs(inverse @ load).max()
+    assert single.description["precision"] == "single"
+    with pytest.raises(ValueError, match="precision"):
+        make_linear_solver("pardiso", precision="half")
+
+
 def test_pardiso_factor_is_a_function_of_the_marks_not_of_their_history():
     # What makes a restarted run's bits those of the uninterrupted run (the marks are carried in the state).
     if "pardiso" not in available_linear_solvers():

@@ -26,7 +26,8 @@ solver factories scikit-fem passes to ``solve``), chosen for the tissue by the s
     is not the current one (on cube_cut it moves forces markedly).
 ``Fast()``
     The same W and correction as ``Precomputed`` without assembling or factorising any matrix during the run
-    (the rest factor once): the body builds its step system with an operator v ↦ A v applied per tet
+    (the rest factor once, in single precision where the solver has it: ``Fast.rest_precision``): the body
+    builds its step system with an operator v ↦ A v applied per tet
     (:mod:`refsim.fem.corotated_matvec`) instead of A, the free motion is CG on that operator preconditioned
     by the rotated rest compliance R C₀ Rᵀ, started from R C₀ Rᵀ b while that alone meets the tolerance, else
     from the last free displacement (a :class:`FreeMotionStart` the run's state carries), and C₀'s columns

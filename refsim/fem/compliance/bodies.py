@@ -472,11 +472,17 @@ COLD_RETRY = 8
 class _FastBody(BodyCompliance):
     def __init__(self, strategy: Fast) -> None:
         super().__init__(strategy)
-        self._solver = make_linear_solver(strategy.linear_solver)
+        self._solver = make_linear_solver(strategy.linear_solver, precision=strategy.rest_precision)
         # without the error report, the tissue builds its step system with an operator and no matrix
         self.matrix_free = not strategy.against_exact
         self._ready = False
         self._carried = None  # FreeMotionStart: the last free displacement and how the next CG starts
+
+    @property
+    def rest_precision(self) -> str:
+        """The rest factor's precision, "single" or "double": the strategy's where the solver has a choice
+        (PARDISO), else double."""
+        return getattr(self._solver, "precision", "double")
 
     def carried(self) -> FreeMotionStart | None:
         """The last free displacement and the next free motion's start; None before the first step."""
@@ -672,12 +678,18 @@ class Fast:
         (most steps), a step costs one rest-factor solve and one product; the needle force against the exact
         run is the same as at 1e-4 on the built-in scenes (docs/speed.md, "What it costs in accuracy").
     linear_solver : The rest factor's solver, as for :class:`Exact`.
+    rest_precision : The rest factor's precision where the solver has a choice (PARDISO), "single" or
+        "double". Single: each solve reads half the bytes, from memory at every step (the rest of a step
+        leaves the factor out of the caches); its round-off, about κ(A₀) · 6e-8 relative, is far below what
+        R C₀ Rᵀ leaves of A⁻¹, the free motion's CG residual is measured in double precision, and W and the
+        correction come from the same C₀ blocks (docs/speed.md gives the errors against the exact mode).
     against_exact : As for :class:`Refreshed` (the step system is then assembled, for the exact twin).
     """
 
     tolerance: float = 1e-2
     max_iterations: int = 200
     linear_solver: str = "auto"
+    rest_precision: str = "single"
     against_exact: bool = False
     name: str = field(default="fast", init=False)
 
@@ -701,6 +713,8 @@ class Fast:
     def __post_init__(self) -> None:
         _check_common(self.linear_solver, self.against_exact)
         _check_iterative(self.tolerance, self.max_iterations)
+        if self.rest_precision not in ("single", "double"):
+            raise ValueError(f"rest_precision = {self.rest_precision!r}: expected 'single' or 'double'")
 
     def bind(self) -> BodyCompliance:
         """A fresh per-body, per-run compliance."""
