@@ -12,6 +12,7 @@ from refsim.reference import build_reference, case_names, check_manifest, read_c
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(2400)  # 709 s alone on one core; over 900 s beside another worker and other runs
 def test_standard_level_builds_every_case(tmp_path):
     folder = tmp_path / "reference"
     manifest = build_reference(folder, level="standard", workers=1, command="slow test")
