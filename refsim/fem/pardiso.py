@@ -299,7 +299,7 @@ class PardisoSolver(KeepsFactor):
         finally:
             self._iparm[30] = 0
             loads[positions, columns] = 0.0
-        return out[positions].astype(float)
+        return out[positions].astype(float, copy=False)
 
     def solve_marked(self, rhs: np.ndarray) -> np.ndarray:
         """A⁻¹ rhs for a rhs of shape (n,) that is zero off the :attr:`marked` positions, every component of
