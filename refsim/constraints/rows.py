@@ -50,6 +50,7 @@ __all__ = [
     "RowBlock",
     "concatenate",
     "empty_block",
+    "gap_roundoff",
     "orthonormal_basis",
     "point_rows",
     "stack_jacobians",
@@ -236,10 +237,18 @@ class RowBlock:
             selected &= self.source == source
         return np.flatnonzero(selected)
 
-    def problem(self, compliance: np.ndarray, *, name: str = ""):
+    def problem(self, compliance: np.ndarray, *, name: str = "", roundoff: float = 0.0):
         """The solver's :class:`~refsim.solvers.ConstraintProblem` of these rows with compliance W [m/N],
-        shape (row_count, row_count): the one place where row kinds become solver laws."""
+        shape (row_count, row_count): the one place where row kinds become solver laws.
+
+        ``roundoff``: the free gaps' round-off [m] (:func:`gap_roundoff` of the positions they were measured
+        on). A row of zero compliance (W_ii at most 1e-14 of the largest diagonal, Gauss–Seidel's floor: it
+        moves a rigid needle and held tissue nodes only) whose free gap lies within it gets a gap of zero:
+        no force changes that gap, so its sign alone — round-off — would decide the row (a rigid needle at
+        rest on held tissue pressed into it to f_p by −8e-17 m). Rows with compliance keep their gaps: there
+        round-off moves λ by δ/W_ii, nothing."""
         sets = self.index_sets()
+        free_gap = self.free_gap
         added = _compliance_diagonal(self)
         if added.any():
             square = (added.size, added.size)
@@ -255,6 +264,12 @@ class RowBlock:
                 np.fill_diagonal(compliance, diagonal)
             else:
                 compliance = compliance + np.diag(added)
+        if roundoff > 0.0 and free_gap.size:
+            diagonal = np.diag(compliance)
+            zero = diagonal <= 1e-14 * max(float(np.abs(diagonal).max()), np.finfo(float).tiny)
+            closed = zero & (np.abs(free_gap) <= roundoff) & (free_gap != 0.0)
+            if closed.any():
+                free_gap = np.where(closed, 0.0, free_gap)
         limit = _force_limit(self)
         boxed = np.flatnonzero(np.isfinite(limit))
         bilateral, unilateral = sets["bilateral"], sets["unilateral"]
@@ -268,7 +283,7 @@ class RowBlock:
             unilateral = unilateral[~in_box[unilateral]]
         return ConstraintProblem(
             compliance=compliance,
-            free_gap=self.free_gap,
+            free_gap=free_gap,
             bilateral=bilateral,
             unilateral=unilateral,
             box_rows=boxed,
@@ -301,6 +316,21 @@ class RowBlock:
             "contacts": self.contacts,
             "shaft_rows": self.shaft_rows,
         }
+
+
+#: The round-off of a free gap, in units of ε L (:func:`gap_roundoff`).
+GAP_ROUNDOFF_ULPS = 64.0
+
+
+def gap_roundoff(*coordinates: np.ndarray) -> float:
+    """The round-off of a row's free gap δ = nᵀ(x_needle − x_tissue) [m] between bodies at ``coordinates``
+    [m] (arrays of positions): 64 ε L, L the largest coordinate's magnitude. Each point carries an error of a
+    few ε L (a needle point is its base plus a rotated arc length, a contact's tissue point an interpolation
+    of three or four nodes), and so does the projection on n: 64 ε L bounds the sum with a margin. A gap
+    within it is zero to the precision the positions have (a tilted rigid needle brought to rest on the
+    cube's top face: −8.3e-17 m, against 64 ε L = 6e-15 m)."""
+    scale = max((float(np.abs(array).max()) for array in coordinates if np.size(array)), default=0.0)
+    return GAP_ROUNDOFF_ULPS * float(np.finfo(float).eps) * scale
 
 
 def empty_block(dof_counts: Mapping[str, int | None]) -> RowBlock:

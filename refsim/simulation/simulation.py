@@ -45,6 +45,7 @@ from refsim.constraints import (
     StepGeometry,
 )
 from refsim.constraints.channel import stuck_points
+from refsim.constraints.rows import gap_roundoff
 from refsim.fem.compliance import make_strategy
 from refsim.fem.threads import hot_path_threads
 from refsim.scene import Scene
@@ -205,7 +206,7 @@ class Simulation:
             point_rows = self._point_rows(rows)
             timer.lap("detection")
 
-            problem, responses = self._problem(rows, systems)
+            problem, responses = self._problem(rows, systems, free)
             timer.lap("compliance")
 
             multipliers, report = self._solve(problem, self._warm_start(start, rows, point_rows))
@@ -426,9 +427,11 @@ class Simulation:
             row_instrument=rows.instruments,
         )
 
-    def _problem(self, rows: RowBlock, systems: dict):
+    def _problem(self, rows: RowBlock, systems: dict, free: dict | None = None):
         """The constraint problem of the rows, W = Σ_b H_b A_b⁻¹ H_bᵀ over the bodies with a Jacobian in
-        them (in the order of ``bodies``), and each body's responses by name (None: no rows on it)."""
+        them (in the order of ``bodies``), and each body's responses by name (None: no rows on it).
+        ``free``: the bodies' free states the gaps were measured on, whose coordinates give the gaps'
+        round-off (:func:`refsim.constraints.rows.gap_roundoff`; None: no round-off)."""
         responses = dict.fromkeys(body.name for body in self.bodies)
         if rows.row_count == 0:
             return None, responses
@@ -441,7 +444,8 @@ class Simulation:
             compliance = part if compliance is None else compliance + part
         if compliance is None:
             compliance = np.zeros((rows.row_count, rows.row_count))
-        return rows.problem(compliance), responses
+        roundoff = 0.0 if free is None else gap_roundoff(*(own.positions for own in free.values()))
+        return rows.problem(compliance, roundoff=roundoff), responses
 
     def _correct(self, state: SimulationState, free: dict, systems: dict, responses: dict, multipliers):
         """Each body's state after the constraint forces, by name: x_b = x_b,free + A_b⁻¹ H_bᵀ λ."""

@@ -632,8 +632,13 @@ def test_a_rigid_needle_punctures_held_tissue_at_f_p_where_it_crosses_its_surfac
         summary.add(record)
 
     Simulation(scene).run(on_step=kept)
+    from refsim.constraints.rows import gap_roundoff
+
     top = float(scene.mesh.origin[2] + scene.mesh.size[2])
-    crossing = next(r.step for r in records if r.needle_positions[-1][2] < top)
+    # Crossed: below the face by more than the gaps' round-off (at step 20 the tip is on it to round-off,
+    # test_a_rigid_needle_at_rest_on_held_tissue_does_not_puncture_it).
+    below = top - gap_roundoff(np.array(scene.trajectory.base_positions))
+    crossing = next(r.step for r in records if r.needle_positions[-1][2] < below)
     punctures = [(r.step, e) for r in records for e in r.events if e.name == "puncture"]
     assert len(punctures) == 1
     step, event = punctures[0]
@@ -660,6 +665,80 @@ def test_held_rows_are_the_violated_rows_of_zero_compliance():
     rows = SimpleNamespace(kind=kinds)
     problem = SimpleNamespace(compliance=compliance, free_gap=gaps)
     np.testing.assert_array_equal(held_rows(rows, problem), [True, False, False, True, False, False])
+
+
+def test_a_gap_of_zero_compliance_within_its_round_off_is_closed_in_the_problem():
+    # Reference: δ = nᵀ(x_needle − x_tissue) of positions of magnitude L carries a few ε L of round-off, so
+    # a gap within gap_roundoff (64 ε L) is zero. A row of zero compliance (no force changes its gap) gets
+    # exactly 0 there, its sign being round-off; beyond it, or on a row with compliance (round-off moves
+    # its λ by δ/W_ii only), the gap is kept bit for bit.
+    from refsim.constraints import BILATERAL, UNILATERAL, RowBlock
+    from refsim.constraints.rows import gap_roundoff
+
+    length = 0.42
+    roundoff = gap_roundoff(np.array([[0.0, 0.0, length]]), np.zeros((2, 3)))
+    assert roundoff == 64.0 * np.finfo(float).eps * length
+    kinds = np.array([UNILATERAL, UNILATERAL, BILATERAL, BILATERAL, UNILATERAL, UNILATERAL, BILATERAL])
+    gaps = np.array([-8.3e-17, -10 * roundoff, 3e-16, -1e-16, -8.3e-17, 0.5 * roundoff, 0.0])
+    count = kinds.size
+    rows = RowBlock(
+        jacobians={},
+        free_gap=gaps,
+        kind=kinds,
+        source=np.zeros(count, dtype=np.int8),
+        points=np.zeros((count, 3)),
+        directions=np.tile([0.0, 0.0, 1.0], (count, 1)),
+    )
+    compliance = np.diag([0.0, 0.0, 0.0, 0.0, 1e-4, 1e-4, 0.0])
+    closed = rows.problem(compliance, roundoff=roundoff).free_gap
+    np.testing.assert_array_equal(closed, [0.0, -10 * roundoff, 0.0, 0.0, -8.3e-17, 0.5 * roundoff, 0.0])
+    np.testing.assert_array_equal(rows.problem(compliance).free_gap, gaps)  # no round-off given: as measured
+
+
+@pytest.mark.parametrize("within_step", [True, False])
+@pytest.mark.parametrize("tilt_degrees", [0.0, 17.0])
+@pytest.mark.parametrize("entry", [(0.00123, 0.00231), (0.0, 0.0), (0.0071, -0.0133)])
+def test_a_rigid_needle_at_rest_on_held_tissue_does_not_puncture_it(
+    cube_scene, within_step, tilt_degrees, entry
+):
+    # The cube with its top face held too (zero compliance under the tip), a rigid needle brought down 2 mm
+    # until its tip rests exactly on the top face, then held there. Its tip contact's gap ends within
+    # round-off of zero, of either sign (−8.3e-17 m for a tilted needle): no force can change it, so that
+    # sign alone decided the row — held and pushed to f_p, a puncture with no load. Reference: the tip
+    # touches the face without pressing it, so nothing punctures and every solve converges; the same
+    # trajectory ending 0.05 mm deeper (far beyond round-off) punctures at f_p where the tip crosses the face
+    # (test_a_rigid_needle_punctures_held_tissue_at_f_p_where_it_crosses_its_surface).
+    from refsim.simulation import Simulation
+
+    tilt = math.radians(tilt_degrees)
+    direction = np.array([math.sin(tilt), 0.0, -math.cos(tilt)])
+    top = 0.1
+    for depth, punctures in ((0.0, 0), (5e-5, 1)):
+        tip = np.array([entry[0], entry[1], top - depth])
+        base = tip - 0.32 * direction
+        start = base - 0.002 * direction
+        scene = cube_scene(
+            "mesh.cells=[4, 4, 4]",
+            'mesh.fixed_faces=["zmin", "zmax"]',
+            "time.duration=0.3",
+            "trajectory.times=[0.0, 0.2, 0.3]",
+            f"trajectory.base_positions=[{start.tolist()}, {base.tolist()}, {base.tolist()}]",
+            f"trajectory.directions=[{direction.tolist()}, {direction.tolist()}, {direction.tolist()}]",
+            f"insertion.puncture_within_step={str(within_step).lower()}",
+        )
+        records = []
+        Simulation(scene).run(on_step=lambda state, record, kept=records: kept.append(record))
+        events = [(r.step, e) for r in records for e in r.events if e.name == "puncture"]
+        assert len(events) == punctures, (depth, events)
+        if punctures:
+            step, event = events[0]
+            crossing = next(r.step for r in records if r.needle_positions[-1][2] < top)
+            assert step == crossing
+            assert event.force == pytest.approx(scene.insertion.puncture_force, rel=1e-6)
+        else:
+            assert abs(records[-1].needle_positions[-1][2] - top) < 1e-15  # at rest on the face
+            assert all(r.solver.converged for r in records if r.solver is not None)
+            assert all(r.phase == "approach" for r in records)
 
 
 def test_shaft_samples_far_from_the_surfaces_box_are_skipped_without_changing_the_rows(

@@ -161,8 +161,8 @@ def watch_cut_blocks(simulation: Simulation) -> list:
     spectra = []
     build = simulation._problem
 
-    def problem(rows, systems):
-        built = build(rows, systems)
+    def problem(rows, systems, *free):
+        built = build(rows, systems, *free)
         cut = np.flatnonzero((rows.source == CUT_SLIDE) | (rows.source == CUT_BORDER))
         if built[0] is not None and cut.size:
             total = built[0].compliance[np.ix_(cut, cut)]
