@@ -666,7 +666,8 @@ class ComplianceSpec(_Validated):
         "factorise every refresh_every steps, free motion and W's columns by PCG on the current matrix; "
         "precomputed: the rest compliance rotated per node (SOFA-like); fast: "
         "no matrix assembled or factorised during the run, W and the correction from the rest compliance "
-        "rotated per node, free motion by CG on the co-rotated operator (docs/speed.md)",
+        "rotated per node, free motion by CG on the co-rotated operator; close to exact on stiff tissue, "
+        "early events on soft (docs/speed.md, docs/fast_stiffness.md)",
         choices=STRATEGIES,
     )
     refresh_every: int = spec(

@@ -28,9 +28,14 @@ def _run(scene):
     return np.array(forces), events
 
 
-def test_fast_mode_has_the_exact_events_and_forces_within_two_percent_of_the_peak(cube_scene):
-    exact_forces, exact_events = _run(cube_scene(*COARSE))
-    fast_forces, fast_events = _run(cube_scene(*COARSE, 'compliance.strategy="fast"'))
+@pytest.mark.parametrize("youngs_modulus", [5e4, 5e5, 5e6])
+def test_fast_mode_has_the_exact_events_and_forces_within_two_percent_of_the_peak(cube_scene, youngs_modulus):
+    # Over the stiffness range where the fast mode holds issue 26's acceptance on the cube (the scene's
+    # 500 kPa, ten times softer and ten times stiffer; docs/fast_stiffness.md: softer still, its tip
+    # punctures early).
+    coarse = (*COARSE, f"tissue.youngs_modulus={youngs_modulus!r}")
+    exact_forces, exact_events = _run(cube_scene(*coarse))
+    fast_forces, fast_events = _run(cube_scene(*coarse, 'compliance.strategy="fast"'))
     assert fast_events == exact_events
     assert [name for _, name in exact_events][:1] == ["puncture"]
     peak = np.linalg.norm(exact_forces, axis=1).max()
