@@ -54,6 +54,7 @@ __all__ = [
     "orthonormal_basis",
     "point_rows",
     "stack_jacobians",
+    "zero_compliance",
 ]
 
 #: The names of the bodies rows refer to (``RowBlock.jacobians`` keys, ``Body.name`` of the simulation's
@@ -265,9 +266,7 @@ class RowBlock:
             else:
                 compliance = compliance + np.diag(added)
         if roundoff > 0.0 and free_gap.size:
-            diagonal = np.diag(compliance)
-            zero = diagonal <= 1e-14 * max(float(np.abs(diagonal).max()), np.finfo(float).tiny)
-            closed = zero & (np.abs(free_gap) <= roundoff) & (free_gap != 0.0)
+            closed = zero_compliance(compliance) & (np.abs(free_gap) <= roundoff) & (free_gap != 0.0)
             if closed.any():
                 free_gap = np.where(closed, 0.0, free_gap)
         limit = _force_limit(self)
@@ -316,6 +315,15 @@ class RowBlock:
             "contacts": self.contacts,
             "shaft_rows": self.shaft_rows,
         }
+
+
+def zero_compliance(compliance: np.ndarray) -> np.ndarray:
+    """The rows whose compliance W_ii [m/N] is zero, at most 1e-14 of the largest diagonal (Gauss-Seidel's
+    floor), shape (row_count,) bool: their multipliers change no gap (a rigid needle on held tissue nodes)."""
+    diagonal = np.diag(compliance)
+    if diagonal.size == 0:
+        return np.zeros(0, dtype=bool)
+    return diagonal <= 1e-14 * max(float(np.abs(diagonal).max()), np.finfo(float).tiny)
 
 
 #: The round-off of a free gap, in units of ε L (:func:`gap_roundoff`).

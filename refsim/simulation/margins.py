@@ -67,6 +67,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from refsim.constraints import BILATERAL, FRICTION, INSERTION, PENETRATION, UNILATERAL
+from refsim.constraints.rows import zero_compliance as zero_compliance_rows
 
 __all__ = [
     "CRITERIA_OF_EVENT",
@@ -169,12 +170,9 @@ def held_rows(rows, problem) -> np.ndarray:
 
 
 def zero_compliance(problem) -> np.ndarray:
-    """The rows of ``problem`` whose compliance W_ii is zero (at most 1e-14 of the largest diagonal, as
-    Gauss-Seidel's floor), shape (row_count,) bool: their multipliers change no gap."""
-    diagonal = np.diag(problem.compliance)
-    if diagonal.size == 0:
-        return np.zeros(0, dtype=bool)
-    return diagonal <= 1e-14 * max(float(np.abs(diagonal).max()), np.finfo(float).tiny)
+    """The rows of ``problem`` whose compliance W_ii is zero (:func:`refsim.constraints.rows.zero_compliance`
+    of its W), shape (row_count,) bool: their multipliers change no gap."""
+    return zero_compliance_rows(problem.compliance)
 
 
 def force_accuracy(compliance: np.ndarray, rows: np.ndarray, residual_bound: float) -> float:

@@ -677,7 +677,9 @@ def test_a_gap_of_zero_compliance_within_its_round_off_is_closed_in_the_problem(
 
     length = 0.42
     roundoff = gap_roundoff(np.array([[0.0, 0.0, length]]), np.zeros((2, 3)))
-    assert roundoff == 64.0 * np.finfo(float).eps * length
+    # above the round-off a rigid needle at rest on the cube's face showed (8.3e-17 m), far below any length
+    # the scene resolves (1e-12 m: a needle driven that deep into held tissue is not at rest on it)
+    assert 8.3e-17 < roundoff < 1e-12
     kinds = np.array([UNILATERAL, UNILATERAL, BILATERAL, BILATERAL, UNILATERAL, UNILATERAL, BILATERAL])
     gaps = np.array([-8.3e-17, -10 * roundoff, 3e-16, -1e-16, -8.3e-17, 0.5 * roundoff, 0.0])
     count = kinds.size
