@@ -610,6 +610,22 @@ class TissueModel:
             )
         return fixed_displacements.ravel()  # fixed_dofs are node-major over the sorted fixed nodes
 
+    def rest_system(self, dt: float) -> StepSystem:
+        """The step system at rest for a time step ``dt`` [s]: no load, no motion, identity rotations, A at
+        the rest shape behind ``rest_matrix``, no matrix assembled. What a compliance strategy that keeps the
+        rest matrix's factor for the run prepares from before the first step (``BodyCompliance.prepare``)."""
+        free_dofs, constrained_dofs = self.free_and_constrained_dofs
+        return StepSystem(
+            self.dof_count,
+            free_dofs,
+            constrained_dofs,
+            None,
+            np.zeros(free_dofs.size),
+            np.zeros(constrained_dofs.size),
+            group_rotations=lambda: np.broadcast_to(np.eye(3), (self.node_count, 3, 3)),
+            rest_matrix=lambda: self._rest_effective_stiffness(dt),
+        )
+
     def _rest_effective_stiffness(self, dt: float) -> sp.csr_matrix:
         """A at the rest shape on the free DoFs (the precomputed strategy's C₀ = A₀⁻¹)."""
         matrix = effective_stiffness(

@@ -83,6 +83,12 @@ class TissueBody:
         self.strategy = compliance if compliance is not None else make_strategy("exact").bind()
         self._fixed = np.asarray(model.fixed_nodes)
 
+    def prepare(self, dt: float) -> None:
+        """Set up the compliance strategy from the tissue at rest for steps of ``dt`` [s] before the first
+        step (the fast and precomputed strategies' rest factor,
+        :meth:`refsim.fem.compliance.BodyCompliance.prepare`)."""
+        self.strategy.prepare(self.model.rest_system(dt))
+
     def prescribed_increments(self, state: TissueState, control: ControlValues) -> np.ndarray | None:
         """Displacement of every fixed node over the step [m], shape (fixed_count, 3), or None (all held)."""
         if control.boundary_nodes.size == 0:

@@ -117,6 +117,8 @@ class Simulation:
             w_update=spec.w_update,
         ).bind()
         self.tissue_body = TissueBody(self.tissue, self.tissue_compliance)
+        # what the strategy keeps for the run (the fast mode's rest factor) is made now, not in the first step
+        self.tissue_body.prepare(self.dt)
         instrument_models = self.models.instruments or (
             InstrumentModels(
                 "needle", scene.needle, self.models.needle, self.models.trajectory, scene.cutting.enabled

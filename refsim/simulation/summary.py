@@ -372,14 +372,15 @@ class RunSummary:
         return "\n".join(lines)
 
     def format_linear_counts(self) -> str:
-        """How often the tissue's linear solver factorised and analysed in the run: the factor is kept while
-        the matrix is unchanged (a tissue at rest), and an analysis (a new pattern, or PARDISO's new
-        partial-solve marks) costs a step about a factorisation and an analysis more."""
+        """How often the tissue's linear solver factorised and analysed in the run, its set-up included (the
+        fast mode's one rest factorisation is made there): the factor is kept while the matrix is unchanged
+        (a tissue at rest), and an analysis (a new pattern, or PARDISO's new partial-solve marks) costs a step
+        about a factorisation and an analysis more."""
         factorisations, analyses = self.tissue_linear_counts
         text = f"tissue matrix: {factorisations} numeric factorisation{'' if factorisations == 1 else 's'}"
         if analyses is not None:
             text += f" and {analyses} analys{'is' if analyses == 1 else 'es'}"
-        return text + f" in {self.steps} steps"
+        return text + f" in the set-up and {self.steps} steps"
 
     def format_step_times(self, slowest: int = 5) -> str:
         """The spread of the steps' times, what a real-time loop meets (its frame budget is per step, not

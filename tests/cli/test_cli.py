@@ -71,23 +71,40 @@ def test_bench_refuses_a_strategy_set_beside_its_strategies(capsys):
 
 
 def test_bench_against_exact_gives_each_strategys_time_as_a_share_of_the_exact_step(capsys):
-    # Issue 26's measure of the fast mode (its step against the exact one, side by side): the share printed
-    # beside the errors is the ratio of the two runs' times per step printed above it (each to 0.01 ms, the
-    # share to 0.01).
+    # Issue 26's measure of the fast mode (its step against the exact one, side by side): each strategy timed
+    # on --repeats interleaved runs, its time their median (printed with their range); the share printed
+    # beside the errors is the ratio of the two medians printed above it (each to 0.01 ms, the share to 0.01),
+    # with the range of the rounds' own ratios.
     import re
 
     code = main(
-        ["bench", "cube", "--strategies", "fast", "--against-exact"]
+        ["bench", "cube", "--strategies", "fast", "--against-exact", "--repeats", "3"]
         + ["--set", "mesh.cells=[2, 2, 2]", "--set", "time.duration=0.2"]
     )
     out = capsys.readouterr().out
     assert code == 0
-    times = dict(re.findall(r"compliance (\w+) \(.*?; ([0-9.]+) ms per step", out))
-    share = re.search(r"^  fast +time ([0-9.]+) of the exact step, position", out, re.MULTILINE)
+    found = re.findall(
+        r"compliance (\w+) \(.*?; ([0-9.]+) ms per step \(median of 3 runs, ([0-9.]+) to ([0-9.]+)\)", out
+    )
+    times = {name: tuple(map(float, values)) for name, *values in found}
+    share = re.search(
+        r"^  fast +time ([0-9.]+) of the exact step \(each round: ([0-9.]+) to ([0-9.]+)\), position",
+        out,
+        re.MULTILINE,
+    )
     assert set(times) == {"exact", "fast"} and share is not None
-    exact, fast = float(times["exact"]), float(times["fast"])
+    for median, low, high in times.values():
+        assert low <= median <= high
+    exact, fast = times["exact"][0], times["fast"][0]
     rounding = 0.005 + fast / exact * (0.005 / exact + 0.005 / fast)
     assert abs(float(share.group(1)) - fast / exact) <= rounding
+    assert float(share.group(2)) <= float(share.group(3))
+
+
+def test_bench_refuses_a_repeat_count_out_of_range(capsys):
+    code = main(["bench", "cube", "--repeats", "0"])
+    error = capsys.readouterr().err
+    assert code == 2 and "--repeats 0" in error and "[1, 50]" in error and "Traceback" not in error
 
 
 def test_bad_mesh_file_is_named(tmp_path, capsys):

@@ -103,3 +103,30 @@ def test_fast_mode_over_the_built_in_scenes(cube_scene, name, overrides, toleran
     peak = np.linalg.norm(exact_forces, axis=1).max()
     error = np.linalg.norm(fast_forces - exact_forces, axis=1).max()
     assert 1e-9 * peak < error <= 0.02 * peak
+
+
+@pytest.mark.parametrize("strategy", ["fast", "precomputed"])
+def test_the_rest_factor_is_made_with_the_simulation_and_no_step_factorises(cube_scene, strategy):
+    # The strategies that keep the rest matrix's factor for the run make it when the simulation is built
+    # (BodyCompliance.prepare), so no step pays it (the first step of an interactive session would hitch by a
+    # factorisation); the run is the same bit for bit as one whose body prepares at its first step.
+    from refsim.fem.compliance import make_strategy
+    from refsim.simulation.bodies import TissueBody
+
+    scene = cube_scene(*COARSE, f'compliance.strategy="{strategy}"')
+    simulation = Simulation(scene)
+    assert simulation.tissue_compliance.linear_counts()[0] == 1
+    forces, events = _run(scene)
+    assert simulation.tissue_compliance.linear_counts()[0] == 1  # the built one, untouched by _run's own
+    lazy = Simulation(scene)
+    lazy.tissue_compliance = make_strategy(strategy).bind()
+    lazy.tissue_body = TissueBody(lazy.tissue, lazy.tissue_compliance)
+    lazy.bodies = (lazy.tissue_body, *lazy.bodies[1:])
+    assert lazy.tissue_compliance.linear_counts()[0] == 0
+    state, lazy_forces, lazy_events = lazy.initial_state(), [], []
+    for _ in range(scene.time.step_count):
+        state, record = lazy.step(state)
+        lazy_forces.append(record.needle_force)
+        lazy_events += [(record.step, event.name) for event in record.events]
+    assert lazy.tissue_compliance.linear_counts()[0] == 1
+    assert lazy_events == events and np.array_equal(np.array(lazy_forces), forces)

@@ -82,7 +82,9 @@ def test_a_tissue_at_rest_is_factorised_once_and_the_summary_says_so(solver):
     assert factorisations == 1
     assert analyses in (1, None)  # SuperLU orders at each factorisation: no separate analysis to count
     line = summary.format_table().splitlines()[-1]
-    assert line.startswith("tissue matrix: 1 numeric factorisation") and line.endswith("in 10 steps")
+    assert line.startswith("tissue matrix: 1 numeric factorisation") and line.endswith(
+        "in the set-up and 10 steps"
+    )
 
 
 def test_the_linear_counts_line_is_absent_when_the_solver_does_not_count():
@@ -90,6 +92,11 @@ def test_the_linear_counts_line_is_absent_when_the_solver_does_not_count():
     summary.steps = 3
     assert "tissue matrix" not in summary.format_table()
     summary.tissue_linear_counts = (5, None)
-    assert summary.format_table().splitlines()[-1] == "tissue matrix: 5 numeric factorisations in 3 steps"
+    assert (
+        summary.format_table().splitlines()[-1]
+        == "tissue matrix: 5 numeric factorisations in the set-up and 3 steps"
+    )
     summary.tissue_linear_counts = (5, 2)
-    assert summary.format_table().endswith("5 numeric factorisations and 2 analyses in 3 steps")
+    assert summary.format_table().endswith(
+        "5 numeric factorisations and 2 analyses in the set-up and 3 steps"
+    )

@@ -63,6 +63,12 @@ class BodyCompliance:
     def resume(self, carried: StaleFactor | None) -> None:
         """Continue from ``carried`` (:meth:`carried` of some earlier step, or None: a run's start)."""
 
+    def prepare(self, system: StepSystem) -> None:
+        """Set up, before the first step, what the strategy keeps for the whole run from the body's rest
+        state (``system``: a system of the body, e.g. ``TissueModel.rest_system``): the fast and precomputed
+        strategies factorise the rest matrix here, so that no step pays it (the first step would, else).
+        Nothing for the strategies that factorise the step's own matrix; nothing when already prepared."""
+
     def step(self, system: StepSystem) -> StepCompliance:
         """The compliance of this step's system (advances the strategy's step counter)."""
         with hot_path_threads():
@@ -369,6 +375,10 @@ class _PrecomputedBody(BodyCompliance):
         self._dense = None
         self._ready = False
 
+    def prepare(self, system: StepSystem) -> None:
+        if not self._ready:
+            self._prepare(system)
+
     def _prepare(self, system: StepSystem) -> None:
         if system.rest_matrix is None or system.group_rotations is None:
             raise ValueError(
@@ -491,6 +501,10 @@ class _FastBody(BodyCompliance):
     def resume(self, carried: FreeMotionStart | None) -> None:
         """Continue from ``carried`` (None: the next free motion starts from R C₀ Rᵀ b, as a run's first)."""
         self._carried = carried
+
+    def prepare(self, system: StepSystem) -> None:
+        if not self._ready:
+            self._prepare(system)
 
     def _prepare(self, system: StepSystem) -> None:
         if system.rest_matrix is None or system.group_rotations is None:
