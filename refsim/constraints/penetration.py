@@ -126,9 +126,11 @@ def find_surface_contact(
     of a thin layer, which the tip could only reach from inside). When the tip is under such a face (inside
     the tissue) and it holds the closest point, the contact is the closest point on the faces turned towards
     the needle (n · direction < 0), the ones a tip can come through from outside: the tip meets the near face,
-    and puncture happens there. (A face parallel to the needle, n · direction = 0, is kept when it is the
-    closest: a needle can slide along it; a tip outside, beyond a face turned away, keeps that face: it moves
-    away from it.)
+    and puncture happens there. A tip outside, beyond a face turned away (it left the tissue through that far
+    face and moves away from it), meets the next surface ahead: the closest point on the faces turned towards
+    the needle whose plane the tip is outside of (another layer beyond a gap; the faces it entered by lie
+    behind it, the tip under their plane), or, without any, keeps the face it left. (A face parallel to the
+    needle, n · direction = 0, is kept when it is the closest: a needle can slide along it.)
 
     Parameters
     ----------
@@ -144,12 +146,19 @@ def find_surface_contact(
     found = projector.closest(np.asarray(tip, dtype=float)[None, :])
     tip = np.asarray(tip, dtype=float)
     under = float((tip - found.closest[0]) @ found.normal[0]) <= 0.0
-    if direction is not None and under and float(found.normal[0] @ direction) > 0.0:
-        facing = np.flatnonzero(projector.normals @ np.asarray(direction, dtype=float) < 0.0)
+    if direction is not None and float(found.normal[0] @ direction) > 0.0:
+        # The closest face is turned away from the needle. Under it, the tip meets the near face (puncture
+        # there). Outside it (the tip left the tissue through it, a far face, and moves away from it), the
+        # tip meets the next surface ahead: the faces turned towards the needle with the tip outside their
+        # plane (another layer beyond a gap; not the faces it entered by, behind it); without any, the face
+        # it left.
+        facing = projector.normals @ np.asarray(direction, dtype=float) < 0.0
+        if not under:
+            corners = projector.positions[np.asarray(faces)[:, 0]]
+            facing &= np.einsum("ij,ij->i", projector.normals, tip - corners) > 0.0
+        facing = np.flatnonzero(facing)
         if facing.size:
-            near = SurfaceProjector(projector.positions, np.asarray(faces)[facing]).closest(
-                np.asarray(tip, dtype=float)[None, :]
-            )
+            near = SurfaceProjector(projector.positions, np.asarray(faces)[facing]).closest(tip[None, :])
             near.face_index[0] = facing[near.face_index[0]]
             found = near
     face = int(found.face_index[0])

@@ -125,6 +125,7 @@ class CutEventRules:
             cut_strip=strip,
             path=state.path.subset(self.law.kept_at_cut_start(state.path.point_count)),
             channel_end=None,
+            entered_at=None,
         )
         return world, state, [Event("cut_start", start.trigger, start.unit)]
 
@@ -146,7 +147,13 @@ class CutEventRules:
         events = [Event("leave_cut")]
         if path.point_count == 0:
             state = evolved(
-                state, phase=Phase.APPROACH, path=path, cut_strip=None, tip_tet=-1, channel_end=None
+                state,
+                phase=Phase.APPROACH,
+                path=path,
+                cut_strip=None,
+                tip_tet=-1,
+                channel_end=None,
+                entered_at=None,
             )
             return world, state, [*events, Event("withdrawal")]
         tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, -1, locator)
@@ -158,6 +165,7 @@ class CutEventRules:
             tip_tet=tip_tet,
             tip_barycentric=tip_barycentric,
             channel_end=None,
+            entered_at=None,
         )
         return world, state, events
 
@@ -191,7 +199,12 @@ class CutEventRules:
             # the crack tip.
             world = evolved(world, cut=recorded_surface(world.cut, state.cut_strip, world.step))
             state = evolved(
-                state, phase=Phase.APPROACH, path=InsertionPath.empty(), cut_strip=None, channel_end=None
+                state,
+                phase=Phase.APPROACH,
+                path=InsertionPath.empty(),
+                cut_strip=None,
+                channel_end=None,
+                entered_at=None,
             )
             return world, state, [Event("retraction"), Event("withdrawal")]
         events: list[Event] = []
@@ -307,7 +320,11 @@ class CutEventRules:
         if strip is None:
             return None
         state = evolved(
-            state, cut_direction=np.asarray(direction, dtype=float), cut_strip=strip, channel_end=None
+            state,
+            cut_direction=np.asarray(direction, dtype=float),
+            cut_strip=strip,
+            channel_end=None,
+            entered_at=None,
         )
         return evolved(world, cut=cut), state, [Event("cut_start", start.trigger, start.unit)]
 

@@ -54,14 +54,15 @@ class Detection:
     Attributes
     ----------
     rows : The step's rows, in solver order.
-    contact : The tip's closest surface point (approach phase), else None.
+    contact : The tip's closest surface point while the tip is outside the tissue (approach, or after it left
+        through a far face), else None.
     front : Where the front rows press on the crack tip (cutting phase); their indices are into ``rows``.
     insertion_points : The path points whose insertion rows are in ``rows``, in row order, shape (p,) (each
         row's own point is ``rows.point``, an index into the path).
     rings : The coupling rings those rows were built on, one per point of the path (the step's path carries
         them on, :meth:`refsim.constraints.InsertionPath.with_rings`); None when no ring rows were built.
-    hole : The tissue's channel whose hole the tip meets (approach: its closest surface point, within the
-        contact distance, lies in the hole), which then has no tip contact; None elsewhere.
+    hole : The tissue's channel whose hole the tip meets (the tip outside: its closest surface point, within
+        the contact distance, lies in the hole), which then has no tip contact; None elsewhere.
     """
 
     rows: RowBlock
@@ -287,6 +288,17 @@ class Detector:
         elif state.path.point_count:
             block, insertion_points, rings = self.path_rows(state, geometry)
             blocks.extend(b for b in (block, self.tip_row(state, geometry)) if b is not None)
+            if state.phase == Phase.INSERTION and state.tip_tet < 0 and self._advancing(geometry):
+                # The tip left the tissue through a far face while the shaft stays in it, and does not move
+                # back: it meets the next surface ahead (another layer) as a tip does in approach, a contact
+                # it punctures at f_p (or a hole it enters), the shaft's rows kept. A tip moving back meets
+                # no surface ahead (it goes back into its own channel through the far face it left).
+                contact, approach, hole = self.approach_rows(geometry, world.channels, shaft=False)
+                needle = geometry.needle_free if self.needle_dof_count is None else geometry.needle_previous
+                if float(contact.normal @ needle.tip_tangent) < 0.0:
+                    blocks.extend(approach)
+                else:  # only the face it left, turned away from it: it moves away from that face
+                    contact, hole = None, None
         if state.phase == Phase.INSERTION and world.cut is not None and world.cut.triangle_count:
             block, _ = self.cut_rows(world, None, geometry)
             if block is not None:
@@ -304,12 +316,20 @@ class Detector:
             front = front.located_in(strip_block, rows)
         return Detection(rows, contact, front, insertion_points, rings, hole)
 
+    @staticmethod
+    def _advancing(geometry: StepGeometry) -> bool:
+        """Whether the needle's tip does not move back along the needle over the step (free tip against the
+        start-of-step tip, along the tip's direction at the start): advancing, or still."""
+        previous = geometry.needle_previous
+        return float((geometry.needle_free.tip - previous.tip) @ previous.tip_tangent) >= 0.0
+
     def approach_rows(
-        self, geometry: StepGeometry, channels: tuple[Channel, ...] = ()
+        self, geometry: StepGeometry, channels: tuple[Channel, ...] = (), *, shaft: bool = True
     ) -> tuple[SurfaceContact, list[RowBlock], Channel | None]:
-        """Before puncture: the tip's closest surface point, in order its contact rows (when within the
-        contact distance) and the shaft's contact rows (``insertion.shaft_contact``, when any sample is near
-        the surface), and the hole of ``channels`` (the tissue's) the tip meets.
+        """Before puncture (or after the tip left the tissue through a far face, ``shaft`` False: the shaft is
+        in the tissue): the tip's closest surface point, in order its contact rows (when within the contact
+        distance) and the shaft's contact rows (``insertion.shaft_contact`` and ``shaft``, when any sample is
+        near the surface), and the hole of ``channels`` (the tissue's) the tip meets.
 
         A tip within the contact distance whose closest surface point lies in a hole (:meth:`hole`) has no
         contact rows: there is no surface to push there (the tissue is open), and the tip enters the hole's
@@ -343,8 +363,8 @@ class Detector:
                     puncture_force=spec.puncture_force if spec.puncture_within_step else None,
                 )
             )
-        if spec.shaft_contact:
-            shaft = shaft_contact_block(
+        if spec.shaft_contact and shaft:
+            shaft_rows = shaft_contact_block(
                 geometry,
                 projector,
                 self.faces,
@@ -352,8 +372,8 @@ class Detector:
                 contact_distance=spec.contact_distance,
                 tip_clearance=2.0 * spec.contact_distance,
             )
-            if shaft is not None:
-                blocks.append(shaft)
+            if shaft_rows is not None:
+                blocks.append(shaft_rows)
         return contact, blocks, hole
 
     def hole(

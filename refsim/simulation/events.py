@@ -75,6 +75,7 @@ from refsim.constraints import (
     grow_path,
     points_beyond_tip,
 )
+from refsim.constraints.rows import gap_roundoff
 from refsim.cutting import CutGrowth
 from refsim.geometry import TetLocator
 from refsim.scene import Scene
@@ -161,6 +162,17 @@ class LazyLocator:
     def locate(self, points: np.ndarray, **options):
         """`refsim.geometry.TetLocator.locate` on the configuration."""
         return self.locator.locate(points, **options)
+
+
+def _touching(rows, multipliers: np.ndarray, roundoff: float) -> bool:
+    """Whether the tip touches the surface its contact rows (source PENETRATION, unilateral) hold: its free
+    gap reached the surface (at most ``roundoff`` [m] above it, :func:`refsim.constraints.rows.gap_roundoff`),
+    or the rows carry a force."""
+    normal = (rows.source == PENETRATION) & (rows.kind == UNILATERAL)
+    if not np.any(normal):
+        return False
+    reached = np.any(rows.free_gap[normal] <= roundoff)
+    return bool(reached or float(np.asarray(multipliers)[normal].sum()) > 0.0)
 
 
 def locate_under_surface(positions: np.ndarray, tets: np.ndarray, points: np.ndarray, *, inward: np.ndarray):
@@ -251,9 +263,11 @@ class EventRules(CutEventRules):
         rows = detection.rows
         # One locator of the step's configuration for every event that needs one (built when first used).
         locator = LazyLocator(world.tissue.positions, self.tets, previous=self._last_locator)
-        if state.phase == Phase.APPROACH and rows.row_count:
+        # The tip outside the tissue (approach, or out of a far face in insertion) meets a surface: it
+        # punctures it, or enters a hole in it.
+        if detection.contact is not None and rows.row_count:
             state, events = self._puncture(world, state, detection, multipliers)
-        if state.phase == Phase.APPROACH and detection.hole is not None:
+        if detection.contact is not None and detection.hole is not None and not events:
             state, events = self._reentry(world, state, detection, locator)
         if state.phase == Phase.INSERTION and not events:
             # (Not in the step that punctures or re-enters: the entry point is then at the tip, or the tip
@@ -301,9 +315,18 @@ class EventRules(CutEventRules):
         tets, barycentric = locate_under_surface(positions, self.tets, entry[None, :], inward=contact.normal)
         if tets[0] < 0:
             return state, []
-        path = InsertionPath.empty().appended(tets, barycentric, world.step)
+        # The first insertion point of the needle, or of the next layer it enters (its shaft in the ones
+        # before): the path grows from there.
+        path = state.path if state.phase == Phase.INSERTION else InsertionPath.empty()
+        path = path.appended(tets, barycentric, world.step)
         state = evolved(
-            state, phase=Phase.INSERTION, path=path, tip_tet=int(tets[0]), tip_barycentric=barycentric[0]
+            state,
+            phase=Phase.INSERTION,
+            path=path,
+            tip_tet=int(tets[0]),
+            tip_barycentric=barycentric[0],
+            channel_end=None,
+            entered_at=ChannelEnd(int(tets[0]), np.array(barycentric[0], copy=True)),
         )
         return state, [Event("puncture", normal_force)]
 
@@ -334,7 +357,8 @@ class EventRules(CutEventRules):
         )
         if tets[0] < 0:
             tets, barycentric = np.array([hole.entry_tet]), np.asarray(hole.entry_barycentric).reshape(1, 4)
-        path = InsertionPath.empty().appended(tets, barycentric, world.step)
+        path = state.path if state.phase == Phase.INSERTION else InsertionPath.empty()
+        path = path.appended(tets, barycentric, world.step)
         state = evolved(
             state,
             phase=Phase.INSERTION,
@@ -342,10 +366,11 @@ class EventRules(CutEventRules):
             tip_tet=tip_tet,
             tip_barycentric=tip_barycentric,
             channel_end=hole.end,
+            entered_at=ChannelEnd(int(tets[0]), np.array(barycentric[0], copy=True)),
         )
         return state, [Event("reentry")]
 
-    def _left_channels(self, world, state, channel_end) -> tuple[Channel, ...]:
+    def _left_channels(self, world, state, channel_end, entry=None) -> tuple[Channel, ...]:
         """The tissue's channels after instrument ``state`` (at the step's start, in insertion) left the
         tissue in the step, its channel's end being ``channel_end`` after the step's events: its channel
         added, entering at its path's first point (the puncture's, or the re-entry's: where the needle met
@@ -356,14 +381,16 @@ class EventRules(CutEventRules):
         at its end (the tip's last material point inside) and running through to its entry."""
         if state.path.point_count == 0:
             return world.channels
+        if entry is None:
+            entry = ChannelEnd(int(state.path.tets[0]), state.path.barycentric[0])
         end = channel_end
         if end is None and state.tip_tet >= 0:
             end = ChannelEnd(state.tip_tet, state.tip_barycentric)
         elif end is None:
-            end = ChannelEnd(int(state.path.tets[0]), state.path.barycentric[0])
+            end = entry
         channel = Channel(
-            entry_tet=int(state.path.tets[0]),
-            entry_barycentric=np.array(state.path.barycentric[0], copy=True),
+            entry_tet=int(entry.tet),
+            entry_barycentric=np.array(entry.barycentric, copy=True),
             end=end,
             radius=self.needle_radius,
             step=world.step,
@@ -435,23 +462,55 @@ class EventRules(CutEventRules):
         if beyond.any():
             path = path.subset(~beyond)
             events.append(Event("retraction"))
-        # The tip's material state: the tet it lies in, or outside (it left the tissue through a face).
+        # The tip's material state: the tet it lies in, or outside (it left the tissue through a face). A tip
+        # outside that reached the surface ahead (its contact's free gap at or below zero, or a force on it)
+        # stays outside until it punctures it, and one that meets a hole until it enters it (the events
+        # above decide both), wherever round-off puts it against that surface; one that met no surface ahead
+        # (it moved back into its own channel) is located.
         tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet, locator)
+        held_out = detection.hole is not None or _touching(
+            rows, multipliers, gap_roundoff(positions, needle.tip)
+        )
+        if state.tip_tet < 0 and held_out:
+            tip_tet, tip_barycentric = -1, None
         channel_end = self._channel_end(state, positions, needle, tip_tet, rows, multipliers)
+        entered_at = state.entered_at
         if path.point_count and self._exits(state, positions, needle, tip_tet):
             events.append(Event("exit"))
-            # Cut through to the far face: the channel's line ends at the tip's last material point inside.
+            # Cut through to the far face: the channel's line ends at the tip's last material point inside,
+            # and the part of the tissue the tip left keeps it (both holes), whatever the tip meets next.
             channel_end = ChannelEnd(state.tip_tet, state.tip_barycentric, through=True)
+            world = evolved(world, channels=self._left_channels(world, state, channel_end, entered_at))
+            entered_at = None
+        elif path.point_count and state.tip_tet >= 0 and tip_tet < 0:
+            # Back out of the part of the tissue the tip was in, the shaft still in the tissue (an inner
+            # layer, or the entry face with a point still kept): that part keeps its channel.
+            world = evolved(world, channels=self._left_channels(world, state, channel_end, entered_at))
+        elif state.tip_tet < 0 and tip_tet >= 0:
+            # Back into a part of the tissue the tip left through its far face (only a hole cut through
+            # lets a tip in backwards): on that channel's line, nothing to cut.
+            channel_end, entered_at = ChannelEnd(tip_tet, tip_barycentric, through=True), None
         if path.point_count == 0:
             # The needle left the tissue: its channel stays in it (a hole in its surface, the cut tissue
             # behind it), which any needle may enter again.
-            world = evolved(world, channels=self._left_channels(world, state, channel_end))
+            world = evolved(world, channels=self._left_channels(world, state, channel_end, entered_at))
             state = evolved(
-                state, phase=Phase.APPROACH, path=path, tip_tet=-1, tip_barycentric=None, channel_end=None
+                state,
+                phase=Phase.APPROACH,
+                path=path,
+                tip_tet=-1,
+                tip_barycentric=None,
+                channel_end=None,
+                entered_at=None,
             )
             return world, state, [*events, Event("withdrawal")]
         state = evolved(
-            state, path=path, tip_tet=tip_tet, tip_barycentric=tip_barycentric, channel_end=channel_end
+            state,
+            path=path,
+            tip_tet=tip_tet,
+            tip_barycentric=tip_barycentric,
+            channel_end=channel_end,
+            entered_at=entered_at,
         )
         return world, state, events
 

@@ -117,6 +117,10 @@ class InstrumentState:
         material point is the end); marked through once the tip has cut through to a far face (the event
         exit: no tip row while the needle stays on that channel's line, until it is withdrawn). A needle that
         re-enters a channel of the tissue (``SimulationState.channels``) starts with that channel's end.
+    entered_at : Where its tip entered the part of the tissue it is in (a puncture, or a re-entry into a
+        hole): the material point its channel there starts from, recorded in the tissue's channels when the
+        tip leaves that part (through a far face, or back out of an inner layer while the shaft stays in the
+        tissue); None before puncture and once the tip has left that part.
     entry_span : Where its needle enters the tissue and where its inserted part ends in this state's
         configuration [m] (the arc lengths of :func:`refsim.constraints.cut.inserted_span` at the cut's
         spacing), when the step's events located them
@@ -135,6 +139,7 @@ class InstrumentState:
     tip_tet: int = -1
     tip_barycentric: np.ndarray | None = None
     channel_end: ChannelEnd | None = None
+    entered_at: ChannelEnd | None = None
     entry_span: tuple[float, float] | None = None
     cut_face_stretch: FaceStretch | None = None
 

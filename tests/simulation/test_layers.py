@@ -1,0 +1,138 @@
+"""A needle through two layers of tissue with a gap between them (a wall over an organ): the tip punctures
+each layer at f_p, and each layer keeps its own channel over the needle's life.
+
+The tissue is two slabs in one mesh: an 8 mm layer (z from 92 to 100 mm, 4 x 4 x 2 cells over 10 x 10 cm)
+above a 20 mm one, ``gap`` below it; both are held on their sides, the lower one on its bottom too. A needle
+of the thin-layer tests (r = 0.5 mm) is pushed through the upper layer and 5 mm into the lower one, pulled
+back until its tip is in the gap, pushed in again short of its first depth, pulled out of the tissue, and
+pushed through both once more.
+
+Reference (what the model says of a tip, whichever layer): a tip outside the tissue meets the surface ahead
+of it as a contact it punctures at f_p (the paper's rule; capped within the step, or the plain one), and a
+hole it cut as a hole (no puncture); its channel ends where it cut to (no tip cutting force short of that end,
+Okamura et al. 2004), and a channel cut through a layer has no tip row on its line. Checked over the gap
+(above and below the contact distance, 2 mm: the lower layer is within reach of the tip as it leaves the upper
+one), the needle's direction (vertical, 30°) and the puncture rule.
+"""
+
+from __future__ import annotations
+
+import math
+from importlib import resources
+
+import meshio
+import numpy as np
+import pytest
+
+from refsim.constraints import TIP
+from refsim.mesh.generators import box_mesh
+from refsim.scene import load_scene
+from refsim.simulation import Simulation
+from refsim.simulation.detection import Detector
+
+TOP, UPPER_THICKNESS, LOWER_THICKNESS = 0.1, 0.008, 0.02
+ENTRY = (0.00123, 0.00231)
+NEEDLE_LENGTH = 0.32
+SPEED = 0.02  # m/s along the needle
+DIRECTIONS = {"0deg": (0.0, 0.0, -1.0), "30deg": (0.5, 0.0, -math.sqrt(3.0) / 2.0)}
+
+
+def _layers_file(tmp_path, gap: float) -> str:
+    upper = box_mesh(
+        size=(0.1, 0.1, UPPER_THICKNESS), cells=(4, 4, 2), origin=(-0.05, -0.05, TOP - UPPER_THICKNESS)
+    )
+    lower_top = TOP - UPPER_THICKNESS - gap
+    lower = box_mesh(
+        size=(0.1, 0.1, LOWER_THICKNESS), cells=(4, 4, 4), origin=(-0.05, -0.05, lower_top - LOWER_THICKNESS)
+    )
+    points = np.vstack([upper.rest_positions, lower.rest_positions])
+    tets = np.vstack([upper.tets, lower.tets + upper.rest_positions.shape[0]])
+    path = tmp_path / f"layers_{gap:g}.vtu"
+    meshio.write(path, meshio.Mesh(points, [("tetra", tets)]))
+    return str(path)
+
+
+def _run(tmp_path, gap, direction, *overrides):
+    """The two-layer scene and its step records for the needle's life of the module's docstring."""
+    direction = np.asarray(DIRECTIONS[direction], dtype=float)
+    cos = -direction[2]
+    # depths of the tip below the top face along the needle [m]
+    through = (UPPER_THICKNESS + gap + 0.005) / cos  # 5 mm into the lower layer
+    in_gap = (UPPER_THICKNESS + 0.5 * gap) / cos
+    short = through - 0.001 / cos
+    depths = [-0.002, through, through, in_gap, short, -0.002, through]
+    times = [0.0]
+    for before, after in zip(depths[:-1], depths[1:], strict=True):
+        times.append(round(times[-1] + max(abs(after - before) / SPEED, 0.1), 2))  # whole steps of 10 ms
+    entry = np.array([ENTRY[0], ENTRY[1], TOP])
+    bases = [entry + (d - NEEDLE_LENGTH) * direction for d in depths]
+    vector = lambda v: "[" + ", ".join(repr(float(c)) for c in v) + "]"  # noqa: E731
+    # the cube scene with its [mesh] table replaced by the two layers' file
+    text = (resources.files("refsim") / "scenes" / "cube.toml").read_text("utf-8")
+    start = text.index("[mesh]")
+    end = text.index("\n[", start + 1)
+    held = '["xmin", "xmax", "ymin", "ymax", "zmin"]'
+    mesh = f'[mesh]\nfile = "{_layers_file(tmp_path, gap)}"\nfixed_faces = {held}\n'
+    path = tmp_path / "layers.toml"
+    path.write_text(text[:start] + mesh + text[end:], encoding="utf-8")
+    scene = load_scene(
+        str(path),
+        [
+            "needle.radius=0.0005",
+            "time.dt=0.01",
+            f"time.duration={float(times[-1])!r}",
+            f"trajectory.times={vector(times)}",
+            "trajectory.base_positions=[" + ", ".join(vector(b) for b in bases) + "]",
+            "trajectory.directions=[" + ", ".join(vector(direction) for _ in bases) + "]",
+            *overrides,
+        ],
+    )
+    records = []
+    Simulation(scene).run(on_step=lambda state, record: records.append(record))
+    return scene, records, times
+
+
+LIFE = ["puncture", "exit", "puncture", "reentry", "withdrawal", "reentry", "exit", "reentry"]
+
+
+@pytest.mark.parametrize("rule", ["capped", "plain"])
+@pytest.mark.parametrize("direction", ["0deg", "30deg"])
+@pytest.mark.parametrize("gap", [0.003, 0.001], ids=["gap3mm", "gap1mm"])
+def test_a_needle_through_two_layers_punctures_each_and_keeps_their_channels(tmp_path, gap, direction, rule):
+    within = "true" if rule == "capped" else "false"
+    scene, records, times = _run(tmp_path, gap, direction, f"insertion.puncture_within_step={within}")
+    named = [(r.step, e) for r in records for e in r.events if e.name in set(LIFE)]
+    assert [e.name for _, e in named] == LIFE, " ".join(f"{s}:{e.name}" for s, e in named)
+    f_p, f_cut = scene.insertion.puncture_force, scene.insertion.tip_cutting_force
+    # Each layer is punctured at f_p by the tip's contact (the lower one too: before, its tip went through it
+    # with no contact and no puncture).
+    punctures = [e for _, e in named if e.name == "puncture"]
+    for event in punctures:
+        if rule == "capped":
+            assert event.force == pytest.approx(f_p, rel=1e-6)
+        else:
+            assert event.force >= f_p * (1.0 - 1e-6)
+    # Pushed in again along its channel in the lower layer, short of where it cut to: no tip cutting force.
+    steps = [s for s, _ in named]
+    again = [r for r in records if steps[3] < r.step < steps[4] and times[3] < r.time <= times[5]]
+    assert again
+    assert max(float(r.row_forces[r.row_role == TIP].sum()) for r in again) < 0.05 * f_cut
+    # Through both once more: no tip row on the upper layer's line (cut through), none short of the lower
+    # channel's end.
+    last = [r for r in records if steps[5] < r.step < steps[7]]
+    assert last and not any(np.any(r.row_role == TIP) for r in last)
+
+
+def test_a_tip_moved_back_out_of_a_far_face_meets_no_surface():
+    # The detector's rule behind the cases above: a tip outside the tissue that moves back along the needle
+    # meets no surface ahead (it goes back into its own channel), one that advances or stays does.
+    class Geometry:
+        def __init__(self, previous_tip, free_tip):
+            self.needle_previous = type(
+                "N", (), {"tip": np.array(previous_tip), "tip_tangent": np.array([0, 0, -1.0])}
+            )
+            self.needle_free = type("N", (), {"tip": np.array(free_tip)})
+
+    assert Detector._advancing(Geometry([0, 0, 0.09], [0, 0, 0.0899]))
+    assert Detector._advancing(Geometry([0, 0, 0.09], [0, 0, 0.09]))
+    assert not Detector._advancing(Geometry([0, 0, 0.09], [0, 0, 0.0901]))
