@@ -20,7 +20,16 @@
 - phase: insertion; event: exit; when: the tip, inside the tissue at the step's start, lies in no tet at its
   end, having moved forward through the tissue (along the needle, relative to its material point: a tip
   pulled back out through its entry face is a withdrawal); then: no tip row from the next step; the shaft
-  keeps its points
+  keeps its points; the part of the tissue the tip left keeps its channel, through (both holes), from where
+  the tip entered it
+- phase: insertion, the tip outside (out of a far face) and advancing; event: puncture, reentry; when: as in
+  approach, on the surface ahead of the tip (another layer); then: the point is added to the path (the shaft
+  keeps its points), the tip in that layer; until then a tip that reached the surface (its contact's free
+  gap at most round-off, or a force on it) or meets a hole stays outside it
+- phase: insertion; event: (back out of a layer); when: the tip, inside at the step's start, lies in no tet
+  at its end, having moved back, points left (an inner layer); then: that layer keeps its channel from where
+  the tip entered it to its end; a tip moving back into a layer it left through its far face is on that
+  channel's line (through: no tip row)
 - phase: insertion; event: retraction; when: points lie beyond the tip; then: they are removed
 - phase: insertion; event: withdrawal; when: no point is left; then: approach; the tissue keeps the channel
   (``Channel``: its entry point, its end, the needle's radius), replacing the record of the hole it

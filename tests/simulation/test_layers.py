@@ -95,12 +95,38 @@ def _run(tmp_path, gap, direction, *overrides):
 LIFE = ["puncture", "exit", "puncture", "reentry", "withdrawal", "reentry", "exit", "reentry"]
 
 
-@pytest.mark.parametrize("rule", ["capped", "plain"])
-@pytest.mark.parametrize("direction", ["0deg", "30deg"])
-@pytest.mark.parametrize("gap", [0.003, 0.001], ids=["gap3mm", "gap1mm"])
-def test_a_needle_through_two_layers_punctures_each_and_keeps_their_channels(tmp_path, gap, direction, rule):
+# What else a user varies, on one case each: the needle (beam), the compliance (fast mode), the solver.
+VARIANTS = {
+    "rigid": (),
+    "flexible": ("needle.rigid=false",),
+    "fast": ('compliance.strategy="fast"',),
+    "exact_solver": ('solver.method="exact"',),
+}
+CASES = [
+    *(
+        (gap, direction, rule, "rigid")
+        for gap in (0.003, 0.001)
+        for direction in DIRECTIONS
+        for rule in ("capped", "plain")
+    ),
+    (0.003, "0deg", "capped", "flexible"),
+    (0.001, "30deg", "capped", "fast"),
+    (0.001, "0deg", "plain", "exact_solver"),
+]
+
+
+@pytest.mark.parametrize(
+    ("gap", "direction", "rule", "variant"),
+    CASES,
+    ids=[f"gap{g * 1e3:g}mm-{d}-{r}-{v}" for g, d, r, v in CASES],
+)
+def test_a_needle_through_two_layers_punctures_each_and_keeps_their_channels(
+    tmp_path, gap, direction, rule, variant
+):
     within = "true" if rule == "capped" else "false"
-    scene, records, times = _run(tmp_path, gap, direction, f"insertion.puncture_within_step={within}")
+    scene, records, times = _run(
+        tmp_path, gap, direction, f"insertion.puncture_within_step={within}", *VARIANTS[variant]
+    )
     named = [(r.step, e) for r in records for e in r.events if e.name in set(LIFE)]
     assert [e.name for _, e in named] == LIFE, " ".join(f"{s}:{e.name}" for s, e in named)
     f_p, f_cut = scene.insertion.puncture_force, scene.insertion.tip_cutting_force
