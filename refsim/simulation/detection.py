@@ -383,20 +383,41 @@ class Detector:
 
         Compared in rest coordinates (the tissue may have moved or deformed since the hole was made): the
         contact point's rest position (its surface triangle's barycentric coordinates on the rest nodes) lies
-        in a hole when it is within the hole's radius of the rest position of its channel's entry point; of
-        several, the nearest entry's."""
+        in a hole when it is within the hole's radius of the rest position of its channel's entry point, on
+        the same surface: the entry within a quarter of the radius of the contact face's plane (a surface
+        curving with a radius of at least twice the hole's), and the channel running into the tissue under
+        that face (from its entry to its end against the face's outward normal; a channel of no length
+        counts as such). Of several, the nearest entry's. (Another layer's surface beyond a gap is not the
+        hole's: the exit hole of a layer seen from the next layer's surface, its channel running back up
+        through the layer, was taken for a hole there when the gap was under the radius.)"""
         if not channels or self.rest_positions is None:
             return None
         memo = self._holes_memo
         if memo is None or memo[0] is not channels:
-            tets = np.array([channel.entry_tet for channel in channels])
-            barycentric = np.array([channel.entry_barycentric for channel in channels])
-            entries = np.einsum("hk,hkj->hj", barycentric, self.rest_positions[np.asarray(mesh_tets)[tets]])
-            memo = self._holes_memo = (channels, entries, np.array([channel.radius for channel in channels]))
-        _, entries, radii = memo
-        point = np.asarray(contact.barycentric) @ self.rest_positions[np.asarray(contact.nodes)]
+            tets = np.asarray(mesh_tets)
+            entries = np.einsum(
+                "hk,hkj->hj",
+                np.array([channel.entry_barycentric for channel in channels]),
+                self.rest_positions[tets[[channel.entry_tet for channel in channels]]],
+            )
+            ends = np.einsum(
+                "hk,hkj->hj",
+                np.array([channel.end.barycentric for channel in channels]),
+                self.rest_positions[tets[[channel.end.tet for channel in channels]]],
+            )
+            radii = np.array([channel.radius for channel in channels])
+            memo = self._holes_memo = (channels, entries, radii, ends - entries)
+        _, entries, radii, axes = memo
+        corners = self.rest_positions[np.asarray(contact.nodes)]
+        point = np.asarray(contact.barycentric) @ corners
+        normal = np.cross(corners[1] - corners[0], corners[2] - corners[0])
+        normal /= max(float(np.linalg.norm(normal)), np.finfo(float).tiny)
         distance = np.linalg.norm(entries - point, axis=1)
-        inside = np.flatnonzero(distance <= radii)
+        offset = np.abs((entries - point) @ normal)
+        into = axes @ normal < 0.0
+        lengths = np.linalg.norm(axes, axis=1)
+        into |= lengths <= 1e-9 * np.maximum(radii, np.finfo(float).tiny)
+        inside = np.flatnonzero((distance <= radii) & (offset <= 0.25 * radii) & into)
         if inside.size == 0:
             return None
         return channels[int(inside[np.argmin(distance[inside])])]

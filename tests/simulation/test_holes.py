@@ -377,14 +377,14 @@ def test_a_hole_is_found_in_rest_coordinates_wherever_the_tissue_moved():
     from refsim.constraints import find_surface_contact
     from refsim.geometry import SurfaceProjector
     from refsim.simulation.events import locate_under_surface
-    from refsim.simulation.state import Channel
+    from refsim.simulation.state import Channel, ChannelEnd
 
     simulation = Simulation(load_scene("cube", ["mesh.cells=[4, 4, 4]"]))
     rest, tets, faces = simulation.models.mesh.rest_positions, simulation.tets, simulation.faces
     entry = np.array([[*ENTRY, TOP]])
     tet, barycentric = locate_under_surface(rest, tets, entry, inward=np.array([0.0, 0.0, -1.0]))
     radius = simulation.scene.needle.radius
-    hole = Channel(int(tet[0]), barycentric[0], (int(tet[0]), barycentric[0]), radius, 1)
+    hole = Channel(int(tet[0]), barycentric[0], ChannelEnd(int(tet[0]), barycentric[0]), radius, 1)
     shift = np.array([1.5 * radius, 0.0, 0.0])
     moved = rest + shift
     projector, down = SurfaceProjector(moved, faces), np.array([0.0, 0.0, -1.0])
