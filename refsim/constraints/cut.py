@@ -49,6 +49,7 @@ __all__ = [
     "crack_tip_compression",
     "cut_criterion",
     "inserted_arc",
+    "inserted_parts",
     "inserted_span",
     "strip_cut_block",
 ]
@@ -97,6 +98,16 @@ def inserted_span(needle, locator, spacing: float, *, refinement: int = 16) -> t
     outside_fine = np.flatnonzero(found < 0)
     lead = int(outside_fine[-1]) + 1 if outside_fine.size else 0
     return float(fine[min(lead, refinement)]), end
+
+
+def inserted_parts(needle, locator, spacing: float) -> int:
+    """How many separate stretches of the needle's centreline lie in the tissue mesh (``locator`` on the
+    needle's configuration), its samples every ``spacing`` from the base to the tip: 0 out of the tissue, 1
+    through one part of it, 2 or more through several (layers with a gap between them)."""
+    arcs = np.append(np.arange(0.0, needle.length, spacing), needle.length)
+    found, _ = locator.locate(needle.points(arcs))
+    inside = found >= 0
+    return int(inside[0]) + int(np.count_nonzero(inside[1:] & ~inside[:-1]))
 
 
 def inserted_arc(needle, locator, spacing: float, *, refinement: int = 16) -> float:

@@ -15,12 +15,13 @@ The table of every event, its phase, criterion and effect is the docstring of :m
 
 from __future__ import annotations
 
+import logging
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from refsim.constraints import CUT_FRICTION, SLIDING, InsertionPath, points_beyond_tip
-from refsim.constraints.cut import crack_tip_compression, inserted_arc, inserted_span
+from refsim.constraints.cut import crack_tip_compression, inserted_arc, inserted_parts, inserted_span
 from refsim.constraints.friction import FaceStretch
 from refsim.cutting.growth import start_strip
 from refsim.cutting.laws import FrontPush
@@ -34,6 +35,8 @@ if TYPE_CHECKING:
     from refsim.simulation.events import LazyLocator
 
 __all__ = ["STICK_TOLERANCE", "CutEventRules", "face_stretch"]
+
+logger = logging.getLogger(__name__)
 
 #: A cut face's friction row sticks when its force is below its bound by more than this fraction of it (far
 #: above the solve's 10⁻⁸, as for the shaft's rows: `refsim.constraints.channel.stuck_points`).
@@ -117,6 +120,20 @@ class CutEventRules:
         )
         if strip is None:
             return None
+        parts = inserted_parts(needle, locator.locator, spacing)
+        if parts > 1 and not self._warned_parts:
+            # A known limit, said rather than run silently: the cutting phase's rows follow one stretch of
+            # the needle in the tissue (refsim.constraints.cut.inserted_span: from the tip back to where the
+            # needle enters the part its tip is in), so the parts above a gap hold it with no row.
+            self._warned_parts = True
+            logger.warning(
+                "step %d: instrument %r starts a cut with its needle through %d separate parts of the "
+                "tissue; the cutting phase models the part its tip is in only, the parts above a gap hold no "
+                "row while it cuts (docs/cutting.md, known limits)",
+                world.step,
+                state.name,
+                parts,
+            )
         world = evolved(world, cut=cut)
         state = evolved(
             state,

@@ -250,6 +250,8 @@ class EventRules(CutEventRules):
         self._last_locator: TetLocator | None = None
         #: The criteria each step's events compare, with their margins (refsim.simulation.margins).
         self.margins = MarginWatch(scene.solver.tolerance)
+        #: Whether a cut start through several parts of the tissue was warned of (once per instrument).
+        self._warned_parts = False
         self.growth = None
         if cuts:
             cutting = scene.cutting
