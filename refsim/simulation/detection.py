@@ -63,6 +63,8 @@ class Detection:
         them on, :meth:`refsim.constraints.InsertionPath.with_rings`); None when no ring rows were built.
     hole : The tissue's channel whose hole the tip meets (the tip outside: its closest surface point, within
         the contact distance, lies in the hole), which then has no tip contact; None elsewhere.
+    advancing : Whether the needle's tip does not move back along the needle over the step (forward, or
+        still: :meth:`Detector._advancing`).
     """
 
     rows: RowBlock
@@ -71,6 +73,7 @@ class Detection:
     insertion_points: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     rings: PointRings | None = None
     hole: Channel | None = None
+    advancing: bool = True
 
 
 def _no_front() -> FrontRows:
@@ -278,6 +281,7 @@ class Detector:
         existing cut (insertion) or of the cut being made (cutting)."""
         blocks: list[RowBlock] = []
         contact = None
+        advancing = self._advancing(geometry)
         front = _NO_FRONT
         insertion_points = np.zeros(0, dtype=np.int64)
         rings = None
@@ -288,11 +292,14 @@ class Detector:
         elif state.path.point_count:
             block, insertion_points, rings = self.path_rows(state, geometry)
             blocks.extend(b for b in (block, self.tip_row(state, geometry)) if b is not None)
-            if state.phase == Phase.INSERTION and state.tip_tet < 0 and self._advancing(geometry):
+            out_of_far_face = state.channel_end is not None and state.channel_end.through
+            if state.phase == Phase.INSERTION and state.tip_tet < 0 and out_of_far_face and advancing:
                 # The tip left the tissue through a far face while the shaft stays in it, and does not move
                 # back: it meets the next surface ahead (another layer) as a tip does in approach, a contact
                 # it punctures at f_p (or a hole it enters), the shaft's rows kept. A tip moving back meets
-                # no surface ahead (it goes back into its own channel through the far face it left).
+                # no surface ahead (it goes back into its own channel through the far face it left); one
+                # pulled back out of the face it entered by (a point still kept, or an inner layer's) is in
+                # its own channel's mouth: pushed in again it is located there, its channel's end kept.
                 contact, approach, hole = self.approach_rows(geometry, world.channels, shaft=False)
                 needle = geometry.needle_free if self.needle_dof_count is None else geometry.needle_previous
                 if float(contact.normal @ needle.tip_tangent) < 0.0:
@@ -314,7 +321,7 @@ class Detector:
             rows = concatenate(blocks)
         if strip_block is not None:  # the front rows' indices into the stack, found by their roles
             front = front.located_in(strip_block, rows)
-        return Detection(rows, contact, front, insertion_points, rings, hole)
+        return Detection(rows, contact, front, insertion_points, rings, hole, advancing)
 
     @staticmethod
     def _advancing(geometry: StepGeometry) -> bool:
@@ -383,13 +390,12 @@ class Detector:
 
         Compared in rest coordinates (the tissue may have moved or deformed since the hole was made): the
         contact point's rest position (its surface triangle's barycentric coordinates on the rest nodes) lies
-        in a hole when it is within the hole's radius of the rest position of its channel's entry point, on
-        the same surface: the entry within a quarter of the radius of the contact face's plane (a surface
-        curving with a radius of at least twice the hole's), and the channel running into the tissue under
-        that face (from its entry to its end against the face's outward normal; a channel of no length
-        counts as such). Of several, the nearest entry's. (Another layer's surface beyond a gap is not the
-        hole's: the exit hole of a layer seen from the next layer's surface, its channel running back up
-        through the layer, was taken for a hole there when the gap was under the radius.)"""
+        in a hole when it is within the hole's radius of the rest position of its channel's entry point, and
+        the channel runs into the tissue under the contact's face (from its entry to its end against the
+        face's outward normal; a channel of no length counts as such). Of several, the nearest entry's.
+        (Another layer's surface beyond a gap is not the hole's: the exit hole of a layer seen from the next
+        layer's surface, its channel running back up through the layer, was taken for a hole there when the
+        gap was under the radius.)"""
         if not channels or self.rest_positions is None:
             return None
         memo = self._holes_memo
@@ -413,11 +419,9 @@ class Detector:
         normal = np.cross(corners[1] - corners[0], corners[2] - corners[0])
         normal /= max(float(np.linalg.norm(normal)), np.finfo(float).tiny)
         distance = np.linalg.norm(entries - point, axis=1)
-        offset = np.abs((entries - point) @ normal)
         into = axes @ normal < 0.0
-        lengths = np.linalg.norm(axes, axis=1)
-        into |= lengths <= 1e-9 * np.maximum(radii, np.finfo(float).tiny)
-        inside = np.flatnonzero((distance <= radii) & (offset <= 0.25 * radii) & into)
+        into |= np.linalg.norm(axes, axis=1) <= 1e-9 * np.maximum(radii, np.finfo(float).tiny)
+        inside = np.flatnonzero((distance <= radii) & into)
         if inside.size == 0:
             return None
         return channels[int(inside[np.argmin(distance[inside])])]

@@ -27,9 +27,10 @@
   keeps its points), the tip in that layer; until then a tip that reached the surface (its contact's free
   gap at most round-off, or a force on it) or meets a hole stays outside it
 - phase: insertion; event: (back out of a layer); when: the tip, inside at the step's start, lies in no tet
-  at its end, having moved back, points left (an inner layer); then: that layer keeps its channel from where
-  the tip entered it to its end; a tip moving back into a layer it left through its far face is on that
-  channel's line (through: no tip row)
+  at its end, points left (an inner layer, or the mouth of its entry face); then: that layer keeps its
+  channel from where the tip entered it to its end; a tip moved back into a layer it left through its far
+  face is on that channel's line (through: no tip row), one pushed into the mouth of its entry face keeps the
+  channel's end it cut to
 - phase: insertion; event: retraction; when: points lie beyond the tip; then: they are removed
 - phase: insertion; event: withdrawal; when: no point is left; then: approach; the tissue keeps the channel
   (``Channel``: its entry point, its end, the needle's radius), replacing the record of the hole it
@@ -498,9 +499,13 @@ class EventRules(CutEventRules):
             # layer, or the entry face with a point still kept): that part keeps its channel.
             world = evolved(world, channels=self._left_channels(world, state, channel_end, entered_at))
         elif state.tip_tet < 0 and tip_tet >= 0:
-            # Back into a part of the tissue the tip left through its far face (only a hole cut through
-            # lets a tip in backwards): on that channel's line, nothing to cut.
-            channel_end, entered_at = ChannelEnd(tip_tet, tip_barycentric, through=True), None
+            # Back in a part of the tissue whose channel was recorded when the tip left it. Moving back, the
+            # tip came in through the far face it left (only a hole cut through lets a tip in backwards): on
+            # that channel's line, nothing to cut. Pushed forward into the mouth of the face it entered by,
+            # its channel's end stays the one it cut to.
+            entered_at = None
+            if not detection.advancing:
+                channel_end = ChannelEnd(tip_tet, tip_barycentric, through=True)
         if path.point_count == 0:
             # The needle left the tissue: its channel stays in it (a hole in its surface, the cut tissue
             # behind it), which any needle may enter again.

@@ -12,6 +12,8 @@ surface one of them makes is met by the others' rows).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from refsim.constraints import InsertionPath, RowBlock, StepGeometry
@@ -82,14 +84,7 @@ class Instrument:
         """Its rows of the step, every row marked with its index, its needle's Jacobian keyed by its name."""
         detection = self.detector.detect(world, world.instrument(self.name), geometry)
         rows: RowBlock = detection.rows.of_instrument(self.index, self.body.name)
-        return Detection(
-            rows,
-            detection.contact,
-            detection.front,
-            detection.insertion_points,
-            detection.rings,
-            detection.hole,
-        )
+        return replace(detection, rows=rows)  # every other field as the detector gave it
 
     def needle_force(self, rows: RowBlock, multipliers: np.ndarray) -> np.ndarray:
         """The force of the tissue on its needle, Σ λ n over its rows [N], shape (3,)."""
