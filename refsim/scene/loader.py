@@ -274,7 +274,27 @@ def load_scene(path_or_name: str | Path, overrides: list[str] | tuple[str, ...] 
             raise SceneError(f"{path}: [{section}] must be a table")
         data.setdefault(section, {})[key] = value
         origins[(section, key)] = text
+    _replace_mesh_source(data, origins)
     return scene_from_dict(data, source=str(path), base_directory=str(path.parent), overrides=origins)
+
+
+#: The keys of each kind of mesh source in [mesh]: a generated box, or a file.
+_MESH_SOURCES = {"generator": ("generator", "size", "cells", "origin"), "file": ("file", "scale")}
+
+
+def _replace_mesh_source(data: dict, origins: dict) -> None:
+    """An override of ``mesh.file`` on a scene whose mesh is generated (or of ``mesh.generator`` on a scene
+    whose mesh is a file) replaces the scene's mesh source: the other kind's keys the file gives are dropped,
+    unless an override sets them too (then the section's own check names the conflict). The rest of [mesh]
+    (fixed faces, box or nodes) stays."""
+    mesh = data.get("mesh")
+    if not isinstance(mesh, dict):
+        return
+    for kind, other in (("file", "generator"), ("generator", "file")):
+        if ("mesh", kind) in origins and ("mesh", other) not in origins and other in mesh:
+            for key in _MESH_SOURCES[other]:
+                if ("mesh", key) not in origins:
+                    mesh.pop(key, None)
 
 
 def scene_to_json(scene: Scene) -> str:

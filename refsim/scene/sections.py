@@ -63,7 +63,10 @@ class MeshSpec(_Validated):
     """The tissue mesh: a generated box or a file, and which of its nodes are fixed."""
 
     generator: str | None = spec(
-        None, doc="mesh generator, 'box', or none when `file` is given", choices=("box",)
+        None,
+        doc="mesh generator, 'box', or none when `file` is given; set by --set on a scene with a file, it "
+        "replaces the file (and its scale)",
+        choices=("box",),
     )
     size: tuple | None = spec(None, unit="m", doc="box edge lengths", low=0.0, low_open=True, length=3)
     cells: tuple | None = spec(
@@ -71,7 +74,9 @@ class MeshSpec(_Validated):
     )
     origin: tuple = spec((0.0, 0.0, 0.0), unit="m", doc="box corner with the smallest coordinates", length=3)
     file: str | None = spec(
-        None, doc="volume mesh file (any format meshio reads, or Gmsh v1); relative to the scene"
+        None,
+        doc="volume mesh file (any format meshio reads, or Gmsh v1); relative to the scene; set by --set on "
+        "a scene with a generated box, it replaces the box (its generator, size, cells and origin)",
     )
     scale: float = spec(
         1.0, unit="-", doc="factor applied to the file's coordinates to get metres", low=0.0, low_open=True

@@ -20,7 +20,6 @@ reported by a warning.
 from __future__ import annotations
 
 import math
-from importlib import resources
 
 import meshio
 import numpy as np
@@ -55,15 +54,11 @@ def _layers_file(tmp_path, gap: float) -> str:
 
 
 def _scene_on_layers(tmp_path, name, gap, *overrides):
-    """The built-in scene ``name`` with its [mesh] table replaced by the two layers ``gap`` [m] apart."""
-    text = (resources.files("refsim") / "scenes" / f"{name}.toml").read_text("utf-8")
-    start = text.index("[mesh]")
-    end = text.index("\n[", start + 1)
+    """The built-in scene ``name`` on the two layers ``gap`` [m] apart (its mesh replaced by the file's)."""
     held = '["xmin", "xmax", "ymin", "ymax", "zmin"]'
-    mesh = f'[mesh]\nfile = "{_layers_file(tmp_path, gap)}"\nfixed_faces = {held}\n'
-    path = tmp_path / f"{name}_layers.toml"
-    path.write_text(text[:start] + mesh + text[end:], encoding="utf-8")
-    return load_scene(str(path), list(overrides))
+    return load_scene(
+        name, [f'mesh.file="{_layers_file(tmp_path, gap)}"', f"mesh.fixed_faces={held}", *overrides]
+    )
 
 
 def _run(tmp_path, gap, direction, *overrides, radius=0.0005):
