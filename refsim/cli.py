@@ -451,27 +451,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     return EXIT_FAILED if failed else 0
 
 
-def _run_for_bench(scene, *, timed: bool = False):
-    """Run a scene, keeping what the strategy comparison needs (``run_and_keep``); with ``timed``, also the
-    seconds its simulation took to build from the scene's models (the scene and models themselves built before
-    the clock starts)."""
-    import time
-
-    from refsim.scene.build import build_models
-    from refsim.simulation import Simulation
-    from refsim.simulation.summary import run_and_keep
-
-    models = build_models(scene)
-    start = time.perf_counter()
-    simulation = Simulation(scene, models)
-    setup = time.perf_counter() - start
-    result = run_and_keep(simulation)
-    return (result, setup) if timed else result
-
-
 def _cmd_bench(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from refsim.fem import bench
     from refsim.fem.compliance import STRATEGY_VARIANTS, strategy_variant
     from refsim.scene import load_scene
@@ -507,73 +487,51 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             f"reference: one SuperLU (COLAMD) factorisation of the cube's matrix, this run: "
             f"{reference_ms:.2f} ms"
         )
+        from refsim.simulation.bench import time_strategies
+
         scenes = {}
         for strategy in strategies:
             key, update = strategy_variant(strategy)
             overrides = [*(args.set or ()), f'compliance.strategy="{key}"', f'compliance.w_update="{update}"']
             scenes[strategy] = load_scene(args.scene, overrides)
-        # One untimed run of each first: numba compiles a kernel at its first call (up to minutes after a
-        # fresh install, kernels a cut uses only once the cut starts), which is not a step's cost.
-        for strategy in strategies:
-            _run_for_bench(scenes[strategy])
-        # Then --repeats rounds, each timing every strategy once in turn (the machine's load changes: the runs
-        # of a comparison are interleaved, each strategy's time is the median of its runs, and the reference
-        # is timed again beside each run).
-        timed = {strategy: [] for strategy in strategies}  # (ms per step, set-up s, reference ms, run)
-        for _ in range(args.repeats):
-            for strategy in strategies:
-                before = bench.superlu_reference_ms(bench.cube_model(8))
-                (summary, kept), setup = _run_for_bench(scenes[strategy], timed=True)
-                reference = 0.5 * (before + bench.superlu_reference_ms(bench.cube_model(8)))
-                per_step = 1e3 * summary.seconds / max(summary.steps, 1)
-                timed[strategy].append((per_step, setup, reference, (summary, kept)))
-        runs, step_ms, round_ms = {}, {}, {}
-        for strategy in strategies:
-            scene, entries = scenes[strategy], timed[strategy]
-            round_ms[strategy] = np.array([entry[0] for entry in entries])
-            per_step = float(np.median(round_ms[strategy]))
-            # the run whose time is the median's (the upper middle one for an even count) gives the tables
-            middle = entries[int(np.argsort(round_ms[strategy], kind="stable")[len(entries) // 2])]
-            summary, kept = middle[3]
-            reference_ms = float(np.median([entry[2] for entry in entries]))
-            setup_ms = 1e3 * float(np.median([entry[1] for entry in entries]))
-            runs[strategy], step_ms[strategy] = kept, per_step
+        timed = time_strategies(scenes, args.repeats)
+        for strategy, run in timed.items():
+            scene, per_step = run.scene, run.median_ms
             spread = (
-                f" (median of {len(entries)} runs, {round_ms[strategy].min():.2f} to "
-                f"{round_ms[strategy].max():.2f})"
-                if len(entries) > 1
+                f" (median of {run.step_ms.size} runs, {run.step_ms.min():.2f} to {run.step_ms.max():.2f})"
+                if run.step_ms.size > 1
                 else ""
             )
             print(
                 f"\nscene {scene.name}, compliance {strategy} (w_update {scene.compliance.w_update}, "
                 f"refresh_every {scene.compliance.refresh_every}): "
                 f"solver {scene.solver.method}, tolerance {scene.solver.tolerance:g}; {per_step:.2f} ms per "
-                f"step{spread}, {per_step / reference_ms:.2f} of the SuperLU factorisation "
-                f"({reference_ms:.2f} ms around these runs), timed on runs after a first one (which compiles "
-                f"the kernels); set-up "
-                f"{setup_ms:.1f} ms (the simulation built from the scene's models: the fast mode's rest "
-                f"factorisation)"
+                f"step{spread}, {per_step / run.reference_ms:.2f} of the SuperLU factorisation "
+                f"({run.reference_ms:.2f} ms around these runs), timed on runs after a first one (which "
+                f"compiles the kernels); set-up {run.setup_ms:.1f} ms (the simulation built from the scene's "
+                f"models: the fast mode's rest factorisation)"
             )
-            print(summary.format_table(beside_paper=True))
+            print(run.summary.format_table(beside_paper=True))
             print(
                 "paper: Perrusi, Baksic and Courtecuisse 2021, Table 1 (their C++ in SOFA, their machine, "
                 "Gauss-Seidel; penetration = our approach phase)"
             )
-            if summary.cut_points:
-                print(summary.format_cut())
+            if run.summary.cut_points:
+                print(run.summary.format_cut())
         if args.against_exact:
             print(
                 "\nagainst exact (same scene): time per step (wall, each run above), positions [m], needle "
                 "force [N], events"
             )
-            for strategy, kept in runs.items():
+            exact = timed["exact"]
+            for strategy, run in timed.items():
                 if strategy == "exact":
                     continue
-                errors = bench.compare_runs(runs["exact"], kept)
-                ratios = round_ms[strategy] / round_ms["exact"]
+                errors = bench.compare_runs(exact.kept, run.kept)
+                ratios = run.step_ms / exact.step_ms
                 rounds = f" (each round: {ratios.min():.2f} to {ratios.max():.2f})" if ratios.size > 1 else ""
                 print(
-                    f"  {strategy:<12} time {step_ms[strategy] / step_ms['exact']:.2f} of the exact "
+                    f"  {strategy:<12} time {run.median_ms / exact.median_ms:.2f} of the exact "
                     f"step{rounds}, position {errors['position_error']:.3e} m, force "
                     f"{errors['force_error']:.3e} N "
                     f"(peak {errors['peak_force']:.4g} N), events "

@@ -301,8 +301,7 @@ class Detector:
                 # pulled back out of the face it entered by (a point still kept, or an inner layer's) is in
                 # its own channel's mouth: pushed in again it is located there, its channel's end kept.
                 contact, approach, hole = self.approach_rows(geometry, world.channels, shaft=False)
-                needle = geometry.needle_free if self.needle_dof_count is None else geometry.needle_previous
-                if float(contact.normal @ needle.tip_tangent) < 0.0:
+                if float(contact.normal @ self._contact_needle(geometry).tip_tangent) < 0.0:
                     blocks.extend(approach)
                 else:  # only the face it left, turned away from it: it moves away from that face
                     contact, hole = None, None
@@ -330,6 +329,12 @@ class Detector:
         previous = geometry.needle_previous
         return float((geometry.needle_free.tip - previous.tip) @ previous.tip_tangent) >= 0.0
 
+    def _contact_needle(self, geometry: StepGeometry):
+        """The needle configuration the tip's contact is found on: the free one for a rigid needle (its
+        kinematic pose is where the step puts it), the start-of-step one for a deformable needle (its free
+        motion has no contact in it; see :meth:`approach_rows`)."""
+        return geometry.needle_free if self.needle_dof_count is None else geometry.needle_previous
+
     def approach_rows(
         self, geometry: StepGeometry, channels: tuple[Channel, ...] = (), *, shaft: bool = True
     ) -> tuple[SurfaceContact, list[RowBlock], Channel | None]:
@@ -353,7 +358,7 @@ class Detector:
         spec = self.insertion
         blocks = []
         projector = SurfaceProjector(geometry.tissue_free, self.faces)
-        needle = geometry.needle_free if self.needle_dof_count is None else geometry.needle_previous
+        needle = self._contact_needle(geometry)
         tip_direction = needle.tangents(np.array([needle.length]))[0]
         contact = find_surface_contact(
             projector, self.faces, needle.tip, tip_direction, tip_radius=spec.tip_radius

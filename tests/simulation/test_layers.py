@@ -13,8 +13,8 @@ hole it cut as a hole (no puncture); its channel ends where it cut to (no tip cu
 Okamura et al. 2004), and a channel cut through a layer has no tip row on its line. Checked over the gap
 (above and below the contact distance, 2 mm: the lower layer is within reach of the tip as it leaves the upper
 one), the needle's direction (vertical, 30°) and the puncture rule, and on single cases the needle (a beam,
-a thick one), the fast compliance and the exact solver. A cut started through both layers is a known limit,
-reported by a warning.
+a thick one), the fast compliance, the exact solver and the entry point (a grid edge, a vertex). A cut started
+through both layers is a known limit, reported by a warning.
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ def _scene_on_layers(tmp_path, name, gap, *overrides):
     )
 
 
-def _run(tmp_path, gap, direction, *overrides, radius=0.0005):
+def _run(tmp_path, gap, direction, *overrides, radius=0.0005, entry=ENTRY):
     """The two-layer scene and its step records for the needle's life of the module's docstring (a needle of
     ``radius`` [m])."""
     direction = np.asarray(DIRECTIONS[direction], dtype=float)
@@ -74,7 +74,7 @@ def _run(tmp_path, gap, direction, *overrides, radius=0.0005):
     times = [0.0]
     for before, after in zip(depths[:-1], depths[1:], strict=True):
         times.append(round(times[-1] + max(abs(after - before) / SPEED, 0.1), 2))  # whole steps of 10 ms
-    entry = np.array([ENTRY[0], ENTRY[1], TOP])
+    entry = np.array([entry[0], entry[1], TOP])
     bases = [entry + (d - NEEDLE_LENGTH) * direction for d in depths]
     vector = lambda v: "[" + ", ".join(repr(float(c)) for c in v) + "]"  # noqa: E731
     scene = _scene_on_layers(
@@ -99,7 +99,8 @@ def _run(tmp_path, gap, direction, *overrides, radius=0.0005):
 LIFE = ["puncture", "exit", "puncture", "withdrawal", "reentry", "exit", "reentry"]
 
 
-# What else a user varies, on one case each: the needle (beam), the compliance (fast mode), the solver.
+# What else a user varies, on one case each: the needle (beam, thick), the compliance (fast mode), the
+# solver, the entry point.
 VARIANTS = {
     "rigid": (),
     "flexible": ("needle.rigid=false",),
@@ -108,8 +109,12 @@ VARIANTS = {
     # the cube's needle, r = 8 mm: the upper layer's exit hole lies within its radius of the lower layer's
     # surface (3 mm below; the holes of another surface were once taken for that surface's)
     "thick": (),
+    # entries on the 4 x 4 grid of both layers' top faces (lines every 25 mm): on a grid edge, at a vertex
+    "edge": (),
+    "vertex": (),
 }
 RADII = {"thick": 0.008}
+ENTRIES = {"edge": (0.0, ENTRY[1]), "vertex": (0.0, 0.0)}
 CASES = [
     *(
         (gap, direction, rule, "rigid")
@@ -121,6 +126,8 @@ CASES = [
     (0.001, "30deg", "capped", "fast"),
     (0.001, "0deg", "plain", "exact_solver"),
     (0.003, "0deg", "capped", "thick"),
+    (0.003, "30deg", "capped", "edge"),
+    (0.001, "0deg", "plain", "vertex"),
 ]
 
 
@@ -140,6 +147,7 @@ def test_a_needle_through_two_layers_punctures_each_and_keeps_their_channels(
         f"insertion.puncture_within_step={within}",
         *VARIANTS[variant],
         radius=RADII.get(variant, 0.0005),
+        entry=ENTRIES.get(variant, ENTRY),
     )
     named = [(r.step, e) for r in records for e in r.events if e.name in set(LIFE)]
     assert [e.name for _, e in named] == LIFE, " ".join(f"{s}:{e.name}" for s, e in named)
