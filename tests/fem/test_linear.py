@@ -24,6 +24,9 @@ from refsim.fem.linear import (
 )
 
 EPS = np.finfo(float).eps
+NEEDS_PARDISO = pytest.mark.skipif(
+    "pardiso" not in available_linear_solvers(), reason="pardiso not available on this machine"
+)
 
 
 def spd_matrix(n: int, seed: int, shift: float = 1.0) -> sp.csr_matrix:
@@ -118,9 +121,8 @@ def test_pardiso_is_available_on_x86_64():
     assert "pardiso" in available_linear_solvers()
 
 
+@NEEDS_PARDISO
 def test_pardiso_reanalyses_a_new_pattern():
-    if "pardiso" not in available_linear_solvers():
-        pytest.skip("pardiso not available on this machine")
     solver = make_linear_solver("pardiso")
     for size in (125, 216):
         matrix = spd_matrix(size, 1)
@@ -151,9 +153,8 @@ def test_unavailable_or_unknown_backends_are_named():
             make_linear_solver("cholmod")
 
 
+@NEEDS_PARDISO
 def test_pardiso_inverse_block_equals_the_dense_inverse_on_marked_positions():
-    if "pardiso" not in available_linear_solvers():
-        pytest.skip("pardiso not available on this machine")
     matrix = spd_matrix(343, 2, shift=0.2)
     dense = matrix.toarray()
     inverse = np.linalg.inv(dense)
@@ -176,12 +177,11 @@ def test_pardiso_inverse_block_equals_the_dense_inverse_on_marked_positions():
         solver.inverse_block(np.array([0]))
 
 
+@NEEDS_PARDISO
 def test_pardiso_in_single_precision_solves_to_float32s_bound_in_every_phase():
     # precision="single" (the fast mode's rest factor): the factor and the solves in float32, float64 in and
     # out. Backward-stable solves: relative forward error ≲ κ(A) ε₃₂ (Higham, ch. 7, 10), where the double
     # factor's is κ(A) ε₆₄; the float32 one is measured above float64's bound (it is in single precision).
-    if "pardiso" not in available_linear_solvers():
-        pytest.skip("pardiso not available on this machine")
     matrix = spd_matrix(343, 3, shift=0.2)
     dense = matrix.toarray()
     inverse = np.linalg.inv(dense)
@@ -217,10 +217,9 @@ def test_pardiso_in_single_precision_solves_to_float32s_bound_in_every_phase():
         make_linear_solver("pardiso", precision="half")
 
 
+@NEEDS_PARDISO
 def test_pardiso_factor_is_a_function_of_the_marks_not_of_their_history():
     # What makes a restarted run's bits those of the uninterrupted run (the marks are carried in the state).
-    if "pardiso" not in available_linear_solvers():
-        pytest.skip("pardiso not available on this machine")
     first, second = spd_matrix(216, 3), spd_matrix(216, 4)
     marks = np.array([5, 6, 7, 100])
     rhs = np.arange(216, dtype=float)
@@ -236,11 +235,10 @@ def test_pardiso_factor_is_a_function_of_the_marks_not_of_their_history():
     np.testing.assert_array_equal(travelled.inverse_block(marks), fresh.inverse_block(marks))
 
 
+@NEEDS_PARDISO
 def test_pardiso_partial_solve_depends_on_no_earlier_one():
     # inverse_block keeps its (n, k) load and solution arrays from call to call: a block must not see the
     # loads or solutions of the calls before it (the same count of positions reuses them, another count not).
-    if "pardiso" not in available_linear_solvers():
-        pytest.skip("pardiso not available on this machine")
     matrix = spd_matrix(216, 5)
     marks = np.array([2, 3, 50, 51, 120, 180, 181])
     travelled, fresh = make_linear_solver("pardiso"), make_linear_solver("pardiso")
@@ -260,10 +258,9 @@ def test_pardiso_partial_solve_depends_on_no_earlier_one():
     np.testing.assert_array_equal(travelled.inverse_block(marks), fresh.inverse_block(marks))
 
 
+@NEEDS_PARDISO
 def test_pardiso_solve_of_a_load_on_the_marks_equals_the_full_solve():
     # solve_marked skips the forward substitution's work on zeros only: the same bits as solve
-    if "pardiso" not in available_linear_solvers():
-        pytest.skip("pardiso not available on this machine")
     matrix = spd_matrix(343, 6)
     marks = np.array([4, 5, 6, 170, 171, 300])
     solver = make_linear_solver("pardiso")
@@ -279,12 +276,11 @@ def test_pardiso_solve_of_a_load_on_the_marks_equals_the_full_solve():
         solver.solve_marked(load)
 
 
+@NEEDS_PARDISO
 def test_pardiso_loads_mkl_without_pypardiso():
     # oneMKL's runtime is found in the mkl wheel's library folder, not through pypardiso (whose import builds
     # a solver that globs all of sys.prefix, and does it again on first use): a PARDISO factorisation in a
     # fresh interpreter imports no pypardiso.
-    if "pardiso" not in available_linear_solvers():
-        pytest.skip("pardiso not available on this machine")
     code = (
         "import sys, numpy as np, scipy.sparse as sp\n"
         "from refsim.fem.linear import make_linear_solver\n"
@@ -311,11 +307,10 @@ def test_a_missing_mkl_runtime_is_named(monkeypatch, tmp_path):
         _pardiso_function.cache_clear()
 
 
+@NEEDS_PARDISO
 def test_pardiso_analyses_a_pattern_once(monkeypatch):
     # One analysis for every matrix made on the same pattern arrays (SciPy hands out views of them, so they
     # are recognised by their memory), and one more for another pattern.
-    if "pardiso" not in available_linear_solvers():
-        pytest.skip("pardiso not available on this machine")
     solver = make_linear_solver("pardiso")
     analyses = []
     original = solver._analyse
@@ -336,12 +331,11 @@ def test_pardiso_analyses_a_pattern_once(monkeypatch):
     assert len(analyses) == 2
 
 
+@NEEDS_PARDISO
 def test_pardiso_analysed_again_after_a_plain_analysis_does_not_corrupt_the_heap():
     # A marked analysis, a plain one, a marked one again on one handle: what a second run of a simulation
     # does (its first step resumes without marks). Re-analysing a handle in place aborted the process
     # ("munmap_chunk(): invalid pointer"); the child must exit cleanly and give a fresh solver's bits.
-    if "pardiso" not in available_linear_solvers():
-        pytest.skip("pardiso not available on this machine")
     code = (
         "import numpy as np\n"
         "from refsim.fem.linear import make_linear_solver\n"
@@ -366,9 +360,8 @@ def test_pardiso_analysed_again_after_a_plain_analysis_does_not_corrupt_the_heap
     assert done.stdout.split() == ["True", "True"]
 
 
+@NEEDS_PARDISO
 def test_a_released_pardiso_solver_refuses_to_solve_and_can_start_again():
-    if "pardiso" not in available_linear_solvers():
-        pytest.skip("pardiso not available on this machine")
     matrix, marks = spd_matrix(216, 9), np.array([1, 2, 90])
     rhs = np.arange(216, dtype=float)
     solver = make_linear_solver("pardiso")
