@@ -175,13 +175,20 @@ def zero_compliance(problem) -> np.ndarray:
     return zero_compliance_rows(problem.compliance)
 
 
+def _spectral_norm(matrix: np.ndarray) -> float:
+    """‖D‖₂ of a (k, 3) matrix D: the square root of the largest eigenvalue of its 3 × 3 Gram matrix DᵀD (a
+    3 × 3 eigenvalue problem in place of the SVD of D that ``np.linalg.norm(D, ord=2)`` takes)."""
+    gram = matrix.T @ matrix
+    return float(np.sqrt(max(float(np.linalg.eigvalsh(gram)[-1]), 0.0)))
+
+
 def force_accuracy(compliance: np.ndarray, rows: np.ndarray, residual_bound: float) -> float:
     """ε_λ = ‖e‖ max(1, 1/σ_min(W_BB)) [N]: the accuracy of the forces of ``rows`` (B) for a natural-map
     error ‖e‖ ≤ ``residual_bound`` (τ D), W the problem's compliance [m/N]."""
     rows = np.asarray(rows, dtype=np.int64)
     if rows.size == 0:
         return 0.0
-    block = compliance[np.ix_(rows, rows)]
+    block = compliance.take(rows, axis=0).take(rows, axis=1)  # W[np.ix_(rows, rows)], without its index grid
     smallest = float(np.linalg.eigvalsh(0.5 * (block + block.T))[0])
     inverse = np.inf if smallest <= 0.0 else 1.0 / smallest
     return float(residual_bound * max(1.0, inverse))
@@ -298,7 +305,7 @@ class MarginWatch:
         else:
             lateral = self._own_rows[np.asarray(rows, dtype=np.int64)]
         rows = self._rows
-        spread = float(np.linalg.norm(rows.directions[lateral], ord=2)) if lateral.size else 0.0
+        spread = _spectral_norm(rows.directions[lateral]) if lateral.size else 0.0
         accuracy = spread * self._accuracy(lateral) / divisor if divisor > 0.0 else np.inf
         self._criteria.append(Criterion("cut_start", value, threshold, accuracy, unit))
 

@@ -13,6 +13,7 @@ from refsim.simulation.margins import (
     Criterion,
     CriterionSeries,
     MarginWatch,
+    _spectral_norm,
     assess,
     force_accuracy,
 )
@@ -64,6 +65,23 @@ def test_force_accuracy_of_one_row_is_the_residual_bound_over_its_compliance():
     compliance = np.array([[1e-3]])
     assert force_accuracy(compliance, np.array([0]), 1e-6) == pytest.approx(1e-3)
     assert force_accuracy(np.array([[10.0]]), np.array([0]), 1e-6) == pytest.approx(1e-6)
+
+
+def test_force_accuracy_reads_the_smallest_eigenvalue_of_the_rows_block():
+    # W_BB of rows (0, 2) of a 3 × 3 W: [[2, 0.5], [0.5, 1]] 1e-3 m/N, its smallest eigenvalue
+    # (3 − √2) / 2 · 1e-3 (the characteristic polynomial); the bound is e / σ_min.
+    compliance = 1e-3 * np.array([[2.0, 7.0, 0.5], [7.0, 9.0, 7.0], [0.5, 7.0, 1.0]])
+    smallest = 0.5 * (3.0 - np.sqrt(2.0)) * 1e-3
+    assert force_accuracy(compliance, np.array([0, 2]), 1e-6) == pytest.approx(1e-6 / smallest, rel=1e-12)
+
+
+@pytest.mark.parametrize("rows", [1, 2, 5, 40])
+def test_the_spread_of_the_lateral_rows_is_their_largest_singular_value(rows):
+    # ‖D‖₂ by the 3 × 3 Gram matrix equals the SVD's σ_max (LAPACK's, np.linalg.norm(ord=2)) to round-off:
+    # both are σ_max of D to a few ulps of ‖D‖² (Golub and Van Loan, 8.6).
+    directions = np.random.default_rng(rows).normal(size=(rows, 3))
+    expected = np.linalg.norm(directions, ord=2)
+    assert _spectral_norm(directions) == pytest.approx(expected, rel=1e-13)
 
 
 def test_watch_reads_a_capped_puncture_row_as_the_force_it_asks_for():
