@@ -165,6 +165,11 @@ class CutSurface:
         return _readonly(np.unique(self.border_edges()))
 
     @functools.cached_property
+    def _triangle_points(self) -> np.ndarray:
+        """Sorted indices of the points the triangles use, shape (u,)."""
+        return np.unique(self.triangles)
+
+    @functools.cached_property
     def _edge_lookup(self) -> tuple[np.ndarray, np.ndarray]:
         """The undirected edge keys of ``_edges`` sorted, and their use counts in that order."""
         _, keys, uses = self._edges
@@ -251,9 +256,9 @@ class CutSurface:
                 "the cut surface has no triangle yet: check triangle_count before closest_points"
             )
         queries = np.asarray(points, dtype=float)
-        face_index, barycentric = SurfaceProjector(deformed_points, self.triangles).closest_faces(
-            queries, compiled_choice=True
-        )
+        face_index, barycentric = SurfaceProjector(
+            deformed_points, self.triangles, vertex_indices=self._triangle_points
+        ).closest_faces(queries, compiled_choice=True)
         local = self.triangles[face_index]
         corners = deformed_points[local]  # (q, 3, 3)
         closest = np.einsum("qk,qki->qi", barycentric, corners)

@@ -338,6 +338,9 @@ class SurfaceProjector:
     ----------
     positions : Node positions [m], shape (node_count, 3).
     faces : Node indices of the triangles, shape (face_count, 3); outward-oriented for outward normals.
+    vertex_indices : ``np.unique(faces)``, when the caller keeps it for its faces (a surface queried at every
+        step in new positions): the scan's bound is then taken over each point once. It must be exactly the
+        points the faces use (a point off the surface could make the bound smaller than the distance to it).
 
     Notes
     -----
@@ -349,9 +352,12 @@ class SurfaceProjector:
     they give the same bits.
     """
 
-    def __init__(self, positions: np.ndarray, faces: np.ndarray):
+    def __init__(self, positions: np.ndarray, faces: np.ndarray, *, vertex_indices: np.ndarray | None = None):
         self.positions, self.faces = _check_elements(positions, faces, 3, "faces")
         self.triangles = self.positions[self.faces]  # (f, 3, 3)
+        # The scan's bound over the faces' distinct points; None: over every face's corners (the same bound,
+        # up to six times the work on a closed surface)
+        self._vertices = None if vertex_indices is None else self.positions[vertex_indices]
         from refsim.geometry.grid import triangle_spheres  # numba: imported on first use
 
         # triangles.mean(axis=1) and the largest norm of the vertices' offsets, compiled (the same bits)
@@ -425,7 +431,7 @@ class SurfaceProjector:
             # the queries whose candidates are all regular faces (the bits of the NumPy path below); a query
             # with a thin candidate takes that path
             face_index, barycentric, settled = closest_faces_scan(
-                points, self.triangles, self.centroids, self.radii, _RADIUS_SLACK, _THIN_AREA
+                points, self.triangles, self.centroids, self.radii, _RADIUS_SLACK, _THIN_AREA, self._vertices
             )
             if not settled.all():
                 careful = np.flatnonzero(~settled)
@@ -442,7 +448,7 @@ class SurfaceProjector:
             from refsim.geometry.grid import surface_candidates  # numba: imported on first use
 
             queries, faces = surface_candidates(
-                points, self.triangles, self.centroids, self.radii, _RADIUS_SLACK, _THIN_AREA
+                points, self.triangles, self.centroids, self.radii, _RADIUS_SLACK, _THIN_AREA, self._vertices
             )
         else:
             queries, faces = self._indexed_candidates(points)

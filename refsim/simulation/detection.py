@@ -120,6 +120,7 @@ class Detector:
         self.cutting = scene.cutting
         self.law = scene.cutting.cutting_law if cuts else None
         self.faces = faces
+        self._face_points = np.unique(faces)  # the surface's points (its projector's scan bound, every step)
         self.needle_dof_count = needle_dof_count
         self.cut_compliance = None
         if scene.cutting.enabled and rest_positions is not None and tets is not None:
@@ -357,7 +358,7 @@ class Detector:
         exist when either tip is within the contact distance."""
         spec = self.insertion
         blocks = []
-        projector = SurfaceProjector(geometry.tissue_free, self.faces)
+        projector = SurfaceProjector(geometry.tissue_free, self.faces, vertex_indices=self._face_points)
         needle = self._contact_needle(geometry)
         tip_direction = needle.tangents(np.array([needle.length]))[0]
         contact = find_surface_contact(

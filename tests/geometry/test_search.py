@@ -305,11 +305,16 @@ def test_projector_scan_and_kd_trees_give_the_same_bits(graded, box, offset):
     cases.append((sliver_positions, sliver_faces, rng.uniform(-0.1, 1.1, (60, 3)) * [1.0, 1e-6, 1e-6]))
     for positions, faces, points in cases:
         projector = SurfaceProjector(positions, faces)
-        scanned = projector._closest_chunk(points)
         queries, candidates = projector._indexed_candidates(points)
         indexed = _closest_of_pairs(projector, points, queries, candidates)
-        for got, expected in zip(scanned, indexed, strict=True):
-            np.testing.assert_array_equal(got, expected)
+        # The scan's bound over every face's corners, or over the faces' distinct points (vertex_indices: the
+        # same least distance; the positions hold points off the surface too, the Delaunay's inner ones)
+        distinct = SurfaceProjector(positions, faces, vertex_indices=np.unique(faces))
+        for scanner in (projector, distinct):
+            for compiled in (False, True):
+                scanned = scanner._closest_chunk(points, compiled)
+                for got, expected in zip(scanned, indexed, strict=True):
+                    np.testing.assert_array_equal(got, expected)
         assert projector.faces.shape[0] * points.shape[0] <= search._SCAN_PAIRS  # the scan was taken
 
 
