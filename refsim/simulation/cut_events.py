@@ -163,16 +163,7 @@ class CutEventRules:
             path = self._outside_cut(path, world, positions)
         events = [Event("leave_cut")]
         if path.point_count == 0:
-            state = evolved(
-                state,
-                phase=Phase.APPROACH,
-                path=path,
-                cut_strip=None,
-                tip_tet=-1,
-                channel_end=None,
-                entered_at=None,
-            )
-            return world, state, [*events, Event("withdrawal")]
+            return world, state.withdrawn(), [*events, Event("withdrawal")]
         tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, -1, locator)
         state = evolved(
             state,
@@ -215,15 +206,7 @@ class CutEventRules:
             # The tip is back above the entry point: every row is released; the tissue keeps its cut, up to
             # the crack tip.
             world = evolved(world, cut=recorded_surface(world.cut, state.cut_strip, world.step))
-            state = evolved(
-                state,
-                phase=Phase.APPROACH,
-                path=InsertionPath.empty(),
-                cut_strip=None,
-                channel_end=None,
-                entered_at=None,
-            )
-            return world, state, [Event("retraction"), Event("withdrawal")]
+            return world, state.withdrawn(), [Event("retraction"), Event("withdrawal")]
         events: list[Event] = []
         cutting = self.cutting
         # The tip's material state, as in insertion: leaving through a far face is the event exit (the needle

@@ -510,16 +510,7 @@ class EventRules(CutEventRules):
             # The needle left the tissue: its channel stays in it (a hole in its surface, the cut tissue
             # behind it), which any needle may enter again.
             world = evolved(world, channels=self._left_channels(world, state, channel_end, entered_at))
-            state = evolved(
-                state,
-                phase=Phase.APPROACH,
-                path=path,
-                tip_tet=-1,
-                tip_barycentric=None,
-                channel_end=None,
-                entered_at=None,
-            )
-            return world, state, [*events, Event("withdrawal")]
+            return world, state.withdrawn(), [*events, Event("withdrawal")]
         state = evolved(
             state,
             path=path,

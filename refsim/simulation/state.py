@@ -15,7 +15,15 @@ from refsim.fem.compliance import FreeMotionStart, PartialSolveMarks, StaleFacto
 from refsim.fem.tissue import TissueState
 from refsim.simulation.needle_body import NeedleState
 
-__all__ = ["Channel", "ChannelEnd", "InstrumentState", "Phase", "SimulationState", "evolved"]
+__all__ = [
+    "KEPT_AT_WITHDRAWAL",
+    "Channel",
+    "ChannelEnd",
+    "InstrumentState",
+    "Phase",
+    "SimulationState",
+    "evolved",
+]
 
 
 def evolved(instance, **changes):
@@ -142,6 +150,30 @@ class InstrumentState:
     entered_at: ChannelEnd | None = None
     entry_span: tuple[float, float] | None = None
     cut_face_stretch: FaceStretch | None = None
+
+    def withdrawn(self) -> InstrumentState:
+        """This instrument after the event withdrawal, its needle out of the tissue: back in approach with
+        nothing of its time in the tissue (no insertion point, no cut strip, the tip outside, no channel end
+        or entry). Its name, needle, cut direction and the step-scoped fields (:data:`KEPT_AT_WITHDRAWAL`) are
+        kept."""
+        return evolved(self, path=InsertionPath.empty(), **_WITHDRAWN)
+
+
+#: What the event withdrawal sets in an instrument's state besides an empty path
+#: (:meth:`InstrumentState.withdrawn`): the one place its time in the tissue is forgotten, whichever phase it
+#: leaves from.
+_WITHDRAWN = dict(
+    phase=Phase.APPROACH,
+    cut_strip=None,
+    tip_tet=-1,
+    tip_barycentric=None,
+    channel_end=None,
+    entered_at=None,
+)
+#: The fields of an instrument's state a withdrawal keeps: who it is and where its needle is, the direction
+#: its last cut ran in, and what each step's events set again before reading (the inserted span, the cut
+#: faces' stretch).
+KEPT_AT_WITHDRAWAL = ("name", "needle", "cut_direction", "entry_span", "cut_face_stretch")
 
 
 @dataclass(frozen=True)

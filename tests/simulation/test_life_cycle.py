@@ -634,12 +634,22 @@ def test_a_needle_pulled_out_of_its_cut_holds_no_force_from_the_step_it_leaves(l
     times = [0.0, 1.9, 2.0, 2.5, 2.6, 3.8, 4.0]
     knots = [(0.00123, 0.422), (0.00123, 0.403), (0.00123, 0.403), (0.00623, 0.403), (0.00623, 0.403)]
     knots += [(0.00623, 0.424), (0.00623, 0.424)]
-    _, records = _cube_cut(knots, times, f'cutting.law="{law}"', *NEEDLES[needle])
+    _, records, state = _cube_cut(knots, times, f'cutting.law="{law}"', *NEEDLES[needle], with_state=True)
     names = [e.name for r in records for e in r.events if e.name in ("cut_start", "withdrawal", "exit")]
     assert names == ["cut_start", "withdrawal"], names
     out = next(i for i, r in enumerate(records) if any(e.name == "withdrawal" for e in r.events))
     assert np.linalg.norm(records[out - 3].needle_force) > 0.0  # the cut held it on the way out
     assert all(not np.any(r.needle_force) for r in records[out:]), [r.needle_force for r in records[out:]][:3]
+    # Withdrawn from its cut, the needle keeps nothing of its time in the tissue: its tip outside, no point,
+    # no strip, no channel end or entry (the state a needle starts in)
+    needle_state = state.instruments[0]
+    assert needle_state.phase == "approach" and needle_state.path.point_count == 0
+    assert needle_state.tip_tet == -1 and needle_state.tip_barycentric is None
+    assert (
+        needle_state.cut_strip is None
+        and needle_state.channel_end is None
+        and needle_state.entered_at is None
+    )
 
 
 @pytest.mark.slow
@@ -1274,3 +1284,50 @@ def test_a_needle_less_deep_than_d_i_pushed_sideways_starts_a_cut_at_the_surface
     starts = [r for r in records if any(e.name == "cut_start" for e in r.events)]
     assert starts and starts[0].time < inserted + 0.5  # during the push
     assert max(np.linalg.norm(r.needle_force) for r in records) <= np.sqrt(1.0 + friction**2) * bound
+
+
+def test_a_withdrawal_forgets_every_field_of_the_time_in_the_tissue_but_the_kept_ones():
+    # Every field of an instrument's state is either set back by a withdrawal to what a needle starts with
+    # (Instrument.initial_state: approach, no point, tip outside) or named as kept (KEPT_AT_WITHDRAWAL): a
+    # field added to the state must be given one of the two, in one place, whichever phase the needle
+    # leaves from (before, each event that withdrew a needle listed its own fields, and the withdrawal from
+    # a cut left the tip's tet of its last step).
+    from dataclasses import fields
+
+    from refsim.constraints import InsertionPath
+    from refsim.simulation.state import KEPT_AT_WITHDRAWAL, ChannelEnd, InstrumentState, Phase
+
+    end = ChannelEnd(3, np.full(4, 0.25), through=True)
+    inside = InstrumentState(
+        name="needle",
+        phase=Phase.CUTTING,
+        needle=object(),
+        path=InsertionPath.empty().appended(np.array([3]), np.full((1, 4), 0.25), 7),
+        cut_direction=np.array([1.0, 0.0, 0.0]),
+        cut_strip=object(),
+        tip_tet=3,
+        tip_barycentric=np.full(4, 0.25),
+        channel_end=end,
+        entered_at=end,
+        entry_span=(0.1, 0.3),
+        cut_face_stretch=object(),
+    )
+    fresh = InstrumentState(name="needle", phase=Phase.APPROACH, needle=object(), path=InsertionPath.empty())
+    out = inside.withdrawn()
+    names = {field.name for field in fields(InstrumentState)}
+    assert set(KEPT_AT_WITHDRAWAL) <= names
+    for name in names:
+        if name in KEPT_AT_WITHDRAWAL:
+            assert getattr(out, name) is getattr(inside, name), name
+        elif name == "path":
+            assert out.path.point_count == 0
+        else:
+            assert _same(getattr(out, name), getattr(fresh, name)), name
+            assert not _same(getattr(inside, name), getattr(fresh, name)), name  # (the test sets every field)
+
+
+def _same(first, second) -> bool:
+    """Equal values, arrays by their entries (None, numbers and phases by ==)."""
+    if isinstance(first, np.ndarray) or isinstance(second, np.ndarray):
+        return first is not None and second is not None and np.array_equal(first, second)
+    return first == second
