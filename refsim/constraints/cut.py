@@ -49,8 +49,9 @@ __all__ = [
     "crack_tip_compression",
     "cut_criterion",
     "inserted_arc",
-    "inserted_parts",
+    "inserted_stretches",
     "inserted_span",
+    "stretch_length",
     "strip_cut_block",
 ]
 
@@ -59,12 +60,57 @@ __all__ = [
 _MIN_NORMAL_COMPONENT = 0.5
 
 
+def inserted_stretches(
+    needle, locator, spacing: float, *, refinement: int = 16
+) -> tuple[tuple[float, float], ...]:
+    """The stretches of the needle's centreline that lie in the tissue mesh (``locator``, a
+    `refsim.geometry.TetLocator` on the configuration of ``needle``): (entry, end) arc lengths [m] of each,
+    ordered from the needle's base to its tip, each end to ``spacing / refinement``; empty when no sample of
+    the needle lies in the tissue.
+
+    The needle is sampled every ``spacing`` from the tip to the base; a stretch is a run of samples in the
+    tissue, so parts of the tissue closer than ``spacing`` along the needle may be read as one. The deepest
+    stretch ends at the tip while the tip is in the tissue, else where the centreline leaves the tissue
+    through a far face (the part beyond, in the air, is not inserted); each other one where the needle leaves
+    its part of the tissue into a gap (a wall over an organ: the needle through both, a gap between them).
+    """
+    length = needle.length
+    arcs = np.arange(length, -0.5 * spacing, -spacing)  # from the tip to the base, every spacing
+    found, _ = locator.locate(needle.points(np.clip(arcs, 0.0, length)))
+    inside = found >= 0
+    stretches = []
+    start = 0  # where the search for the next stretch begins, among the samples from the tip
+    while True:  # once per stretch (a part of the tissue the needle is in), from the tip's up
+        deeper = np.flatnonzero(inside[start:])
+        if deeper.size == 0:
+            break
+        last = start + int(deeper[0])  # the stretch's deepest sample; the one before it (deeper) is out
+        if last == 0:
+            end = float(length)
+        else:
+            fine = np.linspace(max(arcs[last], 0.0), arcs[last - 1], refinement + 1)
+            located, _ = locator.locate(needle.points(fine))
+            out = np.flatnonzero(located < 0)
+            end = float(fine[max(int(out[0]) - 1, 0)]) if out.size else float(arcs[last - 1])
+        outside = np.flatnonzero(~inside[last:])
+        if outside.size == 0:
+            stretches.append((0.0, end))
+            break
+        first = last + int(outside[0])
+        # Refine between the first sample outside and the last inside.
+        fine = np.linspace(max(arcs[first], 0.0), arcs[first - 1], refinement + 1)
+        located, _ = locator.locate(needle.points(fine))
+        outside_fine = np.flatnonzero(located < 0)
+        lead = int(outside_fine[-1]) + 1 if outside_fine.size else 0
+        stretches.append((float(fine[min(lead, refinement)]), end))
+        start = first
+    return tuple(reversed(stretches))
+
+
 def inserted_span(needle, locator, spacing: float, *, refinement: int = 16) -> tuple[float, float]:
-    """Arc lengths [m] where the needle enters the tissue and where its inserted part ends: the centreline
-    from the entry to the end lies in the tissue mesh (``locator``, a `refsim.geometry.TetLocator` on the
-    configuration of ``needle``), each to ``spacing / refinement``. The end is the tip while the tip is in
-    the tissue, else where the centreline leaves it through a far face (the part beyond, in the air, is not
-    inserted); (length, length) when no sample of the needle lies in the tissue.
+    """Arc lengths [m] where the needle enters the tissue and where its inserted part ends: the entry of its
+    first stretch in the tissue (:func:`inserted_stretches`) and the end of its deepest one; (length, length)
+    when no sample of the needle lies in the tissue.
 
     This, not the projection of the entry point, bounds the inserted part of the needle while it cuts: a
     tilted needle pushed sideways moves away from its entry point along the tissue surface, and the entry
@@ -73,46 +119,21 @@ def inserted_span(needle, locator, spacing: float, *, refinement: int = 16) -> t
     through a layer, its tip out of its far face, still cuts along the layer's thickness (ended at the tip,
     the span was empty once the tip left, and the needle crossed intact tissue with no force).
     """
-    length = needle.length
-    arcs = np.arange(length, -0.5 * spacing, -spacing)  # from the tip to the base, every spacing
-    found, _ = locator.locate(needle.points(np.clip(arcs, 0.0, length)))
-    inside = found >= 0
-    end = float(length)
-    if not inside[0]:
-        deepest = np.flatnonzero(inside)
-        if deepest.size == 0:
-            return end, end
-        last = int(deepest[0])  # the deepest sample in the tissue; the one before it (deeper) is out
-        fine = np.linspace(max(arcs[last], 0.0), arcs[last - 1], refinement + 1)
-        located, _ = locator.locate(needle.points(fine))
-        out = np.flatnonzero(located < 0)
-        end = float(fine[max(int(out[0]) - 1, 0)]) if out.size else float(arcs[last - 1])
-        arcs, inside = arcs[last:], inside[last:]
-    outside = np.flatnonzero(~inside)
-    if outside.size == 0:
-        return 0.0, end
-    first = int(outside[0])
-    # Refine between the first sample outside and the last inside.
-    fine = np.linspace(max(arcs[first], 0.0), arcs[first - 1], refinement + 1)
-    found, _ = locator.locate(needle.points(fine))
-    outside_fine = np.flatnonzero(found < 0)
-    lead = int(outside_fine[-1]) + 1 if outside_fine.size else 0
-    return float(fine[min(lead, refinement)]), end
-
-
-def inserted_parts(needle, locator, spacing: float) -> int:
-    """How many separate stretches of the needle's centreline lie in the tissue mesh (``locator`` on the
-    needle's configuration), its samples every ``spacing`` from the base to the tip: 0 out of the tissue, 1
-    through one part of it, 2 or more through several (layers with a gap between them)."""
-    arcs = np.append(np.arange(0.0, needle.length, spacing), needle.length)
-    found, _ = locator.locate(needle.points(arcs))
-    inside = found >= 0
-    return int(inside[0]) + int(np.count_nonzero(inside[1:] & ~inside[:-1]))
+    stretches = inserted_stretches(needle, locator, spacing, refinement=refinement)
+    if not stretches:
+        return float(needle.length), float(needle.length)
+    return stretches[0][0], stretches[-1][1]
 
 
 def inserted_arc(needle, locator, spacing: float, *, refinement: int = 16) -> float:
     """Arc length [m] where the needle enters the tissue (:func:`inserted_span`'s first value)."""
     return inserted_span(needle, locator, spacing, refinement=refinement)[0]
+
+
+def stretch_length(stretches, start: float = -np.inf, end: float = np.inf) -> float:
+    """The needle's length in the tissue [m]: the sum of ``stretches`` ((entry, end) arc lengths, as
+    :func:`inserted_stretches` gives them) within the arc lengths [start, end]."""
+    return float(sum(max(min(b, end) - max(a, start), 0.0) for a, b in stretches))
 
 
 def cut_criterion(lateral_force: np.ndarray, point_count: int, cutting_force: float) -> bool:
@@ -224,11 +245,11 @@ END_TOLERANCE = 1e-3
 
 
 def _closest_on_polyline(
-    points: np.ndarray, polyline: np.ndarray, reach: float = 0.0
+    points: np.ndarray, polyline: np.ndarray, reach: float | np.ndarray = 0.0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest segment, parameter t ∈ [0, 1] and whether the projection is interior (not clamped beyond an
-    end of the polyline by more than ``reach`` [m], or than END_TOLERANCE of the end segment's length when
-    that is larger), for each point; shapes (k,), (k,), (k,)."""
+    end of the polyline by more than ``reach`` [m] (one for all points, or one each), or than END_TOLERANCE of
+    the end segment's length when that is larger), for each point; shapes (k,), (k,), (k,)."""
     from refsim.geometry.surface_kernels import polyline_closest  # numba: imported on first use
 
     segment, t, raw_t = polyline_closest(points, polyline)
@@ -241,10 +262,35 @@ def _closest_on_polyline(
     # differed by 0.066 N, 34 against 35 front rows, with the same events; 9.6e-5 N with this tolerance).
     # ``reach`` widens it to a length (the front rows: half a sample spacing, see _front_rows).
     segment_lengths = np.sqrt(lengths)
-    first = max(END_TOLERANCE, reach / segment_lengths[0]) if segment_lengths[0] > 0 else END_TOLERANCE
-    last = max(END_TOLERANCE, reach / segment_lengths[-1]) if segment_lengths[-1] > 0 else END_TOLERANCE
+    ends = (segment_lengths[0], segment_lengths[-1])
+    first, last = (np.maximum(END_TOLERANCE, reach / end) if end > 0 else END_TOLERANCE for end in ends)
     interior = ~(((segment == 0) & (raw_t < -first)) | ((segment == along.shape[0] - 1) & (raw_t > 1 + last)))
     return segment, t, interior
+
+
+def _closest_on_front(
+    points: np.ndarray, front: np.ndarray, parts, reach: float | np.ndarray = 0.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_closest_on_polyline` on the crack tip ``front`` (q, 3), a polyline through its columns broken
+    where two neighbouring columns lie in different parts of the tissue (``parts``: the strip's
+    :meth:`~refsim.cutting.strip.CutStrip.part_ranges`, [a, b) column ranges): each point takes the closest
+    piece of at least two columns (the first of equal distances), its segment numbered along the whole
+    front. One piece is the plain polyline."""
+    if len(parts) == 1:
+        return _closest_on_polyline(points, front, reach)
+    count = points.shape[0]
+    segment, parameter = np.zeros(count, dtype=np.int64), np.zeros(count)
+    interior, best = np.zeros(count, dtype=bool), np.full(count, np.inf)
+    for first, end in parts:  # a few parts of the tissue, each piece vectorised over the points
+        if end - first < 2:
+            continue  # a single column: no segment to press on
+        piece, t, inside = _closest_on_polyline(points, front[first:end], reach)
+        nearest = (1.0 - t)[:, None] * front[first + piece] + t[:, None] * front[first + piece + 1]
+        distance = np.linalg.norm(points - nearest, axis=1)
+        closer = distance < best
+        best[closer], segment[closer], parameter[closer] = distance[closer], first + piece[closer], t[closer]
+        interior[closer] = inside[closer]
+    return segment, parameter, interior
 
 
 def _cut_compliance(
@@ -310,7 +356,7 @@ def strip_cut_block(
     strip,
     geometry: StepGeometry,
     *,
-    entry_arc_length: float,
+    entry_arc_length: float | None = None,
     spacing: float,
     cut_direction: np.ndarray,
     front_strength: float = np.inf,
@@ -318,6 +364,7 @@ def strip_cut_block(
     subgrid_compliance: tuple[np.ndarray, np.ndarray] | None = None,
     face_stretch: FaceStretch | None = None,
     exit_arc_length: float | None = None,
+    stretches=None,
 ) -> tuple[RowBlock | None, FrontRows]:
     """Sliding rows on the cut and front rows on its crack tip, for a strip cut (:mod:`refsim.cutting.strip`).
 
@@ -339,6 +386,11 @@ def strip_cut_block(
       (the fracture law: G_c), each row gives way at G_c ℓ_k, ℓ_k the inserted length its sample stands for
       (Σ ℓ_k = the inserted length), and the needle cuts through at G_c per unit length.
 
+    A needle through several parts of the tissue (layers with a gap between them) is sampled along each
+    stretch it has in the tissue (``stretches``), and the crack tip's polyline is broken between the strip's
+    columns in different parts (`refsim.cutting.strip.CutStrip.part_ranges`): every part holds the needle and
+    is cut at G_c per unit length of needle in it, and no row presses on the crack tip across a gap.
+
     Parameters
     ----------
     cut : The `refsim.cutting.CutSurface`.
@@ -347,7 +399,8 @@ def strip_cut_block(
         the tissue is intact).
     geometry : The step's geometry.
     entry_arc_length : Arc length where the needle enters the tissue [m] (:func:`inserted_arc`); the samples
-        run from there to the tip (none, and no rows, when it is the needle's length: the tip is out).
+        run from there to the tip (none, and no rows, when it is the needle's length: the tip is out). Read
+        when ``stretches`` is None.
     spacing : d_c [m].
     cut_direction : ĉ (deformed), unit, shape (3,).
     front_strength : Force per unit length of needle at which the front gives way [N/m], > 0 (G_c; inf:
@@ -366,16 +419,25 @@ def strip_cut_block(
         ``slide_nodes``, ``slide_weights``): each friction row starts from its relative position measured
         from them, so a row that sticks keeps its load; None: from zero.
     exit_arc_length : Arc length where the inserted part ends [m] (:func:`inserted_span`): the tip (None), or
-        where the needle leaves the tissue through a far face; the samples end there.
+        where the needle leaves the tissue through a far face; the samples end there. Read when ``stretches``
+        is None.
+    stretches : The needle's stretches in the tissue, (entry, end) arc lengths [m] from the base to the tip
+        (:func:`inserted_stretches`): the samples run along each. None: the one stretch from
+        ``entry_arc_length`` to ``exit_arc_length``.
 
     Rows are ordered: sliding rows, then front rows, then the friction rows (two per sliding row).
     """
-    samples = _needle_samples(geometry, entry_arc_length, spacing, exit_arc_length)
+    if stretches is None:
+        if entry_arc_length is None:
+            raise ValueError("strip_cut_block needs the stretches of the needle in the tissue or its entry")
+        end = geometry.needle_free.length if exit_arc_length is None else float(exit_arc_length)
+        stretches = ((float(entry_arc_length), end),)
+    samples = _needle_samples(geometry, stretches, spacing)
     if samples is None:
         return None, FrontRows.empty()
     front_previous = (
         np.zeros((0, 3))
-        if strip is None
+        if strip is None or not strip.has_front()
         else strip.front.positions(geometry.tissue_previous, geometry.mesh_tets)
     )
     sliding = _sliding_rows(
@@ -434,11 +496,12 @@ def _cut_rows(geometry, nodes, node_weights, directions, arcs, needle_points, an
 
 
 class _NeedleSamples(NamedTuple):
-    """The needle every d_c along its inserted length, from the entry to the tip (k samples)."""
+    """The needle every d_c along its inserted length, each stretch of it in the tissue from its entry to its
+    end (k samples in all)."""
 
     arc_lengths: np.ndarray  # [m], (k,)
     shares: np.ndarray  # the inserted length each sample stands for [m], (k,)
-    step: float  # the samples' spacing [m]
+    step: np.ndarray  # the samples' spacing in their stretch [m], (k,)
     previous: np.ndarray  # their points at the start of the step [m], (k, 3)
     free: np.ndarray  # their points at the free positions [m], (k, 3)
 
@@ -474,28 +537,34 @@ class _Front(NamedTuple):
     tets: np.ndarray  # the tet of each row's nearest crack-tip column (its sub-grid compliance), (f,)
 
 
-def _needle_samples(
-    geometry: StepGeometry, entry_arc_length: float, spacing: float, exit_arc_length: float | None = None
-) -> _NeedleSamples | None:
-    """The needle sampled every d_c = ``spacing`` from ``entry_arc_length`` to ``exit_arc_length`` (the tip
-    when None); None when nothing lies between them (the tip is out: the entry is at the needle's length)."""
-    length = geometry.needle_free.length if exit_arc_length is None else float(exit_arc_length)
-    start = max(0.0, min(entry_arc_length, length))
-    if start >= length:
+def _needle_samples(geometry: StepGeometry, stretches, spacing: float) -> _NeedleSamples | None:
+    """The needle sampled every d_c = ``spacing`` along each of its ``stretches`` in the tissue ((entry, end)
+    arc lengths [m], from the base to the tip), from the entry to the end of each; None when no stretch holds
+    any length."""
+    parts = []
+    needle_length = geometry.needle_free.length
+    for entry_arc_length, end in stretches:
+        length = min(float(end), needle_length)
+        start = max(0.0, min(entry_arc_length, length))
+        if start >= length:
+            continue
+        count = max(int(np.ceil((length - start) / spacing)), 1)
+        samples = np.linspace(start, length, count + 1)
+        # The inserted length each sample stands for: [s − Δ/2, s + Δ/2] ∩ [entry, end].
+        step = samples[1] - samples[0] if samples.size > 1 else spacing
+        shares = np.clip(
+            np.minimum(samples + 0.5 * step, length) - np.maximum(samples - 0.5 * step, entry_arc_length),
+            0.0,
+            None,
+        )
+        parts.append((samples, shares, np.full(samples.size, step)))
+    if not parts:
         return None
-    count = max(int(np.ceil((length - start) / spacing)), 1)
-    samples = np.linspace(start, length, count + 1)
-    # The inserted length each sample stands for: [s − Δ/2, s + Δ/2] ∩ [entry, L].
-    step = samples[1] - samples[0] if samples.size > 1 else spacing
-    shares = np.clip(
-        np.minimum(samples + 0.5 * step, length) - np.maximum(samples - 0.5 * step, entry_arc_length),
-        0.0,
-        None,
-    )
+    samples, shares, steps = (np.concatenate(values) for values in zip(*parts, strict=True))
     return _NeedleSamples(
         samples,
         shares,
-        step,
+        steps,
         geometry.needle_previous.points(samples),
         geometry.needle_free.points(samples),
     )
@@ -572,7 +641,8 @@ def _sliding_rows(
     limits = np.full(inside.size, np.inf)
     band_rows, band_segment = none.band_rows, none.band_segment
     if np.isfinite(front_strength) and front_previous.shape[0] >= 2:
-        segment, parameter, _ = _closest_on_polyline(needle_previous[inside], front_previous)
+        parts = strip.part_ranges()
+        segment, parameter, _ = _closest_on_front(needle_previous[inside], front_previous, parts)
         nearest_tip = (1.0 - parameter)[:, None] * front_previous[segment] + parameter[:, None] * (
             front_previous[segment + 1]
         )
@@ -581,7 +651,7 @@ def _sliding_rows(
         # out 230, 361, 203 mm² for d_c = 0.5, 1, 2 mm, against 199, 200, 203 mm² as it is.)
         band = np.flatnonzero(
             (np.linalg.norm(needle_previous[inside] - nearest_tip, axis=1) <= 1.5 * spacing)
-            & (samples.shares[inside] > 1e-9 * samples.step)
+            & (samples.shares[inside] > 1e-9 * samples.step[inside])
         )
         limits[band] = float(front_strength) * samples.shares[inside][band]
         band_rows, band_segment = band, segment[band]
@@ -632,8 +702,8 @@ def _front_rows(
     # laid earlier (once the needle has moved: pulled back through its cut), came and went from one step to
     # the next with its share G_c d_c / 2 of the force: the withdrawal's force lost it in 65, 19 and 63 % of
     # the steps at 5, 7 and 9 cells, a level-to-level offset of 0.03 to 0.06 N that was not smooth in h.
-    segment, parameter, interior = _closest_on_polyline(
-        samples.previous, front_previous, reach=0.5 * samples.step
+    segment, parameter, interior = _closest_on_front(
+        samples.previous, front_previous, strip.part_ranges(), reach=0.5 * samples.step
     )
     keep = np.flatnonzero(interior & (samples.shares > 1e-9 * samples.step))
     if keep.size:

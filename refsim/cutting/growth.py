@@ -79,15 +79,23 @@ def start_strip(
     *,
     extent: float,
     beyond: np.ndarray | None = None,
+    pieces: list[np.ndarray] | None = None,
 ):
     """A new strip on the insertion path: columns every d_c along it, swept along ĉ by ``extent`` (0: the
     crack tip starts on the path, as the energy law wants; d_t for the paper's initial surface).
+
+    A needle through several parts of the tissue (layers with a gap between them) gives the path as
+    ``pieces``, one per part: each is resampled on its own, its ends kept, its columns in a part of their own
+    (`refsim.cutting.strip.CutStrip.parts`: never joined to another part's), their depths measured along the
+    pieces and the gaps between them. Columns kept on either side of columns outside the tissue are in
+    different parts too.
 
     Parameters
     ----------
     growth : The tissue's cut growth (rest positions, tets, d_c).
     cut : The tissue's cut surface so far (None or empty for the first cut); the strip's points are appended.
-    path_points : The insertion points in the deformed tissue [m], shape (p, 3), entry first.
+    path_points : The insertion points in the deformed tissue [m], shape (p, 3), entry first (ignored when
+        ``pieces`` are given).
     direction : ĉ in the deformed state, unit, shape (3,).
     positions : Tissue positions [m], shape (n, 3).
     step : The step.
@@ -96,6 +104,8 @@ def start_strip(
         tissue), or None. Columns every d_c from the path's last point, the path's own columns unchanged; a
         gap of less than d_c/2 is left (no column that close to the last one) unless the path alone gives
         fewer than two columns.
+    pieces : The path as one polyline per part of the tissue [m], shapes (p_k, 3), from the entry down; None:
+        ``path_points``, in one part.
 
     Returns
     -------
@@ -113,11 +123,18 @@ def start_strip(
     started = clock.perf_counter()
     cut = CutSurface.empty() if cut is None else cut
     spacing = growth.point_spacing
-    columns = resample_polyline(path_points, spacing)
-    if beyond is not None:
-        gap = float(np.linalg.norm(np.asarray(beyond, dtype=float) - columns[-1]))
-        if gap >= 0.5 * spacing or (len(columns) < 2 and gap > 1e-9 * spacing):
-            columns = np.vstack([columns, resample_polyline(np.stack([columns[-1], beyond]), spacing)[1:]])
+    if pieces is None:
+        columns = resample_polyline(path_points, spacing)
+        if beyond is not None:
+            gap = float(np.linalg.norm(np.asarray(beyond, dtype=float) - columns[-1]))
+            if gap >= 0.5 * spacing or (len(columns) < 2 and gap > 1e-9 * spacing):
+                onward = resample_polyline(np.stack([columns[-1], beyond]), spacing)[1:]
+                columns = np.vstack([columns, onward])
+        given_parts = np.zeros(len(columns), dtype=np.int64)
+    else:
+        resampled = [resample_polyline(piece, spacing) for piece in pieces]
+        columns = np.concatenate(resampled)
+        given_parts = np.concatenate([np.full(len(c), k, dtype=np.int64) for k, c in enumerate(resampled)])
     depths = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(columns, axis=0), axis=1))])
     layer_count = 1 if extent <= 0.0 else max(int(np.ceil(extent / spacing - 1e-9)), 1) + 1
     offsets = np.linspace(0.0, extent, layer_count) if layer_count > 1 else np.zeros(1)
@@ -129,6 +146,10 @@ def start_strip(
     keep = inside[0]
     if np.count_nonzero(keep) < 2:
         return cut, None
+    # Columns kept on either side of dropped ones (outside the tissue: a gap between two parts of it, which
+    # the path crosses) are in different parts: never joined (CutStrip.parts).
+    kept = np.flatnonzero(keep)
+    parts = given_parts[kept] + np.concatenate([[0], np.cumsum(np.diff(kept) > 1)]).astype(np.int64)
     tets, barycentric, inside = tets[:, keep], barycentric[:, keep], inside[:, keep]
     depths = depths[keep]
     rest = np.einsum("lqk,lqkj->lqj", barycentric, growth.rest_positions[growth.tets[np.maximum(tets, 0)]])
@@ -145,7 +166,8 @@ def start_strip(
         new_rest.append(rest[layer, fresh])
         new_tets.append(tets[layer, fresh])
         new_bary.append(barycentric[layer, fresh])
-    triangles = [strip_triangles(layers[k], layers[k + 1]) for k in range(layer_count - 1)]
+    same_part = parts[:-1] == parts[1:]
+    triangles = [strip_triangles(layers[k], layers[k + 1], same_part) for k in range(layer_count - 1)]
     grown = append_points(
         cut,
         np.concatenate(new_rest),
@@ -157,7 +179,7 @@ def start_strip(
     )
     last = layers[-1]
     front = CutFront(grown.rest_points[last], grown.tet_indices[last], grown.barycentric[last])
-    return grown, CutStrip(layers, front, depths)
+    return grown, CutStrip(layers, front, depths, parts=parts if parts[-1] > 0 else None)
 
 
 def advance_front(

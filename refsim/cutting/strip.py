@@ -158,6 +158,9 @@ class CutStrip:
         strip is built (its own block only).
     births : The step each column was added at, shape (column_count,) (0 for the strip's own columns). None:
         all 0.
+    parts : The part of the tissue each column is in, shape (column_count,), non-decreasing from the entry
+        column (0) down: a needle through layers with a gap between them cuts each, and columns of different
+        parts are never joined by a triangle, nor their crack tips by a segment. None: all in one part.
     """
 
     layers: np.ndarray
@@ -165,10 +168,27 @@ class CutStrip:
     depths: np.ndarray
     origins: CutFront | None = None
     births: np.ndarray | None = None
+    parts: np.ndarray | None = None
 
     @property
     def column_count(self) -> int:
         return int(self.layers.shape[1])
+
+    def part_ranges(self) -> tuple[tuple[int, int], ...]:
+        """The columns of each part of the tissue the strip is in, as [first, end) ranges in column order."""
+        if self.parts is None:
+            return ((0, self.column_count),)
+        starts = np.flatnonzero(np.diff(self.parts)) + 1
+        bounds = [0, *starts.tolist(), self.column_count]
+        return tuple(zip(bounds[:-1], bounds[1:], strict=True))
+
+    def has_front(self) -> bool:
+        """Whether some part of the tissue holds two columns or more: a crack tip with a segment the front
+        rows can press on."""
+        return any(end - first >= 2 for first, end in self.part_ranges())
+
+    def _parts(self) -> np.ndarray:
+        return np.zeros(self.column_count, dtype=np.int64) if self.parts is None else self.parts
 
     @property
     def last_layer(self) -> np.ndarray:
@@ -202,15 +222,22 @@ class CutStrip:
         return self.front if self.origins is None else self.origins
 
     def with_front(self, front: CutFront) -> CutStrip:
-        return CutStrip(self.layers, front, self.depths, self._origins(), self._births())
+        return CutStrip(self.layers, front, self.depths, self._origins(), self._births(), self.parts)
 
-    def extended(self, front: CutFront, depths: np.ndarray, step: int = 0) -> CutStrip:
+    def extended(
+        self, front: CutFront, depths: np.ndarray, step: int = 0, parts: np.ndarray | None = None
+    ) -> CutStrip:
         """The strip with a block of columns added below its deepest one at ``step``: their crack tip
-        ``front`` (q points, on the needle) at ``depths`` (q,). They have no point until their crack tip moves
-        (:meth:`lay`); their first layer is then where it started."""
+        ``front`` (q points, on the needle) at ``depths`` (q,), in the parts of the tissue ``parts`` (q,),
+        non-decreasing from the deepest column's (None: its part). They have no point until their crack tip
+        moves (:meth:`lay`); their first layer is then where it started."""
         count = int(np.asarray(depths).size)
         if count == 0:
             return self
+        own = self._parts()
+        added = np.full(count, own[-1], dtype=np.int64) if parts is None else np.asarray(parts, np.int64)
+        joined_parts = np.concatenate([own, added])
+        part_field = None if not np.any(joined_parts) else joined_parts
         layers = np.hstack([self.layers, np.full((self.layers.shape[0], count), -1, dtype=self.layers.dtype)])
 
         def joined(a: CutFront, b: CutFront) -> CutFront:
@@ -226,6 +253,7 @@ class CutStrip:
             np.concatenate([self.depths, depths]),
             joined(self._origins(), front),
             np.concatenate([self._births(), np.full(count, step, dtype=np.int64)]),
+            part_field,
         )
 
     def lay(self, cut: CutSurface, step: int, minimum_gap: float, *, due=None) -> tuple[CutSurface, CutStrip]:
@@ -258,7 +286,8 @@ class CutStrip:
         layers = self.layers.copy()
         layers[-1] = back
         births = self._births()
-        return grown, CutStrip(np.vstack([layers, layer[None, :]]), self.front, self.depths, origins, births)
+        layers = np.vstack([layers, layer[None, :]])
+        return grown, CutStrip(layers, self.front, self.depths, origins, births, self.parts)
 
     def layer_distance(self, cut: CutSurface, step: int, minimum_gap: float, *, due=None) -> float:
         """How far the crack tip is from the last layer [m] (rest): the largest distance over the columns
@@ -283,6 +312,8 @@ class CutStrip:
         # that was not cut. A column laid now (its first point) counts as laid now.
         created = np.where(pending, step, cut.created_step[np.maximum(last, 0)])
         joined = (created[:-1] >= births[1:]) & (created[1:] >= births[:-1])
+        if self.parts is not None:  # columns in different parts of the tissue: never joined
+            joined &= self.parts[:-1] == self.parts[1:]
         starting = pending & moved
         partner = np.zeros(last.size, dtype=bool)
         partner[:-1] |= joined & (starting[1:] | ~pending[1:])

@@ -15,13 +15,18 @@ The table of every event, its phase, criterion and effect is the docstring of :m
 
 from __future__ import annotations
 
-import logging
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from refsim.constraints import CUT_FRICTION, SLIDING, InsertionPath, points_beyond_tip
-from refsim.constraints.cut import crack_tip_compression, inserted_arc, inserted_parts, inserted_span
+from refsim.constraints.cut import (
+    crack_tip_compression,
+    inserted_arc,
+    inserted_span,
+    inserted_stretches,
+    stretch_length,
+)
 from refsim.constraints.friction import FaceStretch
 from refsim.cutting.growth import start_strip
 from refsim.cutting.laws import FrontPush
@@ -35,8 +40,6 @@ if TYPE_CHECKING:
     from refsim.simulation.events import LazyLocator
 
 __all__ = ["STICK_TOLERANCE", "CutEventRules", "face_stretch"]
-
-logger = logging.getLogger(__name__)
 
 #: A cut face's friction row sticks when its force is below its bound by more than this fraction of it (far
 #: above the solve's 10⁻⁸, as for the shaft's rows: `refsim.constraints.channel.stuck_points`).
@@ -68,6 +71,7 @@ class CutEventRules:
         along_cut = faces is not None and faces[2].size > 0
         spacing = self.cutting.point_spacing
         beyond = None  # where the first surface's columns go on to past the path's last point
+        pieces = None  # the path, one polyline per part of the tissue, when the needle is through several
         if along_cut:
             rows, multipliers, indices = faces
             # the criterion's accuracy over every lateral row (the entry point's load may count beyond f_p)
@@ -75,8 +79,9 @@ class CutEventRules:
             force_on_needle = force_on_needle + (rows.directions[indices] * multipliers[indices, None]).sum(
                 axis=0
             )
-            entry_arc, end = inserted_span(needle, locator, spacing)
-            inserted = end - entry_arc
+            stretches = inserted_stretches(needle, locator.locator, spacing)
+            entry_arc, end = (stretches[0][0], stretches[-1][1]) if stretches else (needle.length,) * 2
+            inserted = stretch_length(stretches)
             margin_rows = np.concatenate([lateral, indices])
         else:
             end = needle.length
@@ -89,6 +94,14 @@ class CutEventRules:
                 if end >= needle.length:
                     end = float(needle.project(path_points)[0].max())
             inserted = end - float(arcs[0])
+            steps = np.linalg.norm(np.diff(path_points, axis=0), axis=1)
+            breaks = np.flatnonzero(steps > 2.0 * self.insertion.spacing) + 1
+            if breaks.size:
+                # The path crosses a gap (its points are made every d_i in the tissue only): the needle is
+                # through several parts of it, L_in is its length in them, and the cut runs in each.
+                stretches = inserted_stretches(needle, locator.locator, spacing)
+                inserted = stretch_length(stretches, float(arcs[0]), end)
+                pieces = _path_pieces(np.split(path_points, breaks), stretches, needle, end, spacing)
             margin_rows = None
             # The cut runs on the whole inserted needle, L_in of it: the path's points reach the tip only to
             # within d_i (a needle less deep than d_i has its entry point alone). The line goes on as the
@@ -106,7 +119,7 @@ class CutEventRules:
         direction = -force_on_needle / float(np.linalg.norm(force_on_needle))
         extent = start.extent
         if along_cut:
-            path_points = _inserted_line(needle, entry_arc, end, spacing)
+            pieces = [_inserted_line(needle, a, b, spacing) for a, b in stretches or ((entry_arc, end),)]
             extent = max(extent, spacing)
         cut, strip = start_strip(
             self.growth,
@@ -117,23 +130,10 @@ class CutEventRules:
             world.step,
             extent=extent,
             beyond=beyond,
+            pieces=pieces,
         )
         if strip is None:
             return None
-        parts = inserted_parts(needle, locator.locator, spacing)
-        if parts > 1 and not self._warned_parts:
-            # A known limit, said rather than run silently: the cutting phase's rows follow one stretch of
-            # the needle in the tissue (refsim.constraints.cut.inserted_span: from the tip back to where the
-            # needle enters the part its tip is in), so the parts above a gap hold it with no row.
-            self._warned_parts = True
-            logger.warning(
-                "step %d: instrument %r starts a cut with its needle through %d separate parts of the "
-                "tissue; the cutting phase models the part its tip is in only, the parts above a gap hold no "
-                "row while it cuts (docs/cutting.md, known limits)",
-                world.step,
-                state.name,
-                parts,
-            )
         world = evolved(world, cut=cut)
         state = evolved(
             state,
@@ -177,25 +177,60 @@ class CutEventRules:
         )
         return world, state, events
 
-    def _extended(self, strip, needle, positions, locator, entry_arc, step):
-        """The strip with a block of columns added below its deepest one at ``step`` down to the needle's tip,
-        every d_c (``locator`` on ``positions``; ``entry_arc`` where the needle enters the tissue)."""
+    def _extended(self, strip, needle, positions, locator, stretches, step):
+        """The strip with a block of columns added below its deepest one at ``step``, every d_c along the
+        needle's ``stretches`` in the tissue below it (``locator`` on ``positions``), down to the first within
+        d_c/2 of a stretch's end (the tip; where the needle leaves that part of the tissue, a far face or a
+        gap, the column is at that end), so that the deepest sample of each stretch faces a crack-tip
+        segment: a stretch below a gap is a part of the tissue of its own (a needle pushed through a gap
+        into a lower layer while it cuts)."""
         from refsim.cutting.strip import CutFront, locate_material_points
 
         spacing = self.cutting.point_spacing
-        count = int(np.floor((needle.length - entry_arc - strip.depths[-1]) / spacing + 1e-9))
-        if count <= 0:
+        entry_arc = stretches[0][0]
+        deepest = float(strip.depths[-1])  # the strip's deepest column, its depth below the entry [m]
+        depths, parts = [], []
+        part = int(strip.parts[-1]) if strip.parts is not None else 0
+        for first, end in stretches:
+            if end - entry_arc <= deepest:
+                continue
+            if first - entry_arc > deepest:  # below a gap: its own part, from its entry
+                part += 1
+                start = first - entry_arc
+                count = int(np.floor((end - first) / spacing + 0.5))
+                grid = start + spacing * np.arange(count + 1)
+            else:  # the part the deepest column is in, on from it
+                count = int(np.floor((end - entry_arc - deepest) / spacing + 0.5))
+                grid = deepest + spacing * np.arange(1, count + 1)
+            if end < needle.length and grid.size:
+                # A far face or a gap ends the stretch: its last column at that end, unless that is within
+                # d_c/2 of the column before it.
+                before = grid[-2] if grid.size > 1 else (deepest if first - entry_arc <= deepest else -np.inf)
+                grid[-1] = min(grid[-1], end - entry_arc)
+                if grid[-1] - before <= 0.5 * spacing:
+                    grid = grid[:-1]
+            depths.append(grid)
+            parts.append(np.full(grid.size, part, dtype=np.int64))
+        if not depths or not sum(grid.size for grid in depths):
             return strip
-        depths = strip.depths[-1] + spacing * np.arange(1, count + 1)
+        depths, parts = np.concatenate(depths), np.concatenate(parts)
+        # A column less than d_c/2 below the tip is on the needle's line extended past it (as its crack tip's
+        # target: refsim.cutting.growth.crack_tip_targets).
+        arcs = entry_arc + depths
+        points = needle.points(np.minimum(arcs, needle.length))
+        below = arcs > needle.length
+        if np.any(below):
+            points[below] += (arcs[below] - needle.length)[:, None] * needle.tip_tangent
         tets, barycentric, inside = locate_material_points(
-            locator, positions, self.tets, needle.points(entry_arc + depths), snap_distance=0.5 * spacing
+            locator, positions, self.tets, points, snap_distance=0.5 * spacing
         )
-        run = int(np.cumprod(inside).sum())  # down to the first point outside the tissue
-        if run == 0:
+        if not np.any(inside):
             return strip
-        tets, barycentric = tets[:run], barycentric[:run]
+        # A point outside the tissue gets no column, and the columns past it are in another part.
+        parts = parts + np.cumsum(~inside)
+        tets, barycentric, depths, parts = tets[inside], barycentric[inside], depths[inside], parts[inside]
         rest = np.einsum("pk,pkj->pj", barycentric, self.growth.rest_positions[self.tets[tets]])
-        return strip.extended(CutFront(rest, tets, barycentric), depths[:run], step)
+        return strip.extended(CutFront(rest, tets, barycentric), depths, step, parts=parts)
 
     def _cutting(self, world, state, detection, multipliers, step_locator: LazyLocator):
         """Withdrawal through the cut, and the growth of the cut where the needle pushes through its front."""
@@ -238,12 +273,12 @@ class CutEventRules:
             # every d_c to the tip, its crack tip at the needle (insertion points there, anchored in uncut
             # tissue, would drag it sideways).
             locator = step_locator.locator
-            entry_arc, end = inserted_span(needle, locator, cutting.point_spacing)
-            state = evolved(
-                state,
-                cut_strip=self._extended(state.cut_strip, needle, positions, locator, entry_arc, world.step),
-                entry_span=(entry_arc, end),
-            )
+            stretches = inserted_stretches(needle, locator, cutting.point_spacing)
+            entry_arc = stretches[0][0] if stretches else needle.length
+            if stretches:
+                extended = self._extended(state.cut_strip, needle, positions, locator, stretches, world.step)
+                state = evolved(state, cut_strip=extended)
+            state = evolved(state, stretches=stretches)
         rows = detection.rows
         self.margins.tear(self.law, detection.front.rows)
         grown = self.law.grow(
@@ -304,8 +339,9 @@ class CutEventRules:
             return None
         spacing = self.cutting.point_spacing
         load = (rows.directions[held] * multipliers[held, None]).sum(axis=0)
-        entry_arc, end = inserted_span(needle, step_locator.locator, spacing)
-        length = (end - entry_arc) - float(limits[band].sum()) / strength
+        stretches = inserted_stretches(needle, step_locator.locator, spacing)
+        entry_arc, end = (stretches[0][0], stretches[-1][1]) if stretches else (needle.length,) * 2
+        length = stretch_length(stretches) - float(limits[band].sum()) / strength
         self.margins.cut_start(self.law, load, length, state.path.point_count, rows=held)
         start = self.law.cut_start(load, inserted_length=length, point_count=state.path.point_count)
         if start is None:
@@ -327,6 +363,34 @@ class CutEventRules:
             entered_at=None,
         )
         return evolved(world, cut=cut), state, [Event("cut_start", start.trigger, start.unit)]
+
+
+def _path_pieces(pieces, stretches, needle, end: float, spacing: float) -> list[np.ndarray]:
+    """The insertion path's ``pieces`` (one per part of the tissue, points (p_k, 3) [m], from the entry
+    down) carried to the ends of the needle's stretch in that part (``stretches``: (entry, end) arc lengths
+    [m], :func:`refsim.constraints.cut.inserted_stretches`; the deepest piece to ``end``): a piece's points
+    lie up to d_i inside its part (its points are made every d_i as the tip goes), so the line goes on from
+    its first and last points as the needle does, by more than half a d_c, kept beside the needle (the
+    tissue's compression, as the single part's line past its deepest point). The entry point is on the
+    tissue's surface: the first piece starts there."""
+    carried = []
+    for index, piece in enumerate(pieces):
+        arcs = needle.project(piece[[0, -1]])[0]
+        middle = 0.5 * float(arcs[0] + arcs[1])
+        # the stretch of this part: the one holding the piece's middle, else the nearest
+        distances = [max(a - middle, middle - b, 0.0) for a, b in stretches]
+        first, last = stretches[int(np.argmin(distances))] if stretches else (arcs[0], arcs[1])
+        if index == len(pieces) - 1:
+            last = end
+        points = [piece]
+        if index > 0 and arcs[0] - first > 0.5 * spacing:
+            moved = needle.points(np.array([first, arcs[0]]))
+            points.insert(0, (piece[0] + moved[0] - moved[1])[None])
+        if last - arcs[1] > 0.5 * spacing:
+            moved = needle.points(np.array([arcs[1], last]))
+            points.append((piece[-1] + moved[1] - moved[0])[None])
+        carried.append(np.concatenate(points))
+    return carried
 
 
 def _inserted_line(needle, entry_arc: float, end: float, spacing: float) -> np.ndarray:

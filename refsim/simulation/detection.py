@@ -36,7 +36,7 @@ from refsim.constraints.coupling import (
     ring_weights,
     subgrid_compliance,
 )
-from refsim.constraints.cut import FrontRows, inserted_span, strip_cut_block
+from refsim.constraints.cut import FrontRows, inserted_stretches, strip_cut_block
 from refsim.constraints.insertion import InsertionOptions, InsertionPath, PointRings
 from refsim.geometry import SurfaceProjector, TetLocator
 from refsim.scene import Scene
@@ -501,39 +501,37 @@ class Detector:
         tip, on the start-of-step state. ``state`` None: a needle inserted along an existing cut slides in it
         (sliding rows, no crack tip, no friction); else the instrument's own cut strip while it cuts, with its
         crack-tip front (indices into the returned block). Where the needle enters the tissue and where its
-        inserted part ends are the state's ``entry_span`` when the last step's events located them on this
-        configuration."""
-        if state is not None and state.entry_span is not None:
-            entry_arc_length, exit_arc_length = state.entry_span
+        inserted part ends are the state's ``stretches`` when the last step's events located them on this
+        configuration (one stretch per part of the tissue the needle is in: each part has its rows)."""
+        if state is not None and state.stretches is not None:
+            stretches = state.stretches
         else:
             locator = TetLocator(geometry.tissue_previous, geometry.mesh_tets, previous=self._cut_locator)
             self._cut_locator = locator
-            entry_arc_length, exit_arc_length = inserted_span(
-                geometry.needle_previous, locator, self.cutting.point_spacing
-            )
+            stretches = inserted_stretches(geometry.needle_previous, locator, self.cutting.point_spacing)
+        if not stretches:
+            return None, FrontRows.empty()
         if state is None:
             return strip_cut_block(
                 world.cut,
                 None,
                 geometry,
-                entry_arc_length=entry_arc_length,
                 spacing=self.cutting.point_spacing,
                 cut_direction=np.zeros(3),
                 subgrid_compliance=self.cut_compliance,
-                exit_arc_length=exit_arc_length,
+                stretches=stretches,
             )
         return strip_cut_block(
             world.cut,
             state.cut_strip,
             geometry,
-            entry_arc_length=entry_arc_length,
             spacing=self.cutting.point_spacing,
             cut_direction=state.cut_direction,
             front_strength=self.law.front_strength,
             friction_coefficient=self.cutting.friction_coefficient,
             subgrid_compliance=self.cut_compliance,
             face_stretch=state.cut_face_stretch,
-            exit_arc_length=exit_arc_length,
+            stretches=stretches,
         )
 
 

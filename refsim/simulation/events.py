@@ -251,8 +251,6 @@ class EventRules(CutEventRules):
         self._last_locator: TetLocator | None = None
         #: The criteria each step's events compare, with their margins (refsim.simulation.margins).
         self.margins = MarginWatch(scene.solver.tolerance)
-        #: Whether a cut start through several parts of the tissue was warned of (once per instrument).
-        self._warned_parts = False
         self.growth = None
         if cuts:
             cutting = scene.cutting
@@ -270,8 +268,8 @@ class EventRules(CutEventRules):
         may change with them)."""
         events: list[Event] = []
         state = world.instrument(name)
-        if state.entry_span is not None:  # located on the last step's configuration
-            state = evolved(state, entry_span=None)
+        if state.stretches is not None:  # located on the last step's configuration
+            state = evolved(state, stretches=None)
         rows = detection.rows
         # One locator of the step's configuration for every event that needs one (built when first used).
         locator = LazyLocator(world.tissue.positions, self.tets, previous=self._last_locator)

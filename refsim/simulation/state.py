@@ -129,11 +129,11 @@ class InstrumentState:
         hole): the material point its channel there starts from, recorded in the tissue's channels when the
         tip leaves that part (through a far face, or back out of an inner layer while the shaft stays in the
         tissue); None before puncture and once the tip has left that part.
-    entry_span : Where its needle enters the tissue and where its inserted part ends in this state's
-        configuration [m] (the arc lengths of :func:`refsim.constraints.cut.inserted_span` at the cut's
-        spacing), when the step's events located them
-        (cutting, the strip extending down the shaft); None otherwise. The next step's cut rows, built on this
-        configuration, read it instead of locating the needle again (the same inputs: the same bits).
+    stretches : The stretches of its needle in the tissue in this state's configuration, (entry, end) arc
+        lengths [m] from the base to the tip (:func:`refsim.constraints.cut.inserted_stretches` at the cut's
+        spacing: one per part of the tissue the needle is in), when the step's events located them (cutting,
+        the strip extending down the shaft); None otherwise. The next step's cut rows, built on this
+        configuration, read them instead of locating the needle again (the same inputs: the same bits).
     cut_face_stretch : The annulus stretch under its friction rows on the cut faces at the last solve
         (`refsim.constraints.friction.FaceStretch`), the next step's rows start from it; None without them.
     """
@@ -148,7 +148,7 @@ class InstrumentState:
     tip_barycentric: np.ndarray | None = None
     channel_end: ChannelEnd | None = None
     entered_at: ChannelEnd | None = None
-    entry_span: tuple[float, float] | None = None
+    stretches: tuple[tuple[float, float], ...] | None = None
     cut_face_stretch: FaceStretch | None = None
 
     def withdrawn(self) -> InstrumentState:
@@ -171,9 +171,9 @@ _WITHDRAWN = dict(
     entered_at=None,
 )
 #: The fields of an instrument's state a withdrawal keeps: who it is and where its needle is, the direction
-#: its last cut ran in, and what each step's events set again before reading (the inserted span, the cut
-#: faces' stretch).
-KEPT_AT_WITHDRAWAL = ("name", "needle", "cut_direction", "entry_span", "cut_face_stretch")
+#: its last cut ran in, and what each step's events set again before reading (the inserted stretches,
+#: the cut faces' stretch).
+KEPT_AT_WITHDRAWAL = ("name", "needle", "cut_direction", "stretches", "cut_face_stretch")
 
 
 @dataclass(frozen=True)

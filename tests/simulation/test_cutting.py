@@ -486,9 +486,11 @@ def test_reinsertion_along_an_existing_cut_slides_in_it():
 def test_a_needle_inserted_deeper_while_cutting_extends_the_cut_along_its_shaft(tilt):
     # A 5 mm stroke during which the needle goes 3 mm deeper (item 3). Pushed sideways with the rest of the
     # shaft, the part below the strip cuts at G_c per unit length too: the strip reaches down the whole
-    # inserted length (to within d_c of the tip: columns every d_c), and in steady cutting the front pushes
-    # with G_c per unit inserted length (Griffith, as for a straight stroke;
-    # test_in_steady_cutting_the_front_pushes_with_gc_...).
+    # inserted length (columns every d_c, down to the first within d_c/2 of the tip), and in steady cutting
+    # the front pushes with G_c per unit inserted length (Griffith, as for a straight stroke;
+    # test_in_steady_cutting_the_front_pushes_with_gc_...), to the resolution of the inserted length's ends
+    # (d_c/16 each). With columns only every d_c above the tip, the tip's sample faced no segment of the crack
+    # tip every other tear of the vertical needle: 0.98 G_c, its share d_c/2 lost.
     run = run_case(CuttingCase(tilt=tilt, plunge=0.003))
     scene = run.simulation.scene
     g_c, d_c = scene.cutting.fracture_energy, scene.cutting.point_spacing
@@ -504,7 +506,7 @@ def test_a_needle_inserted_deeper_while_cutting_extends_the_cut_along_its_shaft(
         length = run.inserted[index - 1]  # at the step's start, as the rows' bounds
         per_length = record.row_forces[front].sum() / length
         excess = np.count_nonzero(front) * scene.solver.tolerance * np.abs(record.row_forces).max() / length
-        assert g_c * (1 - 2 * d_c / length) - 1e-6 <= per_length <= g_c * (1 + 1e-6) + excess, (
+        assert g_c * (1 - d_c / (8 * length)) - 1e-6 <= per_length <= g_c * (1 + 1e-6) + excess, (
             record.step,
             per_length,
         )

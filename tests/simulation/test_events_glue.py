@@ -94,9 +94,9 @@ def test_evolved_is_replace_without_init(cube):
     simulation, _ = cube
     state = simulation.initial_state()
     own = state.instruments[0]
-    changed = evolved(own, tip_tet=5, entry_span=(0.1, 0.2))
-    assert changed == dataclasses.replace(own, tip_tet=5, entry_span=(0.1, 0.2))
-    assert own.tip_tet == -1 and own.entry_span is None  # the original is untouched
+    changed = evolved(own, tip_tet=5, stretches=((0.1, 0.2),))
+    assert changed == dataclasses.replace(own, tip_tet=5, stretches=((0.1, 0.2),))
+    assert own.tip_tet == -1 and own.stretches is None  # the original is untouched
     assert evolved(state, step=3) == dataclasses.replace(state, step=3)
     with pytest.raises(TypeError, match="no field"):
         evolved(own, tip=1)

@@ -1309,7 +1309,7 @@ def test_a_withdrawal_forgets_every_field_of_the_time_in_the_tissue_but_the_kept
         tip_barycentric=np.full(4, 0.25),
         channel_end=end,
         entered_at=end,
-        entry_span=(0.1, 0.3),
+        stretches=((0.1, 0.2), (0.25, 0.3)),
         cut_face_stretch=object(),
     )
     fresh = InstrumentState(name="needle", phase=Phase.APPROACH, needle=object(), path=InsertionPath.empty())
