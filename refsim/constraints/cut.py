@@ -379,8 +379,9 @@ def strip_cut_block(
       cube_cut), along the surface's normal at its closest point (area-weighted vertex normals
       interpolated: a sliver's own normal is arbitrary), anchored at that point's barycentric coordinates:
       the needle stays on the cut wherever it lies in it. For a needle meeting a cut it is not cutting
-      (``strip`` None), only a sample within d_c of the surface along its normal: further away it is in
-      intact tissue, whatever its projection (another needle beside the cut, or crossing its plane).
+      (``strip`` None, or the parts of the cut that are not ``strip``'s: its older strips, another needle's),
+      only a sample within d_c of the surface along its normal: further away it is in intact tissue,
+      whatever its projection (another needle beside the cut, or crossing its plane).
     - Front (unilateral): every sample against the closest point of the crack-tip polyline, along
       n = −(ĉ normal to the needle): the needle stays behind the crack tip. With ``front_strength`` finite
       (the fracture law: G_c), each row gives way at G_c ℓ_k, ℓ_k the inserted length its sample stands for
@@ -607,11 +608,19 @@ def _sliding_rows(
     # the surface: within d_c of it along its normal (the rule of new insertion points, which a needle gets
     # only outside the cut, refsim.simulation.events). A sample that merely projects inside the cut from
     # further away (beside the cut, or crossing its plane) is in intact tissue: held there, its bilateral row
-    # pulled it onto the cut's plane. The needle cutting the strip made the surface it projects onto: all its
-    # samples that project inside it (or within reach of the crack tip) are held on it.
-    on_surface = found.inside | (np.linalg.norm(in_plane, axis=1) <= reach)
-    if strip is None:
-        on_surface &= np.abs(np.einsum("ij,ij->i", offset, normals_previous)) <= spacing
+    # pulled it onto the cut's plane. The needle cutting the strip made the strip's surface: all its samples
+    # that project inside it (or within reach of the crack tip) are held on it; the rest of the cut (its
+    # older strips, another needle's) it meets as a cut it is not cutting (its samples projecting on an old
+    # cut from afar were held on that cut's plane, 3.8 N on a needle that had left its first cut and started
+    # a second beside it, where the law lets the tissue hold it with 1.7 N).
+    lateral_offset = np.linalg.norm(in_plane, axis=1)
+    on_surface = found.inside | (lateral_offset <= reach)
+    met = None if strip is None else ~strip.own_triangles(cut)[found.triangle]  # samples on older cuts
+    if strip is None or met.any():
+        on_cut = (found.inside | (lateral_offset <= 0.0)) & (
+            np.abs(np.einsum("ij,ij->i", offset, normals_previous)) <= spacing
+        )
+        on_surface = on_cut if strip is None else np.where(met, on_cut, on_surface)
     inside = np.flatnonzero(on_surface)
     if not inside.size:
         return none

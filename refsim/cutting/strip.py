@@ -187,6 +187,13 @@ class CutStrip:
         rows can press on."""
         return any(end - first >= 2 for first, end in self.part_ranges())
 
+    def own_triangles(self, cut: CutSurface) -> np.ndarray:
+        """Which triangles of ``cut`` this strip laid (all their points in its layers), shape
+        (triangle_count,) bool: the rest of the cut are older strips' and other needles'."""
+        points = np.zeros(cut.point_count, dtype=bool)
+        points[self.layers[self.layers >= 0]] = True
+        return points[cut.triangles].all(axis=1)
+
     def _parts(self) -> np.ndarray:
         return np.zeros(self.column_count, dtype=np.int64) if self.parts is None else self.parts
 

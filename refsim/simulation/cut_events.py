@@ -96,10 +96,11 @@ class CutEventRules:
             inserted = end - float(arcs[0])
             steps = np.linalg.norm(np.diff(path_points, axis=0), axis=1)
             breaks = np.flatnonzero(steps > 2.0 * self.insertion.spacing) + 1
-            if breaks.size:
-                # The path crosses a gap (its points are made every d_i in the tissue only): the needle is
-                # through several parts of it, L_in is its length in them, and the cut runs in each.
-                stretches = inserted_stretches(needle, locator.locator, spacing)
+            stretches = inserted_stretches(needle, locator.locator, spacing) if breaks.size else ()
+            if len(stretches) > 1:
+                # The path crosses a gap (its points are made every d_i in the tissue only; a path can also
+                # miss its points in an old cut) and the needle is through several parts of the tissue: L_in
+                # is its length in them, and the cut runs in each.
                 inserted = stretch_length(stretches, float(arcs[0]), end)
                 pieces = _path_pieces(np.split(path_points, breaks), stretches, needle, end, spacing)
             margin_rows = None
@@ -373,14 +374,23 @@ def _path_pieces(pieces, stretches, needle, end: float, spacing: float) -> list[
     its first and last points as the needle does, by more than half a d_c, kept beside the needle (the
     tissue's compression, as the single part's line past its deepest point). The entry point is on the
     tissue's surface: the first piece starts there."""
+    # The stretch of each piece: the one holding its middle, else the nearest; pieces of one stretch (a path
+    # that misses its points in an old cut) are one.
+    owners = []
+    for piece in pieces:
+        middle = float(needle.project(piece[[0, -1]])[0].mean())
+        owners.append(int(np.argmin([max(a - middle, middle - b, 0.0) for a, b in stretches])))
+    joined = []
+    for owner, piece in zip(owners, pieces, strict=True):
+        if joined and joined[-1][0] == owner:
+            joined[-1] = (owner, np.concatenate([joined[-1][1], piece]))
+        else:
+            joined.append((owner, piece))
     carried = []
-    for index, piece in enumerate(pieces):
+    for index, (owner, piece) in enumerate(joined):
         arcs = needle.project(piece[[0, -1]])[0]
-        middle = 0.5 * float(arcs[0] + arcs[1])
-        # the stretch of this part: the one holding the piece's middle, else the nearest
-        distances = [max(a - middle, middle - b, 0.0) for a, b in stretches]
-        first, last = stretches[int(np.argmin(distances))] if stretches else (arcs[0], arcs[1])
-        if index == len(pieces) - 1:
+        first, last = stretches[owner]
+        if index == len(joined) - 1:
             last = end
         points = [piece]
         if index > 0 and arcs[0] - first > 0.5 * spacing:

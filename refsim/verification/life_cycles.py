@@ -50,6 +50,7 @@ __all__ = [
     "end_state_violations",
     "inserted_length",
     "inserted_lengths",
+    "layers_mesh_file",
     "life_violations",
     "shaft_contact_loads",
 ]
@@ -62,7 +63,9 @@ CELLS = (4, 4, 4)
 #: with one instrument at most), entering about 30 mm from it (:data:`TWO_SHIFT`); "liver" the same kind of
 #: life on the liver scene (an unstructured organ that breathes under the needle), entering at a random point
 #: of its surface, its segments in the tangent plane's frame there.
-FAMILIES = ("cube", "model", "two", "liver")
+#: "layers" the cube's kind of life in two layers with a gap between them (a wall over an organ,
+#: :data:`LAYERS_CHOICES`), which the needle crosses, cuts and leaves part by part.
+FAMILIES = ("cube", "model", "two", "liver", "layers")
 #: The "two" family: each needle's entry is this far off the middle along x [m] (the cutter's to −x, the
 #: holder's to +x), both needles' radius [m] (thin, so that they pass each other), the holder's draws tried.
 TWO_SHIFT = 0.015
@@ -89,6 +92,17 @@ MODEL_CHOICES = {
 #: A tissue thinner than the cube (``thickness`` < 0.1 m) is a layer with the cube's top face, held on its
 #: sides (a needle can leave it through its far face and come back), with this many cells across it at least.
 LAYER_CELLS = 2
+#: What a life of the "layers" family draws from (``default_rng([seed, 4])``), each value with the same
+#: chance: the upper layer's thickness, the gap under it and the lower layer's thickness [m]. Both span the
+#: cube's 10 × 10 cm on 4 × 4 cells (the upper one a cell per 4 mm of thickness, at least 2; the lower one
+#: 4), the upper layer's top face the cube's; held on their sides, the lower one on its bottom too.
+LAYERS_CHOICES = {
+    "upper": (0.004, 0.008, 0.012),
+    "gap": (0.0005, 0.001, 0.003, 0.01),
+    "lower": (0.015, 0.025),
+}
+#: The "layers" family's needle radius [m] (the thin-layer tests' needle: cube_cut's 8 mm spans the gaps).
+LAYERS_RADIUS = 0.0005
 #: The time steps a life draws from [s].
 TIME_STEPS = (0.005, 0.01, 0.02)
 #: The tip's largest speed [m/s].
@@ -110,7 +124,8 @@ class Life:
     seed : The seed it was drawn from.
     family : Its family (:data:`FAMILIES`).
     model : What the "model" family drew (cells, spacing, point_spacing, puncture_force, fracture_energy,
-        friction; :data:`MODEL_CHOICES`); empty for the other families (4³ cells, the scene's values).
+        friction; :data:`MODEL_CHOICES`), or the "layers" family (upper, gap, lower: :data:`LAYERS_CHOICES`);
+        empty for the other families (4³ cells, the scene's values).
     second : The "two" family's second needle (it holds, it does not cut): its waypoints as ``waypoints``;
         empty for the other families.
     scene_name : The built-in scene it runs (:data:`LIVER_SCENE` for the "liver" family, whose waypoints
@@ -147,6 +162,9 @@ class Life:
         from refsim.scene import load_scene
         from refsim.scene.loader import scene_from_dict
 
+        if self.family == "layers":  # (its mesh file, written again if the temporary folder was emptied)
+            values = dict(self.model)
+            layers_mesh_file(values["upper"], values["gap"], values["lower"])
         scene = load_scene(self.scene_name, list(self.overrides))
         if self.scene_name != SCENE:
             data = scene.to_dict()
@@ -381,12 +399,19 @@ def draw_life(seed: int, family: str = "cube") -> Life:
     if family == "liver":
         return _liver_life(seed)
     cells_override = f"mesh.cells=[{', '.join(str(c) for c in cells)}]"
+    if family == "layers":
+        drawn = np.random.default_rng([seed, 4])
+        model = {key: choices[int(drawn.integers(len(choices)))] for key, choices in LAYERS_CHOICES.items()}
+        cells_override = f'mesh.file="{layers_mesh_file(model["upper"], model["gap"], model["lower"])}"'
+        model_overrides = ['mesh.fixed_faces=["xmin", "xmax", "ymin", "ymax", "zmin"]']
     base_scene = load_scene(SCENE, [cells_override, *model_overrides])
     length = float(base_scene.needle.length)
     contact = float(base_scene.insertion.contact_distance)
-    top = float(base_scene.mesh.origin[2] + base_scene.mesh.size[2])
-    size = np.asarray(base_scene.mesh.size, dtype=float)
-    origin = np.asarray(base_scene.mesh.origin, dtype=float)
+    # the cube's box (the layers': the same 10 x 10 cm top face on 4 x 4 cells)
+    box = base_scene if family != "layers" else load_scene(SCENE, ["mesh.cells=[4, 4, 4]"])
+    top = float(box.mesh.origin[2] + box.mesh.size[2])
+    size = np.asarray(box.mesh.size, dtype=float)
+    origin = np.asarray(box.mesh.origin, dtype=float)
     grids = [origin[k] + size[k] * np.arange(1, cells[k]) / cells[k] for k in range(2)]
 
     rng = np.random.default_rng(seed)
@@ -405,6 +430,9 @@ def draw_life(seed: int, family: str = "cube") -> Life:
     ]
     if family == "two":
         overrides.append(f"needle.radius={TWO_RADIUS!r}")
+    if family == "layers":
+        # a thin needle, and the tissue's positions at every step: L_in is measured on the deformed layers
+        overrides += [f"needle.radius={LAYERS_RADIUS!r}", "output.tissue_every=1"]
     life = Life(
         seed=seed,
         dt=dt,
@@ -420,6 +448,41 @@ def draw_life(seed: int, family: str = "cube") -> Life:
         model=tuple(model.items()),
     )
     return life if family != "two" else _with_holder(life, seed, geometry, steps)
+
+
+def layers_mesh_file(upper: float, gap: float, lower: float) -> str:
+    """The mesh file of two layers (:data:`LAYERS_CHOICES`): an ``upper`` [m] thick layer whose top face is
+    the cube's (z = 0.1 m), a ``gap`` [m] under it, a ``lower`` [m] thick layer, both 10 × 10 cm; written once
+    in the system's temporary folder (its name holds the three values) and reused."""
+    import os
+    import tempfile
+    from pathlib import Path
+
+    import meshio
+
+    from refsim.mesh.generators import box_mesh
+
+    folder = Path(tempfile.gettempdir()) / "refsim-lives"
+    path = folder / f"layers-{upper * 1e3:g}-{gap * 1e3:g}-{lower * 1e3:g}mm.vtu"
+    if path.exists():
+        return str(path)
+    folder.mkdir(parents=True, exist_ok=True)
+    top = 0.1
+    boxes = [
+        box_mesh(
+            size=(0.1, 0.1, upper),
+            cells=(4, 4, max(LAYER_CELLS, round(upper / 0.004))),
+            origin=(-0.05, -0.05, top - upper),
+        ),
+        box_mesh(size=(0.1, 0.1, lower), cells=(4, 4, 4), origin=(-0.05, -0.05, top - upper - gap - lower)),
+    ]
+    points = np.vstack([box.rest_positions for box in boxes])
+    tets = np.vstack([boxes[0].tets, boxes[1].tets + boxes[0].rest_positions.shape[0]])
+    # written under another name and renamed: a process reading the file never sees it half written
+    partial = folder / f"{path.stem}.{os.getpid()}.vtu"
+    meshio.write(partial, meshio.Mesh(points, [("tetra", tets)]))
+    os.replace(partial, path)
+    return str(path)
 
 
 def _liver_life(seed: int) -> Life:

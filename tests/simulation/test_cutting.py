@@ -631,3 +631,54 @@ def test_a_needle_turned_about_its_entry_point_cuts_a_fan_whose_crack_tip_follow
     slope, offset = np.polyfit(depths[upper], advance[upper], 1)
     assert 0.3 < slope < 0.4  # 2 sin(10°) = 0.347, less what the cut start left
     assert np.abs(advance[lower] - (offset + slope * depths[lower])).max() < 0.1e-3
+
+
+@pytest.mark.parametrize("offset", [0.0015, 0.003])
+def test_a_second_cut_beside_the_first_is_not_held_on_the_first_cuts_plane(offset):
+    # cube_cut (4³ cells, fast): 17 mm in, the base moved 8 mm along x (a cut in the xz plane), pulled out,
+    # moved ``offset`` along y (normal to that cut, more than d_c), 17 mm in again and moved 8 mm along x: a
+    # second cut parallel to the first. Reference: the first stroke, in intact tissue; the second meets the
+    # first cut only where it is on it (a cut a needle is not cutting holds it within d_c of its surface), so
+    # the two strokes load the needle alike. The second cut's sliding rows once held every sample that
+    # projected inside the first cut, from any distance along its normal: pulled onto the first cut's plane,
+    # the needle carried 5.46 N, 3.48 N of it along y, against 3.41 and 0.19 N.
+    from refsim.scene import load_scene
+    from refsim.simulation import Simulation
+
+    entry, down = np.array([0.00123, 0.00231, 0.1]), np.array([0.0, 0.0, -1.0])
+
+    def base(depth, x=0.0, y=0.0):
+        return entry + (depth - 0.32) * down + np.array([x, y, 0.0])
+
+    bases = [
+        base(-0.002),
+        base(0.017),
+        base(0.017, 0.008),
+        base(-0.003, 0.008),
+        base(-0.003, 0.0, offset),
+        base(0.017, 0.0, offset),
+        base(0.017, 0.008, offset),
+    ]
+    times = [0.0]
+    for before, after in zip(bases[:-1], bases[1:], strict=True):  # 10 mm/s, whole steps of 10 ms
+        times.append(round(times[-1] + max(float(np.linalg.norm(after - before)) / 0.01, 0.1), 2))
+    vector = lambda v: "[" + ", ".join(repr(float(c)) for c in v) + "]"  # noqa: E731
+    scene = load_scene(
+        "cube_cut",
+        [
+            "mesh.cells=[4, 4, 4]",
+            'compliance.strategy="fast"',
+            f"time.duration={times[-1] + 0.3!r}",
+            f"trajectory.times={vector(times)}",
+            "trajectory.base_positions=[" + ", ".join(vector(b) for b in bases) + "]",
+            "trajectory.directions=[" + ", ".join(vector(down) for _ in bases) + "]",
+        ],
+    )
+    records = []
+    Simulation(scene).run(on_step=lambda state, record: records.append(record))
+    assert [e.name for r in records for e in r.events if e.name == "cut_start"] == ["cut_start"] * 2
+    forces = np.array([r.needle_force for r in records])
+    step = [round(t / scene.time.dt) for t in times]
+    first, second = forces[step[1] : step[2]], forces[step[5] : step[6]]
+    assert np.linalg.norm(second, axis=1).max() <= 1.02 * np.linalg.norm(first, axis=1).max()
+    assert np.abs(second[:, 1]).max() <= 1.5 * np.abs(first[:, 1]).max()

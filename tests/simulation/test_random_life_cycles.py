@@ -14,7 +14,10 @@ its sides): six seeds by default, the rest of 0–199 in the slow set. The "two"
 family runs a second needle beside the first, one that holds and does not cut, each checked on its own rows
 and events (the force bound on the one that cuts): four seeds by default, the rest of 0–99 in the slow set.
 The "liver" family runs the same kind of life on the liver scene (an unstructured organ that breathes under
-the needle), entering anywhere on its surface: five seeds by default, the rest of 0–59 in the slow set.
+the needle), entering anywhere on its surface: five seeds by default, the rest of 0–59 in the slow set. The
+"layers" family runs it in two layers with a gap between them (a wall over an organ; their thicknesses and
+the gap drawn), which the needle punctures, cuts and leaves part by part: two seeds by default, the rest of
+0–59 in the slow set.
 """
 
 from __future__ import annotations
@@ -44,6 +47,11 @@ TWO_SLOW_SEEDS = [seed for seed in range(0, 100) if seed not in TWO_SEEDS]
 # (12 mm for 3), so that the sliver held it with 1.0 N, twice f_p + G_c L_in.
 LIVER_SEEDS = (0, 18, 26, 36, 45)
 LIVER_SLOW_SEEDS = [seed for seed in range(0, 60) if seed not in LIVER_SEEDS]
+# The "layers" family (two layers with a gap between them: the needle punctures, cuts and leaves them part
+# by part): seed 3 punctures both and cuts through both, 4 cuts the upper one and leaves it through its far
+# face while cutting.
+LAYERS_SEEDS = (3, 4)
+LAYERS_SLOW_SEEDS = [seed for seed in range(0, 60) if seed not in LAYERS_SEEDS]
 LIVES = [
     *(("cube", seed) for seed in DEFAULT_SEEDS),
     *(pytest.param("cube", seed, marks=pytest.mark.slow) for seed in SLOW_SEEDS),
@@ -53,6 +61,8 @@ LIVES = [
     *(pytest.param("two", seed, marks=pytest.mark.slow) for seed in TWO_SLOW_SEEDS),
     *(("liver", seed) for seed in LIVER_SEEDS),
     *(pytest.param("liver", seed, marks=pytest.mark.slow) for seed in LIVER_SLOW_SEEDS),
+    *(("layers", seed) for seed in LAYERS_SEEDS),
+    *(pytest.param("layers", seed, marks=pytest.mark.slow) for seed in LAYERS_SLOW_SEEDS),
 ]
 
 
