@@ -152,7 +152,7 @@ def check_scene_lengths(scene: Scene, scale: float | None = None) -> None:
 
 
 def check_instruments(scene: Scene) -> None:
-    """Names unique; at most one instrument that cuts, and none unless cutting.enabled."""
+    """Names unique; no instrument that cuts unless cutting.enabled."""
     seen: set[str] = set()
     for index, instrument in enumerate(scene.instruments):
         if instrument.name in seen:
@@ -168,15 +168,6 @@ def check_instruments(scene: Scene) -> None:
                 "cuts",
                 "cuts = true: cutting.enabled is false (enable cutting, or leave cuts out)",
             )
-    cutting = [index for index, spec in enumerate(scene.instrument_specs) if spec.cuts]
-    if len(cutting) > 1:
-        raise ConsistencyError(
-            f"instruments[{cutting[1]}]",
-            "cuts",
-            f"cuts = true (default: cutting.enabled): instruments[{cutting[0]}] "
-            f"({scene.instrument_specs[cutting[0]].name!r}) already cuts; at most one instrument per scene "
-            "may cut (the cut surface holds one growing cut): set cuts = false on all but one",
-        )
 
 
 def check_consistency(scene: Scene) -> None:

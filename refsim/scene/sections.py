@@ -842,7 +842,8 @@ class InstrumentSpec(_Validated):
     optional overrides of any [needle] key (e.g. ``radius``, ``rigid``) and whether it may cut. A scene has
     either [trajectory] (one instrument, named "needle") or [[instruments]], not both. The instruments meet
     only through the tissue (its compliance couples their rows; the cut surface one makes is met by the
-    others' rows): needles do not touch each other. At most one instrument per scene may cut.
+    others' rows): needles do not touch each other. Several may cut, each its own strip of the one cut
+    surface, which the others meet as a cut they are not cutting.
     """
 
     name: str = spec(
@@ -850,7 +851,7 @@ class InstrumentSpec(_Validated):
         " its results are under instruments/<name>/ (the first instrument's at the one-needle paths)"
     )
     cuts: bool | None = spec(
-        None, doc="whether the instrument may cut (default: cutting.enabled); at most one per scene"
+        None, doc="whether the instrument may cut (default: cutting.enabled); several may"
     )
     trajectory: TrajectorySpec | None = None
     needle: NeedleSpec | None = None

@@ -59,8 +59,8 @@ SCENE = "cube_cut"
 CELLS = (4, 4, 4)
 #: The families of lives :func:`draw_life` draws from: "cube" on the 4³ cube with the scene's model values;
 #: "model" also draws the mesh and the model's values a user sets (:data:`MODEL_CHOICES`); "two" draws a
-#: second needle's life beside the first in the same tissue, one that holds and does not cut (a scene cuts
-#: with one instrument at most), entering about 30 mm from it (:data:`TWO_SHIFT`); "liver" the same kind of
+#: second needle's life beside the first in the same tissue, one that holds and does not cut, entering
+#: about 30 mm from it (:data:`TWO_SHIFT`); "liver" the same kind of
 #: life on the liver scene (an unstructured organ that breathes under the needle), entering at a random point
 #: of its surface, its segments in the tangent plane's frame there.
 #: "layers" the cube's kind of life in two layers with a gap between them (a wall over an organ,

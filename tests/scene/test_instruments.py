@@ -65,7 +65,6 @@ def _changed(change) -> dict:
         (lambda d: d["instruments"][1].update(name="cut"), ["instruments[1].name", "'cut'", "reserved"]),
         (lambda d: d["instruments"][0].update(name="a/b"), ["instruments[0].name", "'a/b'", "letters"]),
         (lambda d: d.update(trajectory=d["instruments"][0]["trajectory"]), ["[trajectory] and [["]),
-        (lambda d: d["instruments"][1].pop("cuts"), ["instruments[1].cuts", "at most one instrument"]),
         (lambda d: d["instruments"][1].update(colour=1), ["unknown key instruments[1].colour"]),
         (lambda d: d["instruments"][1].update(radius=-1.0), ["instruments[1].radius", "-1.0", "(0.0, inf]"]),
         (lambda d: d["instruments"][0].update(cuts="yes"), ["instruments[0].cuts", "'yes'", "true or false"]),

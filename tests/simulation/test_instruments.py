@@ -210,3 +210,46 @@ def test_several_instruments_refuse_the_one_needle_shortcuts(two):
     assert state.instrument("holder").name == "holder"
     with pytest.raises(KeyError, match="no instrument 'nobody'"):
         state.instrument("nobody")
+
+
+@pytest.mark.parametrize("crossing", [False, True], ids=["apart", "crossing"])
+def test_two_needles_that_both_cut_each_cut_at_g_c_per_unit_length(crossing):
+    # two_needles on 4³ cells, r = 2 mm, both instruments cutting: the first inserted 17 mm at (−12, 1) mm
+    # and moved 15 mm along x, then the second 17 mm at (−4, 9) mm moved 16 mm along −y, across the first's
+    # cut (``crossing``, 7 mm behind the first needle), or at (20, 9) mm, beside it. Reference: the energy
+    # law: each needle cuts with G_c per unit inserted length, G_c × 17 mm = 3.4 N, in steady cutting (the
+    # last 0.3 s of each stroke, the other needle held still: the second's 5 mm after it crossed). Each cut
+    # is its own strip of the one surface, which the other needle meets as a cut it is not cutting; crossing
+    # it, the second needle is held by the first cut's faces until they start its cut again (the faces' cut
+    # start, docs/cutting.md), within the random lives' bound 2 (f_p + G_c L_in); every step keeps their
+    # invariants.
+    from refsim.verification.life_cycles import life_violations
+
+    data = _two_needles(duration=7.2)
+    data["needle"]["radius"] = 0.002
+    data["compliance"] = {"strategy": "fast"}
+
+    def trajectory(start, stroke, start_time):
+        x, y = start
+        times = [0.0, start_time, start_time + 1.9, start_time + 1.9 + 100.0 * np.linalg.norm(stroke), 7.2]
+        bases = [[x, y, 0.422], [x, y, 0.422], [x, y, 0.403]] + [[x + stroke[0], y + stroke[1], 0.403]] * 2
+        directions = [[0.0, 0.0, -1.0]] * 5
+        return {"times": [round(t, 2) for t in times], "base_positions": bases, "directions": directions}
+
+    first, second = data["instruments"]
+    first["trajectory"] = trajectory((-0.012, 0.001), (0.015, 0.0), 0.1)
+    second["trajectory"] = trajectory((-0.004 if crossing else 0.02, 0.009), (0.0, -0.016), 3.6)
+    second["cuts"] = True
+    scene = scene_from_dict(data, source="two cutters")
+    records, states = [], []
+    Simulation(scene).run(on_step=lambda state, record: (records.append(record), states.append(state)))
+    assert all("cut_start" in _events(records, name) for name in ("cutter", "holder"))
+    forces = np.array([[np.linalg.norm(i.needle_force) for i in r.instruments] for r in records])
+    g_c, depth = scene.cutting.fracture_energy, 0.017
+    for index, stroke_end in ((0, 3.5), (1, 7.1)):  # (the strokes' ends)
+        steady = forces[round((stroke_end - 0.3) / 0.01) : round(stroke_end / 0.01), index]
+        assert steady == pytest.approx(g_c * depth, rel=0.01), (index, steady.min(), steady.max())
+    final = states[-1]
+    own = [final.instrument(name).cut_strip.own_triangles(final.cut) for name in ("cutter", "holder")]
+    assert own[0].any() and own[1].any() and not np.any(own[0] & own[1])
+    assert life_violations(records, scene) == []
