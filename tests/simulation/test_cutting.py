@@ -12,6 +12,7 @@ import pytest
 from refsim.constraints import BILATERAL, CUT_BORDER, CUT_SLIDE, UNILATERAL
 from refsim.simulation import SimulationError
 from tests.simulation.cutting_cases import CuttingCase, run_case, watch_cut_blocks
+from tests.simulation.waypoints import times_at_speed, trajectory_overrides
 
 EXACT = ('solver.method="exact"', "output.record_problems=true")
 
@@ -659,19 +660,13 @@ def test_a_second_cut_beside_the_first_is_not_held_on_the_first_cuts_plane(offse
         base(0.017, 0.0, offset),
         base(0.017, 0.008, offset),
     ]
-    times = [0.0]
-    for before, after in zip(bases[:-1], bases[1:], strict=True):  # 10 mm/s, whole steps of 10 ms
-        times.append(round(times[-1] + max(float(np.linalg.norm(after - before)) / 0.01, 0.1), 2))
-    vector = lambda v: "[" + ", ".join(repr(float(c)) for c in v) + "]"  # noqa: E731
+    times = times_at_speed(bases, 0.01)  # 10 mm/s
     scene = load_scene(
         "cube_cut",
         [
             "mesh.cells=[4, 4, 4]",
             'compliance.strategy="fast"',
-            f"time.duration={times[-1] + 0.3!r}",
-            f"trajectory.times={vector(times)}",
-            "trajectory.base_positions=[" + ", ".join(vector(b) for b in bases) + "]",
-            "trajectory.directions=[" + ", ".join(vector(down) for _ in bases) + "]",
+            *trajectory_overrides(times, bases, down, duration=times[-1] + 0.3),
         ],
     )
     records = []

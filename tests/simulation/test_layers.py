@@ -31,6 +31,7 @@ from refsim.mesh.generators import box_mesh
 from refsim.scene import load_scene
 from refsim.simulation import Simulation
 from refsim.simulation.detection import Detector
+from tests.simulation.waypoints import times_at_speed, trajectory_overrides
 
 TOP, UPPER_THICKNESS, LOWER_THICKNESS = 0.1, 0.008, 0.02
 ENTRY = (0.00123, 0.00231)
@@ -72,22 +73,16 @@ def _run(tmp_path, gap, direction, *overrides, radius=0.0005, entry=ENTRY):
     in_gap = (UPPER_THICKNESS + 0.5 * gap) / cos
     short = through - 0.001 / cos
     depths = [-0.002, through, through, in_gap, short, -0.002, through]
-    times = [0.0]
-    for before, after in zip(depths[:-1], depths[1:], strict=True):
-        times.append(round(times[-1] + max(abs(after - before) / SPEED, 0.1), 2))  # whole steps of 10 ms
     entry = np.array([entry[0], entry[1], TOP])
     bases = [entry + (d - NEEDLE_LENGTH) * direction for d in depths]
-    vector = lambda v: "[" + ", ".join(repr(float(c)) for c in v) + "]"  # noqa: E731
+    times = times_at_speed(bases, SPEED)  # (the base moves along the needle: the tip's speed)
     scene = _scene_on_layers(
         tmp_path,
         "cube",
         gap,
         f"needle.radius={radius!r}",
         "time.dt=0.01",
-        f"time.duration={float(times[-1])!r}",
-        f"trajectory.times={vector(times)}",
-        "trajectory.base_positions=[" + ", ".join(vector(b) for b in bases) + "]",
-        "trajectory.directions=[" + ", ".join(vector(direction) for _ in bases) + "]",
+        *trajectory_overrides(times, bases, direction, duration=times[-1]),
         *overrides,
     )
     records = []
@@ -212,20 +207,9 @@ def _cut_through_layers(tmp_path, gap, direction, *overrides):
         base(-0.003, STROKE),
         base(through, STROKE),
     ]
-    times = [0.0]
-    for before, after in zip(bases[:-1], bases[1:], strict=True):
-        times.append(round(times[-1] + max(float(np.linalg.norm(after - before)) / 0.01, 0.1), 2))
-    vector = lambda v: "[" + ", ".join(repr(float(c)) for c in v) + "]"  # noqa: E731
-    scene = _scene_on_layers(
-        tmp_path,
-        "cube_cut",
-        gap,
-        f"time.duration={float(times[-1]) + 0.2!r}",
-        f"trajectory.times={vector(times)}",
-        "trajectory.base_positions=[" + ", ".join(vector(b) for b in bases) + "]",
-        "trajectory.directions=[" + ", ".join(vector(d) for _ in bases) + "]",
-        *overrides,
-    )
+    times = times_at_speed(bases, 0.01)
+    waypoints = trajectory_overrides(times, bases, d, duration=times[-1] + 0.2)
+    scene = _scene_on_layers(tmp_path, "cube_cut", gap, *waypoints, *overrides)
     records, states = [], []
     Simulation(scene).run(on_step=lambda state, record: (records.append(record), states.append(state)))
     return scene, records, states[-1], round(times[2] / scene.time.dt) - 1
@@ -286,17 +270,13 @@ def test_a_needle_pushed_through_the_gap_while_it_cuts_cuts_the_lower_layer_too(
         return entry + (depth - NEEDLE_LENGTH) * down + moved * side
 
     bases = [base(-0.002, 0.0), base(0.006, 0.0), base(0.006, 0.003), base(lower, 0.003), base(lower, 0.008)]
-    times = [0.0, 0.8, 1.1, 2.1, 2.6]  # 10 mm/s
-    vector = lambda v: "[" + ", ".join(repr(float(c)) for c in v) + "]"  # noqa: E731
+    times = times_at_speed(bases, 0.01)  # 0, 0.8, 1.1, 2.1, 2.6 s
     scene = _scene_on_layers(
         tmp_path,
         "cube_cut",
         gap,
         'compliance.strategy="fast"',
-        "time.duration=2.8",
-        f"trajectory.times={vector(times)}",
-        "trajectory.base_positions=[" + ", ".join(vector(b) for b in bases) + "]",
-        "trajectory.directions=[" + ", ".join(vector(down) for _ in bases) + "]",
+        *trajectory_overrides(times, bases, down, duration=2.8),
     )
     records, states = [], []
     Simulation(scene).run(on_step=lambda state, record: (records.append(record), states.append(state)))
