@@ -48,92 +48,12 @@ __all__ = [
     "FrontRows",
     "crack_tip_compression",
     "cut_criterion",
-    "inserted_arc",
-    "inserted_stretches",
-    "inserted_span",
-    "stretch_length",
     "strip_cut_block",
 ]
 
 # Border points whose inward direction has less than this component normal to the needle are ends of the
 # strip (their inward direction runs along the shaft): they would only block the axial motion. cos(60°).
 _MIN_NORMAL_COMPONENT = 0.5
-
-
-def inserted_stretches(
-    needle, locator, spacing: float, *, refinement: int = 16
-) -> tuple[tuple[float, float], ...]:
-    """The stretches of the needle's centreline that lie in the tissue mesh (``locator``, a
-    `refsim.geometry.TetLocator` on the configuration of ``needle``): (entry, end) arc lengths [m] of each,
-    ordered from the needle's base to its tip, each end to ``spacing / refinement``; empty when no sample of
-    the needle lies in the tissue.
-
-    The needle is sampled every ``spacing`` from the tip to the base; a stretch is a run of samples in the
-    tissue, so parts of the tissue closer than ``spacing`` along the needle may be read as one. The deepest
-    stretch ends at the tip while the tip is in the tissue, else where the centreline leaves the tissue
-    through a far face (the part beyond, in the air, is not inserted); each other one where the needle leaves
-    its part of the tissue into a gap (a wall over an organ: the needle through both, a gap between them).
-    """
-    length = needle.length
-    arcs = np.arange(length, -0.5 * spacing, -spacing)  # from the tip to the base, every spacing
-    found, _ = locator.locate(needle.points(np.clip(arcs, 0.0, length)))
-    inside = found >= 0
-    stretches = []
-    start = 0  # where the search for the next stretch begins, among the samples from the tip
-    while True:  # once per stretch (a part of the tissue the needle is in), from the tip's up
-        deeper = np.flatnonzero(inside[start:])
-        if deeper.size == 0:
-            break
-        last = start + int(deeper[0])  # the stretch's deepest sample; the one before it (deeper) is out
-        if last == 0:
-            end = float(length)
-        else:
-            fine = np.linspace(max(arcs[last], 0.0), arcs[last - 1], refinement + 1)
-            located, _ = locator.locate(needle.points(fine))
-            out = np.flatnonzero(located < 0)
-            end = float(fine[max(int(out[0]) - 1, 0)]) if out.size else float(arcs[last - 1])
-        outside = np.flatnonzero(~inside[last:])
-        if outside.size == 0:
-            stretches.append((0.0, end))
-            break
-        first = last + int(outside[0])
-        # Refine between the first sample outside and the last inside.
-        fine = np.linspace(max(arcs[first], 0.0), arcs[first - 1], refinement + 1)
-        located, _ = locator.locate(needle.points(fine))
-        outside_fine = np.flatnonzero(located < 0)
-        lead = int(outside_fine[-1]) + 1 if outside_fine.size else 0
-        stretches.append((float(fine[min(lead, refinement)]), end))
-        start = first
-    return tuple(reversed(stretches))
-
-
-def inserted_span(needle, locator, spacing: float, *, refinement: int = 16) -> tuple[float, float]:
-    """Arc lengths [m] where the needle enters the tissue and where its inserted part ends: the entry of its
-    first stretch in the tissue (:func:`inserted_stretches`) and the end of its deepest one; (length, length)
-    when no sample of the needle lies in the tissue.
-
-    This, not the projection of the entry point, bounds the inserted part of the needle while it cuts: a
-    tilted needle pushed sideways moves away from its entry point along the tissue surface, and the entry
-    point's projection then lies up to stroke × tan(tilt) above the tissue (2.2 mm for a 30° needle and a 5 mm
-    stroke; rows placed there pulled the needle onto the tissue surface: 10.8 N against 3.6 N). And a needle
-    through a layer, its tip out of its far face, still cuts along the layer's thickness (ended at the tip,
-    the span was empty once the tip left, and the needle crossed intact tissue with no force).
-    """
-    stretches = inserted_stretches(needle, locator, spacing, refinement=refinement)
-    if not stretches:
-        return float(needle.length), float(needle.length)
-    return stretches[0][0], stretches[-1][1]
-
-
-def inserted_arc(needle, locator, spacing: float, *, refinement: int = 16) -> float:
-    """Arc length [m] where the needle enters the tissue (:func:`inserted_span`'s first value)."""
-    return inserted_span(needle, locator, spacing, refinement=refinement)[0]
-
-
-def stretch_length(stretches, start: float = -np.inf, end: float = np.inf) -> float:
-    """The needle's length in the tissue [m]: the sum of ``stretches`` ((entry, end) arc lengths, as
-    :func:`inserted_stretches` gives them) within the arc lengths [start, end]."""
-    return float(sum(max(min(b, end) - max(a, start), 0.0) for a, b in stretches))
 
 
 def cut_criterion(lateral_force: np.ndarray, point_count: int, cutting_force: float) -> bool:
@@ -356,15 +276,13 @@ def strip_cut_block(
     strip,
     geometry: StepGeometry,
     *,
-    entry_arc_length: float | None = None,
+    stretches,
     spacing: float,
     cut_direction: np.ndarray,
     front_strength: float = np.inf,
     friction_coefficient: float = 0.0,
     subgrid_compliance: tuple[np.ndarray, np.ndarray] | None = None,
     face_stretch: FaceStretch | None = None,
-    exit_arc_length: float | None = None,
-    stretches=None,
 ) -> tuple[RowBlock | None, FrontRows]:
     """Sliding rows on the cut and front rows on its crack tip, for a strip cut (:mod:`refsim.cutting.strip`).
 
@@ -399,9 +317,10 @@ def strip_cut_block(
         tip: sliding rows only, unbounded, for samples on it projecting inside it: beside an old cut's border
         the tissue is intact).
     geometry : The step's geometry.
-    entry_arc_length : Arc length where the needle enters the tissue [m] (:func:`inserted_arc`); the samples
-        run from there to the tip (none, and no rows, when it is the needle's length: the tip is out). Read
-        when ``stretches`` is None.
+    stretches : The needle's stretches in the tissue, (entry, end) arc lengths [m] from the base to the tip
+        (:func:`refsim.constraints.inserted.inserted_stretches`: the tip, or where the needle leaves a part of
+        the tissue through a far face or into a gap, ends each): the samples run along each (none, and no
+        rows, when there is none: the needle is out).
     spacing : d_c [m].
     cut_direction : ĉ (deformed), unit, shape (3,).
     front_strength : Force per unit length of needle at which the front gives way [N/m], > 0 (G_c; inf:
@@ -419,20 +338,9 @@ def strip_cut_block(
         (`refsim.constraints.friction.FaceStretch`, kept by the events from ``FrontRows.slide_arc_lengths``,
         ``slide_nodes``, ``slide_weights``): each friction row starts from its relative position measured
         from them, so a row that sticks keeps its load; None: from zero.
-    exit_arc_length : Arc length where the inserted part ends [m] (:func:`inserted_span`): the tip (None), or
-        where the needle leaves the tissue through a far face; the samples end there. Read when ``stretches``
-        is None.
-    stretches : The needle's stretches in the tissue, (entry, end) arc lengths [m] from the base to the tip
-        (:func:`inserted_stretches`): the samples run along each. None: the one stretch from
-        ``entry_arc_length`` to ``exit_arc_length``.
 
     Rows are ordered: sliding rows, then front rows, then the friction rows (two per sliding row).
     """
-    if stretches is None:
-        if entry_arc_length is None:
-            raise ValueError("strip_cut_block needs the stretches of the needle in the tissue or its entry")
-        end = geometry.needle_free.length if exit_arc_length is None else float(exit_arc_length)
-        stretches = ((float(entry_arc_length), end),)
     samples = _needle_samples(geometry, stretches, spacing)
     if samples is None:
         return None, FrontRows.empty()
@@ -441,17 +349,25 @@ def strip_cut_block(
         if strip is None or not strip.has_front()
         else strip.front.positions(geometry.tissue_previous, geometry.mesh_tets)
     )
+    # Each sample's closest point on the crack tip at the start of the step, read by the sliding rows at the
+    # front (their band) and by the front rows (interior: within half a sample spacing of the polyline's
+    # ends; see _front_rows).
+    on_front = None
+    if front_previous.shape[0] >= 2:
+        parts = strip.part_ranges()
+        on_front = _closest_on_front(samples.previous, front_previous, parts, reach=0.5 * samples.step)
     sliding = _sliding_rows(
         cut,
         strip,
         geometry,
         samples,
         front_previous,
+        on_front,
         spacing=spacing,
         front_strength=front_strength,
         subgrid_compliance=subgrid_compliance,
     )
-    front = _front_rows(strip, geometry, samples, front_previous, cut_direction, sliding)
+    front = _front_rows(strip, geometry, samples, front_previous, on_front, cut_direction, sliding)
     if sliding.rows is None and front.rows is None:
         return None, front.info
     friction = None
@@ -577,13 +493,15 @@ def _sliding_rows(
     geometry: StepGeometry,
     samples: _NeedleSamples,
     front_previous: np.ndarray,
+    on_front: tuple | None,
     *,
     spacing: float,
     front_strength: float,
     subgrid_compliance: tuple[np.ndarray, np.ndarray] | None,
 ) -> _Sliding:
     """The sliding rows (see :func:`strip_cut_block`): the samples in the cut, or beside its border within
-    reach of the crack tip, held on the surface along its normal; bounded at G_c ℓ_k at the front."""
+    reach of the crack tip, held on the surface along its normal; bounded at G_c ℓ_k at the front
+    (``on_front``: each sample's closest point on the crack tip, :func:`_closest_on_front`)."""
     none = _Sliding(
         None, None, 0, np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64)
     )
@@ -611,8 +529,8 @@ def _sliding_rows(
     # pulled it onto the cut's plane. The needle cutting the strip made the strip's surface: all its samples
     # that project inside it (or within reach of the crack tip) are held on it; the rest of the cut (its
     # older strips, another needle's) it meets as a cut it is not cutting (its samples projecting on an old
-    # cut from afar were held on that cut's plane, 3.8 N on a needle that had left its first cut and started
-    # a second beside it, where the law lets the tissue hold it with 1.7 N).
+    # cut from afar were held on that cut's plane: a second cut 1.5 or 3 mm beside and parallel to a first
+    # held the needle with 5.43-5.46 N, up to 3.48 N of it normal to the cuts, against 3.41 N for the first).
     lateral_offset = np.linalg.norm(in_plane, axis=1)
     on_surface = found.inside | (lateral_offset <= reach)
     met = None if strip is None else ~strip.own_triangles(cut)[found.triangle]  # samples on older cuts
@@ -649,9 +567,8 @@ def _sliding_rows(
     # rows there, an L-shaped stroke dragged the tissue sideways, 7.3 N against 3.6 N).
     limits = np.full(inside.size, np.inf)
     band_rows, band_segment = none.band_rows, none.band_segment
-    if np.isfinite(front_strength) and front_previous.shape[0] >= 2:
-        parts = strip.part_ranges()
-        segment, parameter, _ = _closest_on_front(needle_previous[inside], front_previous, parts)
+    if np.isfinite(front_strength) and on_front is not None:
+        segment, parameter = on_front[0][inside], on_front[1][inside]
         nearest_tip = (1.0 - parameter)[:, None] * front_previous[segment] + parameter[:, None] * (
             front_previous[segment + 1]
         )
@@ -680,11 +597,13 @@ def _front_rows(
     geometry: StepGeometry,
     samples: _NeedleSamples,
     front_previous: np.ndarray,
+    on_front: tuple | None,
     cut_direction: np.ndarray,
     sliding: _Sliding,
 ) -> _Front:
-    """The front rows (see :func:`strip_cut_block`): the samples against the crack tip, along −ĉ normal to
-    the needle; they follow the sliding rows in the block."""
+    """The front rows (see :func:`strip_cut_block`): the samples against the crack tip (``on_front``: each
+    one's closest point on it, :func:`_closest_on_front`), along −ĉ normal to the needle; they follow the
+    sliding rows in the block."""
     empty = np.zeros(0, np.int64)
     info = FrontRows.empty()
     if sliding.band_rows.size:
@@ -703,17 +622,16 @@ def _front_rows(
             band_weights=anchor.weights[band],
             band_previous_gaps=np.einsum("ij,ij->i", anchor.normals[band], needle_previous - tissue_previous),
         )
-    if front_previous.shape[0] < 2:
+    if on_front is None:
         return _Front(None, info, empty, empty)
-    # A sample stands for the inserted length within half a spacing of it: one within half a spacing beyond
+    # ``on_front``'s interior reaches half a sample spacing past the polyline's ends (strip_cut_block): a
+    # sample stands for the inserted length within half a spacing of it: one within half a spacing beyond
     # an end of the crack tip's polyline still faces its end column. Without that reach the needle's sample at
     # the entry point, which lies on the deformed surface, a few micrometres above the surface column the cut
     # laid earlier (once the needle has moved: pulled back through its cut), came and went from one step to
     # the next with its share G_c d_c / 2 of the force: the withdrawal's force lost it in 65, 19 and 63 % of
     # the steps at 5, 7 and 9 cells, a level-to-level offset of 0.03 to 0.06 N that was not smooth in h.
-    segment, parameter, interior = _closest_on_front(
-        samples.previous, front_previous, strip.part_ranges(), reach=0.5 * samples.step
-    )
+    segment, parameter, interior = on_front
     keep = np.flatnonzero(interior & (samples.shares > 1e-9 * samples.step))
     if keep.size:
         tangents = geometry.needle_free.tangents(samples.arc_lengths[keep])

@@ -200,10 +200,10 @@ def advance_front(
 def crack_tip_targets(strip, needle, entry_arc: float, columns: np.ndarray, spacing: float):
     """Where the needle has cut each of ``columns`` up to: the point of the needle's centreline at the
     column's depth below the tissue surface (``strip.depths``; ``entry_arc`` is where the needle enters the
-    tissue, :func:`refsim.constraints.cut.inserted_arc`), and whether the needle reaches that depth, shapes
-    (c, 3) [m] and (c,): a column deeper than the inserted needle (a needle pushed sideways and partly out, or
-    retracting) stays where the tip left it (sent to the tip, such columns bunched up along the needle into
-    slivers).
+    tissue, :func:`refsim.constraints.inserted.inserted_arc`), and whether the needle reaches that depth,
+    shapes (c, 3) [m] and (c,): a column deeper than the inserted needle (a needle pushed sideways and partly
+    out, or retracting) stays where the tip left it (sent to the tip, such columns bunched up along the needle
+    into slivers).
 
     The crack tip is the needle's inserted segment, column j at depth d_j along it. Taking instead the foot of
     the perpendicular from the column's tip to the needle sends the top columns of a tilted needle pushed

@@ -20,14 +20,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from refsim.constraints import CUT_FRICTION, SLIDING, InsertionPath, points_beyond_tip
-from refsim.constraints.cut import (
-    crack_tip_compression,
-    inserted_arc,
-    inserted_span,
-    inserted_stretches,
-    stretch_length,
-)
+from refsim.constraints.cut import crack_tip_compression
 from refsim.constraints.friction import FaceStretch
+from refsim.constraints.inserted import inserted_arc, inserted_stretches, stretch_length, stretch_span
 from refsim.cutting.growth import start_strip
 from refsim.cutting.laws import FrontPush
 from refsim.cutting.strip import recorded_surface
@@ -80,27 +75,28 @@ class CutEventRules:
                 axis=0
             )
             stretches = inserted_stretches(needle, locator.locator, spacing)
-            entry_arc, end = (stretches[0][0], stretches[-1][1]) if stretches else (needle.length,) * 2
             inserted = stretch_length(stretches)
             margin_rows = np.concatenate([lateral, indices])
         else:
             end = needle.length
             arcs = needle.project(path_points[[0, -1]])[0]
+            steps = np.linalg.norm(np.diff(path_points, axis=0), axis=1)
+            breaks = np.flatnonzero(steps > 2.0 * self.insertion.spacing) + 1
+            # Located when the tip is out of a far face, or the path crosses a gap (its points are made every
+            # d_i in the tissue only; a path can also miss its points in an old cut).
+            located = state.tip_tet < 0 or breaks.size
+            stretches = inserted_stretches(needle, locator.locator, spacing) if located else ()
             if state.tip_tet < 0:
                 # The tip out of a far face: the shaft cuts along the part in the tissue only; where no
                 # sample of its centreline is in the tissue (it passes beside a sliver whose insertion
                 # points still hold it), along the part the insertion points hold.
-                _, end = inserted_span(needle, locator, spacing)
+                _, end = stretch_span(stretches, needle.length)
                 if end >= needle.length:
                     end = float(needle.project(path_points)[0].max())
             inserted = end - float(arcs[0])
-            steps = np.linalg.norm(np.diff(path_points, axis=0), axis=1)
-            breaks = np.flatnonzero(steps > 2.0 * self.insertion.spacing) + 1
-            stretches = inserted_stretches(needle, locator.locator, spacing) if breaks.size else ()
-            if len(stretches) > 1:
-                # The path crosses a gap (its points are made every d_i in the tissue only; a path can also
-                # miss its points in an old cut) and the needle is through several parts of the tissue: L_in
-                # is its length in them, and the cut runs in each.
+            if len(stretches) > 1 and breaks.size:
+                # The needle is through several parts of the tissue, the path across the gaps: L_in is its
+                # length in them, and the cut runs in each.
                 inserted = stretch_length(stretches, float(arcs[0]), end)
                 pieces = _path_pieces(np.split(path_points, breaks), stretches, needle, end, spacing)
             margin_rows = None
@@ -120,7 +116,7 @@ class CutEventRules:
         direction = -force_on_needle / float(np.linalg.norm(force_on_needle))
         extent = start.extent
         if along_cut:
-            pieces = [_inserted_line(needle, a, b, spacing) for a, b in stretches or ((entry_arc, end),)]
+            pieces = _inserted_lines(needle, stretches, spacing)
             extent = max(extent, spacing)
         cut, strip = start_strip(
             self.growth,
@@ -275,7 +271,7 @@ class CutEventRules:
             # tissue, would drag it sideways).
             locator = step_locator.locator
             stretches = inserted_stretches(needle, locator, cutting.point_spacing)
-            entry_arc = stretches[0][0] if stretches else needle.length
+            entry_arc, _ = stretch_span(stretches, needle.length)
             if stretches:
                 extended = self._extended(state.cut_strip, needle, positions, locator, stretches, world.step)
                 state = evolved(state, cut_strip=extended)
@@ -341,7 +337,6 @@ class CutEventRules:
         spacing = self.cutting.point_spacing
         load = (rows.directions[held] * multipliers[held, None]).sum(axis=0)
         stretches = inserted_stretches(needle, step_locator.locator, spacing)
-        entry_arc, end = (stretches[0][0], stretches[-1][1]) if stretches else (needle.length,) * 2
         length = stretch_length(stretches) - float(limits[band].sum()) / strength
         self.margins.cut_start(self.law, load, length, state.path.point_count, rows=held)
         start = self.law.cut_start(load, inserted_length=length, point_count=state.path.point_count)
@@ -349,10 +344,16 @@ class CutEventRules:
             return None
         positions = world.tissue.positions
         recorded = recorded_surface(world.cut, state.cut_strip, world.step)
-        line = _inserted_line(needle, entry_arc, end, spacing)
         direction = -load / float(np.linalg.norm(load))
         cut, strip = start_strip(
-            self.growth, recorded, line, direction, positions, world.step, extent=max(start.extent, spacing)
+            self.growth,
+            recorded,
+            None,
+            direction,
+            positions,
+            world.step,
+            extent=max(start.extent, spacing),
+            pieces=_inserted_lines(needle, stretches, spacing),
         )
         if strip is None:
             return None
@@ -369,9 +370,9 @@ class CutEventRules:
 def _path_pieces(pieces, stretches, needle, end: float, spacing: float) -> list[np.ndarray]:
     """The insertion path's ``pieces`` (one per part of the tissue, points (p_k, 3) [m], from the entry
     down) carried to the ends of the needle's stretch in that part (``stretches``: (entry, end) arc lengths
-    [m], :func:`refsim.constraints.cut.inserted_stretches`; the deepest piece to ``end``): a piece's points
-    lie up to d_i inside its part (its points are made every d_i as the tip goes), so the line goes on from
-    its first and last points as the needle does, by more than half a d_c, kept beside the needle (the
+    [m], :func:`refsim.constraints.inserted.inserted_stretches`; the deepest piece to ``end``): a piece's
+    points lie up to d_i inside its part (its points are made every d_i as the tip goes), so the line goes on
+    from its first and last points as the needle does, by more than half a d_c, kept beside the needle (the
     tissue's compression, as the single part's line past its deepest point). The entry point is on the
     tissue's surface: the first piece starts there."""
     # The stretch of each piece: the one holding its middle, else the nearest; pieces of one stretch (a path
@@ -401,6 +402,14 @@ def _path_pieces(pieces, stretches, needle, end: float, spacing: float) -> list[
             points.append((piece[-1] + moved[1] - moved[0])[None])
         carried.append(np.concatenate(points))
     return carried
+
+
+def _inserted_lines(needle, stretches, spacing: float) -> list[np.ndarray]:
+    """The needle's centreline along each of its ``stretches`` in the tissue (:func:`_inserted_line`), one
+    polyline per part of the tissue: the line a cut started against a cut's faces runs on (the tip alone,
+    twice, when there is no stretch: no column lies in the tissue, no strip)."""
+    spans = stretches or (stretch_span(stretches, needle.length),)
+    return [_inserted_line(needle, first, end, spacing) for first, end in spans]
 
 
 def _inserted_line(needle, entry_arc: float, end: float, spacing: float) -> np.ndarray:

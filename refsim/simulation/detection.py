@@ -36,7 +36,8 @@ from refsim.constraints.coupling import (
     ring_weights,
     subgrid_compliance,
 )
-from refsim.constraints.cut import FrontRows, inserted_stretches, strip_cut_block
+from refsim.constraints.cut import FrontRows, strip_cut_block
+from refsim.constraints.inserted import inserted_stretches
 from refsim.constraints.insertion import InsertionOptions, InsertionPath, PointRings
 from refsim.geometry import SurfaceProjector, TetLocator
 from refsim.scene import Scene

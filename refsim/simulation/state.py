@@ -130,9 +130,9 @@ class InstrumentState:
         tip leaves that part (through a far face, or back out of an inner layer while the shaft stays in the
         tissue); None before puncture and once the tip has left that part.
     stretches : The stretches of its needle in the tissue in this state's configuration, (entry, end) arc
-        lengths [m] from the base to the tip (:func:`refsim.constraints.cut.inserted_stretches` at the cut's
-        spacing: one per part of the tissue the needle is in), when the step's events located them (cutting,
-        the strip extending down the shaft); None otherwise. The next step's cut rows, built on this
+        lengths [m] from the base to the tip (:func:`refsim.constraints.inserted.inserted_stretches` at the
+        cut's spacing: one per part of the tissue the needle is in), when the step's events located them
+        (cutting, the strip extending down the shaft); None otherwise. The next step's cut rows, built on this
         configuration, read them instead of locating the needle again (the same inputs: the same bits).
     cut_face_stretch : The annulus stretch under its friction rows on the cut faces at the last solve
         (`refsim.constraints.friction.FaceStretch`), the next step's rows start from it; None without them.

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from refsim.constraints import BILATERAL, CUT_BORDER, CUT_SLIDE
-from refsim.constraints.cut import inserted_arc
+from refsim.constraints.inserted import inserted_arc
 from refsim.cutting.metrics import surface_topology
 from refsim.geometry import TetLocator
 from refsim.scene import load_scene

@@ -133,8 +133,8 @@ def test_in_steady_cutting_the_front_pushes_with_gc_per_unit_length(reference):
     # G_c L da, and the only force doing that work is the front's, so F_front = G_c L. The rows stand for
     # Σ ℓ_k ≤ L (samples whose projection falls off the ends of the crack tip get no row: at most 2 d_c), L
     # the inserted length at the step's start (the rows and their bounds are chosen on the start-of-step
-    # state; the length at the step's end may differ by the resolution of refsim.constraints.cut.inserted_arc,
-    # d_c/16).
+    # state; the length at the step's end may differ by the resolution of
+    # refsim.constraints.inserted.inserted_arc, d_c/16).
     scene = reference.simulation.scene
     g_c, d_c = scene.cutting.fracture_energy, scene.cutting.point_spacing
     checked = 0
