@@ -13,7 +13,7 @@ __all__ = ["inserted_arc", "inserted_span", "inserted_stretches", "stretch_lengt
 
 
 def inserted_stretches(
-    needle, locator, spacing: float, *, refinement: int = 16
+    needle, locator, spacing: float, *, refinement: int = 16, tip_outside: bool = False
 ) -> tuple[tuple[float, float], ...]:
     """The stretches of the needle's centreline that lie in the tissue mesh (``locator``, a
     `refsim.geometry.TetLocator` on the configuration of ``needle``): (entry, end) arc lengths [m] of each,
@@ -25,6 +25,11 @@ def inserted_stretches(
     stretch ends at the tip while the tip is in the tissue, else where the centreline leaves the tissue
     through a far face (the part beyond, in the air, is not inserted); each other one where the needle leaves
     its part of the tissue into a gap (a wall over an organ: the needle through both, a gap between them).
+
+    ``tip_outside``: the tip is outside the tissue by the tip's rules (`InstrumentState.tip_tet` −1: a tip
+    out of a far face pressed on the surface of another layer it has not punctured yet is held outside,
+    wherever round-off locates it), so a stretch ending at the tip is its indentation of that surface, not a
+    stretch of the needle in the tissue: it is left out.
     """
     length = needle.length
     arcs = np.arange(length, -0.5 * spacing, -spacing)  # from the tip to the base, every spacing
@@ -56,6 +61,8 @@ def inserted_stretches(
         lead = int(outside_fine[-1]) + 1 if outside_fine.size else 0
         stretches.append((float(fine[min(lead, refinement)]), end))
         start = first
+    if tip_outside and stretches and stretches[0][1] >= length:
+        stretches = stretches[1:]  # (the list runs from the tip's stretch up)
     return tuple(reversed(stretches))
 
 

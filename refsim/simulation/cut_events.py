@@ -29,7 +29,7 @@ from refsim.cutting.strip import recorded_surface
 from refsim.simulation.detection import Detection
 from refsim.simulation.margins import shaft_lateral_rows
 from refsim.simulation.records import Event
-from refsim.simulation.state import Phase, evolved
+from refsim.simulation.state import ChannelEnd, Phase, evolved
 
 if TYPE_CHECKING:
     from refsim.simulation.events import LazyLocator
@@ -74,7 +74,7 @@ class CutEventRules:
             force_on_needle = force_on_needle + (rows.directions[indices] * multipliers[indices, None]).sum(
                 axis=0
             )
-            stretches = inserted_stretches(needle, locator.locator, spacing)
+            stretches = inserted_stretches(needle, locator.locator, spacing, tip_outside=state.tip_tet < 0)
             inserted = stretch_length(stretches)
             margin_rows = np.concatenate([lateral, indices])
         else:
@@ -85,7 +85,11 @@ class CutEventRules:
             # Located when the tip is out of a far face, or the path crosses a gap (its points are made every
             # d_i in the tissue only; a path can also miss its points in an old cut).
             located = state.tip_tet < 0 or breaks.size
-            stretches = inserted_stretches(needle, locator.locator, spacing) if located else ()
+            stretches = (
+                inserted_stretches(needle, locator.locator, spacing, tip_outside=state.tip_tet < 0)
+                if located
+                else ()
+            )
             if state.tip_tet < 0:
                 # The tip out of a far face: the shaft cuts along the part in the tissue only; where no
                 # sample of its centreline is in the tissue (it passes beside a sliver whose insertion
@@ -229,7 +233,7 @@ class CutEventRules:
         rest = np.einsum("pk,pkj->pj", barycentric, self.growth.rest_positions[self.tets[tets]])
         return strip.extended(CutFront(rest, tets, barycentric), depths, step, parts=parts)
 
-    def _cutting(self, world, state, detection, multipliers, step_locator: LazyLocator):
+    def _cutting(self, world, state, detection, multipliers, step_locator: LazyLocator, *, tip_entered=False):
         """Withdrawal through the cut, and the growth of the cut where the needle pushes through its front."""
         positions = world.tissue.positions
         needle = self.needle_geometry(state.needle)
@@ -241,13 +245,20 @@ class CutEventRules:
             return world, state.withdrawn(), [Event("retraction"), Event("withdrawal")]
         events: list[Event] = []
         cutting = self.cutting
-        # The tip's material state, as in insertion: leaving through a far face is the event exit (the needle
-        # still cuts along the part in the tissue). Only forward through the tissue: a tip pulled back out
-        # through the face it entered by (on the step before the entry point is beyond it) is a withdrawal.
-        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet, step_locator)
-        if self._exits(state, positions, needle, tip_tet):
-            events.append(Event("exit"))
-        state = evolved(state, tip_tet=tip_tet, tip_barycentric=tip_barycentric)
+        # The tip's material state, as in insertion (unless it punctured or re-entered another layer in the
+        # step: then that event's): leaving through a far face is the event exit (the needle still cuts along
+        # the part in the tissue, and its tip meets the surface ahead, another layer, as in insertion: its
+        # channel's end marked through). Only forward through the tissue: a tip pulled back out through the
+        # face it entered by (on the step before the entry point is beyond it) is a withdrawal.
+        if not tip_entered:
+            tip_tet, tip_barycentric = self.tip_location(
+                positions, needle, state, detection, multipliers, step_locator
+            )
+            channel_end = None if tip_tet >= 0 else state.channel_end
+            if self._exits(state, positions, needle, tip_tet):
+                events.append(Event("exit"))
+                channel_end = ChannelEnd(state.tip_tet, state.tip_barycentric, through=True)
+            state = evolved(state, tip_tet=tip_tet, tip_barycentric=tip_barycentric, channel_end=channel_end)
         if state.cut_strip is not None and world.cut is not None:
             # Moved back through its own cut and past the line it entered along (the strip's first layer, its
             # rear edge) by more than half a cut spacing: the needle is in intact tissue again.
@@ -270,7 +281,9 @@ class CutEventRules:
             # every d_c to the tip, its crack tip at the needle (insertion points there, anchored in uncut
             # tissue, would drag it sideways).
             locator = step_locator.locator
-            stretches = inserted_stretches(needle, locator, cutting.point_spacing)
+            stretches = inserted_stretches(
+                needle, locator, cutting.point_spacing, tip_outside=state.tip_tet < 0
+            )
             entry_arc, _ = stretch_span(stretches, needle.length)
             if stretches:
                 extended = self._extended(state.cut_strip, needle, positions, locator, stretches, world.step)
@@ -336,7 +349,7 @@ class CutEventRules:
             return None
         spacing = self.cutting.point_spacing
         load = (rows.directions[held] * multipliers[held, None]).sum(axis=0)
-        stretches = inserted_stretches(needle, step_locator.locator, spacing)
+        stretches = inserted_stretches(needle, step_locator.locator, spacing, tip_outside=state.tip_tet < 0)
         length = stretch_length(stretches) - float(limits[band].sum()) / strength
         self.margins.cut_start(self.law, load, length, state.path.point_count, rows=held)
         start = self.law.cut_start(load, inserted_length=length, point_count=state.path.point_count)

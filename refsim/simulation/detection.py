@@ -294,21 +294,15 @@ class Detector:
         elif state.path.point_count:
             block, insertion_points, rings = self.path_rows(state, geometry)
             blocks.extend(b for b in (block, self.tip_row(state, geometry)) if b is not None)
-            out_of_far_face = state.channel_end is not None and state.channel_end.through
-            if state.phase == Phase.INSERTION and state.tip_tet < 0 and out_of_far_face and advancing:
-                # The tip left the tissue through a far face while the shaft stays in it, and does not move
-                # back: it meets the next surface ahead (another layer) as a tip does in approach, a contact
-                # it punctures at f_p (or a hole it enters), the shaft's rows kept. A tip moving back meets
-                # no surface ahead (it goes back into its own channel through the far face it left); one
-                # pulled back out of the face it entered by (a point still kept, or an inner layer's) is in
-                # its own channel's mouth: pushed in again it is located there, its channel's end kept.
-                contact, approach, hole = self.approach_rows(geometry, world.channels, shaft=False)
-                if float(contact.normal @ self._contact_needle(geometry).tip_tangent) < 0.0:
-                    blocks.extend(approach)
-                else:  # only the face it left, turned away from it: it moves away from that face
-                    contact, hole = None, None
+        if state.phase != Phase.APPROACH and state.tip_tet < 0 and advancing:
+            # The tip left the tissue through a far face while the shaft stays in it (inserting or cutting:
+            # the tip's rules do not depend on what holds the shaft), and does not move back: it meets the
+            # next surface ahead (another layer) as a tip does in approach, a contact it punctures at f_p (or
+            # a hole it enters), the shaft's rows kept.
+            contact, approach, hole = self._surface_ahead(world, state, geometry)
+            blocks.extend(approach)
         if state.phase == Phase.INSERTION and world.cut is not None and world.cut.triangle_count:
-            block, _ = self.cut_rows(world, None, geometry)
+            block, _ = self.cut_rows(world, None, geometry, tip_outside=state.tip_tet < 0)
             if block is not None:
                 blocks.append(block)
         strip_block = None
@@ -323,6 +317,23 @@ class Detector:
         if strip_block is not None:  # the front rows' indices into the stack, found by their roles
             front = front.located_in(strip_block, rows)
         return Detection(rows, contact, front, insertion_points, rings, hole, advancing)
+
+    def _surface_ahead(self, world: SimulationState, state: InstrumentState, geometry: StepGeometry):
+        """The surface ahead of a tip out of a far face of the tissue, its shaft in the tissue (the insertion
+        or the cutting phase, the tip outside and advancing): (contact, its rows, the hole it meets), as
+        :meth:`approach_rows` without the shaft's rows; (None, [], None) when the tip is not out of a far
+        face (``InstrumentState.channel_end`` marked through by the event exit), or when the closest surface
+        is the face it left, turned away from it (it moves away from that face). A tip moving back meets no
+        surface ahead (it goes back into its own channel through the far face it left: the caller asks
+        only for an advancing tip); one pulled back out of the face it entered by (a point still kept, or an
+        inner layer's) is in its own channel's mouth: pushed in again it is located there, its channel's end
+        kept."""
+        if state.channel_end is None or not state.channel_end.through:
+            return None, [], None
+        contact, approach, hole = self.approach_rows(geometry, world.channels, shaft=False)
+        if float(contact.normal @ self._contact_needle(geometry).tip_tangent) >= 0.0:
+            return None, [], None
+        return contact, approach, hole
 
     @staticmethod
     def _advancing(geometry: StepGeometry) -> bool:
@@ -495,7 +506,12 @@ class Detector:
         return block
 
     def cut_rows(
-        self, world: SimulationState, state: InstrumentState | None, geometry: StepGeometry
+        self,
+        world: SimulationState,
+        state: InstrumentState | None,
+        geometry: StepGeometry,
+        *,
+        tip_outside: bool | None = None,
     ) -> tuple[RowBlock | None, FrontRows]:
         """The cut surface's rows along the inserted part of the needle, from where it enters the tissue (not
         the entry point's projection, which a tilted needle pushed sideways leaves above the tissue) to the
@@ -503,13 +519,20 @@ class Detector:
         (sliding rows, no crack tip, no friction); else the instrument's own cut strip while it cuts, with its
         crack-tip front (indices into the returned block). Where the needle enters the tissue and where its
         inserted part ends are the state's ``stretches`` when the last step's events located them on this
-        configuration (one stretch per part of the tissue the needle is in: each part has its rows)."""
+        configuration (one stretch per part of the tissue the needle is in: each part has its rows).
+        ``tip_outside``: the tip is outside the tissue by the tip's rules (``inserted_stretches``); by default
+        ``state``'s tip (inside for None)."""
         if state is not None and state.stretches is not None:
             stretches = state.stretches
         else:
             locator = TetLocator(geometry.tissue_previous, geometry.mesh_tets, previous=self._cut_locator)
             self._cut_locator = locator
-            stretches = inserted_stretches(geometry.needle_previous, locator, self.cutting.point_spacing)
+            stretches = inserted_stretches(
+                geometry.needle_previous,
+                locator,
+                self.cutting.point_spacing,
+                tip_outside=(state is not None and state.tip_tet < 0) if tip_outside is None else tip_outside,
+            )
         if not stretches:
             return None, FrontRows.empty()
         if state is None:

@@ -55,7 +55,11 @@
 - phase: cutting; event: exit; when: the tip, inside the tissue at the step's start, lies in no tet at its
   end, having moved forward through the tissue (along the needle, relative to its material point); then:
   the cut rows run along the part of the needle in the tissue, from its entry to where it leaves through
-  the far face
+  the far face; the tip meets the surface ahead as in insertion (its channel's end marked through)
+- phase: cutting, the tip outside (out of a far face) and advancing; event: puncture, reentry; when: as in
+  approach, on the surface ahead of the tip (another layer); then: the tip in that layer, the phase and the
+  cut kept (the strip extends down the shaft into it); until then a tip that reached the surface or meets a
+  hole stays outside it, and its indentation is no stretch of the needle in the tissue
 - phase: cutting; event: cut_start; when: energy law: the load of its cut's faces' rows away from the crack
   tip (beyond the band of 1.5 d_c where they give way at G_c ℓ_k) meets the cut start for the inserted length
   they hold, ‖t_h‖ ≥ G_c L_h; then: the strip recorded up to its crack tip, a new strip on the inserted
@@ -285,7 +289,10 @@ class EventRules(CutEventRules):
             world, state, more = self._insertion(world, state, detection, multipliers, locator)
             events.extend(more)
         elif state.phase == Phase.CUTTING:
-            world, state, more = self._cutting(world, state, detection, multipliers, locator)
+            # (In the step that punctures or re-enters another layer, the tip's state is the event's.)
+            world, state, more = self._cutting(
+                world, state, detection, multipliers, locator, tip_entered=bool(events)
+            )
             events.extend(more)
         stretch = None
         if state.phase == Phase.CUTTING and self.cutting.friction_coefficient > 0.0:
@@ -325,20 +332,39 @@ class EventRules(CutEventRules):
         tets, barycentric = locate_under_surface(positions, self.tets, entry[None, :], inward=contact.normal)
         if tets[0] < 0:
             return state, []
-        # The first insertion point of the needle, or of the next layer it enters (its shaft in the ones
-        # before): the path grows from there.
+        return self._entered(world, state, tets, barycentric, int(tets[0]), barycentric[0], None), [
+            Event("puncture", normal_force)
+        ]
+
+    @staticmethod
+    def _entered(world, state, tets, barycentric, tip_tet: int, tip_barycentric, channel_end):
+        """The instrument's state after its tip entered the tissue where it met the surface (``tets``,
+        ``barycentric``: one point), its tip now in ``tip_tet`` at ``tip_barycentric``, ``channel_end`` the
+        channel's it entered (a re-entry) or None (a puncture).
+
+        From approach, or from a far face in insertion (another layer, the shaft in the ones before), that
+        point is the first insertion point of the needle, or of the layer: the path grows from there. While
+        the needle cuts, the cut holds its shaft in every part of the tissue it is through (its strip extends
+        down the shaft into the new layer, refsim.simulation.cut_events), so only the tip's state changes."""
+        entered_at = ChannelEnd(int(tets[0]), np.array(barycentric[0], copy=True))
+        if state.phase == Phase.CUTTING:
+            return evolved(
+                state,
+                tip_tet=tip_tet,
+                tip_barycentric=tip_barycentric,
+                channel_end=None,
+                entered_at=entered_at,
+            )
         path = state.path if state.phase == Phase.INSERTION else InsertionPath.empty()
-        path = path.appended(tets, barycentric, world.step)
-        state = evolved(
+        return evolved(
             state,
             phase=Phase.INSERTION,
-            path=path,
-            tip_tet=int(tets[0]),
-            tip_barycentric=barycentric[0],
-            channel_end=None,
-            entered_at=ChannelEnd(int(tets[0]), np.array(barycentric[0], copy=True)),
+            path=path.appended(tets, barycentric, world.step),
+            tip_tet=tip_tet,
+            tip_barycentric=tip_barycentric,
+            channel_end=channel_end,
+            entered_at=entered_at,
         )
-        return state, [Event("puncture", normal_force)]
 
     def _reentry(self, world, state, detection: Detection, locator: LazyLocator):
         """A tip that met the surface within a hole of the tissue (``detection.hole``: the step's
@@ -367,18 +393,9 @@ class EventRules(CutEventRules):
         )
         if tets[0] < 0:
             tets, barycentric = np.array([hole.entry_tet]), np.asarray(hole.entry_barycentric).reshape(1, 4)
-        path = state.path if state.phase == Phase.INSERTION else InsertionPath.empty()
-        path = path.appended(tets, barycentric, world.step)
-        state = evolved(
-            state,
-            phase=Phase.INSERTION,
-            path=path,
-            tip_tet=tip_tet,
-            tip_barycentric=tip_barycentric,
-            channel_end=hole.end,
-            entered_at=ChannelEnd(int(tets[0]), np.array(barycentric[0], copy=True)),
-        )
-        return state, [Event("reentry")]
+        return self._entered(world, state, tets, barycentric, tip_tet, tip_barycentric, hole.end), [
+            Event("reentry")
+        ]
 
     def _left_channels(self, world, state, channel_end, entry=None) -> tuple[Channel, ...]:
         """The tissue's channels after instrument ``state`` (at the step's start, in insertion) left the
@@ -477,12 +494,9 @@ class EventRules(CutEventRules):
         # stays outside until it punctures it, and one that meets a hole until it enters it (the events
         # above decide both), wherever round-off puts it against that surface; one that met no surface ahead
         # (it moved back into its own channel) is located.
-        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet, locator)
-        held_out = detection.hole is not None or _touching(
-            rows, multipliers, gap_roundoff(positions, needle.tip)
+        tip_tet, tip_barycentric = self.tip_location(
+            positions, needle, state, detection, multipliers, locator
         )
-        if state.tip_tet < 0 and held_out:
-            tip_tet, tip_barycentric = -1, None
         channel_end = self._channel_end(state, positions, needle, tip_tet, rows, multipliers)
         entered_at = state.entered_at
         if path.point_count and self._exits(state, positions, needle, tip_tet):
@@ -518,6 +532,21 @@ class EventRules(CutEventRules):
             entered_at=entered_at,
         )
         return world, state, events
+
+    def tip_location(self, positions, needle, state, detection, multipliers, locator: LazyLocator):
+        """The tip's material state after the step (inserting or cutting): the tet it lies in and its
+        barycentric coordinates there, or (−1, None) outside (it left the tissue through a face). A tip
+        outside that reached the surface ahead (its contact's free gap at or below zero, or a force on it)
+        stays outside until it punctures it, and one that meets a hole until it enters it (the events
+        :meth:`_puncture` and :meth:`_reentry` decide both), wherever round-off puts it against that surface;
+        one that met no surface ahead (it moved back into its own channel) is located."""
+        tip_tet, tip_barycentric = self.locate_tip(positions, needle.tip, state.tip_tet, locator)
+        if state.tip_tet < 0 and (
+            detection.hole is not None
+            or _touching(detection.rows, multipliers, gap_roundoff(positions, needle.tip))
+        ):
+            return -1, None
+        return tip_tet, tip_barycentric
 
     def _exits(self, state, positions, needle, tip_tet: int) -> bool:
         """Whether the tip, inside the tissue at the step's start (``state``), left it through a far face in

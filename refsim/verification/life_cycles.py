@@ -600,8 +600,9 @@ def end_state_violations(records, instrument: int = 0) -> list[tuple[str, int]]:
     ``removed_point_rows`` (no row of an insertion point the step removed: the rows' point indices below the
     points kept), ``tip_after_exit`` (no tip row from the step of an exit through a far face until the
     needle enters the tissue again) and ``reentry_without_rows`` (rows holding the needle from the step of a
-    re-entry into a hole). Each reads the instrument's own rows, phase and events."""
-    from refsim.constraints import FRONT, NORMAL, TANGENT, TIP
+    re-entry into a hole: insertion points' rows, or the cut's while the needle cuts). Each reads the
+    instrument's own rows, phase and events."""
+    from refsim.constraints import FRONT, NORMAL, SLIDING, TANGENT, TIP
     from refsim.simulation import Phase
 
     found = []
@@ -612,12 +613,14 @@ def end_state_violations(records, instrument: int = 0) -> list[tuple[str, int]]:
         exited = (exited and not names & {"puncture", "reentry", "withdrawal"}) or "exit" in names
         rows = _rows_of(record, instrument)
         roles, points = np.asarray(record.row_role)[rows], np.asarray(record.row_point)[rows]
+        # (a needle that cuts is held by its cut's rows, in every part of the tissue it is through)
+        held_by_cut = own.phase == Phase.CUTTING and bool(np.any(np.isin(roles, (SLIDING, FRONT))))
         checks = (
             ("approach_rows", own.phase == Phase.APPROACH and not np.isin(roles, (NORMAL, TANGENT)).all()),
             ("front_outside_cutting", own.phase != Phase.CUTTING and bool(np.any(roles == FRONT))),
             ("removed_point_rows", bool(np.any(points >= own.insertion_point_count))),
             ("tip_after_exit", exited and bool(np.any(roles == TIP))),
-            ("reentry_without_rows", "reentry" in names and not np.any(points >= 0)),
+            ("reentry_without_rows", "reentry" in names and not np.any(points >= 0) and not held_by_cut),
         )
         found.extend((name, int(record.step)) for name, failed in checks if failed)
     return found

@@ -15,7 +15,8 @@ Okamura et al. 2004), and a channel cut through a layer has no tip row on its li
 one), the needle's direction (vertical, 30°) and the puncture rule, and on single cases the needle (a beam,
 a thick one), the fast compliance, the exact solver and the entry point (a grid edge, a vertex). A needle
 through both layers cuts both: each holds it at G_c per unit length of needle in it while it cuts, and each
-has its own cut.
+has its own cut. The tip's rules do not depend on what holds the shaft: a needle pushed through the gap while
+it cuts punctures the lower layer at f_p, or re-enters a hole there, as an inserting needle does.
 """
 
 from __future__ import annotations
@@ -254,44 +255,147 @@ def test_a_needle_through_two_layers_cuts_each_at_g_c_per_unit_length(tmp_path, 
     assert life_violations(records, scene) == []
 
 
-def test_a_needle_pushed_through_the_gap_while_it_cuts_cuts_the_lower_layer_too(tmp_path):
+# What a user varies for a needle pushed into another layer while it cuts: the gap (within the tip's contact
+# distance of 2 mm as it leaves the upper layer, and beyond), the needle's direction, the puncture rule, the
+# compliance and the needle.
+def _push_case(gap, direction, variant, *marks):
+    return pytest.param(gap, direction, variant, id=f"gap{gap * 1e3:g}mm-{direction}-{variant}", marks=marks)
+
+
+PUSH_CASES = [
+    _push_case(0.003, "0deg", "fast"),
+    _push_case(0.001, "30deg", "fast"),
+    _push_case(0.01, "0deg", "plain"),
+    *(
+        _push_case(gap, direction, variant, pytest.mark.slow)
+        for gap, direction, variant in (
+            (0.001, "0deg", "fast"),
+            (0.01, "0deg", "fast"),
+            (0.003, "30deg", "fast"),
+            (0.01, "30deg", "fast"),
+            (0.003, "0deg", "plain"),
+            (0.003, "30deg", "plain"),
+            (0.003, "0deg", "exact"),
+            (0.003, "30deg", "flexible"),
+        )
+    ),
+]
+PUSH_VARIANTS = {
+    "fast": ('compliance.strategy="fast"',),
+    "plain": ('compliance.strategy="fast"', "insertion.puncture_within_step=false"),
+    "exact": (),
+    "flexible": ('compliance.strategy="fast"', "needle.rigid=false"),
+}
+
+
+@pytest.mark.parametrize(("gap", "direction", "variant"), PUSH_CASES)
+def test_a_needle_pushed_through_the_gap_while_it_cuts_punctures_and_cuts_the_lower_layer(
+    tmp_path, gap, direction, variant
+):
     # cube_cut's needle 6 mm into the upper layer, its base moved 3 mm along y (the cut starts there), pushed
-    # on through the layer and the 3 mm gap to 5 mm into the lower layer, then moved 5 mm more along y.
-    # Reference: the energy law, as above: the front holds the needle with G_c L_in, L_in = 8 + 5 mm, each
-    # stretch's ends located to d_c/16. The strip extends down the shaft into the lower layer as a part of
-    # its own (no triangle across the gap), its deepest columns within d_c/2 of each stretch's end.
+    # on along the needle through the layer and the gap to 5 mm into the lower layer, then moved 5 mm more
+    # along y. Reference: the tip's rules do not depend on what holds the shaft: out of the upper layer's far
+    # face it meets the lower layer's surface as a contact it punctures at f_p (capped within the step: at
+    # f_p; the plain rule: at f_p or above), as an inserting needle does (before, a cutting needle's tip went
+    # into the lower layer with no contact and no puncture). Then the energy law, as above: the front holds
+    # the needle with G_c L_in, L_in = (8 + 5 mm) / cos(tilt), each stretch's ends located to d_c/16. The
+    # strip extends down the shaft into the lower layer as a part of its own (no triangle across the gap).
     from refsim.verification.life_cycles import life_violations
 
-    gap = 0.003
-    entry, down, side = np.array([ENTRY[0], ENTRY[1], TOP]), np.array([0.0, 0.0, -1.0]), np.array([0, 1.0, 0])
-    lower = UPPER_THICKNESS + gap + 0.005
+    d = np.asarray(DIRECTIONS[direction], dtype=float)
+    cos = -d[2]
+    entry, side = np.array([ENTRY[0], ENTRY[1], TOP]), np.array([0, 1.0, 0])
+    lower = (UPPER_THICKNESS + gap + 0.005) / cos
 
     def base(depth, moved):
-        return entry + (depth - NEEDLE_LENGTH) * down + moved * side
+        return entry + (depth - NEEDLE_LENGTH) * d + moved * side
 
     bases = [base(-0.002, 0.0), base(0.006, 0.0), base(0.006, 0.003), base(lower, 0.003), base(lower, 0.008)]
-    times = times_at_speed(bases, 0.01)  # 0, 0.8, 1.1, 2.1, 2.6 s
+    times = times_at_speed(bases, 0.01)
     scene = _scene_on_layers(
         tmp_path,
         "cube_cut",
         gap,
-        'compliance.strategy="fast"',
-        *trajectory_overrides(times, bases, down, duration=2.8),
+        *PUSH_VARIANTS[variant],
+        *trajectory_overrides(times, bases, d, duration=times[-1] + 0.2),
     )
     records, states = [], []
     Simulation(scene).run(on_step=lambda state, record: (records.append(record), states.append(state)))
-    names = [e.name for r in records for e in r.events if e.name != "tear"]
-    assert names == ["puncture", "cut_start", "exit"]  # cut in the upper layer, then out of its far face
-    assert records[109].phase == "cutting" and records[-1].phase == "cutting"
+    named = [(r, e) for r in records for e in r.events if e.name != "tear"]
+    assert [e.name for _, e in named] == ["puncture", "cut_start", "exit", "puncture"]
+    f_p = scene.insertion.puncture_force
+    exit_record, (punctured, puncture) = named[2][0], named[3]
+    assert punctured.phase == "cutting" and records[-1].phase == "cutting"
+    if variant == "plain":
+        assert puncture.force >= f_p * (1.0 - 1e-6)
+    else:
+        assert puncture.force == pytest.approx(f_p, rel=1e-6)
+    # In the gap the tip is out of the tissue: the lower layer is neither entered nor cut before its puncture.
+    crossing = [
+        state
+        for record, state in zip(records, states, strict=True)
+        if exit_record.step <= record.step < punctured.step
+    ]
+    assert crossing and all(state.instruments[0].tip_tet < 0 for state in crossing)
+    assert all(len(state.instruments[0].cut_strip.part_ranges()) == 1 for state in crossing)
     fracture, spacing = scene.cutting.fracture_energy, scene.cutting.point_spacing
-    force = float(np.linalg.norm(records[-1].needle_force))
-    assert force == pytest.approx(fracture * (UPPER_THICKNESS + 0.005), abs=fracture * spacing / 4)
+    # (At the stroke's end: a beam needle at rest after it unloads the front as it straightens.)
+    force = float(np.linalg.norm(records[round(times[-1] / scene.time.dt) - 1].needle_force))
+    inserted = (UPPER_THICKNESS + 0.005) / cos
+    assert force == pytest.approx(fracture * inserted, abs=fracture * spacing / 4)
     final = states[-1]
     strip = final.instruments[0].cut_strip
     assert len(strip.part_ranges()) == 2
     heights = final.cut.rest_points[final.cut.triangles][..., 2]
     upper = heights >= TOP - UPPER_THICKNESS - 1e-9
     assert np.all(upper.all(axis=1) | (heights <= TOP - UPPER_THICKNESS - gap + 1e-9).all(axis=1))
+    assert life_violations(records, scene) == []
+
+
+def test_a_cutting_needle_pushed_into_a_hole_of_the_lower_layer_re_enters_it(tmp_path):
+    # A first needle's life through both layers at Q (puncture, exit, puncture, withdrawal: each layer keeps
+    # its channel), then in at P, 3 mm from Q along y, 6 mm into the upper layer (a needle of r = 0.5 mm: P is
+    # outside Q's holes), its base moved to above Q (it cuts the upper layer), pushed on through the gap to
+    # 5 mm into the lower layer and moved 2 mm more along y. Reference: the tip's rules do not depend on what
+    # holds the shaft: the tip meets the lower layer's hole at Q as a hole, and enters it with no puncture
+    # (the event reentry), as an inserting needle does; then each layer holds the cutting needle at G_c per
+    # unit length of needle in it, L_in = 8 + 5 mm.
+    from refsim.verification.life_cycles import life_violations
+
+    gap, down, side = 0.003, np.array([0.0, 0.0, -1.0]), np.array([0.0, 1.0, 0.0])
+    p = np.array([ENTRY[0], ENTRY[1], TOP])
+    q = p + 0.003 * side
+    lower = UPPER_THICKNESS + gap + 0.005
+
+    def base(at, depth):
+        return at + (depth - NEEDLE_LENGTH) * down
+
+    bases = [
+        base(q, -0.002),
+        base(q, lower),
+        base(q, -0.002),
+        base(p, -0.002),
+        base(p, 0.006),
+        base(q, 0.006),
+        base(q, lower),
+        base(q + 0.002 * side, lower),
+    ]
+    times = times_at_speed(bases, 0.01)
+    scene = _scene_on_layers(
+        tmp_path,
+        "cube_cut",
+        gap,
+        "needle.radius=0.0005",
+        'compliance.strategy="fast"',
+        *trajectory_overrides(times, bases, down, duration=times[-1] + 0.1),
+    )
+    records = []
+    Simulation(scene).run(on_step=lambda state, record: records.append(record))
+    names = [e.name for r in records for e in r.events if e.name not in ("tear", "retraction")]
+    assert names == ["puncture", "exit", "puncture", "withdrawal", "puncture", "cut_start", "exit", "reentry"]
+    fracture, spacing = scene.cutting.fracture_energy, scene.cutting.point_spacing
+    force = float(np.linalg.norm(records[round(times[-1] / scene.time.dt) - 1].needle_force))
+    assert force == pytest.approx(fracture * (UPPER_THICKNESS + 0.005), abs=fracture * spacing / 4)
     assert life_violations(records, scene) == []
 
 
