@@ -533,11 +533,28 @@ def _sliding_rows(
     # held the needle with 5.43-5.46 N, up to 3.48 N of it normal to the cuts, against 3.41 N for the first).
     lateral_offset = np.linalg.norm(in_plane, axis=1)
     on_surface = found.inside | (lateral_offset <= reach)
+    # Each sample's distance to its closest point on the crack tip at the start of the step (``on_front``):
+    # within 1.5 d_c of it the needle is at its front (cutting: uncut tissue on every side but its cut's).
+    # (Not widened by the front's compression: so widened, the band below took in every sliding row of the
+    # liver's rigid needle, whose crack tip lies 2.8 mm behind it, and the area the crack tip swept came out
+    # 230, 361, 203 mm² for d_c = 0.5, 1, 2 mm, against 199, 200, 203 mm² as it is.)
+    at_front = None
+    if np.isfinite(front_strength) and on_front is not None:
+        segment, parameter = on_front[0], on_front[1]
+        nearest_tip = (1.0 - parameter)[:, None] * front_previous[segment] + parameter[:, None] * (
+            front_previous[segment + 1]
+        )
+        at_front = np.linalg.norm(needle_previous - nearest_tip, axis=1) <= 1.5 * spacing
     met = None if strip is None else ~strip.own_triangles(cut)[found.triangle]  # samples on older cuts
     if strip is None or met.any():
         on_cut = (found.inside | (lateral_offset <= 0.0)) & (
             np.abs(np.einsum("ij,ij->i", offset, normals_previous)) <= spacing
         )
+        if at_front is not None:
+            # A sample at its own front meets no other cut: what resists it there is the tissue ahead, which
+            # its front rows cut at G_c per unit length wherever another cut lies (held on that cut's plane
+            # too, unbounded, a needle cutting across another needle's cut was pinned to it).
+            on_cut &= ~at_front
         on_surface = on_cut if strip is None else np.where(met, on_cut, on_surface)
     inside = np.flatnonzero(on_surface)
     if not inside.size:
@@ -567,20 +584,10 @@ def _sliding_rows(
     # rows there, an L-shaped stroke dragged the tissue sideways, 7.3 N against 3.6 N).
     limits = np.full(inside.size, np.inf)
     band_rows, band_segment = none.band_rows, none.band_segment
-    if np.isfinite(front_strength) and on_front is not None:
-        segment, parameter = on_front[0][inside], on_front[1][inside]
-        nearest_tip = (1.0 - parameter)[:, None] * front_previous[segment] + parameter[:, None] * (
-            front_previous[segment + 1]
-        )
-        # (Not widened by the front's compression: so widened, the band took in every sliding row of the
-        # liver's rigid needle, whose crack tip lies 2.8 mm behind it, and the area the crack tip swept came
-        # out 230, 361, 203 mm² for d_c = 0.5, 1, 2 mm, against 199, 200, 203 mm² as it is.)
-        band = np.flatnonzero(
-            (np.linalg.norm(needle_previous[inside] - nearest_tip, axis=1) <= 1.5 * spacing)
-            & (samples.shares[inside] > 1e-9 * samples.step[inside])
-        )
+    if at_front is not None:
+        band = np.flatnonzero(at_front[inside] & (samples.shares[inside] > 1e-9 * samples.step[inside]))
         limits[band] = float(front_strength) * samples.shares[inside][band]
-        band_rows, band_segment = band, segment[band]
+        band_rows, band_segment = band, on_front[0][inside][band]
     return _Sliding(
         rows,
         _SlideAnchor(nodes, node_weights, arcs, normals, anchor),

@@ -219,10 +219,11 @@ def test_two_needles_that_both_cut_each_cut_at_g_c_per_unit_length(crossing):
     # cut (``crossing``, 7 mm behind the first needle), or at (20, 9) mm, beside it. Reference: the energy
     # law: each needle cuts with G_c per unit inserted length, G_c × 17 mm = 3.4 N, in steady cutting (the
     # last 0.3 s of each stroke, the other needle held still: the second's 5 mm after it crossed). Each cut
-    # is its own strip of the one surface, which the other needle meets as a cut it is not cutting; crossing
-    # it, the second needle is held by the first cut's faces until they start its cut again (the faces' cut
-    # start, docs/cutting.md), within the random lives' bound 2 (f_p + G_c L_in); every step keeps their
-    # invariants.
+    # is its own strip of the one surface, which the other needle meets as a cut it is not cutting; at its
+    # own front a cutting needle meets no other cut (the tissue ahead resists it, which its front cuts at
+    # G_c per unit length), so crossing the first cut the second needle cuts at G_c × 17 mm all the way, as
+    # in the steady windows (from 0.2 s after its cut start, when its stroke has begun); every step keeps
+    # the random lives' invariants.
     from refsim.verification.life_cycles import life_violations
 
     data = _two_needles(duration=7.2)
@@ -249,6 +250,9 @@ def test_two_needles_that_both_cut_each_cut_at_g_c_per_unit_length(crossing):
     for index, stroke_end in ((0, 3.5), (1, 7.1)):  # (the strokes' ends)
         steady = forces[round((stroke_end - 0.3) / 0.01) : round(stroke_end / 0.01), index]
         assert steady == pytest.approx(g_c * depth, rel=0.01), (index, steady.min(), steady.max())
+    second_start = _events(records, "holder")["cut_start"][0]
+    stroke = forces[second_start + 20 : round(7.1 / 0.01), 1]  # (record i is step i + 1)
+    assert stroke == pytest.approx(g_c * depth, rel=0.01), (stroke.min(), stroke.max())
     final = states[-1]
     own = [final.instrument(name).cut_strip.own_triangles(final.cut) for name in ("cutter", "holder")]
     assert own[0].any() and own[1].any() and not np.any(own[0] & own[1])
