@@ -195,7 +195,12 @@ class CutEventRules:
         for first, end in stretches:
             if end - entry_arc <= deepest:
                 continue
-            if first - entry_arc > deepest:  # below a gap: its own part, from its entry
+            # Below a gap: the stretch starts below the deepest column by more than d_c/2 (a gap is at least
+            # d_c long, the stretches' sampling). A column laid at a lower part's entry stays in that part as
+            # the entry moves along the needle by less (read as a new part, the lower layer's columns were
+            # split by one that joined none).
+            below_gap = first - entry_arc > deepest + 0.5 * spacing
+            if below_gap:  # its own part, from its entry
                 part += 1
                 start = first - entry_arc
                 count = int(np.floor((end - first) / spacing + 0.5))
@@ -206,7 +211,7 @@ class CutEventRules:
             if end < needle.length and grid.size:
                 # A far face or a gap ends the stretch: its last column at that end, unless that is within
                 # d_c/2 of the column before it.
-                before = grid[-2] if grid.size > 1 else (deepest if first - entry_arc <= deepest else -np.inf)
+                before = grid[-2] if grid.size > 1 else (-np.inf if below_gap else deepest)
                 grid[-1] = min(grid[-1], end - entry_arc)
                 if grid[-1] - before <= 0.5 * spacing:
                     grid = grid[:-1]
@@ -233,7 +238,7 @@ class CutEventRules:
         rest = np.einsum("pk,pkj->pj", barycentric, self.growth.rest_positions[self.tets[tets]])
         return strip.extended(CutFront(rest, tets, barycentric), depths, step, parts=parts)
 
-    def _cutting(self, world, state, detection, multipliers, step_locator: LazyLocator, *, tip_entered=False):
+    def _cutting(self, world, state, detection, multipliers, step_locator: LazyLocator):
         """Withdrawal through the cut, and the growth of the cut where the needle pushes through its front."""
         positions = world.tissue.positions
         needle = self.needle_geometry(state.needle)
@@ -245,20 +250,19 @@ class CutEventRules:
             return world, state.withdrawn(), [Event("retraction"), Event("withdrawal")]
         events: list[Event] = []
         cutting = self.cutting
-        # The tip's material state, as in insertion (unless it punctured or re-entered another layer in the
-        # step: then that event's): leaving through a far face is the event exit (the needle still cuts along
-        # the part in the tissue, and its tip meets the surface ahead, another layer, as in insertion: its
-        # channel's end marked through). Only forward through the tissue: a tip pulled back out through the
-        # face it entered by (on the step before the entry point is beyond it) is a withdrawal.
-        if not tip_entered:
-            tip_tet, tip_barycentric = self.tip_location(
-                positions, needle, state, detection, multipliers, step_locator
-            )
-            channel_end = None if tip_tet >= 0 else state.channel_end
-            if self._exits(state, positions, needle, tip_tet):
-                events.append(Event("exit"))
-                channel_end = ChannelEnd(state.tip_tet, state.tip_barycentric, through=True)
-            state = evolved(state, tip_tet=tip_tet, tip_barycentric=tip_barycentric, channel_end=channel_end)
+        # The tip's material state, as in insertion: leaving through a far face is the event exit (the needle
+        # still cuts along the part in the tissue, and its tip meets the surface ahead, another layer, as in
+        # insertion: its channel's end marked through). Only forward through the tissue: a tip pulled back
+        # out through the face it entered by (on the step before the entry point is beyond it) is a
+        # withdrawal.
+        tip_tet, tip_barycentric = self.tip_location(
+            positions, needle, state, detection, multipliers, step_locator
+        )
+        channel_end = None if tip_tet >= 0 else state.channel_end
+        if self._exits(state, positions, needle, tip_tet):
+            events.append(Event("exit"))
+            channel_end = ChannelEnd(state.tip_tet, state.tip_barycentric, through=True)
+        state = evolved(state, tip_tet=tip_tet, tip_barycentric=tip_barycentric, channel_end=channel_end)
         if state.cut_strip is not None and world.cut is not None:
             # Moved back through its own cut and past the line it entered along (the strip's first layer, its
             # rear edge) by more than half a cut spacing: the needle is in intact tissue again.

@@ -58,8 +58,9 @@
   the far face; the tip meets the surface ahead as in insertion (its channel's end marked through)
 - phase: cutting, the tip outside (out of a far face) and advancing; event: puncture, reentry; when: as in
   approach, on the surface ahead of the tip (another layer); then: the tip in that layer, the phase and the
-  cut kept (the strip extends down the shaft into it); until then a tip that reached the surface or meets a
-  hole stays outside it, and its indentation is no stretch of the needle in the tissue
+  cut kept (the strip extends down the shaft into it from the next step, whose events decide the cut's
+  growth: none in this one, as no insertion point is added in insertion's); until then a tip that reached the
+  surface or meets a hole stays outside it, and its indentation is no stretch of the needle in the tissue
 - phase: cutting; event: cut_start; when: energy law: the load of its cut's faces' rows away from the crack
   tip (beyond the band of 1.5 d_c where they give way at G_c ℓ_k) meets the cut start for the inserted length
   they hold, ‖t_h‖ ≥ G_c L_h; then: the strip recorded up to its crack tip, a new strip on the inserted
@@ -283,16 +284,14 @@ class EventRules(CutEventRules):
             state, events = self._puncture(world, state, detection, multipliers)
         if detection.contact is not None and detection.hole is not None and not events:
             state, events = self._reentry(world, state, detection, locator)
+        # (Not in the step that punctures or re-enters: the entry point is then at the tip, or the tip just
+        # past the surface. A capped puncture solves the step again with this instrument's state after it,
+        # the tissue's cut as the step started: a cut grown here would not be the one its strip lies in.)
         if state.phase == Phase.INSERTION and not events:
-            # (Not in the step that punctures or re-enters: the entry point is then at the tip, or the tip
-            # just past the surface.)
             world, state, more = self._insertion(world, state, detection, multipliers, locator)
             events.extend(more)
-        elif state.phase == Phase.CUTTING:
-            # (In the step that punctures or re-enters another layer, the tip's state is the event's.)
-            world, state, more = self._cutting(
-                world, state, detection, multipliers, locator, tip_entered=bool(events)
-            )
+        elif state.phase == Phase.CUTTING and not events:
+            world, state, more = self._cutting(world, state, detection, multipliers, locator)
             events.extend(more)
         stretch = None
         if state.phase == Phase.CUTTING and self.cutting.friction_coefficient > 0.0:
