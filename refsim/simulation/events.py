@@ -488,11 +488,7 @@ class EventRules(CutEventRules):
         if beyond.any():
             path = path.subset(~beyond)
             events.append(Event("retraction"))
-        # The tip's material state: the tet it lies in, or outside (it left the tissue through a face). A tip
-        # outside that reached the surface ahead (its contact's free gap at or below zero, or a force on it)
-        # stays outside until it punctures it, and one that meets a hole until it enters it (the events
-        # above decide both), wherever round-off puts it against that surface; one that met no surface ahead
-        # (it moved back into its own channel) is located.
+        # The tip's material state: the tet it lies in, or outside (it left the tissue through a face).
         tip_tet, tip_barycentric = self.tip_location(
             positions, needle, state, detection, multipliers, locator
         )
