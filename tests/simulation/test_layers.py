@@ -281,10 +281,8 @@ PUSH_CASES = [
     ),
 ]
 PUSH_VARIANTS = {
-    "fast": ('compliance.strategy="fast"',),
+    **CUT_VARIANTS,
     "plain": ('compliance.strategy="fast"', "insertion.puncture_within_step=false"),
-    "exact": (),
-    "flexible": ('compliance.strategy="fast"', "needle.rigid=false"),
 }
 
 
