@@ -37,7 +37,8 @@ import time
 import numpy as np
 
 from refsim.kernel_cache import numba
-from refsim.solvers.laws import CONTACT, all_finite, block_arrays, gauss_seidel_sweep, natural_map_blocks
+from refsim.solvers.array_checks import all_finite
+from refsim.solvers.laws import CONTACT, block_arrays, gauss_seidel_sweep, natural_map_blocks
 from refsim.solvers.problem import ConstraintProblem
 from refsim.solvers.report import SolverReport
 from refsim.solvers.residual import data_scales, residuals

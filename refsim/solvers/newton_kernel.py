@@ -17,13 +17,13 @@ from typing import NamedTuple
 import numpy as np
 
 from refsim.kernel_cache import numba
+from refsim.solvers.array_checks import relative_asymmetry
 from refsim.solvers.gauss_seidel import _data_from_error, _residual
 from refsim.solvers.laws import (
     assemble_blocks,
     gauss_seidel_sweep,
     jacobian_blocks,
     natural_map_blocks,
-    relative_asymmetry,
 )
 from refsim.solvers.linear import (
     PIVOT_DTYPE,

@@ -11,7 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from refsim.solvers.laws import LAW_FIELDS, LAW_NAMES, LAWS, all_finite, friction_groups, relative_asymmetry
+from refsim.solvers.array_checks import all_finite, relative_asymmetry
+from refsim.solvers.laws import LAW_FIELDS, LAW_NAMES, LAWS, friction_groups
 
 __all__ = ["ConstraintProblem", "LAW_NAMES"]
 

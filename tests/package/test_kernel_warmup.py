@@ -19,7 +19,7 @@ from refsim import kernel_warmup
 from refsim.kernel_warmup import DONE_MARKER, compile_entries, load_manifest, resolve
 
 _ALL_FINITE = {
-    "module": "refsim.solvers.laws",
+    "module": "refsim.solvers.array_checks",
     "name": "all_finite",
     "signature": "(Array(float64, 1, 'C', False, aligned=True),)",
 }

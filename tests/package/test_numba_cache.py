@@ -48,11 +48,11 @@ def test_digest_ignores_compiled_caches(tmp_path):
 
 
 def _cache_dirs_in_subprocess(environment: dict[str, str]) -> tuple[Path, Path]:
-    """numba's cache directory, and where a kernel of refsim.solvers.laws writes its cache (its dispatcher's
-    cache path, fixed when the kernel is decorated), in a fresh interpreter."""
+    """numba's cache directory, and where a kernel of refsim.solvers.array_checks writes its cache (its
+    dispatcher's cache path, fixed when the kernel is decorated), in a fresh interpreter."""
     code = (
-        "import numba, refsim.solvers.laws as laws; "
-        "print(numba.config.CACHE_DIR); print(laws.all_finite._cache._cache_path)"
+        "import numba, refsim.solvers.array_checks as checks; "
+        "print(numba.config.CACHE_DIR); print(checks.all_finite._cache._cache_path)"
     )
     done = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, env=environment, check=True
