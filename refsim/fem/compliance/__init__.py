@@ -27,14 +27,14 @@ solver factories scikit-fem passes to ``solve``), chosen for the tissue by the s
 ``Fast()``
     The same W and correction as ``Precomputed`` without assembling or factorising any matrix during the run
     (the rest factor once, in single precision where the solver has it: ``Fast.rest_precision``): the body
-    builds its step system with an operator v ↦ A v applied per tet
-    (:mod:`refsim.fem.corotated_matvec`) instead of A, the free motion is CG on that operator preconditioned
-    by the rotated rest compliance R C₀ Rᵀ, started from R C₀ Rᵀ b while that alone meets the tolerance, else
-    from the last free displacement (a :class:`FreeMotionStart` the run's state carries), and C₀'s columns
-    are solved per node the first time a row touches the node, then kept (a memo of the model: one (f, 3)
-    solve per node, applied by the compiled kernels of :mod:`refsim.fem.compliance.kernels` in node order,
-    so its bits depend on no history). Its error against exact is W's: exact for rigid
-    motions of the rest shape, bounded by ‖H‖² ‖A⁻¹‖ ‖Ã⁻¹‖ ‖A − Ã‖ (Ã = R A₀ Rᵀ) when the tissue deforms.
+    builds its step system with an operator v ↦ A v applied per tet (:mod:`refsim.fem.corotated_matvec`)
+    instead of A, the free motion is CG on that operator preconditioned by the rotated rest compliance
+    R C₀ Rᵀ, started from the last free displacement x' plus R C₀ Rᵀ (b − A' x') (a :class:`FreeMotionStart`
+    the run's state carries), and C₀'s columns are solved per node the first time a row touches the node,
+    then kept (a memo of the model: one (f, 3) solve per node, applied by the compiled kernels of
+    :mod:`refsim.fem.compliance.kernels` in node order, so its bits depend on no history). Its error against
+    exact is W's: exact for rigid motions of the rest shape, bounded by ‖H‖² ‖A⁻¹‖ ‖Ã⁻¹‖ ‖A − Ã‖
+    (Ã = R A₀ Rᵀ) when the tissue deforms.
 
 Binding a strategy to a body (:meth:`bind`) gives a :class:`BodyCompliance` that keeps what lives across steps
 (the analysis, the stale or rest factor). What changes with the run is state: the refreshed strategy's stale

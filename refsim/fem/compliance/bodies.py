@@ -475,10 +475,6 @@ class Precomputed:
         return _PrecomputedBody(self)
 
 
-#: Steps the fast strategy's free motion starts from the last free displacement before trying R C₀ Rᵀ b again.
-COLD_RETRY = 8
-
-
 class _FastBody(BodyCompliance):
     def __init__(self, strategy: Fast) -> None:
         super().__init__(strategy)
@@ -564,32 +560,30 @@ class _FastBody(BodyCompliance):
             turn_nodes(rotations, solver.solve(turned), False, out)
             return out
 
+        # The start (FreeMotionStart): the last step's free displacement x' plus R C₀ Rᵀ on what it leaves of
+        # this step's load under the last step's operator, b − A' x'; R C₀ Rᵀ b on a run's first step.
         carried = self._carried
-        warm = carried is not None and not carried.cold
-        free, iterations, residual = _warm_pcg(
+        rhs = system.rhs
+        start = warped(rhs) if carried is None else carried.displacement + warped(rhs - carried.load)
+        free, iterations, residual, start_residual, left = _pcg(
             system.product,
             warped,
-            system.rhs,
-            carried.displacement if warm else None,
+            rhs,
+            start,
             tolerance=strategy.tolerance,
             max_iterations=strategy.max_iterations,
         )
-        # The next start: R C₀ Rᵀ b again while it meets the tolerance alone (one solve and one product, the
-        # least a step can cost); else the last free displacement (one solve fewer per step when an iteration
-        # is needed anyway), R C₀ Rᵀ b being tried again every COLD_RETRY steps.
-        if warm:
-            age = carried.age + 1
-            cold = age >= COLD_RETRY
-        else:
-            age, cold = 0, iterations == 0
-        displacement = free.copy()
+        # A x as the CG knows it, b − r: its recursive residual r is b − A x to round-off
+        displacement, load = free.copy(), rhs - left
         displacement.setflags(write=False)
-        self._carried = FreeMotionStart(displacement, cold, 0 if cold else age)
+        load.setflags(write=False)
+        self._carried = FreeMotionStart(displacement, load)
         report = {
             "refactorised": False,
             "pcg_iterations": iterations,
             "pcg_residual": residual,
-            "pcg_warm_start": warm,
+            "pcg_carried_start": carried is not None,
+            "pcg_start_residual": start_residual,
         }
         before = self._filled
 
@@ -624,32 +618,28 @@ class _FastBody(BodyCompliance):
         return StepCompliance(system, free, None, report, exact, apply, inverse_block=inverse_block)
 
 
-def _warm_pcg(
+def _pcg(
     product,
     preconditioner,
     rhs: np.ndarray,
-    start: np.ndarray | None,
+    start: np.ndarray,
     *,
     tolerance: float,
     max_iterations: int,
 ) -> tuple[np.ndarray, int, float]:
-    """Preconditioned CG on one right-hand side b (f,) to ‖b − A x‖₂ ≤ tolerance ‖b‖₂, from ``start`` (the
-    last step's answer) when given, else from P⁻¹ b.
+    """Preconditioned CG on one right-hand side b (f,) to ‖b − A x‖₂ ≤ tolerance ‖b‖₂, from ``start``.
 
     A start whose residual exceeds ‖b‖ (a step that changed the load) is replaced by 0, whose first iteration
-    is P⁻¹ b scaled to its A-norm optimum. Returns x, iterations, the relative residual reached."""
+    is P⁻¹ b scaled to its A-norm optimum. Returns x, iterations, the relative residual reached, the start's
+    relative residual, and the last residual vector r (b − A x to round-off)."""
     norm_b = float(np.sqrt(rhs @ rhs))
     norm_b = norm_b if norm_b > 0.0 else 1.0
-    if start is None:
-        x = preconditioner(rhs)
-        r = rhs - product(x)
-    else:
-        x = np.array(start, dtype=float)
-        r = rhs - product(x)
-        if float(np.sqrt(r @ r)) > norm_b:
-            x = np.zeros_like(rhs)
-            r = np.array(rhs, dtype=float)
-    relative = float(np.sqrt(r @ r)) / norm_b
+    x = np.array(start, dtype=float)
+    r = rhs - product(x)
+    if float(np.sqrt(r @ r)) > norm_b:
+        x = np.zeros_like(rhs)
+        r = np.array(rhs, dtype=float)
+    relative = start_relative = float(np.sqrt(r @ r)) / norm_b
     iterations = 0
     if relative > tolerance and max_iterations > 0:
         z = preconditioner(r)
@@ -672,25 +662,24 @@ def _warm_pcg(
             p *= rz_new / rz if rz > 0.0 else 0.0
             p += z
             rz = rz_new
-    return x, iterations, relative
+    return x, iterations, relative, start_relative, r
 
 
 @dataclass(frozen=True)
 class Fast:
     """No matrix assembled or factorised during the run: the rest compliance rotated per node for W and the
     correction, free motion by CG on the current A applied per tet, preconditioned by the same rotated rest
-    compliance and started from its answer R C₀ Rᵀ b while that alone meets the tolerance, else from the last
-    free displacement (carried, :class:`refsim.fem.compliance.FreeMotionStart`; R C₀ Rᵀ b is tried again every
-    :data:`COLD_RETRY` steps).
+    compliance and started from the last step's free displacement x' plus R C₀ Rᵀ (b − A' x') (carried,
+    :class:`refsim.fem.compliance.FreeMotionStart`; R C₀ Rᵀ b on a run's first step).
 
     Parameters
     ----------
     tolerance, max_iterations : Of the free motion's PCG (relative residual ‖b − A x‖/‖b‖; iteration cap); a
         scene's ``compliance.tolerance`` sets the first. The free motion's relative error is then at most
         κ(A) · tolerance (a worst case), and what it leaves is not lost: the residual force is in the next
-        step's right-hand side, so a state at rest is the exact one. 1e-2: where R C₀ Rᵀ b alone meets it
+        step's right-hand side, so a state at rest is the exact one. 1e-2: where the start alone meets it
         (most steps), a step costs one rest-factor solve and one product; the needle force against the exact
-        run is the same as at 1e-4 on the built-in scenes (docs/speed.md, "What it costs in accuracy").
+        run is within W's error on the built-in scenes (docs/speed.md, "What it costs in accuracy").
     linear_solver : The rest factor's solver, as for :class:`Exact`.
     rest_precision : The rest factor's precision where the solver has a choice (PARDISO), "single" or
         "double". Single: each solve reads half the bytes, from memory at every step (the rest of a step

@@ -212,21 +212,24 @@ class StaleFactor:
 
 @dataclass(frozen=True, eq=False)
 class FreeMotionStart:
-    """What the fast strategy carries from step to step (part of a run's state): its last free displacement
-    and where the next free motion's conjugate gradients start.
+    """What the fast strategy carries from step to step (part of a run's state): where the next free motion's
+    conjugate gradients start.
+
+    The next start is x₀ = x' + R C₀ Rᵀ (b − A' x'), x' the last free displacement and A' x' its image under
+    the last step's operator (b' − r', the last right-hand side less the residual the CG left): one
+    preconditioned Richardson step from x' on this step's load. What R C₀ Rᵀ misses of A⁻¹ on the last load is
+    in x' already (the last solve found it), and neither the last residual nor the preconditioner's error on
+    the whole load is carried on: a step that changes the load and the rotations little starts close to its
+    answer however far R C₀ Rᵀ b alone is from it.
 
     Attributes
     ----------
-    displacement : Δx_free on the free DoFs of the last step [m], shape (f,); read-only.
-    cold : The next CG starts from R C₀ Rᵀ b (True: it met the tolerance alone at its last try) or from
-        ``displacement`` (False).
-    age : Steps started from the last free displacement since R C₀ Rᵀ b was last tried (it is tried again
-        after ``COLD_RETRY`` of them).
+    displacement : x', Δx_free on the free DoFs of the last step [m], shape (f,); read-only.
+    load : A' x' [N], shape (f,); read-only.
     """
 
     displacement: np.ndarray
-    cold: bool = False
-    age: int = 0
+    load: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
@@ -253,7 +256,8 @@ class StepCompliance:
     system : The step system it was made from.
     free_displacement : Δx_free [m], shape (dof_count,), equal to ``prescribed`` on the constrained DoFs.
     report : What the strategy did this step (``refactorised``, ``pcg_iterations``, ``pcg_residual``; the fast
-        strategy's ``pcg_warm_start``, whether its CG started from the last free displacement, and
+        strategy's ``pcg_carried_start``, whether its CG started from the last step's free motion
+        (:class:`FreeMotionStart`), ``pcg_start_residual``, the relative residual of its start, and
         ``rest_blocks_solved``; and with ``against_exact`` the errors ``free_motion_error`` [m],
         ``compliance_error`` (relative, Frobenius) and ``correction_error`` [m]).
     """
