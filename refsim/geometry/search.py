@@ -70,7 +70,7 @@ def _check_elements(positions: np.ndarray, elements: np.ndarray, corners: int, n
         )
     if not np.all(np.isfinite(positions)):
         raise ValueError("positions must be finite")
-    return positions, elements.astype(np.int64)
+    return positions, elements.astype(np.int64, copy=False)
 
 
 def tet_boundary_faces(tets: np.ndarray, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -173,7 +173,7 @@ class TetLocator:
         if previous is not None and previous._reusable:
             grid = previous._grid if previous._grid is not None else previous._previous_grid
             if grid is not None and previous.tets.shape == self.tets.shape:
-                if np.array_equal(previous.tets, self.tets):
+                if previous.tets is self.tets or np.array_equal(previous.tets, self.tets):
                     self._previous_grid = grid
         self._classes = None  # KD-trees per radius class (larger tolerances), on first use
         self._surface: tuple[SurfaceProjector, np.ndarray] | None = None

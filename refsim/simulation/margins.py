@@ -319,24 +319,28 @@ class MarginWatch:
         problem = self._problem
         limits = np.full(problem.row_count, np.inf)
         limits[problem.box_rows] = problem.box_upper
-        load = law.front_load(self.demands(rows), limits[rows])
+        demands = self.demands(rows)
+        load = law.front_load(demands, limits[rows])
         if load is None:
             return
         value, threshold, divisor, unit = load
         accuracy = self._accuracy(rows)
         self._criteria.append(Criterion("tear", value, threshold, accuracy / divisor, unit))
         if unit == "1":  # a law whose rows give way at their strength (energy): each row's own decision
-            self._criteria.append(self._advance(rows, limits[rows], accuracy))
+            self._criteria.append(self._advance(rows, limits[rows], accuracy, demands))
 
-    def _advance(self, rows: np.ndarray, limits: np.ndarray, accuracy: float) -> Criterion:
+    def _advance(
+        self, rows: np.ndarray, limits: np.ndarray, accuracy: float, demands: np.ndarray
+    ) -> Criterion:
         """The ``advance`` criterion of the front ``rows`` (problem indices) with force limits ``limits``
-        [N]: the row whose give-way decision (demand over limit against 1) is nearest its threshold relative
-        to its accuracy ((ε_λ + τ D / W_ii) / limit), ``accuracy`` being ε_λ of the rows [N]."""
+        [N] and ``demands`` [N] (:meth:`demands` of the rows): the row whose give-way decision (demand over
+        limit against 1) is nearest its threshold relative to its accuracy ((ε_λ + τ D / W_ii) / limit),
+        ``accuracy`` being ε_λ of the rows [N]."""
         finite = np.isfinite(limits) & (limits > 0.0)
         if not np.any(finite):
             return Criterion("advance", 0.0, 1.0, 0.0, "1")
         rows, limits = rows[finite], limits[finite]
-        ratios = self.demands(rows) / limits
+        ratios = demands[finite] / limits
         diagonal = self._problem.compliance[rows, rows]
         accuracies = (accuracy + _over(np.full(rows.size, self._bound), diagonal)) / limits
         nearest = int(np.argmin(np.abs(ratios - 1.0) / np.maximum(accuracies, np.finfo(float).tiny)))
