@@ -319,19 +319,22 @@ class Detector:
         return Detection(rows, contact, front, insertion_points, rings, hole, advancing)
 
     def _surface_ahead(self, world: SimulationState, state: InstrumentState, geometry: StepGeometry):
-        """The surface ahead of a tip out of a far face of the tissue, its shaft in the tissue (the insertion
-        or the cutting phase, the tip outside and advancing): (contact, its rows, the hole it meets), as
-        :meth:`approach_rows` without the shaft's rows; (None, [], None) when the tip is not out of a far
-        face (``InstrumentState.channel_end`` marked through by the event exit), or when the closest surface
-        is the face it left, turned away from it (it moves away from that face). A tip moving back meets no
-        surface ahead (it goes back into its own channel through the far face it left: the caller asks
-        only for an advancing tip); one pulled back out of the face it entered by (a point still kept, or an
-        inner layer's) is in its own channel's mouth: pushed in again it is located there, its channel's end
-        kept."""
-        if state.channel_end is None or not state.channel_end.through:
-            return None, [], None
+        """The surface ahead of a tip outside the tissue, its shaft in the tissue (the insertion or the
+        cutting phase, the tip outside and advancing): (contact, its rows, the hole it meets), as
+        :meth:`approach_rows` without the shaft's rows; (None, [], None) when the closest surface is the face
+        the tip left, turned away from it (it moves away from that face). How the tip left does not matter
+        but in one case: a tip backed out of a face it entered by (``InstrumentState.channel_end`` not marked
+        through: the entry face with a point still kept, or an inner layer's into a gap) that meets a hole is
+        in its own channel's mouth, located there when pushed in again with its channel's end kept (no
+        event); moved away from the hole (the base moved sideways in the gap), the surface ahead is intact
+        tissue, a contact it punctures at f_p. A tip out of a far face (the end marked through by the event
+        exit) meets a hole as a hole (the event reentry). A tip moving back meets no surface ahead (it goes
+        back into its own channel through the face it left: the caller asks only for an advancing tip)."""
         contact, approach, hole = self.approach_rows(geometry, world.channels, shaft=False)
         if float(contact.normal @ self._contact_needle(geometry).tip_tangent) >= 0.0:
+            return None, [], None
+        through = state.channel_end is not None and state.channel_end.through
+        if not through and hole is not None:
             return None, [], None
         return contact, approach, hole
 

@@ -16,7 +16,9 @@ one), the needle's direction (vertical, 30°) and the puncture rule, and on sing
 a thick one), the fast compliance, the exact solver and the entry point (a grid edge, a vertex). A needle
 through both layers cuts both: each holds it at G_c per unit length of needle in it while it cuts, and each
 has its own cut. The tip's rules do not depend on what holds the shaft: a needle pushed through the gap while
-it cuts punctures the lower layer at f_p, or re-enters a hole there, as an inserting needle does.
+it cuts punctures the lower layer at f_p, or re-enters a hole there, as an inserting needle does; and a tip
+backed out of the lower layer into the gap and moved sideways away from its hole punctures that layer again
+at its new place.
 """
 
 from __future__ import annotations
@@ -394,6 +396,71 @@ def test_a_cutting_needle_pushed_into_a_hole_of_the_lower_layer_re_enters_it(tmp
     fracture, spacing = scene.cutting.fracture_energy, scene.cutting.point_spacing
     force = float(np.linalg.norm(records[round(times[-1] / scene.time.dt) - 1].needle_force))
     assert force == pytest.approx(fracture * (UPPER_THICKNESS + 0.005), abs=fracture * spacing / 4)
+    assert life_violations(records, scene) == []
+
+
+def _moved_in_the_gap(tmp_path, gap, direction, side, scene_name, *overrides):
+    """Through the upper layer and 5 mm into the lower one, pulled back until the tip is in the gap, the base
+    moved ``side`` [m] along y, and pushed back to 5 mm into the lower layer (a needle of r = 0.5 mm); the
+    scene, its records and the waypoints' times."""
+    direction = np.asarray(DIRECTIONS[direction], dtype=float)
+    cos = -direction[2]
+    through = (UPPER_THICKNESS + gap + 0.005) / cos
+    in_gap = (UPPER_THICKNESS + 0.5 * gap) / cos
+    entry, lateral = np.array([ENTRY[0], ENTRY[1], TOP]), np.array([0.0, side, 0.0])
+    waypoints = [(-0.002, 0.0), (through, 0.0), (in_gap, 0.0), (in_gap, 1.0), (through, 1.0)]
+    bases = [entry + (d - NEEDLE_LENGTH) * direction + s * lateral for d, s in waypoints]
+    times = times_at_speed(bases, SPEED)
+    scene = _scene_on_layers(
+        tmp_path,
+        scene_name,
+        gap,
+        "needle.radius=0.0005",
+        "time.dt=0.01",
+        *trajectory_overrides(times, bases, direction, duration=times[-1] + 0.1),
+        *overrides,
+    )
+    records = []
+    Simulation(scene).run(on_step=lambda state, record: records.append(record))
+    return scene, records, times
+
+
+MOVED_CASES = [
+    pytest.param(0.003, "0deg", 0.001, "cube", id="gap3mm-0deg-side1mm-inserting"),
+    pytest.param(0.001, "30deg", 0.0015, "cube", id="gap1mm-30deg-side1.5mm-inserting"),
+    pytest.param(0.003, "0deg", 0.003, "cube_cut", id="gap3mm-0deg-side3mm-cutting"),
+    pytest.param(0.003, "30deg", 0.003, "cube", id="gap3mm-30deg-side3mm-inserting", marks=pytest.mark.slow),
+    pytest.param(0.001, "0deg", 0.003, "cube_cut", id="gap1mm-0deg-side3mm-cutting", marks=pytest.mark.slow),
+    pytest.param(
+        0.003, "30deg", 0.003, "cube_cut", id="gap3mm-30deg-side3mm-cutting", marks=pytest.mark.slow
+    ),
+]
+
+
+@pytest.mark.parametrize(("gap", "direction", "side", "scene_name"), MOVED_CASES)
+def test_a_tip_moved_sideways_in_the_gap_punctures_the_lower_layer_at_its_new_place(
+    tmp_path, gap, direction, side, scene_name
+):
+    # The tip backed out of the lower layer into the gap (the shaft in the upper layer: inserting, or cutting
+    # it once the sideways move starts a cut), its base moved sideways by more than the needle's radius, and
+    # pushed in again. Reference: the tip's rules for a tip outside the tissue do not depend on how it left:
+    # backed out of a face it entered by, it is in its channel's mouth only while it meets that hole; moved
+    # away from it, the surface ahead is intact tissue, which it punctures at f_p (the capped rule) as in
+    # approach. (Before, it went into the lower layer with no contact and no puncture wherever it was.)
+    from refsim.verification.life_cycles import life_violations
+
+    scene, records, times = _moved_in_the_gap(tmp_path, gap, direction, side, scene_name)
+    punctures = [(r.step, e) for r in records for e in r.events if e.name == "puncture"]
+    pushed = round(times[3] / scene.time.dt)
+    assert [step <= pushed for step, _ in punctures] == [True, True, False]
+    assert punctures[-1][1].force == pytest.approx(scene.insertion.puncture_force, rel=1e-6)
+    # punctured at its new place, more than the needle's radius (the hole's) from where it first punctured
+    # the lower layer, and in that layer at the end
+    at = {r.step: np.asarray(r.instruments[0].needle_positions[-1]) for r in records}
+    first, again = at[punctures[1][0]], at[punctures[-1][0]]
+    assert np.linalg.norm((again - first)[:2]) > scene.needle.radius
+    assert at[records[-1].step][2] < TOP - UPPER_THICKNESS - gap
+    assert not any(e.name in ("reentry", "withdrawal") for r in records for e in r.events)
     assert life_violations(records, scene) == []
 
 
