@@ -201,9 +201,9 @@ class SimulationState:
         factor (the matrix A it last factorised and the steps since,
         :class:`refsim.fem.compliance.StaleFactor`), or the exact strategy's partial-solve marks on PARDISO
         (the DoFs its analysis marked, :class:`refsim.fem.compliance.PartialSolveMarks`), or the fast
-        strategy's last free displacement (its next conjugate gradients' first iterate,
-        :class:`refsim.fem.compliance.FreeMotionStart`); None for the strategies that carry nothing, and
-        before the first step.
+        strategy's last free displacement and its image under the last operator (where its next conjugate
+        gradients start, :class:`refsim.fem.compliance.FreeMotionStart`); None for the strategies that carry
+        nothing, and before the first step.
 
     The one-instrument shortcuts ``phase``, ``needle``, ``path``, ``cut_direction``, ``cut_strip``,
     ``tip_tet`` and ``tip_barycentric`` read the only instrument's fields; on a state with several instruments

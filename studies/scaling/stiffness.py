@@ -139,13 +139,12 @@ def page(data: list[dict], docs: Path) -> None:
         "takes up (a state at rest is the exact one), so the error shows where the load changes quickly "
         "against the tissue's stiffness: the tip's contact force builds up faster than in the exact run and "
         "the fast run punctures early where the tissue is soft against f_p, a few steps on the cube and "
-        "cube_cut and one or two on the liver, and the cut's tears, which follow the force, come at other "
+        "cube_cut and two on the softest liver, and the cut's tears, which follow the force, come at other "
         "steps where the puncture did not move (cube_cut at 50 kPa). An event can also move "
-        "by one step where the exact run's criterion passes its threshold by less than the fast mode's "
-        "force error (the stiffest liver: its cut starts at a load 0.2 % above G_c in the exact run). Where "
-        "the events agree, the needle force is within the error the table gives. Use the fast mode where "
-        "the table says so for a scene like yours, and check a new scene with `refsim bench SCENE "
-        '--strategies exact fast --against-exact`. See docs/speed.md ("The fast mode").',
+        "by a step where the exact run's criterion passes its threshold by less than the fast mode's "
+        "force error. Where the events agree, the needle force is within the error the table gives. Use "
+        "the fast mode where the table says so for a scene like yours, and check a new scene with "
+        '`refsim bench SCENE --strategies exact fast --against-exact`. See docs/speed.md ("The fast mode").',
         "",
     ]
     (docs / "fast_stiffness.md").write_text("\n".join(lines), encoding="utf-8")

@@ -482,7 +482,7 @@ class _FastBody(BodyCompliance):
         # without the error report, the tissue builds its step system with an operator and no matrix
         self.matrix_free = not strategy.against_exact
         self._ready = False
-        self._carried = None  # FreeMotionStart: the last free displacement and how the next CG starts
+        self._carried = None  # FreeMotionStart: the last free motion, where the next CG starts from
 
     @property
     def rest_precision(self) -> str:
@@ -491,7 +491,8 @@ class _FastBody(BodyCompliance):
         return getattr(self._solver, "precision", "double")
 
     def carried(self) -> FreeMotionStart | None:
-        """The last free displacement and the next free motion's start; None before the first step."""
+        """The last free displacement and its image under the last operator (the next free motion's start);
+        None before the first step."""
         return self._carried
 
     def resume(self, carried: FreeMotionStart | None) -> None:
