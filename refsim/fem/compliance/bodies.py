@@ -627,7 +627,7 @@ def _pcg(
     *,
     tolerance: float,
     max_iterations: int,
-) -> tuple[np.ndarray, int, float]:
+) -> tuple[np.ndarray, int, float, float, np.ndarray]:
     """Preconditioned CG on one right-hand side b (f,) to ‖b − A x‖₂ ≤ tolerance ‖b‖₂, from ``start``.
 
     A start whose residual exceeds ‖b‖ (a step that changed the load) is replaced by 0, whose first iteration
