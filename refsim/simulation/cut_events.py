@@ -262,6 +262,11 @@ class CutEventRules:
         if self._exits(state, positions, needle, tip_tet):
             events.append(Event("exit"))
             channel_end = ChannelEnd(state.tip_tet, state.tip_barycentric, through=True)
+        elif state.tip_tet >= 0 and tip_tet < 0 and state.entered_at is not None:
+            # Backed out of a part of the tissue it entered while cutting (an inner layer, into a gap), the
+            # shaft still in the tissue: that part keeps its channel, as in insertion, so the tip pushed in
+            # again meets it as its own channel's mouth (elsewhere on that surface, intact tissue).
+            world = evolved(world, channels=self._left_channels(world, state, channel_end, state.entered_at))
         state = evolved(state, tip_tet=tip_tet, tip_barycentric=tip_barycentric, channel_end=channel_end)
         if state.cut_strip is not None and world.cut is not None:
             # Moved back through its own cut and past the line it entered along (the strip's first layer, its

@@ -295,10 +295,10 @@ class Detector:
             block, insertion_points, rings = self.path_rows(state, geometry)
             blocks.extend(b for b in (block, self.tip_row(state, geometry)) if b is not None)
         if state.phase != Phase.APPROACH and state.tip_tet < 0 and advancing:
-            # The tip left the tissue through a far face while the shaft stays in it (inserting or cutting:
-            # the tip's rules do not depend on what holds the shaft), and does not move back: it meets the
-            # next surface ahead (another layer) as a tip does in approach, a contact it punctures at f_p (or
-            # a hole it enters), the shaft's rows kept.
+            # The tip is out of the tissue (through a far face, or backed out of a face it entered by) while
+            # the shaft stays in it (inserting or cutting: the tip's rules do not depend on what holds the
+            # shaft), and does not move back: it meets the surface ahead as a tip does in approach, a contact
+            # it punctures at f_p (or a hole it enters), the shaft's rows kept (_surface_ahead).
             contact, approach, hole = self._surface_ahead(world, state, geometry)
             blocks.extend(approach)
         if state.phase == Phase.INSERTION and world.cut is not None and world.cut.triangle_count:

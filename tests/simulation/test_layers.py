@@ -464,6 +464,55 @@ def test_a_tip_moved_sideways_in_the_gap_punctures_the_lower_layer_at_its_new_pl
     assert life_violations(records, scene) == []
 
 
+@pytest.mark.parametrize("side", [0.0, 0.003], ids=["same-place", "side3mm"])
+def test_a_cutting_needle_backed_out_of_the_lower_layer_meets_its_channel_or_intact_tissue(tmp_path, side):
+    # In 6 mm, a 3 mm stroke along y (the cut starts), pushed on through the gap 5 mm into the lower layer
+    # (it punctures it while cutting), pulled back until the tip is in the gap, moved ``side`` along y, pushed
+    # back to 5 mm. Reference: the tip's rules do not depend on what holds the shaft. Backed out of the lower
+    # layer, that layer keeps its channel (as in insertion): pushed in at the same place, the tip is in its
+    # channel's mouth (no event); moved 3 mm first, it meets intact tissue and punctures it at f_p. (Before,
+    # the cutting phase recorded no channel there: the tip punctured its own hole again.)
+    from refsim.verification.life_cycles import life_violations
+
+    gap, down, along = 0.003, np.array([0.0, 0.0, -1.0]), np.array([0.0, 1.0, 0.0])
+    p = np.array([ENTRY[0], ENTRY[1], TOP])
+    q = p + 0.003 * along
+    lower, in_gap = UPPER_THICKNESS + gap + 0.005, UPPER_THICKNESS + 0.5 * gap
+
+    def base(at, depth):
+        return at + (depth - NEEDLE_LENGTH) * down
+
+    moved = q + side * along
+    bases = [
+        base(p, -0.002),
+        base(p, 0.006),
+        base(q, 0.006),
+        base(q, lower),
+        base(q, in_gap),
+        base(moved, in_gap),
+        base(moved, lower),
+    ]
+    times = times_at_speed(bases, 0.01)
+    scene = _scene_on_layers(
+        tmp_path,
+        "cube_cut",
+        gap,
+        "needle.radius=0.0005",
+        *trajectory_overrides(times, bases, down, duration=times[-1] + 0.1),
+    )
+    records = []
+    Simulation(scene).run(on_step=lambda state, record: records.append(record))
+    named = [(r.step, e) for r in records for e in r.events if e.name not in ("tear", "retraction")]
+    expected = ["puncture", "cut_start", "exit", "puncture"] + (["puncture"] if side else [])
+    assert [e.name for _, e in named] == expected
+    # the lower layer's first puncture comes before the back-out
+    assert named[3][0] < round(times[4] / scene.time.dt)
+    if side:
+        assert named[-1][0] > round(times[5] / scene.time.dt)
+        assert named[-1][1].force == pytest.approx(scene.insertion.puncture_force, rel=1e-6)
+    assert life_violations(records, scene) == []
+
+
 @pytest.mark.parametrize("out_by", [0.0001, 0.0002])
 def test_a_tip_pulled_just_out_of_its_entry_face_and_pushed_in_again_is_in_its_channel(out_by):
     # The cube (4³ cells), 6 mm in, held, pulled back until its tip is out of the top face by less than the
