@@ -352,6 +352,26 @@ def test_a_needle_pushed_through_the_gap_while_it_cuts_punctures_and_cuts_the_lo
     assert life_violations(records, scene) == []
 
 
+def _vertical_cut_life(tmp_path, gap, waypoints, *overrides):
+    """cube_cut on the two layers ``gap`` [m] apart, its vertical needle (r = 0.5 mm) driven at 10 mm/s
+    through ``waypoints``, (point on the top face, depth of the tip below it [m]) each: the scene, its step
+    records and the waypoints' times."""
+    down = np.array([0.0, 0.0, -1.0])
+    bases = [at + (depth - NEEDLE_LENGTH) * down for at, depth in waypoints]
+    times = times_at_speed(bases, 0.01)
+    scene = _scene_on_layers(
+        tmp_path,
+        "cube_cut",
+        gap,
+        "needle.radius=0.0005",
+        *overrides,
+        *trajectory_overrides(times, bases, down, duration=times[-1] + 0.1),
+    )
+    records = []
+    Simulation(scene).run(on_step=lambda state, record: records.append(record))
+    return scene, records, times
+
+
 def test_a_cutting_needle_pushed_into_a_hole_of_the_lower_layer_re_enters_it(tmp_path):
     # A first needle's life through both layers at Q (puncture, exit, puncture, withdrawal: each layer keeps
     # its channel), then in at P, 3 mm from Q along y, 6 mm into the upper layer (a needle of r = 0.5 mm: P is
@@ -362,35 +382,13 @@ def test_a_cutting_needle_pushed_into_a_hole_of_the_lower_layer_re_enters_it(tmp
     # unit length of needle in it, L_in = 8 + 5 mm.
     from refsim.verification.life_cycles import life_violations
 
-    gap, down, side = 0.003, np.array([0.0, 0.0, -1.0]), np.array([0.0, 1.0, 0.0])
+    gap, side = 0.003, np.array([0.0, 1.0, 0.0])
     p = np.array([ENTRY[0], ENTRY[1], TOP])
     q = p + 0.003 * side
     lower = UPPER_THICKNESS + gap + 0.005
-
-    def base(at, depth):
-        return at + (depth - NEEDLE_LENGTH) * down
-
-    bases = [
-        base(q, -0.002),
-        base(q, lower),
-        base(q, -0.002),
-        base(p, -0.002),
-        base(p, 0.006),
-        base(q, 0.006),
-        base(q, lower),
-        base(q + 0.002 * side, lower),
-    ]
-    times = times_at_speed(bases, 0.01)
-    scene = _scene_on_layers(
-        tmp_path,
-        "cube_cut",
-        gap,
-        "needle.radius=0.0005",
-        'compliance.strategy="fast"',
-        *trajectory_overrides(times, bases, down, duration=times[-1] + 0.1),
-    )
-    records = []
-    Simulation(scene).run(on_step=lambda state, record: records.append(record))
+    waypoints = [(q, -0.002), (q, lower), (q, -0.002), (p, -0.002), (p, 0.006), (q, 0.006), (q, lower)]
+    waypoints.append((q + 0.002 * side, lower))
+    scene, records, times = _vertical_cut_life(tmp_path, gap, waypoints, 'compliance.strategy="fast"')
     names = [e.name for r in records for e in r.events if e.name not in ("tear", "retraction")]
     assert names == ["puncture", "exit", "puncture", "withdrawal", "puncture", "cut_start", "exit", "reentry"]
     fracture, spacing = scene.cutting.fracture_energy, scene.cutting.point_spacing
@@ -474,34 +472,14 @@ def test_a_cutting_needle_backed_out_of_the_lower_layer_meets_its_channel_or_int
     # the cutting phase recorded no channel there: the tip punctured its own hole again.)
     from refsim.verification.life_cycles import life_violations
 
-    gap, down, along = 0.003, np.array([0.0, 0.0, -1.0]), np.array([0.0, 1.0, 0.0])
+    gap, along = 0.003, np.array([0.0, 1.0, 0.0])
     p = np.array([ENTRY[0], ENTRY[1], TOP])
     q = p + 0.003 * along
     lower, in_gap = UPPER_THICKNESS + gap + 0.005, UPPER_THICKNESS + 0.5 * gap
-
-    def base(at, depth):
-        return at + (depth - NEEDLE_LENGTH) * down
-
     moved = q + side * along
-    bases = [
-        base(p, -0.002),
-        base(p, 0.006),
-        base(q, 0.006),
-        base(q, lower),
-        base(q, in_gap),
-        base(moved, in_gap),
-        base(moved, lower),
-    ]
-    times = times_at_speed(bases, 0.01)
-    scene = _scene_on_layers(
-        tmp_path,
-        "cube_cut",
-        gap,
-        "needle.radius=0.0005",
-        *trajectory_overrides(times, bases, down, duration=times[-1] + 0.1),
-    )
-    records = []
-    Simulation(scene).run(on_step=lambda state, record: records.append(record))
+    waypoints = [(p, -0.002), (p, 0.006), (q, 0.006), (q, lower), (q, in_gap)]
+    waypoints += [(moved, in_gap), (moved, lower)]
+    scene, records, times = _vertical_cut_life(tmp_path, gap, waypoints)
     named = [(r.step, e) for r in records for e in r.events if e.name not in ("tear", "retraction")]
     expected = ["puncture", "cut_start", "exit", "puncture"] + (["puncture"] if side else [])
     assert [e.name for _, e in named] == expected
