@@ -32,7 +32,14 @@ import numpy as np
 from refsim.cutting.surface import CutSurface, TriangulationReport
 from refsim.geometry import TetLocator
 
-__all__ = ["CutFront", "CutStrip", "locate_material_points", "recorded_surface", "strip_triangles"]
+__all__ = [
+    "CutFront",
+    "CutStrip",
+    "locate_material_points",
+    "recorded_strip",
+    "recorded_surface",
+    "strip_triangles",
+]
 
 # A point outside every tet by at most this much in barycentric coordinates is kept in the nearest tet (points
 # on the tissue surface: the entry point, by round-off); farther ones are outside the tissue.
@@ -342,14 +349,22 @@ def recorded_surface(cut: CutSurface | None, strip: CutStrip | None, step: int) 
     read ``cut`` and the crack tip itself (the sliding rows reach d_c past the last layer, the front rows
     press on the crack tip), so the recorded surface is the region the model treats as cut. ``cut`` itself
     when there is no strip (no cut running) or no column moved."""
+    return recorded_strip(cut, strip, step)[0]
+
+
+def recorded_strip(
+    cut: CutSurface | None, strip: CutStrip | None, step: int
+) -> tuple[CutSurface | None, CutStrip | None]:
+    """:func:`recorded_surface` and the strip with that last layer: what a needle leaving its strip leaves
+    in the tissue (the surface up to the crack tip, and the strip a needle found in it later cuts on from).
+    ``cut`` and ``strip`` themselves when no column moved."""
     if cut is None or strip is None or cut.point_count == 0:
-        return cut
+        return cut, strip
     size = float(np.ptp(cut.rest_points, axis=0).max()) if cut.point_count > 1 else 0.0
     size = max(size, float(np.ptp(strip.front.rest_points, axis=0).max()))
     if size <= 0.0:
-        return cut
-    grown, _ = strip.lay(cut, step, _TIP_RESOLUTION * size * 1e3)
-    return grown
+        return cut, strip
+    return strip.lay(cut, step, _TIP_RESOLUTION * size * 1e3)
 
 
 def append_points(

@@ -8,6 +8,9 @@ does once the needle cuts, and the cut starts of the insertion phase.
 - the needle back out of its cut into intact tissue (``leave_cut``): :meth:`CutEventRules._leave_cut`;
 - a new cut started by the load of its cut's faces away from the crack tip:
   :meth:`CutEventRules._face_cut_start`;
+- the strip a needle leaves kept in the tissue with its crack tip (:class:`refsim.simulation.state.Crack`),
+  and a needle found inside it in insertion cutting on from its crack tip (``cut_resume``):
+  :meth:`CutEventRules._left_strip`, :meth:`CutEventRules._resumed`;
 - the stick anchors of the cut faces' friction rows after each solve: :func:`face_stretch`.
 
 The table of every event, its phase, criterion and effect is the docstring of :mod:`refsim.simulation.events`.
@@ -25,11 +28,11 @@ from refsim.constraints.friction import FaceStretch
 from refsim.constraints.inserted import inserted_arc, inserted_stretches, stretch_length, stretch_span
 from refsim.cutting.growth import start_strip
 from refsim.cutting.laws import FrontPush
-from refsim.cutting.strip import recorded_surface
+from refsim.cutting.strip import recorded_strip
 from refsim.simulation.detection import Detection
 from refsim.simulation.margins import shaft_lateral_rows
 from refsim.simulation.records import Event
-from refsim.simulation.state import ChannelEnd, Phase, evolved
+from refsim.simulation.state import ChannelEnd, Crack, Phase, evolved
 
 if TYPE_CHECKING:
     from refsim.simulation.events import LazyLocator
@@ -152,8 +155,8 @@ class CutEventRules:
         inserted needle every d_i (material points where the needle now is) but none in the cut (the rule of
         new points: a part of the needle still in its cut slides in it), the insertion phase, the cut kept
         (the needle may cut again: a new cut start). Event ``leave_cut``."""
-        # The cut the strip leaves reaches its crack tip.
-        world = evolved(world, cut=recorded_surface(world.cut, state.cut_strip, world.step))
+        # The cut the strip leaves reaches its crack tip, and the tissue keeps the strip.
+        world = self._left_strip(world, state)
         spacing = self.insertion.spacing
         entry_arc = inserted_arc(needle, locator, spacing)
         arcs = np.arange(entry_arc, needle.length + 1e-12 * spacing, spacing)
@@ -177,6 +180,65 @@ class CutEventRules:
             entered_at=None,
         )
         return world, state, events
+
+    @staticmethod
+    def _left_strip(world, state):
+        """The tissue after instrument ``state`` left its strip (withdrawn, moved back out of its cut, or
+        starting a new cut off its faces): its cut laid up to the crack tip, and the strip kept with its crack
+        tip and direction (a :class:`refsim.simulation.state.Crack`)."""
+        cut, strip = recorded_strip(world.cut, state.cut_strip, world.step)
+        if strip is None:
+            return evolved(world, cut=cut)
+        crack = Crack(strip, np.array(state.cut_direction, dtype=float, copy=True), world.step)
+        return evolved(world, cut=cut, cracks=(*world.cracks, crack))
+
+    def _resumed(self, world, state, needle, positions, locator: LazyLocator):
+        """A needle in insertion found inside a strip the tissue keeps (a
+        :class:`refsim.simulation.state.Crack`): the states and the event ``cut_resume``, or None.
+
+        Inside: at least half of the inserted needle (sampled every d_c along its stretches in the tissue) on
+        the strip's own triangles (projecting inside the cut, within d_c of it along its normal), and the
+        needle ahead of the strip's rear edge (the line the strip's needle entered along) by more than d_c/2
+        along the strip's ĉ (mean over its columns), the mirror of leave_cut's criterion: a needle moved back
+        out of its cut does not resume it until it comes back in by d_c. There the tissue around the needle is
+        cut: the needle slides in the cut (its sliding rows, no insertion point) and meets the crack tip's
+        front rows where the uncut tissue begins, cutting on from there at the law's strength. Gripped by
+        insertion points instead, a needle moved along an old cut dragged the tissue until a cut started
+        and then cut the tissue a second time. The strip becomes the needle's (cutting phase, its ĉ, the path
+        kept as at a cut start) and leaves the tissue's list."""
+        cut = world.cut
+        if cut is None or not cut.triangle_count:
+            return None
+        spacing = self.cutting.point_spacing
+        stretches = inserted_stretches(needle, locator.locator, spacing, tip_outside=state.tip_tet < 0)
+        if not stretches:
+            return None
+        samples = np.concatenate(_inserted_lines(needle, stretches, spacing))
+        surface = cut.deformed_points(positions, self.tets)
+        found = cut.closest_points(samples, surface)
+        normals = cut.interpolated_normals(surface, found.triangle, found.barycentric)
+        across = np.abs(np.einsum("ij,ij->i", samples - found.closest, normals))
+        on_cut = found.inside & (across <= spacing)
+        for index, crack in enumerate(world.cracks):  # (a handful: one per strip left)
+            inside = on_cut & crack.strip.own_triangles(cut)[found.triangle]
+            if 2 * int(np.count_nonzero(inside)) < samples.shape[0]:
+                continue
+            rear = crack.strip.rear_edge(cut, positions, self.tets)
+            _, on_needle = needle.project(rear)
+            if float(((on_needle - rear) @ crack.direction).mean()) <= 0.5 * spacing:
+                continue
+            state = evolved(
+                state,
+                phase=Phase.CUTTING,
+                cut_direction=np.array(crack.direction, dtype=float, copy=True),
+                cut_strip=crack.strip,
+                path=state.path.subset(self.law.kept_at_cut_start(state.path.point_count)),
+                channel_end=None,
+                entered_at=None,
+            )
+            world = evolved(world, cracks=(*world.cracks[:index], *world.cracks[index + 1 :]))
+            return world, state, [Event("cut_resume")]
+        return None
 
     def _extended(self, strip, needle, positions, locator, stretches, step):
         """The strip with a block of columns added below its deepest one at ``step``, every d_c along the
@@ -245,8 +307,8 @@ class CutEventRules:
         entry = state.path.positions(positions, self.tets)
         if state.path.point_count == 0 or points_beyond_tip(state.path, entry, needle)[0]:
             # The tip is back above the entry point: every row is released; the tissue keeps its cut, up to
-            # the crack tip.
-            world = evolved(world, cut=recorded_surface(world.cut, state.cut_strip, world.step))
+            # the crack tip, and the strip.
+            world = self._left_strip(world, state)
             return world, state.withdrawn(), [Event("retraction"), Event("withdrawal")]
         events: list[Event] = []
         cutting = self.cutting
@@ -365,11 +427,11 @@ class CutEventRules:
         if start is None:
             return None
         positions = world.tissue.positions
-        recorded = recorded_surface(world.cut, state.cut_strip, world.step)
+        world = self._left_strip(world, state)
         direction = -load / float(np.linalg.norm(load))
         cut, strip = start_strip(
             self.growth,
-            recorded,
+            world.cut,
             None,
             direction,
             positions,

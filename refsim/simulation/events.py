@@ -50,8 +50,9 @@
   law: a front row's force ≥ f_t; then: the surface grows (energy law: ĉ turns half-way to the layer's swept
   direction)
 - phase: cutting; event: retraction, withdrawal; when: the entry point beyond the tip; then: every row
-  released; approach (the cut stays, and no hole is recorded: the cut is what the tissue keeps there, and a
-  needle inserted along it punctures the surface, which the cut does not open, and slides in it)
+  released; approach (the cut stays, with its strip and crack tip, and no hole is recorded: the cut is what
+  the tissue keeps there, and a needle inserted along it punctures the surface, which the cut does not open,
+  slides in it and cuts on from its crack tip: cut_resume)
 - phase: cutting; event: exit; when: the tip, inside the tissue at the step's start, lies in no tet at its
   end, having moved forward through the tissue (along the needle, relative to its material point); then:
   the cut rows run along the part of the needle in the tissue, from its entry to where it leaves through
@@ -68,7 +69,12 @@
 - phase: cutting; event: leave_cut; when: the needle is back behind the strip's first layer (the line it
   entered along) by more than d_c/2, along −ĉ; then: insertion points along the inserted needle every d_i
   where it lies in intact tissue (none in the cut: the part still in it slides in it); insertion (the cut
-  stays; a new cut may start)
+  stays, and the tissue keeps the strip with its crack tip: ``Crack``; a new cut may start)
+- phase: insertion; event: cut_resume; when: the needle is inside a strip the tissue keeps (left by a
+  withdrawal, a leave_cut or a cut start off its faces): at least half of its inserted length on that strip's
+  surface, and ahead of the strip's first layer by more than d_c/2 along its ĉ (leave_cut's mirror); then:
+  cutting with that strip and its ĉ, the path kept as at a cut start: the needle slides in the cut and cuts
+  on from its crack tip
 
 The cutting phase's rules (and the cut starts of the insertion phase) are in
 :mod:`refsim.simulation.cut_events` (:class:`~refsim.simulation.cut_events.CutEventRules`, a base of
@@ -444,6 +450,12 @@ class EventRules(CutEventRules):
         needle = self.needle_geometry(state.needle)
         # the path's points on the step's configuration, read by the cut start's test and the growth below
         points = state.path.positions(positions, self.tets)
+        if self.growth is not None and world.cracks:
+            # Inside a strip the tissue keeps (re-inserted along its cut, or moved back into it): the cut
+            # goes on from its crack tip.
+            resumed = self._resumed(world, state, needle, positions, locator)
+            if resumed is not None:
+                return resumed
         if self.growth is not None and rows.row_count:
             force_on_needle = shaft_lateral_force(
                 rows.source,

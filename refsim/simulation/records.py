@@ -30,14 +30,17 @@ EVENT_UNITS = ("N", "N/m")
 #: standing, with the rows after them (`refsim.simulation.Simulation`): each is crossed inside the step and
 #: changes what holds the needle, so the rows chosen at the step's start would carry the step to its end with
 #: a force the event has ended, or without one it has begun. A change of phase: the cut start (the insertion
-#: rows give way to the cut's, which hold the needle at the cut's force), leaving the cut (the cut's rows give
+#: rows give way to the cut's, which hold the needle at the cut's force), the cut resumed (the insertion rows
+#: give way to the rows of the cut the needle is in), leaving the cut (the cut's rows give
 #: way to insertion points in intact tissue), the re-entry into a hole (the channel's rows hold a needle that
 #: was free in the hole) and the withdrawal (the tip is out of the tissue: nothing holds the needle); and rows
 #: removed: the exit (the tip is out through a far face, its cutting row is gone) and the retraction (points
 #: left beyond the tip). Rows added as the needle advances (insertion points every d_i, the cut's layers every
 #: d_c) take effect at the next step: they are laid where the tissue is at the step's end. The puncture
 #: through a capped tip contact is solved again too, located inside the step (:class:`WithinStep`).
-STEP_SOLVED_AGAIN = frozenset({"cut_start", "exit", "leave_cut", "reentry", "retraction", "withdrawal"})
+STEP_SOLVED_AGAIN = frozenset(
+    {"cut_resume", "cut_start", "exit", "leave_cut", "reentry", "retraction", "withdrawal"}
+)
 
 
 @dataclass(frozen=True)

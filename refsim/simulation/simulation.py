@@ -245,7 +245,9 @@ class Simulation:
                 ),
             )
             if again:
-                start = evolved(start, cut=new_state.cut, channels=new_state.channels)
+                start = evolved(
+                    start, cut=new_state.cut, channels=new_state.channels, cracks=new_state.cracks
+                )
 
         self._warn_strained(step, new_state)
         self._warn_unsolved(step, rows, problem, report)

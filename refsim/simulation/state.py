@@ -19,6 +19,7 @@ __all__ = [
     "KEPT_AT_WITHDRAWAL",
     "Channel",
     "ChannelEnd",
+    "Crack",
     "InstrumentState",
     "Phase",
     "SimulationState",
@@ -99,6 +100,31 @@ class Channel:
         return self.entry_tet == other.entry_tet and np.array_equal(
             self.entry_barycentric, other.entry_barycentric
         )
+
+
+@dataclass(frozen=True)
+class Crack:
+    """A cut strip a needle left, with its crack tip: the tissue keeps it (``SimulationState.cracks``).
+
+    A needle leaves its strip when it is withdrawn while cutting, moved back out of its cut behind the line it
+    entered along (the event leave_cut), or pressed against its cut's faces until a new cut starts off them.
+    The tissue between the strip's rear edge and its crack tip stays cut, and the crack tip stays where the
+    uncut tissue begins: a needle later found inside the strip, in insertion (re-inserted along the cut, or
+    moved back into it), slides in it and cuts on from its crack tip (the event cut_resume makes the strip
+    the needle's again, `refsim.simulation.cut_events`), instead of being gripped by insertion points in
+    tissue that is cut and cutting it a second time. The strip's layers index the tissue's cut surface,
+    which only grows, and its crack tip is made of material points: it moves with the tissue.
+
+    Attributes
+    ----------
+    strip : The strip, its last layer laid at the crack tip (:func:`refsim.cutting.strip.recorded_strip`).
+    direction : ĉ, the direction it ran in when it was left (deformed), unit, shape (3,).
+    step : The step at which it was left.
+    """
+
+    strip: CutStrip
+    direction: np.ndarray
+    step: int
 
 
 @dataclass(frozen=True)
@@ -197,6 +223,9 @@ class SimulationState:
         they were left; one per hole (a needle that re-entered a hole and left it again replaces its record).
         They belong to the tissue: a needle of any instrument whose tip meets the surface within a hole
         enters it without puncture (the event reentry) and cuts only beyond the channel's end.
+    cracks : The cut strips needles left, with their crack tips (:class:`Crack`), in the order they were
+        left; a needle found inside one in insertion cuts on from its crack tip (the event cut_resume), which
+        takes it off this list.
     tissue_factor : What the tissue compliance carries from step to step: the refreshed strategy's stale
         factor (the matrix A it last factorised and the steps since,
         :class:`refsim.fem.compliance.StaleFactor`), or the exact strategy's partial-solve marks on PARDISO
@@ -216,6 +245,7 @@ class SimulationState:
     instruments: tuple[InstrumentState, ...]
     cut: CutSurface | None = None
     channels: tuple[Channel, ...] = ()
+    cracks: tuple[Crack, ...] = ()
     tissue_factor: StaleFactor | PartialSolveMarks | FreeMotionStart | None = None
 
     @property

@@ -435,8 +435,9 @@ def test_a_turning_stroke_turns_the_cut(turn):
 
 def test_reinsertion_along_an_existing_cut_slides_in_it():
     # Insert 14 mm, cut 5 mm along x, pull out, come back above the middle of the cut and insert 10 mm there
-    # (item 5): the needle slides in the old cut (its sliding rows hold it on it) and gets no insertion point
-    # where the cut is (the tissue there is already cut).
+    # (item 5): the needle resumes the old cut (event cut_resume: the strip the tissue keeps is its own
+    # again), slides in it (its sliding rows hold it on it) and gets no insertion point where the cut is (the
+    # tissue there is already cut).
     from refsim.constraints import INSERTION
 
     t = [0.0, 0.7, 0.95, 1.75, 1.9, 2.4, 2.5]
@@ -457,8 +458,10 @@ def test_reinsertion_along_an_existing_cut_slides_in_it():
     again = [s for s, n in names if n == "puncture" and withdrawn and s > withdrawn[0]]
     assert withdrawn and again, names
     d_c = scene.cutting.point_spacing
+    resumed = [s for s, n in names if n == "cut_resume"]
+    assert len(resumed) == 1 and again[0] < resumed[0] <= again[0] + 2, names
     later = [r for r in records if r.step > again[0] + 2]
-    assert later and all(r.phase == "insertion" for r in later)
+    assert later and all(r.phase == "cutting" for r in later)
     slid = 0
     for record, state in zip(records, states, strict=True):
         if record.step <= again[0] + 2:

@@ -26,6 +26,9 @@ The life-cycle matrix (stage: where it is tested; the cases beyond the first of 
 - re-insert along the cut: ``test_reinsertion_along_a_cut_slides_in_it`` (vertical and 30°, the cut's plane
   holding the needle; rigid and flexible; Gauss–Seidel and exact), and on 6³ cells
   ``tests/simulation/test_cutting.py::test_reinsertion_along_an_existing_cut_...``;
+- back in a cut it left (re-inserted along it, or moved back out of it and forward again), pushed along it:
+  it slides to the crack tip and cuts on from there (event cut_resume): ``tests/simulation/test_cracks.py``
+  (both ways; rigid and flexible; both solvers; μ_c = 0 and 0.3);
 - cut over directions, tilts, entries on an edge or a vertex, flexible: the matrix of
   ``tests/simulation/test_cutting.py`` (Gauss–Seidel, and against the exact solver on eight cases);
 - reverse at depth: insert, pull back part of the way, push in again beyond the first depth:
@@ -873,10 +876,11 @@ def test_reinsertion_along_a_cut_slides_in_it(direction, needle, solver):
     # cut 5 mm along +y (normal to the needle: the cut's plane holds the needle's direction), pulled out
     # along the needle, moved back in the air above the middle of the cut and inserted 10 mm along the same
     # direction, in the cut's plane. Expected (docs/cutting.md, "The whole life of a needle"): puncture,
-    # cut start, withdrawal, puncture again (the surface mesh is not opened); after it the needle slides in
-    # the old cut: sliding rows every step, no insertion point but the entry point (the tissue there is
-    # cut), no new cut, and every sample of the inserted needle that projects inside the cut lies on it
-    # within 0.1 d_c (the sliding rows' C λ and the linearisation over a step: measured ≤ 20 µm).
+    # cut start, withdrawal, puncture again (the surface mesh is not opened), and inside the cut the cut
+    # resumed (the strip the tissue keeps is the needle's again: tests/simulation/test_cracks.py); after it
+    # the needle slides in the old cut: sliding rows every step, no insertion point but the entry point (the
+    # tissue there is cut), no new cut, and every sample of the inserted needle that projects inside the cut
+    # lies on it within 0.1 d_c (the sliding rows' C λ and the linearisation over a step: measured ≤ 20 µm).
     axis = np.asarray(DIRECTIONS[direction])
     x0, y0 = 0.00123, 0.00231
     knots = [
@@ -901,14 +905,17 @@ def test_reinsertion_along_a_cut_slides_in_it(direction, needle, solver):
     simulation = Simulation(scene)
     records, states = [], []
     simulation.run(on_step=lambda state, record: (records.append(record), states.append(state)))
-    names = [e.name for r in records for e in r.events if e.name in ("puncture", "cut_start", "withdrawal")]
-    assert names == ["puncture", "cut_start", "withdrawal", "puncture"], names
+    kinds = ("puncture", "cut_start", "withdrawal", "cut_resume")
+    names = [e.name for r in records for e in r.events if e.name in kinds]
+    assert names == ["puncture", "cut_start", "withdrawal", "puncture", "cut_resume"], names
     again = [r.step for r in records if any(e.name == "puncture" for e in r.events)][1]
+    resumed = [r.step for r in records if any(e.name == "cut_resume" for e in r.events)][0]
+    assert resumed <= again + 2, (again, resumed)
     d_c = scene.cutting.point_spacing
     later = [(r, s) for r, s in zip(records, states, strict=True) if r.step > again + 2]
     assert later
     for record, state in later:
-        assert record.phase == "insertion" and state.path.point_count == 1, (
+        assert record.phase == "cutting" and state.path.point_count == 1, (
             record.step,
             state.path.point_count,
         )
@@ -1154,11 +1161,11 @@ def _vertical_run_on_cube_cut(tips, *overrides):
 
 def test_a_needle_reinserted_along_a_cut_and_pushed_out_of_its_plane_cuts_at_the_fracture_energy():
     # cube_cut on 4³ cells: inserted 17 mm, a stroke of 8 mm along +x (a cut in the xz plane), withdrawn,
-    # re-inserted 12 mm deep along the middle of the cut (x = 5.23 mm: the insertion phase, the old cut's
-    # faces holding it), then pushed 6 mm along +y, normal to the cut. Reference: the energy law, ‖t‖ = G_c
-    # L_in with t the load of the faces' rows as of the insertion points' (L_in = 12 mm: 2.4 N). Before the
-    # faces' load took part in t, the faces held it to 6.4 N (2.7 G_c L_in) until insertion points off the
-    # cut started a cut, whose step the old faces held at 18.4 N.
+    # re-inserted 12 mm deep along the middle of the cut (x = 5.23 mm: the old cut taken up again, event
+    # cut_resume, its faces holding it), then pushed 6 mm along +y, normal to the cut. Reference: the energy
+    # law, ‖t‖ = G_c L_in with t the load of the faces' rows as of the insertion points' (L_in = 12 mm:
+    # 2.4 N). Before the faces' load took part in t, the faces held it to 6.4 N (2.7 G_c L_in) until
+    # insertion points off the cut started a cut, whose step the old faces held at 18.4 N.
     entry = np.array([0.00123, 0.00231, TOP])
     tips = [
         (0.0, entry + [0.0, 0.0, 0.002]),
@@ -1177,7 +1184,8 @@ def test_a_needle_reinserted_along_a_cut_and_pushed_out_of_its_plane_cuts_at_the
     assert_each_step_ends_with_the_rows_of_its_end_state(records)
     g_c_l = scene.cutting.fracture_energy * 0.012  # G_c [N/m] times L_in [m]
     reinserted = [r for r in records if 5.2 <= r.time <= 5.3]
-    assert reinserted and all(r.phase == Phase.INSERTION for r in reinserted)
+    assert reinserted and all(r.phase == Phase.CUTTING for r in reinserted)
+    assert sum(e.name == "cut_resume" for r in records for e in r.events) == 1
     assert all(np.any(r.row_role == SLIDING) for r in reinserted)  # the old cut's faces hold it
     push = [r for r in records if 5.3 < r.time]
     starts = [r for r in push if any(e.name == "cut_start" for e in r.events)]
