@@ -196,8 +196,9 @@ class CutEventRules:
         """A needle in insertion found inside a strip the tissue keeps (a
         :class:`refsim.simulation.state.Crack`): the states and the event ``cut_resume``, or None.
 
-        Inside: at least half of the inserted needle (sampled every d_c along its stretches in the tissue) on
-        the strip's own triangles (projecting inside the cut, within d_c of it along its normal), and the
+        Inside: at least half of the inserted needle down to the strip's deepest column (sampled every d_c
+        along its stretches in the tissue) on the strip's own triangles (projecting inside the cut, within d_c
+        of it along its normal; a needle crossing the cut has a sample or two there), and the
         needle ahead of the strip's rear edge (the line the strip's needle entered along) by more than d_c/2
         along the strip's ĉ (mean over its columns), the mirror of leave_cut's criterion: a needle moved back
         out of its cut does not resume it until it comes back in by d_c. There the tissue around the needle is
@@ -205,7 +206,10 @@ class CutEventRules:
         front rows where the uncut tissue begins, cutting on from there at the law's strength. Gripped by
         insertion points instead, a needle moved along an old cut dragged the tissue until a cut started
         and then cut the tissue a second time. The strip becomes the needle's (cutting phase, its ĉ, the path
-        kept as at a cut start) and leaves the tissue's list."""
+        kept as at a cut start) and leaves the tissue's list. A needle deeper than the strip cuts below it at
+        the law's strength from the start, the strip extending down its shaft, under a law whose strip does
+        (``CuttingLaw.extends_down_shaft``); under one whose strip does not (the paper's), it keeps its
+        insertion points below the strip, and so its insertion phase."""
         cut = world.cut
         if cut is None or not cut.triangle_count:
             return None
@@ -213,15 +217,28 @@ class CutEventRules:
         stretches = inserted_stretches(needle, locator.locator, spacing, tip_outside=state.tip_tet < 0)
         if not stretches:
             return None
-        samples = np.concatenate(_inserted_lines(needle, stretches, spacing))
+        # The inserted needle every d_c or less, and each sample's arc length below where it enters [m].
+        arcs = np.concatenate(
+            [
+                np.linspace(first, end, max(int(np.ceil((end - first) / spacing)), 1) + 1)
+                for first, end in stretches
+            ]
+        )
+        below = arcs - stretches[0][0]
+        samples = needle.points(arcs)
         surface = cut.deformed_points(positions, self.tets)
         found = cut.closest_points(samples, surface)
         normals = cut.interpolated_normals(surface, found.triangle, found.barycentric)
         across = np.abs(np.einsum("ij,ij->i", samples - found.closest, normals))
         on_cut = found.inside & (across <= spacing)
         for index, crack in enumerate(world.cracks):  # (a handful: one per strip left)
-            inside = on_cut & crack.strip.own_triangles(cut)[found.triangle]
-            if 2 * int(np.count_nonzero(inside)) < samples.shape[0]:
+            # Down to the strip's deepest column (a needle inserted deeper cuts on below it: the strip extends
+            # down its shaft, as while cutting)
+            reach = below <= float(np.max(crack.strip.depths)) + spacing
+            if not self.law.extends_down_shaft and not np.all(reach):
+                continue
+            inside = on_cut & crack.strip.own_triangles(cut)[found.triangle] & reach
+            if 2 * int(np.count_nonzero(inside)) < int(np.count_nonzero(reach)):
                 continue
             rear = crack.strip.rear_edge(cut, positions, self.tets)
             _, on_needle = needle.project(rear)
