@@ -27,8 +27,9 @@ The life-cycle matrix (stage: where it is tested; the cases beyond the first of 
   holding the needle; rigid and flexible; Gauss–Seidel and exact), and on 6³ cells
   ``tests/simulation/test_cutting.py::test_reinsertion_along_an_existing_cut_...``;
 - back in a cut it left (re-inserted along it, or moved back out of it and forward again), pushed along it:
-  it slides to the crack tip and cuts on from there (event cut_resume): ``tests/simulation/test_cracks.py``
-  (both ways; rigid and flexible; both solvers; μ_c = 0 and 0.3);
+  it slides to the crack tip and cuts on from there (event cut_resume), re-inserted deeper than the cut it
+  cuts below it: ``tests/simulation/test_cracks.py`` (re-inserted at the cut's depth and 8 mm deeper, moved
+  back; rigid and flexible; both solvers; μ_c = 0 and 0.3);
 - cut over directions, tilts, entries on an edge or a vertex, flexible: the matrix of
   ``tests/simulation/test_cutting.py`` (Gauss–Seidel, and against the exact solver on eight cases);
 - reverse at depth: insert, pull back part of the way, push in again beyond the first depth:
