@@ -193,8 +193,8 @@ class CutEventRules:
         return evolved(world, cut=cut, cracks=(*world.cracks, crack))
 
     def _resumed(self, world, state, needle, positions, locator: LazyLocator):
-        """A needle in insertion found inside a strip the tissue keeps (a
-        :class:`refsim.simulation.state.Crack`): the states and the event ``cut_resume``, or None.
+        """A needle found inside a strip the tissue keeps (a :class:`refsim.simulation.state.Crack`), in
+        insertion or cutting another strip: the states and the event ``cut_resume``, or None.
 
         Inside: at least half of the inserted needle down to the strip's deepest column (sampled every d_c
         along its stretches in the tissue) on the strip's own triangles (projecting inside the cut, within d_c
@@ -205,8 +205,10 @@ class CutEventRules:
         cut: the needle slides in the cut (its sliding rows, no insertion point) and meets the crack tip's
         front rows where the uncut tissue begins, cutting on from there at the law's strength. Gripped by
         insertion points instead, a needle moved along an old cut dragged the tissue until a cut started
-        and then cut the tissue a second time. The strip becomes the needle's (cutting phase, its ĉ, the path
-        kept as at a cut start) and leaves the tissue's list. A needle deeper than the strip cuts below it at
+        and then cut the tissue a second time; cutting a new strip into it, it cut it a second time too. The
+        strip becomes the needle's (cutting phase, its ĉ, the path kept as at a cut start) and leaves the
+        tissue's list; a strip the needle was cutting is left in the tissue (:meth:`_left_strip`). A needle
+        deeper than the strip cuts below it at
         the law's strength from the start, the strip extending down its shaft, under a law whose strip does
         (``CuttingLaw.extends_down_shaft``); under one whose strip does not (the paper's), it keeps its
         insertion points below the strip, and so its insertion phase."""
@@ -244,6 +246,9 @@ class CutEventRules:
             _, on_needle = needle.project(rear)
             if float(((on_needle - rear) @ crack.direction).mean()) <= 0.5 * spacing:
                 continue
+            world = evolved(world, cracks=(*world.cracks[:index], *world.cracks[index + 1 :]))
+            if state.cut_strip is not None:
+                world = self._left_strip(world, state)
             state = evolved(
                 state,
                 phase=Phase.CUTTING,
@@ -252,8 +257,8 @@ class CutEventRules:
                 path=state.path.subset(self.law.kept_at_cut_start(state.path.point_count)),
                 channel_end=None,
                 entered_at=None,
+                cut_face_stretch=None,
             )
-            world = evolved(world, cracks=(*world.cracks[:index], *world.cracks[index + 1 :]))
             return world, state, [Event("cut_resume")]
         return None
 
@@ -355,6 +360,13 @@ class CutEventRules:
             behind = float(((on_needle - rear) @ state.cut_direction).mean())
             if behind < -0.5 * cutting.point_spacing:
                 world, state, more = self._leave_cut(world, state, needle, positions, step_locator)
+                return world, state, [*events, *more]
+        if state.cut_strip is not None and world.cracks:
+            # Cutting along a cut the tissue keeps, into it: that cut goes on from its crack tip, and the
+            # strip it ran in with is left in the tissue.
+            taken = self._resumed(world, state, needle, positions, step_locator)
+            if taken is not None:
+                world, state, more = taken
                 return world, state, [*events, *more]
         if state.cut_strip is not None:
             pressed = self._face_cut_start(world, state, detection.rows, multipliers, needle, step_locator)

@@ -70,11 +70,11 @@
   entered along) by more than d_c/2, along −ĉ; then: insertion points along the inserted needle every d_i
   where it lies in intact tissue (none in the cut: the part still in it slides in it); insertion (the cut
   stays, and the tissue keeps the strip with its crack tip: ``Crack``; a new cut may start)
-- phase: insertion; event: cut_resume; when: the needle is inside a strip the tissue keeps (left by a
-  withdrawal, a leave_cut or a cut start off its faces): at least half of its inserted length on that strip's
-  surface, and ahead of the strip's first layer by more than d_c/2 along its ĉ (leave_cut's mirror); then:
-  cutting with that strip and its ĉ, the path kept as at a cut start: the needle slides in the cut and cuts
-  on from its crack tip
+- phase: insertion, cutting; event: cut_resume; when: the needle is inside a strip the tissue keeps (left
+  by a withdrawal, a leave_cut or a cut start off its faces): at least half of its inserted length down to
+  the strip's deepest column on that strip's surface, and ahead of the strip's first layer by more than d_c/2
+  along its ĉ (leave_cut's mirror); then: cutting with that strip and its ĉ (a strip it was cutting left in
+  the tissue), the path kept as at a cut start: the needle slides in the cut and cuts on from its crack tip
 
 The cutting phase's rules (and the cut starts of the insertion phase) are in
 :mod:`refsim.simulation.cut_events` (:class:`~refsim.simulation.cut_events.CutEventRules`, a base of
