@@ -82,8 +82,8 @@ CASES = [
 ]
 
 
-def _run(life: str, *overrides):
-    knots = FIRST + LIVES[life]
+def _run(knots, *overrides):
+    """cube_cut on 4³ cells with the vertical needle's base through ``knots`` ((time [s], x [m], z [m]))."""
     times = [t for t, _, _ in knots]
     bases = "[" + ", ".join(f"[{x!r}, {Y!r}, {z!r}]" for _, x, z in knots) + "]"
     scene = load_scene(
@@ -107,7 +107,7 @@ def test_a_needle_back_in_its_cut_slides_to_the_crack_tip_and_cuts_on_from_there
     life, needle, solver, friction
 ):
     scene, records = _run(
-        life, *NEEDLES[needle], *SOLVERS[solver], f"cutting.friction_coefficient={friction}"
+        FIRST + LIVES[life], *NEEDLES[needle], *SOLVERS[solver], f"cutting.friction_coefficient={friction}"
     )
     assert_each_step_ends_with_the_rows_of_its_end_state(records)
     named = lambda name: [r for r in records if any(e.name == name for e in r.events)]  # noqa: E731
@@ -147,3 +147,43 @@ def test_a_needle_back_in_its_cut_slides_to_the_crack_tip_and_cuts_on_from_there
     assert np.count_nonzero(beyond) >= 12
     assert np.all(-along[beyond] >= g_c * (length - 3 * d_c)), along[beyond].max()
     assert np.all(-along[beyond] <= g_c * (length + d_c)), along[beyond].min()
+
+
+@pytest.mark.parametrize(
+    ("needle", "solver"),
+    [
+        ("rigid", "gauss_seidel"),
+        pytest.param("flexible", "gauss_seidel", marks=pytest.mark.slow),
+        pytest.param("rigid", "exact", marks=pytest.mark.slow),
+    ],
+)
+def test_a_needle_cutting_into_a_cut_from_beyond_its_crack_tip_slides_through_it(needle, solver):
+    # Withdrawn after the first stroke, inserted 17 mm again 3 mm beyond where it ended (in intact tissue, in
+    # the cut's plane) and pushed back along −x to 2 mm past the cut's entry line into intact tissue: it cuts
+    # the 3 mm of intact tissue up to the old crack tip (a new strip, G_c L along +x), takes up the old cut
+    # (cut_resume) and slides through it (the faces' friction at most, as above), leaves it behind its entry
+    # line (leave_cut) and cuts the intact tissue there (a third strip, G_c L).
+    knots = FIRST + [
+        (4.0, STROKE_END, UP),
+        (4.2, STROKE_END + 0.003, UP),
+        (5.2, STROKE_END + 0.003, DOWN),
+        (5.4, STROKE_END + 0.003, DOWN),
+        (7.0, X0 - 0.002, DOWN),
+    ]
+    scene, records = _run(knots, *NEEDLES[needle], *SOLVERS[solver])
+    assert_each_step_ends_with_the_rows_of_its_end_state(records)
+    names = [e.name for r in records if r.time > 5.2 for e in r.events if e.name not in ("tear",)]
+    assert names == ["cut_start", "cut_resume", "leave_cut", "cut_start"], names
+    d_c, g_c, length = scene.cutting.point_spacing, scene.cutting.fracture_energy, FIRST_DEPTH
+    push = [r for r in records if r.time >= 5.4]
+    x = np.array([r.needle_positions[-1, 0] for r in push])
+    along = np.array([r.needle_force[0] for r in push])
+    intact = (x < x[0] - 2 * d_c) & (x > STROKE_END + d_c) | (x < X0 - 3 * d_c)
+    assert np.count_nonzero(intact) >= 12
+    assert np.all(along[intact] >= g_c * (length - 3 * d_c)), along[intact].min()
+    assert np.all(along[intact] <= g_c * (length + d_c)), along[intact].max()
+    inside = (x > X0 + 2 * d_c) & (x < STROKE_END - 2 * d_c)
+    assert np.count_nonzero(inside) >= 12
+    for record, force in zip(np.array(push, dtype=object)[inside], along[inside], strict=True):
+        faces = float(np.abs(record.row_forces[record.row_role == SLIDING]).sum())
+        assert abs(force) <= 0.1 * faces + 1e-9, (record.step, force, faces)
