@@ -9,8 +9,8 @@ does once the needle cuts, and the cut starts of the insertion phase.
 - a new cut started by the load of its cut's faces away from the crack tip:
   :meth:`CutEventRules._face_cut_start`;
 - the strip a needle leaves kept in the tissue with its crack tip (:class:`refsim.simulation.state.Crack`),
-  and a needle found inside it in insertion cutting on from its crack tip (``cut_resume``):
-  :meth:`CutEventRules._left_strip`, :meth:`CutEventRules._resumed`;
+  and a needle found inside it (in insertion, or cutting into it) cutting on from its crack tip
+  (``cut_resume``): :meth:`CutEventRules._left_strip`, :meth:`CutEventRules._resumed`;
 - the stick anchors of the cut faces' friction rows after each solve: :func:`face_stretch`.
 
 The table of every event, its phase, criterion and effect is the docstring of :mod:`refsim.simulation.events`.
@@ -198,20 +198,19 @@ class CutEventRules:
 
         Inside: at least half of the inserted needle down to the strip's deepest column (sampled every d_c
         along its stretches in the tissue) on the strip's own triangles (projecting inside the cut, within d_c
-        of it along its normal; a needle crossing the cut has a sample or two there), and the
-        needle ahead of the strip's rear edge (the line the strip's needle entered along) by more than d_c/2
-        along the strip's ĉ (mean over its columns), the mirror of leave_cut's criterion: a needle moved back
-        out of its cut does not resume it until it comes back in by d_c. There the tissue around the needle is
+        of it along its normal; a needle crossing the cut has a sample or two there), and the needle ahead of
+        the strip's rear edge (the line the strip's needle entered along) by more than d_c/2 along the
+        strip's ĉ (mean over its columns), the mirror of leave_cut's criterion: a needle moved back out of its
+        cut does not resume it until it comes back in by d_c. There the tissue around the needle is
         cut: the needle slides in the cut (its sliding rows, no insertion point) and meets the crack tip's
         front rows where the uncut tissue begins, cutting on from there at the law's strength. Gripped by
         insertion points instead, a needle moved along an old cut dragged the tissue until a cut started
         and then cut the tissue a second time; cutting a new strip into it, it cut it a second time too. The
         strip becomes the needle's (cutting phase, its ĉ, the path kept as at a cut start) and leaves the
         tissue's list; a strip the needle was cutting is left in the tissue (:meth:`_left_strip`). A needle
-        deeper than the strip cuts below it at
-        the law's strength from the start, the strip extending down its shaft, under a law whose strip does
-        (``CuttingLaw.extends_down_shaft``); under one whose strip does not (the paper's), it keeps its
-        insertion points below the strip, and so its insertion phase."""
+        deeper than the strip cuts below it at the law's strength from the start, the strip extending down
+        its shaft, under a law whose strip does (``CuttingLaw.extends_down_shaft``); under one whose strip
+        does not (the paper's), it keeps its insertion points below the strip, and so its insertion phase."""
         cut = world.cut
         if cut is None or not cut.triangle_count:
             return None
