@@ -29,9 +29,11 @@ import numpy as np
 import pytest
 
 from refsim.constraints import SLIDING
-from refsim.scene import load_scene
-from refsim.simulation import Simulation
-from tests.simulation.test_life_cycle import assert_each_step_ends_with_the_rows_of_its_end_state
+from tests.simulation.test_life_cycle import (
+    NEEDLE_LENGTH,
+    _vertical_run_on_cube_cut,
+    assert_each_step_ends_with_the_rows_of_its_end_state,
+)
 
 X0, Y = 0.00123, 0.00231
 STROKE_END = X0 + 0.008  # where the first stroke ends [m]
@@ -83,22 +85,10 @@ CASES = [
 
 
 def _run(knots, *overrides):
-    """cube_cut on 4³ cells with the vertical needle's base through ``knots`` ((time [s], x [m], z [m]))."""
-    times = [t for t, _, _ in knots]
-    bases = "[" + ", ".join(f"[{x!r}, {Y!r}, {z!r}]" for _, x, z in knots) + "]"
-    scene = load_scene(
-        "cube_cut",
-        [
-            "mesh.cells=[4, 4, 4]",
-            f"trajectory.times={times!r}",
-            f"trajectory.base_positions={bases}",
-            "trajectory.directions=[" + ", ".join(["[0, 0, -1]"] * len(times)) + "]",
-            f"time.duration={times[-1]}",
-            *overrides,
-        ],
-    )
-    records = []
-    Simulation(scene).run(on_step=lambda state, record: records.append(record))
+    """cube_cut on 4³ cells with the vertical needle's base through ``knots`` ((time [s], x [m], z [m]), at
+    y = Y): the scene and each step's record."""
+    tips = [(t, np.array([x, Y, z - NEEDLE_LENGTH])) for t, x, z in knots]
+    records, _, scene = _vertical_run_on_cube_cut(tips, *overrides)
     return scene, records
 
 

@@ -322,25 +322,9 @@ def test_back_through_the_cut_and_beyond_the_entry_the_needle_meets_intact_tissu
     # whose only rows faced the other way.
     times = [0.0, 1.9, 2.0, 2.8, 3.0, 4.4, 4.6]
     xs = [0.00123, 0.00123, 0.00123, 0.00923, 0.00923, -0.00477, -0.00477]
-    bases = (
-        "["
-        + ", ".join(f"[{x!r}, 0.00231, {z!r}]" for x, z in zip(xs, [0.422] + [0.403] * 6, strict=True))
-        + "]"
-    )
-    scene = load_scene(
-        "cube_cut",
-        [
-            "mesh.cells=[4, 4, 4]",
-            f"trajectory.times={times!r}",
-            f"trajectory.base_positions={bases}",
-            "trajectory.directions=[" + ", ".join(["[0, 0, -1]"] * len(times)) + "]",
-            f"time.duration={times[-1]}",
-            *SOLVERS[solver],
-            *NEEDLES[needle],
-        ],
-    )
-    records = []
-    Simulation(scene).run(on_step=lambda state, record: records.append(record))
+    depths = [-0.002] + [0.017] * 6
+    tips = [(t, np.array([x, 0.00231, TOP - d])) for t, x, d in zip(times, xs, depths, strict=True)]
+    records, _, scene = _vertical_run_on_cube_cut(tips, *SOLVERS[solver], *NEEDLES[needle])
     named = lambda name: [r for r in records if any(e.name == name for e in r.events)]  # noqa: E731
     left = named("leave_cut")
     assert len(left) == 1 and len(named("cut_start")) == 2
