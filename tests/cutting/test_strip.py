@@ -9,7 +9,13 @@ from refsim.constraints.needle_geometry import RigidNeedleGeometry
 from refsim.cutting import CutGrowth
 from refsim.cutting.growth import advance_front, crack_tip_targets, start_strip
 from refsim.cutting.metrics import surface_topology
-from refsim.cutting.strip import CutStrip, locate_material_points, strip_triangles
+from refsim.cutting.strip import (
+    CutStrip,
+    locate_material_points,
+    recorded_strip,
+    recorded_surface,
+    strip_triangles,
+)
 from refsim.geometry import TetLocator
 from refsim.mesh import box_mesh
 
@@ -66,6 +72,29 @@ def test_the_crack_tip_advances_to_the_pushed_material_point_and_layers_follow(g
     grown, laid = further.lay(cut, 3, SPACING)
     assert laid.layers.shape == (2, 17) and grown.triangle_count == 32
     assert surface_topology(grown.triangles, grown.point_count).is_disc
+
+
+def test_a_strip_left_is_recorded_up_to_its_crack_tip_with_that_last_layer(growth):
+    # A needle leaving its strip leaves the cut up to the crack tip (recorded_surface: a layer laid at the
+    # crack tip however little it moved past the last layer) and the strip with that layer (recorded_strip:
+    # the strip the tissue keeps, the one a needle found in it cuts on from): the same surface, the strip's
+    # last layer those new points, at the crack tip's rest positions.
+    path = np.linspace([0.0041, 0.0063, 0.012], [0.0041, 0.0063, 0.004], 17)
+    direction = np.array([1.0, 0.0, 0.0])
+    cut, strip = start_strip(growth, None, path, direction, growth.rest_positions, 1, extent=0.0)
+    moved = strip.with_front(
+        advance_front(growth, strip, np.full(17, 0.3e-3), direction, growth.rest_positions)
+    )  # 0.3 mm: less than d_c, no layer yet
+    surface, left = recorded_strip(cut, moved, 5)
+    recorded = recorded_surface(cut, moved, 5)
+    np.testing.assert_array_equal(surface.triangles, recorded.triangles)
+    np.testing.assert_array_equal(surface.rest_points, recorded.rest_points)
+    assert left.layers.shape == (2, 17) and surface.triangle_count == 32
+    np.testing.assert_allclose(surface.rest_points[left.last_layer], moved.front.rest_points, atol=1e-15)
+    assert np.all(surface.created_step[left.last_layer] == 5)
+    # Nothing moved, or no strip: both as given.
+    assert recorded_strip(surface, left, 6) == (surface, left)
+    assert recorded_strip(cut, None, 6) == (cut, None)
 
 
 @pytest.mark.parametrize("offset", [-1e-12, 0.0, 1e-12, 1e-7])
