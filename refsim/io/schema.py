@@ -393,7 +393,13 @@ EVENTS = _specs(
     [
         ("step", "1", "int64", (), "step of the event"),
         ("time", "s", "float64", (), "time at the end of that step"),
-        ("name", "1", "str", (), "puncture, reentry, cut_start, tear, retraction, withdrawal, ..."),
+        (
+            "name",
+            "1",
+            "str",
+            (),
+            "puncture, reentry, cut_start, cut_resume, tear, leave_cut, retraction, withdrawal, exit",
+        ),
         (
             "force",
             "N",
@@ -714,8 +720,9 @@ def reference_markdown() -> str:
         "`needle_force@EVENT` (and its axial and lateral parts) and the reference set's force curves read "
         "it. A plain tip contact (`insertion.puncture_within_step = false`) holds the tip to the step's "
         "end: its puncture is decided after the step, which records no within-step event. The events that "
-        "change what holds the needle (a cut start, leaving the cut, a re-entry into a hole, a withdrawal, "
-        "an exit through a far face, a retraction: `STEP_SOLVED_AGAIN`) also solve their step again from its "
+        "change what holds the needle (a cut start, taking up a cut the tissue keeps, leaving the cut, a "
+        "re-entry into a hole, a withdrawal, an exit through a far face, a retraction: `STEP_SOLVED_AGAIN`) "
+        "also solve their step again from its "
         'start, with the rows after the step\'s events (docs/cutting.md, "When an event takes effect"), '
         "and record no within-step event: the step's datasets are the second solve's, "
         "its `criteria/` the first solve's, on which the events were decided.",
