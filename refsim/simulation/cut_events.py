@@ -37,7 +37,7 @@ from refsim.simulation.state import ChannelEnd, Crack, Phase, evolved
 if TYPE_CHECKING:
     from refsim.simulation.events import LazyLocator
 
-__all__ = ["STICK_TOLERANCE", "CutEventRules", "face_stretch"]
+__all__ = ["STICK_TOLERANCE", "CutEventRules", "face_stretch", "in_cut"]
 
 #: A cut face's friction row sticks when its force is below its bound by more than this fraction of it (far
 #: above the solve's 10⁻⁸, as for the shaft's rows: `refsim.constraints.channel.stuck_points`).
@@ -197,8 +197,8 @@ class CutEventRules:
         insertion or cutting another strip: the states and the event ``cut_resume``, or None.
 
         Inside: at least half of the inserted needle down to the strip's deepest column (sampled every d_c
-        along its stretches in the tissue) on the strip's own triangles (projecting inside the cut, within d_c
-        of it along its normal; a needle crossing the cut has a sample or two there), and the needle ahead of
+        along its stretches in the tissue) on the strip's own triangles (:func:`in_cut`: projecting inside the
+        cut, within d_c of it; a needle crossing the cut has a sample or two there), and the needle ahead of
         the strip's rear edge (the line the strip's needle entered along) by more than d_c/2 along the
         strip's ĉ (mean over its columns), the mirror of leave_cut's criterion: a needle moved back out of its
         cut does not resume it until it comes back in by d_c. There the tissue around the needle is
@@ -219,19 +219,9 @@ class CutEventRules:
         if not stretches:
             return None
         # The inserted needle every d_c or less, and each sample's arc length below where it enters [m].
-        arcs = np.concatenate(
-            [
-                np.linspace(first, end, max(int(np.ceil((end - first) / spacing)), 1) + 1)
-                for first, end in stretches
-            ]
-        )
+        arcs = np.concatenate([_stretch_arcs(first, end, spacing) for first, end in stretches])
         below = arcs - stretches[0][0]
-        samples = needle.points(arcs)
-        surface = cut.deformed_points(positions, self.tets)
-        found = cut.closest_points(samples, surface)
-        normals = cut.interpolated_normals(surface, found.triangle, found.barycentric)
-        across = np.abs(np.einsum("ij,ij->i", samples - found.closest, normals))
-        on_cut = found.inside & (across <= spacing)
+        on_cut, found = in_cut(cut, needle.points(arcs), positions, self.tets, spacing)
         for index, crack in enumerate(world.cracks):  # (a handful: one per strip left)
             # Down to the strip's deepest column (a needle inserted deeper cuts on below it: the strip extends
             # down its shaft, as while cutting)
@@ -241,9 +231,9 @@ class CutEventRules:
             inside = on_cut & crack.strip.own_triangles(cut)[found.triangle] & reach
             if 2 * int(np.count_nonzero(inside)) < int(np.count_nonzero(reach)):
                 continue
-            rear = crack.strip.rear_edge(cut, positions, self.tets)
-            _, on_needle = needle.project(rear)
-            if float(((on_needle - rear) @ crack.direction).mean()) <= 0.5 * spacing:
+            if _ahead_of_rear_edge(crack.strip, crack.direction, cut, positions, self.tets, needle) <= (
+                0.5 * spacing
+            ):
                 continue
             world = evolved(world, cracks=(*world.cracks[:index], *world.cracks[index + 1 :]))
             if state.cut_strip is not None:
@@ -354,10 +344,10 @@ class CutEventRules:
         if state.cut_strip is not None and world.cut is not None:
             # Moved back through its own cut and past the line it entered along (the strip's first layer, its
             # rear edge) by more than half a cut spacing: the needle is in intact tissue again.
-            rear = state.cut_strip.rear_edge(world.cut, positions, self.tets)
-            _, on_needle = needle.project(rear)
-            behind = float(((on_needle - rear) @ state.cut_direction).mean())
-            if behind < -0.5 * cutting.point_spacing:
+            ahead = _ahead_of_rear_edge(
+                state.cut_strip, state.cut_direction, world.cut, positions, self.tets, needle
+            )
+            if ahead < -0.5 * cutting.point_spacing:
                 world, state, more = self._leave_cut(world, state, needle, positions, step_locator)
                 return world, state, [*events, *more]
         if state.cut_strip is not None and world.cracks:
@@ -527,8 +517,33 @@ def _inserted_lines(needle, stretches, spacing: float) -> list[np.ndarray]:
 def _inserted_line(needle, entry_arc: float, end: float, spacing: float) -> np.ndarray:
     """The needle's centreline between arc lengths ``entry_arc`` and ``end`` [m], points at most ``spacing``
     apart, ends included, shape (k, 3), k ≥ 2: the line a cut started against a cut's faces runs on."""
-    count = max(int(np.ceil((end - entry_arc) / spacing)), 1) + 1
-    return needle.points(np.linspace(entry_arc, end, count))
+    return needle.points(_stretch_arcs(entry_arc, end, spacing))
+
+
+def _stretch_arcs(first: float, end: float, spacing: float) -> np.ndarray:
+    """Arc lengths [m] from ``first`` to ``end``, evenly at most ``spacing`` [m] apart, both ends included,
+    shape (k,), k ≥ 2."""
+    return np.linspace(first, end, max(int(np.ceil((end - first) / spacing)), 1) + 1)
+
+
+def _ahead_of_rear_edge(strip, direction, cut, positions, tets, needle) -> float:
+    """How far the needle is ahead of ``strip``'s rear edge (the line its needle entered along) along the
+    strip's ``direction`` ĉ [m]: the mean over its columns of each column's projection on the needle less
+    the column, along ĉ (negative: behind it). leave_cut reads it on the needle's own strip, cut_resume on a
+    strip the tissue keeps."""
+    rear = strip.rear_edge(cut, positions, tets)
+    _, on_needle = needle.project(rear)
+    return float(((on_needle - rear) @ direction).mean())
+
+
+def in_cut(cut, points: np.ndarray, positions: np.ndarray, tets: np.ndarray, spacing: float):
+    """Which ``points`` [m], shape (q, 3), lie in the tissue's ``cut`` as deformed by ``positions``:
+    projecting inside it and within ``spacing`` (d_c) [m] of it; shape (q,) bool, and the closest points
+    (`refsim.cutting.surface.ClosestCutPoints`). A needle there slides in the cut: no insertion point is laid
+    there, and a strip the tissue keeps is taken up there."""
+    found = cut.closest_points(points, cut.deformed_points(positions, tets))
+    distance = np.linalg.norm(points - found.closest, axis=1)
+    return found.inside & (distance <= spacing), found
 
 
 def face_stretch(

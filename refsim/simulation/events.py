@@ -100,7 +100,7 @@ from refsim.constraints.rows import gap_roundoff
 from refsim.cutting import CutGrowth
 from refsim.geometry import TetLocator
 from refsim.scene import Scene
-from refsim.simulation.cut_events import STICK_TOLERANCE, CutEventRules, face_stretch
+from refsim.simulation.cut_events import STICK_TOLERANCE, CutEventRules, face_stretch, in_cut
 from refsim.simulation.detection import Detection
 from refsim.simulation.margins import MarginWatch, shaft_lateral_rows
 from refsim.simulation.records import Event
@@ -662,15 +662,11 @@ class EventRules(CutEventRules):
         new = np.flatnonzero(path.created_step == world.step)
         if new.size == 0:
             return path
-        cut = world.cut
-        found = cut.closest_points(
-            path.positions(positions, self.tets)[new], cut.deformed_points(positions, self.tets)
-        )
-        distance = np.linalg.norm(path.positions(positions, self.tets)[new] - found.closest, axis=1)
-        in_cut = found.inside & (distance <= self.cutting.point_spacing)
-        in_cut &= new > 0  # the entry point stays: it marks the inserted length
-        if not np.any(in_cut):
+        points = path.positions(positions, self.tets)[new]
+        inside, _ = in_cut(world.cut, points, positions, self.tets, self.cutting.point_spacing)
+        inside &= new > 0  # the entry point stays: it marks the inserted length
+        if not np.any(inside):
             return path
         keep = np.ones(path.point_count, dtype=bool)
-        keep[new[in_cut]] = False
+        keep[new[inside]] = False
         return path.subset(keep)
