@@ -29,8 +29,12 @@ import numpy as np
 import pytest
 
 from refsim.constraints import SLIDING
+from refsim.scene import load_scene
+from refsim.simulation import Simulation
 from tests.simulation.test_life_cycle import (
+    ENTRIES,
     NEEDLE_LENGTH,
+    _path_overrides,
     _vertical_run_on_cube_cut,
     assert_each_step_ends_with_the_rows_of_its_end_state,
 )
@@ -177,3 +181,56 @@ def test_a_needle_cutting_into_a_cut_from_beyond_its_crack_tip_slides_through_it
     for record, force in zip(np.array(push, dtype=object)[inside], along[inside], strict=True):
         faces = float(np.abs(record.row_forces[record.row_role == SLIDING]).sum())
         assert abs(force) <= 0.1 * faces + 1e-9, (record.step, force, faces)
+
+
+TILTED = {"0deg": (0.0, 0.0, -1.0), "30deg_yz": (0.0, 0.5, -0.8660254037844386)}
+ENTRY_VARIANTS = [
+    pytest.param(
+        entry, direction, marks=[] if (entry, direction) == ("vertex", "30deg_yz") else pytest.mark.slow
+    )
+    for entry in ENTRIES
+    for direction in TILTED
+]
+
+
+@pytest.mark.parametrize(("entry", "direction"), ENTRY_VARIANTS)
+def test_a_needle_reinserted_along_its_cut_slides_in_it_whatever_its_entry_and_tilt(entry, direction):
+    # The ``reinserted`` life with the needle entering inside a surface triangle, on a grid edge or at a grid
+    # vertex of the 4³ mesh, vertical or tilted 30° in the yz plane (normal to the stroke, so that the cut's
+    # plane holds the needle and the stroke is normal to it): inserted 17 mm along the needle, cut 8 mm
+    # along +x, withdrawn, re-inserted along the same direction 4 mm behind where the stroke ended and
+    # pushed to 4 mm beyond it. Reference as above: in the cut the faces' friction at most (μ_c = 0: their
+    # normals' tilt), then G_c L past the crack tip (L = 17 mm along the needle).
+    x, y = ENTRIES[entry]
+    knots = [
+        (0.0, (x, y), -0.002),
+        (1.9, (x, y), FIRST_DEPTH),
+        (2.0, (x, y), FIRST_DEPTH),
+        (2.8, (x + 0.008, y), FIRST_DEPTH),
+        (3.0, (x + 0.008, y), FIRST_DEPTH),
+        (4.0, (x + 0.008, y), -0.002),
+        (4.4, (x + 0.004, y), -0.002),
+        (5.4, (x + 0.004, y), FIRST_DEPTH),
+        (5.5, (x + 0.004, y), FIRST_DEPTH),
+        (6.3, (x + 0.012, y), FIRST_DEPTH),
+    ]
+    scene = load_scene("cube_cut", ["mesh.cells=[4, 4, 4]", *_path_overrides(knots, TILTED[direction])])
+    records = []
+    Simulation(scene).run(on_step=lambda state, record: records.append(record))
+    assert_each_step_ends_with_the_rows_of_its_end_state(records)
+    names = [e.name for r in records for e in r.events if e.name in ("cut_start", "withdrawal", "cut_resume")]
+    assert names == ["cut_start", "withdrawal", "cut_resume"], names
+    d_c, g_c = scene.cutting.point_spacing, scene.cutting.fracture_energy
+    push = [r for r in records if r.time >= 5.5]
+    # the tip's x from the entry (the tilt has no x part: the whole needle moves with it along x)
+    crossing = np.array([r.needle_positions[-1, 0] for r in push]) - x
+    along = np.array([r.needle_force[0] for r in push])
+    inside = (crossing > 0.004 + 2 * d_c) & (crossing < 0.008 - 2 * d_c)
+    assert np.count_nonzero(inside) >= 12
+    for record, force in zip(np.array(push, dtype=object)[inside], along[inside], strict=True):
+        faces = float(np.abs(record.row_forces[record.row_role == SLIDING]).sum())
+        assert abs(force) <= 0.1 * faces + 1e-9, (record.step, force, faces)
+    beyond = crossing > 0.008 + 2 * d_c
+    assert np.count_nonzero(beyond) >= 12
+    assert np.all(-along[beyond] >= g_c * (FIRST_DEPTH - 3 * d_c)), along[beyond].max()
+    assert np.all(-along[beyond] <= g_c * (FIRST_DEPTH + d_c)), along[beyond].min()
