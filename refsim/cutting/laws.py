@@ -257,9 +257,13 @@ class EnergyLaw(CuttingLaw):
         return float(ratios[strongest]), 1.0, float(np.asarray(limits)[strongest]), "1"
 
     def kept_at_cut_start(self, point_count):
-        """The entry point (withdrawal: the tip back above it) and the strip's deepest point; neither has rows
-        while cutting."""
-        return np.array([0] if point_count < 2 else [0, point_count - 1])
+        """The entry point and the strip's deepest point (none of a path that has no point left); neither
+        has rows while cutting."""
+        return (
+            np.unique(np.array([0, point_count - 1], dtype=np.int64))
+            if point_count
+            else np.zeros(0, np.int64)
+        )
 
     @staticmethod
     def _at_end(push: FrontPush) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -506,8 +510,9 @@ class PaperLaw(CuttingLaw):
         return float(np.max(forces)), self.tearing_force, 1.0, "N"
 
     def kept_at_cut_start(self, point_count):
-        """The entry point (withdrawal: the tip back above it)."""
-        return np.array([0])
+        """The entry point (none of a path that has no point left), whose rows hold the needle while it
+        cuts."""
+        return np.zeros(min(int(point_count), 1), dtype=np.int64)
 
     def grow(self, push):
         """A front row's force ≥ f_t tears the whole front by d_t along ĉ, in layers at most d_c apart."""

@@ -192,7 +192,7 @@ class CutEventRules:
         crack = Crack(strip, np.array(state.cut_direction, dtype=float, copy=True), world.step)
         return evolved(world, cut=cut, cracks=(*world.cracks, crack))
 
-    def _resumed(self, world, state, needle, positions, locator: LazyLocator):
+    def _resumed(self, world, state, needle, positions, locator: LazyLocator, *, stretches=None):
         """A needle found inside a strip the tissue keeps (a :class:`refsim.simulation.state.Crack`), in
         insertion or cutting another strip: the states and the event ``cut_resume``, or None.
 
@@ -215,7 +215,8 @@ class CutEventRules:
         if cut is None or not cut.triangle_count:
             return None
         spacing = self.cutting.point_spacing
-        stretches = inserted_stretches(needle, locator.locator, spacing, tip_outside=state.tip_tet < 0)
+        if stretches is None:
+            stretches = inserted_stretches(needle, locator.locator, spacing, tip_outside=state.tip_tet < 0)
         if not stretches:
             return None
         # The inserted needle every d_c or less, and each sample's arc length below where it enters [m].
@@ -315,22 +316,43 @@ class CutEventRules:
         """Withdrawal through the cut, and the growth of the cut where the needle pushes through its front."""
         positions = world.tissue.positions
         needle = self.needle_geometry(state.needle)
-        entry = state.path.positions(positions, self.tets)
-        if state.path.point_count == 0 or points_beyond_tip(state.path, entry, needle)[0]:
-            # The tip is back above the entry point: every row is released; the tissue keeps its cut, up to
-            # the crack tip, and the strip.
-            world = self._left_strip(world, state)
-            return world, state.withdrawn(), [Event("retraction"), Event("withdrawal")]
-        events: list[Event] = []
         cutting = self.cutting
         # The tip's material state, as in insertion: leaving through a far face is the event exit (the needle
         # still cuts along the part in the tissue, and its tip meets the surface ahead, another layer, as in
         # insertion: its channel's end marked through). Only forward through the tissue: a tip pulled back
-        # out through the face it entered by (on the step before the entry point is beyond it) is a
-        # withdrawal.
+        # out through the face it entered by leaves no part of the needle in the tissue, a withdrawal.
         tip_tet, tip_barycentric = self.tip_location(
             positions, needle, state, detection, multipliers, step_locator
         )
+        # What of the needle lies in the tissue after the step: one stretch per part of the tissue it is
+        # through (its indentation of a surface the tip has not punctured is none).
+        stretches = inserted_stretches(
+            needle, step_locator.locator, cutting.point_spacing, tip_outside=tip_tet < 0
+        )
+        if not stretches:
+            # Out of the tissue: every row is released; the tissue keeps its cut, up to the crack tip, and
+            # the strip. (Not read from the entry point: a needle moved along its cut is no longer where it
+            # entered, and one tilted in the stroke's plane has the entry point's projection on its axis
+            # above or below where it crosses the surface by the stroke times the tilt's sine: withdrawn
+            # with its tip still 4 mm in the tissue, or never, on cube_cut after 8 mm at 30°.)
+            world = self._left_strip(world, state)
+            return world, state.withdrawn(), [Event("retraction"), Event("withdrawal")]
+        # (kept in the state: the next step's rows are sampled along them, on this configuration)
+        state = evolved(state, stretches=stretches)
+        events: list[Event] = []
+        if self.law.rows_while_cutting and state.path.point_count:
+            # The points kept at the cut start hold the needle while it cuts (the paper law's entry point):
+            # those the tip has gone back past are released, as in insertion. (A law whose cut alone holds
+            # the needle keeps them without rows until the withdrawal.)
+            beyond = points_beyond_tip(
+                state.path,
+                state.path.positions(positions, self.tets),
+                needle,
+                self.coupling.retraction_margin(self.insertion.spacing),
+            )
+            if beyond.any():
+                state = evolved(state, path=state.path.subset(~beyond))
+                events.append(Event("retraction"))
         channel_end = None if tip_tet >= 0 else state.channel_end
         if self._exits(state, positions, needle, tip_tet):
             events.append(Event("exit"))
@@ -353,12 +375,14 @@ class CutEventRules:
         if state.cut_strip is not None and world.cracks:
             # Cutting along a cut the tissue keeps, into it: that cut goes on from its crack tip, and the
             # strip it ran in with is left in the tissue.
-            taken = self._resumed(world, state, needle, positions, step_locator)
+            taken = self._resumed(world, state, needle, positions, step_locator, stretches=stretches)
             if taken is not None:
                 world, state, more = taken
                 return world, state, [*events, *more]
         if state.cut_strip is not None:
-            pressed = self._face_cut_start(world, state, detection.rows, multipliers, needle, step_locator)
+            pressed = self._face_cut_start(
+                world, state, detection.rows, multipliers, needle, step_locator, stretches=stretches
+            )
             if pressed is not None:
                 world, state, more = pressed
                 return world, state, [*events, *more]
@@ -370,14 +394,9 @@ class CutEventRules:
             # every d_c to the tip, its crack tip at the needle (insertion points there, anchored in uncut
             # tissue, would drag it sideways).
             locator = step_locator.locator
-            stretches = inserted_stretches(
-                needle, locator, cutting.point_spacing, tip_outside=state.tip_tet < 0
-            )
             entry_arc, _ = stretch_span(stretches, needle.length)
-            if stretches:
-                extended = self._extended(state.cut_strip, needle, positions, locator, stretches, world.step)
-                state = evolved(state, cut_strip=extended)
-            state = evolved(state, stretches=stretches)
+            extended = self._extended(state.cut_strip, needle, positions, locator, stretches, world.step)
+            state = evolved(state, cut_strip=extended)
         rows = detection.rows
         self.margins.tear(self.law, detection.front.rows)
         grown = self.law.grow(
@@ -409,7 +428,9 @@ class CutEventRules:
         state = evolved(state, cut_strip=grown.strip, cut_direction=grown.direction)
         return world, state, events
 
-    def _face_cut_start(self, world, state, rows, multipliers, needle, step_locator: LazyLocator):
+    def _face_cut_start(
+        self, world, state, rows, multipliers, needle, step_locator: LazyLocator, *, stretches=None
+    ):
         """A needle pressed against the faces of its cut: the states and the event of a new cut, or None.
 
         The faces' rows (the cut's SLIDING rows) hold the needle in its cut's plane; the load they carry
@@ -438,7 +459,10 @@ class CutEventRules:
             return None
         spacing = self.cutting.point_spacing
         load = (rows.directions[held] * multipliers[held, None]).sum(axis=0)
-        stretches = inserted_stretches(needle, step_locator.locator, spacing, tip_outside=state.tip_tet < 0)
+        if stretches is None:
+            stretches = inserted_stretches(
+                needle, step_locator.locator, spacing, tip_outside=state.tip_tet < 0
+            )
         length = stretch_length(stretches) - float(limits[band].sum()) / strength
         self.margins.cut_start(self.law, load, length, state.path.point_count, rows=held)
         start = self.law.cut_start(load, inserted_length=length, point_count=state.path.point_count)

@@ -49,10 +49,12 @@
 - phase: cutting; event: tear; when: energy law: a new layer laid (the crack tip d_c past the last); paper
   law: a front row's force ≥ f_t; then: the surface grows (energy law: ĉ turns half-way to the layer's swept
   direction)
-- phase: cutting; event: retraction, withdrawal; when: the entry point beyond the tip; then: every row
-  released; approach (the cut stays, with its strip and crack tip, and no hole is recorded: the cut is what
-  the tissue keeps there, and a needle inserted along it punctures the surface, which the cut does not open,
-  slides in it and cuts on from its crack tip: cut_resume)
+- phase: cutting; event: retraction; when: (paper law) the entry point, whose rows hold the needle while it
+  cuts, beyond the tip; then: it is removed
+- phase: cutting; event: retraction, withdrawal; when: no part of the needle in the tissue (no inserted
+  stretch after the step); then: every row released; approach (the cut stays, with its strip and crack tip,
+  and no hole is recorded: the cut is what the tissue keeps there, and a needle inserted along it punctures
+  the surface, which the cut does not open, slides in it and cuts on from its crack tip: cut_resume)
 - phase: cutting; event: exit; when: the tip, inside the tissue at the step's start, lies in no tet at its
   end, having moved forward through the tissue (along the needle, relative to its material point); then:
   the cut rows run along the part of the needle in the tissue, from its entry to where it leaves through

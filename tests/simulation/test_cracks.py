@@ -29,6 +29,7 @@ import numpy as np
 import pytest
 
 from refsim.constraints import SLIDING
+from refsim.geometry import TetLocator
 from refsim.scene import load_scene
 from refsim.simulation import Simulation
 from tests.simulation.test_life_cycle import (
@@ -183,24 +184,49 @@ def test_a_needle_cutting_into_a_cut_from_beyond_its_crack_tip_slides_through_it
         assert abs(force) <= 0.1 * faces + 1e-9, (record.step, force, faces)
 
 
-TILTED = {"0deg": (0.0, 0.0, -1.0), "30deg_yz": (0.0, 0.5, -0.8660254037844386)}
+TILTED = {
+    "0deg": (0.0, 0.0, -1.0),
+    "30deg_yz": (0.0, 0.5, -0.8660254037844386),
+    # tilted in the stroke's plane, the tip ahead of the base along the stroke, or behind it
+    "30deg_xz_ahead": (0.5, 0.0, -0.8660254037844386),
+    "30deg_xz_behind": (-0.5, 0.0, -0.8660254037844386),
+}
 ENTRY_VARIANTS = [
     pytest.param(
-        entry, direction, marks=[] if (entry, direction) == ("vertex", "30deg_yz") else pytest.mark.slow
+        entry,
+        direction,
+        marks=[]
+        if (entry, direction) in {("vertex", "30deg_yz"), ("face", "30deg_xz_behind")}
+        else pytest.mark.slow,
     )
     for entry in ENTRIES
     for direction in TILTED
 ]
 
 
+def _in_the_tissue(simulation, record) -> bool:
+    """Whether any point of the record's needle (its centreline every 0.1 mm) lies in the record's tissue."""
+    nodes = record.needle_positions
+    steps = np.linspace(0.0, 1.0, 200)[:, None]
+    points = np.concatenate([a + steps * (b - a) for a, b in zip(nodes[:-1], nodes[1:], strict=True)])
+    found, _ = TetLocator(record.tissue_positions, simulation.tets).locate(points)
+    return bool(np.any(found >= 0))
+
+
 @pytest.mark.parametrize(("entry", "direction"), ENTRY_VARIANTS)
 def test_a_needle_reinserted_along_its_cut_slides_in_it_whatever_its_entry_and_tilt(entry, direction):
     # The ``reinserted`` life with the needle entering inside a surface triangle, on a grid edge or at a grid
-    # vertex of the 4³ mesh, vertical or tilted 30° in the yz plane (normal to the stroke, so that the cut's
-    # plane holds the needle and the stroke is normal to it): inserted 17 mm along the needle, cut 8 mm
-    # along +x, withdrawn, re-inserted along the same direction 4 mm behind where the stroke ended and
-    # pushed to 4 mm beyond it. Reference as above: in the cut the faces' friction at most (μ_c = 0: their
-    # normals' tilt), then G_c L past the crack tip (L = 17 mm along the needle).
+    # vertex of the 4³ mesh, vertical or tilted 30° (in the yz plane, normal to the stroke; in the xz plane,
+    # the stroke's, the tip ahead of the base or behind it): inserted 17 mm along the needle, cut 8 mm along
+    # +x, pulled out along the needle, re-inserted along the same direction 4 mm behind where the stroke
+    # ended and pushed to 4 mm beyond it. References:
+    # - the withdrawal is the step at which no point of the needle lies in the tissue any more (the tip out
+    #   of the surface): tilted in the stroke's plane, the point where the needle entered is no longer on its
+    #   axis, so a needle that tells its withdrawal by it was withdrawn with its tip 4 mm deep, or never;
+    # - in the cut, the faces' friction at most (μ_c = 0: their normals' tilt);
+    # - past the crack tip, intact tissue cut at G_c per unit area: the needle sweeps L |t × x̂| of crack
+    #   front per unit stroke (L = 17 mm along the needle, t its direction): G_c L, or G_c L cos 30° in the
+    #   xz plane.
     x, y = ENTRIES[entry]
     knots = [
         (0.0, (x, y), -0.002),
@@ -214,16 +240,26 @@ def test_a_needle_reinserted_along_its_cut_slides_in_it_whatever_its_entry_and_t
         (5.5, (x + 0.004, y), FIRST_DEPTH),
         (6.3, (x + 0.012, y), FIRST_DEPTH),
     ]
-    scene = load_scene("cube_cut", ["mesh.cells=[4, 4, 4]", *_path_overrides(knots, TILTED[direction])])
+    scene = load_scene(
+        "cube_cut",
+        ["mesh.cells=[4, 4, 4]", "output.tissue_every=1", *_path_overrides(knots, TILTED[direction])],
+    )
+    simulation = Simulation(scene)
     records = []
-    Simulation(scene).run(on_step=lambda state, record: records.append(record))
+    simulation.run(on_step=lambda state, record: records.append(record))
     assert_each_step_ends_with_the_rows_of_its_end_state(records)
     names = [e.name for r in records for e in r.events if e.name in ("cut_start", "withdrawal", "cut_resume")]
     assert names == ["cut_start", "withdrawal", "cut_resume"], names
+    out = next(i for i, r in enumerate(records) if any(e.name == "withdrawal" for e in r.events))
+    assert _in_the_tissue(simulation, records[out - 1]) and not _in_the_tissue(simulation, records[out]), (
+        records[out].time
+    )
     d_c, g_c = scene.cutting.point_spacing, scene.cutting.fracture_energy
+    axis = np.asarray(TILTED[direction]) / np.linalg.norm(TILTED[direction])
+    front = FIRST_DEPTH * float(np.linalg.norm(np.cross(axis, [1.0, 0.0, 0.0])))  # L |t × x̂|
     push = [r for r in records if r.time >= 5.5]
-    # the tip's x from the entry (the tilt has no x part: the whole needle moves with it along x)
-    crossing = np.array([r.needle_positions[-1, 0] for r in push]) - x
+    # the needle's line from the entry along x: the tip's x less its offset from the entry at 17 mm
+    crossing = np.array([r.needle_positions[-1, 0] for r in push]) - x - FIRST_DEPTH * axis[0]
     along = np.array([r.needle_force[0] for r in push])
     inside = (crossing > 0.004 + 2 * d_c) & (crossing < 0.008 - 2 * d_c)
     assert np.count_nonzero(inside) >= 12
@@ -232,5 +268,5 @@ def test_a_needle_reinserted_along_its_cut_slides_in_it_whatever_its_entry_and_t
         assert abs(force) <= 0.1 * faces + 1e-9, (record.step, force, faces)
     beyond = crossing > 0.008 + 2 * d_c
     assert np.count_nonzero(beyond) >= 12
-    assert np.all(-along[beyond] >= g_c * (FIRST_DEPTH - 3 * d_c)), along[beyond].max()
-    assert np.all(-along[beyond] <= g_c * (FIRST_DEPTH + d_c)), along[beyond].min()
+    assert np.all(-along[beyond] >= g_c * (front - 3 * d_c)), along[beyond].max()
+    assert np.all(-along[beyond] <= g_c * (front + d_c)), along[beyond].min()

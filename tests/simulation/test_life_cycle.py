@@ -30,7 +30,8 @@ The life-cycle matrix (stage: where it is tested; the cases beyond the first of 
   it slides to the crack tip and cuts on from there (event cut_resume), re-inserted deeper than the cut it
   cuts below it: ``tests/simulation/test_cracks.py`` (re-inserted at the cut's depth and 8 mm deeper, behind
   and beyond the cut, moved back; rigid and flexible; both solvers; μ_c = 0 and 0.3; re-inserted with the
-  entry on a face, an edge, a vertex, vertical and 30°);
+  entry on a face, an edge, a vertex, vertical, 30° normal to the stroke and 30° in its plane, the tip ahead
+  of the base or behind it: withdrawn at the step no part of the needle is left in the tissue);
 - cut over directions, tilts, entries on an edge or a vertex, flexible: the matrix of
   ``tests/simulation/test_cutting.py`` (Gauss–Seidel, and against the exact solver on eight cases);
 - reverse at depth: insert, pull back part of the way, push in again beyond the first depth:
