@@ -13,7 +13,13 @@ __all__ = ["inserted_arc", "inserted_span", "inserted_stretches", "stretch_lengt
 
 
 def inserted_stretches(
-    needle, locator, spacing: float, *, refinement: int = 16, tip_outside: bool = False
+    needle,
+    locator,
+    spacing: float,
+    *,
+    refinement: int = 16,
+    tip_outside: bool = False,
+    confirm_out: bool = False,
 ) -> tuple[tuple[float, float], ...]:
     """The stretches of the needle's centreline that lie in the tissue mesh (``locator``, a
     `refsim.geometry.TetLocator` on the configuration of ``needle``): (entry, end) arc lengths [m] of each,
@@ -30,7 +36,18 @@ def inserted_stretches(
     out of a far face pressed on the surface of another layer it has not punctured yet is held outside,
     wherever round-off locates it), so a stretch ending at the tip is its indentation of that surface, not a
     stretch of the needle in the tissue: it is left out.
+
+    ``confirm_out``: when no sample lies in the tissue, the needle is sampled again every ``spacing /
+    refinement`` before the answer is none: a part of it in the tissue shorter than ``spacing``, between two
+    samples (a bent needle's shaft dipping into the surface), is no withdrawal (what the events read).
     """
+    if confirm_out:
+        found = inserted_stretches(needle, locator, spacing, refinement=refinement, tip_outside=tip_outside)
+        if found:
+            return found
+        return inserted_stretches(
+            needle, locator, spacing / refinement, refinement=refinement, tip_outside=tip_outside
+        )
     length = needle.length
     arcs = np.arange(length, -0.5 * spacing, -spacing)  # from the tip to the base, every spacing
     found, _ = locator.locate(needle.points(np.clip(arcs, 0.0, length)))

@@ -157,14 +157,7 @@ class CutEventRules:
         (the needle may cut again: a new cut start). Event ``leave_cut``."""
         # The cut the strip leaves reaches its crack tip, and the tissue keeps the strip.
         world = self._left_strip(world, state)
-        spacing = self.insertion.spacing
-        entry_arc = inserted_arc(needle, locator, spacing)
-        arcs = np.arange(entry_arc, needle.length + 1e-12 * spacing, spacing)
-        tets, barycentric = locator.locate(needle.points(arcs))
-        inside = tets >= 0
-        path = InsertionPath.empty().appended(tets[inside], barycentric[inside], world.step)
-        if world.cut is not None and world.cut.triangle_count:
-            path = self._outside_cut(path, world, positions)
+        path = self._points_along(world, needle, positions, locator)
         events = [Event("leave_cut")]
         if path.point_count == 0:
             return world, state.withdrawn(), [*events, Event("withdrawal")]
@@ -180,6 +173,20 @@ class CutEventRules:
             entered_at=None,
         )
         return world, state, events
+
+    def _points_along(self, world, needle, positions, locator: LazyLocator) -> InsertionPath:
+        """Insertion points along the inserted needle every d_i from where it enters the tissue (material
+        points where the needle now is), but none in the cut (the rule of new points: a part of the needle
+        in a cut slides in it); what holds a needle that is in the tissue with no point of its own."""
+        spacing = self.insertion.spacing
+        entry_arc = inserted_arc(needle, locator, spacing)
+        arcs = np.arange(entry_arc, needle.length + 1e-12 * spacing, spacing)
+        tets, barycentric = locator.locate(needle.points(arcs))
+        inside = tets >= 0
+        path = InsertionPath.empty().appended(tets[inside], barycentric[inside], world.step)
+        if world.cut is not None and world.cut.triangle_count:
+            path = self._outside_cut(path, world, positions)
+        return path
 
     @staticmethod
     def _left_strip(world, state):
@@ -327,7 +334,7 @@ class CutEventRules:
         # What of the needle lies in the tissue after the step: one stretch per part of the tissue it is
         # through (its indentation of a surface the tip has not punctured is none).
         stretches = inserted_stretches(
-            needle, step_locator.locator, cutting.point_spacing, tip_outside=tip_tet < 0
+            needle, step_locator.locator, cutting.point_spacing, tip_outside=tip_tet < 0, confirm_out=True
         )
         if not stretches:
             # Out of the tissue: every row is released; the tissue keeps its cut, up to the crack tip, and

@@ -31,7 +31,10 @@
   channel from where the tip entered it to its end; a tip moved back into a layer it left through its far
   face is on that channel's line (through: no tip row), one pushed into the mouth of its entry face keeps the
   channel's end it cut to
-- phase: insertion; event: retraction; when: points lie beyond the tip; then: they are removed
+- phase: insertion; event: retraction; when: points lie beyond the tip (by the coupling's release margin), or
+  no part of the needle is in the tissue and its tip is farther than that margin from it; then: they are
+  removed (a needle still in the tissue with every point beyond its tip gets points again along its inserted
+  part: the last points go by where the needle is, not by their projections on its axis)
 - phase: insertion; event: withdrawal; when: no point is left; then: approach; the tissue keeps the channel
   (``Channel``: its entry point, its end, the needle's radius), replacing the record of the hole it
   re-entered; a channel cut through to a far face is kept from both holes (the exit's record enters at the
@@ -98,6 +101,7 @@ from refsim.constraints import (
     grow_path,
     points_beyond_tip,
 )
+from refsim.constraints.inserted import inserted_stretches
 from refsim.constraints.rows import gap_roundoff
 from refsim.cutting import CutGrowth
 from refsim.geometry import TetLocator
@@ -496,16 +500,14 @@ class EventRules(CutEventRules):
             path = self._outside_cut(path, world, positions)
         if path is not state.path:
             points = path.positions(positions, self.tets)
-        # The coupling's release margin (the ring's hysteresis: its points' centres drift along the needle).
-        margin = self.coupling.retraction_margin(self.insertion.spacing)
-        beyond = points_beyond_tip(path, points, needle, margin)
-        if beyond.any():
-            path = path.subset(~beyond)
-            events.append(Event("retraction"))
         # The tip's material state: the tet it lies in, or outside (it left the tissue through a face).
         tip_tet, tip_barycentric = self.tip_location(
             positions, needle, state, detection, multipliers, locator
         )
+        released = self._released(path, points, world, needle, positions, locator, tip_tet)
+        if released is not None:
+            path = released
+            events.append(Event("retraction"))
         channel_end = self._channel_end(state, positions, needle, tip_tet, rows, multipliers)
         entered_at = state.entered_at
         if path.point_count and self._exits(state, positions, needle, tip_tet):
@@ -541,6 +543,41 @@ class EventRules(CutEventRules):
             entered_at=entered_at,
         )
         return world, state, events
+
+    def _released(self, path, points, world, needle, positions, locator: LazyLocator, tip_tet: int):
+        """The path after the retraction, or None when it releases no point.
+
+        A point is released when it lies beyond the tip by more than the coupling's release margin (the
+        ring's hysteresis: its centre drifts along the needle with the tissue's strain). The last points go
+        by where the needle is, not by their projections on its axis, which a tilted needle moved sideways
+        leaves away from where it crosses the surface:
+
+        - part of the needle still in the tissue with every point beyond its tip: points are laid again along
+          the inserted needle, as after leave_cut (released, a needle moved sideways as it came out was
+          withdrawn with its tip 0.25 mm deep and re-entered or punctured its own hole at the next step);
+        - no part of it in the tissue: every point is released once its tip is farther than the margin from
+          the tissue (a needle pulled out 30° from vertical while moving 4 mm towards its tilt kept its entry
+          point with its tip 1.7 mm above the surface, and 0.77 N on it in the air), the entry point kept
+          until then (a bent needle released with its tip 0.015 mm above the surface sprang back into its
+          hole).
+        """
+        if path.point_count == 0:
+            return None
+        margin = self.coupling.retraction_margin(self.insertion.spacing)
+        beyond = points_beyond_tip(path, points, needle, margin)
+        if tip_tet >= 0 and not beyond.all():
+            return path.subset(~beyond) if beyond.any() else None
+        stretches = inserted_stretches(
+            needle, locator.locator, self.insertion.spacing, tip_outside=tip_tet < 0, confirm_out=True
+        )
+        if stretches:
+            if beyond.all():
+                return self._points_along(world, needle, positions, locator)
+            return path.subset(~beyond) if beyond.any() else None
+        if locator.locator.locate_nearest(needle.tip[None, :])[2][0] > margin:
+            return path.subset(np.zeros(path.point_count, dtype=bool))
+        beyond[0] = False  # at the surface: the entry point holds until the tip is the margin away
+        return path.subset(~beyond) if beyond.any() else None
 
     def tip_location(self, positions, needle, state, detection, multipliers, locator: LazyLocator):
         """The tip's material state after the step (inserting or cutting): the tet it lies in and its

@@ -17,6 +17,20 @@ by the scene's own check), and each needle is checked on its own rows and events
 
 - ``finite``: the tissue positions (when recorded), the needle's positions, its force and the rows' forces;
 - ``rows``: the step ends with the rows of its end state (:func:`end_state_violations`);
+- ``phase`` (records holding the tissue's positions at every step, which :func:`draw_life`'s scenes ask for):
+  a needle in insertion or cutting has some of its centreline in the tissue as deformed at the step, or lies
+  within the insertion points' release margin of it (the ring's hysteresis, a share of d_i, by which a
+  pulled-back tip outlives its last point; the model's needle is its centreline): refsim.simulation.events'
+  table, a needle is withdrawn when no part of it is left in the tissue (:func:`phase_violation`). The faults
+  this was written for: a needle tilted in its stroke's plane and pulled out after a stroke towards its tilt,
+  never withdrawn (the entry point's projection on its axis above its tip), and one pulled out while moving
+  sideways towards its tilt, kept in insertion with its tip 1.7 mm above the surface and 0.77 N on it. (The
+  withdrawal's step is not checked here: its record is its second solve, in which a released bent needle may
+  spring into the surface, and a tip pressed into a surface it has not punctured is no part of the needle in
+  the tissue, while the approach's contact, one row linearised at the step's start, lets a needle buckled at a
+  layer's edge, or an organ breathing onto a shaft, into the tissue by 0.2 to 9.5 mm in 17 of the 596 slow
+  lives: docs/coupling.md, "The face the tip meets". tests/simulation/test_cracks.py and test_life_cycle.py
+  check the withdrawals of those faults' lives.)
 - ``force_without_rows``: no force on the needle in a step without rows;
 - ``force_bound`` (a needle that cuts; one that does not is held by its shaft without a law's limit, by
   design): ‖F‖ ≤ 2 (f_p + G_c L_in) at every step, L_in the needle's length inside the tissue (the
@@ -52,6 +66,7 @@ __all__ = [
     "inserted_lengths",
     "layers_mesh_file",
     "life_violations",
+    "phase_violation",
     "shaft_contact_loads",
 ]
 
@@ -113,6 +128,9 @@ TRAVEL_SHARE = 0.8
 BOUND_FACTOR = 2.0
 #: A force [N] below which a step without rows counts as carrying none.
 NO_ROW_FORCE = 1e-9
+#: The ``phase`` invariant's sampling of the needle's centreline [m] (:func:`_length_inside`'s): a length in
+#: the tissue at most this is none, a distance from it at most this is touching it.
+PHASE_SAMPLING = 1e-4
 
 
 @dataclass(frozen=True)
@@ -262,12 +280,14 @@ def _draw_run(rng) -> tuple[float, bool, bool, bool]:
 
 def _run_overrides(dt: float, steps: int, rigid: bool, fast: bool, exact_solver: bool) -> list[str]:
     """The overrides of the run's settings: dt, a duration of ``steps`` steps and at least 2 s (a final
-    hold), the needle, the compliance and the solver."""
+    hold), the needle, the compliance and the solver; the tissue's positions recorded at every step (what
+    the ``phase`` invariant and an organ's inserted length read)."""
     steps = max(steps, int(np.ceil(2.0 / dt - 1e-9)))
     overrides = [
         f"time.dt={dt!r}",
         f"time.duration={round(steps * dt, 10)!r}",
         f"needle.rigid={'true' if rigid else 'false'}",
+        "output.tissue_every=1",
     ]
     if fast:
         overrides.append("compliance.strategy=fast")
@@ -431,8 +451,7 @@ def draw_life(seed: int, family: str = "cube") -> Life:
     if family == "two":
         overrides.append(f"needle.radius={TWO_RADIUS!r}")
     if family == "layers":
-        # a thin needle, and the tissue's positions at every step: L_in is measured on the deformed layers
-        overrides += [f"needle.radius={LAYERS_RADIUS!r}", "output.tissue_every=1"]
+        overrides.append(f"needle.radius={LAYERS_RADIUS!r}")  # a thin needle
     life = Life(
         seed=seed,
         dt=dt,
@@ -540,7 +559,7 @@ def _liver_life(seed: int) -> Life:
         raise ValueError(
             f"seed {seed}: no entry of the liver in {LIVER_ATTEMPTS} attempts whose start is outside"
         )
-    overrides = [*_run_overrides(dt, steps, rigid, fast, exact_solver), "output.tissue_every=1"]
+    overrides = list(_run_overrides(dt, steps, rigid, fast, exact_solver))
     return Life(
         seed=seed,
         dt=dt,
@@ -648,6 +667,48 @@ def _length_inside(needle_positions: np.ndarray, inside) -> float:
     return float((lengths * mask.mean(axis=1)).sum())
 
 
+def phase_violation(
+    phase: str,
+    needle_positions: np.ndarray,
+    locator,
+    release_margin: float,
+    *,
+    withdrawn: bool = False,
+) -> str | None:
+    """What is wrong with a needle in ``phase`` whose centreline is the polyline ``needle_positions`` (k, 3)
+    [m] in the tissue ``locator`` locates in (a `refsim.geometry.TetLocator` on the step's positions), or
+    None (the ``phase`` invariant of :func:`life_violations`): in insertion or cutting, none of its centreline
+    in the tissue and that centreline farther from it than ``release_margin`` [m] (the insertion points'
+    release margin) plus :data:`PHASE_SAMPLING` (the model's needle is its centreline: its rows, stretches and
+    withdrawal are the centreline's); at the step of its withdrawal (``withdrawn``), more than that sampling
+    of its centreline in the tissue."""
+    needle_positions = np.asarray(needle_positions, dtype=float)
+    inside = _length_inside(needle_positions, lambda points: locator.locate(points)[0] >= 0)
+    if phase == "approach":
+        if withdrawn and inside > PHASE_SAMPLING:
+            return f"withdrawn with {1e3 * inside:.2f} mm of the needle in the tissue"
+        return None
+    if inside > 0.0:
+        return None
+    distance = _distance_to(needle_positions, locator)
+    if distance > release_margin + PHASE_SAMPLING:
+        return f"in {phase} with no part of the needle in the tissue, {1e3 * distance:.2f} mm from it"
+    return None
+
+
+def _distance_to(needle_positions: np.ndarray, locator) -> float:
+    """The distance [m] from the polyline ``needle_positions`` (k, 3), sampled every 0.1 mm or finer, to the
+    tissue ``locator`` locates in."""
+    start, end = needle_positions[:-1], needle_positions[1:]
+    lengths = np.linalg.norm(end - start, axis=1)
+    count = max(int(np.ceil(lengths.max() / PHASE_SAMPLING)), 2) if lengths.size else 0
+    if count == 0:
+        return float(locator.locate_nearest(needle_positions)[2].min())
+    s = np.arange(count + 1) / count
+    points = start[:, None, :] + s[None, :, None] * (end - start)[:, None, :]
+    return float(locator.locate_nearest(points.reshape(-1, 3))[2].min())
+
+
 def inserted_lengths(records, scene, instrument: int = 0) -> np.ndarray:
     """L_in of ``instrument`` at each record [m]: its needle's length inside the tissue, the undeformed box of
     a box mesh (the cube's), the deformed mesh of the step otherwise, the needle's radius around it (an organ
@@ -748,4 +809,27 @@ def life_violations(records, scene) -> list[Violation]:
     for index in range(len(specs)):
         for check, step in end_state_violations(records, index):
             note("rows", index, by_step[step], check)
+    for record, index, detail in _phase_violations(records, scene):
+        note("phase", index, record, detail)
     return list(first.values())
+
+
+def _phase_violations(records, scene):
+    """The ``phase`` invariant's violations (:func:`phase_violation`) of every instrument at every record
+    holding the tissue's positions: (record, instrument, detail), in step order."""
+    from refsim.geometry.search import TetLocator
+    from refsim.scene.build import build_models
+
+    if not any(record.tissue_positions is not None for record in records):
+        return
+    tets = np.asarray(build_models(scene).mesh.tets)
+    margin = scene.insertion.coupling_model.retraction_margin(float(scene.insertion.spacing))
+    locator = None
+    for record in records:
+        if record.tissue_positions is None:
+            continue
+        locator = TetLocator(np.asarray(record.tissue_positions), tets, previous=locator)
+        for index, own in enumerate(record.instruments):
+            detail = phase_violation(str(own.phase), own.needle_positions, locator, margin)
+            if detail is not None:
+                yield record, index, detail

@@ -5,20 +5,19 @@ Each seed draws one life on cube_cut (4³ cells): a time step of 5, 10 or 20 ms,
 the exact or the fast compliance, Gauss–Seidel or the exact solver, a tilt of 0–35° at any azimuth, an entry
 inside a triangle, on a grid edge or at a grid vertex, and 3–5 segments that insert, pull back (out of the
 tissue too), move sideways, turn and hold. The invariants (the module's docstring states their references):
-finite states, every step ending with the rows of its end state, no force without rows, and the needle force
-within twice what the laws let the tissue hold it with, f_p + G_c L_in. Seeds 0–5 run by default (seed 0 held
-its needle at 3.2 times f_p + G_c L_in, 13.3 N, when the faces of a cut near its crack tip had no limit); the
-slow set runs seeds 6–199. The "model" family also draws the mesh (3³ to 8³ cells, stretched tets), d_i, d_c,
-f_p, G_c, the friction coefficients, the needle's radius and the tissue's thickness (a 20 mm layer held on
-its sides): six seeds by default, the rest of 0–199 in the slow set. The "two"
-family runs a second needle beside the first, one that holds and does not cut, each checked on its own rows
-and events (the force bound on the one that cuts): four seeds by default, the rest of 0–99 in the slow set.
-The "liver" family runs the same kind of life on the liver scene (an unstructured organ that breathes under
-the needle), entering anywhere on its surface: five seeds by default, the rest of 0–59 in the slow set. The
-"layers" family runs it in two layers with a gap between them (a wall over an organ; their thicknesses and
-the gap drawn), which the needle punctures, cuts and leaves part by part: three seeds by default, the rest of
-0–59 in the slow set.
-"""
+finite states, every step ending with the rows of its end state, no force without rows, the phase telling
+where the needle is (some of it in the tissue in insertion and cutting), and the needle force within twice
+what the laws let the tissue hold it with, f_p + G_c L_in. Seeds 0–5 run by default (seed 0 held its needle at
+3.2 times f_p + G_c L_in, 13.3 N, when the faces of a cut near its crack tip had no limit); the slow set runs
+seeds 6–199. The "model" family also draws the mesh (3³ to 8³ cells, stretched tets), d_i, d_c, f_p, G_c, the
+friction coefficients, the needle's radius and the tissue's thickness (a 20 mm layer held on its sides): six
+seeds by default, the rest of 0–199 in the slow set. The "two" family runs a second needle beside the first,
+one that holds and does not cut, each checked on its own rows and events (the force bound on the one that
+cuts): four seeds by default, the rest of 0–99 in the slow set. The "liver" family runs the same kind of life
+on the liver scene (an unstructured organ that breathes under the needle), entering anywhere on its surface:
+five seeds by default, the rest of 0–59 in the slow set. The "layers" family runs it in two layers with a gap
+between them (a wall over an organ; their thicknesses and the gap drawn), which the needle punctures, cuts and
+leaves part by part: three seeds by default, the rest of 0–59 in the slow set."""
 
 from __future__ import annotations
 
