@@ -1,6 +1,6 @@
 """Random needle lives on cube_cut (4³ cells; ``--family model`` draws the mesh and the model's values too,
 ``--family two`` a second needle that holds beside the one that cuts): run a range of seeds, check every step
-of each against the invariants of `refsim.verification.life_cycles`, write one JSON line per seed and print a
+of each against the invariants of `refsim.verification.invariants`, write one JSON line per seed and print a
 table.
 
     OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 \\
@@ -64,13 +64,13 @@ def run_seed(seed: int, family: str = "cube") -> dict:
     """Draw, run and check one seed of ``family``: its JSON line as a dict."""
     import numpy as np
 
-    from refsim.verification.life_cycles import (
+    from refsim.verification.invariants import (
         NO_ROW_FORCE,
-        draw_life,
         inserted_lengths,
         life_violations,
         shaft_contact_loads,
     )
+    from refsim.verification.life_cycles import draw_life
 
     logging.getLogger("refsim").setLevel(logging.ERROR)  # the scene's notes on fast needles, every life
     life = draw_life(seed, family)
@@ -81,7 +81,7 @@ def run_seed(seed: int, family: str = "cube") -> dict:
     forces = np.array([float(np.linalg.norm(record.needle_force)) for record in records])
     ratios = forces / (reference[0] + reference[1] * inserted_lengths(records, scene))
     shaft = shaft_contact_loads(records)
-    ratios[shaft > NO_ROW_FORCE] = np.nan  # the shaft contact has no law's limit (life_cycles, force_bound)
+    ratios[shaft > NO_ROW_FORCE] = np.nan  # the shaft contact has no law's limit (invariants, force_bound)
     peak_force = float(forces.max()) if forces.size else 0.0
     valid = np.isfinite(ratios)
     at = int(np.argmax(np.where(valid, ratios, -1.0))) if valid.any() else None
@@ -166,7 +166,8 @@ def trace(seed: int, steps: tuple[int, int] | None, family: str = "cube") -> Non
     role."""
     import numpy as np
 
-    from refsim.verification.life_cycles import draw_life, life_violations
+    from refsim.verification.invariants import life_violations
+    from refsim.verification.life_cycles import draw_life
 
     life = draw_life(seed, family)
     print(life.describe())

@@ -224,7 +224,7 @@ def test_two_needles_that_both_cut_each_cut_at_g_c_per_unit_length(crossing):
     # G_c per unit length), so crossing the first cut the second needle cuts at G_c × 17 mm all the way, as
     # in the steady windows (from 0.2 s after its cut start, when its stroke has begun); every step keeps
     # the random lives' invariants.
-    from refsim.verification.life_cycles import life_violations
+    from refsim.verification.invariants import life_violations
 
     data = _two_needles(duration=7.2)
     data["needle"]["radius"] = 0.002

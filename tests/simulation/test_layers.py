@@ -239,8 +239,8 @@ def test_a_needle_through_two_layers_cuts_each_at_g_c_per_unit_length(tmp_path, 
     # (8 mm + 6 mm) / cos(tilt), the gap not counted. The stretches' ends are located to d_c/16 each (two
     # parts, four ends: L_in to d_c/4); the surfaces' indentation under the needle is a hundredth of that.
     # The cut in each layer is its own (no triangle joins the layers across the gap), and every step of the
-    # life keeps the invariants of the random lives (refsim.verification.life_cycles).
-    from refsim.verification.life_cycles import life_violations
+    # life keeps the invariants of the random lives (refsim.verification.invariants).
+    from refsim.verification.invariants import life_violations
 
     scene, records, final, stroke_end = _cut_through_layers(tmp_path, gap, direction, *CUT_VARIANTS[variant])
     names = [e.name for r in records for e in r.events]
@@ -300,7 +300,7 @@ def test_a_needle_pushed_through_the_gap_while_it_cuts_punctures_and_cuts_the_lo
     # into the lower layer with no contact and no puncture). Then the energy law, as above: the front holds
     # the needle with G_c L_in, L_in = (8 + 5 mm) / cos(tilt), each stretch's ends located to d_c/16. The
     # strip extends down the shaft into the lower layer as a part of its own (no triangle across the gap).
-    from refsim.verification.life_cycles import life_violations
+    from refsim.verification.invariants import life_violations
 
     d = np.asarray(DIRECTIONS[direction], dtype=float)
     cos = -d[2]
@@ -380,7 +380,7 @@ def test_a_cutting_needle_pushed_into_a_hole_of_the_lower_layer_re_enters_it(tmp
     # holds the shaft: the tip meets the lower layer's hole at Q as a hole, and enters it with no puncture
     # (the event reentry), as an inserting needle does; then each layer holds the cutting needle at G_c per
     # unit length of needle in it, L_in = 8 + 5 mm.
-    from refsim.verification.life_cycles import life_violations
+    from refsim.verification.invariants import life_violations
 
     gap, side = 0.003, np.array([0.0, 1.0, 0.0])
     p = np.array([ENTRY[0], ENTRY[1], TOP])
@@ -445,7 +445,7 @@ def test_a_tip_moved_sideways_in_the_gap_punctures_the_lower_layer_at_its_new_pl
     # backed out of a face it entered by, it is in its channel's mouth only while it meets that hole; moved
     # away from it, the surface ahead is intact tissue, which it punctures at f_p (the capped rule) as in
     # approach. (Before, it went into the lower layer with no contact and no puncture wherever it was.)
-    from refsim.verification.life_cycles import life_violations
+    from refsim.verification.invariants import life_violations
 
     scene, records, times = _moved_in_the_gap(tmp_path, gap, direction, side, scene_name)
     punctures = [(r.step, e) for r in records for e in r.events if e.name == "puncture"]
@@ -470,7 +470,7 @@ def test_a_cutting_needle_backed_out_of_the_lower_layer_meets_its_channel_or_int
     # layer, that layer keeps its channel (as in insertion): pushed in at the same place, the tip is in its
     # channel's mouth (no event); moved 3 mm first, it meets intact tissue and punctures it at f_p. (Before,
     # the cutting phase recorded no channel there: the tip punctured its own hole again.)
-    from refsim.verification.life_cycles import life_violations
+    from refsim.verification.invariants import life_violations
 
     gap, along = 0.003, np.array([0.0, 1.0, 0.0])
     p = np.array([ENTRY[0], ENTRY[1], TOP])

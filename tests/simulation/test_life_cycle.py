@@ -60,7 +60,7 @@ The life-cycle matrix (stage: where it is tested; the cases beyond the first of 
   ``tests/simulation/test_holes.py``;
 - random lives (seeded: time step, needle, compliance, solver, tilt, entry, and segments that insert, pull
   back, move sideways, turn and hold), every step against the invariants of
-  :mod:`refsim.verification.life_cycles` (finite, rows of the end state, no force without rows, the force
+  :mod:`refsim.verification.invariants` (finite, rows of the end state, no force without rows, the force
   within twice f_p + G_c L_in): ``tests/simulation/test_random_life_cycles.py`` (6 seeds; 194 @slow);
 - a needle less deep than d_i (its entry point alone holds it) pushed sideways: a cut start at f_p + G_c L_in,
   the entry point's rows bounded as the shaft's: ``test_a_needle_less_deep_than_d_i_pushed_sideways_...``
@@ -87,7 +87,7 @@ from refsim.constraints import (
 from refsim.geometry import TetLocator
 from refsim.scene import load_scene
 from refsim.simulation import Phase, Simulation
-from refsim.verification.life_cycles import end_state_violations, phase_violation
+from refsim.verification.invariants import end_state_violations, phase_violation
 
 # The cube's entry (off the grid lines) and its needle: the tip starts 2 mm above the top face (z = 0.1 m).
 ENTRY = (0.00123, 0.00231)
@@ -129,7 +129,7 @@ def _run(*overrides):
 
 def assert_each_step_ends_with_the_rows_of_its_end_state(records) -> None:
     """Every step of a one-needle run ends with the rows its state after the step's events calls for
-    (:func:`refsim.verification.life_cycles.end_state_violations`: no rows but the tip's contact in the
+    (:func:`refsim.verification.invariants.end_state_violations`: no rows but the tip's contact in the
     approach phase, no crack-front row outside the cutting phase, no row of a removed insertion point, no
     tip row after an exit through a far face, rows from the step of a re-entry). Each failed on the runs of
     this module before those events solved their step again (the retraction's removed points on every
@@ -1055,7 +1055,7 @@ def test_a_tilted_needle_moved_sideways_as_it_is_pulled_out_is_withdrawn_once_ou
     # along it, held, then pulled out to 2 mm above the surface while its line moves ``side`` along x (towards
     # its tilt, or away from it), and held. Reference: the events table (refsim.simulation.events) — the
     # needle is withdrawn when no part of it is left in the tissue, and has no force on it from then on; the
-    # random lives' phase invariant (refsim.verification.life_cycles.phase_violation) at every step. Before,
+    # random lives' phase invariant (refsim.verification.invariants.phase_violation) at every step. Before,
     # the points were released by their projections on the needle's axis alone: moved towards its tilt, the
     # needle kept its entry point with its tip 1.7 mm above the surface, and 0.77 N on it in the air; moved
     # away, it was withdrawn with 0.3 mm of it in the tissue and re-entered its own hole at the next step.

@@ -25,7 +25,8 @@ import numpy as np
 import pytest
 
 from refsim.simulation import Simulation
-from refsim.verification.life_cycles import draw_life, life_violations
+from refsim.verification.invariants import life_violations
+from refsim.verification.life_cycles import draw_life
 
 DEFAULT_SEEDS = range(0, 6)
 SLOW_SEEDS = range(6, 200)
